@@ -1,0 +1,48 @@
+"""`photogram-ros`: one command with a subcommand per job.
+
+Each subcommand lives in `photogram_ros/commands/<name>.py` with `HELP`, `add_arguments(parser)`
+and `run(args) -> int`; heavy imports stay inside `run` so that `--help` is instant.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+
+from photogram_ros.errors import PhotogramError
+
+COMMANDS = {
+    'simulate': 'photogram_ros.commands.simulate',
+    'replay': 'photogram_ros.commands.replay',
+    'play': 'photogram_ros.commands.play',
+    'record': 'photogram_ros.commands.record',
+    'bag-info': 'photogram_ros.commands.bag_info',
+}
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog='photogram-ros', description='Onboard photogrammetric mapping for drones.')
+    sub = parser.add_subparsers(dest='command', metavar='COMMAND')
+    sub.required = True
+    for name, module_name in COMMANDS.items():
+        module = importlib.import_module(module_name)
+        p = sub.add_parser(name, help=module.HELP, description=module.HELP)
+        module.add_arguments(p)
+        p.set_defaults(_run=module.run)
+    return parser
+
+
+def main(argv=None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        return int(args._run(args) or 0)
+    except PhotogramError as exc:
+        print(f'photogram-ros {args.command}: error: {exc}', file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        return 130
+
+
+if __name__ == '__main__':
+    sys.exit(main())

@@ -1,0 +1,1 @@
+"""Subcommands of `photogram-ros` (see photogram_ros/cli.py)."""

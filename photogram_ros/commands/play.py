@@ -1,0 +1,38 @@
+"""photogram-ros play: publish a bag's topics onto ROS 2 with the recorded timing."""
+
+from __future__ import annotations
+
+HELP = 'publish the topics of a bag with their recorded timing (no mapping)'
+
+
+def add_arguments(p) -> None:
+    p.add_argument('bag', help='rosbag2 folder (sqlite3 or MCAP)')
+    p.add_argument('--rate', type=float, default=1.0, help='speed factor; 0 = as fast as subscribers keep up')
+    p.add_argument('--topics', default='', help='comma-separated topics to play (default: all)')
+    p.add_argument('--exclude', default='', help='comma-separated topics not to play')
+    p.add_argument('--remap', default='', help='comma-separated renames /from:=/to')
+    p.add_argument('--loop', action='store_true', help='play again from the start when the bag ends')
+    p.add_argument('--no-clock', action='store_true', help='do not publish /clock')
+    p.add_argument('--wait-for-subscribers', type=int, default=0, help='wait for N subscribers before playing')
+
+
+def player_overrides(a) -> dict:
+    return {'bag': a.bag, 'rate': float(a.rate), 'topics': a.topics, 'exclude': a.exclude, 'remap': a.remap,
+            'loop': bool(a.loop), 'publish_clock': not a.no_clock, 'wait_for_subscribers': a.wait_for_subscribers}
+
+
+def run(a) -> int:
+    import rclpy
+
+    from photogram_ros.nodes.player_node import PlayerNode
+    rclpy.init()
+    node = None
+    try:
+        node = PlayerNode(overrides=player_overrides(a))
+        summary = node.play()
+        print('\n'.join(summary.lines()))
+        return 3 if summary.errors or summary.skipped else 0
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()

@@ -1,0 +1,1 @@
+"""Pure numerics and geometry: nothing in this package may import ROS."""

@@ -1,0 +1,197 @@
+"""The one place that converts between ROS 2 messages and numpy / core types.
+
+Nodes, the simulator and the bag tools all go through these functions, so an encoding rule
+(image layouts, PointCloud2 fields, NavSatFix covariance) is written exactly once. Images are
+converted here because cv_bridge is not available from PyPI.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from photogram_ros.core.camera import PinholeCamera
+from photogram_ros.errors import DataError
+
+from builtin_interfaces.msg import Time  # noqa: E402  (ROS imports after core on purpose)
+from sensor_msgs.msg import CameraInfo, CompressedImage, Image, NavSatFix, NavSatStatus, PointCloud2, PointField
+from std_msgs.msg import Header, MultiArrayDimension, UInt8MultiArray
+
+# --- time ----------------------------------------------------------------------------------------
+
+
+def time_from_ns(stamp_ns: int) -> Time:
+    stamp_ns = int(stamp_ns)
+    return Time(sec=stamp_ns // 1_000_000_000, nanosec=stamp_ns % 1_000_000_000)
+
+
+def ns_from_time(stamp: Time) -> int:
+    return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
+
+
+def header(stamp_ns: int, frame_id: str) -> Header:
+    return Header(stamp=time_from_ns(stamp_ns), frame_id=frame_id)
+
+
+# --- images --------------------------------------------------------------------------------------
+
+_ENCODINGS = {  # encoding -> (dtype, channels)
+    'mono8': (np.uint8, 1), '8UC1': (np.uint8, 1), 'bgr8': (np.uint8, 3), 'rgb8': (np.uint8, 3),
+    'bgra8': (np.uint8, 4), 'rgba8': (np.uint8, 4), 'mono16': (np.uint16, 1), '16UC1': (np.uint16, 1),
+    '32FC1': (np.float32, 1),
+}
+
+
+def image_msg(image: np.ndarray, stamp_ns: int, frame_id: str = 'camera_optical') -> Image:
+    """numpy image (H, W) mono8/mono16/32FC1 or (H, W, 3) BGR -> sensor_msgs/Image."""
+    img = np.ascontiguousarray(image)
+    if img.ndim == 2:
+        enc = {np.dtype(np.uint8): 'mono8', np.dtype(np.uint16): 'mono16',
+               np.dtype(np.float32): '32FC1'}.get(img.dtype)
+    elif img.ndim == 3 and img.shape[2] == 3 and img.dtype == np.uint8:
+        enc = 'bgr8'
+    else:
+        enc = None
+    if enc is None:
+        raise DataError(f'cannot encode an image of shape {img.shape} and type {img.dtype}')
+    msg = Image(header=header(stamp_ns, frame_id), height=img.shape[0], width=img.shape[1],
+                encoding=enc, is_bigendian=0, step=img.strides[0])
+    msg.data = img.tobytes()
+    return msg
+
+
+def compressed_image_msg(image: np.ndarray, stamp_ns: int, frame_id: str = 'camera_optical',
+                         quality: int = 90) -> CompressedImage:
+    import cv2
+    ok, buf = cv2.imencode('.jpg', image, [cv2.IMWRITE_JPEG_QUALITY, int(quality)])
+    if not ok:
+        raise DataError('JPEG encoding failed')
+    msg = CompressedImage(header=header(stamp_ns, frame_id), format='jpeg')
+    msg.data = buf.tobytes()
+    return msg
+
+
+def image_from_msg(msg) -> np.ndarray:
+    """sensor_msgs/Image or CompressedImage -> numpy (BGR uint8 for colour, 2-D for mono)."""
+    if hasattr(msg, 'format'):  # CompressedImage
+        import cv2
+        buf = np.frombuffer(bytes(msg.data), dtype=np.uint8)
+        img = cv2.imdecode(buf, cv2.IMREAD_UNCHANGED) if buf.size else None
+        if img is None:
+            raise DataError(f'compressed image ({msg.format!r}, {buf.size} bytes) cannot be decoded')
+        return img
+    enc = msg.encoding
+    if enc not in _ENCODINGS:
+        raise DataError(f'unsupported image encoding {enc!r}; publish mono8, bgr8 or rgb8')
+    dtype, ch = _ENCODINGS[enc]
+    itemsize = np.dtype(dtype).itemsize
+    h, w, step = int(msg.height), int(msg.width), int(msg.step)
+    if h <= 0 or w <= 0 or step < w * ch * itemsize or len(msg.data) < h * step:
+        raise DataError(f'image {w}x{h} {enc} with step {step} has {len(msg.data)} bytes: truncated or '
+                        'inconsistent')
+    raw = np.frombuffer(bytes(msg.data), dtype=np.uint8, count=h * step).reshape(h, step)
+    raw = raw[:, :w * ch * itemsize]
+    img = raw.copy().view(dtype)
+    if msg.is_bigendian and itemsize > 1:
+        img = img.byteswap()
+    img = img.reshape(h, w, ch) if ch > 1 else img.reshape(h, w)
+    if enc == 'rgb8':
+        img = img[:, :, ::-1].copy()
+    elif enc == 'rgba8':
+        img = img[:, :, [2, 1, 0]].copy()
+    elif enc == 'bgra8':
+        img = img[:, :, :3].copy()
+    return img
+
+
+# --- camera info ---------------------------------------------------------------------------------
+
+
+def camera_info_msg(camera: PinholeCamera, stamp_ns: int, frame_id: str = 'camera_optical') -> CameraInfo:
+    f = camera.to_camera_info_fields()
+    return CameraInfo(header=header(stamp_ns, frame_id), width=f['width'], height=f['height'],
+                      distortion_model=f['distortion_model'], d=f['d'], k=f['k'], r=f['r'], p=f['p'])
+
+
+def camera_from_info(msg: CameraInfo) -> PinholeCamera:
+    return PinholeCamera.from_camera_info_fields(msg.width, msg.height, msg.distortion_model,
+                                                 list(msg.d), list(msg.k))
+
+
+# --- GNSS ----------------------------------------------------------------------------------------
+
+
+def navsatfix_msg(stamp_ns: int, lat_deg: float, lon_deg: float, h_m: float, status: int,
+                  covariance_enu_m2, covariance_type: int, frame_id: str = 'gps',
+                  service: int = NavSatStatus.SERVICE_GPS) -> NavSatFix:
+    """NavSatFix with the ellipsoidal height (REP-145) and a 3x3 ENU covariance (m^2)."""
+    cov = np.asarray(covariance_enu_m2, dtype=float).reshape(-1)
+    if cov.size == 3:
+        cov = np.diag(cov).ravel()
+    return NavSatFix(header=header(stamp_ns, frame_id),
+                     status=NavSatStatus(status=int(status), service=int(service)),
+                     latitude=float(lat_deg), longitude=float(lon_deg), altitude=float(h_m),
+                     position_covariance=cov.tolist(), position_covariance_type=int(covariance_type))
+
+
+def fix_from_navsatfix(msg: NavSatFix) -> dict:
+    return {'stamp_ns': ns_from_time(msg.header.stamp), 'lat_deg': msg.latitude,
+            'lon_deg': msg.longitude, 'h_m': msg.altitude, 'status': msg.status.status,
+            'covariance_enu_m2': np.asarray(msg.position_covariance, dtype=float).reshape(3, 3),
+            'covariance_type': msg.position_covariance_type, 'frame_id': msg.header.frame_id}
+
+
+# --- raw bytes (MAVLink in bags) -----------------------------------------------------------------
+
+
+def bytes_msg(data: bytes) -> UInt8MultiArray:
+    msg = UInt8MultiArray()
+    msg.layout.dim = [MultiArrayDimension(label='bytes', size=len(data), stride=len(data))]
+    msg.data = bytes(data)
+    return msg
+
+
+def bytes_from_msg(msg: UInt8MultiArray) -> bytes:
+    return bytes(msg.data)
+
+
+# --- point clouds --------------------------------------------------------------------------------
+
+_PF = {np.dtype(np.int8): PointField.INT8, np.dtype(np.uint8): PointField.UINT8,
+       np.dtype(np.int16): PointField.INT16, np.dtype(np.uint16): PointField.UINT16,
+       np.dtype(np.int32): PointField.INT32, np.dtype(np.uint32): PointField.UINT32,
+       np.dtype(np.float32): PointField.FLOAT32, np.dtype(np.float64): PointField.FLOAT64}
+_PF_INV = {v: k for k, v in _PF.items()}
+
+
+def pointcloud2_msg(points: np.ndarray, stamp_ns: int, frame_id: str = 'map') -> PointCloud2:
+    """Structured numpy array (named scalar fields) -> unordered PointCloud2 (height 1)."""
+    arr = np.ascontiguousarray(points)
+    if arr.dtype.names is None:
+        raise DataError('pointcloud2_msg needs a structured array with named fields (x, y, z, ...)')
+    fields = []
+    for name in arr.dtype.names:
+        dt, offset = arr.dtype.fields[name][:2]
+        if dt.base not in _PF or dt.shape:
+            raise DataError(f'field {name!r} of type {dt} cannot go into a PointCloud2')
+        fields.append(PointField(name=name, offset=offset, datatype=_PF[dt.base], count=1))
+    msg = PointCloud2(header=header(stamp_ns, frame_id), height=1, width=arr.shape[0], fields=fields,
+                      is_bigendian=False, point_step=arr.dtype.itemsize,
+                      row_step=arr.dtype.itemsize * arr.shape[0], is_dense=True)
+    msg.data = arr.tobytes()
+    return msg
+
+
+def points_from_pointcloud2(msg: PointCloud2) -> np.ndarray:
+    """PointCloud2 -> structured numpy array with the message's fields."""
+    names, formats, offsets = [], [], []
+    for f in msg.fields:
+        if f.datatype not in _PF_INV:
+            raise DataError(f'PointCloud2 field {f.name!r} has unknown datatype {f.datatype}')
+        names.append(f.name)
+        formats.append(_PF_INV[f.datatype].newbyteorder('>' if msg.is_bigendian else '<'))
+        offsets.append(f.offset)
+    dtype = np.dtype({'names': names, 'formats': formats, 'offsets': offsets, 'itemsize': msg.point_step})
+    n = int(msg.width) * int(msg.height)
+    if len(msg.data) < n * msg.point_step:
+        raise DataError(f'PointCloud2 has {len(msg.data)} bytes for {n} points of {msg.point_step} bytes')
+    return np.frombuffer(bytes(msg.data), dtype=dtype, count=n).copy()

@@ -1,0 +1,81 @@
+"""Health reporting on /diagnostics, shared by every node.
+
+Nodes count what they do (`count`), record problems (`problem`) and set values (`set`); a timer
+publishes one DiagnosticStatus per node each period. A bad message is a counted, reported event,
+never a reason to stop the node.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections import Counter, deque
+
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from rclpy.node import Node
+
+OK, WARN, ERROR = DiagnosticStatus.OK, DiagnosticStatus.WARN, DiagnosticStatus.ERROR
+
+
+class Diagnostics:
+    def __init__(self, node: Node, period_s: float = 1.0, hardware_id: str = 'photogram_ros'):
+        self.node = node
+        self.name = node.get_fully_qualified_name()
+        self.hardware_id = hardware_id
+        self._lock = threading.Lock()
+        self._counts = Counter()
+        self._values: dict[str, str] = {}
+        self._problems: deque = deque(maxlen=20)
+        self._level = OK
+        self._rate_marks: dict[str, deque] = {}
+        self._pub = node.create_publisher(DiagnosticArray, '/diagnostics', 10)
+        self._timer = node.create_timer(period_s, self.publish)
+
+    def count(self, key: str, n: int = 1) -> None:
+        with self._lock:
+            self._counts[key] += n
+            marks = self._rate_marks.setdefault(key, deque(maxlen=200))
+            marks.append(time.monotonic())
+
+    def rate_hz(self, key: str, window_s: float = 5.0) -> float:
+        with self._lock:
+            marks = self._rate_marks.get(key)
+            if not marks:
+                return 0.0
+            now = time.monotonic()
+            recent = [m for m in marks if now - m <= window_s]
+        return len(recent) / window_s
+
+    def set(self, key: str, value) -> None:
+        with self._lock:
+            self._values[key] = f'{value:.6g}' if isinstance(value, float) else str(value)
+
+    def problem(self, what: str, level: int = WARN) -> None:
+        """Record a problem (bad message, outage); the node logs it once per kind and goes on."""
+        with self._lock:
+            first = not any(p[1] == what for p in self._problems)
+            self._problems.append((time.time(), what))
+            self._counts['problems'] += 1
+            self._level = max(self._level, level)
+        if first:
+            self.node.get_logger().warning(what)
+
+    def counts(self) -> dict:
+        with self._lock:
+            return dict(self._counts)
+
+    def status(self) -> DiagnosticStatus:
+        with self._lock:
+            kv = [KeyValue(key=k, value=str(v)) for k, v in sorted(self._counts.items())]
+            kv += [KeyValue(key=k, value=v) for k, v in sorted(self._values.items())]
+            msg = 'OK' if not self._problems else self._problems[-1][1]
+            level = self._level
+            self._level = OK if not self._problems or time.time() - self._problems[-1][0] > 10 else self._level
+        return DiagnosticStatus(level=level, name=self.name, message=msg[:200], hardware_id=self.hardware_id,
+                                values=kv)
+
+    def publish(self) -> None:
+        arr = DiagnosticArray()
+        arr.header.stamp = self.node.get_clock().now().to_msg()
+        arr.status = [self.status()]
+        self._pub.publish(arr)

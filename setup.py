@@ -1,0 +1,36 @@
+from glob import glob
+
+from setuptools import find_packages, setup
+
+package_name = 'photogram_ros'
+
+NODES = {
+    'mavlink_node': 'photogram_ros.nodes.mavlink_node:main',
+    'tracker_node': 'photogram_ros.nodes.tracker_node:main',
+    'bundle_node': 'photogram_ros.nodes.bundle_node:main',
+    'stereo_node': 'photogram_ros.nodes.stereo_node:main',
+    'map_node': 'photogram_ros.nodes.map_node:main',
+    'player_node': 'photogram_ros.nodes.player_node:main',
+}
+
+setup(
+    name=package_name,
+    version='0.1.0',
+    packages=find_packages(exclude=['tests', 'tests.*', 'bench']),
+    data_files=[
+        ('share/ament_index/resource_index/packages', ['resource/' + package_name]),
+        ('share/' + package_name, ['package.xml']),
+        ('share/' + package_name + '/config', glob('config/*.yaml')),
+    ],
+    install_requires=['setuptools'],
+    zip_safe=True,
+    maintainer='photogram_ros developers',
+    maintainer_email='dev@photogram-ros.invalid',
+    description='Onboard photogrammetric mapping for drones (ROS 2)',
+    license='Apache-2.0',
+    python_requires='>=3.10',
+    entry_points={
+        'console_scripts': ['photogram-ros = photogram_ros.cli:main']
+        + [f'{name} = {target}' for name, target in NODES.items()],
+    },
+)

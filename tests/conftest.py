@@ -1,0 +1,55 @@
+"""Shared fixtures. Every test session gets its own ROS_DOMAIN_ID (set by scripts/test.sh, or here)."""
+
+from __future__ import annotations
+
+import os
+import random
+import shutil
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+SHARED_DATA = ROOT.parent / 'shared' / 'data'
+SAMPLE_BAG = ROOT / 'bags' / 'sample_flight'
+
+os.environ.setdefault('ROS_DOMAIN_ID', str(random.randint(1, 200)))
+os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
+
+
+def shared_data(*parts) -> Path:
+    p = SHARED_DATA.joinpath(*parts)
+    if not p.exists():
+        pytest.skip(f'shared data {p} not present')
+    return p
+
+
+@pytest.fixture(scope='session')
+def sample_bag() -> Path:
+    if not SAMPLE_BAG.exists():
+        pytest.fail(f'{SAMPLE_BAG} is missing: regenerate it with the command in bags/README.md')
+    return SAMPLE_BAG
+
+
+@pytest.fixture(scope='session')
+def tiny_flight(tmp_path_factory) -> Path:
+    """A short simulated flight (about 25 frames), generated once per test session."""
+    from photogram_ros.sim.scenario import preset, simulate
+    out = tmp_path_factory.mktemp('sim') / 'tiny'
+    simulate(preset('tiny', fps=1.0, line_length_m=30.0), out)
+    return out
+
+
+@pytest.fixture
+def rclpy_context():
+    import rclpy
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx)
+    yield ctx
+    rclpy.try_shutdown(context=ctx)
+
+
+@pytest.fixture
+def scratch(tmp_path) -> Path:
+    yield tmp_path
+    shutil.rmtree(tmp_path, ignore_errors=True)

@@ -1,0 +1,75 @@
+import cv2
+import numpy as np
+import pytest
+
+from photogram_ros.core.camera import PinholeCamera
+from photogram_ros.errors import CalibrationError
+
+CAM = PinholeCamera(640, 480, 520.0, 521.0, 320.2, 238.7, (-0.12, 0.05, 0.0005, -0.0003, -0.01))
+RNG = np.random.default_rng(3)
+
+
+def _points():
+    xy = RNG.uniform(-0.6, 0.6, (400, 2))
+    z = RNG.uniform(2, 50, 400)
+    return np.column_stack([xy * z[:, None], z])
+
+
+def test_project_matches_opencv():
+    P = _points()
+    uv, ok = CAM.project(P)
+    ref, _ = cv2.projectPoints(P, np.zeros(3), np.zeros(3), CAM.K, CAM.dist_array)
+    assert ok.all()
+    assert np.max(np.abs(uv - ref.reshape(-1, 2))) < 1e-9
+
+
+def test_unproject_inverts_project():
+    P = _points()
+    uv, _ = CAM.project(P)
+    rays = CAM.unproject(uv)
+    assert np.max(np.abs(rays - P / np.linalg.norm(P, axis=1, keepdims=True))) < 1e-10
+
+
+def test_undistort_agrees_with_opencv_iterative():
+    uv = RNG.uniform([0, 0], [640, 480], (300, 2))
+    ours = CAM.pixel_to_normalized(uv)
+    ref = cv2.undistortPoints(uv.reshape(-1, 1, 2), CAM.K, CAM.dist_array, None, None, None,
+                              (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-12)).reshape(-1, 2)
+    assert np.max(np.abs(ours - ref)) < 1e-7
+
+
+def test_points_behind_camera_are_flagged():
+    uv, ok = CAM.project(np.array([[0.0, 0.0, -1.0], [0.0, 0.0, 1.0]]))
+    assert list(ok) == [False, True]
+
+
+def test_camera_info_and_yaml_round_trip():
+    f = CAM.to_camera_info_fields()
+    assert PinholeCamera.from_camera_info_fields(f['width'], f['height'], f['distortion_model'], f['d'], f['k']) == CAM
+    assert PinholeCamera.from_ros_yaml_dict(CAM.to_ros_yaml_dict()) == CAM
+
+
+def test_scaled_camera_projects_consistently():
+    half = CAM.scaled(0.5)
+    P = _points()
+    uv, _ = CAM.project(P)
+    uv2, _ = half.project(P)
+    assert np.max(np.abs((uv + 0.5) * 0.5 - 0.5 - uv2)) < 1e-9
+
+
+@pytest.mark.parametrize('kwargs, words', [
+    (dict(fx=0.0), 'focal length'),
+    (dict(cx=900.0), 'principal point'),
+    (dict(width=0), 'image size'),
+    (dict(fy=float('nan')), 'NaN'),
+])
+def test_bad_calibration_is_a_clear_error(kwargs, words):
+    args = dict(width=640, height=480, fx=500.0, fy=500.0, cx=320.0, cy=240.0)
+    args.update(kwargs)
+    with pytest.raises(CalibrationError, match=words):
+        PinholeCamera(**args)
+
+
+def test_image_size_mismatch_is_reported():
+    with pytest.raises(CalibrationError, match='1280x960'):
+        CAM.check_image_size(1280, 960)
