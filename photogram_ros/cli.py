@@ -18,6 +18,7 @@ COMMANDS = {
     'play': 'photogram_ros.commands.play',
     'record': 'photogram_ros.commands.record',
     'bag-info': 'photogram_ros.commands.bag_info',
+    'calibrate': 'photogram_ros.commands.calibrate',
 }
 
 

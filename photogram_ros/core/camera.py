@@ -190,3 +190,68 @@ class PinholeCamera:
         except (KeyError, TypeError) as exc:
             raise CalibrationError(f'calibration YAML lacks the field {exc}: expected the ROS '
                                    'camera_calibration layout (image_width, camera_matrix, ...)') from exc
+
+
+# --- calibration files (appended: OpenCV FileStorage YAML, and a loader for both layouts) -------------
+
+
+def save_opencv_yaml(camera: PinholeCamera, path, extra: dict | None = None) -> None:
+    """Write `camera` as OpenCV FileStorage YAML (image_width, image_height, camera_matrix,
+    distortion_coefficients), readable by cv2.FileStorage and by `load_calibration`."""
+    import cv2
+    fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_WRITE)
+    if not fs.isOpened():
+        raise CalibrationError(f'cannot write the calibration file {path}')
+    try:
+        fs.write('image_width', int(camera.width))
+        fs.write('image_height', int(camera.height))
+        fs.write('camera_matrix', camera.K)
+        fs.write('distortion_coefficients', camera.dist_array.reshape(1, 5))
+        for key, value in (extra or {}).items():
+            fs.write(key, value)
+    finally:
+        fs.release()
+
+
+def load_opencv_yaml(path) -> PinholeCamera:
+    import cv2
+    fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
+    if not fs.isOpened():
+        raise CalibrationError(f'cannot read {path} as OpenCV FileStorage YAML/XML')
+    try:
+        K = fs.getNode('camera_matrix').mat()
+        D = fs.getNode('distortion_coefficients').mat()
+        w = fs.getNode('image_width').real()
+        h = fs.getNode('image_height').real()
+    except cv2.error as exc:
+        raise CalibrationError(f'{path} is not an OpenCV calibration file: {exc.err}') from exc
+    finally:
+        fs.release()
+    if K is None or K.size != 9 or D is None:
+        raise CalibrationError(f'{path} lacks camera_matrix (3x3) or distortion_coefficients: '
+                               'expected the OpenCV calibration layout')
+    if not w or not h:
+        raise CalibrationError(f'{path} lacks image_width/image_height: the calibration must state the '
+                               'image size it was made for')
+    return PinholeCamera.from_camera_info_fields(int(w), int(h), DISTORTION_MODEL, D.ravel().tolist(),
+                                                 K.ravel().tolist())
+
+
+def load_calibration(path) -> PinholeCamera:
+    """Read a calibration file in either the ROS camera_calibration YAML or OpenCV FileStorage layout."""
+    from pathlib import Path
+    p = Path(path)
+    try:
+        text = p.read_text(errors='replace')
+    except OSError as exc:
+        raise CalibrationError(f'cannot read the calibration file {path}: {exc}') from exc
+    if text.lstrip().startswith('%YAML') or text.lstrip().startswith('<?xml'):
+        return load_opencv_yaml(p)
+    import yaml
+    try:
+        doc = yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        raise CalibrationError(f'{path} is not valid YAML: {exc}') from exc
+    if not isinstance(doc, dict):
+        raise CalibrationError(f'{path} is not a calibration file (expected a YAML mapping)')
+    return PinholeCamera.from_ros_yaml_dict(doc)
