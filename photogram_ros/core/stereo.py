@@ -1,7 +1,21 @@
-"""Dense stereo depth from posed keyframe pairs (no ROS here)."""
+"""Dense stereo depth from posed keyframe pairs (no ROS here).
+
+A pair of keyframes with poses `map_T_cam` is rectified with its x axis along the baseline (so a
+survey pair displaced along the image y axis is rectified "sideways": the rectified images are the
+originals turned by about 90 degrees), matched with OpenCV's StereoSGBM, filtered (left-right
+check, uniqueness, speckles, local consistency, texture) and turned into coloured points in `map`.
+"""
 from __future__ import annotations
 
+import time
+from dataclasses import dataclass, field
+
+import cv2
 import numpy as np
+
+from photogram_ros.core.camera import PinholeCamera
+from photogram_ros.errors import ConfigError, DataError
+from photogram_ros.params import param
 
 # The one cloud layout exchanged between stereo and map: positions in map ENU metres,
 # colour packed 0x00RRGGBB as PCL/RViz expect, and a per-point confidence in [0, 1].
@@ -12,3 +26,401 @@ CLOUD_DTYPE = np.dtype([
     ("rgb", np.uint32),
     ("confidence", np.float32),
 ])
+
+SGBM_MODES = {'sgbm': cv2.STEREO_SGBM_MODE_SGBM, 'sgbm_3way': cv2.STEREO_SGBM_MODE_SGBM_3WAY,
+              'hh': cv2.STEREO_SGBM_MODE_HH, 'hh4': cv2.STEREO_SGBM_MODE_HH4}
+
+# Result statuses: 'ok' carries a cloud; the others say why the pair was skipped.
+OK, POOR_POSE, LOW_OVERLAP, BAD_BASELINE, NO_POINTS = 'ok', 'poor_pose', 'low_overlap', 'bad_baseline', 'no_points'
+
+
+@dataclass
+class StereoParams:
+    mode: str = param('sgbm_3way', 'StereoSGBM mode; sgbm_3way is about 2x faster than sgbm at equal quality',
+                      choices=tuple(SGBM_MODES))
+    block_size: int = param(5, 'SGBM matching block size, pixels (odd)', min=1, max=15)
+    p1_per_px: int = param(8, 'SGBM smoothness P1 = p1_per_px * block_size^2 (small disparity changes)', min=0, max=64)
+    p2_per_px: int = param(32, 'SGBM smoothness P2 = p2_per_px * block_size^2 (disparity jumps); > p1_per_px',
+                           min=1, max=256)
+    max_num_disparities: int = param(192, 'largest disparity search range, pixels (the depth range is clipped '
+                                          'to it)', min=16, max=512)
+    uniqueness_ratio: int = param(10, 'SGBM uniqueness: best cost must beat the second best by this percent',
+                                  min=0, max=50)
+    speckle_window_px: int = param(100, 'largest connected blob of disparities removed as a speckle, pixels',
+                                   min=0, max=10000)
+    speckle_range_px: float = param(1.0, 'disparity variation allowed within one connected blob, pixels',
+                                    min=0.0, max=16.0)
+    lr_max_diff_px: int = param(1, 'left-right consistency check tolerance, pixels (-1 disables it)',
+                                min=-1, max=16)
+    pre_filter_cap: int = param(31, 'SGBM prefilter clipping of the x-derivative', min=1, max=63)
+    max_local_dev_px: float = param(1.0, 'drop disparities differing from their 3x3 median by more, pixels',
+                                    min=0.0, max=100.0)
+    min_texture: float = param(2.0, 'drop pixels whose mean absolute gradient in the block is below this, '
+                                    'grey levels per pixel', min=0.0, max=100.0)
+    min_confidence: float = param(0.05, 'drop points with a lower confidence (0..1)', min=0.0, max=1.0)
+    min_depth_m: float = param(2.0, 'nearest valid depth, m', min=0.01, max=1e5)
+    max_depth_m: float = param(500.0, 'farthest valid depth, m', min=0.1, max=1e6)
+    max_grazing_deg: float = param(75.0, 'drop points whose surface is seen at more than this angle from its '
+                                         'normal, degrees', min=10.0, max=90.0)
+    downscale: float = param(1.0, 'scale of the rectified images (0.5 = half resolution, 4x faster)',
+                             min=0.1, max=1.0)
+    point_stride: int = param(1, 'keep one point in stride x stride pixels', min=1, max=16)
+    min_overlap: float = param(0.4, 'skip pairs whose images overlap less than this fraction', min=0.0, max=1.0)
+    min_baseline_ratio: float = param(0.08, 'skip pairs with a smaller baseline-to-depth ratio', min=0.0, max=5.0)
+    max_baseline_ratio: float = param(0.8, 'skip pairs with a larger baseline-to-depth ratio', min=0.0, max=10.0)
+    max_reprojection_rms_px: float = param(2.0, 'skip pairs whose keyframe poses have a larger reprojection RMS, '
+                                                'pixels', min=0.0, max=1e3)
+
+    def check(self) -> None:
+        if self.block_size % 2 == 0:
+            raise ConfigError(f'block_size must be odd (got {self.block_size})')
+        if self.p2_per_px <= self.p1_per_px:
+            raise ConfigError(f'p2_per_px ({self.p2_per_px}) must be larger than p1_per_px ({self.p1_per_px})')
+        if self.max_num_disparities % 16:
+            raise ConfigError(f'max_num_disparities must be a multiple of 16 (got {self.max_num_disparities})')
+        if self.min_depth_m >= self.max_depth_m:
+            raise ConfigError('min_depth_m must be smaller than max_depth_m')
+        if self.min_baseline_ratio >= self.max_baseline_ratio:
+            raise ConfigError('min_baseline_ratio must be smaller than max_baseline_ratio')
+
+
+# --- matching ------------------------------------------------------------------------------------
+
+
+def make_sgbm(params: StereoParams, min_disparity: int, num_disparities: int, channels: int = 1,
+              filtered: bool = True):
+    """StereoSGBM from the parameters; filtered=False gives the bare matcher (no uniqueness, speckle, LR)."""
+    bs = params.block_size
+    return cv2.StereoSGBM_create(
+        minDisparity=int(min_disparity), numDisparities=int(num_disparities), blockSize=bs,
+        P1=params.p1_per_px * channels * bs * bs, P2=params.p2_per_px * channels * bs * bs,
+        disp12MaxDiff=params.lr_max_diff_px if filtered else -1,
+        preFilterCap=params.pre_filter_cap,
+        uniquenessRatio=params.uniqueness_ratio if filtered else 0,
+        speckleWindowSize=params.speckle_window_px if filtered else 0,
+        # SGBM's speckle range is in disparity units *16 internally; it takes whole pixels.
+        speckleRange=max(1, int(round(params.speckle_range_px))) if filtered else 0,
+        mode=SGBM_MODES[params.mode])
+
+
+def disparity_from_sgbm(raw: np.ndarray, min_disparity: int) -> np.ndarray:
+    """SGBM's fixed-point output (1/16 px) -> float32 pixels with NaN where there is no match."""
+    d = raw.astype(np.float32) * (1.0 / 16.0)
+    d[raw < (min_disparity * 16)] = np.nan
+    return d
+
+
+@dataclass
+class Disparity:
+    disparity_px: np.ndarray      # float32 (H, W), NaN where rejected
+    confidence: np.ndarray        # float32 (H, W) in [0, 1], 0 where rejected
+    sgbm_ms: float
+    filter_ms: float
+
+
+def match(left_grey: np.ndarray, right_grey: np.ndarray, params: StereoParams, min_disparity: int,
+          num_disparities: int, matcher=None) -> Disparity:
+    """Filtered sub-pixel disparity of a rectified pair (left pixel u matches right pixel u - d)."""
+    if left_grey.shape != right_grey.shape or left_grey.ndim != 2:
+        raise DataError(f'rectified images must be single-channel and equal in size, got {left_grey.shape} '
+                        f'and {right_grey.shape}')
+    if num_disparities % 16 or num_disparities <= 0:
+        raise DataError(f'num_disparities must be a positive multiple of 16 (got {num_disparities})')
+    sgbm = matcher or make_sgbm(params, min_disparity, num_disparities)
+    t0 = time.perf_counter()
+    raw = sgbm.compute(left_grey, right_grey)
+    t1 = time.perf_counter()
+    d = disparity_from_sgbm(raw, min_disparity)
+    conf = _confidence_and_filter(d, left_grey, params)
+    t2 = time.perf_counter()
+    return Disparity(d, conf, (t1 - t0) * 1e3, (t2 - t1) * 1e3)
+
+
+def _confidence_and_filter(d: np.ndarray, left_grey: np.ndarray, params: StereoParams) -> np.ndarray:
+    """Filter `d` in place (local consistency, texture) and return a per-pixel confidence in [0, 1].
+
+    Confidence multiplies two cues SGBM does not expose: agreement with the 3x3 median (isolated
+    mismatches and flying pixels at depth edges disagree) and image texture in the block (flat
+    areas are where SGBM guesses from the smoothness term alone).
+    """
+    valid = np.isfinite(d)
+    filled = np.where(valid, d, 0.0).astype(np.float32)
+    med = cv2.medianBlur(filled, 3)
+    dev = np.abs(filled - med)
+    bs = params.block_size
+    gx = cv2.Sobel(left_grey, cv2.CV_16S, 1, 0, ksize=3)
+    gy = cv2.Sobel(left_grey, cv2.CV_16S, 0, 1, ksize=3)
+    grad = cv2.boxFilter((np.abs(gx) + np.abs(gy)).astype(np.float32), -1, (bs, bs)) * 0.125
+    conf = np.exp(-dev / 0.5) * (grad / (grad + 4.0 * max(params.min_texture, 0.5)))
+    bad = ~valid | (dev > params.max_local_dev_px) | (grad < params.min_texture) | (conf < params.min_confidence)
+    d[bad] = np.nan
+    conf[bad] = 0.0
+    return conf.astype(np.float32)
+
+
+# --- rectification -------------------------------------------------------------------------------
+
+
+@dataclass
+class Rectification:
+    """A posed pair turned into a standard rectified pair.
+
+    Rectified frame: x along the baseline from camera a (left) to camera b (right), z the mean
+    optical axis made orthogonal to x. Both rectified cameras share f, cy and orientation; the right
+    principal point is shifted right by `shift_px` so that disparities start near 0:
+    depth = f * baseline / (d + shift_px).
+    """
+    f_px: float
+    cx_left: float
+    cx_right: float
+    cy: float
+    width: int
+    height: int
+    baseline_m: float
+    map_R_rect: np.ndarray
+    centre_left_map: np.ndarray
+    maps_left: tuple
+    maps_right: tuple
+    rect_R_cam_left: np.ndarray
+    rect_R_cam_right: np.ndarray
+
+    @property
+    def shift_px(self) -> float:
+        return self.cx_right - self.cx_left
+
+    def depth_from_disparity(self, d_px):
+        return self.f_px * self.baseline_m / (np.asarray(d_px) + self.shift_px)
+
+    def disparity_from_depth(self, depth_m):
+        return self.f_px * self.baseline_m / np.asarray(depth_m) - self.shift_px
+
+    def rectify(self, image_left: np.ndarray, image_right: np.ndarray):
+        left = cv2.remap(image_left, *self.maps_left, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
+        right = cv2.remap(image_right, *self.maps_right, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
+        return left, right
+
+    def rectified_pixels(self, camera: PinholeCamera, uv: np.ndarray, side: str = 'left') -> np.ndarray:
+        """Original (distorted) pixels of one camera -> their rectified pixels."""
+        rays = camera.unproject(np.asarray(uv, float))
+        R = self.rect_R_cam_left if side == 'left' else self.rect_R_cam_right
+        return self.rect_to_pixel(rays @ R.T, 'left') + (
+            np.array([self.shift_px, 0.0]) if side == 'right' else 0.0)
+
+    def rect_to_pixel(self, xyz_rect: np.ndarray, side: str = 'left') -> np.ndarray:
+        """Points in the left rectified camera frame -> rectified pixels (u, v) in the left or right image."""
+        p = np.asarray(xyz_rect, float)
+        if side == 'right':
+            p = p - np.array([self.baseline_m, 0.0, 0.0])
+        cx = self.cx_left if side == 'left' else self.cx_right
+        return np.stack([self.f_px * p[..., 0] / p[..., 2] + cx, self.f_px * p[..., 1] / p[..., 2] + self.cy], -1)
+
+
+def _edge_pixels(camera: PinholeCamera, n: int = 24) -> np.ndarray:
+    w, h = camera.width - 1.0, camera.height - 1.0
+    t = np.linspace(0.0, 1.0, n)
+    return np.concatenate([np.stack([t * w, 0 * t], -1), np.stack([t * w, 0 * t + h], -1),
+                           np.stack([0 * t, t * h], -1), np.stack([0 * t + w, t * h], -1)])
+
+
+def rect_frame(map_T_cam_a: np.ndarray, map_T_cam_b: np.ndarray) -> tuple[np.ndarray, float]:
+    """map_R_rect (columns: rectified x, y, z in map) and the baseline length, m."""
+    ca, cb = map_T_cam_a[:3, 3], map_T_cam_b[:3, 3]
+    base = cb - ca
+    baseline = float(np.linalg.norm(base))
+    if not baseline > 1e-6:
+        raise DataError('the two keyframes of a stereo pair are at the same position: no baseline')
+    x = base / baseline
+    z = map_T_cam_a[:3, 2] + map_T_cam_b[:3, 2]
+    z = z - (z @ x) * x
+    if np.linalg.norm(z) < 1e-6:
+        raise DataError('stereo pair looks along its own baseline: cannot rectify (forward motion)')
+    z /= np.linalg.norm(z)
+    y = np.cross(z, x)
+    return np.column_stack([x, y, z]), baseline
+
+
+def rectify_pair(camera: PinholeCamera, map_T_cam_a: np.ndarray, map_T_cam_b: np.ndarray,
+                 depth_range_m: tuple[float, float], downscale: float = 1.0,
+                 max_pixels: int = 4_000_000) -> Rectification:
+    """Rectification of camera a (left) and camera b (right) for scene depths within `depth_range_m`.
+
+    Equivalent to cv2.stereoRectify for this pose, but chooses the rectified x axis along the
+    baseline whatever the image axes are, and frames the right image so that the expected
+    disparity range starts near 0 (SGBM then wastes no columns on impossible disparities).
+    """
+    map_R_rect, baseline = rect_frame(map_T_cam_a, map_T_cam_b)
+    rect_R_cam = [map_R_rect.T @ T[:3, :3] for T in (map_T_cam_a, map_T_cam_b)]
+    f = 0.5 * (camera.fx + camera.fy) * downscale
+    edges = _edge_pixels(camera)
+    rays = camera.unproject(edges)
+    boxes = []
+    for R in rect_R_cam:
+        p = rays @ R.T
+        if np.any(p[:, 2] <= 0.05):
+            raise DataError('stereo pair cameras are rotated too far apart to rectify (> ~85 degrees)')
+        uv = f * p[:, :2] / p[:, 2:3]
+        boxes.append((uv[:, 0].min(), uv[:, 0].max(), uv[:, 1].min(), uv[:, 1].max()))
+    (u0a, u1a, v0a, v1a), (u0b, u1b, v0b, v1b) = boxes
+    v0, v1 = max(v0a, v0b), min(v1a, v1b)
+    if v1 - v0 < 16:
+        raise DataError('stereo pair images share no rows after rectification')
+    width = int(np.ceil(u1a - u0a)) + 1
+    height = int(np.ceil(v1 - v0)) + 1
+    if width * height > max_pixels:
+        raise DataError(f'rectified image would be {width}x{height}: the pair is too oblique')
+    # Shift the right window by the smallest expected disparity (far depth).
+    d_far = f * baseline / max(depth_range_m[1], 1e-6)
+    cx_l, cy = -u0a, -v0
+    cx_r = cx_l + np.floor(d_far)
+    K_new_l = np.array([[f, 0, cx_l], [0, f, cy], [0, 0, 1.0]])
+    K_new_r = np.array([[f, 0, cx_r], [0, f, cy], [0, 0, 1.0]])
+    maps = []
+    for R, K_new in zip(rect_R_cam, (K_new_l, K_new_r)):
+        m1, m2 = cv2.initUndistortRectifyMap(camera.K, camera.dist_array, R, K_new, (width, height),
+                                             cv2.CV_16SC2)
+        maps.append((m1, m2))
+    return Rectification(float(f), float(cx_l), float(cx_r), float(cy), width, height, baseline, map_R_rect,
+                         map_T_cam_a[:3, 3].copy(), maps[0], maps[1], rect_R_cam[0], rect_R_cam[1])
+
+
+# --- points --------------------------------------------------------------------------------------
+
+
+def pack_rgb(bgr: np.ndarray) -> np.ndarray:
+    """(N, 3) uint8 BGR -> uint32 0x00RRGGBB."""
+    b = bgr[..., 0].astype(np.uint32)
+    g = bgr[..., 1].astype(np.uint32)
+    r = bgr[..., 2].astype(np.uint32)
+    return (r << 16) | (g << 8) | b
+
+
+def points_from_disparity(rect: Rectification, disp: Disparity, left_bgr: np.ndarray, params: StereoParams,
+                          right_valid: np.ndarray | None = None) -> np.ndarray:
+    """Rectified disparity -> cloud (CLOUD_DTYPE) in map, dropping depths out of range and grazing views.
+
+    The grazing test needs no 3D normals: for a plane, the true disparity D = d + shift is affine
+    in (u, v), and with g = grad D the plane normal is n ~ (gx, gy, D/f - gx x - gy y) while
+    n . ray_left = D/f and n . ray_right = (D/f)(1 - gx), with x, y normalised rectified coordinates.
+    """
+    d = disp.disparity_px
+    H, W = d.shape
+    D = d + np.float32(rect.shift_px)
+    k = 2   # central differences over 2k pixels: single-pixel steps are too noisy at 1/16 px
+    gx = np.full_like(D, np.nan)
+    gy = np.full_like(D, np.nan)
+    gx[:, k:-k] = (D[:, 2 * k:] - D[:, :-2 * k]) * (0.5 / k)
+    gy[k:-k] = (D[2 * k:] - D[:-2 * k]) * (0.5 / k)
+    ok = np.isfinite(gx) & np.isfinite(gy) & (D > 0)
+    s = params.point_stride
+    if s > 1:
+        grid = np.zeros_like(ok)
+        grid[s // 2::s, s // 2::s] = True
+        ok &= grid
+    v, u = np.nonzero(ok)
+    Dv, gxv, gyv = D[v, u], gx[v, u], gy[v, u]
+    f = np.float32(rect.f_px)
+    x = (u.astype(np.float32) - np.float32(rect.cx_left)) / f
+    y = (v.astype(np.float32) - np.float32(rect.cy)) / f
+    depth = np.float32(rect.f_px * rect.baseline_m) / Dv
+    nz = Dv / f - gxv * x - gyv * y
+    n_norm = np.sqrt(gxv * gxv + gyv * gyv + nz * nz)
+    xr = x - Dv / f   # right camera ray, in the left camera's rotation
+    cos_l = (Dv / f) / (n_norm * np.sqrt(x * x + y * y + 1.0))
+    cos_r = np.abs((Dv / f) * (1.0 - gxv)) / (n_norm * np.sqrt(xr * xr + y * y + 1.0))
+    keep = ((depth >= params.min_depth_m) & (depth <= params.max_depth_m)
+            & (np.minimum(cos_l, cos_r) >= np.float32(np.cos(np.radians(params.max_grazing_deg)))))
+    if right_valid is not None:
+        ur = np.clip(np.round(u - (Dv - np.float32(rect.shift_px))).astype(np.int32), 0, W - 1)
+        keep &= right_valid[v, ur]
+    v, u, x, y, depth = v[keep], u[keep], x[keep], y[keep], depth[keep]
+    X, Y, Z = (x * depth).astype(np.float64), (y * depth).astype(np.float64), depth.astype(np.float64)
+    out = np.empty(Z.shape[0], CLOUD_DTYPE)
+    R, C = rect.map_R_rect, rect.centre_left_map
+    # Written out per axis: a (N, 3) @ (3, 3) matmul goes through BLAS threads and is ~30x slower here.
+    for i, name in enumerate(('x', 'y', 'z')):
+        out[name] = R[i, 0] * X + R[i, 1] * Y + R[i, 2] * Z + C[i]
+    px = left_bgr[v, u]
+    out['rgb'] = pack_rgb(px) if left_bgr.ndim == 3 else pack_rgb(np.repeat(px[:, None], 3, 1))
+    out['confidence'] = disp.confidence[v, u]
+    return out
+
+
+# --- a posed pair end to end ---------------------------------------------------------------------
+
+
+@dataclass
+class StereoResult:
+    status: str
+    message: str = ''
+    cloud: np.ndarray = field(default_factory=lambda: np.empty(0, CLOUD_DTYPE))
+    disparity: Disparity | None = None
+    rect: Rectification | None = None
+    min_disparity: int = 0
+    num_disparities: int = 0
+    timings_ms: dict = field(default_factory=dict)
+
+    @property
+    def ok(self) -> bool:
+        return self.status == OK
+
+
+def _grey(img: np.ndarray) -> np.ndarray:
+    return cv2.cvtColor(img, cv2.COLOR_BGR2GRAY) if img.ndim == 3 else img
+
+
+def stereo_pair(camera: PinholeCamera, image_a: np.ndarray, map_T_cam_a: np.ndarray, image_b: np.ndarray,
+                map_T_cam_b: np.ndarray, params: StereoParams, depth_range_m: tuple[float, float] | None = None,
+                reprojection_rms_px: tuple | None = None) -> StereoResult:
+    """Dense cloud of the scene seen by keyframes a and b (images BGR or mono, poses optical -> map).
+
+    `depth_range_m` bounds the disparity search (e.g. height above ground +- relief); the parameter
+    depth range is used when it is None. Poor or unsuitable pairs come back with a skip status.
+    """
+    from photogram_ros.core.pairs import overlap_fraction
+
+    t0 = time.perf_counter()
+    for img in (image_a, image_b):
+        if img is None or img.ndim not in (2, 3) or img.dtype != np.uint8:
+            raise DataError('stereo images must be uint8 mono or BGR arrays')
+        camera.check_image_size(img.shape[1], img.shape[0])
+    lo = params.min_depth_m if depth_range_m is None else max(params.min_depth_m, float(depth_range_m[0]))
+    hi = params.max_depth_m if depth_range_m is None else min(params.max_depth_m, float(depth_range_m[1]))
+    if not hi > lo:
+        raise DataError(f'depth range {depth_range_m} lies outside the valid depths '
+                        f'[{params.min_depth_m}, {params.max_depth_m}] m')
+    if reprojection_rms_px is not None:
+        worst = max(float(r) for r in reprojection_rms_px if r is not None) if any(
+            r is not None for r in reprojection_rms_px) else 0.0
+        if worst > params.max_reprojection_rms_px:
+            return StereoResult(POOR_POSE, f'keyframe reprojection RMS {worst:.2f} px > '
+                                           f'{params.max_reprojection_rms_px} px')
+    mid = 0.5 * (lo + hi)
+    baseline = float(np.linalg.norm(map_T_cam_b[:3, 3] - map_T_cam_a[:3, 3]))
+    ratio = baseline / mid
+    if not params.min_baseline_ratio <= ratio <= params.max_baseline_ratio:
+        return StereoResult(BAD_BASELINE, f'baseline/depth {ratio:.3f} outside '
+                                          f'[{params.min_baseline_ratio}, {params.max_baseline_ratio}]')
+    overlap = overlap_fraction(camera, map_T_cam_a, map_T_cam_b, mid)
+    if overlap < params.min_overlap:
+        return StereoResult(LOW_OVERLAP, f'overlap {overlap:.2f} < {params.min_overlap}')
+    rect = rectify_pair(camera, map_T_cam_a, map_T_cam_b, (lo, hi), params.downscale)
+    t1 = time.perf_counter()
+    left = cv2.remap(image_a, *rect.maps_left, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
+    left_g = _grey(left)
+    right_g = cv2.remap(_grey(image_b), *rect.maps_right, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
+    d_min = int(np.floor(rect.disparity_from_depth(hi)))
+    d_max = int(np.ceil(rect.disparity_from_depth(lo)))
+    num = int(min(params.max_num_disparities, 16 * int(np.ceil(max(d_max - d_min + 1, 16) / 16))))
+    # Where the right window holds no image: remapped constant border.
+    right_valid = cv2.remap(np.full(image_b.shape[:2], 255, np.uint8), *rect.maps_right, cv2.INTER_NEAREST,
+                            borderMode=cv2.BORDER_CONSTANT) > 0
+    t2 = time.perf_counter()
+    disp = match(left_g, right_g, params, d_min, num)
+    t3 = time.perf_counter()
+    cloud = points_from_disparity(rect, disp, left, params, right_valid)
+    t4 = time.perf_counter()
+    timings = {'rectify_ms': (t2 - t0) * 1e3, 'sgbm_ms': disp.sgbm_ms, 'filter_ms': disp.filter_ms,
+               'points_ms': (t4 - t3) * 1e3, 'total_ms': (t4 - t0) * 1e3, 'maps_ms': (t1 - t0) * 1e3}
+    status = OK if cloud.size else NO_POINTS
+    return StereoResult(status, f'{cloud.size} points, overlap {overlap:.2f}, B/H {ratio:.3f}', cloud, disp, rect,
+                        d_min, num, timings)
