@@ -27,10 +27,9 @@ class Exposure:
 
 
 class Renderer:
-    def __init__(self, terrain: Terrain, camera: PinholeCamera, march_steps: int = 24):
+    def __init__(self, terrain: Terrain, camera: PinholeCamera):
         self.terrain = terrain
         self.camera = camera
-        self.march_steps = march_steps
         h, w = camera.height, camera.width
         vv, uu = np.mgrid[0:h, 0:w]
         uv = np.stack([uu.ravel(), vv.ravel()], axis=-1).astype(np.float64)
@@ -42,51 +41,70 @@ class Renderer:
         r = np.hypot((uu - camera.cx) / camera.width, (vv - camera.cy) / camera.height) * 2
         self._vignette = (1.0 - 0.5 * np.clip(r, 0, 1.5) ** 2).astype(np.float32)
 
+    def _height_range(self, C: np.ndarray, d: np.ndarray) -> tuple[float, float]:
+        """Lowest and highest ground inside this view's footprint: the ray march only spans those."""
+        dem = self.terrain.dem
+        zlo, zhi = float(self._dem.min()), float(self._dem.max())
+        xy = np.concatenate([C[:2] + d[:, :2] * ((z - C[2]) / d[:, 2:3]) for z in (zlo, zhi)])
+        i0, j0 = np.floor(np.nanmin(xy, axis=0) - [dem.x0_m, dem.y0_m]) / dem.res_m - 1
+        i1, j1 = np.ceil(np.nanmax(xy, axis=0) - [dem.x0_m, dem.y0_m]) / dem.res_m + 2
+        h, w = self._dem.shape
+        win = self._dem[int(np.clip(j0, 0, h - 1)):int(np.clip(j1, 1, h)), int(np.clip(i0, 0, w - 1)):int(np.clip(i1, 1, w))]
+        if win.size == 0:
+            return zlo, zhi
+        return float(win.min()), float(win.max())
+
     def ground_points(self, map_T_cam: np.ndarray) -> np.ndarray:
         """(H, W, 3) ground point seen at each pixel centre, in `map` (NaN where the ray misses)."""
         R = map_T_cam[:3, :3]
         C = map_T_cam[:3, 3]
         d = self._rays_cam @ R.T
-        dz = np.minimum(d[:, 2], -1e-6)
+        d[:, 2] = np.minimum(d[:, 2], -1e-6)
         dem = self.terrain.dem
-        zmin, zmax = float(self._dem.min()) - 0.1, float(self._dem.max()) + 0.1
-        t_top = np.maximum((zmax - C[2]) / dz, 0.0)
-        t_bot = (zmin - C[2]) / dz
-        n = d.shape[0]
-        inv_res = 1.0 / dem.res_m
+        zmin, zmax = self._height_range(C, d)
+        zmin, zmax = zmin - 0.05, zmax + 0.05
+        # March in height: t is the ray parameter where the ray reaches height z.
+        inv_dz = 1.0 / d[:, 2]
         shape = (self.camera.height, self.camera.width)
+        # float32 is ample here (t ~ 100 m -> 10 um) and halves the cost of each march step.
+        f32 = np.float32
+        ax0, ay0, cz = f32((C[0] - dem.x0_m) / dem.res_m), f32((C[1] - dem.y0_m) / dem.res_m), f32(C[2])
+        ax1 = (d[:, 0] / dem.res_m).astype(f32).reshape(shape)
+        ay1 = (d[:, 1] / dem.res_m).astype(f32).reshape(shape)
+        dz = d[:, 2].astype(f32).reshape(shape)
 
-        def height_minus_ray(t):
-            p = C + d * t[:, None]
-            u = ((p[:, 0] - dem.x0_m) * inv_res).astype(np.float32).reshape(shape)
-            v = ((p[:, 1] - dem.y0_m) * inv_res).astype(np.float32).reshape(shape)
-            g = cv2.remap(self._dem, u, v, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE).ravel()
-            return p[:, 2] - g
+        def ray_minus_ground(t):
+            g = cv2.remap(self._dem, ax0 + ax1 * t, ay0 + ay1 * t, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+            return cz + dz * t - g
 
-        # March from above the highest ground to below the lowest; first sign change brackets the hit.
-        lo = t_top.copy()
-        hi = t_bot.copy()
-        found = np.zeros(n, dtype=bool)
-        f_prev = height_minus_ray(t_top)
-        for k in range(1, self.march_steps + 1):
-            t = t_top + (t_bot - t_top) * (k / self.march_steps)
-            f = height_minus_ray(t)
+        t_top = np.maximum((zmax - C[2]) * inv_dz, 0.0).astype(f32).reshape(shape)
+        t_bot = ((zmin - C[2]) * inv_dz).astype(f32).reshape(shape)
+        # Steps of at most 0.5 m in height: thinner than any wall or roof edge in the terrain.
+        steps = int(np.clip(np.ceil((zmax - zmin) / 0.5), 4, 64))
+        lo, hi = t_top.copy(), t_bot.copy()
+        found = np.zeros(t_top.shape, dtype=bool)
+        f_prev = ray_minus_ground(t_top)
+        t_prev = t_top
+        for k in range(1, steps + 1):
+            t = t_top + (t_bot - t_top) * (k / steps)
+            f = ray_minus_ground(t)
             hit = (~found) & (f_prev > 0) & (f <= 0)
-            lo[hit] = (t_top + (t_bot - t_top) * ((k - 1) / self.march_steps))[hit]
-            hi[hit] = t[hit]
+            lo[hit], hi[hit] = t_prev[hit], t[hit]
             found |= hit
-            f_prev = f
-        for _ in range(14):
-            mid = 0.5 * (lo + hi)
-            above = height_minus_ray(mid) > 0
+            if found.all():
+                break
+            f_prev, t_prev = f, t
+        for _ in range(9):
+            mid = f32(0.5) * (lo + hi)
+            above = ray_minus_ground(mid) > 0
             lo = np.where(above, mid, lo)
             hi = np.where(above, hi, mid)
-        # Final step: linear interpolation inside the last bracket.
-        f_lo, f_hi = height_minus_ray(lo), height_minus_ray(hi)
+        # Final secant step inside the last bracket (sub-millimetre).
+        f_lo, f_hi = ray_minus_ground(lo), ray_minus_ground(hi)
         denom = np.where(np.abs(f_lo - f_hi) > 1e-12, f_lo - f_hi, 1.0)
-        t = lo + (hi - lo) * np.clip(f_lo / denom, 0, 1)
+        t = (lo + (hi - lo) * np.clip(f_lo / denom, 0, 1)).astype(np.float64).ravel()
         p = C + d * t[:, None]
-        p[~found] = np.nan
+        p[~found.ravel()] = np.nan
         return p.reshape(self.camera.height, self.camera.width, 3)
 
     def render(self, map_T_cam: np.ndarray, exposure: Exposure | None = None,
