@@ -14,7 +14,7 @@ from photogram_ros.core.camera import PinholeCamera
 
 
 def overlap_fraction(camera: PinholeCamera, map_T_cam_a: np.ndarray, map_T_cam_b: np.ndarray, depth_m: float,
-                     n: int = 16) -> float:
+                     n: int = 32) -> float:
     """Fraction of image a whose scene, taken at `depth_m` along a's axis, is seen inside image b."""
     u = np.linspace(0, camera.width - 1, n)
     v = np.linspace(0, camera.height - 1, n)
@@ -59,7 +59,7 @@ def choose_pairs(camera: PinholeCamera, new_T: np.ndarray, others: dict, height_
         cosang = np.clip(new_T[:3, 2] @ T[:3, 2], -1.0, 1.0)
         if np.degrees(np.arccos(cosang)) > crit.max_angle_deg:
             continue
-        ov = overlap_fraction(camera, new_T, T, height_m, n=10)
+        ov = overlap_fraction(camera, new_T, T, height_m, n=16)
         if ov < crit.min_overlap:
             continue
         b_cam = new_T[:3, :3].T @ base

@@ -44,20 +44,20 @@ class StereoParams:
                            min=1, max=256)
     max_num_disparities: int = param(192, 'largest disparity search range, pixels (the depth range is clipped '
                                           'to it)', min=16, max=512)
-    uniqueness_ratio: int = param(10, 'SGBM uniqueness: best cost must beat the second best by this percent',
+    uniqueness_ratio: int = param(15, 'SGBM uniqueness: best cost must beat the second best by this percent',
                                   min=0, max=50)
-    speckle_window_px: int = param(100, 'largest connected blob of disparities removed as a speckle, pixels',
+    speckle_window_px: int = param(200, 'largest connected blob of disparities removed as a speckle, pixels',
                                    min=0, max=10000)
     speckle_range_px: float = param(1.0, 'disparity variation allowed within one connected blob, pixels',
                                     min=0.0, max=16.0)
     lr_max_diff_px: int = param(1, 'left-right consistency check tolerance, pixels (-1 disables it)',
                                 min=-1, max=16)
     pre_filter_cap: int = param(31, 'SGBM prefilter clipping of the x-derivative', min=1, max=63)
-    max_local_dev_px: float = param(1.0, 'drop disparities differing from their 3x3 median by more, pixels',
+    max_local_dev_px: float = param(0.5, 'drop disparities differing from their 3x3 median by more, pixels',
                                     min=0.0, max=100.0)
-    min_texture: float = param(2.0, 'drop pixels whose mean absolute gradient in the block is below this, '
+    min_texture: float = param(0.0, 'drop pixels whose mean absolute gradient in the block is below this, '
                                     'grey levels per pixel', min=0.0, max=100.0)
-    min_confidence: float = param(0.05, 'drop points with a lower confidence (0..1)', min=0.0, max=1.0)
+    min_confidence: float = param(0.0, 'drop points with a lower confidence (0..1)', min=0.0, max=1.0)
     min_depth_m: float = param(2.0, 'nearest valid depth, m', min=0.01, max=1e5)
     max_depth_m: float = param(500.0, 'farthest valid depth, m', min=0.1, max=1e6)
     max_grazing_deg: float = param(75.0, 'drop points whose surface is seen at more than this angle from its '

@@ -1,0 +1,182 @@
+"""Stereo depth: Middlebury accuracy vs plain SGBM, rectification geometry, simulator pairs against the true DEM."""
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+from conftest import shared_data
+from photogram_ros.core import stereo
+from photogram_ros.core.camera import PinholeCamera
+from photogram_ros.core.pairs import PairCriteria, choose_pairs, overlap_fraction
+from photogram_ros.core.rotations import make_T, rot_x, rot_y, rot_z
+from photogram_ros.core.stereo import CLOUD_DTYPE, StereoParams, stereo_pair
+from photogram_ros.core.stereo_eval import load_scene, score
+from photogram_ros.errors import ConfigError, DataError
+from photogram_ros.params import from_dict
+
+GSD_M = 40.0 / 520.0
+
+
+# --- Middlebury ----------------------------------------------------------------------------------
+
+# Measured bad-2 of the module on the nonocc mask (tsukuba 0.021, venus 0.0054); bands leave ~30 % margin.
+BAD2_BAND = {'tsukuba': 0.028, 'venus': 0.008}
+
+
+@pytest.mark.parametrize('name', ['tsukuba', 'venus'])
+def test_middlebury_bad2_no_worse_than_plain_sgbm(name):
+    sc = load_scene(shared_data('stereo', name))
+    left, right = (cv2.cvtColor(i, cv2.COLOR_BGR2GRAY) for i in (sc.left, sc.right))
+    num = 16 * ((sc.ndisp + 15) // 16)
+    p = StereoParams()
+    plain = stereo.disparity_from_sgbm(stereo.make_sgbm(p, 0, num, filtered=False).compute(left, right), 0)
+    ours = stereo.match(left, right, p, 0, num).disparity_px
+    mask = sc.masks['nonocc']
+    s_plain, s_ours = score(plain, sc.gt_px, mask), score(ours, sc.gt_px, mask)
+    assert s_ours['bad2'] <= s_plain['bad2']
+    assert s_ours['bad1'] <= s_plain['bad1']
+    assert s_ours['bad2'] < BAD2_BAND[name]
+    assert s_ours['density'] > 0.9
+
+
+def test_scene_folder_errors(tmp_path):
+    with pytest.raises(DataError, match='missing'):
+        load_scene(tmp_path)
+
+
+# --- rectification -------------------------------------------------------------------------------
+
+CAM = PinholeCamera(640, 480, 520.0, 520.26, 320.2, 238.2, (-0.12, 0.05, 0.0005, -0.0003, -0.01))
+NADIR = np.column_stack([[1.0, 0, 0], [0, -1.0, 0], [0, 0, -1.0]])   # image top to north, looking down
+
+
+def _pose(x, y, z, jitter=(0.0, 0.0, 0.0)):
+    return make_T(NADIR @ rot_x(jitter[0]) @ rot_y(jitter[1]) @ rot_z(jitter[2]), [x, y, z])
+
+
+@pytest.mark.parametrize('offset', [(0.0, 9.0), (12.0, 0.5), (-3.0, -8.0)])
+def test_rectified_rows_agree_and_depth_is_recovered(offset):
+    Ta = _pose(0.0, 0.0, 40.0, (0.01, -0.02, 0.03))
+    Tb = _pose(offset[0], offset[1], 40.5, (-0.015, 0.01, -0.02))
+    rect = stereo.rectify_pair(CAM, Ta, Tb, (25.0, 55.0))
+    rng = np.random.default_rng(3)
+    pts = np.column_stack([rng.uniform(-8, 8, 300) + offset[0] / 2, rng.uniform(-8, 8, 300) + offset[1] / 2,
+                           rng.uniform(-10, 8, 300)])
+    uv = []
+    for T in (Ta, Tb):
+        p_cam = (pts - T[:3, 3]) @ T[:3, :3]
+        uvi, front = CAM.project(p_cam)
+        uv.append(uvi)
+    keep = CAM.in_image(uv[0]) & CAM.in_image(uv[1])
+    assert keep.sum() > 100
+    rl = rect.rectified_pixels(CAM, uv[0][keep], 'left')
+    rr = rect.rectified_pixels(CAM, uv[1][keep], 'right')
+    assert np.max(np.abs(rl[:, 1] - rr[:, 1])) < 0.5
+    # Depth along the rectified axis from the disparity.
+    depth = rect.depth_from_disparity(rl[:, 0] - rr[:, 0])
+    z_rect = (pts[keep] - Ta[:3, 3]) @ rect.map_R_rect[:, 2]
+    np.testing.assert_allclose(depth, z_rect, rtol=1e-6)
+    # The remap tables send each rectified pixel back to where the camera saw it (distortion included).
+    for side, maps, uv_orig in (('left', rect.maps_left, uv[0][keep]), ('right', rect.maps_right, uv[1][keep])):
+        fx, fy = cv2.convertMaps(*maps, cv2.CV_32FC1)
+        r = rl if side == 'left' else rr
+        inside = (r[:, 0] > 1) & (r[:, 0] < rect.width - 2) & (r[:, 1] > 1) & (r[:, 1] < rect.height - 2)
+        u, v = r[inside, 0], r[inside, 1]
+        mu = cv2.remap(fx, u.astype(np.float32)[None], v.astype(np.float32)[None], cv2.INTER_LINEAR)[0]
+        mv = cv2.remap(fy, u.astype(np.float32)[None], v.astype(np.float32)[None], cv2.INTER_LINEAR)[0]
+        err = np.hypot(mu - uv_orig[inside, 0], mv - uv_orig[inside, 1])
+        assert np.median(err) < 0.1 and err.max() < 0.5
+
+
+def test_rectify_rejects_degenerate_pairs():
+    Ta = _pose(0, 0, 40)
+    with pytest.raises(DataError, match='baseline'):
+        stereo.rectify_pair(CAM, Ta, Ta.copy(), (20, 60))
+
+
+def test_params_validated():
+    with pytest.raises(ConfigError, match='odd'):
+        from_dict(StereoParams, {'block_size': 4})
+    with pytest.raises(ConfigError):
+        from_dict(StereoParams, {'mode': 'bm'})
+
+
+def test_pack_rgb():
+    px = np.array([[1, 2, 3], [255, 0, 128]], np.uint8)   # BGR
+    assert stereo.pack_rgb(px).tolist() == [0x030201, 0x8000FF]
+
+
+# --- simulator frames with truth -----------------------------------------------------------------
+
+
+@pytest.fixture(scope='module')
+def sim_pair():
+    from photogram_ros.sim.render import Exposure, Renderer
+    from photogram_ros.sim.scenario import build_world, preset
+    cfg = preset('tiny')
+    rng = np.random.default_rng(cfg.seed)
+    flight, terrain, _ = build_world(cfg, rng)
+    cam = cfg.camera()
+    r = Renderer(terrain, cam)
+    frames = []
+    for t in (2.0, 3.75):   # 8.75 m apart along the first line, B/H 0.22
+        st = flight.state(t)
+        T = make_T(st.map_R_cam, st.pos_enu)
+        frames.append((T, r.render(T, Exposure(), rng)))
+    return cam, terrain, frames, cfg
+
+
+def test_sim_pair_matches_true_dem(sim_pair):
+    cam, terrain, ((Ta, ia), (Tb, ib)), cfg = sim_pair
+    gsd = cfg.gsd_m
+    assert abs(gsd - GSD_M) < 1e-9
+    res = stereo_pair(cam, ia, Ta, ib, Tb, StereoParams(), depth_range_m=(20.0, 55.0))
+    assert res.status == stereo.OK, res.message
+    c = res.cloud
+    assert c.dtype == CLOUD_DTYPE
+    dz = np.abs(c['z'] - terrain.height_at(c['x'], c['y']))
+    assert np.median(dz) <= gsd
+    assert np.percentile(dz, 90) <= 3 * gsd
+    assert c.size > 0.4 * cam.width * cam.height
+    assert np.all((c['confidence'] >= 0) & (c['confidence'] <= 1))
+    # Colour comes from the image: not all black, not constant.
+    assert np.unique(c['rgb'][:1000]).size > 50
+
+
+def test_sim_pair_reversed_and_downscaled(sim_pair):
+    cam, terrain, ((Ta, ia), (Tb, ib)), cfg = sim_pair
+    res = stereo_pair(cam, ib, Tb, ia, Ta, from_dict(StereoParams, {'downscale': 0.5}), depth_range_m=(20.0, 55.0))
+    assert res.ok, res.message
+    dz = np.abs(res.cloud['z'] - terrain.height_at(res.cloud['x'], res.cloud['y']))
+    assert np.median(dz) <= 2 * cfg.gsd_m
+    assert res.rect.width * res.rect.height < 0.3 * cam.width * cam.height
+
+
+def test_poor_pairs_are_skipped_with_a_status(sim_pair):
+    cam, _, ((Ta, ia), (Tb, ib)), _ = sim_pair
+    p = StereoParams()
+    assert stereo_pair(cam, ia, Ta, ib, Tb, p, (20, 55), reprojection_rms_px=(0.4, 3.5)).status == stereo.POOR_POSE
+    near = Ta.copy()
+    near[1, 3] += 0.5
+    assert stereo_pair(cam, ia, Ta, ib, near, p, (20, 55)).status == stereo.BAD_BASELINE
+    far = Ta.copy()
+    far[1, 3] += 25.0   # ahead: B/H 0.67, a third of the 37 m footprint shared
+    r = stereo_pair(cam, ia, Ta, ib, far, p, (20, 55))
+    assert r.status == stereo.LOW_OVERLAP and r.cloud.size == 0
+
+
+# --- pair choice ---------------------------------------------------------------------------------
+
+
+def test_choose_pairs_along_and_across_lines():
+    Ta = _pose(0.0, 20.0, 40.0)
+    others = {1: _pose(0.0, 11.0, 40.0),     # along the line, B/H 0.23
+              2: _pose(0.0, 18.0, 40.0),     # too short a baseline
+              3: _pose(15.0, 20.5, 40.0),    # next line, beside
+              4: _pose(0.0, -30.0, 40.0)}    # no overlap
+    pairs = choose_pairs(CAM, Ta, others, 40.0, PairCriteria())
+    keys = {(p.other, p.along) for p in pairs}
+    assert keys == {(1, True), (3, False)}
+    assert overlap_fraction(CAM, Ta, others[4], 40.0) == 0.0
+    assert overlap_fraction(CAM, Ta, others[1], 40.0) == pytest.approx(1 - 9.0 / (480 * GSD_M), abs=0.05)
