@@ -195,3 +195,55 @@ def points_from_pointcloud2(msg: PointCloud2) -> np.ndarray:
     if len(msg.data) < n * msg.point_step:
         raise DataError(f'PointCloud2 has {len(msg.data)} bytes for {n} points of {msg.point_step} bytes')
     return np.frombuffer(bytes(msg.data), dtype=dtype, count=n).copy()
+
+
+# --- posed keyframes and disparity (stereo) ------------------------------------------------------
+
+
+def pose_with_covariance_from_T(a_T_b: np.ndarray, stamp_ns: int, frame_id: str = 'map',
+                                covariance=None):
+    """4x4 transform (child -> frame_id) and an optional 6x6 covariance (x, y, z, rx, ry, rz) ->
+    geometry_msgs/PoseWithCovarianceStamped."""
+    from geometry_msgs.msg import PoseWithCovarianceStamped
+    from photogram_ros.core.rotations import quat_from_R
+    T = np.asarray(a_T_b, dtype=float)
+    if T.shape != (4, 4) or not np.all(np.isfinite(T)):
+        raise DataError(f'pose must be a finite 4x4 transform, got shape {T.shape}')
+    msg = PoseWithCovarianceStamped()
+    msg.header = header(stamp_ns, frame_id)
+    p, q = T[:3, 3], quat_from_R(T[:3, :3])
+    msg.pose.pose.position.x, msg.pose.pose.position.y, msg.pose.pose.position.z = (float(v) for v in p)
+    (msg.pose.pose.orientation.x, msg.pose.pose.orientation.y, msg.pose.pose.orientation.z,
+     msg.pose.pose.orientation.w) = (float(v) for v in q)
+    if covariance is not None:
+        msg.pose.covariance = np.asarray(covariance, dtype=float).reshape(36).tolist()
+    return msg
+
+
+def T_from_pose_with_covariance(msg) -> tuple[np.ndarray, np.ndarray]:
+    """geometry_msgs/PoseWithCovarianceStamped -> (4x4 transform child -> header.frame_id, 6x6 covariance)."""
+    from photogram_ros.core.rotations import R_from_quat, make_T
+    p, o = msg.pose.pose.position, msg.pose.pose.orientation
+    q = np.array([o.x, o.y, o.z, o.w], dtype=float)
+    t = np.array([p.x, p.y, p.z], dtype=float)
+    if not (np.all(np.isfinite(q)) and np.all(np.isfinite(t))) or np.linalg.norm(q) < 1e-9:
+        raise DataError('pose has a non-finite position or a zero quaternion')
+    return make_T(R_from_quat(q), t), np.asarray(msg.pose.covariance, dtype=float).reshape(6, 6)
+
+
+def disparity_image_msg(disparity_px: np.ndarray, stamp_ns: int, f_px: float, baseline_m: float,
+                        frame_id: str = 'camera_rect', delta_d: float = 1.0 / 16.0):
+    """Float disparity (NaN = none; depth = f * baseline / d) -> stereo_msgs/DisparityImage."""
+    from stereo_msgs.msg import DisparityImage
+    d = np.asarray(disparity_px, dtype=np.float32)
+    finite = np.isfinite(d)
+    out = DisparityImage()
+    out.header = header(stamp_ns, frame_id)
+    # The message marks missing disparities with values below min_disparity.
+    lo = float(np.min(d[finite])) if finite.any() else 0.0
+    hi = float(np.max(d[finite])) if finite.any() else 0.0
+    out.image = image_msg(np.where(finite, d, np.float32(lo - 1.0)).astype(np.float32), stamp_ns, frame_id)
+    out.f, out.t = float(f_px), float(baseline_m)
+    out.valid_window.width, out.valid_window.height = int(d.shape[1]), int(d.shape[0])
+    out.min_disparity, out.max_disparity, out.delta_d = lo, hi, float(delta_d)
+    return out
