@@ -14,6 +14,7 @@ from photogram_ros.errors import PhotogramError
 
 COMMANDS = {
     'simulate': 'photogram_ros.commands.simulate',
+    'run': 'photogram_ros.commands.run',
     'replay': 'photogram_ros.commands.replay',
     'play': 'photogram_ros.commands.play',
     'record': 'photogram_ros.commands.record',

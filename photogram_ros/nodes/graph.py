@@ -1,0 +1,110 @@
+"""The mapping graph: every node of photogram_ros composed in one process, or one process per node.
+
+One process (the default) shares a MultiThreadedExecutor, so images travel between nodes without
+leaving the process's DDS participant. `--separate` starts the console scripts instead, with the same
+parameter file, for integrators who want to restart or pin nodes individually.
+"""
+
+from __future__ import annotations
+
+import importlib
+import subprocess
+import sys
+import threading
+from dataclasses import dataclass
+
+from photogram_ros.errors import ConfigError
+from photogram_ros.params import load_params_file
+
+# role -> (module, class, console script); the order is the data-flow order.
+NODES = {
+    'mavlink': ('photogram_ros.nodes.mavlink_node', 'MavlinkNode', 'mavlink_node'),
+    'tracker': ('photogram_ros.nodes.tracker_node', 'TrackerNode', 'tracker_node'),
+    'bundle': ('photogram_ros.nodes.bundle_node', 'BundleNode', 'bundle_node'),
+    'stereo': ('photogram_ros.nodes.stereo_node', 'StereoNode', 'stereo_node'),
+    'map': ('photogram_ros.nodes.map_node', 'MapNode', 'map_node'),
+}
+
+
+def node_class(role: str):
+    module, cls, _ = NODES[role]
+    return getattr(importlib.import_module(module), cls)
+
+
+@dataclass
+class GraphSpec:
+    roles: tuple = tuple(NODES)
+    params_file: str | None = None
+    namespace: str = ''
+    extra: dict | None = None      # role -> {param: value}, applied over the file
+
+
+def _sections(spec: GraphSpec) -> dict:
+    """Parameter values per node name from the params file (ROS format) plus overrides."""
+    sections = load_params_file(spec.params_file) if spec.params_file else {}
+    known = {NODES[role][2] for role in spec.roles}
+    unknown = [s for s in sections if s != '**' and s.split('/')[-1] not in known]
+    if unknown:
+        raise ConfigError(f'{spec.params_file}: sections {unknown} name no node of this graph; nodes are '
+                          f'{sorted(known)}')
+    return sections
+
+
+class Graph:
+    """All nodes in one process, spun by a multi-threaded executor in a background thread."""
+
+    def __init__(self, spec: GraphSpec, context=None):
+        from rclpy.executors import MultiThreadedExecutor
+        self.spec = spec
+        sections = _sections(spec)
+        self.nodes = {}
+        kwargs = {'namespace': spec.namespace} if spec.namespace else {}
+        if context is not None:
+            kwargs['context'] = context
+        for role in spec.roles:
+            cls = node_class(role)
+            script = NODES[role][2]
+            values = dict(sections.get('**', {}))
+            for name, section in sections.items():
+                if name.split('/')[-1] == script:
+                    values.update(section)
+            values.update((spec.extra or {}).get(role, {}))
+            self.nodes[role] = cls(overrides=values, **kwargs)
+        self.executor = MultiThreadedExecutor(num_threads=4, context=context)
+        for n in self.nodes.values():
+            self.executor.add_node(n)
+        self._thread = None
+
+    def start(self) -> None:
+        self._thread = threading.Thread(target=self.executor.spin, daemon=True, name='graph-executor')
+        self._thread.start()
+
+    def shutdown(self) -> None:
+        """Flush what each node holds (the map writes its tiles and exports), then stop."""
+        for role in reversed(list(self.nodes)):
+            finish = getattr(self.nodes[role], 'finish', None)
+            if callable(finish):
+                try:
+                    finish()
+                except Exception as exc:  # one node's failure must not lose the others' data
+                    print(f'{role}: finishing failed: {exc}', file=sys.stderr)
+        self.executor.shutdown(timeout_sec=5)
+        for n in self.nodes.values():
+            n.destroy_node()
+
+
+def start_separate(spec: GraphSpec) -> list[subprocess.Popen]:
+    """One process per node (the console scripts), each given the same parameter file."""
+    procs = []
+    for role in spec.roles:
+        script = NODES[role][2]
+        args = [sys.executable, '-c', f'import sys; from {NODES[role][0]} import main; sys.exit(main())',
+                '--ros-args']
+        if spec.params_file:
+            args += ['--params-file', spec.params_file]
+        if spec.namespace:
+            args += ['-r', f'__ns:={spec.namespace}']
+        for k, v in (spec.extra or {}).get(role, {}).items():
+            args += ['-p', f'{k}:={v}']
+        procs.append(subprocess.Popen(args))
+    return procs
