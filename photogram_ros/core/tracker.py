@@ -1,0 +1,498 @@
+"""Feature tracker and keyframe choice: a stream of frames in, mapping keyframes out.
+
+Per frame: grey conversion and photometric normalisation (mean/std or CLAHE, so that exposure
+jumps do not break KLT), pyramidal KLT from the previous frame with a constant-velocity prior and
+a forward-backward check, RANSAC on the essential matrix in undistorted normalized coordinates,
+then top-up detection (goodFeaturesToTrack per grid cell, so one textured corner cannot take all
+the features). When tracking breaks (black or over-exposed frame, gap, fast turn, too few
+survivors) the frame is matched to the last keyframe by ORB/SIFT descriptors; the homography of
+those matches warps the keyframe onto the frame and KLT refines every keyframe track, so bridged
+tracks keep their ids and sub-pixel accuracy. The break is counted either way.
+
+Keyframes are chosen for mapping: a new one when the front overlap with the last keyframe falls to
+`keyframe_overlap` (the frame closest to the target is taken, which may be the previous frame),
+or when fewer than `min_surviving` of the keyframe's tracks survive. Overlap comes from a
+homography on the shared tracks, or from the GPS distance flown when the fix is good.
+
+The keyframe record (stable interface, consumed by the bundle adjuster)
+-----------------------------------------------------------------------
+`Keyframe`:
+  index          int      0, 1, 2, ... in the order keyframes are emitted
+  frame_index    int      index of the source frame among the frames given to the tracker
+  stamp_ns       int      the image's header stamp, ns
+  image          ndarray  (H, W, 3) uint8 BGR, the original (not normalised) image
+  observations   ndarray  structured, dtype FEATURE_DTYPE, one row per track seen in this image:
+                   track_id uint32  the same id in every keyframe that sees the same ground point
+                   u, v     float64 distorted pixel coordinates (origin at the centre of the top-left pixel)
+                   xn, yn   float64 undistorted normalized coordinates x/z, y/z (optical frame)
+  fix            GpsFix | None   the GNSS fix interpolated to stamp_ns (None during an outage)
+  overlap        float    estimated front overlap with the previous keyframe (nan for the first)
+  break_before   bool     tracking broke between the previous keyframe and this one
+  bridged        bool     ... and descriptor matching reconnected the tracks (ids continue)
+On ROS the table travels as a PointCloud2 with exactly these named fields (msgs.keyframe_features_msg).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+
+from photogram_ros.core.camera import PinholeCamera
+from photogram_ros.core.keyframes import FixBuffer, GpsFix, OverlapGrid, gps_distance_m, homography_overlap
+from photogram_ros.errors import CalibrationError
+from photogram_ros.params import param
+
+FEATURE_DTYPE = np.dtype([('track_id', '<u4'), ('u', '<f8'), ('v', '<f8'), ('xn', '<f8'), ('yn', '<f8')])
+
+
+@dataclass
+class TrackerParams:
+    grid_cols: int = param(8, 'Detection grid columns (features are spread over the cells)', min=1, max=64)
+    grid_rows: int = param(6, 'Detection grid rows', min=1, max=64)
+    max_features: int = param(400, 'Tracks kept alive per frame (topped up per cell)', min=16, max=20000)
+    min_distance_px: float = param(10.0, 'Minimum distance between features, px', min=1.0, max=200.0)
+    quality_level: float = param(0.01, 'goodFeaturesToTrack quality, relative to the best corner in a cell',
+                                 min=1e-4, max=0.5)
+    klt_window_px: int = param(21, 'KLT window size, px (odd)', min=5, max=101)
+    klt_levels: int = param(3, 'KLT pyramid levels above the full image', min=0, max=8)
+    fb_max_px: float = param(0.5, 'Forward-backward KLT disagreement beyond which a track is dropped, px',
+                             min=0.01, max=10.0)
+    ransac_px: float = param(1.0, 'Essential-matrix RANSAC threshold, px (converted with fx)', min=0.05, max=20.0)
+    normalize: str = param('meanstd', 'Photometric normalisation before tracking',
+                           choices=('none', 'meanstd', 'clahe'))
+    min_contrast_dn: float = param(4.0, 'Frames with a grey-level std below this are unusable (black, '
+                                   'white, lens cap), DN', min=0.0, max=100.0)
+    keyframe_overlap: float = param(0.8, 'Front overlap with the last keyframe at which a new one is taken',
+                                    min=0.05, max=0.98)
+    min_surviving: float = param(0.3, "New keyframe when fewer than this fraction of the keyframe's tracks "
+                                 'survive', min=0.0, max=1.0)
+    min_parallax_px: float = param(2.0, 'No overlap-driven keyframe below this median track motion, px '
+                                   '(hovering)', min=0.0, max=1000.0)
+    overlap_source: str = param('image', 'Front overlap from tracked points (image), GPS distance (gps), or '
+                                'GPS when its fix is good else image (auto)', choices=('image', 'gps', 'auto'))
+    ground_distance_m: float = param(0.0, 'Camera height above ground for GPS overlap, m (0: GPS overlap off)',
+                                     min=0.0, max=10000.0)
+    gps_max_sigma_m: float = param(0.5, 'GPS overlap only with a horizontal sigma below this, m', min=0.0,
+                                   max=100.0)
+    recover_min_tracks: int = param(30, 'Fewer surviving tracks than this is a break: match the last '
+                                    'keyframe by descriptors', min=8, max=10000)
+    descriptor: str = param('orb', 'Descriptor used to bridge breaks', choices=('orb', 'sift'))
+    gap_s: float = param(0.0, 'A frame interval above this is a gap, s (0: 2.5 x the usual interval)',
+                         min=0.0, max=3600.0)
+    fix_wait_s: float = param(0.5, 'How long (stream time) a keyframe waits for a GPS fix after its stamp, s',
+                              min=0.0, max=10.0)
+    fix_max_gap_s: float = param(1.0, 'No fix is interpolated across a GPS gap longer than this, s',
+                                 min=0.01, max=60.0)
+
+
+@dataclass
+class Keyframe:
+    index: int
+    frame_index: int
+    stamp_ns: int
+    image: np.ndarray
+    observations: np.ndarray
+    fix: GpsFix | None = None
+    overlap: float = float('nan')
+    break_before: bool = False
+    bridged: bool = False
+
+
+@dataclass
+class TrackerStats:
+    frames: int = 0
+    unusable: int = 0          # black / over-exposed / featureless frames
+    gaps: int = 0              # frame intervals above gap_s
+    breaks: int = 0            # KLT could not carry the tracks
+    bridged: int = 0           # ... and descriptor matching to the last keyframe reconnected them
+    keyframes: int = 0
+    tracks_alive: int = 0
+    last_overlap: float = float('nan')
+    out_of_order: int = 0
+    process_s: float = 0.0     # total time in process()
+
+
+@dataclass
+class _Frame:
+    index: int
+    stamp_ns: int
+    image: np.ndarray          # original image (BGR or grey)
+    gray: np.ndarray           # normalised grey
+    pyr: list
+    pts: np.ndarray            # (N, 2) float32 pixels
+    ids: np.ndarray            # (N,) uint32
+    overlap: float | None = None
+    fix: GpsFix | None = None
+
+
+@dataclass
+class _KfState:
+    frame: _Frame
+    keyframe: Keyframe
+    id_to_row: dict
+    xn: np.ndarray
+    features: tuple | None = None   # (keypoints, descriptors), computed on first break
+
+
+@dataclass
+class _Pending:
+    keyframe: Keyframe
+    done: bool = False
+
+
+class Tracker:
+    """Feed frames with `process(image, stamp_ns)`, fixes with `add_fix`; keyframes come back."""
+
+    def __init__(self, camera: PinholeCamera | None, params: TrackerParams | None = None):
+        self.params = params or TrackerParams()
+        self.stats = TrackerStats()
+        self.fixes = FixBuffer(self.params.fix_max_gap_s)
+        self.camera = None
+        self._prev: _Frame | None = None
+        self._kf: _KfState | None = None
+        self._pending: list[Keyframe] = []
+        self._next_id = 0
+        self._n_frames = 0
+        self._velocity = np.zeros(2, np.float32)   # median image motion, px/s
+        self._dt_hist: list[float] = []
+        self._lost = False          # a frame was unusable since the last tracked one
+        self._break_since_kf = False
+        self._bridged_since_kf = False
+        self._break_index = -1      # frame index of the last break (the keyframe choice must not skip it)
+        self._clahe = cv2.createCLAHE(2.0, (8, 8))
+        p = self.params
+        self._win = (p.klt_window_px | 1, p.klt_window_px | 1)
+        self._criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 0.01)
+        if camera is not None:
+            self.set_camera(camera)
+
+    # --- inputs ----------------------------------------------------------------------------------
+
+    def set_camera(self, camera: PinholeCamera) -> None:
+        camera.validate()
+        if self.camera is not None and camera == self.camera:
+            return
+        self.camera = camera
+        self._grid = OverlapGrid(camera)
+        self._prev = None     # points of another calibration cannot be continued
+        self._kf = None
+
+    def add_fix(self, fix: GpsFix | dict) -> None:
+        self.fixes.add(fix if isinstance(fix, GpsFix) else GpsFix.from_dict(fix))
+
+    # --- the frame pipeline ----------------------------------------------------------------------
+
+    def process(self, image: np.ndarray, stamp_ns: int) -> list[Keyframe]:
+        """Track one frame; returns the keyframes completed so far (usually none or one)."""
+        import time
+        t0 = time.perf_counter()
+        try:
+            return self._process(image, int(stamp_ns))
+        finally:
+            self.stats.process_s += time.perf_counter() - t0
+
+    def _process(self, image, stamp_ns):
+        if self.camera is None:
+            raise CalibrationError('no camera calibration yet: frames cannot be used before camera_info '
+                                   'or a calibration file gives the intrinsics')
+        h, w = image.shape[:2]
+        self.camera.check_image_size(w, h)
+        self.stats.frames += 1
+        index = self._n_frames
+        self._n_frames += 1
+        if self._prev is not None and stamp_ns <= self._prev.stamp_ns:
+            self.stats.out_of_order += 1
+            return []
+        gray = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
+        mean, std = (float(v[0][0]) for v in cv2.meanStdDev(gray))
+        if std < self.params.min_contrast_dn or mean > 250.0:
+            self.stats.unusable += 1
+            self._lost = True
+            return self._release(stamp_ns)
+        g = self._normalise(gray, mean, std)
+        # (Python's calcOpticalFlowPyrLK cannot take prebuilt pyramids; it builds them itself.)
+        cur = _Frame(index, stamp_ns, image, g, g, np.empty((0, 2), np.float32), np.empty(0, np.uint32))
+        if self._prev is None or self._kf is None:
+            cur.pts, cur.ids = self._top_up(cur, cur.pts, cur.ids)
+            self._make_keyframe(cur, overlap=float('nan'))
+        else:
+            self._track(cur)
+        self.stats.tracks_alive = len(cur.ids)
+        self._prev = cur
+        return self._release(stamp_ns)
+
+    def flush(self) -> list[Keyframe]:
+        """At the end of the stream: emit the keyframes still waiting for a GPS fix."""
+        out = [self._finish(k) for k in self._pending]
+        self._pending = []
+        return out
+
+    def _normalise(self, gray, mean, std):
+        mode = self.params.normalize
+        if mode == 'clahe':
+            return self._clahe.apply(gray)
+        if mode == 'meanstd':
+            a = 48.0 / max(std, 1.0)
+            return cv2.addWeighted(gray, a, gray, 0.0, 128.0 - a * mean)
+        return gray
+
+    def _gap_limit_s(self) -> float:
+        if self.params.gap_s > 0:
+            return self.params.gap_s
+        if len(self._dt_hist) < 3:
+            return float('inf')
+        return 2.5 * float(np.median(self._dt_hist))
+
+    def _track(self, cur: _Frame) -> None:
+        p = self.params
+        prev = self._prev
+        dt = (cur.stamp_ns - prev.stamp_ns) * 1e-9
+        if dt > self._gap_limit_s():
+            self.stats.gaps += 1
+        else:
+            self._dt_hist = (self._dt_hist + [dt])[-20:]
+        pts, ids, flow = self._klt(prev.pyr, cur.pyr, prev.pts, prev.ids, self._velocity * dt)
+        if len(ids) >= p.recover_min_tracks and flow is not None:
+            self._velocity = (flow / dt).astype(np.float32)
+        if self._lost or len(ids) < p.recover_min_tracks:
+            self.stats.breaks += 1
+            self._break_since_kf = True
+            self._break_index = cur.index
+            rec = self._recover(cur)
+            if rec is not None:
+                pts, ids = rec
+                self.stats.bridged += 1
+                self._bridged_since_kf = True
+            else:
+                pts, ids = np.empty((0, 2), np.float32), np.empty(0, np.uint32)
+        self._lost = False
+        cur.pts, cur.ids = self._top_up(cur, pts, ids)
+        self._decide(cur)
+
+    def _klt(self, pyr0, pyr1, p0, ids, guess_shift):
+        """KLT pyr0 -> pyr1 with forward-backward and essential-matrix checks."""
+        if len(p0) == 0:
+            return p0, ids, None
+        p = self.params
+        p0 = p0.reshape(-1, 1, 2).astype(np.float32)
+        guess = p0 + np.asarray(guess_shift, np.float32).reshape(1, 1, 2)
+        flags = cv2.OPTFLOW_USE_INITIAL_FLOW
+        p1, st, _ = cv2.calcOpticalFlowPyrLK(pyr0, pyr1, p0, guess.copy(), winSize=self._win,
+                                             maxLevel=p.klt_levels, criteria=self._criteria, flags=flags)
+        pb, st2, _ = cv2.calcOpticalFlowPyrLK(pyr1, pyr0, p1, p0.copy(), winSize=self._win,
+                                              maxLevel=p.klt_levels, criteria=self._criteria, flags=flags)
+        p0, p1, pb = p0.reshape(-1, 2), p1.reshape(-1, 2), pb.reshape(-1, 2)
+        ok = (st.ravel() == 1) & (st2.ravel() == 1) & (np.linalg.norm(pb - p0, axis=1) < p.fb_max_px)
+        ok &= self.camera.in_image(p1, margin_px=2.0)
+        p0, p1, ids = p0[ok], p1[ok], ids[ok]
+        keep = self._epipolar_inliers(p0, p1)
+        p0, p1, ids = p0[keep], p1[keep], ids[keep]
+        flow = np.median(p1 - p0, axis=0) if len(p1) else None
+        return p1.astype(np.float32), ids, flow
+
+    def _epipolar_inliers(self, p0, p1, xn0=None) -> np.ndarray:
+        n = len(p0)
+        if n < 8:
+            return np.zeros(n, bool)
+        xn0 = self.camera.pixel_to_normalized(p0) if xn0 is None else xn0
+        xn1 = self.camera.pixel_to_normalized(p1)
+        if np.median(np.linalg.norm(xn1 - xn0, axis=1)) * self.camera.fx < 1.0:
+            return np.ones(n, bool)   # no baseline to speak of: E is undetermined, FB check must do
+        E, mask = cv2.findEssentialMat(xn0, xn1, np.eye(3), cv2.RANSAC, 0.999,
+                                       self.params.ransac_px / self.camera.fx)
+        if E is None or mask is None:
+            return np.zeros(n, bool)
+        return mask.ravel().astype(bool)
+
+    def _top_up(self, cur: _Frame, pts, ids):
+        """Detect new corners in the grid cells that have fallen below their share of features."""
+        p = self.params
+        h, w = cur.gray.shape
+        nc, nr = p.grid_cols, p.grid_rows
+        per_cell = max(1, p.max_features // (nc * nr))
+        cx = np.minimum((pts[:, 0] * nc / w).astype(int), nc - 1) if len(pts) else np.empty(0, int)
+        cy = np.minimum((pts[:, 1] * nr / h).astype(int), nr - 1) if len(pts) else np.empty(0, int)
+        counts = np.bincount(cy * nc + cx, minlength=nc * nr) if len(pts) else np.zeros(nc * nr, int)
+        need = np.flatnonzero(counts < max(1, int(0.7 * per_cell)))
+        if len(need) == 0:
+            return pts, ids
+        mask = np.full((h, w), 255, np.uint8)
+        border = self._win[0] // 2 + 2
+        mask[:border], mask[-border:], mask[:, :border], mask[:, -border:] = 0, 0, 0, 0
+        r = int(round(p.min_distance_px))
+        for x, y in pts:
+            cv2.circle(mask, (int(round(x)), int(round(y))), r, 0, -1)
+        new = []
+        for cell in need:
+            j, i = divmod(int(cell), nc)
+            x0, x1 = i * w // nc, (i + 1) * w // nc
+            y0, y1 = j * h // nr, (j + 1) * h // nr
+            c = cv2.goodFeaturesToTrack(cur.gray[y0:y1, x0:x1], per_cell - int(counts[cell]), p.quality_level,
+                                        p.min_distance_px, mask=mask[y0:y1, x0:x1], blockSize=7)
+            if c is not None:
+                new.append(c.reshape(-1, 2) + np.array([x0, y0], np.float32))
+        if not new:
+            return pts, ids
+        new = np.concatenate(new).astype(np.float32)
+        new_ids = np.arange(self._next_id, self._next_id + len(new), dtype=np.uint32)
+        self._next_id += len(new)
+        return np.concatenate([pts, new]), np.concatenate([ids, new_ids])
+
+    # --- breaks ----------------------------------------------------------------------------------
+
+    def _detector(self):
+        if self.params.descriptor == 'sift':
+            return cv2.SIFT_create(1500), cv2.NORM_L2
+        return cv2.ORB_create(2000, fastThreshold=10), cv2.NORM_HAMMING
+
+    def _recover(self, cur: _Frame):
+        """Bridge a break: descriptor homography keyframe -> frame, then KLT of every keyframe track."""
+        kf = self._kf
+        det, norm = self._detector()
+        if kf.features is None:
+            kf.features = det.detectAndCompute(kf.frame.gray, None)
+        kp0, d0 = kf.features
+        kp1, d1 = det.detectAndCompute(cur.gray, None)
+        if d0 is None or d1 is None or len(kp0) < 15 or len(kp1) < 15:
+            return None
+        pairs = cv2.BFMatcher(norm).knnMatch(d0, d1, k=2)
+        good = [m[0] for m in pairs if len(m) == 2 and m[0].distance < 0.8 * m[1].distance]
+        if len(good) < 15:
+            return None
+        src = np.float32([kp0[m.queryIdx].pt for m in good])
+        dst = np.float32([kp1[m.trainIdx].pt for m in good])
+        H, inl = cv2.findHomography(src, dst, cv2.RANSAC, 8.0)
+        if H is None or int(inl.sum()) < 15:
+            return None
+        h, w = cur.gray.shape
+        warped = cv2.warpPerspective(kf.frame.gray, H, (w, h), flags=cv2.INTER_LINEAR)
+        p_kf = kf.frame.pts
+        guess = cv2.perspectiveTransform(p_kf.reshape(-1, 1, 2).astype(np.float64), H).reshape(-1, 2)
+        inside = self.camera.in_image(guess, margin_px=self._win[0] / 2)
+        if inside.sum() < 8:
+            return None
+        guess = guess[inside].astype(np.float32)
+        ids, xn_kf = kf.frame.ids[inside], kf.xn[inside]
+        # KLT warped -> current from the warped positions (pure parallax residual left to find).
+        pts, ids_ok, _ = self._klt_from(warped, cur.pyr, guess, ids)
+        if len(ids_ok) < 8:
+            return None
+        keep_rows = np.isin(ids, ids_ok)
+        keep = self._essential_inliers(xn_kf[keep_rows], pts)
+        pts, ids_ok = pts[keep], ids_ok[keep]
+        if len(ids_ok) < min(self.params.recover_min_tracks, 15):
+            return None
+        return pts.astype(np.float32), ids_ok
+
+    def _klt_from(self, pyr0, pyr1, p0, ids):
+        p = self.params
+        p0 = p0.reshape(-1, 1, 2).astype(np.float32)
+        p1, st, _ = cv2.calcOpticalFlowPyrLK(pyr0, pyr1, p0, p0.copy(), winSize=self._win, maxLevel=2,
+                                             criteria=self._criteria, flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
+        pb, st2, _ = cv2.calcOpticalFlowPyrLK(pyr1, pyr0, p1, p0.copy(), winSize=self._win, maxLevel=2,
+                                              criteria=self._criteria, flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
+        p0, p1, pb = p0.reshape(-1, 2), p1.reshape(-1, 2), pb.reshape(-1, 2)
+        ok = (st.ravel() == 1) & (st2.ravel() == 1) & (np.linalg.norm(pb - p0, axis=1) < p.fb_max_px)
+        ok &= self.camera.in_image(p1, margin_px=2.0)
+        return p1[ok], ids[ok], None
+
+    def _essential_inliers(self, xn0, p1) -> np.ndarray:
+        n = len(p1)
+        if n < 8:
+            return np.zeros(n, bool)
+        xn1 = self.camera.pixel_to_normalized(p1)
+        E, mask = cv2.findEssentialMat(xn0, xn1, np.eye(3), cv2.RANSAC, 0.999,
+                                       self.params.ransac_px / self.camera.fx)
+        if E is None or mask is None:
+            return np.zeros(n, bool)
+        return mask.ravel().astype(bool)
+
+    # --- keyframes -------------------------------------------------------------------------------
+
+    def _measure(self, cur: _Frame):
+        """(overlap or None, surviving fraction, median parallax px) of `cur` against the keyframe."""
+        kf = self._kf
+        rows = np.array([kf.id_to_row.get(int(i), -1) for i in cur.ids], int)
+        shared = rows >= 0
+        n_kf = max(len(kf.frame.ids), 1)
+        surviving = shared.sum() / n_kf
+        if shared.sum() < 8:
+            return None, surviving, 0.0
+        xn_kf = kf.xn[rows[shared]]
+        xn_cur = self.camera.pixel_to_normalized(cur.pts[shared])
+        parallax = float(np.median(np.linalg.norm(xn_cur - xn_kf, axis=1))) * self.camera.fx
+        overlap = None
+        fix_ok = self._gps_overlap(cur)
+        if fix_ok is not None:
+            overlap = fix_ok
+        if overlap is None:
+            overlap, _ = homography_overlap(self._grid, xn_kf, xn_cur, 2.0 / self.camera.fx)
+        return overlap, surviving, parallax
+
+    def _gps_overlap(self, cur: _Frame) -> float | None:
+        p = self.params
+        if p.overlap_source == 'image' or p.ground_distance_m <= 0:
+            return None
+        a = self.fixes.at(self._kf.keyframe.stamp_ns)
+        b = self.fixes.at(cur.stamp_ns)
+        if a is None or b is None or max(a.horizontal_sigma_m, b.horizontal_sigma_m) > p.gps_max_sigma_m:
+            return None
+        # Image top points along the flight: the along-track footprint is the image height.
+        footprint_m = p.ground_distance_m * self.camera.height / self.camera.fy
+        return max(0.0, 1.0 - gps_distance_m(a, b) / footprint_m)
+
+    def _decide(self, cur: _Frame) -> None:
+        p = self.params
+        overlap, surviving, parallax = self._measure(cur)
+        cur.overlap = overlap
+        if overlap is None or surviving < p.min_surviving:
+            self._make_keyframe(cur, overlap if overlap is not None else float('nan'))
+            return
+        if overlap > p.keyframe_overlap or parallax < p.min_parallax_px:
+            return
+        prev = self._prev
+        if (prev is not None and prev is not self._kf.frame and prev.overlap is not None
+                and self._break_index < prev.index
+                and abs(prev.overlap - p.keyframe_overlap) < abs(overlap - p.keyframe_overlap)):
+            self._make_keyframe(prev, prev.overlap)
+            overlap, surviving, _ = self._measure(cur)
+            cur.overlap = overlap
+            if overlap is None or surviving < p.min_surviving or overlap <= p.keyframe_overlap:
+                self._make_keyframe(cur, overlap if overlap is not None else float('nan'))
+            return
+        self._make_keyframe(cur, overlap)
+
+    def _make_keyframe(self, frame: _Frame, overlap: float) -> None:
+        xn = self.camera.pixel_to_normalized(frame.pts.astype(np.float64))
+        obs = np.empty(len(frame.ids), FEATURE_DTYPE)
+        obs['track_id'] = frame.ids
+        obs['u'], obs['v'] = frame.pts[:, 0], frame.pts[:, 1]
+        obs['xn'], obs['yn'] = xn[:, 0], xn[:, 1]
+        image = frame.image if frame.image.ndim == 3 else cv2.cvtColor(frame.image, cv2.COLOR_GRAY2BGR)
+        kf = Keyframe(self.stats.keyframes, frame.index, frame.stamp_ns, image, obs, None, float(overlap),
+                      self._break_since_kf, self._bridged_since_kf)
+        self.stats.keyframes += 1
+        if np.isfinite(overlap):
+            self.stats.last_overlap = float(overlap)
+        self._break_since_kf = self._bridged_since_kf = False
+        self._kf = _KfState(frame, kf, {int(i): r for r, i in enumerate(frame.ids)}, xn)
+        self._pending.append(kf)
+
+    def _finish(self, kf: Keyframe) -> Keyframe:
+        kf.fix = self.fixes.at(kf.stamp_ns)
+        return kf
+
+    def _release(self, now_ns: int) -> list[Keyframe]:
+        """Keyframes whose GPS fix is known (a fix after the stamp arrived) or waited for long enough."""
+        out = []
+        latest = self.fixes.latest_ns()
+        wait_ns = int(self.params.fix_wait_s * 1e9)
+        while self._pending:
+            kf = self._pending[0]
+            if (latest is not None and latest >= kf.stamp_ns) or now_ns - kf.stamp_ns >= wait_ns:
+                out.append(self._finish(self._pending.pop(0)))
+            else:
+                break
+        return out
