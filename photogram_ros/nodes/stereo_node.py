@@ -1,0 +1,222 @@
+"""Stereo node: pairs posed keyframes, computes dense depth, publishes each pair's cloud in `map`.
+
+Inputs: /keyframes/image (Image), /map/keyframe_pose (PoseWithCovarianceStamped in `map`, stamped
+like its keyframe image; a later pose with the same stamp is a refinement and replaces the older
+one), /camera/camera_info. Output: /map/dense_cloud (PointCloud2 x, y, z, rgb, confidence) per pair,
+optionally /stereo/disparity, and /diagnostics.
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+from collections import OrderedDict
+from dataclasses import dataclass
+
+import numpy as np
+import rclpy
+from geometry_msgs.msg import PoseWithCovarianceStamped
+from rclpy.node import Node
+from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
+from sensor_msgs.msg import CameraInfo, Image, PointCloud2
+from stereo_msgs.msg import DisparityImage
+
+from photogram_ros import msgs
+from photogram_ros.core import stereo
+from photogram_ros.core.pairs import PairCriteria, choose_pairs
+from photogram_ros.errors import ConfigError, PhotogramError
+from photogram_ros.nodes.diagnostics import Diagnostics
+from photogram_ros.nodes.ros_params import declare
+from photogram_ros.params import param
+
+TOPIC_IMAGE = '/keyframes/image'
+TOPIC_POSE = '/map/keyframe_pose'
+TOPIC_INFO = '/camera/camera_info'
+TOPIC_CLOUD = '/map/dense_cloud'
+TOPIC_DISPARITY = '/stereo/disparity'
+
+
+@dataclass
+class StereoNodeParams(stereo.StereoParams):
+    ground_height_m: float = param(0.0, 'expected ground height in map (z, m), centre of the depth search',
+                                   min=-1e4, max=1e4)
+    relief_m: float = param(20.0, 'depth search half-range around the ground, m (terrain relief + buildings)',
+                            min=0.5, max=1e4)
+    target_baseline_ratio: float = param(0.22, 'preferred baseline-to-height ratio when choosing partners',
+                                         min=0.01, max=5.0)
+    max_pairs_along: int = param(1, 'partners per new keyframe along its flight line', min=0, max=10)
+    max_pairs_across: int = param(1, 'partners per new keyframe on neighbouring lines', min=0, max=10)
+    max_axis_angle_deg: float = param(20.0, 'keyframes whose optical axes differ more are not paired',
+                                      min=0.0, max=90.0)
+    max_keyframes: int = param(80, 'keyframes kept as stereo partners (memory bound), oldest dropped',
+                               min=2, max=10000)
+    max_position_sigma_m: float = param(2.0, 'keyframes whose pose position sigma is larger make no pairs, m',
+                                        min=0.0, max=1e4)
+    publish_disparity: bool = param(False, f'also publish each pair\'s disparity on {TOPIC_DISPARITY}')
+
+
+@dataclass
+class _Keyframe:
+    stamp_ns: int
+    image: np.ndarray | None = None
+    map_T_cam: np.ndarray | None = None
+    sigma_m: float = 0.0
+    paired: bool = False
+
+    @property
+    def complete(self) -> bool:
+        return self.image is not None and self.map_T_cam is not None
+
+
+class StereoNode(Node):
+    def __init__(self, overrides: dict | None = None, **node_kwargs):
+        super().__init__('stereo_node', **node_kwargs)
+        self.params: StereoNodeParams = declare(self, StereoNodeParams, overrides)
+        p = self.params
+        self.criteria = PairCriteria(p.target_baseline_ratio, p.min_baseline_ratio, p.max_baseline_ratio,
+                                     p.min_overlap, p.max_pairs_along, p.max_pairs_across, p.max_axis_angle_deg)
+        self.diag = Diagnostics(self)
+        self.camera = None
+        self._kf: OrderedDict[int, _Keyframe] = OrderedDict()
+        self._ms: list[float] = []
+        reliable = QoSProfile(depth=20, reliability=ReliabilityPolicy.RELIABLE)
+        self.create_subscription(Image, TOPIC_IMAGE, self._on_image, reliable)
+        self.create_subscription(PoseWithCovarianceStamped, TOPIC_POSE, self._on_pose, reliable)
+        self.create_subscription(CameraInfo, TOPIC_INFO, self._on_info, qos_profile_sensor_data)
+        self.cloud_pub = self.create_publisher(PointCloud2, TOPIC_CLOUD, reliable)
+        self.disp_pub = self.create_publisher(DisparityImage, TOPIC_DISPARITY, 5) if p.publish_disparity else None
+
+    # --- inputs ----------------------------------------------------------------------------------
+
+    def _entry(self, stamp_ns: int) -> _Keyframe:
+        kf = self._kf.get(stamp_ns)
+        if kf is None:
+            kf = self._kf[stamp_ns] = _Keyframe(stamp_ns)
+            # Bounded memory: drop the oldest (also half-received ones whose partner never came).
+            while len(self._kf) > self.params.max_keyframes:
+                self._kf.popitem(last=False)
+                self.diag.count('keyframes_dropped')
+        return kf
+
+    def _on_info(self, msg: CameraInfo) -> None:
+        try:
+            cam = msgs.camera_from_info(msg)
+        except PhotogramError as exc:
+            self.diag.problem(f'bad camera_info: {exc}')
+            return
+        first = self.camera is None
+        self.camera = cam
+        if first:
+            self._pair_pending()
+
+    def _on_image(self, msg: Image) -> None:
+        try:
+            img = msgs.image_from_msg(msg)
+            if img.ndim == 3 and img.shape[2] != 3:
+                raise PhotogramError(f'keyframe image has {img.shape[2]} channels; publish bgr8 or mono8')
+            kf = self._entry(msgs.ns_from_time(msg.header.stamp))
+            kf.image = img
+            self.diag.count('images')
+            self._maybe_pair(kf)
+        except Exception as exc:  # one bad keyframe must not stop the node
+            self.diag.problem(f'keyframe image rejected: {exc}')
+
+    def _on_pose(self, msg: PoseWithCovarianceStamped) -> None:
+        try:
+            if msg.header.frame_id not in ('map', '/map'):
+                raise PhotogramError(f'keyframe pose is in frame {msg.header.frame_id!r}, expected map')
+            T, cov = msgs.T_from_pose_with_covariance(msg)
+            kf = self._entry(msgs.ns_from_time(msg.header.stamp))
+            kf.map_T_cam = T
+            kf.sigma_m = float(np.sqrt(max(np.trace(cov[:3, :3]), 0.0)))
+            self.diag.count('poses')
+            self._maybe_pair(kf)
+        except Exception as exc:
+            self.diag.problem(f'keyframe pose rejected: {exc}')
+
+    # --- pairing ---------------------------------------------------------------------------------
+
+    def _pair_pending(self) -> None:
+        for kf in list(self._kf.values()):
+            self._maybe_pair(kf)
+
+    def _camera_for(self, image: np.ndarray):
+        cam = self.camera
+        h, w = image.shape[:2]
+        if (w, h) != (cam.width, cam.height) and abs(w / cam.width - h / cam.height) < 1e-3:
+            cam = cam.scaled(w / cam.width)   # keyframes published at a reduced resolution
+        return cam
+
+    def _maybe_pair(self, kf: _Keyframe) -> None:
+        if kf.paired or not kf.complete:
+            return
+        if self.camera is None:
+            self.diag.problem('no camera_info yet: keyframes wait for the calibration')
+            return
+        kf.paired = True
+        self.diag.count('keyframes')
+        p = self.params
+        if kf.sigma_m > p.max_position_sigma_m:
+            self.diag.count('pairs_skipped_poor_pose')
+            return
+        height = float(kf.map_T_cam[2, 3] - p.ground_height_m)
+        others = {s: o.map_T_cam for s, o in self._kf.items()
+                  if o is not kf and o.complete and o.paired and o.sigma_m <= p.max_position_sigma_m}
+        if height <= 0:
+            self.diag.problem(f'keyframe at z={kf.map_T_cam[2, 3]:.1f} m is not above the ground '
+                              f'({p.ground_height_m} m): set ground_height_m')
+            return
+        for cand in choose_pairs(self._camera_for(kf.image), kf.map_T_cam, others, height, self.criteria):
+            self._run_pair(self._kf[cand.other], kf, height)
+
+    def _run_pair(self, a: _Keyframe, b: _Keyframe, height_m: float) -> None:
+        p = self.params
+        t0 = time.perf_counter()
+        try:
+            cam = self._camera_for(a.image)
+            lo = max(p.min_depth_m, height_m - p.relief_m)
+            hi = min(p.max_depth_m, height_m + p.relief_m)
+            res = stereo.stereo_pair(cam, a.image, a.map_T_cam, b.image, b.map_T_cam, p, (lo, hi))
+        except Exception as exc:
+            self.diag.count('pairs_failed')
+            self.diag.problem(f'stereo pair {a.stamp_ns}/{b.stamp_ns} failed: {exc}')
+            return
+        ms = (time.perf_counter() - t0) * 1e3
+        if not res.ok:
+            self.diag.count(f'pairs_skipped_{res.status}')
+            self.diag.set('last_skip', res.message)
+            return
+        self.cloud_pub.publish(msgs.pointcloud2_msg(res.cloud, b.stamp_ns, 'map'))
+        if self.disp_pub is not None:
+            d = res.disparity.disparity_px + np.float32(res.rect.shift_px)
+            self.disp_pub.publish(msgs.disparity_image_msg(d, b.stamp_ns, res.rect.f_px, res.rect.baseline_m))
+        self._ms.append(ms)
+        self._ms = self._ms[-50:]
+        self.diag.count('pairs_done')
+        self.diag.set('ms_per_pair', float(np.mean(self._ms)))
+        self.diag.set('points_per_pair', int(res.cloud.size))
+        self.diag.set('sgbm_ms', float(res.timings_ms.get('sgbm_ms', 0.0)))
+
+
+def main(argv=None) -> int:
+    """Console script `stereo_node`."""
+    rclpy.init(args=argv if argv is not None else sys.argv)
+    node = None
+    try:
+        node = StereoNode()
+        rclpy.spin(node)
+        return 0
+    except ConfigError as exc:
+        print(f'stereo_node: {exc}', file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        return 130
+    finally:
+        if node is not None:
+            node.destroy_node()
+        if rclpy.ok():
+            rclpy.shutdown()
+
+
+if __name__ == '__main__':
+    sys.exit(main())
