@@ -1,0 +1,373 @@
+"""2.5D fusion of dense pair clouds into a tiled height grid with bounded memory.
+
+The map is a grid of square cells (`cell_m`) in the `map` ENU frame, cut into square tiles of
+`tile_cells` x `tile_cells` cells keyed by integer tile indices (ti, tj) = floor(cell index / tile_cells).
+Each cell keeps a running mean of position and colour, the number of points and of pairs that
+contributed, and the running variance of z (Chan's parallel update, so one pair's points merge in
+one step).
+
+Outliers are rejected by consistency between pairs, not between points: a pair's mean height in a
+cell must agree with the cell's fused height within max(k * sigma_z, min_tolerance_m). A pair that
+disagrees is counted as rejected in that cell; once the rejections outnumber the pairs that built
+the cell, the cell is rebuilt from the newest pair, so a bad first pair cannot lock a cell forever.
+
+Memory is bounded by evicting the least recently touched tiles to a store (see io/map_store.py)
+once more than `max_tiles_in_memory` are held; an evicted tile reloads on demand. Without a store
+nothing is evicted (there would be nowhere to put it).
+"""
+
+from __future__ import annotations
+
+from collections import OrderedDict
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from photogram_ros.errors import ConfigError, DataError
+
+# One fused cell. x, y are offsets from the tile's south-west corner so float32 keeps 0.1 mm.
+CELL_DTYPE = np.dtype([
+    ('n', '<u4'),            # points fused
+    ('n_pairs', '<u2'),      # pair clouds fused
+    ('n_rejected', '<u2'),   # pair clouds rejected since the cell was (re)built
+    ('x', '<f4'), ('y', '<f4'), ('z', '<f4'),   # mean position (x, y tile-relative; z map ENU), m
+    ('m2_z', '<f4'),         # sum of squared z deviations, m^2
+    ('r', '<f4'), ('g', '<f4'), ('b', '<f4'),    # mean colour, 0..255
+    ('confidence', '<f4'),   # mean stereo confidence
+])
+
+
+@dataclass
+class FusionConfig:
+    cell_m: float = 0.08
+    tile_cells: int = 256
+    max_tiles_in_memory: int = 64
+    k_sigma: float = 3.0
+    min_tolerance_m: float = 0.30
+
+    def check(self) -> None:
+        if not (self.cell_m > 0 and np.isfinite(self.cell_m)):
+            raise ConfigError(f'fusion cell size {self.cell_m} m must be positive')
+        if not 8 <= self.tile_cells <= 4096:
+            raise ConfigError(f'tile_cells {self.tile_cells} must be within [8, 4096]')
+        if self.max_tiles_in_memory < 1:
+            raise ConfigError('max_tiles_in_memory must be at least 1')
+
+    @property
+    def tile_m(self) -> float:
+        return self.cell_m * self.tile_cells
+
+
+class Tile:
+    """Dense cells of one tile plus what changed since the last flush and the last stream.
+
+    Held as one array per field (fancy indexing of a structured array copies whole records, which
+    was most of the fusion time); `records()` gives the CELL_DTYPE layout for storage.
+    """
+
+    def __init__(self, key: tuple[int, int], tile_cells: int, cells: np.ndarray | None = None):
+        self.key = key
+        n = tile_cells * tile_cells
+        self.f = {name: (cells[name].copy() if cells is not None else np.zeros(n, CELL_DTYPE.fields[name][0]))
+                  for name in CELL_DTYPE.names}
+        self.dirty = np.zeros(n, dtype=bool)     # not yet handed to the store
+        self.changed_for_stream = False
+
+    def records(self, idx=None) -> np.ndarray:
+        n = self.f['n'].size if idx is None else len(idx)
+        out = np.empty(n, dtype=CELL_DTYPE)
+        for name, arr in self.f.items():
+            out[name] = arr if idx is None else arr[idx]
+        return out
+
+    @property
+    def nbytes(self) -> int:
+        return sum(a.nbytes for a in self.f.values()) + self.dirty.nbytes
+
+
+@dataclass
+class FusionStats:
+    clouds: int = 0
+    points_in: int = 0
+    points_fused: int = 0
+    points_rejected: int = 0
+    points_invalid: int = 0
+    cells_replaced: int = 0
+    tiles_evicted: int = 0
+    tiles_loaded: int = 0
+    extra: dict = field(default_factory=dict)
+
+
+def _int32(v: int) -> int:
+    return v - (1 << 32) if v >= (1 << 31) else v
+
+
+class Fusion:
+    """Fuses pair clouds (structured arrays with x, y, z and optionally rgb, confidence)."""
+
+    def __init__(self, config: FusionConfig | None = None, store=None):
+        self.config = config or FusionConfig()
+        self.config.check()
+        self.store = store
+        self.tiles: OrderedDict[tuple[int, int], Tile] = OrderedDict()
+        self.stats = FusionStats()
+
+    # --- tiles -----------------------------------------------------------------------------------
+
+    def tile_origin_m(self, key) -> tuple[float, float]:
+        t = self.config.tile_m
+        return key[0] * t, key[1] * t
+
+    def _tile(self, key: tuple[int, int]) -> Tile:
+        tile = self.tiles.get(key)
+        if tile is not None:
+            self.tiles.move_to_end(key)
+            return tile
+        cells = self.store.load_tile(key) if self.store is not None else None
+        if cells is not None:
+            self.stats.tiles_loaded += 1
+        tile = Tile(key, self.config.tile_cells, cells)
+        self.tiles[key] = tile
+        return tile
+
+    def _evict(self, keep: set) -> None:
+        if self.store is None:
+            return
+        while len(self.tiles) > self.config.max_tiles_in_memory:
+            key = next((k for k in self.tiles if k not in keep), None)
+            if key is None:
+                return
+            self._flush_tile(self.tiles[key])
+            del self.tiles[key]
+            self.stats.tiles_evicted += 1
+
+    def _flush_tile(self, tile: Tile) -> int:
+        idx = np.flatnonzero(tile.dirty)
+        if idx.size == 0:
+            return 0
+        self.store.append_cells(tile.key, idx.astype(np.uint32), tile.records(idx))
+        tile.dirty[:] = False
+        return idx.size
+
+    def flush(self) -> int:
+        """Hand every changed cell to the store and make it durable; returns cells written."""
+        if self.store is None:
+            return 0
+        n = sum(self._flush_tile(t) for t in self.tiles.values())
+        self.store.sync()
+        return n
+
+    # --- fusing ----------------------------------------------------------------------------------
+
+    def add(self, points: np.ndarray) -> int:
+        """Fuse one pair cloud; returns the number of points accepted."""
+        names = points.dtype.names or ()
+        if not {'x', 'y', 'z'} <= set(names):
+            raise DataError(f'a cloud to fuse needs x, y, z fields; got {names}')
+        cfg = self.config
+        x = np.asarray(points['x'], dtype=np.float64)
+        y = np.asarray(points['y'], dtype=np.float64)
+        z = np.asarray(points['z'], dtype=np.float64)
+        ok = np.isfinite(x) & np.isfinite(y) & np.isfinite(z)
+        self.stats.clouds += 1
+        self.stats.points_in += x.size
+        self.stats.points_invalid += int(x.size - ok.sum())
+        if not ok.all():
+            points, x, y, z = points[ok], x[ok], y[ok], z[ok]
+        if x.size == 0:
+            return 0
+        T = cfg.tile_cells
+        TT = T * T
+        inv = 1.0 / cfg.cell_m
+        ix = np.floor(x * inv).astype(np.int64)
+        iy = np.floor(y * inv).astype(np.int64)
+        ti = ix // T
+        tj = iy // T
+        lx, ly = ix - ti * T, iy - tj * T
+        local = ly * T + lx
+        ti0, tj0 = int(ti.min()), int(tj.min())
+        span_i, span_j = int(ti.max()) - ti0 + 1, int(tj.max()) - tj0 + 1
+        if span_i * span_j <= 64:
+            tid = (tj - tj0) * span_i + (ti - ti0)
+            tile_keys = [(ti0 + k % span_i, tj0 + k // span_i) for k in range(span_i * span_j)]
+        else:  # stray far points: index only the tiles actually hit
+            packed = (ti << 32) + (tj & 0xFFFFFFFF)
+            uniq, tid = np.unique(packed, return_inverse=True)
+            tile_keys = [(int(u) >> 32, _int32(int(u) & 0xFFFFFFFF)) for u in uniq]
+        key = tid * TT + local
+        # Compact bin numbers (occupied cells only) keep every later bincount small.
+        present = np.bincount(key, minlength=len(tile_keys) * TT) > 0
+        cell_of_bin = np.flatnonzero(present)
+        ckey = (np.cumsum(present) - 1)[key]
+        nbins = cell_of_bin.size
+
+        # (1) Speckle inside the pair: a point far from its 4x4-cell block is dropped.
+        bs = 4
+        TB = -(-T // bs)
+        bkey = tid * (TB * TB) + (ly // bs) * TB + lx // bs
+        bc = np.bincount(bkey)
+        bm = np.bincount(bkey, z, minlength=bc.size) / np.maximum(bc, 1)
+        bv = np.bincount(bkey, z * z, minlength=bc.size) / np.maximum(bc, 1) - bm * bm
+        bsd = np.sqrt(np.maximum(bv, 0.0))
+        keep = (np.abs(z - bm[bkey]) <= np.maximum(2.5 * bsd[bkey], cfg.min_tolerance_m)) | (bc[bkey] < 4)
+
+        # (2) Consistency with the earlier pairs: gate each point against its fused cell.
+        hit = np.flatnonzero(np.bincount(tid, minlength=len(tile_keys)))
+        tiles = {int(h): self._tile(tile_keys[int(h)]) for h in hit}
+        # Per-cell reference height and tolerance of the hit tiles, then one gather for all points.
+        slot = np.zeros(len(tile_keys), dtype=np.int64)
+        slot[hit] = np.arange(hit.size)
+        z_ref = np.empty(hit.size * TT, dtype=np.float32)
+        tol_ref = np.empty(hit.size * TT, dtype=np.float32)
+        for k, h in enumerate(hit):
+            c = tiles[int(h)].f
+            n_old = c['n'].astype(np.float32)
+            sigma = np.sqrt(c['m2_z'] / np.maximum(n_old - 1.0, 1.0))
+            z_ref[k * TT:(k + 1) * TT] = c['z']
+            tol_ref[k * TT:(k + 1) * TT] = np.where(n_old > 0, np.maximum(cfg.k_sigma * sigma, cfg.min_tolerance_m),
+                                                    np.inf)
+        ref = slot[tid] * TT + local
+        zf, tolf = z_ref[ref], tol_ref[ref]
+        consistent = np.abs(z - zf) <= tolf
+        good = keep & consistent
+        gated = keep & ~consistent
+
+        # (3) Cells where this pair disagrees entirely count a rejection; when rejections outnumber
+        # the pairs behind a cell, the cell is rebuilt from this pair.
+        cnt_ok = np.bincount(ckey, good, minlength=nbins)
+        cnt_g = np.bincount(ckey, gated, minlength=nbins)
+        disputed_c = np.flatnonzero((cnt_g > 0) & (cnt_ok == 0))
+        takeover = np.zeros(nbins, dtype=bool)
+        if disputed_c.size:
+            disputed = cell_of_bin[disputed_c]
+            d_tile = disputed // TT
+            for h in np.unique(d_tile):
+                cells_idx = disputed[d_tile == h] - h * TT
+                tile = tiles[int(h)]
+                rej = tile.f['n_rejected'][cells_idx].astype(np.int64) + 1
+                over = rej > tile.f['n_pairs'][cells_idx]
+                tile.f['n_rejected'][cells_idx] = np.minimum(rej, 65535)
+                for arr in tile.f.values():       # emptied: rebuilt below from this pair
+                    arr[cells_idx[over]] = 0
+                tile.dirty[cells_idx] = True
+                takeover[disputed_c[d_tile == h][over]] = True
+                self.stats.cells_replaced += int(over.sum())
+        use = good | (gated & takeover[ckey])
+        rgb = np.asarray(points['rgb']) if 'rgb' in names else None
+        conf = np.asarray(points['confidence']) if 'confidence' in names else None
+        if not use.all():
+            x, y, z, ckey = x[use], y[use], z[use], ckey[use]
+            rgb = rgb[use] if rgb is not None else None
+            conf = conf[use] if conf is not None else None
+
+        cnt = np.bincount(ckey, minlength=nbins)
+        occ_c = np.flatnonzero(cnt)
+        n_p = cnt[occ_c].astype(np.float64)
+        occ = cell_of_bin[occ_c]
+
+        def mean_of(v):
+            return np.bincount(ckey, v, minlength=nbins)[occ_c] / n_p
+
+        mx, my, mz = mean_of(x), mean_of(y), mean_of(z)
+        m2_p = np.maximum(np.bincount(ckey, z * z, minlength=nbins)[occ_c] - n_p * mz * mz, 0.0)
+        if rgb is not None:
+            bgra = np.ascontiguousarray(rgb, dtype='<u4').view(np.uint8).reshape(-1, 4)
+            mr, mg, mb = mean_of(bgra[:, 2]), mean_of(bgra[:, 1]), mean_of(bgra[:, 0])
+        else:
+            mr = mg = mb = np.full(occ.size, 128.0)
+        mc = mean_of(conf) if conf is not None else np.ones(occ.size)
+
+        occ_tile = occ // TT
+        occ_local = occ - occ_tile * TT
+        bounds = np.flatnonzero(np.diff(occ_tile)) + 1
+        starts = np.concatenate([[0], bounds]).astype(int)
+        ends = np.concatenate([bounds, [occ.size]]).astype(int)
+        for s, e in zip(starts, ends):
+            h = int(occ_tile[s])
+            ox, oy = self.tile_origin_m(tile_keys[h])
+            sl = slice(s, e)
+            self._merge(tiles[h], occ_local[sl], n_p[sl], mx[sl] - ox, my[sl] - oy, mz[sl], m2_p[sl],
+                        mr[sl], mg[sl], mb[sl], mc[sl])
+        accepted = int(x.size)
+        self.stats.points_fused += accepted
+        self.stats.points_rejected += len(use) - accepted
+        self._evict({tile_keys[int(h)] for h in hit})
+        return accepted
+
+    @staticmethod
+    def _merge(tile: Tile, idx, n_p, mx, my, mz, m2_p, mr, mg, mb, mc) -> None:
+        c = tile.f
+        n_old = c['n'][idx].astype(np.float64)
+        n_new = n_old + n_p
+        w = n_p / n_new
+        for name, v in (('x', mx), ('y', my), ('r', mr), ('g', mg), ('b', mb), ('confidence', mc)):
+            old = c[name][idx]
+            c[name][idx] = old + (v - old) * w
+        z_old = c['z'][idx].astype(np.float64)
+        delta = mz - z_old
+        # Chan's parallel update; for an empty cell n_old = 0 and this reduces to the pair's own m2.
+        c['m2_z'][idx] = c['m2_z'][idx] + m2_p + delta * delta * n_old * n_p / n_new
+        c['z'][idx] = z_old + delta * w
+        c['n'][idx] = np.minimum(n_new, 2**32 - 1)
+        c['n_pairs'][idx] = np.minimum(c['n_pairs'][idx] + 1, 65535)
+        tile.dirty[idx] = True
+        tile.changed_for_stream = True
+
+    # --- reading the map -------------------------------------------------------------------------
+
+    def tile_points(self, key, cells: np.ndarray) -> dict:
+        """Occupied cells of a tile as flat arrays in map ENU."""
+        idx = np.flatnonzero(cells['n'])
+        c = cells[idx]
+        ox, oy = self.tile_origin_m(key)
+        return {'x': c['x'] + ox, 'y': c['y'] + oy, 'z': c['z'].astype(np.float64),
+                'r': c['r'], 'g': c['g'], 'b': c['b'], 'confidence': c['confidence'],
+                'n': c['n'], 'n_pairs': c['n_pairs'],
+                'sigma_z': np.sqrt(c['m2_z'] / np.maximum(c['n'].astype(np.float32) - 1, 1))}
+
+    def iter_tiles(self):
+        """(key, cells) for every tile, in memory or on disk, without disturbing the LRU order."""
+        for key, tile in list(self.tiles.items()):
+            yield key, tile.records()
+        if self.store is not None:
+            for key in self.store.tile_keys():
+                if key not in self.tiles:
+                    cells = self.store.load_tile(key)
+                    if cells is not None:
+                        yield key, cells
+
+    def points(self) -> dict:
+        """Every fused cell of the map as flat arrays (see tile_points)."""
+        parts = [self.tile_points(k, c) for k, c in self.iter_tiles()]
+        parts = [p for p in parts if p['x'].size]
+        if not parts:
+            return {k: np.zeros(0) for k in ('x', 'y', 'z', 'r', 'g', 'b', 'confidence', 'n', 'n_pairs', 'sigma_z')}
+        return {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
+
+    @property
+    def memory_bytes(self) -> int:
+        return sum(t.nbytes for t in self.tiles.values())
+
+
+def pack_rgb(r, g, b) -> np.ndarray:
+    """Channels 0..255 -> uint32 0x00RRGGBB (the PointCloud2 / PCL layout)."""
+    r = np.clip(np.rint(r), 0, 255).astype(np.uint32)
+    g = np.clip(np.rint(g), 0, 255).astype(np.uint32)
+    b = np.clip(np.rint(b), 0, 255).astype(np.uint32)
+    return (r << 16) | (g << 8) | b
+
+
+def downsample(pts: dict, factor: int, cell_m: float) -> dict:
+    """Block means of `factor` x `factor` cells, for the ground-station stream."""
+    if factor <= 1 or pts['x'].size == 0:
+        return pts
+    size = cell_m * factor
+    ix = np.floor(pts['x'] / size).astype(np.int64)
+    iy = np.floor(pts['y'] / size).astype(np.int64)
+    packed = (ix << 32) + (iy & 0xFFFFFFFF)
+    _, inv, cnt = np.unique(packed, return_inverse=True, return_counts=True)
+    out = {}
+    for k in ('x', 'y', 'z', 'r', 'g', 'b', 'confidence'):
+        out[k] = np.bincount(inv, np.asarray(pts[k], np.float64)) / cnt
+    out['n'] = np.bincount(inv, np.asarray(pts['n'], np.float64)).astype(np.uint32)
+    return out

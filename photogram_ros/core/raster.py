@@ -1,0 +1,213 @@
+"""Rasters from the fused map: the DSM, and the orthomosaic of keyframes draped on a DSM.
+
+A Raster is north-up: row 0 is the northern edge, column 0 the western edge, square cells of
+`res_m`. Its coordinates are those of a planar grid frame: the `map` ENU frame itself, or a
+projected CRS (UTM, LV95, ...) when exports ask for one; functions that need map ENU take a
+`grid_to_map` callable so the same code serves both.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from photogram_ros.core.camera import PinholeCamera
+from photogram_ros.errors import DataError
+
+NODATA = -9999.0
+
+
+@dataclass
+class Raster:
+    data: np.ndarray      # (rows, cols) or (rows, cols, bands)
+    x0_m: float           # western edge of column 0
+    y1_m: float           # northern edge of row 0
+    res_m: float
+    nodata: float | None = NODATA
+
+    @property
+    def shape(self):
+        return self.data.shape[:2]
+
+    @property
+    def bounds(self) -> tuple[float, float, float, float]:
+        """(west, south, east, north) of the outer cell edges."""
+        h, w = self.shape
+        return self.x0_m, self.y1_m - h * self.res_m, self.x0_m + w * self.res_m, self.y1_m
+
+    @property
+    def geotransform(self) -> tuple:
+        """GDAL geotransform (x0, dx, 0, y1, 0, -dy)."""
+        return (self.x0_m, self.res_m, 0.0, self.y1_m, 0.0, -self.res_m)
+
+    def cell_centers(self) -> tuple[np.ndarray, np.ndarray]:
+        h, w = self.shape
+        xs = self.x0_m + (np.arange(w) + 0.5) * self.res_m
+        ys = self.y1_m - (np.arange(h) + 0.5) * self.res_m
+        return np.meshgrid(xs, ys)
+
+    def valid(self) -> np.ndarray:
+        d = self.data if self.data.ndim == 2 else self.data[..., 0]
+        return np.isfinite(d) & (d != self.nodata) if self.nodata is not None else np.isfinite(d)
+
+    def to_pixel(self, x, y):
+        """Grid coordinates -> fractional (col, row) with integer values at cell centres."""
+        return (np.asarray(x) - self.x0_m) / self.res_m - 0.5, (self.y1_m - np.asarray(y)) / self.res_m - 0.5
+
+
+def grid_for(xmin: float, ymin: float, xmax: float, ymax: float, res_m: float, fill=NODATA,
+             dtype=np.float32, bands: int = 0) -> Raster:
+    """An empty raster covering the box, its edges snapped to multiples of res_m."""
+    if not res_m > 0:
+        raise DataError(f'raster cell size {res_m} m must be positive')
+    x0 = np.floor(xmin / res_m) * res_m
+    y1 = np.ceil(ymax / res_m) * res_m
+    w = max(int(np.ceil((xmax - x0) / res_m)), 1)
+    h = max(int(np.ceil((y1 - ymin) / res_m)), 1)
+    if w * h > 400_000_000:
+        raise DataError(f'a {w}x{h} raster at {res_m} m is too large: choose a coarser cell size')
+    shape = (h, w, bands) if bands else (h, w)
+    return Raster(np.full(shape, fill, dtype=dtype), float(x0), float(y1), float(res_m), fill)
+
+
+def dsm_from_points(x, y, z, res_m: float, weights=None, bounds=None, fill_holes_px: int = 1) -> Raster:
+    """Mean height per cell (weighted by `weights`, e.g. points per fused cell); NODATA elsewhere.
+
+    Holes no wider than `fill_holes_px` cells that are surrounded by data are filled with the mean
+    of their neighbours (stereo leaves pinholes that a DSM user does not want); larger gaps stay
+    no-data, since nothing was observed there.
+    """
+    x, y, z = (np.asarray(v, dtype=np.float64) for v in (x, y, z))
+    ok = np.isfinite(x) & np.isfinite(y) & np.isfinite(z)
+    x, y, z = x[ok], y[ok], z[ok]
+    w = np.ones_like(z) if weights is None else np.asarray(weights, np.float64)[ok]
+    if bounds is None:
+        if x.size == 0:
+            raise DataError('cannot make a DSM from an empty map')
+        bounds = (x.min(), y.min(), x.max(), y.max())
+    r = grid_for(*bounds, res_m)
+    h, wd = r.shape
+    col = np.floor((x - r.x0_m) / res_m).astype(np.int64)
+    row = np.floor((r.y1_m - y) / res_m).astype(np.int64)
+    inside = (col >= 0) & (col < wd) & (row >= 0) & (row < h)
+    key = row[inside] * wd + col[inside]
+    sw = np.bincount(key, w[inside], minlength=h * wd)
+    sz = np.bincount(key, w[inside] * z[inside], minlength=h * wd)
+    have = sw > 0
+    out = np.full(h * wd, NODATA, dtype=np.float32)
+    out[have] = sz[have] / sw[have]
+    r.data = out.reshape(h, wd)
+    if fill_holes_px > 0:
+        r.data = _fill_small_holes(r.data, fill_holes_px)
+    return r
+
+
+def _fill_small_holes(d: np.ndarray, radius: int) -> np.ndarray:
+    have = (d != NODATA).astype(np.float32)
+    vals = np.where(d != NODATA, d, 0).astype(np.float32)
+    k = 2 * radius + 1
+    s = cv2.boxFilter(vals, -1, (k, k), normalize=False, borderType=cv2.BORDER_CONSTANT)
+    c = cv2.boxFilter(have, -1, (k, k), normalize=False, borderType=cv2.BORDER_CONSTANT)
+    # Fill only where most of the neighbourhood is observed: a pinhole, not the edge of the map.
+    fill = (d == NODATA) & (c >= 0.6 * k * k)
+    out = d.copy()
+    out[fill] = s[fill] / c[fill]
+    return out
+
+
+@dataclass
+class Keyframe:
+    image: np.ndarray         # BGR uint8 (H, W, 3)
+    map_T_cam: np.ndarray     # optical camera -> map ENU, 4x4
+    camera: PinholeCamera
+
+
+def orthomosaic(dsm: Raster, keyframes: list[Keyframe], grid_to_map=None, res_m: float | None = None,
+                margin_px: float = 2.0, max_off_nadir_deg: float = 45.0) -> Raster:
+    """Drape keyframes on the DSM; per cell the keyframe seeing it closest to vertical wins.
+
+    Choosing the most vertical view keeps relief displacement and occlusion smallest, and makes
+    seams fall between neighbouring keyframes where both see the ground alike. Returns BGRA uint8
+    with alpha 0 where no keyframe sees the cell or the DSM has no data. `grid_to_map(X, Y, Z)`
+    maps grid coordinates (N,) x3 to map ENU (N, 3); identity when the grid is the map frame.
+    """
+    if res_m is not None and abs(res_m - dsm.res_m) > 1e-9:
+        dsm = resample(dsm, res_m)
+    h, w = dsm.shape
+    out = np.zeros((h, w, 4), dtype=np.uint8)
+    valid = dsm.valid()
+    X, Y = dsm.cell_centers()
+    flat = np.flatnonzero(valid)
+    if flat.size == 0 or not keyframes:
+        return Raster(out, dsm.x0_m, dsm.y1_m, dsm.res_m, None)
+    gx, gy, gz = X.ravel()[flat], Y.ravel()[flat], dsm.data.ravel()[flat].astype(np.float64)
+    P = np.column_stack([gx, gy, gz]) if grid_to_map is None else np.asarray(grid_to_map(gx, gy, gz))
+    best = np.full(flat.size, np.cos(np.radians(max_off_nadir_deg)), dtype=np.float64)
+    colour = np.zeros((flat.size, 3), dtype=np.uint8)
+    seen = np.zeros(flat.size, dtype=bool)
+    for kf in keyframes:
+        if kf.image is None or kf.image.ndim != 3:
+            raise DataError('orthomosaic keyframes need BGR images')
+        cam = kf.camera
+        R, C = kf.map_T_cam[:3, :3], kf.map_T_cam[:3, 3]
+        # Cheap footprint cull before projecting: ground within the view cone of the image diagonal.
+        half_diag = np.hypot(cam.width, cam.height) / (2 * min(cam.fx, cam.fy)) * 1.3
+        agl = np.maximum(C[2] - P[:, 2], 0.0)
+        reach = agl * half_diag + np.abs(R[:2, 2]).max() * agl * 2.0
+        near = (np.abs(P[:, 0] - C[0]) <= reach) & (np.abs(P[:, 1] - C[1]) <= reach)
+        idx = np.flatnonzero(near)
+        if idx.size == 0:
+            continue
+        d = P[idx] - C
+        dist = np.linalg.norm(d, axis=1)
+        cos_v = -d[:, 2] / np.maximum(dist, 1e-9)      # 1 when the ray looks straight down
+        cand = cos_v > best[idx]
+        idx, d, cos_v = idx[cand], d[cand], cos_v[cand]
+        if idx.size == 0:
+            continue
+        pc = d @ R                                       # map -> camera: R^T d, row-wise
+        uv, front = cam.project(pc)
+        inside = front & cam.in_image(uv, margin_px)
+        idx, uv, cos_v = idx[inside], uv[inside], cos_v[inside]
+        if idx.size == 0:
+            continue
+        mapx = uv[:, 0].astype(np.float32).reshape(1, -1)
+        mapy = uv[:, 1].astype(np.float32).reshape(1, -1)
+        colour[idx] = cv2.remap(kf.image, mapx, mapy, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)[0]
+        best[idx] = cos_v
+        seen[idx] = True
+    flat_out = out.reshape(-1, 4)
+    flat_out[flat[seen], :3] = colour[seen]
+    flat_out[flat[seen], 3] = 255
+    return Raster(out, dsm.x0_m, dsm.y1_m, dsm.res_m, None)
+
+
+def resample(r: Raster, res_m: float) -> Raster:
+    """Nearest-neighbour resampling of a single-band raster to another cell size (same extent)."""
+    w0, s0, e0, n0 = r.bounds
+    out = grid_for(w0, s0, e0, n0, res_m)
+    X, Y = out.cell_centers()
+    c, rr = r.to_pixel(X, Y)
+    ci = np.clip(np.rint(c).astype(int), 0, r.shape[1] - 1)
+    ri = np.clip(np.rint(rr).astype(int), 0, r.shape[0] - 1)
+    out.data = r.data[ri, ci].astype(np.float32)
+    return out
+
+
+def sample_bilinear(r: Raster, x, y) -> np.ndarray:
+    """Bilinear heights at grid points; NaN where any neighbour is no-data or outside."""
+    c, rr = r.to_pixel(np.asarray(x, float), np.asarray(y, float))
+    h, w = r.shape
+    c0, r0 = np.floor(c).astype(int), np.floor(rr).astype(int)
+    fc, fr = c - c0, rr - r0
+    ok = (c0 >= 0) & (r0 >= 0) & (c0 + 1 < w) & (r0 + 1 < h)
+    c0, r0 = np.clip(c0, 0, w - 2), np.clip(r0, 0, h - 2)
+    d = r.data.astype(np.float64)
+    v00, v01, v10, v11 = d[r0, c0], d[r0, c0 + 1], d[r0 + 1, c0], d[r0 + 1, c0 + 1]
+    bad = ~ok
+    if r.nodata is not None:
+        bad |= (v00 == r.nodata) | (v01 == r.nodata) | (v10 == r.nodata) | (v11 == r.nodata)
+    out = (1 - fr) * ((1 - fc) * v00 + fc * v01) + fr * ((1 - fc) * v10 + fc * v11)
+    return np.where(bad, np.nan, out)

@@ -1,0 +1,255 @@
+"""Crash-safe, append-only storage of the fused map and of the keyframes the orthomosaic needs.
+
+Layout of a map directory:
+    map.json                      grid geometry and the geodetic origin (written atomically)
+    tiles/<ti>_<tj>.pgt           one append-only file per tile
+    keyframes/<stamp_ns>.jpg      keyframe image
+    keyframes/<stamp_ns>.json     its latest map_T_cam (rewritten atomically when the pose improves)
+    camera.json                   the keyframes' camera calibration
+
+A tile file is a 32-byte header followed by blocks. A block is a 16-byte header (magic, record
+count, CRC-32 of the payload) and fixed-size records (cell index + the cell's full state). A flush
+appends the cells that changed since the last flush; reading replays the blocks and the last record
+of a cell wins. A block cut short or garbled by a crash fails its length or CRC check: reading
+stops there and the next append truncates the torn tail first, so a kill -9 loses only what was
+not yet flushed. Files that have grown much larger than their content are rewritten compactly
+(temporary file, fsync, rename).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import struct
+import zlib
+from pathlib import Path
+
+import numpy as np
+
+from photogram_ros.core.fusion import CELL_DTYPE
+from photogram_ros.errors import DataError
+
+FORMAT = 'photogram_ros.map'
+VERSION = 1
+RECORD_DTYPE = np.dtype([('cell', '<u4')] + [(n, CELL_DTYPE.fields[n][0]) for n in CELL_DTYPE.names])
+_FILE_HEADER = struct.Struct('<8sIiiIdI')          # magic, version, ti, tj, tile_cells, cell_m, record size
+_FILE_MAGIC = b'PGRTILE1'
+_BLOCK_HEADER = struct.Struct('<IIII')             # magic, n records, crc32, reserved
+_BLOCK_MAGIC = 0x4B4C4250                          # 'PBLK'
+_FILE_HEADER_SIZE = 40
+
+
+def _atomic_write(path: Path, data: bytes) -> None:
+    tmp = path.with_name(path.name + '.tmp')
+    with open(tmp, 'wb') as f:
+        f.write(data)
+        f.flush()
+        os.fsync(f.fileno())
+    os.replace(tmp, path)
+
+
+class MapStore:
+    """The map directory. Implements the store protocol that core.fusion.Fusion uses."""
+
+    def __init__(self, root: str | Path, cell_m: float | None = None, tile_cells: int | None = None,
+                 compact_factor: float = 4.0):
+        self.root = Path(root)
+        self.tiles_dir = self.root / 'tiles'
+        self.keyframes_dir = self.root / 'keyframes'
+        self.compact_factor = compact_factor
+        meta_path = self.root / 'map.json'
+        if meta_path.exists():
+            try:
+                self.meta = json.loads(meta_path.read_text())
+            except (OSError, ValueError) as exc:
+                raise DataError(f'{meta_path} is unreadable ({exc}): is this a photogram_ros map folder?') from exc
+            if self.meta.get('format') != FORMAT:
+                raise DataError(f'{meta_path} is not a photogram_ros map (format {self.meta.get("format")!r})')
+            for name, want in (('cell_m', cell_m), ('tile_cells', tile_cells)):
+                if want is not None and abs(float(self.meta[name]) - float(want)) > 1e-12:
+                    raise DataError(f'the map in {self.root} has {name} = {self.meta[name]}, not {want}: '
+                                    'use the same value or a new map_dir')
+        else:
+            if cell_m is None or tile_cells is None:
+                raise DataError(f'{self.root} holds no map (no map.json)')
+            self.root.mkdir(parents=True, exist_ok=True)
+            self.meta = {'format': FORMAT, 'version': VERSION, 'cell_m': float(cell_m),
+                         'tile_cells': int(tile_cells), 'origin': None}
+            _atomic_write(meta_path, json.dumps(self.meta, indent=1).encode())
+        self.tiles_dir.mkdir(parents=True, exist_ok=True)
+        self.keyframes_dir.mkdir(parents=True, exist_ok=True)
+        self.cell_m = float(self.meta['cell_m'])
+        self.tile_cells = int(self.meta['tile_cells'])
+        self._good_size: dict[tuple[int, int], int] = {}
+        self._unsynced: set[Path] = set()
+        self.bytes_written = 0
+
+    # --- metadata --------------------------------------------------------------------------------
+
+    @property
+    def origin(self):
+        from photogram_ros.core.geodesy import LocalFrame
+        o = self.meta.get('origin')
+        return LocalFrame.from_dict(o) if o else None
+
+    def set_origin(self, frame) -> None:
+        self.meta['origin'] = frame.to_dict()
+        _atomic_write(self.root / 'map.json', json.dumps(self.meta, indent=1).encode())
+
+    # --- tiles -----------------------------------------------------------------------------------
+
+    def _tile_path(self, key) -> Path:
+        return self.tiles_dir / f'{int(key[0])}_{int(key[1])}.pgt'
+
+    def tile_keys(self) -> list[tuple[int, int]]:
+        keys = []
+        for p in self.tiles_dir.glob('*.pgt'):
+            try:
+                a, b = p.stem.split('_')
+                keys.append((int(a), int(b)))
+            except ValueError:
+                continue
+        return sorted(keys)
+
+    def _read_records(self, path: Path, key) -> tuple[np.ndarray, int]:
+        data = path.read_bytes()
+        if len(data) < _FILE_HEADER_SIZE:
+            return np.zeros(0, RECORD_DTYPE), 0
+        magic, version, ti, tj, tcells, cell_m, rsize = _FILE_HEADER.unpack_from(data, 0)
+        if magic != _FILE_MAGIC or rsize != RECORD_DTYPE.itemsize or tcells != self.tile_cells:
+            raise DataError(f'{path} is not a tile of this map (magic {magic!r}, record size {rsize}, '
+                            f'tile_cells {tcells})')
+        pos, parts = _FILE_HEADER_SIZE, []
+        while pos + _BLOCK_HEADER.size <= len(data):
+            bmagic, n, crc, _ = _BLOCK_HEADER.unpack_from(data, pos)
+            end = pos + _BLOCK_HEADER.size + n * rsize
+            if bmagic != _BLOCK_MAGIC or end > len(data):
+                break
+            payload = data[pos + _BLOCK_HEADER.size:end]
+            if zlib.crc32(payload) != crc:
+                break
+            parts.append(np.frombuffer(payload, dtype=RECORD_DTYPE))
+            pos = end
+        recs = np.concatenate(parts) if parts else np.zeros(0, RECORD_DTYPE)
+        return recs, pos
+
+    def load_tile(self, key) -> np.ndarray | None:
+        """The tile's cells (dense, CELL_DTYPE) or None if the tile was never written."""
+        key = (int(key[0]), int(key[1]))
+        path = self._tile_path(key)
+        if not path.exists():
+            return None
+        recs, good = self._read_records(path, key)
+        self._good_size[key] = good
+        cells = np.zeros(self.tile_cells * self.tile_cells, dtype=CELL_DTYPE)
+        if recs.size:
+            # Last record of each cell wins: unique over the reversed order keeps the newest.
+            rev = recs[::-1]
+            _, first = np.unique(rev['cell'], return_index=True)
+            last = rev[first]
+            if int(last['cell'].max()) >= cells.size:
+                raise DataError(f'{path} holds a cell index beyond its tile: the file is corrupt')
+            for name in CELL_DTYPE.names:
+                cells[name][last['cell']] = last[name]
+        return cells
+
+    def append_cells(self, key, cell_idx: np.ndarray, cells: np.ndarray) -> None:
+        key = (int(key[0]), int(key[1]))
+        path = self._tile_path(key)
+        recs = np.empty(cell_idx.size, dtype=RECORD_DTYPE)
+        recs['cell'] = cell_idx
+        for name in CELL_DTYPE.names:
+            recs[name] = cells[name]
+        payload = recs.tobytes()
+        block = _BLOCK_HEADER.pack(_BLOCK_MAGIC, recs.size, zlib.crc32(payload), 0) + payload
+        new = not path.exists()
+        if not new:
+            good = self._good_size.get(key)
+            if good is None:
+                _, good = self._read_records(path, key)
+            if os.path.getsize(path) != good:   # torn tail of an earlier crash: cut it off
+                os.truncate(path, good)
+        with open(path, 'ab') as f:
+            if new:
+                f.write(_FILE_HEADER.pack(_FILE_MAGIC, VERSION, key[0], key[1], self.tile_cells, self.cell_m,
+                                          RECORD_DTYPE.itemsize).ljust(_FILE_HEADER_SIZE, b'\0'))
+            f.write(block)
+            size = f.tell()
+        self._good_size[key] = size
+        self._unsynced.add(path)
+        self.bytes_written += len(block)
+        # Amortised: a file is rewritten only after it has grown by several full tiles of records.
+        if size > self.compact_factor * self.tile_cells * self.tile_cells * RECORD_DTYPE.itemsize:
+            self.compact(key)
+
+    def compact(self, key) -> None:
+        """Rewrite a tile file with one block of its current cells (atomic)."""
+        key = (int(key[0]), int(key[1]))
+        cells = self.load_tile(key)
+        idx = np.flatnonzero(cells['n']).astype(np.uint32)
+        recs = np.empty(idx.size, dtype=RECORD_DTYPE)
+        recs['cell'] = idx
+        for name in CELL_DTYPE.names:
+            recs[name] = cells[name][idx]
+        payload = recs.tobytes()
+        data = (_FILE_HEADER.pack(_FILE_MAGIC, VERSION, key[0], key[1], self.tile_cells, self.cell_m,
+                                  RECORD_DTYPE.itemsize).ljust(_FILE_HEADER_SIZE, b'\0')
+                + _BLOCK_HEADER.pack(_BLOCK_MAGIC, recs.size, zlib.crc32(payload), 0) + payload)
+        path = self._tile_path(key)
+        _atomic_write(path, data)
+        self._good_size[key] = len(data)
+        self._unsynced.discard(path)
+
+    def sync(self) -> None:
+        """fsync every tile file appended since the last sync (and the folder, for new files)."""
+        for path in list(self._unsynced):
+            try:
+                fd = os.open(path, os.O_RDONLY)
+                try:
+                    os.fsync(fd)
+                finally:
+                    os.close(fd)
+            except FileNotFoundError:
+                pass
+        if self._unsynced:
+            fd = os.open(self.tiles_dir, os.O_RDONLY)
+            try:
+                os.fsync(fd)
+            finally:
+                os.close(fd)
+        self._unsynced.clear()
+
+    def disk_bytes(self) -> int:
+        return sum(p.stat().st_size for p in self.tiles_dir.glob('*.pgt'))
+
+    # --- keyframes -------------------------------------------------------------------------------
+
+    def save_camera(self, camera) -> None:
+        _atomic_write(self.root / 'camera.json', json.dumps(camera.to_ros_yaml_dict()).encode())
+
+    def load_camera(self):
+        from photogram_ros.core.camera import PinholeCamera
+        p = self.root / 'camera.json'
+        return PinholeCamera.from_ros_yaml_dict(json.loads(p.read_text())) if p.exists() else None
+
+    def save_keyframe_image(self, stamp_ns: int, jpeg: bytes) -> None:
+        _atomic_write(self.keyframes_dir / f'{int(stamp_ns)}.jpg', jpeg)
+
+    def save_keyframe_pose(self, stamp_ns: int, map_T_cam: np.ndarray) -> None:
+        body = {'stamp_ns': int(stamp_ns), 'map_T_cam': np.asarray(map_T_cam, float).tolist()}
+        _atomic_write(self.keyframes_dir / f'{int(stamp_ns)}.json', json.dumps(body).encode())
+
+    def keyframes(self) -> list[dict]:
+        """[{'stamp_ns', 'image_path', 'map_T_cam'}] for keyframes that have both image and pose."""
+        out = []
+        for p in sorted(self.keyframes_dir.glob('*.json')):
+            img = p.with_suffix('.jpg')
+            if not img.exists():
+                continue
+            try:
+                body = json.loads(p.read_text())
+                T = np.asarray(body['map_T_cam'], float).reshape(4, 4)
+            except (OSError, ValueError, KeyError):
+                continue
+            out.append({'stamp_ns': int(body['stamp_ns']), 'image_path': img, 'map_T_cam': T})
+        return out
