@@ -1,0 +1,88 @@
+"""Bundle adjustment: sparse Levenberg-Marquardt with GNSS, GCP and attitude priors.
+
+    from photogram_ros.core.bundle import BundleProblem, BundleOptions, bundle_adjust
+    res = bundle_adjust(BundleProblem(camera, map_T_cams, points_map, obs_cam, obs_pt, obs_uv, ...),
+                        BundleOptions(loss='huber', loss_scale_px=1.0))
+
+Conventions and gauge: see problem.py. Cost = 0.5 * sum rho(|r|^2) over reprojection residuals in
+pixels plus 0.5 * |whitened prior residual|^2 for each prior.
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+
+from photogram_ros.core.bundle.losses import LOSSES
+from photogram_ros.core.bundle.models import BALModel, BrownModel, CameraModel
+from photogram_ros.core.bundle.problem import BundleOptions, BundleProblem, BundleResult
+from photogram_ros.core.bundle.solver import Solver
+
+__all__ = ['BundleProblem', 'BundleOptions', 'BundleResult', 'bundle_adjust', 'check_points',
+           'CameraModel', 'BrownModel', 'BALModel', 'LOSSES']
+
+
+def _map_T_cams(R, t):
+    T = np.zeros((len(R), 4, 4))
+    RT = np.transpose(R, (0, 2, 1))
+    T[:, :3, :3] = RT
+    T[:, :3, 3] = -np.einsum('cij,cj->ci', RT, t)
+    T[:, 3, 3] = 1.0
+    return T
+
+
+def _rms(solver, R, t, X, intr):
+    d = solver.d
+    rms = {}
+    r = solver._reproj(R, t, X, intr, False)[0]
+    rms['reprojection_px'] = float(np.sqrt(np.mean(np.sum(r * r, axis=1)))) if len(r) else float('nan')
+    rms['gnss_m'] = (float(np.sqrt(np.mean(np.sum(solver._gnss_err(R, t) ** 2, axis=1))))
+                     if 'gnss_cam' in d else None)
+    rms['gcp_m'] = (float(np.sqrt(np.mean(np.sum((X[d['pp_idx']] - d['pp_pos']) ** 2, axis=1))))
+                    if 'pp_idx' in d else None)
+    rms['attitude_rad'] = (float(np.sqrt(np.mean(np.sum(solver._att_err(R) ** 2, axis=1))))
+                           if 'att_cam' in d else None)
+    return rms
+
+
+def bundle_adjust(problem: BundleProblem, options: BundleOptions | None = None) -> BundleResult:
+    """Adjust poses, points and (optionally) intrinsics. Numerical failure comes back as status."""
+    options = options or BundleOptions()
+    options.validate()
+    d = problem.resolved()
+    solver = Solver(d, options)
+    out = solver.run()
+    R, t, X, intr = out['R'], out['t'], out['X'], out['intr']
+    cam_cov = pt_cov = None
+    if options.compute_covariance and out['status'] != 'failed':
+        cam_cov, pt_cov = solver.covariance(R, t, X, intr)
+    camera = None
+    if problem.model is None and problem.camera is not None:
+        fx, fy, cx, cy, *dist = intr[0]
+        camera = replace(problem.camera, fx=float(fx), fy=float(fy), cx=float(cx), cy=float(cy),
+                         dist=tuple(float(v) for v in dist))
+    return BundleResult(status=out['status'], reason=out['reason'], initial_cost=float(out['init']),
+                        final_cost=float(out['cost']), iterations=out['iters'], successful_steps=out['ok'],
+                        map_T_cams=_map_T_cams(R, t), points_map=X, camera=camera, intrinsics=intr,
+                        rms=_rms(solver, R, t, X, intr), cam_centre_cov=cam_cov, point_cov=pt_cov,
+                        seconds=out['seconds'], cost_history=out['hist'])
+
+
+def check_points(camera, map_T_cams, obs_cam, obs_pt, obs_uv, surveyed_map) -> dict:
+    """Triangulate check points from adjusted cameras; residuals against their surveyed positions.
+
+    obs_pt indexes surveyed_map (K, 3). Check points never enter the adjustment: call this after it.
+    Returns residual_map (K, 3) (NaN where a point could not be triangulated), rmse_xy_m, rmse_z_m,
+    and the triangulation diagnostics.
+    """
+    from photogram_ros.core.triangulation import triangulate_points
+    surveyed_map = np.asarray(surveyed_map, float)
+    tri = triangulate_points(camera, map_T_cams, obs_cam, obs_pt, obs_uv, n_points=len(surveyed_map))
+    res = tri.points_map - surveyed_map
+    ok = tri.valid
+    rx = res[ok]
+    return {'residual_map': res, 'valid': ok,
+            'rmse_xy_m': float(np.sqrt(np.mean(np.sum(rx[:, :2] ** 2, axis=1)))) if ok.any() else float('nan'),
+            'rmse_z_m': float(np.sqrt(np.mean(rx[:, 2] ** 2))) if ok.any() else float('nan'),
+            'reprojection_px': tri.reproj_rms_px, 'angle_deg': tri.angle_deg}

@@ -1,0 +1,390 @@
+"""Levenberg-Marquardt with the Schur complement on points, vectorised over observations.
+
+Per Jacobian evaluation the normal equations are accumulated from per-observation blocks
+A_i (2 x m: pose 6 + free intrinsics) and B_i (2 x 3) with bincount over index keys whose
+structure is computed once per problem. Points are eliminated with batched 3x3 inverses; the
+reduced camera system S = U - W V^-1 W^T is a scipy.sparse product and is solved with a dense
+Cholesky when small (the usual case: C*6 of a few hundred), SuperLU otherwise. The damping is
+Ceres's: mu * clip(diag(J^T J), 1e-6, 1e32), with the trust-region update of Nielsen/Ceres.
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import scipy.linalg
+import scipy.sparse as sp
+import scipy.sparse.linalg
+from scipy.spatial.transform import Rotation
+
+from photogram_ros.core.bundle import losses
+
+
+def _cross_cols(M, v):
+    """M @ [v]x for M (n, k, 3), v (n, 3)."""
+    out = np.empty(M.shape[:-1] + (3,))
+    v1, v2, v3 = v[:, None, 0], v[:, None, 1], v[:, None, 2]
+    out[..., 0] = M[..., 1] * v3 - M[..., 2] * v2
+    out[..., 1] = M[..., 2] * v1 - M[..., 0] * v3
+    out[..., 2] = M[..., 0] * v2 - M[..., 1] * v1
+    return out
+
+
+def _skew(v):
+    z = np.zeros(len(v))
+    return np.stack([np.stack([z, -v[:, 2], v[:, 1]], -1), np.stack([v[:, 2], z, -v[:, 0]], -1),
+                     np.stack([-v[:, 1], v[:, 0], z], -1)], axis=1)
+
+
+def _so3_left_jac_inv(phi):
+    th = np.linalg.norm(phi, axis=1)
+    K = _skew(phi)
+    small = th < 1e-6
+    ths = np.where(small, 1.0, th)
+    c = np.where(small, 1.0 / 12.0, 1.0 / ths ** 2 - (1.0 + np.cos(ths)) / (2.0 * ths * np.sin(ths)))
+    return np.eye(3) - 0.5 * K + c[:, None, None] * (K @ K)
+
+
+class _Structure:
+    """Index bookkeeping that does not change between iterations.
+
+    The camera-side unknowns are laid out in chunks of 3 (pose = 2 chunks, the free intrinsics of a
+    group padded to a multiple of 3) so that W = J_c^T J_p is a block-sparse matrix of 3x3 blocks,
+    whose products scipy runs about twice as fast as scalar CSR.
+    """
+
+    def __init__(self, d, sel):
+        C, P = len(d['R']), len(d['X'])
+        self.kf = sel.shape[1]
+        self.kf3 = -(-self.kf // 3) * 3
+        free_c = ~d['fixed_cams']
+        self.cam_col = np.full(C, -1, np.int64)
+        self.cam_col[free_c] = 6 * np.arange(free_c.sum())
+        n_pose = 6 * int(free_c.sum())
+        G = len(d['intr'])
+        self.intr_col = n_pose + self.kf3 * np.arange(G)
+        self.nc = n_pose + self.kf3 * G
+        real = np.ones(self.nc, bool)
+        for k in range(self.kf, self.kf3):
+            real[self.intr_col + k] = False
+        self.real = real
+        self.trash = self.nc
+        free_p = ~d['fixed_points']
+        self.pt_col = np.full(P, -1, np.int64)
+        self.pt_col[free_p] = np.arange(free_p.sum())
+        self.npf = int(free_p.sum())
+        oc, op = d['obs_cam'], d['obs_pt']
+        cc = self.cam_col[oc]
+        pose_idx = np.where(cc[:, None] >= 0, cc[:, None] + np.arange(6), self.trash)
+        intr_idx = self.intr_col[d['group'][oc]][:, None] + np.arange(self.kf3)
+        self.idx = np.concatenate([pose_idx, intr_idx], axis=1)     # (N, m)
+        self.m = self.idx.shape[1]
+        n1 = self.nc + 1
+        keys = [(self.idx[:, :, None] * n1 + self.idx[:, None, :]).ravel()]
+        self.prior_idx = {}
+        for name in ('gnss_cam', 'att_cam'):
+            if name in d:
+                c = self.cam_col[d[name]]
+                pidx = np.where(c[:, None] >= 0, c[:, None] + np.arange(6), self.trash)
+                self.prior_idx[name] = pidx
+                keys.append((pidx[:, :, None] * n1 + pidx[:, None, :]).ravel())
+        ukeys, self.u_inv = np.unique(np.concatenate(keys), return_inverse=True)
+        self.nu = len(ukeys)
+        rows, cols = ukeys // n1, ukeys % n1
+        self.u_keep = (rows < self.nc) & (cols < self.nc)
+        self.u_rows, self.u_cols = rows[self.u_keep], cols[self.u_keep]
+        # W blocks: one 3x3 block per (3-row chunk of camera-side unknowns, free point).
+        ptc = self.pt_col[op]
+        self.obs_ptc = ptc
+        nrb = self.nc // 3
+        self.nrb = nrb
+        rb = self.idx[:, ::3] // 3                                  # (N, m/3)
+        valid = (rb < nrb) & (ptc[:, None] >= 0)
+        self.w_valid = valid.ravel()
+        npf1 = max(self.npf, 1)
+        wkeys = (rb * npf1 + np.maximum(ptc, 0)[:, None]).ravel()[self.w_valid]
+        uw, inv = np.unique(wkeys, return_inverse=True)
+        self.nw = len(uw)
+        self.w_sum = sp.csr_matrix((np.ones(len(inv)), (inv, np.arange(len(inv)))), shape=(self.nw, len(inv)))
+        w_rows = uw // npf1
+        self.w_pt = uw % npf1
+        self.w_indptr = np.concatenate([[0], np.cumsum(np.bincount(w_rows, minlength=nrb))])
+        # The transpose, blocks ordered by point.
+        self.wt_perm = np.lexsort((w_rows, self.w_pt))
+        self.wt_indices = w_rows[self.wt_perm]
+        self.wt_indptr = np.concatenate([[0], np.cumsum(np.bincount(self.w_pt, minlength=self.npf))])
+        self.v_keys = (np.maximum(ptc, 0)[:, None] * 9 + np.arange(9)).ravel()
+        self.v_obs = ptc >= 0
+
+
+class Solver:
+    def __init__(self, d, options):
+        self.d = d
+        self.o = options
+        self.sel = d['model'].selector(options.refine_intrinsics)
+        self.st = _Structure(d, self.sel)
+
+    # --- residuals --------------------------------------------------------------------------
+
+    def _reproj(self, R, t, X, intr, jac):
+        d = self.d
+        oc, op = d['obs_cam'], d['obs_pt']
+        Rc = R[oc]
+        RX = np.einsum('nij,nj->ni', Rc, X[op])
+        uv, Jp, Jk = d['model'].project(RX + t[oc], intr[d['group'][oc]], jac)
+        r = uv - d['obs_uv']
+        return r, RX, Rc, Jp, Jk
+
+    def cost_parts(self, R, t, X, intr):
+        d = self.d
+        r = self._reproj(R, t, X, intr, False)[0]
+        s = np.einsum('ni,ni->n', r, r)
+        rho, _ = losses.evaluate(self.o.loss, s, self.o.loss_scale_px)
+        parts = {'reprojection': 0.5 * float(rho.sum())}
+        if 'gnss_cam' in d:
+            e = self._gnss_err(R, t)
+            rw = np.einsum('mij,mj->mi', d['gnss_W'], e)
+            parts['gnss'] = 0.5 * float(np.sum(rw * rw))
+        if 'pp_idx' in d:
+            rp = (X[d['pp_idx']] - d['pp_pos']) / d['pp_sigma']
+            parts['gcp'] = 0.5 * float(np.sum(rp * rp))
+        if 'att_cam' in d:
+            phi = self._att_err(R)
+            parts['attitude'] = 0.5 * float(np.sum((phi / d['att_sigma']) ** 2))
+        return parts
+
+    def _gnss_err(self, R, t):
+        d = self.d
+        c = d['gnss_cam']
+        v = d['lever'][None, :] - t[c]
+        return np.einsum('mji,mj->mi', R[c], v) - d['gnss_pos']
+
+    def _att_err(self, R):
+        d = self.d
+        E = R[d['att_cam']] @ np.transpose(d['att_R'], (0, 2, 1))
+        return Rotation.from_matrix(E).as_rotvec()
+
+    def linearise(self, R, t, X, intr):
+        """Normal-equation pieces at the current estimate."""
+        d, st = self.d, self.st
+        r, RX, Rc, Jp, Jk = self._reproj(R, t, X, intr, True)
+        s = np.einsum('ni,ni->n', r, r)
+        _, d1 = losses.evaluate(self.o.loss, s, self.o.loss_scale_px)
+        w = np.sqrt(d1)[:, None]
+        r = r * w
+        parts = [-_cross_cols(Jp, RX), Jp, Jk @ self.sel]
+        if st.kf3 > st.kf:
+            parts.append(np.zeros((len(r), 2, st.kf3 - st.kf)))
+        A = np.concatenate(parts, axis=2) * w[:, :, None]
+        B = (Jp @ Rc) * w[:, :, None]
+        At = A.transpose(0, 2, 1)
+        nc1 = st.nc + 1
+        u_vals = [(At @ A).ravel()]
+        gc = np.bincount(st.idx.ravel(), (At @ r[:, :, None]).ravel(), minlength=nc1)
+        if 'gnss_cam' in d:
+            c = d['gnss_cam']
+            v = d['lever'][None, :] - t[c]
+            RT = np.transpose(R[c], (0, 2, 1))
+            J = np.concatenate([_cross_cols(RT, v), -RT], axis=2)
+            J = d['gnss_W'] @ J
+            rg = np.einsum('mij,mj->mi', d['gnss_W'], self._gnss_err(R, t))
+            u_vals.append(np.einsum('mka,mkb->mab', J, J).ravel())
+            gc += np.bincount(st.prior_idx['gnss_cam'].ravel(), np.einsum('mka,mk->ma', J, rg).ravel(),
+                              minlength=nc1)
+        if 'att_cam' in d:
+            phi = self._att_err(R)
+            J = _so3_left_jac_inv(phi) / d['att_sigma'][:, :, None]
+            J = np.concatenate([J, np.zeros_like(J)], axis=2)
+            ra = phi / d['att_sigma']
+            u_vals.append(np.einsum('mka,mkb->mab', J, J).ravel())
+            gc += np.bincount(st.prior_idx['att_cam'].ravel(), np.einsum('mka,mk->ma', J, ra).ravel(),
+                              minlength=nc1)
+        u = np.bincount(st.u_inv, np.concatenate(u_vals), minlength=st.nu)[st.u_keep]
+        npf = st.npf
+        vo = st.v_obs
+        Bt = B.transpose(0, 2, 1)
+        V = np.bincount(st.v_keys.reshape(-1, 9)[vo].ravel(),
+                        (Bt @ B)[vo].ravel(), minlength=9 * npf).reshape(npf, 3, 3)
+        gp = np.bincount((st.obs_ptc[vo, None] * 3 + np.arange(3)).ravel(),
+                         (Bt @ r[:, :, None])[vo].ravel(), minlength=3 * npf).reshape(npf, 3)
+        if 'pp_idx' in d:
+            pc = st.pt_col[d['pp_idx']]
+            ok = pc >= 0
+            iw = 1.0 / d['pp_sigma'][ok]
+            rp = (X[d['pp_idx'][ok]] - d['pp_pos'][ok]) * iw
+            np.add.at(V, (pc[ok], np.arange(3)[None, :], np.arange(3)[None, :]), iw * iw)
+            np.add.at(gp, pc[ok], rp * iw)
+        E = (At @ B).reshape(-1, 9)[st.w_valid]           # (N * m/3, 9): 3x3 blocks
+        Wd = (st.w_sum @ E).reshape(-1, 3, 3)
+        U = sp.csr_matrix((u, (st.u_rows, st.u_cols)), shape=(st.nc, st.nc))
+        return dict(U=U, Ud=U.diagonal(), gc=gc[:st.nc], V=V, gp=gp, Wd=Wd)
+
+    # --- linear algebra --------------------------------------------------------------------
+
+    def _W(self, blocks):
+        st = self.st
+        return sp.bsr_matrix((blocks, st.w_pt, st.w_indptr),
+                             shape=(st.nc, 3 * st.npf), blocksize=(3, 3))
+
+    def _WT(self, blocks):
+        st = self.st
+        return sp.bsr_matrix((blocks[st.wt_perm].transpose(0, 2, 1), st.wt_indices, st.wt_indptr),
+                             shape=(3 * st.npf, st.nc), blocksize=(3, 3))
+
+    def solve_step(self, lin, mu):
+        st = self.st
+        Dc = np.clip(lin['Ud'], 1e-6, 1e32)
+        Vdiag = np.clip(np.diagonal(lin['V'], axis1=1, axis2=2), 1e-6, 1e32)
+        Vd = lin['V'] + mu * Vdiag[:, :, None] * np.eye(3)
+        Vinv = np.linalg.inv(Vd)
+        WT = self._WT(lin['Wd'])
+        WV = self._W(lin['Wd'] @ Vinv[st.w_pt])
+        gp = lin['gp']
+        rhs = -lin['gc'] + WV @ gp.ravel()
+        real = st.real
+        dc = np.zeros(st.nc)
+        if not real.any():
+            pass
+        elif st.nc <= self.o.dense_limit:
+            S = lin['U'].toarray() - (WV @ WT).toarray()
+            S[np.diag_indices_from(S)] += mu * Dc
+            if not real.all():
+                S = S[np.ix_(real, real)]
+            try:
+                dc[real] = scipy.linalg.cho_solve(scipy.linalg.cho_factor(S, check_finite=False), rhs[real],
+                                                  check_finite=False)
+            except (np.linalg.LinAlgError, ValueError):
+                return None
+        else:
+            S = (lin['U'] - WV @ WT + sp.diags(mu * Dc)).tocsc()[real][:, real]
+            try:
+                dc[real] = scipy.sparse.linalg.splu(S.tocsc()).solve(rhs[real])
+            except RuntimeError:
+                return None
+        dp = -(Vinv @ (gp + (WT @ dc).reshape(-1, 3))[:, :, None])[:, :, 0]
+        if not (np.all(np.isfinite(dc)) and np.all(np.isfinite(dp))):
+            return None
+        g_dot = float(lin['gc'] @ dc + np.sum(gp * dp))
+        d_dot = float(np.sum(Dc * dc * dc) + np.sum(Vdiag * dp * dp))
+        pred = -0.5 * g_dot + 0.5 * mu * d_dot
+        return dc, dp, pred
+
+    def apply(self, R, t, X, intr, dc, dp):
+        st = self.st
+        R, t, X, intr = R.copy(), t.copy(), X.copy(), intr.copy()
+        free = st.cam_col >= 0
+        if free.any():
+            dpose = dc[st.cam_col[free][:, None] + np.arange(6)]
+            R[free] = Rotation.from_rotvec(dpose[:, :3]).as_matrix() @ R[free]
+            t[free] += dpose[:, 3:]
+        if st.kf:
+            dk = dc[st.intr_col[:, None] + np.arange(st.kf)]
+            intr += dk @ self.sel.T
+        X[st.pt_col >= 0] += dp
+        return R, t, X, intr
+
+    # --- the loop -------------------------------------------------------------------------
+
+    def run(self):
+        o, d = self.o, self.d
+        R, t, X, intr = d['R'], d['t'], d['X'], d['intr']
+        t0 = time.perf_counter()
+        cost = sum(self.cost_parts(R, t, X, intr).values())
+        init = cost
+        hist = [cost]
+        if not np.isfinite(cost):
+            return dict(status='failed', reason='initial cost is not finite (a point on a camera centre?)',
+                        R=R, t=t, X=X, intr=intr, init=init, cost=cost, iters=0, ok=0, hist=hist,
+                        seconds=time.perf_counter() - t0, lin=None)
+        radius, nu = float(o.initial_trust_radius), 2.0
+        status, reason, iters, ok = 'max_iterations', f'stopped after {o.max_iterations} iterations', 0, 0
+        lin = self.linearise(R, t, X, intr)
+        while iters < o.max_iterations:
+            gmax = max(np.abs(lin['gc']).max(initial=0.0), np.abs(lin['gp']).max(initial=0.0))
+            if gmax <= o.gradient_tolerance:
+                status, reason = 'converged', 'gradient below tolerance'
+                break
+            iters += 1
+            step = self.solve_step(lin, 1.0 / radius)
+            if step is None:
+                radius /= nu
+                nu *= 2.0
+                if radius < 1e-32:
+                    status, reason = 'failed', 'linear system could not be solved at any damping'
+                    break
+                continue
+            dc, dp, pred = step
+            xnorm = np.sqrt(np.sum(t ** 2) + np.sum(X ** 2))
+            snorm = np.sqrt(dc @ dc + np.sum(dp * dp))
+            if snorm <= o.parameter_tolerance * (xnorm + o.parameter_tolerance):
+                status, reason = 'converged', 'step below parameter tolerance'
+                break
+            Rn, tn, Xn, kn = self.apply(R, t, X, intr, dc, dp)
+            new = sum(self.cost_parts(Rn, tn, Xn, kn).values())
+            rho = (cost - new) / pred if pred > 0 else -1.0
+            if np.isfinite(new) and rho > 1e-3:
+                ok += 1
+                R, t, X, intr = Rn, tn, Xn, kn
+                rel = (cost - new) / max(cost, 1e-300)
+                cost = new
+                hist.append(cost)
+                radius = radius / max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3)
+                radius = min(radius, 1e16)
+                nu = 2.0
+                if rel < o.function_tolerance:
+                    status, reason = 'converged', 'relative cost decrease below function tolerance'
+                    break
+                lin = self.linearise(R, t, X, intr)
+            else:
+                radius /= nu
+                nu *= 2.0
+                if radius < 1e-32:
+                    status, reason = 'converged', 'no further decrease possible (trust region collapsed)'
+                    break
+        return dict(status=status, reason=reason, R=R, t=t, X=X, intr=intr, init=init, cost=cost,
+                    iters=iters, ok=ok, hist=hist, seconds=time.perf_counter() - t0)
+
+    # --- covariance -----------------------------------------------------------------------
+
+    def covariance(self, R, t, X, intr):
+        """Marginal covariances (camera centres (C,3,3), points (P,3,3)) at the estimate, or None."""
+        st = self.st
+        lin = self.linearise(R, t, X, intr)
+        V = lin['V']
+        try:
+            np.linalg.cholesky(V)
+            Vinv = np.linalg.inv(V)
+        except np.linalg.LinAlgError:
+            return None, None
+        W = self._W(lin['Wd'])
+        WV = self._W(lin['Wd'] @ Vinv[st.w_pt])
+        S = lin['U'].toarray() - (WV @ self._WT(lin['Wd'])).toarray()
+        real = st.real
+        Sc = np.zeros_like(S)
+        try:
+            if real.any():
+                Sr = S[np.ix_(real, real)]
+                np.linalg.cholesky(Sr)
+                Sc[np.ix_(real, real)] = np.linalg.inv(Sr)
+        except np.linalg.LinAlgError:
+            return None, None
+        C = len(R)
+        cam_cov = np.zeros((C, 3, 3))
+        free = st.cam_col >= 0
+        if free.any():
+            ix = st.cam_col[free][:, None] + np.arange(6)
+            Spose = Sc[ix[:, :, None], ix[:, None, :]]
+            RT = np.transpose(R[free], (0, 2, 1))
+            J = np.concatenate([-_cross_cols(RT, t[free]), -RT], axis=2)
+            cam_cov[free] = J @ Spose @ np.transpose(J, (0, 2, 1))
+        pt_cov = np.zeros((len(X), 3, 3))
+        blocks = np.zeros((st.npf, 3, 3))
+        Wc = W.tocsr().tocsc()
+        for a in range(0, st.npf, 2000):
+            b = min(st.npf, a + 2000)
+            Wk = Wc[:, 3 * a:3 * b].toarray()
+            Q = Sc @ Wk
+            blocks[a:b] = np.einsum('rka,rkb->kab', Wk.reshape(st.nc, b - a, 3), Q.reshape(st.nc, b - a, 3))
+        pt_cov[st.pt_col >= 0] = Vinv + Vinv @ blocks @ Vinv
+        return cam_cov, pt_cov
