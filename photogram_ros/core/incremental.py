@@ -1,0 +1,552 @@
+"""Incremental aerial triangulation: two-view start, PnP, triangulation, georeference, sliding window.
+
+Input is one `KeyframeRecord` per keyframe (tracks as ids + distorted pixels, a GNSS fix in WGS84
+with its ENU covariance, optional target observations by name). The reconstruction starts in an
+arbitrary frame from two keyframes; as soon as the camera centres are not collinear (a straight
+line leaves the roll about the line undetermined) a RANSAC similarity to the GNSS positions moves
+it into `map` (ENU at the origin), a full adjustment follows, and from then on every adjustment
+carries the fixes as priors weighted by their covariance. Surveyed GCPs enter as point priors;
+check points are never used, only triangulated afterwards from the adjusted cameras.
+
+Lever arm: the GNSS antenna is `C + map_R_cam @ lever_arm_cam_m`, a fixed offset in the camera
+frame. That is exact for a camera rigidly mounted on the body and an approximation for a gimbal
+(the error is |lever| times the body-vs-camera attitude difference, mm for a 20 cm lever).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from photogram_ros.core.camera import PinholeCamera
+from photogram_ros.core.geodesy import LocalFrame
+from photogram_ros.core.rotations import invert_T, make_T
+from photogram_ros.core.similarity import similarity_ransac
+from photogram_ros.core.two_view import relative_pose
+from photogram_ros.core.window import select_window
+from photogram_ros.errors import DataError
+
+try:   # the real solver; the stand-in only until it lands
+    from photogram_ros.core.bundle import BundleOptions, BundleProblem, bundle_adjust
+    SOLVER = 'bundle'
+except ImportError:   # pragma: no cover - depends on the parallel work
+    from photogram_ros.core.ba_standin import BundleOptions, BundleProblem, bundle_adjust
+    SOLVER = 'standin'
+
+
+@dataclass
+class GnssFix:
+    lat_deg: float
+    lon_deg: float
+    h_m: float                      # ellipsoidal
+    cov_enu_m2: np.ndarray          # (3, 3)
+
+
+@dataclass
+class KeyframeRecord:
+    stamp_ns: int
+    track_ids: np.ndarray           # (K,) int
+    uv: np.ndarray                  # (K, 2) distorted pixels
+    fix: GnssFix | None = None
+    name: str = ''
+    target_uv: dict = field(default_factory=dict)   # target name -> (u, v) pixels
+    # Antenna minus camera centre in map ENU (m), from the autopilot attitude and the body lever
+    # arm; when None the fixed camera-frame lever arm of the options is used instead.
+    antenna_offset_map_m: np.ndarray | None = None
+
+
+@dataclass
+class ControlPoint:
+    name: str
+    map_xyz: np.ndarray             # surveyed, map ENU (m)
+    sigma_m: np.ndarray             # (3,) E, N, U
+    role: str                       # 'gcp' (used) or 'check' (never used)
+
+
+@dataclass
+class IncrementalOptions:
+    window_size: int = 10
+    max_fixed_keyframes: int = 30
+    min_init_inliers: int = 30
+    min_init_angle_deg: float = 2.0
+    min_triangulation_angle_deg: float = 1.5
+    max_reprojection_px: float = 2.5   # accept a new point / keep an observation
+    pnp_threshold_px: float = 3.0
+    min_pnp_inliers: int = 12
+    loss: str = 'huber'
+    loss_scale_px: float = 1.0
+    window_iterations: int = 15
+    full_iterations: int = 50
+    lever_arm_cam_m: tuple = (0.0, 0.0, 0.0)
+    georef_min_keyframes: int = 4
+    georef_min_spread_ratio: float = 0.05
+    use_gcps: bool = True
+
+
+@dataclass
+class _Keyframe:
+    kid: int
+    stamp_ns: int
+    name: str
+    track_ids: np.ndarray
+    uv: np.ndarray
+    xn: np.ndarray
+    active: np.ndarray
+    fix_enu: np.ndarray | None
+    fix_cov: np.ndarray | None
+    map_T_cam: np.ndarray | None = None
+    index_of: dict = field(default_factory=dict)
+    antenna_offset: np.ndarray | None = None
+
+
+@dataclass
+class StepReport:
+    kid: int
+    registered: bool
+    status: str
+    solve_s: float = 0.0
+    cost: float = float('nan')
+    reprojection_rms_px: float = float('nan')
+    gnss_rms_m: float = float('nan')
+    window_size: int = 0
+    n_points: int = 0
+
+
+def lever_arm_cam_from_frd(lever_frd_m) -> np.ndarray:
+    """Body-FRD lever arm -> camera frame, for a nadir camera whose image top points forward.
+
+    Optical x = body right, optical y = body backward, optical z = body down.
+    """
+    f, r, d = np.asarray(lever_frd_m, float)
+    return np.array([r, -f, d])
+
+
+def triangulate_rays(centres: np.ndarray, dirs: np.ndarray, groups: np.ndarray, n: int) -> np.ndarray:
+    """Least-squares intersection of rays grouped by point: (n, 3), NaN where undetermined."""
+    d = dirs / np.linalg.norm(dirs, axis=1, keepdims=True)
+    A = np.eye(3)[None] - d[:, :, None] * d[:, None, :]
+    b = np.einsum('nij,nj->ni', A, centres)
+    As = np.zeros((n, 3, 3))
+    bs = np.zeros((n, 3))
+    np.add.at(As, groups, A)
+    np.add.at(bs, groups, b)
+    out = np.full((n, 3), np.nan)
+    ok = np.abs(np.linalg.det(As)) > 1e-12
+    out[ok] = np.linalg.solve(As[ok], bs[ok][..., None])[..., 0]
+    return out
+
+
+class IncrementalAT:
+    """The aerial-triangulation state; feed `add_keyframe`, call `full_adjustment` at the end."""
+
+    def __init__(self, camera: PinholeCamera, options: IncrementalOptions | None = None,
+                 origin: LocalFrame | None = None, control: list[ControlPoint] | None = None):
+        self.camera = camera
+        self.opt = options or IncrementalOptions()
+        self.origin = origin
+        self.kfs: list[_Keyframe] = []
+        self.registered: list[int] = []
+        self.points: dict[int, np.ndarray] = {}
+        self.track_kfs: dict[int, list[int]] = {}    # registered keyframes with an active observation
+        self.georeferenced = False
+        self.control = {c.name: c for c in (control or [])}
+        self._target_ids: dict[str, int] = {}
+        self.lever = np.asarray(self.opt.lever_arm_cam_m, float)
+        self.history: list[StepReport] = []
+        self.rng = np.random.default_rng(0)
+
+    # --- input --------------------------------------------------------------------------------
+
+    def _target_track(self, name: str) -> int:
+        if name not in self._target_ids:
+            self._target_ids[name] = -(len(self._target_ids) + 1)   # tracker ids are >= 0
+        return self._target_ids[name]
+
+    def _is_check(self, tid: int) -> bool:
+        if tid >= 0:
+            return False
+        name = self.target_name(tid)
+        c = self.control.get(name)
+        return c is None or c.role != 'gcp' or not self.opt.use_gcps
+
+    def target_name(self, tid: int) -> str:
+        for n, t in self._target_ids.items():
+            if t == tid:
+                return n
+        return ''
+
+    def add_keyframe(self, rec: KeyframeRecord) -> StepReport:
+        ids = np.asarray(rec.track_ids, dtype=np.int64).ravel()
+        uv = np.asarray(rec.uv, float).reshape(-1, 2)
+        if len(ids) != len(uv):
+            raise DataError(f'keyframe {rec.stamp_ns}: {len(ids)} track ids but {len(uv)} pixel positions')
+        if rec.target_uv:
+            ids = np.concatenate([ids, [self._target_track(n) for n in rec.target_uv]])
+            uv = np.vstack([uv, np.asarray(list(rec.target_uv.values()), float).reshape(-1, 2)])
+        ids, first = np.unique(ids, return_index=True)   # a duplicated id would be a tracker bug
+        uv = uv[first]
+        fix_enu = fix_cov = None
+        if rec.fix is not None:
+            if self.origin is None:
+                self.origin = LocalFrame(rec.fix.lat_deg, rec.fix.lon_deg, rec.fix.h_m)
+            fix_enu = np.asarray(self.origin.geodetic_to_enu(rec.fix.lat_deg, rec.fix.lon_deg, rec.fix.h_m))
+            fix_cov = np.asarray(rec.fix.cov_enu_m2, float).reshape(3, 3)
+        kf = _Keyframe(len(self.kfs), int(rec.stamp_ns), rec.name or str(rec.stamp_ns), ids, uv,
+                       self.camera.pixel_to_normalized(uv), np.ones(len(ids), bool), fix_enu, fix_cov)
+        kf.index_of = {int(t): i for i, t in enumerate(ids)}
+        if rec.antenna_offset_map_m is not None:
+            kf.antenna_offset = np.asarray(rec.antenna_offset_map_m, float).reshape(3)
+        self.kfs.append(kf)
+        t0 = time.perf_counter()
+        if not self.registered:
+            rep = self._try_initialise()
+        else:
+            rep = self._register(kf)
+            if rep.registered:
+                self._triangulate_new(kf)
+                if not self.georeferenced:
+                    self._try_georeference()
+                rep = self._window_adjust(kf.kid)
+        rep.solve_s = time.perf_counter() - t0
+        rep.n_points = len(self.points)
+        self.history.append(rep)
+        return rep
+
+    # --- geometry steps -------------------------------------------------------------------------
+
+    def _usable(self, kf: _Keyframe) -> np.ndarray:
+        """Observations that may build geometry: active and not a check point."""
+        m = kf.active.copy()
+        neg = kf.track_ids < 0
+        if neg.any():
+            m[neg] &= ~np.array([self._is_check(int(t)) for t in kf.track_ids[neg]])
+        return m
+
+    def _try_initialise(self) -> StepReport:
+        new = self.kfs[-1]
+        for first in self.kfs[:-1]:
+            ids, i1, i2 = np.intersect1d(first.track_ids[self._usable(first)], new.track_ids[self._usable(new)],
+                                         return_indices=True)
+            i1 = np.flatnonzero(self._usable(first))[i1]
+            i2 = np.flatnonzero(self._usable(new))[i2]
+            if len(ids) < self.opt.min_init_inliers:
+                continue
+            thr = self.opt.pnp_threshold_px / self.camera.fx
+            res = relative_pose(first.xn[i1], new.xn[i2], thr, self.opt.min_init_inliers)
+            if not res.ok or res.median_angle_deg < self.opt.min_init_angle_deg:
+                continue
+            first.map_T_cam = np.eye(4)
+            new.map_T_cam = invert_T(res.cam2_T_cam1)
+            self.registered = [first.kid, new.kid]
+            for kf in (first, new):
+                for t in kf.track_ids[kf.active].tolist():
+                    self.track_kfs.setdefault(t, []).append(kf.kid)
+            self._triangulate_new(new)
+            # Keyframes between the pair were waiting: register them now.
+            for kf in self.kfs:
+                if kf.map_T_cam is None and kf.kid > first.kid:
+                    if self._register(kf).registered:
+                        self._triangulate_new(kf)
+            rep = self._window_adjust(new.kid, full=True)
+            rep.status = 'initialised'
+            return rep
+        # No pair yet: drop keyframes too old to ever pair with the newest one.
+        return StepReport(new.kid, False, 'waiting_for_initialisation')
+
+    def _register(self, kf: _Keyframe) -> StepReport:
+        import cv2
+        use = self._usable(kf)
+        have = np.array([int(t) in self.points for t in kf.track_ids]) & use
+        n = int(have.sum())
+        if n < max(self.opt.min_pnp_inliers, 6):
+            return StepReport(kf.kid, False, f'too_few_known_points ({n})')
+        obj = np.array([self.points[int(t)] for t in kf.track_ids[have]])
+        img = kf.xn[have]
+        prev = self.kfs[self.registered[-1]].map_T_cam
+        cam_T_map = invert_T(prev)
+        rvec0, _ = cv2.Rodrigues(cam_T_map[:3, :3])
+        ok, rvec, tvec, inl = cv2.solvePnPRansac(
+            obj, img, np.eye(3), None, rvec0.copy(), cam_T_map[:3, 3].reshape(3, 1).copy(), useExtrinsicGuess=True,
+            iterationsCount=200, reprojectionError=self.opt.pnp_threshold_px / self.camera.fx, confidence=0.999)
+        if not ok or inl is None or len(inl) < self.opt.min_pnp_inliers:
+            return StepReport(kf.kid, False, 'pnp_failed')
+        inl = inl.ravel()
+        rvec, tvec = cv2.solvePnPRefineLM(obj[inl], img[inl], np.eye(3), None, rvec, tvec)
+        R, _ = cv2.Rodrigues(rvec)
+        kf.map_T_cam = invert_T(make_T(R, tvec.ravel()))
+        out = np.ones(n, bool)
+        out[inl] = False
+        kf.active[np.flatnonzero(have)[out]] = False
+        self.registered.append(kf.kid)
+        for t in kf.track_ids[kf.active].tolist():
+            self.track_kfs.setdefault(t, []).append(kf.kid)
+        return StepReport(kf.kid, True, 'registered')
+
+    def _reprojection_px(self, T: np.ndarray, X: np.ndarray, uv: np.ndarray) -> np.ndarray:
+        pc = (X - T[:3, 3]) @ T[:3, :3]
+        z = np.where(pc[:, 2] > 1e-9, pc[:, 2], np.nan)
+        proj = self.camera.normalized_to_pixel(pc[:, :2] / z[:, None])
+        e = np.linalg.norm(proj - uv, axis=1)
+        return np.where(np.isfinite(e), e, np.inf)
+
+    def _gather(self, tracks):
+        """Observations of `tracks` in registered keyframes: point slot, keyframe id, obs index."""
+        slot, kid, oi = [], [], []
+        for s, t in enumerate(tracks):
+            for k in self.track_kfs.get(t, ()):
+                kf = self.kfs[k]
+                i = kf.index_of[t]
+                if kf.active[i]:
+                    slot.append(s)
+                    kid.append(k)
+                    oi.append(i)
+        return np.array(slot, int), np.array(kid, int), np.array(oi, int)
+
+    def _triangulate_tracks(self, tracks: list[int]) -> None:
+        if not tracks:
+            return
+        for _ in range(2):   # second pass after dropping the observations that disagree
+            slot, kid, oi = self._gather(tracks)
+            if len(slot) == 0:
+                return
+            counts = np.bincount(slot, minlength=len(tracks))
+            Ts = np.array([self.kfs[k].map_T_cam for k in kid])
+            xn = np.array([self.kfs[k].xn[i] for k, i in zip(kid, oi)])
+            uv = np.array([self.kfs[k].uv[i] for k, i in zip(kid, oi)])
+            dirs = np.einsum('nij,nj->ni', Ts[:, :3, :3], np.column_stack([xn, np.ones(len(xn))]))
+            X = triangulate_rays(Ts[:, :3, 3], dirs, slot, len(tracks))
+            Xo = X[slot]
+            pc = np.einsum('nji,nj->ni', Ts[:, :3, :3], Xo - Ts[:, :3, 3])
+            z = np.where(pc[:, 2] > 1e-9, pc[:, 2], np.nan)
+            err = np.linalg.norm(self.camera.normalized_to_pixel(pc[:, :2] / z[:, None]) - uv, axis=1)
+            bad = ~(err <= self.opt.max_reprojection_px)
+            if not bad.any() or _ == 1:
+                break
+            # Only drop observations of points that still have two good ones.
+            good_counts = np.bincount(slot[~bad], minlength=len(tracks))
+            drop = bad & (good_counts[slot] >= 2)
+            if not drop.any():
+                break
+            for k, i, t in zip(kid[drop], oi[drop], np.asarray(tracks)[slot[drop]]):
+                self._deactivate(int(k), int(i), int(t))
+        # Triangulation angle: widest pair of rays, approximated by each ray against the mean ray.
+        rays = dirs / np.linalg.norm(dirs, axis=1, keepdims=True)
+        mean = np.zeros((len(tracks), 3))
+        np.add.at(mean, slot, rays)
+        mean /= np.maximum(np.linalg.norm(mean, axis=1, keepdims=True), 1e-12)
+        ang = np.degrees(np.arccos(np.clip(np.einsum('ij,ij->i', rays, mean[slot]), -1, 1)))
+        max_ang = np.zeros(len(tracks))
+        np.maximum.at(max_ang, slot, ang)
+        worst = np.zeros(len(tracks))
+        np.maximum.at(worst, slot, np.where(np.isfinite(err), err, 1e9))
+        ok = (counts >= 2) & np.all(np.isfinite(X), axis=1) & (2 * max_ang >= self.opt.min_triangulation_angle_deg) \
+            & (worst <= self.opt.max_reprojection_px)
+        for s in np.flatnonzero(ok):
+            self.points[int(tracks[s])] = X[s]
+
+    def _triangulate_new(self, kf: _Keyframe) -> None:
+        use = self._usable(kf)
+        tracks = [int(t) for t in kf.track_ids[use] if int(t) not in self.points
+                  and len(self.track_kfs.get(int(t), ())) >= 2]
+        self._triangulate_tracks(tracks)
+        # Existing points seen again: drop the observations that disagree with them.
+        for i in np.flatnonzero(use):
+            t = int(kf.track_ids[i])
+            if t in self.points and kf.active[i]:
+                if self._reprojection_px(kf.map_T_cam, self.points[t][None], kf.uv[i][None])[0] > \
+                        2 * self.opt.max_reprojection_px:
+                    self._deactivate(kf.kid, i, t)
+
+    def _deactivate(self, kid: int, i: int, t: int) -> None:
+        kf = self.kfs[kid]
+        kf.active[i] = False
+        lst = self.track_kfs.get(t)
+        if lst and kid in lst:
+            lst.remove(kid)
+            if len(lst) < 2:
+                self.points.pop(t, None)
+
+    # --- georeference -------------------------------------------------------------------------
+
+    def _try_georeference(self, force: bool = False) -> bool:
+        """`force`: accept any non-collinear geometry (end of flight: nothing better will come)."""
+        ks = [k for k in self.registered if self.kfs[k].fix_enu is not None]
+        if len(ks) < max(self.opt.georef_min_keyframes, 3):
+            return False
+        src = np.array([self.kfs[k].map_T_cam[:3, 3] for k in ks])
+        dst = np.array([self.kfs[k].fix_enu if self.kfs[k].antenna_offset is None
+                        else self.kfs[k].fix_enu - self.kfs[k].antenna_offset for k in ks])
+        sig = np.sqrt(np.median([np.trace(self.kfs[k].fix_cov) for k in ks]))
+        thr = 4.0 * sig + np.linalg.norm(self.lever) + 0.05
+        res = similarity_ransac(src, dst, thr, self.rng,
+                                min_spread_ratio=0.005 if force else self.opt.georef_min_spread_ratio)
+        if not res.ok:
+            return False
+        # The turn must be wide against the GNSS noise averaged over the fixes, or the roll about
+        # the line is noise (the adjustment that follows refines it, but needs a fair start).
+        n_in = int(res.inliers.sum())
+        side = np.linalg.svd(dst[res.inliers] - dst[res.inliers].mean(0), compute_uv=False)[1] / np.sqrt(n_in)
+        if not force and side < 3.0 * sig / np.sqrt(n_in):
+            return False
+        s = res.sim
+        for k in self.registered:
+            self.kfs[k].map_T_cam = s.apply_pose(self.kfs[k].map_T_cam)
+        for t in list(self.points):
+            self.points[t] = s.apply(self.points[t][None])[0]
+        self.georeferenced = True
+        self.full_adjustment(iterations=self.opt.full_iterations, rounds=1)
+        return True
+
+    # --- adjustment -----------------------------------------------------------------------------
+
+    def _solve(self, free: list[int], fixed: list[int], tracks, iterations: int) -> StepReport:
+        kids = list(free) + list(fixed)
+        col = {k: j for j, k in enumerate(kids)}
+        tracks = [int(t) for t in tracks if int(t) in self.points]
+        slot, kid, oi = self._gather(tracks)
+        keep = np.array([k in col for k in kid], bool) if len(kid) else np.zeros(0, bool)
+        slot, kid, oi = slot[keep], kid[keep], oi[keep]
+        if len(slot) == 0:
+            return StepReport(kids[-1] if kids else -1, True, 'nothing_to_adjust')
+        fixed_mask = np.array([k not in set(free) for k in kids])
+        if not self.georeferenced and not fixed_mask.any():
+            fixed_mask[:2] = True     # gauge: no datum yet, hold the first two keyframes
+        gk = [j for j, k in enumerate(kids) if self.georeferenced and not fixed_mask[j]
+              and self.kfs[k].fix_enu is not None]
+        pri = [(s, self.control[self.target_name(t)]) for s, t in enumerate(tracks)
+               if t < 0 and not self._is_check(t)] if self.georeferenced else []
+        prob = BundleProblem(
+            camera=self.camera, map_T_cams=np.array([self.kfs[k].map_T_cam for k in kids]),
+            points_map=np.array([self.points[t] for t in tracks]),
+            obs_cam=np.array([col[k] for k in kid]), obs_pt=slot,
+            obs_uv=np.array([self.kfs[k].uv[i] for k, i in zip(kid, oi)]),
+            fixed_cams=fixed_mask, fixed_points=None,
+            gnss_cam=np.array(gk, int) if gk else None,
+            gnss_pos_map=np.array([self._gnss_target(self.kfs[kids[j]]) for j in gk]).reshape(-1, 3),
+            gnss_cov_map=np.array([self.kfs[kids[j]].fix_cov for j in gk]).reshape(-1, 3, 3),
+            lever_arm_cam_m=self.lever,
+            point_priors_idx=np.array([s for s, _ in pri], int) if pri else None,
+            point_priors_map=np.array([c.map_xyz for _, c in pri]).reshape(-1, 3),
+            point_priors_sigma_m=np.array([c.sigma_m for _, c in pri]).reshape(-1, 3))
+        res = bundle_adjust(prob, BundleOptions(loss=self.opt.loss, loss_scale_px=self.opt.loss_scale_px,
+                                                max_iterations=iterations))
+        for j, k in enumerate(kids):
+            if not fixed_mask[j]:
+                self.kfs[k].map_T_cam = np.asarray(res.map_T_cams[j])
+        for s, t in enumerate(tracks):
+            self.points[t] = np.asarray(res.points_map[s])
+        # Observations the robust loss down-weighted past the threshold are outliers: remove them.
+        P = np.asarray(res.points_map)[slot]
+        Ts = np.array([self.kfs[k].map_T_cam for k in kid])
+        pc = np.einsum('nji,nj->ni', Ts[:, :3, :3], P - Ts[:, :3, 3])
+        z = np.where(pc[:, 2] > 1e-9, pc[:, 2], np.nan)
+        uv = prob.obs_uv
+        err = np.linalg.norm(self.camera.normalized_to_pixel(pc[:, :2] / z[:, None]) - uv, axis=1)
+        bad = ~(err <= self.opt.max_reprojection_px)
+        for k, i, s in zip(kid[bad], oi[bad], slot[bad]):
+            t = tracks[s]
+            if t < 0 and not self._is_check(t):
+                continue   # a GCP observation is measured by hand: keep it, its prior holds it
+            self._deactivate(int(k), int(i), int(t))
+        good = ~bad
+        rep = StepReport(kids[0], True, res.status, cost=float(res.final_cost),
+                         reprojection_rms_px=float(np.sqrt(np.mean(err[good] ** 2))) if good.any() else float('nan'),
+                         window_size=int((~fixed_mask).sum()))
+        rep.gnss_rms_m = self.gnss_rms_m([kids[j] for j in gk])
+        return rep
+
+    def _gnss_target(self, kf: _Keyframe) -> np.ndarray:
+        """The fix moved so that `C + map_R_cam @ lever` should meet it (exact offset when known)."""
+        if kf.antenna_offset is None:
+            return kf.fix_enu
+        return kf.fix_enu - kf.antenna_offset + kf.map_T_cam[:3, :3] @ self.lever
+
+    def gnss_residuals(self, kids=None) -> dict:
+        """Keyframe id -> ENU residual (m) of the adjusted antenna position minus the fix."""
+        out = {}
+        for k in (self.registered if kids is None else kids):
+            kf = self.kfs[k]
+            if kf.fix_enu is not None and kf.map_T_cam is not None:
+                out[k] = kf.map_T_cam[:3, 3] + kf.map_T_cam[:3, :3] @ self.lever - self._gnss_target(kf)
+        return out
+
+    def gnss_rms_m(self, kids=None) -> float:
+        r = list(self.gnss_residuals(kids).values())
+        return float(np.sqrt(np.mean(np.sum(np.array(r) ** 2, axis=1)))) if r else float('nan')
+
+    def _kf_tracks(self, k: int) -> np.ndarray:
+        kf = self.kfs[k]
+        return np.array([int(t) for t in kf.track_ids[kf.active] if int(t) in self.points], dtype=np.int64)
+
+    def _window_adjust(self, kid: int, full: bool = False) -> StepReport:
+        if full:
+            return self.full_adjustment(iterations=self.opt.full_iterations, rounds=1)
+        sel = select_window(self.registered, self.opt.window_size, {k: self._kf_tracks(k)
+                                                                    for k in self.registered[-self.opt.window_size:]},
+                            self.track_kfs, self.opt.max_fixed_keyframes)
+        rep = self._solve(sel.free_kfs, sel.fixed_kfs, sel.track_ids, self.opt.window_iterations)
+        rep.kid = kid
+        return rep
+
+    def full_adjustment(self, iterations: int | None = None, rounds: int = 2) -> StepReport:
+        """Adjust every registered keyframe and point; repeated so that removed outliers settle."""
+        rep = StepReport(-1, False, 'not_initialised')
+        if not self.registered:
+            return rep
+        if not self.georeferenced and self._try_georeference(force=True):
+            rounds = max(rounds - 1, 1)
+        for _ in range(rounds):
+            tracks = list(self.points)
+            rep = self._solve(list(self.registered), [], tracks, iterations or self.opt.full_iterations)
+        return rep
+
+    # --- results ----------------------------------------------------------------------------------
+
+    def poses(self) -> dict[int, np.ndarray]:
+        return {k: self.kfs[k].map_T_cam for k in self.registered}
+
+    def observations_of(self, tid: int):
+        """(map_T_cams, uv) of one track in the registered keyframes (active or not)."""
+        Ts, uvs = [], []
+        for k in self.registered:
+            kf = self.kfs[k]
+            i = kf.index_of.get(tid)
+            if i is not None:
+                Ts.append(kf.map_T_cam)
+                uvs.append(kf.uv[i])
+        return Ts, np.array(uvs).reshape(-1, 2)
+
+    def intersect_target(self, name: str):
+        """Triangulate a target (check point) from the adjusted cameras: (xyz, n_images, rms_px)."""
+        tid = self._target_ids.get(name)
+        if tid is None:
+            return None
+        Ts, uv = self.observations_of(tid)
+        if len(Ts) < 2:
+            return None
+        return intersect_point(self.camera, np.array(Ts), uv)
+
+
+def intersect_point(camera: PinholeCamera, map_T_cams: np.ndarray, uv: np.ndarray):
+    """Multi-ray intersection refined by Gauss-Newton on the reprojection error (cameras fixed)."""
+    xn = camera.pixel_to_normalized(uv)
+    dirs = np.einsum('nij,nj->ni', map_T_cams[:, :3, :3], np.column_stack([xn, np.ones(len(xn))]))
+    X = triangulate_rays(map_T_cams[:, :3, 3], dirs, np.zeros(len(xn), int), 1)[0]
+    if not np.all(np.isfinite(X)):
+        return None
+
+    def res(X):
+        pc = np.einsum('nji,nj->ni', map_T_cams[:, :3, :3], X[None] - map_T_cams[:, :3, 3])
+        return (camera.normalized_to_pixel(pc[:, :2] / pc[:, 2:3]) - uv).ravel()
+
+    for _ in range(10):
+        r = res(X)
+        J = np.column_stack([(res(X + d) - r) / 1e-6 for d in np.eye(3) * 1e-6])
+        dx = np.linalg.lstsq(J, -r, rcond=None)[0]
+        X = X + dx
+        if np.linalg.norm(dx) < 1e-7:
+            break
+    r = res(X).reshape(-1, 2)
+    return X, len(uv), float(np.sqrt(np.mean(np.sum(r ** 2, axis=1))))

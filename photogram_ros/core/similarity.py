@@ -1,0 +1,112 @@
+"""Similarity transforms (scale, rotation, translation) between point sets: Umeyama and RANSAC.
+
+Used to georeference a reconstruction made in an arbitrary frame: camera centres -> GNSS positions.
+`dst ~= scale * R @ src + t`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from photogram_ros.errors import DataError
+
+
+@dataclass
+class Similarity:
+    scale: float = 1.0
+    R: np.ndarray = field(default_factory=lambda: np.eye(3))
+    t: np.ndarray = field(default_factory=lambda: np.zeros(3))
+
+    def apply(self, points: np.ndarray) -> np.ndarray:
+        return self.scale * np.asarray(points, float) @ self.R.T + self.t
+
+    def apply_pose(self, a_T_cam: np.ndarray) -> np.ndarray:
+        """A camera pose in the source frame -> the same camera in the target frame (no scale in R)."""
+        out = np.eye(4)
+        out[:3, :3] = self.R @ a_T_cam[:3, :3]
+        out[:3, 3] = self.apply(a_T_cam[:3, 3])
+        return out
+
+
+@dataclass
+class SimilarityResult:
+    status: str                       # 'ok', 'too_few_points', 'degenerate'
+    sim: Similarity = field(default_factory=Similarity)
+    inliers: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
+    rms_m: float = float('nan')
+
+    @property
+    def ok(self) -> bool:
+        return self.status == 'ok'
+
+
+def umeyama(src: np.ndarray, dst: np.ndarray, weights: np.ndarray | None = None) -> Similarity:
+    """Least-squares similarity (Umeyama 1991), optionally weighted; needs >= 3 non-collinear points."""
+    src = np.asarray(src, float)
+    dst = np.asarray(dst, float)
+    if src.shape != dst.shape or src.ndim != 2 or src.shape[1] != 3:
+        raise DataError(f'umeyama needs two (N, 3) arrays of the same shape, got {src.shape}, {dst.shape}')
+    w = np.ones(len(src)) if weights is None else np.asarray(weights, float)
+    w = w / w.sum()
+    mu_s = w @ src
+    mu_d = w @ dst
+    S = src - mu_s
+    D = dst - mu_d
+    cov = (D * w[:, None]).T @ S
+    U, sv, Vt = np.linalg.svd(cov)
+    sign = np.eye(3)
+    if np.linalg.det(U) * np.linalg.det(Vt) < 0:
+        sign[2, 2] = -1.0
+    R = U @ sign @ Vt
+    var_s = float(np.sum(w * np.sum(S * S, axis=1)))
+    scale = float(np.trace(np.diag(sv) @ sign) / var_s) if var_s > 0 else 1.0
+    return Similarity(scale, R, mu_d - scale * R @ mu_s)
+
+
+def spread(points: np.ndarray) -> np.ndarray:
+    """Singular values (std, m) of a centred point set: the second one near zero means collinear."""
+    p = np.asarray(points, float)
+    return np.linalg.svd(p - p.mean(axis=0), compute_uv=False) / np.sqrt(max(len(p), 1))
+
+
+def similarity_ransac(src, dst, threshold_m: float, rng: np.random.Generator | None = None,
+                      iterations: int = 200, min_spread_ratio: float = 0.02) -> SimilarityResult:
+    """Robust similarity: minimal 3-point samples, then Umeyama on the largest consensus set.
+
+    Collinear inputs (a straight flight line) leave the roll about the line free: reported as
+    'degenerate' so the caller can wait for a turn rather than trust an arbitrary rotation.
+    """
+    src = np.asarray(src, float)
+    dst = np.asarray(dst, float)
+    n = len(src)
+    if n < 3:
+        return SimilarityResult('too_few_points', inliers=np.zeros(n, bool))
+    sv = spread(src)
+    if sv[0] <= 0 or sv[1] < min_spread_ratio * sv[0]:
+        return SimilarityResult('degenerate', inliers=np.zeros(n, bool))
+    rng = rng or np.random.default_rng(0)
+    best = np.ones(n, bool)
+    best_count = -1
+    if n > 3:
+        for _ in range(iterations):
+            idx = rng.choice(n, 3, replace=False)
+            if spread(src[idx])[1] < min_spread_ratio * sv[0]:
+                continue
+            s = umeyama(src[idx], dst[idx])
+            err = np.linalg.norm(s.apply(src) - dst, axis=1)
+            inl = err < threshold_m
+            if inl.sum() > best_count:
+                best, best_count = inl, int(inl.sum())
+    if best.sum() < 3:
+        return SimilarityResult('too_few_points', inliers=best)
+    for _ in range(3):   # refit on the consensus, then re-select with the refined transform
+        s = umeyama(src[best], dst[best])
+        err = np.linalg.norm(s.apply(src) - dst, axis=1)
+        new = err < threshold_m
+        if new.sum() < 3 or np.array_equal(new, best):
+            break
+        best = new
+    rms = float(np.sqrt(np.mean(err[best] ** 2)))
+    return SimilarityResult('ok', s, best, rms)

@@ -1,0 +1,163 @@
+"""Two-view geometry in normalized (undistorted) camera coordinates.
+
+The essential matrix is estimated with RANSAC around OpenCV's five-point solver (robust for the
+near-planar scenes of nadir aerial images, where the eight-point algorithm degenerates); the
+decomposition into a pose and the cheirality test are done here, so that the convention is ours:
+`cam2_T_cam1` maps points of camera 1 into camera 2 and its translation has unit length.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from photogram_ros.core.rotations import make_T
+from photogram_ros.errors import DataError
+
+
+@dataclass
+class TwoViewResult:
+    status: str                      # 'ok', 'too_few_points', 'degenerate'
+    cam2_T_cam1: np.ndarray = field(default_factory=lambda: np.eye(4))  # |t| = 1
+    E: np.ndarray = field(default_factory=lambda: np.zeros((3, 3)))
+    inliers: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
+    points_cam1: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))  # inliers in front, else NaN
+    median_angle_deg: float = 0.0
+
+    @property
+    def ok(self) -> bool:
+        return self.status == 'ok'
+
+
+def _check_pairs(xn1, xn2):
+    xn1 = np.asarray(xn1, float)
+    xn2 = np.asarray(xn2, float)
+    if xn1.shape != xn2.shape or xn1.ndim != 2 or xn1.shape[1] != 2:
+        raise DataError(f'two-view geometry needs matching (N, 2) arrays, got {xn1.shape} and {xn2.shape}')
+    return xn1, xn2
+
+
+def essential_ransac(xn1, xn2, threshold_n: float = 1e-3, confidence: float = 0.999):
+    """E with x2^T E x1 = 0 and the inlier mask; threshold in normalized units (px / f)."""
+    import cv2
+    xn1, xn2 = _check_pairs(xn1, xn2)
+    if len(xn1) < 5:
+        return None, np.zeros(len(xn1), bool)
+    E, mask = cv2.findEssentialMat(xn1, xn2, np.eye(3), method=cv2.RANSAC, prob=confidence,
+                                   threshold=threshold_n)
+    if E is None or E.shape[0] < 3:
+        return None, np.zeros(len(xn1), bool)
+    return E[:3], mask.ravel().astype(bool)
+
+
+def decompose_essential(E: np.ndarray):
+    """The four (R, t) candidates of an essential matrix, |t| = 1."""
+    U, _, Vt = np.linalg.svd(E)
+    if np.linalg.det(U) < 0:
+        U = -U
+    if np.linalg.det(Vt) < 0:
+        Vt = -Vt
+    W = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+    t = U[:, 2]
+    return [(U @ W @ Vt, t), (U @ W @ Vt, -t), (U @ W.T @ Vt, t), (U @ W.T @ Vt, -t)]
+
+
+def triangulate_two_view(R: np.ndarray, t: np.ndarray, xn1: np.ndarray, xn2: np.ndarray):
+    """Midpoint triangulation in camera 1; returns points (N, 3) and depths in both cameras."""
+    d1 = np.column_stack([xn1, np.ones(len(xn1))])
+    d2 = np.column_stack([xn2, np.ones(len(xn2))]) @ R   # ray of camera 2 expressed in camera 1
+    c2 = -R.T @ t
+    # Solve a*d1 - b*d2 = c2 for the closest approach of the two rays.
+    a11 = np.einsum('ij,ij->i', d1, d1)
+    a12 = -np.einsum('ij,ij->i', d1, d2)
+    a22 = np.einsum('ij,ij->i', d2, d2)
+    b1 = d1 @ c2
+    b2 = -(d2 @ c2)
+    det = a11 * a22 - a12 * a12
+    det = np.where(np.abs(det) < 1e-15, 1e-15, det)
+    a = (a22 * b1 - a12 * b2) / det
+    b = (a11 * b2 - a12 * b1) / det
+    X = 0.5 * (a[:, None] * d1 + (c2 + b[:, None] * d2))
+    z2 = (X @ R.T + t)[:, 2]
+    return X, X[:, 2], z2
+
+
+def relative_pose(xn1, xn2, threshold_n: float = 1e-3, min_inliers: int = 15) -> TwoViewResult:
+    """Pose of camera 2 relative to camera 1 from matched normalized coordinates.
+
+    Of the four decompositions of E the one that puts most inliers in front of both cameras wins
+    (cheirality); an answer where the winner is not clearly ahead of the runner-up is degenerate.
+    """
+    xn1, xn2 = _check_pairs(xn1, xn2)
+    if len(xn1) < max(min_inliers, 5):
+        return TwoViewResult('too_few_points', inliers=np.zeros(len(xn1), bool))
+    E, inl = essential_ransac(xn1, xn2, threshold_n)
+    if E is None or inl.sum() < min_inliers:
+        return TwoViewResult('too_few_points', inliers=inl)
+    best = None
+    counts = []
+    for R, t in decompose_essential(E):
+        X, z1, z2 = triangulate_two_view(R, t, xn1[inl], xn2[inl])
+        front = (z1 > 0) & (z2 > 0)
+        counts.append(int(front.sum()))
+        if best is None or counts[-1] > best[0]:
+            best = (counts[-1], R, t, X, front)
+    n_front, R, t, X, front = best
+    second = sorted(counts)[-2]
+    if n_front < min_inliers or second > 0.5 * n_front:
+        return TwoViewResult('degenerate', E=E, inliers=inl)
+    # The RANSAC winner comes from a minimal sample: refine on every inlier.
+    sel = np.flatnonzero(inl)[front]
+    R, t = refine_pose_sampson(R, t, xn1[sel], xn2[sel])
+    E = _skew(t) @ R
+    X, z1, z2 = triangulate_two_view(R, t, xn1[inl], xn2[inl])
+    front = (z1 > 0) & (z2 > 0)
+    idx = np.flatnonzero(inl)
+    inliers = np.zeros(len(xn1), bool)
+    inliers[idx[front]] = True
+    pts = np.full((len(xn1), 3), np.nan)
+    pts[idx[front]] = X[front]
+    d1 = X[front] / np.linalg.norm(X[front], axis=1, keepdims=True)
+    c2 = -R.T @ t
+    v2 = X[front] - c2
+    d2 = v2 / np.linalg.norm(v2, axis=1, keepdims=True)
+    ang = np.degrees(np.arccos(np.clip(np.einsum('ij,ij->i', d1, d2), -1, 1)))
+    return TwoViewResult('ok', make_T(R, t), E, inliers, pts, float(np.median(ang)))
+
+
+def _skew(v):
+    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+
+
+def sampson_residuals(E: np.ndarray, xn1: np.ndarray, xn2: np.ndarray) -> np.ndarray:
+    """Signed Sampson distances (first-order geometric error, normalized units)."""
+    h1 = np.column_stack([xn1, np.ones(len(xn1))])
+    h2 = np.column_stack([xn2, np.ones(len(xn2))])
+    Ex1 = h1 @ E.T
+    Etx2 = h2 @ E
+    num = np.einsum('ij,ij->i', h2, Ex1)
+    den = np.sqrt(Ex1[:, 0] ** 2 + Ex1[:, 1] ** 2 + Etx2[:, 0] ** 2 + Etx2[:, 1] ** 2)
+    return num / np.maximum(den, 1e-15)
+
+
+def refine_pose_sampson(R: np.ndarray, t: np.ndarray, xn1: np.ndarray, xn2: np.ndarray):
+    """Least-squares (R, t) on the Sampson error; t stays a unit vector (two tangent parameters)."""
+    from scipy.optimize import least_squares
+    from scipy.spatial.transform import Rotation
+    t = t / np.linalg.norm(t)
+    a = np.cross(t, [1.0, 0.0, 0.0] if abs(t[0]) < 0.9 else [0.0, 1.0, 0.0])
+    a /= np.linalg.norm(a)
+    b = np.cross(t, a)
+
+    def unpack(p):
+        Rn = Rotation.from_rotvec(p[:3]).as_matrix() @ R
+        tn = t + p[3] * a + p[4] * b
+        return Rn, tn / np.linalg.norm(tn)
+
+    def fun(p):
+        Rn, tn = unpack(p)
+        return sampson_residuals(_skew(tn) @ Rn, xn1, xn2)
+
+    sol = least_squares(fun, np.zeros(5), method='lm', xtol=1e-12, ftol=1e-12)
+    return unpack(sol.x)
