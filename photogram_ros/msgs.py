@@ -247,3 +247,32 @@ def disparity_image_msg(disparity_px: np.ndarray, stamp_ns: int, f_px: float, ba
     out.valid_window.width, out.valid_window.height = int(d.shape[1]), int(d.shape[0])
     out.min_disparity, out.max_disparity, out.delta_d = lo, hi, float(delta_d)
     return out
+
+
+def imu_orientation_msg(stamp_ns: int, q_xyzw, orientation_var_rad2, angular_velocity_rad_s=None,
+                        angular_velocity_var=0.0, frame_id: str = 'base_link'):
+    """sensor_msgs/Imu carrying an orientation (FLU body in ENU, REP-103) with its covariance.
+
+    Missing angular velocity and the (never sent) linear acceleration are marked unknown the
+    sensor_msgs way: covariance element 0 = -1.
+    """
+    from sensor_msgs.msg import Imu
+    q = np.asarray(q_xyzw, dtype=float)
+    msg = Imu(header=header(stamp_ns, frame_id))
+    msg.orientation.x, msg.orientation.y, msg.orientation.z, msg.orientation.w = (float(v) for v in q)
+    msg.orientation_covariance = np.diag(np.asarray(orientation_var_rad2, dtype=float)).ravel().tolist()
+    if angular_velocity_rad_s is None:
+        msg.angular_velocity_covariance = [-1.0] + [0.0] * 8
+    else:
+        w = np.asarray(angular_velocity_rad_s, dtype=float)
+        msg.angular_velocity.x, msg.angular_velocity.y, msg.angular_velocity.z = (float(v) for v in w)
+        msg.angular_velocity_covariance = np.diag([float(angular_velocity_var)] * 3).ravel().tolist()
+    msg.linear_acceleration_covariance = [-1.0] + [0.0] * 8
+    return msg
+
+
+def orientation_from_imu(msg) -> tuple[np.ndarray, np.ndarray]:
+    """sensor_msgs/Imu -> (quaternion x, y, z, w; 3x3 orientation covariance)."""
+    o = msg.orientation
+    return (np.array([o.x, o.y, o.z, o.w], dtype=float),
+            np.asarray(msg.orientation_covariance, dtype=float).reshape(3, 3))
