@@ -71,7 +71,6 @@ class Tile:
         self.f = {name: (cells[name].copy() if cells is not None else np.zeros(n, CELL_DTYPE.fields[name][0]))
                   for name in CELL_DTYPE.names}
         self.dirty = np.zeros(n, dtype=bool)     # not yet handed to the store
-        self.changed_for_stream = False
 
     def records(self, idx=None) -> np.ndarray:
         n = self.f['n'].size if idx is None else len(idx)
@@ -111,6 +110,7 @@ class Fusion:
         self.store = store
         self.tiles: OrderedDict[tuple[int, int], Tile] = OrderedDict()
         self.stats = FusionStats()
+        self.changed_tiles: set[tuple[int, int]] = set()   # since the caller last cleared it
 
     # --- tiles -----------------------------------------------------------------------------------
 
@@ -178,9 +178,8 @@ class Fusion:
             return 0
         T = cfg.tile_cells
         TT = T * T
-        inv = 1.0 / cfg.cell_m
-        ix = np.floor(x * inv).astype(np.int64)
-        iy = np.floor(y * inv).astype(np.int64)
+        ix = np.floor(x / cfg.cell_m).astype(np.int64)
+        iy = np.floor(y / cfg.cell_m).astype(np.int64)
         ti = ix // T
         tj = iy // T
         lx, ly = ix - ti * T, iy - tj * T
@@ -286,6 +285,7 @@ class Fusion:
             h = int(occ_tile[s])
             ox, oy = self.tile_origin_m(tile_keys[h])
             sl = slice(s, e)
+            self.changed_tiles.add(tile_keys[h])
             self._merge(tiles[h], occ_local[sl], n_p[sl], mx[sl] - ox, my[sl] - oy, mz[sl], m2_p[sl],
                         mr[sl], mg[sl], mb[sl], mc[sl])
         accepted = int(x.size)
@@ -311,7 +311,6 @@ class Fusion:
         c['n'][idx] = np.minimum(n_new, 2**32 - 1)
         c['n_pairs'][idx] = np.minimum(c['n_pairs'][idx] + 1, 65535)
         tile.dirty[idx] = True
-        tile.changed_for_stream = True
 
     # --- reading the map -------------------------------------------------------------------------
 
@@ -320,10 +319,19 @@ class Fusion:
         idx = np.flatnonzero(cells['n'])
         c = cells[idx]
         ox, oy = self.tile_origin_m(key)
-        return {'x': c['x'] + ox, 'y': c['y'] + oy, 'z': c['z'].astype(np.float64),
+        T = self.config.tile_cells
+        return {'ix': key[0] * T + idx % T, 'iy': key[1] * T + idx // T,   # global cell indices
+                'x': c['x'] + ox, 'y': c['y'] + oy, 'z': c['z'].astype(np.float64),
                 'r': c['r'], 'g': c['g'], 'b': c['b'], 'confidence': c['confidence'],
                 'n': c['n'], 'n_pairs': c['n_pairs'],
                 'sigma_z': np.sqrt(c['m2_z'] / np.maximum(c['n'].astype(np.float32) - 1, 1))}
+
+    def tile_records(self, key) -> np.ndarray | None:
+        """CELL_DTYPE cells of one tile from memory or the store (None if never written)."""
+        key = (int(key[0]), int(key[1]))
+        if key in self.tiles:
+            return self.tiles[key].records()
+        return self.store.load_tile(key) if self.store is not None else None
 
     def iter_tiles(self):
         """(key, cells) for every tile, in memory or on disk, without disturbing the LRU order."""
@@ -341,7 +349,8 @@ class Fusion:
         parts = [self.tile_points(k, c) for k, c in self.iter_tiles()]
         parts = [p for p in parts if p['x'].size]
         if not parts:
-            return {k: np.zeros(0) for k in ('x', 'y', 'z', 'r', 'g', 'b', 'confidence', 'n', 'n_pairs', 'sigma_z')}
+            return {k: np.zeros(0) for k in ('ix', 'iy', 'x', 'y', 'z', 'r', 'g', 'b', 'confidence', 'n', 'n_pairs',
+                                             'sigma_z')}
         return {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
 
     @property

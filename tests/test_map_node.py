@@ -1,0 +1,202 @@
+"""map_node over real rclpy topics: fusion, best-effort stream, keyframe saving, bad input, kill -9."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from helpers.clouds import pair_cloud
+
+ROOT = Path(__file__).resolve().parents[1]
+ORIGIN = dict(use_origin_params=True, origin_lat_deg=47.3977, origin_lon_deg=8.5456, origin_h_m=488.0)
+
+
+def surface(x, y):
+    return 3.0 + 0.05 * x - 0.02 * y
+
+
+def _spin_until(executor, cond, timeout_s=10.0):
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline and not cond():
+        executor.spin_once(timeout_sec=0.05)
+    return cond()
+
+
+@pytest.fixture
+def graph(rclpy_context, tmp_path):
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.node import Node
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+    from sensor_msgs.msg import PointCloud2
+    from photogram_ros.nodes.map_node import MapNode
+
+    node = MapNode({'map_dir': str(tmp_path / 'map'), 'flush_interval_s': 0.2, 'stream_period_s': 0.2,
+                    'stream_max_points': 3000, **ORIGIN}, context=rclpy_context)
+    peer = Node('map_test_peer', context=rclpy_context)
+    got = []
+    peer.create_subscription(PointCloud2, '/map/cloud_downsampled', got.append,
+                             QoSProfile(depth=10, reliability=ReliabilityPolicy.BEST_EFFORT))
+    pub = peer.create_publisher(PointCloud2, '/map/dense_cloud',
+                                QoSProfile(depth=20, reliability=ReliabilityPolicy.RELIABLE))
+    ex = SingleThreadedExecutor(context=rclpy_context)
+    ex.add_node(node)
+    ex.add_node(peer)
+    _spin_until(ex, lambda: pub.get_subscription_count() > 0, 5.0)
+    yield node, peer, pub, got, ex, tmp_path / 'map'
+    ex.shutdown()
+    peer.destroy_node()
+    node.destroy_node()
+
+
+def test_fuses_streams_and_persists(graph):
+    from photogram_ros import msgs
+    from photogram_ros.core.fusion import Fusion, FusionConfig
+    from photogram_ros.io.map_store import MapStore
+
+    node, peer, pub, got, ex, map_dir = graph
+    rng = np.random.default_rng(1)
+    clouds = [pair_cloud(rng, surface, 10.0 * k, 0.0, 8.0, 6.0, 150.0, 0.02) for k in range(3)]
+    for k, c in enumerate(clouds):
+        pub.publish(msgs.pointcloud2_msg(c, 1000 + k, 'map'))
+    assert _spin_until(ex, lambda: node.diag.counts().get('clouds', 0) == 3)
+    assert _spin_until(ex, lambda: len(got) >= 2)
+    streamed = np.concatenate([msgs.points_from_pointcloud2(m) for m in got])
+    assert all(m.width <= 3000 for m in got)                  # size-limited
+    assert streamed.size < sum(c.size for c in clouds) / 10   # downsampled
+    assert np.abs(streamed['z'] - surface(streamed['x'], streamed['y'])).max() < 0.1
+    assert streamed['x'].min() > -8.5 and streamed['x'].max() < 28.5
+    fused = node.fusion.points()
+    node.flush()
+    on_disk = Fusion(FusionConfig(0.08, 256), MapStore(map_dir)).points()
+    assert on_disk['x'].size == fused['x'].size > 10000
+    assert np.allclose(np.sort(on_disk['z']), np.sort(fused['z']))
+    assert MapStore(map_dir).origin.lat_deg == pytest.approx(47.3977)
+
+
+def test_bad_messages_are_counted_not_fatal(graph):
+    from photogram_ros import msgs
+    node, peer, pub, got, ex, _ = graph
+    rng = np.random.default_rng(2)
+    no_z = np.zeros(10, dtype=[('x', np.float32), ('y', np.float32)])
+    pub.publish(msgs.pointcloud2_msg(no_z, 1, 'map'))
+    pub.publish(msgs.pointcloud2_msg(pair_cloud(rng, surface, 0, 0, 2, 2, 100), 2, 'camera_optical'))
+    pub.publish(msgs.pointcloud2_msg(pair_cloud(rng, surface, 0, 0, 2, 2, 100), 3, 'map'))
+    assert _spin_until(ex, lambda: node.diag.counts().get('clouds', 0) == 1)
+    assert node.diag.counts().get('problems', 0) == 2
+
+
+def test_keyframes_saved_for_the_orthomosaic(graph):
+    from geometry_msgs.msg import PoseWithCovarianceStamped
+    from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
+    from sensor_msgs.msg import CameraInfo, Image
+    from photogram_ros import msgs
+    from photogram_ros.core.camera import PinholeCamera
+    from photogram_ros.core.rotations import make_T
+    from photogram_ros.io.map_store import MapStore
+
+    node, peer, pub, got, ex, map_dir = graph
+    rel = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
+    pi = peer.create_publisher(Image, '/keyframes/image', rel)
+    pp = peer.create_publisher(PoseWithCovarianceStamped, '/map/keyframe_pose', rel)
+    pc = peer.create_publisher(CameraInfo, '/camera/camera_info', qos_profile_sensor_data)
+    cam = PinholeCamera(64, 48, 50.0, 50.0, 31.5, 23.5)
+    T = make_T(np.diag([1.0, -1.0, -1.0]), np.array([1.0, 2.0, 40.0]))
+    _spin_until(ex, lambda: pi.get_subscription_count() and pp.get_subscription_count(), 5.0)
+    img = np.zeros((48, 64, 3), np.uint8)
+    img[:, :32] = 200
+    for _ in range(3):
+        pc.publish(msgs.camera_info_msg(cam, 5))
+        ex.spin_once(timeout_sec=0.05)
+    pi.publish(msgs.image_msg(img, 123_000_000_000))
+    pp.publish(msgs.pose_with_covariance_from_T(T, 123_000_000_000))
+    store = MapStore(map_dir)
+    assert _spin_until(ex, lambda: len(store.keyframes()) == 1 and store.load_camera() is not None)
+    kf = store.keyframes()[0]
+    assert kf['stamp_ns'] == 123_000_000_000 and np.allclose(kf['map_T_cam'], T)
+    assert store.load_camera() == cam
+
+
+def _diag_clouds(rclpy_context, timeout_s, want):
+    """Number of clouds the map node reports on /diagnostics (polls until `want` or timeout)."""
+    from diagnostic_msgs.msg import DiagnosticArray
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.node import Node
+    n = Node('diag_watch', context=rclpy_context)
+    seen = {'clouds': 0}
+
+    def on_diag(msg):
+        for st in msg.status:
+            if 'map_node' in st.name:
+                for kv in st.values:
+                    if kv.key == 'clouds':
+                        seen['clouds'] = int(kv.value)
+    n.create_subscription(DiagnosticArray, '/diagnostics', on_diag, 10)
+    ex = SingleThreadedExecutor(context=rclpy_context)
+    ex.add_node(n)
+    _spin_until(ex, lambda: seen['clouds'] >= want, timeout_s)
+    ex.shutdown()
+    n.destroy_node()
+    return seen['clouds']
+
+
+def test_kill_9_loses_only_the_last_seconds(rclpy_context, tmp_path):
+    """A map_node process is killed with SIGKILL mid-flight; what it fused earlier is on disk and reloads."""
+    from rclpy.node import Node
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+    from sensor_msgs.msg import PointCloud2
+    from photogram_ros import msgs
+    from photogram_ros.core.fusion import Fusion, FusionConfig
+    from photogram_ros.io.map_store import MapStore
+
+    map_dir = tmp_path / 'map'
+    cmd = [sys.executable, '-m', 'photogram_ros.nodes.map_node', '--ros-args', '-p', f'map_dir:={map_dir}',
+           '-p', 'flush_interval_s:=0.5', '-p', 'max_tiles_in_memory:=4']
+    proc = subprocess.Popen(cmd, cwd=ROOT, env=dict(os.environ), stdout=subprocess.DEVNULL,
+                            stderr=subprocess.PIPE)
+    try:
+        peer = Node('crash_feeder', context=rclpy_context)
+        pub = peer.create_publisher(PointCloud2, '/map/dense_cloud',
+                                    QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE))
+        deadline = time.monotonic() + 20
+        while pub.get_subscription_count() == 0 and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert pub.get_subscription_count() > 0, 'map_node did not start'
+        rng = np.random.default_rng(3)
+        # A track 200 m long: clouds along it, each 16 m x 12 m, so tiles are also evicted to disk.
+        early = [pair_cloud(rng, surface, 0.0, 14.0 * k, 8.0, 6.0, 120.0, 0.02) for k in range(12)]
+        for k, c in enumerate(early):
+            pub.publish(msgs.pointcloud2_msg(c, k, 'map'))
+        assert _diag_clouds(rclpy_context, 20.0, len(early)) >= len(early)
+        time.sleep(1.5)                       # > flush_interval_s: the early clouds must now be durable
+        late = pair_cloud(rng, surface, 0.0, 14.0 * 12, 8.0, 6.0, 120.0, 0.02)
+        for k in range(5):                    # still arriving when the process dies
+            pub.publish(msgs.pointcloud2_msg(late, 100 + k, 'map'))
+        proc.send_signal(signal.SIGKILL)
+        proc.wait(10)
+        assert proc.returncode == -signal.SIGKILL
+        peer.destroy_node()
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+
+    pts = Fusion(FusionConfig(0.08, 256), MapStore(map_dir)).points()
+    have = set(zip(pts['ix'].tolist(), pts['iy'].tolist()))
+    for c in early:
+        cells = set(zip(np.floor(c['x'] / 0.08).astype(int).tolist(), np.floor(c['y'] / 0.08).astype(int).tolist()))
+        assert len(cells & have) == len(cells), 'a cloud fused 1.5 s before the kill is missing on disk'
+    assert np.abs(pts['z'] - surface(pts['x'], pts['y'])).max() < 0.15
+    # A restarted node reloads the map and goes on.
+    from photogram_ros.nodes.map_node import MapNode
+    node = MapNode({'map_dir': str(map_dir)}, context=rclpy_context)
+    try:
+        assert node.fusion.points()['x'].size == pts['x'].size
+    finally:
+        node.destroy_node()
