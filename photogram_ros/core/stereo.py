@@ -113,9 +113,24 @@ def disparity_from_sgbm(raw: np.ndarray, min_disparity: int) -> np.ndarray:
 @dataclass
 class Disparity:
     disparity_px: np.ndarray      # float32 (H, W), NaN where rejected
-    confidence: np.ndarray        # float32 (H, W) in [0, 1], 0 where rejected
+    local_dev_px: np.ndarray      # float32 (H, W): |d - median3x3(d)|
+    texture: np.ndarray           # float32 (H, W): mean absolute image gradient over the block
+    texture_ref: float            # texture at which the texture cue reaches 1/2
     sgbm_ms: float
     filter_ms: float
+
+    def confidence_at(self, flat_idx: np.ndarray) -> np.ndarray:
+        """Confidence in [0, 1] at flat pixel indices (see _filter for the cues)."""
+        dev = self.local_dev_px.ravel()[flat_idx]
+        tex = self.texture.ravel()[flat_idx]
+        return (np.exp(dev * np.float32(-2.0)) * (tex / (tex + np.float32(self.texture_ref)))).astype(np.float32)
+
+    @property
+    def confidence(self) -> np.ndarray:
+        """Per-pixel confidence (H, W), 0 where there is no disparity."""
+        c = self.confidence_at(np.arange(self.disparity_px.size)).reshape(self.disparity_px.shape)
+        c[~np.isfinite(self.disparity_px)] = 0.0
+        return c
 
 
 def match(left_grey: np.ndarray, right_grey: np.ndarray, params: StereoParams, min_disparity: int,
@@ -130,32 +145,35 @@ def match(left_grey: np.ndarray, right_grey: np.ndarray, params: StereoParams, m
     t0 = time.perf_counter()
     raw = sgbm.compute(left_grey, right_grey)
     t1 = time.perf_counter()
-    d = disparity_from_sgbm(raw, min_disparity)
-    conf = _confidence_and_filter(d, left_grey, params)
-    t2 = time.perf_counter()
-    return Disparity(d, conf, (t1 - t0) * 1e3, (t2 - t1) * 1e3)
+    out = _filter(raw, min_disparity, left_grey, params)
+    out.sgbm_ms, out.filter_ms = (t1 - t0) * 1e3, (time.perf_counter() - t1) * 1e3
+    return out
 
 
-def _confidence_and_filter(d: np.ndarray, left_grey: np.ndarray, params: StereoParams) -> np.ndarray:
-    """Filter `d` in place (local consistency, texture) and return a per-pixel confidence in [0, 1].
+def _filter(raw: np.ndarray, min_disparity: int, left_grey: np.ndarray, params: StereoParams) -> Disparity:
+    """SGBM output -> float disparity with local-consistency (and optional texture/confidence) rejection.
 
-    Confidence multiplies two cues SGBM does not expose: agreement with the 3x3 median (isolated
-    mismatches and flying pixels at depth edges disagree) and image texture in the block (flat
-    areas are where SGBM guesses from the smoothness term alone).
+    Two cues SGBM does not expose: agreement with the 3x3 median (isolated mismatches and flying
+    pixels at depth edges disagree) and image texture in the block (flat areas are where SGBM
+    guesses from the smoothness term alone). Their product is the points' confidence.
     """
-    valid = np.isfinite(d)
-    filled = np.where(valid, d, 0.0).astype(np.float32)
-    med = cv2.medianBlur(filled, 3)
-    dev = np.abs(filled - med)
+    # Invalid pixels hold min_disparity - 1 here: a plausible neighbour value for the median.
+    d = raw.astype(np.float32)
+    d *= np.float32(1.0 / 16.0)
+    dev = cv2.absdiff(d, cv2.medianBlur(d, 3))
+    bad = (raw < min_disparity * 16) | (dev > np.float32(params.max_local_dev_px))
     bs = params.block_size
-    gx = cv2.Sobel(left_grey, cv2.CV_16S, 1, 0, ksize=3)
-    gy = cv2.Sobel(left_grey, cv2.CV_16S, 0, 1, ksize=3)
-    grad = cv2.boxFilter((np.abs(gx) + np.abs(gy)).astype(np.float32), -1, (bs, bs)) * 0.125
-    conf = np.exp(-dev / 0.5) * (grad / (grad + 4.0 * max(params.min_texture, 0.5)))
-    bad = ~valid | (dev > params.max_local_dev_px) | (grad < params.min_texture) | (conf < params.min_confidence)
+    g = cv2.add(cv2.convertScaleAbs(cv2.Sobel(left_grey, cv2.CV_16S, 1, 0, ksize=3), alpha=0.125),
+                cv2.convertScaleAbs(cv2.Sobel(left_grey, cv2.CV_16S, 0, 1, ksize=3), alpha=0.125))
+    tex = cv2.boxFilter(g, cv2.CV_32F, (bs, bs))
+    tex_ref = 4.0 * max(params.min_texture, 0.5)
+    if params.min_texture > 0:
+        bad |= tex < np.float32(params.min_texture)
+    out = Disparity(d, dev, tex, tex_ref, 0.0, 0.0)
+    if params.min_confidence > 0:
+        bad |= out.confidence_at(np.arange(d.size)).reshape(d.shape) < np.float32(params.min_confidence)
     d[bad] = np.nan
-    conf[bad] = 0.0
-    return conf.astype(np.float32)
+    return out
 
 
 # --- rectification -------------------------------------------------------------------------------
@@ -294,6 +312,14 @@ def pack_rgb(bgr: np.ndarray) -> np.ndarray:
     return (r << 16) | (g << 8) | b
 
 
+def _normalised_grids(W: int, H: int, cx: float, cy: float, f: float):
+    xg = np.empty((H, W), np.float32)
+    yg = np.empty((H, W), np.float32)
+    xg[:] = ((np.arange(W, dtype=np.float32) - np.float32(cx)) / np.float32(f))[None, :]
+    yg[:] = ((np.arange(H, dtype=np.float32) - np.float32(cy)) / np.float32(f))[:, None]
+    return xg, yg
+
+
 def points_from_disparity(rect: Rectification, disp: Disparity, left_bgr: np.ndarray, params: StereoParams,
                           right_valid: np.ndarray | None = None) -> np.ndarray:
     """Rectified disparity -> cloud (CLOUD_DTYPE) in map, dropping depths out of range and grazing views.
@@ -301,6 +327,7 @@ def points_from_disparity(rect: Rectification, disp: Disparity, left_bgr: np.nda
     The grazing test needs no 3D normals: for a plane, the true disparity D = d + shift is affine
     in (u, v), and with g = grad D the plane normal is n ~ (gx, gy, D/f - gx x - gy y) while
     n . ray_left = D/f and n . ray_right = (D/f)(1 - gx), with x, y normalised rectified coordinates.
+    Work is done on flat arrays of candidate pixels only (1-D takes are much cheaper than 2-D).
     """
     d = disp.disparity_px
     H, W = d.shape
@@ -308,40 +335,54 @@ def points_from_disparity(rect: Rectification, disp: Disparity, left_bgr: np.nda
     k = 2   # central differences over 2k pixels: single-pixel steps are too noisy at 1/16 px
     gx = np.full_like(D, np.nan)
     gy = np.full_like(D, np.nan)
-    gx[:, k:-k] = (D[:, 2 * k:] - D[:, :-2 * k]) * (0.5 / k)
-    gy[k:-k] = (D[2 * k:] - D[:-2 * k]) * (0.5 / k)
-    ok = np.isfinite(gx) & np.isfinite(gy) & (D > 0)
+    np.subtract(D[:, 2 * k:], D[:, :-2 * k], out=gx[:, k:-k])
+    np.subtract(D[2 * k:], D[:-2 * k], out=gy[k:-k])
+    ok = D > 0   # False for NaN too
+    ok &= np.isfinite(gx)
+    ok &= np.isfinite(gy)
     s = params.point_stride
     if s > 1:
         grid = np.zeros_like(ok)
         grid[s // 2::s, s // 2::s] = True
         ok &= grid
-    v, u = np.nonzero(ok)
-    Dv, gxv, gyv = D[v, u], gx[v, u], gy[v, u]
+    idx = np.flatnonzero(ok)
+    Dv = D.ravel()[idx]
+    gxv = gx.ravel()[idx] * np.float32(0.5 / k)
+    gyv = gy.ravel()[idx] * np.float32(0.5 / k)
     f = np.float32(rect.f_px)
-    x = (u.astype(np.float32) - np.float32(rect.cx_left)) / f
-    y = (v.astype(np.float32) - np.float32(rect.cy)) / f
+    # Normalised rectified coordinates by lookup: integer % and // on the indices cost more.
+    xg, yg = _normalised_grids(W, H, rect.cx_left, rect.cy, rect.f_px)
+    x = xg.ravel()[idx]
+    y = yg.ravel()[idx]
+    a = Dv / f                              # n . ray_left
+    nz = a - gxv * x - gyv * y
+    nn2 = gxv * gxv + gyv * gyv + nz * nz
+    y2p1 = y * y + np.float32(1.0)
+    xr = x - a
+    c2 = np.float32(np.cos(np.radians(params.max_grazing_deg)) ** 2)
+    a2 = a * a
+    # cos^2 >= c^2 without square roots: (n.r)^2 >= c^2 |n|^2 |r|^2 for both rays.
+    keep = a2 >= c2 * nn2 * (x * x + y2p1)
+    keep &= a2 * (np.float32(1.0) - gxv) ** 2 >= c2 * nn2 * (xr * xr + y2p1)
     depth = np.float32(rect.f_px * rect.baseline_m) / Dv
-    nz = Dv / f - gxv * x - gyv * y
-    n_norm = np.sqrt(gxv * gxv + gyv * gyv + nz * nz)
-    xr = x - Dv / f   # right camera ray, in the left camera's rotation
-    cos_l = (Dv / f) / (n_norm * np.sqrt(x * x + y * y + 1.0))
-    cos_r = np.abs((Dv / f) * (1.0 - gxv)) / (n_norm * np.sqrt(xr * xr + y * y + 1.0))
-    keep = ((depth >= params.min_depth_m) & (depth <= params.max_depth_m)
-            & (np.minimum(cos_l, cos_r) >= np.float32(np.cos(np.radians(params.max_grazing_deg)))))
+    keep &= (depth >= np.float32(params.min_depth_m)) & (depth <= np.float32(params.max_depth_m))
     if right_valid is not None:
-        ur = np.clip(np.round(u - (Dv - np.float32(rect.shift_px))).astype(np.int32), 0, W - 1)
-        keep &= right_valid[v, ur]
-    v, u, x, y, depth = v[keep], u[keep], x[keep], y[keep], depth[keep]
-    X, Y, Z = (x * depth).astype(np.float64), (y * depth).astype(np.float64), depth.astype(np.float64)
-    out = np.empty(Z.shape[0], CLOUD_DTYPE)
+        # Flat index of the matched right pixel: same row, d = D - shift columns to the left.
+        shift_cols = np.minimum(Dv - np.float32(rect.shift_px - 0.5), np.float32(W)).astype(np.int64)
+        keep &= right_valid.ravel()[np.maximum(idx - shift_cols, 0)] & (shift_cols <= x * f + np.float32(rect.cx_left + 0.5))
+    idx, x, y, depth = idx[keep], x[keep], y[keep], depth[keep]
+    out = np.empty(idx.size, CLOUD_DTYPE)
     R, C = rect.map_R_rect, rect.centre_left_map
-    # Written out per axis: a (N, 3) @ (3, 3) matmul goes through BLAS threads and is ~30x slower here.
+    # Per axis, ray direction in map times depth: a (N, 3) @ (3, 3) matmul goes through BLAS
+    # threads and is ~30x slower here.
     for i, name in enumerate(('x', 'y', 'z')):
-        out[name] = R[i, 0] * X + R[i, 1] * Y + R[i, 2] * Z + C[i]
-    px = left_bgr[v, u]
-    out['rgb'] = pack_rgb(px) if left_bgr.ndim == 3 else pack_rgb(np.repeat(px[:, None], 3, 1))
-    out['confidence'] = disp.confidence[v, u]
+        ray = np.float32(R[i, 0]) * x + np.float32(R[i, 1]) * y + np.float32(R[i, 2])
+        out[name] = (ray * depth).astype(np.float64) + C[i]
+    if left_bgr.ndim == 2:
+        left_bgr = cv2.cvtColor(left_bgr, cv2.COLOR_GRAY2BGR)
+    packed = cv2.cvtColor(left_bgr, cv2.COLOR_BGR2BGRA).view(np.uint32).reshape(H, W)
+    out['rgb'] = packed.ravel()[idx] & np.uint32(0x00FFFFFF)   # little-endian B, G, R, A bytes
+    out['confidence'] = disp.confidence_at(idx)
     return out
 
 

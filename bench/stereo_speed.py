@@ -1,0 +1,95 @@
+"""Milliseconds per keyframe pair: the full stereo module vs a bare StereoSGBM.compute on the same pair.
+
+Usage: .venv/bin/python bench/stereo_speed.py [--repeats N] [--param name=value ...]
+Renders a survey pair (B/H 0.22, 40 m) with the simulator at 640x480 and 1280x960. "full" is
+photogram_ros.core.stereo.stereo_pair (pair checks, rectification maps, remap, SGBM, filtering,
+points in map with colour); "bare" is StereoSGBM.compute alone on the module's rectified grey pair
+with the same parameters and disparity range ("bare_unfiltered" also without uniqueness/speckle/LR).
+Prints one JSON line per size with medians and the overhead ratio (target <= 1.5).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from photogram_ros.core import stereo  # noqa: E402
+from photogram_ros.core.rotations import make_T  # noqa: E402
+from photogram_ros.params import from_dict  # noqa: E402
+from photogram_ros.sim.render import Exposure, Renderer  # noqa: E402
+from photogram_ros.sim.scenario import build_world, preset  # noqa: E402
+
+
+def render_pair(scale: int):
+    cfg = preset('tiny', width_px=640 * scale, height_px=480 * scale, focal_px=520.0 * scale)
+    rng = np.random.default_rng(cfg.seed)
+    flight, terrain, _ = build_world(cfg, rng)
+    cam = cfg.camera()
+    r = Renderer(terrain, cam)
+    out = []
+    for t in (2.0, 3.75):
+        st = flight.state(t)
+        T = make_T(st.map_R_cam, st.pos_enu)
+        out.append((T, r.render(T, Exposure(), rng)))
+    return cam, out
+
+
+def _median_ms(fn, repeats):
+    ts = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        fn()
+        ts.append((time.perf_counter() - t0) * 1e3)
+    return float(np.median(ts))
+
+
+def bench(scale: int, params: stereo.StereoParams, repeats: int) -> dict:
+    cam, ((Ta, ia), (Tb, ib)) = render_pair(scale)
+    depth = (20.0, 55.0)
+    res = stereo.stereo_pair(cam, ia, Ta, ib, Tb, params, depth)
+    left = cv2.cvtColor(cv2.remap(ia, *res.rect.maps_left, cv2.INTER_LINEAR), cv2.COLOR_BGR2GRAY)
+    right = cv2.remap(cv2.cvtColor(ib, cv2.COLOR_BGR2GRAY), *res.rect.maps_right, cv2.INTER_LINEAR)
+    sgbm = stereo.make_sgbm(params, res.min_disparity, res.num_disparities)
+    plain = stereo.make_sgbm(params, res.min_disparity, res.num_disparities, filtered=False)
+    # Interleave the three so that load from other processes hits them alike.
+    full_ms, bare_ms, plain_ms, parts = [], [], [], []
+    for _ in range(repeats):
+        full_ms.append(_median_ms(lambda: parts.append(stereo.stereo_pair(cam, ia, Ta, ib, Tb, params, depth)
+                                                       .timings_ms), 1))
+        bare_ms.append(_median_ms(lambda: sgbm.compute(left, right), 1))
+        plain_ms.append(_median_ms(lambda: plain.compute(left, right), 1))
+    full, bare, bare_u = (float(np.median(v)) for v in (full_ms, bare_ms, plain_ms))
+    stages = {k: round(float(np.median([p[k] for p in parts])), 2) for k in parts[0]}
+    return {'bench': 'stereo_speed', 'image': f'{cam.width}x{cam.height}',
+            'rectified': f'{res.rect.width}x{res.rect.height}', 'num_disparities': res.num_disparities,
+            'mode': params.mode, 'downscale': params.downscale, 'points': int(res.cloud.size),
+            'full_ms': round(full, 2), 'bare_sgbm_ms': round(bare, 2), 'bare_unfiltered_sgbm_ms': round(bare_u, 2),
+            'overhead_ratio': round(full / bare, 3), 'ratio_vs_unfiltered': round(full / bare_u, 3),
+            'target_ratio': 1.5, 'stages_ms': stages, 'threads': cv2.getNumThreads()}
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument('--repeats', type=int, default=7)
+    ap.add_argument('--scales', default='1,2', help='image sizes as multiples of 640x480')
+    ap.add_argument('--param', action='append', default=[], help='StereoParams override name=value')
+    a = ap.parse_args(argv)
+    overrides = {}
+    for kv in a.param:
+        k, v = kv.split('=', 1)
+        overrides[k] = type(getattr(stereo.StereoParams(), k))(v)
+    params = from_dict(stereo.StereoParams, overrides)
+    for s in (int(x) for x in a.scales.split(',')):
+        print(json.dumps(bench(s, params, a.repeats)), flush=True)
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())
