@@ -213,7 +213,7 @@ class Solver:
             ok = pc >= 0
             iw = 1.0 / d['pp_sigma'][ok]
             rp = (X[d['pp_idx'][ok]] - d['pp_pos'][ok]) * iw
-            np.add.at(V, (pc[ok], np.arange(3)[None, :], np.arange(3)[None, :]), iw * iw)
+            np.add.at(V, (pc[ok][:, None], np.arange(3)[None, :], np.arange(3)[None, :]), iw * iw)
             np.add.at(gp, pc[ok], rp * iw)
         E = (At @ B).reshape(-1, 9)[st.w_valid]           # (N * m/3, 9): 3x3 blocks
         Wd = (st.w_sum @ E).reshape(-1, 3, 3)
