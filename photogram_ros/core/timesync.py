@@ -84,8 +84,9 @@ class BootClock:
     """Sliding-window maps from autopilot boot time (s) to UNIX time and to host arrival time."""
 
     def __init__(self, window_s: float = 300.0, min_drift_span_s: float = 20.0, max_drift_ppm: float = 200.0,
-                 jump_s: float = 0.25, jump_confirm: int = 3):
+                 jump_s: float = 0.25, jump_confirm: int = 3, auto_wait_s: float = 3.0):
         self.window_s = window_s
+        self.auto_wait_s = auto_wait_s
         self.min_drift_span_s = min_drift_span_s
         self.max_drift = max_drift_ppm * 1e-6
         self.jump_s = jump_s
@@ -184,7 +185,12 @@ class BootClock:
             return self._sys_fit
         if source == 'arrival':
             return self._arr_fit
-        return self._sys_fit or self._arr_fit
+        if self._sys_fit is not None:
+            return self._sys_fit
+        # 'auto' waits a little for SYSTEM_TIME (the better clock) before settling for arrival times.
+        if self._arr_fit is not None and self._arr_fit.span_s >= self.auto_wait_s:
+            return self._arr_fit
+        return None
 
     def to_time(self, boot_s: float, source: str = 'auto') -> float | None:
         """Boot time (s) -> UNIX (system_time) or host (arrival) time, s; None before any evidence."""

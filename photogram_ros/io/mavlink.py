@@ -415,16 +415,10 @@ class Ingest:
                 if arrival_s is not None and m.time_boot_ms > 0:
                     ev2 = self.clock.add_arrival(m.time_boot_ms * 1e-3, arrival_s)
                     ev = ev2 if ev == 'ignored' else ev
-                if m.time_boot_ms > 0:
-                    self._max_boot_s = m.time_boot_ms * 1e-3 if ev == 'reboot' else \
-                        max(self._max_boot_s, m.time_boot_ms * 1e-3)
                 return self._after_clock_update(ev)
             if mtype == 'TIMESYNC':
                 if m.tc1 == 0 and m.ts1 > 0 and arrival_s is not None:
-                    ev = self.clock.add_arrival(m.ts1 * 1e-9, arrival_s)
-                    if ev == 'reboot':
-                        self._max_boot_s = m.ts1 * 1e-9
-                    return self._after_clock_update(ev)
+                    return self._after_clock_update(self.clock.add_arrival(m.ts1 * 1e-9, arrival_s))
                 return []
             if mtype in ('GPS_RAW_INT', 'GPS2_RAW', 'ATTITUDE', 'ATTITUDE_QUATERNION', 'CAMERA_FEEDBACK',
                          'CAMERA_TRIGGER'):
@@ -468,6 +462,9 @@ class Ingest:
             if ev == 'reboot':
                 self.latest.clear()
                 self._last_fix_t.clear()
+                # Data boot times are compared with data boot times only (pending data lags the
+                # clock messages by seconds); a reboot seen on the clock restarts that comparison.
+                self._max_boot_s = -math.inf
 
     def _flush_pending(self) -> list:
         out = []
