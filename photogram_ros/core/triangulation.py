@@ -32,7 +32,7 @@ def _max_ray_angle(rays, obs_pt, P):
     reps = n[pt]
     i = np.repeat(np.arange(len(pt)), reps)
     j = start[pt][i] + (np.arange(len(i)) - np.repeat(np.cumsum(reps) - reps, reps))
-    c = np.einsum('ni,ni->n', rays[order[i]], rays[order[j]])
+    c = np.nan_to_num(np.einsum('ni,ni->n', rays[order[i]], rays[order[j]]), nan=1.0)
     ang = np.full(P, 0.0)
     np.maximum.at(ang, pt[i], np.degrees(np.arccos(np.clip(c, -1.0, 1.0))))
     return ang
@@ -79,7 +79,8 @@ def triangulate_points(camera, map_T_cams, obs_cam, obs_pt, obs_uv, n_points: in
         g = np.einsum('nka,nk->na', J, r)
         Hp = np.stack([np.bincount(op, H[:, k], minlength=P) for k in range(9)], 1).reshape(P, 3, 3)
         gp = np.stack([np.bincount(op, g[:, k], minlength=P) for k in range(3)], 1)
-        ok = has & np.all(np.isfinite(Hp.reshape(P, 9)), 1) & (np.abs(np.linalg.det(Hp)) > 1e-30)
+        ok = has & np.all(np.isfinite(Hp.reshape(P, 9)), 1)
+        ok[ok] = np.abs(np.linalg.det(Hp[ok])) > 1e-30
         if not ok.any():
             break
         X[ok] -= np.linalg.solve(Hp[ok], gp[ok][:, :, None])[:, :, 0]
