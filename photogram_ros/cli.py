@@ -17,9 +17,11 @@ COMMANDS = {
     'run': 'photogram_ros.commands.run',
     'replay': 'photogram_ros.commands.replay',
     'play': 'photogram_ros.commands.play',
+    'ground-station': 'photogram_ros.commands.ground_station',
     'record': 'photogram_ros.commands.record',
     'bag-info': 'photogram_ros.commands.bag_info',
     'calibrate': 'photogram_ros.commands.calibrate',
+    'export': 'photogram_ros.commands.export',
 }
 
 
