@@ -1,0 +1,139 @@
+"""The flight report: Markdown and HTML with figures, and report.json with every figure's numbers.
+
+A report is a list of sections; each holds paragraphs, tables (lists of dicts) and figures (PNG files
+written beside the report). The same numbers go to report.json, so scripts never parse the prose.
+"""
+
+from __future__ import annotations
+
+import base64
+import html
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+
+@dataclass
+class Section:
+    title: str
+    text: list = field(default_factory=list)       # paragraphs
+    tables: list = field(default_factory=list)     # (caption, [dict rows])
+    figures: list = field(default_factory=list)    # (caption, png path relative to the report)
+
+
+def _fmt(v) -> str:
+    if isinstance(v, float):
+        return f'{v:.4g}'
+    if v is None:
+        return '-'
+    return str(v)
+
+
+def _md_table(rows: list[dict]) -> list[str]:
+    if not rows:
+        return ['(none)']
+    cols = list(rows[0])
+    out = ['| ' + ' | '.join(cols) + ' |', '|' + '---|' * len(cols)]
+    out += ['| ' + ' | '.join(_fmt(r.get(c)) for c in cols) + ' |' for r in rows]
+    return out
+
+
+def _jsonable(o):
+    if isinstance(o, dict):
+        return {str(k): _jsonable(v) for k, v in o.items()}
+    if isinstance(o, (list, tuple)):
+        return [_jsonable(v) for v in o]
+    if isinstance(o, np.ndarray):
+        return _jsonable(o.tolist())
+    if isinstance(o, (np.floating, np.integer, np.bool_)):
+        return o.item()
+    if isinstance(o, float) and not np.isfinite(o):
+        return None
+    return o
+
+
+def write_report(out_dir: str | Path, title: str, sections: list[Section], figures: dict) -> dict:
+    """Write report.md, report.html and report.json to `out_dir`; returns the paths."""
+    out = Path(out_dir)
+    md = [f'# {title}', '']
+    body = [f'<h1>{html.escape(title)}</h1>']
+    for s in sections:
+        md += [f'## {s.title}', '']
+        body.append(f'<h2>{html.escape(s.title)}</h2>')
+        for p in s.text:
+            md += [p, '']
+            body.append(f'<p>{html.escape(p)}</p>')
+        for caption, rows in s.tables:
+            md += [f'**{caption}**', ''] + _md_table(rows) + ['']
+            body.append(f'<p><b>{html.escape(caption)}</b></p>')
+            if rows:
+                cols = list(rows[0])
+                body.append('<table border="1" cellspacing="0" cellpadding="3"><tr>'
+                            + ''.join(f'<th>{html.escape(c)}</th>' for c in cols) + '</tr>'
+                            + ''.join('<tr>' + ''.join(f'<td>{html.escape(_fmt(r.get(c)))}</td>' for c in cols)
+                                      + '</tr>' for r in rows) + '</table>')
+        for caption, png in s.figures:
+            md += [f'![{caption}]({png})', '']
+            data = base64.b64encode((out / png).read_bytes()).decode('ascii')
+            body.append(f'<figure><img src="data:image/png;base64,{data}" style="max-width:900px">'
+                        f'<figcaption>{html.escape(caption)}</figcaption></figure>')
+    (out / 'report.md').write_text('\n'.join(md))
+    (out / 'report.html').write_text('<!doctype html><html><head><meta charset="utf-8"><title>'
+                                     + html.escape(title) + '</title></head><body style="font-family:sans-serif">'
+                                     + '\n'.join(body) + '</body></html>')
+    (out / 'report.json').write_text(json.dumps(_jsonable(figures), indent=1))
+    return {'md': out / 'report.md', 'html': out / 'report.html', 'json': out / 'report.json'}
+
+
+def histogram_png(path: Path, values: np.ndarray, xlabel: str, title: str, bins: int = 50) -> Path:
+    import matplotlib
+    matplotlib.use('Agg')
+    import matplotlib.pyplot as plt
+    fig, ax = plt.subplots(figsize=(6, 3.2), dpi=100)
+    v = np.asarray(values, float)
+    v = v[np.isfinite(v)]
+    if v.size:
+        lo, hi = np.percentile(v, [0.5, 99.5])
+        ax.hist(np.clip(v, lo, hi), bins=bins, color='#4477aa')
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel('count')
+    ax.set_title(title)
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+    return path
+
+
+def trajectory_png(path: Path, ortho_tif: Path | None, tracks: dict, targets: list, title: str) -> Path:
+    """Trajectories (name -> (K, 2) easting/northing) and targets over the orthomosaic, in its CRS."""
+    import matplotlib
+    matplotlib.use('Agg')
+    import matplotlib.pyplot as plt
+    fig, ax = plt.subplots(figsize=(7, 6), dpi=100)
+    if ortho_tif is not None and Path(ortho_tif).exists():
+        import rasterio
+        with rasterio.open(ortho_tif) as ds:
+            step = max(1, int(max(ds.width, ds.height) / 1500))
+            img = ds.read(out_shape=(ds.count, ds.height // step, ds.width // step))
+            b = ds.bounds
+        rgb = np.moveaxis(img[:3], 0, -1)
+        ax.imshow(rgb, extent=(b.left, b.right, b.bottom, b.top))
+    colours = ['#ee3377', '#33bbee', '#ffdd44', '#44aa99']
+    for k, (name, xy) in enumerate(tracks.items()):
+        xy = np.asarray(xy)
+        if len(xy):
+            ax.plot(xy[:, 0], xy[:, 1], '.-', ms=3, lw=1, color=colours[k % len(colours)], label=name)
+    for name, x, y in targets:
+        ax.plot(x, y, 'k^', ms=6)
+        ax.annotate(name, (x, y), fontsize=7, xytext=(3, 3), textcoords='offset points')
+    ax.set_aspect('equal')
+    ax.ticklabel_format(useOffset=False, style='plain')
+    ax.tick_params(labelsize=7)
+    ax.legend(fontsize=8)
+    ax.set_title(title)
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+    return path
