@@ -22,6 +22,7 @@ COMMANDS = {
     'bag-info': 'photogram_ros.commands.bag_info',
     'calibrate': 'photogram_ros.commands.calibrate',
     'export': 'photogram_ros.commands.export',
+    'fixes': 'photogram_ros.commands.fixes',
 }
 
 
