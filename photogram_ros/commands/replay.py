@@ -1,15 +1,19 @@
-"""photogram-ros replay: run photogram_ros on a recorded flight and write the results."""
+"""photogram-ros replay: run photogram_ros on a recorded flight and write the map and the report."""
 
 from __future__ import annotations
 
-HELP = 'replay a flight bag through photogram_ros and write the outputs to --out'
+HELP = 'replay a flight bag through the whole mapper; writes clouds, DSM, ortho, trajectory and report to --out'
 
 
 def add_arguments(p) -> None:
-    from photogram_ros.commands.play import add_arguments as add_play_arguments
-    add_play_arguments(p)
-    p.set_defaults(rate=0.0)
+    p.add_argument('bag', help='rosbag2 folder (sqlite3 or MCAP); ground truth beside it is used when present')
     p.add_argument('--out', default='output/replay', help='output folder')
+    p.add_argument('--params', default=None, help='ROS 2 parameter file (default: config/replay.yaml if present)')
+    p.add_argument('--rate', type=float, default=0.0, help='bag time speed; 0 = as fast as the mapper keeps up')
+    p.add_argument('--crs', default='', help='output CRS, e.g. EPSG:2056 (default: UTM zone of the map origin)')
+    p.add_argument('--orthometric', action='store_true', help='heights above the EGM2008 geoid instead of the ellipsoid')
+    p.add_argument('--gcp', default=None, help='gcp_list.txt (OpenDroneMap format) with surveyed targets for the report')
+    p.add_argument('--quiet', action='store_true', help='no progress lines')
 
 
 def run(a) -> int:
@@ -18,22 +22,52 @@ def run(a) -> int:
 
     import rclpy
 
-    from photogram_ros.commands.play import player_overrides
-    from photogram_ros.nodes.player_node import PlayerNode
+    from photogram_ros.core.geodesy import utm_epsg
+    from photogram_ros.io.export import export_map
+    from photogram_ros.io.flight_report import build_report
+    from photogram_ros.io.map_store import MapStore
+    from photogram_ros.nodes.replay_session import ReplayOptions, run_replay
+    from photogram_ros.sim.truth import GroundTruth
+
+    params = a.params
+    if params is None and Path('config/replay.yaml').exists():
+        params = 'config/replay.yaml'
     out = Path(a.out)
-    out.mkdir(parents=True, exist_ok=True)
     rclpy.init()
-    node = None
     try:
-        node = PlayerNode(overrides=player_overrides(a))
-        summary = node.play()
-        lines = summary.lines()
-        print('\n'.join(lines))
-        (out / 'replay_summary.json').write_text(json.dumps({
-            'bag': str(a.bag), 'counts': summary.counts, 'bytes': summary.bytes, 'skipped': summary.skipped,
-            'errors': summary.errors, 'wall_s': summary.wall_s, 'bag_s': summary.bag_s}, indent=1))
-        return 3 if summary.errors or summary.skipped else 0
+        res = run_replay(ReplayOptions(bag=a.bag, out=str(out), params_file=params, rate=a.rate,
+                                       progress=not a.quiet))
     finally:
-        if node is not None:
-            node.destroy_node()
         rclpy.try_shutdown()
+    store = MapStore(res['map_dir'])
+    files, notes = {}, []
+    crs = a.crs
+    if store.origin is None:
+        notes.append('the map has no georeference (no GNSS fix was good enough): no exports')
+    else:
+        crs = crs or f'EPSG:{utm_epsg(store.origin.lat_deg, store.origin.lon_deg)}'
+        heights = 'orthometric' if a.orthometric else 'ellipsoidal'
+        ex = export_map(res['map_dir'], out, crs, heights)
+        files, notes = {k: str(v) for k, v in ex.files.items()}, ex.notes
+        res['run']['map_points'] = ex.points
+    truth = GroundTruth.load(a.bag) if GroundTruth.exists(a.bag) else None
+    gcp = None
+    if a.gcp:
+        from photogram_ros.io.gcp import read_gcp_list_targets
+        gcp = read_gcp_list_targets(a.gcp, store.origin)
+    figures = build_report(out, res['map_dir'], crs or 'EPSG:4326', files, truth=truth, gcp_targets=gcp,
+                           run=res['run'], diagnostics=res['diagnostics'])
+    (out / 'run.json').write_text(json.dumps({**res['run'], 'notes': notes}, indent=1, default=str))
+    r = res['run']
+    print(f"replayed {r['frames']} frames ({r['bag_s']:.1f} s of flight) in {r['wall_s']:.1f} s, "
+          f"real-time factor {r['real_time_factor']:.2f}; {figures.get('keyframes', 0)} keyframes, "
+          f"{r.get('map_points', 0)} map points")
+    cp = figures.get('check_points', {}).get('rmse')
+    if cp and cp.get('count'):
+        print(f"check points: RMSE horizontal {cp['horizontal_m'] * 100:.1f} cm, vertical {cp['z_m'] * 100:.1f} cm "
+              f"over {cp['count']} targets")
+    print(f'outputs in {out}/: ' + ', '.join(sorted(Path(f).name for f in files.values()))
+          + ', report.html, report.md, report.json, trajectory.csv')
+    for n in notes:
+        print(f'note: {n}')
+    return 3 if r['bag_errors'] else 0

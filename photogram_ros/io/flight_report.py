@@ -1,0 +1,191 @@
+"""The end-of-flight report: from a map folder and its exports (and the truth, for simulator bags).
+
+Everything is read back from disk (map folder, GeoTIFFs, LAS), so the report describes exactly what
+a user receives and can be rebuilt after the flight. Figures:
+- adjusted trajectory (CSV and GeoJSON, in the output CRS and WGS84, with omega-phi-kappa);
+- check points: found in the keyframes, triangulated from the adjusted poses, against their survey;
+- with ground truth: camera-centre errors, DSM and cloud against the true DEM, in metres and GSD;
+- what went wrong and when (from /diagnostics), and timing per node.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from photogram_ros.core.evaluation import (detect_targets, surface_errors, trajectory_errors,
+                                           triangulate_targets)
+from photogram_ros.core.geodesy import LocalFrame, crs_to_geodetic, geodetic_to_crs
+from photogram_ros.core.rotations import opk_from_map_R_cam
+from photogram_ros.io.map_store import MapStore
+from photogram_ros.io.report import Section, histogram_png, trajectory_png, write_report
+
+
+def write_trajectory(out: Path, keyframes: list[dict], origin: LocalFrame, crs: str) -> dict:
+    """Adjusted keyframe poses as CSV (CRS + WGS84 + omega-phi-kappa in the CRS) and GeoJSON."""
+    if not keyframes:
+        return {}
+    C = np.array([k['map_T_cam'][:3, 3] for k in keyframes])
+    lat, lon, h = origin.enu_to_geodetic(C)
+    e, n, _ = geodetic_to_crs(lat, lon, h, crs)
+    rows = ['image,stamp_ns,easting_m,northing_m,h_ellipsoid_m,lat_deg,lon_deg,omega_deg,phi_deg,kappa_deg']
+    # omega-phi-kappa in the map ENU frame (within a fraction of a degree of the projected frame over a
+    # few km; grid convergence is not applied).
+    for k, kf in enumerate(keyframes):
+        om, ph, ka = np.degrees(opk_from_map_R_cam(kf['map_T_cam'][:3, :3]))
+        rows.append(f"{Path(kf['image_path']).name},{kf['stamp_ns']},{e[k]:.4f},{n[k]:.4f},{h[k]:.4f},"
+                    f"{lat[k]:.9f},{lon[k]:.9f},{om:.4f},{ph:.4f},{ka:.4f}")
+    (out / 'trajectory.csv').write_text('\n'.join(rows) + '\n')
+    geo = {'type': 'FeatureCollection', 'features': [
+        {'type': 'Feature', 'geometry': {'type': 'LineString',
+                                         'coordinates': [[float(lon[k]), float(lat[k]), float(h[k])]
+                                                         for k in range(len(C))]},
+         'properties': {'name': 'adjusted keyframe trajectory', 'heights': 'WGS84 ellipsoidal'}}]}
+    (out / 'trajectory.geojson').write_text(json.dumps(geo))
+    return {'easting': e, 'northing': n, 'centres_map': C}
+
+
+def _truth_frame_for(truth, stamp_ns):
+    return truth.frame_by_stamp(stamp_ns, tol_ns=5_000_000)
+
+
+def build_report(out_dir: str | Path, map_dir: str | Path, crs: str, files: dict, truth=None,
+                 gcp_targets: dict | None = None, run: dict | None = None, diagnostics: dict | None = None) -> dict:
+    """Write report.md/.html/.json into out_dir; returns the figures dictionary.
+
+    gcp_targets: marker_id -> (name, xyz in the map frame of `map_dir`) for real flights; for simulator
+    bags the truth's targets are used. run: timing and counts of the replay. diagnostics: node ->
+    {'problems': [...], 'values': {...}}.
+    """
+    out = Path(out_dir)
+    store = MapStore(map_dir)
+    origin = store.origin
+    cam = store.load_camera()
+    kfs = store.keyframes()
+    figures: dict = {'crs': crs, 'keyframes': len(kfs), 'files': {k: str(v) for k, v in files.items()},
+                     'run': run or {}}
+    sections = []
+    s = Section('Summary')
+    if run:
+        s.text.append(f"{run.get('frames', 0)} frames, {len(kfs)} keyframes, {run.get('map_points', 0)} map points; "
+                      f"{run.get('bag_s', 0):.1f} s of flight processed in {run.get('wall_s', 0):.1f} s "
+                      f"(real-time factor {run.get('real_time_factor', 0):.2f}).")
+    s.text.append(f'Coordinates in {crs}, heights above the WGS84 ellipsoid unless stated.')
+    sections.append(s)
+    if origin is None or not kfs or cam is None:
+        sections.append(Section('No map', ['The map folder holds no georeferenced keyframes: nothing to report.']))
+        write_report(out, 'photogram_ros flight report', sections, figures)
+        return figures
+    traj = write_trajectory(out, kfs, origin, crs)
+    Ts = np.array([k['map_T_cam'] for k in kfs])
+
+    # Check points: found in the keyframes, triangulated from the adjusted poses.
+    surveyed = dict(gcp_targets or {})
+    truth_frame = None
+    if truth is not None:
+        # Truth is in its own ENU; the map may be anchored elsewhere: go through ECEF.
+        truth_frame = truth.origin
+        for t in truth.targets:
+            surveyed[t.marker_id] = (t.name, origin.ecef_to_enu(truth_frame.enu_to_ecef(t.center_enu)))
+    detections = []
+    for kf in kfs:
+        img = cv2.imread(str(kf['image_path']), cv2.IMREAD_GRAYSCALE)
+        detections.append(detect_targets(img) if img is not None else [])
+    checks = triangulate_targets(cam, Ts, detections, surveyed) if surveyed else None
+    sec = Section('Check points', ['Targets found in the keyframes and triangulated from the adjusted cameras '
+                                   '(never used in the adjustment), against their surveyed coordinates.'])
+    if checks is not None:
+        rm = checks.rmse()
+        figures['check_points'] = {'rmse': rm, 'points': checks.table(), 'not_seen': checks.missing}
+        if truth is not None and rm['count']:
+            figures['check_points']['rmse_gsd'] = {'horizontal': rm['horizontal_m'] / truth.gsd_m,
+                                                  'vertical': rm['z_m'] / truth.gsd_m}
+        sec.tables.append(('Residuals (estimated - surveyed), m', checks.table()))
+        sec.tables.append(('RMSE, m', [rm]))
+        if checks.missing:
+            sec.text.append(f'Not seen in two or more keyframes: {", ".join(checks.missing)}.')
+    else:
+        sec.text.append('No surveyed targets given (use --gcp gcp_list.txt).')
+    sections.append(sec)
+
+    if truth is not None:
+        sections.append(_truth_section(out, truth, origin, crs, kfs, files, figures))
+
+    # Figures over the orthomosaic.
+    tracks = {'adjusted keyframes': np.column_stack([traj['easting'], traj['northing']])}
+    tg = []
+    for m, (name, xyz) in surveyed.items():
+        lat, lon, h = origin.enu_to_geodetic(np.asarray(xyz, float))
+        e, n, _ = geodetic_to_crs(lat, lon, h, crs)
+        tg.append((name, float(e), float(n)))
+    trajectory_png(out / 'trajectory.png', files.get('ortho'), tracks, tg, f'Adjusted trajectory and targets ({crs})')
+    sections.append(Section('Trajectory over the orthomosaic', figures=[('Keyframe camera centres', 'trajectory.png')]))
+
+    if diagnostics:
+        rows, problems = [], []
+        for node, d in sorted(diagnostics.items()):
+            vals = d.get('values', {})
+            rows.append({'node': node, **{k: vals[k] for k in sorted(vals) if k.endswith(('_ms', '_s', '_hz', 'fps'))}})
+            problems += [{'node': node, 't_s': p[0], 'problem': p[1]} for p in d.get('problems', [])]
+        figures['nodes'] = diagnostics
+        sec = Section('What happened', [f'{len(problems)} problems reported on /diagnostics.'])
+        sec.tables.append(('Problems (time from the start of the replay)', problems[:200]))
+        sec.tables.append(('Timing per node', [{k: v for k, v in r.items()} for r in rows]))
+        sections.append(sec)
+    write_report(out, 'photogram_ros flight report', sections, figures)
+    return figures
+
+
+def _truth_section(out: Path, truth, origin: LocalFrame, crs: str, kfs, files, figures) -> Section:
+    sec = Section('Against the simulator\'s ground truth', [f'GSD {truth.gsd_m * 100:.1f} cm.'])
+    to_truth = lambda p: truth.origin.ecef_to_enu(origin.enu_to_ecef(p))  # noqa: E731
+    est, true = [], []
+    for kf in kfs:
+        f = _truth_frame_for(truth, kf['stamp_ns'])
+        if f is not None:
+            est.append(to_truth(kf['map_T_cam'][:3, 3]))
+            true.append(f.map_T_cam[:3, 3])
+    tr = trajectory_errors(np.array(est).reshape(-1, 3), np.array(true).reshape(-1, 3))
+    figures['trajectory_vs_truth'] = tr
+    sec.tables.append(('Keyframe camera centres against truth, m', [tr]))
+    dsm_path = files.get('dsm')
+    if dsm_path and Path(dsm_path).exists():
+        import rasterio
+        with rasterio.open(dsm_path) as ds:
+            z = ds.read(1).astype(float)
+            nod = ds.nodata
+            rows, cols = np.nonzero(np.isfinite(z) & (z != nod if nod is not None else True))
+            xs, ys = rasterio.transform.xy(ds.transform, rows, cols)
+        lat, lon, h = crs_to_geodetic(np.asarray(xs), np.asarray(ys), z[rows, cols], crs)
+        enu = truth.origin.geodetic_to_enu(lat, lon, h)
+        dz = enu[:, 2] - truth.dem.sample(enu[:, 0], enu[:, 1])
+        err = surface_errors(dz, truth.gsd_m)
+        figures['dsm_vs_truth'] = err
+        sec.tables.append(('DSM against the true DEM', [err]))
+        histogram_png(out / 'dsm_error_hist.png', dz, 'DSM - true height, m', 'DSM height errors')
+        sec.figures.append(('DSM height errors', 'dsm_error_hist.png'))
+        # Completeness over the area the survey lines imaged (the truth's camera footprints' core).
+        C = np.array([f.map_T_cam[:3, 3] for f in truth.frames])
+        inside = ((enu[:, 0] > C[:, 0].min()) & (enu[:, 0] < C[:, 0].max()) &
+                  (enu[:, 1] > C[:, 1].min()) & (enu[:, 1] < C[:, 1].max()))
+        with rasterio.open(dsm_path) as ds:
+            res = ds.res[0]
+        area = (C[:, 0].max() - C[:, 0].min()) * (C[:, 1].max() - C[:, 1].min())
+        figures['dsm_completeness'] = float(min(inside.sum() * res * res / max(area, 1e-9), 1.0))
+        sec.text.append(f"DSM completeness over the flown area: {figures['dsm_completeness'] * 100:.1f} %.")
+    las = files.get('las')
+    if las and Path(las).exists():
+        import laspy
+        pc = laspy.read(las)
+        lat, lon, h = crs_to_geodetic(np.asarray(pc.x), np.asarray(pc.y), np.asarray(pc.z), crs)
+        enu = truth.origin.geodetic_to_enu(lat, lon, h)
+        dz = enu[:, 2] - truth.dem.sample(enu[:, 0], enu[:, 1])
+        err = surface_errors(dz, truth.gsd_m)
+        figures['cloud_vs_truth'] = err
+        sec.tables.append(('Dense cloud against the true DEM', [err]))
+        histogram_png(out / 'cloud_error_hist.png', dz, 'cloud - true height, m', 'Dense cloud height errors')
+        sec.figures.append(('Dense cloud height errors', 'cloud_error_hist.png'))
+    return sec
