@@ -12,7 +12,6 @@ def add_arguments(p) -> None:
     p.add_argument('--rate', type=float, default=0.0, help='bag time speed; 0 = as fast as the mapper keeps up')
     p.add_argument('--crs', default='', help='output CRS, e.g. EPSG:2056 (default: UTM zone of the map origin)')
     p.add_argument('--orthometric', action='store_true', help='heights above the EGM2008 geoid instead of the ellipsoid')
-    p.add_argument('--gcp', default=None, help='gcp_list.txt (OpenDroneMap format) with surveyed targets for the report')
     p.add_argument('--quiet', action='store_true', help='no progress lines')
 
 
@@ -51,11 +50,7 @@ def run(a) -> int:
         files, notes = {k: str(v) for k, v in ex.files.items()}, ex.notes
         res['run']['map_points'] = ex.points
     truth = GroundTruth.load(a.bag) if GroundTruth.exists(a.bag) else None
-    gcp = None
-    if a.gcp:
-        from photogram_ros.io.gcp import read_gcp_list_targets
-        gcp = read_gcp_list_targets(a.gcp, store.origin)
-    figures = build_report(out, res['map_dir'], crs or 'EPSG:4326', files, truth=truth, gcp_targets=gcp,
+    figures = build_report(out, res['map_dir'], crs or 'EPSG:4326', files, truth=truth,
                            run=res['run'], diagnostics=res['diagnostics'])
     (out / 'run.json').write_text(json.dumps({**res['run'], 'notes': notes}, indent=1, default=str))
     r = res['run']
