@@ -143,7 +143,14 @@ class BootClock:
             self._sys.append((boot_s, y))
         while self._sys and self._sys[0][0] < boot_s - self.window_s:
             self._sys.popleft()
-        self._sys_fit = self._refit_system()
+        # Refitting every pair costs ~1 ms; a pair the fit already explains changes it by nothing.
+        fit = self._sys_fit
+        if fit is None or event != 'ok' or len(self._sys) < 20 or len(self._sys) % 10 == 0 \
+                or abs(fit.map(boot_s) - boot_s - y) > max(3 * fit.residual_s, 0.002):
+            self._sys_fit = self._refit_system()
+        else:
+            self._sys_fit = ClockFit(fit.ref_boot_s, fit.offset_s, fit.drift, len(self._sys),
+                                     boot_s - self._sys[0][0], fit.residual_s, fit.source)
         return event
 
     def _refit_system(self) -> ClockFit:
@@ -165,6 +172,13 @@ class BootClock:
         self._arr.append((boot_s, host_s - boot_s))
         while self._arr and self._arr[0][0] < boot_s - self.window_s:
             self._arr.popleft()
+        fit = self._arr_fit
+        below = fit is not None and host_s < fit.map(boot_s)
+        if fit is not None and not below and event == 'ok' and len(self._arr) % 10 != 0:
+            # Above the envelope: the fit stays valid (refreshed every tenth pair for the window).
+            self._arr_fit = ClockFit(fit.ref_boot_s, fit.offset_s, fit.drift, len(self._arr),
+                                     boot_s - self._arr[0][0], fit.residual_s, fit.source)
+            return event
         arr = np.array(self._arr)
         x, y = arr[:, 0], arr[:, 1]
         ref = float(x[-1])

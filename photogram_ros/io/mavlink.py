@@ -110,9 +110,11 @@ class MavlinkStream:
         while n - i >= _MIN_LEN:
             b0 = buf[i]
             if b0 != STX_V2 and b0 != STX_V1:
-                j2 = buf.find(b'\xfd', i)
-                j1 = buf.find(b'\xfe', i)
-                j = j1 if j2 < 0 else (j2 if j1 < 0 else min(j1, j2))
+                e = self._expect
+                if i < e < n and e - i <= self.record_gap and buf[e] in (STX_V1, STX_V2):
+                    j = e           # the .tlog timestamp before a due packet
+                else:
+                    j = self._find_stx(buf, i, n)
                 if j < 0:
                     self._junk(i, n)
                     i = n
@@ -177,6 +179,18 @@ class MavlinkStream:
             self._expect = self._expect - i if self._expect >= i else -1
             self._consumed += i
         return out
+
+    @staticmethod
+    def _find_stx(buf, i: int, n: int) -> int:
+        # Bounded windows: an unbounded find of a start byte absent from the rest of a large buffer
+        # would rescan it for every packet.
+        while i < n:
+            end = min(n, i + 1024)
+            j2, j1 = buf.find(b'\xfd', i, end), buf.find(b'\xfe', i, end)
+            if j2 >= 0 or j1 >= 0:
+                return j1 if j2 < 0 else (j2 if j1 < 0 else min(j1, j2))
+            i = end
+        return -1
 
     def _decodes_at(self, buf, i: int) -> bool:
         """Whether a known, CRC-valid packet starts at buf[i] (checks the framing of an unknown one)."""
