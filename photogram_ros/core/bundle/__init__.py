@@ -66,7 +66,7 @@ def bundle_adjust(problem: BundleProblem, options: BundleOptions | None = None) 
                         final_cost=float(out['cost']), iterations=out['iters'], successful_steps=out['ok'],
                         map_T_cams=_map_T_cams(R, t), points_map=X, camera=camera, intrinsics=intr,
                         rms=_rms(solver, R, t, X, intr), cam_centre_cov=cam_cov, point_cov=pt_cov,
-                        seconds=out['seconds'], cost_history=out['hist'])
+                        seconds=out['seconds'], cost_history=out['hist'], time_history=out['hist_t'])
 
 
 def check_points(camera, map_T_cams, obs_cam, obs_pt, obs_uv, surveyed_map) -> dict:

@@ -167,4 +167,5 @@ class BundleResult:
     cam_centre_cov: np.ndarray | None = None
     point_cov: np.ndarray | None = None
     seconds: float = 0.0
-    cost_history: list = field(default_factory=list)
+    cost_history: list = field(default_factory=list)     # cost after each accepted step
+    time_history: list = field(default_factory=list)     # seconds since the start, per entry above

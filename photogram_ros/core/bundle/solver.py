@@ -301,9 +301,10 @@ class Solver:
         cost = sum(self.cost_parts(R, t, X, intr).values())
         init = cost
         hist = [cost]
+        hist_t = [time.perf_counter() - t0]
         if not np.isfinite(cost):
             return dict(status='failed', reason='initial cost is not finite (a point on a camera centre?)',
-                        R=R, t=t, X=X, intr=intr, init=init, cost=cost, iters=0, ok=0, hist=hist,
+                        R=R, t=t, X=X, intr=intr, init=init, cost=cost, iters=0, ok=0, hist=hist, hist_t=hist_t,
                         seconds=time.perf_counter() - t0, lin=None)
         radius, nu = float(o.initial_trust_radius), 2.0
         status, reason, iters, ok = 'max_iterations', f'stopped after {o.max_iterations} iterations', 0, 0
@@ -337,6 +338,7 @@ class Solver:
                 rel = (cost - new) / max(cost, 1e-300)
                 cost = new
                 hist.append(cost)
+                hist_t.append(time.perf_counter() - t0)
                 radius = radius / max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3)
                 radius = min(radius, 1e16)
                 nu = 2.0
@@ -351,7 +353,7 @@ class Solver:
                     status, reason = 'converged', 'no further decrease possible (trust region collapsed)'
                     break
         return dict(status=status, reason=reason, R=R, t=t, X=X, intr=intr, init=init, cost=cost,
-                    iters=iters, ok=ok, hist=hist, seconds=time.perf_counter() - t0)
+                    iters=iters, ok=ok, hist=hist, hist_t=hist_t, seconds=time.perf_counter() - t0)
 
     # --- covariance -----------------------------------------------------------------------
 
