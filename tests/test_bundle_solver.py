@@ -275,3 +275,26 @@ def test_dlt_resection_recovers_k_r_t():
     assert noisy.rms_px < 1.0
     with pytest.raises(DataError):
         resect_dlt(X[:5], uv[:5])
+
+
+def test_check_points_are_triangulated_from_adjusted_cameras_only():
+    from photogram_ros.core.bundle import check_points
+    s = block(seed=12)
+    chk = np.array([1, 7, 20, 33, 50])
+    is_chk = np.isin(s['obs_pt'], chk)
+    # The adjustment never sees the check points' observations.
+    keep_pts = np.setdiff1d(np.arange(len(s['X'])), chk)
+    remap = np.full(len(s['X']), -1)
+    remap[keep_pts] = np.arange(len(keep_pts))
+    T0, X0 = perturb(s)
+    res = bundle_adjust(BundleProblem(CAM, T0, X0[keep_pts], s['obs_cam'][~is_chk], remap[s['obs_pt'][~is_chk]],
+                                      s['uv'][~is_chk], **gnss(s, 0.02)), BundleOptions())
+    lookup = {p: k for k, p in enumerate(chk)}
+    cp = check_points(res.camera, res.map_T_cams, s['obs_cam'][is_chk],
+                      np.array([lookup[p] for p in s['obs_pt'][is_chk]]), s['uv'][is_chk], s['X'][chk])
+    assert cp['valid'].all()
+    assert cp['rmse_xy_m'] < 0.06 and cp['rmse_z_m'] < 0.10, cp
+    # From the unadjusted start they are far worse: the residuals measure the adjustment.
+    raw = check_points(CAM, T0, s['obs_cam'][is_chk], np.array([lookup[p] for p in s['obs_pt'][is_chk]]),
+                       s['uv'][is_chk], s['X'][chk])
+    assert raw['rmse_xy_m'] > 3 * cp['rmse_xy_m']
