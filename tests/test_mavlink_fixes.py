@@ -253,3 +253,54 @@ def test_ingest_survives_garbage_values():
     assert len(fixes) == 1 and fixes[0].fix.t_s == pytest.approx(100.2, abs=1e-6)
     assert ing.counts['fix_rejected'] == 1 and ing.counts['attitude_rejected'] == 1
     assert ing.counts['fix_time_not_increasing'] == 1 and len(ing.problems) == 3
+
+
+def test_attitude_quaternion_algebra_matches_rotation_matrices():
+    from photogram_ros.core.rotations import (R_from_quat, enu_R_flu_from_ned_R_frd, ned_R_frd_from_euler,
+                                              quat_from_R)
+    from photogram_ros.io.mavlink import enu_flu_quat, quat_ned_frd_from_euler
+    rng = np.random.default_rng(0)
+    for _ in range(50):
+        r, p, y = rng.uniform(-0.7, 0.7), rng.uniform(-0.7, 0.7), rng.uniform(-3.1, 3.1)
+        R = ned_R_frd_from_euler(r, p, y)
+        q = quat_ned_frd_from_euler(r, p, y)
+        assert np.allclose(R_from_quat(q), R, atol=1e-12)
+        assert np.allclose(enu_flu_quat(q), quat_from_R(enu_R_flu_from_ned_R_frd(R)), atol=1e-12)
+    # Level, nose north (NED yaw 0) -> FLU x axis points north = ENU +y: a +90 deg yaw in ENU.
+    R = R_from_quat(enu_flu_quat(quat_ned_frd_from_euler(0.0, 0.0, 0.0)))
+    assert np.allclose(R @ [1, 0, 0], [0, 1, 0]) and np.allclose(R @ [0, 0, 1], [0, 0, 1])
+
+
+def _two_receiver_stream(gps2_types):
+    """1 Hz SYSTEM_TIME and 5 Hz GPS_RAW_INT (3D) + GPS2_RAW (fix types from gps2_types)."""
+    mav = mavlink2.MAVLink(None, srcSystem=1, srcComponent=1)
+    out = []
+    boot0 = 100.0
+    for k in range(len(gps2_types)):
+        boot = boot0 + 0.2 * k
+        if k % 5 == 0:
+            out.append(mav.system_time_encode(int((1_700_000_000 + boot) * 1e6), int(boot * 1000)))
+        out.append(mav.gps_raw_int_encode(int(boot * 1e6), 3, 471000000 + k, 85000000, 500000, 90, 140, 0, 0, 12,
+                                          547000, 1800, 2500))
+        ft = gps2_types[k]
+        out.append(mav.gps2_raw_encode(int(boot * 1e6), ft, 471000000 + k, 85000000, 500000, 60, 90, 0, 0, 20,
+                                       3, 1, 0, 547000, 20 if ft == 6 else 300, 30 if ft == 6 else 450))
+    pkts = b''.join(m.pack(mav) for m in out)
+    from photogram_ros.io.mavlink import MavlinkStream
+    return MavlinkStream().feed(pkts, final=True)
+
+
+def test_two_receivers_best_chosen_and_switched():
+    types = [6] * 10 + [1] * 10 + [5] * 10
+    msgs = _two_receiver_stream(types)
+    ing = Ingest()
+    events = [e for m in msgs for e in ing.handle(m, None) if isinstance(e, FixEvent)]
+    best = [(e.fix.receiver, e.fix.fix_type) for e in events if e.best]
+    assert Counter(e.fix.receiver for e in events if e.per_receiver) == {0: 30, 1: 30}
+    # One /gps/fix per epoch: GPS1 arrives first in epoch 0; then RTK fixed on GPS2 wins; while
+    # GPS2 has no fix GPS1 (3D) is used, from the epoch GPS2 lost it; RTK float beats 3D again
+    # from the epoch after GPS1 had already filled.
+    assert best == [(0, 3)] + [(1, 6)] * 9 + [(0, 3)] * 11 + [(1, 5)] * 9
+    t = [e.fix.t_s for e in events if e.best]
+    assert np.all(np.diff(t) > 0.19)
+    assert ing.diagnostics()['fix_type'] == 'RTK_FLOAT'

@@ -25,7 +25,6 @@ import numpy as np
 from pymavlink.dialects.v20 import ardupilotmega as mavlink2
 
 from photogram_ros.core import gnss_fix as gf
-from photogram_ros.core.rotations import R_from_quat, enu_R_flu_from_ned_R_frd, ned_R_frd_from_euler, quat_from_R
 from photogram_ros.core.timesync import BootClock
 from photogram_ros.errors import ConfigError, MavlinkError
 
@@ -332,6 +331,34 @@ class Link:
 # --- from messages to fixes, attitude and triggers -----------------------------------------------
 
 
+# Attitude conversions run at 10-50 Hz per vehicle: plain quaternion algebra, (x, y, z, w) order.
+_H = math.sqrt(0.5)
+_Q_ENU_NED = (_H, _H, 0.0, 0.0)      # 180 deg about (x + y) / sqrt(2): swaps x/y, flips z
+_Q_FRD_FLU = (1.0, 0.0, 0.0, 0.0)    # 180 deg about x
+
+
+def _qmul(a, b):
+    ax, ay, az, aw = a
+    bx, by, bz, bw = b
+    return (aw * bx + ax * bw + ay * bz - az * by, aw * by - ax * bz + ay * bw + az * bx,
+            aw * bz + ax * by - ay * bx + az * bw, aw * bw - ax * bx - ay * by - az * bz)
+
+
+def quat_ned_frd_from_euler(roll: float, pitch: float, yaw: float):
+    """Aerospace ZYX Euler angles -> quaternion of body FRD in NED (x, y, z, w)."""
+    cr, sr = math.cos(roll / 2), math.sin(roll / 2)
+    cp, sp = math.cos(pitch / 2), math.sin(pitch / 2)
+    cy, sy = math.cos(yaw / 2), math.sin(yaw / 2)
+    return (sr * cp * cy - cr * sp * sy, cr * sp * cy + sr * cp * sy, cr * cp * sy - sr * sp * cy,
+            cr * cp * cy + sr * sp * sy)
+
+
+def enu_flu_quat(q_ned_frd):
+    """Quaternion of FRD in NED -> quaternion of FLU in ENU (REP-103), w >= 0."""
+    q = _qmul(_qmul(_Q_ENU_NED, q_ned_frd), _Q_FRD_FLU)
+    return q if q[3] >= 0 else tuple(-v for v in q)
+
+
 @dataclass
 class Attitude:
     t_s: float
@@ -356,7 +383,8 @@ class Trigger:
 @dataclass
 class FixEvent:
     fix: gf.Fix
-    best: bool                    # this receiver is the chosen one: goes to /gps/fix
+    best: bool                    # goes to /gps/fix (the chosen receiver, newer than the last one there)
+    per_receiver: bool = True     # goes to /gps/fix_<receiver + 1> (False: it went there already)
 
 
 def raw_gnss(m, receiver: int) -> gf.RawGnss:
@@ -405,6 +433,7 @@ class Ingest:
         self._last_fix_t: dict = {}
         self._max_boot_s = -math.inf
         self._fit_source = None
+        self._last_best_t = -math.inf
 
     # --- time --------------------------------------------------------------------------------------
 
@@ -476,6 +505,7 @@ class Ingest:
             if ev == 'reboot':
                 self.latest.clear()
                 self._last_fix_t.clear()
+                self._last_best_t = -math.inf
                 # Data boot times are compared with data boot times only (pending data lags the
                 # clock messages by seconds); a reboot seen on the clock restarts that comparison.
                 self._max_boot_s = -math.inf
@@ -546,11 +576,25 @@ class Ingest:
         if best is None:
             # No receiver has a position: the no-fix state of the chosen one is itself news on /gps/fix.
             best = self.best_receiver if self.best_receiver in self.latest else receiver
+        switched = best != self.best_receiver
         self.best_receiver = best
-        is_best = best == receiver
+        # /gps/fix carries at most one position per epoch, in strictly increasing time.
+        is_best = best == receiver and (fix.t_s > self._last_best_t or not fix.has_position)
         out = [FixEvent(fix, is_best)]
-        if is_best and fix.has_position:
-            self._best_history.append(fix)
+        if not is_best and switched and best is not None and best != receiver:
+            # Another receiver just became the best one: its latest fix (already on its own topic)
+            # goes to /gps/fix now rather than one epoch late.
+            other = self.latest[best]
+            if other.has_position and other.t_s > self._last_best_t:
+                out.append(FixEvent(other, True, per_receiver=False))
+                fix_best = other
+            else:
+                fix_best = None
+        else:
+            fix_best = fix if is_best else None
+        if fix_best is not None and fix_best.has_position:
+            self._last_best_t = fix_best.t_s
+            self._best_history.append(fix_best)
             out += self._resolve_triggers()
         return out
 
@@ -563,7 +607,7 @@ class Ingest:
                 self.counts['attitude_rejected'] += 1
                 self.on_problem(f'ATTITUDE_QUATERNION with a non-unit quaternion (|q| = {norm:.3g})')
                 return []
-            ned_R_frd = R_from_quat(q)
+            q_ned_frd = (m.q2 / norm, m.q3 / norm, m.q4 / norm, m.q1 / norm)
         else:
             if abs(int(m.time_boot_ms) - self._last_quat_boot_ms) < 1000:
                 return []   # quaternions are flowing: same attitude, without Euler's gimbal lock
@@ -572,12 +616,12 @@ class Ingest:
                 self.counts['attitude_rejected'] += 1
                 self.on_problem('ATTITUDE with non-finite angles')
                 return []
-            ned_R_frd = ned_R_frd_from_euler(*angles)
+            q_ned_frd = quat_ned_frd_from_euler(*angles)
         rates = np.array([m.rollspeed, -m.pitchspeed, -m.yawspeed], float)
         t = self._t(boot_ms=int(m.time_boot_ms))
         if t is None:
             return []
-        q_out = quat_from_R(enu_R_flu_from_ned_R_frd(ned_R_frd))
+        q_out = np.array(enu_flu_quat(q_ned_frd))
         return [Attitude(t, q_out, rates if np.all(np.isfinite(rates)) else None, mtype)]
 
     def _feedback(self, m) -> list:

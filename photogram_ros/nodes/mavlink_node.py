@@ -227,7 +227,8 @@ class MavlinkNode(Node):
             if not fix.has_position and not self.params.publish_no_fix:
                 return
             msg = self._fix_msg(fix)
-            self._rx_pub(fix.receiver).publish(msg)
+            if ev.per_receiver:
+                self._rx_pub(fix.receiver).publish(msg)
             if ev.best:
                 self.pub_fix_type.publish(UInt8(data=int(fix.fix_type) & 0xFF))
                 self.pub_fix.publish(msg)
