@@ -173,15 +173,24 @@ def orthomosaic(dsm: Raster, keyframes: list[Keyframe], grid_to_map=None, res_m:
         idx, uv, cos_v = idx[inside], uv[inside], cos_v[inside]
         if idx.size == 0:
             continue
-        mapx = uv[:, 0].astype(np.float32).reshape(1, -1)
-        mapy = uv[:, 1].astype(np.float32).reshape(1, -1)
-        colour[idx] = cv2.remap(kf.image, mapx, mapy, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)[0]
+        colour[idx] = _sample_image(kf.image, uv)
         best[idx] = cos_v
         seen[idx] = True
     flat_out = out.reshape(-1, 4)
     flat_out[flat[seen], :3] = colour[seen]
     flat_out[flat[seen], 3] = 255
     return Raster(out, dsm.x0_m, dsm.y1_m, dsm.res_m, None)
+
+
+def _sample_image(image: np.ndarray, uv: np.ndarray) -> np.ndarray:
+    """Bilinear colours at (N, 2) pixel positions; cv2.remap maps are limited to 32767 columns."""
+    width = 4096
+    n = uv.shape[0]
+    pad = (-n) % width
+    mapx = np.pad(uv[:, 0].astype(np.float32), (0, pad)).reshape(-1, width)
+    mapy = np.pad(uv[:, 1].astype(np.float32), (0, pad)).reshape(-1, width)
+    out = cv2.remap(image, mapx, mapy, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    return out.reshape(-1, image.shape[2])[:n]
 
 
 def resample(r: Raster, res_m: float) -> Raster:

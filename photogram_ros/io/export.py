@@ -1,0 +1,274 @@
+"""Survey products from a map folder: LAS 1.4 / LAZ, PLY, DSM and orthomosaic GeoTIFFs, in any CRS.
+
+Map ENU coordinates go to WGS84 through the map's LocalFrame, then to the requested CRS with pyproj
+(easting, northing). Heights are WGS84 ellipsoidal by default; `heights='orthometric'` gives
+heights above the EGM2008 geoid instead. Only the horizontal part of the CRS is taken from PROJ,
+so a datum shift between WGS84 and e.g. CH1903+ never changes the height reference silently; the
+vertical reference is stated in the LAS/GeoTIFF metadata.
+
+Rasters are built in the output CRS's own grid (north-up in that CRS), so GIS tools need no
+reprojection: the DSM from the fused cells' CRS coordinates, the orthomosaic by mapping each of
+its cells back to map ENU and draping the keyframes (core.raster.orthomosaic).
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from photogram_ros.core import geoid
+from photogram_ros.core.fusion import Fusion, FusionConfig
+from photogram_ros.core.geodesy import LocalFrame, crs_to_geodetic, crs_wkt, geodetic_to_crs
+from photogram_ros.core.raster import Keyframe, Raster, dsm_from_points, orthomosaic
+from photogram_ros.errors import DataError, GeodesyError
+from photogram_ros.io.map_store import MapStore
+
+HEIGHTS = ('ellipsoidal', 'orthometric')
+
+
+@dataclass
+class GeoCloud:
+    """Fused map cells in an output CRS."""
+    x: np.ndarray
+    y: np.ndarray
+    z: np.ndarray
+    rgb: np.ndarray           # (N, 3) uint8 R, G, B
+    count: np.ndarray         # points fused per cell
+    confidence: np.ndarray
+    crs: str
+    heights: str
+
+
+# --- coordinates -----------------------------------------------------------------------------------
+
+
+def enu_to_crs(origin: LocalFrame, enu: np.ndarray, crs: str, heights: str = 'ellipsoidal'):
+    """(N, 3) map ENU -> easting, northing, height in `crs` (heights per `heights`)."""
+    if heights not in HEIGHTS:
+        raise GeodesyError(f'heights must be one of {HEIGHTS}, not {heights!r}')
+    lat, lon, h = origin.enu_to_geodetic(np.asarray(enu, float))
+    e, n, _ = geodetic_to_crs(lat, lon, h, crs)
+    if heights == 'orthometric':
+        h = geoid.ellipsoid_to_msl_m(lat, lon, h)
+    return np.asarray(e, float), np.asarray(n, float), np.asarray(h, float)
+
+
+def crs_to_enu(origin: LocalFrame, e, n, h_ellipsoidal, crs: str) -> np.ndarray:
+    """Easting, northing in `crs` with WGS84 ellipsoidal heights -> (N, 3) map ENU."""
+    lat, lon, _ = crs_to_geodetic(e, n, np.zeros_like(np.asarray(e, float)), crs)
+    return origin.geodetic_to_enu(lat, lon, np.asarray(h_ellipsoidal, float))
+
+
+def _check_projected(crs: str) -> None:
+    from pyproj import CRS
+    c = CRS.from_user_input(crs)
+    if not c.is_projected:
+        raise GeodesyError(f'{crs} is not a projected CRS: rasters and clouds need metric easting/northing '
+                           '(e.g. the UTM zone EPSG:326xx, or a national grid such as EPSG:2056)')
+
+
+# --- reading a map folder --------------------------------------------------------------------------
+
+
+def open_map(map_dir: str | Path) -> tuple[MapStore, Fusion]:
+    store = MapStore(map_dir)
+    return store, Fusion(FusionConfig(store.cell_m, store.tile_cells, max_tiles_in_memory=10**6), store)
+
+
+def map_cloud(fusion: Fusion, origin: LocalFrame, crs: str, heights: str = 'ellipsoidal') -> GeoCloud:
+    p = fusion.points()
+    if p['x'].size == 0:
+        raise DataError('the map holds no fused points yet')
+    e, n, h = enu_to_crs(origin, np.column_stack([p['x'], p['y'], p['z']]), crs, heights)
+    rgb = np.column_stack([p['r'], p['g'], p['b']])
+    return GeoCloud(e, n, h, np.clip(np.rint(rgb), 0, 255).astype(np.uint8), p['n'].astype(np.uint32),
+                    p['confidence'].astype(np.float32), crs, heights)
+
+
+# --- point clouds ----------------------------------------------------------------------------------
+
+
+def write_las(cloud: GeoCloud, path: str | Path) -> Path:
+    """LAS 1.4 point format 7 (RGB), CRS as an OGC WKT VLR; .laz compresses (lazrs)."""
+    import laspy
+    from pyproj import CRS
+    path = Path(path)
+    header = laspy.LasHeader(point_format=7, version='1.4')
+    header.offsets = [np.floor(cloud.x.min()), np.floor(cloud.y.min()), np.floor(cloud.z.min())]
+    header.scales = [0.001, 0.001, 0.001]
+    header.add_crs(CRS.from_user_input(cloud.crs))
+    header.add_extra_dims([laspy.ExtraBytesParams('observations', np.uint32, 'points fused in the cell'),
+                           laspy.ExtraBytesParams('confidence', np.float32, 'mean stereo confidence')])
+    header.generating_software = 'photogram_ros'
+    header.system_identifier = f'heights: {cloud.heights}'[:32]
+    las = laspy.LasData(header)
+    las.x, las.y, las.z = cloud.x, cloud.y, cloud.z
+    # LAS colour is 16-bit: scale 0..255 to 0..65535 as GIS tools expect.
+    las.red = cloud.rgb[:, 0].astype(np.uint16) * 257
+    las.green = cloud.rgb[:, 1].astype(np.uint16) * 257
+    las.blue = cloud.rgb[:, 2].astype(np.uint16) * 257
+    las.observations = cloud.count
+    las.confidence = cloud.confidence
+    las.write(str(path))
+    return path
+
+
+_PLY_FIELDS = [('x', '<f8', 'double'), ('y', '<f8', 'double'), ('z', '<f8', 'double'),
+               ('red', 'u1', 'uchar'), ('green', 'u1', 'uchar'), ('blue', 'u1', 'uchar'),
+               ('confidence', '<f4', 'float'), ('observations', '<u4', 'uint')]
+_PLY_TYPES = {'char': 'i1', 'uchar': 'u1', 'short': '<i2', 'ushort': '<u2', 'int': '<i4', 'uint': '<u4',
+              'float': '<f4', 'double': '<f8', 'int8': 'i1', 'uint8': 'u1', 'int16': '<i2', 'uint16': '<u2',
+              'int32': '<i4', 'uint32': '<u4', 'float32': '<f4', 'float64': '<f8'}
+
+
+def write_ply(cloud: GeoCloud, path: str | Path) -> Path:
+    """Binary little-endian PLY; coordinates in double so projected eastings keep millimetres."""
+    path = Path(path)
+    arr = np.empty(cloud.x.size, dtype=[(n, t) for n, t, _ in _PLY_FIELDS])
+    arr['x'], arr['y'], arr['z'] = cloud.x, cloud.y, cloud.z
+    arr['red'], arr['green'], arr['blue'] = cloud.rgb[:, 0], cloud.rgb[:, 1], cloud.rgb[:, 2]
+    arr['confidence'], arr['observations'] = cloud.confidence, cloud.count
+    lines = ['ply', 'format binary_little_endian 1.0', 'comment generated by photogram_ros',
+             f'comment crs {cloud.crs}', f'comment heights {cloud.heights}', f'element vertex {arr.size}']
+    lines += [f'property {ply} {n}' for n, _, ply in _PLY_FIELDS] + ['end_header']
+    with open(path, 'wb') as f:
+        f.write(('\n'.join(lines) + '\n').encode('ascii'))
+        f.write(arr.tobytes())
+    return path
+
+
+def read_ply(path: str | Path) -> tuple[np.ndarray, list[str]]:
+    """Vertices of a binary little-endian PLY (scalar properties) and its comments."""
+    data = Path(path).read_bytes()
+    end = data.find(b'end_header\n')
+    if not data.startswith(b'ply\n') or end < 0:
+        raise DataError(f'{path} is not a PLY file')
+    header = data[:end].decode('ascii').splitlines()
+    if 'format binary_little_endian 1.0' not in header:
+        raise DataError(f'{path}: only binary little-endian PLY is read here')
+    fields, comments, n, in_vertex = [], [], 0, False
+    for line in header:
+        parts = line.split()
+        if parts[:1] == ['comment']:
+            comments.append(line[8:])
+        elif parts[:1] == ['element']:
+            in_vertex = parts[1] == 'vertex'
+            if in_vertex:
+                n = int(parts[2])
+            elif fields:
+                break
+        elif parts[:1] == ['property'] and in_vertex:
+            if parts[1] == 'list':
+                raise DataError(f'{path}: list properties in vertices are not supported')
+            fields.append((parts[2], _PLY_TYPES[parts[1]]))
+    return np.frombuffer(data, dtype=np.dtype(fields), count=n, offset=end + len('end_header\n')).copy(), comments
+
+
+# --- rasters ---------------------------------------------------------------------------------------
+
+
+def write_geotiff(r: Raster, path: str | Path, crs: str, description: str = '', rgba: bool = False) -> Path:
+    import rasterio
+    from rasterio.crs import CRS
+    from rasterio.transform import from_origin
+    path = Path(path)
+    data = r.data
+    bands = data.shape[2] if data.ndim == 3 else 1
+    profile = dict(driver='GTiff', width=r.shape[1], height=r.shape[0], count=bands, dtype=data.dtype,
+                   crs=CRS.from_wkt(crs_wkt(crs)), transform=from_origin(r.x0_m, r.y1_m, r.res_m, r.res_m),
+                   compress='deflate', tiled=True, blockxsize=256, blockysize=256)
+    if r.nodata is not None and not rgba:
+        profile['nodata'] = r.nodata
+    if rgba:
+        profile['photometric'] = 'RGB'
+    with rasterio.open(path, 'w', **profile) as ds:
+        if data.ndim == 2:
+            ds.write(data, 1)
+        else:
+            for b in range(bands):
+                ds.write(data[:, :, b], b + 1)
+        if rgba:
+            from rasterio.enums import ColorInterp
+            ds.colorinterp = [ColorInterp.red, ColorInterp.green, ColorInterp.blue, ColorInterp.alpha]
+        if description:
+            ds.update_tags(DESCRIPTION=description)
+    return path
+
+
+def dsm_in_crs(cloud: GeoCloud, res_m: float) -> Raster:
+    return dsm_from_points(cloud.x, cloud.y, cloud.z, res_m, weights=cloud.count)
+
+
+def load_keyframes(store: MapStore) -> list[Keyframe]:
+    import cv2
+    cam = store.load_camera()
+    if cam is None:
+        return []
+    out = []
+    for kf in store.keyframes():
+        img = cv2.imread(str(kf['image_path']), cv2.IMREAD_COLOR)
+        if img is not None and img.shape[:2] == (cam.height, cam.width):
+            out.append(Keyframe(img, kf['map_T_cam'], cam))
+    return out
+
+
+def ortho_in_crs(dsm_ellipsoidal: Raster, keyframes: list[Keyframe], origin: LocalFrame, crs: str,
+                 res_m: float | None = None) -> Raster:
+    """Orthomosaic on a DSM gridded in `crs` whose values are WGS84 ellipsoidal heights. RGBA."""
+    bgra = orthomosaic(dsm_ellipsoidal, keyframes, lambda e, n, h: crs_to_enu(origin, e, n, h, crs), res_m)
+    rgba = bgra.data[:, :, [2, 1, 0, 3]].copy()
+    return Raster(rgba, bgra.x0_m, bgra.y1_m, bgra.res_m, None)
+
+
+@dataclass
+class ExportResult:
+    files: dict = field(default_factory=dict)    # product -> path
+    points: int = 0
+    keyframes: int = 0
+    notes: list = field(default_factory=list)
+
+
+def export_map(map_dir: str | Path, out_dir: str | Path, crs: str, heights: str = 'ellipsoidal',
+               dsm_res_m: float = 0.0, ortho_res_m: float = 0.0, products=('las', 'laz', 'ply', 'dsm', 'ortho'),
+               origin: LocalFrame | None = None) -> ExportResult:
+    """Write the requested products of a map folder into out_dir (created)."""
+    _check_projected(crs)
+    store, fusion = open_map(map_dir)
+    origin = origin or store.origin
+    if origin is None:
+        raise DataError(f'{map_dir} has no geodetic origin (map.json "origin" is null): the map node never '
+                        'received /map/georeference; pass the origin explicitly (--origin LAT,LON,H)')
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    res = ExportResult()
+    cloud = map_cloud(fusion, origin, crs, heights)
+    res.points = cloud.x.size
+    if 'las' in products:
+        res.files['las'] = write_las(cloud, out / 'cloud.las')
+    if 'laz' in products:
+        res.files['laz'] = write_las(cloud, out / 'cloud.laz')
+    if 'ply' in products:
+        res.files['ply'] = write_ply(cloud, out / 'cloud.ply')
+    dsm_res = dsm_res_m or 2.0 * store.cell_m
+    if 'dsm' in products or 'ortho' in products:
+        dsm = dsm_in_crs(cloud, dsm_res)
+        if 'dsm' in products:
+            res.files['dsm'] = write_geotiff(dsm, out / 'dsm.tif', crs, f'DSM, {heights} heights (m)')
+    if 'ortho' in products:
+        kfs = load_keyframes(store)
+        res.keyframes = len(kfs)
+        if not kfs:
+            res.notes.append('no orthomosaic: the map folder holds no keyframes with images, poses and camera')
+        else:
+            ell = cloud if heights == 'ellipsoidal' else map_cloud(fusion, origin, crs, 'ellipsoidal')
+            dsm_ell = dsm_in_crs(ell, dsm_res)
+            ortho = ortho_in_crs(dsm_ell, kfs, origin, crs, ortho_res_m or store.cell_m)
+            res.files['ortho'] = write_geotiff(ortho, out / 'ortho.tif', crs, 'orthomosaic RGBA', rgba=True)
+    meta = {'crs': crs, 'heights': heights, 'origin': origin.to_dict(), 'points': res.points,
+            'keyframes': res.keyframes, 'files': {k: str(v) for k, v in res.files.items()}, 'notes': res.notes,
+            'geoid': geoid.MODEL_NAME if heights == 'orthometric' else None}
+    (out / 'export.json').write_text(json.dumps(meta, indent=1))
+    return res

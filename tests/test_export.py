@@ -1,0 +1,201 @@
+"""Exports open in laspy/rasterio with the right CRS and bounds; the orthomosaic puts targets where they are."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+from helpers.clouds import pair_cloud
+
+LAT, LON, H = 47.3977, 8.5456, 488.0
+CRSES = ['EPSG:32632', 'EPSG:2056']
+
+
+def surface(x, y):
+    return 2.0 + 0.04 * x + 0.5 * np.sin(0.2 * y)
+
+
+def oracle_crs(enu: np.ndarray, crs: str):
+    """ENU -> crs through PROJ's own topocentric conversion (independent of core.geodesy)."""
+    from pyproj import Transformer
+    to_geo = Transformer.from_pipeline(f'+proj=pipeline +step +inv +proj=topocentric +ellps=WGS84 +lat_0={LAT} '
+                                       f'+lon_0={LON} +h_0={H} +step +inv +proj=cart +ellps=WGS84')
+    lon, lat, h = to_geo.transform(enu[:, 0], enu[:, 1], enu[:, 2])
+    e, n, _ = Transformer.from_crs('EPSG:4979', crs, always_xy=True).transform(lon, lat, h)
+    return np.asarray(e), np.asarray(n), np.asarray(h)
+
+
+@pytest.fixture(scope='module')
+def map_dir(tmp_path_factory):
+    from photogram_ros.core.fusion import Fusion, FusionConfig
+    from photogram_ros.core.geodesy import LocalFrame
+    from photogram_ros.io.map_store import MapStore
+    d = tmp_path_factory.mktemp('exp') / 'map'
+    store = MapStore(d, 0.08, 256)
+    store.set_origin(LocalFrame(LAT, LON, H))
+    f = Fusion(FusionConfig(0.08, 256), store)
+    rng = np.random.default_rng(5)
+    for k in range(4):
+        f.add(pair_cloud(rng, surface, -10.0 + 8 * k, 5.0, 10.0, 8.0, 60.0, 0.01, rgb=0x20A040))
+    f.flush()
+    return d
+
+
+@pytest.mark.parametrize('crs', CRSES)
+def test_las_laz_ply_carry_crs_and_bounds(map_dir, tmp_path, crs):
+    import laspy
+    from pyproj import CRS
+    from photogram_ros.io.export import export_map, open_map, read_ply
+    res = export_map(map_dir, tmp_path, crs, products=('las', 'laz', 'ply'))
+    _, fusion = open_map(map_dir)
+    p = fusion.points()
+    e, n, h = oracle_crs(np.column_stack([p['x'], p['y'], p['z']]), crs)
+    for kind in ('las', 'laz'):
+        las = laspy.read(res.files[kind])
+        assert str(las.header.version) == '1.4'
+        assert las.header.parse_crs().equals(CRS.from_user_input(crs))
+        assert las.header.global_encoding.wkt
+        assert las.header.point_count == p['x'].size
+        assert np.allclose(las.header.mins, [e.min(), n.min(), h.min()], rtol=0, atol=0.002)
+        assert np.allclose(las.header.maxs, [e.max(), n.max(), h.max()], rtol=0, atol=0.002)
+        assert np.all(las.red == 0x20 * 257) and np.all(las.green == 0xA0 * 257)
+    v, comments = read_ply(res.files['ply'])
+    assert v.size == p['x'].size and f'crs {crs}' in comments
+    order = np.lexsort((v['y'], v['x']))
+    ref = np.lexsort((n, e))
+    assert np.abs(v['x'][order] - e[ref]).max() < 1e-3 and np.abs(v['z'][order] - h[ref]).max() < 1e-3
+    if crs == 'EPSG:2056':   # LV95 around Zurich: E 2.68e6, N 1.25e6
+        assert 2.68e6 < e.min() < 2.69e6 and 1.24e6 < n.min() < 1.26e6
+
+
+@pytest.mark.parametrize('crs', CRSES)
+def test_dsm_geotiff_crs_bounds_and_heights(map_dir, tmp_path, crs):
+    import rasterio
+    from pyproj import CRS
+    from photogram_ros.core import geoid
+    from photogram_ros.io.export import export_map, open_map
+    ell = export_map(map_dir, tmp_path / 'ell', crs, products=('dsm',))
+    ortho_h = export_map(map_dir, tmp_path / 'msl', crs, heights='orthometric', products=('dsm',))
+    p = open_map(map_dir)[1].points()
+    e, n, _ = oracle_crs(np.column_stack([p['x'], p['y'], p['z']]), crs)
+    with rasterio.open(ell.files['dsm']) as ds:
+        assert CRS.from_wkt(ds.crs.to_wkt()).equals(CRS.from_user_input(crs))
+        b = ds.bounds
+        # The DSM's outer edges hold every map point, with less than one cell to spare.
+        assert b.left <= e.min() < b.left + 0.16 and b.right - 0.16 < e.max() <= b.right
+        assert b.bottom <= n.min() < b.bottom + 0.16 and b.top - 0.16 < n.max() <= b.top
+        dsm = ds.read(1)
+        assert ds.nodata == -9999.0
+        assert ds.res == pytest.approx((0.16, 0.16))
+        # A cell centre back to ENU: its height is the surface's, plus the ellipsoidal height of the origin.
+        row, col = np.argwhere(dsm != ds.nodata)[len(np.argwhere(dsm != ds.nodata)) // 2]
+        ce, cn = ds.xy(row, col)
+    from photogram_ros.io.export import crs_to_enu
+    from photogram_ros.core.geodesy import LocalFrame
+    enu = crs_to_enu(LocalFrame(LAT, LON, H), ce, cn, dsm[row, col], crs)
+    assert abs(enu[2] - surface(enu[0], enu[1])) < 0.1
+    with rasterio.open(ortho_h.files['dsm']) as ds:
+        msl = ds.read(1)
+    lat, lon = LAT + enu[1] / 111_200, LON + enu[0] / 75_200
+    assert dsm[row, col] - msl[row, col] == pytest.approx(geoid.undulation_m(lat, lon), abs=0.01)
+    assert 45 < dsm[row, col] - msl[row, col] < 50   # EGM2008 near Zurich
+
+
+# --- orthomosaic against the simulator's truth -------------------------------------------------
+
+
+@pytest.fixture(scope='module')
+def rendered():
+    """Keyframes of the tiny survey rendered from TRUE poses (about 12 frames, cached for the module)."""
+    from photogram_ros.core.raster import Keyframe
+    from photogram_ros.core.rotations import make_T
+    from photogram_ros.sim.render import Exposure, Renderer
+    from photogram_ros.sim.scenario import build_world, preset
+    cfg = preset('tiny')
+    rng = np.random.default_rng(cfg.seed)
+    flight, terrain, targets = build_world(cfg, rng)
+    cam = cfg.camera()
+    r = Renderer(terrain, cam)
+    kfs = []
+    for t in np.arange(0.0, flight.duration_s, 2.2):
+        st = flight.state(t)
+        if not st.on_line:
+            continue
+        T = make_T(st.map_R_cam, st.pos_enu)
+        kfs.append(Keyframe(r.render(T, Exposure(), rng), T, cam))
+    return cfg, terrain, targets, kfs
+
+
+def _detect_centres(img_bgr: np.ndarray) -> dict:
+    det = cv2.aruco.ArucoDetector(cv2.aruco.getPredefinedDictionary(cv2.aruco.DICT_4X4_50),
+                                  cv2.aruco.DetectorParameters())
+    corners, ids, _ = det.detectMarkers(cv2.cvtColor(img_bgr, cv2.COLOR_BGR2GRAY))
+    if ids is None:
+        return {}
+    # float64: float32 pixel positions would round projected coordinates (5e6 m) to half a metre
+    return {int(i): c.reshape(4, 2).astype(np.float64).mean(axis=0) for i, c in zip(ids.ravel(), corners)}
+
+
+def test_orthomosaic_on_true_dem_puts_targets_within_2_gsd(rendered):
+    from photogram_ros.core.raster import grid_for, orthomosaic
+    cfg, terrain, targets, kfs = rendered
+    gsd = cfg.gsd_m
+    xs = [t.center_enu[0] for t in targets]
+    ys = [t.center_enu[1] for t in targets]
+    dem = grid_for(min(xs) - 15, min(ys) - 15, max(xs) + 15, max(ys) + 15, gsd)
+    X, Y = dem.cell_centers()
+    dem.data = terrain.height_at(X, Y).astype(np.float32)
+    ortho = orthomosaic(dem, kfs)
+    assert (ortho.data[..., 3] > 0).mean() > 0.9
+    found = _detect_centres(ortho.data[..., :3])
+    errs = []
+    for t in targets:
+        assert t.marker_id in found, f'target {t.name} not detected in the orthomosaic'
+        u, v = found[t.marker_id]
+        x = ortho.x0_m + (u + 0.5) * ortho.res_m
+        y = ortho.y1_m - (v + 0.5) * ortho.res_m
+        errs.append(np.hypot(x - t.center_enu[0], y - t.center_enu[1]))
+    print(f'ortho target errors / GSD: {np.round(np.array(errs) / gsd, 2).tolist()}')
+    assert max(errs) <= 2 * gsd
+
+
+def test_export_command_writes_georeferenced_ortho(rendered, tmp_path):
+    """The whole chain: fused map + saved keyframes -> `photogram-ros export` -> ortho GeoTIFF in UTM."""
+    import rasterio
+    from photogram_ros.cli import main
+    from photogram_ros.core.fusion import Fusion, FusionConfig
+    from photogram_ros.core.geodesy import LocalFrame
+    from photogram_ros.io.export import crs_to_enu
+    from photogram_ros.io.map_store import MapStore
+    cfg, terrain, targets, kfs = rendered
+    origin = LocalFrame(cfg.origin_lat_deg, cfg.origin_lon_deg, cfg.origin_h_m)
+    store = MapStore(tmp_path / 'map', 0.08, 256)
+    store.set_origin(origin)
+    store.save_camera(kfs[0].camera)
+    for k, kf in enumerate(kfs):
+        store.save_keyframe_image(k, cv2.imencode('.jpg', kf.image, [cv2.IMWRITE_JPEG_QUALITY, 95])[1].tobytes())
+        store.save_keyframe_pose(k, kf.map_T_cam)
+    f = Fusion(FusionConfig(0.08, 256), store)
+    rng = np.random.default_rng(9)
+    for t in targets:   # ground around each target, from the true DEM
+        f.add(pair_cloud(rng, terrain.height_at, t.center_enu[0], t.center_enu[1], 6.0, 6.0, 200.0, 0.02))
+    f.flush()
+    out = tmp_path / 'out'
+    assert main(['export', str(tmp_path / 'map'), '--crs', 'EPSG:32632', '--out', str(out)]) == 0
+    for name in ('cloud.las', 'cloud.laz', 'cloud.ply', 'dsm.tif', 'ortho.tif', 'export.json'):
+        assert (out / name).exists(), name
+    with rasterio.open(out / 'ortho.tif') as ds:
+        assert ds.crs.to_epsg() == 32632 and ds.count == 4
+        rgba = np.dstack([ds.read(b) for b in (1, 2, 3, 4)])
+        found = _detect_centres(np.ascontiguousarray(rgba[..., [2, 1, 0]]))
+        errs = []
+        for t in targets:
+            if t.marker_id not in found:
+                continue
+            u, v = found[t.marker_id]
+            e, n = ds.transform @ (float(u) + 0.5, float(v) + 0.5)
+            enu = crs_to_enu(origin, e, n, origin.h_m + t.center_enu[2], 'EPSG:32632')
+            errs.append(np.hypot(enu[0] - t.center_enu[0], enu[1] - t.center_enu[1]))
+    print(f'export ortho target errors / GSD: {np.round(np.array(errs) / cfg.gsd_m, 2).tolist()}')
+    assert len(errs) >= len(targets) - 1 and max(errs) <= 2 * cfg.gsd_m
