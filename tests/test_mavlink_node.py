@@ -178,3 +178,63 @@ def test_bag_bytes_with_damage_and_diagnostics(rclpy_context, sample_dir):  # no
     kv = {v.key: v.value for d in diags for s in d.status for v in s.values}
     assert int(kv['link_crc_errors']) == st.crc_errors or int(kv['link_crc_errors']) > 0
     assert kv['fix_type'] == 'RTK_FIXED' and kv['time_sync_synced'] == 'True'
+
+
+def _gps_stream(mav, n=10, t0_boot=50.0, lat0=471000000):
+    out = []
+    for k in range(n):
+        boot = t0_boot + 0.2 * k
+        if k % 5 == 0:
+            out.append(mav.system_time_encode(int((1_700_000_000 + boot) * 1e6), int(boot * 1000)))
+        out.append(mav.gps_raw_int_encode(int(boot * 1e6), 6, lat0 + k, 85000000, 500000, 60, 90, 0, 0, 20,
+                                          547000, 15, 25))
+    return b''.join(m.pack(mav) for m in out)
+
+
+def test_node_signing_only_correctly_signed_used(rclpy_context):
+    from pymavlink.dialects.v20 import ardupilotmega as mavlink2
+    from photogram_ros.io.mavlink import signing_key
+    from photogram_ros.nodes.mavlink_node import MavlinkNode
+
+    def signed(key, sysid):
+        mav = mavlink2.MAVLink(None, srcSystem=sysid, srcComponent=1)
+        mav.signing.secret_key, mav.signing.sign_outgoing, mav.signing.timestamp = key, True, 1
+        return mav
+    good = _gps_stream(signed(signing_key('fleet secret'), 1), lat0=471000000)
+    forged = _gps_stream(signed(signing_key('guess'), 1), t0_boot=52.0, lat0=461000000)
+    plain = _gps_stream(mavlink2.MAVLink(None, srcSystem=1, srcComponent=1), t0_boot=54.0, lat0=451000000)
+    node = MavlinkNode({'signing_key': 'fleet secret', 'diagnostics_period_s': 0.1}, context=rclpy_context)
+    try:
+        for chunk in (good, forged, plain):
+            node.feed(chunk, None)
+        node._update_diagnostics()
+        st = node.stream.stats
+        assert node.published['fix'] == 10                       # only the correctly signed fixes
+        assert st.signature_rejected == 12 and st.unsigned_rejected == 12
+        assert [f.lat_deg for f in node.ingest.latest.values()] == [pytest.approx(47.1000009)]
+        status = node.diag.status()
+        kv = {v.key: v.value for v in status.values}
+        assert kv['link_signature_rejected'] == '12' and kv['link_unsigned_rejected'] == '12'
+    finally:
+        node.destroy_node()
+
+
+def test_link_drops_and_comes_back(rclpy_context):
+    from pymavlink.dialects.v20 import ardupilotmega as mavlink2
+    from photogram_ros.nodes.mavlink_node import MavlinkNode
+    mav = mavlink2.MAVLink(None, srcSystem=1, srcComponent=1)
+    node = MavlinkNode({'link_timeout_s': 0.2}, context=rclpy_context)
+    try:
+        node.feed(_gps_stream(mav, 10, 50.0), None)
+        node._update_diagnostics()
+        assert {v.key: v.value for v in node.diag.status().values}['link_state'] == 'up'
+        time.sleep(0.3)
+        node._update_diagnostics()
+        st = node.diag.status()
+        assert {v.key: v.value for v in st.values}['link_state'] == 'down' and 'link lost' in st.message
+        node.feed(b'\x00garbage\xfd\x09' + _gps_stream(mav, 10, 52.0), None)
+        node._update_diagnostics()
+        assert {v.key: v.value for v in node.diag.status().values}['link_state'] == 'up'
+        assert node.published['fix'] == 20 and node.stream.stats.seq_lost == 0
+    finally:
+        node.destroy_node()
