@@ -304,3 +304,35 @@ def test_two_receivers_best_chosen_and_switched():
     t = [e.fix.t_s for e in events if e.best]
     assert np.all(np.diff(t) > 0.19)
     assert ing.diagnostics()['fix_type'] == 'RTK_FLOAT'
+
+
+@pytest.mark.slow
+def test_faulty_flight_outage_float_and_corruption(tmp_path):
+    """Simulated outage (NO_FIX, no positions), a switch to RTK float, and a corrupted stretch of link."""
+    from photogram_ros.sim.scenario import START_UNIX_S, preset, simulate
+    out = tmp_path / 'faulty'
+    gt = simulate(preset('tiny', gnss_outages=[(5, 10)], mavlink_corruption=[(12, 15)],
+                         gnss_changes=[(20, 'rtk_float')]), out)
+    msgs, stats = read_tlog(out / 'flight.tlog')
+    assert stats.crc_errors > 0
+    events, _ = fixes_from_messages(msgs)
+    fixes = [e.fix for e in events if e.best]
+    rel = np.array([f.t_s - START_UNIX_S for f in fixes])
+    inside = [f for f, t in zip(fixes, rel) if 5.05 < t < 9.95]
+    assert inside and all(f.status == gf.STATUS_NO_FIX and not f.has_position for f in inside)
+    after = [f for f, t in zip(fixes, rel) if t > 20.5 and f.has_position]
+    assert after and {f.fix_type for f in after} == {gf.RTK_FLOAT}
+    assert min(f.cov_enu_m2[0] for f in after) > 10 * max(f.cov_enu_m2[0] for f, t in zip(fixes, rel)
+                                                          if 16 < t < 19.5 and f.has_position)
+    # Every fix sent outside the corrupted stretch is decoded and stamped at its epoch.
+    sent = [f for f in gt.fixes if not 12 <= f['t_fix_unix_s'] + 0.06 - START_UNIX_S < 15.1]
+    t_got = np.array([f.t_s for f in fixes])
+    for f in sent:
+        assert np.min(np.abs(t_got - f['t_fix_unix_s'])) < 0.001
+    # Positions against truth, normalised by the reported sigma.
+    for f in fixes:
+        if not f.has_position:
+            continue
+        tr = min(gt.fixes, key=lambda x: abs(x['t_fix_unix_s'] - f.t_s))
+        enu = np.asarray(gt.origin.geodetic_to_enu(f.lat_deg, f.lon_deg, f.h_m), float).ravel()
+        assert np.all(np.abs(enu - np.array(tr['antenna_enu'])) / np.sqrt(f.cov_enu_m2) < 5.0)
