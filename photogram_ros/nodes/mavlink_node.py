@@ -27,6 +27,7 @@ import time
 from dataclasses import dataclass
 
 import rclpy
+from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import NavSatFix
@@ -263,6 +264,9 @@ class MavlinkNode(Node):
         for k, v in self.published.items():
             d.set(f'published_{k}', v)
         quiet = self._last_packet_mono is None or time.monotonic() - self._last_packet_mono > self.params.link_timeout_s
+        if self.input_done.is_set():
+            d.set('link_state', 'end of log')
+            return
         if quiet and self._link_up:
             d.problem(f'MAVLink link lost: no packet for {self.params.link_timeout_s:g} s', WARN)
         elif not quiet and not self._link_up and self._last_packet_mono is not None:
@@ -290,8 +294,8 @@ def main(argv=None) -> int:
     except (ConfigError, MavlinkError) as exc:
         print(f'mavlink_node: {exc}', file=sys.stderr)
         return 2
-    except KeyboardInterrupt:
-        return 130
+    except (KeyboardInterrupt, ExternalShutdownException):
+        return 0
     finally:
         if node is not None:
             node.destroy_node()
