@@ -238,3 +238,14 @@ def test_link_drops_and_comes_back(rclpy_context):
         assert node.published['fix'] == 20 and node.stream.stats.seq_lost == 0
     finally:
         node.destroy_node()
+
+
+def test_tlog_url_as_fast_as_possible(rclpy_context, sample_dir):  # noqa: F811
+    from photogram_ros.nodes.mavlink_node import MavlinkNode
+    node = MavlinkNode({'url': str(sample_dir / 'flight.tlog'), 'tlog_rate': 0.0}, context=rclpy_context)
+    try:
+        assert node.input_done.wait(30)
+        assert node.published == {'fix': 389, 'attitude': 778, 'trigger': 76}
+        assert node.stream.stats.packets == 3185 and node.stream.stats.crc_errors == 0
+    finally:
+        node.destroy_node()

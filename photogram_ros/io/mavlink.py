@@ -17,7 +17,6 @@ import hashlib
 import math
 import os
 import struct
-import time
 from collections import Counter, deque
 from dataclasses import dataclass, field
 
@@ -722,6 +721,3 @@ def file_kind(path: str) -> str:
         return 'bag'
     return 'tlog'
 
-
-def _now() -> float:
-    return time.time()
