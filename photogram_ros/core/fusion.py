@@ -204,11 +204,16 @@ class Fusion:
         bs = 4
         TB = -(-T // bs)
         bkey = tid * (TB * TB) + (ly // bs) * TB + lx // bs
-        bc = np.bincount(bkey)
-        bm = np.bincount(bkey, z, minlength=bc.size) / np.maximum(bc, 1)
-        bv = np.bincount(bkey, z * z, minlength=bc.size) / np.maximum(bc, 1) - bm * bm
-        bsd = np.sqrt(np.maximum(bv, 0.0))
-        keep = (np.abs(z - bm[bkey]) <= np.maximum(2.5 * bsd[bkey], cfg.min_tolerance_m)) | (bc[bkey] < 4)
+        # Two passes: the second takes block statistics without the first pass's rejects, so a
+        # pair of large outliers in one block cannot hide each other by inflating its spread.
+        keep = np.ones(x.size, dtype=bool)
+        nb = int(bkey.max()) + 1
+        for _ in range(2):
+            bc = np.bincount(bkey, keep, minlength=nb)
+            bm = np.bincount(bkey, z * keep, minlength=nb) / np.maximum(bc, 1)
+            bv = np.bincount(bkey, z * z * keep, minlength=nb) / np.maximum(bc, 1) - bm * bm
+            bsd = np.sqrt(np.maximum(bv, 0.0))
+            keep = (np.abs(z - bm[bkey]) <= np.maximum(2.5 * bsd[bkey], cfg.min_tolerance_m)) | (bc[bkey] < 4)
 
         # (2) Consistency with the earlier pairs: gate each point against its fused cell.
         hit = np.flatnonzero(np.bincount(tid, minlength=len(tile_keys)))
