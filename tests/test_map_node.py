@@ -14,6 +14,7 @@ import pytest
 
 from helpers.clouds import pair_cloud
 
+pytestmark = pytest.mark.ros
 ROOT = Path(__file__).resolve().parents[1]
 ORIGIN = dict(use_origin_params=True, origin_lat_deg=47.3977, origin_lon_deg=8.5456, origin_h_m=488.0)
 
@@ -200,3 +201,30 @@ def test_kill_9_loses_only_the_last_seconds(rclpy_context, tmp_path):
         assert node.fusion.points()['x'].size == pts['x'].size
     finally:
         node.destroy_node()
+
+
+def test_origin_from_georeference_topic(rclpy_context, tmp_path):
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.node import Node
+    from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+    from sensor_msgs.msg import NavSatFix
+    from photogram_ros import msgs
+    from photogram_ros.io.map_store import MapStore
+    from photogram_ros.nodes.map_node import MapNode
+
+    peer = Node('georef_pub', context=rclpy_context)
+    latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+    pub = peer.create_publisher(NavSatFix, '/map/georeference', latched)
+    pub.publish(msgs.navsatfix_msg(0, 47.3977, 8.5456, 488.0, 2, [0.01, 0.01, 0.02], 2))   # before the map starts
+    node = MapNode({'map_dir': str(tmp_path / 'm')}, context=rclpy_context)
+    ex = SingleThreadedExecutor(context=rclpy_context)
+    ex.add_node(node)
+    ex.add_node(peer)
+    try:
+        assert _spin_until(ex, lambda: MapStore(tmp_path / 'm').origin is not None)
+        o = MapStore(tmp_path / 'm').origin
+        assert (o.lat_deg, o.lon_deg, o.h_m) == (47.3977, 8.5456, 488.0)
+    finally:
+        ex.shutdown()
+        node.destroy_node()
+        peer.destroy_node()

@@ -10,6 +10,7 @@ A map_dir that already holds a map keeps its origin and reloads (restart after a
 Outputs: /map/cloud_downsampled (best effort: block means of the tiles that changed, at most
 stream_max_points per message, at most one message per stream_period_s) and /diagnostics.
 Changed cells are flushed to disk every flush_interval_s, so a kill -9 loses at most that much.
+Topic names are relative, so a drone's namespace (several drones, one ground station) prefixes them.
 """
 
 from __future__ import annotations
@@ -37,12 +38,12 @@ from photogram_ros.nodes.diagnostics import Diagnostics
 from photogram_ros.nodes.ros_params import declare
 from photogram_ros.params import param
 
-TOPIC_CLOUD = '/map/dense_cloud'
-TOPIC_DOWNSAMPLED = '/map/cloud_downsampled'
-TOPIC_GEOREFERENCE = '/map/georeference'
-TOPIC_IMAGE = '/keyframes/image'
-TOPIC_POSE = '/map/keyframe_pose'
-TOPIC_INFO = '/camera/camera_info'
+TOPIC_CLOUD = 'map/dense_cloud'   # relative: a drone's namespace prefixes them
+TOPIC_DOWNSAMPLED = 'map/cloud_downsampled'
+TOPIC_GEOREFERENCE = 'map/georeference'
+TOPIC_IMAGE = 'keyframes/image'
+TOPIC_POSE = 'map/keyframe_pose'
+TOPIC_INFO = 'camera/camera_info'
 
 STREAM_DTYPE = np.dtype([('x', np.float32), ('y', np.float32), ('z', np.float32), ('rgb', np.uint32),
                          ('count', np.uint32)])
