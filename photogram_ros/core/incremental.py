@@ -28,12 +28,7 @@ from photogram_ros.core.two_view import relative_pose
 from photogram_ros.core.window import select_window
 from photogram_ros.errors import DataError
 
-try:   # the real solver; the stand-in only until it lands
-    from photogram_ros.core.bundle import BundleOptions, BundleProblem, bundle_adjust
-    SOLVER = 'bundle'
-except ImportError:   # pragma: no cover - depends on the parallel work
-    from photogram_ros.core.ba_standin import BundleOptions, BundleProblem, bundle_adjust
-    SOLVER = 'standin'
+from photogram_ros.core.bundle import BundleOptions, BundleProblem, bundle_adjust
 
 
 @dataclass
@@ -83,6 +78,8 @@ class IncrementalOptions:
     georef_min_keyframes: int = 4
     georef_min_spread_ratio: float = 0.05
     use_gcps: bool = True
+    estimate_gnss_bias: bool = True    # a constant ENU GNSS offset, when >= 3 GCPs make it observable
+    bias_iterations: int = 10
 
 
 @dataclass
@@ -112,6 +109,10 @@ class StepReport:
     gnss_rms_m: float = float('nan')
     window_size: int = 0
     n_points: int = 0
+
+
+def _adjust(prob, loss: str, scale_px: float, iterations: int):
+    return bundle_adjust(prob, BundleOptions(loss=loss, loss_scale_px=scale_px, max_iterations=iterations))
 
 
 def lever_arm_cam_from_frd(lever_frd_m) -> np.ndarray:
@@ -156,6 +157,10 @@ class IncrementalAT:
         self.lever = np.asarray(self.opt.lever_arm_cam_m, float)
         self.history: list[StepReport] = []
         self.rng = np.random.default_rng(0)
+        # A GNSS receiver without corrections is off by a bias that wanders over minutes; weighting
+        # its fixes as independent lets them bend the block away from the GCPs (camera position
+        # and tilt trade off over flat ground). With GCPs the bias is observable: estimated here.
+        self.gnss_bias_enu = np.zeros(3)
 
     # --- input --------------------------------------------------------------------------------
 
@@ -430,8 +435,7 @@ class IncrementalAT:
             point_priors_idx=np.array([s for s, _ in pri], int) if pri else None,
             point_priors_map=np.array([c.map_xyz for _, c in pri]).reshape(-1, 3),
             point_priors_sigma_m=np.array([c.sigma_m for _, c in pri]).reshape(-1, 3))
-        res = bundle_adjust(prob, BundleOptions(loss=self.opt.loss, loss_scale_px=self.opt.loss_scale_px,
-                                                max_iterations=iterations))
+        res = _adjust(prob, self.opt.loss, self.opt.loss_scale_px, iterations)
         for j, k in enumerate(kids):
             if not fixed_mask[j]:
                 self.kfs[k].map_T_cam = np.asarray(res.map_T_cams[j])
@@ -459,9 +463,10 @@ class IncrementalAT:
 
     def _gnss_target(self, kf: _Keyframe) -> np.ndarray:
         """The fix moved so that `C + map_R_cam @ lever` should meet it (exact offset when known)."""
+        fix = kf.fix_enu - self.gnss_bias_enu
         if kf.antenna_offset is None:
-            return kf.fix_enu
-        return kf.fix_enu - kf.antenna_offset + kf.map_T_cam[:3, :3] @ self.lever
+            return fix
+        return fix - kf.antenna_offset + kf.map_T_cam[:3, :3] @ self.lever
 
     def gnss_residuals(self, kids=None) -> dict:
         """Keyframe id -> ENU residual (m) of the adjusted antenna position minus the fix."""
@@ -500,7 +505,21 @@ class IncrementalAT:
         for _ in range(rounds):
             tracks = list(self.points)
             rep = self._solve(list(self.registered), [], tracks, iterations or self.opt.full_iterations)
+        if self.opt.estimate_gnss_bias and self._n_gcps() >= 3:
+            for _ in range(self.opt.bias_iterations):
+                r = np.array(list(self.gnss_residuals().values()))
+                if not len(r):
+                    break
+                # The residual mean is a fraction of the bias (the fixes still pull): iterate.
+                step = np.mean(r, axis=0)
+                self.gnss_bias_enu -= step
+                rep = self._solve(list(self.registered), [], list(self.points), iterations or self.opt.full_iterations)
+                if np.linalg.norm(step) < 0.005:
+                    break
         return rep
+
+    def _n_gcps(self) -> int:
+        return sum(1 for n, t in self._target_ids.items() if t in self.points and not self._is_check(t))
 
     # --- results ----------------------------------------------------------------------------------
 

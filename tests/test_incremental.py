@@ -1,0 +1,144 @@
+"""Incremental aerial triangulation on simulator flights with ground truth (the issue's must-show).
+
+Keyframe observations come straight from the truth (sim/observations.py: 0.3 px noise, the GNSS
+receiver error model of the mode); the figures are printed and asserted against the issue's limits.
+"""
+
+import dataclasses
+import json
+
+import numpy as np
+import pytest
+
+from photogram_ros.core.at_report import build_report, markdown, write_report
+from photogram_ros.core.incremental import IncrementalAT, IncrementalOptions, KeyframeRecord
+from photogram_ros.errors import DataError
+from photogram_ros.sim.observations import simulate_keyframes
+from photogram_ros.sim.scenario import build_world, preset
+
+
+@pytest.fixture(scope='module')
+def world():
+    cfg = preset('tiny', n_gcp=5, n_check=4)
+    return cfg, build_world(cfg, np.random.default_rng(cfg.seed))
+
+
+def _run(cfg, world, gnss_mode, use_gcps, outliers=0.0, seed=None):
+    c = dataclasses.replace(cfg, seed=seed) if seed is not None else cfg
+    sk = simulate_keyframes(c, gnss_mode=gnss_mode, outlier_fraction=outliers, world=world)
+    at = IncrementalAT(sk.camera, IncrementalOptions(lever_arm_cam_m=tuple(sk.lever_arm_cam_m), use_gcps=use_gcps),
+                       origin=sk.origin, control=sk.control)
+    for r in sk.records:
+        at.add_keyframe(r)
+    at.full_adjustment()
+    cam_err = np.array([at.kfs[k].map_T_cam[:3, 3] - sk.true_map_T_cam[k][:3, 3] for k in at.registered])
+    rep = build_report(at, gsd_m=sk.gsd_m)
+    chk = np.array([p['residual_m'] for p in rep['check']['points'] if p['name'].startswith('CHK')])
+    return sk, at, rep, cam_err, chk
+
+
+def _rmse_hv(chk):
+    return np.sqrt(np.mean(np.sum(chk[:, :2] ** 2, axis=1))), np.sqrt(np.mean(chk[:, 2] ** 2))
+
+
+def test_rtk_fixed_without_gcps(world):
+    """Camera centres <= 3 cm, check points <= 1 GSD horizontal and <= 1.5 GSD vertical.
+
+    The RTK model's bias wanders with a 60 s time constant, so on a 27 s flight it is nearly constant
+    and cannot be averaged away without GCPs: the camera error of one flight sits at the mean GNSS
+    error of that flight (printed as the floor). Four GNSS realizations are pooled.
+    """
+    cfg, w = world
+    errs, chks = [], []
+    for seed in (7, 8, 9, 10):
+        sk, at, rep, cam_err, chk = _run(cfg, w, 'rtk_fixed', use_gcps=False, seed=seed)
+        assert len(at.registered) == len(sk.records) and at.georeferenced
+        gnss_err = np.array([sk.origin.geodetic_to_enu(r.fix.lat_deg, r.fix.lon_deg, r.fix.h_m)
+                             - (T[:3, 3] + r.antenna_offset_map_m) for r, T in zip(sk.records, sk.true_map_T_cam)])
+        floor = np.linalg.norm(gnss_err.mean(axis=0))
+        rmse = np.sqrt(np.mean(np.sum(cam_err ** 2, axis=1)))
+        h, v = _rmse_hv(chk)
+        print(f'RTK seed {seed}: camera-centre RMSE {rmse * 100:.2f} cm (GNSS mean-error floor {floor * 100:.2f} cm), '
+              f'check RMSE h {h / sk.gsd_m:.2f} GSD v {v / sk.gsd_m:.2f} GSD, reprojection '
+              f"{rep['reprojection_rms_px']:.3f} px")
+        assert rmse < floor + 0.015
+        errs.append(cam_err)
+        chks.append(chk)
+    cam = np.sqrt(np.mean(np.sum(np.concatenate(errs) ** 2, axis=1)))
+    h, v = _rmse_hv(np.concatenate(chks))
+    print(f'RTK pooled: camera-centre RMSE {cam * 100:.2f} cm; check RMSE h {h / sk.gsd_m:.2f} GSD, '
+          f'v {v / sk.gsd_m:.2f} GSD (GSD {sk.gsd_m * 100:.1f} cm)')
+    assert cam <= 0.03
+    assert h <= 1.0 * sk.gsd_m and v <= 1.5 * sk.gsd_m
+
+
+def test_3d_gnss_with_five_gcps(world):
+    cfg, w = world
+    sk, at, rep, cam_err, chk = _run(cfg, w, '3d', use_gcps=True)
+    h, v = _rmse_hv(chk)
+    print(f"3D GNSS + {len(rep['gcp']['points'])} GCPs: check RMSE h {h / sk.gsd_m:.2f} GSD, v {v / sk.gsd_m:.2f} GSD "
+          f"({len(chk)} check points); camera RMSE {np.sqrt(np.mean(np.sum(cam_err ** 2, 1))) * 100:.1f} cm; "
+          f"estimated GNSS bias {np.round(at.gnss_bias_enu, 2)} m")
+    assert len(rep['gcp']['points']) == 5 and len(chk) == 4
+    assert h <= 1.5 * sk.gsd_m and v <= 2.5 * sk.gsd_m
+    # Without the GCPs the same flight is off by the receiver's metre-level bias: they matter.
+    sk2, at2, rep2, _, chk2 = _run(cfg, w, '3d', use_gcps=False)
+    h2, v2 = _rmse_hv(chk2)
+    print(f'3D GNSS without GCPs: check RMSE h {h2:.2f} m, v {v2:.2f} m')
+    assert h2 > 5 * h
+
+
+@pytest.mark.parametrize('mode,gcps', [('rtk_fixed', False), ('3d', True)])
+def test_five_percent_gross_outliers(world, mode, gcps):
+    cfg, w = world
+    sk, at, rep, cam_err, chk = _run(cfg, w, mode, use_gcps=gcps, outliers=0.05)
+    h, v = _rmse_hv(chk)
+    cam = np.sqrt(np.mean(np.sum(cam_err ** 2, 1)))
+    # How many corrupted observations survived in the adjusted block?
+    bad = set(sk.outlier_tracks.tolist())
+    kept_bad = 0
+    for k in at.registered:
+        kf = at.kfs[k]
+        for t, a in zip(kf.track_ids, kf.active):
+            kept_bad += bool(a and int(t) in bad and int(t) in at.points
+                             and at._reprojection_px(kf.map_T_cam, at.points[int(t)][None], kf.uv[kf.index_of[int(t)]][None])[0] > 3)
+    print(f'{mode} gcps={gcps} with 5 % outlier tracks ({len(bad)}): camera RMSE {cam * 100:.2f} cm, '
+          f'check h {h / sk.gsd_m:.2f} v {v / sk.gsd_m:.2f} GSD, reprojection {rep["reprojection_rms_px"]:.3f} px, '
+          f'large-residual outlier observations left {kept_bad}')
+    assert rep['reprojection_rms_px'] < 0.5
+    if gcps:
+        assert h <= 1.5 * sk.gsd_m and v <= 2.5 * sk.gsd_m
+    else:
+        assert cam <= 0.03 and h <= 1.0 * sk.gsd_m and v <= 1.5 * sk.gsd_m
+
+
+def test_georeference_waits_for_a_turn_and_report_files(world, tmp_path):
+    cfg, w = world
+    sk = simulate_keyframes(cfg, world=w)
+    at = IncrementalAT(sk.camera, IncrementalOptions(lever_arm_cam_m=tuple(sk.lever_arm_cam_m)),
+                       origin=sk.origin, control=sk.control)
+    georef_at = None
+    for i, r in enumerate(sk.records):
+        at.add_keyframe(r)
+        if at.georeferenced and georef_at is None:
+            georef_at = i
+    C = sk.true_map_T_cam[:georef_at + 1, :3, 3]
+    sv = np.linalg.svd(C - C.mean(0), compute_uv=False)
+    print(f'georeferenced at keyframe {georef_at}; spread of the centres then {sv.round(2)}')
+    assert georef_at is not None and sv[1] > 0.05 * sv[0]   # not on the straight first line
+    C0 = sk.true_map_T_cam[:5, :3, 3]
+    assert np.linalg.svd(C0 - C0.mean(0), compute_uv=False)[1] < 0.05 * 8
+    # Bounded work: the window adjusts at most window_size keyframes.
+    assert max(h.window_size for h in at.history if h.status != 'initialised') <= 10
+    rep = build_report(at, assumptions=['test'], gsd_m=sk.gsd_m)
+    md, js = write_report(rep, tmp_path)
+    doc = json.loads(js.read_text())
+    assert doc['check']['rmse']['n'] == 4 and len(doc['per_image']) == len(sk.records)
+    assert 'Check points' in md.read_text() and 'CHK01' in markdown(rep)
+
+
+def test_bad_keyframe_raises(world):
+    cfg, w = world
+    at = IncrementalAT(cfg.camera())
+    with pytest.raises(DataError):
+        at.add_keyframe(KeyframeRecord(0, np.arange(5), np.zeros((4, 2))))
