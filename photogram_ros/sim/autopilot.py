@@ -51,14 +51,12 @@ class AutopilotLink:
         self.base_enu = np.asarray(base_station_enu_m, float)
         self._ap = mavlink2.MAVLink(None, srcSystem=AUTOPILOT_SYSID, srcComponent=AUTOPILOT_COMPID)
         self._gimbal = mavlink2.MAVLink(None, srcSystem=AUTOPILOT_SYSID, srcComponent=GIMBAL_COMPID)
-        self.packets: list[Packet] = []
+        self._queued = []   # (t_send, t_arrive, sender, message): packed in send order at the end
         self._img_idx = 0
 
     def _emit(self, mav, msg, t_send_unix_s: float) -> None:
-        data = msg.pack(mav)
-        mav.seq = (mav.seq + 1) % 256
         latency = 0.004 + self.rng.exponential(0.003)
-        self.packets.append(Packet(t_send_unix_s + latency, data, msg.get_type()))
+        self._queued.append((t_send_unix_s, t_send_unix_s + latency, mav, msg))
 
     def _boot_ms(self, t: float) -> int:
         return int(self.clock.boot_s(t) * 1000.0)
@@ -150,7 +148,14 @@ class AutopilotLink:
         return idx
 
     def sorted_packets(self) -> list[Packet]:
-        return sorted(self.packets, key=lambda p: p.t_unix_s)
+        """Packets in arrival order, with sequence numbers counted in send order as a real link does."""
+        packets, last = [], -np.inf
+        for t_send, t_arrive, mav, msg in sorted(self._queued, key=lambda q: q[0]):
+            data = msg.pack(mav)
+            mav.seq = (mav.seq + 1) % 256
+            last = max(t_arrive, last + 1e-6)   # a serial link delays packets but never reorders them
+            packets.append(Packet(last, data, msg.get_type()))
+        return packets
 
 
 def write_tlog(path, packets: list[Packet]) -> None:
