@@ -6,10 +6,14 @@ Each cell keeps a running mean of position and colour, the number of points and 
 contributed, and the running variance of z (Chan's parallel update, so one pair's points merge in
 one step).
 
-Outliers are rejected by consistency between pairs, not between points: a pair's mean height in a
-cell must agree with the cell's fused height within max(k * sigma_z, min_tolerance_m). A pair that
-disagrees is counted as rejected in that cell; once the rejections outnumber the pairs that built
-the cell, the cell is rebuilt from the newest pair, so a bad first pair cannot lock a cell forever.
+Outliers are rejected in three steps, all vectorised over the pair's points:
+1. speckle inside the pair: a point farther than max(2.5 sigma, min_tolerance_m) from the mean of
+   its 4x4-cell block (two passes, the second without the first's rejects) is dropped;
+2. consistency between pairs: a point must agree with its cell's fused height (built by the
+   earlier pairs) within max(k_sigma * sigma_z, min_tolerance_m);
+3. a cell where the whole new pair disagrees counts a rejection; once rejections outnumber the
+   pairs that built the cell, the cell is rebuilt from the newest pair, so a bad first pair
+   cannot lock a cell forever.
 
 Memory is bounded by evicting the least recently touched tiles to a store (see io/map_store.py)
 once more than `max_tiles_in_memory` are held; an evicted tile reloads on demand. Without a store
@@ -44,6 +48,7 @@ class FusionConfig:
     max_tiles_in_memory: int = 64
     k_sigma: float = 3.0
     min_tolerance_m: float = 0.30
+    min_confidence: float = 0.3     # points the stereo matcher itself doubts are not fused
 
     def check(self) -> None:
         if not (self.cell_m > 0 and np.isfinite(self.cell_m)):
@@ -90,7 +95,7 @@ class FusionStats:
     points_in: int = 0
     points_fused: int = 0
     points_rejected: int = 0
-    points_invalid: int = 0
+    points_invalid: int = 0          # non-finite or below min_confidence
     cells_replaced: int = 0
     tiles_evicted: int = 0
     tiles_loaded: int = 0
@@ -168,12 +173,18 @@ class Fusion:
         x = np.asarray(points['x'], dtype=np.float64)
         y = np.asarray(points['y'], dtype=np.float64)
         z = np.asarray(points['z'], dtype=np.float64)
+        rgb = np.asarray(points['rgb']) if 'rgb' in names else None
+        conf = np.asarray(points['confidence']) if 'confidence' in names else None
         ok = np.isfinite(x) & np.isfinite(y) & np.isfinite(z)
+        if conf is not None and self.config.min_confidence > 0:
+            ok &= conf >= self.config.min_confidence
         self.stats.clouds += 1
         self.stats.points_in += x.size
         self.stats.points_invalid += int(x.size - ok.sum())
-        if not ok.all():
-            points, x, y, z = points[ok], x[ok], y[ok], z[ok]
+        if not ok.all():   # field by field: indexing the structured array would copy whole records
+            x, y, z = x[ok], y[ok], z[ok]
+            rgb = rgb[ok] if rgb is not None else None
+            conf = conf[ok] if conf is not None else None
         if x.size == 0:
             return 0
         T = cfg.tile_cells
@@ -200,20 +211,22 @@ class Fusion:
         ckey = (np.cumsum(present) - 1)[key]
         nbins = cell_of_bin.size
 
-        # (1) Speckle inside the pair: a point far from its 4x4-cell block is dropped.
-        bs = 4
-        TB = -(-T // bs)
-        bkey = tid * (TB * TB) + (ly // bs) * TB + lx // bs
-        # Two passes: the second takes block statistics without the first pass's rejects, so a
-        # pair of large outliers in one block cannot hide each other by inflating its spread.
+        # (1) Speckle inside the pair: a point far from the mean of its block of cells is dropped,
+        # at two block sizes (4 and 16 cells) so small blobs of mismatches go as well as single
+        # points. Two passes per size: the second takes block statistics without the first's
+        # rejects, so large outliers cannot hide each other by inflating the spread. Across a
+        # roof edge the spread is large and the gate lenient, so real steps survive.
         keep = np.ones(x.size, dtype=bool)
-        nb = int(bkey.max()) + 1
-        for _ in range(2):
-            bc = np.bincount(bkey, keep, minlength=nb)
-            bm = np.bincount(bkey, z * keep, minlength=nb) / np.maximum(bc, 1)
-            bv = np.bincount(bkey, z * z * keep, minlength=nb) / np.maximum(bc, 1) - bm * bm
-            bsd = np.sqrt(np.maximum(bv, 0.0))
-            keep = (np.abs(z - bm[bkey]) <= np.maximum(2.5 * bsd[bkey], cfg.min_tolerance_m)) | (bc[bkey] < 4)
+        for bs in (4, 16):
+            TB = -(-T // bs)
+            bkey = tid * (TB * TB) + (ly // bs) * TB + lx // bs
+            nb = int(bkey.max()) + 1
+            for _ in range(2):
+                bc = np.bincount(bkey, keep, minlength=nb)
+                bm = np.bincount(bkey, z * keep, minlength=nb) / np.maximum(bc, 1)
+                bv = np.bincount(bkey, z * z * keep, minlength=nb) / np.maximum(bc, 1) - bm * bm
+                bsd = np.sqrt(np.maximum(bv, 0.0))
+                keep &= (np.abs(z - bm[bkey]) <= np.maximum(2.5 * bsd[bkey], cfg.min_tolerance_m)) | (bc[bkey] < 4)
 
         # (2) Consistency with the earlier pairs: gate each point against its fused cell.
         hit = np.flatnonzero(np.bincount(tid, minlength=len(tile_keys)))
@@ -257,8 +270,6 @@ class Fusion:
                 takeover[disputed_c[d_tile == h][over]] = True
                 self.stats.cells_replaced += int(over.sum())
         use = good | (gated & takeover[ckey])
-        rgb = np.asarray(points['rgb']) if 'rgb' in names else None
-        conf = np.asarray(points['confidence']) if 'confidence' in names else None
         if not use.all():
             x, y, z, ckey = x[use], y[use], z[use], ckey[use]
             rgb = rgb[use] if rgb is not None else None

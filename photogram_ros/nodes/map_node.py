@@ -59,6 +59,8 @@ class MapParams:
     k_sigma: float = param(3.0, 'A pair disagreeing with a cell by more than k sigma (and min_tolerance_m) '
                                 'is rejected there', min=0.5, max=100.0)
     min_tolerance_m: float = param(0.3, 'Smallest height disagreement that rejects a pair, m', min=0.0, max=1e3)
+    min_confidence: float = param(0.3, 'Points with a lower stereo confidence are not fused (0 keeps all)',
+                                  min=0.0, max=1.0)
     flush_interval_s: float = param(1.0, 'Changed cells are written and fsynced this often, s (the most a '
                                          'crash can lose)', min=0.05, max=600.0)
     use_origin_params: bool = param(False, 'Take the map origin from origin_* instead of /map/georeference')
@@ -88,7 +90,7 @@ class MapNode(Node):
         except PhotogramError as exc:
             raise ConfigError(f'map_node: {exc}') from exc
         self.fusion = Fusion(FusionConfig(p.cell_m, p.tile_cells, p.max_tiles_in_memory, p.k_sigma,
-                                          p.min_tolerance_m), self.store)
+                                          p.min_tolerance_m, p.min_confidence), self.store)
         if p.use_origin_params:
             self._set_origin(LocalFrame(p.origin_lat_deg, p.origin_lon_deg, p.origin_h_m))
         self._stream_pending: set = set(self.store.tile_keys())   # a restarted map streams what it has
