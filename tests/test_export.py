@@ -199,3 +199,45 @@ def test_export_command_writes_georeferenced_ortho(rendered, tmp_path):
             errs.append(np.hypot(enu[0] - t.center_enu[0], enu[1] - t.center_enu[1]))
     print(f'export ortho target errors / GSD: {np.round(np.array(errs) / cfg.gsd_m, 2).tolist()}')
     assert len(errs) >= len(targets) - 1 and max(errs) <= 2 * cfg.gsd_m
+
+
+def test_stereo_clouds_fused_then_ortho_on_the_fused_dsm(rendered):
+    """The real chain on simulator frames with true poses: stereo pairs -> fusion -> DSM -> ortho."""
+    from photogram_ros.core.fusion import Fusion, FusionConfig
+    from photogram_ros.core.raster import dsm_from_points, orthomosaic
+    from photogram_ros.core.stereo import StereoParams, stereo_pair
+    cfg, terrain, targets, kfs = rendered
+    gsd = cfg.gsd_m
+    ground = float(np.median(terrain.dem.data))
+    f = Fusion(FusionConfig(0.08))
+    pairs = 0
+    for a, b in zip(kfs[:-1], kfs[1:]):
+        if np.linalg.norm(a.map_T_cam[:3, 3] - b.map_T_cam[:3, 3]) > 15:   # a turn between lines
+            continue
+        res = stereo_pair(a.camera, a.image, a.map_T_cam, b.image, b.map_T_cam, StereoParams(),
+                          (cfg.altitude_m - ground - 15, cfg.altitude_m - ground + 15))
+        if res.ok:
+            f.add(res.cloud)
+            pairs += 1
+    assert pairs >= 4
+    p = f.points()
+    dz = np.abs(p['z'] - terrain.height_at(p['x'], p['y']))
+    dsm = dsm_from_points(p['x'], p['y'], p['z'], 2 * gsd, weights=p['n'])
+    X, Y = dsm.cell_centers()
+    e = (dsm.data - terrain.height_at(X, Y))[dsm.valid()]
+    print(f'stereo -> map: {pairs} pairs, fused cells |dz| median {np.median(dz) / gsd:.2f} GSD, '
+          f'p90 {np.percentile(dz, 90) / gsd:.2f} GSD; DSM RMSE {np.sqrt(np.mean(e ** 2)) / gsd:.2f} GSD, '
+          f'median {np.median(np.abs(e)) / gsd:.2f} GSD, p99 {np.percentile(np.abs(e), 99) / gsd:.2f} GSD')
+    assert np.median(dz) <= gsd and np.percentile(dz, 90) <= 3 * gsd
+    assert np.percentile(np.abs(e), 99) <= 3 * gsd
+    ortho = orthomosaic(dsm, kfs, res_m=0.08)
+    found = _detect_centres(ortho.data[..., :3])
+    errs = []
+    for t in targets:
+        if t.marker_id in found:
+            u, v = found[t.marker_id]
+            errs.append(np.hypot(ortho.x0_m + (u + 0.5) * ortho.res_m - t.center_enu[0],
+                                 ortho.y1_m - (v + 0.5) * ortho.res_m - t.center_enu[1]))
+    print(f'ortho on the stereo DSM: {len(errs)}/{len(targets)} targets, errors / GSD '
+          f'{np.round(np.array(errs) / gsd, 2).tolist()}')
+    assert len(errs) >= len(targets) - 1 and max(errs) <= 2 * gsd
