@@ -93,3 +93,29 @@ def test_umeyama_and_ransac_recover_a_similarity_with_outliers():
     # A straight line leaves the roll about it free: reported, not guessed.
     line = np.column_stack([np.linspace(0, 10, 10), np.zeros(10), np.zeros(10)])
     assert similarity_ransac(line, truth.apply(line), 0.2).status == 'degenerate'
+
+
+def test_flat_ground_picks_the_right_planar_twin():
+    """Nearly flat ground (10 cm relief at 40 m): E has a twin; the homography check decides."""
+    rng = np.random.default_rng(11)
+    T1, T2, X, x1, x2 = _aerial_pair(rng, relief_m=0.1)
+    res = relative_pose(x1, x2, threshold_n=1.5 / 520)
+    true = invert_T(T2) @ T1
+    t_true = true[:3, 3] / np.linalg.norm(true[:3, 3])
+    rot_err = np.degrees(angle_between_R(res.cam2_T_cam1[:3, :3], true[:3, :3]))
+    print(f'flat ground: rotation error {rot_err:.3f} deg, baseline direction cos {res.cam2_T_cam1[:3, 3] @ t_true:.4f}')
+    assert res.ok and rot_err < 0.3 and res.cam2_T_cam1[:3, 3] @ t_true > 0.99
+
+
+def test_similarity_on_a_straight_line_takes_the_roll_from_nadir_cameras():
+    from photogram_ros.core.similarity import similarity_on_line
+    nadir = np.diag([1.0, -1.0, -1.0])
+    poses = [make_T(nadir @ R_from_rotvec([0.01 * k, -0.01, 0.0]), [0.02 * k, 5.0 * k, 40.0]) for k in range(8)]
+    for rv in ([0.3, -1.0, 2.0], [0.0, 0.0, np.pi], [0.0, 0.0, 0.0], [np.pi, 0.0, 0.0]):
+        s = Similarity(0.2, R_from_rotvec(rv), np.array([1.0, 2.0, 3.0]))
+        src = np.array([s.apply_pose(T) for T in poses])
+        est = similarity_on_line(src[:, :3, 3], np.array([T[:3, 3] for T in poses]), src[:, :3, 2])
+        assert np.linalg.det(est.R) > 0.99
+        back = est.apply_pose(src[3])
+        assert np.linalg.norm(back[:3, 3] - poses[3][:3, 3]) < 0.01
+        assert np.degrees(angle_between_R(back[:3, :3], poses[3][:3, :3])) < 1.0

@@ -23,7 +23,7 @@ import numpy as np
 from photogram_ros.core.camera import PinholeCamera
 from photogram_ros.core.geodesy import LocalFrame
 from photogram_ros.core.rotations import invert_T, make_T
-from photogram_ros.core.similarity import similarity_ransac
+from photogram_ros.core.similarity import similarity_on_line, similarity_ransac, spread
 from photogram_ros.core.two_view import relative_pose
 from photogram_ros.core.window import select_window
 from photogram_ros.errors import DataError
@@ -77,6 +77,7 @@ class IncrementalOptions:
     lever_arm_cam_m: tuple = (0.0, 0.0, 0.0)
     georef_min_keyframes: int = 4
     georef_min_spread_ratio: float = 0.05
+    assume_nadir: bool = True          # a straight first line georeferences provisionally (see above)
     use_gcps: bool = True
     estimate_gnss_bias: bool = True    # a constant ENU GNSS offset, when >= 3 GCPs make it observable
     bias_iterations: int = 10
@@ -152,6 +153,7 @@ class IncrementalAT:
         self.points: dict[int, np.ndarray] = {}
         self.track_kfs: dict[int, list[int]] = {}    # registered keyframes with an active observation
         self.georeferenced = False
+        self.georef_provisional = False
         self.control = {c.name: c for c in (control or [])}
         self._target_ids: dict[str, int] = {}
         self.lever = np.asarray(self.opt.lever_arm_cam_m, float)
@@ -211,7 +213,7 @@ class IncrementalAT:
             rep = self._register(kf)
             if rep.registered:
                 self._triangulate_new(kf)
-                if not self.georeferenced:
+                if not self.georeferenced or self.georef_provisional:
                     self._try_georeference()
                 rep = self._window_adjust(kf.kid)
         rep.solve_s = time.perf_counter() - t0
@@ -278,11 +280,27 @@ class IncrementalAT:
         if not ok or inl is None or len(inl) < self.opt.min_pnp_inliers:
             return StepReport(kf.kid, False, 'pnp_failed')
         inl = inl.ravel()
-        rvec, tvec = cv2.solvePnPRefineLM(obj[inl], img[inl], np.eye(3), None, rvec, tvec)
-        R, _ = cv2.Rodrigues(rvec)
+        # Over flat ground a minimal PnP sample can land on the mirror-image pose; refining from the
+        # previous keyframe's pose as well and keeping the better-supported answer avoids it.
+        thr = self.opt.pnp_threshold_px / self.camera.fx
+        best = None
+        # The continuation of the previous pose goes first and a jump must win clearly (10 % more
+        # support): the mirror pose fits near-planar ground almost as well.
+        for r0, t0 in ((rvec0, cam_T_map[:3, 3].reshape(3, 1)), (rvec, tvec)):
+            r1, t1 = cv2.solvePnPRefineLM(obj[inl], img[inl], np.eye(3), None, r0.copy(), t0.copy())
+            R1, _ = cv2.Rodrigues(r1)
+            pc = obj @ R1.T + t1.ravel()
+            z = np.where(pc[:, 2] > 1e-9, pc[:, 2], np.nan)
+            e = np.linalg.norm(pc[:, :2] / z[:, None] - img, axis=1)
+            ok = e < thr
+            score = int(ok.sum())
+            if best is None or score > 1.1 * best[0]:
+                best = (score, R1, t1, ok)
+        _, R, tvec, ok = best
+        if ok.sum() < self.opt.min_pnp_inliers:
+            return StepReport(kf.kid, False, 'pnp_failed')
         kf.map_T_cam = invert_T(make_T(R, tvec.ravel()))
-        out = np.ones(n, bool)
-        out[inl] = False
+        out = ~ok
         kf.active[np.flatnonzero(have)[out]] = False
         self.registered.append(kf.kid)
         for t in kf.track_ids[kf.active].tolist():
@@ -384,23 +402,37 @@ class IncrementalAT:
         dst = np.array([self.kfs[k].fix_enu if self.kfs[k].antenna_offset is None
                         else self.kfs[k].fix_enu - self.kfs[k].antenna_offset for k in ks])
         sig = np.sqrt(np.median([np.trace(self.kfs[k].fix_cov) for k in ks]))
-        thr = 4.0 * sig + np.linalg.norm(self.lever) + 0.05
+        sv = spread(dst)
+        # A block made without GNSS drifts in scale along the line: tolerate ~2 % of its extent.
+        thr = 4.0 * sig + np.linalg.norm(self.lever) + 0.05 + 0.02 * 2 * sv[0]
         res = similarity_ransac(src, dst, thr, self.rng,
                                 min_spread_ratio=0.005 if force else self.opt.georef_min_spread_ratio)
-        if not res.ok:
-            return False
+        n_in = int(res.inliers.sum()) if res.ok else len(ks)
+        side = spread(dst[res.inliers])[1] if res.ok else 0.0
         # The turn must be wide against the GNSS noise averaged over the fixes, or the roll about
         # the line is noise (the adjustment that follows refines it, but needs a fair start).
-        n_in = int(res.inliers.sum())
-        side = np.linalg.svd(dst[res.inliers] - dst[res.inliers].mean(0), compute_uv=False)[1] / np.sqrt(n_in)
-        if not force and side < 3.0 * sig / np.sqrt(n_in):
+        if res.ok and (force or side >= 3.0 * sig / np.sqrt(n_in)):
+            s = res.sim
+            provisional = False
+        elif self.georeferenced:
+            return False    # provisional already; wait for the turn
+        elif self.opt.assume_nadir and sv[0] > max(10.0 * sig, 5.0) and len(ks) >= 2 * self.opt.georef_min_keyframes:
+            # Straight line: everything but the roll about it comes from GNSS; the roll from the
+            # near-nadir camera. Provisional until the first turn.
+            s = similarity_on_line(src, dst, np.array([self.kfs[k].map_T_cam[:3, 2] for k in ks]))
+            provisional = True
+        else:
             return False
-        s = res.sim
+        if self.georeferenced:   # provisional -> final: GNSS priors of the whole block fix the roll
+            self.georef_provisional = False
+            self.full_adjustment(iterations=self.opt.full_iterations, rounds=1)
+            return True
         for k in self.registered:
             self.kfs[k].map_T_cam = s.apply_pose(self.kfs[k].map_T_cam)
         for t in list(self.points):
             self.points[t] = s.apply(self.points[t][None])[0]
         self.georeferenced = True
+        self.georef_provisional = provisional
         self.full_adjustment(iterations=self.opt.full_iterations, rounds=1)
         return True
 
@@ -449,6 +481,8 @@ class IncrementalAT:
         uv = prob.obs_uv
         err = np.linalg.norm(self.camera.normalized_to_pixel(pc[:, :2] / z[:, None]) - uv, axis=1)
         bad = ~(err <= self.opt.max_reprojection_px)
+        if res.status == 'failed' or np.median(err[np.isfinite(err)]) > self.opt.max_reprojection_px:
+            bad[:] = False   # not converged: residuals say nothing about outliers yet
         for k, i, s in zip(kid[bad], oi[bad], slot[bad]):
             t = tracks[s]
             if t < 0 and not self._is_check(t):

@@ -110,3 +110,48 @@ def similarity_ransac(src, dst, threshold_m: float, rng: np.random.Generator | N
         best = new
     rms = float(np.sqrt(np.mean(err[best] ** 2)))
     return SimilarityResult('ok', s, best, rms)
+
+
+def similarity_on_line(src: np.ndarray, dst: np.ndarray, view_dirs_src: np.ndarray,
+                       down_dst=(0.0, 0.0, -1.0)) -> Similarity:
+    """Similarity for (nearly) collinear points: scale, translation and line direction from the
+    points, the roll about the line from the assumption that the cameras look down on average.
+
+    `view_dirs_src`: optical axes of the cameras in the source frame. A provisional answer for a
+    straight first flight line; the first turn makes the full similarity observable.
+    """
+    src = np.asarray(src, float)
+    dst = np.asarray(dst, float)
+    ms, md = src.mean(0), dst.mean(0)
+    _, ss, Vs = np.linalg.svd(src - ms, full_matrices=False)
+    _, sd, Vd = np.linalg.svd(dst - md, full_matrices=False)
+    ds, dd = Vs[0], Vd[0]
+    if np.corrcoef((src - ms) @ ds, (dst - md) @ dd)[0, 1] < 0:
+        dd = -dd
+    scale = float(sd[0] / ss[0])
+    # Minimal rotation taking ds onto dd.
+    v = np.cross(ds, dd)
+    c = float(ds @ dd)
+    vx = np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
+    if c > -0.999:
+        R0 = np.eye(3) + vx + vx @ vx / (1.0 + c)
+    else:   # opposite directions: half a turn about any axis perpendicular to ds
+        w = np.cross(ds, [1.0, 0.0, 0.0] if abs(ds[0]) < 0.9 else [0.0, 1.0, 0.0])
+        w /= np.linalg.norm(w)
+        R0 = 2.0 * np.outer(w, w) - np.eye(3)
+        if c < 1.0 - 1e-12 and np.linalg.norm(R0 @ ds - dd) > 1e-6:
+            # Not exactly opposite: finish with the small rotation from R0 ds onto dd.
+            d1 = R0 @ ds
+            v1 = np.cross(d1, dd)
+            vx1 = np.array([[0, -v1[2], v1[1]], [v1[2], 0, -v1[0]], [-v1[1], v1[0], 0]])
+            R0 = (np.eye(3) + vx1 + vx1 @ vx1 / (1.0 + float(d1 @ dd))) @ R0
+    a = R0 @ np.mean(view_dirs_src, axis=0)
+    g = np.asarray(down_dst, float)
+    # Roll theta about dd maximising g . Rot(dd, theta) a (Rodrigues, closed form).
+    p = a - dd * (dd @ a)
+    q = np.cross(dd, a)
+    theta = np.arctan2(g @ q, g @ p)
+    K = np.array([[0, -dd[2], dd[1]], [dd[2], 0, -dd[0]], [-dd[1], dd[0], 0]])
+    Rr = np.eye(3) + np.sin(theta) * K + (1 - np.cos(theta)) * K @ K
+    R = Rr @ R0
+    return Similarity(scale, R, md - scale * R @ ms)

@@ -107,6 +107,14 @@ def relative_pose(xn1, xn2, threshold_n: float = 1e-3, min_inliers: int = 15) ->
     second = sorted(counts)[-2]
     if n_front < min_inliers or second > 0.5 * n_front:
         return TwoViewResult('degenerate', E=E, inliers=inl)
+    # Flat ground: E is not unique (the planar twofold ambiguity), and the five-point solver may
+    # pick the wrong twin. When a homography explains the matches, decide with it instead: of its
+    # decompositions keep the one whose ground normal faces the camera (aerial view of the ground).
+    planar = _planar_pose(xn1[inl], xn2[inl], threshold_n)
+    if planar is not None:
+        R, t = planar
+        X, z1, z2 = triangulate_two_view(R, t, xn1[inl], xn2[inl])
+        front = (z1 > 0) & (z2 > 0)
     # The RANSAC winner comes from a minimal sample: refine on every inlier.
     sel = np.flatnonzero(inl)[front]
     R, t = refine_pose_sampson(R, t, xn1[sel], xn2[sel])
@@ -161,3 +169,28 @@ def refine_pose_sampson(R: np.ndarray, t: np.ndarray, xn1: np.ndarray, xn2: np.n
 
     sol = least_squares(fun, np.zeros(5), method='lm', xtol=1e-12, ftol=1e-12)
     return unpack(sol.x)
+
+
+def _planar_pose(xn1, xn2, threshold_n, min_ratio: float = 0.9):
+    """(R, t) from a homography when it explains >= min_ratio of the matches, else None."""
+    import cv2
+    H, mask = cv2.findHomography(xn1, xn2, cv2.RANSAC, threshold_n)
+    if H is None or mask.mean() < min_ratio:
+        return None
+    n_sol, Rs, ts, ns = cv2.decomposeHomographyMat(H, np.eye(3))
+    best = None
+    for R, t, n in zip(Rs, ts, ns):
+        t = t.ravel()
+        if np.linalg.norm(t) < 1e-12:
+            continue
+        t = t / np.linalg.norm(t)
+        X, z1, z2 = triangulate_two_view(R, t, xn1, xn2)
+        front = float(np.mean((z1 > 0) & (z2 > 0)))
+        # The plane's normal in camera 1 along the optical axis means the camera looks at the ground.
+        facing = abs(float(n.ravel()[2]))
+        score = (front > 0.9, facing)
+        if best is None or score > best[0]:
+            best = (score, R, t)
+    if best is None or not best[0][0]:
+        return None
+    return best[1], best[2]

@@ -56,15 +56,17 @@ def simulate_keyframes(cfg: SimConfig, keyframe_interval_s: float = 1.0, points_
     bad_tracks = rng.choice(n_pts, n_bad, replace=False) if n_bad else np.zeros(0, int)
     is_bad = np.zeros(n_pts, bool)
     is_bad[bad_tracks] = True
-    gnss = GnssErrorModel(GnssScript(gnss_mode or cfg.gnss_mode), rng)
+    # GNSS errors from their own stream: the same receiver realization whatever the image set-up.
+    gnss = GnssErrorModel(GnssScript(gnss_mode or cfg.gnss_mode), np.random.default_rng([cfg.seed, 2]))
     lever = np.asarray(cfg.lever_arm_frd_m, float)
     records, poses = [], []
     for t in times:
         st = flight.state(float(t))
         T = make_T(st.map_R_cam, st.pos_enu)
         poses.append(T)
-        uv, front = cam.project(transform_points(invert_T(T), pts))
-        vis = front & cam.in_image(uv, margin_px=5) & (rng.random(n_pts) < detect_prob)
+        pc = transform_points(invert_T(T), pts)
+        uv, front = cam.project(pc)
+        vis = front & cam.in_image(uv, margin_px=5) & _in_fov(cam, pc) & (rng.random(n_pts) < detect_prob)
         ids = np.flatnonzero(vis)
         obs = uv[ids] + rng.normal(0.0, pixel_sigma, (len(ids), 2))
         # A gross outlier: the track jumped to another feature somewhere in the image.
@@ -95,3 +97,16 @@ def simulate_keyframes(cfg: SimConfig, keyframe_interval_s: float = 1.0, points_
 def _unit(rng, n):
     a = rng.uniform(0, 2 * np.pi, n)
     return np.column_stack([np.cos(a), np.sin(a)])
+
+
+def in_fov(cam: PinholeCamera, points_cam: np.ndarray) -> np.ndarray:
+    """Inside the field of view before distortion: the polynomial folds far-off rays back into the
+    image (k1 < 0), and a real lens never sees those points."""
+    z = np.where(points_cam[:, 2] > 1e-9, points_cam[:, 2], np.nan)
+    u = cam.fx * points_cam[:, 0] / z + cam.cx
+    v = cam.fy * points_cam[:, 1] / z + cam.cy
+    m = 0.15 * max(cam.width, cam.height)
+    return (u > -m) & (u < cam.width + m) & (v > -m) & (v < cam.height + m)
+
+
+_in_fov = in_fov
