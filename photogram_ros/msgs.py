@@ -276,3 +276,60 @@ def orientation_from_imu(msg) -> tuple[np.ndarray, np.ndarray]:
     o = msg.orientation
     return (np.array([o.x, o.y, o.z, o.w], dtype=float),
             np.asarray(msg.orientation_covariance, dtype=float).reshape(3, 3))
+
+
+# --- keyframe features, sparse map, path, georeference (bundle_node) --------------------------------
+
+
+def keyframe_features_msg(stamp_ns: int, track_ids, uv, xn=None, frame_id: str = 'camera_optical') -> PointCloud2:
+    """Per-keyframe observations as a PointCloud2 table: track_id uint32, u, v (pixels), xn, yn."""
+    ids = np.asarray(track_ids).ravel()
+    uv = np.asarray(uv, dtype=float).reshape(-1, 2)
+    xn = np.full_like(uv, np.nan) if xn is None else np.asarray(xn, dtype=float).reshape(-1, 2)
+    arr = np.zeros(len(ids), dtype=[('track_id', np.uint32), ('u', np.float32), ('v', np.float32),
+                                    ('xn', np.float32), ('yn', np.float32)])
+    arr['track_id'], arr['u'], arr['v'], arr['xn'], arr['yn'] = ids, uv[:, 0], uv[:, 1], xn[:, 0], xn[:, 1]
+    return pointcloud2_msg(arr, stamp_ns, frame_id)
+
+
+def keyframe_features_from_msg(msg: PointCloud2) -> tuple[int, np.ndarray, np.ndarray]:
+    """/keyframes/features PointCloud2 -> (stamp_ns, track_ids int64 (K,), uv float64 (K, 2) pixels)."""
+    arr = points_from_pointcloud2(msg)
+    names = arr.dtype.names or ()
+    for f in ('track_id', 'u', 'v'):
+        if f not in names:
+            raise DataError(f'keyframe features need fields track_id, u, v; this cloud has {list(names)}')
+    uv = np.column_stack([arr['u'], arr['v']]).astype(float)
+    if not np.all(np.isfinite(uv)):
+        raise DataError('keyframe features contain non-finite pixel coordinates')
+    return ns_from_time(msg.header.stamp), arr['track_id'].astype(np.int64), uv
+
+
+def sparse_cloud_msg(points_map: np.ndarray, stamp_ns: int, track_ids=None, frame_id: str = 'map') -> PointCloud2:
+    """(N, 3) tie points in map (m) -> PointCloud2 x, y, z float32 (+ track_id uint32)."""
+    p = np.asarray(points_map, dtype=float).reshape(-1, 3)
+    dt = [('x', np.float32), ('y', np.float32), ('z', np.float32)]
+    if track_ids is not None:
+        dt.append(('track_id', np.uint32))
+    arr = np.zeros(len(p), dtype=dt)
+    arr['x'], arr['y'], arr['z'] = p[:, 0], p[:, 1], p[:, 2]
+    if track_ids is not None:
+        arr['track_id'] = np.asarray(track_ids, dtype=np.int64).astype(np.uint32)
+    return pointcloud2_msg(arr, stamp_ns, frame_id)
+
+
+def path_msg(map_T_cams, stamps_ns, stamp_ns: int, frame_id: str = 'map'):
+    """Camera poses (K, 4, 4) with their stamps -> nav_msgs/Path."""
+    from geometry_msgs.msg import PoseStamped
+    from nav_msgs.msg import Path
+    out = Path(header=header(stamp_ns, frame_id))
+    for T, s in zip(map_T_cams, stamps_ns):
+        pw = pose_with_covariance_from_T(T, s, frame_id)
+        out.poses.append(PoseStamped(header=pw.header, pose=pw.pose.pose))
+    return out
+
+
+def georeference_msg(lat_deg: float, lon_deg: float, h_m: float, stamp_ns: int, frame_id: str = 'map') -> NavSatFix:
+    """The geodetic origin of the map frame (ENU tangent at lat/lon, ellipsoidal height) as a NavSatFix."""
+    return navsatfix_msg(stamp_ns, lat_deg, lon_deg, h_m, NavSatStatus.STATUS_FIX, [0.0, 0.0, 0.0],
+                         NavSatFix.COVARIANCE_TYPE_UNKNOWN, frame_id)
