@@ -59,8 +59,12 @@ class TrackerParams:
     klt_levels: int = param(3, 'KLT pyramid levels above the full image', min=0, max=8)
     fb_max_px: float = param(0.5, 'Forward-backward KLT disagreement beyond which a track is dropped, px',
                              min=0.01, max=10.0)
+    klt_err_factor: float = param(2.5, 'Drop tracks whose KLT residual exceeds this times the median (0: off)',
+                                  min=0.0, max=100.0)
+    derotate_deg: float = param(1.0, 'Above this frame-to-frame rotation, KLT is refined on the de-rotated '
+                                'previous image, deg (0: off)', min=0.0, max=90.0)
     ransac_px: float = param(1.0, 'Essential-matrix RANSAC threshold, px (converted with fx)', min=0.05, max=20.0)
-    normalize: str = param('meanstd', 'Photometric normalisation before tracking',
+    normalize: str = param('clahe', 'Photometric normalisation before tracking (CLAHE measured most precise)',
                            choices=('none', 'meanstd', 'clahe'))
     min_contrast_dn: float = param(4.0, 'Frames with a grey-level std below this are unusable (black, '
                                    'white, lens cap), DN', min=0.0, max=100.0)
@@ -256,7 +260,7 @@ class Tracker:
         pts, ids, flow = self._klt(prev.pyr, cur.pyr, prev.pts, prev.ids, self._velocity * dt)
         if len(ids) >= p.recover_min_tracks and flow is not None:
             self._velocity = (flow / dt).astype(np.float32)
-        if self._lost or len(ids) < p.recover_min_tracks:
+        if len(ids) < p.recover_min_tracks:
             self.stats.breaks += 1
             self._break_since_kf = True
             self._break_index = cur.index
@@ -271,21 +275,43 @@ class Tracker:
         cur.pts, cur.ids = self._top_up(cur, pts, ids)
         self._decide(cur)
 
-    def _klt(self, pyr0, pyr1, p0, ids, guess_shift):
-        """KLT pyr0 -> pyr1 with forward-backward and essential-matrix checks."""
+    def _klt_pair(self, img0, img1, p0, guess, levels):
+        """Forward KLT from `guess` and backward check; (p1, ok, residual) for (N, 2) float32 points."""
+        p = self.params
+        flags = cv2.OPTFLOW_USE_INITIAL_FLOW
+        q0 = p0.reshape(-1, 1, 2).astype(np.float32)
+        p1, st, err = cv2.calcOpticalFlowPyrLK(img0, img1, q0, guess.reshape(-1, 1, 2).astype(np.float32),
+                                               winSize=self._win, maxLevel=levels, criteria=self._criteria,
+                                               flags=flags)
+        pb, st2, _ = cv2.calcOpticalFlowPyrLK(img1, img0, p1, q0.copy(), winSize=self._win, maxLevel=levels,
+                                              criteria=self._criteria, flags=flags)
+        p1, pb, err = p1.reshape(-1, 2), pb.reshape(-1, 2), err.ravel()
+        ok = (st.ravel() == 1) & (st2.ravel() == 1) & (np.linalg.norm(pb - p0.reshape(-1, 2), axis=1) < p.fb_max_px)
+        ok &= self.camera.in_image(p1, margin_px=2.0)
+        if ok.sum() > 10 and p.klt_err_factor > 0:
+            # A window whose content changes (an occluding edge sliding over the background) keeps a
+            # large residual: it is not the image of one ground point.
+            ok &= err <= p.klt_err_factor * np.median(err[ok])
+        return p1, ok
+
+    def _klt(self, img0, img1, p0, ids, guess_shift):
+        """KLT img0 -> img1 (de-rotated when the camera turns), FB and essential-matrix checks."""
         if len(p0) == 0:
             return p0, ids, None
         p = self.params
-        p0 = p0.reshape(-1, 1, 2).astype(np.float32)
-        guess = p0 + np.asarray(guess_shift, np.float32).reshape(1, 1, 2)
-        flags = cv2.OPTFLOW_USE_INITIAL_FLOW
-        p1, st, _ = cv2.calcOpticalFlowPyrLK(pyr0, pyr1, p0, guess.copy(), winSize=self._win,
-                                             maxLevel=p.klt_levels, criteria=self._criteria, flags=flags)
-        pb, st2, _ = cv2.calcOpticalFlowPyrLK(pyr1, pyr0, p1, p0.copy(), winSize=self._win,
-                                              maxLevel=p.klt_levels, criteria=self._criteria, flags=flags)
-        p0, p1, pb = p0.reshape(-1, 2), p1.reshape(-1, 2), pb.reshape(-1, 2)
-        ok = (st.ravel() == 1) & (st2.ravel() == 1) & (np.linalg.norm(pb - p0, axis=1) < p.fb_max_px)
-        ok &= self.camera.in_image(p1, margin_px=2.0)
+        p0 = p0.reshape(-1, 2).astype(np.float32)
+        p1, ok = self._klt_pair(img0, img1, p0, p0 + np.asarray(guess_shift, np.float32), p.klt_levels)
+        if ok.sum() >= 10 and p.derotate_deg > 0:
+            A, _ = cv2.estimateAffinePartial2D(p0[ok], p1[ok], method=cv2.RANSAC, ransacReprojThreshold=3.0)
+            if A is not None and (abs(np.degrees(np.arctan2(A[1, 0], A[0, 0]))) > p.derotate_deg
+                                  or abs(np.hypot(A[0, 0], A[1, 0]) - 1.0) > 0.02):
+                # KLT fits translations only: under rotation its estimate drifts coherently, frame
+                # after frame. Tracking from the previous image turned onto this one removes that.
+                h, w = img1.shape[:2]
+                warped = cv2.warpAffine(img0, A, (w, h), flags=cv2.INTER_LINEAR)
+                q0 = p0 @ A[:, :2].T.astype(np.float32) + A[:, 2].astype(np.float32)
+                p1, ok2 = self._klt_pair(warped, img1, q0, np.where(ok[:, None], p1, q0), 1)
+                ok = ok2
         p0, p1, ids = p0[ok], p1[ok], ids[ok]
         keep = self._epipolar_inliers(p0, p1)
         p0, p1, ids = p0[keep], p1[keep], ids[keep]
@@ -376,27 +402,15 @@ class Tracker:
         guess = guess[inside].astype(np.float32)
         ids, xn_kf = kf.frame.ids[inside], kf.xn[inside]
         # KLT warped -> current from the warped positions (pure parallax residual left to find).
-        pts, ids_ok, _ = self._klt_from(warped, cur.pyr, guess, ids)
+        pts, ok = self._klt_pair(warped, cur.pyr, guess, guess, 2)
+        pts, ids_ok = pts[ok], ids[ok]
         if len(ids_ok) < 8:
             return None
-        keep_rows = np.isin(ids, ids_ok)
-        keep = self._essential_inliers(xn_kf[keep_rows], pts)
+        keep = self._essential_inliers(xn_kf[ok], pts)
         pts, ids_ok = pts[keep], ids_ok[keep]
         if len(ids_ok) < min(self.params.recover_min_tracks, 15):
             return None
         return pts.astype(np.float32), ids_ok
-
-    def _klt_from(self, pyr0, pyr1, p0, ids):
-        p = self.params
-        p0 = p0.reshape(-1, 1, 2).astype(np.float32)
-        p1, st, _ = cv2.calcOpticalFlowPyrLK(pyr0, pyr1, p0, p0.copy(), winSize=self._win, maxLevel=2,
-                                             criteria=self._criteria, flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
-        pb, st2, _ = cv2.calcOpticalFlowPyrLK(pyr1, pyr0, p1, p0.copy(), winSize=self._win, maxLevel=2,
-                                              criteria=self._criteria, flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
-        p0, p1, pb = p0.reshape(-1, 2), p1.reshape(-1, 2), pb.reshape(-1, 2)
-        ok = (st.ravel() == 1) & (st2.ravel() == 1) & (np.linalg.norm(pb - p0, axis=1) < p.fb_max_px)
-        ok &= self.camera.in_image(p1, margin_px=2.0)
-        return p1[ok], ids[ok], None
 
     def _essential_inliers(self, xn0, p1) -> np.ndarray:
         n = len(p1)
