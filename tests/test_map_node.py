@@ -228,3 +228,44 @@ def test_origin_from_georeference_topic(rclpy_context, tmp_path):
         ex.shutdown()
         node.destroy_node()
         peer.destroy_node()
+
+
+@pytest.mark.parametrize('sig', [signal.SIGINT, signal.SIGTERM])
+def test_sigint_and_sigterm_flush_everything(rclpy_context, tmp_path, sig):
+    from rclpy.node import Node
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+    from sensor_msgs.msg import PointCloud2
+    from photogram_ros import msgs
+    from photogram_ros.core.fusion import Fusion, FusionConfig
+    from photogram_ros.io.map_store import MapStore
+
+    map_dir = tmp_path / 'map'
+    # A flush interval far longer than the test: only the shutdown path can have written the map.
+    cmd = [sys.executable, '-m', 'photogram_ros.nodes.map_node', '--ros-args', '-p', f'map_dir:={map_dir}',
+           '-p', 'flush_interval_s:=600.0']
+    proc = subprocess.Popen(cmd, cwd=ROOT, env=dict(os.environ), stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    try:
+        peer = Node('stop_feeder', context=rclpy_context)
+        pub = peer.create_publisher(PointCloud2, '/map/dense_cloud',
+                                    QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE))
+        deadline = time.monotonic() + 20
+        while pub.get_subscription_count() == 0 and time.monotonic() < deadline:
+            time.sleep(0.05)
+        rng = np.random.default_rng(6)
+        clouds = [pair_cloud(rng, surface, 0.0, 14.0 * k, 8.0, 6.0, 120.0, 0.02) for k in range(3)]
+        for k, c in enumerate(clouds):
+            pub.publish(msgs.pointcloud2_msg(c, k, 'map'))
+        assert _diag_clouds(rclpy_context, 20.0, len(clouds)) >= len(clouds)
+        proc.send_signal(sig)
+        proc.wait(20)
+        assert proc.returncode == 0, proc.stderr.read().decode()[-2000:]
+        peer.destroy_node()
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    pts = Fusion(FusionConfig(0.08, 256), MapStore(map_dir)).points()
+    want = set()
+    for c in clouds:
+        want |= set(zip(np.floor(c['x'] / 0.08).astype(int).tolist(), np.floor(c['y'] / 0.08).astype(int).tolist()))
+    assert set(zip(pts['ix'].tolist(), pts['iy'].tolist())) == want
