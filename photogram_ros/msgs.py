@@ -333,3 +333,37 @@ def georeference_msg(lat_deg: float, lon_deg: float, h_m: float, stamp_ns: int, 
     """The geodetic origin of the map frame (ENU tangent at lat/lon, ellipsoidal height) as a NavSatFix."""
     return navsatfix_msg(stamp_ns, lat_deg, lon_deg, h_m, NavSatStatus.STATUS_FIX, [0.0, 0.0, 0.0],
                          NavSatFix.COVARIANCE_TYPE_UNKNOWN, frame_id)
+
+
+# --- keyframe features (tracker -> bundle adjuster) ---------------------------------------------
+
+
+def keyframe_features_msg(observations: np.ndarray, stamp_ns: int, frame_id: str = 'camera_optical') -> PointCloud2:
+    """Keyframe observation table (core.tracker.FEATURE_DTYPE: track_id uint32, u, v, xn, yn) -> PointCloud2.
+
+    Stamp it exactly like the keyframe image: subscribers pair the two by header stamp.
+    """
+    names = observations.dtype.names or ()
+    missing = [n for n in ('track_id', 'u', 'v', 'xn', 'yn') if n not in names]
+    if missing:
+        raise DataError(f'keyframe features lack the fields {missing}; build them with core.tracker.FEATURE_DTYPE')
+    return pointcloud2_msg(observations, stamp_ns, frame_id)
+
+
+def features_from_keyframe_msg(msg: PointCloud2) -> np.ndarray:
+    """PointCloud2 of keyframe features -> array of core.tracker.FEATURE_DTYPE (float32 fields widened)."""
+    from photogram_ros.core.tracker import FEATURE_DTYPE
+    pts = points_from_pointcloud2(msg)
+    missing = [n for n in FEATURE_DTYPE.names if n not in (pts.dtype.names or ())]
+    if missing:
+        raise DataError(f'PointCloud2 is not a keyframe feature table: fields {missing} are missing')
+    out = np.empty(len(pts), FEATURE_DTYPE)
+    for n in FEATURE_DTYPE.names:
+        out[n] = pts[n]
+    return out
+
+
+def navsatfix_from_gps_fix(fix, frame_id: str = 'gps') -> NavSatFix:
+    """core.keyframes.GpsFix -> NavSatFix (e.g. the fix interpolated to a keyframe's stamp)."""
+    return navsatfix_msg(fix.stamp_ns, fix.lat_deg, fix.lon_deg, fix.h_m, fix.status, fix.covariance_enu_m2,
+                         fix.covariance_type, frame_id)
