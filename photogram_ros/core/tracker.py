@@ -227,6 +227,12 @@ class Tracker:
         self._prev = cur
         return self._release(stamp_ns)
 
+    def current_tracks(self) -> tuple[np.ndarray, np.ndarray]:
+        """(N, 2) pixel positions and (N,) track ids in the last tracked frame (for debug drawing)."""
+        if self._prev is None:
+            return np.empty((0, 2), np.float32), np.empty(0, np.uint32)
+        return self._prev.pts.copy(), self._prev.ids.copy()
+
     def flush(self) -> list[Keyframe]:
         """At the end of the stream: emit the keyframes still waiting for a GPS fix."""
         out = [self._finish(k) for k in self._pending]

@@ -1,0 +1,252 @@
+"""tracker_node: camera frames + camera_info + GPS fixes in, mapping keyframes out.
+
+Subscribes `<image_topic>` (sensor_msgs/Image) and `<image_topic>/compressed` (CompressedImage),
+`camera_info_topic` and `fix_topic`. Publishes per keyframe, all with the keyframe image's stamp:
+/keyframes/image (Image bgr8), /keyframes/features (PointCloud2: track_id uint32, u, v, xn, yn
+float64; see core/tracker.py), /keyframes/fix (NavSatFix interpolated to the stamp, when GPS has
+one), optionally /tracker/debug_image, and /diagnostics.
+
+Frames go into a bounded slot and a worker thread tracks them; when frames come faster than the
+worker, the oldest waiting frame is dropped and counted, so the tracker never falls behind.
+A missing or inconsistent calibration is reported on /diagnostics as an error and the frames are
+not used until a good camera_info (or calibration_file) is there; the node stays up.
+"""
+
+from __future__ import annotations
+
+import sys
+import threading
+import time
+from collections import deque
+from dataclasses import dataclass
+
+import numpy as np
+import rclpy
+from rclpy.node import Node
+from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+from sensor_msgs.msg import CameraInfo, CompressedImage, Image, NavSatFix, PointCloud2
+
+from photogram_ros import msgs
+from photogram_ros.core.camera import load_calibration
+from photogram_ros.core.keyframes import GpsFix
+from photogram_ros.core.tracker import Tracker, TrackerParams
+from photogram_ros.errors import CalibrationError, ConfigError, PhotogramError
+from photogram_ros.nodes.diagnostics import ERROR, Diagnostics
+from photogram_ros.nodes.ros_params import declare
+from photogram_ros.params import param
+
+
+@dataclass
+class TrackerNodeParams(TrackerParams):
+    image_topic: str = param('/camera/image_raw', 'Raw image topic; "<topic>/compressed" is subscribed too')
+    camera_info_topic: str = param('/camera/camera_info', 'CameraInfo topic (ignored with calibration_file)')
+    fix_topic: str = param('/gps/fix', 'NavSatFix topic interpolated to keyframe stamps')
+    calibration_file: str = param('', 'Calibration YAML (ROS or OpenCV layout) used instead of camera_info')
+    queue_size: int = param(2, 'Frames waiting for the tracker; beyond this the oldest is dropped', min=1,
+                            max=1000)
+    reliable_input: bool = param(False, 'Subscribe images reliably (bag replay) instead of best effort '
+                                 '(sensor-data QoS, matches any camera driver)')
+    publish_debug_image: bool = param(False, 'Publish /tracker/debug_image with the tracks drawn')
+    keyframe_qos_depth: int = param(20, 'History depth of the reliable keyframe publishers', min=1, max=10000)
+
+
+class TrackerNode(Node):
+    def __init__(self, overrides: dict | None = None, **node_kwargs):
+        super().__init__('tracker', **node_kwargs)
+        self.params = p = declare(self, TrackerNodeParams, overrides)
+        self.diag = Diagnostics(self)
+        self.tracker = Tracker(None, TrackerParams(**{k: getattr(p, k) for k in TrackerParams.__dataclass_fields__}))
+        self._camera_from_file = None
+        if p.calibration_file:
+            self._camera_from_file = load_calibration(p.calibration_file)   # bad file: fail at start
+            self.tracker.set_camera(self._camera_from_file)
+        self._cond = threading.Condition()
+        self._track_lock = threading.Lock()   # the worker and flush() both drive the tracker
+        self._frames: deque = deque()
+        self._fixes: deque = deque(maxlen=1000)
+        self._camera_pending = None
+        self._camera_error = 'no camera_info received yet' if self._camera_from_file is None else ''
+        self._stop = False
+        self.keyframes_published = 0
+
+        kf_qos = QoSProfile(depth=p.keyframe_qos_depth, reliability=ReliabilityPolicy.RELIABLE)
+        self.pub_image = self.create_publisher(Image, '/keyframes/image', kf_qos)
+        self.pub_features = self.create_publisher(PointCloud2, '/keyframes/features', kf_qos)
+        self.pub_fix = self.create_publisher(NavSatFix, '/keyframes/fix', kf_qos)
+        self.pub_debug = self.create_publisher(Image, '/tracker/debug_image', 2) if p.publish_debug_image else None
+        img_qos = QoSProfile(depth=10, history=HistoryPolicy.KEEP_LAST,
+                             reliability=ReliabilityPolicy.RELIABLE if p.reliable_input
+                             else ReliabilityPolicy.BEST_EFFORT)
+        self.create_subscription(Image, p.image_topic, self._on_image, img_qos)
+        self.create_subscription(CompressedImage, p.image_topic.rstrip('/') + '/compressed', self._on_image, img_qos)
+        self.create_subscription(CameraInfo, p.camera_info_topic, self._on_camera_info, 10)
+        self.create_subscription(NavSatFix, p.fix_topic, self._on_fix, 50)
+        self._worker = threading.Thread(target=self._run, name='tracker_worker', daemon=True)
+        self._worker.start()
+
+    # --- callbacks (executor thread): cheap, never raise -----------------------------------------
+
+    def _on_image(self, msg) -> None:
+        with self._cond:
+            if len(self._frames) >= self.params.queue_size:
+                self._frames.popleft()
+                self.diag.count('drops')
+            self._frames.append(msg)
+            self._cond.notify()
+        self.diag.count('frames_received')
+
+    def _on_camera_info(self, msg: CameraInfo) -> None:
+        if self._camera_from_file is not None:
+            return
+        try:
+            cam = msgs.camera_from_info(msg)
+        except CalibrationError as exc:
+            self._camera_error = f'camera_info rejected: {exc}'
+            self.diag.problem(self._camera_error, ERROR)
+            return
+        with self._cond:
+            self._camera_pending = cam
+
+    def _on_fix(self, msg: NavSatFix) -> None:
+        try:
+            fix = GpsFix.from_dict(msgs.fix_from_navsatfix(msg))
+        except Exception as exc:   # a malformed fix must not stop the node
+            self.diag.problem(f'bad NavSatFix: {exc}')
+            return
+        with self._cond:
+            self._fixes.append(fix)
+
+    # --- worker ----------------------------------------------------------------------------------
+
+    def _run(self) -> None:
+        while True:
+            with self._cond:
+                while not self._frames and not self._stop:
+                    self._cond.wait(0.5)
+                if self._stop:
+                    return
+                msg = self._frames.popleft()
+                cam, self._camera_pending = self._camera_pending, None
+                fixes = list(self._fixes)
+                self._fixes.clear()
+            try:
+                with self._track_lock:
+                    self._handle(msg, cam, fixes)
+            except Exception as exc:   # the worker must survive anything one frame can do
+                self.diag.problem(f'tracker failed on a frame: {type(exc).__name__}: {exc}', ERROR)
+
+    def _handle(self, msg, cam, fixes) -> None:
+        for f in fixes:
+            self.tracker.add_fix(f)
+        if cam is not None:
+            try:
+                self.tracker.set_camera(cam)
+                self._camera_error = ''
+            except CalibrationError as exc:
+                self._camera_error = f'camera_info rejected: {exc}'
+        if self.tracker.camera is None or self._camera_error:
+            self.diag.count('frames_unused')
+            self.diag.problem(f'frames not used: {self._camera_error or "no calibration"}', ERROR)
+            return
+        stamp_ns = msgs.ns_from_time(msg.header.stamp)
+        try:
+            image = msgs.image_from_msg(msg)
+            t0 = time.perf_counter()
+            kfs = self.tracker.process(image, stamp_ns)
+            dt = time.perf_counter() - t0
+        except CalibrationError as exc:
+            self.diag.count('frames_unused')
+            self.diag.problem(f'frames not used: {exc}', ERROR)
+            return
+        except PhotogramError as exc:
+            self.diag.count('bad_images')
+            self.diag.problem(str(exc))
+            return
+        self.diag.count('frames_tracked')
+        frame_id = msg.header.frame_id or 'camera_optical'
+        for kf in kfs:
+            self._publish_keyframe(kf, frame_id)
+        self._update_diagnostics(dt)
+        if self.pub_debug is not None:
+            self._publish_debug(image, stamp_ns, frame_id)
+
+    def _publish_keyframe(self, kf, frame_id: str) -> None:
+        self.pub_image.publish(msgs.image_msg(kf.image, kf.stamp_ns, frame_id))
+        self.pub_features.publish(msgs.keyframe_features_msg(kf.observations, kf.stamp_ns, frame_id))
+        if kf.fix is not None:
+            self.pub_fix.publish(msgs.navsatfix_from_gps_fix(kf.fix))
+        else:
+            self.diag.count('keyframes_without_fix')
+        self.keyframes_published += 1
+        self.diag.count('keyframes')
+        if kf.break_before:
+            self.diag.problem(f'tracking broke before keyframe {kf.index}'
+                              + (' (bridged by descriptor matching)' if kf.bridged else ' (not bridged: new segment)'))
+
+    def _update_diagnostics(self, dt: float) -> None:
+        s = self.tracker.stats
+        self.diag.set('fps', self.diag.rate_hz('frames_tracked'))
+        self.diag.set('process_ms', dt * 1e3)
+        self.diag.set('tracks_alive', s.tracks_alive)
+        self.diag.set('keyframe_rate_hz', self.diag.rate_hz('keyframes', 30.0))
+        self.diag.set('breaks', s.breaks)
+        self.diag.set('bridged', s.bridged)
+        self.diag.set('gaps', s.gaps)
+        self.diag.set('unusable_frames', s.unusable)
+        self.diag.set('last_overlap', s.last_overlap)
+
+    def _publish_debug(self, image, stamp_ns: int, frame_id: str) -> None:
+        import cv2
+        vis = image.copy() if image.ndim == 3 else cv2.cvtColor(image, cv2.COLOR_GRAY2BGR)
+        pts, ids = self.tracker.current_tracks()
+        for (u, v), i in zip(pts, ids):
+            color = (int(i * 67) % 256, int(i * 151) % 256, 255)
+            cv2.circle(vis, (int(round(u)), int(round(v))), 3, color, 1)
+        self.pub_debug.publish(msgs.image_msg(vis, stamp_ns, frame_id))
+
+    # --- lifecycle -------------------------------------------------------------------------------
+
+    def flush(self, timeout_s: float = 5.0) -> int:
+        """Wait for queued frames, then emit the keyframes still waiting for a fix; returns their count."""
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            with self._cond:
+                if not self._frames:
+                    break
+            time.sleep(0.02)
+        with self._track_lock:
+            kfs = self.tracker.flush()
+        for kf in kfs:
+            self._publish_keyframe(kf, 'camera_optical')
+        return len(kfs)
+
+    def destroy_node(self) -> None:
+        with self._cond:
+            self._stop = True
+            self._cond.notify_all()
+        self._worker.join(timeout=5.0)
+        super().destroy_node()
+
+
+def main(argv=None) -> int:
+    """Console script `tracker_node`."""
+    rclpy.init(args=argv if argv is not None else sys.argv)
+    node = None
+    try:
+        node = TrackerNode()
+        rclpy.spin(node)
+        return 0
+    except (ConfigError, CalibrationError) as exc:
+        print(f'tracker_node: {exc}', file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        return 130
+    finally:
+        if node is not None:
+            node.destroy_node()
+        if rclpy.ok():
+            rclpy.shutdown()
+
+
+if __name__ == '__main__':
+    sys.exit(main())

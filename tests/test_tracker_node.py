@@ -1,0 +1,165 @@
+"""tracker_node over real rclpy topics: the sample bag played in, keyframes + features + fixes out."""
+
+from __future__ import annotations
+
+import threading
+import time
+
+import numpy as np
+import pytest
+
+pytestmark = pytest.mark.ros
+
+
+class Listener:
+    def __init__(self, context):
+        from diagnostic_msgs.msg import DiagnosticArray
+        from rclpy.node import Node
+        from rclpy.qos import QoSProfile, ReliabilityPolicy
+        from sensor_msgs.msg import Image, NavSatFix, PointCloud2
+        self.node = Node('kf_listener', context=context)
+        qos = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
+        self.images, self.features, self.fixes, self.diags = [], [], [], []
+        self.node.create_subscription(Image, '/keyframes/image', self.images.append, qos)
+        self.node.create_subscription(PointCloud2, '/keyframes/features', self.features.append, qos)
+        self.node.create_subscription(NavSatFix, '/keyframes/fix', self.fixes.append, qos)
+        self.node.create_subscription(DiagnosticArray, '/diagnostics', self.diags.append, 50)
+
+
+def _spin(nodes, context):
+    from rclpy.executors import MultiThreadedExecutor
+    ex = MultiThreadedExecutor(num_threads=2, context=context)
+    for n in nodes:
+        ex.add_node(n)
+    t = threading.Thread(target=ex.spin, daemon=True)
+    t.start()
+    return ex, t
+
+
+def test_sample_bag_gives_keyframes_with_matching_stamps(sample_bag, rclpy_context):
+    from photogram_ros.msgs import features_from_keyframe_msg, image_from_msg, ns_from_time
+    from photogram_ros.nodes.player_node import PlayerNode
+    from photogram_ros.nodes.tracker_node import TrackerNode
+    from photogram_ros.sim.truth import GroundTruth
+
+    tracker = TrackerNode(overrides={'reliable_input': True, 'queue_size': 100}, context=rclpy_context)
+    listener = Listener(rclpy_context)
+    player = PlayerNode(overrides={'bag': str(sample_bag), 'rate': 10.0, 'wait_for_subscribers': 3,
+                                   'topics': '/camera/image_raw/compressed,/camera/camera_info,/gps/fix'},
+                        context=rclpy_context)
+    ex, thread = _spin([tracker, listener.node], rclpy_context)
+    try:
+        summary = player.play()
+        assert summary.counts['/camera/image_raw/compressed'] == 76
+        tracker.flush(timeout_s=20.0)
+        deadline = time.monotonic() + 10
+        while time.monotonic() < deadline and (len(listener.features) < tracker.keyframes_published
+                                               or len(listener.images) < tracker.keyframes_published):
+            time.sleep(0.05)
+        counts = tracker.diag.counts()
+        s = tracker.tracker.stats
+        print(f'{tracker.keyframes_published} keyframes from {s.frames} frames, {counts}, {s}')
+        # 3 lines of ~90 m at 80 % overlap of a ~37 m footprint: a keyframe every ~7 m -> dozens.
+        assert s.frames >= 70 and counts.get('drops', 0) == 0
+        assert tracker.keyframes_published >= 20
+        assert len(listener.images) == len(listener.features) == tracker.keyframes_published
+        img_stamps = [ns_from_time(m.header.stamp) for m in listener.images]
+        feat_stamps = [ns_from_time(m.header.stamp) for m in listener.features]
+        assert img_stamps == feat_stamps and img_stamps == sorted(img_stamps)
+        truth = GroundTruth.load(sample_bag)
+        assert all(truth.frame_by_stamp(t, tol_ns=0) is not None for t in img_stamps)
+        fix_stamps = [ns_from_time(m.header.stamp) for m in listener.fixes]
+        assert len(fix_stamps) >= 0.9 * len(img_stamps) and set(fix_stamps) <= set(img_stamps)
+        # Interpolated fix close to the true antenna position (RTK fixed: cm level).
+        f0 = listener.fixes[len(listener.fixes) // 2]
+        enu = truth.origin.geodetic_to_enu(f0.latitude, f0.longitude, f0.altitude)
+        true_ant = truth.frame_by_stamp(ns_from_time(f0.header.stamp), tol_ns=0).antenna_enu
+        assert np.linalg.norm(np.asarray(enu).ravel() - true_ant) < 0.2
+        feats = features_from_keyframe_msg(listener.features[3])
+        img = image_from_msg(listener.images[3])
+        assert img.shape == (480, 640, 3) and len(feats) >= 100
+        assert feats['u'].min() >= 0 and feats['u'].max() < 640 and feats['v'].max() < 480
+        # Consecutive keyframes share tracks (the graph is connected along the flight).
+        a, b = features_from_keyframe_msg(listener.features[3]), features_from_keyframe_msg(listener.features[4])
+        assert len(np.intersect1d(a['track_id'], b['track_id'])) >= 30
+    finally:
+        ex.shutdown()
+        player.destroy_node()
+        tracker.destroy_node()
+        listener.node.destroy_node()
+
+
+def test_bad_calibration_is_a_diagnostics_error_and_node_survives(rclpy_context):
+    from diagnostic_msgs.msg import DiagnosticStatus
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+    from sensor_msgs.msg import CameraInfo, Image
+
+    from photogram_ros import msgs
+    from photogram_ros.core.camera import PinholeCamera
+    from photogram_ros.nodes.tracker_node import TrackerNode
+
+    tracker = TrackerNode(overrides={'reliable_input': True, 'queue_size': 50}, context=rclpy_context)
+    listener = Listener(rclpy_context)
+    pub_img = listener.node.create_publisher(Image, '/camera/image_raw',
+                                             QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE))
+    pub_info = listener.node.create_publisher(CameraInfo, '/camera/camera_info', 10)
+    ex, thread = _spin([tracker, listener.node], rclpy_context)
+    try:
+        rng = np.random.default_rng(1)
+        img = (rng.random((120, 160, 3)) * 255).astype(np.uint8)
+        deadline = time.monotonic() + 5
+        while pub_img.get_subscription_count() == 0 and time.monotonic() < deadline:
+            time.sleep(0.05)
+        pub_img.publish(msgs.image_msg(img, 1_000_000_000))           # no camera_info yet
+        bad = CameraInfo(width=160, height=120, distortion_model='plumb_bob', d=[0.0] * 5,
+                         k=[0.0, 0, 80, 0, 0.0, 60, 0, 0, 1])          # fx = 0: never filled in
+        for _ in range(3):
+            pub_info.publish(bad)
+            time.sleep(0.1)
+        pub_img.publish(msgs.image_msg(img, 2_000_000_000))
+        time.sleep(0.5)
+        good = msgs.camera_info_msg(PinholeCamera(320, 240, 260, 260, 160, 120), 0)   # wrong image size
+        pub_info.publish(good)
+        time.sleep(0.3)
+        pub_img.publish(msgs.image_msg(img, 3_000_000_000))
+        deadline = time.monotonic() + 5
+        while time.monotonic() < deadline and tracker.diag.counts().get('frames_unused', 0) < 3:
+            time.sleep(0.05)
+        counts = tracker.diag.counts()
+        assert counts.get('frames_unused', 0) == 3 and tracker.keyframes_published == 0
+        messages = [p[1] for p in tracker.diag._problems]
+        assert any('no camera_info' in m for m in messages)
+        assert any('focal length' in m for m in messages)
+        assert any('calibration is for 320x240' in m for m in messages)
+        time.sleep(1.2)
+        status = [s for d in listener.diags for s in d.status if s.name.endswith('tracker')]
+        assert status and max(s.level for s in status) == DiagnosticStatus.ERROR
+        # A good calibration for this size: the same node now tracks.
+        pub_info.publish(msgs.camera_info_msg(PinholeCamera(160, 120, 130, 130, 80, 60), 0))
+        time.sleep(0.3)
+        pub_img.publish(msgs.image_msg(img, 4_000_000_000))
+        deadline = time.monotonic() + 5
+        while time.monotonic() < deadline and tracker.diag.counts().get('frames_tracked', 0) < 1:
+            time.sleep(0.05)
+        assert tracker.diag.counts().get('frames_tracked', 0) == 1
+    finally:
+        ex.shutdown()
+        tracker.destroy_node()
+        listener.node.destroy_node()
+
+
+def test_frames_faster_than_the_tracker_are_dropped_oldest_first(rclpy_context):
+    from photogram_ros.core.camera import PinholeCamera
+    from photogram_ros import msgs
+    from photogram_ros.nodes.tracker_node import TrackerNode
+
+    tracker = TrackerNode(overrides={'queue_size': 2}, context=rclpy_context)
+    try:
+        with tracker._track_lock:   # a busy tracker: nothing leaves the queue
+            for k in range(10):
+                tracker._on_image(msgs.image_msg(np.zeros((8, 8), np.uint8), (k + 1) * 1_000_000))
+            kept = [msgs.ns_from_time(m.header.stamp) for m in tracker._frames]
+        assert kept == [9_000_000, 10_000_000] and tracker.diag.counts()['drops'] == 8
+        _ = PinholeCamera
+    finally:
+        tracker.destroy_node()
