@@ -52,7 +52,7 @@ class MavlinkParams:
                          'a serial device (/dev/ttyUSB0, with baud) or a .tlog file; empty = subscribe to '
                          'input_topic (raw bytes, e.g. from a bag)')
     baud: int = param(57600, 'Serial baud rate', min=1200, max=4_000_000)
-    input_topic: str = param('/mavlink/from_fcu', 'Topic of raw MAVLink bytes (std_msgs/UInt8MultiArray) '
+    input_topic: str = param('mavlink/from_fcu', 'Topic of raw MAVLink bytes (std_msgs/UInt8MultiArray) '
                                                   'used when url is empty')
     tlog_rate: float = param(1.0, 'Replay speed of a .tlog url (1 = recorded timing, 0 = as fast as possible)',
                              min=0.0, max=10000.0)
@@ -103,12 +103,12 @@ class MavlinkNode(Node):
                              on_problem=self.diag.problem)
         qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100, reliability=ReliabilityPolicy.RELIABLE)
         self._qos = qos
-        self.pub_fix = self.create_publisher(NavSatFix, '/gps/fix', qos)
-        self.pub_fix_type = self.create_publisher(UInt8, '/gps/fix_type', qos)
+        self.pub_fix = self.create_publisher(NavSatFix, 'gps/fix', qos)
+        self.pub_fix_type = self.create_publisher(UInt8, 'gps/fix_type', qos)
         self.pub_rx: dict = {}
         from sensor_msgs.msg import Imu
-        self.pub_att = self.create_publisher(Imu, '/mavlink/attitude', qos)
-        self.pub_trigger = self.create_publisher(NavSatFix, '/camera/trigger', qos)
+        self.pub_att = self.create_publisher(Imu, 'mavlink/attitude', qos)
+        self.pub_trigger = self.create_publisher(NavSatFix, 'camera/trigger', qos)
         self._att_var = (p.attitude_sigma_rp_rad ** 2, p.attitude_sigma_rp_rad ** 2, p.attitude_sigma_yaw_rad ** 2)
         self._lock = threading.Lock()
         self._stop = threading.Event()
@@ -214,7 +214,7 @@ class MavlinkNode(Node):
 
     def _rx_pub(self, receiver: int):
         if receiver not in self.pub_rx:
-            self.pub_rx[receiver] = self.create_publisher(NavSatFix, f'/gps/fix_{receiver + 1}', self._qos)
+            self.pub_rx[receiver] = self.create_publisher(NavSatFix, f'gps/fix_{receiver + 1}', self._qos)
         return self.pub_rx[receiver]
 
     def _fix_msg(self, fix: gf.Fix) -> NavSatFix:

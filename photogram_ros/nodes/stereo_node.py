@@ -29,11 +29,11 @@ from photogram_ros.nodes.diagnostics import Diagnostics
 from photogram_ros.nodes.ros_params import declare
 from photogram_ros.params import param
 
-TOPIC_IMAGE = '/keyframes/image'
-TOPIC_POSE = '/map/keyframe_pose'
-TOPIC_INFO = '/camera/camera_info'
-TOPIC_CLOUD = '/map/dense_cloud'
-TOPIC_DISPARITY = '/stereo/disparity'
+TOPIC_IMAGE = 'keyframes/image'
+TOPIC_POSE = 'map/keyframe_pose'
+TOPIC_INFO = 'camera/camera_info'
+TOPIC_CLOUD = 'map/dense_cloud'
+TOPIC_DISPARITY = 'stereo/disparity'
 
 
 @dataclass
