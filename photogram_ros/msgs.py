@@ -278,31 +278,7 @@ def orientation_from_imu(msg) -> tuple[np.ndarray, np.ndarray]:
             np.asarray(msg.orientation_covariance, dtype=float).reshape(3, 3))
 
 
-# --- keyframe features, sparse map, path, georeference (bundle_node) --------------------------------
-
-
-def keyframe_features_msg(stamp_ns: int, track_ids, uv, xn=None, frame_id: str = 'camera_optical') -> PointCloud2:
-    """Per-keyframe observations as a PointCloud2 table: track_id uint32, u, v (pixels), xn, yn."""
-    ids = np.asarray(track_ids).ravel()
-    uv = np.asarray(uv, dtype=float).reshape(-1, 2)
-    xn = np.full_like(uv, np.nan) if xn is None else np.asarray(xn, dtype=float).reshape(-1, 2)
-    arr = np.zeros(len(ids), dtype=[('track_id', np.uint32), ('u', np.float32), ('v', np.float32),
-                                    ('xn', np.float32), ('yn', np.float32)])
-    arr['track_id'], arr['u'], arr['v'], arr['xn'], arr['yn'] = ids, uv[:, 0], uv[:, 1], xn[:, 0], xn[:, 1]
-    return pointcloud2_msg(arr, stamp_ns, frame_id)
-
-
-def keyframe_features_from_msg(msg: PointCloud2) -> tuple[int, np.ndarray, np.ndarray]:
-    """/keyframes/features PointCloud2 -> (stamp_ns, track_ids int64 (K,), uv float64 (K, 2) pixels)."""
-    arr = points_from_pointcloud2(msg)
-    names = arr.dtype.names or ()
-    for f in ('track_id', 'u', 'v'):
-        if f not in names:
-            raise DataError(f'keyframe features need fields track_id, u, v; this cloud has {list(names)}')
-    uv = np.column_stack([arr['u'], arr['v']]).astype(float)
-    if not np.all(np.isfinite(uv)):
-        raise DataError('keyframe features contain non-finite pixel coordinates')
-    return ns_from_time(msg.header.stamp), arr['track_id'].astype(np.int64), uv
+# --- sparse map, path, georeference (bundle_node) ---------------------------------------------------
 
 
 def sparse_cloud_msg(points_map: np.ndarray, stamp_ns: int, track_ids=None, frame_id: str = 'map') -> PointCloud2:

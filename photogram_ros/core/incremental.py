@@ -274,9 +274,11 @@ class IncrementalAT:
         prev = self.kfs[self.registered[-1]].map_T_cam
         cam_T_map = invert_T(prev)
         rvec0, _ = cv2.Rodrigues(cam_T_map[:3, :3])
+        # No pose guess inside RANSAC: after a turn the previous pose is far off (and it is tried
+        # separately below anyway).
         ok, rvec, tvec, inl = cv2.solvePnPRansac(
-            obj, img, np.eye(3), None, rvec0.copy(), cam_T_map[:3, 3].reshape(3, 1).copy(), useExtrinsicGuess=True,
-            iterationsCount=200, reprojectionError=self.opt.pnp_threshold_px / self.camera.fx, confidence=0.999)
+            obj, img, np.eye(3), None, iterationsCount=200, flags=cv2.SOLVEPNP_AP3P,
+            reprojectionError=self.opt.pnp_threshold_px / self.camera.fx, confidence=0.999)
         if not ok or inl is None or len(inl) < self.opt.min_pnp_inliers:
             return StepReport(kf.kid, False, 'pnp_failed')
         inl = inl.ravel()
@@ -314,18 +316,33 @@ class IncrementalAT:
         e = np.linalg.norm(proj - uv, axis=1)
         return np.where(np.isfinite(e), e, np.inf)
 
-    def _gather(self, tracks):
-        """Observations of `tracks` in registered keyframes: point slot, keyframe id, obs index."""
+    def _gather(self, tracks, kids=None):
+        """Active observations of `tracks` (in `kids`, default every registered keyframe that sees
+        them): point slot, keyframe id, observation index; vectorised per keyframe."""
+        tr = np.asarray(tracks, dtype=np.int64)
+        if kids is None:
+            ks = set()
+            for t in tracks:
+                ks.update(self.track_kfs.get(int(t), ()))
+            kids = sorted(ks)
+        if not len(tr) or not len(kids):
+            return np.zeros(0, int), np.zeros(0, int), np.zeros(0, int)
+        sorter = np.argsort(tr)
+        tr_sorted = tr[sorter]
         slot, kid, oi = [], [], []
-        for s, t in enumerate(tracks):
-            for k in self.track_kfs.get(t, ()):
-                kf = self.kfs[k]
-                i = kf.index_of[t]
-                if kf.active[i]:
-                    slot.append(s)
-                    kid.append(k)
-                    oi.append(i)
-        return np.array(slot, int), np.array(kid, int), np.array(oi, int)
+        for k in kids:
+            kf = self.kfs[k]
+            pos = np.clip(np.searchsorted(tr_sorted, kf.track_ids), 0, len(tr) - 1)
+            m = kf.active & (tr_sorted[pos] == kf.track_ids)
+            idx = np.flatnonzero(m)
+            slot.append(sorter[pos[idx]])
+            kid.append(np.full(len(idx), k))
+            oi.append(idx)
+        return np.concatenate(slot), np.concatenate(kid), np.concatenate(oi)
+
+    def _poses_of(self, kid: np.ndarray) -> np.ndarray:
+        uk, inv = np.unique(kid, return_inverse=True)
+        return np.array([self.kfs[k].map_T_cam for k in uk]).reshape(-1, 4, 4)[inv]
 
     def _triangulate_tracks(self, tracks: list[int]) -> None:
         if not tracks:
@@ -335,9 +352,10 @@ class IncrementalAT:
             if len(slot) == 0:
                 return
             counts = np.bincount(slot, minlength=len(tracks))
-            Ts = np.array([self.kfs[k].map_T_cam for k in kid])
-            xn = np.array([self.kfs[k].xn[i] for k, i in zip(kid, oi)])
-            uv = np.array([self.kfs[k].uv[i] for k, i in zip(kid, oi)])
+            ks = list(dict.fromkeys(kid.tolist()))     # _gather groups by keyframe, in this order
+            Ts = self._poses_of(kid)
+            xn = np.concatenate([self.kfs[k].xn[oi[kid == k]] for k in ks])
+            uv = np.concatenate([self.kfs[k].uv[oi[kid == k]] for k in ks])
             dirs = np.einsum('nij,nj->ni', Ts[:, :3, :3], np.column_stack([xn, np.ones(len(xn))]))
             X = triangulate_rays(Ts[:, :3, 3], dirs, slot, len(tracks))
             Xo = X[slot]
@@ -375,12 +393,12 @@ class IncrementalAT:
                   and len(self.track_kfs.get(int(t), ())) >= 2]
         self._triangulate_tracks(tracks)
         # Existing points seen again: drop the observations that disagree with them.
-        for i in np.flatnonzero(use):
-            t = int(kf.track_ids[i])
-            if t in self.points and kf.active[i]:
-                if self._reprojection_px(kf.map_T_cam, self.points[t][None], kf.uv[i][None])[0] > \
-                        2 * self.opt.max_reprojection_px:
-                    self._deactivate(kf.kid, i, t)
+        idx = [i for i in np.flatnonzero(use & kf.active) if int(kf.track_ids[i]) in self.points]
+        if idx:
+            X = np.array([self.points[int(kf.track_ids[i])] for i in idx])
+            e = self._reprojection_px(kf.map_T_cam, X, kf.uv[idx])
+            for i in np.asarray(idx)[e > 2 * self.opt.max_reprojection_px]:
+                self._deactivate(kf.kid, int(i), int(kf.track_ids[i]))
 
     def _deactivate(self, kid: int, i: int, t: int) -> None:
         kf = self.kfs[kid]
@@ -442,9 +460,7 @@ class IncrementalAT:
         kids = list(free) + list(fixed)
         col = {k: j for j, k in enumerate(kids)}
         tracks = [int(t) for t in tracks if int(t) in self.points]
-        slot, kid, oi = self._gather(tracks)
-        keep = np.array([k in col for k in kid], bool) if len(kid) else np.zeros(0, bool)
-        slot, kid, oi = slot[keep], kid[keep], oi[keep]
+        slot, kid, oi = self._gather(tracks, kids)
         if len(slot) == 0:
             return StepReport(kids[-1] if kids else -1, True, 'nothing_to_adjust')
         fixed_mask = np.array([k not in set(free) for k in kids])
@@ -457,8 +473,9 @@ class IncrementalAT:
         prob = BundleProblem(
             camera=self.camera, map_T_cams=np.array([self.kfs[k].map_T_cam for k in kids]),
             points_map=np.array([self.points[t] for t in tracks]),
-            obs_cam=np.array([col[k] for k in kid]), obs_pt=slot,
-            obs_uv=np.array([self.kfs[k].uv[i] for k, i in zip(kid, oi)]),
+            obs_cam=np.concatenate([np.full(int(np.sum(kid == k)), col[k]) for k in kids]),
+            obs_pt=np.concatenate([slot[kid == k] for k in kids]),
+            obs_uv=np.concatenate([self.kfs[k].uv[oi[kid == k]] for k in kids]) if len(kids) else np.zeros((0, 2)),
             fixed_cams=fixed_mask, fixed_points=None,
             gnss_cam=np.array(gk, int) if gk else None,
             gnss_pos_map=np.array([self._gnss_target(self.kfs[kids[j]]) for j in gk]).reshape(-1, 3),
@@ -475,7 +492,7 @@ class IncrementalAT:
             self.points[t] = np.asarray(res.points_map[s])
         # Observations the robust loss down-weighted past the threshold are outliers: remove them.
         P = np.asarray(res.points_map)[slot]
-        Ts = np.array([self.kfs[k].map_T_cam for k in kid])
+        Ts = self._poses_of(kid)
         pc = np.einsum('nji,nj->ni', Ts[:, :3, :3], P - Ts[:, :3, 3])
         z = np.where(pc[:, 2] > 1e-9, pc[:, 2], np.nan)
         uv = prob.obs_uv

@@ -1,0 +1,281 @@
+"""Bundle node: incremental aerial triangulation of the keyframes, with GNSS priors, in flight.
+
+Inputs (relative names, so a namespace per drone works):
+  keyframes/features  PointCloud2 table (track_id uint32, u, v, xn, yn), stamped like its keyframe
+  keyframes/fix       NavSatFix interpolated to the keyframe time (ENU diagonal covariance,
+                      ellipsoidal altitude); optional: a keyframe without a fix is adjusted without
+  keyframes/image     Image (only counted: geometry needs the features alone)
+  camera/camera_info  CameraInfo (the calibration; keyframes wait for it)
+  bundle/full_adjustment  std_msgs/Empty: adjust the whole block now (also done on shutdown)
+Outputs:
+  map/keyframe_pose   PoseWithCovarianceStamped in `map` for the new keyframe and, re-stamped with
+                      their own stamps, the refined keyframes of the window (a later pose with the
+                      same stamp replaces the earlier one)
+  map/path            nav_msgs/Path of all oriented keyframes
+  map/sparse_cloud    PointCloud2 x, y, z, track_id of the tie points (every `cloud_every` keyframes)
+  map/georeference    NavSatFix (latched): latitude, longitude and ellipsoidal altitude of the
+                      origin of `map` (ENU tangent there). The origin is the configured one or the
+                      first keyframe fix. Published once the block is georeferenced.
+  /diagnostics        solve time, cost, reprojection RMS, GNSS residual RMS, window size
+
+Lever arm: `lever_arm_cam_m` (antenna in the optical camera frame) is used as a fixed offset; for a
+gimbal camera this is the camera-frame approximation (see core/incremental.py).
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+from dataclasses import dataclass
+
+import numpy as np
+import rclpy
+from geometry_msgs.msg import PoseWithCovarianceStamped
+from nav_msgs.msg import Path
+from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+from sensor_msgs.msg import CameraInfo, Image, NavSatFix, PointCloud2
+from std_msgs.msg import Empty
+
+from photogram_ros import msgs
+from photogram_ros.core.geodesy import LocalFrame
+from photogram_ros.core.incremental import GnssFix, IncrementalAT, IncrementalOptions, KeyframeRecord
+from photogram_ros.errors import ConfigError, PhotogramError
+from photogram_ros.nodes.diagnostics import ERROR, Diagnostics
+from photogram_ros.nodes.ros_params import declare
+from photogram_ros.params import param
+
+TOPIC_FEATURES = 'keyframes/features'
+TOPIC_FIX = 'keyframes/fix'
+TOPIC_IMAGE = 'keyframes/image'
+TOPIC_INFO = 'camera/camera_info'
+TOPIC_FULL = 'bundle/full_adjustment'
+TOPIC_POSE = 'map/keyframe_pose'
+TOPIC_PATH = 'map/path'
+TOPIC_CLOUD = 'map/sparse_cloud'
+TOPIC_GEOREF = 'map/georeference'
+
+
+@dataclass
+class BundleNodeParams:
+    window_size: int = param(10, 'keyframes adjusted per update (newest); older ones sharing points are held fixed',
+                             min=2, max=200)
+    max_fixed_keyframes: int = param(30, 'at most this many fixed keyframes enter a window update', min=0, max=1000)
+    loss: str = param('huber', 'robust loss on reprojection errors', choices=('huber', 'cauchy', 'linear'))
+    loss_scale_px: float = param(1.0, 'robust loss scale, pixels', min=0.05, max=100.0)
+    max_reprojection_px: float = param(2.5, 'observations with a larger error after adjustment are dropped, px',
+                                       min=0.3, max=100.0)
+    lever_arm_cam_m: list = param([0.0, 0.0, 0.0], 'GNSS antenna position in the optical camera frame '
+                                  '(x right, y down, z forward), m')
+    use_origin_params: bool = param(False, 'anchor map at origin_* instead of the first keyframe fix')
+    origin_lat_deg: float = param(0.0, 'map origin latitude, deg', min=-90.0, max=90.0)
+    origin_lon_deg: float = param(0.0, 'map origin longitude, deg', min=-180.0, max=180.0)
+    origin_h_m: float = param(0.0, 'map origin ellipsoidal height, m', min=-1e4, max=1e5)
+    fix_wait_s: float = param(2.0, 'how long a keyframe waits for its fix before it is adjusted without one, s',
+                              min=0.0, max=60.0)
+    sync_tolerance_ms: float = param(5.0, 'features and fix with stamps closer than this belong together, ms',
+                                     min=0.0, max=1000.0)
+    max_fix_sigma_m: float = param(50.0, 'fixes with a larger horizontal sigma are not used, m', min=0.01, max=1e4)
+    cloud_every: int = param(5, 'publish the sparse cloud every this many keyframes', min=1, max=1000)
+    full_adjustment_on_shutdown: bool = param(True, 'adjust the whole block when the node stops')
+
+    def check(self) -> None:
+        if len(self.lever_arm_cam_m) != 3:
+            raise ConfigError(f'lever_arm_cam_m needs 3 numbers (x, y, z), got {self.lever_arm_cam_m}')
+
+
+class BundleNode(Node):
+    def __init__(self, overrides: dict | None = None, **node_kwargs):
+        super().__init__('bundle_node', **node_kwargs)
+        self.p = declare(self, BundleNodeParams, overrides)
+        self.diag = Diagnostics(self)
+        self.at: IncrementalAT | None = None
+        self.camera = None
+        self._pending: dict[int, tuple[float, np.ndarray, np.ndarray]] = {}   # stamp -> (arrival, ids, uv)
+        self._fixes: dict[int, GnssFix] = {}
+        self._georef_sent = False
+        self._n_since_cloud = 0
+        reliable = QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE)
+        latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                             durability=DurabilityPolicy.TRANSIENT_LOCAL)
+        self.pub_pose = self.create_publisher(PoseWithCovarianceStamped, TOPIC_POSE, reliable)
+        self.pub_path = self.create_publisher(Path, TOPIC_PATH, QoSProfile(depth=2))
+        self.pub_cloud = self.create_publisher(PointCloud2, TOPIC_CLOUD, QoSProfile(depth=2))
+        self.pub_georef = self.create_publisher(NavSatFix, TOPIC_GEOREF, latched)
+        self.create_subscription(PointCloud2, TOPIC_FEATURES, self._on_features, reliable)
+        self.create_subscription(NavSatFix, TOPIC_FIX, self._on_fix, reliable)
+        self.create_subscription(Image, TOPIC_IMAGE, lambda m: self.diag.count('images'), reliable)
+        self.create_subscription(CameraInfo, TOPIC_INFO, self._on_info, QoSProfile(depth=5))
+        self.create_subscription(Empty, TOPIC_FULL, lambda m: self.full_adjustment(), QoSProfile(depth=2))
+        self.create_timer(0.2, self._flush)
+
+    # --- inputs ---------------------------------------------------------------------------------
+
+    def _on_info(self, msg: CameraInfo) -> None:
+        if self.camera is not None:
+            return
+        try:
+            self.camera = msgs.camera_from_info(msg)
+        except PhotogramError as exc:
+            self.diag.problem(f'bad camera_info: {exc}', ERROR)
+            return
+        origin = (LocalFrame(self.p.origin_lat_deg, self.p.origin_lon_deg, self.p.origin_h_m)
+                  if self.p.use_origin_params else None)
+        opt = IncrementalOptions(window_size=self.p.window_size, max_fixed_keyframes=self.p.max_fixed_keyframes,
+                                 loss=self.p.loss, loss_scale_px=self.p.loss_scale_px,
+                                 max_reprojection_px=self.p.max_reprojection_px,
+                                 lever_arm_cam_m=tuple(float(v) for v in self.p.lever_arm_cam_m))
+        self.at = IncrementalAT(self.camera, opt, origin=origin)
+
+    def _on_fix(self, msg: NavSatFix) -> None:
+        try:
+            f = msgs.fix_from_navsatfix(msg)
+            cov = np.asarray(f['covariance_enu_m2'], float)
+            if msg.status.status < 0 or not np.all(np.isfinite([f['lat_deg'], f['lon_deg'], f['h_m']])):
+                self.diag.count('fixes_without_position')
+                return
+            if f['covariance_type'] == NavSatFix.COVARIANCE_TYPE_UNKNOWN or not np.all(np.diag(cov) > 0):
+                cov = np.diag([25.0, 25.0, 100.0])    # unknown accuracy: a plain GNSS fix's worth
+                self.diag.count('fixes_without_covariance')
+            if np.sqrt(cov[0, 0]) > self.p.max_fix_sigma_m:
+                self.diag.count('fixes_too_inaccurate')
+                return
+            self._fixes[f['stamp_ns']] = GnssFix(f['lat_deg'], f['lon_deg'], f['h_m'], cov)
+            self.diag.count('fixes')
+        except Exception as exc:  # one bad message must not stop the node
+            self.diag.problem(f'bad keyframe fix: {exc}')
+        self._flush()
+
+    def _on_features(self, msg: PointCloud2) -> None:
+        try:
+            obs = msgs.features_from_keyframe_msg(msg)
+            uv = np.column_stack([obs['u'], obs['v']])
+            if not np.all(np.isfinite(uv)):
+                raise PhotogramError('non-finite pixel coordinates')
+            stamp = msgs.ns_from_time(msg.header.stamp)
+            self._pending[stamp] = (time.monotonic(), obs['track_id'].astype(np.int64), uv)
+            self.diag.count('keyframes_received')
+        except Exception as exc:
+            self.diag.problem(f'bad keyframe features: {exc}')
+        self._flush()
+
+    def _match_fix(self, stamp: int) -> GnssFix | None:
+        tol = int(self.p.sync_tolerance_ms * 1e6)
+        best = min(self._fixes, key=lambda s: abs(s - stamp), default=None)
+        if best is not None and abs(best - stamp) <= tol:
+            return self._fixes.pop(best)
+        return None
+
+    def _flush(self) -> None:
+        """Process keyframes in stamp order once their fix is in (or waited for long enough)."""
+        if self.at is None:
+            return
+        now = time.monotonic()
+        for stamp in sorted(self._pending):
+            arrived, ids, uv = self._pending[stamp]
+            fix = self._match_fix(stamp)
+            if fix is None and now - arrived < self.p.fix_wait_s:
+                break   # keep the order: later keyframes wait behind this one
+            del self._pending[stamp]
+            if fix is None:
+                self.diag.count('keyframes_without_fix')
+            self._process(KeyframeRecord(stamp, ids, uv, fix))
+        # Fixes older than every pending keyframe will never match.
+        oldest = min(self._pending, default=None)
+        for s in [s for s in self._fixes if oldest is None or s < oldest - 10**9 * 10]:
+            if len(self._fixes) > 200:
+                del self._fixes[s]
+
+    # --- adjustment and outputs -------------------------------------------------------------------
+
+    def _process(self, rec: KeyframeRecord) -> None:
+        try:
+            rep = self.at.add_keyframe(rec)
+        except Exception as exc:
+            self.diag.problem(f'keyframe {rec.stamp_ns} failed: {exc}')
+            return
+        self.diag.count('keyframes_oriented' if rep.registered else 'keyframes_not_oriented')
+        self.diag.set('status', rep.status)
+        self.diag.set('solve_time_s', float(rep.solve_s))
+        self.diag.set('cost', float(rep.cost))
+        self.diag.set('reprojection_rms_px', float(rep.reprojection_rms_px))
+        self.diag.set('gnss_residual_rms_m', float(rep.gnss_rms_m))
+        self.diag.set('window_size', rep.window_size)
+        self.diag.set('points', len(self.at.points))
+        self.diag.set('georeferenced', 'provisional' if self.at.georef_provisional else str(self.at.georeferenced))
+        if self.at.georeferenced and rep.registered:
+            self._publish(window=self.at.registered[-self.p.window_size:])
+
+    def _publish(self, window) -> None:
+        at = self.at
+        if not self._georef_sent and at.origin is not None:
+            o = at.origin
+            self.pub_georef.publish(msgs.georeference_msg(o.lat_deg, o.lon_deg, o.h_m, at.kfs[window[-1]].stamp_ns))
+            self._georef_sent = True
+        for k in window:
+            kf = at.kfs[k]
+            self.pub_pose.publish(msgs.pose_with_covariance_from_T(kf.map_T_cam, kf.stamp_ns, 'map',
+                                                                   self._covariance(kf)))
+        stamp = at.kfs[window[-1]].stamp_ns
+        self.pub_path.publish(msgs.path_msg([at.kfs[k].map_T_cam for k in at.registered],
+                                            [at.kfs[k].stamp_ns for k in at.registered], stamp))
+        self._n_since_cloud += 1
+        if self._n_since_cloud >= self.p.cloud_every:
+            self._n_since_cloud = 0
+            self.publish_cloud(stamp)
+
+    def _covariance(self, kf) -> np.ndarray:
+        """A diagonal pose covariance: the fix's position variance when there is one (the adjusted
+        centre is at least that good), 1 mrad^2 on the angles; the marginal covariance would cost a
+        solve per update."""
+        C = np.zeros((6, 6))
+        pos = np.diag(kf.fix_cov) if kf.fix_cov is not None else np.full(3, 100.0)
+        C[:3, :3] = np.diag(pos)
+        C[3:, 3:] = np.eye(3) * 1e-6
+        return C
+
+    def publish_cloud(self, stamp_ns: int) -> None:
+        if not self.at.points:
+            return
+        ids = np.array([t for t in self.at.points if t >= 0], dtype=np.int64)
+        pts = np.array([self.at.points[int(t)] for t in ids]).reshape(-1, 3)
+        self.pub_cloud.publish(msgs.sparse_cloud_msg(pts, stamp_ns, ids))
+
+    def full_adjustment(self) -> None:
+        if self.at is None or not self.at.registered:
+            return
+        try:
+            t0 = time.perf_counter()
+            rep = self.at.full_adjustment()
+            self.diag.set('full_adjustment_s', time.perf_counter() - t0)
+            self.diag.set('full_adjustment_rms_px', float(rep.reprojection_rms_px))
+            self.diag.count('full_adjustments')
+            if self.at.georeferenced:
+                self._publish(window=list(self.at.registered))
+                self.publish_cloud(self.at.kfs[self.at.registered[-1]].stamp_ns)
+        except Exception as exc:
+            self.diag.problem(f'full adjustment failed: {exc}')
+
+
+def main(args=None) -> int:
+    rclpy.init(args=args)
+    try:
+        node = BundleNode()
+    except ConfigError as exc:
+        print(f'bundle_node: {exc}', file=sys.stderr)
+        rclpy.try_shutdown()
+        return 2
+    try:
+        rclpy.spin(node)
+    except (KeyboardInterrupt, rclpy.executors.ExternalShutdownException):
+        pass
+    finally:
+        if node.p.full_adjustment_on_shutdown:
+            node.full_adjustment()
+        node.destroy_node()
+        rclpy.try_shutdown()
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())

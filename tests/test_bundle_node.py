@@ -1,0 +1,96 @@
+"""bundle_node over real topics: keyframes from the simulator truth in, georeferenced poses out."""
+
+import time
+
+import numpy as np
+import pytest
+from geometry_msgs.msg import PoseWithCovarianceStamped
+from nav_msgs.msg import Path
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+from sensor_msgs.msg import CameraInfo, NavSatFix, NavSatStatus, PointCloud2
+from std_msgs.msg import Empty
+
+from photogram_ros import msgs
+from photogram_ros.core.tracker import FEATURE_DTYPE
+from photogram_ros.errors import ConfigError
+from photogram_ros.nodes.bundle_node import BundleNode
+from photogram_ros.sim.observations import simulate_keyframes
+from photogram_ros.sim.scenario import preset
+
+
+def _spin_until(ex, cond, timeout_s):
+    t0 = time.monotonic()
+    while time.monotonic() - t0 < timeout_s and not cond():
+        ex.spin_once(timeout_sec=0.05)
+    return cond()
+
+
+def test_bundle_node_orients_keyframes_from_topics(rclpy_context):
+    sk = simulate_keyframes(preset('tiny'), keyframe_interval_s=1.0, attitude_sigma_deg=None)
+    node = BundleNode(overrides={'lever_arm_cam_m': [float(v) for v in sk.lever_arm_cam_m], 'cloud_every': 3},
+                      context=rclpy_context)
+    feeder = Node('feeder', context=rclpy_context)
+    reliable = QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE)
+    latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+    pub_info = feeder.create_publisher(CameraInfo, 'camera/camera_info', QoSProfile(depth=5))
+    pub_feat = feeder.create_publisher(PointCloud2, 'keyframes/features', reliable)
+    pub_fix = feeder.create_publisher(NavSatFix, 'keyframes/fix', reliable)
+    pub_full = feeder.create_publisher(Empty, 'bundle/full_adjustment', QoSProfile(depth=2))
+    poses, paths, clouds, georef = {}, [], [], []
+    feeder.create_subscription(PoseWithCovarianceStamped, 'map/keyframe_pose',
+                               lambda m: poses.__setitem__(msgs.ns_from_time(m.header.stamp), m), reliable)
+    feeder.create_subscription(Path, 'map/path', paths.append, QoSProfile(depth=5))
+    feeder.create_subscription(PointCloud2, 'map/sparse_cloud', clouds.append, QoSProfile(depth=5))
+    feeder.create_subscription(NavSatFix, 'map/georeference', georef.append, latched)
+    ex = SingleThreadedExecutor(context=rclpy_context)
+    ex.add_node(node)
+    ex.add_node(feeder)
+    try:
+        _spin_until(ex, lambda: pub_info.get_subscription_count() > 0 and pub_feat.get_subscription_count() > 0, 5)
+        pub_info.publish(msgs.camera_info_msg(sk.camera, sk.records[0].stamp_ns))
+        assert _spin_until(ex, lambda: node.at is not None, 5)
+        # A broken message first: counted, the node goes on.
+        bad = msgs.pointcloud2_msg(np.zeros(3, dtype=[('x', np.float32)]), 1)
+        pub_feat.publish(bad)
+        for r in sk.records:
+            f = r.fix
+            pub_fix.publish(msgs.navsatfix_msg(r.stamp_ns, f.lat_deg, f.lon_deg, f.h_m, NavSatStatus.STATUS_GBAS_FIX,
+                                               np.diag(f.cov_enu_m2), NavSatFix.COVARIANCE_TYPE_DIAGONAL_KNOWN))
+            obs = np.zeros(len(r.track_ids), FEATURE_DTYPE)
+            obs['track_id'], obs['u'], obs['v'] = r.track_ids, r.uv[:, 0], r.uv[:, 1]
+            xn = sk.camera.pixel_to_normalized(r.uv)
+            obs['xn'], obs['yn'] = xn[:, 0], xn[:, 1]
+            pub_feat.publish(msgs.keyframe_features_msg(obs, r.stamp_ns))
+            _spin_until(ex, lambda: False, 0.05)
+        n = len(sk.records)
+        assert _spin_until(ex, lambda: node.diag.counts().get('keyframes_oriented', 0) >= n - 1, 60)
+        pub_full.publish(Empty())
+        assert _spin_until(ex, lambda: node.diag.counts().get('full_adjustments', 0) >= 1, 60)
+        _spin_until(ex, lambda: len(poses) >= n and georef, 10)
+    finally:
+        ex.shutdown()
+    assert node.diag.counts().get('problems', 0) >= 1     # the broken message was reported
+    assert georef and abs(georef[0].latitude - sk.records[0].fix.lat_deg) < 1e-9
+    # Published poses (after the full adjustment) against the truth, in the map of the georeference.
+    origin_shift = sk.origin.geodetic_to_enu(georef[0].latitude, georef[0].longitude, georef[0].altitude)
+    err = []
+    for k, r in enumerate(sk.records):
+        if r.stamp_ns in poses:
+            T, cov = msgs.T_from_pose_with_covariance(poses[r.stamp_ns])
+            err.append(T[:3, 3] + origin_shift - sk.true_map_T_cam[k][:3, 3])
+            assert poses[r.stamp_ns].header.frame_id == 'map' and cov[0, 0] > 0
+    rmse = float(np.sqrt(np.mean(np.sum(np.square(err), axis=1))))
+    print(f'bundle_node: {len(poses)}/{n} keyframe poses, camera-centre RMSE {rmse * 100:.1f} cm, '
+          f'{len(paths[-1].poses) if paths else 0} path poses, {len(clouds)} clouds')
+    assert len(poses) >= n - 1 and rmse < 0.10
+    assert paths and len(paths[-1].poses) >= n - 1
+    assert clouds and clouds[-1].width > 500
+    node.destroy_node()
+    feeder.destroy_node()
+
+
+def test_bundle_node_rejects_bad_parameters(rclpy_context):
+    with pytest.raises(ConfigError):
+        BundleNode(overrides={'lever_arm_cam_m': [0.0, 1.0]}, context=rclpy_context)
