@@ -13,6 +13,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 from PIL import Image
+from PIL.TiffImagePlugin import IFDRational
 
 from photogram_ros.core import geoid
 from photogram_ros.core.geodesy import geodetic_to_crs
@@ -27,7 +28,8 @@ def _rational_dms(value_deg: float):
     d = int(v)
     m = int((v - d) * 60)
     s = (v - d - m / 60) * 3600
-    return ((d, 1), (m, 1), (int(round(s * 10000)), 10000))
+    # Pillow >= 10 wants IFDRational values, not (num, den) tuples.
+    return (IFDRational(d, 1), IFDRational(m, 1), IFDRational(int(round(s * 10000)), 10000))
 
 
 def exif_bytes(lat_deg: float, lon_deg: float, alt_msl_m: float, when: datetime, focal_mm: float) -> bytes:
@@ -42,10 +44,10 @@ def exif_bytes(lat_deg: float, lon_deg: float, alt_msl_m: float, when: datetime,
     gps[3] = 'E' if lon_deg >= 0 else 'W'
     gps[4] = _rational_dms(lon_deg)
     gps[5] = 0 if alt_msl_m >= 0 else 1
-    gps[6] = (int(round(abs(alt_msl_m) * 1000)), 1000)
+    gps[6] = IFDRational(int(round(abs(alt_msl_m) * 1000)), 1000)
     ex = exif.get_ifd(EXIF_IFD)
     ex[0x9003] = when.strftime('%Y:%m:%d %H:%M:%S')   # DateTimeOriginal
-    ex[0x920A] = (int(round(focal_mm * 1000)), 1000)  # FocalLength
+    ex[0x920A] = IFDRational(int(round(focal_mm * 1000)), 1000)  # FocalLength
     return exif.tobytes()
 
 
