@@ -20,6 +20,7 @@ COMMANDS = {
     'ground-station': 'photogram_ros.commands.ground_station',
     'record': 'photogram_ros.commands.record',
     'bag-info': 'photogram_ros.commands.bag_info',
+    'triangulate': 'photogram_ros.commands.triangulate',
     'calibrate': 'photogram_ros.commands.calibrate',
     'export': 'photogram_ros.commands.export',
     'fixes': 'photogram_ros.commands.fixes',

@@ -1,0 +1,224 @@
+"""photogram-ros triangulate: offline aerial triangulation of a folder of geotagged photos."""
+
+from __future__ import annotations
+
+HELP = 'aerial triangulation of geotagged photos (EXIF GPS or geo.txt) with GCPs/check points; report'
+
+
+def add_arguments(p) -> None:
+    p.add_argument('input', help='folder of geotagged JPEGs (with an optional OpenDroneMap geo.txt)')
+    p.add_argument('--gcp', help='OpenDroneMap gcp_list.txt (first line a CRS; names CHK* are check points)')
+    p.add_argument('--check', default='', help='more check-point names, comma separated')
+    p.add_argument('--out', required=True, help='output folder (poses.csv, sparse.ply/.las, report.md/.json)')
+    p.add_argument('--camera', help='calibration YAML (ROS camera_calibration layout); default: the simulator '
+                                    'truth beside the folder, if any')
+    p.add_argument('--crs', help='output CRS (default: the GCP CRS, else the UTM zone of the first photo)')
+    p.add_argument('--gcp-sigma', default='0.02,0.02,0.03', help='GCP sigma E,N,U in metres')
+    p.add_argument('--neighbours', type=int, default=8, help='photos matched with each photo (by position)')
+    p.add_argument('--window', type=int, default=10, help='sliding-window size of the incremental adjustment')
+    p.add_argument('--lever-arm', default='0,0,0', help='antenna in the camera frame x,y,z (m)')
+
+
+def _read_geo_txt(path):
+    """OpenDroneMap geo.txt -> {name: (lat, lon, h_ellipsoidal, h_acc, v_acc)}."""
+    import numpy as np
+
+    from photogram_ros.core.geodesy import crs_to_geodetic
+    from photogram_ros.errors import DataError
+    lines = [ln.split() for ln in path.read_text().splitlines() if ln.strip() and not ln.startswith('#')]
+    if not lines:
+        raise DataError(f'{path} is empty')
+    crs = ' '.join(lines[0])
+    out = {}
+    for ln in lines[1:]:
+        if len(ln) < 4:
+            raise DataError(f'{path}: line {" ".join(ln)!r} needs: image x y z [omega phi kappa] [h_acc v_acc]')
+        x, y, z = (float(v) for v in ln[1:4])
+        if crs.upper() in ('EPSG:4326', 'WGS84', 'EPSG:4979'):
+            lat, lon, h = y, x, z
+        else:
+            lat, lon, h = (float(v) for v in crs_to_geodetic(x, y, z, crs))
+        h_acc = float(ln[7]) if len(ln) >= 9 else 5.0
+        v_acc = float(ln[8]) if len(ln) >= 9 else 10.0
+        out[ln[0]] = (lat, lon, h, max(h_acc, 1e-3), max(v_acc, 1e-3))
+    return out
+
+
+def _read_exif(path):
+    """EXIF GPS -> (lat, lon, h_ellipsoidal, h_acc, v_acc) or None; EXIF altitude is MSL."""
+    from PIL import Image
+
+    from photogram_ros.core import geoid
+    try:
+        gps = Image.open(path).getexif().get_ifd(0x8825)
+    except OSError:
+        return None
+    if 2 not in gps or 4 not in gps:
+        return None
+
+    def dms(v):
+        return float(v[0]) + float(v[1]) / 60 + float(v[2]) / 3600
+
+    lat = dms(gps[2]) * (-1 if gps.get(1) == 'S' else 1)
+    lon = dms(gps[4]) * (-1 if gps.get(3) == 'W' else 1)
+    alt = float(gps.get(6, 0.0)) * (-1 if gps.get(5) == 1 else 1)
+    return lat, lon, float(geoid.msl_to_ellipsoid_m(lat, lon, alt)), 5.0, 10.0
+
+
+def _read_gcps(path, origin, check_names):
+    """ODM gcp_list.txt -> (control points, {image: {name: uv}})."""
+    import numpy as np
+
+    from photogram_ros.core.geodesy import crs_to_geodetic
+    from photogram_ros.errors import DataError
+    lines = [ln.split() for ln in path.read_text().splitlines() if ln.strip() and not ln.startswith('#')]
+    crs = ' '.join(lines[0])
+    pts, obs = {}, {}
+    for ln in lines[1:]:
+        if len(ln) < 6:
+            raise DataError(f'{path}: line {" ".join(ln)!r} needs: x y z px py image [name]')
+        x, y, z, u, v = (float(s) for s in ln[:5])
+        name = ln[6] if len(ln) > 6 else f'{ln[0]}_{ln[1]}'
+        lat, lon, h = crs_to_geodetic(x, y, z, crs)
+        pts[name] = origin.geodetic_to_enu(float(lat), float(lon), float(h))
+        obs.setdefault(ln[5], {})[name] = np.array([u, v])
+    return crs, pts, obs
+
+
+def run(a) -> int:
+    import csv
+    import json
+    import sys
+    import time
+    from pathlib import Path
+
+    import cv2
+    import numpy as np
+    import yaml
+
+    from photogram_ros.core import photo_matching as pm
+    from photogram_ros.core.at_report import build_report, write_report
+    from photogram_ros.core.camera import PinholeCamera
+    from photogram_ros.core.geodesy import LocalFrame, utm_epsg
+    from photogram_ros.core.incremental import ControlPoint, GnssFix, IncrementalAT, IncrementalOptions, KeyframeRecord
+    from photogram_ros.core.rotations import opk_from_map_R_cam
+    from photogram_ros.errors import CalibrationError, DataError
+    from photogram_ros.io.export import GeoCloud, enu_to_crs, write_las, write_ply
+
+    src = Path(a.input)
+    out = Path(a.out)
+    if (src / 'metadata.yaml').exists():
+        raise DataError(f'{src} is a bag: replay it through the tracker and bundle nodes (photogram-ros replay); '
+                        'this command triangulates folders of photos')
+    if not src.is_dir():
+        raise DataError(f'{src} is not a folder of photos')
+    images = sorted(p for p in src.iterdir() if p.suffix.lower() in ('.jpg', '.jpeg', '.png', '.tif', '.tiff'))
+    if len(images) < 3:
+        raise DataError(f'{src} holds {len(images)} images: at least 3 overlapping photos are needed')
+    assumptions = []
+    # Positions
+    geo = {}
+    if (src / 'geo.txt').exists():
+        geo = _read_geo_txt(src / 'geo.txt')
+        assumptions.append('positions from geo.txt (heights ellipsoidal, per-image accuracy used as sigma)')
+    else:
+        for p in images:
+            g = _read_exif(p)
+            if g:
+                geo[p.name] = g
+        assumptions.append('positions from EXIF GPS; EXIF altitude taken as MSL (EGM) and converted to ellipsoidal; '
+                           'sigma 5 m horizontal, 10 m vertical')
+    first = next((geo[p.name] for p in images if p.name in geo), None)
+    if first is None:
+        raise DataError(f'no image in {src} has a position (EXIF GPS or geo.txt): georeferencing impossible')
+    origin = LocalFrame(first[0], first[1], first[2])
+    # Camera
+    if a.camera:
+        camera = PinholeCamera.from_ros_yaml_dict(yaml.safe_load(Path(a.camera).read_text()))
+        assumptions.append(f'calibration from {a.camera}, held fixed')
+    elif (src.parent / 'ground_truth.json').exists():
+        camera = PinholeCamera.from_ros_yaml_dict(json.loads((src.parent / 'ground_truth.json').read_text())['camera'])
+        assumptions.append('calibration from the simulator truth beside the photos, held fixed')
+    else:
+        raise CalibrationError('no calibration: pass --camera calib.yaml (make one with photogram-ros calibrate)')
+    # Features and matches
+    t0 = time.monotonic()
+    feats = []
+    for p in images:
+        img = cv2.imread(str(p), cv2.IMREAD_COLOR)
+        if img is None:
+            raise DataError(f'{p} cannot be read as an image')
+        if (img.shape[1], img.shape[0]) != (camera.width, camera.height):
+            if (img.shape[0], img.shape[1]) == (camera.width, camera.height):
+                img = cv2.rotate(img, cv2.ROTATE_90_CLOCKWISE)
+                assumptions.append(f'{p.name} was stored rotated by 90 degrees: rotated back')
+            else:
+                camera.check_image_size(img.shape[1], img.shape[0])
+        feats.append(pm.extract(p.name, img))
+    pos = np.array([origin.geodetic_to_enu(*geo[p.name][:3]) if p.name in geo else [np.nan] * 3 for p in images])
+    pos = np.where(np.isfinite(pos), pos, np.nanmean(pos, axis=0))
+    matches = {}
+    for i, j in pm.neighbours(pos, a.neighbours):
+        m = pm.match_pair(feats[i], feats[j], camera)
+        if len(m):
+            matches[(i, j)] = m
+    tracks = pm.build_tracks([len(f.uv) for f in feats], matches)
+    print(f'{len(images)} photos, {sum(len(f.uv) for f in feats)} features, {len(matches)} verified pairs, '
+          f'in {time.monotonic() - t0:.1f} s', file=sys.stderr)
+    # Control
+    control, target_obs = [], {}
+    crs = a.crs
+    if a.gcp:
+        gcp_crs, gcp_pts, target_obs = _read_gcps(Path(a.gcp), origin, {s.strip() for s in a.check.split(',')})
+        sigma = np.array([float(v) for v in a.gcp_sigma.split(',')])
+        checks = {s.strip() for s in a.check.split(',') if s.strip()}
+        for name, xyz in gcp_pts.items():
+            role = 'check' if name.upper().startswith('CHK') or name in checks else 'gcp'
+            control.append(ControlPoint(name, np.asarray(xyz, float), sigma, role))
+        crs = crs or gcp_crs
+    crs = crs or f'EPSG:{utm_epsg(origin.lat_deg, origin.lon_deg)}'
+    lever = tuple(float(v) for v in a.lever_arm.split(','))
+    at = IncrementalAT(camera, IncrementalOptions(window_size=a.window, lever_arm_cam_m=lever), origin, control)
+    for p, f, tr in zip(images, feats, tracks):
+        keep = tr >= 0
+        g = geo.get(p.name)
+        fix = GnssFix(g[0], g[1], g[2], np.diag([g[3] ** 2, g[3] ** 2, g[4] ** 2])) if g else None
+        at.add_keyframe(KeyframeRecord(0, tr[keep], f.uv[keep], fix, p.name, target_obs.get(p.name, {})))
+    # Photos that did not register in sequence get a second chance against the whole block.
+    for kf in at.kfs:
+        if kf.map_T_cam is None and at.registered and at._register(kf).registered:
+            at._triangulate_new(kf)
+    rep_adj = at.full_adjustment()
+    lost = [kf.name for kf in at.kfs if kf.map_T_cam is None]
+    if lost:
+        assumptions.append(f'{len(lost)} photos could not be oriented (blurred or without overlap): {lost[:10]}')
+    assumptions.append('lever arm antenna-camera ' + str(lever) + ' m in the camera frame')
+    # Outputs
+    out.mkdir(parents=True, exist_ok=True)
+    with open(out / 'poses.csv', 'w', newline='') as fh:
+        w = csv.writer(fh)
+        w.writerow(['image', 'x', 'y', 'z', 'crs', 'lat_deg', 'lon_deg', 'h_m', 'omega_deg', 'phi_deg', 'kappa_deg'])
+        for k in at.registered:
+            kf = at.kfs[k]
+            C = kf.map_T_cam[:3, 3]
+            e, n, h = enu_to_crs(origin, C[None], crs)
+            lat, lon, hh = origin.enu_to_geodetic(C)
+            o, ph, ka = np.degrees(opk_from_map_R_cam(kf.map_T_cam[:3, :3]))
+            w.writerow([kf.name, f'{e[0]:.4f}', f'{n[0]:.4f}', f'{h[0]:.4f}', crs, f'{float(lat):.9f}',
+                        f'{float(lon):.9f}', f'{float(hh):.4f}', f'{o:.5f}', f'{ph:.5f}', f'{ka:.5f}'])
+    P = np.array([at.points[t] for t in at.points if t >= 0]).reshape(-1, 3)
+    e, n, h = enu_to_crs(origin, P, crs)
+    cloud = GeoCloud(e, n, h, np.full((len(P), 3), 200, np.uint8), np.ones(len(P), np.uint32),
+                     np.ones(len(P), np.float32), crs, 'ellipsoidal')
+    write_ply(cloud, out / 'sparse.ply')
+    write_las(cloud, out / 'sparse.las')
+    rep = build_report(at, assumptions)
+    rep['crs'] = crs
+    rep['adjustment_status'] = rep_adj.status
+    md, js = write_report(rep, out)
+    ck = rep['check']['rmse']
+    print(f"oriented {len(at.registered)}/{len(images)} photos, {len(P)} tie points, reprojection "
+          f"{rep['reprojection_rms_px']:.3f} px; check points: "
+          + (f"n={ck['n']} RMSE horizontal {ck['horizontal_m'] * 100:.1f} cm, vertical {ck['vertical_m'] * 100:.1f} cm"
+             if ck.get('n') else 'none') + f'; wrote {out}')
+    return 0
