@@ -84,7 +84,6 @@ def build_tracks(n_features: list[int], matches: dict) -> list[np.ndarray]:
     # Tracks: roots with >= 2 members, each in a different photo.
     uniq, inv, counts = np.unique(roots, return_inverse=True, return_counts=True)
     pair_key = inv.astype(np.int64) * len(n_features) + photo_of
-    _, per_photo = np.unique(pair_key, return_counts=True)
     dup = np.zeros(len(uniq), bool)
     keys_u, cnt = np.unique(pair_key, return_counts=True)
     dup[(keys_u[cnt > 1] // len(n_features))] = True
