@@ -205,3 +205,26 @@ def test_calibration_problems_are_errors(survey_line):
     tr.set_camera(survey_line.camera)
     tr.process(img, 1)
     assert tr.stats.keyframes == 1
+
+
+def test_gps_distance_drives_keyframes_when_the_fix_is_good(survey_line):
+    from photogram_ros.core.geodesy import LocalFrame
+    cfg = survey_line.cfg
+    origin = LocalFrame(cfg.origin_lat_deg, cfg.origin_lon_deg, cfg.origin_h_m)
+    fixes = []
+    for t in np.arange(0.0, 12.6, 0.2):
+        lat, lon, h = origin.enu_to_geodetic(survey_line.flight.state(t).pos_enu)
+        fixes.append(GpsFix(int(round(t * 1e9)) + 1_000_000_000, float(lat), float(lon), float(h),
+                            np.eye(3) * 1e-4, 2))
+    G = survey_line.renderer.ground_points(survey_line.frames[0][2])
+    ground_m = float(cfg.altitude_m - np.nanmedian(G[..., 2]))
+    params = TrackerParams(overlap_source='gps', ground_distance_m=ground_m)
+    _, kfs = survey_line.run(params, fixes)
+    true = [survey_line.true_overlap(a, b) for a, b in zip(kfs[:-1], kfs[1:])]
+    print(f'GPS-driven: true overlaps {np.round(true, 3).tolist()}')
+    assert len(kfs) >= 6 and np.max(np.abs(np.array(true[:-1]) - 0.8)) <= 0.05
+    # A poor fix (sigma 3 m) is not trusted: the image estimate takes over and still holds the target.
+    bad = [GpsFix(f.stamp_ns, f.lat_deg + 2e-5, f.lon_deg, f.h_m, np.eye(3) * 9.0, 1) for f in fixes]
+    _, kfs = survey_line.run(params, bad)
+    true = [survey_line.true_overlap(a, b) for a, b in zip(kfs[:-1], kfs[1:])]
+    assert np.max(np.abs(np.array(true[:-1]) - 0.8)) <= 0.05

@@ -42,9 +42,10 @@ def test_sample_bag_gives_keyframes_with_matching_stamps(sample_bag, rclpy_conte
     from photogram_ros.nodes.tracker_node import TrackerNode
     from photogram_ros.sim.truth import GroundTruth
 
-    tracker = TrackerNode(overrides={'reliable_input': True, 'queue_size': 100}, context=rclpy_context)
+    tracker = TrackerNode(overrides={'reliable_input': True, 'queue_size': 100, 'input_depth': 100},
+                          context=rclpy_context)
     listener = Listener(rclpy_context)
-    player = PlayerNode(overrides={'bag': str(sample_bag), 'rate': 10.0, 'wait_for_subscribers': 3,
+    player = PlayerNode(overrides={'bag': str(sample_bag), 'rate': 8.0, 'wait_for_subscribers': 3,
                                    'topics': '/camera/image_raw/compressed,/camera/camera_info,/gps/fix'},
                         context=rclpy_context)
     ex, thread = _spin([tracker, listener.node], rclpy_context)
@@ -110,21 +111,24 @@ def test_bad_calibration_is_a_diagnostics_error_and_node_survives(rclpy_context)
         deadline = time.monotonic() + 5
         while pub_img.get_subscription_count() == 0 and time.monotonic() < deadline:
             time.sleep(0.05)
+        def unused_reaches(n):
+            end = time.monotonic() + 10
+            while time.monotonic() < end and tracker.diag.counts().get('frames_unused', 0) < n:
+                time.sleep(0.05)
+
         pub_img.publish(msgs.image_msg(img, 1_000_000_000))           # no camera_info yet
+        unused_reaches(1)
         bad = CameraInfo(width=160, height=120, distortion_model='plumb_bob', d=[0.0] * 5,
                          k=[0.0, 0, 80, 0, 0.0, 60, 0, 0, 1])          # fx = 0: never filled in
-        for _ in range(3):
-            pub_info.publish(bad)
-            time.sleep(0.1)
+        pub_info.publish(bad)
+        time.sleep(0.3)
         pub_img.publish(msgs.image_msg(img, 2_000_000_000))
-        time.sleep(0.5)
+        unused_reaches(2)
         good = msgs.camera_info_msg(PinholeCamera(320, 240, 260, 260, 160, 120), 0)   # wrong image size
         pub_info.publish(good)
         time.sleep(0.3)
         pub_img.publish(msgs.image_msg(img, 3_000_000_000))
-        deadline = time.monotonic() + 5
-        while time.monotonic() < deadline and tracker.diag.counts().get('frames_unused', 0) < 3:
-            time.sleep(0.05)
+        unused_reaches(3)
         counts = tracker.diag.counts()
         assert counts.get('frames_unused', 0) == 3 and tracker.keyframes_published == 0
         messages = [p[1] for p in tracker.diag._problems]
@@ -149,7 +153,6 @@ def test_bad_calibration_is_a_diagnostics_error_and_node_survives(rclpy_context)
 
 
 def test_frames_faster_than_the_tracker_are_dropped_oldest_first(rclpy_context):
-    from photogram_ros.core.camera import PinholeCamera
     from photogram_ros import msgs
     from photogram_ros.nodes.tracker_node import TrackerNode
 
@@ -160,6 +163,5 @@ def test_frames_faster_than_the_tracker_are_dropped_oldest_first(rclpy_context):
                 tracker._on_image(msgs.image_msg(np.zeros((8, 8), np.uint8), (k + 1) * 1_000_000))
             kept = [msgs.ns_from_time(m.header.stamp) for m in tracker._frames]
         assert kept == [9_000_000, 10_000_000] and tracker.diag.counts()['drops'] == 8
-        _ = PinholeCamera
     finally:
         tracker.destroy_node()

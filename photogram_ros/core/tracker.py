@@ -34,7 +34,7 @@ On ROS the table travels as a PointCloud2 with exactly these named fields (msgs.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import cv2
 import numpy as np
@@ -138,12 +138,6 @@ class _KfState:
     id_to_row: dict
     xn: np.ndarray
     features: tuple | None = None   # (keypoints, descriptors), computed on first break
-
-
-@dataclass
-class _Pending:
-    keyframe: Keyframe
-    done: bool = False
 
 
 class Tracker:

@@ -20,7 +20,6 @@ import time
 from collections import deque
 from dataclasses import dataclass
 
-import numpy as np
 import rclpy
 from rclpy.node import Node
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
@@ -46,6 +45,8 @@ class TrackerNodeParams(TrackerParams):
                             max=1000)
     reliable_input: bool = param(False, 'Subscribe images reliably (bag replay) instead of best effort '
                                  '(sensor-data QoS, matches any camera driver)')
+    input_depth: int = param(10, 'DDS history depth of the image subscriptions (raise it for fast bag replay)',
+                             min=1, max=10000)
     publish_debug_image: bool = param(False, 'Publish /tracker/debug_image with the tracks drawn')
     keyframe_qos_depth: int = param(20, 'History depth of the reliable keyframe publishers', min=1, max=10000)
 
@@ -74,13 +75,16 @@ class TrackerNode(Node):
         self.pub_features = self.create_publisher(PointCloud2, '/keyframes/features', kf_qos)
         self.pub_fix = self.create_publisher(NavSatFix, '/keyframes/fix', kf_qos)
         self.pub_debug = self.create_publisher(Image, '/tracker/debug_image', 2) if p.publish_debug_image else None
-        img_qos = QoSProfile(depth=10, history=HistoryPolicy.KEEP_LAST,
+        img_qos = QoSProfile(depth=p.input_depth, history=HistoryPolicy.KEEP_LAST,
                              reliability=ReliabilityPolicy.RELIABLE if p.reliable_input
                              else ReliabilityPolicy.BEST_EFFORT)
         self.create_subscription(Image, p.image_topic, self._on_image, img_qos)
         self.create_subscription(CompressedImage, p.image_topic.rstrip('/') + '/compressed', self._on_image, img_qos)
         self.create_subscription(CameraInfo, p.camera_info_topic, self._on_camera_info, 10)
-        self.create_subscription(NavSatFix, p.fix_topic, self._on_fix, 50)
+        # Fixes come 5-20 per frame: a deep history so a busy executor does not lose the ones a keyframe
+        # needs for its interpolation.
+        self.create_subscription(NavSatFix, p.fix_topic, self._on_fix,
+                                 QoSProfile(depth=200, reliability=ReliabilityPolicy.RELIABLE))
         self._worker = threading.Thread(target=self._run, name='tracker_worker', daemon=True)
         self._worker.start()
 
