@@ -136,7 +136,7 @@ def test_bad_calibration_is_a_diagnostics_error_and_node_survives(rclpy_context)
         assert any('focal length' in m for m in messages)
         assert any('calibration is for 320x240' in m for m in messages)
         time.sleep(1.2)
-        status = [s for d in listener.diags for s in d.status if s.name.endswith('tracker')]
+        status = [s for d in listener.diags for s in d.status if s.name.endswith('tracker_node')]
         assert status and max(s.level for s in status) == DiagnosticStatus.ERROR
         # A good calibration for this size: the same node now tracks.
         pub_info.publish(msgs.camera_info_msg(PinholeCamera(160, 120, 130, 130, 80, 60), 0))

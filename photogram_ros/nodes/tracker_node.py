@@ -37,9 +37,9 @@ from photogram_ros.params import param
 
 @dataclass
 class TrackerNodeParams(TrackerParams):
-    image_topic: str = param('/camera/image_raw', 'Raw image topic; "<topic>/compressed" is subscribed too')
-    camera_info_topic: str = param('/camera/camera_info', 'CameraInfo topic (ignored with calibration_file)')
-    fix_topic: str = param('/gps/fix', 'NavSatFix topic interpolated to keyframe stamps')
+    image_topic: str = param('camera/image_raw', 'Raw image topic; "<topic>/compressed" is subscribed too')
+    camera_info_topic: str = param('camera/camera_info', 'CameraInfo topic (ignored with calibration_file)')
+    fix_topic: str = param('gps/fix', 'NavSatFix topic interpolated to keyframe stamps')
     calibration_file: str = param('', 'Calibration YAML (ROS or OpenCV layout) used instead of camera_info')
     queue_size: int = param(2, 'Frames waiting for the tracker; beyond this the oldest is dropped', min=1,
                             max=1000)
@@ -53,7 +53,7 @@ class TrackerNodeParams(TrackerParams):
 
 class TrackerNode(Node):
     def __init__(self, overrides: dict | None = None, **node_kwargs):
-        super().__init__('tracker', **node_kwargs)
+        super().__init__('tracker_node', **node_kwargs)
         self.params = p = declare(self, TrackerNodeParams, overrides)
         self.diag = Diagnostics(self)
         self.tracker = Tracker(None, TrackerParams(**{k: getattr(p, k) for k in TrackerParams.__dataclass_fields__}))
@@ -69,12 +69,13 @@ class TrackerNode(Node):
         self._camera_error = 'no camera_info received yet' if self._camera_from_file is None else ''
         self._stop = False
         self.keyframes_published = 0
+        self.frames_done = 0   # frames tracked, refused or dropped: lets a bag replay wait for the tracker
 
         kf_qos = QoSProfile(depth=p.keyframe_qos_depth, reliability=ReliabilityPolicy.RELIABLE)
-        self.pub_image = self.create_publisher(Image, '/keyframes/image', kf_qos)
-        self.pub_features = self.create_publisher(PointCloud2, '/keyframes/features', kf_qos)
-        self.pub_fix = self.create_publisher(NavSatFix, '/keyframes/fix', kf_qos)
-        self.pub_debug = self.create_publisher(Image, '/tracker/debug_image', 2) if p.publish_debug_image else None
+        self.pub_image = self.create_publisher(Image, 'keyframes/image', kf_qos)
+        self.pub_features = self.create_publisher(PointCloud2, 'keyframes/features', kf_qos)
+        self.pub_fix = self.create_publisher(NavSatFix, 'keyframes/fix', kf_qos)
+        self.pub_debug = self.create_publisher(Image, 'tracker/debug_image', 2) if p.publish_debug_image else None
         img_qos = QoSProfile(depth=p.input_depth, history=HistoryPolicy.KEEP_LAST,
                              reliability=ReliabilityPolicy.RELIABLE if p.reliable_input
                              else ReliabilityPolicy.BEST_EFFORT)
@@ -95,6 +96,7 @@ class TrackerNode(Node):
             if len(self._frames) >= self.params.queue_size:
                 self._frames.popleft()
                 self.diag.count('drops')
+                self.frames_done += 1
             self._frames.append(msg)
             self._cond.notify()
         self.diag.count('frames_received')
@@ -138,6 +140,8 @@ class TrackerNode(Node):
                     self._handle(msg, cam, fixes)
             except Exception as exc:   # the worker must survive anything one frame can do
                 self.diag.problem(f'tracker failed on a frame: {type(exc).__name__}: {exc}', ERROR)
+            with self._cond:
+                self.frames_done += 1
 
     def _handle(self, msg, cam, fixes) -> None:
         for f in fixes:
