@@ -48,6 +48,7 @@ def run(a) -> int:
     except KeyboardInterrupt:
         pass
     finally:
+        graph.finish_flight()
         graph.shutdown()
         rclpy.try_shutdown()
     return 0

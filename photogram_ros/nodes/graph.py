@@ -11,6 +11,7 @@ import importlib
 import subprocess
 import sys
 import threading
+import time
 from dataclasses import dataclass
 
 from photogram_ros.errors import ConfigError
@@ -79,15 +80,21 @@ class Graph:
         self._thread = threading.Thread(target=self.executor.spin, daemon=True, name='graph-executor')
         self._thread.start()
 
-    def shutdown(self) -> None:
-        """Flush what each node holds (the map writes its tiles and exports), then stop."""
-        for role in reversed(list(self.nodes)):
-            finish = getattr(self.nodes[role], 'finish', None)
-            if callable(finish):
+    def finish_flight(self, settle=lambda: time.sleep(2.0)) -> None:
+        """End of flight, in data-flow order: the tracker emits the keyframes it still holds, the
+        bundle adjuster runs its final adjustment and republishes the poses; `settle` lets the
+        downstream nodes consume each step's output."""
+        for role, method in (('tracker', 'flush'), ('bundle', 'finish')):
+            fn = getattr(self.nodes.get(role), method, None)
+            if callable(fn):
                 try:
-                    finish()
+                    fn()
                 except Exception as exc:  # one node's failure must not lose the others' data
-                    print(f'{role}: finishing failed: {exc}', file=sys.stderr)
+                    print(f'{role}: {method} failed: {exc}', file=sys.stderr)
+                settle()
+
+    def shutdown(self) -> None:
+        """Stop spinning and destroy the nodes (the map node flushes its tiles to disk on destroy)."""
         self.executor.shutdown(timeout_sec=5)
         for n in self.nodes.values():
             n.destroy_node()

@@ -116,25 +116,30 @@ def run_replay(opts: ReplayOptions, context=None) -> dict:
         if m.topic in IMAGE_TOPICS:
             images_sent[0] += 1
             deadline = time.monotonic() + opts.frame_timeout_s
-            while tracker.frames_received() < images_sent[0] and time.monotonic() < deadline:
+            while tracker.frames_done < images_sent[0] and time.monotonic() < deadline:
                 time.sleep(0.002)
         if opts.progress and time.monotonic() - last_print[0] > 2.0:
             last_print[0] = time.monotonic()
             _print_progress(graph, images_sent[0], m.stamp_ns, t_start)
 
     summary = player.play(on_message=on_message)
-    # Drain: wait until no node has done anything for a few seconds.
-    quiet_since, last = time.monotonic(), _activity(graph)
-    deadline = time.monotonic() + opts.drain_timeout_s
-    while time.monotonic() < deadline:
-        time.sleep(0.5)
-        now = _activity(graph)
-        if now != last:
-            quiet_since, last = time.monotonic(), now
-        elif time.monotonic() - quiet_since > 3.0:
-            break
+
+    def drain():
+        """Wait until no node has done anything for a few seconds."""
+        quiet_since, last = time.monotonic(), _activity(graph)
+        deadline = time.monotonic() + opts.drain_timeout_s
+        while time.monotonic() < deadline:
+            time.sleep(0.5)
+            now = _activity(graph)
+            if now != last:
+                quiet_since, last = time.monotonic(), now
+            elif time.monotonic() - quiet_since > 3.0:
+                return
+
+    drain()
+    graph.finish_flight(settle=drain)
     wall_s = time.monotonic() - t_start
-    graph.shutdown()   # bundle: final adjustment and republished poses; map: flush
+    graph.shutdown()
     player.destroy_node()
     listener.destroy_node()
     run = {'bag': str(opts.bag), 'frames': images_sent[0], 'bag_s': summary.bag_s, 'wall_s': wall_s,
