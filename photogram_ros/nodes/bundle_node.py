@@ -241,6 +241,16 @@ class BundleNode(Node):
         pts = np.array([self.at.points[int(t)] for t in ids]).reshape(-1, 3)
         self.pub_cloud.publish(msgs.sparse_cloud_msg(pts, stamp_ns, ids))
 
+    def finish(self) -> None:
+        """End of flight (called by the graph): take every waiting keyframe now, with or without its
+        fix, then adjust the whole block and republish every pose."""
+        if self.at is None:
+            return
+        for stamp in sorted(self._pending):
+            _, ids, uv = self._pending.pop(stamp)
+            self._process(KeyframeRecord(stamp, ids, uv, self._match_fix(stamp)))
+        self.full_adjustment()
+
     def full_adjustment(self) -> None:
         if self.at is None or not self.at.registered:
             return
