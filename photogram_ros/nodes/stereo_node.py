@@ -34,12 +34,17 @@ TOPIC_POSE = 'map/keyframe_pose'
 TOPIC_INFO = 'camera/camera_info'
 TOPIC_CLOUD = 'map/dense_cloud'
 TOPIC_DISPARITY = 'stereo/disparity'
+TOPIC_SPARSE = 'map/sparse_cloud'
 
 
 @dataclass
 class StereoNodeParams(stereo.StereoParams):
-    ground_height_m: float = param(0.0, 'expected ground height in map (z, m), centre of the depth search',
+    ground_height_m: float = param(0.0, 'expected ground height in map (z, m), centre of the depth search; '
+                                        'used until the sparse cloud gives it (see ground_from_sparse_cloud)',
                                    min=-1e4, max=1e4)
+    ground_from_sparse_cloud: bool = param(True, 'take the ground height from the median of map/sparse_cloud '
+                                                 '(the map origin is often the first fix, in the air); keyframes '
+                                                 'wait for the first sparse cloud')
     relief_m: float = param(20.0, 'depth search half-range around the ground, m (terrain relief + buildings)',
                             min=0.5, max=1e4)
     target_baseline_ratio: float = param(0.22, 'preferred baseline-to-height ratio when choosing partners',
@@ -83,6 +88,9 @@ class StereoNode(Node):
         self.create_subscription(Image, TOPIC_IMAGE, self._on_image, reliable)
         self.create_subscription(PoseWithCovarianceStamped, TOPIC_POSE, self._on_pose, reliable)
         self.create_subscription(CameraInfo, TOPIC_INFO, self._on_info, qos_profile_sensor_data)
+        self.ground_m = None if p.ground_from_sparse_cloud else p.ground_height_m
+        if p.ground_from_sparse_cloud:
+            self.create_subscription(PointCloud2, TOPIC_SPARSE, self._on_sparse, QoSProfile(depth=2))
         self.cloud_pub = self.create_publisher(PointCloud2, TOPIC_CLOUD, reliable)
         self.disp_pub = self.create_publisher(DisparityImage, TOPIC_DISPARITY, 5) if p.publish_disparity else None
 
@@ -134,6 +142,20 @@ class StereoNode(Node):
         except Exception as exc:
             self.diag.problem(f'keyframe pose rejected: {exc}')
 
+    def _on_sparse(self, msg: PointCloud2) -> None:
+        try:
+            z = msgs.points_from_pointcloud2(msg)['z']
+            z = z[np.isfinite(z)]
+            if z.size < 20:
+                return
+            first = self.ground_m is None
+            self.ground_m = float(np.median(z))
+            self.diag.set('ground_height_m', self.ground_m)
+            if first:
+                self._pair_pending()
+        except Exception as exc:
+            self.diag.problem(f'sparse cloud rejected: {exc}')
+
     # --- pairing ---------------------------------------------------------------------------------
 
     def _pair_pending(self) -> None:
@@ -148,7 +170,7 @@ class StereoNode(Node):
         return cam
 
     def _maybe_pair(self, kf: _Keyframe) -> None:
-        if kf.paired or not kf.complete:
+        if kf.paired or not kf.complete or self.ground_m is None:
             return
         if self.camera is None:
             self.diag.problem('no camera_info yet: keyframes wait for the calibration')
@@ -159,12 +181,12 @@ class StereoNode(Node):
         if kf.sigma_m > p.max_position_sigma_m:
             self.diag.count('pairs_skipped_poor_pose')
             return
-        height = float(kf.map_T_cam[2, 3] - p.ground_height_m)
+        height = float(kf.map_T_cam[2, 3] - self.ground_m)
         others = {s: o.map_T_cam for s, o in self._kf.items()
                   if o is not kf and o.complete and o.paired and o.sigma_m <= p.max_position_sigma_m}
         if height <= 0:
             self.diag.problem(f'keyframe at z={kf.map_T_cam[2, 3]:.1f} m is not above the ground '
-                              f'({p.ground_height_m} m): set ground_height_m')
+                              f'({self.ground_m} m): set ground_height_m')
             return
         for cand in choose_pairs(self._camera_for(kf.image), kf.map_T_cam, others, height, self.criteria):
             self._run_pair(self._kf[cand.other], kf, height)
