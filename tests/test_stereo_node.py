@@ -46,7 +46,8 @@ def test_two_keyframes_make_a_cloud(rclpy_context, two_keyframes):
     from photogram_ros.nodes.stereo_node import StereoNode
 
     cam, terrain, frames, cfg = two_keyframes
-    node = StereoNode({'publish_disparity': True, 'ground_from_sparse_cloud': False}, context=rclpy_context)
+    node = StereoNode({'publish_disparity': True, 'ground_from_sparse_cloud': False, 'settle_keyframes': 0},
+                      context=rclpy_context)
     peer = Node('stereo_test_peer', context=rclpy_context)
     ex = SingleThreadedExecutor(context=rclpy_context)
     ex.add_node(node)

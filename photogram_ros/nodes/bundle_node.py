@@ -78,6 +78,9 @@ class BundleNodeParams:
     max_fix_sigma_m: float = param(50.0, 'fixes with a larger horizontal sigma are not used, m', min=0.01, max=1e4)
     cloud_every: int = param(5, 'publish the sparse cloud every this many keyframes', min=1, max=1000)
     full_adjustment_on_shutdown: bool = param(True, 'adjust the whole block when the node stops')
+    publish_provisional: bool = param(False, 'publish poses while the georeference is still provisional (a '
+                                             'straight first line leaves the roll about it to an assumption '
+                                             'until the first turn); off, poses start at the first turn')
 
     def check(self) -> None:
         if len(self.lever_arm_cam_m) != 3:
@@ -94,6 +97,7 @@ class BundleNode(Node):
         self._pending: dict[int, tuple[float, np.ndarray, np.ndarray]] = {}   # stamp -> (arrival, ids, uv)
         self._fixes: dict[int, GnssFix] = {}
         self._georef_sent = False
+        self._published_final = False
         self._n_since_cloud = 0
         reliable = QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE)
         latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
@@ -203,7 +207,15 @@ class BundleNode(Node):
         self.diag.set('window_size', rep.window_size)
         self.diag.set('points', len(self.at.points))
         self.diag.set('georeferenced', 'provisional' if self.at.georef_provisional else str(self.at.georeferenced))
-        if self.at.georeferenced and rep.registered:
+        if not (self.at.georeferenced and rep.registered):
+            return
+        if self.at.georef_provisional and not self.p.publish_provisional:
+            return
+        if not self._published_final and not self.at.georef_provisional:
+            # Provisional -> final georeference moved every keyframe: republish them all.
+            self._published_final = True
+            self._publish(window=list(self.at.registered))
+        else:
             self._publish(window=self.at.registered[-self.p.window_size:])
 
     def _publish(self, window) -> None:

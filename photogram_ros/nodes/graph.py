@@ -82,9 +82,9 @@ class Graph:
 
     def finish_flight(self, settle=lambda: time.sleep(2.0)) -> None:
         """End of flight, in data-flow order: the tracker emits the keyframes it still holds, the
-        bundle adjuster runs its final adjustment and republishes the poses; `settle` lets the
-        downstream nodes consume each step's output."""
-        for role, method in (('tracker', 'flush'), ('bundle', 'finish')):
+        bundle adjuster runs its final adjustment and republishes the poses, stereo pairs the
+        keyframes still waiting; `settle` lets the downstream nodes consume each step's output."""
+        for role, method in (('tracker', 'flush'), ('bundle', 'finish'), ('stereo', 'flush')):
             fn = getattr(self.nodes.get(role), method, None)
             if callable(fn):
                 try:

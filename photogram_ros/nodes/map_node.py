@@ -27,7 +27,7 @@ from geometry_msgs.msg import PoseWithCovarianceStamped
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
-from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
 from sensor_msgs.msg import CameraInfo, Image, NavSatFix, PointCloud2
 
 from photogram_ros import msgs
@@ -99,7 +99,9 @@ class MapNode(Node):
         self._fuse_s = 0.0
         self._closed = False
         group = MutuallyExclusiveCallbackGroup()   # the map is not thread-safe; graph.py spins multi-threaded
-        reliable = QoSProfile(depth=20, reliability=ReliabilityPolicy.RELIABLE)
+        # KEEP_ALL: the map is the sink that persists the flight; a burst of pair clouds while it is
+        # fusing must queue, not overwrite clouds that were never fused.
+        reliable = QoSProfile(history=HistoryPolicy.KEEP_ALL, depth=1, reliability=ReliabilityPolicy.RELIABLE)
         latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                              durability=DurabilityPolicy.TRANSIENT_LOCAL)
         self.create_subscription(PointCloud2, TOPIC_CLOUD, self._on_cloud, reliable, callback_group=group)
@@ -107,8 +109,7 @@ class MapNode(Node):
                                  callback_group=group)
         if p.save_keyframes:
             self.create_subscription(Image, TOPIC_IMAGE, self._on_image, reliable, callback_group=group)
-            self.create_subscription(PoseWithCovarianceStamped, TOPIC_POSE, self._on_pose,
-                                     QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE),
+            self.create_subscription(PoseWithCovarianceStamped, TOPIC_POSE, self._on_pose, reliable,
                                      callback_group=group)
             self.create_subscription(CameraInfo, TOPIC_INFO, self._on_info, qos_profile_sensor_data,
                                      callback_group=group)

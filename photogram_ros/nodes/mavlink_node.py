@@ -126,6 +126,7 @@ class MavlinkNode(Node):
             self._thread = threading.Thread(target=target, name='mavlink_input', daemon=True)
             self._thread.start()
         else:
+            self.messages_in = 0
             self.create_subscription(UInt8MultiArray, p.input_topic, self._on_bytes,
                                      QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1000,
                                                 reliability=ReliabilityPolicy.RELIABLE))
@@ -137,6 +138,7 @@ class MavlinkNode(Node):
 
     def _on_bytes(self, msg: UInt8MultiArray) -> None:
         self.feed(msgs.bytes_from_msg(msg), self._now_s())
+        self.messages_in += 1   # lets a bag replay wait until every recorded packet is decoded
 
     def feed(self, data: bytes, arrival_s: float | None, final: bool = False) -> None:
         """Raw bytes from any transport -> decoded messages -> published topics."""

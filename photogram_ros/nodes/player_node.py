@@ -110,8 +110,12 @@ class PlayerNode(Node):
         self.diag.problem(f'only {sum(p.get_subscription_count() for p in self._pubs.values())} of {want} '
                           'subscribers matched before playing')
 
-    def play(self, on_message=None) -> PlaySummary:
-        """Play the bag to its end (or until stop_requested); returns what was published."""
+    def play(self, on_message=None, before_message=None) -> PlaySummary:
+        """Play the bag to its end (or until stop_requested); returns what was published.
+
+        `before_message(m)` and `on_message(m)` are called around each publication: an in-process
+        consumer uses them to hold the player back until it has caught up.
+        """
         p = self.params
         if not p.bag:
             raise ConfigError('player: set the parameter "bag" to the bag folder to play')
@@ -136,7 +140,7 @@ class PlayerNode(Node):
             summary.bag_s = bag.duration_ns * 1e-9
             t_wall0 = time.monotonic()
             while True:
-                self._play_once(bag, playable, remaps, summary, on_message)
+                self._play_once(bag, playable, remaps, summary, on_message, before_message)
                 summary.errors += bag.errors
                 for e in bag.errors:
                     self.diag.problem(e, ERROR)
@@ -147,7 +151,7 @@ class PlayerNode(Node):
         self.diag.publish()
         return summary
 
-    def _play_once(self, bag: BagReader, topics, remaps, summary: PlaySummary, on_message) -> None:
+    def _play_once(self, bag: BagReader, topics, remaps, summary: PlaySummary, on_message, before_message) -> None:
         p = self.params
         start_ns = bag.start_ns
         wall0 = time.monotonic()
@@ -164,6 +168,8 @@ class PlayerNode(Node):
                 last_clock_ns = m.stamp_ns
             out = remaps.get(m.topic, m.topic)
             pub = self._pubs[out]
+            if before_message is not None:
+                before_message(m)
             pub.publish(m.data)
             summary.counts[out] = summary.counts.get(out, 0) + 1
             summary.bytes[out] = summary.bytes.get(out, 0) + len(m.data)

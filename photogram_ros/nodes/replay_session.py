@@ -112,17 +112,31 @@ def run_replay(opts: ReplayOptions, context=None) -> dict:
     t_start = time.monotonic()
     last_print = [0.0]
 
+    mavlink = graph.nodes.get('mavlink')
+    packets_sent = [0]
+
+    def wait_for(done, deadline_s):
+        deadline = time.monotonic() + deadline_s
+        while not done() and time.monotonic() < deadline:
+            time.sleep(0.002)
+
+    def before_message(m):
+        # Telemetry up to a frame's time must be decoded before the tracker sees the frame, as it
+        # would be live; otherwise the fix a keyframe needs may still sit in a queue.
+        if m.topic in IMAGE_TOPICS and mavlink is not None:
+            wait_for(lambda: mavlink.messages_in >= packets_sent[0], opts.frame_timeout_s)
+
     def on_message(m):
-        if m.topic in IMAGE_TOPICS:
+        if m.topic == '/mavlink/from_fcu':
+            packets_sent[0] += 1
+        elif m.topic in IMAGE_TOPICS:
             images_sent[0] += 1
-            deadline = time.monotonic() + opts.frame_timeout_s
-            while tracker.frames_done < images_sent[0] and time.monotonic() < deadline:
-                time.sleep(0.002)
+            wait_for(lambda: tracker.frames_done >= images_sent[0], opts.frame_timeout_s)
         if opts.progress and time.monotonic() - last_print[0] > 2.0:
             last_print[0] = time.monotonic()
             _print_progress(graph, images_sent[0], m.stamp_ns, t_start)
 
-    summary = player.play(on_message=on_message)
+    summary = player.play(on_message=on_message, before_message=before_message)
 
     def drain():
         """Wait until no node has done anything for a few seconds."""

@@ -58,6 +58,9 @@ class StereoNodeParams(stereo.StereoParams):
     max_position_sigma_m: float = param(2.0, 'keyframes whose pose position sigma is larger make no pairs, m',
                                         min=0.0, max=1e4)
     publish_disparity: bool = param(False, f'also publish each pair\'s disparity on {TOPIC_DISPARITY}')
+    settle_keyframes: int = param(10, 'pair a keyframe only once this many newer keyframes have poses: by then '
+                                      'it has left the bundle window and its pose no longer changes (match the '
+                                      'bundle window_size; 0 pairs at once)', min=0, max=1000)
 
 
 @dataclass
@@ -89,6 +92,7 @@ class StereoNode(Node):
         self.create_subscription(PoseWithCovarianceStamped, TOPIC_POSE, self._on_pose, reliable)
         self.create_subscription(CameraInfo, TOPIC_INFO, self._on_info, qos_profile_sensor_data)
         self.ground_m = None if p.ground_from_sparse_cloud else p.ground_height_m
+        self._flushing = False
         if p.ground_from_sparse_cloud:
             self.create_subscription(PointCloud2, TOPIC_SPARSE, self._on_sparse, QoSProfile(depth=2))
         self.cloud_pub = self.create_publisher(PointCloud2, TOPIC_CLOUD, reliable)
@@ -138,9 +142,19 @@ class StereoNode(Node):
             kf.map_T_cam = T
             kf.sigma_m = float(np.sqrt(max(np.trace(cov[:3, :3]), 0.0)))
             self.diag.count('poses')
-            self._maybe_pair(kf)
+            self._pair_pending()   # this pose may settle older keyframes
         except Exception as exc:
             self.diag.problem(f'keyframe pose rejected: {exc}')
+
+    def _newer_posed(self, kf: _Keyframe) -> int:
+        return sum(1 for s, o in self._kf.items() if s > kf.stamp_ns and o.map_T_cam is not None)
+
+    def flush(self) -> None:
+        """End of flight: pair every keyframe still waiting, with the poses it has now."""
+        self._flushing = True
+        if self.ground_m is None:
+            self.ground_m = self.params.ground_height_m
+        self._pair_pending()
 
     def _on_sparse(self, msg: PointCloud2) -> None:
         try:
@@ -171,6 +185,8 @@ class StereoNode(Node):
 
     def _maybe_pair(self, kf: _Keyframe) -> None:
         if kf.paired or not kf.complete or self.ground_m is None:
+            return
+        if not self._flushing and self._newer_posed(kf) < self.params.settle_keyframes:
             return
         if self.camera is None:
             self.diag.problem('no camera_info yet: keyframes wait for the calibration')

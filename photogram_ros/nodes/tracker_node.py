@@ -131,6 +131,10 @@ class TrackerNode(Node):
                     self._cond.wait(0.5)
                 if self._stop:
                     return
+                # A frame may come just before its camera_info (drivers publish them in either order):
+                # give the calibration a moment before the frame is refused.
+                if self.tracker.camera is None and self._camera_pending is None and not self._stop:
+                    self._cond.wait_for(lambda: self._camera_pending is not None or self._stop, 1.0)
                 msg = self._frames.popleft()
                 cam, self._camera_pending = self._camera_pending, None
                 fixes = list(self._fixes)
