@@ -12,6 +12,8 @@ def add_arguments(p) -> None:
     p.add_argument('--rate', type=float, default=0.0, help='bag time speed; 0 = as fast as the mapper keeps up')
     p.add_argument('--crs', default='', help='output CRS, e.g. EPSG:2056 (default: UTM zone of the map origin)')
     p.add_argument('--orthometric', action='store_true', help='heights above the EGM2008 geoid instead of the ellipsoid')
+    p.add_argument('--min-pairs', type=int, default=2,
+                   help='export only cells confirmed by this many stereo pairs (1 keeps everything)')
     p.add_argument('--quiet', action='store_true', help='no progress lines')
 
 
@@ -46,7 +48,7 @@ def run(a) -> int:
     else:
         crs = crs or f'EPSG:{utm_epsg(store.origin.lat_deg, store.origin.lon_deg)}'
         heights = 'orthometric' if a.orthometric else 'ellipsoidal'
-        ex = export_map(res['map_dir'], out, crs, heights)
+        ex = export_map(res['map_dir'], out, crs, heights, min_pairs=a.min_pairs)
         files, notes = {k: str(v) for k, v in ex.files.items()}, ex.notes
         res['run']['map_points'] = ex.points
     truth = GroundTruth.load(a.bag) if GroundTruth.exists(a.bag) else None

@@ -78,10 +78,16 @@ def open_map(map_dir: str | Path) -> tuple[MapStore, Fusion]:
     return store, Fusion(FusionConfig(store.cell_m, store.tile_cells, max_tiles_in_memory=10**6), store)
 
 
-def map_cloud(fusion: Fusion, origin: LocalFrame, crs: str, heights: str = 'ellipsoidal') -> GeoCloud:
+def map_cloud(fusion: Fusion, origin: LocalFrame, crs: str, heights: str = 'ellipsoidal',
+              min_pairs: int = 1) -> GeoCloud:
+    """Fused cells in `crs`; `min_pairs` keeps only cells that that many stereo pairs agreed on."""
     p = fusion.points()
+    if min_pairs > 1:
+        keep = p['n_pairs'] >= min_pairs
+        p = {k: v[keep] for k, v in p.items()}
     if p['x'].size == 0:
-        raise DataError('the map holds no fused points yet')
+        raise DataError('the map holds no fused points yet' if min_pairs <= 1 else
+                        f'no cell of the map was seen by {min_pairs} stereo pairs (lower min_pairs)')
     e, n, h = enu_to_crs(origin, np.column_stack([p['x'], p['y'], p['z']]), crs, heights)
     rgb = np.column_stack([p['r'], p['g'], p['b']])
     return GeoCloud(e, n, h, np.clip(np.rint(rgb), 0, 255).astype(np.uint8), p['n'].astype(np.uint32),
@@ -233,8 +239,12 @@ class ExportResult:
 
 def export_map(map_dir: str | Path, out_dir: str | Path, crs: str, heights: str = 'ellipsoidal',
                dsm_res_m: float = 0.0, ortho_res_m: float = 0.0, products=('las', 'laz', 'ply', 'dsm', 'ortho'),
-               origin: LocalFrame | None = None) -> ExportResult:
-    """Write the requested products of a map folder into out_dir (created)."""
+               origin: LocalFrame | None = None, min_pairs: int = 1) -> ExportResult:
+    """Write the requested products of a map folder into out_dir (created).
+
+    min_pairs=2 exports only cells confirmed by two stereo pairs: a cell one pair saw cannot be
+    checked for gross matching errors (on the sample flight they hold most of the large errors).
+    """
     _check_projected(crs)
     store, fusion = open_map(map_dir)
     origin = origin or store.origin
@@ -244,7 +254,7 @@ def export_map(map_dir: str | Path, out_dir: str | Path, crs: str, heights: str 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     res = ExportResult()
-    cloud = map_cloud(fusion, origin, crs, heights)
+    cloud = map_cloud(fusion, origin, crs, heights, min_pairs)
     res.points = cloud.x.size
     if 'las' in products:
         res.files['las'] = write_las(cloud, out / 'cloud.las')
@@ -263,11 +273,11 @@ def export_map(map_dir: str | Path, out_dir: str | Path, crs: str, heights: str 
         if not kfs:
             res.notes.append('no orthomosaic: the map folder holds no keyframes with images, poses and camera')
         else:
-            ell = cloud if heights == 'ellipsoidal' else map_cloud(fusion, origin, crs, 'ellipsoidal')
+            ell = cloud if heights == 'ellipsoidal' else map_cloud(fusion, origin, crs, 'ellipsoidal', min_pairs)
             dsm_ell = dsm_in_crs(ell, dsm_res)
             ortho = ortho_in_crs(dsm_ell, kfs, origin, crs, ortho_res_m or store.cell_m)
             res.files['ortho'] = write_geotiff(ortho, out / 'ortho.tif', crs, 'orthomosaic RGBA', rgba=True)
-    meta = {'crs': crs, 'heights': heights, 'origin': origin.to_dict(), 'points': res.points,
+    meta = {'crs': crs, 'heights': heights, 'origin': origin.to_dict(), 'points': res.points, 'min_pairs': min_pairs,
             'keyframes': res.keyframes, 'files': {k: str(v) for k, v in res.files.items()}, 'notes': res.notes,
             'geoid': geoid.MODEL_NAME if heights == 'orthometric' else None}
     (out / 'export.json').write_text(json.dumps(meta, indent=1))
