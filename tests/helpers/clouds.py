@@ -4,11 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-try:
-    from photogram_ros.core.stereo import CLOUD_DTYPE
-except ImportError:  # stereo not landed: the same fields, defined here
-    CLOUD_DTYPE = np.dtype([('x', np.float64), ('y', np.float64), ('z', np.float64), ('rgb', np.uint32),
-                            ('confidence', np.float32)])
+from photogram_ros.core.stereo import CLOUD_DTYPE
 
 
 def pair_cloud(rng, height_at, cx, cy, half_w, half_h, density_per_m2, sigma_z_m=0.0, outlier_fraction=0.0,
