@@ -38,7 +38,7 @@ from photogram_ros.core import gnss_fix as gf
 from photogram_ros.errors import ConfigError, MavlinkError, PhotogramError
 from photogram_ros.io.mavlink import (Attitude, FixEvent, Ingest, Link, MavlinkStream, Trigger, is_live_url,
                                       signing_key)
-from photogram_ros.nodes.diagnostics import ERROR, WARN, Diagnostics
+from photogram_ros.nodes.diagnostics import ERROR, OK, WARN, Diagnostics
 from photogram_ros.nodes.ros_params import declare
 from photogram_ros.params import param
 
@@ -114,6 +114,8 @@ class MavlinkNode(Node):
         self._stop = threading.Event()
         self._last_packet_mono = None
         self._link_up = False
+        self._best_fix_type = None
+        self._damaged_reported = 0
         self.published = {'fix': 0, 'attitude': 0, 'trigger': 0}
         self.input_done = threading.Event()
         self._thread = None
@@ -233,6 +235,11 @@ class MavlinkNode(Node):
             if ev.per_receiver:
                 self._rx_pub(fix.receiver).publish(msg)
             if ev.best:
+                if self._best_fix_type is not None and fix.fix_type != self._best_fix_type:
+                    # Mode changes (RTK fixed -> float, outages) are what users need to see afterwards.
+                    self.diag.problem(f'GNSS fix {gf.fix_name(self._best_fix_type)} -> {gf.fix_name(fix.fix_type)}',
+                                      WARN if fix.fix_type < self._best_fix_type else OK)
+                self._best_fix_type = fix.fix_type
                 self.pub_fix_type.publish(UInt8(data=int(fix.fix_type) & 0xFF))
                 self.pub_fix.publish(msg)
                 self.published['fix'] += 1
@@ -259,6 +266,10 @@ class MavlinkNode(Node):
             for k, v in self.ingest.counts.items():
                 if k.islower():
                     d.set(k, v)
+        damaged = st.crc_errors + st.junk_bytes
+        if damaged > self._damaged_reported:
+            d.problem(f'corrupted MAVLink data: {st.crc_errors} CRC errors, {st.junk_bytes} junk bytes so far', WARN)
+            self._damaged_reported = damaged
         for t in RATE_TYPES:
             r = d.rate_hz(f'rx_{t}')
             if r > 0:
