@@ -6,10 +6,12 @@ HELP = 'receive the downsampled maps, poses and health of drones on the same DDS
 
 
 def add_arguments(p) -> None:
-    p.add_argument('--namespaces', default='', help='comma-separated drone namespaces (default: discover all)')
-    p.add_argument('--out', default='ground_station', help='folder for the merged cloud, tracks and status')
-    p.add_argument('--crs', default='', help='EPSG code of the saved cloud (default: UTM of the first drone)')
-    p.add_argument('--save-period', type=float, default=10.0, help='seconds between saves')
+    p.add_argument('--params', default=None, help='parameter file with a ground_station section '
+                                                  '(e.g. config/ground_station.yaml); options below override it')
+    p.add_argument('--namespaces', default=None, help='comma-separated drone namespaces (default: discover all)')
+    p.add_argument('--out', default=None, help='folder for the merged cloud, tracks and status')
+    p.add_argument('--crs', default=None, help='EPSG code of the saved cloud (default: UTM of the first drone)')
+    p.add_argument('--save-period', type=float, default=None, help='seconds between saves')
     p.add_argument('--duration', type=float, default=0.0, help='stop after this many seconds (0 = until Ctrl-C)')
 
 
@@ -19,9 +21,14 @@ def run(a) -> int:
     import rclpy
 
     from photogram_ros.nodes.ground_station import GroundStationNode
+    from photogram_ros.params import load_params_file
+    values = load_params_file(a.params).get('ground_station', {}) if a.params else {}
+    for opt, name in (('namespaces', 'namespaces'), ('out', 'out_dir'), ('crs', 'crs'),
+                      ('save_period', 'save_period_s')):
+        if getattr(a, opt) is not None:
+            values[name] = getattr(a, opt)
     rclpy.init()
-    node = GroundStationNode(overrides={'namespaces': a.namespaces, 'out_dir': a.out, 'crs': a.crs,
-                                        'save_period_s': float(a.save_period)})
+    node = GroundStationNode(overrides=values)
     start = time.monotonic()
     last_print = 0.0
     try:
@@ -31,7 +38,7 @@ def run(a) -> int:
                 last_print = time.monotonic()
                 parts = [f'{ns or "/"}: {len(d.poses)} keyframes, {d.points} points' for ns, d in node.drones.items()]
                 print(f'[ground station] {len(node.merged_cloud())} merged cells; '
-                      + ('; '.join(parts) or 'waiting for drones'))
+                      + ('; '.join(parts) or 'waiting for drones'), flush=True)
     except KeyboardInterrupt:
         pass
     finally:

@@ -91,7 +91,7 @@ class MavlinkParams:
 
 class MavlinkNode(Node):
     def __init__(self, overrides: dict | None = None, **node_kwargs):
-        super().__init__('mavlink', **node_kwargs)
+        super().__init__('mavlink_node', **node_kwargs)
         p = self.params = declare(self, MavlinkParams, overrides)
         self.diag = Diagnostics(self, period_s=p.diagnostics_period_s, hardware_id='mavlink')
         key = signing_key(p.signing_key) if p.signing_key else None

@@ -38,7 +38,7 @@ def declare(node: Node, cls, overrides: dict | None = None):
         except Exception as exc:  # rclpy raises several types for bad types/ranges
             raise ConfigError(f'{node.get_name()}: parameter {f.name!r}: {exc}') from exc
         values[f.name] = p.value
-    given = set(getattr(node, '_parameter_overrides', {}) or {})
+    given = set(getattr(node, '_parameter_overrides', {}) or {}) | set(overrides or {})
     unknown = sorted(k for k in given if k not in values and k != 'use_sim_time')
     if unknown:
         from_dict(cls, {k: None for k in unknown}, where=node.get_name())  # raises with suggestions

@@ -1,0 +1,74 @@
+"""`photogram-ros run`: the parameter files start every node; mistakes in them stop the start, by name."""
+
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from conftest import ROOT
+from photogram_ros.errors import ConfigError
+from photogram_ros.params import load_params_file
+
+pytestmark = pytest.mark.ros
+
+CONFIGS = sorted((ROOT / 'config').glob('*.yaml'))
+
+
+def test_every_config_file_names_real_parameters():
+    """Each shipped parameter file is valid against the nodes' declared parameters."""
+    from photogram_ros.nodes.ground_station import GroundStationParams
+    from photogram_ros.nodes.graph import NODES, node_class
+    from photogram_ros.params import from_dict
+    import importlib
+    params_classes = {'ground_station': GroundStationParams}
+    for role, (module, _cls, script) in NODES.items():
+        mod = importlib.import_module(module)
+        cls = [v for k, v in vars(mod).items() if k.endswith('Params') and isinstance(v, type)
+               and v.__module__ == module]
+        params_classes[script] = cls[-1]
+        assert node_class(role)
+    assert len(CONFIGS) >= 4
+    for path in CONFIGS:
+        for section, values in load_params_file(str(path)).items():
+            assert section in params_classes, f'{path.name}: section {section}'
+            from_dict(params_classes[section], values, where=f'{path.name}:{section}')
+
+
+def test_mistyped_parameter_stops_the_start_with_its_name(tmp_path):
+    bad = tmp_path / 'bad.yaml'
+    bad.write_text('tracker_node:\n  ros__parameters:\n    keyframe_overlapp: 0.7\n')
+    r = subprocess.run([sys.executable, '-m', 'photogram_ros.cli', 'run', '--params', str(bad)], cwd=ROOT,
+                       capture_output=True, text=True, timeout=120)
+    assert r.returncode == 2
+    assert "keyframe_overlapp" in r.stderr and 'keyframe_overlap' in r.stderr.replace('keyframe_overlapp', '')
+    wrong = tmp_path / 'range.yaml'
+    wrong.write_text('stereo_node:\n  ros__parameters:\n    downscale: 7.0\n')
+    r = subprocess.run([sys.executable, '-m', 'photogram_ros.cli', 'run', '--params', str(wrong)], cwd=ROOT,
+                       capture_output=True, text=True, timeout=120)
+    assert r.returncode == 2 and 'downscale' in r.stderr
+
+
+def test_run_starts_all_nodes_and_sigint_flushes_the_map(tmp_path, sample_bag):
+    cfg = tmp_path / 'onboard.yaml'
+    text = (ROOT / 'config' / 'onboard_rtk.yaml').read_text()
+    text = text.replace('url: udpin:0.0.0.0:14550', f'url: {sample_bag / "flight.tlog"}')
+    text = text.replace('map_dir: maps/current', f'map_dir: {tmp_path / "map"}')
+    cfg.write_text(text)
+    proc = subprocess.Popen([sys.executable, '-m', 'photogram_ros.cli', 'run', '--params', str(cfg)], cwd=ROOT,
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline and not (tmp_path / 'map' / 'map.json').exists():
+            time.sleep(0.5)
+        time.sleep(3.0)
+        proc.send_signal(signal.SIGINT)
+        out = proc.communicate(timeout=60)[0]
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 0, out[-3000:]
+    assert 'photogram_ros running: mavlink, tracker, bundle, stereo, map' in out
+    assert (tmp_path / 'map' / 'map.json').exists()
