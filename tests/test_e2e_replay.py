@@ -11,7 +11,6 @@ import subprocess
 import sys
 
 import laspy
-import numpy as np
 import pytest
 import rasterio
 

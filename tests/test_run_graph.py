@@ -4,12 +4,10 @@ import signal
 import subprocess
 import sys
 import time
-from pathlib import Path
 
 import pytest
 
 from conftest import ROOT
-from photogram_ros.errors import ConfigError
 from photogram_ros.params import load_params_file
 
 pytestmark = pytest.mark.ros

@@ -3,7 +3,6 @@
 import numpy as np
 from pymavlink import mavutil
 
-from photogram_ros.core.geodesy import LocalFrame
 from photogram_ros.io.bag import BagReader, deserialize
 from photogram_ros.sim.truth import GroundTruth
 

@@ -29,7 +29,6 @@ import time
 from dataclasses import dataclass
 
 import numpy as np
-import rclpy
 from geometry_msgs.msg import PoseWithCovarianceStamped
 from nav_msgs.msg import Path
 from rclpy.node import Node
@@ -42,6 +41,7 @@ from photogram_ros.core.geodesy import LocalFrame
 from photogram_ros.core.incremental import GnssFix, IncrementalAT, IncrementalOptions, KeyframeRecord
 from photogram_ros.errors import ConfigError, PhotogramError
 from photogram_ros.nodes.diagnostics import ERROR, Diagnostics
+from photogram_ros.nodes.node_main import run_node
 from photogram_ros.nodes.ros_params import declare
 from photogram_ros.params import param
 
@@ -279,24 +279,9 @@ class BundleNode(Node):
             self.diag.problem(f'full adjustment failed: {exc}')
 
 
-def main(args=None) -> int:
-    rclpy.init(args=args)
-    try:
-        node = BundleNode()
-    except ConfigError as exc:
-        print(f'bundle_node: {exc}', file=sys.stderr)
-        rclpy.try_shutdown()
-        return 2
-    try:
-        rclpy.spin(node)
-    except (KeyboardInterrupt, rclpy.executors.ExternalShutdownException):
-        pass
-    finally:
-        if node.p.full_adjustment_on_shutdown:
-            node.full_adjustment()
-        node.destroy_node()
-        rclpy.try_shutdown()
-    return 0
+def main(argv=None) -> int:
+    """Console script `bundle_node`."""
+    return run_node(BundleNode, argv, on_exit=lambda n: n.full_adjustment() if n.p.full_adjustment_on_shutdown else None)
 
 
 if __name__ == '__main__':

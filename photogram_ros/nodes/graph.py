@@ -104,7 +104,6 @@ def start_separate(spec: GraphSpec) -> list[subprocess.Popen]:
     """One process per node (the console scripts), each given the same parameter file."""
     procs = []
     for role in spec.roles:
-        script = NODES[role][2]
         args = [sys.executable, '-c', f'import sys; from {NODES[role][0]} import main; sys.exit(main())',
                 '--ros-args']
         if spec.params_file:

@@ -15,17 +15,14 @@ Topic names are relative, so a drone's namespace (several drones, one ground sta
 
 from __future__ import annotations
 
-import signal
 import sys
 import threading
 import time
 from dataclasses import dataclass
 
 import numpy as np
-import rclpy
 from geometry_msgs.msg import PoseWithCovarianceStamped
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
-from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
 from sensor_msgs.msg import CameraInfo, Image, NavSatFix, PointCloud2
@@ -36,6 +33,7 @@ from photogram_ros.core.geodesy import LocalFrame
 from photogram_ros.errors import ConfigError, PhotogramError
 from photogram_ros.io.map_store import MapStore
 from photogram_ros.nodes.diagnostics import Diagnostics
+from photogram_ros.nodes.node_main import run_node
 from photogram_ros.nodes.ros_params import declare
 from photogram_ros.params import param
 
@@ -251,25 +249,9 @@ class MapNode(Node):
         return super().destroy_node()
 
 
-def main(args=None) -> int:
-    rclpy.init(args=args if args is not None else sys.argv)
-    node = None
-    try:
-        node = MapNode()
-        # SIGTERM (a supervisor stopping us) must flush like SIGINT does.
-        signal.signal(signal.SIGTERM, lambda *_: (_ for _ in ()).throw(KeyboardInterrupt()))
-        rclpy.spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    except PhotogramError as exc:
-        print(f'map_node: {exc}', file=sys.stderr)
-        return 2
-    finally:
-        if node is not None:
-            node.close()
-            node.destroy_node()
-        rclpy.try_shutdown()
-    return 0
+def main(argv=None) -> int:
+    """Console script `map_node`."""
+    return run_node(MapNode, argv)
 
 
 if __name__ == '__main__':

@@ -26,8 +26,6 @@ import threading
 import time
 from dataclasses import dataclass
 
-import rclpy
-from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import NavSatFix
@@ -39,6 +37,7 @@ from photogram_ros.errors import ConfigError, MavlinkError, PhotogramError
 from photogram_ros.io.mavlink import (Attitude, FixEvent, Ingest, Link, MavlinkStream, Trigger, is_live_url,
                                       signing_key)
 from photogram_ros.nodes.diagnostics import ERROR, OK, WARN, Diagnostics
+from photogram_ros.nodes.node_main import run_node
 from photogram_ros.nodes.ros_params import declare
 from photogram_ros.params import param
 
@@ -298,22 +297,7 @@ class MavlinkNode(Node):
 
 def main(argv=None) -> int:
     """Console script `mavlink_node`."""
-    rclpy.init(args=argv if argv is not None else sys.argv)
-    node = None
-    try:
-        node = MavlinkNode()
-        rclpy.spin(node)
-        return 0
-    except (ConfigError, MavlinkError) as exc:
-        print(f'mavlink_node: {exc}', file=sys.stderr)
-        return 2
-    except (KeyboardInterrupt, ExternalShutdownException):
-        return 0
-    finally:
-        if node is not None:
-            node.destroy_node()
-        if rclpy.ok():
-            rclpy.try_shutdown()
+    return run_node(MavlinkNode, argv)
 
 
 if __name__ == '__main__':

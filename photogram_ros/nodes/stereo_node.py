@@ -14,7 +14,6 @@ from collections import OrderedDict
 from dataclasses import dataclass
 
 import numpy as np
-import rclpy
 from geometry_msgs.msg import PoseWithCovarianceStamped
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
@@ -24,8 +23,9 @@ from stereo_msgs.msg import DisparityImage
 from photogram_ros import msgs
 from photogram_ros.core import stereo
 from photogram_ros.core.pairs import PairCriteria, choose_pairs
-from photogram_ros.errors import ConfigError, PhotogramError
+from photogram_ros.errors import PhotogramError
 from photogram_ros.nodes.diagnostics import Diagnostics
+from photogram_ros.nodes.node_main import run_node
 from photogram_ros.nodes.ros_params import declare
 from photogram_ros.params import param
 
@@ -238,22 +238,7 @@ class StereoNode(Node):
 
 def main(argv=None) -> int:
     """Console script `stereo_node`."""
-    rclpy.init(args=argv if argv is not None else sys.argv)
-    node = None
-    try:
-        node = StereoNode()
-        rclpy.spin(node)
-        return 0
-    except ConfigError as exc:
-        print(f'stereo_node: {exc}', file=sys.stderr)
-        return 2
-    except KeyboardInterrupt:
-        return 130
-    finally:
-        if node is not None:
-            node.destroy_node()
-        if rclpy.ok():
-            rclpy.shutdown()
+    return run_node(StereoNode, argv)
 
 
 if __name__ == '__main__':

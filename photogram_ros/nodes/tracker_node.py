@@ -20,7 +20,6 @@ import time
 from collections import deque
 from dataclasses import dataclass
 
-import rclpy
 from rclpy.node import Node
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image, NavSatFix, PointCloud2
@@ -29,8 +28,9 @@ from photogram_ros import msgs
 from photogram_ros.core.camera import load_calibration
 from photogram_ros.core.keyframes import GpsFix
 from photogram_ros.core.tracker import Tracker, TrackerParams
-from photogram_ros.errors import CalibrationError, ConfigError, PhotogramError
+from photogram_ros.errors import CalibrationError, PhotogramError
 from photogram_ros.nodes.diagnostics import ERROR, Diagnostics
+from photogram_ros.nodes.node_main import run_node
 from photogram_ros.nodes.ros_params import declare
 from photogram_ros.params import param
 
@@ -242,22 +242,7 @@ class TrackerNode(Node):
 
 def main(argv=None) -> int:
     """Console script `tracker_node`."""
-    rclpy.init(args=argv if argv is not None else sys.argv)
-    node = None
-    try:
-        node = TrackerNode()
-        rclpy.spin(node)
-        return 0
-    except (ConfigError, CalibrationError) as exc:
-        print(f'tracker_node: {exc}', file=sys.stderr)
-        return 2
-    except KeyboardInterrupt:
-        return 130
-    finally:
-        if node is not None:
-            node.destroy_node()
-        if rclpy.ok():
-            rclpy.shutdown()
+    return run_node(TrackerNode, argv)
 
 
 if __name__ == '__main__':

@@ -1,0 +1,41 @@
+"""The body of every node's console script: init, spin, and the same clean exit on SIGINT and SIGTERM."""
+
+from __future__ import annotations
+
+import signal
+import sys
+
+import rclpy
+from rclpy.executors import ExternalShutdownException
+
+from photogram_ros.errors import PhotogramError
+
+
+def _interrupt(*_):
+    raise KeyboardInterrupt
+
+
+def run_node(cls, argv=None, on_exit=None) -> int:
+    """Run one node until interrupted; `on_exit(node)` runs before it is destroyed (e.g. a final adjustment).
+
+    A supervisor's SIGTERM ends the node like Ctrl-C does, so what the node holds is flushed either way.
+    Bad configuration exits with status 2 and the reason on stderr.
+    """
+    rclpy.init(args=argv if argv is not None else sys.argv)
+    signal.signal(signal.SIGTERM, _interrupt)
+    node = None
+    try:
+        node = cls()
+        rclpy.spin(node)
+        return 0
+    except PhotogramError as exc:
+        print(f'{cls.__name__}: {exc}', file=sys.stderr)
+        return 2
+    except (KeyboardInterrupt, ExternalShutdownException):
+        return 0
+    finally:
+        if node is not None:
+            if on_exit is not None:
+                on_exit(node)
+            node.destroy_node()
+        rclpy.try_shutdown()
