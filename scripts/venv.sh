@@ -15,7 +15,6 @@ fi
 if [ ! -f "$stamp" ] || [ "$(cat "$stamp")" != "$want" ]; then
   echo "[venv] installing pinned dependencies (first run takes about a minute)" >&2
   "$venv/bin/python" -m pip install --quiet --disable-pip-version-check -r "$root/requirements.txt"
-  "$venv/bin/python" -m pip install --quiet --disable-pip-version-check --no-deps --no-build-isolation -e "$root" \
-    || "$venv/bin/python" -m pip install --quiet --disable-pip-version-check --no-deps -e "$root"
+  "$venv/bin/python" -m pip install --quiet --disable-pip-version-check --no-deps -e "$root"
   echo "$want" > "$stamp"
 fi
