@@ -46,23 +46,9 @@ def _read_geo_txt(path):
 
 def _read_exif(path):
     """EXIF GPS -> (lat, lon, h_ellipsoidal, h_acc, v_acc) or None; EXIF altitude is MSL."""
-    from PIL import Image
-
-    from photogram_ros.core import geoid
-    try:
-        gps = Image.open(path).getexif().get_ifd(0x8825)
-    except OSError:
-        return None
-    if 2 not in gps or 4 not in gps:
-        return None
-
-    def dms(v):
-        return float(v[0]) + float(v[1]) / 60 + float(v[2]) / 3600
-
-    lat = dms(gps[2]) * (-1 if gps.get(1) == 'S' else 1)
-    lon = dms(gps[4]) * (-1 if gps.get(3) == 'W' else 1)
-    alt = float(gps.get(6, 0.0)) * (-1 if gps.get(5) == 1 else 1)
-    return lat, lon, float(geoid.msl_to_ellipsoid_m(lat, lon, alt)), 5.0, 10.0
+    from photogram_ros.io.image_source import read_exif_gps
+    fix = read_exif_gps(path)
+    return None if fix is None else (fix.lat_deg, fix.lon_deg, fix.h_m, 5.0, 10.0)
 
 
 def _read_gcps(path, origin, check_names):

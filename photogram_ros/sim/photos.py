@@ -7,7 +7,7 @@ carries the ellipsoidal height with per-image accuracy, as a PPK/RTK workflow wo
 
 from __future__ import annotations
 
-from datetime import datetime, timezone
+from datetime import datetime, timedelta, timezone
 from pathlib import Path
 
 import cv2
@@ -47,6 +47,12 @@ def exif_bytes(lat_deg: float, lon_deg: float, alt_msl_m: float, when: datetime,
     gps[6] = IFDRational(int(round(abs(alt_msl_m) * 1000)), 1000)
     ex = exif.get_ifd(EXIF_IFD)
     ex[0x9003] = when.strftime('%Y:%m:%d %H:%M:%S')   # DateTimeOriginal
+    # EXIF times have 1 s resolution and no zone without these: milliseconds and UTC make the
+    # photo times line up exactly with the bag's frames and GNSS fixes.
+    ex[0x9291] = f'{when.microsecond // 1000:03d}'   # SubSecTimeOriginal
+    z = when.strftime('%z')   # '' for a naive time: then the zone stays unstated
+    if z:
+        ex[0x9011] = z[:3] + ':' + z[3:]   # OffsetTimeOriginal
     ex[0x920A] = IFDRational(int(round(focal_mm * 1000)), 1000)  # FocalLength
     return exif.tobytes()
 
@@ -69,7 +75,9 @@ def write_photos(folder: Path, frames, truth, cfg) -> list[str]:
         if fix is None:
             continue
         name = f'IMG_{k:04d}.JPG'
-        when = datetime.fromtimestamp(ft.stamp_ns * 1e-9, tz=timezone.utc)
+        # Integer arithmetic: a float timestamp could round 20:26:41.000 down to .999.
+        when = (datetime.fromtimestamp(ft.stamp_ns // 1_000_000_000, tz=timezone.utc)
+                + timedelta(microseconds=(ft.stamp_ns % 1_000_000_000) // 1000))
         rgb = cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
         Image.fromarray(rgb).save(folder / name, quality=92,
                                   exif=exif_bytes(fix['lat_deg'], fix['lon_deg'], fix['alt_msl_m'], when,

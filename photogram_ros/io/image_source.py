@@ -1,0 +1,259 @@
+"""Frames from a folder of photos, a video file or a video device, with times and EXIF GPS.
+
+A folder is played in shooting order (EXIF DateTimeOriginal + SubSecTimeOriginal, in the zone of
+OffsetTimeOriginal, else an assumed UTC offset) so that a user's existing survey photos can go
+through the mapper like a live camera. EXIF GPS altitude is above mean sea level (EXIF 2.3), so it
+is converted to the WGS84 ellipsoidal height the rest of the system uses (REP-145).
+A file that cannot be decoded is skipped and recorded in `skipped`: one corrupt JPEG must not end
+a survey. No ROS here: the camera node is a thin adapter over these iterators.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from datetime import datetime, timedelta, timezone
+from pathlib import Path
+from typing import Iterator
+
+import numpy as np
+
+from photogram_ros.errors import ConfigError, DataError
+
+IMAGE_SUFFIXES = ('.jpg', '.jpeg', '.png', '.tif', '.tiff')
+GPS_IFD = 0x8825
+EXIF_IFD = 0x8769
+TAG_DATETIME_ORIGINAL = 0x9003
+TAG_SUBSEC_ORIGINAL = 0x9291
+TAG_OFFSET_ORIGINAL = 0x9011
+
+
+@dataclass(frozen=True)
+class ExifFix:
+    lat_deg: float
+    lon_deg: float
+    h_m: float            # ellipsoidal (WGS84)
+    alt_msl_m: float      # as written in the EXIF
+
+
+@dataclass
+class Frame:
+    stamp_ns: int
+    image: np.ndarray     # BGR uint8 (H, W, 3)
+    fix: ExifFix | None
+    path: str             # file path, or the video source and frame index
+
+
+def _exif(path):
+    from PIL import Image
+    with Image.open(path) as im:
+        return im.getexif()
+
+
+def read_exif_gps(path) -> ExifFix | None:
+    """EXIF GPS of a photo, height converted from MSL to ellipsoidal; None when absent or unreadable."""
+    from photogram_ros.core import geoid
+    try:
+        gps = _exif(path).get_ifd(GPS_IFD)
+    except (OSError, SyntaxError, ValueError):
+        return None
+    if 2 not in gps or 4 not in gps:
+        return None
+
+    def dms(v):
+        # Rationals arrive as IFDRational; a zero denominator (seen in some cameras) is NaN.
+        return float(v[0]) + float(v[1]) / 60 + float(v[2]) / 3600
+
+    try:
+        lat = dms(gps[2]) * (-1 if gps.get(1) == 'S' else 1)
+        lon = dms(gps[4]) * (-1 if gps.get(3) == 'W' else 1)
+        ref = gps.get(5, 0)
+        below = ref in (1, b'\x01')
+        alt = float(gps.get(6, 0.0)) * (-1 if below else 1)
+    except (TypeError, ValueError, IndexError, ZeroDivisionError):
+        return None
+    if not (np.isfinite(lat) and np.isfinite(lon) and np.isfinite(alt)):
+        return None
+    return ExifFix(lat, lon, float(geoid.msl_to_ellipsoid_m(lat, lon, alt)), alt)
+
+
+def _parse_offset(text) -> timedelta | None:
+    s = str(text).strip().strip('\x00')
+    if len(s) != 6 or s[0] not in '+-' or s[3] != ':':
+        return None
+    try:
+        d = timedelta(hours=int(s[1:3]), minutes=int(s[4:6]))
+    except ValueError:
+        return None
+    return -d if s[0] == '-' else d
+
+
+def read_exif_time_ns(path, utc_offset_s: float = 0.0) -> tuple[int | None, bool, bool]:
+    """(UTC shooting time in ns or None, whether the EXIF stated its zone, whether it had sub-seconds).
+
+    DateTimeOriginal is local time with 1 s resolution; SubSecTimeOriginal adds the fraction and
+    OffsetTimeOriginal the zone. Without a zone, `utc_offset_s` (camera clock minus UTC) is assumed.
+    """
+    try:
+        ex = _exif(path).get_ifd(EXIF_IFD)
+    except (OSError, SyntaxError, ValueError):
+        return None, False, False
+    text = ex.get(TAG_DATETIME_ORIGINAL)
+    if not text:
+        return None, False, False
+    try:
+        local = datetime.strptime(str(text).strip().strip('\x00'), '%Y:%m:%d %H:%M:%S')
+    except ValueError:
+        return None, False, False
+    sub = str(ex.get(TAG_SUBSEC_ORIGINAL, '')).strip().strip('\x00')
+    sub_ns = int(round(float('0.' + sub) * 1e9)) if sub.isdigit() else 0
+    offset = _parse_offset(ex.get(TAG_OFFSET_ORIGINAL, ''))
+    zoned = offset is not None
+    if offset is None:
+        offset = timedelta(seconds=utc_offset_s)
+    utc = local.replace(tzinfo=timezone.utc) - offset
+    seconds = int(utc.timestamp())   # whole seconds: exact
+    return seconds * 1_000_000_000 + sub_ns, zoned, sub.isdigit()
+
+
+def _decode(path: Path) -> np.ndarray:
+    """Decode fully with Pillow: it refuses truncated JPEGs, where OpenCV returns a grey-padded image."""
+    from PIL import Image
+    try:
+        with Image.open(path) as im:
+            im.load()
+            rgb = np.asarray(im.convert('RGB'))
+    except (OSError, SyntaxError, ValueError) as exc:
+        raise DataError(f'{path.name} cannot be decoded: {exc}') from exc
+    return np.ascontiguousarray(rgb[:, :, ::-1])
+
+
+def _opens(path: Path) -> bool:
+    from PIL import Image
+    try:
+        with Image.open(path):
+            return True
+    except (OSError, SyntaxError, ValueError):
+        return False
+
+
+class FolderSource:
+    """The photos of a folder in shooting order; iterate for `Frame`s."""
+
+    def __init__(self, folder, utc_offset_s: float = 0.0, fallback_period_s: float = 1.0):
+        self.folder = Path(folder)
+        if not self.folder.is_dir():
+            raise ConfigError(f'{folder} is not a folder of images')
+        files = sorted(p for p in self.folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
+        if not files:
+            raise DataError(f'{folder} holds no {"/".join(s[1:].upper() for s in IMAGE_SUFFIXES)} images')
+        self.notes: list[str] = []
+        self.skipped: list[tuple[str, str]] = []   # (path, why)
+        timed = []
+        for p in files:
+            if not _opens(p):
+                # Not an image at all: skipped here, so it does not force the name-order fallback.
+                self.skipped.append((str(p), f'{p.name} is not a readable image'))
+                continue
+            timed.append((p, *read_exif_time_ns(p, utc_offset_s)))
+        files = [e[0] for e in timed]
+        missing = [p for p, t, _, _ in timed if t is None]
+        if not missing:
+            # Name as tie-breaker: burst photos can share a second when SubSec is absent.
+            timed.sort(key=lambda e: (e[1], e[0].name))
+            self.entries = [(p, t) for p, t, _, _ in timed]
+            unzoned = sum(1 for _, _, z, _ in timed if not z)
+            if unzoned:
+                self.notes.append(f'{unzoned} of {len(files)} photos have no OffsetTimeOriginal: camera clock '
+                                  f'taken as UTC{utc_offset_s / 3600:+g} h')
+            coarse = sum(1 for _, _, _, sub in timed if not sub)
+            if coarse:
+                self.notes.append(f'{coarse} of {len(files)} photos have no SubSecTimeOriginal: their stamps '
+                                  'have 1 s resolution')
+        else:
+            # Mixing timed and untimed photos would interleave them arbitrarily: name order is safer.
+            self.notes.append(f'{len(missing)} of {len(files)} images have no EXIF DateTimeOriginal: '
+                              f'played in file-name order, {fallback_period_s:g} s apart from the first '
+                              'file time')
+            t0 = next((t for _, t, _, _ in timed if t is not None), None)
+            if t0 is None:
+                t0 = int(min(p.stat().st_mtime_ns for p in files))
+            step = int(round(fallback_period_s * 1e9))
+            self.entries = [(p, t0 + i * step) for i, p in enumerate(files)]
+
+    def __len__(self) -> int:
+        return len(self.entries)
+
+    def __iter__(self) -> Iterator[Frame]:
+        for path, stamp_ns in self.entries:
+            try:
+                image = _decode(path)
+            except DataError as exc:
+                self.skipped.append((str(path), str(exc)))
+                continue
+            yield Frame(stamp_ns, image, read_exif_gps(path), str(path))
+
+
+class VideoSource:
+    """Frames of a video file (stamps from the file's timing) or a device (stamps from the wall clock)."""
+
+    def __init__(self, source, start_ns: int | None = None):
+        import cv2
+        self.source = source
+        self.is_device = isinstance(source, int) or str(source).startswith('/dev/')
+        self.notes: list[str] = []
+        self.skipped: list[tuple[str, str]] = []
+        self.cap = cv2.VideoCapture(source)
+        if not self.cap.isOpened():
+            raise ConfigError(f'cannot open the video {"device" if self.is_device else "file"} {source!r}')
+        # File times are relative to its start: anchor them at a given time or at opening.
+        self.start_ns = time.time_ns() if start_ns is None else int(start_ns)
+        fps = self.cap.get(cv2.CAP_PROP_FPS)
+        self.fps = float(fps) if fps and np.isfinite(fps) and fps > 0 else 0.0
+
+    def __iter__(self) -> Iterator[Frame]:
+        import cv2
+        k = 0
+        misses = 0
+        try:
+            while True:
+                ok, img = self.cap.read()
+                if not ok or img is None:
+                    if self.is_device and misses < 10:
+                        # Devices drop a frame now and then; give up after several in a row.
+                        misses += 1
+                        self.skipped.append((f'{self.source}#{k}', 'device returned no frame'))
+                        continue
+                    return
+                misses = 0
+                if self.is_device:
+                    stamp_ns = time.time_ns()
+                else:
+                    pos_ms = self.cap.get(cv2.CAP_PROP_POS_MSEC)
+                    if not np.isfinite(pos_ms) or (pos_ms <= 0 and k > 0):
+                        pos_ms = k * 1000.0 / self.fps if self.fps else 0.0
+                    stamp_ns = self.start_ns + int(round(pos_ms * 1e6))
+                if img.ndim == 2:
+                    img = cv2.cvtColor(img, cv2.COLOR_GRAY2BGR)
+                yield Frame(stamp_ns, img, None, f'{self.source}#{k}')
+                k += 1
+        finally:
+            self.cap.release()
+
+
+def open_source(source: str, utc_offset_s: float = 0.0, fallback_period_s: float = 1.0):
+    """`source`: a folder of images, a video file, a device path (/dev/video0) or a device index ('0')."""
+    s = str(source).strip()
+    if not s:
+        raise ConfigError('set the parameter "source" to a folder of images, a video file, or a camera device '
+                          '(/dev/video0 or an index such as 0)')
+    if s.isdigit():
+        return VideoSource(int(s))
+    p = Path(s).expanduser()
+    if p.is_dir():
+        return FolderSource(p, utc_offset_s, fallback_period_s)
+    if s.startswith('/dev/'):
+        return VideoSource(s)
+    if p.is_file():
+        return VideoSource(str(p))
+    raise ConfigError(f'source {s!r} is neither a folder, a video file nor a camera device')

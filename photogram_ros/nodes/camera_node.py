@@ -1,0 +1,204 @@
+"""Camera ingest: a folder of photos, a video file or a video device onto the mapper's camera topics.
+
+Publishes camera/image_raw (bgr8), camera/camera_info (the calibration, every frame) and, for
+geotagged photos, gps/fix from the EXIF GPS stamped at the photo time, so survey photos without a
+flight log still georeference. A camera driver already publishing these topics needs no ingest node.
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+from dataclasses import dataclass
+
+import rclpy
+from rclpy.duration import Duration
+from rclpy.node import Node
+from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+from sensor_msgs.msg import CameraInfo, Image, NavSatFix, NavSatStatus
+
+from photogram_ros import msgs
+from photogram_ros.errors import CalibrationError, ConfigError, PhotogramError
+from photogram_ros.nodes.diagnostics import Diagnostics
+from photogram_ros.nodes.ros_params import declare
+from photogram_ros.params import param
+
+
+@dataclass
+class CameraParams:
+    source: str = param('', 'Folder of JPEG/PNG/TIFF photos, a video file, or a camera device '
+                            '(/dev/video0 or an index such as 0)')
+    rate: float = param(1.0, 'Playback speed of folders and files: 1 = EXIF/recorded timing, 0 = next frame as '
+                             'soon as reliable subscribers acknowledged the previous one', min=0.0, max=1000.0)
+    calibration_file: str = param('', 'Camera calibration, ROS camera_calibration or OpenCV YAML '
+                                      '(make one with photogram-ros calibrate)')
+    publish_exif_fix: bool = param(True, 'Publish the EXIF GPS of photos on gps/fix, stamped at the photo time')
+    exif_sigma_m: float = param(5.0, 'Horizontal 1-sigma of EXIF GPS positions, m (vertical taken as twice it)',
+                                min=0.001, max=10000.0)
+    exif_utc_offset_h: float = param(0.0, 'Camera clock minus UTC, h, for photos without OffsetTimeOriginal',
+                                     min=-14.0, max=14.0)
+    fallback_period_s: float = param(1.0, 'Spacing of photos without EXIF time (played in file-name order), s',
+                                     min=0.001, max=3600.0)
+    loop: bool = param(False, 'Start again from the first frame at the end (stamps keep increasing)')
+    frame_id: str = param('camera_optical', 'frame_id of images and camera_info')
+    fix_frame_id: str = param('gps', 'frame_id of the EXIF fixes')
+    autostart: bool = param(True, 'Publish on a timer from the start; false leaves it to publish_next() calls')
+
+
+class CameraNode(Node):
+    def __init__(self, overrides: dict | None = None, **node_kwargs):
+        super().__init__('camera_node', **node_kwargs)
+        from photogram_ros.core.camera import load_calibration
+        from photogram_ros.io.image_source import open_source
+        p = self.params = declare(self, CameraParams, overrides)
+        if not p.calibration_file:
+            raise ConfigError('camera_node: set the parameter "calibration_file" to the camera calibration YAML '
+                              '(ROS or OpenCV layout; make one with photogram-ros calibrate)')
+        try:
+            self.camera = load_calibration(p.calibration_file)
+        except CalibrationError as exc:
+            raise ConfigError(f'camera_node: parameter "calibration_file": {exc}') from exc
+        self._open = lambda: open_source(p.source, p.exif_utc_offset_h * 3600.0, p.fallback_period_s)
+        self.source = self._open()
+        self.diag = Diagnostics(self)
+        self.diag.set('source', p.source)
+        for note in self.source.notes:
+            self.diag.set('note', note)
+            self.get_logger().info(note)
+        # rate 0 relies on acknowledgements: KEEP_ALL so that unacknowledged frames are not overwritten.
+        history = HistoryPolicy.KEEP_ALL if p.rate == 0 else HistoryPolicy.KEEP_LAST
+        qos = QoSProfile(history=history, depth=10, reliability=ReliabilityPolicy.RELIABLE)
+        self.pub_image = self.create_publisher(Image, 'camera/image_raw', qos)
+        self.pub_info = self.create_publisher(CameraInfo, 'camera/camera_info', qos)
+        self.pub_fix = self.create_publisher(NavSatFix, 'gps/fix', qos)
+        self.finished = False
+        self._frames = iter(self.source)
+        self._next = None
+        self._offset_ns = 0          # added to stamps on each loop so that time never goes back
+        self._first_ns = None
+        self._last_ns = None
+        self._wall0 = None
+        self._reported_skips = 0
+        self._timer = self.create_timer(0.005, self._tick) if p.autostart else None
+
+    # --- frames ----------------------------------------------------------------------------------
+
+    def _peek(self):
+        """The next frame to publish, reopening the source when looping; None at the end."""
+        if self._next is not None:
+            return self._next
+        while True:
+            try:
+                frame = next(self._frames)
+            except StopIteration:
+                self._count_skips()
+                if not self.params.loop or self._last_ns is None:
+                    return None
+                # Next pass starts one mean frame interval after the last frame of this one.
+                gap = (self._last_ns - self._first_ns) // max(self.diag.counts().get('frames', 1) - 1, 1)
+                self._offset_ns = self._last_ns + max(gap, 1) - self._first_ns   # first pass had offset 0
+                self.source = self._open()
+                self._frames = iter(self.source)
+                continue
+            except PhotogramError as exc:
+                self.diag.problem(f'camera source: {exc}')
+                return None
+            self._count_skips()
+            if (frame.image.shape[1], frame.image.shape[0]) != (self.camera.width, self.camera.height):
+                self.diag.count('skipped_size_mismatch')
+                self.diag.problem(f'{frame.path}: {frame.image.shape[1]}x{frame.image.shape[0]} image but the '
+                                  f'calibration is for {self.camera.width}x{self.camera.height}: skipped')
+                continue
+            self._next = frame
+            return frame
+
+    def _count_skips(self) -> None:
+        new = self.source.skipped[self._reported_skips:]
+        for path, why in new:
+            self.diag.count('skipped_unreadable')
+            self.diag.problem(f'skipped {path}: {why}')
+        self._reported_skips = len(self.source.skipped)
+
+    def publish_next(self) -> bool:
+        """Publish the next frame (image, camera_info, EXIF fix); False when the source is exhausted."""
+        frame = self._peek()
+        if frame is None:
+            self._finish()
+            return False
+        self._next = None
+        stamp_ns = frame.stamp_ns + self._offset_ns
+        if self._first_ns is None:
+            self._first_ns = stamp_ns
+        self._last_ns = stamp_ns
+        p = self.params
+        try:
+            # The fix goes first so that a consumer holding the image already has its position.
+            if p.publish_exif_fix and frame.fix is not None:
+                s = p.exif_sigma_m
+                self.pub_fix.publish(msgs.navsatfix_msg(
+                    stamp_ns, frame.fix.lat_deg, frame.fix.lon_deg, frame.fix.h_m, NavSatStatus.STATUS_FIX,
+                    [s * s, s * s, 4 * s * s], NavSatFix.COVARIANCE_TYPE_APPROXIMATED, p.fix_frame_id))
+                self.diag.count('fixes')
+            self.pub_info.publish(msgs.camera_info_msg(self.camera, stamp_ns, p.frame_id))
+            self.pub_image.publish(msgs.image_msg(frame.image, stamp_ns, p.frame_id))
+        except PhotogramError as exc:
+            self.diag.problem(f'{frame.path}: {exc}')
+            return True
+        self.diag.count('frames')
+        self.diag.set('rate_hz', self.diag.rate_hz('frames'))
+        self.diag.set('last_frame', frame.path)
+        return True
+
+    def _finish(self) -> None:
+        if not self.finished:
+            self.finished = True
+            self.diag.set('state', 'finished')
+            self.diag.publish()
+            if self._timer is not None:
+                self._timer.cancel()
+
+    def _tick(self) -> None:
+        p = self.params
+        if self.finished:
+            return
+        if p.rate == 0:
+            if self.pub_image.wait_for_all_acked(Duration(nanoseconds=0)):
+                self.publish_next()
+            return
+        frame = self._peek()
+        if frame is None:
+            self._finish()
+            return
+        stamp_ns = frame.stamp_ns + self._offset_ns
+        now = time.monotonic()
+        if self._wall0 is None:
+            self._wall0 = (now, stamp_ns)
+        due = self._wall0[0] + (stamp_ns - self._wall0[1]) * 1e-9 / p.rate
+        if due <= now or getattr(self.source, 'is_device', False):
+            self.publish_next()
+
+
+def main(argv=None) -> int:
+    """Console script `camera_node`: publishes the frames of the `source` parameter."""
+    rclpy.init(args=argv if argv is not None else sys.argv)
+    node = None
+    try:
+        node = CameraNode()
+        while rclpy.ok() and not node.finished:
+            rclpy.spin_once(node, timeout_sec=0.1)
+        if node.finished:
+            node.pub_image.wait_for_all_acked(Duration(seconds=5))
+            c = node.diag.counts()
+            print(f'camera_node: published {c.get("frames", 0)} frames, {c.get("fixes", 0)} EXIF fixes; skipped '
+                  f'{c.get("skipped_unreadable", 0)} unreadable files')
+        return 0
+    except ConfigError as exc:
+        print(f'camera_node: {exc}', file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        return 130
+    finally:
+        if node is not None:
+            node.destroy_node()
+        if rclpy.ok():
+            rclpy.shutdown()

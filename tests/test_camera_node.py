@@ -1,0 +1,227 @@
+"""Camera ingest: simulator survey photos (EXIF time + GPS) and a video file onto the camera topics."""
+
+from __future__ import annotations
+
+import shutil
+import time
+from datetime import datetime, timedelta, timezone
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+import yaml
+
+from photogram_ros.errors import ConfigError
+from photogram_ros.io.image_source import FolderSource, VideoSource, open_source, read_exif_time_ns
+
+
+@pytest.fixture(scope='module')
+def survey(tmp_path_factory):
+    """Simulated tiny survey with geotagged photos, its truth and a calibration YAML (about 25 s)."""
+    from photogram_ros.sim.scenario import preset, simulate
+    out = tmp_path_factory.mktemp('cam') / 'tiny'
+    truth = simulate(preset('tiny', photos=True, fps=1.0, line_length_m=30.0), out)
+    calib = out / 'calib.yaml'
+    calib.write_text(yaml.safe_dump(truth.camera.to_ros_yaml_dict('sim_camera')))
+    geo = {}
+    for ln in (out / 'photos' / 'geo.txt').read_text().splitlines()[1:]:
+        f = ln.split()
+        geo[f[0]] = (float(f[2]), float(f[1]), float(f[3]))   # lat, lon, h ellipsoidal
+    return out / 'photos', truth, calib, geo
+
+
+def _frame_index(path) -> int:
+    return int(Path(path).stem.split('_')[-1])
+
+
+def test_folder_yields_photos_in_time_order_with_truth_stamps_and_exif_gps(survey):
+    photos, truth, _, geo = survey
+    src = FolderSource(photos)
+    frames = list(src)
+    assert len(frames) == len(geo) >= 5
+    assert src.notes == [] and src.skipped == []   # zone and sub-seconds present, nothing unreadable
+    stamps = [f.stamp_ns for f in frames]
+    assert stamps == sorted(stamps)
+    for f in frames:
+        assert f.stamp_ns == truth.frames[_frame_index(f.path)].stamp_ns
+        lat, lon, h = geo[Path(f.path).name]
+        assert f.fix is not None
+        assert abs(f.fix.lat_deg - lat) < 1e-7 and abs(f.fix.lon_deg - lon) < 1e-7
+        assert abs(f.fix.h_m - h) < 0.01                    # MSL -> ellipsoidal through the geoid
+        assert abs(f.fix.h_m - f.fix.alt_msl_m) > 20.0     # the geoid undulation near Zurich is ~48 m
+        assert f.image.shape == (truth.camera.height, truth.camera.width, 3) and f.image.dtype == np.uint8
+
+
+def test_folder_order_comes_from_exif_not_names(survey, tmp_path):
+    photos, truth, _, _ = survey
+    names = sorted(p.name for p in photos.glob('*.JPG'))
+    for i, n in enumerate(names):   # reversed names: name order would be backwards in time
+        shutil.copy(photos / n, tmp_path / f'P{len(names) - i:03d}_{n}')
+    frames = list(FolderSource(tmp_path))
+    assert [Path(f.path).name.split('_', 1)[1] for f in frames] == names
+
+
+def test_corrupt_files_are_skipped_and_counted(survey, tmp_path):
+    photos, _, _, geo = survey
+    for p in photos.glob('*.JPG'):
+        shutil.copy(p, tmp_path / p.name)
+    (tmp_path / 'IMG_0001.JPG').write_bytes(b'\xff\xd8\xff garbage, not a JPEG' * 10)
+    whole = (photos / 'IMG_0002.JPG').read_bytes()
+    (tmp_path / 'IMG_0003.JPG').write_bytes(whole[:len(whole) // 2])   # EXIF intact, pixels truncated
+    src = FolderSource(tmp_path)
+    frames = list(src)
+    assert sorted(Path(p).name for p, _ in src.skipped) == ['IMG_0001.JPG', 'IMG_0003.JPG']
+    assert sorted(Path(f.path).name for f in frames) == sorted(geo)
+    assert src.notes == []   # the unreadable file did not force file-name order
+
+
+def test_subsecond_and_zone_round_trip(tmp_path):
+    from PIL import Image
+
+    from photogram_ros.sim.photos import exif_bytes
+    when = datetime(2026, 5, 28, 20, 26, 41, 375000, tzinfo=timezone.utc)
+    img = Image.fromarray(np.zeros((8, 8, 3), np.uint8))
+    img.save(tmp_path / 'a.jpg', exif=exif_bytes(47.0, 8.0, 400.0, when, 4.0))
+    ns, zoned, sub = read_exif_time_ns(tmp_path / 'a.jpg', utc_offset_s=7200.0)
+    assert zoned and sub
+    assert ns == int(when.timestamp()) * 10**9 + 375_000_000   # the zone in the file wins over the guess
+    # Same wall time written as local time two hours ahead of UTC, without zone tags.
+    local = when + timedelta(hours=2)
+    exif = Image.Exif()
+    exif.get_ifd(0x8769)[0x9003] = local.strftime('%Y:%m:%d %H:%M:%S')
+    img.save(tmp_path / 'b.jpg', exif=exif.tobytes())
+    ns_b, zoned_b, sub_b = read_exif_time_ns(tmp_path / 'b.jpg', utc_offset_s=7200.0)
+    assert not zoned_b and not sub_b and ns_b == int(when.timestamp()) * 10**9
+
+
+def test_folder_without_exif_times_falls_back_to_name_order(tmp_path):
+    for i, name in enumerate(['c.png', 'a.png', 'b.png']):
+        cv2.imwrite(str(tmp_path / name), np.full((8, 8, 3), i, np.uint8))
+    src = FolderSource(tmp_path, fallback_period_s=0.5)
+    frames = list(src)
+    assert [Path(f.path).name for f in frames] == ['a.png', 'b.png', 'c.png']
+    assert np.diff([f.stamp_ns for f in frames]).tolist() == [500_000_000] * 2
+    assert any('file-name order' in n for n in src.notes)
+
+
+def test_video_file_frame_count_and_stamps(tmp_path):
+    path = tmp_path / 'clip.avi'
+    w = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*'MJPG'), 10.0, (64, 48))
+    assert w.isOpened()
+    for i in range(23):
+        w.write(np.full((48, 64, 3), 10 * i, np.uint8))
+    w.release()
+    src = open_source(str(path))
+    assert isinstance(src, VideoSource) and not src.is_device
+    frames = list(src)
+    assert len(frames) == 23
+    dt_ms = np.diff([f.stamp_ns for f in frames]) / 1e6
+    assert np.allclose(dt_ms, 100.0, atol=1.0)
+    assert abs(frames[5].image.mean() - 50) < 3   # frames come out in order
+
+
+def test_bad_sources_and_missing_calibration_are_config_errors(survey, rclpy_context, tmp_path):
+    from photogram_ros.nodes.camera_node import CameraNode
+    photos, _, calib, _ = survey
+    with pytest.raises(ConfigError, match='source'):
+        open_source(str(tmp_path / 'nowhere'))
+    with pytest.raises(ConfigError, match='calibration_file'):
+        CameraNode({'source': str(photos)}, context=rclpy_context)
+    with pytest.raises(ConfigError, match='calibration_file'):
+        CameraNode({'source': str(photos), 'calibration_file': str(tmp_path / 'missing.yaml')},
+                   context=rclpy_context)
+
+
+def _listener(ctx):
+    from rclpy.node import Node
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+    from sensor_msgs.msg import CameraInfo, Image, NavSatFix
+    node = Node('camera_listener', context=ctx)
+    got = {'image': [], 'info': [], 'fix': [], 'image_wall_s': []}
+
+    def on_image(m):
+        got['image'].append(m)
+        got['image_wall_s'].append(time.monotonic())
+
+    qos = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
+    node.create_subscription(Image, 'camera/image_raw', on_image, qos)
+    node.create_subscription(CameraInfo, 'camera/camera_info', got['info'].append, qos)
+    node.create_subscription(NavSatFix, 'gps/fix', got['fix'].append, qos)
+    return node, got
+
+
+def _spin_until(executor, cond, timeout_s=15.0):
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline and not cond():
+        executor.spin_once(timeout_sec=0.05)
+    return cond()
+
+
+def test_node_publishes_image_info_and_exif_fix(survey, rclpy_context, tmp_path):
+    from rclpy.executors import SingleThreadedExecutor
+    from sensor_msgs.msg import NavSatFix
+
+    from photogram_ros import msgs
+    from photogram_ros.nodes.camera_node import CameraNode
+    photos, truth, calib, geo = survey
+    for p in photos.glob('*.JPG'):
+        shutil.copy(p, tmp_path / p.name)
+    (tmp_path / 'IMG_0001.JPG').write_bytes(b'not an image')
+    n = len(geo)
+    cam = CameraNode({'source': str(tmp_path), 'calibration_file': str(calib), 'rate': 0.0, 'autostart': False,
+                      'exif_sigma_m': 3.0}, context=rclpy_context)
+    listener, got = _listener(rclpy_context)
+    ex = SingleThreadedExecutor(context=rclpy_context)
+    ex.add_node(cam)
+    ex.add_node(listener)
+    try:
+        assert _spin_until(ex, lambda: cam.pub_image.get_subscription_count() > 0)
+        while cam.publish_next():
+            ex.spin_once(timeout_sec=0.01)
+        assert cam.finished
+        assert _spin_until(ex, lambda: len(got['image']) == n and len(got['fix']) == n and len(got['info']) == n)
+    finally:
+        ex.shutdown()
+        listener.destroy_node()
+        cam.destroy_node()
+    stamps = [msgs.ns_from_time(m.header.stamp) for m in got['image']]
+    assert stamps == sorted(truth.frames[_frame_index(p)].stamp_ns for p in geo)
+    assert [msgs.ns_from_time(m.header.stamp) for m in got['fix']] == stamps
+    img = msgs.image_from_msg(got['image'][0])
+    assert got['image'][0].encoding == 'bgr8' and img.shape == (truth.camera.height, truth.camera.width, 3)
+    assert msgs.camera_from_info(got['info'][0]).fx == pytest.approx(truth.camera.fx)
+    first = sorted(geo, key=lambda k: truth.frames[_frame_index(k)].stamp_ns)[0]
+    fix = msgs.fix_from_navsatfix(got['fix'][0])
+    assert abs(fix['lat_deg'] - geo[first][0]) < 1e-7 and abs(fix['h_m'] - geo[first][2]) < 0.01
+    assert fix['covariance_type'] == NavSatFix.COVARIANCE_TYPE_APPROXIMATED
+    assert np.allclose(np.diag(fix['covariance_enu_m2']), [9.0, 9.0, 36.0])
+    c = cam.diag.counts()
+    assert c['frames'] == n and c['fixes'] == n and c['skipped_unreadable'] == 1
+
+
+def test_node_timer_plays_folder_at_scaled_exif_timing(survey, rclpy_context):
+    from rclpy.executors import SingleThreadedExecutor
+
+    from photogram_ros import msgs
+    from photogram_ros.nodes.camera_node import CameraNode
+    photos, truth, calib, geo = survey
+    rate = 20.0
+    listener, got = _listener(rclpy_context)
+    cam = CameraNode({'source': str(photos), 'calibration_file': str(calib), 'rate': rate,
+                      'publish_exif_fix': False}, context=rclpy_context)
+    ex = SingleThreadedExecutor(context=rclpy_context)
+    ex.add_node(cam)
+    ex.add_node(listener)
+    try:
+        assert _spin_until(ex, lambda: cam.finished and len(got['image']) == len(geo))
+    finally:
+        ex.shutdown()
+        listener.destroy_node()
+        cam.destroy_node()
+    assert got['fix'] == []
+    stamps = np.array([msgs.ns_from_time(m.header.stamp) for m in got['image']])
+    span_s = (stamps[-1] - stamps[0]) * 1e-9
+    assert span_s > 10.0
+    wall_s = got['image_wall_s'][-1] - got['image_wall_s'][0]
+    assert wall_s == pytest.approx(span_s / rate, rel=0.25, abs=0.1)
