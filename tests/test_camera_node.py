@@ -225,3 +225,13 @@ def test_node_timer_plays_folder_at_scaled_exif_timing(survey, rclpy_context):
     assert span_s > 10.0
     wall_s = got['image_wall_s'][-1] - got['image_wall_s'][0]
     assert wall_s == pytest.approx(span_s / rate, rel=0.25, abs=0.1)
+
+
+def test_triangulate_command_uses_the_shared_exif_reader(survey):
+    from photogram_ros.commands.triangulate import _read_exif
+    photos, _, _, geo = survey
+    name = sorted(geo)[1]
+    lat, lon, h, h_acc, v_acc = _read_exif(photos / name)
+    assert abs(lat - geo[name][0]) < 1e-7 and abs(lon - geo[name][1]) < 1e-7 and abs(h - geo[name][2]) < 0.01
+    assert (h_acc, v_acc) == (5.0, 10.0)
+    assert _read_exif(photos / 'geo.txt') is None
