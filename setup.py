@@ -5,6 +5,7 @@ from setuptools import find_packages, setup
 package_name = 'photogram_ros'
 
 NODES = {
+    'camera_node': 'photogram_ros.nodes.camera_node:main',
     'mavlink_node': 'photogram_ros.nodes.mavlink_node:main',
     'tracker_node': 'photogram_ros.nodes.tracker_node:main',
     'bundle_node': 'photogram_ros.nodes.bundle_node:main',

@@ -9,7 +9,8 @@ def add_arguments(p) -> None:
     p.add_argument('--params', default=None, help='ROS 2 parameter file, e.g. config/onboard_rtk.yaml')
     p.add_argument('--namespace', default='', help='namespace of this drone, e.g. /drone1')
     p.add_argument('--separate', action='store_true', help='one process per node instead of one process')
-    p.add_argument('--nodes', default='', help='comma-separated subset of mavlink,tracker,bundle,stereo,map')
+    p.add_argument('--nodes', default='', help='comma-separated subset of camera,mavlink,tracker,bundle,stereo,map '
+                                              '(default: all but camera; camera too when the file configures it)')
 
 
 def run(a) -> int:
@@ -19,8 +20,8 @@ def run(a) -> int:
     import rclpy
 
     from photogram_ros.errors import ConfigError
-    from photogram_ros.nodes.graph import NODES, Graph, GraphSpec, start_separate
-    roles = tuple(r.strip() for r in a.nodes.split(',') if r.strip()) or tuple(NODES)
+    from photogram_ros.nodes.graph import NODES, Graph, GraphSpec, roles_for, start_separate
+    roles = tuple(r.strip() for r in a.nodes.split(',') if r.strip()) or roles_for(a.params)
     bad = [r for r in roles if r not in NODES]
     if bad:
         raise ConfigError(f'unknown nodes {bad}; choose from {list(NODES)}')

@@ -19,12 +19,24 @@ from photogram_ros.params import load_params_file
 
 # role -> (module, class, console script); the order is the data-flow order.
 NODES = {
+    'camera': ('photogram_ros.nodes.camera_node', 'CameraNode', 'camera_node'),
     'mavlink': ('photogram_ros.nodes.mavlink_node', 'MavlinkNode', 'mavlink_node'),
     'tracker': ('photogram_ros.nodes.tracker_node', 'TrackerNode', 'tracker_node'),
     'bundle': ('photogram_ros.nodes.bundle_node', 'BundleNode', 'bundle_node'),
     'stereo': ('photogram_ros.nodes.stereo_node', 'StereoNode', 'stereo_node'),
     'map': ('photogram_ros.nodes.map_node', 'MapNode', 'map_node'),
 }
+
+
+# The camera node is for cameras without a ROS driver (video devices, photo folders): started only
+# when the parameter file has a camera_node section.
+DEFAULT_ROLES = ('mavlink', 'tracker', 'bundle', 'stereo', 'map')
+
+
+def roles_for(params_file: str | None) -> tuple:
+    sections = load_params_file(params_file) if params_file else {}
+    wants_camera = any(name.split('/')[-1] == 'camera_node' for name in sections)
+    return (('camera',) if wants_camera else ()) + DEFAULT_ROLES
 
 
 def node_class(role: str):
@@ -34,7 +46,7 @@ def node_class(role: str):
 
 @dataclass
 class GraphSpec:
-    roles: tuple = tuple(NODES)
+    roles: tuple = DEFAULT_ROLES
     params_file: str | None = None
     namespace: str = ''
     extra: dict | None = None      # role -> {param: value}, applied over the file
