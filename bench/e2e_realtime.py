@@ -110,6 +110,9 @@ def main() -> int:
     ap.add_argument('--gps-rate', type=float, default=1.0)
     ap.add_argument('--short', action='store_true', help='2 lines of 100 m (a quick check)')
     ap.add_argument('--params', default=str(ROOT / 'config' / 'replay.yaml'))
+    ap.add_argument('--set', action='append', default=[], metavar='ROLE.PARAM=VALUE',
+                    help='override a node parameter over the params file, e.g. tracker.fix_wait_s=1.5 '
+                         '(ROLE: mavlink, tracker, bundle, stereo, map)')
     ap.add_argument('--bag', default='', help='replay this bag instead of simulating the survey')
     ap.add_argument('--keep', default='', help='keep the replay outputs in this folder')
     a = ap.parse_args()
@@ -123,6 +126,11 @@ def main() -> int:
     if a.line_length:
         over['line_length_m'] = a.line_length
     cfg = preset('survey', **over)
+    extra = {}
+    for item in a.set:
+        key, _, value = item.partition('=')
+        role, _, name = key.partition('.')
+        extra.setdefault(role, {})[name] = json.loads(value) if value[:1] in '-0123456789[{tf' else value
     emit({'machine': machine_info(), 'load_avg_before': os.getloadavg()})
     if a.bag:
         bag, sim_s, cached = Path(a.bag), 0.0, True
@@ -130,7 +138,7 @@ def main() -> int:
         bag, sim_s, cached = simulate_cached(cfg, 'e2e_survey', log)
     emit({'bench': 'e2e_sim', 'bag': str(bag), 'render_s': round(sim_s, 1), 'from_cache': cached,
           'size': f'{cfg.width_px}x{cfg.height_px}', 'fps': cfg.fps, 'gps_rate_hz': cfg.gps_rate_hz,
-          'n_lines': cfg.n_lines, 'line_length_m': cfg.line_length_m})
+          'n_lines': cfg.n_lines, 'line_length_m': cfg.line_length_m, 'params': a.params, 'overrides': extra})
 
     import rclpy
     from photogram_ros.nodes.graph import Graph
@@ -171,7 +179,8 @@ def main() -> int:
     sampler.start()
     c0, t0 = cpu_s(), time.monotonic()
     try:
-        res = run_replay(ReplayOptions(bag=str(bag), out=str(out / 'replay'), params_file=a.params, progress=False))
+        res = run_replay(ReplayOptions(bag=str(bag), out=str(out / 'replay'), params_file=a.params, progress=False,
+                                       extra=extra))
     finally:
         t_end = time.monotonic()
         stop.set()
@@ -205,7 +214,7 @@ def main() -> int:
         return {k: v.get(k) for k in keys if k in v}
     emit({'bench': 'e2e_node_diagnostics',
           'tracker_node': pick('tracker_node', 'frames_received', 'frames_tracked', 'drops', 'keyframes', 'process_ms',
-                               'fps', 'breaks'),
+                               'fps', 'breaks', 'keyframes_without_fix'),
           'bundle_node': pick('bundle_node', 'keyframes_received', 'keyframes_oriented', 'keyframes_not_oriented',
                               'keyframes_without_fix', 'solve_time_s', 'full_adjustment_s', 'points', 'window_size'),
           'stereo_node': pick('stereo_node', 'images', 'poses', 'keyframes', 'pairs_done', 'ms_per_pair', 'sgbm_ms',
