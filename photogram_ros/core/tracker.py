@@ -85,9 +85,11 @@ class TrackerParams:
     descriptor: str = param('orb', 'Descriptor used to bridge breaks', choices=('orb', 'sift'))
     gap_s: float = param(0.0, 'A frame interval above this is a gap, s (0: 2.5 x the usual interval)',
                          min=0.0, max=3600.0)
-    fix_wait_s: float = param(0.5, 'How long (stream time) a keyframe waits for a GPS fix after its stamp, s',
+    fix_wait_s: float = param(1.5, 'How long (stream time) a keyframe waits for a GPS fix after its stamp, s '
+                                    '(more than the GPS period: 1 Hz receivers are common)',
                               min=0.0, max=10.0)
-    fix_max_gap_s: float = param(1.0, 'No fix is interpolated across a GPS gap longer than this, s',
+    fix_max_gap_s: float = param(2.5, 'No fix is interpolated across a GPS gap longer than this, s (2.5 GPS '
+                                       'periods at 1 Hz: decoded fix stamps jitter)',
                                  min=0.01, max=60.0)
 
 

@@ -94,6 +94,7 @@ class MapNode(Node):
             self._set_origin(LocalFrame(p.origin_lat_deg, p.origin_lon_deg, p.origin_h_m))
         self._stream_pending: set = set(self.store.tile_keys())   # a restarted map streams what it has
         self._camera_saved = None
+        self._poses_pending: dict = {}
         self._fuse_s = 0.0
         self._closed = False
         group = MutuallyExclusiveCallbackGroup()   # the map is not thread-safe; graph.py spins multi-threaded
@@ -170,12 +171,22 @@ class MapNode(Node):
             self.diag.problem(f'keyframe image not saved: {exc}')
 
     def _on_pose(self, msg: PoseWithCovarianceStamped) -> None:
+        # The bundle adjuster republishes each pose while it sits in its window: keep the latest and
+        # write it at the next flush, instead of an fsync per republication.
         try:
             T, _ = msgs.T_from_pose_with_covariance(msg)
-            self.store.save_keyframe_pose(msgs.ns_from_time(msg.header.stamp), T)
-            self.diag.count('poses_saved')
-        except (PhotogramError, OSError) as exc:
+            self._poses_pending[msgs.ns_from_time(msg.header.stamp)] = T
+        except PhotogramError as exc:
             self.diag.problem(f'keyframe pose not saved: {exc}')
+
+    def _save_poses(self) -> None:
+        pending, self._poses_pending = self._poses_pending, {}
+        for stamp_ns, T in pending.items():
+            try:
+                self.store.save_keyframe_pose(stamp_ns, T)
+                self.diag.count('poses_saved')
+            except OSError as exc:
+                self.diag.problem(f'keyframe pose not saved: {exc}')
 
     def _on_info(self, msg: CameraInfo) -> None:
         try:
@@ -189,6 +200,7 @@ class MapNode(Node):
     # --- outputs ---------------------------------------------------------------------------------
 
     def flush(self) -> None:
+        self._save_poses()
         try:
             n = self.fusion.flush()
             if n:

@@ -143,11 +143,11 @@ def run_replay(opts: ReplayOptions, context=None) -> dict:
         quiet_since, last = time.monotonic(), _activity(graph)
         deadline = time.monotonic() + opts.drain_timeout_s
         while time.monotonic() < deadline:
-            time.sleep(0.5)
+            time.sleep(0.25)
             now = _activity(graph)
             if now != last:
                 quiet_since, last = time.monotonic(), now
-            elif time.monotonic() - quiet_since > 3.0:
+            elif time.monotonic() - quiet_since > 1.5:
                 return
 
     drain()

@@ -8,6 +8,8 @@ optionally /stereo/disparity, and /diagnostics.
 
 from __future__ import annotations
 
+import bisect
+
 import sys
 import time
 from collections import OrderedDict
@@ -93,6 +95,7 @@ class StereoNode(Node):
         self.create_subscription(CameraInfo, TOPIC_INFO, self._on_info, qos_profile_sensor_data)
         self.ground_m = None if p.ground_from_sparse_cloud else p.ground_height_m
         self._flushing = False
+        self._posed: list[int] = []   # stamps of keyframes with a pose, sorted
         if p.ground_from_sparse_cloud:
             self.create_subscription(PointCloud2, TOPIC_SPARSE, self._on_sparse, QoSProfile(depth=2))
         self.cloud_pub = self.create_publisher(PointCloud2, TOPIC_CLOUD, reliable)
@@ -106,7 +109,9 @@ class StereoNode(Node):
             kf = self._kf[stamp_ns] = _Keyframe(stamp_ns)
             # Bounded memory: drop the oldest (also half-received ones whose partner never came).
             while len(self._kf) > self.params.max_keyframes:
-                self._kf.popitem(last=False)
+                stamp, old = self._kf.popitem(last=False)
+                if old.map_T_cam is not None:
+                    self._posed.remove(stamp)
                 self.diag.count('keyframes_dropped')
         return kf
 
@@ -139,15 +144,18 @@ class StereoNode(Node):
                 raise PhotogramError(f'keyframe pose is in frame {msg.header.frame_id!r}, expected map')
             T, cov = msgs.T_from_pose_with_covariance(msg)
             kf = self._entry(msgs.ns_from_time(msg.header.stamp))
+            if kf.map_T_cam is None:
+                bisect.insort(self._posed, kf.stamp_ns)
             kf.map_T_cam = T
             kf.sigma_m = float(np.sqrt(max(np.trace(cov[:3, :3]), 0.0)))
             self.diag.count('poses')
-            self._pair_pending()   # this pose may settle older keyframes
+            if self._newer_posed(kf) == 0:
+                self._pair_pending()   # a new newest pose may settle older keyframes
         except Exception as exc:
             self.diag.problem(f'keyframe pose rejected: {exc}')
 
     def _newer_posed(self, kf: _Keyframe) -> int:
-        return sum(1 for s, o in self._kf.items() if s > kf.stamp_ns and o.map_T_cam is not None)
+        return len(self._posed) - bisect.bisect_right(self._posed, kf.stamp_ns)
 
     def flush(self) -> None:
         """End of flight: pair every keyframe still waiting, with the poses it has now."""
