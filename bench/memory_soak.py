@@ -171,7 +171,6 @@ def main() -> int:
                 f'peak {s[3]:.0f} MB, {h}')
         return h
     sampler.extra = progress_extra
-    t0 = time.monotonic()
     try:
         res = run_replay(ReplayOptions(bag=str(bag), out=str(out), params_file=a.params, progress=False,
                                        drain_timeout_s=1800.0))

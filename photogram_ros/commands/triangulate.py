@@ -21,8 +21,6 @@ def add_arguments(p) -> None:
 
 def _read_geo_txt(path):
     """OpenDroneMap geo.txt -> {name: (lat, lon, h_ellipsoidal, h_acc, v_acc)}."""
-    import numpy as np
-
     from photogram_ros.core.geodesy import crs_to_geodetic
     from photogram_ros.errors import DataError
     lines = [ln.split() for ln in path.read_text().splitlines() if ln.strip() and not ln.startswith('#')]
