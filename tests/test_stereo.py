@@ -112,19 +112,10 @@ def test_pack_rgb():
 
 @pytest.fixture(scope='module')
 def sim_pair():
-    from photogram_ros.sim.render import Exposure, Renderer
-    from photogram_ros.sim.scenario import build_world, preset
-    cfg = preset('tiny')
-    rng = np.random.default_rng(cfg.seed)
-    flight, terrain, _ = build_world(cfg, rng)
-    cam = cfg.camera()
-    r = Renderer(terrain, cam)
-    frames = []
-    for t in (2.0, 3.75):   # 8.75 m apart along the first line, B/H 0.22
-        st = flight.state(t)
-        T = make_T(st.map_R_cam, st.pos_enu)
-        frames.append((T, r.render(T, Exposure(), rng)))
-    return cam, terrain, frames, cfg
+    from helpers.sim_world import rendered, world
+    cfg, _, terrain, _, _ = world('tiny')
+    frames = [(T, img) for _, T, img in rendered((2.0, 3.75))]   # 8.75 m apart along the first line, B/H 0.22
+    return cfg.camera(), terrain, frames, cfg
 
 
 def test_sim_pair_matches_true_dem(sim_pair):

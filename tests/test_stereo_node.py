@@ -11,20 +11,10 @@ from photogram_ros import msgs
 
 @pytest.fixture(scope='module')
 def two_keyframes():
-    from photogram_ros.core.rotations import make_T
-    from photogram_ros.sim.render import Exposure, Renderer
-    from photogram_ros.sim.scenario import build_world, preset
-    cfg = preset('tiny')
-    rng = np.random.default_rng(cfg.seed)
-    flight, terrain, _ = build_world(cfg, rng)
-    cam = cfg.camera()
-    r = Renderer(terrain, cam)
-    frames = []
-    for t in (2.0, 3.75):
-        st = flight.state(t)
-        T = make_T(st.map_R_cam, st.pos_enu)
-        frames.append((1_780_000_000_000_000_000 + int(t * 1e9), T, r.render(T, Exposure(), rng)))
-    return cam, terrain, frames, cfg
+    from helpers.sim_world import rendered, world
+    cfg, _, terrain, _, _ = world('tiny')
+    frames = [(1_780_000_000_000_000_000 + int(t * 1e9), T, img) for t, T, img in rendered((2.0, 3.75))]
+    return cfg.camera(), terrain, frames, cfg
 
 
 def _spin_until(executor, cond, timeout_s):
