@@ -209,7 +209,9 @@ class MapNode(Node):
             self.diag.problem(f'map flush to {self.params.map_dir} failed: {exc}')
 
     def _stream(self) -> None:
-        if not self._stream_pending:
+        # Nobody listening (no ground station linked): keep the changed tiles for when one connects
+        # instead of spending a quarter second per period on block means.
+        if not self._stream_pending or self.stream_pub.get_subscription_count() == 0:
             return
         p = self.params
         parts, total = [], 0
