@@ -1,17 +1,18 @@
-"""photogram-ros triangulate: offline aerial triangulation of a folder of geotagged photos."""
+"""photogram-ros triangulate: offline aerial triangulation of a flight bag or a folder of geotagged photos."""
 
 from __future__ import annotations
 
-HELP = 'aerial triangulation of geotagged photos (EXIF GPS or geo.txt) with GCPs/check points; report'
+HELP = 'aerial triangulation of a flight bag or of geotagged photos (EXIF GPS or geo.txt), GCPs/check points; report'
 
 
 def add_arguments(p) -> None:
-    p.add_argument('input', help='folder of geotagged JPEGs (with an optional OpenDroneMap geo.txt)')
+    p.add_argument('input', help='a flight bag (images + /gps/fix or raw MAVLink), or a folder of geotagged JPEGs '
+                                 '(with an optional OpenDroneMap geo.txt)')
     p.add_argument('--gcp', help='OpenDroneMap gcp_list.txt (first line a CRS; names CHK* are check points)')
     p.add_argument('--check', default='', help='more check-point names, comma separated')
     p.add_argument('--out', required=True, help='output folder (poses.csv, sparse.ply/.las, report.md/.json)')
-    p.add_argument('--camera', help='calibration YAML (ROS camera_calibration layout); default: the simulator '
-                                    'truth beside the folder, if any')
+    p.add_argument('--camera', help='calibration YAML (ROS camera_calibration layout); default: the bag\'s '
+                                    'camera_info, or the simulator truth beside the folder, if any')
     p.add_argument('--crs', help='output CRS (default: the GCP CRS, else the UTM zone of the first photo)')
     p.add_argument('--gcp-sigma', default='0.02,0.02,0.03', help='GCP sigma E,N,U in metres')
     p.add_argument('--neighbours', type=int, default=8, help='photos matched with each photo (by position)')
@@ -70,7 +71,6 @@ def _read_gcps(path, origin, check_names):
 
 
 def run(a) -> int:
-    import csv
     import json
     import sys
     import time
@@ -81,19 +81,15 @@ def run(a) -> int:
     import yaml
 
     from photogram_ros.core import photo_matching as pm
-    from photogram_ros.core.at_report import build_report, write_report
     from photogram_ros.core.camera import PinholeCamera
-    from photogram_ros.core.geodesy import LocalFrame, utm_epsg
-    from photogram_ros.core.incremental import ControlPoint, GnssFix, IncrementalAT, IncrementalOptions, KeyframeRecord
-    from photogram_ros.core.rotations import opk_from_map_R_cam
+    from photogram_ros.core.geodesy import LocalFrame
+    from photogram_ros.core.incremental import GnssFix, KeyframeRecord
     from photogram_ros.errors import CalibrationError, DataError
-    from photogram_ros.io.export import GeoCloud, enu_to_crs, write_las, write_ply
 
     src = Path(a.input)
-    out = Path(a.out)
     if (src / 'metadata.yaml').exists():
-        raise DataError(f'{src} is a bag: replay it through the tracker and bundle nodes (photogram-ros replay); '
-                        'this command triangulates folders of photos')
+        camera, origin, records, assumptions = _bag_records(src, a.camera)
+        return _adjust_and_write(a, records, camera, origin, assumptions, {})
     if not src.is_dir():
         raise DataError(f'{src} is not a folder of photos')
     images = sorted(p for p in src.iterdir() if p.suffix.lower() in ('.jpg', '.jpeg', '.png', '.tif', '.tiff'))
@@ -149,6 +145,29 @@ def run(a) -> int:
     tracks = pm.build_tracks([len(f.uv) for f in feats], matches)
     print(f'{len(images)} photos, {sum(len(f.uv) for f in feats)} features, {len(matches)} verified pairs, '
           f'in {time.monotonic() - t0:.1f} s', file=sys.stderr)
+    records = []
+    for p, f, tr in zip(images, feats, tracks):
+        keep = tr >= 0
+        g = geo.get(p.name)
+        fix = GnssFix(g[0], g[1], g[2], np.diag([g[3] ** 2, g[3] ** 2, g[4] ** 2])) if g else None
+        records.append(KeyframeRecord(0, tr[keep], f.uv[keep], fix, p.name))
+    return _adjust_and_write(a, records, camera, origin, assumptions, {'n_inputs': len(images)})
+
+
+def _adjust_and_write(a, records, camera, origin, assumptions, info) -> int:
+    """Incremental AT of the keyframe records, a full adjustment, then poses, sparse cloud and report."""
+    import csv
+    from pathlib import Path
+
+    import numpy as np
+
+    from photogram_ros.core.at_report import build_report, write_report
+    from photogram_ros.core.geodesy import utm_epsg
+    from photogram_ros.core.incremental import ControlPoint, IncrementalAT, IncrementalOptions
+    from photogram_ros.core.rotations import opk_from_map_R_cam
+    from photogram_ros.io.export import GeoCloud, enu_to_crs, write_las, write_ply
+
+    out = Path(a.out)
     # Control
     control, target_obs = [], {}
     crs = a.crs
@@ -163,11 +182,9 @@ def run(a) -> int:
     crs = crs or f'EPSG:{utm_epsg(origin.lat_deg, origin.lon_deg)}'
     lever = tuple(float(v) for v in a.lever_arm.split(','))
     at = IncrementalAT(camera, IncrementalOptions(window_size=a.window, lever_arm_cam_m=lever), origin, control)
-    for p, f, tr in zip(images, feats, tracks):
-        keep = tr >= 0
-        g = geo.get(p.name)
-        fix = GnssFix(g[0], g[1], g[2], np.diag([g[3] ** 2, g[3] ** 2, g[4] ** 2])) if g else None
-        at.add_keyframe(KeyframeRecord(0, tr[keep], f.uv[keep], fix, p.name, target_obs.get(p.name, {})))
+    for rec in records:
+        rec.target_uv = target_obs.get(rec.name, {})
+        at.add_keyframe(rec)
     # Photos that did not register in sequence get a second chance against the whole block.
     for kf in at.kfs:
         if kf.map_T_cam is None and at.registered and at._register(kf).registered:
@@ -201,8 +218,84 @@ def run(a) -> int:
     rep['adjustment_status'] = rep_adj.status
     md, js = write_report(rep, out)
     ck = rep['check']['rmse']
-    print(f"oriented {len(at.registered)}/{len(images)} photos, {len(P)} tie points, reprojection "
+    print(f"oriented {len(at.registered)}/{info.get('n_inputs', len(records))} images, {len(P)} tie points, reprojection "
           f"{rep['reprojection_rms_px']:.3f} px; check points: "
           + (f"n={ck['n']} RMSE horizontal {ck['horizontal_m'] * 100:.1f} cm, vertical {ck['vertical_m'] * 100:.1f} cm"
              if ck.get('n') else 'none') + f'; wrote {out}')
     return 0
+
+
+def _bag_records(src, camera_path):
+    """Keyframes of a flight bag: its images through the tracker, fixes from /gps/fix or raw MAVLink."""
+    import sys
+
+    import numpy as np
+    import yaml
+
+    from photogram_ros import msgs
+    from photogram_ros.core.camera import PinholeCamera
+    from photogram_ros.core.geodesy import LocalFrame
+    from photogram_ros.core.incremental import GnssFix, KeyframeRecord
+    from photogram_ros.core.keyframes import GpsFix
+    from photogram_ros.core.tracker import Tracker
+    from photogram_ros.errors import CalibrationError, DataError
+    from photogram_ros.io import mavlink as ml
+    from photogram_ros.io.bag import BagReader, deserialize
+
+    assumptions = []
+    with BagReader(src) as bag:
+        topics = bag.topics()
+        image_topics = [t for t in ('/camera/image_raw', '/camera/image_raw/compressed') if t in topics]
+        if not image_topics:
+            raise DataError(f'{src} has no /camera/image_raw(/compressed) topic: nothing to triangulate')
+        fixes = []
+        if '/gps/fix' in topics:
+            for m in bag.messages(['/gps/fix']):
+                d = msgs.fix_from_navsatfix(deserialize(m.msgtype, m.data))
+                if d['status'] >= 0 and np.isfinite(d['lat_deg']):
+                    fixes.append(GpsFix.from_dict(d))
+            assumptions.append('positions from the bag\'s /gps/fix (ellipsoidal heights, their covariance as sigma)')
+        elif '/mavlink/from_fcu' in topics:
+            stream = ml.MavlinkStream()
+            raw = []
+            for m in bag.messages(['/mavlink/from_fcu']):
+                raw += [(x, m.stamp_ns * 1e-9) for x in stream.feed(bytes(deserialize(m.msgtype, m.data).data))]
+            events, _ = ml.fixes_from_messages(raw)
+            for ev in events:
+                f = ev.fix
+                if ev.best and f.has_position:
+                    fixes.append(GpsFix(int(round(f.t_s * 1e9)), f.lat_deg, f.lon_deg, f.h_m,
+                                        np.asarray(f.cov_enu_m2, float).reshape(3, 3)))
+            assumptions.append('positions decoded from the raw MAVLink in the bag (GPS_RAW_INT, EGM2008 heights)')
+        if camera_path:
+            camera = PinholeCamera.from_ros_yaml_dict(yaml.safe_load(open(camera_path).read()))
+            assumptions.append(f'calibration from {camera_path}, held fixed')
+        elif '/camera/camera_info' in topics:
+            first = next(bag.messages(['/camera/camera_info']))
+            camera = msgs.camera_from_info(deserialize(first.msgtype, first.data))
+            assumptions.append('calibration from the bag\'s camera_info, held fixed')
+        else:
+            raise CalibrationError(f'{src} has no camera_info: pass --camera calib.yaml')
+        tracker = Tracker(camera)
+        for f in fixes:
+            tracker.add_fix(f)
+        keyframes = []
+        for m in bag.messages(image_topics[:1]):
+            msg = deserialize(m.msgtype, m.data)
+            keyframes += tracker.process(msgs.image_from_msg(msg), msgs.ns_from_time(msg.header.stamp))
+        keyframes += tracker.flush()
+        for e in bag.errors:
+            assumptions.append(f'bag damaged: {e}; triangulated what precedes the damage')
+    print(f'{src}: {len(keyframes)} keyframes, {len(fixes)} fixes', file=sys.stderr)
+    records = []
+    for kf in keyframes:
+        fix = None if kf.fix is None else GnssFix(kf.fix.lat_deg, kf.fix.lon_deg, kf.fix.h_m,
+                                                  np.asarray(kf.fix.covariance_enu_m2, float))
+        obs = kf.observations
+        records.append(KeyframeRecord(kf.stamp_ns, obs['track_id'].astype(np.int64),
+                                      np.column_stack([obs['u'], obs['v']]), fix, f'{kf.stamp_ns}'))
+    first = next((r.fix for r in records if r.fix is not None), None)
+    if first is None:
+        raise DataError(f'no keyframe of {src} has a GNSS fix: georeferencing impossible')
+    assumptions.append('GCP observations are not read from bags (give photos with gcp_list.txt for GCPs)')
+    return camera, LocalFrame(first.lat_deg, first.lon_deg, first.h_m), records, assumptions
