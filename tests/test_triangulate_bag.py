@@ -27,3 +27,23 @@ def test_triangulate_sample_bag_against_truth(sample_bag, tmp_path):
     assert np.sqrt(np.mean(np.sum(err ** 2, axis=1))) < 0.05
     assert (out / 'sparse.las').exists() and (out / 'report.md').exists()
     assert 'camera_info' in (out / 'report.md').read_text()
+
+
+def test_self_calibration_recovers_a_wrong_focal_length(sample_bag, tmp_path):
+    """Start 2 % off in focal length: the final adjustment with --self-calibrate f brings it back."""
+    import dataclasses
+    import json
+
+    import yaml
+    truth = GroundTruth.load(sample_bag)
+    wrong = dataclasses.replace(truth.camera, fx=truth.camera.fx * 1.02, fy=truth.camera.fy * 1.02)
+    cal = tmp_path / 'cal.yaml'
+    cal.write_text(yaml.safe_dump(wrong.to_ros_yaml_dict()))
+    out = tmp_path / 'at'
+    r = subprocess.run([sys.executable, '-m', 'photogram_ros.cli', 'triangulate', str(sample_bag), '--out', str(out),
+                        '--lever-arm=0,-0.05,-0.20', '--camera', str(cal), '--self-calibrate', 'f'],
+                       cwd=ROOT, capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stderr[-3000:]
+    sc = json.loads((out / 'report.json').read_text())['self_calibration']
+    assert abs(sc['fx']['before'] / truth.camera.fx - 1.02) < 1e-6
+    assert abs(sc['fx']['after'] / truth.camera.fx - 1.0) < 0.005

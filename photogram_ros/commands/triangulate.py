@@ -18,6 +18,8 @@ def add_arguments(p) -> None:
     p.add_argument('--neighbours', type=int, default=8, help='photos matched with each photo (by position)')
     p.add_argument('--window', type=int, default=10, help='sliding-window size of the incremental adjustment')
     p.add_argument('--lever-arm', default='0,0,0', help='antenna in the camera frame x,y,z (m)')
+    p.add_argument('--self-calibrate', default='', help='intrinsics refined in the final adjustment, e.g. '
+                                                        '"f,k1,k2" (from f, cx, cy, k1, k2, p1, p2, k3)')
 
 
 def _read_geo_txt(path):
@@ -189,7 +191,19 @@ def _adjust_and_write(a, records, camera, origin, assumptions, info) -> int:
     for kf in at.kfs:
         if kf.map_T_cam is None and at.registered and at._register(kf).registered:
             at._triangulate_new(kf)
-    rep_adj = at.full_adjustment()
+    refine = tuple(v.strip() for v in a.self_calibrate.split(',') if v.strip())
+    before = camera
+    rep_adj = at.full_adjustment(refine_intrinsics=refine)
+    self_cal = None
+    if refine:
+        after = at.camera
+        self_cal = {k: {'before': float(getattr(before, k)), 'after': float(getattr(after, k))}
+                    for k in ('fx', 'fy', 'cx', 'cy')}
+        self_cal.update({n: {'before': before.dist[i], 'after': after.dist[i]}
+                         for i, n in enumerate(('k1', 'k2', 'p1', 'p2', 'k3'))})
+        assumptions.append(f'self-calibration of {", ".join(refine)} in the final adjustment: '
+                           f'fx {before.fx:.2f} -> {after.fx:.2f} px (no sigma: the solver does not yet '
+                           'return intrinsic covariances)')
     lost = [kf.name for kf in at.kfs if kf.map_T_cam is None]
     if lost:
         assumptions.append(f'{len(lost)} photos could not be oriented (blurred or without overlap): {lost[:10]}')
@@ -216,6 +230,8 @@ def _adjust_and_write(a, records, camera, origin, assumptions, info) -> int:
     rep = build_report(at, assumptions)
     rep['crs'] = crs
     rep['adjustment_status'] = rep_adj.status
+    if self_cal is not None:
+        rep['self_calibration'] = self_cal
     md, js = write_report(rep, out)
     ck = rep['check']['rmse']
     print(f"oriented {len(at.registered)}/{info.get('n_inputs', len(records))} images, {len(P)} tie points, reprojection "

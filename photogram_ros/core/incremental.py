@@ -112,8 +112,9 @@ class StepReport:
     n_points: int = 0
 
 
-def _adjust(prob, loss: str, scale_px: float, iterations: int):
-    return bundle_adjust(prob, BundleOptions(loss=loss, loss_scale_px=scale_px, max_iterations=iterations))
+def _adjust(prob, loss: str, scale_px: float, iterations: int, refine: tuple = ()):
+    return bundle_adjust(prob, BundleOptions(loss=loss, loss_scale_px=scale_px, max_iterations=iterations,
+                                             refine_intrinsics=tuple(refine)))
 
 
 def lever_arm_cam_from_frd(lever_frd_m) -> np.ndarray:
@@ -456,7 +457,7 @@ class IncrementalAT:
 
     # --- adjustment -----------------------------------------------------------------------------
 
-    def _solve(self, free: list[int], fixed: list[int], tracks, iterations: int) -> StepReport:
+    def _solve(self, free: list[int], fixed: list[int], tracks, iterations: int, refine: tuple = ()) -> StepReport:
         kids = list(free) + list(fixed)
         col = {k: j for j, k in enumerate(kids)}
         tracks = [int(t) for t in tracks if int(t) in self.points]
@@ -484,7 +485,9 @@ class IncrementalAT:
             point_priors_idx=np.array([s for s, _ in pri], int) if pri else None,
             point_priors_map=np.array([c.map_xyz for _, c in pri]).reshape(-1, 3),
             point_priors_sigma_m=np.array([c.sigma_m for _, c in pri]).reshape(-1, 3))
-        res = _adjust(prob, self.opt.loss, self.opt.loss_scale_px, iterations)
+        res = _adjust(prob, self.opt.loss, self.opt.loss_scale_px, iterations, refine)
+        if refine and res.status != 'failed':
+            self.camera = res.camera   # self-calibration: every later step uses the refined intrinsics
         for j, k in enumerate(kids):
             if not fixed_mask[j]:
                 self.kfs[k].map_T_cam = np.asarray(res.map_T_cams[j])
@@ -546,8 +549,12 @@ class IncrementalAT:
         rep.kid = kid
         return rep
 
-    def full_adjustment(self, iterations: int | None = None, rounds: int = 2) -> StepReport:
-        """Adjust every registered keyframe and point; repeated so that removed outliers settle."""
+    def full_adjustment(self, iterations: int | None = None, rounds: int = 2,
+                        refine_intrinsics: tuple = ()) -> StepReport:
+        """Adjust every registered keyframe and point; repeated so that removed outliers settle.
+
+        refine_intrinsics (e.g. ('f', 'k1')) self-calibrates the shared camera in this adjustment.
+        """
         rep = StepReport(-1, False, 'not_initialised')
         if not self.registered:
             return rep
@@ -555,7 +562,8 @@ class IncrementalAT:
             rounds = max(rounds - 1, 1)
         for _ in range(rounds):
             tracks = list(self.points)
-            rep = self._solve(list(self.registered), [], tracks, iterations or self.opt.full_iterations)
+            rep = self._solve(list(self.registered), [], tracks, iterations or self.opt.full_iterations,
+                              refine_intrinsics)
         if self.opt.estimate_gnss_bias and self._n_gcps() >= 3:
             for _ in range(self.opt.bias_iterations):
                 r = np.array(list(self.gnss_residuals().values()))
