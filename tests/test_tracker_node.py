@@ -45,7 +45,7 @@ def test_sample_bag_gives_keyframes_with_matching_stamps(sample_bag, rclpy_conte
     tracker = TrackerNode(overrides={'reliable_input': True, 'queue_size': 100, 'input_depth': 100},
                           context=rclpy_context)
     listener = Listener(rclpy_context)
-    player = PlayerNode(overrides={'bag': str(sample_bag), 'rate': 8.0, 'wait_for_subscribers': 3,
+    player = PlayerNode(overrides={'bag': str(sample_bag), 'rate': 4.0, 'wait_for_subscribers': 3,
                                    'topics': '/camera/image_raw/compressed,/camera/camera_info,/gps/fix'},
                         context=rclpy_context)
     ex, thread = _spin([tracker, listener.node], rclpy_context)

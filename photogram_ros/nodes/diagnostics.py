@@ -15,6 +15,7 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rclpy.node import Node
 
 OK, WARN, ERROR = DiagnosticStatus.OK, DiagnosticStatus.WARN, DiagnosticStatus.ERROR
+PROBLEM_SEPARATOR = ' | '
 
 
 class Diagnostics:
@@ -26,6 +27,7 @@ class Diagnostics:
         self._counts = Counter()
         self._values: dict[str, str] = {}
         self._problems: deque = deque(maxlen=20)
+        self._unpublished: list[str] = []   # problems since the last status: all of them are published
         self._level = OK
         self._rate_marks: dict[str, deque] = {}
         self._pub = node.create_publisher(DiagnosticArray, '/diagnostics', 10)
@@ -55,6 +57,8 @@ class Diagnostics:
         with self._lock:
             first = not any(p[1] == what for p in self._problems)
             self._problems.append((time.time(), what))
+            if what not in self._unpublished:
+                self._unpublished.append(what)
             self._counts['problems'] += 1
             self._level = max(self._level, level)
         if first:
@@ -68,10 +72,13 @@ class Diagnostics:
         with self._lock:
             kv = [KeyValue(key=k, value=str(v)) for k, v in sorted(self._counts.items())]
             kv += [KeyValue(key=k, value=v) for k, v in sorted(self._values.items())]
-            msg = 'OK' if not self._problems else self._problems[-1][1]
+            # Every problem since the last status, so none hides behind a later one in the same period.
+            msg = (PROBLEM_SEPARATOR.join(self._unpublished) if self._unpublished
+                   else 'OK' if not self._problems else self._problems[-1][1])
+            self._unpublished = []
             level = self._level
             self._level = OK if not self._problems or time.time() - self._problems[-1][0] > 10 else self._level
-        return DiagnosticStatus(level=level, name=self.name, message=msg[:200], hardware_id=self.hardware_id,
+        return DiagnosticStatus(level=level, name=self.name, message=msg[:1000], hardware_id=self.hardware_id,
                                 values=kv)
 
     def publish(self) -> None:

@@ -16,6 +16,7 @@ Topic names are relative, so a drone's namespace (several drones, one ground sta
 from __future__ import annotations
 
 import sys
+import functools
 import threading
 import time
 from dataclasses import dataclass
@@ -77,13 +78,22 @@ class MapParams:
                                    min=100, max=10_000_000)
 
 
+def _locked(method):
+    """Run a MapNode method under the node's lock (the fusion and its tiles are not thread-safe)."""
+    @functools.wraps(method)
+    def wrapper(self, *args, **kwargs):
+        with self._lock:
+            return method(self, *args, **kwargs)
+    return wrapper
+
+
 class MapNode(Node):
     def __init__(self, overrides: dict | None = None, **node_kwargs):
         super().__init__('map_node', **node_kwargs)
         self.params: MapParams = declare(self, MapParams, overrides)
         p = self.params
         self.diag = Diagnostics(self)
-        self._lock = threading.Lock()
+        self._lock = threading.RLock()   # callbacks run in one group, but close() may come from any thread
         try:
             self.store = MapStore(p.map_dir, p.cell_m, p.tile_cells)
         except PhotogramError as exc:
@@ -133,6 +143,7 @@ class MapNode(Node):
             return
         self.store.set_origin(frame)
 
+    @_locked
     def _on_georeference(self, msg: NavSatFix) -> None:
         if self.params.use_origin_params:
             return
@@ -141,6 +152,7 @@ class MapNode(Node):
         except PhotogramError as exc:
             self.diag.problem(f'bad georeference: {exc}')
 
+    @_locked
     def _on_cloud(self, msg: PointCloud2) -> None:
         try:
             if msg.header.frame_id not in ('map', ''):
@@ -170,6 +182,7 @@ class MapNode(Node):
         except (PhotogramError, OSError) as exc:
             self.diag.problem(f'keyframe image not saved: {exc}')
 
+    @_locked
     def _on_pose(self, msg: PoseWithCovarianceStamped) -> None:
         # The bundle adjuster republishes each pose while it sits in its window: keep the latest and
         # write it at the next flush, instead of an fsync per republication.
@@ -199,6 +212,7 @@ class MapNode(Node):
 
     # --- outputs ---------------------------------------------------------------------------------
 
+    @_locked
     def flush(self) -> None:
         self._save_poses()
         try:
@@ -208,6 +222,7 @@ class MapNode(Node):
         except OSError as exc:
             self.diag.problem(f'map flush to {self.params.map_dir} failed: {exc}')
 
+    @_locked
     def _stream(self) -> None:
         # Nobody listening (no ground station linked): keep the changed tiles for when one connects
         # instead of spending a quarter second per period on block means.
@@ -237,6 +252,7 @@ class MapNode(Node):
         self.stream_pub.publish(msgs.pointcloud2_msg(out, self.get_clock().now().nanoseconds, 'map'))
         self.diag.count('stream_points', n)
 
+    @_locked
     def _update_diag(self) -> None:
         st = self.fusion.stats
         d = self.diag
@@ -252,6 +268,7 @@ class MapNode(Node):
         d.set('clouds_per_s', d.rate_hz('clouds'))
         d.set('origin', str(self.store.origin.to_dict()) if self.store.origin else 'unknown')
 
+    @_locked
     def close(self) -> None:
         """Flush everything to disk (shutdown, SIGINT, SIGTERM)."""
         if not self._closed:

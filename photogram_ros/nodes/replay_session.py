@@ -17,6 +17,7 @@ from pathlib import Path
 from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.node import Node
 
+from photogram_ros.nodes.diagnostics import PROBLEM_SEPARATOR
 from photogram_ros.nodes.graph import Graph, GraphSpec
 from photogram_ros.nodes.player_node import PlayerNode
 
@@ -54,8 +55,10 @@ class DiagnosticsLog:
                 d['values'] = {kv.key: _num(kv.value) for kv in st.values}
                 level = st.level if isinstance(st.level, int) else int.from_bytes(st.level, 'little')
                 d['level'] = max(d['level'], level)
-                if level > 0 and (not d['problems'] or d['problems'][-1][1] != st.message):
-                    d['problems'].append((round(t, 2), st.message))
+                if level > 0:
+                    for text in st.message.split(PROBLEM_SEPARATOR):
+                        if not d['problems'] or d['problems'][-1][1] != text:
+                            d['problems'].append((round(t, 2), text))
 
     def snapshot(self) -> dict:
         with self._lock:
