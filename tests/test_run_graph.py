@@ -70,3 +70,18 @@ def test_run_starts_all_nodes_and_sigint_flushes_the_map(tmp_path, sample_bag):
     assert proc.returncode == 0, out[-3000:]
     assert 'photogram_ros running: mavlink, tracker, bundle, stereo, map' in out
     assert (tmp_path / 'map' / 'map.json').exists()
+
+
+def test_replay_file_serves_graphs_without_some_nodes():
+    """A bag without MAVLink runs the graph without mavlink_node; the replay file's section is not an error."""
+    from photogram_ros.nodes.graph import GraphSpec, _sections
+    sections = _sections(GraphSpec(roles=('tracker', 'bundle'), params_file=str(ROOT / 'config' / 'replay.yaml')))
+    assert 'mavlink_node' in sections and 'tracker_node' in sections
+
+
+def test_replay_of_a_bag_without_images_is_a_clear_error(tmp_path):
+    from conftest import shared_data
+    bag = shared_data('bags', 'husky_gps_imu_sqlite3')
+    r = subprocess.run([sys.executable, '-m', 'photogram_ros.cli', 'replay', str(bag), '--out', str(tmp_path / 'o'),
+                        '--quiet'], cwd=ROOT, capture_output=True, text=True, timeout=120)
+    assert r.returncode == 2 and 'no camera images' in r.stderr and '/fix' in r.stderr

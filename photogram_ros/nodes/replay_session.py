@@ -85,12 +85,16 @@ def _activity(graph: Graph) -> int:
 
 def run_replay(opts: ReplayOptions, context=None) -> dict:
     """Run the whole replay; returns the run summary (also written to OUT/run.json)."""
+    from photogram_ros.errors import BagError
     from photogram_ros.io.bag import BagReader
     out = Path(opts.out)
     out.mkdir(parents=True, exist_ok=True)
     map_dir = out / 'map'
     with BagReader(opts.bag) as bag:
         topics = bag.topics()
+    if not any(t in topics for t in IMAGE_TOPICS):
+        raise BagError(f'{opts.bag} has no camera images ({" or ".join(IMAGE_TOPICS)}): nothing to map; '
+                       f'it has {sorted(topics)}')
     exclude = []
     extra = {role: dict(v) for role, v in opts.extra.items()}
     extra.setdefault('map', {})['map_dir'] = str(map_dir)
