@@ -139,12 +139,13 @@ def build_report(out_dir: str | Path, map_dir: str | Path, crs: str, files: dict
         rows, problems = [], []
         for node, d in sorted(diagnostics.items()):
             vals = d.get('values', {})
-            rows.append({'node': node, **{k: vals[k] for k in sorted(vals) if k.endswith(('_ms', '_s', '_hz', 'fps'))}})
+            rows += [{'node': node, 'figure': k, 'value': vals[k]} for k in sorted(vals)
+                     if k.endswith(('_ms', '_s', '_hz', 'fps', '_per_s', 'per_pair'))]
             problems += [{'node': node, 't_s': p[0], 'problem': p[1]} for p in d.get('problems', [])]
         figures['nodes'] = diagnostics
         sec = Section('What happened', [f'{len(problems)} problems reported on /diagnostics.'])
         sec.tables.append(('Problems (time from the start of the replay)', problems[:200]))
-        sec.tables.append(('Timing per node', [{k: v for k, v in r.items()} for r in rows]))
+        sec.tables.append(('Timing per node (last values on /diagnostics)', rows))
         sections.append(sec)
     write_report(out, 'photogram_ros flight report', sections, figures)
     return figures

@@ -128,17 +128,21 @@ def run_replay(opts: ReplayOptions, context=None) -> dict:
             time.sleep(0.002)
 
     def before_message(m):
+        if m.topic not in IMAGE_TOPICS:
+            return
         # Telemetry up to a frame's time must be decoded before the tracker sees the frame, as it
         # would be live; otherwise the fix a keyframe needs may still sit in a queue.
-        if m.topic in IMAGE_TOPICS and mavlink is not None:
+        if mavlink is not None:
             wait_for(lambda: mavlink.messages_in >= packets_sent[0], opts.frame_timeout_s)
+        # The tracker must have taken the previous frame. Waiting here rather than right after that
+        # frame lets the messages recorded with it (its camera_info) reach the tracker meanwhile.
+        wait_for(lambda: tracker.frames_done >= images_sent[0], opts.frame_timeout_s)
 
     def on_message(m):
         if m.topic == '/mavlink/from_fcu':
             packets_sent[0] += 1
         elif m.topic in IMAGE_TOPICS:
             images_sent[0] += 1
-            wait_for(lambda: tracker.frames_done >= images_sent[0], opts.frame_timeout_s)
         if opts.progress and time.monotonic() - last_print[0] > 2.0:
             last_print[0] = time.monotonic()
             _print_progress(graph, images_sent[0], m.stamp_ns, t_start)
