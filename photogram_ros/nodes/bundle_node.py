@@ -71,8 +71,8 @@ class BundleNodeParams:
     origin_lat_deg: float = param(0.0, 'map origin latitude, deg', min=-90.0, max=90.0)
     origin_lon_deg: float = param(0.0, 'map origin longitude, deg', min=-180.0, max=180.0)
     origin_h_m: float = param(0.0, 'map origin ellipsoidal height, m', min=-1e4, max=1e5)
-    fix_wait_s: float = param(2.0, 'how long a keyframe waits for its fix before it is adjusted without one, s',
-                              min=0.0, max=60.0)
+    fix_wait_s: float = param(10.0, 'how long (wall time) a keyframe waits for its fix before it is adjusted '
+                                    'without one, s; a later fix ends the wait at once', min=0.0, max=60.0)
     sync_tolerance_ms: float = param(5.0, 'features and fix with stamps closer than this belong together, ms',
                                      min=0.0, max=1000.0)
     max_fix_sigma_m: float = param(50.0, 'fixes with a larger horizontal sigma are not used, m', min=0.01, max=1e4)
@@ -97,6 +97,7 @@ class BundleNode(Node):
         self._pending: dict[int, tuple[float, np.ndarray, np.ndarray]] = {}   # stamp -> (arrival, ids, uv)
         self._fixes: dict[int, GnssFix] = {}
         self._georef_sent = False
+        self._latest_fix_ns = None
         self._published_final = False
         self._n_since_cloud = 0
         reliable = QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE)
@@ -106,8 +107,10 @@ class BundleNode(Node):
         self.pub_path = self.create_publisher(Path, TOPIC_PATH, QoSProfile(depth=2))
         self.pub_cloud = self.create_publisher(PointCloud2, TOPIC_CLOUD, QoSProfile(depth=2))
         self.pub_georef = self.create_publisher(NavSatFix, TOPIC_GEOREF, latched)
-        self.create_subscription(PointCloud2, TOPIC_FEATURES, self._on_features, reliable)
+        # Fixes first: the executor serves ready subscriptions in creation order, and a burst of
+        # features must not keep their fixes waiting.
         self.create_subscription(NavSatFix, TOPIC_FIX, self._on_fix, reliable)
+        self.create_subscription(PointCloud2, TOPIC_FEATURES, self._on_features, reliable)
         self.create_subscription(Image, TOPIC_IMAGE, lambda m: self.diag.count('images'), reliable)
         self.create_subscription(CameraInfo, TOPIC_INFO, self._on_info, QoSProfile(depth=5))
         self.create_subscription(Empty, TOPIC_FULL, lambda m: self.full_adjustment(), QoSProfile(depth=2))
@@ -145,6 +148,7 @@ class BundleNode(Node):
                 self.diag.count('fixes_too_inaccurate')
                 return
             self._fixes[f['stamp_ns']] = GnssFix(f['lat_deg'], f['lon_deg'], f['h_m'], cov)
+            self._latest_fix_ns = max(self._latest_fix_ns or 0, f['stamp_ns'])
             self.diag.count('fixes')
         except Exception as exc:  # one bad message must not stop the node
             self.diag.problem(f'bad keyframe fix: {exc}')
@@ -178,7 +182,9 @@ class BundleNode(Node):
         for stamp in sorted(self._pending):
             arrived, ids, uv = self._pending[stamp]
             fix = self._match_fix(stamp)
-            if fix is None and now - arrived < self.p.fix_wait_s:
+            # Keyframe fixes come in stamp order: once a later one is in, this one has none (outage).
+            later_fix = self._latest_fix_ns is not None and self._latest_fix_ns > stamp + self.p.sync_tolerance_ms * 1e6
+            if fix is None and not later_fix and now - arrived < self.p.fix_wait_s:
                 break   # keep the order: later keyframes wait behind this one
             del self._pending[stamp]
             if fix is None:

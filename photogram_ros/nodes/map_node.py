@@ -166,8 +166,10 @@ class MapNode(Node):
             self._stream_pending |= self.fusion.changed_tiles
             self.fusion.changed_tiles.clear()
         except PhotogramError as exc:
+            self.diag.count('clouds_dropped')
             self.diag.problem(f'dense cloud dropped: {exc}')
         except (ValueError, TypeError) as exc:
+            self.diag.count('clouds_dropped')
             self.diag.problem(f'dense cloud dropped (malformed): {exc}')
 
     def _on_image(self, msg: Image) -> None:

@@ -30,8 +30,6 @@ class ReplayOptions:
     out: str
     params_file: str | None = None
     rate: float = 0.0
-    crs: str = ''                 # empty: UTM zone of the map origin
-    heights: str = 'ellipsoidal'
     frame_timeout_s: float = 30.0
     drain_timeout_s: float = 300.0
     progress: bool = True
@@ -84,7 +82,7 @@ def _activity(graph: Graph) -> int:
 
 
 def run_replay(opts: ReplayOptions, context=None) -> dict:
-    """Run the whole replay; returns the run summary (also written to OUT/run.json)."""
+    """Run the whole replay into OUT/map; returns the run summary, the diagnostics log and the map folder."""
     from photogram_ros.errors import BagError
     from photogram_ros.io.bag import BagReader
     out = Path(opts.out)
@@ -147,26 +145,35 @@ def run_replay(opts: ReplayOptions, context=None) -> dict:
             last_print[0] = time.monotonic()
             _print_progress(graph, images_sent[0], m.stamp_ns, t_start)
 
-    summary = player.play(on_message=on_message, before_message=before_message)
+    def clouds_in_flight() -> int:
+        """Pair clouds stereo has published that the map has not fused yet (fusing one can take seconds)."""
+        if 'stereo' not in graph.nodes or 'map' not in graph.nodes:
+            return 0
+        fused = graph.nodes['map'].diag.counts()
+        return (graph.nodes['stereo'].diag.counts().get('pairs_done', 0)
+                - fused.get('clouds', 0) - fused.get('clouds_dropped', 0))
 
     def drain():
-        """Wait until no node has done anything for a few seconds."""
+        """Wait until every cloud is fused and no node has done anything for a moment."""
         quiet_since, last = time.monotonic(), _activity(graph)
         deadline = time.monotonic() + opts.drain_timeout_s
         while time.monotonic() < deadline:
             time.sleep(0.25)
             now = _activity(graph)
-            if now != last:
+            if now != last or clouds_in_flight() > 0:
                 quiet_since, last = time.monotonic(), now
             elif time.monotonic() - quiet_since > 1.5:
                 return
 
-    drain()
-    graph.finish_flight(settle=drain)
-    wall_s = time.monotonic() - t_start
-    graph.shutdown()
-    player.destroy_node()
-    listener.destroy_node()
+    try:
+        summary = player.play(on_message=on_message, before_message=before_message)
+        drain()
+        graph.finish_flight(settle=drain)
+        wall_s = time.monotonic() - t_start
+    finally:   # whatever happened, the map node flushes what it fused
+        graph.shutdown()
+        player.destroy_node()
+        listener.destroy_node()
     run = {'bag': str(opts.bag), 'frames': images_sent[0], 'bag_s': summary.bag_s, 'wall_s': wall_s,
            'real_time_factor': summary.bag_s / max(wall_s, 1e-9), 'messages': summary.total,
            'bag_errors': summary.errors, 'skipped_topics': summary.skipped}
