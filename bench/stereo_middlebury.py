@@ -20,7 +20,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from photogram_ros.core import stereo  # noqa: E402
 from photogram_ros.core.stereo_eval import load_scene, score  # noqa: E402
-from photogram_ros.params import from_dict  # noqa: E402
+from photogram_ros.params import from_assignments  # noqa: E402
 
 
 def evaluate(scene_dir, params: stereo.StereoParams, repeats: int = 3) -> list[dict]:
@@ -56,11 +56,7 @@ def main(argv=None) -> int:
     ap.add_argument('--param', action='append', default=[], help='StereoParams override name=value')
     ap.add_argument('--repeats', type=int, default=3)
     a = ap.parse_args(argv)
-    overrides = {}
-    for kv in a.param:
-        k, v = kv.split('=', 1)
-        overrides[k] = type(getattr(stereo.StereoParams(), k))(v)
-    params = from_dict(stereo.StereoParams, overrides)
+    params = from_assignments(stereo.StereoParams, a.param)
     for scene in a.scenes:
         for row in evaluate(scene, params, a.repeats):
             print(json.dumps(row), flush=True)

@@ -22,7 +22,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from photogram_ros.core import stereo  # noqa: E402
 from photogram_ros.core.rotations import make_T  # noqa: E402
-from photogram_ros.params import from_dict  # noqa: E402
+from photogram_ros.params import from_assignments  # noqa: E402
 from photogram_ros.sim.render import Exposure, Renderer  # noqa: E402
 from photogram_ros.sim.scenario import build_world, preset  # noqa: E402
 
@@ -85,11 +85,7 @@ def main(argv=None) -> int:
     ap.add_argument('--scales', default='1,2', help='image sizes as multiples of 640x480')
     ap.add_argument('--param', action='append', default=[], help='StereoParams override name=value')
     a = ap.parse_args(argv)
-    overrides = {}
-    for kv in a.param:
-        k, v = kv.split('=', 1)
-        overrides[k] = type(getattr(stereo.StereoParams(), k))(v)
-    params = from_dict(stereo.StereoParams, overrides)
+    params = from_assignments(stereo.StereoParams, a.param)
     for s in (int(x) for x in a.scales.split(',')):
         print(json.dumps(bench(s, params, a.repeats)), flush=True)
     return 0

@@ -65,6 +65,18 @@ def from_dict(cls, values: dict, where: str = ''):
     return obj
 
 
+def from_assignments(cls, items: list[str], where: str = ''):
+    """['name=value', ...] (command-line overrides) -> validated `cls`; values take the type of the default."""
+    defaults = cls()
+    values = {}
+    for item in items:
+        if '=' not in item:
+            raise ConfigError(f'override {item!r} must look like name=value')
+        k, v = item.split('=', 1)
+        values[k] = type(getattr(defaults, k))(v) if hasattr(defaults, k) else v
+    return from_dict(cls, values, where)
+
+
 def to_dict(obj) -> dict:
     return {f.name: getattr(obj, f.name) for f in fields_of(type(obj))}
 

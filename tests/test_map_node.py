@@ -56,6 +56,28 @@ def graph(rclpy_context, tmp_path):
     node.destroy_node()
 
 
+
+def _start_map_node(map_dir, *params):
+    """map_node as its own process (the console-script path), with `-p name:=value` parameters."""
+    cmd = [sys.executable, '-m', 'photogram_ros.nodes.map_node', '--ros-args', '-p', f'map_dir:={map_dir}']
+    for prm in params:
+        cmd += ['-p', prm]
+    return subprocess.Popen(cmd, cwd=ROOT, env=dict(os.environ), stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+
+
+def _cloud_feeder(name, context):
+    """A publisher of pair clouds, returned once the map node in the other process has matched it."""
+    from rclpy.node import Node
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+    from sensor_msgs.msg import PointCloud2
+    peer = Node(name, context=context)
+    pub = peer.create_publisher(PointCloud2, '/map/dense_cloud',
+                                QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE))
+    deadline = time.monotonic() + 20
+    while pub.get_subscription_count() == 0 and time.monotonic() < deadline:
+        time.sleep(0.05)
+    return peer, pub
+
 def test_fuses_streams_and_persists(graph):
     from photogram_ros import msgs
     from photogram_ros.core.fusion import Fusion, FusionConfig
@@ -149,25 +171,14 @@ def _diag_clouds(rclpy_context, timeout_s, want):
 
 def test_kill_9_loses_only_the_last_seconds(rclpy_context, tmp_path):
     """A map_node process is killed with SIGKILL mid-flight; what it fused earlier is on disk and reloads."""
-    from rclpy.node import Node
-    from rclpy.qos import QoSProfile, ReliabilityPolicy
-    from sensor_msgs.msg import PointCloud2
     from photogram_ros import msgs
     from photogram_ros.core.fusion import Fusion, FusionConfig
     from photogram_ros.io.map_store import MapStore
 
     map_dir = tmp_path / 'map'
-    cmd = [sys.executable, '-m', 'photogram_ros.nodes.map_node', '--ros-args', '-p', f'map_dir:={map_dir}',
-           '-p', 'flush_interval_s:=0.5', '-p', 'max_tiles_in_memory:=4']
-    proc = subprocess.Popen(cmd, cwd=ROOT, env=dict(os.environ), stdout=subprocess.DEVNULL,
-                            stderr=subprocess.PIPE)
+    proc = _start_map_node(map_dir, 'flush_interval_s:=0.5', 'max_tiles_in_memory:=4')
     try:
-        peer = Node('crash_feeder', context=rclpy_context)
-        pub = peer.create_publisher(PointCloud2, '/map/dense_cloud',
-                                    QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE))
-        deadline = time.monotonic() + 20
-        while pub.get_subscription_count() == 0 and time.monotonic() < deadline:
-            time.sleep(0.05)
+        peer, pub = _cloud_feeder('crash_feeder', rclpy_context)
         assert pub.get_subscription_count() > 0, 'map_node did not start'
         rng = np.random.default_rng(3)
         # A track 200 m long: clouds along it, each 16 m x 12 m, so tiles are also evicted to disk.
@@ -232,25 +243,15 @@ def test_origin_from_georeference_topic(rclpy_context, tmp_path):
 
 @pytest.mark.parametrize('sig', [signal.SIGINT, signal.SIGTERM])
 def test_sigint_and_sigterm_flush_everything(rclpy_context, tmp_path, sig):
-    from rclpy.node import Node
-    from rclpy.qos import QoSProfile, ReliabilityPolicy
-    from sensor_msgs.msg import PointCloud2
     from photogram_ros import msgs
     from photogram_ros.core.fusion import Fusion, FusionConfig
     from photogram_ros.io.map_store import MapStore
 
     map_dir = tmp_path / 'map'
     # A flush interval far longer than the test: only the shutdown path can have written the map.
-    cmd = [sys.executable, '-m', 'photogram_ros.nodes.map_node', '--ros-args', '-p', f'map_dir:={map_dir}',
-           '-p', 'flush_interval_s:=600.0']
-    proc = subprocess.Popen(cmd, cwd=ROOT, env=dict(os.environ), stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    proc = _start_map_node(map_dir, 'flush_interval_s:=600.0')
     try:
-        peer = Node('stop_feeder', context=rclpy_context)
-        pub = peer.create_publisher(PointCloud2, '/map/dense_cloud',
-                                    QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE))
-        deadline = time.monotonic() + 20
-        while pub.get_subscription_count() == 0 and time.monotonic() < deadline:
-            time.sleep(0.05)
+        peer, pub = _cloud_feeder('stop_feeder', rclpy_context)
         rng = np.random.default_rng(6)
         clouds = [pair_cloud(rng, surface, 0.0, 14.0 * k, 8.0, 6.0, 120.0, 0.02) for k in range(3)]
         for k, c in enumerate(clouds):

@@ -7,7 +7,6 @@ flight log still georeference. A camera driver already publishing these topics n
 
 from __future__ import annotations
 
-import sys
 import time
 from dataclasses import dataclass
 
@@ -20,6 +19,7 @@ from sensor_msgs.msg import CameraInfo, Image, NavSatFix, NavSatStatus
 from photogram_ros import msgs
 from photogram_ros.errors import CalibrationError, ConfigError, PhotogramError
 from photogram_ros.nodes.diagnostics import Diagnostics
+from photogram_ros.nodes.node_main import run_job
 from photogram_ros.nodes.ros_params import declare
 from photogram_ros.params import param
 
@@ -178,27 +178,18 @@ class CameraNode(Node):
             self.publish_next()
 
 
+def _publish_all(node) -> int:
+    while rclpy.ok() and not node.finished:
+        rclpy.spin_once(node, timeout_sec=0.1)
+    if node.finished:
+        node.pub_image.wait_for_all_acked(Duration(seconds=5))
+        c = node.diag.counts()
+        print(f'camera_node: published {c.get("frames", 0)} frames, {c.get("fixes", 0)} EXIF fixes; skipped '
+              f'{c.get("skipped_unreadable", 0)} unreadable files')
+    return 0
+
+
 def main(argv=None) -> int:
     """Console script `camera_node`: publishes the frames of the `source` parameter."""
-    rclpy.init(args=argv if argv is not None else sys.argv)
-    node = None
-    try:
-        node = CameraNode()
-        while rclpy.ok() and not node.finished:
-            rclpy.spin_once(node, timeout_sec=0.1)
-        if node.finished:
-            node.pub_image.wait_for_all_acked(Duration(seconds=5))
-            c = node.diag.counts()
-            print(f'camera_node: published {c.get("frames", 0)} frames, {c.get("fixes", 0)} EXIF fixes; skipped '
-                  f'{c.get("skipped_unreadable", 0)} unreadable files')
-        return 0
-    except ConfigError as exc:
-        print(f'camera_node: {exc}', file=sys.stderr)
-        return 2
-    except KeyboardInterrupt:
-        return 130
-    finally:
-        if node is not None:
-            node.destroy_node()
-        if rclpy.ok():
-            rclpy.shutdown()
+    return run_job(CameraNode, _publish_all, argv)
+

@@ -39,3 +39,22 @@ def run_node(cls, argv=None, on_exit=None) -> int:
                 on_exit(node)
             node.destroy_node()
         rclpy.try_shutdown()
+
+
+def run_job(cls, job, argv=None) -> int:
+    """Run a node that does one job and ends (play a bag, publish a folder): `job(node)` returns the exit
+    status. Bad configuration exits with 2, Ctrl-C with 130."""
+    rclpy.init(args=argv if argv is not None else sys.argv)
+    node = None
+    try:
+        node = cls()
+        return int(job(node))
+    except PhotogramError as exc:
+        print(f'{cls.__name__}: {exc}', file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        return 130
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()

@@ -7,11 +7,9 @@ with use_sim_time. A damaged bag plays up to the damage and the damage is report
 
 from __future__ import annotations
 
-import sys
 import time
 from dataclasses import dataclass, field
 
-import rclpy
 from rclpy.duration import Duration
 from rclpy.node import Node
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
@@ -21,6 +19,7 @@ from photogram_ros.errors import BagError, ConfigError
 from photogram_ros.io.bag import BagReader, msg_class
 from photogram_ros.msgs import time_from_ns
 from photogram_ros.nodes.diagnostics import ERROR, Diagnostics
+from photogram_ros.nodes.node_main import run_job
 from photogram_ros.nodes.ros_params import declare
 from photogram_ros.params import param
 
@@ -181,23 +180,12 @@ class PlayerNode(Node):
                 pub.wait_for_all_acked(Duration(seconds=5))
 
 
+def _play(node) -> int:
+    summary = node.play()
+    print('\n'.join(summary.lines()))
+    return 1 if summary.errors or summary.skipped else 0
+
+
 def main(argv=None) -> int:
     """Console script `player_node`: plays the bag named by the `bag` parameter."""
-    rclpy.init(args=argv if argv is not None else sys.argv)
-    node = None
-    try:
-        node = PlayerNode()
-        summary = node.play()
-        for line in summary.lines():
-            print(line)
-        return 1 if summary.errors or summary.skipped else 0
-    except (BagError, ConfigError) as exc:
-        print(f'player_node: {exc}', file=sys.stderr)
-        return 2
-    except KeyboardInterrupt:
-        return 130
-    finally:
-        if node is not None:
-            node.destroy_node()
-        if rclpy.ok():
-            rclpy.shutdown()
+    return run_job(PlayerNode, _play, argv)
