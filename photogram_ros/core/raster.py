@@ -72,12 +72,15 @@ def grid_for(xmin: float, ymin: float, xmax: float, ymax: float, res_m: float, f
     return Raster(np.full(shape, fill, dtype=dtype), float(x0), float(y1), float(res_m), fill)
 
 
-def dsm_from_points(x, y, z, res_m: float, weights=None, bounds=None, fill_holes_px: int = 1) -> Raster:
+def dsm_from_points(x, y, z, res_m: float, weights=None, bounds=None, fill_holes_px: int = 1,
+                    max_spread_m: float | None = None, z_sigma=None, min_count: int = 1) -> Raster:
     """Mean height per cell (weighted by `weights`, e.g. points per fused cell); NODATA elsewhere.
 
+    A cell whose points span more than `max_spread_m` in height straddles a wall or roof edge: its
+    mean is a height that exists nowhere (half-way up the wall), so it becomes no-data instead.
     Holes no wider than `fill_holes_px` cells that are surrounded by data are filled with the mean
-    of their neighbours (stereo leaves pinholes that a DSM user does not want); larger gaps stay
-    no-data, since nothing was observed there.
+    of their neighbours (stereo leaves pinholes that a DSM user does not want) when those
+    neighbours agree within `max_spread_m`; larger gaps stay no-data, since nothing was observed there.
     """
     x, y, z = (np.asarray(v, dtype=np.float64) for v in (x, y, z))
     ok = np.isfinite(x) & np.isfinite(y) & np.isfinite(z)
@@ -96,15 +99,23 @@ def dsm_from_points(x, y, z, res_m: float, weights=None, bounds=None, fill_holes
     sw = np.bincount(key, w[inside], minlength=h * wd)
     sz = np.bincount(key, w[inside] * z[inside], minlength=h * wd)
     have = sw > 0
+    if min_count > 1:
+        have &= np.bincount(key, minlength=h * wd) >= min_count
     out = np.full(h * wd, NODATA, dtype=np.float32)
     out[have] = sz[have] / sw[have]
+    if max_spread_m is not None and key.size:
+        order = np.argsort(key, kind='stable')
+        ks, zs = key[order], z[inside][order]
+        starts = np.flatnonzero(np.r_[True, ks[1:] != ks[:-1]])
+        spread = np.maximum.reduceat(zs, starts) - np.minimum.reduceat(zs, starts)
+        out[ks[starts[spread > max_spread_m]]] = NODATA
     r.data = out.reshape(h, wd)
     if fill_holes_px > 0:
-        r.data = _fill_small_holes(r.data, fill_holes_px)
+        r.data = _fill_small_holes(r.data, fill_holes_px, max_spread_m)
     return r
 
 
-def _fill_small_holes(d: np.ndarray, radius: int) -> np.ndarray:
+def _fill_small_holes(d: np.ndarray, radius: int, max_spread_m: float | None = None) -> np.ndarray:
     have = (d != NODATA).astype(np.float32)
     vals = np.where(d != NODATA, d, 0).astype(np.float32)
     k = 2 * radius + 1
@@ -112,6 +123,12 @@ def _fill_small_holes(d: np.ndarray, radius: int) -> np.ndarray:
     c = cv2.boxFilter(have, -1, (k, k), normalize=False, borderType=cv2.BORDER_CONSTANT)
     # Fill only where most of the neighbourhood is observed: a pinhole, not the edge of the map.
     fill = (d == NODATA) & (c >= 0.6 * k * k)
+    if max_spread_m is not None:
+        # ... and not a gap along a wall: roof on one side, ground on the other.
+        kern = np.ones((k, k), np.uint8)
+        hi = cv2.dilate(np.where(d != NODATA, d, -np.inf).astype(np.float32), kern)
+        lo = cv2.erode(np.where(d != NODATA, d, np.inf).astype(np.float32), kern)
+        fill &= (hi - lo) <= max_spread_m
     out = d.copy()
     out[fill] = s[fill] / c[fill]
     return out

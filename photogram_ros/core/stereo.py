@@ -58,6 +58,10 @@ class StereoParams:
     min_texture: float = param(0.0, 'drop pixels whose mean absolute gradient in the block is below this, '
                                     'grey levels per pixel', min=0.0, max=100.0)
     min_confidence: float = param(0.0, 'drop points with a lower confidence (0..1)', min=0.0, max=1.0)
+    edge_step_m: float = param(1.0, 'depth step (wall, roof edge) around which disparities are dropped, m; '
+                                    '0 keeps them', min=0.0, max=1e3)
+    edge_margin_px: int = param(3, 'pixels dropped on both sides of such a step (SGBM misplaces the step by '
+                                   'up to its block radius)', min=0, max=32)
     min_depth_m: float = param(2.0, 'nearest valid depth, m', min=0.01, max=1e5)
     max_depth_m: float = param(500.0, 'farthest valid depth, m', min=0.1, max=1e6)
     max_grazing_deg: float = param(75.0, 'drop points whose surface is seen at more than this angle from its '
@@ -174,6 +178,25 @@ def _filter(raw: np.ndarray, min_disparity: int, left_grey: np.ndarray, params: 
         bad |= out.confidence_at(np.arange(d.size)).reshape(d.shape) < np.float32(params.min_confidence)
     d[bad] = np.nan
     return out
+
+
+def near_depth_steps(D: np.ndarray, f_baseline: float, step_m: float, margin_px: int) -> np.ndarray:
+    """True where a pixel lies within `margin_px` of a depth step larger than `step_m`.
+
+    `D` is the true disparity f * baseline / depth (NaN where none). Block matching places a depth
+    step up to a block radius away from where it is (the side with more texture wins the block), so
+    the pixels within that margin carry the depth of the other side: far ground drawn into the roof
+    outline, or roof heights spilled onto the ground. Measured in depth, not disparity, so a fixed
+    step is found whatever the baseline and steep-but-continuous slopes within the margin survive.
+    """
+    k = np.ones((2 * margin_px + 1, 2 * margin_px + 1), np.uint8)
+    fin = np.isfinite(D)
+    near_d = cv2.dilate(np.where(fin, D, np.float32(-np.inf)).astype(np.float32), k)
+    far_d = cv2.erode(np.where(fin, D, np.float32(np.inf)).astype(np.float32), k)
+    far_d = np.maximum(far_d, np.float32(1e-3))
+    fb = np.float32(f_baseline)
+    with np.errstate(invalid='ignore', divide='ignore'):
+        return fin & (fb / far_d - fb / near_d > np.float32(step_m))
 
 
 # --- rectification -------------------------------------------------------------------------------
@@ -457,6 +480,12 @@ def stereo_pair(camera: PinholeCamera, image_a: np.ndarray, map_T_cam_a: np.ndar
                             borderMode=cv2.BORDER_CONSTANT) > 0
     t2 = time.perf_counter()
     disp = match(left_g, right_g, params, d_min, num)
+    if params.edge_step_m > 0 and params.edge_margin_px > 0:
+        t_e = time.perf_counter()
+        D = disp.disparity_px + np.float32(rect.shift_px)
+        disp.disparity_px[near_depth_steps(D, rect.f_px * rect.baseline_m, params.edge_step_m,
+                                           params.edge_margin_px)] = np.nan
+        disp.filter_ms += (time.perf_counter() - t_e) * 1e3
     t3 = time.perf_counter()
     cloud = points_from_disparity(rect, disp, left, params, right_valid)
     t4 = time.perf_counter()
