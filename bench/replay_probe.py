@@ -55,7 +55,8 @@ class Probe:
         ('photogram_ros.nodes.bundle_node', 'BundleNode', 'full_adjustment', 'bundle_full_adjustment'),
         ('photogram_ros.nodes.bundle_node', 'BundleNode', '_on_features', 'bundle_cb_features'),
         ('photogram_ros.nodes.bundle_node', 'BundleNode', '_on_fix', 'bundle_cb_fix'),
-        ('photogram_ros.nodes.bundle_node', 'BundleNode', '_flush', 'bundle_cb_timer'),
+        ('photogram_ros.nodes.bundle_node', 'BundleNode', '_wake', 'bundle_cb_timer'),
+        ('photogram_ros.nodes.bundle_node', 'BundleNode', '_process_batch', 'bundle_batch'),
         ('photogram_ros.nodes.stereo_node', 'StereoNode', '_run_pair', 'stereo_pair'),
         ('photogram_ros.nodes.stereo_node', 'StereoNode', '_on_image', 'stereo_cb_image'),
         ('photogram_ros.nodes.stereo_node', 'StereoNode', '_on_pose', 'stereo_cb_pose'),
@@ -77,6 +78,8 @@ class Probe:
         self.newest_image_ns = 0
         self.first_image_ns = 0
         self._pairs: dict[int, deque] = defaultdict(deque)   # cloud stamp (newer kf) -> older kf stamps
+        self.image_times: list = []   # (monotonic, newest image stamp then): flight time of a moment
+        self.child_figures: dict = {}
         self._lock = threading.Lock()
 
     # --- installing ------------------------------------------------------------------------------
@@ -131,6 +134,7 @@ class Probe:
             with probe._lock:
                 probe.newest_image_ns = max(probe.newest_image_ns, s)
                 probe.first_image_ns = probe.first_image_ns or s
+                probe.image_times.append((time.monotonic(), probe.newest_image_ns))
             return on_image(node, msg)
         self._patch(TrackerNode, '_on_image', tracker_on_image)
 
@@ -174,6 +178,56 @@ class Probe:
                         if s is not None and s not in probe.kf_fused:
                             probe.kf_fused[s] = (now, probe.newest_image_ns)
         self._patch(MapNode, '_on_cloud', map_on_cloud)
+
+    # --- a child process (ReplayOptions.child_roles) --------------------------------------------
+
+    CHILD_ENV = 'PHOTOGRAM_PROBE_CHILD_OUT'
+
+    @staticmethod
+    def child_sitecustomize(folder: Path, bench_dir: Path) -> Path:
+        """A sitecustomize.py that installs a Probe in every Python process started with `folder` on
+        PYTHONPATH and CHILD_ENV set, and writes its figures there at exit: the nodes stay free of
+        benchmark code and the child's timers come from the very run being measured."""
+        folder.mkdir(parents=True, exist_ok=True)
+        (folder / 'sitecustomize.py').write_text(
+            'import os, sys\n'
+            f'if os.environ.get({Probe.CHILD_ENV!r}):\n'
+            f'    sys.path.insert(0, {str(bench_dir)!r})\n'
+            '    import atexit\n'
+            '    from replay_probe import Probe\n'
+            '    _probe = Probe().install()\n'
+            f'    atexit.register(_probe.dump_child, os.environ[{Probe.CHILD_ENV!r}])\n')
+        return folder
+
+    def dump_child(self, path: str) -> None:
+        import resource
+        r = resource.getrusage(resource.RUSAGE_SELF)
+        out = {'timers': {k: [t.calls, t.wall_s, t.cpu_s, t.max_wall_s] for k, t in self.timers.items()},
+               'kf_fused': {str(k): v[0] for k, v in self.kf_fused.items()},
+               'cpu_s': r.ru_utime + r.ru_stime, 'peak_rss_mb': RssSampler.read()[1]}
+        Path(path).write_text(json.dumps(out))
+
+    def merge_child(self, path: str) -> bool:
+        """Adds the child's timers and fused keyframes (flight time looked up at the moment of fusing)."""
+        import bisect
+        if not Path(path).exists():
+            return False
+        d = json.loads(Path(path).read_text())
+        for k, (calls, wall, cpu, mx) in d['timers'].items():
+            t = self.timers[k]
+            t.calls += calls
+            t.wall_s += wall
+            t.cpu_s += cpu
+            t.max_wall_s = max(t.max_wall_s, mx)
+        times = [t for t, _ in self.image_times]
+        for k, t_fused in d['kf_fused'].items():
+            i = bisect.bisect_right(times, t_fused) - 1
+            newest = self.image_times[i][1] if i >= 0 else 0
+            s = int(k)
+            if s not in self.kf_fused or self.kf_fused[s][0] > t_fused:
+                self.kf_fused[s] = (t_fused, newest)
+        self.child_figures = {'cpu_s': d['cpu_s'], 'peak_rss_mb': d['peak_rss_mb']}
+        return True
 
     # --- results ---------------------------------------------------------------------------------
 

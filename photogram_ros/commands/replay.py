@@ -15,6 +15,11 @@ def add_arguments(p) -> None:
     p.add_argument('--min-pairs', type=int, default=2,
                    help='export only cells confirmed by this many stereo pairs (1 keeps everything)')
     p.add_argument('--quiet', action='store_true', help='no progress lines')
+    p.add_argument('--processes', type=int, choices=(1, 2), default=2,
+                   help='2 (default): the --child-nodes run in a second process, on a second core (one Python '
+                        'process uses about one core); 1: every node in one process')
+    p.add_argument('--child-nodes', default='bundle,stereo,map',
+                   help='nodes of the second process with --processes 2 (among bundle, stereo, map)')
 
 
 def run(a) -> int:
@@ -36,8 +41,9 @@ def run(a) -> int:
     out = Path(a.out)
     rclpy.init()
     try:
+        child = tuple(r.strip() for r in a.child_nodes.split(',') if r.strip()) if a.processes == 2 else ()
         res = run_replay(ReplayOptions(bag=a.bag, out=str(out), params_file=params, rate=a.rate,
-                                       progress=not a.quiet))
+                                       progress=not a.quiet, child_roles=child))
     finally:
         rclpy.try_shutdown()
     store = MapStore(res['map_dir'])

@@ -18,6 +18,12 @@ Outputs:
                       first keyframe fix. Published once the block is georeferenced.
   /diagnostics        solve time, cost, reprojection RMS, GNSS residual RMS, window size
 
+Threading: callbacks only queue what arrives; a worker thread of the node runs the adjustments
+(numpy/scipy release the GIL in their kernels), so a several-second adjustment never holds an
+executor thread. When keyframes queue up behind an adjustment, the older ones of the batch get a
+short window adjustment (`catch_up_iterations`) and only the newest the full one, so the node
+catches up instead of falling further behind; the poses are published once per batch.
+
 Lever arm: `lever_arm_cam_m` (antenna in the optical camera frame) is used as a fixed offset; for a
 gimbal camera this is the camera-frame approximation (see core/incremental.py).
 """
@@ -25,6 +31,7 @@ gimbal camera this is the camera-frame approximation (see core/incremental.py).
 from __future__ import annotations
 
 import sys
+import threading
 import time
 from dataclasses import dataclass
 
@@ -78,6 +85,9 @@ class BundleNodeParams:
     max_fix_sigma_m: float = param(50.0, 'fixes with a larger horizontal sigma are not used, m', min=0.01, max=1e4)
     cloud_every: int = param(5, 'publish the sparse cloud every this many keyframes', min=1, max=1000)
     full_adjustment_on_shutdown: bool = param(True, 'adjust the whole block when the node stops')
+    catch_up_iterations: int = param(3, 'iterations of the window adjustment of a keyframe that already has newer '
+                                        'ones queued behind it (the newest of a batch gets the full adjustment): '
+                                        'lets the node catch up after a long adjustment', min=1, max=100)
     publish_provisional: bool = param(False, 'publish poses while the georeference is still provisional (a '
                                              'straight first line leaves the roll about it to an assumption '
                                              'until the first turn); off, poses start at the first turn')
@@ -100,6 +110,7 @@ class BundleNode(Node):
         self._latest_fix_ns = None
         self._published_final = False
         self._n_since_cloud = 0
+        self._unpublished = 0   # keyframes oriented in a batch before its newest, not yet published
         reliable = QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE)
         latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                              durability=DurabilityPolicy.TRANSIENT_LOCAL)
@@ -113,8 +124,17 @@ class BundleNode(Node):
         self.create_subscription(PointCloud2, TOPIC_FEATURES, self._on_features, reliable)
         self.create_subscription(Image, TOPIC_IMAGE, lambda m: self.diag.count('images'), reliable)
         self.create_subscription(CameraInfo, TOPIC_INFO, self._on_info, QoSProfile(depth=5))
-        self.create_subscription(Empty, TOPIC_FULL, lambda m: self.full_adjustment(), QoSProfile(depth=2))
-        self.create_timer(0.2, self._flush)
+        self.create_subscription(Empty, TOPIC_FULL, self._on_full, QoSProfile(depth=2))
+        # The timer only wakes the worker: a keyframe whose fix never comes is taken after fix_wait_s.
+        self.create_timer(0.2, self._wake)
+        self._full_requested = False
+        self._busy = False
+        self._stop = False
+        # _cond guards the inputs (_pending, _fixes, flags); _work serialises every use of self.at.
+        self._cond = threading.Condition()
+        self._work = threading.RLock()
+        self._worker = threading.Thread(target=self._run, name='bundle_worker', daemon=True)
+        self._worker.start()
 
     # --- inputs ---------------------------------------------------------------------------------
 
@@ -132,7 +152,10 @@ class BundleNode(Node):
                                  loss=self.p.loss, loss_scale_px=self.p.loss_scale_px,
                                  max_reprojection_px=self.p.max_reprojection_px,
                                  lever_arm_cam_m=tuple(float(v) for v in self.p.lever_arm_cam_m))
-        self.at = IncrementalAT(self.camera, opt, origin=origin)
+        self._window_iterations = opt.window_iterations
+        with self._work:
+            self.at = IncrementalAT(self.camera, opt, origin=origin)
+        self._wake()
 
     def _on_fix(self, msg: NavSatFix) -> None:
         try:
@@ -147,12 +170,13 @@ class BundleNode(Node):
             if np.sqrt(cov[0, 0]) > self.p.max_fix_sigma_m:
                 self.diag.count('fixes_too_inaccurate')
                 return
-            self._fixes[f['stamp_ns']] = GnssFix(f['lat_deg'], f['lon_deg'], f['h_m'], cov)
-            self._latest_fix_ns = max(self._latest_fix_ns or 0, f['stamp_ns'])
+            with self._cond:
+                self._fixes[f['stamp_ns']] = GnssFix(f['lat_deg'], f['lon_deg'], f['h_m'], cov)
+                self._latest_fix_ns = max(self._latest_fix_ns or 0, f['stamp_ns'])
+                self._cond.notify()
             self.diag.count('fixes')
         except Exception as exc:  # one bad message must not stop the node
             self.diag.problem(f'bad keyframe fix: {exc}')
-        self._flush()
 
     def _on_features(self, msg: PointCloud2) -> None:
         try:
@@ -161,11 +185,21 @@ class BundleNode(Node):
             if not np.all(np.isfinite(uv)):
                 raise PhotogramError('non-finite pixel coordinates')
             stamp = msgs.ns_from_time(msg.header.stamp)
-            self._pending[stamp] = (time.monotonic(), obs['track_id'].astype(np.int64), uv)
+            with self._cond:
+                self._pending[stamp] = (time.monotonic(), obs['track_id'].astype(np.int64), uv)
+                self._cond.notify()
             self.diag.count('keyframes_received')
         except Exception as exc:
             self.diag.problem(f'bad keyframe features: {exc}')
-        self._flush()
+
+    def _on_full(self, _msg) -> None:
+        with self._cond:
+            self._full_requested = True
+            self._cond.notify()
+
+    def _wake(self) -> None:
+        with self._cond:
+            self._cond.notify()
 
     def _match_fix(self, stamp: int) -> GnssFix | None:
         tol = int(self.p.sync_tolerance_ms * 1e6)
@@ -174,11 +208,12 @@ class BundleNode(Node):
             return self._fixes.pop(best)
         return None
 
-    def _flush(self) -> None:
-        """Process keyframes in stamp order once their fix is in (or waited for long enough)."""
+    def _ready(self) -> list[KeyframeRecord]:
+        """Take the keyframes that may be adjusted now, in stamp order: their fix is in, or a later
+        fix says there is none, or they waited fix_wait_s. Called with _cond held."""
         if self.at is None:
-            return
-        now = time.monotonic()
+            return []
+        now, out = time.monotonic(), []
         for stamp in sorted(self._pending):
             arrived, ids, uv = self._pending[stamp]
             fix = self._match_fix(stamp)
@@ -189,20 +224,78 @@ class BundleNode(Node):
             del self._pending[stamp]
             if fix is None:
                 self.diag.count('keyframes_without_fix')
-            self._process(KeyframeRecord(stamp, ids, uv, fix))
+            out.append(KeyframeRecord(stamp, ids, uv, fix))
         # Fixes older than every pending keyframe will never match.
         oldest = min(self._pending, default=None)
         for s in [s for s in self._fixes if oldest is None or s < oldest - 10**9 * 10]:
             if len(self._fixes) > 200:
                 del self._fixes[s]
+        return out
+
+    def _run(self) -> None:
+        """The worker: adjusts what _ready() hands out, and full adjustments asked for on the topic."""
+        while True:
+            with self._cond:
+                batch, full = self._ready(), self._full_requested
+                while not batch and not full and not self._stop:
+                    self._cond.wait(0.5)
+                    batch, full = self._ready(), self._full_requested
+                if self._stop:
+                    return
+                self._full_requested = False
+                self._busy = True
+            try:
+                with self._work:
+                    self._process_batch(batch)
+                    if full:
+                        self.full_adjustment()
+            except Exception as exc:   # the worker must survive anything one keyframe can do
+                self.diag.problem(f'bundle worker: {type(exc).__name__}: {exc}', ERROR)
+            finally:
+                with self._cond:
+                    self._busy = False
+
+    def busy(self) -> bool:
+        """Keyframes are being adjusted, or could be now (a replay waits for this before it ends)."""
+        with self._cond:
+            if self._busy or self._full_requested:
+                return True
+            return any(self._match_fix_peek(s) for s in self._pending)
+
+    def _match_fix_peek(self, stamp: int) -> bool:
+        tol = int(self.p.sync_tolerance_ms * 1e6)
+        return any(abs(s - stamp) <= tol for s in self._fixes)
+
+    def _process_batch(self, batch: list[KeyframeRecord]) -> None:
+        """Older keyframes of a batch get a short window adjustment; the newest the full one, then
+        one publication covers the batch."""
+        if not batch:
+            return
+        try:
+            for i, rec in enumerate(batch):
+                newest = i == len(batch) - 1
+                self.at.opt.window_iterations = (self._window_iterations if newest
+                                                 else min(self.p.catch_up_iterations, self._window_iterations))
+                self._process(rec, publish=newest)
+        finally:
+            self.at.opt.window_iterations = self._window_iterations
+        if len(batch) > 1:
+            self.diag.count('keyframes_caught_up', len(batch) - 1)
 
     # --- adjustment and outputs -------------------------------------------------------------------
 
-    def _process(self, rec: KeyframeRecord) -> None:
+    def _process(self, rec: KeyframeRecord, publish: bool = True) -> None:
         try:
             rep = self.at.add_keyframe(rec)
         except Exception as exc:
             self.diag.problem(f'keyframe {rec.stamp_ns} failed: {exc}')
+            return
+        if not publish:
+            if rep.registered:
+                self.diag.count('keyframes_oriented')
+                self._unpublished += 1
+            else:
+                self.diag.count('keyframes_not_oriented')
             return
         self.diag.count('keyframes_oriented' if rep.registered else 'keyframes_not_oriented')
         self.diag.set('status', rep.status)
@@ -213,6 +306,7 @@ class BundleNode(Node):
         self.diag.set('window_size', rep.window_size)
         self.diag.set('points', len(self.at.points))
         self.diag.set('georeferenced', 'provisional' if self.at.georef_provisional else str(self.at.georeferenced))
+        earlier, self._unpublished = self._unpublished, 0
         if not (self.at.georeferenced and rep.registered):
             return
         if self.at.georef_provisional and not self.p.publish_provisional:
@@ -222,9 +316,10 @@ class BundleNode(Node):
             self._published_final = True
             self._publish(window=list(self.at.registered))
         else:
-            self._publish(window=self.at.registered[-self.p.window_size:])
+            self._publish(window=self.at.registered[-(self.p.window_size + earlier):], new=1 + earlier)
 
-    def _publish(self, window) -> None:
+    def _publish(self, window, new: int = 1) -> None:
+        """Poses of `window`, the path, and the sparse cloud once `new` keyframes make cloud_every."""
         at = self.at
         if not self._georef_sent and at.origin is not None:
             o = at.origin
@@ -237,7 +332,7 @@ class BundleNode(Node):
         stamp = at.kfs[window[-1]].stamp_ns
         self.pub_path.publish(msgs.path_msg([at.kfs[k].map_T_cam for k in at.registered],
                                             [at.kfs[k].stamp_ns for k in at.registered], stamp))
-        self._n_since_cloud += 1
+        self._n_since_cloud += new
         if self._n_since_cloud >= self.p.cloud_every:
             self._n_since_cloud = 0
             self.publish_cloud(stamp)
@@ -264,12 +359,19 @@ class BundleNode(Node):
         fix, then adjust the whole block and republish every pose."""
         if self.at is None:
             return
-        for stamp in sorted(self._pending):
-            _, ids, uv = self._pending.pop(stamp)
-            self._process(KeyframeRecord(stamp, ids, uv, self._match_fix(stamp)))
-        self.full_adjustment()
+        with self._work:   # after the batch the worker may be adjusting
+            with self._cond:
+                recs = [KeyframeRecord(stamp, *self._pending.pop(stamp)[1:], self._match_fix(stamp))
+                        for stamp in sorted(self._pending)]
+            for rec in recs:
+                self._process(rec)
+            self.full_adjustment()
 
     def full_adjustment(self) -> None:
+        with self._work:
+            self._full_adjustment()
+
+    def _full_adjustment(self) -> None:
         if self.at is None or not self.at.registered:
             return
         try:
@@ -277,12 +379,20 @@ class BundleNode(Node):
             rep = self.at.full_adjustment()
             self.diag.set('full_adjustment_s', time.perf_counter() - t0)
             self.diag.set('full_adjustment_rms_px', float(rep.reprojection_rms_px))
-            self.diag.count('full_adjustments')
             if self.at.georeferenced:
-                self._publish(window=list(self.at.registered))
+                self._publish(window=list(self.at.registered), new=0)
                 self.publish_cloud(self.at.kfs[self.at.registered[-1]].stamp_ns)
+            self.diag.count('full_adjustments')   # after publishing: a waiting caller gets the poses
         except Exception as exc:
             self.diag.problem(f'full adjustment failed: {exc}')
+
+
+    def destroy_node(self):
+        with self._cond:
+            self._stop = True
+            self._cond.notify_all()
+        self._worker.join(timeout=30.0)
+        return super().destroy_node()
 
 
 def main(argv=None) -> int:

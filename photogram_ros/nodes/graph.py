@@ -3,18 +3,27 @@
 One process (the default) shares a MultiThreadedExecutor, so images travel between nodes without
 leaving the process's DDS participant. `--separate` starts the console scripts instead, with the same
 parameter file, for integrators who want to restart or pin nodes individually.
+
+A Python process runs on about one core (the GIL), so a graph can also put some roles in one child
+process (`GraphSpec.child_roles`, the same node code): the child reports its nodes' counters on
+`graph/child/status` and takes end-of-flight calls (stereo flush, bundle finish) and its stop on
+`graph/child/command`, so the parent drives the whole graph as if the nodes were its own.
 """
 
 from __future__ import annotations
 
+import functools
 import importlib
+import json
+import os
+import signal
 import subprocess
 import sys
 import threading
 import time
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass, field
 
-from photogram_ros.errors import ConfigError
+from photogram_ros.errors import ConfigError, PhotogramError
 from photogram_ros.params import load_params_file
 
 # role -> (module, class, console script); the order is the data-flow order.
@@ -50,6 +59,7 @@ class GraphSpec:
     params_file: str | None = None
     namespace: str = ''
     extra: dict | None = None      # role -> {param: value}, applied over the file
+    child_roles: tuple = field(default_factory=tuple)   # roles run in one child process (a second core)
 
 
 def _sections(spec: GraphSpec) -> dict:
@@ -75,7 +85,10 @@ class Graph:
         kwargs = {'namespace': spec.namespace} if spec.namespace else {}
         if context is not None:
             kwargs['context'] = context
+        self.child = None
         for role in spec.roles:
+            if role in spec.child_roles:
+                continue
             cls = node_class(role)
             script = NODES[role][2]
             values = dict(sections.get('**', {}))
@@ -88,17 +101,40 @@ class Graph:
         for n in self.nodes.values():
             self.executor.add_node(n)
         self._thread = None
+        child = tuple(r for r in spec.roles if r in spec.child_roles)
+        if child:
+            self.child = ChildGraph(GraphSpec(roles=child, params_file=spec.params_file, namespace=spec.namespace,
+                                              extra={r: v for r, v in (spec.extra or {}).items() if r in child}),
+                                    kwargs)
+            self.executor.add_node(self.child.node)
 
-    def start(self) -> None:
+    def start(self, child_timeout_s: float = 60.0) -> None:
         self._thread = threading.Thread(target=self.executor.spin, daemon=True, name='graph-executor')
         self._thread.start()
+        if self.child is not None:
+            self.child.wait_ready(list(self.nodes.values()), child_timeout_s)
+
+    def counts(self) -> dict:
+        """role -> the node's diagnostic counters, for the nodes of this process and of the child."""
+        out = {r: n.diag.counts() for r, n in self.nodes.items() if getattr(n, 'diag', None) is not None}
+        if self.child is not None:
+            out.update(self.child.counts())
+        return out
+
+    def busy(self) -> bool:
+        """A node working in its own thread (the bundle adjuster) says so: its counters stand still meanwhile."""
+        local = any(callable(getattr(n, 'busy', None)) and n.busy() for n in self.nodes.values())
+        return local or (self.child is not None and self.child.busy())
 
     def finish_flight(self, settle=lambda: time.sleep(2.0)) -> None:
         """End of flight, in data-flow order: the tracker emits the keyframes it still holds, the
         bundle adjuster runs its final adjustment and republishes the poses, stereo pairs the
         keyframes still waiting; `settle` lets the downstream nodes consume each step's output."""
         for role, method in (('tracker', 'flush'), ('bundle', 'finish'), ('stereo', 'flush')):
-            fn = getattr(self.nodes.get(role), method, None)
+            if self.child is not None and role in self.child.spec.roles:
+                fn = functools.partial(self.child.call, role, method)
+            else:
+                fn = getattr(self.nodes.get(role), method, None)
             if callable(fn):
                 try:
                     fn()
@@ -107,10 +143,175 @@ class Graph:
                 settle()
 
     def shutdown(self) -> None:
-        """Stop spinning and destroy the nodes (the map node flushes its tiles to disk on destroy)."""
+        """Stop spinning and destroy the nodes (the map node flushes its tiles to disk on destroy); the
+        child process does the same with its nodes and ends."""
+        if self.child is not None:
+            self.child.stop()
         self.executor.shutdown(timeout_sec=5)
         for n in self.nodes.values():
             n.destroy_node()
+        if self.child is not None:
+            self.child.node.destroy_node()
+
+
+TOPIC_CHILD_STATUS = 'graph/child/status'
+TOPIC_CHILD_COMMAND = 'graph/child/command'
+
+
+def _reliable(depth: int = 10):
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+    return QoSProfile(depth=depth, reliability=ReliabilityPolicy.RELIABLE)
+
+
+class ChildGraph:
+    """The parent's handle on a child process running `spec.roles` (see child_main)."""
+
+    def __init__(self, spec: GraphSpec, node_kwargs: dict):
+        from rclpy.node import Node
+        from std_msgs.msg import String
+        self.spec = spec
+        self.node = Node('graph_parent', **node_kwargs)
+        self._status: dict = {}
+        self._cond = threading.Condition()
+        self._seq = 0
+        self._pub = self.node.create_publisher(String, TOPIC_CHILD_COMMAND, _reliable())
+        self.node.create_subscription(String, TOPIC_CHILD_STATUS, self._on_status, _reliable())
+        ctx = node_kwargs.get('context')
+        env = dict(os.environ)
+        if ctx is not None and getattr(ctx, 'get_domain_id', None):
+            env['ROS_DOMAIN_ID'] = str(ctx.get_domain_id())
+        # The child runs the very code of this process (a source tree may shadow an installed copy).
+        root = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+        env['PYTHONPATH'] = os.pathsep.join([root] + [v for v in [env.get('PYTHONPATH')] if v])
+        code = 'import sys; from photogram_ros.nodes.graph import child_main; sys.exit(child_main())'
+        self.proc = subprocess.Popen([sys.executable, '-c', code, json.dumps(asdict(spec))], env=env)
+
+    def _on_status(self, msg) -> None:
+        with self._cond:
+            self._status = json.loads(msg.data)
+            self._cond.notify_all()
+
+    def _wait(self, what, timeout_s: float) -> bool:
+        with self._cond:
+            return self._cond.wait_for(lambda: what(self._status) or self.proc.poll() is not None, timeout_s) \
+                and what(self._status)
+
+    def wait_ready(self, local_nodes, timeout_s: float) -> None:
+        """Until the child's nodes are up and every topic they take from this process's nodes has
+        matched them (a reliable message published before the match would be lost)."""
+        if not self._wait(lambda st: 'subs' in st, timeout_s):
+            raise ConfigError(f'the child process for {", ".join(self.spec.roles)} did not start '
+                              f'(exit status {self.proc.poll()}); see its messages above')
+        subs = self._status['subs']
+        published = {p.topic_name for n in local_nodes for p in n.publishers}
+        local = {}
+        for n in local_nodes:
+            for sub in n.subscriptions:
+                local[sub.topic_name] = local.get(sub.topic_name, 0) + 1
+        deadline = time.monotonic() + timeout_s
+        for topic, n in subs.items():
+            if topic not in published:
+                continue
+            while self.node.count_subscribers(topic) < n + local.get(topic, 0) and time.monotonic() < deadline:
+                time.sleep(0.02)
+
+    def counts(self) -> dict:
+        with self._cond:
+            return dict(self._status.get('counts', {}))
+
+    def busy(self) -> bool:
+        with self._cond:
+            return bool(self._status.get('busy'))
+
+    def _send(self, **command) -> int:
+        from std_msgs.msg import String
+        with self._cond:
+            self._seq += 1
+            seq = self._seq
+        self._pub.publish(String(data=json.dumps({'seq': seq, **command})))
+        return seq
+
+    def call(self, role: str, method: str, timeout_s: float = 600.0) -> None:
+        """Run `method` of the child's `role` node and wait until it returned."""
+        seq = self._send(call=[role, method])
+        if not self._wait(lambda st: st.get('done', 0) >= seq, timeout_s):
+            raise ConfigError(f'child process: {role}.{method} did not finish in {timeout_s:.0f} s')
+        err = self._status.get('errors', {}).get(str(seq))
+        if err:
+            raise RuntimeError(err)
+
+    def stop(self, timeout_s: float = 120.0) -> int:
+        """Ask the child to destroy its nodes (the map flushes) and end; SIGINT, then kill, if it does not."""
+        if self.proc.poll() is None:
+            self._send(stop=True)
+            try:
+                return self.proc.wait(timeout=timeout_s)
+            except subprocess.TimeoutExpired:
+                self.proc.send_signal(signal.SIGINT)
+                try:
+                    return self.proc.wait(timeout=30)
+                except subprocess.TimeoutExpired:
+                    self.proc.kill()
+        return self.proc.wait()
+
+
+def child_main(argv=None) -> int:
+    """The child process: a Graph of the given roles, plus the status/command node."""
+    import rclpy
+    from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
+    from rclpy.node import Node
+    from std_msgs.msg import String
+    args = sys.argv[1:] if argv is None else argv
+    spec = GraphSpec(**{**json.loads(args[0]), 'child_roles': ()})
+    spec.roles = tuple(spec.roles)
+    rclpy.init()
+    stop = threading.Event()
+    signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    graph = None
+    try:
+        graph = Graph(spec)
+        ctl = Node('graph_child', **({'namespace': spec.namespace} if spec.namespace else {}))
+        state = {'done': 0, 'errors': {}}
+        pub = ctl.create_publisher(String, TOPIC_CHILD_STATUS, _reliable())
+        subs = {}
+        for n in graph.nodes.values():
+            for sub in n.subscriptions:
+                subs[sub.topic_name] = subs.get(sub.topic_name, 0) + 1
+
+        def status():
+            pub.publish(String(data=json.dumps({'counts': graph.counts(), 'busy': graph.busy(), 'subs': subs,
+                                                'done': state['done'], 'errors': state['errors']})))
+
+        def command(msg):
+            c = json.loads(msg.data)
+            if c.get('stop'):
+                stop.set()
+                return
+            role, method = c['call']
+            try:
+                getattr(graph.nodes[role], method)()
+            except Exception as exc:   # reported to the parent, which prints it
+                state['errors'][str(c['seq'])] = f'{type(exc).__name__}: {exc}'
+            state['done'] = max(state['done'], c['seq'])
+            status()
+        # Commands in their own group: a flush taking seconds must not stop the status reports.
+        ctl.create_subscription(String, TOPIC_CHILD_COMMAND, command, _reliable(),
+                                callback_group=MutuallyExclusiveCallbackGroup())
+        ctl.create_timer(0.05, status, callback_group=MutuallyExclusiveCallbackGroup())
+        graph.executor.add_node(ctl)
+        graph.start()
+        while not stop.wait(0.2):
+            pass
+    except KeyboardInterrupt:
+        pass
+    except PhotogramError as exc:
+        print(f'graph child: {exc}', file=sys.stderr)
+        return 2
+    finally:
+        if graph is not None:
+            graph.shutdown()
+        rclpy.try_shutdown()
+    return 0
 
 
 def start_separate(spec: GraphSpec) -> list[subprocess.Popen]:

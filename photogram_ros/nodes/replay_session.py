@@ -34,6 +34,9 @@ class ReplayOptions:
     drain_timeout_s: float = 300.0
     progress: bool = True
     extra: dict = field(default_factory=dict)
+    # Roles run in a child process, on the second core (the tracker, which paces the player, and the
+    # MAVLink decoder stay in this one): () runs everything in one process.
+    child_roles: tuple = ()
 
 
 class DiagnosticsLog:
@@ -73,17 +76,15 @@ def _num(v: str):
 
 def _activity(graph: Graph) -> int:
     """A number that grows while any node is still working (sum of its diagnostic counters)."""
-    total = 0
-    for n in graph.nodes.values():
-        diag = getattr(n, 'diag', None)
-        if diag is not None:
-            total += sum(v for v in diag.counts().values() if isinstance(v, (int, float)))
-    return int(total)
+    return int(sum(v for c in graph.counts().values() for v in c.values() if isinstance(v, (int, float))))
+
+
+CHILD_ROLES_ALLOWED = ('bundle', 'stereo', 'map')
 
 
 def run_replay(opts: ReplayOptions, context=None) -> dict:
     """Run the whole replay into OUT/map; returns the run summary, the diagnostics log and the map folder."""
-    from photogram_ros.errors import BagError
+    from photogram_ros.errors import BagError, ConfigError
     from photogram_ros.io.bag import BagReader
     out = Path(opts.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -103,7 +104,12 @@ def run_replay(opts: ReplayOptions, context=None) -> dict:
         roles = ('mavlink', 'tracker', 'bundle', 'stereo', 'map')
     else:
         roles = ('tracker', 'bundle', 'stereo', 'map')
-    graph = Graph(GraphSpec(roles=roles, params_file=opts.params_file, extra=extra), context=context)
+    bad = [r for r in opts.child_roles if r not in CHILD_ROLES_ALLOWED]
+    if bad:
+        raise ConfigError(f'replay: {bad} cannot run in the child process; choose among {CHILD_ROLES_ALLOWED} '
+                          '(the tracker and MAVLink decoder pace the player and stay in the main process)')
+    graph = Graph(GraphSpec(roles=roles, params_file=opts.params_file, extra=extra,
+                            child_roles=tuple(opts.child_roles)), context=context)
     kwargs = {'context': context} if context is not None else {}
     player = PlayerNode(overrides={'bag': str(opts.bag), 'rate': float(opts.rate), 'exclude': ','.join(exclude)},
                         **kwargs)
@@ -111,7 +117,11 @@ def run_replay(opts: ReplayOptions, context=None) -> dict:
     diag_log = DiagnosticsLog(listener)
     graph.executor.add_node(listener)
     graph.executor.add_node(player)
-    graph.start()
+    try:
+        graph.start()
+    except Exception:
+        graph.shutdown()
+        raise
     tracker = graph.nodes['tracker']
     images_sent = [0]
     t_start = time.monotonic()
@@ -147,10 +157,11 @@ def run_replay(opts: ReplayOptions, context=None) -> dict:
 
     def clouds_in_flight() -> int:
         """Pair clouds stereo has published that the map has not fused yet (fusing one can take seconds)."""
-        if 'stereo' not in graph.nodes or 'map' not in graph.nodes:
+        counts = graph.counts()
+        if 'stereo' not in counts or 'map' not in counts:
             return 0
-        fused = graph.nodes['map'].diag.counts()
-        return (graph.nodes['stereo'].diag.counts().get('pairs_done', 0)
+        fused = counts['map']
+        return (counts['stereo'].get('pairs_done', 0)
                 - fused.get('clouds', 0) - fused.get('clouds_dropped', 0))
 
     def drain():
@@ -160,7 +171,7 @@ def run_replay(opts: ReplayOptions, context=None) -> dict:
         while time.monotonic() < deadline:
             time.sleep(0.25)
             now = _activity(graph)
-            if now != last or clouds_in_flight() > 0:
+            if now != last or clouds_in_flight() > 0 or graph.busy():
                 quiet_since, last = time.monotonic(), now
             elif time.monotonic() - quiet_since > 1.5:
                 return
@@ -182,11 +193,7 @@ def run_replay(opts: ReplayOptions, context=None) -> dict:
 
 def _print_progress(graph: Graph, frames: int, stamp_ns: int, t_start: float) -> None:
     parts = [f'frames {frames}']
-    for role, n in graph.nodes.items():
-        diag = getattr(n, 'diag', None)
-        if diag is None:
-            continue
-        c = diag.counts()
+    for role, c in graph.counts().items():
         key = {'tracker': 'keyframes', 'bundle': 'keyframes_adjusted', 'stereo': 'pairs_done',
                'map': 'points_fused'}.get(role)
         if key and key in c:
