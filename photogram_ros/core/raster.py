@@ -73,7 +73,8 @@ def grid_for(xmin: float, ymin: float, xmax: float, ymax: float, res_m: float, f
 
 
 def dsm_from_points(x, y, z, res_m: float, weights=None, bounds=None, fill_holes_px: int = 1,
-                    max_spread_m: float | None = None, z_sigma=None, min_count: int = 1) -> Raster:
+                    max_spread_m: float | None = None, z_sigma=None, min_count: int = 1,
+                    fill_gaps_m: float = 0.0) -> Raster:
     """Mean height per cell (weighted by `weights`, e.g. points per fused cell); NODATA elsewhere.
 
     A cell whose points span more than `max_spread_m` in height straddles a wall or roof edge: its
@@ -112,7 +113,43 @@ def dsm_from_points(x, y, z, res_m: float, weights=None, bounds=None, fill_holes
     r.data = out.reshape(h, wd)
     if fill_holes_px > 0:
         r.data = _fill_small_holes(r.data, fill_holes_px, max_spread_m)
+    if fill_gaps_m > 0:
+        r.data = fill_gaps(r.data, int(fill_gaps_m / res_m), 0.5 if max_spread_m is None else max_spread_m)
     return r
+
+
+def _nearest_along_rows(valid: np.ndarray):
+    """Column index of the nearest valid cell to the west and to the east of every cell (-1 / w if none)."""
+    h, w = valid.shape
+    cols = np.broadcast_to(np.arange(w), (h, w))
+    west = np.maximum.accumulate(np.where(valid, cols, -1), axis=1)
+    east = np.minimum.accumulate(np.where(valid, cols, w)[:, ::-1], axis=1)[:, ::-1]
+    return west, east
+
+
+def fill_gaps(d: np.ndarray, max_cells: int, max_step_m: float) -> np.ndarray:
+    """Linear interpolation across no-data runs of at most `max_cells` along rows, then columns.
+
+    Only between two observed cells whose heights differ by at most `max_step_m`: a gap with roof
+    on one side and ground on the other, or one open to the outside of the map, stays no-data.
+    """
+    out = d.copy()
+    for transpose in (False, True):
+        a = out.T if transpose else out
+        valid = a != NODATA
+        west, east = _nearest_along_rows(valid)
+        h, w = a.shape
+        gap = east - west
+        cand = ~valid & (west >= 0) & (east < w) & (gap - 1 <= max_cells)
+        r, c = np.nonzero(cand)
+        if r.size == 0:
+            continue
+        zw, ze = a[r, west[r, c]], a[r, east[r, c]]
+        g = gap[r, c]
+        ok = np.abs(ze - zw) <= max_step_m
+        t = (c - west[r, c]) / g
+        a[r[ok], c[ok]] = (zw + (ze - zw) * t)[ok]
+    return out
 
 
 def _fill_small_holes(d: np.ndarray, radius: int, max_spread_m: float | None = None) -> np.ndarray:
@@ -128,7 +165,8 @@ def _fill_small_holes(d: np.ndarray, radius: int, max_spread_m: float | None = N
         kern = np.ones((k, k), np.uint8)
         hi = cv2.dilate(np.where(d != NODATA, d, -np.inf).astype(np.float32), kern)
         lo = cv2.erode(np.where(d != NODATA, d, np.inf).astype(np.float32), kern)
-        fill &= (hi - lo) <= max_spread_m
+        with np.errstate(invalid='ignore', over='ignore'):
+            fill &= (hi - lo) <= max_spread_m
     out = d.copy()
     out[fill] = s[fill] / c[fill]
     return out
