@@ -153,3 +153,57 @@ def test_bad_keyframe_raises(world):
     at = IncrementalAT(cfg.camera())
     with pytest.raises(DataError):
         at.add_keyframe(KeyframeRecord(0, np.arange(5), np.zeros((4, 2))))
+
+
+def _as_tracker_ids(records, max_length: int = 6):
+    """Ids as a tracker gives them: a ground point seen again after a gap is a new track, and a
+    track is lost after `max_length` keyframes (the tiny world keeps points in view for long)."""
+    label, run, prev, nxt, out = {}, {}, set(), 0, []
+    for r in records:
+        ids = np.asarray(r.track_ids)
+        for g in ids.tolist():
+            run[g] = run.get(g, 0) + 1 if g in prev else 1
+            if run[g] % max_length == 1 or max_length == 1:
+                label[g], nxt = nxt, nxt + 1
+        prev = set(ids.tolist())
+        out.append(dataclasses.replace(r, track_ids=np.array([label[g] for g in ids.tolist()]), target_uv={}))
+    return out
+
+
+@pytest.mark.parametrize('ids', ['tracker', 'ground_points'])
+def test_spilling_frozen_keyframes_changes_nothing(world, tmp_path, ids):
+    """Long-flight memory: frozen keyframes go to disk and frozen points to compact arrays; the result
+    must be the same, bit for bit. With tracker-like ids (a track ends for good) keyframes freeze
+    along the flight. With the simulator's ground-point ids, seen again on the next line, a tiny
+    window with no margin freezes tracks that come back (the thaw path); GCP and check targets
+    are seen throughout, and the keyframes observing them stay in memory."""
+    cfg, w = world
+    sk = simulate_keyframes(dataclasses.replace(cfg, seed=7), gnss_mode='3d', outlier_fraction=0.05, world=w)
+    if ids == 'tracker':
+        sk.records = _as_tracker_ids(sk.records)
+    ats = []
+    for spill in (False, True):
+        opt = IncrementalOptions(lever_arm_cam_m=tuple(sk.lever_arm_cam_m), window_size=4, max_fixed_keyframes=8,
+                                 spill_frozen=spill, spill_dir=str(tmp_path / 'spill') if spill else '',
+                                 freeze_margin_keyframes=0, freeze_every=1)
+        at = IncrementalAT(sk.camera, opt, origin=sk.origin, control=sk.control)
+        frozen_seen = 0
+        for r in sk.records:
+            at.add_keyframe(r)
+            frozen_seen = max(frozen_seen, sum(kf.frozen for kf in at.kfs))
+        at.full_adjustment()
+        ats.append((at, frozen_seen, build_report(at, gsd_m=sk.gsd_m)))
+    (a, _, rep_a), (b, frozen_b, rep_b) = ats
+    print(f'{len(b.kfs)} keyframes, at most {frozen_b} frozen at once; after the end: {b.memory_stats()}')
+    if ids == 'ground_points':
+        assert b.points.frozen_bytes > 0
+    else:
+        assert frozen_b >= len(b.kfs) // 4 and any((tmp_path / 'spill').iterdir())
+    assert a.registered == b.registered
+    for k in a.registered:
+        assert np.array_equal(a.kfs[k].map_T_cam, b.kfs[k].map_T_cam)
+    ia, pa = a.points.arrays()
+    ib, pb = b.points.arrays()
+    assert np.array_equal(ia, ib) and np.array_equal(pa, pb)
+    assert [h.cost for h in a.history] == [h.cost for h in b.history]
+    assert rep_a['check'] == rep_b['check'] and rep_a['reprojection_rms_px'] == rep_b['reprojection_rms_px']

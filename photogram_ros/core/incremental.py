@@ -20,6 +20,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from photogram_ros.core.at_store import KeyframeSpill, PointStore
 from photogram_ros.core.camera import PinholeCamera
 from photogram_ros.core.geodesy import LocalFrame
 from photogram_ros.core.rotations import invert_T, make_T
@@ -81,22 +82,73 @@ class IncrementalOptions:
     use_gcps: bool = True
     estimate_gnss_bias: bool = True    # a constant ENU GNSS offset, when >= 3 GCPs make it observable
     bias_iterations: int = 10
+    # Long flights: keyframes and tracks that can no longer enter a window leave the Python heap
+    # (points to compact arrays, keyframe observations to disk) so memory stays flat; a track id
+    # seen again later brings them back, so results are the same either way.
+    spill_frozen: bool = True
+    spill_dir: str = ''                # '' = a private temporary folder, removed afterwards
+    freeze_margin_keyframes: int = 5   # a track is dead this many registrations before the window
+    freeze_every: int = 5              # keyframes between freeze passes
 
 
-@dataclass
 class _Keyframe:
-    kid: int
-    stamp_ns: int
-    name: str
-    track_ids: np.ndarray
-    uv: np.ndarray
-    xn: np.ndarray
-    active: np.ndarray
-    fix_enu: np.ndarray | None
-    fix_cov: np.ndarray | None
-    map_T_cam: np.ndarray | None = None
-    index_of: dict = field(default_factory=dict)
-    antenna_offset: np.ndarray | None = None
+    """One keyframe: metadata always in memory, observation arrays in memory while it is *hot* and
+    on disk (`KeyframeSpill`) once frozen. Reading an array of a frozen keyframe thaws it, so every
+    caller stays correct; the freeze pass of IncrementalAT spills it again when it may."""
+
+    __slots__ = ('kid', 'stamp_ns', 'name', 'fix_enu', 'fix_cov', 'map_T_cam', 'antenna_offset', 'reg_seq',
+                 'id_lo', 'id_hi', 'has_targets', '_arr', '_spill', '_disk_active')
+
+    def __init__(self, kid, stamp_ns, name, track_ids, uv, xn, active, fix_enu, fix_cov, map_T_cam=None,
+                 antenna_offset=None):
+        self.kid, self.stamp_ns, self.name = kid, stamp_ns, name
+        self.fix_enu, self.fix_cov, self.map_T_cam, self.antenna_offset = fix_enu, fix_cov, map_T_cam, antenna_offset
+        self.reg_seq = -1          # position in IncrementalAT.registered, -1 while not registered
+        nonneg = track_ids[track_ids >= 0]
+        self.id_lo = int(nonneg.min()) if len(nonneg) else 0
+        self.id_hi = int(nonneg.max()) if len(nonneg) else -1
+        self.has_targets = bool(len(nonneg) < len(track_ids))
+        self._arr = (track_ids, uv, xn, active)
+        self._spill = None
+        self._disk_active = None   # `active` as last written to disk (an unchanged keyframe is not rewritten)
+
+    @property
+    def frozen(self) -> bool:
+        return self._arr is None
+
+    def _arrays(self):
+        if self._arr is None:
+            self._arr = self._spill.load(self.kid)
+            self._disk_active = self._arr[3].copy()
+        return self._arr
+
+    def peek(self):
+        """(track_ids, uv, xn, active) without thawing (read-only use)."""
+        return self._arr if self._arr is not None else self._spill.load(self.kid)
+
+    def freeze(self, spill) -> None:
+        if self._arr is None:
+            return
+        if self._disk_active is None or not np.array_equal(self._disk_active, self._arr[3]):
+            spill.save(self.kid, *self._arr)
+        self._spill = spill
+        self._arr = None
+        self._disk_active = None
+
+    track_ids = property(lambda self: self._arrays()[0])
+    uv = property(lambda self: self._arrays()[1])
+    xn = property(lambda self: self._arrays()[2])
+    active = property(lambda self: self._arrays()[3])
+
+    def index(self, tid: int) -> int | None:
+        """Observation index of track `tid` (track ids are sorted), None if not observed."""
+        ids = self.track_ids
+        i = int(np.searchsorted(ids, tid))
+        return i if i < len(ids) and ids[i] == tid else None
+
+    @property
+    def index_of(self) -> dict:
+        return {int(t): i for i, t in enumerate(self.track_ids)}
 
 
 @dataclass
@@ -151,8 +203,13 @@ class IncrementalAT:
         self.origin = origin
         self.kfs: list[_Keyframe] = []
         self.registered: list[int] = []
-        self.points: dict[int, np.ndarray] = {}
-        self.track_kfs: dict[int, list[int]] = {}    # registered keyframes with an active observation
+        self.points = PointStore()                  # dict-like {track id: (3,) map ENU}
+        self.track_kfs: dict[int, list[int]] = {}    # hot tracks: registered keyframes with an active observation
+        # Hot tracker tracks (id >= 0) -> newest keyframe observing them; a track whose newest
+        # observation is older than the window (and its margin) is frozen.
+        self.last_seen: dict[int, int] = {}
+        self._max_seen_id = -1
+        self._spill: KeyframeSpill | None = None
         self.georeferenced = False
         self.georef_provisional = False
         self.control = {c.name: c for c in (control or [])}
@@ -203,10 +260,14 @@ class IncrementalAT:
             fix_cov = np.asarray(rec.fix.cov_enu_m2, float).reshape(3, 3)
         kf = _Keyframe(len(self.kfs), int(rec.stamp_ns), rec.name or str(rec.stamp_ns), ids, uv,
                        self.camera.pixel_to_normalized(uv), np.ones(len(ids), bool), fix_enu, fix_cov)
-        kf.index_of = {int(t): i for i, t in enumerate(ids)}
         if rec.antenna_offset_map_m is not None:
             kf.antenna_offset = np.asarray(rec.antenna_offset_map_m, float).reshape(3)
+        self._thaw_tracks_seen_again(ids)
         self.kfs.append(kf)
+        for t in ids[ids >= 0].tolist():
+            self.last_seen[t] = kf.kid
+        if len(ids) and ids[-1] >= 0:
+            self._max_seen_id = max(self._max_seen_id, int(ids[-1]))
         t0 = time.perf_counter()
         if not self.registered:
             rep = self._try_initialise()
@@ -220,6 +281,8 @@ class IncrementalAT:
         rep.solve_s = time.perf_counter() - t0
         rep.n_points = len(self.points)
         self.history.append(rep)
+        if self.opt.spill_frozen and kf.kid % max(self.opt.freeze_every, 1) == 0:
+            self.freeze()
         return rep
 
     # --- geometry steps -------------------------------------------------------------------------
@@ -248,6 +311,7 @@ class IncrementalAT:
             first.map_T_cam = np.eye(4)
             new.map_T_cam = invert_T(res.cam2_T_cam1)
             self.registered = [first.kid, new.kid]
+            first.reg_seq, new.reg_seq = 0, 1
             for kf in (first, new):
                 for t in kf.track_ids[kf.active].tolist():
                     self.track_kfs.setdefault(t, []).append(kf.kid)
@@ -266,11 +330,12 @@ class IncrementalAT:
     def _register(self, kf: _Keyframe) -> StepReport:
         import cv2
         use = self._usable(kf)
-        have = np.array([int(t) in self.points for t in kf.track_ids]) & use
+        self._thaw_tracks_seen_again(kf.track_ids)   # a second chance for an old keyframe (triangulate)
+        have = self.points.contains_many(kf.track_ids) & use
         n = int(have.sum())
         if n < max(self.opt.min_pnp_inliers, 6):
             return StepReport(kf.kid, False, f'too_few_known_points ({n})')
-        obj = np.array([self.points[int(t)] for t in kf.track_ids[have]])
+        obj = self.points.get_many(kf.track_ids[have])
         img = kf.xn[have]
         prev = self.kfs[self.registered[-1]].map_T_cam
         cam_T_map = invert_T(prev)
@@ -305,6 +370,7 @@ class IncrementalAT:
         kf.map_T_cam = invert_T(make_T(R, tvec.ravel()))
         out = ~ok
         kf.active[np.flatnonzero(have)[out]] = False
+        kf.reg_seq = len(self.registered)
         self.registered.append(kf.kid)
         for t in kf.track_ids[kf.active].tolist():
             self.track_kfs.setdefault(t, []).append(kf.kid)
@@ -390,13 +456,15 @@ class IncrementalAT:
 
     def _triangulate_new(self, kf: _Keyframe) -> None:
         use = self._usable(kf)
-        tracks = [int(t) for t in kf.track_ids[use] if int(t) not in self.points
-                  and len(self.track_kfs.get(int(t), ())) >= 2]
+        cand = kf.track_ids[use]
+        tracks = [int(t) for t in cand[~self.points.contains_many(cand)]
+                  if len(self.track_kfs.get(int(t), ())) >= 2]
         self._triangulate_tracks(tracks)
         # Existing points seen again: drop the observations that disagree with them.
-        idx = [i for i in np.flatnonzero(use & kf.active) if int(kf.track_ids[i]) in self.points]
+        act = np.flatnonzero(use & kf.active)
+        idx = act[self.points.contains_many(kf.track_ids[act])].tolist()
         if idx:
-            X = np.array([self.points[int(kf.track_ids[i])] for i in idx])
+            X = self.points.get_many(kf.track_ids[idx])
             e = self._reprojection_px(kf.map_T_cam, X, kf.uv[idx])
             for i in np.asarray(idx)[e > 2 * self.opt.max_reprojection_px]:
                 self._deactivate(kf.kid, int(i), int(kf.track_ids[i]))
@@ -408,6 +476,11 @@ class IncrementalAT:
         if lst and kid in lst:
             lst.remove(kid)
             if len(lst) < 2:
+                self.points.pop(t, None)
+        elif lst is None:
+            # A frozen track keeps only its count (an active observation is always in its list).
+            n = self.points.frozen_count_decrement(t)
+            if n is not None and n < 2:
                 self.points.pop(t, None)
 
     # --- georeference -------------------------------------------------------------------------
@@ -448,8 +521,9 @@ class IncrementalAT:
             return True
         for k in self.registered:
             self.kfs[k].map_T_cam = s.apply_pose(self.kfs[k].map_T_cam)
-        for t in list(self.points):
-            self.points[t] = s.apply(self.points[t][None])[0]
+        ids, P = self.points.arrays()
+        if len(ids):
+            self.points.set_many(ids, np.array([s.apply(p[None])[0] for p in P]))
         self.georeferenced = True
         self.georef_provisional = provisional
         self.full_adjustment(iterations=self.opt.full_iterations, rounds=1)
@@ -460,7 +534,8 @@ class IncrementalAT:
     def _solve(self, free: list[int], fixed: list[int], tracks, iterations: int, refine: tuple = ()) -> StepReport:
         kids = list(free) + list(fixed)
         col = {k: j for j, k in enumerate(kids)}
-        tracks = [int(t) for t in tracks if int(t) in self.points]
+        tracks = np.asarray(tracks, dtype=np.int64).ravel()
+        tracks = tracks[self.points.contains_many(tracks)].tolist()
         slot, kid, oi = self._gather(tracks, kids)
         if len(slot) == 0:
             return StepReport(kids[-1] if kids else -1, True, 'nothing_to_adjust')
@@ -473,7 +548,7 @@ class IncrementalAT:
                if t < 0 and not self._is_check(t)] if self.georeferenced else []
         prob = BundleProblem(
             camera=self.camera, map_T_cams=np.array([self.kfs[k].map_T_cam for k in kids]),
-            points_map=np.array([self.points[t] for t in tracks]),
+            points_map=self.points.get_many(tracks).reshape(-1, 3),
             obs_cam=np.concatenate([np.full(int(np.sum(kid == k)), col[k]) for k in kids]),
             obs_pt=np.concatenate([slot[kid == k] for k in kids]),
             obs_uv=np.concatenate([self.kfs[k].uv[oi[kid == k]] for k in kids]) if len(kids) else np.zeros((0, 2)),
@@ -491,8 +566,8 @@ class IncrementalAT:
         for j, k in enumerate(kids):
             if not fixed_mask[j]:
                 self.kfs[k].map_T_cam = np.asarray(res.map_T_cams[j])
-        for s, t in enumerate(tracks):
-            self.points[t] = np.asarray(res.points_map[s])
+        if tracks:
+            self.points.set_many(tracks, np.asarray(res.points_map))
         # Observations the robust loss down-weighted past the threshold are outliers: remove them.
         P = np.asarray(res.points_map)[slot]
         Ts = self._poses_of(kid)
@@ -537,7 +612,8 @@ class IncrementalAT:
 
     def _kf_tracks(self, k: int) -> np.ndarray:
         kf = self.kfs[k]
-        return np.array([int(t) for t in kf.track_ids[kf.active] if int(t) in self.points], dtype=np.int64)
+        t = kf.track_ids[kf.active]
+        return t[self.points.contains_many(t)].astype(np.int64)
 
     def _window_adjust(self, kid: int, full: bool = False) -> StepReport:
         if full:
@@ -575,7 +651,71 @@ class IncrementalAT:
                 rep = self._solve(list(self.registered), [], list(self.points), iterations or self.opt.full_iterations)
                 if np.linalg.norm(step) < 0.005:
                     break
+        if self.opt.spill_frozen:
+            self.freeze()   # the adjustment read every keyframe back: spill the frozen ones again
         return rep
+
+    # --- memory: freezing what can no longer enter a window ----------------------------------------
+
+    def freeze(self) -> None:
+        """Freeze the tracks whose newest observation is older than the window (plus a margin) and
+        the keyframes that only observe frozen tracks; called every `freeze_every` keyframes.
+
+        No future window can hold them: the free keyframes are the newest ones, and a fixed keyframe
+        enters only through a point that a free keyframe observes. A tracker never reuses an id
+        after its track ended; if a record does anyway, `_thaw_tracks_seen_again` undoes this.
+        Keyframes with target (GCP) observations stay in memory: targets are seen again anywhere.
+        """
+        n_keep = self.opt.window_size + max(self.opt.freeze_margin_keyframes, 0)
+        if len(self.registered) <= n_keep:
+            return
+        horizon = min(self.registered[-n_keep:])
+        dead = [t for t, k in self.last_seen.items() if k < horizon]
+        counts = []
+        for t in dead:
+            del self.last_seen[t]
+            counts.append(len(self.track_kfs.pop(t, ())))
+        self.points.freeze(dead, counts)
+        if self._spill is None:
+            self._spill = KeyframeSpill(self.opt.spill_dir or None)
+        for kf in self.kfs[:horizon]:
+            if not kf.frozen and not kf.has_targets and not any(t in self.last_seen for t in kf.track_ids.tolist()):
+                kf.freeze(self._spill)
+
+    def _thaw_tracks_seen_again(self, ids: np.ndarray) -> None:
+        """Tracks of a new record that were frozen: restore their keyframe lists (in registration
+        order, as they were built), points and keyframes, so the result is what it would have been."""
+        ids = np.asarray(ids, np.int64)
+        cand = ids[(ids >= 0) & (ids <= self._max_seen_id)]
+        if not len(cand) or self._spill is None:
+            return
+        cand = np.array([t for t in cand.tolist() if t not in self.last_seen], np.int64)
+        if not len(cand):
+            return
+        lists: dict[int, list] = {}
+        for kf in self.kfs:
+            if kf.id_hi < cand[0] or kf.id_lo > cand[-1]:
+                continue
+            tids, _, _, active = kf.peek()
+            hit = np.isin(tids, cand)
+            if not hit.any():
+                continue
+            if kf.frozen:
+                kf._arrays()
+            for t, a in zip(tids[hit].tolist(), active[hit].tolist()):
+                self.last_seen[t] = max(self.last_seen.get(t, -1), kf.kid)
+                if a and kf.reg_seq >= 0:
+                    lists.setdefault(t, []).append(kf)
+        for t, kfs in lists.items():
+            self.track_kfs[t] = [kf.kid for kf in sorted(kfs, key=lambda kf: kf.reg_seq)]
+            self.points.thaw(t)
+
+    def memory_stats(self) -> dict:
+        """What the triangulation holds: keyframes/points in memory and frozen, bytes spilled."""
+        return {'keyframes': len(self.kfs), 'keyframes_in_memory': sum(not kf.frozen for kf in self.kfs),
+                'points': len(self.points), 'points_in_memory': self.points.n_hot,
+                'hot_tracks': len(self.track_kfs), 'frozen_points_mb': round(self.points.frozen_bytes / 1e6, 2),
+                'spilled_mb': round(self._spill.bytes_on_disk / 1e6, 2) if self._spill else 0.0}
 
     def _n_gcps(self) -> int:
         return sum(1 for n, t in self._target_ids.items() if t in self.points and not self._is_check(t))
@@ -590,7 +730,7 @@ class IncrementalAT:
         Ts, uvs = [], []
         for k in self.registered:
             kf = self.kfs[k]
-            i = kf.index_of.get(tid)
+            i = kf.index(tid)
             if i is not None:
                 Ts.append(kf.map_T_cam)
                 uvs.append(kf.uv[i])
