@@ -98,6 +98,11 @@ def holdings(probe: Probe) -> dict:
     if at is not None:
         out['bundle_keyframes'] = len(at.kfs)
         out['bundle_points'] = len(at.points)
+        if hasattr(at, 'memory_stats'):   # what of it is still in the Python heap (the rest: disk, compact arrays)
+            st = at.memory_stats()
+            out['bundle_keyframes_in_memory'] = st['keyframes_in_memory']
+            out['bundle_points_in_memory'] = st['points_in_memory']
+            out['bundle_spilled_mb'] = st['spilled_mb']
     if 'stereo' in n:
         out['stereo_keyframes'] = len(n['stereo']._kf)
     if 'map' in n:
@@ -107,6 +112,20 @@ def holdings(probe: Probe) -> dict:
     if 'tracker' in n:
         out['tracker_frames_queued'] = len(n['tracker']._frames)
     return out
+
+
+def emit_growth_sites(first, last, n: int) -> None:
+    """The allocation sites (project frames of the traceback) that grew most between two snapshots."""
+    (s0, f0), (s1, f1) = first, last
+    minutes = max(((f1 or 0) - (f0 or 0)) / 60, 1e-6)
+    emit({'bench': 'memory_soak_tracemalloc', 'from_flight_min': round((f0 or 0) / 60, 2),
+          'to_flight_min': round((f1 or 0) / 60, 2),
+          'traced_growth_mb_per_flight_min': round(sum(d.size_diff for d in s1.compare_to(s0, 'filename')) / 1e6 / minutes, 2)})
+    for d in s1.compare_to(s0, 'traceback')[:n]:
+        frames = [f'{Path(f.filename).name}:{f.lineno}' for f in d.traceback
+                  if 'photogram_ros' in f.filename or '/bench/' in f.filename or 'rclpy' in f.filename]
+        emit({'bench': 'memory_soak_tracemalloc_site', 'mb_per_flight_min': round(d.size_diff / 1e6 / minutes, 2),
+              'count_diff': d.count_diff, 'frames': frames[-4:] or [f'{Path(f.filename).name}:{f.lineno}' for f in d.traceback][-2:]})
 
 
 def slope_mb_per_min(samples, after_min: float):
@@ -130,6 +149,9 @@ def main() -> int:
     ap.add_argument('--settle', type=float, default=2.0, help='minutes excluded from the slope (start-up)')
     ap.add_argument('--period', type=float, default=3.0, help='RSS sampling period, s')
     ap.add_argument('--params', default=str(ROOT / 'config' / 'replay.yaml'))
+    ap.add_argument('--tracemalloc', type=int, default=0, metavar='N',
+                    help='also trace Python allocations: the N sites that grew most between --settle and the '
+                    'end of the bag (slows the replay: its RSS figures are not the reference ones)')
     a = ap.parse_args()
 
     cfg, dur_s = flight_config(a.minutes, a.fps, a.max_lines, a.line_length)
@@ -152,9 +174,15 @@ def main() -> int:
         finally:
             marks['play_end'] = time.monotonic()
             sampler.sample()
+            if a.tracemalloc and 'settle' in snaps:
+                snaps['end'] = (tracemalloc.take_snapshot(), sampler.samples[-1][1])
     PlayerNode.play = marked_play
 
     rclpy.init()
+    snaps = {}
+    if a.tracemalloc:
+        import tracemalloc
+        tracemalloc.start(8)
     baseline_rss, _ = RssSampler.read()
     sampler = RssSampler(probe, a.period)
     sampler.extra = lambda: holdings(probe)
@@ -164,6 +192,9 @@ def main() -> int:
 
     def progress_extra():
         h = holdings(probe)
+        s = sampler.samples[-1] if sampler.samples else None
+        if a.tracemalloc and 'settle' not in snaps and s is not None and (s[1] or 0) >= a.settle * 60:
+            snaps['settle'] = (tracemalloc.take_snapshot(), s[1])
         if time.monotonic() - last_log[0] > 30 and sampler.samples:
             last_log[0] = time.monotonic()
             s = sampler.samples[-1]
@@ -206,6 +237,8 @@ def main() -> int:
           'projected_growth_30min_mb': None if slope is None else round(slope * 30, 0),
           'flat': None if slope is None else slope < FLAT_MB_PER_MIN, 'flat_threshold_mb_per_min': FLAT_MB_PER_MIN,
           'samples': len(samples), 'load_avg_after': os.getloadavg()})
+    if 'end' in snaps:
+        emit_growth_sites(snaps['settle'], snaps['end'], a.tracemalloc)
     # The raw curve, every ~30 s of flight, for plotting.
     curve, last = [], -1e9
     for w, f, rss, hwm, _ in samples:

@@ -89,6 +89,7 @@ class IncrementalOptions:
     spill_dir: str = ''                # '' = a private temporary folder, removed afterwards
     freeze_margin_keyframes: int = 5   # a track is dead this many registrations before the window
     freeze_every: int = 5              # keyframes between freeze passes
+    max_thaws: int = 3                 # keyframes bringing frozen tracks back before freezing stops
 
 
 class _Keyframe:
@@ -210,6 +211,10 @@ class IncrementalAT:
         self.last_seen: dict[int, int] = {}
         self._max_seen_id = -1
         self._spill: KeyframeSpill | None = None
+        # Records whose track ids come back after a gap (ground-point ids, a loop-closing matcher)
+        # make every thaw a scan of the block: after a few, freezing stops for this block.
+        self._thaw_keyframes = 0
+        self.freezing_stopped = ''
         self.georeferenced = False
         self.georef_provisional = False
         self.control = {c.name: c for c in (control or [])}
@@ -667,7 +672,7 @@ class IncrementalAT:
         Keyframes with target (GCP) observations stay in memory: targets are seen again anywhere.
         """
         n_keep = self.opt.window_size + max(self.opt.freeze_margin_keyframes, 0)
-        if len(self.registered) <= n_keep:
+        if len(self.registered) <= n_keep or self.freezing_stopped:
             return
         horizon = min(self.registered[-n_keep:])
         dead = [t for t, k in self.last_seen.items() if k < horizon]
@@ -709,13 +714,38 @@ class IncrementalAT:
         for t, kfs in lists.items():
             self.track_kfs[t] = [kf.kid for kf in sorted(kfs, key=lambda kf: kf.reg_seq)]
             self.points.thaw(t)
+        if lists:
+            self._thaw_keyframes += 1
+            if self._thaw_keyframes >= self.opt.max_thaws:
+                self._stop_freezing(f'track ids seen again after their track ended, in {self._thaw_keyframes} keyframes')
+
+    def _stop_freezing(self, why: str) -> None:
+        """Everything back in memory (same values, same order): from now on this block is not frozen."""
+        self.freezing_stopped = why
+        for kf in self.kfs:
+            if kf.frozen:
+                kf._arrays()
+        ids = [t for t in self.points.ids().tolist() if self.points.is_frozen(t)]
+        for t in ids:
+            self.points.thaw(t)
+        # Rebuild the keyframe lists of every track (frozen ones kept only their count).
+        lists: dict[int, list] = {}
+        for k in self.registered:
+            kf = self.kfs[k]
+            for t in kf.track_ids[kf.active].tolist():
+                if t not in self.track_kfs:
+                    lists.setdefault(t, []).append(kf)
+        for t, kfs in lists.items():
+            self.track_kfs[t] = [kf.kid for kf in sorted(kfs, key=lambda kf: kf.reg_seq)]
+            self.last_seen.setdefault(t, max(kf.kid for kf in kfs))
 
     def memory_stats(self) -> dict:
         """What the triangulation holds: keyframes/points in memory and frozen, bytes spilled."""
         return {'keyframes': len(self.kfs), 'keyframes_in_memory': sum(not kf.frozen for kf in self.kfs),
                 'points': len(self.points), 'points_in_memory': self.points.n_hot,
                 'hot_tracks': len(self.track_kfs), 'frozen_points_mb': round(self.points.frozen_bytes / 1e6, 2),
-                'spilled_mb': round(self._spill.bytes_on_disk / 1e6, 2) if self._spill else 0.0}
+                'spilled_mb': round(self._spill.bytes_on_disk / 1e6, 2) if self._spill else 0.0,
+                'freezing_stopped': self.freezing_stopped}
 
     def _n_gcps(self) -> int:
         return sum(1 for n, t in self._target_ids.items() if t in self.points and not self._is_check(t))
