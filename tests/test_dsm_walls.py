@@ -46,3 +46,11 @@ def test_gap_fill_bridges_agreeing_sides_only():
     assert np.all(out[4, 8:12] == NODATA)
     assert np.all(out[:, 17:] == NODATA)
     assert np.all(fill_gaps(d, 3, 0.5)[1, 8:12] == NODATA)   # wider than allowed
+
+
+def test_foot_of_a_step_is_cleared():
+    from photogram_ros.core.raster import clear_step_feet
+    d = np.zeros((6, 6), np.float32)
+    d[:, 3:] = 5.0
+    out = clear_step_feet(d, 1.0)
+    assert np.all(out[:, 2] == NODATA) and np.all(out[:, 3:] == 5.0) and np.all(out[:, :2] == 0.0)

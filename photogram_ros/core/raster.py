@@ -115,7 +115,23 @@ def dsm_from_points(x, y, z, res_m: float, weights=None, bounds=None, fill_holes
         r.data = _fill_small_holes(r.data, fill_holes_px, max_spread_m)
     if fill_gaps_m > 0:
         r.data = fill_gaps(r.data, int(fill_gaps_m / res_m), 0.5 if max_spread_m is None else max_spread_m)
+    if max_spread_m is not None:
+        r.data = clear_step_feet(r.data, 2.0 * max_spread_m)
     return r
+
+
+def clear_step_feet(d: np.ndarray, min_step_m: float) -> np.ndarray:
+    """No-data for cells lower than a neighbour by more than `min_step_m`: the foot of a wall.
+
+    Stereo places a wall up to a pixel or two off (the far ground is drawn into the roof outline),
+    so the last ground cell before a wall often has its centre on the wall or roof edge: its height
+    is right for where its points are but not for the cell.
+    """
+    valid = d != NODATA
+    hi = cv2.dilate(np.where(valid, d, -np.inf).astype(np.float32), np.ones((3, 3), np.uint8))
+    out = d.copy()
+    out[valid & (hi - d > min_step_m)] = NODATA
+    return out
 
 
 def _nearest_along_rows(valid: np.ndarray):
