@@ -6,8 +6,9 @@ One JSON line per solver: seconds, iterations, initial/final cost = 0.5 * sum of
 residuals over ALL observations (also those behind a camera, which COLMAP's own cost skips, so every
 solver's result is re-evaluated here with one function), final RMS (px per observation), and ratios
 against our solver. All start from the file's own values and use the same stopping rule: relative
-cost decrease below --ftol (1e-4 as in the reference figures). BLAS runs single-threaded (set before
-numpy loads) because a 441x441 Cholesky gains nothing from threads and loses a lot on a busy machine.
+cost decrease below --ftol (1e-4 as in the reference figures). Each solver runs --repeat times
+(interleaved) and the run with the median wall time is reported, with its median CPU time (all
+threads: Ceres runs 2). BLAS runs single-threaded (set before numpy loads) because a 441x441 Cholesky gains nothing from threads and loses a lot on a busy machine.
 """
 
 from __future__ import annotations
@@ -44,15 +45,16 @@ def bal_cost(rotvec, t, intr, points, b):
 
 def run_ours(b, ftol):
     prob = b.problem()
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     res = bundle_adjust(prob, BundleOptions(loss='linear', refine_intrinsics=('f', 'k1', 'k2'),
                                             max_iterations=100, function_tolerance=ftol))
-    sec = time.perf_counter() - t0
+    sec, cpu = time.perf_counter() - t0, time.process_time() - c0
     T = res.map_T_cams
     R = np.transpose(T[:, :3, :3], (0, 2, 1))
     t = -np.einsum('cij,cj->ci', R, T[:, :3, 3])
     cost, rms = bal_cost(Rotation.from_matrix(R).as_rotvec(), t, res.intrinsics, res.points_map, b)
-    return dict(solver='photogram_ros', seconds=sec, iterations=res.iterations, final_cost=cost,
+    return dict(solver='photogram_ros', seconds=sec, solve_cpu_seconds=cpu, iterations=res.iterations,
+                final_cost=cost,
                 final_rms_px=rms, status=res.status, cost_history=res.cost_history,
                 # setup (structure, first cost) counts too: shift the run's clock by it
                 time_history=[tt + sec - res.seconds for tt in res.time_history])
@@ -99,27 +101,48 @@ def main(argv=None):
     ap.add_argument('problem')
     ap.add_argument('--peers', action='store_true', help='also run SciPy least_squares and Ceres (pycolmap)')
     ap.add_argument('--ftol', type=float, default=1e-4)
+    ap.add_argument('--repeat', type=int, default=3, help='runs per solver, interleaved; medians reported')
+    ap.add_argument('--no-scipy', action='store_true', help='with --peers, skip the (slow) SciPy peer')
     a = ap.parse_args(argv)
     b = read_bal(a.problem)
     init, init_rms = bal_cost(b.cam_rotvec, b.cam_t, b.intrinsics, b.points, b)
     base = dict(problem=Path(a.problem).name, cameras=len(b.cam_t), points=len(b.points),
-                observations=len(b.obs_cam), initial_cost=init, initial_rms_px=init_rms)
-    ours = run_ours(b, a.ftol)
-    hist = ours.pop('cost_history')
-    hist_t = ours.pop('time_history')
-    rows = [ours]
+                observations=len(b.obs_cam), initial_cost=init, initial_rms_px=init_rms, repeats=a.repeat)
+    solvers = [('ours', run_ours)]
     if a.peers:
-        rows.append(run_scipy(b, a.ftol))
+        if not a.no_scipy:
+            solvers.append(('scipy', run_scipy))
         sys.path.insert(0, str(Path(__file__).resolve().parent))
         try:
-            rows.append(run_ceres(b, a.ftol))
+            import bench_pycolmap_bal  # noqa: F401
+            solvers.append(('ceres', run_ceres))
         except ImportError as exc:
-            rows.append(dict(solver='ceres_pycolmap', error=f'pycolmap not installed ({exc}); '
-                             'pip install -r bench/requirements-peers.txt'))
+            print(json.dumps(dict(base, solver='ceres_pycolmap', error=f'pycolmap not installed ({exc}); '
+                                  'pip install -r bench/requirements-peers.txt')), flush=True)
+    # Interleaved repeats so that a load change on the (shared) machine hits every solver alike.
+    runs = {k: [] for k, _ in solvers}
+    for _ in range(max(1, a.repeat)):
+        for k, fn in solvers:
+            c0 = time.process_time()
+            row = fn(b, a.ftol)
+            # A peer that times only its solve reports that; ours counts set-up too.
+            row['cpu_seconds'] = row.pop('solve_cpu_seconds', time.process_time() - c0)
+            runs[k].append(row)
+    rows = []
+    for k, _ in solvers:
+        med = sorted(runs[k], key=lambda r: r['seconds'])[len(runs[k]) // 2]
+        med['seconds_all'] = [r['seconds'] for r in runs[k]]
+        med['cpu_seconds'] = float(np.median([r['cpu_seconds'] for r in runs[k]]))
+        rows.append(med)
+    ours = rows[0]
+    hist = ours.pop('cost_history')
+    hist_t = ours.pop('time_history')
     for row in rows:
         out = dict(base, **row)
         if row is not ours and 'seconds' in row:
             out['time_ratio_peer_over_ours'] = row['seconds'] / ours['seconds']
+            out['time_ratio_ours_over_peer'] = ours['seconds'] / row['seconds']
+            out['cpu_ratio_ours_over_peer'] = ours['cpu_seconds'] / row['cpu_seconds']
             out['cost_ratio_ours_over_peer'] = ours['final_cost'] / row['final_cost']
             # Iterations of ours needed to reach the peer's final cost (from our cost history).
             reach = [k for k, c in enumerate(hist) if c <= row['final_cost']]
