@@ -164,8 +164,24 @@ class BundleResult:
     camera: object                   # PinholeCamera with the refined intrinsics (None for other models)
     intrinsics: np.ndarray           # (K, n) raw model intrinsics
     rms: dict
+    # Covariances (compute_covariance=True). Camera centres and points: unscaled inverse normal
+    # matrix (pixel residuals taken at unit weight, priors at their sigma); multiply by
+    # variance_factor for the a-posteriori figures. Intrinsics: already scaled, C = s0^2 Q with the
+    # a-posteriori variance of unit weight s0^2 = v^T P v / r (r = residuals - unknowns), the usual
+    # figure of least-squares adjustment in photogrammetry (e.g. Luhmann et al., Close-Range
+    # Photogrammetry, ch. 2.4): sigmas then follow the actual image noise, not a nominal 1 px.
     cam_centre_cov: np.ndarray | None = None
     point_cov: np.ndarray | None = None
+    intrinsics_cov: np.ndarray | None = None         # (K, kf, kf) over intrinsics_names, scaled
+    intrinsics_names: tuple = ()                     # BundleOptions.refine_intrinsics ('f' = fx and fy)
+    variance_factor: float | None = None             # s0^2 (None without redundancy)
     seconds: float = 0.0
     cost_history: list = field(default_factory=list)     # cost after each accepted step
     time_history: list = field(default_factory=list)     # seconds since the start, per entry above
+
+    def intrinsics_sigma(self, group: int = 0) -> dict:
+        """name -> a-posteriori standard deviation of each self-calibrated intrinsic ({} if none)."""
+        if self.intrinsics_cov is None:
+            return {}
+        sd = np.sqrt(np.clip(np.diagonal(self.intrinsics_cov[group]), 0.0, None))
+        return {n: float(v) for n, v in zip(self.intrinsics_names, sd)}

@@ -477,8 +477,21 @@ class Solver:
 
     # --- covariance -----------------------------------------------------------------------
 
+    def variance_factor(self, cost):
+        """A-posteriori variance of unit weight: 2 cost / redundancy (None without redundancy)."""
+        d, st = self.d, self.st
+        n_res = 2 * len(d['obs_cam']) + sum(3 * len(d[k]) for k in ('gnss_cam', 'pp_idx', 'att_cam') if k in d)
+        r = n_res - int(st.real.sum()) - 3 * st.npf
+        return 2.0 * float(cost) / r if r > 0 else None
+
     def covariance(self, R, t, X, intr):
-        """Marginal covariances (camera centres (C,3,3), points (P,3,3)) at the estimate, or None."""
+        """Marginal covariances at the estimate, unscaled (inverse of J^T J at the residuals' weights).
+
+        Returns camera centres (C,3,3), points (P,3,3) and the free intrinsics per group (K,kf,kf);
+        all None when the system is singular (free gauge). S^-1 of the reduced camera system is the
+        marginal covariance of every camera-side unknown, intrinsics included, with the points
+        already marginalised by the Schur complement.
+        """
         st = self.st
         lin = self.linearise(R, t, X, intr)
         V = lin['V']
@@ -486,7 +499,7 @@ class Solver:
             np.linalg.cholesky(V)
             Vinv = np.linalg.inv(V)
         except np.linalg.LinAlgError:
-            return None, None
+            return None, None, None
         Wd = self._Wd(lin)
         W = self._W(Wd)
         WV = self._W(Wd @ Vinv[st.w_pt])
@@ -499,7 +512,7 @@ class Solver:
                 np.linalg.cholesky(Sr)
                 Sc[np.ix_(real, real)] = np.linalg.inv(Sr)
         except np.linalg.LinAlgError:
-            return None, None
+            return None, None, None
         C = len(R)
         cam_cov = np.zeros((C, 3, 3))
         free = st.cam_col >= 0
@@ -518,4 +531,8 @@ class Solver:
             Q = Sc @ Wk
             blocks[a:b] = np.einsum('rka,rkb->kab', Wk.reshape(st.nc, b - a, 3), Q.reshape(st.nc, b - a, 3))
         pt_cov[st.pt_col >= 0] = Vinv + Vinv @ blocks @ Vinv
-        return cam_cov, pt_cov
+        intr_cov = None
+        if st.kf:
+            ix = st.intr_col[:, None] + np.arange(st.kf)
+            intr_cov = Sc[ix[:, :, None], ix[:, None, :]]
+        return cam_cov, pt_cov, intr_cov
