@@ -7,6 +7,7 @@ check, uniqueness, speckles, local consistency, texture) and turned into coloure
 """
 from __future__ import annotations
 
+import functools
 import time
 from dataclasses import dataclass, field
 
@@ -263,6 +264,14 @@ def _edge_pixels(camera: PinholeCamera, n: int = 24) -> np.ndarray:
                            np.stack([0 * t, t * h], -1), np.stack([0 * t + w, t * h], -1)])
 
 
+@functools.lru_cache(maxsize=8)
+def _edge_rays(camera: PinholeCamera) -> np.ndarray:
+    """Unit rays of the image border; cached because the Newton undistortion costs a millisecond per pair."""
+    rays = camera.unproject(_edge_pixels(camera))
+    rays.setflags(write=False)
+    return rays
+
+
 def rect_frame(map_T_cam_a: np.ndarray, map_T_cam_b: np.ndarray) -> tuple[np.ndarray, float]:
     """map_R_rect (columns: rectified x, y, z in map) and the baseline length, m."""
     ca, cb = map_T_cam_a[:3, 3], map_T_cam_b[:3, 3]
@@ -292,8 +301,7 @@ def rectify_pair(camera: PinholeCamera, map_T_cam_a: np.ndarray, map_T_cam_b: np
     map_R_rect, baseline = rect_frame(map_T_cam_a, map_T_cam_b)
     rect_R_cam = [map_R_rect.T @ T[:3, :3] for T in (map_T_cam_a, map_T_cam_b)]
     f = 0.5 * (camera.fx + camera.fy) * downscale
-    edges = _edge_pixels(camera)
-    rays = camera.unproject(edges)
+    rays = _edge_rays(camera)
     boxes = []
     for R in rect_R_cam:
         p = rays @ R.T
@@ -335,76 +343,120 @@ def pack_rgb(bgr: np.ndarray) -> np.ndarray:
     return (r << 16) | (g << 8) | b
 
 
-def _normalised_grids(W: int, H: int, cx: float, cy: float, f: float):
-    xg = np.empty((H, W), np.float32)
-    yg = np.empty((H, W), np.float32)
-    xg[:] = ((np.arange(W, dtype=np.float32) - np.float32(cx)) / np.float32(f))[None, :]
-    yg[:] = ((np.arange(H, dtype=np.float32) - np.float32(cy)) / np.float32(f))[:, None]
-    return xg, yg
+def _map_source(maps: tuple, flat_idx: np.ndarray, rounded: bool) -> tuple[np.ndarray, np.ndarray]:
+    """Source image (col, row) of rectified flat pixels under CV_16SC2 remap maps (int16 arrays).
+
+    m1 holds the integer part of the source position (one int32 gather reads both), m2 a 5+5 bit
+    fractional code used to round to the nearest pixel when `rounded`.
+    """
+    m1, m2 = maps
+    xy = m1.view(np.int32).ravel()[flat_idx].view(np.int16).reshape(-1, 2)
+    col, row = xy[:, 0], xy[:, 1]
+    if rounded:
+        frac = m2.ravel()[flat_idx]
+        col = col + ((frac & 31) >= 16)
+        row = row + ((frac >> 5) >= 16)
+    return col, row
 
 
-def points_from_disparity(rect: Rectification, disp: Disparity, left_bgr: np.ndarray, params: StereoParams,
-                          right_valid: np.ndarray | None = None) -> np.ndarray:
+def points_from_disparity(rect: Rectification, disp: Disparity, image_left: np.ndarray, params: StereoParams,
+                          right_shape: tuple | None = None) -> np.ndarray:
     """Rectified disparity -> cloud (CLOUD_DTYPE) in map, dropping depths out of range and grazing views.
+
+    `image_left` is the original (unrectified) left image: colour is read at each point's source
+    pixel through the rectification map, so no colour image is remapped. With `right_shape` (the
+    right image's (H, W)), points whose match falls outside the right image (remap border) are dropped.
 
     The grazing test needs no 3D normals: for a plane, the true disparity D = d + shift is affine
     in (u, v), and with g = grad D the plane normal is n ~ (gx, gy, D/f - gx x - gy y) while
     n . ray_left = D/f and n . ray_right = (D/f)(1 - gx), with x, y normalised rectified coordinates.
-    Work is done on flat arrays of candidate pixels only (1-D takes are much cheaper than 2-D).
+    Tests run on contiguous float32 views of the image interior (x, y broadcast as a row and a
+    column; NaN fails every comparison); only the kept points are then gathered: most pixels are
+    candidates, and a gather costs several times a contiguous pass.
     """
     d = disp.disparity_px
     H, W = d.shape
-    D = d + np.float32(rect.shift_px)
     k = 2   # central differences over 2k pixels: single-pixel steps are too noisy at 1/16 px
-    gx = np.full_like(D, np.nan)
-    gy = np.full_like(D, np.nan)
-    np.subtract(D[:, 2 * k:], D[:, :-2 * k], out=gx[:, k:-k])
-    np.subtract(D[2 * k:], D[:-2 * k], out=gy[k:-k])
-    ok = D > 0   # False for NaN too
-    ok &= np.isfinite(gx)
-    ok &= np.isfinite(gy)
-    s = params.point_stride
-    if s > 1:
-        grid = np.zeros_like(ok)
-        grid[s // 2::s, s // 2::s] = True
-        ok &= grid
-    idx = np.flatnonzero(ok)
-    Dv = D.ravel()[idx]
-    gxv = gx.ravel()[idx] * np.float32(0.5 / k)
-    gyv = gy.ravel()[idx] * np.float32(0.5 / k)
-    f = np.float32(rect.f_px)
-    # Normalised rectified coordinates by lookup: integer % and // on the indices cost more.
-    xg, yg = _normalised_grids(W, H, rect.cx_left, rect.cy, rect.f_px)
-    x = xg.ravel()[idx]
-    y = yg.ravel()[idx]
-    a = Dv / f                              # n . ray_left
-    nz = a - gxv * x - gyv * y
-    nn2 = gxv * gxv + gyv * gyv + nz * nz
-    y2p1 = y * y + np.float32(1.0)
-    xr = x - a
+    inv_f = np.float32(1.0 / rect.f_px)
+    shift = np.float32(rect.shift_px)
+    x = ((np.arange(W, dtype=np.float32) - np.float32(rect.cx_left)) * inv_f)
+    y = ((np.arange(H, dtype=np.float32) - np.float32(rect.cy)) * inv_f)
+    xi, yi = x[k:W - k], y[k:H - k, None]
+    di = d[k:H - k, k:W - k]
+    a = di + shift
+    a *= inv_f                                  # D / f = n . ray_left
+    # Central differences of d (= of D), scaled to per-pixel steps.
+    half = np.float32(0.5 / k)
+    gx = d[k:H - k, 2 * k:] - d[k:H - k, :W - 2 * k]
+    gx *= half
+    gy = d[2 * k:, k:W - k] - d[:H - 2 * k, k:W - k]
+    gy *= half
     c2 = np.float32(np.cos(np.radians(params.max_grazing_deg)) ** 2)
+    nz = a - gx * xi - gy * yi
+    nn2 = gx * gx
+    nn2 += gy * gy
+    nn2 += nz * nz
+    nn2 *= c2
+    y2p1 = yi * yi + np.float32(1.0)
     a2 = a * a
     # cos^2 >= c^2 without square roots: (n.r)^2 >= c^2 |n|^2 |r|^2 for both rays.
-    keep = a2 >= c2 * nn2 * (x * x + y2p1)
-    keep &= a2 * (np.float32(1.0) - gxv) ** 2 >= c2 * nn2 * (xr * xr + y2p1)
-    depth = np.float32(rect.f_px * rect.baseline_m) / Dv
-    keep &= (depth >= np.float32(params.min_depth_m)) & (depth <= np.float32(params.max_depth_m))
-    if right_valid is not None:
-        # Flat index of the matched right pixel: same row, d = D - shift columns to the left.
-        shift_cols = np.minimum(Dv - np.float32(rect.shift_px - 0.5), np.float32(W)).astype(np.int64)
-        keep &= right_valid.ravel()[np.maximum(idx - shift_cols, 0)] & (shift_cols <= x * f + np.float32(rect.cx_left + 0.5))
-    idx, x, y, depth = idx[keep], x[keep], y[keep], depth[keep]
+    keep_i = a2 >= nn2 * (xi * xi + y2p1)
+    xr = xi - a
+    xr *= xr
+    xr += y2p1
+    xr *= nn2
+    g1 = np.float32(1.0) - gx
+    g1 *= g1
+    g1 *= a2
+    keep_i &= g1 >= xr
+    # Depth range as a disparity range: no division on the full image.
+    fb = np.float32(rect.f_px * rect.baseline_m)
+    keep_i &= di >= fb / np.float32(params.max_depth_m) - shift
+    keep_i &= di <= fb / np.float32(params.min_depth_m) - shift
+    keep = np.zeros((H, W), bool)
+    keep[k:H - k, k:W - k] = keep_i
+    s = params.point_stride
+    if s > 1:
+        grid = np.zeros_like(keep)
+        grid[s // 2::s, s // 2::s] = True
+        keep &= grid
+    idx = np.flatnonzero(keep)
+    dv = d.ravel()[idx]
+    row, col = np.divmod(idx.astype(np.int32), np.int32(W))
+    if right_shape is not None:
+        # The matched right pixel: same row, round(d) columns to the left; valid where the right
+        # map points inside the right image (elsewhere the remap drew its constant border).
+        col_r = col - np.floor(dv + np.float32(0.5)).astype(np.int32)
+        ok = (col_r >= 0) & (col_r < W)
+        u, v = _map_source(rect.maps_right, np.where(ok, idx - col + col_r, 0), rounded=False)
+        # As unsigned, negative positions are large: one comparison per bound.
+        ok &= (u.view(np.uint16) < right_shape[1]) & (v.view(np.uint16) < right_shape[0])
+        idx, dv, row, col = idx[ok], dv[ok], row[ok], col[ok]
+    depth = fb / (dv + shift)
+    xv, yv = x[col], y[row]
     out = np.empty(idx.size, CLOUD_DTYPE)
     R, C = rect.map_R_rect, rect.centre_left_map
     # Per axis, ray direction in map times depth: a (N, 3) @ (3, 3) matmul goes through BLAS
-    # threads and is ~30x slower here.
+    # threads and is ~30x slower here. float32 until the write into the float64 field.
+    ray = np.empty_like(xv)
     for i, name in enumerate(('x', 'y', 'z')):
-        ray = np.float32(R[i, 0]) * x + np.float32(R[i, 1]) * y + np.float32(R[i, 2])
-        out[name] = (ray * depth).astype(np.float64) + C[i]
-    if left_bgr.ndim == 2:
-        left_bgr = cv2.cvtColor(left_bgr, cv2.COLOR_GRAY2BGR)
-    packed = cv2.cvtColor(left_bgr, cv2.COLOR_BGR2BGRA).view(np.uint32).reshape(H, W)
-    out['rgb'] = packed.ravel()[idx] & np.uint32(0x00FFFFFF)   # little-endian B, G, R, A bytes
+        np.multiply(xv, np.float32(R[i, 0]), out=ray)
+        ray += np.float32(R[i, 1]) * yv
+        ray += np.float32(R[i, 2])
+        ray *= depth
+        field_ = out[name]
+        field_[:] = ray
+        field_ += C[i]
+    u, v = _map_source(rect.maps_left, idx, rounded=True)
+    # Nearest source pixel, clamped: the map may point half a pixel outside at the image border.
+    hs, ws = image_left.shape[:2]
+    j = np.clip(v, 0, hs - 1).astype(np.int32) * np.int32(ws) + np.clip(u, 0, ws - 1)
+    if image_left.ndim == 2:
+        grey = image_left.ravel()[j].astype(np.uint32)
+        out['rgb'] = (grey << 16) | (grey << 8) | grey
+    else:
+        # take along axis 0 copies whole pixels: about half the cost of fancy indexing here.
+        out['rgb'] = pack_rgb(np.take(image_left.reshape(-1, image_left.shape[2]), j, axis=0))
     out['confidence'] = disp.confidence_at(idx)
     return out
 
@@ -469,15 +521,12 @@ def stereo_pair(camera: PinholeCamera, image_a: np.ndarray, map_T_cam_a: np.ndar
         return StereoResult(LOW_OVERLAP, f'overlap {overlap:.2f} < {params.min_overlap}')
     rect = rectify_pair(camera, map_T_cam_a, map_T_cam_b, (lo, hi), params.downscale)
     t1 = time.perf_counter()
-    left = cv2.remap(image_a, *rect.maps_left, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
-    left_g = _grey(left)
+    # Grey before remapping: one channel to interpolate; colour is read later for the kept points only.
+    left_g = cv2.remap(_grey(image_a), *rect.maps_left, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
     right_g = cv2.remap(_grey(image_b), *rect.maps_right, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
     d_min = int(np.floor(rect.disparity_from_depth(hi)))
     d_max = int(np.ceil(rect.disparity_from_depth(lo)))
     num = int(min(params.max_num_disparities, 16 * int(np.ceil(max(d_max - d_min + 1, 16) / 16))))
-    # Where the right window holds no image: remapped constant border.
-    right_valid = cv2.remap(np.full(image_b.shape[:2], 255, np.uint8), *rect.maps_right, cv2.INTER_NEAREST,
-                            borderMode=cv2.BORDER_CONSTANT) > 0
     t2 = time.perf_counter()
     disp = match(left_g, right_g, params, d_min, num)
     if params.edge_step_m > 0 and params.edge_margin_px > 0:
@@ -487,7 +536,7 @@ def stereo_pair(camera: PinholeCamera, image_a: np.ndarray, map_T_cam_a: np.ndar
                                            params.edge_margin_px)] = np.nan
         disp.filter_ms += (time.perf_counter() - t_e) * 1e3
     t3 = time.perf_counter()
-    cloud = points_from_disparity(rect, disp, left, params, right_valid)
+    cloud = points_from_disparity(rect, disp, image_a, params, image_b.shape[:2])
     t4 = time.perf_counter()
     timings = {'rectify_ms': (t2 - t0) * 1e3, 'sgbm_ms': disp.sgbm_ms, 'filter_ms': disp.filter_ms,
                'points_ms': (t4 - t3) * 1e3, 'total_ms': (t4 - t0) * 1e3, 'maps_ms': (t1 - t0) * 1e3}
