@@ -88,6 +88,9 @@ class BundleNodeParams:
     catch_up_iterations: int = param(3, 'iterations of the window adjustment of a keyframe that already has newer '
                                         'ones queued behind it (the newest of a batch gets the full adjustment): '
                                         'lets the node catch up after a long adjustment', min=1, max=100)
+    marginal_covariance: bool = param(True, 'pose covariance from the window adjustment\'s marginal covariance of '
+                                            'the camera centres (one more linearisation per update); off: the '
+                                            'fix\'s variance as a stand-in')
     publish_provisional: bool = param(False, 'publish poses while the georeference is still provisional (a '
                                              'straight first line leaves the roll about it to an assumption '
                                              'until the first turn); off, poses start at the first turn')
@@ -126,7 +129,7 @@ class BundleNode(Node):
         self.create_subscription(CameraInfo, TOPIC_INFO, self._on_info, QoSProfile(depth=5))
         self.create_subscription(Empty, TOPIC_FULL, self._on_full, QoSProfile(depth=2))
         # The timer only wakes the worker: a keyframe whose fix never comes is taken after fix_wait_s.
-        self.create_timer(0.2, self._wake)
+        self.create_timer(0.5, self._wake)
         self._full_requested = False
         self._busy = False
         self._stop = False
@@ -325,10 +328,11 @@ class BundleNode(Node):
             o = at.origin
             self.pub_georef.publish(msgs.georeference_msg(o.lat_deg, o.lon_deg, o.h_m, at.kfs[window[-1]].stamp_ns))
             self._georef_sent = True
+        centre_cov = self._centre_covariances(window)
         for k in window:
             kf = at.kfs[k]
             self.pub_pose.publish(msgs.pose_with_covariance_from_T(kf.map_T_cam, kf.stamp_ns, 'map',
-                                                                   self._covariance(kf)))
+                                                                   self._covariance(kf, centre_cov.get(k))))
         stamp = at.kfs[window[-1]].stamp_ns
         self.pub_path.publish(msgs.path_msg([at.kfs[k].map_T_cam for k in at.registered],
                                             [at.kfs[k].stamp_ns for k in at.registered], stamp))
@@ -337,13 +341,36 @@ class BundleNode(Node):
             self._n_since_cloud = 0
             self.publish_cloud(stamp)
 
-    def _covariance(self, kf) -> np.ndarray:
-        """A diagonal pose covariance: the fix's position variance when there is one (the adjusted
-        centre is at least that good), 1 mrad^2 on the angles; the marginal covariance would cost a
-        solve per update."""
+    def _centre_covariances(self, window) -> dict:
+        """Keyframe id -> (3, 3) marginal covariance of its camera centre (map ENU, m^2) for the newest
+        window_size keyframes of `window`, from one linearisation of the window problem at the
+        current estimate (the keyframes sharing its points held, as in the window adjustment). A
+        keyframe further back keeps the stand-in. Empty when off or when the solver declines."""
+        if not self.p.marginal_covariance or not window:
+            return {}
+        try:
+            t0 = time.perf_counter()
+            cov = window_centre_covariance(self.at, list(window)[-self.p.window_size:],
+                                           self.p.max_fixed_keyframes, self.p.loss, self.p.loss_scale_px)
+            self.diag.set('covariance_s', time.perf_counter() - t0)
+        except Exception as exc:   # a stand-in covariance is better than no pose
+            self.diag.problem(f'pose covariance failed: {type(exc).__name__}: {exc}')
+            return {}
+        if not cov:
+            self.diag.count('covariance_unavailable')
+        return cov
+
+    @staticmethod
+    def _covariance(kf, centre_cov: np.ndarray | None = None) -> np.ndarray:
+        """Pose covariance (x, y, z, roll, pitch, yaw): the position block is the marginal covariance
+        of the camera centre when given; otherwise the fix's variance (the adjusted centre is at
+        least that good) or 100 m^2 without a fix. The angles get 1 mrad^2 (the solver gives no
+        orientation marginals)."""
         C = np.zeros((6, 6))
-        pos = np.diag(kf.fix_cov) if kf.fix_cov is not None else np.full(3, 100.0)
-        C[:3, :3] = np.diag(pos)
+        if centre_cov is not None:
+            C[:3, :3] = 0.5 * (centre_cov + centre_cov.T)
+        else:
+            C[:3, :3] = np.diag(np.diag(kf.fix_cov) if kf.fix_cov is not None else np.full(3, 100.0))
         C[3:, 3:] = np.eye(3) * 1e-6
         return C
 
@@ -393,6 +420,54 @@ class BundleNode(Node):
             self._cond.notify_all()
         self._worker.join(timeout=30.0)
         return super().destroy_node()
+
+
+def window_centre_covariance(at: IncrementalAT, free: list[int], max_fixed: int, loss: str,
+                             loss_scale_px: float) -> dict:
+    """Marginal covariance of the camera centres of keyframes `free` (ids in at.kfs), as the solver
+    computes it for the window problem at the current estimate: reprojections of the free keyframes'
+    points in every registered keyframe that sees them (those outside `free` held fixed, at most
+    `max_fixed` of them, most shared points first) and the GNSS priors of the free keyframes.
+    Returns {keyframe id: (3, 3)} or {} when the problem is singular."""
+    from photogram_ros.core.bundle import BundleOptions, BundleProblem, bundle_adjust
+    free = [k for k in free if at.kfs[k].map_T_cam is not None]
+    tracks = np.unique(np.concatenate([at.kfs[k].track_ids[at.kfs[k].active] for k in free] or [np.zeros(0, int)]))
+    tracks = np.array([t for t in tracks.tolist() if t in at.points], dtype=np.int64)
+    if len(free) == 0 or len(tracks) == 0:
+        return {}
+    free_set = set(free)
+    shared = {}
+    for t in tracks.tolist():   # track_kfs, not a scan of every keyframe: old ones may be on disk
+        for k in at.track_kfs.get(t, ()):
+            if k not in free_set:
+                shared[k] = shared.get(k, 0) + 1
+    fixed = sorted(shared, key=lambda k: -shared[k])[:max_fixed]
+    kids = free + fixed
+    cams, pts, uvs = [], [], []
+    for j, k in enumerate(kids):
+        kf = at.kfs[k]
+        ids = kf.track_ids
+        pos = np.clip(np.searchsorted(tracks, ids), 0, len(tracks) - 1)
+        m = kf.active & (tracks[pos] == ids)
+        cams.append(np.full(int(m.sum()), j))
+        pts.append(pos[m])
+        uvs.append(kf.uv[m])
+    gk = [j for j, k in enumerate(free) if at.kfs[k].fix_enu is not None] if at.georeferenced else []
+    prob = BundleProblem(
+        camera=at.camera, map_T_cams=np.array([at.kfs[k].map_T_cam for k in kids]),
+        points_map=np.array([at.points[int(t)] for t in tracks]),
+        obs_cam=np.concatenate(cams), obs_pt=np.concatenate(pts), obs_uv=np.concatenate(uvs),
+        fixed_cams=np.array([j >= len(free) for j in range(len(kids))]),
+        gnss_cam=np.array(gk, int) if gk else None,
+        # the prior target is the adjuster's own (lever arm, estimated GNSS bias)
+        gnss_pos_map=np.array([at._gnss_target(at.kfs[free[j]]) for j in gk]).reshape(-1, 3),
+        gnss_cov_map=np.array([at.kfs[free[j]].fix_cov for j in gk]).reshape(-1, 3, 3),
+        lever_arm_cam_m=at.lever)
+    res = bundle_adjust(prob, BundleOptions(loss=loss, loss_scale_px=loss_scale_px, max_iterations=0,
+                                            compute_covariance=True))
+    if res.cam_centre_cov is None:
+        return {}
+    return {k: np.asarray(res.cam_centre_cov[j]) for j, k in enumerate(free)}
 
 
 def main(argv=None) -> int:

@@ -297,7 +297,7 @@ def child_main(argv=None) -> int:
         # Commands in their own group: a flush taking seconds must not stop the status reports.
         ctl.create_subscription(String, TOPIC_CHILD_COMMAND, command, _reliable(),
                                 callback_group=MutuallyExclusiveCallbackGroup())
-        ctl.create_timer(0.05, status, callback_group=MutuallyExclusiveCallbackGroup())
+        ctl.create_timer(0.2, status, callback_group=MutuallyExclusiveCallbackGroup())
         graph.executor.add_node(ctl)
         graph.start()
         while not stop.wait(0.2):

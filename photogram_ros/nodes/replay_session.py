@@ -37,6 +37,7 @@ class ReplayOptions:
     # Roles run in a child process, on the second core (the tracker, which paces the player, and the
     # MAVLink decoder stay in this one): () runs everything in one process.
     child_roles: tuple = ()
+    quiet_s: float = 1.0   # the graph has drained once nothing happened for this long (and nothing is queued)
 
 
 class DiagnosticsLog:
@@ -116,7 +117,8 @@ def run_replay(opts: ReplayOptions, context=None) -> dict:
     listener = Node('replay_monitor', **kwargs)
     diag_log = DiagnosticsLog(listener)
     graph.executor.add_node(listener)
-    graph.executor.add_node(player)
+    # The player only publishes: not spinning it keeps its entities out of the executor's wait set,
+    # which the Python executor rebuilds on every wake-up (its largest CPU cost in a replay).
     try:
         graph.start()
     except Exception:
@@ -164,16 +166,24 @@ def run_replay(opts: ReplayOptions, context=None) -> dict:
         return (counts['stereo'].get('pairs_done', 0)
                 - fused.get('clouds', 0) - fused.get('clouds_dropped', 0))
 
+    def keyframes_in_flight() -> int:
+        """Keyframes the tracker published that the bundle adjuster has not received yet."""
+        counts = graph.counts()
+        if 'tracker' not in counts or 'bundle' not in counts:
+            return 0
+        return max(0, counts['tracker'].get('keyframes', 0) - counts['bundle'].get('keyframes_received', 0))
+
     def drain():
-        """Wait until every cloud is fused and no node has done anything for a moment."""
+        """Wait until every keyframe reached the adjuster and is adjusted, every cloud is fused, and no
+        node has done anything for a moment (a pose on its way to stereo shows in no counter)."""
         quiet_since, last = time.monotonic(), _activity(graph)
         deadline = time.monotonic() + opts.drain_timeout_s
         while time.monotonic() < deadline:
-            time.sleep(0.25)
+            time.sleep(0.1)
             now = _activity(graph)
-            if now != last or clouds_in_flight() > 0 or graph.busy():
+            if now != last or clouds_in_flight() > 0 or keyframes_in_flight() > 0 or graph.busy():
                 quiet_since, last = time.monotonic(), now
-            elif time.monotonic() - quiet_since > 1.5:
+            elif time.monotonic() - quiet_since > opts.quiet_s:
                 return
 
     try:
