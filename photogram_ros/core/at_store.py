@@ -51,7 +51,13 @@ class PointStore:
         return np.where(ok, pos, -1)
 
     def _frozen_row(self, t: int) -> int:
-        return int(self._frozen_rows(np.array([t]))[0])
+        # Scalar path without temporary arrays: a per-point loop over the store (a node publishing
+        # the cloud) must stay close to dict speed.
+        f = self._f_ids
+        if not len(f):
+            return -1
+        i = int(f.searchsorted(t))
+        return i if i < len(f) and f[i] == t and self._f_alive[i] else -1
 
     # --- mapping API ----------------------------------------------------------------------------
 
