@@ -163,7 +163,7 @@ def _adjust_and_write(a, records, camera, origin, assumptions, info) -> int:
 
     import numpy as np
 
-    from photogram_ros.core.at_report import build_report, write_report
+    from photogram_ros.core.at_report import build_report, intrinsics_sigma, write_report
     from photogram_ros.core.geodesy import utm_epsg
     from photogram_ros.core.incremental import ControlPoint, IncrementalAT, IncrementalOptions
     from photogram_ros.core.rotations import opk_from_map_R_cam
@@ -201,9 +201,17 @@ def _adjust_and_write(a, records, camera, origin, assumptions, info) -> int:
                     for k in ('fx', 'fy', 'cx', 'cy')}
         self_cal.update({n: {'before': before.dist[i], 'after': after.dist[i]}
                          for i, n in enumerate(('k1', 'k2', 'p1', 'p2', 'k3'))})
+        sig = intrinsics_sigma(at, refine)
+        for name, v in sig.items():
+            for key in (('fx', 'fy') if name == 'f' else (name,)):
+                if key in self_cal:
+                    self_cal[key]['sigma'] = v
+        if 's0_px' in sig:
+            self_cal['s0_px'] = sig['s0_px']
+        sf = f" +- {sig['f']:.2f}" if 'f' in sig else ''
         assumptions.append(f'self-calibration of {", ".join(refine)} in the final adjustment: '
-                           f'fx {before.fx:.2f} -> {after.fx:.2f} px (no sigma: the solver does not yet '
-                           'return intrinsic covariances)')
+                           f'fx {before.fx:.2f} -> {after.fx:.2f}{sf} px (sigmas a posteriori, scaled by the '
+                           'variance of unit weight; parameters not refined have none)')
     lost = [kf.name for kf in at.kfs if kf.map_T_cam is None]
     if lost:
         assumptions.append(f'{len(lost)} photos could not be oriented (blurred or without overlap): {lost[:10]}')

@@ -137,3 +137,52 @@ def trajectory_png(path: Path, ortho_tif: Path | None, tracks: dict, targets: li
     fig.savefig(path)
     plt.close(fig)
     return path
+
+
+def series_png(path: Path, x, series: dict, xlabel: str, ylabel: str, title: str) -> Path:
+    """One or more y series (name -> values) against x, as lines with markers."""
+    import matplotlib
+    matplotlib.use('Agg')
+    import matplotlib.pyplot as plt
+    fig, ax = plt.subplots(figsize=(7, 3.2), dpi=100)
+    for name, y in series.items():
+        ax.plot(np.asarray(x), np.asarray(y, float), '.-', ms=4, lw=0.8, label=name)
+    ax.axhline(0.0, color='0.6', lw=0.6)
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel(ylabel)
+    ax.set_title(title)
+    if len(series) > 1:
+        ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+    return path
+
+
+def vectors_png(path: Path, items: list, title: str) -> Path:
+    """Residual vectors at points: items of (name, kind, x, y, dx, dy, dz); arrows scaled to be seen."""
+    import matplotlib
+    matplotlib.use('Agg')
+    import matplotlib.pyplot as plt
+    fig, ax = plt.subplots(figsize=(7, 6), dpi=100)
+    if items:
+        a = np.array([it[2:7] for it in items], float)
+        span = max(float(np.ptp(a[:, 0])), float(np.ptp(a[:, 1])), 1.0)
+        longest = max(float(np.max(np.hypot(a[:, 2], a[:, 3]))), 1e-6)
+        scale = 0.1 * span / longest
+        for (name, kind, x, y, dx, dy, dz) in items:
+            colour = '#cc3311' if kind == 'check' else '#0077bb'
+            ax.plot(x, y, '^', color=colour, ms=6)
+            ax.annotate('', (x + dx * scale, y + dy * scale), (x, y),
+                        arrowprops=dict(arrowstyle='->', color=colour, lw=1.2))
+            ax.annotate(f'{name} dZ {dz * 100:+.1f} cm', (x, y), fontsize=7, xytext=(4, -10),
+                        textcoords='offset points')
+        ax.set_title(f'{title}\nhorizontal arrow scale x{scale:.0f} (longest {longest * 100:.1f} cm); '
+                     'blue GCP, red check', fontsize=9)
+    ax.set_aspect('equal')
+    ax.ticklabel_format(useOffset=False, style='plain')
+    ax.tick_params(labelsize=7)
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+    return path
