@@ -54,8 +54,8 @@ def bench(scale: int, params: stereo.StereoParams, repeats: int) -> dict:
     cam, ((Ta, ia), (Tb, ib)) = render_pair(scale)
     depth = (20.0, 55.0)
     res = stereo.stereo_pair(cam, ia, Ta, ib, Tb, params, depth)
-    # The module's own rectified grey pair (it converts to grey, then remaps).
-    left = cv2.remap(cv2.cvtColor(ia, cv2.COLOR_BGR2GRAY), *res.rect.maps_left, cv2.INTER_LINEAR)
+    # The module's own rectified grey pair (left remapped in colour, then grey; right grey, then remapped).
+    left = cv2.cvtColor(cv2.remap(ia, *res.rect.maps_left, cv2.INTER_LINEAR), cv2.COLOR_BGR2GRAY)
     right = cv2.remap(cv2.cvtColor(ib, cv2.COLOR_BGR2GRAY), *res.rect.maps_right, cv2.INTER_LINEAR)
     sgbm = stereo.make_sgbm(params, res.min_disparity, res.num_disparities)
     plain = stereo.make_sgbm(params, res.min_disparity, res.num_disparities, filtered=False)
@@ -84,7 +84,7 @@ def bench(scale: int, params: stereo.StereoParams, repeats: int) -> dict:
 BASELINE = ('bare_sgbm_ms: one StereoSGBM.compute (same mode, P1/P2, block, disparity range, and SGBM\'s '
             'built-in uniqueness, speckle and left-right check) on the already-rectified grey pair, matcher '
             'created once; no rectification, remap, filters or points')
-FULL = ('full_ms: stereo_pair end to end: pair checks, rectification maps, grey + remap of both images, '
+FULL = ('full_ms: stereo_pair end to end: pair checks, rectification maps, remap of both images, '
         'SGBM (new matcher per pair), local-consistency/texture/edge filters, sub-pixel disparity, '
         'grazing/depth filters, points in map with colour and confidence')
 

@@ -343,29 +343,24 @@ def pack_rgb(bgr: np.ndarray) -> np.ndarray:
     return (r << 16) | (g << 8) | b
 
 
-def _map_source(maps: tuple, flat_idx: np.ndarray, rounded: bool) -> tuple[np.ndarray, np.ndarray]:
-    """Source image (col, row) of rectified flat pixels under CV_16SC2 remap maps (int16 arrays).
+def _map_source(maps: tuple, flat_idx: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Source image (col, row), integer parts, of rectified flat pixels under CV_16SC2 remap maps.
 
-    m1 holds the integer part of the source position (one int32 gather reads both), m2 a 5+5 bit
-    fractional code used to round to the nearest pixel when `rounded`.
+    m1 holds the integer part of the source position as two int16; one int32 gather reads both.
     """
-    m1, m2 = maps
-    xy = m1.view(np.int32).ravel()[flat_idx].view(np.int16).reshape(-1, 2)
-    col, row = xy[:, 0], xy[:, 1]
-    if rounded:
-        frac = m2.ravel()[flat_idx]
-        col = col + ((frac & 31) >= 16)
-        row = row + ((frac >> 5) >= 16)
-    return col, row
+    xy = maps[0].view(np.int32).ravel()[flat_idx].view(np.int16).reshape(-1, 2)
+    return xy[:, 0], xy[:, 1]
 
 
-def points_from_disparity(rect: Rectification, disp: Disparity, image_left: np.ndarray, params: StereoParams,
+def points_from_disparity(rect: Rectification, disp: Disparity, left_rect: np.ndarray, params: StereoParams,
                           right_shape: tuple | None = None) -> np.ndarray:
     """Rectified disparity -> cloud (CLOUD_DTYPE) in map, dropping depths out of range and grazing views.
 
-    `image_left` is the original (unrectified) left image: colour is read at each point's source
-    pixel through the rectification map, so no colour image is remapped. With `right_shape` (the
-    right image's (H, W)), points whose match falls outside the right image (remap border) are dropped.
+    `left_rect` is the rectified left image (BGR or mono), read at the kept pixels for colour; reading
+    the original image through the map instead is slower after SGBM: a rectified row runs down a
+    source column when the pair is rectified sideways, one cache miss per point. With `right_shape`
+    (the right image's (H, W)), points whose match falls outside the right image (remap border) are
+    dropped.
 
     The grazing test needs no 3D normals: for a plane, the true disparity D = d + shift is affine
     in (u, v), and with g = grad D the plane normal is n ~ (gx, gy, D/f - gx x - gy y) while
@@ -428,7 +423,7 @@ def points_from_disparity(rect: Rectification, disp: Disparity, image_left: np.n
         # map points inside the right image (elsewhere the remap drew its constant border).
         col_r = col - np.floor(dv + np.float32(0.5)).astype(np.int32)
         ok = (col_r >= 0) & (col_r < W)
-        u, v = _map_source(rect.maps_right, np.where(ok, idx - col + col_r, 0), rounded=False)
+        u, v = _map_source(rect.maps_right, np.where(ok, idx - col + col_r, 0))
         # As unsigned, negative positions are large: one comparison per bound.
         ok &= (u.view(np.uint16) < right_shape[1]) & (v.view(np.uint16) < right_shape[0])
         idx, dv, row, col = idx[ok], dv[ok], row[ok], col[ok]
@@ -447,16 +442,12 @@ def points_from_disparity(rect: Rectification, disp: Disparity, image_left: np.n
         field_ = out[name]
         field_[:] = ray
         field_ += C[i]
-    u, v = _map_source(rect.maps_left, idx, rounded=True)
-    # Nearest source pixel, clamped: the map may point half a pixel outside at the image border.
-    hs, ws = image_left.shape[:2]
-    j = np.clip(v, 0, hs - 1).astype(np.int32) * np.int32(ws) + np.clip(u, 0, ws - 1)
-    if image_left.ndim == 2:
-        grey = image_left.ravel()[j].astype(np.uint32)
+    if left_rect.ndim == 2:
+        grey = left_rect.ravel()[idx].astype(np.uint32)
         out['rgb'] = (grey << 16) | (grey << 8) | grey
     else:
         # take along axis 0 copies whole pixels: about half the cost of fancy indexing here.
-        out['rgb'] = pack_rgb(np.take(image_left.reshape(-1, image_left.shape[2]), j, axis=0))
+        out['rgb'] = pack_rgb(np.take(left_rect.reshape(-1, left_rect.shape[2]), idx, axis=0))
     out['confidence'] = disp.confidence_at(idx)
     return out
 
@@ -521,8 +512,8 @@ def stereo_pair(camera: PinholeCamera, image_a: np.ndarray, map_T_cam_a: np.ndar
         return StereoResult(LOW_OVERLAP, f'overlap {overlap:.2f} < {params.min_overlap}')
     rect = rectify_pair(camera, map_T_cam_a, map_T_cam_b, (lo, hi), params.downscale)
     t1 = time.perf_counter()
-    # Grey before remapping: one channel to interpolate; colour is read later for the kept points only.
-    left_g = cv2.remap(_grey(image_a), *rect.maps_left, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
+    left = cv2.remap(image_a, *rect.maps_left, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
+    left_g = _grey(left)
     right_g = cv2.remap(_grey(image_b), *rect.maps_right, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
     d_min = int(np.floor(rect.disparity_from_depth(hi)))
     d_max = int(np.ceil(rect.disparity_from_depth(lo)))
@@ -536,7 +527,7 @@ def stereo_pair(camera: PinholeCamera, image_a: np.ndarray, map_T_cam_a: np.ndar
                                            params.edge_margin_px)] = np.nan
         disp.filter_ms += (time.perf_counter() - t_e) * 1e3
     t3 = time.perf_counter()
-    cloud = points_from_disparity(rect, disp, image_a, params, image_b.shape[:2])
+    cloud = points_from_disparity(rect, disp, left, params, image_b.shape[:2])
     t4 = time.perf_counter()
     timings = {'rectify_ms': (t2 - t0) * 1e3, 'sgbm_ms': disp.sgbm_ms, 'filter_ms': disp.filter_ms,
                'points_ms': (t4 - t3) * 1e3, 'total_ms': (t4 - t0) * 1e3, 'maps_ms': (t1 - t0) * 1e3}
