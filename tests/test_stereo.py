@@ -171,3 +171,28 @@ def test_choose_pairs_along_and_across_lines():
     assert keys == {(1, True), (3, False)}
     assert overlap_fraction(CAM, Ta, others[4], 40.0) == 0.0
     assert overlap_fraction(CAM, Ta, others[1], 40.0) == pytest.approx(1 - 9.0 / (480 * GSD_M), abs=0.05)
+
+
+def test_points_whose_match_leaves_the_right_image_are_dropped(sim_pair):
+    # A constant disparity (a plane at 40 m parallel to the rectified images): every point kept must
+    # be seen inside image b by the camera model, and without the check some would not be.
+    cam, _, ((Ta, ia), (Tb, ib)), _ = sim_pair
+    p = StereoParams()
+    rect = stereo.rectify_pair(cam, Ta, Tb, (20.0, 55.0))
+    left, _ = rect.rectify(ia, ib)
+    shape = (rect.height, rect.width)
+    d = np.full(shape, float(rect.disparity_from_depth(40.0)), np.float32)
+    disp = stereo.Disparity(d, np.zeros(shape, np.float32), np.ones(shape, np.float32), 1.0, 0.0, 0.0)
+
+    def seen_in_b(cloud):
+        xyz = np.column_stack([cloud['x'], cloud['y'], cloud['z']])
+        uv, front = cam.project((xyz - Tb[:3, 3]) @ Tb[:3, :3])
+        return front & cam.in_image(uv, margin_px=-1.0)
+
+    checked = stereo.points_from_disparity(rect, disp, left, p, ib.shape[:2])
+    unchecked = stereo.points_from_disparity(rect, disp, left, p, None)
+    assert checked.size > 0.3 * cam.width * cam.height
+    assert np.all(seen_in_b(checked))
+    assert np.mean(seen_in_b(unchecked)) < 0.95
+    # Colour is the rectified left pixel's: BGR packed as 0x00RRGGBB.
+    assert np.unique(checked['rgb']).size > 100
