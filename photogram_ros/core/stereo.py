@@ -507,7 +507,9 @@ def stereo_pair(camera: PinholeCamera, image_a: np.ndarray, map_T_cam_a: np.ndar
     if not params.min_baseline_ratio <= ratio <= params.max_baseline_ratio:
         return StereoResult(BAD_BASELINE, f'baseline/depth {ratio:.3f} outside '
                                           f'[{params.min_baseline_ratio}, {params.max_baseline_ratio}]')
-    overlap = overlap_fraction(camera, map_T_cam_a, map_T_cam_b, mid)
+    # A 16x16 grid resolves the overlap to ~1/16 of the image, plenty for a skip threshold, at a
+    # quarter of the default grid's undistortion cost (a millisecond per pair).
+    overlap = overlap_fraction(camera, map_T_cam_a, map_T_cam_b, mid, n=16)
     if overlap < params.min_overlap:
         return StereoResult(LOW_OVERLAP, f'overlap {overlap:.2f} < {params.min_overlap}')
     rect = rectify_pair(camera, map_T_cam_a, map_T_cam_b, (lo, hi), params.downscale)
