@@ -11,7 +11,9 @@ from /proc/self/status every few seconds, with the flight time the camera has re
 Prints JSON lines: RSS and peak at flight minutes 1, 2, 5, 10, 15, 20, 30 (those the flight
 reaches), at the end of the bag and after the final adjustment; the RSS slope (MB per flight
 minute) after `--settle` minutes, and what the nodes hold at each checkpoint (bundle keyframes and
-tie points, stereo keyframes, map tiles) to tell which one grows. Baseline in the same run: the
+tie points, and how many of them are still in memory rather than frozen/spilled; stereo keyframes,
+map tiles) to tell which one grows. `--tracemalloc N` adds the N Python allocation sites that grew
+most after the settle time (slower replay: use it to find a leak, not for the reference figures). Baseline in the same run: the
 process's RSS just before the graph starts, so growth is reported as a ratio to it.
 
     .venv/bin/python bench/memory_soak.py               # ~6 min of flight, about 10 minutes here

@@ -11,6 +11,12 @@ check points are never used, only triangulated afterwards from the adjusted came
 Lever arm: the GNSS antenna is `C + map_R_cam @ lever_arm_cam_m`, a fixed offset in the camera
 frame. That is exact for a camera rigidly mounted on the body and an approximation for a gimbal
 (the error is |lever| times the body-vs-camera attitude difference, mm for a 20 cm lever).
+
+Memory on long flights (`spill_frozen`): a tracker track that has not been seen for the window plus
+a margin can never enter a window again, so it is frozen: its point moves to compact arrays with
+only a count of its observations (core/at_store.py), and a keyframe whose tracks are all frozen
+moves its observations to disk. The final full adjustment reads them back (its peak is the
+solver's); results are bit-identical to keeping everything (tests/test_incremental.py).
 """
 
 from __future__ import annotations
@@ -89,7 +95,7 @@ class IncrementalOptions:
     spill_dir: str = ''                # '' = a private temporary folder, removed afterwards
     freeze_margin_keyframes: int = 5   # a track is dead this many registrations before the window
     freeze_every: int = 5              # keyframes between freeze passes
-    max_thaws: int = 3                 # keyframes bringing frozen tracks back before freezing stops
+    max_thaws: int = 3                 # keyframes bringing back (or looking up) ended tracks before freezing stops
 
 
 class _Keyframe:
@@ -690,13 +696,18 @@ class IncrementalAT:
     def _thaw_tracks_seen_again(self, ids: np.ndarray) -> None:
         """Tracks of a new record that were frozen: restore their keyframe lists (in registration
         order, as they were built), points and keyframes, so the result is what it would have been."""
+        if self._spill is None or self.freezing_stopped:
+            return   # nothing was ever frozen / everything is back in memory
         ids = np.asarray(ids, np.int64)
         cand = ids[(ids >= 0) & (ids <= self._max_seen_id)]
-        if not len(cand) or self._spill is None:
+        if not len(cand):
             return
         cand = np.array([t for t in cand.tolist() if t not in self.last_seen], np.int64)
         if not len(cand):
             return
+        # A tracker's new ids are above every id seen so far: a lower unknown id costs a scan of
+        # the block, and a source doing that repeatedly is not frozen any more (see below).
+        self._thaw_keyframes += 1
         lists: dict[int, list] = {}
         for kf in self.kfs:
             if kf.id_hi < cand[0] or kf.id_lo > cand[-1]:
@@ -714,10 +725,9 @@ class IncrementalAT:
         for t, kfs in lists.items():
             self.track_kfs[t] = [kf.kid for kf in sorted(kfs, key=lambda kf: kf.reg_seq)]
             self.points.thaw(t)
-        if lists:
-            self._thaw_keyframes += 1
-            if self._thaw_keyframes >= self.opt.max_thaws:
-                self._stop_freezing(f'track ids seen again after their track ended, in {self._thaw_keyframes} keyframes')
+        if self._thaw_keyframes >= self.opt.max_thaws:
+            self._stop_freezing(f'track ids below the newest ones not in memory (ended tracks seen again?) '
+                                f'in {self._thaw_keyframes} keyframes')
 
     def _stop_freezing(self, why: str) -> None:
         """Everything back in memory (same values, same order): from now on this block is not frozen."""
