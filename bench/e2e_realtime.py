@@ -152,6 +152,10 @@ def run_config(a, bag, extra, cfg_name: str, child_roles: tuple) -> dict:
     rclpy.init()
     sampler = RssSampler(probe, period_s=2.0)
     sampler.start()
+    if a.profile:
+        import yappi
+        yappi.set_clock_type('cpu')
+        yappi.start()
     c0, t0 = cpu_s(), time.monotonic()
     try:
         res = run_replay(ReplayOptions(bag=str(bag), out=str(out / 'replay'), params_file=a.params, progress=False,
@@ -164,6 +168,14 @@ def run_config(a, bag, extra, cfg_name: str, child_roles: tuple) -> dict:
         probe.uninstall()
         PlayerNode.play, Graph.finish_flight = play, finish
         os.environ.pop(Probe.CHILD_ENV, None)
+    if a.profile:
+        yappi.stop()
+        stats = yappi.get_func_stats()
+        stats.sort('tsub')
+        emit({'bench': 'e2e_profile', 'config': cfg_name, 'clock': 'cpu (yappi inflates Python-heavy code)',
+              'top_own_cpu_s': [[round(f.tsub, 2), round(f.ttot, 2), f.ncall, f'{Path(f.module).name}:{f.name}']
+                                for f in list(stats)[:25]]})
+        yappi.clear_stats()
     merged = probe.merge_child(str(child_out)) if child_roles else False
     run_cpu = cpu_s() - c0
     run = res['run']
@@ -227,6 +239,8 @@ def main() -> int:
                     '1 = one process, 2 = bundle+stereo+map in a child process, '
                     'or a +-list of child roles (e.g. stereo+map)')
     ap.add_argument('--no-bare-tracker', action='store_true', help='skip the bare-tracker baseline')
+    ap.add_argument('--profile', action='store_true', help='CPU profile of this process\'s threads with yappi '
+                    '(bench/requirements-peers.txt): the top functions by own time, as one more JSON line')
     a = ap.parse_args()
 
     from photogram_ros.sim.scenario import preset

@@ -91,6 +91,9 @@ class BundleNodeParams:
     marginal_covariance: bool = param(True, 'pose covariance from the window adjustment\'s marginal covariance of '
                                             'the camera centres (one more linearisation per update); off: the '
                                             'fix\'s variance as a stand-in')
+    covariance_every: int = param(3, 'recompute the marginal covariance every this many window updates (it costs '
+                                     'about a fifth of an update); poses in between reuse their last one',
+                                  min=1, max=100)
     publish_provisional: bool = param(False, 'publish poses while the georeference is still provisional (a '
                                              'straight first line leaves the roll about it to an assumption '
                                              'until the first turn); off, poses start at the first turn')
@@ -114,6 +117,8 @@ class BundleNode(Node):
         self._published_final = False
         self._n_since_cloud = 0
         self._unpublished = 0   # keyframes oriented in a batch before its newest, not yet published
+        self._centre_cov: dict[int, np.ndarray] = {}   # keyframe id -> last marginal centre covariance
+        self._cov_updates = 0
         reliable = QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE)
         latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                              durability=DurabilityPolicy.TRANSIENT_LOCAL)
@@ -345,9 +350,13 @@ class BundleNode(Node):
         """Keyframe id -> (3, 3) marginal covariance of its camera centre (map ENU, m^2) for the newest
         window_size keyframes of `window`, from one linearisation of the window problem at the
         current estimate (the keyframes sharing its points held, as in the window adjustment). A
-        keyframe further back keeps the stand-in. Empty when off or when the solver declines."""
+        keyframe further back keeps its last one; between recomputations (covariance_every) the last
+        ones are reused, and a keyframe without one gets the stand-in."""
         if not self.p.marginal_covariance or not window:
             return {}
+        self._cov_updates += 1
+        if (self._cov_updates - 1) % self.p.covariance_every:
+            return self._centre_cov
         try:
             t0 = time.perf_counter()
             cov = window_centre_covariance(self.at, list(window)[-self.p.window_size:],
@@ -358,7 +367,11 @@ class BundleNode(Node):
             return {}
         if not cov:
             self.diag.count('covariance_unavailable')
-        return cov
+        # Keyframes that left the window keep their last covariance (bounded: the newest 3 windows).
+        self._centre_cov.update(cov)
+        for k in [k for k in self._centre_cov if k < window[-1] - 3 * self.p.window_size]:
+            del self._centre_cov[k]
+        return self._centre_cov
 
     @staticmethod
     def _covariance(kf, centre_cov: np.ndarray | None = None) -> np.ndarray:
