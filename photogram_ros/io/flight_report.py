@@ -190,6 +190,7 @@ def _truth_section(out: Path, truth, origin: LocalFrame, crs: str, kfs, files, f
                   (enu[:, 1] > C[:, 1].min()) & (enu[:, 1] < C[:, 1].max()))
         with rasterio.open(dsm_path) as ds:
             res = ds.res[0]
+        figures['dsm_cell_m'] = float(res)
         area = (C[:, 0].max() - C[:, 0].min()) * (C[:, 1].max() - C[:, 1].min())
         figures['dsm_completeness'] = float(min(inside.sum() * res * res / max(area, 1e-9), 1.0))
         sec.text.append(f"DSM completeness over the flown area: {figures['dsm_completeness'] * 100:.1f} %.")
@@ -204,8 +205,26 @@ def _truth_section(out: Path, truth, origin: LocalFrame, crs: str, kfs, files, f
         figures['cloud_vs_truth'] = err
         smooth = ~near_discontinuity(truth.dem, enu[:, 0], enu[:, 1])
         figures['cloud_vs_truth_away_from_walls'] = surface_errors(dz[smooth], truth.gsd_m)
+        figures['cloud_completeness'] = _cloud_completeness(enu, truth, figures.get('dsm_cell_m', 2 * truth.gsd_m))
+        sec.text.append(f"Dense cloud completeness (cells of {figures.get('dsm_cell_m', 2 * truth.gsd_m):.2f} m over "
+                        f"the flown area holding at least one point): {figures['cloud_completeness'] * 100:.1f} %.")
         sec.tables.append(('Dense cloud against the true DEM', [err]))
         sec.tables.append(('Dense cloud against the true DEM, away from walls', [figures['cloud_vs_truth_away_from_walls']]))
         histogram_png(out / 'cloud_error_hist.png', dz, 'cloud - true height, m', 'Dense cloud height errors')
         sec.figures.append(('Dense cloud height errors', 'cloud_error_hist.png'))
     return sec
+
+
+def _cloud_completeness(enu: np.ndarray, truth, cell_m: float) -> float:
+    """Share of the flown area's cells (the truth cameras' bounding box) that hold at least one cloud point.
+
+    Unlike the DSM's completeness this counts no interpolated cell: it is what stereo actually measured.
+    """
+    C = np.array([f.map_T_cam[:3, 3] for f in truth.frames])
+    lo, hi = C[:, :2].min(axis=0), C[:, :2].max(axis=0)
+    shape = np.maximum(np.ceil((hi - lo) / cell_m).astype(int), 1)
+    ij = np.floor((enu[:, :2] - lo) / cell_m).astype(int)
+    keep = np.all((ij >= 0) & (ij < shape), axis=1)
+    hit = np.zeros(shape, bool)
+    hit[ij[keep, 0], ij[keep, 1]] = True
+    return float(hit.mean())
