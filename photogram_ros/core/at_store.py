@@ -141,7 +141,7 @@ class PointStore:
 
     def contains_many(self, ids) -> np.ndarray:
         ids = np.asarray(ids, np.int64).ravel()
-        hot = np.fromiter((int(t) in self._hot for t in ids), bool, len(ids))
+        hot = np.isin(ids, np.fromiter(self._hot.keys(), np.int64, len(self._hot)))
         return hot | (self._frozen_rows(ids) >= 0)
 
     def get_many(self, ids) -> np.ndarray:
@@ -151,18 +151,24 @@ class PointStore:
         rows = self._frozen_rows(ids)
         f = rows >= 0
         out[f] = self._f_xyz[rows[f]]
-        for i in np.flatnonzero(~f):
-            out[i] = self._hot[int(ids[i])]
+        if not f.all():
+            out[~f] = np.array([self._hot[t] for t in ids[~f].tolist()]).reshape(-1, 3)
         return out
 
     def set_many(self, ids, xyz) -> None:
         ids = np.asarray(ids, np.int64).ravel()
-        xyz = np.asarray(xyz, float).reshape(-1, 3)
+        # One copy for the batch; its rows are the hot points (hot points are bounded by the window,
+        # frozen ones are copied into the compact arrays).
+        xyz = np.array(xyz, dtype=float).reshape(-1, 3)
         rows = self._frozen_rows(ids)
         f = rows >= 0
         self._f_xyz[rows[f]] = xyz[f]
-        for i in np.flatnonzero(~f):
-            self[int(ids[i])] = xyz[i]
+        hot, seq = self._hot, self._hot_seq
+        for i, t in zip(np.flatnonzero(~f).tolist(), ids[~f].tolist()):
+            if t not in hot:
+                seq[t] = self._seq
+                self._seq += 1
+            hot[t] = xyz[i]
 
     # --- freezing -------------------------------------------------------------------------------
 
