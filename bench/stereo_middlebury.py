@@ -2,7 +2,8 @@
 
 Usage: .venv/bin/python bench/stereo_middlebury.py SCENE_DIR [SCENE_DIR ...] [--param name=value ...]
 Both methods use the same SGBM core parameters (mode, block size, P1/P2, disparity range); "plain" has
-no uniqueness, speckle or left-right filtering, "ours" is photogram_ros.core.stereo.match.
+no uniqueness, speckle or left-right filtering, "ours" is photogram_ros.core.stereo.match with the given
+parameters, "ours_lr_on"/"ours_lr_off" the same with the left-right check (lr_check) forced on/off.
 Errors are measured on the pixels each method keeps within the nonocc mask (bad-1, bad-2), and
 density is the fraction of mask pixels that get a disparity.
 """
@@ -12,6 +13,7 @@ import argparse
 import json
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import cv2
@@ -31,22 +33,25 @@ def evaluate(scene_dir, params: stereo.StereoParams, repeats: int = 3) -> list[d
     rows = []
     plain = stereo.make_sgbm(params, 0, num, filtered=False)
     ours = stereo.make_sgbm(params, 0, num)
-    for method in ('plain_sgbm', 'ours'):
+    variants = {'ours': params, 'ours_lr_on': replace(params, lr_check=True),
+                'ours_lr_off': replace(params, lr_check=False)}
+    for method in ('plain_sgbm', 'ours', 'ours_lr_on', 'ours_lr_off'):
         best = float('inf')
         for _ in range(repeats):
             t0 = time.perf_counter()
             if method == 'plain_sgbm':
                 d = stereo.disparity_from_sgbm(plain.compute(left, right), 0)
             else:
-                d = stereo.match(left, right, params, 0, num, matcher=ours).disparity_px
+                d = stereo.match(left, right, variants[method], 0, num, matcher=ours).disparity_px
             best = min(best, (time.perf_counter() - t0) * 1e3)
         s = score(d, sc.gt_px, mask)
         rows.append({'scene': sc.name, 'method': method, 'mask': 'nonocc' if 'nonocc' in sc.masks else 'gt',
                      'bad1': round(s['bad1'], 4), 'bad2': round(s['bad2'], 4), 'density': round(s['density'], 4),
                      'ms': round(best, 2), 'size': f'{left.shape[1]}x{left.shape[0]}', 'ndisp': num})
-    p, o = rows
-    o['bad2_ratio_vs_plain'] = round(o['bad2'] / p['bad2'], 3) if p['bad2'] else None
-    o['ms_ratio_vs_plain'] = round(o['ms'] / p['ms'], 3)
+    p = rows[0]
+    for o in rows[1:]:
+        o['bad2_ratio_vs_plain'] = round(o['bad2'] / p['bad2'], 3) if p['bad2'] else None
+        o['ms_ratio_vs_plain'] = round(o['ms'] / p['ms'], 3)
     return rows
 
 

@@ -51,8 +51,11 @@ class StereoParams:
                                    min=0, max=10000)
     speckle_range_px: float = param(1.0, 'disparity variation allowed within one connected blob, pixels',
                                     min=0.0, max=16.0)
-    lr_max_diff_px: int = param(1, 'left-right consistency check tolerance, pixels (-1 disables it)',
-                                min=-1, max=16)
+    lr_check: bool = param(True, 'left-right consistency check: a second SGBM on the flipped, swapped pair '
+                                 'gives the right view\'s disparity; left pixels whose match disagrees are '
+                                 'dropped (occlusions, mismatches). About doubles the SGBM time')
+    lr_max_diff_px: float = param(1.0, 'left-right consistency tolerance |dL(x) - dR(x - dL)|, pixels '
+                                       '(sub-pixel; used when lr_check is on)', min=0.0, max=16.0)
     pre_filter_cap: int = param(31, 'SGBM prefilter clipping of the x-derivative', min=1, max=63)
     max_local_dev_px: float = param(0.5, 'drop disparities differing from their 3x3 median by more, pixels',
                                     min=0.0, max=100.0)
@@ -99,9 +102,10 @@ def make_sgbm(params: StereoParams, min_disparity: int, num_disparities: int, ch
     return cv2.StereoSGBM_create(
         minDisparity=int(min_disparity), numDisparities=int(num_disparities), blockSize=bs,
         P1=params.p1_per_px * channels * bs * bs, P2=params.p2_per_px * channels * bs * bs,
-        # Measured with OpenCV 5.0.0: disp12MaxDiff -1, 0 and 1 give bit-identical output (teddy, tsukuba,
-        # sim pair; SGBM and SGBM_3WAY) and cost nothing, so the left-right check is in effect off there.
-        disp12MaxDiff=params.lr_max_diff_px if filtered else -1,
+        # Off: with OpenCV 5.0.0, disp12MaxDiff -1, 0 and 1 give bit-identical output (teddy, tsukuba,
+        # sim pair; SGBM and SGBM_3WAY) and 5 invalidates fewer pixels than -1, so it is no usable
+        # left-right check; match() does a real one (lr_check) with a second SGBM on the flipped pair.
+        disp12MaxDiff=-1,
         preFilterCap=params.pre_filter_cap,
         uniquenessRatio=params.uniqueness_ratio if filtered else 0,
         speckleWindowSize=params.speckle_window_px if filtered else 0,
@@ -125,6 +129,7 @@ class Disparity:
     texture_ref: float            # texture at which the texture cue reaches 1/2
     sgbm_ms: float
     filter_ms: float
+    lr_ms: float = 0.0            # the right view's SGBM for the left-right check (not in sgbm_ms)
 
     def confidence_at(self, flat_idx: np.ndarray) -> np.ndarray:
         """Confidence in [0, 1] at flat pixel indices (see _filter for the cues)."""
@@ -151,13 +156,49 @@ def match(left_grey: np.ndarray, right_grey: np.ndarray, params: StereoParams, m
     sgbm = matcher or make_sgbm(params, min_disparity, num_disparities)
     t0 = time.perf_counter()
     raw = sgbm.compute(left_grey, right_grey)
+    t_lr = time.perf_counter()
+    raw_right = _right_view(sgbm, left_grey, right_grey, min_disparity + num_disparities) \
+        if params.lr_check else None
     t1 = time.perf_counter()
-    out = _filter(raw, min_disparity, left_grey, params)
-    out.sgbm_ms, out.filter_ms = (t1 - t0) * 1e3, (time.perf_counter() - t1) * 1e3
+    out = _filter(raw, min_disparity, left_grey, params, raw_right)
+    out.sgbm_ms, out.lr_ms, out.filter_ms = (t_lr - t0) * 1e3, (t1 - t_lr) * 1e3, (time.perf_counter() - t1) * 1e3
     return out
 
 
-def _filter(raw: np.ndarray, min_disparity: int, left_grey: np.ndarray, params: StereoParams) -> Disparity:
+def _right_view(sgbm, left_grey: np.ndarray, right_grey: np.ndarray, max_disparity: int) -> np.ndarray:
+    """SGBM fixed-point disparity of the right image (right pixel x matches left pixel x + d).
+
+    Mirrored, the right image becomes a left image whose matches lie d columns to the left in the
+    mirrored left image, so the same matcher and range apply. SGBM leaves its first max_disparity
+    columns without a value; mirrored, those are the right image's last columns, whose left matches
+    mostly exist (a survey pair's disparity range is much wider than its disparities): padding both
+    mirrored images on that side gives them a value, for (W + max_disparity) / W of the time.
+    """
+    pad = max(int(max_disparity), 0)
+    fr, fl = (cv2.copyMakeBorder(cv2.flip(im, 1), 0, 0, pad, 0, cv2.BORDER_REPLICATE)
+              for im in (right_grey, left_grey))
+    return cv2.flip(sgbm.compute(fr, fl)[:, pad:], 1)
+
+
+def lr_inconsistent(raw_left: np.ndarray, raw_right: np.ndarray, min_disparity: int, max_diff_px: float) -> np.ndarray:
+    """True where left pixel x with disparity d fails |dL(x) - dR(round(x - d))| <= max_diff_px.
+
+    Both inputs are SGBM fixed point (1/16 px), dR indexed by right-image column; a match outside the
+    right image or on an invalid right pixel fails.
+    """
+    H, W = raw_left.shape
+    cols = np.arange(W, dtype=np.int32)
+    # round(x - d) in 1/16 px: (16 x - raw + 8) >> 4 is floor((16 x - raw + 8) / 16).
+    xr = ((cols * 16)[None, :] - raw_left.astype(np.int32) + 8) >> 4
+    inside = (xr >= 0) & (xr < W)
+    np.clip(xr, 0, W - 1, out=xr)
+    dr = np.take_along_axis(raw_right, xr, axis=1).astype(np.int32)
+    valid = inside & (dr >= min_disparity * 16) & (raw_left >= min_disparity * 16)
+    return ~(valid & (np.abs(raw_left.astype(np.int32) - dr) <= int(round(max_diff_px * 16))))
+
+
+def _filter(raw: np.ndarray, min_disparity: int, left_grey: np.ndarray, params: StereoParams,
+            raw_right: np.ndarray | None = None) -> Disparity:
     """SGBM output -> float disparity with local-consistency (and optional texture/confidence) rejection.
 
     Two cues SGBM does not expose: agreement with the 3x3 median (isolated mismatches and flying
@@ -169,6 +210,8 @@ def _filter(raw: np.ndarray, min_disparity: int, left_grey: np.ndarray, params: 
     d *= np.float32(1.0 / 16.0)
     dev = cv2.absdiff(d, cv2.medianBlur(d, 3))
     bad = (raw < min_disparity * 16) | (dev > np.float32(params.max_local_dev_px))
+    if raw_right is not None:
+        bad |= lr_inconsistent(raw, raw_right, min_disparity, params.lr_max_diff_px)
     bs = params.block_size
     g = cv2.add(cv2.convertScaleAbs(cv2.Sobel(left_grey, cv2.CV_16S, 1, 0, ksize=3), alpha=0.125),
                 cv2.convertScaleAbs(cv2.Sobel(left_grey, cv2.CV_16S, 0, 1, ksize=3), alpha=0.125))
@@ -533,7 +576,8 @@ def stereo_pair(camera: PinholeCamera, image_a: np.ndarray, map_T_cam_a: np.ndar
     t3 = time.perf_counter()
     cloud = points_from_disparity(rect, disp, left, params, image_b.shape[:2])
     t4 = time.perf_counter()
-    timings = {'rectify_ms': (t2 - t0) * 1e3, 'sgbm_ms': disp.sgbm_ms, 'filter_ms': disp.filter_ms,
+    timings = {'rectify_ms': (t2 - t0) * 1e3, 'sgbm_ms': disp.sgbm_ms, 'lr_ms': disp.lr_ms,
+               'filter_ms': disp.filter_ms,
                'points_ms': (t4 - t3) * 1e3, 'total_ms': (t4 - t0) * 1e3, 'maps_ms': (t1 - t0) * 1e3}
     status = OK if cloud.size else NO_POINTS
     return StereoResult(status, f'{cloud.size} points, overlap {overlap:.2f}, B/H {ratio:.3f}', cloud, disp, rect,
