@@ -5,7 +5,8 @@ Renders a survey pair (B/H 0.22, 40 m) with the simulator at 640x480 and 1280x96
 photogram_ros.core.stereo.stereo_pair (pair checks, rectification maps, remap, SGBM, filtering,
 points in map with colour); "bare" is StereoSGBM.compute alone on the module's rectified grey pair
 with the same parameters and disparity range ("bare_unfiltered" also without uniqueness/speckle/LR).
-Prints one JSON line per size with medians and the overhead ratio (target <= 1.5), in wall time and in
+Prints one JSON line per size with medians and the overhead ratio (target <= 1.5), also with the
+left-right check (lr_check) on and off against the same bare baseline, in wall time and in
 process CPU time (the latter varies less with other processes' load), and says what each side includes.
 """
 from __future__ import annotations
@@ -14,6 +15,7 @@ import argparse
 import json
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import cv2
@@ -60,9 +62,11 @@ def bench(scale: int, params: stereo.StereoParams, repeats: int) -> dict:
     right = cv2.remap(cv2.cvtColor(ib, cv2.COLOR_BGR2GRAY), *res.rect.maps_right, cv2.INTER_LINEAR)
     sgbm = stereo.make_sgbm(params, res.min_disparity, res.num_disparities)
     plain = stereo.make_sgbm(params, res.min_disparity, res.num_disparities, filtered=False)
-    # Interleave the three so that load from other processes hits them alike.
-    full_ms, bare_ms, plain_ms, parts = [], [], [], []
-    cpu = {'full': [], 'bare': []}
+    # The same pipeline with the left-right check switched the other way (lr_check doubles SGBM work).
+    other = replace(params, lr_check=not params.lr_check)
+    # Interleave the four so that load from other processes hits them alike.
+    full_ms, bare_ms, plain_ms, other_ms, parts = [], [], [], [], []
+    cpu = {'full': [], 'bare': [], 'other': []}
     for _ in range(repeats):
         c0 = time.process_time()
         full_ms.append(_median_ms(lambda: parts.append(stereo.stereo_pair(cam, ia, Ta, ib, Tb, params, depth)
@@ -72,8 +76,13 @@ def bench(scale: int, params: stereo.StereoParams, repeats: int) -> dict:
         cpu['full'].append(c1 - c0)
         cpu['bare'].append(time.process_time() - c1)
         plain_ms.append(_median_ms(lambda: plain.compute(left, right), 1))
-    full, bare, bare_u = (float(np.median(v)) for v in (full_ms, bare_ms, plain_ms))
-    full_cpu, bare_cpu = (float(np.median(cpu[k])) * 1e3 for k in ('full', 'bare'))
+        c2 = time.process_time()
+        other_ms.append(_median_ms(lambda: stereo.stereo_pair(cam, ia, Ta, ib, Tb, other, depth), 1))
+        cpu['other'].append(time.process_time() - c2)
+    full, bare, bare_u, full_o = (float(np.median(v)) for v in (full_ms, bare_ms, plain_ms, other_ms))
+    full_cpu, bare_cpu, other_cpu = (float(np.median(cpu[k])) * 1e3 for k in ('full', 'bare', 'other'))
+    on = 'on' if params.lr_check else 'off'
+    off = 'off' if params.lr_check else 'on'
     stages = {k: round(float(np.median([p[k] for p in parts])), 2) for k in parts[0]}
     stages_sgbm = stages['sgbm_ms']
     return {'bench': 'stereo_speed', 'image': f'{cam.width}x{cam.height}',
@@ -88,15 +97,21 @@ def bench(scale: int, params: stereo.StereoParams, repeats: int) -> dict:
             # time to other processes' load on a shared machine (waiting for a core is not counted).
             'full_cpu_ms': round(full_cpu, 2), 'bare_sgbm_cpu_ms': round(bare_cpu, 2),
             'overhead_ratio_cpu': round(full_cpu / bare_cpu, 3),
+            'lr_check': params.lr_check,
+            # The same ratios with the left-right check on and off (same bare baseline).
+            f'overhead_ratio_lr_{on}': round(full / bare, 3), f'overhead_ratio_lr_{off}': round(full_o / bare, 3),
+            f'overhead_ratio_cpu_lr_{on}': round(full_cpu / bare_cpu, 3),
+            f'overhead_ratio_cpu_lr_{off}': round(other_cpu / bare_cpu, 3),
+            f'full_ms_lr_{off}': round(full_o, 2),
             'target_ratio': 1.5, 'stages_ms': stages, 'threads': cv2.getNumThreads(),
             'baseline': BASELINE, 'full_includes': FULL}
 
 
 BASELINE = ('bare_sgbm_ms: one StereoSGBM.compute (same mode, P1/P2, block, disparity range, and SGBM\'s '
-            'built-in uniqueness, speckle and left-right check) on the already-rectified grey pair, matcher '
+            'built-in uniqueness and speckle filters; its own left-right check is off, see make_sgbm) on the already-rectified grey pair, matcher '
             'created once; no rectification, remap, filters or points')
 FULL = ('full_ms: stereo_pair end to end: pair checks, rectification maps, remap of both images, '
-        'SGBM (new matcher per pair), local-consistency/texture/edge filters, sub-pixel disparity, '
+        'SGBM (new matcher per pair; a second SGBM on the mirrored pair when lr_check is on), local-consistency/texture/edge filters, sub-pixel disparity, '
         'grazing/depth filters, points in map with colour and confidence')
 
 

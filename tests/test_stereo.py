@@ -83,6 +83,50 @@ def test_lr_inconsistent_known_shift():
     assert not stereo.lr_inconsistent(raw_l, raw_r, 0, 2.0)[0, 40]
 
 
+def _textureless_pair():
+    """Rectified pair with a known answer: textured ground at disparity 20 px holding an untextured
+    flat strip (same disparity) and a plain raised block (a roof) at disparity 30 px."""
+    rng = np.random.default_rng(7)
+    H, W, d_ground, d_roof = 200, 320, 20, 30
+    world = cv2.GaussianBlur(rng.uniform(0, 255, (H, W + d_roof)).astype(np.float32), (0, 0), 1.2)
+    world = cv2.normalize(world, None, 20, 235, cv2.NORM_MINMAX)
+    world[40:60, 60:220] = 128.0
+    left, right = world[:, :W].copy(), world[:, d_ground:d_ground + W].copy()
+    left[110:170, 180:260] = 200.0
+    right[110:170, 180 - d_roof:260 - d_roof] = 200.0
+    return left.astype(np.uint8), right.astype(np.uint8), d_ground, d_roof
+
+
+def _regions_filtered(left, right, params, f_baseline):
+    disp = stereo.match(left, right, params, 0, 48)
+    d = disp.disparity_px
+    if params.min_texture > 0 and params.texture_regions:
+        d[stereo.untrusted_textureless(d, disp.texture, params.min_texture, f_baseline, params.edge_step_m,
+                                       params.edge_margin_px + 2, params.texture_region_max_frac)] = np.nan
+    return d
+
+
+def test_textureless_flat_strip_kept_and_plain_roof_dropped():
+    left, right, d_ground, d_roof = _textureless_pair()
+    fb = 1000.0    # ground at 50 m, roof at 33 m: a 17 m step
+    strip, roof = (slice(42, 58), slice(70, 210)), (slice(115, 165), slice(185, 255))
+    smart = _regions_filtered(left, right, StereoParams(min_texture=2.0, texture_regions=True), fb)
+    plain = _regions_filtered(left, right, StereoParams(min_texture=2.0, texture_regions=False), fb)
+    blind = _regions_filtered(left, right, StereoParams(min_texture=2.0, texture_regions=True, edge_step_m=20.0), fb)
+    # The strip: dropped by the plain texture filter, kept at the right disparity by the region test.
+    assert np.isfinite(plain[strip]).mean() < 0.2
+    assert np.mean(np.abs(smart[strip] - d_ground) < 0.5) > 0.9
+    # The roof: its border straddles the 17 m step, so it is dropped (what is left is correct) ...
+    assert np.isfinite(smart[roof]).mean() < 0.05
+    assert np.mean(np.abs(smart[roof] - d_roof) > 1.0) < 0.02
+    # ... and kept when the step is below edge_step_m (the drop is the step test's doing).
+    assert np.isfinite(blind[roof]).mean() > 0.5
+    # A region larger than texture_region_max_frac is dropped however flat its border.
+    big = _regions_filtered(left, right, StereoParams(min_texture=2.0, texture_regions=True,
+                                                            texture_region_max_frac=0.01), fb)
+    assert np.isfinite(big[strip]).mean() < 0.2
+
+
 def test_scene_folder_errors(tmp_path):
     with pytest.raises(DataError, match='missing'):
         load_scene(tmp_path)
