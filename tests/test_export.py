@@ -182,7 +182,9 @@ def test_export_command_writes_georeferenced_ortho(rendered, tmp_path):
         f.add(pair_cloud(rng, terrain.height_at, t.center_enu[0], t.center_enu[1], 6.0, 6.0, 200.0, 0.02))
     f.flush()
     out = tmp_path / 'out'
-    assert main(['export', str(tmp_path / 'map'), '--crs', 'EPSG:32632', '--out', str(out)]) == 0
+    # Each target's ground came from one pair cloud: the default (2 pairs, as replay) would keep nothing.
+    assert main(['export', str(tmp_path / 'map'), '--crs', 'EPSG:32632', '--out', str(out),
+                 '--min-pairs', '1']) == 0
     for name in ('cloud.las', 'cloud.laz', 'cloud.ply', 'dsm.tif', 'ortho.tif', 'export.json'):
         assert (out / name).exists(), name
     with rasterio.open(out / 'ortho.tif') as ds:

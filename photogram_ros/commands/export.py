@@ -17,6 +17,9 @@ def add_arguments(p) -> None:
     p.add_argument('--ortho-res-m', type=float, default=0.0,
                    help='orthomosaic cell size in metres (default: one fusion cell, about 1 GSD)')
     p.add_argument('--products', default=','.join(PRODUCTS), help=f'comma-separated subset of {",".join(PRODUCTS)}')
+    p.add_argument('--min-pairs', type=int, default=2,
+                   help='keep cells confirmed by this many stereo pairs (2, as replay does: a cell one pair saw '
+                        'cannot be checked for gross matching errors; 1 keeps every fused cell)')
     p.add_argument('--origin', default='', help='LAT,LON,H of the map origin, if map.json lacks it')
 
 
@@ -29,6 +32,8 @@ def run(a) -> int:
     bad = [s for s in products if s not in PRODUCTS]
     if bad:
         raise ConfigError(f'unknown products {bad}; choose from {list(PRODUCTS)}')
+    if a.min_pairs < 1:
+        raise ConfigError(f'--min-pairs must be at least 1, not {a.min_pairs}')
     origin = None
     if a.origin:
         try:
@@ -36,7 +41,8 @@ def run(a) -> int:
         except ValueError as exc:
             raise ConfigError(f'--origin must be LAT,LON,H in degrees and metres, not {a.origin!r}') from exc
         origin = LocalFrame(lat, lon, h)
-    res = export_map(a.map_dir, a.out, a.crs, a.heights, a.dsm_res_m, a.ortho_res_m, products, origin)
+    res = export_map(a.map_dir, a.out, a.crs, a.heights, a.dsm_res_m, a.ortho_res_m, products, origin,
+                     min_pairs=a.min_pairs)
     print(f'{res.points} points, {res.keyframes} keyframes -> {a.out} ({a.crs}, {a.heights} heights)')
     for k, v in res.files.items():
         print(f'  {k}: {v}')
