@@ -9,7 +9,6 @@ never took part in the adjustment.
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import numpy as np

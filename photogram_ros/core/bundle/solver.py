@@ -251,7 +251,7 @@ class Solver:
         nc1 = st.nc + 1
         # U and g_c per (camera, intrinsics group) pair: one GEMM each over the pair's observations
         # (numpy's batched 2 x m products per observation are ten times slower).
-        Ao, ro = A[st.pair_order], r[st.pair_order]
+        Ao = A[st.pair_order]
         pb = st.pair_bounds
         ublk = np.empty((len(pb) - 1, m, m))
         for k in range(len(pb) - 1):
