@@ -79,6 +79,8 @@ class Graph:
 
     def __init__(self, spec: GraphSpec, context=None):
         from rclpy.executors import MultiThreadedExecutor
+        from photogram_ros.nodes.process_memory import limit_malloc_arenas
+        limit_malloc_arenas()   # before the executor's threads: flat memory over long flights
         self.spec = spec
         sections = _sections(spec)
         self.nodes = {}

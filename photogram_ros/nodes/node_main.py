@@ -9,6 +9,7 @@ import rclpy
 from rclpy.executors import ExternalShutdownException
 
 from photogram_ros.errors import PhotogramError
+from photogram_ros.nodes.process_memory import limit_malloc_arenas
 
 
 def _interrupt(*_):
@@ -21,6 +22,7 @@ def run_node(cls, argv=None, on_exit=None) -> int:
     A supervisor's SIGTERM ends the node like Ctrl-C does, so what the node holds is flushed either way.
     Bad configuration exits with status 2 and the reason on stderr.
     """
+    limit_malloc_arenas()
     rclpy.init(args=argv if argv is not None else sys.argv)
     signal.signal(signal.SIGTERM, _interrupt)
     node = None
@@ -44,6 +46,7 @@ def run_node(cls, argv=None, on_exit=None) -> int:
 def run_job(cls, job, argv=None) -> int:
     """Run a node that does one job and ends (play a bag, publish a folder): `job(node)` returns the exit
     status. Bad configuration exits with 2, Ctrl-C with 130."""
+    limit_malloc_arenas()
     rclpy.init(args=argv if argv is not None else sys.argv)
     node = None
     try:
