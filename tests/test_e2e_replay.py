@@ -3,7 +3,9 @@
 This is the README's main job (photogram-ros replay bags/sample_flight). The sample is short (78 s,
 three lines, RTK, no GCPs), so the bounds are looser than the bundle and stereo issues' figures where
 stated: check points 1.5 GSD horizontal (issue: 1 GSD), camera centres 6 cm (issue: 3 cm; this flight's
-RTK fixes alone are biased by about 2.5 cm), DSM completeness 85 % (issue: 90 %).
+RTK fixes alone are biased by about 2.5 cm), DSM completeness 85 % (issue: 90 %), DSM RMSE over all cells
+2.5 GSD (issue: 2; measured 1.77-1.92 over runs: the replay is not bit-reproducible), dense-cloud completeness
+80 % (measured 84 %: the simulator's untextured tracks give stereo nothing to match).
 """
 
 import json
@@ -60,9 +62,11 @@ def test_dense_products_against_true_dem(replay):
     dsm = rep['dsm_vs_truth']
     assert dsm['median_abs_gsd'] <= 1.0 and dsm['p90_abs_gsd'] <= 3.0
     assert rep['dsm_vs_truth_away_from_walls']['rmse_gsd'] <= 2.0
+    assert dsm['rmse_gsd'] <= 2.5      # all cells, walls included
     cloud = rep['cloud_vs_truth']
     assert cloud['median_abs_gsd'] <= 1.0 and cloud['p90_abs_gsd'] <= 3.0
     assert rep['dsm_completeness'] >= 0.85
+    assert rep['cloud_completeness'] >= 0.80
 
 
 def test_report_lists_nodes_and_run(replay):
