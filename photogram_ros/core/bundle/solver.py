@@ -51,6 +51,9 @@ def _so3_left_jac_inv(phi):
 _MAX_PAIRS = 600_000
 _MAX_SEGMENTS = 20_000
 _CHUNK_PAIRS = 4096
+# Below this many camera unknowns (about 20 free cameras: a sliding window) the reduced system is tiny
+# and sorting the observation pairs costs more than it saves (window update 81 -> 102 ms median).
+_MIN_CAMERA_UNKNOWNS_FOR_PAIRS = 120
 
 
 class _Structure:
@@ -134,7 +137,8 @@ class _Structure:
         self.wt_indptr = np.concatenate([[0], np.cumsum(np.bincount(self.w_pt, minlength=self.npf))])
         vo = ptc >= 0
         self.pt_sum = sp.csr_matrix((np.ones(vo.sum()), (ptc[vo], np.nonzero(vo)[0])), shape=(self.npf, N))
-        self.pairs = self._observation_pairs(pair_inv, vo) if self.nc <= dense_limit else None
+        self.pairs = (self._observation_pairs(pair_inv, vo)
+                      if _MIN_CAMERA_UNKNOWNS_FOR_PAIRS <= self.nc <= dense_limit else None)
 
     def _observation_pairs(self, pair_inv, vo):
         """Segments of observation pairs for the dense Schur complement, or None if too many.
