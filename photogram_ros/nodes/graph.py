@@ -25,6 +25,7 @@ from dataclasses import asdict, dataclass, field
 
 from photogram_ros.errors import ConfigError, PhotogramError
 from photogram_ros.params import load_params_file
+from photogram_ros.nodes.process_memory import limit_malloc_arenas, start_heap_trimmer
 
 # role -> (module, class, console script); the order is the data-flow order.
 NODES = {
@@ -79,7 +80,6 @@ class Graph:
 
     def __init__(self, spec: GraphSpec, context=None):
         from rclpy.executors import MultiThreadedExecutor
-        from photogram_ros.nodes.process_memory import limit_malloc_arenas
         limit_malloc_arenas()   # before the executor's threads: flat memory over long flights
         self.spec = spec
         sections = _sections(spec)
@@ -113,6 +113,7 @@ class Graph:
     def start(self, child_timeout_s: float = 60.0) -> None:
         self._thread = threading.Thread(target=self.executor.spin, daemon=True, name='graph-executor')
         self._thread.start()
+        self._trimmer = start_heap_trimmer()
         if self.child is not None:
             self.child.wait_ready(list(self.nodes.values()), child_timeout_s)
 
@@ -149,6 +150,8 @@ class Graph:
         child process does the same with its nodes and ends."""
         if self.child is not None:
             self.child.stop()
+        if getattr(self, '_trimmer', None) is not None:
+            self._trimmer.set()
         self.executor.shutdown(timeout_sec=5)
         for n in self.nodes.values():
             n.destroy_node()
