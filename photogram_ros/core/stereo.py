@@ -163,7 +163,7 @@ def match(left_grey: np.ndarray, right_grey: np.ndarray, params: StereoParams, m
         raise DataError(f'num_disparities must be a positive multiple of 16 (got {num_disparities})')
     sgbm = matcher or make_sgbm(params, min_disparity, num_disparities)
     t0 = time.perf_counter()
-    raw = sgbm.compute(left_grey, right_grey)
+    raw = _left_view(sgbm, left_grey, right_grey, min_disparity + num_disparities)
     t_lr = time.perf_counter()
     raw_right = _right_view(sgbm, left_grey, right_grey, min_disparity + num_disparities) \
         if params.lr_check else None
@@ -171,6 +171,23 @@ def match(left_grey: np.ndarray, right_grey: np.ndarray, params: StereoParams, m
     out = _filter(raw, min_disparity, left_grey, params, raw_right)
     out.sgbm_ms, out.lr_ms, out.filter_ms = (t_lr - t0) * 1e3, (t1 - t_lr) * 1e3, (time.perf_counter() - t1) * 1e3
     return out
+
+
+def _left_view(sgbm, left_grey: np.ndarray, right_grey: np.ndarray, max_disparity: int) -> np.ndarray:
+    """SGBM fixed-point disparity of the left image over all its columns.
+
+    SGBM computes no disparity for the first min_disparity + num_disparities columns (some of their
+    candidate matches would lie left of the right image). With a search range as wide as a survey
+    pair's (tall buildings, hilly ground) that band is most of the image, although most of its
+    pixels do have their match inside the right image: padding both images on the left gives every
+    column a value for the same cost per column. Matches that fall in the padding are rejected later
+    (left-right check, and the right-image bounds in points_from_disparity).
+    """
+    pad = max(int(max_disparity), 0)
+    if pad == 0:
+        return sgbm.compute(left_grey, right_grey)
+    lp, rp = (cv2.copyMakeBorder(im, 0, 0, pad, 0, cv2.BORDER_REPLICATE) for im in (left_grey, right_grey))
+    return sgbm.compute(lp, rp)[:, pad:]
 
 
 def _right_view(sgbm, left_grey: np.ndarray, right_grey: np.ndarray, max_disparity: int) -> np.ndarray:
