@@ -1,11 +1,12 @@
 """End to end: the sample flight replayed through the whole graph, compared with the simulator's truth.
 
 This is the README's main job (photogram-ros replay bags/sample_flight). The sample is short (78 s,
-three lines, RTK, no GCPs), so the bounds are looser than the bundle and stereo issues' figures where
-stated: check points 1.5 GSD horizontal (issue: 1 GSD), camera centres 6 cm (issue: 3 cm; this flight's
-RTK fixes alone are biased by about 2.5 cm), DSM completeness 85 % (issue: 90 %), DSM RMSE over all cells
-2.5 GSD (issue: 2; measured 1.77-1.92 over runs: the replay is not bit-reproducible), dense-cloud completeness
-80 % (measured 84 %: the simulator's untextured tracks give stereo nothing to match).
+three lines, RTK, no GCPs), so a few bounds are looser than the bundle issue's figures, as stated: check
+points vertical 1.5 GSD (the issue's vertical figure; horizontal at the issue's 1 GSD), camera centres 6 cm
+(issue: 3 cm; this flight's RTK fixes alone are biased by about 2.5 cm). The dense products meet the stereo
+issue's figures: DSM RMSE over all cells <= 2 GSD (measured 1.55-1.62 over runs, the replay is not
+bit-reproducible), cloud and DSM completeness >= 90 % (measured 93 % and 95 %: the plain tracks are
+interpolated from the ground around them, plain roofs stay empty).
 """
 
 import json
@@ -51,7 +52,7 @@ def test_check_points_and_cameras_against_truth(replay):
     _, rep, truth, _ = replay
     cp = rep['check_points']['rmse']
     assert cp['count'] >= 7
-    assert cp['horizontal_m'] <= 1.5 * truth.gsd_m
+    assert cp['horizontal_m'] <= 1.0 * truth.gsd_m
     assert cp['z_m'] <= 1.5 * truth.gsd_m
     tr = rep['trajectory_vs_truth']
     assert tr['count'] >= 30 and tr['rmse_m'] <= 0.06
@@ -62,11 +63,11 @@ def test_dense_products_against_true_dem(replay):
     dsm = rep['dsm_vs_truth']
     assert dsm['median_abs_gsd'] <= 1.0 and dsm['p90_abs_gsd'] <= 3.0
     assert rep['dsm_vs_truth_away_from_walls']['rmse_gsd'] <= 2.0
-    assert dsm['rmse_gsd'] <= 2.5      # all cells, walls included
+    assert dsm['rmse_gsd'] <= 2.0      # all cells, walls included
     cloud = rep['cloud_vs_truth']
     assert cloud['median_abs_gsd'] <= 1.0 and cloud['p90_abs_gsd'] <= 3.0
-    assert rep['dsm_completeness'] >= 0.85
-    assert rep['cloud_completeness'] >= 0.80
+    assert rep['dsm_completeness'] >= 0.90
+    assert rep['cloud_completeness'] >= 0.90
 
 
 def test_report_lists_nodes_and_run(replay):

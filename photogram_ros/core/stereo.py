@@ -61,14 +61,13 @@ class StereoParams:
                                     min=0.0, max=100.0)
     min_texture: float = param(0.0, 'drop pixels whose mean absolute gradient in the block is below this, '
                                     'grey levels per pixel', min=0.0, max=100.0)
-    # Off by default: on the sample replay it lifted cloud completeness only 0.842 -> 0.844 (one run)
-    # while the DSM RMSE reached 2.19 GSD; see issue 6.
-    texture_regions: bool = param(False, 'with min_texture and a posed pair: keep a textureless connected region '
-                                        'whose bordering disparities agree within edge_step_m (a flat surface, '
-                                        'which SGBM fills correctly from its border); drop it when its border '
-                                        'straddles a depth step, is mostly unmatched, or it is too large')
-    texture_region_max_frac: float = param(0.1, 'textureless regions larger than this fraction of the image are '
-                                                'dropped (too far from their border to trust)', min=0.0, max=1.0)
+    fill_holes_m: float = param(0.0, 'posed pairs: pixels left without a match (a plain track, a mismatch) up to '
+                                     'this far from matched ones, m on the ground, get a disparity interpolated '
+                                     'from them where the matched surface around is continuous (no depth step '
+                                     'over edge_step_m, so never across a roof edge); 0: off', min=0.0, max=100.0)
+    fill_confidence: float = param(0.35, 'confidence of interpolated (filled) points; the map fuses points from '
+                                         'its min_confidence (0.3) up, so a lower value keeps them out of the map',
+                                   min=0.0, max=1.0)
     min_confidence: float = param(0.0, 'drop points with a lower confidence (0..1)', min=0.0, max=1.0)
     edge_step_m: float = param(1.0, 'depth step (wall, roof edge) around which disparities are dropped, m; '
                                     '0 keeps them', min=0.0, max=1e3)
@@ -138,12 +137,17 @@ class Disparity:
     sgbm_ms: float
     filter_ms: float
     lr_ms: float = 0.0            # the right view's SGBM for the left-right check (not in sgbm_ms)
+    filled: np.ndarray | None = None   # bool (H, W): disparities interpolated, not matched (fill_textureless)
+    fill_confidence: float = 0.0
 
     def confidence_at(self, flat_idx: np.ndarray) -> np.ndarray:
         """Confidence in [0, 1] at flat pixel indices (see _filter for the cues)."""
         dev = self.local_dev_px.ravel()[flat_idx]
         tex = self.texture.ravel()[flat_idx]
-        return (np.exp(dev * np.float32(-2.0)) * (tex / (tex + np.float32(self.texture_ref)))).astype(np.float32)
+        c = (np.exp(dev * np.float32(-2.0)) * (tex / (tex + np.float32(self.texture_ref)))).astype(np.float32)
+        if self.filled is not None:
+            c[self.filled.ravel()[flat_idx]] = np.float32(self.fill_confidence)
+        return c
 
     @property
     def confidence(self) -> np.ndarray:
@@ -242,8 +246,7 @@ def _filter(raw: np.ndarray, min_disparity: int, left_grey: np.ndarray, params: 
                 cv2.convertScaleAbs(cv2.Sobel(left_grey, cv2.CV_16S, 0, 1, ksize=3), alpha=0.125))
     tex = cv2.boxFilter(g, cv2.CV_32F, (bs, bs))
     tex_ref = 4.0 * max(params.min_texture, 0.5)
-    # With texture_regions, stereo_pair judges textureless regions once it knows the depth scale.
-    if params.min_texture > 0 and not params.texture_regions:
+    if params.min_texture > 0:
         bad |= tex < np.float32(params.min_texture)
     out = Disparity(d, dev, tex, tex_ref, 0.0, 0.0)
     if params.min_confidence > 0:
@@ -271,46 +274,120 @@ def near_depth_steps(D: np.ndarray, f_baseline: float, step_m: float, margin_px:
         return fin & (fb / far_d - fb / near_d > np.float32(step_m))
 
 
-def untrusted_textureless(D: np.ndarray, texture: np.ndarray, min_texture: float, f_baseline: float,
-                          step_m: float, ring_px: int, max_frac: float) -> np.ndarray:
-    """True on the textureless pixels (texture < min_texture) that should not be trusted.
+def fill_holes(D: np.ndarray, holes: np.ndarray, max_dist_px: float, max_rms_px: float, margin_px: int,
+               min_plane_frac: float = 0.9) -> np.ndarray:
+    """Where to interpolate: narrow holes among matched pixels that lie on one plane.
 
-    In a textureless region SGBM has no data term and spreads the disparities of its border inward:
-    right for a flat patch of ground (an untextured track) bounded by one consistent surface, wrong
-    for a plain roof whose outline touches the ground below. Each connected region is kept when the
-    true disparities `D` in a ring of `ring_px` around it (wide enough to reach across a misplaced
-    step) span less than `step_m` in depth, at least half the ring has a disparity, the region's own
-    mean depth lies within that span (± step_m / 2), and it is at most `max_frac` of the image.
+    SGBM has no data term on a plain surface (an untextured track, a plain roof), and its uniqueness
+    and left-right tests rightly leave it unmatched. Interpolating such holes from the matched pixels
+    around, as SGM pipelines do, is right for a patch of ground bounded by one continuous surface
+    and wrong across a roof edge, a wall or an occlusion. `D` is the true disparity
+    f * baseline / depth (NaN where unmatched), `holes` the unmatched pixels that could have a match
+    (inside the overlap). A connected hole is filled only when it is narrow (every pixel within
+    `max_dist_px` of a matched one: a plain roof, and a wall joined to the roof's unmatched
+    interior, are wider) and at least `min_plane_frac` of it passes the plane test: a plane in the
+    scene is a plane in (u, v, D), so each pixel takes the least-squares plane of the matched pixels
+    in a window reaching `margin_px` beyond `max_dist_px` (wide enough to see both sides of a
+    misplaced step), when their RMS about it is at most `max_rms_px` and they span both image
+    directions. Fills `D` in place and returns the mask of filled pixels.
     """
-    low = (texture < np.float32(min_texture)).astype(np.uint8)
-    n, labels, stats, _ = cv2.connectedComponentsWithStats(low, connectivity=8, ltype=cv2.CV_32S)
-    if n <= 1:
-        return low.astype(bool)
-    k = np.ones((2 * ring_px + 1, 2 * ring_px + 1), np.uint8)
-    # Labels fit float32 exactly below 2^24; dilation hands each ring pixel a neighbouring label.
-    ring_lab = cv2.dilate(labels.astype(np.float32), k).astype(np.int32)
-    ring = (low == 0) & (ring_lab > 0)
-    lab_r = ring_lab[ring]
-    z = np.float32(f_baseline) / D[ring]          # NaN where no disparity
-    fin = np.isfinite(z) & (z > 0)
-    ring_n = np.bincount(lab_r, minlength=n)
-    ok_n = np.bincount(lab_r[fin], minlength=n)
-    z_lo = np.full(n, np.inf)
-    z_hi = np.full(n, -np.inf)
-    np.minimum.at(z_lo, lab_r[fin], z[fin])
-    np.maximum.at(z_hi, lab_r[fin], z[fin])
-    inner = labels > 0
-    lab_i = labels[inner]
-    zi = np.float32(f_baseline) / D[inner]
-    fin_i = np.isfinite(zi) & (zi > 0)
-    cnt_i = np.bincount(lab_i[fin_i], minlength=n)
-    mean_i = np.bincount(lab_i[fin_i], weights=zi[fin_i], minlength=n) / np.maximum(cnt_i, 1)
-    half = 0.5 * step_m
-    keep = ((z_hi - z_lo <= step_m) & (ok_n >= 0.5 * np.maximum(ring_n, 1)) & (ok_n > 0)
-            & (mean_i >= z_lo - half) & (mean_i <= z_hi + half)
-            & (stats[:, cv2.CC_STAT_AREA] <= max_frac * D.size))
-    keep[0] = False
-    return (labels > 0) & ~keep[labels]
+    valid = np.isfinite(D)
+    holes = holes & ~valid
+    if max_dist_px < 1 or not holes.any() or not valid.any():
+        return np.zeros_like(holes)
+    dist = cv2.distanceTransform((~valid).astype(np.uint8), cv2.DIST_L2, 3)
+    n, labels = cv2.connectedComponents(holes.astype(np.uint8), connectivity=8)
+    # Narrow: no pixel of the hole farther than max_dist_px from a matched one.
+    narrow = np.bincount(labels[holes & (dist > np.float32(max_dist_px))], minlength=n) == 0
+    narrow[0] = False
+    cand = narrow[labels]
+    if not cand.any():
+        return cand
+    r = int(np.ceil(max_dist_px)) + margin_px + 2
+    H, W = D.shape
+    # Window sums of the plane-fit moments (float64: sums of u^2 over a window lose digits in float32);
+    # coordinates about the image centre keep them small.
+    m = valid.astype(np.float64)
+    u = (np.arange(W, dtype=np.float64) - W / 2)[None, :] * m
+    v = (np.arange(H, dtype=np.float64) - H / 2)[:, None] * m
+    d = np.where(valid, D, 0.0).astype(np.float64)
+    win = lambda a: cv2.boxFilter(a, cv2.CV_64F, (2 * r + 1, 2 * r + 1), normalize=False,  # noqa: E731
+                                  borderType=cv2.BORDER_CONSTANT)[cand]
+    cnt, su, sv, sd = win(m), win(u), win(v), win(d)
+    suu, suv, svv = win(u * u), win(u * v), win(v * v)
+    sud, svd, sdd = win(u * d), win(v * d), win(d * d)
+    with np.errstate(divide='ignore', invalid='ignore'):
+        mu, mv, md = su / cnt, sv / cnt, sd / cnt
+        cuu, cuv, cvv = suu - su * mu, suv - su * mv, svv - sv * mv
+        cud, cvd, cdd = sud - su * md, svd - sv * md, sdd - sd * md
+        det = cuu * cvv - cuv * cuv
+        a = (cud * cvv - cvd * cuv) / det
+        b = (cvd * cuu - cud * cuv) / det
+        rms = np.sqrt(np.maximum(cdd - a * cud - b * cvd, 0.0) / cnt)
+        # Spread in both directions: a matched line (a roof ridge alone) fixes no plane.
+        spread = np.sqrt(np.maximum(np.minimum(cuu, cvv) / cnt, 0.0))
+    jj, ii = np.nonzero(cand)
+    ok = (cnt >= 0.1 * (2 * r + 1) ** 2) & (rms <= max_rms_px) & (spread >= 0.2 * r) & np.isfinite(a + b)
+    lab = labels[jj, ii]
+    share = np.bincount(lab[ok], minlength=n) / np.maximum(np.bincount(lab, minlength=n), 1)
+    ok &= share[lab] >= min_plane_frac
+    D[jj[ok], ii[ok]] = (md + a * (ii - W / 2 - mu) + b * (jj - H / 2 - mv))[ok].astype(np.float32)
+    out = np.zeros_like(cand)
+    out[jj[ok], ii[ok]] = True
+    return out
+
+
+def beside_wide_holes(valid: np.ndarray, holes: np.ndarray, max_dist_px: float, margin_px: int) -> np.ndarray:
+    """Valid pixels within `margin_px` of a wide hole (one with a pixel farther than `max_dist_px`
+    from every valid pixel).
+
+    Around a plain roof SGBM has no roof disparity to set against the ground's, so no depth step is
+    seen there, yet the block matcher draws the ground a block radius into the roof outline as it
+    does at every step: the matched ring around an unexplained wide hole is as suspect as the
+    margin of a step.
+    """
+    holes = holes & ~valid
+    if not holes.any() or margin_px <= 0:
+        return np.zeros_like(valid)
+    dist = cv2.distanceTransform((~valid).astype(np.uint8), cv2.DIST_L2, 3)
+    n, labels = cv2.connectedComponents(holes.astype(np.uint8), connectivity=8)
+    wide = np.bincount(labels[holes & (dist > np.float32(max_dist_px))], minlength=n) > 0
+    wide[0] = False
+    near = cv2.dilate(wide[labels].astype(np.uint8), np.ones((2 * margin_px + 1, 2 * margin_px + 1), np.uint8))
+    return valid & (near > 0)
+
+
+def trusted_fills(left_grey: np.ndarray, right_grey: np.ndarray, d_px: np.ndarray, matched: np.ndarray,
+                  filled: np.ndarray, max_fail_frac: float = 0.1) -> np.ndarray:
+    """The filled pixels whose connected region the two images confirm (rectified grey pair, disparity
+    `d_px` holding matched and filled values).
+
+    A plain roof filled at ground height looks, in disparities, like a plain track (when the roof's
+    rim matched nowhere, its hole can be as narrow as a track's). In the images it does not: at the
+    wrong disparity the roof's edge lands on the ground in the right image, a band of pixels whose
+    grey values disagree by the roof-to-ground contrast, while a correctly filled track agrees to
+    the noise. A region fails when more than `max_fail_frac` of its pixels differ from their match
+    by more than twice the 90th percentile of the matched pixels' differences.
+    """
+    H, W = d_px.shape
+
+    def diffs(idx):
+        col = (idx % W).astype(np.int32)
+        col_r = col - np.floor(d_px.ravel()[idx] + np.float32(0.5)).astype(np.int32)
+        ok = (col_r >= 0) & (col_r < W)
+        idx, col_r = idx[ok], col_r[ok]
+        return idx, np.abs(left_grey.ravel()[idx].astype(np.int16) - right_grey[idx // W, col_r].astype(np.int16))
+
+    _, dm = diffs(np.flatnonzero(matched)[::7])
+    if dm.size == 0 or not filled.any():
+        return np.zeros_like(filled)
+    tol = max(2.0 * float(np.percentile(dm, 90)), 6.0)
+    n, labels = cv2.connectedComponents(filled.astype(np.uint8), connectivity=8)
+    lab = labels.ravel()
+    idx, df = diffs(np.flatnonzero(filled))
+    bad = np.bincount(lab[idx[df > tol]], minlength=n) > max_fail_frac * np.bincount(lab, minlength=n)
+    bad[0] = True
+    return (~bad[lab]).reshape(H, W)
 
 
 # --- rectification -------------------------------------------------------------------------------
@@ -465,6 +542,22 @@ def _map_source(maps: tuple, flat_idx: np.ndarray) -> tuple[np.ndarray, np.ndarr
     return xy[:, 0], xy[:, 1]
 
 
+def match_inside_right(rect: Rectification, idx: np.ndarray, col: np.ndarray, d_px: np.ndarray, width: int,
+                       right_shape: tuple) -> np.ndarray:
+    """True where left pixels (flat `idx`, column `col`, disparity `d_px`) match inside the right image.
+
+    The match is the right rectified pixel on the same row, round(d) columns to the left; it is real
+    where the right map points inside the right image (elsewhere the remap drew its constant border,
+    or the padding of _left_view supplied the match).
+    """
+    col_r = col - np.floor(d_px + np.float32(0.5)).astype(np.int32)
+    ok = (col_r >= 0) & (col_r < width)
+    u, v = _map_source(rect.maps_right, np.where(ok, idx - col + col_r, 0))
+    # As unsigned, negative positions are large: one comparison per bound.
+    ok &= (u.view(np.uint16) < right_shape[1]) & (v.view(np.uint16) < right_shape[0])
+    return ok
+
+
 def points_from_disparity(rect: Rectification, disp: Disparity, left_rect: np.ndarray, params: StereoParams,
                           right_shape: tuple | None = None) -> np.ndarray:
     """Rectified disparity -> cloud (CLOUD_DTYPE) in map, dropping depths out of range and grazing views.
@@ -532,13 +625,7 @@ def points_from_disparity(rect: Rectification, disp: Disparity, left_rect: np.nd
     dv = d.ravel()[idx]
     row, col = np.divmod(idx.astype(np.int32), np.int32(W))
     if right_shape is not None:
-        # The matched right pixel: same row, round(d) columns to the left; valid where the right
-        # map points inside the right image (elsewhere the remap drew its constant border).
-        col_r = col - np.floor(dv + np.float32(0.5)).astype(np.int32)
-        ok = (col_r >= 0) & (col_r < W)
-        u, v = _map_source(rect.maps_right, np.where(ok, idx - col + col_r, 0))
-        # As unsigned, negative positions are large: one comparison per bound.
-        ok &= (u.view(np.uint16) < right_shape[1]) & (v.view(np.uint16) < right_shape[0])
+        ok = match_inside_right(rect, idx, col, dv, W, right_shape)
         idx, dv, row, col = idx[ok], dv[ok], row[ok], col[ok]
     depth = fb / (dv + shift)
     xv, yv = x[col], y[row]
@@ -563,6 +650,51 @@ def points_from_disparity(rect: Rectification, disp: Disparity, left_rect: np.nd
         out['rgb'] = pack_rgb(np.take(left_rect.reshape(-1, left_rect.shape[2]), idx, axis=0))
     out['confidence'] = disp.confidence_at(idx)
     return out
+
+
+def _fill(disp: Disparity, D: np.ndarray, rect: Rectification, left_g: np.ndarray, right_g: np.ndarray,
+          shape_a: tuple, shape_b: tuple, params: StereoParams) -> np.ndarray:
+    """fill_holes + trusted_fills on a pair's disparity (in place); returns the new true disparity."""
+    shift = np.float32(rect.shift_px)
+    W = D.shape[1]
+
+    def matchable(idx, d):
+        """Inside image a (not the remap's constant border) with a match inside image b."""
+        u, v = _map_source(rect.maps_left, idx)
+        return ((u.view(np.uint16) < shape_a[1]) & (v.view(np.uint16) < shape_a[0])
+                & match_inside_right(rect, idx, (idx % W).astype(np.int32), d, W, shape_b))
+
+    # Matches into the right image's border or padding are no evidence of any surface.
+    idx = np.flatnonzero(np.isfinite(D))
+    gone = idx[~matchable(idx, disp.disparity_px.ravel()[idx])]
+    disp.disparity_px.ravel()[gone] = np.nan
+    D.ravel()[gone] = np.nan
+    matched = np.isfinite(D)
+    if not matched.any():
+        return D
+    fb = rect.f_px * rect.baseline_m
+    depth_m = float(fb / np.median(D[matched]))
+    # Holes are the unmatched pixels inside the overlap (at the pair's median disparity): the rest
+    # could not have matched, and joined to a hole they would make every hole at the overlap's edge wide.
+    idx = np.flatnonzero(~matched)
+    holes = np.zeros(D.size, bool)
+    holes[idx[matchable(idx, np.full(idx.size, fb / depth_m - shift, np.float32))]] = True
+    # The plane must hold to a quarter of a step (as disparity at the pair's depth).
+    filled = fill_holes(D, holes.reshape(D.shape), params.fill_holes_m * rect.f_px / depth_m,
+                        0.25 * max(params.edge_step_m, 1e-3) * fb / depth_m ** 2, params.edge_margin_px)
+    idx = np.flatnonzero(filled)
+    d_fill = D.ravel()[idx] - shift
+    ok = matchable(idx, d_fill)
+    filled.ravel()[idx[~ok]] = False
+    disp.disparity_px.ravel()[idx[ok]] = d_fill[ok]
+    filled &= trusted_fills(left_g, right_g, disp.disparity_px, matched, filled)
+    disp.disparity_px[~matched & ~filled] = np.nan
+    valid = matched | filled
+    disp.disparity_px[beside_wide_holes(valid, holes.reshape(D.shape), params.fill_holes_m * rect.f_px / depth_m,
+                                        params.edge_margin_px)] = np.nan
+    filled &= np.isfinite(disp.disparity_px)
+    disp.filled, disp.fill_confidence = filled, params.fill_confidence
+    return disp.disparity_px + shift
 
 
 # --- a posed pair end to end ---------------------------------------------------------------------
@@ -638,16 +770,11 @@ def stereo_pair(camera: PinholeCamera, image_a: np.ndarray, map_T_cam_a: np.ndar
     t_e = time.perf_counter()
     fb = rect.f_px * rect.baseline_m
     D = disp.disparity_px + np.float32(rect.shift_px)
-    drop = None
-    if params.min_texture > 0 and params.texture_regions:
-        # Judged before the step filter blanks the ring: the ring must see both sides of a step.
-        drop = untrusted_textureless(D, disp.texture, params.min_texture, fb, max(params.edge_step_m, 1e-3),
-                                     params.edge_margin_px + 2, params.texture_region_max_frac)
+    if params.fill_holes_m > 0:
+        # Before the step filter, which would blank the matched pixels on both sides of a step.
+        D = _fill(disp, D, rect, left_g, right_g, image_a.shape[:2], image_b.shape[:2], params)
     if params.edge_step_m > 0 and params.edge_margin_px > 0:
-        step = near_depth_steps(D, fb, params.edge_step_m, params.edge_margin_px)
-        drop = step if drop is None else drop | step
-    if drop is not None:
-        disp.disparity_px[drop] = np.nan
+        disp.disparity_px[near_depth_steps(D, fb, params.edge_step_m, params.edge_margin_px)] = np.nan
     disp.filter_ms += (time.perf_counter() - t_e) * 1e3
     t3 = time.perf_counter()
     cloud = points_from_disparity(rect, disp, left, params, image_b.shape[:2])
