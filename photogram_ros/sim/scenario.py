@@ -23,7 +23,7 @@ from photogram_ros.sim.gnss import MODES, GnssErrorModel, GnssScript
 from photogram_ros.sim.render import Exposure, Renderer
 from photogram_ros.sim.targets import draw_marker, layout_targets, level_ground, marker_corners_enu, Target
 from photogram_ros.sim.terrain import Terrain, make_dem, make_texture
-from photogram_ros.sim.truth import FrameTruth, GroundTruth
+from photogram_ros.sim.truth import FrameTruth, GroundTruth, write_targets_file
 
 START_UNIX_S = 1_780_000_000.0   # 2026-05-28T20:26:40Z: fixed so that bags are reproducible
 TOPIC_IMAGE_RAW = '/camera/image_raw'
@@ -277,6 +277,7 @@ def simulate(cfg: SimConfig, out_dir: str | Path, progress=None) -> GroundTruth:
                         frames=frames, targets=targets, dem=terrain.dem, gsd_m=cfg.gsd_m, lever_arm_frd_m=lever,
                         fixes=fixes, config=_config_dict(cfg), geoid_model=geoid.MODEL_NAME)
     truth.save(out_dir)
+    write_targets_file(out_dir, truth)
     if cfg.photos:
         from photogram_ros.sim.photos import write_photos
         write_photos(out_dir / 'photos', photos, truth, cfg)

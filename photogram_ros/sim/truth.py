@@ -1,7 +1,8 @@
 """Ground truth of a simulated flight: written beside its bag, read by tests, benchmarks and reports.
 
 Files in the bag folder: `ground_truth.json` (origin, CRS, camera, per-frame poses, targets, GNSS
-fixes as sent) and `ground_truth_dem.npz` (the DEM grid in the `map` frame).
+fixes as sent), `ground_truth_dem.npz` (the DEM grid in the `map` frame) and `targets.txt`, the
+targets as a surveyor's control-point file (`photogram-ros replay BAG --gcp BAG/targets.txt`).
 """
 
 from __future__ import annotations
@@ -20,6 +21,7 @@ from photogram_ros.sim.terrain import Grid
 
 TRUTH_JSON = 'ground_truth.json'
 TRUTH_DEM = 'ground_truth_dem.npz'
+TARGETS_FILE = 'targets.txt'
 
 
 @dataclass
@@ -96,3 +98,17 @@ class GroundTruth:
         stamps = np.array([f.stamp_ns for f in self.frames])
         i = int(np.argmin(np.abs(stamps - stamp_ns)))
         return self.frames[i] if abs(int(stamps[i]) - int(stamp_ns)) <= tol_ns else None
+
+
+def write_targets_file(folder: str | Path, truth: GroundTruth | None = None) -> Path:
+    """The truth's targets as a control-point file (io/control_file.py) in `folder`: the truth's
+    projected CRS, ellipsoidal heights, exact coordinates (the survey sigmas are left to the reader)."""
+    from photogram_ros.core.control import SurveyedTarget
+    from photogram_ros.io.control_file import write_control_file
+    truth = truth if truth is not None else GroundTruth.load(folder)
+    targets = []
+    for t in truth.targets:
+        lat, lon, h = truth.origin.enu_to_geodetic(t.center_enu)
+        targets.append(SurveyedTarget(t.name, t.marker_id, float(lat), float(lon), float(h), t.role))
+    return write_control_file(Path(folder) / TARGETS_FILE, targets, truth.crs,
+                              comment=f'simulated survey: the board centres of the ArUco targets ({len(targets)})')

@@ -1,0 +1,171 @@
+"""Control-point files for flights: the surveyed ArUco targets, by name and marker id.
+
+OpenDroneMap's gcp_list.txt without the pixel columns (the tracker finds the targets in the
+keyframes itself):
+
+    EPSG:32632                                  first line: the CRS of x y z
+    # name  marker_id  x  y  z  [sigma_h_m  sigma_v_m]
+    GCP01   0   465012.331  5249873.102  512.406
+    CHK01,  5,  465040.000, 5249901.500, 511.980, 0.01, 0.02
+
+- The CRS line is an EPSG code, a PROJ string, ``WGS84 UTM 32N`` (as ODM writes it) or ``WGS84``
+  (= EPSG:4326). Geographic coordinates are x = longitude, y = latitude, as in ODM's files.
+- Values are separated by whitespace or commas; ``#`` starts a comment.
+- Names starting with CHK are check points (never used in the adjustment); more with `check_names`.
+- Heights are above the WGS84 ellipsoid, unless the CRS is compound with EGM2008 heights (e.g.
+  ``EPSG:32632+3855``) or the caller says `heights='orthometric'`: then EGM2008 (core/geoid.py)
+  turns them into ellipsoidal heights. Other vertical datums are refused, not approximated: a
+  national datum differs from EGM2008 by decimetres.
+- The sigma columns are optional (both or neither); without them the survey is taken as 2 cm
+  horizontal, 3 cm vertical.
+"""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import numpy as np
+
+from photogram_ros.core import geoid
+from photogram_ros.core.control import ControlSet, SurveyedTarget, is_check_name
+from photogram_ros.core.geodesy import crs_to_geodetic, geodetic_to_crs
+from photogram_ros.errors import DataError, GeodesyError
+
+FORMAT_LINE = '# name marker_id x y z [sigma_h_m sigma_v_m]'
+HEIGHTS = ('auto', 'ellipsoidal', 'orthometric')
+_EGM2008_HEIGHT_EPSG = 3855
+
+
+def _crs_of(text: str, where: str):
+    """The CRS line -> (pyproj CRS, the text to keep)."""
+    from pyproj import CRS
+    from pyproj.exceptions import CRSError
+    m = re.fullmatch(r'WGS84\s+UTM\s+(\d{1,2})\s*([NS])', text.strip(), re.IGNORECASE)
+    if m and 1 <= int(m.group(1)) <= 60:
+        text = f'EPSG:{(32600 if m.group(2).upper() == "N" else 32700) + int(m.group(1))}'
+    elif text.strip().upper() in ('WGS84', 'WGS 84'):
+        text = 'EPSG:4326'
+    try:
+        return CRS.from_user_input(text), text
+    except CRSError as exc:
+        raise DataError(f'{where}: {text!r} is not a coordinate reference system (write e.g. EPSG:32632, '
+                        f'a PROJ string or "WGS84 UTM 32N" on the first line): {exc}') from exc
+
+
+def _number(s: str, what: str, where: str) -> float:
+    try:
+        v = float(s)
+    except ValueError:
+        raise DataError(f'{where}: {what} {s!r} is not a number') from None
+    if not np.isfinite(v):
+        raise DataError(f'{where}: {what} is {s!r}: a finite number is needed')
+    return v
+
+
+def read_control_file(path: str | Path, check_names=(), heights: str = 'auto') -> ControlSet:
+    """Read a control-point file (see the module docstring) into a ControlSet in WGS84.
+
+    heights: 'auto' (EGM2008 orthometric when the CRS is compound with EGM2008 heights, else
+    ellipsoidal), 'ellipsoidal' or 'orthometric' (EGM2008, whatever the CRS says).
+    """
+    path = Path(path)
+    if heights not in HEIGHTS:
+        raise DataError(f'heights must be one of {list(HEIGHTS)}, got {heights!r}')
+    try:
+        raw = path.read_text().splitlines()
+    except (OSError, UnicodeDecodeError) as exc:
+        raise DataError(f'cannot read the control-point file {path}: {exc}') from exc
+    lines = [(i + 1, ln.split('#', 1)[0].strip()) for i, ln in enumerate(raw)]
+    lines = [(n, ln) for n, ln in lines if ln]
+    if not lines:
+        raise DataError(f'{path} is empty: the first line must be a CRS (e.g. EPSG:32632), then one line per '
+                        f'target: {FORMAT_LINE[2:]}')
+    crs_line, crs_text = lines[0]
+    crs, crs_name = _crs_of(crs_text, f'{path} line {crs_line}')
+    horizontal, orthometric = crs, heights == 'orthometric'
+    if crs.is_compound:
+        horizontal = crs.sub_crs_list[0]
+        vertical = crs.sub_crs_list[1]
+        if heights != 'ellipsoidal':
+            if vertical.to_epsg() != _EGM2008_HEIGHT_EPSG:
+                raise DataError(f'{path} line {crs_line}: heights in {vertical.name!r} cannot be converted here '
+                                f'(only the EGM2008 geoid ships with photogram_ros): give heights above the '
+                                f'ellipsoid with the CRS {horizontal.name!r}, or EGM2008 heights '
+                                f'(EPSG:{horizontal.to_epsg() or "XXXX"}+3855)')
+            orthometric = True
+    elif crs.is_vertical or len(crs.axis_info) not in (2, 3):
+        raise DataError(f'{path} line {crs_line}: {crs.name!r} is not a horizontal CRS with x, y')
+    geographic = horizontal.is_geographic
+    rows = []
+    for n, ln in lines[1:]:
+        where = f'{path} line {n}'
+        v = [s for s in re.split(r'[\s,]+', ln) if s]
+        if len(v) not in (5, 7):
+            raise DataError(f'{where}: expected "{FORMAT_LINE[2:]}" (5 or 7 values), got {len(v)}: {ln!r}')
+        name = v[0]
+        try:
+            marker = int(v[1])
+        except ValueError:
+            raise DataError(f'{where}: marker id {v[1]!r} of {name!r} is not a whole number (the ArUco id '
+                            'painted on the board)') from None
+        if marker < 0:
+            raise DataError(f'{where}: marker id {marker} of {name!r} is negative')
+        x, y, z = (_number(s, c, where) for s, c in zip(v[2:5], ('x', 'y', 'z')))
+        sig = [None, None]
+        if len(v) == 7:
+            sig = [_number(s, c, where) for s, c in zip(v[5:7], ('sigma_h_m', 'sigma_v_m'))]
+            if min(sig) <= 0:
+                raise DataError(f'{where}: sigmas of {name!r} must be positive metres, got {v[5]} {v[6]}')
+        if geographic and not (abs(y) <= 90 and abs(x) <= 360):
+            raise DataError(f'{where}: {name!r} at x={x}, y={y} is not a longitude, latitude pair (geographic '
+                            'files give the longitude first, as OpenDroneMap)')
+        rows.append((n, name, marker, x, y, z, sig))
+    if not rows:
+        raise DataError(f'{path} lists no targets after its CRS line: add "{FORMAT_LINE[2:]}" lines')
+    xs, ys, zs = (np.array([r[k] for r in rows]) for k in (3, 4, 5))
+    try:
+        lat, lon, h = crs_to_geodetic(xs, ys, zs, horizontal.to_wkt())
+    except GeodesyError as exc:
+        raise DataError(f'{path} line {crs_line}: {exc}') from exc
+    # A projected CRS still maps swapped or mistyped coordinates somewhere on Earth: compare with
+    # where the CRS is meant to be used (a few degrees of slack: UTM is used past its zone's edges).
+    area = horizontal.area_of_use
+    w, so, e, no = (area.west - 3, area.south - 3, area.east + 3, area.north + 3) if area else (-999, -90, 999, 90)
+    for r, la, lo in zip(rows, np.atleast_1d(lat), np.atleast_1d(lon)):
+        lo180 = (lo + 180.0) % 360.0 - 180.0 if np.isfinite(lo) else lo
+        if not (np.isfinite(la) and np.isfinite(lo) and abs(la) <= 90 and so <= la <= no
+                and (w <= lo180 <= e or w <= lo180 + 360 <= e)):
+            raise DataError(f'{path} line {r[0]}: {r[1]!r} at x={r[3]}, y={r[4]} is outside {crs_name} '
+                            '(wrong CRS or swapped columns?)')
+    lat, lon, h = np.atleast_1d(lat), np.atleast_1d(lon), np.atleast_1d(h).astype(float)
+    if orthometric:
+        h = geoid.msl_to_ellipsoid_m(lat, lon, zs)
+    targets = [SurveyedTarget(name, marker, float(la), float(lo), float(hh),
+                              'check' if is_check_name(name) else 'gcp', sig[0], sig[1])
+               for (_, name, marker, *_rest, sig), la, lo, hh in zip(rows, lat, lon, h)]
+    return ControlSet(targets, crs_name, str(path)).with_checks(check_names)
+
+
+def write_control_file(path: str | Path, control: ControlSet | list[SurveyedTarget], crs: str,
+                       comment: str = '') -> Path:
+    """Write targets (WGS84, ellipsoidal heights) in a projected or geographic 2D `crs`, heights
+    ellipsoidal, so that read_control_file gives them back."""
+    from pyproj import CRS
+    targets = control.targets if isinstance(control, ControlSet) else list(control)
+    c = CRS.from_user_input(crs)
+    if c.is_compound or len(c.axis_info) != 2:
+        raise DataError(f'write_control_file writes ellipsoidal heights: give a 2D CRS, not {c.name!r}')
+    lines = [crs, f'# {comment}' if comment else None,
+             '# heights above the WGS84 ellipsoid; names CHK* are check points (never used in the adjustment)',
+             FORMAT_LINE]
+    prec = 9 if c.is_geographic else 4
+    for t in targets:
+        x, y, _ = geodetic_to_crs(t.lat_deg, t.lon_deg, t.h_m, crs)
+        row = f'{t.name} {t.marker_id} {float(x):.{prec}f} {float(y):.{prec}f} {t.h_m:.4f}'
+        if t.sigma_h_m is not None and t.sigma_v_m is not None:
+            row += f' {t.sigma_h_m:.4f} {t.sigma_v_m:.4f}'
+        lines.append(row)
+    path = Path(path)
+    path.write_text('\n'.join(ln for ln in lines if ln is not None) + '\n')
+    return path
