@@ -312,31 +312,69 @@ def georeference_msg(lat_deg: float, lon_deg: float, h_m: float, stamp_ns: int, 
 
 
 # --- keyframe features (tracker -> bundle adjuster) ---------------------------------------------
+#
+# One PointCloud2 table per keyframe, fields track_id uint32, u, v, xn, yn float64 (FEATURE_DTYPE),
+# stamped like the keyframe image. Rows with track_id >= TARGET_TRACK_ID_BASE are not tracks but
+# ArUco targets found in the keyframe: marker id = track_id - TARGET_TRACK_ID_BASE, (u, v) the
+# marker centre. They ride in the same message so that no second topic has to be paired with the
+# keyframe; a reader that ignores them must drop those rows (features_from_keyframe_msg does).
+# Tracker ids count up from 0 and would need 4e9 tracks to reach the base.
+
+TARGET_TRACK_ID_BASE = 0xFFFF0000
+MAX_MARKER_ID = 0xFFFFFFFF - TARGET_TRACK_ID_BASE
 
 
-def keyframe_features_msg(observations: np.ndarray, stamp_ns: int, frame_id: str = 'camera_optical') -> PointCloud2:
-    """Keyframe observation table (core.tracker.FEATURE_DTYPE: track_id uint32, u, v, xn, yn) -> PointCloud2.
+def keyframe_features_msg(observations: np.ndarray, stamp_ns: int, frame_id: str = 'camera_optical',
+                          targets: np.ndarray | None = None) -> PointCloud2:
+    """Keyframe observation table (core.tracker.FEATURE_DTYPE: track_id uint32, u, v, xn, yn), plus the
+    ArUco targets of the keyframe (core.control.TARGET_DTYPE rows) in the reserved id range -> PointCloud2.
 
     Stamp it exactly like the keyframe image: subscribers pair the two by header stamp.
     """
+    from photogram_ros.core.tracker import FEATURE_DTYPE
     names = observations.dtype.names or ()
     missing = [n for n in ('track_id', 'u', 'v', 'xn', 'yn') if n not in names]
     if missing:
         raise DataError(f'keyframe features lack the fields {missing}; build them with core.tracker.FEATURE_DTYPE')
-    return pointcloud2_msg(observations, stamp_ns, frame_id)
+    ids = np.asarray(observations['track_id'], np.int64)
+    if len(ids) and ids.max() >= TARGET_TRACK_ID_BASE:
+        raise DataError(f'track id {ids.max()} is in the range reserved for targets (>= {TARGET_TRACK_ID_BASE})')
+    if targets is None or len(targets) == 0:
+        return pointcloud2_msg(observations, stamp_ns, frame_id)
+    marker = np.asarray(targets['marker_id'], np.int64)
+    if marker.min() < 0 or marker.max() > MAX_MARKER_ID:
+        raise DataError(f'marker ids must lie in [0, {MAX_MARKER_ID}], got {marker.min()}..{marker.max()}')
+    rows = np.empty(len(observations) + len(targets), FEATURE_DTYPE)
+    for n in FEATURE_DTYPE.names:
+        if n != 'track_id':
+            rows[n] = np.concatenate([observations[n], targets[n]])
+    rows['track_id'] = np.concatenate([ids, marker + TARGET_TRACK_ID_BASE])
+    return pointcloud2_msg(rows, stamp_ns, frame_id)
 
 
-def features_from_keyframe_msg(msg: PointCloud2) -> np.ndarray:
-    """PointCloud2 of keyframe features -> array of core.tracker.FEATURE_DTYPE (float32 fields widened)."""
+def keyframe_table_from_msg(msg: PointCloud2) -> tuple[np.ndarray, np.ndarray]:
+    """PointCloud2 of keyframe features -> (tracks as core.tracker.FEATURE_DTYPE, targets as
+    core.control.TARGET_DTYPE); float32 fields are widened."""
+    from photogram_ros.core.control import TARGET_DTYPE
     from photogram_ros.core.tracker import FEATURE_DTYPE
     pts = points_from_pointcloud2(msg)
     missing = [n for n in FEATURE_DTYPE.names if n not in (pts.dtype.names or ())]
     if missing:
         raise DataError(f'PointCloud2 is not a keyframe feature table: fields {missing} are missing')
-    out = np.empty(len(pts), FEATURE_DTYPE)
+    is_target = np.asarray(pts['track_id'], np.int64) >= TARGET_TRACK_ID_BASE
+    feats = np.empty(int((~is_target).sum()), FEATURE_DTYPE)
+    targets = np.empty(int(is_target.sum()), TARGET_DTYPE)
     for n in FEATURE_DTYPE.names:
-        out[n] = pts[n]
-    return out
+        feats[n] = pts[n][~is_target]
+        if n != 'track_id':
+            targets[n] = pts[n][is_target]
+    targets['marker_id'] = np.asarray(pts['track_id'][is_target], np.int64) - TARGET_TRACK_ID_BASE
+    return feats, targets
+
+
+def features_from_keyframe_msg(msg: PointCloud2) -> np.ndarray:
+    """PointCloud2 of keyframe features -> the tracks only (core.tracker.FEATURE_DTYPE; target rows dropped)."""
+    return keyframe_table_from_msg(msg)[0]
 
 
 def navsatfix_from_gps_fix(fix, frame_id: str = 'gps') -> NavSatFix:

@@ -3,8 +3,9 @@
 Subscribes `<image_topic>` (sensor_msgs/Image) and `<image_topic>/compressed` (CompressedImage),
 `camera_info_topic` and `fix_topic`. Publishes per keyframe, all with the keyframe image's stamp:
 /keyframes/image (Image bgr8), /keyframes/features (PointCloud2: track_id uint32, u, v, xn, yn
-float64; see core/tracker.py), /keyframes/fix (NavSatFix interpolated to the stamp, when GPS has
-one), optionally /tracker/debug_image, and /diagnostics.
+float64; see core/tracker.py; with `detect_targets` also the keyframe's ArUco targets, in the id
+range msgs.py reserves for them), /keyframes/fix (NavSatFix interpolated to the stamp, when GPS
+has one), optionally /tracker/debug_image, and /diagnostics.
 
 Frames go into a bounded slot and a worker thread tracks them; when frames come faster than the
 worker, the oldest waiting frame is dropped and counted, so the tracker never falls behind.
@@ -26,6 +27,7 @@ from sensor_msgs.msg import CameraInfo, CompressedImage, Image, NavSatFix, Point
 
 from photogram_ros import msgs
 from photogram_ros.core.camera import load_calibration
+from photogram_ros.core.control import ARUCO_DICTIONARIES, detect_keyframe_targets
 from photogram_ros.core.keyframes import GpsFix
 from photogram_ros.core.tracker import Tracker, TrackerParams
 from photogram_ros.errors import CalibrationError, PhotogramError
@@ -49,6 +51,10 @@ class TrackerNodeParams(TrackerParams):
                              min=1, max=10000)
     publish_debug_image: bool = param(False, 'Publish /tracker/debug_image with the tracks drawn')
     keyframe_qos_depth: int = param(20, 'History depth of the reliable keyframe publishers', min=1, max=10000)
+    detect_targets: bool = param(True, 'Find ArUco targets (GCPs, check points) in every keyframe and send them '
+                                 'with its features (a few ms per keyframe; bundle_node.control_file names them)')
+    target_dictionary: str = param('DICT_4X4_50', 'ArUco dictionary of the target boards',
+                                   choices=ARUCO_DICTIONARIES)
 
 
 class TrackerNode(Node):
@@ -182,9 +188,19 @@ class TrackerNode(Node):
         if self.pub_debug is not None:
             self._publish_debug(image, stamp_ns, frame_id)
 
+    def _detect_targets(self, kf):
+        if not self.params.detect_targets:
+            return None
+        t0 = time.perf_counter()
+        targets = detect_keyframe_targets(kf.image, self.tracker.camera, self.params.target_dictionary)
+        self.diag.set('target_detection_ms', (time.perf_counter() - t0) * 1e3)
+        self.diag.count('targets_detected', len(targets))
+        return targets
+
     def _publish_keyframe(self, kf, frame_id: str) -> None:
+        targets = self._detect_targets(kf)
         self.pub_image.publish(msgs.image_msg(kf.image, kf.stamp_ns, frame_id))
-        self.pub_features.publish(msgs.keyframe_features_msg(kf.observations, kf.stamp_ns, frame_id))
+        self.pub_features.publish(msgs.keyframe_features_msg(kf.observations, kf.stamp_ns, frame_id, targets))
         if kf.fix is not None:
             self.pub_fix.publish(msgs.navsatfix_from_gps_fix(kf.fix))
         else:
