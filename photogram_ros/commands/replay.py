@@ -14,6 +14,13 @@ def add_arguments(p) -> None:
     p.add_argument('--orthometric', action='store_true', help='heights above the EGM2008 geoid instead of the ellipsoid')
     p.add_argument('--min-pairs', type=int, default=2,
                    help='export only cells confirmed by this many stereo pairs (1 keeps everything)')
+    p.add_argument('--gcp', default='', help='control-point file of the flight\'s ArUco targets (first line a CRS, '
+                                         'then "name marker_id x y z [sigma_h_m sigma_v_m]"): GCPs constrain the '
+                                         'adjustment, CHK* names are check points; the simulator writes targets.txt')
+    p.add_argument('--check', default='', help='more check-point names of the --gcp file, comma separated')
+    p.add_argument('--gcp-heights', default='auto', choices=('auto', 'ellipsoidal', 'orthometric'),
+                   help='heights of the --gcp file (auto: EGM2008 orthometric only for a compound CRS, e.g. '
+                        'EPSG:32632+3855; else ellipsoidal)')
     p.add_argument('--quiet', action='store_true', help='no progress lines')
     p.add_argument('--processes', type=int, choices=(1, 2), default=2,
                    help='2 (default): the --child-nodes run in a second process, on a second core (one Python '
@@ -29,6 +36,7 @@ def run(a) -> int:
     import rclpy
 
     from photogram_ros.core.geodesy import utm_epsg
+    from photogram_ros.io.control_file import read_control_file
     from photogram_ros.io.export import export_map
     from photogram_ros.io.flight_report import build_report
     from photogram_ros.io.map_store import MapStore
@@ -39,11 +47,18 @@ def run(a) -> int:
     if params is None and Path('config/replay.yaml').exists():
         params = 'config/replay.yaml'
     out = Path(a.out)
+    control, extra = None, {}
+    if a.gcp:   # read here first: a bad file is reported before the replay starts
+        control = read_control_file(a.gcp, a.check.split(','), a.gcp_heights)
+        extra['bundle'] = {'control_file': str(Path(a.gcp).resolve()), 'check_names': a.check,
+                           'control_heights': a.gcp_heights}
+    elif a.check:
+        print('note: --check without --gcp has no effect (without a control file every target is a check point)')
     rclpy.init()
     try:
         child = tuple(r.strip() for r in a.child_nodes.split(',') if r.strip()) if a.processes == 2 else ()
         res = run_replay(ReplayOptions(bag=a.bag, out=str(out), params_file=params, rate=a.rate,
-                                       progress=not a.quiet, child_roles=child))
+                                       progress=not a.quiet, child_roles=child, extra=extra))
     finally:
         rclpy.try_shutdown()
     store = MapStore(res['map_dir'])
@@ -58,7 +73,7 @@ def run(a) -> int:
         files, notes = {k: str(v) for k, v in ex.files.items()}, ex.notes
         res['run']['map_points'] = ex.points
     truth = GroundTruth.load(a.bag) if GroundTruth.exists(a.bag) else None
-    figures = build_report(out, res['map_dir'], crs or 'EPSG:4326', files, truth=truth,
+    figures = build_report(out, res['map_dir'], crs or 'EPSG:4326', files, truth=truth, control=control,
                            run=res['run'], diagnostics=res['diagnostics'])
     (out / 'run.json').write_text(json.dumps({**res['run'], 'notes': notes}, indent=1, default=str))
     r = res['run']
@@ -69,6 +84,10 @@ def run(a) -> int:
     if cp and cp.get('count'):
         print(f"check points: RMSE horizontal {cp['horizontal_m'] * 100:.1f} cm, vertical {cp['z_m'] * 100:.1f} cm "
               f"over {cp['count']} targets")
+    gr = figures.get('gcp_residuals', {}).get('rmse')
+    if gr and gr.get('count'):
+        print(f"GCP residuals: RMSE horizontal {gr['horizontal_m'] * 100:.1f} cm, vertical {gr['z_m'] * 100:.1f} cm "
+              f"over {gr['count']} GCPs ({figures['gcp_residuals'].get('used_by_adjuster', '?')} used by the adjuster)")
     print(f'outputs in {out}/: ' + ', '.join(sorted(Path(f).name for f in files.values()))
           + ', report.html, report.md, report.json, trajectory.csv')
     for n in notes:

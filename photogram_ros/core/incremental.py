@@ -757,6 +757,26 @@ class IncrementalAT:
                 'spilled_mb': round(self._spill.bytes_on_disk / 1e6, 2) if self._spill else 0.0,
                 'freezing_stopped': self.freezing_stopped}
 
+    def set_control(self, control: list[ControlPoint]) -> None:
+        """Surveyed targets in this block's map frame; may come after the first keyframes (a flight
+        knows its origin only from the first fix): roles are looked up at every adjustment."""
+        self.control = {c.name: c for c in control}
+
+    def control_summary(self) -> dict:
+        """GCPs and check points: how many were observed, how many GCPs constrain the block (triangulated,
+        with their prior: georeferenced), and the RMS of the adjusted GCPs minus their survey (m)."""
+        seen = [n for n in self._target_ids if n in self.control]
+        gcps = [n for n in seen if not self._is_check(self._target_ids[n])]
+        used = [n for n in gcps if self._target_ids[n] in self.points] if self.georeferenced else []
+        r = np.array([self.points[self._target_ids[n]] - self.control[n].map_xyz for n in used]).reshape(-1, 3)
+        n_gcps = sum(c.role == 'gcp' for c in self.control.values()) if self.opt.use_gcps else 0
+        out = {'gcps': n_gcps, 'gcps_seen': len(gcps), 'gcps_used': len(used), 'checks_seen': len(seen) - len(gcps),
+               'gcp_residual_rms_h_m': float('nan'), 'gcp_residual_rms_v_m': float('nan')}
+        if len(r):
+            out['gcp_residual_rms_h_m'] = float(np.sqrt(np.mean(np.sum(r[:, :2] ** 2, axis=1))))
+            out['gcp_residual_rms_v_m'] = float(np.sqrt(np.mean(r[:, 2] ** 2)))
+        return out
+
     def _n_gcps(self) -> int:
         return sum(1 for n, t in self._target_ids.items() if t in self.points and not self._is_check(t))
 

@@ -4,6 +4,7 @@ Everything is read back from disk (map folder, GeoTIFFs, LAS), so the report des
 a user receives and can be rebuilt after the flight. Figures:
 - adjusted trajectory (CSV and GeoJSON, in the output CRS and WGS84, with omega-phi-kappa);
 - check points: found in the keyframes, triangulated from the adjusted poses, against their survey;
+  with a control file, its GCPs' residuals apart (they constrained the adjustment);
 - with ground truth: camera-centre errors, DSM and cloud against the true DEM, in metres and GSD;
 - what went wrong and when (from /diagnostics), and timing per node.
 """
@@ -22,6 +23,14 @@ from photogram_ros.core.geodesy import LocalFrame, crs_to_geodetic, geodetic_to_
 from photogram_ros.core.rotations import opk_from_map_R_cam
 from photogram_ros.io.map_store import MapStore
 from photogram_ros.io.report import Section, histogram_png, trajectory_png, write_report
+
+
+def _target_figures(res, gsd_m: float | None) -> dict:
+    rm = res.rmse()
+    out = {'rmse': rm, 'points': res.table(), 'not_seen': res.missing}
+    if gsd_m and rm['count']:
+        out['rmse_gsd'] = {'horizontal': rm['horizontal_m'] / gsd_m, 'vertical': rm['z_m'] / gsd_m}
+    return out
 
 
 def write_trajectory(out: Path, keyframes: list[dict], origin: LocalFrame, crs: str) -> dict:
@@ -64,12 +73,12 @@ def _truth_frame_for(truth, stamp_ns):
 
 
 def build_report(out_dir: str | Path, map_dir: str | Path, crs: str, files: dict, truth=None,
-                 gcp_targets: dict | None = None, run: dict | None = None, diagnostics: dict | None = None) -> dict:
+                 control=None, run: dict | None = None, diagnostics: dict | None = None) -> dict:
     """Write report.md/.html/.json into out_dir; returns the figures dictionary.
 
-    gcp_targets: marker_id -> (name, xyz in the map frame of `map_dir`) for real flights; for simulator
-    bags the truth's targets are used. run: timing and counts of the replay. diagnostics: node ->
-    {'problems': [...], 'values': {...}}.
+    control: the flight's core.control.ControlSet (check points and GCPs listed apart); without it the
+    truth's targets of a simulator bag are all check points. run: timing and counts of the replay.
+    diagnostics: node -> {'problems': [...], 'values': {...}}.
     """
     out = Path(out_dir)
     store = MapStore(map_dir)
@@ -93,34 +102,57 @@ def build_report(out_dir: str | Path, map_dir: str | Path, crs: str, files: dict
     traj = write_trajectory(out, kfs, origin, crs)
     Ts = np.array([k['map_T_cam'] for k in kfs])
 
-    # Check points: found in the keyframes, triangulated from the adjusted poses.
-    surveyed = dict(gcp_targets or {})
-    truth_frame = None
-    if truth is not None:
+    # Targets: found in the keyframes, triangulated from the adjusted poses. With a control file its
+    # check points are the check points and its GCPs are listed apart (the adjustment used them);
+    # without one every target of the truth is a check point (nothing constrained the block to them).
+    checks_surveyed, gcps_surveyed = {}, {}
+    if control is not None:
+        for t, c in zip(control.targets, control.in_map(origin)):
+            (checks_surveyed if t.role == 'check' else gcps_surveyed)[t.marker_id] = (t.name, c.map_xyz)
+    elif truth is not None:
         # Truth is in its own ENU; the map may be anchored elsewhere: go through ECEF.
-        truth_frame = truth.origin
         for t in truth.targets:
-            surveyed[t.marker_id] = (t.name, origin.ecef_to_enu(truth_frame.enu_to_ecef(t.center_enu)))
+            checks_surveyed[t.marker_id] = (t.name, origin.ecef_to_enu(truth.origin.enu_to_ecef(t.center_enu)))
     detections = []
-    for kf in kfs:
-        img = cv2.imread(str(kf['image_path']), cv2.IMREAD_GRAYSCALE)
-        detections.append(detect_targets(img) if img is not None else [])
-    checks = triangulate_targets(cam, Ts, detections, surveyed) if surveyed else None
-    sec = Section('Check points', ['Targets found in the keyframes and triangulated from the adjusted cameras '
-                                   '(never used in the adjustment), against their surveyed coordinates.'])
+    if checks_surveyed or gcps_surveyed:
+        for kf in kfs:
+            img = cv2.imread(str(kf['image_path']), cv2.IMREAD_GRAYSCALE)
+            detections.append(detect_targets(img) if img is not None else [])
+    gsd = truth.gsd_m if truth is not None else None
+    checks = triangulate_targets(cam, Ts, detections, checks_surveyed) if checks_surveyed else None
+    intro = ('Targets found in the keyframes and triangulated from the adjusted cameras (never used in the '
+             'adjustment), against their surveyed coordinates'
+             + (f' ({control.source}).' if control is not None else '.'))
+    sec = Section('Check points', [intro])
     if checks is not None:
-        rm = checks.rmse()
-        figures['check_points'] = {'rmse': rm, 'points': checks.table(), 'not_seen': checks.missing}
-        if truth is not None and rm['count']:
-            figures['check_points']['rmse_gsd'] = {'horizontal': rm['horizontal_m'] / truth.gsd_m,
-                                                  'vertical': rm['z_m'] / truth.gsd_m}
+        figures['check_points'] = _target_figures(checks, gsd)
         sec.tables.append(('Residuals (estimated - surveyed), m', checks.table()))
-        sec.tables.append(('RMSE, m', [rm]))
+        sec.tables.append(('RMSE, m', [figures['check_points']['rmse']]))
         if checks.missing:
             sec.text.append(f'Not seen in two or more keyframes: {", ".join(checks.missing)}.')
+    elif control is not None:
+        sec.text.append(f'{control.source} names no check point (CHK* or --check): the accuracy of this map is '
+                        'not measured.')
     else:
-        sec.text.append('No surveyed targets given (use --gcp gcp_list.txt).')
+        sec.text.append('No surveyed targets given (use --gcp targets.txt).')
     sections.append(sec)
+    if gcps_surveyed:
+        gcps = triangulate_targets(cam, Ts, detections, gcps_surveyed)
+        figures['gcp_residuals'] = _target_figures(gcps, gsd)
+        bundle = next((d for n, d in (diagnostics or {}).items() if n.endswith('bundle_node')), {})
+        used = bundle.get('values', {}).get('gcps_used')
+        if used is not None:
+            used = figures['gcp_residuals']['used_by_adjuster'] = int(float(used))
+        sec = Section('GCP residuals', [
+            'Ground control points constrained the adjustment: their residuals (triangulated from the adjusted '
+            'cameras minus surveyed) show how well the block fits them, not its accuracy (see the check points).'
+            + (f' The adjuster used {used} of {len(gcps_surveyed)} GCPs.' if used is not None else '')])
+        sec.tables.append(('Residuals (estimated - surveyed), m', gcps.table()))
+        sec.tables.append(('RMSE, m', [figures['gcp_residuals']['rmse']]))
+        if gcps.missing:
+            sec.text.append(f'Not seen in two or more keyframes: {", ".join(gcps.missing)}.')
+        sections.append(sec)
+    surveyed = {**gcps_surveyed, **checks_surveyed}
 
     if truth is not None:
         sections.append(_truth_section(out, truth, origin, crs, kfs, files, figures))

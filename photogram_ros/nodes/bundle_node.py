@@ -1,7 +1,8 @@
 """Bundle node: incremental aerial triangulation of the keyframes, with GNSS priors, in flight.
 
 Inputs (relative names, so a namespace per drone works):
-  keyframes/features  PointCloud2 table (track_id uint32, u, v, xn, yn), stamped like its keyframe
+  keyframes/features  PointCloud2 table (track_id uint32, u, v, xn, yn), stamped like its keyframe; rows
+                      in the target id range (msgs.py) are ArUco targets the tracker found
   keyframes/fix       NavSatFix interpolated to the keyframe time (ENU diagonal covariance,
                       ellipsoidal altitude); optional: a keyframe without a fix is adjusted without
   keyframes/image     Image (only counted: geometry needs the features alone)
@@ -16,7 +17,12 @@ Outputs:
   map/georeference    NavSatFix (latched): latitude, longitude and ellipsoidal altitude of the
                       origin of `map` (ENU tangent there). The origin is the configured one or the
                       first keyframe fix. Published once the block is georeferenced.
-  /diagnostics        solve time, cost, reprojection RMS, GNSS residual RMS, window size
+  /diagnostics        solve time, cost, reprojection RMS, GNSS residual RMS, window size; with a
+                      control file GCPs seen / used, GCP residual RMS, check points seen, unknown markers
+
+Ground control (`control_file`, io/control_file.py): targets named in the file become GCPs (point
+priors) or check points (never used), in the map frame as soon as its origin is known; markers
+the file does not name are counted and ignored.
 
 Threading: callbacks only queue what arrives; a worker thread of the node runs the adjustments
 (numpy/scipy release the GIL in their kernels), so a several-second adjustment never holds an
@@ -44,6 +50,7 @@ from sensor_msgs.msg import CameraInfo, Image, NavSatFix, PointCloud2
 from std_msgs.msg import Empty
 
 from photogram_ros import msgs
+from photogram_ros.core.control import ControlSet
 from photogram_ros.core.geodesy import LocalFrame
 from photogram_ros.core.incremental import GnssFix, IncrementalAT, IncrementalOptions, KeyframeRecord
 from photogram_ros.errors import ConfigError, PhotogramError
@@ -94,6 +101,17 @@ class BundleNodeParams:
     covariance_every: int = param(3, 'recompute the marginal covariance every this many window updates (it costs '
                                      'about a fifth of an update); poses in between reuse their last one',
                                   min=1, max=100)
+    control_file: str = param('', 'surveyed targets (first line a CRS, then "name marker_id x y z [sigma_h_m '
+                                  'sigma_v_m]"; names CHK* are check points): the tracker\'s ArUco detections '
+                                  'become GCPs and check points; "" = none')
+    check_names: str = param('', 'more check points of control_file (never used in the adjustment), comma separated')
+    control_heights: str = param('auto', 'heights of control_file: ellipsoidal, orthometric (EGM2008), or auto '
+                                 '(orthometric when its CRS is compound with EGM2008 heights)',
+                                 choices=('auto', 'ellipsoidal', 'orthometric'))
+    gcp_sigma_h_m: float = param(0.0, 'horizontal sigma of every GCP, m (0: the file\'s, 0.02 m where it gives none)',
+                                 min=0.0, max=100.0)
+    gcp_sigma_v_m: float = param(0.0, 'vertical sigma of every GCP, m (0: the file\'s, 0.03 m where it gives none)',
+                                 min=0.0, max=100.0)
     publish_provisional: bool = param(False, 'publish poses while the georeference is still provisional (a '
                                              'straight first line leaves the roll about it to an assumption '
                                              'until the first turn); off, poses start at the first turn')
@@ -108,9 +126,15 @@ class BundleNode(Node):
         super().__init__('bundle_node', **node_kwargs)
         self.p = declare(self, BundleNodeParams, overrides)
         self.diag = Diagnostics(self)
+        self.control: ControlSet | None = None
+        if self.p.control_file:   # a bad file stops the start, naming the line
+            from photogram_ros.io.control_file import read_control_file
+            self.control = read_control_file(self.p.control_file, self.p.check_names.split(','),
+                                             self.p.control_heights)
+        self._control_in_map = False
         self.at: IncrementalAT | None = None
         self.camera = None
-        self._pending: dict[int, tuple[float, np.ndarray, np.ndarray]] = {}   # stamp -> (arrival, ids, uv)
+        self._pending: dict[int, tuple] = {}   # stamp -> (arrival, track ids, uv, {target name: uv})
         self._fixes: dict[int, GnssFix] = {}
         self._georef_sent = False
         self._latest_fix_ns = None
@@ -163,7 +187,15 @@ class BundleNode(Node):
         self._window_iterations = opt.window_iterations
         with self._work:
             self.at = IncrementalAT(self.camera, opt, origin=origin)
+            self._control_to_map()
         self._wake()
+
+    def _control_to_map(self) -> None:
+        """Surveyed targets into `map`, once: when the origin is configured or set by the first fix."""
+        if self.control is None or self._control_in_map or self.at.origin is None:
+            return
+        self.at.set_control(self.control.in_map(self.at.origin, self.p.gcp_sigma_h_m, self.p.gcp_sigma_v_m))
+        self._control_in_map = True
 
     def _on_fix(self, msg: NavSatFix) -> None:
         try:
@@ -188,15 +220,20 @@ class BundleNode(Node):
 
     def _on_features(self, msg: PointCloud2) -> None:
         try:
-            obs = msgs.features_from_keyframe_msg(msg)
+            obs, targets = msgs.keyframe_table_from_msg(msg)
             uv = np.column_stack([obs['u'], obs['v']])
-            if not np.all(np.isfinite(uv)):
+            if not np.all(np.isfinite(uv)) or not np.all(np.isfinite(targets['u'])):
                 raise PhotogramError('non-finite pixel coordinates')
             stamp = msgs.ns_from_time(msg.header.stamp)
+            target_uv, unknown = self.control.target_uv(targets) if self.control is not None else ({}, len(targets))
             with self._cond:
-                self._pending[stamp] = (time.monotonic(), obs['track_id'].astype(np.int64), uv)
+                self._pending[stamp] = (time.monotonic(), obs['track_id'].astype(np.int64), uv, target_uv)
                 self._cond.notify()
             self.diag.count('keyframes_received')
+            if len(targets):
+                self.diag.count('target_detections', len(targets))
+            if unknown:
+                self.diag.count('target_detections_ignored', unknown)   # no control file, or not in it
         except Exception as exc:
             self.diag.problem(f'bad keyframe features: {exc}')
 
@@ -223,7 +260,7 @@ class BundleNode(Node):
             return []
         now, out = time.monotonic(), []
         for stamp in sorted(self._pending):
-            arrived, ids, uv = self._pending[stamp]
+            arrived, ids, uv, target_uv = self._pending[stamp]
             fix = self._match_fix(stamp)
             # Keyframe fixes come in stamp order: once a later one is in, this one has none (outage).
             later_fix = self._latest_fix_ns is not None and self._latest_fix_ns > stamp + self.p.sync_tolerance_ms * 1e6
@@ -232,7 +269,7 @@ class BundleNode(Node):
             del self._pending[stamp]
             if fix is None:
                 self.diag.count('keyframes_without_fix')
-            out.append(KeyframeRecord(stamp, ids, uv, fix))
+            out.append(KeyframeRecord(stamp, ids, uv, fix, target_uv=target_uv))
         # Fixes older than every pending keyframe will never match.
         oldest = min(self._pending, default=None)
         for s in [s for s in self._fixes if oldest is None or s < oldest - 10**9 * 10]:
@@ -298,6 +335,7 @@ class BundleNode(Node):
         except Exception as exc:
             self.diag.problem(f'keyframe {rec.stamp_ns} failed: {exc}')
             return
+        self._control_to_map()
         if not publish:
             if rep.registered:
                 self.diag.count('keyframes_oriented')
@@ -314,6 +352,7 @@ class BundleNode(Node):
         self.diag.set('window_size', rep.window_size)
         self.diag.set('points', len(self.at.points))
         self.diag.set('georeferenced', 'provisional' if self.at.georef_provisional else str(self.at.georeferenced))
+        self._control_diagnostics()
         earlier, self._unpublished = self._unpublished, 0
         if not (self.at.georeferenced and rep.registered):
             return
@@ -325,6 +364,13 @@ class BundleNode(Node):
             self._publish(window=list(self.at.registered))
         else:
             self._publish(window=self.at.registered[-(self.p.window_size + earlier):], new=1 + earlier)
+
+    def _control_diagnostics(self) -> None:
+        if self.control is None:
+            return
+        for k, v in self.at.control_summary().items():
+            self.diag.set(k, v)
+        self.diag.set('gnss_bias_enu_m', ' '.join(f'{v:.3f}' for v in self.at.gnss_bias_enu))
 
     def _publish(self, window, new: int = 1) -> None:
         """Poses of `window`, the path, and the sparse cloud once `new` keyframes make cloud_every."""
@@ -401,8 +447,10 @@ class BundleNode(Node):
             return
         with self._work:   # after the batch the worker may be adjusting
             with self._cond:
-                recs = [KeyframeRecord(stamp, *self._pending.pop(stamp)[1:], self._match_fix(stamp))
-                        for stamp in sorted(self._pending)]
+                recs = []
+                for stamp in sorted(self._pending):
+                    _, ids, uv, target_uv = self._pending.pop(stamp)
+                    recs.append(KeyframeRecord(stamp, ids, uv, self._match_fix(stamp), target_uv=target_uv))
             for rec in recs:
                 self._process(rec)
             self.full_adjustment()
@@ -419,6 +467,7 @@ class BundleNode(Node):
             rep = self.at.full_adjustment()
             self.diag.set('full_adjustment_s', time.perf_counter() - t0)
             self.diag.set('full_adjustment_rms_px', float(rep.reprojection_rms_px))
+            self._control_diagnostics()
             if self.at.georeferenced:
                 self._publish(window=list(self.at.registered), new=0)
                 self.publish_cloud(self.at.kfs[self.at.registered[-1]].stamp_ns)
