@@ -33,9 +33,10 @@ def evaluate(scene_dir, params: stereo.StereoParams, repeats: int = 3) -> list[d
     rows = []
     plain = stereo.make_sgbm(params, 0, num, filtered=False)
     ours = stereo.make_sgbm(params, 0, num)
-    variants = {'ours': params, 'ours_lr_on': replace(params, lr_check=True),
+    variants = {'ours': params, 'ours_lr_on': replace(params, lr_check=True, lr_scale=1.0),
+                'ours_lr_half': replace(params, lr_check=True, lr_scale=0.5),
                 'ours_lr_off': replace(params, lr_check=False)}
-    for method in ('plain_sgbm', 'ours', 'ours_lr_on', 'ours_lr_off'):
+    for method in ('plain_sgbm', 'ours', 'ours_lr_on', 'ours_lr_half', 'ours_lr_off'):
         best = float('inf')
         for _ in range(repeats):
             t0 = time.perf_counter()

@@ -54,6 +54,8 @@ class StereoParams:
     lr_check: bool = param(True, 'left-right consistency check: a second SGBM on the flipped, swapped pair '
                                  'gives the right view\'s disparity; left pixels whose match disagrees are '
                                  'dropped (occlusions, mismatches). About doubles the SGBM time')
+    lr_scale: float = param(1.0, 'resolution of the right view\'s SGBM for the left-right check (0.5: half, '
+                                 'an eighth of the work; tolerance widened by a pixel)', min=0.25, max=1.0)
     lr_max_diff_px: float = param(1.0, 'left-right consistency tolerance |dL(x) - dR(x - dL)|, pixels '
                                        '(sub-pixel; used when lr_check is on)', min=0.0, max=16.0)
     pre_filter_cap: int = param(31, 'SGBM prefilter clipping of the x-derivative', min=1, max=63)
@@ -169,12 +171,42 @@ def match(left_grey: np.ndarray, right_grey: np.ndarray, params: StereoParams, m
     t0 = time.perf_counter()
     raw = _left_view(sgbm, left_grey, right_grey, min_disparity + num_disparities)
     t_lr = time.perf_counter()
-    raw_right = _right_view(sgbm, left_grey, right_grey, min_disparity + num_disparities) \
-        if params.lr_check else None
+    raw_right = None
+    if params.lr_check:
+        lo, num = _found_range(raw, min_disparity, num_disparities, params.lr_max_diff_px)
+        if params.lr_scale < 1.0:
+            raw_right = _right_view_scaled(params, left_grey, right_grey, lo, num)
+        else:
+            right = sgbm if (lo, num) == (min_disparity, num_disparities) else make_sgbm(params, lo, num)
+            raw_right = _right_view(right, left_grey, right_grey, lo + num)
     t1 = time.perf_counter()
     out = _filter(raw, min_disparity, left_grey, params, raw_right)
     out.sgbm_ms, out.lr_ms, out.filter_ms = (t_lr - t0) * 1e3, (t1 - t_lr) * 1e3, (time.perf_counter() - t1) * 1e3
     return out
+
+
+def _found_range(raw: np.ndarray, min_disparity: int, num_disparities: int, tol_px: float) -> tuple[int, int]:
+    """(min, num) disparities for the right view's search: the range the left view found, not the
+    range it searched.
+
+    A survey pair's search range covers every height the terrain and buildings could have (often
+    192 px); the disparities found span a fraction of it. A right pixel's disparity is a left
+    pixel's, so searching only the found range (0.5-99.5 percentiles, widened by the check's
+    tolerance) costs that fraction of a second full SGBM; a left pixel outside it fails the check,
+    as the outlier it almost always is.
+    """
+    # Disparities at the ends of the search are no measurement (the cost fell off the range: the
+    # padding beside the image, mostly) and would stretch the found range to the searched one.
+    valid = raw.ravel()[::4]
+    valid = valid[(valid > min_disparity * 16) & (valid < (min_disparity + num_disparities - 1) * 16)]
+    if valid.size < 100:
+        return min_disparity, num_disparities
+    lo_q, hi_q = np.percentile(valid, (0.5, 99.5)) / 16.0
+    margin = int(np.ceil(tol_px)) + 2
+    lo = max(int(np.floor(lo_q)) - margin, min_disparity)
+    num = min(16 * int(np.ceil((np.ceil(hi_q) + margin - lo) / 16)), num_disparities)
+    lo = min(lo, min_disparity + num_disparities - num)
+    return lo, num
 
 
 def _left_view(sgbm, left_grey: np.ndarray, right_grey: np.ndarray, max_disparity: int) -> np.ndarray:
@@ -209,6 +241,25 @@ def _right_view(sgbm, left_grey: np.ndarray, right_grey: np.ndarray, max_dispari
     return cv2.flip(sgbm.compute(fr, fl)[:, pad:], 1)
 
 
+def _right_view_scaled(params: StereoParams, left_grey: np.ndarray, right_grey: np.ndarray, lo: int,
+                       num: int) -> np.ndarray:
+    """The right view's disparity from images scaled by lr_scale, back at full size and scale.
+
+    The check is after occlusions and gross mismatches, errors of many pixels, which a coarser
+    right view sees as well at a fraction of the cost (a quarter of the pixels and half the
+    disparities at half size); invalid pixels stay invalid (very negative).
+    """
+    H, W = left_grey.shape
+    s = params.lr_scale
+    size = (max(int(round(W * s)), 16), max(int(round(H * s)), 16))
+    ls, rs = (cv2.resize(im, size, interpolation=cv2.INTER_AREA) for im in (left_grey, right_grey))
+    lo_s = int(np.floor(lo * s))
+    num_s = 16 * int(np.ceil((np.ceil((lo + num) * s) - lo_s + 1) / 16))
+    raw_s = _right_view(make_sgbm(params, lo_s, num_s), ls, rs, lo_s + num_s).astype(np.int32)
+    raw_s = np.where(raw_s >= lo_s * 16, np.round(raw_s / s), -(1 << 20)).astype(np.int32)
+    return cv2.resize(raw_s.astype(np.float32), (W, H), interpolation=cv2.INTER_NEAREST).astype(np.int32)
+
+
 def lr_inconsistent(raw_left: np.ndarray, raw_right: np.ndarray, min_disparity: int, max_diff_px: float) -> np.ndarray:
     """True where left pixel x with disparity d fails |dL(x) - dR(round(x - d))| <= max_diff_px.
 
@@ -240,7 +291,8 @@ def _filter(raw: np.ndarray, min_disparity: int, left_grey: np.ndarray, params: 
     dev = cv2.absdiff(d, cv2.medianBlur(d, 3))
     bad = (raw < min_disparity * 16) | (dev > np.float32(params.max_local_dev_px))
     if raw_right is not None:
-        bad |= lr_inconsistent(raw, raw_right, min_disparity, params.lr_max_diff_px)
+        tol = params.lr_max_diff_px + (1.0 if params.lr_scale < 1.0 else 0.0)
+        bad |= lr_inconsistent(raw, raw_right, min_disparity, tol)
     bs = params.block_size
     g = cv2.add(cv2.convertScaleAbs(cv2.Sobel(left_grey, cv2.CV_16S, 1, 0, ksize=3), alpha=0.125),
                 cv2.convertScaleAbs(cv2.Sobel(left_grey, cv2.CV_16S, 0, 1, ksize=3), alpha=0.125))
@@ -303,16 +355,26 @@ def fill_holes(D: np.ndarray, holes: np.ndarray, max_dist_px: float, max_rms_px:
     cand = narrow[labels]
     if not cand.any():
         return cand
-    r = int(np.ceil(max_dist_px)) + margin_px + 2
     H, W = D.shape
-    # Window sums of the plane-fit moments (float64: sums of u^2 over a window lose digits in float32);
-    # coordinates about the image centre keep them small.
+    # Window sums of the plane-fit moments over 2x2-pooled cells (the window spans tens of pixels, so
+    # a quarter of the pixels loses nothing; float64: sums of u^2 over a window lose digits in
+    # float32); coordinates about the image centre keep them small.
+    r2 = (int(np.ceil(max_dist_px)) + margin_px + 3) // 2
     m = valid.astype(np.float64)
     u = (np.arange(W, dtype=np.float64) - W / 2)[None, :] * m
     v = (np.arange(H, dtype=np.float64) - H / 2)[:, None] * m
     d = np.where(valid, D, 0.0).astype(np.float64)
-    win = lambda a: cv2.boxFilter(a, cv2.CV_64F, (2 * r + 1, 2 * r + 1), normalize=False,  # noqa: E731
-                                  borderType=cv2.BORDER_CONSTANT)[cand]
+    jj, ii = np.nonzero(cand)
+    cj, ci = jj // 2, ii // 2
+
+    cj, ci = np.minimum(cj, H // 2 - 1), np.minimum(ci, W // 2 - 1)   # an odd last row/column joins its neighbour
+    he, we = H - H % 2, W - W % 2
+
+    def win(a):
+        pooled = a[0:he:2, 0:we:2] + a[1:he:2, 0:we:2] + a[0:he:2, 1:we:2] + a[1:he:2, 1:we:2]
+        return cv2.boxFilter(pooled, cv2.CV_64F, (2 * r2 + 1, 2 * r2 + 1), normalize=False,
+                             borderType=cv2.BORDER_CONSTANT)[cj, ci]
+
     cnt, su, sv, sd = win(m), win(u), win(v), win(d)
     suu, suv, svv = win(u * u), win(u * v), win(v * v)
     sud, svd, sdd = win(u * d), win(v * d), win(d * d)
@@ -326,7 +388,7 @@ def fill_holes(D: np.ndarray, holes: np.ndarray, max_dist_px: float, max_rms_px:
         rms = np.sqrt(np.maximum(cdd - a * cud - b * cvd, 0.0) / cnt)
         # Spread in both directions: a matched line (a roof ridge alone) fixes no plane.
         spread = np.sqrt(np.maximum(np.minimum(cuu, cvv) / cnt, 0.0))
-    jj, ii = np.nonzero(cand)
+    r = 2 * r2 + 1     # the window's half width in pixels
     ok = (cnt >= 0.1 * (2 * r + 1) ** 2) & (rms <= max_rms_px) & (spread >= 0.2 * r) & np.isfinite(a + b)
     lab = labels[jj, ii]
     share = np.bincount(lab[ok], minlength=n) / np.maximum(np.bincount(lab, minlength=n), 1)
