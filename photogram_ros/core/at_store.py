@@ -141,7 +141,10 @@ class PointStore:
 
     def contains_many(self, ids) -> np.ndarray:
         ids = np.asarray(ids, np.int64).ravel()
-        hot = np.isin(ids, np.fromiter(self._hot.keys(), np.int64, len(self._hot)))
+        # Dict lookups per queried id: the queries are a keyframe's tracks, the hot set can be the whole
+        # block (freezing stops when track ids come back), so no array of the hot ids per call.
+        hot_d = self._hot
+        hot = np.fromiter((t in hot_d for t in ids.tolist()), bool, len(ids))
         return hot | (self._frozen_rows(ids) >= 0)
 
     def get_many(self, ids) -> np.ndarray:
