@@ -1,0 +1,73 @@
+"""Body attitude over time, and the GNSS antenna offset it gives for a gimballed camera.
+
+A gimbal holds the camera near nadir while the body pitches into the wind and rolls in turns, so
+the antenna (fixed to the body) is not at a fixed place in the camera frame: at 5 m/s a multirotor
+flies about 5 degrees nose down, and a 20 cm mast then puts the antenna 1.7 cm further along the
+course than the camera-frame lever arm says: an error that flips with every line, which the
+adjustment can only absorb by tilting the cameras. With the autopilot's attitude the offset is
+exact: antenna - camera centre = ENU_R_FLU(t) @ lever_FLU, the lever arm measured in the body.
+
+Attitudes are REP-103 (body FLU in ENU), as mavlink_node publishes them; lever arms are given in
+body FRD (the autopilot's frame, how integrators measure them) and converted here.
+"""
+
+from __future__ import annotations
+
+import bisect
+
+import numpy as np
+from scipy.spatial.transform import Rotation, Slerp
+
+FLU_FROM_FRD = np.diag([1.0, -1.0, -1.0])
+
+
+def antenna_offset_enu(enu_R_flu: np.ndarray, lever_arm_frd_m) -> np.ndarray:
+    """Antenna minus camera centre in ENU (m) for a lever arm in body FRD (m) and a body attitude."""
+    return np.asarray(enu_R_flu, float) @ (FLU_FROM_FRD @ np.asarray(lever_arm_frd_m, float))
+
+
+class AttitudeHistory:
+    """Recent body attitudes by stamp; `at(stamp)` interpolates between the two around it.
+
+    Keeps `max_age_ns` of history behind the newest sample (keyframes reach the bundle adjuster a
+    few seconds after their exposure). A stamp further than `max_gap_ns` from a sample on either
+    side (an attitude outage, or a keyframe older than the history) has no attitude: None.
+    """
+
+    def __init__(self, max_age_ns: int = 30_000_000_000, max_gap_ns: int = 200_000_000):
+        self.max_age_ns, self.max_gap_ns = int(max_age_ns), int(max_gap_ns)
+        self._t: list[int] = []
+        self._q: list[np.ndarray] = []
+
+    def __len__(self) -> int:
+        return len(self._t)
+
+    def add(self, stamp_ns: int, q_xyzw) -> None:
+        q = np.asarray(q_xyzw, float)
+        n = float(np.linalg.norm(q))
+        if not np.isfinite(n) or n < 1e-6:
+            return
+        stamp_ns = int(stamp_ns)
+        k = bisect.bisect_left(self._t, stamp_ns)
+        if k < len(self._t) and self._t[k] == stamp_ns:
+            self._q[k] = q / n
+        else:
+            self._t.insert(k, stamp_ns)
+            self._q.insert(k, q / n)
+        cut = bisect.bisect_left(self._t, self._t[-1] - self.max_age_ns)
+        if cut:
+            del self._t[:cut], self._q[:cut]
+
+    def at(self, stamp_ns: int) -> np.ndarray | None:
+        """ENU_R_FLU at `stamp_ns`, or None without a sample within max_gap_ns on both sides."""
+        t = self._t
+        k = bisect.bisect_left(t, int(stamp_ns))
+        if k < len(t) and t[k] == stamp_ns:
+            return Rotation.from_quat(self._q[k]).as_matrix()
+        if k == 0 or k == len(t):
+            return None
+        t0, t1 = t[k - 1], t[k]
+        if stamp_ns - t0 > self.max_gap_ns or t1 - stamp_ns > self.max_gap_ns:
+            return None
+        s = Slerp([0.0, float(t1 - t0)], Rotation.from_quat([self._q[k - 1], self._q[k]]))
+        return s([float(stamp_ns - t0)]).as_matrix()[0]
