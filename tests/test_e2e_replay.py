@@ -78,3 +78,19 @@ def test_report_lists_nodes_and_run(replay):
     assert 'Check points' in html and 'data:image/png;base64' in html
     rows = (out / 'trajectory.csv').read_text().splitlines()
     assert rows[0].startswith('image,stamp_ns,easting_m') and len(rows) == rep['keyframes'] + 1
+
+
+def test_report_with_a_control_file_lists_gcps_apart(replay, sample_bag, tmp_path):
+    """The same map reported with the bag's targets file: only CHK* are check points, the GCPs have their
+    own table; the replay without --gcp saw every target, found by the tracker, and ignored them."""
+    from photogram_ros.io.control_file import read_control_file
+    from photogram_ros.io.flight_report import build_report
+    out, rep, truth, _ = replay
+    assert rep['check_points']['rmse']['count'] == len(truth.targets) and 'gcp_residuals' not in rep
+    bundle = rep['nodes']['/bundle_node']['values']
+    assert bundle['target_detections'] > 0 and bundle['target_detections_ignored'] == bundle['target_detections']
+    fig = build_report(tmp_path, out / 'map', 'EPSG:32632', {}, control=read_control_file(sample_bag / 'targets.txt'))
+    assert sorted(p['name'] for p in fig['check_points']['points']) == ['CHK01', 'CHK02', 'CHK03', 'CHK04']
+    assert sorted(p['name'] for p in fig['gcp_residuals']['points']) == ['GCP01', 'GCP02', 'GCP03', 'GCP04', 'GCP05']
+    assert fig['gcp_residuals']['rmse']['horizontal_m'] <= 1.5 * truth.gsd_m
+    assert 'GCP residuals' in (tmp_path / 'report.md').read_text()

@@ -4,9 +4,11 @@ Issue 5's figure: check points within 1.5 GSD horizontal and 2.5 GSD vertical wi
 flight without them is off by the receiver's metres, which proves the GCPs are what does it.
 - bundle_node over real topics (CI): keyframes from the simulator truth with target rows in the
   features table (the tracker's protocol), a control file, /diagnostics.
-- the whole graph on a rendered flight: `photogram-ros replay BAG --gcp BAG/targets.txt`, the tracker
-  detecting the markers, and the flight report's check points against the truth (about 60 s: a 27-frame
-  flight rendered, then replayed with and without the GCPs).
+- the whole graph on a rendered flight (slow: 60 s on a quiet machine, 110 s under load; a 27-frame
+  flight rendered, then replayed with and without the GCPs): `photogram-ros replay BAG --gcp
+  BAG/targets.txt`, the tracker detecting the markers, the flight report's check points against the
+  truth. In CI the pieces run apart: this node test, the tracker's detections on the sample bag
+  (test_tracker_node.py) and the report with a control file (test_e2e_replay.py).
 """
 
 import json
@@ -179,6 +181,7 @@ def _replay(bag, out, *args):
     return json.loads((out / 'report.json').read_text()), r.stdout
 
 
+@pytest.mark.slow
 def test_replay_with_gcps_reaches_the_issue_figure(bag_3d, tmp_path):
     """The whole graph: tracker detection, bundle with the control file, report from the file."""
     from photogram_ros.sim.truth import GroundTruth
