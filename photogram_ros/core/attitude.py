@@ -31,16 +31,22 @@ class AttitudeHistory:
 
     Keeps `max_age_ns` of history behind the newest sample (keyframes reach the bundle adjuster a
     few seconds after their exposure). A stamp further than `max_gap_ns` from a sample on either
-    side (an attitude outage, or a keyframe older than the history) has no attitude: None.
+    side (an attitude outage, or a keyframe older than the history) has no attitude: None. Within
+    `hold_ns` beyond the first or the newest sample the end sample holds: clock mapping puts an
+    attitude taken with the exposure a fraction of a millisecond to either side of its stamp.
     """
 
-    def __init__(self, max_age_ns: int = 30_000_000_000, max_gap_ns: int = 200_000_000):
-        self.max_age_ns, self.max_gap_ns = int(max_age_ns), int(max_gap_ns)
+    def __init__(self, max_age_ns: int = 30_000_000_000, max_gap_ns: int = 200_000_000, hold_ns: int = 20_000_000):
+        self.max_age_ns, self.max_gap_ns, self.hold_ns = int(max_age_ns), int(max_gap_ns), int(hold_ns)
         self._t: list[int] = []
         self._q: list[np.ndarray] = []
 
     def __len__(self) -> int:
         return len(self._t)
+
+    @property
+    def newest_ns(self) -> int | None:
+        return self._t[-1] if self._t else None
 
     def add(self, stamp_ns: int, q_xyzw) -> None:
         q = np.asarray(q_xyzw, float)
@@ -65,6 +71,9 @@ class AttitudeHistory:
         if k < len(t) and t[k] == stamp_ns:
             return Rotation.from_quat(self._q[k]).as_matrix()
         if k == 0 or k == len(t):
+            end = 0 if k == 0 else len(t) - 1
+            if t and abs(t[end] - stamp_ns) <= self.hold_ns:
+                return Rotation.from_quat(self._q[end]).as_matrix()
             return None
         t0, t1 = t[k - 1], t[k]
         if stamp_ns - t0 > self.max_gap_ns or t1 - stamp_ns > self.max_gap_ns:

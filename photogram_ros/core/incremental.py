@@ -9,8 +9,10 @@ carries the fixes as priors weighted by their covariance. Surveyed GCPs enter as
 check points are never used, only triangulated afterwards from the adjusted cameras.
 
 Lever arm: the GNSS antenna is `C + map_R_cam @ lever_arm_cam_m`, a fixed offset in the camera
-frame. That is exact for a camera rigidly mounted on the body and an approximation for a gimbal
-(the error is |lever| times the body-vs-camera attitude difference, mm for a 20 cm lever).
+frame. That is exact for a camera rigidly mounted on the body and an approximation for a gimbal:
+the error is |lever| times the body-vs-camera attitude difference, 1.7 cm for a 20 cm mast on a
+multirotor pitched 5 degrees into its course. A record's `antenna_offset_map_m` (from the body
+attitude, core/attitude.py) replaces it for that keyframe.
 
 Memory on long flights (`spill_frozen`): a tracker track that has not been seen for the window plus
 a margin can never enter a window again, so it is frozen: its point moves to compact arrays with

@@ -30,8 +30,11 @@ executor thread. When keyframes queue up behind an adjustment, the older ones of
 short window adjustment (`catch_up_iterations`) and only the newest the full one, so the node
 catches up instead of falling further behind; the poses are published once per batch.
 
-Lever arm: `lever_arm_cam_m` (antenna in the optical camera frame) is used as a fixed offset; for a
-gimbal camera this is the camera-frame approximation (see core/incremental.py).
+Lever arm: `lever_arm_cam_m` (antenna in the optical camera frame) is a fixed offset, right for a
+camera fixed to the body. A gimballed camera gives `lever_arm_body_frd_m` instead (antenna in the
+body frame): the node then follows the autopilot's attitude on `mavlink/attitude` (body FLU in ENU,
+from mavlink_node) and gives each keyframe its antenna offset in `map` (core/attitude.py); a
+keyframe without an attitude within 0.2 s falls back to the level-flight camera-frame offset.
 """
 
 from __future__ import annotations
@@ -46,13 +49,15 @@ from geometry_msgs.msg import PoseWithCovarianceStamped
 from nav_msgs.msg import Path
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
-from sensor_msgs.msg import CameraInfo, Image, NavSatFix, PointCloud2
+from sensor_msgs.msg import CameraInfo, Image, Imu, NavSatFix, PointCloud2
 from std_msgs.msg import Empty
 
 from photogram_ros import msgs
+from photogram_ros.core.attitude import AttitudeHistory, antenna_offset_enu
 from photogram_ros.core.control import ControlSet
 from photogram_ros.core.geodesy import LocalFrame
-from photogram_ros.core.incremental import GnssFix, IncrementalAT, IncrementalOptions, KeyframeRecord
+from photogram_ros.core.incremental import (GnssFix, IncrementalAT, IncrementalOptions, KeyframeRecord,
+                                            lever_arm_cam_from_frd)
 from photogram_ros.errors import ConfigError, PhotogramError
 from photogram_ros.nodes.diagnostics import ERROR, Diagnostics
 from photogram_ros.nodes.node_main import run_node
@@ -68,6 +73,7 @@ TOPIC_POSE = 'map/keyframe_pose'
 TOPIC_PATH = 'map/path'
 TOPIC_CLOUD = 'map/sparse_cloud'
 TOPIC_GEOREF = 'map/georeference'
+TOPIC_ATTITUDE = 'mavlink/attitude'
 
 
 @dataclass
@@ -80,7 +86,10 @@ class BundleNodeParams:
     max_reprojection_px: float = param(2.5, 'observations with a larger error after adjustment are dropped, px',
                                        min=0.3, max=100.0)
     lever_arm_cam_m: list = param([0.0, 0.0, 0.0], 'GNSS antenna position in the optical camera frame '
-                                  '(x right, y down, z forward), m')
+                                  '(x right, y down, z forward), m: a camera fixed to the body')
+    lever_arm_body_frd_m: list = param([0.0, 0.0, 0.0], 'GNSS antenna position relative to the camera centre in '
+                                       'the body frame (forward, right, down), m: a gimballed camera; with it the '
+                                       'node follows mavlink/attitude (zeros: lever_arm_cam_m is used)')
     use_origin_params: bool = param(False, 'anchor map at origin_* instead of the first keyframe fix')
     origin_lat_deg: float = param(0.0, 'map origin latitude, deg', min=-90.0, max=90.0)
     origin_lon_deg: float = param(0.0, 'map origin longitude, deg', min=-180.0, max=180.0)
@@ -119,6 +128,16 @@ class BundleNodeParams:
     def check(self) -> None:
         if len(self.lever_arm_cam_m) != 3:
             raise ConfigError(f'lever_arm_cam_m needs 3 numbers (x, y, z), got {self.lever_arm_cam_m}')
+        if len(self.lever_arm_body_frd_m) != 3:
+            raise ConfigError(f'lever_arm_body_frd_m needs 3 numbers (forward, right, down), got '
+                              f'{self.lever_arm_body_frd_m}')
+        if any(self.lever_arm_body_frd_m) and any(self.lever_arm_cam_m):
+            raise ConfigError('give the GNSS lever arm once: lever_arm_cam_m for a camera fixed to the body, '
+                              'lever_arm_body_frd_m for a gimballed camera (the other all zeros)')
+
+    @property
+    def gimbal(self) -> bool:
+        return any(self.lever_arm_body_frd_m)
 
 
 class BundleNode(Node):
@@ -157,6 +176,11 @@ class BundleNode(Node):
         self.create_subscription(Image, TOPIC_IMAGE, lambda m: self.diag.count('images'), reliable)
         self.create_subscription(CameraInfo, TOPIC_INFO, self._on_info, QoSProfile(depth=5))
         self.create_subscription(Empty, TOPIC_FULL, self._on_full, QoSProfile(depth=2))
+        # Attitudes cover the last two minutes of stamps: keyframes reach the adjuster seconds late.
+        self._attitude = AttitudeHistory(max_age_ns=120 * 10**9)
+        self._attitude_arrival = -1e9   # monotonic time of the newest attitude
+        if self.p.gimbal:
+            self.create_subscription(Imu, TOPIC_ATTITUDE, self._on_attitude, reliable)
         # The timer only wakes the worker: a keyframe whose fix never comes is taken after fix_wait_s.
         self.create_timer(0.5, self._wake)
         self._full_requested = False
@@ -180,10 +204,13 @@ class BundleNode(Node):
             return
         origin = (LocalFrame(self.p.origin_lat_deg, self.p.origin_lon_deg, self.p.origin_h_m)
                   if self.p.use_origin_params else None)
+        # A gimbal without an attitude at hand: the body lever arm as if flying level, image top forward.
+        lever_cam = (lever_arm_cam_from_frd(self.p.lever_arm_body_frd_m) if self.p.gimbal
+                     else np.asarray(self.p.lever_arm_cam_m, float))
         opt = IncrementalOptions(window_size=self.p.window_size, max_fixed_keyframes=self.p.max_fixed_keyframes,
                                  loss=self.p.loss, loss_scale_px=self.p.loss_scale_px,
                                  max_reprojection_px=self.p.max_reprojection_px,
-                                 lever_arm_cam_m=tuple(float(v) for v in self.p.lever_arm_cam_m))
+                                 lever_arm_cam_m=tuple(float(v) for v in lever_cam))
         self._window_iterations = opt.window_iterations
         with self._work:
             self.at = IncrementalAT(self.camera, opt, origin=origin)
@@ -237,6 +264,35 @@ class BundleNode(Node):
         except Exception as exc:
             self.diag.problem(f'bad keyframe features: {exc}')
 
+    def _on_attitude(self, msg) -> None:
+        try:
+            q, _ = msgs.orientation_from_imu(msg)
+            with self._cond:
+                self._attitude.add(msgs.ns_from_time(msg.header.stamp), q)
+                self._attitude_arrival = time.monotonic()
+                self._cond.notify()
+        except Exception as exc:
+            self.diag.problem(f'bad attitude: {exc}')
+
+    def _waits_for_attitude(self, stamp: int) -> bool:
+        """A gimballed camera's keyframe waits until an attitude after its stamp is in (attitudes and
+        keyframes come by different paths), unless attitudes stopped coming."""
+        newest = self._attitude.newest_ns
+        live = time.monotonic() - self._attitude_arrival < 1.0
+        return self.p.gimbal and live and newest is not None and newest < stamp - self._attitude.hold_ns
+
+    def _record(self, stamp: int, ids, uv, fix, target_uv) -> KeyframeRecord:
+        """A keyframe for the adjuster, with its antenna offset when the camera is gimballed. Called
+        with _cond held (the attitude history)."""
+        offset = None
+        if self.p.gimbal:
+            enu_R_flu = self._attitude.at(stamp)
+            if enu_R_flu is None:
+                self.diag.count('keyframes_without_attitude')
+            else:
+                offset = antenna_offset_enu(enu_R_flu, self.p.lever_arm_body_frd_m)
+        return KeyframeRecord(stamp, ids, uv, fix, target_uv=target_uv, antenna_offset_map_m=offset)
+
     def _on_full(self, _msg) -> None:
         with self._cond:
             self._full_requested = True
@@ -266,10 +322,14 @@ class BundleNode(Node):
             later_fix = self._latest_fix_ns is not None and self._latest_fix_ns > stamp + self.p.sync_tolerance_ms * 1e6
             if fix is None and not later_fix and now - arrived < self.p.fix_wait_s:
                 break   # keep the order: later keyframes wait behind this one
+            if self._waits_for_attitude(stamp) and now - arrived < self.p.fix_wait_s:
+                if fix is not None:
+                    self._fixes[stamp] = fix   # matched again next time
+                break
             del self._pending[stamp]
             if fix is None:
                 self.diag.count('keyframes_without_fix')
-            out.append(KeyframeRecord(stamp, ids, uv, fix, target_uv=target_uv))
+            out.append(self._record(stamp, ids, uv, fix, target_uv))
         # Fixes older than every pending keyframe will never match.
         oldest = min(self._pending, default=None)
         for s in [s for s in self._fixes if oldest is None or s < oldest - 10**9 * 10]:
@@ -450,7 +510,7 @@ class BundleNode(Node):
                 recs = []
                 for stamp in sorted(self._pending):
                     _, ids, uv, target_uv = self._pending.pop(stamp)
-                    recs.append(KeyframeRecord(stamp, ids, uv, self._match_fix(stamp), target_uv=target_uv))
+                    recs.append(self._record(stamp, ids, uv, self._match_fix(stamp), target_uv))
             for rec in recs:
                 self._process(rec)
             self.full_adjustment()
