@@ -21,6 +21,12 @@ def add_arguments(p) -> None:
                    help='keep cells confirmed by this many stereo pairs (2, as replay does: a cell one pair saw '
                         'cannot be checked for gross matching errors; 1 keeps every fused cell)')
     p.add_argument('--origin', default='', help='LAT,LON,H of the map origin, if map.json lacks it')
+    p.add_argument('--densify', action='store_true',
+                   help='first match the keyframes again with their final poses into OUT/map_final (the in-flight '
+                        'map paired them with the poses they had when they left the bundle window) and export that')
+    p.add_argument('--params', default=None,
+                   help='parameter file whose stereo_node and map_node sections --densify uses (the flight\'s; '
+                        'default: config/replay.yaml if present)')
 
 
 def run(a) -> int:
@@ -41,7 +47,16 @@ def run(a) -> int:
         except ValueError as exc:
             raise ConfigError(f'--origin must be LAT,LON,H in degrees and metres, not {a.origin!r}') from exc
         origin = LocalFrame(lat, lon, h)
-    res = export_map(a.map_dir, a.out, a.crs, a.heights, a.dsm_res_m, a.ortho_res_m, products, origin,
+    map_dir = a.map_dir
+    if a.densify:
+        from pathlib import Path
+
+        from photogram_ros.commands.densify_step import densify_with_params
+        params = a.params if a.params is not None or not Path('config/replay.yaml').exists() else 'config/replay.yaml'
+        d = densify_with_params(a.map_dir, Path(a.out) / 'map_final', params)
+        print(f'{d.pairs_done} pairs matched again from the final poses in {d.seconds:.1f} s -> {d.map_dir}')
+        map_dir = d.map_dir
+    res = export_map(map_dir, a.out, a.crs, a.heights, a.dsm_res_m, a.ortho_res_m, products, origin,
                      min_pairs=a.min_pairs)
     print(f'{res.points} points, {res.keyframes} keyframes -> {a.out} ({a.crs}, {a.heights} heights)')
     for k, v in res.files.items():

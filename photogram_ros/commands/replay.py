@@ -21,6 +21,10 @@ def add_arguments(p) -> None:
     p.add_argument('--gcp-heights', default='auto', choices=('auto', 'ellipsoidal', 'orthometric'),
                    help='heights of the --gcp file (auto: EGM2008 orthometric only for a compound CRS, e.g. '
                         'EPSG:32632+3855; else ellipsoidal)')
+    p.add_argument('--live-map', action='store_true',
+                   help='make the products from the in-flight map (pairs matched with the poses they had when '
+                        'they left the bundle window) instead of matching the keyframes again with the final '
+                        'adjustment\'s poses into OUT/map_final (the default; seconds for the sample)')
     p.add_argument('--quiet', action='store_true', help='no progress lines')
     p.add_argument('--processes', type=int, choices=(1, 2), default=2,
                    help='2 (default): the --child-nodes run in a second process, on a second core (one Python '
@@ -35,7 +39,9 @@ def run(a) -> int:
 
     import rclpy
 
+    from photogram_ros.commands.densify_step import densify_with_params
     from photogram_ros.core.geodesy import utm_epsg
+    from photogram_ros.errors import PhotogramError
     from photogram_ros.io.control_file import read_control_file
     from photogram_ros.io.export import export_map
     from photogram_ros.io.flight_report import build_report
@@ -64,16 +70,26 @@ def run(a) -> int:
     store = MapStore(res['map_dir'])
     files, notes = {}, []
     crs = a.crs
+    products_map = res['map_dir']
     if store.origin is None:
         notes.append('the map has no georeference (no GNSS fix was good enough): no exports')
     else:
+        if not a.live_map:
+            try:
+                d = densify_with_params(res['map_dir'], out / 'map_final', params, progress=not a.quiet)
+                products_map = d.map_dir
+                res['run'].update(products_from='final adjustment (map_final)', densify_s=round(d.seconds, 2),
+                                  densify_pairs=d.pairs_done)
+            except PhotogramError as exc:
+                notes.append(f'products from the in-flight map: dense matching from the final poses failed ({exc})')
+        res['run'].setdefault('products_from', 'in-flight map (map)')
         crs = crs or f'EPSG:{utm_epsg(store.origin.lat_deg, store.origin.lon_deg)}'
         heights = 'orthometric' if a.orthometric else 'ellipsoidal'
-        ex = export_map(res['map_dir'], out, crs, heights, min_pairs=a.min_pairs)
-        files, notes = {k: str(v) for k, v in ex.files.items()}, ex.notes
+        ex = export_map(products_map, out, crs, heights, min_pairs=a.min_pairs)
+        files, notes = {k: str(v) for k, v in ex.files.items()}, notes + ex.notes
         res['run']['map_points'] = ex.points
     truth = GroundTruth.load(a.bag) if GroundTruth.exists(a.bag) else None
-    figures = build_report(out, res['map_dir'], crs or 'EPSG:4326', files, truth=truth, control=control,
+    figures = build_report(out, products_map, crs or 'EPSG:4326', files, truth=truth, control=control,
                            run=res['run'], diagnostics=res['diagnostics'])
     (out / 'run.json').write_text(json.dumps({**res['run'], 'notes': notes}, indent=1, default=str))
     r = res['run']

@@ -93,6 +93,10 @@ def build_report(out_dir: str | Path, map_dir: str | Path, crs: str, files: dict
         s.text.append(f"{run.get('frames', 0)} frames, {len(kfs)} keyframes, {run.get('map_points', 0)} map points; "
                       f"{run.get('bag_s', 0):.1f} s of flight processed in {run.get('wall_s', 0):.1f} s "
                       f"(real-time factor {run.get('real_time_factor', 0):.2f}).")
+        if run.get('products_from'):
+            extra = (f" ({run['densify_pairs']} pairs matched again in {run['densify_s']:.1f} s)"
+                     if 'densify_s' in run else '')
+            s.text.append(f"Clouds, DSM and orthomosaic from the {run['products_from']}{extra}.")
     s.text.append(f'Coordinates in {crs}, heights above the WGS84 ellipsoid unless stated.')
     sections.append(s)
     if origin is None or not kfs or cam is None:

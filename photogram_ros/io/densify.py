@@ -1,0 +1,127 @@
+"""Dense matching after the flight, from the final adjustment: a new map folder for the products.
+
+In flight, stereo pairs a keyframe once it has left the bundle window, with the pose it has then;
+the final full adjustment moves poses again (by centimetres and tens of arcseconds), and a pair's
+depth is sensitive to its two cameras' relative tilt (Z^2 / B per radian: 2 cm per 10 arcsec at
+40 m with an 8 m baseline). So the survey products are made again from the keyframes and the final
+poses of the in-flight map folder, the way photogrammetry software densifies after triangulation:
+the same pair choice, stereo and fusion as the nodes, in keyframe order. The in-flight map stays
+what it was (what the ground station saw); the products come from the new folder. Given the map
+folder the result is deterministic, unlike the in-flight map, whose pairing depends on timing.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from photogram_ros.core.fusion import Fusion, FusionConfig
+from photogram_ros.core.pairs import PairCriteria, choose_pairs
+from photogram_ros.core.stereo import StereoParams, stereo_pair
+from photogram_ros.errors import DataError
+from photogram_ros.io.map_store import MapStore
+
+
+@dataclass
+class DensifyResult:
+    map_dir: Path
+    keyframes: int = 0
+    pairs_done: int = 0
+    pairs_skipped: dict = field(default_factory=dict)
+    points_fused: int = 0
+    ground_m: float = float('nan')
+    seconds: float = 0.0
+
+
+def _ground_height(store: MapStore, kfs: list[dict]) -> float:
+    """Median height of the in-flight map (the ground the depth search centres on), else 40 m below
+    the keyframes (a map without fused cells: nothing better is known)."""
+    z = []
+    for key in store.tile_keys()[:64]:
+        cells = store.load_tile(key)
+        if cells is not None:
+            z.append(np.asarray(cells['z'][cells['n'] > 0], float)[::7])
+    z = np.concatenate(z) if z else np.zeros(0)
+    if z.size >= 20:
+        return float(np.median(z))
+    return float(np.median([k['map_T_cam'][2, 3] for k in kfs])) - 40.0
+
+
+def _link_or_copy(src: Path, dst: Path) -> None:
+    try:
+        os.link(src, dst)
+    except OSError:
+        shutil.copyfile(src, dst)
+
+
+def densify_map(map_dir: str | Path, out_dir: str | Path, stereo: StereoParams, criteria: PairCriteria,
+                relief_m: float, fusion: FusionConfig, progress=None) -> DensifyResult:
+    """Match the keyframes of `map_dir` with their final poses into a new map folder `out_dir`.
+
+    `out_dir` gets the origin, camera and keyframes (hard links where the file system allows) of
+    `map_dir` and freshly fused tiles; an existing folder there is replaced. `progress(done, total)`
+    is called after each keyframe.
+    """
+    t0 = time.perf_counter()
+    src = MapStore(map_dir)
+    cam, origin, kfs = src.load_camera(), src.origin, sorted(src.keyframes(), key=lambda k: k['stamp_ns'])
+    if cam is None or origin is None or len(kfs) < 2:
+        raise DataError(f'{map_dir}: no camera, origin or at least two posed keyframes to densify')
+    out = Path(out_dir)
+    if out.resolve() == Path(map_dir).resolve():
+        raise DataError('densify writes a new map folder: give another out_dir than the map itself')
+    if out.exists():
+        shutil.rmtree(out)
+    dst = MapStore(out, fusion.cell_m, fusion.tile_cells)
+    dst.set_origin(origin)
+    dst.save_camera(cam)
+    for k in kfs:
+        _link_or_copy(k['image_path'], dst.keyframes_dir / k['image_path'].name)
+        dst.save_keyframe_pose(k['stamp_ns'], k['map_T_cam'])
+    res = DensifyResult(out, keyframes=len(kfs), ground_m=_ground_height(src, kfs))
+    fuser = Fusion(fusion, dst)
+    C = np.array([k['map_T_cam'][:3, 3] for k in kfs])
+    images: dict[int, np.ndarray] = {}     # the partners of the coming keyframes, not the whole flight
+
+    def image(i):
+        if i not in images:
+            img = cv2.imread(str(kfs[i]['image_path']), cv2.IMREAD_COLOR)
+            if img is None:
+                raise DataError(f'keyframe image {kfs[i]["image_path"]} is unreadable')
+            images[i] = img
+        return images[i]
+
+    for i, kf in enumerate(kfs):
+        T = kf['map_T_cam']
+        height = float(T[2, 3] - res.ground_m)
+        if height <= 0:
+            res.pairs_skipped['below_ground'] = res.pairs_skipped.get('below_ground', 0) + 1
+            continue
+        # Partners can only be keyframes whose footprints overlap: a distance test first keeps pair
+        # choice linear in the flight length.
+        reach = 2.0 * height * max(cam.width, cam.height) / cam.fx
+        near = np.flatnonzero(np.linalg.norm(C[:i] - C[i], axis=1) < reach)
+        others = {int(j): kfs[j]['map_T_cam'] for j in near}
+        for cand in choose_pairs(cam, T, others, height, criteria):
+            lo = max(stereo.min_depth_m, height - relief_m)
+            hi = min(stereo.max_depth_m, height + relief_m)
+            r = stereo_pair(cam, image(cand.other), kfs[cand.other]['map_T_cam'], image(i), T, stereo, (lo, hi))
+            if not r.ok:
+                res.pairs_skipped[r.status] = res.pairs_skipped.get(r.status, 0) + 1
+                continue
+            res.points_fused += fuser.add(r.cloud)
+            res.pairs_done += 1
+        for j in [j for j in images if np.linalg.norm(C[j] - C[i]) >= reach and j < i]:
+            del images[j]
+        if progress is not None:
+            progress(i + 1, len(kfs))
+    fuser.flush()
+    dst.sync()
+    res.seconds = time.perf_counter() - t0
+    return res
