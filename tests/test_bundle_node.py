@@ -9,11 +9,11 @@ from nav_msgs.msg import Path
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
-from sensor_msgs.msg import CameraInfo, NavSatFix, NavSatStatus, PointCloud2
+from sensor_msgs.msg import CameraInfo, NavSatFix, PointCloud2
 from std_msgs.msg import Empty
 
+from helpers.keyframe_feed import feature_table, fix_msg
 from photogram_ros import msgs
-from photogram_ros.core.tracker import FEATURE_DTYPE
 from photogram_ros.errors import ConfigError
 from photogram_ros.nodes.bundle_node import BundleNode
 from photogram_ros.sim.observations import simulate_keyframes
@@ -55,14 +55,8 @@ def test_bundle_node_orients_keyframes_from_topics(rclpy_context):
         bad = msgs.pointcloud2_msg(np.zeros(3, dtype=[('x', np.float32)]), 1)
         pub_feat.publish(bad)
         for r in sk.records:
-            f = r.fix
-            pub_fix.publish(msgs.navsatfix_msg(r.stamp_ns, f.lat_deg, f.lon_deg, f.h_m, NavSatStatus.STATUS_GBAS_FIX,
-                                               np.diag(f.cov_enu_m2), NavSatFix.COVARIANCE_TYPE_DIAGONAL_KNOWN))
-            obs = np.zeros(len(r.track_ids), FEATURE_DTYPE)
-            obs['track_id'], obs['u'], obs['v'] = r.track_ids, r.uv[:, 0], r.uv[:, 1]
-            xn = sk.camera.pixel_to_normalized(r.uv)
-            obs['xn'], obs['yn'] = xn[:, 0], xn[:, 1]
-            pub_feat.publish(msgs.keyframe_features_msg(obs, r.stamp_ns))
+            pub_fix.publish(fix_msg(r))
+            pub_feat.publish(msgs.keyframe_features_msg(feature_table(r, sk.camera), r.stamp_ns))
             _spin_until(ex, lambda: False, 0.05)
         n = len(sk.records)
         assert _spin_until(ex, lambda: node.diag.counts().get('keyframes_oriented', 0) >= n - 1, 60)
@@ -170,14 +164,8 @@ def test_gimballed_camera_takes_its_antenna_offset_from_the_attitude_topic(rclpy
                 pub_att.publish(msgs.imu_orientation_msg(t0_ns + k_att * 100_000_000, q, (1e-4, 1e-4, 1e-3)))
                 k_att += 1
             _spin_until(ex, lambda: False, 0.02)
-            f = r.fix
-            pub_fix.publish(msgs.navsatfix_msg(r.stamp_ns, f.lat_deg, f.lon_deg, f.h_m, NavSatStatus.STATUS_GBAS_FIX,
-                                               np.diag(f.cov_enu_m2), NavSatFix.COVARIANCE_TYPE_DIAGONAL_KNOWN))
-            obs = np.zeros(len(r.track_ids), FEATURE_DTYPE)
-            obs['track_id'], obs['u'], obs['v'] = r.track_ids, r.uv[:, 0], r.uv[:, 1]
-            xn = sk.camera.pixel_to_normalized(r.uv)
-            obs['xn'], obs['yn'] = xn[:, 0], xn[:, 1]
-            pub_feat.publish(msgs.keyframe_features_msg(obs, r.stamp_ns))
+            pub_fix.publish(fix_msg(r))
+            pub_feat.publish(msgs.keyframe_features_msg(feature_table(r, sk.camera), r.stamp_ns))
             _spin_until(ex, lambda: False, 0.05)
         n = len(sk.records)
         assert _spin_until(ex, lambda: node.diag.counts().get('keyframes_oriented', 0) >= n - 1, 60)

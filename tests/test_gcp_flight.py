@@ -25,11 +25,11 @@ from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import CameraInfo, NavSatFix, NavSatStatus, PointCloud2
 
 from conftest import ROOT
+from helpers.keyframe_feed import feature_table, fix_msg
 from photogram_ros import msgs
 from photogram_ros.core.control import TARGET_DTYPE, SurveyedTarget
 from photogram_ros.core.geodesy import LocalFrame
 from photogram_ros.core.incremental import intersect_point
-from photogram_ros.core.tracker import FEATURE_DTYPE
 from photogram_ros.io.control_file import write_control_file
 
 pytestmark = pytest.mark.ros
@@ -81,13 +81,8 @@ def _run_bundle(ctx, sk, marker_of, overrides):
         pub_info.publish(msgs.camera_info_msg(sk.camera, sk.records[0].stamp_ns))
         assert _spin_until(ex, lambda: node.at is not None, 5)
         for k, r in enumerate(sk.records):
-            f = r.fix
-            pub_fix.publish(msgs.navsatfix_msg(r.stamp_ns, f.lat_deg, f.lon_deg, f.h_m, NavSatStatus.STATUS_FIX,
-                                               np.diag(f.cov_enu_m2), NavSatFix.COVARIANCE_TYPE_DIAGONAL_KNOWN))
-            obs = np.zeros(len(r.track_ids), FEATURE_DTYPE)
-            obs['track_id'], obs['u'], obs['v'] = r.track_ids, r.uv[:, 0], r.uv[:, 1]
-            xn = sk.camera.pixel_to_normalized(r.uv)
-            obs['xn'], obs['yn'] = xn[:, 0], xn[:, 1]
+            pub_fix.publish(fix_msg(r, NavSatStatus.STATUS_FIX))
+            obs = feature_table(r, sk.camera)
             # What the tracker sends: the markers it found, and now and then one no survey knows.
             names = list(r.target_uv) + (['stray'] if k % 4 == 0 else [])
             tg = np.zeros(len(names), TARGET_DTYPE)
