@@ -34,3 +34,109 @@ def test_triangulate_simulated_photos(tmp_path):
     err = [truth.origin.geodetic_to_enu(float(r['lat_deg']), float(r['lon_deg']), float(r['h_m']))
            - truth.frames[int(r['image'][4:8])].map_T_cam[:3, 3] for r in rows]
     assert np.sqrt(np.mean(np.sum(np.square(err), axis=1))) < 0.5
+
+
+# --- EXIF altitudes relative to take-off (issue 5) ---------------------------------------------
+
+def _with_gps_altitude(jpeg: bytes, alt_m: float) -> bytes:
+    """The JPEG with its EXIF GPSAltitude replaced, pixels untouched (the APP1 segment is swapped)."""
+    import io
+    import struct
+
+    from PIL import Image
+    from PIL.TiffImagePlugin import IFDRational
+    with Image.open(io.BytesIO(jpeg)) as im:
+        exif = im.getexif()
+    gps = exif.get_ifd(0x8825)
+    gps[5] = 0 if alt_m >= 0 else 1                     # GPSAltitudeRef: 1 = below the reference
+    gps[6] = IFDRational(int(round(abs(alt_m) * 1000)), 1000)
+    app1 = exif.tobytes()                                # starts with b'Exif\0\0'
+    i = 2
+    while jpeg[i:i + 2] != b'\xff\xe1' or jpeg[i + 4:i + 10] != b'Exif\x00\x00':
+        i += 2 + struct.unpack('>H', jpeg[i + 2:i + 4])[0]
+    n = struct.unpack('>H', jpeg[i + 2:i + 4])[0]
+    return jpeg[:i] + b'\xff\xe1' + struct.pack('>H', len(app1) + 2) + app1 + jpeg[i + 2 + n:]
+
+
+@pytest.fixture(scope='module')
+def exif_survey(tmp_path_factory):
+    """A small simulated survey as EXIF-only photo folders: MSL altitudes (as simulated) and the same
+    photos with altitudes above the take-off point (about 10 s)."""
+    import shutil
+
+    from photogram_ros.core import geoid
+    from photogram_ros.io.image_source import read_exif_gps
+    flight = tmp_path_factory.mktemp('exif') / 'flight'
+    truth = simulate(preset('tiny', photos=True, fps=1.0, line_length_m=30.0), flight)
+    cfg = truth.config
+    takeoff_msl_m = float(geoid.ellipsoid_to_msl_m(cfg['origin_lat_deg'], cfg['origin_lon_deg'], cfg['origin_h_m']))
+    # Both beside ground_truth.json (the calibration), neither with geo.txt: positions from EXIF only.
+    msl, rel = flight / 'msl', flight / 'relative'
+    msl.mkdir()
+    rel.mkdir()
+    for p in sorted((flight / 'photos').glob('*.JPG')):
+        shutil.copy(p, msl / p.name)
+        alt_rel_m = read_exif_gps(p).alt_msl_m - takeoff_msl_m
+        (rel / p.name).write_bytes(_with_gps_altitude(p.read_bytes(), alt_rel_m))
+        assert abs(read_exif_gps(rel / p.name).alt_msl_m - alt_rel_m) < 1e-3
+    assert 30 < read_exif_gps(rel / p.name).alt_msl_m < 50 and takeoff_msl_m > 400
+    return flight, truth, takeoff_msl_m
+
+
+def _triangulate(folder, out, *options, gcp=None):
+    argv = ['triangulate', str(folder), '--out', str(out), '--lever-arm=0,-0.05,-0.2', *options]
+    assert main(argv + (['--gcp', str(gcp)] if gcp else [])) == 0
+    rep = json.loads((out / 'report.json').read_text())
+    truth = GroundTruth.load(folder.parent)
+    rows = list(csv.DictReader(open(out / 'poses.csv')))
+    err = np.array([truth.origin.geodetic_to_enu(float(r['lat_deg']), float(r['lon_deg']), float(r['h_m']))
+                    - truth.frames[int(r['image'][4:8])].map_T_cam[:3, 3] for r in rows])
+    return rep, err
+
+
+def _flagged(rep) -> bool:
+    return any('look relative to the take-off point' in s for s in rep['assumptions'])
+
+
+def test_triangulate_relative_exif_altitudes_with_the_takeoff_height_match_msl_ones(exif_survey, tmp_path, capsys):
+    flight, truth, takeoff_msl_m = exif_survey
+    rep0, err0 = _triangulate(flight / 'msl', tmp_path / 'msl')
+    assert not _flagged(rep0) and 'look relative' not in capsys.readouterr().err     # (c) MSL photos pass
+    rel = ['--exif-altitude', 'relative', '--takeoff-altitude-m', f'{takeoff_msl_m:.3f}']
+    rep1, err1 = _triangulate(flight / 'relative', tmp_path / 'rel', *rel)
+    assert not _flagged(rep1) and any('above the take-off point at' in s for s in rep1['assumptions'])
+    rms0, rms1 = (float(np.sqrt(np.mean(np.sum(e ** 2, axis=1)))) for e in (err0, err1))
+    print(f'camera centres, EXIF only: MSL {rms0:.3f} m, relative + take-off height {rms1:.3f} m '
+          f'(heights {np.mean(err0[:, 2]):+.3f} / {np.mean(err1[:, 2]):+.3f} m)')
+    assert len(err1) == len(err0) == rep0['keyframes']
+    # Same heights to the EXIF's millimetre rounding, in the existing test's band.
+    assert rms1 < 0.5 and abs(rms1 - rms0) < 0.01 and np.max(np.abs(err1[:, 2] - err0[:, 2])) < 0.01
+    rep2, err2 = _triangulate(flight / 'relative', tmp_path / 'rel_gcp', *rel, gcp=flight / 'photos' / 'gcp_list.txt')
+    ck = rep2['check']['rmse']
+    print(f"with GCPs: check n={ck['n']} h {ck['horizontal_m'] * 100:.1f} cm v {ck['vertical_m'] * 100:.1f} cm, "
+          f"cameras {np.sqrt(np.mean(np.sum(err2 ** 2, axis=1))):.3f} m")
+    assert ck['n'] == 2 and ck['horizontal_m'] < 1.5 * truth.gsd_m and ck['vertical_m'] < 2.5 * truth.gsd_m
+    assert np.sqrt(np.mean(np.sum(err2 ** 2, axis=1))) < 0.5
+
+
+def test_triangulate_flags_exif_altitudes_relative_to_takeoff(exif_survey, tmp_path, capsys):
+    flight, _, takeoff_msl_m = exif_survey
+    # Taken as MSL, the block sinks by the take-off height; the ground lands near 0 m MSL.
+    rep, err = _triangulate(flight / 'relative', tmp_path / 'plain')
+    assert abs(np.mean(err[:, 2]) + takeoff_msl_m) < 1.0
+    note = next(s for s in rep['assumptions'] if 'look relative to the take-off point' in s)
+    assert 'median tie point' in note and '--exif-altitude relative --takeoff-altitude-m' in note
+    assert 'look relative to the take-off point' in capsys.readouterr().err
+    # With GCPs the surveyed points are the ground, and the photos are below it.
+    rep, _ = _triangulate(flight / 'relative', tmp_path / 'gcp', gcp=flight / 'photos' / 'gcp_list.txt')
+    assert any('median GCP/check point' in s for s in rep['assumptions'] if 'look relative' in s)
+    # Saying msl is the user's word: no second-guessing.
+    rep, _ = _triangulate(flight / 'relative', tmp_path / 'said', '--exif-altitude', 'msl')
+    assert not _flagged(rep)
+
+
+def test_triangulate_takeoff_height_options_are_checked(tmp_path, capsys):
+    assert main(['triangulate', str(tmp_path), '--out', str(tmp_path / 'o'), '--exif-altitude', 'relative']) == 2
+    assert '--takeoff-altitude-m' in capsys.readouterr().err
+    assert main(['triangulate', str(tmp_path), '--out', str(tmp_path / 'o'), '--takeoff-altitude-m', '440']) == 2
+    assert '--exif-altitude relative' in capsys.readouterr().err

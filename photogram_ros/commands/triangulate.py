@@ -20,6 +20,14 @@ def add_arguments(p) -> None:
     p.add_argument('--lever-arm', default='0,0,0', help='antenna in the camera frame x,y,z (m)')
     p.add_argument('--self-calibrate', default='', help='intrinsics refined in the final adjustment, e.g. '
                                                         '"f,k1,k2" (from f, cx, cy, k1, k2, p1, p2, k3)')
+    p.add_argument('--exif-altitude', choices=('msl', 'ellipsoidal', 'relative'), default=None,
+                   help='what the photos\' EXIF GPSAltitude is: msl (the EXIF standard; default), ellipsoidal '
+                        '(WGS84), or relative to the take-off point (many drones; needs --takeoff-altitude-m). '
+                        'Not given: msl, and the report says if the adjusted ground makes that look wrong')
+    p.add_argument('--takeoff-altitude-m', type=float, default=None,
+                   help='height of the take-off point (m), for --exif-altitude relative')
+    p.add_argument('--takeoff-heights', choices=('msl', 'ellipsoidal'), default='msl',
+                   help='reference of --takeoff-altitude-m: msl (EGM2008; default) or ellipsoidal (WGS84)')
 
 
 def _read_geo_txt(path):
@@ -45,11 +53,19 @@ def _read_geo_txt(path):
     return out
 
 
-def _read_exif(path):
-    """EXIF GPS -> (lat, lon, h_ellipsoidal, h_acc, v_acc) or None; EXIF altitude is MSL."""
-    from photogram_ros.io.image_source import read_exif_gps
+def _read_exif(path, altitude: str = 'msl', takeoff_h_m: float | None = None, takeoff_heights: str = 'msl'):
+    """EXIF GPS -> (lat, lon, h_ellipsoidal, h_acc, v_acc) or None.
+
+    `altitude`, `takeoff_h_m`, `takeoff_heights`: what the EXIF altitude is relative to
+    (`image_source.exif_altitude_to_ellipsoidal_m`).
+    """
+    from photogram_ros.io.image_source import exif_altitude_to_ellipsoidal_m, read_exif_gps
     fix = read_exif_gps(path)
-    return None if fix is None else (fix.lat_deg, fix.lon_deg, fix.h_m, 5.0, 10.0)
+    if fix is None:
+        return None
+    h_m = float(exif_altitude_to_ellipsoidal_m(fix.lat_deg, fix.lon_deg, fix.alt_msl_m, altitude, takeoff_h_m,
+                                               takeoff_heights))
+    return fix.lat_deg, fix.lon_deg, h_m, 5.0, 10.0
 
 
 def _read_gcps(path, origin, check_names):
@@ -86,11 +102,22 @@ def run(a) -> int:
     from photogram_ros.core.camera import PinholeCamera
     from photogram_ros.core.geodesy import LocalFrame
     from photogram_ros.core.incremental import GnssFix, KeyframeRecord
-    from photogram_ros.errors import CalibrationError, DataError
+    from photogram_ros.errors import CalibrationError, ConfigError, DataError
 
     src = Path(a.input)
+    exif_altitude = getattr(a, 'exif_altitude', None)
+    takeoff_h_m = getattr(a, 'takeoff_altitude_m', None)
+    takeoff_heights = getattr(a, 'takeoff_heights', 'msl')
+    if takeoff_h_m is not None and exif_altitude != 'relative':
+        raise ConfigError('--takeoff-altitude-m is only used with --exif-altitude relative (EXIF altitudes above '
+                          'the take-off point): add that, or drop --takeoff-altitude-m')
+    if exif_altitude == 'relative' and takeoff_h_m is None:
+        raise ConfigError('--exif-altitude relative needs the take-off point\'s height: --takeoff-altitude-m H '
+                          '(m above mean sea level; add --takeoff-heights ellipsoidal for a WGS84 height)')
     if (src / 'metadata.yaml').exists():
         camera, origin, records, assumptions = _bag_records(src, a.camera)
+        if exif_altitude:
+            assumptions.append(f'--exif-altitude {exif_altitude} ignored: a bag has no EXIF')
         return _adjust_and_write(a, records, camera, origin, assumptions, {})
     if not src.is_dir():
         raise DataError(f'{src} is not a folder of photos')
@@ -100,16 +127,29 @@ def run(a) -> int:
     assumptions = []
     # Positions
     geo = {}
+    info = {'n_inputs': len(images)}
     if (src / 'geo.txt').exists():
         geo = _read_geo_txt(src / 'geo.txt')
         assumptions.append('positions from geo.txt (heights ellipsoidal, per-image accuracy used as sigma)')
+        if exif_altitude:
+            assumptions.append(f'--exif-altitude {exif_altitude} ignored: positions come from geo.txt')
     else:
         for p in images:
-            g = _read_exif(p)
+            g = _read_exif(p, exif_altitude or 'msl', takeoff_h_m, takeoff_heights)
             if g:
                 geo[p.name] = g
-        assumptions.append('positions from EXIF GPS; EXIF altitude taken as MSL (EGM) and converted to ellipsoidal; '
-                           'sigma 5 m horizontal, 10 m vertical')
+        if exif_altitude == 'relative':
+            ref = 'MSL (EGM2008)' if takeoff_heights == 'msl' else 'ellipsoidal'
+            how = (f'EXIF altitude taken as height above the take-off point at {takeoff_h_m:.2f} m {ref}'
+                   + (', converted to ellipsoidal through EGM2008 at each photo' if takeoff_heights == 'msl' else ''))
+        elif exif_altitude == 'ellipsoidal':
+            how = 'EXIF altitude taken as ellipsoidal (WGS84), as --exif-altitude ellipsoidal says'
+        else:
+            how = 'EXIF altitude taken as MSL (EGM2008) and converted to ellipsoidal'
+        assumptions.append(f'positions from EXIF GPS; {how}; sigma 5 m horizontal, 10 m vertical')
+        if exif_altitude is None and geo:
+            # Checked once the block has a ground: only then can an MSL reading be seen to be wrong.
+            info['exif_geodetic'] = np.array([g[:3] for g in geo.values()])
     first = next((geo[p.name] for p in images if p.name in geo), None)
     if first is None:
         raise DataError(f'no image in {src} has a position (EXIF GPS or geo.txt): georeferencing impossible')
@@ -153,12 +193,47 @@ def run(a) -> int:
         g = geo.get(p.name)
         fix = GnssFix(g[0], g[1], g[2], np.diag([g[3] ** 2, g[3] ** 2, g[4] ** 2])) if g else None
         records.append(KeyframeRecord(0, tr[keep], f.uv[keep], fix, p.name))
-    return _adjust_and_write(a, records, camera, origin, assumptions, {'n_inputs': len(images)})
+    return _adjust_and_write(a, records, camera, origin, assumptions, info)
+
+
+def _relative_exif_note(origin, points_map_m, photos_geodetic, control_map_m=None) -> str | None:
+    """The report's warning when EXIF altitudes read as MSL put the ground where no survey is.
+
+    `points_map_m`: adjusted tie points (N, 3) in the map (ENU, m); `photos_geodetic`: (M, 3) lat_deg, lon_deg,
+    h_m (ellipsoidal) of the photos from their EXIF as MSL; `control_map_m`: surveyed GCP/check
+    points (map ENU), which are the ground when given: a block strained between GCPs and wrong
+    photo heights has tie points anywhere.
+    """
+    import numpy as np
+
+    from photogram_ros.core import geoid
+    from photogram_ros.io import image_source as isrc
+    if control_map_m is not None and len(control_map_m):
+        P, what = np.asarray(control_map_m, float).reshape(-1, 3), 'median GCP/check point'
+    else:
+        P, what = points_map_m[np.all(np.isfinite(points_map_m), axis=1)], 'median tie point'
+    if not len(P):
+        return None
+    lat, lon, h = origin.enu_to_geodetic(P)
+    ground_msl_m = float(np.median(geoid.ellipsoid_to_msl_m(lat, lon, h)))
+    # Back through the same geoid: exactly the EXIF altitudes as written.
+    photo_alt_m = float(np.median(geoid.ellipsoid_to_msl_m(*photos_geodetic.T)))
+    if not isrc.exif_altitudes_look_relative(ground_msl_m, photo_alt_m):
+        return None
+    return (f'EXIF altitudes look relative to the take-off point, not MSL: the ground ({what}) is at '
+            f'{ground_msl_m:.1f} m MSL and the photos\' EXIF altitude (median) {photo_alt_m:.1f} m '
+            f'(rule: ground within {isrc.GROUND_NEAR_SEA_LEVEL_M:.0f} m of 0 m MSL with the photos '
+            f'{isrc.MIN_FLYING_HEIGHT_M:.0f} m or more above it, ground below {isrc.GROUND_BELOW_SEA_LEVEL_M:.0f} m '
+            'MSL, or photos below the ground). Heights here are then off by about the take-off height (with GCPs, '
+            'the whole block is strained): rerun with --exif-altitude relative --takeoff-altitude-m H (the take-off '
+            'point\'s height above MSL; add --takeoff-heights ellipsoidal for a WGS84 one), or with '
+            '--exif-altitude msl if the site really lies there')
 
 
 def _adjust_and_write(a, records, camera, origin, assumptions, info) -> int:
     """Incremental AT of the keyframe records, a full adjustment, then poses, sparse cloud and report."""
     import csv
+    import sys
     from pathlib import Path
 
     import numpy as np
@@ -216,6 +291,12 @@ def _adjust_and_write(a, records, camera, origin, assumptions, info) -> int:
     if lost:
         assumptions.append(f'{len(lost)} photos could not be oriented (blurred or without overlap): {lost[:10]}')
     assumptions.append('lever arm antenna-camera ' + str(lever) + ' m in the camera frame')
+    P = np.array([at.points[t] for t in at.points if t >= 0]).reshape(-1, 3)
+    if info.get('exif_geodetic') is not None:
+        note = _relative_exif_note(origin, P, info['exif_geodetic'], [c.map_xyz for c in control])
+        if note:
+            assumptions.append(note)
+            print(f'warning: {note}', file=sys.stderr)
     # Outputs
     out.mkdir(parents=True, exist_ok=True)
     with open(out / 'poses.csv', 'w', newline='') as fh:
@@ -229,7 +310,6 @@ def _adjust_and_write(a, records, camera, origin, assumptions, info) -> int:
             o, ph, ka = np.degrees(opk_from_map_R_cam(kf.map_T_cam[:3, :3]))
             w.writerow([kf.name, f'{e[0]:.4f}', f'{n[0]:.4f}', f'{h[0]:.4f}', crs, f'{float(lat):.9f}',
                         f'{float(lon):.9f}', f'{float(hh):.4f}', f'{o:.5f}', f'{ph:.5f}', f'{ka:.5f}'])
-    P = np.array([at.points[t] for t in at.points if t >= 0]).reshape(-1, 3)
     e, n, h = enu_to_crs(origin, P, crs)
     cloud = GeoCloud(e, n, h, np.full((len(P), 3), 200, np.uint8), np.ones(len(P), np.uint32),
                      np.ones(len(P), np.float32), crs, 'ellipsoidal')

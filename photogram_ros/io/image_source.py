@@ -3,7 +3,9 @@
 A folder is played in shooting order (EXIF DateTimeOriginal + SubSecTimeOriginal, in the zone of
 OffsetTimeOriginal, else an assumed UTC offset) so that a user's existing survey photos can go
 through the mapper like a live camera. EXIF GPS altitude is above mean sea level (EXIF 2.3), so it
-is converted to the WGS84 ellipsoidal height the rest of the system uses (REP-145).
+is converted to the WGS84 ellipsoidal height the rest of the system uses (REP-145). Many drones write
+it above the take-off point instead (or a barometric altitude tens of metres off):
+`exif_altitude_to_ellipsoidal_m` converts either reading, `exif_altitudes_look_relative` spots them.
 A file that cannot be decoded is skipped and recorded in `skipped`: one corrupt JPEG must not end
 a survey. No ROS here: the camera node is a thin adapter over these iterators.
 """
@@ -75,6 +77,62 @@ def read_exif_gps(path) -> ExifFix | None:
     if not (np.isfinite(lat) and np.isfinite(lon) and np.isfinite(alt)):
         return None
     return ExifFix(lat, lon, float(geoid.msl_to_ellipsoid_m(lat, lon, alt)), alt)
+
+
+EXIF_ALTITUDE_REFERENCES = ('msl', 'ellipsoidal', 'relative')
+
+
+def exif_altitude_to_ellipsoidal_m(lat_deg, lon_deg, alt_m, reference: str = 'msl',
+                                   takeoff_h_m: float | None = None, takeoff_reference: str = 'msl'):
+    """EXIF GPSAltitude (m, as written) -> WGS84 ellipsoidal height (m); scalars or arrays.
+
+    `reference` says what the camera meant: 'msl' (EXIF 2.3; through EGM2008 at the photo),
+    'ellipsoidal' (some PPK/RTK geotaggers write the WGS84 height) or 'relative' (above the take-off
+    point, as many drones write it). 'relative' needs `takeoff_h_m`, the take-off point's height,
+    above mean sea level or the ellipsoid as `takeoff_reference` ('msl' | 'ellipsoidal') says.
+    """
+    from photogram_ros.core import geoid
+    if reference not in EXIF_ALTITUDE_REFERENCES:
+        raise ConfigError(f'EXIF altitude reference {reference!r} unknown; choose from {EXIF_ALTITUDE_REFERENCES}')
+    if takeoff_reference not in ('msl', 'ellipsoidal'):
+        raise ConfigError(f"take-off height reference {takeoff_reference!r} unknown; choose 'msl' or 'ellipsoidal'")
+    alt = np.asarray(alt_m, dtype=float)
+    if reference == 'ellipsoidal':
+        return alt
+    if reference == 'msl':
+        return geoid.msl_to_ellipsoid_m(lat_deg, lon_deg, alt)
+    if takeoff_h_m is None:
+        raise ConfigError('EXIF altitudes relative to take-off need the take-off point\'s height: give it '
+                          '(triangulate --takeoff-altitude-m H, MSL unless --takeoff-heights ellipsoidal), '
+                          'e.g. from a map, a survey of the launch point or the first photo\'s GNSS fix')
+    if not np.isfinite(takeoff_h_m):
+        raise ConfigError(f'take-off height {takeoff_h_m} m is not a number')
+    if takeoff_reference == 'ellipsoidal':
+        # A height difference is the same above the geoid or the ellipsoid to the geoid's slope
+        # across the flight: millimetres over a few km.
+        return float(takeoff_h_m) + alt
+    return geoid.msl_to_ellipsoid_m(lat_deg, lon_deg, float(takeoff_h_m) + alt)
+
+
+# The rule of `exif_altitudes_look_relative`, in metres.
+GROUND_NEAR_SEA_LEVEL_M = 15.0     # the take-off point is on the ground: relief of a block around it
+MIN_FLYING_HEIGHT_M = 20.0         # survey photos are taken at least this far above the ground
+GROUND_BELOW_SEA_LEVEL_M = -30.0   # hardly any survey site is lower (Dead Sea shores aside)
+
+
+def exif_altitudes_look_relative(ground_msl_m: float, photo_alt_m: float) -> bool:
+    """Whether EXIF altitudes taken as MSL look like heights above the take-off point instead.
+
+    `ground_msl_m`: the block's ground (median tie-point height, MSL) after an adjustment held by
+    those altitudes; `photo_alt_m`: the photos' median EXIF altitude as written. Relative altitudes
+    put the ground within 15 m of 0 m MSL with the photos 20 m or more above it; a barometric
+    altitude far off can sink the ground below -30 m MSL; photos below the ground (GCPs holding the
+    block at its true height) cannot be MSL either. A survey really near sea level is flagged too:
+    the caller says how to silence it.
+    """
+    flying_m = photo_alt_m - ground_msl_m
+    return bool((abs(ground_msl_m) <= GROUND_NEAR_SEA_LEVEL_M and flying_m >= MIN_FLYING_HEIGHT_M)
+                or ground_msl_m < GROUND_BELOW_SEA_LEVEL_M or flying_m < 0)
 
 
 def _parse_offset(text) -> timedelta | None:
