@@ -356,28 +356,31 @@ def fill_holes(D: np.ndarray, holes: np.ndarray, max_dist_px: float, max_rms_px:
     if not cand.any():
         return cand
     H, W = D.shape
-    # Window sums of the plane-fit moments over 2x2-pooled cells (the window spans tens of pixels, so
-    # a quarter of the pixels loses nothing; float64: sums of u^2 over a window lose digits in
-    # float32); coordinates about the image centre keep them small.
-    r2 = (int(np.ceil(max_dist_px)) + margin_px + 3) // 2
-    m = valid.astype(np.float64)
-    u = (np.arange(W, dtype=np.float64) - W / 2)[None, :] * m
-    v = (np.arange(H, dtype=np.float64) - H / 2)[:, None] * m
-    d = np.where(valid, D, 0.0).astype(np.float64)
-    jj, ii = np.nonzero(cand)
-    cj, ci = jj // 2, ii // 2
+    # Window sums of the plane-fit moments over q x q cells, each taken at its centre: the window
+    # spans tens of pixels, so pooling loses nothing that matters and leaves a small grid for the
+    # window sums (float64: sums of u^2 over a window lose digits in float32; coordinates about the
+    # image centre keep them small).
+    r_px = int(np.ceil(max_dist_px)) + margin_px + 2
+    q = 4 if r_px >= 12 else 2
+    rq = max(int(round(r_px / q)), 1)
+    hq, wq = H // q, W // q     # the last rows/columns beyond whole cells add nothing to the moments
 
-    cj, ci = np.minimum(cj, H // 2 - 1), np.minimum(ci, W // 2 - 1)   # an odd last row/column joins its neighbour
-    he, we = H - H % 2, W - W % 2
+    def pool(a):
+        return a[:hq * q, :wq * q].reshape(hq, q, wq, q).sum(axis=(1, 3), dtype=np.float64)
+
+    d0 = np.where(valid, D, np.float32(0))
+    n_c, sd_c, sdd_c = pool(valid.astype(np.float32)), pool(d0), pool(d0 * d0)
+    uc = ((np.arange(wq) + 0.5) * q - 0.5 - W / 2)[None, :]
+    vc = ((np.arange(hq) + 0.5) * q - 0.5 - H / 2)[:, None]
 
     def win(a):
-        pooled = a[0:he:2, 0:we:2] + a[1:he:2, 0:we:2] + a[0:he:2, 1:we:2] + a[1:he:2, 1:we:2]
-        return cv2.boxFilter(pooled, cv2.CV_64F, (2 * r2 + 1, 2 * r2 + 1), normalize=False,
-                             borderType=cv2.BORDER_CONSTANT)[cj, ci]
+        return cv2.boxFilter(np.ascontiguousarray(a, np.float64), cv2.CV_64F, (2 * rq + 1, 2 * rq + 1),
+                             normalize=False, borderType=cv2.BORDER_CONSTANT)
 
-    cnt, su, sv, sd = win(m), win(u), win(v), win(d)
-    suu, suv, svv = win(u * u), win(u * v), win(v * v)
-    sud, svd, sdd = win(u * d), win(v * d), win(d * d)
+    # The fit of every cell's window, on the small grid; candidates then read their cell's.
+    cnt, su, sv, sd = win(n_c), win(uc * n_c), win(vc * n_c), win(sd_c)
+    suu, suv, svv = win(uc * uc * n_c), win(uc * vc * n_c), win(vc * vc * n_c)
+    sud, svd, sdd = win(uc * sd_c), win(vc * sd_c), win(sdd_c)
     with np.errstate(divide='ignore', invalid='ignore'):
         mu, mv, md = su / cnt, sv / cnt, sd / cnt
         cuu, cuv, cvv = suu - su * mu, suv - su * mv, svv - sv * mv
@@ -388,14 +391,19 @@ def fill_holes(D: np.ndarray, holes: np.ndarray, max_dist_px: float, max_rms_px:
         rms = np.sqrt(np.maximum(cdd - a * cud - b * cvd, 0.0) / cnt)
         # Spread in both directions: a matched line (a roof ridge alone) fixes no plane.
         spread = np.sqrt(np.maximum(np.minimum(cuu, cvv) / cnt, 0.0))
-    r = 2 * r2 + 1     # the window's half width in pixels
-    ok = (cnt >= 0.1 * (2 * r + 1) ** 2) & (rms <= max_rms_px) & (spread >= 0.2 * r) & np.isfinite(a + b)
+    r = q * rq + q // 2     # the window's half width in pixels
+    good = (cnt >= 0.1 * (2 * r + 1) ** 2) & (rms <= max_rms_px) & (spread >= 0.2 * r) & np.isfinite(a + b)
+    jj, ii = np.nonzero(cand)
+    cj, ci = np.minimum(jj // q, hq - 1), np.minimum(ii // q, wq - 1)
+    ok = good[cj, ci]
     lab = labels[jj, ii]
     share = np.bincount(lab[ok], minlength=n) / np.maximum(np.bincount(lab, minlength=n), 1)
     ok &= share[lab] >= min_plane_frac
-    D[jj[ok], ii[ok]] = (md + a * (ii - W / 2 - mu) + b * (jj - H / 2 - mv))[ok].astype(np.float32)
+    jj, ii, cj, ci = jj[ok], ii[ok], cj[ok], ci[ok]
+    D[jj, ii] = (md[cj, ci] + a[cj, ci] * (ii - W / 2 - mu[cj, ci])
+                 + b[cj, ci] * (jj - H / 2 - mv[cj, ci])).astype(np.float32)
     out = np.zeros_like(cand)
-    out[jj[ok], ii[ok]] = True
+    out[jj, ii] = True
     return out
 
 
