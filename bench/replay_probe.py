@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
 import shutil
 import threading
 import time
@@ -182,6 +183,10 @@ class Probe:
     # --- a child process (ReplayOptions.child_roles) --------------------------------------------
 
     CHILD_ENV = 'PHOTOGRAM_PROBE_CHILD_OUT'
+    # Optional: a JSON-lines file the child appends a memory sample to every few seconds
+    # (monotonic time, which both processes share, RSS, malloc figures, what its nodes hold).
+    CHILD_SAMPLES_ENV = 'PHOTOGRAM_PROBE_CHILD_SAMPLES'
+    CHILD_TRACEMALLOC_ENV = 'PHOTOGRAM_PROBE_CHILD_TRACEMALLOC'
 
     @staticmethod
     def child_sitecustomize(folder: Path, bench_dir: Path) -> Path:
@@ -196,8 +201,55 @@ class Probe:
             '    import atexit\n'
             '    from replay_probe import Probe\n'
             '    _probe = Probe().install()\n'
-            f'    atexit.register(_probe.dump_child, os.environ[{Probe.CHILD_ENV!r}])\n')
+            f'    atexit.register(_probe.dump_child, os.environ[{Probe.CHILD_ENV!r}])\n'
+            f'    if os.environ.get({Probe.CHILD_SAMPLES_ENV!r}):\n'
+            f'        _probe.start_child_sampler(os.environ[{Probe.CHILD_SAMPLES_ENV!r}])\n')
         return folder
+
+    def start_child_sampler(self, path: str, period_s: float = 3.0) -> None:
+        """A daemon thread appending {t (monotonic), rss_mb, hwm_mb, malloc..., holdings} lines to `path`.
+
+        With CHILD_TRACEMALLOC_ENV = N the child traces its Python allocations: it snapshots when the
+        file `path`.settle appears and again when `path`.end appears (the parent creates them at the
+        settle time and the end of the bag), then writes the N sites that grew most to `path`.sites.json
+        and the largest live blocks to `path`.big_blocks.json. At each mark it also writes glibc's
+        malloc_info XML to `path`.malloc_info_MARK.xml.
+        """
+        n_sites = int(os.environ.get(Probe.CHILD_TRACEMALLOC_ENV, '0') or 0)
+        if n_sites:
+            import tracemalloc
+            tracemalloc.start(8)
+
+        def loop():
+            snaps = {}
+            with open(path, 'a') as f:
+                while True:
+                    rss, hwm = RssSampler.read()
+                    try:
+                        h = memory_holdings(self)
+                    except Exception as exc:   # a node being destroyed must not end the sampling
+                        h = {'error': repr(exc)}
+                    for mark in ('settle', 'end'):
+                        if mark not in snaps and os.path.exists(f'{path}.{mark}'):
+                            # glibc's own account of its heaps (free chunks by size, per arena)
+                            malloc_info_xml(f'{path}.malloc_info_{mark}.xml')
+                            snaps[mark] = None
+                            if n_sites:
+                                import tracemalloc
+                                snaps[mark] = tracemalloc.take_snapshot()
+                                if mark == 'end' and snaps.get('settle') is not None:
+                                    Path(f'{path}.sites.json').write_text(json.dumps(
+                                        growth_sites(snaps['settle'], snaps['end'], n_sites)))
+                                    Path(f'{path}.big_blocks.json').write_text(json.dumps(
+                                        big_blocks(snaps['end'], n_sites)))
+                    if n_sites:
+                        import tracemalloc
+                        h['traced_mb'] = round(tracemalloc.get_traced_memory()[0] / 2**20, 1)
+                    f.write(json.dumps({'t': time.monotonic(), 'rss_mb': rss, 'hwm_mb': hwm, **rss_parts(),
+                                        **malloc_stats(), **h}) + '\n')
+                    f.flush()
+                    time.sleep(period_s)
+        threading.Thread(target=loop, name='child-rss-sampler', daemon=True).start()
 
     def dump_child(self, path: str) -> None:
         import resource
@@ -254,6 +306,135 @@ class Probe:
                     'max': round(float(np.max(v)), 2)}
         return {'keyframes_published': len(self.kf_published), 'keyframes_in_a_fused_cloud': len(wall),
                 'wall_s': stats(wall), 'flight_s': stats(flight), 'keyframes_published_meanwhile': stats(kfs_between)}
+
+
+def malloc_stats() -> dict:
+    """glibc's mallinfo2 in MB: heap_mb (main + thread arenas, sbrk/mmap'd heaps), in_use_mb (allocated
+    blocks there plus mmap'd blocks), free_mb (free space malloc holds: fragmentation when it grows),
+    mmap_mb (large blocks malloc mmaps, e.g. numpy buffers over 128 kB or M_MMAP_THRESHOLD). Empty
+    without glibc >= 2.33."""
+    import ctypes
+    import ctypes.util
+
+    class _Mallinfo2(ctypes.Structure):
+        _fields_ = [(n, ctypes.c_size_t) for n in ('arena', 'ordblks', 'smblks', 'hblks', 'hblkhd', 'usmblks',
+                                                    'fsmblks', 'uordblks', 'fordblks', 'keepcost')]
+    try:
+        libc = ctypes.CDLL(ctypes.util.find_library('c'))
+        fn = libc.mallinfo2
+    except (OSError, AttributeError, TypeError):
+        return {}
+    fn.restype = _Mallinfo2
+    m = fn()
+    mb = 1 / 2**20
+    return {'heap_mb': round(m.arena * mb, 1), 'in_use_mb': round((m.uordblks + m.hblkhd) * mb, 1),
+            'free_mb': round(m.fordblks * mb, 1), 'mmap_mb': round(m.hblkhd * mb, 1)}
+
+
+def rss_parts() -> dict:
+    """This process's RSS split as the kernel counts it (anonymous, file-backed, shared memory such as
+    DDS transport segments), in MB, and its thread count."""
+    out = {}
+    with open('/proc/self/status') as f:
+        for line in f:
+            k, _, v = line.partition(':')
+            if k in ('RssAnon', 'RssFile', 'RssShmem'):
+                out[k[3:].lower() + '_mb'] = round(int(v.split()[0]) / 1024, 1)
+            elif k == 'Threads':
+                out['threads'] = int(v)
+    return out
+
+
+def growth_sites(s0, s1, n: int) -> list:
+    """The n allocation sites (tracemalloc tracebacks, project frames first) that grew most from
+    snapshot s0 to s1: [{'mb', 'count_diff', 'frames'}]."""
+    out = []
+    for d in s1.compare_to(s0, 'traceback')[:n]:
+        frames = [f'{Path(f.filename).name}:{f.lineno}' for f in d.traceback
+                  if 'photogram_ros' in f.filename or '/bench/' in f.filename or 'rclpy' in f.filename]
+        out.append({'mb': round(d.size_diff / 1e6, 2), 'count_diff': d.count_diff,
+                    'frames': frames[-4:] or [f'{Path(f.filename).name}:{f.lineno}' for f in d.traceback][-2:]})
+    return out
+
+
+def malloc_info_xml(path: str) -> bool:
+    """Write glibc's malloc_info XML (every arena's free chunks by size class) to `path`."""
+    import ctypes
+    import ctypes.util
+    try:
+        libc = ctypes.CDLL(ctypes.util.find_library('c'))
+        libc.fopen.restype = ctypes.c_void_p
+        libc.fopen.argtypes = (ctypes.c_char_p, ctypes.c_char_p)
+        libc.malloc_info.argtypes = (ctypes.c_int, ctypes.c_void_p)
+        libc.fclose.argtypes = (ctypes.c_void_p,)
+    except (OSError, AttributeError, TypeError):
+        return False
+    f = libc.fopen(path.encode(), b'w')
+    if not f:
+        return False
+    libc.malloc_info(0, f)
+    libc.fclose(f)
+    return True
+
+
+def big_blocks(snap, n: int, min_bytes: int = 64 * 1024) -> list:
+    """The live allocations of at least min_bytes in a snapshot, grouped by site (the project frames
+    of their traceback), the n largest groups: [{'mb', 'blocks', 'frames'}]. Long-lived large blocks
+    between short-lived ones are what fragments malloc's heap."""
+    groups: dict = {}
+    for tr in snap.traces:
+        if tr.size < min_bytes:
+            continue
+        frames = tuple(f'{Path(f.filename).name}:{f.lineno}' for f in tr.traceback
+                       if 'photogram_ros' in f.filename or '/bench/' in f.filename or 'rclpy' in f.filename)[-4:]
+        frames = frames or tuple(f'{Path(f.filename).name}:{f.lineno}' for f in tr.traceback)[-2:]
+        g = groups.setdefault(frames, [0, 0])
+        g[0] += tr.size
+        g[1] += 1
+    top = sorted(groups.items(), key=lambda kv: -kv[1][0])[:n]
+    return [{'mb': round(b / 1e6, 2), 'blocks': c, 'frames': list(f)} for f, (b, c) in top]
+
+
+def memory_holdings(probe: Probe) -> dict:
+    """What the nodes of `probe`'s graph keep in memory now (read from another thread: sizes only)."""
+    g = probe.graph
+    if g is None:
+        return {}
+    n = g.nodes
+    out = {}
+    at = getattr(n.get('bundle'), 'at', None)
+    if at is not None:
+        out['bundle_keyframes'] = len(at.kfs)
+        out['bundle_points'] = len(at.points)
+        if hasattr(at, 'memory_stats'):   # what of it is still in the Python heap (the rest: disk, compact arrays)
+            st = at.memory_stats()
+            out['bundle_keyframes_in_memory'] = st['keyframes_in_memory']
+            out['bundle_points_in_memory'] = st['points_in_memory']
+            out['bundle_spilled_mb'] = st['spilled_mb']
+    if 'stereo' in n:
+        out['stereo_keyframes'] = len(n['stereo']._kf)
+    if 'map' in n:
+        f = n['map'].fusion
+        out['map_tiles_in_memory'] = len(f.tiles)
+        out['map_fusion_mb'] = round(f.memory_bytes / 1e6, 1)
+    if 'tracker' in n:
+        out['tracker_frames_queued'] = len(n['tracker']._frames)
+    # Work queued between the nodes (a consumer falling behind holds its inputs in memory).
+    if 'bundle' in n:
+        out['bundle_keyframes_waiting'] = len(n['bundle']._pending)
+    if 'stereo' in n:
+        st = n['stereo']
+        out['stereo_keyframes_unpaired'] = sum(1 for k in list(st._kf.values()) if not k.paired)
+        out['stereo_dropped_unpaired'] = st.diag.counts().get('keyframes_dropped_unpaired', 0)
+        if 'map' in n:
+            c, m = st.diag.counts(), n['map'].diag.counts()
+            out['clouds_in_flight'] = c.get('pairs_done', 0) - m.get('clouds', 0) - m.get('clouds_dropped', 0)
+            out['map_images_behind_stereo'] = c.get('images', 0) - m.get('keyframes_saved', 0)
+    if 'tracker' in n:
+        from photogram_ros.nodes import replay_session
+        if hasattr(replay_session, 'downstream_lag'):   # the whole graph's counters, the child's included
+            out['downstream_lag'] = replay_session.downstream_lag(g.counts())
+    return out
 
 
 class RssSampler(threading.Thread):
