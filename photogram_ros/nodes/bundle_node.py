@@ -393,6 +393,7 @@ class BundleNode(Node):
         try:
             rep = self.at.add_keyframe(rec)
         except Exception as exc:
+            self.diag.count('keyframes_failed')   # a replay's backpressure counts it as done
             self.diag.problem(f'keyframe {rec.stamp_ns} failed: {exc}')
             return
         self._control_to_map()

@@ -38,6 +38,11 @@ class ReplayOptions:
     # MAVLink decoder stay in this one): () runs everything in one process.
     child_roles: tuple = ()
     quiet_s: float = 1.0   # the graph has drained once nothing happened for this long (and nothing is queued)
+    # The player also waits while a node after the tracker is more than this many keyframes (or pair
+    # clouds) behind it; 0 = never. Without it a fast tracker outruns a slower child process: the
+    # backlog grew the memory with the flight's length, and past stereo's max_keyframes (80) stereo
+    # dropped keyframe images before their poses came, so whole stretches got no cloud.
+    max_lag_keyframes: int = 30
 
 
 class DiagnosticsLog:
@@ -73,6 +78,26 @@ def _num(v: str):
         return int(f) if f.is_integer() and 'e' not in v and '.' not in v else f
     except ValueError:
         return v
+
+
+def downstream_lag(counts: dict) -> int:
+    """How far the nodes after the tracker are behind it, from the graph's diagnostic counters: the
+    most keyframes one of them has not finished with (bundle: adjusted or given up; stereo and map:
+    image taken), or the pair clouds the map has not fused yet. A node whose counter has not
+    appeared yet (nothing done yet, or a feature turned off) is not waited for."""
+    kf = counts.get('tracker', {}).get('keyframes', 0)
+    lags = [0]
+    b = counts.get('bundle', {})
+    if 'keyframes_received' in b:
+        lags.append(kf - sum(b.get(k, 0) for k in ('keyframes_oriented', 'keyframes_not_oriented', 'keyframes_failed')))
+    if 'images' in counts.get('stereo', {}):
+        lags.append(kf - counts['stereo']['images'])
+    m = counts.get('map', {})
+    if 'keyframes_saved' in m:
+        lags.append(kf - m['keyframes_saved'])
+    if 'stereo' in counts and 'map' in counts:
+        lags.append(counts['stereo'].get('pairs_done', 0) - m.get('clouds', 0) - m.get('clouds_dropped', 0))
+    return max(lags)
 
 
 def _activity(graph: Graph) -> int:
@@ -131,6 +156,8 @@ def run_replay(opts: ReplayOptions, context=None) -> dict:
 
     mavlink = graph.nodes.get('mavlink')
     packets_sent = [0]
+    lag_slack = [0]      # keyframes a node will never count (lost, failed without a count): not waited for
+    lag_wait_s = [0.0]
 
     def wait_for(done, deadline_s):
         deadline = time.monotonic() + deadline_s
@@ -147,6 +174,22 @@ def run_replay(opts: ReplayOptions, context=None) -> dict:
         # The tracker must have taken the previous frame. Waiting here rather than right after that
         # frame lets the messages recorded with it (its camera_info) reach the tracker meanwhile.
         wait_for(lambda: tracker.frames_done >= images_sent[0], opts.frame_timeout_s)
+        if opts.max_lag_keyframes > 0:
+            wait_downstream()
+
+    def wait_downstream():
+        """Hold the player while a later node lags the tracker by more than max_lag_keyframes. A lag
+        that does not shrink within frame_timeout_s is accepted from then on (a keyframe that never
+        shows in a counter must not stall every later frame)."""
+        if downstream_lag(graph.counts()) - lag_slack[0] <= opts.max_lag_keyframes:
+            return
+        t0 = time.monotonic()
+        wait_for(lambda: downstream_lag(graph.counts()) - lag_slack[0] <= opts.max_lag_keyframes,
+                 opts.frame_timeout_s)
+        lag = downstream_lag(graph.counts())
+        if lag - lag_slack[0] > opts.max_lag_keyframes:
+            lag_slack[0] = lag - opts.max_lag_keyframes
+        lag_wait_s[0] += time.monotonic() - t0
 
     def on_message(m):
         if m.topic == '/mavlink/from_fcu':
@@ -197,7 +240,8 @@ def run_replay(opts: ReplayOptions, context=None) -> dict:
         listener.destroy_node()
     run = {'bag': str(opts.bag), 'frames': images_sent[0], 'bag_s': summary.bag_s, 'wall_s': wall_s,
            'real_time_factor': summary.bag_s / max(wall_s, 1e-9), 'messages': summary.total,
-           'bag_errors': summary.errors, 'skipped_topics': summary.skipped}
+           'bag_errors': summary.errors, 'skipped_topics': summary.skipped,
+           'waited_for_downstream_s': round(lag_wait_s[0], 1)}
     return {'run': run, 'diagnostics': diag_log.snapshot(), 'map_dir': str(map_dir)}
 
 

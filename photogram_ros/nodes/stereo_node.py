@@ -113,6 +113,8 @@ class StereoNode(Node):
                 if old.map_T_cam is not None:
                     self._posed.remove(stamp)
                 self.diag.count('keyframes_dropped')
+                if not old.paired:   # no cloud from it: its pose came too late (a lagging adjuster) or never
+                    self.diag.count('keyframes_dropped_unpaired')
         return kf
 
     def _on_info(self, msg: CameraInfo) -> None:
