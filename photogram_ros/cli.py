@@ -40,6 +40,10 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv=None) -> int:
+    # Cap glibc's malloc arenas before any command starts rclpy (its DDS threads would each take
+    # one): see nodes/process_memory.py. Cheap and harmless for the commands without threads.
+    from photogram_ros.nodes.process_memory import limit_malloc_arenas
+    limit_malloc_arenas()
     args = build_parser().parse_args(argv)
     try:
         return int(args._run(args) or 0)
