@@ -27,6 +27,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from photogram_ros.core import offheap
 from photogram_ros.errors import ConfigError, DataError
 
 # One fused cell. x, y are offsets from the tile's south-west corner so float32 keeps 0.1 mm.
@@ -73,7 +74,10 @@ class Tile:
     def __init__(self, key: tuple[int, int], tile_cells: int, cells: np.ndarray | None = None):
         self.key = key
         n = tile_cells * tile_cells
-        self.f = {name: (cells[name].copy() if cells is not None else np.zeros(n, CELL_DTYPE.fields[name][0]))
+        # Off the heap: a tile lives for minutes among each cloud's temporaries (see core/offheap.py),
+        # and an evicted one gives its memory back at once.
+        self.f = {name: (offheap.copy(cells[name]) if cells is not None
+                         else offheap.zeros(n, CELL_DTYPE.fields[name][0]))
                   for name in CELL_DTYPE.names}
         self.dirty = np.zeros(n, dtype=bool)     # not yet handed to the store
 

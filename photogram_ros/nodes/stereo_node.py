@@ -23,7 +23,7 @@ from sensor_msgs.msg import CameraInfo, Image, PointCloud2
 from stereo_msgs.msg import DisparityImage
 
 from photogram_ros import msgs
-from photogram_ros.core import stereo
+from photogram_ros.core import offheap, stereo
 from photogram_ros.core.pairs import PairCriteria, choose_pairs
 from photogram_ros.errors import PhotogramError
 from photogram_ros.nodes.diagnostics import Diagnostics
@@ -134,7 +134,9 @@ class StereoNode(Node):
             if img.ndim == 3 and img.shape[2] != 3:
                 raise PhotogramError(f'keyframe image has {img.shape[2]} channels; publish bgr8 or mono8')
             kf = self._entry(msgs.ns_from_time(msg.header.stamp))
-            kf.image = img
+            # Held until max_keyframes newer ones came: off the heap, where it would pin the pairs'
+            # temporaries around it (core/offheap.py).
+            kf.image = offheap.copy(img)
             self.diag.count('images')
             self._maybe_pair(kf)
         except Exception as exc:  # one bad keyframe must not stop the node
