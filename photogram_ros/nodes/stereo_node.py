@@ -113,7 +113,9 @@ class StereoNode(Node):
                 if old.map_T_cam is not None:
                     self._posed.remove(stamp)
                 self.diag.count('keyframes_dropped')
-                if not old.paired:   # no cloud from it: its pose came too late (a lagging adjuster) or never
+                # An image that never made a pair: its pose came too late (a lagging adjuster) or never.
+                # (Pose-only entries, e.g. the full adjustment republishing every pose, are no loss.)
+                if old.image is not None and not old.paired:
                     self.diag.count('keyframes_dropped_unpaired')
         return kf
 
