@@ -330,3 +330,18 @@ def test_points_whose_match_leaves_the_right_image_are_dropped(sim_pair):
     assert np.mean(seen_in_b(unchecked)) < 0.95
     # Colour is the rectified left pixel's: BGR packed as 0x00RRGGBB.
     assert np.unique(checked['rgb']).size > 100
+
+
+def test_depth_range_from_the_pairs_tie_points():
+    # Ground at 0 +- 2 m under a pair at 40 m, a few points beyond the pair's view: the range is what
+    # both cameras see (about 38-42 m deep), widened by the margin, and None without enough points.
+    from photogram_ros.core.pairs import depth_range_from_points
+    rng = np.random.default_rng(3)
+    Ta, Tb = _pose(0.0, 0.0, 40.0), _pose(0.0, 8.0, 40.0)
+    xy = rng.uniform(-30, 30, (4000, 2))
+    P = np.column_stack([xy, rng.uniform(-2, 2, 4000)])
+    far = np.array([[200.0, 0.0, -30.0], [0.0, 300.0, 15.0]])     # outside both images: ignored
+    lo, hi = depth_range_from_points(CAM, Ta, Tb, np.vstack([P, far]), margin_m=4.0)
+    assert 33.5 < lo < 34.5 and 45.5 < hi < 46.5
+    assert depth_range_from_points(CAM, Ta, Tb, P[:10], margin_m=4.0) is None
+    assert depth_range_from_points(CAM, Ta, _pose(200.0, 0.0, 40.0), P, margin_m=4.0) is None

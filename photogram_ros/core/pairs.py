@@ -70,3 +70,33 @@ def choose_pairs(camera: PinholeCamera, new_T: np.ndarray, others: dict, height_
     along = [c for c in cands if c.along][:crit.max_along]
     across = [c for c in cands if not c.along][:crit.max_across]
     return along + across
+
+
+def depth_range_from_points(camera: PinholeCamera, map_T_cam_a: np.ndarray, map_T_cam_b: np.ndarray,
+                            points_map: np.ndarray, margin_m: float, min_points: int = 30) -> tuple | None:
+    """Depths along camera a's axis (m) that the pair's tie points span, widened by `margin_m`.
+
+    A survey's stereo search covers every height the terrain and buildings could have; the tie
+    points the pair shares say which ones this pair sees, and the SGBM cost is proportional to the
+    search. The 1st and 99th percentiles leave stray points out; the margin covers what has no tie
+    point (a plain roof above its corners). None with fewer than `min_points` shared points.
+    """
+    P = np.asarray(points_map, float).reshape(-1, 3)
+    if len(P) < min_points:
+        return None
+    # The footprint of a nadir-ish camera lies within its height times the half diagonal of the image
+    # over the focal length of its nadir: a cheap cut before projecting.
+    C = map_T_cam_a[:3, 3]
+    reach = 1.5 * abs(C[2] - np.median(P[:, 2])) * np.hypot(camera.width, camera.height) / (2 * camera.fx)
+    P = P[np.hypot(P[:, 0] - C[0], P[:, 1] - C[1]) < reach]
+    seen, depth = np.ones(len(P), bool), None
+    for T in (map_T_cam_a, map_T_cam_b):
+        pc = (P - T[:3, 3]) @ T[:3, :3]
+        uv, front = camera.project(pc)
+        seen &= front & camera.in_image(uv)
+        if depth is None:
+            depth = pc[:, 2]
+    if seen.sum() < min_points:
+        return None
+    lo, hi = np.percentile(depth[seen], (1.0, 99.0))
+    return float(lo - margin_m), float(hi + margin_m)

@@ -24,7 +24,7 @@ from stereo_msgs.msg import DisparityImage
 
 from photogram_ros import msgs
 from photogram_ros.core import offheap, stereo
-from photogram_ros.core.pairs import PairCriteria, choose_pairs
+from photogram_ros.core.pairs import PairCriteria, choose_pairs, depth_range_from_points
 from photogram_ros.errors import PhotogramError
 from photogram_ros.nodes.diagnostics import Diagnostics
 from photogram_ros.nodes.node_main import run_node
@@ -47,8 +47,13 @@ class StereoNodeParams(stereo.StereoParams):
     ground_from_sparse_cloud: bool = param(True, 'take the ground height from the median of map/sparse_cloud '
                                                  '(the map origin is often the first fix, in the air); keyframes '
                                                  'wait for the first sparse cloud')
-    relief_m: float = param(20.0, 'depth search half-range around the ground, m (terrain relief + buildings)',
-                            min=0.5, max=1e4)
+    relief_m: float = param(20.0, 'depth search half-range around the ground, m (terrain relief + buildings); '
+                                  'the most the search spans', min=0.5, max=1e4)
+    depth_from_sparse_cloud: bool = param(True, 'search only the depths the pair\'s tie points span (from '
+                                                'map/sparse_cloud, widened by depth_margin_m, within relief_m): '
+                                                'the SGBM cost is proportional to the search')
+    depth_margin_m: float = param(4.0, 'margin around the tie points\' depths, m (what has no tie point, e.g. a '
+                                       'plain roof above its corners)', min=0.0, max=1e3)
     target_baseline_ratio: float = param(0.22, 'preferred baseline-to-height ratio when choosing partners',
                                          min=0.01, max=5.0)
     max_pairs_along: int = param(1, 'partners per new keyframe along its flight line', min=0, max=10)
@@ -94,6 +99,7 @@ class StereoNode(Node):
         self.create_subscription(PoseWithCovarianceStamped, TOPIC_POSE, self._on_pose, reliable)
         self.create_subscription(CameraInfo, TOPIC_INFO, self._on_info, qos_profile_sensor_data)
         self.ground_m = None if p.ground_from_sparse_cloud else p.ground_height_m
+        self._tie_points = np.zeros((0, 3))   # the newest sparse cloud, map (m)
         self._flushing = False
         self._posed: list[int] = []   # stamps of keyframes with a pose, sorted
         if p.ground_from_sparse_cloud:
@@ -172,10 +178,13 @@ class StereoNode(Node):
 
     def _on_sparse(self, msg: PointCloud2) -> None:
         try:
-            z = msgs.points_from_pointcloud2(msg)['z']
-            z = z[np.isfinite(z)]
+            pts = msgs.points_from_pointcloud2(msg)
+            xyz = np.column_stack([pts['x'], pts['y'], pts['z']]).astype(float)
+            xyz = xyz[np.all(np.isfinite(xyz), axis=1)]
+            z = xyz[:, 2]
             if z.size < 20:
                 return
+            self._tie_points = xyz
             first = self.ground_m is None
             self.ground_m = float(np.median(z))
             self.diag.set('ground_height_m', self.ground_m)
@@ -228,6 +237,11 @@ class StereoNode(Node):
             cam = self._camera_for(a.image)
             lo = max(p.min_depth_m, height_m - p.relief_m)
             hi = min(p.max_depth_m, height_m + p.relief_m)
+            seen = (depth_range_from_points(cam, a.map_T_cam, b.map_T_cam, self._tie_points, p.depth_margin_m)
+                    if p.depth_from_sparse_cloud else None)
+            if seen is not None and min(hi, seen[1]) > max(lo, seen[0]):
+                lo, hi = max(lo, seen[0]), min(hi, seen[1])
+                self.diag.count('pairs_depth_from_tie_points')
             res = stereo.stereo_pair(cam, a.image, a.map_T_cam, b.image, b.map_T_cam, p, (lo, hi))
         except Exception as exc:
             self.diag.count('pairs_failed')
