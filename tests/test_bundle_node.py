@@ -1,30 +1,21 @@
 """bundle_node over real topics: keyframes from the simulator truth in, georeferenced poses out."""
 
-import time
-
 import numpy as np
 import pytest
 from geometry_msgs.msg import PoseWithCovarianceStamped
 from nav_msgs.msg import Path
-from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import CameraInfo, NavSatFix, PointCloud2
 from std_msgs.msg import Empty
 
-from helpers.keyframe_feed import feature_table, fix_msg
+from helpers.keyframe_feed import executor_with, feature_table, fix_msg, spin_until, start_bundle_node
 from photogram_ros import msgs
 from photogram_ros.errors import ConfigError
 from photogram_ros.nodes.bundle_node import BundleNode
 from photogram_ros.sim.observations import simulate_keyframes
 from photogram_ros.sim.scenario import preset
 
-
-def _spin_until(ex, cond, timeout_s):
-    t0 = time.monotonic()
-    while time.monotonic() - t0 < timeout_s and not cond():
-        ex.spin_once(timeout_sec=0.05)
-    return cond()
 
 
 def test_bundle_node_orients_keyframes_from_topics(rclpy_context):
@@ -44,25 +35,21 @@ def test_bundle_node_orients_keyframes_from_topics(rclpy_context):
     feeder.create_subscription(Path, 'map/path', paths.append, QoSProfile(depth=5))
     feeder.create_subscription(PointCloud2, 'map/sparse_cloud', clouds.append, QoSProfile(depth=5))
     feeder.create_subscription(NavSatFix, 'map/georeference', georef.append, latched)
-    ex = SingleThreadedExecutor(context=rclpy_context)
-    ex.add_node(node)
-    ex.add_node(feeder)
+    ex = executor_with(rclpy_context, node, feeder)
     try:
-        _spin_until(ex, lambda: pub_info.get_subscription_count() > 0 and pub_feat.get_subscription_count() > 0, 5)
-        pub_info.publish(msgs.camera_info_msg(sk.camera, sk.records[0].stamp_ns))
-        assert _spin_until(ex, lambda: node.at is not None, 5)
+        start_bundle_node(ex, node, pub_info, pub_feat, sk.camera, sk.records[0].stamp_ns)
         # A broken message first: counted, the node goes on.
         bad = msgs.pointcloud2_msg(np.zeros(3, dtype=[('x', np.float32)]), 1)
         pub_feat.publish(bad)
         for r in sk.records:
             pub_fix.publish(fix_msg(r))
             pub_feat.publish(msgs.keyframe_features_msg(feature_table(r, sk.camera), r.stamp_ns))
-            _spin_until(ex, lambda: False, 0.05)
+            spin_until(ex, lambda: False, 0.05)
         n = len(sk.records)
-        assert _spin_until(ex, lambda: node.diag.counts().get('keyframes_oriented', 0) >= n - 1, 60)
+        assert spin_until(ex, lambda: node.diag.counts().get('keyframes_oriented', 0) >= n - 1, 60)
         pub_full.publish(Empty())
-        assert _spin_until(ex, lambda: node.diag.counts().get('full_adjustments', 0) >= 1, 60)
-        _spin_until(ex, lambda: len(poses) >= n and georef, 10)
+        assert spin_until(ex, lambda: node.diag.counts().get('full_adjustments', 0) >= 1, 60)
+        spin_until(ex, lambda: len(poses) >= n and georef, 10)
     finally:
         ex.shutdown()
     assert node.diag.counts().get('problems', 0) >= 1     # the broken message was reported
@@ -148,14 +135,11 @@ def test_gimballed_camera_takes_its_antenna_offset_from_the_attitude_topic(rclpy
     pub_feat = feeder.create_publisher(PointCloud2, 'keyframes/features', reliable)
     pub_fix = feeder.create_publisher(NavSatFix, 'keyframes/fix', reliable)
     pub_att = feeder.create_publisher(Imu, 'mavlink/attitude', QoSProfile(depth=100))
-    ex = SingleThreadedExecutor(context=rclpy_context)
-    ex.add_node(node)
-    ex.add_node(feeder)
+    ex = executor_with(rclpy_context, node, feeder)
     t0_ns = sk.records[0].stamp_ns
     try:
-        _spin_until(ex, lambda: pub_att.get_subscription_count() > 0 and pub_feat.get_subscription_count() > 0, 5)
-        pub_info.publish(msgs.camera_info_msg(sk.camera, t0_ns))
-        assert _spin_until(ex, lambda: node.at is not None, 5)
+        spin_until(ex, lambda: pub_att.get_subscription_count() > 0, 5)
+        start_bundle_node(ex, node, pub_info, pub_feat, sk.camera, t0_ns)
         k_att = -5                       # the autopilot's 10 Hz attitude, a little ahead of the keyframes
         for r in sk.records:
             while k_att * 100_000_000 <= r.stamp_ns - t0_ns + 500_000_000:
@@ -163,12 +147,12 @@ def test_gimballed_camera_takes_its_antenna_offset_from_the_attitude_topic(rclpy
                 q = quat_from_R(enu_R_flu_from_ned_R_frd(ned_R_frd_from_euler(st.roll_rad, st.pitch_rad, st.yaw_rad)))
                 pub_att.publish(msgs.imu_orientation_msg(t0_ns + k_att * 100_000_000, q, (1e-4, 1e-4, 1e-3)))
                 k_att += 1
-            _spin_until(ex, lambda: False, 0.02)
+            spin_until(ex, lambda: False, 0.02)
             pub_fix.publish(fix_msg(r))
             pub_feat.publish(msgs.keyframe_features_msg(feature_table(r, sk.camera), r.stamp_ns))
-            _spin_until(ex, lambda: False, 0.05)
+            spin_until(ex, lambda: False, 0.05)
         n = len(sk.records)
-        assert _spin_until(ex, lambda: node.diag.counts().get('keyframes_oriented', 0) >= n - 1, 60)
+        assert spin_until(ex, lambda: node.diag.counts().get('keyframes_oriented', 0) >= n - 1, 60)
         node.full_adjustment()
     finally:
         ex.shutdown()

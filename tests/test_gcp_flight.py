@@ -14,18 +14,16 @@ flight without them is off by the receiver's metres, which proves the GCPs are w
 import json
 import subprocess
 import sys
-import time
 
 import numpy as np
 import pytest
 from geometry_msgs.msg import PoseWithCovarianceStamped
-from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import CameraInfo, NavSatFix, NavSatStatus, PointCloud2
 
 from conftest import ROOT
-from helpers.keyframe_feed import feature_table, fix_msg
+from helpers.keyframe_feed import executor_with, feature_table, fix_msg, spin_until, start_bundle_node
 from photogram_ros import msgs
 from photogram_ros.core.control import TARGET_DTYPE, SurveyedTarget
 from photogram_ros.core.geodesy import LocalFrame
@@ -47,12 +45,6 @@ def flight_3d():
     return sk, world[2]
 
 
-def _spin_until(ex, cond, timeout_s):
-    t0 = time.monotonic()
-    while time.monotonic() - t0 < timeout_s and not cond():
-        ex.spin_once(timeout_sec=0.05)
-    return cond()
-
 
 def _values(node) -> dict:
     return {kv.key: kv.value for kv in node.diag.status().values}
@@ -73,13 +65,9 @@ def _run_bundle(ctx, sk, marker_of, overrides):
     feeder.create_subscription(PoseWithCovarianceStamped, 'map/keyframe_pose',
                                lambda m: poses.__setitem__(msgs.ns_from_time(m.header.stamp), m), reliable)
     feeder.create_subscription(NavSatFix, 'map/georeference', georef.append, latched)
-    ex = SingleThreadedExecutor(context=ctx)
-    ex.add_node(node)
-    ex.add_node(feeder)
+    ex = executor_with(ctx, node, feeder)
     try:
-        _spin_until(ex, lambda: pub_info.get_subscription_count() > 0 and pub_feat.get_subscription_count() > 0, 5)
-        pub_info.publish(msgs.camera_info_msg(sk.camera, sk.records[0].stamp_ns))
-        assert _spin_until(ex, lambda: node.at is not None, 5)
+        start_bundle_node(ex, node, pub_info, pub_feat, sk.camera, sk.records[0].stamp_ns)
         for k, r in enumerate(sk.records):
             pub_fix.publish(fix_msg(r, NavSatStatus.STATUS_FIX))
             obs = feature_table(r, sk.camera)
@@ -90,13 +78,13 @@ def _run_bundle(ctx, sk, marker_of, overrides):
                 tg[i]['marker_id'] = marker_of.get(n, 42)
                 tg[i]['u'], tg[i]['v'] = r.target_uv.get(n, (320.0, 240.0))
             pub_feat.publish(msgs.keyframe_features_msg(obs, r.stamp_ns, targets=tg))
-            _spin_until(ex, lambda: False, 0.05)
+            spin_until(ex, lambda: False, 0.05)
         n = len(sk.records)
         c = node.diag.counts
-        assert _spin_until(ex, lambda: c().get('keyframes_oriented', 0) + c().get('keyframes_not_oriented', 0) >= n, 90)
+        assert spin_until(ex, lambda: c().get('keyframes_oriented', 0) + c().get('keyframes_not_oriented', 0) >= n, 90)
         assert c()['keyframes_oriented'] >= n - 3   # the first ones wait for a wide enough pair
         node.finish()
-        _spin_until(ex, lambda: len(poses) >= n and georef, 10)
+        spin_until(ex, lambda: len(poses) >= n and georef, 10)
     finally:
         ex.shutdown()
         feeder.destroy_node()
