@@ -100,7 +100,7 @@ def test_products_come_from_the_final_adjustment_and_are_reproducible(replay, tm
     """The products are matched again from the final poses (map_final): the same folder densified again
     gives the same cells, and the in-flight map (pairs matched with the poses they had when they left
     the bundle window) is no better against the truth."""
-    from photogram_ros.commands.densify_step import densify_with_params
+    from photogram_ros.commands.products import densify_with_params
     from photogram_ros.io.export import export_map
     from photogram_ros.io.flight_report import build_report
     from photogram_ros.io.map_store import MapStore

@@ -55,7 +55,8 @@ def test_run_starts_all_nodes_and_sigint_flushes_the_map(tmp_path, sample_bag):
     text = text.replace('url: udpin:0.0.0.0:14550', f'url: {sample_bag / "flight.tlog"}')
     text = text.replace('map_dir: maps/current', f'map_dir: {tmp_path / "map"}')
     cfg.write_text(text)
-    proc = subprocess.Popen([sys.executable, '-m', 'photogram_ros.cli', 'run', '--params', str(cfg)], cwd=ROOT,
+    proc = subprocess.Popen([sys.executable, '-m', 'photogram_ros.cli', 'run', '--params', str(cfg),
+                             '--out', str(tmp_path / 'products')], cwd=ROOT,
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     try:
         deadline = time.monotonic() + 60
@@ -70,6 +71,8 @@ def test_run_starts_all_nodes_and_sigint_flushes_the_map(tmp_path, sample_bag):
     assert proc.returncode == 0, out[-3000:]
     assert 'photogram_ros running: mavlink, tracker, bundle, stereo, map' in out
     assert (tmp_path / 'map' / 'map.json').exists()
+    # No camera here, so no keyframes: the stop says there is nothing to export, and still writes the report.
+    assert 'no georeferenced keyframes' in out and (tmp_path / 'products' / 'report.md').exists()
 
 
 def test_replay_file_serves_graphs_without_some_nodes():

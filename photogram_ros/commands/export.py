@@ -51,7 +51,7 @@ def run(a) -> int:
     if a.densify:
         from pathlib import Path
 
-        from photogram_ros.commands.densify_step import densify_with_params
+        from photogram_ros.commands.products import densify_with_params
         params = a.params if a.params is not None or not Path('config/replay.yaml').exists() else 'config/replay.yaml'
         d = densify_with_params(a.map_dir, Path(a.out) / 'map_final', params)
         print(f'{d.pairs_done} pairs matched again from the final poses in {d.seconds:.1f} s -> {d.map_dir}')

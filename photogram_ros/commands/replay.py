@@ -39,13 +39,8 @@ def run(a) -> int:
 
     import rclpy
 
-    from photogram_ros.commands.densify_step import densify_with_params
-    from photogram_ros.core.geodesy import utm_epsg
-    from photogram_ros.errors import PhotogramError
+    from photogram_ros.commands.products import export_products
     from photogram_ros.io.control_file import read_control_file
-    from photogram_ros.io.export import export_map
-    from photogram_ros.io.flight_report import build_report
-    from photogram_ros.io.map_store import MapStore
     from photogram_ros.nodes.replay_session import ReplayOptions, run_replay
     from photogram_ros.sim.truth import GroundTruth
 
@@ -67,30 +62,12 @@ def run(a) -> int:
                                        progress=not a.quiet, child_roles=child, extra=extra))
     finally:
         rclpy.try_shutdown()
-    store = MapStore(res['map_dir'])
-    files, notes = {}, []
-    crs = a.crs
-    products_map = res['map_dir']
-    if store.origin is None:
-        notes.append('the map has no georeference (no GNSS fix was good enough): no exports')
-    else:
-        if not a.live_map:
-            try:
-                d = densify_with_params(res['map_dir'], out / 'map_final', params, progress=not a.quiet)
-                products_map = d.map_dir
-                res['run'].update(products_from='final adjustment (map_final)', densify_s=round(d.seconds, 2),
-                                  densify_pairs=d.pairs_done)
-            except PhotogramError as exc:
-                notes.append(f'products from the in-flight map: dense matching from the final poses failed ({exc})')
-        res['run'].setdefault('products_from', 'in-flight map (map)')
-        crs = crs or f'EPSG:{utm_epsg(store.origin.lat_deg, store.origin.lon_deg)}'
-        heights = 'orthometric' if a.orthometric else 'ellipsoidal'
-        ex = export_map(products_map, out, crs, heights, min_pairs=a.min_pairs)
-        files, notes = {k: str(v) for k, v in ex.files.items()}, notes + ex.notes
-        res['run']['map_points'] = ex.points
     truth = GroundTruth.load(a.bag) if GroundTruth.exists(a.bag) else None
-    figures = build_report(out, products_map, crs or 'EPSG:4326', files, truth=truth, control=control,
-                           run=res['run'], diagnostics=res['diagnostics'])
+    prod = export_products(res['map_dir'], out, params, a.crs, a.live_map, 'orthometric' if a.orthometric else
+                           'ellipsoidal', a.min_pairs, progress=not a.quiet, run=res['run'], truth=truth,
+                           control=control, diagnostics=res['diagnostics'])
+    files, notes, figures = prod['files'], prod['notes'], prod['figures']
+    res['run'] = figures.get('run', res['run'])
     (out / 'run.json').write_text(json.dumps({**res['run'], 'notes': notes}, indent=1, default=str))
     r = res['run']
     print(f"replayed {r['frames']} frames ({r['bag_s']:.1f} s of flight) in {r['wall_s']:.1f} s, "
