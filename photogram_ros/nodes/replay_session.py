@@ -2,7 +2,8 @@
 
 The player feeds the graph as fast as it keeps up (or at a set rate): after each image it waits
 until the tracker has taken that frame, so a fast replay never drops frames the way a live camera
-overload would. When the bag ends the graph drains (keyframes -> bundle -> stereo -> map), the bundle
+overload would, and while a node after the tracker (possibly in the child process) is more than
+`max_lag_keyframes` behind, so the queues between them, and the memory, stay bounded. When the bag ends the graph drains (keyframes -> bundle -> stereo -> map), the bundle
 runs its final adjustment, the map flushes, and the exports and the report are written.
 """
 
