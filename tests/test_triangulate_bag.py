@@ -47,3 +47,22 @@ def test_self_calibration_recovers_a_wrong_focal_length(sample_bag, tmp_path):
     sc = json.loads((out / 'report.json').read_text())['self_calibration']
     assert abs(sc['fx']['before'] / truth.camera.fx - 1.02) < 1e-6
     assert abs(sc['fx']['after'] / truth.camera.fx - 1.0) < 0.005
+
+
+def test_triangulate_bag_with_its_targets_file(sample_bag, tmp_path):
+    """--targets: the flight's control file (as replay --gcp reads it); the ArUco markers found in the
+    keyframes tie the block to the five GCPs and the four CHK* targets are check points, never used
+    (measured: 3.4 cm horizontal, 2.5 cm vertical, 76 marker observations)."""
+    import json
+    out = tmp_path / 'at'
+    r = subprocess.run([sys.executable, '-m', 'photogram_ros.cli', 'triangulate', str(sample_bag), '--out', str(out),
+                        '--lever-arm=0,-0.05,-0.20', '--targets', str(sample_bag / 'targets.txt')],
+                       cwd=ROOT, capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stderr[-3000:]
+    rep = json.loads((out / 'report.json').read_text())
+    gsd = GroundTruth.load(sample_bag).gsd_m
+    ck = rep['check']['rmse']
+    assert sorted(p['name'] for p in rep['check']['points']) == ['CHK01', 'CHK02', 'CHK03', 'CHK04']
+    assert ck['horizontal_m'] <= 1.0 * gsd and ck['vertical_m'] <= 1.5 * gsd
+    assert len(rep['gcp']['points']) == 5
+    assert any('5 GCPs, 4 check points' in s for s in rep['assumptions'])

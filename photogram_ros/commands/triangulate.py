@@ -9,6 +9,9 @@ def add_arguments(p) -> None:
     p.add_argument('input', help='a flight bag (images + /gps/fix or raw MAVLink), or a folder of geotagged JPEGs '
                                  '(with an optional OpenDroneMap geo.txt)')
     p.add_argument('--gcp', help='OpenDroneMap gcp_list.txt (first line a CRS; names CHK* are check points)')
+    p.add_argument('--targets', help='for a bag: the flight\'s control file of ArUco targets, as `replay --gcp` reads '
+                                   'it (first line a CRS, then "name marker_id x y z [sigma_h_m sigma_v_m]"; CHK* '
+                                   'are check points): the markers found in the keyframes are the observations')
     p.add_argument('--check', default='', help='more check-point names, comma separated')
     p.add_argument('--out', required=True, help='output folder (poses.csv, sparse.ply/.las, report.md/.json)')
     p.add_argument('--camera', help='calibration YAML (ROS camera_calibration layout); default: the bag\'s '
@@ -115,7 +118,12 @@ def run(a) -> int:
         raise ConfigError('--exif-altitude relative needs the take-off point\'s height: --takeoff-altitude-m H '
                           '(m above mean sea level; add --takeoff-heights ellipsoidal for a WGS84 height)')
     if (src / 'metadata.yaml').exists():
-        camera, origin, records, assumptions = _bag_records(src, a.camera)
+        targets = None
+        if a.targets:
+            from photogram_ros.io.control_file import read_control_file
+            targets = read_control_file(a.targets, a.check.split(','))
+        camera, origin, records, assumptions = _bag_records(src, a.camera, targets)
+        a.control_set = targets
         if exif_altitude:
             assumptions.append(f'--exif-altitude {exif_altitude} ignored: a bag has no EXIF')
         return _adjust_and_write(a, records, camera, origin, assumptions, {})
@@ -248,7 +256,9 @@ def _adjust_and_write(a, records, camera, origin, assumptions, info) -> int:
     # Control
     control, target_obs = [], {}
     crs = a.crs
-    if a.gcp:
+    if getattr(a, 'control_set', None) is not None:   # a bag's targets file: observations already in records
+        control = a.control_set.in_map(origin)
+    elif a.gcp:
         gcp_crs, gcp_pts, target_obs = _read_gcps(Path(a.gcp), origin, {s.strip() for s in a.check.split(',')})
         sigma = np.array([float(v) for v in a.gcp_sigma.split(',')])
         checks = {s.strip() for s in a.check.split(',') if s.strip()}
@@ -260,7 +270,8 @@ def _adjust_and_write(a, records, camera, origin, assumptions, info) -> int:
     lever = tuple(float(v) for v in a.lever_arm.split(','))
     at = IncrementalAT(camera, IncrementalOptions(window_size=a.window, lever_arm_cam_m=lever), origin, control)
     for rec in records:
-        rec.target_uv = target_obs.get(rec.name, {})
+        if target_obs:
+            rec.target_uv = target_obs.get(rec.name, {})
         at.add_keyframe(rec)
     # Photos that did not register in sequence get a second chance against the whole block.
     for kf in at.kfs:
@@ -329,8 +340,9 @@ def _adjust_and_write(a, records, camera, origin, assumptions, info) -> int:
     return 0
 
 
-def _bag_records(src, camera_path):
-    """Keyframes of a flight bag: its images through the tracker, fixes from /gps/fix or raw MAVLink."""
+def _bag_records(src, camera_path, targets=None):
+    """Keyframes of a flight bag: its images through the tracker, fixes from /gps/fix or raw MAVLink;
+    with `targets` (a ControlSet), the ArUco markers found in each keyframe by name."""
     import sys
 
     import numpy as np
@@ -341,6 +353,7 @@ def _bag_records(src, camera_path):
     from photogram_ros.core.geodesy import LocalFrame
     from photogram_ros.core.incremental import GnssFix, KeyframeRecord
     from photogram_ros.core.keyframes import GpsFix
+    from photogram_ros.core.control import detect_keyframe_targets
     from photogram_ros.core.tracker import Tracker
     from photogram_ros.errors import CalibrationError, DataError
     from photogram_ros.io import mavlink as ml
@@ -391,15 +404,25 @@ def _bag_records(src, camera_path):
         for e in bag.errors:
             assumptions.append(f'bag damaged: {e}; triangulated what precedes the damage')
     print(f'{src}: {len(keyframes)} keyframes, {len(fixes)} fixes', file=sys.stderr)
-    records = []
+    records, n_seen = [], 0
     for kf in keyframes:
         fix = None if kf.fix is None else GnssFix(kf.fix.lat_deg, kf.fix.lon_deg, kf.fix.h_m,
                                                   np.asarray(kf.fix.covariance_enu_m2, float))
         obs = kf.observations
+        target_uv = {}
+        if targets is not None:
+            target_uv, _ = targets.target_uv(detect_keyframe_targets(kf.image, camera))
+            n_seen += len(target_uv)
         records.append(KeyframeRecord(kf.stamp_ns, obs['track_id'].astype(np.int64),
-                                      np.column_stack([obs['u'], obs['v']]), fix, f'{kf.stamp_ns}'))
+                                      np.column_stack([obs['u'], obs['v']]), fix, f'{kf.stamp_ns}', target_uv))
     first = next((r.fix for r in records if r.fix is not None), None)
     if first is None:
         raise DataError(f'no keyframe of {src} has a GNSS fix: georeferencing impossible')
-    assumptions.append('GCP observations are not read from bags (give photos with gcp_list.txt for GCPs)')
+    if targets is None:
+        assumptions.append('no control points (give the flight\'s targets file with --targets for GCPs and check '
+                           'points)')
+    else:
+        assumptions.append(f'control points from {targets.source or "the targets file"}: {len(targets.gcp_names)} GCPs, '
+                           f'{len(targets.check_names)} check points, {n_seen} marker observations found by ArUco '
+                           'detection in the keyframes')
     return camera, LocalFrame(first.lat_deg, first.lon_deg, first.h_m), records, assumptions
