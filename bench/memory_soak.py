@@ -357,23 +357,20 @@ def main() -> int:
     if big.exists():
         for g in json.loads(big.read_text()):
             emit({'bench': 'memory_soak_big_blocks', 'process': 'child', 'at': 'end_of_bag', **g})
-    # The raw curve, every ~30 s of flight, for plotting.
+    # The raw curves, every ~30 s of flight, for plotting.
+    for name, rows in (('memory_soak_curve', samples), ('memory_soak_child_curve', child)):
+        if rows:
+            emit({'bench': name, 'columns': ['flight_min', 'rss_mb', 'peak_rss_mb', *CURVE], 'rows': _curve(rows)})
+    return 0
+
+
+def _curve(samples, every_s: float = 30.0) -> list:
     curve, last = [], -1e9
-    for w, f, rss, hwm, x in samples:
-        if f is not None and f - last >= 30:
+    for _w, f, rss, hwm, x in samples:
+        if f is not None and f - last >= every_s:
             curve.append([round(f / 60, 2), round(rss), round(hwm)] + [x.get(k) for k in CURVE])
             last = f
-    emit({'bench': 'memory_soak_curve', 'columns': ['flight_min', 'rss_mb', 'peak_rss_mb', *CURVE],
-          'rows': curve})
-    if child:
-        curve, last = [], -1e9
-        for w, f, rss, hwm, x in child:
-            if f is not None and f - last >= 30:
-                curve.append([round(f / 60, 2), round(rss), round(hwm)] + [x.get(k) for k in CURVE])
-                last = f
-        emit({'bench': 'memory_soak_child_curve', 'columns': ['flight_min', 'rss_mb', 'peak_rss_mb', *CURVE],
-              'rows': curve})
-    return 0
+    return curve
 
 
 if __name__ == '__main__':
