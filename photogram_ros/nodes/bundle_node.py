@@ -13,7 +13,8 @@ Outputs:
                       their own stamps, the refined keyframes of the window (a later pose with the
                       same stamp replaces the earlier one)
   map/path            nav_msgs/Path of all oriented keyframes
-  map/sparse_cloud    PointCloud2 x, y, z, track_id of the tie points (every `cloud_every` keyframes)
+  map/sparse_cloud    PointCloud2 x, y, z, track_id of the tie points around the window (every
+                      `cloud_every` keyframes; `cloud_recent_only` off: the whole block)
   map/georeference    NavSatFix (latched): latitude, longitude and ellipsoidal altitude of the
                       origin of `map` (ENU tangent there). The origin is the configured one or the
                       first keyframe fix. Published once the block is georeferenced.
@@ -100,6 +101,9 @@ class BundleNodeParams:
                                      min=0.0, max=1000.0)
     max_fix_sigma_m: float = param(50.0, 'fixes with a larger horizontal sigma are not used, m', min=0.01, max=1e4)
     cloud_every: int = param(5, 'publish the sparse cloud every this many keyframes', min=1, max=1000)
+    cloud_recent_only: bool = param(True, 'the sparse cloud holds the tie points of the keyframes around the '
+                                          'adjustment window (what stereo takes its ground and depth range from); '
+                                          'off: the whole block, a message that grows with the flight')
     full_adjustment_on_shutdown: bool = param(True, 'adjust the whole block when the node stops')
     catch_up_iterations: int = param(3, 'iterations of the window adjustment of a keyframe that already has newer '
                                         'ones queued behind it (the newest of a batch gets the full adjustment): '
@@ -497,9 +501,14 @@ class BundleNode(Node):
     def publish_cloud(self, stamp_ns: int) -> None:
         if not self.at.points:
             return
-        ids = np.array([t for t in self.at.points if t >= 0], dtype=np.int64)
-        pts = np.array([self.at.points[int(t)] for t in ids]).reshape(-1, 3)
-        self.pub_cloud.publish(msgs.sparse_cloud_msg(pts, stamp_ns, ids))
+        # Hot tracks are those the window and its margin still observe (core/incremental.py): a bounded
+        # set on a long flight, where the whole block would grow the message (and DDS's buffers) with it.
+        source = self.at.track_kfs if self.p.cloud_recent_only else self.at.points
+        ids = np.fromiter((t for t in source if t >= 0), np.int64)
+        ids = ids[self.at.points.contains_many(ids)]
+        if not len(ids):
+            return
+        self.pub_cloud.publish(msgs.sparse_cloud_msg(self.at.points.get_many(ids), stamp_ns, ids))
 
     def finish(self) -> None:
         """End of flight (called by the graph): take every waiting keyframe now, with or without its
