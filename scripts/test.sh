@@ -4,6 +4,8 @@ set -euo pipefail
 root="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 "$root/scripts/venv.sh"
 cd "$root"
+# This checkout's package first, whichever checkout the editable install in .venv points at.
+export PYTHONPATH="$root${PYTHONPATH:+:$PYTHONPATH}"
 # A domain of our own per run, so concurrent test sessions on one machine never hear each other.
 export ROS_DOMAIN_ID="${ROS_DOMAIN_ID:-$(( (RANDOM % 200) + 1 ))}"
 export RMW_IMPLEMENTATION="${RMW_IMPLEMENTATION:-rmw_fastrtps_cpp}"
