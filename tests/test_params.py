@@ -4,7 +4,7 @@ import pytest
 
 from photogram_ros.core.stereo import StereoParams
 from photogram_ros.errors import ConfigError
-from photogram_ros.params import from_assignments
+from photogram_ros.params import fields_of, from_assignments, to_dict
 
 
 def test_assignments_take_the_default_types():
@@ -17,3 +17,50 @@ def test_assignments_take_the_default_types():
 def test_assignment_mistakes_are_named(items, words):
     with pytest.raises(ConfigError, match=words):
         from_assignments(StereoParams, items)
+
+
+def _declared_in(cls) -> dict:
+    """{field name: [classes of cls's MRO whose body declares it]}."""
+    out = {}
+    for c in cls.__mro__:
+        for name in vars(c).get('__annotations__', {}):
+            out.setdefault(name, []).append(c.__name__)
+    return out
+
+
+def test_node_parameters_are_the_core_sets_plus_the_nodes_own():
+    # Each parameter is declared once: the nodes' sets inherit the core ones (stereo, pair planner,
+    # fusion) and add only their own, so nothing is copied field by field.
+    from photogram_ros.core.fusion import FusionConfig
+    from photogram_ros.core.pairs import PairCriteria
+    from photogram_ros.nodes.map_node import MapParams
+    from photogram_ros.nodes.stereo_node import StereoNodeParams
+    assert issubclass(StereoNodeParams, StereoParams) and issubclass(StereoNodeParams, PairCriteria)
+    assert issubclass(MapParams, FusionConfig)
+    for cls in (StereoNodeParams, MapParams):
+        twice = {k: v for k, v in _declared_in(cls).items() if len(v) > 1}
+        assert not twice, twice
+    own = set(vars(StereoNodeParams)['__annotations__'])
+    assert own.isdisjoint(f.name for f in fields_of(StereoParams)) and 'relief_m' not in own
+    assert {'ground_height_m', 'settle_keyframes'} <= own
+
+
+@pytest.mark.parametrize('name', ['replay.yaml', 'onboard_gps.yaml', 'onboard_rtk.yaml', 'ground_station.yaml'])
+def test_parameter_files_read_the_same_by_the_nodes_and_offline(name):
+    # The node sets accept every name of the shipped files, and the offline products read the core
+    # parameters with the same values as the nodes do.
+    from conftest import ROOT
+    from photogram_ros.commands.products import _core_params
+    from photogram_ros.core.fusion import FusionConfig
+    from photogram_ros.core.pairs import PairCriteria
+    from photogram_ros.nodes.map_node import MapParams
+    from photogram_ros.nodes.stereo_node import StereoNodeParams
+    from photogram_ros.params import from_dict, load_params_file
+    sections = load_params_file(str(ROOT / 'config' / name))
+    for node, node_cls, core in (('stereo_node', StereoNodeParams, (StereoParams, PairCriteria)),
+                                 ('map_node', MapParams, (FusionConfig,))):
+        section = sections.get(node, {})
+        full = from_dict(node_cls, section, node)
+        for cls in core:
+            offline = _core_params(cls, section, node)
+            assert to_dict(offline) == {f.name: getattr(full, f.name) for f in fields_of(cls)}

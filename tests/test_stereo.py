@@ -288,6 +288,37 @@ def test_choose_pairs_along_and_across_lines():
     assert overlap_fraction(CAM, Ta, others[1], 40.0) == pytest.approx(1 - 9.0 / (480 * GSD_M), abs=0.05)
 
 
+
+def test_plan_pairs_searches_the_tie_points_depths_else_the_ground_relief():
+    # A nadir pair at 40 m over ground at 0 +- 2 m: with the tie points each pair searches what camera a
+    # (the older keyframe) sees, 38-42 m widened by the 4 m margin; without, the ground height +- 20 m.
+    from photogram_ros.core import pairs
+    rng = np.random.default_rng(4)
+    Ta = _pose(0.0, 20.0, 40.0)
+    others = {1: _pose(0.0, 11.0, 40.0), 3: _pose(15.0, 20.5, 40.0), 4: _pose(0.0, -30.0, 40.0)}
+    ties = np.column_stack([rng.uniform(-40, 60, (20000, 2)), rng.uniform(-2, 2, 20000)])
+    crit, limits = PairCriteria(), (2.0, 500.0)
+    plain = pairs.plan_pairs(CAM, Ta, others, 0.0, crit, limits)
+    assert plain.status == pairs.OK and plain.height_m == 40.0
+    assert [(q.other, q.along) for q in plain.pairs] == [(c.other, c.along) for c in choose_pairs(CAM, Ta, others,
+                                                                                                  40.0, crit)]
+    assert {q.other for q in plain.pairs} == {1, 3}
+    assert all(q.depth_range_m == (20.0, 60.0) and not q.from_tie_points for q in plain.pairs)
+    tied = pairs.plan_pairs(CAM, Ta, others, 0.0, crit, limits, ties)
+    assert [q.other for q in tied.pairs] == [q.other for q in plain.pairs]
+    for q in tied.pairs:
+        lo, hi = q.depth_range_m
+        assert q.from_tie_points and 33.8 < lo < 34.2 and 45.8 < hi < 46.2
+    off = from_dict(PairCriteria, {'depth_from_sparse_cloud': False})
+    assert pairs.plan_pairs(CAM, Ta, others, 0.0, off, limits, ties).pairs == plain.pairs
+    # The tie points' depths outside the ground search (a stray cloud 30 m lower): the ground search stays.
+    narrow = from_dict(PairCriteria, {'relief_m': 1.0})
+    low = pairs.plan_pairs(CAM, Ta, others, 0.0, narrow, limits, ties - [0.0, 0.0, 30.0])
+    assert all(q.depth_range_m == (39.0, 41.0) and not q.from_tie_points for q in low.pairs)
+    assert all(q.depth_range_m == (20.0, 50.0) for q in pairs.plan_pairs(CAM, Ta, others, 0.0, crit, (2.0, 50.0)).pairs)
+    below = pairs.plan_pairs(CAM, Ta, others, 45.0, crit, limits, ties)
+    assert below.status == pairs.BELOW_GROUND and not below.pairs
+
 def test_sim_pair_hole_filling_adds_points_on_the_track_and_no_wrong_ones():
     from helpers.sim_world import rendered, world
     cfg, _, terrain, _, _ = world('tiny')

@@ -33,6 +33,7 @@ def run(a) -> int:
     from photogram_ros.core.geodesy import LocalFrame
     from photogram_ros.errors import ConfigError
     from photogram_ros.io.export import export_map
+    from photogram_ros.io.map_store import MapStore
 
     products = tuple(s.strip() for s in a.products.split(',') if s.strip())
     bad = [s for s in products if s not in PRODUCTS]
@@ -47,16 +48,16 @@ def run(a) -> int:
         except ValueError as exc:
             raise ConfigError(f'--origin must be LAT,LON,H in degrees and metres, not {a.origin!r}') from exc
         origin = LocalFrame(lat, lon, h)
-    map_dir = a.map_dir
+    store = MapStore(a.map_dir)
     if a.densify:
         from pathlib import Path
 
         from photogram_ros.commands.products import densify_with_params
         params = a.params if a.params is not None or not Path('config/replay.yaml').exists() else 'config/replay.yaml'
-        d = densify_with_params(a.map_dir, Path(a.out) / 'map_final', params)
+        d = densify_with_params(store, Path(a.out) / 'map_final', params)
         print(f'{d.pairs_done} pairs matched again from the final poses in {d.seconds:.1f} s -> {d.map_dir}')
-        map_dir = d.map_dir
-    res = export_map(map_dir, a.out, a.crs, a.heights, a.dsm_res_m, a.ortho_res_m, products, origin,
+        store = d.store
+    res = export_map(store, a.out, a.crs, a.heights, a.dsm_res_m, a.ortho_res_m, products, origin,
                      min_pairs=a.min_pairs)
     print(f'{res.points} points, {res.keyframes} keyframes -> {a.out} ({a.crs}, {a.heights} heights)')
     for k, v in res.files.items():

@@ -1,7 +1,10 @@
 """The survey products of a flight's map folder, shared by `replay`, `run` (when it stops) and `export`.
 
 Dense matching from the final adjustment (io/densify.py) uses the parameter file's stereo_node and
-map_node sections, so the same stereo, pair choice and fusion as in flight.
+map_node sections, so the same stereo, pair choice and fusion as in flight. Offline, without ROS: the
+sections are read into the core parameter sets the nodes' parameters are made of (core/stereo.py
+StereoParams, core/pairs.py PairCriteria, core/fusion.py FusionConfig), whose names and values are
+checked here; the nodes' own names (topics, rates, the map folder) are the nodes' to check.
 """
 
 from __future__ import annotations
@@ -9,21 +12,26 @@ from __future__ import annotations
 import sys
 
 
+def _core_params(cls, section: dict, where: str):
+    """`cls` validated from the names of a node's section that it declares."""
+    from photogram_ros.params import fields_of, from_dict
+    names = {f.name for f in fields_of(cls)}
+    return from_dict(cls, {k: v for k, v in section.items() if k in names}, where)
+
+
 def densify_with_params(map_dir, out_dir, params_file: str | None, progress: bool = True):
+    """io/densify.densify_map of `map_dir` (a folder or an open MapStore) with the file's parameters."""
     from photogram_ros.core.fusion import FusionConfig
     from photogram_ros.core.pairs import PairCriteria
+    from photogram_ros.core.stereo import StereoParams
     from photogram_ros.io.densify import densify_map
-    from photogram_ros.nodes.map_node import MapParams
-    from photogram_ros.nodes.stereo_node import StereoNodeParams
-    from photogram_ros.params import from_dict, load_params_file
+    from photogram_ros.params import load_params_file
 
     sections = load_params_file(params_file) if params_file else {}
-    sp = from_dict(StereoNodeParams, sections.get('stereo_node', {}), f'{params_file} stereo_node')
-    mp = from_dict(MapParams, sections.get('map_node', {}), f'{params_file} map_node')
-    criteria = PairCriteria(sp.target_baseline_ratio, sp.min_baseline_ratio, sp.max_baseline_ratio, sp.min_overlap,
-                            sp.max_pairs_along, sp.max_pairs_across, sp.max_axis_angle_deg)
-    fusion = FusionConfig(mp.cell_m, mp.tile_cells, mp.max_tiles_in_memory, mp.k_sigma, mp.min_tolerance_m,
-                          mp.min_confidence)
+    stereo_section, map_section = sections.get('stereo_node', {}), sections.get('map_node', {})
+    stereo = _core_params(StereoParams, stereo_section, f'{params_file} stereo_node')
+    criteria = _core_params(PairCriteria, stereo_section, f'{params_file} stereo_node')
+    fusion = _core_params(FusionConfig, map_section, f'{params_file} map_node')
 
     def report(done, total):
         if progress and (done == total or done % 25 == 0):
@@ -32,7 +40,7 @@ def densify_with_params(map_dir, out_dir, params_file: str | None, progress: boo
             if done == total:
                 print(file=sys.stderr)
 
-    return densify_map(map_dir, out_dir, sp, criteria, sp.relief_m, fusion, report)
+    return densify_map(map_dir, out_dir, stereo, criteria, fusion, report)
 
 
 def export_products(map_dir, out, params_file: str | None, crs: str = '', live_map: bool = False,
@@ -52,24 +60,24 @@ def export_products(map_dir, out, params_file: str | None, crs: str = '', live_m
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     run = dict(run or {})
-    store = MapStore(map_dir)
+    store = MapStore(map_dir)    # opened once: densify reads it, export and the report read the products' map
     if store.origin is None or not store.keyframes():
         notes = ['the map has no georeferenced keyframes (no camera frames, or no GNSS fix good enough): no exports']
-        figures = build_report(out, map_dir, crs or 'EPSG:4326', {}, run=run, **report)
+        figures = build_report(out, store.root, crs or 'EPSG:4326', {}, run=run, **report)  # lead: pass store
         return {'files': {}, 'notes': notes, 'crs': crs, 'figures': figures, 'points': 0}
     crs = crs or f'EPSG:{utm_epsg(store.origin.lat_deg, store.origin.lon_deg)}'
-    products_map, notes = Path(map_dir), []
+    products, notes = store, []
     if not live_map:
         try:
-            d = densify_with_params(map_dir, out / 'map_final', params_file, progress=progress)
-            products_map = d.map_dir
+            d = densify_with_params(store, out / 'map_final', params_file, progress=progress)
+            products = d.store
             run.update(products_from='final adjustment (map_final)', densify_s=round(d.seconds, 2),
                        densify_pairs=d.pairs_done)
         except PhotogramError as exc:
             notes.append(f'products from the in-flight map: dense matching from the final poses failed ({exc})')
     run.setdefault('products_from', 'in-flight map (map)')
-    ex = export_map(products_map, out, crs, heights, min_pairs=min_pairs)
+    ex = export_map(products, out, crs, heights, min_pairs=min_pairs)
     files = {k: str(v) for k, v in ex.files.items()}
     run['map_points'] = ex.points
-    figures = build_report(out, products_map, crs, files, run=run, **report)
+    figures = build_report(out, products.root, crs, files, run=run, **report)  # lead: pass store
     return {'files': files, 'notes': notes + ex.notes, 'crs': crs, 'figures': figures, 'points': ex.points}

@@ -29,6 +29,7 @@ import numpy as np
 
 from photogram_ros.core import offheap
 from photogram_ros.errors import ConfigError, DataError
+from photogram_ros.params import param
 
 # One fused cell. x, y are offsets from the tile's south-west corner so float32 keeps 0.1 mm.
 CELL_DTYPE = np.dtype([
@@ -44,12 +45,16 @@ CELL_DTYPE = np.dtype([
 
 @dataclass
 class FusionConfig:
-    cell_m: float = 0.08
-    tile_cells: int = 256
-    max_tiles_in_memory: int = 64
-    k_sigma: float = 3.0
-    min_tolerance_m: float = 0.30
-    min_confidence: float = 0.3     # points the stereo matcher itself doubts are not fused
+    """The fusion's parameters (the map node's cell and tile geometry, memory bound and rejection rules)."""
+    cell_m: float = param(0.08, 'Fusion cell size, m (about one GSD)', min=0.005, max=10.0)
+    tile_cells: int = param(256, 'Cells per tile side (tile = cell_m * tile_cells metres)', min=8, max=4096)
+    max_tiles_in_memory: int = param(64, 'Tiles held in memory; least recently touched ones go to disk',
+                                     min=1, max=100000)
+    k_sigma: float = param(3.0, 'A pair disagreeing with a cell by more than k sigma (and min_tolerance_m) '
+                                'is rejected there', min=0.5, max=100.0)
+    min_tolerance_m: float = param(0.3, 'Smallest height disagreement that rejects a pair, m', min=0.0, max=1e3)
+    min_confidence: float = param(0.3, 'Points with a lower stereo confidence are not fused (0 keeps all)',
+                                  min=0.0, max=1.0)
 
     def check(self) -> None:
         if not (self.cell_m > 0 and np.isfinite(self.cell_m)):

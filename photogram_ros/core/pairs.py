@@ -1,16 +1,26 @@
-"""Which keyframes to pair for stereo: baseline-to-height ratio and image overlap.
+"""Which keyframes to pair for stereo, and which depths each pair searches.
 
 Along a survey line consecutive keyframes are displaced along the image y axis; across lines, along
 the image x axis. Both make valid stereo pairs; they are chosen separately so that a keyframe gets
 its best along-line partner and, where lines overlap, its best across-line partner.
+
+`plan_pairs` is the one planner of the stereo node (in flight) and of io/densify.py (the products,
+from the final poses): given a new keyframe's pose, its candidate partners' poses, the ground height
+and, when known, the tie points around them, it returns the partners with each pair's depth search
+(min/max depth along the older keyframe's axis): the ground height +- relief_m, narrowed to the
+depths the pair's tie points span (widened by depth_margin_m) when there are enough of them.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
 from photogram_ros.core.camera import PinholeCamera
+from photogram_ros.errors import ConfigError
+from photogram_ros.params import param
+
+OK, BELOW_GROUND = 'ok', 'below_ground'   # PairPlan statuses
 
 
 def overlap_fraction(camera: PinholeCamera, map_T_cam_a: np.ndarray, map_T_cam_b: np.ndarray, depth_m: float,
@@ -28,14 +38,33 @@ def overlap_fraction(camera: PinholeCamera, map_T_cam_a: np.ndarray, map_T_cam_b
 
 
 @dataclass
-class PairCriteria:
-    target_baseline_ratio: float = 0.22   # B/H the chooser prefers
-    min_baseline_ratio: float = 0.08
-    max_baseline_ratio: float = 0.8
-    min_overlap: float = 0.4
-    max_along: int = 1                    # partners per new keyframe along the line
-    max_across: int = 1                   # partners per new keyframe across lines
-    max_angle_deg: float = 20.0           # optical axes further apart than this are not paired
+class PairLimits:
+    """What makes two keyframes a usable stereo pair: checked by the planner and again by stereo_pair."""
+    min_overlap: float = param(0.4, 'skip pairs whose images overlap less than this fraction', min=0.0, max=1.0)
+    min_baseline_ratio: float = param(0.08, 'skip pairs with a smaller baseline-to-depth ratio', min=0.0, max=5.0)
+    max_baseline_ratio: float = param(0.8, 'skip pairs with a larger baseline-to-depth ratio', min=0.0, max=10.0)
+
+    def check(self) -> None:
+        if self.min_baseline_ratio >= self.max_baseline_ratio:
+            raise ConfigError('min_baseline_ratio must be smaller than max_baseline_ratio')
+
+
+@dataclass
+class PairCriteria(PairLimits):
+    """The planner's parameters: which partners a new keyframe gets, and the depths a pair searches."""
+    target_baseline_ratio: float = param(0.22, 'preferred baseline-to-height ratio when choosing partners',
+                                         min=0.01, max=5.0)
+    max_pairs_along: int = param(1, 'partners per new keyframe along its flight line', min=0, max=10)
+    max_pairs_across: int = param(1, 'partners per new keyframe on neighbouring lines', min=0, max=10)
+    max_axis_angle_deg: float = param(20.0, 'keyframes whose optical axes differ more are not paired',
+                                      min=0.0, max=90.0)
+    relief_m: float = param(20.0, 'depth search half-range around the ground, m (terrain relief + buildings); '
+                                  'the most the search spans', min=0.5, max=1e4)
+    depth_from_sparse_cloud: bool = param(True, 'search only the depths the pair\'s tie points span (the sparse '
+                                                'cloud, widened by depth_margin_m, within relief_m): the SGBM '
+                                                'cost is proportional to the search')
+    depth_margin_m: float = param(4.0, 'margin around the tie points\' depths, m (what has no tie point, e.g. a '
+                                       'plain roof above its corners)', min=0.0, max=1e3)
 
 
 @dataclass
@@ -57,7 +86,7 @@ def choose_pairs(camera: PinholeCamera, new_T: np.ndarray, others: dict, height_
         if not crit.min_baseline_ratio <= ratio <= crit.max_baseline_ratio:
             continue
         cosang = np.clip(new_T[:3, 2] @ T[:3, 2], -1.0, 1.0)
-        if np.degrees(np.arccos(cosang)) > crit.max_angle_deg:
+        if np.degrees(np.arccos(cosang)) > crit.max_axis_angle_deg:
             continue
         ov = overlap_fraction(camera, new_T, T, height_m, n=16)
         if ov < crit.min_overlap:
@@ -67,9 +96,49 @@ def choose_pairs(camera: PinholeCamera, new_T: np.ndarray, others: dict, height_
         cands.append(c)
     target = crit.target_baseline_ratio
     cands.sort(key=lambda c: -(c.overlap - abs(np.log(c.baseline_ratio / target))))
-    along = [c for c in cands if c.along][:crit.max_along]
-    across = [c for c in cands if not c.along][:crit.max_across]
+    along = [c for c in cands if c.along][:crit.max_pairs_along]
+    across = [c for c in cands if not c.along][:crit.max_pairs_across]
     return along + across
+
+
+@dataclass
+class PlannedPair(PairCandidate):
+    """A pair to match: `other` (the older keyframe, camera a of stereo_pair) with the new keyframe."""
+    depth_range_m: tuple[float, float]    # along the older keyframe's optical axis
+    from_tie_points: bool                 # the range was narrowed to the pair's tie points
+
+
+@dataclass
+class PairPlan:
+    status: str                           # OK, or BELOW_GROUND (the new keyframe is not above the ground)
+    height_m: float                       # the new keyframe's height above the ground
+    pairs: list[PlannedPair] = field(default_factory=list)
+
+
+def plan_pairs(camera: PinholeCamera, new_T: np.ndarray, others: dict, ground_m: float, criteria: PairCriteria,
+               depth_limits_m: tuple[float, float], tie_points_map: np.ndarray | None = None) -> PairPlan:
+    """Partners of a new keyframe (pose `new_T`) among `others` {key: map_T_cam} and each pair's depth search.
+
+    The search is the new keyframe's height above `ground_m` (map z, m) +- relief_m, within
+    `depth_limits_m` (the stereo matcher's valid depths); with criteria.depth_from_sparse_cloud and
+    `tie_points_map` (N, 3) it is narrowed to the depths the pair's own tie points span (when that
+    leaves a non-empty range). Without tie points the ground-based range is all there is.
+    """
+    height = float(new_T[2, 3] - ground_m)
+    if height <= 0:
+        return PairPlan(BELOW_GROUND, height)
+    lo0 = max(depth_limits_m[0], height - criteria.relief_m)
+    hi0 = min(depth_limits_m[1], height + criteria.relief_m)
+    use_ties = criteria.depth_from_sparse_cloud and tie_points_map is not None
+    plan = PairPlan(OK, height)
+    for c in choose_pairs(camera, new_T, others, height, criteria):
+        lo, hi, narrowed = lo0, hi0, False
+        seen = (depth_range_from_points(camera, others[c.other], new_T, tie_points_map, criteria.depth_margin_m)
+                if use_ties else None)
+        if seen is not None and min(hi, seen[1]) > max(lo, seen[0]):
+            lo, hi, narrowed = max(lo, seen[0]), min(hi, seen[1]), True
+        plan.pairs.append(PlannedPair(**vars(c), depth_range_m=(lo, hi), from_tie_points=narrowed))
+    return plan
 
 
 def depth_range_from_points(camera: PinholeCamera, map_T_cam_a: np.ndarray, map_T_cam_b: np.ndarray,

@@ -15,6 +15,7 @@ import cv2
 import numpy as np
 
 from photogram_ros.core.camera import PinholeCamera
+from photogram_ros.core.pairs import PairLimits, overlap_fraction
 from photogram_ros.errors import ConfigError, DataError
 from photogram_ros.params import param
 
@@ -36,7 +37,8 @@ OK, POOR_POSE, LOW_OVERLAP, BAD_BASELINE, NO_POINTS = 'ok', 'poor_pose', 'low_ov
 
 
 @dataclass
-class StereoParams:
+class StereoParams(PairLimits):
+    """The matcher's parameters; the pair limits it checks (overlap, baseline ratio) come from PairLimits."""
     mode: str = param('sgbm_3way', 'StereoSGBM mode; sgbm_3way is about 2x faster than sgbm at equal quality',
                       choices=tuple(SGBM_MODES))
     block_size: int = param(5, 'SGBM matching block size, pixels (odd)', min=1, max=15)
@@ -82,9 +84,6 @@ class StereoParams:
     downscale: float = param(1.0, 'scale of the rectified images (0.5 = half resolution, 4x faster)',
                              min=0.1, max=1.0)
     point_stride: int = param(1, 'keep one point in stride x stride pixels', min=1, max=16)
-    min_overlap: float = param(0.4, 'skip pairs whose images overlap less than this fraction', min=0.0, max=1.0)
-    min_baseline_ratio: float = param(0.08, 'skip pairs with a smaller baseline-to-depth ratio', min=0.0, max=5.0)
-    max_baseline_ratio: float = param(0.8, 'skip pairs with a larger baseline-to-depth ratio', min=0.0, max=10.0)
     max_reprojection_rms_px: float = param(2.0, 'skip pairs whose keyframe poses have a larger reprojection RMS, '
                                                 'pixels', min=0.0, max=1e3)
 
@@ -97,8 +96,7 @@ class StereoParams:
             raise ConfigError(f'max_num_disparities must be a multiple of 16 (got {self.max_num_disparities})')
         if self.min_depth_m >= self.max_depth_m:
             raise ConfigError('min_depth_m must be smaller than max_depth_m')
-        if self.min_baseline_ratio >= self.max_baseline_ratio:
-            raise ConfigError('min_baseline_ratio must be smaller than max_baseline_ratio')
+        super().check()
 
 
 # --- matching ------------------------------------------------------------------------------------
@@ -798,8 +796,6 @@ def stereo_pair(camera: PinholeCamera, image_a: np.ndarray, map_T_cam_a: np.ndar
     `depth_range_m` bounds the disparity search (e.g. height above ground +- relief); the parameter
     depth range is used when it is None. Poor or unsuitable pairs come back with a skip status.
     """
-    from photogram_ros.core.pairs import overlap_fraction
-
     t0 = time.perf_counter()
     for img in (image_a, image_b):
         if img is None or img.ndim not in (2, 3) or img.dtype != np.uint8:

@@ -5,7 +5,9 @@ the final full adjustment moves poses again (by centimetres and tens of arcsecon
 depth is sensitive to its two cameras' relative tilt (Z^2 / B per radian: 2 cm per 10 arcsec at
 40 m with an 8 m baseline). So the survey products are made again from the keyframes and the final
 poses of the in-flight map folder, the way photogrammetry software densifies after triangulation:
-the same pair choice, stereo and fusion as the nodes, in keyframe order. The in-flight map stays
+the same pair planner (core/pairs.plan_pairs), stereo and fusion as the nodes, in keyframe order.
+The map folder holds no tie points (io/map_store.py), so each pair searches the ground height +-
+relief_m unless the caller passes the flight's tie points. The in-flight map stays
 what it was (what the ground station saw); the products come from the new folder. Given the map
 folder the result is deterministic, unlike the in-flight map, whose pairing depends on timing.
 """
@@ -22,17 +24,19 @@ import cv2
 import numpy as np
 
 from photogram_ros.core.fusion import Fusion, FusionConfig
-from photogram_ros.core.pairs import PairCriteria, choose_pairs
+from photogram_ros.core.pairs import BELOW_GROUND, PairCriteria, plan_pairs
 from photogram_ros.core.stereo import StereoParams, stereo_pair
 from photogram_ros.errors import DataError
-from photogram_ros.io.map_store import MapStore
+from photogram_ros.io.map_store import MapStore, as_map_store
 
 
 @dataclass
 class DensifyResult:
     map_dir: Path
+    store: MapStore                       # the new map folder, open
     keyframes: int = 0
     pairs_done: int = 0
+    pairs_depth_from_tie_points: int = 0
     pairs_skipped: dict = field(default_factory=dict)
     points_fused: int = 0
     ground_m: float = float('nan')
@@ -60,21 +64,24 @@ def _link_or_copy(src: Path, dst: Path) -> None:
         shutil.copyfile(src, dst)
 
 
-def densify_map(map_dir: str | Path, out_dir: str | Path, stereo: StereoParams, criteria: PairCriteria,
-                relief_m: float, fusion: FusionConfig, progress=None) -> DensifyResult:
-    """Match the keyframes of `map_dir` with their final poses into a new map folder `out_dir`.
+def densify_map(map_dir: str | Path | MapStore, out_dir: str | Path, stereo: StereoParams, criteria: PairCriteria,
+                fusion: FusionConfig, progress=None, tie_points_map: np.ndarray | None = None) -> DensifyResult:
+    """Match the keyframes of `map_dir` (a folder or an open MapStore) with their final poses into a new
+    map folder `out_dir`.
 
     `out_dir` gets the origin, camera and keyframes (hard links where the file system allows) of
-    `map_dir` and freshly fused tiles; an existing folder there is replaced. `progress(done, total)`
-    is called after each keyframe.
+    `map_dir` and freshly fused tiles; an existing folder there is replaced. Pairs and depth searches
+    come from core/pairs.plan_pairs around the in-flight map's ground height, narrowed to the pair's
+    tie points when `tie_points_map` (N, 3, map m) is given. `progress(done, total)` is called after
+    each keyframe.
     """
     t0 = time.perf_counter()
-    src = MapStore(map_dir)
+    src = as_map_store(map_dir)
     cam, origin, kfs = src.load_camera(), src.origin, sorted(src.keyframes(), key=lambda k: k['stamp_ns'])
     if cam is None or origin is None or len(kfs) < 2:
-        raise DataError(f'{map_dir}: no camera, origin or at least two posed keyframes to densify')
+        raise DataError(f'{src.root}: no camera, origin or at least two posed keyframes to densify')
     out = Path(out_dir)
-    if out.resolve() == Path(map_dir).resolve():
+    if out.resolve() == src.root.resolve():
         raise DataError('densify writes a new map folder: give another out_dir than the map itself')
     if out.exists():
         shutil.rmtree(out)
@@ -84,7 +91,7 @@ def densify_map(map_dir: str | Path, out_dir: str | Path, stereo: StereoParams, 
     for k in kfs:
         _link_or_copy(k['image_path'], dst.keyframes_dir / k['image_path'].name)
         dst.save_keyframe_pose(k['stamp_ns'], k['map_T_cam'])
-    res = DensifyResult(out, keyframes=len(kfs), ground_m=_ground_height(src, kfs))
+    res = DensifyResult(out, dst, keyframes=len(kfs), ground_m=_ground_height(src, kfs))
     fuser = Fusion(fusion, dst)
     C = np.array([k['map_T_cam'][:3, 3] for k in kfs])
     images: dict[int, np.ndarray] = {}     # the partners of the coming keyframes, not the whole flight
@@ -100,18 +107,20 @@ def densify_map(map_dir: str | Path, out_dir: str | Path, stereo: StereoParams, 
     for i, kf in enumerate(kfs):
         T = kf['map_T_cam']
         height = float(T[2, 3] - res.ground_m)
-        if height <= 0:
-            res.pairs_skipped['below_ground'] = res.pairs_skipped.get('below_ground', 0) + 1
-            continue
         # Partners can only be keyframes whose footprints overlap: a distance test first keeps pair
         # choice linear in the flight length.
-        reach = 2.0 * height * max(cam.width, cam.height) / cam.fx
+        reach = 2.0 * max(height, 0.0) * max(cam.width, cam.height) / cam.fx
         near = np.flatnonzero(np.linalg.norm(C[:i] - C[i], axis=1) < reach)
         others = {int(j): kfs[j]['map_T_cam'] for j in near}
-        for cand in choose_pairs(cam, T, others, height, criteria):
-            lo = max(stereo.min_depth_m, height - relief_m)
-            hi = min(stereo.max_depth_m, height + relief_m)
-            r = stereo_pair(cam, image(cand.other), kfs[cand.other]['map_T_cam'], image(i), T, stereo, (lo, hi))
+        plan = plan_pairs(cam, T, others, res.ground_m, criteria, (stereo.min_depth_m, stereo.max_depth_m),
+                          tie_points_map)
+        if plan.status == BELOW_GROUND:
+            res.pairs_skipped['below_ground'] = res.pairs_skipped.get('below_ground', 0) + 1
+            continue
+        for pair in plan.pairs:
+            res.pairs_depth_from_tie_points += pair.from_tie_points
+            r = stereo_pair(cam, image(pair.other), kfs[pair.other]['map_T_cam'], image(i), T, stereo,
+                            pair.depth_range_m)
             if not r.ok:
                 res.pairs_skipped[r.status] = res.pairs_skipped.get(r.status, 0) + 1
                 continue

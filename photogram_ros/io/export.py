@@ -24,7 +24,7 @@ from photogram_ros.core.fusion import Fusion, FusionConfig
 from photogram_ros.core.geodesy import LocalFrame, crs_to_geodetic, crs_wkt, geodetic_to_crs
 from photogram_ros.core.raster import Keyframe, Raster, dsm_from_points, orthomosaic
 from photogram_ros.errors import DataError, GeodesyError
-from photogram_ros.io.map_store import MapStore
+from photogram_ros.io.map_store import MapStore, as_map_store
 
 HEIGHTS = ('ellipsoidal', 'orthometric')
 
@@ -74,8 +74,9 @@ def _check_projected(crs: str) -> None:
 # --- reading a map folder --------------------------------------------------------------------------
 
 
-def open_map(map_dir: str | Path) -> tuple[MapStore, Fusion]:
-    store = MapStore(map_dir)
+def open_map(map_dir: str | Path | MapStore) -> tuple[MapStore, Fusion]:
+    """The map folder (or the open MapStore) and a fusion over all its tiles, for reading."""
+    store = as_map_store(map_dir)
     return store, Fusion(FusionConfig(store.cell_m, store.tile_cells, max_tiles_in_memory=10**6), store)
 
 
@@ -248,10 +249,10 @@ class ExportResult:
     notes: list = field(default_factory=list)
 
 
-def export_map(map_dir: str | Path, out_dir: str | Path, crs: str, heights: str = 'ellipsoidal',
+def export_map(map_dir: str | Path | MapStore, out_dir: str | Path, crs: str, heights: str = 'ellipsoidal',
                dsm_res_m: float = 0.0, ortho_res_m: float = 0.0, products=('las', 'laz', 'ply', 'dsm', 'ortho'),
                origin: LocalFrame | None = None, min_pairs: int = 1) -> ExportResult:
-    """Write the requested products of a map folder into out_dir (created).
+    """Write the requested products of a map folder (or an open MapStore) into out_dir (created).
 
     min_pairs=2 exports only cells confirmed by two stereo pairs: a cell one pair saw cannot be
     checked for gross matching errors (on the sample flight they hold most of the large errors).
@@ -260,7 +261,7 @@ def export_map(map_dir: str | Path, out_dir: str | Path, crs: str, heights: str 
     store, fusion = open_map(map_dir)
     origin = origin or store.origin
     if origin is None:
-        raise DataError(f'{map_dir} has no geodetic origin (map.json "origin" is null): the map node never '
+        raise DataError(f'{store.root} has no geodetic origin (map.json "origin" is null): the map node never '
                         'received /map/georeference; pass the origin explicitly (--origin LAT,LON,H)')
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)

@@ -253,3 +253,8 @@ class MapStore:
                 continue
             out.append({'stamp_ns': int(body['stamp_ns']), 'image_path': img, 'map_T_cam': T})
         return out
+
+
+def as_map_store(map_dir: str | Path | MapStore) -> MapStore:
+    """An open MapStore as it is, a folder opened as one: for functions that take either."""
+    return map_dir if isinstance(map_dir, MapStore) else MapStore(map_dir)

@@ -50,17 +50,9 @@ STREAM_DTYPE = np.dtype([('x', np.float32), ('y', np.float32), ('z', np.float32)
 
 
 @dataclass
-class MapParams:
+class MapParams(FusionConfig):
+    """The fusion's parameters (core/fusion.py FusionConfig) and the node's: folder, origin, keyframes, stream."""
     map_dir: str = param('map', 'Folder of the persistent map (tiles, keyframes, map.json); reloaded if it exists')
-    cell_m: float = param(0.08, 'Fusion cell size, m (about one GSD)', min=0.005, max=10.0)
-    tile_cells: int = param(256, 'Cells per tile side (tile = cell_m * tile_cells metres)', min=8, max=4096)
-    max_tiles_in_memory: int = param(64, 'Tiles held in memory; least recently touched ones go to disk',
-                                     min=1, max=100000)
-    k_sigma: float = param(3.0, 'A pair disagreeing with a cell by more than k sigma (and min_tolerance_m) '
-                                'is rejected there', min=0.5, max=100.0)
-    min_tolerance_m: float = param(0.3, 'Smallest height disagreement that rejects a pair, m', min=0.0, max=1e3)
-    min_confidence: float = param(0.3, 'Points with a lower stereo confidence are not fused (0 keeps all)',
-                                  min=0.0, max=1.0)
     flush_interval_s: float = param(1.0, 'Changed cells are written and fsynced this often, s (the most a '
                                          'crash can lose)', min=0.05, max=600.0)
     use_origin_params: bool = param(False, 'Take the map origin from origin_* instead of /map/georeference')
@@ -98,8 +90,7 @@ class MapNode(Node):
             self.store = MapStore(p.map_dir, p.cell_m, p.tile_cells)
         except PhotogramError as exc:
             raise ConfigError(f'map_node: {exc}') from exc
-        self.fusion = Fusion(FusionConfig(p.cell_m, p.tile_cells, p.max_tiles_in_memory, p.k_sigma,
-                                          p.min_tolerance_m, p.min_confidence), self.store)
+        self.fusion = Fusion(p, self.store)
         if p.use_origin_params:
             self._set_origin(LocalFrame(p.origin_lat_deg, p.origin_lon_deg, p.origin_h_m))
         self._stream_pending: set = set(self.store.tile_keys())   # a restarted map streams what it has

@@ -24,7 +24,7 @@ from stereo_msgs.msg import DisparityImage
 
 from photogram_ros import msgs
 from photogram_ros.core import offheap, stereo
-from photogram_ros.core.pairs import PairCriteria, choose_pairs, depth_range_from_points
+from photogram_ros.core.pairs import BELOW_GROUND, PairCriteria, PlannedPair, plan_pairs
 from photogram_ros.errors import PhotogramError
 from photogram_ros.nodes.diagnostics import Diagnostics
 from photogram_ros.nodes.node_main import run_node
@@ -40,26 +40,15 @@ TOPIC_SPARSE = 'map/sparse_cloud'
 
 
 @dataclass
-class StereoNodeParams(stereo.StereoParams):
+class StereoNodeParams(stereo.StereoParams, PairCriteria):
+    """The matcher's (core/stereo.py) and the pair planner's (core/pairs.py) parameters, and the node's:
+    where the ground height and tie points come from, the keyframes it holds, when it pairs them."""
     ground_height_m: float = param(0.0, 'expected ground height in map (z, m), centre of the depth search; '
                                         'used until the sparse cloud gives it (see ground_from_sparse_cloud)',
                                    min=-1e4, max=1e4)
-    ground_from_sparse_cloud: bool = param(True, 'take the ground height from the median of map/sparse_cloud '
+    ground_from_sparse_cloud: bool = param(True, f'take the ground height from the median of {TOPIC_SPARSE} '
                                                  '(the map origin is often the first fix, in the air); keyframes '
                                                  'wait for the first sparse cloud')
-    relief_m: float = param(20.0, 'depth search half-range around the ground, m (terrain relief + buildings); '
-                                  'the most the search spans', min=0.5, max=1e4)
-    depth_from_sparse_cloud: bool = param(True, 'search only the depths the pair\'s tie points span (from '
-                                                'map/sparse_cloud, widened by depth_margin_m, within relief_m): '
-                                                'the SGBM cost is proportional to the search')
-    depth_margin_m: float = param(4.0, 'margin around the tie points\' depths, m (what has no tie point, e.g. a '
-                                       'plain roof above its corners)', min=0.0, max=1e3)
-    target_baseline_ratio: float = param(0.22, 'preferred baseline-to-height ratio when choosing partners',
-                                         min=0.01, max=5.0)
-    max_pairs_along: int = param(1, 'partners per new keyframe along its flight line', min=0, max=10)
-    max_pairs_across: int = param(1, 'partners per new keyframe on neighbouring lines', min=0, max=10)
-    max_axis_angle_deg: float = param(20.0, 'keyframes whose optical axes differ more are not paired',
-                                      min=0.0, max=90.0)
     max_keyframes: int = param(80, 'keyframes kept as stereo partners (memory bound), oldest dropped',
                                min=2, max=10000)
     max_position_sigma_m: float = param(2.0, 'keyframes whose pose position sigma is larger make no pairs, m',
@@ -88,8 +77,6 @@ class StereoNode(Node):
         super().__init__('stereo_node', **node_kwargs)
         self.params: StereoNodeParams = declare(self, StereoNodeParams, overrides)
         p = self.params
-        self.criteria = PairCriteria(p.target_baseline_ratio, p.min_baseline_ratio, p.max_baseline_ratio,
-                                     p.min_overlap, p.max_pairs_along, p.max_pairs_across, p.max_axis_angle_deg)
         self.diag = Diagnostics(self)
         self.camera = None
         self._kf: OrderedDict[int, _Keyframe] = OrderedDict()
@@ -220,29 +207,25 @@ class StereoNode(Node):
         if kf.sigma_m > p.max_position_sigma_m:
             self.diag.count('pairs_skipped_poor_pose')
             return
-        height = float(kf.map_T_cam[2, 3] - self.ground_m)
         others = {s: o.map_T_cam for s, o in self._kf.items()
                   if o is not kf and o.complete and o.paired and o.sigma_m <= p.max_position_sigma_m}
-        if height <= 0:
+        plan = plan_pairs(self._camera_for(kf.image), kf.map_T_cam, others, self.ground_m, p,
+                          (p.min_depth_m, p.max_depth_m), self._tie_points)
+        if plan.status == BELOW_GROUND:
             self.diag.problem(f'keyframe at z={kf.map_T_cam[2, 3]:.1f} m is not above the ground '
                               f'({self.ground_m} m): set ground_height_m')
             return
-        for cand in choose_pairs(self._camera_for(kf.image), kf.map_T_cam, others, height, self.criteria):
-            self._run_pair(self._kf[cand.other], kf, height)
+        for pair in plan.pairs:
+            self._run_pair(self._kf[pair.other], kf, pair)
 
-    def _run_pair(self, a: _Keyframe, b: _Keyframe, height_m: float) -> None:
+    def _run_pair(self, a: _Keyframe, b: _Keyframe, pair: PlannedPair) -> None:
         p = self.params
         t0 = time.perf_counter()
+        if pair.from_tie_points:
+            self.diag.count('pairs_depth_from_tie_points')
         try:
-            cam = self._camera_for(a.image)
-            lo = max(p.min_depth_m, height_m - p.relief_m)
-            hi = min(p.max_depth_m, height_m + p.relief_m)
-            seen = (depth_range_from_points(cam, a.map_T_cam, b.map_T_cam, self._tie_points, p.depth_margin_m)
-                    if p.depth_from_sparse_cloud else None)
-            if seen is not None and min(hi, seen[1]) > max(lo, seen[0]):
-                lo, hi = max(lo, seen[0]), min(hi, seen[1])
-                self.diag.count('pairs_depth_from_tie_points')
-            res = stereo.stereo_pair(cam, a.image, a.map_T_cam, b.image, b.map_T_cam, p, (lo, hi))
+            res = stereo.stereo_pair(self._camera_for(a.image), a.image, a.map_T_cam, b.image, b.map_T_cam, p,
+                                     pair.depth_range_m)
         except Exception as exc:
             self.diag.count('pairs_failed')
             self.diag.problem(f'stereo pair {a.stamp_ns}/{b.stamp_ns} failed: {exc}')

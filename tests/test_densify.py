@@ -1,0 +1,120 @@
+"""Dense matching from a map folder's final poses (io/densify.py) and the offline products around it."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+import textwrap
+
+import cv2
+import numpy as np
+import pytest
+
+from conftest import ROOT
+
+TIMES = (2.0, 3.8, 5.6)   # along the first line of the tiny survey: 9 m apart at 40 m, B/H 0.22
+
+
+@pytest.fixture(scope='module')
+def map_dir(tmp_path_factory):
+    """A map folder as the map node leaves it: origin, camera and three keyframes with true poses, no tiles."""
+    from helpers.sim_world import rendered, world
+    from photogram_ros.core.geodesy import LocalFrame
+    from photogram_ros.io.map_store import MapStore
+    cfg = world('tiny')[0]
+    d = tmp_path_factory.mktemp('densify') / 'map'
+    store = MapStore(d, 0.08, 256)
+    store.set_origin(LocalFrame(cfg.origin_lat_deg, cfg.origin_lon_deg, cfg.origin_h_m))
+    store.save_camera(cfg.camera())
+    for k, (_, T, img) in enumerate(rendered(TIMES)):
+        store.save_keyframe_image(k + 1, cv2.imencode('.jpg', img, [cv2.IMWRITE_JPEG_QUALITY, 95])[1].tobytes())
+        store.save_keyframe_pose(k + 1, T)
+    return d
+
+
+def _densify(src, out, tie_points=None):
+    from photogram_ros.core.fusion import FusionConfig
+    from photogram_ros.core.pairs import PairCriteria
+    from photogram_ros.core.stereo import StereoParams
+    from photogram_ros.io.densify import densify_map
+    from photogram_ros.params import from_dict
+    stereo = from_dict(StereoParams, {'downscale': 0.5})
+    return densify_map(src, out, stereo, PairCriteria(), FusionConfig(), tie_points_map=tie_points)
+
+
+def test_densify_searches_the_tie_points_depths_when_given(map_dir, tmp_path):
+    # Without tie points (the map folder holds none) every pair searches the ground +- relief; with the
+    # true ground as tie points the same pairs search only its depths, and the cloud is as good.
+    from helpers.sim_world import world
+    from photogram_ros.io.export import open_map
+    from photogram_ros.io.map_store import MapStore
+    cfg, _, terrain, _, _ = world('tiny')
+    plain = _densify(MapStore(map_dir), tmp_path / 'plain')
+    x, y = np.meshgrid(np.linspace(-25, 25, 60), np.linspace(-10, 50, 60))
+    ties = np.column_stack([x.ravel(), y.ravel(), terrain.height_at(x.ravel(), y.ravel())])
+    tied = _densify(map_dir, tmp_path / 'tied', ties)
+    assert plain.pairs_done >= 2 and tied.pairs_done == plain.pairs_done
+    assert plain.pairs_depth_from_tie_points == 0 and tied.pairs_depth_from_tie_points == tied.pairs_done
+    for res in (plain, tied):
+        assert isinstance(res.store, MapStore) and res.store.root == res.map_dir and res.store.tile_keys()
+        p = open_map(res.store)[1].points()
+        dz = np.abs(p['z'] - terrain.height_at(p['x'], p['y']))
+        print(f'{res.pairs_done} pairs, {p["x"].size} cells, median |dz| {np.median(dz) / cfg.gsd_m:.2f} GSD')
+        assert np.median(dz) <= 2 * cfg.gsd_m
+
+
+OFFLINE = textwrap.dedent('''
+    import collections, json, sys
+    from photogram_ros.io import map_store
+    opened = collections.Counter()
+    init = map_store.MapStore.__init__
+    def counting(self, root, *a, **k):
+        opened[str(root)] += 1
+        init(self, root, *a, **k)
+    map_store.MapStore.__init__ = counting
+    from photogram_ros.cli import main
+    from photogram_ros.commands.products import densify_with_params, export_products
+    map_dir, out, params = sys.argv[1:4]
+    got = {}
+    d = densify_with_params(map_dir, out + '/again', params, progress=False)
+    got['densify'], got['pairs'] = dict(opened), d.pairs_done
+    opened.clear()
+    res = export_products(map_dir, out + '/products', params, min_pairs=1)
+    got['products'], got['files'] = dict(opened), sorted(res['files'])
+    got['from'] = res['figures']['run']['products_from']
+    opened.clear()
+    got['rc'] = main(['export', map_dir, '--crs', 'EPSG:32632', '--out', out + '/cmd', '--densify', '--params',
+                      params, '--min-pairs', '1'])
+    got['command'], got['rclpy'] = dict(opened), 'rclpy' in sys.modules
+    print(json.dumps(got))
+''')
+
+
+def test_offline_products_load_no_ros_and_open_the_map_once(map_dir, tmp_path):
+    # densify, the products of replay/run and the export command, in a process of their own: no ROS
+    # module is loaded, and each opens the flight's map folder once.
+    params = tmp_path / 'params.yaml'
+    params.write_text('stereo_node:\n  ros__parameters:\n    downscale: 0.5\n    settle_keyframes: 10\n'
+                      'map_node:\n  ros__parameters:\n    cell_m: 0.08\n    flush_interval_s: 1.0\n')
+    out = tmp_path / 'out'
+    r = subprocess.run([sys.executable, '-c', OFFLINE, str(map_dir), str(out), str(params)],
+                       cwd=ROOT, capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr
+    got = json.loads(r.stdout.strip().splitlines()[-1])
+    print(got)
+    assert got['rclpy'] is False and got['rc'] == 0
+    assert got['pairs'] >= 2 and got['from'].startswith('final adjustment')
+    assert {'las', 'dsm', 'ortho'} <= set(got['files'])
+    assert (out / 'cmd' / 'map_final').is_dir() and (out / 'cmd' / 'dsm.tif').exists()
+    for phase in ('densify', 'products', 'command'):
+        assert got[phase][str(map_dir)] == 1, phase
+
+
+def test_offline_products_reject_a_mistyped_core_parameter(map_dir, tmp_path):
+    from photogram_ros.commands.products import densify_with_params
+    from photogram_ros.errors import ConfigError
+    params = tmp_path / 'params.yaml'
+    params.write_text('stereo_node:\n  ros__parameters:\n    relief_m: -3.0\n')
+    with pytest.raises(ConfigError, match='relief_m'):
+        densify_with_params(map_dir, tmp_path / 'out', str(params), progress=False)
