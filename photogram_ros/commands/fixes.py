@@ -111,18 +111,10 @@ def iter_fixes(a):
             yield f, f'dataflash GPS[{f.receiver}]'
         return
     if kind == 'bag':
-        from photogram_ros.io.bag import BagReader, deserialize
+        from photogram_ros.io.bag import BagReader, messages_from_bag
         stream = ml.MavlinkStream(secret_key=key, sysid=a.sysid, compid=a.compid)
-
-        def from_bag():
-            with BagReader(src) as bag:
-                for bm in bag.messages([a.topic]):
-                    data = bytes(deserialize(bm.msgtype, bm.data).data)
-                    for m in stream.feed(data):
-                        yield m, bm.stamp_ns * 1e-9
-            for m in stream.feed(b'', final=True):
-                yield m, None
-        yield from events(from_bag())
+        with BagReader(src) as bag:
+            yield from events(messages_from_bag(bag, stream, a.topic))
         return
     stream = ml.MavlinkStream(secret_key=key, sysid=a.sysid, compid=a.compid, record_gap=8)
     messages, _ = ml.read_tlog(src, stream)

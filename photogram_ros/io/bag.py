@@ -181,6 +181,27 @@ class BagReader:
             self.errors.append(f'{self.path.name}: bag damaged ({type(exc).__name__}: {exc})')
 
 
+MAVLINK_TOPIC = '/mavlink/from_fcu'
+
+
+def messages_from_bag(bag: BagReader, stream=None, topic: str = MAVLINK_TOPIC) -> Iterator[tuple]:
+    """Raw MAVLink bytes recorded on `topic` (std_msgs/UInt8MultiArray) -> (decoded message, stamp_s).
+
+    `stream` decodes the bytes (an io.mavlink.MavlinkStream, with the link's signing key if any; a
+    plain one by default). stamp_s is the bag's receive time of the chunk that completed the message,
+    in seconds; messages completed only by the end of the bytes come last with stamp_s None.
+    """
+    if stream is None:
+        from photogram_ros.io.mavlink import MavlinkStream
+        stream = MavlinkStream()
+    for bm in bag.messages([topic]):
+        data = bytes(deserialize(bm.msgtype, bm.data).data)
+        for m in stream.feed(data):
+            yield m, bm.stamp_ns * 1e-9
+    for m in stream.feed(b'', final=True):
+        yield m, None
+
+
 class _SqliteSalvage:
     """Reads a damaged rosbag2 sqlite3 file row by row in insertion order, up to the damage.
 

@@ -18,18 +18,24 @@ keyframes itself):
   national datum differs from EGM2008 by decimetres.
 - The sigma columns are optional (both or neither); without them the survey is taken as 2 cm
   horizontal, 3 cm vertical.
+
+For a folder of photos, `read_gcp_list` reads OpenDroneMap's own gcp_list.txt, where the points were
+clicked in the photos: a CRS line, then one line per observation ``x y z px py image [name]``
+(heights ellipsoidal; names CHK* and `check_names` are check points, as above).
 """
 
 from __future__ import annotations
 
 import re
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from photogram_ros.core import geoid
 from photogram_ros.core.control import ControlSet, SurveyedTarget, is_check_name
-from photogram_ros.core.geodesy import crs_to_geodetic, geodetic_to_crs
+from photogram_ros.core.geodesy import LocalFrame, crs_to_geodetic, geodetic_to_crs
+from photogram_ros.core.incremental import ControlPoint
 from photogram_ros.errors import DataError, GeodesyError
 
 FORMAT_LINE = '# name marker_id x y z [sigma_h_m sigma_v_m]'
@@ -169,3 +175,43 @@ def write_control_file(path: str | Path, control: ControlSet | list[SurveyedTarg
     path = Path(path)
     path.write_text('\n'.join(ln for ln in lines if ln is not None) + '\n')
     return path
+
+
+@dataclass
+class GcpList:
+    """OpenDroneMap's gcp_list.txt: surveyed points and where they were clicked in the photos."""
+    crs: str
+    points: dict          # name -> (lat_deg, lon_deg, h_m), heights above the WGS84 ellipsoid
+    roles: dict           # name -> 'gcp' or 'check'
+    image_uv: dict        # image name -> {point name: (2,) distorted pixel}
+
+    def in_map(self, origin: LocalFrame, sigma_enu_m) -> list[ControlPoint]:
+        """Control points in the ENU frame at `origin`, all with the sigmas E, N, U (m) given."""
+        sigma = np.asarray(sigma_enu_m, float)
+        return [ControlPoint(name, np.asarray(origin.geodetic_to_enu(*geo), float), sigma, self.roles[name])
+                for name, geo in self.points.items()]
+
+
+def read_gcp_list(path: str | Path, check_names=()) -> GcpList:
+    """Read an OpenDroneMap gcp_list.txt (see the module docstring); a point clicked in several photos
+    has one line per photo, and an unnamed one is named after its x_y."""
+    path = Path(path)
+    try:
+        lines = [ln.split() for ln in path.read_text().splitlines() if ln.strip() and not ln.startswith('#')]
+    except (OSError, UnicodeDecodeError) as exc:
+        raise DataError(f'cannot read the GCP file {path}: {exc}') from exc
+    if not lines:
+        raise DataError(f'{path} is empty: the first line must be a CRS (e.g. EPSG:32632), then one line per '
+                        'observation: x y z px py image [name]')
+    _, crs = _crs_of(' '.join(lines[0]), f'{path} line 1')
+    points, image_uv = {}, {}
+    for ln in lines[1:]:
+        if len(ln) < 6:
+            raise DataError(f'{path}: line {" ".join(ln)!r} needs: x y z px py image [name]')
+        x, y, z, u, v = (_number(s, c, str(path)) for s, c in zip(ln[:5], ('x', 'y', 'z', 'px', 'py')))
+        name = ln[6] if len(ln) > 6 else f'{ln[0]}_{ln[1]}'
+        lat, lon, h = crs_to_geodetic(x, y, z, crs)
+        points[name] = (float(lat), float(lon), float(h))
+        image_uv.setdefault(ln[5], {})[name] = np.array([u, v])
+    roles = {name: 'check' if is_check_name(name, check_names) else 'gcp' for name in points}
+    return GcpList(crs, points, roles, image_uv)

@@ -20,9 +20,9 @@ import numpy as np
 from photogram_ros.core.evaluation import (detect_targets, surface_errors, trajectory_errors,
                                            triangulate_targets)
 from photogram_ros.core.geodesy import LocalFrame, crs_to_geodetic, geodetic_to_crs
-from photogram_ros.core.rotations import opk_from_map_R_cam
 from photogram_ros.io.map_store import MapStore
 from photogram_ros.io.report import Section, histogram_png, trajectory_png, write_report
+from photogram_ros.io.trajectory import TRAJECTORY_COLUMNS, write_trajectory_csv
 
 
 def _target_figures(res, gsd_m: float | None) -> dict:
@@ -34,27 +34,21 @@ def _target_figures(res, gsd_m: float | None) -> dict:
 
 
 def write_trajectory(out: Path, keyframes: list[dict], origin: LocalFrame, crs: str) -> dict:
-    """Adjusted keyframe poses as CSV (CRS + WGS84 + omega-phi-kappa in the CRS) and GeoJSON."""
+    """Adjusted keyframe poses as CSV (CRS + WGS84 + omega-phi-kappa, io/trajectory.py) and GeoJSON."""
     if not keyframes:
         return {}
-    C = np.array([k['map_T_cam'][:3, 3] for k in keyframes])
-    lat, lon, h = origin.enu_to_geodetic(C)
-    e, n, _ = geodetic_to_crs(lat, lon, h, crs)
-    rows = ['image,stamp_ns,easting_m,northing_m,h_ellipsoid_m,lat_deg,lon_deg,omega_deg,phi_deg,kappa_deg']
-    # omega-phi-kappa in the map ENU frame (within a fraction of a degree of the projected frame over a
-    # few km; grid convergence is not applied).
-    for k, kf in enumerate(keyframes):
-        om, ph, ka = np.degrees(opk_from_map_R_cam(kf['map_T_cam'][:3, :3]))
-        rows.append(f"{Path(kf['image_path']).name},{kf['stamp_ns']},{e[k]:.4f},{n[k]:.4f},{h[k]:.4f},"
-                    f"{lat[k]:.9f},{lon[k]:.9f},{om:.4f},{ph:.4f},{ka:.4f}")
-    (out / 'trajectory.csv').write_text('\n'.join(rows) + '\n')
+    t = write_trajectory_csv(out / 'trajectory.csv', TRAJECTORY_COLUMNS,
+                             [Path(k['image_path']).name for k in keyframes],
+                             np.array([k['map_T_cam'] for k in keyframes]), origin, crs,
+                             [k['stamp_ns'] for k in keyframes])
+    C, lat, lon, h = t['centres_map'], t['lat_deg'], t['lon_deg'], t['h_m']
     geo = {'type': 'FeatureCollection', 'features': [
         {'type': 'Feature', 'geometry': {'type': 'LineString',
                                          'coordinates': [[float(lon[k]), float(lat[k]), float(h[k])]
                                                          for k in range(len(C))]},
          'properties': {'name': 'adjusted keyframe trajectory', 'heights': 'WGS84 ellipsoidal'}}]}
     (out / 'trajectory.geojson').write_text(json.dumps(geo))
-    return {'easting': e, 'northing': n, 'centres_map': C}
+    return {'easting': t['easting_m'], 'northing': t['northing_m'], 'centres_map': C}
 
 
 def near_discontinuity(dem, x_m, y_m, slope: float = 1.0, radius_m: float = 1.0) -> np.ndarray:
@@ -72,16 +66,17 @@ def _truth_frame_for(truth, stamp_ns):
     return truth.frame_by_stamp(stamp_ns, tol_ns=5_000_000)
 
 
-def build_report(out_dir: str | Path, map_dir: str | Path, crs: str, files: dict, truth=None,
+def build_report(out_dir: str | Path, map_dir: str | Path | MapStore, crs: str, files: dict, truth=None,
                  control=None, run: dict | None = None, diagnostics: dict | None = None) -> dict:
     """Write report.md/.html/.json into out_dir; returns the figures dictionary.
 
+    map_dir: the map folder, or a MapStore already open on it.
     control: the flight's core.control.ControlSet (check points and GCPs listed apart); without it the
     truth's targets of a simulator bag are all check points. run: timing and counts of the replay.
     diagnostics: node -> {'problems': [...], 'values': {...}}.
     """
     out = Path(out_dir)
-    store = MapStore(map_dir)
+    store = map_dir if isinstance(map_dir, MapStore) else MapStore(map_dir)
     origin = store.origin
     cam = store.load_camera()
     kfs = store.keyframes()
