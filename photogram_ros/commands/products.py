@@ -63,7 +63,7 @@ def export_products(map_dir, out, params_file: str | None, crs: str = '', live_m
     store = MapStore(map_dir)    # opened once: densify reads it, export and the report read the products' map
     if store.origin is None or not store.keyframes():
         notes = ['the map has no georeferenced keyframes (no camera frames, or no GNSS fix good enough): no exports']
-        figures = build_report(out, store.root, crs or 'EPSG:4326', {}, run=run, **report)  # lead: pass store
+        figures = build_report(out, store, crs or 'EPSG:4326', {}, run=run, **report)
         return {'files': {}, 'notes': notes, 'crs': crs, 'figures': figures, 'points': 0}
     crs = crs or f'EPSG:{utm_epsg(store.origin.lat_deg, store.origin.lon_deg)}'
     products, notes = store, []
@@ -79,5 +79,5 @@ def export_products(map_dir, out, params_file: str | None, crs: str = '', live_m
     ex = export_map(products, out, crs, heights, min_pairs=min_pairs)
     files = {k: str(v) for k, v in ex.files.items()}
     run['map_points'] = ex.points
-    figures = build_report(out, products.root, crs, files, run=run, **report)  # lead: pass store
+    figures = build_report(out, products, crs, files, run=run, **report)
     return {'files': files, 'notes': notes + ex.notes, 'crs': crs, 'figures': figures, 'points': ex.points}
