@@ -566,7 +566,7 @@ class IncrementalAT:
 
     # --- adjustment -----------------------------------------------------------------------------
 
-    def problem(self, free_kids: list[int], fixed_kids: list[int], tracks) -> BundleProblem:
+    def problem(self, free_kids: list[int], fixed_kids: list[int], tracks) -> BundleProblem | None:
         """The bundle problem of the adjuster's state that every adjustment solves.
 
         Keyframes `free_kids` are adjusted and `fixed_kids` held (cameras in that order); the points
@@ -574,7 +574,7 @@ class IncrementalAT:
         in these keyframes. Once georeferenced, the free keyframes' fixes are GNSS priors (moved by
         the estimated bias; the antenna at the lever arm, or at the record's antenna offset) and the
         GCPs among the tracks point priors. Without a datum and nothing held, the first two
-        keyframes are held (the gauge)."""
+        keyframes are held (the gauge). None when there is no observation."""
         return self._problem(free_kids, fixed_kids, tracks).prob
 
     def _problem(self, free, fixed, tracks, gcp_priors: bool = True, hold_gauge: bool = True) -> _Problem:
