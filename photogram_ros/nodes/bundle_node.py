@@ -347,17 +347,18 @@ class BundleNode(Node):
         if not batch:
             return
         for i, rec in enumerate(batch):
-            newest = i == len(batch) - 1
-            self._process(rec, publish=newest, window_iterations=None if newest else
-                          min(self.p.catch_up_iterations, self.p.window_iterations))
+            self._process(rec, publish=i == len(batch) - 1)
         if len(batch) > 1:
             self.diag.count('keyframes_caught_up', len(batch) - 1)
 
     # --- adjustment and outputs -------------------------------------------------------------------
 
-    def _process(self, rec: KeyframeRecord, publish: bool = True, window_iterations: int | None = None) -> None:
+    def _process(self, rec: KeyframeRecord, publish: bool = True) -> None:
+        """Adjust one keyframe; one that is not published (an older one of a batch) gets the short
+        catch-up window adjustment."""
         try:
-            rep = self.at.add_keyframe(rec, window_iterations)
+            rep = self.at.add_keyframe(rec, None if publish else min(self.p.catch_up_iterations,
+                                                                      self.p.window_iterations))
         except Exception as exc:
             self.diag.count('keyframes_failed')   # a replay's backpressure counts it as done
             self.diag.problem(f'keyframe {rec.stamp_ns} failed: {exc}')
