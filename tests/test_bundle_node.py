@@ -77,19 +77,49 @@ def test_bundle_node_rejects_bad_parameters(rclpy_context):
         BundleNode(overrides={'lever_arm_cam_m': [0.0, 1.0]}, context=rclpy_context)
 
 
+def test_node_parameters_are_the_adjusters_and_reach_it_uncopied():
+    """BundleNodeParams extends the core's IncrementalOptions: every adjuster parameter is a node
+    parameter, the shipped files' sections load, and the adjuster gets the node's set itself, a
+    gimbal's body lever arm turned into the camera frame (nadir, image top forward)."""
+    import dataclasses
+    from conftest import ROOT
+    from photogram_ros.core.incremental import IncrementalAT, IncrementalOptions
+    from photogram_ros.nodes.bundle_node import BundleNodeParams
+    from photogram_ros.params import fields_of, from_dict, load_params_file
+    core = [f.name for f in fields_of(IncrementalOptions)]
+    assert len(core) == len(dataclasses.fields(IncrementalOptions)) >= 20   # every field described
+    assert core == [f.name for f in fields_of(BundleNodeParams)][:len(core)]
+    n = 0
+    for path in sorted((ROOT / 'config').glob('*.yaml')):
+        values = load_params_file(str(path)).get('bundle_node')
+        if values is not None:
+            p = from_dict(BundleNodeParams, values)
+            n += 1
+    assert n >= 3 and p.gimbal
+    sk = simulate_keyframes(preset('tiny'), keyframe_interval_s=1.0, attitude_sigma_deg=None)
+    p = from_dict(BundleNodeParams, {'lever_arm_body_frd_m': [0.05, 0.0, -0.2], 'window_size': 7})
+    at = IncrementalAT(sk.camera, p)
+    assert at.opt is p and np.allclose(at.lever_arm_cam_m, [0.0, -0.05, -0.2])
+    fixed = IncrementalAT(sk.camera, from_dict(BundleNodeParams, {'lever_arm_cam_m': [0.1, 0.2, 0.3]}))
+    assert np.array_equal(fixed.lever_arm_cam_m, [0.1, 0.2, 0.3])
+    with pytest.raises(ConfigError, match='once'):
+        from_dict(BundleNodeParams, {'lever_arm_body_frd_m': [0.05, 0.0, -0.2], 'lever_arm_cam_m': [0.0, 0.0, 0.1]})
+    with pytest.raises(ConfigError, match='window_size'):
+        from_dict(IncrementalOptions, {'window_size': 1})
+
+
 def test_pose_covariance_is_the_window_marginal_and_fits_the_errors():
     """The published position covariance is the solver's marginal covariance of the window's camera
     centres: it carries the photogrammetric information on top of the fixes (smaller than a fix's
     covariance, correlated axes), and the actual centre errors against the truth fit it."""
     from photogram_ros.core.incremental import IncrementalAT, IncrementalOptions
-    from photogram_ros.nodes.bundle_node import window_centre_covariance
     sk = simulate_keyframes(preset('tiny'), keyframe_interval_s=1.0, attitude_sigma_deg=None)
     at = IncrementalAT(sk.camera, IncrementalOptions(lever_arm_cam_m=tuple(sk.lever_arm_cam_m)), origin=sk.origin)
     for r in sk.records:
         at.add_keyframe(r)
     assert at.georeferenced and not at.georef_provisional
     free = at.registered[-10:]
-    cov = window_centre_covariance(at, free, 30, 'huber', 1.0)
+    cov = at.centre_covariance(free)
     assert sorted(cov) == sorted(free)
     chi2 = []
     stamps = [r.stamp_ns for r in sk.records]

@@ -10,9 +10,10 @@ import json
 import numpy as np
 import pytest
 
-from photogram_ros.core.at_report import build_report, markdown, write_report
+from photogram_ros.core.at_report import build_report
 from photogram_ros.core.incremental import IncrementalAT, IncrementalOptions, KeyframeRecord
 from photogram_ros.errors import DataError
+from photogram_ros.io.at_report import markdown, write_report
 from photogram_ros.sim.observations import simulate_keyframes
 from photogram_ros.sim.scenario import build_world, preset
 
@@ -101,7 +102,7 @@ def test_five_percent_gross_outliers(world, mode, gcps):
         kf = at.kfs[k]
         for t, a in zip(kf.track_ids, kf.active):
             kept_bad += bool(a and int(t) in bad and int(t) in at.points
-                             and at._reprojection_px(kf.map_T_cam, at.points[int(t)][None], kf.uv[kf.index_of[int(t)]][None])[0] > 3)
+                             and at.reprojection_px(kf.map_T_cam, at.points[int(t)][None], kf.uv[kf.index_of[int(t)]][None])[0] > 3)
     print(f'{mode} gcps={gcps} with 5 % outlier tracks ({len(bad)}): camera RMSE {cam * 100:.2f} cm, '
           f'check h {h / sk.gsd_m:.2f} v {v / sk.gsd_m:.2f} GSD, reprojection {rep["reprojection_rms_px"]:.3f} px, '
           f'large-residual outlier observations left {kept_bad}')
@@ -146,6 +147,26 @@ def test_georeference_waits_for_a_turn_and_report_files(world, tmp_path):
     doc = json.loads(js.read_text())
     assert doc['check']['rmse']['n'] == 4 and len(doc['per_image']) == len(sk.records)
     assert 'Check points' in md.read_text() and 'CHK01' in markdown(rep)
+
+
+def test_a_photo_that_missed_its_turn_registers_on_retry(world):
+    """A keyframe that comes before the pair that starts the block is never registered in sequence;
+    retry_unregistered resects it against the whole block, and it lands where the truth has it."""
+    cfg, w = world
+    sk = simulate_keyframes(cfg, world=w)
+    late = 12
+    at = IncrementalAT(sk.camera, IncrementalOptions(lever_arm_cam_m=tuple(sk.lever_arm_cam_m)),
+                       origin=sk.origin, control=sk.control)
+    for r in [sk.records[late]] + sk.records[:late] + sk.records[late + 1:]:
+        at.add_keyframe(r)
+    assert at.kfs[0].map_T_cam is None and len(at.registered) == len(sk.records) - 1
+    assert at.retry_unregistered() == 1 and at.retry_unregistered() == 0
+    at.full_adjustment()
+    err = np.linalg.norm(at.kfs[0].map_T_cam[:3, 3] - sk.true_map_T_cam[late][:3, 3])
+    others = np.array([np.linalg.norm(at.kfs[k].map_T_cam[:3, 3] - sk.true_map_T_cam[k - 1 if k <= late else k][:3, 3])
+                       for k in at.registered if k != 0])
+    print(f'retried keyframe centre error {err * 100:.1f} cm, others RMS {np.sqrt(np.mean(others ** 2)) * 100:.1f} cm')
+    assert err < max(3 * np.sqrt(np.mean(others ** 2)), 0.05)
 
 
 def test_bad_keyframe_raises(world):

@@ -8,6 +8,8 @@ stay resident for the whole flight: memory grew by tens of MB per flight minute.
   keyframes observing them, which replaces their per-track keyframe list.
 - `KeyframeSpill`: the observation arrays of frozen keyframes, one .npy per keyframe in a spill
   folder, read back only when something needs them again (the final full adjustment, a report).
+- `Keyframe`: one keyframe of the triangulation, its observation arrays in memory while it is hot
+  and in a `KeyframeSpill` once frozen (when: core/at_freeze.py).
 
 Iteration order of `PointStore` is the insertion order a plain dict would have (a sequence number
 per point), so adjustments built from it are the same problems, bit for bit, as before.
@@ -259,3 +261,64 @@ class KeyframeSpill:
         a = np.load(self.path(kid), allow_pickle=False)
         return (np.ascontiguousarray(a['track_id']), np.ascontiguousarray(a['uv']),
                 np.ascontiguousarray(a['xn']), np.ascontiguousarray(a['active']))
+
+
+class Keyframe:
+    """One keyframe: metadata always in memory, observation arrays in memory while it is *hot* and
+    on disk (`KeyframeSpill`) once frozen. Reading an array of a frozen keyframe thaws it, so every
+    caller stays correct; the freeze pass (core/at_freeze.py) spills it again when it may."""
+
+    __slots__ = ('kid', 'stamp_ns', 'name', 'fix_enu', 'fix_cov', 'map_T_cam', 'antenna_offset', 'reg_seq',
+                 'id_lo', 'id_hi', 'has_targets', '_arr', '_spill', '_disk_active')
+
+    def __init__(self, kid, stamp_ns, name, track_ids, uv, xn, active, fix_enu, fix_cov, map_T_cam=None,
+                 antenna_offset=None):
+        self.kid, self.stamp_ns, self.name = kid, stamp_ns, name
+        self.fix_enu, self.fix_cov, self.map_T_cam, self.antenna_offset = fix_enu, fix_cov, map_T_cam, antenna_offset
+        self.reg_seq = -1          # position in IncrementalAT.registered, -1 while not registered
+        nonneg = track_ids[track_ids >= 0]
+        self.id_lo = int(nonneg.min()) if len(nonneg) else 0
+        self.id_hi = int(nonneg.max()) if len(nonneg) else -1
+        self.has_targets = bool(len(nonneg) < len(track_ids))
+        self._arr = (track_ids, uv, xn, active)
+        self._spill = None
+        self._disk_active = None   # `active` as last written to disk (an unchanged keyframe is not rewritten)
+
+    @property
+    def frozen(self) -> bool:
+        return self._arr is None
+
+    def thaw(self):
+        """Back in memory (a no-op when hot): (track_ids, uv, xn, active)."""
+        if self._arr is None:
+            self._arr = self._spill.load(self.kid)
+            self._disk_active = self._arr[3].copy()
+        return self._arr
+
+    def peek(self):
+        """(track_ids, uv, xn, active) without thawing (read-only use)."""
+        return self._arr if self._arr is not None else self._spill.load(self.kid)
+
+    def freeze(self, spill: KeyframeSpill) -> None:
+        if self._arr is None:
+            return
+        if self._disk_active is None or not np.array_equal(self._disk_active, self._arr[3]):
+            spill.save(self.kid, *self._arr)
+        self._spill = spill
+        self._arr = None
+        self._disk_active = None
+
+    track_ids = property(lambda self: self.thaw()[0])
+    uv = property(lambda self: self.thaw()[1])
+    xn = property(lambda self: self.thaw()[2])
+    active = property(lambda self: self.thaw()[3])
+
+    def index(self, tid: int) -> int | None:
+        """Observation index of track `tid` (track ids are sorted), None if not observed."""
+        ids = self.track_ids
+        i = int(np.searchsorted(ids, tid))
+        return i if i < len(ids) and ids[i] == tid else None
+
+    @property
+    def index_of(self) -> dict:
+        return {int(t): i for i, t in enumerate(self.track_ids)}

@@ -14,11 +14,18 @@ the error is |lever| times the body-vs-camera attitude difference, 1.7 cm for a 
 multirotor pitched 5 degrees into its course. A record's `antenna_offset_map_m` (from the body
 attitude, core/attitude.py) replaces it for that keyframe.
 
-Memory on long flights (`spill_frozen`): a tracker track that has not been seen for the window plus
-a margin can never enter a window again, so it is frozen: its point moves to compact arrays with
-only a count of its observations (core/at_store.py), and a keyframe whose tracks are all frozen
-moves its observations to disk. The final full adjustment reads them back (its peak is the
-solver's); results are bit-identical to keeping everything (tests/test_incremental.py).
+A gimballed camera gives the lever arm in the body frame instead (`lever_arm_body_frd_m`): its
+records carry their antenna offsets, and a record without one takes the body lever arm as if
+flying level, image top forward (`lever_arm_cam_from_frd`).
+
+Every adjustment is one `problem(free, fixed, tracks)` of the adjuster's state; `centre_covariance`
+evaluates the marginal covariance of a window's camera centres from the same builder.
+
+Memory on long flights (`spill_frozen`): what can no longer enter a window leaves the Python heap
+(core/at_freeze.py); results are bit-identical to keeping everything.
+
+Parameters: `IncrementalOptions`, declared with descriptions and ranges (params.py); the bundle
+node's parameter set extends it.
 """
 
 from __future__ import annotations
@@ -28,14 +35,16 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from photogram_ros.core.at_store import KeyframeSpill, PointStore
+from photogram_ros.core.at_freeze import Freezer
+from photogram_ros.core.at_store import Keyframe, PointStore
 from photogram_ros.core.camera import PinholeCamera
 from photogram_ros.core.geodesy import LocalFrame
 from photogram_ros.core.rotations import invert_T, make_T
 from photogram_ros.core.similarity import similarity_on_line, similarity_ransac, spread
 from photogram_ros.core.two_view import relative_pose
-from photogram_ros.core.window import select_window
-from photogram_ros.errors import DataError
+from photogram_ros.core.window import neighbour_keyframes, select_window
+from photogram_ros.errors import ConfigError, DataError
+from photogram_ros.params import param
 
 from photogram_ros.core.bundle import BundleOptions, BundleProblem, bundle_adjust
 
@@ -71,93 +80,83 @@ class ControlPoint:
 
 @dataclass
 class IncrementalOptions:
-    window_size: int = 10
-    max_fixed_keyframes: int = 30
-    min_init_inliers: int = 30
-    min_init_angle_deg: float = 2.0
-    min_triangulation_angle_deg: float = 1.5
-    max_reprojection_px: float = 2.5   # accept a new point / keep an observation
-    pnp_threshold_px: float = 3.0
-    min_pnp_inliers: int = 12
-    loss: str = 'huber'
-    loss_scale_px: float = 1.0
-    window_iterations: int = 15
-    full_iterations: int = 50
-    lever_arm_cam_m: tuple = (0.0, 0.0, 0.0)
-    georef_min_keyframes: int = 4
-    georef_min_spread_ratio: float = 0.05
-    assume_nadir: bool = True          # a straight first line georeferences provisionally (see above)
-    use_gcps: bool = True
-    estimate_gnss_bias: bool = True    # a constant ENU GNSS offset, when >= 3 GCPs make it observable
-    bias_iterations: int = 10
+    """The aerial triangulation's parameters (ROS-free; nodes/bundle_node.py's set extends it)."""
+    window_size: int = param(10, 'keyframes adjusted per update (newest); older ones sharing points are held fixed',
+                             min=2, max=200)
+    max_fixed_keyframes: int = param(30, 'at most this many fixed keyframes enter a window update', min=0, max=1000)
+    min_init_inliers: int = param(30, 'tie points (and relative-pose inliers) the first two keyframes need to start',
+                                  min=8, max=100000)
+    min_init_angle_deg: float = param(2.0, 'median ray angle of the first two keyframes, deg (a shorter baseline '
+                                           'waits for a later keyframe)', min=0.0, max=60.0)
+    min_triangulation_angle_deg: float = param(1.5, 'a new point needs rays at least this far apart, deg',
+                                               min=0.0, max=90.0)
+    max_reprojection_px: float = param(2.5, 'observations with a larger error after adjustment are dropped, px',
+                                       min=0.3, max=100.0)
+    pnp_threshold_px: float = param(3.0, 'RANSAC threshold of a new keyframe\'s resection (and of the first '
+                                         'relative pose), px', min=0.1, max=100.0)
+    min_pnp_inliers: int = param(12, 'a new keyframe registers with at least this many resection inliers',
+                                 min=4, max=100000)
+    loss: str = param('huber', 'robust loss on reprojection errors', choices=('huber', 'cauchy', 'linear'))
+    loss_scale_px: float = param(1.0, 'robust loss scale, pixels', min=0.05, max=100.0)
+    window_iterations: int = param(15, 'solver iterations of a window update', min=1, max=1000)
+    full_iterations: int = param(50, 'solver iterations of a full adjustment (each round)', min=1, max=1000)
+    lever_arm_cam_m: list = param([0.0, 0.0, 0.0], 'GNSS antenna position in the optical camera frame '
+                                  '(x right, y down, z forward), m: a camera fixed to the body')
+    lever_arm_body_frd_m: list = param([0.0, 0.0, 0.0], 'GNSS antenna position relative to the camera centre in '
+                                       'the body frame (forward, right, down), m: a gimballed camera, whose '
+                                       'keyframes carry their antenna offset from the attitude (bundle_node follows '
+                                       'mavlink/attitude); zeros: lever_arm_cam_m is used')
+    georef_min_keyframes: int = param(4, 'keyframes with a fix before the block is georeferenced', min=3, max=10000)
+    georef_min_spread_ratio: float = param(0.05, 'the fixes must spread across their line by this fraction of '
+                                                 'its length before the georeference is final (a turn)',
+                                           min=0.0, max=1.0)
+    assume_nadir: bool = param(True, 'a straight first line georeferences provisionally, the roll about it '
+                                     'from a near-nadir camera (final at the first turn)')
+    use_gcps: bool = param(True, 'surveyed GCPs enter the adjustment as point priors (off: every target is a '
+                                 'check point)')
+    estimate_gnss_bias: bool = param(True, 'estimate a constant ENU GNSS offset in the full adjustment when >= 3 '
+                                           'GCPs make it observable')
+    bias_iterations: int = param(10, 'full adjustments of the GNSS bias estimate, at most', min=0, max=1000)
     # Long flights: keyframes and tracks that can no longer enter a window leave the Python heap
     # (points to compact arrays, keyframe observations to disk) so memory stays flat; a track id
-    # seen again later brings them back, so results are the same either way.
-    spill_frozen: bool = True
-    spill_dir: str = ''                # '' = a private temporary folder, removed afterwards
-    freeze_margin_keyframes: int = 5   # a track is dead this many registrations before the window
-    freeze_every: int = 5              # keyframes between freeze passes
-    max_thaws: int = 3                 # keyframes bringing back (or looking up) ended tracks before freezing stops
+    # seen again later brings them back, so results are the same either way (core/at_freeze.py).
+    spill_frozen: bool = param(True, 'long flights: tie points and keyframes that can no longer enter a window '
+                                     'leave memory (compact arrays, keyframe observations on disk); same results')
+    spill_dir: str = param('', 'folder for the frozen keyframes\' observations ("" = a private temporary folder, '
+                               'removed afterwards)')
+    freeze_margin_keyframes: int = param(5, 'a track freezes this many registrations before the window',
+                                         min=0, max=10000)
+    freeze_every: int = param(5, 'keyframes between freeze passes', min=1, max=10000)
+    max_thaws: int = param(3, 'keyframes bringing back (or looking up) ended tracks before freezing stops',
+                           min=1, max=10000)
 
-
-class _Keyframe:
-    """One keyframe: metadata always in memory, observation arrays in memory while it is *hot* and
-    on disk (`KeyframeSpill`) once frozen. Reading an array of a frozen keyframe thaws it, so every
-    caller stays correct; the freeze pass of IncrementalAT spills it again when it may."""
-
-    __slots__ = ('kid', 'stamp_ns', 'name', 'fix_enu', 'fix_cov', 'map_T_cam', 'antenna_offset', 'reg_seq',
-                 'id_lo', 'id_hi', 'has_targets', '_arr', '_spill', '_disk_active')
-
-    def __init__(self, kid, stamp_ns, name, track_ids, uv, xn, active, fix_enu, fix_cov, map_T_cam=None,
-                 antenna_offset=None):
-        self.kid, self.stamp_ns, self.name = kid, stamp_ns, name
-        self.fix_enu, self.fix_cov, self.map_T_cam, self.antenna_offset = fix_enu, fix_cov, map_T_cam, antenna_offset
-        self.reg_seq = -1          # position in IncrementalAT.registered, -1 while not registered
-        nonneg = track_ids[track_ids >= 0]
-        self.id_lo = int(nonneg.min()) if len(nonneg) else 0
-        self.id_hi = int(nonneg.max()) if len(nonneg) else -1
-        self.has_targets = bool(len(nonneg) < len(track_ids))
-        self._arr = (track_ids, uv, xn, active)
-        self._spill = None
-        self._disk_active = None   # `active` as last written to disk (an unchanged keyframe is not rewritten)
+    def check(self) -> None:
+        if len(self.lever_arm_cam_m) != 3:
+            raise ConfigError(f'lever_arm_cam_m needs 3 numbers (x, y, z), got {self.lever_arm_cam_m}')
+        if len(self.lever_arm_body_frd_m) != 3:
+            raise ConfigError(f'lever_arm_body_frd_m needs 3 numbers (forward, right, down), got '
+                              f'{self.lever_arm_body_frd_m}')
+        if any(self.lever_arm_body_frd_m) and any(self.lever_arm_cam_m):
+            raise ConfigError('give the GNSS lever arm once: lever_arm_cam_m for a camera fixed to the body, '
+                              'lever_arm_body_frd_m for a gimballed camera (the other all zeros)')
 
     @property
-    def frozen(self) -> bool:
-        return self._arr is None
+    def gimbal(self) -> bool:
+        return any(self.lever_arm_body_frd_m)
 
-    def _arrays(self):
-        if self._arr is None:
-            self._arr = self._spill.load(self.kid)
-            self._disk_active = self._arr[3].copy()
-        return self._arr
 
-    def peek(self):
-        """(track_ids, uv, xn, active) without thawing (read-only use)."""
-        return self._arr if self._arr is not None else self._spill.load(self.kid)
-
-    def freeze(self, spill) -> None:
-        if self._arr is None:
-            return
-        if self._disk_active is None or not np.array_equal(self._disk_active, self._arr[3]):
-            spill.save(self.kid, *self._arr)
-        self._spill = spill
-        self._arr = None
-        self._disk_active = None
-
-    track_ids = property(lambda self: self._arrays()[0])
-    uv = property(lambda self: self._arrays()[1])
-    xn = property(lambda self: self._arrays()[2])
-    active = property(lambda self: self._arrays()[3])
-
-    def index(self, tid: int) -> int | None:
-        """Observation index of track `tid` (track ids are sorted), None if not observed."""
-        ids = self.track_ids
-        i = int(np.searchsorted(ids, tid))
-        return i if i < len(ids) and ids[i] == tid else None
-
-    @property
-    def index_of(self) -> dict:
-        return {int(t): i for i, t in enumerate(self.track_ids)}
+@dataclass
+class _Problem:
+    """IncrementalAT.problem() with the map back to the block: observation o is point `slot[o]`
+    (track `tracks[slot[o]]`) seen by keyframe `kid[o]` (camera kids.index(kid[o])) at its index `oi[o]`."""
+    prob: BundleProblem | None
+    kids: list[int]
+    tracks: list[int]
+    slot: np.ndarray
+    kid: np.ndarray
+    oi: np.ndarray
+    fixed_mask: np.ndarray
+    gnss_cams: list[int]         # cameras (indices into kids) with a GNSS prior
 
 
 @dataclass
@@ -210,24 +209,18 @@ class IncrementalAT:
         self.camera = camera
         self.opt = options or IncrementalOptions()
         self.origin = origin
-        self.kfs: list[_Keyframe] = []
+        self.kfs: list[Keyframe] = []
         self.registered: list[int] = []
         self.points = PointStore()                  # dict-like {track id: (3,) map ENU}
         self.track_kfs: dict[int, list[int]] = {}    # hot tracks: registered keyframes with an active observation
-        # Hot tracker tracks (id >= 0) -> newest keyframe observing them; a track whose newest
-        # observation is older than the window (and its margin) is frozen.
-        self.last_seen: dict[int, int] = {}
-        self._max_seen_id = -1
-        self._spill: KeyframeSpill | None = None
-        # Records whose track ids come back after a gap (ground-point ids, a loop-closing matcher)
-        # make every thaw a scan of the block: after a few, freezing stops for this block.
-        self._thaw_keyframes = 0
-        self.freezing_stopped = ''
+        self._freezer = Freezer(self.opt)
         self.georeferenced = False
         self.georef_provisional = False
         self.control = {c.name: c for c in (control or [])}
         self._target_ids: dict[str, int] = {}
-        self.lever = np.asarray(self.opt.lever_arm_cam_m, float)
+        # A gimbal: the body lever arm as if flying level, image top forward, where a record has no offset.
+        self._lever = (lever_arm_cam_from_frd(self.opt.lever_arm_body_frd_m) if self.opt.gimbal
+                       else np.asarray(self.opt.lever_arm_cam_m, float))
         self.history: list[StepReport] = []
         self.rng = np.random.default_rng(0)
         # A GNSS receiver without corrections is off by a bias that wanders over minutes; weighting
@@ -235,14 +228,30 @@ class IncrementalAT:
         # and tilt trade off over flat ground). With GCPs the bias is observable: estimated here.
         self.gnss_bias_enu = np.zeros(3)
 
+    @property
+    def lever_arm_cam_m(self) -> np.ndarray:
+        """(3,) antenna in the camera frame (m) of a keyframe without its own antenna offset."""
+        return self._lever.copy()
+
+    @property
+    def freezing_stopped(self) -> str:
+        """Why this block is no longer frozen ('' while it is)."""
+        return self._freezer.stopped
+
     # --- input --------------------------------------------------------------------------------
 
-    def _target_track(self, name: str) -> int:
+    def _new_target_track(self, name: str) -> int:
         if name not in self._target_ids:
             self._target_ids[name] = -(len(self._target_ids) + 1)   # tracker ids are >= 0
         return self._target_ids[name]
 
-    def _is_check(self, tid: int) -> bool:
+    def target_track(self, name: str) -> int | None:
+        """Track id (negative) of a target by name, None while no keyframe has observed it."""
+        return self._target_ids.get(name)
+
+    def is_check(self, tid: int) -> bool:
+        """A target track that never enters the adjustment: a check point, a target the control does
+        not name, or any target with use_gcps off. Tracker tracks (tid >= 0) are not."""
         if tid >= 0:
             return False
         name = self.target_name(tid)
@@ -255,13 +264,15 @@ class IncrementalAT:
                 return n
         return ''
 
-    def add_keyframe(self, rec: KeyframeRecord) -> StepReport:
+    def add_keyframe(self, rec: KeyframeRecord, window_iterations: int | None = None) -> StepReport:
+        """Register, triangulate and adjust one keyframe. `window_iterations` replaces the option's
+        for this keyframe's window update (a node catching up after a long adjustment)."""
         ids = np.asarray(rec.track_ids, dtype=np.int64).ravel()
         uv = np.asarray(rec.uv, float).reshape(-1, 2)
         if len(ids) != len(uv):
             raise DataError(f'keyframe {rec.stamp_ns}: {len(ids)} track ids but {len(uv)} pixel positions')
         if rec.target_uv:
-            ids = np.concatenate([ids, [self._target_track(n) for n in rec.target_uv]])
+            ids = np.concatenate([ids, [self._new_target_track(n) for n in rec.target_uv]])
             uv = np.vstack([uv, np.asarray(list(rec.target_uv.values()), float).reshape(-1, 2)])
         ids, first = np.unique(ids, return_index=True)   # a duplicated id would be a tracker bug
         uv = uv[first]
@@ -271,16 +282,13 @@ class IncrementalAT:
                 self.origin = LocalFrame(rec.fix.lat_deg, rec.fix.lon_deg, rec.fix.h_m)
             fix_enu = np.asarray(self.origin.geodetic_to_enu(rec.fix.lat_deg, rec.fix.lon_deg, rec.fix.h_m))
             fix_cov = np.asarray(rec.fix.cov_enu_m2, float).reshape(3, 3)
-        kf = _Keyframe(len(self.kfs), int(rec.stamp_ns), rec.name or str(rec.stamp_ns), ids, uv,
+        kf = Keyframe(len(self.kfs), int(rec.stamp_ns), rec.name or str(rec.stamp_ns), ids, uv,
                        self.camera.pixel_to_normalized(uv), np.ones(len(ids), bool), fix_enu, fix_cov)
         if rec.antenna_offset_map_m is not None:
             kf.antenna_offset = np.asarray(rec.antenna_offset_map_m, float).reshape(3)
         self._thaw_tracks_seen_again(ids)
         self.kfs.append(kf)
-        for t in ids[ids >= 0].tolist():
-            self.last_seen[t] = kf.kid
-        if len(ids) and ids[-1] >= 0:
-            self._max_seen_id = max(self._max_seen_id, int(ids[-1]))
+        self._freezer.seen(kf.kid, ids)
         t0 = time.perf_counter()
         if not self.registered:
             rep = self._try_initialise()
@@ -290,7 +298,7 @@ class IncrementalAT:
                 self._triangulate_new(kf)
                 if not self.georeferenced or self.georef_provisional:
                     self._try_georeference()
-                rep = self._window_adjust(kf.kid)
+                rep = self._window_adjust(kf.kid, iterations=window_iterations)
         rep.solve_s = time.perf_counter() - t0
         rep.n_points = len(self.points)
         self.history.append(rep)
@@ -298,14 +306,25 @@ class IncrementalAT:
             self.freeze()
         return rep
 
+    def retry_unregistered(self) -> int:
+        """Photos that did not register in sequence get a second chance against the whole block
+        (resection against every point, then triangulation); returns how many registered now.
+        Adjust afterwards (`full_adjustment`)."""
+        n = 0
+        for kf in self.kfs:
+            if kf.map_T_cam is None and self.registered and self._register(kf).registered:
+                self._triangulate_new(kf)
+                n += 1
+        return n
+
     # --- geometry steps -------------------------------------------------------------------------
 
-    def _usable(self, kf: _Keyframe) -> np.ndarray:
+    def _usable(self, kf: Keyframe) -> np.ndarray:
         """Observations that may build geometry: active and not a check point."""
         m = kf.active.copy()
         neg = kf.track_ids < 0
         if neg.any():
-            m[neg] &= ~np.array([self._is_check(int(t)) for t in kf.track_ids[neg]])
+            m[neg] &= ~np.array([self.is_check(int(t)) for t in kf.track_ids[neg]])
         return m
 
     def _try_initialise(self) -> StepReport:
@@ -340,7 +359,7 @@ class IncrementalAT:
         # No pair yet: drop keyframes too old to ever pair with the newest one.
         return StepReport(new.kid, False, 'waiting_for_initialisation')
 
-    def _register(self, kf: _Keyframe) -> StepReport:
+    def _register(self, kf: Keyframe) -> StepReport:
         import cv2
         use = self._usable(kf)
         self._thaw_tracks_seen_again(kf.track_ids)   # a second chance for an old keyframe (triangulate)
@@ -389,7 +408,10 @@ class IncrementalAT:
             self.track_kfs.setdefault(t, []).append(kf.kid)
         return StepReport(kf.kid, True, 'registered')
 
-    def _reprojection_px(self, T: np.ndarray, X: np.ndarray, uv: np.ndarray) -> np.ndarray:
+    def reprojection_px(self, map_T_cam: np.ndarray, X: np.ndarray, uv: np.ndarray) -> np.ndarray:
+        """(n,) pixel distance between the points X (n, 3, map) seen from map_T_cam and uv (n, 2
+        distorted pixels); inf behind the camera."""
+        T = map_T_cam
         pc = (X - T[:3, 3]) @ T[:3, :3]
         z = np.where(pc[:, 2] > 1e-9, pc[:, 2], np.nan)
         proj = self.camera.normalized_to_pixel(pc[:, :2] / z[:, None])
@@ -467,7 +489,7 @@ class IncrementalAT:
         for s in np.flatnonzero(ok):
             self.points[int(tracks[s])] = X[s]
 
-    def _triangulate_new(self, kf: _Keyframe) -> None:
+    def _triangulate_new(self, kf: Keyframe) -> None:
         use = self._usable(kf)
         cand = kf.track_ids[use]
         tracks = [int(t) for t in cand[~self.points.contains_many(cand)]
@@ -478,7 +500,7 @@ class IncrementalAT:
         idx = act[self.points.contains_many(kf.track_ids[act])].tolist()
         if idx:
             X = self.points.get_many(kf.track_ids[idx])
-            e = self._reprojection_px(kf.map_T_cam, X, kf.uv[idx])
+            e = self.reprojection_px(kf.map_T_cam, X, kf.uv[idx])
             for i in np.asarray(idx)[e > 2 * self.opt.max_reprojection_px]:
                 self._deactivate(kf.kid, int(i), int(kf.track_ids[i]))
 
@@ -509,7 +531,7 @@ class IncrementalAT:
         sig = np.sqrt(np.median([np.trace(self.kfs[k].fix_cov) for k in ks]))
         sv = spread(dst)
         # A block made without GNSS drifts in scale along the line: tolerate ~2 % of its extent.
-        thr = 4.0 * sig + np.linalg.norm(self.lever) + 0.05 + 0.02 * 2 * sv[0]
+        thr = 4.0 * sig + np.linalg.norm(self._lever) + 0.05 + 0.02 * 2 * sv[0]
         res = similarity_ransac(src, dst, thr, self.rng,
                                 min_spread_ratio=0.005 if force else self.opt.georef_min_spread_ratio)
         n_in = int(res.inliers.sum()) if res.ok else len(ks)
@@ -544,35 +566,56 @@ class IncrementalAT:
 
     # --- adjustment -----------------------------------------------------------------------------
 
-    def _solve(self, free: list[int], fixed: list[int], tracks, iterations: int, refine: tuple = ()) -> StepReport:
+    def problem(self, free_kids: list[int], fixed_kids: list[int], tracks) -> BundleProblem | None:
+        """The bundle problem of the adjuster's state that every adjustment solves.
+
+        Keyframes `free_kids` are adjusted and `fixed_kids` held (cameras in that order); the points
+        are those of `tracks` that have one (in that order), observed by every active observation
+        in these keyframes. Once georeferenced, the free keyframes' fixes are GNSS priors (moved by
+        the estimated bias; the antenna at the lever arm, or at the record's antenna offset) and the
+        GCPs among the tracks point priors. Without a datum and nothing held, the first two
+        keyframes are held (the gauge). None when there is no observation."""
+        return self._problem(free_kids, fixed_kids, tracks).prob
+
+    def _problem(self, free, fixed, tracks, gcp_priors: bool = True, hold_gauge: bool = True) -> _Problem:
+        """problem() with what maps its observations back to the keyframes; `prob` is None when
+        there is no observation."""
         kids = list(free) + list(fixed)
         col = {k: j for j, k in enumerate(kids)}
         tracks = np.asarray(tracks, dtype=np.int64).ravel()
         tracks = tracks[self.points.contains_many(tracks)].tolist()
         slot, kid, oi = self._gather(tracks, kids)
-        if len(slot) == 0:
-            return StepReport(kids[-1] if kids else -1, True, 'nothing_to_adjust')
         fixed_mask = np.array([k not in set(free) for k in kids])
-        if not self.georeferenced and not fixed_mask.any():
+        if len(slot) == 0:
+            return _Problem(None, kids, tracks, slot, kid, oi, fixed_mask, [])
+        if hold_gauge and not self.georeferenced and not fixed_mask.any():
             fixed_mask[:2] = True     # gauge: no datum yet, hold the first two keyframes
         gk = [j for j, k in enumerate(kids) if self.georeferenced and not fixed_mask[j]
               and self.kfs[k].fix_enu is not None]
         pri = [(s, self.control[self.target_name(t)]) for s, t in enumerate(tracks)
-               if t < 0 and not self._is_check(t)] if self.georeferenced else []
+               if t < 0 and not self.is_check(t)] if self.georeferenced and gcp_priors else []
         prob = BundleProblem(
             camera=self.camera, map_T_cams=np.array([self.kfs[k].map_T_cam for k in kids]),
             points_map=self.points.get_many(tracks).reshape(-1, 3),
             obs_cam=np.concatenate([np.full(int(np.sum(kid == k)), col[k]) for k in kids]),
             obs_pt=np.concatenate([slot[kid == k] for k in kids]),
-            obs_uv=np.concatenate([self.kfs[k].uv[oi[kid == k]] for k in kids]) if len(kids) else np.zeros((0, 2)),
+            obs_uv=np.concatenate([self.kfs[k].uv[oi[kid == k]] for k in kids]),
             fixed_cams=fixed_mask, fixed_points=None,
             gnss_cam=np.array(gk, int) if gk else None,
             gnss_pos_map=np.array([self._gnss_target(self.kfs[kids[j]]) for j in gk]).reshape(-1, 3),
             gnss_cov_map=np.array([self.kfs[kids[j]].fix_cov for j in gk]).reshape(-1, 3, 3),
-            lever_arm_cam_m=self.lever,
+            lever_arm_cam_m=self._lever,
             point_priors_idx=np.array([s for s, _ in pri], int) if pri else None,
             point_priors_map=np.array([c.map_xyz for _, c in pri]).reshape(-1, 3),
             point_priors_sigma_m=np.array([c.sigma_m for _, c in pri]).reshape(-1, 3))
+        return _Problem(prob, kids, tracks, slot, kid, oi, fixed_mask, gk)
+
+    def _solve(self, free: list[int], fixed: list[int], tracks, iterations: int, refine: tuple = ()) -> StepReport:
+        b = self._problem(free, fixed, tracks)
+        kids, tracks, slot, kid, oi, fixed_mask, gk = b.kids, b.tracks, b.slot, b.kid, b.oi, b.fixed_mask, b.gnss_cams
+        if b.prob is None:
+            return StepReport(kids[-1] if kids else -1, True, 'nothing_to_adjust')
+        prob = b.prob
         res = _adjust(prob, self.opt.loss, self.opt.loss_scale_px, iterations, refine)
         if refine and res.status != 'failed':
             self.camera = res.camera   # self-calibration: every later step uses the refined intrinsics
@@ -593,7 +636,7 @@ class IncrementalAT:
             bad[:] = False   # not converged: residuals say nothing about outliers yet
         for k, i, s in zip(kid[bad], oi[bad], slot[bad]):
             t = tracks[s]
-            if t < 0 and not self._is_check(t):
+            if t < 0 and not self.is_check(t):
                 continue   # a GCP observation is measured by hand: keep it, its prior holds it
             self._deactivate(int(k), int(i), int(t))
         good = ~bad
@@ -603,12 +646,32 @@ class IncrementalAT:
         rep.gnss_rms_m = self.gnss_rms_m([kids[j] for j in gk])
         return rep
 
-    def _gnss_target(self, kf: _Keyframe) -> np.ndarray:
+    def centre_covariance(self, free_kids: list[int]) -> dict:
+        """Marginal covariance of the camera centres of keyframes `free_kids`, as the solver computes it
+        for their window problem at the current estimate (zero iterations): the free keyframes' points
+        in every registered keyframe that sees them (the others held, at most max_fixed_keyframes of
+        them, most shared points first) and the free keyframes' GNSS priors; no GCP priors and no
+        gauge hold, unlike `problem`. Returns {keyframe id: (3, 3) map ENU m^2}, or {} when the
+        problem is singular or empty."""
+        free = [k for k in free_kids if self.kfs[k].map_T_cam is not None]
+        tracks = np.unique(np.concatenate([self._kf_tracks(k) for k in free] or [np.zeros(0, np.int64)]))
+        if len(free) == 0 or len(tracks) == 0:
+            return {}
+        # track_kfs, not a scan of every keyframe: old ones may be on disk
+        fixed = neighbour_keyframes(free, tracks, self.track_kfs, self.opt.max_fixed_keyframes)
+        prob = self._problem(free, fixed, tracks, gcp_priors=False, hold_gauge=False).prob
+        res = bundle_adjust(prob, BundleOptions(loss=self.opt.loss, loss_scale_px=self.opt.loss_scale_px,
+                                                max_iterations=0, compute_covariance=True))
+        if res.cam_centre_cov is None:
+            return {}
+        return {k: np.asarray(res.cam_centre_cov[j]) for j, k in enumerate(free)}
+
+    def _gnss_target(self, kf: Keyframe) -> np.ndarray:
         """The fix moved so that `C + map_R_cam @ lever` should meet it (exact offset when known)."""
         fix = kf.fix_enu - self.gnss_bias_enu
         if kf.antenna_offset is None:
             return fix
-        return fix - kf.antenna_offset + kf.map_T_cam[:3, :3] @ self.lever
+        return fix - kf.antenna_offset + kf.map_T_cam[:3, :3] @ self._lever
 
     def gnss_residuals(self, kids=None) -> dict:
         """Keyframe id -> ENU residual (m) of the adjusted antenna position minus the fix."""
@@ -616,7 +679,7 @@ class IncrementalAT:
         for k in (self.registered if kids is None else kids):
             kf = self.kfs[k]
             if kf.fix_enu is not None and kf.map_T_cam is not None:
-                out[k] = kf.map_T_cam[:3, 3] + kf.map_T_cam[:3, :3] @ self.lever - self._gnss_target(kf)
+                out[k] = kf.map_T_cam[:3, 3] + kf.map_T_cam[:3, :3] @ self._lever - self._gnss_target(kf)
         return out
 
     def gnss_rms_m(self, kids=None) -> float:
@@ -628,13 +691,14 @@ class IncrementalAT:
         t = kf.track_ids[kf.active]
         return t[self.points.contains_many(t)].astype(np.int64)
 
-    def _window_adjust(self, kid: int, full: bool = False) -> StepReport:
+    def _window_adjust(self, kid: int, full: bool = False, iterations: int | None = None) -> StepReport:
         if full:
             return self.full_adjustment(iterations=self.opt.full_iterations, rounds=1)
         sel = select_window(self.registered, self.opt.window_size, {k: self._kf_tracks(k)
                                                                     for k in self.registered[-self.opt.window_size:]},
                             self.track_kfs, self.opt.max_fixed_keyframes)
-        rep = self._solve(sel.free_kfs, sel.fixed_kfs, sel.track_ids, self.opt.window_iterations)
+        rep = self._solve(sel.free_kfs, sel.fixed_kfs, sel.track_ids,
+                          self.opt.window_iterations if iterations is None else iterations)
         rep.kid = kid
         return rep
 
@@ -668,95 +732,22 @@ class IncrementalAT:
             self.freeze()   # the adjustment read every keyframe back: spill the frozen ones again
         return rep
 
-    # --- memory: freezing what can no longer enter a window ----------------------------------------
+    # --- memory: freezing what can no longer enter a window (core/at_freeze.py) --------------------
 
     def freeze(self) -> None:
-        """Freeze the tracks whose newest observation is older than the window (plus a margin) and
-        the keyframes that only observe frozen tracks; called every `freeze_every` keyframes.
-
-        No future window can hold them: the free keyframes are the newest ones, and a fixed keyframe
-        enters only through a point that a free keyframe observes. A tracker never reuses an id
-        after its track ended; if a record does anyway, `_thaw_tracks_seen_again` undoes this.
-        Keyframes with target (GCP) observations stay in memory: targets are seen again anywhere.
-        """
-        n_keep = self.opt.window_size + max(self.opt.freeze_margin_keyframes, 0)
-        if len(self.registered) <= n_keep or self.freezing_stopped:
-            return
-        horizon = min(self.registered[-n_keep:])
-        dead = [t for t, k in self.last_seen.items() if k < horizon]
-        counts = []
-        for t in dead:
-            del self.last_seen[t]
-            counts.append(len(self.track_kfs.pop(t, ())))
-        self.points.freeze(dead, counts)
-        if self._spill is None:
-            self._spill = KeyframeSpill(self.opt.spill_dir or None)
-        for kf in self.kfs[:horizon]:
-            if not kf.frozen and not kf.has_targets and not any(t in self.last_seen for t in kf.track_ids.tolist()):
-                kf.freeze(self._spill)
+        """Freeze the tracks and keyframes that can no longer enter a window; called every
+        `freeze_every` keyframes (and after a full adjustment) when `spill_frozen`."""
+        self._freezer.freeze(self.kfs, self.registered, self.track_kfs, self.points)
 
     def _thaw_tracks_seen_again(self, ids: np.ndarray) -> None:
-        """Tracks of a new record that were frozen: restore their keyframe lists (in registration
-        order, as they were built), points and keyframes, so the result is what it would have been."""
-        if self._spill is None or self.freezing_stopped:
-            return   # nothing was ever frozen / everything is back in memory
-        ids = np.asarray(ids, np.int64)
-        cand = ids[(ids >= 0) & (ids <= self._max_seen_id)]
-        if not len(cand):
-            return
-        cand = np.array([t for t in cand.tolist() if t not in self.last_seen], np.int64)
-        if not len(cand):
-            return
-        # A tracker's new ids are above every id seen so far: a lower unknown id costs a scan of
-        # the block, and a source doing that repeatedly is not frozen any more (see below).
-        self._thaw_keyframes += 1
-        lists: dict[int, list] = {}
-        for kf in self.kfs:
-            if kf.id_hi < cand[0] or kf.id_lo > cand[-1]:
-                continue
-            tids, _, _, active = kf.peek()
-            hit = np.isin(tids, cand)
-            if not hit.any():
-                continue
-            if kf.frozen:
-                kf._arrays()
-            for t, a in zip(tids[hit].tolist(), active[hit].tolist()):
-                self.last_seen[t] = max(self.last_seen.get(t, -1), kf.kid)
-                if a and kf.reg_seq >= 0:
-                    lists.setdefault(t, []).append(kf)
-        for t, kfs in lists.items():
-            self.track_kfs[t] = [kf.kid for kf in sorted(kfs, key=lambda kf: kf.reg_seq)]
-            self.points.thaw(t)
-        if self._thaw_keyframes >= self.opt.max_thaws:
-            self._stop_freezing(f'track ids below the newest ones not in memory (ended tracks seen again?) '
-                                f'in {self._thaw_keyframes} keyframes')
-
-    def _stop_freezing(self, why: str) -> None:
-        """Everything back in memory (same values, same order): from now on this block is not frozen."""
-        self.freezing_stopped = why
-        for kf in self.kfs:
-            if kf.frozen:
-                kf._arrays()
-        ids = [t for t in self.points.ids().tolist() if self.points.is_frozen(t)]
-        for t in ids:
-            self.points.thaw(t)
-        # Rebuild the keyframe lists of every track (frozen ones kept only their count).
-        lists: dict[int, list] = {}
-        for k in self.registered:
-            kf = self.kfs[k]
-            for t in kf.track_ids[kf.active].tolist():
-                if t not in self.track_kfs:
-                    lists.setdefault(t, []).append(kf)
-        for t, kfs in lists.items():
-            self.track_kfs[t] = [kf.kid for kf in sorted(kfs, key=lambda kf: kf.reg_seq)]
-            self.last_seen.setdefault(t, max(kf.kid for kf in kfs))
+        self._freezer.thaw_seen_again(ids, self.kfs, self.registered, self.track_kfs, self.points)
 
     def memory_stats(self) -> dict:
         """What the triangulation holds: keyframes/points in memory and frozen, bytes spilled."""
         return {'keyframes': len(self.kfs), 'keyframes_in_memory': sum(not kf.frozen for kf in self.kfs),
                 'points': len(self.points), 'points_in_memory': self.points.n_hot,
                 'hot_tracks': len(self.track_kfs), 'frozen_points_mb': round(self.points.frozen_bytes / 1e6, 2),
-                'spilled_mb': round(self._spill.bytes_on_disk / 1e6, 2) if self._spill else 0.0,
+                'spilled_mb': round(self._freezer.spilled_bytes / 1e6, 2),
                 'freezing_stopped': self.freezing_stopped}
 
     def set_control(self, control: list[ControlPoint]) -> None:
@@ -768,7 +759,7 @@ class IncrementalAT:
         """GCPs and check points: how many were observed, how many GCPs constrain the block (triangulated,
         with their prior: georeferenced), and the RMS of the adjusted GCPs minus their survey (m)."""
         seen = [n for n in self._target_ids if n in self.control]
-        gcps = [n for n in seen if not self._is_check(self._target_ids[n])]
+        gcps = [n for n in seen if not self.is_check(self._target_ids[n])]
         used = [n for n in gcps if self._target_ids[n] in self.points] if self.georeferenced else []
         r = np.array([self.points[self._target_ids[n]] - self.control[n].map_xyz for n in used]).reshape(-1, 3)
         n_gcps = sum(c.role == 'gcp' for c in self.control.values()) if self.opt.use_gcps else 0
@@ -780,7 +771,7 @@ class IncrementalAT:
         return out
 
     def _n_gcps(self) -> int:
-        return sum(1 for n, t in self._target_ids.items() if t in self.points and not self._is_check(t))
+        return sum(1 for n, t in self._target_ids.items() if t in self.points and not self.is_check(t))
 
     # --- results ----------------------------------------------------------------------------------
 

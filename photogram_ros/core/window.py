@@ -33,15 +33,19 @@ def select_window(registered: list[int], size: int, kf_tracks: dict, track_kfs: 
     line with many repeats the cap keeps the worst case bounded too.
     """
     free = list(registered[-size:]) if size > 0 else list(registered)
-    free_set = set(free)
     tracks = np.unique(np.concatenate([np.asarray(kf_tracks[k], dtype=np.int64) for k in free]
                                       or [np.zeros(0, np.int64)]))
+    return WindowSelection(free, sorted(neighbour_keyframes(free, tracks, track_kfs, max_fixed)), tracks)
+
+
+def neighbour_keyframes(free: list[int], tracks, track_kfs: dict, max_fixed: int | None = None) -> list[int]:
+    """Keyframes outside `free` observing `tracks` (`track_kfs[t]`: keyframes observing t), most
+    shared tracks first (ties in the order met), at most `max_fixed` of them."""
+    free_set = set(free)
     shared: dict[int, int] = {}
-    for t in tracks.tolist():
+    for t in np.asarray(tracks).tolist():
         for k in track_kfs.get(t, ()):
             if k not in free_set:
                 shared[k] = shared.get(k, 0) + 1
     fixed = sorted(shared, key=lambda k: -shared[k])
-    if max_fixed is not None:
-        fixed = fixed[:max_fixed]
-    return WindowSelection(free, sorted(fixed), tracks)
+    return fixed if max_fixed is None else fixed[:max_fixed]

@@ -57,9 +57,8 @@ from photogram_ros import msgs
 from photogram_ros.core.attitude import AttitudeHistory, antenna_offset_enu
 from photogram_ros.core.control import ControlSet
 from photogram_ros.core.geodesy import LocalFrame
-from photogram_ros.core.incremental import (GnssFix, IncrementalAT, IncrementalOptions, KeyframeRecord,
-                                            lever_arm_cam_from_frd)
-from photogram_ros.errors import ConfigError, PhotogramError
+from photogram_ros.core.incremental import GnssFix, IncrementalAT, IncrementalOptions, KeyframeRecord
+from photogram_ros.errors import PhotogramError
 from photogram_ros.nodes.diagnostics import ERROR, Diagnostics
 from photogram_ros.nodes.node_main import run_node
 from photogram_ros.nodes.ros_params import declare
@@ -78,19 +77,8 @@ TOPIC_ATTITUDE = 'mavlink/attitude'
 
 
 @dataclass
-class BundleNodeParams:
-    window_size: int = param(10, 'keyframes adjusted per update (newest); older ones sharing points are held fixed',
-                             min=2, max=200)
-    max_fixed_keyframes: int = param(30, 'at most this many fixed keyframes enter a window update', min=0, max=1000)
-    loss: str = param('huber', 'robust loss on reprojection errors', choices=('huber', 'cauchy', 'linear'))
-    loss_scale_px: float = param(1.0, 'robust loss scale, pixels', min=0.05, max=100.0)
-    max_reprojection_px: float = param(2.5, 'observations with a larger error after adjustment are dropped, px',
-                                       min=0.3, max=100.0)
-    lever_arm_cam_m: list = param([0.0, 0.0, 0.0], 'GNSS antenna position in the optical camera frame '
-                                  '(x right, y down, z forward), m: a camera fixed to the body')
-    lever_arm_body_frd_m: list = param([0.0, 0.0, 0.0], 'GNSS antenna position relative to the camera centre in '
-                                       'the body frame (forward, right, down), m: a gimballed camera; with it the '
-                                       'node follows mavlink/attitude (zeros: lever_arm_cam_m is used)')
+class BundleNodeParams(IncrementalOptions):
+    """The adjuster's parameters (core/incremental.py) and the node's own."""
     use_origin_params: bool = param(False, 'anchor map at origin_* instead of the first keyframe fix')
     origin_lat_deg: float = param(0.0, 'map origin latitude, deg', min=-90.0, max=90.0)
     origin_lon_deg: float = param(0.0, 'map origin longitude, deg', min=-180.0, max=180.0)
@@ -128,20 +116,6 @@ class BundleNodeParams:
     publish_provisional: bool = param(False, 'publish poses while the georeference is still provisional (a '
                                              'straight first line leaves the roll about it to an assumption '
                                              'until the first turn); off, poses start at the first turn')
-
-    def check(self) -> None:
-        if len(self.lever_arm_cam_m) != 3:
-            raise ConfigError(f'lever_arm_cam_m needs 3 numbers (x, y, z), got {self.lever_arm_cam_m}')
-        if len(self.lever_arm_body_frd_m) != 3:
-            raise ConfigError(f'lever_arm_body_frd_m needs 3 numbers (forward, right, down), got '
-                              f'{self.lever_arm_body_frd_m}')
-        if any(self.lever_arm_body_frd_m) and any(self.lever_arm_cam_m):
-            raise ConfigError('give the GNSS lever arm once: lever_arm_cam_m for a camera fixed to the body, '
-                              'lever_arm_body_frd_m for a gimballed camera (the other all zeros)')
-
-    @property
-    def gimbal(self) -> bool:
-        return any(self.lever_arm_body_frd_m)
 
 
 class BundleNode(Node):
@@ -208,16 +182,8 @@ class BundleNode(Node):
             return
         origin = (LocalFrame(self.p.origin_lat_deg, self.p.origin_lon_deg, self.p.origin_h_m)
                   if self.p.use_origin_params else None)
-        # A gimbal without an attitude at hand: the body lever arm as if flying level, image top forward.
-        lever_cam = (lever_arm_cam_from_frd(self.p.lever_arm_body_frd_m) if self.p.gimbal
-                     else np.asarray(self.p.lever_arm_cam_m, float))
-        opt = IncrementalOptions(window_size=self.p.window_size, max_fixed_keyframes=self.p.max_fixed_keyframes,
-                                 loss=self.p.loss, loss_scale_px=self.p.loss_scale_px,
-                                 max_reprojection_px=self.p.max_reprojection_px,
-                                 lever_arm_cam_m=tuple(float(v) for v in lever_cam))
-        self._window_iterations = opt.window_iterations
         with self._work:
-            self.at = IncrementalAT(self.camera, opt, origin=origin)
+            self.at = IncrementalAT(self.camera, self.p, origin=origin)
             self._control_to_map()
         self._wake()
 
@@ -380,22 +346,19 @@ class BundleNode(Node):
         one publication covers the batch."""
         if not batch:
             return
-        try:
-            for i, rec in enumerate(batch):
-                newest = i == len(batch) - 1
-                self.at.opt.window_iterations = (self._window_iterations if newest
-                                                 else min(self.p.catch_up_iterations, self._window_iterations))
-                self._process(rec, publish=newest)
-        finally:
-            self.at.opt.window_iterations = self._window_iterations
+        for i, rec in enumerate(batch):
+            self._process(rec, publish=i == len(batch) - 1)
         if len(batch) > 1:
             self.diag.count('keyframes_caught_up', len(batch) - 1)
 
     # --- adjustment and outputs -------------------------------------------------------------------
 
     def _process(self, rec: KeyframeRecord, publish: bool = True) -> None:
+        """Adjust one keyframe; one that is not published (an older one of a batch) gets the short
+        catch-up window adjustment."""
         try:
-            rep = self.at.add_keyframe(rec)
+            rep = self.at.add_keyframe(rec, None if publish else min(self.p.catch_up_iterations,
+                                                                      self.p.window_iterations))
         except Exception as exc:
             self.diag.count('keyframes_failed')   # a replay's backpressure counts it as done
             self.diag.problem(f'keyframe {rec.stamp_ns} failed: {exc}')
@@ -470,8 +433,7 @@ class BundleNode(Node):
             return self._centre_cov
         try:
             t0 = time.perf_counter()
-            cov = window_centre_covariance(self.at, list(window)[-self.p.window_size:],
-                                           self.p.max_fixed_keyframes, self.p.loss, self.p.loss_scale_px)
+            cov = self.at.centre_covariance(list(window)[-self.p.window_size:])
             self.diag.set('covariance_s', time.perf_counter() - t0)
         except Exception as exc:   # a stand-in covariance is better than no pose
             self.diag.problem(f'pose covariance failed: {type(exc).__name__}: {exc}')
@@ -552,54 +514,6 @@ class BundleNode(Node):
             self._cond.notify_all()
         self._worker.join(timeout=30.0)
         return super().destroy_node()
-
-
-def window_centre_covariance(at: IncrementalAT, free: list[int], max_fixed: int, loss: str,
-                             loss_scale_px: float) -> dict:
-    """Marginal covariance of the camera centres of keyframes `free` (ids in at.kfs), as the solver
-    computes it for the window problem at the current estimate: reprojections of the free keyframes'
-    points in every registered keyframe that sees them (those outside `free` held fixed, at most
-    `max_fixed` of them, most shared points first) and the GNSS priors of the free keyframes.
-    Returns {keyframe id: (3, 3)} or {} when the problem is singular."""
-    from photogram_ros.core.bundle import BundleOptions, BundleProblem, bundle_adjust
-    free = [k for k in free if at.kfs[k].map_T_cam is not None]
-    tracks = np.unique(np.concatenate([at.kfs[k].track_ids[at.kfs[k].active] for k in free] or [np.zeros(0, int)]))
-    tracks = np.array([t for t in tracks.tolist() if t in at.points], dtype=np.int64)
-    if len(free) == 0 or len(tracks) == 0:
-        return {}
-    free_set = set(free)
-    shared = {}
-    for t in tracks.tolist():   # track_kfs, not a scan of every keyframe: old ones may be on disk
-        for k in at.track_kfs.get(t, ()):
-            if k not in free_set:
-                shared[k] = shared.get(k, 0) + 1
-    fixed = sorted(shared, key=lambda k: -shared[k])[:max_fixed]
-    kids = free + fixed
-    cams, pts, uvs = [], [], []
-    for j, k in enumerate(kids):
-        kf = at.kfs[k]
-        ids = kf.track_ids
-        pos = np.clip(np.searchsorted(tracks, ids), 0, len(tracks) - 1)
-        m = kf.active & (tracks[pos] == ids)
-        cams.append(np.full(int(m.sum()), j))
-        pts.append(pos[m])
-        uvs.append(kf.uv[m])
-    gk = [j for j, k in enumerate(free) if at.kfs[k].fix_enu is not None] if at.georeferenced else []
-    prob = BundleProblem(
-        camera=at.camera, map_T_cams=np.array([at.kfs[k].map_T_cam for k in kids]),
-        points_map=np.array([at.points[int(t)] for t in tracks]),
-        obs_cam=np.concatenate(cams), obs_pt=np.concatenate(pts), obs_uv=np.concatenate(uvs),
-        fixed_cams=np.array([j >= len(free) for j in range(len(kids))]),
-        gnss_cam=np.array(gk, int) if gk else None,
-        # the prior target is the adjuster's own (lever arm, estimated GNSS bias)
-        gnss_pos_map=np.array([at._gnss_target(at.kfs[free[j]]) for j in gk]).reshape(-1, 3),
-        gnss_cov_map=np.array([at.kfs[free[j]].fix_cov for j in gk]).reshape(-1, 3, 3),
-        lever_arm_cam_m=at.lever)
-    res = bundle_adjust(prob, BundleOptions(loss=loss, loss_scale_px=loss_scale_px, max_iterations=0,
-                                            compute_covariance=True))
-    if res.cam_centre_cov is None:
-        return {}
-    return {k: np.asarray(res.cam_centre_cov[j]) for j, k in enumerate(free)}
 
 
 def main(argv=None) -> int:

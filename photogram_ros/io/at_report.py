@@ -1,0 +1,147 @@
+"""The aerial-triangulation report rendered: report.md, report.html (figures embedded) and report.json.
+
+`write_report(rep, out_dir)` renders the figures that core/at_report.py `build_report` gathered, with
+PNG figures drawn by photogram_ros.io.report like the flight report; `markdown(rep)` gives them as
+plain Markdown text.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from photogram_ros.io.report import Section, histogram_png, series_png, trajectory_png, vectors_png
+from photogram_ros.io.report import write_report as write_sections
+
+
+def _table(rows, header):
+    out = ['| ' + ' | '.join(header) + ' |', '|' + '---|' * len(header)]
+    out += ['| ' + ' | '.join(rows_i) + ' |' for rows_i in rows]
+    return out
+
+
+def _rmse_line(r: dict) -> str:
+    if not r.get('n'):
+        return 'none'
+    return (f"n={r['n']}: X {r['x_m'] * 100:.1f} cm, Y {r['y_m'] * 100:.1f} cm, Z {r['z_m'] * 100:.1f} cm; "
+            f"horizontal {r['horizontal_m'] * 100:.1f} cm, vertical {r['vertical_m'] * 100:.1f} cm")
+
+
+def markdown(rep: dict) -> str:
+    L = ['# Aerial triangulation report', '',
+         f"Keyframes {rep['registered']}/{rep['keyframes']} oriented, {rep['points']} tie points, "
+         f"{rep['observations']} observations; reprojection RMS {rep['reprojection_rms_px']:.3f} px.",
+         f"Frame: {rep['frame']}. Origin: {rep['origin']}.", '']
+    if 'gsd_m' in rep:
+        L += [f"GSD {rep['gsd_m'] * 100:.2f} cm.", '']
+    L += ['## GNSS', '', f"Residuals (adjusted antenna - fix): {_rmse_line(rep['gnss']['rmse'])}.",
+          f"Estimated constant GNSS bias (E, N, U): {np.round(rep['gnss']['estimated_bias_enu_m'], 3).tolist()} m.", '']
+    for key, title in (('gcp', 'Ground control points'), ('check', 'Check points')):
+        sec = rep[key]
+        L += [f'## {title}', '', f"RMSE {_rmse_line(sec['rmse'])}."]
+        if 'rmse_gsd' in sec:
+            L += [f"In GSD: horizontal {sec['rmse_gsd']['horizontal']:.2f}, vertical {sec['rmse_gsd']['vertical']:.2f}."]
+        L += ['']
+        if sec['points']:
+            L += _table([[p['name'], *(f'{v * 100:.1f}' for v in p['residual_m']), str(p['images'])]
+                         for p in sec['points']], ['name', 'dX cm', 'dY cm', 'dZ cm', 'images']) + ['']
+    L += ['## Camera', '', f"{rep['camera']}", '', '## Per image', '']
+    L += _table([[p['image'], str(p['observations']), f"{p['reprojection_rms_px']:.3f}",
+                  '' if p['gnss_residual_enu_m'] is None else ', '.join(f'{v:.3f}' for v in p['gnss_residual_enu_m'])]
+                 for p in rep['per_image']], ['image', 'observations', 'RMS px', 'GNSS residual E, N, U m'])
+    if rep['assumptions']:
+        L += ['', '## Assumptions', ''] + [f'- {a}' for a in rep['assumptions']]
+    return '\n'.join(L) + '\n'
+
+
+def _self_cal_rows(rep: dict) -> list[dict]:
+    sc = rep.get('self_calibration') or {}
+    return [{'parameter': k, 'before': v.get('before'), 'after': v.get('after'), 'sigma': v.get('sigma')}
+            for k, v in sc.items() if isinstance(v, dict)]
+
+
+def _figures(rep: dict, out: Path) -> dict:
+    """Draw the report's figures into out; returns caption -> PNG name per section key."""
+    figs = {}
+    h = rep['reprojection_histogram']
+    if h['n']:
+        edges = np.asarray(h['edges_px'])
+        histogram_png(out / 'reprojection_hist.png', np.repeat((edges[:-1] + edges[1:]) / 2, h['counts']),
+                      'reprojection error (px)', 'Reprojection errors, all observations', bins=len(h['counts']))
+        figs['reprojection'] = ('Reprojection error histogram', 'reprojection_hist.png')
+    pim = rep['per_image']
+    idx = np.arange(len(pim))
+    if pim:
+        series_png(out / 'per_image_rms.png', idx, {'RMS px': [p['reprojection_rms_px'] for p in pim]},
+                   'image (order of registration)', 'px', 'Reprojection RMS per image')
+        figs['per_image'] = ('Reprojection RMS per image', 'per_image_rms.png')
+    g = [(k, p['gnss_residual_enu_m']) for k, p in enumerate(pim) if p['gnss_residual_enu_m'] is not None]
+    if g:
+        k = np.array([a for a, _ in g])
+        r = np.array([b for _, b in g])
+        series_png(out / 'gnss_residuals.png', k, {'X (east)': r[:, 0], 'Y (north)': r[:, 1], 'Z (up)': r[:, 2]},
+                   'image (order of registration)', 'm', 'GNSS residuals (adjusted antenna - fix)')
+        figs['gnss'] = ('GNSS residuals per image, X/Y/Z', 'gnss_residuals.png')
+    ctrl = [('GCP', p) for p in rep['gcp']['points']] + [('check', p) for p in rep['check']['points']]
+    if pim:
+        xy = np.array([p['position_map_m'][:2] for p in pim])
+        targets = [(f"{p['name']} ({kind})", p['surveyed_map_m'][0], p['surveyed_map_m'][1]) for kind, p in ctrl]
+        trajectory_png(out / 'plan.png', None, {'camera centres': xy}, targets,
+                       'Camera centres, GCPs and check points (map ENU, m)')
+        figs['plan'] = ('Plan view: camera centres and control', 'plan.png')
+    if ctrl:
+        vectors_png(out / 'control_residuals.png',
+                    [(p['name'], kind, *p['surveyed_map_m'][:2], *p['residual_m']) for kind, p in ctrl],
+                    'GCP and check-point residuals (arrows: horizontal, labels: dZ)')
+        figs['control'] = ('GCP and check-point residual vectors', 'control_residuals.png')
+    return figs
+
+
+def write_report(rep: dict, out_dir) -> tuple[Path, Path]:
+    """report.md, report.html (figures embedded), the PNGs and report.json (every figure's numbers)."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    figs = _figures(rep, out)
+    rep['figure_files'] = {k: v[1] for k, v in figs.items()}
+
+    def fig(*keys):
+        return [figs[k] for k in keys if k in figs]
+    summary = [f"Keyframes {rep['registered']}/{rep['keyframes']} oriented, {rep['points']} tie points, "
+               f"{rep['observations']} observations; reprojection RMS {rep['reprojection_rms_px']:.3f} px.",
+               f"Frame: {rep['frame']}. Origin: {rep['origin']}."]
+    if 'gsd_m' in rep:
+        summary.append(f"GSD {rep['gsd_m'] * 100:.2f} cm.")
+    sections = [Section('Summary', summary, figures=fig('reprojection')),
+                Section('GNSS', [f"Residuals (adjusted antenna - fix): {_rmse_line(rep['gnss']['rmse'])}.",
+                                 f"Estimated constant GNSS bias (E, N, U): "
+                                 f"{np.round(rep['gnss']['estimated_bias_enu_m'], 3).tolist()} m."],
+                        figures=fig('gnss'))]
+    for key, title in (('gcp', 'Ground control points'), ('check', 'Check points')):
+        sec = rep[key]
+        text = [f"RMSE {_rmse_line(sec['rmse'])}."]
+        if 'rmse_gsd' in sec:
+            text.append(f"In GSD: horizontal {sec['rmse_gsd']['horizontal']:.2f}, "
+                        f"vertical {sec['rmse_gsd']['vertical']:.2f}.")
+        rows = [{'name': p['name'], 'dX cm': p['residual_m'][0] * 100, 'dY cm': p['residual_m'][1] * 100,
+                 'dZ cm': p['residual_m'][2] * 100, 'images': p['images']} for p in sec['points']]
+        sections.append(Section(title, text, tables=[('Residuals (adjusted - surveyed)', rows)] if rows else []))
+    sections.append(Section('Plan view and control residuals', figures=fig('plan', 'control')))
+    cam = Section('Camera', [f"{rep['camera']}"])
+    sc_rows = _self_cal_rows(rep)
+    if sc_rows:
+        s0 = (rep.get('self_calibration') or {}).get('s0_px')
+        cam.text.append('Self-calibrated intrinsics with sigma (a-posteriori, scaled by the variance of '
+                        'unit weight' + (f' s0 = {s0:.3f} px' if s0 is not None else '') + ').')
+        cam.tables.append(('Self-calibration', sc_rows))
+    sections.append(cam)
+    sections.append(Section('Per image', tables=[('Per-image statistics', [
+        {'image': p['image'], 'observations': p['observations'], 'RMS px': p['reprojection_rms_px'],
+         'GNSS dE m': None if p['gnss_residual_enu_m'] is None else p['gnss_residual_enu_m'][0],
+         'GNSS dN m': None if p['gnss_residual_enu_m'] is None else p['gnss_residual_enu_m'][1],
+         'GNSS dU m': None if p['gnss_residual_enu_m'] is None else p['gnss_residual_enu_m'][2]}
+        for p in rep['per_image']])], figures=fig('per_image')))
+    if rep['assumptions']:
+        sections.append(Section('Assumptions', [f'- {a}' for a in rep['assumptions']]))
+    paths = write_sections(out, 'Aerial triangulation report', sections, rep)
+    return paths['md'], paths['json']
