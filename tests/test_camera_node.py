@@ -227,8 +227,8 @@ def test_node_timer_plays_folder_at_scaled_exif_timing(survey, rclpy_context):
     assert wall_s == pytest.approx(span_s / rate, rel=0.25, abs=0.1)
 
 
-def test_triangulate_command_uses_the_shared_exif_reader(survey):
-    from photogram_ros.commands.triangulate import _read_exif
+def test_photo_block_reads_exif_positions(survey):
+    from photogram_ros.io.photo_block import exif_position as _read_exif
     photos, _, _, geo = survey
     name = sorted(geo)[1]
     lat, lon, h, h_acc, v_acc = _read_exif(photos / name)

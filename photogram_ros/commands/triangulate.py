@@ -44,13 +44,6 @@ def _floats(text: str, what: str, n: int) -> tuple:
     return v
 
 
-def _read_exif(path, altitude: str = 'msl', takeoff_h_m: float | None = None, takeoff_heights: str = 'msl'):
-    """EXIF GPS -> (lat, lon, h_ellipsoidal, h_acc, v_acc) or None: io.photo_block.exif_position (kept
-    for tests/test_camera_node.py)."""
-    from photogram_ros.io.photo_block import exif_position
-    return exif_position(path, altitude, takeoff_h_m, takeoff_heights)
-
-
 def run(a) -> int:
     import sys
 

@@ -19,7 +19,8 @@ from pathlib import Path
 
 import numpy as np
 
-from photogram_ros.core.at_report import build_report, intrinsics_sigma, write_report
+from photogram_ros.core.at_report import build_report, intrinsics_sigma
+from photogram_ros.io.at_report import write_report
 from photogram_ros.core.geodesy import LocalFrame, utm_epsg
 from photogram_ros.core.incremental import IncrementalAT, IncrementalOptions
 from photogram_ros.errors import ConfigError
@@ -83,14 +84,6 @@ def triangulate(src: str | Path, out: str | Path, opt: TriangulateOptions, log=N
     return adjust_block(block, out, opt, control_set, log)
 
 
-def _retry_unregistered(at: IncrementalAT) -> None:
-    # TODO(issue 12): IncrementalAT.retry_unregistered() replaces this loop (helper h12-at); it
-    # reaches into the adjuster's private steps until then.
-    for kf in at.kfs:
-        if kf.map_T_cam is None and at.registered and at._register(kf).registered:
-            at._triangulate_new(kf)
-
-
 def _self_calibration(at: IncrementalAT, before, refine: tuple, assumptions: list) -> dict:
     """The refined intrinsics before and after, with their a-posteriori sigmas."""
     after = at.camera
@@ -136,7 +129,7 @@ def adjust_block(block: KeyframeBlock, out: str | Path, opt: TriangulateOptions,
         if target_obs:
             rec.target_uv = target_obs.get(rec.name, {})
         at.add_keyframe(rec)
-    _retry_unregistered(at)     # photos that did not register in sequence: a second chance
+    at.retry_unregistered()     # photos that did not register in sequence: a second chance
     refine = tuple(opt.self_calibrate)
     before = block.camera
     rep_adj = at.full_adjustment(refine_intrinsics=refine)
