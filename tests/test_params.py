@@ -17,3 +17,24 @@ def test_assignments_take_the_default_types():
 def test_assignment_mistakes_are_named(items, words):
     with pytest.raises(ConfigError, match=words):
         from_assignments(StereoParams, items)
+
+
+def test_runtime_parameter_changes_are_refused_with_a_reason(rclpy_context):
+    # `ros2 param set` goes through set_parameters: the nodes read their parameters once, so a change
+    # must be refused (and the user told), not accepted and silently ignored.
+    from rclpy.node import Node
+    from rclpy.parameter import Parameter
+
+    from photogram_ros.core.tracker import TrackerParams
+    from photogram_ros.nodes.ros_params import declare
+    node = Node('read_only_check', context=rclpy_context)
+    try:
+        p = declare(node, TrackerParams, {'max_features': 300})
+        assert p.max_features == 300                                  # overrides still apply at start
+        res = node.set_parameters([Parameter('max_features', value=500), Parameter('normalize', value='none')])
+        assert [r.successful for r in res] == [False, False]
+        assert all('read-only' in r.reason for r in res)
+        assert node.get_parameter('max_features').value == 300
+        assert node.describe_parameter('max_features').read_only
+    finally:
+        node.destroy_node()
