@@ -73,7 +73,7 @@ def per_node(bd: dict) -> dict:
 def bare_tracker(bag: Path, tracker_params) -> dict:
     """Baseline: the same frames and fixes through photogram_ros.core.tracker.Tracker, no ROS."""
     from photogram_ros import msgs
-    from photogram_ros.core.keyframes import GpsFix
+    from photogram_ros.core.gnss_fix import GnssFix
     from photogram_ros.core.tracker import Tracker
     from photogram_ros.io.bag import BagReader, deserialize
     camera, items = None, []   # (arrival_ns, kind, payload)
@@ -86,7 +86,7 @@ def bare_tracker(bag: Path, tracker_params) -> dict:
             if m.topic.endswith('camera_info'):
                 camera = camera or msgs.camera_from_info(msg)
             elif m.topic == '/gps/fix':
-                items.append(('fix', GpsFix.from_dict(msgs.fix_from_navsatfix(msg))))
+                items.append(('fix', GnssFix.from_dict(msgs.fix_from_navsatfix(msg))))
             else:
                 items.append(('image', msg))
     read_s = time.perf_counter() - t0

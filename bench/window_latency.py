@@ -19,7 +19,8 @@ import numpy as np
 
 from photogram_ros.core.camera import PinholeCamera
 from photogram_ros.core.geodesy import LocalFrame
-from photogram_ros.core.incremental import GnssFix, IncrementalAT, IncrementalOptions, KeyframeRecord
+from photogram_ros.core.gnss_fix import GnssFix
+from photogram_ros.core.incremental import IncrementalAT, IncrementalOptions, KeyframeRecord
 from photogram_ros.core.rotations import invert_T, make_T, transform_points
 from photogram_ros.sim.observations import in_fov
 

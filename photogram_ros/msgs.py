@@ -123,7 +123,8 @@ def camera_from_info(msg: CameraInfo) -> PinholeCamera:
 def navsatfix_msg(stamp_ns: int, lat_deg: float, lon_deg: float, h_m: float, status: int,
                   covariance_enu_m2, covariance_type: int, frame_id: str = 'gps',
                   service: int = NavSatStatus.SERVICE_GPS) -> NavSatFix:
-    """NavSatFix with the ellipsoidal height (REP-145) and a 3x3 ENU covariance (m^2)."""
+    """NavSatFix with the ellipsoidal height (REP-145) and a 3x3 ENU covariance (m^2), or only its
+    diagonal: the three variances (var_E, var_N, var_U) of a gnss_fix.Fix."""
     cov = np.asarray(covariance_enu_m2, dtype=float).reshape(-1)
     if cov.size == 3:
         cov = np.diag(cov).ravel()
@@ -134,6 +135,8 @@ def navsatfix_msg(stamp_ns: int, lat_deg: float, lon_deg: float, h_m: float, sta
 
 
 def fix_from_navsatfix(msg: NavSatFix) -> dict:
+    """NavSatFix -> dict (stamp_ns, lat_deg, lon_deg, h_m, status, covariance_enu_m2 3x3, covariance_type,
+    frame_id); core.gnss_fix.GnssFix.from_dict makes the fix of it."""
     return {'stamp_ns': ns_from_time(msg.header.stamp), 'lat_deg': msg.latitude,
             'lon_deg': msg.longitude, 'h_m': msg.altitude, 'status': msg.status.status,
             'covariance_enu_m2': np.asarray(msg.position_covariance, dtype=float).reshape(3, 3),
@@ -377,7 +380,7 @@ def features_from_keyframe_msg(msg: PointCloud2) -> np.ndarray:
     return keyframe_table_from_msg(msg)[0]
 
 
-def navsatfix_from_gps_fix(fix, frame_id: str = 'gps') -> NavSatFix:
-    """core.keyframes.GpsFix -> NavSatFix (e.g. the fix interpolated to a keyframe's stamp)."""
-    return navsatfix_msg(fix.stamp_ns, fix.lat_deg, fix.lon_deg, fix.h_m, fix.status, fix.covariance_enu_m2,
-                         fix.covariance_type, frame_id)
+def navsatfix_from_gnss_fix(fix, frame_id: str = 'gps') -> NavSatFix:
+    """core.gnss_fix.GnssFix -> NavSatFix (e.g. the fix interpolated to a keyframe's stamp)."""
+    return navsatfix_msg(fix.stamp_ns, fix.lat_deg, fix.lon_deg, fix.h_m, fix.status, fix.cov_enu_m2, fix.cov_type,
+                         frame_id)

@@ -46,10 +46,12 @@ def test_folder_yields_photos_in_time_order_with_truth_stamps_and_exif_gps(surve
     for f in frames:
         assert f.stamp_ns == truth.frames[_frame_index(f.path)].stamp_ns
         lat, lon, h = geo[Path(f.path).name]
-        assert f.fix is not None
-        assert abs(f.fix.lat_deg - lat) < 1e-7 and abs(f.fix.lon_deg - lon) < 1e-7
-        assert abs(f.fix.h_m - h) < 0.01                    # MSL -> ellipsoidal through the geoid
-        assert abs(f.fix.h_m - f.fix.alt_msl_m) > 20.0     # the geoid undulation near Zurich is ~48 m
+        assert f.gps is not None
+        assert abs(f.gps.lat_deg - lat) < 1e-7 and abs(f.gps.lon_deg - lon) < 1e-7
+        fix = f.gps.gnss_fix(f.stamp_ns, 5.0, 10.0)
+        assert abs(fix.h_m - h) < 0.01                    # MSL -> ellipsoidal through the geoid
+        assert abs(fix.h_m - f.gps.alt_msl_m) > 20.0     # the geoid undulation near Zurich is ~48 m
+        assert fix.stamp_ns == f.stamp_ns and np.array_equal(np.diag(fix.cov_enu_m2), [25.0, 25.0, 100.0])
         assert f.image.shape == (truth.camera.height, truth.camera.width, 3) and f.image.dtype == np.uint8
 
 

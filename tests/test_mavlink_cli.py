@@ -40,7 +40,7 @@ def test_dataflash_gps_gpa():
     gpa = [m for m in ref if m.get_type() == 'GPA']
     for f, g, a in zip(fixes, gps, gpa):
         assert f.lat_deg == pytest.approx(g.Lat, abs=1e-9) and f.lon_deg == pytest.approx(g.Lng, abs=1e-9)
-        assert f.cov_type == gf.COV_DIAGONAL_KNOWN and f.cov_enu_m2[0] == pytest.approx(a.HAcc ** 2, rel=1e-3)
+        assert f.cov_type == gf.COV_DIAGONAL_KNOWN and f.var_enu_m2[0] == pytest.approx(a.HAcc ** 2, rel=1e-3)
         # The receiver's own ellipsoidal height: GPA.Und is the ellipsoid's height above MSL.
         assert f.h_m == pytest.approx(g.Alt - a.Und, abs=0.002) and f.height_source == 'alt_ellipsoid'
         if g.GWk > 0:

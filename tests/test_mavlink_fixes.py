@@ -37,12 +37,12 @@ def test_status_mapping_keeps_full_fix_type():
 def test_covariance_sources():
     known = gf.make_fix(_raw(h_acc_mm=20, v_acc_mm=30, eph=80, epv=120), 0.0).fix
     assert known.cov_type == gf.COV_DIAGONAL_KNOWN
-    assert known.cov_enu_m2 == pytest.approx((0.0004, 0.0004, 0.0009))
+    assert known.var_enu_m2 == pytest.approx((0.0004, 0.0004, 0.0009))
     approx = gf.make_fix(_raw(eph=120, epv=200), 0.0, gf.ErrorModel()).fix
     assert approx.cov_type == gf.COV_APPROXIMATED
-    assert approx.cov_enu_m2 == pytest.approx(((1.2 * 2.5) ** 2, (1.2 * 2.5) ** 2, (2.0 * 2.5) ** 2))
+    assert approx.var_enu_m2 == pytest.approx(((1.2 * 2.5) ** 2, (1.2 * 2.5) ** 2, (2.0 * 2.5) ** 2))
     no_vdop = gf.make_fix(_raw(eph=100, epv=65535), 0.0).fix
-    assert no_vdop.cov_enu_m2[2] == pytest.approx((1.5 * 2.5) ** 2)
+    assert no_vdop.var_enu_m2[2] == pytest.approx((1.5 * 2.5) ** 2)
     unknown = gf.make_fix(_raw(eph=65535, epv=65535), 0.0).fix
     assert unknown.cov_type == gf.COV_UNKNOWN and math.isinf(unknown.sigma_h_m)
 
@@ -149,7 +149,7 @@ def test_sample_flight_fixes_match_truth(sample_dir):  # noqa: F811
         assert f.fix_type == tr['fix_type'] and ev.best
         enu = np.asarray(gt.origin.geodetic_to_enu(f.lat_deg, f.lon_deg, f.h_m), float).ravel()
         d_sent.append(enu - (np.array(tr['antenna_enu']) + np.array(tr['error_enu_m'])))
-        z.append((enu - np.array(tr['antenna_enu'])) / np.sqrt(f.cov_enu_m2))
+        z.append((enu - np.array(tr['antenna_enu'])) / np.sqrt(f.var_enu_m2))
     dt, d_sent, z = np.abs(dt), np.abs(d_sent), np.abs(z)
     assert dt.max() < 0.001                           # fix epoch, not arrival (+60 ms): to a millisecond
     assert d_sent[:, :2].max() < 0.007 and d_sent[:, 2].max() < 0.001   # 1e-7 deg and 1 mm quantisation
@@ -256,22 +256,6 @@ def test_ingest_survives_garbage_values():
     assert ing.counts['fix_time_not_increasing'] == 1 and len(ing.problems) == 3
 
 
-def test_attitude_quaternion_algebra_matches_rotation_matrices():
-    from photogram_ros.core.rotations import (R_from_quat, enu_R_flu_from_ned_R_frd, ned_R_frd_from_euler,
-                                              quat_from_R)
-    from photogram_ros.io.mavlink import enu_flu_quat, quat_ned_frd_from_euler
-    rng = np.random.default_rng(0)
-    for _ in range(50):
-        r, p, y = rng.uniform(-0.7, 0.7), rng.uniform(-0.7, 0.7), rng.uniform(-3.1, 3.1)
-        R = ned_R_frd_from_euler(r, p, y)
-        q = quat_ned_frd_from_euler(r, p, y)
-        assert np.allclose(R_from_quat(q), R, atol=1e-12)
-        assert np.allclose(enu_flu_quat(q), quat_from_R(enu_R_flu_from_ned_R_frd(R)), atol=1e-12)
-    # Level, nose north (NED yaw 0) -> FLU x axis points north = ENU +y: a +90 deg yaw in ENU.
-    R = R_from_quat(enu_flu_quat(quat_ned_frd_from_euler(0.0, 0.0, 0.0)))
-    assert np.allclose(R @ [1, 0, 0], [0, 1, 0]) and np.allclose(R @ [0, 0, 1], [0, 0, 1])
-
-
 def _two_receiver_stream(gps2_types):
     """1 Hz SYSTEM_TIME and 5 Hz GPS_RAW_INT (3D) + GPS2_RAW (fix types from gps2_types)."""
     mav = mavlink2.MAVLink(None, srcSystem=1, srcComponent=1)
@@ -323,7 +307,7 @@ def test_faulty_flight_outage_float_and_corruption(tmp_path):
     assert inside and all(f.status == gf.STATUS_NO_FIX and not f.has_position for f in inside)
     after = [f for f, t in zip(fixes, rel) if t > 20.5 and f.has_position]
     assert after and {f.fix_type for f in after} == {gf.RTK_FLOAT}
-    assert min(f.cov_enu_m2[0] for f in after) > 10 * max(f.cov_enu_m2[0] for f, t in zip(fixes, rel)
+    assert min(f.var_enu_m2[0] for f in after) > 10 * max(f.var_enu_m2[0] for f, t in zip(fixes, rel)
                                                           if 16 < t < 19.5 and f.has_position)
     # Every fix sent outside the corrupted stretch is decoded and stamped at its epoch.
     sent = [f for f in gt.fixes if not 12 <= f['t_fix_unix_s'] + 0.06 - START_UNIX_S < 15.1]
@@ -336,4 +320,4 @@ def test_faulty_flight_outage_float_and_corruption(tmp_path):
             continue
         tr = min(gt.fixes, key=lambda x: abs(x['t_fix_unix_s'] - f.t_s))
         enu = np.asarray(gt.origin.geodetic_to_enu(f.lat_deg, f.lon_deg, f.h_m), float).ravel()
-        assert np.all(np.abs(enu - np.array(tr['antenna_enu'])) / np.sqrt(f.cov_enu_m2) < 5.0)
+        assert np.all(np.abs(enu - np.array(tr['antenna_enu'])) / np.sqrt(f.var_enu_m2) < 5.0)

@@ -64,3 +64,24 @@ def test_parameter_files_read_the_same_by_the_nodes_and_offline(name):
         for cls in core:
             offline = _core_params(cls, section, node)
             assert to_dict(offline) == {f.name: getattr(full, f.name) for f in fields_of(cls)}
+
+
+def test_runtime_parameter_changes_are_refused_with_a_reason(rclpy_context):
+    # `ros2 param set` goes through set_parameters: the nodes read their parameters once, so a change
+    # must be refused (and the user told), not accepted and silently ignored.
+    from rclpy.node import Node
+    from rclpy.parameter import Parameter
+
+    from photogram_ros.core.tracker import TrackerParams
+    from photogram_ros.nodes.ros_params import declare
+    node = Node('read_only_check', context=rclpy_context)
+    try:
+        p = declare(node, TrackerParams, {'max_features': 300})
+        assert p.max_features == 300                                  # overrides still apply at start
+        res = node.set_parameters([Parameter('max_features', value=500), Parameter('normalize', value='none')])
+        assert [r.successful for r in res] == [False, False]
+        assert all('read-only' in r.reason for r in res)
+        assert node.get_parameter('max_features').value == 300
+        assert node.describe_parameter('max_features').read_only
+    finally:
+        node.destroy_node()

@@ -6,6 +6,7 @@ import sys
 
 import pytest
 
+from photogram_ros.nodes import process_memory as pm
 from photogram_ros.nodes.process_memory import limit_malloc_arenas
 
 
@@ -41,9 +42,37 @@ print(open(path).read().count('<heap nr='))
     assert arenas('free') > 2       # the test could fail: without the cap the threads do spread out
 
 
-def test_environment_value_wins(monkeypatch):
-    monkeypatch.setenv('MALLOC_ARENA_MAX', '3')
-    assert limit_malloc_arenas() in (True, False)   # applied (glibc) or politely skipped, never raises
+class _FakeLibc:
+    """Stands in for glibc: records what mallopt was asked."""
+
+    def __init__(self, calls):
+        self.calls = calls
+
+    def mallopt(self, param, value):
+        self.calls.append((param, value))
+        return 1
+
+
+@pytest.mark.parametrize('env, applied', [('3', 3), ('1', 1), (None, pm.DEFAULT_ARENAS), ('0', pm.DEFAULT_ARENAS),
+                                          ('many', pm.DEFAULT_ARENAS)])
+def test_environment_value_wins(monkeypatch, env, applied):
+    if env is None:
+        monkeypatch.delenv('MALLOC_ARENA_MAX', raising=False)
+    else:
+        monkeypatch.setenv('MALLOC_ARENA_MAX', env)
+    calls = []
+    monkeypatch.setattr(pm.ctypes.util, 'find_library', lambda name: 'libc.so.6')
+    monkeypatch.setattr(pm.ctypes, 'CDLL', lambda name: _FakeLibc(calls))
+    assert pm.arena_cap() == applied
+    assert limit_malloc_arenas() is True
+    assert calls == [(pm.M_ARENA_MAX, applied)]     # a set, positive MALLOC_ARENA_MAX is what mallopt gets
+    calls.clear()
+    assert limit_malloc_arenas(5) and calls == [(pm.M_ARENA_MAX, 5)]   # an explicit count beats both
+
+
+def test_no_glibc_is_a_polite_no(monkeypatch):
+    monkeypatch.setattr(pm.ctypes.util, 'find_library', lambda name: None)
+    assert limit_malloc_arenas() is False
 
 
 def test_trim_gives_freed_heap_back():

@@ -11,7 +11,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from photogram_ros.core.keyframes import FixBuffer, GpsFix
+from photogram_ros.core.gnss_fix import GnssFix
+from photogram_ros.core.keyframes import FixBuffer
 from photogram_ros.core.rotations import invert_T, make_T, transform_points
 from photogram_ros.core.tracker import FEATURE_DTYPE, Tracker, TrackerParams
 from photogram_ros.errors import CalibrationError
@@ -175,7 +176,7 @@ def test_break_without_any_overlap_is_reported_unbridged(survey_line):
 
 
 def test_keyframe_gets_interpolated_fix(survey_line):
-    fixes = [GpsFix(1_000_000_000 + k * 200_000_000, 47.0 + k * 1e-6, 8.0, 500.0 + k, np.eye(3) * 0.01, 2)
+    fixes = [GnssFix(47.0 + k * 1e-6, 8.0, 500.0 + k, np.eye(3) * 0.01, 1_000_000_000 + k * 200_000_000, 2)
              for k in range(0, 70)]
     _, kfs = survey_line.run(fixes=fixes)
     for kf in kfs:
@@ -186,12 +187,12 @@ def test_keyframe_gets_interpolated_fix(survey_line):
 
 def test_fix_buffer_refuses_to_bridge_outages():
     buf = FixBuffer(max_gap_s=1.0)
-    buf.add(GpsFix(0, 47.0, 8.0, 500.0, np.eye(3), 2))
-    buf.add(GpsFix(3_000_000_000, 47.1, 8.0, 500.0, np.eye(3), 2))
+    buf.add(GnssFix(47.0, 8.0, 500.0, np.eye(3), 0, 2))
+    buf.add(GnssFix(47.1, 8.0, 500.0, np.eye(3), 3_000_000_000, 2))
     assert buf.at(1_000_000_000) is None and buf.at(-5) is None
-    buf.add(GpsFix(500_000_000, 47.05, 8.0, 500.0, np.eye(3) * 4, 2))
+    buf.add(GnssFix(47.05, 8.0, 500.0, np.eye(3) * 4, 500_000_000, 2))
     f = buf.at(250_000_000)
-    assert f.interpolated and abs(f.lat_deg - 47.025) < 1e-12 and f.covariance_enu_m2[0, 0] == 4
+    assert f.interpolated and abs(f.lat_deg - 47.025) < 1e-12 and f.cov_enu_m2[0, 0] == 4 and f.stamp_ns == 250_000_000
 
 
 def test_calibration_problems_are_errors(survey_line):
@@ -214,8 +215,8 @@ def test_gps_distance_drives_keyframes_when_the_fix_is_good(survey_line):
     fixes = []
     for t in np.arange(0.0, 12.6, 0.2):
         lat, lon, h = origin.enu_to_geodetic(survey_line.flight.state(t).pos_enu)
-        fixes.append(GpsFix(int(round(t * 1e9)) + 1_000_000_000, float(lat), float(lon), float(h),
-                            np.eye(3) * 1e-4, 2))
+        fixes.append(GnssFix(float(lat), float(lon), float(h), np.eye(3) * 1e-4, int(round(t * 1e9)) + 1_000_000_000,
+                             2))
     G = survey_line.renderer.ground_points(survey_line.frames[0][2])
     ground_m = float(cfg.altitude_m - np.nanmedian(G[..., 2]))
     params = TrackerParams(overlap_source='gps', ground_distance_m=ground_m)
@@ -224,7 +225,7 @@ def test_gps_distance_drives_keyframes_when_the_fix_is_good(survey_line):
     print(f'GPS-driven: true overlaps {np.round(true, 3).tolist()}')
     assert len(kfs) >= 6 and np.max(np.abs(np.array(true[:-1]) - 0.8)) <= 0.05
     # A poor fix (sigma 3 m) is not trusted: the image estimate takes over and still holds the target.
-    bad = [GpsFix(f.stamp_ns, f.lat_deg + 2e-5, f.lon_deg, f.h_m, np.eye(3) * 9.0, 1) for f in fixes]
+    bad = [GnssFix(f.lat_deg + 2e-5, f.lon_deg, f.h_m, np.eye(3) * 9.0, f.stamp_ns, 1) for f in fixes]
     _, kfs = survey_line.run(params, bad)
     true = [survey_line.true_overlap(a, b) for a, b in zip(kfs[:-1], kfs[1:])]
     assert np.max(np.abs(np.array(true[:-1]) - 0.8)) <= 0.05

@@ -125,7 +125,7 @@ def test_fixes_from_raw_mavlink_match_the_gps_fix_topic(sample_bag, mavlink_only
         # MAVLink carries 1e-7 degrees, millimetres and a millisecond clock.
         assert abs(a.stamp_ns - b.stamp_ns) < 1_000_000
         assert abs(a.lat_deg - b.lat_deg) < 1e-7 and abs(a.lon_deg - b.lon_deg) < 1e-7 and abs(a.h_m - b.h_m) < 1e-3
-        assert b.covariance_enu_m2.shape == (3, 3) and np.allclose(b.covariance_enu_m2, a.covariance_enu_m2,
+        assert b.cov_enu_m2.shape == (3, 3) and np.allclose(b.cov_enu_m2, a.cov_enu_m2,
                                                                    rtol=0.15)
         assert b.status == a.status
 

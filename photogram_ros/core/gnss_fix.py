@@ -1,5 +1,13 @@
 """GNSS fixes as a flight controller reports them -> positions with honest accuracy (no ROS here).
 
+Two fix types, one per stage:
+- `Fix`: a decoded receiver fix (receiver, MAVLink fix type, DOP, satellites, height source), its
+  accuracy as three ENU variances `var_enu_m2`. Made by `make_fix` from a `RawGnss`.
+- `GnssFix`: a position as the tracker and the adjustment consume it (what a NavSatFix carries):
+  stamp, WGS84 position, ellipsoidal height and the full 3x3 ENU covariance `cov_enu_m2`.
+  `GnssFix.from_fix` converts the first into the second; `from_dict` / `as_dict` read and write the
+  dict that `msgs.fix_from_navsatfix` makes from a NavSatFix.
+
 - Fix type: MAVLink GPS_FIX_TYPE (0..8) is kept in full; the NavSatFix status is a lossy summary of
   it (RTK float and fixed are both GBAS), so consumers that care read the fix type or the covariance.
 - Covariance (ENU, m^2, diagonal): from h_acc/v_acc when the receiver sends them (per-axis 1-sigma,
@@ -14,7 +22,10 @@ import math
 from dataclasses import dataclass, field
 from functools import lru_cache
 
+import numpy as np
+
 from photogram_ros.core import geoid
+from photogram_ros.errors import DataError
 
 FIX_NAMES = ('NO_GPS', 'NO_FIX', '2D', '3D', 'DGPS', 'RTK_FLOAT', 'RTK_FIXED', 'STATIC', 'PPP')
 NO_GPS, NO_FIX, FIX_2D, FIX_3D, DGPS, RTK_FLOAT, RTK_FIXED, STATIC, PPP = range(9)
@@ -84,6 +95,8 @@ UNIX_THRESHOLD_US = 1_000_000_000_000_000
 
 @dataclass
 class Fix:
+    """A decoded receiver fix (see the module docstring); NaN position when the receiver has none."""
+
     t_s: float                # fix epoch on the output clock (UNIX / ROS)
     receiver: int
     fix_type: int
@@ -91,7 +104,7 @@ class Fix:
     lat_deg: float            # NaN without a position fix
     lon_deg: float
     h_m: float                # above the WGS84 ellipsoid
-    cov_enu_m2: tuple         # (var_E, var_N, var_U)
+    var_enu_m2: tuple         # (var_E, var_N, var_U), m^2
     cov_type: int
     height_source: str        # 'alt_ellipsoid', 'msl+EGM2008' or ''
     sats: int
@@ -106,15 +119,71 @@ class Fix:
 
     @property
     def sigma_h_m(self) -> float:
-        return math.sqrt(self.cov_enu_m2[0]) if self.cov_type != COV_UNKNOWN else math.inf
+        return math.sqrt(self.var_enu_m2[0]) if self.cov_type != COV_UNKNOWN else math.inf
 
     def as_dict(self) -> dict:
         return {'t_s': self.t_s, 'receiver': self.receiver, 'fix_type': self.fix_type,
                 'fix_name': fix_name(self.fix_type), 'status': self.status, 'lat_deg': self.lat_deg,
-                'lon_deg': self.lon_deg, 'h_m': self.h_m, 'var_e_m2': self.cov_enu_m2[0],
-                'var_n_m2': self.cov_enu_m2[1], 'var_u_m2': self.cov_enu_m2[2], 'cov_type': self.cov_type,
+                'lon_deg': self.lon_deg, 'h_m': self.h_m, 'var_e_m2': self.var_enu_m2[0],
+                'var_n_m2': self.var_enu_m2[1], 'var_u_m2': self.var_enu_m2[2], 'cov_type': self.cov_type,
                 'height_source': self.height_source, 'sats': self.sats, 'hdop': self.hdop,
                 'sysid': self.sysid, 'compid': self.compid}
+
+
+@dataclass
+class GnssFix:
+    """A GNSS position as the tracker and the adjustment consume it.
+
+    lat_deg, lon_deg  WGS84 geodetic, degrees
+    h_m               above the WGS84 ellipsoid (REP-145), m
+    cov_enu_m2        (3, 3) covariance of the position in the local east-north-up frame at the fix, m^2
+    stamp_ns          fix epoch on the ROS (UNIX) clock, ns; 0 where the position has no time of its own
+    status            sensor_msgs/NavSatStatus.status (STATUS_*): < 0 is no fix
+    cov_type          sensor_msgs/NavSatFix.position_covariance_type (COV_*)
+    interpolated      made from two bracketing fixes (keyframes.FixBuffer)
+    The first four fields come first so that `GnssFix(lat, lon, h, cov)` reads as before.
+    """
+
+    lat_deg: float
+    lon_deg: float
+    h_m: float
+    cov_enu_m2: np.ndarray
+    stamp_ns: int = 0
+    status: int = STATUS_FIX
+    cov_type: int = COV_UNKNOWN
+    interpolated: bool = False
+
+    def __post_init__(self):
+        cov = np.asarray(self.cov_enu_m2, dtype=float)
+        if cov.shape != (3, 3):
+            raise DataError(f'a GNSS covariance cov_enu_m2 is 3x3 (m^2, ENU), got shape {cov.shape}; three '
+                            'variances go on its diagonal (np.diag)')
+        self.cov_enu_m2 = cov
+
+    @classmethod
+    def from_fix(cls, fix: Fix) -> 'GnssFix':
+        """A decoded receiver fix -> the consumed fix (stamp = the fix epoch rounded to ns)."""
+        return cls(fix.lat_deg, fix.lon_deg, fix.h_m, np.diag(np.asarray(fix.var_enu_m2, dtype=float)),
+                   int(round(fix.t_s * 1e9)), fix.status, fix.cov_type)
+
+    @classmethod
+    def from_dict(cls, d: dict) -> 'GnssFix':
+        """From the dict of msgs.fix_from_navsatfix (keeps core free of ROS types)."""
+        return cls(float(d['lat_deg']), float(d['lon_deg']), float(d['h_m']),
+                   np.asarray(d['covariance_enu_m2'], float).reshape(3, 3), int(d['stamp_ns']),
+                   int(d.get('status', STATUS_FIX)), int(d.get('covariance_type', COV_UNKNOWN)))
+
+    def as_dict(self) -> dict:
+        """The keys of msgs.fix_from_navsatfix (frame_id aside): `from_dict(as_dict())` is this fix."""
+        return {'stamp_ns': self.stamp_ns, 'lat_deg': self.lat_deg, 'lon_deg': self.lon_deg, 'h_m': self.h_m,
+                'status': self.status, 'covariance_enu_m2': self.cov_enu_m2.copy(),
+                'covariance_type': self.cov_type}
+
+    @property
+    def horizontal_sigma_m(self) -> float:
+        """1-sigma of the worse horizontal axis, m (whatever cov_type says: 0 for an all-zero covariance)."""
+        c = self.cov_enu_m2
+        return float(np.sqrt(max(c[0, 0], c[1, 1], 0.0)))
 
 
 @dataclass
@@ -144,7 +213,7 @@ def make_fix(raw: RawGnss, t_s: float, model: ErrorModel | None = None) -> FixRe
         return FixResult(None, 'fix time is not finite')
     if ft < FIX_2D or ft >= len(FIX_NAMES):
         nan = math.nan
-        return FixResult(Fix(lat_deg=nan, lon_deg=nan, h_m=nan, cov_enu_m2=(nan, nan, nan), cov_type=COV_UNKNOWN,
+        return FixResult(Fix(lat_deg=nan, lon_deg=nan, h_m=nan, var_enu_m2=(nan, nan, nan), cov_type=COV_UNKNOWN,
                              height_source='', **{**base, 'status': STATUS_NO_FIX}),
                          '' if ft < FIX_2D else f'unknown fix type {ft}')
     lat, lon = raw.lat_e7 * 1e-7, raw.lon_e7 * 1e-7
@@ -165,7 +234,7 @@ def make_fix(raw: RawGnss, t_s: float, model: ErrorModel | None = None) -> FixRe
             cov, ctype = (0.0, 0.0, 0.0), COV_UNKNOWN
         else:
             cov, ctype = (sig[0] ** 2, sig[0] ** 2, sig[1] ** 2), COV_APPROXIMATED
-    return FixResult(Fix(lat_deg=lat, lon_deg=lon, h_m=h, cov_enu_m2=cov, cov_type=ctype, height_source=src,
+    return FixResult(Fix(lat_deg=lat, lon_deg=lon, h_m=h, var_enu_m2=cov, cov_type=ctype, height_source=src,
                          **base))
 
 

@@ -39,6 +39,7 @@ from photogram_ros.core.at_freeze import Freezer
 from photogram_ros.core.at_store import Keyframe, PointStore
 from photogram_ros.core.camera import PinholeCamera
 from photogram_ros.core.geodesy import LocalFrame
+from photogram_ros.core.gnss_fix import GnssFix
 from photogram_ros.core.rotations import invert_T, make_T
 from photogram_ros.core.similarity import similarity_on_line, similarity_ransac, spread
 from photogram_ros.core.two_view import relative_pose
@@ -47,14 +48,6 @@ from photogram_ros.errors import ConfigError, DataError
 from photogram_ros.params import param
 
 from photogram_ros.core.bundle import BundleOptions, BundleProblem, bundle_adjust
-
-
-@dataclass
-class GnssFix:
-    lat_deg: float
-    lon_deg: float
-    h_m: float                      # ellipsoidal
-    cov_enu_m2: np.ndarray          # (3, 3)
 
 
 @dataclass

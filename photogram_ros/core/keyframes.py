@@ -1,4 +1,4 @@
-"""Keyframe helpers: GPS fixes interpolated to an image time, and front-overlap estimates.
+"""Keyframe helpers: GNSS fixes (core.gnss_fix.GnssFix) interpolated to an image time, and front-overlap estimates.
 
 Overlap is the fraction of the last keyframe's footprint that is still inside the current image.
 From images it is measured with a homography fitted to the tracks both frames share (exact for
@@ -9,48 +9,24 @@ flown over the along-track footprint length, usable only when the fix is good.
 from __future__ import annotations
 
 import bisect
-from dataclasses import dataclass, replace
 
 import cv2
 import numpy as np
 
 from photogram_ros.core.camera import PinholeCamera
-
-
-@dataclass
-class GpsFix:
-    stamp_ns: int
-    lat_deg: float
-    lon_deg: float
-    h_m: float                      # ellipsoidal height (REP-145)
-    covariance_enu_m2: np.ndarray   # 3x3
-    status: int = 0                 # sensor_msgs/NavSatStatus.status
-    covariance_type: int = 0
-    interpolated: bool = False      # True when made from two bracketing fixes
-
-    @classmethod
-    def from_dict(cls, d: dict) -> 'GpsFix':
-        """From the dict of msgs.fix_from_navsatfix (keeps core free of ROS types)."""
-        return cls(int(d['stamp_ns']), float(d['lat_deg']), float(d['lon_deg']), float(d['h_m']),
-                   np.asarray(d['covariance_enu_m2'], float).reshape(3, 3), int(d.get('status', 0)),
-                   int(d.get('covariance_type', 0)))
-
-    @property
-    def horizontal_sigma_m(self) -> float:
-        c = self.covariance_enu_m2
-        return float(np.sqrt(max(c[0, 0], c[1, 1], 0.0)))
+from photogram_ros.core.gnss_fix import GnssFix
 
 
 class FixBuffer:
-    """Time-ordered GPS fixes; interpolates one to any stamp between two fixes not too far apart."""
+    """Time-ordered GNSS fixes; interpolates one to any stamp between two fixes not too far apart."""
 
     def __init__(self, max_gap_s: float = 1.0, keep: int = 600):
         self.max_gap_ns = int(max_gap_s * 1e9)
         self.keep = keep
         self._stamps: list[int] = []
-        self._fixes: list[GpsFix] = []
+        self._fixes: list[GnssFix] = []
 
-    def add(self, fix: GpsFix) -> None:
+    def add(self, fix: GnssFix) -> None:
         if fix.status < 0 or not (np.isfinite(fix.lat_deg) and np.isfinite(fix.lon_deg)):
             return   # NavSatStatus.STATUS_NO_FIX: nothing to interpolate from
         i = bisect.bisect_left(self._stamps, fix.stamp_ns)
@@ -68,7 +44,7 @@ class FixBuffer:
     def latest_ns(self) -> int | None:
         return self._stamps[-1] if self._stamps else None
 
-    def at(self, stamp_ns: int) -> GpsFix | None:
+    def at(self, stamp_ns: int) -> GnssFix | None:
         """The fix at `stamp_ns` interpolated linearly, or None outside the data or across an outage."""
         i = bisect.bisect_left(self._stamps, stamp_ns)
         if i < len(self._stamps) and self._stamps[i] == stamp_ns:
@@ -79,14 +55,14 @@ class FixBuffer:
         if b.stamp_ns - a.stamp_ns > self.max_gap_ns:
             return None
         w = (stamp_ns - a.stamp_ns) / (b.stamp_ns - a.stamp_ns)
-        return GpsFix(int(stamp_ns), a.lat_deg + w * (b.lat_deg - a.lat_deg),
-                      a.lon_deg + w * (b.lon_deg - a.lon_deg), a.h_m + w * (b.h_m - a.h_m),
-                      # The worse fix bounds the uncertainty of a point between them.
-                      np.maximum(a.covariance_enu_m2, b.covariance_enu_m2), min(a.status, b.status),
-                      min(a.covariance_type, b.covariance_type), True)
+        return GnssFix(a.lat_deg + w * (b.lat_deg - a.lat_deg), a.lon_deg + w * (b.lon_deg - a.lon_deg),
+                       a.h_m + w * (b.h_m - a.h_m),
+                       # The worse fix bounds the uncertainty of a point between them.
+                       np.maximum(a.cov_enu_m2, b.cov_enu_m2), int(stamp_ns), min(a.status, b.status),
+                       min(a.cov_type, b.cov_type), True)
 
 
-def gps_distance_m(a: GpsFix, b: GpsFix) -> float:
+def gps_distance_m(a: GnssFix, b: GnssFix) -> float:
     """Horizontal distance between two nearby fixes (local spherical approximation, < 1 mm at 100 m)."""
     r_m = 6371008.8
     lat = np.radians(0.5 * (a.lat_deg + b.lat_deg))
@@ -128,6 +104,3 @@ def homography_overlap(grid: OverlapGrid, xn_kf: np.ndarray, xn_cur: np.ndarray,
         return None, 0
     return grid.overlap(H), int(inl.sum())
 
-
-def with_stamp(fix: GpsFix, stamp_ns: int) -> GpsFix:
-    return replace(fix, stamp_ns=int(stamp_ns))

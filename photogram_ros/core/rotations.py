@@ -8,6 +8,8 @@ omega-phi-kappa angles, because that is how survey software reports them.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from scipy.spatial.transform import Rotation
 
@@ -66,6 +68,36 @@ def euler_from_ned_R_frd(ned_R_frd: np.ndarray) -> tuple[float, float, float]:
 def enu_R_flu_from_ned_R_frd(ned_R_frd: np.ndarray) -> np.ndarray:
     """Aerospace attitude (FRD in NED) -> ROS attitude (FLU in ENU), per REP-103."""
     return ENU_R_NED @ ned_R_frd @ FLU_R_FRD
+
+
+# Attitude messages arrive at 10-50 Hz per vehicle: the quaternion versions below are plain float
+# algebra on (x, y, z, w) tuples, no arrays, and agree with the matrix versions above to 1e-15.
+_H = math.sqrt(0.5)
+_Q_ENU_NED = (_H, _H, 0.0, 0.0)      # 180 deg about (x + y) / sqrt(2): swaps x/y, flips z (ENU_R_NED)
+_Q_FRD_FLU = (1.0, 0.0, 0.0, 0.0)    # 180 deg about x (FLU_R_FRD, its own inverse)
+
+
+def quat_mul(a_xyzw, b_xyzw) -> tuple:
+    """Hamilton product a * b of two (x, y, z, w) quaternions (the rotation b, then a)."""
+    ax, ay, az, aw = a_xyzw
+    bx, by, bz, bw = b_xyzw
+    return (aw * bx + ax * bw + ay * bz - az * by, aw * by - ax * bz + ay * bw + az * bx,
+            aw * bz + ax * by - ay * bx + az * bw, aw * bw - ax * bx - ay * by - az * bz)
+
+
+def quat_ned_frd_from_euler(roll_rad: float, pitch_rad: float, yaw_rad: float) -> tuple:
+    """Aerospace ZYX Euler angles -> quaternion (x, y, z, w) of body FRD in NED (ned_R_frd_from_euler)."""
+    cr, sr = math.cos(roll_rad / 2), math.sin(roll_rad / 2)
+    cp, sp = math.cos(pitch_rad / 2), math.sin(pitch_rad / 2)
+    cy, sy = math.cos(yaw_rad / 2), math.sin(yaw_rad / 2)
+    return (sr * cp * cy - cr * sp * sy, cr * sp * cy + sr * cp * sy, cr * cp * sy - sr * sp * cy,
+            cr * cp * cy + sr * sp * sy)
+
+
+def quat_enu_flu_from_quat_ned_frd(q_ned_frd_xyzw) -> tuple:
+    """Quaternion of FRD in NED -> quaternion of FLU in ENU (REP-103), w >= 0 (enu_R_flu_from_ned_R_frd)."""
+    q = quat_mul(quat_mul(_Q_ENU_NED, q_ned_frd_xyzw), _Q_FRD_FLU)
+    return q if q[3] >= 0 else tuple(-v for v in q)
 
 
 def opk_from_map_R_cam(map_R_cam: np.ndarray) -> tuple[float, float, float]:

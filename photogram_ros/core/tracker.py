@@ -25,7 +25,7 @@ The keyframe record (stable interface, consumed by the bundle adjuster)
                    track_id uint32  the same id in every keyframe that sees the same ground point
                    u, v     float64 distorted pixel coordinates (origin at the centre of the top-left pixel)
                    xn, yn   float64 undistorted normalized coordinates x/z, y/z (optical frame)
-  fix            GpsFix | None   the GNSS fix interpolated to stamp_ns (None during an outage)
+  fix            GnssFix | None  the GNSS fix interpolated to stamp_ns (core.gnss_fix; None during an outage)
   overlap        float    estimated front overlap with the previous keyframe (nan for the first)
   break_before   bool     tracking broke between the previous keyframe and this one
   bridged        bool     ... and descriptor matching reconnected the tracks (ids continue)
@@ -40,7 +40,8 @@ import cv2
 import numpy as np
 
 from photogram_ros.core.camera import PinholeCamera
-from photogram_ros.core.keyframes import FixBuffer, GpsFix, OverlapGrid, gps_distance_m, homography_overlap
+from photogram_ros.core.gnss_fix import GnssFix
+from photogram_ros.core.keyframes import FixBuffer, OverlapGrid, gps_distance_m, homography_overlap
 from photogram_ros.errors import CalibrationError
 from photogram_ros.params import param
 
@@ -100,7 +101,7 @@ class Keyframe:
     stamp_ns: int
     image: np.ndarray
     observations: np.ndarray
-    fix: GpsFix | None = None
+    fix: GnssFix | None = None
     overlap: float = float('nan')
     break_before: bool = False
     bridged: bool = False
@@ -130,7 +131,7 @@ class _Frame:
     pts: np.ndarray            # (N, 2) float32 pixels
     ids: np.ndarray            # (N,) uint32
     overlap: float | None = None
-    fix: GpsFix | None = None
+    fix: GnssFix | None = None
 
 
 @dataclass
@@ -179,8 +180,9 @@ class Tracker:
         self._prev = None     # points of another calibration cannot be continued
         self._kf = None
 
-    def add_fix(self, fix: GpsFix | dict) -> None:
-        self.fixes.add(fix if isinstance(fix, GpsFix) else GpsFix.from_dict(fix))
+    def add_fix(self, fix: GnssFix | dict) -> None:
+        """A GNSS fix, or the dict of msgs.fix_from_navsatfix."""
+        self.fixes.add(fix if isinstance(fix, GnssFix) else GnssFix.from_dict(fix))
 
     # --- the frame pipeline ----------------------------------------------------------------------
 

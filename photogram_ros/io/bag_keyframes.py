@@ -16,8 +16,8 @@ import numpy as np
 from photogram_ros import msgs
 from photogram_ros.core.control import ControlSet, detect_keyframe_targets
 from photogram_ros.core.geodesy import LocalFrame
-from photogram_ros.core.incremental import GnssFix, KeyframeRecord
-from photogram_ros.core.keyframes import GpsFix
+from photogram_ros.core.gnss_fix import GnssFix
+from photogram_ros.core.incremental import KeyframeRecord
 from photogram_ros.core.tracker import Tracker
 from photogram_ros.errors import CalibrationError, DataError
 from photogram_ros.io.bag import MAVLINK_TOPIC, BagReader, deserialize, messages_from_bag
@@ -26,7 +26,7 @@ from photogram_ros.io.keyframe_block import KeyframeBlock, camera_from_yaml
 IMAGE_TOPICS = ('/camera/image_raw', '/camera/image_raw/compressed')
 
 
-def bag_fixes(bag: BagReader) -> tuple[list[GpsFix], str | None]:
+def bag_fixes(bag: BagReader) -> tuple[list[GnssFix], str | None]:
     """The bag's GNSS fixes in order (from /gps/fix, else decoded from raw MAVLink), and where from."""
     topics = bag.topics()
     fixes = []
@@ -34,7 +34,7 @@ def bag_fixes(bag: BagReader) -> tuple[list[GpsFix], str | None]:
         for m in bag.messages(['/gps/fix']):
             d = msgs.fix_from_navsatfix(deserialize(m.msgtype, m.data))
             if d['status'] >= 0 and np.isfinite(d['lat_deg']):
-                fixes.append(GpsFix.from_dict(d))
+                fixes.append(GnssFix.from_dict(d))
         return fixes, 'positions from the bag\'s /gps/fix (ellipsoidal heights, their covariance as sigma)'
     if MAVLINK_TOPIC in topics:
         from photogram_ros.io.mavlink import fixes_from_messages
@@ -42,8 +42,7 @@ def bag_fixes(bag: BagReader) -> tuple[list[GpsFix], str | None]:
         for ev in events:
             f = ev.fix
             if ev.best and f.has_position:
-                fixes.append(GpsFix(int(round(f.t_s * 1e9)), f.lat_deg, f.lon_deg, f.h_m,
-                                    np.diag(np.asarray(f.cov_enu_m2, float)), f.status, f.cov_type))
+                fixes.append(GnssFix.from_fix(f))
         return fixes, 'positions decoded from the raw MAVLink in the bag (GPS_RAW_INT, EGM2008 heights)'
     return fixes, None
 
@@ -88,8 +87,7 @@ def read_bag_keyframes(src: str | Path, camera_path: str | Path | None = None, t
         log(f'{src}: {len(keyframes)} keyframes, {len(fixes)} fixes')
     records, n_seen = [], 0
     for kf in keyframes:
-        fix = None if kf.fix is None else GnssFix(kf.fix.lat_deg, kf.fix.lon_deg, kf.fix.h_m,
-                                                  np.asarray(kf.fix.covariance_enu_m2, float))
+        fix = kf.fix
         obs = kf.observations
         target_uv = {}
         if targets is not None:

@@ -2,9 +2,9 @@
 
 A folder is played in shooting order (EXIF DateTimeOriginal + SubSecTimeOriginal, in the zone of
 OffsetTimeOriginal, else an assumed UTC offset) so that a user's existing survey photos can go
-through the mapper like a live camera. EXIF GPS altitude is above mean sea level (EXIF 2.3), so it
-is converted to the WGS84 ellipsoidal height the rest of the system uses (REP-145). Many drones write
-it above the take-off point instead (or a barometric altitude tens of metres off):
+through the mapper like a live camera. EXIF GPS altitude is above mean sea level (EXIF 2.3), so
+`ExifGps.gnss_fix` converts it to the WGS84 ellipsoidal height the rest of the system uses (REP-145). Many drones
+write it above the take-off point instead (or a barometric altitude tens of metres off):
 `exif_altitude_to_ellipsoidal_m` converts either reading, `exif_altitudes_look_relative` spots them.
 A file that cannot be decoded is skipped and recorded in `skipped`: one corrupt JPEG must not end
 a survey. No ROS here: the camera node is a thin adapter over these iterators.
@@ -20,6 +20,7 @@ from typing import Iterator
 
 import numpy as np
 
+from photogram_ros.core import gnss_fix as gf
 from photogram_ros.errors import ConfigError, DataError
 
 IMAGE_SUFFIXES = ('.jpg', '.jpeg', '.png', '.tif', '.tiff')
@@ -31,18 +32,32 @@ TAG_OFFSET_ORIGINAL = 0x9011
 
 
 @dataclass(frozen=True)
-class ExifFix:
-    lat_deg: float
+class ExifGps:
+    """A photo's EXIF GPS tags as written: not yet a fix (no accuracy, no time, an altitude datum to choose).
+
+    `alt_msl_m` is GPSAltitude signed by GPSAltitudeRef: above mean sea level as EXIF 2.3 says, but
+    many drones write it above the take-off point. `gnss_fix` is the one conversion to a fix.
+    """
+
+    lat_deg: float        # WGS84
     lon_deg: float
-    h_m: float            # ellipsoidal (WGS84)
-    alt_msl_m: float      # as written in the EXIF
+    alt_msl_m: float      # as written in the EXIF, m
+
+    def gnss_fix(self, stamp_ns: int, sigma_h_m: float, sigma_v_m: float, reference: str = 'msl',
+                 takeoff_h_m: float | None = None, takeoff_reference: str = 'msl') -> gf.GnssFix:
+        """This position as a fix at `stamp_ns`, with the given 1-sigma accuracies (m) and the altitude read
+        as `reference` says (see exif_altitude_to_ellipsoidal_m)."""
+        h_m = float(exif_altitude_to_ellipsoidal_m(self.lat_deg, self.lon_deg, self.alt_msl_m, reference, takeoff_h_m,
+                                                   takeoff_reference))
+        cov = np.diag([sigma_h_m * sigma_h_m, sigma_h_m * sigma_h_m, sigma_v_m * sigma_v_m])
+        return gf.GnssFix(self.lat_deg, self.lon_deg, h_m, cov, int(stamp_ns), gf.STATUS_FIX, gf.COV_APPROXIMATED)
 
 
 @dataclass
 class Frame:
     stamp_ns: int
     image: np.ndarray     # BGR uint8 (H, W, 3)
-    fix: ExifFix | None
+    gps: ExifGps | None   # EXIF GPS of a photo
     path: str             # file path, or the video source and frame index
 
 
@@ -52,9 +67,8 @@ def _exif(path):
         return im.getexif()
 
 
-def read_exif_gps(path) -> ExifFix | None:
-    """EXIF GPS of a photo, height converted from MSL to ellipsoidal; None when absent or unreadable."""
-    from photogram_ros.core import geoid
+def read_exif_gps(path) -> ExifGps | None:
+    """EXIF GPS of a photo as written; None when absent or unreadable."""
     try:
         gps = _exif(path).get_ifd(GPS_IFD)
     except (OSError, SyntaxError, ValueError):
@@ -76,7 +90,7 @@ def read_exif_gps(path) -> ExifFix | None:
         return None
     if not (np.isfinite(lat) and np.isfinite(lon) and np.isfinite(alt)):
         return None
-    return ExifFix(lat, lon, float(geoid.msl_to_ellipsoid_m(lat, lon, alt)), alt)
+    return ExifGps(lat, lon, alt)
 
 
 EXIF_ALTITUDE_REFERENCES = ('msl', 'ellipsoidal', 'relative')

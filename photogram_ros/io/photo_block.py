@@ -20,7 +20,8 @@ import numpy as np
 from photogram_ros.core import photo_matching as pm
 from photogram_ros.core.camera import PinholeCamera
 from photogram_ros.core.geodesy import LocalFrame, crs_to_geodetic
-from photogram_ros.core.incremental import GnssFix, KeyframeRecord
+from photogram_ros.core.gnss_fix import GnssFix
+from photogram_ros.core.incremental import KeyframeRecord
 from photogram_ros.errors import CalibrationError, DataError
 from photogram_ros.io.image_source import exif_altitude_to_ellipsoidal_m, read_exif_gps
 from photogram_ros.io.keyframe_block import KeyframeBlock, camera_from_yaml

@@ -57,7 +57,8 @@ from photogram_ros import msgs
 from photogram_ros.core.attitude import AttitudeHistory, antenna_offset_enu
 from photogram_ros.core.control import ControlSet
 from photogram_ros.core.geodesy import LocalFrame
-from photogram_ros.core.incremental import GnssFix, IncrementalAT, IncrementalOptions, KeyframeRecord
+from photogram_ros.core.gnss_fix import GnssFix
+from photogram_ros.core.incremental import IncrementalAT, IncrementalOptions, KeyframeRecord
 from photogram_ros.errors import PhotogramError
 from photogram_ros.nodes.diagnostics import ERROR, Diagnostics
 from photogram_ros.nodes.node_main import run_node

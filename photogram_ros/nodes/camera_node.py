@@ -14,7 +14,7 @@ import rclpy
 from rclpy.duration import Duration
 from rclpy.node import Node
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
-from sensor_msgs.msg import CameraInfo, Image, NavSatFix, NavSatStatus
+from sensor_msgs.msg import CameraInfo, Image, NavSatFix
 
 from photogram_ros import msgs
 from photogram_ros.errors import CalibrationError, ConfigError, PhotogramError
@@ -133,11 +133,9 @@ class CameraNode(Node):
         p = self.params
         try:
             # The fix goes first so that a consumer holding the image already has its position.
-            if p.publish_exif_fix and frame.fix is not None:
-                s = p.exif_sigma_m
-                self.pub_fix.publish(msgs.navsatfix_msg(
-                    stamp_ns, frame.fix.lat_deg, frame.fix.lon_deg, frame.fix.h_m, NavSatStatus.STATUS_FIX,
-                    [s * s, s * s, 4 * s * s], NavSatFix.COVARIANCE_TYPE_APPROXIMATED, p.fix_frame_id))
+            if p.publish_exif_fix and frame.gps is not None:
+                fix = frame.gps.gnss_fix(stamp_ns, p.exif_sigma_m, 2.0 * p.exif_sigma_m)
+                self.pub_fix.publish(msgs.navsatfix_from_gnss_fix(fix, p.fix_frame_id))
                 self.diag.count('fixes')
             self.pub_info.publish(msgs.camera_info_msg(self.camera, stamp_ns, p.frame_id))
             self.pub_image.publish(msgs.image_msg(frame.image, stamp_ns, p.frame_id))

@@ -34,8 +34,9 @@ from std_msgs.msg import UInt8, UInt8MultiArray
 from photogram_ros import msgs
 from photogram_ros.core import gnss_fix as gf
 from photogram_ros.errors import ConfigError, MavlinkError, PhotogramError
-from photogram_ros.io.mavlink import (Attitude, FixEvent, Ingest, Link, MavlinkStream, Trigger, is_live_url,
-                                      signing_key)
+from photogram_ros.io.mavlink_framing import MavlinkStream, read_tlog, signing_key
+from photogram_ros.io.mavlink_ingest import Attitude, FixEvent, Ingest, Trigger
+from photogram_ros.io.mavlink_link import Link, is_live_url
 from photogram_ros.nodes.diagnostics import ERROR, OK, WARN, Diagnostics
 from photogram_ros.nodes.node_main import run_node
 from photogram_ros.nodes.ros_params import declare
@@ -186,7 +187,6 @@ class MavlinkNode(Node):
             link.close()
 
     def _run_tlog(self) -> None:
-        from photogram_ros.io.mavlink import read_tlog
         p = self.params
         try:
             stream = MavlinkStream(secret_key=self.stream.mav.signing.secret_key, allow_unsigned=p.allow_unsigned,
@@ -221,8 +221,7 @@ class MavlinkNode(Node):
         return self.pub_rx[receiver]
 
     def _fix_msg(self, fix: gf.Fix) -> NavSatFix:
-        return msgs.navsatfix_msg(int(round(fix.t_s * 1e9)), fix.lat_deg, fix.lon_deg, fix.h_m, fix.status,
-                                  fix.cov_enu_m2, fix.cov_type, frame_id=self.params.frame_id)
+        return msgs.navsatfix_from_gnss_fix(gf.GnssFix.from_fix(fix), self.params.frame_id)
 
     def _publish(self, ev) -> None:
         if isinstance(ev, FixEvent):
@@ -249,7 +248,7 @@ class MavlinkNode(Node):
             self.published['attitude'] += 1
         elif isinstance(ev, Trigger):
             self.pub_trigger.publish(msgs.navsatfix_msg(int(round(ev.t_s * 1e9)), ev.lat_deg, ev.lon_deg, ev.h_m,
-                                                        gf.navsat_status(ev.fix_type), ev.cov_enu_m2, ev.cov_type,
+                                                        gf.navsat_status(ev.fix_type), ev.var_enu_m2, ev.cov_type,
                                                         frame_id=f'camera_{ev.seq}'))
             self.published['trigger'] += 1
 

@@ -18,20 +18,28 @@ M_ARENA_MAX = -8          # mallopt parameter number, glibc's malloc.h
 DEFAULT_ARENAS = 2
 
 
-def limit_malloc_arenas(arenas: int | None = None) -> bool:
-    """Cap glibc's malloc arenas (MALLOC_ARENA_MAX, when set, wins); False where there is no glibc.
-
-    Applies to arenas created from now on, so call it before the graph starts its threads.
-    """
+def arena_cap(arenas: int | None = None) -> int:
+    """The arena count `limit_malloc_arenas` applies: `arenas` if given, else a positive integer in
+    MALLOC_ARENA_MAX, else DEFAULT_ARENAS."""
     if arenas is None:
         env = os.environ.get('MALLOC_ARENA_MAX', '')
         arenas = int(env) if env.isdigit() and int(env) > 0 else DEFAULT_ARENAS
+    return int(arenas)
+
+
+def limit_malloc_arenas(arenas: int | None = None) -> bool:
+    """Cap glibc's malloc arenas at `arena_cap(arenas)` (MALLOC_ARENA_MAX, when set, wins over the
+    default); False where there is no glibc.
+
+    Applies to arenas created from now on, so call it before the graph starts its threads.
+    """
+    arenas = arena_cap(arenas)
     name = ctypes.util.find_library('c')
     if not name:
         return False
     try:
         libc = ctypes.CDLL(name)
-        return bool(libc.mallopt(M_ARENA_MAX, int(arenas)))
+        return bool(libc.mallopt(M_ARENA_MAX, arenas))
     except (OSError, AttributeError):   # musl or another libc without mallopt
         return False
 

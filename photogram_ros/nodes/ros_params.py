@@ -15,14 +15,16 @@ def declare(node: Node, cls, overrides: dict | None = None):
     """Declare every field of `cls` on `node` and return the validated dataclass.
 
     Overrides given to the node (params file, --ros-args -p) that name no field are errors: a
-    mistyped parameter must not silently fall back to its default.
+    mistyped parameter must not silently fall back to its default. Every parameter is read-only:
+    the node reads them once, so `ros2 param set` is refused with a reason instead of accepted
+    and ignored.
     """
     values = {}
     for f in fields_of(cls):
         default = f.default if f.default_factory is dataclasses.MISSING else f.default_factory()
         if overrides and f.name in overrides:
             default = overrides[f.name]
-        desc = ParameterDescriptor(description=f.metadata['description'])
+        desc = ParameterDescriptor(description=f.metadata['description'], read_only=True)
         lo, hi = f.metadata['min'], f.metadata['max']
         if isinstance(default, bool) or (lo is None and hi is None):
             pass

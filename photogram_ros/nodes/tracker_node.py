@@ -28,7 +28,7 @@ from sensor_msgs.msg import CameraInfo, CompressedImage, Image, NavSatFix, Point
 from photogram_ros import msgs
 from photogram_ros.core.camera import load_calibration
 from photogram_ros.core.control import ARUCO_DICTIONARIES, detect_keyframe_targets
-from photogram_ros.core.keyframes import GpsFix
+from photogram_ros.core.gnss_fix import GnssFix
 from photogram_ros.core.tracker import Tracker, TrackerParams
 from photogram_ros.errors import CalibrationError, PhotogramError
 from photogram_ros.nodes.diagnostics import ERROR, Diagnostics
@@ -121,7 +121,7 @@ class TrackerNode(Node):
 
     def _on_fix(self, msg: NavSatFix) -> None:
         try:
-            fix = GpsFix.from_dict(msgs.fix_from_navsatfix(msg))
+            fix = GnssFix.from_dict(msgs.fix_from_navsatfix(msg))
         except Exception as exc:   # a malformed fix must not stop the node
             self.diag.problem(f'bad NavSatFix: {exc}')
             return
@@ -202,7 +202,7 @@ class TrackerNode(Node):
         self.pub_image.publish(msgs.image_msg(kf.image, kf.stamp_ns, frame_id))
         self.pub_features.publish(msgs.keyframe_features_msg(kf.observations, kf.stamp_ns, frame_id, targets))
         if kf.fix is not None:
-            self.pub_fix.publish(msgs.navsatfix_from_gps_fix(kf.fix))
+            self.pub_fix.publish(msgs.navsatfix_from_gnss_fix(kf.fix))
         else:
             self.diag.count('keyframes_without_fix')
         self.keyframes_published += 1

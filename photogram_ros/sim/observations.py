@@ -14,7 +14,8 @@ import numpy as np
 
 from photogram_ros.core.camera import PinholeCamera
 from photogram_ros.core.geodesy import LocalFrame
-from photogram_ros.core.incremental import ControlPoint, GnssFix, KeyframeRecord, lever_arm_cam_from_frd
+from photogram_ros.core.gnss_fix import GnssFix
+from photogram_ros.core.incremental import ControlPoint, KeyframeRecord, lever_arm_cam_from_frd
 from photogram_ros.core.rotations import R_from_rotvec, invert_T, make_T, transform_points
 from photogram_ros.sim.gnss import GnssErrorModel, GnssScript
 from photogram_ros.sim.scenario import SimConfig, build_world
