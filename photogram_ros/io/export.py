@@ -307,6 +307,8 @@ class ExportResult:
     points: int = 0
     keyframes: int = 0
     notes: list = field(default_factory=list)
+    crs_with_heights: str = ''                  # the products' CRS, with its vertical part
+    classes: dict | None = None                 # LAS/PLY classes: ground, building, unclassified, buildings
 
 
 def export_map(map_dir: str | Path | MapStore, out_dir: str | Path, crs: str, heights: str = 'ellipsoidal',
@@ -329,12 +331,14 @@ def export_map(map_dir: str | Path | MapStore, out_dir: str | Path, crs: str, he
     cloud = map_cloud(fusion, origin, crs, heights, min_pairs)
     res.points = cloud.x.size
     vertical_crs, note = product_crs(crs, heights)
+    res.crs_with_heights = vertical_crs.name
     if note:
         res.notes.append(note)
-    classes = None
     if any(k in products for k in ('las', 'laz', 'ply')):
-        classes = classify_cloud(cloud)
-        res.notes += classes['notes']
+        c = classify_cloud(cloud)
+        res.notes += c['notes']
+        res.classes = {'ground': c['counts'].get(2, 0), 'building': c['counts'].get(6, 0),
+                       'unclassified': c['counts'].get(1, 0), 'buildings': c['buildings']}
     if 'las' in products:
         res.files['las'] = write_las(cloud, out / 'cloud.las')
     if 'laz' in products:
@@ -358,8 +362,7 @@ def export_map(map_dir: str | Path | MapStore, out_dir: str | Path, crs: str, he
             res.files['ortho'] = write_geotiff(ortho, out / 'ortho.tif', crs, 'orthomosaic RGBA', rgba=True)
     meta = {'crs': crs, 'heights': heights, 'origin': origin.to_dict(), 'points': res.points, 'min_pairs': min_pairs,
             'keyframes': res.keyframes, 'files': {k: str(v) for k, v in res.files.items()}, 'notes': res.notes,
-            'geoid': geoid.MODEL_NAME if heights == 'orthometric' else None, 'crs_with_heights': vertical_crs.name,
-            'classes': classes and {'ground': classes['counts'].get(2, 0), 'building': classes['counts'].get(6, 0),
-                                    'unclassified': classes['counts'].get(1, 0), 'buildings': classes['buildings']}}
+            'geoid': geoid.MODEL_NAME if heights == 'orthometric' else None, 'crs_with_heights': res.crs_with_heights,
+            'classes': res.classes}
     (out / 'export.json').write_text(json.dumps(meta, indent=1))
     return res

@@ -13,6 +13,9 @@ the pace protects it: one window per acknowledgement round trip (Fast DDS answer
 about 2,000 messages/s a topic with the default window of 10, slower than an rclpy callback takes
 them. The writer's history is the window itself (KEEP_LAST ack_window): its piggybacked heartbeat
 then asks for the acknowledgement at once; a KEEP_ALL writer waits for the periodic heartbeat (3 s).
+Now and then (one wait in thirty on a sparse topic beside a busy one) the acknowledgement still
+comes only with the periodic heartbeat although the subscriber has the messages: a wait ends after
+`ack_timeout_s` and the player goes on (counted as `late_acks`), which lost nothing in the tests.
 """
 
 from __future__ import annotations
@@ -34,6 +37,9 @@ from photogram_ros.nodes.ros_params import declare
 from photogram_ros.params import param
 
 
+END_ACK_TIMEOUT_S = 5.0     # rate 0: the last messages of the bag are waited for this long
+
+
 @dataclass
 class PlayerParams:
     bag: str = param('', 'Path of the rosbag2 folder (sqlite3 or MCAP) to play')
@@ -52,8 +58,10 @@ class PlayerParams:
                             'acknowledge them (about 5 ms a wait: 10 gives ~2,000 messages/s, which rclpy '
                             'subscribers keep up with; larger is faster and can overrun KEEP_LAST subscribers)',
                             min=1, max=100000)
-    ack_timeout_s: float = param(5.0, 'rate 0: longest wait for one window\'s acknowledgements, s (then the '
-                                 'player goes on and reports it)', min=0.01, max=3600.0)
+    ack_timeout_s: float = param(0.1, 'rate 0: longest wait for one window\'s acknowledgements before going on, s '
+                                 '(Fast DDS now and then answers only at its next periodic heartbeat, 3 s later, '
+                                 'although the subscriber has the messages); the end of the bag waits up to 5 s',
+                                 min=0.001, max=3600.0)
     discovery_s: float = param(3.5, 'rate 0: before playing, wait until the matched subscriptions have not changed '
                                'for this long, s (0.25 s once every topic has one), so subscribers that already '
                                'exist are matched (DDS discovery between processes takes up to 3 s here)',
@@ -146,17 +154,19 @@ class PlayerNode(Node):
                 break
         return counts
 
-    def _wait_acked(self, topic: str, pub) -> None:
+    def _wait_acked(self, topic: str, pub, at_end: bool = False) -> None:
         if pub.get_subscription_count() == 0:
             return
+        timeout = max(self.params.ack_timeout_s, END_ACK_TIMEOUT_S) if at_end else self.params.ack_timeout_s
         t0 = time.monotonic()
-        ok = pub.wait_for_all_acked(Duration(seconds=self.params.ack_timeout_s))
+        ok = pub.wait_for_all_acked(Duration(seconds=timeout))
         self.diag.count('ack_waits')
         self.diag.count('ack_wait_ms', int(1000 * (time.monotonic() - t0)))
         if not ok:
-            self.diag.count('ack_timeouts')
-            self.diag.problem(f'{topic}: a subscriber did not acknowledge {self.params.ack_window} messages within '
-                              f'{self.params.ack_timeout_s} s (it may have lost some)')
+            self.diag.count('late_acks')
+            if at_end:
+                self.diag.problem(f'{topic}: a subscriber did not acknowledge the last messages within {timeout} s '
+                                  '(it may have lost them)')
 
     def play(self, on_message=None, before_message=None) -> PlaySummary:
         """Play the bag to its end (or until stop_requested); returns what was published.
@@ -231,7 +241,7 @@ class PlayerNode(Node):
                 on_message(m)
         if p.rate == 0:
             for topic, pub in self._pubs.items():
-                self._wait_acked(topic, pub)
+                self._wait_acked(topic, pub, at_end=True)
 
 
 def _play(node) -> int:
