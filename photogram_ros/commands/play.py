@@ -17,7 +17,7 @@ def add_arguments(p) -> None:
     p.add_argument('--no-clock', action='store_true', help='do not publish /clock')
     p.add_argument('--wait-for-subscribers', type=int, default=0, help='wait for N subscribers before playing')
     p.add_argument('--ack-window', type=int, default=10,
-                   help='--rate 0: messages per topic between waits for the acknowledgements (about 2,000 messages/s '
+                   help='--rate 0: messages per topic between waits for the acknowledgements (1,000-2,000 messages/s '
                         'a topic with 10; larger is faster and can overrun KEEP_LAST subscribers)')
 
 

@@ -10,7 +10,7 @@ sends the first seconds of a bag to nobody), then publishes `ack_window` message
 until every subscriber has acknowledged them. A reliable KEEP_LAST subscriber keeps only its last
 `depth` unread messages and acknowledges what it stored, not what its callback took, so nothing but
 the pace protects it: one window per acknowledgement round trip (Fast DDS answers in about 5 ms) is
-about 2,000 messages/s a topic with the default window of 10, slower than an rclpy callback takes
+about 1,000-2,000 messages/s a topic with the default window of 10 (measured here), slower than an rclpy callback takes
 them. The writer's history is the window itself (KEEP_LAST ack_window): its piggybacked heartbeat
 then asks for the acknowledgement at once; a KEEP_ALL writer waits for the periodic heartbeat (3 s).
 Now and then (one wait in thirty on a sparse topic beside a busy one) the acknowledgement still
@@ -55,7 +55,7 @@ class PlayerParams:
                                       max=1000)
     wait_timeout_s: float = param(10.0, 'How long to wait for subscribers, s', min=0.0, max=3600.0)
     ack_window: int = param(10, 'rate 0: messages a topic publishes before waiting for every subscriber to '
-                            'acknowledge them (about 5 ms a wait: 10 gives ~2,000 messages/s, which rclpy '
+                            'acknowledge them (about 5 ms a wait: 10 gives 1,000-2,000 messages/s, which rclpy '
                             'subscribers keep up with; larger is faster and can overrun KEEP_LAST subscribers)',
                             min=1, max=100000)
     ack_timeout_s: float = param(0.1, 'rate 0: longest wait for one window\'s acknowledgements before going on, s '
