@@ -22,8 +22,11 @@ setup(
         ('share/ament_index/resource_index/packages', ['resource/' + package_name]),
         ('share/' + package_name, ['package.xml']),
         ('share/' + package_name + '/config', glob('config/*.yaml')),
+        ('share/' + package_name + '/launch', glob('launch/*.launch.py')),
     ],
     install_requires=['setuptools'],
+    # colcon runs pytest (not unittest, which finds no test here) only when pytest is a test dependency.
+    extras_require={'test': ['pytest']},
     zip_safe=True,
     maintainer='photogram_ros developers',
     maintainer_email='dev@photogram-ros.invalid',

@@ -1,4 +1,6 @@
-"""Exports open in laspy/rasterio with the right CRS and bounds; the orthomosaic puts targets where they are."""
+"""Exports open in laspy/rasterio with the right CRS (and its vertical datum) and bounds, the rasters as
+Cloud-Optimized GeoTIFFs with overviews, LAS points as valid single returns with classes; the
+orthomosaic puts targets where they are."""
 
 from __future__ import annotations
 
@@ -54,7 +56,8 @@ def test_las_laz_ply_carry_crs_and_bounds(map_dir, tmp_path, crs):
     for kind in ('las', 'laz'):
         las = laspy.read(res.files[kind])
         assert str(las.header.version) == '1.4'
-        assert las.header.parse_crs().equals(CRS.from_user_input(crs))
+        # The horizontal part is the CRS asked for (the vertical part: test_products_state_their_vertical_datum).
+        assert las.header.parse_crs().to_2d().equals(CRS.from_user_input(crs))
         assert las.header.global_encoding.wkt
         assert las.header.point_count == p['x'].size
         assert np.allclose(las.header.mins, [e.min(), n.min(), h.min()], rtol=0, atol=0.002)
@@ -80,7 +83,7 @@ def test_dsm_geotiff_crs_bounds_and_heights(map_dir, tmp_path, crs):
     p = open_map(map_dir)[1].points()
     e, n, _ = oracle_crs(np.column_stack([p['x'], p['y'], p['z']]), crs)
     with rasterio.open(ell.files['dsm']) as ds:
-        assert CRS.from_wkt(ds.crs.to_wkt()).equals(CRS.from_user_input(crs))
+        assert CRS.from_wkt(ds.crs.to_wkt()).to_2d().equals(CRS.from_user_input(crs))
         b = ds.bounds
         # The DSM's outer edges hold every map point, with less than one cell to spare.
         assert b.left <= e.min() < b.left + 0.16 and b.right - 0.16 < e.max() <= b.right
@@ -100,6 +103,88 @@ def test_dsm_geotiff_crs_bounds_and_heights(map_dir, tmp_path, crs):
     lat, lon = LAT + enu[1] / 111_200, LON + enu[0] / 75_200
     assert dsm[row, col] - msl[row, col] == pytest.approx(geoid.undulation_m(lat, lon), abs=0.01)
     assert 45 < dsm[row, col] - msl[row, col] < 50   # EGM2008 near Zurich
+
+
+def _crs_of_products(files) -> dict:
+    import laspy
+    import rasterio
+    from pyproj import CRS
+    out = {'las': laspy.read(files['las']).header.parse_crs()}
+    with rasterio.open(files['dsm']) as ds:
+        out['dsm'] = CRS.from_wkt(ds.crs.to_wkt())
+    return out
+
+
+def test_products_state_their_vertical_datum(map_dir, tmp_path):
+    """pyproj, on the CRS read back from the LAS (laspy) and the DSM (rasterio/GDAL), says what the heights are."""
+    import json
+    from pyproj import CRS
+    from photogram_ros.io.export import export_map
+    products = ('las', 'dsm')
+    ell = export_map(map_dir, tmp_path / 'ell', 'EPSG:32632', products=products)
+    for kind, c in _crs_of_products(ell.files).items():
+        assert c.is_projected and len(c.axis_info) == 3, kind
+        assert c.axis_info[2].name == 'Ellipsoidal height' and c.axis_info[2].direction == 'up', kind
+        assert 'World Geodetic System 1984' in c.datum.name, kind
+    msl = export_map(map_dir, tmp_path / 'msl', 'EPSG:32632', heights='orthometric', products=products)
+    for kind, c in _crs_of_products(msl.files).items():
+        assert c.is_compound, kind
+        horizontal, vertical = c.sub_crs_list
+        assert horizontal.equals(CRS.from_user_input('EPSG:32632')), kind
+        assert vertical.is_vertical and vertical.to_epsg() == 3855 and vertical.datum.name == 'EGM2008 geoid', kind
+    assert json.loads((tmp_path / 'msl' / 'export.json').read_text())['crs_with_heights'] == \
+        'WGS 84 / UTM zone 32N + EGM2008 height'
+    # LV95 is on CH1903+: no standard CRS says "WGS84 ellipsoidal heights" there, so the CRS stays 2D and a note says so.
+    lv95 = export_map(map_dir, tmp_path / 'lv95', 'EPSG:2056', products=products)
+    assert all(len(c.axis_info) == 2 for c in _crs_of_products(lv95.files).values())
+    assert any('cannot state' in n for n in lv95.notes)
+    lv95_msl = export_map(map_dir, tmp_path / 'lv95msl', 'EPSG:2056', heights='orthometric', products=products)
+    assert all(c.is_compound and c.sub_crs_list[1].to_epsg() == 3855 for c in _crs_of_products(lv95_msl.files).values())
+
+
+def _cog_layout(path) -> tuple[dict, list]:
+    import rasterio
+    with rasterio.open(path) as ds:
+        return ds.tags(ns='IMAGE_STRUCTURE'), [ds.overviews(b) for b in ds.indexes], ds.profile
+
+
+def test_rasters_are_cloud_optimized_geotiffs_with_overviews(map_dir, tmp_path):
+    from photogram_ros.core.raster import Raster
+    from photogram_ros.io.export import export_map, write_geotiff
+    res = export_map(map_dir, tmp_path / 'small', 'EPSG:32632', products=('dsm',))
+    tags, _, profile = _cog_layout(res.files['dsm'])
+    assert tags['LAYOUT'] == 'COG' and tags['COMPRESSION'] == 'DEFLATE' and profile['tiled']
+    # A map-sized raster: overviews by factors 2, 4, ... down to one 256-pixel tile, on every band.
+    rng = np.random.default_rng(1)
+    dsm = Raster(rng.normal(500, 5, (1500, 1100)).astype(np.float32), 465000.0, 5249000.0, 0.16)
+    dsm.data[:100, :100] = dsm.nodata
+    tags, overviews, profile = _cog_layout(write_geotiff(dsm, tmp_path / 'dsm.tif', 'EPSG:32632', 'DSM',
+                                                          heights='ellipsoidal'))
+    assert tags['LAYOUT'] == 'COG' and overviews == [[2, 4, 8]]
+    assert (profile['blockxsize'], profile['blockysize']) == (256, 256) and profile['nodata'] == -9999.0
+    rgba = Raster(rng.integers(0, 255, (2100, 1500, 4), dtype=np.uint8), 465000.0, 5249000.0, 0.08, None)
+    tags, overviews, _ = _cog_layout(write_geotiff(rgba, tmp_path / 'ortho.tif', 'EPSG:32632', rgba=True))
+    assert tags['LAYOUT'] == 'COG' and overviews == [[2, 4, 8, 16]] * 4     # 2100 px / 16 < 256
+    import rasterio
+    with rasterio.open(tmp_path / 'ortho.tif') as ds:
+        assert [c.name for c in ds.colorinterp] == ['red', 'green', 'blue', 'alpha']
+        assert np.array_equal(ds.read(4), rgba.data[:, :, 3])    # lossless
+
+
+def test_las_points_are_single_returns_with_classes(map_dir, tmp_path):
+    import laspy
+    from photogram_ros.io.export import export_map, read_ply
+    res = export_map(map_dir, tmp_path, 'EPSG:32632', products=('las', 'ply'))
+    las = laspy.read(res.files['las'])
+    n = las.header.point_count
+    assert np.all(las.return_number == 1) and np.all(las.number_of_returns == 1)
+    assert las.header.number_of_points_by_return[0] == n and sum(las.header.number_of_points_by_return[1:]) == 0
+    classes = np.asarray(las.classification)
+    assert set(np.unique(classes)) <= {1, 2, 6}
+    # The test surface is bare, smooth ground (a 4 % slope with 0.5 m undulations): all of it ground.
+    assert (classes == 2).mean() > 0.99
+    v, _ = read_ply(res.files['ply'])
+    assert np.array_equal(np.sort(v['classification']), np.sort(classes))
 
 
 # --- orthomosaic against the simulator's truth -------------------------------------------------

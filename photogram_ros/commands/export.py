@@ -59,7 +59,11 @@ def run(a) -> int:
         store = d.store
     res = export_map(store, a.out, a.crs, a.heights, a.dsm_res_m, a.ortho_res_m, products, origin,
                      min_pairs=a.min_pairs)
-    print(f'{res.points} points, {res.keyframes} keyframes -> {a.out} ({a.crs}, {a.heights} heights)')
+    print(f'{res.points} points, {res.keyframes} keyframes -> {a.out} ({res.crs_with_heights}, {a.heights} heights)')
+    if res.classes:
+        c = res.classes
+        print(f'  classes: {c["ground"]} ground, {c["building"]} building ({c["buildings"]} buildings), '
+              f'{c["unclassified"]} unclassified')
     for k, v in res.files.items():
         print(f'  {k}: {v}')
     for n in res.notes:

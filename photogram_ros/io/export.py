@@ -3,8 +3,14 @@
 Map ENU coordinates go to WGS84 through the map's LocalFrame, then to the requested CRS with pyproj
 (easting, northing). Heights are WGS84 ellipsoidal by default; `heights='orthometric'` gives
 heights above the EGM2008 geoid instead. Only the horizontal part of the CRS is taken from PROJ,
-so a datum shift between WGS84 and e.g. CH1903+ never changes the height reference silently; the
-vertical reference is stated in the LAS/GeoTIFF metadata.
+so a datum shift between WGS84 and e.g. CH1903+ never changes the height reference silently. The
+products carry their vertical reference in their CRS (`product_crs`), where GDAL, PDAL and QGIS read
+it: EGM2008 heights as a compound CRS (e.g. EPSG:32632+3855), ellipsoidal heights as the projected
+CRS promoted to 3D when its datum is WGS84's (a CRS on another datum, e.g. CH1903+, has no standard
+way to say "WGS84 ellipsoidal heights": it stays 2D and export.json notes it).
+
+LAS/LAZ points are classified (core.ground: 2 ground, 6 building, 1 the rest) with return 1 of 1.
+Rasters are Cloud-Optimized GeoTIFFs (GDAL's COG driver: tiled, deflate, overviews).
 
 Rasters are built in the output CRS's own grid (north-up in that CRS), so GIS tools need no
 reprojection: the DSM from the fused cells' CRS coordinates, the orthomosaic by mapping each of
@@ -21,6 +27,7 @@ import numpy as np
 
 from photogram_ros.core import geoid
 from photogram_ros.core.fusion import Fusion, FusionConfig
+from photogram_ros.core.ground import GroundParams, classify_points
 from photogram_ros.core.geodesy import LocalFrame, crs_to_geodetic, crs_wkt, geodetic_to_crs
 from photogram_ros.core.raster import Keyframe, Raster, dsm_from_points, orthomosaic
 from photogram_ros.errors import DataError, GeodesyError
@@ -41,6 +48,7 @@ class GeoCloud:
     crs: str
     heights: str
     sigma_z: np.ndarray | None = None   # height spread of the points fused in each cell, m
+    classes: np.ndarray | None = None   # ASPRS class per point (core.ground); None: not classified (1)
 
 
 # --- coordinates -----------------------------------------------------------------------------------
@@ -61,6 +69,30 @@ def crs_to_enu(origin: LocalFrame, e, n, h_ellipsoidal, crs: str) -> np.ndarray:
     """Easting, northing in `crs` with WGS84 ellipsoidal heights -> (N, 3) map ENU."""
     lat, lon, _ = crs_to_geodetic(e, n, np.zeros_like(np.asarray(e, float)), crs)
     return origin.geodetic_to_enu(lat, lon, np.asarray(h_ellipsoidal, float))
+
+
+EGM2008_HEIGHT = 'EPSG:3855'
+
+
+def product_crs(crs: str, heights: str):
+    """(pyproj CRS with the products' vertical reference, note or '') for a projected `crs`.
+
+    orthometric: compound with EGM2008 height; ellipsoidal: the CRS promoted to 3D (ellipsoidal
+    height axis) when its datum is WGS84, else the 2D CRS and a note saying why.
+    """
+    from pyproj import CRS
+    from pyproj.crs import CompoundCRS
+    if heights not in HEIGHTS:
+        raise GeodesyError(f'heights must be one of {HEIGHTS}, not {heights!r}')
+    c = CRS.from_user_input(crs)
+    horizontal = c.sub_crs_list[0] if c.is_compound else c.to_2d()
+    if heights == 'orthometric':
+        vertical = CRS.from_user_input(EGM2008_HEIGHT)
+        return CompoundCRS(f'{horizontal.name} + {vertical.name}', [horizontal, vertical]), ''
+    if 'World Geodetic System 1984' in (horizontal.datum.name if horizontal.datum else ''):
+        return horizontal.to_3d(), ''
+    return horizontal, (f'heights are WGS84 ellipsoidal, which a CRS on the {horizontal.datum.name} datum cannot '
+                        'state: the products\' CRS is 2D (--heights orthometric gives a compound CRS with EGM2008)')
 
 
 def _check_projected(crs: str) -> None:
@@ -96,24 +128,37 @@ def map_cloud(fusion: Fusion, origin: LocalFrame, crs: str, heights: str = 'elli
                     p['confidence'].astype(np.float32), crs, heights, p['sigma_z'].astype(np.float32))
 
 
+def classify_cloud(cloud: GeoCloud, p: GroundParams | None = None) -> dict:
+    """Set cloud.classes (ground / building / unclassified, core.ground) and return the class counts."""
+    c = classify_points(cloud.x, cloud.y, cloud.z, p)
+    cloud.classes = c.classes
+    return {'counts': c.counts(), 'buildings': c.buildings, 'notes': c.notes}
+
+
 # --- point clouds ----------------------------------------------------------------------------------
 
 
 def write_las(cloud: GeoCloud, path: str | Path) -> Path:
-    """LAS 1.4 point format 7 (RGB), CRS as an OGC WKT VLR; .laz compresses (lazrs)."""
+    """LAS 1.4 point format 7 (RGB), CRS with its vertical part as an OGC WKT VLR; .laz compresses (lazrs).
+
+    Every point is return 1 of 1 (a photogrammetric point is the only return of its ray; 0 is invalid
+    in LAS 1.4) with its class from cloud.classes (1, unclassified, when not classified).
+    """
     import laspy
-    from pyproj import CRS
     path = Path(path)
     header = laspy.LasHeader(point_format=7, version='1.4')
     header.offsets = [np.floor(cloud.x.min()), np.floor(cloud.y.min()), np.floor(cloud.z.min())]
     header.scales = [0.001, 0.001, 0.001]
-    header.add_crs(CRS.from_user_input(cloud.crs))
+    header.add_crs(product_crs(cloud.crs, cloud.heights)[0])
     header.add_extra_dims([laspy.ExtraBytesParams('observations', np.uint32, 'points fused in the cell'),
                            laspy.ExtraBytesParams('confidence', np.float32, 'mean stereo confidence')])
     header.generating_software = 'photogram_ros'
     header.system_identifier = f'heights: {cloud.heights}'[:32]
     las = laspy.LasData(header)
     las.x, las.y, las.z = cloud.x, cloud.y, cloud.z
+    las.return_number = np.ones(cloud.x.size, np.uint8)
+    las.number_of_returns = np.ones(cloud.x.size, np.uint8)
+    las.classification = cloud.classes if cloud.classes is not None else np.ones(cloud.x.size, np.uint8)
     # LAS colour is 16-bit: scale 0..255 to 0..65535 as GIS tools expect.
     las.red = cloud.rgb[:, 0].astype(np.uint16) * 257
     las.green = cloud.rgb[:, 1].astype(np.uint16) * 257
@@ -126,7 +171,7 @@ def write_las(cloud: GeoCloud, path: str | Path) -> Path:
 
 _PLY_FIELDS = [('x', '<f8', 'double'), ('y', '<f8', 'double'), ('z', '<f8', 'double'),
                ('red', 'u1', 'uchar'), ('green', 'u1', 'uchar'), ('blue', 'u1', 'uchar'),
-               ('confidence', '<f4', 'float'), ('observations', '<u4', 'uint')]
+               ('confidence', '<f4', 'float'), ('observations', '<u4', 'uint'), ('classification', 'u1', 'uchar')]
 _PLY_TYPES = {'char': 'i1', 'uchar': 'u1', 'short': '<i2', 'ushort': '<u2', 'int': '<i4', 'uint': '<u4',
               'float': '<f4', 'double': '<f8', 'int8': 'i1', 'uint8': 'u1', 'int16': '<i2', 'uint16': '<u2',
               'int32': '<i4', 'uint32': '<u4', 'float32': '<f4', 'float64': '<f8'}
@@ -139,6 +184,7 @@ def write_ply(cloud: GeoCloud, path: str | Path) -> Path:
     arr['x'], arr['y'], arr['z'] = cloud.x, cloud.y, cloud.z
     arr['red'], arr['green'], arr['blue'] = cloud.rgb[:, 0], cloud.rgb[:, 1], cloud.rgb[:, 2]
     arr['confidence'], arr['observations'] = cloud.confidence, cloud.count
+    arr['classification'] = cloud.classes if cloud.classes is not None else 1
     lines = ['ply', 'format binary_little_endian 1.0', 'comment generated by photogram_ros',
              f'comment crs {cloud.crs}', f'comment heights {cloud.heights}', f'element vertex {arr.size}']
     lines += [f'property {ply} {n}' for n, _, ply in _PLY_FIELDS] + ['end_header']
@@ -178,20 +224,33 @@ def read_ply(path: str | Path) -> tuple[np.ndarray, list[str]]:
 # --- rasters ---------------------------------------------------------------------------------------
 
 
-def write_geotiff(r: Raster, path: str | Path, crs: str, description: str = '', rgba: bool = False) -> Path:
+COG_BLOCK_PX = 256
+
+
+def write_geotiff(r: Raster, path: str | Path, crs: str, description: str = '', rgba: bool = False,
+                  heights: str | None = None) -> Path:
+    """A Cloud-Optimized GeoTIFF (GDAL's COG driver: 256-px tiles, deflate, overviews down to one tile).
+
+    `heights` names the vertical reference of a raster of heights (the DSM): its CRS then says it
+    (product_crs); None writes the 2D CRS (the orthomosaic). Overviews average (no-data and alpha aware).
+    """
     import rasterio
     from rasterio.crs import CRS
+    from rasterio.enums import ColorInterp
     from rasterio.transform import from_origin
     path = Path(path)
     data = r.data
     bands = data.shape[2] if data.ndim == 3 else 1
-    profile = dict(driver='GTiff', width=r.shape[1], height=r.shape[0], count=bands, dtype=data.dtype,
-                   crs=CRS.from_wkt(crs_wkt(crs)), transform=from_origin(r.x0_m, r.y1_m, r.res_m, r.res_m),
-                   compress='deflate', tiled=True, blockxsize=256, blockysize=256)
+    if heights is None:
+        wkt = crs_wkt(crs)
+    else:
+        wkt = product_crs(crs, heights)[0].to_wkt()
+    profile = dict(driver='COG', width=r.shape[1], height=r.shape[0], count=bands, dtype=data.dtype,
+                   crs=CRS.from_wkt(wkt), transform=from_origin(r.x0_m, r.y1_m, r.res_m, r.res_m),
+                   compress='deflate', predictor='yes', blocksize=COG_BLOCK_PX, overviews='auto',
+                   resampling='average', bigtiff='if_safer')
     if r.nodata is not None and not rgba:
         profile['nodata'] = r.nodata
-    if rgba:
-        profile['photometric'] = 'RGB'
     with rasterio.open(path, 'w', **profile) as ds:
         if data.ndim == 2:
             ds.write(data, 1)
@@ -199,8 +258,9 @@ def write_geotiff(r: Raster, path: str | Path, crs: str, description: str = '', 
             for b in range(bands):
                 ds.write(data[:, :, b], b + 1)
         if rgba:
-            from rasterio.enums import ColorInterp
             ds.colorinterp = [ColorInterp.red, ColorInterp.green, ColorInterp.blue, ColorInterp.alpha]
+        elif heights is not None:
+            ds.units = ('metre',)
         if description:
             ds.update_tags(DESCRIPTION=description)
     return path
@@ -247,6 +307,8 @@ class ExportResult:
     points: int = 0
     keyframes: int = 0
     notes: list = field(default_factory=list)
+    crs_with_heights: str = ''                  # the products' CRS, with its vertical part
+    classes: dict | None = None                 # LAS/PLY classes: ground, building, unclassified, buildings
 
 
 def export_map(map_dir: str | Path | MapStore, out_dir: str | Path, crs: str, heights: str = 'ellipsoidal',
@@ -268,6 +330,15 @@ def export_map(map_dir: str | Path | MapStore, out_dir: str | Path, crs: str, he
     res = ExportResult()
     cloud = map_cloud(fusion, origin, crs, heights, min_pairs)
     res.points = cloud.x.size
+    vertical_crs, note = product_crs(crs, heights)
+    res.crs_with_heights = vertical_crs.name
+    if note:
+        res.notes.append(note)
+    if any(k in products for k in ('las', 'laz', 'ply')):
+        c = classify_cloud(cloud)
+        res.notes += c['notes']
+        res.classes = {'ground': c['counts'].get(2, 0), 'building': c['counts'].get(6, 0),
+                       'unclassified': c['counts'].get(1, 0), 'buildings': c['buildings']}
     if 'las' in products:
         res.files['las'] = write_las(cloud, out / 'cloud.las')
     if 'laz' in products:
@@ -278,7 +349,7 @@ def export_map(map_dir: str | Path | MapStore, out_dir: str | Path, crs: str, he
     if 'dsm' in products or 'ortho' in products:
         dsm = dsm_in_crs(cloud, dsm_res)
         if 'dsm' in products:
-            res.files['dsm'] = write_geotiff(dsm, out / 'dsm.tif', crs, f'DSM, {heights} heights (m)')
+            res.files['dsm'] = write_geotiff(dsm, out / 'dsm.tif', crs, f'DSM, {heights} heights (m)', heights=heights)
     if 'ortho' in products:
         kfs = load_keyframes(store)
         res.keyframes = len(kfs)
@@ -291,6 +362,7 @@ def export_map(map_dir: str | Path | MapStore, out_dir: str | Path, crs: str, he
             res.files['ortho'] = write_geotiff(ortho, out / 'ortho.tif', crs, 'orthomosaic RGBA', rgba=True)
     meta = {'crs': crs, 'heights': heights, 'origin': origin.to_dict(), 'points': res.points, 'min_pairs': min_pairs,
             'keyframes': res.keyframes, 'files': {k: str(v) for k, v in res.files.items()}, 'notes': res.notes,
-            'geoid': geoid.MODEL_NAME if heights == 'orthometric' else None}
+            'geoid': geoid.MODEL_NAME if heights == 'orthometric' else None, 'crs_with_heights': res.crs_with_heights,
+            'classes': res.classes}
     (out / 'export.json').write_text(json.dumps(meta, indent=1))
     return res
