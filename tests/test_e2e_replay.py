@@ -15,6 +15,7 @@ import sys
 
 import laspy
 import pytest
+import pyproj
 import rasterio
 
 from conftest import ROOT
@@ -38,9 +39,10 @@ def test_products_exist_with_crs_and_bounds(replay):
                  'trajectory.csv', 'trajectory.geojson'):
         assert (out / name).stat().st_size > 0, name
     las = laspy.read(out / 'cloud.laz')
-    assert las.header.parse_crs().to_epsg() == 32632
+    las_crs = las.header.parse_crs()
+    assert las_crs.to_2d().to_epsg() == 32632 and las_crs.axis_info[2].direction == 'up'   # heights in the CRS
     with rasterio.open(out / 'dsm.tif') as ds:
-        assert ds.crs.to_epsg() == 32632
+        assert pyproj.CRS.from_wkt(ds.crs.to_wkt()).to_2d().to_epsg() == 32632
         b = ds.bounds
     # The sample flies around 47.3977 N, 8.5456 E: UTM 32N easting ~ 465 km, northing ~ 5249 km.
     assert 464_000 < b.left < b.right < 466_500 and 5_248_000 < b.bottom < b.top < 5_250_500
