@@ -233,17 +233,31 @@ def run_replay(opts: ReplayOptions, context=None) -> dict:
     try:
         summary = player.play(on_message=on_message, before_message=before_message)
         drain()
-        graph.finish_flight(settle=drain)
+        end = graph.finish_flight(settle=drain)
         wall_s = time.monotonic() - t_start
     finally:   # whatever happened, the map node flushes what it fused
         graph.shutdown()
         player.destroy_node()
         listener.destroy_node()
+    _record_flight_end(map_dir, end.as_dict())
     run = {'bag': str(opts.bag), 'frames': images_sent[0], 'bag_s': summary.bag_s, 'wall_s': wall_s,
            'real_time_factor': summary.bag_s / max(wall_s, 1e-9), 'messages': summary.total,
            'bag_errors': summary.errors, 'skipped_topics': summary.skipped,
-           'waited_for_downstream_s': round(lag_wait_s[0], 1)}
-    return {'run': run, 'diagnostics': diag_log.snapshot(), 'map_dir': str(map_dir)}
+           'waited_for_downstream_s': round(lag_wait_s[0], 1), 'bag_read': summary.read,
+           'final_adjustment': end.final_adjustment, 'end_of_flight_errors': end.errors}
+    if end.reason:
+        run['final_adjustment_reason'] = end.reason
+    return {'run': run, 'diagnostics': diag_log.snapshot(), 'map_dir': str(map_dir), 'flight_end': end}
+
+
+def _record_flight_end(map_dir: Path, end: dict) -> None:
+    """flight_end.json in the map folder (after the map node is gone: it writes map.json itself)."""
+    from photogram_ros.errors import PhotogramError
+    from photogram_ros.io.map_store import MapStore
+    try:
+        MapStore(map_dir).save_flight_end(end)
+    except (PhotogramError, OSError) as exc:
+        print(f'note: {map_dir} could not record how the flight ended: {exc}', flush=True)
 
 
 def _print_progress(graph: Graph, frames: int, stamp_ns: int, t_start: float) -> None:
