@@ -81,7 +81,7 @@ def export_products(map_dir, out, params_file: str | None, crs: str = '', live_m
     from pathlib import Path
 
     from photogram_ros.core.geodesy import utm_epsg
-    from photogram_ros.errors import PhotogramError
+    from photogram_ros.errors import PhotogramError, StorageError
     from photogram_ros.io.export import export_map
     from photogram_ros.io.flight_report import build_report
     from photogram_ros.io.map_store import MapStore
@@ -106,13 +106,22 @@ def export_products(map_dir, out, params_file: str | None, crs: str = '', live_m
             d = densify_with_params(store, out / 'map_final', params_file, progress=progress)
             products = d.store
             run.update(densify_s=round(d.seconds, 2), densify_pairs=d.pairs_done)
+        except StorageError:   # a full disk: exporting next would fail the same way
+            raise
         except PhotogramError as exc:
             notes.append(f'products from the in-flight map: dense matching from the final poses failed ({exc})')
     source, source_notes = _products_from(end, products is not store)
     run['products_from'] = source
     notes += source_notes
-    ex = export_map(products, out, crs, heights, min_pairs=min_pairs)
-    files = {k: str(v) for k, v in ex.files.items()}
-    run['map_points'] = ex.points
-    figures = build_report(out, products, crs, files, run=run, **report)
+    try:
+        ex = export_map(products, out, crs, heights, min_pairs=min_pairs)
+        files = {k: str(v) for k, v in ex.files.items()}
+        run['map_points'] = ex.points
+        figures = build_report(out, products, crs, files, run=run, **report)
+    except StorageError:
+        raise
+    except OSError as exc:   # a full disk, a folder gone: what to do about it, not a traceback
+        raise StorageError(f'the products could not be written to {out} ({exc.strerror or exc}); the map is '
+                           f'safe in {map_dir if not isinstance(map_dir, MapStore) else map_dir.root}: free space '
+                           'and run photogram-ros export MAPDIR --densify', exc.errno) from exc
     return {'files': files, 'notes': notes + ex.notes, 'crs': crs, 'figures': figures, 'points': ex.points}
