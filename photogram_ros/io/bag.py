@@ -68,8 +68,21 @@ def msgtype_of(msg) -> str:
     return f'{module[0]}/msg/{type(msg).__name__}'
 
 
+def bag_qos(profile):
+    """An rclpy QoSProfile -> the rosbags Qos that rosbag2 records as a topic's offered_qos_profiles."""
+    from rosbags.interfaces import Qos, QosDurability, QosHistory, QosLiveliness, QosReliability, QosTime
+
+    def t(d):
+        ns = int(d.nanoseconds)
+        return QosTime(ns // 1_000_000_000, ns % 1_000_000_000)
+    return Qos(QosHistory(int(profile.history)), int(profile.depth), QosReliability(int(profile.reliability)),
+               QosDurability(int(profile.durability)), t(profile.deadline), t(profile.lifespan),
+               QosLiveliness(int(profile.liveliness)), t(profile.liveliness_lease_duration),
+               bool(profile.avoid_ros_namespace_conventions))
+
+
 class BagWriter:
-    """Writes rclpy messages to a rosbag2 (sqlite3 by default, or MCAP)."""
+    """Writes rclpy messages to a rosbag2 (sqlite3 by default, or MCAP, ROS 2 Jazzy's default)."""
 
     def __init__(self, path: str | Path, storage: str = 'sqlite3'):
         from rosbags.rosbag2 import StoragePlugin, Writer
@@ -92,15 +105,17 @@ class BagWriter:
     def __exit__(self, *exc) -> None:
         self._writer.close()
 
-    def add_topic(self, topic: str, msgtype: str, msgdef: str | None = None) -> None:
+    def add_topic(self, topic: str, msgtype: str, msgdef: str | None = None, qos=()) -> None:
+        """`qos`: the publishers' rclpy QoSProfiles, recorded as the topic's offered_qos_profiles (rosbag2
+        play offers the same ones again)."""
         if topic in self._connections:
             return
-        kwargs = {'typestore': self._typestore}
+        kwargs = {'typestore': self._typestore, 'offered_qos_profiles': [bag_qos(q) for q in qos]}
         if msgtype not in self._typestore.fielddefs:
             if msgdef is None:
                 raise BagError(f'message type {msgtype!r} of topic {topic} is not in the ROS 2 Jazzy '
                                'type store and no definition was given')
-            kwargs = {'msgdef': msgdef, 'rihs01': ''}
+            kwargs = {'msgdef': msgdef, 'rihs01': '', 'offered_qos_profiles': kwargs['offered_qos_profiles']}
         self._connections[topic] = self._writer.add_connection(topic, msgtype, **kwargs)
 
     def write(self, topic: str, stamp_ns: int, msg) -> None:
