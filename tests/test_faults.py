@@ -310,7 +310,8 @@ def test_kill_9_of_run_corrupts_nothing_on_disk(tmp_path, tiny_flight):
     store = MapStore(tmp_path / 'map')
     assert store.tile_keys() and all(store.load_tile(k) is not None for k in store.tile_keys())
     assert not list((tmp_path / 'map').rglob('*.tmp'))
-    res = cli('export', tmp_path / 'map', '--crs', 'EPSG:32632', '--out', tmp_path / 'out', timeout=600)
+    res = cli('export', tmp_path / 'map', '--crs', 'EPSG:32632', '--out', tmp_path / 'out', '--min-pairs', '1',
+              timeout=600)
     assert res.returncode == 0, res.stderr
 
 

@@ -38,6 +38,9 @@ def check_output_crs(crs: str) -> None:
 
 def _products_from(end: dict | None, matched_again: bool) -> tuple[str, list]:
     """What the report says the products come from, and a note when the final adjustment is missing."""
+    if end is not None and end.get('final_adjustment') == 'unknown':   # run --separate: bundle_node's own exit
+        return ('final adjustment (map_final; bundle_node adjusts at its own exit, not checked with --separate)'
+                if matched_again else 'in-flight map (map)'), []
     if end is not None and end.get('final_adjustment') not in ('done', None):
         why = end.get('reason') or end['final_adjustment']
         what = 'in-flight poses' + (', matched again (map_final)' if matched_again else ' (map)')

@@ -86,7 +86,7 @@ def _run_separate(a, spec, signals) -> int:
             rcs.append(p.wait())
     failed = [f'{r} exited with status {rc}' for r, rc in zip(spec.roles, rcs) if rc]
     end = {'final_adjustment': 'unknown' if 'bundle' in spec.roles else 'none',
-           'reason': 'bundle_node adjusts at its own exit (--separate)', 'errors': failed}
+           'reason': 'run --separate: bundle_node adjusts at its own exit', 'errors': failed}
     return _after_flight(a, spec.roles, end)
 
 
