@@ -24,6 +24,7 @@ import numpy as np
 import pytest
 
 from conftest import ROOT, SAMPLE_BAG, shared_data
+from test_mavlink_node import _free_udp_port
 
 CLI = [sys.executable, '-m', 'photogram_ros.cli']
 
@@ -489,16 +490,8 @@ def test_poisoned_time_is_refused_and_said():
     assert 'outside 2000-2100' in text and 'not a reboot' in text and 'ignored unless it repeats' in text
 
 
-def _udp_port() -> int:
-    s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-    s.bind(('127.0.0.1', 0))
-    port = s.getsockname()[1]
-    s.close()
-    return port
-
-
 def _fixes_over_udp(datagrams, duration_s=10.0):
-    port = _udp_port()
+    port = _free_udp_port()
     proc = subprocess.Popen(CLI + ['fixes', f'udpin:127.0.0.1:{port}', '--duration', str(duration_s), '--format',
                                    'jsonl'], cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     deadline = time.monotonic() + 30   # until the link's socket is bound (the command starts in seconds)
