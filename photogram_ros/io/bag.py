@@ -173,7 +173,7 @@ class BagReader:
         return sorted(self.path.glob(f'*{suffix}'))
 
     def _open(self) -> str:
-        from photogram_ros.io.bag_storage import SqliteFile, _Unreadable
+        from photogram_ros.io.bag_storage import SqliteFile, UnreadableStorage
         meta = self.metadata
         if self.path.is_file() and self.path.suffix == '.bag':
             self._ros1 = _Ros1(self.path)
@@ -186,7 +186,7 @@ class BagReader:
                 expected = meta.file_counts.get(db.name) if meta is not None else None
                 try:
                     self._files.append(SqliteFile(db, expected))
-                except (_Unreadable, sqlite3.DatabaseError) as exc:
+                except (UnreadableStorage, sqlite3.DatabaseError) as exc:
                     why.append(str(exc))
             if not self._files:
                 raise BagError(f'{self.path} is not a readable rosbag2 (sqlite3): {"; ".join(why)}')

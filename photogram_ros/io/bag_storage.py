@@ -66,14 +66,6 @@ def read_metadata(folder: Path) -> tuple[Metadata | None, str]:
         return None, f'metadata.yaml is unreadable ({type(exc).__name__}: {why}): nothing to compare the counts with'
 
 
-@dataclass
-class Row:
-    topic: str
-    msgtype: str
-    stamp_ns: int
-    data: bytes
-
-
 def _connect(path: Path) -> sqlite3.Connection:
     # immutable: no locks and no journal (read-only media, a file another process still writes);
     # writable_schema: SQLite then opens a file shorter than its header says instead of refusing it.
@@ -101,7 +93,7 @@ class SqliteFile:
             for tid, name, mtype, q in con.execute(f'SELECT id, name, type, {qos} FROM topics'):
                 self.topics[tid] = (name, mtype, q or '')
         except sqlite3.DatabaseError as exc:
-            raise _Unreadable(f'{self.path.name}: its topics table is unreadable ({exc})') from exc
+            raise UnreadableStorage(f'{self.path.name}: its topics table is unreadable ({exc})') from exc
         finally:
             con.close()
 
@@ -234,7 +226,7 @@ class SqliteFile:
                 self.problems.append(f'{self.path.name}: the data of {unreadable} messages is unreadable')
 
 
-class _Unreadable(Exception):
+class UnreadableStorage(Exception):
     """A storage file from which nothing at all can be read."""
 
 

@@ -345,17 +345,21 @@ class ChildGraph:
 
     def stop(self, timeout_s: float = 120.0) -> int:
         """Ask the child to destroy its nodes (the map flushes) and end; SIGTERM, then kill, if it does not."""
-        if self.proc.poll() is None:
-            self._send(stop=True)
-            try:
-                return self.proc.wait(timeout=timeout_s)
-            except subprocess.TimeoutExpired:
-                self.proc.send_signal(signal.SIGTERM)
+        try:
+            if self.proc.poll() is None:
+                self._send(stop=True)
                 try:
-                    return self.proc.wait(timeout=30)
+                    return self.proc.wait(timeout=timeout_s)
                 except subprocess.TimeoutExpired:
-                    self.proc.kill()
-        return self.proc.wait()
+                    self.proc.send_signal(signal.SIGTERM)
+                    try:
+                        return self.proc.wait(timeout=30)
+                    except subprocess.TimeoutExpired:
+                        self.proc.kill()
+            return self.proc.wait()
+        finally:
+            if self.proc.stdin is not None:
+                self.proc.stdin.close()
 
 
 def child_main(argv=None) -> int:
