@@ -148,9 +148,8 @@ class BagReader:
         self.warnings: list[str] = []
         if not self.path.exists():
             raise BagError(f'{self.path} does not exist')
-        folder = self.path if self.path.is_dir() else self.path.parent
-        self.metadata, why = read_metadata(folder) if self.path.is_dir() else (None, '')
-        if why and self.path.is_dir():
+        self.metadata, why = read_metadata(self.path) if self.path.is_dir() else (None, '')
+        if why:
             self.warnings.append(why)
         self._files, self._rosbags, self._scan, self._ros1 = [], None, None, None
         self.storage = self._open()
@@ -165,8 +164,9 @@ class BagReader:
         if self.metadata is not None and self.metadata.files:
             listed = [self.path / Path(f).name for f in self.metadata.files]
             missing = [p.name for p in listed if not p.exists()]
-            if missing:
-                self.errors.append(f'{self.path.name}: storage files missing: {missing}')
+            note = f'{self.path.name}: storage files missing: {missing}'
+            if missing and note not in self.errors:
+                self.errors.append(note)
             listed = [p for p in listed if p.exists() and p.suffix == suffix]
             if listed:
                 return listed
