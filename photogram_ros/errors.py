@@ -31,3 +31,12 @@ class GeodesyError(PhotogramError):
 
 class DataError(PhotogramError):
     """Input data (images, fixes, GCP files, point clouds) is malformed or out of range."""
+
+
+class StorageError(PhotogramError, OSError):
+    """A file cannot be written (a full disk, a read-only or missing folder). It is an OSError too,
+    so code that handles failed writes handles it; `errno` is the system's."""
+
+    def __init__(self, message: str, errno: int | None = None):
+        super().__init__(message)
+        self.errno = errno

@@ -89,5 +89,5 @@ def test_fixes_bad_input_is_an_error(tmp_path, capsys):
     assert main(['fixes', str(tmp_path / 'missing.tlog')]) == 2
     junk = tmp_path / 'junk.tlog'
     junk.write_bytes(np.random.default_rng(0).integers(0, 256, 20000, dtype=np.uint8).tobytes())
-    assert main(['fixes', str(junk)]) == 0
-    assert '0 fixes' in capsys.readouterr().err
+    assert main(['fixes', str(junk)]) == 2
+    assert 'holds no MAVLink' in capsys.readouterr().err

@@ -78,9 +78,9 @@ def test_choose_best_receiver():
 # --- time sync -----------------------------------------------------------------------------------
 
 
-def _drifting_clock(seed=0, n=600, drift_ppm=5.0, boot_unix=1000.0):
+def _drifting_clock(seed=0, n=600, drift_ppm=5.0, boot_unix=1_700_001_000.0):
     rng = np.random.default_rng(seed)
-    t_unix = 2000.0 + np.arange(n) + rng.uniform(0, 0.5, n)
+    t_unix = 1_700_002_000.0 + np.arange(n) + rng.uniform(0, 0.5, n)   # a plausible UNIX time (2023)
     boot = (t_unix - boot_unix) * (1 + drift_ppm * 1e-6)
     return t_unix, boot, rng
 
@@ -118,15 +118,41 @@ def test_lower_envelope_exact_line():
 
 
 def test_clock_outlier_jump_and_reboot():
+    T = 1_700_000_000.0
     clk = BootClock()
     for k in range(30):
-        clk.add_system_time(10_000 + 1000 * k, int((500.0 + k) * 1e6))
-    assert clk.add_system_time(40_000, int((530.0 + 7.0) * 1e6)) == 'outlier'     # one wild pair
-    assert clk.to_time(40.0) == pytest.approx(530.0 - 0.0005, abs=1e-3)
-    events = [clk.add_system_time(41_000 + 1000 * k, int((631.0 + k) * 1e6)) for k in range(3)]
-    assert events[-1] == 'jump' and clk.to_time(45.0) == pytest.approx(635.0, abs=1e-3)
-    assert clk.add_system_time(2_000, int(700.0 * 1e6)) == 'reboot'
-    assert clk.to_time(3.0) == pytest.approx(701.0, abs=1e-3)
+        clk.add_system_time(10_000 + 1000 * k, int((T + 500.0 + k) * 1e6))
+    assert clk.add_system_time(40_000, int((T + 530.0 + 7.0) * 1e6)) == 'outlier'     # one wild pair
+    assert clk.to_time(40.0) == pytest.approx(T + 530.0 - 0.0005, abs=1e-3)
+    events = [clk.add_system_time(41_000 + 1000 * k, int((T + 631.0 + k) * 1e6)) for k in range(3)]
+    assert events == ['outlier', 'outlier', 'jump'] and clk.to_time(45.0) == pytest.approx(T + 635.0, abs=1e-3)
+    # A reboot (boot time from 43 s back to 2 s) is believed when it repeats; the fit holds meanwhile.
+    events = [clk.add_system_time(2_000 + 1000 * k, int((T + 700.0 + k) * 1e6)) for k in range(3)]
+    assert events == ['outlier', 'outlier', 'reboot']
+    assert clk.to_time(5.0) == pytest.approx(T + 703.0, abs=1e-3)
+
+
+def test_clock_refuses_what_it_cannot_explain():
+    """Poisoned time: a UNIX time outside 2000-2100, one wild pair, one wild boot time, and a fit after a
+    reboot that would jump back in time are refused (and said: `detail`), the fit stays."""
+    T = 1_780_000_000.0
+    clk = BootClock()
+    for k in range(10):
+        assert clk.add_system_time(100_000 + 1000 * k, int((T + k) * 1e6)) == 'ok'
+    assert clk.add_system_time(110_000, int(4_115_491_200 * 1e6)) == 'implausible'    # 2100
+    assert '2000-2100' in clk.detail
+    assert clk.add_system_time(110_000, int((T + 2.4e9) * 1e6)) == 'implausible'
+    assert clk.add_system_time(110_000, int((T - 1.0e9) * 1e6)) == 'implausible'      # 1994
+    assert clk.add_system_time(110_000, int((T + 86_400 * 300) * 1e6)) == 'outlier'   # plausible, but alone
+    assert clk.add_system_time(0 + 1, int((T + 10) * 1e6)) == 'outlier'               # boot 1 ms: not a reboot
+    assert clk.add_system_time(111_000, int((T + 11) * 1e6)) == 'ok'
+    assert clk.to_time(112.0) == pytest.approx(T + 12.0, abs=1e-3)
+    # After a reset (a reboot the data saw) the new fit must continue the UNIX time: not 1 h earlier.
+    clk.reset()
+    assert clk.add_system_time(5_000, int((T + 11 - 3600 + 5) * 1e6)) == 'outlier'
+    assert 'does not continue' in clk.detail and clk.to_time(6.0) is None
+    assert clk.add_system_time(6_000, int((T + 20 + 6) * 1e6)) == 'ok'                 # 20 s later: fine
+    assert clk.to_time(7.0) == pytest.approx(T + 27.0, abs=1e-3)
 
 
 # --- the simulator's flight: fixes against ground truth ------------------------------------------

@@ -88,11 +88,11 @@ def test_replay_command_on_truncated_bag_reports_damage(sample_bag, tmp_path):
     r = subprocess.run([sys.executable, '-m', 'photogram_ros.cli', 'play', str(bag), '--rate', '0',
                         '--topics', '/gps/fix'], cwd=ROOT, capture_output=True, text=True, timeout=120)
     text = r.stdout + r.stderr
-    assert r.returncode in (2, 3), text
-    assert 'damaged' in text or 'not a' in text
-    if r.returncode == 3:
-        played = int(text.split('played ')[1].split()[0])
-        assert played > 0
+    # What the cut bag still holds is played; the loss is said, with the counts.
+    assert r.returncode == 3, text
+    assert 'of 3726 messages readable' in text
+    played = int(text.split('played ')[1].split()[0])
+    assert 150 < played < 389
 
 
 def test_unknown_topic_is_a_clear_error(sample_bag):

@@ -2,14 +2,13 @@
 
 from __future__ import annotations
 
+from photogram_ros.io.fix_rows import RowWriter, fix_row, navsat_row
+
 HELP = 'print the GNSS fixes of a .tlog, dataflash .bin, bag or live MAVLink link as CSV, GeoJSON or JSON lines'
 
-COLUMNS = ('t_unix_s', 'utc', 'receiver', 'fix_type', 'fix_name', 'status', 'lat_deg', 'lon_deg', 'h_m',
-           'var_e_m2', 'var_n_m2', 'var_u_m2', 'cov_type', 'height_source', 'sats', 'hdop', 'source')
-
-
 def add_arguments(p) -> None:
-    p.add_argument('source', help='a .tlog, an ArduPilot .bin, a bag folder (topic /mavlink/from_fcu) or a link '
+    p.add_argument('source', help='a .tlog, an ArduPilot .bin, a bag (raw MAVLink on --topic, else its NavSatFix '
+                                  'topics; rosbag2 folder, .db3, .mcap or ROS 1 .bag) or a link '
                                   '(udpin:0.0.0.0:14550, tcp:HOST:PORT, /dev/ttyUSB0)')
     p.add_argument('--format', choices=('csv', 'geojson', 'jsonl'), default='csv')
     p.add_argument('--all-receivers', action='store_true',
@@ -21,66 +20,40 @@ def add_arguments(p) -> None:
     p.add_argument('--signing-key', default='', help='MAVLink 2 signing secret (64 hex digits or passphrase)')
     p.add_argument('--sysid', type=int, default=0)
     p.add_argument('--compid', type=int, default=0)
-    p.add_argument('--topic', default='/mavlink/from_fcu', help='bag topic of raw MAVLink bytes')
+    p.add_argument('--topic', default='/mavlink/from_fcu', help='bag topic of raw MAVLink bytes (without it in the '
+                                                             'bag, its sensor_msgs/NavSatFix topics are printed)')
 
 
-def _record(fix, source: str) -> dict:
-    import math
-    from datetime import datetime, timezone
-    d = fix.as_dict()
-    d['t_unix_s'] = d.pop('t_s')
-    d['utc'] = datetime.fromtimestamp(fix.t_s, tz=timezone.utc).isoformat(timespec='milliseconds')
-    d['source'] = source
-    for k, v in list(d.items()):
-        if isinstance(v, float) and not math.isfinite(v):
-            d[k] = None
-    return d
+class _Counted:
+    """Decoded MAVLink messages passed through, counted (to tell "no MAVLink" from "no fixes")."""
+
+    def __init__(self, pairs):
+        self.pairs, self.n = pairs, 0
+
+    def __iter__(self):
+        for p in self.pairs:
+            self.n += 1
+            yield p
 
 
-class _Writer:
-    def __init__(self, fmt: str, out):
-        self.fmt, self.out, self.n = fmt, out, 0
-        if fmt == 'csv':
-            import csv
-            self._csv = csv.DictWriter(out, fieldnames=COLUMNS, extrasaction='ignore', lineterminator='\n')
-            self._csv.writeheader()
-        elif fmt == 'geojson':
-            out.write('{"type": "FeatureCollection", "features": [\n')
-
-    def write(self, rec: dict) -> None:
-        import json
-        if self.fmt == 'csv':
-            self._csv.writerow({k: ('' if rec.get(k) is None else (f'{rec[k]:.9f}' if k in ('lat_deg', 'lon_deg')
-                                                                  else rec[k])) for k in COLUMNS})
-        elif self.fmt == 'jsonl':
-            self.out.write(json.dumps(rec) + '\n')
-        else:
-            geom = None if rec['lat_deg'] is None else {'type': 'Point',
-                                                        'coordinates': [rec['lon_deg'], rec['lat_deg'], rec['h_m']]}
-            props = {k: v for k, v in rec.items() if k not in ('lat_deg', 'lon_deg')}
-            self.out.write((',\n' if self.n else '') + json.dumps({'type': 'Feature', 'geometry': geom,
-                                                                   'properties': props}))
-        self.n += 1
-        self.out.flush()
-
-    def close(self) -> None:
-        if self.fmt == 'geojson':
-            self.out.write('\n]}\n')
-
-
-def iter_fixes(a):
-    """(Fix, source) in publication order, from whichever input `a.source` names."""
+def iter_rows(a, state: dict):
+    """Rows (dicts of COLUMNS) in publication order, from whichever input `a.source` names; `state`
+    gets 'mavlink' (the counted decoded messages, for files and links) and 'bag' (its health lines)."""
     import os
+    from photogram_ros.errors import MavlinkError
     from photogram_ros.io import mavlink as ml
-    kw = dict(clock_source=a.clock_source)
     key = ml.signing_key(a.signing_key) if a.signing_key else None
 
     def events(pairs):
-        ing = ml.Ingest(**kw)
-        for m, t in pairs:
+        ing = ml.Ingest(clock_source=a.clock_source)
+        state['mavlink'] = counted = _Counted(pairs)
+        state['ingest'] = ing
+        for m, t in counted:
             for ev in ing.handle(m, t):
                 if isinstance(ev, ml.FixEvent) and (ev.best or a.all_receivers):
-                    yield ev.fix, ('GPS_RAW_INT', 'GPS2_RAW')[ev.fix.receiver] if ev.fix.receiver < 2 else 'GPS'
+                    if ev.fix.has_position or a.with_no_fix:
+                        src = ('GPS_RAW_INT', 'GPS2_RAW')[ev.fix.receiver] if ev.fix.receiver < 2 else 'GPS'
+                        yield fix_row(ev.fix, src)
 
     src = a.source
     if ml.is_live_url(src):
@@ -101,35 +74,77 @@ def iter_fixes(a):
         yield from events(live())
         return
     if not os.path.exists(src):
-        from photogram_ros.errors import MavlinkError
         raise MavlinkError(f'{src} does not exist (give a .tlog, .bin, bag folder or a link URL)')
     kind = ml.file_kind(src)
     if kind == 'dataflash':
         from photogram_ros.io.dataflash import read_dataflash_fixes
         fixes, _ = read_dataflash_fixes(src)
         for f in fixes:
-            yield f, f'dataflash GPS[{f.receiver}]'
+            if f.has_position or a.with_no_fix:
+                yield fix_row(f, f'dataflash GPS[{f.receiver}]')
         return
     if kind == 'bag':
-        from photogram_ros.io.bag import BagReader, messages_from_bag
-        stream = ml.MavlinkStream(secret_key=key, sysid=a.sysid, compid=a.compid)
-        with BagReader(src) as bag:
-            yield from events(messages_from_bag(bag, stream, a.topic))
+        yield from _bag_rows(a, src, key, events, state)
         return
     stream = ml.MavlinkStream(secret_key=key, sysid=a.sysid, compid=a.compid, record_gap=8)
     messages, _ = ml.read_tlog(src, stream)
+    if not messages:
+        raise MavlinkError(f'{src} holds no MAVLink: not one packet decoded from its {os.path.getsize(src)} bytes '
+                           '(give a .tlog, an ArduPilot .bin, a bag or a link URL)')
     yield from events(messages)
 
 
+def _bag_rows(a, src: str, key, events, state: dict):
+    """A bag: its raw MAVLink topic decoded, else its NavSatFix topics as they are."""
+    from photogram_ros.errors import MavlinkError
+    from photogram_ros.io import mavlink as ml
+    from photogram_ros.io.bag import BagReader, deserialize, messages_from_bag
+    with BagReader(src) as bag:
+        topics = bag.topics()
+        try:
+            if a.topic in topics:
+                stream = ml.MavlinkStream(secret_key=key, sysid=a.sysid, compid=a.compid)
+                yield from events(messages_from_bag(bag, stream, a.topic))
+                if state['mavlink'].n == 0:
+                    raise MavlinkError(f'{src}: {a.topic} holds no MAVLink (not one packet decoded)')
+                return
+            navsat = sorted(t for t, i in topics.items() if i.msgtype.split('/')[-1] == 'NavSatFix')
+            if a.topic != DEFAULT_TOPIC or not navsat:
+                raise MavlinkError(f'{src} has no {a.topic} (raw MAVLink) and no NavSatFix topic; it has '
+                                   f'{sorted(topics)}')
+            for m in bag.messages(navsat):
+                row = navsat_row(deserialize(m.msgtype, m.data), m.topic)
+                if row['status'] >= 0 or a.with_no_fix:
+                    yield row
+        finally:
+            state['bag'] = bag.health()
+            state['bag_damaged'] = bag.damaged
+
+
+DEFAULT_TOPIC = '/mavlink/from_fcu'
+
+
 def run(a) -> int:
+    """Exit status 0; 2 when the input holds no MAVLink (or no GNSS topic); 3 when the bag is damaged
+    (the fixes it still holds are printed)."""
     import sys
-    w = _Writer(a.format, sys.stdout)
+    w = RowWriter(a.format, sys.stdout)
+    state: dict = {}
     try:
-        for fix, source in iter_fixes(a):
-            if fix.has_position or a.with_no_fix:
-                w.write(_record(fix, source))
+        for row in iter_rows(a, state):
+            w.write(row)
         w.close()
     except BrokenPipeError:     # `| head` closed the pipe: that is not an error
         return 0
-    print(f'{w.n} fixes', file=sys.stderr)
-    return 0
+    for line in state.get('bag', []):
+        print(line, file=sys.stderr)
+    ing = state.get('ingest')
+    clock = [p for p in (ing.problems if ing is not None else []) if p.startswith('autopilot clock')]
+    for p in dict.fromkeys(clock):
+        print(f'note: {p}', file=sys.stderr)
+    counted = state.get('mavlink')
+    if counted is not None and counted.n == 0:
+        print(f'{w.n} fixes: no MAVLink received', file=sys.stderr)
+    else:
+        print(f'{w.n} fixes', file=sys.stderr)
+    return 3 if state.get('bag_damaged') else 0

@@ -19,6 +19,38 @@ def _core_params(cls, section: dict, where: str):
     return from_dict(cls, {k: v for k, v in section.items() if k in names}, where)
 
 
+def check_output_crs(crs: str) -> None:
+    """A GeodesyError now, before any replay or flight, unless `crs` is a projected CRS PROJ knows
+    (the products need metric easting/northing)."""
+    from pyproj import CRS
+    from pyproj.exceptions import CRSError
+
+    from photogram_ros.errors import GeodesyError
+    try:
+        c = CRS.from_user_input(crs)
+    except CRSError as exc:
+        raise GeodesyError(f'unknown output CRS {crs!r} ({exc}); name one as EPSG:XXXX, e.g. EPSG:32632 '
+                           '(UTM 32N) or EPSG:2056 (Swiss LV95)') from exc
+    if not c.is_projected:
+        raise GeodesyError(f'{crs} ({c.name}) is not a projected CRS: rasters and clouds need metric '
+                           'easting/northing (e.g. the UTM zone EPSG:326xx, or a national grid such as EPSG:2056)')
+
+
+def _products_from(end: dict | None, matched_again: bool) -> tuple[str, list]:
+    """What the report says the products come from, and a note when the final adjustment is missing."""
+    if end is not None and end.get('final_adjustment') == 'unknown':   # run --separate: bundle_node's own exit
+        return ('final adjustment (map_final; bundle_node adjusts at its own exit, not checked with --separate)'
+                if matched_again else 'in-flight map (map)'), []
+    if end is not None and end.get('final_adjustment') not in ('done', None):
+        why = end.get('reason') or end['final_adjustment']
+        what = 'in-flight poses' + (', matched again (map_final)' if matched_again else ' (map)')
+        if end['final_adjustment'] == 'failed':
+            return f'{what}: the final adjustment failed ({why})', [
+                f'the final adjustment failed ({why}): the products come from the in-flight poses']
+        return f'{what}: no final adjustment ({why})', []
+    return ('final adjustment (map_final)' if matched_again else 'in-flight map (map)'), []
+
+
 def densify_with_params(map_dir, out_dir, params_file: str | None, progress: bool = True):
     """io/densify.densify_map of `map_dir` (a folder or an open MapStore) with the file's parameters."""
     from photogram_ros.core.fusion import FusionConfig
@@ -52,15 +84,20 @@ def export_products(map_dir, out, params_file: str | None, crs: str = '', live_m
     from pathlib import Path
 
     from photogram_ros.core.geodesy import utm_epsg
-    from photogram_ros.errors import PhotogramError
+    from photogram_ros.errors import PhotogramError, StorageError
     from photogram_ros.io.export import export_map
     from photogram_ros.io.flight_report import build_report
     from photogram_ros.io.map_store import MapStore
 
+    if crs:
+        check_output_crs(crs)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     run = dict(run or {})
     store = MapStore(map_dir)    # opened once: densify reads it, export and the report read the products' map
+    end = store.flight_end()
+    if end is not None:
+        run.setdefault('final_adjustment', end.get('final_adjustment'))
     if store.origin is None or not store.keyframes():
         notes = ['the map has no georeferenced keyframes (no camera frames, or no GNSS fix good enough): no exports']
         figures = build_report(out, store, crs or 'EPSG:4326', {}, run=run, **report)
@@ -71,13 +108,23 @@ def export_products(map_dir, out, params_file: str | None, crs: str = '', live_m
         try:
             d = densify_with_params(store, out / 'map_final', params_file, progress=progress)
             products = d.store
-            run.update(products_from='final adjustment (map_final)', densify_s=round(d.seconds, 2),
-                       densify_pairs=d.pairs_done)
+            run.update(densify_s=round(d.seconds, 2), densify_pairs=d.pairs_done)
+        except StorageError:   # a full disk: exporting next would fail the same way
+            raise
         except PhotogramError as exc:
             notes.append(f'products from the in-flight map: dense matching from the final poses failed ({exc})')
-    run.setdefault('products_from', 'in-flight map (map)')
-    ex = export_map(products, out, crs, heights, min_pairs=min_pairs)
-    files = {k: str(v) for k, v in ex.files.items()}
-    run['map_points'] = ex.points
-    figures = build_report(out, products, crs, files, run=run, **report)
+    source, source_notes = _products_from(end, products is not store)
+    run['products_from'] = source
+    notes += source_notes
+    try:
+        ex = export_map(products, out, crs, heights, min_pairs=min_pairs)
+        files = {k: str(v) for k, v in ex.files.items()}
+        run['map_points'] = ex.points
+        figures = build_report(out, products, crs, files, run=run, **report)
+    except StorageError:
+        raise
+    except OSError as exc:   # a full disk, a folder gone: what to do about it, not a traceback
+        raise StorageError(f'the products could not be written to {out} ({exc.strerror or exc}); the map is '
+                           f'safe in {map_dir if not isinstance(map_dir, MapStore) else map_dir.root}: free space '
+                           'and run photogram-ros export MAPDIR --densify', exc.errno) from exc
     return {'files': files, 'notes': notes + ex.notes, 'crs': crs, 'figures': figures, 'points': ex.points}

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-HELP = 'record topics from ROS 2 into a rosbag2 (sqlite3 or MCAP)'
+HELP = 'record topics from ROS 2 into a rosbag2 (MCAP, or sqlite3), with their QoS profiles'
 
 
 def add_arguments(p) -> None:
@@ -11,7 +11,9 @@ def add_arguments(p) -> None:
     p.add_argument('--duration', type=float, default=0.0, help='stop after this many seconds (0 = until Ctrl-C)')
     p.add_argument('--count', type=int, default=0, help='stop after this many messages in total (0 = no limit)')
     p.add_argument('--discovery-timeout', type=float, default=10.0, help='seconds to wait for the topics to appear')
-    p.add_argument('--mcap', action='store_true', help='write MCAP instead of sqlite3')
+    p.add_argument('--storage', choices=('mcap', 'sqlite3'), default='mcap',
+                   help='bag storage: mcap (ROS 2 Jazzy\'s default; a recording cut short keeps every chunk '
+                        'written) or sqlite3')
 
 
 def run(a) -> int:
@@ -22,7 +24,7 @@ def run(a) -> int:
     rec = None
     try:
         rec = Recorder(a.out, [t.strip() for t in a.topics.split(',') if t.strip()],
-                       storage='mcap' if a.mcap else 'sqlite3')
+                       storage=a.storage)
         n = rec.run(duration_s=a.duration, max_count=a.count, discovery_timeout_s=a.discovery_timeout)
         print(f'recorded {n} messages to {a.out}')
         return 0

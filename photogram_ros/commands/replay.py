@@ -34,12 +34,15 @@ def add_arguments(p) -> None:
 
 
 def run(a) -> int:
+    """Exit status 0; 2 bad input (before the first frame); 3 the bag was damaged (what it held was
+    mapped); 4 the final adjustment failed (products from the in-flight poses)."""
     import json
     from pathlib import Path
 
     import rclpy
 
-    from photogram_ros.commands.products import export_products
+    from photogram_ros.commands.products import check_output_crs, export_products
+    from photogram_ros.nodes.node_main import init_ros
     from photogram_ros.io.control_file import read_control_file
     from photogram_ros.nodes.replay_session import ReplayOptions, run_replay
     from photogram_ros.sim.truth import GroundTruth
@@ -48,6 +51,8 @@ def run(a) -> int:
     if params is None and Path('config/replay.yaml').exists():
         params = 'config/replay.yaml'
     out = Path(a.out)
+    if a.crs:   # checked now, not after the whole replay
+        check_output_crs(a.crs)
     control, extra = None, {}
     if a.gcp:   # read here first: a bad file is reported before the replay starts
         control = read_control_file(a.gcp, a.check.split(','), a.gcp_heights)
@@ -55,7 +60,7 @@ def run(a) -> int:
                            'control_heights': a.gcp_heights}
     elif a.check:
         print('note: --check without --gcp has no effect (without a control file every target is a check point)')
-    rclpy.init()
+    init_ros()   # Ctrl-C is a KeyboardInterrupt: the graph still shuts down in order (the map flushes)
     try:
         child = tuple(r.strip() for r in a.child_nodes.split(',') if r.strip()) if a.processes == 2 else ()
         res = run_replay(ReplayOptions(bag=a.bag, out=str(out), params_file=params, rate=a.rate,
@@ -85,4 +90,12 @@ def run(a) -> int:
           + ', report.html, report.md, report.json, trajectory.csv')
     for n in notes:
         print(f'note: {n}')
-    return 3 if r['bag_errors'] else 0
+    for e in r['bag_errors']:
+        print(f'bag damaged: {e}')
+    if r.get('final_adjustment') == 'failed':
+        print(f"the final adjustment failed ({r.get('final_adjustment_reason', '')}): products from the in-flight poses")
+    if r.get('end_of_flight_errors'):
+        print('end of flight: ' + '; '.join(r['end_of_flight_errors']))
+    if r['bag_errors']:
+        return 3
+    return 4 if r.get('final_adjustment') == 'failed' or r.get('end_of_flight_errors') else 0

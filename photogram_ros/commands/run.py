@@ -1,8 +1,18 @@
-"""photogram-ros run: start the whole mapper (live, on the companion computer)."""
+"""photogram-ros run: start the whole mapper (live, on the companion computer).
+
+SIGINT or SIGTERM ends the flight: the tracker emits its last keyframes, the bundle adjuster makes
+the final adjustment and republishes every pose, stereo pairs what waits, the map flushes, and the
+products are matched again from the final poses. All of it runs while rclpy is still up (see
+nodes/node_main.py); the exit status is not 0 when the final adjustment or the exports failed.
+"""
 
 from __future__ import annotations
 
 HELP = 'start every mapping node (mavlink, tracker, bundle, stereo, map) with one parameter file'
+
+# Exit statuses besides 0 (and 2, a configuration error): the map on disk is safe in every case.
+EXIT_EXPORT_FAILED = 3
+EXIT_FINISH_FAILED = 4
 
 
 def add_arguments(p) -> None:
@@ -21,47 +31,83 @@ def add_arguments(p) -> None:
 
 
 def run(a) -> int:
-    import signal
-    import threading
-
     import rclpy
 
+    from photogram_ros.commands.products import check_output_crs
     from photogram_ros.errors import ConfigError
-    from photogram_ros.nodes.graph import NODES, Graph, GraphSpec, roles_for, start_separate
+    from photogram_ros.nodes.graph import NODES, Graph, GraphSpec, check_params, roles_for
+    from photogram_ros.nodes.node_main import StopSignals, init_ros
     roles = tuple(r.strip() for r in a.nodes.split(',') if r.strip()) or roles_for(a.params)
     bad = [r for r in roles if r not in NODES]
     if bad:
         raise ConfigError(f'unknown nodes {bad}; choose from {list(NODES)}')
     spec = GraphSpec(roles=roles, params_file=a.params, namespace=a.namespace)
-    stop = threading.Event()
-    signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    check_params(spec)     # every mistake before the first frame, not at the end of the flight
+    exporting = not a.no_export and 'map' in roles
+    if exporting and a.crs:
+        check_output_crs(a.crs)
+    signals = StopSignals('finishing the flight (final adjustment, stereo, map flush, products)')
     if a.separate:
-        procs = start_separate(spec)
-        try:
-            while not stop.wait(0.5) and all(p.poll() is None for p in procs):
-                pass
-        except KeyboardInterrupt:
-            pass
-        for p in procs:
-            if p.poll() is None:
-                p.send_signal(signal.SIGINT)
-        rc = max((p.wait(timeout=60) or 0) for p in procs)
-        return rc or _export_at_stop(a, roles)
-    rclpy.init()
-    graph = Graph(spec)
-    graph.start()
-    print(f'photogram_ros running: {", ".join(graph.nodes)} (Ctrl-C flushes the map and writes the products to '
-          f'{a.out}/)' if not a.no_export else f'photogram_ros running: {", ".join(graph.nodes)}', flush=True)
+        return _run_separate(a, spec, signals)
+    init_ros()
+    graph = None
     try:
-        while not stop.wait(0.5):
-            pass
-    except KeyboardInterrupt:
-        pass
+        graph = Graph(spec)
+        graph.start()
+        print(f'photogram_ros running: {", ".join(graph.nodes)} (SIGINT or SIGTERM ends the flight: final '
+              f'adjustment, map flush' + (f', products in {a.out}/)' if exporting else ')'), flush=True)
+        signals.wait()
+        print(f'{signals.signal_name or "stop"}: ending the flight (final adjustment, stereo, map flush)', flush=True)
+        end = graph.finish_flight()
     finally:
-        graph.finish_flight()
-        graph.shutdown()
+        if graph is not None:
+            graph.shutdown()
         rclpy.try_shutdown()
-    return _export_at_stop(a, roles)
+    return _after_flight(a, roles, end.as_dict())
+
+
+def _run_separate(a, spec, signals) -> int:
+    """One process per node; at the stop each is ended and waited for in data-flow order, so the final
+    adjustment (bundle_node's exit), stereo's last pairs and the map's flush follow one another."""
+    import signal
+
+    from photogram_ros.nodes.graph import start_separate
+    procs = start_separate(spec)
+    print(f'photogram_ros running: {", ".join(spec.roles)}, one process each', flush=True)
+    signals.wait(alive=lambda: all(p.poll() is None for p in procs))
+    rcs = []
+    for role, p in zip(spec.roles, procs):
+        if p.poll() is None:
+            p.send_signal(signal.SIGINT)
+        try:
+            rcs.append(p.wait(timeout=600))
+        except Exception:
+            p.kill()
+            rcs.append(p.wait())
+    failed = [f'{r} exited with status {rc}' for r, rc in zip(spec.roles, rcs) if rc]
+    end = {'final_adjustment': 'unknown' if 'bundle' in spec.roles else 'none',
+           'reason': 'run --separate: bundle_node adjusts at its own exit', 'errors': failed}
+    return _after_flight(a, spec.roles, end)
+
+
+def _after_flight(a, roles, end: dict) -> int:
+    """Record how the flight ended in the map folder, export, and say what failed."""
+    from photogram_ros.errors import PhotogramError
+    from photogram_ros.io.map_store import MapStore
+    if 'map' in roles:
+        try:
+            MapStore(map_dir_of(a.params)).save_flight_end(end)
+        except (PhotogramError, OSError) as exc:
+            print(f'note: the map folder could not record how the flight ended: {exc}', flush=True)
+    rc = _export_at_stop(a, roles)
+    if end['final_adjustment'] == 'failed':
+        print(f"the final adjustment failed ({end['reason']}): poses and products are the in-flight ones",
+              flush=True)
+    for e in end['errors']:
+        print(f'end of flight: {e}', flush=True)
+    if end['final_adjustment'] == 'failed' or end['errors']:
+        return rc or EXIT_FINISH_FAILED
+    return rc
 
 
 def map_dir_of(params_file: str | None) -> str:
@@ -81,7 +127,7 @@ def _export_at_stop(a, roles) -> int:
         res = export_products(map_dir_of(a.params), a.out, a.params, a.crs, a.live_map)
     except (PhotogramError, OSError) as exc:   # the map itself is safe on disk: say how to export it later
         print(f'exports failed ({exc}); the map is on disk: photogram-ros export MAPDIR --densify', flush=True)
-        return 3
+        return EXIT_EXPORT_FAILED
     for n in res.get('notes', []):
         print(f'note: {n}', flush=True)
     if res.get('files'):

@@ -390,7 +390,8 @@ def fill_holes(D: np.ndarray, holes: np.ndarray, max_dist_px: float, max_rms_px:
         # Spread in both directions: a matched line (a roof ridge alone) fixes no plane.
         spread = np.sqrt(np.maximum(np.minimum(cuu, cvv) / cnt, 0.0))
     r = q * rq + q // 2     # the window's half width in pixels
-    good = (cnt >= 0.1 * (2 * r + 1) ** 2) & (rms <= max_rms_px) & (spread >= 0.2 * r) & np.isfinite(a + b)
+    good = ((cnt >= 0.1 * (2 * r + 1) ** 2) & (rms <= max_rms_px) & (spread >= 0.2 * r)
+            & np.isfinite(a) & np.isfinite(b))   # (a + b would warn on inf - inf)
     jj, ii = np.nonzero(cand)
     cj, ci = np.minimum(jj // q, hq - 1), np.minimum(ii // q, wq - 1)
     ok = good[cj, ci]

@@ -12,6 +12,13 @@ drifts (a few ppm) against UNIX time. Two kinds of evidence tie it to the outsid
 
 `BootClock` keeps both in sliding windows and maps with the best one available. A boot time going
 backwards (reboot) or a persistent jump of the UNIX time (GPS time acquired) restarts the fit.
+
+A time mapping must not follow evidence it cannot explain: one wild pair would stamp every fix
+after it in another century. So a UNIX time outside 2000-2100 is refused outright
+('implausible'); a jump of the UNIX time and a boot time going backwards (a reboot) are believed
+only once `jump_confirm` pairs agree ('outlier' until then, the fit unchanged); and after a reboot
+the new fit must continue the UNIX time from before it (no earlier than the last UNIX time seen
+plus the new boot time, no more than a day later), unless as many pairs confirm it.
 """
 
 from __future__ import annotations
@@ -23,6 +30,10 @@ import numpy as np
 
 # time_boot_ms is truncated to whole milliseconds: the true boot time is half a tick later on average.
 _BOOT_MS_HALF_TICK_S = 0.0005
+# UNIX times a flight log can carry: 2000-01-01 .. 2100-01-01.
+PLAUSIBLE_UNIX_S = (946_684_800.0, 4_102_444_800.0)
+# After a reboot the autopilot can have been off this long at most, s.
+_MAX_DOWNTIME_S = 86_400.0
 
 
 @dataclass
@@ -96,51 +107,93 @@ class BootClock:
         self._sys_fit: ClockFit | None = None
         self._arr_fit: ClockFit | None = None
         self._suspects: list = []
+        self._back: list = []            # distinct boot times seen going backwards, not yet a reboot
         self._last_boot_s = None
+        self._last_unix_s = None         # the latest UNIX time of a SYSTEM_TIME the fit took (kept by reset)
         self.resets = 0
         self.outliers = 0
+        self.implausible = 0
+        self.detail = ''                 # what the last 'outlier' / 'implausible' / 'jump' / 'reboot' was
 
     # --- evidence -------------------------------------------------------------------------------
 
-    def _check_reboot(self, boot_s: float) -> bool:
-        """A boot clock that runs backwards by more than a second means the autopilot rebooted."""
-        reboot = self._last_boot_s is not None and boot_s < self._last_boot_s - 1.0
-        if reboot:
-            self.reset()
-        self._last_boot_s = boot_s if not reboot else boot_s
-        return reboot
+    def _boot_check(self, boot_s: float) -> str:
+        """'ok'; 'suspect': the boot time went backwards by more than a second, not (yet) confirmed;
+        'reboot': `jump_confirm` distinct, increasing boot times all went backwards: the clock is reset."""
+        if self._last_boot_s is None or boot_s >= self._last_boot_s - 1.0:
+            self._back = []
+            self._last_boot_s = boot_s if self._last_boot_s is None else max(self._last_boot_s, boot_s)
+            return 'ok'
+        if not self._back or boot_s > self._back[-1]:
+            self._back.append(boot_s)
+        elif boot_s < self._back[-1] - 1.0:
+            self._back = [boot_s]
+        if len(self._back) < self.jump_confirm:
+            self.detail = f'boot time {boot_s:.3f} s is before {self._last_boot_s:.3f} s: a reboot only if it repeats'
+            return 'suspect'
+        self.reset()
+        self._last_boot_s = boot_s
+        self.detail = 'the boot time started again: the autopilot rebooted'
+        return 'reboot'
 
     def reset(self) -> None:
         self._sys.clear()
         self._arr.clear()
         self._sys_fit = self._arr_fit = None
         self._suspects = []
+        self._back = []
         self._last_boot_s = None
         self.resets += 1
 
+    def _unexplained(self, boot_s: float, unix_s: float) -> str:
+        """Why a pair starting a fit after a reset cannot continue the UNIX time from before it ('' if it can)."""
+        if self._sys_fit is not None or self._last_unix_s is None:
+            return ''
+        lo, hi = self._last_unix_s + boot_s - 2.0, self._last_unix_s + boot_s + _MAX_DOWNTIME_S
+        if lo <= unix_s <= hi:
+            return ''
+        return (f'UNIX time {unix_s:.0f} s does not continue the {self._last_unix_s:.0f} s seen before the '
+                f'reset ({unix_s - self._last_unix_s - boot_s:+.0f} s)')
+
     def add_system_time(self, time_boot_ms: int, time_unix_usec: int) -> str:
-        """One SYSTEM_TIME pair; returns 'ok', 'ignored' (no UNIX time yet), 'outlier', 'jump' or 'reboot'."""
+        """One SYSTEM_TIME pair; returns 'ok', 'ignored' (no UNIX time yet), 'implausible', 'outlier',
+        'jump' or 'reboot' (`detail` says why for all but the first two)."""
         if time_unix_usec <= 0 or time_boot_ms <= 0:
             return 'ignored'
+        unix_s = time_unix_usec * 1e-6
+        if not PLAUSIBLE_UNIX_S[0] <= unix_s < PLAUSIBLE_UNIX_S[1]:
+            self.implausible += 1
+            self.detail = f'SYSTEM_TIME UNIX time {unix_s:.0f} s is outside 2000-2100: ignored'
+            return 'implausible'
         boot_s = time_boot_ms * 1e-3 + _BOOT_MS_HALF_TICK_S
-        event = 'reboot' if self._check_reboot(boot_s) else 'ok'
-        y = time_unix_usec * 1e-6 - boot_s
+        state = self._boot_check(boot_s)
+        if state == 'suspect':
+            self.outliers += 1
+            return 'outlier'
+        event = 'reboot' if state == 'reboot' else 'ok'
+        y = unix_s - boot_s
         fit = self._sys_fit
-        if fit is not None and abs(fit.map(boot_s) - boot_s - y) > self.jump_s:
+        why = self._unexplained(boot_s, unix_s)
+        if why or (fit is not None and abs(fit.map(boot_s) - boot_s - y) > self.jump_s):
             # Keep the suspects that agree with the newest one: a real jump repeats, a wild pair does not.
             self._suspects = [p for p in self._suspects if abs(p[1] - y) <= self.jump_s] + [(boot_s, y)]
             if len(self._suspects) < self.jump_confirm:
                 self.outliers += 1
+                off = why or (f'SYSTEM_TIME disagrees with the clock fit by {fit.map(boot_s) - boot_s - y:+.3f} s')
+                self.detail = f'{off}: ignored unless it repeats'
                 return 'outlier'
             # Several consistent pairs disagree with the fit: the UNIX time really moved.
             self._sys.clear()
             self._sys.extend(self._suspects)
             self._suspects = []
+            self._sys_fit = None
             self.resets += 1
+            self.detail = f'{len(self._sys)} SYSTEM_TIME pairs agree on a new UNIX time ({why or "a jump"})'
             event = 'jump'
         else:
             self._suspects = []
             self._sys.append((boot_s, y))
+        self._last_unix_s = unix_s
         while self._sys and self._sys[0][0] < boot_s - self.window_s:
             self._sys.popleft()
         # Refitting every pair costs ~1 ms; a pair the fit already explains changes it by nothing.
@@ -168,7 +221,11 @@ class BootClock:
 
     def add_arrival(self, boot_s: float, host_s: float) -> str:
         """A packet carrying boot time `boot_s` arrived at host time `host_s`."""
-        event = 'reboot' if self._check_reboot(boot_s) else 'ok'
+        state = self._boot_check(boot_s)
+        if state == 'suspect':
+            self.outliers += 1
+            return 'outlier'
+        event = 'reboot' if state == 'reboot' else 'ok'
         self._arr.append((boot_s, host_s - boot_s))
         while self._arr and self._arr[0][0] < boot_s - self.window_s:
             self._arr.popleft()

@@ -2,11 +2,13 @@
 
 Messages travel as CDR bytes, exactly as rosbag2 stores them and rclpy publishes them, so replay
 needs no deserialization. Damage is reported, not hidden: a truncated or corrupt bag yields every
-message before the damage and then records what went wrong in `BagReader.errors`.
+message that is still readable (io/bag_storage.py reads the storage files directly) and
+`BagReader.errors` says how many of how many were read, and what was lost.
 """
 
 from __future__ import annotations
 
+import heapq
 import importlib
 import sqlite3
 from dataclasses import dataclass
@@ -29,7 +31,8 @@ class BagMessage:
 class TopicInfo:
     topic: str
     msgtype: str
-    count: int
+    count: int                     # messages that can be read
+    expected: int | None = None    # messages recorded, per metadata.yaml (None: no usable metadata.yaml)
 
 
 @lru_cache(maxsize=None)
@@ -65,8 +68,21 @@ def msgtype_of(msg) -> str:
     return f'{module[0]}/msg/{type(msg).__name__}'
 
 
+def bag_qos(profile):
+    """An rclpy QoSProfile -> the rosbags Qos that rosbag2 records as a topic's offered_qos_profiles."""
+    from rosbags.interfaces import Qos, QosDurability, QosHistory, QosLiveliness, QosReliability, QosTime
+
+    def t(d):
+        ns = int(d.nanoseconds)
+        return QosTime(ns // 1_000_000_000, ns % 1_000_000_000)
+    return Qos(QosHistory(int(profile.history)), int(profile.depth), QosReliability(int(profile.reliability)),
+               QosDurability(int(profile.durability)), t(profile.deadline), t(profile.lifespan),
+               QosLiveliness(int(profile.liveliness)), t(profile.liveliness_lease_duration),
+               bool(profile.avoid_ros_namespace_conventions))
+
+
 class BagWriter:
-    """Writes rclpy messages to a rosbag2 (sqlite3 by default, or MCAP)."""
+    """Writes rclpy messages to a rosbag2 (sqlite3 by default, or MCAP, ROS 2 Jazzy's default)."""
 
     def __init__(self, path: str | Path, storage: str = 'sqlite3'):
         from rosbags.rosbag2 import StoragePlugin, Writer
@@ -89,15 +105,17 @@ class BagWriter:
     def __exit__(self, *exc) -> None:
         self._writer.close()
 
-    def add_topic(self, topic: str, msgtype: str, msgdef: str | None = None) -> None:
+    def add_topic(self, topic: str, msgtype: str, msgdef: str | None = None, qos=()) -> None:
+        """`qos`: the publishers' rclpy QoSProfiles, recorded as the topic's offered_qos_profiles (rosbag2
+        play offers the same ones again)."""
         if topic in self._connections:
             return
-        kwargs = {'typestore': self._typestore}
+        kwargs = {'typestore': self._typestore, 'offered_qos_profiles': [bag_qos(q) for q in qos]}
         if msgtype not in self._typestore.fielddefs:
             if msgdef is None:
                 raise BagError(f'message type {msgtype!r} of topic {topic} is not in the ROS 2 Jazzy '
                                'type store and no definition was given')
-            kwargs = {'msgdef': msgdef, 'rihs01': ''}
+            kwargs = {'msgdef': msgdef, 'rihs01': '', 'offered_qos_profiles': kwargs['offered_qos_profiles']}
         self._connections[topic] = self._writer.add_connection(topic, msgtype, **kwargs)
 
     def write(self, topic: str, stamp_ns: int, msg) -> None:
@@ -113,31 +131,144 @@ class BagWriter:
 
 
 class BagReader:
-    """Reads a rosbag2 folder (or a bare .db3 / .mcap file) in recorded order.
+    """Reads a rosbag2 folder (sqlite3 or MCAP, or a bare .db3 / .mcap file) or a ROS 1 .bag, in time order.
 
-    `messages()` yields what it can; damage (a truncated file, an unreadable row) ends the
-    iteration and is described in `errors` instead of raising after partial output.
+    Whatever the bag still holds is read, and what it lost is said: `topics()` counts the messages
+    that are readable and `expected` what metadata.yaml says was recorded; `errors` describes every
+    loss (damage found on opening, and damage met while reading: after a complete `messages()`
+    iteration, the messages of its topics that could not be read); `warnings` what cannot be
+    checked (no metadata.yaml). `health()` puts it in lines for a command to print. ROS 1 messages
+    come out as ROS 2 CDR, like the rest.
     """
 
     def __init__(self, path: str | Path):
-        from rosbags.rosbag2 import Reader, ReaderError
+        from photogram_ros.io.bag_storage import read_metadata
         self.path = Path(path)
         self.errors: list[str] = []
+        self.warnings: list[str] = []
         if not self.path.exists():
             raise BagError(f'{self.path} does not exist')
+        self.metadata, why = read_metadata(self.path) if self.path.is_dir() else (None, '')
+        if why:
+            self.warnings.append(why)
+        self._files, self._rosbags, self._scan, self._ros1 = [], None, None, None
+        self.storage = self._open()
+        self._infos = self._count()
+        self._report_losses()
+
+    # --- opening ---------------------------------------------------------------------------------
+
+    def _storage_files(self, suffix: str) -> list[Path]:
+        if self.path.is_file():
+            return [self.path] if self.path.suffix == suffix else []
+        if self.metadata is not None and self.metadata.files:
+            listed = [self.path / Path(f).name for f in self.metadata.files]
+            missing = [p.name for p in listed if not p.exists()]
+            note = f'{self.path.name}: storage files missing: {missing}'
+            if missing and note not in self.errors:
+                self.errors.append(note)
+            listed = [p for p in listed if p.exists() and p.suffix == suffix]
+            if listed:
+                return listed
+        return sorted(self.path.glob(f'*{suffix}'))
+
+    def _open(self) -> str:
+        from photogram_ros.io.bag_storage import SqliteFile, UnreadableStorage
+        meta = self.metadata
+        if self.path.is_file() and self.path.suffix == '.bag':
+            self._ros1 = _Ros1(self.path)
+            return 'ros1'
+        compressed = meta is not None and bool(meta.compression)
+        dbs = [] if compressed else self._storage_files('.db3')
+        if dbs:
+            why = []
+            for db in dbs:
+                expected = meta.file_counts.get(db.name) if meta is not None else None
+                try:
+                    self._files.append(SqliteFile(db, expected))
+                except (UnreadableStorage, sqlite3.DatabaseError) as exc:
+                    why.append(str(exc))
+            if not self._files:
+                raise BagError(f'{self.path} is not a readable rosbag2 (sqlite3): {"; ".join(why)}')
+            self.errors += [f'{w}: its messages are lost' for w in why]
+            return 'sqlite3'
+        mcaps = self._storage_files('.mcap')
+        if not mcaps and not compressed and not (self.path / 'metadata.yaml').exists() and self.path.is_dir():
+            bags = sorted(self.path.glob('*.bag'))
+            if bags:
+                self._ros1 = _Ros1(bags[0])
+                return 'ros1'
+            raise BagError(f'{self.path} holds no bag: no metadata.yaml and no .db3, .mcap or .bag file')
+        from rosbags.rosbag2 import Reader, ReaderError
         try:
-            self._reader = Reader(self.path)
-            self._reader.open()
-        except Exception as exc:  # ReaderError, or sqlite3/mcap errors on files that are not bags
-            salvage = _SqliteSalvage.open(self.path)
-            if salvage is None:
+            self._rosbags = Reader(self.path)
+            self._rosbags.open()
+            return meta.storage if meta is not None else 'mcap'
+        except Exception as exc:   # ReaderError, or the storage's own errors on files that are not bags
+            self._rosbags = None
+            if not mcaps:
                 kind = 'readable rosbag2' if isinstance(exc, ReaderError) else 'rosbag2 (sqlite3 or MCAP)'
                 raise BagError(f'{self.path} is not a {kind}: {exc}') from exc
-            self._reader = salvage
-            self.errors.append(f'{self.path.name}: damaged database ({exc}); reading what precedes the damage')
+            from photogram_ros.io.bag_storage import McapScan
+            self._scan = McapScan(mcaps[0])   # whether it is damaged, the scan (in _count) says
+            self._scan_why = f'{exc}'
+            return 'mcap'
+
+    def _count(self) -> dict:
+        """topic -> TopicInfo with the readable count (and the expected one from metadata.yaml)."""
+        counts: dict = {}
+        if self._files:
+            for f in self._files:
+                for tid, n in f.counts().items():
+                    if tid in f.topics:
+                        name, mtype, qos = f.topics[tid]
+                        prev = counts.get(name, (mtype, 0, qos))
+                        counts[name] = (mtype, prev[1] + n, qos)
+                for name, mtype, qos in f.topics.values():
+                    counts.setdefault(name, (mtype, 0, qos))
+                self.errors += [e for e in f.problems if e not in self.errors]
+        elif self._scan is not None:
+            stamps = []
+            for ts, cid, _ in self._scan.messages():
+                stamps.append(ts)
+                name, mtype, qos = self._scan.channels.get(cid, (f'channel {cid}', '', ''))
+                prev = counts.get(name, (mtype, 0, qos))
+                counts[name] = (mtype, prev[1] + 1, qos)
+            for name, mtype, qos in self._scan.channels.values():
+                counts.setdefault(name, (mtype, 0, qos))
+            self._scan_span = (min(stamps), max(stamps)) if stamps else None
+            if self._scan.stopped:
+                self.errors.append(f'{self._scan.path.name}: damaged MCAP ({self._scan_why}): {self._scan.stopped}'
+                                   + (f'; {self._scan.chunks_lost} chunks lost' if self._scan.chunks_lost else '')
+                                   + '; read record by record up to there')
+        elif self._ros1 is not None:
+            counts = self._ros1.counts()
+        else:
+            for c in self._rosbags.connections:
+                prev = counts.get(c.topic, (c.msgtype, 0, ''))
+                counts[c.topic] = (c.msgtype, prev[1] + c.msgcount, '')
+        expected = self.metadata.topics if self.metadata is not None else {}
+        out = {t: TopicInfo(t, m, n, expected[t][1] if t in expected else None) for t, (m, n, _) in counts.items()}
+        for t, (mtype, n, _) in expected.items():
+            if t not in out:   # recorded, but its topic row is gone
+                out[t] = TopicInfo(t, mtype, 0, n)
+        return out
+
+    def _report_losses(self) -> None:
+        lost = {t: (i.count, i.expected) for t, i in self._infos.items()
+                if i.expected is not None and i.count < i.expected}
+        if lost:
+            read = sum(i.count for i in self._infos.values())
+            total = self.metadata.message_count if self.metadata is not None else read
+            per = ', '.join(f'{t} {n} of {e}' for t, (n, e) in sorted(lost.items()))
+            self.errors.append(f'{self.path.name}: {read} of {total} messages readable, {total - read} lost '
+                               f'({per})')
 
     def close(self) -> None:
-        self._reader.close()
+        if self._rosbags is not None:
+            self._rosbags.close()
+        if self._ros1 is not None:
+            self._ros1.close()
 
     def __enter__(self) -> 'BagReader':
         return self
@@ -145,40 +276,155 @@ class BagReader:
     def __exit__(self, *exc) -> None:
         self.close()
 
+    # --- what it holds ---------------------------------------------------------------------------
+
+    @property
+    def damaged(self) -> bool:
+        return bool(self.errors)
+
+    def _span(self) -> tuple[int, int] | None:
+        if self._files:
+            spans = [s for s in (f.span_ns() for f in self._files) if s is not None]
+            return (min(s[0] for s in spans), max(s[1] for s in spans)) if spans else None
+        if self._ros1 is not None:
+            return self._ros1.span()
+        if self._scan is not None:
+            return self._scan_span
+        if self._rosbags is not None and self._rosbags.message_count:
+            return int(self._rosbags.start_time), int(self._rosbags.end_time) - 1
+        if self.metadata is not None and self.metadata.message_count:
+            return self.metadata.start_ns, self.metadata.start_ns + self.metadata.duration_ns
+        return None
+
     @property
     def duration_ns(self) -> int:
-        return int(self._reader.duration)
+        span = self._span()
+        return 0 if span is None else span[1] - span[0]
 
     @property
     def start_ns(self) -> int:
-        return int(self._reader.start_time)
+        span = self._span()
+        return 0 if span is None else span[0]
 
     def topics(self) -> dict[str, TopicInfo]:
-        out = {}
-        for c in self._reader.connections:
-            prev = out.get(c.topic)
-            out[c.topic] = TopicInfo(c.topic, c.msgtype, (prev.count if prev else 0) + c.msgcount)
-        return out
+        """topic -> TopicInfo; `count` is what messages() can yield, `expected` what was recorded."""
+        return dict(self._infos)
+
+    def verify(self) -> None:
+        """Read every message once, so that `topics()` counts what really reads back (a damaged file
+        can list a row whose data is gone); worth it for a damaged bag, whose readable part is small."""
+        got = dict.fromkeys(self._infos, 0)
+        for m in self.messages():
+            got[m.topic] += 1
+        self._infos = {t: TopicInfo(i.topic, i.msgtype, got[t], i.expected) for t, i in self._infos.items()}
+
+    def health(self) -> list[str]:
+        """What a command should print about the bag's state: losses first, then what is unchecked."""
+        return [f'bag damaged: {e}' for e in self.errors] + [f'warning: {w}' for w in self.warnings]
 
     def messages(self, topics: Iterable[str] | None = None, start_ns: int | None = None,
                  stop_ns: int | None = None) -> Iterator[BagMessage]:
-        wanted = None if topics is None else set(topics)
-        conns = [c for c in self._reader.connections if wanted is None or c.topic in wanted]
-        if wanted is not None:
-            missing = wanted - {c.topic for c in conns}
-            if missing:
-                raise BagError(f'topics not in {self.path.name}: {sorted(missing)}; '
-                               f'it has {sorted(self.topics())}')
+        wanted = sorted(self._infos) if topics is None else list(topics)
+        missing = sorted(set(wanted) - set(self._infos))
+        if missing:
+            raise BagError(f'topics not in {self.path.name}: {missing}; it has {sorted(self._infos)}')
+        got = dict.fromkeys(wanted, 0)
+        for m in self._iterate(set(wanted), start_ns, stop_ns):
+            got[m.topic] += 1
+            yield m
+        if start_ns is None and stop_ns is None:
+            short = {t: (n, self._infos[t].count) for t, n in got.items() if n < self._infos[t].count}
+            if short:
+                per = ', '.join(f'{t} {n} of {c}' for t, (n, c) in sorted(short.items()))
+                self.errors.append(f'{self.path.name}: damage met while reading: {sum(got.values())} of '
+                                   f'{sum(self._infos[t].count for t in wanted)} messages read ({per})')
+
+    def _iterate(self, wanted: set, start_ns, stop_ns) -> Iterator[BagMessage]:
+        if self._files:
+            streams = []
+            for k, f in enumerate(self._files):
+                ids = {tid for tid, (name, _, _) in f.topics.items() if name in wanted}
+                if ids:
+                    streams.append(((ts, k, i, tid, data) for ts, i, tid, data in f.rows(ids, start_ns, stop_ns)))
+            for ts, k, _, tid, data in heapq.merge(*streams, key=lambda r: (r[0], r[1], r[2])):
+                name, mtype, _ = self._files[k].topics[tid]
+                yield BagMessage(name, mtype, int(ts), bytes(data))
+            for f in self._files:
+                self.errors += [e for e in f.problems if e not in self.errors]
+            return
+        if self._scan is not None:
+            for ts, cid, data in self._scan.messages(start_ns, stop_ns):
+                name, mtype, _ = self._scan.channels.get(cid, ('', '', ''))
+                if name in wanted:
+                    yield BagMessage(name, mtype, int(ts), data)
+            return
+        if self._ros1 is not None:
+            yield from self._ros1.messages(wanted, start_ns, stop_ns)
+            return
+        conns = [c for c in self._rosbags.connections if c.topic in wanted]
         if not conns:
             return
         try:
-            for conn, stamp, data in self._reader.messages(connections=conns, start=start_ns, stop=stop_ns):
+            for conn, stamp, data in self._rosbags.messages(connections=conns, start=start_ns, stop=stop_ns):
                 yield BagMessage(conn.topic, conn.msgtype, int(stamp), bytes(data))
-        except (sqlite3.DatabaseError, OSError, ValueError, KeyError, IndexError, EOFError) as exc:
-            self.errors.append(f'{self.path.name}: bag damaged after the last good message '
-                               f'({type(exc).__name__}: {exc})')
-        except Exception as exc:  # rosbags raises its own types for broken MCAP chunks
+        except Exception as exc:  # sqlite3/apsw, or rosbags's own types for broken MCAP chunks
             self.errors.append(f'{self.path.name}: bag damaged ({type(exc).__name__}: {exc})')
+
+
+class _Ros1:
+    """A ROS 1 .bag through rosbags, its messages converted to the ROS 2 types (CDR)."""
+
+    def __init__(self, path: Path):
+        from rosbags.rosbag1 import Reader
+        from rosbags.typesys import Stores, get_typestore
+        try:
+            self._reader = Reader(path)
+            self._reader.open()
+        except Exception as exc:
+            raise BagError(f'{path} is not a readable ROS 1 bag: {exc}') from exc
+        self._ts1 = get_typestore(Stores.ROS1_NOETIC)
+        self._ts2 = get_typestore(Stores.ROS2_JAZZY)
+        from rosbags.typesys import get_types_from_msg
+        for c in self._reader.connections:
+            for ts in (self._ts1, self._ts2):
+                if c.msgtype not in ts.fielddefs:
+                    try:
+                        ts.register(get_types_from_msg(c.msgdef.data, c.msgtype))
+                    except Exception:
+                        pass
+
+    def counts(self) -> dict:
+        out = {}
+        for c in self._reader.connections:
+            prev = out.get(c.topic, (c.msgtype, 0, ''))
+            out[c.topic] = (c.msgtype, prev[1] + c.msgcount, '')
+        return out
+
+    def span(self):
+        r = self._reader
+        return (int(r.start_time), int(r.end_time)) if r.message_count else None
+
+    def _to_ros2(self, value, msgtype: str):
+        """A ROS 1 message object -> the ROS 2 type of the same name (fields by name; ROS 1's Header.seq goes)."""
+        cls = self._ts2.types[msgtype]
+        kwargs = {}
+        for name, (kind, spec) in self._ts2.fielddefs[msgtype][1]:
+            v = getattr(value, name)
+            if kind.name == 'NAME':
+                v = self._to_ros2(v, spec)
+            elif kind.name in ('ARRAY', 'SEQUENCE') and spec[0][0].name == 'NAME':
+                v = [self._to_ros2(x, spec[0][1]) for x in v]
+            kwargs[name] = v
+        return cls(**kwargs)
+
+    def messages(self, wanted: set, start_ns, stop_ns) -> Iterator[BagMessage]:
+        conns = [c for c in self._reader.connections if c.topic in wanted]
+        for c, stamp, raw in self._reader.messages(connections=conns, start=start_ns, stop=stop_ns):
+            msg = self._to_ros2(self._ts1.deserialize_ros1(raw, c.msgtype), c.msgtype)
+            yield BagMessage(c.topic, c.msgtype, int(stamp), bytes(self._ts2.serialize_cdr(msg, c.msgtype)))
+
+    def close(self) -> None:
+        self._reader.close()
 
 
 MAVLINK_TOPIC = '/mavlink/from_fcu'
@@ -200,74 +446,3 @@ def messages_from_bag(bag: BagReader, stream=None, topic: str = MAVLINK_TOPIC) -
             yield m, bm.stamp_ns * 1e-9
     for m in stream.feed(b'', final=True):
         yield m, None
-
-
-class _SqliteSalvage:
-    """Reads a damaged rosbag2 sqlite3 file row by row in insertion order, up to the damage.
-
-    rosbags refuses to open a malformed database; a real flight's bag cut off by a power loss or
-    with a bad sector still holds everything written before the damage, so we read it directly.
-    """
-
-    def __init__(self, dbs: list[Path], connections: list, first_ns: int, last_ns: int):
-        self._dbs = dbs
-        self.connections = connections
-        self.start_time = first_ns
-        self.duration = max(last_ns - first_ns, 0)
-
-    @classmethod
-    def open(cls, path: Path) -> '_SqliteSalvage | None':
-        dbs = sorted(path.glob('*.db3')) if path.is_dir() else [path] if path.suffix == '.db3' else []
-        if not dbs:
-            return None
-        conns, first, last = {}, None, None
-        for db in dbs:
-            try:
-                con = sqlite3.connect(f'file:{db}?mode=ro', uri=True)
-                for tid, name, mtype in con.execute('SELECT id, name, type FROM topics'):
-                    conns[(db, tid)] = _SalvageConnection(name, mtype, 0)
-                for ts, in con.execute('SELECT timestamp FROM messages ORDER BY rowid LIMIT 1'):
-                    first = ts if first is None else min(first, ts)
-                con.close()
-            except sqlite3.DatabaseError:
-                continue
-        if not conns or first is None:
-            return None
-        # The end is unknown until read; estimate it from metadata.yaml when it is readable.
-        last = first
-        meta = path / 'metadata.yaml' if path.is_dir() else None
-        if meta is not None and meta.exists():
-            try:
-                import yaml
-                info = yaml.safe_load(meta.read_text())['rosbag2_bagfile_information']
-                last = first + int(info['duration']['nanoseconds'])
-            except Exception:
-                pass
-        self = cls(dbs, list(conns.values()), first, last)
-        self._by_id = conns
-        return self
-
-    def close(self) -> None:
-        pass
-
-    def messages(self, connections=(), start=None, stop=None):
-        wanted = {id(c) for c in connections}
-        for db in self._dbs:
-            con = sqlite3.connect(f'file:{db}?mode=ro', uri=True)
-            try:
-                for tid, ts, data in con.execute('SELECT topic_id, timestamp, data FROM messages ORDER BY rowid'):
-                    conn = self._by_id.get((db, tid))
-                    if conn is None or (wanted and id(conn) not in wanted):
-                        continue
-                    if (start is not None and ts < start) or (stop is not None and ts >= stop):
-                        continue
-                    yield conn, ts, data
-            finally:
-                con.close()
-
-
-@dataclass
-class _SalvageConnection:
-    topic: str
-    msgtype: str
-    msgcount: int

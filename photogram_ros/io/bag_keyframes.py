@@ -81,8 +81,13 @@ def read_bag_keyframes(src: str | Path, camera_path: str | Path | None = None, t
             msg = deserialize(m.msgtype, m.data)
             keyframes += tracker.process(msgs.image_from_msg(msg), msgs.ns_from_time(msg.header.stamp))
         keyframes += tracker.flush()
-        for e in bag.errors:
-            assumptions.append(f'bag damaged: {e}; triangulated what precedes the damage')
+        # What was read and what was lost, in the report and on the console (the command goes on with
+        # what the bag still holds).
+        for e in dict.fromkeys(bag.errors):
+            assumptions.append(f'bag damaged: {e}; triangulated what it still holds')
+        for line in bag.health():
+            if log is not None:
+                log(line)
     if log is not None:
         log(f'{src}: {len(keyframes)} keyframes, {len(fixes)} fixes')
     records, n_seen = [], 0

@@ -6,6 +6,7 @@ Layout of a map directory:
     keyframes/<stamp_ns>.jpg      keyframe image
     keyframes/<stamp_ns>.json     its latest map_T_cam (rewritten atomically when the pose improves)
     camera.json                   the keyframes' camera calibration
+    flight_end.json               how the flight ended: was the final adjustment made (written last)
 
 A tile file is a 32-byte header followed by blocks. A block is a 16-byte header (magic, record
 count, CRC-32 of the payload) and fixed-size records (cell index + the cell's full state). A flush
@@ -18,6 +19,7 @@ not yet flushed. Files that have grown much larger than their content are rewrit
 
 from __future__ import annotations
 
+import errno
 import json
 import os
 import struct
@@ -27,7 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from photogram_ros.core.fusion import CELL_DTYPE
-from photogram_ros.errors import DataError
+from photogram_ros.errors import DataError, StorageError
 
 FORMAT = 'photogram_ros.map'
 VERSION = 1
@@ -40,12 +42,23 @@ _FILE_HEADER_SIZE = 40
 
 
 def _atomic_write(path: Path, data: bytes) -> None:
+    """Write `path` whole or not at all; a failure (a full disk) leaves no temporary file behind and
+    raises a StorageError (an OSError too) naming the folder."""
     tmp = path.with_name(path.name + '.tmp')
-    with open(tmp, 'wb') as f:
-        f.write(data)
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
+    try:
+        with open(tmp, 'wb') as f:
+            f.write(data)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except OSError as exc:
+        try:
+            os.unlink(tmp)
+        except OSError:
+            pass
+        raise StorageError(f'cannot write {path.name} in {path.parent} ({exc.strerror or exc}): '
+                           f'{"the disk is full: free space" if exc.errno == errno.ENOSPC else "check the folder"} '
+                           'and run again', exc.errno) from exc
 
 
 class MapStore:
@@ -95,6 +108,19 @@ class MapStore:
     def set_origin(self, frame) -> None:
         self.meta['origin'] = frame.to_dict()
         _atomic_write(self.root / 'map.json', json.dumps(self.meta, indent=1).encode())
+
+    def save_flight_end(self, end: dict) -> None:
+        """How the flight ended ({'final_adjustment': 'done' | 'failed' | 'none', 'reason', ...}): the
+        products then say whether their poses are the final adjustment's."""
+        _atomic_write(self.root / 'flight_end.json', json.dumps(end, indent=1).encode())
+
+    def flight_end(self) -> dict | None:
+        """What save_flight_end wrote, or None (a map from before it existed, or a flight cut short)."""
+        p = self.root / 'flight_end.json'
+        try:
+            return json.loads(p.read_text()) if p.exists() else None
+        except (OSError, ValueError):
+            return None
 
     # --- tiles -----------------------------------------------------------------------------------
 

@@ -71,6 +71,7 @@ class Ingest:
     """
 
     GPS_TYPES = {'GPS_RAW_INT': 0, 'GPS2_RAW': 1}
+    REBOOT_CONFIRM = 3      # distinct boot times going backwards before the data says "reboot"
 
     def __init__(self, clock_source: str = 'auto', error_model: gf.ErrorModel | None = None,
                  max_fix_age_s: float = 1.0, trigger_source: str = 'auto', on_problem=None,
@@ -98,6 +99,8 @@ class Ingest:
         self._last_quat_boot_ms = -10 ** 9
         self._last_fix_t: dict = {}
         self._max_boot_s = -math.inf
+        self._back: list = []                # (msg, arrival_s, boot_s) whose boot time went backwards
+        self._back_ref_s = -math.inf         # the latest boot time when the first of them came
         self._fit_source = None
         self._last_best_t = -math.inf
 
@@ -165,9 +168,9 @@ class Ingest:
         return self._flush_pending()
 
     def _clock_event(self, ev: str) -> None:
-        if ev in ('outlier', 'jump', 'reboot'):
+        if ev in ('outlier', 'jump', 'reboot', 'implausible'):
             self.counts[f'clock_{ev}'] += 1
-            self.on_problem(f'autopilot clock: {ev} (SYSTEM_TIME/TIMESYNC disagrees with the fit)')
+            self.on_problem(f'autopilot clock: {ev} ({self.clock.detail or "SYSTEM_TIME/TIMESYNC disagrees with the fit"})')
             if ev == 'reboot':
                 self.latest.clear()
                 self._last_fix_t.clear()
@@ -195,13 +198,26 @@ class Ingest:
         boot_s = self._boot_time_s(m, mtype)
         if boot_s is not None:
             if boot_s < self._max_boot_s - 1.0:
-                # Data stamped far before what we have seen: the autopilot rebooted. Its old clock
-                # fit is void; wait for the new SYSTEM_TIME/TIMESYNC.
+                # Data stamped far before what we have seen: the autopilot rebooted, if it repeats
+                # (one wild time_boot_ms, e.g. 0, is not a reboot). Held until then; on a reboot the
+                # old clock fit is void: they wait for the new SYSTEM_TIME/TIMESYNC.
+                if self._back and boot_s < self._back[-1][2] - 1.0:
+                    self._drop_back()
+                if not self._back:
+                    self._back_ref_s = self._max_boot_s
+                self._back.append((m, arrival_s, boot_s))
+                if len({b for _, _, b in self._back}) < self.REBOOT_CONFIRM:
+                    return []
                 self.clock.reset()
+                self.clock.detail = 'data boot times started again: the autopilot rebooted'
                 self._clock_event('reboot')
-                self._max_boot_s = boot_s
-                self._pending.append((m, arrival_s))
+                self._max_boot_s = min(b for _, _, b in self._back)   # they come back through here, in order
+                self._pending.extend((bm, ba) for bm, ba, _ in self._back)
+                self._back = []
                 return []
+            if self._back and boot_s > self._back_ref_s + 2.0:
+                # The old boot clock ran on for 2 s more (stragglers sent before a reboot stop sooner).
+                self._drop_back()
             self._max_boot_s = max(self._max_boot_s, boot_s)
         if mtype in self.GPS_TYPES:
             return self._gps(m, self.GPS_TYPES[mtype], arrival_s)
@@ -210,6 +226,13 @@ class Ingest:
         if mtype == 'CAMERA_FEEDBACK':
             return self._feedback(m)
         return self._trigger(m)
+
+    def _drop_back(self) -> None:
+        """The boot times that went backwards did not repeat: wild values, not a reboot."""
+        n, self._back = len(self._back), []
+        self.counts['boot_time_outliers'] += n
+        self.on_problem(f'{n} message(s) with a boot time before the ones seen (e.g. time_boot_ms 0) ignored: '
+                        'not a reboot')
 
     def _gps(self, m, receiver: int, arrival_s=None) -> list:
         raw = raw_gnss(m, receiver)

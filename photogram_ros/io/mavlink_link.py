@@ -48,6 +48,6 @@ def file_kind(path: str) -> str:
             head = f.read(3)
         if head[:2] == b'\xa3\x95':
             return 'dataflash'
-    if os.path.isdir(path):
+    if os.path.isdir(path) or low.endswith(('.db3', '.mcap', '.bag')):
         return 'bag'
     return 'tlog'

@@ -68,6 +68,11 @@ class Diagnostics:
         with self._lock:
             return dict(self._counts)
 
+    def recent_problems(self, n: int = 5) -> list[str]:
+        """The texts of the last `n` problems, oldest first."""
+        with self._lock:
+            return [what for _, what in list(self._problems)[-n:]]
+
     def status(self) -> DiagnosticStatus:
         with self._lock:
             kv = [KeyValue(key=k, value=str(v)) for k, v in sorted(self._counts.items())]

@@ -7,7 +7,12 @@ parameter file, for integrators who want to restart or pin nodes individually.
 A Python process runs on about one core (the GIL), so a graph can also put some roles in one child
 process (`GraphSpec.child_roles`, the same node code): the child reports its nodes' counters on
 `graph/child/status` and takes end-of-flight calls (stereo flush, bundle finish) and its stop on
-`graph/child/command`, so the parent drives the whole graph as if the nodes were its own.
+`graph/child/command`, so the parent drives the whole graph as if the nodes were its own. The
+child ignores SIGINT (a terminal's Ctrl-C reaches the whole process group: the parent decides) and
+stops when its parent is gone, even after a kill -9 of the parent (it watches a pipe from it).
+
+`finish_flight` says whether the final adjustment was made (`FlightEnd`): the products and the
+report must not claim final poses that are not there.
 """
 
 from __future__ import annotations
@@ -25,6 +30,7 @@ from dataclasses import asdict, dataclass, field
 
 from photogram_ros.errors import ConfigError, PhotogramError
 from photogram_ros.params import load_params_file
+from photogram_ros.nodes.node_main import WATCH_PARENT_ENV, init_ros, watch_parent
 from photogram_ros.nodes.process_memory import DEFAULT_ARENAS, limit_malloc_arenas, start_heap_trimmer
 
 # role -> (module, class, console script); the order is the data-flow order.
@@ -36,6 +42,11 @@ NODES = {
     'stereo': ('photogram_ros.nodes.stereo_node', 'StereoNode', 'stereo_node'),
     'map': ('photogram_ros.nodes.map_node', 'MapNode', 'map_node'),
 }
+
+
+# role -> the parameter dataclass its node declares (in the node's module).
+PARAMS = {'camera': 'CameraParams', 'mavlink': 'MavlinkParams', 'tracker': 'TrackerNodeParams',
+          'bundle': 'BundleNodeParams', 'stereo': 'StereoNodeParams', 'map': 'MapParams'}
 
 
 # The camera node is for cameras without a ROS driver (video devices, photo folders): started only
@@ -63,6 +74,36 @@ class GraphSpec:
     child_roles: tuple = field(default_factory=tuple)   # roles run in one child process (a second core)
 
 
+@dataclass
+class FlightEnd:
+    """What the end of flight (Graph.finish_flight) achieved."""
+
+    final_adjustment: str = 'none'   # 'done'; 'failed'; 'none': nothing to adjust (no keyframe oriented, no bundle)
+    reason: str = ''                 # why it failed, or why there was none
+    errors: list = field(default_factory=list)   # '<role>: <method> failed: <why>'
+
+    @property
+    def ok(self) -> bool:
+        return self.final_adjustment != 'failed' and not self.errors
+
+    def as_dict(self) -> dict:
+        return {'final_adjustment': self.final_adjustment, 'reason': self.reason, 'errors': list(self.errors)}
+
+
+def _final_adjustment_outcome(before: dict, after: dict, problems: list[str], error: str) -> tuple[str, str]:
+    """'done' / 'failed' / 'none' and the reason, from the bundle node's counters around its finish()."""
+    if after.get('full_adjustments', 0) > before.get('full_adjustments', 0):
+        return 'done', ''
+    if error:
+        return 'failed', error
+    failed = [p for p in problems if p.startswith('full adjustment failed')]
+    if failed:
+        return 'failed', failed[-1]
+    if after.get('keyframes_oriented', 0) == 0:
+        return 'none', 'no keyframe was oriented'
+    return 'failed', 'the bundle adjuster made no final adjustment'
+
+
 def _sections(spec: GraphSpec) -> dict:
     """Parameter values per node name from the params file (ROS format) plus overrides."""
     sections = load_params_file(spec.params_file) if spec.params_file else {}
@@ -75,6 +116,30 @@ def _sections(spec: GraphSpec) -> dict:
     return sections
 
 
+def role_values(spec: GraphSpec, role: str, sections: dict | None = None) -> dict:
+    """The parameter values `role` gets: the file's '**' section, its own section, then spec.extra."""
+    sections = _sections(spec) if sections is None else sections
+    script = NODES[role][2]
+    values = dict(sections.get('**', {}))
+    for name, section in sections.items():
+        if name.split('/')[-1] == script:
+            values.update(section)
+    values.update((spec.extra or {}).get(role, {}))
+    return values
+
+
+def check_params(spec: GraphSpec, roles=None) -> None:
+    """Validate every parameter the nodes of `roles` (default: all of spec) will get, names and ranges,
+    without starting them: a mistake is a ConfigError now rather than when a node (perhaps in another
+    process) starts."""
+    from photogram_ros.params import from_dict
+    sections = _sections(spec)
+    for role in spec.roles if roles is None else roles:
+        cls = getattr(importlib.import_module(NODES[role][0]), PARAMS[role])
+        values = {k: v for k, v in role_values(spec, role, sections).items() if k != 'use_sim_time'}
+        from_dict(cls, values, where=f'{spec.params_file or "parameters"}: {NODES[role][2]}')
+
+
 class Graph:
     """All nodes in one process, spun by a multi-threaded executor in a background thread."""
 
@@ -85,6 +150,8 @@ class Graph:
         limit_malloc_arenas()
         self.spec = spec
         sections = _sections(spec)
+        # The child's nodes start in another process: check their parameters here, at once.
+        check_params(spec, [r for r in spec.roles if r in spec.child_roles])
         self.nodes = {}
         kwargs = {'namespace': spec.namespace} if spec.namespace else {}
         if context is not None:
@@ -93,14 +160,7 @@ class Graph:
         for role in spec.roles:
             if role in spec.child_roles:
                 continue
-            cls = node_class(role)
-            script = NODES[role][2]
-            values = dict(sections.get('**', {}))
-            for name, section in sections.items():
-                if name.split('/')[-1] == script:
-                    values.update(section)
-            values.update((spec.extra or {}).get(role, {}))
-            self.nodes[role] = cls(overrides=values, **kwargs)
+            self.nodes[role] = node_class(role)(overrides=role_values(spec, role, sections), **kwargs)
         self.executor = MultiThreadedExecutor(num_threads=4, context=context)
         for n in self.nodes.values():
             self.executor.add_node(n)
@@ -131,21 +191,38 @@ class Graph:
         local = any(callable(getattr(n, 'busy', None)) and n.busy() for n in self.nodes.values())
         return local or (self.child is not None and self.child.busy())
 
-    def finish_flight(self, settle=lambda: time.sleep(2.0)) -> None:
+    def problems(self, role: str) -> list[str]:
+        """The last problems a node reported (in this process or the child)."""
+        if self.child is not None and role in self.child.spec.roles:
+            return self.child.problems(role)
+        diag = getattr(self.nodes.get(role), 'diag', None)
+        return diag.recent_problems() if diag is not None else []
+
+    def finish_flight(self, settle=lambda: time.sleep(2.0)) -> FlightEnd:
         """End of flight, in data-flow order: the tracker emits the keyframes it still holds, the
         bundle adjuster runs its final adjustment and republishes the poses, stereo pairs the
-        keyframes still waiting; `settle` lets the downstream nodes consume each step's output."""
+        keyframes still waiting; `settle` lets the downstream nodes consume each step's output.
+        Returns whether the final adjustment was made, and every step that failed."""
+        end = FlightEnd(reason='no bundle node' if 'bundle' not in self.spec.roles else '')
         for role, method in (('tracker', 'flush'), ('bundle', 'finish'), ('stereo', 'flush')):
             if self.child is not None and role in self.child.spec.roles:
                 fn = functools.partial(self.child.call, role, method)
             else:
                 fn = getattr(self.nodes.get(role), method, None)
-            if callable(fn):
-                try:
-                    fn()
-                except Exception as exc:  # one node's failure must not lose the others' data
-                    print(f'{role}: {method} failed: {exc}', file=sys.stderr)
-                settle()
+            if not callable(fn):
+                continue
+            before, error = self.counts().get(role, {}), ''
+            try:
+                fn()
+            except Exception as exc:  # one node's failure must not lose the others' data
+                error = f'{role}: {method} failed: {exc}'
+                end.errors.append(error)
+                print(error, file=sys.stderr, flush=True)
+            settle()
+            if role == 'bundle':
+                end.final_adjustment, end.reason = _final_adjustment_outcome(
+                    before, self.counts().get('bundle', {}), self.problems('bundle'), error)
+        return end
 
     def shutdown(self) -> None:
         """Stop spinning and destroy the nodes (the map node flushes its tiles to disk on destroy); the
@@ -193,8 +270,11 @@ class ChildGraph:
         # glibc reads this before the child's first thread, so no thread gets an arena of its own
         # before the cap (capped late, the 16-minute soak's child had 4 arenas and 100 MB more heap).
         env.setdefault('MALLOC_ARENA_MAX', str(DEFAULT_ARENAS))
+        # The child stops when this pipe closes: when this process ends, however it ends.
+        env[WATCH_PARENT_ENV] = '1'
         code = 'import sys; from photogram_ros.nodes.graph import child_main; sys.exit(child_main())'
-        self.proc = subprocess.Popen([sys.executable, '-c', code, json.dumps(asdict(spec))], env=env)
+        self.proc = subprocess.Popen([sys.executable, '-c', code, json.dumps(asdict(spec))], env=env,
+                                     stdin=subprocess.PIPE)
 
     def _on_status(self, msg) -> None:
         with self._cond:
@@ -202,9 +282,16 @@ class ChildGraph:
             self._cond.notify_all()
 
     def _wait(self, what, timeout_s: float) -> bool:
+        """Until what(status) holds, the child exits (nothing notifies the condition then: poll it) or the
+        time is up."""
+        deadline = time.monotonic() + timeout_s
         with self._cond:
-            return self._cond.wait_for(lambda: what(self._status) or self.proc.poll() is not None, timeout_s) \
-                and what(self._status)
+            while not what(self._status):
+                left = deadline - time.monotonic()
+                if left <= 0 or self.proc.poll() is not None:
+                    return what(self._status)
+                self._cond.wait(min(left, 0.2))
+            return True
 
     def wait_ready(self, local_nodes, timeout_s: float) -> None:
         """Until the child's nodes are up and every topic they take from this process's nodes has
@@ -233,6 +320,10 @@ class ChildGraph:
         with self._cond:
             return bool(self._status.get('busy'))
 
+    def problems(self, role: str) -> list[str]:
+        with self._cond:
+            return list(self._status.get('problems', {}).get(role, []))
+
     def _send(self, **command) -> int:
         from std_msgs.msg import String
         with self._cond:
@@ -245,24 +336,30 @@ class ChildGraph:
         """Run `method` of the child's `role` node and wait until it returned."""
         seq = self._send(call=[role, method])
         if not self._wait(lambda st: st.get('done', 0) >= seq, timeout_s):
-            raise ConfigError(f'child process: {role}.{method} did not finish in {timeout_s:.0f} s')
+            if self.proc.poll() is not None:
+                raise RuntimeError(f'child process: ended (exit status {self.proc.poll()}) before {role}.{method}')
+            raise RuntimeError(f'child process: {role}.{method} did not finish in {timeout_s:.0f} s')
         err = self._status.get('errors', {}).get(str(seq))
         if err:
             raise RuntimeError(err)
 
     def stop(self, timeout_s: float = 120.0) -> int:
-        """Ask the child to destroy its nodes (the map flushes) and end; SIGINT, then kill, if it does not."""
-        if self.proc.poll() is None:
-            self._send(stop=True)
-            try:
-                return self.proc.wait(timeout=timeout_s)
-            except subprocess.TimeoutExpired:
-                self.proc.send_signal(signal.SIGINT)
+        """Ask the child to destroy its nodes (the map flushes) and end; SIGTERM, then kill, if it does not."""
+        try:
+            if self.proc.poll() is None:
+                self._send(stop=True)
                 try:
-                    return self.proc.wait(timeout=30)
+                    return self.proc.wait(timeout=timeout_s)
                 except subprocess.TimeoutExpired:
-                    self.proc.kill()
-        return self.proc.wait()
+                    self.proc.send_signal(signal.SIGTERM)
+                    try:
+                        return self.proc.wait(timeout=30)
+                    except subprocess.TimeoutExpired:
+                        self.proc.kill()
+            return self.proc.wait()
+        finally:
+            if self.proc.stdin is not None:
+                self.proc.stdin.close()
 
 
 def child_main(argv=None) -> int:
@@ -275,9 +372,11 @@ def child_main(argv=None) -> int:
     spec = GraphSpec(**{**json.loads(args[0]), 'child_roles': ()})
     spec.roles = tuple(spec.roles)
     limit_malloc_arenas()   # before rclpy.init(): it starts the DDS threads
-    rclpy.init()
+    init_ros()
     stop = threading.Event()
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    signal.signal(signal.SIGINT, signal.SIG_IGN)   # the parent decides when the flight ends
+    watch_parent(stop.set)
     graph = None
     try:
         graph = Graph(spec)
@@ -291,7 +390,8 @@ def child_main(argv=None) -> int:
 
         def status():
             pub.publish(String(data=json.dumps({'counts': graph.counts(), 'busy': graph.busy(), 'subs': subs,
-                                                'done': state['done'], 'errors': state['errors']})))
+                                                'done': state['done'], 'errors': state['errors'],
+                                                'problems': {r: graph.problems(r) for r in graph.nodes}})))
 
         def command(msg):
             c = json.loads(msg.data)
@@ -313,8 +413,6 @@ def child_main(argv=None) -> int:
         graph.start()
         while not stop.wait(0.2):
             pass
-    except KeyboardInterrupt:
-        pass
     except PhotogramError as exc:
         print(f'graph child: {exc}', file=sys.stderr)
         return 2
@@ -326,7 +424,10 @@ def child_main(argv=None) -> int:
 
 
 def start_separate(spec: GraphSpec) -> list[subprocess.Popen]:
-    """One process per node (the console scripts), each given the same parameter file."""
+    """One process per node (the console scripts), each given the same parameter file, in its own
+    session (a terminal's Ctrl-C reaches only the caller, which stops them in data-flow order) and
+    watching a pipe from the caller (they stop when it is gone)."""
+    env = {**os.environ, WATCH_PARENT_ENV: '1'}
     procs = []
     for role in spec.roles:
         args = [sys.executable, '-c', f'import sys; from {NODES[role][0]} import main; sys.exit(main())',
@@ -337,5 +438,5 @@ def start_separate(spec: GraphSpec) -> list[subprocess.Popen]:
             args += ['-r', f'__ns:={spec.namespace}']
         for k, v in (spec.extra or {}).get(role, {}).items():
             args += ['-p', f'{k}:={v}']
-        procs.append(subprocess.Popen(args))
+        procs.append(subprocess.Popen(args, env=env, stdin=subprocess.PIPE, start_new_session=True))
     return procs

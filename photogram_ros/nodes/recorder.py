@@ -1,4 +1,5 @@
-"""Recorder: subscribes to topics as raw CDR and writes them to a bag with their receive times."""
+"""Recorder: subscribes to topics as raw CDR and writes them to a bag (MCAP by default, as ROS 2 Jazzy)
+with their receive times and the publishers' QoS profiles."""
 
 from __future__ import annotations
 
@@ -14,7 +15,7 @@ from photogram_ros.io.bag import BagWriter, msg_class
 
 
 class Recorder:
-    def __init__(self, out: str, topics: list[str], storage: str = 'sqlite3', node_name: str = 'recorder'):
+    def __init__(self, out: str, topics: list[str], storage: str = 'mcap', node_name: str = 'recorder'):
         self.node = Node(node_name)
         self.topics = topics
         self.writer = BagWriter(out, storage=storage)
@@ -27,11 +28,11 @@ class Recorder:
         for name, types in self.node.get_topic_names_and_types():
             if name in self.topics and name not in self._subs:
                 msgtype = types[0]
-                self.writer.add_topic(name, msgtype)
+                publishers = self.node.get_publishers_info_by_topic(name)
+                self.writer.add_topic(name, msgtype, qos=[i.qos_profile for i in publishers])
                 # Reliable loses nothing, but a reliable subscription does not match best-effort
                 # publishers (sensor-data QoS), so those are recorded best-effort.
-                reliable = all(i.qos_profile.reliability == ReliabilityPolicy.RELIABLE
-                               for i in self.node.get_publishers_info_by_topic(name))
+                reliable = all(i.qos_profile.reliability == ReliabilityPolicy.RELIABLE for i in publishers)
                 qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1000,
                                  reliability=ReliabilityPolicy.RELIABLE if reliable else ReliabilityPolicy.BEST_EFFORT)
                 self._subs[name] = self.node.create_subscription(

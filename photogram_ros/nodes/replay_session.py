@@ -44,6 +44,10 @@ class ReplayOptions:
     # backlog grew the memory with the flight's length, and past stereo's max_keyframes (80) stereo
     # dropped keyframe images before their poses came, so whole stretches got no cloud.
     max_lag_keyframes: int = 30
+    # The replay stops (StorageError) when the disk of `out` has less than this free, and does not
+    # start: a full disk fails every write of the map and the products, and the backpressure would
+    # then wait frame_timeout_s on every frame for a map that cannot keep up.
+    min_free_mb: float = 20.0
 
 
 class DiagnosticsLog:
@@ -109,15 +113,31 @@ def _activity(graph: Graph) -> int:
 CHILD_ROLES_ALLOWED = ('bundle', 'stereo', 'map')
 
 
+def check_free_space(out: Path, min_free_mb: float, when: str) -> None:
+    """A StorageError unless the disk holding `out` has `min_free_mb` free."""
+    import shutil
+
+    from photogram_ros.errors import StorageError
+    free_mb = shutil.disk_usage(out).free / 1e6
+    if free_mb < min_free_mb:
+        raise StorageError(f'the disk of {out} has {free_mb:.1f} MB free {when} (a replay needs at least '
+                           f'{min_free_mb:.0f} MB for the map and the products): free space, or choose another '
+                           '--out', 28)
+
+
 def run_replay(opts: ReplayOptions, context=None) -> dict:
     """Run the whole replay into OUT/map; returns the run summary, the diagnostics log and the map folder."""
     from photogram_ros.errors import BagError, ConfigError
     from photogram_ros.io.bag import BagReader
     out = Path(opts.out)
     out.mkdir(parents=True, exist_ok=True)
+    check_free_space(out, opts.min_free_mb, 'before the replay')
     map_dir = out / 'map'
     with BagReader(opts.bag) as bag:
         topics = bag.topics()
+        bag_warnings = list(bag.warnings)
+        for line in bag.health():     # before the first frame: the user knows what will be mapped
+            print(line, flush=True)
     if not any(t in topics for t in IMAGE_TOPICS):
         raise BagError(f'{opts.bag} has no camera images ({" or ".join(IMAGE_TOPICS)}): nothing to map; '
                        f'it has {sorted(topics)}')
@@ -175,6 +195,7 @@ def run_replay(opts: ReplayOptions, context=None) -> dict:
         # The tracker must have taken the previous frame. Waiting here rather than right after that
         # frame lets the messages recorded with it (its camera_info) reach the tracker meanwhile.
         wait_for(lambda: tracker.frames_done >= images_sent[0], opts.frame_timeout_s)
+        check_free_space(out, opts.min_free_mb, f'after {images_sent[0]} frames (the map so far is in {map_dir})')
         if opts.max_lag_keyframes > 0:
             wait_downstream()
 
@@ -233,17 +254,32 @@ def run_replay(opts: ReplayOptions, context=None) -> dict:
     try:
         summary = player.play(on_message=on_message, before_message=before_message)
         drain()
-        graph.finish_flight(settle=drain)
+        end = graph.finish_flight(settle=drain)
         wall_s = time.monotonic() - t_start
     finally:   # whatever happened, the map node flushes what it fused
         graph.shutdown()
         player.destroy_node()
         listener.destroy_node()
+    _record_flight_end(map_dir, end.as_dict())
     run = {'bag': str(opts.bag), 'frames': images_sent[0], 'bag_s': summary.bag_s, 'wall_s': wall_s,
            'real_time_factor': summary.bag_s / max(wall_s, 1e-9), 'messages': summary.total,
            'bag_errors': summary.errors, 'skipped_topics': summary.skipped,
-           'waited_for_downstream_s': round(lag_wait_s[0], 1)}
-    return {'run': run, 'diagnostics': diag_log.snapshot(), 'map_dir': str(map_dir)}
+           'waited_for_downstream_s': round(lag_wait_s[0], 1),
+           'bag_read': {t: [i.count, i.expected] for t, i in topics.items()}, 'bag_warnings': bag_warnings,
+           'final_adjustment': end.final_adjustment, 'end_of_flight_errors': end.errors}
+    if end.reason:
+        run['final_adjustment_reason'] = end.reason
+    return {'run': run, 'diagnostics': diag_log.snapshot(), 'map_dir': str(map_dir), 'flight_end': end}
+
+
+def _record_flight_end(map_dir: Path, end: dict) -> None:
+    """flight_end.json in the map folder (after the map node is gone: it writes map.json itself)."""
+    from photogram_ros.errors import PhotogramError
+    from photogram_ros.io.map_store import MapStore
+    try:
+        MapStore(map_dir).save_flight_end(end)
+    except (PhotogramError, OSError) as exc:
+        print(f'note: {map_dir} could not record how the flight ended: {exc}', flush=True)
 
 
 def _print_progress(graph: Graph, frames: int, stamp_ns: int, t_start: float) -> None:

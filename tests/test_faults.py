@@ -1,0 +1,676 @@
+"""Faults and bad input, as a hostile but realistic user meets them (issue #15; README "Faults and bad input").
+
+One test per case, each with its expected outcome: a clear message, an exit status, and what was
+kept. The onboard stop (`run` with camera frames, SIGTERM) is in the fast set; the other long
+flights are marked slow.
+"""
+
+from __future__ import annotations
+
+import datetime
+import json
+import os
+import shutil
+import signal
+import socket
+import sqlite3
+import struct
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from conftest import ROOT, SAMPLE_BAG, shared_data
+from test_mavlink_node import _free_udp_port
+
+CLI = [sys.executable, '-m', 'photogram_ros.cli']
+
+
+def cli(*args, timeout=300, **kw):
+    return subprocess.run(CLI + [str(a) for a in args], cwd=ROOT, capture_output=True, text=True, timeout=timeout,
+                          **kw)
+
+
+def _copy_bag(tmp_path: Path, name='bag') -> Path:
+    dst = tmp_path / name
+    shutil.copytree(SAMPLE_BAG, dst, ignore=shutil.ignore_patterns('*.tlog', 'ground_truth*', 'targets.txt'))
+    return dst
+
+
+def _truncate(bag: Path, fraction: float) -> Path:
+    db = next(bag.glob('*.db3'))
+    data = db.read_bytes()
+    db.write_bytes(data[:int(len(data) * fraction)])
+    return db
+
+
+def _messages(path) -> dict:
+    """(topic, stamp_ns) -> data of every message a BagReader yields."""
+    from photogram_ros.io.bag import BagReader
+    with BagReader(path) as bag:
+        return {(m.topic, m.stamp_ns): m.data for m in bag.messages()}
+
+
+@pytest.fixture(scope='module')
+def intact() -> dict:
+    return _messages(SAMPLE_BAG)
+
+
+# --- damaged bags ----------------------------------------------------------------------------------
+
+
+def _dump_count(db: Path, tmp_path: Path) -> int | None:
+    """Independent oracle: rows the sqlite3 shell's .dump still finds (the header's page count set
+    to the pages the file holds, which the shell needs to open it); None without the shell."""
+    if shutil.which('sqlite3') is None:
+        return None
+    data = bytearray(db.read_bytes())
+    pages = len(data) // 4096
+    data[28:32] = struct.pack('>I', pages)
+    copy = tmp_path / 'oracle.db3'
+    copy.write_bytes(bytes(data[:pages * 4096]))
+    out = subprocess.run(['sqlite3', str(copy), '.dump messages'], capture_output=True, text=True).stdout
+    return sum(line.startswith('INSERT INTO messages') for line in out.splitlines())
+
+
+@pytest.mark.parametrize('fraction', [0.3, 0.6, 0.9])
+def test_truncated_sqlite_bag_gives_what_it_holds(tmp_path, intact, fraction):
+    """Power loss: a .db3 cut at 30/60/90 %. Every readable message comes out byte for byte, the count
+    matches the sqlite3 shell's, and every command says how many of the 3726 it read."""
+    from photogram_ros.io.bag import BagReader
+    bag = _copy_bag(tmp_path)
+    db = _truncate(bag, fraction)
+    got = _messages(bag)
+    assert got and all(intact[k] == v for k, v in got.items())
+    assert 0.8 * fraction < len(got) / len(intact) < fraction + 0.05   # about what the file still holds
+    oracle = _dump_count(db, tmp_path)
+    with BagReader(bag) as r:
+        readable = sum(t.count for t in r.topics().values())
+        assert any(f'of {len(intact)} messages readable' in e for e in r.errors)
+        assert r.duration_ns * 1e-9 == pytest.approx(77.7 * fraction, abs=3.0)
+    if oracle is not None:
+        assert len(got) == oracle
+    assert 0 <= readable - len(got) <= 1      # a row whose last overflow page is cut lists, but does not read
+    res = cli('bag-info', bag)
+    assert res.returncode == 3 and f'{len(got)} messages of {len(intact)} recorded' in res.stdout
+    assert 'lost' in res.stderr and 'cut short' in res.stderr
+
+
+def test_truncated_mcap_bag_gives_its_complete_chunks(tmp_path, intact):
+    """The same flight as MCAP (what `record` writes by default), cut at 60 %: the complete chunks
+    are read, in order, byte for byte; the command says what was lost."""
+    from photogram_ros.io.bag import BagReader, BagWriter
+    mc = tmp_path / 'mc'
+    with BagReader(SAMPLE_BAG) as r, BagWriter(mc, storage='mcap') as w:
+        for t in r.topics().values():
+            w.add_topic(t.topic, t.msgtype)
+        for m in r.messages():
+            w.write_raw(m.topic, m.stamp_ns, m.data)
+    f = next(mc.glob('*.mcap'))
+    size = f.stat().st_size
+    f.write_bytes(f.read_bytes()[:int(size * 0.6)])
+    got = _messages(mc)
+    assert all(intact[k] == v for k, v in got.items())
+    # Chunks hold 1 MB: all but the chunk the cut went through.
+    assert 0.6 * len(intact) - 1.2e6 / size * len(intact) < len(got) < 0.6 * len(intact)
+    # Chunks follow one another in time: what is lost comes after what was read (to within a chunk's span).
+    assert max(k[1] for k in got) < min(k[1] for k in set(intact) - set(got)) + 1_000_000_000
+    res = cli('bag-info', mc)
+    assert res.returncode == 3 and f'{len(got)} messages of {len(intact)} recorded' in res.stdout
+    assert 'damaged MCAP' in res.stderr
+
+
+def test_overwritten_pages_lose_only_their_rows(tmp_path, intact):
+    """64 KB of garbage in the middle of the .db3: the rows on those pages are lost, the rows after
+    them are still read (not "counts of 0", not half the bag), and the loss is said."""
+    bag = _copy_bag(tmp_path)
+    db = next(bag.glob('*.db3'))
+    data = bytearray(db.read_bytes())
+    mid = len(data) // 2 // 4096 * 4096
+    data[mid:mid + 65536] = np.random.default_rng(0).integers(0, 256, 65536, dtype=np.uint8).tobytes()
+    db.write_bytes(bytes(data))
+    got = _messages(bag)
+    assert 0.9 * len(intact) < len(got) < len(intact)
+    assert max(k[1] for k in got) == max(k[1] for k in intact)       # read past the damage to the end
+    # SQLite has no checksums: a row whose overflow page (part of a JPEG) was overwritten reads back
+    # with the garbage, as it would in any reader; at most the 16 overwritten pages' worth.
+    changed = [k for k, v in got.items() if intact[k] != v]
+    assert len(changed) <= 16 and all(k[0] == '/camera/image_raw/compressed' for k in changed)
+    res = cli('bag-info', bag)
+    assert res.returncode == 3 and 'lost' in res.stderr and f'of {len(intact)} recorded' in res.stdout
+
+
+def test_missing_or_garbled_metadata_is_a_warning_not_zero(tmp_path, intact):
+    """A recording cut short has no metadata.yaml; a garbled one is as good as none. The database still
+    gives the duration and the counts (not 0.0 s and 0), and the command says nothing can be compared."""
+    for what in ('missing', 'garbled'):
+        bag = _copy_bag(tmp_path, what)
+        meta = bag / 'metadata.yaml'
+        meta.unlink() if what == 'missing' else meta.write_text('rosbag2_bagfile_information: [oops')
+        res = cli('bag-info', bag)
+        assert res.returncode == 0, res.stderr
+        assert '77.7 s' in res.stdout and f'{len(intact)} messages' in res.stdout
+        assert f'metadata.yaml is {"missing" if what == "missing" else "unreadable"}' in res.stderr
+    # Cut short and without metadata (the usual power loss): what it holds, and that the loss is unknown.
+    bag = _copy_bag(tmp_path, 'cut')
+    (bag / 'metadata.yaml').unlink()
+    _truncate(bag, 0.5)
+    res = cli('bag-info', bag)
+    assert res.returncode == 3 and 'unknown' in res.stderr and 'page' in res.stderr
+
+
+def test_fixes_of_a_truncated_bag_say_what_was_lost(tmp_path):
+    bag = _copy_bag(tmp_path)
+    _truncate(bag, 0.5)
+    res = cli('fixes', bag)
+    assert res.returncode == 3 and 'of 3726 messages readable' in res.stderr
+    rows = res.stdout.strip().splitlines()[1:]
+    assert 150 < len(rows) < 200          # half the flight's 389 fixes
+
+
+@pytest.mark.slow
+def test_replay_of_a_truncated_bag_maps_what_it_holds(tmp_path, tiny_flight):
+    bag = tmp_path / 'tiny'
+    shutil.copytree(tiny_flight, bag)
+    _truncate(bag, 0.6)
+    res = cli('replay', bag, '--out', tmp_path / 'out', '--quiet', timeout=900)
+    assert res.returncode == 3, res.stdout[-2000:] + res.stderr[-2000:]
+    assert 'messages readable' in res.stdout
+    run = json.loads((tmp_path / 'out' / 'run.json').read_text())
+    assert run['bag_errors'] and 0 < run['frames'] < 23
+    assert (tmp_path / 'out' / 'report.md').exists()
+
+
+@pytest.mark.slow
+def test_triangulate_of_a_truncated_bag_says_what_was_lost(tmp_path, tiny_flight):
+    bag = tmp_path / 'tiny'
+    shutil.copytree(tiny_flight, bag)
+    _truncate(bag, 0.7)
+    res = cli('triangulate', bag, '--out', tmp_path / 'at', timeout=900)
+    assert 'messages readable' in res.stderr
+    assert 'bag damaged' in (tmp_path / 'at' / 'report.md').read_text()
+
+
+# --- the onboard stop ------------------------------------------------------------------------------
+
+
+def _run_with_player(tmp_path: Path, flight: Path, sig: int, ignore_sigint: bool = False):
+    """`run` (no camera node: a player publishes the flight's camera and MAVLink), stopped by `sig` once
+    the flight has been played. Returns (completed run, signal time, map folder, products folder)."""
+    cfg = tmp_path / 'onboard.yaml'
+    cfg.write_text(f'map_node:\n  ros__parameters:\n    map_dir: {tmp_path / "map"}\n')
+    cmd = CLI + ['run', '--params', str(cfg), '--out', str(tmp_path / 'products')]
+    if ignore_sigint:   # as a non-interactive shell starts a background job: SIGINT ignored
+        cmd = ['bash', '-c', "trap '' INT; exec \"$@\"", 'bash'] + cmd
+    proc = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        for line in proc.stdout:
+            if 'photogram_ros running' in line:
+                break
+        play = cli('play', flight, '--rate', '1', '--exclude', '/gps/fix', timeout=300)
+        assert play.returncode == 0, play.stdout + play.stderr
+        time.sleep(5.0)
+        assert len(list((tmp_path / 'map' / 'keyframes').glob('*.json'))) > 5
+        t_signal = time.time()
+        proc.send_signal(sig)
+        out = proc.communicate(timeout=600)[0]
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    return proc.returncode, out, t_signal, tmp_path / 'map', tmp_path / 'products'
+
+
+def _assert_final_adjustment_products(rc, out, t_signal, map_dir, products):
+    assert rc == 0, out[-3000:]
+    for words in ('context is invalid', 'adjustment failed', 'flush failed', 'Traceback'):
+        assert words not in out, out[-3000:]
+    assert json.loads((map_dir / 'flight_end.json').read_text())['final_adjustment'] == 'done'
+    # The final adjustment republished every pose: the map rewrote each one after the signal.
+    poses = list((map_dir / 'keyframes').glob('*.json'))
+    assert poses and min(p.stat().st_mtime for p in poses) >= t_signal - 0.5
+    report = json.loads((products / 'report.json').read_text())
+    assert report['run']['products_from'] == 'final adjustment (map_final)'
+    assert 'final adjustment' in (products / 'report.md').read_text()
+    for name in ('cloud.las', 'dsm.tif', 'ortho.tif'):
+        assert (products / name).stat().st_size > 0
+
+
+@pytest.fixture(scope='module')
+def stopped_run(tmp_path_factory, tiny_flight):
+    tmp = tmp_path_factory.mktemp('run_sigterm')
+    return _run_with_player(tmp, tiny_flight, signal.SIGTERM)
+
+
+def test_run_stopped_by_sigterm_keeps_the_final_adjustment(stopped_run):
+    """The onboard stop: SIGTERM ends the flight with rclpy still up: the final adjustment publishes,
+    the map saves its poses, the products and the report come from it, exit 0."""
+    rc, out, t_signal, map_dir, products = stopped_run
+    assert 'SIGTERM: ending the flight' in out
+    _assert_final_adjustment_products(rc, out, t_signal, map_dir, products)
+
+
+@pytest.mark.slow
+def test_run_in_the_background_stopped_by_sigint_keeps_the_final_adjustment(tmp_path, tiny_flight):
+    """SIGINT to a `run` a shell started in the background (SIGINT ignored): it stops, the same way."""
+    rc, out, t_signal, map_dir, products = _run_with_player(tmp_path, tiny_flight, signal.SIGINT, True)
+    assert 'SIGINT: ending the flight' in out
+    _assert_final_adjustment_products(rc, out, t_signal, map_dir, products)
+
+
+def test_products_say_when_the_final_adjustment_failed(stopped_run, tmp_path):
+    """A map whose flight ended without its final adjustment: the report says the products come from the
+    in-flight poses, and why (never "from the final adjustment")."""
+    from photogram_ros.commands.products import export_products
+    from photogram_ros.io.map_store import MapStore
+    map_dir = tmp_path / 'map'
+    shutil.copytree(stopped_run[3], map_dir)
+    MapStore(map_dir).save_flight_end({'final_adjustment': 'failed', 'reason': 'publisher context invalid',
+                                       'errors': []})
+    res = export_products(map_dir, tmp_path / 'out', None, live_map=True)
+    assert 'the final adjustment failed (publisher context invalid)' in res['figures']['run']['products_from']
+    assert any('final adjustment failed' in n for n in res['notes'])
+
+
+def test_final_adjustment_outcome_from_the_bundle_counters():
+    from photogram_ros.nodes.graph import _final_adjustment_outcome
+    assert _final_adjustment_outcome({'full_adjustments': 0}, {'full_adjustments': 1}, [], '')[0] == 'done'
+    st, why = _final_adjustment_outcome({'keyframes_oriented': 9}, {'keyframes_oriented': 9},
+                                        ['full adjustment failed: Failed to publish'], '')
+    assert st == 'failed' and 'Failed to publish' in why
+    assert _final_adjustment_outcome({}, {}, [], '') == ('none', 'no keyframe was oriented')
+    assert _final_adjustment_outcome({}, {'keyframes_oriented': 3}, [], 'bundle: finish failed: x')[0] == 'failed'
+
+
+@pytest.mark.slow
+def test_kill_9_of_run_corrupts_nothing_on_disk(tmp_path, tiny_flight):
+    """kill -9 mid-flight: the map folder opens, every tile reads (CRC-checked blocks), no temporary
+    files are left, and it exports afterwards."""
+    from photogram_ros.io.map_store import MapStore
+    cfg = tmp_path / 'onboard.yaml'
+    cfg.write_text(f'map_node:\n  ros__parameters:\n    map_dir: {tmp_path / "map"}\n')
+    proc = subprocess.Popen(CLI + ['run', '--params', str(cfg), '--no-export'], cwd=ROOT, stdout=subprocess.PIPE,
+                            stderr=subprocess.STDOUT, text=True)
+    try:
+        for line in proc.stdout:
+            if 'photogram_ros running' in line:
+                break
+        player = subprocess.Popen(CLI + ['play', str(tiny_flight), '--exclude', '/gps/fix'], cwd=ROOT,
+                                  stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        deadline = time.monotonic() + 120
+        while time.monotonic() < deadline and len(list((tmp_path / 'map' / 'tiles').glob('*.pgt'))) < 2:
+            time.sleep(0.2)
+        proc.kill()
+        player.wait(timeout=120)
+    finally:
+        for p in (proc,):
+            if p.poll() is None:
+                p.kill()
+    store = MapStore(tmp_path / 'map')
+    assert store.tile_keys() and all(store.load_tile(k) is not None for k in store.tile_keys())
+    assert not list((tmp_path / 'map').rglob('*.tmp'))
+    res = cli('export', tmp_path / 'map', '--crs', 'EPSG:32632', '--out', tmp_path / 'out', '--min-pairs', '1',
+              timeout=600)
+    assert res.returncode == 0, res.stderr
+
+
+def _children(pid: int) -> list[int]:
+    out = subprocess.run(['pgrep', '-P', str(pid)], capture_output=True, text=True).stdout
+    return [int(p) for p in out.split()]
+
+
+def test_kill_9_of_replay_ends_its_child(tmp_path, tiny_flight):
+    """The replay's second process (bundle, stereo, map) dies with its parent, however the parent ends:
+    it watches a pipe from it."""
+    proc = subprocess.Popen(CLI + ['replay', str(tiny_flight), '--out', str(tmp_path / 'out'), '--rate', '0.5'],
+                            cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        children = []
+        deadline = time.monotonic() + 120
+        while time.monotonic() < deadline and not children:
+            children = _children(proc.pid)
+            time.sleep(0.2)
+        assert children, 'the replay started no child process'
+        time.sleep(8.0)
+        proc.kill()
+        proc.wait(timeout=30)
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline and any(os.path.exists(f'/proc/{c}') and
+                                                 'zombie' not in _state(c) for c in children):
+            time.sleep(0.2)
+        assert not [c for c in children if os.path.exists(f'/proc/{c}') and 'zombie' not in _state(c)]
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+
+
+def _state(pid: int) -> str:
+    try:
+        return Path(f'/proc/{pid}/status').read_text().split('State:')[1].split('\n')[0].lower()
+    except (OSError, IndexError):
+        return 'zombie'
+
+
+# --- checked before the first frame ----------------------------------------------------------------
+
+
+@pytest.mark.parametrize('crs, words', [('EPSG:999999', 'unknown output CRS'), ('EPSG:4326', 'not a projected CRS')])
+def test_bad_output_crs_is_refused_before_the_replay(tmp_path, crs, words):
+    t0 = time.monotonic()
+    res = cli('replay', SAMPLE_BAG, '--out', tmp_path / 'out', '--crs', crs, '--quiet', timeout=120)
+    assert res.returncode == 2 and words in res.stderr and 'Traceback' not in res.stderr
+    assert time.monotonic() - t0 < 20 and not (tmp_path / 'out' / 'map').exists()
+
+
+def test_parameter_errors_of_the_child_process_come_at_once(tmp_path):
+    """A mistake in a parameter of a node of replay's second process: named within seconds, not after
+    the child's 60 s start timeout; a child that fails at its start is noticed at once too."""
+    bad = tmp_path / 'bad.yaml'
+    bad.write_text('bundle_node:\n  ros__parameters:\n    window_sise: 10\n')
+    t0 = time.monotonic()
+    res = cli('replay', SAMPLE_BAG, '--out', tmp_path / 'o1', '--params', bad, '--quiet', timeout=120)
+    assert res.returncode == 2 and 'window_sise' in res.stderr and 'window_size' in res.stderr
+    assert time.monotonic() - t0 < 20
+    worse = tmp_path / 'worse.yaml'
+    worse.write_text(f'bundle_node:\n  ros__parameters:\n    control_file: {tmp_path / "no_such_targets.txt"}\n')
+    t0 = time.monotonic()
+    res = cli('replay', SAMPLE_BAG, '--out', tmp_path / 'o2', '--params', worse, '--quiet', timeout=120)
+    assert res.returncode == 2 and 'did not start' in res.stderr
+    assert time.monotonic() - t0 < 40
+
+
+def test_config_mistakes_get_clear_messages(tmp_path):
+    """YAML that does not parse, a section for no node, a value out of range, a control file without a CRS:
+    exit 2, the reason, no traceback, in seconds."""
+    cases = {'syntax.yaml': ('map_node:\n  ros__parameters:\n    cell_m: [0.05\n', 'not valid YAML'),
+             'section.yaml': ('mapnode:\n  ros__parameters:\n    cell_m: 0.05\n', 'name no node'),
+             'range.yaml': ('stereo_node:\n  ros__parameters:\n    downscale: 7.0\n', 'downscale')}
+    for name, (text, words) in cases.items():
+        (tmp_path / name).write_text(text)
+        t0 = time.monotonic()
+        res = cli('run', '--params', tmp_path / name, timeout=60)
+        assert res.returncode == 2 and words in res.stderr and 'Traceback' not in res.stderr, (name, res.stderr)
+        assert time.monotonic() - t0 < 15
+    gcp = tmp_path / 'targets.txt'
+    gcp.write_text('GCP01 0 465698.587 5249464.825 489.927\n')
+    res = cli('replay', SAMPLE_BAG, '--out', tmp_path / 'o', '--gcp', gcp, '--quiet', timeout=60)
+    assert res.returncode == 2 and 'Traceback' not in res.stderr and res.stderr.strip()
+
+
+# --- a full disk -----------------------------------------------------------------------------------
+
+
+def test_full_disk_write_leaves_no_temporary_file(tmp_path, monkeypatch):
+    """ENOSPC while writing a map file: a StorageError (an OSError too, which the nodes handle) naming
+    the folder and the cause, and no zero-byte *.tmp behind."""
+    import errno
+
+    from photogram_ros.errors import StorageError
+    from photogram_ros.io import map_store
+
+    def full(fd):
+        raise OSError(errno.ENOSPC, 'No space left on device')
+    monkeypatch.setattr(map_store.os, 'fsync', full)
+    with pytest.raises(StorageError, match='disk is full') as exc:
+        map_store._atomic_write(tmp_path / 'map.json', b'{}')
+    assert isinstance(exc.value, OSError) and exc.value.errno == errno.ENOSPC
+    assert not list(tmp_path.iterdir())
+
+
+@pytest.fixture
+def small_disk(tmp_path):
+    """A tmpfs of the size asked for (needs root; skipped without)."""
+    mounts = []
+
+    def make(mb: int) -> Path:
+        d = tmp_path / f'disk{len(mounts)}'
+        d.mkdir()
+        if subprocess.run(['mount', '-t', 'tmpfs', '-o', f'size={mb}m', 'tmpfs', str(d)],
+                          capture_output=True).returncode != 0:
+            pytest.skip('cannot mount a small tmpfs here (needs root)')
+        mounts.append(d)
+        return d
+    yield make
+    for d in mounts:
+        subprocess.run(['umount', '-l', str(d)], capture_output=True)
+
+
+def test_replay_onto_a_full_disk_is_refused_at_once(small_disk):
+    out = small_disk(3) / 'out'
+    t0 = time.monotonic()
+    res = cli('replay', SAMPLE_BAG, '--out', out, '--quiet', timeout=120)
+    assert res.returncode == 2 and 'MB free before the replay' in res.stderr and 'Traceback' not in res.stderr
+    assert time.monotonic() - t0 < 20
+
+
+@pytest.mark.slow
+def test_replay_stops_when_the_disk_fills(small_disk):
+    """The disk fills during the replay: it stops there with the reason (not after minutes of waiting on
+    a map that cannot write, not with a traceback) and leaves no temporary files."""
+    out = small_disk(40) / 'out'
+    t0 = time.monotonic()
+    res = cli('replay', SAMPLE_BAG, '--out', out, '--quiet', timeout=600)
+    assert res.returncode == 2 and 'MB free after' in res.stderr and 'Traceback' not in res.stderr
+    assert time.monotonic() - t0 < 120
+    assert not list(out.rglob('*.tmp'))
+
+
+# --- MAVLink and time -----------------------------------------------------------------------------
+
+
+def _pack(mav, m):
+    from pymavlink.dialects.v20 import ardupilotmega as mavlink2
+    m.pack(mav)
+    m._header = mavlink2.MAVLink_header(m.id, 0, 0, 0, 0, 1, 1)
+    return m
+
+
+def test_poisoned_time_is_refused_and_said():
+    """An ATTITUDE with time_boot_ms = 0 and a SYSTEM_TIME in 2100 in the middle of the sample flight:
+    every /gps/fix keeps its 2026 stamp, and the problems say what was refused."""
+    from pymavlink.dialects.v20 import ardupilotmega as mavlink2
+
+    from photogram_ros.io.mavlink import fixes_from_messages, read_tlog
+    msgs, _ = read_tlog(SAMPLE_BAG / 'flight.tlog')
+    mav = mavlink2.MAVLink(None, srcSystem=1, srcComponent=1)
+    i = len(msgs) // 2
+    boot = next(m.time_boot_ms for m, _ in msgs[i:] if m.get_type() == 'ATTITUDE')
+    t = msgs[i][1]
+    poison = [(_pack(mav, mav.attitude_encode(0, 0, 0, 0, 0, 0, 0)), t),
+              (_pack(mav, mav.system_time_encode(int(datetime.datetime(2100, 6, 1).timestamp() * 1e6), boot)), t),
+              (_pack(mav, mav.system_time_encode(int((t + 86_400 * 400) * 1e6), boot + 1)), t)]   # plausible, alone
+    clean, _ = fixes_from_messages(msgs)
+    events, ing = fixes_from_messages(msgs[:i] + poison + msgs[i:])
+    years = {datetime.datetime.fromtimestamp(e.fix.t_s, datetime.timezone.utc).year for e in events}
+    assert years == {2026} and len(events) == len(clean)
+    assert [e.fix.t_s for e in events] == pytest.approx([e.fix.t_s for e in clean], abs=1e-6)
+    text = ' '.join(ing.problems)
+    assert 'outside 2000-2100' in text and 'not a reboot' in text and 'ignored unless it repeats' in text
+
+
+def _fixes_over_udp(datagrams, duration_s=10.0):
+    port = _free_udp_port()
+    proc = subprocess.Popen(CLI + ['fixes', f'udpin:127.0.0.1:{port}', '--duration', str(duration_s), '--format',
+                                   'jsonl'], cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    deadline = time.monotonic() + 30   # until the link's socket is bound (the command starts in seconds)
+    while time.monotonic() < deadline and f':{port:04X} ' not in Path('/proc/net/udp').read_text():
+        time.sleep(0.1)
+    time.sleep(0.5)
+    tx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    for k, d in enumerate(datagrams):   # paced, so that loopback's socket buffer never overflows
+        tx.sendto(d, ('127.0.0.1', port))
+        time.sleep(0.0015)
+        if k == 300:
+            time.sleep(3.0)   # the first fixes load what the command loads lazily (the geoid grid)
+    tx.close()
+    out, err = proc.communicate(timeout=60)
+    return proc.returncode, [json.loads(line) for line in out.splitlines() if line.strip()], err
+
+
+def test_udp_mavlink_with_an_impossible_system_time(tmp_path):
+    """A stream whose SYSTEM_TIME says year 586,000 (time_unix_usec near 2^64): refused, said, and the fixes
+    come stamped on arrival instead; no traceback."""
+    from pymavlink.dialects.v20 import ardupilotmega as mavlink2
+    mav = mavlink2.MAVLink(None, srcSystem=1, srcComponent=1)
+    grams = []
+    for k in range(40):
+        boot = 100.0 + 0.2 * k
+        if k % 5 == 0:
+            grams.append(mav.system_time_encode(2 ** 64 - 1, int(boot * 1000)).pack(mav))
+        grams.append(mav.gps_raw_int_encode(int(boot * 1e6), 3, 471000000 + k, 85000000, 500000, 90, 140, 0, 0, 12,
+                                            547000, 1800, 2500).pack(mav))
+    rc, rows, err = _fixes_over_udp([bytes(g) for g in grams for _ in range(1)], duration_s=9.0)
+    assert rc == 0 and 'Traceback' not in err, err
+    assert 'outside 2000-2100' in err
+    now = time.time()
+    assert rows and all(abs(r['t_unix_s'] - now) < 120 for r in rows)
+
+
+def test_hostile_udp_mavlink_keeps_every_intact_packet():
+    """Garbage, flipped, cut and oversized datagrams and CRC-valid hostile packets (a latitude of 95 deg)
+    between the sample flight's packets: every fix of the flight comes out, the hostile one is not used."""
+    from pymavlink.dialects.v20 import ardupilotmega as mavlink2
+
+    from photogram_ros.io.mavlink import read_tlog
+    msgs, _ = read_tlog(SAMPLE_BAG / 'flight.tlog')
+    msgs = msgs[:len(msgs) // 3]
+    rng = np.random.default_rng(7)
+    mav = mavlink2.MAVLink(None, srcSystem=1, srcComponent=1)
+    hostile = bytes(mav.gps_raw_int_encode(1, 3, 950_000_000, 0, 0, 90, 140, 0, 0, 12).pack(mav))
+    grams = []
+    for k, (m, _) in enumerate(msgs):
+        buf = bytes(m.get_msgbuf())
+        grams.append(buf)
+        if k % 7 == 0:
+            grams.append(rng.integers(0, 256, int(rng.integers(1, 300)), dtype=np.uint8).tobytes())
+        if k % 11 == 0:
+            flipped = bytearray(buf)
+            flipped[len(buf) // 2] ^= 0x5A
+            grams.append(bytes(flipped))
+        if k % 13 == 0:
+            grams.append(buf[:len(buf) // 2])
+        if k % 50 == 0:
+            grams.append(rng.integers(0, 256, 9000, dtype=np.uint8).tobytes())
+        if k % 17 == 0:
+            grams.append(hostile)
+    from photogram_ros.io.mavlink import FixEvent, Ingest, MavlinkStream, fixes_from_messages
+    want = [e for e in fixes_from_messages(msgs)[0] if e.best and e.fix.has_position]
+    # The datagrams through the parser as the link hands them over: every fix but the stream's last
+    # (completed only by the bytes after it), none of the hostile ones.
+    stream, ing, got = MavlinkStream(), Ingest(), []
+    for k, g in enumerate(grams):
+        for m in stream.feed(g):
+            got += [e for e in ing.handle(m, 1e9 + 0.001 * k) if isinstance(e, FixEvent) and e.best]
+    assert len(got) >= len(want) - 1 and all(abs(e.fix.lat_deg) < 90 for e in got)
+    assert ing.counts['fix_rejected'] >= 1
+    # The same over UDP to `fixes udpin:` (a loaded machine's loopback may drop a few datagrams).
+    rc, rows, err = _fixes_over_udp(grams, duration_s=20.0)
+    assert rc == 0 and 'Traceback' not in err, err
+    assert len(rows) >= 0.9 * len(want)
+    assert all(abs(r['lat_deg']) < 90 for r in rows)
+
+
+@pytest.mark.parametrize('kind', ['random', 'empty', 'jpeg'])
+def test_fixes_on_something_that_holds_no_mavlink(tmp_path, kind):
+    path = tmp_path / f'input.{kind}'
+    if kind == 'random':
+        path.write_bytes(np.random.default_rng(0).integers(0, 256, 50_000, dtype=np.uint8).tobytes())
+    elif kind == 'empty':
+        path.write_bytes(b'')
+    else:
+        shutil.copy(shared_data('photos', 'brighton_beach', 'images', 'DJI_0018.JPG'), path)
+    res = cli('fixes', path, timeout=60)
+    assert res.returncode == 2 and 'holds no MAVLink' in res.stderr and 'Traceback' not in res.stderr
+
+
+# --- other bags: NavSatFix topics, ROS 1, recording ------------------------------------------------
+
+
+def test_fixes_of_a_bag_with_navsatfix_topics_only():
+    """A robot's bag with /fix (sensor_msgs/NavSatFix) and no raw MAVLink: its fixes as they are."""
+    res = cli('fixes', shared_data('bags', 'husky_gps_imu_sqlite3'), timeout=120)
+    assert res.returncode == 0, res.stderr
+    rows = res.stdout.strip().splitlines()
+    assert len(rows) == 1 + 989 and rows[1].endswith(',/fix') and '989 fixes' in res.stderr
+
+
+def test_fixes_of_a_ros1_bag(tmp_path):
+    """A ROS 1 bag (e.g. mavros's global_position/raw/fix): read through rosbags, converted to ROS 2."""
+    from rosbags.rosbag1 import Writer
+    from rosbags.typesys import Stores, get_typestore
+    ts = get_typestore(Stores.ROS1_NOETIC)
+    NavSatFix, Header, Status = (ts.types[t] for t in ('sensor_msgs/msg/NavSatFix', 'std_msgs/msg/Header',
+                                                       'sensor_msgs/msg/NavSatStatus'))
+    Time = ts.types['builtin_interfaces/msg/Time']
+    path = tmp_path / 'flight.bag'
+    t0 = 1_700_000_000
+    with Writer(path) as w:
+        conn = w.add_connection('/mavros/global_position/raw/fix', 'sensor_msgs/msg/NavSatFix', typestore=ts)
+        for k in range(25):
+            msg = NavSatFix(Header(k, Time(t0 + k, 0), 'gps'), Status(0, 1), 47.0 + k * 1e-5, 8.5, 500.0 + k,
+                            np.array([4.0, 0, 0, 0, 4.0, 0, 0, 0, 9.0]), 2)
+            w.write(conn, (t0 + k) * 10 ** 9, ts.serialize_ros1(msg, 'sensor_msgs/msg/NavSatFix'))
+    res = cli('fixes', path, '--format', 'jsonl', timeout=120)
+    assert res.returncode == 0, res.stderr
+    rows = [json.loads(line) for line in res.stdout.splitlines()]
+    assert len(rows) == 25 and rows[3]['lat_deg'] == pytest.approx(47.00003) and rows[3]['h_m'] == 503.0
+    assert rows[3]['t_unix_s'] == t0 + 3 and rows[3]['var_u_m2'] == 9.0
+
+
+def test_record_writes_mcap_with_qos_profiles(tmp_path, rclpy_context):
+    """`record` writes MCAP (ROS 2 Jazzy's default) and the publishers' QoS profiles (here best effort)."""
+    import yaml
+    from rclpy.node import Node
+    from rclpy.qos import qos_profile_sensor_data
+    from sensor_msgs.msg import NavSatFix
+
+    from photogram_ros.io.bag import BagReader
+    node = Node('h15_publisher', context=rclpy_context)
+    pub = node.create_publisher(NavSatFix, '/h15/fix', qos_profile_sensor_data)
+    out = tmp_path / 'rec'
+    proc = subprocess.Popen(CLI + ['record', str(out), '--topics', '/h15/fix', '--count', '10'], cwd=ROOT,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.monotonic() + 60
+        while proc.poll() is None and time.monotonic() < deadline:
+            pub.publish(NavSatFix(latitude=47.0, longitude=8.5))
+            time.sleep(0.05)
+        assert proc.wait(timeout=30) == 0, proc.stderr.read()
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        node.destroy_node()
+    assert list(out.glob('*.mcap'))
+    with BagReader(out) as bag:
+        assert bag.storage == 'mcap' and bag.topics()['/h15/fix'].count >= 10 and not bag.damaged
+    meta = yaml.safe_load((out / 'metadata.yaml').read_text())['rosbag2_bagfile_information']
+    qos = meta['topics_with_message_count'][0]['topic_metadata']['offered_qos_profiles']
+    assert len(qos) == 1 and qos[0]['reliability'] == 'best_effort'   # as published
+
+
+# --- replay output -------------------------------------------------------------------------------
+
+
+def test_hole_fill_raises_no_floating_point_warning():
+    """stereo's hole fill on degenerate windows (matched pixels on lines, no plane) computes no inf - inf
+    outside its guarded block (every replay printed "invalid value encountered in add")."""
+    from photogram_ros.core.stereo import fill_holes
+    rng = np.random.default_rng(1)
+    with np.errstate(all='raise'):
+        for _ in range(20):
+            D = np.full((80, 80), np.nan, np.float32)
+            for _ in range(3):
+                D[rng.integers(5, 75), 10:70] = 20 + rng.normal(0, 0.1, 60)
+            D[10:70, rng.integers(5, 75)] = 25 + np.arange(60) * 1e3
+            fill_holes(D, np.ones_like(D, bool), 6.0, 0.5, 4)
+
+
+def test_sqlite_oracle_agrees_on_an_intact_bag(tmp_path):
+    """The oracle of the truncation test counts what our reader counts on the intact bag."""
+    db = next(SAMPLE_BAG.glob('*.db3'))
+    n = _dump_count(db, tmp_path)
+    if n is None:
+        pytest.skip('no sqlite3 shell')
+    assert n == sqlite3.connect(f'file:{db}?mode=ro', uri=True).execute('SELECT count(*) FROM messages').fetchone()[0]
