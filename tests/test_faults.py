@@ -364,6 +364,11 @@ def test_bad_output_crs_is_refused_before_the_replay(tmp_path, crs, words):
     assert time.monotonic() - t0 < 20 and not (tmp_path / 'out' / 'map').exists()
 
 
+def test_bad_output_crs_is_refused_by_export_before_it_reads_the_map(tmp_path):
+    res = cli('export', tmp_path / 'no_map', '--crs', 'EPSG:999999', '--out', tmp_path / 'out', timeout=60)
+    assert res.returncode == 2 and 'unknown output CRS' in res.stderr and 'Traceback' not in res.stderr
+
+
 def test_parameter_errors_of_the_child_process_come_at_once(tmp_path):
     """A mistake in a parameter of a node of replay's second process: named within seconds, not after
     the child's 60 s start timeout; a child that fails at its start is noticed at once too."""

@@ -41,6 +41,9 @@ def run(a) -> int:
         raise ConfigError(f'unknown products {bad}; choose from {list(PRODUCTS)}')
     if a.min_pairs < 1:
         raise ConfigError(f'--min-pairs must be at least 1, not {a.min_pairs}')
+    if a.crs:
+        from photogram_ros.commands.products import check_output_crs
+        check_output_crs(a.crs)   # before any matching or writing
     origin = None
     if a.origin:
         try:
