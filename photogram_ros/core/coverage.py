@@ -151,6 +151,30 @@ class Coverage:
     def __len__(self) -> int:
         return len(self._kfs)
 
+    @property
+    def newest_stamp_ns(self) -> int:
+        return max(self._kfs, default=0)
+
+    def flight_figures(self) -> dict:
+        """Median height above the ground and footprint across / along the flight (what a re-fly needs), m."""
+        kfs = [self._kfs[s] for s in sorted(self._kfs)]
+        if len(kfs) < 2:
+            return {}
+        heights, across, along = [], [], []
+        for a, b in zip(kfs[:-1], kfs[1:]):
+            d = b.centre_m[:2] - a.centre_m[:2]
+            if np.linalg.norm(d) < 1e-3:
+                continue
+            h = d / np.linalg.norm(d)
+            rel = b.polygon_m - b.centre_m[:2]
+            along.append(float(np.ptp(rel @ h)))
+            across.append(float(np.ptp(rel @ [-h[1], h[0]])))
+            heights.append(b.centre_m[2] - b.ground_z_m)
+        if not heights:
+            return {}
+        return {'height_above_ground_m': float(np.median(heights)), 'footprint_width_m': float(np.median(across)),
+                'footprint_length_m': float(np.median(along))}
+
     def _rasterise(self, stamp_ns, centre, ground_z, poly) -> _Kf:
         c = self.cfg.coverage_cell_m
         i0, j0 = np.floor(poly.min(axis=0) / c).astype(int) - 1
@@ -250,8 +274,8 @@ class Coverage:
         return _fill_holes(m)
 
     def _judge(self, kfs: list[_Kf], shape, gi: int, gj: int) -> np.ndarray:
-        """Cells the drone has passed: within reach of the track (the newest footprint's half-width across
-        its heading) and behind the newest footprint along the newest step, while flying a line (sticky);
+        """Cells the drone has passed: within reach of the track (the polyline of the camera centres; reach: the
+        newest footprint's half-width across its heading) and behind the newest footprint along the newest step, while flying a line (sticky);
         less those ahead of the drone in the current line's swath."""
         judged = np.zeros(shape, bool)
         if self._judged is not None:   # carry the old mask into the (possibly larger) grid
@@ -275,9 +299,8 @@ class Coverage:
             # Reach: the footprint's half-width across the heading (what beside the line is seen from it).
             reach = float(np.max(np.abs(rel @ [-h[1], h[0]])))
             track = np.full(shape, 255, np.uint8)
-            ij = np.floor(np.array([k.centre_m[:2] for k in kfs]) / c).astype(int) - [gi, gj]
-            ok = (ij[:, 0] >= 0) & (ij[:, 0] < shape[1]) & (ij[:, 1] >= 0) & (ij[:, 1] < shape[0])
-            track[ij[ok, 1], ij[ok, 0]] = 0
+            ij = np.round((np.array([k.centre_m[:2] for k in kfs]) / c - [gi, gj] - 0.5) * (1 << _SHIFT))
+            cv2.polylines(track, [ij.astype(np.int32).reshape(-1, 1, 2)], False, 0, 1, cv2.LINE_8, _SHIFT)
             near = cv2.distanceTransform(track, cv2.DIST_L2, 5) * c <= reach
             front = float(np.max(rel @ h))
             xs = (np.arange(shape[1]) + gi + 0.5) * c - new.centre_m[0]
