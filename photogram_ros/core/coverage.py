@@ -16,10 +16,13 @@ From the keyframe poses as they come (map ENU, optical cameras) and the ground h
 - gaps, as polygons in map ENU with their area (at least `min_gap_area_m2`): 'coverage' gaps are
   connected cells of the survey area, already passed by the drone (behind the newest footprint and
   within reach of the track, or everything after `finish()`), seen fewer than `min_views` times or by
-  no stereo pair; 'forward_overlap' gaps are the ground between two consecutive keyframes of a line
+  no stereo pair; 'not_oriented' gaps are such cells that the camera saw well enough but only through
+  keyframes the adjustment has not oriented (stand-in poses from their GNSS fixes) although it oriented
+  a later one: seen, not mapped;
+  'forward_overlap' gaps are the ground between two consecutive keyframes of a line
   (inside the hull of their footprints) that neither of them sees;
-- `coverage_share`: the passed survey cells seen `min_views` times and by a stereo pair, over all
-  passed survey cells (NaN before any).
+- `coverage_share`: the passed survey cells seen `min_views` times and by a stereo pair of oriented
+  keyframes (what the map holds), over all passed survey cells (NaN before any).
 No ROS here; the map node feeds it, io/mission.py turns reports into GeoJSON and re-fly plans.
 """
 
@@ -34,7 +37,7 @@ from photogram_ros.core.camera import PinholeCamera
 from photogram_ros.errors import ConfigError
 from photogram_ros.params import param
 
-COVERAGE, FORWARD_OVERLAP = 'coverage', 'forward_overlap'   # Gap kinds
+COVERAGE, NOT_ORIENTED, FORWARD_OVERLAP = 'coverage', 'not_oriented', 'forward_overlap'   # Gap kinds
 _SHIFT = 4   # cv2.fillPoly sub-pixel bits
 
 
@@ -63,7 +66,7 @@ class CoverageConfig:
 
 @dataclass
 class Gap:
-    kind: str                  # COVERAGE or FORWARD_OVERLAP
+    kind: str                  # COVERAGE, NOT_ORIENTED or FORWARD_OVERLAP
     polygon_map_m: np.ndarray  # (N, 2) outline in map ENU, m
     area_m2: float
     centroid_map_m: np.ndarray  # (2,)
@@ -112,6 +115,7 @@ class _Kf:
     centre_m: np.ndarray     # (3,)
     ground_z_m: float
     polygon_m: np.ndarray    # (N, 2)
+    oriented: bool           # the adjustment's pose (False: a stand-in from the keyframe's GNSS fix)
     i0: int                  # global cell column of mask[0, 0]
     j0: int                  # global cell row (south to north) of mask[0, 0]
     mask: np.ndarray         # uint8 (rows, cols)
@@ -135,14 +139,24 @@ class Coverage:
 
     # --- input -----------------------------------------------------------------------------------
 
-    def set_keyframe(self, stamp_ns: int, map_T_cam: np.ndarray, ground_z_m: float) -> None:
-        """Add a keyframe, or replace its pose (a refined pose with the same stamp)."""
+    def set_keyframe(self, stamp_ns: int, map_T_cam: np.ndarray, ground_z_m: float, oriented: bool = True) -> None:
+        """Add a keyframe, or replace its pose (a refined pose with the same stamp). oriented=False: the pose is
+        a stand-in (the keyframe's fix, the attitude of an oriented neighbour) for a keyframe the adjustment
+        has not oriented (yet): it counts for what the camera saw, not for what is mapped, and an oriented
+        pose replaces it, never the other way round."""
         T = np.asarray(map_T_cam, float)
         old = self._kfs.get(int(stamp_ns))
-        if old is not None and np.allclose(old.centre_m, T[:3, 3], atol=1e-3) and old.ground_z_m == ground_z_m:
+        if old is not None and old.oriented and not oriented:
+            return
+        if (old is not None and old.oriented == oriented and np.allclose(old.centre_m, T[:3, 3], atol=1e-3)
+                and old.ground_z_m == ground_z_m):
             return
         poly = footprint(self.camera, T, ground_z_m)
-        self._kfs[int(stamp_ns)] = self._rasterise(int(stamp_ns), T[:3, 3].copy(), float(ground_z_m), poly)
+        self._kfs[int(stamp_ns)] = self._rasterise(int(stamp_ns), T[:3, 3].copy(), float(ground_z_m), poly, oriented)
+
+    def oriented(self, stamp_ns: int) -> bool:
+        k = self._kfs.get(int(stamp_ns))
+        return k is not None and k.oriented
 
     def finish(self) -> None:
         """The flight is over: every survey cell counts as passed."""
@@ -175,13 +189,13 @@ class Coverage:
         return {'height_above_ground_m': float(np.median(heights)), 'footprint_width_m': float(np.median(across)),
                 'footprint_length_m': float(np.median(along))}
 
-    def _rasterise(self, stamp_ns, centre, ground_z, poly) -> _Kf:
+    def _rasterise(self, stamp_ns, centre, ground_z, poly, oriented) -> _Kf:
         c = self.cfg.coverage_cell_m
         i0, j0 = np.floor(poly.min(axis=0) / c).astype(int) - 1
         i1, j1 = np.floor(poly.max(axis=0) / c).astype(int) + 2
         mask = np.zeros((j1 - j0, i1 - i0), np.uint8)
         _fill(mask, poly / c - [i0, j0])
-        return _Kf(stamp_ns, centre, ground_z, poly, int(i0), int(j0), mask)
+        return _Kf(stamp_ns, centre, ground_z, poly, oriented, int(i0), int(j0), mask)
 
     # --- the report ------------------------------------------------------------------------------
 
@@ -198,13 +212,19 @@ class Coverage:
             hi = np.maximum(hi, np.floor(p.max(axis=0) / c).astype(int) + 2)
         gi, gj = int(lo[0]), int(lo[1])
         shape = (int(hi[1] - gj), int(hi[0] - gi))
-        views = np.zeros(shape, np.uint16)
-        for k in kfs:
+        views = np.zeros(shape, np.uint16)      # every keyframe: what the camera saw
+        views_or = np.zeros(shape, np.uint16)   # oriented keyframes: what the map can hold
+        # The adjuster takes keyframes in stamp order: a stand-in newer than its newest oriented keyframe is
+        # still waiting for it, and counts as oriented until a later keyframe is oriented without it.
+        newest = max((k.stamp_ns for k in kfs if k.oriented), default=-1)
+        mapped = [k.oriented or k.stamp_ns > newest for k in kfs]
+        for k, m in zip(kfs, mapped):
             views[self._slice(k, gi, gj)] += k.mask
+            if m:
+                views_or[self._slice(k, gi, gj)] += k.mask
         lines = _lines(np.array([k.centre_m[:2] for k in kfs]), cfg.line_angle_deg)
-        in_line = {a for line in lines for a in line}
         stereo = np.zeros(shape, bool)
-        stereo_lines = np.zeros(shape, bool)   # what the lines' pairs cover: the survey area's core
+        stereo_or = np.zeros(shape, bool)
         overlaps = []   # overlap of each consecutive pair
         for a, (ka, kb) in enumerate(zip(kfs[:-1], kfs[1:])):
             inter, ov = _intersection(ka, kb)
@@ -212,14 +232,17 @@ class Coverage:
             if inter is not None and ov >= cfg.min_pair_overlap:
                 sl = inter[0].shift(gi, gj)
                 stereo[sl] |= inter[1]
-                if a in in_line:
-                    stereo_lines[sl] |= inter[1]
+                if mapped[a] and mapped[a + 1]:
+                    stereo_or[sl] |= inter[1]
         survey = self._survey_mask(kfs, lines, shape, gi, gj)
         judged = self._judge(kfs, shape, gi, gj)
         self.views, self.stereo, self.survey, self.grid_ij = views, stereo, survey, (gi, gj)
 
         bad = survey & judged & ((views < cfg.min_views) | ~stereo)
-        gaps = [g for g in _components(bad, views, gi, gj, c, COVERAGE) if g.area_m2 >= cfg.min_gap_area_m2]
+        unmapped = survey & judged & ~bad & ((views_or < cfg.min_views) | ~stereo_or)
+        gaps = [g for g in _components(bad, views, gi, gj, c, COVERAGE) + _components(unmapped, views_or, gi, gj, c,
+                                                                                       NOT_ORIENTED)
+                if g.area_m2 >= cfg.min_gap_area_m2]
         fwd, low = [], []
         for line in lines:
             for a in line[:-1]:
@@ -230,13 +253,13 @@ class Coverage:
                              if g.area_m2 >= cfg.min_gap_area_m2]
         passed = survey & judged
         n_passed = int(passed.sum())
-        good = passed & (views >= cfg.min_views) & stereo
+        good = passed & (views_or >= cfg.min_views) & stereo_or
         outline = _outlines(survey, gi, gj, c)
         return CoverageReport(
             keyframes=len(kfs), lines=len(lines), survey_area_m2=float(survey.sum() * c * c),
             passed_area_m2=float(n_passed * c * c),
             coverage_share=float(good.sum() / n_passed) if n_passed else float('nan'),
-            stereo_share=float((passed & stereo).sum() / n_passed) if n_passed else float('nan'),
+            stereo_share=float((passed & stereo_or).sum() / n_passed) if n_passed else float('nan'),
             forward_overlap_median=float(np.median(fwd)) if fwd else float('nan'),
             forward_overlap_min=float(np.min(fwd)) if fwd else float('nan'),
             side_overlap_min=self._side_overlap(kfs, lines, shape, gi, gj), low_forward_pairs=low, gaps=gaps,
@@ -264,7 +287,7 @@ class Coverage:
                 continue
             h = d / np.linalg.norm(d)
             n = np.array([-h[1], h[0]])
-            half = min(float(np.max(np.abs((kfs[i].polygon_m - kfs[i].centre_m[:2]) @ n))) for i in idx)
+            half = min(_half_width(kfs[i], h) for i in idx)
             half -= self.cfg.swath_margin_m
             if half <= 0:
                 continue
@@ -297,7 +320,7 @@ class Coverage:
             h = step / np.linalg.norm(step)
             rel = new.polygon_m - new.centre_m[:2]
             # Reach: the footprint's half-width across the heading (what beside the line is seen from it).
-            reach = float(np.max(np.abs(rel @ [-h[1], h[0]])))
+            reach = _half_width(new, h)
             track = np.full(shape, 255, np.uint8)
             ij = np.round((np.array([k.centre_m[:2] for k in kfs]) / c - [gi, gj] - 0.5) * (1 << _SHIFT))
             cv2.polylines(track, [ij.astype(np.int32).reshape(-1, 1, 2)], False, 0, 1, cv2.LINE_8, _SHIFT)
@@ -371,6 +394,20 @@ class Coverage:
 
 
 # --- helpers -------------------------------------------------------------------------------------
+
+
+def _half_width(k: _Kf, h: np.ndarray) -> float:
+    """Half-width of a footprint across heading h, through its camera centre (the nearer side): what a line
+    sees beside it all along, where the corners of a distorted footprint reach further."""
+    rel = k.polygon_m - k.centre_m[:2]
+    along, lat = rel @ h, rel @ np.array([-h[1], h[0]])
+    a0, a1 = along, np.roll(along, -1)
+    l0, l1 = lat, np.roll(lat, -1)
+    cross = (a0 <= 0) != (a1 <= 0)
+    if not cross.any():
+        return float(np.min(np.abs(lat)))
+    t = a0[cross] / (a0[cross] - a1[cross])
+    return float(np.min(np.abs(l0[cross] + t * (l1[cross] - l0[cross]))))
 
 
 def _fill(mask: np.ndarray, poly_cells: np.ndarray) -> None:

@@ -5,7 +5,8 @@
   every Polygon / MultiPolygon (a Feature, a FeatureCollection or a bare geometry; lon, lat order).
 - `survey_area_in_map(rings, origin)`: the same rings in map ENU, for core/coverage.py.
 - `coverage_geojson(report, origin, extra)`: a FeatureCollection (WGS84 lon, lat) of the gaps (kind,
-  area_m2, min_views) and the survey outline, the report's figures in its `properties`.
+  area_m2, min_views) and the survey outline, the report's figures in its `properties`
+  (`largest_gap_m2`: the largest hole in the map, a 'coverage' or 'not_oriented' gap).
 - `refly_plan(gaps, height_m, footprint_w_m, footprint_l_m, ...)`: a QGroundControl .plan (mission
   version 2, simple waypoints at the mapping height above the take-off point, the camera triggered by
   distance) with lawnmower lines over each gap's outline, along its long side, spaced for the side
@@ -108,6 +109,7 @@ def coverage_geojson(report, origin: LocalFrame, extra: dict | None = None) -> d
         feats.append({'type': 'Feature', 'geometry': {'type': 'Polygon', 'coordinates': [_lonlat(origin, ring)]},
                       'properties': {'role': 'survey_area'}})
     coverage_gaps = [g.area_m2 for g in report.gaps if g.kind == 'coverage']
+    holes = [g.area_m2 for g in report.gaps if g.kind in ('coverage', 'not_oriented')]   # holes in the map
     props = {'keyframes': report.keyframes, 'lines': report.lines, 'survey_area_m2': round(report.survey_area_m2, 1),
              'passed_area_m2': round(report.passed_area_m2, 1), 'coverage_share': _finite(report.coverage_share),
              'stereo_share': _finite(report.stereo_share),
@@ -116,7 +118,8 @@ def coverage_geojson(report, origin: LocalFrame, extra: dict | None = None) -> d
              'side_overlap_min': _finite(report.side_overlap_min),
              'low_forward_pairs': [[int(a), int(b), round(o, 3)] for a, b, o in report.low_forward_pairs],
              'gaps': len(report.gaps), 'gap_area_m2': round(float(sum(coverage_gaps)), 1),
-             'largest_gap_m2': round(float(max(coverage_gaps, default=0.0)), 1), **(extra or {})}
+             'not_oriented_area_m2': round(float(sum(holes) - sum(coverage_gaps)), 1),
+             'largest_gap_m2': round(float(max(holes, default=0.0)), 1), **(extra or {})}
     return {'type': 'FeatureCollection', 'features': feats, 'properties': props}
 
 

@@ -35,7 +35,7 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image, NavSatFix, PointCloud2
 
 from photogram_ros import msgs
-from photogram_ros.core.coverage import COVERAGE, Coverage, CoverageConfig
+from photogram_ros.core.coverage import COVERAGE, FORWARD_OVERLAP, NOT_ORIENTED, Coverage, CoverageConfig
 from photogram_ros.core.fusion import Fusion, FusionConfig, downsample, pack_rgb
 from photogram_ros.core.geodesy import LocalFrame
 from photogram_ros.errors import ConfigError, PhotogramError
@@ -54,6 +54,7 @@ TOPIC_INFO = 'camera/camera_info'
 TOPIC_ORTHO = 'map/ortho_tiles'
 TOPIC_COVERAGE = 'map/coverage'
 TOPIC_SPARSE = 'map/sparse_cloud'
+TOPIC_KEYFRAME_FIX = 'keyframes/fix'
 
 STREAM_DTYPE = np.dtype([('x', np.float32), ('y', np.float32), ('z', np.float32), ('rgb', np.uint32),
                          ('count', np.uint32)])
@@ -119,6 +120,8 @@ class MapNode(Node):
         self.ortho = None            # core.ortho_tiles.OrthoTiler, once the origin is known
         self.coverage = None         # core.coverage.Coverage, once the camera is known
         self._cov_poses: dict = {}   # stamp -> map_T_cam not yet in the coverage
+        self._cov_fixes: dict = {}   # stamp -> keyframe fix in map ENU (the track, oriented or not)
+        self._oriented: dict = {}    # stamp -> map_T_cam of the oriented keyframes (attitude for stand-ins)
         self._cov_dirty = False
         self._sparse_xyz = None      # (N, 3) latest tie points: the ground under the keyframes
         self._camera = None
@@ -160,6 +163,8 @@ class MapNode(Node):
             from std_msgs.msg import String
             self.coverage_pub = self.create_publisher(String, TOPIC_COVERAGE, latched)
             self.create_subscription(PointCloud2, TOPIC_SPARSE, self._on_sparse, QoSProfile(depth=2),
+                                     callback_group=group)
+            self.create_subscription(NavSatFix, TOPIC_KEYFRAME_FIX, self._on_keyframe_fix, reliable,
                                      callback_group=group)
             self.create_timer(p.coverage_period_s, self._update_coverage, callback_group=group)
         self.create_timer(p.flush_interval_s, self.flush, callback_group=group)
@@ -245,6 +250,41 @@ class MapNode(Node):
                 self.diag.count('poses_saved')
             except OSError as exc:
                 self.diag.problem(f'keyframe pose not saved: {exc}')
+
+    @_locked
+    def _on_keyframe_fix(self, msg: NavSatFix) -> None:
+        if self.store.origin is None or msg.status.status < 0:
+            return
+        try:
+            f = msgs.fix_from_navsatfix(msg)
+            self._cov_fixes[f['stamp_ns']] = np.asarray(
+                self.store.origin.geodetic_to_enu(f['lat_deg'], f['lon_deg'], f['h_m']), float).reshape(3)
+        except (PhotogramError, ValueError) as exc:
+            self.diag.problem(f'keyframe fix not used for the coverage: {exc}')
+
+    def _stand_in(self, stamp: int) -> np.ndarray | None:
+        """A keyframe the adjustment has not oriented: its fix, with the attitude of the oriented keyframe
+        nearest in time turned by the change of the track's heading between the two."""
+        if not self._oriented:
+            return None
+        ref = min(self._oriented, key=lambda s: abs(s - stamp))
+        T = self._oriented[ref].copy()
+        dpsi = self._heading(stamp) - self._heading(ref)
+        if np.isfinite(dpsi):
+            c, s_ = np.cos(dpsi), np.sin(dpsi)
+            T[:3, :3] = np.array([[c, -s_, 0.0], [s_, c, 0.0], [0.0, 0.0, 1.0]]) @ T[:3, :3]
+        T[:3, 3] = self._cov_fixes[stamp]
+        return T
+
+    def _heading(self, stamp: int) -> float:
+        """Direction of travel at a keyframe, from its neighbours on the fix track, rad from east."""
+        stamps = sorted(self._cov_fixes)
+        if stamp not in self._cov_fixes or len(stamps) < 2:
+            return float('nan')
+        i = stamps.index(stamp)
+        a, b = stamps[max(i - 1, 0)], stamps[min(i + 1, len(stamps) - 1)]
+        d = self._cov_fixes[b] - self._cov_fixes[a]
+        return float(np.arctan2(d[1], d[0])) if np.hypot(d[0], d[1]) > 0.1 else float('nan')
 
     @_locked
     def _on_sparse(self, msg: PointCloud2) -> None:
@@ -364,8 +404,15 @@ class MapNode(Node):
             if gz is None:
                 continue   # waits for the first sparse cloud
             self.coverage.set_keyframe(stamp, T, gz)
+            self._oriented[stamp] = T
             del self._cov_poses[stamp]
             self._cov_dirty = True
+        for stamp in [s for s in self._cov_fixes if s not in self._oriented and not self.coverage.oriented(s)]:
+            T = self._stand_in(stamp)
+            gz = self._ground_z(T[:3, 3]) if T is not None else None
+            if gz is not None:
+                self.coverage.set_keyframe(stamp, T, gz, oriented=False)
+                self._cov_dirty = True
         if self._cov_dirty:
             self._cov_dirty = False
             self.publish_coverage()
@@ -385,13 +432,16 @@ class MapNode(Node):
                   'largest_gap_m2'):
             d.set(k, float('nan') if props[k] is None else float(props[k]))
         d.set('gaps', sum(g.kind == COVERAGE for g in rep.gaps))
+        d.set('not_oriented_gaps', sum(g.kind == NOT_ORIENTED for g in rep.gaps))
         for g in rep.gaps:
-            if g.kind != COVERAGE or any(np.hypot(*(g.centroid_map_m - c)) < 5.0 for c in self._gaps_reported):
+            if g.kind == FORWARD_OVERLAP or any(k == g.kind and np.hypot(*(g.centroid_map_m - c)) < 5.0
+                                                for k, c in self._gaps_reported):
                 continue
-            self._gaps_reported.append(g.centroid_map_m)
+            self._gaps_reported.append((g.kind, g.centroid_map_m))
             lat, lon, _ = origin.enu_to_geodetic(np.array([*g.centroid_map_m, 0.0]))
-            d.problem(f'coverage gap of {g.area_m2:.0f} m2 at {float(lat):.6f}, {float(lon):.6f} (seen by '
-                      f'{g.min_views} keyframes)')
+            what = (f'seen by {g.min_views} keyframes' if g.kind == COVERAGE else
+                    f'seen only by keyframes the adjustment did not orient')
+            d.problem(f'{g.kind} gap of {g.area_m2:.0f} m2 at {float(lat):.6f}, {float(lon):.6f} ({what})')
 
     @_locked
     def _update_diag(self) -> None:
