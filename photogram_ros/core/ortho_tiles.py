@@ -4,7 +4,7 @@ The fused map (core/fusion.py) keeps, per cell, the mean colour of the stereo po
 seen from above, that is a true orthophoto of what stereo measured (no relief displacement; holes
 where stereo found nothing). `OrthoTiler` renders it into the standard XYZ tile scheme (Web Mercator,
 EPSG:3857, 256-pixel tiles, tile x from the west and y from the north; the grid comes from
-morecantile's WebMercatorQuad) at the zoom level whose ground pixel is the finest not below
+morecantile's WebMercatorQuad) at the zoom level whose ground pixel is the finest not finer than
 `gsd_m`, so a map viewer can draw it over any other map:
 - `tiles_of_map_tile(key)`: the XYZ tiles a changed fusion tile touches;
 - `render(tile, records_of)`: a (256, 256, 4) BGRA image of one XYZ tile, each pixel the mean colour
@@ -44,7 +44,7 @@ class OrthoTiler:
         self.tile_cells = int(tile_cells)
         # Web Mercator pixels are 1 / cos(lat) times larger than the ground they show.
         scale = 1.0 / np.cos(np.radians(origin.lat_deg))
-        self.zoom = int(self.tms.zoom_for_res(gsd_m * scale, zoom_level_strategy='upper'))
+        self.zoom = int(self.tms.zoom_for_res(gsd_m * scale, zoom_level_strategy='lower'))
         self.pixel_m = self.tms.matrix(self.zoom).cellSize / scale   # ground size of one pixel
         self.block = max(1, int(2 ** np.floor(np.log2(max(self.pixel_m / self.cell_m, 1.0)))))
 

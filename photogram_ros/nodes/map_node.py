@@ -81,8 +81,8 @@ class MapParams(FusionConfig, CoverageConfig):
     stream_max_points: int = param(50000, 'Most points per stream message; the rest follows next period',
                                    min=100, max=10_000_000)
     ortho: bool = param(True, f'Stream the live orthomosaic of the changed tiles on {TOPIC_ORTHO}')
-    ortho_gsd_m: float = param(0.2, 'Ground pixel of the live ortho tiles, m: the zoom level whose pixel is the '
-                                    'finest not below it', min=0.01, max=1000.0)
+    ortho_gsd_m: float = param(0.2, 'Ground pixel of the live ortho tiles, m: the XYZ zoom level whose pixel is '
+                                    'the finest not finer than this', min=0.01, max=1000.0)
     ortho_period_s: float = param(2.0, f'Period of {TOPIC_ORTHO} batches, s', min=0.05, max=3600.0)
     ortho_max_tiles: int = param(16, 'Most ortho tiles per batch; the rest follows next period', min=1, max=10000)
     coverage: bool = param(True, f'Follow the survey coverage and its gaps ({TOPIC_COVERAGE}, /diagnostics)')
