@@ -7,9 +7,10 @@ L.control.scale({imperial: false}).addTo(map);
 const layers = {};   // drone key -> {ortho, coverage, track, targets, zoom, fitted}
 let limits = {};
 
-function fmt(v, unit, digits) {
+function fmt(v, unit, digits) {   // v in metres (shown in cm), a share (shown in %), or as it is
   if (v === null || v === undefined || Number.isNaN(v)) return '–';
-  return (unit === '%' ? (100 * v).toFixed(digits ?? 1) : Number(v).toFixed(digits ?? 3)) + ' ' + unit;
+  const scale = unit === '%' || unit === 'cm' ? 100 : 1;
+  return (scale * v).toFixed(digits ?? 1) + ' ' + unit;
 }
 
 function targetColour(p) {
@@ -38,8 +39,10 @@ function ensureLayers(key, zoom) {
   if (zoom !== null && l.zoom !== zoom) {
     if (l.ortho) map.removeLayer(l.ortho);
     l.zoom = zoom;
+    // Tiles exist at one zoom only: shown scaled within 4 levels of it (further out a view would ask for
+    // thousands of tiles).
     l.ortho = L.tileLayer(`/tiles/${key}/{z}/{x}/{y}.png?v={v}`, {v: 0, minNativeZoom: zoom, maxNativeZoom: zoom,
-                                                                      maxZoom: 23, minZoom: 0, tileSize: 256});
+                                                                      maxZoom: 23, minZoom: zoom - 4, tileSize: 256});
     l.ortho.addTo(map);
     l.ortho.bringToBack();
   }
@@ -55,10 +58,10 @@ function panel(key, d) {
   const g = d.go_no_go, c = d.coverage || {}, a = d.accuracy || {};
   const fs = a.fix_share || {};
   const rows = [
-    ['check points H RMSE', fmt(a.check_rmse_h_m, 'm') + ` (${a.check_count ?? 0})`],
-    ['check points V RMSE', fmt(a.check_rmse_v_m, 'm')],
-    ['GCP residuals H / V', a.gcp_rmse && a.gcp_rmse.count ? `${fmt(a.gcp_rmse.horizontal_m, 'm')} / ` +
-      `${fmt(a.gcp_rmse.vertical_m, 'm')} (${a.gcp_rmse.count})` : '–'],
+    ['check points H RMSE', fmt(a.check_rmse_h_m, 'cm') + ` (${a.check_count ?? 0})`],
+    ['check points V RMSE', fmt(a.check_rmse_v_m, 'cm')],
+    ['GCP residuals H / V', a.gcp_rmse && a.gcp_rmse.count ? `${fmt(a.gcp_rmse.horizontal_m, 'cm')} / ` +
+      `${fmt(a.gcp_rmse.vertical_m, 'cm')} (${a.gcp_rmse.count})` : '–'],
     ['coverage', fmt(c.coverage_share, '%')],
     ['gaps', `${(c.gap_list || []).length}, largest ${fmt(c.largest_gap_m2, 'm²', 0)}`],
     ['forward / side overlap', `${fmt(c.forward_overlap_median, '%', 0)} / ${fmt(c.side_overlap_min, '%', 0)}`],
@@ -82,16 +85,17 @@ async function refresh() {
     limits = st.limits || {};
     const html = [];
     for (const [key, d] of Object.entries(st.drones)) {
-      const l = ensureLayers(key, d.ortho.zoom);
+      const l = ensureLayers(key, null);
       const [cov, track, targets] = await Promise.all(['coverage', 'track', 'targets'].map(
         k => getJSON(`/drones/${key}/${k}.geojson`)));
       l.coverage.clearLayers(); if (cov) l.coverage.addData(cov);
       l.track.clearLayers(); if (track) l.track.addData(track);
       l.targets.clearLayers(); if (targets) l.targets.addData(targets);
-      if (l.ortho && d.ortho.tiles !== l.version) { l.version = d.ortho.tiles; l.ortho.setUrl(
-        `/tiles/${key}/{z}/{x}/{y}.png?v=${Date.now()}`); }
       const b = L.featureGroup([l.coverage, l.track]).getBounds();
       if (!l.fitted && b.isValid()) { map.fitBounds(b.pad(0.1)); l.fitted = true; }
+      if (l.fitted) ensureLayers(key, d.ortho.zoom);   // the tiles once the view is on the drone
+      if (l.ortho && d.ortho.tiles !== l.version) { l.version = d.ortho.tiles; l.ortho.setUrl(
+        `/tiles/${key}/{z}/{x}/{y}.png?v=${Date.now()}`); }
       html.push(panel(key, d));
     }
     document.getElementById('drones').innerHTML = html.join('') || 'waiting for drones…';
