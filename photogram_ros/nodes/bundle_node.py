@@ -224,7 +224,9 @@ class BundleNode(Node):
                 self.diag.count('fixes_too_inaccurate')
                 return
             with self._cond:
-                self._fixes[f['stamp_ns']] = GnssFix(f['lat_deg'], f['lon_deg'], f['h_m'], cov)
+                # Status and covariance type only feed the live fix shares (the adjustment reads position and cov).
+                self._fixes[f['stamp_ns']] = GnssFix(f['lat_deg'], f['lon_deg'], f['h_m'], cov, f['stamp_ns'],
+                                                     int(f['status']), int(f['covariance_type']))
                 self._latest_fix_ns = max(self._latest_fix_ns or 0, f['stamp_ns'])
                 self._cond.notify()
             self.diag.count('fixes')

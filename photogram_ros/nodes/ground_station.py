@@ -119,8 +119,10 @@ class GroundStationNode(Node):
                                  lambda m: self._on_pose(drone, m), QoSProfile(depth=50))
         self.create_subscription(CompressedImage, f'{ns}/map/ortho_tiles', lambda m: self._on_tile(drone, m),
                                  QoSProfile(depth=100, reliability=ReliabilityPolicy.BEST_EFFORT))
-        self.create_subscription(String, f'{ns}/map/coverage', lambda m: self._on_coverage(drone, m), latched)
-        self.create_subscription(String, f'{ns}/map/control_points', lambda m: self._on_quality(drone, m), latched)
+        self.create_subscription(String, f'{ns}/map/coverage', lambda m: self._on_document(drone, m, 'coverage'),
+                                 latched)
+        self.create_subscription(String, f'{ns}/map/control_points',
+                                 lambda m: self._on_document(drone, m, 'quality'), latched)
         self.get_logger().info(f'following drone {ns or "/"}')
 
     def _discover(self) -> None:
@@ -184,23 +186,15 @@ class GroundStationNode(Node):
             drone.tile_bytes += len(png)
         self.diag.count('ortho_tiles')
 
-    def _on_coverage(self, drone: Drone, msg: String) -> None:
+    def _on_document(self, drone: Drone, msg: String, field_name: str) -> None:
+        """A JSON document of the drone (map/coverage -> drone.coverage, map/control_points -> drone.quality)."""
         try:
             doc = msgs.json_from_msg(msg)
         except PhotogramError as exc:
-            self.diag.problem(f'{drone.ns}: coverage dropped: {exc}')
+            self.diag.problem(f'{drone.ns}: {field_name} dropped: {exc}')
             return
         with self._lock:
-            drone.coverage = doc
-
-    def _on_quality(self, drone: Drone, msg: String) -> None:
-        try:
-            doc = msgs.json_from_msg(msg)
-        except PhotogramError as exc:
-            self.diag.problem(f'{drone.ns}: control points dropped: {exc}')
-            return
-        with self._lock:
-            drone.quality = doc
+            setattr(drone, field_name, doc)
 
     def _on_diagnostics(self, msg: DiagnosticArray) -> None:
         for st in msg.status:
