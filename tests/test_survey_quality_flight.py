@@ -163,8 +163,11 @@ def test_camera_stop_is_reported_in_flight_where_the_truth_says(tmp_path):
     assert first is not None, [d['properties'] for _, d in mon.coverage[-3:]]
     clk, doc = first
     # When the drone passed the missing footprint: its camera centre over the footprint's far edge.
-    fr = [f for f in truth.frames if f.map_T_cam[1, 3] >= Y[missing].max() and f.map_T_cam[0, 3] > 30]
-    t_pass = (fr[0].stamp_ns - T0_NS) / 1e9
+    line3 = [f for f in truth.frames if f.map_T_cam[0, 3] > 30]   # every frame, taken or not
+    ys = np.array([f.map_T_cam[1, 3] for f in line3])
+    ts = np.array([(f.stamp_ns - T0_NS) / 1e9 for f in line3])
+    k = int(np.argmax(ys >= Y[missing].max()))
+    t_pass = float(np.interp(Y[missing].max(), ys[k - 1:k + 1], ts[k - 1:k + 1]))
     latency = (clk - T0_NS) / 1e9 - t_pass
     final = mon.coverage[-1][1]
     g = max(gaps_of(final), key=lambda f: f['properties']['area_m2'])
