@@ -64,7 +64,7 @@ from photogram_ros.core.attitude import AttitudeHistory, antenna_offset_enu
 from photogram_ros.core.control import ControlSet
 from photogram_ros.core.geodesy import LocalFrame
 from photogram_ros.core.gnss_fix import GnssFix
-from photogram_ros.core.incremental import IncrementalAT, IncrementalOptions, KeyframeRecord
+from photogram_ros.core.incremental import IncrementalAT, IncrementalOptions, KeyframeRecord, intersect_point
 from photogram_ros.core.survey_quality import FIX_CLASSES, fix_class, rmse
 from photogram_ros.errors import PhotogramError
 from photogram_ros.nodes.diagnostics import ERROR, Diagnostics
@@ -162,6 +162,9 @@ class BundleNode(Node):
         from std_msgs.msg import String
         self.pub_quality = self.create_publisher(String, TOPIC_CONTROL_POINTS, latched)
         self._fix_classes = {c: 0 for c in FIX_CLASSES}   # keyframes adjusted, per GNSS fix class
+        # Target name -> [(keyframe id, uv)]: the live accuracy reads these instead of the keyframes'
+        # observation tables, which a long flight keeps on disk (reading them would thaw every keyframe).
+        self._target_obs: dict[str, list] = {}
         self._since_quality = 0
         # Fixes first: the executor serves ready subscriptions in creation order, and a burst of
         # features must not keep their fixes waiting.
@@ -383,6 +386,9 @@ class BundleNode(Node):
             return
         self._control_to_map()
         self._fix_classes[fix_class(rec.fix)] += 1
+        if rec.target_uv and self.at.kfs and self.at.kfs[-1].stamp_ns == rec.stamp_ns:
+            for name, uv in rec.target_uv.items():
+                self._target_obs.setdefault(name, []).append((len(self.at.kfs) - 1, np.asarray(uv, float)))
         if not publish:
             if rep.registered:
                 self.diag.count('keyframes_oriented')
@@ -423,23 +429,27 @@ class BundleNode(Node):
         self.diag.set('gnss_bias_enu_m', ' '.join(f'{v:.3f}' for v in self.at.gnss_bias_enu))
 
     def _target_rows(self, role: str) -> list[dict]:
-        """Surveyed targets of one role seen so far: check points intersected from the adjusted cameras,
-        GCPs as adjusted (their point in the block); residual = estimate - survey, map ENU, m."""
+        """Surveyed targets of one role seen so far: check points intersected from the adjusted cameras
+        (core.incremental.intersect_point over the oriented keyframes that saw them), GCPs as adjusted
+        (their point in the block); residual = estimate - survey, map ENU, m."""
         at, rows = self.at, []
         by_name = {t.name: t for t in self.control.targets}
+        registered = set(at.registered)
         for name, cp in at.control.items():
-            if cp.role != role or at.target_track(name) is None:
+            obs = [(k, uv) for k, uv in self._target_obs.get(name, []) if k in registered]
+            if cp.role != role or len(obs) < (2 if role == 'check' else 1):
                 continue
             if role == 'check':
-                got = at.intersect_target(name)
+                got = intersect_point(at.camera, np.array([at.kfs[k].map_T_cam for k, _ in obs]),
+                                      np.array([uv for _, uv in obs]).reshape(-1, 2))
                 if got is None:
                     continue
                 xyz, n_images, rms_px = got
             else:
                 tid = at.target_track(name)
-                if tid not in at.points or not at.georeferenced:
+                if tid is None or tid not in at.points or not at.georeferenced:
                     continue
-                xyz, n_images, rms_px = at.points[tid], len(at.observations_of(tid)[0]), float('nan')
+                xyz, n_images, rms_px = at.points[tid], len(obs), float('nan')
             t = by_name[name]
             rows.append({'name': name, 'marker_id': t.marker_id, 'lat_deg': t.lat_deg, 'lon_deg': t.lon_deg,
                          'h_m': t.h_m, 'residual_enu_m': [float(v) for v in np.asarray(xyz) - cp.map_xyz],
