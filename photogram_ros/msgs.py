@@ -384,3 +384,51 @@ def navsatfix_from_gnss_fix(fix, frame_id: str = 'gps') -> NavSatFix:
     """core.gnss_fix.GnssFix -> NavSatFix (e.g. the fix interpolated to a keyframe's stamp)."""
     return navsatfix_msg(fix.stamp_ns, fix.lat_deg, fix.lon_deg, fix.h_m, fix.status, fix.cov_enu_m2, fix.cov_type,
                          frame_id)
+
+
+# --- survey quality: ortho tiles, coverage and control points (map_node, bundle_node -> ground station) ----
+
+ORTHO_TILE_PREFIX = 'xyz/'
+
+
+def ortho_tile_msg(z: int, x: int, y: int, png: bytes, stamp_ns: int) -> CompressedImage:
+    """One XYZ / Web Mercator ortho tile (PNG bytes) -> CompressedImage; header.frame_id names the tile
+    'xyz/Z/X/Y' (there is no TF frame for a map tile: the name is the whole georeference)."""
+    msg = CompressedImage(header=header(stamp_ns, f'{ORTHO_TILE_PREFIX}{int(z)}/{int(x)}/{int(y)}'), format='png')
+    msg.data = bytes(png)
+    return msg
+
+
+def ortho_tile_from_msg(msg: CompressedImage) -> tuple[int, int, int, bytes]:
+    """CompressedImage of ortho_tile_msg -> (z, x, y, PNG bytes)."""
+    name = msg.header.frame_id
+    parts = name[len(ORTHO_TILE_PREFIX):].split('/') if name.startswith(ORTHO_TILE_PREFIX) else []
+    if len(parts) != 3 or not all(p.isdigit() for p in parts) or msg.format != 'png':
+        raise DataError(f'not an ortho tile: frame_id {name!r}, format {msg.format!r} (expected xyz/Z/X/Y, png)')
+    z, x, y = (int(p) for p in parts)
+    return z, x, y, bytes(msg.data)
+
+
+def json_msg(obj) -> 'String':
+    """A JSON document (GeoJSON coverage, control-point figures) -> std_msgs/String."""
+    import json
+
+    from std_msgs.msg import String
+    return String(data=json.dumps(obj, allow_nan=False, separators=(',', ':'), default=_json_default))
+
+
+def json_from_msg(msg):
+    """std_msgs/String of json_msg -> the document."""
+    import json
+    try:
+        return json.loads(msg.data)
+    except ValueError as exc:
+        raise DataError(f'message is not JSON: {exc}') from exc
+
+
+def _json_default(v):
+    if isinstance(v, np.generic):
+        return v.item()
+    if isinstance(v, np.ndarray):
+        return v.tolist()
+    raise TypeError(f'{type(v).__name__} is not JSON serialisable')

@@ -87,3 +87,102 @@ def test_ground_station_merges_two_drones(tmp_path, rclpy_context):
     # Both drones' areas (80 m apart east-west), merged in one flat surface at the right height.
     assert pts['x'].max() - pts['x'].min() > 110
     assert np.percentile(np.abs(pts['z'] - SURFACE_H_M), 95) < 0.05
+
+
+def test_station_shows_ortho_coverage_gap_and_accuracy(tmp_path, rclpy_context):
+    """One drone's map node (coverage and ortho on) and the station in one process: a survey of three
+    lines whose outer line misses 50 m; the station receives ortho tiles, the coverage with the gap (area,
+    place), the live accuracy, and serves them on its page's routes."""
+    import json
+    import urllib.request
+
+    from geometry_msgs.msg import PoseWithCovarianceStamped
+    from rclpy.executors import SingleThreadedExecutor
+    from sensor_msgs.msg import CameraInfo
+    from std_msgs.msg import String
+
+    from photogram_ros.core.rotations import make_T
+    from photogram_ros.nodes.ground_station import GroundStationNode
+    from photogram_ros.nodes.map_node import MapNode
+    from photogram_ros.sim.scenario import preset
+    o = LocalFrame(47.3977, 8.5456, 528.0)   # the map origin 40 m above the field at 488 m
+    node = MapNode({'map_dir': str(tmp_path / 'map'), 'stream_period_s': 0.3, 'ortho_period_s': 0.3,
+                    'coverage_period_s': 0.3, 'cell_m': 0.25, 'use_origin_params': True, 'origin_lat_deg': o.lat_deg,
+                    'origin_lon_deg': o.lon_deg, 'origin_h_m': o.h_m}, namespace='/drone1', context=rclpy_context)
+    station = GroundStationNode({'out_dir': str(tmp_path / 'gs'), 'namespaces': '/drone1', 'web': '127.0.0.1:0',
+                                 'save_period_s': 1.0}, context=rclpy_context)
+    peer = Node('drone1_peer', namespace='/drone1', context=rclpy_context)
+    latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+    pubs = {'geo': peer.create_publisher(NavSatFix, 'map/georeference', latched),
+            'info': peer.create_publisher(CameraInfo, 'camera/camera_info', 10),
+            'pose': peer.create_publisher(PoseWithCovarianceStamped, 'map/keyframe_pose', QoSProfile(depth=200)),
+            'sparse': peer.create_publisher(PointCloud2, 'map/sparse_cloud', 2),
+            'cloud': peer.create_publisher(PointCloud2, 'map/dense_cloud', QoSProfile(depth=50)),
+            'quality': peer.create_publisher(String, 'map/control_points', latched)}
+    ex = SingleThreadedExecutor(context=rclpy_context)
+    for n in (node, station, peer):
+        ex.add_node(n)
+    cam = preset('sample').camera()
+    rng = np.random.default_rng(1)
+    try:
+        pubs['geo'].publish(msgs.georeference_msg(o.lat_deg, o.lon_deg, o.h_m, 0))
+        pubs['quality'].publish(msgs.json_msg({'check_rmse': {'horizontal_m': 0.031, 'vertical_m': 0.02, 'count': 4},
+                                               'gcp_rmse': None, 'fix_share': {'rtk_fixed': 1.0},
+                                               'check_points': [], 'gcps': [], 'gnss_bias_enu_m': None}))
+        ground = -40.0
+        tie = np.column_stack([rng.uniform(-30, 70, 500), rng.uniform(-20, 110, 500), np.full(500, ground)])
+        for _ in range(10):
+            ex.spin_once(timeout_sec=0.05)
+        pubs['info'].publish(msgs.camera_info_msg(cam, 0))
+        pubs['sparse'].publish(msgs.sparse_cloud_msg(tie, 0))
+        R = {0: np.array([[1.0, 0, 0], [0, -1.0, 0], [0, 0, -1.0]]), 1: np.array([[-1.0, 0, 0], [0, 1.0, 0], [0, 0, -1.0]])}
+        t = 0
+        for line in range(3):
+            ys = np.arange(0.0, 90.01, 5.0)
+            for y in (ys if line % 2 == 0 else ys[::-1]):
+                t += 1
+                if line == 2 and 15 < y < 65:
+                    continue   # the camera stopped
+                T = make_T(R[line % 2], np.array([17.2 * line, y, 0.0]))
+                pubs['pose'].publish(msgs.pose_with_covariance_from_T(T, 10**18 + t * 10**9, 'map', np.eye(6) * 1e-4))
+                pubs['cloud'].publish(msgs.pointcloud2_msg(
+                    pair_cloud(rng, lambda x, yy: np.full_like(x, ground), 17.2 * line, y, 10.0, 3.0, 4.0,
+                               rgb=0x30A030), 0, 'map'))
+                for _ in range(3):
+                    ex.spin_once(timeout_sec=0.02)
+            t += 10
+        deadline = time.monotonic() + 20
+        while time.monotonic() < deadline:
+            ex.spin_once(timeout_sec=0.05)
+            d = station.status()['drones'].get('drone1', {})
+            if (d.get('coverage', {}).get('keyframes', 0) >= 47 and d.get('ortho', {}).get('tiles', 0) >= 2
+                    and d['coverage']['gap_list']):
+                break
+        st = station.status()
+        d = st['drones']['drone1']
+        gaps = [g for g in d['coverage']['gap_list'] if g['kind'] == 'coverage']
+        assert len(gaps) == 1, d['coverage']
+        # The outer strip only line 2 sees (east of 17.2 + 26.8 m) over the stop: about 14 m x 11 m.
+        assert 80 < gaps[0]['area_m2'] < 400
+        gx = o.geodetic_to_enu(gaps[0]['centroid'][1], gaps[0]['centroid'][0], o.h_m - 40)
+        assert 44 < gx[0] < 62 and 30 < gx[1] < 50
+        assert d['accuracy']['check_rmse_h_m'] == 0.031 and d['accuracy']['check_count'] == 4
+        assert d['go_no_go']['verdict'] == 'NO-GO'
+        assert any('largest gap' in r for r in d['go_no_go']['reasons'])
+        z = d['ortho']['zoom']
+        key = next(iter(station.drones['/drone1'].tiles))
+        url = station.web.url
+        with urllib.request.urlopen(f'{url}tiles/drone1/{key[0]}/{key[1]}/{key[2]}.png', timeout=5) as r:
+            assert r.read()[:4] == b'\x89PNG' and key[0] == z
+        with urllib.request.urlopen(url + 'status.json', timeout=5) as r:
+            assert json.loads(r.read())['drones']['drone1']['coverage']['gap_list'][0]['area_m2'] > 0
+        with urllib.request.urlopen(url + 'drones/drone1/refly.plan', timeout=5) as r:
+            plan = json.loads(r.read())
+        assert plan['fileType'] == 'Plan' and len(plan['mission']['items']) >= 4
+        station.save()
+        assert (tmp_path / 'gs' / 'drone1_gaps.geojson').exists() and (tmp_path / 'gs' / 'drone1_refly.plan').exists()
+        assert list((tmp_path / 'gs' / 'tiles' / 'drone1' / str(z)).glob('*/*.png'))
+    finally:
+        ex.shutdown()
+        for n in (peer, station, node):
+            n.destroy_node()

@@ -18,8 +18,14 @@ Outputs:
   map/georeference    NavSatFix (latched): latitude, longitude and ellipsoidal altitude of the
                       origin of `map` (ENU tangent there). The origin is the configured one or the
                       first keyframe fix. Published once the block is georeferenced.
+  map/control_points  std_msgs/String (latched), JSON: the survey's live accuracy every `quality_every`
+                      published keyframes and after a full adjustment: each check point intersected from
+                      the adjusted cameras against its survey and the check-point RMSE (horizontal,
+                      vertical, count), the GCPs' residuals apart, the share of keyframes per GNSS fix
+                      class (core/survey_quality.py) and the GNSS bias estimate (with 3 GCPs or more)
   /diagnostics        solve time, cost, reprojection RMS, GNSS residual RMS, window size; with a
-                      control file GCPs seen / used, GCP residual RMS, check points seen, unknown markers
+                      control file GCPs seen / used, GCP residual RMS, check points seen, unknown markers,
+                      check_rmse_h_m / check_rmse_v_m / checks_measured; keyframe shares per fix class
 
 Ground control (`control_file`, io/control_file.py): targets named in the file become GCPs (point
 priors) or check points (never used), in the map frame as soon as its origin is known; markers
@@ -58,7 +64,8 @@ from photogram_ros.core.attitude import AttitudeHistory, antenna_offset_enu
 from photogram_ros.core.control import ControlSet
 from photogram_ros.core.geodesy import LocalFrame
 from photogram_ros.core.gnss_fix import GnssFix
-from photogram_ros.core.incremental import IncrementalAT, IncrementalOptions, KeyframeRecord
+from photogram_ros.core.incremental import IncrementalAT, IncrementalOptions, KeyframeRecord, intersect_point
+from photogram_ros.core.survey_quality import FIX_CLASSES, fix_class, rmse
 from photogram_ros.errors import PhotogramError
 from photogram_ros.nodes.diagnostics import ERROR, Diagnostics
 from photogram_ros.nodes.node_main import run_node
@@ -75,6 +82,7 @@ TOPIC_PATH = 'map/path'
 TOPIC_CLOUD = 'map/sparse_cloud'
 TOPIC_GEOREF = 'map/georeference'
 TOPIC_ATTITUDE = 'mavlink/attitude'
+TOPIC_CONTROL_POINTS = 'map/control_points'
 
 
 @dataclass
@@ -114,6 +122,9 @@ class BundleNodeParams(IncrementalOptions):
                                  min=0.0, max=100.0)
     gcp_sigma_v_m: float = param(0.0, 'vertical sigma of every GCP, m (0: the file\'s, 0.03 m where it gives none)',
                                  min=0.0, max=100.0)
+    quality_every: int = param(5, f'publish the live accuracy ({TOPIC_CONTROL_POINTS}: check points intersected '
+                                  'from the adjusted cameras, fix shares) every this many published keyframes',
+                                  min=1, max=1000)
     publish_provisional: bool = param(False, 'publish poses while the georeference is still provisional (a '
                                              'straight first line leaves the roll about it to an assumption '
                                              'until the first turn); off, poses start at the first turn')
@@ -148,6 +159,13 @@ class BundleNode(Node):
         self.pub_path = self.create_publisher(Path, TOPIC_PATH, QoSProfile(depth=2))
         self.pub_cloud = self.create_publisher(PointCloud2, TOPIC_CLOUD, QoSProfile(depth=2))
         self.pub_georef = self.create_publisher(NavSatFix, TOPIC_GEOREF, latched)
+        from std_msgs.msg import String
+        self.pub_quality = self.create_publisher(String, TOPIC_CONTROL_POINTS, latched)
+        self._fix_classes = {c: 0 for c in FIX_CLASSES}   # keyframes adjusted, per GNSS fix class
+        # Target name -> [(keyframe id, uv)]: the live accuracy reads these instead of the keyframes'
+        # observation tables, which a long flight keeps on disk (reading them would thaw every keyframe).
+        self._target_obs: dict[str, list] = {}
+        self._since_quality = 0
         # Fixes first: the executor serves ready subscriptions in creation order, and a burst of
         # features must not keep their fixes waiting.
         self.create_subscription(NavSatFix, TOPIC_FIX, self._on_fix, reliable)
@@ -209,7 +227,9 @@ class BundleNode(Node):
                 self.diag.count('fixes_too_inaccurate')
                 return
             with self._cond:
-                self._fixes[f['stamp_ns']] = GnssFix(f['lat_deg'], f['lon_deg'], f['h_m'], cov)
+                # Status and covariance type only feed the live fix shares (the adjustment reads position and cov).
+                self._fixes[f['stamp_ns']] = GnssFix(f['lat_deg'], f['lon_deg'], f['h_m'], cov, f['stamp_ns'],
+                                                     int(f['status']), int(f['covariance_type']))
                 self._latest_fix_ns = max(self._latest_fix_ns or 0, f['stamp_ns'])
                 self._cond.notify()
             self.diag.count('fixes')
@@ -365,6 +385,10 @@ class BundleNode(Node):
             self.diag.problem(f'keyframe {rec.stamp_ns} failed: {exc}')
             return
         self._control_to_map()
+        self._fix_classes[fix_class(rec.fix)] += 1
+        if rec.target_uv and self.at.kfs and self.at.kfs[-1].stamp_ns == rec.stamp_ns:
+            for name, uv in rec.target_uv.items():
+                self._target_obs.setdefault(name, []).append((len(self.at.kfs) - 1, np.asarray(uv, float)))
         if not publish:
             if rep.registered:
                 self.diag.count('keyframes_oriented')
@@ -382,6 +406,9 @@ class BundleNode(Node):
         self.diag.set('points', len(self.at.points))
         self.diag.set('georeferenced', 'provisional' if self.at.georef_provisional else str(self.at.georeferenced))
         self._control_diagnostics()
+        self._since_quality += 1
+        if self._since_quality >= self.p.quality_every:
+            self.publish_quality()
         earlier, self._unpublished = self._unpublished, 0
         if not (self.at.georeferenced and rep.registered):
             return
@@ -400,6 +427,72 @@ class BundleNode(Node):
         for k, v in self.at.control_summary().items():
             self.diag.set(k, v)
         self.diag.set('gnss_bias_enu_m', ' '.join(f'{v:.3f}' for v in self.at.gnss_bias_enu))
+
+    def _target_rows(self, role: str) -> list[dict]:
+        """Surveyed targets of one role seen so far: check points intersected from the adjusted cameras
+        (core.incremental.intersect_point over the oriented keyframes that saw them), GCPs as adjusted
+        (their point in the block); residual = estimate - survey, map ENU, m."""
+        at, rows = self.at, []
+        by_name = {t.name: t for t in self.control.targets}
+        registered = set(at.registered)
+        for name, cp in at.control.items():
+            obs = [(k, uv) for k, uv in self._target_obs.get(name, []) if k in registered]
+            if cp.role != role or len(obs) < (2 if role == 'check' else 1):
+                continue
+            if role == 'check':
+                got = intersect_point(at.camera, np.array([at.kfs[k].map_T_cam for k, _ in obs]),
+                                      np.array([uv for _, uv in obs]).reshape(-1, 2))
+                if got is None:
+                    continue
+                xyz, n_images, rms_px = got
+            else:
+                tid = at.target_track(name)
+                if tid is None or tid not in at.points or not at.georeferenced:
+                    continue
+                xyz, n_images, rms_px = at.points[tid], len(obs), float('nan')
+            t = by_name[name]
+            rows.append({'name': name, 'marker_id': t.marker_id, 'lat_deg': t.lat_deg, 'lon_deg': t.lon_deg,
+                         'h_m': t.h_m, 'residual_enu_m': [float(v) for v in np.asarray(xyz) - cp.map_xyz],
+                         'images': int(n_images), 'rms_px': None if not np.isfinite(rms_px) else float(rms_px)})
+        return rows
+
+    def quality(self) -> dict:
+        """The live accuracy figures (map/control_points)."""
+        n = sum(self._fix_classes.values())
+        out = {'keyframes': n, 'fix_share': {c: (v / n if n else None) for c, v in self._fix_classes.items()},
+               'check_points': [], 'gcps': [], 'check_rmse': None, 'gcp_rmse': None, 'gnss_bias_enu_m': None}
+        if self.control is not None and self.at is not None and self.at.origin is not None:
+            out['check_points'] = self._target_rows('check')
+            out['gcps'] = self._target_rows('gcp')
+            out['check_rmse'] = rmse([r['residual_enu_m'] for r in out['check_points']])
+            out['gcp_rmse'] = rmse([r['residual_enu_m'] for r in out['gcps']])
+            if len(out['gcps']) >= 3:
+                out['gnss_bias_enu_m'] = [float(v) for v in self.at.gnss_bias_enu]
+            for k in ('check_rmse', 'gcp_rmse'):
+                if not out[k]['count']:
+                    out[k] = {'horizontal_m': None, 'vertical_m': None, 'count': 0}
+        return out
+
+    def publish_quality(self) -> None:
+        self._since_quality = 0
+        if self.at is None:
+            return
+        try:
+            q = self.quality()
+        except Exception as exc:   # figures must never stop the adjustment
+            self.diag.problem(f'live accuracy failed: {type(exc).__name__}: {exc}')
+            return
+        stamp = self.at.kfs[self.at.registered[-1]].stamp_ns if self.at.registered else 0
+        self.pub_quality.publish(msgs.json_msg({'stamp_ns': stamp, **q}))
+        for c, v in q['fix_share'].items():
+            if v is not None:
+                self.diag.set(f'keyframes_{c}_share', float(v))
+        cr = q['check_rmse']
+        if cr is not None:
+            self.diag.set('checks_measured', cr['count'])
+            if cr['count']:
+                self.diag.set('check_rmse_h_m', float(cr['horizontal_m']))
+                self.diag.set('check_rmse_v_m', float(cr['vertical_m']))
 
     def _publish(self, window, new: int = 1) -> None:
         """Poses of `window`, the path, and the sparse cloud once `new` keyframes make cloud_every."""
@@ -501,6 +594,7 @@ class BundleNode(Node):
             self.diag.set('full_adjustment_s', time.perf_counter() - t0)
             self.diag.set('full_adjustment_rms_px', float(rep.reprojection_rms_px))
             self._control_diagnostics()
+            self.publish_quality()
             if self.at.georeferenced:
                 self._publish(window=list(self.at.registered), new=0)
                 self.publish_cloud(self.at.kfs[self.at.registered[-1]].stamp_ns)

@@ -8,7 +8,13 @@ and altitude (ellipsoidal, REP-145) are the `map` origin, published with transie
 A map_dir that already holds a map keeps its origin and reloads (restart after a crash).
 
 Outputs: /map/cloud_downsampled (best effort: block means of the tiles that changed, at most
-stream_max_points per message, at most one message per stream_period_s) and /diagnostics.
+stream_max_points per message, at most one message per stream_period_s); /map/ortho_tiles (best
+effort, the same way: the XYZ / Web Mercator tiles of the live orthomosaic that changed, one
+CompressedImage PNG per tile named xyz/Z/X/Y, at most one batch per ortho_period_s, core/ortho_tiles.py);
+/map/coverage (std_msgs/String, latched: GeoJSON of the survey's coverage and gaps, every
+coverage_period_s, from the keyframe poses, the camera and the ground height of /map/sparse_cloud,
+core/coverage.py; the survey area is `survey_area_file`, a QGroundControl .plan or GeoJSON, when
+given); and /diagnostics (with the coverage figures; a new gap is a WARN naming its area and place).
 Changed cells are flushed to disk every flush_interval_s, so a kill -9 loses at most that much.
 Topic names are relative, so a drone's namespace (several drones, one ground station) prefixes them.
 """
@@ -26,9 +32,10 @@ from geometry_msgs.msg import PoseWithCovarianceStamped
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
-from sensor_msgs.msg import CameraInfo, Image, NavSatFix, PointCloud2
+from sensor_msgs.msg import CameraInfo, CompressedImage, Image, NavSatFix, PointCloud2
 
 from photogram_ros import msgs
+from photogram_ros.core.coverage import COVERAGE, FORWARD_OVERLAP, NOT_ORIENTED, Coverage, CoverageConfig
 from photogram_ros.core.fusion import Fusion, FusionConfig, downsample, pack_rgb
 from photogram_ros.core.geodesy import LocalFrame
 from photogram_ros.errors import ConfigError, PhotogramError
@@ -44,14 +51,19 @@ TOPIC_GEOREFERENCE = 'map/georeference'
 TOPIC_IMAGE = 'keyframes/image'
 TOPIC_POSE = 'map/keyframe_pose'
 TOPIC_INFO = 'camera/camera_info'
+TOPIC_ORTHO = 'map/ortho_tiles'
+TOPIC_COVERAGE = 'map/coverage'
+TOPIC_SPARSE = 'map/sparse_cloud'
+TOPIC_KEYFRAME_FIX = 'keyframes/fix'
 
 STREAM_DTYPE = np.dtype([('x', np.float32), ('y', np.float32), ('z', np.float32), ('rgb', np.uint32),
                          ('count', np.uint32)])
 
 
 @dataclass
-class MapParams(FusionConfig):
-    """The fusion's parameters (core/fusion.py FusionConfig) and the node's: folder, origin, keyframes, stream."""
+class MapParams(FusionConfig, CoverageConfig):
+    """The fusion's (core/fusion.py) and the coverage's (core/coverage.py) parameters and the node's: folder,
+    origin, keyframes, streams."""
     map_dir: str = param('map', 'Folder of the persistent map (tiles, keyframes, map.json); reloaded if it exists')
     flush_interval_s: float = param(1.0, 'Changed cells are written and fsynced this often, s (the most a '
                                          'crash can lose)', min=0.05, max=600.0)
@@ -68,6 +80,16 @@ class MapParams(FusionConfig):
     stream_downsample: int = param(4, 'Stream block size in cells (4: one point per 4x4 cells)', min=1, max=256)
     stream_max_points: int = param(50000, 'Most points per stream message; the rest follows next period',
                                    min=100, max=10_000_000)
+    ortho: bool = param(True, f'Stream the live orthomosaic of the changed tiles on {TOPIC_ORTHO}')
+    ortho_gsd_m: float = param(0.2, 'Ground pixel of the live ortho tiles, m: the XYZ zoom level whose pixel is '
+                                    'the finest not finer than this', min=0.01, max=1000.0)
+    ortho_period_s: float = param(2.0, f'Period of {TOPIC_ORTHO} batches, s', min=0.05, max=3600.0)
+    ortho_max_tiles: int = param(16, 'Most ortho tiles per batch; the rest follows next period', min=1, max=10000)
+    coverage: bool = param(True, f'Follow the survey coverage and its gaps ({TOPIC_COVERAGE}, /diagnostics)')
+    coverage_period_s: float = param(1.0, f'Period of the coverage update and of {TOPIC_COVERAGE}, s',
+                                     min=0.1, max=3600.0)
+    survey_area_file: str = param('', 'Survey area: a QGroundControl .plan (its Survey polygon or geofence) or a '
+                                      'GeoJSON polygon; "" = the flight lines\' swaths')
 
 
 def _locked(method):
@@ -94,6 +116,23 @@ class MapNode(Node):
         if p.use_origin_params:
             self._set_origin(LocalFrame(p.origin_lat_deg, p.origin_lon_deg, p.origin_h_m))
         self._stream_pending: set = set(self.store.tile_keys())   # a restarted map streams what it has
+        self._ortho_pending: set = set(self._stream_pending)
+        self.ortho = None            # core.ortho_tiles.OrthoTiler, once the origin is known
+        self.coverage = None         # core.coverage.Coverage, once the camera is known
+        self._cov_poses: dict = {}   # stamp -> map_T_cam not yet in the coverage
+        self._cov_fixes: dict = {}   # stamp -> keyframe fix in map ENU (the track, oriented or not)
+        self._oriented: dict = {}    # stamp -> map_T_cam of the oriented keyframes (attitude for stand-ins)
+        self._cov_dirty = False
+        self._sparse_xyz = None      # (N, 3) latest tie points: the ground under the keyframes
+        self._camera = None
+        self._gaps_reported: list = []   # centroids of the gaps already warned about
+        self._survey_rings = None
+        if p.survey_area_file:       # a bad file stops the start, naming it
+            from photogram_ros.io.mission import read_survey_area
+            try:
+                self._survey_rings = read_survey_area(p.survey_area_file)
+            except PhotogramError as exc:
+                raise ConfigError(f'map_node: {exc}') from exc
         self._camera_saved = None
         self._poses_pending: dict = {}
         self._fuse_s = 0.0
@@ -109,12 +148,25 @@ class MapNode(Node):
                                  callback_group=group)
         if p.save_keyframes:
             self.create_subscription(Image, TOPIC_IMAGE, self._on_image, reliable, callback_group=group)
+        if p.save_keyframes or p.coverage:
             self.create_subscription(PoseWithCovarianceStamped, TOPIC_POSE, self._on_pose, reliable,
                                      callback_group=group)
             self.create_subscription(CameraInfo, TOPIC_INFO, self._on_info, qos_profile_sensor_data,
                                      callback_group=group)
         best_effort = QoSProfile(depth=2, reliability=ReliabilityPolicy.BEST_EFFORT)
         self.stream_pub = self.create_publisher(PointCloud2, TOPIC_DOWNSAMPLED, best_effort)
+        if p.ortho:   # one message per tile: a batch must fit the history
+            self.ortho_pub = self.create_publisher(CompressedImage, TOPIC_ORTHO, QoSProfile(
+                depth=p.ortho_max_tiles, reliability=ReliabilityPolicy.BEST_EFFORT))
+            self.create_timer(p.ortho_period_s, self._stream_ortho, callback_group=group)
+        if p.coverage:
+            from std_msgs.msg import String
+            self.coverage_pub = self.create_publisher(String, TOPIC_COVERAGE, latched)
+            self.create_subscription(PointCloud2, TOPIC_SPARSE, self._on_sparse, QoSProfile(depth=2),
+                                     callback_group=group)
+            self.create_subscription(NavSatFix, TOPIC_KEYFRAME_FIX, self._on_keyframe_fix, reliable,
+                                     callback_group=group)
+            self.create_timer(p.coverage_period_s, self._update_coverage, callback_group=group)
         self.create_timer(p.flush_interval_s, self.flush, callback_group=group)
         self.create_timer(p.stream_period_s, self._stream, callback_group=group)
         self.create_timer(1.0, self._update_diag, callback_group=group)
@@ -155,6 +207,7 @@ class MapNode(Node):
             self.diag.count('clouds')
             self.diag.count('points_fused', n)
             self._stream_pending |= self.fusion.changed_tiles
+            self._ortho_pending |= self.fusion.changed_tiles
             self.fusion.changed_tiles.clear()
         except PhotogramError as exc:
             self.diag.count('clouds_dropped')
@@ -181,7 +234,11 @@ class MapNode(Node):
         # write it at the next flush, instead of an fsync per republication.
         try:
             T, _ = msgs.T_from_pose_with_covariance(msg)
-            self._poses_pending[msgs.ns_from_time(msg.header.stamp)] = T
+            stamp = msgs.ns_from_time(msg.header.stamp)
+            if self.params.save_keyframes:
+                self._poses_pending[stamp] = T
+            if self.params.coverage:
+                self._cov_poses[stamp] = T
         except PhotogramError as exc:
             self.diag.problem(f'keyframe pose not saved: {exc}')
 
@@ -194,9 +251,56 @@ class MapNode(Node):
             except OSError as exc:
                 self.diag.problem(f'keyframe pose not saved: {exc}')
 
+    @_locked
+    def _on_keyframe_fix(self, msg: NavSatFix) -> None:
+        if self.store.origin is None or msg.status.status < 0:
+            return
+        try:
+            f = msgs.fix_from_navsatfix(msg)
+            self._cov_fixes[f['stamp_ns']] = np.asarray(
+                self.store.origin.geodetic_to_enu(f['lat_deg'], f['lon_deg'], f['h_m']), float).reshape(3)
+        except (PhotogramError, ValueError) as exc:
+            self.diag.problem(f'keyframe fix not used for the coverage: {exc}')
+
+    def _stand_in(self, stamp: int) -> np.ndarray | None:
+        """A keyframe the adjustment has not oriented: its fix, with the attitude of the oriented keyframe
+        nearest in time turned by the change of the track's heading between the two."""
+        if not self._oriented:
+            return None
+        ref = min(self._oriented, key=lambda s: abs(s - stamp))
+        T = self._oriented[ref].copy()
+        dpsi = self._heading(stamp) - self._heading(ref)
+        if np.isfinite(dpsi):
+            c, s_ = np.cos(dpsi), np.sin(dpsi)
+            T[:3, :3] = np.array([[c, -s_, 0.0], [s_, c, 0.0], [0.0, 0.0, 1.0]]) @ T[:3, :3]
+        T[:3, 3] = self._cov_fixes[stamp]
+        return T
+
+    def _heading(self, stamp: int) -> float:
+        """Direction of travel at a keyframe, from its neighbours on the fix track, rad from east."""
+        stamps = sorted(self._cov_fixes)
+        if stamp not in self._cov_fixes or len(stamps) < 2:
+            return float('nan')
+        i = stamps.index(stamp)
+        a, b = stamps[max(i - 1, 0)], stamps[min(i + 1, len(stamps) - 1)]
+        d = self._cov_fixes[b] - self._cov_fixes[a]
+        return float(np.arctan2(d[1], d[0])) if np.hypot(d[0], d[1]) > 0.1 else float('nan')
+
+    @_locked
+    def _on_sparse(self, msg: PointCloud2) -> None:
+        try:
+            pts = msgs.points_from_pointcloud2(msg)
+            xyz = np.column_stack([pts['x'], pts['y'], pts['z']]).astype(np.float64)
+            self._sparse_xyz = xyz[np.all(np.isfinite(xyz), axis=1)]
+        except (PhotogramError, ValueError) as exc:
+            self.diag.problem(f'sparse cloud not used for the coverage: {exc}')
+
     def _on_info(self, msg: CameraInfo) -> None:
         try:
             cam = msgs.camera_from_info(msg)
+            self._camera = cam
+            if not self.params.save_keyframes:
+                return
             if cam != self._camera_saved:
                 self.store.save_camera(cam)
                 self._camera_saved = cam
@@ -246,6 +350,100 @@ class MapNode(Node):
         self.diag.count('stream_points', n)
 
     @_locked
+    def _stream_ortho(self) -> None:
+        """PNGs of the XYZ tiles the changed fusion tiles touch (kept for later while nobody listens)."""
+        if not self._ortho_pending or self.store.origin is None or self.ortho_pub.get_subscription_count() == 0:
+            return
+        from photogram_ros.core.ortho_tiles import OrthoTiler
+        p = self.params
+        if self.ortho is None:
+            self.ortho = OrthoTiler(self.store.origin, p.cell_m, p.tile_cells, p.ortho_gsd_m)
+            self.diag.set('ortho_zoom', self.ortho.zoom)
+        xyz, keys = [], sorted(self._ortho_pending)
+        for key in keys:
+            for t in self.ortho.tiles_of_map_tile(key):
+                if t not in xyz:
+                    xyz.append(t)
+        batch = xyz[:p.ortho_max_tiles]
+        # A map tile is done once every XYZ tile it touches went out.
+        self._ortho_pending = {k for k in keys if any(t not in batch for t in self.ortho.tiles_of_map_tile(k))}
+        import cv2
+        t0 = time.perf_counter()
+        stamp = self.get_clock().now().nanoseconds
+        for t in batch:
+            img = self.ortho.render(t, self.fusion.tile_records)
+            if not img[..., 3].any():
+                continue
+            ok, buf = cv2.imencode('.png', img, [cv2.IMWRITE_PNG_COMPRESSION, 6])
+            if ok:
+                self.ortho_pub.publish(msgs.ortho_tile_msg(t.z, t.x, t.y, buf.tobytes(), stamp))
+                self.diag.count('ortho_tiles_sent')
+                self.diag.count('ortho_bytes_sent', len(buf))
+        self.diag.set('ortho_render_s', time.perf_counter() - t0)
+
+    def _ground_z(self, centre: np.ndarray) -> float | None:
+        """Median height of the tie points within 30 m of a camera (all of them when none is that close)."""
+        s = self._sparse_xyz
+        if s is None or not len(s):
+            return None
+        near = np.hypot(s[:, 0] - centre[0], s[:, 1] - centre[1]) < 30.0
+        return float(np.median(s[near, 2] if near.sum() >= 10 else s[:, 2]))
+
+    @_locked
+    def _update_coverage(self) -> None:
+        if self._camera is None or self.store.origin is None:
+            return
+        if self.coverage is None:
+            from photogram_ros.io.mission import survey_area_in_map
+            area = survey_area_in_map(self._survey_rings, self.store.origin) if self._survey_rings else None
+            self.coverage = Coverage(self._camera, CoverageConfig(**{
+                f: getattr(self.params, f) for f in CoverageConfig.__dataclass_fields__}), area)
+        for stamp in list(self._cov_poses):
+            T = self._cov_poses[stamp]
+            gz = self._ground_z(T[:3, 3])
+            if gz is None:
+                continue   # waits for the first sparse cloud
+            self.coverage.set_keyframe(stamp, T, gz)
+            self._oriented[stamp] = T
+            del self._cov_poses[stamp]
+            self._cov_dirty = True
+        for stamp in [s for s in self._cov_fixes if s not in self._oriented and not self.coverage.oriented(s)]:
+            T = self._stand_in(stamp)
+            gz = self._ground_z(T[:3, 3]) if T is not None else None
+            if gz is not None:
+                self.coverage.set_keyframe(stamp, T, gz, oriented=False)
+                self._cov_dirty = True
+        if self._cov_dirty:
+            self._cov_dirty = False
+            self.publish_coverage()
+
+    def publish_coverage(self) -> None:
+        """Update the coverage, publish its GeoJSON and figures, and warn about each new gap."""
+        from photogram_ros.io.mission import coverage_geojson
+        t0 = time.perf_counter()
+        rep = self.coverage.update()
+        origin = self.store.origin
+        extra = {'stamp_ns': self.coverage.newest_stamp_ns, **self.coverage.flight_figures()}
+        doc = coverage_geojson(rep, origin, extra)
+        self.coverage_pub.publish(msgs.json_msg(doc))
+        d, props = self.diag, doc['properties']
+        d.set('coverage_s', time.perf_counter() - t0)
+        for k in ('coverage_share', 'forward_overlap_median', 'side_overlap_min', 'survey_area_m2', 'gap_area_m2',
+                  'largest_gap_m2'):
+            d.set(k, float('nan') if props[k] is None else float(props[k]))
+        d.set('gaps', sum(g.kind == COVERAGE for g in rep.gaps))
+        d.set('not_oriented_gaps', sum(g.kind == NOT_ORIENTED for g in rep.gaps))
+        for g in rep.gaps:
+            if g.kind == FORWARD_OVERLAP or any(k == g.kind and np.hypot(*(g.centroid_map_m - c)) < 5.0
+                                                for k, c in self._gaps_reported):
+                continue
+            self._gaps_reported.append((g.kind, g.centroid_map_m))
+            lat, lon, _ = origin.enu_to_geodetic(np.array([*g.centroid_map_m, 0.0]))
+            what = (f'seen by {g.min_views} keyframes' if g.kind == COVERAGE else
+                    f'seen only by keyframes the adjustment did not orient')
+            d.problem(f'{g.kind} gap of {g.area_m2:.0f} m2 at {float(lat):.6f}, {float(lon):.6f} ({what})')
+
+    @_locked
     def _update_diag(self) -> None:
         st = self.fusion.stats
         d = self.diag
@@ -260,6 +458,13 @@ class MapNode(Node):
         d.set('fuse_points_per_s', st.points_in / self._fuse_s if self._fuse_s > 0 else 0.0)
         d.set('clouds_per_s', d.rate_hz('clouds'))
         d.set('origin', str(self.store.origin.to_dict()) if self.store.origin else 'unknown')
+
+    @_locked
+    def finish_coverage(self) -> None:
+        """End of flight: every survey cell counts as passed; the last coverage goes out."""
+        if self.coverage is not None and len(self.coverage):
+            self.coverage.finish()
+            self.publish_coverage()
 
     @_locked
     def close(self) -> None:
