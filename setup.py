@@ -24,6 +24,9 @@ setup(
         ('share/' + package_name + '/config', glob('config/*.yaml')),
         ('share/' + package_name + '/launch', glob('launch/*.launch.py')),
     ],
+    # The ground station's web page (Leaflet shipped with the package: it works offline).
+    package_data={'photogram_ros': ['web/static/*.html', 'web/static/*.js', 'web/static/*.css',
+                                    'web/static/leaflet/*', 'web/static/leaflet/images/*']},
     install_requires=['setuptools'],
     # colcon runs pytest (not unittest, which finds no test here) only when pytest is a test dependency.
     extras_require={'test': ['pytest']},

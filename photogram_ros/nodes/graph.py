@@ -201,10 +201,12 @@ class Graph:
     def finish_flight(self, settle=lambda: time.sleep(2.0)) -> FlightEnd:
         """End of flight, in data-flow order: the tracker emits the keyframes it still holds, the
         bundle adjuster runs its final adjustment and republishes the poses, stereo pairs the
-        keyframes still waiting; `settle` lets the downstream nodes consume each step's output.
+        keyframes still waiting, the map closes its coverage (every survey cell counts as passed, so
+        the last gaps go out); `settle` lets the downstream nodes consume each step's output.
         Returns whether the final adjustment was made, and every step that failed."""
         end = FlightEnd(reason='no bundle node' if 'bundle' not in self.spec.roles else '')
-        for role, method in (('tracker', 'flush'), ('bundle', 'finish'), ('stereo', 'flush')):
+        for role, method in (('tracker', 'flush'), ('bundle', 'finish'), ('stereo', 'flush'),
+                             ('map', 'finish_coverage')):
             if self.child is not None and role in self.child.spec.roles:
                 fn = functools.partial(self.child.call, role, method)
             else:
