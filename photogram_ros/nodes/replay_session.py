@@ -5,6 +5,10 @@ until the tracker has taken that frame, so a fast replay never drops frames the 
 overload would, and while a node after the tracker (possibly in the child process) is more than
 `max_lag_keyframes` behind, so the queues between them, and the memory, stay bounded. When the bag ends the graph drains (keyframes -> bundle -> stereo -> map), the bundle
 runs its final adjustment, the map flushes, and the exports and the report are written.
+
+One time base: every node runs with use_sim_time and takes the bag's time from the player's /clock,
+so what a node stamps itself (/diagnostics, the map's streams) lies in the bag's time span like the
+recorded data; the player, which is not spun, sets its own clock to each message's time.
 """
 
 from __future__ import annotations
@@ -16,7 +20,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from diagnostic_msgs.msg import DiagnosticArray
+from rclpy.clock import ClockType
 from rclpy.node import Node
+from rclpy.parameter import Parameter
+from rclpy.time import Time
 
 from photogram_ros.nodes.diagnostics import PROBLEM_SEPARATOR
 from photogram_ros.nodes.graph import Graph, GraphSpec
@@ -151,6 +158,8 @@ def run_replay(opts: ReplayOptions, context=None) -> dict:
         roles = ('mavlink', 'tracker', 'bundle', 'stereo', 'map')
     else:
         roles = ('tracker', 'bundle', 'stereo', 'map')
+    for role in roles:
+        extra.setdefault(role, {})['use_sim_time'] = True
     bad = [r for r in opts.child_roles if r not in CHILD_ROLES_ALLOWED]
     if bad:
         raise ConfigError(f'replay: {bad} cannot run in the child process; choose among {CHILD_ROLES_ALLOWED} '
@@ -159,7 +168,8 @@ def run_replay(opts: ReplayOptions, context=None) -> dict:
                             child_roles=tuple(opts.child_roles)), context=context)
     kwargs = {'context': context} if context is not None else {}
     player = PlayerNode(overrides={'bag': str(opts.bag), 'rate': float(opts.rate), 'exclude': ','.join(exclude)},
-                        **kwargs)
+                        parameter_overrides=[Parameter('use_sim_time', value=True)], **kwargs)
+    player_clock = player.get_clock()
     listener = Node('replay_monitor', **kwargs)
     diag_log = DiagnosticsLog(listener)
     graph.executor.add_node(listener)
@@ -214,6 +224,7 @@ def run_replay(opts: ReplayOptions, context=None) -> dict:
         lag_wait_s[0] += time.monotonic() - t0
 
     def on_message(m):
+        player_clock.set_ros_time_override(Time(nanoseconds=m.stamp_ns, clock_type=ClockType.ROS_TIME))
         if m.topic == '/mavlink/from_fcu':
             packets_sent[0] += 1
         elif m.topic in IMAGE_TOPICS:
