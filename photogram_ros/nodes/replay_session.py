@@ -120,6 +120,26 @@ def _activity(graph: Graph) -> int:
 CHILD_ROLES_ALLOWED = ('bundle', 'stereo', 'map')
 
 
+def start_clock(node: Node, nodes: list, start_ns: int, timeout_s: float = 10.0) -> bool:
+    """Publish the bag's start on /clock (from `node`) until every node of `nodes` has it: under use_sim_time
+    a node's clock reads 0 until its first /clock, and the first recorded messages must not meet that (the
+    MAVLink decoder would take 0 for their arrival time). Returns whether all did within `timeout_s`."""
+    from rosgraph_msgs.msg import Clock
+
+    from photogram_ros.msgs import time_from_ns
+    pub = node.create_publisher(Clock, '/clock', 10)
+    deadline = time.monotonic() + timeout_s
+    try:
+        while any(n.get_clock().now().nanoseconds == 0 for n in nodes):
+            if time.monotonic() > deadline:
+                return False
+            pub.publish(Clock(clock=time_from_ns(start_ns)))
+            time.sleep(0.01)
+        return True
+    finally:
+        node.destroy_publisher(pub)
+
+
 def check_free_space(out: Path, min_free_mb: float, when: str) -> None:
     """A StorageError unless the disk holding `out` has `min_free_mb` free."""
     import shutil
@@ -142,6 +162,7 @@ def run_replay(opts: ReplayOptions, context=None) -> dict:
     map_dir = out / 'map'
     with BagReader(opts.bag) as bag:
         topics = bag.topics()
+        bag_start_ns = bag.start_ns
         bag_warnings = list(bag.warnings)
         for line in bag.health():     # before the first frame: the user knows what will be mapped
             print(line, flush=True)
@@ -180,6 +201,7 @@ def run_replay(opts: ReplayOptions, context=None) -> dict:
     except Exception:
         graph.shutdown()
         raise
+    start_clock(listener, list(graph.nodes.values()), bag_start_ns)
     tracker = graph.nodes['tracker']
     images_sent = [0]
     t_start = time.monotonic()
