@@ -8,7 +8,7 @@ runs its final adjustment, the map flushes, and the exports and the report are w
 
 One time base: every node runs with use_sim_time and takes the bag's time from the player's /clock,
 so what a node stamps itself (/diagnostics, the map's streams) lies in the bag's time span like the
-recorded data; the player, which is not spun, sets its own clock to each message's time.
+recorded data. The player is not spun (it only publishes): the replay sets its clock to each message's time.
 """
 
 from __future__ import annotations
