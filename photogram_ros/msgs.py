@@ -184,6 +184,26 @@ def pointcloud2_msg(points: np.ndarray, stamp_ns: int, frame_id: str = 'map') ->
     return msg
 
 
+def dense_cloud_msg(cloud: np.ndarray, stamp_ns: int, frame_id: str = 'map') -> PointCloud2:
+    """A cloud in local map ENU metres (core.stereo.CLOUD_DTYPE or any structured array with x, y, z)
+    -> PointCloud2 with x, y, z FLOAT32, the other fields as they are.
+
+    RViz2's XYZ transformer draws FLOAT32 positions only. float32 rounds a coordinate by at most half
+    its spacing: 0.12 mm within 2 km of the map origin, 0.5 mm within 8 km, 1 mm within 16 km; the
+    exports keep float64 (they are written from the fused map, not from this message).
+    """
+    names = cloud.dtype.names or ()
+    if not {'x', 'y', 'z'} <= set(names):
+        raise DataError(f'a dense cloud needs x, y, z fields; got {names}')
+    dtype = np.dtype([(n, np.float32 if n in ('x', 'y', 'z') else cloud.dtype.fields[n][0]) for n in names])
+    if dtype == cloud.dtype:
+        return pointcloud2_msg(cloud, stamp_ns, frame_id)
+    out = np.empty(cloud.shape[0], dtype)
+    for n in names:
+        out[n] = cloud[n]
+    return pointcloud2_msg(out, stamp_ns, frame_id)
+
+
 def points_from_pointcloud2(msg: PointCloud2) -> np.ndarray:
     """PointCloud2 -> structured numpy array with the message's fields."""
     names, formats, offsets = [], [], []

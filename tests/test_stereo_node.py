@@ -30,7 +30,7 @@ def test_two_keyframes_make_a_cloud(rclpy_context, two_keyframes):
     from rclpy.executors import SingleThreadedExecutor
     from rclpy.node import Node
     from rclpy.qos import QoSProfile, ReliabilityPolicy
-    from sensor_msgs.msg import CameraInfo, Image, PointCloud2
+    from sensor_msgs.msg import CameraInfo, Image, PointCloud2, PointField
     from stereo_msgs.msg import DisparityImage
 
     from photogram_ros.nodes.stereo_node import StereoNode
@@ -72,6 +72,7 @@ def test_two_keyframes_make_a_cloud(rclpy_context, two_keyframes):
     assert msg.header.frame_id == 'map'
     assert msg.header.stamp == msgs.time_from_ns(frames[1][0])
     assert [f.name for f in msg.fields] == ['x', 'y', 'z', 'rgb', 'confidence']
+    assert [f.datatype for f in msg.fields[:3]] == [PointField.FLOAT32] * 3   # what RViz2 draws
     pts = msgs.points_from_pointcloud2(msg)
     assert pts.size > 50_000
     dz = np.abs(pts['z'] - terrain.height_at(pts['x'], pts['y']))

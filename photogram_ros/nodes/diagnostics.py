@@ -3,6 +3,10 @@
 Nodes count what they do (`count`), record problems (`problem`) and set values (`set`); a timer
 publishes one DiagnosticStatus per node each period. A bad message is a counted, reported event,
 never a reason to stop the node.
+
+Time: a status is stamped with the node's clock, the bag's time in a replay (use_sim_time, /clock),
+the system clock live; the period runs on the steady clock (`steady_timer`), so health keeps coming
+while /clock stands still (a replay waiting for a slow node, the end of flight after the bag).
 """
 
 from __future__ import annotations
@@ -12,10 +16,19 @@ import time
 from collections import Counter, deque
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 
 OK, WARN, ERROR = DiagnosticStatus.OK, DiagnosticStatus.WARN, DiagnosticStatus.ERROR
 PROBLEM_SEPARATOR = ' | '
+
+
+def steady_timer(node: Node, period_s: float, callback, callback_group=None):
+    """A timer of `node` on the steady clock. A node's own clock is the bag's under use_sim_time, and
+    its timers stand still whenever /clock does: fine for work paced by the data, wrong for housekeeping
+    (health, flushing to disk, streaming the map) that must go on while a replay waits or has ended."""
+    return node.create_timer(period_s, callback, callback_group=callback_group,
+                             clock=Clock(clock_type=ClockType.STEADY_TIME))
 
 
 class Diagnostics:
@@ -31,7 +44,7 @@ class Diagnostics:
         self._level = OK
         self._rate_marks: dict[str, deque] = {}
         self._pub = node.create_publisher(DiagnosticArray, '/diagnostics', 10)
-        self._timer = node.create_timer(period_s, self.publish)
+        self._timer = steady_timer(node, period_s, self.publish)
 
     def count(self, key: str, n: int = 1) -> None:
         with self._lock:
@@ -87,7 +100,12 @@ class Diagnostics:
                                 values=kv)
 
     def publish(self) -> None:
+        """One status, stamped with the node's clock; none while that clock reads 0 (use_sim_time before the
+        first /clock: no time to give it yet), the problems wait for the next."""
+        now = self.node.get_clock().now()
+        if now.nanoseconds == 0:
+            return
         arr = DiagnosticArray()
-        arr.header.stamp = self.node.get_clock().now().to_msg()
+        arr.header.stamp = now.to_msg()
         arr.status = [self.status()]
         self._pub.publish(arr)

@@ -11,6 +11,9 @@ process (`GraphSpec.child_roles`, the same node code): the child reports its nod
 child ignores SIGINT (a terminal's Ctrl-C reaches the whole process group: the parent decides) and
 stops when its parent is gone, even after a kill -9 of the parent (it watches a pipe from it).
 
+A role's `use_sim_time` (in the parameter file or `extra`) is rclpy's own parameter: the node's clock then
+follows /clock. `replay` sets it for every node (one time base: the bag's); `run` leaves the system clock.
+
 `finish_flight` says whether the final adjustment was made (`FlightEnd`): the products and the
 report must not claim final poses that are not there.
 """
@@ -128,6 +131,18 @@ def role_values(spec: GraphSpec, role: str, sections: dict | None = None) -> dic
     return values
 
 
+def ros_time_kwargs(values: dict, where: str) -> dict:
+    """use_sim_time among a node's parameter values -> the rclpy Node keyword that sets it (the node's clock
+    then follows /clock); {} when it is not given. It is rclpy's parameter, not one of the node's dataclass."""
+    if 'use_sim_time' not in values:
+        return {}
+    value = values['use_sim_time']
+    if not isinstance(value, bool):
+        raise ConfigError(f'{where}: use_sim_time must be true or false, got {value!r}')
+    from rclpy.parameter import Parameter
+    return {'parameter_overrides': [Parameter('use_sim_time', value=value)]}
+
+
 def check_params(spec: GraphSpec, roles=None) -> None:
     """Validate every parameter the nodes of `roles` (default: all of spec) will get, names and ranges,
     without starting them: a mistake is a ConfigError now rather than when a node (perhaps in another
@@ -136,8 +151,10 @@ def check_params(spec: GraphSpec, roles=None) -> None:
     sections = _sections(spec)
     for role in spec.roles if roles is None else roles:
         cls = getattr(importlib.import_module(NODES[role][0]), PARAMS[role])
-        values = {k: v for k, v in role_values(spec, role, sections).items() if k != 'use_sim_time'}
-        from_dict(cls, values, where=f'{spec.params_file or "parameters"}: {NODES[role][2]}')
+        values = role_values(spec, role, sections)
+        where = f'{spec.params_file or "parameters"}: {NODES[role][2]}'
+        ros_time_kwargs(values, where)
+        from_dict(cls, {k: v for k, v in values.items() if k != 'use_sim_time'}, where=where)
 
 
 class Graph:
@@ -160,7 +177,9 @@ class Graph:
         for role in spec.roles:
             if role in spec.child_roles:
                 continue
-            self.nodes[role] = node_class(role)(overrides=role_values(spec, role, sections), **kwargs)
+            values = role_values(spec, role, sections)
+            self.nodes[role] = node_class(role)(overrides=values, **kwargs,
+                                                **ros_time_kwargs(values, NODES[role][2]))
         self.executor = MultiThreadedExecutor(num_threads=4, context=context)
         for n in self.nodes.values():
             self.executor.add_node(n)

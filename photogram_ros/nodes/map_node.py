@@ -17,6 +17,9 @@ core/coverage.py; the survey area is `survey_area_file`, a QGroundControl .plan 
 given); and /diagnostics (with the coverage figures; a new gap is a WARN naming its area and place).
 Changed cells are flushed to disk every flush_interval_s, so a kill -9 loses at most that much.
 Topic names are relative, so a drone's namespace (several drones, one ground station) prefixes them.
+The streams are stamped with the node's clock (the bag's time in a replay, use_sim_time), or the newest
+pair cloud's stamp while that clock has no time yet; their periods run on the steady clock, so the map
+flushes and streams also while /clock stands still.
 """
 
 from __future__ import annotations
@@ -40,7 +43,7 @@ from photogram_ros.core.fusion import Fusion, FusionConfig, downsample, pack_rgb
 from photogram_ros.core.geodesy import LocalFrame
 from photogram_ros.errors import ConfigError, PhotogramError
 from photogram_ros.io.map_store import MapStore
-from photogram_ros.nodes.diagnostics import Diagnostics
+from photogram_ros.nodes.diagnostics import Diagnostics, steady_timer
 from photogram_ros.nodes.node_main import run_node
 from photogram_ros.nodes.ros_params import declare
 from photogram_ros.params import param
@@ -107,6 +110,7 @@ class MapNode(Node):
         self.params: MapParams = declare(self, MapParams, overrides)
         p = self.params
         self.diag = Diagnostics(self)
+        self._newest_cloud_ns = 0
         self._lock = threading.RLock()   # callbacks run in one group, but close() may come from any thread
         try:
             self.store = MapStore(p.map_dir, p.cell_m, p.tile_cells)
@@ -158,7 +162,7 @@ class MapNode(Node):
         if p.ortho:   # one message per tile: a batch must fit the history
             self.ortho_pub = self.create_publisher(CompressedImage, TOPIC_ORTHO, QoSProfile(
                 depth=p.ortho_max_tiles, reliability=ReliabilityPolicy.BEST_EFFORT))
-            self.create_timer(p.ortho_period_s, self._stream_ortho, callback_group=group)
+            steady_timer(self, p.ortho_period_s, self._stream_ortho, group)
         if p.coverage:
             from std_msgs.msg import String
             self.coverage_pub = self.create_publisher(String, TOPIC_COVERAGE, latched)
@@ -166,10 +170,10 @@ class MapNode(Node):
                                      callback_group=group)
             self.create_subscription(NavSatFix, TOPIC_KEYFRAME_FIX, self._on_keyframe_fix, reliable,
                                      callback_group=group)
-            self.create_timer(p.coverage_period_s, self._update_coverage, callback_group=group)
-        self.create_timer(p.flush_interval_s, self.flush, callback_group=group)
-        self.create_timer(p.stream_period_s, self._stream, callback_group=group)
-        self.create_timer(1.0, self._update_diag, callback_group=group)
+            steady_timer(self, p.coverage_period_s, self._update_coverage, group)
+        steady_timer(self, p.flush_interval_s, self.flush, group)
+        steady_timer(self, p.stream_period_s, self._stream, group)
+        steady_timer(self, 1.0, self._update_diag, group)
         self.get_logger().info(f'map in {p.map_dir}: {len(self.store.tile_keys())} tiles on disk, origin '
                                f'{self.store.origin}')
 
@@ -203,6 +207,7 @@ class MapNode(Node):
             pts = msgs.points_from_pointcloud2(msg)
             t0 = time.perf_counter()
             n = self.fusion.add(pts)
+            self._newest_cloud_ns = max(self._newest_cloud_ns, msgs.ns_from_time(msg.header.stamp))
             self._fuse_s += time.perf_counter() - t0
             self.diag.count('clouds')
             self.diag.count('points_fused', n)
@@ -319,6 +324,11 @@ class MapNode(Node):
         except OSError as exc:
             self.diag.problem(f'map flush to {self.params.map_dir} failed: {exc}')
 
+    def _stamp_ns(self) -> int:
+        """Now on the node's clock, or the newest pair cloud's stamp while that clock reads 0 (use_sim_time
+        and no /clock yet)."""
+        return self.get_clock().now().nanoseconds or self._newest_cloud_ns
+
     @_locked
     def _stream(self) -> None:
         # Nobody listening (no ground station linked): keep the changed tiles for when one connects
@@ -346,7 +356,7 @@ class MapNode(Node):
             out[k] = cat[k][:n]
         out['rgb'] = pack_rgb(cat['r'][:n], cat['g'][:n], cat['b'][:n])
         out['count'] = cat['n'][:n]
-        self.stream_pub.publish(msgs.pointcloud2_msg(out, self.get_clock().now().nanoseconds, 'map'))
+        self.stream_pub.publish(msgs.pointcloud2_msg(out, self._stamp_ns(), 'map'))
         self.diag.count('stream_points', n)
 
     @_locked
@@ -369,7 +379,7 @@ class MapNode(Node):
         self._ortho_pending = {k for k in keys if any(t not in batch for t in self.ortho.tiles_of_map_tile(k))}
         import cv2
         t0 = time.perf_counter()
-        stamp = self.get_clock().now().nanoseconds
+        stamp = self._stamp_ns()
         for t in batch:
             img = self.ortho.render(t, self.fusion.tile_records)
             if not img[..., 3].any():

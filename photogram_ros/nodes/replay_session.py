@@ -5,6 +5,10 @@ until the tracker has taken that frame, so a fast replay never drops frames the 
 overload would, and while a node after the tracker (possibly in the child process) is more than
 `max_lag_keyframes` behind, so the queues between them, and the memory, stay bounded. When the bag ends the graph drains (keyframes -> bundle -> stereo -> map), the bundle
 runs its final adjustment, the map flushes, and the exports and the report are written.
+
+One time base: every node runs with use_sim_time and takes the bag's time from the player's /clock,
+so what a node stamps itself (/diagnostics, the map's streams) lies in the bag's time span like the
+recorded data. The player is not spun (it only publishes): the replay sets its clock to each message's time.
 """
 
 from __future__ import annotations
@@ -16,7 +20,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from diagnostic_msgs.msg import DiagnosticArray
+from rclpy.clock import ClockType
 from rclpy.node import Node
+from rclpy.parameter import Parameter
+from rclpy.time import Time
 
 from photogram_ros.nodes.diagnostics import PROBLEM_SEPARATOR
 from photogram_ros.nodes.graph import Graph, GraphSpec
@@ -113,6 +120,26 @@ def _activity(graph: Graph) -> int:
 CHILD_ROLES_ALLOWED = ('bundle', 'stereo', 'map')
 
 
+def start_clock(node: Node, nodes: list, start_ns: int, timeout_s: float = 10.0) -> bool:
+    """Publish the bag's start on /clock (from `node`) until every node of `nodes` has it: under use_sim_time
+    a node's clock reads 0 until its first /clock, and the first recorded messages must not meet that (the
+    MAVLink decoder would take 0 for their arrival time). Returns whether all did within `timeout_s`."""
+    from rosgraph_msgs.msg import Clock
+
+    from photogram_ros.msgs import time_from_ns
+    pub = node.create_publisher(Clock, '/clock', 10)
+    deadline = time.monotonic() + timeout_s
+    try:
+        while any(n.get_clock().now().nanoseconds == 0 for n in nodes):
+            if time.monotonic() > deadline:
+                return False
+            pub.publish(Clock(clock=time_from_ns(start_ns)))
+            time.sleep(0.01)
+        return True
+    finally:
+        node.destroy_publisher(pub)
+
+
 def check_free_space(out: Path, min_free_mb: float, when: str) -> None:
     """A StorageError unless the disk holding `out` has `min_free_mb` free."""
     import shutil
@@ -135,6 +162,7 @@ def run_replay(opts: ReplayOptions, context=None) -> dict:
     map_dir = out / 'map'
     with BagReader(opts.bag) as bag:
         topics = bag.topics()
+        bag_start_ns = bag.start_ns
         bag_warnings = list(bag.warnings)
         for line in bag.health():     # before the first frame: the user knows what will be mapped
             print(line, flush=True)
@@ -151,6 +179,8 @@ def run_replay(opts: ReplayOptions, context=None) -> dict:
         roles = ('mavlink', 'tracker', 'bundle', 'stereo', 'map')
     else:
         roles = ('tracker', 'bundle', 'stereo', 'map')
+    for role in roles:
+        extra.setdefault(role, {})['use_sim_time'] = True
     bad = [r for r in opts.child_roles if r not in CHILD_ROLES_ALLOWED]
     if bad:
         raise ConfigError(f'replay: {bad} cannot run in the child process; choose among {CHILD_ROLES_ALLOWED} '
@@ -159,7 +189,8 @@ def run_replay(opts: ReplayOptions, context=None) -> dict:
                             child_roles=tuple(opts.child_roles)), context=context)
     kwargs = {'context': context} if context is not None else {}
     player = PlayerNode(overrides={'bag': str(opts.bag), 'rate': float(opts.rate), 'exclude': ','.join(exclude)},
-                        **kwargs)
+                        parameter_overrides=[Parameter('use_sim_time', value=True)], **kwargs)
+    player_clock = player.get_clock()
     listener = Node('replay_monitor', **kwargs)
     diag_log = DiagnosticsLog(listener)
     graph.executor.add_node(listener)
@@ -170,6 +201,7 @@ def run_replay(opts: ReplayOptions, context=None) -> dict:
     except Exception:
         graph.shutdown()
         raise
+    start_clock(listener, list(graph.nodes.values()), bag_start_ns)
     tracker = graph.nodes['tracker']
     images_sent = [0]
     t_start = time.monotonic()
@@ -214,6 +246,7 @@ def run_replay(opts: ReplayOptions, context=None) -> dict:
         lag_wait_s[0] += time.monotonic() - t0
 
     def on_message(m):
+        player_clock.set_ros_time_override(Time(nanoseconds=m.stamp_ns, clock_type=ClockType.ROS_TIME))
         if m.topic == '/mavlink/from_fcu':
             packets_sent[0] += 1
         elif m.topic in IMAGE_TOPICS:

@@ -2,8 +2,8 @@
 
 Inputs: /keyframes/image (Image), /map/keyframe_pose (PoseWithCovarianceStamped in `map`, stamped
 like its keyframe image; a later pose with the same stamp is a refinement and replaces the older
-one), /camera/camera_info. Output: /map/dense_cloud (PointCloud2 x, y, z, rgb, confidence) per pair,
-optionally /stereo/disparity, and /diagnostics.
+one), /camera/camera_info. Output: /map/dense_cloud (PointCloud2 x, y, z float32 as RViz2 draws them,
+rgb, confidence) per pair, optionally /stereo/disparity, and /diagnostics.
 """
 
 from __future__ import annotations
@@ -235,7 +235,7 @@ class StereoNode(Node):
             self.diag.count(f'pairs_skipped_{res.status}')
             self.diag.set('last_skip', res.message)
             return
-        self.cloud_pub.publish(msgs.pointcloud2_msg(res.cloud, b.stamp_ns, 'map'))
+        self.cloud_pub.publish(msgs.dense_cloud_msg(res.cloud, b.stamp_ns, 'map'))
         if self.disp_pub is not None:
             d = res.disparity.disparity_px + np.float32(res.rect.shift_px)
             self.disp_pub.publish(msgs.disparity_image_msg(d, b.stamp_ns, res.rect.f_px, res.rect.baseline_m))

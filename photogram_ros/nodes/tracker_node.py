@@ -1,6 +1,7 @@
 """tracker_node: camera frames + camera_info + GPS fixes in, mapping keyframes out.
 
-Subscribes `<image_topic>` (sensor_msgs/Image) and `<image_topic>/compressed` (CompressedImage),
+Subscribes `<image_topic>` (sensor_msgs/Image) and `<image_topic>/compressed` (CompressedImage; a
+remapping of image_topic moves it too, image_transport's convention),
 `camera_info_topic` and `fix_topic`. Publishes per keyframe, all with the keyframe image's stamp:
 /keyframes/image (Image bgr8), /keyframes/features (PointCloud2: track_id uint32, u, v, xn, yn
 float64; see core/tracker.py; with `detect_targets` also the keyframe's ArUco targets, in the id
@@ -86,7 +87,7 @@ class TrackerNode(Node):
                              reliability=ReliabilityPolicy.RELIABLE if p.reliable_input
                              else ReliabilityPolicy.BEST_EFFORT)
         self.create_subscription(Image, p.image_topic, self._on_image, img_qos)
-        self.create_subscription(CompressedImage, p.image_topic.rstrip('/') + '/compressed', self._on_image, img_qos)
+        self.create_subscription(CompressedImage, self.compressed_topic(p.image_topic), self._on_image, img_qos)
         self.create_subscription(CameraInfo, p.camera_info_topic, self._on_camera_info, 10)
         # Fixes come 5-20 per frame: a deep history so a busy executor does not lose the ones a keyframe
         # needs for its interpolation.
@@ -94,6 +95,15 @@ class TrackerNode(Node):
                                  QoSProfile(depth=200, reliability=ReliabilityPolicy.RELIABLE))
         self._worker = threading.Thread(target=self._run, name='tracker_worker', daemon=True)
         self._worker.start()
+
+    def compressed_topic(self, image_topic: str) -> str:
+        """The compressed sibling of `image_topic` as image_transport finds it: `<image_topic as remapped>/
+        compressed`, so `-r camera/image_raw:=/cam0/image` moves both; a remapping of the sibling's own
+        name (`-r camera/image_raw/compressed:=...`) wins."""
+        own = image_topic.rstrip('/') + '/compressed'
+        if self.resolve_topic_name(own) != self.resolve_topic_name(own, only_expand=True):
+            return own   # remapped by its own rule, which the subscription applies
+        return self.resolve_topic_name(image_topic).rstrip('/') + '/compressed'
 
     # --- callbacks (executor thread): cheap, never raise -----------------------------------------
 
