@@ -109,14 +109,16 @@ def _positions(src: Path, images: list[Path], exif_altitude, takeoff_h_m, takeof
     return geo, check
 
 
-def _camera(src: Path, images: list[Path], camera_path, assumptions) -> PinholeCamera:
-    """--camera, else the simulator truth beside the folder, else the EXIF of the photos."""
+def _camera(src: Path, images: list[Path], camera_path, assumptions) -> tuple[PinholeCamera, bool]:
+    """--camera, else the simulator truth beside the folder, else the EXIF of the photos; and whether it
+    came from the EXIF."""
     if camera_path:
         assumptions.append(f'calibration from {camera_path}, held fixed')
-        return camera_from_yaml(camera_path)
+        return camera_from_yaml(camera_path), False
     if (src.parent / 'ground_truth.json').exists():
         assumptions.append('calibration from the simulator truth beside the photos, held fixed')
-        return PinholeCamera.from_ros_yaml_dict(json.loads((src.parent / 'ground_truth.json').read_text())['camera'])
+        cam = PinholeCamera.from_ros_yaml_dict(json.loads((src.parent / 'ground_truth.json').read_text())['camera'])
+        return cam, False
     est = exif_intrinsics(images[0])
     others = {}
     for p in images[1:]:
@@ -133,7 +135,7 @@ def _camera(src: Path, images: list[Path], camera_path, assumptions) -> PinholeC
     if others:
         assumptions.append(f'{len(others)} photos state another focal length (e.g. {next(iter(others))}: '
                            f'{next(iter(others.values())):.1f} px): a zoom lens or two cameras; one camera is used')
-    return est.camera
+    return est.camera, True
 
 
 def _usable_images(src: Path, assumptions: list, log) -> tuple[list[Path], int]:
@@ -282,7 +284,7 @@ def read_photo_block(src: str | Path, camera_path: str | Path | None = None, nei
     if first is None:
         raise DataError(f'no image in {src} has a position (EXIF GPS or geo.txt): georeferencing impossible')
     origin = LocalFrame(first[0], first[1], first[2])
-    camera = _camera(src, images, camera_path, assumptions)
+    camera, from_exif = _camera(src, images, camera_path, assumptions)
     stats = MatchStats(photos=len(images))
     t0 = time.monotonic()
     feats, factor = [], 1.0
@@ -318,4 +320,4 @@ def read_photo_block(src: str | Path, camera_path: str | Path | None = None, nei
         fix = GnssFix(g[0], g[1], g[2], np.diag([g[3] ** 2, g[3] ** 2, g[4] ** 2])) if g else None
         records.append(KeyframeRecord(0, tr[keep], f.uv[keep], fix, p.name))
     return KeyframeBlock(camera, origin, records, assumptions, n_inputs=n_files, exif_geodetic=exif_check,
-                         stats=stats.to_dict())
+                         camera_from_exif=from_exif, stats=stats.to_dict())
