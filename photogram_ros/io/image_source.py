@@ -379,6 +379,14 @@ class FolderSource:
     def __len__(self) -> int:
         return len(self.entries)
 
+    def exif_intrinsics(self):
+        """core.exif_intrinsics.ExifIntrinsics from the first photo's EXIF (CalibrationError without a focal
+        length); for a folder without a calibration file."""
+        from photogram_ros.errors import CalibrationError
+        if not self.entries:
+            raise CalibrationError(f'{self.folder} holds no usable photo')
+        return exif_intrinsics(self.entries[0][0])
+
     def __iter__(self) -> Iterator[Frame]:
         for path, stamp_ns in self.entries:
             try:
