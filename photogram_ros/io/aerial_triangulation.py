@@ -127,9 +127,15 @@ def _self_calibration(at: IncrementalAT, before, refine: tuple, assumptions: lis
             log(f'warning: {note}')
     elif focal:
         sf += f' (determined {focal["reason"]}; correlation with the block\'s height {corr["f"]:+.3f})'
-    assumptions.append(f'self-calibration of {", ".join(refine)} in the final adjustment: '
-                       f'fx {before.fx:.2f} -> {after.fx:.2f}{sf} px (sigmas a posteriori, scaled by the '
-                       'variance of unit weight; parameters not refined have none)')
+    parts = [f'fx {before.fx:.2f} -> {after.fx:.2f}{sf} px'] if 'f' in refine else []
+    parts += [f'{n} {getattr(before, n):.2f} -> {getattr(after, n):.2f}' + (f' +- {sig[n]:.2f}' if n in sig else '')
+              + ' px' for n in ('cx', 'cy') if n in refine]
+    for i, n in enumerate(('k1', 'k2', 'p1', 'p2', 'k3')):
+        if n in refine:
+            parts.append(f'{n} {before.dist[i]:.5f} -> {after.dist[i]:.5f}'
+                         + (f' +- {sig[n]:.5f}' if n in sig else ''))
+    assumptions.append(f'self-calibration of {", ".join(refine)} in the final adjustment: {"; ".join(parts)} '
+                       '(sigmas a posteriori, scaled by the variance of unit weight; parameters not refined have none)')
     return self_cal
 
 
