@@ -9,8 +9,9 @@ Resolution. Survey photos of 12-20 MP hold detail (leaves, grass blades, sand, r
 look the same from two stations 15 m apart: SIFT on a full 4000 px DJI frame keeps its 3000 strongest
 features there and matched 20-40 of them between neighbours of a real survey, 5-10 surviving
 verification. Features are detected on the photo reduced to `max_image_px` on its long side (the
-caller decodes it so; `reduced_size`), SIFT's own scale pyramid covering the coarser scales, and
-mapped back to full-photo pixels (`to_full_px`): on the same survey 100-700 matches per pair.
+caller decodes it so; `reduced_size`), SIFT's own scale pyramid covering the coarser scales, as many
+as `features_per_mpx` of the reduced photo allows (up to `max_features`), and mapped back to
+full-photo pixels (`to_full_px`): on the same survey 100-700 matches per pair.
 
 Matching: FLANN kd-tree two nearest neighbours (OpenCV), Lowe's ratio test, one match per feature of
 the second photo (the closest), then an essential matrix by RANSAC with the camera (normalised
@@ -45,7 +46,10 @@ class MatchingOptions:
     """Features and matching of survey photos (`triangulate PHOTOS`)."""
     max_image_px: int = param(1000, 'long side of the reduced photo that features are detected on, px (a 4000 px '
                                     'frame is reduced 4x; smaller photos are used as they are)', min=200, max=20000)
-    max_features: int = param(4000, 'SIFT features kept per photo (the strongest)', min=100, max=100000)
+    max_features: int = param(4000, 'SIFT features kept per photo (the strongest), at most', min=100, max=100000)
+    features_per_mpx: float = param(7000.0, 'SIFT features kept per megapixel of the reduced photo (up to '
+                                            'max_features: 4000 on a 1000 x 563 DJI frame, 2150 on 640 x 480)',
+                                    min=100.0, max=1e6)
     contrast_threshold: float = param(0.02, 'SIFT contrast threshold (lower keeps features in faint texture: '
                                             'grass, sand, water)', min=0.001, max=0.2)
     ratio: float = param(0.8, 'Lowe ratio test: best match distance below this share of the second best',
@@ -110,7 +114,8 @@ def extract(name: str, gray: np.ndarray, factor_xy=(1.0, 1.0), opt: MatchingOpti
         gray = cv2.cvtColor(gray, cv2.COLOR_BGR2GRAY)
     # Precise upscaling: OpenCV's default doubling of the first octave shifts every feature by a quarter
     # of a pixel (of the reduced image: 1 px of a 4x reduced photo).
-    sift = cv2.SIFT_create(nfeatures=opt.max_features, contrastThreshold=opt.contrast_threshold,
+    n = int(min(opt.max_features, max(100.0, opt.features_per_mpx * gray.shape[0] * gray.shape[1] / 1e6)))
+    sift = cv2.SIFT_create(nfeatures=n, contrastThreshold=opt.contrast_threshold,
                            enable_precise_upscale=True)
     kps, desc = sift.detectAndCompute(gray, None)
     if desc is None or not len(kps):
@@ -122,6 +127,7 @@ def extract(name: str, gray: np.ndarray, factor_xy=(1.0, 1.0), opt: MatchingOpti
 
 def _ratio_matches(a: PhotoFeatures, b: PhotoFeatures, ratio: float) -> np.ndarray:
     """(M, 2) ratio-test matches a -> b, one per feature of b (the closest)."""
+    cv2.setRNGSeed(0)       # FLANN's randomised kd-trees: the same matches on every run
     flann = cv2.FlannBasedMatcher(dict(algorithm=1, trees=4), dict(checks=64))
     knn = flann.knnMatch(a.desc, b.desc, k=2)
     rows = [(m[0].queryIdx, m[0].trainIdx, m[0].distance) for m in knn
