@@ -128,7 +128,7 @@ def extract(name: str, gray: np.ndarray, factor_xy=(1.0, 1.0), opt: MatchingOpti
 def _ratio_matches(a: PhotoFeatures, b: PhotoFeatures, ratio: float) -> np.ndarray:
     """(M, 2) ratio-test matches a -> b, one per feature of b (the closest)."""
     cv2.setRNGSeed(0)       # FLANN's randomised kd-trees: the same matches on every run
-    flann = cv2.FlannBasedMatcher(dict(algorithm=1, trees=4), dict(checks=64))
+    flann = cv2.FlannBasedMatcher(dict(algorithm=1, trees=4), dict(checks=32))
     knn = flann.knnMatch(a.desc, b.desc, k=2)
     rows = [(m[0].queryIdx, m[0].trainIdx, m[0].distance) for m in knn
             if len(m) == 2 and m[0].distance < ratio * m[1].distance]
