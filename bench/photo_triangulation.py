@@ -39,7 +39,8 @@ BRIGHTON = ROOT.parent / 'shared' / 'data' / 'photos' / 'brighton_beach' / 'imag
 
 def baseline_matching(folder: Path) -> dict:
     """The pre-issue-13 pipeline with OpenCV alone: full-photo SIFT (3000), BF ratio test, essential RANSAC."""
-    images = sorted(p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES and image_file_problem(p) is None)
+    images = sorted(p for p in folder.iterdir()
+                    if p.suffix.lower() in IMAGE_SUFFIXES and image_file_problem(p) is None)
     cam = exif_intrinsics(images[0]).camera
     t0 = time.perf_counter()
     sift = cv2.SIFT_create(nfeatures=3000)
@@ -57,7 +58,8 @@ def baseline_matching(folder: Path) -> dict:
     verified = 0
     for i, j in sorted(pairs):
         m = bf.knnMatch(feats[i][1], feats[j][1], k=2)
-        pr = np.array([(a.queryIdx, a.trainIdx) for a, *b in m if b and a.distance < 0.8 * b[0].distance]).reshape(-1, 2)
+        pr = np.array([(a.queryIdx, a.trainIdx) for a, *b in m
+                       if b and a.distance < 0.8 * b[0].distance]).reshape(-1, 2)
         if len(pr) < 20:
             continue
         E, inl = essential_ransac(cam.pixel_to_normalized(feats[i][0][pr[:, 0]]),
@@ -93,7 +95,8 @@ def simulated_photos(n: int, where: Path) -> Path:
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split('\n')[0])
     ap.add_argument('--photos', nargs='*', default=None, help='photo folders (default: brighton_beach)')
-    ap.add_argument('--sim-photos', type=int, default=100, help='a simulated survey of about this many photos (0: none)')
+    ap.add_argument('--sim-photos', type=int, default=100,
+                    help='a simulated survey of about this many photos (0: none)')
     ap.add_argument('--no-baseline', action='store_true')
     a = ap.parse_args()
     folders = [Path(p) for p in a.photos] if a.photos is not None else ([BRIGHTON] if BRIGHTON.is_dir() else [])

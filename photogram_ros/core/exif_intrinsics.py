@@ -127,7 +127,8 @@ def intrinsics_from_exif(tags: ExifCameraTags) -> ExifIntrinsics:
         f_px = f_mm / table * long_px
         return ExifIntrinsics(_camera(tags, f_px), 'sensor_table',
                               f'{name}: focal {f_px:.1f} px = FocalLength {f_mm:g} mm / sensor width {table:g} mm '
-                              f'(OpenSfM sensor table) x {long_px} px (the long side spanning the sensor width); {base}')
+                              f'(OpenSfM sensor table) x {long_px} px (the long side spanning the sensor width); '
+                              f'{base}')
     if tags.focal_35mm and tags.focal_35mm > 0:
         aspect = long_px / max(min(w, h), 1)
         # Wider than 4:3 (16:9, 3:2): a crop of a 4:3 sensor keeping its width.
