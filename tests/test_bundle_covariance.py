@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from photogram_ros.core.bundle import BundleOptions, BundleProblem, bundle_adjust
 from photogram_ros.core.camera import PinholeCamera
@@ -48,3 +49,39 @@ def test_no_intrinsics_covariance_without_self_calibration():
                         BundleOptions(compute_covariance=True))
     assert res.intrinsics_cov is None and res.intrinsics_sigma() == {}
     assert res.cam_centre_cov is not None and res.variance_factor > 0
+
+
+def _monte_carlo_f_and_height(tilt_deg, sigma_m, runs=30):
+    """f and the block's height (mean camera height - mean point height) over noise draws on one geometry,
+    and the covariance's figures at the last draw."""
+    cam = PinholeCamera(1000, 800, 900.0, 900.0, 500.0, 400.0)
+    s = block(seed=6, n_lines=3, per_line=6, n_pts=250, tilt_deg=tilt_deg, camera=cam, noise_px=0.5)
+    g0 = gnss(s, sigma_m)
+    antenna = np.einsum('cij,j->ci', s['T'][:, :3, :3], g0['lever_arm_cam_m']) + s['T'][:, :3, 3]
+    rng = np.random.default_rng(1)
+    f, h, res = [], [], None
+    for _ in range(runs):
+        uv = s['uv_true'] + rng.normal(0, 0.5, s['uv_true'].shape)
+        g = dict(g0, gnss_pos_map=antenna + rng.normal(0, 1, antenna.shape) * np.array([1, 1, 1.5]) * sigma_m)
+        res = bundle_adjust(BundleProblem(cam, s['T'], s['X'], s['obs_cam'], s['obs_pt'], uv, **g),
+                            BundleOptions(refine_intrinsics=('f',), max_iterations=50, compute_covariance=True))
+        f.append(res.camera.fx)
+        h.append(np.mean(res.map_T_cams[:, 2, 3]) - np.mean(res.points_map[:, 2]))
+    return np.corrcoef(f, h)[0, 1], res.intrinsics_height_correlation()['f']
+
+
+def test_focal_height_correlation_flags_the_flat_nadir_block():
+    near = _monte_carlo_f_and_height(0.2, 3.0, runs=1)[1]
+    tilted = _monte_carlo_f_and_height(8.0, 3.0, runs=1)[1]
+    assert near > 0.9 and abs(tilted) < 0.4, (near, tilted)
+
+
+@pytest.mark.slow
+def test_focal_height_correlation_matches_monte_carlo():
+    """The correlation of f with the block's height from the covariance (Schur complement, points
+    marginalised) against the sample correlation over 30 noise draws: near 1 for a flat-flown nadir
+    block with 3 m GNSS (f and the ground's depth trade off), near 0 with 8 degree tilts."""
+    for tilt, sigma, lo, hi in ((0.2, 3.0, 0.9, 1.0), (8.0, 3.0, -0.4, 0.4)):
+        mc, cov = _monte_carlo_f_and_height(tilt, sigma)
+        print(f'tilt {tilt} deg, GNSS {sigma} m: correlation Monte Carlo {mc:+.3f}, covariance {cov:+.3f}')
+        assert lo <= cov <= hi and abs(mc - cov) < 0.15

@@ -128,8 +128,11 @@ def test_bad_sources_and_missing_calibration_are_config_errors(survey, rclpy_con
     photos, _, calib, _ = survey
     with pytest.raises(ConfigError, match='source'):
         open_source(str(tmp_path / 'nowhere'))
-    with pytest.raises(ConfigError, match='calibration_file'):
-        CameraNode({'source': str(photos)}, context=rclpy_context)
+    # Photos without any focal length in their EXIF, and no calibration file: say which parameter to set.
+    for i in range(3):
+        cv2.imwrite(str(tmp_path / f'p{i}.png'), np.full((8, 8, 3), i, np.uint8))
+    with pytest.raises(ConfigError, match='calibration_file.*no usable focal length'):
+        CameraNode({'source': str(tmp_path)}, context=rclpy_context)
     with pytest.raises(ConfigError, match='calibration_file'):
         CameraNode({'source': str(photos), 'calibration_file': str(tmp_path / 'missing.yaml')},
                    context=rclpy_context)
@@ -229,11 +232,57 @@ def test_node_timer_plays_folder_at_scaled_exif_timing(survey, rclpy_context):
     assert wall_s == pytest.approx(span_s / rate, rel=0.25, abs=0.1)
 
 
+def test_simulated_photos_carry_exif_intrinsics_within_3_percent(survey):
+    from photogram_ros.core.exif_intrinsics import intrinsics_from_exif
+    from photogram_ros.io.image_source import exif_intrinsics, read_exif_camera
+    photos, truth, _, _ = survey
+    first = sorted(photos.glob('*.JPG'))[0]
+    est = exif_intrinsics(first)
+    assert est.source == 'focal_plane' and (est.camera.width, est.camera.height) == (truth.camera.width,
+                                                                                     truth.camera.height)
+    assert abs(est.camera.fx / truth.camera.fx - 1) < 0.03 and abs(est.camera.fy / truth.camera.fy - 1) < 0.03
+    # The 35 mm equivalent alone (an integer number of mm) also within 3 %.
+    tags = read_exif_camera(first)
+    only35 = intrinsics_from_exif(type(tags)(tags.width_px, tags.height_px, focal_35mm=tags.focal_35mm))
+    print(f'simulator photos: focal plane {est.camera.fx:.2f} px, 35 mm {only35.camera.fx:.2f} px, '
+          f'truth {truth.camera.fx:.2f} px')
+    assert only35.source == '35mm' and abs(only35.camera.fx / truth.camera.fx - 1) < 0.03
+
+
+def test_node_without_calibration_file_takes_the_exif_camera(survey, rclpy_context):
+    from photogram_ros.nodes.camera_node import CameraNode
+    photos, truth, _, _ = survey
+    cam = CameraNode({'source': str(photos), 'autostart': False}, context=rclpy_context)
+    try:
+        assert abs(cam.camera.fx / truth.camera.fx - 1) < 0.03
+        assert cam.camera.dist == (0.0,) * 5 and cam.camera.width == truth.camera.width
+    finally:
+        cam.destroy_node()
+
+
+def test_a_photo_without_exif_time_is_skipped_not_the_folder_timing(survey, tmp_path):
+    """Issue 15.8: one PNG without DateTimeOriginal among timed JPEGs kept the folder in name order,
+    1 s apart; now the PNG is skipped and named, the others keep their EXIF times."""
+    photos, truth, _, geo = survey
+    for p in photos.glob('*.JPG'):
+        shutil.copy(p, tmp_path / p.name)
+    cv2.imwrite(str(tmp_path / 'AAA_screenshot.png'), np.full((48, 64, 3), 7, np.uint8))
+    (tmp_path / 'IMG_9999.JPG').write_bytes(b'')            # and an empty file
+    src = FolderSource(tmp_path)
+    frames = list(src)
+    assert [Path(f.path).name for f in frames] == sorted(geo, key=lambda k: truth.frames[_frame_index(k)].stamp_ns)
+    assert all(f.stamp_ns == truth.frames[_frame_index(f.path)].stamp_ns for f in frames)
+    why = {Path(p).name: w for p, w in src.skipped}
+    assert set(why) == {'AAA_screenshot.png', 'IMG_9999.JPG'}
+    assert 'no EXIF DateTimeOriginal' in why['AAA_screenshot.png'] and 'empty file' in why['IMG_9999.JPG']
+    assert not any('file-name order' in n for n in src.notes)
+
+
 def test_photo_block_reads_exif_positions(survey):
     from photogram_ros.io.photo_block import exif_position as _read_exif
     photos, _, _, geo = survey
     name = sorted(geo)[1]
     lat, lon, h, h_acc, v_acc = _read_exif(photos / name)
     assert abs(lat - geo[name][0]) < 1e-7 and abs(lon - geo[name][1]) < 1e-7 and abs(h - geo[name][2]) < 0.01
-    assert (h_acc, v_acc) == (5.0, 10.0)
+    assert (h_acc, v_acc) == (5.0, 2.0)
     assert _read_exif(photos / 'geo.txt') is None

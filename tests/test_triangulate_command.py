@@ -140,3 +140,26 @@ def test_triangulate_takeoff_height_options_are_checked(tmp_path, capsys):
     assert '--takeoff-altitude-m' in capsys.readouterr().err
     assert main(['triangulate', str(tmp_path), '--out', str(tmp_path / 'o'), '--takeoff-altitude-m', '440']) == 2
     assert '--exif-altitude relative' in capsys.readouterr().err
+
+
+def test_triangulate_skips_empty_and_truncated_photos_and_names_them(exif_survey, tmp_path, capsys):
+    """Issue 15.8: a 0-byte file aborted the run and a truncated JPEG was oriented grey-padded with a
+    libjpeg message naming no file; now both are skipped, named, and the rest is oriented."""
+    import shutil
+    flight, _, _ = exif_survey
+    folder = tmp_path / 'flight' / 'photos'
+    folder.mkdir(parents=True)
+    for name in ('ground_truth.json', 'ground_truth_dem.npz'):
+        shutil.copy(flight / name, tmp_path / 'flight' / name)
+    good = sorted((flight / 'msl').glob('*.JPG'))
+    for p in good:
+        shutil.copy(p, folder / p.name)
+    (folder / 'EMPTY_000.JPG').write_bytes(b'')
+    whole = good[0].read_bytes()
+    (folder / 'CUT_0000.JPG').write_bytes(whole[:len(whole) // 2])
+    rep, err = _triangulate(folder, tmp_path / 'at')
+    out = capsys.readouterr()
+    assert rep['keyframes'] == rep['registered'] == len(good) == len(err)
+    note = next(s for s in rep['assumptions'] if 'files skipped' in s)
+    assert 'EMPTY_000.JPG (empty file (0 bytes))' in note and 'CUT_0000.JPG (truncated or corrupt JPEG' in note
+    assert 'EMPTY_000.JPG' in out.err and f'oriented {len(good)}/{len(good) + 2} images' in out.out

@@ -15,14 +15,22 @@ def add_arguments(p) -> None:
     p.add_argument('--check', default='', help='more check-point names, comma separated')
     p.add_argument('--out', required=True, help='output folder (poses.csv, sparse.ply/.las, report.md/.json)')
     p.add_argument('--camera', help='calibration YAML (ROS camera_calibration layout); default: the bag\'s '
-                                    'camera_info, or the simulator truth beside the folder, if any')
+                                    'camera_info, or for photos the simulator truth beside the folder, else the '
+                                    'photos\' EXIF (focal length from a DJI XMP, the focal-plane resolution, a '
+                                    'sensor table or the 35 mm equivalent; principal point centred, no distortion)')
     p.add_argument('--crs', help='output CRS (default: the GCP CRS, else the UTM zone of the first photo)')
     p.add_argument('--gcp-sigma', default='0.02,0.02,0.03', help='GCP sigma E,N,U in metres')
-    p.add_argument('--neighbours', type=int, default=8, help='photos matched with each photo (by position)')
+    p.add_argument('--neighbours', type=int, default=8, help='photos matched with each photo first (nearest by '
+                                                             'position, or largest footprint overlap)')
+    p.add_argument('--max-image-px', type=int, default=1000, help='photos: long side of the reduced photo features '
+                                                                  'are detected on (px)')
+    p.add_argument('--max-features', type=int, default=4000, help='photos: SIFT features per photo')
     p.add_argument('--window', type=int, default=10, help='sliding-window size of the incremental adjustment')
     p.add_argument('--lever-arm', default='0,0,0', help='antenna in the camera frame x,y,z (m)')
-    p.add_argument('--self-calibrate', default='', help='intrinsics refined in the final adjustment, e.g. '
-                                                        '"f,k1,k2" (from f, cx, cy, k1, k2, p1, p2, k3)')
+    p.add_argument('--self-calibrate', default='auto', help='intrinsics refined in the final adjustment, e.g. '
+                                                            '"f,k1,k2" (from f, cx, cy, k1, k2, p1, p2, k3), "none", '
+                                                            'or "auto" (default: k1,k2 for a camera from the EXIF, '
+                                                            'and f too with 3+ GCPs; nothing for a calibration)')
     p.add_argument('--exif-altitude', choices=('msl', 'ellipsoidal', 'relative'), default=None,
                    help='what the photos\' EXIF GPSAltitude is: msl (the EXIF standard; default), ellipsoidal '
                         '(WGS84), or relative to the take-off point (many drones; needs --takeoff-altitude-m). '
@@ -47,14 +55,21 @@ def _floats(text: str, what: str, n: int) -> tuple:
 def run(a) -> int:
     import sys
 
+    from photogram_ros.core.photo_matching import MatchingOptions
     from photogram_ros.io.aerial_triangulation import TriangulateOptions, triangulate
+    from photogram_ros.params import from_dict
 
+    cal = a.self_calibrate.strip().lower()
+    refine = None if cal == 'auto' else () if cal in ('', 'none') else tuple(
+        v.strip() for v in a.self_calibrate.split(',') if v.strip())
+    matching = from_dict(MatchingOptions, {'max_image_px': a.max_image_px, 'max_features': a.max_features,
+                                           'neighbours': a.neighbours}, 'triangulate')
     opt = TriangulateOptions(
         camera=a.camera, targets=a.targets, gcp=a.gcp, check_names=tuple(s.strip() for s in a.check.split(',')
                                                                          if s.strip()),
         crs=a.crs, gcp_sigma_enu_m=_floats(a.gcp_sigma, '--gcp-sigma', 3), neighbours=a.neighbours,
         window=a.window, lever_arm_cam_m=_floats(a.lever_arm, '--lever-arm', 3),
-        self_calibrate=tuple(v.strip() for v in a.self_calibrate.split(',') if v.strip()),
+        self_calibrate=refine, matching=matching,
         exif_altitude=a.exif_altitude, takeoff_h_m=a.takeoff_altitude_m, takeoff_heights=a.takeoff_heights)
     res = triangulate(a.input, a.out, opt, log=lambda text: print(text, file=sys.stderr))
     rep = res.report

@@ -110,13 +110,20 @@ def _histogram(v: np.ndarray, bins: int = 50) -> dict:
             'edges_px': edges.tolist(), 'counts': counts.tolist()}
 
 
+# |correlation| of the focal length with the block's height above which f is reported as not
+# determined: the adjustment can trade one for the other (a flat nadir block without GCP heights).
+F_UNDETERMINED_CORRELATION = 0.9
+
+
 def intrinsics_sigma(at, refine: tuple) -> dict:
     """A-posteriori sigmas of the self-calibrated intrinsics at the adjusted block.
 
     The full adjustment of IncrementalAT does not ask for covariances, so this evaluates them at its
     result: the same problem (every registered keyframe and point, GNSS and GCP priors), zero
-    iterations, covariance on. Returns name -> sigma (px for f, cx, cy; unitless for k1..k3) and
-    's0_px' (a-posteriori sigma of unit weight), or {} when the block has no datum or nothing to adjust.
+    iterations, covariance on. Returns name -> sigma (px for f, cx, cy; unitless for k1..k3),
+    's0_px' (a-posteriori sigma of unit weight) and 'height_correlation' (name -> correlation with the
+    block's height: mean camera height minus mean tie-point height), or {} when the block has no datum
+    or nothing to adjust.
     """
     kids, tracks = list(at.registered), list(at.points)
     if not refine or not kids or not tracks:
@@ -130,4 +137,52 @@ def intrinsics_sigma(at, refine: tuple) -> dict:
     sig = res.intrinsics_sigma()
     if sig and res.variance_factor is not None:
         sig['s0_px'] = float(np.sqrt(res.variance_factor))
+    corr = res.intrinsics_height_correlation()
+    if corr:
+        sig['height_correlation'] = corr
     return sig
+
+
+NADIR_TILT_DEG = 5.0            # a block whose cameras (95 %) are within this of nadir is near-nadir
+LOOSE_GNSS_SIGMA_V_M = 0.5      # camera heights from a GNSS this loose do not hold the block's depth
+MIN_GCP_HEIGHTS = 3
+
+
+def focal_determination(at, sig: dict) -> dict:
+    """Whether the block determines a self-calibrated focal length, and why (the report's figures).
+
+    A near-nadir block flown at one height images the ground at the scale f / depth: the focal length
+    and the ground's depth trade off, held only by the cameras' small tilts and, through the depth, by
+    GCPs with surveyed heights or tight (RTK) camera heights. Not determined: near-nadir, fewer than
+    3 GCPs with heights and GNSS heights looser than 0.5 m (the small sigma of the covariance assumes
+    a perfect camera model: real blocks move f by 15-20 % there), or a correlation of f with the
+    block's height of 0.9 or more with a sigma above 0.1 % of f. Near-nadir without GCP heights but
+    with RTK heights: weakly determined. Returns {} when f was not refined.
+    """
+    c = sig.get('height_correlation', {}).get('f')
+    if c is None or 'f' not in sig:
+        return {}
+    kids = [k for k in at.registered if at.kfs[k].map_T_cam is not None]
+    axis_z = np.array([at.kfs[k].map_T_cam[2, 2] for k in kids])
+    tilt = np.degrees(np.arccos(np.clip(-axis_z, -1.0, 1.0)))
+    tilt95 = float(np.percentile(tilt, 95)) if len(tilt) else float('nan')
+    sv = [float(np.sqrt(at.kfs[k].fix_cov[2, 2])) for k in kids if at.kfs[k].fix_cov is not None]
+    sigma_v = float(np.median(sv)) if sv else float('inf')
+    gcps = int(at.control_summary().get('gcps_used', 0))
+    nadir = tilt95 < NADIR_TILT_DEG and gcps < MIN_GCP_HEIGHTS
+    rel = sig['f'] / max(float(at.camera.fx), 1e-9)
+    out = {'height_correlation': float(c), 'sigma_relative': float(rel), 'tilt_p95_deg': tilt95,
+           'gnss_sigma_v_m': sigma_v, 'gcps_with_heights': gcps}
+    if nadir and sigma_v >= LOOSE_GNSS_SIGMA_V_M:
+        out.update(determined=False, reason=f'a near-nadir block (95 % of the cameras within {tilt95:.1f} deg of '
+                   f'nadir) without GCP heights ({gcps} used) and with loose GNSS heights (sigma {sigma_v:.1f} m)')
+    elif abs(c) >= F_UNDETERMINED_CORRELATION and rel >= 1e-3:
+        out.update(determined=False, reason=f'its correlation with the block\'s height is {c:+.3f} with a sigma of '
+                   f'{100 * rel:.2f} % of f')
+    elif nadir:
+        out.update(determined=True, weak=True, reason=f'weakly: a near-nadir block (tilts within {tilt95:.1f} deg) '
+                   'without GCP heights, held by the camera heights and the small tilts (the sigma assumes a '
+                   'perfect camera model)')
+    else:
+        out.update(determined=True, reason='oblique views or GCP heights hold the depth')
+    return out

@@ -14,15 +14,17 @@ The output CRS is the one asked for, else the GCP file's, else the UTM zone of t
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import time
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
-from photogram_ros.core.at_report import build_report, intrinsics_sigma
+from photogram_ros.core.at_report import build_report, focal_determination, intrinsics_sigma
 from photogram_ros.io.at_report import write_report
 from photogram_ros.core.geodesy import LocalFrame, utm_epsg
 from photogram_ros.core.incremental import IncrementalAT, IncrementalOptions
+from photogram_ros.core.photo_matching import MatchingOptions
 from photogram_ros.errors import ConfigError
 from photogram_ros.io.export import GeoCloud, enu_to_crs, write_las, write_ply
 from photogram_ros.io.keyframe_block import KeyframeBlock
@@ -40,7 +42,9 @@ class TriangulateOptions:
     neighbours: int = 8                       # photos matched with each photo
     window: int = 10                          # sliding-window size
     lever_arm_cam_m: tuple = (0.0, 0.0, 0.0)  # antenna in the camera frame
-    self_calibrate: tuple = ()                # intrinsics refined in the final adjustment ('f', 'k1', ...)
+    # Intrinsics refined in the final adjustment ('f', 'k1', ...); None: automatic (`auto_self_calibration`).
+    self_calibrate: tuple | None = None
+    matching: MatchingOptions = field(default_factory=MatchingOptions)   # photos: features and matching
     exif_altitude: str | None = None          # 'msl', 'ellipsoidal', 'relative' or None (msl, checked)
     takeoff_h_m: float | None = None          # for exif_altitude 'relative'
     takeoff_heights: str = 'msl'              # reference of takeoff_h_m: 'msl' or 'ellipsoidal'
@@ -67,6 +71,7 @@ def triangulate(src: str | Path, out: str | Path, opt: TriangulateOptions, log=N
     """Aerial triangulation of the bag or photo folder `src` into the folder `out` (see the module
     docstring); log(text): progress lines and warnings."""
     opt.check()
+    t0 = time.monotonic()
     src = Path(src)
     control_set = None
     if (src / 'metadata.yaml').exists():
@@ -80,33 +85,76 @@ def triangulate(src: str | Path, out: str | Path, opt: TriangulateOptions, log=N
     else:
         from photogram_ros.io.photo_block import read_photo_block
         block = read_photo_block(src, opt.camera, opt.neighbours, opt.exif_altitude, opt.takeoff_h_m,
-                                 opt.takeoff_heights, log)
-    return adjust_block(block, out, opt, control_set, log)
+                                 opt.takeoff_heights, log, opt.matching)
+    res = adjust_block(block, out, opt, control_set, log, t0)
+    return res
 
 
-def _self_calibration(at: IncrementalAT, before, refine: tuple, assumptions: list) -> dict:
-    """The refined intrinsics before and after, with their a-posteriori sigmas."""
+def _self_calibration(at: IncrementalAT, before, refine: tuple, assumptions: list, log=None) -> dict:
+    """The refined intrinsics before and after, with their a-posteriori sigmas and correlations with the
+    block's height; a focal length the block does not determine is said so, with no sigma."""
     after = at.camera
     self_cal = {k: {'before': float(getattr(before, k)), 'after': float(getattr(after, k))}
                 for k in ('fx', 'fy', 'cx', 'cy')}
     self_cal.update({n: {'before': before.dist[i], 'after': after.dist[i]}
                      for i, n in enumerate(('k1', 'k2', 'p1', 'p2', 'k3'))})
     sig = intrinsics_sigma(at, refine)
+    corr = sig.get('height_correlation', {})
     for name, v in sig.items():
+        if name in ('s0_px', 'height_correlation'):
+            continue
         for key in (('fx', 'fy') if name == 'f' else (name,)):
             if key in self_cal:
                 self_cal[key]['sigma'] = v
+                if name in corr:
+                    self_cal[key]['height_correlation'] = corr[name]
     if 's0_px' in sig:
         self_cal['s0_px'] = sig['s0_px']
     sf = f" +- {sig['f']:.2f}" if 'f' in sig else ''
-    assumptions.append(f'self-calibration of {", ".join(refine)} in the final adjustment: '
-                       f'fx {before.fx:.2f} -> {after.fx:.2f}{sf} px (sigmas a posteriori, scaled by the '
-                       'variance of unit weight; parameters not refined have none)')
+    focal = focal_determination(at, sig)
+    if focal:
+        self_cal['focal'] = focal
+    if focal.get('determined') is False:
+        for key in ('fx', 'fy'):
+            self_cal[key]['sigma_unreliable'] = self_cal[key].pop('sigma', None)
+        sf = ' (not determined)'
+        note = (f'focal length NOT DETERMINED by this block: {focal["reason"]}; the focal and the ground\'s '
+                f'depth trade off (correlation of f with the block\'s height {corr["f"]:+.3f}; the covariance\'s '
+                f'{sig["f"]:.1f} px sigma hides it): fx {before.fx:.1f} -> {after.fx:.1f} px is not a measurement. '
+                'Keep f fixed (drop f from --self-calibrate), or add GCPs with surveyed heights or oblique photos')
+        assumptions.append(note)
+        if log is not None:
+            log(f'warning: {note}')
+    elif focal:
+        sf += f' (determined {focal["reason"]}; correlation with the block\'s height {corr["f"]:+.3f})'
+    parts = [f'fx {before.fx:.2f} -> {after.fx:.2f}{sf} px'] if 'f' in refine else []
+    parts += [f'{n} {getattr(before, n):.2f} -> {getattr(after, n):.2f}' + (f' +- {sig[n]:.2f}' if n in sig else '')
+              + ' px' for n in ('cx', 'cy') if n in refine]
+    for i, n in enumerate(('k1', 'k2', 'p1', 'p2', 'k3')):
+        if n in refine:
+            parts.append(f'{n} {before.dist[i]:.5f} -> {after.dist[i]:.5f}'
+                         + (f' +- {sig[n]:.5f}' if n in sig else ''))
+    assumptions.append(f'self-calibration of {", ".join(refine)} in the final adjustment: {"; ".join(parts)} '
+                       '(sigmas a posteriori, scaled by the variance of unit weight; parameters not refined have none)')
     return self_cal
 
 
+def auto_self_calibration(block: KeyframeBlock, n_gcps: int, assumptions: list) -> tuple:
+    """What `--self-calibrate auto` refines: nothing for a calibrated camera; for a camera from the EXIF
+    (distortion unknown, taken as zero) k1 and k2, and f as well with 3 or more GCPs (their heights
+    fix the ground's depth; without them the focal of a near-nadir block trades off with it)."""
+    if not block.camera_from_exif:
+        return ()
+    refine = ('f', 'k1', 'k2') if n_gcps >= 3 else ('k1', 'k2')
+    why = (f'f too: {n_gcps} GCPs give the ground\'s depth' if 'f' in refine else
+           'f held at its EXIF value: without 3 GCPs with heights a near-nadir block does not determine it')
+    assumptions.append(f'self-calibration (auto): the EXIF gives no distortion, so {", ".join(refine)} are refined; '
+                       f'{why} (--self-calibrate none or a list to choose)')
+    return refine
+
+
 def adjust_block(block: KeyframeBlock, out: str | Path, opt: TriangulateOptions, control_set=None,
-                 log=None) -> TriangulateResult:
+                 log=None, t0: float | None = None) -> TriangulateResult:
     """Incremental AT of the block's records, a full adjustment, then poses, sparse cloud and report.
 
     control_set: a bag's ControlSet, whose observations are already in the records; else opt.gcp.
@@ -125,15 +173,29 @@ def adjust_block(block: KeyframeBlock, out: str | Path, opt: TriangulateOptions,
     lever = tuple(opt.lever_arm_cam_m)
     at = IncrementalAT(block.camera, IncrementalOptions(window_size=opt.window, lever_arm_cam_m=lever), origin,
                        control)
-    for rec in block.records:
+    t_at = time.monotonic()
+    last = t_at
+    for n, rec in enumerate(block.records):
         if target_obs:
             rec.target_uv = target_obs.get(rec.name, {})
         at.add_keyframe(rec)
-    at.retry_unregistered()     # photos that did not register in sequence: a second chance
-    refine = tuple(opt.self_calibrate)
+        if log is not None and (time.monotonic() - last >= 5.0 or n + 1 == len(block.records)):
+            last = time.monotonic()
+            log(f'aerial triangulation: {n + 1}/{len(block.records)} added, {len(at.registered)} oriented '
+                f'({last - t_at:.0f} s)')
+    n_retry = at.retry_unregistered()     # photos that did not register in sequence: a second chance
+    if log is not None and n_retry:
+        log(f'aerial triangulation: {n_retry} more oriented against the whole block')
+    n_gcps = sum(c.role == 'gcp' for c in control)
+    refine = (tuple(opt.self_calibrate) if opt.self_calibrate is not None
+              else auto_self_calibration(block, n_gcps, assumptions))
     before = block.camera
+    t_full = time.monotonic()
     rep_adj = at.full_adjustment(refine_intrinsics=refine)
-    self_cal = _self_calibration(at, before, refine, assumptions) if refine else None
+    if log is not None:
+        log(f'full adjustment{" with self-calibration of " + ", ".join(refine) if refine else ""}: '
+            f'{rep_adj.status}, {time.monotonic() - t_full:.1f} s')
+    self_cal = _self_calibration(at, before, refine, assumptions, log) if refine else None
     lost = [kf.name for kf in at.kfs if kf.map_T_cam is None]
     if lost:
         assumptions.append(f'{len(lost)} photos could not be oriented (blurred or without overlap): {lost[:10]}')
@@ -157,6 +219,12 @@ def adjust_block(block: KeyframeBlock, out: str | Path, opt: TriangulateOptions,
     rep = build_report(at, assumptions)
     rep['crs'] = crs
     rep['adjustment_status'] = rep_adj.status
+    if block.stats:
+        rep['matching'] = block.stats
+    now = time.monotonic()
+    rep['timing_s'] = {'reading_and_matching': round(t_at - (t0 if t0 is not None else t_at), 2),
+                       'aerial_triangulation': round(now - t_at, 2),
+                       'total': round(now - (t0 if t0 is not None else t_at), 2)}
     if self_cal is not None:
         rep['self_calibration'] = self_cal
     write_report(rep, out)

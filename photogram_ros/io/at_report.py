@@ -46,7 +46,10 @@ def markdown(rep: dict) -> str:
         if sec['points']:
             L += _table([[p['name'], *(f'{v * 100:.1f}' for v in p['residual_m']), str(p['images'])]
                          for p in sec['points']], ['name', 'dX cm', 'dY cm', 'dZ cm', 'images']) + ['']
-    L += ['## Camera', '', f"{rep['camera']}", '', '## Per image', '']
+    L += ['## Camera', '', f"{rep['camera']}", ''] + [t + '\n' for t in _focal_text(rep)]
+    if rep.get('matching'):
+        L += ['## Matching', ''] + _matching_text(rep) + ['']
+    L += ['## Per image', '']
     L += _table([[p['image'], str(p['observations']), f"{p['reprojection_rms_px']:.3f}",
                   '' if p['gnss_residual_enu_m'] is None else ', '.join(f'{v:.3f}' for v in p['gnss_residual_enu_m'])]
                  for p in rep['per_image']], ['image', 'observations', 'RMS px', 'GNSS residual E, N, U m'])
@@ -57,8 +60,32 @@ def markdown(rep: dict) -> str:
 
 def _self_cal_rows(rep: dict) -> list[dict]:
     sc = rep.get('self_calibration') or {}
-    return [{'parameter': k, 'before': v.get('before'), 'after': v.get('after'), 'sigma': v.get('sigma')}
-            for k, v in sc.items() if isinstance(v, dict)]
+    return [{'parameter': k, 'before': v.get('before'), 'after': v.get('after'), 'sigma': v.get('sigma'),
+             'corr. with height': v.get('height_correlation')}
+            for k, v in sc.items() if isinstance(v, dict) and 'before' in v]
+
+
+def _focal_text(rep: dict) -> list[str]:
+    f = (rep.get('self_calibration') or {}).get('focal')
+    if not f:
+        return []
+    if f.get('determined') is False:
+        return [f"Focal length NOT DETERMINED: {f['reason']} (correlation with the block's height "
+                f"{f['height_correlation']:+.3f}); its sigma is not shown."]
+    return [f"Focal length determined {f['reason']} (correlation with the block's height "
+            f"{f['height_correlation']:+.3f}, sigma {100 * f['sigma_relative']:.2f} % of f)."]
+
+
+def _matching_text(rep: dict) -> list[str]:
+    m = rep.get('matching')
+    if not m:
+        return []
+    tl = m.get('track_lengths', {})
+    longer = sum(v for k, v in tl.items() if int(k) >= 3)
+    return [f"{m['photos']} photos, {m['features_median']:.0f} features each (median; fewest {m['features_min']}), "
+            f"{m['pairs_verified']}/{m['pairs_tried']} candidate pairs verified ({m['pair_status']}), "
+            f"{m['widened_photos']} photos matched with more candidates; {sum(tl.values())} tracks, {longer} through "
+            f"3+ photos. Features {m['features_s']:.1f} s, matching {m['matching_s']:.1f} s."]
 
 
 def _figures(rep: dict, out: Path) -> dict:
@@ -134,7 +161,10 @@ def write_report(rep: dict, out_dir) -> tuple[Path, Path]:
         cam.text.append('Self-calibrated intrinsics with sigma (a-posteriori, scaled by the variance of '
                         'unit weight' + (f' s0 = {s0:.3f} px' if s0 is not None else '') + ').')
         cam.tables.append(('Self-calibration', sc_rows))
+    cam.text += _focal_text(rep)
     sections.append(cam)
+    if rep.get('matching'):
+        sections.append(Section('Matching', _matching_text(rep)))
     sections.append(Section('Per image', tables=[('Per-image statistics', [
         {'image': p['image'], 'observations': p['observations'], 'RMS px': p['reprojection_rms_px'],
          'GNSS dE m': None if p['gnss_residual_enu_m'] is None else p['gnss_residual_enu_m'][0],

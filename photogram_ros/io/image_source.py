@@ -6,8 +6,11 @@ through the mapper like a live camera. EXIF GPS altitude is above mean sea level
 `ExifGps.gnss_fix` converts it to the WGS84 ellipsoidal height the rest of the system uses (REP-145). Many drones
 write it above the take-off point instead (or a barometric altitude tens of metres off):
 `exif_altitude_to_ellipsoidal_m` converts either reading, `exif_altitudes_look_relative` spots them.
-A file that cannot be decoded is skipped and recorded in `skipped`: one corrupt JPEG must not end
-a survey. No ROS here: the camera node is a thin adapter over these iterators.
+`read_exif_camera` gathers what the EXIF and a DJI XMP say about the camera (focal length, sensor,
+calibrated focal) for core/exif_intrinsics.py, and `read_dji_xmp` the XMP's drone-dji fields
+(gimbal and flight angles, altitudes). A file that is empty, not an image or a truncated JPEG is
+skipped, named, and recorded in `skipped` (`image_file_problem`): one bad file must not end a survey,
+nor change how the others are timed. No ROS here: the camera node is a thin adapter over these iterators.
 """
 
 from __future__ import annotations
@@ -29,6 +32,14 @@ EXIF_IFD = 0x8769
 TAG_DATETIME_ORIGINAL = 0x9003
 TAG_SUBSEC_ORIGINAL = 0x9291
 TAG_OFFSET_ORIGINAL = 0x9011
+TAG_MAKE, TAG_MODEL = 0x010F, 0x0110
+TAG_FOCAL_LENGTH = 0x920A
+TAG_FOCAL_35MM = 0xA405
+TAG_FOCAL_PLANE_XRES = 0xA20E
+TAG_FOCAL_PLANE_UNIT = 0xA210
+# FocalPlaneResolutionUnit -> mm per unit (EXIF: 2 inch, 3 cm; 4 mm and 5 um as some cameras write).
+FOCAL_PLANE_UNIT_MM = {1: 25.4, 2: 25.4, 3: 10.0, 4: 1.0, 5: 0.001}
+XMP_SEARCH_BYTES = 1 << 19          # the XMP packet of a camera JPEG sits in its first APP segments
 
 
 @dataclass(frozen=True)
@@ -188,6 +199,115 @@ def read_exif_time_ns(path, utc_offset_s: float = 0.0) -> tuple[int | None, bool
     return seconds * 1_000_000_000 + sub_ns, zoned, sub.isdigit()
 
 
+def _text(v) -> str:
+    return str(v).replace('\x00', '').strip() if v is not None else ''
+
+
+def _positive(v) -> float | None:
+    try:
+        f = float(v)
+    except (TypeError, ValueError, ZeroDivisionError):
+        return None
+    return f if np.isfinite(f) and f > 0 else None
+
+
+def read_dji_xmp(path) -> dict[str, str]:
+    """The drone-dji fields of a photo's XMP packet (GimbalYawDegree, RelativeAltitude, CalibratedFocalLength,
+    ...) as written; {} without one."""
+    import re
+    try:
+        with open(path, 'rb') as fh:
+            head = fh.read(XMP_SEARCH_BYTES)
+    except OSError:
+        return {}
+    i = head.find(b'<x:xmpmeta')
+    if i < 0:
+        return {}
+    j = head.find(b'</x:xmpmeta>', i)
+    packet = head[i:j if j > 0 else len(head)].decode('utf-8', errors='replace')
+    out = dict(re.findall(r'drone-dji:(\w+)="([^"]*)"', packet))
+    out.update(re.findall(r'<drone-dji:(\w+)>([^<]*)</drone-dji:\1>', packet))
+    return out
+
+
+def xmp_float(xmp: dict, key: str) -> float | None:
+    try:
+        v = float(xmp[key])
+    except (KeyError, TypeError, ValueError):
+        return None
+    return v if np.isfinite(v) else None
+
+
+def read_exif_camera(path):
+    """What a photo's EXIF and DJI XMP say about its camera (core.exif_intrinsics.ExifCameraTags), with
+    the size of the image as stored; None when the file cannot be opened as an image."""
+    from PIL import Image
+
+    from photogram_ros.core.exif_intrinsics import ExifCameraTags
+    try:
+        with Image.open(path) as im:
+            size = im.size
+            exif = im.getexif()
+            ex = exif.get_ifd(EXIF_IFD)
+    except (OSError, SyntaxError, ValueError):
+        return None
+    unit_mm = FOCAL_PLANE_UNIT_MM.get(int(ex.get(TAG_FOCAL_PLANE_UNIT, 2) or 2))
+    xres = _positive(ex.get(TAG_FOCAL_PLANE_XRES))
+    xmp = read_dji_xmp(path)
+    return ExifCameraTags(
+        width_px=int(size[0]), height_px=int(size[1]), make=_text(exif.get(TAG_MAKE)),
+        model=_text(exif.get(TAG_MODEL)), focal_mm=_positive(ex.get(TAG_FOCAL_LENGTH)),
+        focal_35mm=_positive(ex.get(TAG_FOCAL_35MM)),
+        focal_plane_px_per_mm=xres / unit_mm if xres and unit_mm else None,
+        xmp_focal_px=_positive(xmp.get('CalibratedFocalLength')),
+        xmp_cx_px=_positive(xmp.get('CalibratedOpticalCenterX')),
+        xmp_cy_px=_positive(xmp.get('CalibratedOpticalCenterY')))
+
+
+def exif_intrinsics(path):
+    """core.exif_intrinsics.ExifIntrinsics of one photo; CalibrationError (naming the file) without a
+    usable focal length, DataError when it is not an image."""
+    from photogram_ros.core.exif_intrinsics import intrinsics_from_exif
+    from photogram_ros.errors import CalibrationError
+    tags = read_exif_camera(path)
+    if tags is None:
+        raise DataError(f'{Path(path).name} cannot be read as an image')
+    try:
+        return intrinsics_from_exif(tags)
+    except CalibrationError as exc:
+        raise CalibrationError(f'{Path(path).name}: {exc}') from exc
+
+
+def image_file_problem(path) -> str | None:
+    """Why a file in a photo folder cannot be used ('empty file (0 bytes)', 'not an image: ...',
+    'truncated or corrupt: ...'), or None when it decodes. Reads only the header, unless a JPEG lacks
+    its end-of-image marker (a truncated copy): then it is decoded in full, as OpenCV would pad it grey."""
+    from PIL import Image
+    path = Path(path)
+    try:
+        size = path.stat().st_size
+    except OSError as exc:
+        return f'cannot be read: {exc}'
+    if size == 0:
+        return 'empty file (0 bytes)'
+    try:
+        with Image.open(path) as im:
+            fmt = im.format
+    except (OSError, SyntaxError, ValueError) as exc:
+        return f'not an image: {exc}'
+    if fmt == 'JPEG':
+        with open(path, 'rb') as fh:
+            fh.seek(max(0, size - 4096))
+            tail = fh.read().rstrip(b'\x00\xff')
+        if not tail.endswith(b'\xff\xd9'):
+            try:
+                with Image.open(path) as im:
+                    im.load()
+            except (OSError, SyntaxError, ValueError) as exc:
+                return f'truncated or corrupt JPEG: {exc}'
+    return None
+
+
 def _decode(path: Path) -> np.ndarray:
     """Decode fully with Pillow: it refuses truncated JPEGs, where OpenCV returns a grey-padded image."""
     from PIL import Image
@@ -200,17 +320,12 @@ def _decode(path: Path) -> np.ndarray:
     return np.ascontiguousarray(rgb[:, :, ::-1])
 
 
-def _opens(path: Path) -> bool:
-    from PIL import Image
-    try:
-        with Image.open(path):
-            return True
-    except (OSError, SyntaxError, ValueError):
-        return False
-
-
 class FolderSource:
-    """The photos of a folder in shooting order; iterate for `Frame`s."""
+    """The photos of a folder in shooting order; iterate for `Frame`s.
+
+    Photos without EXIF DateTimeOriginal (a PNG among JPEGs) are skipped and named while at least
+    half of the folder has its time: the others keep their real timing. When most have none, the
+    folder plays in file-name order, `fallback_period_s` apart."""
 
     def __init__(self, folder, utc_offset_s: float = 0.0, fallback_period_s: float = 1.0):
         self.folder = Path(folder)
@@ -223,27 +338,35 @@ class FolderSource:
         self.skipped: list[tuple[str, str]] = []   # (path, why)
         timed = []
         for p in files:
-            if not _opens(p):
-                # Not an image at all: skipped here, so it does not force the name-order fallback.
-                self.skipped.append((str(p), f'{p.name} is not a readable image'))
+            why = image_file_problem(p)
+            if why is not None:
+                # Not usable at all: skipped here, so it does not change how the others are timed.
+                self.skipped.append((str(p), f'{p.name}: {why}'))
                 continue
             timed.append((p, *read_exif_time_ns(p, utc_offset_s)))
+        if not timed:
+            raise DataError(f'{folder}: none of its {len(files)} image files can be read '
+                            f'({"; ".join(w for _, w in self.skipped[:3])})')
         files = [e[0] for e in timed]
         missing = [p for p, t, _, _ in timed if t is None]
-        if not missing:
+        if 2 * len(missing) <= len(timed):
+            for p in missing:
+                self.skipped.append((str(p), f'{p.name} has no EXIF DateTimeOriginal while {len(timed) - len(missing)} '
+                                             'photos of the folder have one: skipped (its time is unknown)'))
+            timed = [e for e in timed if e[1] is not None]
             # Name as tie-breaker: burst photos can share a second when SubSec is absent.
             timed.sort(key=lambda e: (e[1], e[0].name))
             self.entries = [(p, t) for p, t, _, _ in timed]
             unzoned = sum(1 for _, _, z, _ in timed if not z)
             if unzoned:
-                self.notes.append(f'{unzoned} of {len(files)} photos have no OffsetTimeOriginal: camera clock '
+                self.notes.append(f'{unzoned} of {len(timed)} photos have no OffsetTimeOriginal: camera clock '
                                   f'taken as UTC{utc_offset_s / 3600:+g} h')
             coarse = sum(1 for _, _, _, sub in timed if not sub)
             if coarse:
-                self.notes.append(f'{coarse} of {len(files)} photos have no SubSecTimeOriginal: their stamps '
+                self.notes.append(f'{coarse} of {len(timed)} photos have no SubSecTimeOriginal: their stamps '
                                   'have 1 s resolution')
         else:
-            # Mixing timed and untimed photos would interleave them arbitrarily: name order is safer.
+            # Most photos untimed: interleaving the few timed ones would be arbitrary; name order is safer.
             self.notes.append(f'{len(missing)} of {len(files)} images have no EXIF DateTimeOriginal: '
                               f'played in file-name order, {fallback_period_s:g} s apart from the first '
                               'file time')
@@ -255,6 +378,14 @@ class FolderSource:
 
     def __len__(self) -> int:
         return len(self.entries)
+
+    def exif_intrinsics(self):
+        """core.exif_intrinsics.ExifIntrinsics from the first photo's EXIF (CalibrationError without a focal
+        length); for a folder without a calibration file."""
+        from photogram_ros.errors import CalibrationError
+        if not self.entries:
+            raise CalibrationError(f'{self.folder} holds no usable photo')
+        return exif_intrinsics(self.entries[0][0])
 
     def __iter__(self) -> Iterator[Frame]:
         for path, stamp_ns in self.entries:

@@ -27,6 +27,8 @@ class KeyframeBlock:
     # Photos' EXIF positions (M, 3: lat_deg, lon_deg, h_m ellipsoidal) read as MSL without the user
     # saying so: checked against the adjusted ground (aerial_triangulation.relative_exif_note).
     exif_geodetic: np.ndarray | None = None
+    camera_from_exif: bool = False       # intrinsics from the photos' EXIF (distortion unknown)
+    stats: dict = field(default_factory=dict)            # what reading it did (features, pairs: the report's)
 
 
 def camera_from_yaml(path: str | Path) -> PinholeCamera:

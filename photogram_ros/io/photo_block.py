@@ -2,16 +2,26 @@
 
 Positions come from an OpenDroneMap geo.txt beside the photos (`read_geo_txt`; heights ellipsoidal,
 its accuracies as sigmas), else from each photo's EXIF GPS (`exif_position`; what the EXIF altitude
-is relative to as the user says, MSL by default, sigma 5 m horizontal and 10 m vertical). Features
-are matched between each photo and its nearest neighbours by position (core/photo_matching.py) and
-chained into tracks; a photo stored rotated by 90 degrees is turned back. The calibration is a YAML
-file or, for simulator output, the truth beside the folder.
+is relative to as the user says, MSL by default, sigma 5 m horizontal and 2 m vertical).
+
+The camera: a calibration YAML (`--camera`), else for simulator output the truth beside the folder,
+else the photos' EXIF (core/exif_intrinsics.py: DJI XMP calibrated focal, FocalLength with the focal
+plane resolution or a known sensor width, or the 35 mm equivalent; principal point at the centre,
+distortion zero), all said in the report's assumptions.
+
+Features are detected on each photo decoded at reduced size (core/photo_matching.py: a 4000 px frame
+4x smaller, libjpeg decoding it directly), matched between candidate pairs from the geotags (and
+heading and height above ground from a DJI XMP), photos with too few verified pairs matched again
+with their next candidates, and chained into tracks. A photo stored rotated by 90 degrees is turned
+back. A file that is empty, not an image or a truncated JPEG is skipped and named (the report's
+assumptions and a warning), the others kept. Progress goes to `log` every few seconds.
 """
 
 from __future__ import annotations
 
 import json
 import time
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import cv2
@@ -23,13 +33,18 @@ from photogram_ros.core.geodesy import LocalFrame, crs_to_geodetic
 from photogram_ros.core.gnss_fix import GnssFix
 from photogram_ros.core.incremental import KeyframeRecord
 from photogram_ros.errors import CalibrationError, DataError
-from photogram_ros.io.image_source import exif_altitude_to_ellipsoidal_m, read_exif_gps
+from photogram_ros.io.image_source import (IMAGE_SUFFIXES, exif_altitude_to_ellipsoidal_m, exif_intrinsics,
+                                           image_file_problem, read_dji_xmp, read_exif_gps, xmp_float)
 from photogram_ros.io.keyframe_block import KeyframeBlock, camera_from_yaml
 
-IMAGE_SUFFIXES = ('.jpg', '.jpeg', '.png', '.tif', '.tiff')
-# Sigmas of an EXIF geotag (a consumer GNSS), and of a geo.txt line without accuracies.
+# Sigmas of an EXIF geotag (a consumer GNSS), and of a geo.txt line without accuracies. The heights
+# of one flight agree far better than their absolute error (DJI writes a barometric-fused altitude:
+# decimetres over a flight); a 10 m sigma let a near-nadir block bend its cameras by 0.4 m into a
+# dome that trades with the lens's k1 (brighton_beach: k1 0.013-0.017 from run to run, the GNSS
+# heights then 0.4 m off; with 2 m: k1 -0.0005, heights within 0.19 m, the same from 0.5 to 2 m).
 EXIF_SIGMA_H_M = 5.0
-EXIF_SIGMA_V_M = 10.0
+EXIF_SIGMA_V_M = 2.0
+PROGRESS_EVERY_S = 5.0
 
 
 def read_geo_txt(path: str | Path) -> dict[str, tuple[float, float, float, float, float]]:
@@ -92,77 +107,222 @@ def _positions(src: Path, images: list[Path], exif_altitude, takeoff_h_m, takeof
         how = 'EXIF altitude taken as ellipsoidal (WGS84), as --exif-altitude ellipsoidal says'
     else:
         how = 'EXIF altitude taken as MSL (EGM2008) and converted to ellipsoidal'
-    assumptions.append(f'positions from EXIF GPS; {how}; sigma 5 m horizontal, 10 m vertical')
+    assumptions.append(f'positions from EXIF GPS; {how}; sigma {EXIF_SIGMA_H_M:g} m horizontal, {EXIF_SIGMA_V_M:g} m '
+                       'vertical (the heights of one flight agree far better than their absolute error)')
     # Checked once the block has a ground: only then can an MSL reading be seen to be wrong.
     check = np.array([g[:3] for g in geo.values()]) if exif_altitude is None and geo else None
     return geo, check
 
 
-def _camera(src: Path, camera_path, assumptions) -> PinholeCamera:
+def _camera(src: Path, images: list[Path], camera_path, assumptions) -> tuple[PinholeCamera, bool]:
+    """--camera, else the simulator truth beside the folder, else the EXIF of the photos; and whether it
+    came from the EXIF."""
     if camera_path:
         assumptions.append(f'calibration from {camera_path}, held fixed')
-        return camera_from_yaml(camera_path)
+        return camera_from_yaml(camera_path), False
     if (src.parent / 'ground_truth.json').exists():
         assumptions.append('calibration from the simulator truth beside the photos, held fixed')
-        return PinholeCamera.from_ros_yaml_dict(json.loads((src.parent / 'ground_truth.json').read_text())['camera'])
-    raise CalibrationError('no calibration: pass --camera calib.yaml (make one with photogram-ros calibrate)')
+        cam = PinholeCamera.from_ros_yaml_dict(json.loads((src.parent / 'ground_truth.json').read_text())['camera'])
+        return cam, False
+    est = exif_intrinsics(images[0])
+    others = {}
+    for p in images[1:]:
+        try:
+            e = exif_intrinsics(p)
+        except (CalibrationError, DataError):
+            continue
+        c = e.camera
+        if {(c.width, c.height), (c.height, c.width)} & {(est.camera.width, est.camera.height)} and \
+                abs(c.fx / est.camera.fx - 1.0) > 1e-3:
+            others[p.name] = c.fx
+    assumptions.append(f'no calibration given: camera from the EXIF of {images[0].name}, {est.note} (source: '
+                       f'{est.source}); pass --camera calib.yaml to use a calibration instead')
+    if others:
+        assumptions.append(f'{len(others)} photos state another focal length (e.g. {next(iter(others))}: '
+                           f'{next(iter(others.values())):.1f} px): a zoom lens or two cameras; one camera is used')
+    return est.camera, True
 
 
-def _features(images: list[Path], camera: PinholeCamera, assumptions) -> list:
-    feats = []
+def _usable_images(src: Path, assumptions: list, log) -> tuple[list[Path], int]:
+    """The folder's image files that can be used, and how many image files it holds."""
+    files = sorted(p for p in src.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
+    images, bad = [], []
+    for p in files:
+        why = image_file_problem(p)
+        if why is None:
+            images.append(p)
+        else:
+            bad.append(f'{p.name} ({why})')
+    if bad:
+        note = f'{len(bad)} files skipped, not usable: {"; ".join(bad[:10])}' + (' ...' if len(bad) > 10 else '')
+        assumptions.append(note)
+        if log is not None:
+            log(f'warning: {note}')
+    return images, len(files)
+
+
+@dataclass
+class MatchStats:
+    """What matching did (the report's figures and the benchmark's)."""
+    photos: int = 0
+    features: list = field(default_factory=list)     # per photo
+    pairs_tried: int = 0
+    pairs_verified: int = 0
+    status_counts: dict = field(default_factory=dict)
+    widened_photos: int = 0                          # photos matched with more candidates
+    features_s: float = 0.0
+    matching_s: float = 0.0
+    track_lengths: dict = field(default_factory=dict)   # photos per track -> tracks
+
+    def to_dict(self) -> dict:
+        f = np.asarray(self.features, float)
+        return {'photos': self.photos, 'features_median': float(np.median(f)) if len(f) else 0.0,
+                'features_min': int(f.min()) if len(f) else 0, 'pairs_tried': self.pairs_tried,
+                'pairs_verified': self.pairs_verified, 'pair_status': dict(self.status_counts),
+                'widened_photos': self.widened_photos, 'features_s': round(self.features_s, 2),
+                'matching_s': round(self.matching_s, 2),
+                'track_lengths': {str(k): int(v) for k, v in sorted(self.track_lengths.items())}}
+
+
+class _Progress:
+    def __init__(self, log, what: str, total: int):
+        self.log, self.what, self.total = log, what, total
+        self.t0 = self.last = time.monotonic()
+
+    def step(self, done: int, extra: str = '') -> None:
+        now = time.monotonic()
+        if self.log is not None and (now - self.last >= PROGRESS_EVERY_S or done == self.total):
+            self.last = now
+            self.log(f'{self.what}: {done}/{self.total}{extra} ({now - self.t0:.0f} s)')
+
+
+def _read_gray(path: Path, camera: PinholeCamera, opt: pm.MatchingOptions, assumptions: list):
+    """The photo in grey at the reduced size, and full-photo pixels per reduced pixel (x, y)."""
+    from PIL import Image
+    with Image.open(path) as im:
+        w, h = im.size
+        if im.getexif().get(0x0112, 1) in (5, 6, 7, 8):   # EXIF orientation: OpenCV turns these by 90 degrees
+            w, h = h, w
+    r, wr, hr = pm.reduced_size(w, h, opt.max_image_px)
+    flag = {1: cv2.IMREAD_GRAYSCALE, 2: cv2.IMREAD_REDUCED_GRAYSCALE_2, 4: cv2.IMREAD_REDUCED_GRAYSCALE_4,
+            8: cv2.IMREAD_REDUCED_GRAYSCALE_8}[r]
+    img = cv2.imread(str(path), flag)
+    if img is None:
+        raise DataError(f'{path.name} cannot be decoded')
+    factor = [float(r), float(r)]
+    if (img.shape[1], img.shape[0]) != (wr, hr):
+        factor = [r * img.shape[1] / wr, r * img.shape[0] / hr]
+        img = cv2.resize(img, (wr, hr), interpolation=cv2.INTER_AREA)
+    if (w, h) != (camera.width, camera.height):
+        if (h, w) == (camera.width, camera.height):
+            img = cv2.rotate(img, cv2.ROTATE_90_CLOCKWISE)
+            factor = factor[::-1]
+            assumptions.append(f'{path.name} was stored rotated by 90 degrees: rotated back')
+        else:
+            camera.check_image_size(w, h)
+    return img, factor
+
+
+def _footprints(images: list[Path], positions: np.ndarray, camera: PinholeCamera) -> np.ndarray | None:
+    """(N, 3) ground footprints (width_m, height_m, rotation_deg of the image x axis from east) from a
+    DJI XMP's gimbal yaw and height above take-off, for near-nadir photos; None when any lacks them."""
+    out = []
     for p in images:
-        img = cv2.imread(str(p), cv2.IMREAD_COLOR)
-        if img is None:
-            raise DataError(f'{p} cannot be read as an image')
-        if (img.shape[1], img.shape[0]) != (camera.width, camera.height):
-            if (img.shape[0], img.shape[1]) == (camera.width, camera.height):
-                img = cv2.rotate(img, cv2.ROTATE_90_CLOCKWISE)
-                assumptions.append(f'{p.name} was stored rotated by 90 degrees: rotated back')
-            else:
-                camera.check_image_size(img.shape[1], img.shape[0])
-        feats.append(pm.extract(p.name, img))
-    return feats
+        x = read_dji_xmp(p)
+        yaw, pitch, rel = (xmp_float(x, k) for k in ('GimbalYawDegree', 'GimbalPitchDegree', 'RelativeAltitude'))
+        if yaw is None or rel is None or rel <= 1.0 or (pitch is not None and pitch > -70.0):
+            return None
+        out.append((rel * camera.width / camera.fx, rel * camera.height / camera.fy, -yaw))
+    return np.array(out) if len(out) == len(positions) else None
+
+
+def _match_block(images, feats, camera, pos, sigma_h_m, footprints, opt, factor, log, stats: MatchStats):
+    order, first = pm.candidate_order(pos, opt.neighbours, sigma_h_m, footprints)
+    pairs = pm.candidate_pairs(order, first)
+    matches, tried = {}, set()
+    verified = np.zeros(len(images), int)
+    t0 = time.monotonic()
+    rounds = 0
+    while pairs:
+        prog = _Progress(log, 'matching pairs' if not rounds else 'matching more pairs for weakly linked photos',
+                         len(pairs))
+        for n, (i, j) in enumerate(pairs):
+            tried.add((i, j))
+            r = pm.match_pair(feats[i], feats[j], camera, opt, factor, i, j)
+            stats.status_counts[r.status] = stats.status_counts.get(r.status, 0) + 1
+            if r.verified:
+                matches[(i, j)] = r.matches
+                verified[[i, j]] += 1
+            prog.step(n + 1, f', {len(matches)} verified')
+        rounds += 1
+        if rounds > 2:
+            break
+        pairs = pm.more_candidates(order, tried, verified, opt.min_pairs, opt.max_extra)
+        if pairs:
+            stats.widened_photos += int(np.sum(verified < opt.min_pairs))
+    stats.pairs_tried, stats.pairs_verified = len(tried), len(matches)
+    stats.matching_s = time.monotonic() - t0
+    return matches
 
 
 def read_photo_block(src: str | Path, camera_path: str | Path | None = None, neighbours: int = 8,
                      exif_altitude: str | None = None, takeoff_h_m: float | None = None,
-                     takeoff_heights: str = 'msl', log=None) -> KeyframeBlock:
+                     takeoff_heights: str = 'msl', log=None, matching: pm.MatchingOptions | None = None
+                     ) -> KeyframeBlock:
     """The photos of the folder `src` as a KeyframeBlock, in file-name order.
 
-    neighbours: photos matched with each photo (nearest by position); exif_altitude ('msl',
-    'ellipsoidal', 'relative' with takeoff_h_m in takeoff_heights, or None: msl, checked after the
-    adjustment); log(text): progress lines.
+    neighbours: photos matched with each photo first (replaces matching.neighbours); exif_altitude
+    ('msl', 'ellipsoidal', 'relative' with takeoff_h_m in takeoff_heights, or None: msl, checked
+    after the adjustment); log(text): progress lines and warnings; matching: feature and matching
+    options (core.photo_matching.MatchingOptions). The block's `stats` holds MatchStats.to_dict().
     """
     src = Path(src)
     if not src.is_dir():
         raise DataError(f'{src} is not a folder of photos')
-    images = sorted(p for p in src.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
-    if len(images) < 3:
-        raise DataError(f'{src} holds {len(images)} images: at least 3 overlapping photos are needed')
+    opt = pm.MatchingOptions(**{**(matching.__dict__ if matching else {}), 'neighbours': int(neighbours)})
     assumptions = []
+    images, n_files = _usable_images(src, assumptions, log)
+    if len(images) < 3:
+        raise DataError(f'{src} holds {len(images)} usable images: at least 3 overlapping photos are needed')
     geo, exif_check = _positions(src, images, exif_altitude, takeoff_h_m, takeoff_heights, assumptions)
     first = next((geo[p.name] for p in images if p.name in geo), None)
     if first is None:
         raise DataError(f'no image in {src} has a position (EXIF GPS or geo.txt): georeferencing impossible')
     origin = LocalFrame(first[0], first[1], first[2])
-    camera = _camera(src, camera_path, assumptions)
+    camera, from_exif = _camera(src, images, camera_path, assumptions)
+    stats = MatchStats(photos=len(images))
     t0 = time.monotonic()
-    feats = _features(images, camera, assumptions)
+    feats, factor = [], 1.0
+    prog = _Progress(log, 'features', len(images))
+    for n, p in enumerate(images):
+        gray, fxy = _read_gray(p, camera, opt, assumptions)
+        feats.append(pm.extract(p.name, gray, fxy, opt))
+        factor = max(fxy)
+        prog.step(n + 1)
+    stats.features = [len(f.uv) for f in feats]
+    stats.features_s = time.monotonic() - t0
     pos = np.array([origin.geodetic_to_enu(*geo[p.name][:3]) if p.name in geo else [np.nan] * 3 for p in images])
-    pos = np.where(np.isfinite(pos), pos, np.nanmean(pos, axis=0))
-    matches = {}
-    for i, j in pm.neighbours(pos, neighbours):
-        m = pm.match_pair(feats[i], feats[j], camera)
-        if len(m):
-            matches[(i, j)] = m
+    sigma_h = float(np.median([geo[p.name][3] for p in images if p.name in geo]))
+    footprints = _footprints(images, pos, camera)
+    if footprints is not None:
+        assumptions.append('candidate pairs by footprint overlap (DJI XMP gimbal yaw and height above take-off)')
+    matches = _match_block(images, feats, camera, pos, sigma_h, footprints, opt, factor, log, stats)
     tracks = pm.build_tracks([len(f.uv) for f in feats], matches)
+    lengths = pm.track_lengths(tracks)
+    stats.track_lengths = {int(k): int(v) for k, v in enumerate(np.bincount(lengths)) if k >= 2 and v}
     if log is not None:
-        log(f'{len(images)} photos, {sum(len(f.uv) for f in feats)} features, {len(matches)} verified pairs, '
-            f'in {time.monotonic() - t0:.1f} s')
+        log(f'{len(images)} photos, {sum(stats.features)} features ({stats.features_s:.1f} s), '
+            f'{stats.pairs_verified}/{stats.pairs_tried} pairs verified ({stats.matching_s:.1f} s), '
+            f'{int(np.sum(lengths >= 2))} tracks ({int(np.sum(lengths >= 3))} through 3+ photos)')
+    lonely = [images[i].name for i in range(len(images))
+              if not any(i in k for k in matches)]
+    if lonely:
+        assumptions.append(f'{len(lonely)} photos share no verified pair with any other: {lonely[:10]}')
     records = []
     for p, f, tr in zip(images, feats, tracks):
         keep = tr >= 0
         g = geo.get(p.name)
         fix = GnssFix(g[0], g[1], g[2], np.diag([g[3] ** 2, g[3] ** 2, g[4] ** 2])) if g else None
         records.append(KeyframeRecord(0, tr[keep], f.uv[keep], fix, p.name))
-    return KeyframeBlock(camera, origin, records, assumptions, n_inputs=len(images), exif_geodetic=exif_check)
+    return KeyframeBlock(camera, origin, records, assumptions, n_inputs=n_files, exif_geodetic=exif_check,
+                         camera_from_exif=from_exif, stats=stats.to_dict())

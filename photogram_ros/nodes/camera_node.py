@@ -2,7 +2,9 @@
 
 Publishes camera/image_raw (bgr8), camera/camera_info (the calibration, every frame) and, for
 geotagged photos, gps/fix from the EXIF GPS stamped at the photo time, so survey photos without a
-flight log still georeference. A camera driver already publishing these topics needs no ingest node.
+flight log still georeference. A photo folder without `calibration_file` takes its camera from the
+first photo's EXIF (core/exif_intrinsics.py: focal length in pixels, principal point centred, no
+distortion), said on /diagnostics. A camera driver already publishing these topics needs no ingest node.
 """
 
 from __future__ import annotations
@@ -30,8 +32,8 @@ class CameraParams:
                             '(/dev/video0 or an index such as 0)')
     rate: float = param(1.0, 'Playback speed of folders and files: 1 = EXIF/recorded timing, 0 = next frame as '
                              'soon as reliable subscribers acknowledged the previous one', min=0.0, max=1000.0)
-    calibration_file: str = param('', 'Camera calibration, ROS camera_calibration or OpenCV YAML '
-                                      '(make one with photogram-ros calibrate)')
+    calibration_file: str = param('', 'Camera calibration, ROS camera_calibration or OpenCV YAML (make one with '
+                                      'photogram-ros calibrate); "" for a photo folder: from the EXIF')
     publish_exif_fix: bool = param(True, 'Publish the EXIF GPS of photos on gps/fix, stamped at the photo time')
     exif_sigma_m: float = param(5.0, 'Horizontal 1-sigma of EXIF GPS positions, m (vertical taken as twice it)',
                                 min=0.001, max=10000.0)
@@ -48,20 +50,14 @@ class CameraParams:
 class CameraNode(Node):
     def __init__(self, overrides: dict | None = None, **node_kwargs):
         super().__init__('camera_node', **node_kwargs)
-        from photogram_ros.core.camera import load_calibration
         from photogram_ros.io.image_source import open_source
         p = self.params = declare(self, CameraParams, overrides)
-        if not p.calibration_file:
-            raise ConfigError('camera_node: set the parameter "calibration_file" to the camera calibration YAML '
-                              '(ROS or OpenCV layout; make one with photogram-ros calibrate)')
-        try:
-            self.camera = load_calibration(p.calibration_file)
-        except CalibrationError as exc:
-            raise ConfigError(f'camera_node: parameter "calibration_file": {exc}') from exc
         self._open = lambda: open_source(p.source, p.exif_utc_offset_h * 3600.0, p.fallback_period_s)
         self.source = self._open()
+        self.camera, camera_note = self._calibration(p)
         self.diag = Diagnostics(self)
         self.diag.set('source', p.source)
+        self.diag.set('calibration', camera_note)
         for note in self.source.notes:
             self.diag.set('note', note)
             self.get_logger().info(note)
@@ -80,6 +76,25 @@ class CameraNode(Node):
         self._wall0 = None
         self._reported_skips = 0
         self._timer = self.create_timer(0.005, self._tick) if p.autostart else None
+
+    def _calibration(self, p):
+        """The camera and where it came from: the calibration file, else a photo folder's EXIF."""
+        from photogram_ros.core.camera import load_calibration
+        from photogram_ros.io.image_source import FolderSource
+        if p.calibration_file:
+            try:
+                return load_calibration(p.calibration_file), p.calibration_file
+            except CalibrationError as exc:
+                raise ConfigError(f'camera_node: parameter "calibration_file": {exc}') from exc
+        why = 'a video has no EXIF'
+        if isinstance(self.source, FolderSource):
+            try:
+                est = self.source.exif_intrinsics()
+                return est.camera, f'EXIF: {est.note}'
+            except CalibrationError as exc:
+                why = str(exc)
+        raise ConfigError(f'camera_node: set the parameter "calibration_file" to the camera calibration YAML (ROS '
+                          f'or OpenCV layout; make one with photogram-ros calibrate): {why}')
 
     # --- frames ----------------------------------------------------------------------------------
 

@@ -2,7 +2,10 @@
 
 Photos are taken at the front-overlap spacing a survey camera would use, from the same rendered
 frames as the bag. EXIF GPS altitude is above mean sea level, as the EXIF standard says; geo.txt
-carries the ellipsoidal height with per-image accuracy, as a PPK/RTK workflow would.
+carries the ellipsoidal height with per-image accuracy, as a PPK/RTK workflow would. The camera tags
+are a real camera's: FocalLength (mm, for a 3 um pixel pitch), FocalPlaneX/YResolution with its unit,
+FocalLengthIn35mmFilm (by the diagonal) and the image size, from which core/exif_intrinsics.py
+recovers the focal length in pixels.
 """
 
 from __future__ import annotations
@@ -21,6 +24,8 @@ from photogram_ros.core.rotations import invert_T, transform_points
 
 GPS_IFD = 0x8825
 EXIF_IFD = 0x8769
+PIXEL_PITCH_MM = 0.003          # the simulated sensor's pixel pitch
+DIAGONAL_35MM_MM = 43.27
 
 
 def _rational_dms(value_deg: float):
@@ -32,7 +37,9 @@ def _rational_dms(value_deg: float):
     return (IFDRational(d, 1), IFDRational(m, 1), IFDRational(int(round(s * 10000)), 10000))
 
 
-def exif_bytes(lat_deg: float, lon_deg: float, alt_msl_m: float, when: datetime, focal_mm: float) -> bytes:
+def exif_bytes(lat_deg: float, lon_deg: float, alt_msl_m: float, when: datetime, focal_mm: float,
+               size_px: tuple[int, int] | None = None, pixel_pitch_mm: float = PIXEL_PITCH_MM) -> bytes:
+    """EXIF of a simulated photo; with `size_px` (width, height) also the tags of its sensor geometry."""
     exif = Image.Exif()
     exif[0x010F] = 'photogram_ros'           # Make
     exif[0x0110] = 'simulator'                # Model
@@ -54,6 +61,14 @@ def exif_bytes(lat_deg: float, lon_deg: float, alt_msl_m: float, when: datetime,
     if z:
         ex[0x9011] = z[:3] + ':' + z[3:]   # OffsetTimeOriginal
     ex[0x920A] = IFDRational(int(round(focal_mm * 1000)), 1000)  # FocalLength
+    if size_px is not None:
+        w, h = (int(v) for v in size_px)
+        ex[0xA002], ex[0xA003] = w, h                               # ExifImageWidth / Height
+        per_cm = IFDRational(int(round(10.0 / pixel_pitch_mm * 1000)), 1000)
+        ex[0xA20E] = ex[0xA20F] = per_cm                            # FocalPlaneX/YResolution, pixels per cm
+        ex[0xA210] = 3                                              # FocalPlaneResolutionUnit: cm
+        diag_mm = pixel_pitch_mm * float(np.hypot(w, h))
+        ex[0xA405] = int(round(focal_mm * DIAGONAL_35MM_MM / diag_mm))  # FocalLengthIn35mmFilm
     return exif.tobytes()
 
 
@@ -81,7 +96,7 @@ def write_photos(folder: Path, frames, truth, cfg) -> list[str]:
         rgb = cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
         Image.fromarray(rgb).save(folder / name, quality=92,
                                   exif=exif_bytes(fix['lat_deg'], fix['lon_deg'], fix['alt_msl_m'], when,
-                                                  cfg.focal_px * 0.003))
+                                                  cfg.focal_px * PIXEL_PITCH_MM, (img.shape[1], img.shape[0])))
         geo_lines.append(f"{name} {fix['lon_deg']:.9f} {fix['lat_deg']:.9f} {fix['h_m']:.3f} 0 0 0 "
                          f"{fix['h_acc_m']:.3f} {fix['v_acc_m']:.3f}")
         names.append((name, ft))

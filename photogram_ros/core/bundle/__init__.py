@@ -54,9 +54,9 @@ def bundle_adjust(problem: BundleProblem, options: BundleOptions | None = None) 
     solver = Solver(d, options)
     out = solver.run()
     R, t, X, intr = out['R'], out['t'], out['X'], out['intr']
-    cam_cov = pt_cov = intr_cov = var = None
+    cam_cov = pt_cov = intr_cov = var = corr = None
     if options.compute_covariance and out['status'] != 'failed':
-        cam_cov, pt_cov, intr_cov = solver.covariance(R, t, X, intr)
+        cam_cov, pt_cov, intr_cov, corr = solver.covariance(R, t, X, intr)
         var = solver.variance_factor(out['cost'])
         if intr_cov is not None:
             intr_cov = intr_cov * (var if var is not None else np.nan)
@@ -70,6 +70,7 @@ def bundle_adjust(problem: BundleProblem, options: BundleOptions | None = None) 
                         map_T_cams=_map_T_cams(R, t), points_map=X, camera=camera, intrinsics=intr,
                         rms=_rms(solver, R, t, X, intr), cam_centre_cov=cam_cov, point_cov=pt_cov,
                         intrinsics_cov=intr_cov, intrinsics_names=tuple(options.refine_intrinsics),
+                        intrinsics_height_corr=corr,
                         variance_factor=var,
                         seconds=out['seconds'], cost_history=out['hist'], time_history=out['hist_t'])
 

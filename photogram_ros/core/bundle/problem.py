@@ -174,6 +174,9 @@ class BundleResult:
     point_cov: np.ndarray | None = None
     intrinsics_cov: np.ndarray | None = None         # (K, kf, kf) over intrinsics_names, scaled
     intrinsics_names: tuple = ()                     # BundleOptions.refine_intrinsics ('f' = fx and fy)
+    # (K, kf) correlation of each intrinsic with the block's height (mean camera-centre height minus
+    # mean point height, map z): near +-1 the intrinsic is not determined (focal vs the ground's depth).
+    intrinsics_height_corr: np.ndarray | None = None
     variance_factor: float | None = None             # s0^2 (None without redundancy)
     seconds: float = 0.0
     cost_history: list = field(default_factory=list)     # cost after each accepted step
@@ -185,3 +188,9 @@ class BundleResult:
             return {}
         sd = np.sqrt(np.clip(np.diagonal(self.intrinsics_cov[group]), 0.0, None))
         return {n: float(v) for n, v in zip(self.intrinsics_names, sd)}
+
+    def intrinsics_height_correlation(self, group: int = 0) -> dict:
+        """name -> correlation of each self-calibrated intrinsic with the block's height ({} if none)."""
+        if self.intrinsics_height_corr is None:
+            return {}
+        return {n: float(v) for n, v in zip(self.intrinsics_names, self.intrinsics_height_corr[group])}

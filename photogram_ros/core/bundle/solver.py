@@ -488,14 +488,9 @@ class Solver:
         r = n_res - int(st.real.sum()) - 3 * st.npf
         return 2.0 * float(cost) / r if r > 0 else None
 
-    def covariance(self, R, t, X, intr):
-        """Marginal covariances at the estimate, unscaled (inverse of J^T J at the residuals' weights).
-
-        Returns camera centres (C,3,3), points (P,3,3) and the free intrinsics per group (K,kf,kf);
-        all None when the system is singular (free gauge). S^-1 of the reduced camera system is the
-        marginal covariance of every camera-side unknown, intrinsics included, with the points
-        already marginalised by the Schur complement.
-        """
+    def _reduced_inverse(self, R, t, X, intr):
+        """(lin, Vinv, Wd, Sc): the inverse Sc of the reduced camera system S = U - W V^-1 W^T (zeros
+        on the intrinsics' padding) at the estimate; None when singular (free gauge)."""
         st = self.st
         lin = self.linearise(R, t, X, intr)
         V = lin['V']
@@ -503,9 +498,8 @@ class Solver:
             np.linalg.cholesky(V)
             Vinv = np.linalg.inv(V)
         except np.linalg.LinAlgError:
-            return None, None, None
+            return None
         Wd = self._Wd(lin)
-        W = self._W(Wd)
         WV = self._W(Wd @ Vinv[st.w_pt])
         S = lin['U'].toarray() - (WV @ self._WT(Wd)).toarray()
         real = st.real
@@ -516,15 +510,36 @@ class Solver:
                 np.linalg.cholesky(Sr)
                 Sc[np.ix_(real, real)] = np.linalg.inv(Sr)
         except np.linalg.LinAlgError:
-            return None, None, None
+            return None
+        return lin, Vinv, Wd, Sc
+
+    def _centre_jacobian(self, R, t, free):
+        """d(camera centre)/d(pose unknowns) of the free cameras: (F, 3, 6)."""
+        RT = np.transpose(R[free], (0, 2, 1))
+        return np.concatenate([-_cross_cols(RT, t[free]), -RT], axis=2)
+
+    def covariance(self, R, t, X, intr):
+        """Marginal covariances at the estimate, unscaled (inverse of J^T J at the residuals' weights).
+
+        Returns camera centres (C,3,3), points (P,3,3), the free intrinsics per group (K,kf,kf) and the
+        correlation of each free intrinsic with the block's height (K, kf; see `_height_correlation`);
+        all None when the system is singular (free gauge). S^-1 of the reduced camera system is the
+        marginal covariance of every camera-side unknown, intrinsics included, with the points
+        already marginalised by the Schur complement.
+        """
+        st = self.st
+        inv = self._reduced_inverse(R, t, X, intr)
+        if inv is None:
+            return None, None, None, None
+        lin, Vinv, Wd, Sc = inv
+        W = self._W(Wd)
         C = len(R)
         cam_cov = np.zeros((C, 3, 3))
         free = st.cam_col >= 0
         if free.any():
             ix = st.cam_col[free][:, None] + np.arange(6)
             Spose = Sc[ix[:, :, None], ix[:, None, :]]
-            RT = np.transpose(R[free], (0, 2, 1))
-            J = np.concatenate([-_cross_cols(RT, t[free]), -RT], axis=2)
+            J = self._centre_jacobian(R, t, free)
             cam_cov[free] = J @ Spose @ np.transpose(J, (0, 2, 1))
         pt_cov = np.zeros((len(X), 3, 3))
         blocks = np.zeros((st.npf, 3, 3))
@@ -535,8 +550,35 @@ class Solver:
             Q = Sc @ Wk
             blocks[a:b] = np.einsum('rka,rkb->kab', Wk.reshape(st.nc, b - a, 3), Q.reshape(st.nc, b - a, 3))
         pt_cov[st.pt_col >= 0] = Vinv + Vinv @ blocks @ Vinv
-        intr_cov = None
+        intr_cov = corr = None
         if st.kf:
             ix = st.intr_col[:, None] + np.arange(st.kf)
             intr_cov = Sc[ix[:, :, None], ix[:, None, :]]
-        return cam_cov, pt_cov, intr_cov
+            corr = self._height_correlation(R, t, Vinv, W, Sc)
+        return cam_cov, pt_cov, intr_cov, corr
+
+    def _height_correlation(self, R, t, Vinv, W, Sc):
+        """(K, kf) correlation of each free intrinsic with the block's height H = mean height (map z)
+        of the free camera centres minus that of the free points: on a flat nadir block the focal
+        length and the ground's depth trade off (|corr| near 1), which the intrinsic's own sigma hides.
+
+        With g = a.c + b.p (c camera-side unknowns, p points) and y = W V^-1 b:
+        var(g) = (a - y)^T Sc (a - y) + b^T V^-1 b and cov(e.c, g) = e^T Sc (a - y).
+        """
+        st = self.st
+        free = st.cam_col >= 0
+        a = np.zeros(st.nc)
+        if free.any():
+            J = self._centre_jacobian(R, t, free)                  # (F, 3, 6)
+            np.add.at(a, st.cam_col[free][:, None] + np.arange(6), J[:, 2, :] / free.sum())
+        bp = np.zeros((st.npf, 3))
+        if st.npf:
+            bp[:, 2] = -1.0 / st.npf
+        vb = np.einsum('pij,pj->pi', Vinv, bp)
+        y = W @ vb.ravel()
+        ay = a - y
+        Say = Sc @ ay
+        var_h = float(ay @ Say + np.sum(bp * vb))
+        ix = st.intr_col[:, None] + np.arange(st.kf)
+        sd = np.sqrt(np.clip(np.diagonal(Sc)[ix], 1e-300, None))
+        return Say[ix] / (sd * np.sqrt(max(var_h, 1e-300)))
