@@ -72,18 +72,20 @@ MIN_DSM_VALID_SHARE = 0.5    # a DSM with fewer cells holding a height than this
 NOT_ORIENTED_PREFIX = 'not_oriented_'   # bundle_node counters per reason (not_oriented_<reason>), when it has them
 
 
-def keyframe_accounting(counts: dict, oriented: int) -> dict:
+def keyframe_accounting(counts: dict, oriented: int, bundle_status: str | None = None) -> dict:
     """Keyframes taken (the tracker's count), oriented (`oriented`: those with an adjusted, georeferenced
     pose in the map, which the products use) and why the others were not, from the nodes' counters
-    (`counts`: role -> Graph.counts()). Reasons are the nodes' own figures: they need not add up when
-    the final adjustment oriented keyframes the window had given up ('unaccounted' takes the rest)."""
+    (`counts`: role -> Graph.counts()). The reasons are the nodes' in-flight counters: more than the
+    keyframes missing when the final adjustment oriented some the window had given up (said as
+    `keyframes_oriented_after_the_window_gave_up`), 'unaccounted' for what no counter explains.
+    `bundle_status`: the adjuster's last status on /diagnostics, named with its not-oriented count."""
     tr, b = counts.get('tracker', {}), counts.get('bundle', {})
     taken = int(tr.get('keyframes', 0))
     out = {'keyframes_taken': taken, 'keyframes_oriented': int(oriented),
-           'keyframes_oriented_in_flight': int(b.get('keyframes_oriented', 0)), 'keyframes_not_oriented': {}}
+           'keyframes_oriented_in_flight': int(b.get('keyframes_oriented', 0))}
     if 'keyframes_without_fix' in tr:
         out['keyframes_without_fix'] = int(tr['keyframes_without_fix'])
-    why = out['keyframes_not_oriented']
+    why = {}
     if 'bundle' in counts:
         why['never reached the bundle adjuster'] = max(0, taken - int(b.get('keyframes_received', 0)))
     why['failed in the bundle adjuster (an error, see the problems)'] = int(b.get('keyframes_failed', 0))
@@ -92,15 +94,21 @@ def keyframe_accounting(counts: dict, oriented: int) -> dict:
     if per_reason:
         why.update({f'not oriented: {k.replace("_", " ")}': v for k, v in per_reason.items()})
     else:
-        status = b.get('status')
+        status = bundle_status
         why['not oriented by the bundle adjuster' + (f' (its last status: {status})' if status else '')] = \
             int(b.get('keyframes_not_oriented', 0))
     why['oriented in flight, no georeferenced pose in the map'] = max(0, out['keyframes_oriented_in_flight']
                                                                        - int(oriented))
-    rest = taken - int(oriented) - sum(why.values())
-    if rest > 0:
-        why['unaccounted (no node counted why)'] = rest
-    out['keyframes_not_oriented'] = {k: v for k, v in why.items() if v}
+    why = {k: v for k, v in why.items() if v}
+    missing = max(0, taken - int(oriented))
+    counted = sum(why.values())
+    if counted < missing:
+        why['unaccounted (no node counted why)'] = missing - counted
+    elif counted > missing:
+        # The in-flight counters include keyframes the final adjustment (or a later retry) oriented after all.
+        out['keyframes_oriented_after_the_window_gave_up'] = counted - missing
+    out['keyframes_not_oriented'] = missing
+    out['keyframes_not_oriented_by_reason'] = why if missing else {}
     return out
 
 
@@ -150,7 +158,9 @@ def mapping_verdict(accounting: dict, georeferenced: bool, dsm_share: float | No
 
 def _health_sections(figures: dict, kfs, files: dict, run: dict, diagnostics: dict | None, georeferenced: bool):
     """The verdict and the nodes' health, for the top of the report (also into `figures`)."""
-    acc = keyframe_accounting((run or {}).get('counts', {}), len(kfs) if georeferenced else 0)
+    bundle = next((d for n, d in (diagnostics or {}).items() if n.endswith('bundle_node')), {})
+    acc = keyframe_accounting((run or {}).get('counts', {}), len(kfs) if georeferenced else 0,
+                              bundle.get('values', {}).get('status'))
     verdict = mapping_verdict(acc, georeferenced, dsm_valid_share(files.get('dsm')), bool(files))
     health = node_health(diagnostics)
     figures.update(acc)
@@ -163,8 +173,8 @@ def _health_sections(figures: dict, kfs, files: dict, run: dict, diagnostics: di
     else:
         text = ['MAPPING FAILED: ' + '; '.join(verdict['failures']) + '.']
     if acc['keyframes_not_oriented']:
-        text.append('Keyframes not oriented, by reason (the nodes\' counters): '
-                    + '; '.join(f'{k}: {v}' for k, v in acc['keyframes_not_oriented'].items()) + '.')
+        text.append(f"{acc['keyframes_not_oriented']} keyframes not oriented, by reason (the nodes' counters): "
+                    + '; '.join(f'{k}: {v}' for k, v in acc['keyframes_not_oriented_by_reason'].items()) + '.')
     bad = [h for h in health if h['worst_level'] != 'OK']
     text.append(f'{len(bad)} of {len(health)} nodes reported WARN or ERROR on /diagnostics.' if health else
                 'No /diagnostics were recorded.')
