@@ -114,8 +114,8 @@ def run(a) -> int:
     if gr and gr.get('count'):
         print(f"GCP residuals: RMSE horizontal {gr['horizontal_m'] * 100:.1f} cm, vertical {gr['z_m'] * 100:.1f} cm "
               f"over {gr['count']} GCPs ({figures['gcp_residuals'].get('used_by_adjuster', '?')} used by the adjuster)")
-    print(f'outputs in {out}/: ' + ', '.join(sorted(Path(f).name for f in files.values()))
-          + ', report.html, report.md, report.json, trajectory.csv')
+    written = sorted(Path(f).name for f in files.values()) + ['report.html', 'report.md', 'report.json']
+    print(f'outputs in {out}/: ' + ', '.join(written + (['trajectory.csv'] if (out / 'trajectory.csv').exists() else [])))
     for n in notes:
         print(f'note: {n}')
     for e in r['bag_errors']:

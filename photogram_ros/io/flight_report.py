@@ -72,19 +72,24 @@ MIN_DSM_VALID_SHARE = 0.5    # a DSM with fewer cells holding a height than this
 NOT_ORIENTED_PREFIX = 'not_oriented_'   # bundle_node counters per reason (not_oriented_<reason>), when it has them
 
 
-def keyframe_accounting(counts: dict, oriented: int, bundle_status: str | None = None) -> dict:
+def keyframe_accounting(counts: dict, oriented: int, bundle_status: str | None = None,
+                        frames_unusable: int | None = None) -> dict:
     """Keyframes taken (the tracker's count), oriented (`oriented`: those with an adjusted, georeferenced
     pose in the map, which the products use) and why the others were not, from the nodes' counters
     (`counts`: role -> Graph.counts()). The reasons are the nodes' in-flight counters: more than the
     keyframes missing when the final adjustment oriented some the window had given up (said as
     `keyframes_oriented_after_the_window_gave_up`), 'unaccounted' for what no counter explains.
-    `bundle_status`: the adjuster's last status on /diagnostics, named with its not-oriented count."""
+    `bundle_status`: the adjuster's last status on /diagnostics, named with its not-oriented count;
+    `frames_unusable`: the tracker's unusable_frames on /diagnostics."""
     tr, b = counts.get('tracker', {}), counts.get('bundle', {})
     taken = int(tr.get('keyframes', 0))
     out = {'keyframes_taken': taken, 'keyframes_oriented': int(oriented),
            'keyframes_oriented_in_flight': int(b.get('keyframes_oriented', 0))}
-    if 'keyframes_without_fix' in tr:
-        out['keyframes_without_fix'] = int(tr['keyframes_without_fix'])
+    if frames_unusable is not None:
+        out['frames_unusable'] = int(frames_unusable)
+    for key in ('frames_tracked', 'keyframes_without_fix'):
+        if key in tr:
+            out[key] = int(tr[key])
     why = {}
     if 'bundle' in counts:
         why['never reached the bundle adjuster'] = max(0, taken - int(b.get('keyframes_received', 0)))
@@ -143,7 +148,9 @@ def mapping_verdict(accounting: dict, georeferenced: bool, dsm_share: float | No
     failures = []
     taken, oriented = accounting['keyframes_taken'], accounting['keyframes_oriented']
     if taken == 0:
-        failures.append('the tracker took no keyframe (no usable frame)')
+        frames, unusable = accounting.get('frames_tracked'), accounting.get('frames_unusable')
+        failures.append('the tracker took no keyframe' + (f' from {frames} frames' if frames is not None else '')
+                        + (f' ({unusable} unusable: too few features to track)' if unusable else ''))
     if not georeferenced:
         failures.append('no georeferenced keyframe: no map origin, no products')
     if taken and oriented < MIN_ORIENTED_SHARE * taken:
@@ -158,11 +165,16 @@ def mapping_verdict(accounting: dict, georeferenced: bool, dsm_share: float | No
 
 def _health_sections(figures: dict, kfs, files: dict, run: dict, diagnostics: dict | None, georeferenced: bool):
     """The verdict and the nodes' health, for the top of the report (also into `figures`)."""
-    bundle = next((d for n, d in (diagnostics or {}).items() if n.endswith('bundle_node')), {})
+    def values(name):
+        return next((d for n, d in (diagnostics or {}).items() if n.endswith(name)), {}).get('values', {})
+    unusable = values('tracker_node').get('unusable_frames')
     acc = keyframe_accounting((run or {}).get('counts', {}), len(kfs) if georeferenced else 0,
-                              bundle.get('values', {}).get('status'))
+                              values('bundle_node').get('status'),
+                              unusable if isinstance(unusable, (int, float)) else None)
     verdict = mapping_verdict(acc, georeferenced, dsm_valid_share(files.get('dsm')), bool(files))
-    health = node_health(diagnostics)
+    # The flight as a whole is a row of its own: at ERROR when it did not map, whatever the nodes said.
+    health = [{'node': 'replay', 'worst_level': 'OK' if verdict['mapped'] else 'ERROR',
+               'problems': len(verdict['failures']), 'reasons': verdict['failures']}] + node_health(diagnostics)
     figures.update(acc)
     figures['mapping'] = verdict
     figures['health'] = health
@@ -175,14 +187,16 @@ def _health_sections(figures: dict, kfs, files: dict, run: dict, diagnostics: di
     if acc['keyframes_not_oriented']:
         text.append(f"{acc['keyframes_not_oriented']} keyframes not oriented, by reason (the nodes' counters): "
                     + '; '.join(f'{k}: {v}' for k, v in acc['keyframes_not_oriented_by_reason'].items()) + '.')
-    bad = [h for h in health if h['worst_level'] != 'OK']
-    text.append(f'{len(bad)} of {len(health)} nodes reported WARN or ERROR on /diagnostics.' if health else
-                'No /diagnostics were recorded.')
+    bad = [h for h in health[1:] if h['worst_level'] != 'OK']
+    text.append(f'{len(bad)} of {len(health) - 1} nodes reported WARN or ERROR on /diagnostics'
+                + (': ' + ', '.join(f"{h['node']} {h['worst_level']}" for h in bad) if bad else '') + '.'
+                if len(health) > 1 else 'No /diagnostics were recorded.')
     verdict_sec = Section('Verdict', text)
     sec = Section('Health of the nodes (worst /diagnostics level during the run)')
     sec.tables.append(('Worst level and its reasons', [
-        {'node': h['node'], 'worst level': h['worst_level'], 'reasons': ' | '.join(h['reasons'])} for h in health]))
-    return [verdict_sec, sec] if health else [verdict_sec]
+        {'node': h['node'], 'worst level': h['worst_level'], 'reasons': '; '.join(h['reasons']).replace('|', '/')}
+        for h in health]))
+    return [verdict_sec, sec]
 
 
 def _truth_frame_for(truth, stamp_ns):
