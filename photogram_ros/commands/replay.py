@@ -115,7 +115,8 @@ def run(a) -> int:
         print(f"GCP residuals: RMSE horizontal {gr['horizontal_m'] * 100:.1f} cm, vertical {gr['z_m'] * 100:.1f} cm "
               f"over {gr['count']} GCPs ({figures['gcp_residuals'].get('used_by_adjuster', '?')} used by the adjuster)")
     written = sorted(Path(f).name for f in files.values()) + ['report.html', 'report.md', 'report.json']
-    print(f'outputs in {out}/: ' + ', '.join(written + (['trajectory.csv'] if (out / 'trajectory.csv').exists() else [])))
+    written += ['trajectory.csv'] if (out / 'trajectory.csv').exists() else []
+    print(f'outputs in {out}/: ' + ', '.join(written))
     for n in notes:
         print(f'note: {n}')
     for e in r['bag_errors']:

@@ -1,9 +1,9 @@
 """photogram-ros run: start the whole mapper (live, on the companion computer).
 
 SIGINT or SIGTERM ends the flight, and so does the end of a camera_node's photo folder or video file
-(not a device, not `loop`) once the tracker has taken its last frame: the tracker emits its last keyframes, the bundle adjuster makes
-the final adjustment and republishes every pose, stereo pairs what waits, the map flushes, and the
-products are matched again from the final poses. All of it runs while rclpy is still up (see
+(not a device, not `loop`) once the tracker has taken its last frame: the tracker emits its last
+keyframes, the bundle adjuster makes the final adjustment and republishes every pose, stereo pairs
+what waits, the map flushes, and the products are matched again from the final poses. All of it runs while rclpy is still up (see
 nodes/node_main.py); the exit status is not 0 when the final adjustment or the exports failed. A
 flight that mapped nothing (the report's Verdict) ends with a line "MAPPING FAILED: why" (exit 0).
 """

@@ -11,7 +11,8 @@ calibrated focal) for core/exif_intrinsics.py, and `read_dji_xmp` the XMP's dron
 (gimbal and flight angles, altitudes). A file that is empty, not an image or a truncated JPEG is
 skipped, named, and recorded in `skipped` (`image_file_problem`): one bad file must not end a survey,
 nor change how the others are timed. `read_fix_log` reads the GNSS log that goes with a video (a
-CSV as `photogram-ros fixes --format csv` writes it from a .tlog, a dataflash log or a bag). No ROS here: the camera node is a thin adapter over these iterators.
+CSV as `photogram-ros fixes --format csv` writes it from a .tlog, a dataflash log or a bag). No ROS
+here: the camera node is a thin adapter over these iterators.
 """
 
 from __future__ import annotations
@@ -445,7 +446,8 @@ class VideoSource:
             self.cap.release()
 
 
-def open_source(source: str, utc_offset_s: float = 0.0, fallback_period_s: float = 1.0, video_start_ns: int | None = None):
+def open_source(source: str, utc_offset_s: float = 0.0, fallback_period_s: float = 1.0,
+                video_start_ns: int | None = None):
     """`source`: a folder of images, a video file, a device path (/dev/video0) or a device index ('0');
     `video_start_ns`: the time of a video file's first frame (default: when it is opened)."""
     s = str(source).strip()

@@ -8,8 +8,9 @@ from here with the same waits. Either way the replay ends by itself at the sourc
 The player feeds the graph as fast as it keeps up (or at a set rate): after each image it waits
 until the tracker has taken that frame, so a fast replay never drops frames the way a live camera
 overload would, and while a node after the tracker (possibly in the child process) is more than
-`max_lag_keyframes` behind, so the queues between them, and the memory, stay bounded. When the bag ends the graph drains (keyframes -> bundle -> stereo -> map), the bundle
-runs its final adjustment, the map flushes, and the exports and the report are written.
+`max_lag_keyframes` behind, so the queues between them, and the memory, stay bounded. When the bag
+ends the graph drains (keyframes -> bundle -> stereo -> map), the bundle runs its final adjustment,
+the map flushes, and the exports and the report are written.
 
 One time base: every node runs with use_sim_time and takes the bag's time from the player's /clock,
 so what a node stamps itself (/diagnostics, the map's streams) lies in the bag's time span like the
