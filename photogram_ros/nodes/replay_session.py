@@ -350,6 +350,8 @@ def run_replay(opts: ReplayOptions, context=None) -> dict:
         clock = listener.create_publisher(Clock, '/clock', 10)
         summary, t0, last_ns = PlaySummary(), time.monotonic(), bag_start_ns
         while (stamp_ns := camera.peek_stamp_ns()) is not None:
+            if opts.rate > 0:   # the flight's timing, sped up by `rate`
+                time.sleep(max(0.0, t0 + (stamp_ns - bag_start_ns) * 1e-9 / opts.rate - time.monotonic()))
             before_frame()
             clock.publish(Clock(clock=time_from_ns(stamp_ns)))
             camera.publish_next()
