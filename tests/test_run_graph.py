@@ -88,3 +88,20 @@ def test_replay_of_a_bag_without_images_is_a_clear_error(tmp_path):
     r = subprocess.run([sys.executable, '-m', 'photogram_ros.cli', 'replay', str(bag), '--out', str(tmp_path / 'o'),
                         '--quiet'], cwd=ROOT, capture_output=True, text=True, timeout=120)
     assert r.returncode == 2 and 'no camera images' in r.stderr and '/fix' in r.stderr
+
+
+def test_run_with_a_photo_folder_ends_by_itself_at_its_end(tmp_path):
+    """camera_node on a folder (no device, no loop): `run` ends the flight once the tracker has the last photo."""
+    from test_replay_unmappable import write_white_wall
+    photos = write_white_wall(tmp_path / 'wall', n=4)
+    cfg = tmp_path / 'photos.yaml'
+    cfg.write_text(f'camera_node:\n  ros__parameters:\n    source: {photos}\n    rate: 0.0\n'
+                   f'map_node:\n  ros__parameters:\n    map_dir: {tmp_path / "map"}\n')
+    r = subprocess.run([sys.executable, '-m', 'photogram_ros.cli', 'run', '--params', str(cfg), '--nodes',
+                        'camera,tracker,bundle,stereo,map', '--out', str(tmp_path / 'products')], cwd=ROOT,
+                       capture_output=True, text=True, timeout=180)
+    out = r.stdout + r.stderr
+    assert r.returncode == 0, out[-3000:]
+    assert 'end of the camera source: ending the flight' in out
+    assert r.stdout.strip().splitlines()[-1].startswith('MAPPING FAILED: ')   # a white wall maps nothing
+    assert (tmp_path / 'products' / 'report.md').exists()

@@ -1,12 +1,29 @@
-"""photogram-ros replay: run photogram_ros on a recorded flight and write the map and the report."""
+"""photogram-ros replay: run photogram_ros on a recorded flight and write the map and the report.
+
+The flight is a bag, a folder of geotagged photos (played in EXIF time order with their EXIF GPS, the
+camera from the EXIF unless --calibration) or a video file with its GNSS log (--gnss-log, a CSV as
+`photogram-ros fixes --format csv` writes from a .tlog, a dataflash .bin or a bag; --calibration). The
+replay ends by itself at the end of the flight and writes the products and the report.
+"""
 
 from __future__ import annotations
 
-HELP = 'replay a flight bag through the whole mapper; writes clouds, DSM, ortho, trajectory and report to --out'
+HELP = ('replay a flight (bag, photo folder, or video + GNSS log) through the whole mapper; writes clouds, DSM, '
+        'ortho, trajectory and report to --out')
+EXIT_NOT_MAPPED = 5
 
 
 def add_arguments(p) -> None:
-    p.add_argument('bag', help='rosbag2 folder (sqlite3 or MCAP); ground truth beside it is used when present')
+    p.add_argument('bag', metavar='FLIGHT',
+                   help='rosbag2 folder (sqlite3 or MCAP), a folder of geotagged photos, or a video file (with '
+                        '--gnss-log); ground truth beside it (the simulator\'s) is used when present')
+    p.add_argument('--calibration', default='', help='camera calibration YAML for a video (a photo folder takes '
+                                                    'its camera from the EXIF without it)')
+    p.add_argument('--gnss-log', default='', help='GNSS fixes of a video: CSV with t_unix_s, lat_deg, lon_deg, h_m '
+                                                  '(ellipsoidal) and optional variances, e.g. from photogram-ros '
+                                                  'fixes LOG.tlog --format csv')
+    p.add_argument('--video-start', type=float, default=0.0,
+                   help='Unix time of the video\'s first frame (default: the first fix of --gnss-log)')
     p.add_argument('--out', default='output/replay', help='output folder')
     p.add_argument('--params', default=None, help='ROS 2 parameter file (default: config/replay.yaml if present)')
     p.add_argument('--rate', type=float, default=0.0, help='bag time speed; 0 = as fast as the mapper keeps up')
@@ -35,7 +52,9 @@ def add_arguments(p) -> None:
 
 def run(a) -> int:
     """Exit status 0; 2 bad input (before the first frame); 3 the bag was damaged (what it held was
-    mapped); 4 the final adjustment failed (products from the in-flight poses)."""
+    mapped); 4 the final adjustment failed (products from the in-flight poses); 5 the flight did not
+    map (no georeferenced keyframe, fewer than half of the keyframes oriented, or the DSM mostly
+    empty: the report's Verdict and the last line say why), when nothing above applies."""
     import json
     from pathlib import Path
 
@@ -44,7 +63,7 @@ def run(a) -> int:
     from photogram_ros.commands.products import check_output_crs, export_products
     from photogram_ros.nodes.node_main import init_ros
     from photogram_ros.io.control_file import read_control_file
-    from photogram_ros.nodes.replay_session import ReplayOptions, run_replay
+    from photogram_ros.nodes.replay_session import ReplayOptions, run_replay, source_kind
     from photogram_ros.sim.truth import GroundTruth
 
     params = a.params
@@ -64,10 +83,14 @@ def run(a) -> int:
     try:
         child = tuple(r.strip() for r in a.child_nodes.split(',') if r.strip()) if a.processes == 2 else ()
         res = run_replay(ReplayOptions(bag=a.bag, out=str(out), params_file=params, rate=a.rate,
-                                       progress=not a.quiet, child_roles=child, extra=extra))
+                                       progress=not a.quiet, child_roles=child, extra=extra,
+                                       calibration_file=a.calibration, gnss_log=a.gnss_log,
+                                       video_start_unix_s=a.video_start))
     finally:
         rclpy.try_shutdown()
-    truth = GroundTruth.load(a.bag) if GroundTruth.exists(a.bag) else None
+    # A simulator's photo folder sits in its flight folder, beside the truth.
+    where = a.bag if source_kind(a.bag) == 'bag' else str(Path(a.bag).resolve().parent)
+    truth = GroundTruth.load(where) if GroundTruth.exists(where) else None
     prod = export_products(res['map_dir'], out, params, a.crs, a.live_map, 'orthometric' if a.orthometric else
                            'ellipsoidal', a.min_pairs, progress=not a.quiet, run=res['run'], truth=truth,
                            control=control, diagnostics=res['diagnostics'])
@@ -78,6 +101,11 @@ def run(a) -> int:
     print(f"replayed {r['frames']} frames ({r['bag_s']:.1f} s of flight) in {r['wall_s']:.1f} s, "
           f"real-time factor {r['real_time_factor']:.2f}; {figures.get('keyframes', 0)} keyframes, "
           f"{r.get('map_points', 0)} map points")
+    print(f"keyframes: {figures.get('keyframes_taken', 0)} taken, {figures.get('keyframes_oriented', 0)} oriented"
+          + ''.join(f'; {v} {k}' for k, v in figures.get('keyframes_not_oriented_by_reason', {}).items()))
+    for h in figures.get('health', []):
+        if h['worst_level'] != 'OK':
+            print(f"health: {h['node']} {h['worst_level']}: {' | '.join(h['reasons'])[:300]}")
     cp = figures.get('check_points', {}).get('rmse')
     if cp and cp.get('count'):
         print(f"check points: RMSE horizontal {cp['horizontal_m'] * 100:.1f} cm, vertical {cp['z_m'] * 100:.1f} cm "
@@ -86,8 +114,9 @@ def run(a) -> int:
     if gr and gr.get('count'):
         print(f"GCP residuals: RMSE horizontal {gr['horizontal_m'] * 100:.1f} cm, vertical {gr['z_m'] * 100:.1f} cm "
               f"over {gr['count']} GCPs ({figures['gcp_residuals'].get('used_by_adjuster', '?')} used by the adjuster)")
-    print(f'outputs in {out}/: ' + ', '.join(sorted(Path(f).name for f in files.values()))
-          + ', report.html, report.md, report.json, trajectory.csv')
+    written = sorted(Path(f).name for f in files.values()) + ['report.html', 'report.md', 'report.json']
+    written += ['trajectory.csv'] if (out / 'trajectory.csv').exists() else []
+    print(f'outputs in {out}/: ' + ', '.join(written))
     for n in notes:
         print(f'note: {n}')
     for e in r['bag_errors']:
@@ -96,6 +125,11 @@ def run(a) -> int:
         print(f"the final adjustment failed ({r.get('final_adjustment_reason', '')}): products from the in-flight poses")
     if r.get('end_of_flight_errors'):
         print('end of flight: ' + '; '.join(r['end_of_flight_errors']))
+    verdict = figures.get('mapping', {'mapped': False, 'failures': ['no report was made']})
+    print('MAPPING FAILED: ' + '; '.join(verdict['failures']) if not verdict['mapped'] else
+          f"mapped: {figures.get('keyframes_oriented', 0)} of {figures.get('keyframes_taken', 0)} keyframes oriented")
     if r['bag_errors']:
         return 3
-    return 4 if r.get('final_adjustment') == 'failed' or r.get('end_of_flight_errors') else 0
+    if r.get('final_adjustment') == 'failed' or r.get('end_of_flight_errors'):
+        return 4
+    return 0 if verdict['mapped'] else EXIT_NOT_MAPPED

@@ -1,9 +1,11 @@
 """photogram-ros run: start the whole mapper (live, on the companion computer).
 
-SIGINT or SIGTERM ends the flight: the tracker emits its last keyframes, the bundle adjuster makes
-the final adjustment and republishes every pose, stereo pairs what waits, the map flushes, and the
-products are matched again from the final poses. All of it runs while rclpy is still up (see
-nodes/node_main.py); the exit status is not 0 when the final adjustment or the exports failed.
+SIGINT or SIGTERM ends the flight, and so does the end of a camera_node's photo folder or video file
+(not a device, not `loop`) once the tracker has taken its last frame: the tracker emits its last
+keyframes, the bundle adjuster makes the final adjustment and republishes every pose, stereo pairs
+what waits, the map flushes, and the products are matched again from the final poses. All of it runs while rclpy is still up (see
+nodes/node_main.py); the exit status is not 0 when the final adjustment or the exports failed. A
+flight that mapped nothing (the report's Verdict) ends with a line "MAPPING FAILED: why" (exit 0).
 """
 
 from __future__ import annotations
@@ -56,14 +58,24 @@ def run(a) -> int:
         graph.start()
         print(f'photogram_ros running: {", ".join(graph.nodes)} (SIGINT or SIGTERM ends the flight: final '
               f'adjustment, map flush' + (f', products in {a.out}/)' if exporting else ')'), flush=True)
-        signals.wait()
-        print(f'{signals.signal_name or "stop"}: ending the flight (final adjustment, stereo, map flush)', flush=True)
+        signals.wait(alive=lambda: not source_ended(graph))
+        print(f'{signals.signal_name or "end of the camera source"}: ending the flight (final adjustment, stereo, '
+              'map flush)', flush=True)
         end = graph.finish_flight()
     finally:
         if graph is not None:
             graph.shutdown()
         rclpy.try_shutdown()
     return _after_flight(a, roles, end.as_dict())
+
+
+def source_ended(graph) -> bool:
+    """The graph's camera node played its folder or file to the end and the tracker has taken every frame
+    (a device or a looping source never ends; without a camera node the flight ends on a signal)."""
+    camera, tracker = graph.nodes.get('camera'), graph.nodes.get('tracker')
+    if camera is None or not camera.finished:
+        return False
+    return tracker is None or tracker.frames_done >= camera.diag.counts().get('frames', 0)
 
 
 def _run_separate(a, spec, signals) -> int:
@@ -132,4 +144,7 @@ def _export_at_stop(a, roles) -> int:
         print(f'note: {n}', flush=True)
     if res.get('files'):
         print(f"products in {a.out}/ ({res['crs']}): " + ', '.join(sorted(res['files'])) + ', report', flush=True)
+    verdict = res.get('figures', {}).get('mapping')
+    if verdict and not verdict['mapped']:   # said, not an exit status: a live stop is not a failed command
+        print('MAPPING FAILED: ' + '; '.join(verdict['failures']), flush=True)
     return 0

@@ -6,7 +6,11 @@ a user receives and can be rebuilt after the flight. Figures:
 - check points: found in the keyframes, triangulated from the adjusted poses, against their survey;
   with a control file, its GCPs' residuals apart (they constrained the adjustment);
 - with ground truth: camera-centre errors, DSM and cloud against the true DEM, in metres and GSD;
-- what went wrong and when (from /diagnostics), and timing per node.
+- what went wrong and when (from /diagnostics), and timing per node;
+- at the top, whether the flight mapped at all (`mapping_verdict`: a georeferenced keyframe, half of
+  the keyframes oriented, half of the DSM's cells holding a height), how many keyframes the tracker
+  took and how many were oriented, why the others were not (`keyframe_accounting`, from the nodes'
+  counters), and every node's worst /diagnostics level with its reasons (`node_health`).
 """
 
 from __future__ import annotations
@@ -62,6 +66,139 @@ def near_discontinuity(dem, x_m, y_m, slope: float = 1.0, radius_m: float = 1.0)
     return steep[j, i]
 
 
+LEVEL_NAMES = {0: 'OK', 1: 'WARN', 2: 'ERROR', 3: 'STALE'}
+MIN_ORIENTED_SHARE = 0.5     # fewer keyframes oriented than this: the flight did not map
+MIN_DSM_VALID_SHARE = 0.5    # a DSM with fewer cells holding a height than this is "mostly empty"
+NOT_ORIENTED_PREFIX = 'not_oriented_'   # bundle_node counters per reason (not_oriented_<reason>), when it has them
+
+
+def keyframe_accounting(counts: dict, oriented: int, bundle_status: str | None = None,
+                        frames_unusable: int | None = None) -> dict:
+    """Keyframes taken (the tracker's count), oriented (`oriented`: those with an adjusted, georeferenced
+    pose in the map, which the products use) and why the others were not, from the nodes' counters
+    (`counts`: role -> Graph.counts()). The reasons are the nodes' in-flight counters: more than the
+    keyframes missing when the final adjustment oriented some the window had given up (said as
+    `keyframes_oriented_after_the_window_gave_up`), 'unaccounted' for what no counter explains.
+    `bundle_status`: the adjuster's last status on /diagnostics, named with its not-oriented count;
+    `frames_unusable`: the tracker's unusable_frames on /diagnostics."""
+    tr, b = counts.get('tracker', {}), counts.get('bundle', {})
+    taken = int(tr.get('keyframes', 0))
+    out = {'keyframes_taken': taken, 'keyframes_oriented': int(oriented),
+           'keyframes_oriented_in_flight': int(b.get('keyframes_oriented', 0))}
+    if frames_unusable is not None:
+        out['frames_unusable'] = int(frames_unusable)
+    for key in ('frames_tracked', 'keyframes_without_fix'):
+        if key in tr:
+            out[key] = int(tr[key])
+    why = {}
+    if 'bundle' in counts:
+        why['never reached the bundle adjuster'] = max(0, taken - int(b.get('keyframes_received', 0)))
+    why['failed in the bundle adjuster (an error, see the problems)'] = int(b.get('keyframes_failed', 0))
+    per_reason = {k[len(NOT_ORIENTED_PREFIX):]: int(v) for k, v in b.items()
+                  if k.startswith(NOT_ORIENTED_PREFIX) and isinstance(v, (int, float))}
+    if per_reason:
+        why.update({f'not oriented: {k.replace("_", " ")}': v for k, v in per_reason.items()})
+    else:
+        status = bundle_status
+        why['not oriented by the bundle adjuster' + (f' (its last status: {status})' if status else '')] = \
+            int(b.get('keyframes_not_oriented', 0))
+    why['oriented in flight, no georeferenced pose in the map'] = max(0, out['keyframes_oriented_in_flight']
+                                                                       - int(oriented))
+    why = {k: v for k, v in why.items() if v}
+    missing = max(0, taken - int(oriented))
+    counted = sum(why.values())
+    if counted < missing:
+        why['unaccounted (no node counted why)'] = missing - counted
+    elif counted > missing:
+        # The in-flight counters include keyframes the final adjustment (or a later retry) oriented after all.
+        out['keyframes_oriented_after_the_window_gave_up'] = counted - missing
+    out['keyframes_not_oriented'] = missing
+    out['keyframes_not_oriented_by_reason'] = why if missing else {}
+    return out
+
+
+def node_health(diagnostics: dict) -> list[dict]:
+    """Every node's worst /diagnostics level during the run, with the reasons it gave at that level."""
+    rows = []
+    for node, d in sorted((diagnostics or {}).items()):
+        level = int(d.get('level', 0))
+        levels = d.get('problem_levels', {})
+        texts = list(dict.fromkeys(p[1] for p in d.get('problems', [])))
+        # Reasons at the worst level; without recorded levels (an older log) every problem.
+        reasons = [t for t in texts if levels.get(t, level) == level] if level else []
+        rows.append({'node': node, 'worst_level': LEVEL_NAMES.get(level, str(level)),
+                     'problems': len(texts), 'reasons': reasons[:5]})
+    return rows
+
+
+def dsm_valid_share(dsm_path) -> float | None:
+    """Share of the DSM raster's cells that hold a height; None without a DSM file."""
+    if not dsm_path or not Path(dsm_path).exists():
+        return None
+    import rasterio
+    with rasterio.open(dsm_path) as ds:
+        z = ds.read(1, masked=True)
+    valid = ~np.ma.getmaskarray(z) & np.isfinite(np.ma.getdata(z))
+    return float(valid.mean()) if valid.size else 0.0
+
+
+def mapping_verdict(accounting: dict, georeferenced: bool, dsm_share: float | None, mapped_products: bool) -> dict:
+    """{'mapped': bool, 'failures': [sentences]}: a flight with no georeferenced keyframe, fewer than half
+    of its keyframes oriented, or a DSM mostly empty (or none while keyframes were oriented) did not map."""
+    failures = []
+    taken, oriented = accounting['keyframes_taken'], accounting['keyframes_oriented']
+    if taken == 0:
+        frames, unusable = accounting.get('frames_tracked'), accounting.get('frames_unusable')
+        failures.append('the tracker took no keyframe' + (f' from {frames} frames' if frames is not None else '')
+                        + (f' ({unusable} unusable: too few features to track)' if unusable else ''))
+    if not georeferenced:
+        failures.append('no georeferenced keyframe: no map origin, no products')
+    if taken and oriented < MIN_ORIENTED_SHARE * taken:
+        failures.append(f'only {oriented} of {taken} keyframes ({100.0 * oriented / taken:.0f} %) were oriented '
+                        f'(at least {MIN_ORIENTED_SHARE * 100:.0f} % are needed)')
+    if dsm_share is not None and dsm_share < MIN_DSM_VALID_SHARE:
+        failures.append(f'the DSM is mostly empty: {dsm_share * 100:.1f} % of its cells hold a height')
+    elif dsm_share is None and georeferenced and mapped_products:
+        failures.append('no DSM was written')
+    return {'mapped': not failures, 'failures': failures, 'dsm_valid_share': dsm_share}
+
+
+def _health_sections(figures: dict, kfs, files: dict, run: dict, diagnostics: dict | None, georeferenced: bool):
+    """The verdict and the nodes' health, for the top of the report (also into `figures`)."""
+    def values(name):
+        return next((d for n, d in (diagnostics or {}).items() if n.endswith(name)), {}).get('values', {})
+    unusable = values('tracker_node').get('unusable_frames')
+    acc = keyframe_accounting((run or {}).get('counts', {}), len(kfs) if georeferenced else 0,
+                              values('bundle_node').get('status'),
+                              unusable if isinstance(unusable, (int, float)) else None)
+    verdict = mapping_verdict(acc, georeferenced, dsm_valid_share(files.get('dsm')), bool(files))
+    # The flight as a whole is a row of its own: at ERROR when it did not map, whatever the nodes said.
+    health = [{'node': 'replay', 'worst_level': 'OK' if verdict['mapped'] else 'ERROR',
+               'problems': len(verdict['failures']), 'reasons': verdict['failures']}] + node_health(diagnostics)
+    figures.update(acc)
+    figures['mapping'] = verdict
+    figures['health'] = health
+    if verdict['mapped']:
+        share = verdict['dsm_valid_share']
+        text = [f"Mapped: {acc['keyframes_oriented']} of {acc['keyframes_taken']} keyframes oriented"
+                + (f", {share * 100:.0f} % of the DSM's cells hold a height." if share is not None else '.')]
+    else:
+        text = ['MAPPING FAILED: ' + '; '.join(verdict['failures']) + '.']
+    if acc['keyframes_not_oriented']:
+        text.append(f"{acc['keyframes_not_oriented']} keyframes not oriented, by reason (the nodes' counters): "
+                    + '; '.join(f'{k}: {v}' for k, v in acc['keyframes_not_oriented_by_reason'].items()) + '.')
+    bad = [h for h in health[1:] if h['worst_level'] != 'OK']
+    text.append(f'{len(bad)} of {len(health) - 1} nodes reported WARN or ERROR on /diagnostics'
+                + (': ' + ', '.join(f"{h['node']} {h['worst_level']}" for h in bad) if bad else '') + '.'
+                if len(health) > 1 else 'No /diagnostics were recorded.')
+    verdict_sec = Section('Verdict', text)
+    sec = Section('Health of the nodes (worst /diagnostics level during the run)')
+    sec.tables.append(('Worst level and its reasons', [
+        {'node': h['node'], 'worst level': h['worst_level'], 'reasons': '; '.join(h['reasons']).replace('|', '/')}
+        for h in health]))
+    return [verdict_sec, sec]
+
+
 def _truth_frame_for(truth, stamp_ns):
     return truth.frame_by_stamp(stamp_ns, tol_ns=5_000_000)
 
@@ -94,8 +231,12 @@ def build_report(out_dir: str | Path, map_dir: str | Path | MapStore, crs: str, 
             s.text.append(f"Clouds, DSM and orthomosaic from the {run['products_from']}{extra}.")
     s.text.append(f'Coordinates in {crs}, heights above the WGS84 ellipsoid unless stated.')
     sections.append(s)
-    if origin is None or not kfs or cam is None:
+    georeferenced = origin is not None and bool(kfs) and cam is not None
+    sections[:0] = _health_sections(figures, kfs, files, run, diagnostics, georeferenced)
+    if not georeferenced:
         sections.append(Section('No map', ['The map folder holds no georeferenced keyframes: nothing to report.']))
+        if diagnostics:
+            sections.append(_problems_section(diagnostics, figures))
         write_report(out, 'photogram_ros flight report', sections, figures)
         return figures
     traj = write_trajectory(out, kfs, origin, crs)
@@ -167,19 +308,23 @@ def build_report(out_dir: str | Path, map_dir: str | Path | MapStore, crs: str, 
     sections.append(Section('Trajectory over the orthomosaic', figures=[('Keyframe camera centres', 'trajectory.png')]))
 
     if diagnostics:
-        rows, problems = [], []
-        for node, d in sorted(diagnostics.items()):
-            vals = d.get('values', {})
-            rows += [{'node': node, 'figure': k, 'value': vals[k]} for k in sorted(vals)
-                     if k.endswith(('_ms', '_s', '_hz', 'fps', '_per_s', 'per_pair'))]
-            problems += [{'node': node, 't_s': p[0], 'problem': p[1]} for p in d.get('problems', [])]
-        figures['nodes'] = diagnostics
-        sec = Section('What happened', [f'{len(problems)} problems reported on /diagnostics.'])
-        sec.tables.append(('Problems (time from the start of the replay)', problems[:200]))
-        sec.tables.append(('Timing per node (last values on /diagnostics)', rows))
-        sections.append(sec)
+        sections.append(_problems_section(diagnostics, figures))
     write_report(out, 'photogram_ros flight report', sections, figures)
     return figures
+
+
+def _problems_section(diagnostics: dict, figures: dict) -> Section:
+    rows, problems = [], []
+    for node, d in sorted(diagnostics.items()):
+        vals = d.get('values', {})
+        rows += [{'node': node, 'figure': k, 'value': vals[k]} for k in sorted(vals)
+                 if k.endswith(('_ms', '_s', '_hz', 'fps', '_per_s', 'per_pair'))]
+        problems += [{'node': node, 't_s': p[0], 'problem': p[1]} for p in d.get('problems', [])]
+    figures['nodes'] = diagnostics
+    sec = Section('What happened', [f'{len(problems)} problems reported on /diagnostics.'])
+    sec.tables.append(('Problems (time from the start of the replay)', problems[:200]))
+    sec.tables.append(('Timing per node (last values on /diagnostics)', rows))
+    return sec
 
 
 def _truth_section(out: Path, truth, origin: LocalFrame, crs: str, kfs, files, figures) -> Section:

@@ -10,7 +10,9 @@ write it above the take-off point instead (or a barometric altitude tens of metr
 calibrated focal) for core/exif_intrinsics.py, and `read_dji_xmp` the XMP's drone-dji fields
 (gimbal and flight angles, altitudes). A file that is empty, not an image or a truncated JPEG is
 skipped, named, and recorded in `skipped` (`image_file_problem`): one bad file must not end a survey,
-nor change how the others are timed. No ROS here: the camera node is a thin adapter over these iterators.
+nor change how the others are timed. `read_fix_log` reads the GNSS log that goes with a video (a
+CSV as `photogram-ros fixes --format csv` writes it from a .tlog, a dataflash log or a bag). No ROS
+here: the camera node is a thin adapter over these iterators.
 """
 
 from __future__ import annotations
@@ -444,8 +446,10 @@ class VideoSource:
             self.cap.release()
 
 
-def open_source(source: str, utc_offset_s: float = 0.0, fallback_period_s: float = 1.0):
-    """`source`: a folder of images, a video file, a device path (/dev/video0) or a device index ('0')."""
+def open_source(source: str, utc_offset_s: float = 0.0, fallback_period_s: float = 1.0,
+                video_start_ns: int | None = None):
+    """`source`: a folder of images, a video file, a device path (/dev/video0) or a device index ('0');
+    `video_start_ns`: the time of a video file's first frame (default: when it is opened)."""
     s = str(source).strip()
     if not s:
         raise ConfigError('set the parameter "source" to a folder of images, a video file, or a camera device '
@@ -458,5 +462,52 @@ def open_source(source: str, utc_offset_s: float = 0.0, fallback_period_s: float
     if s.startswith('/dev/'):
         return VideoSource(s)
     if p.is_file():
-        return VideoSource(str(p))
+        return VideoSource(str(p), video_start_ns)
     raise ConfigError(f'source {s!r} is neither a folder, a video file nor a camera device')
+
+
+FIX_LOG_COLUMNS = ('t_unix_s', 'lat_deg', 'lon_deg', 'h_m')   # needed; var_e_m2 var_n_m2 var_u_m2 status optional
+
+
+def read_fix_log(path, sigma_h_m: float = 5.0) -> list:
+    """GNSS fixes (core.gnss_fix.GnssFix, in time order) from a CSV with a header naming at least
+    t_unix_s, lat_deg, lon_deg, h_m (WGS84 ellipsoidal): the table `photogram-ros fixes --format csv`
+    writes from a .tlog, a dataflash .bin or a bag's NavSatFix, or any GNSS log put in those columns.
+    Rows without a position or with status -1 (no fix) are left out; rows without variances get
+    `sigma_h_m` (vertical twice it). A missing file or column is a DataError naming it."""
+    import csv
+    import math
+    path = Path(path)
+    try:
+        with open(path, newline='') as fh:
+            rows = list(csv.DictReader(fh))
+    except OSError as exc:
+        raise DataError(f'GNSS log {path} cannot be read: {exc}') from exc
+    if not rows or any(c not in rows[0] for c in FIX_LOG_COLUMNS):
+        raise DataError(f'GNSS log {path}: a CSV with the columns {", ".join(FIX_LOG_COLUMNS)} is needed (as '
+                        f'photogram-ros fixes --format csv writes); its header is {list(rows[0]) if rows else "empty"}')
+
+    def num(row, key):
+        try:
+            v = float(row.get(key) or 'nan')
+        except ValueError:
+            return math.nan
+        return v
+
+    fixes = []
+    for row in rows:
+        t, lat, lon, h = (num(row, c) for c in FIX_LOG_COLUMNS)
+        if not all(math.isfinite(v) for v in (t, lat, lon, h)) or num(row, 'status') == gf.STATUS_NO_FIX:
+            continue
+        var = [num(row, k) for k in ('var_e_m2', 'var_n_m2', 'var_u_m2')]
+        known = all(math.isfinite(v) and v > 0 for v in var)
+        if not known:
+            var = [sigma_h_m ** 2, sigma_h_m ** 2, (2.0 * sigma_h_m) ** 2]
+        status = num(row, 'status')
+        fixes.append(gf.GnssFix(lat, lon, h, np.diag(var), int(round(t * 1e9)),
+                                int(status) if math.isfinite(status) else gf.STATUS_FIX,
+                                gf.COV_DIAGONAL_KNOWN if known else gf.COV_APPROXIMATED))
+    if not fixes:
+        raise DataError(f'GNSS log {path}: none of its {len(rows)} rows holds a fix')
+    fixes.sort(key=lambda f: f.stamp_ns)
+    return fixes

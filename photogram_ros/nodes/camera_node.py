@@ -4,7 +4,12 @@ Publishes camera/image_raw (bgr8), camera/camera_info (the calibration, every fr
 geotagged photos, gps/fix from the EXIF GPS stamped at the photo time, so survey photos without a
 flight log still georeference. A photo folder without `calibration_file` takes its camera from the
 first photo's EXIF (core/exif_intrinsics.py: focal length in pixels, principal point centred, no
-distortion), said on /diagnostics. A camera driver already publishing these topics needs no ingest node.
+distortion), said on /diagnostics. A video file has no GPS of its own: `gnss_log` names a CSV of
+fixes (io/image_source.read_fix_log: the columns `photogram-ros fixes --format csv` writes from a
+.tlog, a dataflash .bin or a bag), published on gps/fix in time order with the frames, as a live
+receiver would; `video_start_unix_s` places the video on the log's clock. A camera driver already
+publishing these topics needs no ingest node. `publish_next` / `peek_stamp_ns` let a replay
+(nodes/replay_session.py) drive the frames itself, one at a time (`autostart` false).
 """
 
 from __future__ import annotations
@@ -35,8 +40,13 @@ class CameraParams:
     calibration_file: str = param('', 'Camera calibration, ROS camera_calibration or OpenCV YAML (make one with '
                                       'photogram-ros calibrate); "" for a photo folder: from the EXIF')
     publish_exif_fix: bool = param(True, 'Publish the EXIF GPS of photos on gps/fix, stamped at the photo time')
-    exif_sigma_m: float = param(5.0, 'Horizontal 1-sigma of EXIF GPS positions, m (vertical taken as twice it)',
-                                min=0.001, max=10000.0)
+    exif_sigma_m: float = param(5.0, 'Horizontal 1-sigma of EXIF GPS positions and of gnss_log rows without '
+                                     'variances, m (vertical taken as twice it)', min=0.001, max=10000.0)
+    gnss_log: str = param('', 'CSV of GNSS fixes for a video (t_unix_s, lat_deg, lon_deg, h_m [ellipsoidal], '
+                              'optional var_e_m2 var_n_m2 var_u_m2 status: photogram-ros fixes --format csv); '
+                              'published on gps/fix in time order with the frames')
+    video_start_unix_s: float = param(0.0, 'Time of a video file\'s first frame, Unix s; 0 = the first fix of '
+                                           'gnss_log, else when the file is opened', min=0.0, max=1e10)
     exif_utc_offset_h: float = param(0.0, 'Camera clock minus UTC, h, for photos without OffsetTimeOriginal',
                                      min=-14.0, max=14.0)
     fallback_period_s: float = param(1.0, 'Spacing of photos without EXIF time (played in file-name order), s',
@@ -51,14 +61,22 @@ class CameraNode(Node):
     def __init__(self, overrides: dict | None = None, **node_kwargs):
         super().__init__('camera_node', **node_kwargs)
         from photogram_ros.io.image_source import open_source
+        from photogram_ros.io.image_source import read_fix_log
         p = self.params = declare(self, CameraParams, overrides)
-        self._open = lambda: open_source(p.source, p.exif_utc_offset_h * 3600.0, p.fallback_period_s)
+        self._log = read_fix_log(p.gnss_log, p.exif_sigma_m) if p.gnss_log else []
+        self._log_next = 0           # the first log fix not yet published
+        start_ns = int(p.video_start_unix_s * 1e9) or (self._log[0].stamp_ns if self._log else None)
+        self._open = lambda: open_source(p.source, p.exif_utc_offset_h * 3600.0, p.fallback_period_s, start_ns)
         self.source = self._open()
         self.camera, camera_note = self._calibration(p)
         self.diag = Diagnostics(self)
         self.diag.set('source', p.source)
         self.diag.set('calibration', camera_note)
-        for note in self.source.notes:
+        notes = list(self.source.notes)
+        if self._log:
+            notes.append(f'{len(self._log)} fixes from {p.gnss_log}'
+                         + ('' if p.video_start_unix_s else ', the video taken to start at its first fix'))
+        for note in notes:
             self.diag.set('note', note)
             self.get_logger().info(note)
         # rate 0 relies on acknowledgements: KEEP_ALL so that unacknowledged frames are not overwritten.
@@ -134,6 +152,18 @@ class CameraNode(Node):
             self.diag.problem(f'skipped {path}: {why}')
         self._reported_skips = len(self.source.skipped)
 
+    def peek_stamp_ns(self) -> int | None:
+        """The stamp the next frame will be published with; None when the source is exhausted."""
+        frame = self._peek()
+        return None if frame is None else frame.stamp_ns + self._offset_ns
+
+    def _publish_log_fixes(self, until_ns: int | None) -> None:
+        """The gnss_log fixes up to `until_ns` (None: all that are left), in time order."""
+        while self._log_next < len(self._log) and (until_ns is None or self._log[self._log_next].stamp_ns <= until_ns):
+            self.pub_fix.publish(msgs.navsatfix_from_gnss_fix(self._log[self._log_next], self.params.fix_frame_id))
+            self.diag.count('fixes')
+            self._log_next += 1
+
     def publish_next(self) -> bool:
         """Publish the next frame (image, camera_info, EXIF fix); False when the source is exhausted."""
         frame = self._peek()
@@ -148,6 +178,7 @@ class CameraNode(Node):
         p = self.params
         try:
             # The fix goes first so that a consumer holding the image already has its position.
+            self._publish_log_fixes(stamp_ns)
             if p.publish_exif_fix and frame.gps is not None:
                 fix = frame.gps.gnss_fix(stamp_ns, p.exif_sigma_m, 2.0 * p.exif_sigma_m)
                 self.pub_fix.publish(msgs.navsatfix_from_gnss_fix(fix, p.fix_frame_id))
@@ -165,6 +196,7 @@ class CameraNode(Node):
     def _finish(self) -> None:
         if not self.finished:
             self.finished = True
+            self._publish_log_fixes(None)   # the fixes after the last frame: its position is bracketed
             self.diag.set('state', 'finished')
             self.diag.publish()
             if self._timer is not None:

@@ -1,10 +1,16 @@
-"""Replay a flight bag through the whole mapping graph in one process, then export and report.
+"""Replay a flight (a bag, a folder of photos or a video with its GNSS log) through the whole mapping
+graph, then export and report.
+
+A bag is played by the player node; a photo folder or a video by the camera node (nodes/camera_node.py:
+EXIF time order, EXIF GPS and intrinsics for photos, a fix log for a video), driven frame by frame
+from here with the same waits. Either way the replay ends by itself at the source's end.
 
 The player feeds the graph as fast as it keeps up (or at a set rate): after each image it waits
 until the tracker has taken that frame, so a fast replay never drops frames the way a live camera
 overload would, and while a node after the tracker (possibly in the child process) is more than
-`max_lag_keyframes` behind, so the queues between them, and the memory, stay bounded. When the bag ends the graph drains (keyframes -> bundle -> stereo -> map), the bundle
-runs its final adjustment, the map flushes, and the exports and the report are written.
+`max_lag_keyframes` behind, so the queues between them, and the memory, stay bounded. When the bag
+ends the graph drains (keyframes -> bundle -> stereo -> map), the bundle runs its final adjustment,
+the map flushes, and the exports and the report are written.
 
 One time base: every node runs with use_sim_time and takes the bag's time from the player's /clock,
 so what a node stamps itself (/diagnostics, the map's streams) lies in the bag's time span like the
@@ -26,7 +32,7 @@ from rclpy.parameter import Parameter
 from rclpy.time import Time
 
 from photogram_ros.nodes.diagnostics import PROBLEM_SEPARATOR
-from photogram_ros.nodes.graph import Graph, GraphSpec
+from photogram_ros.nodes.graph import NODES, Graph, GraphSpec
 from photogram_ros.nodes.player_node import PlayerNode
 
 IMAGE_TOPICS = ('/camera/image_raw', '/camera/image_raw/compressed')
@@ -34,7 +40,7 @@ IMAGE_TOPICS = ('/camera/image_raw', '/camera/image_raw/compressed')
 
 @dataclass
 class ReplayOptions:
-    bag: str
+    bag: str                     # a rosbag2 folder / .db3 / .mcap / ROS 1 .bag, a photo folder or a video file
     out: str
     params_file: str | None = None
     rate: float = 0.0
@@ -55,6 +61,26 @@ class ReplayOptions:
     # start: a full disk fails every write of the map and the products, and the backpressure would
     # then wait frame_timeout_s on every frame for a map that cannot keep up.
     min_free_mb: float = 20.0
+    # Photo folders and videos (camera_node's parameters of the same names; "" = not set).
+    calibration_file: str = ''   # needed for a video; a photo folder takes its camera from the EXIF
+    gnss_log: str = ''           # a video's fixes (io/image_source.read_fix_log)
+    video_start_unix_s: float = 0.0
+
+
+BAG_SUFFIXES = ('.db3', '.mcap', '.bag')
+
+
+def source_kind(path) -> str:
+    """'bag' (a rosbag2 folder, a .db3/.mcap file, a ROS 1 .bag), 'photos' (any other folder) or 'video'
+    (any other file); a ConfigError when `path` does not exist."""
+    from photogram_ros.errors import ConfigError
+    p = Path(path)
+    if p.is_dir():
+        bag = (p / 'metadata.yaml').exists() or any(p.glob('*.db3')) or any(p.glob('*.mcap'))
+        return 'bag' if bag else 'photos'
+    if p.is_file():
+        return 'bag' if p.suffix.lower() in BAG_SUFFIXES else 'video'
+    raise ConfigError(f'{path} is neither a flight bag, a folder of photos nor a video file')
 
 
 class DiagnosticsLog:
@@ -78,6 +104,18 @@ class DiagnosticsLog:
                     for text in st.message.split(PROBLEM_SEPARATOR):
                         if not d['problems'] or d['problems'][-1][1] != text:
                             d['problems'].append((round(t, 2), text))
+                        # The level each problem came with: the report names the reasons of a node's worst.
+                        levels = d.setdefault('problem_levels', {})
+                        levels[text] = max(levels.get(text, 0), level)
+
+    def add(self, counts: dict, graph_names: dict) -> None:
+        """The nodes' last counters (Graph.counts(), read after the flight: /diagnostics is up to a period
+        behind), over the values heard; `graph_names`: role -> the node's /diagnostics name."""
+        with self._lock:
+            for role, c in counts.items():
+                name = graph_names.get(role, role)
+                d = self.nodes.setdefault(name, {'values': {}, 'problems': [], 'level': 0})
+                d['values'].update(c)
 
     def snapshot(self) -> dict:
         with self._lock:
@@ -152,26 +190,20 @@ def check_free_space(out: Path, min_free_mb: float, when: str) -> None:
                            '--out', 28)
 
 
-def run_replay(opts: ReplayOptions, context=None) -> dict:
-    """Run the whole replay into OUT/map; returns the run summary, the diagnostics log and the map folder."""
-    from photogram_ros.errors import BagError, ConfigError
+def _bag_setup(opts: ReplayOptions, extra: dict):
+    """Roles, the player's exclusions and the bag's start time for a bag replay (topics checked)."""
+    from photogram_ros.errors import BagError
     from photogram_ros.io.bag import BagReader
-    out = Path(opts.out)
-    out.mkdir(parents=True, exist_ok=True)
-    check_free_space(out, opts.min_free_mb, 'before the replay')
-    map_dir = out / 'map'
     with BagReader(opts.bag) as bag:
         topics = bag.topics()
-        bag_start_ns = bag.start_ns
-        bag_warnings = list(bag.warnings)
+        start_ns = bag.start_ns
+        warnings = list(bag.warnings)
         for line in bag.health():     # before the first frame: the user knows what will be mapped
             print(line, flush=True)
     if not any(t in topics for t in IMAGE_TOPICS):
         raise BagError(f'{opts.bag} has no camera images ({" or ".join(IMAGE_TOPICS)}): nothing to map; '
                        f'it has {sorted(topics)}')
     exclude = []
-    extra = {role: dict(v) for role, v in opts.extra.items()}
-    extra.setdefault('map', {})['map_dir'] = str(map_dir)
     if '/mavlink/from_fcu' in topics:
         # The MAVLink node decodes the raw stream; the recorded /gps/fix would be a second source.
         exclude.append('/gps/fix')
@@ -179,6 +211,48 @@ def run_replay(opts: ReplayOptions, context=None) -> dict:
         roles = ('mavlink', 'tracker', 'bundle', 'stereo', 'map')
     else:
         roles = ('tracker', 'bundle', 'stereo', 'map')
+    return roles, exclude, topics, start_ns, warnings
+
+
+def _camera_setup(opts: ReplayOptions, extra: dict) -> tuple:
+    """Roles for a photo folder or a video played by the camera node, driven from the replay."""
+    from photogram_ros.nodes.graph import GraphSpec, role_values
+    cam = extra.setdefault('camera', {})
+    cam.update({'source': str(opts.bag), 'autostart': False})
+    for key in ('calibration_file', 'gnss_log'):
+        if getattr(opts, key):
+            cam[key] = str(Path(getattr(opts, key)).resolve())
+    if opts.video_start_unix_s:
+        cam['video_start_unix_s'] = float(opts.video_start_unix_s)
+    # The replay waits for the tracker on every frame: a reliable subscription loses none.
+    extra.setdefault('tracker', {}).setdefault('reliable_input', True)
+    roles = ('camera', 'tracker', 'bundle', 'stereo', 'map')
+    bundle = role_values(GraphSpec(roles=roles, params_file=opts.params_file, extra=extra), 'bundle')
+    arm = bundle.get('lever_arm_body_frd_m')
+    if arm is not None and any(float(v) for v in arm):
+        # A body lever arm turns with the body's attitude, which photos and a video do not record.
+        extra.setdefault('bundle', {})['lever_arm_body_frd_m'] = [0.0, 0.0, 0.0]
+        print(f'note: {opts.params_file}: the body lever arm {list(arm)} m is not applied: a photo folder or a '
+              'video has no attitude to turn it with', flush=True)
+    return roles
+
+
+def run_replay(opts: ReplayOptions, context=None) -> dict:
+    """Run the whole replay into OUT/map; returns the run summary, the diagnostics log and the map folder."""
+    from photogram_ros.errors import ConfigError, DataError
+    from photogram_ros.nodes.player_node import PlaySummary
+    out = Path(opts.out)
+    out.mkdir(parents=True, exist_ok=True)
+    check_free_space(out, opts.min_free_mb, 'before the replay')
+    map_dir = out / 'map'
+    kind = source_kind(opts.bag)
+    extra = {role: dict(v) for role, v in opts.extra.items()}
+    extra.setdefault('map', {})['map_dir'] = str(map_dir)
+    topics, bag_warnings, exclude = {}, [], []
+    if kind == 'bag':
+        roles, exclude, topics, bag_start_ns, bag_warnings = _bag_setup(opts, extra)
+    else:
+        roles = _camera_setup(opts, extra)
     for role in roles:
         extra.setdefault(role, {})['use_sim_time'] = True
     bad = [r for r in opts.child_roles if r not in CHILD_ROLES_ALLOWED]
@@ -188,9 +262,17 @@ def run_replay(opts: ReplayOptions, context=None) -> dict:
     graph = Graph(GraphSpec(roles=roles, params_file=opts.params_file, extra=extra,
                             child_roles=tuple(opts.child_roles)), context=context)
     kwargs = {'context': context} if context is not None else {}
-    player = PlayerNode(overrides={'bag': str(opts.bag), 'rate': float(opts.rate), 'exclude': ','.join(exclude)},
-                        parameter_overrides=[Parameter('use_sim_time', value=True)], **kwargs)
-    player_clock = player.get_clock()
+    player = camera = None
+    if kind == 'bag':
+        player = PlayerNode(overrides={'bag': str(opts.bag), 'rate': float(opts.rate), 'exclude': ','.join(exclude)},
+                            parameter_overrides=[Parameter('use_sim_time', value=True)], **kwargs)
+        player_clock = player.get_clock()
+    else:
+        camera = graph.nodes['camera']
+        bag_start_ns = camera.peek_stamp_ns()
+        if bag_start_ns is None:
+            graph.shutdown()
+            raise DataError(f'{opts.bag}: no frame could be read (see the camera node\'s messages above)')
     listener = Node('replay_monitor', **kwargs)
     diag_log = DiagnosticsLog(listener)
     graph.executor.add_node(listener)
@@ -217,9 +299,7 @@ def run_replay(opts: ReplayOptions, context=None) -> dict:
         while not done() and time.monotonic() < deadline:
             time.sleep(0.002)
 
-    def before_message(m):
-        if m.topic not in IMAGE_TOPICS:
-            return
+    def before_frame():
         # Telemetry up to a frame's time must be decoded before the tracker sees the frame, as it
         # would be live; otherwise the fix a keyframe needs may still sit in a queue.
         if mavlink is not None:
@@ -230,6 +310,10 @@ def run_replay(opts: ReplayOptions, context=None) -> dict:
         check_free_space(out, opts.min_free_mb, f'after {images_sent[0]} frames (the map so far is in {map_dir})')
         if opts.max_lag_keyframes > 0:
             wait_downstream()
+
+    def before_message(m):
+        if m.topic in IMAGE_TOPICS:
+            before_frame()
 
     def wait_downstream():
         """Hold the player while a later node lags the tracker by more than max_lag_keyframes. A lag
@@ -245,15 +329,40 @@ def run_replay(opts: ReplayOptions, context=None) -> dict:
             lag_slack[0] = lag - opts.max_lag_keyframes
         lag_wait_s[0] += time.monotonic() - t0
 
+    def progress(stamp_ns):
+        if opts.progress and time.monotonic() - last_print[0] > 2.0:
+            last_print[0] = time.monotonic()
+            _print_progress(graph, images_sent[0], stamp_ns, t_start)
+
     def on_message(m):
         player_clock.set_ros_time_override(Time(nanoseconds=m.stamp_ns, clock_type=ClockType.ROS_TIME))
         if m.topic == '/mavlink/from_fcu':
             packets_sent[0] += 1
         elif m.topic in IMAGE_TOPICS:
             images_sent[0] += 1
-        if opts.progress and time.monotonic() - last_print[0] > 2.0:
-            last_print[0] = time.monotonic()
-            _print_progress(graph, images_sent[0], m.stamp_ns, t_start)
+        progress(m.stamp_ns)
+
+    def play_camera() -> PlaySummary:
+        """The camera node's frames one at a time, with the bag's waits, to the source's end."""
+        from rosgraph_msgs.msg import Clock
+
+        from photogram_ros.msgs import time_from_ns
+        clock = listener.create_publisher(Clock, '/clock', 10)
+        summary, t0, last_ns = PlaySummary(), time.monotonic(), bag_start_ns
+        while (stamp_ns := camera.peek_stamp_ns()) is not None:
+            if opts.rate > 0:   # the flight's timing, sped up by `rate`
+                time.sleep(max(0.0, t0 + (stamp_ns - bag_start_ns) * 1e-9 / opts.rate - time.monotonic()))
+            before_frame()
+            clock.publish(Clock(clock=time_from_ns(stamp_ns)))
+            camera.publish_next()
+            last_ns = stamp_ns
+            # Frames that failed to publish (said on /diagnostics) are not waited for.
+            images_sent[0] = camera.diag.counts().get('frames', 0)
+            progress(stamp_ns)
+        camera.publish_next()   # the end: the gnss_log's fixes after the last frame, 'finished' on /diagnostics
+        summary.counts = {IMAGE_TOPICS[0]: images_sent[0]}
+        summary.bag_s, summary.wall_s = (last_ns - bag_start_ns) * 1e-9, time.monotonic() - t0
+        return summary
 
     def clouds_in_flight() -> int:
         """Pair clouds stereo has published that the map has not fused yet (fusing one can take seconds)."""
@@ -285,21 +394,29 @@ def run_replay(opts: ReplayOptions, context=None) -> dict:
                 return
 
     try:
-        summary = player.play(on_message=on_message, before_message=before_message)
+        if player is not None:
+            summary = player.play(on_message=on_message, before_message=before_message)
+        else:
+            summary = play_camera()
         drain()
         end = graph.finish_flight(settle=drain)
         wall_s = time.monotonic() - t_start
+        counts = graph.counts()
+        names = {role: getattr(getattr(graph.nodes.get(role), 'diag', None), 'name', f'/{NODES[role][2]}')
+                 for role in roles}
     finally:   # whatever happened, the map node flushes what it fused
         graph.shutdown()
-        player.destroy_node()
+        if player is not None:
+            player.destroy_node()
         listener.destroy_node()
+    diag_log.add(counts, names)
     _record_flight_end(map_dir, end.as_dict())
-    run = {'bag': str(opts.bag), 'frames': images_sent[0], 'bag_s': summary.bag_s, 'wall_s': wall_s,
+    run = {'bag': str(opts.bag), 'source': kind, 'frames': images_sent[0], 'bag_s': summary.bag_s, 'wall_s': wall_s,
            'real_time_factor': summary.bag_s / max(wall_s, 1e-9), 'messages': summary.total,
            'bag_errors': summary.errors, 'skipped_topics': summary.skipped,
            'waited_for_downstream_s': round(lag_wait_s[0], 1),
            'bag_read': {t: [i.count, i.expected] for t, i in topics.items()}, 'bag_warnings': bag_warnings,
-           'final_adjustment': end.final_adjustment, 'end_of_flight_errors': end.errors}
+           'final_adjustment': end.final_adjustment, 'end_of_flight_errors': end.errors, 'counts': counts}
     if end.reason:
         run['final_adjustment_reason'] = end.reason
     return {'run': run, 'diagnostics': diag_log.snapshot(), 'map_dir': str(map_dir), 'flight_end': end}
