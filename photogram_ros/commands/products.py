@@ -13,10 +13,12 @@ import sys
 
 
 def _core_params(cls, section: dict, where: str):
-    """`cls` validated from the names of a node's section that it declares."""
+    """`cls` validated from the names of a node's section that it declares; the GSD-bound lengths it does
+    not name are left to the GSD (core/gsd.AUTO), as the nodes' defaults are."""
+    from photogram_ros.core.gsd import auto_defaults
     from photogram_ros.params import fields_of, from_dict
     names = {f.name for f in fields_of(cls)}
-    return from_dict(cls, {k: v for k, v in section.items() if k in names}, where)
+    return from_dict(cls, auto_defaults(cls, {k: v for k, v in section.items() if k in names}), where)
 
 
 def check_output_crs(crs: str) -> None:
@@ -108,7 +110,12 @@ def export_products(map_dir, out, params_file: str | None, crs: str = '', live_m
         try:
             d = densify_with_params(store, out / 'map_final', params_file, progress=progress)
             products = d.store
-            run.update(densify_s=round(d.seconds, 2), densify_pairs=d.pairs_done)
+            run.update(densify_s=round(d.seconds, 2), densify_pairs=d.pairs_done, densify_stereo_s=round(d.stereo_s, 2),
+                       densify_pairs_skipped=dict(d.pairs_skipped), gsd=d.gsd, gsd_derived=d.derived)
+            if d.pairs_failed:
+                run['densify_pairs_failed'] = d.pairs_failed
+                notes.append(f'{d.pairs_skipped.get("failed", 0)} pair(s) could not be matched from the final poses '
+                             f'and were skipped (first: {d.pairs_failed[0]})')
         except StorageError:   # a full disk: exporting next would fail the same way
             raise
         except PhotogramError as exc:
@@ -120,6 +127,7 @@ def export_products(map_dir, out, params_file: str | None, crs: str = '', live_m
         ex = export_map(products, out, crs, heights, min_pairs=min_pairs)
         files = {k: str(v) for k, v in ex.files.items()}
         run['map_points'] = ex.points
+        run['dsm'] = ex.dsm
         figures = build_report(out, products, crs, files, run=run, **report)
     except StorageError:
         raise

@@ -16,6 +16,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from photogram_ros.core import gsd
 from photogram_ros.core.camera import PinholeCamera
 from photogram_ros.errors import ConfigError
 from photogram_ros.params import param
@@ -59,12 +60,18 @@ class PairCriteria(PairLimits):
     max_axis_angle_deg: float = param(20.0, 'keyframes whose optical axes differ more are not paired',
                                       min=0.0, max=90.0)
     relief_m: float = param(20.0, 'depth search half-range around the ground, m (terrain relief + buildings); '
-                                  'the most the search spans', min=0.5, max=1e4)
+                                  'the most the search spans; -1: from the flying height (core/gsd.py)',
+                         min=gsd.AUTO, max=1e4)
     depth_from_sparse_cloud: bool = param(True, 'search only the depths the pair\'s tie points span (the sparse '
                                                 'cloud, widened by depth_margin_m, within relief_m): the SGBM '
                                                 'cost is proportional to the search')
     depth_margin_m: float = param(4.0, 'margin around the tie points\' depths, m (what has no tie point, e.g. a '
-                                       'plain roof above its corners)', min=0.0, max=1e3)
+                                       'plain roof above its corners); -1: from the GSD (core/gsd.py)',
+                               min=gsd.AUTO, max=1e3)
+
+    def check(self) -> None:
+        gsd.check_auto_or_at_least(self, {'relief_m': 0.5, 'depth_margin_m': 0.0})
+        super().check()
 
 
 @dataclass
@@ -124,6 +131,9 @@ def plan_pairs(camera: PinholeCamera, new_T: np.ndarray, others: dict, ground_m:
     `tie_points_map` (N, 3) it is narrowed to the depths the pair's own tie points span (when that
     leaves a non-empty range). Without tie points the ground-based range is all there is.
     """
+    if gsd.unresolved(criteria):
+        raise ConfigError(f'pair criteria {gsd.unresolved(criteria)} are left to the GSD: resolve them first '
+                          '(core/gsd.resolve)')
     height = float(new_T[2, 3] - ground_m)
     if height <= 0:
         return PairPlan(BELOW_GROUND, height)
