@@ -14,8 +14,9 @@ got at most one point, and the DSM, which wants three cells per DSM cell, was 2.
   count (640 x 480 / 4 = 76,800 px), rounded up to eighths (so the SGBM cost per pair, and the
   disparities in pixels, stay those the matcher was tuned for, whatever the sensor);
 - the cloud spacing = GSD / downscale, and the lengths = their reference values times the ratio
-  of that spacing to the reference's, snapped to steps of 2^(1/4) so that a flying height within
-  about 9 % of the reference's gives exactly the reference values;
+  of that spacing to the reference's, snapped to steps of 2^(1/2) so that a flying height within
+  about 19 % of the reference's gives exactly the reference values (the sample's keyframes fly
+  36-44 m above the median tie point);
 - relief_m (the depth search around the ground): the same fraction of the flying height as the
   reference's 25 m of 40 m, snapped the same way.
 A parameter set to AUTO (-1) takes the derived value (`resolve`); any other value is the user's.
@@ -51,10 +52,10 @@ AUTO_NAMES = ('downscale', 'relief_m', *REF_LENGTHS_M)
 
 
 def snap(ratio: float) -> float:
-    """`ratio` rounded to the nearest power of 2^(1/4) (1 for 0.917..1.09)."""
+    """`ratio` rounded to the nearest power of sqrt(2) (1 for 0.84..1.19)."""
     if not (ratio > 0 and math.isfinite(ratio)):
         raise ConfigError(f'a GSD ratio must be positive and finite, not {ratio}')
-    return 2.0 ** (round(4.0 * math.log2(ratio)) / 4.0)
+    return 2.0 ** (round(2.0 * math.log2(ratio)) / 2.0)
 
 
 def matching_downscale(width_px: int, height_px: int) -> float:

@@ -104,8 +104,8 @@ class MapParams(FusionConfig, CoverageConfig):
     min_tolerance_m: float = param(gsd.AUTO, 'Smallest height disagreement that rejects a pair, m; -1: from the '
                                              'GSD (0.3 m at the simulator\'s)', min=gsd.AUTO, max=1e3)
     warn_unfused_keyframes: int = param(20, 'WARN on /diagnostics when this many keyframes came (poses) and '
-                                            'nothing was fused since the last fused cloud, with the reason', min=1,
-                                        max=100000)
+                                            'nothing was fused since the last fused cloud (thrice as many before '
+                                            'the first), with the reason', min=1, max=100000)
 
 
 def _locked(method):
@@ -554,12 +554,13 @@ class MapNode(Node):
         d.set('cell_m', self.cell_m)
         d.set('write_failures', self.store.write_failures)
         d.set('keyframes_unfused', self._keyframes_unfused)
-        if self._keyframes_unfused >= self.params.warn_unfused_keyframes:
-            d.problem(self._unfused_reason())
+        # Before the first fused cloud stereo waits for settled poses and a ground height: thrice as long.
+        n = self.params.warn_unfused_keyframes * (1 if self.fusion.stats.points_fused else 3)
+        if self._keyframes_unfused >= n:
+            d.problem(self._unfused_reason(n))
 
-    def _unfused_reason(self) -> str:
-        """Why nothing was fused for warn_unfused_keyframes keyframes (a stable text: logged once)."""
-        n = self.params.warn_unfused_keyframes
+    def _unfused_reason(self, n: int) -> str:
+        """Why nothing was fused for `n` keyframes (a stable text: logged once)."""
         if self._clouds_unfused == 0:
             return (f'nothing fused for {n}+ keyframes: stereo_node sent no pair cloud (see its diagnostics: poses '
                     'refused for their sigma, pairs skipped for overlap or baseline, no ground height yet)')

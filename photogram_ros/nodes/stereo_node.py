@@ -200,11 +200,12 @@ class StereoNode(Node):
 
     def _matching_params(self, kf: _Keyframe) -> StereoNodeParams:
         """The parameters with the GSD-bound lengths derived at the first pair (stated in the log and on
-        /diagnostics), from the camera and this keyframe's height above the ground."""
+        /diagnostics), from the camera and the posed keyframes' median height above the ground."""
         if self._matching is None:
             cam = self._camera_for(kf.image)
-            self.gsd = gsd.derive(cam.width, cam.height, cam.fx, float(kf.map_T_cam[2, 3] - self.ground_m),
-                                  self.params.downscale)
+            z = [self._kf[s].map_T_cam[2, 3] for s in self._posed if s in self._kf]
+            height = float(np.median(z) if z else kf.map_T_cam[2, 3]) - self.ground_m
+            self.gsd = gsd.derive(cam.width, cam.height, cam.fx, height, self.params.downscale)
             self._matching, names = gsd.resolve(self.params, self.gsd)
             self.get_logger().info(f'settings from the GSD ({", ".join(names)}): {self.gsd.summary()}')
             self.diag.set('gsd_m', self.gsd.gsd_m)
