@@ -103,7 +103,8 @@ class MapParams(FusionConfig, CoverageConfig):
                           min=gsd.AUTO, max=10.0)
     min_tolerance_m: float = param(gsd.AUTO, 'Smallest height disagreement that rejects a pair, m; -1: from the '
                                              'GSD (0.3 m at the simulator\'s)', min=gsd.AUTO, max=1e3)
-    warn_unfused_keyframes: int = param(20, 'WARN on /diagnostics when this many keyframes came (poses) and '
+    warn_unfused_keyframes: int = param(20, 'WARN on /diagnostics when this many keyframes came (images, or poses '
+                                            'without save_keyframes) and '
                                             'nothing was fused since the last fused cloud (thrice as many before '
                                             'the first), with the reason', min=1, max=100000)
 
@@ -130,7 +131,7 @@ class MapNode(Node):
         except PhotogramError as exc:
             raise ConfigError(f'map_node: {exc}') from exc
         self.gsd = None                # core.gsd.GsdSettings once derived
-        self._cell_pending = bool(gsd.unresolved(p)) and not self.store.tile_keys()
+        self._cell_pending = p.cell_m == gsd.AUTO and not self.store.tile_keys()
         self.fusion = Fusion(self._fusion_config(self.store.cell_m), self.store)
         self._keyframes_unfused = 0    # keyframe poses since the last cloud that fused points
         self._clouds_unfused = 0       # clouds since then (that fused nothing)
@@ -298,6 +299,7 @@ class MapNode(Node):
             ok, buf = cv2.imencode('.jpg', img, [cv2.IMWRITE_JPEG_QUALITY, self.params.jpeg_quality])
             if not ok:
                 raise ConfigError('JPEG encoding of a keyframe failed')
+            self._keyframes_unfused += 1
             self.store.save_keyframe_image(msgs.ns_from_time(msg.header.stamp), buf.tobytes())
             self.diag.count('keyframes_saved')
         except (PhotogramError, OSError) as exc:
@@ -310,8 +312,8 @@ class MapNode(Node):
         try:
             T, _ = msgs.T_from_pose_with_covariance(msg)
             stamp = msgs.ns_from_time(msg.header.stamp)
-            if stamp not in self._pose_z:
-                self._keyframes_unfused += 1
+            if stamp not in self._pose_z and not self.params.save_keyframes:
+                self._keyframes_unfused += 1   # (with save_keyframes the images count, in flight order)
             self._pose_z[stamp] = float(T[2, 3])
             if self.params.save_keyframes:
                 self._poses_pending[stamp] = T
