@@ -58,7 +58,13 @@ def run(a) -> int:
         from photogram_ros.commands.products import densify_with_params
         params = a.params if a.params is not None or not Path('config/replay.yaml').exists() else 'config/replay.yaml'
         d = densify_with_params(store, Path(a.out) / 'map_final', params)
-        print(f'{d.pairs_done} pairs matched again from the final poses in {d.seconds:.1f} s -> {d.map_dir}')
+        print(f'{d.pairs_done} pairs matched again from the final poses in {d.seconds:.1f} s -> {d.map_dir}'
+              + (f'; skipped {d.pairs_skipped}' if d.pairs_skipped else ''))
+        for why in d.pairs_failed:
+            print(f'  pair not matched: {why}')
+        if d.derived:
+            from photogram_ros.core.gsd import GsdSettings
+            print(f'  from the GSD ({", ".join(d.derived)}): {GsdSettings(**d.gsd).summary()}')
         store = d.store
     res = export_map(store, a.out, a.crs, a.heights, a.dsm_res_m, a.ortho_res_m, products, origin,
                      min_pairs=a.min_pairs)
