@@ -150,9 +150,8 @@ def test_lengths_left_to_the_gsd_are_derived_from_the_keyframes(map_dir, tmp_pat
     from photogram_ros.core.stereo import StereoParams
     from photogram_ros.io.densify import densify_map
     from photogram_ros.params import from_dict
-    stereo = from_dict(StereoParams, gsd.auto_defaults(StereoParams, {}))
-    crit = from_dict(PairCriteria, gsd.auto_defaults(PairCriteria, {}))
-    fusion = from_dict(FusionConfig, gsd.auto_defaults(FusionConfig, {}))
+    stereo, crit, fusion = (from_dict(cls, {}) for cls in (StereoParams, PairCriteria, FusionConfig))
+    assert gsd.unresolved(stereo) and gsd.unresolved(crit) and gsd.unresolved(fusion)   # the defaults
     res = densify_map(map_dir, tmp_path / 'auto', stereo, crit, fusion)
     assert res.gsd['downscale'] == 0.5 and res.gsd['cell_m'] == 0.12 and res.gsd['relief_m'] == 25.0
     assert set(res.derived) == {'downscale', 'fill_holes_m', 'edge_step_m', 'relief_m', 'depth_margin_m', 'cell_m',

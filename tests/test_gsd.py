@@ -64,9 +64,8 @@ def test_resolve_fills_only_what_is_left_at_auto():
     assert names == ['downscale', 'edge_step_m']
     assert r.downscale == 0.25 and r.edge_step_m == s.edge_step_m and r.fill_holes_m == 0.0   # the user's "off"
     assert p.downscale == gsd.AUTO                                                           # a copy
-    c, names = gsd.resolve(PairCriteria(relief_m=gsd.AUTO), s)
-    assert names == ['relief_m'] and c.relief_m == 100.0 and c.depth_margin_m == PairCriteria().depth_margin_m
-    assert gsd.auto_defaults(PairCriteria, {'relief_m': 30.0}) == {'relief_m': 30.0, 'depth_margin_m': gsd.AUTO}
+    c, names = gsd.resolve(PairCriteria(depth_margin_m=6.0), s)
+    assert names == ['relief_m'] and c.relief_m == 100.0 and c.depth_margin_m == 6.0
 
 
 def test_auto_is_the_only_value_below_a_lengths_range():
@@ -84,13 +83,18 @@ def test_auto_is_the_only_value_below_a_lengths_range():
         Fusion(FusionConfig(cell_m=gsd.AUTO))
 
 
-def test_stereo_refuses_unresolved_lengths():
-    from photogram_ros.core.camera import PinholeCamera
+def test_the_core_defaults_are_auto_and_resolve_from_the_pairs_height():
+    # Left at their defaults, a pair of the simulator's camera 40 m up matches as the shipped configs did.
+    from helpers.sim_world import rendered, world
+    from photogram_ros.core.pairs import PairCriteria
     from photogram_ros.core.stereo import StereoParams, stereo_pair
-    cam = PinholeCamera(640, 480, 520.0, 520.0, 320.0, 240.0)
-    img = np.zeros((480, 640), np.uint8)
-    with pytest.raises(ConfigError, match='downscale'):
-        stereo_pair(cam, img, np.eye(4), img, np.eye(4), StereoParams(downscale=gsd.AUTO))
+    assert set(gsd.unresolved(StereoParams())) == {'downscale', 'fill_holes_m', 'edge_step_m'}
+    assert set(gsd.unresolved(PairCriteria())) == {'relief_m', 'depth_margin_m'}
+    cam = world('tiny')[0].camera()
+    (_, Ta, ia), (_, Tb, ib) = rendered((2.0, 3.75))
+    auto = stereo_pair(cam, ia, Ta, ib, Tb, StereoParams(), (20.0, 60.0))
+    mine = stereo_pair(cam, ia, Ta, ib, Tb, StereoParams(downscale=0.5, fill_holes_m=2.0, edge_step_m=1.0), (20.0, 60.0))
+    assert auto.ok and auto.rect.f_px == pytest.approx(0.5 * (cam.fx + cam.fy) / 2) and auto.cloud.size == mine.cloud.size
 
 
 def test_dsm_rules_follow_the_map_cell():

@@ -13,12 +13,10 @@ import sys
 
 
 def _core_params(cls, section: dict, where: str):
-    """`cls` validated from the names of a node's section that it declares; the GSD-bound lengths it does
-    not name are left to the GSD (core/gsd.AUTO), as the nodes' defaults are."""
-    from photogram_ros.core.gsd import auto_defaults
+    """`cls` validated from the names of a node's section that it declares."""
     from photogram_ros.params import fields_of, from_dict
     names = {f.name for f in fields_of(cls)}
-    return from_dict(cls, auto_defaults(cls, {k: v for k, v in section.items() if k in names}), where)
+    return from_dict(cls, {k: v for k, v in section.items() if k in names}, where)
 
 
 def check_output_crs(crs: str) -> None:

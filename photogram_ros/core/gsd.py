@@ -19,7 +19,10 @@ got at most one point, and the DSM, which wants three cells per DSM cell, was 2.
   36-44 m above the median tie point);
 - relief_m (the depth search around the ground): the same fraction of the flying height as the
   reference's 25 m of 40 m, snapped the same way.
-A parameter set to AUTO (-1) takes the derived value (`resolve`); any other value is the user's.
+A parameter set to AUTO (-1, the default of every one of them) takes the derived value (`resolve`):
+stereo_pair and plan_pairs resolve from their own pair's height, the nodes and densify once per
+flight (stated in the log, on /diagnostics and in the report); any other value is the user's. The
+fusion cell must be known before fusing (map_node derives it at the first pair cloud).
 """
 
 from __future__ import annotations
@@ -134,12 +137,6 @@ def resolve(obj, settings: GsdSettings):
     return dataclasses.replace(obj, **{n: getattr(settings, n) for n in names}), names
 
 
-def auto_defaults(cls, values: dict) -> dict:
-    """`values` with every AUTO-able field of `cls` that it does not name set to AUTO."""
-    names = {f.name for f in dataclasses.fields(cls)}
-    return {**{n: AUTO for n in AUTO_NAMES if n in names}, **values}
-
-
 def check_auto_or_at_least(obj, minima: dict) -> None:
     """ConfigError unless each named field is AUTO or at least its minimum (the fields' declared range
     starts at AUTO so that validate() lets AUTO through)."""
@@ -148,6 +145,11 @@ def check_auto_or_at_least(obj, minima: dict) -> None:
         if v != AUTO and v < lo:
             raise ConfigError(f'parameter {name!r} = {v} must be at least {lo}, or {AUTO:g} to derive it from '
                               'the GSD')
+
+
+def tolerance_for_cell(cell_m: float) -> float:
+    """The fusion's min_tolerance_m for cells of `cell_m`: the reference's scaled by the cell."""
+    return _len(REF_LENGTHS_M['min_tolerance_m'], snap(cell_m / REF_LENGTHS_M['cell_m']))
 
 
 def dsm_lengths_for_cell(cell_m: float) -> tuple[float, float]:

@@ -96,13 +96,6 @@ class MapParams(FusionConfig, CoverageConfig):
                                      min=0.1, max=3600.0)
     survey_area_file: str = param('', 'Survey area: a QGroundControl .plan (its Survey polygon or geofence) or a '
                                       'GeoJSON polygon; "" = the flight lines\' swaths')
-    # GSD-bound (core/gsd.py): derived at the first pair cloud from the camera and the flying height.
-    cell_m: float = param(gsd.AUTO, 'Fusion cell size, m; -1: from the GSD at the first pair cloud (0.78 of the '
-                                    'cloud spacing stereo_node\'s automatic downscale gives: 0.12 m for the '
-                                    'simulator\'s 640x480 at 40 m; set it when stereo_node\'s downscale is set)',
-                          min=gsd.AUTO, max=10.0)
-    min_tolerance_m: float = param(gsd.AUTO, 'Smallest height disagreement that rejects a pair, m; -1: from the '
-                                             'GSD (0.3 m at the simulator\'s)', min=gsd.AUTO, max=1e3)
     warn_unfused_keyframes: int = param(20, 'WARN on /diagnostics when this many keyframes came (images, or poses '
                                             'without save_keyframes) and '
                                             'nothing was fused since the last fused cloud (thrice as many before '
@@ -213,8 +206,7 @@ class MapNode(Node):
         cfg = FusionConfig(**{f.name: getattr(self.params, f.name) for f in dataclasses.fields(FusionConfig)})
         tol = cfg.min_tolerance_m
         if tol == gsd.AUTO:
-            tol = settings.min_tolerance_m if settings is not None else float(
-                f'{gsd.REF_LENGTHS_M["min_tolerance_m"] * gsd.snap(cell_m / gsd.REF_LENGTHS_M["cell_m"]):.3g}')
+            tol = settings.min_tolerance_m if settings is not None else gsd.tolerance_for_cell(cell_m)
         return dataclasses.replace(cfg, cell_m=float(cell_m), min_tolerance_m=tol)
 
     def _derive_cell(self, cloud_z: np.ndarray) -> None:

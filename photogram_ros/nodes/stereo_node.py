@@ -60,19 +60,6 @@ class StereoNodeParams(stereo.StereoParams, PairCriteria):
                                          f'fix on {TOPIC_FIX}): an RTK flight keeps max_position_sigma_m, a plain '
                                          f'3D fix (~2-4 m) is refused only when the adjustment placed it much '
                                          f'worse than its fix; 0: max_position_sigma_m alone', min=0.0, max=100.0)
-    # GSD-bound lengths (core/gsd.py): derived from the camera and the flying height at the first pair
-    # unless set; the matcher's and planner's own defaults are the simulator's values.
-    downscale: float = param(gsd.AUTO, 'scale of the rectified images (0.5 = half resolution, 4x faster); -1: from '
-                                       'the image size (core/gsd.py: about 77,000 pixels matched)', min=gsd.AUTO, max=1.0)
-    fill_holes_m: float = param(gsd.AUTO, 'unmatched gaps up to this far from matched ground on one plane are '
-                                          'interpolated, m; 0: off; -1: from the GSD (2 m at the simulator\'s)',
-                                min=gsd.AUTO, max=100.0)
-    edge_step_m: float = param(gsd.AUTO, 'depth step around which disparities are dropped, m; 0 keeps them; -1: from '
-                                         'the GSD (1 m at the simulator\'s)', min=gsd.AUTO, max=1e3)
-    relief_m: float = param(gsd.AUTO, 'depth search half-range around the ground, m; -1: from the flying height '
-                                      '(25 m at 40 m)', min=gsd.AUTO, max=1e4)
-    depth_margin_m: float = param(gsd.AUTO, 'margin around the tie points\' depths, m; -1: from the GSD (4 m at the '
-                                            'simulator\'s)', min=gsd.AUTO, max=1e3)
     publish_disparity: bool = param(False, f'also publish each pair\'s disparity on {TOPIC_DISPARITY}')
     settle_keyframes: int = param(10, 'pair a keyframe only once this many newer keyframes have poses: by then '
                                       'it has left the bundle window and its pose no longer changes (match the '
