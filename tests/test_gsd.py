@@ -93,8 +93,10 @@ def test_the_core_defaults_are_auto_and_resolve_from_the_pairs_height():
     cam = world('tiny')[0].camera()
     (_, Ta, ia), (_, Tb, ib) = rendered((2.0, 3.75))
     auto = stereo_pair(cam, ia, Ta, ib, Tb, StereoParams(), (20.0, 60.0))
-    mine = stereo_pair(cam, ia, Ta, ib, Tb, StereoParams(downscale=0.5, fill_holes_m=2.0, edge_step_m=1.0), (20.0, 60.0))
-    assert auto.ok and auto.rect.f_px == pytest.approx(0.5 * (cam.fx + cam.fy) / 2) and auto.cloud.size == mine.cloud.size
+    mine = stereo_pair(cam, ia, Ta, ib, Tb, StereoParams(downscale=0.5, fill_holes_m=2.0, edge_step_m=1.0),
+                       (20.0, 60.0))
+    assert auto.ok and auto.rect.f_px == pytest.approx(0.5 * (cam.fx + cam.fy) / 2)
+    assert auto.cloud.size == mine.cloud.size
 
 
 def test_dsm_rules_follow_the_map_cell():

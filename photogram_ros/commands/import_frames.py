@@ -13,7 +13,8 @@ def add_arguments(p) -> None:
                                                 'ROS / OpenCV camera YAML (default: config.cfg next to the frames)')
     p.add_argument('--track', default='', help='"time x y z ..." per line, local ENU metres about the origin '
                                                '(default: trajectory.txt next to the frames)')
-    p.add_argument('--origin', default='', help='LAT,LON,H of the track\'s local frame (default: config.cfg GPS.Origin)')
+    p.add_argument('--origin', default='',
+                   help='LAT,LON,H of the track\'s local frame (default: config.cfg GPS.Origin)')
     p.add_argument('--storage', choices=('mcap', 'sqlite3'), default='mcap', help='bag storage (as record)')
     p.add_argument('--raw', action='store_true', help='decoded bgr8 Images instead of the JPEG bytes')
     p.add_argument('--fix-rate-hz', type=float, default=1.0, help='GNSS fix rate, interpolated along the track '
@@ -30,7 +31,6 @@ def add_arguments(p) -> None:
 def _camera_and_origin(a, base):
     from pathlib import Path
 
-    from photogram_ros.core.geodesy import LocalFrame
     from photogram_ros.errors import ConfigError
     from photogram_ros.io.frame_import import read_map2dfusion_config
     cam_path = Path(a.camera) if a.camera else base / 'config.cfg'
@@ -43,11 +43,8 @@ def _camera_and_origin(a, base):
     else:
         camera, origin = read_map2dfusion_config(cam_path)
     if a.origin:
-        try:
-            lat, lon, h = (float(v) for v in a.origin.split(','))
-        except ValueError as exc:
-            raise ConfigError(f'--origin must be LAT,LON,H, not {a.origin!r}') from exc
-        origin = LocalFrame(lat, lon, h)
+        from photogram_ros.commands.products import parse_origin
+        origin = parse_origin(a.origin)
     if origin is None:
         raise ConfigError('the track\'s geodetic origin is unknown: give --origin LAT,LON,H')
     return camera, origin

@@ -19,6 +19,17 @@ def _core_params(cls, section: dict, where: str):
     return from_dict(cls, {k: v for k, v in section.items() if k in names}, where)
 
 
+def parse_origin(text: str):
+    """'LAT,LON,H' (degrees, metres) of a command's --origin -> LocalFrame; a ConfigError naming the option."""
+    from photogram_ros.core.geodesy import LocalFrame
+    from photogram_ros.errors import ConfigError
+    try:
+        lat, lon, h = (float(v) for v in text.split(','))
+    except ValueError as exc:
+        raise ConfigError(f'--origin must be LAT,LON,H in degrees and metres, not {text!r}') from exc
+    return LocalFrame(lat, lon, h)
+
+
 def check_output_crs(crs: str) -> None:
     """A GeodesyError now, before any replay or flight, unless `crs` is a projected CRS PROJ knows
     (the products need metric easting/northing)."""

@@ -100,9 +100,10 @@ def densify_map(map_dir: str | Path | MapStore, out_dir: str | Path, stereo: Ste
     `map_dir` and freshly fused tiles; an existing folder there is replaced. Pairs and depth searches
     come from core/pairs.plan_pairs around the in-flight map's ground height, narrowed to the pair's
     tie points `tie_points_map` (N, 3, map m; default: the in-flight map's surface, surface_points).
-    `progress(done, total)` is called after each keyframe. Parameters left at core/gsd.AUTO are derived from the camera and the keyframes' median
-    height above that ground (res.gsd, res.derived). A pair that cannot be matched (rectification
-    impossible, unreadable image, ...) is skipped and named in res.pairs_failed: one bad pair costs one pair.
+    `progress(done, total)` is called after each keyframe. Parameters left at core/gsd.AUTO are derived
+    from the camera and the keyframes' median height above that ground (res.gsd, res.derived). A pair
+    that cannot be matched (rectification impossible, unreadable image, ...) is skipped and named in
+    res.pairs_failed: one bad pair costs one pair.
     """
     t0 = time.perf_counter()
     src = as_map_store(map_dir)
