@@ -206,7 +206,9 @@ def main(argv=None) -> int:
     if a.real_1080p:
         print(json.dumps(bench_real(a.repeats)), flush=True)
         return 0
-    params = from_assignments(stereo.StereoParams, a.param)
+    # The module's former defaults (full resolution, no hole filling), so the overhead ratio stays comparable;
+    # the parameters now default to lengths from the GSD (core/gsd.py; --real-1080p measures those).
+    params = from_assignments(stereo.StereoParams, ['downscale=1.0', 'fill_holes_m=0.0', 'edge_step_m=1.0', *a.param])
     for s in (int(x) for x in a.scales.split(',')):
         print(json.dumps(bench(s, params, a.repeats)), flush=True)
     return 0
