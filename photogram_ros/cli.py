@@ -24,6 +24,7 @@ COMMANDS = {
     'calibrate': 'photogram_ros.commands.calibrate',
     'export': 'photogram_ros.commands.export',
     'fixes': 'photogram_ros.commands.fixes',
+    'import-frames': 'photogram_ros.commands.import_frames',
 }
 
 

@@ -118,3 +118,43 @@ def test_offline_products_reject_a_mistyped_core_parameter(map_dir, tmp_path):
     params.write_text('stereo_node:\n  ros__parameters:\n    relief_m: -3.0\n')
     with pytest.raises(ConfigError, match='relief_m'):
         densify_with_params(map_dir, tmp_path / 'out', str(params), progress=False)
+
+
+def test_one_pair_that_cannot_be_rectified_costs_one_pair(map_dir, tmp_path, monkeypatch):
+    # A pair whose cameras cannot be rectified ("rotated too far apart") used to abort the whole final
+    # matching, and the products fell back to the in-flight map. Now it is skipped, counted and named.
+    from photogram_ros.errors import DataError
+    from photogram_ros.io import densify
+    plain = _densify(map_dir, tmp_path / 'plain')
+    real, calls = densify.stereo_pair, []
+
+    def first_fails(*args, **kwargs):
+        calls.append(1)
+        if len(calls) == 1:
+            raise DataError('stereo pair cameras are rotated too far apart to rectify (> ~85 degrees)')
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(densify, 'stereo_pair', first_fails)
+    res = _densify(map_dir, tmp_path / 'one_bad')
+    assert plain.pairs_done >= 2 and res.pairs_done == plain.pairs_done - 1
+    assert res.pairs_skipped.get('failed') == 1 and len(res.pairs_failed) == 1
+    assert 'rotated too far apart' in res.pairs_failed[0] and res.pairs_failed[0].split(':')[0].count('/') == 1
+    assert res.points_fused > 0 and res.store.tile_keys()
+
+
+def test_lengths_left_to_the_gsd_are_derived_from_the_keyframes(map_dir, tmp_path):
+    # The tiny survey flies the simulator's camera at 40 m: the derived settings are the shipped ones.
+    from photogram_ros.core import gsd
+    from photogram_ros.core.fusion import FusionConfig
+    from photogram_ros.core.pairs import PairCriteria
+    from photogram_ros.core.stereo import StereoParams
+    from photogram_ros.io.densify import densify_map
+    from photogram_ros.params import from_dict
+    stereo, crit, fusion = (from_dict(cls, {}) for cls in (StereoParams, PairCriteria, FusionConfig))
+    assert gsd.unresolved(stereo) and gsd.unresolved(crit) and gsd.unresolved(fusion)   # the defaults
+    res = densify_map(map_dir, tmp_path / 'auto', stereo, crit, fusion)
+    assert res.gsd['downscale'] == 0.5 and res.gsd['cell_m'] == 0.12 and res.gsd['relief_m'] == 25.0
+    assert set(res.derived) == {'downscale', 'fill_holes_m', 'edge_step_m', 'relief_m', 'depth_margin_m', 'cell_m',
+                                'min_tolerance_m'}
+    assert res.store.cell_m == 0.12 and res.pairs_done >= 2
+    assert 30.0 < res.gsd['flying_height_m'] < 50.0

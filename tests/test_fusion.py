@@ -85,7 +85,7 @@ def test_isolated_speckle_is_dropped_inside_a_pair():
 
 def test_bad_clouds_raise_or_are_skipped():
     from photogram_ros.errors import DataError
-    f = Fusion()
+    f = Fusion(FusionConfig(cell_m=0.08))
     with pytest.raises(DataError):
         f.add(np.zeros(3, dtype=[('x', 'f8'), ('y', 'f8')]))
     c = np.zeros(4, dtype=CLOUD_DTYPE)

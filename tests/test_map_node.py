@@ -39,7 +39,7 @@ def graph(rclpy_context, tmp_path):
     from photogram_ros.nodes.map_node import MapNode
 
     node = MapNode({'map_dir': str(tmp_path / 'map'), 'flush_interval_s': 0.2, 'stream_period_s': 0.2,
-                    'stream_max_points': 3000, **ORIGIN}, context=rclpy_context)
+                    'stream_max_points': 3000, 'cell_m': 0.08, **ORIGIN}, context=rclpy_context)
     peer = Node('map_test_peer', context=rclpy_context)
     got = []
     peer.create_subscription(PointCloud2, '/map/cloud_downsampled', got.append,
@@ -59,7 +59,8 @@ def graph(rclpy_context, tmp_path):
 
 def _start_map_node(map_dir, *params):
     """map_node as its own process (the console-script path), with `-p name:=value` parameters."""
-    cmd = [sys.executable, '-m', 'photogram_ros.nodes.map_node', '--ros-args', '-p', f'map_dir:={map_dir}']
+    cmd = [sys.executable, '-m', 'photogram_ros.nodes.map_node', '--ros-args', '-p', f'map_dir:={map_dir}',
+           '-p', 'cell_m:=0.08']   # these tests read the map with 0.08 m cells (not from the GSD)
     for prm in params:
         cmd += ['-p', prm]
     return subprocess.Popen(cmd, cwd=ROOT, env=dict(os.environ), stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
@@ -270,3 +271,116 @@ def test_sigint_and_sigterm_flush_everything(rclpy_context, tmp_path, sig):
     for c in clouds:
         want |= set(zip(np.floor(c['x'] / 0.08).astype(int).tolist(), np.floor(c['y'] / 0.08).astype(int).tolist()))
     assert set(zip(pts['ix'].tolist(), pts['iy'].tolist())) == want
+
+
+def _map_node(rclpy_context, tmp_path, **params):
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.node import Node
+    from photogram_ros.nodes.map_node import MapNode
+    node = MapNode({'map_dir': str(tmp_path / 'map'), 'flush_interval_s': 60.0, **ORIGIN, **params},
+                   context=rclpy_context)
+    peer = Node('map_test_peer2', context=rclpy_context)
+    ex = SingleThreadedExecutor(context=rclpy_context)
+    ex.add_node(node)
+    ex.add_node(peer)
+    return node, peer, ex
+
+
+def _publishers(peer):
+    from geometry_msgs.msg import PoseWithCovarianceStamped
+    from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
+    from sensor_msgs.msg import CameraInfo, Image, PointCloud2
+    rel = QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE)
+    return (peer.create_publisher(CameraInfo, '/camera/camera_info', qos_profile_sensor_data),
+            peer.create_publisher(PoseWithCovarianceStamped, '/map/keyframe_pose', rel),
+            peer.create_publisher(Image, '/keyframes/image', rel),
+            peer.create_publisher(PointCloud2, '/map/dense_cloud', rel))
+
+
+@pytest.mark.parametrize('camera, height_m, want_cell_m', [((640, 480, 520.0), 40.0, 0.12),
+                                                          ((1920, 1080, 1220.0), 166.0, 0.48)])
+def test_the_cell_follows_the_gsd_of_the_first_pair_cloud(rclpy_context, tmp_path, camera, height_m, want_cell_m):
+    # cell_m left at -1: the simulator's camera at 40 m gets the 0.12 m its configs held, a 1080p
+    # camera at 166 m four times that (core/gsd.py), and the map folder says so.
+    from photogram_ros import msgs
+    from photogram_ros.core.camera import PinholeCamera
+    from photogram_ros.core.rotations import make_T
+    from photogram_ros.io.map_store import MapStore
+    node, peer, ex = _map_node(rclpy_context, tmp_path)
+    try:
+        pc, pp, _, pub = _publishers(peer)
+        w, h, f = camera
+        cam = PinholeCamera(w, h, f, f, w / 2 - 0.5, h / 2 - 0.5)
+        _spin_until(ex, lambda: pub.get_subscription_count() and pp.get_subscription_count(), 5.0)
+        for _ in range(3):
+            pc.publish(msgs.camera_info_msg(cam, 5))
+            ex.spin_once(timeout_sec=0.05)
+        pp.publish(msgs.pose_with_covariance_from_T(make_T(np.diag([1.0, -1.0, -1.0]),
+                                                           np.array([0.0, 0.0, 3.0 + height_m])), 7))
+        assert _spin_until(ex, lambda: node._camera is not None and node._pose_z, 5.0)
+        pub.publish(msgs.pointcloud2_msg(pair_cloud(np.random.default_rng(3), surface, 0, 0, 20, 20, 20), 9, 'map'))
+        assert _spin_until(ex, lambda: node.diag.counts().get('clouds', 0) == 1)
+        assert node.cell_m == pytest.approx(want_cell_m)
+        node.flush()
+        assert MapStore(tmp_path / 'map').cell_m == pytest.approx(want_cell_m)
+        assert node.gsd is not None and node.gsd.flying_height_m == pytest.approx(height_m, abs=1.0)
+    finally:
+        ex.shutdown()
+        peer.destroy_node()
+        node.destroy_node()
+
+
+def test_nothing_fused_for_n_keyframes_is_a_warning_with_the_reason(rclpy_context, tmp_path):
+    from diagnostic_msgs.msg import DiagnosticStatus
+    from photogram_ros import msgs
+    node, peer, ex = _map_node(rclpy_context, tmp_path, warn_unfused_keyframes=2, cell_m=0.1)
+    try:
+        _, _, pi, _ = _publishers(peer)
+        _spin_until(ex, lambda: pi.get_subscription_count(), 5.0)
+        for k in range(5):          # before any fused cloud the limit is 3 x 2 keyframes: no warning yet
+            pi.publish(msgs.image_msg(np.zeros((48, 64, 3), np.uint8), 1000 + k))
+        assert _spin_until(ex, lambda: node.diag.counts().get('keyframes_saved', 0) == 5)
+        node._update_diag()
+        assert not any('nothing fused' in p for p in node.diag.recent_problems())
+        pi.publish(msgs.image_msg(np.zeros((48, 64, 3), np.uint8), 2000))
+        assert _spin_until(ex, lambda: node.diag.counts().get('keyframes_saved', 0) == 6)
+        node._update_diag()
+        problems = node.diag.recent_problems()
+        assert any('nothing fused for 6+ keyframes' in p and 'stereo_node sent no pair cloud' in p for p in problems)
+        assert node.diag.status().level == DiagnosticStatus.WARN
+    finally:
+        ex.shutdown()
+        peer.destroy_node()
+        node.destroy_node()
+
+
+def test_a_full_disk_counts_write_failures_on_diagnostics(rclpy_context, tmp_path, monkeypatch):
+    import builtins
+    import errno
+    from diagnostic_msgs.msg import DiagnosticStatus
+    from photogram_ros import msgs
+    from photogram_ros.io import map_store
+    node, peer, ex = _map_node(rclpy_context, tmp_path, cell_m=0.1)
+    try:
+        _, _, _, pub = _publishers(peer)
+        _spin_until(ex, lambda: pub.get_subscription_count(), 5.0)
+        pub.publish(msgs.pointcloud2_msg(pair_cloud(np.random.default_rng(4), surface, 0, 0, 5, 5, 100), 9, 'map'))
+        assert _spin_until(ex, lambda: node.diag.counts().get('clouds', 0) == 1)
+
+        def full(path, mode='r', *a, **k):
+            if 'a' in mode or 'w' in mode:
+                raise OSError(errno.ENOSPC, 'No space left on device', str(path))
+            return builtins.open(path, mode, *a, **k)
+        monkeypatch.setattr(map_store, 'open', full, raising=False)
+        node.flush()
+        node.flush()
+        st = node.diag.status()
+        values = {kv.key: kv.value for kv in st.values}
+        assert int(values['write_failures']) >= 2 and node.store.write_failures >= 2
+        assert st.level == DiagnosticStatus.ERROR and 'disk' in st.message and 'full' in st.message
+        assert not list((tmp_path / 'map').rglob('*.tmp'))
+    finally:
+        monkeypatch.undo()
+        ex.shutdown()
+        peer.destroy_node()
+        node.destroy_node()

@@ -11,6 +11,10 @@ from photogram_ros.core.camera import PinholeCamera
 from photogram_ros.core.pairs import PairCriteria, choose_pairs, overlap_fraction
 from photogram_ros.core.rotations import make_T, rot_x, rot_y, rot_z
 from photogram_ros.core.stereo import CLOUD_DTYPE, StereoParams, stereo_pair
+
+# The lengths these tests were written with (full resolution, no hole filling): the parameters'
+# defaults now derive them from the GSD (core/gsd.py, tested in test_gsd.py).
+FULL = dict(downscale=1.0, fill_holes_m=0.0, edge_step_m=1.0)
 from photogram_ros.core.stereo_eval import load_scene, score
 from photogram_ros.errors import ConfigError, DataError
 from photogram_ros.params import from_dict
@@ -237,7 +241,7 @@ def test_sim_pair_matches_true_dem(sim_pair):
     cam, terrain, ((Ta, ia), (Tb, ib)), cfg = sim_pair
     gsd = cfg.gsd_m
     assert abs(gsd - GSD_M) < 1e-9
-    res = stereo_pair(cam, ia, Ta, ib, Tb, StereoParams(), depth_range_m=(20.0, 55.0))
+    res = stereo_pair(cam, ia, Ta, ib, Tb, StereoParams(**FULL), depth_range_m=(20.0, 55.0))
     assert res.status == stereo.OK, res.message
     c = res.cloud
     assert c.dtype == CLOUD_DTYPE
@@ -297,7 +301,7 @@ def test_plan_pairs_searches_the_tie_points_depths_else_the_ground_relief():
     Ta = _pose(0.0, 20.0, 40.0)
     others = {1: _pose(0.0, 11.0, 40.0), 3: _pose(15.0, 20.5, 40.0), 4: _pose(0.0, -30.0, 40.0)}
     ties = np.column_stack([rng.uniform(-40, 60, (20000, 2)), rng.uniform(-2, 2, 20000)])
-    crit, limits = PairCriteria(), (2.0, 500.0)
+    crit, limits = PairCriteria(relief_m=20.0, depth_margin_m=4.0), (2.0, 500.0)
     plain = pairs.plan_pairs(CAM, Ta, others, 0.0, crit, limits)
     assert plain.status == pairs.OK and plain.height_m == 40.0
     assert [(q.other, q.along) for q in plain.pairs] == [(c.other, c.along) for c in choose_pairs(CAM, Ta, others,
@@ -309,10 +313,10 @@ def test_plan_pairs_searches_the_tie_points_depths_else_the_ground_relief():
     for q in tied.pairs:
         lo, hi = q.depth_range_m
         assert q.from_tie_points and 33.8 < lo < 34.2 and 45.8 < hi < 46.2
-    off = from_dict(PairCriteria, {'depth_from_sparse_cloud': False})
+    off = from_dict(PairCriteria, {'depth_from_sparse_cloud': False, 'relief_m': 20.0, 'depth_margin_m': 4.0})
     assert pairs.plan_pairs(CAM, Ta, others, 0.0, off, limits, ties).pairs == plain.pairs
     # The tie points' depths outside the ground search (a stray cloud 30 m lower): the ground search stays.
-    narrow = from_dict(PairCriteria, {'relief_m': 1.0})
+    narrow = from_dict(PairCriteria, {'relief_m': 1.0, 'depth_margin_m': 4.0})
     low = pairs.plan_pairs(CAM, Ta, others, 0.0, narrow, limits, ties - [0.0, 0.0, 30.0])
     assert all(q.depth_range_m == (39.0, 41.0) and not q.from_tie_points for q in low.pairs)
     assert all(q.depth_range_m == (20.0, 50.0) for q in pairs.plan_pairs(CAM, Ta, others, 0.0, crit, (2.0, 50.0)).pairs)
@@ -323,7 +327,7 @@ def test_sim_pair_hole_filling_adds_points_on_the_track_and_no_wrong_ones():
     from helpers.sim_world import rendered, world
     cfg, _, terrain, _, _ = world('tiny')
     (_, Ta, ia), (_, Tb, ib) = rendered((10.5, 12.25))     # a plain 3 m track crosses this pair
-    base = dict(downscale=0.5, min_texture=2.0)
+    base = dict(downscale=0.5, min_texture=2.0, fill_holes_m=0.0, edge_step_m=1.0)
     plain = stereo_pair(cfg.camera(), ia, Ta, ib, Tb, from_dict(StereoParams, base), (20.0, 55.0))
     res = stereo_pair(cfg.camera(), ia, Ta, ib, Tb, from_dict(StereoParams, {**base, 'fill_holes_m': 2.0}),
                       (20.0, 55.0))

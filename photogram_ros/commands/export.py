@@ -30,7 +30,6 @@ def add_arguments(p) -> None:
 
 
 def run(a) -> int:
-    from photogram_ros.core.geodesy import LocalFrame
     from photogram_ros.errors import ConfigError
     from photogram_ros.io.export import export_map
     from photogram_ros.io.map_store import MapStore
@@ -44,13 +43,8 @@ def run(a) -> int:
     if a.crs:
         from photogram_ros.commands.products import check_output_crs
         check_output_crs(a.crs)   # before any matching or writing
-    origin = None
-    if a.origin:
-        try:
-            lat, lon, h = (float(v) for v in a.origin.split(','))
-        except ValueError as exc:
-            raise ConfigError(f'--origin must be LAT,LON,H in degrees and metres, not {a.origin!r}') from exc
-        origin = LocalFrame(lat, lon, h)
+    from photogram_ros.commands.products import parse_origin
+    origin = parse_origin(a.origin) if a.origin else None
     store = MapStore(a.map_dir)
     if a.densify:
         from pathlib import Path
@@ -58,7 +52,13 @@ def run(a) -> int:
         from photogram_ros.commands.products import densify_with_params
         params = a.params if a.params is not None or not Path('config/replay.yaml').exists() else 'config/replay.yaml'
         d = densify_with_params(store, Path(a.out) / 'map_final', params)
-        print(f'{d.pairs_done} pairs matched again from the final poses in {d.seconds:.1f} s -> {d.map_dir}')
+        print(f'{d.pairs_done} pairs matched again from the final poses in {d.seconds:.1f} s -> {d.map_dir}'
+              + (f'; skipped {d.pairs_skipped}' if d.pairs_skipped else ''))
+        for why in d.pairs_failed:
+            print(f'  pair not matched: {why}')
+        if d.derived:
+            from photogram_ros.core.gsd import GsdSettings
+            print(f'  from the GSD ({", ".join(d.derived)}): {GsdSettings(**d.gsd).summary()}')
         store = d.store
     res = export_map(store, a.out, a.crs, a.heights, a.dsm_res_m, a.ortho_res_m, products, origin,
                      min_pairs=a.min_pairs)

@@ -19,6 +19,17 @@ def _core_params(cls, section: dict, where: str):
     return from_dict(cls, {k: v for k, v in section.items() if k in names}, where)
 
 
+def parse_origin(text: str):
+    """'LAT,LON,H' (degrees, metres) of a command's --origin -> LocalFrame; a ConfigError naming the option."""
+    from photogram_ros.core.geodesy import LocalFrame
+    from photogram_ros.errors import ConfigError
+    try:
+        lat, lon, h = (float(v) for v in text.split(','))
+    except ValueError as exc:
+        raise ConfigError(f'--origin must be LAT,LON,H in degrees and metres, not {text!r}') from exc
+    return LocalFrame(lat, lon, h)
+
+
 def check_output_crs(crs: str) -> None:
     """A GeodesyError now, before any replay or flight, unless `crs` is a projected CRS PROJ knows
     (the products need metric easting/northing)."""
@@ -108,7 +119,12 @@ def export_products(map_dir, out, params_file: str | None, crs: str = '', live_m
         try:
             d = densify_with_params(store, out / 'map_final', params_file, progress=progress)
             products = d.store
-            run.update(densify_s=round(d.seconds, 2), densify_pairs=d.pairs_done)
+            run.update(densify_s=round(d.seconds, 2), densify_pairs=d.pairs_done, densify_stereo_s=round(d.stereo_s, 2),
+                       densify_pairs_skipped=dict(d.pairs_skipped), gsd=d.gsd, gsd_derived=d.derived)
+            if d.pairs_failed:
+                run['densify_pairs_failed'] = d.pairs_failed
+                notes.append(f'{d.pairs_skipped.get("failed", 0)} pair(s) could not be matched from the final poses '
+                             f'and were skipped (first: {d.pairs_failed[0]})')
         except StorageError:   # a full disk: exporting next would fail the same way
             raise
         except PhotogramError as exc:
@@ -120,6 +136,7 @@ def export_products(map_dir, out, params_file: str | None, crs: str = '', live_m
         ex = export_map(products, out, crs, heights, min_pairs=min_pairs)
         files = {k: str(v) for k, v in ex.files.items()}
         run['map_points'] = ex.points
+        run['dsm'] = ex.dsm
         figures = build_report(out, products, crs, files, run=run, **report)
     except StorageError:
         raise

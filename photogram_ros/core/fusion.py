@@ -22,12 +22,13 @@ nothing is evicted (there would be nowhere to put it).
 
 from __future__ import annotations
 
+import dataclasses
 from collections import OrderedDict
 from dataclasses import dataclass, field
 
 import numpy as np
 
-from photogram_ros.core import offheap
+from photogram_ros.core import gsd, offheap
 from photogram_ros.errors import ConfigError, DataError
 from photogram_ros.params import param
 
@@ -46,18 +47,22 @@ CELL_DTYPE = np.dtype([
 @dataclass
 class FusionConfig:
     """The fusion's parameters (the map node's cell and tile geometry, memory bound and rejection rules)."""
-    cell_m: float = param(0.08, 'Fusion cell size, m (about one GSD)', min=0.005, max=10.0)
+    cell_m: float = param(gsd.AUTO, 'Fusion cell size, m; -1: from the GSD (core/gsd.py: 0.12 m for the '
+                                    'simulator\'s 640x480 at 40 m), set by the map node or densify before fusing',
+                          min=gsd.AUTO, max=10.0)
     tile_cells: int = param(256, 'Cells per tile side (tile = cell_m * tile_cells metres)', min=8, max=4096)
     max_tiles_in_memory: int = param(64, 'Tiles held in memory; least recently touched ones go to disk',
                                      min=1, max=100000)
     k_sigma: float = param(3.0, 'A pair disagreeing with a cell by more than k sigma (and min_tolerance_m) '
                                 'is rejected there', min=0.5, max=100.0)
-    min_tolerance_m: float = param(0.3, 'Smallest height disagreement that rejects a pair, m', min=0.0, max=1e3)
+    min_tolerance_m: float = param(gsd.AUTO, 'Smallest height disagreement that rejects a pair, m; -1: scaled with '
+                                             'the cell (0.3 m at 0.12 m cells)', min=gsd.AUTO, max=1e3)
     min_confidence: float = param(0.3, 'Points with a lower stereo confidence are not fused (0 keeps all)',
                                   min=0.0, max=1.0)
 
     def check(self) -> None:
-        if not (self.cell_m > 0 and np.isfinite(self.cell_m)):
+        gsd.check_auto_or_at_least(self, {'cell_m': 0.005, 'min_tolerance_m': 0.0})
+        if self.cell_m != gsd.AUTO and not (self.cell_m > 0 and np.isfinite(self.cell_m)):
             raise ConfigError(f'fusion cell size {self.cell_m} m must be positive')
         if not 8 <= self.tile_cells <= 4096:
             raise ConfigError(f'tile_cells {self.tile_cells} must be within [8, 4096]')
@@ -119,8 +124,13 @@ class Fusion:
     """Fuses pair clouds (structured arrays with x, y, z and optionally rgb, confidence)."""
 
     def __init__(self, config: FusionConfig | None = None, store=None):
-        self.config = config or FusionConfig()
-        self.config.check()
+        config = config or FusionConfig()
+        config.check()
+        if config.cell_m == gsd.AUTO:
+            raise ConfigError('the fusion cell_m is left to the GSD: resolve it first (core/gsd.resolve), or set it')
+        if config.min_tolerance_m == gsd.AUTO:
+            config = dataclasses.replace(config, min_tolerance_m=gsd.tolerance_for_cell(config.cell_m))
+        self.config = config
         self.store = store
         self.tiles: OrderedDict[tuple[int, int], Tile] = OrderedDict()
         self.stats = FusionStats()

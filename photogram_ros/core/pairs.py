@@ -16,6 +16,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from photogram_ros.core import gsd
 from photogram_ros.core.camera import PinholeCamera
 from photogram_ros.errors import ConfigError
 from photogram_ros.params import param
@@ -58,13 +59,21 @@ class PairCriteria(PairLimits):
     max_pairs_across: int = param(1, 'partners per new keyframe on neighbouring lines', min=0, max=10)
     max_axis_angle_deg: float = param(20.0, 'keyframes whose optical axes differ more are not paired',
                                       min=0.0, max=90.0)
-    relief_m: float = param(20.0, 'depth search half-range around the ground, m (terrain relief + buildings); '
-                                  'the most the search spans', min=0.5, max=1e4)
+    relief_m: float = param(gsd.AUTO, 'depth search half-range around the ground, m (terrain relief + buildings); '
+                                  'the most the search spans; -1: from the flying height (core/gsd.py: 25 m at '
+                                  '40 m)',
+                         min=gsd.AUTO, max=1e4)
     depth_from_sparse_cloud: bool = param(True, 'search only the depths the pair\'s tie points span (the sparse '
                                                 'cloud, widened by depth_margin_m, within relief_m): the SGBM '
                                                 'cost is proportional to the search')
-    depth_margin_m: float = param(4.0, 'margin around the tie points\' depths, m (what has no tie point, e.g. a '
-                                       'plain roof above its corners)', min=0.0, max=1e3)
+    depth_margin_m: float = param(gsd.AUTO, 'margin around the tie points\' depths, m (what has no tie point, e.g. a '
+                                       'plain roof above its corners); -1: from the GSD (core/gsd.py: 4 m for the '
+                                       'simulator\'s 640x480 at 40 m)',
+                               min=gsd.AUTO, max=1e3)
+
+    def check(self) -> None:
+        gsd.check_auto_or_at_least(self, {'relief_m': 0.5, 'depth_margin_m': 0.0})
+        super().check()
 
 
 @dataclass
@@ -127,6 +136,8 @@ def plan_pairs(camera: PinholeCamera, new_T: np.ndarray, others: dict, ground_m:
     height = float(new_T[2, 3] - ground_m)
     if height <= 0:
         return PairPlan(BELOW_GROUND, height)
+    if gsd.unresolved(criteria):   # left to the GSD: this keyframe's
+        criteria, _ = gsd.resolve(criteria, gsd.derive(camera.width, camera.height, camera.fx, height))
     lo0 = max(depth_limits_m[0], height - criteria.relief_m)
     hi0 = min(depth_limits_m[1], height + criteria.relief_m)
     use_ties = criteria.depth_from_sparse_cloud and tie_points_map is not None

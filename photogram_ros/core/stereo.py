@@ -14,6 +14,7 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
+from photogram_ros.core import gsd
 from photogram_ros.core.camera import PinholeCamera
 from photogram_ros.core.pairs import PairLimits, overlap_fraction
 from photogram_ros.errors import ConfigError, DataError
@@ -65,24 +66,27 @@ class StereoParams(PairLimits):
                                     min=0.0, max=100.0)
     min_texture: float = param(0.0, 'drop pixels whose mean absolute gradient in the block is below this, '
                                     'grey levels per pixel', min=0.0, max=100.0)
-    fill_holes_m: float = param(0.0, 'posed pairs: pixels left without a match (a plain track, a mismatch) up to '
+    fill_holes_m: float = param(gsd.AUTO, 'posed pairs: pixels left without a match (a plain track, a mismatch) up to '
                                      'this far from matched ones, m on the ground, get a disparity interpolated '
                                      'from them where the matched surface around is continuous (no depth step '
-                                     'over edge_step_m, so never across a roof edge); 0: off', min=0.0, max=100.0)
+                                     'over edge_step_m, so never across a roof edge); 0: off; -1: from the GSD '
+                                     '(core/gsd.py: 2 m for the simulator\'s 640x480 at 40 m)', min=gsd.AUTO, max=100.0)
     fill_confidence: float = param(0.35, 'confidence of interpolated (filled) points; the map fuses points from '
                                          'its min_confidence (0.3) up, so a lower value keeps them out of the map',
                                    min=0.0, max=1.0)
     min_confidence: float = param(0.0, 'drop points with a lower confidence (0..1)', min=0.0, max=1.0)
-    edge_step_m: float = param(1.0, 'depth step (wall, roof edge) around which disparities are dropped, m; '
-                                    '0 keeps them', min=0.0, max=1e3)
+    edge_step_m: float = param(gsd.AUTO, 'depth step (wall, roof edge) around which disparities are dropped, m; '
+                                         '0 keeps them; -1: from the GSD (core/gsd.py: 1 m for the simulator\'s)',
+                               min=gsd.AUTO, max=1e3)
     edge_margin_px: int = param(3, 'pixels dropped on both sides of such a step (SGBM misplaces the step by '
                                    'up to its block radius)', min=0, max=32)
     min_depth_m: float = param(2.0, 'nearest valid depth, m', min=0.01, max=1e5)
     max_depth_m: float = param(500.0, 'farthest valid depth, m', min=0.1, max=1e6)
     max_grazing_deg: float = param(75.0, 'drop points whose surface is seen at more than this angle from its '
                                          'normal, degrees', min=10.0, max=90.0)
-    downscale: float = param(1.0, 'scale of the rectified images (0.5 = half resolution, 4x faster)',
-                             min=0.1, max=1.0)
+    downscale: float = param(gsd.AUTO, 'scale of the rectified images (0.5 = half resolution, 4x faster); -1: '
+                                       'from the image size (core/gsd.py: about 77,000 pixels matched, 0.5 for '
+                                       '640x480, 0.25 for 1080p)', min=gsd.AUTO, max=1.0)
     point_stride: int = param(1, 'keep one point in stride x stride pixels', min=1, max=16)
     max_reprojection_rms_px: float = param(2.0, 'skip pairs whose keyframe poses have a larger reprojection RMS, '
                                                 'pixels', min=0.0, max=1e3)
@@ -96,6 +100,7 @@ class StereoParams(PairLimits):
             raise ConfigError(f'max_num_disparities must be a multiple of 16 (got {self.max_num_disparities})')
         if self.min_depth_m >= self.max_depth_m:
             raise ConfigError('min_depth_m must be smaller than max_depth_m')
+        gsd.check_auto_or_at_least(self, {'downscale': 0.1, 'fill_holes_m': 0.0, 'edge_step_m': 0.0})
         super().check()
 
 
@@ -814,6 +819,8 @@ def stereo_pair(camera: PinholeCamera, image_a: np.ndarray, map_T_cam_a: np.ndar
             return StereoResult(POOR_POSE, f'keyframe reprojection RMS {worst:.2f} px > '
                                            f'{params.max_reprojection_rms_px} px')
     mid = 0.5 * (lo + hi)
+    if gsd.unresolved(params):   # lengths left to the GSD: this pair's (the middle of its depth search)
+        params, _ = gsd.resolve(params, gsd.derive(camera.width, camera.height, camera.fx, mid))
     baseline = float(np.linalg.norm(map_T_cam_b[:3, 3] - map_T_cam_a[:3, 3]))
     ratio = baseline / mid
     if not params.min_baseline_ratio <= ratio <= params.max_baseline_ratio:

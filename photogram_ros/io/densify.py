@@ -6,8 +6,9 @@ depth is sensitive to its two cameras' relative tilt (Z^2 / B per radian: 2 cm p
 40 m with an 8 m baseline). So the survey products are made again from the keyframes and the final
 poses of the in-flight map folder, the way photogrammetry software densifies after triangulation:
 the same pair planner (core/pairs.plan_pairs), stereo and fusion as the nodes, in keyframe order.
-The map folder holds no tie points (io/map_store.py), so each pair searches the ground height +-
-relief_m unless the caller passes the flight's tie points. The in-flight map stays
+The map folder holds no tie points (io/map_store.py): each pair searches the depths the in-flight
+map's fused surface spans in its view (+- depth_margin_m; the ground height +- relief_m where the map
+has nothing there), unless the caller passes the flight's tie points. The in-flight map stays
 what it was (what the ground station saw); the products come from the new folder. Given the map
 folder the result is deterministic, unlike the in-flight map, whose pairing depends on timing.
 """
@@ -23,10 +24,11 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from photogram_ros.core.fusion import Fusion, FusionConfig
+from photogram_ros.core import gsd
+from photogram_ros.core.fusion import Fusion, FusionConfig, downsample
 from photogram_ros.core.pairs import BELOW_GROUND, PairCriteria, plan_pairs
 from photogram_ros.core.stereo import StereoParams, stereo_pair
-from photogram_ros.errors import DataError
+from photogram_ros.errors import DataError, PhotogramError
 from photogram_ros.io.map_store import MapStore, as_map_store
 
 
@@ -41,6 +43,13 @@ class DensifyResult:
     points_fused: int = 0
     ground_m: float = float('nan')
     seconds: float = 0.0
+    pairs_failed: list = field(default_factory=list)   # 'stamp_a/stamp_b: why' of pairs that raised
+    gsd: dict | None = None               # core/gsd.GsdSettings of the flight (as_dict)
+    derived: list = field(default_factory=list)        # the parameters taken from it
+    stereo_s: float = 0.0                 # time in stereo_pair
+
+
+MAX_FAILED_NAMED = 20   # pairs_failed keeps the first ones; pairs_skipped['failed'] counts them all
 
 
 def _ground_height(store: MapStore, kfs: list[dict]) -> float:
@@ -55,6 +64,24 @@ def _ground_height(store: MapStore, kfs: list[dict]) -> float:
     if z.size >= 20:
         return float(np.median(z))
     return float(np.median([k['map_T_cam'][2, 3] for k in kfs])) - 40.0
+
+
+def surface_points(store: MapStore, block_cells: int = 4, max_points: int = 500_000) -> np.ndarray | None:
+    """The in-flight map's fused surface as (N, 3) map points (block means of block_cells x block_cells
+    cells, at most max_points), or None when it holds too few: what each final pair searches around."""
+    fusion = Fusion(FusionConfig(store.cell_m, store.tile_cells, max_tiles_in_memory=1), store)
+    parts = []
+    for key, cells in fusion.iter_tiles():
+        q = downsample(fusion.tile_points(key, cells), block_cells, store.cell_m)
+        if q['x'].size:
+            parts.append(np.column_stack([q['x'], q['y'], q['z']]))
+    if not parts:
+        return None
+    P = np.concatenate(parts)
+    P = P[np.all(np.isfinite(P), axis=1)]
+    if len(P) < 100:
+        return None
+    return P[::int(np.ceil(len(P) / max_points))]
 
 
 def _link_or_copy(src: Path, dst: Path) -> None:
@@ -72,8 +99,11 @@ def densify_map(map_dir: str | Path | MapStore, out_dir: str | Path, stereo: Ste
     `out_dir` gets the origin, camera and keyframes (hard links where the file system allows) of
     `map_dir` and freshly fused tiles; an existing folder there is replaced. Pairs and depth searches
     come from core/pairs.plan_pairs around the in-flight map's ground height, narrowed to the pair's
-    tie points when `tie_points_map` (N, 3, map m) is given. `progress(done, total)` is called after
-    each keyframe.
+    tie points `tie_points_map` (N, 3, map m; default: the in-flight map's surface, surface_points).
+    `progress(done, total)` is called after each keyframe. Parameters left at core/gsd.AUTO are derived
+    from the camera and the keyframes' median height above that ground (res.gsd, res.derived). A pair
+    that cannot be matched (rectification impossible, unreadable image, ...) is skipped and named in
+    res.pairs_failed: one bad pair costs one pair.
     """
     t0 = time.perf_counter()
     src = as_map_store(map_dir)
@@ -83,6 +113,17 @@ def densify_map(map_dir: str | Path | MapStore, out_dir: str | Path, stereo: Ste
     out = Path(out_dir)
     if out.resolve() == src.root.resolve():
         raise DataError('densify writes a new map folder: give another out_dir than the map itself')
+    ground_m = _ground_height(src, kfs)
+    if tie_points_map is None:
+        # The in-flight map is the best knowledge of the surface: each pair searches the depths it
+        # spans there (+- depth_margin_m) instead of the ground +- relief_m (three times the disparities
+        # of a 1080p pair at 166 m).
+        tie_points_map = surface_points(src)
+    settings = gsd.derive(cam.width, cam.height, cam.fx,
+                          float(np.median([k['map_T_cam'][2, 3] for k in kfs])) - ground_m, stereo.downscale)
+    stereo, names_s = gsd.resolve(stereo, settings)
+    criteria, names_c = gsd.resolve(criteria, settings)
+    fusion, names_f = gsd.resolve(fusion, settings)
     if out.exists():
         shutil.rmtree(out)
     dst = MapStore(out, fusion.cell_m, fusion.tile_cells)
@@ -91,7 +132,8 @@ def densify_map(map_dir: str | Path | MapStore, out_dir: str | Path, stereo: Ste
     for k in kfs:
         _link_or_copy(k['image_path'], dst.keyframes_dir / k['image_path'].name)
         dst.save_keyframe_pose(k['stamp_ns'], k['map_T_cam'])
-    res = DensifyResult(out, dst, keyframes=len(kfs), ground_m=_ground_height(src, kfs))
+    res = DensifyResult(out, dst, keyframes=len(kfs), ground_m=ground_m, gsd=settings.as_dict(),
+                        derived=sorted(set(names_s + names_c + names_f)))
     fuser = Fusion(fusion, dst)
     C = np.array([k['map_T_cam'][:3, 3] for k in kfs])
     images: dict[int, np.ndarray] = {}     # the partners of the coming keyframes, not the whole flight
@@ -119,8 +161,17 @@ def densify_map(map_dir: str | Path | MapStore, out_dir: str | Path, stereo: Ste
             continue
         for pair in plan.pairs:
             res.pairs_depth_from_tie_points += pair.from_tie_points
-            r = stereo_pair(cam, image(pair.other), kfs[pair.other]['map_T_cam'], image(i), T, stereo,
-                            pair.depth_range_m)
+            t_pair = time.perf_counter()
+            try:
+                r = stereo_pair(cam, image(pair.other), kfs[pair.other]['map_T_cam'], image(i), T, stereo,
+                                pair.depth_range_m)
+            except (PhotogramError, cv2.error) as exc:
+                res.pairs_skipped['failed'] = res.pairs_skipped.get('failed', 0) + 1
+                if len(res.pairs_failed) < MAX_FAILED_NAMED:
+                    res.pairs_failed.append(f'{kfs[pair.other]["stamp_ns"]}/{kf["stamp_ns"]}: {exc}')
+                continue
+            finally:
+                res.stereo_s += time.perf_counter() - t_pair
             if not r.ok:
                 res.pairs_skipped[r.status] = res.pairs_skipped.get(r.status, 0) + 1
                 continue

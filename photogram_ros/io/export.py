@@ -26,12 +26,14 @@ from pathlib import Path
 import numpy as np
 
 from photogram_ros.core import geoid
+from photogram_ros.core.gsd import AUTO, dsm_lengths_for_cell
 from photogram_ros.core.fusion import Fusion, FusionConfig
 from photogram_ros.core.ground import GroundParams, classify_points
 from photogram_ros.core.geodesy import LocalFrame, crs_to_geodetic, crs_wkt, geodetic_to_crs
 from photogram_ros.core.raster import Keyframe, Raster, dsm_from_points, orthomosaic
-from photogram_ros.errors import DataError, GeodesyError
+from photogram_ros.errors import ConfigError, DataError, GeodesyError
 from photogram_ros.io.map_store import MapStore, as_map_store
+from photogram_ros.params import param, validate
 
 HEIGHTS = ('ellipsoidal', 'orthometric')
 
@@ -266,18 +268,43 @@ def write_geotiff(r: Raster, path: str | Path, crs: str, description: str = '', 
     return path
 
 
-# DSM cells straddling a wall are no-data rather than half-way up it (see dsm_from_points); a cell
-# needs three fused cells (a sliver of roof or ground alone sits off the cell centre, where a wall
-# makes its height wrong); gaps up to 3 m between agreeing sides (textureless tracks) are interpolated.
-# On the sample flight these took the DSM RMSE against the true DEM from 2.8 to 2.0 GSD.
-DSM_MAX_SPREAD_M = 0.5
-DSM_MIN_COUNT = 3
-DSM_FILL_GAPS_M = 3.0
+@dataclass
+class DsmParams:
+    """How the DSM is gridded from the fused cells (core/raster.dsm_from_points).
+
+    A DSM cell straddling a wall is no-data rather than half-way up it; a cell needs `min_count` fused
+    cells (a sliver of roof or ground alone sits off the cell centre, where a wall makes its height
+    wrong); gaps up to `fill_gaps_m` between agreeing sides (textureless tracks) are interpolated. On
+    the sample flight these took the DSM RMSE against the true DEM from 2.8 to 2.0 GSD. The two
+    lengths are the sample's (0.5 m, 3 m with 0.12 m cells) scaled with the map's cell size unless
+    set (core/gsd.dsm_lengths_for_cell): with the sample's lengths a 1080p flight at 166 m, whose
+    cells are 0.4 m, kept 2.8 % of its DSM.
+    """
+    max_spread_m: float = param(AUTO, 'a DSM cell whose fused points span more height is no-data (a wall), m; '
+                                      '-1: from the map cell (0.5 m at 0.12 m cells)', min=AUTO, max=1e3)
+    min_count: int = param(3, 'fused cells a DSM cell needs', min=1, max=100)
+    fill_gaps_m: float = param(AUTO, 'gaps up to this wide between agreeing sides are interpolated, m (0: none); '
+                                     '-1: from the map cell (3 m at 0.12 m cells)', min=AUTO, max=1e4)
+
+    def check(self) -> None:
+        for name in ('max_spread_m', 'fill_gaps_m'):
+            v = getattr(self, name)
+            if v != AUTO and v < 0:
+                raise ConfigError(f'DSM parameter {name!r} = {v} must be at least 0, or -1 to follow the map cell')
+
+    def for_cell(self, cell_m: float) -> 'DsmParams':
+        """A copy with the AUTO lengths set for fused cells of `cell_m`."""
+        spread, gaps = dsm_lengths_for_cell(cell_m)
+        return DsmParams(spread if self.max_spread_m == AUTO else self.max_spread_m, self.min_count,
+                         gaps if self.fill_gaps_m == AUTO else self.fill_gaps_m)
 
 
-def dsm_in_crs(cloud: GeoCloud, res_m: float) -> Raster:
-    return dsm_from_points(cloud.x, cloud.y, cloud.z, res_m, weights=cloud.count, max_spread_m=DSM_MAX_SPREAD_M,
-                           z_sigma=cloud.sigma_z, min_count=DSM_MIN_COUNT, fill_gaps_m=DSM_FILL_GAPS_M)
+def dsm_in_crs(cloud: GeoCloud, res_m: float, dsm: DsmParams) -> Raster:
+    """The DSM of `cloud` at `res_m` with resolved DsmParams (DsmParams.for_cell)."""
+    if AUTO in (dsm.max_spread_m, dsm.fill_gaps_m):
+        raise ConfigError('DsmParams left to the map cell: resolve them first (DsmParams.for_cell)')
+    return dsm_from_points(cloud.x, cloud.y, cloud.z, res_m, weights=cloud.count, max_spread_m=dsm.max_spread_m,
+                           z_sigma=cloud.sigma_z, min_count=dsm.min_count, fill_gaps_m=dsm.fill_gaps_m)
 
 
 def load_keyframes(store: MapStore) -> list[Keyframe]:
@@ -308,17 +335,21 @@ class ExportResult:
     keyframes: int = 0
     notes: list = field(default_factory=list)
     crs_with_heights: str = ''                  # the products' CRS, with its vertical part
+    dsm: dict | None = None                     # the DSM rules used (DsmParams, resolved)
     classes: dict | None = None                 # LAS/PLY classes: ground, building, unclassified, buildings
 
 
 def export_map(map_dir: str | Path | MapStore, out_dir: str | Path, crs: str, heights: str = 'ellipsoidal',
                dsm_res_m: float = 0.0, ortho_res_m: float = 0.0, products=('las', 'laz', 'ply', 'dsm', 'ortho'),
-               origin: LocalFrame | None = None, min_pairs: int = 1) -> ExportResult:
+               origin: LocalFrame | None = None, min_pairs: int = 1, dsm: DsmParams | None = None) -> ExportResult:
     """Write the requested products of a map folder (or an open MapStore) into out_dir (created).
 
     min_pairs=2 exports only cells confirmed by two stereo pairs: a cell one pair saw cannot be
     checked for gross matching errors (on the sample flight they hold most of the large errors).
+    `dsm`: the DSM rules (default DsmParams(): lengths from the map's cell size).
     """
+    dsm = dsm or DsmParams()
+    validate(dsm)
     _check_projected(crs)
     store, fusion = open_map(map_dir)
     origin = origin or store.origin
@@ -346,10 +377,14 @@ def export_map(map_dir: str | Path | MapStore, out_dir: str | Path, crs: str, he
     if 'ply' in products:
         res.files['ply'] = write_ply(cloud, out / 'cloud.ply')
     dsm_res = dsm_res_m or 2.0 * store.cell_m
+    rules = dsm.for_cell(store.cell_m)
+    res.dsm = {'cell_m': store.cell_m, 'res_m': dsm_res, 'max_spread_m': rules.max_spread_m,
+               'min_count': rules.min_count, 'fill_gaps_m': rules.fill_gaps_m}
     if 'dsm' in products or 'ortho' in products:
-        dsm = dsm_in_crs(cloud, dsm_res)
+        grid = dsm_in_crs(cloud, dsm_res, rules)
+        res.dsm['valid_share'] = float(np.mean(grid.valid())) if grid.data.size else 0.0
         if 'dsm' in products:
-            res.files['dsm'] = write_geotiff(dsm, out / 'dsm.tif', crs, f'DSM, {heights} heights (m)', heights=heights)
+            res.files['dsm'] = write_geotiff(grid, out / 'dsm.tif', crs, f'DSM, {heights} heights (m)', heights=heights)
     if 'ortho' in products:
         kfs = load_keyframes(store)
         res.keyframes = len(kfs)
@@ -357,12 +392,12 @@ def export_map(map_dir: str | Path | MapStore, out_dir: str | Path, crs: str, he
             res.notes.append('no orthomosaic: the map folder holds no keyframes with images, poses and camera')
         else:
             ell = cloud if heights == 'ellipsoidal' else map_cloud(fusion, origin, crs, 'ellipsoidal', min_pairs)
-            dsm_ell = dsm_in_crs(ell, dsm_res)
+            dsm_ell = dsm_in_crs(ell, dsm_res, rules)
             ortho = ortho_in_crs(dsm_ell, kfs, origin, crs, ortho_res_m or store.cell_m)
             res.files['ortho'] = write_geotiff(ortho, out / 'ortho.tif', crs, 'orthomosaic RGBA', rgba=True)
     meta = {'crs': crs, 'heights': heights, 'origin': origin.to_dict(), 'points': res.points, 'min_pairs': min_pairs,
             'keyframes': res.keyframes, 'files': {k: str(v) for k, v in res.files.items()}, 'notes': res.notes,
             'geoid': geoid.MODEL_NAME if heights == 'orthometric' else None, 'crs_with_heights': res.crs_with_heights,
-            'classes': res.classes}
+            'classes': res.classes, 'dsm': res.dsm}
     (out / 'export.json').write_text(json.dumps(meta, indent=1))
     return res

@@ -96,6 +96,29 @@ class MapStore:
         self._good_size: dict[tuple[int, int], int] = {}
         self._unsynced: set[Path] = set()
         self.bytes_written = 0
+        self.write_failures = 0          # writes that failed (a full disk, a folder gone): map_node's diagnostics
+        self.last_write_error: StorageError | None = None
+
+    def _write(self, path: Path, data: bytes) -> None:
+        """_atomic_write, counting a failure in write_failures."""
+        try:
+            _atomic_write(path, data)
+        except StorageError as exc:
+            self.write_failures += 1
+            self.last_write_error = exc
+            raise
+
+    def set_cell_m(self, cell_m: float) -> None:
+        """Change the cell size of a map that holds no tiles yet (a cell derived from the GSD once the
+        first pair cloud tells the flying height); a map with tiles keeps its cell."""
+        if self.tile_keys():
+            raise DataError(f'the map in {self.root} holds tiles of {self.cell_m} m cells: its cell size cannot '
+                            'change; use a new map_dir')
+        if not cell_m > 0:
+            raise DataError(f'cell size {cell_m} m must be positive')
+        self.meta['cell_m'] = float(cell_m)
+        self.cell_m = float(cell_m)
+        self._write(self.root / 'map.json', json.dumps(self.meta, indent=1).encode())
 
     # --- metadata --------------------------------------------------------------------------------
 
@@ -107,12 +130,12 @@ class MapStore:
 
     def set_origin(self, frame) -> None:
         self.meta['origin'] = frame.to_dict()
-        _atomic_write(self.root / 'map.json', json.dumps(self.meta, indent=1).encode())
+        self._write(self.root / 'map.json', json.dumps(self.meta, indent=1).encode())
 
     def save_flight_end(self, end: dict) -> None:
         """How the flight ended ({'final_adjustment': 'done' | 'failed' | 'none', 'reason', ...}): the
         products then say whether their poses are the final adjustment's."""
-        _atomic_write(self.root / 'flight_end.json', json.dumps(end, indent=1).encode())
+        self._write(self.root / 'flight_end.json', json.dumps(end, indent=1).encode())
 
     def flight_end(self) -> dict | None:
         """What save_flight_end wrote, or None (a map from before it existed, or a flight cut short)."""
@@ -189,18 +212,27 @@ class MapStore:
         payload = recs.tobytes()
         block = _BLOCK_HEADER.pack(_BLOCK_MAGIC, recs.size, zlib.crc32(payload), 0) + payload
         new = not path.exists()
-        if not new:
-            good = self._good_size.get(key)
-            if good is None:
-                _, good = self._read_records(path, key)
-            if os.path.getsize(path) != good:   # torn tail of an earlier crash: cut it off
-                os.truncate(path, good)
-        with open(path, 'ab') as f:
-            if new:
-                f.write(_FILE_HEADER.pack(_FILE_MAGIC, VERSION, key[0], key[1], self.tile_cells, self.cell_m,
-                                          RECORD_DTYPE.itemsize).ljust(_FILE_HEADER_SIZE, b'\0'))
-            f.write(block)
-            size = f.tell()
+        try:
+            if not new:
+                good = self._good_size.get(key)
+                if good is None:
+                    _, good = self._read_records(path, key)
+                if os.path.getsize(path) != good:   # torn tail of an earlier crash: cut it off
+                    os.truncate(path, good)
+            with open(path, 'ab') as f:
+                if new:
+                    f.write(_FILE_HEADER.pack(_FILE_MAGIC, VERSION, key[0], key[1], self.tile_cells, self.cell_m,
+                                              RECORD_DTYPE.itemsize).ljust(_FILE_HEADER_SIZE, b'\0'))
+                f.write(block)
+                size = f.tell()
+        except OSError as exc:
+            # The block that did not fit is a torn tail: the next append (or read) cuts it off.
+            self._good_size.pop(key, None)
+            self.write_failures += 1
+            self.last_write_error = StorageError(
+                f'cannot append to {path.name} in {path.parent} ({exc.strerror or exc}): '
+                f'{"the disk is full: free space" if exc.errno == errno.ENOSPC else "check the folder"}', exc.errno)
+            raise self.last_write_error from exc
         self._good_size[key] = size
         self._unsynced.add(path)
         self.bytes_written += len(block)
@@ -222,7 +254,7 @@ class MapStore:
                                   RECORD_DTYPE.itemsize).ljust(_FILE_HEADER_SIZE, b'\0')
                 + _BLOCK_HEADER.pack(_BLOCK_MAGIC, recs.size, zlib.crc32(payload), 0) + payload)
         path = self._tile_path(key)
-        _atomic_write(path, data)
+        self._write(path, data)
         self._good_size[key] = len(data)
         self._unsynced.discard(path)
 
@@ -251,7 +283,7 @@ class MapStore:
     # --- keyframes -------------------------------------------------------------------------------
 
     def save_camera(self, camera) -> None:
-        _atomic_write(self.root / 'camera.json', json.dumps(camera.to_ros_yaml_dict()).encode())
+        self._write(self.root / 'camera.json', json.dumps(camera.to_ros_yaml_dict()).encode())
 
     def load_camera(self):
         from photogram_ros.core.camera import PinholeCamera
@@ -259,11 +291,11 @@ class MapStore:
         return PinholeCamera.from_ros_yaml_dict(json.loads(p.read_text())) if p.exists() else None
 
     def save_keyframe_image(self, stamp_ns: int, jpeg: bytes) -> None:
-        _atomic_write(self.keyframes_dir / f'{int(stamp_ns)}.jpg', jpeg)
+        self._write(self.keyframes_dir / f'{int(stamp_ns)}.jpg', jpeg)
 
     def save_keyframe_pose(self, stamp_ns: int, map_T_cam: np.ndarray) -> None:
         body = {'stamp_ns': int(stamp_ns), 'map_T_cam': np.asarray(map_T_cam, float).tolist()}
-        _atomic_write(self.keyframes_dir / f'{int(stamp_ns)}.json', json.dumps(body).encode())
+        self._write(self.keyframes_dir / f'{int(stamp_ns)}.json', json.dumps(body).encode())
 
     def keyframes(self) -> list[dict]:
         """[{'stamp_ns', 'image_path', 'map_T_cam'}] for keyframes that have both image and pose."""

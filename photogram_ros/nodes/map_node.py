@@ -24,6 +24,8 @@ flushes and streams also while /clock stands still.
 
 from __future__ import annotations
 
+import dataclasses
+import errno
 import sys
 import functools
 import threading
@@ -38,12 +40,13 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image, NavSatFix, PointCloud2
 
 from photogram_ros import msgs
+from photogram_ros.core import gsd
 from photogram_ros.core.coverage import COVERAGE, FORWARD_OVERLAP, NOT_ORIENTED, Coverage, CoverageConfig
 from photogram_ros.core.fusion import Fusion, FusionConfig, downsample, pack_rgb
 from photogram_ros.core.geodesy import LocalFrame
 from photogram_ros.errors import ConfigError, PhotogramError
 from photogram_ros.io.map_store import MapStore
-from photogram_ros.nodes.diagnostics import Diagnostics, steady_timer
+from photogram_ros.nodes.diagnostics import ERROR, Diagnostics, steady_timer
 from photogram_ros.nodes.node_main import run_node
 from photogram_ros.nodes.ros_params import declare
 from photogram_ros.params import param
@@ -93,6 +96,10 @@ class MapParams(FusionConfig, CoverageConfig):
                                      min=0.1, max=3600.0)
     survey_area_file: str = param('', 'Survey area: a QGroundControl .plan (its Survey polygon or geofence) or a '
                                       'GeoJSON polygon; "" = the flight lines\' swaths')
+    warn_unfused_keyframes: int = param(20, 'WARN on /diagnostics when this many keyframes came (images, or poses '
+                                            'without save_keyframes) and '
+                                            'nothing was fused since the last fused cloud (thrice as many before '
+                                            'the first), with the reason', min=1, max=100000)
 
 
 def _locked(method):
@@ -113,10 +120,15 @@ class MapNode(Node):
         self._newest_cloud_ns = 0
         self._lock = threading.RLock()   # callbacks run in one group, but close() may come from any thread
         try:
-            self.store = MapStore(p.map_dir, p.cell_m, p.tile_cells)
+            self.store = self._open_store(p)
         except PhotogramError as exc:
             raise ConfigError(f'map_node: {exc}') from exc
-        self.fusion = Fusion(p, self.store)
+        self.gsd = None                # core.gsd.GsdSettings once derived
+        self._cell_pending = p.cell_m == gsd.AUTO and not self.store.tile_keys()
+        self.fusion = Fusion(self._fusion_config(self.store.cell_m), self.store)
+        self._keyframes_unfused = 0    # keyframe poses since the last cloud that fused points
+        self._clouds_unfused = 0       # clouds since then (that fused nothing)
+        self._pose_z: dict = {}        # stamp -> camera height in map (the flying height for the GSD)
         if p.use_origin_params:
             self._set_origin(LocalFrame(p.origin_lat_deg, p.origin_lon_deg, p.origin_h_m))
         self._stream_pending: set = set(self.store.tile_keys())   # a restarted map streams what it has
@@ -177,6 +189,51 @@ class MapNode(Node):
         self.get_logger().info(f'map in {p.map_dir}: {len(self.store.tile_keys())} tiles on disk, origin '
                                f'{self.store.origin}')
 
+    # --- GSD-bound geometry ----------------------------------------------------------------------
+
+    @staticmethod
+    def _open_store(p: MapParams) -> MapStore:
+        """The map folder: an existing map keeps its cell; a new one with cell_m AUTO starts with the
+        simulator's cell until the first pair cloud tells the flying height (MapStore.set_cell_m)."""
+        from pathlib import Path
+        if (Path(p.map_dir) / 'map.json').exists():
+            return MapStore(p.map_dir, None if p.cell_m == gsd.AUTO else p.cell_m, p.tile_cells)
+        cell = gsd.REF_LENGTHS_M['cell_m'] if p.cell_m == gsd.AUTO else p.cell_m
+        return MapStore(p.map_dir, cell, p.tile_cells)
+
+    def _fusion_config(self, cell_m: float, settings: gsd.GsdSettings | None = None) -> FusionConfig:
+        """The fusion's parameters with the cell of the store and the AUTO tolerance scaled with it."""
+        cfg = FusionConfig(**{f.name: getattr(self.params, f.name) for f in dataclasses.fields(FusionConfig)})
+        tol = cfg.min_tolerance_m
+        if tol == gsd.AUTO:
+            tol = settings.min_tolerance_m if settings is not None else gsd.tolerance_for_cell(cell_m)
+        return dataclasses.replace(cfg, cell_m=float(cell_m), min_tolerance_m=tol)
+
+    def _derive_cell(self, cloud_z: np.ndarray) -> None:
+        """First pair cloud: the cell from the GSD (camera, newest keyframe height above this cloud)."""
+        self._cell_pending = False
+        if self._camera is None or not self._pose_z:
+            self.diag.problem(f'cell_m from the GSD needs camera_info and a keyframe pose before the first pair '
+                              f'cloud: keeping {self.store.cell_m} m')
+            return
+        height = self._pose_z[max(self._pose_z)] - float(np.median(cloud_z))
+        try:
+            self.gsd = gsd.derive(self._camera.width, self._camera.height, self._camera.fx, height)
+        except ConfigError as exc:
+            self.diag.problem(f'cell_m from the GSD: {exc}; keeping {self.store.cell_m} m')
+            return
+        cell = self.gsd.cell_m if self.params.cell_m == gsd.AUTO else self.params.cell_m
+        if cell != self.store.cell_m:
+            self.store.set_cell_m(cell)
+        self.fusion = Fusion(self._fusion_config(cell, self.gsd), self.store)
+        self.get_logger().info(f'map cell {cell} m, fusion tolerance {self.fusion.config.min_tolerance_m} m from '
+                               f'the GSD: {self.gsd.summary()}')
+        self.diag.set('gsd_m', self.gsd.gsd_m)
+
+    @property
+    def cell_m(self) -> float:
+        return self.fusion.config.cell_m
+
     # --- inputs ----------------------------------------------------------------------------------
 
     def _set_origin(self, frame: LocalFrame) -> None:
@@ -205,8 +262,14 @@ class MapNode(Node):
             if msg.header.frame_id not in ('map', ''):
                 raise ConfigError(f'dense cloud in frame {msg.header.frame_id!r}; the map fuses clouds in "map"')
             pts = msgs.points_from_pointcloud2(msg)
+            if self._cell_pending and pts.size:
+                self._derive_cell(np.asarray(pts['z'], float))
             t0 = time.perf_counter()
             n = self.fusion.add(pts)
+            if n:
+                self._keyframes_unfused = self._clouds_unfused = 0
+            else:
+                self._clouds_unfused += 1
             self._newest_cloud_ns = max(self._newest_cloud_ns, msgs.ns_from_time(msg.header.stamp))
             self._fuse_s += time.perf_counter() - t0
             self.diag.count('clouds')
@@ -228,10 +291,11 @@ class MapNode(Node):
             ok, buf = cv2.imencode('.jpg', img, [cv2.IMWRITE_JPEG_QUALITY, self.params.jpeg_quality])
             if not ok:
                 raise ConfigError('JPEG encoding of a keyframe failed')
+            self._keyframes_unfused += 1
             self.store.save_keyframe_image(msgs.ns_from_time(msg.header.stamp), buf.tobytes())
             self.diag.count('keyframes_saved')
         except (PhotogramError, OSError) as exc:
-            self.diag.problem(f'keyframe image not saved: {exc}')
+            self._write_failed('keyframe image not saved', exc)
 
     @_locked
     def _on_pose(self, msg: PoseWithCovarianceStamped) -> None:
@@ -240,6 +304,9 @@ class MapNode(Node):
         try:
             T, _ = msgs.T_from_pose_with_covariance(msg)
             stamp = msgs.ns_from_time(msg.header.stamp)
+            if stamp not in self._pose_z and not self.params.save_keyframes:
+                self._keyframes_unfused += 1   # (with save_keyframes the images count, in flight order)
+            self._pose_z[stamp] = float(T[2, 3])
             if self.params.save_keyframes:
                 self._poses_pending[stamp] = T
             if self.params.coverage:
@@ -254,7 +321,7 @@ class MapNode(Node):
                 self.store.save_keyframe_pose(stamp_ns, T)
                 self.diag.count('poses_saved')
             except OSError as exc:
-                self.diag.problem(f'keyframe pose not saved: {exc}')
+                self._write_failed('keyframe pose not saved', exc)
 
     @_locked
     def _on_keyframe_fix(self, msg: NavSatFix) -> None:
@@ -310,7 +377,7 @@ class MapNode(Node):
                 self.store.save_camera(cam)
                 self._camera_saved = cam
         except (PhotogramError, OSError) as exc:
-            self.diag.problem(f'camera info not saved: {exc}')
+            self._write_failed('camera info not saved', exc)
 
     # --- outputs ---------------------------------------------------------------------------------
 
@@ -322,7 +389,17 @@ class MapNode(Node):
             if n:
                 self.diag.count('cells_flushed', n)
         except OSError as exc:
-            self.diag.problem(f'map flush to {self.params.map_dir} failed: {exc}')
+            self._write_failed(f'map flush to {self.params.map_dir} failed', exc)
+
+    def _write_failed(self, what: str, exc: Exception) -> None:
+        """A failed write: a full disk is an ERROR (counted in write_failures on /diagnostics, one stable
+        message), anything else a WARN naming it."""
+        self.diag.set('write_failures', self.store.write_failures)
+        if getattr(exc, 'errno', None) == errno.ENOSPC:
+            self.diag.problem(f'the disk of {self.params.map_dir} is full: map writes fail (write_failures)',
+                              level=ERROR)
+        else:
+            self.diag.problem(f'{what}: {exc}')
 
     def _stamp_ns(self) -> int:
         """Now on the node's clock, or the newest pair cloud's stamp while that clock reads 0 (use_sim_time
@@ -342,7 +419,7 @@ class MapNode(Node):
             self._stream_pending.discard(key)
             if rec is None:
                 continue
-            pts = downsample(self.fusion.tile_points(key, rec), p.stream_downsample, p.cell_m)
+            pts = downsample(self.fusion.tile_points(key, rec), p.stream_downsample, self.cell_m)
             parts.append(pts)
             total += pts['x'].size
             if total >= p.stream_max_points:
@@ -367,7 +444,7 @@ class MapNode(Node):
         from photogram_ros.core.ortho_tiles import OrthoTiler
         p = self.params
         if self.ortho is None:
-            self.ortho = OrthoTiler(self.store.origin, p.cell_m, p.tile_cells, p.ortho_gsd_m)
+            self.ortho = OrthoTiler(self.store.origin, self.cell_m, p.tile_cells, p.ortho_gsd_m)
             self.diag.set('ortho_zoom', self.ortho.zoom)
         xyz, keys = [], sorted(self._ortho_pending)
         for key in keys:
@@ -468,6 +545,21 @@ class MapNode(Node):
         d.set('fuse_points_per_s', st.points_in / self._fuse_s if self._fuse_s > 0 else 0.0)
         d.set('clouds_per_s', d.rate_hz('clouds'))
         d.set('origin', str(self.store.origin.to_dict()) if self.store.origin else 'unknown')
+        d.set('cell_m', self.cell_m)
+        d.set('write_failures', self.store.write_failures)
+        d.set('keyframes_unfused', self._keyframes_unfused)
+        # Before the first fused cloud stereo waits for settled poses and a ground height: thrice as long.
+        n = self.params.warn_unfused_keyframes * (1 if self.fusion.stats.points_fused else 3)
+        if self._keyframes_unfused >= n:
+            d.problem(self._unfused_reason(n))
+
+    def _unfused_reason(self, n: int) -> str:
+        """Why nothing was fused for `n` keyframes (a stable text: logged once)."""
+        if self._clouds_unfused == 0:
+            return (f'nothing fused for {n}+ keyframes: stereo_node sent no pair cloud (see its diagnostics: poses '
+                    'refused for their sigma, pairs skipped for overlap or baseline, no ground height yet)')
+        return (f'nothing fused for {n}+ keyframes: the pair clouds that came were rejected (points_rejected: '
+                'disagreeing with the map; or below min_confidence / not finite)')
 
     @_locked
     def finish_coverage(self) -> None:

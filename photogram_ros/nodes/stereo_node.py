@@ -19,11 +19,11 @@ import numpy as np
 from geometry_msgs.msg import PoseWithCovarianceStamped
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
-from sensor_msgs.msg import CameraInfo, Image, PointCloud2
+from sensor_msgs.msg import CameraInfo, Image, NavSatFix, PointCloud2
 from stereo_msgs.msg import DisparityImage
 
 from photogram_ros import msgs
-from photogram_ros.core import offheap, stereo
+from photogram_ros.core import gsd, offheap, stereo
 from photogram_ros.core.pairs import BELOW_GROUND, PairCriteria, PlannedPair, plan_pairs
 from photogram_ros.errors import PhotogramError
 from photogram_ros.nodes.diagnostics import Diagnostics
@@ -37,6 +37,7 @@ TOPIC_INFO = 'camera/camera_info'
 TOPIC_CLOUD = 'map/dense_cloud'
 TOPIC_DISPARITY = 'stereo/disparity'
 TOPIC_SPARSE = 'map/sparse_cloud'
+TOPIC_FIX = 'keyframes/fix'
 
 
 @dataclass
@@ -51,8 +52,14 @@ class StereoNodeParams(stereo.StereoParams, PairCriteria):
                                                  'wait for the first sparse cloud')
     max_keyframes: int = param(80, 'keyframes kept as stereo partners (memory bound), oldest dropped',
                                min=2, max=10000)
-    max_position_sigma_m: float = param(2.0, 'keyframes whose pose position sigma is larger make no pairs, m',
+    max_position_sigma_m: float = param(2.0, 'keyframes whose pose position sigma (3D) is larger than this and '
+                                             'than fix_sigma_factor times their GNSS fix\'s make no pairs, m',
                                         min=0.0, max=1e4)
+    fix_sigma_factor: float = param(3.0, f'the pose sigma limit follows the GNSS mode: a keyframe is refused when its '
+                                         f'pose sigma exceeds max(max_position_sigma_m, this x the 3D sigma of its '
+                                         f'fix on {TOPIC_FIX}): an RTK flight keeps max_position_sigma_m, a plain '
+                                         f'3D fix (~2-4 m) is refused only when the adjustment placed it much '
+                                         f'worse than its fix; 0: max_position_sigma_m alone', min=0.0, max=100.0)
     publish_disparity: bool = param(False, f'also publish each pair\'s disparity on {TOPIC_DISPARITY}')
     settle_keyframes: int = param(10, 'pair a keyframe only once this many newer keyframes have poses: by then '
                                       'it has left the bundle window and its pose no longer changes (match the '
@@ -65,6 +72,7 @@ class _Keyframe:
     image: np.ndarray | None = None
     map_T_cam: np.ndarray | None = None
     sigma_m: float = 0.0
+    fix_sigma_m: float = float('nan')   # 3D sigma of its GNSS fix (NaN: none came)
     paired: bool = False
 
     @property
@@ -91,6 +99,10 @@ class StereoNode(Node):
         self._posed: list[int] = []   # stamps of keyframes with a pose, sorted
         if p.ground_from_sparse_cloud:
             self.create_subscription(PointCloud2, TOPIC_SPARSE, self._on_sparse, QoSProfile(depth=2))
+        if p.fix_sigma_factor > 0:
+            self.create_subscription(NavSatFix, TOPIC_FIX, self._on_fix, reliable)
+        self.gsd: gsd.GsdSettings | None = None   # derived at the first pair (or never: every length was set)
+        self._matching: StereoNodeParams | None = None if gsd.unresolved(p) else p
         self.cloud_pub = self.create_publisher(PointCloud2, TOPIC_CLOUD, reliable)
         self.disp_pub = self.create_publisher(DisparityImage, TOPIC_DISPARITY, 5) if p.publish_disparity else None
 
@@ -153,6 +165,40 @@ class StereoNode(Node):
         except Exception as exc:
             self.diag.problem(f'keyframe pose rejected: {exc}')
 
+    def _on_fix(self, msg: NavSatFix) -> None:
+        try:
+            cov = np.asarray(msg.position_covariance, float).reshape(3, 3)
+            if msg.position_covariance_type == NavSatFix.COVARIANCE_TYPE_UNKNOWN or msg.status.status < 0:
+                return
+            kf = self._kf.get(msgs.ns_from_time(msg.header.stamp))
+            if kf is None:
+                kf = self._entry(msgs.ns_from_time(msg.header.stamp))
+            kf.fix_sigma_m = float(np.sqrt(max(np.trace(cov), 0.0)))
+        except Exception as exc:
+            self.diag.problem(f'keyframe fix rejected: {exc}')
+
+    def sigma_limit_m(self, kf: _Keyframe) -> float:
+        """The pose sigma above which `kf` makes no pairs: max_position_sigma_m, or fix_sigma_factor times its
+        fix's sigma when that is larger (the limit follows the GNSS mode)."""
+        p = self.params
+        if p.fix_sigma_factor > 0 and np.isfinite(kf.fix_sigma_m):
+            return max(p.max_position_sigma_m, p.fix_sigma_factor * kf.fix_sigma_m)
+        return p.max_position_sigma_m
+
+    def _matching_params(self, kf: _Keyframe) -> StereoNodeParams:
+        """The parameters with the GSD-bound lengths derived at the first pair (stated in the log and on
+        /diagnostics), from the camera and the posed keyframes' median height above the ground."""
+        if self._matching is None:
+            cam = self._camera_for(kf.image)
+            z = [self._kf[s].map_T_cam[2, 3] for s in self._posed if s in self._kf]
+            height = float(np.median(z) if z else kf.map_T_cam[2, 3]) - self.ground_m
+            self.gsd = gsd.derive(cam.width, cam.height, cam.fx, height, self.params.downscale)
+            self._matching, names = gsd.resolve(self.params, self.gsd)
+            self.get_logger().info(f'settings from the GSD ({", ".join(names)}): {self.gsd.summary()}')
+            self.diag.set('gsd_m', self.gsd.gsd_m)
+            self.diag.set('gsd_settings', ', '.join(f'{n} {getattr(self._matching, n):g}' for n in names))
+        return self._matching
+
     def _newer_posed(self, kf: _Keyframe) -> int:
         return len(self._posed) - bisect.bisect_right(self._posed, kf.stamp_ns)
 
@@ -203,12 +249,17 @@ class StereoNode(Node):
             return
         kf.paired = True
         self.diag.count('keyframes')
-        p = self.params
-        if kf.sigma_m > p.max_position_sigma_m:
+        if kf.map_T_cam[2, 3] <= self.ground_m:
+            self.diag.problem(f'keyframe at z={kf.map_T_cam[2, 3]:.1f} m is not above the ground '
+                              f'({self.ground_m} m): set ground_height_m')
+            return
+        p = self._matching_params(kf)
+        if kf.sigma_m > self.sigma_limit_m(kf):
             self.diag.count('pairs_skipped_poor_pose')
+            self.diag.set('last_skip', f'pose sigma {kf.sigma_m:.2f} m > {self.sigma_limit_m(kf):.2f} m')
             return
         others = {s: o.map_T_cam for s, o in self._kf.items()
-                  if o is not kf and o.complete and o.paired and o.sigma_m <= p.max_position_sigma_m}
+                  if o is not kf and o.complete and o.paired and o.sigma_m <= self.sigma_limit_m(o)}
         plan = plan_pairs(self._camera_for(kf.image), kf.map_T_cam, others, self.ground_m, p,
                           (p.min_depth_m, p.max_depth_m), self._tie_points)
         if plan.status == BELOW_GROUND:
@@ -219,7 +270,7 @@ class StereoNode(Node):
             self._run_pair(self._kf[pair.other], kf, pair)
 
     def _run_pair(self, a: _Keyframe, b: _Keyframe, pair: PlannedPair) -> None:
-        p = self.params
+        p = self._matching
         t0 = time.perf_counter()
         if pair.from_tie_points:
             self.diag.count('pairs_depth_from_tie_points')
