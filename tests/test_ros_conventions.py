@@ -84,7 +84,8 @@ def two_pair_clouds():
         Ta[0, 3] += 1500.0
         Tb[0, 3] += 1500.0
         h = Tb[2, 3]   # the tiny world's ground is near z = 0
-        r = stereo.stereo_pair(cfg.camera(), ia, Ta, ib, Tb, stereo.StereoParams(), (0.6 * h, 1.4 * h))
+        r = stereo.stereo_pair(cfg.camera(), ia, Ta, ib, Tb, stereo.StereoParams(downscale=1.0, fill_holes_m=0.0, edge_step_m=1.0),
+                                (0.6 * h, 1.4 * h))   # full resolution: > 100k points a pair
         assert r.ok, r.message
         out.append(r.cloud)
     return out
