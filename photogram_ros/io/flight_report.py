@@ -199,6 +199,26 @@ def _health_sections(figures: dict, kfs, files: dict, run: dict, diagnostics: di
     return [verdict_sec, sec]
 
 
+def _settings_lines(run: dict) -> list[str]:
+    """The GSD-derived settings, the DSM's valid share and the pairs the final matching lost, in words."""
+    lines = []
+    if run.get('gsd'):
+        from photogram_ros.core.gsd import GsdSettings
+        derived = run.get('gsd_derived') or []
+        lines.append('Settings from the camera: ' + GsdSettings(**run['gsd']).summary()
+                     + (f" (derived: {', '.join(derived)}; the others as set)." if derived else ' (all as set).'))
+    dsm = run.get('dsm') or {}
+    if 'valid_share' in dsm:
+        lines.append(f"DSM: {dsm['valid_share'] * 100:.1f} % of its cells hold a height "
+                     f"(cell {dsm.get('res_m', 0):g} m, spread limit {dsm.get('max_spread_m', 0):g} m).")
+    failed = run.get('densify_pairs_failed') or []
+    if failed:
+        lines.append(f'{len(failed)} stereo pairs failed in the final matching and were skipped '
+                     f'(one bad pair costs one pair): {"; ".join(str(f) for f in failed[:5])}'
+                     + (' ...' if len(failed) > 5 else '') + '.')
+    return lines
+
+
 def _truth_frame_for(truth, stamp_ns):
     return truth.frame_by_stamp(stamp_ns, tol_ns=5_000_000)
 
@@ -229,6 +249,7 @@ def build_report(out_dir: str | Path, map_dir: str | Path | MapStore, crs: str, 
             extra = (f" ({run['densify_pairs']} pairs matched again in {run['densify_s']:.1f} s)"
                      if 'densify_s' in run else '')
             s.text.append(f"Clouds, DSM and orthomosaic from the {run['products_from']}{extra}.")
+        s.text += _settings_lines(run)
     s.text.append(f'Coordinates in {crs}, heights above the WGS84 ellipsoid unless stated.')
     sections.append(s)
     georeferenced = origin is not None and bool(kfs) and cam is not None
