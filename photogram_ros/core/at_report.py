@@ -26,6 +26,17 @@ def rmse_xyz(res: np.ndarray) -> dict:
             'total_m': float(np.sqrt(np.mean(np.sum(r ** 2, axis=1))))}
 
 
+def gnss_figures(residuals_enu_m) -> dict:
+    """RMSE of GNSS residuals (N, 3) and `spread_m`, their RMS about their mean: a shift of the whole
+    block (a GCP moving it onto the survey) is not strain; a bent block (GCPs fighting the GNSS) is."""
+    r = np.asarray(residuals_enu_m, float).reshape(-1, 3)
+    out = rmse_xyz(r)
+    if len(r):
+        out['spread_m'] = float(np.sqrt(np.mean(np.sum((r - r.mean(axis=0)) ** 2, axis=1))))
+        out['mean_enu_m'] = r.mean(axis=0).tolist()
+    return out
+
+
 def _per_image(at, residuals: list | None = None) -> list[dict]:
     """Per-image statistics; appends each observation's reprojection error (px) to `residuals`. A photo
     without a finite residual has none (None) and says why; points behind its camera are counted."""
@@ -169,7 +180,7 @@ def build_report(at, assumptions: list[str] | None = None, gsd_m: float | None =
         'camera': {'width': at.camera.width, 'height': at.camera.height, 'fx': at.camera.fx, 'fy': at.camera.fy,
                    'cx': at.camera.cx, 'cy': at.camera.cy, 'dist': list(at.camera.dist)},
         'reprojection_rms_px': total_rms,
-        'gnss': {'rmse': rmse_xyz(gres), 'estimated_bias_enu_m': at.gnss_bias_enu.tolist()},
+        'gnss': {'rmse': gnss_figures(gres), 'estimated_bias_enu_m': at.gnss_bias_enu.tolist()},
         'gcp': {'points': gcps, 'rmse': _rmse_gcps(gcps), 'redundancy': _redundancy(gcps) if gcps else []},
         'check': {'points': checks, 'rmse': rmse_xyz(np.array([c['residual_m'] for c in checks])),
                   'ce90_le90': ce90_le90(np.array([c['residual_m'] for c in checks]))},
@@ -180,9 +191,9 @@ def build_report(at, assumptions: list[str] | None = None, gsd_m: float | None =
     if vetting is not None:
         rep['control'] = vetting.to_dict()
     if gnss_without_gcps is not None:
-        w = gnss_without_gcps.get('total_m')
+        w = gnss_without_gcps.get('spread_m')
         rep['gnss']['without_gcps'] = gnss_without_gcps
-        t = rep['gnss']['rmse'].get('total_m')
+        t = rep['gnss']['rmse'].get('spread_m')
         if w and t is not None:
             rep['gnss']['strain_ratio'] = t / w
     if gsd_m:

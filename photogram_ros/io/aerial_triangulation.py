@@ -20,7 +20,8 @@ from pathlib import Path
 
 import numpy as np
 
-from photogram_ros.core.at_report import build_report, convergence, focal_determination, intrinsics_sigma, rmse_xyz
+from photogram_ros.core.at_report import (build_report, convergence, focal_determination, gnss_figures,
+                                        intrinsics_sigma)
 from photogram_ros.core.control import ControlRow, ControlVettingOptions, vet_control
 from photogram_ros.io.at_report import write_report
 from photogram_ros.core.geodesy import LocalFrame, utm_epsg
@@ -229,7 +230,7 @@ def adjust_block(block: KeyframeBlock, out: str | Path, opt: TriangulateOptions,
         vet = vet_control(at.camera, {at.kfs[k].name: at.kfs[k].map_T_cam for k in at.registered},
                           {r.name for r in block.records}, rows, control, _block_sigma_enu_m(at), P0, file_heights,
                           opt.vetting)
-        gnss_without = rmse_xyz(np.array(list(at.gnss_residuals().values())))
+        gnss_without = gnss_figures(np.array(list(at.gnss_residuals().values())))
         control = vet.control_points(control)
         for note in vet.notes:
             assumptions.append(f'control: {note}')

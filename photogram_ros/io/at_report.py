@@ -53,12 +53,14 @@ def _gnss_text(rep: dict) -> list[str]:
     g = rep['gnss']
     L = [f"Residuals (adjusted antenna - fix): {_rmse_line(g['rmse'])}.",
          f"Estimated constant GNSS bias (E, N, U): {np.round(g['estimated_bias_enu_m'], 3).tolist()} m."]
+    if 'spread_m' in g['rmse']:
+        L.append(f"About their mean (a shift of the whole block is not strain): {_cm(g['rmse']['spread_m'])}.")
     w = g.get('without_gcps')
     if w and w.get('n'):
         ratio = g.get('strain_ratio')
-        L.append(f"The same block adjusted without GCPs: {_rmse_line(w)}"
-                 + (f"; with the GCPs the GNSS residuals are {ratio:.2f}x that" if ratio is not None else '')
-                 + (' (the GCPs strain the block: check them)' if ratio is not None and ratio > 1.5 else '') + '.')
+        L.append(f"The same block adjusted without GCPs: {_rmse_line(w)}, about their mean {_cm(w.get('spread_m'))}"
+                 + (f"; with the GCPs the spread is {ratio:.2f}x that" if ratio is not None else '')
+                 + (' (the GCPs bend the block: check them)' if ratio is not None and ratio > 1.5 else '') + '.')
     return L
 
 
