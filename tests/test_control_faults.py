@@ -150,7 +150,9 @@ def test_field_file_wrong_photo_other_flight_placeholder_400(flight, baseline, t
     fates = c['row_fates']
     print(json.dumps(c['faults'], indent=1))
     assert sum(fates.values()) == len(field)                       # every row has a fate
-    moved = [r for r in c['rows'] if r['image'] == wrong]
+    lines = {i + 2 for i, r in enumerate(rows) if r[5] == wrong_src}
+    moved = [r for r in c['rows'] if r['line'] in lines]
+    assert len(moved) >= 2 and all(r['image'] == wrong for r in moved)
     assert moved and all(r['fate'] == 'outlier' and r['likely_wrong_photo'] and r['residual_m'] > 5 for r in moved)
     assert wrong in c['wrong_photos'] and any(wrong in f and 'wrong photo' in f for f in c['faults'])
     assert fates['photo_not_in_set'] == 2 and any('DJI_0412.JPG' in f and 'not in the set' in f for f in c['faults'])

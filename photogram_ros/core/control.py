@@ -429,16 +429,20 @@ def _compare_with_survey(p: PointCheck, c: ControlPoint, X: np.ndarray, Ts: np.n
 
 
 def _wrong_photos(fates: list[RowFate]) -> dict:
-    """Photos whose every checked row is far from its point: the rows likely name the wrong photo."""
+    """Photos whose rows are far from their points on the ground: every checked row of the photo, or two
+    or more of them (the rows of another photo given this one's name)."""
     out = {}
     for img in dict.fromkeys(f.row.image for f in fates):
         mine = [f for f in fates if f.row.image == img and f.fate in ('used', 'outlier', 'point_unused')
                 and f.residual_m is not None]
         wrong = [f for f in mine if f.likely_wrong_photo]
-        if wrong and len(wrong) == len(mine):
+        if wrong and (len(wrong) == len(mine) or len(wrong) >= 2):
             dm = [f.residual_m for f in wrong]
-            out[img] = (f'{"its only checked row is" if len(wrong) == 1 else f"all {len(wrong)} of its checked rows are"} '
-                        f'{min(dm):.0f}-{max(dm):.0f} m from where their points are ({", ".join(f.row.name for f in wrong)}): '
+            which = ('its only checked row is' if len(mine) == 1 else
+                     f'all {len(wrong)} of its checked rows are' if len(wrong) == len(mine) else
+                     f'{len(wrong)} of its {len(mine)} checked rows are')
+            out[img] = (f'{which} {min(dm):.0f}-{max(dm):.0f} m from where their points are '
+                        f'({", ".join(f.row.name for f in wrong)}, lines {", ".join(str(f.row.line) for f in wrong)}): '
                         'the rows likely name the wrong photo')
     return out
 
