@@ -23,6 +23,6 @@ def test_triangulate_of_a_truncated_bag_exits_3_and_says_what_was_lost(tmp_path)
     assert 'of 3726 messages readable' in r.stdout and 'lost' in r.stdout and 'bag damaged' in r.stdout
     assert 'messages readable' in r.stderr            # said while reading, too
     rep = json.loads((out / 'report.json').read_text())
-    assert rep['bag_damage'] and 'of 3726 messages readable' in rep['bag_damage'][0]
+    assert any('of 3726 messages readable' in e for e in rep['bag_damage'])
     assert 5 < rep['registered'] < 40                  # what the bag still holds was triangulated
     assert 'bag damaged' in (out / 'report.md').read_text()
