@@ -75,10 +75,10 @@ def test_vet_control_names_each_fault_against_exact_cameras():
 
 @pytest.fixture(scope='module')
 def flight(tmp_path_factory):
-    """A small simulated survey (RTK float GNSS, 5 GCPs, 3 check points), its photos read and matched once."""
+    """A small simulated survey (RTK fixed GNSS, 5 GCPs, 3 check points), its photos read and matched once."""
     from photogram_ros.io.photo_block import read_photo_block
     root = tmp_path_factory.mktemp('ctrl') / 'flight'
-    simulate(preset('tiny', photos=True, fps=1.0, n_gcp=5, n_check=3, gnss_mode='rtk_float'), root)
+    simulate(preset('tiny', photos=True, fps=1.0, n_gcp=5, n_check=3, gnss_mode='rtk_fixed'), root)
     photos = root / 'photos'
     block = read_photo_block(photos)
     lines = (photos / 'gcp_list.txt').read_text().splitlines()

@@ -59,8 +59,9 @@ def _gnss_text(rep: dict) -> list[str]:
     if w and w.get('n'):
         ratio = g.get('strain_ratio')
         L.append(f"The same block adjusted without GCPs: {_rmse_line(w)}, about their mean {_cm(w.get('spread_m'))}"
-                 + (f"; with the GCPs the spread is {ratio:.2f}x that" if ratio is not None else '')
-                 + (' (the GCPs bend the block: check them)' if ratio is not None and ratio > 1.5 else '') + '.')
+                 + (f"; with the GCPs the spread is {ratio:.2f}x that (GCPs holding the block true against a "
+                    "GNSS error that wanders raise it, GCPs with wrong coordinates too: see Control rows)"
+                    if ratio is not None else '') + '.')
     return L
 
 
