@@ -468,13 +468,17 @@ def _height_verdict(vet: ControlVetting, file_heights: dict, opt: ControlVetting
     else:
         vet.height_suspect = 'either'
     for p in bad:
-        why = (f'its surveyed height is {-p.d_v_m:+.2f} m from where the GNSS-only block intersects it (sigma '
-               f'{p.sigma_v_m:.2f} m)' + (f'; {p.placeholder}: a placeholder?' if p.placeholder else ''))
+        why = _height_text(p) + (f'; {p.placeholder}: a placeholder?' if p.placeholder else '')
         if opt.contradicted_heights == 'horizontal':
             p.use = 'horizontal'
             p.reason = why + '; used horizontally only'
         else:
             p.reason = why + '; used as given (--gcp-heights use): the block is bent to fit it'
+
+
+def _height_text(p: PointCheck) -> str:
+    return (f'its surveyed height is {abs(p.d_v_m):.2f} m {"below" if p.d_v_m > 0 else "above"} where the GNSS-only '
+            f'block intersects it (sigma {p.sigma_v_m:.2f} m)')
 
 
 def _notes(vet: ControlVetting) -> None:
@@ -503,9 +507,8 @@ def _notes(vet: ControlVetting) -> None:
         elif p.vertical == 'contradicted' and p.role == 'gcp':
             L.append(f'GCP {p.name}: {p.reason}')
         elif p.vertical == 'contradicted':
-            L.append(f'check point {p.name}: its surveyed height is {-p.d_v_m:+.2f} m from where the GNSS-only block '
-                     f'intersects it (sigma {p.sigma_v_m:.2f} m)' + (f'; {p.placeholder}: a placeholder?' if p.placeholder
-                                                                      else ''))
+            L.append(f'check point {p.name}: {_height_text(p)}' + (f'; {p.placeholder}: a placeholder?'
+                                                                    if p.placeholder else ''))
     if vet.height_suspect == 'control_heights':
         L.append('the suspect is the control file\'s heights, not the photos\' altitudes: the GNSS-only block '
                  'contradicts them by more than the survey and the GNSS allow')
