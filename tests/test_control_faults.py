@@ -86,10 +86,11 @@ def flight(tmp_path_factory):
     return root, photos, block, lines[0], rows, GroundTruth.load(root)
 
 
-def _run(flight, tmp_path, rows=None, tag='run'):
+def _run(flight, tmp_path, rows=None, tag='run', heights='horizontal'):
+    from photogram_ros.core.control import ControlVettingOptions
     from photogram_ros.io.aerial_triangulation import TriangulateOptions, adjust_block
     root, photos, block, crs, _, _ = flight
-    opt = TriangulateOptions(lever_arm_cam_m=LEVER)
+    opt = TriangulateOptions(lever_arm_cam_m=LEVER, vetting=ControlVettingOptions(contradicted_heights=heights))
     if rows is not None:
         p = tmp_path / f'{tag}_gcp_list.txt'
         p.write_text('\n'.join([crs] + [' '.join(r) for r in rows]) + '\n')
@@ -183,6 +184,19 @@ def test_placeholder_heights_zero(flight, baseline, tmp_path):
     assert not any('look relative' in a for a in rep['assumptions'])
     _assert_not_strained(rep, baseline)
     assert rep['check']['rmse']['vertical_m'] < 3 * truth.gsd_m
+
+
+def test_placeholder_heights_used_as_given_bend_the_block(flight, baseline, tmp_path):
+    """The oracle of the strain test: the same 400 m heights used as given (`--gcp-heights use`, the old
+    behaviour) bend the block, and the report still names the heights."""
+    _, _, _, _, rows, _ = flight
+    res, rep = _run(flight, tmp_path, _with_heights(rows, 400.0, {r[6] for r in rows if r[6].startswith('GCP')}),
+                    'as_given', heights='use')
+    print(f"heights used as given: GNSS spread {rep['gnss']['rmse']['spread_m']:.2f} m, "
+          f"{rep['gnss']['strain_ratio']:.0f}x")
+    assert rep['gnss']['strain_ratio'] > 5 * MAX_STRAIN
+    assert all(p['use'] == 'full' and 'used as given' in p['reason'] for p in rep['control']['points'].values()
+               if p['role'] == 'gcp')
 
 
 def test_one_gcp_says_its_residual_shows_nothing(flight, baseline, tmp_path):
