@@ -128,6 +128,7 @@ def _check_points(at, vetting) -> list[dict]:
 
 
 def _gcp_points(at, vetting) -> list[dict]:
+    from photogram_ros.core.incremental import intersect_point
     gcps = []
     uses = {n: p.use for n, p in vetting.points.items()} if vetting is not None else {}
     for name, c in at.control.items():
@@ -140,9 +141,16 @@ def _gcp_points(at, vetting) -> list[dict]:
             continue
         use = uses.get(name, 'full')
         tid = at.target_track(name)
+        hit = None
         if tid is not None and tid in at.points:
             Ts, uv = at.observations_of(tid)
-            g = {'name': name, 'use': use, 'residual_m': (at.points[tid] - c.map_xyz).tolist(), 'images': len(Ts),
+            hit = intersect_point(at.camera, np.array(Ts), uv) if len(Ts) >= 2 else None
+        if hit is not None:
+            # Intersected from the adjusted cameras, as a check point: the adjusted point itself sits on its
+            # prior even when its rays disagree with it (a robust loss gives up on them), a 0.0 cm lie.
+            X, n, rms = hit
+            g = {'name': name, 'use': use, 'residual_m': (X - c.map_xyz).tolist(), 'images': n,
+                 'reprojection_rms_px': rms, 'adjusted_point_residual_m': (at.points[tid] - c.map_xyz).tolist(),
                  'surveyed_map_m': c.map_xyz.tolist()}
             if use == 'horizontal':
                 g['reason'] = vetting.points[name].reason
