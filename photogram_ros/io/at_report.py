@@ -107,7 +107,8 @@ def markdown(rep: dict) -> str:
         sec = rep[key]
         L += [f'## {title}', '', f"RMSE {_rmse_line(sec['rmse'])}."]
         if 'rmse_gsd' in sec:
-            L += [f"In GSD: horizontal {sec['rmse_gsd']['horizontal']:.2f}, vertical {sec['rmse_gsd']['vertical']:.2f}."]
+            L += [f"In GSD: horizontal {sec['rmse_gsd']['horizontal']:.2f}, "
+                  f"vertical {sec['rmse_gsd']['vertical']:.2f}."]
         L += _ce_text(sec) + [f'- {t}' for t in sec.get('redundancy', [])] + ['']
         if sec['points']:
             L += md_table(_residual_rows(sec['points'])) + ['']
@@ -128,7 +129,8 @@ def _residual_rows(points: list[dict]) -> list[dict]:
     out = []
     for p in points:
         r = p.get('residual_m')
-        row = {'name': p['name'], 'dX cm': None if r is None else r[0] * 100, 'dY cm': None if r is None else r[1] * 100,
+        row = {'name': p['name'], 'dX cm': None if r is None else r[0] * 100,
+               'dY cm': None if r is None else r[1] * 100,
                'dZ cm': None if r is None or p.get('use') == 'horizontal' else r[2] * 100, 'images': p['images']}
         if 'use' in p:
             row['use'] = p['use']
