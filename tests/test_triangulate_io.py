@@ -69,7 +69,7 @@ def test_bad_gcp_lists_are_data_errors(tmp_path, text, match):
 
 
 def test_geo_txt_projected_and_geographic(tmp_path):
-    from photogram_ros.io.photo_block import read_geo_txt
+    from photogram_ros.io.photo_block import EXIF_SIGMA_H_M, EXIF_SIGMA_V_M, read_geo_txt
     x, y = _utm(LAT, LON)
     (tmp_path / 'a.txt').write_text(f'EPSG:32632\nIMG_1.JPG {x:.4f} {y:.4f} 530.5 0 0 0 0.02 0.04\n'
                                     f'IMG_2.JPG {x:.4f} {y:.4f} 531.0\n')
@@ -77,7 +77,8 @@ def test_geo_txt_projected_and_geographic(tmp_path):
     a, b = read_geo_txt(tmp_path / 'a.txt'), read_geo_txt(tmp_path / 'b.txt')
     lat, lon, h, h_acc, v_acc = a['IMG_1.JPG']
     assert abs(lat - LAT) < 1e-8 and abs(lon - LON) < 1e-8 and h == pytest.approx(530.5)
-    assert (h_acc, v_acc) == (0.02, 0.04) and a['IMG_2.JPG'][3:] == (5.0, 10.0)
+    # Without accuracies: the EXIF geotag sigmas (5 m horizontal, 2 m vertical since 5df030e).
+    assert (h_acc, v_acc) == (0.02, 0.04) and a['IMG_2.JPG'][3:] == (EXIF_SIGMA_H_M, EXIF_SIGMA_V_M) == (5.0, 2.0)
     assert b['IMG_1.JPG'] == (LAT, LON, 530.5, 1e-3, 1e-3)      # zero accuracies floored
     (tmp_path / 'c.txt').write_text('EPSG:4326\nIMG_1.JPG 8.5 47.3\n')
     with pytest.raises(DataError, match='image x y z'):

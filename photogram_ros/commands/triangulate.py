@@ -20,6 +20,10 @@ def add_arguments(p) -> None:
                                     'sensor table or the 35 mm equivalent; principal point centred, no distortion)')
     p.add_argument('--crs', help='output CRS (default: the GCP CRS, else the UTM zone of the first photo)')
     p.add_argument('--gcp-sigma', default='0.02,0.02,0.03', help='GCP sigma E,N,U in metres')
+    p.add_argument('--gcp-heights', choices=('checked', 'use'), default='checked',
+                   help='checked (default): a GCP height the GNSS-only block contradicts far beyond both sigmas '
+                        '(placeholders such as 0 or 400 m) is reported and the GCP used horizontally only; use: '
+                        'every height as given (the block bends to fit it)')
     p.add_argument('--neighbours', type=int, default=8, help='photos matched with each photo first (nearest by '
                                                              'position, or largest footprint overlap)')
     p.add_argument('--max-image-px', type=int, default=1000, help='photos: long side of the reduced photo features '
@@ -55,6 +59,7 @@ def _floats(text: str, what: str, n: int) -> tuple:
 def run(a) -> int:
     import sys
 
+    from photogram_ros.core.control import ControlVettingOptions
     from photogram_ros.core.photo_matching import MatchingOptions
     from photogram_ros.io.aerial_triangulation import TriangulateOptions, triangulate
     from photogram_ros.params import from_dict
@@ -70,12 +75,20 @@ def run(a) -> int:
         crs=a.crs, gcp_sigma_enu_m=_floats(a.gcp_sigma, '--gcp-sigma', 3), neighbours=a.neighbours,
         window=a.window, lever_arm_cam_m=_floats(a.lever_arm, '--lever-arm', 3),
         self_calibrate=refine, matching=matching,
-        exif_altitude=a.exif_altitude, takeoff_h_m=a.takeoff_altitude_m, takeoff_heights=a.takeoff_heights)
+        exif_altitude=a.exif_altitude, takeoff_h_m=a.takeoff_altitude_m, takeoff_heights=a.takeoff_heights,
+        vetting=ControlVettingOptions(contradicted_heights='horizontal' if a.gcp_heights == 'checked' else 'use'))
     res = triangulate(a.input, a.out, opt, log=lambda text: print(text, file=sys.stderr))
     rep = res.report
     ck = rep['check']['rmse']
+    rms = rep['reprojection_rms_px']
     print(f"oriented {res.registered}/{res.inputs} images, {res.tie_points} tie points, reprojection "
-          f"{rep['reprojection_rms_px']:.3f} px; check points: "
+          + (f'{rms:.3f} px' if rms is not None else 'none') + '; check points: '
           + (f"n={ck['n']} RMSE horizontal {ck['horizontal_m'] * 100:.1f} cm, vertical {ck['vertical_m'] * 100:.1f} cm"
              if ck.get('n') else 'none') + f'; wrote {res.out}')
-    return 0
+    faults = (rep.get('control') or {}).get('faults', [])
+    if faults:
+        print(f'control: {len(faults)} faults found (see the report\'s Control rows)')
+    for e in res.damage:
+        print(f'bag damaged: {e}')
+    # Exit status as `replay`'s: 3 for a damaged bag (what it held was triangulated).
+    return 3 if res.damage else 0

@@ -12,6 +12,7 @@ from __future__ import annotations
 import numpy as np
 
 from photogram_ros.core.bundle import BundleOptions, bundle_adjust
+from photogram_ros.core.evaluation import ce90_le90
 
 
 def rmse_xyz(res: np.ndarray) -> dict:
@@ -25,56 +26,158 @@ def rmse_xyz(res: np.ndarray) -> dict:
             'total_m': float(np.sqrt(np.mean(np.sum(r ** 2, axis=1))))}
 
 
+def gnss_figures(residuals_enu_m) -> dict:
+    """RMSE of GNSS residuals (N, 3) and `spread_m`, their RMS about their mean: a shift of the whole
+    block (a GCP moving it onto the survey) is not strain; a bent block (GCPs fighting the GNSS) is."""
+    r = np.asarray(residuals_enu_m, float).reshape(-1, 3)
+    out = rmse_xyz(r)
+    if len(r):
+        out['spread_m'] = float(np.sqrt(np.mean(np.sum((r - r.mean(axis=0)) ** 2, axis=1))))
+        out['mean_enu_m'] = r.mean(axis=0).tolist()
+    return out
+
+
 def _per_image(at, residuals: list | None = None) -> list[dict]:
-    """Per-image statistics; appends each observation's reprojection error (px) to `residuals`."""
+    """Per-image statistics; appends each observation's reprojection error (px) to `residuals`. A photo
+    without a finite residual has none (None) and says why; points behind its camera are counted."""
     gres = at.gnss_residuals()
     out = []
     for k in at.registered:
         kf = at.kfs[k]
-        m = kf.active & np.array([int(t) in at.points for t in kf.track_ids])
+        m = kf.active & np.array([int(t) in at.points for t in kf.track_ids], bool)
+        rms, note, behind = None, '', 0
         if m.any():
             X = np.array([at.points[int(t)] for t in kf.track_ids[m]])
             e = at.reprojection_px(kf.map_T_cam, X, kf.uv[m])
-            rms = float(np.sqrt(np.mean(e ** 2)))
-            if residuals is not None:
-                residuals.append(e)
+            fin = np.isfinite(e)
+            behind = int((~fin).sum())
+            if fin.any():
+                rms = float(np.sqrt(np.mean(e[fin] ** 2)))
+                if residuals is not None:
+                    residuals.append(e[fin])
+            if behind:
+                note = f'{behind} of its tie points are behind the camera (left out of its RMS)'
         else:
-            rms = float('nan')
+            note = ('none of its observations is active on a tie point (all rejected as outliers, or its points '
+                    'were not triangulated)')
+        if rms is None and m.any():
+            note = f'all {behind} of its tie points are behind the camera: its pose is wrong'
         g = gres.get(k)
-        out.append({'image': kf.name, 'stamp_ns': kf.stamp_ns, 'observations': int(m.sum()),
-                    'reprojection_rms_px': rms,
-                    'gnss_residual_enu_m': None if g is None else [float(v) for v in g],
-                    'position_map_m': [float(v) for v in kf.map_T_cam[:3, 3]]})
+        row = {'image': kf.name, 'stamp_ns': kf.stamp_ns, 'observations': int(m.sum()) - behind,
+               'reprojection_rms_px': rms,
+               'gnss_residual_enu_m': None if g is None else [float(v) for v in g],
+               'position_map_m': [float(v) for v in kf.map_T_cam[:3, 3]]}
+        if note:
+            row['note'] = note
+        out.append(row)
     return out
 
 
-def build_report(at, assumptions: list[str] | None = None, gsd_m: float | None = None) -> dict:
-    """Every figure of the report from an adjusted IncrementalAT."""
+def _rmse_gcps(gcps: list[dict]) -> dict:
+    """RMSE over the used GCPs, the vertical over those used with their heights only."""
+    used = [g for g in gcps if g.get('residual_m') is not None]
+    if not used:
+        return {'n': 0}
+    r = np.array([g['residual_m'] for g in used], float)
+    full = np.array([g['use'] != 'horizontal' for g in used])
+    out = rmse_xyz(r)
+    if not full.all():
+        rv = rmse_xyz(r[full]) if full.any() else {}
+        out.update(n_vertical=int(full.sum()), z_m=rv.get('z_m'), vertical_m=rv.get('vertical_m'),
+                   total_m=rv.get('total_m') if full.all() else None)
+    return out
+
+
+def _redundancy(gcps: list[dict]) -> list[str]:
+    used = [g for g in gcps if g.get('residual_m') is not None]
+    out = ['GCP residuals show how well the block was fitted to the GCPs, not its accuracy: the check points '
+           'are the accuracy']
+    if len(used) == 1:
+        out.append(f"one GCP ({used[0]['name']}): the block is fitted to it, so its residual shows nothing about "
+                   'the survey or the block')
+    for g in used:
+        if g['images'] <= 2 and len(used) > 1:
+            out.append(f"{g['name']} is in {g['images']} photos: its residual shows next to nothing (two rays pass "
+                       'through its prior)')
+    return out
+
+
+def _check_points(at, vetting) -> list[dict]:
+    """Check points intersected from the adjusted cameras: from the rows the vetting kept (by photo name),
+    else from every observation of the target."""
+    from photogram_ros.core.incremental import intersect_point
+    out = []
+    poses = {at.kfs[k].name: at.kfs[k].map_T_cam for k in at.registered}
+    for name, c in at.control.items():
+        if vetting is not None:
+            p = vetting.points.get(name)
+            if p is None or p.role != 'check':
+                continue
+            rows = [f.row for f in vetting.rows if f.fate == 'used' and f.row.name == name and f.row.image in poses]
+            hit = (intersect_point(at.camera, np.array([poses[r.image] for r in rows]),
+                                   np.array([r.uv for r in rows], float)) if len(rows) >= 2 else None)
+        elif c.role == 'gcp' and at.opt.use_gcps:
+            continue
+        else:
+            hit = at.intersect_target(name)
+        if hit is not None:
+            X, n, rms = hit
+            out.append({'name': name, 'residual_m': (X - c.map_xyz).tolist(), 'images': n,
+                        'reprojection_rms_px': rms, 'surveyed_map_m': c.map_xyz.tolist()})
+    return out
+
+
+def _gcp_points(at, vetting) -> list[dict]:
+    from photogram_ros.core.incremental import intersect_point
+    gcps = []
+    uses = {n: p.use for n, p in vetting.points.items()} if vetting is not None else {}
+    for name, c in at.control.items():
+        if uses.get(name) == 'unused':
+            p = vetting.points[name]
+            gcps.append({'name': name, 'use': 'unused', 'reason': p.reason, 'residual_m': None, 'images': 0,
+                         'surveyed_map_m': c.map_xyz.tolist()})
+            continue
+        if c.role != 'gcp' or not at.opt.use_gcps:
+            continue
+        use = uses.get(name, 'full')
+        tid = at.target_track(name)
+        hit = None
+        if tid is not None and tid in at.points:
+            Ts, uv = at.observations_of(tid)
+            hit = intersect_point(at.camera, np.array(Ts), uv) if len(Ts) >= 2 else None
+        if hit is not None:
+            # Intersected from the adjusted cameras, as a check point: the adjusted point itself sits on its
+            # prior even when its rays disagree with it (a robust loss gives up on them), a 0.0 cm lie.
+            X, n, rms = hit
+            g = {'name': name, 'use': use, 'residual_m': (X - c.map_xyz).tolist(), 'images': n,
+                 'reprojection_rms_px': rms, 'adjusted_point_residual_m': (at.points[tid] - c.map_xyz).tolist(),
+                 'surveyed_map_m': c.map_xyz.tolist()}
+            if use == 'horizontal':
+                g['reason'] = vetting.points[name].reason
+        else:
+            g = {'name': name, 'use': 'unused', 'residual_m': None, 'images': 0, 'surveyed_map_m': c.map_xyz.tolist(),
+                 'reason': 'not observed in any oriented photo' if tid is None else
+                           'not triangulated: fewer than two of its observations survived'}
+        gcps.append(g)
+    return gcps
+
+
+def build_report(at, assumptions: list[str] | None = None, gsd_m: float | None = None, vetting=None,
+                 gnss_without_gcps: dict | None = None) -> dict:
+    """Every figure of the report from an adjusted IncrementalAT.
+
+    vetting: core/control.py ControlVetting of the control rows (their fates, the GCPs' uses; check
+    points are then intersected from the rows it kept); gnss_without_gcps: the GNSS residual RMSE of the
+    same block adjusted without GCPs (how much the GCPs strain it)."""
     errs: list = []
     per_image = _per_image(at, errs)
     errs = np.concatenate(errs) if errs else np.zeros(0)
     errs = errs[np.isfinite(errs)]
-    rms_all = [p['reprojection_rms_px'] for p in per_image if np.isfinite(p['reprojection_rms_px'])]
     nobs = [p['observations'] for p in per_image]
     gres = np.array([p['gnss_residual_enu_m'] for p in per_image if p['gnss_residual_enu_m'] is not None])
-    gcps, checks = [], []
-    for name, c in at.control.items():
-        tid = at.target_track(name)
-        if c.role == 'gcp' and at.opt.use_gcps:
-            if tid is not None and tid in at.points:
-                r = at.points[tid] - c.map_xyz
-                Ts, uv = at.observations_of(tid)
-                gcps.append({'name': name, 'residual_m': r.tolist(), 'images': len(Ts),
-                             'surveyed_map_m': c.map_xyz.tolist()})
-        else:
-            hit = at.intersect_target(name)
-            if hit is not None:
-                X, n, rms = hit
-                checks.append({'name': name, 'residual_m': (X - c.map_xyz).tolist(), 'images': n,
-                               'reprojection_rms_px': rms, 'surveyed_map_m': c.map_xyz.tolist()})
+    gcps, checks = _gcp_points(at, vetting), _check_points(at, vetting)
     # Per-observation RMS over the whole block (per-image values weighted by their counts).
-    total_rms = float(np.sqrt(np.sum(np.square(rms_all) * np.array(nobs)[np.isfinite(
-        [p['reprojection_rms_px'] for p in per_image])]) / max(sum(nobs), 1))) if rms_all else float('nan')
+    total_rms = float(np.sqrt(np.mean(errs ** 2))) if len(errs) else None
     rep = {
         'format': 'photogram_ros aerial triangulation report v1',
         'origin': at.origin.to_dict() if at.origin is not None else None,
@@ -85,13 +188,22 @@ def build_report(at, assumptions: list[str] | None = None, gsd_m: float | None =
         'camera': {'width': at.camera.width, 'height': at.camera.height, 'fx': at.camera.fx, 'fy': at.camera.fy,
                    'cx': at.camera.cx, 'cy': at.camera.cy, 'dist': list(at.camera.dist)},
         'reprojection_rms_px': total_rms,
-        'gnss': {'rmse': rmse_xyz(gres), 'estimated_bias_enu_m': at.gnss_bias_enu.tolist()},
-        'gcp': {'points': gcps, 'rmse': rmse_xyz(np.array([g['residual_m'] for g in gcps]))},
-        'check': {'points': checks, 'rmse': rmse_xyz(np.array([c['residual_m'] for c in checks]))},
+        'gnss': {'rmse': gnss_figures(gres), 'estimated_bias_enu_m': at.gnss_bias_enu.tolist()},
+        'gcp': {'points': gcps, 'rmse': _rmse_gcps(gcps), 'redundancy': _redundancy(gcps) if gcps else []},
+        'check': {'points': checks, 'rmse': rmse_xyz(np.array([c['residual_m'] for c in checks])),
+                  'ce90_le90': ce90_le90(np.array([c['residual_m'] for c in checks]))},
         'reprojection_histogram': _histogram(errs),
         'per_image': per_image,
         'assumptions': list(assumptions or []),
     }
+    if vetting is not None:
+        rep['control'] = vetting.to_dict()
+    if gnss_without_gcps is not None:
+        w = gnss_without_gcps.get('spread_m')
+        rep['gnss']['without_gcps'] = gnss_without_gcps
+        t = rep['gnss']['rmse'].get('spread_m')
+        if w and t is not None:
+            rep['gnss']['strain_ratio'] = t / w
     if gsd_m:
         rep['gsd_m'] = gsd_m
         ck = rep['check']['rmse']
@@ -186,3 +298,33 @@ def focal_determination(at, sig: dict) -> dict:
     else:
         out.update(determined=True, reason='oblique views or GCP heights hold the depth')
     return out
+
+
+CONVERGED_MOVE_M = 0.01        # more iterations moving no camera by more than this (and ...)
+CONVERGED_DECREASE = 1e-3      # ... lowering the cost by less than this fraction) do not matter
+
+
+def convergence(at, status: str, more_iterations: int = 5) -> dict | None:
+    """How far from converged an adjustment that stopped at its iteration limit is: `more_iterations`
+    further iterations from its result (not applied), their relative cost decrease (the first one's: the
+    stopped adjustment's next step) and the largest camera move; None when it converged."""
+    if status != 'max_iterations' or not at.registered:
+        return None
+    kids = list(at.registered)
+    prob = at.problem(kids, [], list(at.points))
+    if prob is None:
+        return None
+    res = bundle_adjust(prob, BundleOptions(loss=at.opt.loss, loss_scale_px=at.opt.loss_scale_px,
+                                            max_iterations=more_iterations))
+    c0 = float(res.initial_cost)
+    hist = [c0] + [float(c) for c in res.cost_history]
+    first = (hist[0] - hist[1]) / hist[0] if len(hist) > 1 and hist[0] > 0 else 0.0
+    total = (hist[0] - hist[-1]) / hist[0] if hist[0] > 0 else 0.0
+    move = float(np.max(np.linalg.norm(np.asarray(res.map_T_cams)[:, :3, 3] - prob.map_T_cams[:, :3, 3], axis=1)))
+    matters = bool(move > CONVERGED_MOVE_M or total > CONVERGED_DECREASE)
+    return {'status': status, 'next_relative_cost_decrease': first, 'relative_cost_decrease_more': total,
+            'more_iterations': more_iterations, 'max_camera_move_m': move, 'matters': matters,
+            'text': (f'the final adjustment stopped at its iteration limit; {more_iterations} more iterations would '
+                     f'lower the cost by {100 * total:.3g} % (the next one by {100 * first:.3g} %) and move no camera '
+                     f'by more than {100 * move:.2f} cm: ' + ('that MATTERS, the figures are not final' if matters
+                                                               else 'that does not matter'))}

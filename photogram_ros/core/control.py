@@ -14,7 +14,7 @@ is known. Files: photogram_ros/io/control_file.py.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 
 import cv2
 import numpy as np
@@ -24,6 +24,7 @@ from photogram_ros.core.evaluation import detect_targets
 from photogram_ros.core.geodesy import LocalFrame
 from photogram_ros.core.incremental import ControlPoint
 from photogram_ros.errors import DataError
+from photogram_ros.params import param
 
 # A surveyed board's centre is known to a few centimetres (RTK rover on the board); used where the
 # file gives no sigma.
@@ -138,3 +139,384 @@ def detect_keyframe_targets(image: np.ndarray, camera: PinholeCamera,
         out['u'], out['v'] = uv[:, 0], uv[:, 1]
         out['xn'], out['yn'] = xn[:, 0], xn[:, 1]
     return out
+
+
+# --- control rows checked against the GNSS-only block (issue 16) ---------------------------------------
+#
+# A control file from the field has faults a surveyor does not see: rows naming a photo of another
+# flight, every row of one photo naming the wrong photo, pixels outside the image, heights left as
+# placeholders (0 m, 400 m). `vet_control` looks at every row and every point against the block
+# adjusted on its GNSS alone (before any GCP pulls on it) and gives each row a fate and each GCP a
+# use: full, horizontal only (its height contradicted by the GNSS far beyond both sigmas), or unused.
+
+ROW_FATES = ('used', 'photo_not_in_set', 'photo_not_oriented', 'pixel_outside_image', 'duplicate', 'outlier',
+             'point_unused')
+POINT_USES = ('full', 'horizontal', 'unused', 'check')
+# A vertical sigma that carries no weight: a GCP used horizontally only (its height is a free unknown).
+HORIZONTAL_ONLY_SIGMA_V_M = 1.0e4
+
+
+@dataclass
+class ControlVettingOptions:
+    """How control rows and points are checked against the GNSS-only block."""
+    max_row_residual_px: float = param(10.0, 'a control row farther than this from where its point intersects '
+                                             'from the other rows (GNSS-only block) is an outlier, px',
+                                       min=0.5, max=10000.0)
+    wrong_photo_m: float = param(5.0, 'an outlier row this far from its point on the ground (m, or 5 sigma of the '
+                                      'GNSS) likely names the wrong photo (or point), not a mis-click',
+                                 min=0.1, max=10000.0)
+    height_sigmas: float = param(5.0, 'a surveyed coordinate disagreeing with its GNSS-only intersection by more '
+                                      'than this many combined sigmas (survey, GNSS, intersection) is contradicted',
+                                 min=1.0, max=1000.0)
+    min_contradiction_m: float = param(1.0, '... and by at least this much, m', min=0.0, max=10000.0)
+    contradicted_heights: str = param('horizontal', 'a GCP whose height the GNSS contradicts: used horizontally '
+                                                    'only (default) or as given ("use")',
+                                      choices=('horizontal', 'use'))
+
+
+@dataclass
+class ControlRow:
+    """One observation of a control file: point `name` clicked (or detected) in photo `image`."""
+    line: int                    # line in the file (0: a marker detection)
+    image: str
+    name: str
+    uv: np.ndarray               # (2,) distorted pixel
+
+
+@dataclass
+class RowFate:
+    row: ControlRow
+    fate: str                    # one of ROW_FATES
+    reason: str = ''
+    residual_px: float | None = None    # against the point's GNSS-only intersection from the other rows
+    residual_m: float | None = None     # the same on the ground (px times depth / f)
+    likely_wrong_photo: bool = False
+
+    def to_dict(self) -> dict:
+        return {'line': self.row.line, 'image': self.row.image, 'name': self.row.name,
+                'uv_px': [float(v) for v in self.row.uv], 'fate': self.fate, 'reason': self.reason,
+                'residual_px': self.residual_px, 'residual_m': self.residual_m,
+                'likely_wrong_photo': self.likely_wrong_photo}
+
+
+@dataclass
+class PointCheck:
+    """A control point against its intersection from the GNSS-only block."""
+    name: str
+    role: str
+    use: str                             # one of POINT_USES
+    reason: str = ''
+    rows: int = 0                        # rows in the file
+    usable_rows: int = 0                 # consistent rows, in oriented photos
+    gnss_only_map_m: list | None = None  # intersection from the GNSS-only block (map ENU)
+    d_h_m: float | None = None           # horizontal distance, intersection - survey
+    d_v_m: float | None = None           # intersection - survey, up
+    sigma_h_m: float | None = None       # combined: survey, GNSS, intersection
+    sigma_v_m: float | None = None
+    horizontal: str = 'not_checked'      # 'agrees' | 'contradicted' | 'not_checked'
+    vertical: str = 'not_checked'
+    placeholder: str = ''                # why the height looks like a placeholder ('' if not)
+
+    def to_dict(self) -> dict:
+        return dict(self.__dict__)
+
+
+@dataclass
+class ControlVetting:
+    rows: list                           # [RowFate], in the file's order
+    points: dict                         # name -> PointCheck
+    wrong_photos: dict                   # image -> why it is likely the wrong photo
+    height_suspect: str = ''             # '' | 'control_heights' | 'photo_altitudes' | 'either'
+    notes: list = field(default_factory=list)   # the faults, one sentence each
+
+    def accepted_uv(self) -> dict:
+        """{image: {point name: (u, v)}} of the rows used."""
+        out: dict = {}
+        for f in self.rows:
+            if f.fate == 'used':
+                out.setdefault(f.row.image, {})[f.row.name] = np.asarray(f.row.uv, float)
+        return out
+
+    def control_points(self, control: list[ControlPoint]) -> list[ControlPoint]:
+        """The control as the adjustment should take it: GCPs used horizontally only get a vertical sigma
+        that carries no weight, unused GCPs become check points (their rows are not passed anyway)."""
+        out = []
+        for c in control:
+            p = self.points.get(c.name)
+            if c.role != 'gcp' or p is None or p.use == 'full':
+                out.append(c)
+            elif p.use == 'horizontal':
+                out.append(replace(c, sigma_m=np.array([c.sigma_m[0], c.sigma_m[1], HORIZONTAL_ONLY_SIGMA_V_M])))
+            else:
+                out.append(replace(c, role='check'))
+        return out
+
+    def counts(self) -> dict:
+        return {f: sum(r.fate == f for r in self.rows) for f in ROW_FATES}
+
+    def to_dict(self) -> dict:
+        return {'rows': [r.to_dict() for r in self.rows], 'row_fates': self.counts(),
+                'points': {n: p.to_dict() for n, p in self.points.items()}, 'wrong_photos': dict(self.wrong_photos),
+                'height_suspect': self.height_suspect, 'faults': list(self.notes)}
+
+
+def _row_residuals(camera: PinholeCamera, Ts: np.ndarray, uv: np.ndarray, X: np.ndarray):
+    """Reprojection distance (px) of X in each camera, and the same on the ground (m, px * depth / f)."""
+    pc = np.einsum('nji,nj->ni', Ts[:, :3, :3], X[None] - Ts[:, :3, 3])
+    z = pc[:, 2]
+    ok = z > 1e-6
+    e = np.full(len(uv), np.inf)
+    if ok.any():
+        e[ok] = np.linalg.norm(camera.normalized_to_pixel(pc[ok, :2] / z[ok, None]) - uv[ok], axis=1)
+    return e, np.where(ok, e * np.abs(z) / camera.fx, np.inf)
+
+
+def _consensus(camera: PinholeCamera, Ts: np.ndarray, uv: np.ndarray, thr_px: float):
+    """The largest set of rows that agree on one point (every pair tried): (X, inlier mask) or (None, none)."""
+    from photogram_ros.core.incremental import intersect_point
+    n = len(uv)
+    best, best_key = None, None
+    for i in range(n):
+        for j in range(i + 1, n):
+            hit = intersect_point(camera, Ts[[i, j]], uv[[i, j]])
+            if hit is None:
+                continue
+            e, _ = _row_residuals(camera, Ts, uv, hit[0])
+            inl = e <= thr_px
+            key = (int(inl.sum()), -float(np.sum(np.minimum(e, thr_px))))
+            if inl[i] and inl[j] and (best_key is None or key > best_key):
+                best, best_key = inl, key
+    if best is None:
+        return None, np.zeros(n, bool)
+    hit = intersect_point(camera, Ts[best], uv[best])
+    if hit is None:
+        return None, np.zeros(n, bool)
+    X = hit[0]
+    e, _ = _row_residuals(camera, Ts, uv, X)
+    inl = e <= thr_px
+    if inl.sum() >= 2 and not np.array_equal(inl, best):
+        hit = intersect_point(camera, Ts[inl], uv[inl])
+        X = hit[0] if hit is not None else X
+    return X, inl if inl.sum() >= 2 else best
+
+
+def _ray_on_plane(camera: PinholeCamera, T: np.ndarray, uv: np.ndarray, z0: float) -> np.ndarray | None:
+    d = T[:3, :3] @ np.append(camera.pixel_to_normalized(np.asarray(uv, float)[None])[0], 1.0)
+    if abs(d[2]) < 1e-9:
+        return None
+    s = (z0 - T[2, 3]) / d[2]
+    return T[:3, 3] + s * d if s > 0 else None
+
+
+def _placeholders(file_heights: dict, names: list[str]) -> dict:
+    """name -> why its height looks like a placeholder: exactly 0, or the same to the millimetre as another
+    point's (no two surveyed boards share a height to the millimetre)."""
+    out = {}
+    for n in names:
+        z = file_heights.get(n)
+        if z is None:
+            continue
+        same = [m for m in names if m != n and file_heights.get(m) is not None and abs(file_heights[m] - z) < 5e-4]
+        if abs(z) < 5e-4:
+            out[n] = 'height exactly 0 m in the file'
+        elif same:
+            out[n] = f'height {z:.3f} m in the file, the same to the millimetre as {", ".join(same)}'
+    return out
+
+
+def vet_control(camera: PinholeCamera, poses: dict, images: set, rows: list[ControlRow],
+                control: list[ControlPoint], block_sigma_enu_m, tie_points_map_m=None, file_heights=None,
+                opt: ControlVettingOptions | None = None) -> ControlVetting:
+    """Every control row's fate and every point's use, against the block adjusted on its GNSS alone.
+
+    camera, poses ({image: map_T_cam} of the oriented photos): the GNSS-only block; images: every photo
+    of the set (oriented or not); control: the surveyed points (map ENU, sigmas, roles); block_sigma_enu_m:
+    (3,) the block's absolute uncertainty from its GNSS (E, N, U sigma, m); tie_points_map_m: (N, 3) its tie
+    points (the ground under a point seen once); file_heights: {name: z as written} (placeholder heights).
+    """
+    opt = opt or ControlVettingOptions()
+    by_name = {c.name: c for c in control}
+    sig_b = np.asarray(block_sigma_enu_m, float).reshape(3)
+    fates = [RowFate(r, '') for r in rows]
+    seen = set()
+    for f in fates:
+        r = f.row
+        if r.image not in images:
+            f.fate, f.reason = 'photo_not_in_set', f'{r.image} is not one of the photos given'
+        elif r.image not in poses:
+            f.fate, f.reason = 'photo_not_oriented', f'{r.image} could not be oriented'
+        elif r.name not in by_name:
+            f.fate, f.reason = 'point_unused', f'{r.name} has no surveyed coordinates'
+        elif not (0 <= r.uv[0] < camera.width and 0 <= r.uv[1] < camera.height):
+            f.fate, f.reason = ('pixel_outside_image', f'pixel ({r.uv[0]:.1f}, {r.uv[1]:.1f}) is outside the '
+                                f'{camera.width}x{camera.height} image')
+        elif (r.image, r.name) in seen:
+            f.fate, f.reason = 'duplicate', f'{r.name} is given twice in {r.image}: the first row is used'
+        seen.add((r.image, r.name))
+    tie = None if tie_points_map_m is None else np.asarray(tie_points_map_m, float).reshape(-1, 3)
+    points = {}
+    for name in dict.fromkeys([r.name for r in rows if r.name in by_name]):
+        c = by_name[name]
+        mine = [f for f in fates if f.row.name == name]
+        cand = [f for f in mine if not f.fate]
+        p = PointCheck(name, c.role, 'check' if c.role == 'check' else 'full', rows=len(mine))
+        points[name] = p
+        Ts = np.array([poses[f.row.image] for f in cand]).reshape(-1, 4, 4)
+        uv = np.array([f.row.uv for f in cand], float).reshape(-1, 2)
+        X, inl = _consensus(camera, Ts, uv, opt.max_row_residual_px) if len(cand) >= 2 else (None, np.zeros(0, bool))
+        if X is not None:
+            e, em = _row_residuals(camera, Ts, uv, X)
+            for f, ei, emi, ok in zip(cand, e, em, inl):
+                f.residual_px, f.residual_m = float(ei), float(emi)
+                if not ok:
+                    f.fate = 'outlier'
+                    f.likely_wrong_photo = bool(emi > max(opt.wrong_photo_m, 5 * float(np.hypot(*sig_b[:2]))))
+                    f.reason = (f'{ei:.0f} px ({emi:.1f} m on the ground) from where {name} intersects from its other '
+                                f'rows in the GNSS-only block' + (': likely the wrong photo' if f.likely_wrong_photo
+                                                                   else ''))
+        else:
+            # No two rows agree: each row's ray on the ground against the survey, horizontally.
+            z0 = float(c.map_xyz[2])
+            if tie is not None and len(tie):
+                near = tie[np.hypot(*(tie[:, :2] - c.map_xyz[:2]).T) < 20.0]
+                z0 = float(np.median(near[:, 2])) if len(near) else z0
+            tol = max(opt.wrong_photo_m, 5 * float(np.hypot(*sig_b[:2])))
+            for f, T in zip(cand, Ts):
+                G = _ray_on_plane(camera, T, f.row.uv, z0)
+                d = float(np.hypot(*(G[:2] - c.map_xyz[:2]))) if G is not None else float('inf')
+                f.residual_m = d if np.isfinite(d) else None
+                if d > tol:
+                    f.fate, f.likely_wrong_photo = 'outlier', True
+                    f.reason = (f'its ray meets the ground {d:.1f} m from {name}\'s surveyed position (GNSS-only '
+                                'block): likely the wrong photo')
+        usable = [f for f in cand if not f.fate]
+        p.usable_rows = len(usable)
+        if X is None or len(usable) < 2:
+            p.use = 'unused'
+            p.reason = (f'fewer than two usable rows ({len(usable)} of {len(mine)}): a point in one photo cannot be '
+                        'intersected')
+        else:
+            _compare_with_survey(p, c, X, Ts[inl], sig_b, camera, opt)
+            if p.horizontal == 'contradicted' and c.role == 'gcp':
+                p.use = 'unused'
+                p.reason = (f'its surveyed position is {p.d_h_m:.2f} m from where the GNSS-only block intersects it '
+                            f'(sigma {p.sigma_h_m:.2f} m): wrong coordinates or wrong name?')
+        for f in usable:
+            f.fate = 'used' if p.use != 'unused' else 'point_unused'
+            if f.fate == 'point_unused':
+                f.reason = f'{name} is not used: {p.reason}'
+    vet = ControlVetting(fates, points, _wrong_photos(fates))
+    _height_verdict(vet, file_heights or {}, opt)
+    _notes(vet)
+    return vet
+
+
+def _compare_with_survey(p: PointCheck, c: ControlPoint, X: np.ndarray, Ts: np.ndarray, sig_b: np.ndarray,
+                         camera: PinholeCamera, opt: ControlVettingOptions) -> None:
+    d = X - c.map_xyz
+    # The intersection's own uncertainty: 1 px across, and along the rays by the depth over the baseline.
+    depth = float(np.median(np.linalg.norm(Ts[:, :3, 3] - X, axis=1)))
+    C = Ts[:, :3, 3]
+    base = float(np.max(np.linalg.norm(C[:, None] - C[None], axis=2))) if len(C) > 1 else 0.0
+    lateral = depth / camera.fx
+    along = lateral * depth / max(base, 1e-3)
+    sh = float(np.sqrt(c.sigma_m[0] ** 2 + np.hypot(*sig_b[:2]) ** 2 + lateral ** 2))
+    sv = float(np.sqrt(c.sigma_m[2] ** 2 + sig_b[2] ** 2 + along ** 2))
+    p.gnss_only_map_m = [float(v) for v in X]
+    p.d_h_m, p.d_v_m, p.sigma_h_m, p.sigma_v_m = float(np.hypot(d[0], d[1])), float(d[2]), sh, sv
+    p.horizontal = 'contradicted' if p.d_h_m > max(opt.height_sigmas * sh, opt.min_contradiction_m) else 'agrees'
+    p.vertical = 'contradicted' if abs(p.d_v_m) > max(opt.height_sigmas * sv, opt.min_contradiction_m) else 'agrees'
+
+
+def _wrong_photos(fates: list[RowFate]) -> dict:
+    """Photos whose rows are far from their points on the ground: every checked row of the photo, or two
+    or more of them (the rows of another photo given this one's name)."""
+    out = {}
+    for img in dict.fromkeys(f.row.image for f in fates):
+        mine = [f for f in fates if f.row.image == img and f.fate in ('used', 'outlier', 'point_unused')
+                and f.residual_m is not None]
+        wrong = [f for f in mine if f.likely_wrong_photo]
+        if wrong and (len(wrong) == len(mine) or len(wrong) >= 2):
+            dm = [f.residual_m for f in wrong]
+            which = ('its only checked row is' if len(mine) == 1 else
+                     f'all {len(wrong)} of its checked rows are' if len(wrong) == len(mine) else
+                     f'{len(wrong)} of its {len(mine)} checked rows are')
+            out[img] = (f'{which} {min(dm):.0f}-{max(dm):.0f} m from where their points are '
+                        f'({", ".join(f.row.name for f in wrong)}, lines {", ".join(str(f.row.line) for f in wrong)}): '
+                        'the rows likely name the wrong photo')
+    return out
+
+
+def _height_verdict(vet: ControlVetting, file_heights: dict, opt: ControlVettingOptions) -> None:
+    """GCP heights the GNSS-only block contradicts: who is the suspect, and the GCP's use."""
+    gcps = [p for p in vet.points.values() if p.role == 'gcp' and p.use != 'unused']
+    names = [p.name for p in vet.points.values() if p.role == 'gcp']
+    ph = _placeholders(file_heights, names)
+    for p in vet.points.values():
+        p.placeholder = ph.get(p.name, '')
+    bad = [p for p in gcps if p.vertical == 'contradicted']
+    good = [p for p in gcps if p.vertical == 'agrees']
+    if not bad:
+        return
+    dv = np.array([p.d_v_m for p in bad])
+    sv = float(np.median([p.sigma_v_m for p in bad]))
+    consistent = len(bad) >= 2 and float(np.ptp(dv)) <= opt.height_sigmas * sv
+    if good or any(p.placeholder for p in bad) or (len(bad) >= 2 and not consistent):
+        vet.height_suspect = 'control_heights'
+    elif consistent:
+        vet.height_suspect = 'photo_altitudes'
+    else:
+        vet.height_suspect = 'either'
+    for p in bad:
+        why = _height_text(p) + (f'; {p.placeholder}: a placeholder?' if p.placeholder else '')
+        if opt.contradicted_heights == 'horizontal':
+            p.use = 'horizontal'
+            p.reason = why + '; used horizontally only'
+        else:
+            p.reason = why + '; used as given (--gcp-heights use): the block is bent to fit it'
+
+
+def _height_text(p: PointCheck) -> str:
+    return (f'its surveyed height is {abs(p.d_v_m):.2f} m {"below" if p.d_v_m > 0 else "above"} where the GNSS-only '
+            f'block intersects it (sigma {p.sigma_v_m:.2f} m)')
+
+
+def _notes(vet: ControlVetting) -> None:
+    n = vet.counts()
+    L = vet.notes
+    missing = sorted({f.row.image for f in vet.rows if f.fate == 'photo_not_in_set'})
+    if missing:
+        L.append(f'{n["photo_not_in_set"]} control rows name {len(missing)} photos that are not in the set '
+                 f'({", ".join(missing[:6])}{", ..." if len(missing) > 6 else ""}): another flight\'s?')
+    if n['photo_not_oriented']:
+        L.append(f'{n["photo_not_oriented"]} control rows are in photos that could not be oriented')
+    if n['pixel_outside_image']:
+        L.append(f'{n["pixel_outside_image"]} control rows give a pixel outside the image')
+    if n['duplicate']:
+        L.append(f'{n["duplicate"]} control rows repeat a point in the same photo (the first is used)')
+    for img, why in vet.wrong_photos.items():
+        L.append(f'{img}: {why}')
+    lone = [f for f in vet.rows if f.fate == 'outlier' and f.row.image not in vet.wrong_photos]
+    for f in lone:
+        L.append(f'{f.row.name} in {f.row.image} (line {f.row.line}) rejected: {f.reason}')
+    for p in vet.points.values():
+        if p.use == 'unused' and p.role == 'gcp':
+            L.append(f'GCP {p.name} not used: {p.reason}')
+        elif p.role == 'check' and p.use == 'unused':
+            L.append(f'check point {p.name} not measured: {p.reason}')
+        elif p.vertical == 'contradicted' and p.role == 'gcp':
+            L.append(f'GCP {p.name}: {p.reason}')
+        elif p.vertical == 'contradicted':
+            L.append(f'check point {p.name}: {_height_text(p)}' + (f'; {p.placeholder}: a placeholder?'
+                                                                    if p.placeholder else ''))
+    if vet.height_suspect == 'control_heights':
+        L.append('the suspect is the control file\'s heights, not the photos\' altitudes: the GNSS-only block '
+                 'contradicts them by more than the survey and the GNSS allow')
+    elif vet.height_suspect == 'photo_altitudes':
+        off = np.median([p.d_v_m for p in vet.points.values() if p.vertical == 'contradicted' and p.role == 'gcp'])
+        L.append(f'every GCP\'s surveyed height disagrees with the photos\' altitudes by the same {-off:+.1f} m: the '
+                 'photos\' altitudes are the likely suspect (EXIF relative to the take-off point, or MSL read as '
+                 'ellipsoidal); the GCPs were used horizontally only')
+    elif vet.height_suspect == 'either':
+        L.append('one GCP\'s height contradicts the photos\' altitudes: either its height or the altitudes are wrong '
+                 '(more GCPs would tell)')

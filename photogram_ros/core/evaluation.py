@@ -123,3 +123,31 @@ def surface_errors(dz_m: np.ndarray, gsd_m: float) -> dict:
             'rmse_m': float(np.sqrt(np.mean(dz ** 2))), 'bias_m': float(np.median(dz)),
             'median_abs_gsd': float(np.median(a) / gsd_m), 'p90_abs_gsd': float(np.percentile(a, 90) / gsd_m),
             'rmse_gsd': float(np.sqrt(np.mean(dz ** 2)) / gsd_m)}
+
+
+# Circular and linear errors at 90 % (ASPRS Positional Accuracy Standards, 2014/2023; OpenDroneMap's
+# report): for a circular normal error (sigma_x ~ sigma_y, zero mean) CE90 = 2.1460 sigma with
+# sigma = sqrt((RMSE_x^2 + RMSE_y^2) / 2); LE90 = 1.6449 RMSE_z for a normal vertical error.
+CE90_PER_SIGMA = 2.1460
+LE90_PER_RMSE = 1.6449
+# ASPRS: the circular formula holds while min(RMSE_x, RMSE_y) / max(...) >= 0.6.
+CIRCULAR_RATIO = 0.6
+
+
+def ce90_le90(residuals_m) -> dict:
+    """CE90 / LE90 of check-point residuals (N, 3: dX, dY, dZ, m) from the RMSE (normal errors, see above)
+    and as the empirical 90th percentile of the radial / absolute vertical errors; {'n': 0} when empty."""
+    r = np.asarray(residuals_m, float).reshape(-1, 3)
+    r = r[np.all(np.isfinite(r), axis=1)]
+    if not len(r):
+        return {'n': 0}
+    rx, ry, rz = np.sqrt(np.mean(r ** 2, axis=0))
+    sigma = float(np.sqrt((rx ** 2 + ry ** 2) / 2))
+    ratio = float(min(rx, ry) / max(rx, ry)) if max(rx, ry) > 0 else 1.0
+    return {'n': int(len(r)), 'ce90_m': CE90_PER_SIGMA * sigma, 'le90_m': LE90_PER_RMSE * float(rz),
+            'ce90_empirical_m': float(np.percentile(np.hypot(r[:, 0], r[:, 1]), 90)),
+            'le90_empirical_m': float(np.percentile(np.abs(r[:, 2]), 90)),
+            'rmse_x_over_y': ratio, 'circular': ratio >= CIRCULAR_RATIO,
+            'method': ('CE90 = 2.1460 x sigma, sigma = sqrt((RMSEx^2 + RMSEy^2) / 2) (circular normal error, ASPRS); '
+                       'LE90 = 1.6449 x RMSEz; *_empirical: the 90th percentile of the errors'
+                       + (f' (only {len(r)} points: coarse)' if len(r) < 20 else ''))}

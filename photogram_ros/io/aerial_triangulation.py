@@ -20,7 +20,9 @@ from pathlib import Path
 
 import numpy as np
 
-from photogram_ros.core.at_report import build_report, focal_determination, intrinsics_sigma
+from photogram_ros.core.at_report import (build_report, convergence, focal_determination, gnss_figures,
+                                        intrinsics_sigma)
+from photogram_ros.core.control import ControlRow, ControlVettingOptions, vet_control
 from photogram_ros.io.at_report import write_report
 from photogram_ros.core.geodesy import LocalFrame, utm_epsg
 from photogram_ros.core.incremental import IncrementalAT, IncrementalOptions
@@ -48,6 +50,7 @@ class TriangulateOptions:
     exif_altitude: str | None = None          # 'msl', 'ellipsoidal', 'relative' or None (msl, checked)
     takeoff_h_m: float | None = None          # for exif_altitude 'relative'
     takeoff_heights: str = 'msl'              # reference of takeoff_h_m: 'msl' or 'ellipsoidal'
+    vetting: ControlVettingOptions = field(default_factory=ControlVettingOptions)   # control rows and heights
 
     def check(self) -> None:
         if self.takeoff_h_m is not None and self.exif_altitude != 'relative':
@@ -65,6 +68,7 @@ class TriangulateResult:
     registered: int             # images oriented
     inputs: int                 # images given
     tie_points: int
+    damage: list = field(default_factory=list)   # a damaged bag: what was read and lost (exit 3)
 
 
 def triangulate(src: str | Path, out: str | Path, opt: TriangulateOptions, log=None) -> TriangulateResult:
@@ -153,56 +157,111 @@ def auto_self_calibration(block: KeyframeBlock, n_gcps: int, assumptions: list) 
     return refine
 
 
+def _triangulate_records(block: KeyframeBlock, opt: TriangulateOptions, control: list, target_obs: dict,
+                         refine: tuple, log=None, what: str = '') -> tuple[IncrementalAT, object]:
+    """One incremental AT of the block's records (target observations `target_obs` by photo name), the
+    unregistered photos retried, and the full adjustment refining `refine`: (at, its StepReport)."""
+    lever = tuple(opt.lever_arm_cam_m)
+    at = IncrementalAT(block.camera, IncrementalOptions(window_size=opt.window, lever_arm_cam_m=lever), block.origin,
+                       control)
+    t_at = time.monotonic()
+    last = t_at
+    for n, rec in enumerate(block.records):
+        rec.target_uv = target_obs.get(rec.name, {})
+        at.add_keyframe(rec)
+        if log is not None and (time.monotonic() - last >= 5.0 or n + 1 == len(block.records)):
+            last = time.monotonic()
+            log(f'aerial triangulation{what}: {n + 1}/{len(block.records)} added, {len(at.registered)} oriented '
+                f'({last - t_at:.0f} s)')
+    n_retry = at.retry_unregistered()     # photos that did not register in sequence: a second chance
+    if log is not None and n_retry:
+        log(f'aerial triangulation{what}: {n_retry} more oriented against the whole block')
+    t_full = time.monotonic()
+    rep_adj = at.full_adjustment(refine_intrinsics=refine)
+    if log is not None:
+        log(f'full adjustment{what}{" with self-calibration of " + ", ".join(refine) if refine else ""}: '
+            f'{rep_adj.status}, {time.monotonic() - t_full:.1f} s')
+    return at, rep_adj
+
+
+def _block_sigma_enu_m(at: IncrementalAT) -> np.ndarray:
+    """(3,) E, N, U sigma of the oriented photos' fixes (median): the GNSS-only block's absolute uncertainty."""
+    cov = [at.kfs[k].fix_cov for k in at.registered if at.kfs[k].fix_cov is not None]
+    if not cov:
+        return np.full(3, 10.0)
+    return np.sqrt(np.median([np.diag(c) for c in cov], axis=0))
+
+
+def _control_rows(block: KeyframeBlock, opt: TriangulateOptions, control_set, origin):
+    """(control points, rows, heights as written, CRS) of a bag's targets (their detections in the
+    records) or of opt.gcp."""
+    if control_set is not None:
+        rows = [ControlRow(0, rec.name, n, np.asarray(uv, float)) for rec in block.records
+                for n, uv in rec.target_uv.items()]
+        return control_set.in_map(origin), rows, {}, None
+    if opt.gcp:
+        from photogram_ros.io.control_file import read_gcp_list
+        gcps = read_gcp_list(opt.gcp, opt.check_names)
+        return gcps.in_map(origin, opt.gcp_sigma_enu_m), gcps.rows, gcps.file_heights, gcps.crs
+    return [], [], {}, None
+
+
 def adjust_block(block: KeyframeBlock, out: str | Path, opt: TriangulateOptions, control_set=None,
                  log=None, t0: float | None = None) -> TriangulateResult:
     """Incremental AT of the block's records, a full adjustment, then poses, sparse cloud and report.
 
     control_set: a bag's ControlSet, whose observations are already in the records; else opt.gcp.
+    With control rows the block is first adjusted on its GNSS alone, every row and point is checked
+    against it (core/control.py vet_control: rows naming the wrong photo, heights the GNSS contradicts),
+    and the block is adjusted again with the control that passed.
     """
     out = Path(out)
     origin, assumptions = block.origin, block.assumptions
-    control, target_obs, crs = [], {}, opt.crs
-    if control_set is not None:
-        control = control_set.in_map(origin)
-    elif opt.gcp:
-        from photogram_ros.io.control_file import read_gcp_list
-        gcps = read_gcp_list(opt.gcp, opt.check_names)
-        control, target_obs = gcps.in_map(origin, opt.gcp_sigma_enu_m), gcps.image_uv
-        crs = crs or gcps.crs
-    crs = crs or f'EPSG:{utm_epsg(origin.lat_deg, origin.lon_deg)}'
-    lever = tuple(opt.lever_arm_cam_m)
-    at = IncrementalAT(block.camera, IncrementalOptions(window_size=opt.window, lever_arm_cam_m=lever), origin,
-                       control)
+    control, rows, file_heights, gcp_crs = _control_rows(block, opt, control_set, origin)
+    crs = opt.crs or gcp_crs or f'EPSG:{utm_epsg(origin.lat_deg, origin.lon_deg)}'
     t_at = time.monotonic()
-    last = t_at
-    for n, rec in enumerate(block.records):
-        if target_obs:
-            rec.target_uv = target_obs.get(rec.name, {})
-        at.add_keyframe(rec)
-        if log is not None and (time.monotonic() - last >= 5.0 or n + 1 == len(block.records)):
-            last = time.monotonic()
-            log(f'aerial triangulation: {n + 1}/{len(block.records)} added, {len(at.registered)} oriented '
-                f'({last - t_at:.0f} s)')
-    n_retry = at.retry_unregistered()     # photos that did not register in sequence: a second chance
-    if log is not None and n_retry:
-        log(f'aerial triangulation: {n_retry} more oriented against the whole block')
-    n_gcps = sum(c.role == 'gcp' for c in control)
+    vet, gnss_without, target_obs = None, None, {}
+    at = rep_adj = None
+    if rows:
+        refine0 = (tuple(opt.self_calibrate) if opt.self_calibrate is not None
+                   else auto_self_calibration(block, 0, []))
+        at, rep_adj = _triangulate_records(block, opt, [], {}, refine0, log, ' (GNSS only, to check the control)')
+        P0 = np.array([at.points[t] for t in at.points if t >= 0]).reshape(-1, 3)
+        vet = vet_control(at.camera, {at.kfs[k].name: at.kfs[k].map_T_cam for k in at.registered},
+                          {r.name for r in block.records}, rows, control, _block_sigma_enu_m(at), P0, file_heights,
+                          opt.vetting)
+        gnss_without = gnss_figures(np.array(list(at.gnss_residuals().values())))
+        control = vet.control_points(control)
+        for note in vet.notes:
+            assumptions.append(f'control: {note}')
+            if log is not None:
+                log(f'warning: control: {note}')
+        used = {n for n, p in vet.points.items() if p.role == 'gcp' and p.use in ('full', 'horizontal')}
+        target_obs = {img: {n: uv for n, uv in obs.items() if n in used} for img, obs in vet.accepted_uv().items()}
+        target_obs = {k: v for k, v in target_obs.items() if v}
+        if not used:
+            at.set_control(control)   # the GNSS-only block is the result: check points from the vetted rows
+    n_gcps = sum(p.role == 'gcp' and p.use == 'full' for p in vet.points.values()) if vet else \
+        sum(c.role == 'gcp' for c in control)
     refine = (tuple(opt.self_calibrate) if opt.self_calibrate is not None
               else auto_self_calibration(block, n_gcps, assumptions))
     before = block.camera
-    t_full = time.monotonic()
-    rep_adj = at.full_adjustment(refine_intrinsics=refine)
-    if log is not None:
-        log(f'full adjustment{" with self-calibration of " + ", ".join(refine) if refine else ""}: '
-            f'{rep_adj.status}, {time.monotonic() - t_full:.1f} s')
+    if at is None or target_obs:
+        at, rep_adj = _triangulate_records(block, opt, control, target_obs, refine, log)
     self_cal = _self_calibration(at, before, refine, assumptions, log) if refine else None
+    conv = convergence(at, rep_adj.status)
+    if conv is not None:
+        assumptions.append(conv['text'])
+        if log is not None:
+            log(f'warning: {conv["text"]}')
     lost = [kf.name for kf in at.kfs if kf.map_T_cam is None]
     if lost:
         assumptions.append(f'{len(lost)} photos could not be oriented (blurred or without overlap): {lost[:10]}')
+    lever = tuple(opt.lever_arm_cam_m)
     assumptions.append('lever arm antenna-camera ' + str(lever) + ' m in the camera frame')
     P = np.array([at.points[t] for t in at.points if t >= 0]).reshape(-1, 3)
     if block.exif_geodetic is not None:
-        note = relative_exif_note(origin, P, block.exif_geodetic, [c.map_xyz for c in control])
+        note = relative_exif_note(origin, P, block.exif_geodetic, _trusted_ground(control, vet))
         if note:
             assumptions.append(note)
             if log is not None:
@@ -216,11 +275,16 @@ def adjust_block(block: KeyframeBlock, out: str | Path, opt: TriangulateOptions,
                      np.ones(len(P), np.float32), crs, 'ellipsoidal')
     write_ply(cloud, out / 'sparse.ply')
     write_las(cloud, out / 'sparse.las')
-    rep = build_report(at, assumptions)
+    rep = build_report(at, assumptions, vetting=vet,
+                       gnss_without_gcps=gnss_without if vet is not None and target_obs else None)
     rep['crs'] = crs
     rep['adjustment_status'] = rep_adj.status
+    if conv is not None:
+        rep['convergence'] = conv
     if block.stats:
         rep['matching'] = block.stats
+    if block.damage:
+        rep['bag_damage'] = list(block.damage)
     now = time.monotonic()
     rep['timing_s'] = {'reading_and_matching': round(t_at - (t0 if t0 is not None else t_at), 2),
                        'aerial_triangulation': round(now - t_at, 2),
@@ -228,7 +292,24 @@ def adjust_block(block: KeyframeBlock, out: str | Path, opt: TriangulateOptions,
     if self_cal is not None:
         rep['self_calibration'] = self_cal
     write_report(rep, out)
-    return TriangulateResult(out, rep, len(at.registered), block.n_inputs or len(block.records), len(P))
+    return TriangulateResult(out, rep, len(at.registered), block.n_inputs or len(block.records), len(P),
+                             list(block.damage))
+
+
+def _trusted_ground(control: list, vet) -> list:
+    """Surveyed points whose heights may stand for the ground in the EXIF-altitude check: those the
+    GNSS-only block agrees with, and, when every GCP disagrees by the same amount (the photos' altitudes
+    are then the suspect), those too; never heights that look like placeholders."""
+    if vet is None:
+        return [c.map_xyz for c in control]
+    out = []
+    for c in control:
+        p = vet.points.get(c.name)
+        if p is None or p.use == 'unused' or p.placeholder:
+            continue
+        if p.vertical == 'agrees' or (p.vertical == 'contradicted' and vet.height_suspect == 'photo_altitudes'):
+            out.append(c.map_xyz)
+    return out
 
 
 def relative_exif_note(origin: LocalFrame, points_map_m, photos_geodetic, control_map_m=None) -> str | None:

@@ -11,7 +11,8 @@ from pathlib import Path
 
 import numpy as np
 
-from photogram_ros.io.report import Section, histogram_png, series_png, trajectory_png, vectors_png
+from photogram_ros.io.report import (Section, format_cell, histogram_png, md_table, series_png, trajectory_png,
+                                     vectors_png)
 from photogram_ros.io.report import write_report as write_sections
 
 
@@ -21,41 +22,121 @@ def _table(rows, header):
     return out
 
 
+def _cm(v) -> str:
+    return 'n/a' if v is None else f'{v * 100:.1f} cm'
+
+
 def _rmse_line(r: dict) -> str:
     if not r.get('n'):
         return 'none'
-    return (f"n={r['n']}: X {r['x_m'] * 100:.1f} cm, Y {r['y_m'] * 100:.1f} cm, Z {r['z_m'] * 100:.1f} cm; "
-            f"horizontal {r['horizontal_m'] * 100:.1f} cm, vertical {r['vertical_m'] * 100:.1f} cm")
+    nv = f" (vertical over {r['n_vertical']} used with their heights)" if 'n_vertical' in r else ''
+    return (f"n={r['n']}: X {_cm(r['x_m'])}, Y {_cm(r['y_m'])}, Z {_cm(r.get('z_m'))}; "
+            f"horizontal {_cm(r['horizontal_m'])}, vertical {_cm(r.get('vertical_m'))}{nv}")
+
+
+def _rms_text(rep: dict) -> str:
+    v = rep['reprojection_rms_px']
+    return 'none' if v is None else f'{v:.3f} px'
+
+
+def _ce_text(sec: dict) -> list[str]:
+    c = sec.get('ce90_le90') or {}
+    if not c.get('n'):
+        return []
+    warn = '' if c['circular'] else (f" (RMSEx / RMSEy = {c['rmse_x_over_y']:.2f} < 0.6: the circular formula "
+                                     'understates it; see the empirical figure)')
+    return [f"CE90 {_cm(c['ce90_m'])}, LE90 {_cm(c['le90_m'])} (from the RMSE{warn}); empirical 90th percentile: "
+            f"CE90 {_cm(c['ce90_empirical_m'])}, LE90 {_cm(c['le90_empirical_m'])}. {c['method']}."]
+
+
+def _gnss_text(rep: dict) -> list[str]:
+    g = rep['gnss']
+    L = [f"Residuals (adjusted antenna - fix): {_rmse_line(g['rmse'])}.",
+         f"Estimated constant GNSS bias (E, N, U): {np.round(g['estimated_bias_enu_m'], 3).tolist()} m."]
+    if 'spread_m' in g['rmse']:
+        L.append(f"About their mean (a shift of the whole block is not strain): {_cm(g['rmse']['spread_m'])}.")
+    w = g.get('without_gcps')
+    if w and w.get('n'):
+        ratio = g.get('strain_ratio')
+        L.append(f"The same block adjusted without GCPs: {_rmse_line(w)}, about their mean {_cm(w.get('spread_m'))}"
+                 + (f"; with the GCPs the spread is {ratio:.2f}x that (GCPs holding the block true against a "
+                    "GNSS error that wanders raise it, GCPs with wrong coordinates too: see Control rows)"
+                    if ratio is not None else '') + '.')
+    return L
+
+
+def _control_lines(rep: dict) -> list[str]:
+    c = rep.get('control')
+    if not c:
+        return []
+    n = c['row_fates']
+    L = [f"{len(c['rows'])} control rows: " + ', '.join(f'{v} {k.replace("_", " ")}' for k, v in n.items() if v) + '.']
+    L += [f'- {f}' for f in c['faults']]
+    return L
+
+
+def _control_rows(rep: dict) -> list[dict]:
+    c = rep.get('control') or {}
+    return [{'line': r['line'], 'image': r['image'], 'point': r['name'], 'fate': r['fate'],
+             'residual px': r['residual_px'], 'residual m': r['residual_m'], 'why': r['reason']}
+            for r in c.get('rows', [])]
+
+
+def _point_rows(rep: dict) -> list[dict]:
+    c = rep.get('control') or {}
+    return [{'point': p['name'], 'role': p['role'], 'use': p['use'], 'rows': f"{p['usable_rows']}/{p['rows']}",
+             'dH m': p['d_h_m'], 'dV m': p['d_v_m'], 'sigma H m': p['sigma_h_m'], 'sigma V m': p['sigma_v_m'],
+             'horizontal': p['horizontal'], 'vertical': p['vertical'], 'why': p['reason']}
+            for p in c.get('points', {}).values()]
 
 
 def markdown(rep: dict) -> str:
     L = ['# Aerial triangulation report', '',
          f"Keyframes {rep['registered']}/{rep['keyframes']} oriented, {rep['points']} tie points, "
-         f"{rep['observations']} observations; reprojection RMS {rep['reprojection_rms_px']:.3f} px.",
+         f"{rep['observations']} observations; reprojection RMS {_rms_text(rep)}.",
          f"Frame: {rep['frame']}. Origin: {rep['origin']}.", '']
+    if rep.get('convergence'):
+        L += [rep['convergence']['text'] + '.', '']
     if 'gsd_m' in rep:
         L += [f"GSD {rep['gsd_m'] * 100:.2f} cm.", '']
-    L += ['## GNSS', '', f"Residuals (adjusted antenna - fix): {_rmse_line(rep['gnss']['rmse'])}.",
-          f"Estimated constant GNSS bias (E, N, U): {np.round(rep['gnss']['estimated_bias_enu_m'], 3).tolist()} m.", '']
+    L += ['## GNSS', ''] + _gnss_text(rep) + ['']
+    if rep.get('control'):
+        L += ['## Control rows', ''] + _control_lines(rep) + [''] + md_table(_point_rows(rep)) + [''] \
+            + md_table(_control_rows(rep)) + ['']
     for key, title in (('gcp', 'Ground control points'), ('check', 'Check points')):
         sec = rep[key]
         L += [f'## {title}', '', f"RMSE {_rmse_line(sec['rmse'])}."]
         if 'rmse_gsd' in sec:
-            L += [f"In GSD: horizontal {sec['rmse_gsd']['horizontal']:.2f}, vertical {sec['rmse_gsd']['vertical']:.2f}."]
-        L += ['']
+            L += [f"In GSD: horizontal {sec['rmse_gsd']['horizontal']:.2f}, "
+                  f"vertical {sec['rmse_gsd']['vertical']:.2f}."]
+        L += _ce_text(sec) + [f'- {t}' for t in sec.get('redundancy', [])] + ['']
         if sec['points']:
-            L += _table([[p['name'], *(f'{v * 100:.1f}' for v in p['residual_m']), str(p['images'])]
-                         for p in sec['points']], ['name', 'dX cm', 'dY cm', 'dZ cm', 'images']) + ['']
+            L += md_table(_residual_rows(sec['points'])) + ['']
     L += ['## Camera', '', f"{rep['camera']}", ''] + [t + '\n' for t in _focal_text(rep)]
     if rep.get('matching'):
         L += ['## Matching', ''] + _matching_text(rep) + ['']
     L += ['## Per image', '']
-    L += _table([[p['image'], str(p['observations']), f"{p['reprojection_rms_px']:.3f}",
-                  '' if p['gnss_residual_enu_m'] is None else ', '.join(f'{v:.3f}' for v in p['gnss_residual_enu_m'])]
-                 for p in rep['per_image']], ['image', 'observations', 'RMS px', 'GNSS residual E, N, U m'])
+    L += _table([[p['image'], str(p['observations']), format_cell(p['reprojection_rms_px']),
+                  '' if p['gnss_residual_enu_m'] is None else ', '.join(f'{v:.3f}' for v in p['gnss_residual_enu_m']),
+                  p.get('note', '')]
+                 for p in rep['per_image']], ['image', 'observations', 'RMS px', 'GNSS residual E, N, U m', 'note'])
     if rep['assumptions']:
         L += ['', '## Assumptions', ''] + [f'- {a}' for a in rep['assumptions']]
     return '\n'.join(L) + '\n'
+
+
+def _residual_rows(points: list[dict]) -> list[dict]:
+    out = []
+    for p in points:
+        r = p.get('residual_m')
+        row = {'name': p['name'], 'dX cm': None if r is None else r[0] * 100,
+               'dY cm': None if r is None else r[1] * 100,
+               'dZ cm': None if r is None or p.get('use') == 'horizontal' else r[2] * 100, 'images': p['images']}
+        if 'use' in p:
+            row['use'] = p['use']
+            row['why'] = p.get('reason', '')
+        out.append(row)
+    return out
 
 
 def _self_cal_rows(rep: dict) -> list[dict]:
@@ -100,7 +181,8 @@ def _figures(rep: dict, out: Path) -> dict:
     pim = rep['per_image']
     idx = np.arange(len(pim))
     if pim:
-        series_png(out / 'per_image_rms.png', idx, {'RMS px': [p['reprojection_rms_px'] for p in pim]},
+        series_png(out / 'per_image_rms.png', idx, {'RMS px': [np.nan if p['reprojection_rms_px'] is None
+                                                                else p['reprojection_rms_px'] for p in pim]},
                    'image (order of registration)', 'px', 'Reprojection RMS per image')
         figs['per_image'] = ('Reprojection RMS per image', 'per_image_rms.png')
     g = [(k, p['gnss_residual_enu_m']) for k, p in enumerate(pim) if p['gnss_residual_enu_m'] is not None]
@@ -110,7 +192,8 @@ def _figures(rep: dict, out: Path) -> dict:
         series_png(out / 'gnss_residuals.png', k, {'X (east)': r[:, 0], 'Y (north)': r[:, 1], 'Z (up)': r[:, 2]},
                    'image (order of registration)', 'm', 'GNSS residuals (adjusted antenna - fix)')
         figs['gnss'] = ('GNSS residuals per image, X/Y/Z', 'gnss_residuals.png')
-    ctrl = [('GCP', p) for p in rep['gcp']['points']] + [('check', p) for p in rep['check']['points']]
+    ctrl = [('GCP', p) for p in rep['gcp']['points'] if p.get('residual_m') is not None] + \
+        [('check', p) for p in rep['check']['points']]
     if pim:
         xy = np.array([p['position_map_m'][:2] for p in pim])
         targets = [(f"{p['name']} ({kind})", p['surveyed_map_m'][0], p['surveyed_map_m'][1]) for kind, p in ctrl]
@@ -135,23 +218,26 @@ def write_report(rep: dict, out_dir) -> tuple[Path, Path]:
     def fig(*keys):
         return [figs[k] for k in keys if k in figs]
     summary = [f"Keyframes {rep['registered']}/{rep['keyframes']} oriented, {rep['points']} tie points, "
-               f"{rep['observations']} observations; reprojection RMS {rep['reprojection_rms_px']:.3f} px.",
+               f"{rep['observations']} observations; reprojection RMS {_rms_text(rep)}.",
                f"Frame: {rep['frame']}. Origin: {rep['origin']}."]
+    if rep.get('convergence'):
+        summary.append(rep['convergence']['text'] + '.')
     if 'gsd_m' in rep:
         summary.append(f"GSD {rep['gsd_m'] * 100:.2f} cm.")
     sections = [Section('Summary', summary, figures=fig('reprojection')),
-                Section('GNSS', [f"Residuals (adjusted antenna - fix): {_rmse_line(rep['gnss']['rmse'])}.",
-                                 f"Estimated constant GNSS bias (E, N, U): "
-                                 f"{np.round(rep['gnss']['estimated_bias_enu_m'], 3).tolist()} m."],
-                        figures=fig('gnss'))]
+                Section('GNSS', _gnss_text(rep), figures=fig('gnss'))]
+    if rep.get('control'):
+        sections.append(Section('Control rows', _control_lines(rep),
+                                tables=[('Control points against the GNSS-only block', _point_rows(rep)),
+                                        ('Every control row and its fate', _control_rows(rep))]))
     for key, title in (('gcp', 'Ground control points'), ('check', 'Check points')):
         sec = rep[key]
         text = [f"RMSE {_rmse_line(sec['rmse'])}."]
         if 'rmse_gsd' in sec:
             text.append(f"In GSD: horizontal {sec['rmse_gsd']['horizontal']:.2f}, "
                         f"vertical {sec['rmse_gsd']['vertical']:.2f}.")
-        rows = [{'name': p['name'], 'dX cm': p['residual_m'][0] * 100, 'dY cm': p['residual_m'][1] * 100,
-                 'dZ cm': p['residual_m'][2] * 100, 'images': p['images']} for p in sec['points']]
+        text += _ce_text(sec) + [f'- {t}' for t in sec.get('redundancy', [])]
+        rows = _residual_rows(sec['points'])
         sections.append(Section(title, text, tables=[('Residuals (adjusted - surveyed)', rows)] if rows else []))
     sections.append(Section('Plan view and control residuals', figures=fig('plan', 'control')))
     cam = Section('Camera', [f"{rep['camera']}"])
@@ -167,6 +253,7 @@ def write_report(rep: dict, out_dir) -> tuple[Path, Path]:
         sections.append(Section('Matching', _matching_text(rep)))
     sections.append(Section('Per image', tables=[('Per-image statistics', [
         {'image': p['image'], 'observations': p['observations'], 'RMS px': p['reprojection_rms_px'],
+         'note': p.get('note', ''),
          'GNSS dE m': None if p['gnss_residual_enu_m'] is None else p['gnss_residual_enu_m'][0],
          'GNSS dN m': None if p['gnss_residual_enu_m'] is None else p['gnss_residual_enu_m'][1],
          'GNSS dU m': None if p['gnss_residual_enu_m'] is None else p['gnss_residual_enu_m'][2]}

@@ -83,7 +83,8 @@ def read_bag_keyframes(src: str | Path, camera_path: str | Path | None = None, t
         keyframes += tracker.flush()
         # What was read and what was lost, in the report and on the console (the command goes on with
         # what the bag still holds).
-        for e in dict.fromkeys(bag.errors):
+        damage = list(dict.fromkeys(bag.errors))
+        for e in damage:
             assumptions.append(f'bag damaged: {e}; triangulated what it still holds')
         for line in bag.health():
             if log is not None:
@@ -110,4 +111,5 @@ def read_bag_keyframes(src: str | Path, camera_path: str | Path | None = None, t
         assumptions.append(f'control points from {targets.source or "the targets file"}: {len(targets.gcp_names)} '
                            f'GCPs, {len(targets.check_names)} check points, {n_seen} marker observations found by '
                            'ArUco detection in the keyframes')
-    return KeyframeBlock(camera, LocalFrame(first.lat_deg, first.lon_deg, first.h_m), records, assumptions)
+    return KeyframeBlock(camera, LocalFrame(first.lat_deg, first.lon_deg, first.h_m), records, assumptions,
+                         damage=damage)

@@ -27,13 +27,13 @@ clicked in the photos: a CRS line, then one line per observation ``x y z px py i
 from __future__ import annotations
 
 import re
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from photogram_ros.core import geoid
-from photogram_ros.core.control import ControlSet, SurveyedTarget, is_check_name
+from photogram_ros.core.control import ControlRow, ControlSet, SurveyedTarget, is_check_name
 from photogram_ros.core.geodesy import LocalFrame, crs_to_geodetic, geodetic_to_crs
 from photogram_ros.core.incremental import ControlPoint
 from photogram_ros.errors import DataError, GeodesyError
@@ -184,6 +184,8 @@ class GcpList:
     points: dict          # name -> (lat_deg, lon_deg, h_m), heights above the WGS84 ellipsoid
     roles: dict           # name -> 'gcp' or 'check'
     image_uv: dict        # image name -> {point name: (2,) distorted pixel}
+    rows: list = field(default_factory=list)           # [ControlRow]: every observation line, in order
+    file_heights: dict = field(default_factory=dict)   # name -> z as written (placeholders: 0, 400, ...)
 
     def in_map(self, origin: LocalFrame, sigma_enu_m) -> list[ControlPoint]:
         """Control points in the ENU frame at `origin`, all with the sigmas E, N, U (m) given."""
@@ -197,21 +199,25 @@ def read_gcp_list(path: str | Path, check_names=()) -> GcpList:
     has one line per photo, and an unnamed one is named after its x_y."""
     path = Path(path)
     try:
-        lines = [ln.split() for ln in path.read_text().splitlines() if ln.strip() and not ln.startswith('#')]
+        text = path.read_text().splitlines()
     except (OSError, UnicodeDecodeError) as exc:
         raise DataError(f'cannot read the GCP file {path}: {exc}') from exc
+    lines = [(n + 1, ln.split()) for n, ln in enumerate(text) if ln.strip() and not ln.lstrip().startswith('#')]
     if not lines:
         raise DataError(f'{path} is empty: the first line must be a CRS (e.g. EPSG:32632), then one line per '
                         'observation: x y z px py image [name]')
-    _, crs = _crs_of(' '.join(lines[0]), f'{path} line 1')
-    points, image_uv = {}, {}
-    for ln in lines[1:]:
+    _, crs = _crs_of(' '.join(lines[0][1]), f'{path} line {lines[0][0]}')
+    points, image_uv, rows, heights = {}, {}, [], {}
+    for n, ln in lines[1:]:
+        where = f'{path} line {n}'
         if len(ln) < 6:
-            raise DataError(f'{path}: line {" ".join(ln)!r} needs: x y z px py image [name]')
-        x, y, z, u, v = (_number(s, c, str(path)) for s, c in zip(ln[:5], ('x', 'y', 'z', 'px', 'py')))
+            raise DataError(f'{where}: {" ".join(ln)!r} needs: x y z px py image [name]')
+        x, y, z, u, v = (_number(s, c, where) for s, c in zip(ln[:5], ('x', 'y', 'z', 'px', 'py')))
         name = ln[6] if len(ln) > 6 else f'{ln[0]}_{ln[1]}'
         lat, lon, h = crs_to_geodetic(x, y, z, crs)
         points[name] = (float(lat), float(lon), float(h))
+        heights[name] = z
         image_uv.setdefault(ln[5], {})[name] = np.array([u, v])
+        rows.append(ControlRow(n, ln[5], name, np.array([u, v])))
     roles = {name: 'check' if is_check_name(name, check_names) else 'gcp' for name in points}
-    return GcpList(crs, points, roles, image_uv)
+    return GcpList(crs, points, roles, image_uv, rows, heights)

@@ -29,6 +29,7 @@ class KeyframeBlock:
     exif_geodetic: np.ndarray | None = None
     camera_from_exif: bool = False       # intrinsics from the photos' EXIF (distortion unknown)
     stats: dict = field(default_factory=dict)            # what reading it did (features, pairs: the report's)
+    damage: list = field(default_factory=list)           # a damaged bag: what was read and what was lost
 
 
 def camera_from_yaml(path: str | Path) -> PinholeCamera:

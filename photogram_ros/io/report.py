@@ -23,20 +23,21 @@ class Section:
     figures: list = field(default_factory=list)    # (caption, png path relative to the report)
 
 
-def _fmt(v) -> str:
-    if isinstance(v, float):
-        return f'{v:.4g}'
+def format_cell(v) -> str:
+    """A table cell: floats to 4 significant digits; None, NaN and inf as '-' (no figure)."""
+    if isinstance(v, (float, np.floating)):
+        return f'{v:.4g}' if np.isfinite(v) else '-'
     if v is None:
         return '-'
     return str(v)
 
 
-def _md_table(rows: list[dict]) -> list[str]:
+def md_table(rows: list[dict]) -> list[str]:
     if not rows:
         return ['(none)']
     cols = list(rows[0])
     out = ['| ' + ' | '.join(cols) + ' |', '|' + '---|' * len(cols)]
-    out += ['| ' + ' | '.join(_fmt(r.get(c)) for c in cols) + ' |' for r in rows]
+    out += ['| ' + ' | '.join(format_cell(r.get(c)) for c in cols) + ' |' for r in rows]
     return out
 
 
@@ -48,9 +49,9 @@ def _jsonable(o):
     if isinstance(o, np.ndarray):
         return _jsonable(o.tolist())
     if isinstance(o, (np.floating, np.integer, np.bool_)):
-        return o.item()
+        o = o.item()
     if isinstance(o, float) and not np.isfinite(o):
-        return None
+        return None     # no NaN or Infinity in report.json: a figure that does not exist is null
     return o
 
 
@@ -66,13 +67,13 @@ def write_report(out_dir: str | Path, title: str, sections: list[Section], figur
             md += [p, '']
             body.append(f'<p>{html.escape(p)}</p>')
         for caption, rows in s.tables:
-            md += [f'**{caption}**', ''] + _md_table(rows) + ['']
+            md += [f'**{caption}**', ''] + md_table(rows) + ['']
             body.append(f'<p><b>{html.escape(caption)}</b></p>')
             if rows:
                 cols = list(rows[0])
                 body.append('<table border="1" cellspacing="0" cellpadding="3"><tr>'
                             + ''.join(f'<th>{html.escape(c)}</th>' for c in cols) + '</tr>'
-                            + ''.join('<tr>' + ''.join(f'<td>{html.escape(_fmt(r.get(c)))}</td>' for c in cols)
+                            + ''.join('<tr>' + ''.join(f'<td>{html.escape(format_cell(r.get(c)))}</td>' for c in cols)
                                       + '</tr>' for r in rows) + '</table>')
         for caption, png in s.figures:
             md += [f'![{caption}]({png})', '']
