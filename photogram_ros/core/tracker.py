@@ -42,6 +42,7 @@ import numpy as np
 from photogram_ros.core.camera import PinholeCamera
 from photogram_ros.core.gnss_fix import GnssFix
 from photogram_ros.core.keyframes import FixBuffer, OverlapGrid, gps_distance_m, homography_overlap
+from photogram_ros.core.photo_matching import MatchingOptions, PhotoFeatures, extract, match_pair
 from photogram_ros.errors import CalibrationError
 from photogram_ros.params import param
 
@@ -83,7 +84,16 @@ class TrackerParams:
                                    max=100.0)
     recover_min_tracks: int = param(30, 'Fewer surviving tracks than this is a break: match the last '
                                     'keyframe by descriptors', min=8, max=10000)
-    descriptor: str = param('orb', 'Descriptor used to bridge breaks', choices=('orb', 'sift'))
+    track_max_px: int = param(1024, 'Long side of the reduced image that KLT, detection and descriptors work on, '
+                              'px (a 1920 px frame is tracked at half size, 4x faster; smaller frames as they are)',
+                              min=160, max=20000)
+    match_keyframes: int = param(4, 'At a break the frame is matched by descriptors (core/photo_matching.py) '
+                                 'against this many recent keyframes, nearest by GNSS first', min=1, max=50)
+    match_features: int = param(4000, 'SIFT features per frame matched at a break (their track ids continue in '
+                                'the keyframes that see them again)', min=100, max=50000)
+    klt_min_share: float = param(0.2, 'Fewer KLT survivors than this share of the previous frame\'s tracks also '
+                                 'tries descriptor matching (photo-rate input: motion far beyond KLT)',
+                                 min=0.0, max=1.0)
     gap_s: float = param(0.0, 'A frame interval above this is a gap, s (0: 2.5 x the usual interval)',
                          min=0.0, max=3600.0)
     fix_wait_s: float = param(1.5, 'How long (stream time) a keyframe waits for a GPS fix after its stamp, s '
@@ -128,10 +138,12 @@ class _Frame:
     image: np.ndarray          # original image (BGR or grey)
     gray: np.ndarray           # normalised grey
     pyr: list
-    pts: np.ndarray            # (N, 2) float32 pixels
+    pts: np.ndarray            # (N, 2) float32 pixels of the reduced image
     ids: np.ndarray            # (N,) uint32
     overlap: float | None = None
     fix: GnssFix | None = None
+    features: PhotoFeatures | None = None   # SIFT of the reduced image, computed at a break
+    feat_ids: np.ndarray | None = None      # (K,) int64 track id per feature (-1: none)
 
 
 @dataclass
@@ -140,7 +152,6 @@ class _KfState:
     keyframe: Keyframe
     id_to_row: dict
     xn: np.ndarray
-    features: tuple | None = None   # (keypoints, descriptors), computed on first break
 
 
 class Tracker:
@@ -153,6 +164,7 @@ class Tracker:
         self.camera = None
         self._prev: _Frame | None = None
         self._kf: _KfState | None = None
+        self._recent: list[_KfState] = []   # the last match_keyframes keyframes, oldest first
         self._pending: list[Keyframe] = []
         self._next_id = 0
         self._n_frames = 0
@@ -176,9 +188,13 @@ class Tracker:
         if self.camera is not None and camera == self.camera:
             return
         self.camera = camera
+        long_side = max(camera.width, camera.height)
+        self._scale = min(1.0, self.params.track_max_px / long_side)   # reduced px per full px
+        self._work_cam = camera if self._scale == 1.0 else camera.scaled(self._scale)
         self._grid = OverlapGrid(camera)
         self._prev = None     # points of another calibration cannot be continued
         self._kf = None
+        self._recent = []
 
     def add_fix(self, fix: GnssFix | dict) -> None:
         """A GNSS fix, or the dict of msgs.fix_from_navsatfix."""
@@ -213,6 +229,8 @@ class Tracker:
             self.stats.unusable += 1
             self._lost = True
             return self._release(stamp_ns)
+        if self._scale < 1.0:
+            gray = cv2.resize(gray, (self._work_cam.width, self._work_cam.height), interpolation=cv2.INTER_AREA)
         g = self._normalise(gray, mean, std)
         # (Python's calcOpticalFlowPyrLK cannot take prebuilt pyramids; it builds them itself.)
         cur = _Frame(index, stamp_ns, image, g, g, np.empty((0, 2), np.float32), np.empty(0, np.uint32))
@@ -261,19 +279,25 @@ class Tracker:
             self.stats.gaps += 1
         else:
             self._dt_hist = (self._dt_hist + [dt])[-20:]
-        pts, ids, flow = self._klt(prev.pyr, cur.pyr, prev.pts, prev.ids, self._velocity * dt)
+        p0, i0 = prev.pts, prev.ids
+        if len(i0) > 2 * p.max_features:   # descriptor tracks of a keyframe: KLT follows a spread share
+            sel = np.linspace(0, len(i0) - 1, 2 * p.max_features).astype(int)
+            p0, i0 = p0[sel], i0[sel]
+        pts, ids, flow = self._klt(prev.pyr, cur.pyr, p0, i0, self._velocity * dt)
         if len(ids) >= p.recover_min_tracks and flow is not None:
             self._velocity = (flow / dt).astype(np.float32)
-        if len(ids) < p.recover_min_tracks:
-            self.stats.breaks += 1
-            self._break_since_kf = True
-            self._break_index = cur.index
+        weak = len(ids) < max(p.recover_min_tracks, p.klt_min_share * len(i0))
+        if weak:
+            # Beyond KLT's reach (photo-rate input, a fast turn, a gap): descriptors against the
+            # last keyframes; kept when they link more tracks than KLT carried.
             rec = self._recover(cur)
-            if rec is not None:
+            if rec is not None and len(rec[1]) > len(ids):
                 pts, ids = rec
-                self.stats.bridged += 1
-                self._bridged_since_kf = True
-            else:
+                self._bridge(cur)
+            elif len(ids) < p.recover_min_tracks:
+                self.stats.breaks += 1
+                self._break_since_kf = True
+                self._break_index = cur.index
                 pts, ids = np.empty((0, 2), np.float32), np.empty(0, np.uint32)
         self._lost = False
         cur.pts, cur.ids = self._top_up(cur, pts, ids)
@@ -291,7 +315,7 @@ class Tracker:
                                               criteria=self._criteria, flags=flags)
         p1, pb, err = p1.reshape(-1, 2), pb.reshape(-1, 2), err.ravel()
         ok = (st.ravel() == 1) & (st2.ravel() == 1) & (np.linalg.norm(pb - p0.reshape(-1, 2), axis=1) < p.fb_max_px)
-        ok &= self.camera.in_image(p1, margin_px=2.0)
+        ok &= self._work_cam.in_image(p1, margin_px=2.0)
         if ok.sum() > 10 and p.klt_err_factor > 0:
             # A window whose content changes (an occluding edge sliding over the background) keeps a
             # large residual: it is not the image of one ground point.
@@ -326,12 +350,12 @@ class Tracker:
         n = len(p0)
         if n < 8:
             return np.zeros(n, bool)
-        xn0 = self.camera.pixel_to_normalized(p0) if xn0 is None else xn0
-        xn1 = self.camera.pixel_to_normalized(p1)
-        if np.median(np.linalg.norm(xn1 - xn0, axis=1)) * self.camera.fx < 1.0:
+        xn0 = self._work_cam.pixel_to_normalized(p0) if xn0 is None else xn0
+        xn1 = self._work_cam.pixel_to_normalized(p1)
+        if np.median(np.linalg.norm(xn1 - xn0, axis=1)) * self._work_cam.fx < 1.0:
             return np.ones(n, bool)   # no baseline to speak of: E is undetermined, FB check must do
         E, mask = cv2.findEssentialMat(xn0, xn1, np.eye(3), cv2.RANSAC, 0.999,
-                                       self.params.ransac_px / self.camera.fx)
+                                       self.params.ransac_px / self._work_cam.fx)
         if E is None or mask is None:
             return np.zeros(n, bool)
         return mask.ravel().astype(bool)
@@ -372,60 +396,86 @@ class Tracker:
 
     # --- breaks ----------------------------------------------------------------------------------
 
-    def _detector(self):
-        if self.params.descriptor == 'sift':
-            return cv2.SIFT_create(1500), cv2.NORM_L2
-        return cv2.ORB_create(2000, fastThreshold=10), cv2.NORM_HAMMING
+    def _bridge(self, cur: _Frame) -> None:
+        """Count a break that descriptor matching reconnected (track ids continue)."""
+        self.stats.breaks += 1
+        self.stats.bridged += 1
+        self._break_since_kf = self._bridged_since_kf = True
+        self._break_index = cur.index
+
+    def _match_options(self) -> MatchingOptions:
+        n = self.params.match_features
+        return MatchingOptions(max_features=n, features_per_mpx=max(100.0, 4.0 * n), min_inliers=15)
+
+    def _features_of(self, frame: _Frame) -> None:
+        """SIFT features of a frame (reduced-image pixels), each with the id of the track it lies on
+        (a KLT point within 1.5 px) or -1."""
+        if frame.features is not None:
+            return
+        frame.features = extract(str(frame.index), frame.gray, (1.0, 1.0), self._match_options())
+        ids = np.full(len(frame.features.uv), -1, np.int64)
+        if len(frame.pts) and len(ids):
+            from scipy.spatial import cKDTree
+            d, j = cKDTree(frame.pts).query(frame.features.uv, distance_upper_bound=1.5)
+            near = np.isfinite(d)
+            ids[near] = frame.ids[j[near]]
+        frame.feat_ids = ids
+
+    def _candidates(self, cur: _Frame) -> list[_KfState]:
+        """The recent keyframes to match, nearest by GNSS first (newest first without fixes)."""
+        kfs = list(reversed(self._recent))
+        b = self.fixes.at(cur.stamp_ns)
+        if b is None:
+            return kfs
+        def dist(k):
+            a = self.fixes.at(k.keyframe.stamp_ns)
+            return gps_distance_m(a, b) if a is not None else float('inf')
+        return sorted(kfs, key=dist)
 
     def _recover(self, cur: _Frame):
-        """Bridge a break: descriptor homography keyframe -> frame, then KLT of every keyframe track."""
-        kf = self._kf
-        det, norm = self._detector()
-        if kf.features is None:
-            kf.features = det.detectAndCompute(kf.frame.gray, None)
-        kp0, d0 = kf.features
-        kp1, d1 = det.detectAndCompute(cur.gray, None)
-        if d0 is None or d1 is None or len(kp0) < 15 or len(kp1) < 15:
+        """Descriptor matching (core/photo_matching.py: SIFT, ratio test, essential-matrix RANSAC)
+        of the frame against the recent keyframes. Every feature of the frame gets a track id: the
+        id its match carries in the keyframe it matched (the nearest keyframe first), else a new
+        one, so that a later keyframe matching it continues the track (points seen 3+ times).
+        Returns (pts, ids) of every feature, or None when no keyframe verified a match."""
+        opt = self._match_options()
+        self._features_of(cur)
+        f = cur.features
+        if len(f.uv) < opt.min_inliers:
             return None
-        pairs = cv2.BFMatcher(norm).knnMatch(d0, d1, k=2)
-        good = [m[0] for m in pairs if len(m) == 2 and m[0].distance < 0.8 * m[1].distance]
-        if len(good) < 15:
+        got = np.full(len(f.uv), -1, np.int64)
+        linked = 0
+        for k in self._candidates(cur):
+            self._features_of(k.frame)
+            m = match_pair(k.frame.features, f, self._work_cam, opt)
+            if not m.verified:
+                continue
+            src = k.frame.feat_ids[m.matches[:, 0]]
+            dst = m.matches[:, 1]
+            linked += int(np.sum(got[dst] < 0))
+            new = (got[dst] < 0) & (src >= 0)
+            got[dst[new]] = src[new]
+            # Keyframe features that had no track yet start one with this frame (2 views now).
+            fresh = (got[dst] < 0) & (src < 0)
+            if fresh.any():
+                rows = m.matches[fresh, 0]
+                t = np.arange(self._next_id, self._next_id + len(rows), dtype=np.int64)
+                self._next_id += len(rows)
+                got[dst[fresh]] = t
+                k.frame.feat_ids[rows] = t      # for later frames only: that keyframe is already out
+        if linked < opt.min_inliers:
             return None
-        src = np.float32([kp0[m.queryIdx].pt for m in good])
-        dst = np.float32([kp1[m.trainIdx].pt for m in good])
-        H, inl = cv2.findHomography(src, dst, cv2.RANSAC, 8.0)
-        if H is None or int(inl.sum()) < 15:
-            return None
-        h, w = cur.gray.shape
-        warped = cv2.warpPerspective(kf.frame.gray, H, (w, h), flags=cv2.INTER_LINEAR)
-        p_kf = kf.frame.pts
-        guess = cv2.perspectiveTransform(p_kf.reshape(-1, 1, 2).astype(np.float64), H).reshape(-1, 2)
-        inside = self.camera.in_image(guess, margin_px=self._win[0] / 2)
-        if inside.sum() < 8:
-            return None
-        guess = guess[inside].astype(np.float32)
-        ids, xn_kf = kf.frame.ids[inside], kf.xn[inside]
-        # KLT warped -> current from the warped positions (pure parallax residual left to find).
-        pts, ok = self._klt_pair(warped, cur.pyr, guess, guess, 2)
-        pts, ids_ok = pts[ok], ids[ok]
-        if len(ids_ok) < 8:
-            return None
-        keep = self._essential_inliers(xn_kf[ok], pts)
-        pts, ids_ok = pts[keep], ids_ok[keep]
-        if len(ids_ok) < min(self.params.recover_min_tracks, 15):
-            return None
-        return pts.astype(np.float32), ids_ok
-
-    def _essential_inliers(self, xn0, p1) -> np.ndarray:
-        n = len(p1)
-        if n < 8:
-            return np.zeros(n, bool)
-        xn1 = self.camera.pixel_to_normalized(p1)
-        E, mask = cv2.findEssentialMat(xn0, xn1, np.eye(3), cv2.RANSAC, 0.999,
-                                       self.params.ransac_px / self.camera.fx)
-        if E is None or mask is None:
-            return np.zeros(n, bool)
-        return mask.ravel().astype(bool)
+        # One feature per track id in a frame (two features matched to one track: keep the first).
+        _, first = np.unique(np.where(got >= 0, got, -1 - np.arange(len(got))), return_index=True)
+        keep = np.zeros(len(got), bool)
+        keep[first] = True
+        got[~keep] = -1
+        free = got < 0
+        got[free] = np.arange(self._next_id, self._next_id + int(free.sum()))
+        self._next_id += int(free.sum())
+        cur.feat_ids = got
+        keep = self._work_cam.in_image(f.uv, margin_px=self._win[0] / 2 + 1)
+        return f.uv[keep].astype(np.float32), got[keep].astype(np.uint32)
 
     # --- keyframes -------------------------------------------------------------------------------
 
@@ -439,14 +489,14 @@ class Tracker:
         if shared.sum() < 8:
             return None, surviving, 0.0
         xn_kf = kf.xn[rows[shared]]
-        xn_cur = self.camera.pixel_to_normalized(cur.pts[shared])
-        parallax = float(np.median(np.linalg.norm(xn_cur - xn_kf, axis=1))) * self.camera.fx
+        xn_cur = self._work_cam.pixel_to_normalized(cur.pts[shared])
+        parallax = float(np.median(np.linalg.norm(xn_cur - xn_kf, axis=1))) * self._work_cam.fx
         overlap = None
         fix_ok = self._gps_overlap(cur)
         if fix_ok is not None:
             overlap = fix_ok
         if overlap is None:
-            overlap, _ = homography_overlap(self._grid, xn_kf, xn_cur, 2.0 / self.camera.fx)
+            overlap, _ = homography_overlap(self._grid, xn_kf, xn_cur, 2.0 / self._work_cam.fx)
         return overlap, surviving, parallax
 
     def _gps_overlap(self, cur: _Frame) -> float | None:
@@ -482,11 +532,41 @@ class Tracker:
             return
         self._make_keyframe(cur, overlap)
 
+    def _to_full_px(self, pts: np.ndarray) -> np.ndarray:
+        """Reduced-image pixels -> full-image pixels (pixel centres at integers in both)."""
+        pts = np.asarray(pts, np.float64).reshape(-1, 2)
+        return pts if self._scale == 1.0 else (pts + 0.5) / self._scale - 0.5
+
+    def _wants_features(self, frame: _Frame) -> bool:
+        """Descriptors for a new keyframe: the first one, and every one while the stream needs
+        descriptor matching (a break bridged since, or at, the last keyframe: photo-rate input),
+        so that a later frame matching them continues their tracks."""
+        return (frame.features is not None or not self._recent or self._bridged_since_kf
+                or self._recent[-1].keyframe.bridged)
+
+    def _add_feature_tracks(self, frame: _Frame) -> None:
+        """Every SIFT feature of a keyframe without a track starts one (from this keyframe on)."""
+        self._features_of(frame)
+        f, fid = frame.features, frame.feat_ids
+        have = set(frame.ids.tolist())
+        lone = (fid < 0) | ~np.isin(fid, np.fromiter(have, np.int64, len(have)))
+        lone &= self._work_cam.in_image(f.uv, margin_px=self._win[0] / 2 + 1)
+        if not lone.any():
+            return
+        t = np.arange(self._next_id, self._next_id + int(lone.sum()), dtype=np.int64)
+        self._next_id += len(t)
+        fid[lone] = t
+        frame.pts = np.concatenate([frame.pts, f.uv[lone].astype(np.float32)])
+        frame.ids = np.concatenate([frame.ids, t.astype(np.uint32)])
+
     def _make_keyframe(self, frame: _Frame, overlap: float) -> None:
-        xn = self.camera.pixel_to_normalized(frame.pts.astype(np.float64))
+        if self._wants_features(frame):
+            self._add_feature_tracks(frame)
+        uv = self._to_full_px(frame.pts)
+        xn = self.camera.pixel_to_normalized(uv)
         obs = np.empty(len(frame.ids), FEATURE_DTYPE)
         obs['track_id'] = frame.ids
-        obs['u'], obs['v'] = frame.pts[:, 0], frame.pts[:, 1]
+        obs['u'], obs['v'] = uv[:, 0], uv[:, 1]
         obs['xn'], obs['yn'] = xn[:, 0], xn[:, 1]
         image = frame.image if frame.image.ndim == 3 else cv2.cvtColor(frame.image, cv2.COLOR_GRAY2BGR)
         kf = Keyframe(self.stats.keyframes, frame.index, frame.stamp_ns, image, obs, None, float(overlap),
@@ -496,6 +576,7 @@ class Tracker:
             self.stats.last_overlap = float(overlap)
         self._break_since_kf = self._bridged_since_kf = False
         self._kf = _KfState(frame, kf, {int(i): r for r, i in enumerate(frame.ids)}, xn)
+        self._recent = (self._recent + [self._kf])[-self.params.match_keyframes:]
         self._pending.append(kf)
 
     def _finish(self, kf: Keyframe) -> Keyframe:
