@@ -34,7 +34,7 @@ On ROS the table travels as a PointCloud2 with exactly these named fields (msgs.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
@@ -144,6 +144,10 @@ class _Frame:
     fix: GnssFix | None = None
     features: PhotoFeatures | None = None   # SIFT of the reduced image, computed at a break
     feat_ids: np.ndarray | None = None      # (K,) int64 track id per feature (-1: none)
+    # Descriptor tracks this frame starts as a keyframe (not followed by KLT; a later frame
+    # matching its features continues them): (M, 2) reduced-image pixels and (M,) ids.
+    extra_pts: np.ndarray = field(default_factory=lambda: np.empty((0, 2), np.float32))
+    extra_ids: np.ndarray = field(default_factory=lambda: np.empty(0, np.uint32))
 
 
 @dataclass
@@ -347,7 +351,7 @@ class Tracker:
         return p1.astype(np.float32), ids, flow
 
     def _epipolar_inliers(self, p0, p1, xn0=None) -> np.ndarray:
-        n = len(p0)
+        n = len(p1)
         if n < 8:
             return np.zeros(n, bool)
         xn0 = self._work_cam.pixel_to_normalized(p0) if xn0 is None else xn0
@@ -408,18 +412,15 @@ class Tracker:
         return MatchingOptions(max_features=n, features_per_mpx=max(100.0, 4.0 * n), min_inliers=15)
 
     def _features_of(self, frame: _Frame) -> None:
-        """SIFT features of a frame (reduced-image pixels), each with the id of the track it lies on
-        (a KLT point within 1.5 px) or -1."""
-        if frame.features is not None:
-            return
-        frame.features = extract(str(frame.index), frame.gray, (1.0, 1.0), self._match_options())
-        ids = np.full(len(frame.features.uv), -1, np.int64)
-        if len(frame.pts) and len(ids):
-            from scipy.spatial import cKDTree
-            d, j = cKDTree(frame.pts).query(frame.features.uv, distance_upper_bound=1.5)
-            near = np.isfinite(d)
-            ids[near] = frame.ids[j[near]]
-        frame.feat_ids = ids
+        """SIFT features of a frame (reduced-image pixels), without track ids yet (-1)."""
+        if frame.features is None:
+            frame.features = extract(str(frame.index), frame.gray, (1.0, 1.0), self._match_options())
+            frame.feat_ids = np.full(len(frame.features.uv), -1, np.int64)
+
+    def _new_ids(self, n: int) -> np.ndarray:
+        t = np.arange(self._next_id, self._next_id + n, dtype=np.int64)
+        self._next_id += n
+        return t
 
     def _candidates(self, cur: _Frame) -> list[_KfState]:
         """The recent keyframes to match, nearest by GNSS first (newest first without fixes)."""
@@ -434,48 +435,72 @@ class Tracker:
 
     def _recover(self, cur: _Frame):
         """Descriptor matching (core/photo_matching.py: SIFT, ratio test, essential-matrix RANSAC)
-        of the frame against the recent keyframes. Every feature of the frame gets a track id: the
-        id its match carries in the keyframe it matched (the nearest keyframe first), else a new
-        one, so that a later keyframe matching it continues the track (points seen 3+ times).
-        Returns (pts, ids) of every feature, or None when no keyframe verified a match."""
+        of the frame against the recent keyframes, nearest first. A matched feature takes the track
+        id its match carries in that keyframe (a keyframe feature without one starts a track now);
+        the KLT tracks of the nearest verified keyframe are refined onto the frame through the
+        homography of the matches (sub-pixel, their ids kept). Returns (pts, ids) of the linked
+        tracks, or None when no keyframe verified enough matches; the frame's unmatched features
+        become keyframe-only tracks (`extra_*`) that later frames can match."""
         opt = self._match_options()
         self._features_of(cur)
         f = cur.features
         if len(f.uv) < opt.min_inliers:
             return None
-        got = np.full(len(f.uv), -1, np.int64)
+        got = cur.feat_ids
         linked = 0
+        refined = (np.empty((0, 2), np.float32), np.empty(0, np.uint32))
         for k in self._candidates(cur):
             self._features_of(k.frame)
             m = match_pair(k.frame.features, f, self._work_cam, opt)
             if not m.verified:
                 continue
-            src = k.frame.feat_ids[m.matches[:, 0]]
-            dst = m.matches[:, 1]
-            linked += int(np.sum(got[dst] < 0))
-            new = (got[dst] < 0) & (src >= 0)
-            got[dst[new]] = src[new]
-            # Keyframe features that had no track yet start one with this frame (2 views now).
-            fresh = (got[dst] < 0) & (src < 0)
-            if fresh.any():
-                rows = m.matches[fresh, 0]
-                t = np.arange(self._next_id, self._next_id + len(rows), dtype=np.int64)
-                self._next_id += len(rows)
-                got[dst[fresh]] = t
-                k.frame.feat_ids[rows] = t      # for later frames only: that keyframe is already out
+            rows, dst = m.matches[:, 0], m.matches[:, 1]
+            open_ = got[dst] < 0
+            fresh = open_ & (k.frame.feat_ids[rows] < 0)
+            k.frame.feat_ids[rows[fresh]] = self._new_ids(int(fresh.sum()))   # that keyframe is out: from here on
+            got[dst[open_]] = k.frame.feat_ids[rows[open_]]
+            linked += int(open_.sum())
+            if not len(refined[1]):
+                refined = self._refine_through_homography(k, k.frame.features.uv[rows], f.uv[dst], cur)
         if linked < opt.min_inliers:
+            got[:] = -1
             return None
-        # One feature per track id in a frame (two features matched to one track: keep the first).
+        # One feature per track id (two features matched to one track: keep the first).
         _, first = np.unique(np.where(got >= 0, got, -1 - np.arange(len(got))), return_index=True)
-        keep = np.zeros(len(got), bool)
-        keep[first] = True
-        got[~keep] = -1
+        dup = np.ones(len(got), bool)
+        dup[first] = False
+        got[dup] = -1
         free = got < 0
-        got[free] = np.arange(self._next_id, self._next_id + int(free.sum()))
-        self._next_id += int(free.sum())
-        cur.feat_ids = got
-        keep = self._work_cam.in_image(f.uv, margin_px=self._win[0] / 2 + 1)
-        return f.uv[keep].astype(np.float32), got[keep].astype(np.uint32)
+        got[free] = self._new_ids(int(free.sum()))
+        inside = self._work_cam.in_image(f.uv, margin_px=self._win[0] / 2 + 1)
+        take = ~free & inside & ~np.isin(got, refined[1].astype(np.int64))   # KLT-refined positions win
+        cur.extra_pts, cur.extra_ids = f.uv[free & inside].astype(np.float32), got[free & inside].astype(np.uint32)
+        return (np.concatenate([refined[0], f.uv[take].astype(np.float32)]),
+                np.concatenate([refined[1], got[take].astype(np.uint32)]))
+
+    def _refine_through_homography(self, k: _KfState, uv_kf, uv_cur, cur: _Frame):
+        """The keyframe's KLT tracks onto the frame: its image warped by the homography of the
+        matches, KLT from the warped positions (the parallax residual left), epipolar check."""
+        none = (np.empty((0, 2), np.float32), np.empty(0, np.uint32))
+        p_kf = k.frame.pts
+        if len(p_kf) < 8:
+            return none
+        H, inl = cv2.findHomography(uv_kf.astype(np.float32), uv_cur.astype(np.float32), cv2.RANSAC, 8.0)
+        if H is None or int(inl.sum()) < 15:
+            return none
+        h, w = cur.gray.shape
+        warped = cv2.warpPerspective(k.frame.gray, H, (w, h), flags=cv2.INTER_LINEAR)
+        guess = cv2.perspectiveTransform(p_kf.reshape(-1, 1, 2).astype(np.float64), H).reshape(-1, 2)
+        inside = self._work_cam.in_image(guess, margin_px=self._win[0] / 2)
+        if inside.sum() < 8:
+            return none
+        guess = guess[inside].astype(np.float32)
+        ids, xn_kf = k.frame.ids[inside], self._work_cam.pixel_to_normalized(p_kf[inside].astype(np.float64))
+        pts, ok = self._klt_pair(warped, cur.pyr, guess, guess, 2)
+        if ok.sum() < 8:
+            return none
+        keep = self._epipolar_inliers(None, pts[ok], xn_kf[ok])
+        return pts[ok][keep].astype(np.float32), ids[ok][keep]
 
     # --- keyframes -------------------------------------------------------------------------------
 
@@ -545,27 +570,26 @@ class Tracker:
                 or self._recent[-1].keyframe.bridged)
 
     def _add_feature_tracks(self, frame: _Frame) -> None:
-        """Every SIFT feature of a keyframe without a track starts one (from this keyframe on)."""
+        """Every SIFT feature of a keyframe without a track starts a keyframe-only one."""
         self._features_of(frame)
         f, fid = frame.features, frame.feat_ids
-        have = set(frame.ids.tolist())
-        lone = (fid < 0) | ~np.isin(fid, np.fromiter(have, np.int64, len(have)))
-        lone &= self._work_cam.in_image(f.uv, margin_px=self._win[0] / 2 + 1)
-        if not lone.any():
-            return
-        t = np.arange(self._next_id, self._next_id + int(lone.sum()), dtype=np.int64)
-        self._next_id += len(t)
-        fid[lone] = t
-        frame.pts = np.concatenate([frame.pts, f.uv[lone].astype(np.float32)])
-        frame.ids = np.concatenate([frame.ids, t.astype(np.uint32)])
+        lone = (fid < 0) & self._work_cam.in_image(f.uv, margin_px=self._win[0] / 2 + 1)
+        if lone.any():
+            fid[lone] = self._new_ids(int(lone.sum()))
+            frame.extra_pts = np.concatenate([frame.extra_pts, f.uv[lone].astype(np.float32)])
+            frame.extra_ids = np.concatenate([frame.extra_ids, fid[lone].astype(np.uint32)])
 
     def _make_keyframe(self, frame: _Frame, overlap: float) -> None:
         if self._wants_features(frame):
             self._add_feature_tracks(frame)
-        uv = self._to_full_px(frame.pts)
+        all_ids = np.concatenate([frame.ids, frame.extra_ids])
+        _, first = np.unique(all_ids, return_index=True)
+        first.sort()
+        all_ids = all_ids[first]
+        uv = self._to_full_px(np.concatenate([frame.pts, frame.extra_pts])[first])
         xn = self.camera.pixel_to_normalized(uv)
-        obs = np.empty(len(frame.ids), FEATURE_DTYPE)
-        obs['track_id'] = frame.ids
+        obs = np.empty(len(all_ids), FEATURE_DTYPE)
+        obs['track_id'] = all_ids
         obs['u'], obs['v'] = uv[:, 0], uv[:, 1]
         obs['xn'], obs['yn'] = xn[:, 0], xn[:, 1]
         image = frame.image if frame.image.ndim == 3 else cv2.cvtColor(frame.image, cv2.COLOR_GRAY2BGR)
@@ -575,7 +599,7 @@ class Tracker:
         if np.isfinite(overlap):
             self.stats.last_overlap = float(overlap)
         self._break_since_kf = self._bridged_since_kf = False
-        self._kf = _KfState(frame, kf, {int(i): r for r, i in enumerate(frame.ids)}, xn)
+        self._kf = _KfState(frame, kf, {int(i): r for r, i in enumerate(all_ids)}, xn)
         self._recent = (self._recent + [self._kf])[-self.params.match_keyframes:]
         self._pending.append(kf)
 
