@@ -43,6 +43,7 @@ from photogram_ros.core.camera import PinholeCamera
 from photogram_ros.core.gnss_fix import GnssFix
 from photogram_ros.core.keyframes import FixBuffer, OverlapGrid, gps_distance_m, homography_overlap
 from photogram_ros.core.photo_matching import MatchingOptions, PhotoFeatures, extract, match_pair
+from photogram_ros.core.two_view import essential_ransac
 from photogram_ros.errors import CalibrationError
 from photogram_ros.params import param
 
@@ -344,13 +345,17 @@ class Tracker:
                 q0 = p0 @ A[:, :2].T.astype(np.float32) + A[:, 2].astype(np.float32)
                 p1, ok2 = self._klt_pair(warped, img1, q0, np.where(ok[:, None], p1, q0), 1)
                 ok = ok2
+        if ok.sum() < p.klt_min_share * len(ok):
+            # Most windows lost their point: far beyond KLT's reach (photo-rate input). The few
+            # survivors are mostly coincidences; RANSAC on them would only cost time.
+            return p0[:0], ids[:0], None
         p0, p1, ids = p0[ok], p1[ok], ids[ok]
         keep = self._epipolar_inliers(p0, p1)
         p0, p1, ids = p0[keep], p1[keep], ids[keep]
         flow = np.median(p1 - p0, axis=0) if len(p1) else None
         return p1.astype(np.float32), ids, flow
 
-    def _epipolar_inliers(self, p0, p1, xn0=None) -> np.ndarray:
+    def _epipolar_inliers(self, p0, p1, xn0=None, method: str = 'ransac') -> np.ndarray:
         n = len(p1)
         if n < 8:
             return np.zeros(n, bool)
@@ -358,11 +363,10 @@ class Tracker:
         xn1 = self._work_cam.pixel_to_normalized(p1)
         if np.median(np.linalg.norm(xn1 - xn0, axis=1)) * self._work_cam.fx < 1.0:
             return np.ones(n, bool)   # no baseline to speak of: E is undetermined, FB check must do
-        E, mask = cv2.findEssentialMat(xn0, xn1, np.eye(3), cv2.RANSAC, 0.999,
-                                       self.params.ransac_px / self._work_cam.fx)
-        if E is None or mask is None:
+        E, mask = essential_ransac(xn0, xn1, self.params.ransac_px / self._work_cam.fx, method=method)
+        if E is None:
             return np.zeros(n, bool)
-        return mask.ravel().astype(bool)
+        return mask
 
     def _top_up(self, cur: _Frame, pts, ids):
         """Detect new corners in the grid cells that have fallen below their share of features."""
@@ -409,7 +413,8 @@ class Tracker:
 
     def _match_options(self) -> MatchingOptions:
         n = self.params.match_features
-        return MatchingOptions(max_features=n, features_per_mpx=max(100.0, 4.0 * n), min_inliers=15)
+        return MatchingOptions(max_features=n, features_per_mpx=max(100.0, 4.0 * n), min_inliers=15,
+                               ransac_method='usac')
 
     def _features_of(self, frame: _Frame) -> None:
         """SIFT features of a frame (reduced-image pixels), without track ids yet (-1)."""
@@ -499,7 +504,7 @@ class Tracker:
         pts, ok = self._klt_pair(warped, cur.pyr, guess, guess, 2)
         if ok.sum() < 8:
             return none
-        keep = self._epipolar_inliers(None, pts[ok], xn_kf[ok])
+        keep = self._epipolar_inliers(None, pts[ok], xn_kf[ok], 'usac')
         return pts[ok][keep].astype(np.float32), ids[ok][keep]
 
     # --- keyframes -------------------------------------------------------------------------------
