@@ -85,8 +85,9 @@ class TrackerParams:
                                    max=100.0)
     recover_min_tracks: int = param(30, 'Fewer surviving tracks than this is a break: match the last '
                                     'keyframe by descriptors', min=8, max=10000)
-    track_max_px: int = param(1024, 'Long side of the reduced image that KLT, detection and descriptors work on, '
-                              'px (a 1920 px frame is tracked at half size, 4x faster; smaller frames as they are)',
+    track_max_px: int = param(1024, 'Frames whose long side exceeds this are tracked (KLT, detection, descriptors) '
+                              'at a power-of-two reduction that fits, px: 1920 px at half size, 4000 px at a '
+                              'quarter; smaller frames as they are',
                               min=160, max=20000)
     match_keyframes: int = param(4, 'At a break the frame is matched by descriptors (core/photo_matching.py) '
                                  'against this many recent keyframes, nearest by GNSS first', min=1, max=50)
@@ -193,8 +194,11 @@ class Tracker:
         if self.camera is not None and camera == self.camera:
             return
         self.camera = camera
-        long_side = max(camera.width, camera.height)
-        self._scale = min(1.0, self.params.track_max_px / long_side)   # reduced px per full px
+        # A power-of-two reduction (1920 -> 960, 4000 -> 1000): exact pixel areas, and fast to make.
+        reduce = 1
+        while max(camera.width, camera.height) / reduce > self.params.track_max_px:
+            reduce *= 2
+        self._scale = 1.0 / reduce          # reduced px per full px
         self._work_cam = camera if self._scale == 1.0 else camera.scaled(self._scale)
         self._grid = OverlapGrid(camera)
         self._prev = None     # points of another calibration cannot be continued
