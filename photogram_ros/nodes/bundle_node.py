@@ -67,7 +67,7 @@ from photogram_ros.core.gnss_fix import GnssFix
 from photogram_ros.core.incremental import IncrementalAT, IncrementalOptions, KeyframeRecord, intersect_point
 from photogram_ros.core.survey_quality import FIX_CLASSES, fix_class, rmse
 from photogram_ros.errors import PhotogramError
-from photogram_ros.nodes.diagnostics import ERROR, Diagnostics
+from photogram_ros.nodes.diagnostics import ERROR, WARN, Diagnostics
 from photogram_ros.nodes.node_main import run_node
 from photogram_ros.nodes.ros_params import declare
 from photogram_ros.params import param
