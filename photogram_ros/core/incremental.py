@@ -357,9 +357,9 @@ class IncrementalAT:
                 for t in kf.track_ids[kf.active].tolist():
                     self.track_kfs.setdefault(t, []).append(kf.kid)
             self._triangulate_new(new)
-            # Keyframes between the pair were waiting: register them now.
+            # Keyframes between (and before) the pair were waiting: register them now.
             for kf in self.kfs:
-                if kf.map_T_cam is None and kf.kid > first.kid:
+                if kf.map_T_cam is None:
                     if self._register(kf).registered or (self.opt.relative_fallback
                                                          and self._register_relative(kf).registered):
                         self._triangulate_new(kf)
