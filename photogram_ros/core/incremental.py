@@ -441,25 +441,51 @@ class IncrementalAT:
         i2 = np.array([kf.index(int(t)) for t in common])
         thr = self.opt.pnp_threshold_px / self.camera.fx
         res = relative_pose(rk.xn[i1], kf.xn[i2], thr, self.opt.min_relative_inliers)
-        if not res.ok:
-            return StepReport(kf.kid, False, f'relative: {res.status}')
-        R, t = res.cam2_T_cam1[:3, :3], res.cam2_T_cam1[:3, 3]
         T_r = rk.map_T_cam
-        map_R = T_r[:3, :3] @ R.T
-        d_map = T_r[:3, :3] @ (-R.T @ t)             # unit baseline r -> kf, map frame (block units)
-        scale = self._relative_scale(rk, kf, common[res.inliers], res, d_map)
-        if scale is None:
-            return StepReport(kf.kid, False, 'relative: no_scale (neither known points nor GNSS)')
-        kf.map_T_cam = make_T(map_R, T_r[:3, 3] + scale * d_map)
+        if res.ok:
+            R, t = res.cam2_T_cam1[:3, :3], res.cam2_T_cam1[:3, 3]
+            map_R = T_r[:3, :3] @ R.T
+            d_map = T_r[:3, :3] @ (-R.T @ t)             # unit baseline r -> kf, map frame (block units)
+            scale = self._relative_scale(rk, kf, common[res.inliers], res, d_map)
+            if scale is None:
+                return StepReport(kf.kid, False, 'relative: no_scale (neither known points nor GNSS)')
+            kf.map_T_cam = make_T(map_R, T_r[:3, 3] + scale * d_map)
+            inl = res.inliers
+            status = 'registered_relative'
+        else:
+            # Too short a baseline (or a turn on the spot) for the essential matrix: with a georeferenced
+            # block and a fix, the rotation from the homography of the shared tracks (a rotation when
+            # the baseline is short against the height), the position from GNSS; the adjustment refines.
+            got = self._gnss_and_rotation(rk, kf, i1, i2, thr)
+            if got is None:
+                return StepReport(kf.kid, False, f'relative: {res.status}')
+            kf.map_T_cam, inl = got
+            status = 'registered_gnss_rotation'
         out = np.ones(len(kf.track_ids), bool)
-        out[i2[res.inliers]] = False
+        out[i2[inl]] = False
         known = self.points.contains_many(kf.track_ids)
         kf.active[use & known & out] = False      # known points that disagree with the relative pose
         kf.reg_seq = len(self.registered)
         self.registered.append(kf.kid)
         for tid in kf.track_ids[kf.active].tolist():
             self.track_kfs.setdefault(tid, []).append(kf.kid)
-        return StepReport(kf.kid, True, 'registered_relative')
+        return StepReport(kf.kid, True, status)
+
+    def _gnss_and_rotation(self, rk: Keyframe, kf: Keyframe, i1, i2, thr: float):
+        """(map_T_cam, inlier mask over i1/i2) of `kf` from its fix and the homography rotation to `rk`;
+        None without a georeference, a fix or enough homography inliers."""
+        import cv2
+        if not self.georeferenced or kf.fix_enu is None:
+            return None
+        H, mask = cv2.findHomography(rk.xn[i1], kf.xn[i2], cv2.RANSAC, 2 * thr)
+        if H is None or int(mask.sum()) < self.opt.min_relative_inliers:
+            return None
+        U, _, Vt = np.linalg.svd(H)
+        R = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt     # nearest rotation: x_kf ~ R x_r
+        map_R = rk.map_T_cam[:3, :3] @ R.T
+        lever = self._lever if kf.antenna_offset is None else map_R.T @ kf.antenna_offset
+        C = kf.fix_enu - self.gnss_bias_enu - map_R @ lever
+        return make_T(map_R, C), mask.ravel().astype(bool)
 
     def _relative_scale(self, rk: Keyframe, kf: Keyframe, inlier_ids, res, d_map) -> float | None:
         """Length of the baseline rk -> kf in block units (see _register_relative)."""
