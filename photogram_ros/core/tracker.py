@@ -1,13 +1,21 @@
 """Feature tracker and keyframe choice: a stream of frames in, mapping keyframes out.
 
-Per frame: grey conversion and photometric normalisation (mean/std or CLAHE, so that exposure
-jumps do not break KLT), pyramidal KLT from the previous frame with a constant-velocity prior and
-a forward-backward check, RANSAC on the essential matrix in undistorted normalized coordinates,
-then top-up detection (goodFeaturesToTrack per grid cell, so one textured corner cannot take all
-the features). When tracking breaks (black or over-exposed frame, gap, fast turn, too few
-survivors) the frame is matched to the last keyframe by ORB/SIFT descriptors; the homography of
-those matches warps the keyframe onto the frame and KLT refines every keyframe track, so bridged
-tracks keep their ids and sub-pixel accuracy. The break is counted either way.
+Per frame: grey conversion, a power-of-two reduction of large frames (`track_max_px`: 1920 px frames
+are tracked at half size, 4000 px photos at a quarter; positions go out in full-frame pixels), and
+photometric normalisation (mean/std or CLAHE, so that exposure jumps do not break KLT), pyramidal KLT
+from the previous frame with a constant-velocity prior and a forward-backward check, RANSAC on the
+essential matrix in undistorted normalized coordinates, then top-up detection (goodFeaturesToTrack
+per grid cell, so one textured corner cannot take all the features).
+
+Beyond KLT's reach (photo-rate input 0.1-2 Hz, a gap, a fast turn, a black frame: fewer than
+`recover_min_tracks` survivors or under `klt_min_share` of the tracks) the frame is matched by
+descriptors (core/photo_matching.py: SIFT on the reduced frame, ratio test, essential matrix) against
+the last `match_keyframes` keyframes, nearest by GNSS first. A matched feature takes the track id its
+match carries in that keyframe, so points are seen by 3+ keyframes; the KLT tracks of the nearest
+matched keyframe are refined onto the frame through the homography of the matches (sub-pixel, ids
+kept). Keyframes made while descriptor matching is in use (and the first one) carry every SIFT feature
+as a track of its own, which a later frame can continue. A break is counted either way; `bridged`
+says the ids continued.
 
 Keyframes are chosen for mapping: a new one when the front overlap with the last keyframe falls to
 `keyframe_overlap` (the frame closest to the target is taken, which may be the previous frame),

@@ -27,6 +27,13 @@ Outputs:
                       control file GCPs seen / used, GCP residual RMS, check points seen, unknown markers,
                       check_rmse_h_m / check_rmse_v_m / checks_measured; keyframe shares per fix class
 
+Health (/diagnostics tells the truth): WARN (ERROR above half) when more than health_max_unoriented of
+the last health_window keyframes are not oriented, with the last reason; WARN/ERROR when the block has no
+georeference after georef_warn_keyframes keyframes with a fix; WARN when a body lever arm is applied
+without an attitude. Fixes without a covariance get one from their GNSS mode (RTK, SBAS, plain 3D), and a
+fix under RTK status with more than max_rtk_sigma_m is not used. `finish()` and `full_adjustment()`
+return an AdjustmentOutcome ('done', 'failed', 'none'); the console script exits 4 when it failed.
+
 Ground control (`control_file`, io/control_file.py): targets named in the file become GCPs (point
 priors) or check points (never used), in the map frame as soon as its origin is known; markers
 the file does not name are counted and ignored.
