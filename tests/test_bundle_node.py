@@ -201,3 +201,40 @@ def test_gimballed_camera_takes_its_antenna_offset_from_the_attitude_topic(rclpy
     assert len(err) >= n - 1 and rmse < 0.048
     node.destroy_node()
     feeder.destroy_node()
+
+
+def test_health_is_an_error_with_the_reason_when_keyframes_do_not_orient(rclpy_context):
+    """Keyframes that share no track cannot be oriented: /diagnostics must not say OK (issue 14), and
+    the end of the flight reports that there was nothing to adjust."""
+    from photogram_ros.nodes.diagnostics import ERROR
+    sk = simulate_keyframes(preset('tiny'), keyframe_interval_s=1.0, attitude_sigma_deg=None)
+    node = BundleNode(overrides={'lever_arm_cam_m': [float(v) for v in sk.lever_arm_cam_m],
+                                 'georef_warn_keyframes': 5}, context=rclpy_context)
+    feeder = Node('feeder', context=rclpy_context)
+    reliable = QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE)
+    pub_info = feeder.create_publisher(CameraInfo, 'camera/camera_info', QoSProfile(depth=5))
+    pub_feat = feeder.create_publisher(PointCloud2, 'keyframes/features', reliable)
+    pub_fix = feeder.create_publisher(NavSatFix, 'keyframes/fix', reliable)
+    ex = executor_with(rclpy_context, node, feeder)
+    records = sk.records[:12]
+    try:
+        start_bundle_node(ex, node, pub_info, pub_feat, sk.camera, records[0].stamp_ns)
+        for k, r in enumerate(records):
+            table = feature_table(r, sk.camera)
+            table['track_id'] += np.uint32(1_000_000 * (k + 1))   # no track seen twice
+            pub_fix.publish(fix_msg(r))
+            pub_feat.publish(msgs.keyframe_features_msg(table, r.stamp_ns))
+            spin_until(ex, lambda: False, 0.05)
+        assert spin_until(ex, lambda: node.diag.counts().get('keyframes_not_oriented', 0) >= len(records), 60)
+        problems = node.diag.recent_problems(20)
+        status = node.diag.status()
+        outcome = node.finish()
+    finally:
+        ex.shutdown()
+    print(problems, status.level, outcome)
+    assert any('of the last' in p and 'not oriented' in p and 'waiting_for_initialisation' in p for p in problems)
+    assert any(p.startswith('no georeference after') for p in problems)
+    assert status.level == ERROR
+    assert outcome.status == 'none' and not outcome.failed
+    node.destroy_node()
+    feeder.destroy_node()

@@ -89,6 +89,11 @@ class IncrementalOptions:
                                          'relative pose), px', min=0.1, max=100.0)
     min_pnp_inliers: int = param(12, 'a new keyframe registers with at least this many resection inliers',
                                  min=4, max=100000)
+    relative_fallback: bool = param(True, 'a keyframe that resection cannot orient (too few known points: photo-rate '
+                                          'input, a break) is oriented from its relative pose to the registered '
+                                          'keyframe it shares most tracks with, scaled by the known points it sees '
+                                          'or by GNSS', )
+    min_relative_inliers: int = param(25, 'relative-pose inliers that fallback needs', min=8, max=100000)
     loss: str = param('huber', 'robust loss on reprojection errors', choices=('huber', 'cauchy', 'linear'))
     loss_scale_px: float = param(1.0, 'robust loss scale, pixels', min=0.05, max=100.0)
     window_iterations: int = param(15, 'solver iterations of a window update', min=1, max=1000)
@@ -287,6 +292,9 @@ class IncrementalAT:
             rep = self._try_initialise()
         else:
             rep = self._register(kf)
+            if not rep.registered and self.opt.relative_fallback:
+                rel = self._register_relative(kf)
+                rep = rel if rel.registered else StepReport(kf.kid, False, f'{rep.status}; {rel.status}')
             if rep.registered:
                 self._triangulate_new(kf)
                 if not self.georeferenced or self.georef_provisional:
@@ -305,7 +313,9 @@ class IncrementalAT:
         Adjust afterwards (`full_adjustment`)."""
         n = 0
         for kf in self.kfs:
-            if kf.map_T_cam is None and self.registered and self._register(kf).registered:
+            if kf.map_T_cam is None and self.registered and (
+                    self._register(kf).registered
+                    or (self.opt.relative_fallback and self._register_relative(kf).registered)):
                 self._triangulate_new(kf)
                 n += 1
         return n
@@ -322,6 +332,7 @@ class IncrementalAT:
 
     def _try_initialise(self) -> StepReport:
         new = self.kfs[-1]
+        cands = []
         for first in self.kfs[:-1]:
             ids, i1, i2 = np.intersect1d(first.track_ids[self._usable(first)], new.track_ids[self._usable(new)],
                                          return_indices=True)
@@ -333,6 +344,11 @@ class IncrementalAT:
             res = relative_pose(first.xn[i1], new.xn[i2], thr, self.opt.min_init_inliers)
             if not res.ok or res.median_angle_deg < self.opt.min_init_angle_deg:
                 continue
+            score = int(res.inliers.sum()) * min(1.0, res.median_angle_deg / (2 * self.opt.min_init_angle_deg))
+            cands.append((score, first, res))
+        if cands:
+            # The pair with the most inliers at enough parallax (not merely the oldest that passes).
+            _, first, res = max(cands, key=lambda c: c[0])
             first.map_T_cam = np.eye(4)
             new.map_T_cam = invert_T(res.cam2_T_cam1)
             self.registered = [first.kid, new.kid]
@@ -341,10 +357,11 @@ class IncrementalAT:
                 for t in kf.track_ids[kf.active].tolist():
                     self.track_kfs.setdefault(t, []).append(kf.kid)
             self._triangulate_new(new)
-            # Keyframes between the pair were waiting: register them now.
+            # Keyframes between (and before) the pair were waiting: register them now.
             for kf in self.kfs:
-                if kf.map_T_cam is None and kf.kid > first.kid:
-                    if self._register(kf).registered:
+                if kf.map_T_cam is None:
+                    if self._register(kf).registered or (self.opt.relative_fallback
+                                                         and self._register_relative(kf).registered):
                         self._triangulate_new(kf)
             rep = self._window_adjust(new.kid, full=True)
             rep.status = 'initialised'
@@ -400,6 +417,101 @@ class IncrementalAT:
         for t in kf.track_ids[kf.active].tolist():
             self.track_kfs.setdefault(t, []).append(kf.kid)
         return StepReport(kf.kid, True, 'registered')
+
+    def _register_relative(self, kf: Keyframe) -> StepReport:
+        """Orientation from the relative pose to the registered keyframe sharing most usable tracks
+        with `kf` (essential matrix, core/two_view.py); the baseline length from the known points
+        both see (depth ratio, >= 5 of them) or else from the GNSS fixes (the block's scale from its
+        registered keyframes' fixes while not georeferenced)."""
+        use = self._usable(kf)
+        ids = kf.track_ids[use]
+        best = None
+        for r in self.registered[-2 * self.opt.window_size:]:
+            rk = self.kfs[r]
+            if rk.frozen:
+                continue
+            common = np.intersect1d(rk.track_ids[self._usable(rk)], ids)
+            if best is None or len(common) > len(best[1]):
+                best = (r, common)
+        if best is None or len(best[1]) < self.opt.min_relative_inliers:
+            return StepReport(kf.kid, False, f'relative: too_few_shared_tracks ({0 if best is None else len(best[1])})')
+        r, common = best
+        rk = self.kfs[r]
+        i1 = np.array([rk.index(int(t)) for t in common])
+        i2 = np.array([kf.index(int(t)) for t in common])
+        thr = self.opt.pnp_threshold_px / self.camera.fx
+        res = relative_pose(rk.xn[i1], kf.xn[i2], thr, self.opt.min_relative_inliers)
+        T_r = rk.map_T_cam
+        if res.ok:
+            R, t = res.cam2_T_cam1[:3, :3], res.cam2_T_cam1[:3, 3]
+            map_R = T_r[:3, :3] @ R.T
+            d_map = T_r[:3, :3] @ (-R.T @ t)             # unit baseline r -> kf, map frame (block units)
+            scale = self._relative_scale(rk, kf, common[res.inliers], res, d_map)
+            if scale is None:
+                return StepReport(kf.kid, False, 'relative: no_scale (neither known points nor GNSS)')
+            kf.map_T_cam = make_T(map_R, T_r[:3, 3] + scale * d_map)
+            inl = res.inliers
+            status = 'registered_relative'
+        else:
+            # Too short a baseline (or a turn on the spot) for the essential matrix: with a georeferenced
+            # block and a fix, the rotation from the homography of the shared tracks (a rotation when
+            # the baseline is short against the height), the position from GNSS; the adjustment refines.
+            got = self._gnss_and_rotation(rk, kf, i1, i2, thr)
+            if got is None:
+                return StepReport(kf.kid, False, f'relative: {res.status}')
+            kf.map_T_cam, inl = got
+            status = 'registered_gnss_rotation'
+        out = np.ones(len(kf.track_ids), bool)
+        out[i2[inl]] = False
+        known = self.points.contains_many(kf.track_ids)
+        kf.active[use & known & out] = False      # known points that disagree with the relative pose
+        kf.reg_seq = len(self.registered)
+        self.registered.append(kf.kid)
+        for tid in kf.track_ids[kf.active].tolist():
+            self.track_kfs.setdefault(tid, []).append(kf.kid)
+        return StepReport(kf.kid, True, status)
+
+    def _gnss_and_rotation(self, rk: Keyframe, kf: Keyframe, i1, i2, thr: float):
+        """(map_T_cam, inlier mask over i1/i2) of `kf` from its fix and the homography rotation to `rk`;
+        None without a georeference, a fix or enough homography inliers."""
+        import cv2
+        if not self.georeferenced or kf.fix_enu is None:
+            return None
+        H, mask = cv2.findHomography(rk.xn[i1], kf.xn[i2], cv2.RANSAC, 2 * thr)
+        if H is None or int(mask.sum()) < self.opt.min_relative_inliers:
+            return None
+        U, _, Vt = np.linalg.svd(H)
+        R = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt     # nearest rotation: x_kf ~ R x_r
+        map_R = rk.map_T_cam[:3, :3] @ R.T
+        lever = self._lever if kf.antenna_offset is None else map_R.T @ kf.antenna_offset
+        C = kf.fix_enu - self.gnss_bias_enu - map_R @ lever
+        return make_T(map_R, C), mask.ravel().astype(bool)
+
+    def _relative_scale(self, rk: Keyframe, kf: Keyframe, inlier_ids, res, d_map) -> float | None:
+        """Length of the baseline rk -> kf in block units (see _register_relative)."""
+        known = inlier_ids[self.points.contains_many(inlier_ids)]
+        if len(known) >= 5:
+            X = self.points.get_many(known)
+            depth_block = ((X - rk.map_T_cam[:3, 3]) @ rk.map_T_cam[:3, :3])[:, 2]
+            rows = np.searchsorted(inlier_ids, known)
+            depth_unit = res.points_cam1[np.flatnonzero(res.inliers)[rows], 2]
+            ok = (depth_block > 0) & (depth_unit > 0)
+            if ok.sum() >= 5:
+                return float(np.median(depth_block[ok] / depth_unit[ok]))
+        if rk.fix_enu is None or kf.fix_enu is None:
+            return None
+        gnss_m = float(np.linalg.norm(kf.fix_enu - rk.fix_enu))
+        if self.georeferenced:
+            return gnss_m
+        ks = [k for k in self.registered if self.kfs[k].fix_enu is not None]
+        if len(ks) < 2:
+            return None
+        C = np.array([self.kfs[k].map_T_cam[:3, 3] for k in ks])
+        G = np.array([self.kfs[k].fix_enu for k in ks])
+        block, world = np.linalg.norm(C - C[0], axis=1)[1:], np.linalg.norm(G - G[0], axis=1)[1:]
+        if world.max() < 1e-6:
+            return None
+        return gnss_m * float(np.sum(block * world) / np.sum(world * world))
 
     def reprojection_px(self, map_T_cam: np.ndarray, X: np.ndarray, uv: np.ndarray) -> np.ndarray:
         """(n,) pixel distance between the points X (n, 3, map) seen from map_T_cam and uv (n, 2

@@ -55,6 +55,9 @@ class MatchingOptions:
     ratio: float = param(0.8, 'Lowe ratio test: best match distance below this share of the second best',
                          min=0.3, max=1.0)
     ransac_px: float = param(1.0, 'essential-matrix RANSAC threshold in reduced-image pixels', min=0.1, max=20.0)
+    ransac_method: str = param('ransac', 'essential-matrix estimator: OpenCV RANSAC, or USAC (as many inliers, '
+                                         'several times faster at low inlier ratios; the in-flight tracker uses it)',
+                               choices=('ransac', 'usac'))
     min_inliers: int = param(15, 'a pair is verified with at least this many RANSAC inliers', min=6, max=10000)
     min_inlier_ratio: float = param(0.15, 'and at least this share of its ratio-test matches', min=0.0, max=1.0)
     neighbours: int = param(8, 'candidate pairs of each photo: its nearest photos by position (or largest '
@@ -156,7 +159,7 @@ def match_pair(a: PhotoFeatures, b: PhotoFeatures, camera: PinholeCamera, opt: M
         return PairMatch(i, j, sizes, len(pairs), 0, none, 'too_few_matches')
     thr_n = opt.ransac_px * px_per_feature_px / camera.fx
     E, inl = essential_ransac(camera.pixel_to_normalized(a.uv[pairs[:, 0]]),
-                              camera.pixel_to_normalized(b.uv[pairs[:, 1]]), thr_n)
+                              camera.pixel_to_normalized(b.uv[pairs[:, 1]]), thr_n, method=opt.ransac_method)
     if E is None:
         return PairMatch(i, j, sizes, len(pairs), 0, none, 'no_geometry')
     n = int(inl.sum())

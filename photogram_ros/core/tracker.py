@@ -1,13 +1,21 @@
 """Feature tracker and keyframe choice: a stream of frames in, mapping keyframes out.
 
-Per frame: grey conversion and photometric normalisation (mean/std or CLAHE, so that exposure
-jumps do not break KLT), pyramidal KLT from the previous frame with a constant-velocity prior and
-a forward-backward check, RANSAC on the essential matrix in undistorted normalized coordinates,
-then top-up detection (goodFeaturesToTrack per grid cell, so one textured corner cannot take all
-the features). When tracking breaks (black or over-exposed frame, gap, fast turn, too few
-survivors) the frame is matched to the last keyframe by ORB/SIFT descriptors; the homography of
-those matches warps the keyframe onto the frame and KLT refines every keyframe track, so bridged
-tracks keep their ids and sub-pixel accuracy. The break is counted either way.
+Per frame: grey conversion, a power-of-two reduction of large frames (`track_max_px`: 1920 px frames
+are tracked at half size, 4000 px photos at a quarter; positions go out in full-frame pixels), and
+photometric normalisation (mean/std or CLAHE, so that exposure jumps do not break KLT), pyramidal KLT
+from the previous frame with a constant-velocity prior and a forward-backward check, RANSAC on the
+essential matrix in undistorted normalized coordinates, then top-up detection (goodFeaturesToTrack
+per grid cell, so one textured corner cannot take all the features).
+
+Beyond KLT's reach (photo-rate input 0.1-2 Hz, a gap, a fast turn, a black frame: fewer than
+`recover_min_tracks` survivors or under `klt_min_share` of the tracks) the frame is matched by
+descriptors (core/photo_matching.py: SIFT on the reduced frame, ratio test, essential matrix) against
+the last `match_keyframes` keyframes, nearest by GNSS first. A matched feature takes the track id its
+match carries in that keyframe, so points are seen by 3+ keyframes; the KLT tracks of the nearest
+matched keyframe are refined onto the frame through the homography of the matches (sub-pixel, ids
+kept). Keyframes made while descriptor matching is in use (and the first one) carry every SIFT feature
+as a track of its own, which a later frame can continue. A break is counted either way; `bridged`
+says the ids continued.
 
 Keyframes are chosen for mapping: a new one when the front overlap with the last keyframe falls to
 `keyframe_overlap` (the frame closest to the target is taken, which may be the previous frame),
@@ -34,7 +42,7 @@ On ROS the table travels as a PointCloud2 with exactly these named fields (msgs.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
@@ -42,6 +50,8 @@ import numpy as np
 from photogram_ros.core.camera import PinholeCamera
 from photogram_ros.core.gnss_fix import GnssFix
 from photogram_ros.core.keyframes import FixBuffer, OverlapGrid, gps_distance_m, homography_overlap
+from photogram_ros.core.photo_matching import MatchingOptions, PhotoFeatures, extract, match_pair
+from photogram_ros.core.two_view import essential_ransac
 from photogram_ros.errors import CalibrationError
 from photogram_ros.params import param
 
@@ -83,7 +93,17 @@ class TrackerParams:
                                    max=100.0)
     recover_min_tracks: int = param(30, 'Fewer surviving tracks than this is a break: match the last '
                                     'keyframe by descriptors', min=8, max=10000)
-    descriptor: str = param('orb', 'Descriptor used to bridge breaks', choices=('orb', 'sift'))
+    track_max_px: int = param(1024, 'Frames whose long side exceeds this are tracked (KLT, detection, descriptors) '
+                              'at a power-of-two reduction that fits, px: 1920 px at half size, 4000 px at a '
+                              'quarter; smaller frames as they are',
+                              min=160, max=20000)
+    match_keyframes: int = param(4, 'At a break the frame is matched by descriptors (core/photo_matching.py) '
+                                 'against this many recent keyframes, nearest by GNSS first', min=1, max=50)
+    match_features: int = param(4000, 'SIFT features per frame matched at a break (their track ids continue in '
+                                'the keyframes that see them again)', min=100, max=50000)
+    klt_min_share: float = param(0.2, 'Fewer KLT survivors than this share of the previous frame\'s tracks also '
+                                 'tries descriptor matching (photo-rate input: motion far beyond KLT)',
+                                 min=0.0, max=1.0)
     gap_s: float = param(0.0, 'A frame interval above this is a gap, s (0: 2.5 x the usual interval)',
                          min=0.0, max=3600.0)
     fix_wait_s: float = param(1.5, 'How long (stream time) a keyframe waits for a GPS fix after its stamp, s '
@@ -128,10 +148,16 @@ class _Frame:
     image: np.ndarray          # original image (BGR or grey)
     gray: np.ndarray           # normalised grey
     pyr: list
-    pts: np.ndarray            # (N, 2) float32 pixels
+    pts: np.ndarray            # (N, 2) float32 pixels of the reduced image
     ids: np.ndarray            # (N,) uint32
     overlap: float | None = None
     fix: GnssFix | None = None
+    features: PhotoFeatures | None = None   # SIFT of the reduced image, computed at a break
+    feat_ids: np.ndarray | None = None      # (K,) int64 track id per feature (-1: none)
+    # Descriptor tracks this frame starts as a keyframe (not followed by KLT; a later frame
+    # matching its features continues them): (M, 2) reduced-image pixels and (M,) ids.
+    extra_pts: np.ndarray = field(default_factory=lambda: np.empty((0, 2), np.float32))
+    extra_ids: np.ndarray = field(default_factory=lambda: np.empty(0, np.uint32))
 
 
 @dataclass
@@ -140,7 +166,6 @@ class _KfState:
     keyframe: Keyframe
     id_to_row: dict
     xn: np.ndarray
-    features: tuple | None = None   # (keypoints, descriptors), computed on first break
 
 
 class Tracker:
@@ -153,6 +178,7 @@ class Tracker:
         self.camera = None
         self._prev: _Frame | None = None
         self._kf: _KfState | None = None
+        self._recent: list[_KfState] = []   # the last match_keyframes keyframes, oldest first
         self._pending: list[Keyframe] = []
         self._next_id = 0
         self._n_frames = 0
@@ -176,9 +202,16 @@ class Tracker:
         if self.camera is not None and camera == self.camera:
             return
         self.camera = camera
+        # A power-of-two reduction (1920 -> 960, 4000 -> 1000): exact pixel areas, and fast to make.
+        reduce = 1
+        while max(camera.width, camera.height) / reduce > self.params.track_max_px:
+            reduce *= 2
+        self._scale = 1.0 / reduce          # reduced px per full px
+        self._work_cam = camera if self._scale == 1.0 else camera.scaled(self._scale)
         self._grid = OverlapGrid(camera)
         self._prev = None     # points of another calibration cannot be continued
         self._kf = None
+        self._recent = []
 
     def add_fix(self, fix: GnssFix | dict) -> None:
         """A GNSS fix, or the dict of msgs.fix_from_navsatfix."""
@@ -213,6 +246,8 @@ class Tracker:
             self.stats.unusable += 1
             self._lost = True
             return self._release(stamp_ns)
+        if self._scale < 1.0:
+            gray = cv2.resize(gray, (self._work_cam.width, self._work_cam.height), interpolation=cv2.INTER_AREA)
         g = self._normalise(gray, mean, std)
         # (Python's calcOpticalFlowPyrLK cannot take prebuilt pyramids; it builds them itself.)
         cur = _Frame(index, stamp_ns, image, g, g, np.empty((0, 2), np.float32), np.empty(0, np.uint32))
@@ -261,19 +296,25 @@ class Tracker:
             self.stats.gaps += 1
         else:
             self._dt_hist = (self._dt_hist + [dt])[-20:]
-        pts, ids, flow = self._klt(prev.pyr, cur.pyr, prev.pts, prev.ids, self._velocity * dt)
+        p0, i0 = prev.pts, prev.ids
+        if len(i0) > 2 * p.max_features:   # descriptor tracks of a keyframe: KLT follows a spread share
+            sel = np.linspace(0, len(i0) - 1, 2 * p.max_features).astype(int)
+            p0, i0 = p0[sel], i0[sel]
+        pts, ids, flow = self._klt(prev.pyr, cur.pyr, p0, i0, self._velocity * dt)
         if len(ids) >= p.recover_min_tracks and flow is not None:
             self._velocity = (flow / dt).astype(np.float32)
-        if len(ids) < p.recover_min_tracks:
-            self.stats.breaks += 1
-            self._break_since_kf = True
-            self._break_index = cur.index
+        weak = len(ids) < max(p.recover_min_tracks, p.klt_min_share * len(i0))
+        if weak:
+            # Beyond KLT's reach (photo-rate input, a fast turn, a gap): descriptors against the
+            # last keyframes; kept when they link more tracks than KLT carried.
             rec = self._recover(cur)
-            if rec is not None:
+            if rec is not None and len(rec[1]) > len(ids):
                 pts, ids = rec
-                self.stats.bridged += 1
-                self._bridged_since_kf = True
-            else:
+                self._bridge(cur)
+            elif len(ids) < p.recover_min_tracks:
+                self.stats.breaks += 1
+                self._break_since_kf = True
+                self._break_index = cur.index
                 pts, ids = np.empty((0, 2), np.float32), np.empty(0, np.uint32)
         self._lost = False
         cur.pts, cur.ids = self._top_up(cur, pts, ids)
@@ -291,7 +332,7 @@ class Tracker:
                                               criteria=self._criteria, flags=flags)
         p1, pb, err = p1.reshape(-1, 2), pb.reshape(-1, 2), err.ravel()
         ok = (st.ravel() == 1) & (st2.ravel() == 1) & (np.linalg.norm(pb - p0.reshape(-1, 2), axis=1) < p.fb_max_px)
-        ok &= self.camera.in_image(p1, margin_px=2.0)
+        ok &= self._work_cam.in_image(p1, margin_px=2.0)
         if ok.sum() > 10 and p.klt_err_factor > 0:
             # A window whose content changes (an occluding edge sliding over the background) keeps a
             # large residual: it is not the image of one ground point.
@@ -316,25 +357,28 @@ class Tracker:
                 q0 = p0 @ A[:, :2].T.astype(np.float32) + A[:, 2].astype(np.float32)
                 p1, ok2 = self._klt_pair(warped, img1, q0, np.where(ok[:, None], p1, q0), 1)
                 ok = ok2
+        if ok.sum() < p.klt_min_share * len(ok):
+            # Most windows lost their point: far beyond KLT's reach (photo-rate input). The few
+            # survivors are mostly coincidences; RANSAC on them would only cost time.
+            return p0[:0], ids[:0], None
         p0, p1, ids = p0[ok], p1[ok], ids[ok]
         keep = self._epipolar_inliers(p0, p1)
         p0, p1, ids = p0[keep], p1[keep], ids[keep]
         flow = np.median(p1 - p0, axis=0) if len(p1) else None
         return p1.astype(np.float32), ids, flow
 
-    def _epipolar_inliers(self, p0, p1, xn0=None) -> np.ndarray:
-        n = len(p0)
+    def _epipolar_inliers(self, p0, p1, xn0=None, method: str = 'ransac') -> np.ndarray:
+        n = len(p1)
         if n < 8:
             return np.zeros(n, bool)
-        xn0 = self.camera.pixel_to_normalized(p0) if xn0 is None else xn0
-        xn1 = self.camera.pixel_to_normalized(p1)
-        if np.median(np.linalg.norm(xn1 - xn0, axis=1)) * self.camera.fx < 1.0:
+        xn0 = self._work_cam.pixel_to_normalized(p0) if xn0 is None else xn0
+        xn1 = self._work_cam.pixel_to_normalized(p1)
+        if np.median(np.linalg.norm(xn1 - xn0, axis=1)) * self._work_cam.fx < 1.0:
             return np.ones(n, bool)   # no baseline to speak of: E is undetermined, FB check must do
-        E, mask = cv2.findEssentialMat(xn0, xn1, np.eye(3), cv2.RANSAC, 0.999,
-                                       self.params.ransac_px / self.camera.fx)
-        if E is None or mask is None:
+        E, mask = essential_ransac(xn0, xn1, self.params.ransac_px / self._work_cam.fx, method=method)
+        if E is None:
             return np.zeros(n, bool)
-        return mask.ravel().astype(bool)
+        return mask
 
     def _top_up(self, cur: _Frame, pts, ids):
         """Detect new corners in the grid cells that have fallen below their share of features."""
@@ -372,60 +416,108 @@ class Tracker:
 
     # --- breaks ----------------------------------------------------------------------------------
 
-    def _detector(self):
-        if self.params.descriptor == 'sift':
-            return cv2.SIFT_create(1500), cv2.NORM_L2
-        return cv2.ORB_create(2000, fastThreshold=10), cv2.NORM_HAMMING
+    def _bridge(self, cur: _Frame) -> None:
+        """Count a break that descriptor matching reconnected (track ids continue)."""
+        self.stats.breaks += 1
+        self.stats.bridged += 1
+        self._break_since_kf = self._bridged_since_kf = True
+        self._break_index = cur.index
+
+    def _match_options(self) -> MatchingOptions:
+        n = self.params.match_features
+        return MatchingOptions(max_features=n, features_per_mpx=max(100.0, 4.0 * n), min_inliers=15,
+                               ransac_method='usac')
+
+    def _features_of(self, frame: _Frame) -> None:
+        """SIFT features of a frame (reduced-image pixels), without track ids yet (-1)."""
+        if frame.features is None:
+            frame.features = extract(str(frame.index), frame.gray, (1.0, 1.0), self._match_options())
+            frame.feat_ids = np.full(len(frame.features.uv), -1, np.int64)
+
+    def _new_ids(self, n: int) -> np.ndarray:
+        t = np.arange(self._next_id, self._next_id + n, dtype=np.int64)
+        self._next_id += n
+        return t
+
+    def _candidates(self, cur: _Frame) -> list[_KfState]:
+        """The recent keyframes to match, nearest by GNSS first (newest first without fixes)."""
+        kfs = list(reversed(self._recent))
+        b = self.fixes.at(cur.stamp_ns)
+        if b is None:
+            return kfs
+        def dist(k):
+            a = self.fixes.at(k.keyframe.stamp_ns)
+            return gps_distance_m(a, b) if a is not None else float('inf')
+        return sorted(kfs, key=dist)
 
     def _recover(self, cur: _Frame):
-        """Bridge a break: descriptor homography keyframe -> frame, then KLT of every keyframe track."""
-        kf = self._kf
-        det, norm = self._detector()
-        if kf.features is None:
-            kf.features = det.detectAndCompute(kf.frame.gray, None)
-        kp0, d0 = kf.features
-        kp1, d1 = det.detectAndCompute(cur.gray, None)
-        if d0 is None or d1 is None or len(kp0) < 15 or len(kp1) < 15:
+        """Descriptor matching (core/photo_matching.py: SIFT, ratio test, essential-matrix RANSAC)
+        of the frame against the recent keyframes, nearest first. A matched feature takes the track
+        id its match carries in that keyframe (a keyframe feature without one starts a track now);
+        the KLT tracks of the nearest verified keyframe are refined onto the frame through the
+        homography of the matches (sub-pixel, their ids kept). Returns (pts, ids) of the linked
+        tracks, or None when no keyframe verified enough matches; the frame's unmatched features
+        become keyframe-only tracks (`extra_*`) that later frames can match."""
+        opt = self._match_options()
+        self._features_of(cur)
+        f = cur.features
+        if len(f.uv) < opt.min_inliers:
             return None
-        pairs = cv2.BFMatcher(norm).knnMatch(d0, d1, k=2)
-        good = [m[0] for m in pairs if len(m) == 2 and m[0].distance < 0.8 * m[1].distance]
-        if len(good) < 15:
+        got = cur.feat_ids
+        linked = 0
+        refined = (np.empty((0, 2), np.float32), np.empty(0, np.uint32))
+        for k in self._candidates(cur):
+            self._features_of(k.frame)
+            m = match_pair(k.frame.features, f, self._work_cam, opt)
+            if not m.verified:
+                continue
+            rows, dst = m.matches[:, 0], m.matches[:, 1]
+            open_ = got[dst] < 0
+            fresh = open_ & (k.frame.feat_ids[rows] < 0)
+            k.frame.feat_ids[rows[fresh]] = self._new_ids(int(fresh.sum()))   # that keyframe is out: from here on
+            got[dst[open_]] = k.frame.feat_ids[rows[open_]]
+            linked += int(open_.sum())
+            if not len(refined[1]):
+                refined = self._refine_through_homography(k, k.frame.features.uv[rows], f.uv[dst], cur)
+        if linked < opt.min_inliers:
+            got[:] = -1
             return None
-        src = np.float32([kp0[m.queryIdx].pt for m in good])
-        dst = np.float32([kp1[m.trainIdx].pt for m in good])
-        H, inl = cv2.findHomography(src, dst, cv2.RANSAC, 8.0)
-        if H is None or int(inl.sum()) < 15:
-            return None
-        h, w = cur.gray.shape
-        warped = cv2.warpPerspective(kf.frame.gray, H, (w, h), flags=cv2.INTER_LINEAR)
-        p_kf = kf.frame.pts
-        guess = cv2.perspectiveTransform(p_kf.reshape(-1, 1, 2).astype(np.float64), H).reshape(-1, 2)
-        inside = self.camera.in_image(guess, margin_px=self._win[0] / 2)
-        if inside.sum() < 8:
-            return None
-        guess = guess[inside].astype(np.float32)
-        ids, xn_kf = kf.frame.ids[inside], kf.xn[inside]
-        # KLT warped -> current from the warped positions (pure parallax residual left to find).
-        pts, ok = self._klt_pair(warped, cur.pyr, guess, guess, 2)
-        pts, ids_ok = pts[ok], ids[ok]
-        if len(ids_ok) < 8:
-            return None
-        keep = self._essential_inliers(xn_kf[ok], pts)
-        pts, ids_ok = pts[keep], ids_ok[keep]
-        if len(ids_ok) < min(self.params.recover_min_tracks, 15):
-            return None
-        return pts.astype(np.float32), ids_ok
+        # One feature per track id (two features matched to one track: keep the first).
+        _, first = np.unique(np.where(got >= 0, got, -1 - np.arange(len(got))), return_index=True)
+        dup = np.ones(len(got), bool)
+        dup[first] = False
+        got[dup] = -1
+        free = got < 0
+        got[free] = self._new_ids(int(free.sum()))
+        inside = self._work_cam.in_image(f.uv, margin_px=self._win[0] / 2 + 1)
+        take = ~free & inside & ~np.isin(got, refined[1].astype(np.int64))   # KLT-refined positions win
+        cur.extra_pts, cur.extra_ids = f.uv[free & inside].astype(np.float32), got[free & inside].astype(np.uint32)
+        return (np.concatenate([refined[0], f.uv[take].astype(np.float32)]),
+                np.concatenate([refined[1], got[take].astype(np.uint32)]))
 
-    def _essential_inliers(self, xn0, p1) -> np.ndarray:
-        n = len(p1)
-        if n < 8:
-            return np.zeros(n, bool)
-        xn1 = self.camera.pixel_to_normalized(p1)
-        E, mask = cv2.findEssentialMat(xn0, xn1, np.eye(3), cv2.RANSAC, 0.999,
-                                       self.params.ransac_px / self.camera.fx)
-        if E is None or mask is None:
-            return np.zeros(n, bool)
-        return mask.ravel().astype(bool)
+    def _refine_through_homography(self, k: _KfState, uv_kf, uv_cur, cur: _Frame):
+        """The keyframe's KLT tracks onto the frame: its image warped by the homography of the
+        matches, KLT from the warped positions (the parallax residual left), epipolar check."""
+        none = (np.empty((0, 2), np.float32), np.empty(0, np.uint32))
+        p_kf = k.frame.pts
+        if len(p_kf) < 8:
+            return none
+        H, inl = cv2.findHomography(uv_kf.astype(np.float32), uv_cur.astype(np.float32), cv2.RANSAC, 8.0)
+        if H is None or int(inl.sum()) < 15:
+            return none
+        h, w = cur.gray.shape
+        warped = cv2.warpPerspective(k.frame.gray, H, (w, h), flags=cv2.INTER_LINEAR)
+        guess = cv2.perspectiveTransform(p_kf.reshape(-1, 1, 2).astype(np.float64), H).reshape(-1, 2)
+        inside = self._work_cam.in_image(guess, margin_px=self._win[0] / 2)
+        if inside.sum() < 8:
+            return none
+        guess = guess[inside].astype(np.float32)
+        ids, xn_kf = k.frame.ids[inside], self._work_cam.pixel_to_normalized(p_kf[inside].astype(np.float64))
+        pts, ok = self._klt_pair(warped, cur.pyr, guess, guess, 2)
+        if ok.sum() < 8:
+            return none
+        keep = self._epipolar_inliers(None, pts[ok], xn_kf[ok], 'usac')
+        return pts[ok][keep].astype(np.float32), ids[ok][keep]
 
     # --- keyframes -------------------------------------------------------------------------------
 
@@ -439,14 +531,14 @@ class Tracker:
         if shared.sum() < 8:
             return None, surviving, 0.0
         xn_kf = kf.xn[rows[shared]]
-        xn_cur = self.camera.pixel_to_normalized(cur.pts[shared])
-        parallax = float(np.median(np.linalg.norm(xn_cur - xn_kf, axis=1))) * self.camera.fx
+        xn_cur = self._work_cam.pixel_to_normalized(cur.pts[shared])
+        parallax = float(np.median(np.linalg.norm(xn_cur - xn_kf, axis=1))) * self._work_cam.fx
         overlap = None
         fix_ok = self._gps_overlap(cur)
         if fix_ok is not None:
             overlap = fix_ok
         if overlap is None:
-            overlap, _ = homography_overlap(self._grid, xn_kf, xn_cur, 2.0 / self.camera.fx)
+            overlap, _ = homography_overlap(self._grid, xn_kf, xn_cur, 2.0 / self._work_cam.fx)
         return overlap, surviving, parallax
 
     def _gps_overlap(self, cur: _Frame) -> float | None:
@@ -482,11 +574,40 @@ class Tracker:
             return
         self._make_keyframe(cur, overlap)
 
+    def _to_full_px(self, pts: np.ndarray) -> np.ndarray:
+        """Reduced-image pixels -> full-image pixels (pixel centres at integers in both)."""
+        pts = np.asarray(pts, np.float64).reshape(-1, 2)
+        return pts if self._scale == 1.0 else (pts + 0.5) / self._scale - 0.5
+
+    def _wants_features(self, frame: _Frame) -> bool:
+        """Descriptors for a new keyframe: the first one, and every one while the stream needs
+        descriptor matching (a break bridged since, or at, the last keyframe: photo-rate input),
+        so that a later frame matching them continues their tracks."""
+        return (frame.features is not None or not self._recent or self._bridged_since_kf
+                or self._recent[-1].keyframe.bridged)
+
+    def _add_feature_tracks(self, frame: _Frame) -> None:
+        """Every SIFT feature of a keyframe without a track starts a keyframe-only one."""
+        self._features_of(frame)
+        f, fid = frame.features, frame.feat_ids
+        lone = (fid < 0) & self._work_cam.in_image(f.uv, margin_px=self._win[0] / 2 + 1)
+        if lone.any():
+            fid[lone] = self._new_ids(int(lone.sum()))
+            frame.extra_pts = np.concatenate([frame.extra_pts, f.uv[lone].astype(np.float32)])
+            frame.extra_ids = np.concatenate([frame.extra_ids, fid[lone].astype(np.uint32)])
+
     def _make_keyframe(self, frame: _Frame, overlap: float) -> None:
-        xn = self.camera.pixel_to_normalized(frame.pts.astype(np.float64))
-        obs = np.empty(len(frame.ids), FEATURE_DTYPE)
-        obs['track_id'] = frame.ids
-        obs['u'], obs['v'] = frame.pts[:, 0], frame.pts[:, 1]
+        if self._wants_features(frame):
+            self._add_feature_tracks(frame)
+        all_ids = np.concatenate([frame.ids, frame.extra_ids])
+        _, first = np.unique(all_ids, return_index=True)
+        first.sort()
+        all_ids = all_ids[first]
+        uv = self._to_full_px(np.concatenate([frame.pts, frame.extra_pts])[first])
+        xn = self.camera.pixel_to_normalized(uv)
+        obs = np.empty(len(all_ids), FEATURE_DTYPE)
+        obs['track_id'] = all_ids
+        obs['u'], obs['v'] = uv[:, 0], uv[:, 1]
         obs['xn'], obs['yn'] = xn[:, 0], xn[:, 1]
         image = frame.image if frame.image.ndim == 3 else cv2.cvtColor(frame.image, cv2.COLOR_GRAY2BGR)
         kf = Keyframe(self.stats.keyframes, frame.index, frame.stamp_ns, image, obs, None, float(overlap),
@@ -495,7 +616,8 @@ class Tracker:
         if np.isfinite(overlap):
             self.stats.last_overlap = float(overlap)
         self._break_since_kf = self._bridged_since_kf = False
-        self._kf = _KfState(frame, kf, {int(i): r for r, i in enumerate(frame.ids)}, xn)
+        self._kf = _KfState(frame, kf, {int(i): r for r, i in enumerate(all_ids)}, xn)
+        self._recent = (self._recent + [self._kf])[-self.params.match_keyframes:]
         self._pending.append(kf)
 
     def _finish(self, kf: Keyframe) -> Keyframe:

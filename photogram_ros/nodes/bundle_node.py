@@ -27,6 +27,13 @@ Outputs:
                       control file GCPs seen / used, GCP residual RMS, check points seen, unknown markers,
                       check_rmse_h_m / check_rmse_v_m / checks_measured; keyframe shares per fix class
 
+Health (/diagnostics tells the truth): WARN (ERROR above half) when more than health_max_unoriented of
+the last health_window keyframes are not oriented, with the last reason; WARN/ERROR when the block has no
+georeference after georef_warn_keyframes keyframes with a fix; WARN when a body lever arm is applied
+without an attitude. Fixes without a covariance get one from their GNSS mode (RTK, SBAS, plain 3D), and a
+fix under RTK status with more than max_rtk_sigma_m is not used. `finish()` and `full_adjustment()`
+return an AdjustmentOutcome ('done', 'failed', 'none'); the console script exits 4 when it failed.
+
 Ground control (`control_file`, io/control_file.py): targets named in the file become GCPs (point
 priors) or check points (never used), in the map frame as soon as its origin is known; markers
 the file does not name are counted and ignored.
@@ -56,7 +63,7 @@ from geometry_msgs.msg import PoseWithCovarianceStamped
 from nav_msgs.msg import Path
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
-from sensor_msgs.msg import CameraInfo, Image, Imu, NavSatFix, PointCloud2
+from sensor_msgs.msg import CameraInfo, Image, Imu, NavSatFix, NavSatStatus, PointCloud2
 from std_msgs.msg import Empty
 
 from photogram_ros import msgs
@@ -67,7 +74,7 @@ from photogram_ros.core.gnss_fix import GnssFix
 from photogram_ros.core.incremental import IncrementalAT, IncrementalOptions, KeyframeRecord, intersect_point
 from photogram_ros.core.survey_quality import FIX_CLASSES, fix_class, rmse
 from photogram_ros.errors import PhotogramError
-from photogram_ros.nodes.diagnostics import ERROR, Diagnostics
+from photogram_ros.nodes.diagnostics import ERROR, WARN, Diagnostics
 from photogram_ros.nodes.node_main import run_node
 from photogram_ros.nodes.ros_params import declare
 from photogram_ros.params import param
@@ -97,6 +104,13 @@ class BundleNodeParams(IncrementalOptions):
     sync_tolerance_ms: float = param(5.0, 'features and fix with stamps closer than this belong together, ms',
                                      min=0.0, max=1000.0)
     max_fix_sigma_m: float = param(50.0, 'fixes with a larger horizontal sigma are not used, m', min=0.01, max=1e4)
+    max_rtk_sigma_m: float = param(1.0, 'a fix reporting RTK (GBAS status) with a larger horizontal sigma is not used, '
+                                        'm: its receiver has lost the corrections but still says RTK', min=0.01, max=1e4)
+    health_window: int = param(20, 'health: keyframes over which the share not oriented is judged', min=2, max=10000)
+    health_max_unoriented: float = param(0.1, 'health: WARN above this share of the last health_window keyframes '
+                                              'not oriented (ERROR above 0.5)', min=0.0, max=1.0)
+    georef_warn_keyframes: int = param(10, 'health: WARN when this many keyframes with a fix are in and the block is '
+                                           'still not georeferenced (ERROR at twice as many)', min=1, max=100000)
     cloud_every: int = param(5, 'publish the sparse cloud every this many keyframes', min=1, max=1000)
     cloud_recent_only: bool = param(True, 'the sparse cloud holds the tie points of the keyframes around the '
                                           'adjustment window (what stereo takes its ground and depth range from); '
@@ -130,6 +144,37 @@ class BundleNodeParams(IncrementalOptions):
                                              'until the first turn); off, poses start at the first turn')
 
 
+# 1-sigma E, N, U (m) of a fix that gives no covariance, by its NavSatFix status: what such a receiver
+# typically achieves (RTK: fixed or float, the status cannot tell; SBAS/DGPS; a plain 3D fix).
+UNKNOWN_FIX_SIGMA_M = {NavSatStatus.STATUS_GBAS_FIX: (0.5, 0.5, 1.0),
+                       NavSatStatus.STATUS_SBAS_FIX: (1.5, 1.5, 3.0)}
+PLAIN_FIX_SIGMA_M = (5.0, 5.0, 10.0)
+
+
+def unknown_fix_covariance(status: int) -> np.ndarray:
+    """ENU covariance (m^2) for a fix without one, following its GNSS mode (UNKNOWN_FIX_SIGMA_M)."""
+    return np.diag(np.square(UNKNOWN_FIX_SIGMA_M.get(status, PLAIN_FIX_SIGMA_M)))
+
+
+def fix_sigma_limit_m(status: int, p) -> float:
+    """Largest horizontal sigma (m) of a usable fix: max_fix_sigma_m, and max_rtk_sigma_m for a fix that
+    reports RTK (a larger sigma under an RTK status is a receiver that lost its corrections)."""
+    if status >= NavSatStatus.STATUS_GBAS_FIX:
+        return min(p.max_fix_sigma_m, p.max_rtk_sigma_m)
+    return p.max_fix_sigma_m
+
+
+@dataclass
+class AdjustmentOutcome:
+    """What a final (full) adjustment came to: 'done', 'failed' or 'none' (nothing to adjust), and why."""
+    status: str
+    reason: str = ''
+
+    @property
+    def failed(self) -> bool:
+        return self.status == 'failed'
+
+
 class BundleNode(Node):
     def __init__(self, overrides: dict | None = None, **node_kwargs):
         super().__init__('bundle_node', **node_kwargs)
@@ -146,6 +191,7 @@ class BundleNode(Node):
         self._pending: dict[int, tuple] = {}   # stamp -> (arrival, track ids, uv, {target name: uv})
         self._fixes: dict[int, GnssFix] = {}
         self._georef_sent = False
+        self._last_failure = ''
         self._latest_fix_ns = None
         self._published_final = False
         self._n_since_cloud = 0
@@ -221,9 +267,9 @@ class BundleNode(Node):
                 self.diag.count('fixes_without_position')
                 return
             if f['covariance_type'] == NavSatFix.COVARIANCE_TYPE_UNKNOWN or not np.all(np.diag(cov) > 0):
-                cov = np.diag([25.0, 25.0, 100.0])    # unknown accuracy: a plain GNSS fix's worth
+                cov = unknown_fix_covariance(int(msg.status.status))
                 self.diag.count('fixes_without_covariance')
-            if np.sqrt(cov[0, 0]) > self.p.max_fix_sigma_m:
+            if np.sqrt(cov[0, 0]) > fix_sigma_limit_m(int(msg.status.status), self.p):
                 self.diag.count('fixes_too_inaccurate')
                 return
             with self._cond:
@@ -280,6 +326,10 @@ class BundleNode(Node):
             enu_R_flu = self._attitude.at(stamp)
             if enu_R_flu is None:
                 self.diag.count('keyframes_without_attitude')
+                self.diag.problem('lever_arm_body_frd_m is set but no attitude (mavlink/attitude) covers the keyframes: '
+                                  'the body lever arm is applied as if flying level, image top forward (wrong by the '
+                                  'lever times the tilt); give the attitude, or the lever arm in the camera frame '
+                                  '(lever_arm_cam_m) for a camera fixed to the body, or zeros')
             else:
                 offset = antenna_offset_enu(enu_R_flu, self.p.lever_arm_body_frd_m)
         return KeyframeRecord(stamp, ids, uv, fix, target_uv=target_uv, antenna_offset_map_m=offset)
@@ -386,6 +436,7 @@ class BundleNode(Node):
             return
         self._control_to_map()
         self._fix_classes[fix_class(rec.fix)] += 1
+        self._health(rep)
         if rec.target_uv and self.at.kfs and self.at.kfs[-1].stamp_ns == rec.stamp_ns:
             for name, uv in rec.target_uv.items():
                 self._target_obs.setdefault(name, []).append((len(self.at.kfs) - 1, np.asarray(uv, float)))
@@ -420,6 +471,27 @@ class BundleNode(Node):
             self._publish(window=list(self.at.registered))
         else:
             self._publish(window=self.at.registered[-(self.p.window_size + earlier):], new=1 + earlier)
+
+    def _health(self, rep=None) -> None:
+        """Health that tells the truth: the share of the last health_window keyframes not oriented, and a
+        block still without georeference after georef_warn_keyframes keyframes with a fix."""
+        at = self.at
+        if rep is not None and not rep.registered:
+            self._last_failure = rep.status
+        recent = at.kfs[-self.p.health_window:]
+        n_bad = sum(kf.map_T_cam is None for kf in recent)
+        self.diag.set('keyframes_registered', len(at.registered))
+        self.diag.set('keyframes_registered_share', len(at.registered) / max(len(at.kfs), 1))
+        share = n_bad / max(len(recent), 1)
+        if len(recent) >= min(5, self.p.health_window) and share > self.p.health_max_unoriented:
+            self.diag.problem(f'{n_bad} of the last {len(recent)} keyframes are not oriented (last reason: '
+                              f'{self._last_failure})', ERROR if share > 0.5 else WARN)
+        with_fix = sum(kf.fix_enu is not None for kf in at.kfs)
+        if not at.georeferenced and with_fix >= self.p.georef_warn_keyframes:
+            why = (f'{len(at.registered)} keyframes oriented' if at.registered else 'no keyframe oriented yet')
+            self.diag.problem(f'no georeference after {with_fix} keyframes with a GNSS fix ({why}; the fixes must '
+                              'spread beyond their noise, and the block must be oriented)',
+                              ERROR if with_fix >= 2 * self.p.georef_warn_keyframes else WARN)
 
     def _control_diagnostics(self) -> None:
         if self.control is None:
@@ -566,11 +638,12 @@ class BundleNode(Node):
             return
         self.pub_cloud.publish(msgs.sparse_cloud_msg(self.at.points.get_many(ids), stamp_ns, ids))
 
-    def finish(self) -> None:
+    def finish(self) -> AdjustmentOutcome:
         """End of flight (called by the graph): take every waiting keyframe now, with or without its
-        fix, then adjust the whole block and republish every pose."""
+        fix, give the keyframes that did not orient in flight a second chance against the whole block,
+        then adjust the whole block and republish every pose. Returns the final adjustment's outcome."""
         if self.at is None:
-            return
+            return AdjustmentOutcome('none', 'no calibration: no keyframe was adjusted')
         with self._work:   # after the batch the worker may be adjusting
             with self._cond:
                 recs = []
@@ -579,18 +652,31 @@ class BundleNode(Node):
                     recs.append(self._record(stamp, ids, uv, self._match_fix(stamp), target_uv))
             for rec in recs:
                 self._process(rec)
-            self.full_adjustment()
+            if self.at.registered:
+                try:
+                    n = self.at.retry_unregistered()
+                    if n:
+                        self.diag.count('keyframes_oriented_at_end', n)
+                except Exception as exc:   # the full adjustment still runs
+                    self.diag.problem(f'second chance of unoriented keyframes failed: {exc}')
+            return self.full_adjustment()
 
-    def full_adjustment(self) -> None:
+    def full_adjustment(self) -> AdjustmentOutcome:
+        """Adjust the whole block now and republish; the outcome says whether it was made."""
         with self._work:
-            self._full_adjustment()
+            out = self._full_adjustment()
+            if self.at is not None:
+                self._health()
+            return out
 
-    def _full_adjustment(self) -> None:
+    def _full_adjustment(self) -> AdjustmentOutcome:
         if self.at is None or not self.at.registered:
-            return
+            return AdjustmentOutcome('none', 'no keyframe was oriented')
         try:
             t0 = time.perf_counter()
             rep = self.at.full_adjustment()
+            if rep.status == 'failed':
+                raise PhotogramError(f'the solver failed ({len(self.at.registered)} keyframes)')
             self.diag.set('full_adjustment_s', time.perf_counter() - t0)
             self.diag.set('full_adjustment_rms_px', float(rep.reprojection_rms_px))
             self._control_diagnostics()
@@ -599,9 +685,10 @@ class BundleNode(Node):
                 self._publish(window=list(self.at.registered), new=0)
                 self.publish_cloud(self.at.kfs[self.at.registered[-1]].stamp_ns)
             self.diag.count('full_adjustments')   # after publishing: a waiting caller gets the poses
+            return AdjustmentOutcome('done', rep.status)
         except Exception as exc:
-            self.diag.problem(f'full adjustment failed: {exc}')
-
+            self.diag.problem(f'full adjustment failed: {exc}', ERROR)
+            return AdjustmentOutcome('failed', f'full adjustment failed: {exc}')
 
     def destroy_node(self):
         with self._cond:
@@ -611,9 +698,22 @@ class BundleNode(Node):
         return super().destroy_node()
 
 
+EXIT_FINAL_ADJUSTMENT_FAILED = 4    # as `photogram-ros run` (commands/run.py EXIT_FINISH_FAILED)
+
+
 def main(argv=None) -> int:
-    """Console script `bundle_node`."""
-    return run_node(BundleNode, argv, on_exit=lambda n: n.full_adjustment() if n.p.full_adjustment_on_shutdown else None)
+    """Console script `bundle_node`: at the stop the final adjustment (full_adjustment_on_shutdown); its
+    failure is printed and makes the exit status 4."""
+    outcome = []
+
+    def on_exit(node):
+        if node.p.full_adjustment_on_shutdown:
+            outcome.append(node.full_adjustment())
+            if outcome[-1].failed:
+                print(f'bundle_node: {outcome[-1].reason}', file=sys.stderr, flush=True)
+
+    rc = run_node(BundleNode, argv, on_exit=on_exit)
+    return rc or (EXIT_FINAL_ADJUSTMENT_FAILED if outcome and outcome[-1].failed else 0)
 
 
 if __name__ == '__main__':

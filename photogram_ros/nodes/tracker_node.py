@@ -56,6 +56,10 @@ class TrackerNodeParams(TrackerParams):
                                  'with its features (a few ms per keyframe; bundle_node.control_file names them)')
     target_dictionary: str = param('DICT_4X4_50', 'ArUco dictionary of the target boards',
                                    choices=ARUCO_DICTIONARIES)
+    health_window: int = param(20, 'health: keyframes over which the share after an unbridged break (tracking '
+                                   'lost: a new segment) is judged', min=2, max=10000)
+    health_max_lost: float = param(0.2, 'health: WARN above this share of the last health_window keyframes '
+                                        'coming after an unbridged break (ERROR above 0.5)', min=0.0, max=1.0)
 
 
 class TrackerNode(Node):
@@ -76,6 +80,7 @@ class TrackerNode(Node):
         self._camera_error = 'no camera_info received yet' if self._camera_from_file is None else ''
         self._stop = False
         self.keyframes_published = 0
+        self._lost_history: deque = deque(maxlen=p.health_window)   # per keyframe: an unbridged break before it
         self.frames_done = 0   # frames tracked, refused or dropped: lets a bag replay wait for the tracker
 
         kf_qos = QoSProfile(depth=p.keyframe_qos_depth, reliability=ReliabilityPolicy.RELIABLE)
@@ -217,9 +222,21 @@ class TrackerNode(Node):
             self.diag.count('keyframes_without_fix')
         self.keyframes_published += 1
         self.diag.count('keyframes')
-        if kf.break_before:
-            self.diag.problem(f'tracking broke before keyframe {kf.index}'
-                              + (' (bridged by descriptor matching)' if kf.bridged else ' (not bridged: new segment)'))
+        # A bridged break is the normal way of photo-rate input (descriptor matching carries the tracks
+        # on): counted; tracking lost (a new segment) is a problem, and judged over the last keyframes.
+        lost = kf.break_before and not kf.bridged
+        self._lost_history.append(lost)
+        if kf.bridged:
+            self.diag.count('keyframes_bridged')
+        if lost:
+            self.diag.problem(f'tracking lost before keyframe {kf.index} (no descriptor match with the last '
+                              'keyframes: its tracks start a new segment)')
+        n_lost = sum(self._lost_history)
+        share = n_lost / len(self._lost_history)
+        if len(self._lost_history) >= 5 and share > self.params.health_max_lost:
+            self.diag.problem(f'tracking lost before {n_lost} of the last {len(self._lost_history)} keyframes '
+                              '(too little overlap, blur or texture: the bundle adjuster cannot chain them)',
+                              ERROR if share > 0.5 else WARN)
 
     def _update_diagnostics(self, dt: float) -> None:
         s = self.tracker.stats
@@ -252,7 +269,12 @@ class TrackerNode(Node):
                 if not self._frames:
                     break
             time.sleep(0.02)
+        with self._cond:
+            fixes = list(self._fixes)    # fixes after the last frame: the last keyframes need them
+            self._fixes.clear()
         with self._track_lock:
+            for f in fixes:
+                self.tracker.add_fix(f)
             kfs = self.tracker.flush()
         for kf in kfs:
             self._publish_keyframe(kf, 'camera_optical')
