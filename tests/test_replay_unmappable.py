@@ -64,7 +64,10 @@ def test_verdict_names_each_way_a_flight_fails_to_map():
         'not oriented by the bundle adjuster (its last status: too_few_known_points (0))': 32}
     v = mapping_verdict(acc, georeferenced=True, dsm_share=0.028, mapped_products=True)
     assert not v['mapped'] and len(v['failures']) == 2
-    assert 'only 1 of 34 keyframes (3 %)' in v['failures'][0] and '2.8 % of its cells' in v['failures'][1]
+    assert 'only 1 of 34 keyframes (3 %)' in v['failures'][0] and '2.8 % of the DSM' in v['failures'][1]
+    # A DSM with holes over much of its area (trees, water) is a warning, not a failed flight.
+    holes = mapping_verdict(acc, georeferenced=True, dsm_share=0.3, mapped_products=True)
+    assert holes['warnings'] and '30.0 %' in holes['warnings'][0] and len(holes['failures']) == 1
     # Per-reason counters of the adjuster, when it has them, replace its last status.
     counts['bundle'].update(not_oriented_too_few_known_points=30, not_oriented_no_fix=2)
     acc = keyframe_accounting(counts, 1, 'whatever')
@@ -74,7 +77,9 @@ def test_verdict_names_each_way_a_flight_fails_to_map():
         'keyframes_received': 14, 'keyframes_oriented': 13, 'keyframes_not_oriented': 1}}, 14)
     assert good['keyframes_not_oriented'] == 0 and good['keyframes_not_oriented_by_reason'] == {}
     assert good['keyframes_oriented_after_the_window_gave_up'] == 1
-    assert mapping_verdict(good, True, 0.73, True) == {'mapped': True, 'failures': [], 'dsm_valid_share': 0.73}
+    assert mapping_verdict(good, True, 0.73, True) == {'mapped': True, 'failures': [], 'warnings': [],
+                                                        'dsm_valid_share': 0.73}
+    assert mapping_verdict(good, True, 0.3, True)['mapped'] is True
     assert mapping_verdict(good, True, None, True)['failures'] == ['no DSM was written']
 
 

@@ -127,7 +127,8 @@ def run(a) -> int:
         print('end of flight: ' + '; '.join(r['end_of_flight_errors']))
     verdict = figures.get('mapping', {'mapped': False, 'failures': ['no report was made']})
     print('MAPPING FAILED: ' + '; '.join(verdict['failures']) if not verdict['mapped'] else
-          f"mapped: {figures.get('keyframes_oriented', 0)} of {figures.get('keyframes_taken', 0)} keyframes oriented")
+          f"mapped: {figures.get('keyframes_oriented', 0)} of {figures.get('keyframes_taken', 0)} keyframes oriented"
+          + ''.join(f'; WARNING: {w}' for w in verdict.get('warnings', [])))
     if r['bag_errors']:
         return 3
     if r.get('final_adjustment') == 'failed' or r.get('end_of_flight_errors'):

@@ -68,7 +68,8 @@ def near_discontinuity(dem, x_m, y_m, slope: float = 1.0, radius_m: float = 1.0)
 
 LEVEL_NAMES = {0: 'OK', 1: 'WARN', 2: 'ERROR', 3: 'STALE'}
 MIN_ORIENTED_SHARE = 0.5     # fewer keyframes oriented than this: the flight did not map
-MIN_DSM_VALID_SHARE = 0.5    # a DSM with fewer cells holding a height than this is "mostly empty"
+MIN_DSM_VALID_SHARE = 0.5    # a DSM with fewer cells holding a height than this is a warning
+FAILED_DSM_VALID_SHARE = 0.1  # ... and with fewer than this, the flight did not map
 NOT_ORIENTED_PREFIX = 'not_oriented_'   # bundle_node counters per reason (not_oriented_<reason>), when it has them
 
 
@@ -132,20 +133,29 @@ def node_health(diagnostics: dict) -> list[dict]:
 
 
 def dsm_valid_share(dsm_path) -> float | None:
-    """Share of the DSM raster's cells that hold a height; None without a DSM file."""
+    """Share of the mapped area's DSM cells that hold a height: cells inside the convex hull of the cells
+    with a height (a diagonal strip's raster rectangle is half empty by its shape, not by a failure);
+    None without a DSM file, 0 for a DSM without a height."""
     if not dsm_path or not Path(dsm_path).exists():
         return None
+    import cv2
     import rasterio
     with rasterio.open(dsm_path) as ds:
         z = ds.read(1, masked=True)
     valid = ~np.ma.getmaskarray(z) & np.isfinite(np.ma.getdata(z))
-    return float(valid.mean()) if valid.size else 0.0
+    if valid.sum() < 3:
+        return 0.0
+    hull = np.zeros(valid.shape, np.uint8)
+    cv2.fillConvexPoly(hull, cv2.convexHull(np.argwhere(valid)[:, ::-1].astype(np.int32)), 1)
+    return float(valid[hull > 0].mean())
 
 
 def mapping_verdict(accounting: dict, georeferenced: bool, dsm_share: float | None, mapped_products: bool) -> dict:
-    """{'mapped': bool, 'failures': [sentences]}: a flight with no georeferenced keyframe, fewer than half
-    of its keyframes oriented, or a DSM mostly empty (or none while keyframes were oriented) did not map."""
-    failures = []
+    """{'mapped': bool, 'failures': [sentences], 'warnings': [sentences]}: a flight with no georeferenced
+    keyframe, fewer than half of its keyframes oriented, or a DSM nearly empty (or none while keyframes were
+    oriented) did not map; a DSM with holes over much of its area (trees, water, low overlap) mapped, with a
+    warning."""
+    failures, warnings = [], []
     taken, oriented = accounting['keyframes_taken'], accounting['keyframes_oriented']
     if taken == 0:
         frames, unusable = accounting.get('frames_tracked'), accounting.get('frames_unusable')
@@ -157,10 +167,16 @@ def mapping_verdict(accounting: dict, georeferenced: bool, dsm_share: float | No
         failures.append(f'only {oriented} of {taken} keyframes ({100.0 * oriented / taken:.0f} %) were oriented '
                         f'(at least {MIN_ORIENTED_SHARE * 100:.0f} % are needed)')
     if dsm_share is not None and dsm_share < MIN_DSM_VALID_SHARE:
-        failures.append(f'the DSM is mostly empty: {dsm_share * 100:.1f} % of its cells hold a height')
+        said = (f'{dsm_share * 100:.1f} % of the DSM\'s cells over the mapped area (the convex hull of its '
+                f'heights) hold a height')
+        if dsm_share < FAILED_DSM_VALID_SHARE:
+            failures.append(f'the DSM is nearly empty: {said}')
+        else:
+            warnings.append(f'the DSM has holes over much of its area: {said} (trees, water and plain roofs give '
+                            'no height; or too little overlap)')
     elif dsm_share is None and georeferenced and mapped_products:
         failures.append('no DSM was written')
-    return {'mapped': not failures, 'failures': failures, 'dsm_valid_share': dsm_share}
+    return {'mapped': not failures, 'failures': failures, 'warnings': warnings, 'dsm_valid_share': dsm_share}
 
 
 def _health_sections(figures: dict, kfs, files: dict, run: dict, diagnostics: dict | None, georeferenced: bool):
@@ -173,15 +189,17 @@ def _health_sections(figures: dict, kfs, files: dict, run: dict, diagnostics: di
                               unusable if isinstance(unusable, (int, float)) else None)
     verdict = mapping_verdict(acc, georeferenced, dsm_valid_share(files.get('dsm')), bool(files))
     # The flight as a whole is a row of its own: at ERROR when it did not map, whatever the nodes said.
-    health = [{'node': 'replay', 'worst_level': 'OK' if verdict['mapped'] else 'ERROR',
-               'problems': len(verdict['failures']), 'reasons': verdict['failures']}] + node_health(diagnostics)
+    level = 'ERROR' if not verdict['mapped'] else 'WARN' if verdict['warnings'] else 'OK'
+    health = [{'node': 'replay', 'worst_level': level, 'problems': len(verdict['failures'] + verdict['warnings']),
+               'reasons': verdict['failures'] + verdict['warnings']}] + node_health(diagnostics)
     figures.update(acc)
     figures['mapping'] = verdict
     figures['health'] = health
     if verdict['mapped']:
         share = verdict['dsm_valid_share']
         text = [f"Mapped: {acc['keyframes_oriented']} of {acc['keyframes_taken']} keyframes oriented"
-                + (f", {share * 100:.0f} % of the DSM's cells hold a height." if share is not None else '.')]
+                + (f", {share * 100:.0f} % of the DSM's cells over the mapped area hold a height."
+                   if share is not None else '.')] + [f'WARNING: {w}.' for w in verdict['warnings']]
     else:
         text = ['MAPPING FAILED: ' + '; '.join(verdict['failures']) + '.']
     if acc['keyframes_not_oriented']:
