@@ -334,6 +334,13 @@ class BundleNode(Node):
                 offset = antenna_offset_enu(enu_R_flu, self.p.lever_arm_body_frd_m)
         return KeyframeRecord(stamp, ids, uv, fix, target_uv=target_uv, antenna_offset_map_m=offset)
 
+    def _count_not_oriented(self, status: str) -> None:
+        """keyframes_not_oriented, and a counter per reason (not_oriented_<status>, e.g.
+        not_oriented_too_few_known_points) that the flight report lists."""
+        self.diag.count('keyframes_not_oriented')
+        reason = status.split(' (')[0].strip().replace(' ', '_') or 'unknown'
+        self.diag.count(f'not_oriented_{reason}')
+
     def _on_full(self, _msg) -> None:
         with self._cond:
             self._full_requested = True
@@ -445,9 +452,12 @@ class BundleNode(Node):
                 self.diag.count('keyframes_oriented')
                 self._unpublished += 1
             else:
-                self.diag.count('keyframes_not_oriented')
+                self._count_not_oriented(rep.status)
             return
-        self.diag.count('keyframes_oriented' if rep.registered else 'keyframes_not_oriented')
+        if rep.registered:
+            self.diag.count('keyframes_oriented')
+        else:
+            self._count_not_oriented(rep.status)
         self.diag.set('status', rep.status)
         self.diag.set('solve_time_s', float(rep.solve_s))
         self.diag.set('cost', float(rep.cost))
