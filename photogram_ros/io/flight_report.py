@@ -227,11 +227,12 @@ def _settings_lines(run: dict) -> list[str]:
                      + (f" (derived: {', '.join(derived)}; the others as set)." if derived else ' (all as set).'))
     dsm = run.get('dsm') or {}
     if 'valid_share' in dsm:
-        lines.append(f"DSM: {dsm['valid_share'] * 100:.1f} % of its cells hold a height "
+        lines.append(f"DSM: {dsm['valid_share'] * 100:.1f} % of its raster's cells (the rectangle around the map; "
+                     "the verdict counts the mapped area) hold a height "
                      f"(cell {dsm.get('res_m', 0):g} m, spread limit {dsm.get('max_spread_m', 0):g} m).")
     failed = run.get('densify_pairs_failed') or []
     if failed:
-        lines.append(f'{len(failed)} stereo pairs failed in the final matching and were skipped '
+        lines.append(f'{len(failed)} stereo pair(s) failed in the final matching and were skipped '
                      f'(one bad pair costs one pair): {"; ".join(str(f) for f in failed[:5])}'
                      + (' ...' if len(failed) > 5 else '') + '.')
     return lines
