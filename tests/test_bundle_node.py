@@ -89,6 +89,9 @@ def test_node_parameters_are_the_adjusters_and_reach_it_uncopied():
     core = [f.name for f in fields_of(IncrementalOptions)]
     assert len(core) == len(dataclasses.fields(IncrementalOptions)) >= 20   # every field described
     assert core == [f.name for f in fields_of(BundleNodeParams)][:len(core)]
+    from photogram_ros.core.control_live import LiveControlOptions   # the in-flight control's, after them
+    live = [f.name for f in fields_of(LiveControlOptions)]
+    assert live == [f.name for f in fields_of(BundleNodeParams)][len(core):len(core) + len(live)]
     n = 0
     for path in sorted((ROOT / 'config').glob('*.yaml')):
         values = load_params_file(str(path)).get('bundle_node')

@@ -61,9 +61,12 @@ def _run_bundle(ctx, sk, marker_of, overrides):
     pub_info = feeder.create_publisher(CameraInfo, 'camera/camera_info', QoSProfile(depth=5))
     pub_feat = feeder.create_publisher(PointCloud2, 'keyframes/features', reliable)
     pub_fix = feeder.create_publisher(NavSatFix, 'keyframes/fix', reliable)
-    poses, georef = {}, []
-    feeder.create_subscription(PoseWithCovarianceStamped, 'map/keyframe_pose',
-                               lambda m: poses.__setitem__(msgs.ns_from_time(m.header.stamp), m), reliable)
+    poses, georef, n_msgs = {}, [], [0]
+
+    def on_pose(m):
+        poses[msgs.ns_from_time(m.header.stamp)] = m
+        n_msgs[0] += 1
+    feeder.create_subscription(PoseWithCovarianceStamped, 'map/keyframe_pose', on_pose, reliable)
     feeder.create_subscription(NavSatFix, 'map/georeference', georef.append, latched)
     ex = executor_with(ctx, node, feeder)
     try:
@@ -83,8 +86,19 @@ def _run_bundle(ctx, sk, marker_of, overrides):
         c = node.diag.counts
         assert spin_until(ex, lambda: c().get('keyframes_oriented', 0) + c().get('keyframes_not_oriented', 0) >= n, 90)
         assert c()['keyframes_oriented'] >= n - 3   # the first ones wait for a wide enough pair
+        before = n_msgs[0]
         node.finish()
-        spin_until(ex, lambda: len(poses) >= n and georef, 10)
+        # The final adjustment republishes every oriented keyframe: wait for all of them (GCPs are
+        # checked before they are used, so poses published in flight may predate them).
+        n_final = len(node.at.registered)
+        assert spin_until(ex, lambda: n_msgs[0] >= before + n_final and georef, 20)
+        last = [-1]
+
+        def quiet():   # messages published in flight before finish() may still have been on their way
+            seen, last[0] = last[0], n_msgs[0]
+            return seen == n_msgs[0]
+        while not spin_until(ex, lambda: False, 0.5) and not quiet():
+            pass
     finally:
         ex.shutdown()
         feeder.destroy_node()

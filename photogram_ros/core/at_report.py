@@ -88,7 +88,9 @@ def _rmse_gcps(gcps: list[dict]) -> dict:
     return out
 
 
-def _redundancy(gcps: list[dict]) -> list[str]:
+def redundancy_notes(gcps: list[dict]) -> list[str]:
+    """What GCP residuals can show (fit, not accuracy; nothing with one GCP or two rays); gcps: dicts with
+    name, residual_m (None: not measured) and images."""
     used = [g for g in gcps if g.get('residual_m') is not None]
     out = ['GCP residuals show how well the block was fitted to the GCPs, not its accuracy: the check points '
            'are the accuracy']
@@ -189,7 +191,7 @@ def build_report(at, assumptions: list[str] | None = None, gsd_m: float | None =
                    'cx': at.camera.cx, 'cy': at.camera.cy, 'dist': list(at.camera.dist)},
         'reprojection_rms_px': total_rms,
         'gnss': {'rmse': gnss_figures(gres), 'estimated_bias_enu_m': at.gnss_bias_enu.tolist()},
-        'gcp': {'points': gcps, 'rmse': _rmse_gcps(gcps), 'redundancy': _redundancy(gcps) if gcps else []},
+        'gcp': {'points': gcps, 'rmse': _rmse_gcps(gcps), 'redundancy': redundancy_notes(gcps) if gcps else []},
         'check': {'points': checks, 'rmse': rmse_xyz(np.array([c['residual_m'] for c in checks])),
                   'ce90_le90': ce90_le90(np.array([c['residual_m'] for c in checks]))},
         'reprojection_histogram': _histogram(errs),

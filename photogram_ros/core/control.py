@@ -58,10 +58,14 @@ class SurveyedTarget:
 class ControlSet:
     """The surveyed targets of one flight, looked up by marker id."""
 
-    def __init__(self, targets: list[SurveyedTarget], crs: str = '', source: str = ''):
+    def __init__(self, targets: list[SurveyedTarget], crs: str = '', source: str = '',
+                 file_heights: dict | None = None):
         self.targets = list(targets)
         self.crs = crs
         self.source = source
+        # name -> height as written in the file (placeholders such as 0 or 400 m show there, not after
+        # a geoid conversion)
+        self.file_heights = dict(file_heights or {})
         where = f'{source}: ' if source else ''
         self.by_marker: dict[int, SurveyedTarget] = {}
         names = set()
@@ -96,7 +100,7 @@ class ControlSet:
             raise DataError(f'check points {missing} are not in {self.source or "the control file"}; '
                             f'its targets are {sorted(have)}')
         return ControlSet([replace(t, role='check') if t.name in names else t for t in self.targets],
-                          self.crs, self.source)
+                          self.crs, self.source, self.file_heights)
 
     def target_uv(self, targets: np.ndarray) -> tuple[dict, int]:
         """Detections of one keyframe (TARGET_DTYPE) -> ({target name: (u, v)}, detections of unknown
@@ -254,6 +258,19 @@ class ControlVetting:
     def counts(self) -> dict:
         return {f: sum(r.fate == f for r in self.rows) for f in ROW_FATES}
 
+    def merge(self, later: 'ControlVetting', file_heights: dict | None = None,
+              opt: ControlVettingOptions | None = None) -> list[str]:
+        """Take in the rows and points of a later vetting (in flight, targets are checked as they become
+        due) and give the verdicts over every point so far again; returns the notes that are new."""
+        before = set(self.notes)
+        self.rows += later.rows
+        self.points.update(later.points)
+        self.wrong_photos.update(later.wrong_photos)
+        _height_verdict(self, file_heights or {}, opt or ControlVettingOptions())
+        self.notes = []
+        _notes(self)
+        return [n for n in self.notes if n not in before]
+
     def to_dict(self) -> dict:
         return {'rows': [r.to_dict() for r in self.rows], 'row_fates': self.counts(),
                 'points': {n: p.to_dict() for n, p in self.points.items()}, 'wrong_photos': dict(self.wrong_photos),
@@ -300,6 +317,18 @@ def _consensus(camera: PinholeCamera, Ts: np.ndarray, uv: np.ndarray, thr_px: fl
     return X, inl if inl.sum() >= 2 else best
 
 
+def robust_intersection(camera: PinholeCamera, map_T_cams: np.ndarray, uv: np.ndarray, max_px: float):
+    """A point from its observations when some may be wrong: (xyz, n used, RMS px) of the largest set of
+    observations within max_px of one point (every pair tried when all of them do not agree), or None."""
+    from photogram_ros.core.incremental import intersect_point
+    Ts, uv = np.asarray(map_T_cams, float).reshape(-1, 4, 4), np.asarray(uv, float).reshape(-1, 2)
+    got = intersect_point(camera, Ts, uv) if len(uv) >= 2 else None
+    if got is not None and np.all(_row_residuals(camera, Ts, uv, got[0])[0] <= max_px):
+        return got
+    X, inl = _consensus(camera, Ts, uv, max_px) if len(uv) >= 3 else (None, None)
+    return None if X is None else intersect_point(camera, Ts[inl], uv[inl])
+
+
 def _ray_on_plane(camera: PinholeCamera, T: np.ndarray, uv: np.ndarray, z0: float) -> np.ndarray | None:
     d = T[:3, :3] @ np.append(camera.pixel_to_normalized(np.asarray(uv, float)[None])[0], 1.0)
     if abs(d[2]) < 1e-9:
@@ -310,13 +339,13 @@ def _ray_on_plane(camera: PinholeCamera, T: np.ndarray, uv: np.ndarray, z0: floa
 
 def _placeholders(file_heights: dict, names: list[str]) -> dict:
     """name -> why its height looks like a placeholder: exactly 0, or the same to the millimetre as another
-    point's (no two surveyed boards share a height to the millimetre)."""
+    point's of the file (no two surveyed boards share a height to the millimetre)."""
     out = {}
     for n in names:
         z = file_heights.get(n)
         if z is None:
             continue
-        same = [m for m in names if m != n and file_heights.get(m) is not None and abs(file_heights[m] - z) < 5e-4]
+        same = [m for m in file_heights if m != n and abs(file_heights[m] - z) < 5e-4]
         if abs(z) < 5e-4:
             out[n] = 'height exactly 0 m in the file'
         elif same:
@@ -326,17 +355,20 @@ def _placeholders(file_heights: dict, names: list[str]) -> dict:
 
 def vet_control(camera: PinholeCamera, poses: dict, images: set, rows: list[ControlRow],
                 control: list[ControlPoint], block_sigma_enu_m, tie_points_map_m=None, file_heights=None,
-                opt: ControlVettingOptions | None = None) -> ControlVetting:
+                opt: ControlVettingOptions | None = None, detected: bool = False) -> ControlVetting:
     """Every control row's fate and every point's use, against the block adjusted on its GNSS alone.
 
     camera, poses ({image: map_T_cam} of the oriented photos): the GNSS-only block; images: every photo
     of the set (oriented or not); control: the surveyed points (map ENU, sigmas, roles); block_sigma_enu_m:
     (3,) the block's absolute uncertainty from its GNSS (E, N, U sigma, m); tie_points_map_m: (N, 3) its tie
-    points (the ground under a point seen once); file_heights: {name: z as written} (placeholder heights).
+    points (the ground under a point seen once); file_heights: {name: z as written} (placeholder heights);
+    detected: the rows are marker detections (in flight), not clicks: a far row is a misread marker or a
+    second board with the same id, not a wrong photo.
     """
     opt = opt or ControlVettingOptions()
     by_name = {c.name: c for c in control}
     sig_b = np.asarray(block_sigma_enu_m, float).reshape(3)
+    suspect = 'likely a misread marker or a second board with its id' if detected else 'likely the wrong photo'
     fates = [RowFate(r, '') for r in rows]
     seen = set()
     for f in fates:
@@ -372,8 +404,7 @@ def vet_control(camera: PinholeCamera, poses: dict, images: set, rows: list[Cont
                     f.fate = 'outlier'
                     f.likely_wrong_photo = bool(emi > max(opt.wrong_photo_m, 5 * float(np.hypot(*sig_b[:2]))))
                     f.reason = (f'{ei:.0f} px ({emi:.1f} m on the ground) from where {name} intersects from its other '
-                                f'rows in the GNSS-only block' + (': likely the wrong photo' if f.likely_wrong_photo
-                                                                   else ''))
+                                f'rows in the GNSS-only block' + (f': {suspect}' if f.likely_wrong_photo else ''))
         else:
             # No two rows agree: each row's ray on the ground against the survey, horizontally.
             z0 = float(c.map_xyz[2])
@@ -388,7 +419,7 @@ def vet_control(camera: PinholeCamera, poses: dict, images: set, rows: list[Cont
                 if d > tol:
                     f.fate, f.likely_wrong_photo = 'outlier', True
                     f.reason = (f'its ray meets the ground {d:.1f} m from {name}\'s surveyed position (GNSS-only '
-                                'block): likely the wrong photo')
+                                f'block): {suspect}')
         usable = [f for f in cand if not f.fate]
         p.usable_rows = len(usable)
         if X is None or len(usable) < 2:
@@ -405,7 +436,7 @@ def vet_control(camera: PinholeCamera, poses: dict, images: set, rows: list[Cont
             f.fate = 'used' if p.use != 'unused' else 'point_unused'
             if f.fate == 'point_unused':
                 f.reason = f'{name} is not used: {p.reason}'
-    vet = ControlVetting(fates, points, _wrong_photos(fates))
+    vet = ControlVetting(fates, points, {} if detected else _wrong_photos(fates))
     _height_verdict(vet, file_heights or {}, opt)
     _notes(vet)
     return vet
@@ -498,7 +529,8 @@ def _notes(vet: ControlVetting) -> None:
         L.append(f'{img}: {why}')
     lone = [f for f in vet.rows if f.fate == 'outlier' and f.row.image not in vet.wrong_photos]
     for f in lone:
-        L.append(f'{f.row.name} in {f.row.image} (line {f.row.line}) rejected: {f.reason}')
+        where = f' (line {f.row.line})' if f.row.line else ''
+        L.append(f'{f.row.name} in {f.row.image}{where} rejected: {f.reason}')
     for p in vet.points.values():
         if p.use == 'unused' and p.role == 'gcp':
             L.append(f'GCP {p.name} not used: {p.reason}')

@@ -875,6 +875,32 @@ class IncrementalAT:
             out['gcp_residual_rms_v_m'] = float(np.sqrt(np.mean(r[:, 2] ** 2)))
         return out
 
+    def triangulate_targets(self, names) -> list[str]:
+        """Points for the GCPs among `names` from their active observations in the registered keyframes:
+        a target held as a check point builds no geometry, so a GCP admitted later (in flight, once its
+        survey agrees with the block) gets its point, and its prior, here. Returns the names with a point."""
+        tids = [self._target_ids[n] for n in names if n in self._target_ids]
+        self._triangulate_tracks([t for t in tids if not self.is_check(t) and t not in self.points])
+        return [n for n in names if self._target_ids.get(n) in self.points]
+
+    def drop_target_observation(self, kid: int, name: str) -> bool:
+        """Take keyframe `kid`'s observation of target `name` out of the adjustment (a detection the
+        control vetting rejected); False when the keyframe has none."""
+        tid = self._target_ids.get(name)
+        i = self.kfs[kid].index(tid) if tid is not None and 0 <= kid < len(self.kfs) else None
+        if i is None:
+            return False
+        self._deactivate(kid, i, tid)
+        return True
+
+    def fix_sigma_enu_m(self) -> np.ndarray:
+        """(3,) E, N, U sigma (m) of the oriented keyframes' fixes, the median: how well the GNSS alone
+        places the block (10 m each without a fix)."""
+        cov = [self.kfs[k].fix_cov for k in self.registered if self.kfs[k].fix_cov is not None]
+        if not cov:
+            return np.full(3, 10.0)
+        return np.sqrt(np.median([np.diag(c) for c in cov], axis=0))
+
     def _n_gcps(self) -> int:
         return sum(1 for n, t in self._target_ids.items() if t in self.points and not self.is_check(t))
 

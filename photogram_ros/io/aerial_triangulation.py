@@ -184,14 +184,6 @@ def _triangulate_records(block: KeyframeBlock, opt: TriangulateOptions, control:
     return at, rep_adj
 
 
-def _block_sigma_enu_m(at: IncrementalAT) -> np.ndarray:
-    """(3,) E, N, U sigma of the oriented photos' fixes (median): the GNSS-only block's absolute uncertainty."""
-    cov = [at.kfs[k].fix_cov for k in at.registered if at.kfs[k].fix_cov is not None]
-    if not cov:
-        return np.full(3, 10.0)
-    return np.sqrt(np.median([np.diag(c) for c in cov], axis=0))
-
-
 def _control_rows(block: KeyframeBlock, opt: TriangulateOptions, control_set, origin):
     """(control points, rows, heights as written, CRS) of a bag's targets (their detections in the
     records) or of opt.gcp."""
@@ -228,7 +220,7 @@ def adjust_block(block: KeyframeBlock, out: str | Path, opt: TriangulateOptions,
         at, rep_adj = _triangulate_records(block, opt, [], {}, refine0, log, ' (GNSS only, to check the control)')
         P0 = np.array([at.points[t] for t in at.points if t >= 0]).reshape(-1, 3)
         vet = vet_control(at.camera, {at.kfs[k].name: at.kfs[k].map_T_cam for k in at.registered},
-                          {r.name for r in block.records}, rows, control, _block_sigma_enu_m(at), P0, file_heights,
+                          {r.name for r in block.records}, rows, control, at.fix_sigma_enu_m(), P0, file_heights,
                           opt.vetting)
         gnss_without = gnss_figures(np.array(list(at.gnss_residuals().values())))
         control = vet.control_points(control)

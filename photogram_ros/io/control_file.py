@@ -150,7 +150,8 @@ def read_control_file(path: str | Path, check_names=(), heights: str = 'auto') -
     targets = [SurveyedTarget(name, marker, float(la), float(lo), float(hh),
                               'check' if is_check_name(name) else 'gcp', sig[0], sig[1])
                for (_, name, marker, *_rest, sig), la, lo, hh in zip(rows, lat, lon, h)]
-    return ControlSet(targets, crs_name, str(path)).with_checks(check_names)
+    written = {r[1]: float(z) for r, z in zip(rows, zs)}
+    return ControlSet(targets, crs_name, str(path), written).with_checks(check_names)
 
 
 def write_control_file(path: str | Path, control: ControlSet | list[SurveyedTarget], crs: str,

@@ -36,7 +36,12 @@ return an AdjustmentOutcome ('done', 'failed', 'none'); the console script exits
 
 Ground control (`control_file`, io/control_file.py): targets named in the file become GCPs (point
 priors) or check points (never used), in the map frame as soon as its origin is known; markers
-the file does not name are counted and ignored.
+the file does not name are counted and ignored. A GCP is held as a check point until the block is
+georeferenced for good and control_min_keyframes keyframes have seen it; then its detections and its
+survey are checked against the block as the GNSS placed it (core/control_live.py): a far detection is
+dropped, a GCP the block contradicts horizontally is not used, one whose height it contradicts is used
+horizontally only. Each such fault is a WARN on /diagnostics naming the target, and map/control_points
+carries the verdicts ('control': every point's use, the detections not used and why, the faults).
 
 Threading: callbacks only queue what arrives; a worker thread of the node runs the adjustments
 (numpy/scipy release the GIL in their kernels), so a several-second adjustment never holds an
@@ -68,10 +73,13 @@ from std_msgs.msg import Empty
 
 from photogram_ros import msgs
 from photogram_ros.core.attitude import AttitudeHistory, antenna_offset_enu
-from photogram_ros.core.control import ControlSet
+from photogram_ros.core.at_report import redundancy_notes
+from photogram_ros.core.control import ControlSet, robust_intersection
+from photogram_ros.core.control_live import LiveControl, LiveControlOptions
 from photogram_ros.core.geodesy import LocalFrame
 from photogram_ros.core.gnss_fix import GnssFix
-from photogram_ros.core.incremental import IncrementalAT, IncrementalOptions, KeyframeRecord, intersect_point
+from photogram_ros.core.incremental import IncrementalAT, IncrementalOptions, KeyframeRecord
+from photogram_ros.core.evaluation import ce90_le90
 from photogram_ros.core.survey_quality import FIX_CLASSES, fix_class, rmse
 from photogram_ros.errors import PhotogramError
 from photogram_ros.nodes.diagnostics import ERROR, WARN, Diagnostics
@@ -93,8 +101,9 @@ TOPIC_CONTROL_POINTS = 'map/control_points'
 
 
 @dataclass
-class BundleNodeParams(IncrementalOptions):
-    """The adjuster's parameters (core/incremental.py) and the node's own."""
+class BundleNodeParams(LiveControlOptions, IncrementalOptions):
+    """The adjuster's parameters (core/incremental.py), the in-flight control's (core/control_live.py)
+    and the node's own."""
     use_origin_params: bool = param(False, 'anchor map at origin_* instead of the first keyframe fix')
     origin_lat_deg: float = param(0.0, 'map origin latitude, deg', min=-90.0, max=90.0)
     origin_lon_deg: float = param(0.0, 'map origin longitude, deg', min=-180.0, max=180.0)
@@ -185,6 +194,8 @@ class BundleNode(Node):
             from photogram_ros.io.control_file import read_control_file
             self.control = read_control_file(self.p.control_file, self.p.check_names.split(','),
                                              self.p.control_heights)
+        # Every target is held as a check point until it is checked against the GNSS-only block.
+        self.live = LiveControl(self.control.file_heights, self.p) if self.control is not None else None
         self._control_in_map = False
         self.at: IncrementalAT | None = None
         self.camera = None
@@ -208,9 +219,6 @@ class BundleNode(Node):
         from std_msgs.msg import String
         self.pub_quality = self.create_publisher(String, TOPIC_CONTROL_POINTS, latched)
         self._fix_classes = {c: 0 for c in FIX_CLASSES}   # keyframes adjusted, per GNSS fix class
-        # Target name -> [(keyframe id, uv)]: the live accuracy reads these instead of the keyframes'
-        # observation tables, which a long flight keeps on disk (reading them would thaw every keyframe).
-        self._target_obs: dict[str, list] = {}
         self._since_quality = 0
         # Fixes first: the executor serves ready subscriptions in creation order, and a burst of
         # features must not keep their fixes waiting.
@@ -256,8 +264,19 @@ class BundleNode(Node):
         """Surveyed targets into `map`, once: when the origin is configured or set by the first fix."""
         if self.control is None or self._control_in_map or self.at.origin is None:
             return
-        self.at.set_control(self.control.in_map(self.at.origin, self.p.gcp_sigma_h_m, self.p.gcp_sigma_v_m))
+        self.live.set_surveyed(self.control.in_map(self.at.origin, self.p.gcp_sigma_h_m, self.p.gcp_sigma_v_m))
+        self.at.set_control(self.live.adjuster_control())
         self._control_in_map = True
+
+    def _vet_control(self, final: bool = False) -> None:
+        """Check the targets now due against the block (core/control_live.py); each fault is a WARN."""
+        if self.live is None:
+            return
+        try:
+            for note in self.live.update(self.at, final):
+                self.diag.problem(f'control: {note}', WARN)
+        except Exception as exc:   # the control's figures must never stop the adjustment
+            self.diag.problem(f'control vetting failed: {type(exc).__name__}: {exc}')
 
     def _on_fix(self, msg: NavSatFix) -> None:
         try:
@@ -444,9 +463,11 @@ class BundleNode(Node):
         self._control_to_map()
         self._fix_classes[fix_class(rec.fix)] += 1
         self._health(rep)
-        if rec.target_uv and self.at.kfs and self.at.kfs[-1].stamp_ns == rec.stamp_ns:
-            for name, uv in rec.target_uv.items():
-                self._target_obs.setdefault(name, []).append((len(self.at.kfs) - 1, np.asarray(uv, float)))
+        if self.live is not None and rec.target_uv and self.at.kfs and self.at.kfs[-1].stamp_ns == rec.stamp_ns:
+            # The live accuracy reads these instead of the keyframes' observation tables, which a long
+            # flight keeps on disk (reading them would thaw every keyframe).
+            self.live.observe(len(self.at.kfs) - 1, rec.target_uv)
+        self._vet_control()
         if not publish:
             if rep.registered:
                 self.diag.count('keyframes_oriented')
@@ -506,36 +527,42 @@ class BundleNode(Node):
     def _control_diagnostics(self) -> None:
         if self.control is None:
             return
-        for k, v in self.at.control_summary().items():
+        for k, v in {**self.at.control_summary(), **self.live.summary()}.items():
             self.diag.set(k, v)
+        self.diag.set('checks_seen', sum(self.live.use_of(n) == 'check' for n in self.control.check_names))
+        for use in ('horizontal', 'unused'):
+            names = [t.name for t in self.control.targets if t.role == 'gcp' and self.live.use_of(t.name) == use]
+            self.diag.set(f'gcps_{"horizontal_only" if use == "horizontal" else "rejected"}_names', ','.join(names))
         self.diag.set('gnss_bias_enu_m', ' '.join(f'{v:.3f}' for v in self.at.gnss_bias_enu))
 
     def _target_rows(self, role: str) -> list[dict]:
         """Surveyed targets of one role seen so far: check points intersected from the adjusted cameras
-        (core.incremental.intersect_point over the oriented keyframes that saw them), GCPs as adjusted
+        (core.control.robust_intersection over the oriented keyframes that saw them), GCPs as adjusted
         (their point in the block); residual = estimate - survey, map ENU, m."""
         at, rows = self.at, []
-        by_name = {t.name: t for t in self.control.targets}
         registered = set(at.registered)
-        for name, cp in at.control.items():
-            obs = [(k, uv) for k, uv in self._target_obs.get(name, []) if k in registered]
-            if cp.role != role or len(obs) < (2 if role == 'check' else 1):
+        surveyed = {c.name: c for c in self.live.surveyed.values()}
+        for t in self.control.targets:
+            cp, use = surveyed.get(t.name), self.live.use_of(t.name)
+            obs = self.live.observations(t.name, registered)
+            if cp is None or t.role != role or len(obs) < (2 if role == 'check' else 1) \
+                    or (role == 'gcp' and use not in ('full', 'horizontal')):
                 continue
             if role == 'check':
-                got = intersect_point(at.camera, np.array([at.kfs[k].map_T_cam for k, _ in obs]),
-                                      np.array([uv for _, uv in obs]).reshape(-1, 2))
+                got = robust_intersection(at.camera, np.array([at.kfs[k].map_T_cam for k, _ in obs]),
+                                          np.array([uv for _, uv in obs]).reshape(-1, 2), self.p.max_row_residual_px)
                 if got is None:
                     continue
                 xyz, n_images, rms_px = got
             else:
-                tid = at.target_track(name)
+                tid = at.target_track(t.name)
                 if tid is None or tid not in at.points or not at.georeferenced:
                     continue
                 xyz, n_images, rms_px = at.points[tid], len(obs), float('nan')
-            t = by_name[name]
-            rows.append({'name': name, 'marker_id': t.marker_id, 'lat_deg': t.lat_deg, 'lon_deg': t.lon_deg,
+            rows.append({'name': t.name, 'marker_id': t.marker_id, 'lat_deg': t.lat_deg, 'lon_deg': t.lon_deg,
                          'h_m': t.h_m, 'residual_enu_m': [float(v) for v in np.asarray(xyz) - cp.map_xyz],
-                         'images': int(n_images), 'rms_px': None if not np.isfinite(rms_px) else float(rms_px)})
+                         'images': int(n_images), 'rms_px': None if not np.isfinite(rms_px) else float(rms_px),
+                         'use': use})
         return rows
 
     def quality(self) -> dict:
@@ -546,13 +573,28 @@ class BundleNode(Node):
         if self.control is not None and self.at is not None and self.at.origin is not None:
             out['check_points'] = self._target_rows('check')
             out['gcps'] = self._target_rows('gcp')
-            out['check_rmse'] = rmse([r['residual_enu_m'] for r in out['check_points']])
-            out['gcp_rmse'] = rmse([r['residual_enu_m'] for r in out['gcps']])
+            checks = [r['residual_enu_m'] for r in out['check_points']]
+            out['check_rmse'] = rmse(checks)
+            out['check_ce90_le90'] = ce90_le90(checks)
+            out['gcp_rmse'] = self._gcp_rmse(out['gcps'])
+            out['gcp_redundancy'] = redundancy_notes([{'name': r['name'], 'images': r['images'],
+                                                       'residual_m': r['residual_enu_m']} for r in out['gcps']])
             if len(out['gcps']) >= 3:
                 out['gnss_bias_enu_m'] = [float(v) for v in self.at.gnss_bias_enu]
             for k in ('check_rmse', 'gcp_rmse'):
                 if not out[k]['count']:
                     out[k] = {'horizontal_m': None, 'vertical_m': None, 'count': 0}
+            out['control'] = self.live.to_dict()
+        return out
+
+    @staticmethod
+    def _gcp_rmse(gcps: list[dict]) -> dict:
+        """GCP residual RMSE; the vertical over the GCPs used in height only (None without one): the height
+        of a GCP used horizontally is not the survey's, its residual there means nothing."""
+        out = rmse([r['residual_enu_m'] for r in gcps])
+        full = rmse([r['residual_enu_m'] for r in gcps if r['use'] == 'full'])
+        out['count_vertical'] = full['count']
+        out['vertical_m'] = full['vertical_m'] if full['count'] else None
         return out
 
     def publish_quality(self) -> None:
@@ -669,6 +711,7 @@ class BundleNode(Node):
                         self.diag.count('keyframes_oriented_at_end', n)
                 except Exception as exc:   # the full adjustment still runs
                     self.diag.problem(f'second chance of unoriented keyframes failed: {exc}')
+                self._vet_control(final=True)   # targets seen too seldom to be checked in flight
             return self.full_adjustment()
 
     def full_adjustment(self) -> AdjustmentOutcome:
