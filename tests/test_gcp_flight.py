@@ -154,6 +154,38 @@ def test_bundle_node_uses_gcps_from_a_control_file(flight_3d, rclpy_context, tmp
     assert counts['target_detections_ignored'] == counts['target_detections']   # nothing names them
 
 
+def test_bundle_node_checks_gcps_before_using_them(flight_3d, rclpy_context, tmp_path):
+    """A surveyor without heights wrote 400 m for every GCP (the cameras fly at about 530 m, the ground
+    is at 488 m), and GCP02's easting is off by 30 m. The node uses the GCPs horizontally, leaves GCP02
+    out, and says so on /diagnostics and map/control_points; the block keeps the GNSS's heights."""
+    sk, targets = flight_3d
+    gsd = sk.gsd_m
+    marker_of = {t.name: t.marker_id for t in targets}
+    survey = []
+    for t in targets:
+        lat, lon, h = sk.origin.enu_to_geodetic(t.center_enu + ([30.0, 0, 0] if t.name == 'GCP02' else 0))
+        survey.append(SurveyedTarget(t.name, t.marker_id, float(lat), float(lon),
+                                     400.0 if t.role == 'gcp' else float(h), t.role))
+    control = write_control_file(tmp_path / 'targets.txt', survey, 'EPSG:32632')
+    node, poses, georef = _run_bundle(rclpy_context, sk, marker_of, {'control_file': str(control)})
+    vals, problems, q = _values(node), node.diag.recent_problems(20), node.quality()
+    node.destroy_node()
+    h, v, n = _check_rmse(sk, targets, poses, georef)
+    print(f'bundle_node, 3D GNSS, 400 m placeholder heights and GCP02 30 m off: check RMSE h {h * 100:.1f} cm '
+          f'({h / gsd:.2f} GSD), v {v:.2f} m; ' + '; '.join(p for p in problems if p.startswith('control:')))
+    assert vals['gcps_horizontal_only'] == '4' and vals['gcps_rejected'] == '1' and vals['gcps_rejected_names'] == 'GCP02'
+    assert vals['gcps_horizontal_only_names'] == 'GCP01,GCP03,GCP04,GCP05' and vals['gcps_full'] == '0'
+    assert any(p.startswith('control: GCP GCP02 not used') for p in problems)
+    assert any(p.startswith('control: GCP GCP01') and 'placeholder' in p for p in problems)
+    assert q['control']['use']['GCP02'] == 'unused' and q['control']['height_suspect'] == 'control_heights'
+    assert sorted(r['name'] for r in q['gcps']) == ['GCP01', 'GCP03', 'GCP04', 'GCP05']
+    assert q['gcp_rmse']['vertical_m'] is None and q['gcp_rmse']['count_vertical'] == 0   # heights not used
+    assert q['check_ce90_le90']['n'] == 4 and q['check_ce90_le90']['ce90_m'] < 3 * gsd
+    assert any('not its accuracy' in t for t in q['gcp_redundancy'])
+    # Horizontally the four GCPs hold the block; vertically it is where the 3D GNSS put it, not 90 m down.
+    assert n == 4 and h <= H_GSD * gsd and v < 10.0
+
+
 def test_bad_control_file_stops_the_start(rclpy_context, tmp_path):
     from photogram_ros.errors import DataError
     from photogram_ros.nodes.bundle_node import BundleNode
