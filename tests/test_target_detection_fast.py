@@ -134,11 +134,11 @@ def test_sample_bag_frames_give_the_full_resolution_result(frames):
     assert n >= 90   # the sample's 76 frames show its 9 targets 99 times
 
 
-def test_sample_bag_frames_upscaled_to_1920_keep_every_marker(frames):
-    """Markers 24-30 px in the 640x480 sample become 72-90 px at 1920x1440: searched at half size."""
+def test_sample_bag_frames_upscaled_to_2560_keep_every_marker(frames):
+    """Markers 24-30 px in the 640x480 sample become 96-120 px at 2560x1920: searched at half size."""
     n = 0
     for img in frames[::3]:
-        big = cv2.resize(img, (1920, 1440), interpolation=cv2.INTER_CUBIC)
+        big = cv2.resize(img, (2560, 1920), interpolation=cv2.INTER_CUBIC)
         full = full_resolution_detection(big)
         assert compare(detect_targets(big), full) < 0.1
         n += len(full)
@@ -146,7 +146,8 @@ def test_sample_bag_frames_upscaled_to_1920_keep_every_marker(frames):
 
 
 @pytest.mark.parametrize('name, size, sides', [
-    ('video', (1920, 1080), (18, 20, 24, 30, 40, 60, 100)),
+    ('video', (1920, 1080), (18, 20, 24, 30, 40, 60, 100)),   # searched whole
+    ('video', (2560, 1440), (30, 36, 44, 60, 80, 130)),
     ('photo', (4000, 2250), (34, 40, 50, 64, 90, 130, 180)),
     ('photo', (4000, 3000), (36, 44, 60, 80, 120, 200)),
 ])
@@ -177,7 +178,7 @@ def test_large_frames_find_what_the_full_search_finds_as_accurately(name, size, 
 def test_markers_covering_most_of_a_large_frame_are_all_found():
     """Candidate regions over half the image: the whole image is searched (same result)."""
     rng = np.random.default_rng(5)
-    bg = np.full((1080, 1920, 3), 128, np.uint8)
+    bg = np.full((1440, 2560, 3), 128, np.uint8)
     bg += rng.integers(0, 40, bg.shape, dtype=np.uint8)
     img, truth = paint_markers(bg, [120], rng, per_side=40, spacing=1.6)
     assert len(truth) >= 25

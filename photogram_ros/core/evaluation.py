@@ -30,11 +30,10 @@ def detect_targets(image: np.ndarray, dictionary: int = cv2.aruco.DICT_4X4_50) -
     An image up to `_FULL_SEARCH_MAX_SIDE_PX` on its long side is searched whole at full resolution. A larger
     one is searched for square candidates (decoded or not) on a copy reduced by an integer factor, and each
     candidate's neighbourhood is then searched again at full resolution by the same detector with the same
-    absolute size limits, so every marker comes out with the ids and corners the whole-image search gives
-    (the neighbourhood is wider than the detector's threshold window and refinement window). A marker is
-    missed only if the reduced copy shows no square where it is: at 1/3 scale that starts below about
-    32 px a side, where the whole-image search itself finds few markers (its perimeter limit is 3 % of the
-    long side, 30 px a side at 4000 px).
+    absolute size limits, so every marker comes out with the id and corners the whole-image search gives
+    (the neighbourhood is wider than the detector's threshold and refinement windows). A marker is missed
+    only if the reduced copy shows no square where it is; in 4000 px photos (reduced 3x) no marker the
+    whole-image search finds was missed (its own limit, 3 % of the long side as perimeter, is 30 px a side).
     """
     grey = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
     long_px = max(grey.shape)
@@ -50,13 +49,16 @@ def detect_targets(image: np.ndarray, dictionary: int = cv2.aruco.DICT_4X4_50) -
         corners, ids, _ = _detector(dictionary, _FULL_PARAMS.minMarkerPerimeterRate * long_px / max(crop.shape),
                                     _FULL_PARAMS.maxMarkerPerimeterRate * long_px / max(crop.shape)
                                     ).detectMarkers(crop)
-        out += _detections([c + np.array([u0, v0], np.float32) for c in corners], ids)
+        for d in _detections([c + np.array([u0, v0], np.float32) for c in corners], ids):
+            if not any(o.marker_id == d.marker_id and np.linalg.norm(o.center_uv - d.center_uv) < 1.0 for o in out):
+                out.append(d)   # overlapping regions find the same marker
     return out
 
 
 # Images with a longer side are searched on a reduced copy (then at full resolution around each candidate).
-_FULL_SEARCH_MAX_SIDE_PX = 1600
-# The reduced copy is at most this long: 1080p at 1/2, 4000 px at 1/3.
+# 1080p is searched whole: at half size, 2-3 % of the 18-26 px markers the whole search finds were missed.
+_FULL_SEARCH_MAX_SIDE_PX = 2000
+# The reduced copy is at most this long: 4000 px at 1/3.
 _REDUCED_MAX_SIDE_PX = 1600
 # Squares looked for in the reduced copy: perimeter from 2 % of its long side (the full-resolution search's
 # 3 % would lose markers the whole-image search finds: quantised contours of small squares run short).
@@ -69,7 +71,7 @@ _REDUCED_MIN_PERIMETER_RATE = 0.02
 _REGION_MARGIN_PX = 20
 _REGION_MARGIN_SIDES = 1.0
 # Regions covering more than this share of the image: the whole image is searched instead.
-_MAX_REGION_SHARE = 0.5
+_MAX_REGION_SHARE = 0.9
 _FULL_PARAMS = cv2.aruco.DetectorParameters()
 _DETECTORS = threading.local()
 
