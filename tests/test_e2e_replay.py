@@ -96,6 +96,22 @@ def test_report_with_a_control_file_lists_gcps_apart(replay, sample_bag, tmp_pat
     assert sorted(p['name'] for p in fig['gcp_residuals']['points']) == ['GCP01', 'GCP02', 'GCP03', 'GCP04', 'GCP05']
     assert fig['gcp_residuals']['rmse']['horizontal_m'] <= 1.5 * truth.gsd_m
     assert 'GCP residuals' in (tmp_path / 'report.md').read_text()
+    assert fig['check_points']['ce90_le90']['n'] == 4 and 'CE90' in (tmp_path / 'report.md').read_text()
+    # What the bundle node made of the GCPs in flight (core/control_live.py) is in the GCP section: a GCP
+    # used horizontally only has no height residual, one left out is not in the RMSE, the faults are listed.
+    said = 'GCP GCP01: its surveyed height is 90.00 m below ...; a placeholder?; used horizontally only'
+    diag = {'/bundle_node': {'values': {'gcps_used': '4', 'gcps_horizontal_only_names': 'GCP01',
+                                        'gcps_rejected_names': 'GCP02'},
+                             'problems': [[3.0, f'control: {said}'], [4.0, 'bad keyframe fix: x']]}}
+    (tmp_path / 'vetted').mkdir()
+    fig = build_report(tmp_path / 'vetted', out / 'map', 'EPSG:32632', {},
+                       control=read_control_file(sample_bag / 'targets.txt'), diagnostics=diag)
+    g = fig['gcp_residuals']
+    use = {p['name']: (p['use'], p['dz_m']) for p in g['points']}
+    assert use['GCP01'] == ('horizontal only', None) and use['GCP02'] == ('not used', None)
+    assert use['GCP03'][0] == 'full' and use['GCP03'][1] is not None
+    assert g['rmse']['count'] == 4 and g['rmse']['count_vertical'] == 3 and g['faults'] == [said]
+    assert said in (tmp_path / 'vetted' / 'report.md').read_text()
 
 
 def test_products_come_from_the_final_adjustment_and_are_reproducible(replay, tmp_path):

@@ -108,12 +108,18 @@ def run(a) -> int:
             print(f"health: {h['node']} {h['worst_level']}: {' | '.join(h['reasons'])[:300]}")
     cp = figures.get('check_points', {}).get('rmse')
     if cp and cp.get('count'):
+        ce = figures['check_points'].get('ce90_le90', {})
         print(f"check points: RMSE horizontal {cp['horizontal_m'] * 100:.1f} cm, vertical {cp['z_m'] * 100:.1f} cm "
-              f"over {cp['count']} targets")
+              f"over {cp['count']} targets" + (f"; CE90 {ce['ce90_m'] * 100:.1f} cm, LE90 {ce['le90_m'] * 100:.1f} cm"
+                                               if ce.get('n') else ''))
     gr = figures.get('gcp_residuals', {}).get('rmse')
     if gr and gr.get('count'):
-        print(f"GCP residuals: RMSE horizontal {gr['horizontal_m'] * 100:.1f} cm, vertical {gr['z_m'] * 100:.1f} cm "
-              f"over {gr['count']} GCPs ({figures['gcp_residuals'].get('used_by_adjuster', '?')} used by the adjuster)")
+        v = f"{gr['z_m'] * 100:.1f} cm" if gr.get('z_m') is not None else 'not used (no GCP height was)'
+        print(f"GCP residuals (the fit, not the accuracy): RMSE horizontal {gr['horizontal_m'] * 100:.1f} cm, "
+              f"vertical {v} over {gr['count']} GCPs ({figures['gcp_residuals'].get('used_by_adjuster', '?')} used "
+              'by the adjuster)')
+    for f in figures.get('gcp_residuals', {}).get('faults', []):
+        print(f'control: {f}')
     written = sorted(Path(f).name for f in files.values()) + ['report.html', 'report.md', 'report.json']
     written += ['trajectory.csv'] if (out / 'trajectory.csv').exists() else []
     print(f'outputs in {out}/: ' + ', '.join(written))

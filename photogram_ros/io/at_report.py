@@ -39,8 +39,9 @@ def _rms_text(rep: dict) -> str:
     return 'none' if v is None else f'{v:.3f} px'
 
 
-def _ce_text(sec: dict) -> list[str]:
-    c = sec.get('ce90_le90') or {}
+def ce90_text(c: dict | None) -> list[str]:
+    """A sentence on CE90 / LE90 (core.evaluation.ce90_le90's figures); none without check points."""
+    c = c or {}
     if not c.get('n'):
         return []
     warn = '' if c['circular'] else (f" (RMSEx / RMSEy = {c['rmse_x_over_y']:.2f} < 0.6: the circular formula "
@@ -109,7 +110,7 @@ def markdown(rep: dict) -> str:
         if 'rmse_gsd' in sec:
             L += [f"In GSD: horizontal {sec['rmse_gsd']['horizontal']:.2f}, "
                   f"vertical {sec['rmse_gsd']['vertical']:.2f}."]
-        L += _ce_text(sec) + [f'- {t}' for t in sec.get('redundancy', [])] + ['']
+        L += ce90_text(sec.get('ce90_le90')) + [f'- {t}' for t in sec.get('redundancy', [])] + ['']
         if sec['points']:
             L += md_table(_residual_rows(sec['points'])) + ['']
     L += ['## Camera', '', f"{rep['camera']}", ''] + [t + '\n' for t in _focal_text(rep)]
@@ -236,7 +237,7 @@ def write_report(rep: dict, out_dir) -> tuple[Path, Path]:
         if 'rmse_gsd' in sec:
             text.append(f"In GSD: horizontal {sec['rmse_gsd']['horizontal']:.2f}, "
                         f"vertical {sec['rmse_gsd']['vertical']:.2f}.")
-        text += _ce_text(sec) + [f'- {t}' for t in sec.get('redundancy', [])]
+        text += ce90_text(sec.get('ce90_le90')) + [f'- {t}' for t in sec.get('redundancy', [])]
         rows = _residual_rows(sec['points'])
         sections.append(Section(title, text, tables=[('Residuals (adjusted - surveyed)', rows)] if rows else []))
     sections.append(Section('Plan view and control residuals', figures=fig('plan', 'control')))

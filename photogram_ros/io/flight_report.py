@@ -21,9 +21,11 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from photogram_ros.core.evaluation import (detect_targets, surface_errors, trajectory_errors,
+from photogram_ros.core.at_report import redundancy_notes
+from photogram_ros.core.evaluation import (ce90_le90, detect_targets, surface_errors, trajectory_errors,
                                            triangulate_targets)
 from photogram_ros.core.geodesy import LocalFrame, crs_to_geodetic, geodetic_to_crs
+from photogram_ros.io.at_report import ce90_text
 from photogram_ros.io.map_store import MapStore
 from photogram_ros.io.report import Section, histogram_png, trajectory_png, write_report
 from photogram_ros.io.trajectory import TRAJECTORY_COLUMNS, write_trajectory_csv
@@ -306,8 +308,10 @@ def build_report(out_dir: str | Path, map_dir: str | Path | MapStore, crs: str, 
     sec = Section('Check points', [intro])
     if checks is not None:
         figures['check_points'] = _target_figures(checks, gsd)
+        figures['check_points']['ce90_le90'] = ce90_le90(checks.residuals)
         sec.tables.append(('Residuals (estimated - surveyed), m', checks.table()))
         sec.tables.append(('RMSE, m', [figures['check_points']['rmse']]))
+        sec.text += ce90_text(figures['check_points']['ce90_le90'])
         if checks.missing:
             sec.text.append(f'Not seen in two or more keyframes: {", ".join(checks.missing)}.')
     elif control is not None:
@@ -317,21 +321,8 @@ def build_report(out_dir: str | Path, map_dir: str | Path | MapStore, crs: str, 
         sec.text.append('No surveyed targets given (use --gcp targets.txt).')
     sections.append(sec)
     if gcps_surveyed:
-        gcps = triangulate_targets(cam, Ts, detections, gcps_surveyed)
-        figures['gcp_residuals'] = _target_figures(gcps, gsd)
-        bundle = next((d for n, d in (diagnostics or {}).items() if n.endswith('bundle_node')), {})
-        used = bundle.get('values', {}).get('gcps_used')
-        if used is not None:
-            used = figures['gcp_residuals']['used_by_adjuster'] = int(float(used))
-        sec = Section('GCP residuals', [
-            'Ground control points constrained the adjustment: their residuals (triangulated from the adjusted '
-            'cameras minus surveyed) show how well the block fits them, not its accuracy (see the check points).'
-            + (f' The adjuster used {used} of {len(gcps_surveyed)} GCPs.' if used is not None else '')])
-        sec.tables.append(('Residuals (estimated - surveyed), m', gcps.table()))
-        sec.tables.append(('RMSE, m', [figures['gcp_residuals']['rmse']]))
-        if gcps.missing:
-            sec.text.append(f'Not seen in two or more keyframes: {", ".join(gcps.missing)}.')
-        sections.append(sec)
+        sections.append(_gcp_section(triangulate_targets(cam, Ts, detections, gcps_surveyed), gsd, len(gcps_surveyed),
+                                     diagnostics, figures))
     surveyed = {**gcps_surveyed, **checks_surveyed}
 
     if truth is not None:
@@ -351,6 +342,49 @@ def build_report(out_dir: str | Path, map_dir: str | Path | MapStore, crs: str, 
         sections.append(_problems_section(diagnostics, figures))
     write_report(out, 'photogram_ros flight report', sections, figures)
     return figures
+
+
+def _gcp_section(gcps, gsd: float | None, n_surveyed: int, diagnostics: dict | None, figures: dict) -> Section:
+    """GCP residuals as the fit they are, with what the bundle node made of each GCP in flight (used in full,
+    horizontally only, not used: core/control_live.py) and the control faults it reported."""
+    bundle = next((d for n, d in (diagnostics or {}).items() if n.endswith('bundle_node')), {})
+    vals = bundle.get('values', {})
+    names = lambda k: [n for n in str(vals.get(k, '')).split(',') if n]  # noqa: E731
+    use = {**{n: 'horizontal only' for n in names('gcps_horizontal_only_names')},
+           **{n: 'not used' for n in names('gcps_rejected_names')}}
+    fig = figures['gcp_residuals'] = _target_figures(gcps, gsd)
+    rows = [{**r, 'use': use.get(r['name'], 'full')} for r in gcps.table()]
+    for r in rows:
+        if r['use'] != 'full':
+            r['dz_m'] = None    # its height was not used: the residual there is the file's placeholder
+    fig['points'] = rows
+    full = np.array([[r['dx_m'], r['dy_m'], r['dz_m']] for r in rows if r['use'] == 'full']).reshape(-1, 3)
+    fit = [r for r in rows if r['use'] != 'not used']
+    h = np.array([[r['dx_m'], r['dy_m']] for r in fit]).reshape(-1, 2)
+    fig['rmse'] = {'horizontal_m': float(np.sqrt(np.mean(np.sum(h ** 2, axis=1)))) if len(h) else None,
+                   'z_m': float(np.sqrt(np.mean(full[:, 2] ** 2))) if len(full) else None,
+                   'count': len(fit), 'count_vertical': len(full)}
+    used = vals.get('gcps_used')
+    if used is not None:
+        used = fig['used_by_adjuster'] = int(float(used))
+    fig['redundancy'] = redundancy_notes([{'name': r['name'], 'images': r['views'],
+                                           'residual_m': [r['dx_m'], r['dy_m'], r['dz_m']]} for r in fit])
+    sec = Section('GCP residuals', [
+        'Ground control points constrained the adjustment: their residuals (triangulated from the adjusted '
+        'cameras minus surveyed) show how well the block fits them, not its accuracy (see the check points).'
+        + (f' The adjuster used {used} of {n_surveyed} GCPs.' if used is not None else '')]
+        + [f'{t}.' for t in fig['redundancy'][1:]])
+    sec.tables.append(('Residuals (estimated - surveyed), m; the height of a GCP used horizontally only is not '
+                       'shown', rows))
+    sec.tables.append(('RMSE over the GCPs used (vertical: over those used in height), m', [fig['rmse']]))
+    if gcps.missing:
+        sec.text.append(f'Not seen in two or more keyframes: {", ".join(gcps.missing)}.')
+    faults = [p[1][len('control: '):] for p in bundle.get('problems', []) if str(p[1]).startswith('control: ')]
+    fig['faults'] = list(dict.fromkeys(faults))
+    if fig['faults']:
+        sec.text.append('The control file, checked in flight against the block as the GNSS placed it:')
+        sec.text += [f'- {f}' for f in fig['faults']]
+    return sec
 
 
 def _problems_section(diagnostics: dict, figures: dict) -> Section:
