@@ -235,3 +235,27 @@ def test_replay_with_gcps_reaches_the_issue_figure(bag_3d, tmp_path):
           f"{cp2['count']} targets")
     assert cp2['count'] == 9 and 'gcp_residuals' not in rep2
     assert cp2['horizontal_m'] > 10 * cp['rmse']['horizontal_m'] and cp2['horizontal_m'] > 0.5
+
+
+@pytest.mark.slow
+def test_replay_with_placeholder_heights_names_them_and_keeps_the_gnss_heights(bag_3d, tmp_path):
+    """The whole graph with the bag's targets file as a surveyor without heights hands it over (400 m for
+    every GCP): the tracker finds the markers, bundle_node uses the GCPs horizontally only, and the
+    flight report and the console say why."""
+    import dataclasses
+    from photogram_ros.io.control_file import read_control_file
+    from photogram_ros.sim.truth import GroundTruth
+    gsd = GroundTruth.load(bag_3d).gsd_m
+    given = read_control_file(bag_3d / 'targets.txt')
+    bad = write_control_file(tmp_path / 'targets_400.txt', [dataclasses.replace(t, h_m=400.0) if t.role == 'gcp'
+                                                             else t for t in given.targets], 'EPSG:32632')
+    rep, stdout = _replay(bag_3d, tmp_path / 'ph', '--gcp', str(bad))
+    print(stdout)
+    gr, cp = rep['gcp_residuals'], rep['check_points']
+    assert all(p['use'] == 'horizontal only' and p['dz_m'] is None for p in gr['points'])
+    assert gr['rmse']['z_m'] is None and gr['rmse']['count'] == 5
+    assert sum('placeholder' in f and 'used horizontally only' in f for f in gr['faults']) == 5
+    assert 'control: GCP GCP01' in stdout and 'vertical not used' in stdout
+    assert cp['rmse']['horizontal_m'] <= H_GSD * gsd            # the GCPs still hold it horizontally
+    assert cp['rmse']['z_m'] < 10.0                              # not bent 90 m down to the placeholders
+    assert 'placeholder' in (tmp_path / 'ph' / 'report.md').read_text()
