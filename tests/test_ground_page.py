@@ -51,7 +51,10 @@ class Provider:
                                                                  'min_views': 0, 'centroid': self.gap[0]}]},
             'accuracy': {'check_rmse_h_m': 0.038, 'check_rmse_v_m': 0.015, 'check_count': 4,
                          'gcp_rmse': {'horizontal_m': 0.008, 'vertical_m': 0.002, 'count': 4},
-                         'fix_share': {'rtk_fixed': 1.0, 'rtk_float': 0.0, '3d': 0.0}, 'gnss_bias_enu_m': None},
+                         'fix_share': {'rtk_fixed': 1.0, 'rtk_float': 0.0, '3d': 0.0}, 'gnss_bias_enu_m': None,
+                         'control': {'gcps': 5, 'gcps_held': 1, 'gcps_full': 2, 'gcps_horizontal_only': 1,
+                                     'gcps_rejected': 1, 'gcps_not_seen': 0, 'control_detections_rejected': 0,
+                                     'faults': ['GCP GCP02 not used: its surveyed position is 29.78 m from <here>']}},
             'go_no_go': {'verdict': 'NO-GO', 'checks': [], 'reasons': ['largest gap (m²): 448 (<= 25)']}}}}
 
     def tile(self, key, z, x, y):
@@ -137,3 +140,4 @@ def test_page_renders_tiles_gap_and_verdict_in_chromium(server, tmp_path):
     dom = chromium(server.url, None, dump_dom=True)
     assert 'id="verdict-drone1"' in dom and 'NO-GO' in dom and '448' in dom
     assert '3.8 cm (4)' in dom and '91.0 %' in dom
+    assert '2 / 1 / 1 / 1 of 5' in dom and 'control: GCP GCP02 not used' in dom and '&lt;here&gt;' in dom

@@ -128,7 +128,10 @@ def test_station_shows_ortho_coverage_gap_and_accuracy(tmp_path, rclpy_context):
         pubs['geo'].publish(msgs.georeference_msg(o.lat_deg, o.lon_deg, o.h_m, 0))
         pubs['quality'].publish(msgs.json_msg({'check_rmse': {'horizontal_m': 0.031, 'vertical_m': 0.02, 'count': 4},
                                                'gcp_rmse': None, 'fix_share': {'rtk_fixed': 1.0},
-                                               'check_points': [], 'gcps': [], 'gnss_bias_enu_m': None}))
+                                               'check_points': [], 'gcps': [], 'gnss_bias_enu_m': None,
+                                               'control': {'gcps': 3, 'gcps_full': 2, 'gcps_rejected': 1,
+                                                           'faults': ['GCP GCP02 not used: 29.8 m off'],
+                                                           'rows': [{'fate': 'outlier'}]}}))
         ground = -40.0
         tie = np.column_stack([rng.uniform(-30, 70, 500), rng.uniform(-20, 110, 500), np.full(500, ground)])
         for _ in range(10):
@@ -167,6 +170,8 @@ def test_station_shows_ortho_coverage_gap_and_accuracy(tmp_path, rclpy_context):
         gx = o.geodetic_to_enu(gaps[0]['centroid'][1], gaps[0]['centroid'][0], o.h_m - 40)
         assert 44 < gx[0] < 62 and 30 < gx[1] < 50
         assert d['accuracy']['check_rmse_h_m'] == 0.031 and d['accuracy']['check_count'] == 4
+        ctl = d['accuracy']['control']     # the bundle node's verdicts on the control, without its rows
+        assert ctl['gcps_rejected'] == 1 and ctl['faults'] == ['GCP GCP02 not used: 29.8 m off'] and 'rows' not in ctl
         assert d['go_no_go']['verdict'] == 'NO-GO'
         assert any('largest gap' in r for r in d['go_no_go']['reasons'])
         z = d['ortho']['zoom']

@@ -288,7 +288,8 @@ class GroundStationNode(Node):
             out['accuracy'] = {'check_rmse_h_m': cr.get('horizontal_m'), 'check_rmse_v_m': cr.get('vertical_m'),
                                'check_count': cr.get('count', 0), 'gcp_rmse': q.get('gcp_rmse'),
                                'fix_share': q.get('fix_share'), 'gnss_bias_enu_m': q.get('gnss_bias_enu_m'),
-                               'check_points': q.get('check_points', []), 'gcps': q.get('gcps', [])}
+                               'check_points': q.get('check_points', []), 'gcps': q.get('gcps', []),
+                               'control': _control_status(q.get('control'))}
             figures.update(check_rmse=cr if cr.get('count') else None, fix_share=q.get('fix_share'))
         out['go_no_go'] = go_no_go(figures, self.params)
         return out
@@ -328,7 +329,10 @@ class GroundStationNode(Node):
                                                                   'coordinates': [r['lon_deg'], r['lat_deg']]},
                                   'properties': {'name': r['name'], 'role': role, 'residual_enu_m': e,
                                                  'residual_h_m': float(np.hypot(e[0], e[1])),
-                                                 'residual_v_m': float(e[2]), 'images': r['images']}})
+                                                 # a GCP used horizontally only: its height is not the survey's
+                                                 'residual_v_m': float(e[2]) if r.get('use', 'full') in
+                                                 ('full', 'check') else None,
+                                                 'use': r.get('use'), 'images': r['images']}})
         return {'type': 'FeatureCollection', 'features': feats}
 
     def refly_plan(self, key: str) -> dict | None:
@@ -355,3 +359,14 @@ class GroundStationNode(Node):
         if self.web is not None:
             self.web.stop()
         return super().destroy_node()
+
+
+CONTROL_COUNTS = ('gcps', 'gcps_held', 'gcps_full', 'gcps_horizontal_only', 'gcps_rejected', 'gcps_not_seen',
+                  'control_detections_rejected')
+
+
+def _control_status(control: dict | None) -> dict | None:
+    """What the bundle node made of the control file so far (core/control_live.py): counts and faults."""
+    if not control:
+        return None
+    return {**{k: control.get(k) for k in CONTROL_COUNTS}, 'faults': list(control.get('faults', []))}

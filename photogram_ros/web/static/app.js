@@ -13,6 +13,10 @@ function fmt(v, unit, digits) {   // v in metres (shown in cm), a share (shown i
   return (scale * v).toFixed(digits ?? 1) + ' ' + unit;
 }
 
+function escapeHTML(t) {
+  return String(t).replace(/[&<>"']/g, c => ({'&': '&amp;', '<': '&lt;', '>': '&gt;', '"': '&quot;', "'": '&#39;'})[c]);
+}
+
 function targetColour(p) {
   if (p.role === 'gcp') return '#2f81f7';
   const lim = limits.max_check_rmse_h_m || 0.05;
@@ -69,9 +73,13 @@ function panel(key, d) {
     ['GNSS bias E N U', a.gnss_bias_enu_m ? a.gnss_bias_enu_m.map(v => (100 * v).toFixed(1)).join(' ') + ' cm' : '–'],
     ['keyframes / ortho tiles', `${d.keyframes} / ${d.ortho.tiles}`],
   ];
+  const ctl = a.control;
+  if (ctl) rows.splice(3, 0, ['GCPs used / horizontally / not / held',
+    `${ctl.gcps_full} / ${ctl.gcps_horizontal_only} / ${ctl.gcps_rejected} / ${ctl.gcps_held} of ${ctl.gcps}`]);
+  const faults = ctl ? ctl.faults.map(f => `<div class="reason">control: ${escapeHTML(f)}</div>`).join('') : '';
   const gaps = (c.gap_list || []).map(x => `<tr><td>${x.kind}</td><td class="v">${x.area_m2} m²</td></tr>`).join('');
   return `<h2>${d.ns} <span class="verdict ${g.verdict}" id="verdict-${key}">${g.verdict}</span></h2>` +
-    g.reasons.map(r => `<div class="reason">${r}</div>`).join('') +
+    g.reasons.map(r => `<div class="reason">${r}</div>`).join('') + faults +
     '<table>' + rows.map(([k, v]) => `<tr><td>${k}</td><td class="v">${v}</td></tr>`).join('') + '</table>' +
     (gaps ? '<h2>Gaps</h2><table>' + gaps + '</table>' : '') +
     `<div><a href="/drones/${key}/refly.plan" download="${key}_refly.plan">re-fly plan (.plan)</a> · ` +
