@@ -105,3 +105,25 @@ def test_run_with_a_photo_folder_ends_by_itself_at_its_end(tmp_path):
     assert 'end of the camera source: ending the flight' in out
     assert r.stdout.strip().splitlines()[-1].startswith('MAPPING FAILED: ')   # a white wall maps nothing
     assert (tmp_path / 'products' / 'report.md').exists()
+
+
+def test_an_executor_error_does_not_stop_the_graph_spinning(capsys):
+    """rclpy's executor raises (InvalidHandle) when an entity is destroyed while it waits on it; the
+    graph's spinning thread prints it and spins on instead of leaving every node deaf."""
+    from types import SimpleNamespace
+
+    from photogram_ros.nodes.graph import Graph
+
+    calls = []
+
+    def spin():
+        calls.append(1)
+        if len(calls) == 1:
+            raise RuntimeError('cannot use Destroyable because destruction was requested')
+    ok = SimpleNamespace(ok=lambda: True)
+    Graph._spin(SimpleNamespace(executor=SimpleNamespace(spin=spin, context=ok)))
+    assert len(calls) == 2 and 'executor error, spinning on' in capsys.readouterr().err
+    calls.clear()
+    down = SimpleNamespace(ok=lambda: False)     # after shutdown an error ends the thread
+    Graph._spin(SimpleNamespace(executor=SimpleNamespace(spin=spin, context=down)))
+    assert len(calls) == 1

@@ -192,11 +192,25 @@ class Graph:
             self.executor.add_node(self.child.node)
 
     def start(self, child_timeout_s: float = 60.0) -> None:
-        self._thread = threading.Thread(target=self.executor.spin, daemon=True, name='graph-executor')
+        self._thread = threading.Thread(target=self._spin, daemon=True, name='graph-executor')
         self._thread.start()
         self._trimmer = start_heap_trimmer()
         if self.child is not None:
             self.child.wait_ready(list(self.nodes.values()), child_timeout_s)
+
+    def _spin(self) -> None:
+        """Spin until shutdown. An error in the executor itself (rclpy raises InvalidHandle when an entity is
+        destroyed while it waits) is printed and spinning goes on: a dead executor thread would leave every
+        node deaf while the replay waits on them."""
+        for _ in range(100):
+            try:
+                self.executor.spin()
+                return
+            except Exception as exc:
+                if self.executor.context is None or not self.executor.context.ok():
+                    return
+                print(f'graph: executor error, spinning on: {type(exc).__name__}: {exc}', file=sys.stderr, flush=True)
+                time.sleep(0.05)
 
     def counts(self) -> dict:
         """role -> the node's diagnostic counters, for the nodes of this process and of the child."""

@@ -158,24 +158,22 @@ def _activity(graph: Graph) -> int:
 CHILD_ROLES_ALLOWED = ('bundle', 'stereo', 'map')
 
 
-def start_clock(node: Node, nodes: list, start_ns: int, timeout_s: float = 10.0) -> bool:
-    """Publish the bag's start on /clock (from `node`) until every node of `nodes` has it: under use_sim_time
+def start_clock(pub, nodes: list, start_ns: int, timeout_s: float = 10.0) -> bool:
+    """Publish the bag's start on /clock (`pub`) until every node of `nodes` has it: under use_sim_time
     a node's clock reads 0 until its first /clock, and the first recorded messages must not meet that (the
-    MAVLink decoder would take 0 for their arrival time). Returns whether all did within `timeout_s`."""
+    MAVLink decoder would take 0 for their arrival time). Returns whether all did within `timeout_s`.
+    `pub` is made before the executor spins and kept: destroying it while another thread waits on the
+    node's entities kills that thread (rclpy's InvalidHandle)."""
     from rosgraph_msgs.msg import Clock
 
     from photogram_ros.msgs import time_from_ns
-    pub = node.create_publisher(Clock, '/clock', 10)
     deadline = time.monotonic() + timeout_s
-    try:
-        while any(n.get_clock().now().nanoseconds == 0 for n in nodes):
-            if time.monotonic() > deadline:
-                return False
-            pub.publish(Clock(clock=time_from_ns(start_ns)))
-            time.sleep(0.01)
-        return True
-    finally:
-        node.destroy_publisher(pub)
+    while any(n.get_clock().now().nanoseconds == 0 for n in nodes):
+        if time.monotonic() > deadline:
+            return False
+        pub.publish(Clock(clock=time_from_ns(start_ns)))
+        time.sleep(0.01)
+    return True
 
 
 def check_free_space(out: Path, min_free_mb: float, when: str) -> None:
@@ -274,6 +272,8 @@ def run_replay(opts: ReplayOptions, context=None) -> dict:
             graph.shutdown()
             raise DataError(f'{opts.bag}: no frame could be read (see the camera node\'s messages above)')
     listener = Node('replay_monitor', **kwargs)
+    from rosgraph_msgs.msg import Clock
+    clock_pub = listener.create_publisher(Clock, '/clock', 10)
     diag_log = DiagnosticsLog(listener)
     graph.executor.add_node(listener)
     # The player only publishes: not spinning it keeps its entities out of the executor's wait set,
@@ -283,7 +283,7 @@ def run_replay(opts: ReplayOptions, context=None) -> dict:
     except Exception:
         graph.shutdown()
         raise
-    start_clock(listener, list(graph.nodes.values()), bag_start_ns)
+    start_clock(clock_pub, list(graph.nodes.values()), bag_start_ns)
     tracker = graph.nodes['tracker']
     images_sent = [0]
     t_start = time.monotonic()
