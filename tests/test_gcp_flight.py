@@ -186,6 +186,24 @@ def test_bundle_node_checks_gcps_before_using_them(flight_3d, rclpy_context, tmp
     assert n == 4 and h <= H_GSD * gsd and v < 10.0
 
 
+def test_final_adjustment_at_its_iteration_limit_says_how_far_from_converged(flight_3d, rclpy_context, tmp_path):
+    """Two iterations are not enough for the final adjustment: /diagnostics says it stopped at the limit and
+    what more iterations would change, instead of a bare 'done'; GCP residuals not yet measured are absent,
+    not 'nan'."""
+    sk, targets = flight_3d
+    survey = [SurveyedTarget(t.name, t.marker_id, *map(float, sk.origin.enu_to_geodetic(t.center_enu)), t.role)
+              for t in targets]
+    control = write_control_file(tmp_path / 'targets.txt', survey, 'EPSG:32632')
+    node, _, _ = _run_bundle(rclpy_context, sk, {t.name: t.marker_id for t in targets},
+                             {'full_iterations': 2, 'control_file': str(control)})
+    vals = _values(node)
+    node.destroy_node()
+    assert vals['full_adjustment_status'] == 'max_iterations'
+    assert 'stopped at its iteration limit' in vals['full_adjustment_convergence']
+    assert 'more iterations would lower the cost by' in vals['full_adjustment_convergence']
+    assert not any(v == 'nan' for v in vals.values())
+
+
 def test_bad_control_file_stops_the_start(rclpy_context, tmp_path):
     from photogram_ros.errors import DataError
     from photogram_ros.nodes.bundle_node import BundleNode

@@ -73,7 +73,7 @@ from std_msgs.msg import Empty
 
 from photogram_ros import msgs
 from photogram_ros.core.attitude import AttitudeHistory, antenna_offset_enu
-from photogram_ros.core.at_report import redundancy_notes
+from photogram_ros.core.at_report import convergence, redundancy_notes
 from photogram_ros.core.control import ControlSet, robust_intersection
 from photogram_ros.core.control_live import LiveControl, LiveControlOptions
 from photogram_ros.core.geodesy import LocalFrame
@@ -528,7 +528,8 @@ class BundleNode(Node):
         if self.control is None:
             return
         for k, v in {**self.at.control_summary(), **self.live.summary()}.items():
-            self.diag.set(k, v)
+            if not (isinstance(v, float) and not np.isfinite(v)):   # no GCP residual yet: not 'nan'
+                self.diag.set(k, v)
         self.diag.set('checks_seen', sum(self.live.use_of(n) == 'check' for n in self.control.check_names))
         for use in ('horizontal', 'unused'):
             names = [t.name for t in self.control.targets if t.role == 'gcp' and self.live.use_of(t.name) == use]
@@ -732,6 +733,12 @@ class BundleNode(Node):
                 raise PhotogramError(f'the solver failed ({len(self.at.registered)} keyframes)')
             self.diag.set('full_adjustment_s', time.perf_counter() - t0)
             self.diag.set('full_adjustment_rms_px', float(rep.reprojection_rms_px))
+            self.diag.set('full_adjustment_status', rep.status)
+            conv = convergence(self.at, rep.status)   # None when it converged
+            if conv is not None:
+                self.diag.set('full_adjustment_convergence', conv['text'])
+                if conv['matters']:
+                    self.diag.problem(conv['text'], WARN)
             self._control_diagnostics()
             self.publish_quality()
             if self.at.georeferenced:
