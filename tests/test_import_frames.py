@@ -90,3 +90,25 @@ def test_a_calibration_of_another_size_is_refused(phantom3, tmp_path):
         import_frames(FrameImportOptions(phantom3 / 'rgb', tmp_path / 'x', cam,
                                          read_track(phantom3 / 'trajectory.txt'), origin, max_frames=2))
     assert not (tmp_path / 'x').exists()
+
+
+def test_a_bag_without_attitude_replays_without_the_body_lever_arm(phantom3, tmp_path, sample_bag, capsys):
+    """config/replay.yaml sets a body lever arm (FRD); it turns with the attitude. A bag of imported frames
+    records none, so the replay leaves it out with a note, as for a photo folder; a bag with raw MAVLink
+    keeps it."""
+    from photogram_ros.io.bag import BagReader
+    from photogram_ros.nodes.replay_session import ReplayOptions, bag_has_attitude, no_body_lever_arm
+    bag = tmp_path / 'p3'
+    r = subprocess.run([sys.executable, '-m', 'photogram_ros.cli', 'import-frames', str(phantom3), '--out', str(bag),
+                        '--max-frames', '5'], cwd=ROOT, capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr[-2000:]
+    with BagReader(bag) as b:
+        imported = b.topics()
+    with BagReader(sample_bag) as b:
+        recorded = b.topics()
+    assert not bag_has_attitude(imported) and bag_has_attitude(recorded)
+    opts = ReplayOptions(str(bag), str(tmp_path / 'out'), params_file=str(ROOT / 'config' / 'replay.yaml'))
+    extra = {}
+    assert no_body_lever_arm(opts, extra, ('tracker', 'bundle'), 'the bag records no attitude')
+    assert extra['bundle']['lever_arm_body_frd_m'] == [0.0, 0.0, 0.0]
+    assert 'the body lever arm [0.05, 0.0, -0.2] m is not applied: the bag records no attitude' in capsys.readouterr().out

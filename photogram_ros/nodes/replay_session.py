@@ -209,12 +209,32 @@ def _bag_setup(opts: ReplayOptions, extra: dict):
         roles = ('mavlink', 'tracker', 'bundle', 'stereo', 'map')
     else:
         roles = ('tracker', 'bundle', 'stereo', 'map')
+    if not bag_has_attitude(topics):
+        no_body_lever_arm(opts, extra, roles, 'the bag records no attitude (no /mavlink/from_fcu, no mavlink/attitude)')
     return roles, exclude, topics, start_ns, warnings
+
+
+def bag_has_attitude(topics) -> bool:
+    """The bag's topics carry the body's attitude: raw MAVLink (ATTITUDE), or mavlink_node's output."""
+    return '/mavlink/from_fcu' in topics or any(t.endswith('mavlink/attitude') for t in topics)
+
+
+def no_body_lever_arm(opts: ReplayOptions, extra: dict, roles: tuple, why: str) -> bool:
+    """A body lever arm turns with the body's attitude: without one it is not applied (a note says so).
+    Returns whether one was set (and is now zero in `extra`)."""
+    from photogram_ros.nodes.graph import GraphSpec, role_values
+    bundle = role_values(GraphSpec(roles=roles, params_file=opts.params_file, extra=extra), 'bundle')
+    arm = bundle.get('lever_arm_body_frd_m')
+    if arm is not None and any(float(v) for v in arm):
+        extra.setdefault('bundle', {})['lever_arm_body_frd_m'] = [0.0, 0.0, 0.0]
+        print(f'note: {opts.params_file}: the body lever arm {list(arm)} m is not applied: {why} to turn it with',
+              flush=True)
+        return True
+    return False
 
 
 def _camera_setup(opts: ReplayOptions, extra: dict) -> tuple:
     """Roles for a photo folder or a video played by the camera node, driven from the replay."""
-    from photogram_ros.nodes.graph import GraphSpec, role_values
     cam = extra.setdefault('camera', {})
     cam.update({'source': str(opts.bag), 'autostart': False})
     for key in ('calibration_file', 'gnss_log'):
@@ -225,13 +245,7 @@ def _camera_setup(opts: ReplayOptions, extra: dict) -> tuple:
     # The replay waits for the tracker on every frame: a reliable subscription loses none.
     extra.setdefault('tracker', {}).setdefault('reliable_input', True)
     roles = ('camera', 'tracker', 'bundle', 'stereo', 'map')
-    bundle = role_values(GraphSpec(roles=roles, params_file=opts.params_file, extra=extra), 'bundle')
-    arm = bundle.get('lever_arm_body_frd_m')
-    if arm is not None and any(float(v) for v in arm):
-        # A body lever arm turns with the body's attitude, which photos and a video do not record.
-        extra.setdefault('bundle', {})['lever_arm_body_frd_m'] = [0.0, 0.0, 0.0]
-        print(f'note: {opts.params_file}: the body lever arm {list(arm)} m is not applied: a photo folder or a '
-              'video has no attitude to turn it with', flush=True)
+    no_body_lever_arm(opts, extra, roles, 'a photo folder or a video has no attitude')
     return roles
 
 
