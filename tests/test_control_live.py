@@ -151,3 +151,23 @@ def test_one_gcp_is_used_and_the_block_is_not_strained(flight, baseline):
     at, live, faults = _fly(flight, one)
     assert live.summary()['gcps'] == 1 and live.use_of('GCP03') == 'full' and not faults
     assert _spread(at) <= MAX_STRAIN * baseline
+
+
+def test_a_flight_that_never_turns_takes_its_gcps_as_given_and_says_so():
+    """One straight line: the GNSS leaves the roll about it undetermined, so no GNSS-only block can judge
+    the control, and only the GCPs fix that roll. They are used as given at the end of the flight, with a
+    note; heights that the file itself shows to be placeholders are still used horizontally only."""
+    cfg = preset('tiny', n_lines=1, n_gcp=5, n_check=4, line_length_m=60.0)
+    sk = simulate_keyframes(cfg, world=build_world(cfg, np.random.default_rng(cfg.seed)), attitude_sigma_deg=None)
+    plain, _, _ = _fly(sk)
+    at, live, faults = _fly(sk, list(sk.control))
+    h0, _, _ = _checks(sk, plain)
+    h, v, n = _checks(sk, at)
+    print(f'straight line, RTK: check RMSE {h * 100:.1f} / {v * 100:.1f} cm with the GCPs, {h0 * 100:.1f} cm H without')
+    assert at.georef_provisional and live.summary()['gcps_full'] == 5
+    assert any('could not be checked' in f and 'never turned' in f for f in faults)
+    assert n == 4 and h < 0.3 * h0 and h < sk.gsd_m
+    at, live, faults = _fly(sk, _heights(sk, 400.0))
+    assert live.summary()['gcps_horizontal_only'] == 5
+    assert all('placeholder' in live.vetting.points[c.name].reason for c in sk.control if c.role == 'gcp')
+    assert sum('not checked against the block' in f for f in faults) == 5

@@ -267,8 +267,12 @@ class ControlVetting:
         self.points.update(later.points)
         self.wrong_photos.update(later.wrong_photos)
         _height_verdict(self, file_heights or {}, opt or ControlVettingOptions())
+        # What an unchecked vetting said is not made again from the points: keep it.
+        kept = [n for n in self.notes + list(later.notes)
+                if n.startswith('the control could not be checked') or 'not checked against the block' in n]
         self.notes = []
         _notes(self)
+        self.notes += [n for n in kept if n not in self.notes]
         return [n for n in self.notes if n not in before]
 
     def to_dict(self) -> dict:
@@ -439,6 +443,32 @@ def vet_control(camera: PinholeCamera, poses: dict, images: set, rows: list[Cont
     vet = ControlVetting(fates, points, {} if detected else _wrong_photos(fates))
     _height_verdict(vet, file_heights or {}, opt)
     _notes(vet)
+    return vet
+
+
+def unchecked_vetting(rows: list[ControlRow], control: list[ControlPoint], why: str,
+                      file_heights: dict | None = None) -> ControlVetting:
+    """The control taken as given when no GNSS-only block can judge it (`why`: e.g. a flight that never
+    turned, whose roll about its line only the GCPs fix). Only what the file itself shows is acted on: a
+    placeholder height (exactly 0, or the same to the millimetre as another point's) makes its GCP
+    horizontal only; every row is used."""
+    by_name = {c.name: c for c in control}
+    fates = [RowFate(r, 'used' if r.name in by_name else 'point_unused',
+                     '' if r.name in by_name else f'{r.name} has no surveyed coordinates') for r in rows]
+    names = list(dict.fromkeys(r.name for r in rows if r.name in by_name))
+    ph = _placeholders(file_heights or {}, [n for n in names if by_name[n].role == 'gcp'])
+    points = {}
+    for n in names:
+        c = by_name[n]
+        p = PointCheck(n, c.role, 'check' if c.role == 'check' else 'full', f'not checked: {why}',
+                       rows=sum(r.name == n for r in rows), usable_rows=sum(r.name == n for r in rows))
+        if n in ph:
+            p.placeholder, p.use = ph[n], 'horizontal'
+            p.reason = f'{ph[n]}: a placeholder?; used horizontally only (not checked against the block: {why})'
+        points[n] = p
+    vet = ControlVetting(fates, points, {})
+    vet.notes.append(f'the control could not be checked against the GNSS: {why}; its GCPs are used as given')
+    vet.notes += [f'GCP {p.name}: {p.reason}' for p in points.values() if p.use == 'horizontal']
     return vet
 
 

@@ -7,7 +7,11 @@ builds no geometry and the adjustment does not see it) until both of these hold:
 - the block is georeferenced for good (not provisionally, as on a straight first line);
 - `min_keyframes` oriented keyframes have seen it (one, at the end of the flight).
 
-Then `vet_control` (core/control.py) checks the target's detections and its survey against the block
+A flight that ends without such a block (it never turned: the GNSS leaves the roll about its line
+undetermined, and only the GCPs fix it) takes its control as given at the end (`unchecked_vetting`), and
+says so; only a height the file itself shows to be a placeholder is then used horizontally only.
+
+Otherwise `vet_control` (core/control.py) checks the target's detections and its survey against the block
 as the GNSS alone has placed it, just as `triangulate` does after the flight:
 - a detection far from where the others intersect is taken out (a misread marker, or a second board
   with the same id);
@@ -37,7 +41,8 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from photogram_ros.core.control import ControlRow, ControlVetting, ControlVettingOptions, vet_control
+from photogram_ros.core.control import (ControlRow, ControlVetting, ControlVettingOptions, unchecked_vetting,
+                                        vet_control)
 from photogram_ros.core.incremental import ControlPoint, IncrementalAT
 from photogram_ros.params import param
 
@@ -91,7 +96,8 @@ class LiveControl:
     def update(self, at: IncrementalAT, final: bool = False) -> list[str]:
         """Vet the targets due (module docstring), take their rejected detections out of `at`, give it the
         control and the points of the GCPs admitted; returns the new faults."""
-        if not self.surveyed or not at.georeferenced or at.georef_provisional:
+        weak = not at.georeferenced or at.georef_provisional
+        if not self.surveyed or (weak and not final):
             return []
         registered = set(at.registered)
         need = 1 if final else self.opt.control_min_keyframes
@@ -103,10 +109,17 @@ class LiveControl:
             for k, uv in self.observations(n, registered):
                 rows.append(ControlRow(0, at.kfs[k].name, n, uv))
                 kid_of[at.kfs[k].name] = k
-        poses = {name: at.kfs[k].map_T_cam for name, k in kid_of.items()}
-        later = vet_control(at.camera, poses, set(poses), rows, [self.surveyed[n] for n in due], at.fix_sigma_enu_m(),
-                            _ground_near(at, [self.surveyed[n].map_xyz for n in due]), self.file_heights, self.opt,
-                            detected=True)
+        if weak:
+            # The flight ends without a GNSS-only block that could judge the control (it never turned: the
+            # roll about its line is an assumption that only the GCPs can fix). Take them as given.
+            why = ('the block has no georeference from its GNSS' if not at.georeferenced else
+                   'the flight never turned, so the GNSS leaves the roll about its line undetermined')
+            later = unchecked_vetting(rows, [self.surveyed[n] for n in due], why, self.file_heights)
+        else:
+            poses = {name: at.kfs[k].map_T_cam for name, k in kid_of.items()}
+            later = vet_control(at.camera, poses, set(poses), rows, [self.surveyed[n] for n in due],
+                                at.fix_sigma_enu_m(), _ground_near(at, [self.surveyed[n].map_xyz for n in due]),
+                                self.file_heights, self.opt, detected=True)
         new = self.vetting.merge(later, self.file_heights, self.opt)
         for f in later.rows:
             if f.fate == 'outlier':
