@@ -226,3 +226,22 @@ def test_correct_file_uses_every_row(flight, baseline, tmp_path):
     _assert_not_strained(rep, baseline)
     ck = rep['check']['rmse']
     assert ck['n'] == 3 and ck['horizontal_m'] < truth.gsd_m and ck['vertical_m'] < 2 * truth.gsd_m
+
+
+def test_single_line_survey_takes_its_gcps_as_given_and_says_so(tmp_path):
+    """One straight line of photos: its GNSS leaves the roll about the line undetermined, so the GNSS-only
+    block cannot judge the control (it would reject good GCPs); the GCPs are used as given, with a note."""
+    from photogram_ros.io.photo_block import read_photo_block
+    root = tmp_path / 'line'
+    simulate(preset('tiny', photos=True, fps=1.0, n_lines=1, line_length_m=60.0, n_gcp=5, n_check=3,
+                    gnss_mode='rtk_fixed'), root)
+    block = read_photo_block(root / 'photos')
+    lines = (root / 'photos' / 'gcp_list.txt').read_text().splitlines()
+    flight = (root, root / 'photos', block, lines[0], [ln.split() for ln in lines[1:]], GroundTruth.load(root))
+    _, rep = _run(flight, tmp_path, flight[4], tag='gcp')
+    c = rep['control']
+    print(c['faults'])
+    assert any('could not be checked' in f for f in c['faults'])
+    assert all(p['use'] in ('full', 'check') for p in c['points'].values())
+    assert c['row_fates']['used'] == len(flight[4])
+    assert rep['check']['rmse']['n'] == 3

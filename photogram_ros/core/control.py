@@ -373,22 +373,7 @@ def vet_control(camera: PinholeCamera, poses: dict, images: set, rows: list[Cont
     by_name = {c.name: c for c in control}
     sig_b = np.asarray(block_sigma_enu_m, float).reshape(3)
     suspect = 'likely a misread marker or a second board with its id' if detected else 'likely the wrong photo'
-    fates = [RowFate(r, '') for r in rows]
-    seen = set()
-    for f in fates:
-        r = f.row
-        if r.image not in images:
-            f.fate, f.reason = 'photo_not_in_set', f'{r.image} is not one of the photos given'
-        elif r.image not in poses:
-            f.fate, f.reason = 'photo_not_oriented', f'{r.image} could not be oriented'
-        elif r.name not in by_name:
-            f.fate, f.reason = 'point_unused', f'{r.name} has no surveyed coordinates'
-        elif not (0 <= r.uv[0] < camera.width and 0 <= r.uv[1] < camera.height):
-            f.fate, f.reason = ('pixel_outside_image', f'pixel ({r.uv[0]:.1f}, {r.uv[1]:.1f}) is outside the '
-                                f'{camera.width}x{camera.height} image')
-        elif (r.image, r.name) in seen:
-            f.fate, f.reason = 'duplicate', f'{r.name} is given twice in {r.image}: the first row is used'
-        seen.add((r.image, r.name))
+    fates = _file_fates(camera, poses, images, rows, by_name)
     tie = None if tie_points_map_m is None else np.asarray(tie_points_map_m, float).reshape(-1, 3)
     points = {}
     for name in dict.fromkeys([r.name for r in rows if r.name in by_name]):
@@ -446,28 +431,59 @@ def vet_control(camera: PinholeCamera, poses: dict, images: set, rows: list[Cont
     return vet
 
 
-def unchecked_vetting(rows: list[ControlRow], control: list[ControlPoint], why: str,
-                      file_heights: dict | None = None) -> ControlVetting:
+def _file_fates(camera: PinholeCamera, poses: dict, images: set, rows: list[ControlRow], by_name: dict) -> list:
+    """[RowFate] of the rows: the fates the file and the photo set decide alone ('' for the rows left to
+    check against the block)."""
+    fates = [RowFate(r, '') for r in rows]
+    seen = set()
+    for f in fates:
+        r = f.row
+        if r.image not in images:
+            f.fate, f.reason = 'photo_not_in_set', f'{r.image} is not one of the photos given'
+        elif r.image not in poses:
+            f.fate, f.reason = 'photo_not_oriented', f'{r.image} could not be oriented'
+        elif r.name not in by_name:
+            f.fate, f.reason = 'point_unused', f'{r.name} has no surveyed coordinates'
+        elif not (0 <= r.uv[0] < camera.width and 0 <= r.uv[1] < camera.height):
+            f.fate, f.reason = ('pixel_outside_image', f'pixel ({r.uv[0]:.1f}, {r.uv[1]:.1f}) is outside the '
+                                f'{camera.width}x{camera.height} image')
+        elif (r.image, r.name) in seen:
+            f.fate, f.reason = 'duplicate', f'{r.name} is given twice in {r.image}: the first row is used'
+        seen.add((r.image, r.name))
+    return fates
+
+
+def unchecked_vetting(camera: PinholeCamera, poses: dict, images: set, rows: list[ControlRow],
+                      control: list[ControlPoint], why: str, file_heights: dict | None = None) -> ControlVetting:
     """The control taken as given when no GNSS-only block can judge it (`why`: e.g. a flight that never
-    turned, whose roll about its line only the GCPs fix). Only what the file itself shows is acted on: a
-    placeholder height (exactly 0, or the same to the millimetre as another point's) makes its GCP
-    horizontal only; every row is used."""
+    turned, whose roll about its line only the GCPs fix). Only what the file and the photo set show are
+    acted on: rows naming photos not in the set (or not oriented, or pixels off the image) are not used, a
+    point with fewer than two usable rows neither, and a placeholder height (exactly 0, or the same to the
+    millimetre as another point's) makes its GCP horizontal only. Arguments as vet_control's."""
     by_name = {c.name: c for c in control}
-    fates = [RowFate(r, 'used' if r.name in by_name else 'point_unused',
-                     '' if r.name in by_name else f'{r.name} has no surveyed coordinates') for r in rows]
+    fates = _file_fates(camera, poses, images, rows, by_name)
     names = list(dict.fromkeys(r.name for r in rows if r.name in by_name))
     ph = _placeholders(file_heights or {}, [n for n in names if by_name[n].role == 'gcp'])
     points = {}
     for n in names:
-        c = by_name[n]
+        c, mine = by_name[n], [f for f in fates if f.row.name == n]
+        usable = [f for f in mine if not f.fate]
         p = PointCheck(n, c.role, 'check' if c.role == 'check' else 'full', f'not checked: {why}',
-                       rows=sum(r.name == n for r in rows), usable_rows=sum(r.name == n for r in rows))
-        if n in ph:
+                       rows=len(mine), usable_rows=len(usable))
+        if len(usable) < 2:
+            p.use = 'unused'
+            p.reason = (f'fewer than two usable rows ({len(usable)} of {len(mine)}): a point in one photo cannot be '
+                        'intersected')
+        elif n in ph:
             p.placeholder, p.use = ph[n], 'horizontal'
             p.reason = f'{ph[n]}: a placeholder?; used horizontally only (not checked against the block: {why})'
+        for f in usable:
+            f.fate = 'used' if p.use != 'unused' else 'point_unused'
+            f.reason = '' if p.use != 'unused' else f'{n} is not used: {p.reason}'
         points[n] = p
     vet = ControlVetting(fates, points, {})
-    vet.notes.append(f'the control could not be checked against the GNSS: {why}; its GCPs are used as given')
+    _notes(vet)
+    vet.notes.insert(0, f'the control could not be checked against the GNSS: {why}; its GCPs are used as given')
     vet.notes += [f'GCP {p.name}: {p.reason}' for p in points.values() if p.use == 'horizontal']
     return vet
 

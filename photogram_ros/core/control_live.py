@@ -109,14 +109,15 @@ class LiveControl:
             for k, uv in self.observations(n, registered):
                 rows.append(ControlRow(0, at.kfs[k].name, n, uv))
                 kid_of[at.kfs[k].name] = k
+        poses = {name: at.kfs[k].map_T_cam for name, k in kid_of.items()}
         if weak:
             # The flight ends without a GNSS-only block that could judge the control (it never turned: the
             # roll about its line is an assumption that only the GCPs can fix). Take them as given.
             why = ('the block has no georeference from its GNSS' if not at.georeferenced else
                    'the flight never turned, so the GNSS leaves the roll about its line undetermined')
-            later = unchecked_vetting(rows, [self.surveyed[n] for n in due], why, self.file_heights)
+            later = unchecked_vetting(at.camera, poses, set(poses), rows, [self.surveyed[n] for n in due], why,
+                                      self.file_heights)
         else:
-            poses = {name: at.kfs[k].map_T_cam for name, k in kid_of.items()}
             later = vet_control(at.camera, poses, set(poses), rows, [self.surveyed[n] for n in due],
                                 at.fix_sigma_enu_m(), _ground_near(at, [self.surveyed[n].map_xyz for n in due]),
                                 self.file_heights, self.opt, detected=True)

@@ -22,7 +22,7 @@ import numpy as np
 
 from photogram_ros.core.at_report import (build_report, convergence, focal_determination, gnss_figures,
                                         intrinsics_sigma)
-from photogram_ros.core.control import ControlRow, ControlVettingOptions, vet_control
+from photogram_ros.core.control import ControlRow, ControlVettingOptions, unchecked_vetting, vet_control
 from photogram_ros.io.at_report import write_report
 from photogram_ros.core.geodesy import LocalFrame, utm_epsg
 from photogram_ros.core.incremental import IncrementalAT, IncrementalOptions
@@ -219,9 +219,14 @@ def adjust_block(block: KeyframeBlock, out: str | Path, opt: TriangulateOptions,
                    else auto_self_calibration(block, 0, []))
         at, rep_adj = _triangulate_records(block, opt, [], {}, refine0, log, ' (GNSS only, to check the control)')
         P0 = np.array([at.points[t] for t in at.points if t >= 0]).reshape(-1, 3)
-        vet = vet_control(at.camera, {at.kfs[k].name: at.kfs[k].map_T_cam for k in at.registered},
-                          {r.name for r in block.records}, rows, control, at.fix_sigma_enu_m(), P0, file_heights,
-                          opt.vetting)
+        if at.georeferenced and not at.georef_provisional:
+            vet = vet_control(at.camera, {at.kfs[k].name: at.kfs[k].map_T_cam for k in at.registered},
+                              {r.name for r in block.records}, rows, control, at.fix_sigma_enu_m(), P0, file_heights,
+                              opt.vetting)
+        else:   # a single line (its roll about it only the GCPs fix) or no GNSS: nothing to judge the control by
+            vet = unchecked_vetting(at.camera, {at.kfs[k].name: at.kfs[k].map_T_cam for k in at.registered},
+                                    {r.name for r in block.records}, rows, control, 'the photos\' GNSS does not fix '
+                                    'the block (a single line, or too few fixes)', file_heights)
         gnss_without = gnss_figures(np.array(list(at.gnss_residuals().values())))
         control = vet.control_points(control)
         for note in vet.notes:
