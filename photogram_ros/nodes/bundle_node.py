@@ -76,10 +76,10 @@ from photogram_ros.core.attitude import AttitudeHistory, antenna_offset_enu
 from photogram_ros.core.at_report import convergence, redundancy_notes
 from photogram_ros.core.control import ControlSet, robust_intersection
 from photogram_ros.core.control_live import LiveControl, LiveControlOptions
+from photogram_ros.core.evaluation import ce90_le90
 from photogram_ros.core.geodesy import LocalFrame
 from photogram_ros.core.gnss_fix import GnssFix
 from photogram_ros.core.incremental import IncrementalAT, IncrementalOptions, KeyframeRecord
-from photogram_ros.core.evaluation import ce90_le90
 from photogram_ros.core.survey_quality import FIX_CLASSES, fix_class, rmse
 from photogram_ros.errors import PhotogramError
 from photogram_ros.nodes.diagnostics import ERROR, WARN, Diagnostics
@@ -542,9 +542,8 @@ class BundleNode(Node):
         (their point in the block); residual = estimate - survey, map ENU, m."""
         at, rows = self.at, []
         registered = set(at.registered)
-        surveyed = {c.name: c for c in self.live.surveyed.values()}
         for t in self.control.targets:
-            cp, use = surveyed.get(t.name), self.live.use_of(t.name)
+            cp, use = self.live.surveyed.get(t.name), self.live.use_of(t.name)
             obs = self.live.observations(t.name, registered)
             if cp is None or t.role != role or len(obs) < (2 if role == 'check' else 1) \
                     or (role == 'gcp' and use not in ('full', 'horizontal')):
