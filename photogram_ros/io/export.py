@@ -285,6 +285,10 @@ class DsmParams:
     min_count: int = param(3, 'fused cells a DSM cell needs', min=1, max=100)
     fill_gaps_m: float = param(AUTO, 'gaps up to this wide between agreeing sides are interpolated, m (0: none); '
                                      '-1: from the map cell (3 m at 0.12 m cells)', min=AUTO, max=1e4)
+    canopy_top: bool = param(True, 'a DSM cell whose points spread more than max_spread_m keeps the top (upper '
+                                   'quartile) of its heights when the heights around it run on without a wall\'s '
+                                   'gap (vegetation: core/raster.rough_surface_cells); False: every such cell is '
+                                   'no-data')
 
     def check(self) -> None:
         for name in ('max_spread_m', 'fill_gaps_m'):
@@ -296,7 +300,7 @@ class DsmParams:
         """A copy with the AUTO lengths set for fused cells of `cell_m`."""
         spread, gaps = dsm_lengths_for_cell(cell_m)
         return DsmParams(spread if self.max_spread_m == AUTO else self.max_spread_m, self.min_count,
-                         gaps if self.fill_gaps_m == AUTO else self.fill_gaps_m)
+                         gaps if self.fill_gaps_m == AUTO else self.fill_gaps_m, self.canopy_top)
 
 
 def dsm_in_crs(cloud: GeoCloud, res_m: float, dsm: DsmParams) -> Raster:
@@ -304,7 +308,8 @@ def dsm_in_crs(cloud: GeoCloud, res_m: float, dsm: DsmParams) -> Raster:
     if AUTO in (dsm.max_spread_m, dsm.fill_gaps_m):
         raise ConfigError('DsmParams left to the map cell: resolve them first (DsmParams.for_cell)')
     return dsm_from_points(cloud.x, cloud.y, cloud.z, res_m, weights=cloud.count, max_spread_m=dsm.max_spread_m,
-                           z_sigma=cloud.sigma_z, min_count=dsm.min_count, fill_gaps_m=dsm.fill_gaps_m)
+                           z_sigma=cloud.sigma_z, min_count=dsm.min_count, fill_gaps_m=dsm.fill_gaps_m,
+                           canopy=dsm.canopy_top)
 
 
 def load_keyframes(store: MapStore) -> list[Keyframe]:
@@ -379,7 +384,8 @@ def export_map(map_dir: str | Path | MapStore, out_dir: str | Path, crs: str, he
     dsm_res = dsm_res_m or 2.0 * store.cell_m
     rules = dsm.for_cell(store.cell_m)
     res.dsm = {'cell_m': store.cell_m, 'res_m': dsm_res, 'max_spread_m': rules.max_spread_m,
-               'min_count': rules.min_count, 'fill_gaps_m': rules.fill_gaps_m}
+               'min_count': rules.min_count, 'fill_gaps_m': rules.fill_gaps_m,
+               'canopy_top': rules.canopy_top}
     if 'dsm' in products or 'ortho' in products:
         grid = dsm_in_crs(cloud, dsm_res, rules)
         res.dsm['valid_share'] = float(np.mean(grid.valid())) if grid.data.size else 0.0
