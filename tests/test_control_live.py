@@ -171,3 +171,20 @@ def test_a_flight_that_never_turns_takes_its_gcps_as_given_and_says_so():
     assert live.summary()['gcps_horizontal_only'] == 5
     assert all('placeholder' in live.vetting.points[c.name].reason for c in sk.control if c.role == 'gcp')
     assert sum('not checked against the block' in f for f in faults) == 5
+
+
+def test_gcps_georeference_a_straight_line_its_3d_gnss_cannot():
+    """One straight line under 3D GNSS (~2 m): the fixes' spread across the line is noise, so the GNSS alone
+    gives no georeference at all (the flight does not map). At the end of the flight the GCPs join the
+    fit, and the block is georeferenced by them."""
+    cfg = preset('tiny', n_lines=1, n_gcp=5, n_check=4, line_length_m=60.0)
+    sk = simulate_keyframes(cfg, world=build_world(cfg, np.random.default_rng(cfg.seed)), attitude_sigma_deg=None,
+                            gnss_mode='3d')
+    plain, _, _ = _fly(sk)
+    assert not plain.georeferenced
+    at, live, faults = _fly(sk, list(sk.control))
+    h, v, n = _checks(sk, at)
+    print(f'straight line, 3D GNSS: check RMSE {h * 100:.1f} / {v * 100:.1f} cm with the GCPs; no georeference without')
+    assert at.georeferenced and live.summary()['gcps_full'] == 5
+    assert any('no georeference from its GNSS' in f for f in faults)
+    assert n == 4 and h < sk.gsd_m and v < 1.5 * sk.gsd_m

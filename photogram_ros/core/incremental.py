@@ -635,6 +635,16 @@ class IncrementalAT:
                         else self.kfs[k].fix_enu - self.kfs[k].antenna_offset for k in ks])
         sig = np.sqrt(np.median([np.trace(self.kfs[k].fix_cov) for k in ks]))
         sv = spread(dst)
+        if force:
+            # End of flight: GCPs (three or more) join the fit. On a straight line the GNSS leaves the roll
+            # about it to noise, and the GCPs off the line fix it.
+            gcp = [(self.points[t], self.control[n].map_xyz) for n, t in self._target_ids.items()
+                   if t in self.points and not self.is_check(t)]
+            if len(gcp) >= 3:
+                src = np.vstack([src, [p for p, _ in gcp]])
+                dst = np.vstack([dst, [q for _, q in gcp]])
+        else:
+            gcp = []
         # A block made without GNSS drifts in scale along the line: tolerate ~2 % of its extent.
         thr = 4.0 * sig + np.linalg.norm(self._lever) + 0.05 + 0.02 * 2 * sv[0]
         res = similarity_ransac(src, dst, thr, self.rng,
@@ -645,13 +655,15 @@ class IncrementalAT:
         # the line is noise (the adjustment that follows refines it, but needs a fair start).
         if res.ok and (force or side >= 3.0 * sig / np.sqrt(n_in)):
             s = res.sim
-            provisional = False
+            # Forced on a line the GNSS noise spans: the roll about it is noise (provisional, it says so).
+            provisional = force and len(gcp) < 3 and side < 3.0 * sig / np.sqrt(n_in)
         elif self.georeferenced:
             return False    # provisional already; wait for the turn
         elif self.opt.assume_nadir and sv[0] > max(10.0 * sig, 5.0) and len(ks) >= 2 * self.opt.georef_min_keyframes:
             # Straight line: everything but the roll about it comes from GNSS; the roll from the
             # near-nadir camera. Provisional until the first turn.
-            s = similarity_on_line(src, dst, np.array([self.kfs[k].map_T_cam[:3, 2] for k in ks]))
+            n = len(ks)   # the cameras alone (GCPs joined a forced fit above)
+            s = similarity_on_line(src[:n], dst[:n], np.array([self.kfs[k].map_T_cam[:3, 2] for k in ks]))
             provisional = True
         else:
             return False
