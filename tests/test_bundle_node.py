@@ -241,3 +241,22 @@ def test_health_is_an_error_with_the_reason_when_keyframes_do_not_orient(rclpy_c
     assert outcome.status == 'none' and not outcome.failed
     node.destroy_node()
     feeder.destroy_node()
+
+
+def test_the_flight_after_every_track_was_lost_is_oriented_and_published(rclpy_context):
+    """Every track id changes half-way (a long gap in the frames): the keyframes after it are oriented as a
+    segment that joins through its GNSS, published, counted, and reported as a WARN with the reason."""
+    import dataclasses
+
+    from helpers.keyframe_feed import run_bundle
+    sk = simulate_keyframes(preset('tiny'), keyframe_interval_s=1.0, attitude_sigma_deg=None)
+    kb = len(sk.records) // 2
+    recs = [r if i < kb else dataclasses.replace(r, track_ids=np.asarray(r.track_ids) + 10**6, target_uv={})
+            for i, r in enumerate(sk.records)]
+    node, poses, _ = run_bundle(rclpy_context, sk, {}, {}, records=recs, min_oriented_in_flight=kb - 3)
+    counts, problems = node.diag.counts(), node.diag.recent_problems(20)
+    node.destroy_node()
+    after = [r.stamp_ns for r in recs[kb:] if r.stamp_ns in poses]
+    assert len(after) >= len(recs) - kb - 1                       # published, not only adjusted
+    assert counts.get('keyframes_joined_from_a_segment', 0) >= 3
+    assert any(p.startswith('every track was lost') for p in problems)

@@ -17,15 +17,10 @@ import sys
 
 import numpy as np
 import pytest
-from geometry_msgs.msg import PoseWithCovarianceStamped
-from rclpy.node import Node
-from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
-from sensor_msgs.msg import CameraInfo, NavSatFix, NavSatStatus, PointCloud2
-
 from conftest import ROOT
-from helpers.keyframe_feed import executor_with, feature_table, fix_msg, spin_until, start_bundle_node
+from helpers.keyframe_feed import run_bundle
 from photogram_ros import msgs
-from photogram_ros.core.control import TARGET_DTYPE, SurveyedTarget
+from photogram_ros.core.control import SurveyedTarget
 from photogram_ros.core.geodesy import LocalFrame
 from photogram_ros.core.incremental import intersect_point
 from photogram_ros.io.control_file import write_control_file
@@ -48,61 +43,6 @@ def flight_3d():
 
 def _values(node) -> dict:
     return {kv.key: kv.value for kv in node.diag.status().values}
-
-
-def _run_bundle(ctx, sk, marker_of, overrides):
-    """Feed every keyframe (features + target rows, fix) to a bundle_node; final poses and the node."""
-    from photogram_ros.nodes.bundle_node import BundleNode
-    node = BundleNode(overrides={'lever_arm_cam_m': [float(v) for v in sk.lever_arm_cam_m], **overrides},
-                      context=ctx)
-    feeder = Node('gcp_feeder', context=ctx)
-    reliable = QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE)
-    latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
-    pub_info = feeder.create_publisher(CameraInfo, 'camera/camera_info', QoSProfile(depth=5))
-    pub_feat = feeder.create_publisher(PointCloud2, 'keyframes/features', reliable)
-    pub_fix = feeder.create_publisher(NavSatFix, 'keyframes/fix', reliable)
-    poses, georef, n_msgs = {}, [], [0]
-
-    def on_pose(m):
-        poses[msgs.ns_from_time(m.header.stamp)] = m
-        n_msgs[0] += 1
-    feeder.create_subscription(PoseWithCovarianceStamped, 'map/keyframe_pose', on_pose, reliable)
-    feeder.create_subscription(NavSatFix, 'map/georeference', georef.append, latched)
-    ex = executor_with(ctx, node, feeder)
-    try:
-        start_bundle_node(ex, node, pub_info, pub_feat, sk.camera, sk.records[0].stamp_ns)
-        for k, r in enumerate(sk.records):
-            pub_fix.publish(fix_msg(r, NavSatStatus.STATUS_FIX))
-            obs = feature_table(r, sk.camera)
-            # What the tracker sends: the markers it found, and now and then one no survey knows.
-            names = list(r.target_uv) + (['stray'] if k % 4 == 0 else [])
-            tg = np.zeros(len(names), TARGET_DTYPE)
-            for i, n in enumerate(names):
-                tg[i]['marker_id'] = marker_of.get(n, 42)
-                tg[i]['u'], tg[i]['v'] = r.target_uv.get(n, (320.0, 240.0))
-            pub_feat.publish(msgs.keyframe_features_msg(obs, r.stamp_ns, targets=tg))
-            spin_until(ex, lambda: False, 0.05)
-        n = len(sk.records)
-        c = node.diag.counts
-        assert spin_until(ex, lambda: c().get('keyframes_oriented', 0) + c().get('keyframes_not_oriented', 0) >= n, 90)
-        assert c()['keyframes_oriented'] >= n - 3   # the first ones wait for a wide enough pair
-        before = n_msgs[0]
-        node.finish()
-        # The final adjustment republishes every oriented keyframe: wait for all of them (GCPs are
-        # checked before they are used, so poses published in flight may predate them).
-        n_final = len(node.at.registered)
-        assert spin_until(ex, lambda: n_msgs[0] >= before + n_final and georef, 20)
-        last = [-1]
-
-        def quiet():   # messages published in flight before finish() may still have been on their way
-            seen, last[0] = last[0], n_msgs[0]
-            return seen == n_msgs[0]
-        while not spin_until(ex, lambda: False, 0.5) and not quiet():
-            pass
-    finally:
-        ex.shutdown()
-        feeder.destroy_node()
-    return node, poses, georef
 
 
 def _check_rmse(sk, targets, poses, georef):
@@ -130,7 +70,7 @@ def test_bundle_node_uses_gcps_from_a_control_file(flight_3d, rclpy_context, tmp
         survey.append(SurveyedTarget(t.name, t.marker_id, float(lat), float(lon), float(h), t.role))
     control = write_control_file(tmp_path / 'targets.txt', survey, 'EPSG:32632')
 
-    node, poses, georef = _run_bundle(rclpy_context, sk, marker_of, {'control_file': str(control)})
+    node, poses, georef = run_bundle(rclpy_context, sk, marker_of, {'control_file': str(control)})
     vals = _values(node)
     counts = node.diag.counts()
     node.destroy_node()
@@ -145,7 +85,7 @@ def test_bundle_node_uses_gcps_from_a_control_file(flight_3d, rclpy_context, tmp
     n_stray = (len(sk.records) + 3) // 4
     assert counts['target_detections_ignored'] == n_stray
     # The same flight and receiver without the control file: off by the receiver's metres.
-    node, poses, georef = _run_bundle(rclpy_context, sk, marker_of, {})
+    node, poses, georef = run_bundle(rclpy_context, sk, marker_of, {})
     counts = node.diag.counts()
     node.destroy_node()
     h2, v2, _ = _check_rmse(sk, targets, poses, georef)
@@ -167,7 +107,7 @@ def test_bundle_node_checks_gcps_before_using_them(flight_3d, rclpy_context, tmp
         survey.append(SurveyedTarget(t.name, t.marker_id, float(lat), float(lon),
                                      400.0 if t.role == 'gcp' else float(h), t.role))
     control = write_control_file(tmp_path / 'targets.txt', survey, 'EPSG:32632')
-    node, poses, georef = _run_bundle(rclpy_context, sk, marker_of, {'control_file': str(control)})
+    node, poses, georef = run_bundle(rclpy_context, sk, marker_of, {'control_file': str(control)})
     vals, problems, q = _values(node), node.diag.recent_problems(20), node.quality()
     node.destroy_node()
     h, v, n = _check_rmse(sk, targets, poses, georef)
@@ -194,7 +134,7 @@ def test_final_adjustment_at_its_iteration_limit_says_how_far_from_converged(fli
     survey = [SurveyedTarget(t.name, t.marker_id, *map(float, sk.origin.enu_to_geodetic(t.center_enu)), t.role)
               for t in targets]
     control = write_control_file(tmp_path / 'targets.txt', survey, 'EPSG:32632')
-    node, _, _ = _run_bundle(rclpy_context, sk, {t.name: t.marker_id for t in targets},
+    node, _, _ = run_bundle(rclpy_context, sk, {t.name: t.marker_id for t in targets},
                              {'full_iterations': 2, 'control_file': str(control)})
     vals = _values(node)
     node.destroy_node()

@@ -273,3 +273,41 @@ def test_keyframes_without_three_view_points_orient_from_relative_pose_and_gnss(
     # Two-view tracks hold the block together only weakly: it sits about where its fixes put it (with
     # three-view tracks this flight's cameras are 3.4 m off, the fixes' own bias).
     assert rms < 1.6 * fix_rms
+
+
+def _lost_every_track(records, k_break: int):
+    """The same keyframes with every track id changed from keyframe k_break on: the tracker lost them all
+    (a long gap in the frames), so nothing links the flight after the break to the block before it."""
+    return [r if i < k_break else dataclasses.replace(r, track_ids=np.asarray(r.track_ids) + 10**6, target_uv={})
+            for i, r in enumerate(records)]
+
+
+@pytest.mark.parametrize('gnss_mode', ['rtk_fixed', '3d'])
+def test_the_flight_after_every_track_was_lost_joins_as_a_segment(world, gnss_mode):
+    """Half the flight shares no tie point with the first half. Without segments none of it orients; with
+    them it is a block of its own that joins through its GNSS, as accurate as the GNSS places it."""
+    cfg, w = world
+    sk = simulate_keyframes(cfg, gnss_mode=gnss_mode, world=w, attitude_sigma_deg=None)
+    kb = len(sk.records) // 2
+    recs = _lost_every_track(sk.records, kb)
+    out = {}
+    for segments in (False, True):
+        at = IncrementalAT(sk.camera, IncrementalOptions(lever_arm_cam_m=tuple(sk.lever_arm_cam_m), segments=segments),
+                           origin=sk.origin)
+        reps = [at.add_keyframe(r) for r in recs]
+        at.full_adjustment()
+        out[segments] = (at, reps)
+    off, (on, reps) = out[False][0], out[True]
+    err = lambda at, ks: float(np.sqrt(np.mean([np.sum((at.kfs[k].map_T_cam[:3, 3] - sk.true_map_T_cam[k][:3, 3]) ** 2)
+                                                 for k in ks])))
+    after = [k for k in on.registered if k >= kb]
+    before = [k for k in on.registered if k < kb]
+    fix = float(np.sqrt(np.mean([np.sum((on.kfs[k].fix_enu - sk.true_map_T_cam[k][:3, 3]) ** 2) for k in after])))
+    print(f'{gnss_mode}: after the break {len(after)} of {len(recs) - kb} oriented with segments, '
+          f'{sum(k >= kb for k in off.registered)} without; centres {err(on, before):.3f} m before it, '
+          f'{err(on, after):.3f} m after (the fixes there {fix:.3f} m)')
+    assert not any(k >= kb for k in off.registered)
+    assert len(after) >= len(recs) - kb - 1 and on.segments_joined == 1
+    if gnss_mode == 'rtk_fixed':   # joined in flight, once its GNSS placed it (3D: at the end)
+        assert any(r.joined for r in reps)
+    assert err(on, after) <= max(1.5 * err(on, before), 0.1)

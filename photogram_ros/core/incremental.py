@@ -31,7 +31,7 @@ node's parameter set extends it.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -94,6 +94,9 @@ class IncrementalOptions:
                                           'keyframe it shares most tracks with, scaled by the known points it sees '
                                           'or by GNSS', )
     min_relative_inliers: int = param(25, 'relative-pose inliers that fallback needs', min=8, max=100000)
+    segments: bool = param(True, 'keyframes that share no tie point with the block (every track lost: a long gap '
+                                 'in the frames) start a segment of their own, which joins the block through its '
+                                 'GNSS once that georeferences it (or at the end of the flight)')
     loss: str = param('huber', 'robust loss on reprojection errors', choices=('huber', 'cauchy', 'linear'))
     loss_scale_px: float = param(1.0, 'robust loss scale, pixels', min=0.05, max=100.0)
     window_iterations: int = param(15, 'solver iterations of a window update', min=1, max=1000)
@@ -168,6 +171,7 @@ class StepReport:
     gnss_rms_m: float = float('nan')
     window_size: int = 0
     n_points: int = 0
+    joined: int = 0                 # keyframes of a segment that joined the block with this step
 
 
 def _adjust(prob, loss: str, scale_px: float, iterations: int, refine: tuple = ()):
@@ -220,6 +224,10 @@ class IncrementalAT:
         self._lever = (lever_arm_cam_from_frd(self.opt.lever_arm_body_frd_m) if self.opt.gimbal
                        else np.asarray(self.opt.lever_arm_cam_m, float))
         self.history: list[StepReport] = []
+        # A separate block of the keyframes after a total loss of tracks, and their ids here (in order).
+        self._segment: IncrementalAT | None = None
+        self._segment_kids: list[int] = []
+        self.segments_joined = 0
         self.rng = np.random.default_rng(0)
         # A GNSS receiver without corrections is off by a bias that wanders over minutes; weighting
         # its fixes as independent lets them bend the block away from the GCPs (camera position
@@ -300,12 +308,69 @@ class IncrementalAT:
                 if not self.georeferenced or self.georef_provisional:
                     self._try_georeference()
                 rep = self._window_adjust(kf.kid, iterations=window_iterations)
+            elif self._segment_wanted(kf):
+                rep = self._grow_segment(kf, rec, rep, window_iterations)
         rep.solve_s = time.perf_counter() - t0
         rep.n_points = len(self.points)
         self.history.append(rep)
         if self.opt.spill_frozen and kf.kid % max(self.opt.freeze_every, 1) == 0:
             self.freeze()
         return rep
+
+    # --- segments: the flight after every track was lost -------------------------------------------
+
+    def _segment_wanted(self, kf: Keyframe) -> bool:
+        """A keyframe with a fix that shares no track with the block (no point, no observation in an oriented
+        keyframe): the tracker lost every track. One that shares tracks waits for them to become points."""
+        if not self.opt.segments or not self.registered or kf.fix_enu is None:
+            return False
+        if self._segment is not None:
+            return True
+        ids = kf.track_ids[kf.track_ids >= 0]
+        return not (self.points.contains_many(ids).any() or any(int(t) in self.track_kfs for t in ids))
+
+    def _grow_segment(self, kf: Keyframe, rec: KeyframeRecord, failed: StepReport, window_iterations) -> StepReport:
+        """Feed the keyframe to the segment (a block of its own in the same map frame); join the segment
+        once its GNSS georeferences it (provisionally on a line, as a first line is)."""
+        if self._segment is None:
+            self._segment = IncrementalAT(self.camera, replace(self.opt, segments=False, spill_frozen=False,
+                                                               use_gcps=False), origin=self.origin)
+            self._segment_kids = []
+        self._segment_kids.append(kf.kid)
+        seg = self._segment.add_keyframe(rec, window_iterations)
+        # Provisional too: a gap mid-line leaves a line until the next turn. Both in the map frame: the block
+        # must be georeferenced as well.
+        if self._segment.georeferenced and self.georeferenced:
+            n = self._join_segment()
+            rep = self._window_adjust(kf.kid, iterations=window_iterations) if kf.map_T_cam is not None \
+                else StepReport(kf.kid, False, seg.status)
+            rep.joined = n
+            rep.status = f'registered (a segment of {n} keyframes joined through its GNSS)' if rep.registered \
+                else rep.status
+            return rep
+        return StepReport(kf.kid, False, f'{failed.status}; in a segment of its own, not georeferenced yet '
+                                         f'({len(self._segment.registered)} of {len(self._segment_kids)} oriented)')
+
+    def _join_segment(self) -> int:
+        """Move the segment's oriented keyframes and points into the block; returns how many joined."""
+        seg, kids = self._segment, self._segment_kids
+        self._segment, self._segment_kids = None, []
+        n = 0
+        for s_kid in seg.registered:
+            kf, skf = self.kfs[kids[s_kid]], seg.kfs[s_kid]
+            kf.map_T_cam = np.asarray(skf.map_T_cam, float).copy()
+            kf.active[:] = skf.active      # the same observations, in the same (sorted) order
+            kf.reg_seq = len(self.registered)
+            self.registered.append(kf.kid)
+            for t in kf.track_ids[kf.active].tolist():
+                self.track_kfs.setdefault(t, []).append(kf.kid)
+            n += 1
+        ids, P = seg.points.arrays()
+        new = ~self.points.contains_many(ids) if len(ids) else np.zeros(0, bool)
+        if new.any():
+            self.points.set_many(ids[new], P[new])
+        self.segments_joined += 1
+        return n
 
     def retry_unregistered(self) -> int:
         """Photos that did not register in sequence get a second chance against the whole block
@@ -830,6 +895,11 @@ class IncrementalAT:
             return rep
         if not self.georeferenced and self._try_georeference(force=True):
             rounds = max(rounds - 1, 1)
+        if self._segment is not None and self._segment.registered:
+            # End of flight (or asked for): a segment still waiting joins if its GNSS places it at all.
+            self._segment.full_adjustment(iterations=iterations, rounds=1)
+            if self._segment.georeferenced and self.georeferenced:
+                self._join_segment()
         for _ in range(rounds):
             tracks = list(self.points)
             rep = self._solve(list(self.registered), [], tracks, iterations or self.opt.full_iterations,

@@ -468,6 +468,11 @@ class BundleNode(Node):
             # flight keeps on disk (reading them would thaw every keyframe).
             self.live.observe(len(self.at.kfs) - 1, rec.target_uv)
         self._vet_control()
+        if rep.joined:
+            self.diag.count('keyframes_joined_from_a_segment', rep.joined)
+            self.diag.problem(f'every track was lost: {rep.joined} keyframes after the break were oriented as a '
+                              'segment of their own and joined the block through their GNSS (no tie point links '
+                              'the two: their relative accuracy is the GNSS\'s)', WARN)
         if not publish:
             if rep.registered:
                 self.diag.count('keyframes_oriented')
@@ -501,7 +506,10 @@ class BundleNode(Node):
             self._published_final = True
             self._publish(window=list(self.at.registered))
         else:
-            self._publish(window=self.at.registered[-(self.p.window_size + earlier):], new=1 + earlier)
+            # A segment that joined (core/incremental.py: the flight after every track was lost) is published
+            # whole: its keyframes had no pose until now.
+            self._publish(window=self.at.registered[-(max(self.p.window_size, rep.joined) + earlier):],
+                          new=1 + earlier)
 
     def _health(self, rep=None) -> None:
         """Health that tells the truth: the share of the last health_window keyframes not oriented, and a
