@@ -10,10 +10,11 @@ apart, every keyframe counted as a 3D fix and the GNSS bias estimated from the G
 import numpy as np
 import pytest
 
+from helpers.keyframe_feed import run_bundle
 from photogram_ros import msgs
 from photogram_ros.core.control import SurveyedTarget
 from photogram_ros.io.control_file import write_control_file
-from test_gcp_flight import _check_rmse, _run_bundle, _values, flight_3d  # noqa: F401  (a fixture)
+from test_gcp_flight import _check_rmse, _values, flight_3d  # noqa: F401  (a fixture)
 
 pytestmark = pytest.mark.ros
 
@@ -25,8 +26,8 @@ def test_live_check_points_are_those_of_the_published_poses(flight_3d, rclpy_con
         lat, lon, h = sk.origin.enu_to_geodetic(t.center_enu)
         survey.append(SurveyedTarget(t.name, t.marker_id, float(lat), float(lon), float(h), t.role))
     control = write_control_file(tmp_path / 'targets.txt', survey, 'EPSG:32632')
-    node, poses, georef = _run_bundle(rclpy_context, sk, {t.name: t.marker_id for t in targets},
-                                      {'control_file': str(control), 'quality_every': 3})
+    node, poses, georef = run_bundle(rclpy_context, sk, {t.name: t.marker_id for t in targets},
+                                     {'control_file': str(control), 'quality_every': 3})
     try:
         q = node.quality()
         vals = _values(node)
