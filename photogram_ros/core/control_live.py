@@ -97,16 +97,18 @@ class LiveControl:
         """Vet the targets due (module docstring), take their rejected detections out of `at`, give it the
         control and the points of the GCPs admitted; returns the new faults."""
         weak = not at.georeferenced or at.georef_provisional
-        if not self.surveyed or (weak and not final):
+        pending = [n for n in self.surveyed if n not in self.vetting.points and n in self._obs]
+        if not pending or (weak and not final):
             return []
         registered = set(at.registered)
         need = 1 if final else self.opt.control_min_keyframes
-        due = [n for n in self.surveyed if n not in self.vetting.points and len(self.observations(n, registered)) >= need]
+        seen = {n: self.observations(n, registered) for n in pending}
+        due = [n for n in pending if len(seen[n]) >= need]
         if not due:
             return []
         rows, kid_of = [], {}
         for n in due:
-            for k, uv in self.observations(n, registered):
+            for k, uv in seen[n]:
                 rows.append(ControlRow(0, at.kfs[k].name, n, uv))
                 kid_of[at.kfs[k].name] = k
         poses = {name: at.kfs[k].map_T_cam for name, k in kid_of.items()}

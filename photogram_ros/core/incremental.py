@@ -355,22 +355,22 @@ class IncrementalAT:
         """Move the segment's oriented keyframes and points into the block; returns how many joined."""
         seg, kids = self._segment, self._segment_kids
         self._segment, self._segment_kids = None, []
-        n = 0
         for s_kid in seg.registered:
             kf, skf = self.kfs[kids[s_kid]], seg.kfs[s_kid]
             kf.map_T_cam = np.asarray(skf.map_T_cam, float).copy()
-            kf.active[:] = skf.active      # the same observations, in the same (sorted) order
+            # The segment's outliers, by tracker id (its target ids are numbered on their own).
+            dropped = skf.track_ids[~skf.active]
+            kf.active[np.isin(kf.track_ids, dropped[dropped >= 0])] = False
             kf.reg_seq = len(self.registered)
             self.registered.append(kf.kid)
             for t in kf.track_ids[kf.active].tolist():
                 self.track_kfs.setdefault(t, []).append(kf.kid)
-            n += 1
         ids, P = seg.points.arrays()
         new = ~self.points.contains_many(ids) if len(ids) else np.zeros(0, bool)
         if new.any():
             self.points.set_many(ids[new], P[new])
         self.segments_joined += 1
-        return n
+        return len(seg.registered)
 
     def retry_unregistered(self) -> int:
         """Photos that did not register in sequence get a second chance against the whole block

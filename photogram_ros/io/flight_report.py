@@ -364,6 +364,9 @@ def _gcp_section(gcps, gsd: float | None, n_surveyed: int, diagnostics: dict | N
     fig['rmse'] = {'horizontal_m': float(np.sqrt(np.mean(np.sum(h ** 2, axis=1)))) if len(h) else None,
                    'z_m': float(np.sqrt(np.mean(full[:, 2] ** 2))) if len(full) else None,
                    'count': len(fit), 'count_vertical': len(full)}
+    if 'rmse_gsd' in fig:   # over the same GCPs as the RMSE
+        fig['rmse_gsd'] = {'horizontal': fig['rmse']['horizontal_m'] / gsd if fig['rmse']['horizontal_m'] is not None
+                           else None, 'vertical': fig['rmse']['z_m'] / gsd if fig['rmse']['z_m'] is not None else None}
     used = vals.get('gcps_used')
     if used is not None:
         used = fig['used_by_adjuster'] = int(float(used))
