@@ -95,6 +95,8 @@ def relative_pose(xn1, xn2, threshold_n: float = 1e-3, min_inliers: int = 15) ->
 
     Of the four decompositions of E the one that puts most inliers in front of both cameras wins
     (cheirality); an answer where the winner is not clearly ahead of the runner-up is degenerate.
+    Over near-flat ground the pose that sees the ground's plane from above is taken (a homography
+    that explains the matches; `_facing_twin`).
     """
     xn1, xn2 = _check_pairs(xn1, xn2)
     if len(xn1) < max(min_inliers, 5):
@@ -125,17 +127,15 @@ def relative_pose(xn1, xn2, threshold_n: float = 1e-3, min_inliers: int = 15) ->
     # The RANSAC winner comes from a minimal sample: refine on every inlier.
     sel = np.flatnonzero(inl)[front]
     R, t = refine_pose_sampson(R, t, xn1[sel], xn2[sel])
+    inliers, pts = _support(R, t, xn1, xn2, inl)
+    twin = _facing_twin(R, t, xn1, xn2, inl, inliers, pts, threshold_n)
+    if twin is not None:
+        R, t, inliers, pts = twin
     E = _skew(t) @ R
-    X, z1, z2 = triangulate_two_view(R, t, xn1[inl], xn2[inl])
-    front = (z1 > 0) & (z2 > 0)
-    idx = np.flatnonzero(inl)
-    inliers = np.zeros(len(xn1), bool)
-    inliers[idx[front]] = True
-    pts = np.full((len(xn1), 3), np.nan)
-    pts[idx[front]] = X[front]
-    d1 = X[front] / np.linalg.norm(X[front], axis=1, keepdims=True)
+    X = pts[inliers]
+    d1 = X / np.linalg.norm(X, axis=1, keepdims=True)
     c2 = -R.T @ t
-    v2 = X[front] - c2
+    v2 = X - c2
     d2 = v2 / np.linalg.norm(v2, axis=1, keepdims=True)
     ang = np.degrees(np.arccos(np.clip(np.einsum('ij,ij->i', d1, d2), -1, 1)))
     return TwoViewResult('ok', make_T(R, t), E, inliers, pts, float(np.median(ang)))
@@ -176,6 +176,79 @@ def refine_pose_sampson(R: np.ndarray, t: np.ndarray, xn1: np.ndarray, xn2: np.n
 
     sol = least_squares(fun, np.zeros(5), method='lm', xtol=1e-12, ftol=1e-12)
     return unpack(sol.x)
+
+
+def _support(R, t, xn1, xn2, inl):
+    """(inlier mask, points in camera 1 (N, 3), NaN where not an inlier) of the pose (R, t) over the
+    matches `inl`: in front of both cameras, and for a pose not refined on them within the threshold."""
+    idx = np.flatnonzero(inl)
+    X, z1, z2 = triangulate_two_view(R, t, xn1[idx], xn2[idx])
+    ok = (z1 > 0) & (z2 > 0)
+    inliers = np.zeros(len(xn1), bool)
+    inliers[idx[ok]] = True
+    pts = np.full((len(xn1), 3), np.nan)
+    pts[idx[ok]] = X[ok]
+    return inliers, pts
+
+
+def scene_facing(points_cam: np.ndarray) -> float:
+    """|cos| of the angle between the optical axis and the normal of the plane that best fits the
+    points (N, 3) in the camera frame: 1 when the camera looks straight at the scene's plane (a nadir
+    view of the ground), 0 when it sees the plane edge-on."""
+    X = np.asarray(points_cam, float).reshape(-1, 3)
+    X = X[np.all(np.isfinite(X), axis=1)]
+    if len(X) < 3:
+        return 0.0
+    Xc = X - np.median(X, axis=0)
+    _, V = np.linalg.eigh(Xc.T @ Xc)
+    return float(abs(V[2, 0]))
+
+
+# The planar twin replaces the five-point answer when it keeps this share of its support and faces
+# the scene's plane clearly better (|cos| of the normal to the optical axis larger by this margin).
+TWIN_MIN_SUPPORT = 0.6
+TWIN_FACING_MARGIN = 0.3
+
+
+def _facing_twin(R, t, xn1, xn2, inl, inliers, pts, threshold_n):
+    """The planar twin of (R, t) when it is the aerial reading of the pair, else None.
+
+    Over near-flat ground two poses explain the matches: the true one, and a twin whose baseline lies
+    along the ground's normal and whose ground plane is seen edge-on (the camera "flies into" the
+    ground). Where the camera model is imperfect (a wide-angle lens with its distortion not known
+    yet, a rolling shutter) the twin can fit the matches better than the truth, and the five-point
+    solver then takes it: on a nadir survey every later pose inherits a block tipped by 90 degrees.
+    The twin is found among the decompositions of the homography of the inliers (threshold 8x) and
+    refined on the Sampson error; it replaces (R, t) when it keeps TWIN_MIN_SUPPORT of the inliers
+    within the threshold and faces its plane clearly better (TWIN_FACING_MARGIN): a camera looking at
+    the ground it maps. Returns (R, t, inliers, points) or None.
+    """
+    import cv2
+    base_facing = scene_facing(pts[inliers])
+    if base_facing > 1.0 - TWIN_FACING_MARGIN:
+        return None
+    a, b = xn1[inl], xn2[inl]
+    H, _ = cv2.findHomography(a, b, cv2.RANSAC, 8 * threshold_n)
+    if H is None:
+        return None
+    best = None
+    for R0, t0 in zip(*cv2.decomposeHomographyMat(H, np.eye(3))[1:3]):
+        t0 = t0.ravel()
+        if np.linalg.norm(t0) < 1e-12:
+            continue
+        t0 = t0 / np.linalg.norm(t0)
+        _, z1, z2 = triangulate_two_view(R0, t0, a, b)
+        front = (z1 > 0) & (z2 > 0)
+        if front.sum() < max(5, 0.5 * len(a)):
+            continue
+        R1, t1 = refine_pose_sampson(R0, t0, a[front], b[front])
+        close = np.abs(sampson_residuals(_skew(t1) @ R1, xn1, xn2)) < threshold_n
+        ins, P = _support(R1, t1, xn1, xn2, inl & close)
+        if ins.sum() < TWIN_MIN_SUPPORT * inliers.sum() or scene_facing(P[ins]) < base_facing + TWIN_FACING_MARGIN:
+            continue
+        if best is None or ins.sum() > best[2].sum():
+            best = (R1, t1, ins, P)
+    return best
 
 
 def _planar_pose(xn1, xn2, threshold_n, min_ratio: float = 0.9):
