@@ -109,6 +109,7 @@ class CameraEvent:
     rpy_deg: tuple | None = None           # body roll, pitch, yaw at the exposure (aerospace, NED), degrees
     where: str = ''                        # the file, for messages
     photo: str | None = None               # the photo it belongs to, once matched
+    unit: str = 'line'                     # what `line` counts: 'line' (text files) or 'message' (logs)
 
 
 @dataclass
@@ -248,7 +249,7 @@ def place_exposures(track: AntennaTrack, events: list, opt: ExposureOptions | No
     t_first, t_last = track.t_gps_s[0], track.t_gps_s[-1]
     for ev in events:
         t = ev.t_gps_s
-        name = f'{ev.where} line {ev.line} (event {ev.seq}' + (f', {ev.photo}' if ev.photo else '') + ')'
+        name = f'{ev.where} {ev.unit} {ev.line} (event {ev.seq}' + (f', {ev.photo}' if ev.photo else '') + ')'
         if at_events:
             k = int(np.argmin(np.abs(track.t_gps_s - t)))
             if abs(track.t_gps_s[k] - t) > opt.at_event_tolerance_s:
@@ -334,7 +335,7 @@ def match_photos(photos: list, events: list, how: str = 'auto', tolerance_s: flo
     photos: [(name, t_gps_s or None)] in file-name order; events: [CameraEvent] in time order.
     how: 'number' (the photo's file-name number = the event's seq, as a DJI MRK numbers its photos),
     'order' (n-th photo = n-th event), 'time' (nearest event after removing the median clock offset,
-    within `tolerance_s`), or 'auto': number when every photo has one and they match the events' seqs,
+    within `tolerance_s`), or 'auto': number when every photo has one and at least half are event seqs,
     else order when the counts agree, else time. Photo times check any pairing: a pair whose time
     difference strays from the median offset by more than `tolerance_s` is named.
     """
@@ -343,7 +344,7 @@ def match_photos(photos: list, events: list, how: str = 'auto', tolerance_s: flo
     numbers = [photo_number(n) for n, _ in photos]
     if how == 'auto':
         if all(n is not None for n in numbers) and len(set(numbers)) == len(numbers) and \
-                sum(n in seqs for n in numbers) >= 0.9 * len(numbers):
+                sum(n in seqs for n in numbers) >= 0.5 * len(numbers):
             how = 'number'
         elif len(photos) == len(events):
             how = 'order'
@@ -382,10 +383,11 @@ def match_photos(photos: list, events: list, how: str = 'auto', tolerance_s: flo
             resid = ev_t[i] - (t + offset)
             if abs(resid) > tolerance_s:
                 problems.append(f'photo {name}: no event within {tolerance_s:g} s of its time (nearest: event '
-                                f'{events[i].seq}, line {events[i].line}, {resid:+.2f} s after the clock offset)')
+                                f'{events[i].seq}, {events[i].unit} {events[i].line}, {resid:+.2f} s after the clock '
+                                'offset)')
                 continue
             if i in taken:
-                problems.append(f'photos {taken[i]} and {name} both fall on event {events[i].seq} (line '
+                problems.append(f'photos {taken[i]} and {name} both fall on event {events[i].seq} ({events[i].unit} '
                                 f'{events[i].line}): {name} left without a position')
                 continue
             taken[i] = name
@@ -395,7 +397,7 @@ def match_photos(photos: list, events: list, how: str = 'auto', tolerance_s: flo
     matched = {i for _, i in pairs}
     for i, ev in enumerate(events):
         if i not in matched:
-            problems.append(f'event {ev.seq} ({ev.where} line {ev.line}) has no photo')
+            problems.append(f'event {ev.seq} ({ev.where} {ev.unit} {ev.line}) has no photo')
     # Times check any pairing: the camera clock is off by a constant, not by a photo here and there.
     t_of = dict(photos)
     diffs = [(name, events[i].t_gps_s - t_of[name]) for name, i in pairs if t_of.get(name) is not None]
@@ -406,7 +408,7 @@ def match_photos(photos: list, events: list, how: str = 'auto', tolerance_s: flo
             for name, d in diffs:
                 if abs(d - offset) > tolerance_s:
                     i = dict(pairs)[name]
-                    problems.append(f'photo {name} paired {how} with event {events[i].seq} (line {events[i].line}) '
-                                    f'but its time is {d - offset:+.2f} s off the others\' clock offset: a photo '
-                                    'or an event is missing before it')
+                    problems.append(f'photo {name} paired by {how} with event {events[i].seq} ({events[i].unit} '
+                                    f'{events[i].line}) but its time is {d - offset:+.2f} s off the other pairs\' '
+                                    'clock offset: a photo or an event is missing (--match time pairs by time)')
     return PhotoMatch(pairs, problems, f'by {how}', offset)

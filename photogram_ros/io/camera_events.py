@@ -144,7 +144,8 @@ def read_dataflash_events(path: str | Path, kind: str = 'auto') -> list[CameraEv
             raise DataError(f'{path}: {t} message {n} (image {seq}) has no GPS time (GPSWeek 0): the autopilot had '
                             'no GPS time when it fired')
         rpy = tuple(float(_get(m, a, b, default=0.0)) for a, b in (('R', 'Roll'), ('P', 'Pitch'), ('Y', 'Yaw')))
-        found[t].append(CameraEvent(seq, week_tow_to_gps_s(week, ms * 1e-3), n, None, rpy, f'{path} {t}'))
+        found[t].append(CameraEvent(seq, week_tow_to_gps_s(week, ms * 1e-3), n, None, rpy, f'{path} {t}',
+                                    unit='message'))
     use = kind if kind in found else ('CAM' if found['CAM'] else 'TRIG')
     if not found[use]:
         raise DataError(f'{path} holds no {"CAM or TRIG" if kind == "auto" else kind} message: the log has no '
@@ -191,7 +192,7 @@ def read_tlog_events(path: str | Path, kind: str = 'auto') -> list[CameraEvent]:
         if unix is None:
             raise DataError(f'{path}: {typ} {seq} (message {k}) is stamped in boot time and the log has no '
                             'SYSTEM_TIME to map it to UTC')
-        out.append(CameraEvent(seq, utc_unix_to_gps_s(unix), k, None, rpy, f'{path} {typ}'))
+        out.append(CameraEvent(seq, utc_unix_to_gps_s(unix), k, None, rpy, f'{path} {typ}', unit='message'))
     out.sort(key=lambda e: e.t_gps_s)
     return out
 
@@ -222,7 +223,7 @@ def read_exif_events(photos: list[Path], utc_offset_s: float = 0.0) -> list[Came
     for k, (p, t) in enumerate(zip(photos, photo_times_gps_s(photos, utc_offset_s))):
         if t is None:
             raise DataError(f'{p}: no EXIF DateTimeOriginal to take its exposure time from')
-        out.append(CameraEvent(k + 1, t, k + 1, None, None, 'EXIF', p.name))
+        out.append(CameraEvent(k + 1, t, k + 1, None, None, 'EXIF of', p.name, unit='photo'))
     return out
 
 
