@@ -272,3 +272,62 @@ def test_mrk_written_by_the_simulator_reads_back(tmp_path):
     assert [r.event.seq for r in rows] == [7, 8, 9] and rows[1].event.t_gps_s == pytest.approx(t[1], abs=1e-6)
     assert np.allclose(rows[0].event.offset_ned_m, [0.012, -0.004, 0.167]) and rows[2].flag == 34
     assert utc_unix_to_gps_s(1483228800.0) - utc_unix_to_gps_s(1483228799.0) == 2.0     # the leap second of 2017
+
+
+def test_dataflash_cam_messages_read_back(tmp_path):
+    from photogram_ros.io.camera_events import read_dataflash_events, read_events
+    from photogram_ros.sim.dataflash import write_cam_log
+    cams = [{'boot_us': 95_000_000 + k * 2_000_000, 'img': k + 1, 'gps_week': WEEK, 'gps_ms': 419218000 + 2000 * k + 7,
+             'lat_deg': LAT0 + 1e-5 * k, 'lon_deg': LON0, 'alt_msl_m': 480.25, 'rel_alt_m': 40.0,
+             'roll_deg': 1.5, 'pitch_deg': -4.25, 'yaw_deg': -90.0} for k in range(3)]
+    write_cam_log(tmp_path / 'f.bin', cams)
+    evs = read_dataflash_events(tmp_path / 'f.bin')
+    assert [e.seq for e in evs] == [1, 2, 3] and [e.unit for e in evs] == ['message'] * 3
+    assert evs[2].t_gps_s == pytest.approx(week_tow_to_gps_s(WEEK, 419222.007), abs=1e-6)
+    assert evs[0].rpy_deg == pytest.approx((1.5, -4.25, 270.0))
+    assert evs[1].logged_llh == pytest.approx((LAT0 + 1e-5, LON0, 480.25))
+    assert [e.seq for e in read_events(tmp_path / 'f.bin')] == [1, 2, 3]
+    with pytest.raises(DataError, match='holds no TRIG'):
+        read_dataflash_events(tmp_path / 'f.bin', 'TRIG')
+
+
+def _command(module, argv):
+    import argparse
+    p = argparse.ArgumentParser()
+    module.add_arguments(p)
+    return module.run(p.parse_args(argv))
+
+
+def test_fixes_events_lists_exposures_and_names_logs_without_any(tmp_path, capsys):
+    from conftest import shared_data
+
+    from photogram_ros.cli import main
+    from photogram_ros.sim.dataflash import write_cam_log
+    real = shared_data('mavlink', 'flightdata_center_0003.bin')
+    if real is not None:
+        assert main(['fixes', str(real), '--events']) == 2     # a real ArduPilot log: no CAM/TRIG in it
+        assert 'holds no CAM or TRIG message' in capsys.readouterr().err
+    write_cam_log(tmp_path / 'f.bin', [{'boot_us': 1, 'img': 4, 'gps_week': WEEK, 'gps_ms': 419218500, 'lat_deg': LAT0,
+                                        'lon_deg': LON0, 'alt_msl_m': 480.0, 'rel_alt_m': 40.0, 'roll_deg': 0.0,
+                                        'pitch_deg': 0.0, 'yaw_deg': 0.0}])
+    assert main(['fixes', str(tmp_path / 'f.bin'), '--events']) == 0
+    out = capsys.readouterr().out.splitlines()
+    assert out[0].startswith('seq,source,gps_week,gps_seconds') and out[1].startswith(f'4,{tmp_path / "f.bin"} CAM,'
+                                                                                     f'{WEEK},419218.5,')
+
+
+def test_geotag_command_on_a_mrk_without_pos(tmp_path, capsys):
+    from photogram_ros.commands import geotag as cmd
+    (tmp_path / 'Timestamp.MRK').write_text('\n'.join(
+        _mrk_line(k, TOW0 + 2 * k, 10, 5, 150, LAT0 + 1e-5 * k, LON0, H0, flag=(50, 50, 34)[k - 1])
+        for k in (1, 2, 3)) + '\n')
+    assert _command(cmd, ['--events', str(tmp_path / 'Timestamp.MRK'), '--out', str(tmp_path / 'geo.txt')]) == 0
+    out = capsys.readouterr()
+    assert 'geotagged 3 photos (2 fix, 1 float' in out.out and "MRK's own onboard RTK" in out.err
+    geo = read_geo_txt(tmp_path / 'geo.txt')
+    assert sorted(geo) == ['event_0001', 'event_0002', 'event_0003']
+    assert geo['event_0003'][3] == pytest.approx(0.10) and geo['event_0001'][3] == pytest.approx(
+        math.sqrt((0.012319 ** 2 + 0.011541 ** 2) / 2), abs=1e-4)     # float: at least its class's floor
+    h_cam = geo['event_0001'][2]
+    assert h_cam == pytest.approx(H0 - 0.150, abs=2e-4)
+    assert (tmp_path / 'geo.csv').read_text().splitlines()[0].startswith('image,latitude,longitude,altitude')

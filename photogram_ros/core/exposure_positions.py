@@ -110,6 +110,7 @@ class CameraEvent:
     where: str = ''                        # the file, for messages
     photo: str | None = None               # the photo it belongs to, once matched
     unit: str = 'line'                     # what `line` counts: 'line' (text files) or 'message' (logs)
+    logged_llh: tuple | None = None        # the position the log itself wrote: lat_deg, lon_deg, alt_msl_m
 
 
 @dataclass

@@ -144,8 +144,9 @@ def read_dataflash_events(path: str | Path, kind: str = 'auto') -> list[CameraEv
             raise DataError(f'{path}: {t} message {n} (image {seq}) has no GPS time (GPSWeek 0): the autopilot had '
                             'no GPS time when it fired')
         rpy = tuple(float(_get(m, a, b, default=0.0)) for a, b in (('R', 'Roll'), ('P', 'Pitch'), ('Y', 'Yaw')))
+        llh = tuple(float(_get(m, k, default=math.nan)) for k in ('Lat', 'Lng', 'Alt'))
         found[t].append(CameraEvent(seq, week_tow_to_gps_s(week, ms * 1e-3), n, None, rpy, f'{path} {t}',
-                                    unit='message'))
+                                    unit='message', logged_llh=llh))
     use = kind if kind in found else ('CAM' if found['CAM'] else 'TRIG')
     if not found[use]:
         raise DataError(f'{path} holds no {"CAM or TRIG" if kind == "auto" else kind} message: the log has no '
@@ -189,10 +190,16 @@ def read_tlog_events(path: str | Path, kind: str = 'auto') -> list[CameraEvent]:
             unix = us * 1e-6 if us > 10 ** 15 else ing.clock.to_time(us * 1e-6)
             seq = int(m.img_idx) if typ == 'CAMERA_FEEDBACK' else int(m.seq)
             rpy = (float(m.roll), float(m.pitch), float(m.yaw)) if typ == 'CAMERA_FEEDBACK' else None
+        llh = None
+        if typ == 'CAMERA_FEEDBACK':
+            llh = (m.lat * 1e-7, m.lng * 1e-7, float(m.alt_msl))
+        elif typ == 'CAMERA_IMAGE_CAPTURED':
+            llh = (m.lat * 1e-7, m.lon * 1e-7, m.alt * 1e-3)
         if unix is None:
             raise DataError(f'{path}: {typ} {seq} (message {k}) is stamped in boot time and the log has no '
                             'SYSTEM_TIME to map it to UTC')
-        out.append(CameraEvent(seq, utc_unix_to_gps_s(unix), k, None, rpy, f'{path} {typ}', unit='message'))
+        out.append(CameraEvent(seq, utc_unix_to_gps_s(unix), k, None, rpy, f'{path} {typ}', unit='message',
+                               logged_llh=llh))
     out.sort(key=lambda e: e.t_gps_s)
     return out
 
@@ -227,6 +234,16 @@ def read_exif_events(photos: list[Path], utc_offset_s: float = 0.0) -> list[Came
     return out
 
 
+def read_events(path: str | Path, kind: str = 'auto') -> list[CameraEvent]:
+    """The camera events of a Timestamp.MRK, an ArduPilot .bin or a .tlog (kind: the message type or auto)."""
+    which = event_kind(path)
+    if which == 'mrk':
+        return [r.event for r in read_mrk(path)]
+    if which == 'dataflash':
+        return read_dataflash_events(path, kind)
+    return read_tlog_events(path, kind)
+
+
 def event_kind(path: str | Path) -> str:
     """'mrk', 'dataflash' or 'tlog' from the file's name and first bytes."""
     p = Path(path)
@@ -247,5 +264,5 @@ def event_kind(path: str | Path) -> str:
     return 'mrk' if _MRK_HEAD.match(first) else 'tlog'
 
 
-__all__ = ['GPS_EPOCH_UNIX_S', 'MrkRow', 'read_mrk', 'mrk_track', 'write_mrk', 'read_dataflash_events',
+__all__ = ['GPS_EPOCH_UNIX_S', 'MrkRow', 'read_events', 'read_mrk', 'mrk_track', 'write_mrk', 'read_dataflash_events',
            'read_tlog_events', 'read_exif_events', 'photo_times_gps_s', 'event_kind']

@@ -28,6 +28,7 @@ PIXEL_PITCH_MM = 0.003          # the simulated sensor's pixel pitch
 DIAGONAL_35MM_MM = 43.27
 PPK_RATE_HZ = 5.0               # the PPK track's epoch rate
 PPK_EPOCH_PHASE_S = 0.1         # its epochs' offset from the flight's own fix times
+SIM_BOOT_BEFORE_START_S = 94.3  # the autopilot booted this long before the first fix of the flight
 
 
 def _rational_dms(value_deg: float):
@@ -131,12 +132,14 @@ def write_ppk(folder: Path, frames, truth, cfg, antenna_at_t) -> list:
     """What a PPK drone leaves in `folder`: photos geotagged by a consumer GNSS (EXIF, 3D fix, ~2 m), a
     5 Hz RTKLIB `flight.pos` of the antenna at survey accuracy (RTK-fixed error model, its sigmas,
     Q=1), a DJI `Timestamp.MRK` (exposure GPS times, the true antenna -> camera offset per photo in mm,
-    N/E/V with V down, and the onboard single-point antenna position, flag 16) and gcp_list.txt.
+    N/E/V with V down, and the onboard single-point antenna position, flag 16), an ArduPilot `flight.bin`
+    with a CAM message per photo (GPS time, body attitude) and gcp_list.txt.
     antenna_at_t(t_unix_s): the true antenna position (map ENU). Draws from its own random stream, so
     the rest of the simulation is unchanged by it."""
     from photogram_ros.core.exposure_positions import utc_unix_to_gps_s
     from photogram_ros.io.camera_events import write_mrk
     from photogram_ros.io.rtklib_pos import write_pos
+    from photogram_ros.sim.dataflash import write_cam_log
     from photogram_ros.sim.gnss import MODES, GnssErrorModel, GnssScript
 
     rng = np.random.default_rng(cfg.seed + 24_000)
@@ -174,12 +177,24 @@ def write_ppk(folder: Path, frames, truth, cfg, antenna_at_t) -> list:
         llh.append((fx['lat_deg'], fx['lon_deg'], fx['h_m']))
         seqs.append(int(name.split('_')[1].split('.')[0]))
     llh = np.array(llh)
+    states = {k: st for k, _, st in frames}
+    cams = []
+    for (name, ft), t_g, seq, (lat, lon, h) in zip(names, t_exp, seqs, llh):
+        st = states[ft.index]
+        week, tow = divmod(t_g, 604800.0)
+        cams.append({'boot_us': int(round((ft.stamp_ns * 1e-9 - t0_unix + SIM_BOOT_BEFORE_START_S) * 1e6)),
+                     'img': seq, 'gps_week': int(week), 'gps_ms': int(round(tow * 1000)), 'lat_deg': lat,
+                     'lon_deg': lon, 'alt_msl_m': float(geoid.ellipsoid_to_msl_m(lat, lon, h)),
+                     'rel_alt_m': h - truth.origin.h_m, 'roll_deg': np.degrees(st.roll_rad),
+                     'pitch_deg': np.degrees(st.pitch_rad), 'yaw_deg': np.degrees(st.yaw_rad)})
+    write_cam_log(folder / 'flight.bin', cams)
     write_mrk(folder / 'Timestamp.MRK', t_exp, np.array(off), llh[:, 0], llh[:, 1], llh[:, 2],
               [(MODES['3d'].h_acc_m, MODES['3d'].h_acc_m, MODES['3d'].v_acc_m)] * len(names), flag=16, seqs=seqs)
     (folder / 'README.txt').write_text(
         'Simulated PPK photo survey: EXIF GPS is a consumer 3D fix (altitude MSL, geoid ' + geoid.MODEL_NAME +
         '); flight.pos is the post-processed antenna track (RTKLIB layout, 5 Hz, GPST, ellipsoidal heights); '
-        'Timestamp.MRK has the exposures (GPS time) with the antenna -> camera offsets (mm, N/E/V, V down). '
+        'Timestamp.MRK has the exposures (GPS time) with the antenna -> camera offsets (mm, N/E/V, V down); '
+        'flight.bin is an ArduPilot dataflash log of the same exposures (CAM: GPS time, body attitude). '
         '`photogram-ros geotag --pos flight.pos --events Timestamp.MRK --photos .` writes geo.txt. '
         'gcp_list.txt heights are ellipsoidal; CHK* are check points.\n')
     return names
