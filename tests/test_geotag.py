@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 from pyproj import Transformer
 
-from photogram_ros.core.exposure_positions import (AntennaTrack, CameraEvent, ExposureOptions, match_photos,
+from photogram_ros.core.exposure_positions import (CameraEvent, ExposureOptions, match_photos, photo_number,
                                                    place_exposures, utc_unix_to_gps_s, week_tow_to_gps_s)
 from photogram_ros.errors import DataError
 from photogram_ros.io.camera_events import mrk_track, read_mrk, write_mrk
@@ -221,6 +221,8 @@ def test_photo_matching_names_every_mismatch():
     photos = [(f'DJI_{k + 1:04d}.JPG', 1000.0 + 2.0 * k - 18.0) for k in range(6)]
     m = match_photos(photos, events)
     assert m.how == 'by number' and not m.problems and m.clock_offset_s == pytest.approx(18.0)
+    assert [photo_number(n) for n in ('DJI_0042.JPG', 'DJI_20240501101010_0042_V.JPG', 'IMG_0042.jpg', 'a.jpg')] == [
+        42, 42, 42, None]
     # the camera skipped the 3rd event, the photos are numbered on their own: by time finds which
     photos = [(f'IMG_{k:03d}.JPG', 1000.0 + 2.0 * k + 0.3) for k in (0, 1, 3, 4, 5)]
     m = match_photos(photos, events, 'time', 1.0)

@@ -6,8 +6,8 @@ when no track is given), the events (io/camera_events.py), matches photos to eve
 and writes:
 - `geo.txt` in OpenDroneMap's layout, as io/photo_block.read_geo_txt reads it: first line `EPSG:4326`,
   then `image lon lat h yaw pitch roll h_acc v_acc` (degrees, metres above the WGS84 ellipsoid,
-  per-axis horizontal and vertical 1-sigma in metres; the angles are the event's body attitude, or the
-  DJI XMP gimbal angles, else 0 as ODM asks when unknown);
+  per-axis horizontal and vertical 1-sigma in metres; the angles are the photo's DJI XMP gimbal angles,
+  else 0 as ODM asks when unknown);
 - a CSV for Pix4D / Metashape: `image,latitude,longitude,altitude,accuracy_h,accuracy_v,yaw,pitch,roll,
   quality,how,gps_week,gps_seconds` (altitude ellipsoidal).
 Anything that leaves a photo without a position (no event, an event outside the track or across a
@@ -144,9 +144,8 @@ def geotag(a: GeotagInput, log=None) -> GeotagResult:
 
 
 def _angles(pe, photo: Path | None) -> tuple[float, float, float]:
-    if pe.event.rpy_deg is not None:
-        r, p, y = pe.event.rpy_deg
-        return float(y), float(p), float(r)
+    """The camera's yaw, pitch, roll from the photo's DJI XMP gimbal angles, else 0 as ODM asks when unknown
+    (a log's body attitude is not the gimballed camera's)."""
     if photo is not None:
         xmp = read_dji_xmp(photo)
         ypr = [xmp_float(xmp, k) for k in ('GimbalYawDegree', 'GimbalPitchDegree', 'GimbalRollDegree')]

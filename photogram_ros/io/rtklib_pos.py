@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from photogram_ros.core.exposure_positions import (GPS_EPOCH_UNIX_S, Q_NAMES, AntennaTrack, gps_s_to_utc_unix,
+from photogram_ros.core.exposure_positions import (GPS_EPOCH_UNIX_S, Q_NAMES, AntennaTrack,
                                                    track_from_geodetic, utc_unix_to_gps_s, week_tow_to_gps_s)
 from photogram_ros.core.geodesy import ecef_R_enu, ecef_to_geodetic
 from photogram_ros.errors import DataError
@@ -177,4 +177,4 @@ def write_pos(path: str | Path, t_gps_s, lat_deg, lon_deg, h_m, q, sd_neu_m, ns=
     Path(path).write_text('\n'.join(lines) + '\n')
 
 
-__all__ = ['read_pos', 'write_pos', 'gps_s_to_utc_unix']
+__all__ = ['read_pos', 'write_pos']
