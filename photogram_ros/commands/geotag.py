@@ -15,7 +15,8 @@ def add_arguments(p) -> None:
                                                    'photos\' EXIF times)')
     p.add_argument('--photos', help='folder of the photos (default: the events file\'s folder when it holds '
                                     'photos); without photos the rows are named event_NNNN')
-    p.add_argument('--out', help='geo.txt to write (default: PHOTOS/geo.txt, where triangulate reads it)')
+    p.add_argument('--out', help='geo.txt to write (default: geo.txt in the photos\' folder, where triangulate reads '
+                                 'it)')
     p.add_argument('--csv', help='CSV to write (default: beside --out, .csv)')
     p.add_argument('--lever-arm', default='0,0,0',
                    help='the antenna relative to the camera in the body frame, forward,right,down in metres '
@@ -47,13 +48,16 @@ def run(a) -> int:
     from photogram_ros.errors import ConfigError
     from photogram_ros.io.geotag import GeotagInput, geotag
 
-    out = a.out or (str(Path(a.photos) / 'geo.txt') if a.photos else None)
+    from photogram_ros.io.geotag import photos_in
+    folder = a.photos or (str(Path(a.events).parent) if a.events != 'exif' and photos_in(Path(a.events).parent)
+                          else None)
+    out = a.out or (str(Path(folder) / 'geo.txt') if folder else None)
     if out is None:
         raise ConfigError('give --out geo.txt (or --photos DIR to write DIR/geo.txt)')
     opt = ExposureOptions(max_gap_s=float(a.max_gap), sigma_scale=float(a.sigma_scale),
                           lever_arm_frd_m=_floats(a.lever_arm, '--lever-arm', 3),
                           accept_q={'fix': 1, 'float': 2, 'all': 6}[a.accept])
-    res = geotag(GeotagInput(a.pos, a.events, a.photos, out, a.csv, a.match, a.match_tolerance, a.utc_offset,
+    res = geotag(GeotagInput(a.pos, a.events, folder, out, a.csv, a.match, a.match_tolerance, a.utc_offset,
                              a.event_type, a.accept_no_fix, a.skip_unplaced, opt))
     for n in res.notes:
         print(f'note: {n}', file=sys.stderr)

@@ -57,7 +57,8 @@ class GeotagResult:
     csv: Path
 
 
-def _photos(folder: Path | None) -> list[Path]:
+def photos_in(folder: Path | None) -> list[Path]:
+    """The photos of a folder in file-name order ([] for None)."""
     if folder is None:
         return []
     if not folder.is_dir():
@@ -76,9 +77,9 @@ def geotag(a: GeotagInput, log=None) -> GeotagResult:
     folder = Path(a.photos) if a.photos else None
     if folder is None and a.events != 'exif':
         guess = Path(a.events).parent
-        if _photos(guess):
+        if photos_in(guess):
             folder = guess
-    photos = _photos(folder)
+    photos = photos_in(folder)
     if a.photos and not photos:
         raise DataError(f'{folder} holds no photo ({", ".join(IMAGE_SUFFIXES)})')
     mrk_rows = None
