@@ -71,6 +71,17 @@ def test_ppk_camera_positions(flight, geotagged, tmp_path):
                         - truth.origin.geodetic_to_enu(*geo[n][:3])) for n, pe in res_bin.rows]
     print(f'CAM + lever arm vs MRK offsets: max {max(d) * 1000:.1f} mm')
     assert len(d) == len(geo) and max(d) < 0.003         # measured 0.7 mm (the CAM attitude is in 0.01 deg)
+    # the flight's .tlog (CAMERA_FEEDBACK for every frame, numbered by frame: the photos' numbers) and the
+    # photos' own EXIF times (no attitude: level, heading from the track)
+    # measured 0.7 mm (tlog) and 31.7 mm (EXIF: the body's roll and pitch, up to 7 deg, turn the 20 cm mast)
+    for events, most_mm in ((root / 'flight.tlog', 3.0), ('exif', 48.0)):
+        r = geotag(GeotagInput(str(ppk / 'flight.pos'), str(events), str(ppk), str(tmp_path / 'geo2.txt'),
+                               options=ExposureOptions(lever_arm_frd_m=tuple(truth.lever_arm_frd_m))))
+        d = [np.linalg.norm(truth.origin.geodetic_to_enu(pe.lat_deg, pe.lon_deg, pe.h_m)
+                            - truth.origin.geodetic_to_enu(*geo[n][:3])) for n, pe in r.rows]
+        print(f'{events}: vs MRK offsets max {max(d) * 1000:.1f} mm')
+        assert len(d) == len(geo) and max(d) < most_mm * 1e-3
+    assert sum('has no photo' in p for p in r.problems) == 0
 
 
 @pytest.mark.slow
