@@ -25,7 +25,6 @@ COMMANDS = {
     'export': 'photogram_ros.commands.export',
     'fixes': 'photogram_ros.commands.fixes',
     'import-frames': 'photogram_ros.commands.import_frames',
-    'geotag': 'photogram_ros.commands.geotag',
 }
 
 
