@@ -87,10 +87,15 @@ def rmse_lower_bound(rmse_m: float, count: int, axes: int, confidence: float) ->
     return float(rmse_m * math.sqrt(dof / chi2.ppf(confidence, dof))) if confidence > 0 else float(rmse_m)
 
 
-def largest_gap(gaps) -> tuple[float | None, str | None]:
-    """[{'kind', 'area_m2'}, ...] (every kind the map lists) -> (largest area m^2, its kind); (0, None) without."""
+def largest_gap(gaps) -> tuple[float, str]:
+    """[{'kind', 'area_m2', 'min_views'}, ...] (every kind the map lists) -> (largest area m^2, what it is);
+    (0, '') without a gap."""
     best = max(gaps or [], key=lambda g: float(g.get('area_m2') or 0.0), default=None)
-    return (0.0, None) if best is None else (float(best.get('area_m2') or 0.0), str(best.get('kind')))
+    if best is None:
+        return 0.0, ''
+    views = best.get('min_views')
+    seen = f', seen by {views} keyframes of other lines' if best.get('kind') == 'forward_overlap' and views else ''
+    return float(best.get('area_m2') or 0.0), f"{best.get('kind')} gap{seen}"
 
 
 def go_no_go(figures: dict, limits: QualityLimits) -> dict:
@@ -138,8 +143,7 @@ def go_no_go(figures: dict, limits: QualityLimits) -> dict:
     if limits.min_coverage > 0:
         checks.append(_check('coverage', figures.get('coverage_share'), limits.min_coverage, 'min'))
     if 'gaps' in figures:
-        area, kind = largest_gap(figures['gaps'])
-        why = f'{kind} gap' if kind else ''
+        area, why = largest_gap(figures['gaps'])
     else:
         area, why = figures.get('largest_gap_m2'), ''
     checks.append(_check('largest gap, any kind (m²)', area, limits.max_gap_m2, 'max', MEASURED, why))

@@ -187,7 +187,7 @@ class GroundStationNode(Node):
         sub(String, '/map/control_points', lambda d, m: self._on_document(d, m, 'quality'), latched)
         self.get_logger().info(f'following drone {ns or "/"}')
 
-    def _publishers(self, topic: str) -> list:
+    def _publishers_of(self, topic: str) -> list:
         try:
             return self.get_publishers_info_by_topic(topic)
         except Exception:   # noqa: BLE001 (a graph query during shutdown)
@@ -196,7 +196,7 @@ class GroundStationNode(Node):
     def _foreign(self, drone_ns: str, suffix: str) -> tuple[list[str], frozenset]:
         """Publishers of the drone's topic other than the drone's own node for it, and every publisher's gid."""
         want_ns, want_node = drone_ns or '/', PUBLISHER_OF[suffix]
-        infos = self._publishers(f'{drone_ns}{suffix}')
+        infos = self._publishers_of(f'{drone_ns}{suffix}')
         bad = [f'{i.node_namespace.rstrip("/")}/{i.node_name}' for i in infos
                if i.node_namespace != want_ns or i.node_name != want_node]
         return bad, frozenset(bytes(i.endpoint_gid) for i in infos)
@@ -253,7 +253,7 @@ class GroundStationNode(Node):
             if not allowed and suffix == CLOUD_SUFFIX:
                 self._follow(ns)
             if ns not in self.drones:
-                pubs = [f'{i.node_namespace.rstrip("/")}/{i.node_name}' for i in self._publishers(name)]
+                pubs = [f'{i.node_namespace.rstrip("/")}/{i.node_name}' for i in self._publishers_of(name)]
                 if pubs:
                     unknown.setdefault(ns or '/', {})[name] = pubs
         with self._lock:
@@ -341,7 +341,7 @@ class GroundStationNode(Node):
         publisher of /diagnostics is a drone node of a followed namespace or this station."""
         me = (self.get_namespace(), self.get_name())
         followed = {ns or '/' for ns in self.drones}
-        bad = sorted({f'{i.node_namespace.rstrip("/")}/{i.node_name}' for i in self._publishers('/diagnostics')
+        bad = sorted({f'{i.node_namespace.rstrip("/")}/{i.node_name}' for i in self._publishers_of('/diagnostics')
                       if (i.node_namespace, i.node_name) != me
                       and not (i.node_namespace in followed and i.node_name in DRONE_NODES)})
         with self._lock:
@@ -466,7 +466,8 @@ class GroundStationNode(Node):
                                  for f in cov.get('features', []) if f.get('properties', {}).get('role') == 'gap']
             out['coverage'] = props
             figures.update(coverage_share=_number(props.get('coverage_share')),
-                           gaps=[{'kind': g['kind'], 'area_m2': _number(g['area_m2'])} for g in props['gap_list']])
+                           gaps=[{'kind': g['kind'], 'area_m2': _number(g['area_m2']), 'min_views': g['min_views']}
+                                 for g in props['gap_list']])
         geo = q.get('georeference') if q is not None else None
         geo = geo if geo in (GEOREF_FINAL, GEOREF_PROVISIONAL, GEOREF_NONE) else geo_diag
         if q is not None:
