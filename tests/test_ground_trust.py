@@ -177,3 +177,23 @@ def test_unreadable_base_map_is_refused_at_the_start(tmp_path):
     out, err = proc.communicate(timeout=60)
     assert proc.returncode == 2 and 'Traceback' not in err
     assert 'not a readable MBTiles file' in err
+
+
+def test_a_crash_says_where_the_files_are(tmp_path):
+    """The output folder replaced by a file mid-run (a disk unmounted, say): the next save fails; the station
+    stops with exit 1 and names the folder where the earlier saves are."""
+    import shutil
+    proc = _station(tmp_path)
+    try:
+        head = _wait_for(proc, 'merged cells')
+        time.sleep(1.5)
+        assert (tmp_path / 'gs' / 'status.json').exists()
+        shutil.rmtree(tmp_path / 'gs')
+        (tmp_path / 'gs').write_text('not a folder')
+        out, err = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    del head
+    assert proc.returncode == 1
+    assert 'stopped by an error' in err and str((tmp_path / 'gs').resolve()) in err and 'status.json' in err

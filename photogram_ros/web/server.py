@@ -251,9 +251,9 @@ class WebServer:
 
     def authorised(self, request: web.Request) -> bool:
         """A loopback peer that names a loopback host, or the token (cookie, bearer header or ?token=)."""
-        peer = request.remote or ''
         try:
-            local_peer = ipaddress.ip_address(peer.split('%')[0]).is_loopback
+            ip = ipaddress.ip_address((request.remote or '').split('%')[0])
+            local_peer = (getattr(ip, 'ipv4_mapped', None) or ip).is_loopback
         except ValueError:
             local_peer = False
         if local_peer and is_loopback_host(_host_name(request.headers.get('Host'))):
