@@ -186,7 +186,9 @@ def test_a_crash_says_where_the_files_are(tmp_path):
     proc = _station(tmp_path)
     try:
         head = _wait_for(proc, 'merged cells')
-        time.sleep(1.5)
+        t0 = time.monotonic()
+        while not (tmp_path / 'gs' / 'status.json').exists() and time.monotonic() - t0 < 20:
+            time.sleep(0.2)
         assert (tmp_path / 'gs' / 'status.json').exists()
         shutil.rmtree(tmp_path / 'gs')
         (tmp_path / 'gs').write_text('not a folder')
