@@ -76,8 +76,9 @@ def run(a) -> int:
     rclpy.try_shutdown()
     where = f'{node.out.resolve()} (status.json, merged_cloud.ply, <drone>_track.csv, <drone>_gaps.geojson, tiles/)'
     if failed is not None:
-        print(f'[ground station] stopped by an error: {type(failed).__name__}: {failed}; '
-              f'{"the files saved so far are" if saved else "earlier saves are"} in {where}', file=sys.stderr, flush=True)
+        what = 'the files saved so far are' if saved else 'earlier saves are'
+        print(f'[ground station] stopped by an error: {type(failed).__name__}: {failed}; {what} in {where}',
+              file=sys.stderr, flush=True)
         return 1
     print(f'[ground station] {"stopped by " + signals.signal_name if signals.signal_name else "done"}; '
           f'saved in {where}', flush=True)

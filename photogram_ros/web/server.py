@@ -227,6 +227,7 @@ class WebServer:
     async def _close(self) -> None:
         for t in self._tasks:
             t.cancel()
+        await asyncio.gather(*self._tasks, return_exceptions=True)
         for ws in list(self._clients):
             await ws.close()
         self._server.close()
