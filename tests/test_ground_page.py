@@ -397,3 +397,28 @@ def test_websocket_pushes_status_and_new_tiles():
     assert first['type'] == 'status' and first['status']['drones']['drone1']['keyframes'] == 12
     assert first['tiles']['drone1'] == [[Z, X, Y]]          # everything on connect
     assert second['tiles']['drone1'] == [[Z, X, Y + 1]]     # what changed since
+
+
+def test_xyz_folder_base_map_and_bad_paths(tmp_path):
+    """A folder of Z/X/Y tiles (png, jpg) serves its tiles with their type; what it lacks, or what no XYZ
+    address can be, is None; a missing path or an empty folder is refused when opened."""
+    from photogram_ros.errors import ConfigError
+    (tmp_path / 'xyz' / '17' / '5').mkdir(parents=True)
+    (tmp_path / 'xyz' / '17' / '5' / '7.png').write_bytes(_tile_png(BASE_BGR))
+    (tmp_path / 'xyz' / '17' / '5' / '8.jpg').write_bytes(cv2.imencode('.jpg', np.zeros((8, 8, 3), np.uint8))[1])
+    bm = open_basemap(tmp_path / 'xyz')
+    assert bm.info()['kind'] == 'xyz' and (bm.minzoom, bm.maxzoom) == (17, 17)
+    assert bm.tile(17, 5, 7)[1] == 'image/png' and bm.tile(17, 5, 8)[1] == 'image/jpeg'
+    assert bm.tile(17, 5, 9) is None and bm.tile(3, 9, 0) is None and bm.tile(40, 0, 0) is None
+    for bad in (tmp_path / 'none.mbtiles', tmp_path / 'xyz' / '17' / '5'):
+        with pytest.raises(ConfigError):
+            open_basemap(bad)
+
+
+def test_websocket_from_another_origin_is_refused(server):
+    req = urllib.request.Request(server.url + 'ws', headers={
+        'Origin': 'http://evil.example', 'Connection': 'Upgrade', 'Upgrade': 'websocket', 'Sec-WebSocket-Version': '13',
+        'Sec-WebSocket-Key': 'dGhlIHNhbXBsZSBub25jZQ=='})
+    with pytest.raises(urllib.error.HTTPError) as e:
+        urllib.request.urlopen(req, timeout=5)
+    assert e.value.code == 403
