@@ -41,9 +41,9 @@ def test_ground_station_merges_two_drones(tmp_path, rclpy_context):
     try:
         latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                              durability=DurabilityPolicy.TRANSIENT_LOCAL)
-        helper = Node('drone_side', context=rclpy_context)
-        nodes.append(helper)
         for ns, o in origins.items():
+            helper = Node('bundle_node', namespace=ns, context=rclpy_context)   # what publishes a georeference
+            nodes.append(helper)
             n = MapNode({'map_dir': str(tmp_path / ns.strip('/')), 'stream_period_s': 0.5, 'cell_m': 0.25,
                          'use_origin_params': True, 'origin_lat_deg': o.lat_deg, 'origin_lon_deg': o.lon_deg,
                          'origin_h_m': o.h_m}, namespace=ns, context=rclpy_context)
@@ -109,9 +109,9 @@ def test_station_shows_ortho_coverage_gap_and_accuracy(tmp_path, rclpy_context):
     node = MapNode({'map_dir': str(tmp_path / 'map'), 'stream_period_s': 0.3, 'ortho_period_s': 0.3,
                     'coverage_period_s': 0.3, 'cell_m': 0.25, 'use_origin_params': True, 'origin_lat_deg': o.lat_deg,
                     'origin_lon_deg': o.lon_deg, 'origin_h_m': o.h_m}, namespace='/drone1', context=rclpy_context)
-    station = GroundStationNode({'out_dir': str(tmp_path / 'gs'), 'namespaces': '/drone1', 'web': '127.0.0.1:0',
+    station = GroundStationNode({'out_dir': str(tmp_path / 'gs'), 'drones': '/drone1', 'web': '127.0.0.1:0',
                                  'save_period_s': 1.0}, context=rclpy_context)
-    peer = Node('drone1_peer', namespace='/drone1', context=rclpy_context)
+    peer = Node('bundle_node', namespace='/drone1', context=rclpy_context)   # stands in for the drone's bundle_node
     latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
     pubs = {'geo': peer.create_publisher(NavSatFix, 'map/georeference', latched),
             'info': peer.create_publisher(CameraInfo, 'camera/camera_info', 10),

@@ -14,7 +14,9 @@ from photogram_ros.core.fusion import Fusion, FusionConfig, pack_rgb
 from photogram_ros.core.geodesy import LocalFrame
 from photogram_ros.core.gnss_fix import GnssFix
 from photogram_ros.core.ortho_tiles import TILE_PX, OrthoTiler
-from photogram_ros.core.survey_quality import GO, NO_GO, WAIT, QualityLimits, fix_class, go_no_go, rmse
+from photogram_ros.core.survey_quality import (GEOREF_FINAL, GEOREF_PROVISIONAL, GEOREF_UNKNOWN, GO, NO_GO,
+                                               PROVISIONAL, WAIT, QualityLimits, fix_class, go_no_go, rmse,
+                                               rmse_lower_bound)
 from photogram_ros.errors import DataError
 from photogram_ros.io.mission import read_survey_area, refly_plan, survey_area_in_map
 
@@ -139,3 +141,45 @@ def test_go_no_go_waits_for_check_points_then_judges():
     bad = go_no_go({'check_rmse': {'horizontal_m': 0.03, 'vertical_m': 0.02, 'count': 4}, 'coverage_share': 0.93,
                     'largest_gap_m2': 448.0}, lim)
     assert bad['verdict'] == NO_GO and len(bad['reasons']) == 2 and '448' in bad['reasons'][1]
+
+
+def test_go_no_go_judges_only_figures_of_a_block_georeferenced_for_good():
+    """The sample flight's live figures (recorded at --rate 1 with its targets): 6.08 m over 2 check points
+    while the block was provisional, 5.2-6.6 cm over 2-4 once georeferenced for good, 3.5 cm after the final
+    adjustment. None of them is NO-GO; the last is GO. A survey clearly beyond its limit is NO-GO."""
+    lim = QualityLimits(max_check_rmse_h_m=0.05, min_coverage=0.98, max_gap_m2=25.0)
+
+    def verdict(h, n, georef, **kw):
+        return go_no_go({'check_rmse': {'horizontal_m': h, 'vertical_m': 0.02, 'count': n}, 'georeference': georef,
+                         'coverage_share': 1.0, 'gaps': [], **kw}, lim)
+
+    prov = verdict(6.0788, 2, GEOREF_PROVISIONAL)
+    assert prov['verdict'] == WAIT and 'provisional' in prov['reasons'][0]
+    assert prov['checks'][0]['status'] == PROVISIONAL and prov['checks'][0]['value'] == 6.0788
+    assert verdict(6.0788, 2, GEOREF_UNKNOWN)['verdict'] == WAIT
+    for h, n in ((0.0638, 2), (0.0658, 3), (0.0563, 3), (0.0517, 4), (0.0537, 4)):
+        w = verdict(h, n, GEOREF_FINAL)
+        assert w['verdict'] == WAIT and 'cannot tell' in w['reasons'][0], (h, n, w)
+    assert verdict(0.0353, 4, GEOREF_FINAL)['verdict'] == GO
+    # Clearly beyond: 2.7 m (3D GNSS, no GCPs) over 2 points, 8 cm over 9.
+    assert verdict(2.74, 2, GEOREF_FINAL)['verdict'] == NO_GO
+    assert verdict(0.08, 9, GEOREF_FINAL)['verdict'] == NO_GO
+    # The bound is the chi-square one: 5.37 cm over 4 points (8 degrees of freedom) at 95 % -> 3.86 cm.
+    assert rmse_lower_bound(0.0537, 4, 2, 0.95) == pytest.approx(0.0537 * math.sqrt(8 / 15.5073), rel=1e-4)
+    strict = QualityLimits(max_check_rmse_h_m=0.05, nogo_confidence=0.0)
+    assert go_no_go({'check_rmse': {'horizontal_m': 0.0537, 'vertical_m': 0.0, 'count': 4}, 'coverage_share': 1.0,
+                     'gaps': []}, strict)['verdict'] == NO_GO
+
+
+def test_every_gap_kind_counts():
+    """A forward-overlap gap of 1,219 m² that the neighbouring lines see (the camera stopped 10 s) is not GO,
+    with its kind and area in the reason; below the limit it passes."""
+    lim = QualityLimits(max_check_rmse_h_m=0.05, min_coverage=0.98, max_gap_m2=25.0)
+    fig = {'check_rmse': {'horizontal_m': 0.03, 'vertical_m': 0.02, 'count': 4}, 'coverage_share': 1.0,
+           'georeference': GEOREF_FINAL}
+    r = go_no_go({**fig, 'gaps': [{'kind': 'coverage', 'area_m2': 6.0},
+                                  {'kind': 'forward_overlap', 'area_m2': 1219.0, 'min_views': 4}]}, lim)
+    assert r['verdict'] == NO_GO and r['reasons'] == [
+        'largest gap, any kind (m²): 1219 (<= 25), forward_overlap gap, seen by 4 keyframes of other lines']
+    assert go_no_go({**fig, 'gaps': [{'kind': 'not_oriented', 'area_m2': 24.0}]}, lim)['verdict'] == GO
+    assert go_no_go({**fig, 'gaps': []}, lim)['checks'][-1]['value'] == 0.0

@@ -10,13 +10,25 @@ gaps (<ns>/map/coverage, GeoJSON), the live accuracy (<ns>/map/control_points: c
 residuals, fix shares, GNSS bias) and a go / no-go verdict against the limits of the parameters
 (core/survey_quality.py). `status()` has every figure (status.json); the gaps are saved as
 <drone>_gaps.geojson and a QGroundControl re-fly plan <drone>_refly.plan; with `web` set the page of
-web/server.py shows it all on a map.
+web/server.py shows it all on a map, pushed over a WebSocket as it changes, over an offline base map
+(`basemap`: an XYZ folder or an MBTiles file, web/basemap.py).
+
+Trust: `drones` is the allow-list of namespaces (empty: every namespace that publishes
+map/cloud_downsampled, said as a WARN at the start). Of a followed drone, a topic's message counts only
+while every publisher of that topic is the node of that drone's namespace that publishes it (map_node,
+bundle_node); otherwise the message is not counted, the figure keeps its last trusted value and the page
+lists the unknown publisher. ROS 2 does not say which publisher sent a message, so this is a check of
+the graph, not an authentication: without SROS2 (see `security_status()`) any node can take a
+drone's name. Other namespaces that publish map topics are listed as unknown drones, never counted.
+/diagnostics counts only while its publishers are such nodes (and the station): the block's
+georeference state (bundle_node's `georeferenced`) comes from there, unless map/control_points carries
+it ('georeference': 'final' / 'provisional' / 'none').
 """
 
 from __future__ import annotations
 
 import json
-import re
+import os
 import threading
 import time
 from dataclasses import dataclass, field
@@ -32,32 +44,57 @@ from std_msgs.msg import String
 
 from photogram_ros import msgs
 from photogram_ros.core.geodesy import LocalFrame, utm_epsg
-from photogram_ros.core.survey_quality import QualityLimits, go_no_go
+from photogram_ros.core.survey_quality import (GEOREF_FINAL, GEOREF_NONE, GEOREF_PROVISIONAL, GEOREF_UNKNOWN,
+                                               QualityLimits, go_no_go)
 from photogram_ros.errors import PhotogramError
 from photogram_ros.nodes.diagnostics import Diagnostics
 from photogram_ros.nodes.ros_params import declare
 from photogram_ros.params import param
 
 CLOUD_SUFFIX = '/map/cloud_downsampled'
+# The drone topics the station takes -> the node (in the drone's namespace) that publishes them.
+PUBLISHER_OF = {CLOUD_SUFFIX: 'map_node', '/map/ortho_tiles': 'map_node', '/map/coverage': 'map_node',
+                '/map/georeference': 'bundle_node', '/map/keyframe_pose': 'bundle_node',
+                '/map/control_points': 'bundle_node'}
+# Nodes of a drone's namespace whose /diagnostics the station takes (graph.py's nodes and a replay's player).
+DRONE_NODES = frozenset(PUBLISHER_OF.values()) | {'tracker_node', 'stereo_node', 'mavlink_node', 'camera_node',
+                                                  'player'}
+GEOREF_OF_DIAG = {'True': GEOREF_FINAL, 'provisional': GEOREF_PROVISIONAL, 'False': GEOREF_NONE}
 
 
 @dataclass
 class GroundStationParams(QualityLimits):
     """The station's parameters and the go / no-go limits (core/survey_quality.py QualityLimits)."""
-    namespaces: str = param('', 'Comma-separated drone namespaces to follow, e.g. "/drone1,/drone2"; empty: '
-                                'every namespace that publishes map/cloud_downsampled (rediscovered each second)')
+    drones: str = param('', 'Allow-list: comma-separated drone namespaces, e.g. "/drone1,/drone2" ("/" for the '
+                            'root namespace); others are shown as unknown, never counted. Empty: every namespace '
+                            'that publishes map/cloud_downsampled (rediscovered each second)')
     out_dir: str = param('ground_station', 'Folder for the merged cloud, tracks and status')
     cell_m: float = param(0.25, 'Merge cell size, m', min=0.01, max=100.0)
     save_period_s: float = param(10.0, 'How often the merged cloud is written, s', min=0.5, max=3600.0)
     crs: str = param('', 'Projected CRS of the saved cloud (EPSG code); empty: UTM zone of the first drone')
-    web: str = param('', 'Serve the map page on HOST:PORT (e.g. 127.0.0.1:8080, :8080 for every interface); '
-                         '"" = no page')
+    web: str = param('', 'Serve the map page on HOST:PORT (127.0.0.1:8080, or :8080, this machine only; '
+                         '0.0.0.0:8080 every interface, with the token); "" = no page')
+    web_token: str = param('', 'Token other machines must give (?token= once, then a cookie); empty: generated and '
+                               'printed when the page is served beyond this machine')
+    web_idle_timeout_s: float = param(20.0, 'The page\'s server closes a connection idle for this long, s',
+                                      min=0.5, max=3600.0)
+    web_request_timeout_s: float = param(30.0, 'Longest a request of the page may take, s', min=0.5, max=3600.0)
+    web_max_connections: int = param(64, 'Open connections of the page\'s server at most', min=1, max=100000)
+    basemap: str = param('', 'Offline base map under the ortho: an XYZ tile folder (Z/X/Y.png) or an .mbtiles '
+                             'file; empty: none')
     refly_side_overlap: float = param(0.6, 'Side overlap of the re-fly plan\'s lines', min=0.0, max=0.95)
     refly_forward_overlap: float = param(0.8, 'Forward overlap of the re-fly plan\'s camera triggers',
                                          min=0.0, max=0.95)
 
-    def topic_namespaces(self) -> list[str]:
-        return [s.strip() for s in self.namespaces.split(',') if s.strip()]
+    def allowed(self) -> list[str]:
+        """The allow-list as namespaces: '' for the root namespace, else '/name'."""
+        return [norm_ns(s) for s in self.drones.split(',') if s.strip()]
+
+
+def norm_ns(ns: str) -> str:
+    """'drone1', '/drone1/' -> '/drone1'; '/' or '' -> '' (the root namespace)."""
+    ns = ns.strip().strip('/')
+    return '/' + ns if ns else ''
 
 
 def drone_key(ns: str) -> str:
@@ -79,6 +116,12 @@ class Drone:
     tile_bytes: int = 0
     coverage: dict | None = None                 # GeoJSON of <ns>/map/coverage
     quality: dict | None = None                  # JSON of <ns>/map/control_points
+    georef_diag: str = GEOREF_UNKNOWN            # bundle_node's `georeferenced` on /diagnostics
+    tile_log: list = field(default_factory=list)  # (z, x, y) in the order they came (the page's push)
+    versions: dict = field(default_factory=lambda: {'coverage': 0, 'track': 0, 'targets': 0})
+    updated_unix_s: float | None = None          # when a counted message last came
+    not_counted: dict = field(default_factory=dict)   # topic -> messages not counted (unknown publishers)
+    unknown_publishers: dict = field(default_factory=dict)   # topic -> ['/ns/node', ...] seen on it
 
 
 class GroundStationNode(Node):
@@ -87,48 +130,138 @@ class GroundStationNode(Node):
         self.params = declare(self, GroundStationParams, overrides)
         self.diag = Diagnostics(self)
         self.drones: dict[str, Drone] = {}
+        self.unknown: dict[str, dict] = {}            # namespace not on the allow-list -> {topic: [publishers]}
+        self.diag_unknown: list[str] = []             # unknown publishers of /diagnostics (health not counted)
         self.frame: LocalFrame | None = None          # common ENU of the merged map
         self._cells: dict = {}                        # cell key -> [x, y, z, rgb] in the common frame
-        self._lock = threading.RLock()                # ROS callbacks and the web server's threads
+        self._lock = threading.RLock()                # ROS callbacks and the web server's thread
+        self._held: dict = {}                         # (drone ns, topic suffix) -> (message, publisher gids)
+        self._warned: set = set()
         self._last_save = time.monotonic()
         self.out = Path(self.params.out_dir)
         self.out.mkdir(parents=True, exist_ok=True)
+        self.security = security_status()
         self.create_subscription(DiagnosticArray, '/diagnostics', self._on_diagnostics, 50)
-        for ns in self.params.topic_namespaces():
+        for ns in self.params.allowed():
             self._follow(ns)
+        if not self.params.allowed():
+            self.get_logger().warning('no allow-list (drones): every namespace that publishes map/cloud_downsampled '
+                                      'is followed as a drone; name them with --drones /drone1,/drone2')
+        (self.get_logger().info if self.security['enabled'] else self.get_logger().warning)(
+            'ROS 2 security: ' + self.security['summary'])
         self.create_timer(1.0, self._tick)
         self.web = None
         if self.params.web:
-            from photogram_ros.web.server import WebServer, parse_host_port
-            self.web = WebServer(self, *parse_host_port(self.params.web)).start()
+            from photogram_ros.web.server import WebLimits, WebServer, parse_host_port
+            basemap = None
+            if self.params.basemap:
+                from photogram_ros.web.basemap import open_basemap
+                basemap = open_basemap(self.params.basemap)
+            limits = WebLimits(idle_timeout_s=self.params.web_idle_timeout_s,
+                               request_timeout_s=self.params.web_request_timeout_s,
+                               max_connections=self.params.web_max_connections)
+            self.web = WebServer(self, *parse_host_port(self.params.web), token=self.params.web_token or None,
+                                 limits=limits, basemap=basemap).start()
             self.get_logger().info(f'ground-station page on {self.web.url}')
 
-    # --- discovery -------------------------------------------------------------------------------
+    # --- discovery and trust ---------------------------------------------------------------------
 
     def _follow(self, ns: str) -> None:
-        ns = '/' + ns.strip('/') if ns.strip('/') else ''
+        ns = norm_ns(ns)
         if ns in self.drones:
             return
         drone = self.drones[ns] = Drone(ns)
         best_effort = QoSProfile(depth=5, reliability=ReliabilityPolicy.BEST_EFFORT)
         latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                              durability=DurabilityPolicy.TRANSIENT_LOCAL)
-        self.create_subscription(PointCloud2, f'{ns}{CLOUD_SUFFIX}', lambda m: self._on_cloud(drone, m), best_effort)
-        self.create_subscription(NavSatFix, f'{ns}/map/georeference', lambda m: self._on_origin(drone, m), latched)
-        self.create_subscription(PoseWithCovarianceStamped, f'{ns}/map/keyframe_pose',
-                                 lambda m: self._on_pose(drone, m), QoSProfile(depth=50))
-        self.create_subscription(CompressedImage, f'{ns}/map/ortho_tiles', lambda m: self._on_tile(drone, m),
-                                 QoSProfile(depth=100, reliability=ReliabilityPolicy.BEST_EFFORT))
-        self.create_subscription(String, f'{ns}/map/coverage', lambda m: self._on_document(drone, m, 'coverage'),
-                                 latched)
-        self.create_subscription(String, f'{ns}/map/control_points',
-                                 lambda m: self._on_document(drone, m, 'quality'), latched)
+
+        def sub(msg_type, suffix, handler, qos):
+            self.create_subscription(msg_type, f'{ns}{suffix}', lambda m: self._take(drone, suffix, m, handler), qos)
+
+        sub(PointCloud2, CLOUD_SUFFIX, self._on_cloud, best_effort)
+        sub(NavSatFix, '/map/georeference', self._on_origin, latched)
+        sub(PoseWithCovarianceStamped, '/map/keyframe_pose', self._on_pose, QoSProfile(depth=50))
+        sub(CompressedImage, '/map/ortho_tiles', self._on_tile,
+            QoSProfile(depth=100, reliability=ReliabilityPolicy.BEST_EFFORT))
+        sub(String, '/map/coverage', lambda d, m: self._on_document(d, m, 'coverage'), latched)
+        sub(String, '/map/control_points', lambda d, m: self._on_document(d, m, 'quality'), latched)
         self.get_logger().info(f'following drone {ns or "/"}')
 
+    def _publishers_of(self, topic: str) -> list:
+        try:
+            return self.get_publishers_info_by_topic(topic)
+        except Exception:   # noqa: BLE001 (a graph query during shutdown)
+            return []
+
+    def _foreign(self, drone_ns: str, suffix: str) -> tuple[list[str], frozenset]:
+        """Publishers of the drone's topic other than the drone's own node for it, and every publisher's gid."""
+        want_ns, want_node = drone_ns or '/', PUBLISHER_OF[suffix]
+        infos = self._publishers_of(f'{drone_ns}{suffix}')
+        bad = [f'{i.node_namespace.rstrip("/")}/{i.node_name}' for i in infos
+               if i.node_namespace != want_ns or i.node_name != want_node]
+        return bad, frozenset(bytes(i.endpoint_gid) for i in infos)
+
+    def _take(self, drone: Drone, suffix: str, msg, handler) -> None:
+        """A message of a followed drone: counted when every publisher of its topic is the drone's own node."""
+        bad, gids = self._foreign(drone.ns, suffix)
+        if bad:
+            with self._lock:
+                drone.not_counted[suffix] = drone.not_counted.get(suffix, 0) + 1
+                drone.unknown_publishers[suffix] = sorted(set(bad))
+                if all('_UNKNOWN_' in b for b in bad):
+                    # A publisher whose node name discovery has not brought yet: decided on the next tick.
+                    self._held[(drone.ns, suffix)] = (msg, gids, handler)
+            key = (drone.ns, suffix, tuple(sorted(set(bad))))
+            if key not in self._warned:
+                self._warned.add(key)
+                self.diag.problem(f'{drone.ns or "/"}{suffix}: published also by {", ".join(sorted(set(bad)))} '
+                                  f'(not {PUBLISHER_OF[suffix]} of {drone.ns or "/"}): its messages are not counted')
+            self._notify()
+            return
+        with self._lock:
+            drone.unknown_publishers.pop(suffix, None)
+            drone.updated_unix_s = time.time()
+        handler(drone, msg)
+        self._notify()
+
+    def _retry_held(self) -> None:
+        """Messages held while a publisher's node name was unknown: counted if the same publishers are now
+        all the drone's own node; dropped if another node is among them."""
+        for (ns, suffix), (msg, gids, handler) in list(self._held.items()):
+            bad, now = self._foreign(ns, suffix)
+            if any('_UNKNOWN_' in b for b in bad) and now == gids:
+                continue
+            del self._held[(ns, suffix)]
+            if not bad and now == gids and ns in self.drones:
+                drone = self.drones[ns]
+                with self._lock:
+                    drone.not_counted[suffix] -= 1
+                    drone.unknown_publishers.pop(suffix, None)
+                    drone.updated_unix_s = time.time()
+                handler(drone, msg)
+                self._notify()
+
     def _discover(self) -> None:
+        """Follow new drones (no allow-list); list namespaces outside the allow-list that publish map topics."""
+        allowed = self.params.allowed()
+        unknown: dict[str, dict] = {}
         for name, _types in self.get_topic_names_and_types():
-            if name.endswith(CLOUD_SUFFIX):
-                self._follow(name[: -len(CLOUD_SUFFIX)])
+            suffix = next((s for s in PUBLISHER_OF if name.endswith(s)), None)
+            if suffix is None:
+                continue
+            ns = norm_ns(name[: -len(suffix)])
+            if not allowed and suffix == CLOUD_SUFFIX:
+                self._follow(ns)
+            if ns not in self.drones:
+                pubs = [f'{i.node_namespace.rstrip("/")}/{i.node_name}' for i in self._publishers_of(name)]
+                if pubs:
+                    unknown.setdefault(ns or '/', {})[name] = pubs
+        with self._lock:
+            self.unknown = unknown
+
+    def _notify(self) -> None:
+        if self.web is not None:
+            self.web.notify()
 
     # --- inputs ----------------------------------------------------------------------------------
 
@@ -143,6 +276,8 @@ class GroundStationNode(Node):
         for m in drone.pending:
             self._on_cloud(drone, m)
         drone.pending.clear()
+        drone.versions['track'] += 1
+        drone.versions['targets'] += 1
 
     def _on_cloud(self, drone: Drone, msg: PointCloud2) -> None:
         if drone.origin is None or self.frame is None:
@@ -173,6 +308,7 @@ class GroundStationNode(Node):
             return
         with self._lock:
             drone.poses[msgs.ns_from_time(msg.header.stamp)] = tuple(float(v) for v in T[:3, 3])
+            drone.versions['track'] += 1
 
     def _on_tile(self, drone: Drone, msg: CompressedImage) -> None:
         try:
@@ -184,35 +320,74 @@ class GroundStationNode(Node):
             drone.tiles[(z, x, y)] = png
             drone.tiles_unsaved.add((z, x, y))
             drone.tile_bytes += len(png)
+            drone.tile_log.append((z, x, y))
         self.diag.count('ortho_tiles')
 
     def _on_document(self, drone: Drone, msg: String, field_name: str) -> None:
         """A JSON document of the drone (map/coverage -> drone.coverage, map/control_points -> drone.quality)."""
         try:
             doc = msgs.json_from_msg(msg)
+            if not isinstance(doc, dict):
+                raise PhotogramError(f'a JSON object expected, got {type(doc).__name__}')
         except PhotogramError as exc:
             self.diag.problem(f'{drone.ns}: {field_name} dropped: {exc}')
             return
         with self._lock:
             setattr(drone, field_name, doc)
+            drone.versions['coverage' if field_name == 'coverage' else 'targets'] += 1
 
     def _on_diagnostics(self, msg: DiagnosticArray) -> None:
+        """Health of the followed drones' nodes and bundle_node's georeference state, counted only while every
+        publisher of /diagnostics is a drone node of a followed namespace or this station."""
+        me = (self.get_namespace(), self.get_name())
+        followed = {ns or '/' for ns in self.drones}
+        bad = sorted({f'{i.node_namespace.rstrip("/")}/{i.node_name}' for i in self._publishers_of('/diagnostics')
+                      if (i.node_namespace, i.node_name) != me
+                      and not (i.node_namespace in followed and i.node_name in DRONE_NODES)})
+        with self._lock:
+            self.diag_unknown = bad
+        if bad:
+            return
         for st in msg.status:
-            m = re.match(r'^(/[^/]+)/', st.name)
-            ns = m.group(1) if m and m.group(1) in self.drones else ''
-            if ns in self.drones:
-                self.drones[ns].health[st.name] = (int.from_bytes(st.level, 'little') if isinstance(st.level, bytes)
-                                                   else int(st.level), st.message)
+            ns, _, node = st.name.rpartition('/')
+            drone = self.drones.get(ns)
+            if drone is None:
+                continue
+            level = int.from_bytes(st.level, 'little') if isinstance(st.level, bytes) else int(st.level)
+            with self._lock:
+                drone.health[st.name] = (level, st.message)
+                if node == PUBLISHER_OF['/map/control_points']:
+                    geo = next((kv.value for kv in st.values if kv.key == 'georeferenced'), None)
+                    if geo in GEOREF_OF_DIAG and GEOREF_OF_DIAG[geo] != drone.georef_diag:
+                        drone.georef_diag = GEOREF_OF_DIAG[geo]
+                        drone.versions['targets'] += 1
+                        self._notify()
 
     # --- outputs ---------------------------------------------------------------------------------
 
     def _tick(self) -> None:
-        if not self.params.topic_namespaces():
-            self._discover()
+        self._discover()
+        self._retry_held()
         self.diag.set('drones', len(self.drones))
         self.diag.set('merged_cells', len(self._cells))
+        self.diag.set('unknown_drones', ','.join(sorted(self.unknown)))
+        for d in list(self.drones.values()):
+            self._diagnose(d, self.drone_status(d))
+        if self.web is not None:
+            self.diag.set('web_connections', self.web.connections)
+            self.diag.set('web_refused_requests', self.web.refused_requests)
         if time.monotonic() - self._last_save >= self.params.save_period_s:
             self.save()
+
+    def _diagnose(self, d: Drone, st: dict) -> None:
+        """The drone's verdict and figures on /diagnostics: the same numbers as status.json and the page."""
+        key = st['key']
+        g = st['go_no_go']
+        self.diag.set(f'{key}_verdict', g['verdict'])
+        self.diag.set(f'{key}_reasons', '; '.join(g['reasons']))
+        for c in g['checks']:
+            name = c['name'].split(' (')[0].replace(',', '').replace(' ', '_')
+            self.diag.set(f'{key}_{name}', 'not measured' if c['value'] is None else repr(c['value']))
 
     def merged_cloud(self) -> np.ndarray:
         with self._lock:
@@ -223,8 +398,10 @@ class GroundStationNode(Node):
         """Write the merged cloud (PLY), each drone's track (CSV) and a status file."""
         from photogram_ros.io.export import GeoCloud, enu_to_crs, write_ply
         self._last_save = time.monotonic()
-        status = {'drones': {}, 'merged_cells': len(self._cells), 'frame': self.frame.to_dict() if self.frame else None}
-        for ns, d in self.drones.items():
+        status = {'drones': {}, 'merged_cells': len(self._cells), 'frame': self.frame.to_dict() if self.frame else None,
+                  'generated_unix_s': time.time(), 'unknown_drones': self.unknown,
+                  'diagnostics_unknown_publishers': self.diag_unknown, 'security': self.security}
+        for ns, d in list(self.drones.items()):
             status['drones'][ns or '/'] = self.drone_status(d)
             if d.poses:
                 name = (ns.strip('/') or 'drone') + '_track.csv'
@@ -241,7 +418,10 @@ class GroundStationNode(Node):
                              np.ones(len(vals), np.uint32), np.ones(len(vals), np.float32), crs, 'ellipsoidal')
             write_ply(cloud, self.out / 'merged_cloud.ply')
             status['crs'] = crs
-        (self.out / 'status.json').write_text(json.dumps(status, indent=1))
+        from photogram_ros.web.server import finite
+        tmp = self.out / 'status.json.tmp'
+        tmp.write_text(json.dumps(finite(status), indent=1))
+        os.replace(tmp, self.out / 'status.json')
 
     # --- survey quality (status.json, the web page) ----------------------------------------------
 
@@ -269,37 +449,64 @@ class GroundStationNode(Node):
         return next((d for ns, d in self.drones.items() if drone_key(ns) == key), None)
 
     def drone_status(self, d: Drone) -> dict:
-        """Every figure of one drone: counts, health, ortho, coverage and gaps, accuracy, go / no-go."""
+        """Every figure of one drone: counts, health, ortho, coverage and gaps, accuracy, go / no-go, and which
+        publishers were not counted. The page, status.json and /diagnostics all show these numbers."""
         with self._lock:
             out = {'key': drone_key(d.ns), 'clouds': d.clouds, 'points': d.points, 'keyframes': len(d.poses),
                    'health': {k: list(v) for k, v in d.health.items()},
                    'ortho': {'tiles': len(d.tiles), 'bytes_received': d.tile_bytes,
-                             'zoom': next(iter(d.tiles))[0] if d.tiles else None}}
-            cov, q = d.coverage, d.quality
+                             'zoom': next(iter(d.tiles))[0] if d.tiles else None},
+                   'updated_unix_s': d.updated_unix_s, 'versions': dict(d.versions),
+                   'not_counted': dict(d.not_counted), 'unknown_publishers': dict(d.unknown_publishers)}
+            cov, q, geo_diag = d.coverage, d.quality, d.georef_diag
         figures = {}
         if cov is not None:
             props = dict(cov.get('properties', {}))
-            props['gap_list'] = [{k: f['properties'][k] for k in ('kind', 'area_m2', 'min_views', 'centroid')}
-                                 for f in cov['features'] if f['properties'].get('role') == 'gap']
+            props['gap_list'] = [{k: f['properties'].get(k) for k in ('kind', 'area_m2', 'min_views', 'centroid')}
+                                 for f in cov.get('features', []) if f.get('properties', {}).get('role') == 'gap']
             out['coverage'] = props
-            figures.update(coverage_share=props.get('coverage_share'), largest_gap_m2=props.get('largest_gap_m2'))
+            figures.update(coverage_share=_number(props.get('coverage_share')),
+                           gaps=[{'kind': g['kind'], 'area_m2': _number(g['area_m2']), 'min_views': g['min_views']}
+                                 for g in props['gap_list']])
+        geo = q.get('georeference') if q is not None else None
+        geo = geo if geo in (GEOREF_FINAL, GEOREF_PROVISIONAL, GEOREF_NONE) else geo_diag
         if q is not None:
             cr = q.get('check_rmse') or {}
-            out['accuracy'] = {'check_rmse_h_m': cr.get('horizontal_m'), 'check_rmse_v_m': cr.get('vertical_m'),
-                               'check_count': cr.get('count', 0), 'gcp_rmse': q.get('gcp_rmse'),
+            out['accuracy'] = {'check_rmse_h_m': _number(cr.get('horizontal_m')),
+                               'check_rmse_v_m': _number(cr.get('vertical_m')),
+                               'check_count': int(_number(cr.get('count')) or 0), 'gcp_rmse': q.get('gcp_rmse'),
                                'fix_share': q.get('fix_share'), 'gnss_bias_enu_m': q.get('gnss_bias_enu_m'),
                                'check_points': q.get('check_points', []), 'gcps': q.get('gcps', []),
-                               'control': _control_status(q.get('control'))}
-            figures.update(check_rmse=cr if cr.get('count') else None, fix_share=q.get('fix_share'))
+                               'control': _control_status(q.get('control')), 'stamp_ns': q.get('stamp_ns'),
+                               'georeference': geo}
+            figures.update(check_rmse={'horizontal_m': out['accuracy']['check_rmse_h_m'],
+                                       'vertical_m': out['accuracy']['check_rmse_v_m'],
+                                       'count': out['accuracy']['check_count']},
+                           fix_share=q.get('fix_share'))
+        figures['georeference'] = geo
         out['go_no_go'] = go_no_go(figures, self.params)
         return out
 
     def status(self) -> dict:
-        """status.json of the web page: every drone's figures (keyed by its URL name)."""
+        """status.json of the web page: every drone's figures (keyed by its URL name), the unknown publishers,
+        the limits, and when it was made."""
         with self._lock:
             drones = list(self.drones.values())
+            unknown, diag_unknown = dict(self.unknown), list(self.diag_unknown)
         return {'drones': {drone_key(d.ns): {'ns': d.ns or '/', **self.drone_status(d)} for d in drones},
+                'unknown_drones': unknown, 'diagnostics_unknown_publishers': diag_unknown,
+                'security': self.security, 'generated_unix_s': time.time(),
                 'limits': {k: getattr(self.params, k) for k in QualityLimits.__dataclass_fields__}}
+
+    def tiles_since(self, key: str, seq: int) -> tuple[int, list]:
+        """Ortho tiles of the drone that came after the first `seq` -> (new seq, [[z, x, y], ...] distinct)."""
+        d = self._drone(key)
+        if d is None:
+            return 0, []
+        with self._lock:
+            new = d.tile_log[seq:]
+            n = len(d.tile_log)
+        return n, [list(t) for t in dict.fromkeys(new)]
 
     def tile(self, key: str, z: int, x: int, y: int) -> bytes | None:
         d = self._drone(key)
@@ -324,15 +531,18 @@ class GroundStationNode(Node):
         if kind == 'targets' and q is not None:
             for role, rows in (('check', q.get('check_points', [])), ('gcp', q.get('gcps', []))):
                 for r in rows:
-                    e = r['residual_enu_m']
-                    feats.append({'type': 'Feature', 'geometry': {'type': 'Point',
-                                                                  'coordinates': [r['lon_deg'], r['lat_deg']]},
-                                  'properties': {'name': r['name'], 'role': role, 'residual_enu_m': e,
+                    try:
+                        e = [float(v) for v in r['residual_enu_m']][:3]
+                        lon, lat = float(r['lon_deg']), float(r['lat_deg'])
+                    except (KeyError, TypeError, ValueError):
+                        continue
+                    feats.append({'type': 'Feature', 'geometry': {'type': 'Point', 'coordinates': [lon, lat]},
+                                  'properties': {'name': str(r.get('name')), 'role': role, 'residual_enu_m': e,
                                                  'residual_h_m': float(np.hypot(e[0], e[1])),
                                                  # a GCP used horizontally only: its height is not the survey's
                                                  'residual_v_m': float(e[2]) if r.get('use', 'full') in
                                                  ('full', 'check') else None,
-                                                 'use': r.get('use'), 'images': r['images']}})
+                                                 'use': r.get('use'), 'images': r.get('images')}})
         return {'type': 'FeatureCollection', 'features': feats}
 
     def refly_plan(self, key: str) -> dict | None:
@@ -359,6 +569,60 @@ class GroundStationNode(Node):
         if self.web is not None:
             self.web.stop()
         return super().destroy_node()
+
+
+def _number(v):
+    """A figure from a drone's document as a float (None when it is not a finite number)."""
+    if isinstance(v, bool) or not isinstance(v, (int, float)):
+        return None
+    v = float(v)
+    return v if np.isfinite(v) else None
+
+
+def security_status() -> dict:
+    """What the installed ROS 2 middleware offers for security (SROS2: authentication, access control,
+    encryption) and whether this process asked for it (ROS_SECURITY_ENABLE / ROS_SECURITY_ENCLAVE)."""
+    import sys
+    rmw = os.environ.get('RMW_IMPLEMENTATION', 'rmw_fastrtps_cpp')
+    asked = os.environ.get('ROS_SECURITY_ENABLE', '').lower() == 'true'
+    enclave = os.environ.get('ROS_SECURITY_ENCLAVE', '')
+    keystore = os.environ.get('ROS_SECURITY_KEYSTORE', '')
+    sros2 = any((Path(p) / 'sros2').is_dir() for p in sys.path if p)   # the keystore / enclave tools
+    plugins = _dds_security_plugins() if rmw.startswith('rmw_fastrtps') else None
+    enabled = asked and bool(keystore) and bool(enclave) and plugins is not False
+    if plugins is False:
+        summary = ('NOT AVAILABLE: the installed Fast DDS (libfastrtps, the PyPI ROS wheels) is built without the DDS '
+                   'security plugins (authentication, access control, encryption), so SROS2 cannot be used: any node '
+                   'on this ROS_DOMAIN_ID can publish a drone\'s topics under its names; the allow-list and the '
+                   'publisher check keep out nodes with other names, not impostors. For security use a ROS 2 '
+                   'installation whose Fast DDS has them (Debian/ROS packages) with ros-jazzy-sros2, and set '
+                   'ROS_SECURITY_ENABLE=true, ROS_SECURITY_KEYSTORE, ROS_SECURITY_ENCLAVE.')
+    elif enabled:
+        summary = (f'ROS_SECURITY_ENABLE=true, enclave {enclave} in {keystore} ({rmw}): DDS security is asked for; '
+                   'rcl refuses to start when the enclave\'s files are missing')
+    else:
+        summary = ('OFF: any node on this ROS_DOMAIN_ID can publish a drone\'s topics under its names; the allow-list '
+                   'and the publisher check keep out nodes with other names, not impostors. '
+                   + ('The sros2 tools are installed: create a keystore and enclaves and set ROS_SECURITY_ENABLE=true, '
+                      'ROS_SECURITY_KEYSTORE, ROS_SECURITY_ENCLAVE.' if sros2 else
+                      'The sros2 package (keystore and enclave tools) is not installed with the PyPI ROS wheels; in a '
+                      'ROS 2 installation (ros-jazzy-sros2) set ROS_SECURITY_ENABLE=true, ROS_SECURITY_KEYSTORE and '
+                      'ROS_SECURITY_ENCLAVE.'))
+    return {'enabled': enabled, 'rmw': rmw, 'sros2_installed': sros2, 'dds_security_plugins': plugins,
+            'summary': summary}
+
+
+def _dds_security_plugins() -> bool | None:
+    """Does the Fast DDS library rclpy loads carry the DDS security plugins (builtin.PKI-DH)? None: not found
+    (another middleware, or a layout this does not know)."""
+    import sys
+    for d in (Path(sys.prefix) / 'lib', Path('/opt/ros/jazzy/lib')):
+        for lib in sorted(d.glob('libfastrtps.so.*')) + sorted(d.glob('libfastdds.so.*')):
+            try:
+                return b'builtin.PKI-DH' in lib.read_bytes()
+            except OSError:
+                continue
+    return None
 
 
 CONTROL_COUNTS = ('gcps', 'gcps_held', 'gcps_full', 'gcps_horizontal_only', 'gcps_rejected', 'gcps_not_seen',

@@ -1,0 +1,193 @@
+"""The go / no-go a pilot sees, end to end: `photogram-ros ground-station --web` beside `replay --rate 1`.
+
+- The plain sample flight with its targets, the page's status.json polled every 5 s: never NO-GO (WAIT
+  while the block is georeferenced provisionally: 6.08 m over 2 check points; WAIT while 2-4 check points
+  cannot tell 5.2-6.6 cm from the 5 cm limit), GO after the final adjustment, and then the page's check
+  points equal the report's within 0.5 cm. The page over an MBTiles base map made here: screenshot.
+- The flight whose camera stopped 10 s (`simulate --gap 30:40`): never GO while a listed gap (any kind: here
+  a forward-overlap gap of about 1,200 m² that the neighbouring lines see) is 25 m² or more.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+import signal
+import subprocess
+import sys
+import threading
+import time
+import urllib.request
+from pathlib import Path
+
+import pytest
+
+from conftest import ROOT
+
+pytestmark = [pytest.mark.ros, pytest.mark.slow]
+BAG = ROOT / 'bags' / 'sample_flight'
+
+
+class Station:
+    """The ground-station command with its page; `polls` holds status.json every `period_s`."""
+
+    def __init__(self, out: Path, *extra, period_s: float = 5.0):
+        self.proc = subprocess.Popen([sys.executable, '-m', 'photogram_ros.cli', 'ground-station', '--out', str(out),
+                                      '--web', '127.0.0.1:0', '--drones', '/', '--save-period', '2', *extra],
+                                     cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        self.lines = []
+        self.url = None
+        while self.url is None:
+            line = self.proc.stdout.readline()
+            if not line:
+                raise AssertionError(f'station ended: {self.proc.stderr.read()[-2000:]}')
+            self.lines.append(line)
+            m = re.search(r'map page on (http://\S+/)', line)
+            self.url = m.group(1) if m else None
+        threading.Thread(target=lambda: self.lines.extend(self.proc.stdout), daemon=True).start()
+        self.polls = []
+        self._stop = threading.Event()
+        self.period_s = period_s
+        self.thread = threading.Thread(target=self._poll, daemon=True)
+        self.thread.start()
+
+    def status(self) -> dict:
+        with urllib.request.urlopen(self.url + 'status.json', timeout=10) as r:
+            return json.loads(r.read())
+
+    def _poll(self):
+        while not self._stop.wait(self.period_s):
+            try:
+                self.polls.append((time.monotonic(), self.status()))
+            except OSError:
+                pass
+
+    def stop(self) -> tuple[int, str]:
+        self._stop.set()
+        self.thread.join(30)
+        self.proc.send_signal(signal.SIGINT)
+        err = self.proc.communicate(timeout=60)[1]
+        return self.proc.returncode, err
+
+
+def replay(bag: Path, out: Path) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, '-m', 'photogram_ros.cli', 'replay', str(bag), '--out', str(out), '--quiet',
+                           '--rate', '1', '--gcp', str(bag / 'targets.txt')], cwd=ROOT, capture_output=True, text=True,
+                          timeout=1200)
+
+
+def flown(tmp: Path, bag: Path, basemap: Path | None = None) -> dict:
+    st = Station(tmp / 'gs', *(['--basemap', str(basemap)] if basemap else []))
+    try:
+        res = replay(bag, tmp / 'out')
+        assert res.returncode == 0, res.stderr[-3000:]
+        time.sleep(6)          # the final adjustment's figures reach the station
+        final = st.status()
+        shot = None
+        if basemap is not None:
+            from test_ground_page import CHROMIUM, chromium
+            if CHROMIUM:
+                shot = tmp / 'ground_station.png'
+                dom = chromium(st.url, shot, size=(1400, 900), dump_dom=True, settle_s=5.0)
+                (tmp / 'ground_station.html').write_text(dom)
+    finally:
+        rc, err = st.stop()
+    report = json.loads((tmp / 'out' / 'report.json').read_text())
+    return {'polls': st.polls, 'final': final, 'report': report, 'rc': rc, 'err': err, 'shot': shot,
+            'log': ''.join(st.lines)}
+
+
+@pytest.fixture(scope='module')
+def plain(tmp_path_factory):
+    from test_ground_page import make_mbtiles
+    tmp = tmp_path_factory.mktemp('plain')
+    return flown(tmp, BAG, basemap=make_mbtiles(tmp / 'base.mbtiles', zooms=(15, 16, 17, 18, 19)))
+
+
+def _summary(status: dict) -> dict:
+    d = status['drones'].get('default', {})
+    a = d.get('accuracy') or {}
+    return {'verdict': (d.get('go_no_go') or {}).get('verdict'), 'reasons': (d.get('go_no_go') or {}).get('reasons'),
+            'check_h_m': a.get('check_rmse_h_m'), 'check_n': a.get('check_count'), 'georef': a.get('georeference'),
+            'gaps': [(g['kind'], g['area_m2']) for g in (d.get('coverage') or {}).get('gap_list', [])]}
+
+
+def test_plain_flight_is_never_nogo_and_ends_go(plain):
+    polls = [_summary(s) for _, s in plain['polls']]
+    for p in polls:
+        print('poll:', json.dumps(p))
+    assert plain['rc'] == 0 and 'Traceback' not in plain['err']
+    assert len(polls) >= 12                               # 78 s of flight and its end, every 5 s
+    assert not [p for p in polls if p['verdict'] == 'NO-GO'], polls
+    assert any(p['verdict'] == 'WAIT' and any('provisional' in r for r in p['reasons']) for p in polls), polls
+    assert _summary(plain['final'])['verdict'] == 'GO', _summary(plain['final'])
+
+
+def test_page_check_points_equal_the_report(plain):
+    """Horizontal: 3.53 cm on the page (bundle_node's last map/control_points), 3.55 cm in the report."""
+    a = plain['final']['drones']['default']['accuracy']
+    rep = plain['report']['check_points']['rmse']
+    print('page', a['check_rmse_h_m'], a['check_rmse_v_m'], a['check_count'], 'report', rep)
+    assert a['check_count'] == rep['count'] == 4
+    assert abs(a['check_rmse_h_m'] - rep['horizontal_m']) <= 0.005
+
+
+@pytest.mark.xfail(strict=True, reason='vertical 1.96 cm on the page, 1.35 cm in the report: bundle_node intersects '
+                                       'the tracker\'s detections (core.control.robust_intersection), the report '
+                                       're-detects the markers in the saved JPEG keyframes and triangulates them '
+                                       '(core.evaluation.triangulate_targets); one method over one set of '
+                                       'detections is needed in those files')
+def test_page_check_points_vertical_equals_the_report(plain):
+    a = plain['final']['drones']['default']['accuracy']
+    assert abs(a['check_rmse_v_m'] - plain['report']['check_points']['rmse']['z_m']) <= 0.005
+
+
+@pytest.mark.xfail(strict=True, reason='bundle_node takes a GCP residual from the adjusted target point, which the '
+                                       'GCP prior holds (0.8 / 0.3 cm); the report intersects the GCP from the '
+                                       'adjusted cameras (3.0 / 3.7 cm): bundle_node._target_rows must do the same')
+def test_page_gcp_residuals_equal_the_report(plain):
+    g = plain['final']['drones']['default']['accuracy']['gcp_rmse']
+    rep = plain['report']['gcp_residuals']['rmse']
+    print('page', g, 'report', rep)
+    assert abs(g['horizontal_m'] - rep['horizontal_m']) <= 0.005 and abs(g['vertical_m'] - rep['z_m']) <= 0.005
+
+
+def test_page_over_the_base_map(plain):
+    """The screenshot of the page at the end: the base map (plain blue-grey tiles of the MBTiles file) around
+    the flight's ortho, the view fitted on the drone, the verdict GO in the DOM."""
+    import cv2
+    import numpy as np
+
+    from test_ground_page import BASE_BGR
+    if plain['shot'] is None:
+        pytest.skip('chromium is not installed')
+    img = cv2.imread(str(plain['shot']))
+    m = img[:, :1400 - 340].astype(int)
+    base = np.all(np.abs(m - BASE_BGR) <= 12, axis=-1).mean()
+    colours = len(np.unique(img[:, :1400 - 340].reshape(-1, 3)[::7], axis=0))
+    print(f'base map share {base:.2f}, distinct colours {colours}')
+    assert 0.05 < base < 0.95                  # the base map shows around the ortho, which covers part of the view
+    assert colours > 500                       # the ortho is drawn
+    dom = (plain['shot'].parent / 'ground_station.html').read_text()
+    assert 'id="verdict-default"' in dom and '>GO<' in dom and 'drone data' in dom
+
+
+@pytest.fixture(scope='module')
+def gap(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp('gap')
+    bag = tmp / 'gap'
+    sim = subprocess.run([sys.executable, '-m', 'photogram_ros.cli', 'simulate', str(bag), '--preset', 'sample',
+                          '--gap', '30:40'], cwd=ROOT, capture_output=True, text=True, timeout=900)
+    assert sim.returncode == 0, sim.stderr[-2000:]
+    return flown(tmp, bag)
+
+
+def test_gap_flight_is_not_go_while_a_listed_gap_is_25_m2(gap):
+    polls = [_summary(s) for _, s in gap['polls']] + [_summary(gap['final'])]
+    for p in polls:
+        print('poll:', json.dumps(p))
+    big = [p for p in polls if any(area >= 25.0 for _, area in p['gaps'])]
+    assert big, polls
+    assert all(p['verdict'] != 'GO' for p in big), big
+    assert any(k == 'forward_overlap' for p in big for k, _ in p['gaps'])
+    assert any('largest gap' in r for p in big for r in p['reasons'])

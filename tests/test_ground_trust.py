@@ -1,0 +1,201 @@
+"""The ground station trusts only its drones, and stops cleanly.
+
+- In one process: a drone /drone1 (stand-ins named as its bundle_node and map_node) whose check points are
+  far beyond the limit (NO-GO); then plain rclpy nodes publish a perfect map/control_points on the drone's
+  topic (from another namespace, and from another node name in the drone's namespace), a fake /diagnostics
+  and a drone outside the allow-list. The verdict and its figures do not move; the page's status names the
+  unknown publishers and the unknown drone; /diagnostics carries the same figures as status.json.
+- The command: SIGINT and SIGTERM save and exit 0 without a traceback; 0.0.0.0 prints a token and says
+  whether ROS 2 security is available; a base map that cannot be read is refused at the start (exit 2).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+import urllib.request
+
+import pytest
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+from std_msgs.msg import String
+
+from conftest import ROOT
+from photogram_ros import msgs
+
+pytestmark = pytest.mark.ros
+LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+
+
+def _quality(h_m: float) -> dict:
+    return {'stamp_ns': 1, 'keyframes': 40, 'fix_share': {'rtk_fixed': 1.0},
+            'check_rmse': {'horizontal_m': h_m, 'vertical_m': 0.02, 'count': 4},
+            'gcp_rmse': {'horizontal_m': None, 'vertical_m': None, 'count': 0}, 'gnss_bias_enu_m': None,
+            'check_points': [{'name': 'CHK01', 'marker_id': 5, 'lat_deg': 47.3977, 'lon_deg': 8.5456, 'h_m': 490.0,
+                              'residual_enu_m': [h_m, 0.0, 0.02], 'images': 6, 'rms_px': 0.3, 'use': 'check'}],
+            'gcps': []}
+
+
+def _diag(name: str, georef: str) -> DiagnosticArray:
+    return DiagnosticArray(status=[DiagnosticStatus(level=DiagnosticStatus.OK, name=name, message='OK',
+                                                    values=[KeyValue(key='georeferenced', value=georef)])])
+
+
+def test_fake_publishers_change_no_verdict(tmp_path, rclpy_context):
+    from rclpy.executors import SingleThreadedExecutor
+
+    from photogram_ros.nodes.ground_station import GroundStationNode
+    station = GroundStationNode({'out_dir': str(tmp_path / 'gs'), 'drones': '/drone1', 'web': '127.0.0.1:0',
+                                 'save_period_s': 1.0}, context=rclpy_context)
+    bundle = Node('bundle_node', namespace='/drone1', context=rclpy_context)
+    mapper = Node('map_node', namespace='/drone1', context=rclpy_context)
+    fake = Node('fake', context=rclpy_context)                                  # a plain node, root namespace
+    impostor = Node('impostor', namespace='/drone1', context=rclpy_context)     # in the drone's namespace
+    stranger = Node('map_node', namespace='/drone9', context=rclpy_context)     # a drone not on the list
+    listener = Node('diag_listener', context=rclpy_context)
+    ex = SingleThreadedExecutor(context=rclpy_context)
+    for n in (station, bundle, mapper, fake, impostor, stranger, listener):
+        ex.add_node(n)
+    station_diag = {}
+    listener.create_subscription(DiagnosticArray, '/diagnostics', lambda m: station_diag.update(
+        {kv.key: kv.value for st in m.status if st.name == '/ground_station' for kv in st.values}), 50)
+
+    def spin(seconds, until=lambda: False):
+        t0 = time.monotonic()
+        while time.monotonic() - t0 < seconds and not until():
+            ex.spin_once(timeout_sec=0.05)
+
+    def drone():
+        return station.status()['drones'].get('drone1', {})
+
+    try:
+        bundle.create_publisher(String, 'map/control_points', LATCHED).publish(msgs.json_msg(_quality(0.20)))
+        mapper.create_publisher(String, 'map/coverage', LATCHED).publish(msgs.json_msg(
+            {'type': 'FeatureCollection', 'features': [], 'properties': {'coverage_share': 1.0, 'largest_gap_m2': 0.0}}))
+        bundle_diag = bundle.create_publisher(DiagnosticArray, '/diagnostics', 10)
+        for _ in range(40):
+            bundle_diag.publish(_diag('/drone1/bundle_node', 'True'))
+            spin(0.1)
+            if drone().get('go_no_go', {}).get('verdict') == 'NO-GO':
+                break
+        before = drone()
+        assert before['go_no_go']['verdict'] == 'NO-GO', before['go_no_go']
+        assert before['accuracy']['check_rmse_h_m'] == 0.20 and before['accuracy']['georeference'] == 'final'
+        assert not before['unknown_publishers']
+
+        perfect = msgs.json_msg(_quality(0.001))
+        fake_cp = fake.create_publisher(String, '/drone1/map/control_points', LATCHED)
+        imp_cp = impostor.create_publisher(String, 'map/control_points', LATCHED)
+        fake_diag = fake.create_publisher(DiagnosticArray, '/diagnostics', 10)
+        stranger.create_publisher(String, 'map/control_points', LATCHED).publish(perfect)
+        stranger_cloud = stranger.create_publisher(String, 'map/cloud_downsampled', 5)   # a topic of that name
+        for _ in range(3):
+            fake_cp.publish(perfect)
+            imp_cp.publish(perfect)
+            fake_diag.publish(_diag('/drone1/bundle_node', 'provisional'))
+            stranger_cloud.publish(String(data='x'))
+            spin(1.0)
+        spin(1.5)
+        after = drone()
+        st = station.status()
+        with urllib.request.urlopen(station.web.url + 'status.json', timeout=5) as r:
+            page = json.loads(r.read())
+    finally:
+        ex.shutdown()
+        for n in (listener, stranger, impostor, fake, mapper, bundle, station):
+            n.destroy_node()
+    print('after the fakes:', json.dumps({'verdict': after['go_no_go']['verdict'],
+                                          'unknown_publishers': after['unknown_publishers'],
+                                          'not_counted': after['not_counted'], 'unknown_drones': st['unknown_drones'],
+                                          'diagnostics_unknown': st['diagnostics_unknown_publishers']}))
+    assert after['go_no_go']['verdict'] == 'NO-GO'
+    assert after['accuracy']['check_rmse_h_m'] == 0.20 and after['accuracy']['georeference'] == 'final'
+    assert set(after['unknown_publishers']['/map/control_points']) == {'/fake', '/drone1/impostor'}
+    assert after['not_counted']['/map/control_points'] >= 1
+    assert '/drone9' in st['unknown_drones'] and 'drone9' not in st['drones']
+    assert '/fake' in st['diagnostics_unknown_publishers']
+    # The page's status.json: the same figures and the same unknown publishers.
+    d = page['drones']['drone1']
+    assert d['go_no_go']['verdict'] == 'NO-GO' and d['accuracy']['check_rmse_h_m'] == 0.20
+    assert set(d['unknown_publishers']['/map/control_points']) == {'/fake', '/drone1/impostor'}
+    # /diagnostics of the station: the same verdict and figure (until the fake /diagnostics came, it was heard).
+    assert station_diag.get('drone1_verdict') == 'NO-GO', station_diag
+    assert float(station_diag['drone1_check_points_horizontal_RMSE']) == 0.20
+    assert 'unknown_drones' in station_diag and '/drone9' in station_diag['unknown_drones']
+    assert not st['security']['enabled'] and st['security']['summary']
+
+
+def _station(tmp_path, *extra, **kw):
+    return subprocess.Popen([sys.executable, '-m', 'photogram_ros.cli', 'ground-station', '--out',
+                             str(tmp_path / 'gs'), '--save-period', '1', *extra], cwd=ROOT,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            env={**os.environ, 'PYTHONUNBUFFERED': '1'}, **kw)
+
+
+def _wait_for(proc, text, timeout_s=60):
+    lines = []
+    t0 = time.monotonic()
+    while time.monotonic() - t0 < timeout_s:
+        line = proc.stdout.readline()
+        if not line and proc.poll() is not None:
+            break
+        lines.append(line)
+        if text in line:
+            return ''.join(lines)
+    raise AssertionError(f'{text!r} not printed: {"".join(lines)[-2000:]}')
+
+
+@pytest.mark.parametrize('sig', [signal.SIGINT, signal.SIGTERM])
+def test_signal_saves_and_exits_0_without_traceback(tmp_path, sig):
+    proc = _station(tmp_path, '--web', '0.0.0.0:0')
+    try:
+        head = _wait_for(proc, 'map page on')
+        time.sleep(1.5)
+        proc.send_signal(sig)
+        out, err = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    out = head + out
+    assert proc.returncode == 0, err[-2000:]
+    assert 'Traceback' not in err and 'Traceback' not in out
+    assert f'stopped by {sig.name}' in out and 'saved in' in out
+    assert (tmp_path / 'gs' / 'status.json').exists()
+    assert '?token=' in out and 'other machines need this token' in out        # 0.0.0.0: a token, printed
+    assert 'ROS 2 security: ' in out
+
+
+def test_unreadable_base_map_is_refused_at_the_start(tmp_path):
+    bad = tmp_path / 'nothing.mbtiles'
+    bad.write_bytes(b'not sqlite')
+    proc = _station(tmp_path, '--web', '127.0.0.1:0', '--basemap', str(bad))
+    out, err = proc.communicate(timeout=60)
+    assert proc.returncode == 2 and 'Traceback' not in err
+    assert 'not a readable MBTiles file' in err
+
+
+def test_a_crash_says_where_the_files_are(tmp_path):
+    """The output folder replaced by a file mid-run (a disk unmounted, say): the next save fails; the station
+    stops with exit 1 and names the folder where the earlier saves are."""
+    import shutil
+    proc = _station(tmp_path)
+    try:
+        head = _wait_for(proc, 'merged cells')
+        t0 = time.monotonic()
+        while not (tmp_path / 'gs' / 'status.json').exists() and time.monotonic() - t0 < 20:
+            time.sleep(0.2)
+        assert (tmp_path / 'gs' / 'status.json').exists()
+        shutil.rmtree(tmp_path / 'gs')
+        (tmp_path / 'gs').write_text('not a folder')
+        out, err = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    del head
+    assert proc.returncode == 1
+    assert 'stopped by an error' in err and str((tmp_path / 'gs').resolve()) in err and 'status.json' in err
