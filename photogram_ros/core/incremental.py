@@ -243,6 +243,7 @@ class IncrementalAT:
         # its fixes as independent lets them bend the block away from the GCPs (camera position
         # and tilt trade off over flat ground). With GCPs the bias is observable: estimated here.
         self.gnss_bias_enu = np.zeros(3)
+        self.gnss_bias_estimated = False       # a full adjustment with >= 3 GCPs estimated it
         # The GNSS noise as the data shows it: factors (horizontal, vertical) on the fixes' stated sigmas
         # (never below 1), and the keyframes whose fix is not used (far beyond that noise).
         self.gnss_sigma_scale_hv = np.ones(2)
@@ -1012,6 +1013,7 @@ class IncrementalAT:
         if gnss_noise and self.opt.estimate_gnss_noise and self.georeferenced and not self.georef_provisional:
             self.estimate_gnss_noise(iterations)
         if self.opt.estimate_gnss_bias and self._n_gcps() >= 3:
+            self.gnss_bias_estimated = True
             for _ in range(self.opt.bias_iterations):
                 r = np.array(list(self.gnss_residuals().values()))
                 if not len(r):

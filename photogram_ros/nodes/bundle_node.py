@@ -573,17 +573,15 @@ class BundleNode(Node):
             if cp is None or t.role != role or len(obs) < (2 if role == 'check' else 1) \
                     or (role == 'gcp' and use not in ('full', 'horizontal')):
                 continue
-            if role == 'check':
-                got = robust_intersection(at.camera, np.array([at.kfs[k].map_T_cam for k, _ in obs]),
-                                          np.array([uv for _, uv in obs]).reshape(-1, 2), self.p.max_row_residual_px)
-                if got is None:
-                    continue
-                xyz, n_images, rms_px = got
-            else:
-                tid = at.target_track(t.name)
-                if tid is None or tid not in at.points or not at.georeferenced:
-                    continue
-                xyz, n_images, rms_px = at.points[tid], len(obs), float('nan')
+            if role == 'gcp' and (len(obs) < 2 or not at.georeferenced):
+                continue
+            # GCPs as check points: intersected from the adjusted cameras, not the adjusted target point (which
+            # its own prior holds), as the flight report measures them.
+            got = robust_intersection(at.camera, np.array([at.kfs[k].map_T_cam for k, _ in obs]),
+                                      np.array([uv for _, uv in obs]).reshape(-1, 2), self.p.max_row_residual_px)
+            if got is None:
+                continue
+            xyz, n_images, rms_px = got
             rows.append({'name': t.name, 'marker_id': t.marker_id, 'lat_deg': t.lat_deg, 'lon_deg': t.lon_deg,
                          'h_m': t.h_m, 'residual_enu_m': [float(v) for v in np.asarray(xyz) - cp.map_xyz],
                          'images': int(n_images), 'rms_px': None if not np.isfinite(rms_px) else float(rms_px),
@@ -593,7 +591,10 @@ class BundleNode(Node):
     def quality(self) -> dict:
         """The live accuracy figures (map/control_points)."""
         n = sum(self._fix_classes.values())
+        at = self.at
         out = {'keyframes': n, 'fix_share': {c: (v / n if n else None) for c, v in self._fix_classes.items()},
+               'georeference': ('none' if at is None or not at.georeferenced else
+                                'provisional' if at.georef_provisional else 'final'),
                'check_points': [], 'gcps': [], 'check_rmse': None, 'gcp_rmse': None, 'gnss_bias_enu_m': None}
         if self.control is not None and self.at is not None and self.at.origin is not None:
             out['check_points'] = self._target_rows('check')
@@ -604,7 +605,7 @@ class BundleNode(Node):
             out['gcp_rmse'] = self._gcp_rmse(out['gcps'])
             out['gcp_redundancy'] = redundancy_notes([{'name': r['name'], 'images': r['images'],
                                                        'residual_m': r['residual_enu_m']} for r in out['gcps']])
-            if len(out['gcps']) >= 3:
+            if len(out['gcps']) >= 3 and self.at.gnss_bias_estimated:
                 out['gnss_bias_enu_m'] = [float(v) for v in self.at.gnss_bias_enu]
             for k in ('check_rmse', 'gcp_rmse'):
                 if not out[k]['count']:
