@@ -106,12 +106,26 @@ def test_dsm_geotiff_crs_bounds_and_heights(map_dir, tmp_path, crs):
 
 
 def _crs_of_products(files) -> dict:
+    """The CRS of each product, each GeoTIFF copied alone into a folder of its own and opened there with
+    GDAL's sidecars (.aux.xml) off: what a user who uploads the .tif gets."""
+    import shutil
+    import tempfile
+    from pathlib import Path
+
     import laspy
     import rasterio
     from pyproj import CRS
     out = {'las': laspy.read(files['las']).header.parse_crs()}
-    with rasterio.open(files['dsm']) as ds:
-        out['dsm'] = CRS.from_wkt(ds.crs.to_wkt())
+    for kind in ('dsm', 'dtm', 'ortho'):
+        if kind not in files:
+            continue
+        assert not Path(str(files[kind]) + '.aux.xml').exists(), kind
+        with tempfile.TemporaryDirectory() as alone:
+            copy = Path(shutil.copy(files[kind], alone))
+            with rasterio.Env(GDAL_PAM_ENABLED='NO'):
+                with rasterio.open(copy) as ds:
+                    assert ds.crs is not None, kind
+                    out[kind] = CRS.from_wkt(ds.crs.to_wkt())
     return out
 
 
@@ -120,7 +134,7 @@ def test_products_state_their_vertical_datum(map_dir, tmp_path):
     import json
     from pyproj import CRS
     from photogram_ros.io.export import export_map
-    products = ('las', 'dsm')
+    products = ('las', 'dsm', 'dtm')
     ell = export_map(map_dir, tmp_path / 'ell', 'EPSG:32632', products=products)
     for kind, c in _crs_of_products(ell.files).items():
         assert c.is_projected and len(c.axis_info) == 3, kind
@@ -248,6 +262,7 @@ def test_orthomosaic_on_true_dem_puts_targets_within_2_gsd(rendered):
 def test_export_command_writes_georeferenced_ortho(rendered, tmp_path):
     """The whole chain: fused map + saved keyframes -> `photogram-ros export` -> ortho GeoTIFF in UTM."""
     import rasterio
+    from pyproj import CRS
     from photogram_ros.cli import main
     from photogram_ros.core.fusion import Fusion, FusionConfig
     from photogram_ros.core.geodesy import LocalFrame
@@ -273,7 +288,7 @@ def test_export_command_writes_georeferenced_ortho(rendered, tmp_path):
     for name in ('cloud.las', 'cloud.laz', 'cloud.ply', 'dsm.tif', 'ortho.tif', 'export.json'):
         assert (out / name).exists(), name
     with rasterio.open(out / 'ortho.tif') as ds:
-        assert ds.crs.to_epsg() == 32632 and ds.count == 4
+        assert CRS.from_wkt(ds.crs.to_wkt()).to_2d().to_epsg() == 32632 and ds.count == 4
         rgba = np.dstack([ds.read(b) for b in (1, 2, 3, 4)])
         found = _detect_centres(np.ascontiguousarray(rgba[..., [2, 1, 0]]))
         errs = []

@@ -1,9 +1,9 @@
-"""photogram-ros export: survey products of a map folder (LAS/LAZ, PLY, DSM and orthomosaic GeoTIFFs)."""
+"""photogram-ros export: survey products of a map folder (LAS/LAZ, PLY, DSM, DTM and orthomosaic GeoTIFFs)."""
 
 from __future__ import annotations
 
-HELP = 'write LAS/LAZ, PLY, DSM and orthomosaic GeoTIFFs of a map folder in any EPSG CRS'
-PRODUCTS = ('las', 'laz', 'ply', 'dsm', 'ortho')
+HELP = 'write LAS/LAZ, PLY, DSM, DTM and orthomosaic GeoTIFFs of a map folder in any EPSG CRS'
+PRODUCTS = ('las', 'laz', 'ply', 'dsm', 'dtm', 'ortho')
 
 
 def add_arguments(p) -> None:

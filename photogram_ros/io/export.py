@@ -30,7 +30,9 @@ from photogram_ros.core.gsd import AUTO, dsm_lengths_for_cell
 from photogram_ros.core.fusion import Fusion, FusionConfig
 from photogram_ros.core.ground import GroundParams, classify_points
 from photogram_ros.core.geodesy import LocalFrame, crs_to_geodetic, crs_wkt, geodetic_to_crs
-from photogram_ros.core.raster import Keyframe, Raster, dsm_from_points, orthomosaic
+from photogram_ros.core.dtm import dtm_from_points
+from photogram_ros.core.raster import (NODATA, Keyframe, Raster, cell_max, dsm_from_points, fill_surface, hull_mask,
+                                       on_grid, orthomosaic)
 from photogram_ros.errors import ConfigError, DataError, GeodesyError
 from photogram_ros.io.map_store import MapStore, as_map_store
 from photogram_ros.params import param, validate
@@ -50,6 +52,7 @@ class GeoCloud:
     crs: str
     heights: str
     sigma_z: np.ndarray | None = None   # height spread of the points fused in each cell, m
+    pairs: np.ndarray | None = None     # stereo pairs that measured each cell
     classes: np.ndarray | None = None   # ASPRS class per point (core.ground); None: not classified (1)
 
 
@@ -127,7 +130,8 @@ def map_cloud(fusion: Fusion, origin: LocalFrame, crs: str, heights: str = 'elli
     e, n, h = enu_to_crs(origin, np.column_stack([p['x'], p['y'], p['z']]), crs, heights)
     rgb = np.column_stack([p['r'], p['g'], p['b']])
     return GeoCloud(e, n, h, np.clip(np.rint(rgb), 0, 255).astype(np.uint8), p['n'].astype(np.uint32),
-                    p['confidence'].astype(np.float32), crs, heights, p['sigma_z'].astype(np.float32))
+                    p['confidence'].astype(np.float32), crs, heights, p['sigma_z'].astype(np.float32),
+                    p['n_pairs'].astype(np.uint32))
 
 
 def classify_cloud(cloud: GeoCloud, p: GroundParams | None = None) -> dict:
@@ -227,14 +231,59 @@ def read_ply(path: str | Path) -> tuple[np.ndarray, list[str]]:
 
 
 COG_BLOCK_PX = 256
+WGS84_3D = 4979               # EPSG code of WGS 84 geographic 3D: ellipsoidal heights in GeoTIFF 1.1
+_EGM2008_CODE = 3855
+
+
+def _geokey_crs(crs: str, heights: str):
+    """(pyproj CRS GDAL writes into the GeoKeys, True when its vertical key must be set to WGS 84 3D after).
+
+    GDAL writes a compound CRS (horizontal + EGM2008 height) as GeoKeys (ProjectedCRSGeoKey and
+    VerticalGeoKey) but a projected CRS promoted to 3D (ellipsoidal heights) only into a .aux.xml
+    sidecar, which a file copied alone loses. GeoTIFF 1.1 (OGC 19-008r4, VerticalGeoKey) states
+    ellipsoidal heights by a VerticalGeoKey naming the geographic 3D CRS of the horizontal datum
+    (4979 for WGS 84), which GDAL reads back as the 3D projected CRS. So for ellipsoidal heights GDAL
+    writes a compound CRS (named for ellipsoidal heights) whose vertical key is then set to 4979.
+    """
+    from pyproj.crs import CompoundCRS
+    c, _ = product_crs(crs, heights)
+    if c.is_compound or len(c.axis_info) < 3:
+        return c, False
+    horizontal = c.to_2d()
+    from pyproj import CRS
+    return CompoundCRS(f'{horizontal.name} + WGS 84 ellipsoidal height',
+                       [horizontal, CRS.from_epsg(_EGM2008_CODE)]), True
+
+
+def _set_vertical_geokey(path: Path, old: int, new: int) -> None:
+    """Replace the value of VerticalGeoKey (4096) in the GeoKey directory of a GeoTIFF, in place.
+
+    The key is stored inline (TIFFTagLocation 0, count 1): one SHORT in the header, the same size
+    before and after, so the file's layout (COG ghost area, tile offsets) stays as GDAL wrote it.
+    """
+    import struct
+    data = bytearray(path.read_bytes()[:65536])       # the header: a COG keeps its IFDs first
+    for fmt in ('<4H', '>4H'):
+        key = struct.pack(fmt, 4096, 0, 1, old)
+        if data.count(key) == 1:
+            at = data.index(key)
+            with open(path, 'r+b') as f:
+                f.seek(at)
+                f.write(struct.pack(fmt, 4096, 0, 1, new))
+            return
+    raise DataError(f'{path}: no single vertical GeoKey {old} to state ellipsoidal heights in; the file\'s CRS '
+                    'lacks its vertical part')
 
 
 def write_geotiff(r: Raster, path: str | Path, crs: str, description: str = '', rgba: bool = False,
-                  heights: str | None = None) -> Path:
+                  heights: str | None = None, band_names: tuple = ()) -> Path:
     """A Cloud-Optimized GeoTIFF (GDAL's COG driver: 256-px tiles, deflate, overviews down to one tile).
 
-    `heights` names the vertical reference of a raster of heights (the DSM): its CRS then says it
-    (product_crs); None writes the 2D CRS (the orthomosaic). Overviews average (no-data and alpha aware).
+    The CRS is in the file's GeoKeys, with its vertical reference when `heights` is given
+    (product_crs: EGM2008 heights as a compound CRS, WGS84 ellipsoidal heights as a 3D projected CRS,
+    GeoTIFF 1.1's VerticalGeoKey 4979): the .tif copied alone opens with both in GDAL, no .aux.xml
+    sidecar is written. None writes the 2D CRS. Overviews average (no-data and alpha aware).
+    `band_names` describe the bands (GDAL band descriptions).
     """
     import rasterio
     from rasterio.crs import CRS
@@ -243,29 +292,46 @@ def write_geotiff(r: Raster, path: str | Path, crs: str, description: str = '', 
     path = Path(path)
     data = r.data
     bands = data.shape[2] if data.ndim == 3 else 1
+    patch = False
     if heights is None:
         wkt = crs_wkt(crs)
     else:
-        wkt = product_crs(crs, heights)[0].to_wkt()
+        c, patch = _geokey_crs(crs, heights)
+        wkt = c.to_wkt()
     profile = dict(driver='COG', width=r.shape[1], height=r.shape[0], count=bands, dtype=data.dtype,
                    crs=CRS.from_wkt(wkt), transform=from_origin(r.x0_m, r.y1_m, r.res_m, r.res_m),
                    compress='deflate', predictor='yes', blocksize=COG_BLOCK_PX, overviews='auto',
                    resampling='average', bigtiff='if_safer')
     if r.nodata is not None and not rgba:
         profile['nodata'] = r.nodata
-    with rasterio.open(path, 'w', **profile) as ds:
-        if data.ndim == 2:
-            ds.write(data, 1)
-        else:
-            for b in range(bands):
-                ds.write(data[:, :, b], b + 1)
-        if rgba:
-            ds.colorinterp = [ColorInterp.red, ColorInterp.green, ColorInterp.blue, ColorInterp.alpha]
-        elif heights is not None:
-            ds.units = ('metre',)
-        if description:
-            ds.update_tags(DESCRIPTION=description)
+    with rasterio.Env(GDAL_PAM_ENABLED='NO'):
+        with rasterio.open(path, 'w', **profile) as ds:
+            if data.ndim == 2:
+                ds.write(data, 1)
+            else:
+                for b in range(bands):
+                    ds.write(data[:, :, b], b + 1)
+            if rgba:
+                ds.colorinterp = [ColorInterp.red, ColorInterp.green, ColorInterp.blue, ColorInterp.alpha]
+            elif heights is not None:
+                ds.units = ('metre',) + ('',) * (bands - 1)
+            for i, name in enumerate(band_names[:bands]):
+                ds.set_band_description(i + 1, name)
+            if description:
+                ds.update_tags(DESCRIPTION=description)
+    Path(str(path) + '.aux.xml').unlink(missing_ok=True)
+    if patch:
+        _set_vertical_geokey(path, _EGM2008_CODE, WGS84_3D)
     return path
+
+
+def read_crs(path: str | Path):
+    """The pyproj CRS a GeoTIFF holds in its own GeoKeys (no sidecar read), or None."""
+    import rasterio
+    from pyproj import CRS
+    with rasterio.Env(GDAL_PAM_ENABLED='NO'):
+        with rasterio.open(path) as ds:
+            return CRS.from_wkt(ds.crs.to_wkt()) if ds.crs else None
 
 
 @dataclass
@@ -289,6 +355,10 @@ class DsmParams:
                                    'quartile) of its heights when the heights around it run on without a wall\'s '
                                    'gap (vegetation: core/raster.rough_surface_cells); False: every such cell is '
                                    'no-data')
+    fill: bool = param(True, 'cells stereo did not measure, inside the hull of the camera centres and the '
+                             'measured cells, are interpolated (from cells one pair measured, then from the '
+                             'measured heights around them); band 2 of dsm.tif says which: pairs that measured '
+                             'the cell, 0 where interpolated; False: no-data there')
 
     def check(self) -> None:
         for name in ('max_spread_m', 'fill_gaps_m'):
@@ -300,16 +370,72 @@ class DsmParams:
         """A copy with the AUTO lengths set for fused cells of `cell_m`."""
         spread, gaps = dsm_lengths_for_cell(cell_m)
         return DsmParams(spread if self.max_spread_m == AUTO else self.max_spread_m, self.min_count,
-                         gaps if self.fill_gaps_m == AUTO else self.fill_gaps_m, self.canopy_top)
+                         gaps if self.fill_gaps_m == AUTO else self.fill_gaps_m, self.canopy_top, self.fill)
 
 
-def dsm_in_crs(cloud: GeoCloud, res_m: float, dsm: DsmParams) -> Raster:
-    """The DSM of `cloud` at `res_m` with resolved DsmParams (DsmParams.for_cell)."""
+def dsm_in_crs(cloud: GeoCloud, res_m: float, dsm: DsmParams, bounds=None) -> Raster:
+    """The DSM of `cloud` at `res_m` with resolved DsmParams (DsmParams.for_cell); `bounds` (west, south,
+    east, north) fixes the grid (default: the cloud's extent)."""
     if AUTO in (dsm.max_spread_m, dsm.fill_gaps_m):
         raise ConfigError('DsmParams left to the map cell: resolve them first (DsmParams.for_cell)')
     return dsm_from_points(cloud.x, cloud.y, cloud.z, res_m, weights=cloud.count, max_spread_m=dsm.max_spread_m,
                            z_sigma=cloud.sigma_z, min_count=dsm.min_count, fill_gaps_m=dsm.fill_gaps_m,
-                           canopy=dsm.canopy_top)
+                           canopy=dsm.canopy_top, bounds=bounds)
+
+
+FILLED = 0.0     # band 2 of dsm.tif for a cell no stereo pair measured (interpolated)
+
+
+@dataclass
+class Surface:
+    """The DSM as exported: heights (band 1) and how each cell was obtained (band 2)."""
+    dsm: Raster                  # float32 heights, NODATA where nothing is known
+    pairs: np.ndarray            # float32 (rows, cols): pairs that measured the cell; FILLED; NODATA
+    region: np.ndarray           # bool: the cells filling may reach (hull of camera centres and measured cells)
+    camera_hull: np.ndarray      # bool: the cells inside the convex hull of the camera centres
+
+    def shares(self, mask: np.ndarray, min_pairs: int) -> dict:
+        """Shares of the cells of `mask` holding a height, measured by min_pairs pairs, by fewer, filled."""
+        n = max(int(mask.sum()), 1)
+        p = self.pairs[mask]
+        return {'cells': int(mask.sum()), 'valid': float(np.sum(p != NODATA) / n),
+                'measured': float(np.sum((p != NODATA) & (p >= min_pairs)) / n),
+                'one_pair': float(np.sum((p != NODATA) & (p >= 1) & (p < min_pairs)) / n),
+                'filled': float(np.sum(p == FILLED) / n)}
+
+
+def surface_in_crs(fusion: Fusion, origin: LocalFrame, crs: str, heights: str, res_m: float, rules: DsmParams,
+                   min_pairs: int, camera_centres_map: np.ndarray, cloud: GeoCloud | None = None) -> Surface:
+    """The DSM in `crs` from the cells `min_pairs` pairs measured; with rules.fill the cells they leave
+    inside the hull of the camera centres (`camera_centres_map`, (K, 3) map ENU) and the measured cells
+    take, in this order, the DSM of the cells fewer pairs measured and interpolation
+    (core/raster.fill_surface). `cloud`: map_cloud(fusion, origin, crs, heights, min_pairs) if already made."""
+    cloud = cloud or map_cloud(fusion, origin, crs, heights, min_pairs)
+    every = map_cloud(fusion, origin, crs, heights, 1) if (rules.fill and min_pairs > 1) else cloud
+    bounds = (every.x.min(), every.y.min(), every.x.max(), every.y.max())
+    grid = dsm_in_crs(cloud, res_m, rules, bounds)
+    measured = grid.valid()
+    pairs = np.where(measured, cell_max(cloud.x, cloud.y, cloud.pairs, grid).astype(np.float32), NODATA)
+    cam_hull = np.zeros(grid.shape, bool)
+    if len(camera_centres_map):
+        ce, cn, _ = enu_to_crs(origin, np.asarray(camera_centres_map, float), crs, heights)
+        cam_hull = hull_mask(grid.shape, *grid.to_pixel(ce, cn))
+    region = np.zeros(grid.shape, bool)
+    if rules.fill:
+        d = grid.data.copy()
+        if every is not cloud:
+            one = on_grid(dsm_in_crs(every, res_m, rules, bounds), grid)
+            add = ~measured & (one != NODATA)
+            d[add] = one[add]
+            pairs[add] = 1.0
+        have = d != NODATA
+        rows, cols = np.nonzero(have)
+        hc, hr = np.nonzero(cam_hull.T)
+        region = hull_mask(grid.shape, np.r_[cols, hc], np.r_[rows, hr]) | have
+        d = fill_surface(d, region)
+        pairs[(d != NODATA) & (pairs == NODATA)] = FILLED
+        grid = Raster(d, grid.x0_m, grid.y1_m, grid.res_m, NODATA)
+    return Surface(grid, pairs, region, cam_hull)
 
 
 def load_keyframes(store: MapStore) -> list[Keyframe]:
@@ -342,10 +468,12 @@ class ExportResult:
     crs_with_heights: str = ''                  # the products' CRS, with its vertical part
     dsm: dict | None = None                     # the DSM rules used (DsmParams, resolved)
     classes: dict | None = None                 # LAS/PLY classes: ground, building, unclassified, buildings
+    dtm: dict | None = None                     # ground points and cells of the DTM
+    ortho: dict | None = None                   # the orthomosaic's cell size and cells holding a colour
 
 
 def export_map(map_dir: str | Path | MapStore, out_dir: str | Path, crs: str, heights: str = 'ellipsoidal',
-               dsm_res_m: float = 0.0, ortho_res_m: float = 0.0, products=('las', 'laz', 'ply', 'dsm', 'ortho'),
+               dsm_res_m: float = 0.0, ortho_res_m: float = 0.0, products=('las', 'laz', 'ply', 'dsm', 'dtm', 'ortho'),
                origin: LocalFrame | None = None, min_pairs: int = 1, dsm: DsmParams | None = None) -> ExportResult:
     """Write the requested products of a map folder (or an open MapStore) into out_dir (created).
 
@@ -386,24 +514,48 @@ def export_map(map_dir: str | Path | MapStore, out_dir: str | Path, crs: str, he
     res.dsm = {'cell_m': store.cell_m, 'res_m': dsm_res, 'max_spread_m': rules.max_spread_m,
                'min_count': rules.min_count, 'fill_gaps_m': rules.fill_gaps_m,
                'canopy_top': rules.canopy_top}
-    if 'dsm' in products or 'ortho' in products:
-        grid = dsm_in_crs(cloud, dsm_res, rules)
+    centres = np.array([k['map_T_cam'][:3, 3] for k in store.keyframes()]).reshape(-1, 3)
+    if any(k in products for k in ('dsm', 'dtm', 'ortho')):
+        surf = surface_in_crs(fusion, origin, crs, heights, dsm_res, rules, min_pairs, centres, cloud)
+        grid = surf.dsm
         res.dsm['valid_share'] = float(np.mean(grid.valid())) if grid.data.size else 0.0
+        res.dsm['raster'] = surf.shares(np.ones(grid.shape, bool), min_pairs)
+        if surf.camera_hull.any():
+            res.dsm['camera_hull'] = surf.shares(surf.camera_hull, min_pairs)
         if 'dsm' in products:
-            res.files['dsm'] = write_geotiff(grid, out / 'dsm.tif', crs, f'DSM, {heights} heights (m)', heights=heights)
+            res.files['dsm'] = write_geotiff(
+                Raster(np.dstack([grid.data, surf.pairs]), grid.x0_m, grid.y1_m, grid.res_m, NODATA),
+                out / 'dsm.tif', crs, f'DSM, {heights} heights (m); band 2: stereo pairs that measured the cell, '
+                f'0 where interpolated', heights=heights, band_names=('height_m', 'pairs'))
+    if 'dtm' in products:
+        dtm = dtm_from_points(cloud.x, cloud.y, cloud.z, grid, grid.valid(), weights=cloud.count, classes=cloud.classes)
+        res.notes += [f'DTM: {n}' for n in dtm.notes]
+        res.dtm = {'ground_points': dtm.ground_points, 'ground_cells_share': float(dtm.ground.mean()),
+                   'valid_share': float(np.mean(dtm.raster.valid()))}
+        res.files['dtm'] = write_geotiff(dtm.raster, out / 'dtm.tif', crs,
+                                         f'DTM (bare ground, from the cloud\'s ground class), {heights} heights (m)',
+                                         heights=heights)
     if 'ortho' in products:
         kfs = load_keyframes(store)
         res.keyframes = len(kfs)
         if not kfs:
             res.notes.append('no orthomosaic: the map folder holds no keyframes with images, poses and camera')
         else:
-            ell = cloud if heights == 'ellipsoidal' else map_cloud(fusion, origin, crs, 'ellipsoidal', min_pairs)
-            dsm_ell = dsm_in_crs(ell, dsm_res, rules)
+            dsm_ell = grid if heights == 'ellipsoidal' else surface_in_crs(
+                fusion, origin, crs, 'ellipsoidal', dsm_res, rules, min_pairs, centres).dsm
             ortho = ortho_in_crs(dsm_ell, kfs, origin, crs, ortho_res_m or store.cell_m)
-            res.files['ortho'] = write_geotiff(ortho, out / 'ortho.tif', crs, 'orthomosaic RGBA', rgba=True)
+            seen = ortho.data[..., 3] > 0
+            res.ortho = {'res_m': ortho.res_m, 'valid_share': float(seen.mean())}
+            if len(centres):
+                ce, cn, _ = enu_to_crs(origin, centres, crs, heights)
+                inside = hull_mask(ortho.shape, *ortho.to_pixel(ce, cn))
+                if inside.any():
+                    res.ortho['camera_hull'] = {'cells': int(inside.sum()), 'valid': float(seen[inside].mean())}
+            res.files['ortho'] = write_geotiff(ortho, out / 'ortho.tif', crs, 'orthomosaic RGBA', rgba=True,
+                                               heights=heights)
     meta = {'crs': crs, 'heights': heights, 'origin': origin.to_dict(), 'points': res.points, 'min_pairs': min_pairs,
             'keyframes': res.keyframes, 'files': {k: str(v) for k, v in res.files.items()}, 'notes': res.notes,
             'geoid': geoid.MODEL_NAME if heights == 'orthometric' else None, 'crs_with_heights': res.crs_with_heights,
-            'classes': res.classes, 'dsm': res.dsm}
+            'classes': res.classes, 'dsm': res.dsm, 'dtm': res.dtm, 'ortho': res.ortho}
     (out / 'export.json').write_text(json.dumps(meta, indent=1))
     return res
