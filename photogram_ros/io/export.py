@@ -32,7 +32,7 @@ from photogram_ros.core.ground import GroundParams, classify_points
 from photogram_ros.core.geodesy import LocalFrame, crs_to_geodetic, crs_wkt, geodetic_to_crs
 from photogram_ros.core.dtm import dtm_from_points
 from photogram_ros.core.raster import (NODATA, Keyframe, Raster, cell_max, dsm_from_points, fill_surface, hull_mask,
-                                       on_grid, orthomosaic)
+                                       orthomosaic)
 from photogram_ros.errors import ConfigError, DataError, GeodesyError
 from photogram_ros.io.map_store import MapStore, as_map_store
 from photogram_ros.params import param, validate
@@ -355,10 +355,10 @@ class DsmParams:
                                    'quartile) of its heights when the heights around it run on without a wall\'s '
                                    'gap (vegetation: core/raster.rough_surface_cells); False: every such cell is '
                                    'no-data')
-    fill: bool = param(True, 'cells stereo did not measure, inside the hull of the camera centres and the '
-                             'measured cells, are interpolated (from cells one pair measured, then from the '
-                             'measured heights around them); band 2 of dsm.tif says which: pairs that measured '
-                             'the cell, 0 where interpolated; False: no-data there')
+    fill: bool = param(True, 'cells stereo did not measure, inside the hull of the camera centres (widened by a '
+                             'quarter of the flying height), are interpolated from the measured heights around '
+                             'them; band 2 of dsm.tif says which: pairs that measured the cell, 0 where '
+                             'interpolated; False: no-data there')
 
     def check(self) -> None:
         for name in ('max_spread_m', 'fill_gaps_m'):
@@ -384,6 +384,7 @@ def dsm_in_crs(cloud: GeoCloud, res_m: float, dsm: DsmParams, bounds=None) -> Ra
 
 
 FILLED = 0.0     # band 2 of dsm.tif for a cell no stereo pair measured (interpolated)
+FILL_MARGIN_AGL = 0.25   # the filled area reaches this share of the flying height beyond the camera centres' hull
 
 
 @dataclass
@@ -391,50 +392,54 @@ class Surface:
     """The DSM as exported: heights (band 1) and how each cell was obtained (band 2)."""
     dsm: Raster                  # float32 heights, NODATA where nothing is known
     pairs: np.ndarray            # float32 (rows, cols): pairs that measured the cell; FILLED; NODATA
-    region: np.ndarray           # bool: the cells filling may reach (hull of camera centres and measured cells)
+    region: np.ndarray           # bool: the cells filling may reach (camera centres' hull, widened)
     camera_hull: np.ndarray      # bool: the cells inside the convex hull of the camera centres
 
-    def shares(self, mask: np.ndarray, min_pairs: int) -> dict:
-        """Shares of the cells of `mask` holding a height, measured by min_pairs pairs, by fewer, filled."""
+    def shares(self, mask: np.ndarray) -> dict:
+        """Shares of the cells of `mask` holding a height, measured by stereo pairs, interpolated."""
         n = max(int(mask.sum()), 1)
         p = self.pairs[mask]
         return {'cells': int(mask.sum()), 'valid': float(np.sum(p != NODATA) / n),
-                'measured': float(np.sum((p != NODATA) & (p >= min_pairs)) / n),
-                'one_pair': float(np.sum((p != NODATA) & (p >= 1) & (p < min_pairs)) / n),
+                'measured': float(np.sum((p != NODATA) & (p >= 1)) / n),
                 'filled': float(np.sum(p == FILLED) / n)}
 
 
 def surface_in_crs(fusion: Fusion, origin: LocalFrame, crs: str, heights: str, res_m: float, rules: DsmParams,
                    min_pairs: int, camera_centres_map: np.ndarray, cloud: GeoCloud | None = None) -> Surface:
-    """The DSM in `crs` from the cells `min_pairs` pairs measured; with rules.fill the cells they leave
-    inside the hull of the camera centres (`camera_centres_map`, (K, 3) map ENU) and the measured cells
-    take, in this order, the DSM of the cells fewer pairs measured and interpolation
-    (core/raster.fill_surface). `cloud`: map_cloud(fusion, origin, crs, heights, min_pairs) if already made."""
+    """The DSM in `crs` from the cells `min_pairs` pairs measured; with rules.fill the cells it leaves
+    inside what the photos saw are interpolated from the heights around them (core/raster.fill_surface).
+
+    What the photos saw: the convex hull of the camera centres (`camera_centres_map`, (K, 3) map ENU),
+    widened by FILL_MARGIN_AGL times the height above the DSM's median (the ground around the nadir
+    points that every photo of a line holds). Cells one pair measured are not used: on the simulator
+    they were worse than interpolation (median 1.5 against 1.1 GSD over the flown area), on brighton
+    no better (0.32 against 0.32 m median against OpenDroneMap). `cloud`: map_cloud(fusion, origin,
+    crs, heights, min_pairs) if already made.
+    """
     cloud = cloud or map_cloud(fusion, origin, crs, heights, min_pairs)
-    every = map_cloud(fusion, origin, crs, heights, 1) if (rules.fill and min_pairs > 1) else cloud
-    bounds = (every.x.min(), every.y.min(), every.x.max(), every.y.max())
-    grid = dsm_in_crs(cloud, res_m, rules, bounds)
+    grid = dsm_in_crs(cloud, res_m, rules)
     measured = grid.valid()
     pairs = np.where(measured, cell_max(cloud.x, cloud.y, cloud.pairs, grid).astype(np.float32), NODATA)
-    cam_hull = np.zeros(grid.shape, bool)
-    if len(camera_centres_map):
-        ce, cn, _ = enu_to_crs(origin, np.asarray(camera_centres_map, float), crs, heights)
+    cam_hull = region = np.zeros(grid.shape, bool)
+    if len(camera_centres_map) and measured.any():
+        ce, cn, ch = enu_to_crs(origin, np.asarray(camera_centres_map, float), crs, heights)
         cam_hull = hull_mask(grid.shape, *grid.to_pixel(ce, cn))
-    region = np.zeros(grid.shape, bool)
-    if rules.fill:
-        d = grid.data.copy()
-        if every is not cloud:
-            one = on_grid(dsm_in_crs(every, res_m, rules, bounds), grid)
-            add = ~measured & (one != NODATA)
-            d[add] = one[add]
-            pairs[add] = 1.0
-        have = d != NODATA
-        rows, cols = np.nonzero(have)
-        hc, hr = np.nonzero(cam_hull.T)
-        region = hull_mask(grid.shape, np.r_[cols, hc], np.r_[rows, hr]) | have
-        d = fill_surface(d, region)
+        agl_m = max(float(np.median(ch) - np.median(grid.data[measured])), 0.0)
+        r = int(round(FILL_MARGIN_AGL * agl_m / grid.res_m))
+        region = cam_hull.copy()
+        if r > 0:
+            import cv2
+            cols, rows = grid.to_pixel(ce, cn)
+            seed = np.zeros(grid.shape, np.uint8)
+            seed[cam_hull] = 1
+            ok = (cols >= 0) & (rows >= 0) & (cols < grid.shape[1]) & (rows < grid.shape[0])
+            seed[np.round(rows[ok]).astype(int), np.round(cols[ok]).astype(int)] = 1
+            region = cv2.dilate(seed, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))) > 0
+    if rules.fill and region.any():
+        d = fill_surface(grid.data, region)
         pairs[(d != NODATA) & (pairs == NODATA)] = FILLED
         grid = Raster(d, grid.x0_m, grid.y1_m, grid.res_m, NODATA)
+    pairs[(grid.data != NODATA) & (pairs == NODATA)] = FILLED
     return Surface(grid, pairs, region, cam_hull)
 
 
@@ -519,9 +524,9 @@ def export_map(map_dir: str | Path | MapStore, out_dir: str | Path, crs: str, he
         surf = surface_in_crs(fusion, origin, crs, heights, dsm_res, rules, min_pairs, centres, cloud)
         grid = surf.dsm
         res.dsm['valid_share'] = float(np.mean(grid.valid())) if grid.data.size else 0.0
-        res.dsm['raster'] = surf.shares(np.ones(grid.shape, bool), min_pairs)
+        res.dsm['raster'] = surf.shares(np.ones(grid.shape, bool))
         if surf.camera_hull.any():
-            res.dsm['camera_hull'] = surf.shares(surf.camera_hull, min_pairs)
+            res.dsm['camera_hull'] = surf.shares(surf.camera_hull)
         if 'dsm' in products:
             res.files['dsm'] = write_geotiff(
                 Raster(np.dstack([grid.data, surf.pairs]), grid.x0_m, grid.y1_m, grid.res_m, NODATA),

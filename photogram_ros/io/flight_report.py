@@ -68,6 +68,38 @@ def near_discontinuity(dem, x_m, y_m, slope: float = 1.0, radius_m: float = 1.0)
     return steep[j, i]
 
 
+def near_buildings(dem, x_m, y_m, radius_m: float = 2.0, min_height_m: float = 3.0,
+                   window_m: float = 20.0) -> np.ndarray:
+    """True where a point lies within `radius_m` of a building of the true DEM: cells standing more than
+    `min_height_m` above the DEM's morphological opening with a `window_m` disk (a roof narrower than
+    the disk; the simulator's hills and its 2.5 m embankment stay below that height)."""
+    z = dem.data.astype(np.float32)
+    k = max(int(round(window_m / dem.res_m)) | 1, 3)
+    opened = cv2.morphologyEx(z, cv2.MORPH_OPEN, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k)),
+                              borderType=cv2.BORDER_REPLICATE)
+    roof = (z - opened > min_height_m).astype(np.uint8)
+    r = 2 * int(np.ceil(radius_m / dem.res_m)) + 1
+    near = cv2.dilate(roof, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (r, r))) > 0
+    i = np.clip(np.round((np.asarray(x_m) - dem.x0_m) / dem.res_m).astype(int), 0, dem.shape[1] - 1)
+    j = np.clip(np.round((np.asarray(y_m) - dem.y0_m) / dem.res_m).astype(int), 0, dem.shape[0] - 1)
+    return near[j, i]
+
+
+def _raster_cells_enu(path, crs: str, to_enu, band: int = 1):
+    """(ENU (N, 3) of a GeoTIFF's cells holding a value, band 2 at those cells or None, cell size)."""
+    import rasterio
+    with rasterio.open(path) as ds:
+        z = ds.read(band).astype(float)
+        nod = ds.nodata
+        ok = np.isfinite(z) & (z != nod if nod is not None else True)
+        rows, cols = np.nonzero(ok)
+        xs, ys = rasterio.transform.xy(ds.transform, rows, cols)
+        second = ds.read(2)[rows, cols] if ds.count >= 2 else None
+        res = float(ds.res[0])
+    lat, lon, h = crs_to_geodetic(np.asarray(xs), np.asarray(ys), z[rows, cols], crs)
+    return to_enu(lat, lon, h), second, res
+
+
 LEVEL_NAMES = {0: 'OK', 1: 'WARN', 2: 'ERROR', 3: 'STALE'}
 MIN_ORIENTED_SHARE = 0.5     # fewer keyframes oriented than this: the flight did not map
 MIN_DSM_VALID_SHARE = 0.5    # a DSM with fewer cells holding a height than this is a warning
@@ -418,14 +450,7 @@ def _truth_section(out: Path, truth, origin: LocalFrame, crs: str, kfs, files, f
     sec.tables.append(('Keyframe camera centres against truth, m', [tr]))
     dsm_path = files.get('dsm')
     if dsm_path and Path(dsm_path).exists():
-        import rasterio
-        with rasterio.open(dsm_path) as ds:
-            z = ds.read(1).astype(float)
-            nod = ds.nodata
-            rows, cols = np.nonzero(np.isfinite(z) & (z != nod if nod is not None else True))
-            xs, ys = rasterio.transform.xy(ds.transform, rows, cols)
-        lat, lon, h = crs_to_geodetic(np.asarray(xs), np.asarray(ys), z[rows, cols], crs)
-        enu = truth.origin.geodetic_to_enu(lat, lon, h)
+        enu, pairs, res = _raster_cells_enu(dsm_path, crs, truth.origin.geodetic_to_enu)
         dz = enu[:, 2] - truth.dem.sample(enu[:, 0], enu[:, 1])
         err = surface_errors(dz, truth.gsd_m)
         figures['dsm_vs_truth'] = err
@@ -435,18 +460,37 @@ def _truth_section(out: Path, truth, origin: LocalFrame, crs: str, kfs, files, f
         sec.tables.append(('DSM against the true DEM, cells more than 1 m from walls and roof edges (where a '
                            'cell straddles a height step its error is the step)',
                            [figures['dsm_vs_truth_away_from_walls']]))
+        if pairs is not None:
+            measured = pairs >= 1
+            figures['dsm_vs_truth_measured'] = surface_errors(dz[measured], truth.gsd_m)
+            if (~measured).any():
+                figures['dsm_vs_truth_filled'] = surface_errors(dz[~measured], truth.gsd_m)
+            sec.tables.append(('DSM against the true DEM: cells stereo measured / cells interpolated',
+                               [figures['dsm_vs_truth_measured']] + ([figures['dsm_vs_truth_filled']]
+                                                                     if 'dsm_vs_truth_filled' in figures else [])))
         histogram_png(out / 'dsm_error_hist.png', dz, 'DSM - true height, m', 'DSM height errors')
         sec.figures.append(('DSM height errors', 'dsm_error_hist.png'))
         # Completeness over the area the survey lines imaged (the truth's camera footprints' core).
         C = np.array([f.map_T_cam[:3, 3] for f in truth.frames])
         inside = ((enu[:, 0] > C[:, 0].min()) & (enu[:, 0] < C[:, 0].max()) &
                   (enu[:, 1] > C[:, 1].min()) & (enu[:, 1] < C[:, 1].max()))
-        with rasterio.open(dsm_path) as ds:
-            res = ds.res[0]
-        figures['dsm_cell_m'] = float(res)
+        figures['dsm_cell_m'] = res
         area = (C[:, 0].max() - C[:, 0].min()) * (C[:, 1].max() - C[:, 1].min())
         figures['dsm_completeness'] = float(min(inside.sum() * res * res / max(area, 1e-9), 1.0))
         sec.text.append(f"DSM completeness over the flown area: {figures['dsm_completeness'] * 100:.1f} %.")
+        if pairs is not None:
+            figures['dsm_measured_completeness'] = float(min(np.sum(inside & (pairs >= 1)) * res * res
+                                                             / max(area, 1e-9), 1.0))
+            sec.text.append(f"Of it measured by stereo (not interpolated): "
+                            f"{figures['dsm_measured_completeness'] * 100:.1f} % of the flown area.")
+    dtm_path = files.get('dtm')
+    if dtm_path and Path(dtm_path).exists():
+        enu, _, _ = _raster_cells_enu(dtm_path, crs, truth.origin.geodetic_to_enu)
+        dz = enu[:, 2] - truth.dem.sample(enu[:, 0], enu[:, 1])
+        away = ~near_buildings(truth.dem, enu[:, 0], enu[:, 1])
+        figures['dtm_vs_truth_away_from_buildings'] = surface_errors(dz[away], truth.gsd_m)
+        sec.tables.append(('DTM against the true ground, cells more than 2 m from buildings',
+                           [figures['dtm_vs_truth_away_from_buildings']]))
     las = files.get('las')
     if las and Path(las).exists():
         import laspy
