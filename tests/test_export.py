@@ -285,8 +285,13 @@ def test_export_command_writes_georeferenced_ortho(rendered, tmp_path):
     # Each target's ground came from one pair cloud: the default (2 pairs, as replay) would keep nothing.
     assert main(['export', str(tmp_path / 'map'), '--crs', 'EPSG:32632', '--out', str(out),
                  '--min-pairs', '1']) == 0
-    for name in ('cloud.las', 'cloud.laz', 'cloud.ply', 'dsm.tif', 'ortho.tif', 'export.json'):
+    for name in ('cloud.las', 'cloud.laz', 'cloud.ply', 'dsm.tif', 'dtm.tif', 'ortho.tif', 'export.json'):
         assert (out / name).exists(), name
+    # Each GeoTIFF copied alone opens with its horizontal CRS and WGS84 ellipsoidal heights.
+    crses = _crs_of_products({k: out / f for k, f in (('las', 'cloud.las'), ('dsm', 'dsm.tif'), ('dtm', 'dtm.tif'),
+                                                        ('ortho', 'ortho.tif'))})
+    for kind, c in crses.items():
+        assert c.to_2d().to_epsg() == 32632 and c.axis_info[2].name == 'Ellipsoidal height', kind
     with rasterio.open(out / 'ortho.tif') as ds:
         assert CRS.from_wkt(ds.crs.to_wkt()).to_2d().to_epsg() == 32632 and ds.count == 4
         rgba = np.dstack([ds.read(b) for b in (1, 2, 3, 4)])

@@ -167,16 +167,20 @@ def node_health(diagnostics: dict) -> list[dict]:
 
 
 def dsm_valid_share(dsm_path) -> float | None:
-    """Share of the mapped area's DSM cells that hold a height: cells inside the convex hull of the cells
-    with a height (a diagonal strip's raster rectangle is half empty by its shape, not by a failure);
-    None without a DSM file, 0 for a DSM without a height."""
+    """Share of the mapped area's DSM cells that hold a measured height: cells inside the convex hull of
+    the cells with a height (a diagonal strip's raster rectangle is half empty by its shape, not by a
+    failure) whose band 2 (stereo pairs, core export: 0 where interpolated) is at least 1; every cell
+    with a height when the DSM has one band. None without a DSM file, 0 for a DSM without a height."""
     if not dsm_path or not Path(dsm_path).exists():
         return None
     import cv2
     import rasterio
     with rasterio.open(dsm_path) as ds:
         z = ds.read(1, masked=True)
+        pairs = ds.read(2) if ds.count >= 2 else None
     valid = ~np.ma.getmaskarray(z) & np.isfinite(np.ma.getdata(z))
+    if pairs is not None:
+        valid &= pairs >= 1
     if valid.sum() < 3:
         return 0.0
     hull = np.zeros(valid.shape, np.uint8)
@@ -264,6 +268,20 @@ def _settings_lines(run: dict) -> list[str]:
         lines.append(f"DSM: {dsm['valid_share'] * 100:.1f} % of its raster's cells (the rectangle around the map; "
                      "the verdict counts the mapped area) hold a height "
                      f"(cell {dsm.get('res_m', 0):g} m, spread limit {dsm.get('max_spread_m', 0):g} m).")
+    hull = dsm.get('camera_hull')
+    if hull:
+        ortho = (run.get('ortho') or {}).get('camera_hull')
+        lines.append(f"Inside the convex hull of the camera centres {hull['valid'] * 100:.1f} % of the DSM's cells "
+                     f"hold a height: {hull['measured'] * 100:.1f} % measured by stereo, {hull['filled'] * 100:.1f} % "
+                     "interpolated from the heights around them (band 2 of dsm.tif: the stereo pairs that measured "
+                     "the cell, 0 where interpolated)"
+                     + (f"; the orthomosaic holds a colour in {ortho['valid'] * 100:.1f} % of its cells there."
+                        if ortho else '.'))
+    dtm = run.get('dtm')
+    if dtm:
+        lines.append(f"DTM (dtm.tif, bare ground): {dtm['ground_cells_share'] * 100:.1f} % of its cells hold ground "
+                     f"points ({dtm['ground_points']} points classified ground), the rest interpolated under "
+                     "buildings, vegetation and unmeasured cells.")
     failed = run.get('densify_pairs_failed') or []
     if failed:
         lines.append(f'{len(failed)} stereo pair(s) failed in the final matching and were skipped '
