@@ -100,6 +100,88 @@ def _raster_cells_enu(path, crs: str, to_enu, band: int = 1):
     return to_enu(lat, lon, h), second, res
 
 
+def overlap_png(path: Path, dsm_path, kfs: list[dict], cam, origin: LocalFrame, crs: str,
+                max_cells: int = 250) -> dict:
+    """Photos (keyframes) whose image holds each DSM cell, on a grid of at most `max_cells` cells a side
+    sampled from dsm.tif's heights, as a map; returns {'median_photos', 'share_2_or_more',
+    'share_5_or_more'} over the sampled cells with a height ({} without a DSM or camera)."""
+    import rasterio
+    if not dsm_path or not Path(dsm_path).exists() or cam is None or not kfs:
+        return {}
+    with rasterio.open(dsm_path) as ds:
+        step = max(1, int(np.ceil(max(ds.width, ds.height) / max_cells)))
+        z = ds.read(1)[::step, ::step].astype(float)
+        ok = np.isfinite(z) & (z != ds.nodata if ds.nodata is not None else True)
+        rows, cols = np.nonzero(ok)
+        xs, ys = rasterio.transform.xy(ds.transform, rows * step, cols * step)
+        b = ds.bounds
+    if not rows.size:
+        return {}
+    lat, lon, h = crs_to_geodetic(np.asarray(xs), np.asarray(ys), z[rows, cols], crs)
+    P = origin.geodetic_to_enu(lat, lon, h)
+    count = np.zeros(rows.size, np.int32)
+    for kf in kfs:
+        R, C = kf['map_T_cam'][:3, :3], kf['map_T_cam'][:3, 3]
+        uv, front = cam.project((P - C) @ R)
+        count += front & cam.in_image(uv)
+    grid = np.full(z.shape, np.nan)
+    grid[rows, cols] = count
+    import matplotlib
+    matplotlib.use('Agg')
+    import matplotlib.pyplot as plt
+    fig, ax = plt.subplots(figsize=(7, 6), dpi=100)
+    im = ax.imshow(grid, extent=(b.left, b.right, b.bottom, b.top), cmap='viridis', interpolation='nearest',
+                   vmin=0, vmax=max(int(count.max()), 1))
+    fig.colorbar(im, ax=ax, label='photos seeing the cell')
+    ax.set_aspect('equal')
+    ax.ticklabel_format(useOffset=False, style='plain')
+    ax.tick_params(labelsize=7)
+    ax.set_title(f'Overlap: photos per DSM cell ({crs})')
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+    return {'median_photos': float(np.median(count)), 'share_2_or_more': float(np.mean(count >= 2)),
+            'share_5_or_more': float(np.mean(count >= 5))}
+
+
+def check_point_arrows_png(path: Path, ortho_tif, points: list, title: str) -> Path:
+    """Check-point errors as arrows on the orthomosaic: points [(name, easting, northing, dE, dN, dZ)] in
+    metres; the arrows are scaled so the longest spans a tenth of the map, its scale printed."""
+    import matplotlib
+    matplotlib.use('Agg')
+    import matplotlib.pyplot as plt
+    fig, ax = plt.subplots(figsize=(7, 6), dpi=100)
+    extent = None
+    if ortho_tif is not None and Path(ortho_tif).exists():
+        import rasterio
+        with rasterio.open(ortho_tif) as ds:
+            step = max(1, int(max(ds.width, ds.height) / 1500))
+            img = ds.read(out_shape=(ds.count, ds.height // step, ds.width // step))
+            b = ds.bounds
+        extent = (b.left, b.right, b.bottom, b.top)
+        ax.imshow(np.moveaxis(img[:3], 0, -1), extent=extent)
+    e = np.array([p[1] for p in points], float)
+    n = np.array([p[2] for p in points], float)
+    d = np.array([[p[3], p[4]] for p in points], float).reshape(-1, 2)
+    span = (extent[1] - extent[0]) if extent else max(np.ptp(e), np.ptp(n), 1.0)
+    longest = max(float(np.hypot(d[:, 0], d[:, 1]).max()) if len(d) else 0.0, 1e-6)
+    scale = 0.1 * span / longest
+    ax.quiver(e, n, d[:, 0] * scale, d[:, 1] * scale, angles='xy', scale_units='xy', scale=1, color='#ee3377',
+              width=0.004)
+    for name, x, y, de, dn, dz in points:
+        ax.plot(x, y, 'k^', ms=5)
+        ax.annotate(f'{name} {np.hypot(de, dn) * 100:.1f} cm, dZ {dz * 100:+.1f} cm', (x, y), fontsize=7,
+                    xytext=(3, 3), textcoords='offset points', color='white' if extent else 'black')
+    ax.set_aspect('equal')
+    ax.ticklabel_format(useOffset=False, style='plain')
+    ax.tick_params(labelsize=7)
+    ax.set_title(f'{title} (arrows x{scale:.0f})')
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+    return path
+
+
 LEVEL_NAMES = {0: 'OK', 1: 'WARN', 2: 'ERROR', 3: 'STALE'}
 MIN_ORIENTED_SHARE = 0.5     # fewer keyframes oriented than this: the flight did not map
 MIN_DSM_VALID_SHARE = 0.5    # a DSM with fewer cells holding a height than this is a warning
@@ -387,6 +469,25 @@ def build_report(out_dir: str | Path, map_dir: str | Path | MapStore, crs: str, 
         tg.append((name, float(e), float(n)))
     trajectory_png(out / 'trajectory.png', files.get('ortho'), tracks, tg, f'Adjusted trajectory and targets ({crs})')
     sections.append(Section('Trajectory over the orthomosaic', figures=[('Keyframe camera centres', 'trajectory.png')]))
+    if checks is not None and len(checks.names):
+        at = {name: xyz for name, xyz in checks_surveyed.values()}
+        arrows = []
+        for name, r in zip(checks.names, checks.residuals):
+            lat, lon, h = origin.enu_to_geodetic(np.asarray(at[name], float))
+            e, n, _ = geodetic_to_crs(lat, lon, h, crs)
+            arrows.append((name, float(e), float(n), float(r[0]), float(r[1]), float(r[2])))
+        check_point_arrows_png(out / 'check_points.png', files.get('ortho'), arrows,
+                               'Check-point errors (estimated - surveyed)')
+        sections.append(Section('Check-point errors on the map', figures=[('Horizontal error of each check point '
+                                                                            '(arrow), vertical in the label',
+                                                                            'check_points.png')]))
+    overlap = overlap_png(out / 'overlap.png', files.get('dsm'), kfs, cam, origin, crs)
+    if overlap:
+        figures['overlap'] = overlap
+        sections.append(Section('Overlap', [f"Photos seeing each DSM cell: median {overlap['median_photos']:.0f}; "
+                                            f"{overlap['share_2_or_more'] * 100:.1f} % of the cells are in 2 or more "
+                                            f"photos, {overlap['share_5_or_more'] * 100:.1f} % in 5 or more."],
+                                figures=[('Photos per DSM cell', 'overlap.png')]))
 
     if diagnostics:
         sections.append(_problems_section(diagnostics, figures))
