@@ -88,6 +88,11 @@ def test_report_lists_nodes_and_run(replay):
     assert rep['run']['frames'] == 76 and rep['run']['real_time_factor'] > 0
     html = (out / 'report.html').read_text()
     assert 'Check points' in html and 'data:image/png;base64' in html
+    # Overlap map and check-point arrows; the sample's three lines see most cells from 5+ photos (measured
+    # median 11, 99.7 % in 5 or more).
+    assert (out / 'overlap.png').exists() and (out / 'check_points.png').exists()
+    assert rep['overlap']['median_photos'] >= 7 and rep['overlap']['share_5_or_more'] >= 0.66
+    assert 'measured by stereo' in (out / 'report.md').read_text()
     rows = (out / 'trajectory.csv').read_text().splitlines()
     assert rows[0].startswith('image,stamp_ns,easting_m') and len(rows) == rep['keyframes'] + 1
 

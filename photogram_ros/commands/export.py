@@ -67,6 +67,11 @@ def run(a) -> int:
         c = res.classes
         print(f'  classes: {c["ground"]} ground, {c["building"]} building ({c["buildings"]} buildings), '
               f'{c["unclassified"]} unclassified')
+    hull = (res.dsm or {}).get('camera_hull')
+    if hull:
+        print(f"  DSM inside the camera centres' hull: {hull['valid'] * 100:.1f} % of the cells hold a height, "
+              f"{hull['measured'] * 100:.1f} % measured by stereo, {hull['filled'] * 100:.1f} % interpolated "
+              '(band 2 of dsm.tif: pairs, 0 interpolated)')
     for k, v in res.files.items():
         print(f'  {k}: {v}')
     for n in res.notes:
