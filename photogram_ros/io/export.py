@@ -256,22 +256,41 @@ def _geokey_crs(crs: str, heights: str):
 
 
 def _set_vertical_geokey(path: Path, old: int, new: int) -> None:
-    """Replace the value of VerticalGeoKey (4096) in the GeoKey directory of a GeoTIFF, in place.
+    """Replace the value `old` of VerticalGeoKey (4096) in the GeoKey directory (tag 34735) of the first
+    IFD of a (Big)TIFF by `new`, in place.
 
-    The key is stored inline (TIFFTagLocation 0, count 1): one SHORT in the header, the same size
-    before and after, so the file's layout (COG ghost area, tile offsets) stays as GDAL wrote it.
+    The key is stored inline (TIFFTagLocation 0, count 1): one SHORT, the same size before and after,
+    so the file's layout (COG ghost area, tile offsets) stays as GDAL wrote it.
     """
     import struct
-    data = bytearray(path.read_bytes()[:65536])       # the header: a COG keeps its IFDs first
-    for fmt in ('<4H', '>4H'):
-        key = struct.pack(fmt, 4096, 0, 1, old)
-        if data.count(key) == 1:
-            at = data.index(key)
-            with open(path, 'r+b') as f:
-                f.seek(at)
-                f.write(struct.pack(fmt, 4096, 0, 1, new))
-            return
-    raise DataError(f'{path}: no single vertical GeoKey {old} to state ellipsoidal heights in; the file\'s CRS '
+    with open(path, 'r+b') as f:
+        head = f.read(16)
+        end = {b'II': '<', b'MM': '>'}.get(head[:2])
+        if end is None:
+            raise DataError(f'{path} is not a TIFF file')
+        big = struct.unpack(end + 'H', head[2:4])[0] == 43
+        ifd = struct.unpack(end + 'Q', head[8:16])[0] if big else struct.unpack(end + 'I', head[4:8])[0]
+        f.seek(ifd)
+        n = struct.unpack(end + ('Q' if big else 'H'), f.read(8 if big else 2))[0]
+        entry, value_at = (20, 12) if big else (12, 8)
+        entries = f.read(n * entry)
+        for k in range(n):
+            e = entries[k * entry:(k + 1) * entry]
+            tag, typ = struct.unpack(end + 'HH', e[:4])
+            if tag != 34735 or typ != 3:
+                continue
+            count = struct.unpack(end + ('Q' if big else 'I'), e[4:value_at])[0]
+            inline = count * 2 <= (8 if big else 4)
+            at = (ifd + (8 if big else 2) + k * entry + value_at if inline else
+                  struct.unpack(end + ('Q' if big else 'I'), e[value_at:])[0])
+            f.seek(at)
+            keys = list(struct.unpack(end + f'{count}H', f.read(2 * count)))
+            for i in range(4, count - 3, 4):
+                if keys[i:i + 4] == [4096, 0, 1, old]:
+                    f.seek(at + 2 * (i + 3))
+                    f.write(struct.pack(end + 'H', new))
+                    return
+    raise DataError(f'{path}: no vertical GeoKey {old} to state ellipsoidal heights in; the file\'s CRS '
                     'lacks its vertical part')
 
 
