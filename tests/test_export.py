@@ -348,3 +348,29 @@ def test_stereo_clouds_fused_then_ortho_on_the_fused_dsm(rendered):
     print(f'ortho on the stereo DSM: {len(errs)}/{len(targets)} targets, errors / GSD '
           f'{np.round(np.array(errs) / gsd, 2).tolist()}')
     assert len(errs) >= len(targets) - 1 and max(errs) <= 2 * gsd
+
+
+@pytest.mark.parametrize('bigtiff', ['NO', 'YES'])
+def test_ellipsoidal_heights_go_into_the_geokeys_of_tiff_and_bigtiff(tmp_path, bigtiff):
+    """GeoTIFF 1.1 states WGS84 ellipsoidal heights by VerticalGeoKey 4979: GDAL reads the file alone (no
+    sidecar) as the 3D projected CRS; a file without that key is refused, not silently left 2D."""
+    import rasterio
+    from rasterio.crs import CRS as RioCRS
+    from rasterio.transform import from_origin
+    from photogram_ros.errors import DataError
+    from photogram_ros.io.export import _geokey_crs, _set_vertical_geokey, read_crs
+    c, patch = _geokey_crs('EPSG:32632', 'ellipsoidal')
+    assert patch and c.is_compound
+    path = tmp_path / 't.tif'
+    with rasterio.Env(GDAL_PAM_ENABLED='NO'):
+        with rasterio.open(path, 'w', driver='COG', width=600, height=600, count=1, dtype='float32',
+                           crs=RioCRS.from_wkt(c.to_wkt()), transform=from_origin(465000, 5249000, 1, 1),
+                           bigtiff=bigtiff) as ds:
+            ds.write(np.ones((600, 600), np.float32), 1)
+    assert path.read_bytes()[2] == (43 if bigtiff == 'YES' else 42)
+    _set_vertical_geokey(path, 3855, 4979)
+    got = read_crs(path)
+    assert not got.is_compound and got.to_2d().to_epsg() == 32632
+    assert got.axis_info[2].name == 'Ellipsoidal height' and 'World Geodetic System 1984' in got.datum.name
+    with pytest.raises(DataError):
+        _set_vertical_geokey(path, 3855, 4979)      # the key is no longer 3855
