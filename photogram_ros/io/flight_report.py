@@ -288,7 +288,7 @@ def mapping_verdict(accounting: dict, georeferenced: bool, dsm_share: float | No
                         f'(at least {MIN_ORIENTED_SHARE * 100:.0f} % are needed)')
     if dsm_share is not None and dsm_share < MIN_DSM_VALID_SHARE:
         said = (f'{dsm_share * 100:.1f} % of the DSM\'s cells over the mapped area (the convex hull of its '
-                f'heights) hold a height')
+                f'measured heights) hold a height measured by stereo (dsm.tif band 2; the rest is interpolated)')
         if dsm_share < FAILED_DSM_VALID_SHARE:
             failures.append(f'the DSM is nearly empty: {said}')
         else:
@@ -318,7 +318,7 @@ def _health_sections(figures: dict, kfs, files: dict, run: dict, diagnostics: di
     if verdict['mapped']:
         share = verdict['dsm_valid_share']
         text = [f"Mapped: {acc['keyframes_oriented']} of {acc['keyframes_taken']} keyframes oriented"
-                + (f", {share * 100:.0f} % of the DSM's cells over the mapped area hold a height."
+                + (f", {share * 100:.0f} % of the DSM's cells over the mapped area hold a height measured by stereo."
                    if share is not None else '.')] + [f'WARNING: {w}.' for w in verdict['warnings']]
     else:
         text = ['MAPPING FAILED: ' + '; '.join(verdict['failures']) + '.']
