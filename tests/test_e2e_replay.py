@@ -92,7 +92,7 @@ def test_report_lists_nodes_and_run(replay):
     # median 11, 99.7 % in 5 or more).
     assert (out / 'overlap.png').exists() and (out / 'check_points.png').exists()
     assert rep['overlap']['median_photos'] >= 7 and rep['overlap']['share_5_or_more'] >= 0.66
-    assert 'measured by stereo' in (out / 'report.md').read_text()
+    assert 'measured by stereo' in (out / 'report.md').read_text() and rep['camera']['fx_px'] > 0
     rows = (out / 'trajectory.csv').read_text().splitlines()
     assert rows[0].startswith('image,stamp_ns,easting_m') and len(rows) == rep['keyframes'] + 1
 

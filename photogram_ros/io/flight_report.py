@@ -481,6 +481,13 @@ def build_report(out_dir: str | Path, map_dir: str | Path | MapStore, crs: str, 
         sections.append(Section('Check-point errors on the map', figures=[('Horizontal error of each check point '
                                                                             '(arrow), vertical in the label',
                                                                             'check_points.png')]))
+    row = {'width_px': cam.width, 'height_px': cam.height, 'fx_px': round(cam.fx, 2), 'fy_px': round(cam.fy, 2),
+           'cx_px': round(cam.cx, 2), 'cy_px': round(cam.cy, 2),
+           **{k: float(f'{v:.5g}') for k, v in zip(('k1', 'k2', 'p1', 'p2', 'k3'), cam.dist)}}
+    figures['camera'] = row
+    sections.append(Section('Camera', ['The camera model the products were made with (the map folder\'s '
+                                       'camera.json).'],
+                            tables=[('Intrinsics (pixels) and distortion (OpenCV model)', [row])]))
     overlap = overlap_png(out / 'overlap.png', files.get('dsm'), kfs, cam, origin, crs)
     if overlap:
         figures['overlap'] = overlap
