@@ -498,12 +498,14 @@ class ExportResult:
 
 def export_map(map_dir: str | Path | MapStore, out_dir: str | Path, crs: str, heights: str = 'ellipsoidal',
                dsm_res_m: float = 0.0, ortho_res_m: float = 0.0, products=('las', 'laz', 'ply', 'dsm', 'dtm', 'ortho'),
-               origin: LocalFrame | None = None, min_pairs: int = 1, dsm: DsmParams | None = None) -> ExportResult:
+               origin: LocalFrame | None = None, min_pairs: int = 1, dsm: DsmParams | None = None,
+               contour_interval_m: float = 0.0) -> ExportResult:
     """Write the requested products of a map folder (or an open MapStore) into out_dir (created).
 
     min_pairs=2 exports only cells confirmed by two stereo pairs: a cell one pair saw cannot be
     checked for gross matching errors (on the sample flight they hold most of the large errors).
     `dsm`: the DSM rules (default DsmParams(): lengths from the map's cell size).
+    contour_interval_m > 0 also writes contours.gpkg: the DTM's contour lines at that interval (io/contours.py).
     """
     dsm = dsm or DsmParams()
     validate(dsm)
@@ -539,7 +541,9 @@ def export_map(map_dir: str | Path | MapStore, out_dir: str | Path, crs: str, he
                'min_count': rules.min_count, 'fill_gaps_m': rules.fill_gaps_m,
                'canopy_top': rules.canopy_top}
     centres = np.array([k['map_T_cam'][:3, 3] for k in store.keyframes()]).reshape(-1, 3)
-    if any(k in products for k in ('dsm', 'dtm', 'ortho')):
+    if contour_interval_m < 0:
+        raise ConfigError(f'the contour interval must be positive (0: no contours), not {contour_interval_m} m')
+    if any(k in products for k in ('dsm', 'dtm', 'ortho')) or contour_interval_m > 0:
         surf = surface_in_crs(fusion, origin, crs, heights, dsm_res, rules, min_pairs, centres, cloud)
         grid = surf.dsm
         res.dsm['valid_share'] = float(np.mean(grid.valid())) if grid.data.size else 0.0
@@ -551,14 +555,21 @@ def export_map(map_dir: str | Path | MapStore, out_dir: str | Path, crs: str, he
                 Raster(np.dstack([grid.data, surf.pairs]), grid.x0_m, grid.y1_m, grid.res_m, NODATA),
                 out / 'dsm.tif', crs, f'DSM, {heights} heights (m); band 2: stereo pairs that measured the cell, '
                 f'0 where interpolated', heights=heights, band_names=('height_m', 'pairs'))
-    if 'dtm' in products:
+    if 'dtm' in products or contour_interval_m > 0:
         dtm = dtm_from_points(cloud.x, cloud.y, cloud.z, grid, grid.valid(), weights=cloud.count, classes=cloud.classes)
         res.notes += [f'DTM: {n}' for n in dtm.notes]
         res.dtm = {'ground_points': dtm.ground_points, 'ground_cells_share': float(dtm.ground.mean()),
                    'valid_share': float(np.mean(dtm.raster.valid()))}
-        res.files['dtm'] = write_geotiff(dtm.raster, out / 'dtm.tif', crs,
-                                         f'DTM (bare ground, from the cloud\'s ground class), {heights} heights (m)',
-                                         heights=heights)
+        if 'dtm' in products:
+            res.files['dtm'] = write_geotiff(dtm.raster, out / 'dtm.tif', crs, f'DTM (bare ground, from the cloud\'s '
+                                             f'ground class), {heights} heights (m)', heights=heights)
+        if contour_interval_m > 0:
+            from photogram_ros.io.contours import contour_lines, write_contours_gpkg
+            lines = contour_lines(dtm.raster, contour_interval_m)
+            res.files['contours'] = write_contours_gpkg(lines, out / 'contours.gpkg', crs,
+                                                        f'DTM contours every {contour_interval_m:g} m, {heights} '
+                                                        'heights (elevation_m)')
+            res.dtm['contour_lines'] = len(lines)
     if 'ortho' in products:
         kfs = load_keyframes(store)
         res.keyframes = len(kfs)
