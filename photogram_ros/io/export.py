@@ -1,4 +1,4 @@
-"""Survey products from a map folder: LAS 1.4 / LAZ, PLY, DSM and orthomosaic GeoTIFFs, in any CRS.
+"""Survey products from a map folder: LAS 1.4 / LAZ, PLY, DSM, DTM and orthomosaic GeoTIFFs, in any CRS.
 
 Map ENU coordinates go to WGS84 through the map's LocalFrame, then to the requested CRS with pyproj
 (easting, northing). Heights are WGS84 ellipsoidal by default; `heights='orthometric'` gives
@@ -10,7 +10,13 @@ CRS promoted to 3D when its datum is WGS84's (a CRS on another datum, e.g. CH190
 way to say "WGS84 ellipsoidal heights": it stays 2D and export.json notes it).
 
 LAS/LAZ points are classified (core.ground: 2 ground, 6 building, 1 the rest) with return 1 of 1.
-Rasters are Cloud-Optimized GeoTIFFs (GDAL's COG driver: tiled, deflate, overviews).
+Rasters are Cloud-Optimized GeoTIFFs (GDAL's COG driver: tiled, deflate, overviews) whose CRS, with its
+vertical part, is in the file's own GeoKeys (write_geotiff): a .tif copied alone keeps it.
+
+The DSM holds the cells stereo measured and, inside what the photos saw (the camera centres' hull),
+heights interpolated where stereo measured none (surface_in_crs); its band 2 gives the stereo pairs
+that measured each cell, 0 where interpolated. The DTM (core.dtm) is the ground class of the cloud on
+the DSM's grid, interpolated under buildings and vegetation; contours of it on request (io/contours.py).
 
 Rasters are built in the output CRS's own grid (north-up in that CRS), so GIS tools need no
 reprojection: the DSM from the fused cells' CRS coordinates, the orthomosaic by mapping each of

@@ -5,7 +5,10 @@ a user receives and can be rebuilt after the flight. Figures:
 - adjusted trajectory (CSV and GeoJSON, in the output CRS and WGS84, with omega-phi-kappa);
 - check points: found in the keyframes, triangulated from the adjusted poses, against their survey;
   with a control file, its GCPs' residuals apart (they constrained the adjustment);
-- with ground truth: camera-centre errors, DSM and cloud against the true DEM, in metres and GSD;
+- with ground truth: camera-centre errors, DSM (its measured and interpolated cells apart) and cloud
+  against the true DEM, the DTM against it away from buildings, in metres and GSD;
+- the DSM's measured / interpolated split inside the camera centres' hull, an overlap map (photos per
+  DSM cell), check-point errors as arrows on the orthomosaic, the camera model;
 - what went wrong and when (from /diagnostics), and timing per node;
 - at the top, whether the flight mapped at all (`mapping_verdict`: a georeferenced keyframe, half of
   the keyframes oriented, half of the DSM's cells holding a height), how many keyframes the tracker
