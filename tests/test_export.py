@@ -106,12 +106,26 @@ def test_dsm_geotiff_crs_bounds_and_heights(map_dir, tmp_path, crs):
 
 
 def _crs_of_products(files) -> dict:
+    """The CRS of each product, each GeoTIFF copied alone into a folder of its own and opened there with
+    GDAL's sidecars (.aux.xml) off: what a user who uploads the .tif gets."""
+    import shutil
+    import tempfile
+    from pathlib import Path
+
     import laspy
     import rasterio
     from pyproj import CRS
     out = {'las': laspy.read(files['las']).header.parse_crs()}
-    with rasterio.open(files['dsm']) as ds:
-        out['dsm'] = CRS.from_wkt(ds.crs.to_wkt())
+    for kind in ('dsm', 'dtm', 'ortho'):
+        if kind not in files:
+            continue
+        assert not Path(str(files[kind]) + '.aux.xml').exists(), kind
+        with tempfile.TemporaryDirectory() as alone:
+            copy = Path(shutil.copy(files[kind], alone))
+            with rasterio.Env(GDAL_PAM_ENABLED='NO'):
+                with rasterio.open(copy) as ds:
+                    assert ds.crs is not None, kind
+                    out[kind] = CRS.from_wkt(ds.crs.to_wkt())
     return out
 
 
@@ -120,7 +134,7 @@ def test_products_state_their_vertical_datum(map_dir, tmp_path):
     import json
     from pyproj import CRS
     from photogram_ros.io.export import export_map
-    products = ('las', 'dsm')
+    products = ('las', 'dsm', 'dtm')
     ell = export_map(map_dir, tmp_path / 'ell', 'EPSG:32632', products=products)
     for kind, c in _crs_of_products(ell.files).items():
         assert c.is_projected and len(c.axis_info) == 3, kind
@@ -248,6 +262,7 @@ def test_orthomosaic_on_true_dem_puts_targets_within_2_gsd(rendered):
 def test_export_command_writes_georeferenced_ortho(rendered, tmp_path):
     """The whole chain: fused map + saved keyframes -> `photogram-ros export` -> ortho GeoTIFF in UTM."""
     import rasterio
+    from pyproj import CRS
     from photogram_ros.cli import main
     from photogram_ros.core.fusion import Fusion, FusionConfig
     from photogram_ros.core.geodesy import LocalFrame
@@ -270,10 +285,15 @@ def test_export_command_writes_georeferenced_ortho(rendered, tmp_path):
     # Each target's ground came from one pair cloud: the default (2 pairs, as replay) would keep nothing.
     assert main(['export', str(tmp_path / 'map'), '--crs', 'EPSG:32632', '--out', str(out),
                  '--min-pairs', '1']) == 0
-    for name in ('cloud.las', 'cloud.laz', 'cloud.ply', 'dsm.tif', 'ortho.tif', 'export.json'):
+    for name in ('cloud.las', 'cloud.laz', 'cloud.ply', 'dsm.tif', 'dtm.tif', 'ortho.tif', 'export.json'):
         assert (out / name).exists(), name
+    # Each GeoTIFF copied alone opens with its horizontal CRS and WGS84 ellipsoidal heights.
+    crses = _crs_of_products({k: out / f for k, f in (('las', 'cloud.las'), ('dsm', 'dsm.tif'), ('dtm', 'dtm.tif'),
+                                                        ('ortho', 'ortho.tif'))})
+    for kind, c in crses.items():
+        assert c.to_2d().to_epsg() == 32632 and c.axis_info[2].name == 'Ellipsoidal height', kind
     with rasterio.open(out / 'ortho.tif') as ds:
-        assert ds.crs.to_epsg() == 32632 and ds.count == 4
+        assert CRS.from_wkt(ds.crs.to_wkt()).to_2d().to_epsg() == 32632 and ds.count == 4
         rgba = np.dstack([ds.read(b) for b in (1, 2, 3, 4)])
         found = _detect_centres(np.ascontiguousarray(rgba[..., [2, 1, 0]]))
         errs = []
@@ -328,3 +348,29 @@ def test_stereo_clouds_fused_then_ortho_on_the_fused_dsm(rendered):
     print(f'ortho on the stereo DSM: {len(errs)}/{len(targets)} targets, errors / GSD '
           f'{np.round(np.array(errs) / gsd, 2).tolist()}')
     assert len(errs) >= len(targets) - 1 and max(errs) <= 2 * gsd
+
+
+@pytest.mark.parametrize('bigtiff', ['NO', 'YES'])
+def test_ellipsoidal_heights_go_into_the_geokeys_of_tiff_and_bigtiff(tmp_path, bigtiff):
+    """GeoTIFF 1.1 states WGS84 ellipsoidal heights by VerticalGeoKey 4979: GDAL reads the file alone (no
+    sidecar) as the 3D projected CRS; a file without that key is refused, not silently left 2D."""
+    import rasterio
+    from rasterio.crs import CRS as RioCRS
+    from rasterio.transform import from_origin
+    from photogram_ros.errors import DataError
+    from photogram_ros.io.export import _geokey_crs, _set_vertical_geokey, read_crs
+    c, patch = _geokey_crs('EPSG:32632', 'ellipsoidal')
+    assert patch and c.is_compound
+    path = tmp_path / 't.tif'
+    with rasterio.Env(GDAL_PAM_ENABLED='NO'):
+        with rasterio.open(path, 'w', driver='COG', width=600, height=600, count=1, dtype='float32',
+                           crs=RioCRS.from_wkt(c.to_wkt()), transform=from_origin(465000, 5249000, 1, 1),
+                           bigtiff=bigtiff) as ds:
+            ds.write(np.ones((600, 600), np.float32), 1)
+    assert path.read_bytes()[2] == (43 if bigtiff == 'YES' else 42)
+    _set_vertical_geokey(path, 3855, 4979)
+    got = read_crs(path)
+    assert not got.is_compound and got.to_2d().to_epsg() == 32632
+    assert got.axis_info[2].name == 'Ellipsoidal height' and 'World Geodetic System 1984' in got.datum.name
+    with pytest.raises(DataError):
+        _set_vertical_geokey(path, 3855, 4979)      # the key is no longer 3855

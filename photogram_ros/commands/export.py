@@ -1,9 +1,9 @@
-"""photogram-ros export: survey products of a map folder (LAS/LAZ, PLY, DSM and orthomosaic GeoTIFFs)."""
+"""photogram-ros export: survey products of a map folder (LAS/LAZ, PLY, DSM, DTM and orthomosaic GeoTIFFs)."""
 
 from __future__ import annotations
 
-HELP = 'write LAS/LAZ, PLY, DSM and orthomosaic GeoTIFFs of a map folder in any EPSG CRS'
-PRODUCTS = ('las', 'laz', 'ply', 'dsm', 'ortho')
+HELP = 'write LAS/LAZ, PLY, DSM, DTM and orthomosaic GeoTIFFs of a map folder in any EPSG CRS'
+PRODUCTS = ('las', 'laz', 'ply', 'dsm', 'dtm', 'ortho')
 
 
 def add_arguments(p) -> None:
@@ -20,6 +20,8 @@ def add_arguments(p) -> None:
     p.add_argument('--min-pairs', type=int, default=2,
                    help='keep cells confirmed by this many stereo pairs (2, as replay does: a cell one pair saw '
                         'cannot be checked for gross matching errors; 1 keeps every fused cell)')
+    p.add_argument('--contours-m', type=float, default=0.0,
+                   help='also write contours.gpkg: contour lines of the DTM every this many metres (0: none)')
     p.add_argument('--origin', default='', help='LAT,LON,H of the map origin, if map.json lacks it')
     p.add_argument('--densify', action='store_true',
                    help='first match the keyframes again with their final poses into OUT/map_final (the in-flight '
@@ -61,12 +63,17 @@ def run(a) -> int:
             print(f'  from the GSD ({", ".join(d.derived)}): {GsdSettings(**d.gsd).summary()}')
         store = d.store
     res = export_map(store, a.out, a.crs, a.heights, a.dsm_res_m, a.ortho_res_m, products, origin,
-                     min_pairs=a.min_pairs)
+                     min_pairs=a.min_pairs, contour_interval_m=a.contours_m)
     print(f'{res.points} points, {res.keyframes} keyframes -> {a.out} ({res.crs_with_heights}, {a.heights} heights)')
     if res.classes:
         c = res.classes
         print(f'  classes: {c["ground"]} ground, {c["building"]} building ({c["buildings"]} buildings), '
               f'{c["unclassified"]} unclassified')
+    hull = (res.dsm or {}).get('camera_hull')
+    if hull:
+        print(f"  DSM inside the camera centres' hull: {hull['valid'] * 100:.1f} % of the cells hold a height, "
+              f"{hull['measured'] * 100:.1f} % measured by stereo, {hull['filled'] * 100:.1f} % interpolated "
+              '(band 2 of dsm.tif: pairs, 0 interpolated)')
     for k, v in res.files.items():
         print(f'  {k}: {v}')
     for n in res.notes:

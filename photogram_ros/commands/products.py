@@ -137,6 +137,8 @@ def export_products(map_dir, out, params_file: str | None, crs: str = '', live_m
         files = {k: str(v) for k, v in ex.files.items()}
         run['map_points'] = ex.points
         run['dsm'] = ex.dsm
+        run['dtm'] = ex.dtm
+        run['ortho'] = ex.ortho
         figures = build_report(out, products, crs, files, run=run, **report)
     except StorageError:
         raise

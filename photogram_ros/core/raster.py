@@ -353,3 +353,95 @@ def sample_bilinear(r: Raster, x, y) -> np.ndarray:
         bad |= (v00 == r.nodata) | (v01 == r.nodata) | (v10 == r.nodata) | (v11 == r.nodata)
     out = (1 - fr) * ((1 - fc) * v00 + fc * v01) + fr * ((1 - fc) * v10 + fc * v11)
     return np.where(bad, np.nan, out)
+
+
+def push_pull_fill(d: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """Every cell of `d` interpolated from the `valid` cells by push-pull (Gortler et al. 1996, "The
+    Lumigraph", SIGGRAPH, section 3.4: a pyramid of weighted 2x2 means pushed down to one cell, pulled
+    back up by bilinear upsampling where a level has no data of its own).
+
+    Valid cells keep their values; a hole takes a smooth blend of its surroundings, weighted towards
+    the nearer ones (each pyramid level halves the resolution). float64 (rows, cols) out.
+    """
+    v = np.where(valid, d, 0.0).astype(np.float64)
+    w = valid.astype(np.float64)
+    levels = [(v, w)]
+    while min(v.shape) > 1:
+        h, wd = v.shape
+        ph, pw = h % 2, wd % 2
+        v = np.pad(v, ((0, ph), (0, pw)))
+        w = np.pad(w, ((0, ph), (0, pw)))
+        v = v.reshape(v.shape[0] // 2, 2, v.shape[1] // 2, 2).sum(axis=(1, 3))
+        w = w.reshape(w.shape[0] // 2, 2, w.shape[1] // 2, 2).sum(axis=(1, 3))
+        levels.append((v, w))
+    v, w = levels[-1]
+    est = np.where(w > 0, v / np.maximum(w, 1e-12), 0.0)
+    for v, w in reversed(levels[:-1]):
+        h, wd = v.shape
+        up = cv2.resize(est, (2 * est.shape[1], 2 * est.shape[0]), interpolation=cv2.INTER_LINEAR)[:h, :wd]
+        a = np.minimum(w, 1.0)     # a cell with data of its own at this level keeps its mean
+        est = a * (v / np.maximum(w, 1e-12)) + (1.0 - a) * up
+    return np.where(valid, d, est)
+
+
+def fill_surface(d: np.ndarray, region: np.ndarray, nearest_px: int = 2, nodata: float = NODATA) -> np.ndarray:
+    """Heights for the no-data cells of `d` (a DSM or DTM grid) inside the bool mask `region`.
+
+    Cells within `nearest_px` cells of a height take the nearest height (a step such as a wall stays a
+    step instead of a ramp), the rest push-pull interpolation (push_pull_fill) from all heights and
+    those. Cells outside `region` are left as they are. Returns a float32 copy.
+    """
+    from scipy.ndimage import distance_transform_edt
+    valid = d != nodata
+    out = d.astype(np.float32).copy()
+    todo = region & ~valid
+    if not valid.any() or not todo.any():
+        return out
+    dist, (ri, ci) = distance_transform_edt(~valid, return_indices=True)
+    near = todo & (dist <= nearest_px)
+    out[near] = d[ri[near], ci[near]]
+    far = todo & ~near
+    if far.any():
+        seeded = valid | near
+        out[far] = push_pull_fill(out, seeded)[far].astype(np.float32)
+    return out
+
+
+def hull_mask(shape: tuple, cols: np.ndarray, rows: np.ndarray) -> np.ndarray:
+    """Bool (rows, cols) mask of the convex hull of the fractional pixel positions (cols, rows)."""
+    out = np.zeros(shape, np.uint8)
+    pts = np.column_stack([np.asarray(cols, float), np.asarray(rows, float)])
+    pts = pts[np.all(np.isfinite(pts), axis=1)]
+    if len(pts) >= 3:
+        cv2.fillConvexPoly(out, cv2.convexHull(np.round(pts).astype(np.int32)), 1)
+    return out.astype(bool)
+
+
+def cell_max(x, y, values, like: Raster, fill=0) -> np.ndarray:
+    """Largest of `values` per cell of the grid of `like` (points outside it are dropped); `fill` where none."""
+    x, y, values = np.asarray(x, float), np.asarray(y, float), np.asarray(values)
+    col = np.floor((x - like.x0_m) / like.res_m).astype(np.int64)
+    row = np.floor((like.y1_m - y) / like.res_m).astype(np.int64)
+    h, w = like.shape
+    ok = (col >= 0) & (col < w) & (row >= 0) & (row < h)
+    out = np.full(h * w, fill, dtype=values.dtype)
+    if ok.any():
+        np.maximum.at(out, row[ok] * w + col[ok], values[ok])
+    return out.reshape(h, w)
+
+
+def on_grid(r: Raster, like: Raster) -> np.ndarray:
+    """The single-band values of `r` on the grid of `like` (same cell size, edges on the same multiples
+    of it, as grid_for makes them); r.nodata (or NODATA) where `r` does not reach."""
+    if abs(r.res_m - like.res_m) > 1e-9:
+        raise DataError(f'rasters of {r.res_m} m and {like.res_m} m cells are not on one grid')
+    nod = NODATA if r.nodata is None else r.nodata
+    out = np.full(like.shape, nod, dtype=r.data.dtype)
+    dc = int(round((r.x0_m - like.x0_m) / like.res_m))
+    dr = int(round((like.y1_m - r.y1_m) / like.res_m))
+    h, w = r.shape
+    r0, c0 = max(dr, 0), max(dc, 0)
+    r1, c1 = min(dr + h, like.shape[0]), min(dc + w, like.shape[1])
+    if r1 > r0 and c1 > c0:
+        out[r0:r1, c0:c1] = r.data[r0 - dr:r1 - dr, c0 - dc:c1 - dc]
+    return out

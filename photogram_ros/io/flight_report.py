@@ -5,7 +5,10 @@ a user receives and can be rebuilt after the flight. Figures:
 - adjusted trajectory (CSV and GeoJSON, in the output CRS and WGS84, with omega-phi-kappa);
 - check points: found in the keyframes, triangulated from the adjusted poses, against their survey;
   with a control file, its GCPs' residuals apart (they constrained the adjustment);
-- with ground truth: camera-centre errors, DSM and cloud against the true DEM, in metres and GSD;
+- with ground truth: camera-centre errors, DSM (its measured and interpolated cells apart) and cloud
+  against the true DEM, the DTM against it away from buildings, in metres and GSD;
+- the DSM's measured / interpolated split inside the camera centres' hull, an overlap map (photos per
+  DSM cell), check-point errors as arrows on the orthomosaic, the camera model;
 - what went wrong and when (from /diagnostics), and timing per node;
 - at the top, whether the flight mapped at all (`mapping_verdict`: a georeferenced keyframe, half of
   the keyframes oriented, half of the DSM's cells holding a height), how many keyframes the tracker
@@ -66,6 +69,120 @@ def near_discontinuity(dem, x_m, y_m, slope: float = 1.0, radius_m: float = 1.0)
     i = np.clip(np.round((np.asarray(x_m) - dem.x0_m) / dem.res_m).astype(int), 0, dem.shape[1] - 1)
     j = np.clip(np.round((np.asarray(y_m) - dem.y0_m) / dem.res_m).astype(int), 0, dem.shape[0] - 1)
     return steep[j, i]
+
+
+def near_buildings(dem, x_m, y_m, radius_m: float = 2.0, min_height_m: float = 3.0,
+                   window_m: float = 20.0) -> np.ndarray:
+    """True where a point lies within `radius_m` of a building of the true DEM: cells standing more than
+    `min_height_m` above the DEM's morphological opening with a `window_m` disk (a roof narrower than
+    the disk; the simulator's hills and its 2.5 m embankment stay below that height)."""
+    z = dem.data.astype(np.float32)
+    k = max(int(round(window_m / dem.res_m)) | 1, 3)
+    opened = cv2.morphologyEx(z, cv2.MORPH_OPEN, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k)),
+                              borderType=cv2.BORDER_REPLICATE)
+    roof = (z - opened > min_height_m).astype(np.uint8)
+    r = 2 * int(np.ceil(radius_m / dem.res_m)) + 1
+    near = cv2.dilate(roof, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (r, r))) > 0
+    i = np.clip(np.round((np.asarray(x_m) - dem.x0_m) / dem.res_m).astype(int), 0, dem.shape[1] - 1)
+    j = np.clip(np.round((np.asarray(y_m) - dem.y0_m) / dem.res_m).astype(int), 0, dem.shape[0] - 1)
+    return near[j, i]
+
+
+def _raster_cells_enu(path, crs: str, to_enu, band: int = 1):
+    """(ENU (N, 3) of a GeoTIFF's cells holding a value, band 2 at those cells or None, cell size)."""
+    import rasterio
+    with rasterio.open(path) as ds:
+        z = ds.read(band).astype(float)
+        nod = ds.nodata
+        ok = np.isfinite(z) & (z != nod if nod is not None else True)
+        rows, cols = np.nonzero(ok)
+        xs, ys = rasterio.transform.xy(ds.transform, rows, cols)
+        second = ds.read(2)[rows, cols] if ds.count >= 2 else None
+        res = float(ds.res[0])
+    lat, lon, h = crs_to_geodetic(np.asarray(xs), np.asarray(ys), z[rows, cols], crs)
+    return to_enu(lat, lon, h), second, res
+
+
+def overlap_png(path: Path, dsm_path, kfs: list[dict], cam, origin: LocalFrame, crs: str,
+                max_cells: int = 250) -> dict:
+    """Photos (keyframes) whose image holds each DSM cell, on a grid of at most `max_cells` cells a side
+    sampled from dsm.tif's heights, as a map; returns {'median_photos', 'share_2_or_more',
+    'share_5_or_more'} over the sampled cells with a height ({} without a DSM or camera)."""
+    import rasterio
+    if not dsm_path or not Path(dsm_path).exists() or cam is None or not kfs:
+        return {}
+    with rasterio.open(dsm_path) as ds:
+        step = max(1, int(np.ceil(max(ds.width, ds.height) / max_cells)))
+        z = ds.read(1)[::step, ::step].astype(float)
+        ok = np.isfinite(z) & (z != ds.nodata if ds.nodata is not None else True)
+        rows, cols = np.nonzero(ok)
+        xs, ys = rasterio.transform.xy(ds.transform, rows * step, cols * step)
+        b = ds.bounds
+    if not rows.size:
+        return {}
+    lat, lon, h = crs_to_geodetic(np.asarray(xs), np.asarray(ys), z[rows, cols], crs)
+    P = origin.geodetic_to_enu(lat, lon, h)
+    count = np.zeros(rows.size, np.int32)
+    for kf in kfs:
+        R, C = kf['map_T_cam'][:3, :3], kf['map_T_cam'][:3, 3]
+        uv, front = cam.project((P - C) @ R)
+        count += front & cam.in_image(uv)
+    grid = np.full(z.shape, np.nan)
+    grid[rows, cols] = count
+    import matplotlib
+    matplotlib.use('Agg')
+    import matplotlib.pyplot as plt
+    fig, ax = plt.subplots(figsize=(7, 6), dpi=100)
+    im = ax.imshow(grid, extent=(b.left, b.right, b.bottom, b.top), cmap='viridis', interpolation='nearest',
+                   vmin=0, vmax=max(int(count.max()), 1))
+    fig.colorbar(im, ax=ax, label='photos seeing the cell')
+    ax.set_aspect('equal')
+    ax.ticklabel_format(useOffset=False, style='plain')
+    ax.tick_params(labelsize=7)
+    ax.set_title(f'Overlap: photos per DSM cell ({crs})')
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+    return {'median_photos': float(np.median(count)), 'share_2_or_more': float(np.mean(count >= 2)),
+            'share_5_or_more': float(np.mean(count >= 5))}
+
+
+def check_point_arrows_png(path: Path, ortho_tif, points: list, title: str) -> Path:
+    """Check-point errors as arrows on the orthomosaic: points [(name, easting, northing, dE, dN, dZ)] in
+    metres; the arrows are scaled so the longest spans a tenth of the map, its scale printed."""
+    import matplotlib
+    matplotlib.use('Agg')
+    import matplotlib.pyplot as plt
+    fig, ax = plt.subplots(figsize=(7, 6), dpi=100)
+    extent = None
+    if ortho_tif is not None and Path(ortho_tif).exists():
+        import rasterio
+        with rasterio.open(ortho_tif) as ds:
+            step = max(1, int(max(ds.width, ds.height) / 1500))
+            img = ds.read(out_shape=(ds.count, ds.height // step, ds.width // step))
+            b = ds.bounds
+        extent = (b.left, b.right, b.bottom, b.top)
+        ax.imshow(np.moveaxis(img[:3], 0, -1), extent=extent)
+    e = np.array([p[1] for p in points], float)
+    n = np.array([p[2] for p in points], float)
+    d = np.array([[p[3], p[4]] for p in points], float).reshape(-1, 2)
+    span = (extent[1] - extent[0]) if extent else max(np.ptp(e), np.ptp(n), 1.0)
+    longest = max(float(np.hypot(d[:, 0], d[:, 1]).max()) if len(d) else 0.0, 1e-6)
+    scale = 0.1 * span / longest
+    ax.quiver(e, n, d[:, 0] * scale, d[:, 1] * scale, angles='xy', scale_units='xy', scale=1, color='#ee3377',
+              width=0.004)
+    for name, x, y, de, dn, dz in points:
+        ax.plot(x, y, 'k^', ms=5)
+        ax.annotate(f'{name} {np.hypot(de, dn) * 100:.1f} cm, dZ {dz * 100:+.1f} cm', (x, y), fontsize=7,
+                    xytext=(3, 3), textcoords='offset points', color='white' if extent else 'black')
+    ax.set_aspect('equal')
+    ax.ticklabel_format(useOffset=False, style='plain')
+    ax.tick_params(labelsize=7)
+    ax.set_title(f'{title} (arrows x{scale:.0f})')
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+    return path
 
 
 LEVEL_NAMES = {0: 'OK', 1: 'WARN', 2: 'ERROR', 3: 'STALE'}
@@ -135,16 +252,20 @@ def node_health(diagnostics: dict) -> list[dict]:
 
 
 def dsm_valid_share(dsm_path) -> float | None:
-    """Share of the mapped area's DSM cells that hold a height: cells inside the convex hull of the cells
-    with a height (a diagonal strip's raster rectangle is half empty by its shape, not by a failure);
-    None without a DSM file, 0 for a DSM without a height."""
+    """Share of the mapped area's DSM cells that hold a measured height: cells inside the convex hull of
+    the cells with a height (a diagonal strip's raster rectangle is half empty by its shape, not by a
+    failure) whose band 2 (stereo pairs, core export: 0 where interpolated) is at least 1; every cell
+    with a height when the DSM has one band. None without a DSM file, 0 for a DSM without a height."""
     if not dsm_path or not Path(dsm_path).exists():
         return None
     import cv2
     import rasterio
     with rasterio.open(dsm_path) as ds:
         z = ds.read(1, masked=True)
+        pairs = ds.read(2) if ds.count >= 2 else None
     valid = ~np.ma.getmaskarray(z) & np.isfinite(np.ma.getdata(z))
+    if pairs is not None:
+        valid &= pairs >= 1
     if valid.sum() < 3:
         return 0.0
     hull = np.zeros(valid.shape, np.uint8)
@@ -170,7 +291,7 @@ def mapping_verdict(accounting: dict, georeferenced: bool, dsm_share: float | No
                         f'(at least {MIN_ORIENTED_SHARE * 100:.0f} % are needed)')
     if dsm_share is not None and dsm_share < MIN_DSM_VALID_SHARE:
         said = (f'{dsm_share * 100:.1f} % of the DSM\'s cells over the mapped area (the convex hull of its '
-                f'heights) hold a height')
+                f'measured heights) hold a height measured by stereo (dsm.tif band 2; the rest is interpolated)')
         if dsm_share < FAILED_DSM_VALID_SHARE:
             failures.append(f'the DSM is nearly empty: {said}')
         else:
@@ -200,7 +321,7 @@ def _health_sections(figures: dict, kfs, files: dict, run: dict, diagnostics: di
     if verdict['mapped']:
         share = verdict['dsm_valid_share']
         text = [f"Mapped: {acc['keyframes_oriented']} of {acc['keyframes_taken']} keyframes oriented"
-                + (f", {share * 100:.0f} % of the DSM's cells over the mapped area hold a height."
+                + (f", {share * 100:.0f} % of the DSM's cells over the mapped area hold a height measured by stereo."
                    if share is not None else '.')] + [f'WARNING: {w}.' for w in verdict['warnings']]
     else:
         text = ['MAPPING FAILED: ' + '; '.join(verdict['failures']) + '.']
@@ -232,6 +353,20 @@ def _settings_lines(run: dict) -> list[str]:
         lines.append(f"DSM: {dsm['valid_share'] * 100:.1f} % of its raster's cells (the rectangle around the map; "
                      "the verdict counts the mapped area) hold a height "
                      f"(cell {dsm.get('res_m', 0):g} m, spread limit {dsm.get('max_spread_m', 0):g} m).")
+    hull = dsm.get('camera_hull')
+    if hull:
+        ortho = (run.get('ortho') or {}).get('camera_hull')
+        lines.append(f"Inside the convex hull of the camera centres {hull['valid'] * 100:.1f} % of the DSM's cells "
+                     f"hold a height: {hull['measured'] * 100:.1f} % measured by stereo, {hull['filled'] * 100:.1f} % "
+                     "interpolated from the heights around them (band 2 of dsm.tif: the stereo pairs that measured "
+                     "the cell, 0 where interpolated)"
+                     + (f"; the orthomosaic holds a colour in {ortho['valid'] * 100:.1f} % of its cells there."
+                        if ortho else '.'))
+    dtm = run.get('dtm')
+    if dtm:
+        lines.append(f"DTM (dtm.tif, bare ground): {dtm['ground_cells_share'] * 100:.1f} % of its cells hold ground "
+                     f"points ({dtm['ground_points']} points classified ground), the rest interpolated under "
+                     "buildings, vegetation and unmeasured cells.")
     failed = run.get('densify_pairs_failed') or []
     if failed:
         lines.append(f'{len(failed)} stereo pair(s) failed in the final matching and were skipped '
@@ -337,6 +472,32 @@ def build_report(out_dir: str | Path, map_dir: str | Path | MapStore, crs: str, 
         tg.append((name, float(e), float(n)))
     trajectory_png(out / 'trajectory.png', files.get('ortho'), tracks, tg, f'Adjusted trajectory and targets ({crs})')
     sections.append(Section('Trajectory over the orthomosaic', figures=[('Keyframe camera centres', 'trajectory.png')]))
+    if checks is not None and len(checks.names):
+        at = {name: xyz for name, xyz in checks_surveyed.values()}
+        arrows = []
+        for name, r in zip(checks.names, checks.residuals):
+            lat, lon, h = origin.enu_to_geodetic(np.asarray(at[name], float))
+            e, n, _ = geodetic_to_crs(lat, lon, h, crs)
+            arrows.append((name, float(e), float(n), float(r[0]), float(r[1]), float(r[2])))
+        check_point_arrows_png(out / 'check_points.png', files.get('ortho'), arrows,
+                               'Check-point errors (estimated - surveyed)')
+        sections.append(Section('Check-point errors on the map', figures=[('Horizontal error of each check point '
+                                                                            '(arrow), vertical in the label',
+                                                                            'check_points.png')]))
+    row = {'width_px': cam.width, 'height_px': cam.height, 'fx_px': round(cam.fx, 2), 'fy_px': round(cam.fy, 2),
+           'cx_px': round(cam.cx, 2), 'cy_px': round(cam.cy, 2),
+           **{k: float(f'{v:.5g}') for k, v in zip(('k1', 'k2', 'p1', 'p2', 'k3'), cam.dist)}}
+    figures['camera'] = row
+    sections.append(Section('Camera', ['The camera model the products were made with (the map folder\'s '
+                                       'camera.json).'],
+                            tables=[('Intrinsics (pixels) and distortion (OpenCV model)', [row])]))
+    overlap = overlap_png(out / 'overlap.png', files.get('dsm'), kfs, cam, origin, crs)
+    if overlap:
+        figures['overlap'] = overlap
+        sections.append(Section('Overlap', [f"Photos seeing each DSM cell: median {overlap['median_photos']:.0f}; "
+                                            f"{overlap['share_2_or_more'] * 100:.1f} % of the cells are in 2 or more "
+                                            f"photos, {overlap['share_5_or_more'] * 100:.1f} % in 5 or more."],
+                                figures=[('Photos per DSM cell', 'overlap.png')]))
 
     if diagnostics:
         sections.append(_problems_section(diagnostics, figures))
@@ -418,14 +579,7 @@ def _truth_section(out: Path, truth, origin: LocalFrame, crs: str, kfs, files, f
     sec.tables.append(('Keyframe camera centres against truth, m', [tr]))
     dsm_path = files.get('dsm')
     if dsm_path and Path(dsm_path).exists():
-        import rasterio
-        with rasterio.open(dsm_path) as ds:
-            z = ds.read(1).astype(float)
-            nod = ds.nodata
-            rows, cols = np.nonzero(np.isfinite(z) & (z != nod if nod is not None else True))
-            xs, ys = rasterio.transform.xy(ds.transform, rows, cols)
-        lat, lon, h = crs_to_geodetic(np.asarray(xs), np.asarray(ys), z[rows, cols], crs)
-        enu = truth.origin.geodetic_to_enu(lat, lon, h)
+        enu, pairs, res = _raster_cells_enu(dsm_path, crs, truth.origin.geodetic_to_enu)
         dz = enu[:, 2] - truth.dem.sample(enu[:, 0], enu[:, 1])
         err = surface_errors(dz, truth.gsd_m)
         figures['dsm_vs_truth'] = err
@@ -435,18 +589,37 @@ def _truth_section(out: Path, truth, origin: LocalFrame, crs: str, kfs, files, f
         sec.tables.append(('DSM against the true DEM, cells more than 1 m from walls and roof edges (where a '
                            'cell straddles a height step its error is the step)',
                            [figures['dsm_vs_truth_away_from_walls']]))
+        if pairs is not None:
+            measured = pairs >= 1
+            figures['dsm_vs_truth_measured'] = surface_errors(dz[measured], truth.gsd_m)
+            if (~measured).any():
+                figures['dsm_vs_truth_filled'] = surface_errors(dz[~measured], truth.gsd_m)
+            sec.tables.append(('DSM against the true DEM: cells stereo measured / cells interpolated',
+                               [figures['dsm_vs_truth_measured']] + ([figures['dsm_vs_truth_filled']]
+                                                                     if 'dsm_vs_truth_filled' in figures else [])))
         histogram_png(out / 'dsm_error_hist.png', dz, 'DSM - true height, m', 'DSM height errors')
         sec.figures.append(('DSM height errors', 'dsm_error_hist.png'))
         # Completeness over the area the survey lines imaged (the truth's camera footprints' core).
         C = np.array([f.map_T_cam[:3, 3] for f in truth.frames])
         inside = ((enu[:, 0] > C[:, 0].min()) & (enu[:, 0] < C[:, 0].max()) &
                   (enu[:, 1] > C[:, 1].min()) & (enu[:, 1] < C[:, 1].max()))
-        with rasterio.open(dsm_path) as ds:
-            res = ds.res[0]
-        figures['dsm_cell_m'] = float(res)
+        figures['dsm_cell_m'] = res
         area = (C[:, 0].max() - C[:, 0].min()) * (C[:, 1].max() - C[:, 1].min())
         figures['dsm_completeness'] = float(min(inside.sum() * res * res / max(area, 1e-9), 1.0))
         sec.text.append(f"DSM completeness over the flown area: {figures['dsm_completeness'] * 100:.1f} %.")
+        if pairs is not None:
+            figures['dsm_measured_completeness'] = float(min(np.sum(inside & (pairs >= 1)) * res * res
+                                                             / max(area, 1e-9), 1.0))
+            sec.text.append(f"Of it measured by stereo (not interpolated): "
+                            f"{figures['dsm_measured_completeness'] * 100:.1f} % of the flown area.")
+    dtm_path = files.get('dtm')
+    if dtm_path and Path(dtm_path).exists():
+        enu, _, _ = _raster_cells_enu(dtm_path, crs, truth.origin.geodetic_to_enu)
+        dz = enu[:, 2] - truth.dem.sample(enu[:, 0], enu[:, 1])
+        away = ~near_buildings(truth.dem, enu[:, 0], enu[:, 1])
+        figures['dtm_vs_truth_away_from_buildings'] = surface_errors(dz[away], truth.gsd_m)
+        sec.tables.append(('DTM against the true ground, cells more than 2 m from buildings',
+                           [figures['dtm_vs_truth_away_from_buildings']]))
     las = files.get('las')
     if las and Path(las).exists():
         import laspy
