@@ -125,7 +125,10 @@ def test_a_tipped_block_fails_and_says_why():
     v = check_block(tipped)
     print(v.summary)
     checks = {f.check for f in v.findings if f.status == 'failed'}
-    assert v.status == 'failed' and {'nadir', 'gnss_fit'} <= checks
+    # Tipped whole, its shape still fits the GNSS track through a similarity: the tilt says it, and the
+    # cameras sit far from their own fixes as they are.
+    assert v.status == 'failed' and 'nadir' in checks
+    assert v.figures['gnss_rigid']['rms_v_m'] > 10.0
     assert np.all(tilt_from_nadir_deg(T) > 80.0)
 
 

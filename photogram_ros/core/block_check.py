@@ -12,7 +12,8 @@ The checks, each against what the data itself says:
   whose shape disagrees with its GNSS far beyond that noise is folded or tipped: failed. Cameras whose
   fix lies far from where the rest of the block puts them (a glitched geotag, a photo of another site)
   are named.
-- gnss_rigid: the adjusted cameras against their GNSS as they are (the block's own georeference).
+- gnss_rigid: the adjusted cameras against their GNSS as they are (the block's own georeference), normalised
+  by the same noise: a block placed far from its own fixes is failed.
 - ground_below: the tie points each camera sees lie below it. A block tipped over puts its ground beside
   or above its cameras: failed.
 - nadir: the share of cameras within `nadir_tilt_deg` of nadir, against the flight's expectation (a
@@ -110,22 +111,21 @@ def inputs_from_at(at, n_photos: int | None = None, adjustment: dict | None = No
     fix = np.full((n, 3), np.nan)
     sig = np.full((n, 2), np.nan)
     gz = np.full(n, np.nan)
+    # The fix as a camera position: the camera centre minus the adjuster's own GNSS residual (lever arm,
+    # antenna offset and estimated bias as the adjustment applies them); unoriented cameras: the fix.
+    res = at.gnss_residuals([kf.kid for kf in kfs if kf.map_T_cam is not None])
     for i, kf in enumerate(kfs):
         if kf.fix_enu is not None:
-            off = kf.antenna_offset if kf.antenna_offset is not None else np.zeros(3)
-            fix[i] = np.asarray(kf.fix_enu, float) - at.gnss_bias_enu - off
+            fix[i] = np.asarray(kf.fix_enu, float) - at.gnss_bias_enu
             c = np.asarray(kf.fix_cov, float).reshape(3, 3)
             sig[i] = np.sqrt([0.5 * (c[0, 0] + c[1, 1]), c[2, 2]])
         if kf.map_T_cam is not None:
             T[i] = kf.map_T_cam
+            if kf.kid in res:
+                fix[i] = T[i, :3, 3] - res[kf.kid]
             P = at.keyframe_points(kf.kid)
             if len(P):
                 gz[i] = float(np.median(P[:, 2]))
-    # The antenna is at the lever arm from the camera centre: compare camera centres with fixes moved
-    # by it (the camera's own rotation), as the adjustment does.
-    lever = at.lever_arm_cam_m
-    ok = np.all(np.isfinite(T.reshape(n, -1)), axis=1) & np.all(np.isfinite(fix), axis=1)
-    fix[ok] -= np.einsum('nij,j->ni', T[ok, :3, :3], lever)
     return BlockInputs([kf.name for kf in kfs], T, fix, sig, gz, dict(at.gnss_noise), adjustment or {},
                        expect_nadir, n_photos if n_photos is not None else n)
 
@@ -212,8 +212,19 @@ def check_block(b: BlockInputs, o: BlockCheckOptions | None = None) -> BlockVerd
     has = oriented & np.all(np.isfinite(b.fix_enu_m), axis=1) & np.array([n not in rejected for n in names])
     if has.any():
         r = T[has, :3, 3] - b.fix_enu_m[has]
-        figures['gnss_rigid'] = {'rms_h_m': float(np.sqrt(np.mean(np.sum(r[:, :2] ** 2, axis=1)))),
-                                 'rms_v_m': float(np.sqrt(np.mean(r[:, 2] ** 2)))}
+        rh, rv = np.hypot(r[:, 0], r[:, 1]), np.abs(r[:, 2])
+        figures['gnss_rigid'] = {'rms_h_m': float(np.sqrt(np.mean(rh ** 2))), 'rms_v_m': float(np.sqrt(np.mean(rv ** 2)))}
+        g = b.gnss_noise
+        noise = (np.array([g['used_h_m'], g['used_v_m']]) if g.get('used_h_m')
+                 else np.median(b.fix_sigma_hv_m[has], axis=0))
+        norm = np.sort(np.sqrt((rh / (noise[0] * np.sqrt(2))) ** 2 + (rv / noise[1]) ** 2) / np.sqrt(2))
+        fit = float(np.sqrt(np.mean(norm[:max(1, int(np.ceil(0.8 * len(norm))))] ** 2)))
+        figures['gnss_rigid']['normalised_rms'] = fit
+        if has.sum() >= 4 and fit > o.gnss_fit_warn:
+            findings.append(Finding('gnss_rigid', 'failed' if fit > o.gnss_fit_fail else 'warning',
+                                    f'the adjusted cameras sit {figures["gnss_rigid"]["rms_h_m"]:.2f} m H / '
+                                    f'{figures["gnss_rigid"]["rms_v_m"]:.2f} m V from their own GNSS, {fit:.1f}x its '
+                                    'noise: the georeference is off'))
     # The ground below the cameras.
     gz = np.asarray(b.ground_z_m, float).reshape(-1)
     seen = oriented & np.isfinite(gz)

@@ -931,22 +931,25 @@ class IncrementalAT:
                 break
             self.gnss_sigma_scale_hv = want
             self._solve(list(self.registered), [], list(self.points), iters)
-        # Outliers: far beyond the noise the flight shows, and beyond what the fixes state.
+        # Outliers: far beyond the noise the flight shows, and beyond what the fixes state. Fixes kept out in
+        # flight (`_gate_fix`, `_try_georeference`) are judged again against the adjusted block: a block that
+        # drifted in flight may have put good fixes out.
         if out:
-            r = self.gnss_residuals([k for k in self.registered if k not in self.gnss_rejected])
+            kept = self.gnss_residuals([k for k in self.registered if k not in self.gnss_rejected])
+            med = np.median(np.array(list(kept.values())), axis=0)
+            r = self.gnss_residuals()
             kids = list(r)
-            R = np.array([r[k] for k in kids])
+            R = np.array([r[k] for k in kids]) - med
             sig = np.array([max(out['estimated_h_m'], out['stated_h_m'] * 0.5),
                             max(out['estimated_v_m'], out['stated_v_m'] * 0.5)])
-            dev = np.column_stack([np.linalg.norm(R[:, :2] - np.median(R[:, :2], axis=0), axis=1) / (np.sqrt(2) * sig[0]),
-                                   np.abs(R[:, 2] - np.median(R[:, 2])) / sig[1]]).max(axis=1)
-            floor = np.column_stack([np.linalg.norm(R[:, :2] - np.median(R[:, :2], axis=0), axis=1)
-                                     / (np.sqrt(2) * out['stated_h_m']),
-                                     np.abs(R[:, 2] - np.median(R[:, 2])) / out['stated_v_m']]).max(axis=1)
+            h = np.linalg.norm(R[:, :2], axis=1) / np.sqrt(2)
+            dev = np.maximum(h / sig[0], np.abs(R[:, 2]) / sig[1])
+            floor = np.maximum(h / out['stated_h_m'], np.abs(R[:, 2]) / out['stated_v_m'])
             bad = np.flatnonzero((dev > self.opt.gnss_outlier_sigma) & (floor > 3.0))
-            bad = bad[np.argsort(-dev[bad])][:max(len(kids) // 5, 0)]
-            if len(bad):
-                self.gnss_rejected |= {kids[i] for i in bad}
+            bad = bad[np.argsort(-dev[bad])][:len(kids) // 5]
+            rejected = {kids[i] for i in bad}
+            if rejected != self.gnss_rejected:
+                self.gnss_rejected = rejected
                 self._solve(list(self.registered), [], list(self.points), iters)
             out['rejected'] = [self.kfs[k].name for k in sorted(self.gnss_rejected)]
         self.gnss_noise = out
