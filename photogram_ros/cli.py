@@ -28,8 +28,19 @@ COMMANDS = {
 }
 
 
+# Commands that join a DDS domain: ROS_DOMAIN_ID is checked before they start.
+ROS_COMMANDS = ('run', 'replay', 'play', 'record', 'ground-station')
+
+
+class _Parser(argparse.ArgumentParser):
+    """An argument error is one line (what and where to look), exit status 2."""
+
+    def error(self, message):
+        self.exit(2, f'{self.prog}: error: {message} (see {self.prog} --help)\n')
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog='photogram-ros', description='Onboard photogrammetric mapping for drones.')
+    parser = _Parser(prog='photogram-ros', description='Onboard photogrammetric mapping for drones.')
     sub = parser.add_subparsers(dest='command', metavar='COMMAND')
     sub.required = True
     for name, module_name in COMMANDS.items():
@@ -47,6 +58,9 @@ def main(argv=None) -> int:
     limit_malloc_arenas()
     args = build_parser().parse_args(argv)
     try:
+        if args.command in ROS_COMMANDS:
+            from photogram_ros.nodes.ros_domain import check_domain_env
+            check_domain_env()
         return int(args._run(args) or 0)
     except PhotogramError as exc:
         print(f'photogram-ros {args.command}: error: {exc}', file=sys.stderr)

@@ -733,3 +733,173 @@ def test_record_killed_with_9_keeps_all_but_its_last_seconds(tmp_path, rclpy_con
     res = cli('bag-info', out)
     assert res.returncode == 3, res.stdout + res.stderr
     assert f'{got} messages' in res.stdout and ('cut short' in res.stderr), res.stderr
+
+
+def test_output_folder_is_locked_and_not_reused_silently(tmp_path):
+    """A second writer into a locked folder is refused with the owner's pid; a folder holding a previous
+    run is refused unless --resume or --overwrite; --overwrite never deletes a folder that is not ours;
+    the lock dies with its process (kill -9 included)."""
+    from photogram_ros.errors import ConfigError
+    from photogram_ros.io.out_dir import LOCK_NAME, claim_output
+    out = tmp_path / 'out'
+    holder = subprocess.Popen([sys.executable, '-c', 'import sys, time; from photogram_ros.io.out_dir import '
+                               'claim_output; l = claim_output(sys.argv[1], command="replay"); print("locked", '
+                               'flush=True); time.sleep(60)', str(out)], cwd=ROOT, stdout=subprocess.PIPE, text=True,
+                              env={**os.environ, 'PYTHONPATH': str(ROOT)})
+    try:
+        assert holder.stdout.readline().strip() == 'locked'
+        for mode in ('new', 'resume', 'overwrite'):
+            with pytest.raises(ConfigError, match=f'being written by another photogram-ros \\(pid {holder.pid}, '
+                                                  'replay since'):
+                claim_output(out, mode)
+        res = cli('replay', SAMPLE_BAG, '--out', out, '--overwrite', '--quiet', timeout=60)
+        assert res.returncode == 2 and f'pid {holder.pid}' in res.stderr and len(res.stderr.splitlines()) == 1
+    finally:
+        holder.kill()
+        holder.wait()
+    (out / 'map').mkdir()
+    (out / 'map' / 'map.json').write_text('{}')
+    with pytest.raises(ConfigError, match='holds a previous run \\(map\\): --resume continues its map, --overwrite'):
+        claim_output(out)
+    with claim_output(out, 'resume') as lock:
+        assert lock.previous == ['map'] and (out / 'map' / 'map.json').exists()
+    with claim_output(out, 'overwrite'):
+        assert not (out / 'map').exists() and (out / LOCK_NAME).exists()
+    theirs = tmp_path / 'theirs'
+    theirs.mkdir()
+    (theirs / 'thesis.tex').write_text('x')
+    with pytest.raises(ConfigError, match='not a photogram-ros output folder'):
+        claim_output(theirs, 'overwrite')
+    assert (theirs / 'thesis.tex').exists() and not (theirs / LOCK_NAME).exists()
+
+
+def test_replay_into_a_folder_another_replay_writes_is_refused(tmp_path):
+    """Two `replay`s into one --out at once: the second is refused at once (exit 2, one line); the
+    first one goes on; after it, reusing the folder needs --resume or --overwrite."""
+    out = tmp_path / 'out'
+    first = subprocess.Popen(CLI + ['replay', str(SAMPLE_BAG), '--out', str(out), '--quiet'], cwd=ROOT,
+                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline and not (out / 'map').exists():
+            time.sleep(0.2)
+        assert (out / 'map').exists()
+        second = cli('replay', SAMPLE_BAG, '--out', out, '--quiet', timeout=60)
+        assert second.returncode == 2 and 'being written by another photogram-ros' in second.stderr
+        assert f'pid {first.pid}' in second.stderr and 'Traceback' not in second.stderr
+        assert first.poll() is None
+    finally:
+        first.kill()
+        first.wait()
+    again = cli('replay', SAMPLE_BAG, '--out', out, '--quiet', timeout=60)
+    assert again.returncode == 2 and 'holds a previous run' in again.stderr and '--resume' in again.stderr
+
+
+@pytest.mark.parametrize('args, words', [
+    (('--out', '{file}'), 'is a file, not a folder'),
+    (('--out', '{file}/sub'), 'cannot be created (a part of the path is a file)'),
+    (('--out', '/proc/photogram/out'), 'cannot be created'),
+    (('--rate', 'fast'), "invalid float value: 'fast'"),
+    (('--domain', '300'), '--domain=300 is out of range')])
+def test_bad_arguments_are_one_line_and_exit_2(tmp_path, args, words):
+    f = tmp_path / 'a_file'
+    f.write_text('x')
+    args = [a.replace('{file}', str(f)) for a in args]
+    if '--out' not in args:
+        args += ['--out', str(tmp_path / 'o')]
+    res = cli('replay', SAMPLE_BAG, *args, '--quiet', timeout=60)
+    assert res.returncode == 2 and words in res.stderr, res.stderr
+    assert len(res.stderr.strip().splitlines()) == 1 and 'Traceback' not in res.stderr
+
+
+@pytest.mark.parametrize('command', [['replay', str(SAMPLE_BAG), '--quiet'], ['play', str(SAMPLE_BAG)],
+                                     ['record', 'x', '--topics', '/a'], ['run']])
+@pytest.mark.parametrize('domain', ['233', 'abc'])
+def test_ros_domain_id_out_of_range_is_one_line(tmp_path, command, domain):
+    res = cli(*command, timeout=60, env={**os.environ, 'ROS_DOMAIN_ID': domain}, )
+    assert res.returncode == 2 and 'ROS_DOMAIN_ID' in res.stderr and '0 to 232' in res.stderr
+    assert len(res.stderr.strip().splitlines()) == 1 and 'port number' not in res.stderr
+
+
+def test_replays_take_domains_of_their_own():
+    """Two replays on one machine never share a domain (held with flock for the process's life), and
+    never take the user's own."""
+    from photogram_ros.nodes import ros_domain
+    code = ('import time; from photogram_ros.nodes.ros_domain import own_domain; '
+            'print(own_domain(avoid=%d), flush=True); time.sleep(30)')
+    mine = int(os.environ['ROS_DOMAIN_ID'])
+    procs = [subprocess.Popen([sys.executable, '-c', code % mine], cwd=ROOT, stdout=subprocess.PIPE, text=True,
+                              env={**os.environ, 'PYTHONPATH': str(ROOT)}) for _ in range(3)]
+    try:
+        got = [int(p.stdout.readline()) for p in procs]
+    finally:
+        for p in procs:
+            p.kill()
+            p.wait()
+    assert len(set(got)) == 3 and all(d in ros_domain.OWN_DOMAINS and d != mine for d in got)
+    # Freed with its process: one of them is free again.
+    d = ros_domain.own_domain(avoid=mine)
+    assert d in ros_domain.OWN_DOMAINS
+
+
+@pytest.mark.parametrize('share', [False, True])
+def test_replay_is_not_heard_on_the_users_domain(tmp_path, rclpy_context, share):
+    """A replay started from a terminal (the user's ROS_DOMAIN_ID) plays on a domain of its own: nothing
+    of it shows on the user's graph (before, two replays heard each other, and a drone on the domain would
+    hear the old flight); it says which domain, and --domain shares one."""
+    from rclpy.node import Node
+    mine = int(os.environ['ROS_DOMAIN_ID'])
+    proc = subprocess.Popen(CLI + ['replay', str(SAMPLE_BAG), '--out', str(tmp_path / 'o')]
+                            + (['--domain', str(mine)] if share else []), cwd=ROOT,
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    node = Node('h28_listener', context=rclpy_context)
+    try:
+        line = ''
+        for line in proc.stdout:
+            if 'replaying on ROS_DOMAIN_ID' in line or '[replay' in line:
+                break
+        if not share:
+            domain = int(line.split('ROS_DOMAIN_ID')[1].split(',')[0])
+            assert domain != mine and 201 <= domain <= 232
+        for line in proc.stdout:   # the replay is playing frames now
+            if '[replay' in line:
+                break
+        seen = set()
+        for _ in range(20):
+            time.sleep(0.25)
+            seen |= {i.node_name for t in ('/camera/image_raw/compressed', '/mavlink/from_fcu', '/diagnostics')
+                     for i in node.get_publishers_info_by_topic(t)}
+        seen.discard('h28_listener')
+        assert bool(seen) == share, seen
+    finally:
+        proc.kill()
+        proc.wait()
+        node.destroy_node()
+
+
+def test_a_second_publisher_of_a_graph_topic_is_a_warning(rclpy_context):
+    """A live graph that hears another node of its own name publish its topics (a second mapper on the
+    domain) says so at WARN on /diagnostics, naming the topic and what to do."""
+    from rclpy.node import Node
+
+    from photogram_ros.nodes.diagnostics import WARN
+    from photogram_ros.nodes.graph import Graph, GraphSpec, duplicate_publishers
+    graph = Graph(GraphSpec(roles=('tracker',)), context=rclpy_context)
+    graph.start(watch_period_s=0.3)
+    tracker = graph.nodes['tracker']
+    pub = next(p for p in tracker.publishers if p.topic_name not in ('/diagnostics', '/rosout', '/parameter_events'))
+    other = Node(tracker.get_name(), context=rclpy_context)
+    try:
+        time.sleep(1.0)
+        assert not any('also publishes' in p for p in tracker.diag.recent_problems(20))
+        other.create_publisher(pub.msg_type, pub.topic_name, 10)
+        deadline = time.monotonic() + 20
+        while time.monotonic() < deadline and not any('also publishes' in p for p in tracker.diag.recent_problems(20)):
+            time.sleep(0.2)
+        said = [p for p in tracker.diag.recent_problems(20) if 'also publishes' in p]
+        assert said and pub.topic_name in said[0] and 'ROS_DOMAIN_ID' in said[0]
+        assert tracker.diag.status().level == WARN
+        assert duplicate_publishers(other)   # the other one hears it too
+    finally:
+        other.destroy_node()
+        graph.shutdown()

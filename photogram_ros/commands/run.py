@@ -30,6 +30,14 @@ def add_arguments(p) -> None:
                                                             'photogram-ros export MAPDIR --densify)')
     p.add_argument('--live-map', action='store_true', help='export the in-flight map instead of matching the '
                                                            'keyframes again from the final adjustment')
+    reuse = p.add_mutually_exclusive_group()
+    reuse.add_argument('--resume', action='store_true',
+                       help='the map folder holds a finished flight: continue that map (the products in --out are '
+                            'replaced)')
+    reuse.add_argument('--overwrite', action='store_true',
+                       help='delete the previous flight\'s map folder and products first (without --resume or '
+                            '--overwrite a finished flight\'s map or a non-empty --out is refused; a map left by '
+                            'a crash, without flight_end.json, is resumed)')
 
 
 def run(a) -> int:
@@ -48,6 +56,7 @@ def run(a) -> int:
     exporting = not a.no_export and 'map' in roles
     if exporting and a.crs:
         check_output_crs(a.crs)
+    locks = claim_folders(a, roles, exporting)
     signals = StopSignals('finishing the flight (final adjustment, stereo, map flush, products)')
     if a.separate:
         return _run_separate(a, spec, signals)
@@ -67,6 +76,27 @@ def run(a) -> int:
             graph.shutdown()
         rclpy.try_shutdown()
     return _after_flight(a, roles, end.as_dict())
+
+
+def claim_folders(a, roles, exporting: bool) -> list:
+    """Lock the map folder and --out for this run (io/out_dir.py): a folder another photogram-ros writes is
+    refused; so is a finished flight's map or a non-empty --out, unless --resume or --overwrite. A map
+    left by a crash (no flight_end.json) is resumed, as the map node reloads it."""
+    from pathlib import Path
+
+    from photogram_ros.io.out_dir import claim_output
+    mode = 'resume' if a.resume else 'overwrite' if a.overwrite else 'new'
+    locks = []
+    if 'map' in roles:
+        map_dir = Path(map_dir_of(a.params))
+        crashed = (map_dir / 'map.json').exists() and not (map_dir / 'flight_end.json').exists()
+        locks.append(claim_output(map_dir, 'resume' if mode == 'new' and crashed else mode, 'run',
+                                  'map folder (map_node.map_dir)'))
+        if crashed and mode == 'new':
+            print(f'note: {map_dir} holds a map whose flight did not end (a crash): resuming it', flush=True)
+    if exporting:
+        locks.append(claim_output(a.out, mode, 'run', '--out'))
+    return locks
 
 
 def source_ended(graph) -> bool:

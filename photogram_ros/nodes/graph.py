@@ -191,10 +191,14 @@ class Graph:
                                     kwargs)
             self.executor.add_node(self.child.node)
 
-    def start(self, child_timeout_s: float = 60.0) -> None:
+    def start(self, child_timeout_s: float = 60.0, watch_period_s: float = 5.0) -> None:
         self._thread = threading.Thread(target=self._spin, daemon=True, name='graph-executor')
         self._thread.start()
         self._trimmer = start_heap_trimmer()
+        self._watch_stop = threading.Event()
+        if watch_period_s > 0:
+            threading.Thread(target=self._watch_duplicates, args=(watch_period_s,), daemon=True,
+                             name='graph-duplicates').start()
         if self.child is not None:
             self.child.wait_ready(list(self.nodes.values()), child_timeout_s)
 
@@ -211,6 +215,21 @@ class Graph:
                     return
                 print(f'graph: executor error, spinning on: {type(exc).__name__}: {exc}', file=sys.stderr, flush=True)
                 time.sleep(0.05)
+
+    def _watch_duplicates(self, period_s: float) -> None:
+        """Every `period_s`: each topic one of this process's nodes publishes, also published by another
+        node of the same name and namespace (a second mapper on this ROS 2 domain: another `run`, or a
+        replay sharing the domain), is a WARN on that node's /diagnostics with the reason, while it lasts."""
+        while not self._watch_stop.wait(period_s):
+            for role, n in list(self.nodes.items()):
+                diag = getattr(n, 'diag', None)
+                if diag is None:
+                    continue
+                try:
+                    for what in duplicate_publishers(n):
+                        diag.problem(what)
+                except Exception:   # the node is being destroyed, or the context is gone
+                    return
 
     def counts(self) -> dict:
         """role -> the node's diagnostic counters, for the nodes of this process and of the child."""
@@ -262,6 +281,8 @@ class Graph:
     def shutdown(self) -> None:
         """Stop spinning and destroy the nodes (the map node flushes its tiles to disk on destroy); the
         child process does the same with its nodes and ends."""
+        if getattr(self, '_watch_stop', None) is not None:
+            self._watch_stop.set()
         if self.child is not None:
             self.child.stop()
         if getattr(self, '_trimmer', None) is not None:
@@ -271,6 +292,30 @@ class Graph:
             n.destroy_node()
         if self.child is not None:
             self.child.node.destroy_node()
+
+
+# Topics every node publishes (or the graph's own): many publishers are normal there.
+SHARED_TOPICS = ('/diagnostics', '/rosout', '/parameter_events', '/clock')
+
+
+def duplicate_publishers(node) -> list[str]:
+    """For each topic `node` publishes, a sentence when another node of the same name and namespace
+    publishes it too: two copies of one mapper on one graph, whose data the subscribers mix up."""
+    out = []
+    mine: dict = {}
+    for pub in node.publishers:
+        mine[pub.topic_name] = mine.get(pub.topic_name, 0) + 1
+    name, ns = node.get_name(), node.get_namespace()
+    for topic, own in mine.items():
+        if topic in SHARED_TOPICS or '/graph/child/' in f'/{topic.lstrip("/")}':
+            continue
+        same = [i for i in node.get_publishers_info_by_topic(topic) if i.node_name == name and i.node_namespace == ns]
+        if len(same) > own:
+            domain = os.environ.get('ROS_DOMAIN_ID', '0') or '0'
+            out.append(f'{topic}: {len(same) - own} other {ns.rstrip("/")}/{name} also publishes it on ROS_DOMAIN_ID '
+                       f'{domain}: a second mapper (run, or replay --domain) on this graph mixes its data with '
+                       'this one\'s; give each its own ROS_DOMAIN_ID or --namespace')
+    return out
 
 
 TOPIC_CHILD_STATUS = 'graph/child/status'
