@@ -903,3 +903,67 @@ def test_a_second_publisher_of_a_graph_topic_is_a_warning(rclpy_context):
     finally:
         other.destroy_node()
         graph.shutdown()
+
+
+@pytest.fixture(scope='module')
+def photo_survey(tmp_path_factory):
+    """The simulator's tiny survey as geotagged photos (about 25)."""
+    from photogram_ros.sim.scenario import preset, simulate
+    out = tmp_path_factory.mktemp('run_photos') / 'tiny'
+    simulate(preset('tiny', photos=True, fps=1.0, line_length_m=30.0), out)
+    return out / 'photos'
+
+
+def _run_photos(tmp_path, photos, stop_after_keyframes=0):
+    cfg = tmp_path / 'photos.yaml'
+    cfg.write_text(f'camera_node:\n  ros__parameters:\n    source: {photos}\n    rate: 0.0\n'
+                   f'map_node:\n  ros__parameters:\n    map_dir: {tmp_path / "map"}\n')
+    proc = subprocess.Popen(CLI + ['run', '--params', str(cfg), '--nodes', 'camera,tracker,bundle,stereo,map',
+                                   '--out', str(tmp_path / 'products')], cwd=ROOT, stdout=subprocess.PIPE,
+                            stderr=subprocess.STDOUT, text=True)
+    try:
+        if stop_after_keyframes:
+            deadline = time.monotonic() + 300
+            while time.monotonic() < deadline and proc.poll() is None and \
+                    len(list((tmp_path / 'map' / 'keyframes').glob('*'))) < stop_after_keyframes:
+                time.sleep(0.2)
+            proc.send_signal(signal.SIGTERM)
+        out = proc.communicate(timeout=900)[0]
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    report = json.loads((tmp_path / 'products' / 'report.json').read_text())
+    return proc.returncode, out, report
+
+
+@pytest.mark.slow
+def test_run_on_a_photo_folder_maps_every_photo_before_the_flight_ends(tmp_path, photo_survey):
+    """`run` with camera_node on a photo folder at rate 0: each photo waits for the tracker, the end of
+    the source drains tracker, bundle, stereo and map before the final adjustment, and the products and
+    the report's accounting are those of a replay of the same folder (before: most photos dropped, "the
+    tracker took no keyframe", no products)."""
+    n = len(list(photo_survey.glob('*.JPG')))
+    rc, out, report = _run_photos(tmp_path, photo_survey)
+    assert rc == 0, out[-3000:]
+    assert 'end of the camera source: waiting for the tracker' in out
+    assert report['run']['frames'] == n and report['run']['ended_by'] == 'end of the camera source'
+    assert 0.7 * n <= report['keyframes_taken'] <= n
+    assert report['keyframes_oriented'] >= 0.9 * report['keyframes_taken'], report['mapping']
+    assert report['mapping']['mapped'] and report['run']['products_from'] == 'final adjustment (map_final)'
+    assert report['run']['bag_s'] > 0 and report['nodes']['/camera_node']['values']['frames'] == n
+    assert (tmp_path / 'products' / 'dsm.tif').exists()
+
+
+@pytest.mark.slow
+def test_run_stopped_by_sigterm_reports_what_the_nodes_did(tmp_path, photo_survey):
+    """SIGTERM in the middle of a photo folder: the report counts the frames and keyframes the nodes
+    handled (not "0 frames, 0.0 s of flight", not "the tracker took no keyframe")."""
+    n = len(list(photo_survey.glob('*.JPG')))
+    rc, out, report = _run_photos(tmp_path, photo_survey, stop_after_keyframes=4)
+    assert rc == 0, out[-3000:]
+    assert 'SIGTERM: ending the flight' in out
+    assert report['run']['ended_by'] == 'SIGTERM' and 4 <= report['run']['frames'] < n
+    assert report['keyframes_taken'] >= 4 and report['keyframes_oriented'] >= 3
+    assert 'took no keyframe' not in ' '.join(report['mapping']['failures'])
+    md = (tmp_path / 'products' / 'report.md').read_text()
+    assert f"{report['run']['frames']} frames" in md and ' 0.0 s of flight' not in md

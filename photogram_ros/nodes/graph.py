@@ -243,6 +243,62 @@ class Graph:
         local = any(callable(getattr(n, 'busy', None)) and n.busy() for n in self.nodes.values())
         return local or (self.child is not None and self.child.busy())
 
+    def in_flight(self) -> dict:
+        """Work the counters say is between nodes: keyframes the tracker published that the bundle
+        adjuster has not received, pair clouds stereo published that the map has not fused (a fuse can
+        take seconds). {} when nothing is."""
+        counts = self.counts()
+        out = {}
+        tr, b, st, m = (counts.get(r) for r in ('tracker', 'bundle', 'stereo', 'map'))
+        if tr is not None and b is not None:
+            n = tr.get('keyframes', 0) - b.get('keyframes_received', 0)
+            if n > 0:
+                out['keyframes not yet at the bundle adjuster'] = n
+        if st is not None and m is not None:
+            n = st.get('pairs_done', 0) - m.get('clouds', 0) - m.get('clouds_dropped', 0)
+            if n > 0:
+                out['pair clouds not yet fused by the map'] = n
+        return out
+
+    def activity(self) -> int:
+        """A number that grows while any node is still working (the sum of its diagnostic counters)."""
+        return int(sum(v for c in self.counts().values() for v in c.values() if isinstance(v, (int, float))))
+
+    def drain(self, quiet_s: float = 1.0, timeout_s: float = 300.0, stall_s: float = 30.0, say=None) -> dict:
+        """Wait until the data in the graph has gone through it: nothing in flight between nodes
+        (`in_flight`), no node busy, and no counter moved for `quiet_s`. Waits on the data, not on a
+        clock: work counted in flight while nothing moves at all (no counter, no busy node) for
+        `stall_s` was lost on the way and is not waited for; `timeout_s` bounds the whole wait.
+        `say(text)` gets a line every 10 s of waiting (what is waited for). Returns what was still in
+        flight when the wait ended ({} when the graph drained)."""
+        t0 = time.monotonic()
+        moved_at = quiet_since = t0
+        last, last_said = self.activity(), t0
+        while True:
+            time.sleep(0.1)
+            now_t, now = time.monotonic(), self.activity()
+            flight, busy = self.in_flight(), self.busy()
+            if now != last or busy:
+                moved_at = now_t
+            if now != last or busy or flight:
+                quiet_since = now_t
+            last = now
+            if now_t - quiet_since > quiet_s:
+                return {}
+            if flight and now_t - moved_at > stall_s:
+                if say is not None:
+                    say(f'end of flight: nothing moved for {stall_s:.0f} s with '
+                        + ', '.join(f'{v} {k}' for k, v in flight.items()) + ': lost on the way, not waited for')
+                return flight
+            if now_t - t0 > timeout_s:
+                if say is not None:
+                    say(f'end of flight: still working after {timeout_s:.0f} s; going on')
+                return flight or {'busy': 1}
+            if say is not None and now_t - last_said > 10.0:
+                last_said = now_t
+                doing = [f'{v} {k}' for k, v in flight.items()] + (['a node is computing (the bundle adjuster)'] if busy else [])
+                say(f'end of flight: {now_t - t0:.0f} s: waiting for ' + ('; '.join(doing) or 'the nodes to settle'))
+
     def problems(self, role: str) -> list[str]:
         """The last problems a node reported (in this process or the child)."""
         if self.child is not None and role in self.child.spec.roles:
