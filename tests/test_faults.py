@@ -967,3 +967,19 @@ def test_run_stopped_by_sigterm_reports_what_the_nodes_did(tmp_path, photo_surve
     assert 'took no keyframe' not in ' '.join(report['mapping']['failures'])
     md = (tmp_path / 'products' / 'report.md').read_text()
     assert f"{report['run']['frames']} frames" in md and ' 0.0 s of flight' not in md
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize('form', ['no metadata.yaml', 'bare .db3'])
+def test_triangulate_reads_a_bag_without_metadata(tmp_path, tiny_flight, form):
+    """A recording cut short has no metadata.yaml; bag-info and replay read it from its storage file, and
+    so does triangulate now (before: taken for a photo folder and refused); a bare .db3 file too."""
+    bag = tmp_path / 'tiny'
+    shutil.copytree(tiny_flight, bag)
+    (bag / 'metadata.yaml').unlink()
+    src = bag if form == 'no metadata.yaml' else next(bag.glob('*.db3'))
+    res = cli('triangulate', src, '--out', tmp_path / 'at', timeout=900)
+    assert res.returncode == 0, res.stderr[-3000:]
+    assert 'metadata.yaml is missing' in res.stderr or form == 'bare .db3'
+    n = int(res.stdout.split('oriented ')[1].split('/')[0])
+    assert n >= 10 and (tmp_path / 'at' / 'report.md').exists()
