@@ -983,3 +983,19 @@ def test_triangulate_reads_a_bag_without_metadata(tmp_path, tiny_flight, form):
     assert 'metadata.yaml is missing' in res.stderr or form == 'bare .db3'
     n = int(res.stdout.split('oriented ')[1].split('/')[0])
     assert n >= 10 and (tmp_path / 'at' / 'report.md').exists()
+
+
+def test_export_densify_after_a_kill_does_not_call_in_flight_poses_final(stopped_run, tmp_path):
+    """kill -9 during the final adjustment leaves no flight_end.json: `export --densify` says it matched
+    the in-flight poses, and why; with the final adjustment recorded as done it says final poses."""
+    from photogram_ros.commands.export import poses_label
+    map_dir = tmp_path / 'map'
+    shutil.copytree(stopped_run[3], map_dir)
+    (map_dir / 'flight_end.json').unlink()
+    res = cli('export', map_dir, '--densify', '--crs', 'EPSG:32632', '--out', tmp_path / 'out', '--min-pairs', '1',
+              timeout=600)
+    assert res.returncode == 0, res.stderr[-2000:]
+    assert 'from the in-flight poses (the flight did not end cleanly' in res.stdout and 'final poses' not in res.stdout
+    assert poses_label({'final_adjustment': 'done'}) == 'the final poses (final adjustment)'
+    assert 'final adjustment failed: x' in poses_label({'final_adjustment': 'failed', 'reason': 'x'})
+    assert 'final poses' not in poses_label({'final_adjustment': 'none', 'reason': 'no keyframe was oriented'})
