@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import datetime
 import json
+import re
 import os
 import shutil
 import signal
@@ -999,3 +1000,57 @@ def test_export_densify_after_a_kill_does_not_call_in_flight_poses_final(stopped
     assert poses_label({'final_adjustment': 'done'}) == 'the final poses (final adjustment)'
     assert 'final adjustment failed: x' in poses_label({'final_adjustment': 'failed', 'reason': 'x'})
     assert 'final poses' not in poses_label({'final_adjustment': 'none', 'reason': 'no keyframe was oriented'})
+
+
+# GCP rows as a surveyor's spreadsheet holds them: (name, marker id, x, y, z, sigma_h, sigma_v).
+_GCP_ROWS = [('GCP01', 0, 465698.587, 5249464.825, 489.927, 0.01, 0.02),
+             ('Pünkt2', 3, 465728.125, 5249504.5, 491.5, 0.015, 0.03),
+             ('CHK01', 7, 465708.0, 5249474.25, 489.0, 0.01, 0.02)]
+
+
+def _gcp_text(sep=' ', decimal='.', crs_pad=''):
+    def num(v):
+        return repr(float(v)).replace('.', decimal)
+    lines = ['EPSG:32632' + crs_pad] + [sep.join([n, str(m)] + [num(v) for v in vals]) for n, m, *vals in _GCP_ROWS]
+    return '\r\n'.join(lines) + '\r\n'
+
+
+@pytest.mark.parametrize('form, data', [
+    ('Excel CSV UTF-8 (BOM)', lambda: b'\xef\xbb\xbf' + _gcp_text(',').encode()),
+    ('Excel Unicode text (UTF-16 LE, BOM, tabs)', lambda: _gcp_text('\t').encode('utf-16')),
+    ('UTF-16 BE without BOM', lambda: _gcp_text(' ').encode('utf-16-be')),
+    ('European Excel CSV: ";" and decimal commas, padded CRS row', lambda: _gcp_text(';', ',', ';;;;;;').encode('cp1252')),
+    ('blanks and decimal commas', lambda: _gcp_text(' ', ',').encode()),
+    ('tabs, decimal commas, UTF-8 BOM', lambda: b'\xef\xbb\xbf' + _gcp_text('\t', ',').encode()),
+    ('Windows-1252', lambda: _gcp_text(' ').encode('cp1252'))])
+def test_control_files_from_spreadsheets_are_read(tmp_path, form, data):
+    """GCP files as spreadsheets and editors save them (before: a BOM gave "'EPSG:32632' is not a
+    coordinate reference system", UTF-16 and decimal commas messages that did not say why): the same
+    targets as the plain file, to the digit."""
+    from photogram_ros.io.control_file import read_control_file
+    plain = tmp_path / 'plain.txt'
+    plain.write_text(_gcp_text(), encoding='utf-8')
+    f = tmp_path / 'odd.txt'
+    f.write_bytes(data())
+    want, got = read_control_file(plain), read_control_file(f)
+    assert got.crs == 'EPSG:32632' and [t.name for t in got.targets] == ['GCP01', 'Pünkt2', 'CHK01']
+    assert [t.marker_id for t in got.targets] == [0, 3, 7]
+    for a, b in zip(want.targets, got.targets):
+        assert (b.lat_deg, b.lon_deg, b.h_m, b.sigma_h_m, b.sigma_v_m) == (a.lat_deg, a.lon_deg, a.h_m, a.sigma_h_m,
+                                                                           a.sigma_v_m)
+    assert got.targets[0].h_m == pytest.approx(489.927, abs=1e-9)
+
+
+@pytest.mark.parametrize('data, words', [
+    (lambda: b'PK\x03\x04' + bytes(range(256)) * 4, 'spreadsheet (.xlsx) rather than text'),
+    (lambda: _gcp_text(',', ',').encode(), 'decimal commas as well as column separators'),
+    (lambda: b'\xff\xfe' + b'E\x00P\x00\x00\xd8', 'looks like UTF-16')])
+def test_control_files_that_cannot_be_read_say_why(tmp_path, data, words):
+    from photogram_ros.errors import DataError
+    from photogram_ros.io.control_file import read_control_file
+    f = tmp_path / 'targets.csv'
+    f.write_bytes(data())
+    with pytest.raises(DataError, match=re.escape(words)):
+        read_control_file(f)
+    res = cli('replay', SAMPLE_BAG, '--out', tmp_path / 'o', '--gcp', f, '--quiet', timeout=60)
+    assert res.returncode == 2 and words in res.stderr and len(res.stderr.strip().splitlines()) == 1
