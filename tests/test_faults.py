@@ -1054,3 +1054,43 @@ def test_control_files_that_cannot_be_read_say_why(tmp_path, data, words):
         read_control_file(f)
     res = cli('replay', SAMPLE_BAG, '--out', tmp_path / 'o', '--gcp', f, '--quiet', timeout=60)
     assert res.returncode == 2 and words in res.stderr and len(res.stderr.strip().splitlines()) == 1
+
+
+@pytest.mark.parametrize('feed, words', [('forged', "wrong signature so far (signing_key differs"),
+                                         ('plain', 'unsigned so far (the autopilot does not sign'),
+                                         ('noise', 'no packet decodes (a wrong baud rate'),
+                                         ('good', None)])
+def test_mavlink_node_that_gets_nothing_usable_warns_with_the_reason(rclpy_context, feed, words):
+    """A wrong signing key rejects every packet (right), and /diagnostics now says WARN and why, instead
+    of OK with no GNSS at all; so do an unsigned autopilot and bytes that hold no MAVLink."""
+    from pymavlink.dialects.v20 import ardupilotmega as mavlink2
+
+    from photogram_ros.io.mavlink import signing_key
+    from photogram_ros.nodes.diagnostics import OK, WARN
+    from photogram_ros.nodes.mavlink_node import MavlinkNode
+    from test_mavlink_node import _gps_stream
+
+    def signed(key):
+        mav = mavlink2.MAVLink(None, srcSystem=1, srcComponent=1)
+        mav.signing.secret_key, mav.signing.sign_outgoing, mav.signing.timestamp = key, True, 1
+        return mav
+    data = {'good': lambda: _gps_stream(signed(signing_key('fleet secret')), lat0=471000000),
+            'forged': lambda: _gps_stream(signed(signing_key('guess')), lat0=471000000),
+            'plain': lambda: _gps_stream(mavlink2.MAVLink(None, srcSystem=1, srcComponent=1), lat0=471000000),
+            'noise': lambda: np.random.default_rng(3).integers(0, 256, 4000, dtype=np.uint8).tobytes()
+            .replace(b'\xfd', b'\x00').replace(b'\xfe', b'\x00')}[feed]()
+    node = MavlinkNode({'signing_key': 'fleet secret', 'diagnostics_period_s': 60.0}, context=rclpy_context)
+    try:
+        node.diag.status()   # the start's status out of the way
+        node.feed(data, None)
+        node._update_diagnostics()
+        st = node.diag.status()
+        if words is None:
+            assert st.level == OK and node.published['fix'] == 10, st.message
+        else:
+            assert st.level == WARN and words in st.message and node.published['fix'] == 0, st.message
+            said = node.diag.counts()['problems']
+            node._update_diagnostics()   # nothing new arrived: nothing new to say
+            assert node.diag.counts()['problems'] == said
+    finally:
+        node.destroy_node()
