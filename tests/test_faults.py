@@ -1094,3 +1094,22 @@ def test_mavlink_node_that_gets_nothing_usable_warns_with_the_reason(rclpy_conte
             assert node.diag.counts()['problems'] == said
     finally:
         node.destroy_node()
+
+
+def test_tile_url_with_a_5000_digit_zoom_is_a_404_not_a_traceback(capsys):
+    import urllib.error
+    import urllib.request
+
+    from photogram_ros.web.server import WebServer
+    from test_ground_page import Provider
+    srv = WebServer(Provider(), '127.0.0.1', 0).start()
+    try:
+        for path in (f'tiles/drone1/{"9" * 5000}/1/1.png', f'tiles/drone1/19/{"7" * 400}/1.png'):
+            with pytest.raises(urllib.error.HTTPError) as exc:
+                urllib.request.urlopen(srv.url + path, timeout=10)
+            assert exc.value.code == 404
+        with urllib.request.urlopen(srv.url + 'status.json', timeout=10) as r:   # still serving
+            assert r.status == 200
+    finally:
+        srv.stop()
+    assert 'Traceback' not in capsys.readouterr().err

@@ -25,7 +25,7 @@ from pathlib import Path
 from photogram_ros.errors import ConfigError
 
 STATIC = Path(__file__).resolve().parent / 'static'
-_TILE = re.compile(r'^/tiles/([A-Za-z0-9_.-]+)/(\d+)/(\d+)/(\d+)\.png$')
+_TILE = re.compile(r'^/tiles/([A-Za-z0-9_.-]+)/(\d{1,2})/(\d{1,10})/(\d{1,10})\.png$')   # longer numbers: no tile (404)
 _DRONE = re.compile(r'^/drones/([A-Za-z0-9_.-]+)/(coverage|track|targets)\.geojson$')
 _PLAN = re.compile(r'^/drones/([A-Za-z0-9_.-]+)/refly\.plan$')
 
