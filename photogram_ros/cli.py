@@ -51,6 +51,21 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def os_error_text(exc: OSError) -> str:
+    """An OSError as a user can act on it: the path, and what is wrong with it."""
+    import errno
+    where = ' -> '.join(str(f) for f in (exc.filename, exc.filename2) if f) or 'a file'
+    if isinstance(exc, (FileExistsError, NotADirectoryError)):
+        return f'{where}: a file is in the way of a folder ({exc.strerror}): choose another path'
+    if isinstance(exc, PermissionError):
+        return f'{where}: permission denied: choose a path you can write'
+    if exc.errno == errno.ENOSPC:
+        return f'{where}: the disk is full'
+    if isinstance(exc, FileNotFoundError):
+        return f'{where}: no such file or folder'
+    return f'{where}: {exc.strerror or exc}'
+
+
 def main(argv=None) -> int:
     # Cap glibc's malloc arenas before any command starts rclpy (its DDS threads would each take
     # one): see nodes/process_memory.py. Cheap and harmless for the commands without threads.
@@ -64,6 +79,9 @@ def main(argv=None) -> int:
         return int(args._run(args) or 0)
     except PhotogramError as exc:
         print(f'photogram-ros {args.command}: error: {exc}', file=sys.stderr)
+        return 2
+    except OSError as exc:   # a path that cannot be written or read: said in one line, no traceback
+        print(f'photogram-ros {args.command}: error: {os_error_text(exc)}', file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         return 130

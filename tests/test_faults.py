@@ -1113,3 +1113,18 @@ def test_tile_url_with_a_5000_digit_zoom_is_a_404_not_a_traceback(capsys):
     finally:
         srv.stop()
     assert 'Traceback' not in capsys.readouterr().err
+
+
+@pytest.mark.parametrize('command', [['triangulate', str(SAMPLE_BAG), '--out', '{out}'],
+                                     ['ground-station', '--out', '{out}', '--duration', '1'],
+                                     ['record', '{out}', '--topics', '/a', '--discovery-timeout', '1']])
+def test_out_path_that_is_a_file_is_one_line_without_traceback(tmp_path, command):
+    f = tmp_path / 'a_file'
+    f.write_text('x')
+    out = f if command[0] != 'record' else f / 'bag'
+    t0 = time.monotonic()
+    res = cli(*[c.replace('{out}', str(out)) for c in command], timeout=120)
+    assert res.returncode == 2 and 'Traceback' not in res.stderr, res.stderr[-2000:]
+    last = res.stderr.strip().splitlines()[-1]
+    assert str(f) in last and ('a file' in last or 'is a file' in last), last
+    assert time.monotonic() - t0 < 60

@@ -104,6 +104,8 @@ def run(a) -> int:
         self_calibrate=refine, matching=matching,
         exif_altitude=a.exif_altitude, takeoff_h_m=a.takeoff_altitude_m, takeoff_heights=a.takeoff_heights,
         vetting=ControlVettingOptions(contradicted_heights='horizontal' if a.gcp_heights == 'checked' else 'use'))
+    from photogram_ros.io.out_dir import usable_folder
+    usable_folder(a.out)   # a file or an uncreatable path: said now, not after the adjustment
     log = (lambda text: print(text, file=sys.stderr))
     res = (_triangulate_bag(a.input, a.out, opt, log) if _bag_without_metadata(a.input)
            else triangulate(a.input, a.out, opt, log=log))
