@@ -1128,3 +1128,44 @@ def test_out_path_that_is_a_file_is_one_line_without_traceback(tmp_path, command
     last = res.stderr.strip().splitlines()[-1]
     assert str(f) in last and ('a file' in last or 'is a file' in last), last
     assert time.monotonic() - t0 < 60
+
+
+class _Counts:
+    """Graph.drain's inputs, scripted: counters per call, and whether a node is busy."""
+
+    def __init__(self, script):
+        self.script, self.k = script, 0
+
+    def __call__(self):
+        c = self.script(self.k)
+        self.k += 1
+        return c
+
+
+def _graph(counts, busy=lambda: False):
+    from photogram_ros.nodes.graph import Graph
+    g = Graph.__new__(Graph)
+    g.counts, g.busy = counts, busy
+    return g
+
+
+def test_drain_does_not_wait_its_timeout_on_work_lost_between_nodes():
+    """Two keyframes counted as published by the tracker never reach the bundle adjuster (lost on the
+    way) and nothing moves: the end of flight waits stall_s for them, says so, and goes on; before, it
+    waited the whole drain timeout (300 s) on a counter, at each of the end-of-flight steps."""
+    said = []
+    lost = _graph(_Counts(lambda k: {'tracker': {'keyframes': 12}, 'bundle': {'keyframes_received': 10}}))
+    left = lost.drain(quiet_s=0.3, timeout_s=120.0, stall_s=1.0, say=said.append)
+    assert left == {'keyframes not yet at the bundle adjuster': 2}
+    assert said and 'nothing moved for 1 s with 2 keyframes not yet at the bundle adjuster' in said[-1]
+    # Work that moves is waited for: the bundle receives one keyframe a call until all 12 are in.
+    moving = _graph(_Counts(lambda k: {'tracker': {'keyframes': 12},
+                                       'bundle': {'keyframes_received': min(12, k // 5)}}))
+    assert moving.drain(quiet_s=0.3, timeout_s=120.0, stall_s=1.0) == {}
+    assert moving.counts.k >= 60
+    # A busy node (the final adjustment) is not given up on while it computes, counters still.
+    t_end = time.monotonic() + 2.5
+    busy = _graph(_Counts(lambda k: {'tracker': {'keyframes': 12},
+                                     'bundle': {'keyframes_received': 12 if time.monotonic() > t_end else 10}}),
+                  busy=lambda: time.monotonic() < t_end)
+    assert busy.drain(quiet_s=0.3, timeout_s=120.0, stall_s=1.0) == {}
