@@ -85,10 +85,12 @@ def run(a) -> int:
         if not signals.signal_name:   # the source ended: what it sent goes through the graph first
             print('end of the camera source: waiting for the tracker, bundle, stereo and map to take every '
                   'frame', flush=True)
-            graph.drain(timeout_s=600.0, say=say)
+            graph.drain(timeout_s=600.0, say=say, work_only=True)
         print(f'{signals.signal_name or "end of the camera source"}: ending the flight (final adjustment, stereo, '
               'map flush)', flush=True)
-        end = graph.finish_flight(settle=lambda: graph.drain(timeout_s=600.0, say=say))
+        # Each end-of-flight step's output goes through before the next; live inputs may still arrive
+        # (a camera on the ground), so a step waits at most a minute.
+        end = graph.finish_flight(settle=lambda: graph.drain(timeout_s=60.0, say=say, work_only=True))
         counts = graph.counts()
         names = {role: getattr(getattr(n, 'diag', None), 'name', f'/{NODES[role][2]}') for role, n in graph.nodes.items()}
         if pacer is not None:

@@ -260,23 +260,33 @@ class Graph:
                 out['pair clouds not yet fused by the map'] = n
         return out
 
-    def activity(self) -> int:
-        """A number that grows while any node is still working (the sum of its diagnostic counters)."""
-        return int(sum(v for c in self.counts().values() for v in c.values() if isinstance(v, (int, float))))
+    def activity(self, work_only: bool = False) -> int:
+        """A number that grows while any node is still working: the sum of the nodes' diagnostic
+        counters; `work_only`: only the counters of the mapping work (WORK_COUNTERS), not those a live
+        input moves whatever the graph does (MAVLink packets, camera frames, GNSS fixes)."""
+        total = 0
+        for role, c in self.counts().items():
+            for k, v in c.items():
+                if isinstance(v, (int, float)) and (not work_only or k in WORK_COUNTERS.get(role, ())
+                                                    or k.startswith(('pairs_skipped_', 'keyframes_not_oriented'))):
+                    total += v
+        return int(total)
 
-    def drain(self, quiet_s: float = 1.0, timeout_s: float = 300.0, stall_s: float = 30.0, say=None) -> dict:
+    def drain(self, quiet_s: float = 1.0, timeout_s: float = 300.0, stall_s: float = 30.0, say=None,
+              work_only: bool = False) -> dict:
         """Wait until the data in the graph has gone through it: nothing in flight between nodes
         (`in_flight`), no node busy, and no counter moved for `quiet_s`. Waits on the data, not on a
         clock: work counted in flight while nothing moves at all (no counter, no busy node) for
         `stall_s` was lost on the way and is not waited for; `timeout_s` bounds the whole wait.
-        `say(text)` gets a line every 10 s of waiting (what is waited for). Returns what was still in
-        flight when the wait ended ({} when the graph drained)."""
+        `say(text)` gets a line every 10 s of waiting (what is waited for). `work_only`: a live graph's
+        inputs keep moving their counters: only the mapping work's count (activity). Returns what was
+        still in flight when the wait ended ({} when the graph drained)."""
         t0 = time.monotonic()
         moved_at = quiet_since = t0
-        last, last_said = self.activity(), t0
+        last, last_said = self.activity(work_only), t0
         while True:
             time.sleep(0.1)
-            now_t, now = time.monotonic(), self.activity()
+            now_t, now = time.monotonic(), self.activity(work_only)
             flight, busy = self.in_flight(), self.busy()
             if now != last or busy:
                 moved_at = now_t
@@ -349,6 +359,13 @@ class Graph:
         if self.child is not None:
             self.child.node.destroy_node()
 
+
+# The counters of the mapping work itself, per role (Graph.activity(work_only=True)).
+WORK_COUNTERS = {'tracker': ('keyframes',),
+                 'bundle': ('keyframes_received', 'keyframes_oriented', 'keyframes_failed', 'full_adjustments',
+                            'keyframes_adjusted'),
+                 'stereo': ('images', 'pairs_done', 'pairs_failed'),
+                 'map': ('clouds', 'clouds_dropped', 'keyframes_saved', 'points_fused')}
 
 # Topics every node publishes (or the graph's own): many publishers are normal there.
 SHARED_TOPICS = ('/diagnostics', '/rosout', '/parameter_events', '/clock')
