@@ -1169,3 +1169,89 @@ def test_drain_does_not_wait_its_timeout_on_work_lost_between_nodes():
                                      'bundle': {'keyframes_received': 12 if time.monotonic() > t_end else 10}}),
                   busy=lambda: time.monotonic() < t_end)
     assert busy.drain(quiet_s=0.3, timeout_s=120.0, stall_s=1.0) == {}
+
+
+@pytest.mark.parametrize('storage', ['sqlite3', 'mcap'])
+def test_record_stopped_by_sigterm_closes_a_complete_bag(tmp_path, rclpy_context, storage):
+    """SIGTERM (a supervisor's stop) ends `record` like Ctrl-C: exit 0, metadata.yaml written, nothing lost
+    or damaged; a sqlite3 bag is a plain database again (no -wal beside it)."""
+    from rclpy.node import Node
+    from sensor_msgs.msg import NavSatFix
+
+    from photogram_ros.io.bag import BagReader
+    node = Node(f'h28_term_{storage}', context=rclpy_context)
+    pub = node.create_publisher(NavSatFix, '/h28/term', 10)
+    out = tmp_path / 'rec'
+    proc = subprocess.Popen(CLI + ['record', str(out), '--topics', '/h28/term', '--storage', storage], cwd=ROOT,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        t0 = time.monotonic()
+        _publish_while(proc, node, pub, lambda k: NavSatFix(latitude=47.0), lambda: out.exists()
+                       or time.monotonic() - t0 > 60)
+        t1 = time.monotonic()
+        _publish_while(proc, node, pub, lambda k: NavSatFix(latitude=47.0), lambda: time.monotonic() - t1 > 3.0)
+        proc.send_signal(signal.SIGTERM)
+        stdout, stderr = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        node.destroy_node()
+    assert proc.returncode == 0, stderr
+    n = int(stdout.split('recorded ')[1].split()[0])
+    assert n > 50 and (out / 'metadata.yaml').exists() and not list(out.glob('*-wal'))
+    with BagReader(out) as bag:
+        assert not bag.damaged and bag.topics()['/h28/term'].count == n == bag.topics()['/h28/term'].expected
+    if storage == 'sqlite3':
+        db = next(out.glob('*.db3'))
+        assert sqlite3.connect(db).execute('PRAGMA journal_mode').fetchone()[0] == 'delete'
+
+
+def test_run_refuses_a_locked_or_finished_map_folder(tmp_path):
+    """`run` into a map folder another process writes: refused at once with its pid; a finished flight's map
+    (flight_end.json) needs --resume or --overwrite; a map left by a crash (no flight_end.json) is resumed."""
+    from photogram_ros.io.map_store import MapStore
+    map_dir = tmp_path / 'map'
+    cfg = tmp_path / 'onboard.yaml'
+    cfg.write_text(f'map_node:\n  ros__parameters:\n    map_dir: {map_dir}\n')
+    holder = subprocess.Popen([sys.executable, '-c', 'import sys, time; from photogram_ros.io.out_dir import '
+                               'claim_output; l = claim_output(sys.argv[1], command="run"); print("locked", '
+                               'flush=True); time.sleep(60)', str(map_dir)], cwd=ROOT, stdout=subprocess.PIPE,
+                              text=True, env={**os.environ, 'PYTHONPATH': str(ROOT)})
+    try:
+        assert holder.stdout.readline().strip() == 'locked'
+        res = cli('run', '--params', cfg, '--out', tmp_path / 'products', timeout=60)
+        assert res.returncode == 2 and f'pid {holder.pid}, run since' in res.stderr, res.stderr
+        assert 'map folder (map_node.map_dir)' in res.stderr and 'Traceback' not in res.stderr
+    finally:
+        holder.kill()
+        holder.wait()
+    from photogram_ros.commands.run import claim_folders
+    import argparse
+    args = argparse.Namespace(params=str(cfg), out=str(tmp_path / 'products'), resume=False, overwrite=False)
+    MapStore(map_dir, cell_m=0.1, tile_cells=64)   # a map whose flight did not end: resumed
+    for lock in claim_folders(args, ('map',), True):
+        lock.close()
+    MapStore(map_dir).save_flight_end({'final_adjustment': 'done', 'reason': '', 'errors': []})
+    from photogram_ros.errors import ConfigError
+    with pytest.raises(ConfigError, match='holds a previous run'):
+        claim_folders(args, ('map',), False)
+    args.overwrite = True
+    for lock in claim_folders(args, ('map',), True):
+        lock.close()
+    assert not (map_dir / 'flight_end.json').exists()
+
+
+def test_odm_gcp_list_from_a_spreadsheet_is_read(tmp_path):
+    """OpenDroneMap's gcp_list.txt saved with a BOM and decimal commas (a European spreadsheet): read as the
+    plain one."""
+    from photogram_ros.io.control_file import read_gcp_list
+    rows = ['EPSG:32632', '465698.587 5249464.825 489.927 1234.5 987.25 IMG_0001.JPG GCP01',
+            '465728.125 5249504.5 491.5 2000 1500 IMG_0002.JPG CHK01']
+    plain, odd = tmp_path / 'plain.txt', tmp_path / 'odd.txt'
+    plain.write_text('\n'.join(rows) + '\n')
+    odd.write_bytes(b'\xef\xbb\xbf' + '\r\n'.join(r.replace('.', ',') if k else r
+                                                 for k, r in enumerate(rows)).replace(',JPG', '.JPG').encode())
+    a, b = read_gcp_list(plain), read_gcp_list(odd)
+    assert b.crs == 'EPSG:32632' and b.points == a.points and b.roles == a.roles
+    assert {k: {n: list(v) for n, v in d.items()} for k, d in b.image_uv.items()} == \
+        {k: {n: list(v) for n, v in d.items()} for k, d in a.image_uv.items()}

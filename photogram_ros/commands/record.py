@@ -20,6 +20,7 @@ def add_arguments(p) -> None:
 
 def run(a) -> int:
     import signal
+    import threading
 
     import rclpy
 
@@ -29,15 +30,15 @@ def run(a) -> int:
     if not 0.1 <= a.checkpoint <= 600:
         raise ConfigError(f'--checkpoint {a.checkpoint}: choose 0.1 to 600 s')
 
-    def stop(*_):   # SIGTERM ends the recording as Ctrl-C does: the bag is closed with its metadata.yaml
-        raise KeyboardInterrupt
-    signal.signal(signal.SIGTERM, stop)
-    init_ros()   # Ctrl-C is a KeyboardInterrupt too
+    stop = threading.Event()   # SIGINT and SIGTERM end the recording between two messages: the bag closes
+    for sig in (signal.SIGINT, signal.SIGTERM):   # with its metadata.yaml
+        signal.signal(sig, lambda *_: stop.set())
+    init_ros()
     rec = None
     try:
         rec = Recorder(a.out, [t.strip() for t in a.topics.split(',') if t.strip()],
                        storage=a.storage, checkpoint_s=a.checkpoint)
-        n = rec.run(duration_s=a.duration, max_count=a.count, discovery_timeout_s=a.discovery_timeout)
+        n = rec.run(duration_s=a.duration, max_count=a.count, discovery_timeout_s=a.discovery_timeout, stop=stop)
         print(f'recorded {n} messages to {a.out}')
         return 0
     finally:

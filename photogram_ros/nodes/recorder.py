@@ -47,9 +47,12 @@ class Recorder:
             self.writer.write_raw(topic, time.time_ns(), data)
             self.count += 1
 
-    def run(self, duration_s: float = 0.0, max_count: int = 0, discovery_timeout_s: float = 10.0) -> int:
+    def run(self, duration_s: float = 0.0, max_count: int = 0, discovery_timeout_s: float = 10.0,
+            stop: threading.Event | None = None) -> int:
+        """Record until `duration_s`, `max_count` messages, `stop` set (a signal) or Ctrl-C; returns the count."""
+        stop = stop or threading.Event()
         start = time.monotonic()
-        while len(self._subs) < len(self.topics):
+        while len(self._subs) < len(self.topics) and not stop.is_set():
             self._subscribe_discovered()
             if time.monotonic() - start > discovery_timeout_s:
                 missing = sorted(set(self.topics) - set(self._subs))
@@ -60,7 +63,7 @@ class Recorder:
             rclpy.spin_once(self.node, timeout_sec=0.05)
         start = time.monotonic()
         try:
-            while rclpy.ok():
+            while rclpy.ok() and not stop.is_set():
                 rclpy.spin_once(self.node, timeout_sec=0.05)
                 if duration_s and time.monotonic() - start >= duration_s:
                     break
