@@ -1019,7 +1019,8 @@ def _gcp_text(sep=' ', decimal='.', crs_pad=''):
     ('Excel CSV UTF-8 (BOM)', lambda: b'\xef\xbb\xbf' + _gcp_text(',').encode()),
     ('Excel Unicode text (UTF-16 LE, BOM, tabs)', lambda: _gcp_text('\t').encode('utf-16')),
     ('UTF-16 BE without BOM', lambda: _gcp_text(' ').encode('utf-16-be')),
-    ('European Excel CSV: ";" and decimal commas, padded CRS row', lambda: _gcp_text(';', ',', ';;;;;;').encode('cp1252')),
+    ('European Excel CSV: ";" and decimal commas, padded CRS row',
+     lambda: _gcp_text(';', ',', ';;;;;;').encode('cp1252')),
     ('blanks and decimal commas', lambda: _gcp_text(' ', ',').encode()),
     ('tabs, decimal commas, UTF-8 BOM', lambda: b'\xef\xbb\xbf' + _gcp_text('\t', ',').encode()),
     ('Windows-1252', lambda: _gcp_text(' ').encode('cp1252'))])

@@ -92,7 +92,8 @@ def run(a) -> int:
         # (a camera on the ground), so a step waits at most a minute.
         end = graph.finish_flight(settle=lambda: graph.drain(timeout_s=60.0, say=say, work_only=True))
         counts = graph.counts()
-        names = {role: getattr(getattr(n, 'diag', None), 'name', f'/{NODES[role][2]}') for role, n in graph.nodes.items()}
+        names = {role: getattr(getattr(n, 'diag', None), 'name', f'/{NODES[role][2]}')
+                 for role, n in graph.nodes.items()}
         if pacer is not None:
             pacer.stop()
     finally:

@@ -306,7 +306,8 @@ class Graph:
                 return flight or {'busy': 1}
             if say is not None and now_t - last_said > 10.0:
                 last_said = now_t
-                doing = [f'{v} {k}' for k, v in flight.items()] + (['a node is computing (the bundle adjuster)'] if busy else [])
+                doing = [f'{v} {k}' for k, v in flight.items()]
+                doing += ['a node is computing (the bundle adjuster)'] if busy else []
                 say(f'end of flight: {now_t - t0:.0f} s: waiting for ' + ('; '.join(doing) or 'the nodes to settle'))
 
     def problems(self, role: str) -> list[str]:
