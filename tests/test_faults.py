@@ -1256,3 +1256,12 @@ def test_odm_gcp_list_from_a_spreadsheet_is_read(tmp_path):
     assert b.crs == 'EPSG:32632' and b.points == a.points and b.roles == a.roles
     assert {k: {n: list(v) for n, v in d.items()} for k, d in b.image_uv.items()} == \
         {k: {n: list(v) for n, v in d.items()} for k, d in a.image_uv.items()}
+
+
+def test_child_process_topics_are_the_parents_own():
+    """A replay's parent and child talk on topics named after the parent's pid: two replays sharing a
+    domain (--domain) never take each other's "stop" or status."""
+    from photogram_ros.nodes.graph import TOPIC_CHILD_COMMAND, TOPIC_CHILD_STATUS, child_topic
+    assert child_topic(TOPIC_CHILD_COMMAND, 'p12') == 'graph/child/p12/command'
+    assert child_topic(TOPIC_CHILD_STATUS, 'p12') != child_topic(TOPIC_CHILD_STATUS, 'p13')
+    assert child_topic(TOPIC_CHILD_STATUS, '') == TOPIC_CHILD_STATUS

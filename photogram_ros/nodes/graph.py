@@ -394,6 +394,15 @@ def duplicate_publishers(node) -> list[str]:
 
 TOPIC_CHILD_STATUS = 'graph/child/status'
 TOPIC_CHILD_COMMAND = 'graph/child/command'
+# A parent names its child's topics after its pid (graph/child/p1234/status): two replays on one domain
+# (--domain) then never take each other's commands (a "stop") or status.
+GRAPH_TOKEN_ENV = 'PHOTOGRAM_GRAPH_TOKEN'
+
+
+def child_topic(base: str, token: str) -> str:
+    """'graph/child/status', 'p1234' -> 'graph/child/p1234/status'."""
+    head, _, tail = base.rpartition('/')
+    return f'{head}/{token}/{tail}' if token else base
 
 
 def _reliable(depth: int = 10):
@@ -412,8 +421,9 @@ class ChildGraph:
         self._status: dict = {}
         self._cond = threading.Condition()
         self._seq = 0
-        self._pub = self.node.create_publisher(String, TOPIC_CHILD_COMMAND, _reliable())
-        self.node.create_subscription(String, TOPIC_CHILD_STATUS, self._on_status, _reliable())
+        token = f'p{os.getpid()}'
+        self._pub = self.node.create_publisher(String, child_topic(TOPIC_CHILD_COMMAND, token), _reliable())
+        self.node.create_subscription(String, child_topic(TOPIC_CHILD_STATUS, token), self._on_status, _reliable())
         ctx = node_kwargs.get('context')
         env = dict(os.environ)
         if ctx is not None and getattr(ctx, 'get_domain_id', None):
@@ -426,6 +436,7 @@ class ChildGraph:
         env.setdefault('MALLOC_ARENA_MAX', str(DEFAULT_ARENAS))
         # The child stops when this pipe closes: when this process ends, however it ends.
         env[WATCH_PARENT_ENV] = '1'
+        env[GRAPH_TOKEN_ENV] = token
         code = 'import sys; from photogram_ros.nodes.graph import child_main; sys.exit(child_main())'
         self.proc = subprocess.Popen([sys.executable, '-c', code, json.dumps(asdict(spec))], env=env,
                                      stdin=subprocess.PIPE)
@@ -536,7 +547,8 @@ def child_main(argv=None) -> int:
         graph = Graph(spec)
         ctl = Node('graph_child', **({'namespace': spec.namespace} if spec.namespace else {}))
         state = {'done': 0, 'errors': {}}
-        pub = ctl.create_publisher(String, TOPIC_CHILD_STATUS, _reliable())
+        token = os.environ.get(GRAPH_TOKEN_ENV, '')
+        pub = ctl.create_publisher(String, child_topic(TOPIC_CHILD_STATUS, token), _reliable())
         subs = {}
         for n in graph.nodes.values():
             for sub in n.subscriptions:
@@ -560,7 +572,7 @@ def child_main(argv=None) -> int:
             state['done'] = max(state['done'], c['seq'])
             status()
         # Commands in their own group: a flush taking seconds must not stop the status reports.
-        ctl.create_subscription(String, TOPIC_CHILD_COMMAND, command, _reliable(),
+        ctl.create_subscription(String, child_topic(TOPIC_CHILD_COMMAND, token), command, _reliable(),
                                 callback_group=MutuallyExclusiveCallbackGroup())
         ctl.create_timer(0.2, status, callback_group=MutuallyExclusiveCallbackGroup())
         graph.executor.add_node(ctl)
