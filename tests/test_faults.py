@@ -1008,10 +1008,11 @@ _GCP_ROWS = [('GCP01', 0, 465698.587, 5249464.825, 489.927, 0.01, 0.02),
              ('CHK01', 7, 465708.0, 5249474.25, 489.0, 0.01, 0.02)]
 
 
-def _gcp_text(sep=' ', decimal='.', crs_pad=''):
+def _gcp_text(sep=' ', decimal='.', crs_pad='', header=False):
     def num(v):
         return repr(float(v)).replace('.', decimal)
-    lines = ['EPSG:32632' + crs_pad] + [sep.join([n, str(m)] + [num(v) for v in vals]) for n, m, *vals in _GCP_ROWS]
+    lines = ['EPSG:32632' + crs_pad] + ([sep.join(['name', 'marker_id', 'x', 'y', 'z', 'sigma_h_m', 'sigma_v_m'])]
+                                       if header else []) + [sep.join([n, str(m)] + [num(v) for v in vals]) for n, m, *vals in _GCP_ROWS]
     return '\r\n'.join(lines) + '\r\n'
 
 
@@ -1023,7 +1024,8 @@ def _gcp_text(sep=' ', decimal='.', crs_pad=''):
      lambda: _gcp_text(';', ',', ';;;;;;').encode('cp1252')),
     ('blanks and decimal commas', lambda: _gcp_text(' ', ',').encode()),
     ('tabs, decimal commas, UTF-8 BOM', lambda: b'\xef\xbb\xbf' + _gcp_text('\t', ',').encode()),
-    ('Windows-1252', lambda: _gcp_text(' ').encode('cp1252'))])
+    ('Windows-1252', lambda: _gcp_text(' ').encode('cp1252')),
+    ('";" with a header row', lambda: _gcp_text(';', '.', ';;;;;;', header=True).encode())])
 def test_control_files_from_spreadsheets_are_read(tmp_path, form, data):
     """GCP files as spreadsheets and editors save them (before: a BOM gave "'EPSG:32632' is not a
     coordinate reference system", UTF-16 and decimal commas messages that did not say why): the same

@@ -21,7 +21,7 @@ keyframes itself):
 - What spreadsheets write is read too (`read_text_lines`, `split_row`): UTF-8 with a byte-order mark
   (Excel's "CSV UTF-8"), UTF-16 (Excel's "Unicode text"), Windows-1252; ';' as the column separator
   with decimal commas (Excel in a European locale), decimal commas between blanks or tabs, quoted
-  fields and the empty columns Excel pads rows with. A row whose commas cannot be told apart (commas
+  fields, the empty columns Excel pads rows with, and a header row after the CRS line. A row whose commas cannot be told apart (commas
   both between the columns and in the numbers) is refused, and the error says so.
 
 For a folder of photos, `read_gcp_list` reads OpenDroneMap's own gcp_list.txt, where the points were
@@ -128,6 +128,14 @@ def split_row(line: str, where: str, expected=(5, 7)) -> list[str]:
     return values
 
 
+def _is_number(s: str) -> bool:
+    try:
+        float(s.replace(',', '.') if _DECIMAL_COMMA.fullmatch(s) else s)
+        return True
+    except ValueError:
+        return False
+
+
 def _number(s: str, what: str, where: str) -> float:
     if _DECIMAL_COMMA.fullmatch(s):
         s = s.replace(',', '.')
@@ -176,6 +184,8 @@ def read_control_file(path: str | Path, check_names=(), heights: str = 'auto') -
     for n, ln in lines[1:]:
         where = f'{path} line {n}'
         v = split_row(ln, where)
+        if not rows and n == lines[1][0] and len(v) in (5, 7) and not any(_is_number(x) for x in v[1:5]):
+            continue   # a spreadsheet's header row ("name marker_id x y z ...")
         if len(v) not in (5, 7):
             raise DataError(f'{where}: expected "{FORMAT_LINE[2:]}" (5 or 7 values), got {len(v)}: {ln!r}')
         name = v[0]
