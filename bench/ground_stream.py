@@ -59,6 +59,7 @@ def main():
     th.start()
     with tempfile.TemporaryDirectory() as out:
         res = subprocess.run([sys.executable, '-m', 'photogram_ros.cli', 'replay', a.bag, '--out', out, '--quiet',
+                              '--domain', os.environ['ROS_DOMAIN_ID'],   # this listener's: a replay has its own
                               '--rate', str(a.rate)], cwd=ROOT, capture_output=True, text=True)
     stop.set()
     th.join(5)

@@ -29,8 +29,19 @@ COMMANDS = {
 }
 
 
+# Commands that join a DDS domain: ROS_DOMAIN_ID is checked before they start.
+ROS_COMMANDS = ('run', 'replay', 'play', 'record', 'ground-station')
+
+
+class _Parser(argparse.ArgumentParser):
+    """An argument error is one line (what and where to look), exit status 2."""
+
+    def error(self, message):
+        self.exit(2, f'{self.prog}: error: {message} (see {self.prog} --help)\n')
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog='photogram-ros', description='Onboard photogrammetric mapping for drones.')
+    parser = _Parser(prog='photogram-ros', description='Onboard photogrammetric mapping for drones.')
     sub = parser.add_subparsers(dest='command', metavar='COMMAND')
     sub.required = True
     for name, module_name in COMMANDS.items():
@@ -41,6 +52,21 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def os_error_text(exc: OSError) -> str:
+    """An OSError as a user can act on it: the path, and what is wrong with it."""
+    import errno
+    where = ' -> '.join(str(f) for f in (exc.filename, exc.filename2) if f) or 'a file'
+    if isinstance(exc, (FileExistsError, NotADirectoryError)):
+        return f'{where}: a file is in the way of a folder ({exc.strerror}): choose another path'
+    if isinstance(exc, PermissionError):
+        return f'{where}: permission denied: choose a path you can write'
+    if exc.errno == errno.ENOSPC:
+        return f'{where}: the disk is full'
+    if isinstance(exc, FileNotFoundError):
+        return f'{where}: no such file or folder'
+    return f'{where}: {exc.strerror or exc}'
+
+
 def main(argv=None) -> int:
     # Cap glibc's malloc arenas before any command starts rclpy (its DDS threads would each take
     # one): see nodes/process_memory.py. Cheap and harmless for the commands without threads.
@@ -48,9 +74,15 @@ def main(argv=None) -> int:
     limit_malloc_arenas()
     args = build_parser().parse_args(argv)
     try:
+        if args.command in ROS_COMMANDS:
+            from photogram_ros.nodes.ros_domain import check_domain_env
+            check_domain_env()
         return int(args._run(args) or 0)
     except PhotogramError as exc:
         print(f'photogram-ros {args.command}: error: {exc}', file=sys.stderr)
+        return 2
+    except OSError as exc:   # a path that cannot be written or read: said in one line, no traceback
+        print(f'photogram-ros {args.command}: error: {os_error_text(exc)}', file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         return 130

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import datetime
 import json
+import re
 import os
 import shutil
 import signal
@@ -679,3 +680,590 @@ def test_sqlite_oracle_agrees_on_an_intact_bag(tmp_path):
     if n is None:
         pytest.skip('no sqlite3 shell')
     assert n == sqlite3.connect(f'file:{db}?mode=ro', uri=True).execute('SELECT count(*) FROM messages').fetchone()[0]
+
+
+# --- issue #28: nothing lost, nothing mixed up --------------------------------------------------
+
+
+def _publish_while(proc, node, pub, msg_of, until):
+    """Publish at 50 Hz until `until()` or the process ends; returns the count published."""
+    n = 0
+    while proc.poll() is None and not until():
+        pub.publish(msg_of(n))
+        n += 1
+        time.sleep(0.02)
+    return n
+
+
+@pytest.mark.parametrize('storage', ['sqlite3', 'mcap'])
+def test_record_killed_with_9_keeps_all_but_its_last_seconds(tmp_path, rclpy_context, storage):
+    """`record` killed with -9 (a power loss) after about 8 s of 50 Hz fixes: the bag holds what came
+    before its last commit (sqlite3: WAL, commit and checkpoint every second; MCAP: a chunk flushed every
+    second), not 0; bag-info says what it holds and that the recording was cut short (exit 3)."""
+    from rclpy.node import Node
+    from sensor_msgs.msg import NavSatFix
+
+    from photogram_ros.io.bag import BagReader
+    node = Node(f'h28_publisher_{storage}', context=rclpy_context)
+    pub = node.create_publisher(NavSatFix, '/h28/fix', 10)
+    out = tmp_path / 'rec'
+    proc = subprocess.Popen(CLI + ['record', str(out), '--topics', '/h28/fix', '--storage', storage,
+                                   '--checkpoint', '1'], cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True)
+    try:
+        t0 = time.monotonic()
+        _publish_while(proc, node, pub, lambda k: NavSatFix(latitude=47.0, longitude=8.5 + k * 1e-6),
+                       lambda: out.exists() or time.monotonic() - t0 > 60)
+        assert out.exists(), proc.stderr.read() if proc.poll() is not None else 'no bag folder in 60 s'
+        t1 = time.monotonic()
+        sent = _publish_while(proc, node, pub, lambda k: NavSatFix(latitude=47.0, longitude=8.5 + k * 1e-6),
+                              lambda: time.monotonic() - t1 > 8.0)
+        proc.kill()
+        proc.wait(timeout=30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        node.destroy_node()
+    assert not (out / 'metadata.yaml').exists()        # cut short: no clean close
+    with BagReader(out) as bag:
+        got = bag.topics()['/h28/fix'].count
+        msgs = list(bag.messages())
+    assert len(msgs) == got
+    # All but the last seconds: at least what was published up to 2.5 s before the kill.
+    assert got >= sent * (8.0 - 2.5) / 8.0 - 20, (got, sent)
+    res = cli('bag-info', out)
+    assert res.returncode == 3, res.stdout + res.stderr
+    assert f'{got} messages' in res.stdout and ('cut short' in res.stderr), res.stderr
+
+
+def test_output_folder_is_locked_and_not_reused_silently(tmp_path):
+    """A second writer into a locked folder is refused with the owner's pid; a folder holding a previous
+    run is refused unless --resume or --overwrite; --overwrite never deletes a folder that is not ours;
+    the lock dies with its process (kill -9 included)."""
+    from photogram_ros.errors import ConfigError
+    from photogram_ros.io.out_dir import LOCK_NAME, claim_output
+    out = tmp_path / 'out'
+    holder = subprocess.Popen([sys.executable, '-c', 'import sys, time; from photogram_ros.io.out_dir import '
+                               'claim_output; l = claim_output(sys.argv[1], command="replay"); print("locked", '
+                               'flush=True); time.sleep(60)', str(out)], cwd=ROOT, stdout=subprocess.PIPE, text=True,
+                              env={**os.environ, 'PYTHONPATH': str(ROOT)})
+    try:
+        assert holder.stdout.readline().strip() == 'locked'
+        for mode in ('new', 'resume', 'overwrite'):
+            with pytest.raises(ConfigError, match=f'being written by another photogram-ros \\(pid {holder.pid}, '
+                                                  'replay since'):
+                claim_output(out, mode)
+        res = cli('replay', SAMPLE_BAG, '--out', out, '--overwrite', '--quiet', timeout=60)
+        assert res.returncode == 2 and f'pid {holder.pid}' in res.stderr and len(res.stderr.splitlines()) == 1
+    finally:
+        holder.kill()
+        holder.wait()
+    (out / 'map').mkdir()
+    (out / 'map' / 'map.json').write_text('{}')
+    with pytest.raises(ConfigError, match='holds a previous run \\(map\\): --resume continues its map, --overwrite'):
+        claim_output(out)
+    with claim_output(out, 'resume') as lock:
+        assert lock.previous == ['map'] and (out / 'map' / 'map.json').exists()
+    with claim_output(out, 'overwrite'):
+        assert not (out / 'map').exists() and (out / LOCK_NAME).exists()
+    theirs = tmp_path / 'theirs'
+    theirs.mkdir()
+    (theirs / 'thesis.tex').write_text('x')
+    with pytest.raises(ConfigError, match='not a photogram-ros output folder'):
+        claim_output(theirs, 'overwrite')
+    assert (theirs / 'thesis.tex').exists() and not (theirs / LOCK_NAME).exists()
+
+
+def test_replay_into_a_folder_another_replay_writes_is_refused(tmp_path):
+    """Two `replay`s into one --out at once: the second is refused at once (exit 2, one line); the
+    first one goes on; after it, reusing the folder needs --resume or --overwrite."""
+    out = tmp_path / 'out'
+    first = subprocess.Popen(CLI + ['replay', str(SAMPLE_BAG), '--out', str(out), '--quiet'], cwd=ROOT,
+                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline and not (out / 'map').exists():
+            time.sleep(0.2)
+        assert (out / 'map').exists()
+        second = cli('replay', SAMPLE_BAG, '--out', out, '--quiet', timeout=60)
+        assert second.returncode == 2 and 'being written by another photogram-ros' in second.stderr
+        assert f'pid {first.pid}' in second.stderr and 'Traceback' not in second.stderr
+        assert first.poll() is None
+    finally:
+        first.kill()
+        first.wait()
+    again = cli('replay', SAMPLE_BAG, '--out', out, '--quiet', timeout=60)
+    assert again.returncode == 2 and 'holds a previous run' in again.stderr and '--resume' in again.stderr
+
+
+@pytest.mark.parametrize('args, words', [
+    (('--out', '{file}'), 'is a file, not a folder'),
+    (('--out', '{file}/sub'), 'cannot be created (a part of the path is a file)'),
+    (('--out', '/proc/photogram/out'), 'cannot be created'),
+    (('--rate', 'fast'), "invalid float value: 'fast'"),
+    (('--domain', '300'), '--domain=300 is out of range')])
+def test_bad_arguments_are_one_line_and_exit_2(tmp_path, args, words):
+    f = tmp_path / 'a_file'
+    f.write_text('x')
+    args = [a.replace('{file}', str(f)) for a in args]
+    if '--out' not in args:
+        args += ['--out', str(tmp_path / 'o')]
+    res = cli('replay', SAMPLE_BAG, *args, '--quiet', timeout=60)
+    assert res.returncode == 2 and words in res.stderr, res.stderr
+    assert len(res.stderr.strip().splitlines()) == 1 and 'Traceback' not in res.stderr
+
+
+@pytest.mark.parametrize('command', [['replay', str(SAMPLE_BAG), '--quiet'], ['play', str(SAMPLE_BAG)],
+                                     ['record', 'x', '--topics', '/a'], ['run']])
+@pytest.mark.parametrize('domain', ['233', 'abc'])
+def test_ros_domain_id_out_of_range_is_one_line(tmp_path, command, domain):
+    res = cli(*command, timeout=60, env={**os.environ, 'ROS_DOMAIN_ID': domain}, )
+    assert res.returncode == 2 and 'ROS_DOMAIN_ID' in res.stderr and '0 to 232' in res.stderr
+    assert len(res.stderr.strip().splitlines()) == 1 and 'port number' not in res.stderr
+
+
+def test_replays_take_domains_of_their_own():
+    """Two replays on one machine never share a domain (held with flock for the process's life), and
+    never take the user's own."""
+    from photogram_ros.nodes import ros_domain
+    code = ('import time; from photogram_ros.nodes.ros_domain import own_domain; '
+            'print(own_domain(avoid=%d), flush=True); time.sleep(30)')
+    mine = int(os.environ['ROS_DOMAIN_ID'])
+    procs = [subprocess.Popen([sys.executable, '-c', code % mine], cwd=ROOT, stdout=subprocess.PIPE, text=True,
+                              env={**os.environ, 'PYTHONPATH': str(ROOT)}) for _ in range(3)]
+    try:
+        got = [int(p.stdout.readline()) for p in procs]
+    finally:
+        for p in procs:
+            p.kill()
+            p.wait()
+    assert len(set(got)) == 3 and all(d in ros_domain.OWN_DOMAINS and d != mine for d in got)
+    # Freed with its process: one of them is free again.
+    d = ros_domain.own_domain(avoid=mine)
+    assert d in ros_domain.OWN_DOMAINS
+
+
+@pytest.mark.parametrize('share', [False, True])
+def test_replay_is_not_heard_on_the_users_domain(tmp_path, rclpy_context, share):
+    """A replay started from a terminal (the user's ROS_DOMAIN_ID) plays on a domain of its own: nothing
+    of it shows on the user's graph (before, two replays heard each other, and a drone on the domain would
+    hear the old flight); it says which domain, and --domain shares one."""
+    from rclpy.node import Node
+    mine = int(os.environ['ROS_DOMAIN_ID'])
+    proc = subprocess.Popen(CLI + ['replay', str(SAMPLE_BAG), '--out', str(tmp_path / 'o')]
+                            + (['--domain', str(mine)] if share else []), cwd=ROOT,
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    node = Node('h28_listener', context=rclpy_context)
+    try:
+        line = ''
+        for line in proc.stdout:
+            if 'replaying on ROS_DOMAIN_ID' in line or '[replay' in line:
+                break
+        if not share:
+            domain = int(line.split('ROS_DOMAIN_ID')[1].split(',')[0])
+            assert domain != mine and 201 <= domain <= 232
+        for line in proc.stdout:   # the replay is playing frames now
+            if '[replay' in line:
+                break
+        seen = set()
+        for _ in range(20):
+            time.sleep(0.25)
+            seen |= {i.node_name for t in ('/camera/image_raw/compressed', '/mavlink/from_fcu', '/diagnostics')
+                     for i in node.get_publishers_info_by_topic(t)}
+        seen.discard('h28_listener')
+        assert bool(seen) == share, seen
+    finally:
+        proc.kill()
+        proc.wait()
+        node.destroy_node()
+
+
+def test_a_second_publisher_of_a_graph_topic_is_a_warning(rclpy_context):
+    """A live graph that hears another node of its own name publish its topics (a second mapper on the
+    domain) says so at WARN on /diagnostics, naming the topic and what to do."""
+    from rclpy.node import Node
+
+    from photogram_ros.nodes.diagnostics import WARN
+    from photogram_ros.nodes.graph import Graph, GraphSpec, duplicate_publishers
+    graph = Graph(GraphSpec(roles=('tracker',)), context=rclpy_context)
+    graph.start(watch_period_s=0.3)
+    tracker = graph.nodes['tracker']
+    pub = next(p for p in tracker.publishers if p.topic_name not in ('/diagnostics', '/rosout', '/parameter_events'))
+    other = Node(tracker.get_name(), context=rclpy_context)
+    try:
+        time.sleep(1.0)
+        assert not any('also publishes' in p for p in tracker.diag.recent_problems(20))
+        other.create_publisher(pub.msg_type, pub.topic_name, 10)
+        deadline = time.monotonic() + 20
+        while time.monotonic() < deadline and not any('also publishes' in p for p in tracker.diag.recent_problems(20)):
+            time.sleep(0.2)
+        said = [p for p in tracker.diag.recent_problems(20) if 'also publishes' in p]
+        assert said and pub.topic_name in said[0] and 'ROS_DOMAIN_ID' in said[0]
+        assert tracker.diag.status().level == WARN
+        assert duplicate_publishers(other)   # the other one hears it too
+    finally:
+        other.destroy_node()
+        graph.shutdown()
+
+
+@pytest.fixture(scope='module')
+def photo_survey(tmp_path_factory):
+    """The simulator's tiny survey as geotagged photos (about 25)."""
+    from photogram_ros.sim.scenario import preset, simulate
+    out = tmp_path_factory.mktemp('run_photos') / 'tiny'
+    simulate(preset('tiny', photos=True, fps=1.0, line_length_m=30.0), out)
+    return out / 'photos'
+
+
+def _run_photos(tmp_path, photos, stop_after_keyframes=0):
+    cfg = tmp_path / 'photos.yaml'
+    cfg.write_text(f'camera_node:\n  ros__parameters:\n    source: {photos}\n    rate: 0.0\n'
+                   f'map_node:\n  ros__parameters:\n    map_dir: {tmp_path / "map"}\n')
+    proc = subprocess.Popen(CLI + ['run', '--params', str(cfg), '--nodes', 'camera,tracker,bundle,stereo,map',
+                                   '--out', str(tmp_path / 'products')], cwd=ROOT, stdout=subprocess.PIPE,
+                            stderr=subprocess.STDOUT, text=True)
+    try:
+        if stop_after_keyframes:
+            deadline = time.monotonic() + 300
+            while time.monotonic() < deadline and proc.poll() is None and \
+                    len(list((tmp_path / 'map' / 'keyframes').glob('*'))) < stop_after_keyframes:
+                time.sleep(0.2)
+            proc.send_signal(signal.SIGTERM)
+        out = proc.communicate(timeout=900)[0]
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    report = json.loads((tmp_path / 'products' / 'report.json').read_text())
+    return proc.returncode, out, report
+
+
+@pytest.mark.slow
+def test_run_on_a_photo_folder_maps_every_photo_before_the_flight_ends(tmp_path, photo_survey):
+    """`run` with camera_node on a photo folder at rate 0: each photo waits for the tracker, the end of
+    the source drains tracker, bundle, stereo and map before the final adjustment, and the products and
+    the report's accounting are those of a replay of the same folder (before: most photos dropped, "the
+    tracker took no keyframe", no products)."""
+    n = len(list(photo_survey.glob('*.JPG')))
+    rc, out, report = _run_photos(tmp_path, photo_survey)
+    assert rc == 0, out[-3000:]
+    assert 'end of the camera source: waiting for the tracker' in out
+    assert report['run']['frames'] == n and report['run']['ended_by'] == 'end of the camera source'
+    assert 0.7 * n <= report['keyframes_taken'] <= n
+    assert report['keyframes_oriented'] >= 0.9 * report['keyframes_taken'], report['mapping']
+    assert report['mapping']['mapped'] and report['run']['products_from'] == 'final adjustment (map_final)'
+    assert report['run']['bag_s'] > 0 and report['nodes']['/camera_node']['values']['frames'] == n
+    assert (tmp_path / 'products' / 'dsm.tif').exists()
+
+
+@pytest.mark.slow
+def test_run_stopped_by_sigterm_reports_what_the_nodes_did(tmp_path, photo_survey):
+    """SIGTERM in the middle of a photo folder: the report counts the frames and keyframes the nodes
+    handled (not "0 frames, 0.0 s of flight", not "the tracker took no keyframe")."""
+    n = len(list(photo_survey.glob('*.JPG')))
+    rc, out, report = _run_photos(tmp_path, photo_survey, stop_after_keyframes=4)
+    assert rc == 0, out[-3000:]
+    assert 'SIGTERM: ending the flight' in out
+    assert report['run']['ended_by'] == 'SIGTERM' and 4 <= report['run']['frames'] < n
+    assert report['keyframes_taken'] >= 4 and report['keyframes_oriented'] >= 3
+    assert 'took no keyframe' not in ' '.join(report['mapping']['failures'])
+    md = (tmp_path / 'products' / 'report.md').read_text()
+    assert f"{report['run']['frames']} frames" in md and ' 0.0 s of flight' not in md
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize('form', ['no metadata.yaml', 'bare .db3'])
+def test_triangulate_reads_a_bag_without_metadata(tmp_path, tiny_flight, form):
+    """A recording cut short has no metadata.yaml; bag-info and replay read it from its storage file, and
+    so does triangulate now (before: taken for a photo folder and refused); a bare .db3 file too."""
+    bag = tmp_path / 'tiny'
+    shutil.copytree(tiny_flight, bag)
+    (bag / 'metadata.yaml').unlink()
+    src = bag if form == 'no metadata.yaml' else next(bag.glob('*.db3'))
+    res = cli('triangulate', src, '--out', tmp_path / 'at', timeout=900)
+    assert res.returncode == 0, res.stderr[-3000:]
+    assert 'metadata.yaml is missing' in res.stderr or form == 'bare .db3'
+    n = int(res.stdout.split('oriented ')[1].split('/')[0])
+    assert n >= 10 and (tmp_path / 'at' / 'report.md').exists()
+
+
+def test_export_densify_after_a_kill_does_not_call_in_flight_poses_final(stopped_run, tmp_path):
+    """kill -9 during the final adjustment leaves no flight_end.json: `export --densify` says it matched
+    the in-flight poses, and why; with the final adjustment recorded as done it says final poses."""
+    from photogram_ros.commands.export import poses_label
+    map_dir = tmp_path / 'map'
+    shutil.copytree(stopped_run[3], map_dir)
+    (map_dir / 'flight_end.json').unlink()
+    res = cli('export', map_dir, '--densify', '--crs', 'EPSG:32632', '--out', tmp_path / 'out', '--min-pairs', '1',
+              timeout=600)
+    assert res.returncode == 0, res.stderr[-2000:]
+    assert 'from the in-flight poses (the flight did not end cleanly' in res.stdout and 'final poses' not in res.stdout
+    assert poses_label({'final_adjustment': 'done'}) == 'the final poses (final adjustment)'
+    assert 'final adjustment failed: x' in poses_label({'final_adjustment': 'failed', 'reason': 'x'})
+    assert 'final poses' not in poses_label({'final_adjustment': 'none', 'reason': 'no keyframe was oriented'})
+
+
+# GCP rows as a surveyor's spreadsheet holds them: (name, marker id, x, y, z, sigma_h, sigma_v).
+_GCP_ROWS = [('GCP01', 0, 465698.587, 5249464.825, 489.927, 0.01, 0.02),
+             ('Pünkt2', 3, 465728.125, 5249504.5, 491.5, 0.015, 0.03),
+             ('CHK01', 7, 465708.0, 5249474.25, 489.0, 0.01, 0.02)]
+
+
+def _gcp_text(sep=' ', decimal='.', crs_pad='', header=False):
+    def num(v):
+        return repr(float(v)).replace('.', decimal)
+    lines = ['EPSG:32632' + crs_pad] + ([sep.join(['name', 'marker_id', 'x', 'y', 'z', 'sigma_h_m', 'sigma_v_m'])]
+                                       if header else []) + [sep.join([n, str(m)] + [num(v) for v in vals]) for n, m, *vals in _GCP_ROWS]
+    return '\r\n'.join(lines) + '\r\n'
+
+
+@pytest.mark.parametrize('form, data', [
+    ('Excel CSV UTF-8 (BOM)', lambda: b'\xef\xbb\xbf' + _gcp_text(',').encode()),
+    ('Excel Unicode text (UTF-16 LE, BOM, tabs)', lambda: _gcp_text('\t').encode('utf-16')),
+    ('UTF-16 BE without BOM', lambda: _gcp_text(' ').encode('utf-16-be')),
+    ('European Excel CSV: ";" and decimal commas, padded CRS row',
+     lambda: _gcp_text(';', ',', ';;;;;;').encode('cp1252')),
+    ('blanks and decimal commas', lambda: _gcp_text(' ', ',').encode()),
+    ('tabs, decimal commas, UTF-8 BOM', lambda: b'\xef\xbb\xbf' + _gcp_text('\t', ',').encode()),
+    ('Windows-1252', lambda: _gcp_text(' ').encode('cp1252')),
+    ('";" with a header row', lambda: _gcp_text(';', '.', ';;;;;;', header=True).encode())])
+def test_control_files_from_spreadsheets_are_read(tmp_path, form, data):
+    """GCP files as spreadsheets and editors save them (before: a BOM gave "'EPSG:32632' is not a
+    coordinate reference system", UTF-16 and decimal commas messages that did not say why): the same
+    targets as the plain file, to the digit."""
+    from photogram_ros.io.control_file import read_control_file
+    plain = tmp_path / 'plain.txt'
+    plain.write_text(_gcp_text(), encoding='utf-8')
+    f = tmp_path / 'odd.txt'
+    f.write_bytes(data())
+    want, got = read_control_file(plain), read_control_file(f)
+    assert got.crs == 'EPSG:32632' and [t.name for t in got.targets] == ['GCP01', 'Pünkt2', 'CHK01']
+    assert [t.marker_id for t in got.targets] == [0, 3, 7]
+    for a, b in zip(want.targets, got.targets):
+        assert (b.lat_deg, b.lon_deg, b.h_m, b.sigma_h_m, b.sigma_v_m) == (a.lat_deg, a.lon_deg, a.h_m, a.sigma_h_m,
+                                                                           a.sigma_v_m)
+    assert got.targets[0].h_m == pytest.approx(489.927, abs=1e-9)
+
+
+@pytest.mark.parametrize('data, words', [
+    (lambda: b'PK\x03\x04' + bytes(range(256)) * 4, 'spreadsheet (.xlsx) rather than text'),
+    (lambda: _gcp_text(',', ',').encode(), 'decimal commas as well as column separators'),
+    (lambda: b'\xff\xfe' + b'E\x00P\x00\x00\xd8', 'looks like UTF-16')])
+def test_control_files_that_cannot_be_read_say_why(tmp_path, data, words):
+    from photogram_ros.errors import DataError
+    from photogram_ros.io.control_file import read_control_file
+    f = tmp_path / 'targets.csv'
+    f.write_bytes(data())
+    with pytest.raises(DataError, match=re.escape(words)):
+        read_control_file(f)
+    res = cli('replay', SAMPLE_BAG, '--out', tmp_path / 'o', '--gcp', f, '--quiet', timeout=60)
+    assert res.returncode == 2 and words in res.stderr and len(res.stderr.strip().splitlines()) == 1
+
+
+@pytest.mark.parametrize('feed, words', [('forged', "wrong signature so far (signing_key differs"),
+                                         ('plain', 'unsigned so far (the autopilot does not sign'),
+                                         ('noise', 'no packet decodes (a wrong baud rate'),
+                                         ('good', None)])
+def test_mavlink_node_that_gets_nothing_usable_warns_with_the_reason(rclpy_context, feed, words):
+    """A wrong signing key rejects every packet (right), and /diagnostics now says WARN and why, instead
+    of OK with no GNSS at all; so do an unsigned autopilot and bytes that hold no MAVLink."""
+    from pymavlink.dialects.v20 import ardupilotmega as mavlink2
+
+    from photogram_ros.io.mavlink import signing_key
+    from photogram_ros.nodes.diagnostics import OK, WARN
+    from photogram_ros.nodes.mavlink_node import MavlinkNode
+    from test_mavlink_node import _gps_stream
+
+    def signed(key):
+        mav = mavlink2.MAVLink(None, srcSystem=1, srcComponent=1)
+        mav.signing.secret_key, mav.signing.sign_outgoing, mav.signing.timestamp = key, True, 1
+        return mav
+    data = {'good': lambda: _gps_stream(signed(signing_key('fleet secret')), lat0=471000000),
+            'forged': lambda: _gps_stream(signed(signing_key('guess')), lat0=471000000),
+            'plain': lambda: _gps_stream(mavlink2.MAVLink(None, srcSystem=1, srcComponent=1), lat0=471000000),
+            'noise': lambda: np.random.default_rng(3).integers(0, 256, 4000, dtype=np.uint8).tobytes()
+            .replace(b'\xfd', b'\x00').replace(b'\xfe', b'\x00')}[feed]()
+    node = MavlinkNode({'signing_key': 'fleet secret', 'diagnostics_period_s': 60.0}, context=rclpy_context)
+    try:
+        node.diag.status()   # the start's status out of the way
+        node.feed(data, None)
+        node._update_diagnostics()
+        st = node.diag.status()
+        if words is None:
+            assert st.level == OK and node.published['fix'] == 10, st.message
+        else:
+            assert st.level == WARN and words in st.message and node.published['fix'] == 0, st.message
+            said = node.diag.counts()['problems']
+            node._update_diagnostics()   # nothing new arrived: nothing new to say
+            assert node.diag.counts()['problems'] == said
+    finally:
+        node.destroy_node()
+
+
+def test_tile_url_with_a_5000_digit_zoom_is_a_404_not_a_traceback(capsys):
+    import urllib.error
+    import urllib.request
+
+    from photogram_ros.web.server import WebServer
+    from test_ground_page import Provider
+    srv = WebServer(Provider(), '127.0.0.1', 0).start()
+    try:
+        for path in (f'tiles/drone1/{"9" * 5000}/1/1.png', f'tiles/drone1/19/{"7" * 400}/1.png'):
+            with pytest.raises(urllib.error.HTTPError) as exc:
+                urllib.request.urlopen(srv.url + path, timeout=10)
+            assert exc.value.code == 404
+        with urllib.request.urlopen(srv.url + 'status.json', timeout=10) as r:   # still serving
+            assert r.status == 200
+    finally:
+        srv.stop()
+    assert 'Traceback' not in capsys.readouterr().err
+
+
+@pytest.mark.parametrize('command', [['triangulate', str(SAMPLE_BAG), '--out', '{out}'],
+                                     ['ground-station', '--out', '{out}', '--duration', '1'],
+                                     ['record', '{out}', '--topics', '/a', '--discovery-timeout', '1']])
+def test_out_path_that_is_a_file_is_one_line_without_traceback(tmp_path, command):
+    f = tmp_path / 'a_file'
+    f.write_text('x')
+    out = f if command[0] != 'record' else f / 'bag'
+    t0 = time.monotonic()
+    res = cli(*[c.replace('{out}', str(out)) for c in command], timeout=120)
+    assert res.returncode == 2 and 'Traceback' not in res.stderr, res.stderr[-2000:]
+    last = res.stderr.strip().splitlines()[-1]
+    assert str(f) in last and ('a file' in last or 'is a file' in last), last
+    assert time.monotonic() - t0 < 60
+
+
+class _Counts:
+    """Graph.drain's inputs, scripted: counters per call, and whether a node is busy."""
+
+    def __init__(self, script):
+        self.script, self.k = script, 0
+
+    def __call__(self):
+        c = self.script(self.k)
+        self.k += 1
+        return c
+
+
+def _graph(counts, busy=lambda: False):
+    from photogram_ros.nodes.graph import Graph
+    g = Graph.__new__(Graph)
+    g.counts, g.busy = counts, busy
+    return g
+
+
+def test_drain_does_not_wait_its_timeout_on_work_lost_between_nodes():
+    """Two keyframes counted as published by the tracker never reach the bundle adjuster (lost on the
+    way) and nothing moves: the end of flight waits stall_s for them, says so, and goes on; before, it
+    waited the whole drain timeout (300 s) on a counter, at each of the end-of-flight steps."""
+    said = []
+    lost = _graph(_Counts(lambda k: {'tracker': {'keyframes': 12}, 'bundle': {'keyframes_received': 10}}))
+    left = lost.drain(quiet_s=0.3, timeout_s=120.0, stall_s=1.0, say=said.append)
+    assert left == {'keyframes not yet at the bundle adjuster': 2}
+    assert said and 'nothing moved for 1 s with 2 keyframes not yet at the bundle adjuster' in said[-1]
+    # Work that moves is waited for: the bundle receives one keyframe a call until all 12 are in.
+    moving = _graph(_Counts(lambda k: {'tracker': {'keyframes': 12},
+                                       'bundle': {'keyframes_received': min(12, k // 5)}}))
+    assert moving.drain(quiet_s=0.3, timeout_s=120.0, stall_s=1.0) == {}
+    assert moving.counts.k >= 60
+    # A busy node (the final adjustment) is not given up on while it computes, counters still.
+    t_end = time.monotonic() + 2.5
+    busy = _graph(_Counts(lambda k: {'tracker': {'keyframes': 12},
+                                     'bundle': {'keyframes_received': 12 if time.monotonic() > t_end else 10}}),
+                  busy=lambda: time.monotonic() < t_end)
+    assert busy.drain(quiet_s=0.3, timeout_s=120.0, stall_s=1.0) == {}
+
+
+@pytest.mark.parametrize('storage', ['sqlite3', 'mcap'])
+def test_record_stopped_by_sigterm_closes_a_complete_bag(tmp_path, rclpy_context, storage):
+    """SIGTERM (a supervisor's stop) ends `record` like Ctrl-C: exit 0, metadata.yaml written, nothing lost
+    or damaged; a sqlite3 bag is a plain database again (no -wal beside it)."""
+    from rclpy.node import Node
+    from sensor_msgs.msg import NavSatFix
+
+    from photogram_ros.io.bag import BagReader
+    node = Node(f'h28_term_{storage}', context=rclpy_context)
+    pub = node.create_publisher(NavSatFix, '/h28/term', 10)
+    out = tmp_path / 'rec'
+    proc = subprocess.Popen(CLI + ['record', str(out), '--topics', '/h28/term', '--storage', storage], cwd=ROOT,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        t0 = time.monotonic()
+        _publish_while(proc, node, pub, lambda k: NavSatFix(latitude=47.0), lambda: out.exists()
+                       or time.monotonic() - t0 > 60)
+        t1 = time.monotonic()
+        _publish_while(proc, node, pub, lambda k: NavSatFix(latitude=47.0), lambda: time.monotonic() - t1 > 3.0)
+        proc.send_signal(signal.SIGTERM)
+        stdout, stderr = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        node.destroy_node()
+    assert proc.returncode == 0, stderr
+    n = int(stdout.split('recorded ')[1].split()[0])
+    assert n > 50 and (out / 'metadata.yaml').exists() and not list(out.glob('*-wal'))
+    with BagReader(out) as bag:
+        assert not bag.damaged and bag.topics()['/h28/term'].count == n == bag.topics()['/h28/term'].expected
+    if storage == 'sqlite3':
+        db = next(out.glob('*.db3'))
+        assert sqlite3.connect(db).execute('PRAGMA journal_mode').fetchone()[0] == 'delete'
+
+
+def test_run_refuses_a_locked_or_finished_map_folder(tmp_path):
+    """`run` into a map folder another process writes: refused at once with its pid; a finished flight's map
+    (flight_end.json) needs --resume or --overwrite; a map left by a crash (no flight_end.json) is resumed."""
+    from photogram_ros.io.map_store import MapStore
+    map_dir = tmp_path / 'map'
+    cfg = tmp_path / 'onboard.yaml'
+    cfg.write_text(f'map_node:\n  ros__parameters:\n    map_dir: {map_dir}\n')
+    holder = subprocess.Popen([sys.executable, '-c', 'import sys, time; from photogram_ros.io.out_dir import '
+                               'claim_output; l = claim_output(sys.argv[1], command="run"); print("locked", '
+                               'flush=True); time.sleep(60)', str(map_dir)], cwd=ROOT, stdout=subprocess.PIPE,
+                              text=True, env={**os.environ, 'PYTHONPATH': str(ROOT)})
+    try:
+        assert holder.stdout.readline().strip() == 'locked'
+        res = cli('run', '--params', cfg, '--out', tmp_path / 'products', timeout=60)
+        assert res.returncode == 2 and f'pid {holder.pid}, run since' in res.stderr, res.stderr
+        assert 'map folder (map_node.map_dir)' in res.stderr and 'Traceback' not in res.stderr
+    finally:
+        holder.kill()
+        holder.wait()
+    from photogram_ros.commands.run import claim_folders
+    import argparse
+    args = argparse.Namespace(params=str(cfg), out=str(tmp_path / 'products'), resume=False, overwrite=False)
+    MapStore(map_dir, cell_m=0.1, tile_cells=64)   # a map whose flight did not end: resumed
+    for lock in claim_folders(args, ('map',), True):
+        lock.close()
+    MapStore(map_dir).save_flight_end({'final_adjustment': 'done', 'reason': '', 'errors': []})
+    from photogram_ros.errors import ConfigError
+    with pytest.raises(ConfigError, match='holds a previous run'):
+        claim_folders(args, ('map',), False)
+    args.overwrite = True
+    for lock in claim_folders(args, ('map',), True):
+        lock.close()
+    assert not (map_dir / 'flight_end.json').exists()
+
+
+def test_odm_gcp_list_from_a_spreadsheet_is_read(tmp_path):
+    """OpenDroneMap's gcp_list.txt saved with a BOM and decimal commas (a European spreadsheet): read as the
+    plain one."""
+    from photogram_ros.io.control_file import read_gcp_list
+    rows = ['EPSG:32632', '465698.587 5249464.825 489.927 1234.5 987.25 IMG_0001.JPG GCP01',
+            '465728.125 5249504.5 491.5 2000 1500 IMG_0002.JPG CHK01']
+    plain, odd = tmp_path / 'plain.txt', tmp_path / 'odd.txt'
+    plain.write_text('\n'.join(rows) + '\n')
+    odd.write_bytes(b'\xef\xbb\xbf' + '\r\n'.join(r.replace('.', ',') if k else r
+                                                 for k, r in enumerate(rows)).replace(',JPG', '.JPG').encode())
+    a, b = read_gcp_list(plain), read_gcp_list(odd)
+    assert b.crs == 'EPSG:32632' and b.points == a.points and b.roles == a.roles
+    assert {k: {n: list(v) for n, v in d.items()} for k, d in b.image_uv.items()} == \
+        {k: {n: list(v) for n, v in d.items()} for k, d in a.image_uv.items()}
+
+
+def test_child_process_topics_are_the_parents_own():
+    """A replay's parent and child talk on topics named after the parent's pid: two replays sharing a
+    domain (--domain) never take each other's "stop" or status."""
+    from photogram_ros.nodes.graph import TOPIC_CHILD_COMMAND, TOPIC_CHILD_STATUS, child_topic
+    assert child_topic(TOPIC_CHILD_COMMAND, 'p12') == 'graph/child/p12/command'
+    assert child_topic(TOPIC_CHILD_STATUS, 'p12') != child_topic(TOPIC_CHILD_STATUS, 'p13')
+    assert child_topic(TOPIC_CHILD_STATUS, '') == TOPIC_CHILD_STATUS

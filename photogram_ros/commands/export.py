@@ -24,11 +24,29 @@ def add_arguments(p) -> None:
                    help='also write contours.gpkg: contour lines of the DTM every this many metres (0: none)')
     p.add_argument('--origin', default='', help='LAT,LON,H of the map origin, if map.json lacks it')
     p.add_argument('--densify', action='store_true',
-                   help='first match the keyframes again with their final poses into OUT/map_final (the in-flight '
-                        'map paired them with the poses they had when they left the bundle window) and export that')
+                   help='first match the keyframes again with their poses (the final ones when the flight ended '
+                        'with its final adjustment) into OUT/map_final (the in-flight map paired them with the '
+                        'poses they had when they left the bundle window) and export that')
     p.add_argument('--params', default=None,
                    help='parameter file whose stereo_node and map_node sections --densify uses (the flight\'s; '
                         'default: config/replay.yaml if present)')
+
+
+def poses_label(end: dict | None) -> str:
+    """What the poses of a map are, from its flight_end.json (`end`; None: there is none): "the final
+    poses" only when the final adjustment is recorded as done."""
+    if end is None:
+        return ('the in-flight poses (the flight did not end cleanly: no flight_end.json, so no final adjustment '
+                'is known to have been made, e.g. a kill -9 or a power loss)')
+    state = end.get('final_adjustment')
+    if state == 'done':
+        return 'the final poses (final adjustment)'
+    if state == 'unknown':
+        return 'the poses in the map (run --separate: bundle_node adjusts at its own exit, not checked)'
+    why = end.get('reason') or state
+    if state == 'failed':
+        return f'the in-flight poses (the final adjustment failed: {why})'
+    return f'the in-flight poses (no final adjustment: {why})'
 
 
 def run(a) -> int:
@@ -54,7 +72,8 @@ def run(a) -> int:
         from photogram_ros.commands.products import densify_with_params
         params = a.params if a.params is not None or not Path('config/replay.yaml').exists() else 'config/replay.yaml'
         d = densify_with_params(store, Path(a.out) / 'map_final', params)
-        print(f'{d.pairs_done} pairs matched again from the final poses in {d.seconds:.1f} s -> {d.map_dir}'
+        print(f'{d.pairs_done} pairs matched again from {poses_label(store.flight_end())} in {d.seconds:.1f} s '
+              f'-> {d.map_dir}'
               + (f'; skipped {d.pairs_skipped}' if d.pairs_skipped else ''))
         for why in d.pairs_failed:
             print(f'  pair not matched: {why}')

@@ -12,20 +12,33 @@ def add_arguments(p) -> None:
     p.add_argument('--count', type=int, default=0, help='stop after this many messages in total (0 = no limit)')
     p.add_argument('--discovery-timeout', type=float, default=10.0, help='seconds to wait for the topics to appear')
     p.add_argument('--storage', choices=('mcap', 'sqlite3'), default='mcap',
-                   help='bag storage: mcap (ROS 2 Jazzy\'s default; a recording cut short keeps every chunk '
-                        'written) or sqlite3')
+                   help='bag storage: mcap (ROS 2 Jazzy\'s default) or sqlite3')
+    p.add_argument('--checkpoint', type=float, default=2.0,
+                   help='seconds between commits (sqlite3) or chunk flushes (MCAP): a recording cut short by a '
+                        'kill or a power loss keeps all but about its last this many seconds')
 
 
 def run(a) -> int:
+    import signal
+    import threading
+
     import rclpy
 
+    from photogram_ros.errors import ConfigError
+    from photogram_ros.nodes.node_main import init_ros
     from photogram_ros.nodes.recorder import Recorder
-    rclpy.init()
+    if not 0.1 <= a.checkpoint <= 600:
+        raise ConfigError(f'--checkpoint {a.checkpoint}: choose 0.1 to 600 s')
+
+    stop = threading.Event()   # SIGINT and SIGTERM end the recording between two messages: the bag closes
+    for sig in (signal.SIGINT, signal.SIGTERM):   # with its metadata.yaml
+        signal.signal(sig, lambda *_: stop.set())
+    init_ros()
     rec = None
     try:
         rec = Recorder(a.out, [t.strip() for t in a.topics.split(',') if t.strip()],
-                       storage=a.storage)
-        n = rec.run(duration_s=a.duration, max_count=a.count, discovery_timeout_s=a.discovery_timeout)
+                       storage=a.storage, checkpoint_s=a.checkpoint)
+        n = rec.run(duration_s=a.duration, max_count=a.count, discovery_timeout_s=a.discovery_timeout, stop=stop)
         print(f'recorded {n} messages to {a.out}')
         return 0
     finally:

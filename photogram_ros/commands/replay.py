@@ -43,6 +43,16 @@ def add_arguments(p) -> None:
                         'they left the bundle window) instead of matching the keyframes again with the final '
                         'adjustment\'s poses into OUT/map_final (the default; seconds for the sample)')
     p.add_argument('--quiet', action='store_true', help='no progress lines')
+    reuse = p.add_mutually_exclusive_group()
+    reuse.add_argument('--resume', action='store_true',
+                       help='--out holds a previous replay: continue its map (products are replaced)')
+    reuse.add_argument('--overwrite', action='store_true',
+                       help='--out holds a previous replay: delete it first (without --resume or --overwrite an '
+                            '--out that holds anything is refused; a folder another replay is writing always is)')
+    p.add_argument('--domain', type=int, default=None, metavar='N',
+                   help='ROS_DOMAIN_ID to replay on, e.g. your own to watch the replay in RViz or Foxglove '
+                        '(default: a free domain of its own in 201-232, so that no other ROS 2 process hears '
+                        'the old flight and the replay hears no one else)')
     p.add_argument('--processes', type=int, choices=(1, 2), default=2,
                    help='2 (default): the --child-nodes run in a second process, on a second core (one Python '
                         'process uses about one core); 1: every node in one process')
@@ -66,12 +76,17 @@ def run(a) -> int:
     from photogram_ros.nodes.replay_session import ReplayOptions, run_replay, source_kind
     from photogram_ros.sim.truth import GroundTruth
 
+    from photogram_ros.io.out_dir import claim_output
+    from photogram_ros.nodes.ros_domain import check_domain_env, own_domain, parse_domain, use_domain
+
     params = a.params
     if params is None and Path('config/replay.yaml').exists():
         params = 'config/replay.yaml'
     out = Path(a.out)
     if a.crs:   # checked now, not after the whole replay
         check_output_crs(a.crs)
+    source_kind(a.bag)   # a flight that is not there: said before any folder is made
+    domain = parse_domain(a.domain, '--domain') if a.domain is not None else own_domain(avoid=check_domain_env())
     control, extra = None, {}
     if a.gcp:   # read here first: a bad file is reported before the replay starts
         control = read_control_file(a.gcp, a.check.split(','), a.gcp_heights)
@@ -79,6 +94,13 @@ def run(a) -> int:
                            'control_heights': a.gcp_heights}
     elif a.check:
         print('note: --check without --gcp has no effect (without a control file every target is a check point)')
+    lock = claim_output(out, 'resume' if a.resume else 'overwrite' if a.overwrite else 'new', 'replay')
+    if lock.previous:
+        print(f'note: --resume: continuing the map in {out}', flush=True)
+    use_domain(domain)
+    if a.domain is None and not a.quiet:
+        print(f'replaying on ROS_DOMAIN_ID {domain}, a domain of its own (--domain N to watch it from another '
+              'ROS 2 tool)', flush=True)
     init_ros()   # Ctrl-C is a KeyboardInterrupt: the graph still shuts down in order (the map flushes)
     try:
         child = tuple(r.strip() for r in a.child_nodes.split(',') if r.strip()) if a.processes == 2 else ()

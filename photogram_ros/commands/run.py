@@ -10,6 +10,8 @@ flight that mapped nothing (the report's Verdict) ends with a line "MAPPING FAIL
 
 from __future__ import annotations
 
+import time
+
 HELP = 'start every mapping node (mavlink, tracker, bundle, stereo, map) with one parameter file'
 
 # Exit statuses besides 0 (and 2, a configuration error): the map on disk is safe in every case.
@@ -30,6 +32,14 @@ def add_arguments(p) -> None:
                                                             'photogram-ros export MAPDIR --densify)')
     p.add_argument('--live-map', action='store_true', help='export the in-flight map instead of matching the '
                                                            'keyframes again from the final adjustment')
+    reuse = p.add_mutually_exclusive_group()
+    reuse.add_argument('--resume', action='store_true',
+                       help='the map folder holds a finished flight: continue that map (the products in --out are '
+                            'replaced)')
+    reuse.add_argument('--overwrite', action='store_true',
+                       help='delete the previous flight\'s map folder and products first (without --resume or '
+                            '--overwrite a finished flight\'s map or a non-empty --out is refused; a map left by '
+                            'a crash, without flight_end.json, is resumed)')
 
 
 def run(a) -> int:
@@ -48,25 +58,135 @@ def run(a) -> int:
     exporting = not a.no_export and 'map' in roles
     if exporting and a.crs:
         check_output_crs(a.crs)
+    locks = claim_folders(a, roles, exporting)
     signals = StopSignals('finishing the flight (final adjustment, stereo, map flush, products)')
     if a.separate:
         return _run_separate(a, spec, signals)
+    paced = pace_camera(spec)
+    spec, paced = paced, paced is not spec
     init_ros()
-    graph = None
+    graph = monitor = None
     try:
         graph = Graph(spec)
+        from rclpy.node import Node
+
+        from photogram_ros.nodes.replay_session import DiagnosticsLog
+        monitor = Node('run_monitor', **({'namespace': a.namespace} if a.namespace else {}))
+        diag_log = DiagnosticsLog(monitor)
+        graph.executor.add_node(monitor)
         graph.start()
+        t0 = time.monotonic()
         print(f'photogram_ros running: {", ".join(graph.nodes)} (SIGINT or SIGTERM ends the flight: final '
               f'adjustment, map flush' + (f', products in {a.out}/)' if exporting else ')'), flush=True)
+        pacer = CameraPacer(graph, signals.stop) if paced else None
         signals.wait(alive=lambda: not source_ended(graph))
+        flight_s = time.monotonic() - t0
+        say = (lambda text: print(text, flush=True))
+        if not signals.signal_name:   # the source ended: what it sent goes through the graph first
+            print('end of the camera source: waiting for the tracker, bundle, stereo and map to take every '
+                  'frame', flush=True)
+            graph.drain(timeout_s=600.0, say=say, work_only=True)
         print(f'{signals.signal_name or "end of the camera source"}: ending the flight (final adjustment, stereo, '
               'map flush)', flush=True)
-        end = graph.finish_flight()
+        # Each end-of-flight step's output goes through before the next; live inputs may still arrive
+        # (a camera on the ground), so a step waits at most a minute.
+        end = graph.finish_flight(settle=lambda: graph.drain(timeout_s=60.0, say=say, work_only=True))
+        counts = graph.counts()
+        names = {role: getattr(getattr(n, 'diag', None), 'name', f'/{NODES[role][2]}')
+                 for role, n in graph.nodes.items()}
+        if pacer is not None:
+            pacer.stop()
     finally:
         if graph is not None:
             graph.shutdown()
+        if monitor is not None:
+            monitor.destroy_node()
         rclpy.try_shutdown()
-    return _after_flight(a, roles, end.as_dict())
+    diag_log.add(counts, names)
+    wall_s = time.monotonic() - t0
+    frames = max(counts.get('tracker', {}).get('frames_received', 0), counts.get('camera', {}).get('frames', 0))
+    run_info = {'source': 'run', 'frames': frames, 'bag_s': flight_s, 'wall_s': wall_s,
+                'real_time_factor': flight_s / max(wall_s, 1e-9), 'counts': counts,
+                'ended_by': signals.signal_name or 'end of the camera source',
+                'final_adjustment': end.final_adjustment, 'end_of_flight_errors': end.errors}
+    return _after_flight(a, roles, end.as_dict(), run_info, diag_log.snapshot())
+
+
+def pace_camera(spec):
+    """A camera node at rate 0 (a photo folder or a file, "as fast as the tracker takes them") is driven
+    from here, one frame at a time (CameraPacer), as a replay does: published as fast as DDS acknowledges
+    them, the frames outran the tracker, which dropped most of them."""
+    from photogram_ros.nodes.camera_node import CameraParams
+    from photogram_ros.nodes.graph import role_values
+    from photogram_ros.params import from_dict
+    if 'camera' not in spec.roles or 'tracker' not in spec.roles:
+        return spec
+    values = role_values(spec, 'camera')
+    cam = from_dict(CameraParams, {k: v for k, v in values.items() if k != 'use_sim_time'}, where='camera_node')
+    if cam.rate != 0 or cam.loop:
+        return spec
+    import dataclasses
+    extra = {r: dict(v) for r, v in (spec.extra or {}).items()}
+    extra.setdefault('camera', {})['autostart'] = False
+    extra.setdefault('tracker', {}).setdefault('reliable_input', True)
+    return dataclasses.replace(spec, extra=extra)
+
+
+class CameraPacer:
+    """Publishes the graph's camera frames one at a time: the next once the tracker has taken the previous
+    one and no node after it lags by more than `max_lag_keyframes`, until the source ends or `stop` is set."""
+
+    def __init__(self, graph, stop, max_lag_keyframes: int = 30, frame_timeout_s: float = 30.0):
+        import threading
+        self.graph, self._stop, self._done = graph, stop, threading.Event()
+        self.max_lag, self.timeout_s = max_lag_keyframes, frame_timeout_s
+        self._thread = threading.Thread(target=self._run, daemon=True, name='camera-pacer')
+        self._thread.start()
+
+    def _wait(self, done) -> bool:
+        deadline = time.monotonic() + self.timeout_s
+        while not done():
+            if self._stop.is_set() or self._done.is_set() or time.monotonic() > deadline:
+                return False
+            time.sleep(0.005)
+        return True
+
+    def _run(self) -> None:
+        from photogram_ros.nodes.replay_session import downstream_lag
+        camera, tracker = self.graph.nodes['camera'], self.graph.nodes['tracker']
+        lost = 0
+        while not self._stop.is_set() and not self._done.is_set():
+            sent = camera.diag.counts().get('frames', 0)
+            if not self._wait(lambda: tracker.frames_done >= sent - lost):
+                lost = max(lost, sent - tracker.frames_done)
+            self._wait(lambda: downstream_lag(self.graph.counts()) <= self.max_lag)
+            if self._stop.is_set() or not camera.publish_next():
+                return
+
+    def stop(self) -> None:
+        self._done.set()
+        self._thread.join(timeout=5.0)
+
+
+def claim_folders(a, roles, exporting: bool) -> list:
+    """Lock the map folder and --out for this run (io/out_dir.py): a folder another photogram-ros writes is
+    refused; so is a finished flight's map or a non-empty --out, unless --resume or --overwrite. A map
+    left by a crash (no flight_end.json) is resumed, as the map node reloads it."""
+    from pathlib import Path
+
+    from photogram_ros.io.out_dir import claim_output
+    mode = 'resume' if a.resume else 'overwrite' if a.overwrite else 'new'
+    locks = []
+    if 'map' in roles:
+        map_dir = Path(map_dir_of(a.params))
+        crashed = (map_dir / 'map.json').exists() and not (map_dir / 'flight_end.json').exists()
+        locks.append(claim_output(map_dir, 'resume' if mode == 'new' and crashed else mode, 'run',
+                                  'map folder (map_node.map_dir)'))
+        if crashed and mode == 'new':
+            print(f'note: {map_dir} holds a map whose flight did not end (a crash): resuming it', flush=True)
+    if exporting:
+        locks.append(claim_output(a.out, mode, 'run', '--out'))
+    return locks
 
 
 def source_ended(graph) -> bool:
@@ -102,8 +222,10 @@ def _run_separate(a, spec, signals) -> int:
     return _after_flight(a, spec.roles, end)
 
 
-def _after_flight(a, roles, end: dict) -> int:
-    """Record how the flight ended in the map folder, export, and say what failed."""
+def _after_flight(a, roles, end: dict, run_info: dict | None = None, diagnostics: dict | None = None) -> int:
+    """Record how the flight ended in the map folder, export, and say what failed. `run_info`: the
+    flight's accounting from the nodes' counters (frames, keyframes, Graph.counts()) for the report;
+    `diagnostics`: what the nodes said on /diagnostics."""
     from photogram_ros.errors import PhotogramError
     from photogram_ros.io.map_store import MapStore
     if 'map' in roles:
@@ -111,7 +233,7 @@ def _after_flight(a, roles, end: dict) -> int:
             MapStore(map_dir_of(a.params)).save_flight_end(end)
         except (PhotogramError, OSError) as exc:
             print(f'note: the map folder could not record how the flight ended: {exc}', flush=True)
-    rc = _export_at_stop(a, roles)
+    rc = _export_at_stop(a, roles, run_info, diagnostics)
     if end['final_adjustment'] == 'failed':
         print(f"the final adjustment failed ({end['reason']}): poses and products are the in-flight ones",
               flush=True)
@@ -130,13 +252,14 @@ def map_dir_of(params_file: str | None) -> str:
     return from_dict(MapParams, sections.get('map_node', {}), f'{params_file} map_node').map_dir
 
 
-def _export_at_stop(a, roles) -> int:
+def _export_at_stop(a, roles, run_info=None, diagnostics=None) -> int:
     if a.no_export or 'map' not in roles:
         return 0
     from photogram_ros.commands.products import export_products
     from photogram_ros.errors import PhotogramError
     try:
-        res = export_products(map_dir_of(a.params), a.out, a.params, a.crs, a.live_map)
+        res = export_products(map_dir_of(a.params), a.out, a.params, a.crs, a.live_map, run=run_info,
+                              diagnostics=diagnostics)
     except (PhotogramError, OSError) as exc:   # the map itself is safe on disk: say how to export it later
         print(f'exports failed ({exc}); the map is on disk: photogram-ros export MAPDIR --densify', flush=True)
         return EXIT_EXPORT_FAILED

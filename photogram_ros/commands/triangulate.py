@@ -56,6 +56,33 @@ def _floats(text: str, what: str, n: int) -> tuple:
     return v
 
 
+def _bag_without_metadata(path) -> bool:
+    """A bag that triangulate() would not take for one: a rosbag2 folder without its metadata.yaml (what a
+    recording cut short leaves; bag-info and replay read it from its storage file) or a bare .db3 / .mcap
+    / ROS 1 .bag file."""
+    from pathlib import Path
+
+    from photogram_ros.nodes.replay_session import source_kind
+    p = Path(path)
+    return p.exists() and source_kind(p) == 'bag' and not (p / 'metadata.yaml').exists()
+
+
+def _triangulate_bag(src, out, opt, log):
+    """triangulate()'s bag path for a bag without metadata.yaml (see _bag_without_metadata)."""
+    import time
+
+    from photogram_ros.io.aerial_triangulation import adjust_block
+    from photogram_ros.io.bag_keyframes import read_bag_keyframes
+    from photogram_ros.io.control_file import read_control_file
+    opt.check()
+    t0 = time.monotonic()
+    control_set = read_control_file(opt.targets, opt.check_names) if opt.targets else None
+    block = read_bag_keyframes(src, opt.camera, control_set, log)
+    if opt.exif_altitude:
+        block.assumptions.append(f'--exif-altitude {opt.exif_altitude} ignored: a bag has no EXIF')
+    return adjust_block(block, out, opt, control_set, log, t0)
+
+
 def run(a) -> int:
     import sys
 
@@ -77,7 +104,11 @@ def run(a) -> int:
         self_calibrate=refine, matching=matching,
         exif_altitude=a.exif_altitude, takeoff_h_m=a.takeoff_altitude_m, takeoff_heights=a.takeoff_heights,
         vetting=ControlVettingOptions(contradicted_heights='horizontal' if a.gcp_heights == 'checked' else 'use'))
-    res = triangulate(a.input, a.out, opt, log=lambda text: print(text, file=sys.stderr))
+    from photogram_ros.io.out_dir import usable_folder
+    usable_folder(a.out)   # a file or an uncreatable path: said now, not after the adjustment
+    log = (lambda text: print(text, file=sys.stderr))
+    res = (_triangulate_bag(a.input, a.out, opt, log) if _bag_without_metadata(a.input)
+           else triangulate(a.input, a.out, opt, log=log))
     rep = res.report
     ck = rep['check']['rmse']
     rms = rep['reprojection_rms_px']

@@ -82,9 +82,15 @@ def bag_qos(profile):
 
 
 class BagWriter:
-    """Writes rclpy messages to a rosbag2 (sqlite3 by default, or MCAP, ROS 2 Jazzy's default)."""
+    """Writes rclpy messages to a rosbag2 (sqlite3 by default, or MCAP, ROS 2 Jazzy's default).
 
-    def __init__(self, path: str | Path, storage: str = 'sqlite3'):
+    `checkpoint_s` > 0 (a recorder): what was written is made durable at least that often, so that a
+    recording cut short by a kill or a power loss keeps all but its last seconds: sqlite3 writes in WAL
+    mode and commits and checkpoints; MCAP closes its pending chunk and syncs the file. 0 (the
+    simulator, conversions): one transaction and 1 MB chunks, written whole at the end.
+    """
+
+    def __init__(self, path: str | Path, storage: str = 'sqlite3', checkpoint_s: float = 0.0):
         from rosbags.rosbag2 import StoragePlugin, Writer
         from rosbags.typesys import Stores, get_typestore
         self.path = Path(path)
@@ -97,13 +103,61 @@ class BagWriter:
         self._writer = Writer(self.path, version=9, storage_plugin=plugin)
         self._connections = {}
         self.count = 0
+        self.storage = storage
+        self.checkpoint_s = float(checkpoint_s)
+        self._last_checkpoint = 0.0
+        self._pending = 0        # messages written since the last checkpoint
+        self.checkpoints = 0
 
     def __enter__(self) -> 'BagWriter':
+        import time
         self._writer.open()
+        if self.checkpoint_s > 0 and self.storage == 'sqlite3':
+            # WAL: a transaction not yet committed never reaches the .db3, and a commit needs no
+            # rewrite of the pages before it; checkpoint() copies the committed pages into the .db3.
+            con = self._writer.storage.conn
+            con.commit()
+            con.execute('PRAGMA journal_mode=WAL')
+            con.execute('PRAGMA synchronous=NORMAL')
+        self._last_checkpoint = time.monotonic()
         return self
 
     def __exit__(self, *exc) -> None:
         self._writer.close()
+        if self.checkpoint_s > 0 and self.storage == 'sqlite3':
+            # A finished bag is a plain rollback-journal database, as every reader expects.
+            db = next(self.path.glob('*.db3'), None)
+            if db is not None:
+                con = sqlite3.connect(db)
+                try:
+                    con.execute('PRAGMA journal_mode=DELETE')
+                finally:
+                    con.close()
+
+    def checkpoint(self) -> None:
+        """Make every message written so far durable in the storage file (see the class)."""
+        import os
+        import time
+        storage = self._writer.storage
+        if self.storage == 'sqlite3':
+            storage.conn.commit()
+            storage.conn.execute('PRAGMA wal_checkpoint(PASSIVE)')
+        else:
+            if storage.chunk.bio.tell():
+                storage.close_chunk()
+            storage.bio.flush()
+            os.fsync(storage.bio.fileno())
+        self._pending = 0
+        self.checkpoints += 1
+        self._last_checkpoint = time.monotonic()
+
+    def checkpoint_if_due(self) -> bool:
+        """checkpoint() when `checkpoint_s` has passed since the last one and something is pending."""
+        import time
+        if self.checkpoint_s > 0 and self._pending and time.monotonic() - self._last_checkpoint >= self.checkpoint_s:
+            self.checkpoint()
+            return True
+        return False
 
     def add_topic(self, topic: str, msgtype: str, msgdef: str | None = None, qos=()) -> None:
         """`qos`: the publishers' rclpy QoSProfiles, recorded as the topic's offered_qos_profiles (rosbag2
@@ -128,6 +182,9 @@ class BagWriter:
             raise BagError(f'topic {topic} has not been added to the bag')
         self._writer.write(self._connections[topic], int(stamp_ns), data)
         self.count += 1
+        self._pending += 1
+        if self.checkpoint_s > 0:
+            self.checkpoint_if_due()
 
 
 class BagReader:

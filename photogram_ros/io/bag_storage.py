@@ -9,6 +9,9 @@ metadata.yaml), or an .mcap without its summary. rosbags refuses both whole. Her
   every row whose pages survive is found and the others are counted as lost. Message ids of a
   rosbag2 run from 1 without gaps, so metadata.yaml's count (or the largest id still readable)
   tells how many there were.
+- A .db3 with a `-wal` or `-journal` beside it is a recording cut short in the middle of writing (a
+  recorder in WAL mode, or in rollback mode mid-transaction): SQLite's own recovery is run on a copy
+  (the bag is never changed), which gives every message up to the last commit.
 - `scan_mcap` reads an .mcap record by record from its start, without the summary at its end;
   it stops at the first record cut short or garbled and says where.
 - `read_metadata` reads metadata.yaml for what the recorder saw: the counts to compare with.
@@ -86,6 +89,9 @@ class SqliteFile:
     _index: list | None = None                 # damaged: [(stamp_ns, id, topic_id)] of the readable rows
 
     def __post_init__(self):
+        self.path = Path(self.path)
+        self.name = self.path.name
+        self.recovered = _recover_cut_short(self)
         con = _connect(self.path)
         try:
             cols = {r[1] for r in con.execute('PRAGMA table_info(topics)')}
@@ -224,6 +230,41 @@ class SqliteFile:
             con.close()
             if unreadable:
                 self.problems.append(f'{self.path.name}: the data of {unreadable} messages is unreadable')
+
+
+def _recover_cut_short(f: 'SqliteFile') -> bool:
+    """A .db3 left with its -wal or hot -journal (a writer killed before it closed): let SQLite recover a
+    copy (roll the WAL forward to its last commit, or roll the unfinished transaction back) and read that
+    instead; the note says so. Returns whether it did."""
+    import shutil
+    import tempfile
+    import weakref
+    side = [f.path.with_name(f.path.name + s) for s in ('-wal', '-journal')]
+    side = [p for p in side if p.exists() and p.stat().st_size > 0]
+    if not side:
+        return False
+    tmp = Path(tempfile.mkdtemp(prefix='photogram_bag_'))
+    weakref.finalize(f, shutil.rmtree, tmp, True)
+    copy = tmp / f.path.name
+    try:
+        shutil.copyfile(f.path, copy)
+        for p in side:
+            shutil.copyfile(p, tmp / p.name)
+        con = sqlite3.connect(copy)
+        try:
+            n = con.execute('SELECT count(*) FROM messages').fetchone()[0]
+            con.execute('PRAGMA wal_checkpoint(TRUNCATE)')
+            con.execute('PRAGMA journal_mode=DELETE')
+        finally:
+            con.close()
+    except (OSError, sqlite3.DatabaseError) as exc:
+        f.problems.append(f'{f.name}: cut short while it was written ({", ".join(p.name for p in side)} left '
+                          f'beside it); SQLite could not recover it ({exc}): read as it is')
+        return False
+    f.path = copy
+    f.problems.append(f'{f.name}: cut short while it was written ({", ".join(p.name for p in side)} left beside '
+                      f'it, no clean close): {n} messages up to its last commit; what came after is lost')
+    return True
 
 
 class UnreadableStorage(Exception):

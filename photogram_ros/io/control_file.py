@@ -18,6 +18,11 @@ keyframes itself):
   national datum differs from EGM2008 by decimetres.
 - The sigma columns are optional (both or neither); without them the survey is taken as 2 cm
   horizontal, 3 cm vertical.
+- What spreadsheets write is read too (`read_text_lines`, `split_row`): UTF-8 with a byte-order mark
+  (Excel's "CSV UTF-8"), UTF-16 (Excel's "Unicode text"), Windows-1252; ';' as the column separator
+  with decimal commas (Excel in a European locale), decimal commas between blanks or tabs, quoted
+  fields, the empty columns Excel pads rows with, and a header row after the CRS line. A row whose commas cannot be told apart (commas
+  both between the columns and in the numbers) is refused, and the error says so.
 
 For a folder of photos, `read_gcp_list` reads OpenDroneMap's own gcp_list.txt, where the points were
 clicked in the photos: a CRS line, then one line per observation ``x y z px py image [name]``
@@ -59,7 +64,81 @@ def _crs_of(text: str, where: str):
                         f'a PROJ string or "WGS84 UTM 32N" on the first line): {exc}') from exc
 
 
+_DECIMAL_COMMA = re.compile(r'[-+]?\d+,\d+')
+
+
+def read_text_lines(path: Path, what: str) -> tuple[list[str], str]:
+    """The lines of a text file whatever encoding a spreadsheet or an editor gave it, and the encoding
+    found: a byte-order mark (UTF-8, UTF-16 LE/BE) is followed; UTF-16 without one is told by its zero
+    bytes; otherwise UTF-8, else Windows-1252. A DataError names the encoding when none fits."""
+    try:
+        data = path.read_bytes()
+    except OSError as exc:
+        raise DataError(f'cannot read the {what} {path}: {exc.strerror or exc}') from None
+    if data.startswith(b'\xef\xbb\xbf'):
+        enc = 'utf-8-sig'
+    elif data.startswith((b'\xff\xfe', b'\xfe\xff')):
+        enc = 'utf-16'
+    elif len(data) >= 4 and data[1::2].count(0) > 0.4 * (len(data) // 2) and data[0::2].count(0) == 0:
+        enc = 'utf-16-le'
+    elif len(data) >= 4 and data[0::2].count(0) > 0.4 * (len(data) // 2) and data[1::2].count(0) == 0:
+        enc = 'utf-16-be'
+    else:
+        enc = 'utf-8'
+    try:
+        text = data.decode(enc)
+    except UnicodeDecodeError as exc:
+        if enc != 'utf-8':
+            raise DataError(f'{path}: the {what} looks like {enc.upper()} but does not decode as it ({exc.reason} '
+                            f'at byte {exc.start}): save it as UTF-8 text') from None
+        try:
+            text, enc = data.decode('cp1252'), 'cp1252'
+        except UnicodeDecodeError:
+            raise DataError(f'{path}: the {what} is neither UTF-8, UTF-16 nor Windows-1252 text (byte '
+                            f'{exc.start} is 0x{data[exc.start]:02x}): is it a spreadsheet (.xlsx) rather than '
+                            'text? Save it as CSV UTF-8 or plain text') from None
+    if '\x00' in text:
+        raise DataError(f'{path}: the {what} holds zero bytes after decoding as {enc}: not a text file? Save it as '
+                        'CSV UTF-8 or plain text')
+    return text.lstrip('\ufeff').splitlines(), enc
+
+
+def split_row(line: str, where: str, expected=(5, 7)) -> list[str]:
+    """A row's values: separated by blanks, tabs or commas; by ';' when the row has any (Excel in a
+    European locale), its commas then being decimal commas; decimal commas between blanks also when
+    the blank-separated values count as `expected`. Quotes and the empty values of padded columns go."""
+    line = line.strip()
+    if ';' in line:
+        values = [v.strip().strip('"\'').strip() for v in line.split(';')]
+        values = [v.replace(',', '.') if _DECIMAL_COMMA.fullmatch(v) else v for v in values]
+        values = [w for v in values for w in v.split()]
+    else:
+        blank = [v.strip('"\'') for v in line.split()]
+        if len(blank) in expected and any(_DECIMAL_COMMA.fullmatch(v) for v in blank) and \
+                all(_DECIMAL_COMMA.fullmatch(v) for v in blank if ',' in v):
+            values = [v.replace(',', '.') for v in blank]
+        else:
+            values = [v.strip('"\'') for v in re.split(r'[\s,]+', line)]
+    values = [v for v in values if v]
+    if len(values) not in expected and ',' in line and ';' not in line and \
+            re.search(r'\d,\d', line) and not re.search(r'\d\.\d', line):
+        raise DataError(f'{where}: {line!r} has {len(values)} values: its commas look like decimal commas as well '
+                        'as column separators; write numbers with a decimal point, or separate the columns with '
+                        '";", blanks or tabs')
+    return values
+
+
+def _is_number(s: str) -> bool:
+    try:
+        float(s.replace(',', '.') if _DECIMAL_COMMA.fullmatch(s) else s)
+        return True
+    except ValueError:
+        return False
+
+
 def _number(s: str, what: str, where: str) -> float:
+    if _DECIMAL_COMMA.fullmatch(s):
+        s = s.replace(',', '.')
     try:
         v = float(s)
     except ValueError:
@@ -78,17 +157,15 @@ def read_control_file(path: str | Path, check_names=(), heights: str = 'auto') -
     path = Path(path)
     if heights not in HEIGHTS:
         raise DataError(f'heights must be one of {list(HEIGHTS)}, got {heights!r}')
-    try:
-        raw = path.read_text().splitlines()
-    except (OSError, UnicodeDecodeError) as exc:
-        raise DataError(f'cannot read the control-point file {path}: {exc}') from exc
+    raw, _ = read_text_lines(path, 'control-point file')
     lines = [(i + 1, ln.split('#', 1)[0].strip()) for i, ln in enumerate(raw)]
-    lines = [(n, ln) for n, ln in lines if ln]
+    # Rows a spreadsheet padded with empty columns (";;;;", ",,,") are empty rows.
+    lines = [(n, ln) for n, ln in lines if ln.strip(';, \t"\'')]
     if not lines:
         raise DataError(f'{path} is empty: the first line must be a CRS (e.g. EPSG:32632), then one line per '
                         f'target: {FORMAT_LINE[2:]}')
     crs_line, crs_text = lines[0]
-    crs, crs_name = _crs_of(crs_text, f'{path} line {crs_line}')
+    crs, crs_name = _crs_of(crs_text.strip().strip('"\'').rstrip(';,\t ').strip('"\''), f'{path} line {crs_line}')
     horizontal, orthometric = crs, heights == 'orthometric'
     if crs.is_compound:
         horizontal = crs.sub_crs_list[0]
@@ -106,7 +183,9 @@ def read_control_file(path: str | Path, check_names=(), heights: str = 'auto') -
     rows = []
     for n, ln in lines[1:]:
         where = f'{path} line {n}'
-        v = [s for s in re.split(r'[\s,]+', ln) if s]
+        v = split_row(ln, where)
+        if not rows and n == lines[1][0] and len(v) in (5, 7) and not any(_is_number(x) for x in v[1:5]):
+            continue   # a spreadsheet's header row ("name marker_id x y z ...")
         if len(v) not in (5, 7):
             raise DataError(f'{where}: expected "{FORMAT_LINE[2:]}" (5 or 7 values), got {len(v)}: {ln!r}')
         name = v[0]
@@ -199,10 +278,7 @@ def read_gcp_list(path: str | Path, check_names=()) -> GcpList:
     """Read an OpenDroneMap gcp_list.txt (see the module docstring); a point clicked in several photos
     has one line per photo, and an unnamed one is named after its x_y."""
     path = Path(path)
-    try:
-        text = path.read_text().splitlines()
-    except (OSError, UnicodeDecodeError) as exc:
-        raise DataError(f'cannot read the GCP file {path}: {exc}') from exc
+    text, _ = read_text_lines(path, 'GCP file')
     lines = [(n + 1, ln.split()) for n, ln in enumerate(text) if ln.strip() and not ln.lstrip().startswith('#')]
     if not lines:
         raise DataError(f'{path} is empty: the first line must be a CRS (e.g. EPSG:32632), then one line per '

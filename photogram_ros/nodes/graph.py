@@ -191,10 +191,14 @@ class Graph:
                                     kwargs)
             self.executor.add_node(self.child.node)
 
-    def start(self, child_timeout_s: float = 60.0) -> None:
+    def start(self, child_timeout_s: float = 60.0, watch_period_s: float = 5.0) -> None:
         self._thread = threading.Thread(target=self._spin, daemon=True, name='graph-executor')
         self._thread.start()
         self._trimmer = start_heap_trimmer()
+        self._watch_stop = threading.Event()
+        if watch_period_s > 0:
+            threading.Thread(target=self._watch_duplicates, args=(watch_period_s,), daemon=True,
+                             name='graph-duplicates').start()
         if self.child is not None:
             self.child.wait_ready(list(self.nodes.values()), child_timeout_s)
 
@@ -212,6 +216,21 @@ class Graph:
                 print(f'graph: executor error, spinning on: {type(exc).__name__}: {exc}', file=sys.stderr, flush=True)
                 time.sleep(0.05)
 
+    def _watch_duplicates(self, period_s: float) -> None:
+        """Every `period_s`: each topic one of this process's nodes publishes, also published by another
+        node of the same name and namespace (a second mapper on this ROS 2 domain: another `run`, or a
+        replay sharing the domain), is a WARN on that node's /diagnostics with the reason, while it lasts."""
+        while not self._watch_stop.wait(period_s):
+            for role, n in list(self.nodes.items()):
+                diag = getattr(n, 'diag', None)
+                if diag is None:
+                    continue
+                try:
+                    for what in duplicate_publishers(n):
+                        diag.problem(what)
+                except Exception:   # the node is being destroyed, or the context is gone
+                    return
+
     def counts(self) -> dict:
         """role -> the node's diagnostic counters, for the nodes of this process and of the child."""
         out = {r: n.diag.counts() for r, n in self.nodes.items() if getattr(n, 'diag', None) is not None}
@@ -223,6 +242,73 @@ class Graph:
         """A node working in its own thread (the bundle adjuster) says so: its counters stand still meanwhile."""
         local = any(callable(getattr(n, 'busy', None)) and n.busy() for n in self.nodes.values())
         return local or (self.child is not None and self.child.busy())
+
+    def in_flight(self) -> dict:
+        """Work the counters say is between nodes: keyframes the tracker published that the bundle
+        adjuster has not received, pair clouds stereo published that the map has not fused (a fuse can
+        take seconds). {} when nothing is."""
+        counts = self.counts()
+        out = {}
+        tr, b, st, m = (counts.get(r) for r in ('tracker', 'bundle', 'stereo', 'map'))
+        if tr is not None and b is not None:
+            n = tr.get('keyframes', 0) - b.get('keyframes_received', 0)
+            if n > 0:
+                out['keyframes not yet at the bundle adjuster'] = n
+        if st is not None and m is not None:
+            n = st.get('pairs_done', 0) - m.get('clouds', 0) - m.get('clouds_dropped', 0)
+            if n > 0:
+                out['pair clouds not yet fused by the map'] = n
+        return out
+
+    def activity(self, work_only: bool = False) -> int:
+        """A number that grows while any node is still working: the sum of the nodes' diagnostic
+        counters; `work_only`: only the counters of the mapping work (WORK_COUNTERS), not those a live
+        input moves whatever the graph does (MAVLink packets, camera frames, GNSS fixes)."""
+        total = 0
+        for role, c in self.counts().items():
+            for k, v in c.items():
+                if isinstance(v, (int, float)) and (not work_only or k in WORK_COUNTERS.get(role, ())
+                                                    or k.startswith(('pairs_skipped_', 'keyframes_not_oriented'))):
+                    total += v
+        return int(total)
+
+    def drain(self, quiet_s: float = 1.0, timeout_s: float = 300.0, stall_s: float = 30.0, say=None,
+              work_only: bool = False) -> dict:
+        """Wait until the data in the graph has gone through it: nothing in flight between nodes
+        (`in_flight`), no node busy, and no counter moved for `quiet_s`. Waits on the data, not on a
+        clock: work counted in flight while nothing moves at all (no counter, no busy node) for
+        `stall_s` was lost on the way and is not waited for; `timeout_s` bounds the whole wait.
+        `say(text)` gets a line every 10 s of waiting (what is waited for). `work_only`: a live graph's
+        inputs keep moving their counters: only the mapping work's count (activity). Returns what was
+        still in flight when the wait ended ({} when the graph drained)."""
+        t0 = time.monotonic()
+        moved_at = quiet_since = t0
+        last, last_said = self.activity(work_only), t0
+        while True:
+            time.sleep(0.1)
+            now_t, now = time.monotonic(), self.activity(work_only)
+            flight, busy = self.in_flight(), self.busy()
+            if now != last or busy:
+                moved_at = now_t
+            if now != last or busy or flight:
+                quiet_since = now_t
+            last = now
+            if now_t - quiet_since > quiet_s:
+                return {}
+            if flight and now_t - moved_at > stall_s:
+                if say is not None:
+                    say(f'end of flight: nothing moved for {stall_s:.0f} s with '
+                        + ', '.join(f'{v} {k}' for k, v in flight.items()) + ': lost on the way, not waited for')
+                return flight
+            if now_t - t0 > timeout_s:
+                if say is not None:
+                    say(f'end of flight: still working after {timeout_s:.0f} s; going on')
+                return flight or {'busy': 1}
+            if say is not None and now_t - last_said > 10.0:
+                last_said = now_t
+                doing = [f'{v} {k}' for k, v in flight.items()]
+                doing += ['a node is computing (the bundle adjuster)'] if busy else []
+                say(f'end of flight: {now_t - t0:.0f} s: waiting for ' + ('; '.join(doing) or 'the nodes to settle'))
 
     def problems(self, role: str) -> list[str]:
         """The last problems a node reported (in this process or the child)."""
@@ -262,6 +348,8 @@ class Graph:
     def shutdown(self) -> None:
         """Stop spinning and destroy the nodes (the map node flushes its tiles to disk on destroy); the
         child process does the same with its nodes and ends."""
+        if getattr(self, '_watch_stop', None) is not None:
+            self._watch_stop.set()
         if self.child is not None:
             self.child.stop()
         if getattr(self, '_trimmer', None) is not None:
@@ -273,8 +361,48 @@ class Graph:
             self.child.node.destroy_node()
 
 
+# The counters of the mapping work itself, per role (Graph.activity(work_only=True)).
+WORK_COUNTERS = {'tracker': ('keyframes',),
+                 'bundle': ('keyframes_received', 'keyframes_oriented', 'keyframes_failed', 'full_adjustments',
+                            'keyframes_adjusted'),
+                 'stereo': ('images', 'pairs_done', 'pairs_failed'),
+                 'map': ('clouds', 'clouds_dropped', 'keyframes_saved', 'points_fused')}
+
+# Topics every node publishes (or the graph's own): many publishers are normal there.
+SHARED_TOPICS = ('/diagnostics', '/rosout', '/parameter_events', '/clock')
+
+
+def duplicate_publishers(node) -> list[str]:
+    """For each topic `node` publishes, a sentence when another node of the same name and namespace
+    publishes it too: two copies of one mapper on one graph, whose data the subscribers mix up."""
+    out = []
+    mine: dict = {}
+    for pub in node.publishers:
+        mine[pub.topic_name] = mine.get(pub.topic_name, 0) + 1
+    name, ns = node.get_name(), node.get_namespace()
+    for topic, own in mine.items():
+        if topic in SHARED_TOPICS or '/graph/child/' in f'/{topic.lstrip("/")}':
+            continue
+        same = [i for i in node.get_publishers_info_by_topic(topic) if i.node_name == name and i.node_namespace == ns]
+        if len(same) > own:
+            domain = os.environ.get('ROS_DOMAIN_ID', '0') or '0'
+            out.append(f'{topic}: {len(same) - own} other {ns.rstrip("/")}/{name} also publishes it on ROS_DOMAIN_ID '
+                       f'{domain}: a second mapper (run, or replay --domain) on this graph mixes its data with '
+                       'this one\'s; give each its own ROS_DOMAIN_ID or --namespace')
+    return out
+
+
 TOPIC_CHILD_STATUS = 'graph/child/status'
 TOPIC_CHILD_COMMAND = 'graph/child/command'
+# A parent names its child's topics after its pid (graph/child/p1234/status): two replays on one domain
+# (--domain) then never take each other's commands (a "stop") or status.
+GRAPH_TOKEN_ENV = 'PHOTOGRAM_GRAPH_TOKEN'
+
+
+def child_topic(base: str, token: str) -> str:
+    """'graph/child/status', 'p1234' -> 'graph/child/p1234/status'."""
+    head, _, tail = base.rpartition('/')
+    return f'{head}/{token}/{tail}' if token else base
 
 
 def _reliable(depth: int = 10):
@@ -293,8 +421,9 @@ class ChildGraph:
         self._status: dict = {}
         self._cond = threading.Condition()
         self._seq = 0
-        self._pub = self.node.create_publisher(String, TOPIC_CHILD_COMMAND, _reliable())
-        self.node.create_subscription(String, TOPIC_CHILD_STATUS, self._on_status, _reliable())
+        token = f'p{os.getpid()}'
+        self._pub = self.node.create_publisher(String, child_topic(TOPIC_CHILD_COMMAND, token), _reliable())
+        self.node.create_subscription(String, child_topic(TOPIC_CHILD_STATUS, token), self._on_status, _reliable())
         ctx = node_kwargs.get('context')
         env = dict(os.environ)
         if ctx is not None and getattr(ctx, 'get_domain_id', None):
@@ -307,6 +436,7 @@ class ChildGraph:
         env.setdefault('MALLOC_ARENA_MAX', str(DEFAULT_ARENAS))
         # The child stops when this pipe closes: when this process ends, however it ends.
         env[WATCH_PARENT_ENV] = '1'
+        env[GRAPH_TOKEN_ENV] = token
         code = 'import sys; from photogram_ros.nodes.graph import child_main; sys.exit(child_main())'
         self.proc = subprocess.Popen([sys.executable, '-c', code, json.dumps(asdict(spec))], env=env,
                                      stdin=subprocess.PIPE)
@@ -417,7 +547,8 @@ def child_main(argv=None) -> int:
         graph = Graph(spec)
         ctl = Node('graph_child', **({'namespace': spec.namespace} if spec.namespace else {}))
         state = {'done': 0, 'errors': {}}
-        pub = ctl.create_publisher(String, TOPIC_CHILD_STATUS, _reliable())
+        token = os.environ.get(GRAPH_TOKEN_ENV, '')
+        pub = ctl.create_publisher(String, child_topic(TOPIC_CHILD_STATUS, token), _reliable())
         subs = {}
         for n in graph.nodes.values():
             for sub in n.subscriptions:
@@ -441,7 +572,7 @@ def child_main(argv=None) -> int:
             state['done'] = max(state['done'], c['seq'])
             status()
         # Commands in their own group: a flush taking seconds must not stop the status reports.
-        ctl.create_subscription(String, TOPIC_CHILD_COMMAND, command, _reliable(),
+        ctl.create_subscription(String, child_topic(TOPIC_CHILD_COMMAND, token), command, _reliable(),
                                 callback_group=MutuallyExclusiveCallbackGroup())
         ctl.create_timer(0.2, status, callback_group=MutuallyExclusiveCallbackGroup())
         graph.executor.add_node(ctl)

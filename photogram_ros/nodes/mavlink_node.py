@@ -116,6 +116,7 @@ class MavlinkNode(Node):
         self._link_up = False
         self._best_fix_type = None
         self._damaged_reported = 0
+        self._seen = (0, 0, 0, 0)   # (bytes_in, packets, signature_rejected, unsigned_rejected) at the last update
         self.published = {'fix': 0, 'attitude': 0, 'trigger': 0}
         self.input_done = threading.Event()
         self._thread = None
@@ -264,6 +265,8 @@ class MavlinkNode(Node):
             for k, v in self.ingest.counts.items():
                 if k.islower():
                     d.set(k, v)
+        for what in self._nothing_usable(st):
+            d.problem(what, WARN)
         damaged = st.crc_errors + st.junk_bytes
         if damaged > self._damaged_reported:
             d.problem(f'corrupted MAVLink data: {st.crc_errors} CRC errors, {st.junk_bytes} junk bytes so far', WARN)
@@ -286,6 +289,29 @@ class MavlinkNode(Node):
         d.set('link_state', 'up' if self._link_up else 'down')
         if st.signature_rejected or st.unsigned_rejected:
             d.set('signing', f'{st.signature_rejected} bad signatures, {st.unsigned_rejected} unsigned rejected')
+
+    def _nothing_usable(self, st) -> list[str]:
+        """WARN reasons when bytes or packets arrived since the last update but none could be used: every
+        packet rejected by the signature check (a wrong signing_key, or an autopilot that does not sign),
+        or bytes that hold no MAVLink packet at all (a wrong baud rate, another protocol)."""
+        now = (st.bytes_in, st.packets, st.signature_rejected, st.unsigned_rejected)
+        bytes_new, packets_new, bad_sig, unsigned = (a - b for a, b in zip(now, self._seen))
+        self._seen = now
+        if packets_new or not bytes_new:
+            return []
+        if bad_sig or unsigned:
+            out = []
+            if bad_sig:
+                out.append(f'no usable MAVLink: every packet is rejected: {st.signature_rejected} with a wrong '
+                           'signature so far (signing_key differs from the autopilot\'s?); no GNSS fix, no attitude')
+            if unsigned:
+                out.append(f'no usable MAVLink: every packet is rejected: {st.unsigned_rejected} unsigned so far '
+                           '(the autopilot does not sign: enable signing on it, or set allow_unsigned); no GNSS fix')
+            return out
+        if st.packets == 0 and bytes_new > 280:   # more than the longest packet: not one cut by the period
+            return [f'no usable MAVLink: {st.bytes_in} bytes received and no packet decodes (a wrong baud rate, '
+                    'or not MAVLink?); no GNSS fix, no attitude']
+        return []
 
     def destroy_node(self):
         self._stop.set()

@@ -1,5 +1,8 @@
 """Recorder: subscribes to topics as raw CDR and writes them to a bag (MCAP by default, as ROS 2 Jazzy)
-with their receive times and the publishers' QoS profiles."""
+with their receive times and the publishers' QoS profiles.
+
+Whatever the storage, what was received is made durable every `checkpoint_s` (2 s): a recording cut
+short by kill -9 or a power loss keeps everything but its last seconds (io/bag.py BagWriter)."""
 
 from __future__ import annotations
 
@@ -15,10 +18,11 @@ from photogram_ros.io.bag import BagWriter, msg_class
 
 
 class Recorder:
-    def __init__(self, out: str, topics: list[str], storage: str = 'mcap', node_name: str = 'recorder'):
+    def __init__(self, out: str, topics: list[str], storage: str = 'mcap', node_name: str = 'recorder',
+                 checkpoint_s: float = 2.0):
         self.node = Node(node_name)
         self.topics = topics
-        self.writer = BagWriter(out, storage=storage)
+        self.writer = BagWriter(out, storage=storage, checkpoint_s=checkpoint_s)
         self.writer.__enter__()
         self._lock = threading.Lock()
         self._subs = {}
@@ -43,9 +47,12 @@ class Recorder:
             self.writer.write_raw(topic, time.time_ns(), data)
             self.count += 1
 
-    def run(self, duration_s: float = 0.0, max_count: int = 0, discovery_timeout_s: float = 10.0) -> int:
+    def run(self, duration_s: float = 0.0, max_count: int = 0, discovery_timeout_s: float = 10.0,
+            stop: threading.Event | None = None) -> int:
+        """Record until `duration_s`, `max_count` messages, `stop` set (a signal) or Ctrl-C; returns the count."""
+        stop = stop or threading.Event()
         start = time.monotonic()
-        while len(self._subs) < len(self.topics):
+        while len(self._subs) < len(self.topics) and not stop.is_set():
             self._subscribe_discovered()
             if time.monotonic() - start > discovery_timeout_s:
                 missing = sorted(set(self.topics) - set(self._subs))
@@ -56,7 +63,7 @@ class Recorder:
             rclpy.spin_once(self.node, timeout_sec=0.05)
         start = time.monotonic()
         try:
-            while rclpy.ok():
+            while rclpy.ok() and not stop.is_set():
                 rclpy.spin_once(self.node, timeout_sec=0.05)
                 if duration_s and time.monotonic() - start >= duration_s:
                     break
@@ -64,6 +71,8 @@ class Recorder:
                     break
                 if len(self._subs) < len(self.topics):
                     self._subscribe_discovered()
+                with self._lock:   # also when nothing more arrives
+                    self.writer.checkpoint_if_due()
         except KeyboardInterrupt:
             pass
         return self.count

@@ -52,6 +52,9 @@ class ReplayOptions:
     # MAVLink decoder stay in this one): () runs everything in one process.
     child_roles: tuple = ()
     quiet_s: float = 1.0   # the graph has drained once nothing happened for this long (and nothing is queued)
+    # Work counted in flight between nodes while no counter moved and no node was busy for this long was
+    # lost on the way: not waited for (Graph.drain), said in the run's `drain_gave_up`.
+    stall_s: float = 30.0
     # The player also waits while a node after the tracker is more than this many keyframes (or pair
     # clouds) behind it; 0 = never. Without it a fast tracker outruns a slower child process: the
     # backlog grew the memory with the flight's length, and past stereo's max_keyframes (80) stereo
@@ -148,11 +151,6 @@ def downstream_lag(counts: dict) -> int:
     if 'stereo' in counts and 'map' in counts:
         lags.append(counts['stereo'].get('pairs_done', 0) - m.get('clouds', 0) - m.get('clouds_dropped', 0))
     return max(lags)
-
-
-def _activity(graph: Graph) -> int:
-    """A number that grows while any node is still working (sum of its diagnostic counters)."""
-    return int(sum(v for c in graph.counts().values() for v in c.values() if isinstance(v, (int, float))))
 
 
 CHILD_ROLES_ALLOWED = ('bundle', 'stereo', 'map')
@@ -313,14 +311,22 @@ def run_replay(opts: ReplayOptions, context=None) -> dict:
         while not done() and time.monotonic() < deadline:
             time.sleep(0.002)
 
+    lost = {'packets': 0, 'frames': 0}   # never arrived (waited for once, frame_timeout_s): not waited for again
+
+    def wait_counted(key, got, sent):
+        """Until got() catches up with sent() (less what was lost). One that never arrives costs one
+        frame_timeout_s, once: the wait then counts it lost instead of waiting on every later frame."""
+        wait_for(lambda: got() >= sent() - lost[key], opts.frame_timeout_s)
+        lost[key] = max(lost[key], sent() - got())
+
     def before_frame():
         # Telemetry up to a frame's time must be decoded before the tracker sees the frame, as it
         # would be live; otherwise the fix a keyframe needs may still sit in a queue.
         if mavlink is not None:
-            wait_for(lambda: mavlink.messages_in >= packets_sent[0], opts.frame_timeout_s)
+            wait_counted('packets', lambda: mavlink.messages_in, lambda: packets_sent[0])
         # The tracker must have taken the previous frame. Waiting here rather than right after that
         # frame lets the messages recorded with it (its camera_info) reach the tracker meanwhile.
-        wait_for(lambda: tracker.frames_done >= images_sent[0], opts.frame_timeout_s)
+        wait_counted('frames', lambda: tracker.frames_done, lambda: images_sent[0])
         check_free_space(out, opts.min_free_mb, f'after {images_sent[0]} frames (the map so far is in {map_dir})')
         if opts.max_lag_keyframes > 0:
             wait_downstream()
@@ -378,34 +384,14 @@ def run_replay(opts: ReplayOptions, context=None) -> dict:
         summary.bag_s, summary.wall_s = (last_ns - bag_start_ns) * 1e-9, time.monotonic() - t0
         return summary
 
-    def clouds_in_flight() -> int:
-        """Pair clouds stereo has published that the map has not fused yet (fusing one can take seconds)."""
-        counts = graph.counts()
-        if 'stereo' not in counts or 'map' not in counts:
-            return 0
-        fused = counts['map']
-        return (counts['stereo'].get('pairs_done', 0)
-                - fused.get('clouds', 0) - fused.get('clouds_dropped', 0))
-
-    def keyframes_in_flight() -> int:
-        """Keyframes the tracker published that the bundle adjuster has not received yet."""
-        counts = graph.counts()
-        if 'tracker' not in counts or 'bundle' not in counts:
-            return 0
-        return max(0, counts['tracker'].get('keyframes', 0) - counts['bundle'].get('keyframes_received', 0))
+    drain_left = []
 
     def drain():
-        """Wait until every keyframe reached the adjuster and is adjusted, every cloud is fused, and no
-        node has done anything for a moment (a pose on its way to stereo shows in no counter)."""
-        quiet_since, last = time.monotonic(), _activity(graph)
-        deadline = time.monotonic() + opts.drain_timeout_s
-        while time.monotonic() < deadline:
-            time.sleep(0.1)
-            now = _activity(graph)
-            if now != last or clouds_in_flight() > 0 or keyframes_in_flight() > 0 or graph.busy():
-                quiet_since, last = time.monotonic(), now
-            elif time.monotonic() - quiet_since > opts.quiet_s:
-                return
+        """Until the graph has drained (Graph.drain: waits on the data; work lost on the way is not waited for)."""
+        left = graph.drain(quiet_s=opts.quiet_s, timeout_s=opts.drain_timeout_s, stall_s=opts.stall_s,
+                           say=(lambda text: print(text, flush=True)) if opts.progress else None)
+        if left:
+            drain_left.append(left)
 
     try:
         if player is not None:
@@ -431,6 +417,10 @@ def run_replay(opts: ReplayOptions, context=None) -> dict:
            'waited_for_downstream_s': round(lag_wait_s[0], 1),
            'bag_read': {t: [i.count, i.expected] for t, i in topics.items()}, 'bag_warnings': bag_warnings,
            'final_adjustment': end.final_adjustment, 'end_of_flight_errors': end.errors, 'counts': counts}
+    if drain_left:
+        run['drain_gave_up'] = drain_left
+    if any(lost.values()):
+        run['lost_between_nodes'] = dict(lost)
     if end.reason:
         run['final_adjustment_reason'] = end.reason
     return {'run': run, 'diagnostics': diag_log.snapshot(), 'map_dir': str(map_dir), 'flight_end': end}

@@ -47,8 +47,8 @@ from photogram_ros.params import param
 
 STATIC = Path(__file__).resolve().parent / 'static'
 _NAME = r'([A-Za-z0-9_.-]+)'
-_TILE = re.compile(rf'^/tiles/{_NAME}/(\d+)/(\d+)/(\d+)\.png$')
-_BASEMAP = re.compile(r'^/basemap/(\d+)/(\d+)/(\d+)$')
+_TILE = re.compile(rf'^/tiles/{_NAME}/(\d{{1,2}})/(\d{{1,10}})/(\d{{1,10}})\.png$')   # longer numbers: no tile (404)
+_BASEMAP = re.compile(r'^/basemap/(\d{1,2})/(\d{1,10})/(\d{1,10})$')
 _DRONE = re.compile(rf'^/drones/{_NAME}/(coverage|track|targets)\.geojson$')
 _PLAN = re.compile(rf'^/drones/{_NAME}/refly\.plan$')
 COOKIE = 'gs_token'

@@ -1,0 +1,80 @@
+"""Which DDS domain a process joins: the user's ROS_DOMAIN_ID checked, or a domain of its own.
+
+- `check_domain_env()`: ROS_DOMAIN_ID must be an integer 0..232 (Fast DDS computes its UDP ports as
+  7400 + 250 x domain: 233 and above give ports past 65535, which it refuses with a raw "port number
+  is too high" on every node). A ConfigError (one line, exit 2) otherwise.
+- `own_domain()`: an offline replay needs nobody else on its graph, and must not feed an old flight
+  into anyone's (two replays from two terminals, a replay on a ground-station PC beside a flying
+  drone). It takes a domain of its own among 201..232 (above the usual 0..101 range and the domains a
+  test session picks): a domain is taken by holding an exclusive flock(2) on a file in the temporary
+  folder for the life of the process, so two replays on one machine never share one, and a replay
+  killed with -9 frees its domain with its end.
+"""
+
+from __future__ import annotations
+
+import fcntl
+import os
+import tempfile
+from pathlib import Path
+
+from photogram_ros.errors import ConfigError
+
+DOMAIN_MAX = 232
+OWN_DOMAINS = range(201, DOMAIN_MAX + 1)
+
+_held: list[int] = []   # lock file descriptors, kept open for the life of the process
+
+
+def parse_domain(value, where: str = 'ROS_DOMAIN_ID') -> int:
+    """'42' -> 42; a ConfigError for anything but an integer 0..232."""
+    try:
+        d = int(str(value).strip())
+    except ValueError:
+        raise ConfigError(f'{where}={value!r} is not a number: a ROS 2 domain id is an integer 0 to '
+                          f'{DOMAIN_MAX}') from None
+    if not 0 <= d <= DOMAIN_MAX:
+        raise ConfigError(f'{where}={d} is out of range: ROS 2 (Fast DDS) takes domain ids 0 to {DOMAIN_MAX} '
+                          '(its UDP ports are 7400 + 250 x domain); set another ROS_DOMAIN_ID')
+    return d
+
+
+def check_domain_env() -> int | None:
+    """The environment's ROS_DOMAIN_ID (None: not set, domain 0), checked."""
+    value = os.environ.get('ROS_DOMAIN_ID', '')
+    return parse_domain(value) if value.strip() else None
+
+
+def _lock_path(domain: int) -> Path:
+    return Path(tempfile.gettempdir()) / f'photogram-ros-domain-{domain}.lock'
+
+
+def _try_take(domain: int) -> bool:
+    try:
+        fd = os.open(_lock_path(domain), os.O_RDONLY | os.O_CREAT, 0o666)
+    except OSError:
+        return False
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError:
+        os.close(fd)
+        return False
+    _held.append(fd)
+    return True
+
+
+def own_domain(avoid: int | None = None) -> int:
+    """A domain id in 201..232 that no other photogram_ros process on this machine holds (and not
+    `avoid`, the user's own); it is held until the process ends. ConfigError when all are taken."""
+    start = os.getpid() % len(OWN_DOMAINS)
+    for k in range(len(OWN_DOMAINS)):
+        d = OWN_DOMAINS[(start + k) % len(OWN_DOMAINS)]
+        if d != avoid and _try_take(d):
+            return d
+    raise ConfigError(f'every domain id {OWN_DOMAINS.start}..{DOMAIN_MAX} is held by another replay on this '
+                      'machine: wait for one to end, or share a domain with --domain N')
+
+
+def use_domain(domain: int) -> None:
+    """Join `domain` from now on (rclpy.init reads ROS_DOMAIN_ID; child processes inherit it)."""
+    os.environ['ROS_DOMAIN_ID'] = str(int(domain))
