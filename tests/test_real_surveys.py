@@ -1,0 +1,121 @@
+"""The real-survey benchmark (bench/real_surveys.py): its measures against independent oracles (fast), and the
+real surveys of ../shared/data through `triangulate` and `replay` gated at their measured figures (slow).
+
+The gates are the figures bench/real_surveys.py measured (the README's real-data rows), each at no more
+than 1.5x its measured value (counts: equal), and the must-shows of toledo: 42/42 oriented, <= 2.0 m RMS
+horizontally from the EXIF GPS after a similarity, >= 95 % of the cameras within 15 degrees of nadir, the
+focal length within 5 % of the EXIF value, and `replay` of the same photos within 3 m of `triangulate`.
+"""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from conftest import shared_data
+from bench import real_surveys as rs
+from photogram_ros.core.geodesy import LocalFrame
+from photogram_ros.core.rotations import map_R_cam_from_opk
+from photogram_ros.core.similarity import Similarity
+
+
+# --- the measures, fast ---------------------------------------------------------------------------------
+
+
+def test_tilt_is_the_optical_axis_against_the_vertical():
+    # The photogrammetric camera looks along -z: with omega = phi = 0 it looks straight down whatever kappa.
+    assert rs.tilt_deg([0.0], [0.0], [137.0])[0] == pytest.approx(0.0, abs=1e-9)
+    assert rs.tilt_deg([10.0], [0.0], [0.0])[0] == pytest.approx(10.0)
+    assert rs.tilt_deg([0.0], [-85.0], [20.0])[0] == pytest.approx(85.0)
+    # Independent: the angle between the camera's optical axis (+z of the optical frame) and (0, 0, -1).
+    R = map_R_cam_from_opk(np.radians(7.0), np.radians(-12.0), np.radians(50.0))
+    want = np.degrees(np.arccos(np.dot(R @ [0, 0, 1], [0, 0, -1])))
+    assert rs.tilt_deg([7.0], [-12.0], [50.0])[0] == pytest.approx(want)
+    poses = {f'p{k}': {'omega_deg': o, 'phi_deg': 0.0, 'kappa_deg': 0.0} for k, o in enumerate([1, 5, 14, 16, 40])}
+    assert rs.nadir_figures(poses)['nadir_share'] == pytest.approx(0.6)
+
+
+def test_robust_similarity_names_moved_cameras_and_keeps_the_others():
+    rng = np.random.default_rng(3)
+    ref = np.column_stack([np.repeat(np.arange(6) * 30.0, 7), np.tile(np.arange(7) * 25.0, 6), np.full(42, 100.0)])
+    ref += rng.normal(0, 0.5, ref.shape)
+    a = np.radians(40)
+    R = np.array([[np.cos(a), -np.sin(a), 0], [np.sin(a), np.cos(a), 0], [0, 0, 1]])
+    truth = Similarity(2.5, R, np.array([10.0, -4.0, 3.0]))
+    est = (ref - truth.t) @ truth.R / truth.scale          # the block in its own frame
+    noise = rng.normal(0, 0.3, ref.shape)
+    est_noisy = est + noise / truth.scale
+    gnss = ref.copy()
+    moved = [3, 17, 25, 40]
+    gnss[moved, 0] += 80.0
+    res, keep = rs.robust_similarity(est_noisy, gnss)
+    assert list(np.nonzero(~keep)[0]) == moved
+    h, v = rs.rms_hv(res[keep])
+    assert h == pytest.approx(np.sqrt(2) * 0.3, rel=0.3) and v == pytest.approx(0.3, rel=0.35)
+    fig = rs.residual_figures([f'c{k}' for k in range(42)], est_noisy, gnss)
+    assert fig['sim_outliers'] == [f'c{k}' for k in moved]
+    # Rigid: the block in its own frame is far from the GNSS (rotated, scaled): the similarity is what fits.
+    assert fig['rigid_h_m'] > 50 and fig['sim_h_m'] < 1.0
+
+
+def test_geo_txt_written_reads_back_and_moves_four_geotags_by_80_m(tmp_path):
+    from pyproj import Geod
+
+    from photogram_ros.io.photo_block import read_geo_txt
+    shared_data('photos', 'toledo', 'images')
+    ref = rs.moved_geotags_block(tmp_path)
+    geo = read_geo_txt(tmp_path / 'geo.txt')
+    assert sorted(geo) == sorted(ref) and len(ref) == 42
+    g = Geod(ellps='WGS84')
+    for name, (lat, lon, h) in ref.items():
+        _, _, dist = g.inv(lon, lat, geo[name][1], geo[name][0])
+        assert dist == pytest.approx(80.0 if name in rs.MOVED_PHOTOS else 0.0, abs=0.05), name
+        assert geo[name][2] == pytest.approx(h, abs=2e-3) and geo[name][3:] == (5.0, 2.0)
+
+
+def test_dsm_completeness_counts_the_cells_inside_the_camera_hull(tmp_path):
+    import rasterio
+    from rasterio.transform import from_origin
+
+    from photogram_ros.core.geodesy import crs_to_geodetic
+    z = np.full((100, 100), 150.0, np.float32)
+    z[:, :50] = np.nan                                       # the western half holds no height
+    tr = from_origin(500000.0, 5200100.0, 1.0, 1.0)           # 1 m cells, EPSG:32615
+    with rasterio.open(tmp_path / 'dsm.tif', 'w', driver='GTiff', width=100, height=100, count=1, dtype='float32',
+                       crs='EPSG:32615', transform=tr, nodata=np.nan) as ds:
+        ds.write(z, 1)
+
+    def figures(e, n):
+        lat, lon, _ = crs_to_geodetic(np.array(e, float), np.array(n, float), np.zeros(len(e)), 'EPSG:32615')
+        return rs.dsm_completeness(tmp_path / 'dsm.tif', lat, lon)
+
+    whole = figures([500000, 500100, 500100, 500000], [5200000, 5200000, 5200100, 5200100])
+    assert whole['dsm_hull_share'] == pytest.approx(0.5, abs=0.02) and whole['dsm_raster_share'] == 0.5
+    east = figures([500060, 500090, 500090, 500060], [5200010, 5200010, 5200090, 5200090])
+    assert east['dsm_hull_share'] == 1.0 and east['dsm_hull_cells'] == pytest.approx(31 * 81, rel=0.05)
+
+
+def test_pycolmap_agreement_of_the_peer_with_itself():
+    peer_file = shared_data('photos', 'toledo', 'peer_pycolmap.json')
+    peer = json.loads(peer_file.read_text())['variants']['exhaustive']
+    res = peer['per_image_residual_enu_m']
+    a = rs.pycolmap_agreement(res, peer_file)
+    assert a['n'] == 42 and a['diff_h_m'] == 0.0 and a['corr_h'] == pytest.approx(1.0)
+    assert a['ours_h_m'] == pytest.approx(peer['rms_horizontal_m'], abs=0.002)
+    assert a['ours_v_m'] == pytest.approx(peer['rms_vertical_m'], abs=0.002)
+    shifted = {n: [e + 1.0, nn, u] for n, (e, nn, u) in res.items()}
+    assert rs.pycolmap_agreement(shifted, peer_file)['diff_h_m'] == pytest.approx(1.0)
+
+
+def test_pipeline_agreement_is_the_distance_between_the_same_photos():
+    frame = LocalFrame(41.6, -83.6, 150.0)
+    enu = np.array([[0.0, 0.0, 100.0], [50.0, 0.0, 100.0], [0.0, 50.0, 100.0]])
+    lat, lon, h = frame.enu_to_geodetic(enu)
+    a = {f'p{k}': {'lat_deg': lat[k], 'lon_deg': lon[k], 'h_m': h[k]} for k in range(3)}
+    lat, lon, h = frame.enu_to_geodetic(enu + [3.0, 4.0, 0.0])
+    b = {f'p{k}': {'lat_deg': lat[k], 'lon_deg': lon[k], 'h_m': h[k]} for k in range(3)}
+    b['other'] = b['p0']
+    got = rs.pipeline_agreement(a, b)
+    assert got['n'] == 3 and got['rms_3d_m'] == pytest.approx(5.0, abs=1e-3) and got['v_m'] == pytest.approx(0, abs=1e-3)
