@@ -11,7 +11,7 @@ Surveys (../shared/data, see its README):
   published trajectory (a stand-in GNSS track, not truth). `triangulate` is not run on it (no EXIF).
 
 Per survey and pipeline, from poses.csv / trajectory.csv, report.json, sparse.las and dsm.tif:
-- oriented / given: cameras in the pose file / photos in the folder (phantom3: keyframes taken);
+- oriented / given: cameras in the pose file / photos in the folder (triangulate) or keyframes taken (replay);
 - camera - GNSS residual RMS, horizontal and vertical: after a robust similarity (Umeyama, refitted without
   the cameras beyond 3 robust sigmas, floor 1 m; those are named) and rigidly (the block's own
   georeference, no transform), in a local ENU frame;
@@ -175,6 +175,7 @@ def residual_figures(names: list[str], est_enu: np.ndarray, ref_enu: np.ndarray)
     return {'n': len(names), 'sim_h_m': h, 'sim_v_m': v, 'sim_outliers': [n for n, ok in zip(names, inl) if not ok],
             'rigid_h_m': rh, 'rigid_v_m': rv,
             'per_camera_sim_enu_m': {n: [round(float(x), 3) for x in r] for n, r in zip(names, plain)},
+            'per_camera_rigid_enu_m': {n: [round(float(x), 3) for x in r] for n, r in zip(names, est_enu - ref_enu)},
             'per_camera_robust_enu_m': {n: [round(float(x), 3) for x in r] for n, r in zip(names, res)}}
 
 
@@ -313,7 +314,8 @@ def to_crs(points: np.ndarray, crs: str, dst: str = 'EPSG:32615') -> np.ndarray:
 def pycolmap_agreement(per_camera_sim_enu_m: dict[str, list], peer_path: str | Path = TOLEDO / 'peer_pycolmap.json',
                        variant: str = 'exhaustive') -> dict:
     """Our per-photo residuals after a similarity to the EXIF GPS against pycolmap's (peer_pycolmap.json):
-    the peer's RMS H/V over its photos, ours over the same photos, and the RMS of the per-photo difference
+    the peer's RMS H/V and ours over the photos both oriented (the peer's residuals as it gave them, ours after
+    our own similarity over the photos we oriented), and the RMS of the per-photo difference
     (horizontal, vertical), with the correlation of the horizontal components.
 
     'exhaustive' (pycolmap's default, focal refined) is the variant whose per-image residuals are those of
@@ -329,8 +331,9 @@ def pycolmap_agreement(per_camera_sim_enu_m: dict[str, list], peer_path: str | P
     dh, dv = rms_hv(a - b)
     corr = float(np.corrcoef(a[:, :2].ravel(), b[:, :2].ravel())[0, 1])
     oh, ov = rms_hv(a)
-    return {'variant': variant, 'n': len(common), 'peer_h_m': peer['rms_horizontal_m'], 'peer_v_m': peer['rms_vertical_m'],
-            'ours_h_m': oh, 'ours_v_m': ov, 'diff_h_m': dh, 'diff_v_m': dv, 'corr_h': corr}
+    ph, pv = rms_hv(b)
+    return {'variant': variant, 'n': len(common), 'peer_h_m': ph, 'peer_v_m': pv, 'ours_h_m': oh, 'ours_v_m': ov,
+            'diff_h_m': dh, 'diff_v_m': dv, 'corr_h': corr}
 
 
 def report_figures(report: dict, pipeline: str) -> dict:
@@ -406,6 +409,7 @@ def measure(out: str | Path, pipeline: str, reference: dict, by: str = 'image', 
         row['focal_vs_exif'] = row['fx_after_px'] / f0 - 1.0
     if peer == 'pycolmap' and 'per_camera_sim_enu_m' in res:
         row['peer'] = pycolmap_agreement(res['per_camera_sim_enu_m'])
+        row['peer_fixfocal'] = pycolmap_agreement(res['per_camera_sim_enu_m'], variant='exhaustive_fixfocal')
     elif peer == 'odm':
         if dsm.exists():
             pts, crs = dsm_points(dsm)
@@ -414,6 +418,7 @@ def measure(out: str | Path, pipeline: str, reference: dict, by: str = 'image', 
             pts, crs = sparse_points(out / 'sparse.las')
             row['peer'] = {'against': 'sparse.las', **odm_agreement(to_crs(pts, crs or report.get('crs', '')))}
     row['per_camera_robust_enu_m'] = res.get('per_camera_robust_enu_m', {})
+    row['per_camera_rigid_enu_m'] = res.get('per_camera_rigid_enu_m', {})
     return row
 
 
@@ -465,9 +470,9 @@ def run_photos(survey: str, pipeline: str, folder: Path, out: Path, peer: str | 
     cmd = [pipeline, str(folder), '--out', str(dst)] + (['--quiet'] if pipeline == 'replay' else [])
     run = run_command(cmd, out / f'{survey}_{pipeline}.log')
     row = {'survey': survey, 'pipeline': pipeline, 'command': 'photogram-ros ' + ' '.join(cmd), **run,
-           **(extra_row or {})}
+           'photos': photo_count(folder), **(extra_row or {})}
     row.update(safe_measure(dst, pipeline, reference if reference is not None else exif_reference(folder), 'image',
-                            photo_count(folder), peer, folder if pipeline == 'triangulate' else None,
+                            photo_count(folder) if pipeline == 'triangulate' else None, peer, folder if pipeline == 'triangulate' else None,
                             photo_stamps(folder) if pipeline == 'replay' else None))
     return row
 
@@ -485,7 +490,7 @@ def run_phantom3(out: Path) -> dict:
     row = {'survey': 'phantom3', 'pipeline': 'replay',
            'command': 'photogram-ros ' + ' '.join(imp) + ' && photogram-ros ' + ' '.join(cmd),
            **r2, 'exit': r1['exit'] or r2['exit'], 'wall_s': round(r1['wall_s'] + r2['wall_s'], 1),
-           'import_wall_s': r1['wall_s']}
+           'import_wall_s': r1['wall_s'], 'photos': len(list((PHANTOM3 / 'rgb').glob('*.jpg')))}
     row.update(safe_measure(dst, 'replay', track_reference(PHANTOM3), 'stamp_ns', None, None))
     return row
 
@@ -554,15 +559,22 @@ def run_variants(out: Path) -> list[dict]:
 
 
 def broken_block_figures(row: dict, broken: tuple[str, ...]) -> dict:
-    """Whether the verdict (report.json's, else the last line) names the broken photos, and the other
-    cameras' residuals after the robust similarity (against their true positions)."""
+    """Whether the verdict (report.json's, else the last line) names the broken photos; the other cameras'
+    residuals against their true positions after the robust similarity (the block's shape) and rigidly (its
+    georeference: what a user receives); and the broken photos' own rigid residuals (where the block put
+    them, against where they really were)."""
     verdict = json.dumps(row.get('verdict')) + ' ' + row.get('last_line', '') + ' ' + row.get('stderr_last', '')
     named = [n for n in broken if Path(n).stem in verdict]
-    others = {n: r for n, r in row.get('per_camera_robust_enu_m', {}).items() if n not in broken}
-    h, v = rms_hv(np.array(list(others.values())).reshape(-1, 3))
-    mx = max((float(np.hypot(r[0], r[1])) for r in others.values()), default=float('nan'))
-    return {'broken_named_in_verdict': f'{len(named)}/{len(broken)}', 'others_n': len(others),
-            'others_sim_h_m': h, 'others_sim_v_m': v, 'others_max_h_m': mx}
+    out = {'broken_named_in_verdict': f'{len(named)}/{len(broken)}'}
+    for what, key in (('sim', 'per_camera_robust_enu_m'), ('rigid', 'per_camera_rigid_enu_m')):
+        others = np.array([r for n, r in row.get(key, {}).items() if n not in broken]).reshape(-1, 3)
+        h, v = rms_hv(others)
+        out.update({'others_n': len(others), f'others_{what}_h_m': h, f'others_{what}_v_m': v,
+                    f'others_{what}_max_h_m': float(np.hypot(others[:, 0], others[:, 1]).max()) if len(others)
+                    else float('nan')})
+    mine = np.array([r for n, r in row.get('per_camera_rigid_enu_m', {}).items() if n in broken]).reshape(-1, 3)
+    out['broken_rigid_h_m'] = [round(float(np.hypot(r[0], r[1])), 2) for r in mine]
+    return out
 
 
 # --- the table -------------------------------------------------------------------------------------------
@@ -580,9 +592,12 @@ def peer_text(row: dict) -> str:
         return (f"ODM vs our {p['against']}: median \\|dz\\| {p['median_abs_dz_m'] * 100:.1f} cm, p90 "
                 f"{p['p90_abs_dz_m'] * 100:.0f} cm (offset {p['offset_m']} m)")
     if 'diff_h_m' in p:
-        return (f"pycolmap ({p['variant']}) {p['peer_h_m']:.2f} / {p['peer_v_m']:.2f} m; ours (plain similarity) "
+        q = row.get('peer_fixfocal') or {}
+        return (f"pycolmap ({p['n']} photos) {p['peer_h_m']:.2f} / {p['peer_v_m']:.2f} m, ours (plain similarity) "
                 f"{p['ours_h_m']:.2f} / {p['ours_v_m']:.2f} m; per-photo difference {p['diff_h_m']:.2f} m H, "
-                f"{p['diff_v_m']:.2f} m V (corr {p['corr_h']:.2f})")
+                f"{p['diff_v_m']:.2f} m V (corr {p['corr_h']:.2f})"
+                + (f"; against pycolmap with the EXIF focal {q['diff_h_m']:.2f} m H, {q['diff_v_m']:.2f} m V "
+                   f"(corr {q['corr_h']:.2f})" if q.get('diff_h_m') is not None else ''))
     return json.dumps(p)
 
 
@@ -597,13 +612,14 @@ def markdown(rows: list[dict], commit: str) -> str:
     head = ('| survey | pipeline | oriented | GNSS RMS H / V after robust similarity (m) | rigid H / V (m) | '
             f'within {NADIR_DEG:g}° of nadir (median tilt) | reprojection (px) | DSM completeness in camera hull | '
             'peer | verdict (report.json) | last line | wall (s) |')
-    lines = [f'Measured on commit {commit}.', '', head, '|' + '---|' * 12]
+    lines = [f'Measured with the product code of commit {commit}.', '', head, '|' + '---|' * 12]
     for r in rows:
         out = ''
         if r.get('sim_outliers'):
             out = f" (robust fit left out {len(r['sim_outliers'])}: {', '.join(r['sim_outliers'][:6])})"
         lines.append(' | '.join([
-            f"| {r['survey']}", r['pipeline'], f"{r.get('oriented', 0)}/{r.get('given')}",
+            f"| {r['survey']}", r['pipeline'], f"{r.get('oriented', 0)}/{r.get('given')}"
+            + (f" keyframes of {r['photos']} images" if r['pipeline'] == 'replay' and r.get('photos') else ''),
             f"{_f(r.get('sim_h_m'))} / {_f(r.get('sim_v_m'))}{out}", f"{_f(r.get('rigid_h_m'))} / {_f(r.get('rigid_v_m'))}",
             f"{_f(r.get('nadir_share'), '.0%')} ({_f(r.get('tilt_median_deg'), '.1f', '°')})",
             _f(r.get('reprojection_px'), '.3f'), _f(r.get('dsm_hull_share'), '.1%'), peer_text(r), verdict_text(r),
@@ -619,21 +635,28 @@ def markdown(rows: list[dict], commit: str) -> str:
                          f"{a['max_3d_m']:.2f} m over {a['n']} photos |")
     broken = [r for r in rows if r.get('broken')]
     if broken:
-        lines += ['', '| broken block | what | exit | broken photos named in the verdict | other cameras: robust '
-                  'similarity H / V RMS, max H (m) |', '|---|---|---|---|---|']
+        lines += ['', '| broken block | what | exit | broken photos named in the verdict | other cameras against '
+                  'their true GNSS: robust similarity H / V RMS, max H (m) | the same, rigid | broken photos: '
+                  'rigid H from their true position (m) | verdict / last line |', '|---|---|---|---|---|---|---|---|']
         for r in broken:
             lines.append(f"| {r['survey']} | {r['broken']} | {r['exit']} | {r.get('broken_named_in_verdict')} | "
                          f"{_f(r.get('others_sim_h_m'))} / {_f(r.get('others_sim_v_m'))}, "
-                         f"{_f(r.get('others_max_h_m'))} (n={r.get('others_n')}) |")
+                         f"{_f(r.get('others_sim_max_h_m'))} (n={r.get('others_n')}) | "
+                         f"{_f(r.get('others_rigid_h_m'))} / {_f(r.get('others_rigid_v_m'))}, "
+                         f"{_f(r.get('others_rigid_max_h_m'))} | {r.get('broken_rigid_h_m')} | "
+                         f"{verdict_text(r)}; {(r.get('last_line') or r.get('stderr_last', ''))[:200]} |")
     return '\n'.join(lines) + '\n'
 
 
 def git_commit() -> str:
+    """The last commit that changed the product code (photogram_ros/, config/), '+modified' when the working
+    tree changes it, and HEAD."""
+    def git(*args):
+        return subprocess.run(['git', *args], cwd=ROOT, capture_output=True, text=True).stdout.strip()
     try:
-        c = subprocess.run(['git', 'rev-parse', '--short', 'HEAD'], cwd=ROOT, capture_output=True, text=True).stdout
-        dirty = subprocess.run(['git', 'status', '--porcelain', 'photogram_ros'], cwd=ROOT, capture_output=True,
-                               text=True).stdout
-        return c.strip() + ('+dirty' if dirty.strip() else '')
+        product = git('log', '-1', '--format=%h', '--', 'photogram_ros', 'config')
+        dirty = git('status', '--porcelain', 'photogram_ros', 'config')
+        return f"{product}{'+modified' if dirty else ''} (HEAD {git('rev-parse', '--short', 'HEAD')})"
     except OSError:
         return 'unknown'
 
@@ -648,7 +671,7 @@ def run_all(surveys, pipelines, variants: bool, out: Path) -> list[dict]:
         row['commit'] = commit
         rows.append(row)
         with open(jsonl, 'a') as fh:
-            fh.write(json.dumps({k: v for k, v in row.items() if k != 'per_camera_robust_enu_m'}, default=str) + '\n')
+            fh.write(json.dumps({k: v for k, v in row.items() if not k.startswith('per_camera')}, default=str) + '\n')
         (out / 'real_surveys.md').write_text(markdown(rows, commit))
         print(f"{row['survey']} {row['pipeline']}: {row.get('oriented')}/{row.get('given')} oriented, "
               f"{_f(row.get('sim_h_m'))} / {_f(row.get('sim_v_m'))} m after a similarity, "
