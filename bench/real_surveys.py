@@ -13,22 +13,26 @@ Surveys (../shared/data, see its README):
 Per survey and pipeline, from poses.csv / trajectory.csv, report.json, sparse.las and dsm.tif:
 - oriented / given: cameras in the pose file / photos in the folder (triangulate) or keyframes taken (replay);
 - camera - GNSS residual RMS, horizontal and vertical: after a robust similarity (Umeyama, refitted without
-  the cameras beyond 3 robust sigmas, floor 1 m; those are named) and rigidly (the block's own
-  georeference, no transform), in a local ENU frame;
+  the cameras beyond 3x the median residual, floor 1 m; those are named) and rigidly (the block's own
+  georeference, no transform), in a local ENU frame; the EXIF altitude read as MSL, as `triangulate` does;
+- replay against triangulate: the same photos' camera centres (both georeferenced), RMS and max;
 - share of cameras within 15 degrees of nadir (the optical axis against the local vertical), median tilt;
 - reprojection RMS (px) from report.json;
 - DSM completeness: share of the DSM cells inside the convex hull of the camera centres that hold a height;
 - agreement with the peer; the verdict (report.json `verdict`, else n/a) and the command's last line;
+- the focal length after the adjustment against the EXIF one (triangulate);
 - wall time of the command(s).
 
 Variants (`--variants`, triangulate only): toledo with four geotags moved 80 m (a geo.txt beside copies
 of the photos), and toledo + brighton photos in one folder. Their rows name what was broken and what
 the verdict said; the other cameras are measured against the photos' own EXIF GPS.
 
-Writes OUT/real_surveys.jsonl (one row a run) and OUT/real_surveys.md (the table).
+Writes OUT/real_surveys.jsonl (one row a run) and OUT/real_surveys.md (the table); each command's output
+folder, log and outcome (.run.json) stay in OUT, and `--remeasure` measures them again without running.
+The commands run one after the other (about 12 minutes for all on 2 loaded cores, 17 with --variants).
 
     ROS_DOMAIN_ID=85 .venv/bin/python bench/real_surveys.py [--only brighton,toledo,phantom3]
-        [--pipelines triangulate,replay] [--variants] [--out DIR]
+        [--pipelines triangulate,replay] [--variants] [--out DIR] [--remeasure]
 """
 
 from __future__ import annotations
