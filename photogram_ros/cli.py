@@ -21,6 +21,7 @@ COMMANDS = {
     'record': 'photogram_ros.commands.record',
     'bag-info': 'photogram_ros.commands.bag_info',
     'triangulate': 'photogram_ros.commands.triangulate',
+    'geotag': 'photogram_ros.commands.geotag',
     'calibrate': 'photogram_ros.commands.calibrate',
     'export': 'photogram_ros.commands.export',
     'fixes': 'photogram_ros.commands.fixes',

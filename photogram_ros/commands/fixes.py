@@ -20,6 +20,12 @@ def add_arguments(p) -> None:
     p.add_argument('--signing-key', default='', help='MAVLink 2 signing secret (64 hex digits or passphrase)')
     p.add_argument('--sysid', type=int, default=0)
     p.add_argument('--compid', type=int, default=0)
+    p.add_argument('--events', action='store_true',
+                   help='print the camera exposures instead of the fixes: CAM/TRIG of a .bin, CAMERA_FEEDBACK / '
+                        'CAMERA_TRIGGER / CAMERA_IMAGE_CAPTURED of a .tlog, or the lines of a DJI Timestamp.MRK '
+                        '(GPS week and seconds, UTC, the position the log wrote, the attitude)')
+    p.add_argument('--event-type', default='auto', help='with --events: CAM or TRIG (.bin); CAMERA_FEEDBACK, '
+                                                        'CAMERA_TRIGGER or CAMERA_IMAGE_CAPTURED (.tlog)')
     p.add_argument('--topic', default='/mavlink/from_fcu', help='bag topic of raw MAVLink bytes (without it in the '
                                                              'bag, its sensor_msgs/NavSatFix topics are printed)')
 
@@ -124,10 +130,61 @@ def _bag_rows(a, src: str, key, events, state: dict):
 DEFAULT_TOPIC = '/mavlink/from_fcu'
 
 
+EVENT_COLUMNS = ('seq', 'source', 'gps_week', 'gps_seconds', 't_unix_s', 'utc', 'lat_deg', 'lon_deg', 'alt_msl_m',
+                 'roll_deg', 'pitch_deg', 'yaw_deg')
+
+
+def _event_rows(a):
+    from photogram_ros.core.exposure_positions import gps_s_to_utc_unix, gps_s_to_week_tow
+    from photogram_ros.io.camera_events import read_events
+    from photogram_ros.io.fix_rows import utc_text
+    for ev in read_events(a.source, a.event_type):
+        week, tow = gps_s_to_week_tow(ev.t_gps_s)
+        unix = gps_s_to_utc_unix(ev.t_gps_s)
+        llh = ev.logged_llh or (None, None, None)
+        rpy = ev.rpy_deg or (None, None, None)
+        yield {'seq': ev.seq, 'source': ev.where, 'gps_week': week, 'gps_seconds': round(tow, 6),
+               't_unix_s': round(unix, 6), 'utc': utc_text(unix), 'lat_deg': llh[0], 'lon_deg': llh[1],
+               'alt_msl_m': llh[2], 'roll_deg': rpy[0], 'pitch_deg': rpy[1], 'yaw_deg': rpy[2]}
+
+
+def _print_events(a) -> int:
+    import json
+    import math
+    import sys
+    n = 0
+    rows = list(_event_rows(a))      # read first: a log without camera events is an error, not an empty table
+    if a.format == 'csv':
+        print(','.join(EVENT_COLUMNS))
+    elif a.format == 'geojson':
+        print('{"type": "FeatureCollection", "features": [')
+    for row in rows:
+        row = {k: (None if isinstance(v, float) and not math.isfinite(v) else v) for k, v in row.items()}
+        if a.format == 'csv':
+            print(','.join('' if row[k] is None else (f'{row[k]:.9f}' if k in ('lat_deg', 'lon_deg') else str(row[k]))
+                           for k in EVENT_COLUMNS))
+        elif a.format == 'jsonl':
+            print(json.dumps(row))
+        else:
+            geom = None if row['lat_deg'] is None else {'type': 'Point', 'coordinates': [
+                row['lon_deg'], row['lat_deg'], row['alt_msl_m']]}
+            print((',' if n else '') + json.dumps({'type': 'Feature', 'geometry': geom, 'properties': row}))
+        n += 1
+    if a.format == 'geojson':
+        print(']}')
+    print(f'{n} camera events', file=sys.stderr)
+    return 0
+
+
 def run(a) -> int:
     """Exit status 0; 2 when the input holds no MAVLink (or no GNSS topic); 3 when the bag is damaged
     (the fixes it still holds are printed)."""
     import sys
+    if getattr(a, 'events', False):
+        try:
+            return _print_events(a)
+        except BrokenPipeError:
+            return 0
     w = RowWriter(a.format, sys.stdout)
     state: dict = {}
     try:

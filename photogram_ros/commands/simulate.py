@@ -37,6 +37,9 @@ def add_arguments(p) -> None:
     p.add_argument('--raw-images', action='store_true', help='write sensor_msgs/Image instead of JPEG')
     p.add_argument('--mcap', action='store_true', help='write MCAP instead of sqlite3')
     p.add_argument('--photos', action='store_true', help='also write geotagged JPEGs and gcp_list.txt')
+    p.add_argument('--ppk', action='store_true', help='also write what a PPK drone leaves, in OUT/ppk/: photos '
+                                                      'geotagged by a consumer GNSS, a 5 Hz RTKLIB flight.pos of the '
+                                                      'antenna at survey accuracy, a Timestamp.MRK and gcp_list.txt')
 
 
 def config_from_args(a):
@@ -62,6 +65,8 @@ def config_from_args(a):
         o['storage'] = 'mcap'
     if a.photos:
         o['photos'] = True
+    if getattr(a, 'ppk', False):
+        o['ppk'] = True
     return preset(a.preset, **o)
 
 

@@ -90,5 +90,10 @@ def run(a) -> int:
         print(f'control: {len(faults)} faults found (see the report\'s Control rows)')
     for e in res.damage:
         print(f'bag damaged: {e}')
-    # Exit status as `replay`'s: 3 for a damaged bag (what it held was triangulated).
+    v = res.verdict
+    print(f"verdict: {v['summary']}" if v else 'verdict: none')
+    # Exit status: 4 for a block that failed its own check (the files are written, but wrong); as
+    # `replay`'s, 3 for a damaged bag (what it held was triangulated).
+    if v and v['status'] == 'failed':
+        return 4
     return 3 if res.damage else 0

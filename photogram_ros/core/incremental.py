@@ -118,6 +118,16 @@ class IncrementalOptions:
     estimate_gnss_bias: bool = param(True, 'estimate a constant ENU GNSS offset in the full adjustment when >= 3 '
                                            'GCPs make it observable')
     bias_iterations: int = param(10, 'full adjustments of the GNSS bias estimate, at most', min=0, max=1000)
+    estimate_gnss_noise: bool = param(True, 'the full adjustment estimates the flight\'s GNSS noise (horizontal and '
+                                            'vertical apart) from its residuals and weights the fixes by it when '
+                                            'they are poorer than they state; fixes far beyond it are not used')
+    gnss_noise_min_keyframes: int = param(8, 'oriented keyframes with a fix the GNSS noise estimate needs',
+                                          min=4, max=100000)
+    gnss_gate_m: float = param(1.0, 'a keyframe oriented from the block\'s tie points whose fix lies further than '
+                                    'this (and 2 x gnss_outlier_sigma of its sigma) from it keeps its fix out, m',
+                               min=0.0, max=1e6)
+    gnss_outlier_sigma: float = param(5.0, 'a fix whose residual exceeds this many estimated sigmas (and 3 stated '
+                                           'sigmas) is not used', min=2.0, max=1000.0)
     # Long flights: keyframes and tracks that can no longer enter a window leave the Python heap
     # (points to compact arrays, keyframe observations to disk) so memory stays flat; a track id
     # seen again later brings them back, so results are the same either way (core/at_freeze.py).
@@ -233,6 +243,11 @@ class IncrementalAT:
         # its fixes as independent lets them bend the block away from the GCPs (camera position
         # and tilt trade off over flat ground). With GCPs the bias is observable: estimated here.
         self.gnss_bias_enu = np.zeros(3)
+        # The GNSS noise as the data shows it: factors (horizontal, vertical) on the fixes' stated sigmas
+        # (never below 1), and the keyframes whose fix is not used (far beyond that noise).
+        self.gnss_sigma_scale_hv = np.ones(2)
+        self.gnss_rejected: set[int] = set()
+        self.gnss_noise: dict = {}
 
     @property
     def lever_arm_cam_m(self) -> np.ndarray:
@@ -307,6 +322,8 @@ class IncrementalAT:
                 self._triangulate_new(kf)
                 if not self.georeferenced or self.georef_provisional:
                     self._try_georeference()
+                elif rep.status != 'registered_gnss_rotation':
+                    self._gate_fix(kf)
                 rep = self._window_adjust(kf.kid, iterations=window_iterations)
             elif self._segment_wanted(kf):
                 rep = self._grow_segment(kf, rec, rep, window_iterations)
@@ -728,14 +745,24 @@ class IncrementalAT:
             # Straight line: everything but the roll about it comes from GNSS; the roll from the
             # near-nadir camera. Provisional until the first turn.
             n = len(ks)   # the cameras alone (GCPs joined a forced fit above)
-            s = similarity_on_line(src[:n], dst[:n], np.array([self.kfs[k].map_T_cam[:3, 2] for k in ks]))
+            dirs = np.array([self.kfs[k].map_T_cam[:3, 2] for k in ks])
+            s = similarity_on_line(src[:n], dst[:n], dirs)
+            # A glitched fix on the line would tilt it: fitted again without the fixes far from the first fit.
+            near = np.linalg.norm(s.apply(src[:n]) - dst[:n], axis=1) <= max(thr, 3.0 * float(np.median(
+                np.linalg.norm(s.apply(src[:n]) - dst[:n], axis=1))))
+            if 3 <= near.sum() < n:
+                s = similarity_on_line(src[:n][near], dst[:n][near], dirs[near])
             provisional = True
         else:
             return False
         if self.georeferenced:   # provisional -> final: GNSS priors of the whole block fix the roll
             self.georef_provisional = False
-            self.full_adjustment(iterations=self.opt.full_iterations, rounds=1)
+            self.full_adjustment(iterations=self.opt.full_iterations, rounds=1, gnss_noise=False)
             return True
+        # Fixes far from where the georeferenced block puts their cameras are glitches: not used.
+        far = np.linalg.norm(s.apply(src[:len(ks)]) - dst[:len(ks)], axis=1) > thr
+        if far.sum() <= len(ks) // 4:
+            self.gnss_rejected |= {k for k, f in zip(ks, far) if f}
         for k in self.registered:
             self.kfs[k].map_T_cam = s.apply_pose(self.kfs[k].map_T_cam)
         ids, P = self.points.arrays()
@@ -743,7 +770,7 @@ class IncrementalAT:
             self.points.set_many(ids, np.array([s.apply(p[None])[0] for p in P]))
         self.georeferenced = True
         self.georef_provisional = provisional
-        self.full_adjustment(iterations=self.opt.full_iterations, rounds=1)
+        self.full_adjustment(iterations=self.opt.full_iterations, rounds=1, gnss_noise=False)
         return True
 
     # --- adjustment -----------------------------------------------------------------------------
@@ -773,7 +800,7 @@ class IncrementalAT:
         if hold_gauge and not self.georeferenced and not fixed_mask.any():
             fixed_mask[:2] = True     # gauge: no datum yet, hold the first two keyframes
         gk = [j for j, k in enumerate(kids) if self.georeferenced and not fixed_mask[j]
-              and self.kfs[k].fix_enu is not None]
+              and self.kfs[k].fix_enu is not None and k not in self.gnss_rejected]
         pri = [(s, self.control[self.target_name(t)]) for s, t in enumerate(tracks)
                if t < 0 and not self.is_check(t)] if self.georeferenced and gcp_priors else []
         prob = BundleProblem(
@@ -785,7 +812,7 @@ class IncrementalAT:
             fixed_cams=fixed_mask, fixed_points=None,
             gnss_cam=np.array(gk, int) if gk else None,
             gnss_pos_map=np.array([self._gnss_target(self.kfs[kids[j]]) for j in gk]).reshape(-1, 3),
-            gnss_cov_map=np.array([self.kfs[kids[j]].fix_cov for j in gk]).reshape(-1, 3, 3),
+            gnss_cov_map=np.array([self._fix_cov_used(self.kfs[kids[j]]) for j in gk]).reshape(-1, 3, 3),
             lever_arm_cam_m=self._lever,
             point_priors_idx=np.array([s for s, _ in pri], int) if pri else None,
             point_priors_map=np.array([c.map_xyz for _, c in pri]).reshape(-1, 3),
@@ -848,6 +875,82 @@ class IncrementalAT:
             return {}
         return {k: np.asarray(res.cam_centre_cov[j]) for j, k in enumerate(free)}
 
+    def _gate_fix(self, kf: Keyframe) -> bool:
+        """A new keyframe oriented from the block's tie points, whose fix lies far beyond its sigma
+        (and `gnss_gate_m`) from where the block puts it, keeps its fix out of the adjustment (a
+        glitched geotag: weighted as stated it would drag the block after it). True when rejected."""
+        if kf.fix_enu is None or kf.map_T_cam is None:
+            return False
+        d = kf.map_T_cam[:3, 3] + kf.map_T_cam[:3, :3] @ self._lever - self._gnss_target(kf)
+        sig = np.sqrt(np.diag(self._fix_cov_used(kf)))
+        far = np.abs(d) > np.maximum(self.opt.gnss_outlier_sigma * 2.0 * sig, self.opt.gnss_gate_m)
+        if far.any():
+            self.gnss_rejected.add(kf.kid)
+            return True
+        return False
+
+    def _fix_cov_used(self, kf: Keyframe) -> np.ndarray:
+        """The fix's covariance (ENU m^2) scaled by the flight's estimated GNSS noise."""
+        S = np.diag(self.gnss_sigma_scale_hv[[0, 0, 1]])
+        return S @ np.asarray(kf.fix_cov, float).reshape(3, 3) @ S
+
+    def estimate_gnss_noise(self, iterations: int | None = None) -> dict:
+        """The flight's GNSS noise from the residuals of the fixes (a variance-component estimate,
+        horizontal and vertical apart, robust: median absolute deviations about the median, corrected
+        for the 7 datum parameters the fixes also carry). Where it exceeds the stated sigmas by half
+        again, the fixes are weighted by it and the block adjusted again, until the estimate settles;
+        then a fix beyond `gnss_outlier_sigma` estimated sigmas (and 3 stated ones) is not used (at most
+        a fifth of them) and the block adjusted once more. Returns (and keeps in `gnss_noise`) the stated
+        and estimated sigmas (m), the scale factors and the names of the rejected fixes."""
+        iters = iterations or self.opt.full_iterations
+        out = {}
+        for rnd in range(5):
+            r = self.gnss_residuals([k for k in self.registered if k not in self.gnss_rejected])
+            if len(r) < self.opt.gnss_noise_min_keyframes or not self.georeferenced:
+                if self.gnss_rejected:
+                    self.gnss_noise = {**self.gnss_noise,
+                                       'rejected': [self.kfs[k].name for k in sorted(self.gnss_rejected)]}
+                return self.gnss_noise
+            kids = list(r)
+            R = np.array([r[k] for k in kids])
+            stated = np.array([np.sqrt(np.mean([np.mean(np.diag(self.kfs[k].fix_cov)[:2]) for k in kids])),
+                               np.sqrt(np.mean([self.kfs[k].fix_cov[2, 2] for k in kids]))])
+            n = len(kids)
+            redundancy = np.sqrt(3.0 * n / max(3.0 * n - 7.0, 1.0))
+            h = R[:, :2] - np.median(R[:, :2], axis=0)
+            v = R[:, 2] - np.median(R[:, 2])
+            est = redundancy * 1.4826 * np.array([np.median(np.abs(h)), np.median(np.abs(v))])
+            used = stated * self.gnss_sigma_scale_hv
+            want = np.where(est > 1.5 * stated, est / stated, 1.0)
+            want = np.maximum(want, 1.0)
+            out = {'stated_h_m': float(stated[0]), 'stated_v_m': float(stated[1]), 'estimated_h_m': float(est[0]),
+                   'estimated_v_m': float(est[1]), 'scale_h': float(want[0]), 'scale_v': float(want[1]),
+                   'used_h_m': float(stated[0] * want[0]), 'used_v_m': float(stated[1] * want[1]), 'n': n}
+            if np.all(np.abs(stated * want - used) <= 0.1 * used):
+                break
+            self.gnss_sigma_scale_hv = want
+            self._solve(list(self.registered), [], list(self.points), iters)
+        # Outliers: far beyond the noise the flight shows, and beyond what the fixes state.
+        if out:
+            r = self.gnss_residuals([k for k in self.registered if k not in self.gnss_rejected])
+            kids = list(r)
+            R = np.array([r[k] for k in kids])
+            sig = np.array([max(out['estimated_h_m'], out['stated_h_m'] * 0.5),
+                            max(out['estimated_v_m'], out['stated_v_m'] * 0.5)])
+            dev = np.column_stack([np.linalg.norm(R[:, :2] - np.median(R[:, :2], axis=0), axis=1) / (np.sqrt(2) * sig[0]),
+                                   np.abs(R[:, 2] - np.median(R[:, 2])) / sig[1]]).max(axis=1)
+            floor = np.column_stack([np.linalg.norm(R[:, :2] - np.median(R[:, :2], axis=0), axis=1)
+                                     / (np.sqrt(2) * out['stated_h_m']),
+                                     np.abs(R[:, 2] - np.median(R[:, 2])) / out['stated_v_m']]).max(axis=1)
+            bad = np.flatnonzero((dev > self.opt.gnss_outlier_sigma) & (floor > 3.0))
+            bad = bad[np.argsort(-dev[bad])][:max(len(kids) // 5, 0)]
+            if len(bad):
+                self.gnss_rejected |= {kids[i] for i in bad}
+                self._solve(list(self.registered), [], list(self.points), iters)
+            out['rejected'] = [self.kfs[k].name for k in sorted(self.gnss_rejected)]
+        self.gnss_noise = out
+        return out
+
     def _gnss_target(self, kf: Keyframe) -> np.ndarray:
         """The fix moved so that `C + map_R_cam @ lever` should meet it (exact offset when known)."""
         fix = kf.fix_enu - self.gnss_bias_enu
@@ -875,7 +978,7 @@ class IncrementalAT:
 
     def _window_adjust(self, kid: int, full: bool = False, iterations: int | None = None) -> StepReport:
         if full:
-            return self.full_adjustment(iterations=self.opt.full_iterations, rounds=1)
+            return self.full_adjustment(iterations=self.opt.full_iterations, rounds=1, gnss_noise=False)
         sel = select_window(self.registered, self.opt.window_size, {k: self._kf_tracks(k)
                                                                     for k in self.registered[-self.opt.window_size:]},
                             self.track_kfs, self.opt.max_fixed_keyframes)
@@ -885,10 +988,12 @@ class IncrementalAT:
         return rep
 
     def full_adjustment(self, iterations: int | None = None, rounds: int = 2,
-                        refine_intrinsics: tuple = ()) -> StepReport:
+                        refine_intrinsics: tuple = (), gnss_noise: bool = True) -> StepReport:
         """Adjust every registered keyframe and point; repeated so that removed outliers settle.
 
-        refine_intrinsics (e.g. ('f', 'k1')) self-calibrates the shared camera in this adjustment.
+        refine_intrinsics (e.g. ('f', 'k1')) self-calibrates the shared camera in this adjustment;
+        gnss_noise: estimate the flight's GNSS noise afterwards (`estimate_gnss_noise`, when the option
+        is on and the block is georeferenced for good).
         """
         rep = StepReport(-1, False, 'not_initialised')
         if not self.registered:
@@ -897,13 +1002,15 @@ class IncrementalAT:
             rounds = max(rounds - 1, 1)
         if self._segment is not None and self._segment.registered:
             # End of flight (or asked for): a segment still waiting joins if its GNSS places it at all.
-            self._segment.full_adjustment(iterations=iterations, rounds=1)
+            self._segment.full_adjustment(iterations=iterations, rounds=1, gnss_noise=False)
             if self._segment.georeferenced and self.georeferenced:
                 self._join_segment()
         for _ in range(rounds):
             tracks = list(self.points)
             rep = self._solve(list(self.registered), [], tracks, iterations or self.opt.full_iterations,
                               refine_intrinsics)
+        if gnss_noise and self.opt.estimate_gnss_noise and self.georeferenced and not self.georef_provisional:
+            self.estimate_gnss_noise(iterations)
         if self.opt.estimate_gnss_bias and self._n_gcps() >= 3:
             for _ in range(self.opt.bias_iterations):
                 r = np.array(list(self.gnss_residuals().values()))
@@ -990,6 +1097,10 @@ class IncrementalAT:
 
     def poses(self) -> dict[int, np.ndarray]:
         return {k: self.kfs[k].map_T_cam for k in self.registered}
+
+    def keyframe_points(self, kid: int) -> np.ndarray:
+        """(N, 3) map ENU (m) of the tie points keyframe `kid` observes (active observations)."""
+        return self.points.get_many(self._kf_tracks(kid)).reshape(-1, 3)
 
     def observations_of(self, tid: int):
         """(map_T_cams, uv) of one track in the registered keyframes (active or not)."""

@@ -20,6 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
+from photogram_ros.core.block_check import check_block, inputs_from_at
 from photogram_ros.core.at_report import (build_report, convergence, focal_determination, gnss_figures,
                                         intrinsics_sigma)
 from photogram_ros.core.control import ControlRow, ControlVettingOptions, unchecked_vetting, vet_control
@@ -69,6 +70,7 @@ class TriangulateResult:
     inputs: int                 # images given
     tie_points: int
     damage: list = field(default_factory=list)   # a damaged bag: what was read and lost (exit 3)
+    verdict: dict = field(default_factory=dict)  # core/block_check.py BlockVerdict.to_dict()
 
 
 def triangulate(src: str | Path, out: str | Path, opt: TriangulateOptions, log=None) -> TriangulateResult:
@@ -251,6 +253,10 @@ def adjust_block(block: KeyframeBlock, out: str | Path, opt: TriangulateOptions,
         assumptions.append(conv['text'])
         if log is not None:
             log(f'warning: {conv["text"]}')
+    adj = {'status': rep_adj.status, **({'matters': conv['matters'], 'text': conv['text']} if conv else {})}
+    verdict = check_block(inputs_from_at(at, block.n_inputs or len(block.records), adj, block.expect_nadir))
+    if log is not None and verdict.status != 'ok':
+        log(f'warning: block check: {verdict.summary}')
     lost = [kf.name for kf in at.kfs if kf.map_T_cam is None]
     if lost:
         assumptions.append(f'{len(lost)} photos could not be oriented (blurred or without overlap): {lost[:10]}')
@@ -274,6 +280,9 @@ def adjust_block(block: KeyframeBlock, out: str | Path, opt: TriangulateOptions,
     write_las(cloud, out / 'sparse.las')
     rep = build_report(at, assumptions, vetting=vet,
                        gnss_without_gcps=gnss_without if vet is not None and target_obs else None)
+    rep['verdict'] = verdict.to_dict()
+    if at.gnss_noise:
+        rep['gnss_noise'] = dict(at.gnss_noise)
     rep['crs'] = crs
     rep['adjustment_status'] = rep_adj.status
     if conv is not None:
@@ -290,7 +299,7 @@ def adjust_block(block: KeyframeBlock, out: str | Path, opt: TriangulateOptions,
         rep['self_calibration'] = self_cal
     write_report(rep, out)
     return TriangulateResult(out, rep, len(at.registered), block.n_inputs or len(block.records), len(P),
-                             list(block.damage))
+                             list(block.damage), rep['verdict'])
 
 
 def _trusted_ground(control: list, vet) -> list:

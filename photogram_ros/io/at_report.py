@@ -91,8 +91,29 @@ def _point_rows(rep: dict) -> list[dict]:
             for p in c.get('points', {}).values()]
 
 
+def verdict_lines(rep: dict) -> list[str]:
+    """The block check's verdict (core/block_check.py) as the report's first lines."""
+    v = rep.get('verdict')
+    if not v:
+        return []
+    L = [f"**Verdict: {v['status'].upper()}**" + ('' if v['findings'] else
+                                                   ': the block agrees with its GNSS, looks at the ground below it '
+                                                   'and converged'), '']
+    for f in v['findings']:
+        L.append(f"- {f['status'].upper()} ({f['check']}): {f['text']}")
+    fig = v.get('figures', {})
+    g, n = fig.get('gnss_fit', {}), fig.get('nadir', {})
+    if 'rms_h_m' in g:
+        L.append(f"- cameras against their GNSS after a similarity: {g['rms_h_m']:.2f} m H, {g['rms_v_m']:.2f} m V "
+                 f"({g['normalised_rms']:.1f}x the GNSS noise of {g['noise_h_m']:.2f} m H / {g['noise_v_m']:.2f} m V)")
+    if n:
+        L.append(f"- {100 * n['share_within_deg']:.0f} % of the cameras within {n['deg']:g} degrees of nadir "
+                 f"(median tilt {n['median_tilt_deg']:.1f} degrees)")
+    return L + ['']
+
+
 def markdown(rep: dict) -> str:
-    L = ['# Aerial triangulation report', '',
+    L = ['# Aerial triangulation report', ''] + verdict_lines(rep) + [
          f"Keyframes {rep['registered']}/{rep['keyframes']} oriented, {rep['points']} tie points, "
          f"{rep['observations']} observations; reprojection RMS {_rms_text(rep)}.",
          f"Frame: {rep['frame']}. Origin: {rep['origin']}.", '']

@@ -30,6 +30,9 @@ class KeyframeBlock:
     camera_from_exif: bool = False       # intrinsics from the photos' EXIF (distortion unknown)
     stats: dict = field(default_factory=dict)            # what reading it did (features, pairs: the report's)
     damage: list = field(default_factory=list)           # a damaged bag: what was read and what was lost
+    # Whether the flight looked down (a mapping survey; a DJI XMP gimbal pitch says otherwise): the
+    # block check expects its cameras near nadir. None: not known, not checked.
+    expect_nadir: bool | None = True
 
 
 def camera_from_yaml(path: str | Path) -> PinholeCamera:

@@ -236,6 +236,20 @@ def _footprints(images: list[Path], positions: np.ndarray, camera: PinholeCamera
     return np.array(out) if len(out) == len(positions) else None
 
 
+def _looked_down(images: list[Path], assumptions: list) -> bool:
+    """Whether the survey looked down: the DJI XMP gimbal pitch of most photos within 20 degrees of
+    -90 where the photos state one; a mapping survey (nadir) where they do not."""
+    pitch = [xmp_float(read_dji_xmp(p), 'GimbalPitchDegree') for p in images]
+    pitch = np.array([v for v in pitch if v is not None], float)
+    if len(pitch) < len(images) / 2:
+        return True
+    down = bool(np.median(pitch) <= -70.0)
+    if not down:
+        assumptions.append(f'the photos\' gimbal pitch (median {np.median(pitch):.0f} degrees) says an oblique '
+                           'survey: the block check does not expect nadir cameras')
+    return down
+
+
 def _match_block(images, feats, camera, pos, sigma_h_m, footprints, opt, factor, log, stats: MatchStats):
     order, first = pm.candidate_order(pos, opt.neighbours, sigma_h_m, footprints)
     pairs = pm.candidate_pairs(order, first)
@@ -325,4 +339,5 @@ def read_photo_block(src: str | Path, camera_path: str | Path | None = None, nei
         fix = GnssFix(g[0], g[1], g[2], np.diag([g[3] ** 2, g[3] ** 2, g[4] ** 2])) if g else None
         records.append(KeyframeRecord(0, tr[keep], f.uv[keep], fix, p.name))
     return KeyframeBlock(camera, origin, records, assumptions, n_inputs=n_files, exif_geodetic=exif_check,
-                         camera_from_exif=from_exif, stats=stats.to_dict())
+                         camera_from_exif=from_exif, stats=stats.to_dict(),
+                         expect_nadir=_looked_down(images, assumptions))

@@ -74,6 +74,7 @@ from std_msgs.msg import Empty
 from photogram_ros import msgs
 from photogram_ros.core.attitude import AttitudeHistory, antenna_offset_enu
 from photogram_ros.core.at_report import convergence, redundancy_notes
+from photogram_ros.core.block_check import check_block, inputs_from_at
 from photogram_ros.core.control import ControlSet, robust_intersection
 from photogram_ros.core.control_live import LiveControl, LiveControlOptions
 from photogram_ros.core.evaluation import ce90_le90
@@ -525,12 +526,28 @@ class BundleNode(Node):
         if len(recent) >= min(5, self.p.health_window) and share > self.p.health_max_unoriented:
             self.diag.problem(f'{n_bad} of the last {len(recent)} keyframes are not oriented (last reason: '
                               f'{self._last_failure})', ERROR if share > 0.5 else WARN)
+        if at.georeferenced and not at.georef_provisional and len(at.registered) % 10 == 0:
+            self._block_check()
         with_fix = sum(kf.fix_enu is not None for kf in at.kfs)
         if not at.georeferenced and with_fix >= self.p.georef_warn_keyframes:
             why = (f'{len(at.registered)} keyframes oriented' if at.registered else 'no keyframe oriented yet')
             self.diag.problem(f'no georeference after {with_fix} keyframes with a GNSS fix ({why}; the fixes must '
                               'spread beyond their noise, and the block must be oriented)',
                               ERROR if with_fix >= 2 * self.p.georef_warn_keyframes else WARN)
+
+    def _block_check(self, adjustment: dict | None = None) -> None:
+        """The block's own check (core/block_check.py) on /diagnostics: `verdict` and its reasons; a
+        failed block is an ERROR, a warning a WARN."""
+        v = check_block(inputs_from_at(self.at, adjustment=adjustment))
+        self.diag.set('verdict', v.status)
+        self.diag.set('verdict_summary', v.summary)
+        fit = v.figures.get('gnss_fit', {})
+        if 'rms_h_m' in fit:
+            self.diag.set('block_gnss_fit_h_m', fit['rms_h_m'])
+            self.diag.set('block_gnss_fit_v_m', fit['rms_v_m'])
+        self.diag.set('block_nadir_share', v.figures.get('nadir', {}).get('share_within_deg', float('nan')))
+        if v.status != 'ok':
+            self.diag.problem(f'block check: {v.summary}', ERROR if v.status == 'failed' else WARN)
 
     def _control_diagnostics(self) -> None:
         if self.control is None:
@@ -746,6 +763,9 @@ class BundleNode(Node):
                 self.diag.set('full_adjustment_convergence', conv['text'])
                 if conv['matters']:
                     self.diag.problem(conv['text'], WARN)
+            if self.at.georeferenced:
+                self._block_check({'status': rep.status, **({'matters': conv['matters'], 'text': conv['text']}
+                                                            if conv else {})})
             self._control_diagnostics()
             self.publish_quality()
             if self.at.georeferenced:

@@ -26,6 +26,9 @@ GPS_IFD = 0x8825
 EXIF_IFD = 0x8769
 PIXEL_PITCH_MM = 0.003          # the simulated sensor's pixel pitch
 DIAGONAL_35MM_MM = 43.27
+PPK_RATE_HZ = 5.0               # the PPK track's epoch rate
+PPK_EPOCH_PHASE_S = 0.1         # its epochs' offset from the flight's own fix times
+SIM_BOOT_BEFORE_START_S = 94.3  # the autopilot booted this long before the first fix of the flight
 
 
 def _rational_dms(value_deg: float):
@@ -72,13 +75,17 @@ def exif_bytes(lat_deg: float, lon_deg: float, alt_msl_m: float, when: datetime,
     return exif.tobytes()
 
 
-def write_photos(folder: Path, frames, truth, cfg) -> list[str]:
-    """`frames`: [(index, image, FlightState)] of every rendered frame; writes the triggered ones."""
+def write_photos(folder: Path, frames, truth, cfg, exif_fixes=None, geo_txt: bool = True) -> list:
+    """`frames`: [(index, image, FlightState)] of every rendered frame; writes the triggered ones.
+
+    exif_fixes: the fixes (dicts as `truth.fixes`) the camera geotags its photos with (default: the
+    flight's own GNSS); geo_txt: also write geo.txt from them. Returns [(photo name, FrameTruth)].
+    """
     folder.mkdir(parents=True, exist_ok=False)
     spacing_m = cfg.height_px * cfg.gsd_m * (1.0 - cfg.front_overlap)
     names, last = [], None
     geo_lines = ['EPSG:4326']
-    fix_by_t = truth.fixes
+    fix_by_t = truth.fixes if exif_fixes is None else exif_fixes
     for k, img, st in frames:
         if last is not None and np.linalg.norm(st.pos_enu[:2] - last) < spacing_m:
             continue
@@ -100,7 +107,8 @@ def write_photos(folder: Path, frames, truth, cfg) -> list[str]:
         geo_lines.append(f"{name} {fix['lon_deg']:.9f} {fix['lat_deg']:.9f} {fix['h_m']:.3f} 0 0 0 "
                          f"{fix['h_acc_m']:.3f} {fix['v_acc_m']:.3f}")
         names.append((name, ft))
-    (folder / 'geo.txt').write_text('\n'.join(geo_lines) + '\n')
+    if geo_txt:
+        (folder / 'geo.txt').write_text('\n'.join(geo_lines) + '\n')
     # gcp_list.txt: every target visible in every photo, in the UTM CRS, ellipsoidal heights.
     lines = [truth.crs]
     cam = truth.camera
@@ -113,7 +121,80 @@ def write_photos(folder: Path, frames, truth, cfg) -> list[str]:
                 lines.append(f'{float(x):.4f} {float(y):.4f} {float(z):.4f} {uv[0, 0]:.2f} {uv[0, 1]:.2f} '
                              f'{name} {t.name}')
     (folder / 'gcp_list.txt').write_text('\n'.join(lines) + '\n')
+    if geo_txt:
+        (folder / 'README.txt').write_text(
+            'Simulated survey photos. EXIF GPS altitude is MSL (geoid: ' + geoid.MODEL_NAME + '); geo.txt '
+            'and gcp_list.txt heights are ellipsoidal (WGS84). Targets named CHK* are check points.\n')
+    return names
+
+
+def write_ppk(folder: Path, frames, truth, cfg, antenna_at_t) -> list:
+    """What a PPK drone leaves in `folder`: photos geotagged by a consumer GNSS (EXIF, 3D fix, ~2 m), a
+    5 Hz RTKLIB `flight.pos` of the antenna at survey accuracy (RTK-fixed error model, its sigmas,
+    Q=1), a DJI `Timestamp.MRK` (exposure GPS times, the true antenna -> camera offset per photo in mm,
+    N/E/V with V down, and the onboard single-point antenna position, flag 16), an ArduPilot `flight.bin`
+    with a CAM message per photo (GPS time, body attitude) and gcp_list.txt.
+    antenna_at_t(t_unix_s): the true antenna position (map ENU). Draws from its own random stream, so
+    the rest of the simulation is unchanged by it."""
+    from photogram_ros.core.exposure_positions import utc_unix_to_gps_s
+    from photogram_ros.io.camera_events import write_mrk
+    from photogram_ros.io.rtklib_pos import write_pos
+    from photogram_ros.sim.dataflash import write_cam_log
+    from photogram_ros.sim.gnss import MODES, GnssErrorModel, GnssScript
+
+    rng = np.random.default_rng(cfg.seed + 24_000)
+    consumer = GnssErrorModel(GnssScript('3d'), rng)
+    survey = GnssErrorModel(GnssScript('rtk_fixed'), rng)
+    t0_unix = min(f['t_fix_unix_s'] for f in truth.fixes)
+    t1_unix = max(f['t_fix_unix_s'] for f in truth.fixes)
+    # The receiver's epochs fall between exposures (0.1 s after the flight's own fixes), so every
+    # photo position is interpolated.
+    t_unix = np.arange(t0_unix + PPK_EPOCH_PHASE_S, t1_unix, 1.0 / PPK_RATE_HZ)
+    exif_fixes, pos_llh, t_gps = [], [], []
+    for t in t_unix:
+        rel = float(t - t0_unix)
+        a = antenna_at_t(rel + t0_unix)
+        e_c = consumer.sample(rel).error_enu_m
+        e_s = survey.sample(rel).error_enu_m
+        lat, lon, h = (float(v) for v in truth.origin.enu_to_geodetic(a + e_c))
+        exif_fixes.append({'t_fix_unix_s': float(t), 'lat_deg': lat, 'lon_deg': lon, 'h_m': h,
+                           'alt_msl_m': float(geoid.ellipsoid_to_msl_m(lat, lon, h)),
+                           'h_acc_m': MODES['3d'].h_acc_m, 'v_acc_m': MODES['3d'].v_acc_m})
+        pos_llh.append([float(v) for v in truth.origin.enu_to_geodetic(a + e_s)])
+        t_gps.append(utc_unix_to_gps_s(float(t)))
+    pos_llh = np.array(pos_llh)
+    m = MODES['rtk_fixed']
+    names = write_photos(folder, frames, truth, cfg, exif_fixes=exif_fixes, geo_txt=False)
+    write_pos(folder / 'flight.pos', t_gps, pos_llh[:, 0], pos_llh[:, 1], pos_llh[:, 2],
+              np.ones(len(t_gps), int), np.tile([m.h_acc_m, m.h_acc_m, m.v_acc_m], (len(t_gps), 1)))
+    t_exp, off, llh, seqs = [], [], [], []
+    for name, ft in names:
+        t_s = ft.stamp_ns * 1e-9
+        t_exp.append(utc_unix_to_gps_s(ft.stamp_ns // 1_000_000_000) + (ft.stamp_ns % 1_000_000_000) * 1e-9)
+        d_enu = ft.map_T_cam[:3, 3] - ft.antenna_enu
+        off.append([d_enu[1], d_enu[0], -d_enu[2]])
+        fx = min(exif_fixes, key=lambda f: abs(f['t_fix_unix_s'] - t_s))
+        llh.append((fx['lat_deg'], fx['lon_deg'], fx['h_m']))
+        seqs.append(int(name.split('_')[1].split('.')[0]))
+    llh = np.array(llh)
+    states = {k: st for k, _, st in frames}
+    cams = []
+    for (name, ft), t_g, seq, (lat, lon, h) in zip(names, t_exp, seqs, llh):
+        st = states[ft.index]
+        week, tow = divmod(t_g, 604800.0)
+        cams.append({'boot_us': int(round((ft.stamp_ns * 1e-9 - t0_unix + SIM_BOOT_BEFORE_START_S) * 1e6)),
+                     'img': seq, 'gps_week': int(week), 'gps_ms': int(round(tow * 1000)), 'lat_deg': lat,
+                     'lon_deg': lon, 'alt_msl_m': float(geoid.ellipsoid_to_msl_m(lat, lon, h)),
+                     'rel_alt_m': h - truth.origin.h_m, 'roll_deg': np.degrees(st.roll_rad),
+                     'pitch_deg': np.degrees(st.pitch_rad), 'yaw_deg': np.degrees(st.yaw_rad)})
+    write_cam_log(folder / 'flight.bin', cams)
+    write_mrk(folder / 'Timestamp.MRK', t_exp, np.array(off), llh[:, 0], llh[:, 1], llh[:, 2],
+              [(MODES['3d'].h_acc_m, MODES['3d'].h_acc_m, MODES['3d'].v_acc_m)] * len(names), flag=16, seqs=seqs)
     (folder / 'README.txt').write_text(
-        'Simulated survey photos. EXIF GPS altitude is MSL (geoid: ' + geoid.MODEL_NAME + '); geo.txt '
-        'and gcp_list.txt heights are ellipsoidal (WGS84). Targets named CHK* are check points.\n')
-    return [n for n, _ in names]
+        'Simulated PPK photo survey: EXIF GPS is a consumer 3D fix (altitude MSL, geoid ' + geoid.MODEL_NAME +
+        '); flight.pos is the post-processed antenna track (RTKLIB layout, 5 Hz, GPST, ellipsoidal heights); '
+        'Timestamp.MRK has the exposures (GPS time) with the antenna -> camera offsets (mm, N/E/V, V down); '
+        'flight.bin is an ArduPilot dataflash log of the same exposures (CAM: GPS time, body attitude). '
+        '`photogram-ros geotag --pos flight.pos --events Timestamp.MRK --photos .` writes geo.txt. '
+        'gcp_list.txt heights are ellipsoidal; CHK* are check points.\n')
+    return names

@@ -83,6 +83,7 @@ class SimConfig:
     storage: str = 'sqlite3'              # or 'mcap'
     photos: bool = False                  # also write geotagged JPEGs + gcp_list.txt
     front_overlap: float = 0.80           # photo trigger spacing for `photos`
+    ppk: bool = False                     # also write a PPK drone's photos, .pos and Timestamp.MRK in ppk/
 
     def validate(self) -> None:
         if self.gnss_mode not in MODES:
@@ -249,7 +250,7 @@ def simulate(cfg: SimConfig, out_dir: str | Path, progress=None) -> GroundTruth:
         else:
             bag_msgs.append((arrive_ns, TOPIC_IMAGE_RAW, msgs.image_msg(img, stamp_ns)))
         bag_msgs.append((arrive_ns, TOPIC_CAMERA_INFO, msgs.camera_info_msg(camera, stamp_ns)))
-        if cfg.photos:
+        if cfg.photos or cfg.ppk:
             photos.append((k, img, st))
         if progress:
             progress(k + 1, len(times))
@@ -281,6 +282,10 @@ def simulate(cfg: SimConfig, out_dir: str | Path, progress=None) -> GroundTruth:
     if cfg.photos:
         from photogram_ros.sim.photos import write_photos
         write_photos(out_dir / 'photos', photos, truth, cfg)
+    if cfg.ppk:
+        from photogram_ros.sim.photos import write_ppk
+        write_ppk(out_dir / 'ppk', photos, truth, cfg,
+                  lambda t_unix: antenna_at(flight.state(max(t_unix - START_UNIX_S, 0.0))))
     return truth
 
 

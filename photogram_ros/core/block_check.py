@@ -1,0 +1,268 @@
+"""A block that checks itself: the verdict of an aerial triangulation, offline and in flight.
+
+`check_block(inputs, options)` takes what an adjusted block is (camera poses `map_T_cam` (N, 4, 4) in the
+map frame, ENU metres; the GNSS antenna positions of the same cameras `fix_enu_m` (N, 3), NaN where a
+camera has none; their stated sigmas; the tie points each camera sees; how the final adjustment ended)
+and returns a `BlockVerdict`: 'ok', 'warning' or 'failed', with one `Finding` per check that is not
+ok, each naming its reason and the photos it concerns.
+
+The checks, each against what the data itself says:
+- gnss_fit: the cameras against their own GNSS through a robust similarity (the block's shape alone),
+  residuals normalised by the GNSS noise (the estimated one where the adjustment estimated it). A block
+  whose shape disagrees with its GNSS far beyond that noise is folded or tipped: failed. Cameras whose
+  fix lies far from where the rest of the block puts them (a glitched geotag, a photo of another site)
+  are named.
+- gnss_rigid: the adjusted cameras against their GNSS as they are (the block's own georeference).
+- ground_below: the tie points each camera sees lie below it. A block tipped over puts its ground beside
+  or above its cameras: failed.
+- nadir: the share of cameras within `nadir_tilt_deg` of nadir, against the flight's expectation (a
+  mapping flight looks down unless told otherwise): a block whose cameras look sideways while the flight
+  looked down is failed.
+- oriented: the share of photos oriented (a block that oriented half of them is a warning, under
+  `min_oriented_failed` failed).
+- convergence: a final adjustment that stopped short and still moves cameras: warning.
+- gnss_noise: the GNSS noise the adjustment estimated from the data, against what the fixes state:
+  geotags poorer than they claim are said, and those it rejected are named.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from photogram_ros.core.similarity import similarity_ransac, umeyama
+
+STATUS_ORDER = ('ok', 'warning', 'failed')
+
+
+@dataclass
+class BlockCheckOptions:
+    """Thresholds of the block checks (dimensionless unless named with a unit)."""
+    gnss_fit_warn: float = 3.0          # RMS of the similarity residuals / GNSS sigma: warning above
+    gnss_fit_fail: float = 6.0          # ... failed above
+    gnss_outlier: float = 5.0           # one camera's residual / sigma: its geotag is named
+    nadir_tilt_deg: float = 15.0        # a camera within this of nadir counts as looking down
+    nadir_share_warn: float = 0.8       # share near nadir expected of a nadir flight: warning under
+    nadir_share_fail: float = 0.5       # ... failed under
+    ground_below_fail: float = 0.9      # share of cameras whose tie points lie below them: failed under
+    min_oriented_warn: float = 0.9      # share of photos oriented: warning under
+    min_oriented_failed: float = 0.5    # ... failed under
+    noise_warn_factor: float = 3.0      # estimated GNSS noise / stated: warning above
+
+
+@dataclass
+class Finding:
+    check: str
+    status: str                  # 'warning' or 'failed'
+    text: str
+    photos: list = field(default_factory=list)
+
+    def to_dict(self) -> dict:
+        return {'check': self.check, 'status': self.status, 'text': self.text, 'photos': list(self.photos)}
+
+
+@dataclass
+class BlockVerdict:
+    status: str                                     # 'ok', 'warning', 'failed'
+    findings: list = field(default_factory=list)    # Finding, worst first
+    figures: dict = field(default_factory=dict)     # what was measured, by check
+
+    @property
+    def summary(self) -> str:
+        """One line: the status and the worst reasons."""
+        if not self.findings:
+            return 'OK: the block agrees with its GNSS, looks at the ground below it and converged'
+        return f'{self.status.upper()}: ' + '; '.join(f.text for f in self.findings[:3]) + \
+            (f' (+{len(self.findings) - 3} more)' if len(self.findings) > 3 else '')
+
+    def to_dict(self) -> dict:
+        return {'status': self.status, 'summary': self.summary, 'findings': [f.to_dict() for f in self.findings],
+                'figures': self.figures}
+
+
+@dataclass
+class BlockInputs:
+    """An adjusted block. names (N,); map_T_cam (N, 4, 4) map ENU (NaN rows: not oriented);
+    fix_enu_m (N, 3) antenna positions, NaN without a fix; fix_sigma_hv_m (N, 2) stated horizontal and
+    vertical sigma; noise_hv_m (2,) the estimated GNSS noise or None; rejected_fixes: names whose fix the
+    adjustment did not use; ground_z_m (N,) median height (map up, m) of the tie points each camera sees,
+    NaN when none; adjustment: {'status': str, 'matters': bool} of the final adjustment;
+    expect_nadir: whether the flight looked down (None: not known, the nadir check is skipped)."""
+    names: list
+    map_T_cam: np.ndarray
+    fix_enu_m: np.ndarray
+    fix_sigma_hv_m: np.ndarray
+    ground_z_m: np.ndarray
+    gnss_noise: dict = field(default_factory=dict)
+    adjustment: dict = field(default_factory=dict)
+    expect_nadir: bool | None = True
+    n_photos: int | None = None
+
+
+def inputs_from_at(at, n_photos: int | None = None, adjustment: dict | None = None,
+                   expect_nadir: bool | None = True) -> BlockInputs:
+    """BlockInputs of an IncrementalAT `at` (core/incremental.py) after its adjustment: every keyframe,
+    oriented or not; `adjustment` {'status', 'matters', 'text'} of its final adjustment."""
+    kfs = list(at.kfs)
+    n = len(kfs)
+    T = np.full((n, 4, 4), np.nan)
+    fix = np.full((n, 3), np.nan)
+    sig = np.full((n, 2), np.nan)
+    gz = np.full(n, np.nan)
+    for i, kf in enumerate(kfs):
+        if kf.fix_enu is not None:
+            off = kf.antenna_offset if kf.antenna_offset is not None else np.zeros(3)
+            fix[i] = np.asarray(kf.fix_enu, float) - at.gnss_bias_enu - off
+            c = np.asarray(kf.fix_cov, float).reshape(3, 3)
+            sig[i] = np.sqrt([0.5 * (c[0, 0] + c[1, 1]), c[2, 2]])
+        if kf.map_T_cam is not None:
+            T[i] = kf.map_T_cam
+            P = at.keyframe_points(kf.kid)
+            if len(P):
+                gz[i] = float(np.median(P[:, 2]))
+    # The antenna is at the lever arm from the camera centre: compare camera centres with fixes moved
+    # by it (the camera's own rotation), as the adjustment does.
+    lever = at.lever_arm_cam_m
+    ok = np.all(np.isfinite(T.reshape(n, -1)), axis=1) & np.all(np.isfinite(fix), axis=1)
+    fix[ok] -= np.einsum('nij,j->ni', T[ok, :3, :3], lever)
+    return BlockInputs([kf.name for kf in kfs], T, fix, sig, gz, dict(at.gnss_noise), adjustment or {},
+                       expect_nadir, n_photos if n_photos is not None else n)
+
+
+def _worse(a: str, b: str) -> str:
+    return a if STATUS_ORDER.index(a) >= STATUS_ORDER.index(b) else b
+
+
+def _names(names, mask, most: int = 12) -> list:
+    return [names[i] for i in np.flatnonzero(mask)][:most]
+
+
+def tilt_from_nadir_deg(map_T_cam: np.ndarray) -> np.ndarray:
+    """(N,) angle (degrees) between each camera's optical axis and straight down (map up = +z)."""
+    z = np.asarray(map_T_cam, float).reshape(-1, 4, 4)[:, :3, 2]
+    return np.degrees(np.arccos(np.clip(-z[:, 2], -1.0, 1.0)))
+
+
+def _gnss_fit(b: BlockInputs, o: BlockCheckOptions, oriented: np.ndarray, findings: list, figures: dict) -> None:
+    has = oriented & np.all(np.isfinite(b.fix_enu_m), axis=1)
+    rejected = set(b.gnss_noise.get('rejected', []))
+    use = has & np.array([n not in rejected for n in b.names])
+    if use.sum() < 4:
+        figures['gnss_fit'] = {'n': int(use.sum()), 'note': 'fewer than 4 oriented cameras with a fix: not judged'}
+        return
+    C = b.map_T_cam[:, :3, 3]
+    sig = b.fix_sigma_hv_m[use]
+    g = b.gnss_noise
+    noise = np.array([g['used_h_m'], g['used_v_m']]) if g.get('used_h_m') else np.median(sig, axis=0)
+    # Residuals of a robust similarity: the shape of the block against the shape of its GNSS track.
+    thr = 4.0 * float(np.hypot(*noise)) + 0.05
+    res = similarity_ransac(C[use], b.fix_enu_m[use], thr, np.random.default_rng(0), min_spread_ratio=0.005)
+    sim = res.sim if res.ok else umeyama(C[use], b.fix_enu_m[use])
+    r = sim.apply(C[has]) - b.fix_enu_m[has]
+    rh, rv = np.hypot(r[:, 0], r[:, 1]), np.abs(r[:, 2])
+    inl = np.array([n not in rejected for n in np.asarray(b.names, object)[has]])
+    rms_h = float(np.sqrt(np.mean(rh[inl] ** 2)))
+    rms_v = float(np.sqrt(np.mean(rv[inl] ** 2)))
+    norm = np.sqrt((rh / (noise[0] * np.sqrt(2))) ** 2 + (rv / noise[1]) ** 2) / np.sqrt(2)
+    core = norm[inl]
+    # The block's fit, robust to a few bad geotags: the RMS over the 80 % best-fitting cameras.
+    kept = np.sort(core)[:max(4, int(np.ceil(0.8 * len(core))))]
+    fit = float(np.sqrt(np.mean(kept ** 2)))
+    out = (norm > o.gnss_outlier) & inl
+    figures['gnss_fit'] = {'n': int(has.sum()), 'rms_h_m': rms_h, 'rms_v_m': rms_v, 'noise_h_m': float(noise[0]),
+                           'noise_v_m': float(noise[1]), 'normalised_rms': fit, 'scale': float(sim.scale),
+                           'outliers': _names(np.asarray(b.names, object)[has], out, 50)}
+    if fit > o.gnss_fit_warn:
+        st = 'failed' if fit > o.gnss_fit_fail else 'warning'
+        findings.append(Finding('gnss_fit', st, f'the block\'s shape disagrees with its own GNSS: cameras '
+                                f'{rms_h:.2f} m H / {rms_v:.2f} m V from it after a similarity, {fit:.1f}x the GNSS '
+                                f'noise ({noise[0]:.2f} m H, {noise[1]:.2f} m V): the block is folded, tipped or '
+                                'mis-matched', []))
+    if out.any():
+        worst = np.argsort(-norm[out])
+        names = [np.asarray(b.names, object)[has][out][i] for i in worst]
+        findings.append(Finding('gnss_outliers', 'warning',
+                                f'{int(out.sum())} geotags lie far from where the block puts their photos (more than '
+                                f'{o.gnss_outlier:g}x the GNSS noise; up to {rh[out].max():.1f} m H, {rv[out].max():.1f} m '
+                                f'V): glitched geotags or photos of another site: {", ".join(names[:8])}', names[:50]))
+
+
+def check_block(b: BlockInputs, o: BlockCheckOptions | None = None) -> BlockVerdict:
+    """The verdict on the adjusted block `b` (see the module docstring)."""
+    o = o or BlockCheckOptions()
+    findings, figures = [], {}
+    T = np.asarray(b.map_T_cam, float).reshape(-1, 4, 4)
+    names = list(b.names)
+    oriented = np.all(np.isfinite(T.reshape(len(T), -1)), axis=1)
+    n_photos = b.n_photos if b.n_photos is not None else len(names)
+    n_or = int(oriented.sum())
+    figures['oriented'] = {'oriented': n_or, 'photos': int(n_photos)}
+    if n_or == 0:
+        findings.append(Finding('oriented', 'failed', f'nothing oriented (0 of {n_photos} photos)'))
+        return BlockVerdict('failed', findings, figures)
+    share = n_or / max(n_photos, 1)
+    if share < o.min_oriented_warn:
+        st = 'failed' if share < o.min_oriented_failed else 'warning'
+        findings.append(Finding('oriented', st, f'{n_or} of {n_photos} photos oriented',
+                                _names(names, ~oriented, 50)))
+    _gnss_fit(b, o, oriented, findings, figures)
+    # Rigid: the adjusted cameras against their fixes as they are.
+    rejected = set(b.gnss_noise.get('rejected', []))
+    has = oriented & np.all(np.isfinite(b.fix_enu_m), axis=1) & np.array([n not in rejected for n in names])
+    if has.any():
+        r = T[has, :3, 3] - b.fix_enu_m[has]
+        figures['gnss_rigid'] = {'rms_h_m': float(np.sqrt(np.mean(np.sum(r[:, :2] ** 2, axis=1)))),
+                                 'rms_v_m': float(np.sqrt(np.mean(r[:, 2] ** 2)))}
+    # The ground below the cameras.
+    gz = np.asarray(b.ground_z_m, float).reshape(-1)
+    seen = oriented & np.isfinite(gz)
+    if seen.any():
+        below = T[seen, 2, 3] > gz[seen]
+        figures['ground_below'] = {'share': float(below.mean()), 'n': int(seen.sum()),
+                                   'median_height_above_ground_m': float(np.median(T[seen, 2, 3] - gz[seen]))}
+        if below.mean() < o.ground_below_fail:
+            findings.append(Finding('ground_below', 'failed',
+                                    f'the ground lies above or beside {int((~below).sum())} of {int(seen.sum())} '
+                                    'cameras (their tie points are not below them): the block is tipped over',
+                                    _names(np.asarray(names, object)[seen], ~below, 50)))
+    # Nadir.
+    tilt = tilt_from_nadir_deg(T[oriented])
+    near = tilt <= o.nadir_tilt_deg
+    figures['nadir'] = {'share_within_deg': float(near.mean()), 'deg': o.nadir_tilt_deg,
+                        'median_tilt_deg': float(np.median(tilt)), 'max_tilt_deg': float(np.max(tilt)),
+                        'expected': b.expect_nadir}
+    if b.expect_nadir and near.mean() < o.nadir_share_warn:
+        st = 'failed' if near.mean() < o.nadir_share_fail else 'warning'
+        findings.append(Finding('nadir', st, f'{100 * near.mean():.0f} % of the cameras look within '
+                                f'{o.nadir_tilt_deg:g} degrees of nadir (median tilt {np.median(tilt):.0f} degrees) '
+                                'on a flight that looked down', _names(np.asarray(names, object)[oriented], ~near, 50)))
+    # Convergence.
+    adj = b.adjustment or {}
+    figures['adjustment'] = dict(adj)
+    if adj.get('status') in ('failed', 'diverged'):
+        findings.append(Finding('convergence', 'failed', f'the final adjustment {adj["status"]}'))
+    elif adj.get('matters'):
+        findings.append(Finding('convergence', 'warning', adj.get('text') or 'the final adjustment did not converge '
+                                'and would still move cameras'))
+    # GNSS noise.
+    g = b.gnss_noise
+    rejected = list(g.get('rejected', []))
+    if g.get('estimated_h_m') is not None and g.get('n'):
+        stated = np.array([g['stated_h_m'], g['stated_v_m']])
+        est = np.array([g['estimated_h_m'], g['estimated_v_m']])
+        figures['gnss_noise'] = dict(g)
+        poor = est > o.noise_warn_factor * stated
+        if poor.any():
+            what = ' and '.join(f'{w} {e:.1f} m (stated {s:.1f} m)' for w, e, s, p in
+                                zip(('horizontal', 'vertical'), est, stated, poor) if p)
+            findings.append(Finding('gnss_noise', 'warning', f'the geotags are poorer than they state: estimated '
+                                    f'noise {what}; they were weighted as measured'))
+    if rejected:
+        findings.append(Finding('gnss_rejected', 'warning', f'{len(rejected)} geotags not used, far beyond the '
+                                f'flight\'s GNSS noise: {", ".join(rejected[:8])}', rejected[:50]))
+    status = 'ok'
+    for f in findings:
+        status = _worse(status, f.status)
+    findings.sort(key=lambda f: -STATUS_ORDER.index(f.status))
+    return BlockVerdict(status, findings, figures)

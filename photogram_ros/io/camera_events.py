@@ -1,0 +1,268 @@
+"""Camera exposure events from the files drones leave, as core.exposure_positions.CameraEvent (GPS time).
+
+- DJI `Timestamp.MRK` (`read_mrk`): one line per photo, `index  seconds-of-week  [week]  N,N  E,E  V,V
+  lat,Lat  lon,Lon  h,Ellh  sdN, sdE, sdV  flag,Q`: the exposure in GPS time, the antenna -> camera
+  offset in mm (north, east, and V positive down: camera = antenna + N, + E, height - V), and the
+  onboard RTK antenna position with its sigmas (m) and flag (50 fixed, 34 float, 16 single).
+- ArduPilot dataflash `.bin` (`read_dataflash_events`): CAM (camera feedback) or TRIG (trigger)
+  messages with GPS week and milliseconds of week, and the body attitude (R, P, Y).
+- MAVLink `.tlog` (`read_tlog_events`): CAMERA_FEEDBACK (ArduPilot, with attitude), CAMERA_TRIGGER
+  and CAMERA_IMAGE_CAPTURED (PX4), on the UNIX (UTC) clock (boot times through SYSTEM_TIME).
+- The photos' EXIF DateTimeOriginal + SubSecTimeOriginal (+ OffsetTimeOriginal), `read_exif_events`.
+
+`read_events(path)` picks the reader from the file. `write_mrk` writes an MRK (the simulator).
+"""
+
+from __future__ import annotations
+
+import math
+import re
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from photogram_ros.core.exposure_positions import (GPS_EPOCH_UNIX_S, AntennaTrack, CameraEvent, gps_s_to_week_tow,
+                                                   track_from_geodetic, utc_unix_to_gps_s, week_tow_to_gps_s)
+from photogram_ros.errors import DataError
+
+# MRK onboard RTK flag -> RTKLIB quality.
+MRK_FLAG_Q = {50: 1, 34: 2, 16: 5}
+_MRK_HEAD = re.compile(r'^\s*(\d+)\s+(\d+(?:\.\d*)?)\s+\[\s*(\d+)\s*\]')
+
+
+def _mrk_field(line: str, tag: str) -> float | None:
+    m = re.search(r'(-?\d+(?:\.\d*)?)\s*,\s*' + tag + r'\b', line)
+    return float(m.group(1)) if m else None
+
+
+@dataclass
+class MrkRow:
+    event: CameraEvent
+    lat_deg: float
+    lon_deg: float
+    h_m: float
+    sd_neu_m: tuple
+    flag: int
+
+
+def read_mrk(path: str | Path) -> list[MrkRow]:
+    """A DJI Timestamp.MRK -> rows in file order (see the module docstring)."""
+    path = Path(path)
+    try:
+        lines = path.read_text(errors='replace').splitlines()
+    except OSError as exc:
+        raise DataError(f'cannot read {path}: {exc}') from exc
+    rows = []
+    for n, line in enumerate(lines, 1):
+        if not line.strip():
+            continue
+        head = _MRK_HEAD.match(line)
+        vals = {t: _mrk_field(line, t) for t in ('N', 'E', 'V', 'Lat', 'Lon', 'Ellh', 'Q')}
+        if head is None or any(vals[t] is None for t in ('N', 'E', 'V')):
+            raise DataError(f'{path} line {n}: not a DJI MRK line ("index  seconds  [week]  N,N  E,E  V,V  lat,Lat '
+                            f'lon,Lon  h,Ellh  sdN, sdE, sdV  flag,Q"): {line.strip()[:70]!r}')
+        idx, tow, week = int(head.group(1)), float(head.group(2)), int(head.group(3))
+        if not 0 <= tow < 604800 or week < 1000:
+            raise DataError(f'{path} line {n}: GPS week {week} second {tow} is not a GPS time')
+        sd = re.search(r'(\d+(?:\.\d*)?)\s*,\s*(\d+(?:\.\d*)?)\s*,\s*(\d+(?:\.\d*)?)\s+\d+\s*,\s*Q', line)
+        ev = CameraEvent(idx, week_tow_to_gps_s(week, tow), n,
+                         np.array([vals['N'], vals['E'], vals['V']]) * 1e-3, None, str(path))
+        rows.append(MrkRow(ev, vals['Lat'] if vals['Lat'] is not None else math.nan,
+                           vals['Lon'] if vals['Lon'] is not None else math.nan,
+                           vals['Ellh'] if vals['Ellh'] is not None else math.nan,
+                           tuple(float(v) for v in sd.groups()) if sd else (math.nan,) * 3,
+                           int(vals['Q']) if vals['Q'] is not None else 0))
+    if not rows:
+        raise DataError(f'{path} holds no MRK line')
+    t = [r.event.t_gps_s for r in rows]
+    for k in range(1, len(rows)):
+        if t[k] <= t[k - 1]:
+            raise DataError(f'{path} line {rows[k].event.line}: exposure time not after the previous line\'s')
+    return rows
+
+
+def mrk_track(rows: list[MrkRow], path='') -> AntennaTrack:
+    """The MRK's own onboard RTK antenna positions as a solution at the events (no post-processing)."""
+    ok = [r for r in rows if np.isfinite(r.lat_deg) and np.isfinite(r.h_m)]
+    if not ok:
+        raise DataError(f'{path}: its lines carry no position (Lat/Lon/Ellh): give the PPK track with --pos')
+    bad = [r for r in ok if r.flag not in MRK_FLAG_Q]
+    if bad:
+        raise DataError(f'{path} line {bad[0].event.line}: RTK flag {bad[0].flag} is none of 50 (fixed), 34 (float), '
+                        '16 (single)')
+    cov = np.array([np.diag([r.sd_neu_m[1] ** 2, r.sd_neu_m[0] ** 2, r.sd_neu_m[2] ** 2])
+                    if np.all(np.isfinite(r.sd_neu_m)) else np.zeros((3, 3)) for r in ok])
+    return track_from_geodetic([r.event.t_gps_s for r in ok], [r.lat_deg for r in ok], [r.lon_deg for r in ok],
+                               [r.h_m for r in ok], cov, [MRK_FLAG_Q[r.flag] for r in ok],
+                               [r.event.line for r in ok], str(path))
+
+
+def write_mrk(path: str | Path, t_gps_s, offset_ned_m, lat_deg, lon_deg, h_m, sd_neu_m, flag=50,
+              seqs=None) -> None:
+    """A DJI-layout Timestamp.MRK: one line per exposure, numbered `seqs` (the photos' numbers; default 1..N)."""
+    out = []
+    for k, t in enumerate(t_gps_s):
+        seq = int(seqs[k]) if seqs is not None else k + 1
+        week, tow = gps_s_to_week_tow(t)
+        n, e, v = (int(round(x * 1000)) for x in offset_ned_m[k])
+        out.append(f'{seq}\t{tow:.6f}\t[{week}]\t{n:6d},N\t{e:6d},E\t{v:6d},V\t{lat_deg[k]:.8f},Lat\t'
+                   f'{lon_deg[k]:.8f},Lon\t{h_m[k]:.3f},Ellh\t{sd_neu_m[k][0]:.6f}, {sd_neu_m[k][1]:.6f}, '
+                   f'{sd_neu_m[k][2]:.6f}\t{flag},Q')
+    Path(path).write_text('\n'.join(out) + '\n')
+
+
+def _get(m, *names, default=None):
+    for n in names:
+        v = getattr(m, n, None)
+        if v is not None:
+            return v
+    return default
+
+
+def read_dataflash_events(path: str | Path, kind: str = 'auto') -> list[CameraEvent]:
+    """CAM (or TRIG) messages of an ArduPilot .bin. kind: 'CAM', 'TRIG' or 'auto' (CAM when present)."""
+    from pymavlink import DFReader
+    try:
+        log = DFReader.DFReader_binary(str(path))
+    except Exception as exc:     # DFReader raises assorted errors on foreign files
+        raise DataError(f'{path} is not a readable ArduPilot dataflash log: {exc}') from exc
+    found = {'CAM': [], 'TRIG': []}
+    n = 0
+    while True:
+        try:
+            m = log.recv_match(type=['CAM', 'TRIG'])
+        except Exception:
+            break
+        if m is None:
+            break
+        n += 1
+        t = m.get_type()
+        week, ms = int(_get(m, 'GPSWeek', default=0)), float(_get(m, 'GPSTime', default=0))
+        seq = int(_get(m, 'Img', 'I', default=len(found[t]) + 1))
+        if week <= 0:
+            raise DataError(f'{path}: {t} message {n} (image {seq}) has no GPS time (GPSWeek 0): the autopilot had '
+                            'no GPS time when it fired')
+        rpy = tuple(float(_get(m, a, b, default=0.0)) for a, b in (('R', 'Roll'), ('P', 'Pitch'), ('Y', 'Yaw')))
+        llh = tuple(float(_get(m, k, default=math.nan)) for k in ('Lat', 'Lng', 'Alt'))
+        found[t].append(CameraEvent(seq, week_tow_to_gps_s(week, ms * 1e-3), n, None, rpy, f'{path} {t}',
+                                    unit='message', logged_llh=llh))
+    use = kind if kind in found else ('CAM' if found['CAM'] else 'TRIG')
+    if not found[use]:
+        raise DataError(f'{path} holds no {"CAM or TRIG" if kind == "auto" else kind} message: the log has no '
+                        'camera events (set LOG_BITMASK to log camera messages, or use the photos\' EXIF times)')
+    return found[use]
+
+
+def read_tlog_events(path: str | Path, kind: str = 'auto') -> list[CameraEvent]:
+    """CAMERA_FEEDBACK / CAMERA_TRIGGER / CAMERA_IMAGE_CAPTURED of a .tlog, in GPS time.
+
+    kind: one of those names, or 'auto' (feedback, else image captured, else trigger)."""
+    from photogram_ros.io import mavlink as ml
+    messages, _ = ml.read_tlog(str(path))
+    if not messages:
+        raise DataError(f'{path} holds no MAVLink')
+    ing = ml.Ingest()
+    cams = []
+    for k, (m, t) in enumerate(messages):
+        typ = m.get_type()
+        if typ == 'SYSTEM_TIME':
+            ing.handle(m, t)
+        elif typ in ('CAMERA_FEEDBACK', 'CAMERA_TRIGGER', 'CAMERA_IMAGE_CAPTURED'):
+            cams.append((k + 1, typ, m))
+    names = ('CAMERA_FEEDBACK', 'CAMERA_IMAGE_CAPTURED', 'CAMERA_TRIGGER')
+    have = [nm for nm in names if any(c[1] == nm for c in cams)]
+    if not have:
+        raise DataError(f'{path} holds no CAMERA_FEEDBACK, CAMERA_TRIGGER or CAMERA_IMAGE_CAPTURED message')
+    use = kind if kind in have else have[0]
+    if kind != 'auto' and kind not in have:
+        raise DataError(f'{path} holds no {kind} (it has {", ".join(have)})')
+    out = []
+    for k, typ, m in cams:
+        if typ != use:
+            continue
+        if typ == 'CAMERA_IMAGE_CAPTURED':
+            us = int(m.time_utc)
+            unix = us * 1e-6 if us > 0 else ing.clock.to_time(m.time_boot_ms * 1e-3)
+            seq, rpy = int(m.image_index), _rpy_from_quat(m.q)
+        else:
+            us = int(m.time_usec)
+            unix = us * 1e-6 if us > 10 ** 15 else ing.clock.to_time(us * 1e-6)
+            seq = int(m.img_idx) if typ == 'CAMERA_FEEDBACK' else int(m.seq)
+            rpy = (float(m.roll), float(m.pitch), float(m.yaw)) if typ == 'CAMERA_FEEDBACK' else None
+        llh = None
+        if typ == 'CAMERA_FEEDBACK':
+            llh = (m.lat * 1e-7, m.lng * 1e-7, float(m.alt_msl))
+        elif typ == 'CAMERA_IMAGE_CAPTURED':
+            llh = (m.lat * 1e-7, m.lon * 1e-7, m.alt * 1e-3)
+        if unix is None:
+            raise DataError(f'{path}: {typ} {seq} (message {k}) is stamped in boot time and the log has no '
+                            'SYSTEM_TIME to map it to UTC')
+        out.append(CameraEvent(seq, utc_unix_to_gps_s(unix), k, None, rpy, f'{path} {typ}', unit='message',
+                               logged_llh=llh))
+    out.sort(key=lambda e: e.t_gps_s)
+    return out
+
+
+def _rpy_from_quat(q) -> tuple | None:
+    w, x, y, z = (float(v) for v in q)
+    if not all(map(math.isfinite, (w, x, y, z))) or abs(w * w + x * x + y * y + z * z - 1) > 0.1:
+        return None
+    roll = math.degrees(math.atan2(2 * (w * x + y * z), 1 - 2 * (x * x + y * y)))
+    pitch = math.degrees(math.asin(max(-1.0, min(1.0, 2 * (w * y - z * x)))))
+    yaw = math.degrees(math.atan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z)))
+    return roll, pitch, yaw
+
+
+def photo_times_gps_s(photos: list[Path], utc_offset_s: float = 0.0) -> list[float | None]:
+    """Each photo's EXIF exposure time in GPS seconds (None without one)."""
+    from photogram_ros.io.image_source import read_exif_time_ns
+    out = []
+    for p in photos:
+        ns, _, _ = read_exif_time_ns(p, utc_offset_s)
+        out.append(None if ns is None else utc_unix_to_gps_s(ns * 1e-9))
+    return out
+
+
+def read_exif_events(photos: list[Path], utc_offset_s: float = 0.0) -> list[CameraEvent]:
+    """The photos' own EXIF times as events, one per photo (numbered in file-name order)."""
+    out = []
+    for k, (p, t) in enumerate(zip(photos, photo_times_gps_s(photos, utc_offset_s))):
+        if t is None:
+            raise DataError(f'{p}: no EXIF DateTimeOriginal to take its exposure time from')
+        out.append(CameraEvent(k + 1, t, k + 1, None, None, 'EXIF of', p.name, unit='photo'))
+    return out
+
+
+def read_events(path: str | Path, kind: str = 'auto') -> list[CameraEvent]:
+    """The camera events of a Timestamp.MRK, an ArduPilot .bin or a .tlog (kind: the message type or auto)."""
+    which = event_kind(path)
+    if which == 'mrk':
+        return [r.event for r in read_mrk(path)]
+    if which == 'dataflash':
+        return read_dataflash_events(path, kind)
+    return read_tlog_events(path, kind)
+
+
+def event_kind(path: str | Path) -> str:
+    """'mrk', 'dataflash' or 'tlog' from the file's name and first bytes."""
+    p = Path(path)
+    if not p.is_file():
+        raise DataError(f'{p} does not exist (give a Timestamp.MRK, an ArduPilot .bin, a .tlog, or "exif")')
+    with open(p, 'rb') as f:
+        head = f.read(4)
+    if head[:2] == b'\xa3\x95':
+        return 'dataflash'
+    if p.suffix.lower() == '.mrk':
+        return 'mrk'
+    if p.suffix.lower() == '.tlog':
+        return 'tlog'
+    try:
+        first = p.read_text(errors='strict').splitlines()[0]
+    except (UnicodeDecodeError, IndexError):
+        return 'tlog'
+    return 'mrk' if _MRK_HEAD.match(first) else 'tlog'
+
+
+__all__ = ['GPS_EPOCH_UNIX_S', 'MrkRow', 'read_events', 'read_mrk', 'mrk_track', 'write_mrk', 'read_dataflash_events',
+           'read_tlog_events', 'read_exif_events', 'photo_times_gps_s', 'event_kind']

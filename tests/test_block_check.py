@@ -1,0 +1,147 @@
+"""The block checks itself (core/block_check.py) and its GNSS is only as good as it is
+(IncrementalAT.estimate_gnss_noise): simulator flights with ground truth, and blocks broken on purpose."""
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from photogram_ros.core.block_check import BlockInputs, check_block, inputs_from_at, tilt_from_nadir_deg
+from photogram_ros.core.gnss_fix import GnssFix
+from photogram_ros.core.incremental import IncrementalAT, IncrementalOptions
+from photogram_ros.core.rotations import R_from_rotvec
+from photogram_ros.sim.observations import simulate_keyframes
+from photogram_ros.sim.scenario import build_world, preset
+
+
+@pytest.fixture(scope='module')
+def world():
+    cfg = preset('tiny', n_gcp=0, n_check=4)
+    return cfg, build_world(cfg, np.random.default_rng(cfg.seed))
+
+
+def _records(world, gnss_mode='rtk_fixed'):
+    cfg, w = world
+    return simulate_keyframes(cfg, gnss_mode=gnss_mode, world=w)
+
+
+def _adjust(sk, records, **opt):
+    at = IncrementalAT(sk.camera, IncrementalOptions(lever_arm_cam_m=tuple(sk.lever_arm_cam_m), **opt),
+                       origin=sk.origin)
+    for r in records:
+        at.add_keyframe(r)
+    rep = at.full_adjustment()
+    return at, rep
+
+
+def _moved(sk, rec, d_enu_m):
+    """The record with its fix moved by d_enu_m (E, N, U metres)."""
+    f = rec.fix
+    e = np.asarray(sk.origin.geodetic_to_enu(f.lat_deg, f.lon_deg, f.h_m)) + d_enu_m
+    lat, lon, h = sk.origin.enu_to_geodetic(e[None])
+    return dataclasses.replace(rec, fix=GnssFix(float(lat[0]), float(lon[0]), float(h[0]), f.cov_enu_m2))
+
+
+def _camera_error_m(at, sk, skip=()):
+    err = np.array([at.kfs[k].map_T_cam[:3, 3] - sk.true_map_T_cam[k][:3, 3] for k in at.registered
+                    if at.kfs[k].name not in skip])
+    return np.sqrt(np.mean(np.sum(err[:, :2] ** 2, axis=1))), np.sqrt(np.mean(err[:, 2] ** 2))
+
+
+def test_a_good_flight_is_ok_with_its_figures(world):
+    sk = _records(world)
+    at, rep = _adjust(sk, sk.records)
+    v = check_block(inputs_from_at(at, adjustment={'status': rep.status}))
+    f = v.figures
+    print(v.summary, f['gnss_fit'], f['nadir'], at.gnss_noise)
+    assert v.status == 'ok' and not v.findings
+    assert f['oriented']['oriented'] == len(sk.records)
+    assert f['nadir']['share_within_deg'] == 1.0 and f['ground_below']['share'] == 1.0
+    # RTK: the block fits its fixes at their noise, the estimate leaves the stated sigmas alone.
+    assert f['gnss_fit']['normalised_rms'] < 1.5 and f['gnss_fit']['rms_h_m'] < 0.05
+    assert at.gnss_noise['scale_h'] == 1.0 and at.gnss_noise['scale_v'] == 1.0 and not at.gnss_noise['rejected']
+
+
+def test_geotags_moved_80_m_are_named_and_not_used(world):
+    """Fixes 80 m off, before the georeference (keyframe 3) and after it: not used, named, and the block
+    holds. (A keyframe the tie points cannot orient, placed from its fix and the homography rotation,
+    is not judged by its fix.)"""
+    sk = _records(world)
+    moved = {3, 14, 20}
+    recs = [_moved(sk, r, np.array([0.0, 80.0, 0.0])) if i in moved else r for i, r in enumerate(sk.records)]
+    at, rep = _adjust(sk, recs)
+    names = {at.kfs[i].name for i in moved}
+    v = check_block(inputs_from_at(at, adjustment={'status': rep.status}))
+    print(v.summary, at.gnss_noise)
+    assert set(at.gnss_noise['rejected']) == names
+    assert v.status == 'warning' and any(set(f.photos) == names for f in v.findings)
+    h, vv = _camera_error_m(at, sk)
+    print(f'cameras against truth with 3 geotags moved 80 m: {h * 100:.1f} cm H, {vv * 100:.1f} cm V')
+    assert h < 0.05 and vv < 0.08       # the block holds as without the faulty geotags (RTK: 2-3 cm)
+
+
+def test_wandering_altitudes_are_estimated_and_down_weighted(world):
+    """A consumer geotag whose height wanders by tens of metres: the adjustment estimates the vertical
+    noise from the data and stops bending the block to it; the report says the geotags are poor."""
+    sk = _records(world, '3d')
+    rng = np.random.default_rng(5)
+    dz = rng.normal(0.0, 15.0, len(sk.records))
+    recs = [_moved(sk, r, np.array([0.0, 0.0, d])) for r, d in zip(sk.records, dz)]
+    at, rep = _adjust(sk, recs)
+    at0, _ = _adjust(sk, recs, estimate_gnss_noise=False)
+    v = check_block(inputs_from_at(at, adjustment={'status': rep.status}))
+    h, vv = _camera_error_m(at, sk)
+    h0, vv0 = _camera_error_m(at0, sk)
+    print(f'heights wandering {np.ptp(dz):.0f} m: noise estimate {at.gnss_noise}; cameras {h:.2f} m H / {vv:.2f} m V '
+          f'against {h0:.2f} / {vv0:.2f} m with the stated sigmas; {v.summary}')
+    assert at.gnss_noise['estimated_v_m'] > 5.0 * at.gnss_noise['stated_v_m']
+    assert at.gnss_noise['scale_h'] < 1.5 * at.gnss_noise['scale_v']
+    assert any(f.check == 'gnss_noise' for f in v.findings) and v.status == 'warning'
+    assert h <= h0 * 1.05 and vv <= vv0 * 1.05
+
+
+def _synthetic_block(n=20):
+    """A nadir block over flat ground at z = 0, flying 50 m up, fixes exact (sigma 2 m / 3 m)."""
+    nadir = np.diag([1.0, -1.0, -1.0])
+    C = np.column_stack([np.repeat(np.arange(n // 4) * 30.0, 4), np.tile(np.arange(4) * 25.0, n // 4),
+                         np.full(n, 50.0)])
+    T = np.tile(np.eye(4), (n, 1, 1))
+    T[:, :3, :3] = nadir
+    T[:, :3, 3] = C
+    return BlockInputs([f'P{i:02d}.JPG' for i in range(n)], T, C.copy(), np.tile([2.0, 3.0], (n, 1)), np.zeros(n))
+
+
+def test_a_tipped_block_fails_and_says_why():
+    b = _synthetic_block()
+    assert check_block(b).status == 'ok'
+    # Tipped by 85 degrees about the east axis around the block's centre: the fixes stay where they were.
+    R = R_from_rotvec([np.radians(85.0), 0.0, 0.0])
+    c = b.map_T_cam[:, :3, 3].mean(axis=0)
+    T = b.map_T_cam.copy()
+    T[:, :3, :3] = R @ T[:, :3, :3]
+    T[:, :3, 3] = (T[:, :3, 3] - c) @ R.T + c
+    ground = (np.array([[0.0, 0.0, 0.0]]) - c) @ R.T + c
+    tipped = dataclasses.replace(b, map_T_cam=T, ground_z_m=np.full(len(T), ground[0, 2]))
+    v = check_block(tipped)
+    print(v.summary)
+    checks = {f.check for f in v.findings if f.status == 'failed'}
+    assert v.status == 'failed' and {'nadir', 'gnss_fit'} <= checks
+    assert np.all(tilt_from_nadir_deg(T) > 80.0)
+
+
+def test_ground_above_the_cameras_unconverged_and_nothing_oriented():
+    b = _synthetic_block()
+    v = check_block(dataclasses.replace(b, ground_z_m=np.full(20, 80.0)))
+    assert v.status == 'failed' and v.findings[0].check == 'ground_below' and len(v.findings[0].photos) == 20
+    v = check_block(dataclasses.replace(b, adjustment={'status': 'max_iterations', 'matters': True,
+                                                       'text': 'stopped at its iteration limit'}))
+    assert v.status == 'warning' and v.findings[0].check == 'convergence'
+    T = b.map_T_cam.copy()
+    T[:] = np.nan
+    v = check_block(dataclasses.replace(b, map_T_cam=T))
+    assert v.status == 'failed' and 'nothing oriented' in v.summary
+    # Half the photos not oriented: a warning naming them.
+    T = b.map_T_cam.copy()
+    T[:8] = np.nan
+    v = check_block(dataclasses.replace(b, map_T_cam=T))
+    assert v.status == 'warning' and v.findings[0].photos == b.names[:8]
