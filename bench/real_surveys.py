@@ -342,7 +342,7 @@ def pycolmap_agreement(per_camera_sim_enu_m: dict[str, list], peer_path: str | P
 
 def report_figures(report: dict, pipeline: str) -> dict:
     """Reprojection RMS, verdict, keyframe counts and the camera model from a report.json."""
-    out = {'verdict': report.get('verdict', 'n/a')}
+    out = {'verdict': report.get('verdict') or _find(report, 'verdict') or 'n/a'}
     if pipeline == 'triangulate':
         out['reprojection_px'] = report.get('reprojection_rms_px')
         sc = report.get('self_calibration') or {}
@@ -567,7 +567,7 @@ def broken_block_figures(row: dict, broken: tuple[str, ...]) -> dict:
     residuals against their true positions after the robust similarity (the block's shape) and rigidly (its
     georeference: what a user receives); and the broken photos' own rigid residuals (where the block put
     them, against where they really were)."""
-    verdict = json.dumps(row.get('verdict')) + ' ' + row.get('last_line', '') + ' ' + row.get('stderr_last', '')
+    verdict = verdict_words(row)
     named = [n for n in broken if Path(n).stem in verdict]
     out = {'broken_named_in_verdict': f'{len(named)}/{len(broken)}'}
     for what, key in (('sim', 'per_camera_robust_enu_m'), ('rigid', 'per_camera_rigid_enu_m')):
@@ -605,11 +605,24 @@ def peer_text(row: dict) -> str:
     return json.dumps(p)
 
 
-def verdict_text(row: dict) -> str:
+def verdict_text(row: dict, most: int = 300) -> str:
+    """report.json's verdict (core/block_check.py: status, summary, findings) as one line, or n/a."""
     v = row.get('verdict', 'n/a')
     if isinstance(v, dict):
-        v = ' '.join(str(v.get(k, '')) for k in ('level', 'status', 'text', 'reasons') if v.get(k)) or json.dumps(v)
-    return str(v).replace('|', '\\|')[:200]
+        v = v.get('summary') or v.get('status') or json.dumps(v)
+    return str(v).replace('|', '\\|')[:most]
+
+
+def verdict_words(row: dict) -> str:
+    """What the verdict says of which photos: its summary, its findings' texts and photos, the command's
+    last line and (when it failed) its last error line."""
+    v = row.get('verdict')
+    parts = [row.get('last_line', ''), row.get('stderr_last', '')]
+    if isinstance(v, dict):
+        parts.append(str(v.get('summary', '')))
+        for f in v.get('findings', []):
+            parts += [str(f.get('text', '')), ' '.join(map(str, f.get('photos', [])))]
+    return ' '.join(parts)
 
 
 def markdown(rows: list[dict], commit: str) -> str:
