@@ -131,7 +131,10 @@ MEASURED = {
                                 'rigid_v_m': 1.79, 'reprojection_px': 0.546, 'peer_diff_h_m': 1.46},
     ('brighton', 'triangulate'): {'oriented': 18, 'given': 18, 'sim_h_m': 0.66, 'sim_v_m': 0.46, 'rigid_h_m': 0.66,
                                   'rigid_v_m': 0.46, 'reprojection_px': 0.628, 'odm_median_abs_dz_m': 0.098},
-    ('toledo', 'replay'): {'oriented': 31, 'given': 31, 'sim_h_m': 1.93, 'sim_v_m': 1.65, 'rigid_h_m': 3.32,
+    # toledo's replay takes 29 or 31 keyframes from run to run (29 in two runs, 31 in one), all oriented; its
+    # figures below are the 31-keyframe run's (the 29-keyframe runs: 2.48 / 2.29 m H, 2.39 / 2.28 m from
+    # triangulate).
+    ('toledo', 'replay'): {'oriented': 29, 'given': 29, 'sim_h_m': 1.93, 'sim_v_m': 1.65, 'rigid_h_m': 3.32,
                            'rigid_v_m': 1.77, 'reprojection_px': 0.858, 'dsm_hull_share': 0.628,
                            'vs_triangulate_rms_3d_m': 3.47},
     ('brighton', 'replay'): {'oriented': 18, 'given': 18, 'sim_h_m': 0.69, 'sim_v_m': 0.135, 'rigid_h_m': 0.69,
@@ -147,7 +150,10 @@ def gate(row: dict, key: tuple) -> None:
     """Each measured figure of `key` held: counts equal, errors <= 1.5x, completeness >= 1/1.5 of the value."""
     m = MEASURED[key]
     print(f'{key}: ' + ', '.join(f'{k} {row.get(k)}' for k in m if k in row))
-    assert (row['oriented'], row['given']) == (m['oriented'], m['given'])
+    if key == ('toledo', 'replay'):
+        assert row['oriented'] == row['given'] >= m['given']
+    else:
+        assert (row['oriented'], row['given']) == (m['oriented'], m['given'])
     for k in ERRORS:
         assert row[k] <= 1.5 * m[k], f'{key} {k}: {row[k]:.3f} > 1.5 x {m[k]}'
     if 'dsm_hull_share' in m:
@@ -206,13 +212,13 @@ def test_toledo_replay(toledo_replay):
     row = toledo_replay
     gate(row, ('toledo', 'replay'))
     assert row['nadir_share'] >= 0.95
-    assert row['vs_triangulate']['n'] == MEASURED['toledo', 'replay']['oriented']
+    assert row['vs_triangulate']['n'] == row['oriented']
     assert row['vs_triangulate']['rms_3d_m'] <= 1.5 * MEASURED['toledo', 'replay']['vs_triangulate_rms_3d_m']
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(reason="issue 23 must-show, not met at f1d57a3: replay's cameras 3.47 m RMS (max 10 m, at "
-                          "DJI_0102-0104) from triangulate's", strict=False)
+@pytest.mark.xfail(reason="issue 23 must-show, not always met at f1d57a3: replay's cameras 2.39 m RMS from "
+                          "triangulate's in one run, 3.47 m (max 10 m, at DJI_0102-0104) in another", strict=False)
 def test_toledo_replay_within_3_m_of_triangulate(toledo_replay):
     assert toledo_replay['vs_triangulate']['rms_3d_m'] <= 3.0
 
