@@ -131,9 +131,9 @@ MEASURED = {
                                 'rigid_v_m': 1.79, 'reprojection_px': 0.546, 'peer_diff_h_m': 1.46},
     ('brighton', 'triangulate'): {'oriented': 18, 'given': 18, 'sim_h_m': 0.66, 'sim_v_m': 0.46, 'rigid_h_m': 0.66,
                                   'rigid_v_m': 0.46, 'reprojection_px': 0.628, 'odm_median_abs_dz_m': 0.098},
-    # toledo's replay takes 29 or 31 keyframes from run to run (29 in two runs, 31 in one), all oriented; its
-    # figures below are the 31-keyframe run's (the 29-keyframe runs: 2.48 / 2.29 m H, 2.39 / 2.28 m from
-    # triangulate).
+    # toledo's replay takes 29 or 31 keyframes from run to run (29 in three runs, 31 in one), all oriented;
+    # its figures below are the 31-keyframe run's (the 29-keyframe runs: 2.29-2.73 m H rigid, 2.28-2.60 m
+    # from triangulate).
     ('toledo', 'replay'): {'oriented': 29, 'given': 29, 'sim_h_m': 1.93, 'sim_v_m': 1.65, 'rigid_h_m': 3.32,
                            'rigid_v_m': 1.77, 'reprojection_px': 0.858, 'dsm_hull_share': 0.628,
                            'vs_triangulate_rms_3d_m': 3.47},
@@ -218,7 +218,7 @@ def test_toledo_replay(toledo_replay):
 
 @pytest.mark.slow
 @pytest.mark.xfail(reason="issue 23 must-show, not always met at f1d57a3: replay's cameras 2.39 m RMS from "
-                          "triangulate's in one run, 3.47 m (max 10 m, at DJI_0102-0104) in another", strict=False)
+                          "triangulate's in three runs (2.28-2.60 m), 3.47 m (max 10 m, at DJI_0102-0104) in one", strict=False)
 def test_toledo_replay_within_3_m_of_triangulate(toledo_replay):
     assert toledo_replay['vs_triangulate']['rms_3d_m'] <= 3.0
 
