@@ -217,8 +217,8 @@ def test_toledo_replay(toledo_replay):
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(reason="issue 23 must-show, not always met at f1d57a3: replay's cameras 2.39 m RMS from "
-                          "triangulate's in three runs (2.28-2.60 m), 3.47 m (max 10 m, at DJI_0102-0104) in one", strict=False)
+@pytest.mark.xfail(reason="issue 23 must-show, not always met at f1d57a3: replay's cameras 2.28-2.60 m RMS from "
+                          "triangulate's in three runs, 3.47 m (max 10 m, at DJI_0102-0104) in one", strict=False)
 def test_toledo_replay_within_3_m_of_triangulate(toledo_replay):
     assert toledo_replay['vs_triangulate']['rms_3d_m'] <= 3.0
 
