@@ -123,6 +123,9 @@ class IncrementalOptions:
                                             'they are poorer than they state; fixes far beyond it are not used')
     gnss_noise_min_keyframes: int = param(8, 'oriented keyframes with a fix the GNSS noise estimate needs',
                                           min=4, max=100000)
+    final_self_calibration: str = param('', 'intrinsics the final full adjustment refines, comma separated (from f, '
+                                             'cx, cy, k1, k2, p1, p2, k3; empty: none): a camera from the EXIF, whose '
+                                             'distortion nobody measured, wants "k1,k2"')
     gnss_gate_m: float = param(1.0, 'a keyframe oriented from the block\'s tie points whose fix lies further than '
                                     'this (and 2 x gnss_outlier_sigma of its sigma) from it keeps its fix out, m',
                                min=0.0, max=1e6)
@@ -147,9 +150,18 @@ class IncrementalOptions:
         if len(self.lever_arm_body_frd_m) != 3:
             raise ConfigError(f'lever_arm_body_frd_m needs 3 numbers (forward, right, down), got '
                               f'{self.lever_arm_body_frd_m}')
+        bad = [v for v in self.final_refine if v not in ('f', 'cx', 'cy', 'k1', 'k2', 'p1', 'p2', 'k3')]
+        if bad:
+            raise ConfigError(f'final_self_calibration: {bad} are not intrinsics; choose from f, cx, cy, k1, k2, p1, '
+                              'p2, k3')
         if any(self.lever_arm_body_frd_m) and any(self.lever_arm_cam_m):
             raise ConfigError('give the GNSS lever arm once: lever_arm_cam_m for a camera fixed to the body, '
                               'lever_arm_body_frd_m for a gimballed camera (the other all zeros)')
+
+    @property
+    def final_refine(self) -> tuple:
+        """final_self_calibration as a tuple of names."""
+        return tuple(v.strip() for v in self.final_self_calibration.split(',') if v.strip())
 
     @property
     def gimbal(self) -> bool:
@@ -997,8 +1009,11 @@ class IncrementalAT:
 
         refine_intrinsics (e.g. ('f', 'k1')) self-calibrates the shared camera in this adjustment;
         gnss_noise: estimate the flight's GNSS noise afterwards (`estimate_gnss_noise`, when the option
-        is on and the block is georeferenced for good).
+        is on and the block is georeferenced for good); such a final adjustment refines the option
+        `final_self_calibration` when refine_intrinsics is not given.
         """
+        if not refine_intrinsics and gnss_noise:
+            refine_intrinsics = self.opt.final_refine
         rep = StepReport(-1, False, 'not_initialised')
         if not self.registered:
             return rep
