@@ -5,7 +5,7 @@ and the same frames upscaled to 1280x960 with the calibration scaled to match. T
 on the same frames with the same window, pyramid depth and feature budget, re-detecting when
 fewer than half its features survive. Prints one JSON line per resolution.
 
-Real 1080p (`--real`, issue 14): the phantom3 village keyframes (1920x1080, ../shared/data), the
+Real 1080p (`--real`): the phantom3 village keyframes (1920x1080, ../shared/data), the
 tracker as shipped (tracking a half-size image) against the same tracker on the full frame
 (`track_max_px` above the width: what it did before) and the bare loop on the full frame.
 

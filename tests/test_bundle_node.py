@@ -207,7 +207,7 @@ def test_gimballed_camera_takes_its_antenna_offset_from_the_attitude_topic(rclpy
 
 
 def test_health_is_an_error_with_the_reason_when_keyframes_do_not_orient(rclpy_context):
-    """Keyframes that share no track cannot be oriented: /diagnostics must not say OK (issue 14), and
+    """Keyframes that share no track cannot be oriented: /diagnostics must not say OK, and
     the end of the flight reports that there was nothing to adjust."""
     from photogram_ros.nodes.diagnostics import ERROR
     sk = simulate_keyframes(preset('tiny'), keyframe_interval_s=1.0, attitude_sigma_deg=None)

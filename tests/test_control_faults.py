@@ -1,4 +1,4 @@
-"""Control files with the faults of a real field survey (issue 16), on a simulated photo flight.
+"""Control files with the faults of a real field survey, on a simulated photo flight.
 
 The simulator writes geotagged photos and a correct OpenDroneMap gcp_list.txt; each test writes the
 file a surveyor might really hand over (every row of one photo naming the wrong photo, rows naming

@@ -1,4 +1,4 @@
-"""Control in flight (core/control_live.py), checked before the adjustment leans on it (issue 16).
+"""Control in flight (core/control_live.py), checked before the adjustment leans on it.
 
 The adjuster is fed keyframe by keyframe, as bundle_node feeds it, on a simulated RTK flight with five
 GCPs and four check points. Each test hands it the control file a surveyor might really give, with

@@ -1,4 +1,4 @@
-"""The triangulation report's honesty figures (issue 16): CE90/LE90, no inf/NaN, the iteration limit said."""
+"""The triangulation report's honesty figures: CE90/LE90, no inf/NaN, the iteration limit said."""
 
 import json
 

@@ -1,4 +1,4 @@
-"""Faults and bad input, as a hostile but realistic user meets them (issue #15; README "Faults and bad input").
+"""Faults and bad input, as a hostile but realistic user meets them (docs/faults.md).
 
 One test per case, each with its expected outcome: a clear message, an exit status, and what was
 kept. The onboard stop (`run` with camera frames, SIGTERM) is in the fast set; the other long
@@ -682,7 +682,7 @@ def test_sqlite_oracle_agrees_on_an_intact_bag(tmp_path):
     assert n == sqlite3.connect(f'file:{db}?mode=ro', uri=True).execute('SELECT count(*) FROM messages').fetchone()[0]
 
 
-# --- issue #28: nothing lost, nothing mixed up --------------------------------------------------
+# --- nothing lost, nothing mixed up --------------------------------------------------
 
 
 def _publish_while(proc, node, pub, msg_of, until):

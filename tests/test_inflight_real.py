@@ -1,5 +1,5 @@
 """The in-flight path (core/tracker.py -> core/incremental.py, as tracker_node and bundle_node chain them)
-on real imagery (issue 14): brighton_beach, 18 DJI survey photos 7 s apart with EXIF GPS and EXIF
+on real imagery: brighton_beach, 18 DJI survey photos 7 s apart with EXIF GPS and EXIF
 intrinsics (photo-rate input: every frame beyond KLT's reach), and the phantom3 village video keyframes
 (1920 x 1080, 0.4-2 s apart) with a GNSS track made from the published trajectory plus the noise of a
 3D fix. Both go frame by frame as in flight: keyframes are adjusted as they come, never the whole set

@@ -1,4 +1,4 @@
-"""`photogram-ros play --rate 0` keeps up with an ordinary subscriber in another process (issue #17).
+"""`photogram-ros play --rate 0` keeps up with an ordinary subscriber in another process.
 
 The subscriber is what a user writes: rclpy, reliable, KEEP_LAST 1000, a plain callback, started before
 the player. Before, the player published the 11,865 IMU messages of the real Husky bag in about a

@@ -1,4 +1,4 @@
-"""What ROS 2 and GIS users trip over first (issue #17): the conventions a standard tool relies on.
+"""What ROS 2 and GIS users trip over first: the conventions a standard tool relies on.
 
 - RViz2's XYZ transformer takes FLOAT32 only: map/dense_cloud carries x, y, z as FLOAT32 (local ENU
   metres in `map`; float32 rounds them by at most 0.5 mm within 8 km of the origin).

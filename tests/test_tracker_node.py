@@ -194,7 +194,7 @@ def test_frames_faster_than_the_tracker_are_dropped_oldest_first(rclpy_context):
 
 def test_flush_takes_the_fixes_that_came_after_the_last_frame(rclpy_context, tmp_path):
     """The last keyframe's fix arrives after its frame was tracked (a 1 Hz receiver): flush() at the end
-    of the flight hands the waiting fixes to the tracker first, so that keyframe gets its fix (issue 14)."""
+    of the flight hands the waiting fixes to the tracker first, so that keyframe gets its fix."""
     from rclpy.node import Node
     from rclpy.qos import QoSProfile, ReliabilityPolicy
     from sensor_msgs.msg import Image, NavSatFix

@@ -1,4 +1,4 @@
-"""The tracker on photo-rate input (issue 14): the simulator's survey line shot every 2.5 s instead of
+"""The tracker on photo-rate input: the simulator's survey line shot every 2.5 s instead of
 every 0.5 s, so that a frame moves far beyond KLT's reach. Descriptor matching against the recent
 keyframes must carry the track ids on (points seen by 3+ keyframes) at sub-pixel accuracy against the
 true terrain (the track truth of tests/test_tracker.py)."""

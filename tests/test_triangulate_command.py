@@ -36,7 +36,7 @@ def test_triangulate_simulated_photos(tmp_path):
     assert np.sqrt(np.mean(np.sum(np.square(err), axis=1))) < 0.5
 
 
-# --- EXIF altitudes relative to take-off (issue 5) ---------------------------------------------
+# --- EXIF altitudes relative to take-off ---------------------------------------------
 
 def _with_gps_altitude(jpeg: bytes, alt_m: float) -> bytes:
     """The JPEG with its EXIF GPSAltitude replaced, pixels untouched (the APP1 segment is swapped)."""

@@ -1,6 +1,6 @@
-"""`photogram-ros triangulate` on a damaged bag (issue 15 follow-up): what the bag still holds is
+"""`photogram-ros triangulate` on a damaged bag: what the bag still holds is
 triangulated, what was read and lost is said on the console and in the report, and the exit status is 3
-as `replay`'s (README "Faults and bad input")."""
+as `replay`'s (docs/faults.md)."""
 
 import json
 import shutil

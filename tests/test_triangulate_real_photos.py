@@ -1,4 +1,4 @@
-"""`triangulate` on a real DJI survey with nothing but its photos (issue 13): brighton_beach, 18 FC300S
+"""`triangulate` on a real DJI survey with nothing but its photos: brighton_beach, 18 FC300S
 photos, EXIF GPS; no calibration, no GCPs. The peer is OpenDroneMap's cloud of the same photos."""
 
 from __future__ import annotations

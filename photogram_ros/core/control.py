@@ -145,7 +145,7 @@ def detect_keyframe_targets(image: np.ndarray, camera: PinholeCamera,
     return out
 
 
-# --- control rows checked against the GNSS-only block (issue 16) ---------------------------------------
+# --- control rows checked against the GNSS-only block ---------------------------------------
 #
 # A control file from the field has faults a surveyor does not see: rows naming a photo of another
 # flight, every row of one photo naming the wrong photo, pixels outside the image, heights left as
