@@ -3,7 +3,7 @@
 
 Data: the real DJI survey ../shared/data/photos/brighton_beach (18 photos, 4000x2250) and a simulated
 survey of about 100 photos (640x480, made here with `simulate --photos`, about a minute). The baseline
-is what `triangulate PHOTOS` did until issue 13: SIFT with 3000 features on the full photo, brute-force
+is full-frame matching: SIFT with 3000 features on the full photo, brute-force
 2-NN with Lowe's ratio 0.8, an essential matrix by RANSAC (2 px) on each photo's 8 nearest neighbours;
 it reports its verified pairs beside its time (on brighton it verified 5, the reason for the change).
 The peer figures of the issue (pycolmap exhaustive on a 42-photo 2400x1800 set: 590 s; this project
