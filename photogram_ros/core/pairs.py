@@ -12,6 +12,7 @@ depths the pair's tie points span (widened by depth_margin_m) when there are eno
 """
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -71,9 +72,30 @@ class PairCriteria(PairLimits):
                                        'simulator\'s 640x480 at 40 m)',
                                min=gsd.AUTO, max=1e3)
 
+    final_pairs_along: int = param(2, 'partners per keyframe along its line when the products are matched again '
+                                      'from the final adjustment (io/densify.py: after the flight, so more '
+                                      'pairs than in flight: brighton_beach 27 -> 49 pairs, a DSM cell needs two '
+                                      'that agree)', min=0, max=10)
+    final_pairs_across: int = param(2, 'partners per keyframe on neighbouring lines when matching again from the '
+                                       'final adjustment', min=0, max=10)
+    final_min_overlap: float = param(0.25, 'min_overlap when matching again from the final adjustment: the '
+                                           'second partner along a line of 60-70 % front overlap shares a '
+                                           'quarter of the image', min=0.0, max=1.0)
+    final_lr_check: bool = param(False, 'left-right check (StereoParams.lr_check) when matching again from the '
+                                        'final adjustment: off, since a product cell needs two pairs that agree '
+                                        '(export min_pairs 2 and the fusion\'s test between pairs), a check across '
+                                        'views that keeps the products as close to OpenDroneMap\'s as the '
+                                        'left-right check does, at half the SGBM time a pair')
+
     def check(self) -> None:
         gsd.check_auto_or_at_least(self, {'relief_m': 0.5, 'depth_margin_m': 0.0})
         super().check()
+
+    def for_final(self) -> 'PairCriteria':
+        """The criteria of the matching from the final adjustment: final_pairs_along / _across partners,
+        final_min_overlap."""
+        return dataclasses.replace(self, max_pairs_along=self.final_pairs_along,
+                                   max_pairs_across=self.final_pairs_across, min_overlap=self.final_min_overlap)
 
 
 @dataclass
