@@ -73,7 +73,8 @@ def main() -> int:
                     d = densify_map(m, os.path.join(tmp, name), stereo, crit, fusion)
                     s = time.perf_counter() - t0
                     if name not in got or s < got[name]['s']:
-                        got[name] = {'pairs': d.pairs_done, 's': round(s, 2), 's_per_pair': round(s / max(d.pairs_done, 1), 3),
+                        got[name] = {'pairs': d.pairs_done, 's': round(s, 2),
+                                     's_per_pair': round(s / max(d.pairs_done, 1), 3),
                                      'confirmed_in_hull': round(confirmed_share(d.store, d.store.cell_m), 3)}
         print(json.dumps({'bench': 'products_pairs', 'map': m, **got,
                           'ratio_per_pair': round(got['now']['s_per_pair'] / got['before']['s_per_pair'], 2),

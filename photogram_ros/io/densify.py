@@ -125,7 +125,8 @@ def densify_map(map_dir: str | Path | MapStore, out_dir: str | Path, stereo: Ste
     ground_m = _ground_height(src, kfs)
     # After the flight the matching has time the stereo node has not: more partners per keyframe.
     criteria = criteria.for_final()
-    stereo = dataclasses.replace(stereo, min_overlap=criteria.min_overlap, lr_check=stereo.lr_check and criteria.final_lr_check)
+    stereo = dataclasses.replace(stereo, min_overlap=criteria.min_overlap,
+                                 lr_check=stereo.lr_check and criteria.final_lr_check)
     settings = gsd.derive(cam.width, cam.height, cam.fx,
                           float(np.median([k['map_T_cam'][2, 3] for k in kfs])) - ground_m, stereo.downscale)
     stereo, names_s = gsd.resolve(stereo, settings)
