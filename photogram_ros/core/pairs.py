@@ -9,6 +9,8 @@ from the final poses): given a new keyframe's pose, its candidate partners' pose
 and, when known, the tie points around them, it returns the partners with each pair's depth search
 (min/max depth along the older keyframe's axis): the ground height +- relief_m, narrowed to the
 depths the pair's tie points span (widened by depth_margin_m) when there are enough of them.
+The matching from the final adjustment plans with PairCriteria.for_final(): more partners across lines
+(final_pairs_across) down to a smaller common footprint (final_min_overlap) than the stereo node in flight.
 """
 from __future__ import annotations
 
