@@ -6,7 +6,10 @@ Shares: DSM cells holding a height, of them measured by stereo (band 2 >= 1) and
 a one-band DSM counts every height as measured); ortho cells holding a colour (alpha > 0).
 Against the peer: its points gridded on our DSM cells (median per cell, cells with >= 3 points), dz = ours -
 peer, minus the median dz over the cells compared (a constant offset: the two blocks' datums differ), as
-median / p90 |dz|, over all cells, the measured ones, the interpolated ones, and those inside the hull.
+median / p90 |dz|, over all cells, the measured ones, the interpolated ones, and those inside the hull; for
+all and the measured cells also after a fitted plane (offset + tilt, least absolute deviations) instead of the
+constant offset, with the tilt (a tilted georeference is another problem than a noisy surface), and after a
+quadratic surface (a bowl: what an unmodelled lens distortion gives a block).
 Prints one JSON line per folder.
 
     .venv/bin/python bench/products_coverage.py OUT [OUT ...] [--peer ../shared/data/photos/brighton_beach/odm_model.laz]
@@ -48,6 +51,21 @@ def peer_median(path, transform, shape) -> np.ndarray:
     return med.reshape(shape)
 
 
+def plane_residual(e: np.ndarray, n: np.ndarray, dz: np.ndarray, iters: int = 3,
+                   degree: int = 1) -> tuple[np.ndarray, tuple]:
+    """dz minus a plane a + b e + c n (degree 1; degree 2 adds e^2, e n, n^2: a bowl or dome) fitted by
+    least absolute deviations (iteratively reweighted least squares): what is left of ours - peer once a
+    tilted (or domed) georeference is taken out. Returns (residuals, (b, c) in m per m)."""
+    e, n = e - e.mean(), n - n.mean()
+    A = np.column_stack([np.ones_like(e), e, n] + ([e * e, e * n, n * n] if degree == 2 else []))
+    w = np.ones_like(dz)
+    for _ in range(iters + 1):
+        coef = np.linalg.lstsq(A * w[:, None], dz * w, rcond=None)[0]
+        r = dz - A @ coef
+        w = 1.0 / np.sqrt(np.maximum(np.abs(r), 0.02))
+    return r, (float(coef[1]), float(coef[2]))
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument('outs', nargs='+')
@@ -79,6 +97,17 @@ def main() -> int:
                 dz -= np.median(dz)
                 res[f'peer_{name}'] = {'cells': int(both.sum()), 'median_abs_m': round(float(np.median(np.abs(dz))), 3),
                                        'p90_abs_m': round(float(np.percentile(np.abs(dz), 90)), 3)}
+                if name in ('measured', 'all'):
+                    r_, c_ = np.nonzero(both)
+                    e_, n_ = T * (c_ + 0.5, r_ + 0.5)
+                    dzp, tilt = plane_residual(np.asarray(e_), np.asarray(n_), z[both] - med[both])
+                    res[f'peer_{name}_plane'] = {'median_abs_m': round(float(np.median(np.abs(dzp))), 3),
+                                                 'p90_abs_m': round(float(np.percentile(np.abs(dzp), 90)), 3),
+                                                 'tilt_e_mm_per_m': round(tilt[0] * 1e3, 2),
+                                                 'tilt_n_mm_per_m': round(tilt[1] * 1e3, 2)}
+                    dzq, _ = plane_residual(np.asarray(e_), np.asarray(n_), z[both] - med[both], degree=2)
+                    res[f'peer_{name}_quadratic'] = {'median_abs_m': round(float(np.median(np.abs(dzq))), 3),
+                                                     'p90_abs_m': round(float(np.percentile(np.abs(dzq), 90)), 3)}
         print(json.dumps(res))
     return 0
 

@@ -158,3 +158,40 @@ def test_lengths_left_to_the_gsd_are_derived_from_the_keyframes(map_dir, tmp_pat
                                 'min_tolerance_m'}
     assert res.store.cell_m == 0.12 and res.pairs_done >= 2
     assert 30.0 < res.gsd['flying_height_m'] < 50.0
+
+
+def test_the_final_matching_takes_its_own_partners_and_check(map_dir, tmp_path, monkeypatch):
+    # Three keyframes on one line: one partner along it (the default) gives two pairs with the
+    # left-right check; final_pairs_along 2 adds the pair of the first and third (B/H 0.44, half the
+    # image in common), final_lr_check false drops the check, and two pairs confirm more cells.
+    from photogram_ros.core.fusion import FusionConfig
+    from photogram_ros.core.pairs import PairCriteria
+    from photogram_ros.core.stereo import StereoParams
+    from photogram_ros.io import densify
+    from photogram_ros.io.export import open_map
+    from photogram_ros.params import from_dict
+    lr = []
+    real = densify.stereo_pair
+
+    def spy(cam, img_a, T_a, img_b, T_b, params, depth_range_m):
+        lr.append(params.lr_check)
+        return real(cam, img_a, T_a, img_b, T_b, params, depth_range_m)
+
+    monkeypatch.setattr(densify, 'stereo_pair', spy)
+    stereo = from_dict(StereoParams, {'downscale': 0.5})
+    old = densify.densify_map(map_dir, tmp_path / 'old', stereo, PairCriteria(), FusionConfig())
+    lr_old, lr[:] = list(lr), []
+    more = PairCriteria(final_pairs_along=2, final_lr_check=False)
+    new = densify.densify_map(map_dir, tmp_path / 'new', stereo, more, FusionConfig())
+    assert (old.pairs_done, new.pairs_done) == (2, 3)
+    assert lr_old == [True, True] and lr == [False, False, False]
+    confirmed = [int((open_map(r.store)[1].points()['n_pairs'] >= 2).sum()) for r in (old, new)]
+    print(f'cells two pairs confirm: {confirmed}')
+    assert confirmed[1] >= 1.2 * confirmed[0]
+
+
+def test_final_criteria_replace_the_partners_and_overlap():
+    from photogram_ros.core.pairs import PairCriteria
+    c = PairCriteria(max_pairs_along=1, max_pairs_across=0, min_overlap=0.5, final_pairs_along=3,
+                     final_pairs_across=2, final_min_overlap=0.2).for_final()
+    assert (c.max_pairs_along, c.max_pairs_across, c.min_overlap) == (3, 2, 0.2)

@@ -5,7 +5,11 @@ the final full adjustment moves poses again (by centimetres and tens of arcsecon
 depth is sensitive to its two cameras' relative tilt (Z^2 / B per radian: 2 cm per 10 arcsec at
 40 m with an 8 m baseline). So the survey products are made again from the keyframes and the final
 poses of the in-flight map folder, the way photogrammetry software densifies after triangulation:
-the same pair planner (core/pairs.plan_pairs), stereo and fusion as the nodes, in keyframe order.
+the same pair planner (core/pairs.plan_pairs), stereo and fusion as the nodes, in keyframe order, with
+the planner's final_* criteria (PairCriteria.for_final): one partner along and two across each
+keyframe (the stereo node takes one and one) down to a quarter of the image in common: a cell of the
+products needs two pairs that agree (export's min_pairs 2), and across lines most cells have more
+than two candidates.
 The map folder holds no tie points (io/map_store.py): each pair searches the ground height +- relief_m,
 unless the caller passes tie points (the flight's, or the in-flight map's surface: surface_points). The in-flight map stays
 what it was (what the ground station saw); the products come from the new folder. Given the map
@@ -14,6 +18,7 @@ folder the result is deterministic, unlike the in-flight map, whose pairing depe
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import shutil
 import time
@@ -95,6 +100,8 @@ def densify_map(map_dir: str | Path | MapStore, out_dir: str | Path, stereo: Ste
     """Match the keyframes of `map_dir` (a folder or an open MapStore) with their final poses into a new
     map folder `out_dir`.
 
+    `criteria` and `stereo` are the nodes' (the flight's parameter file); the pairs are planned with
+    criteria.for_final() and matched with its final_min_overlap (final_lr_check false: no left-right check).
     `out_dir` gets the origin, camera and keyframes (hard links where the file system allows) of
     `map_dir` and freshly fused tiles; an existing folder there is replaced. Pairs and depth searches
     come from core/pairs.plan_pairs around the in-flight map's ground height, narrowed to the pair's
@@ -116,6 +123,10 @@ def densify_map(map_dir: str | Path | MapStore, out_dir: str | Path, stereo: Ste
     if out.resolve() == src.root.resolve():
         raise DataError('densify writes a new map folder: give another out_dir than the map itself')
     ground_m = _ground_height(src, kfs)
+    # After the flight the matching has time the stereo node has not: more partners per keyframe.
+    criteria = criteria.for_final()
+    stereo = dataclasses.replace(stereo, min_overlap=criteria.min_overlap,
+                                 lr_check=stereo.lr_check and criteria.final_lr_check)
     settings = gsd.derive(cam.width, cam.height, cam.fx,
                           float(np.median([k['map_T_cam'][2, 3] for k in kfs])) - ground_m, stereo.downscale)
     stereo, names_s = gsd.resolve(stereo, settings)
