@@ -63,6 +63,7 @@ from __future__ import annotations
 
 import sys
 import threading
+from dataclasses import dataclass
 
 import numpy as np
 from geometry_msgs.msg import PoseWithCovarianceStamped
@@ -95,7 +96,9 @@ TOPIC_GEOREF = 'map/georeference'
 TOPIC_ATTITUDE = 'mavlink/attitude'
 TOPIC_CONTROL_POINTS = 'map/control_points'
 
-BundleNodeParams = AdjustmentParams   # the node's parameters are the stage's
+@dataclass
+class BundleNodeParams(AdjustmentParams):
+    """The node's parameters: the adjustment stage's (stages/adjustment.py)."""
 
 
 class _Publishers(Outputs):
