@@ -96,6 +96,7 @@ TOPIC_GEOREF = 'map/georeference'
 TOPIC_ATTITUDE = 'mavlink/attitude'
 TOPIC_CONTROL_POINTS = 'map/control_points'
 
+
 @dataclass
 class BundleNodeParams(AdjustmentParams):
     """The node's parameters: the adjustment stage's (stages/adjustment.py)."""
