@@ -55,8 +55,8 @@ def _fly(stage, records, marker_of: dict | None = None, status: int = STATUS_GBA
 
 def test_gcp_with_a_placeholder_height_is_used_horizontally_only(flight_3d, tmp_path):
     """Every GCP's height written as 400 m (the ground is at 488 m), GCP02 30 m east of where it is: the stage
-    uses four GCPs horizontally, leaves GCP02 out, says so with WARNs, and the check points stay within
-    1.5 GSD horizontally (measured 1.3 cm = 0.26 GSD)."""
+    uses four GCPs horizontally, leaves GCP02 out, says so with WARNs; the four check points' horizontal RMSE
+    (measured 2.17 cm = 0.28 GSD) is gated at 1.5 times that."""
     from photogram_ros.io.control_file import write_control_file
     sk, targets = flight_3d
     survey = []
@@ -77,13 +77,12 @@ def test_gcp_with_a_placeholder_height_is_used_horizontally_only(flight_3d, tmp_
     assert any(t.startswith('control: GCP GCP01') and 'placeholder' in t for t in warns)
     assert q['control']['use']['GCP02'] == 'unused' and q['gcp_rmse']['vertical_m'] is None
     assert sorted(r['name'] for r in q['gcps']) == ['GCP01', 'GCP03', 'GCP04', 'GCP05']
-    # The check points, intersected from the final poses the stage handed out, against the survey.
     out = stage.out
     assert len(out.pose_by_stamp) == len(sk.records) and len(out.georeferences) == 1
     h = q['check_rmse']['horizontal_m']
     print(f'stage, 3D GNSS, 400 m GCP heights, GCP02 30 m off: check RMSE h {h * 100:.2f} cm '
           f'({h / sk.gsd_m:.2f} GSD) over {q["check_rmse"]["count"]}')
-    assert q['check_rmse']['count'] == 4 and h <= 1.5 * sk.gsd_m
+    assert q['check_rmse']['count'] == 4 and h <= 1.5 * 0.28 * sk.gsd_m
     assert out.qualities and out.qualities[-1]['georeference'] == 'final'
 
 
@@ -102,12 +101,13 @@ def test_the_flight_after_every_track_was_lost_is_a_segment_joined_through_its_g
     assert any(lv == WARN and t.startswith('every track was lost') for lv, t in stage.diag.problems)
     after = [r.stamp_ns for r in recs[kb:] if r.stamp_ns in stage.out.pose_by_stamp]
     assert len(after) >= len(recs) - kb - 1                       # handed out, not only adjusted
-    # The segment sits where its GNSS put it: camera centres within 10 cm of the truth (RTK).
+    # The segment sits where its RTK fixes put it: camera centres within 6.6 cm of the truth (measured), gated at 1.5x.
     T = {r.stamp_ns: t for r, t in zip(recs, sk.true_map_T_cam)}
     o = stage.at.origin
     err = [np.linalg.norm(sk.origin.ecef_to_enu(o.enu_to_ecef(pose[:3, 3])) - T[s][:3, 3])
            for s, (pose, _) in stage.out.pose_by_stamp.items() if s in after]
-    assert max(err) < 0.10
+    print(f'segment: camera centres after the break within {max(err) * 100:.1f} cm of the truth')
+    assert max(err) < 1.5 * 0.066
 
 
 def test_health_tells_a_good_block_from_one_that_does_not_orient(flight_rtk):

@@ -167,6 +167,11 @@ class BundleNode(Node):
         return self.stage.control
 
     @property
+    def _pending(self) -> dict:
+        """Keyframes waiting for their fix (bench/replay_probe.py counts them)."""
+        return self.stage._pending
+
+    @property
     def live(self):
         return self.stage.live
 
