@@ -43,6 +43,9 @@ dropped, a GCP the block contradicts horizontally is not used, one whose height 
 horizontally only. Each such fault is a WARN on /diagnostics naming the target, and map/control_points
 carries the verdicts ('control': every point's use, the detections not used and why, the faults).
 
+The node is an adapter: the adjustment, its policies, health and quality are the ROS-free stage
+(stages/adjustment.py), which it feeds from the topics and whose results it publishes.
+
 Threading: callbacks only queue what arrives; a worker thread of the node runs the adjustments
 (numpy/scipy release the GIL in their kernels), so a several-second adjustment never holds an
 executor thread. When keyframes queue up behind an adjustment, the older ones of the batch get a
@@ -60,7 +63,6 @@ from __future__ import annotations
 
 import sys
 import threading
-import time
 from dataclasses import dataclass
 
 import numpy as np
@@ -68,25 +70,19 @@ from geometry_msgs.msg import PoseWithCovarianceStamped
 from nav_msgs.msg import Path
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
-from sensor_msgs.msg import CameraInfo, Image, Imu, NavSatFix, NavSatStatus, PointCloud2
-from std_msgs.msg import Empty
+from sensor_msgs.msg import CameraInfo, Image, Imu, NavSatFix, PointCloud2
+from std_msgs.msg import Empty, String
 
 from photogram_ros import msgs
-from photogram_ros.core.attitude import AttitudeHistory, antenna_offset_enu
-from photogram_ros.core.at_report import convergence, redundancy_notes
-from photogram_ros.core.block_check import check_block, inputs_from_at
-from photogram_ros.core.control import ControlSet, robust_intersection
-from photogram_ros.core.control_live import LiveControl, LiveControlOptions
-from photogram_ros.core.evaluation import ce90_le90
-from photogram_ros.core.geodesy import LocalFrame
-from photogram_ros.core.gnss_fix import GnssFix
-from photogram_ros.core.incremental import IncrementalAT, IncrementalOptions, KeyframeRecord
-from photogram_ros.core.survey_quality import FIX_CLASSES, fix_class, rmse
+from photogram_ros.core.incremental import KeyframeRecord
 from photogram_ros.errors import PhotogramError
-from photogram_ros.nodes.diagnostics import ERROR, WARN, Diagnostics
+from photogram_ros.nodes.diagnostics import ERROR, Diagnostics
 from photogram_ros.nodes.node_main import run_node
 from photogram_ros.nodes.ros_params import declare
-from photogram_ros.params import param
+from photogram_ros.nodes.stage_diagnostics import StageDiagnostics
+from photogram_ros.stages.adjustment import (  # noqa: F401  (the node's names for the stage's)
+    PLAIN_FIX_SIGMA_M, UNKNOWN_FIX_SIGMA_M, AdjustmentOutcome, AdjustmentParams, AdjustmentStage, Outputs,
+    fix_sigma_limit_m, pose_covariance, unknown_fix_covariance)
 
 TOPIC_FEATURES = 'keyframes/features'
 TOPIC_FIX = 'keyframes/fix'
@@ -102,125 +98,50 @@ TOPIC_CONTROL_POINTS = 'map/control_points'
 
 
 @dataclass
-class BundleNodeParams(LiveControlOptions, IncrementalOptions):
-    """The adjuster's parameters (core/incremental.py), the in-flight control's (core/control_live.py)
-    and the node's own."""
-    use_origin_params: bool = param(False, 'anchor map at origin_* instead of the first keyframe fix')
-    origin_lat_deg: float = param(0.0, 'map origin latitude, deg', min=-90.0, max=90.0)
-    origin_lon_deg: float = param(0.0, 'map origin longitude, deg', min=-180.0, max=180.0)
-    origin_h_m: float = param(0.0, 'map origin ellipsoidal height, m', min=-1e4, max=1e5)
-    fix_wait_s: float = param(10.0, 'how long (wall time) a keyframe waits for its fix before it is adjusted '
-                                    'without one, s; a later fix ends the wait at once', min=0.0, max=60.0)
-    sync_tolerance_ms: float = param(5.0, 'features and fix with stamps closer than this belong together, ms',
-                                     min=0.0, max=1000.0)
-    max_fix_sigma_m: float = param(50.0, 'fixes with a larger horizontal sigma are not used, m', min=0.01, max=1e4)
-    max_rtk_sigma_m: float = param(1.0, 'a fix reporting RTK (GBAS status) with a larger horizontal sigma is not used, '
-                                        'm: its receiver has lost the corrections but still says RTK', min=0.01, max=1e4)
-    health_window: int = param(20, 'health: keyframes over which the share not oriented is judged', min=2, max=10000)
-    health_max_unoriented: float = param(0.1, 'health: WARN above this share of the last health_window keyframes '
-                                              'not oriented (ERROR above 0.5)', min=0.0, max=1.0)
-    georef_warn_keyframes: int = param(10, 'health: WARN when this many keyframes with a fix are in and the block is '
-                                           'still not georeferenced (ERROR at twice as many)', min=1, max=100000)
-    cloud_every: int = param(5, 'publish the sparse cloud every this many keyframes', min=1, max=1000)
-    cloud_recent_only: bool = param(True, 'the sparse cloud holds the tie points of the keyframes around the '
-                                          'adjustment window (what stereo takes its ground and depth range from); '
-                                          'off: the whole block, a message that grows with the flight')
-    full_adjustment_on_shutdown: bool = param(True, 'adjust the whole block when the node stops')
-    catch_up_iterations: int = param(3, 'iterations of the window adjustment of a keyframe that already has newer '
-                                        'ones queued behind it (the newest of a batch gets the full adjustment): '
-                                        'lets the node catch up after a long adjustment', min=1, max=100)
-    marginal_covariance: bool = param(True, 'pose covariance from the window adjustment\'s marginal covariance of '
-                                            'the camera centres (one more linearisation per update); off: the '
-                                            'fix\'s variance as a stand-in')
-    covariance_every: int = param(3, 'recompute the marginal covariance every this many window updates (it costs '
-                                     'about a fifth of an update); poses in between reuse their last one',
-                                  min=1, max=100)
-    control_file: str = param('', 'surveyed targets (first line a CRS, then "name marker_id x y z [sigma_h_m '
-                                  'sigma_v_m]"; names CHK* are check points): the tracker\'s ArUco detections '
-                                  'become GCPs and check points; "" = none')
-    check_names: str = param('', 'more check points of control_file (never used in the adjustment), comma separated')
-    control_heights: str = param('auto', 'heights of control_file: ellipsoidal, orthometric (EGM2008), or auto '
-                                 '(orthometric when its CRS is compound with EGM2008 heights)',
-                                 choices=('auto', 'ellipsoidal', 'orthometric'))
-    gcp_sigma_h_m: float = param(0.0, 'horizontal sigma of every GCP, m (0: the file\'s, 0.02 m where it gives none)',
-                                 min=0.0, max=100.0)
-    gcp_sigma_v_m: float = param(0.0, 'vertical sigma of every GCP, m (0: the file\'s, 0.03 m where it gives none)',
-                                 min=0.0, max=100.0)
-    quality_every: int = param(5, f'publish the live accuracy ({TOPIC_CONTROL_POINTS}: check points intersected '
-                                  'from the adjusted cameras, fix shares) every this many published keyframes',
-                                  min=1, max=1000)
-    publish_provisional: bool = param(False, 'publish poses while the georeference is still provisional (a '
-                                             'straight first line leaves the roll about it to an assumption '
-                                             'until the first turn); off, poses start at the first turn')
+class BundleNodeParams(AdjustmentParams):
+    """The node's parameters: the adjustment stage's (stages/adjustment.py)."""
 
 
-# 1-sigma E, N, U (m) of a fix that gives no covariance, by its NavSatFix status: what such a receiver
-# typically achieves (RTK: fixed or float, the status cannot tell; SBAS/DGPS; a plain 3D fix).
-UNKNOWN_FIX_SIGMA_M = {NavSatStatus.STATUS_GBAS_FIX: (0.5, 0.5, 1.0),
-                       NavSatStatus.STATUS_SBAS_FIX: (1.5, 1.5, 3.0)}
-PLAIN_FIX_SIGMA_M = (5.0, 5.0, 10.0)
+class _Publishers(Outputs):
+    """The stage's results as messages on the node's topics."""
 
+    def __init__(self, node: Node):
+        reliable = QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE)
+        latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                             durability=DurabilityPolicy.TRANSIENT_LOCAL)
+        self.pose = node.create_publisher(PoseWithCovarianceStamped, TOPIC_POSE, reliable)
+        self._path = node.create_publisher(Path, TOPIC_PATH, QoSProfile(depth=2))
+        self._cloud = node.create_publisher(PointCloud2, TOPIC_CLOUD, QoSProfile(depth=2))
+        self.georef = node.create_publisher(NavSatFix, TOPIC_GEOREF, latched)
+        self._quality = node.create_publisher(String, TOPIC_CONTROL_POINTS, latched)
 
-def unknown_fix_covariance(status: int) -> np.ndarray:
-    """ENU covariance (m^2) for a fix without one, following its GNSS mode (UNKNOWN_FIX_SIGMA_M)."""
-    return np.diag(np.square(UNKNOWN_FIX_SIGMA_M.get(status, PLAIN_FIX_SIGMA_M)))
+    def georeference(self, lat_deg, lon_deg, h_m, stamp_ns):
+        self.georef.publish(msgs.georeference_msg(lat_deg, lon_deg, h_m, stamp_ns))
 
+    def poses(self, poses):
+        for map_T_cam, stamp_ns, cov in poses:
+            self.pose.publish(msgs.pose_with_covariance_from_T(map_T_cam, stamp_ns, 'map', cov))
 
-def fix_sigma_limit_m(status: int, p) -> float:
-    """Largest horizontal sigma (m) of a usable fix: max_fix_sigma_m, and max_rtk_sigma_m for a fix that
-    reports RTK (a larger sigma under an RTK status is a receiver that lost its corrections)."""
-    if status >= NavSatStatus.STATUS_GBAS_FIX:
-        return min(p.max_fix_sigma_m, p.max_rtk_sigma_m)
-    return p.max_fix_sigma_m
+    def path(self, map_T_cams, stamps_ns, stamp_ns):
+        self._path.publish(msgs.path_msg(map_T_cams, stamps_ns, stamp_ns))
 
+    def cloud(self, points_map, stamp_ns, track_ids):
+        self._cloud.publish(msgs.sparse_cloud_msg(points_map, stamp_ns, track_ids))
 
-@dataclass
-class AdjustmentOutcome:
-    """What a final (full) adjustment came to: 'done', 'failed' or 'none' (nothing to adjust), and why."""
-    status: str
-    reason: str = ''
-
-    @property
-    def failed(self) -> bool:
-        return self.status == 'failed'
+    def quality(self, doc):
+        self._quality.publish(msgs.json_msg(doc))
 
 
 class BundleNode(Node):
+    _covariance = staticmethod(pose_covariance)
+
     def __init__(self, overrides: dict | None = None, **node_kwargs):
         super().__init__('bundle_node', **node_kwargs)
         self.p = declare(self, BundleNodeParams, overrides)
         self.diag = Diagnostics(self)
-        self.control: ControlSet | None = None
-        if self.p.control_file:   # a bad file stops the start, naming the line
-            from photogram_ros.io.control_file import read_control_file
-            self.control = read_control_file(self.p.control_file, self.p.check_names.split(','),
-                                             self.p.control_heights)
-        # Every target is held as a check point until it is checked against the GNSS-only block.
-        self.live = LiveControl(self.control.file_heights, self.p) if self.control is not None else None
-        self._control_in_map = False
-        self.at: IncrementalAT | None = None
-        self.camera = None
-        self._pending: dict[int, tuple] = {}   # stamp -> (arrival, track ids, uv, {target name: uv})
-        self._fixes: dict[int, GnssFix] = {}
-        self._georef_sent = False
-        self._last_failure = ''
-        self._latest_fix_ns = None
-        self._published_final = False
-        self._n_since_cloud = 0
-        self._unpublished = 0   # keyframes oriented in a batch before its newest, not yet published
-        self._centre_cov: dict[int, np.ndarray] = {}   # keyframe id -> last marginal centre covariance
-        self._cov_updates = 0
+        # A bad control file stops the start, naming the line.
+        self.stage = AdjustmentStage(self.p, StageDiagnostics(self.diag), _Publishers(self))
         reliable = QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE)
-        latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
-                             durability=DurabilityPolicy.TRANSIENT_LOCAL)
-        self.pub_pose = self.create_publisher(PoseWithCovarianceStamped, TOPIC_POSE, reliable)
-        self.pub_path = self.create_publisher(Path, TOPIC_PATH, QoSProfile(depth=2))
-        self.pub_cloud = self.create_publisher(PointCloud2, TOPIC_CLOUD, QoSProfile(depth=2))
-        self.pub_georef = self.create_publisher(NavSatFix, TOPIC_GEOREF, latched)
-        from std_msgs.msg import String
-        self.pub_quality = self.create_publisher(String, TOPIC_CONTROL_POINTS, latched)
-        self._fix_classes = {c: 0 for c in FIX_CLASSES}   # keyframes adjusted, per GNSS fix class
-        self._since_quality = 0
         # Fixes first: the executor serves ready subscriptions in creation order, and a burst of
         # features must not keep their fixes waiting.
         self.create_subscription(NavSatFix, TOPIC_FIX, self._on_fix, reliable)
@@ -228,560 +149,124 @@ class BundleNode(Node):
         self.create_subscription(Image, TOPIC_IMAGE, lambda m: self.diag.count('images'), reliable)
         self.create_subscription(CameraInfo, TOPIC_INFO, self._on_info, QoSProfile(depth=5))
         self.create_subscription(Empty, TOPIC_FULL, self._on_full, QoSProfile(depth=2))
-        # Attitudes cover the last two minutes of stamps: keyframes reach the adjuster seconds late.
-        self._attitude = AttitudeHistory(max_age_ns=120 * 10**9)
-        self._attitude_arrival = -1e9   # monotonic time of the newest attitude
         if self.p.gimbal:
             self.create_subscription(Imu, TOPIC_ATTITUDE, self._on_attitude, reliable)
         # The timer only wakes the worker: a keyframe whose fix never comes is taken after fix_wait_s.
         self.create_timer(0.5, self._wake)
-        self._full_requested = False
-        self._busy = False
         self._stop = False
-        # _cond guards the inputs (_pending, _fixes, flags); _work serialises every use of self.at.
-        self._cond = threading.Condition()
-        self._work = threading.RLock()
         self._worker = threading.Thread(target=self._run, name='bundle_worker', daemon=True)
         self._worker.start()
+
+    @property
+    def at(self):
+        """The adjuster (core/incremental.py IncrementalAT), None until the camera_info came."""
+        return self.stage.at
+
+    @property
+    def control(self):
+        return self.stage.control
+
+    @property
+    def _pending(self) -> dict:
+        """Keyframes waiting for their fix (bench/replay_probe.py counts them)."""
+        return self.stage._pending
+
+    @property
+    def live(self):
+        return self.stage.live
 
     # --- inputs ---------------------------------------------------------------------------------
 
     def _on_info(self, msg: CameraInfo) -> None:
-        if self.camera is not None:
+        if self.stage.camera is not None:
             return
         try:
-            self.camera = msgs.camera_from_info(msg)
+            camera = msgs.camera_from_info(msg)
         except PhotogramError as exc:
             self.diag.problem(f'bad camera_info: {exc}', ERROR)
             return
-        origin = (LocalFrame(self.p.origin_lat_deg, self.p.origin_lon_deg, self.p.origin_h_m)
-                  if self.p.use_origin_params else None)
-        with self._work:
-            self.at = IncrementalAT(self.camera, self.p, origin=origin)
-            self._control_to_map()
-        self._wake()
-
-    def _control_to_map(self) -> None:
-        """Surveyed targets into `map`, once: when the origin is configured or set by the first fix."""
-        if self.control is None or self._control_in_map or self.at.origin is None:
-            return
-        self.live.set_surveyed(self.control.in_map(self.at.origin, self.p.gcp_sigma_h_m, self.p.gcp_sigma_v_m))
-        self.at.set_control(self.live.adjuster_control())
-        self._control_in_map = True
-
-    def _vet_control(self, final: bool = False) -> None:
-        """Check the targets now due against the block (core/control_live.py); each fault is a WARN."""
-        if self.live is None:
-            return
-        try:
-            for note in self.live.update(self.at, final):
-                self.diag.problem(f'control: {note}', WARN)
-        except Exception as exc:   # the control's figures must never stop the adjustment
-            self.diag.problem(f'control vetting failed: {type(exc).__name__}: {exc}')
+        self.stage.set_camera(camera)
 
     def _on_fix(self, msg: NavSatFix) -> None:
         try:
             f = msgs.fix_from_navsatfix(msg)
-            cov = np.asarray(f['covariance_enu_m2'], float)
-            if msg.status.status < 0 or not np.all(np.isfinite([f['lat_deg'], f['lon_deg'], f['h_m']])):
-                self.diag.count('fixes_without_position')
-                return
-            if f['covariance_type'] == NavSatFix.COVARIANCE_TYPE_UNKNOWN or not np.all(np.diag(cov) > 0):
-                cov = unknown_fix_covariance(int(msg.status.status))
-                self.diag.count('fixes_without_covariance')
-            if np.sqrt(cov[0, 0]) > fix_sigma_limit_m(int(msg.status.status), self.p):
-                self.diag.count('fixes_too_inaccurate')
-                return
-            with self._cond:
-                # Status and covariance type only feed the live fix shares (the adjustment reads position and cov).
-                self._fixes[f['stamp_ns']] = GnssFix(f['lat_deg'], f['lon_deg'], f['h_m'], cov, f['stamp_ns'],
-                                                     int(f['status']), int(f['covariance_type']))
-                self._latest_fix_ns = max(self._latest_fix_ns or 0, f['stamp_ns'])
-                self._cond.notify()
-            self.diag.count('fixes')
+            self.stage.add_fix(f['stamp_ns'], f['lat_deg'], f['lon_deg'], f['h_m'], f['covariance_enu_m2'],
+                               int(f['status']), int(f['covariance_type']))
         except Exception as exc:  # one bad message must not stop the node
             self.diag.problem(f'bad keyframe fix: {exc}')
 
     def _on_features(self, msg: PointCloud2) -> None:
         try:
             obs, targets = msgs.keyframe_table_from_msg(msg)
-            uv = np.column_stack([obs['u'], obs['v']])
-            if not np.all(np.isfinite(uv)) or not np.all(np.isfinite(targets['u'])):
-                raise PhotogramError('non-finite pixel coordinates')
-            stamp = msgs.ns_from_time(msg.header.stamp)
-            target_uv, unknown = self.control.target_uv(targets) if self.control is not None else ({}, len(targets))
-            with self._cond:
-                self._pending[stamp] = (time.monotonic(), obs['track_id'].astype(np.int64), uv, target_uv)
-                self._cond.notify()
-            self.diag.count('keyframes_received')
-            if len(targets):
-                self.diag.count('target_detections', len(targets))
-            if unknown:
-                self.diag.count('target_detections_ignored', unknown)   # no control file, or not in it
+            self.stage.add_keyframe(msgs.ns_from_time(msg.header.stamp), obs['track_id'],
+                                    np.column_stack([obs['u'], obs['v']]), targets)
         except Exception as exc:
             self.diag.problem(f'bad keyframe features: {exc}')
 
     def _on_attitude(self, msg) -> None:
         try:
             q, _ = msgs.orientation_from_imu(msg)
-            with self._cond:
-                self._attitude.add(msgs.ns_from_time(msg.header.stamp), q)
-                self._attitude_arrival = time.monotonic()
-                self._cond.notify()
+            self.stage.add_attitude(msgs.ns_from_time(msg.header.stamp), q)
         except Exception as exc:
             self.diag.problem(f'bad attitude: {exc}')
 
-    def _waits_for_attitude(self, stamp: int) -> bool:
-        """A gimballed camera's keyframe waits until an attitude after its stamp is in (attitudes and
-        keyframes come by different paths), unless attitudes stopped coming."""
-        newest = self._attitude.newest_ns
-        live = time.monotonic() - self._attitude_arrival < 1.0
-        return self.p.gimbal and live and newest is not None and newest < stamp - self._attitude.hold_ns
-
-    def _record(self, stamp: int, ids, uv, fix, target_uv) -> KeyframeRecord:
-        """A keyframe for the adjuster, with its antenna offset when the camera is gimballed. Called
-        with _cond held (the attitude history)."""
-        offset = None
-        if self.p.gimbal:
-            enu_R_flu = self._attitude.at(stamp)
-            if enu_R_flu is None:
-                self.diag.count('keyframes_without_attitude')
-                self.diag.problem('lever_arm_body_frd_m is set but no attitude (mavlink/attitude) covers the keyframes: '
-                                  'the body lever arm is applied as if flying level, image top forward (wrong by the '
-                                  'lever times the tilt); give the attitude, or the lever arm in the camera frame '
-                                  '(lever_arm_cam_m) for a camera fixed to the body, or zeros')
-            else:
-                offset = antenna_offset_enu(enu_R_flu, self.p.lever_arm_body_frd_m)
-        return KeyframeRecord(stamp, ids, uv, fix, target_uv=target_uv, antenna_offset_map_m=offset)
-
-    def _count_not_oriented(self, status: str) -> None:
-        """keyframes_not_oriented, and a counter per reason (not_oriented_<status>, e.g.
-        not_oriented_too_few_known_points) that the flight report lists."""
-        self.diag.count('keyframes_not_oriented')
-        reason = status.split(' (')[0].strip().replace(' ', '_') or 'unknown'
-        self.diag.count(f'not_oriented_{reason}')
-
     def _on_full(self, _msg) -> None:
-        with self._cond:
-            self._full_requested = True
-            self._cond.notify()
+        self.stage.request_full_adjustment()
 
     def _wake(self) -> None:
-        with self._cond:
-            self._cond.notify()
+        self.stage.wake()
 
-    def _match_fix(self, stamp: int) -> GnssFix | None:
-        tol = int(self.p.sync_tolerance_ms * 1e6)
-        best = min(self._fixes, key=lambda s: abs(s - stamp), default=None)
-        if best is not None and abs(best - stamp) <= tol:
-            return self._fixes.pop(best)
-        return None
-
-    def _ready(self) -> list[KeyframeRecord]:
-        """Take the keyframes that may be adjusted now, in stamp order: their fix is in, or a later
-        fix says there is none, or they waited fix_wait_s. Called with _cond held."""
-        if self.at is None:
-            return []
-        now, out = time.monotonic(), []
-        for stamp in sorted(self._pending):
-            arrived, ids, uv, target_uv = self._pending[stamp]
-            fix = self._match_fix(stamp)
-            # Keyframe fixes come in stamp order: once a later one is in, this one has none (outage).
-            later_fix = self._latest_fix_ns is not None and self._latest_fix_ns > stamp + self.p.sync_tolerance_ms * 1e6
-            if fix is None and not later_fix and now - arrived < self.p.fix_wait_s:
-                break   # keep the order: later keyframes wait behind this one
-            if self._waits_for_attitude(stamp) and now - arrived < self.p.fix_wait_s:
-                if fix is not None:
-                    self._fixes[stamp] = fix   # matched again next time
-                break
-            del self._pending[stamp]
-            if fix is None:
-                self.diag.count('keyframes_without_fix')
-            out.append(self._record(stamp, ids, uv, fix, target_uv))
-        # Fixes older than every pending keyframe will never match.
-        oldest = min(self._pending, default=None)
-        for s in [s for s in self._fixes if oldest is None or s < oldest - 10**9 * 10]:
-            if len(self._fixes) > 200:
-                del self._fixes[s]
-        return out
+    # --- the worker -------------------------------------------------------------------------------
 
     def _run(self) -> None:
-        """The worker: adjusts what _ready() hands out, and full adjustments asked for on the topic."""
+        """The worker: adjusts what the stage hands out, and full adjustments asked for on the topic."""
         while True:
-            with self._cond:
-                batch, full = self._ready(), self._full_requested
-                while not batch and not full and not self._stop:
-                    self._cond.wait(0.5)
-                    batch, full = self._ready(), self._full_requested
-                if self._stop:
-                    return
-                self._full_requested = False
-                self._busy = True
+            got = self.stage.take_work(lambda: self._stop)
+            if got is None:
+                return
+            batch, full = got
             try:
-                with self._work:
+                with self.stage.work:
                     self._process_batch(batch)
                     if full:
                         self.full_adjustment()
             except Exception as exc:   # the worker must survive anything one keyframe can do
                 self.diag.problem(f'bundle worker: {type(exc).__name__}: {exc}', ERROR)
             finally:
-                with self._cond:
-                    self._busy = False
+                self.stage.work_done()
 
     def busy(self) -> bool:
         """Keyframes are being adjusted, or could be now (a replay waits for this before it ends)."""
-        with self._cond:
-            if self._busy or self._full_requested:
-                return True
-            return any(self._match_fix_peek(s) for s in self._pending)
-
-    def _match_fix_peek(self, stamp: int) -> bool:
-        tol = int(self.p.sync_tolerance_ms * 1e6)
-        return any(abs(s - stamp) <= tol for s in self._fixes)
+        return self.stage.busy()
 
     def _process_batch(self, batch: list[KeyframeRecord]) -> None:
-        """Older keyframes of a batch get a short window adjustment; the newest the full one, then
-        one publication covers the batch."""
-        if not batch:
-            return
-        for i, rec in enumerate(batch):
-            self._process(rec, publish=i == len(batch) - 1)
-        if len(batch) > 1:
-            self.diag.count('keyframes_caught_up', len(batch) - 1)
-
-    # --- adjustment and outputs -------------------------------------------------------------------
+        self.stage.run_batch(batch, self._process)
 
     def _process(self, rec: KeyframeRecord, publish: bool = True) -> None:
-        """Adjust one keyframe; one that is not published (an older one of a batch) gets the short
-        catch-up window adjustment."""
-        try:
-            rep = self.at.add_keyframe(rec, None if publish else min(self.p.catch_up_iterations,
-                                                                      self.p.window_iterations))
-        except Exception as exc:
-            self.diag.count('keyframes_failed')   # a replay's backpressure counts it as done
-            self.diag.problem(f'keyframe {rec.stamp_ns} failed: {exc}')
-            return
-        self._control_to_map()
-        self._fix_classes[fix_class(rec.fix)] += 1
-        self._health(rep)
-        if self.live is not None and rec.target_uv and self.at.kfs and self.at.kfs[-1].stamp_ns == rec.stamp_ns:
-            # The live accuracy reads these instead of the keyframes' observation tables, which a long
-            # flight keeps on disk (reading them would thaw every keyframe).
-            self.live.observe(len(self.at.kfs) - 1, rec.target_uv)
-        self._vet_control()
-        if rep.joined:
-            self.diag.count('keyframes_joined_from_a_segment', rep.joined)
-            self.diag.problem(f'every track was lost: {rep.joined} keyframes after the break were oriented as a '
-                              'segment of their own and joined the block through their GNSS (no tie point links '
-                              'the two: their relative accuracy is the GNSS\'s)', WARN)
-        if not publish:
-            if rep.registered:
-                self.diag.count('keyframes_oriented')
-                self._unpublished += 1
-            else:
-                self._count_not_oriented(rep.status)
-            return
-        if rep.registered:
-            self.diag.count('keyframes_oriented')
-        else:
-            self._count_not_oriented(rep.status)
-        self.diag.set('status', rep.status)
-        self.diag.set('solve_time_s', float(rep.solve_s))
-        self.diag.set('cost', float(rep.cost))
-        self.diag.set('reprojection_rms_px', float(rep.reprojection_rms_px))
-        self.diag.set('gnss_residual_rms_m', float(rep.gnss_rms_m))
-        self.diag.set('window_size', rep.window_size)
-        self.diag.set('points', len(self.at.points))
-        self.diag.set('georeferenced', 'provisional' if self.at.georef_provisional else str(self.at.georeferenced))
-        self._control_diagnostics()
-        self._since_quality += 1
-        if self._since_quality >= self.p.quality_every:
-            self.publish_quality()
-        earlier, self._unpublished = self._unpublished, 0
-        if not (self.at.georeferenced and rep.registered):
-            return
-        if self.at.georef_provisional and not self.p.publish_provisional:
-            return
-        if not self._published_final and not self.at.georef_provisional:
-            # Provisional -> final georeference moved every keyframe: republish them all.
-            self._published_final = True
-            self._publish(window=list(self.at.registered))
-        else:
-            # A segment that joined (core/incremental.py: the flight after every track was lost) is published
-            # whole: its keyframes had no pose until now.
-            self._publish(window=self.at.registered[-(max(self.p.window_size, rep.joined) + earlier):],
-                          new=1 + earlier)
+        self.stage.process(rec, publish)
 
-    def _health(self, rep=None) -> None:
-        """Health that tells the truth: the share of the last health_window keyframes not oriented, and a
-        block still without georeference after georef_warn_keyframes keyframes with a fix."""
-        at = self.at
-        if rep is not None and not rep.registered:
-            self._last_failure = rep.status
-        recent = at.kfs[-self.p.health_window:]
-        n_bad = sum(kf.map_T_cam is None for kf in recent)
-        self.diag.set('keyframes_registered', len(at.registered))
-        self.diag.set('keyframes_registered_share', len(at.registered) / max(len(at.kfs), 1))
-        share = n_bad / max(len(recent), 1)
-        if len(recent) >= min(5, self.p.health_window) and share > self.p.health_max_unoriented:
-            self.diag.problem(f'{n_bad} of the last {len(recent)} keyframes are not oriented (last reason: '
-                              f'{self._last_failure})', ERROR if share > 0.5 else WARN)
-        if at.georeferenced and not at.georef_provisional and len(at.registered) % 10 == 0:
-            self._block_check()
-        with_fix = sum(kf.fix_enu is not None for kf in at.kfs)
-        if not at.georeferenced and with_fix >= self.p.georef_warn_keyframes:
-            why = (f'{len(at.registered)} keyframes oriented' if at.registered else 'no keyframe oriented yet')
-            self.diag.problem(f'no georeference after {with_fix} keyframes with a GNSS fix ({why}; the fixes must '
-                              'spread beyond their noise, and the block must be oriented)',
-                              ERROR if with_fix >= 2 * self.p.georef_warn_keyframes else WARN)
-
-    def _block_check(self, adjustment: dict | None = None) -> None:
-        """The block's own check (core/block_check.py) on /diagnostics: `verdict` and its reasons; a
-        failed block is an ERROR, a warning a WARN."""
-        v = check_block(inputs_from_at(self.at, adjustment=adjustment))
-        self.diag.set('verdict', v.status)
-        self.diag.set('verdict_summary', v.summary)
-        fit = v.figures.get('gnss_fit', {})
-        if 'rms_h_m' in fit:
-            self.diag.set('block_gnss_fit_h_m', fit['rms_h_m'])
-            self.diag.set('block_gnss_fit_v_m', fit['rms_v_m'])
-        self.diag.set('block_nadir_share', v.figures.get('nadir', {}).get('share_within_deg', float('nan')))
-        if v.status != 'ok':
-            self.diag.problem(f'block check: {v.summary}', ERROR if v.status == 'failed' else WARN)
-
-    def _control_diagnostics(self) -> None:
-        if self.control is None:
-            return
-        for k, v in {**self.at.control_summary(), **self.live.summary()}.items():
-            if not (isinstance(v, float) and not np.isfinite(v)):   # no GCP residual yet: not 'nan'
-                self.diag.set(k, v)
-        self.diag.set('checks_seen', sum(self.live.use_of(n) == 'check' for n in self.control.check_names))
-        for use in ('horizontal', 'unused'):
-            names = [t.name for t in self.control.targets if t.role == 'gcp' and self.live.use_of(t.name) == use]
-            self.diag.set(f'gcps_{"horizontal_only" if use == "horizontal" else "rejected"}_names', ','.join(names))
-        self.diag.set('gnss_bias_enu_m', ' '.join(f'{v:.3f}' for v in self.at.gnss_bias_enu))
-
-    def _target_rows(self, role: str) -> list[dict]:
-        """Surveyed targets of one role seen so far: check points intersected from the adjusted cameras
-        (core.control.robust_intersection over the oriented keyframes that saw them), GCPs as adjusted
-        (their point in the block); residual = estimate - survey, map ENU, m."""
-        at, rows = self.at, []
-        registered = set(at.registered)
-        for t in self.control.targets:
-            cp, use = self.live.surveyed.get(t.name), self.live.use_of(t.name)
-            obs = self.live.observations(t.name, registered)
-            if cp is None or t.role != role or len(obs) < (2 if role == 'check' else 1) \
-                    or (role == 'gcp' and use not in ('full', 'horizontal')):
-                continue
-            if role == 'gcp' and (len(obs) < 2 or not at.georeferenced):
-                continue
-            # GCPs as check points: intersected from the adjusted cameras, not the adjusted target point (which
-            # its own prior holds), as the flight report measures them.
-            got = robust_intersection(at.camera, np.array([at.kfs[k].map_T_cam for k, _ in obs]),
-                                      np.array([uv for _, uv in obs]).reshape(-1, 2), self.p.max_row_residual_px)
-            if got is None:
-                continue
-            xyz, n_images, rms_px = got
-            rows.append({'name': t.name, 'marker_id': t.marker_id, 'lat_deg': t.lat_deg, 'lon_deg': t.lon_deg,
-                         'h_m': t.h_m, 'residual_enu_m': [float(v) for v in np.asarray(xyz) - cp.map_xyz],
-                         'images': int(n_images), 'rms_px': None if not np.isfinite(rms_px) else float(rms_px),
-                         'use': use})
-        return rows
+    # --- outputs ----------------------------------------------------------------------------------
 
     def quality(self) -> dict:
         """The live accuracy figures (map/control_points)."""
-        n = sum(self._fix_classes.values())
-        at = self.at
-        out = {'keyframes': n, 'fix_share': {c: (v / n if n else None) for c, v in self._fix_classes.items()},
-               'georeference': ('none' if at is None or not at.georeferenced else
-                                'provisional' if at.georef_provisional else 'final'),
-               'check_points': [], 'gcps': [], 'check_rmse': None, 'gcp_rmse': None, 'gnss_bias_enu_m': None}
-        if self.control is not None and self.at is not None and self.at.origin is not None:
-            out['check_points'] = self._target_rows('check')
-            out['gcps'] = self._target_rows('gcp')
-            checks = [r['residual_enu_m'] for r in out['check_points']]
-            out['check_rmse'] = rmse(checks)
-            out['check_ce90_le90'] = ce90_le90(checks)
-            out['gcp_rmse'] = self._gcp_rmse(out['gcps'])
-            out['gcp_redundancy'] = redundancy_notes([{'name': r['name'], 'images': r['images'],
-                                                       'residual_m': r['residual_enu_m']} for r in out['gcps']])
-            if len(out['gcps']) >= 3 and self.at.gnss_bias_estimated:
-                out['gnss_bias_enu_m'] = [float(v) for v in self.at.gnss_bias_enu]
-            for k in ('check_rmse', 'gcp_rmse'):
-                if not out[k]['count']:
-                    out[k] = {'horizontal_m': None, 'vertical_m': None, 'count': 0}
-            out['control'] = self.live.to_dict()
-        return out
-
-    @staticmethod
-    def _gcp_rmse(gcps: list[dict]) -> dict:
-        """GCP residual RMSE; the vertical over the GCPs used in height only (None without one): the height
-        of a GCP used horizontally is not the survey's, its residual there means nothing."""
-        out = rmse([r['residual_enu_m'] for r in gcps])
-        full = rmse([r['residual_enu_m'] for r in gcps if r['use'] == 'full'])
-        out['count_vertical'] = full['count']
-        out['vertical_m'] = full['vertical_m'] if full['count'] else None
-        return out
+        return self.stage.quality()
 
     def publish_quality(self) -> None:
-        self._since_quality = 0
-        if self.at is None:
-            return
-        try:
-            q = self.quality()
-        except Exception as exc:   # figures must never stop the adjustment
-            self.diag.problem(f'live accuracy failed: {type(exc).__name__}: {exc}')
-            return
-        stamp = self.at.kfs[self.at.registered[-1]].stamp_ns if self.at.registered else 0
-        self.pub_quality.publish(msgs.json_msg({'stamp_ns': stamp, **q}))
-        for c, v in q['fix_share'].items():
-            if v is not None:
-                self.diag.set(f'keyframes_{c}_share', float(v))
-        cr = q['check_rmse']
-        if cr is not None:
-            self.diag.set('checks_measured', cr['count'])
-            if cr['count']:
-                self.diag.set('check_rmse_h_m', float(cr['horizontal_m']))
-                self.diag.set('check_rmse_v_m', float(cr['vertical_m']))
-
-    def _publish(self, window, new: int = 1) -> None:
-        """Poses of `window`, the path, and the sparse cloud once `new` keyframes make cloud_every."""
-        at = self.at
-        if not self._georef_sent and at.origin is not None:
-            o = at.origin
-            self.pub_georef.publish(msgs.georeference_msg(o.lat_deg, o.lon_deg, o.h_m, at.kfs[window[-1]].stamp_ns))
-            self._georef_sent = True
-        centre_cov = self._centre_covariances(window)
-        for k in window:
-            kf = at.kfs[k]
-            self.pub_pose.publish(msgs.pose_with_covariance_from_T(kf.map_T_cam, kf.stamp_ns, 'map',
-                                                                   self._covariance(kf, centre_cov.get(k))))
-        stamp = at.kfs[window[-1]].stamp_ns
-        self.pub_path.publish(msgs.path_msg([at.kfs[k].map_T_cam for k in at.registered],
-                                            [at.kfs[k].stamp_ns for k in at.registered], stamp))
-        self._n_since_cloud += new
-        if self._n_since_cloud >= self.p.cloud_every:
-            self._n_since_cloud = 0
-            self.publish_cloud(stamp)
-
-    def _centre_covariances(self, window) -> dict:
-        """Keyframe id -> (3, 3) marginal covariance of its camera centre (map ENU, m^2) for the newest
-        window_size keyframes of `window`, from one linearisation of the window problem at the
-        current estimate (the keyframes sharing its points held, as in the window adjustment). A
-        keyframe further back keeps its last one; between recomputations (covariance_every) the last
-        ones are reused, and a keyframe without one gets the stand-in."""
-        if not self.p.marginal_covariance or not window:
-            return {}
-        self._cov_updates += 1
-        if (self._cov_updates - 1) % self.p.covariance_every:
-            return self._centre_cov
-        try:
-            t0 = time.perf_counter()
-            cov = self.at.centre_covariance(list(window)[-self.p.window_size:])
-            self.diag.set('covariance_s', time.perf_counter() - t0)
-        except Exception as exc:   # a stand-in covariance is better than no pose
-            self.diag.problem(f'pose covariance failed: {type(exc).__name__}: {exc}')
-            return {}
-        if not cov:
-            self.diag.count('covariance_unavailable')
-        # Keyframes that left the window keep their last covariance (bounded: the newest 3 windows).
-        self._centre_cov.update(cov)
-        for k in [k for k in self._centre_cov if k < window[-1] - 3 * self.p.window_size]:
-            del self._centre_cov[k]
-        return self._centre_cov
-
-    @staticmethod
-    def _covariance(kf, centre_cov: np.ndarray | None = None) -> np.ndarray:
-        """Pose covariance (x, y, z, roll, pitch, yaw): the position block is the marginal covariance
-        of the camera centre when given; otherwise the fix's variance (the adjusted centre is at
-        least that good) or 100 m^2 without a fix. The angles get 1 mrad^2 (the solver gives no
-        orientation marginals)."""
-        C = np.zeros((6, 6))
-        if centre_cov is not None:
-            C[:3, :3] = 0.5 * (centre_cov + centre_cov.T)
-        else:
-            C[:3, :3] = np.diag(np.diag(kf.fix_cov) if kf.fix_cov is not None else np.full(3, 100.0))
-        C[3:, 3:] = np.eye(3) * 1e-6
-        return C
-
-    def publish_cloud(self, stamp_ns: int) -> None:
-        if not self.at.points:
-            return
-        # Hot tracks are those the window and its margin still observe (core/incremental.py): a bounded
-        # set on a long flight, where the whole block would grow the message (and DDS's buffers) with it.
-        source = self.at.track_kfs if self.p.cloud_recent_only else self.at.points
-        ids = np.fromiter((t for t in source if t >= 0), np.int64)
-        ids = ids[self.at.points.contains_many(ids)]
-        if not len(ids):
-            return
-        self.pub_cloud.publish(msgs.sparse_cloud_msg(self.at.points.get_many(ids), stamp_ns, ids))
+        self.stage.publish_quality()
 
     def finish(self) -> AdjustmentOutcome:
-        """End of flight (called by the graph): take every waiting keyframe now, with or without its
-        fix, give the keyframes that did not orient in flight a second chance against the whole block,
-        then adjust the whole block and republish every pose. Returns the final adjustment's outcome."""
-        if self.at is None:
-            return AdjustmentOutcome('none', 'no calibration: no keyframe was adjusted')
-        with self._work:   # after the batch the worker may be adjusting
-            with self._cond:
-                recs = []
-                for stamp in sorted(self._pending):
-                    _, ids, uv, target_uv = self._pending.pop(stamp)
-                    recs.append(self._record(stamp, ids, uv, self._match_fix(stamp), target_uv))
-            for rec in recs:
-                self._process(rec)
-            if self.at.registered:
-                try:
-                    n = self.at.retry_unregistered()
-                    if n:
-                        self.diag.count('keyframes_oriented_at_end', n)
-                except Exception as exc:   # the full adjustment still runs
-                    self.diag.problem(f'second chance of unoriented keyframes failed: {exc}')
-                self._vet_control(final=True)   # targets seen too seldom to be checked in flight
-            return self.full_adjustment()
+        """End of flight (called by the graph): every waiting keyframe now, the second chance of those not
+        oriented, the final adjustment and every pose again (stages/adjustment.py). Its outcome."""
+        return self.stage.finish(self._process)
 
     def full_adjustment(self) -> AdjustmentOutcome:
         """Adjust the whole block now and republish; the outcome says whether it was made."""
-        with self._work:
-            out = self._full_adjustment()
-            if self.at is not None:
-                self._health()
-            return out
-
-    def _full_adjustment(self) -> AdjustmentOutcome:
-        if self.at is None or not self.at.registered:
-            return AdjustmentOutcome('none', 'no keyframe was oriented')
-        try:
-            t0 = time.perf_counter()
-            rep = self.at.full_adjustment()
-            if rep.status == 'failed':
-                raise PhotogramError(f'the solver failed ({len(self.at.registered)} keyframes)')
-            self.diag.set('full_adjustment_s', time.perf_counter() - t0)
-            self.diag.set('full_adjustment_rms_px', float(rep.reprojection_rms_px))
-            self.diag.set('full_adjustment_status', rep.status)
-            conv = convergence(self.at, rep.status)   # None when it converged
-            if conv is not None:
-                self.diag.set('full_adjustment_convergence', conv['text'])
-                if conv['matters']:
-                    self.diag.problem(conv['text'], WARN)
-            if self.at.georeferenced:
-                self._block_check({'status': rep.status, **({'matters': conv['matters'], 'text': conv['text']}
-                                                            if conv else {})})
-            self._control_diagnostics()
-            self.publish_quality()
-            if self.at.georeferenced:
-                self._publish(window=list(self.at.registered), new=0)
-                self.publish_cloud(self.at.kfs[self.at.registered[-1]].stamp_ns)
-            self.diag.count('full_adjustments')   # after publishing: a waiting caller gets the poses
-            return AdjustmentOutcome('done', rep.status)
-        except Exception as exc:
-            self.diag.problem(f'full adjustment failed: {exc}', ERROR)
-            return AdjustmentOutcome('failed', f'full adjustment failed: {exc}')
+        return self.stage.full_adjustment()
 
     def destroy_node(self):
-        with self._cond:
+        with self.stage.cond:
             self._stop = True
-            self._cond.notify_all()
+            self.stage.cond.notify_all()
         self._worker.join(timeout=30.0)
         return super().destroy_node()
 

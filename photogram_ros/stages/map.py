@@ -1,0 +1,545 @@
+"""The map stage: fusion of the pair clouds into the tiled map on disk, keyframe images and poses, the live
+ortho tiles, the coverage and the origin of `map`, without ROS.
+
+In (plain methods): `set_origin` (the georeference), `add_cloud` (a pair cloud in `map`: x, y, z and
+optionally rgb, confidence), `add_image` (a keyframe image, saved as JPEG), `add_pose` (a keyframe's
+map_T_cam), `add_keyframe_fix` (its GNSS position: the track for the coverage), `add_sparse` (tie points:
+the ground under the keyframes), `set_camera`.
+Periodic (the node's timers): `flush` (changed cells and poses to disk), `stream` (block means of the
+changed tiles), `stream_ortho` (PNG tiles of the live orthomosaic), `update_coverage`, `update_diag`.
+Out: through `out` (a `MapOutputs`): the stream's points, the ortho tiles, the coverage GeoJSON; through
+`diag` (stages/report.py): the /diagnostics keys and problems. Every method runs under `lock` (the fusion and
+its tiles are not thread-safe). The map folder (io/map_store.py) is why this is a stage and not core/.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import errno
+import functools
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from photogram_ros.core import gsd
+from photogram_ros.core.coverage import COVERAGE, FORWARD_OVERLAP, NOT_ORIENTED, Coverage, CoverageConfig
+from photogram_ros.core.fusion import Fusion, FusionConfig, downsample, pack_rgb
+from photogram_ros.core.geodesy import LocalFrame
+from photogram_ros.errors import ConfigError, PhotogramError
+from photogram_ros.io.map_store import MapStore
+from photogram_ros.params import param
+from photogram_ros.stages.report import ERROR, DiagnosticsLog
+
+STREAM_DTYPE = np.dtype([('x', np.float32), ('y', np.float32), ('z', np.float32), ('rgb', np.uint32),
+                         ('count', np.uint32)])
+
+
+@dataclass
+class MapParams(FusionConfig, CoverageConfig):
+    """The fusion's (core/fusion.py) and the coverage's (core/coverage.py) parameters and the node's: folder,
+    origin, keyframes, streams."""
+    map_dir: str = param('map', 'Folder of the persistent map (tiles, keyframes, map.json); reloaded if it exists')
+    flush_interval_s: float = param(1.0, 'Changed cells are written and fsynced this often, s (the most a '
+                                         'crash can lose)', min=0.05, max=600.0)
+    use_origin_params: bool = param(False, 'Take the map origin from origin_* instead of /map/georeference')
+    origin_lat_deg: float = param(0.0, 'Latitude of the map origin, deg (with use_origin_params)',
+                                  min=-90.0, max=90.0)
+    origin_lon_deg: float = param(0.0, 'Longitude of the map origin, deg (with use_origin_params)',
+                                  min=-180.0, max=180.0)
+    origin_h_m: float = param(0.0, 'Ellipsoidal height of the map origin, m (with use_origin_params)',
+                              min=-1e4, max=1e5)
+    save_keyframes: bool = param(True, 'Save keyframe JPEGs and poses in map_dir (needed for the orthomosaic)')
+    jpeg_quality: int = param(90, 'JPEG quality of saved keyframes', min=10, max=100)
+    stream_period_s: float = param(2.0, 'Period of map/cloud_downsampled messages, s', min=0.05, max=3600.0)
+    stream_downsample: int = param(4, 'Stream block size in cells (4: one point per 4x4 cells)', min=1, max=256)
+    stream_max_points: int = param(50000, 'Most points per stream message; the rest follows next period',
+                                   min=100, max=10_000_000)
+    ortho: bool = param(True, 'Stream the live orthomosaic of the changed tiles on map/ortho_tiles')
+    ortho_gsd_m: float = param(0.2, 'Ground pixel of the live ortho tiles, m: the XYZ zoom level whose pixel is '
+                                    'the finest not finer than this', min=0.01, max=1000.0)
+    ortho_period_s: float = param(2.0, 'Period of map/ortho_tiles batches, s', min=0.05, max=3600.0)
+    ortho_max_tiles: int = param(16, 'Most ortho tiles per batch; the rest follows next period', min=1, max=10000)
+    coverage: bool = param(True, 'Follow the survey coverage and its gaps (map/coverage, /diagnostics)')
+    coverage_period_s: float = param(1.0, 'Period of the coverage update and of map/coverage, s',
+                                     min=0.1, max=3600.0)
+    survey_area_file: str = param('', 'Survey area: a QGroundControl .plan (its Survey polygon or geofence) or a '
+                                      'GeoJSON polygon; "" = the flight lines\' swaths')
+    warn_unfused_keyframes: int = param(20, 'WARN on /diagnostics when this many keyframes came (images, or poses '
+                                            'without save_keyframes) and '
+                                            'nothing was fused since the last fused cloud (thrice as many before '
+                                            'the first), with the reason', min=1, max=100000)
+
+
+def _locked(method):
+    """Run a MapStage method under the stage's lock."""
+    @functools.wraps(method)
+    def wrapper(self, *args, **kwargs):
+        with self.lock:
+            return method(self, *args, **kwargs)
+    return wrapper
+
+
+def _value(load):
+    """`load()` when it is a function (a node's message conversion, whose errors the stage reports as its
+    own), else `load` itself."""
+    return load() if callable(load) else load
+
+
+class MapOutputs:
+    """Where the map's streams go (a node publishes them); each does nothing here."""
+
+    def stream(self, points: np.ndarray, stamp_ns: int) -> None:
+        """STREAM_DTYPE points: block means of the tiles that changed, in `map`."""
+
+    def ortho_tile(self, z: int, x: int, y: int, png: bytes, stamp_ns: int) -> None:
+        """One XYZ / Web Mercator tile of the live orthomosaic, PNG with alpha."""
+
+    def coverage(self, doc: dict) -> None:
+        """The coverage GeoJSON (io/mission.py coverage_geojson)."""
+
+
+class MapStage:
+    """The map (module docstring). Raises ConfigError when the map folder or the survey area cannot be read."""
+
+    def __init__(self, p: MapParams, diag=None, out: MapOutputs | None = None, log=None):
+        """`log(text)`: what the stage says once (the map's cell); None: nowhere."""
+        self.params = p
+        self.diag, self.out, self._log = diag or DiagnosticsLog(), out or MapOutputs(), log or (lambda text: None)
+        self._newest_cloud_ns = 0
+        self.lock = threading.RLock()
+        try:
+            self.store = self._open_store(p)
+        except PhotogramError as exc:
+            raise ConfigError(f'map_node: {exc}') from exc
+        self.gsd = None                # core.gsd.GsdSettings once derived
+        self._cell_pending = p.cell_m == gsd.AUTO and not self.store.tile_keys()
+        self.fusion = Fusion(self._fusion_config(self.store.cell_m), self.store)
+        self._keyframes_unfused = 0    # keyframe poses since the last cloud that fused points
+        self._clouds_unfused = 0       # clouds since then (that fused nothing)
+        self._pose_z: dict = {}        # stamp -> camera height in map (the flying height for the GSD)
+        if p.use_origin_params:
+            self._set_origin(LocalFrame(p.origin_lat_deg, p.origin_lon_deg, p.origin_h_m))
+        self._stream_pending: set = set(self.store.tile_keys())   # a restarted map streams what it has
+        self._ortho_pending: set = set(self._stream_pending)
+        self.ortho = None            # core.ortho_tiles.OrthoTiler, once the origin is known
+        self.coverage = None         # core.coverage.Coverage, once the camera is known
+        self._cov_poses: dict = {}   # stamp -> map_T_cam not yet in the coverage
+        self._cov_fixes: dict = {}   # stamp -> keyframe fix in map ENU (the track, oriented or not)
+        self._oriented: dict = {}    # stamp -> map_T_cam of the oriented keyframes (attitude for stand-ins)
+        self._cov_dirty = False
+        self._sparse_xyz = None      # (N, 3) latest tie points: the ground under the keyframes
+        self.camera = None
+        self._gaps_reported: list = []   # centroids of the gaps already warned about
+        self._survey_rings = None
+        if p.survey_area_file:       # a bad file stops the start, naming it
+            from photogram_ros.io.mission import read_survey_area
+            try:
+                self._survey_rings = read_survey_area(p.survey_area_file)
+            except PhotogramError as exc:
+                raise ConfigError(f'map_node: {exc}') from exc
+        self._camera_saved = None
+        self._poses_pending: dict = {}
+        self._fuse_s = 0.0
+        self._closed = False
+
+    # --- GSD-bound geometry ----------------------------------------------------------------------
+
+    @staticmethod
+    def _open_store(p: MapParams) -> MapStore:
+        """The map folder: an existing map keeps its cell; a new one with cell_m AUTO starts with the
+        simulator's cell until the first pair cloud tells the flying height (MapStore.set_cell_m)."""
+        if (Path(p.map_dir) / 'map.json').exists():
+            return MapStore(p.map_dir, None if p.cell_m == gsd.AUTO else p.cell_m, p.tile_cells)
+        cell = gsd.REF_LENGTHS_M['cell_m'] if p.cell_m == gsd.AUTO else p.cell_m
+        return MapStore(p.map_dir, cell, p.tile_cells)
+
+    def _fusion_config(self, cell_m: float, settings: gsd.GsdSettings | None = None) -> FusionConfig:
+        """The fusion's parameters with the cell of the store and the AUTO tolerance scaled with it."""
+        cfg = FusionConfig(**{f.name: getattr(self.params, f.name) for f in dataclasses.fields(FusionConfig)})
+        tol = cfg.min_tolerance_m
+        if tol == gsd.AUTO:
+            tol = settings.min_tolerance_m if settings is not None else gsd.tolerance_for_cell(cell_m)
+        return dataclasses.replace(cfg, cell_m=float(cell_m), min_tolerance_m=tol)
+
+    def _derive_cell(self, cloud_z: np.ndarray) -> None:
+        """First pair cloud: the cell from the GSD (camera, newest keyframe height above this cloud)."""
+        self._cell_pending = False
+        if self.camera is None or not self._pose_z:
+            self.diag.problem(f'cell_m from the GSD needs camera_info and a keyframe pose before the first pair '
+                              f'cloud: keeping {self.store.cell_m} m')
+            return
+        height = self._pose_z[max(self._pose_z)] - float(np.median(cloud_z))
+        try:
+            self.gsd = gsd.derive(self.camera.width, self.camera.height, self.camera.fx, height)
+        except ConfigError as exc:
+            self.diag.problem(f'cell_m from the GSD: {exc}; keeping {self.store.cell_m} m')
+            return
+        cell = self.gsd.cell_m if self.params.cell_m == gsd.AUTO else self.params.cell_m
+        if cell != self.store.cell_m:
+            self.store.set_cell_m(cell)
+        self.fusion = Fusion(self._fusion_config(cell, self.gsd), self.store)
+        self._log(f'map cell {cell} m, fusion tolerance {self.fusion.config.min_tolerance_m} m from '
+                               f'the GSD: {self.gsd.summary()}')
+        self.diag.set('gsd_m', self.gsd.gsd_m)
+
+    @property
+    def cell_m(self) -> float:
+        return self.fusion.config.cell_m
+
+    # --- inputs ----------------------------------------------------------------------------------
+
+    def _set_origin(self, frame: LocalFrame) -> None:
+        old = self.store.origin
+        if old is not None and np.allclose([old.lat_deg, old.lon_deg, old.h_m],
+                                           [frame.lat_deg, frame.lon_deg, frame.h_m], atol=1e-9):
+            return
+        if old is not None and self.store.tile_keys():
+            self.diag.problem(f'map origin changed from {old} to {frame} although {self.store.root} holds '
+                              'tiles in the old frame; keeping the old origin')
+            return
+        self.store.set_origin(frame)
+
+    @_locked
+    def set_origin(self, lat_deg: float, lon_deg: float, h_m: float) -> None:
+        """The georeference: the geodetic origin of `map` (ellipsoidal height); ignored with use_origin_params,
+        and when the folder already holds tiles in another origin's frame (a WARN)."""
+        if self.params.use_origin_params:
+            return
+        try:
+            self._set_origin(LocalFrame(lat_deg, lon_deg, h_m))
+        except PhotogramError as exc:
+            self.diag.problem(f'bad georeference: {exc}')
+
+    @_locked
+    def add_cloud(self, frame_id: str, stamp_ns: int, load) -> None:
+        """A pair cloud in `frame_id` ('map' or ''): `load` (or `load()`) are its points (x, y, z, optionally rgb,
+        confidence; it may raise PhotogramError, ValueError, TypeError: the cloud is dropped, counted, a WARN)."""
+        try:
+            if frame_id not in ('map', ''):
+                raise ConfigError(f'dense cloud in frame {frame_id!r}; the map fuses clouds in "map"')
+            pts = _value(load)
+            if self._cell_pending and pts.size:
+                self._derive_cell(np.asarray(pts['z'], float))
+            t0 = time.perf_counter()
+            n = self.fusion.add(pts)
+            if n:
+                self._keyframes_unfused = self._clouds_unfused = 0
+            else:
+                self._clouds_unfused += 1
+            self._newest_cloud_ns = max(self._newest_cloud_ns, stamp_ns)
+            self._fuse_s += time.perf_counter() - t0
+            self.diag.count('clouds')
+            self.diag.count('points_fused', n)
+            self._stream_pending |= self.fusion.changed_tiles
+            self._ortho_pending |= self.fusion.changed_tiles
+            self.fusion.changed_tiles.clear()
+        except PhotogramError as exc:
+            self.diag.count('clouds_dropped')
+            self.diag.problem(f'dense cloud dropped: {exc}')
+        except (ValueError, TypeError) as exc:
+            self.diag.count('clouds_dropped')
+            self.diag.problem(f'dense cloud dropped (malformed): {exc}')
+
+    def add_image(self, stamp_ns: int, load) -> None:
+        """A keyframe image (`load` or `load()`: the (H, W[, 3]) array; a conversion may raise PhotogramError),
+        saved as JPEG."""
+        try:
+            import cv2
+            img = _value(load)
+            ok, buf = cv2.imencode('.jpg', img, [cv2.IMWRITE_JPEG_QUALITY, self.params.jpeg_quality])
+            if not ok:
+                raise ConfigError('JPEG encoding of a keyframe failed')
+            self._keyframes_unfused += 1
+            self.store.save_keyframe_image(stamp_ns, buf.tobytes())
+            self.diag.count('keyframes_saved')
+        except (PhotogramError, OSError) as exc:
+            self._write_failed('keyframe image not saved', exc)
+
+    @_locked
+    def add_pose(self, stamp: int, load) -> None:
+        """A keyframe's map_T_cam (4, 4), or a function giving it (it may raise PhotogramError). The bundle
+        adjuster republishes each pose while it sits in its window: the latest is kept and written at the next
+        flush, instead of an fsync per republication."""
+        try:
+            T = _value(load)
+            if stamp not in self._pose_z and not self.params.save_keyframes:
+                self._keyframes_unfused += 1   # (with save_keyframes the images count, in flight order)
+            self._pose_z[stamp] = float(T[2, 3])
+            if self.params.save_keyframes:
+                self._poses_pending[stamp] = T
+            if self.params.coverage:
+                self._cov_poses[stamp] = T
+        except PhotogramError as exc:
+            self.diag.problem(f'keyframe pose not saved: {exc}')
+
+    def _save_poses(self) -> None:
+        pending, self._poses_pending = self._poses_pending, {}
+        for stamp_ns, T in pending.items():
+            try:
+                self.store.save_keyframe_pose(stamp_ns, T)
+                self.diag.count('poses_saved')
+            except OSError as exc:
+                self._write_failed('keyframe pose not saved', exc)
+
+    @_locked
+    def add_keyframe_fix(self, stamp_ns: int, lat_deg: float, lon_deg: float, h_m: float, status: int) -> None:
+        """A keyframe's GNSS position (NavSatStatus status; < 0: none): its place on the track for the coverage."""
+        if self.store.origin is None or status < 0:
+            return
+        try:
+            self._cov_fixes[stamp_ns] = np.asarray(
+                self.store.origin.geodetic_to_enu(lat_deg, lon_deg, h_m), float).reshape(3)
+        except (PhotogramError, ValueError) as exc:
+            self.diag.problem(f'keyframe fix not used for the coverage: {exc}')
+
+    def _stand_in(self, stamp: int) -> np.ndarray | None:
+        """A keyframe the adjustment has not oriented: its fix, with the attitude of the oriented keyframe
+        nearest in time turned by the change of the track's heading between the two."""
+        if not self._oriented:
+            return None
+        ref = min(self._oriented, key=lambda s: abs(s - stamp))
+        T = self._oriented[ref].copy()
+        dpsi = self._heading(stamp) - self._heading(ref)
+        if np.isfinite(dpsi):
+            c, s_ = np.cos(dpsi), np.sin(dpsi)
+            T[:3, :3] = np.array([[c, -s_, 0.0], [s_, c, 0.0], [0.0, 0.0, 1.0]]) @ T[:3, :3]
+        T[:3, 3] = self._cov_fixes[stamp]
+        return T
+
+    def _heading(self, stamp: int) -> float:
+        """Direction of travel at a keyframe, from its neighbours on the fix track, rad from east."""
+        stamps = sorted(self._cov_fixes)
+        if stamp not in self._cov_fixes or len(stamps) < 2:
+            return float('nan')
+        i = stamps.index(stamp)
+        a, b = stamps[max(i - 1, 0)], stamps[min(i + 1, len(stamps) - 1)]
+        d = self._cov_fixes[b] - self._cov_fixes[a]
+        return float(np.arctan2(d[1], d[0])) if np.hypot(d[0], d[1]) > 0.1 else float('nan')
+
+    @_locked
+    def add_sparse(self, load) -> None:
+        """Tie points (`load` or `load()`: a table with x, y, z, in `map`): the ground under the keyframes."""
+        try:
+            pts = _value(load)
+            xyz = np.column_stack([pts['x'], pts['y'], pts['z']]).astype(np.float64)
+            self._sparse_xyz = xyz[np.all(np.isfinite(xyz), axis=1)]
+        except (PhotogramError, ValueError) as exc:
+            self.diag.problem(f'sparse cloud not used for the coverage: {exc}')
+
+    def set_camera(self, load) -> None:
+        """The calibration (`load` or `load()`: the core.camera model; a conversion may raise PhotogramError),
+        saved with the keyframes."""
+        try:
+            cam = _value(load)
+            self.camera = cam
+            if not self.params.save_keyframes:
+                return
+            if cam != self._camera_saved:
+                self.store.save_camera(cam)
+                self._camera_saved = cam
+        except (PhotogramError, OSError) as exc:
+            self._write_failed('camera info not saved', exc)
+
+    # --- outputs ---------------------------------------------------------------------------------
+
+    @_locked
+    def flush(self) -> None:
+        self._save_poses()
+        try:
+            n = self.fusion.flush()
+            if n:
+                self.diag.count('cells_flushed', n)
+        except OSError as exc:
+            self._write_failed(f'map flush to {self.params.map_dir} failed', exc)
+
+    def _write_failed(self, what: str, exc: Exception) -> None:
+        """A failed write: a full disk is an ERROR (counted in write_failures on /diagnostics, one stable
+        message), anything else a WARN naming it."""
+        self.diag.set('write_failures', self.store.write_failures)
+        if getattr(exc, 'errno', None) == errno.ENOSPC:
+            self.diag.problem(f'the disk of {self.params.map_dir} is full: map writes fail (write_failures)',
+                              level=ERROR)
+        else:
+            self.diag.problem(f'{what}: {exc}')
+
+    def _stamp_ns(self, now_ns: int) -> int:
+        """`now_ns` (the node's clock), or the newest pair cloud's stamp while that clock reads 0 (use_sim_time
+        and no /clock yet)."""
+        return now_ns or self._newest_cloud_ns
+
+    @_locked
+    def stream(self, listening: bool, now_ns: int = 0) -> None:
+        """Block means of the changed tiles, at most stream_max_points. Nobody `listening` (no ground station
+        linked): the changed tiles are kept for when one connects instead of spending a quarter second per
+        period on block means."""
+        if not self._stream_pending or not listening:
+            return
+        p = self.params
+        parts, total = [], 0
+        for key in sorted(self._stream_pending):
+            rec = self.fusion.tile_records(key)
+            self._stream_pending.discard(key)
+            if rec is None:
+                continue
+            pts = downsample(self.fusion.tile_points(key, rec), p.stream_downsample, self.cell_m)
+            parts.append(pts)
+            total += pts['x'].size
+            if total >= p.stream_max_points:
+                break
+        if not total:
+            return
+        cat = {k: np.concatenate([q[k] for q in parts]) for k in ('x', 'y', 'z', 'r', 'g', 'b', 'n')}
+        out = np.zeros(min(total, p.stream_max_points), dtype=STREAM_DTYPE)
+        n = out.size
+        for k in ('x', 'y', 'z'):
+            out[k] = cat[k][:n]
+        out['rgb'] = pack_rgb(cat['r'][:n], cat['g'][:n], cat['b'][:n])
+        out['count'] = cat['n'][:n]
+        self.out.stream(out, self._stamp_ns(now_ns))
+        self.diag.count('stream_points', n)
+
+    @_locked
+    def stream_ortho(self, listening: bool, now_ns: int = 0) -> None:
+        """PNGs of the XYZ tiles the changed fusion tiles touch (kept for later while nobody is `listening`)."""
+        if not self._ortho_pending or self.store.origin is None or not listening:
+            return
+        from photogram_ros.core.ortho_tiles import OrthoTiler
+        p = self.params
+        if self.ortho is None:
+            self.ortho = OrthoTiler(self.store.origin, self.cell_m, p.tile_cells, p.ortho_gsd_m)
+            self.diag.set('ortho_zoom', self.ortho.zoom)
+        xyz, keys = [], sorted(self._ortho_pending)
+        for key in keys:
+            for t in self.ortho.tiles_of_map_tile(key):
+                if t not in xyz:
+                    xyz.append(t)
+        batch = xyz[:p.ortho_max_tiles]
+        # A map tile is done once every XYZ tile it touches went out.
+        self._ortho_pending = {k for k in keys if any(t not in batch for t in self.ortho.tiles_of_map_tile(k))}
+        import cv2
+        t0 = time.perf_counter()
+        stamp = self._stamp_ns(now_ns)
+        for t in batch:
+            img = self.ortho.render(t, self.fusion.tile_records)
+            if not img[..., 3].any():
+                continue
+            ok, buf = cv2.imencode('.png', img, [cv2.IMWRITE_PNG_COMPRESSION, 6])
+            if ok:
+                self.out.ortho_tile(t.z, t.x, t.y, buf.tobytes(), stamp)
+                self.diag.count('ortho_tiles_sent')
+                self.diag.count('ortho_bytes_sent', len(buf))
+        self.diag.set('ortho_render_s', time.perf_counter() - t0)
+
+    def _ground_z(self, centre: np.ndarray) -> float | None:
+        """Median height of the tie points within 30 m of a camera (all of them when none is that close)."""
+        s = self._sparse_xyz
+        if s is None or not len(s):
+            return None
+        near = np.hypot(s[:, 0] - centre[0], s[:, 1] - centre[1]) < 30.0
+        return float(np.median(s[near, 2] if near.sum() >= 10 else s[:, 2]))
+
+    @_locked
+    def update_coverage(self) -> None:
+        """The keyframes since the last update into the coverage (stand-ins for those not oriented); when it
+        changed, publish_coverage."""
+        if self.camera is None or self.store.origin is None:
+            return
+        if self.coverage is None:
+            from photogram_ros.io.mission import survey_area_in_map
+            area = survey_area_in_map(self._survey_rings, self.store.origin) if self._survey_rings else None
+            self.coverage = Coverage(self.camera, CoverageConfig(**{
+                f: getattr(self.params, f) for f in CoverageConfig.__dataclass_fields__}), area)
+        for stamp in list(self._cov_poses):
+            T = self._cov_poses[stamp]
+            gz = self._ground_z(T[:3, 3])
+            if gz is None:
+                continue   # waits for the first sparse cloud
+            self.coverage.set_keyframe(stamp, T, gz)
+            self._oriented[stamp] = T
+            del self._cov_poses[stamp]
+            self._cov_dirty = True
+        for stamp in [s for s in self._cov_fixes if s not in self._oriented and not self.coverage.oriented(s)]:
+            T = self._stand_in(stamp)
+            gz = self._ground_z(T[:3, 3]) if T is not None else None
+            if gz is not None:
+                self.coverage.set_keyframe(stamp, T, gz, oriented=False)
+                self._cov_dirty = True
+        if self._cov_dirty:
+            self._cov_dirty = False
+            self.publish_coverage()
+
+    def publish_coverage(self) -> None:
+        """Update the coverage, publish its GeoJSON and figures, and warn about each new gap."""
+        from photogram_ros.io.mission import coverage_geojson
+        t0 = time.perf_counter()
+        rep = self.coverage.update()
+        origin = self.store.origin
+        extra = {'stamp_ns': self.coverage.newest_stamp_ns, **self.coverage.flight_figures()}
+        doc = coverage_geojson(rep, origin, extra)
+        self.out.coverage(doc)
+        d, props = self.diag, doc['properties']
+        d.set('coverage_s', time.perf_counter() - t0)
+        for k in ('coverage_share', 'forward_overlap_median', 'side_overlap_min', 'survey_area_m2', 'gap_area_m2',
+                  'largest_gap_m2'):
+            d.set(k, float('nan') if props[k] is None else float(props[k]))
+        d.set('gaps', sum(g.kind == COVERAGE for g in rep.gaps))
+        d.set('not_oriented_gaps', sum(g.kind == NOT_ORIENTED for g in rep.gaps))
+        for g in rep.gaps:
+            if g.kind == FORWARD_OVERLAP or any(k == g.kind and np.hypot(*(g.centroid_map_m - c)) < 5.0
+                                                for k, c in self._gaps_reported):
+                continue
+            self._gaps_reported.append((g.kind, g.centroid_map_m))
+            lat, lon, _ = origin.enu_to_geodetic(np.array([*g.centroid_map_m, 0.0]))
+            what = (f'seen by {g.min_views} keyframes' if g.kind == COVERAGE else
+                    f'seen only by keyframes the adjustment did not orient')
+            d.problem(f'{g.kind} gap of {g.area_m2:.0f} m2 at {float(lat):.6f}, {float(lon):.6f} ({what})')
+
+    @_locked
+    def update_diag(self) -> None:
+        """The fusion's and the folder's figures on diagnostics; a WARN when nothing was fused for long."""
+        st = self.fusion.stats
+        d = self.diag
+        d.set('points_in', st.points_in)
+        d.set('points_rejected', st.points_rejected)
+        d.set('cells_rebuilt', st.cells_replaced)
+        d.set('tiles_in_memory', len(self.fusion.tiles))
+        d.set('tiles_on_disk', len(self.store.tile_keys()))
+        d.set('tiles_evicted', st.tiles_evicted)
+        d.set('memory_mb', self.fusion.memory_bytes / 1e6)
+        d.set('disk_mb', self.store.disk_bytes() / 1e6)
+        d.set('fuse_points_per_s', st.points_in / self._fuse_s if self._fuse_s > 0 else 0.0)
+        d.set('clouds_per_s', d.rate_hz('clouds'))
+        d.set('origin', str(self.store.origin.to_dict()) if self.store.origin else 'unknown')
+        d.set('cell_m', self.cell_m)
+        d.set('write_failures', self.store.write_failures)
+        d.set('keyframes_unfused', self._keyframes_unfused)
+        # Before the first fused cloud stereo waits for settled poses and a ground height: thrice as long.
+        n = self.params.warn_unfused_keyframes * (1 if self.fusion.stats.points_fused else 3)
+        if self._keyframes_unfused >= n:
+            d.problem(self._unfused_reason(n))
+
+    def _unfused_reason(self, n: int) -> str:
+        """Why nothing was fused for `n` keyframes (a stable text: logged once)."""
+        if self._clouds_unfused == 0:
+            return (f'nothing fused for {n}+ keyframes: stereo_node sent no pair cloud (see its diagnostics: poses '
+                    'refused for their sigma, pairs skipped for overlap or baseline, no ground height yet)')
+        return (f'nothing fused for {n}+ keyframes: the pair clouds that came were rejected (points_rejected: '
+                'disagreeing with the map; or below min_confidence / not finite)')
+
+    @_locked
+    def finish_coverage(self) -> None:
+        """End of flight: every survey cell counts as passed; the last coverage goes out."""
+        if self.coverage is not None and len(self.coverage):
+            self.coverage.finish()
+            self.publish_coverage()
+
+    @_locked
+    def close(self) -> None:
+        """Flush everything to disk (shutdown, SIGINT, SIGTERM)."""
+        if not self._closed:
+            self._closed = True
+            self.flush()
+

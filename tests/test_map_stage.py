@@ -1,0 +1,57 @@
+"""The map stage (stages/map.py) without rclpy: pair clouds fused into the folder, the stream held while
+nobody listens, a cloud in the wrong frame dropped with a WARN, the stream stamped with the newest cloud's
+stamp while there is no clock, and the map reloaded from disk."""
+
+import numpy as np
+import pytest
+from helpers.clouds import pair_cloud
+
+from photogram_ros.core.fusion import Fusion, FusionConfig
+from photogram_ros.io.map_store import MapStore
+from photogram_ros.params import from_dict
+from photogram_ros.stages.map import STREAM_DTYPE, MapOutputs, MapParams, MapStage
+from photogram_ros.stages.report import WARN, DiagnosticsLog
+
+
+def surface(x, y):
+    return 3.0 + 0.05 * x - 0.02 * y
+
+
+class Recorded(MapOutputs):
+    def __init__(self):
+        self.streams = []
+
+    def stream(self, points, stamp_ns):
+        self.streams.append((points, stamp_ns))
+
+
+def test_map_stage_fuses_streams_and_persists(tmp_path):
+    p = from_dict(MapParams, {'map_dir': str(tmp_path / 'map'), 'cell_m': 0.08, 'stream_max_points': 3000,
+                              'use_origin_params': True, 'origin_lat_deg': 47.3977, 'origin_lon_deg': 8.5456,
+                              'origin_h_m': 488.0})
+    stage = MapStage(p, DiagnosticsLog(), Recorded())
+    rng = np.random.default_rng(1)
+    clouds = [pair_cloud(rng, surface, 10.0 * k, 0.0, 8.0, 6.0, 150.0, 0.02) for k in range(3)]
+    for k, c in enumerate(clouds):
+        stage.add_cloud('map', 1000 + k, c)
+    stage.add_cloud('camera_optical', 2000, clouds[0])
+    counts = stage.diag.counts()
+    assert counts['clouds'] == 3 and counts['clouds_dropped'] == 1
+    assert stage.diag.problems == [(WARN, "dense cloud dropped: dense cloud in frame 'camera_optical'; the map "
+                                          'fuses clouds in "map"')]
+    stage.stream(listening=False)
+    assert not stage.out.streams                         # kept for when a ground station listens
+    while stage._stream_pending:
+        stage.stream(listening=True)
+    pts = np.concatenate([s for s, _ in stage.out.streams])
+    assert pts.dtype == STREAM_DTYPE and {t for _, t in stage.out.streams} == {1002}
+    assert all(s.size <= 3000 for s, _ in stage.out.streams)
+    assert pts.size < sum(c.size for c in clouds) / 10   # downsampled
+    assert np.abs(pts['z'] - surface(pts['x'], pts['y'])).max() < 0.1
+    fused = stage.fusion.points()
+    stage.close()
+    on_disk = Fusion(FusionConfig(0.08, 256), MapStore(tmp_path / 'map')).points()
+    assert on_disk['x'].size == fused['x'].size > 10000
+    stage.update_diag()
+    assert stage.diag.values['cell_m'] == 0.08 and stage.diag.values['tiles_on_disk'] >= 1
+    assert MapStore(tmp_path / 'map').origin.lat_deg == pytest.approx(47.3977)
