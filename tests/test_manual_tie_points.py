@@ -191,3 +191,19 @@ def test_without_mtps_the_halves_drift_apart_on_dgps(dgps_survey, tmp_path):
     assert together <= 1.5 * 0.16
     assert apart >= 4 * together
     assert any('through 3 manual tie points' in a or 'through 4 manual tie points' in a for a in rep['assumptions'])
+
+
+def test_markers_missing_from_the_control_file_are_manual_tie_points_in_flight():
+    from photogram_ros.core.control import TARGET_DTYPE, ControlSet, SurveyedTarget
+    from photogram_ros.core.incremental import IncrementalAT
+    c = ControlSet([SurveyedTarget('GCP01', 3, 47.0, 8.0, 500.0, 'gcp')])
+    det = np.zeros(4, TARGET_DTYPE)
+    det['marker_id'] = [3, 7, 9, 9]
+    det['u'], det['v'] = [10.0, 20.0, 30.0, 40.0], [1.0, 2.0, 3.0, 4.0]
+    ties = c.marker_ties(det)
+    assert list(ties) == ['MTP_aruco7'] and ties['MTP_aruco7'] == pytest.approx([20.0, 2.0])
+    at = IncrementalAT(CAM)
+    at.add_ties(ties)
+    tid = at._new_target_track('MTP_aruco7')
+    assert at.is_tie(tid) and not at.is_check(tid)
+    assert at.is_check(at._new_target_track('CHK01'))

@@ -292,6 +292,13 @@ class IncrementalAT:
         c = self.control.get(name)
         return c is None or c.role != 'gcp' or not self.opt.use_gcps
 
+    def add_ties(self, names) -> None:
+        """Make targets `names` manual tie points (in flight: ArUco markers the control file does not list,
+        ControlSet.marker_ties); before or after their first keyframe."""
+        self.ties |= set(names)
+        if self._segment is not None:
+            self._segment.ties |= set(names)
+
     def is_tie(self, tid: int) -> bool:
         """A manual tie point's track."""
         return tid < 0 and self.target_name(tid) in self.ties
