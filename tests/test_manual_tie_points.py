@@ -143,8 +143,9 @@ def _adjust(s, tmp_path, tag, with_mtp: bool):
     gsd = s['truth'].gsd_m
     worst = max(max(np.hypot(*r[:2]), abs(r[2])) for r in R.values()) / gsd
     offset = float(np.hypot(*(east - west)[:2]))
-    print(f"{tag}: {res.registered}/{res.inputs} oriented; check points H {rep['check']['rmse']['horizontal_m'] / gsd:.2f} "
-          f"V {rep['check']['rmse']['vertical_m'] / gsd:.2f} GSD RMSE, worst {worst:.2f} GSD; east - west "
+    ck = rep['check']['rmse']
+    print(f"{tag}: {res.registered}/{res.inputs} oriented; check points H {ck['horizontal_m'] / gsd:.2f} "
+          f"V {ck['vertical_m'] / gsd:.2f} GSD RMSE, worst {worst:.2f} GSD; east - west "
           f"{offset * 100:.1f} cm H; MTPs {[(p['name'], p['images'], p['rms_px']) for p in rep['mtp']['points']]}")
     return res, rep, md, worst, offset
 

@@ -100,8 +100,8 @@ def run(a) -> int:
     matching = from_dict(MatchingOptions, {'max_image_px': a.max_image_px, 'max_features': a.max_features,
                                            'neighbours': a.neighbours}, 'triangulate')
     opt = TriangulateOptions(
-        camera=a.camera, targets=a.targets, gcp=a.gcp, mtp=a.mtp, check_names=tuple(s.strip() for s in a.check.split(',')
-                                                                         if s.strip()),
+        camera=a.camera, targets=a.targets, gcp=a.gcp, mtp=a.mtp,
+        check_names=tuple(s.strip() for s in a.check.split(',') if s.strip()),
         crs=a.crs, gcp_sigma_enu_m=_floats(a.gcp_sigma, '--gcp-sigma', 3), neighbours=a.neighbours,
         window=a.window, lever_arm_cam_m=_floats(a.lever_arm, '--lever-arm', 3),
         self_calibrate=refine, matching=matching,
