@@ -8,7 +8,10 @@ HELP = 'aerial triangulation of a flight bag or of geotagged photos (EXIF GPS or
 def add_arguments(p) -> None:
     p.add_argument('input', help='a flight bag (images + /gps/fix or raw MAVLink), or a folder of geotagged JPEGs '
                                  '(with an optional OpenDroneMap geo.txt)')
-    p.add_argument('--gcp', help='OpenDroneMap gcp_list.txt (first line a CRS; names CHK* are check points)')
+    p.add_argument('--gcp', help='OpenDroneMap gcp_list.txt (first line a CRS; names CHK* are check points, MTP* '
+                                 'manual tie points)')
+    p.add_argument('--mtp', help='manual tie points: one row per mark, "px py image name" (points without '
+                                 'coordinates marked in several photos where matching fails)')
     p.add_argument('--targets', help='for a bag: the flight\'s control file of ArUco targets, as `replay --gcp` reads '
                                    'it (first line a CRS, then "name marker_id x y z [sigma_h_m sigma_v_m]"; CHK* '
                                    'are check points): the markers found in the keyframes are the observations')
@@ -97,8 +100,8 @@ def run(a) -> int:
     matching = from_dict(MatchingOptions, {'max_image_px': a.max_image_px, 'max_features': a.max_features,
                                            'neighbours': a.neighbours}, 'triangulate')
     opt = TriangulateOptions(
-        camera=a.camera, targets=a.targets, gcp=a.gcp, check_names=tuple(s.strip() for s in a.check.split(',')
-                                                                         if s.strip()),
+        camera=a.camera, targets=a.targets, gcp=a.gcp, mtp=a.mtp,
+        check_names=tuple(s.strip() for s in a.check.split(',') if s.strip()),
         crs=a.crs, gcp_sigma_enu_m=_floats(a.gcp_sigma, '--gcp-sigma', 3), neighbours=a.neighbours,
         window=a.window, lever_arm_cam_m=_floats(a.lever_arm, '--lever-arm', 3),
         self_calibrate=refine, matching=matching,

@@ -4,7 +4,8 @@
 report.json; rendered as Markdown and HTML by photogram_ros/io/at_report.py), `intrinsics_sigma`
 the a-posteriori sigmas of self-calibrated intrinsics. Residuals are adjusted minus reference in
 the `map` ENU frame (X = east, Y = north, Z = up, metres); check points are intersected from the
-adjusted cameras and never took part in the adjustment.
+adjusted cameras and never took part in the adjustment. Manual tie points (MTPs) have no reference:
+each one's residual per photo is its adjusted point reprojected minus where it was marked (pixels).
 """
 
 from __future__ import annotations
@@ -164,6 +165,40 @@ def _gcp_points(at, vetting) -> list[dict]:
     return gcps
 
 
+def tie_points(at) -> list[dict]:
+    """Each manual tie point: its adjusted point (map ENU, m; None when it has none), and per photo where
+    it was marked, the reprojection residual (adjusted point projected minus the mark, px), whether the
+    observation took part in the adjustment, and the RMS over its photos."""
+    out = []
+    names = {kf.name: k for k, kf in ((k, at.kfs[k]) for k in at.registered)}
+    for name in sorted(at.ties):
+        tid = at.target_track(name)
+        if tid is None:
+            continue
+        X = np.asarray(at.points[tid], float) if tid in at.points else None
+        photos = []
+        for kf in at.kfs:
+            i = kf.index(tid)
+            if i is None:
+                continue
+            row = {'image': kf.name, 'uv_px': [float(v) for v in kf.uv[i]], 'oriented': kf.name in names,
+                   'used': bool(kf.active[i]) and kf.name in names, 'residual_px': None, 'residual_norm_px': None}
+            if X is not None and kf.map_T_cam is not None:
+                T = kf.map_T_cam
+                pc = (X - T[:3, 3]) @ T[:3, :3]
+                if pc[2] > 1e-9:
+                    d = at.camera.normalized_to_pixel((pc[:2] / pc[2])[None])[0] - kf.uv[i]
+                    row['residual_px'] = [float(v) for v in d]
+                    row['residual_norm_px'] = float(np.hypot(*d))
+            photos.append(row)
+        e = np.array([p['residual_norm_px'] for p in photos if p['used'] and p['residual_norm_px'] is not None])
+        out.append({'name': name, 'point_map_m': None if X is None else X.tolist(),
+                    'images': sum(p['used'] for p in photos), 'rms_px': float(np.sqrt(np.mean(e ** 2))) if len(e)
+                    else None, 'max_px': float(e.max()) if len(e) else None, 'photos': photos,
+                    'note': '' if X is not None else 'not triangulated: fewer than two of its photos were oriented'})
+    return out
+
+
 def build_report(at, assumptions: list[str] | None = None, gsd_m: float | None = None, vetting=None,
                  gnss_without_gcps: dict | None = None) -> dict:
     """Every figure of the report from an adjusted IncrementalAT.
@@ -194,6 +229,7 @@ def build_report(at, assumptions: list[str] | None = None, gsd_m: float | None =
         'gcp': {'points': gcps, 'rmse': _rmse_gcps(gcps), 'redundancy': redundancy_notes(gcps) if gcps else []},
         'check': {'points': checks, 'rmse': rmse_xyz(np.array([c['residual_m'] for c in checks])),
                   'ce90_le90': ce90_le90(np.array([c['residual_m'] for c in checks]))},
+        'mtp': {'points': tie_points(at)},
         'reprojection_histogram': _histogram(errs),
         'per_image': per_image,
         'assumptions': list(assumptions or []),

@@ -117,6 +117,16 @@ class ControlSet:
             out[t.name] = np.array([float(row['u']), float(row['v'])])
         return out, unknown
 
+    def marker_ties(self, targets: np.ndarray, prefix: str = 'MTP_aruco') -> dict:
+        """Detections of one keyframe (TARGET_DTYPE) of markers the control does not list, as manual tie
+        points: {f'{prefix}{marker id}': (u, v)} (a marker seen twice in the image is left out). In flight
+        they join the block's tie points measured to a pixel (IncrementalAT.add_ties)."""
+        ids = np.asarray(targets['marker_id'], np.int64)
+        uniq, counts = np.unique(ids, return_counts=True)
+        twice = set(uniq[counts > 1].tolist())
+        return {f'{prefix}{m}': np.array([float(row['u']), float(row['v'])]) for row, m in zip(targets, ids.tolist())
+                if m not in self.by_marker and m not in twice}
+
     def in_map(self, origin: LocalFrame, sigma_h_m: float | None = None,
                sigma_v_m: float | None = None) -> list[ControlPoint]:
         """Control points in the ENU frame at `origin`; sigmas given here override the file's."""

@@ -6,7 +6,11 @@ arbitrary frame from two keyframes; as soon as the camera centres are not collin
 line leaves the roll about the line undetermined) a RANSAC similarity to the GNSS positions moves
 it into `map` (ENU at the origin), a full adjustment follows, and from then on every adjustment
 carries the fixes as priors weighted by their covariance. Surveyed GCPs enter as point priors;
-check points are never used, only triangulated afterwards from the adjusted cameras.
+check points are never used, only triangulated afterwards from the adjusted cameras. Manual tie
+points (MTPs: points without coordinates an operator marked in several photos, `ties`) enter as
+tie points measured by hand: a robust-loss scale of their own (`mtp_loss_scale_px`), kept through
+outlier removal like GCP observations, and a segment that shares them with the block joins it
+through them (a similarity fitted to three or more, a shift to one or two) before its GNSS.
 
 Lever arm: the GNSS antenna is `C + map_R_cam @ lever_arm_cam_m`, a fixed offset in the camera
 frame. That is exact for a camera rigidly mounted on the body and an approximation for a gimbal:
@@ -99,6 +103,8 @@ class IncrementalOptions:
                                  'GNSS once that georeferences it (or at the end of the flight)')
     loss: str = param('huber', 'robust loss on reprojection errors', choices=('huber', 'cauchy', 'linear'))
     loss_scale_px: float = param(1.0, 'robust loss scale, pixels', min=0.05, max=100.0)
+    mtp_loss_scale_px: float = param(3.0, 'robust loss scale of the manual tie points (marked by hand to about '
+                                          '1 px; kept through outlier removal), pixels', min=0.05, max=1000.0)
     window_iterations: int = param(15, 'solver iterations of a window update', min=1, max=1000)
     full_iterations: int = param(50, 'solver iterations of a full adjustment (each round)', min=1, max=1000)
     lever_arm_cam_m: list = param([0.0, 0.0, 0.0], 'GNSS antenna position in the optical camera frame '
@@ -229,7 +235,7 @@ class IncrementalAT:
     """The aerial-triangulation state; feed `add_keyframe`, call `full_adjustment` at the end."""
 
     def __init__(self, camera: PinholeCamera, options: IncrementalOptions | None = None,
-                 origin: LocalFrame | None = None, control: list[ControlPoint] | None = None):
+                 origin: LocalFrame | None = None, control: list[ControlPoint] | None = None, ties=()):
         self.camera = camera
         self.opt = options or IncrementalOptions()
         self.origin = origin
@@ -241,6 +247,8 @@ class IncrementalAT:
         self.georeferenced = False
         self.georef_provisional = False
         self.control = {c.name: c for c in (control or [])}
+        # Manual tie points by name: targets without coordinates that build geometry (not check points).
+        self.ties: set[str] = set(ties)
         self._target_ids: dict[str, int] = {}
         # A gimbal: the body lever arm as if flying level, image top forward, where a record has no offset.
         self._lever = (lever_arm_cam_from_frd(self.opt.lever_arm_body_frd_m) if self.opt.gimbal
@@ -250,6 +258,8 @@ class IncrementalAT:
         self._segment: IncrementalAT | None = None
         self._segment_kids: list[int] = []
         self.segments_joined = 0
+        # Each segment that joined: its keyframes and how ('gnss', or 'mtp' with the tie points used).
+        self.segment_joins: list[dict] = []
         self.rng = np.random.default_rng(0)
         # A GNSS receiver without corrections is off by a bias that wanders over minutes; weighting
         # its fixes as independent lets them bend the block away from the GCPs (camera position
@@ -285,12 +295,71 @@ class IncrementalAT:
 
     def is_check(self, tid: int) -> bool:
         """A target track that never enters the adjustment: a check point, a target the control does
-        not name, or any target with use_gcps off. Tracker tracks (tid >= 0) are not."""
+        not name, or any target with use_gcps off. Tracker tracks (tid >= 0) and manual tie points are not."""
         if tid >= 0:
             return False
         name = self.target_name(tid)
+        if name in self.ties:
+            return False
         c = self.control.get(name)
         return c is None or c.role != 'gcp' or not self.opt.use_gcps
+
+    def add_ties(self, names) -> None:
+        """Make targets `names` manual tie points (in flight: ArUco markers the control file does not list,
+        ControlSet.marker_ties); before or after their first keyframe."""
+        self.ties |= set(names)
+        if self._segment is not None:
+            self._segment.ties |= set(names)
+
+    def is_tie(self, tid: int) -> bool:
+        """A manual tie point's track."""
+        return tid < 0 and self.target_name(tid) in self.ties
+
+    def _tie_mask(self, tids: np.ndarray) -> np.ndarray:
+        """(n,) bool: which of the track ids are manual tie points."""
+        tids = np.asarray(tids, np.int64)
+        out = np.zeros(len(tids), bool)
+        if self.ties:
+            neg = np.flatnonzero(tids < 0)
+            out[neg] = [self.is_tie(int(t)) for t in tids[neg]]
+        return out
+
+    def _retriangulate_ties(self) -> list[str]:
+        """Each manual tie point intersected afresh from every observation in the oriented keyframes (rays
+        refined on their reprojection, core `intersect_point`), its observations active again: a point made
+        from the photos of one part before another joined, or from a pose that later moved, is stale.
+        Returns the names with a point."""
+        out = []
+        for name in sorted(self.ties):
+            tid = self._target_ids.get(name)
+            if tid is None:
+                continue
+            kids = [k for k in self.registered if not self.kfs[k].frozen and self.kfs[k].index(tid) is not None]
+            if len(kids) < 2:
+                continue
+            Ts = np.array([self.kfs[k].map_T_cam for k in kids])
+            uv = np.array([self.kfs[k].uv[self.kfs[k].index(tid)] for k in kids], float)
+            hit = intersect_point(self.camera, Ts, uv)
+            if hit is None or not np.all(np.isfinite(hit[0])):
+                continue
+            depth = np.einsum('ni,ni->n', hit[0][None] - Ts[:, :3, 3], Ts[:, :3, 2])
+            if np.any(depth <= 0):
+                continue
+            frozen = self.points.is_frozen(tid)   # a frozen track keeps only its count: its point moves alone
+            self.points[tid] = hit[0]
+            out.append(name)
+            if frozen:
+                continue
+            lst = self.track_kfs.setdefault(tid, [])
+            for k in kids:
+                self.kfs[k].active[self.kfs[k].index(tid)] = True
+                if k not in lst:
+                    lst.append(k)
+        return out
+
+    def _hand_measured(self, tid: int) -> bool:
+        """A target observation kept through outlier removal: a GCP's (its prior holds it) or an MTP's."""
+        return tid < 0 and not self.is_check(tid)
 
     def target_name(self, tid: int) -> str:
         for n, t in self._target_ids.items():
@@ -364,13 +433,13 @@ class IncrementalAT:
         once its GNSS georeferences it (provisionally on a line, as a first line is)."""
         if self._segment is None:
             self._segment = IncrementalAT(self.camera, replace(self.opt, segments=False, spill_frozen=False,
-                                                               use_gcps=False), origin=self.origin)
+                                                               use_gcps=False), origin=self.origin, ties=self.ties)
             self._segment_kids = []
         self._segment_kids.append(kf.kid)
         seg = self._segment.add_keyframe(rec, window_iterations)
         # Provisional too: a gap mid-line leaves a line until the next turn. Both in the map frame: the block
-        # must be georeferenced as well.
-        if self._segment.georeferenced and self.georeferenced:
+        # must be georeferenced as well. Manual tie points shared with the block join it without waiting.
+        if self._segment_can_join():
             n = self._join_segment()
             rep = self._window_adjust(kf.kid, iterations=window_iterations) if kf.map_T_cam is not None \
                 else StepReport(kf.kid, False, seg.status)
@@ -381,8 +450,60 @@ class IncrementalAT:
         return StepReport(kf.kid, False, f'{failed.status}; in a segment of its own, not georeferenced yet '
                                          f'({len(self._segment.registered)} of {len(self._segment_kids)} oriented)')
 
+    def _shared_ties(self) -> list[tuple[np.ndarray, np.ndarray]]:
+        """(segment point, block point) of the manual tie points both have triangulated (map frame)."""
+        seg = self._segment
+        if seg is None or not self.ties:
+            return []
+        out = []
+        for name in sorted(self.ties):
+            a, b = seg._target_ids.get(name), self._target_ids.get(name)
+            if a is not None and b is not None and a in seg.points and b in self.points:
+                out.append((np.asarray(seg.points[a], float), np.asarray(self.points[b], float)))
+        return out
+
+    def _ties_fit(self):
+        """(similarity segment -> block, manual tie points used, whether it is a full similarity): a
+        similarity from three or more shared MTPs that span an area (not on a line), else a shift from
+        their offsets (the segment's own georeference then gives the rotation and scale); None without."""
+        from photogram_ros.core.similarity import Similarity, umeyama
+        pairs = self._shared_ties()
+        if not pairs:
+            return None, 0, False
+        src = np.array([p for p, _ in pairs])
+        dst = np.array([q for _, q in pairs])
+        sv = spread(src)
+        if len(pairs) >= 3 and sv[1] >= 0.2 * sv[0] > 0:
+            return umeyama(src, dst), len(pairs), True
+        return Similarity(1.0, np.eye(3), np.median(dst - src, axis=0)), len(pairs), False
+
+    def _segment_can_join(self) -> bool:
+        """The block is georeferenced and the segment is too (by its GNSS), or shares manual tie points that
+        place it alone (three or more spanning an area)."""
+        seg = self._segment
+        if seg is None or not seg.registered or not self.georeferenced:
+            return False
+        return seg.georeferenced or self._ties_fit()[2]
+
+    def _move_segment_onto_ties(self) -> int:
+        """Move the segment (poses and points) onto the block through the manual tie points both have
+        (`_ties_fit`). Returns how many were used."""
+        s, n, full = self._ties_fit()
+        seg = self._segment
+        if s is None or not (full or seg.georeferenced):
+            return 0
+        for k in seg.registered:
+            seg.kfs[k].map_T_cam = s.apply_pose(seg.kfs[k].map_T_cam)
+        ids, P = seg.points.arrays()
+        if len(ids):
+            seg.points.set_many(ids, s.apply(P))
+        seg.georeferenced = True
+        return n
+
     def _join_segment(self) -> int:
-        """Move the segment's oriented keyframes and points into the block; returns how many joined."""
+        """Move the segment's oriented keyframes and points into the block (through the manual tie points
+        both share, when there are any, else through its GNSS); returns how many joined."""
+        n_ties = self._move_segment_onto_ties()
         seg, kids = self._segment, self._segment_kids
         self._segment, self._segment_kids = None, []
         for s_kid in seg.registered:
@@ -396,10 +517,14 @@ class IncrementalAT:
             for t in kf.track_ids[kf.active].tolist():
                 self.track_kfs.setdefault(t, []).append(kf.kid)
         ids, P = seg.points.arrays()
-        new = ~self.points.contains_many(ids) if len(ids) else np.zeros(0, bool)
+        # Tracker ids only: the segment numbers its targets on its own; the block triangulates them below.
+        new = (~self.points.contains_many(ids) & (ids >= 0)) if len(ids) else np.zeros(0, bool)
         if new.any():
             self.points.set_many(ids[new], P[new])
+        self._retriangulate_ties()
         self.segments_joined += 1
+        self.segment_joins.append({'keyframes': len(seg.registered), 'through': 'mtp' if n_ties else 'gnss',
+                                   'mtps': n_ties})
         return len(seg.registered)
 
     def retry_unregistered(self) -> int:
@@ -505,7 +630,7 @@ class IncrementalAT:
         if ok.sum() < self.opt.min_pnp_inliers:
             return StepReport(kf.kid, False, 'pnp_failed')
         kf.map_T_cam = invert_T(make_T(R, tvec.ravel()))
-        out = ~ok
+        out = ~ok & ~self._tie_mask(kf.track_ids[have])
         kf.active[np.flatnonzero(have)[out]] = False
         kf.reg_seq = len(self.registered)
         self.registered.append(kf.kid)
@@ -558,7 +683,7 @@ class IncrementalAT:
             status = 'registered_gnss_rotation'
         out = np.ones(len(kf.track_ids), bool)
         out[i2[inl]] = False
-        known = self.points.contains_many(kf.track_ids)
+        known = self.points.contains_many(kf.track_ids) & ~self._tie_mask(kf.track_ids)
         kf.active[use & known & out] = False      # known points that disagree with the relative pose
         kf.reg_seq = len(self.registered)
         self.registered.append(kf.kid)
@@ -670,6 +795,7 @@ class IncrementalAT:
             # Only drop observations of points that still have two good ones.
             good_counts = np.bincount(slot[~bad], minlength=len(tracks))
             drop = bad & (good_counts[slot] >= 2)
+            drop &= np.array([not self.is_tie(int(t)) for t in np.asarray(tracks)[slot]])
             if not drop.any():
                 break
             for k, i, t in zip(kid[drop], oi[drop], np.asarray(tracks)[slot[drop]]):
@@ -702,7 +828,8 @@ class IncrementalAT:
             X = self.points.get_many(kf.track_ids[idx])
             e = self.reprojection_px(kf.map_T_cam, X, kf.uv[idx])
             for i in np.asarray(idx)[e > 2 * self.opt.max_reprojection_px]:
-                self._deactivate(kf.kid, int(i), int(kf.track_ids[i]))
+                if not self.is_tie(int(kf.track_ids[i])):
+                    self._deactivate(kf.kid, int(i), int(kf.track_ids[i]))
 
     def _deactivate(self, kid: int, i: int, t: int) -> None:
         kf = self.kfs[kid]
@@ -815,13 +942,18 @@ class IncrementalAT:
         gk = [j for j, k in enumerate(kids) if self.georeferenced and not fixed_mask[j]
               and self.kfs[k].fix_enu is not None and k not in self.gnss_rejected]
         pri = [(s, self.control[self.target_name(t)]) for s, t in enumerate(tracks)
-               if t < 0 and not self.is_check(t)] if self.georeferenced and gcp_priors else []
+               if t < 0 and not self.is_check(t) and not self.is_tie(t)] if self.georeferenced and gcp_priors else []
+        obs_pt = np.concatenate([slot[kid == k] for k in kids])
+        tie_slots = [s for s, t in enumerate(tracks) if self.is_tie(t)]
+        scale = None
+        if tie_slots:
+            scale = np.where(np.isin(obs_pt, tie_slots), self.opt.mtp_loss_scale_px, self.opt.loss_scale_px)
         prob = BundleProblem(
             camera=self.camera, map_T_cams=np.array([self.kfs[k].map_T_cam for k in kids]),
             points_map=self.points.get_many(tracks).reshape(-1, 3),
             obs_cam=np.concatenate([np.full(int(np.sum(kid == k)), col[k]) for k in kids]),
-            obs_pt=np.concatenate([slot[kid == k] for k in kids]),
-            obs_uv=np.concatenate([self.kfs[k].uv[oi[kid == k]] for k in kids]),
+            obs_pt=obs_pt, obs_uv=np.concatenate([self.kfs[k].uv[oi[kid == k]] for k in kids]),
+            obs_loss_scale_px=scale,
             fixed_cams=fixed_mask, fixed_points=None,
             gnss_cam=np.array(gk, int) if gk else None,
             gnss_pos_map=np.array([self._gnss_target(self.kfs[kids[j]]) for j in gk]).reshape(-1, 3),
@@ -858,8 +990,8 @@ class IncrementalAT:
             bad[:] = False   # not converged: residuals say nothing about outliers yet
         for k, i, s in zip(kid[bad], oi[bad], slot[bad]):
             t = tracks[s]
-            if t < 0 and not self.is_check(t):
-                continue   # a GCP observation is measured by hand: keep it, its prior holds it
+            if self._hand_measured(t):
+                continue   # a GCP's or an MTP's observation is measured by hand: keep it
             self._deactivate(int(k), int(i), int(t))
         good = ~bad
         rep = StepReport(kids[0], True, res.status, cost=float(res.final_cost),
@@ -1022,8 +1154,10 @@ class IncrementalAT:
         if self._segment is not None and self._segment.registered:
             # End of flight (or asked for): a segment still waiting joins if its GNSS places it at all.
             self._segment.full_adjustment(iterations=iterations, rounds=1, gnss_noise=False)
-            if self._segment.georeferenced and self.georeferenced:
+            if self._segment_can_join():
                 self._join_segment()
+        if self.ties:
+            self._retriangulate_ties()
         for _ in range(rounds):
             tracks = list(self.points)
             rep = self._solve(list(self.registered), [], tracks, iterations or self.opt.full_iterations,

@@ -38,7 +38,8 @@ from photogram_ros.io.trajectory import POSES_COLUMNS, write_trajectory_csv
 class TriangulateOptions:
     camera: str | None = None                 # calibration YAML; default: the bag's camera_info / sim truth
     targets: str | None = None                # a bag's control file of ArUco targets (io/control_file.py)
-    gcp: str | None = None                    # OpenDroneMap gcp_list.txt
+    gcp: str | None = None                    # OpenDroneMap gcp_list.txt (its MTP* rows: manual tie points)
+    mtp: str | None = None                    # manual tie points: "px py image name" rows (io/control_file.py)
     check_names: tuple = ()                   # check points besides CHK*
     crs: str | None = None                    # output CRS
     gcp_sigma_enu_m: tuple = (0.02, 0.02, 0.03)
@@ -160,16 +161,20 @@ def auto_self_calibration(block: KeyframeBlock, n_gcps: int, assumptions: list) 
 
 
 def _triangulate_records(block: KeyframeBlock, opt: TriangulateOptions, control: list, target_obs: dict,
-                         refine: tuple, log=None, what: str = '') -> tuple[IncrementalAT, object]:
-    """One incremental AT of the block's records (target observations `target_obs` by photo name), the
-    unregistered photos retried, and the full adjustment refining `refine`: (at, its StepReport)."""
+                         refine: tuple, log=None, what: str = '', tie_obs: dict | None = None
+                         ) -> tuple[IncrementalAT, object]:
+    """One incremental AT of the block's records (target observations `target_obs` and manual tie points
+    `tie_obs` by photo name), the unregistered photos retried, and the full adjustment refining `refine`:
+    (at, its StepReport)."""
     lever = tuple(opt.lever_arm_cam_m)
+    tie_obs = tie_obs or {}
+    ties = {n for obs in tie_obs.values() for n in obs}
     at = IncrementalAT(block.camera, IncrementalOptions(window_size=opt.window, lever_arm_cam_m=lever), block.origin,
-                       control)
+                       control, ties=ties)
     t_at = time.monotonic()
     last = t_at
     for n, rec in enumerate(block.records):
-        rec.target_uv = target_obs.get(rec.name, {})
+        rec.target_uv = {**target_obs.get(rec.name, {}), **tie_obs.get(rec.name, {})}
         at.add_keyframe(rec)
         if log is not None and (time.monotonic() - last >= 5.0 or n + 1 == len(block.records)):
             last = time.monotonic()
@@ -187,17 +192,49 @@ def _triangulate_records(block: KeyframeBlock, opt: TriangulateOptions, control:
 
 
 def _control_rows(block: KeyframeBlock, opt: TriangulateOptions, control_set, origin):
-    """(control points, rows, heights as written, CRS) of a bag's targets (their detections in the
-    records) or of opt.gcp."""
+    """(control points, rows, heights as written, CRS, manual tie point rows) of a bag's targets (their
+    detections in the records) or of opt.gcp, and the MTPs of opt.gcp and opt.mtp."""
+    from photogram_ros.io.control_file import read_gcp_list, read_tie_list
+    ties = read_tie_list(opt.mtp) if opt.mtp else []
     if control_set is not None:
         rows = [ControlRow(0, rec.name, n, np.asarray(uv, float)) for rec in block.records
                 for n, uv in rec.target_uv.items()]
-        return control_set.in_map(origin), rows, {}, None
+        return control_set.in_map(origin), rows, {}, None, ties
     if opt.gcp:
-        from photogram_ros.io.control_file import read_gcp_list
         gcps = read_gcp_list(opt.gcp, opt.check_names)
-        return gcps.in_map(origin, opt.gcp_sigma_enu_m), gcps.rows, gcps.file_heights, gcps.crs
-    return [], [], {}, None
+        return (gcps.in_map(origin, opt.gcp_sigma_enu_m), gcps.rows, gcps.file_heights, gcps.crs,
+                gcps.tie_rows + ties)
+    return [], [], {}, None, ties
+
+
+def _tie_obs(rows: list, images: set, assumptions: list, log=None) -> dict:
+    """{image: {MTP name: uv}} of the manual tie point rows in photos of the set with points in two or
+    more of them; the others are named in the assumptions."""
+    from photogram_ros.io.control_file import tie_uv
+    obs = tie_uv([r for r in rows if r.image in images])
+    missing = sorted({r.image for r in rows if r.image not in images})
+    count: dict = {}
+    for o in obs.values():
+        for n in o:
+            count[n] = count.get(n, 0) + 1
+    lone = sorted(n for n, c in count.items() if c < 2)
+    notes = []
+    if missing:
+        notes.append(f'{sum(r.image not in images for r in rows)} manual tie point rows name photos not in the set '
+                     f'({", ".join(missing[:6])}{", ..." if len(missing) > 6 else ""})')
+    if lone:
+        notes.append(f'manual tie points in one photo only, not used: {", ".join(lone)}')
+    for note in notes:
+        assumptions.append(f'control: {note}')
+        if log is not None:
+            log(f'warning: control: {note}')
+    obs = {img: {n: uv for n, uv in o.items() if n not in lone} for img, o in obs.items()}
+    used = sorted({n for o in obs.values() for n in o})
+    if used:
+        assumptions.append(f'{len(used)} manual tie points ({", ".join(used)}) adjusted as tie points measured by '
+                           'hand (robust-loss scale of their own, kept through outlier removal; their residuals '
+                           'per photo under "Manual tie points")')
+    return {img: o for img, o in obs.items() if o}
 
 
 def adjust_block(block: KeyframeBlock, out: str | Path, opt: TriangulateOptions, control_set=None,
@@ -211,7 +248,8 @@ def adjust_block(block: KeyframeBlock, out: str | Path, opt: TriangulateOptions,
     """
     out = Path(out)
     origin, assumptions = block.origin, block.assumptions
-    control, rows, file_heights, gcp_crs = _control_rows(block, opt, control_set, origin)
+    control, rows, file_heights, gcp_crs, tie_rows = _control_rows(block, opt, control_set, origin)
+    tie_obs = _tie_obs(tie_rows, {r.name for r in block.records}, assumptions, log)
     crs = opt.crs or gcp_crs or f'EPSG:{utm_epsg(origin.lat_deg, origin.lon_deg)}'
     t_at = time.monotonic()
     vet, gnss_without, target_obs = None, None, {}
@@ -219,7 +257,8 @@ def adjust_block(block: KeyframeBlock, out: str | Path, opt: TriangulateOptions,
     if rows:
         refine0 = (tuple(opt.self_calibrate) if opt.self_calibrate is not None
                    else auto_self_calibration(block, 0, []))
-        at, rep_adj = _triangulate_records(block, opt, [], {}, refine0, log, ' (GNSS only, to check the control)')
+        at, rep_adj = _triangulate_records(block, opt, [], {}, refine0, log, ' (GNSS only, to check the control)',
+                                           tie_obs)
         P0 = np.array([at.points[t] for t in at.points if t >= 0]).reshape(-1, 3)
         if at.georeferenced and not at.georef_provisional:
             vet = vet_control(at.camera, {at.kfs[k].name: at.kfs[k].map_T_cam for k in at.registered},
@@ -246,7 +285,7 @@ def adjust_block(block: KeyframeBlock, out: str | Path, opt: TriangulateOptions,
               else auto_self_calibration(block, n_gcps, assumptions))
     before = block.camera
     if at is None or target_obs:
-        at, rep_adj = _triangulate_records(block, opt, control, target_obs, refine, log)
+        at, rep_adj = _triangulate_records(block, opt, control, target_obs, refine, log, tie_obs=tie_obs)
     self_cal = _self_calibration(at, before, refine, assumptions, log) if refine else None
     conv = convergence(at, rep_adj.status)
     if conv is not None:
@@ -257,6 +296,12 @@ def adjust_block(block: KeyframeBlock, out: str | Path, opt: TriangulateOptions,
     verdict = check_block(inputs_from_at(at, block.n_inputs or len(block.records), adj, block.expect_nadir))
     if log is not None and verdict.status != 'ok':
         log(f'warning: block check: {verdict.summary}')
+    for j in at.segment_joins:
+        how = (f'through {j["mtps"]} manual tie points' if j['through'] == 'mtp' else
+               'through its GNSS alone (no tie point joins it to the rest: its position relative to the block is '
+               'only as good as the GNSS; manual tie points across the gap would tie it)')
+        assumptions.append(f'a part of {j["keyframes"]} photos that shares no automatic tie point with the rest of the '
+                           f'block joined it {how}')
     lost = [kf.name for kf in at.kfs if kf.map_T_cam is None]
     if lost:
         assumptions.append(f'{len(lost)} photos could not be oriented (blurred or without overlap): {lost[:10]}')

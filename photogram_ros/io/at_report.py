@@ -91,6 +91,28 @@ def _point_rows(rep: dict) -> list[dict]:
             for p in c.get('points', {}).values()]
 
 
+def _tie_text(rep: dict) -> list[str]:
+    pts = (rep.get('mtp') or {}).get('points') or []
+    if not pts:
+        return []
+    L = [f"{len(pts)} manual tie points, adjusted as tie points measured by hand; residual = adjusted point "
+         'reprojected minus the mark, px.']
+    for p in pts:
+        if p['rms_px'] is None:
+            L.append(f"- {p['name']}: {p['note'] or 'no residual'}")
+        else:
+            L.append(f"- {p['name']}: {p['images']} photos, RMS {p['rms_px']:.2f} px, max {p['max_px']:.2f} px")
+    return L
+
+
+def _tie_rows(rep: dict) -> list[dict]:
+    return [{'point': p['name'], 'image': r['image'], 'used': r['used'],
+             'du px': None if r['residual_px'] is None else r['residual_px'][0],
+             'dv px': None if r['residual_px'] is None else r['residual_px'][1],
+             'residual px': r['residual_norm_px']}
+            for p in (rep.get('mtp') or {}).get('points') or [] for r in p['photos']]
+
+
 def verdict_lines(rep: dict) -> list[str]:
     """The block check's verdict (core/block_check.py) as the report's first lines."""
     v = rep.get('verdict')
@@ -134,6 +156,8 @@ def markdown(rep: dict) -> str:
         L += ce90_text(sec.get('ce90_le90')) + [f'- {t}' for t in sec.get('redundancy', [])] + ['']
         if sec['points']:
             L += md_table(_residual_rows(sec['points'])) + ['']
+    if _tie_rows(rep):
+        L += ['## Manual tie points', ''] + _tie_text(rep) + [''] + md_table(_tie_rows(rep)) + ['']
     L += ['## Camera', '', f"{rep['camera']}", ''] + [t + '\n' for t in _focal_text(rep)]
     if rep.get('matching'):
         L += ['## Matching', ''] + _matching_text(rep) + ['']
@@ -261,6 +285,9 @@ def write_report(rep: dict, out_dir) -> tuple[Path, Path]:
         text += ce90_text(sec.get('ce90_le90')) + [f'- {t}' for t in sec.get('redundancy', [])]
         rows = _residual_rows(sec['points'])
         sections.append(Section(title, text, tables=[('Residuals (adjusted - surveyed)', rows)] if rows else []))
+    if _tie_rows(rep):
+        sections.append(Section('Manual tie points', _tie_text(rep),
+                                tables=[('Residual per photo (adjusted point reprojected - mark)', _tie_rows(rep))]))
     sections.append(Section('Plan view and control residuals', figures=fig('plan', 'control')))
     cam = Section('Camera', [f"{rep['camera']}"])
     sc_rows = _self_cal_rows(rep)

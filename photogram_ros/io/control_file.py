@@ -27,6 +27,11 @@ keyframes itself):
 For a folder of photos, `read_gcp_list` reads OpenDroneMap's own gcp_list.txt, where the points were
 clicked in the photos: a CRS line, then one line per observation ``x y z px py image [name]``
 (heights ellipsoidal; names CHK* and `check_names` are check points, as above).
+
+Manual tie points (MTPs): points without coordinates an operator marked in several photos where
+matching fails. In a gcp_list.txt they are the rows whose name starts with MTP (their x y z are not
+read), or rows without coordinates, ``px py image name``; `read_tie_list` reads a file of such rows
+alone (the CRS line is optional there). They are `GcpList.tie_rows`, never GCPs or check points.
 """
 
 from __future__ import annotations
@@ -266,6 +271,12 @@ class GcpList:
     image_uv: dict        # image name -> {point name: (2,) distorted pixel}
     rows: list = field(default_factory=list)           # [ControlRow]: every observation line, in order
     file_heights: dict = field(default_factory=dict)   # name -> z as written (placeholders: 0, 400, ...)
+    tie_rows: list = field(default_factory=list)       # [ControlRow]: the manual tie points' observations
+
+    @property
+    def tie_uv(self) -> dict:
+        """{image name: {MTP name: (2,) distorted pixel}} (the first row of an MTP in a photo)."""
+        return tie_uv(self.tie_rows)
 
     def in_map(self, origin: LocalFrame, sigma_enu_m) -> list[ControlPoint]:
         """Control points in the ENU frame at `origin`, all with the sigmas E, N, U (m) given."""
@@ -274,9 +285,53 @@ class GcpList:
                 for name, geo in self.points.items()]
 
 
+def is_tie_name(name: str) -> bool:
+    """A manual tie point's name: MTP..."""
+    return name.upper().startswith('MTP')
+
+
+def tie_uv(rows: list[ControlRow]) -> dict:
+    """{image: {name: (2,) pixel}} of observation rows, the first row of a point in a photo."""
+    out: dict = {}
+    for r in rows:
+        out.setdefault(r.image, {}).setdefault(r.name, np.asarray(r.uv, float))
+    return out
+
+
+def _tie_row(n: int, ln: list[str], where: str) -> ControlRow:
+    u, v = (_number(s, c, where) for s, c in zip(ln[:2], ('px', 'py')))
+    return ControlRow(n, ln[2], ln[3], np.array([u, v]))
+
+
+def read_tie_list(path: str | Path) -> list[ControlRow]:
+    """Manual tie points from a file in gcp_list.txt's layout without coordinates: ``px py image name``
+    per observation (an optional CRS line first; full gcp_list rows are read when their name starts with
+    MTP). Returns the rows; a point needs rows in two or more photos to be used."""
+    path = Path(path)
+    text, _ = read_text_lines(path, 'manual tie point file')
+    lines = [(n + 1, ln.split('#', 1)[0].split()) for n, ln in enumerate(text)]
+    lines = [(n, ln) for n, ln in lines if ln]
+    rows = []
+    for i, (n, ln) in enumerate(lines):
+        where = f'{path} line {n}'
+        if i == 0 and not _is_number(ln[0]):
+            continue   # the CRS line of a gcp_list.txt
+        if len(ln) == 4:
+            rows.append(_tie_row(n, ln, where))
+        elif len(ln) == 7 and is_tie_name(ln[6]):
+            rows.append(_tie_row(n, ln[3:], where))
+        else:
+            raise DataError(f'{where}: {" ".join(ln)!r} is not a manual tie point row: write "px py image name" '
+                            '(or a gcp_list.txt row "x y z px py image MTPname")')
+    if not rows:
+        raise DataError(f'{path} lists no manual tie points: one line per observation, "px py image name"')
+    return rows
+
+
 def read_gcp_list(path: str | Path, check_names=()) -> GcpList:
     """Read an OpenDroneMap gcp_list.txt (see the module docstring); a point clicked in several photos
-    has one line per photo, and an unnamed one is named after its x_y."""
+    has one line per photo, and an unnamed one is named after its x_y. Rows of manual tie points (names
+    MTP*, or ``px py image name`` without coordinates) go to `tie_rows`."""
     path = Path(path)
     text, _ = read_text_lines(path, 'GCP file')
     lines = [(n + 1, ln.split()) for n, ln in enumerate(text) if ln.strip() and not ln.lstrip().startswith('#')]
@@ -284,11 +339,18 @@ def read_gcp_list(path: str | Path, check_names=()) -> GcpList:
         raise DataError(f'{path} is empty: the first line must be a CRS (e.g. EPSG:32632), then one line per '
                         'observation: x y z px py image [name]')
     _, crs = _crs_of(' '.join(lines[0][1]), f'{path} line {lines[0][0]}')
-    points, image_uv, rows, heights = {}, {}, [], {}
+    points, image_uv, rows, heights, ties = {}, {}, [], {}, []
     for n, ln in lines[1:]:
         where = f'{path} line {n}'
+        if len(ln) == 4 and not _is_number(ln[3]):
+            ties.append(_tie_row(n, ln, where))
+            continue
+        if len(ln) == 7 and is_tie_name(ln[6]):
+            ties.append(_tie_row(n, ln[3:], where))
+            continue
         if len(ln) < 6:
-            raise DataError(f'{where}: {" ".join(ln)!r} needs: x y z px py image [name]')
+            raise DataError(f'{where}: {" ".join(ln)!r} needs: x y z px py image [name] (or, for a manual tie '
+                            'point, px py image name)')
         x, y, z, u, v = (_number(s, c, where) for s, c in zip(ln[:5], ('x', 'y', 'z', 'px', 'py')))
         name = ln[6] if len(ln) > 6 else f'{ln[0]}_{ln[1]}'
         lat, lon, h = crs_to_geodetic(x, y, z, crs)
@@ -297,4 +359,4 @@ def read_gcp_list(path: str | Path, check_names=()) -> GcpList:
         image_uv.setdefault(ln[5], {})[name] = np.array([u, v])
         rows.append(ControlRow(n, ln[5], name, np.array([u, v])))
     roles = {name: 'check' if is_check_name(name, check_names) else 'gcp' for name in points}
-    return GcpList(crs, points, roles, image_uv, rows, heights)
+    return GcpList(crs, points, roles, image_uv, rows, heights, ties)

@@ -114,33 +114,61 @@ def _positions(src: Path, images: list[Path], exif_altitude, takeoff_h_m, takeof
     return geo, check
 
 
-def _camera(src: Path, images: list[Path], camera_path, assumptions) -> tuple[PinholeCamera, bool]:
-    """--camera, else the simulator truth beside the folder, else the EXIF of the photos; and whether it
-    came from the EXIF."""
+def _camera(src: Path, images: list[Path], camera_path, assumptions, log=None
+            ) -> tuple[PinholeCamera, bool, list[Path]]:
+    """--camera, else the simulator truth beside the folder, else the EXIF of the photos; whether it came
+    from the EXIF; and the photos of that camera. From the EXIF, photos of two cameras (another image size,
+    or a focal length more than 5 % apart) are split by camera: the largest group is used, the others are
+    named in the assumptions as not used (one camera model per block)."""
     if camera_path:
         assumptions.append(f'calibration from {camera_path}, held fixed')
-        return camera_from_yaml(camera_path), False
+        return camera_from_yaml(camera_path), False, images
     if (src.parent / 'ground_truth.json').exists():
         assumptions.append('calibration from the simulator truth beside the photos, held fixed')
         cam = PinholeCamera.from_ros_yaml_dict(json.loads((src.parent / 'ground_truth.json').read_text())['camera'])
-        return cam, False
-    est = exif_intrinsics(images[0])
-    others = {}
-    for p in images[1:]:
+        return cam, False, images
+    groups = []          # [(first estimate, [paths])]: one per camera
+    unknown = []         # photos without EXIF intrinsics: taken with the main camera
+    for p in images:
         try:
             e = exif_intrinsics(p)
         except (CalibrationError, DataError):
+            unknown.append(p)
             continue
         c = e.camera
-        if {(c.width, c.height), (c.height, c.width)} & {(est.camera.width, est.camera.height)} and \
-                abs(c.fx / est.camera.fx - 1.0) > 1e-3:
+        size = (max(c.width, c.height), min(c.width, c.height))
+        for est0, members in groups:
+            c0 = est0.camera
+            if (max(c0.width, c0.height), min(c0.width, c0.height)) == size and abs(c.fx / c0.fx - 1.0) <= 0.05:
+                members.append(p)
+                break
+        else:
+            groups.append((e, [p]))
+    if not groups:
+        exif_intrinsics(images[0])   # raises the error that says what the EXIF lacks
+    groups.sort(key=lambda g: -len(g[1]))
+    est, members = groups[0]
+    used = set(members) | set(unknown)
+    others = {}
+    for p in members[1:]:
+        c = exif_intrinsics(p).camera
+        if abs(c.fx / est.camera.fx - 1.0) > 1e-3:
             others[p.name] = c.fx
-    assumptions.append(f'no calibration given: camera from the EXIF of {images[0].name}, {est.note} (source: '
+    assumptions.append(f'no calibration given: camera from the EXIF of {members[0].name}, {est.note} (source: '
                        f'{est.source}); pass --camera calib.yaml to use a calibration instead')
     if others:
         assumptions.append(f'{len(others)} photos state another focal length (e.g. {next(iter(others))}: '
-                           f'{next(iter(others.values())):.1f} px): a zoom lens or two cameras; one camera is used')
-    return est.camera, True
+                           f'{next(iter(others.values())):.1f} px): a zoom lens; one camera is used')
+    for e, ps in groups[1:]:
+        c = e.camera
+        note = (f'{len(ps)} photos of another camera not used ({c.width}x{c.height} px, f {c.fx:.0f} px, against '
+                f'{est.camera.width}x{est.camera.height} px, f {est.camera.fx:.0f} px of the {len(members)} used): '
+                f'{", ".join(p.name for p in ps[:10])}{" ..." if len(ps) > 10 else ""}; one camera model per '
+                'block: triangulate them as a folder of their own')
+        assumptions.append(note)
+        if log is not None:
+            log(f'warning: {note}')
+    return est.camera, True, [p for p in images if p in used]
 
 
 def _usable_images(src: Path, assumptions: list, log) -> tuple[list[Path], int]:
@@ -303,7 +331,7 @@ def read_photo_block(src: str | Path, camera_path: str | Path | None = None, nei
     if first is None:
         raise DataError(f'no image in {src} has a position (EXIF GPS or geo.txt): georeferencing impossible')
     origin = LocalFrame(first[0], first[1], first[2])
-    camera, from_exif = _camera(src, images, camera_path, assumptions)
+    camera, from_exif, images = _camera(src, images, camera_path, assumptions, log)
     stats = MatchStats(photos=len(images))
     t0 = time.monotonic()
     feats, factor = [], 1.0

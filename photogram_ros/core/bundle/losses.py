@@ -12,11 +12,11 @@ from photogram_ros.errors import ConfigError
 LOSSES = ('linear', 'huber', 'cauchy')
 
 
-def evaluate(name: str, s: np.ndarray, scale: float):
-    """(rho(s), rho'(s)) for squared norms s."""
+def evaluate(name: str, s: np.ndarray, scale):
+    """(rho(s), rho'(s)) for squared norms s; `scale` one number or one per residual (like s)."""
     if name == 'linear':
         return s, np.ones_like(s)
-    c2 = float(scale) ** 2
+    c2 = float(scale) ** 2 if np.ndim(scale) == 0 else np.asarray(scale, float) ** 2
     if name == 'huber':
         inl = s <= c2
         rs = np.sqrt(np.maximum(s, 1e-300))

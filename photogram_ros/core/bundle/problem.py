@@ -56,6 +56,9 @@ class BundleProblem:
     obs_cam: np.ndarray                      # (N,) int
     obs_pt: np.ndarray                       # (N,) int
     obs_uv: np.ndarray                       # (N, 2) observed (distorted) pixels
+    # (N,) robust-loss scale of each observation, px (None: BundleOptions.loss_scale_px for all); e.g.
+    # points measured by hand, whose loss is not the automatic tie points'.
+    obs_loss_scale_px: np.ndarray | None = None
     fixed_cams: np.ndarray | None = None
     fixed_points: np.ndarray | None = None
     gnss_cam: np.ndarray | None = None       # (M,) camera index of each fix
@@ -91,6 +94,11 @@ class BundleProblem:
             raise DataError('observation indices out of range of cameras or points')
         if not (np.all(np.isfinite(T)) and np.all(np.isfinite(X)) and np.all(np.isfinite(uv))):
             raise DataError('poses, points or observations contain NaN or infinite values')
+        scale = None
+        if self.obs_loss_scale_px is not None:
+            scale = np.asarray(self.obs_loss_scale_px, float).ravel()
+            if len(scale) != len(oc) or not np.all(scale > 0):
+                raise DataError(f'obs_loss_scale_px must give each of the {len(oc)} observations a scale > 0')
         if self.model is None:
             if self.camera is None:
                 raise ConfigError('give camera=PinholeCamera(...) or model= with intrinsics=')
@@ -115,6 +123,8 @@ class BundleProblem:
         t = -np.einsum('cij,cj->ci', R, T[:, :3, 3])
         out = dict(model=model, intr=intr.copy(), group=group, R=R.copy(), t=t, X=X.copy(),
                    obs_cam=oc, obs_pt=op, obs_uv=uv, fixed_cams=fc, fixed_points=fp)
+        if scale is not None:
+            out['obs_scale'] = scale
         # GNSS priors
         if self.gnss_cam is not None and len(self.gnss_cam):
             gc = np.asarray(self.gnss_cam, dtype=np.int64).ravel()

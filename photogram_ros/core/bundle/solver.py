@@ -209,7 +209,7 @@ class Solver:
         d = self.d
         r = self._reproj(R, t, X, intr, False)[0]
         s = np.einsum('ni,ni->n', r, r)
-        rho, _ = losses.evaluate(self.o.loss, s, self.o.loss_scale_px)
+        rho, _ = losses.evaluate(self.o.loss, s, d.get('obs_scale', self.o.loss_scale_px))
         parts = {'reprojection': 0.5 * float(rho.sum())}
         if 'gnss_cam' in d:
             e = self._gnss_err(R, t)
@@ -239,7 +239,7 @@ class Solver:
         d, st = self.d, self.st
         r, RX, Rc, Jp, Jk = self._reproj(R, t, X, intr, True)
         s = np.einsum('ni,ni->n', r, r)
-        _, d1 = losses.evaluate(self.o.loss, s, self.o.loss_scale_px)
+        _, d1 = losses.evaluate(self.o.loss, s, d.get('obs_scale', self.o.loss_scale_px))
         w = np.sqrt(d1)[:, None]
         n, m = len(r), st.m
         A = np.zeros((n, 2, m))
