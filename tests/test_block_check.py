@@ -143,6 +143,10 @@ def test_ground_above_the_cameras_unconverged_and_nothing_oriented():
     T[:] = np.nan
     v = check_block(dataclasses.replace(b, map_T_cam=T))
     assert v.status == 'failed' and 'nothing oriented' in v.summary
+    # Photos of another camera left out of the block: named.
+    v = check_block(dataclasses.replace(b, excluded={'B01.JPG': 'another camera', 'B02.JPG': 'another camera'}))
+    assert v.status == 'warning' and v.findings[0].check == 'photos_not_used'
+    assert v.findings[0].photos == ['B01.JPG', 'B02.JPG']
     # Half the photos not oriented: a warning naming them.
     T = b.map_T_cam.copy()
     T[:8] = np.nan

@@ -19,6 +19,7 @@ The checks, each against what the data itself says:
 - nadir: the share of cameras within `nadir_tilt_deg` of nadir, against the flight's expectation (a
   mapping flight looks down unless told otherwise): a block whose cameras look sideways while the flight
   looked down is failed.
+- photos_not_used: photos left out before the adjustment (another camera in the folder) are named.
 - oriented: the share of photos oriented (a block that oriented half of them is a warning, under
   `min_oriented_failed` failed).
 - convergence: a final adjustment that stopped short and still moves cameras: warning.
@@ -88,7 +89,8 @@ class BlockInputs:
     fix_enu_m (N, 3) antenna positions, NaN without a fix; fix_sigma_hv_m (N, 2) stated horizontal and
     vertical sigma; noise_hv_m (2,) the estimated GNSS noise or None; rejected_fixes: names whose fix the
     adjustment did not use; ground_z_m (N,) median height (map up, m) of the tie points each camera sees,
-    NaN when none; adjustment: {'status': str, 'matters': bool} of the final adjustment;
+    NaN when none; adjustment: {'status': str, 'matters': bool} of the final adjustment; excluded: photos
+    left out of the block before it was adjusted (another camera), name -> reason;
     expect_nadir: whether the flight looked down (None: not known, the nadir check is skipped)."""
     names: list
     map_T_cam: np.ndarray
@@ -99,10 +101,11 @@ class BlockInputs:
     adjustment: dict = field(default_factory=dict)
     expect_nadir: bool | None = True
     n_photos: int | None = None
+    excluded: dict = field(default_factory=dict)    # photo name -> why it was left out of the block
 
 
 def inputs_from_at(at, n_photos: int | None = None, adjustment: dict | None = None,
-                   expect_nadir: bool | None = True) -> BlockInputs:
+                   expect_nadir: bool | None = True, excluded: dict | None = None) -> BlockInputs:
     """BlockInputs of an IncrementalAT `at` (core/incremental.py) after its adjustment: every keyframe,
     oriented or not; `adjustment` {'status', 'matters', 'text'} of its final adjustment."""
     kfs = list(at.kfs)
@@ -127,7 +130,7 @@ def inputs_from_at(at, n_photos: int | None = None, adjustment: dict | None = No
             if len(P):
                 gz[i] = float(np.median(P[:, 2]))
     return BlockInputs([kf.name for kf in kfs], T, fix, sig, gz, dict(at.gnss_noise), adjustment or {},
-                       expect_nadir, n_photos if n_photos is not None else n)
+                       expect_nadir, n_photos if n_photos is not None else n, dict(excluded or {}))
 
 
 def _worse(a: str, b: str) -> str:
@@ -206,6 +209,10 @@ def check_block(b: BlockInputs, o: BlockCheckOptions | None = None) -> BlockVerd
         st = 'failed' if share < o.min_oriented_failed else 'warning'
         findings.append(Finding('oriented', st, f'{n_or} of {n_photos} photos oriented',
                                 _names(names, ~oriented, 50)))
+    if b.excluded:
+        why = sorted(set(b.excluded.values()))
+        findings.append(Finding('photos_not_used', 'warning', f'{len(b.excluded)} photos left out of the block '
+                                f'({"; ".join(why)}): {", ".join(list(b.excluded)[:8])}', list(b.excluded)[:50]))
     _gnss_fit(b, o, oriented, findings, figures)
     # Rigid: the adjusted cameras against their fixes as they are.
     rejected = set(b.gnss_noise.get('rejected', []))

@@ -293,7 +293,7 @@ def adjust_block(block: KeyframeBlock, out: str | Path, opt: TriangulateOptions,
         if log is not None:
             log(f'warning: {conv["text"]}')
     adj = {'status': rep_adj.status, **({'matters': conv['matters'], 'text': conv['text']} if conv else {})}
-    verdict = check_block(inputs_from_at(at, block.n_inputs or len(block.records), adj, block.expect_nadir))
+    verdict = check_block(inputs_from_at(at, len(block.records), adj, block.expect_nadir, block.excluded))
     if log is not None and verdict.status != 'ok':
         log(f'warning: block check: {verdict.summary}')
     for j in at.segment_joins:

@@ -33,6 +33,7 @@ class KeyframeBlock:
     # Whether the flight looked down (a mapping survey; a DJI XMP gimbal pitch says otherwise): the
     # block check expects its cameras near nadir. None: not known, not checked.
     expect_nadir: bool | None = True
+    excluded: dict = field(default_factory=dict)         # photo name -> why it is not in the block
 
 
 def camera_from_yaml(path: str | Path) -> PinholeCamera:

@@ -331,7 +331,9 @@ def read_photo_block(src: str | Path, camera_path: str | Path | None = None, nei
     if first is None:
         raise DataError(f'no image in {src} has a position (EXIF GPS or geo.txt): georeferencing impossible')
     origin = LocalFrame(first[0], first[1], first[2])
+    given = images
     camera, from_exif, images = _camera(src, images, camera_path, assumptions, log)
+    excluded = {p.name: 'another camera (one camera model per block)' for p in given if p not in set(images)}
     stats = MatchStats(photos=len(images))
     t0 = time.monotonic()
     feats, factor = [], 1.0
@@ -368,4 +370,4 @@ def read_photo_block(src: str | Path, camera_path: str | Path | None = None, nei
         records.append(KeyframeRecord(0, tr[keep], f.uv[keep], fix, p.name))
     return KeyframeBlock(camera, origin, records, assumptions, n_inputs=n_files, exif_geodetic=exif_check,
                          camera_from_exif=from_exif, stats=stats.to_dict(),
-                         expect_nadir=_looked_down(images, assumptions))
+                         expect_nadir=_looked_down(images, assumptions), excluded=excluded)
