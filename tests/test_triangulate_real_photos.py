@@ -9,53 +9,15 @@ import json
 import numpy as np
 import pytest
 
+from bench import real_surveys as rs
 from conftest import shared_data
 from photogram_ros.cli import main
 
 
-def _odm_dsm(cell_m=0.2):
-    """OpenDroneMap's odm_model.laz as a grid of median heights (EPSG:32615, heights as ODM wrote them)."""
-    import laspy
-    las = laspy.read(shared_data('photos', 'brighton_beach', 'odm_model.laz'))
-    x, y, z = np.asarray(las.x), np.asarray(las.y), np.asarray(las.z)
-    x0, y0 = x.min(), y.min()
-    ix, iy = ((x - x0) / cell_m).astype(int), ((y - y0) / cell_m).astype(int)
-    w = ix.max() + 1
-    key = iy * w + ix
-    order = np.lexsort((z, key))
-    u, first, cnt = np.unique(key[order], return_index=True, return_counts=True)
-    dsm = np.full((iy.max() + 1) * w, np.nan)
-    dsm[u] = z[order][first + cnt // 2]
-    return dsm.reshape(-1, w), x0, y0, cell_m
-
-
 def relief_against_odm(points_xyz: np.ndarray) -> dict:
-    """Heights of `points_xyz` (EPSG:32615) against ODM's surface after removing a constant 3D offset (both
-    follow the same consumer GPS): the horizontal shift by grid search (+-3 m, then 4 cm steps) minimising
-    the median |dz - median dz|, the vertical as the median dz."""
-    dsm, x0, y0, cell = _odm_dsm()
-
-    def dz(dx, dy):
-        jx = ((points_xyz[:, 0] + dx - x0) / cell).astype(int)
-        jy = ((points_xyz[:, 1] + dy - y0) / cell).astype(int)
-        ok = (jx >= 0) & (jx < dsm.shape[1]) & (jy >= 0) & (jy < dsm.shape[0])
-        out = np.full(len(points_xyz), np.nan)
-        out[ok] = points_xyz[ok, 2] - dsm[jy[ok], jx[ok]]
-        return out[np.isfinite(out)]
-
-    def score(dx, dy):
-        d = dz(dx, dy)
-        return np.median(np.abs(d - np.median(d))) if len(d) > len(points_xyz) // 3 else np.inf
-
-    best = min((score(dx, dy), dx, dy) for dx in np.arange(-3, 3.01, 0.25) for dy in np.arange(-3, 3.01, 0.25))
-    _, bx, by = best
-    best = min((score(dx, dy), dx, dy) for dx in np.arange(bx - 0.24, bx + 0.25, 0.04)
-               for dy in np.arange(by - 0.24, by + 0.25, 0.04))
-    _, bx, by = best
-    d = dz(bx, by)
-    r = d - np.median(d)
-    return {'offset_m': (float(bx), float(by), float(np.median(d))), 'n': int(len(d)),
-            'median_abs_dz_m': float(np.median(np.abs(r))), 'p90_abs_dz_m': float(np.percentile(np.abs(r), 90))}
+    """Heights of `points_xyz` (EPSG:32615) against ODM's surface after a constant 3D offset
+    (bench/real_surveys.py odm_agreement, the real-survey benchmark's measure)."""
+    return rs.odm_agreement(points_xyz, search_m=3.0)
 
 
 @pytest.fixture(scope='module')
