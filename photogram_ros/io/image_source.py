@@ -66,11 +66,30 @@ class ExifGps:
         return gf.GnssFix(self.lat_deg, self.lon_deg, h_m, cov, int(stamp_ns), gf.STATUS_FIX, gf.COV_APPROXIMATED)
 
 
+@dataclass(frozen=True)
+class GeoTxtPosition:
+    """A photo's position from an OpenDroneMap geo.txt beside it (a PPK `geotag`, or any survey tool):
+    WGS84 with an ellipsoidal height and its own accuracies, which replace the EXIF GPS and its sigmas."""
+
+    lat_deg: float
+    lon_deg: float
+    h_m: float            # ellipsoidal (WGS84), m
+    h_acc_m: float        # 1-sigma horizontal, m
+    v_acc_m: float        # 1-sigma vertical, m
+
+    def gnss_fix(self, stamp_ns: int, sigma_h_m: float = 0.0, sigma_v_m: float = 0.0, *args, **kwargs) -> gf.GnssFix:
+        """This position as a fix at `stamp_ns` with the geo.txt accuracies (the sigmas given for an EXIF
+        geotag do not apply)."""
+        cov = np.diag([self.h_acc_m ** 2, self.h_acc_m ** 2, self.v_acc_m ** 2])
+        return gf.GnssFix(self.lat_deg, self.lon_deg, self.h_m, cov, int(stamp_ns), gf.STATUS_FIX,
+                          gf.COV_DIAGONAL_KNOWN)
+
+
 @dataclass
 class Frame:
     stamp_ns: int
     image: np.ndarray     # BGR uint8 (H, W, 3)
-    gps: ExifGps | None   # EXIF GPS of a photo
+    gps: ExifGps | GeoTxtPosition | None   # a photo's geo.txt position, else its EXIF GPS
     path: str             # file path, or the video source and frame index
 
 
@@ -378,6 +397,15 @@ class FolderSource:
             step = int(round(fallback_period_s * 1e9))
             self.entries = [(p, t0 + i * step) for i, p in enumerate(files)]
 
+        # Positions from a geo.txt beside the photos (a PPK geotag) replace their EXIF GPS.
+        self.geo: dict = {}
+        if (self.folder / 'geo.txt').exists():
+            from photogram_ros.io.photo_block import read_geo_txt
+            self.geo = {name: GeoTxtPosition(*g) for name, g in read_geo_txt(self.folder / 'geo.txt').items()}
+            self.notes.append(f'positions of {sum(p.name in self.geo for p, _ in self.entries)} of '
+                              f'{len(self.entries)} photos from geo.txt (ellipsoidal heights, its accuracies as '
+                              'sigmas), the others from their EXIF GPS')
+
     def __len__(self) -> int:
         return len(self.entries)
 
@@ -396,7 +424,7 @@ class FolderSource:
             except DataError as exc:
                 self.skipped.append((str(path), str(exc)))
                 continue
-            yield Frame(stamp_ns, image, read_exif_gps(path), str(path))
+            yield Frame(stamp_ns, image, self.geo.get(path.name) or read_exif_gps(path), str(path))
 
 
 class VideoSource:
