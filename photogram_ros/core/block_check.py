@@ -20,8 +20,8 @@ The checks, each against what the data itself says:
   mapping flight looks down unless told otherwise): a block whose cameras look sideways while the flight
   looked down is failed.
 - photos_not_used: photos left out before the adjustment (another camera in the folder) are named.
-- oriented: the share of photos oriented (a block that oriented half of them is a warning, under
-  `min_oriented_failed` failed).
+- oriented: photos not oriented are named (a warning under `min_oriented_warn` oriented, by default any;
+  under `min_oriented_failed`, failed).
 - convergence: a final adjustment that stopped short and still moves cameras: warning.
 - gnss_noise: the GNSS noise the adjustment estimated from the data, against what the fixes state:
   geotags poorer than they claim are said, and those it rejected are named.
@@ -48,7 +48,7 @@ class BlockCheckOptions:
     nadir_share_warn: float = 0.8       # share near nadir expected of a nadir flight: warning under
     nadir_share_fail: float = 0.5       # ... failed under
     ground_below_fail: float = 0.9      # share of cameras whose tie points lie below them: failed under
-    min_oriented_warn: float = 0.9      # share of photos oriented: warning under
+    min_oriented_warn: float = 1.0      # share of photos oriented: warning under (1: any photo not oriented)
     min_oriented_failed: float = 0.5    # ... failed under
     noise_warn_factor: float = 3.0      # estimated GNSS noise / stated: warning above
 
@@ -206,6 +206,8 @@ def check_block(b: BlockInputs, o: BlockCheckOptions | None = None) -> BlockVerd
         return BlockVerdict('failed', findings, figures)
     share = n_or / max(n_photos, 1)
     if share < o.min_oriented_warn:
+        # Photos left unoriented are named (a photo of another site, a blurred one): a warning, and under
+        # min_oriented_failed of them oriented the block failed.
         st = 'failed' if share < o.min_oriented_failed else 'warning'
         findings.append(Finding('oriented', st, f'{n_or} of {n_photos} photos oriented',
                                 _names(names, ~oriented, 50)))

@@ -29,7 +29,7 @@ import numpy as np
 
 from photogram_ros.core.at_report import convergence, redundancy_notes
 from photogram_ros.core.attitude import AttitudeHistory, antenna_offset_enu
-from photogram_ros.core.block_check import check_block, inputs_from_at
+from photogram_ros.core.block_check import BlockCheckOptions, check_block, inputs_from_at
 from photogram_ros.core.control import TARGET_DTYPE, ControlSet, robust_intersection
 from photogram_ros.core.control_live import LiveControl, LiveControlOptions
 from photogram_ros.core.evaluation import ce90_le90
@@ -520,7 +520,9 @@ class AdjustmentStage:
     def _block_check(self, adjustment: dict | None = None) -> None:
         """The block's own check (core/block_check.py) on diagnostics: `verdict` and its reasons; a
         failed block is an ERROR, a warning a WARN."""
-        v = check_block(inputs_from_at(self.at, adjustment=adjustment))
+        # In flight the health check already watches keyframes not oriented: the verdict names them only
+        # when they are a tenth of the flight.
+        v = check_block(inputs_from_at(self.at, adjustment=adjustment), BlockCheckOptions(min_oriented_warn=0.9))
         self.diag.set('verdict', v.status)
         self.diag.set('verdict_summary', v.summary)
         fit = v.figures.get('gnss_fit', {})
