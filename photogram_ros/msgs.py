@@ -14,7 +14,7 @@ from photogram_ros.errors import DataError
 
 from builtin_interfaces.msg import Time  # noqa: E402  (ROS imports after core on purpose)
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image, NavSatFix, NavSatStatus, PointCloud2, PointField
-from std_msgs.msg import Header, MultiArrayDimension, UInt8MultiArray
+from std_msgs.msg import Header, MultiArrayDimension, String, UInt8MultiArray
 
 # --- time ----------------------------------------------------------------------------------------
 
@@ -429,11 +429,10 @@ def ortho_tile_from_msg(msg: CompressedImage) -> tuple[int, int, int, bytes]:
     return z, x, y, bytes(msg.data)
 
 
-def json_msg(obj) -> 'String':
+def json_msg(obj) -> String:
     """A JSON document (GeoJSON coverage, control-point figures) -> std_msgs/String."""
     import json
 
-    from std_msgs.msg import String
     return String(data=json.dumps(obj, allow_nan=False, separators=(',', ':'), default=_json_default))
 
 

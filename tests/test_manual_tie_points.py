@@ -8,7 +8,6 @@ joins through them, the check points are within 1.5 GSD and each MTP's residual 
 
 from __future__ import annotations
 
-import copy
 import json
 import pickle
 

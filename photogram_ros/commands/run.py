@@ -58,7 +58,7 @@ def run(a) -> int:
     exporting = not a.no_export and 'map' in roles
     if exporting and a.crs:
         check_output_crs(a.crs)
-    locks = claim_folders(a, roles, exporting)
+    _locks = claim_folders(a, roles, exporting)   # held (flock) until the command returns
     signals = StopSignals('finishing the flight (final adjustment, stereo, map flush, products)')
     if a.separate:
         return _run_separate(a, spec, signals)

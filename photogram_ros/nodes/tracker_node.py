@@ -32,7 +32,7 @@ from photogram_ros.core.control import ARUCO_DICTIONARIES, detect_keyframe_targe
 from photogram_ros.core.gnss_fix import GnssFix
 from photogram_ros.core.tracker import Tracker, TrackerParams
 from photogram_ros.errors import CalibrationError, PhotogramError
-from photogram_ros.nodes.diagnostics import ERROR, Diagnostics
+from photogram_ros.nodes.diagnostics import ERROR, WARN, Diagnostics
 from photogram_ros.nodes.node_main import run_node
 from photogram_ros.nodes.ros_params import declare
 from photogram_ros.params import param
