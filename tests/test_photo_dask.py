@@ -67,6 +67,28 @@ def test_one_worker_is_this_process_and_bad_options_are_refused(monkeypatch):
             pass
 
 
+def _pair_sum(a, b):
+    return a[0] + b[0]
+
+
+def test_local_cluster_runs_in_order_keeps_results_on_the_workers_and_reports_progress(monkeypatch):
+    monkeypatch.setattr(dask_cluster, 'PROGRESS_EVERY_S', 0.0)
+    lines, seen = [], []
+    with open_runner(2, log=lines.append) as runner:
+        assert runner.workers == 2 and lines == ['local Dask cluster: 2 worker processes of 1 thread']
+        kept = runner.run(divmod, [(k, 3) for k in range(12)], 'pieces', lines.append, keep=True)
+        assert all(type(h).__name__ == 'Future' for h in kept)
+        sums = runner.run(_pair_sum, [(kept[k], kept[k + 1]) for k in range(11)],
+                          on_result=lambda k, r: seen.append(k))
+        runner.release(kept)
+        with pytest.raises(ZeroDivisionError):
+            runner.run(divmod, [(1, 0)])
+    assert sums == [k // 3 + (k + 1) // 3 for k in range(11)] and sorted(seen) == list(range(11))
+    assert lines[-1].startswith('pieces: 12/12 on 2 workers (')
+    assert any(re.fullmatch(r'pieces: \d+/12 on 2 workers \(\d+ s, about \d+ s left\)', s) for s in lines)
+
+
+@pytest.mark.slow
 def test_local_cluster_gives_the_same_matches_with_progress(survey, monkeypatch):
     photos, alone = survey
     monkeypatch.setattr(dask_cluster, 'PROGRESS_EVERY_S', 0.0)
