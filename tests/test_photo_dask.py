@@ -147,7 +147,8 @@ def test_scheduler_and_two_worker_processes_on_localhost(survey, tmp_path):
             block = read_photo_block(photos, runner=runner, log=lines.append)
         _same_block(alone, block)
         assert f'Dask cluster at {address}: 2 workers' in lines
-        assert any(f'on {address}' in s for s in lines if s.startswith('features: '))
+        n = alone.stats['photos']
+        assert f'features: {n}/{n} on 2 workers at {address} (' in '\n'.join(lines)
     finally:
         for p in reversed(procs):
             p.terminate()

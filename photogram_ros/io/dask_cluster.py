@@ -87,7 +87,7 @@ class DaskRunner:
         calls = list(calls)
         futures = [self.client.submit(_single_threaded, fn, *args, pure=False) for args in calls]
         index = {f.key: k for k, f in enumerate(futures)}
-        prog = Progress(log, what, len(calls), f' on {self.workers} workers')
+        prog = Progress(log, what, len(calls), f' on {self.workers} workers{self.where}')
         out = [None] * len(calls)
         done = 0
         for f in as_completed(futures):
@@ -145,7 +145,7 @@ def open_runner(workers: int = 1, scheduler: str | None = None, log=None):
             raise ConfigError(f'no Dask scheduler answered at {scheduler} within {CONNECT_TIMEOUT_S:.0f} s ({e}): '
                               'start one with `dask scheduler` and workers with `dask worker ADDRESS`') from e
         try:
-            runner = DaskRunner(client, f' on {scheduler}')
+            runner = DaskRunner(client, f' at {scheduler}')
             if runner.workers < 1:
                 raise ConfigError(f'the Dask scheduler at {scheduler} has no workers: start some with '
                                   f'`dask worker {scheduler}`')
