@@ -8,7 +8,9 @@ photos. Per survey and worker count one JSON line: wall time of reading + matchi
 matching per pair: what runs on the cluster) and, unless --matching-only, of the whole triangulation
 with its check-point RMSE; the machine's load average before and after. Then per survey a comparison
 line (speedups, RMSE ratio, whether the matches are the same) and a growth line: the exponent b of
-time ~ photos^b between the smallest and the largest survey, per worker count.
+time ~ photos^b between the smallest and the largest survey, per worker count (and, with
+--matching-only, of the in-process path's CPU time, which the machine's load does not change). With
+--repeat the worker counts alternate and the fastest run of each is kept.
 
     .venv/bin/python bench/photo_triangulation_scale.py [--photos 100 600] [--workers 2] [--sims DIR]
         [--matching-only] [--repeat 1]
@@ -54,11 +56,13 @@ def _load() -> float:
 
 def run_once(photos: Path, workers: int, matching_only: bool) -> dict:
     row = {'workers': workers, 'load_before': _load()}
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     if matching_only:
         with open_runner(workers) as runner:
             block = read_photo_block(photos, runner=runner)
         row['matching_wall_s'] = round(time.perf_counter() - t0, 2)
+        if workers == 1:      # this process did all the work: its CPU time, whatever the machine's load
+            row['matching_cpu_s'] = round(time.process_time() - c0, 2)
         stats = block.stats
         row['tie_tracks'] = int(sum(v for v in stats['track_lengths'].values()))
     else:
@@ -100,11 +104,14 @@ def main() -> int:
     best = {}
     for n in a.photos:
         photos = simulated_photos(n, sims)
-        for w in (1, a.workers):
-            rows = [run_once(photos, w, a.matching_only) for _ in range(a.repeat)]
+        runs = {1: [], a.workers: []}
+        for _ in range(a.repeat):           # interleaved: a change of the machine's load hits both
+            for w in runs:
+                runs[w].append(run_once(photos, w, a.matching_only))
+        for w, rows in runs.items():
             row = min(rows, key=lambda r: r[key])
             row.update(bench='photo_triangulation_scale', data=str(photos), runs=[r[key] for r in rows],
-                       baseline='workers 1 (in process)' if w == 1 else None)
+                       loads=[r['load_before'] for r in rows], baseline='workers 1 (in process)' if w == 1 else None)
             best[(n, w)] = row
             print(json.dumps(row), flush=True)
         one, many = best[(n, 1)], best[(n, a.workers)]
@@ -128,6 +135,10 @@ def main() -> int:
             for k in ('matching_wall_s', 'features_s', 'pairs_s') + (() if a.matching_only else ('adjustment_s',
                                                                                                  'wall_s')):
                 growth[f'b_{k}_workers{w}'] = round(math.log(r1[k] / r0[k]) / span, 2)
+        if a.matching_only:
+            r0, r1 = best[(lo, 1)], best[(hi, 1)]
+            growth['b_matching_cpu_s_workers1'] = round(math.log(r1['matching_cpu_s'] / r0['matching_cpu_s'])
+                                                        / math.log(r1['photos'] / r0['photos']), 2)
         print(json.dumps(growth), flush=True)
     print(json.dumps({'bench': 'photo_triangulation_scale', 'machine': machine_info()}), flush=True)
     if tmp is not None:
