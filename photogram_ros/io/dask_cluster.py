@@ -156,8 +156,9 @@ def open_runner(workers: int = 1, scheduler: str | None = None, log=None):
             client.close()
         return
     import logging
-    cluster = distributed.LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
-                                       dashboard_address=None, silence_logs=logging.ERROR)
+    # On the loopback interface only, the scheduler's HTTP server on any free port (two clusters at once).
+    cluster = distributed.LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, host='127.0.0.1',
+                                       dashboard_address='127.0.0.1:0', silence_logs=logging.ERROR)
     try:
         with distributed.Client(cluster) as client:
             client.wait_for_workers(workers)
