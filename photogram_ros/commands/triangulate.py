@@ -44,6 +44,12 @@ def add_arguments(p) -> None:
                         'Not given: msl, and the report says if the adjusted ground makes that look wrong')
     p.add_argument('--takeoff-altitude-m', type=float, default=None,
                    help='height of the take-off point (m), for --exif-altitude relative')
+    p.add_argument('--workers', type=int, default=1,
+                   help='photos: features and pair matching on a local Dask cluster of this many worker processes '
+                        '(default 1: in this process, no Dask); the adjustment runs here')
+    p.add_argument('--scheduler', default=None,
+                   help='photos: features and pair matching on the existing Dask cluster at tcp://HOST:PORT (its '
+                        'workers need photogram_ros and the photos at the same path)')
     p.add_argument('--takeoff-heights', choices=('msl', 'ellipsoidal'), default='msl',
                    help='reference of --takeoff-altitude-m: msl (EGM2008; default) or ellipsoidal (WGS84)')
 
@@ -106,6 +112,7 @@ def run(a) -> int:
         window=a.window, lever_arm_cam_m=_floats(a.lever_arm, '--lever-arm', 3),
         self_calibrate=refine, matching=matching,
         exif_altitude=a.exif_altitude, takeoff_h_m=a.takeoff_altitude_m, takeoff_heights=a.takeoff_heights,
+        workers=a.workers, scheduler=a.scheduler,
         vetting=ControlVettingOptions(contradicted_heights='horizontal' if a.gcp_heights == 'checked' else 'use'))
     from photogram_ros.io.out_dir import usable_folder
     usable_folder(a.out)   # a file or an uncreatable path: said now, not after the adjustment

@@ -53,6 +53,8 @@ class TriangulateOptions:
     takeoff_h_m: float | None = None          # for exif_altitude 'relative'
     takeoff_heights: str = 'msl'              # reference of takeoff_h_m: 'msl' or 'ellipsoidal'
     vetting: ControlVettingOptions = field(default_factory=ControlVettingOptions)   # control rows and heights
+    workers: int = 1                          # photos: local Dask worker processes (1: this process, no Dask)
+    scheduler: str | None = None              # photos: an existing Dask cluster, tcp://HOST:PORT
 
     def check(self) -> None:
         if self.takeoff_h_m is not None and self.exif_altitude != 'relative':
@@ -89,10 +91,14 @@ def triangulate(src: str | Path, out: str | Path, opt: TriangulateOptions, log=N
         block = read_bag_keyframes(src, opt.camera, control_set, log)
         if opt.exif_altitude:
             block.assumptions.append(f'--exif-altitude {opt.exif_altitude} ignored: a bag has no EXIF')
+        if opt.workers != 1 or opt.scheduler:
+            block.assumptions.append('--workers/--scheduler ignored: a bag\'s keyframes are read in this process')
     else:
+        from photogram_ros.io.dask_cluster import open_runner
         from photogram_ros.io.photo_block import read_photo_block
-        block = read_photo_block(src, opt.camera, opt.neighbours, opt.exif_altitude, opt.takeoff_h_m,
-                                 opt.takeoff_heights, log, opt.matching)
+        with open_runner(opt.workers, opt.scheduler, log) as runner:
+            block = read_photo_block(src, opt.camera, opt.neighbours, opt.exif_altitude, opt.takeoff_h_m,
+                                     opt.takeoff_heights, log, opt.matching, runner)
     res = adjust_block(block, out, opt, control_set, log, t0)
     return res
 

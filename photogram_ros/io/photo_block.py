@@ -15,6 +15,11 @@ heading and height above ground from a DJI XMP), photos with too few verified pa
 with their next candidates, and chained into tracks. A photo stored rotated by 90 degrees is turned
 back. A file that is empty, not an image or a truncated JPEG is skipped and named (the report's
 assumptions and a warning), the others kept. Progress goes to `log` every few seconds.
+
+Features (one task per photo) and matching (one task per pair) run in this process, or on a Dask
+cluster (io/dask_cluster.py, `triangulate --workers/--scheduler`): the workers read the photos
+themselves, keep each photo's descriptors, match pairs where the features are, and send back only
+feature positions and verified matches; the matches are the same wherever they ran.
 """
 
 from __future__ import annotations
@@ -33,6 +38,7 @@ from photogram_ros.core.geodesy import LocalFrame, crs_to_geodetic
 from photogram_ros.core.gnss_fix import GnssFix
 from photogram_ros.core.incremental import KeyframeRecord
 from photogram_ros.errors import CalibrationError, DataError
+from photogram_ros.io.dask_cluster import InProcessRunner
 from photogram_ros.io.image_source import (IMAGE_SUFFIXES, exif_altitude_to_ellipsoidal_m, exif_intrinsics,
                                            image_file_problem, read_dji_xmp, read_exif_gps, xmp_float)
 from photogram_ros.io.keyframe_block import KeyframeBlock, camera_from_yaml
@@ -44,7 +50,6 @@ from photogram_ros.io.keyframe_block import KeyframeBlock, camera_from_yaml
 # heights then 0.4 m off; with 2 m: k1 -0.0005, heights within 0.19 m, the same from 0.5 to 2 m).
 EXIF_SIGMA_H_M = 5.0
 EXIF_SIGMA_V_M = 2.0
-PROGRESS_EVERY_S = 5.0
 
 
 def read_geo_txt(path: str | Path) -> dict[str, tuple[float, float, float, float, float]]:
@@ -212,18 +217,6 @@ class MatchStats:
                 'track_lengths': {str(k): int(v) for k, v in sorted(self.track_lengths.items())}}
 
 
-class _Progress:
-    def __init__(self, log, what: str, total: int):
-        self.log, self.what, self.total = log, what, total
-        self.t0 = self.last = time.monotonic()
-
-    def step(self, done: int, extra: str = '') -> None:
-        now = time.monotonic()
-        if self.log is not None and (now - self.last >= PROGRESS_EVERY_S or done == self.total):
-            self.last = now
-            self.log(f'{self.what}: {done}/{self.total}{extra} ({now - self.t0:.0f} s)')
-
-
 def _read_gray(path: Path, camera: PinholeCamera, opt: pm.MatchingOptions, assumptions: list):
     """The photo in grey at the reduced size, and full-photo pixels per reduced pixel (x, y)."""
     from PIL import Image
@@ -278,7 +271,31 @@ def _looked_down(images: list[Path], assumptions: list) -> bool:
     return down
 
 
-def _match_block(images, feats, camera, pos, sigma_h_m, footprints, opt, factor, log, stats: MatchStats):
+def _photo_features(path: Path, camera: PinholeCamera, opt: pm.MatchingOptions):
+    """One photo's features (a task): (PhotoFeatures, full-photo pixels per reduced pixel (x, y),
+    the notes for the report's assumptions)."""
+    notes = []
+    gray, fxy = _read_gray(path, camera, opt, notes)
+    return pm.extract(path.name, gray, fxy, opt), fxy, notes
+
+
+def _feature_positions(result) -> tuple:
+    """What the block needs of a `_photo_features` result: (feature positions (K, 2), factor, notes);
+    the descriptors stay where they were computed."""
+    f, fxy, notes = result
+    return f.uv, fxy, notes
+
+
+def _match_task(a: tuple, b: tuple, camera, opt, factor, i, j) -> pm.PairMatch:
+    """`pm.match_pair` of two photos given as `_photo_features` results (a task)."""
+    return pm.match_pair(a[0], b[0], camera, opt, factor, i, j)
+
+
+def _match_block(images, feats, camera, pos, sigma_h_m, footprints, opt, factor, log, stats: MatchStats,
+                 runner=None):
+    """Verified matches {(i, j): (M, 2) feature indices} of the candidate pairs, widened twice at most
+    for weakly linked photos. `feats`: per photo a `_photo_features` result or a runner's handle to one."""
+    runner = runner or InProcessRunner()
     order, first = pm.candidate_order(pos, opt.neighbours, sigma_h_m, footprints)
     pairs = pm.candidate_pairs(order, first)
     matches, tried = {}, set()
@@ -286,16 +303,20 @@ def _match_block(images, feats, camera, pos, sigma_h_m, footprints, opt, factor,
     t0 = time.monotonic()
     rounds = 0
     while pairs:
-        prog = _Progress(log, 'matching pairs' if not rounds else 'matching more pairs for weakly linked photos',
-                         len(pairs))
-        for n, (i, j) in enumerate(pairs):
+        found = [0]
+
+        def count(k, r):
+            found[0] += int(r.verified)
+
+        results = runner.run(_match_task, [(feats[i], feats[j], camera, opt, factor, i, j) for i, j in pairs],
+                             'matching pairs' if not rounds else 'matching more pairs for weakly linked photos',
+                             log, on_result=count, extra=lambda: f', {found[0]} verified')
+        for (i, j), r in zip(pairs, results):
             tried.add((i, j))
-            r = pm.match_pair(feats[i], feats[j], camera, opt, factor, i, j)
             stats.status_counts[r.status] = stats.status_counts.get(r.status, 0) + 1
             if r.verified:
                 matches[(i, j)] = r.matches
                 verified[[i, j]] += 1
-            prog.step(n + 1, f', {len(matches)} verified')
         rounds += 1
         if rounds > 2:
             break
@@ -309,14 +330,15 @@ def _match_block(images, feats, camera, pos, sigma_h_m, footprints, opt, factor,
 
 def read_photo_block(src: str | Path, camera_path: str | Path | None = None, neighbours: int = 8,
                      exif_altitude: str | None = None, takeoff_h_m: float | None = None,
-                     takeoff_heights: str = 'msl', log=None, matching: pm.MatchingOptions | None = None
-                     ) -> KeyframeBlock:
+                     takeoff_heights: str = 'msl', log=None, matching: pm.MatchingOptions | None = None,
+                     runner=None) -> KeyframeBlock:
     """The photos of the folder `src` as a KeyframeBlock, in file-name order.
 
     neighbours: photos matched with each photo first (replaces matching.neighbours); exif_altitude
     ('msl', 'ellipsoidal', 'relative' with takeoff_h_m in takeoff_heights, or None: msl, checked
     after the adjustment); log(text): progress lines and warnings; matching: feature and matching
-    options (core.photo_matching.MatchingOptions). The block's `stats` holds MatchStats.to_dict().
+    options (core.photo_matching.MatchingOptions); runner: where features and pair matching run
+    (io/dask_cluster.py; default: this process, in order). The block's `stats` holds MatchStats.to_dict().
     """
     src = Path(src)
     if not src.is_dir():
@@ -336,22 +358,25 @@ def read_photo_block(src: str | Path, camera_path: str | Path | None = None, nei
     excluded = {p.name: 'another camera (one camera model per block)' for p in given if p not in set(images)}
     stats = MatchStats(photos=len(images))
     t0 = time.monotonic()
-    feats, factor = [], 1.0
-    prog = _Progress(log, 'features', len(images))
-    for n, p in enumerate(images):
-        gray, fxy = _read_gray(p, camera, opt, assumptions)
-        feats.append(pm.extract(p.name, gray, fxy, opt))
-        factor = max(fxy)
-        prog.step(n + 1)
-    stats.features = [len(f.uv) for f in feats]
+    runner = runner or InProcessRunner()
+    # Per photo its features (kept where computed: a worker's memory on a cluster), and here only
+    # their positions.
+    feats = runner.run(_photo_features, [(p, camera, opt) for p in images], 'features', log, keep=True)
+    uvs = []
+    for uv, fxy, notes in runner.run(_feature_positions, [(f,) for f in feats]):
+        uvs.append(uv)
+        assumptions.extend(notes)
+    factor = max(fxy) if images else 1.0
+    stats.features = [len(uv) for uv in uvs]
     stats.features_s = time.monotonic() - t0
     pos = np.array([origin.geodetic_to_enu(*geo[p.name][:3]) if p.name in geo else [np.nan] * 3 for p in images])
     sigma_h = float(np.median([geo[p.name][3] for p in images if p.name in geo]))
     footprints = _footprints(images, pos, camera)
     if footprints is not None:
         assumptions.append('candidate pairs by footprint overlap (DJI XMP gimbal yaw and height above take-off)')
-    matches = _match_block(images, feats, camera, pos, sigma_h, footprints, opt, factor, log, stats)
-    tracks = pm.build_tracks([len(f.uv) for f in feats], matches)
+    matches = _match_block(images, feats, camera, pos, sigma_h, footprints, opt, factor, log, stats, runner)
+    runner.release(feats)
+    tracks = pm.build_tracks(stats.features, matches)
     lengths = pm.track_lengths(tracks)
     stats.track_lengths = {int(k): int(v) for k, v in enumerate(np.bincount(lengths)) if k >= 2 and v}
     if log is not None:
@@ -363,11 +388,11 @@ def read_photo_block(src: str | Path, camera_path: str | Path | None = None, nei
     if lonely:
         assumptions.append(f'{len(lonely)} photos share no verified pair with any other: {lonely[:10]}')
     records = []
-    for p, f, tr in zip(images, feats, tracks):
+    for p, uv, tr in zip(images, uvs, tracks):
         keep = tr >= 0
         g = geo.get(p.name)
         fix = GnssFix(g[0], g[1], g[2], np.diag([g[3] ** 2, g[3] ** 2, g[4] ** 2])) if g else None
-        records.append(KeyframeRecord(0, tr[keep], f.uv[keep], fix, p.name))
+        records.append(KeyframeRecord(0, tr[keep], uv[keep], fix, p.name))
     return KeyframeBlock(camera, origin, records, assumptions, n_inputs=n_files, exif_geodetic=exif_check,
                          camera_from_exif=from_exif, stats=stats.to_dict(),
                          expect_nadir=_looked_down(images, assumptions), excluded=excluded)
