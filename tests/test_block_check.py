@@ -143,6 +143,10 @@ def test_ground_above_the_cameras_unconverged_and_nothing_oriented():
     T[:] = np.nan
     v = check_block(dataclasses.replace(b, map_T_cam=T))
     assert v.status == 'failed' and 'nothing oriented' in v.summary
+    # Check points 30x the noise of the block's GNSS (2 m H, 3 m V) off: failed; at its noise: fine.
+    v = check_block(dataclasses.replace(b, check_rmse_hv_m=(9.0, 90.0, 4)))
+    assert v.status == 'failed' and v.findings[0].check == 'check_points'
+    assert check_block(dataclasses.replace(b, check_rmse_hv_m=(1.5, 2.0, 4))).status == 'ok'
     # Photos of another camera left out of the block: named.
     v = check_block(dataclasses.replace(b, excluded={'B01.JPG': 'another camera', 'B02.JPG': 'another camera'}))
     assert v.status == 'warning' and v.findings[0].check == 'photos_not_used'

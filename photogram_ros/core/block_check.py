@@ -22,6 +22,8 @@ The checks, each against what the data itself says:
 - photos_not_used: photos left out before the adjustment (another camera in the folder) are named.
 - oriented: photos not oriented are named (a warning under `min_oriented_warn` oriented, by default any;
   under `min_oriented_failed`, failed).
+- check_points: check points that disagree with the block far beyond the noise of its datum (its GNSS,
+  at least 2 cm): the block or the control is wrong.
 - convergence: a final adjustment that stopped short and still moves cameras: warning.
 - gnss_noise: the GNSS noise the adjustment estimated from the data, against what the fixes state:
   geotags poorer than they claim are said, and those it rejected are named.
@@ -51,6 +53,8 @@ class BlockCheckOptions:
     min_oriented_warn: float = 1.0      # share of photos oriented: warning under (1: any photo not oriented)
     min_oriented_failed: float = 0.5    # ... failed under
     noise_warn_factor: float = 3.0      # estimated GNSS noise / stated: warning above
+    check_warn: float = 5.0             # check-point RMSE / the datum's noise (>= 2 cm): warning above
+    check_fail: float = 20.0            # ... failed above
 
 
 @dataclass
@@ -102,6 +106,7 @@ class BlockInputs:
     expect_nadir: bool | None = True
     n_photos: int | None = None
     excluded: dict = field(default_factory=dict)    # photo name -> why it was left out of the block
+    check_rmse_hv_m: tuple | None = None            # check points: (RMSE horizontal m, vertical m, count)
 
 
 def inputs_from_at(at, n_photos: int | None = None, adjustment: dict | None = None,
@@ -265,6 +270,22 @@ def check_block(b: BlockInputs, o: BlockCheckOptions | None = None) -> BlockVerd
     elif adj.get('matters'):
         findings.append(Finding('convergence', 'warning', adj.get('text') or 'the final adjustment did not converge '
                                 'and would still move cameras'))
+    # Check points: surveyed truth the block did not use. Far beyond the noise the block's datum carries
+    # (its GNSS, at least 2 cm), the block or the control is wrong.
+    if b.check_rmse_hv_m is not None:
+        h, v, n_chk = b.check_rmse_hv_m
+        g0 = b.gnss_noise
+        ok_fix = np.all(np.isfinite(b.fix_sigma_hv_m), axis=1)
+        noise = (np.array([g0['used_h_m'], g0['used_v_m']]) if g0.get('used_h_m') else
+                 np.median(b.fix_sigma_hv_m[ok_fix], axis=0) if ok_fix.any() else np.array([0.02, 0.02]))
+        noise = np.maximum(noise, 0.02)
+        ratio = float(max(h / noise[0], v / noise[1]))
+        figures['check_points'] = {'rmse_h_m': h, 'rmse_v_m': v, 'n': n_chk, 'ratio_to_noise': ratio}
+        if ratio > o.check_warn:
+            findings.append(Finding('check_points', 'failed' if ratio > o.check_fail else 'warning',
+                                    f'the {n_chk} check points disagree with the block by {h:.2f} m H / {v:.2f} m V, '
+                                    f'{ratio:.0f}x the noise of its datum ({noise[0]:.2f} m H, {noise[1]:.2f} m V): '
+                                    'the block or the control file is wrong'))
     # GNSS noise.
     g = b.gnss_noise
     rejected = list(g.get('rejected', []))

@@ -299,9 +299,6 @@ def adjust_block(block: KeyframeBlock, out: str | Path, opt: TriangulateOptions,
         if log is not None:
             log(f'warning: {conv["text"]}')
     adj = {'status': rep_adj.status, **({'matters': conv['matters'], 'text': conv['text']} if conv else {})}
-    verdict = check_block(inputs_from_at(at, len(block.records), adj, block.expect_nadir, block.excluded))
-    if log is not None and verdict.status != 'ok':
-        log(f'warning: block check: {verdict.summary}')
     for j in at.segment_joins:
         how = (f'through {j["mtps"]} manual tie points' if j['through'] == 'mtp' else
                'through its GNSS alone (no tie point joins it to the rest: its position relative to the block is '
@@ -331,6 +328,13 @@ def adjust_block(block: KeyframeBlock, out: str | Path, opt: TriangulateOptions,
     write_las(cloud, out / 'sparse.las')
     rep = build_report(at, assumptions, vetting=vet,
                        gnss_without_gcps=gnss_without if vet is not None and target_obs else None)
+    inputs = inputs_from_at(at, len(block.records), adj, block.expect_nadir, block.excluded)
+    ck = rep['check']['rmse']
+    if ck.get('n'):
+        inputs.check_rmse_hv_m = (ck['horizontal_m'], ck['vertical_m'], ck['n'])
+    verdict = check_block(inputs)
+    if log is not None and verdict.status != 'ok':
+        log(f'warning: block check: {verdict.summary}')
     rep['verdict'] = verdict.to_dict()
     if at.gnss_noise:
         rep['gnss_noise'] = dict(at.gnss_noise)
