@@ -83,9 +83,9 @@ def exif_survey(tmp_path_factory):
     return flight, truth, takeoff_msl_m
 
 
-def _triangulate(folder, out, *options, gcp=None):
+def _triangulate(folder, out, *options, gcp=None, rc=0):
     argv = ['triangulate', str(folder), '--out', str(out), '--lever-arm=0,-0.05,-0.2', *options]
-    assert main(argv + (['--gcp', str(gcp)] if gcp else [])) == 0
+    assert main(argv + (['--gcp', str(gcp)] if gcp else [])) == rc
     rep = json.loads((out / 'report.json').read_text())
     truth = GroundTruth.load(folder.parent)
     rows = list(csv.DictReader(open(out / 'poses.csv')))
@@ -127,9 +127,12 @@ def test_triangulate_flags_exif_altitudes_relative_to_takeoff(exif_survey, tmp_p
     note = next(s for s in rep['assumptions'] if 'look relative to the take-off point' in s)
     assert 'median tie point' in note and '--exif-altitude relative --takeoff-altitude-m' in note
     assert 'look relative to the take-off point' in capsys.readouterr().err
-    # With GCPs the surveyed points are the ground, and the photos are below it.
-    rep, _ = _triangulate(flight / 'relative', tmp_path / 'gcp', gcp=flight / 'photos' / 'gcp_list.txt')
+    # With GCPs the surveyed points are the ground, and the photos are below it. The check points then sit
+    # hundreds of metres from the block: its verdict is FAILED (exit 4), naming them.
+    rep, _ = _triangulate(flight / 'relative', tmp_path / 'gcp', gcp=flight / 'photos' / 'gcp_list.txt', rc=4)
     assert any('median GCP/check point' in s for s in rep['assumptions'] if 'look relative' in s)
+    assert rep['verdict']['status'] == 'failed'
+    assert any(f['check'] == 'check_points' for f in rep['verdict']['findings'])
     # Saying msl is the user's word: no second-guessing.
     rep, _ = _triangulate(flight / 'relative', tmp_path / 'said', '--exif-altitude', 'msl')
     assert not _flagged(rep)
