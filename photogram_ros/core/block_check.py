@@ -110,9 +110,11 @@ class BlockInputs:
 
 
 def inputs_from_at(at, n_photos: int | None = None, adjustment: dict | None = None,
-                   expect_nadir: bool | None = True, excluded: dict | None = None) -> BlockInputs:
+                   expect_nadir: bool | None = True, excluded: dict | None = None,
+                   thaw: bool = True) -> BlockInputs:
     """BlockInputs of an IncrementalAT `at` (core/incremental.py) after its adjustment: every keyframe,
-    oriented or not; `adjustment` {'status', 'matters', 'text'} of its final adjustment."""
+    oriented or not; `adjustment` {'status', 'matters', 'text'} of its final adjustment. thaw False (in
+    flight): keyframes spilled to disk are not read back for their ground height (it stays NaN)."""
     kfs = list(at.kfs)
     n = len(kfs)
     T = np.full((n, 4, 4), np.nan)
@@ -131,7 +133,7 @@ def inputs_from_at(at, n_photos: int | None = None, adjustment: dict | None = No
             T[i] = kf.map_T_cam
             if kf.kid in res:
                 fix[i] = T[i, :3, 3] - res[kf.kid]
-            P = at.keyframe_points(kf.kid)
+            P = at.keyframe_points(kf.kid) if thaw or not kf.frozen else np.zeros((0, 3))
             if len(P):
                 gz[i] = float(np.median(P[:, 2]))
     return BlockInputs([kf.name for kf in kfs], T, fix, sig, gz, dict(at.gnss_noise), adjustment or {},

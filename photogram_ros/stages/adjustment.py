@@ -521,8 +521,9 @@ class AdjustmentStage:
         """The block's own check (core/block_check.py) on diagnostics: `verdict` and its reasons; a
         failed block is an ERROR, a warning a WARN."""
         # In flight the health check already watches keyframes not oriented: the verdict names them only
-        # when they are a tenth of the flight.
-        v = check_block(inputs_from_at(self.at, adjustment=adjustment), BlockCheckOptions(min_oriented_warn=0.9))
+        # when they are a tenth of the flight; keyframes spilled to disk stay there (no thaw every 10 keyframes).
+        v = check_block(inputs_from_at(self.at, adjustment=adjustment, thaw=False),
+                        BlockCheckOptions(min_oriented_warn=0.9))
         self.diag.set('verdict', v.status)
         self.diag.set('verdict_summary', v.summary)
         fit = v.figures.get('gnss_fit', {})
