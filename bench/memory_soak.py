@@ -24,7 +24,7 @@ run: the process's RSS just before the graph starts, so growth is reported as a 
 
     .venv/bin/python bench/memory_soak.py               # ~6 min of flight, a few minutes here
     .venv/bin/python bench/memory_soak.py --minutes 8   # 16.6 min of flight (the block flown twice), ~10 min
-    .venv/bin/python bench/memory_soak.py --minutes 30  # the issue's 30-minute flight (34 min), ~30 min here
+    .venv/bin/python bench/memory_soak.py --minutes 30  # a 30-minute flight (34 min), ~30 min here
     .venv/bin/python bench/memory_soak.py --processes 1 --tracemalloc 30   # every node in one traced process
 """
 

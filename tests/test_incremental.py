@@ -1,7 +1,8 @@
-"""Incremental aerial triangulation on simulator flights with ground truth (the issue's must-show).
+"""Incremental aerial triangulation on simulator flights with ground truth.
 
 Keyframe observations come straight from the truth (sim/observations.py: 0.3 px noise, the GNSS
-receiver error model of the mode); the figures are printed and asserted against the issue's limits.
+receiver error model of the mode); the figures are printed and gated at 1.5x their measured values
+(docs/measurements.md).
 """
 
 import dataclasses
@@ -43,7 +44,8 @@ def _rmse_hv(chk):
 
 
 def test_rtk_fixed_without_gcps(world):
-    """Camera centres <= 3 cm, check points <= 1 GSD horizontal and <= 1.5 GSD vertical.
+    """Camera centres <= 3 cm (or the GNSS's own mean error), pooled check points within 1.5x their
+    measured 0.26 GSD horizontal and 0.46 GSD vertical.
 
     The RTK model's bias wanders with a 60 s time constant, so on a 27 s flight it is nearly constant
     and cannot be averaged away without GCPs: the camera error of one flight sits at the mean GNSS
@@ -70,7 +72,7 @@ def test_rtk_fixed_without_gcps(world):
     h, v = _rmse_hv(np.concatenate(chks))
     print(f'RTK pooled: camera-centre RMSE {cam * 100:.2f} cm; check RMSE h {h / sk.gsd_m:.2f} GSD, '
           f'v {v / sk.gsd_m:.2f} GSD (GSD {sk.gsd_m * 100:.1f} cm)')
-    assert h <= 1.0 * sk.gsd_m and v <= 1.5 * sk.gsd_m
+    assert h <= 1.5 * 0.26 * sk.gsd_m and v <= 1.5 * 0.46 * sk.gsd_m      # docs/measurements.md
 
 
 def test_3d_gnss_with_five_gcps(world):
@@ -81,7 +83,7 @@ def test_3d_gnss_with_five_gcps(world):
           f"({len(chk)} check points); camera RMSE {np.sqrt(np.mean(np.sum(cam_err ** 2, 1))) * 100:.1f} cm; "
           f"estimated GNSS bias {np.round(at.gnss_bias_enu, 2)} m")
     assert len(rep['gcp']['points']) == 5 and len(chk) == 4
-    assert h <= 1.5 * sk.gsd_m and v <= 2.5 * sk.gsd_m
+    assert h <= 1.5 * 0.18 * sk.gsd_m and v <= 1.5 * 0.17 * sk.gsd_m     # measured 0.18 / 0.17 GSD
     # Without the GCPs the same flight is off by the receiver's metre-level bias: they matter.
     sk2, at2, rep2, _, chk2 = _run(cfg, w, '3d', use_gcps=False)
     h2, v2 = _rmse_hv(chk2)
@@ -114,10 +116,9 @@ def test_five_percent_gross_outliers(world, mode, gcps):
     print(f'  clean run: camera RMSE {cam0 * 100:.2f} cm, check h {h0 / sk.gsd_m:.2f} v {v0 / sk.gsd_m:.2f} GSD')
     if not gcps:   # with 3D GNSS the camera centres are not a must-show figure (the GCPs set the datum)
         assert abs(cam - cam0) < 0.005
-    if gcps:
-        assert h <= 1.5 * sk.gsd_m and v <= 2.5 * sk.gsd_m
-    else:
-        assert h <= 1.0 * sk.gsd_m and v <= 1.5 * sk.gsd_m
+    # With the outliers: RTK 0.31 / 0.76 GSD (clean 0.25 / 0.67), 3D GNSS + GCPs 0.15 / 0.16 (clean 0.18 / 0.17).
+    h_gsd, v_gsd = (0.18, 0.17) if gcps else (0.31, 0.76)
+    assert h <= 1.5 * h_gsd * sk.gsd_m and v <= 1.5 * v_gsd * sk.gsd_m
 
 
 def test_georeference_waits_for_a_turn_and_report_files(world, tmp_path):

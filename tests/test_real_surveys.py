@@ -178,7 +178,7 @@ def toledo_triangulate(bench_out):
 def test_toledo_triangulate_from_exif_alone_is_right(toledo_triangulate):
     row = toledo_triangulate
     gate(row, ('toledo', 'triangulate'))
-    # The must-shows.
+    # What a real survey must show.
     assert row['oriented'] == 42 and row['sim_h_m'] <= 2.0 and row['nadir_share'] >= 0.95
     assert abs(row['focal_vs_exif']) <= 0.05
     assert not row['sim_outliers']
