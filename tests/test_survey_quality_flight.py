@@ -186,8 +186,9 @@ def test_camera_stop_is_reported_in_flight_where_the_truth_says(tmp_path):
                                                                            'forward_overlap'))]}
     print('camera stop:', json.dumps(figures))
     (tmp_path / 'figures.json').write_text(json.dumps(figures))
-    assert latency <= 10.0, figures
-    assert figures['centroid_error_m'] < 5.0 and hausdorff < 5.0, figures
+    # Measured (docs/measurements.md): reported 5.6 s after the pass, centroid 1.2 m, outline 3.1 m.
+    assert latency <= 1.5 * 5.6, figures
+    assert figures['centroid_error_m'] <= 1.5 * 1.2 and hausdorff <= 1.5 * 3.1, figures
     assert g['properties']['area_m2'] == pytest.approx(true_area, rel=0.25), figures
     # The station has it too (status.json per drone: the gap's area), and a re-fly plan over it.
     status = json.loads((tmp_path / 'gs' / 'status.json').read_text())
