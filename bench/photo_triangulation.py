@@ -2,7 +2,8 @@
 `triangulate`, against the bare-OpenCV pipeline this project had before (the baseline, same run).
 
 Data: the real DJI survey ../shared/data/photos/brighton_beach (18 photos, 4000x2250) and a simulated
-survey of about 100 photos (640x480, made here with `simulate --photos`, about a minute). The baseline
+survey of about 100 photos (640x480, made here with `simulate --photos`, about a minute; its camera is
+the photos' EXIF one with the final self-calibration, as for a user's photos). The baseline
 is full-frame matching: SIFT with 3000 features on the full photo, brute-force
 2-NN with Lowe's ratio 0.8, an essential matrix by RANSAC (2 px) on each photo's 8 nearest neighbours;
 it reports its verified pairs beside its time (on brighton it verified 5, the reason for the change).

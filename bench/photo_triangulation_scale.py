@@ -6,7 +6,8 @@ Data: simulated surveys made here (or reused from --sims) with the recipe of ben
 one frame about every photo (the photos are the same kind; the simulation 3x faster): about 100 and 600
 photos. Per survey and worker count one JSON line: wall time of reading + matching (features per photo,
 matching per pair: what runs on the cluster) and, unless --matching-only, of the whole triangulation
-with its check-point RMSE; the machine's load average before and after. Then per survey a comparison
+with its check-point RMSE (the photos' EXIF camera with the final self-calibration, as for a user's
+photos); the machine's load average before and after. Then per survey a comparison
 line (speedups, RMSE ratio, whether the matches are the same) and a growth line: the exponent b of
 time ~ photos^b between the smallest and the largest survey, per worker count (and, with
 --matching-only, of the in-process path's CPU time, which the machine's load does not change). With

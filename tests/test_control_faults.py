@@ -4,7 +4,10 @@ The simulator writes geotagged photos and a correct OpenDroneMap gcp_list.txt; e
 file a surveyor might really hand over (every row of one photo naming the wrong photo, rows naming
 photos of another flight, a pixel outside the image, placeholder heights 0 / 400 m, one GCP) and
 asserts that each fault is named in report.json and that the block is not strained: the spread of
-the GNSS residuals (about their mean) within 1.2x of the same photos adjusted without GCPs.
+the GNSS residuals (about their mean) within 1.2x of the same photos adjusted without GCPs. The
+camera is the simulator's calibration (camera.yaml beside the photos, `--camera`), held fixed: the
+faults are judged against a block whose camera is right (with the EXIF camera the final
+self-calibration of f with the GCPs moves the block's depth itself; tests/test_triangulate_command.py).
 """
 
 from __future__ import annotations
@@ -80,7 +83,7 @@ def flight(tmp_path_factory):
     root = tmp_path_factory.mktemp('ctrl') / 'flight'
     simulate(preset('tiny', photos=True, fps=1.0, n_gcp=5, n_check=3, gnss_mode='rtk_fixed'), root)
     photos = root / 'photos'
-    block = read_photo_block(photos)
+    block = read_photo_block(photos, photos / 'camera.yaml')
     lines = (photos / 'gcp_list.txt').read_text().splitlines()
     rows = [ln.split() for ln in lines[1:]]
     return root, photos, block, lines[0], rows, GroundTruth.load(root)
@@ -235,7 +238,7 @@ def test_single_line_survey_takes_its_gcps_as_given_and_says_so(tmp_path):
     root = tmp_path / 'line'
     simulate(preset('tiny', photos=True, fps=1.0, n_lines=1, line_length_m=60.0, n_gcp=5, n_check=3,
                     gnss_mode='rtk_fixed'), root)
-    block = read_photo_block(root / 'photos')
+    block = read_photo_block(root / 'photos', root / 'photos' / 'camera.yaml')
     lines = (root / 'photos' / 'gcp_list.txt').read_text().splitlines()
     flight = (root, root / 'photos', block, lines[0], [ln.split() for ln in lines[1:]], GroundTruth.load(root))
     _, rep = _run(flight, tmp_path, flight[4], tag='gcp')

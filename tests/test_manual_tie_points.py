@@ -106,8 +106,9 @@ LEVER = (0.0, -0.05, -0.2)     # the simulator's FRD lever arm in the nadir came
 
 
 def _survey(tmp_path_factory, gnss_mode):
-    """A 4-line photo survey (no GCPs; 6 check points, two of them in the band), read and matched once;
-    the manual tie points file and the check points file."""
+    """A 4-line photo survey (no GCPs; 6 check points, two of them in the band), read and matched once
+    with the camera's calibration (the simulator's camera.yaml: what the MTPs do is measured apart from
+    the EXIF camera's model errors); the manual tie points file and the check points file."""
     from photogram_ros.io.photo_block import read_photo_block
     from photogram_ros.sim.scenario import preset, simulate
     from photogram_ros.sim.truth import GroundTruth
@@ -116,7 +117,7 @@ def _survey(tmp_path_factory, gnss_mode):
     simulate(preset('tiny', photos=True, fps=1.0, n_lines=4, line_length_m=60.0, n_gcp=9, n_check=6,
                     gnss_mode=gnss_mode), root)
     truth = GroundTruth.load(root)
-    block = read_photo_block(root / 'photos')
+    block = read_photo_block(root / 'photos', root / 'photos' / 'camera.yaml')
     names = [r.name for r in block.records]
     crs, rows = control_rows(root / 'photos', truth, names)
     checks = root / 'checks.txt'

@@ -1,4 +1,9 @@
-"""`photogram-ros triangulate` on the simulator's survey photos (geo.txt + ODM gcp_list.txt)."""
+"""`photogram-ros triangulate` on the simulator's survey photos (geo.txt + ODM gcp_list.txt).
+
+The camera is what a user of the photos gets: the EXIF focal length (principal point centred, no
+distortion) and the final self-calibration `triangulate` makes for it. The simulator's truth beside the
+folder is never read for it (its camera here is made wrong on purpose, and nothing changes).
+"""
 
 import csv
 import json
@@ -11,29 +16,63 @@ from photogram_ros.sim.scenario import preset, simulate
 from photogram_ros.sim.truth import GroundTruth
 
 
-@pytest.mark.slow
-def test_triangulate_simulated_photos(tmp_path):
-    simulate(preset('tiny', photos=True), tmp_path / 'flight')
-    photos = tmp_path / 'flight' / 'photos'
-    out = tmp_path / 'at'
-    # The simulator's lever arm (0.05, 0, -0.20) m FRD is (0, -0.05, -0.20) in the nadir camera frame.
-    rc = main(['triangulate', str(photos), '--gcp', str(photos / 'gcp_list.txt'), '--out', str(out),
-               '--lever-arm=0,-0.05,-0.2'])
-    assert rc == 0
-    rep = json.loads((out / 'report.json').read_text())
-    truth = GroundTruth.load(tmp_path / 'flight')
-    rows = list(csv.DictReader(open(out / 'poses.csv')))
-    n_photos = len(list(photos.glob('*.JPG')))
-    ck = rep['check']['rmse']
-    print(f"triangulate: {len(rows)}/{n_photos} photos, reprojection {rep['reprojection_rms_px']:.3f} px, "
-          f"check n={ck['n']} h {ck['horizontal_m'] / truth.gsd_m:.2f} GSD v {ck['vertical_m'] / truth.gsd_m:.2f} GSD")
-    assert len(rows) == n_photos and rep['reprojection_rms_px'] < 0.6
-    assert ck['n'] == 2 and ck['horizontal_m'] < 1.5 * truth.gsd_m and ck['vertical_m'] < 2.5 * truth.gsd_m
-    assert (out / 'sparse.las').stat().st_size > 10_000 and (out / 'report.md').exists()
-    # Poses in WGS84 against the truth: decimetres at worst (geotags are the nearest 5 Hz fix).
+def _wrong_truth_camera(flight) -> None:
+    """The simulator's ground_truth.json in `flight` with its camera's focal length doubled."""
+    doc = json.loads((flight / 'ground_truth.json').read_text())
+    k = doc['camera']['camera_matrix']['data']
+    k[0], k[4] = 2 * k[0], 2 * k[4]
+    (flight / 'ground_truth.json').write_text(json.dumps(doc))
+
+
+def _centre_rmse_m(rows, truth) -> float:
     err = [truth.origin.geodetic_to_enu(float(r['lat_deg']), float(r['lon_deg']), float(r['h_m']))
            - truth.frames[int(r['image'][4:8])].map_T_cam[:3, 3] for r in rows]
-    assert np.sqrt(np.mean(np.sum(np.square(err), axis=1))) < 0.5
+    return float(np.sqrt(np.mean(np.sum(np.square(err), axis=1))))
+
+
+@pytest.mark.slow
+def test_triangulate_simulated_photos(tmp_path):
+    """Check points of the tiny survey (geo.txt of the flight's GNSS, 4 GCPs, 2 check points) with the
+    EXIF camera. `--self-calibrate auto` refines f, k1 and k2 (4 GCPs): measured f 520.0 -> 530.5 px (the
+    true 520.0), check points 13.0 cm H / 91.9 cm V, verdict FAILED (exit 4); with k1, k2 only 2.0 / 1.4 cm
+    (the calibrated camera held fixed: 3.6 / 1.0 cm)."""
+    simulate(preset('tiny', photos=True), tmp_path / 'flight')
+    truth = GroundTruth.load(tmp_path / 'flight')
+    _wrong_truth_camera(tmp_path / 'flight')
+    photos = tmp_path / 'flight' / 'photos'
+    n_photos = len(list(photos.glob('*.JPG')))
+    figures = {}
+    # The simulator's lever arm (0.05, 0, -0.20) m FRD is (0, -0.05, -0.20) in the nadir camera frame.
+    for tag, extra in (('auto', []), ('k1k2', ['--self-calibrate', 'k1,k2'])):
+        out = tmp_path / tag
+        rc = main(['triangulate', str(photos), '--gcp', str(photos / 'gcp_list.txt'), '--out', str(out),
+                   '--lever-arm=0,-0.05,-0.2', *extra])
+        rep = json.loads((out / 'report.json').read_text())
+        rows = list(csv.DictReader(open(out / 'poses.csv')))
+        ck = rep['check']['rmse']
+        figures[tag] = rc, rep, rows, ck
+        print(f"triangulate ({tag}): exit {rc}, {len(rows)}/{n_photos} photos, reprojection "
+              f"{rep['reprojection_rms_px']:.3f} px, check n={ck['n']} h {ck['horizontal_m'] * 100:.1f} cm "
+              f"v {ck['vertical_m'] * 100:.1f} cm ({ck['horizontal_m'] / truth.gsd_m:.2f} / "
+              f"{ck['vertical_m'] / truth.gsd_m:.2f} GSD), camera centres {_centre_rmse_m(rows, truth):.3f} m, "
+              f"fx {rep['self_calibration']['fx']['before']:.1f} -> {rep['self_calibration']['fx']['after']:.1f} px")
+        # The EXIF camera, not the (doubled) truth beside the folder.
+        assert any(a.startswith('no calibration given: camera from the EXIF') for a in rep['assumptions'])
+        assert rep['self_calibration']['fx']['before'] == pytest.approx(truth.camera.fx, rel=1e-4)
+        assert len(rows) == n_photos and (out / 'sparse.las').stat().st_size > 10_000
+        assert (out / 'report.md').exists()
+    rc, rep, rows, ck = figures['auto']
+    assert rc in (0, 4) and rep['reprojection_rms_px'] < 1.5 * MEASURED['auto_rep_px']
+    assert ck['n'] == 2 and ck['horizontal_m'] < 1.5 * MEASURED['auto_h_m'] and ck['vertical_m'] < 1.5 * MEASURED['auto_v_m']
+    assert _centre_rmse_m(rows, truth) < 1.5 * MEASURED['auto_centres_m']
+    rc, rep, rows, ck = figures['k1k2']
+    assert rc == 0 and rep['reprojection_rms_px'] < 1.5 * MEASURED['k1k2_rep_px']
+    assert ck['n'] == 2 and ck['horizontal_m'] < 1.5 * MEASURED['k1k2_h_m'] and ck['vertical_m'] < 1.5 * MEASURED['k1k2_v_m']
+    assert _centre_rmse_m(rows, truth) < 1.5 * MEASURED['k1k2_centres_m']
+
+
+MEASURED = dict(auto_rep_px=0.182, auto_h_m=0.130, auto_v_m=0.919, auto_centres_m=0.156,
+                k1k2_rep_px=0.170, k1k2_h_m=0.020, k1k2_v_m=0.014, k1k2_centres_m=0.134)
 
 
 # --- EXIF altitudes relative to take-off ---------------------------------------------
@@ -70,7 +109,8 @@ def exif_survey(tmp_path_factory):
     truth = simulate(preset('tiny', photos=True, fps=1.0, line_length_m=30.0), flight)
     cfg = truth.config
     takeoff_msl_m = float(geoid.ellipsoid_to_msl_m(cfg['origin_lat_deg'], cfg['origin_lon_deg'], cfg['origin_h_m']))
-    # Both beside ground_truth.json (the calibration), neither with geo.txt: positions from EXIF only.
+    # Both beside the simulator's ground_truth.json (never read for the camera: the EXIF's is used),
+    # neither with geo.txt: positions from EXIF only.
     msl, rel = flight / 'msl', flight / 'relative'
     msl.mkdir()
     rel.mkdir()
@@ -109,14 +149,16 @@ def test_triangulate_relative_exif_altitudes_with_the_takeoff_height_match_msl_o
     print(f'camera centres, EXIF only: MSL {rms0:.3f} m, relative + take-off height {rms1:.3f} m '
           f'(heights {np.mean(err0[:, 2]):+.3f} / {np.mean(err1[:, 2]):+.3f} m)')
     assert len(err1) == len(err0) == rep0['keyframes']
-    # Same heights to the EXIF's millimetre rounding, in the existing test's band.
-    assert rms1 < 0.5 and abs(rms1 - rms0) < 0.01 and np.max(np.abs(err1[:, 2] - err0[:, 2])) < 0.01
+    # Same heights to the EXIF's millimetre rounding; measured 0.100 m from the true centres.
+    assert rms1 < 1.5 * 0.100 and abs(rms1 - rms0) < 0.01 and np.max(np.abs(err1[:, 2] - err0[:, 2])) < 0.01
     rep2, err2 = _triangulate(flight / 'relative', tmp_path / 'rel_gcp', *rel, gcp=flight / 'photos' / 'gcp_list.txt')
     ck = rep2['check']['rmse']
     print(f"with GCPs: check n={ck['n']} h {ck['horizontal_m'] * 100:.1f} cm v {ck['vertical_m'] * 100:.1f} cm, "
           f"cameras {np.sqrt(np.mean(np.sum(err2 ** 2, axis=1))):.3f} m")
-    assert ck['n'] == 2 and ck['horizontal_m'] < 1.5 * truth.gsd_m and ck['vertical_m'] < 2.5 * truth.gsd_m
-    assert np.sqrt(np.mean(np.sum(err2 ** 2, axis=1))) < 0.5
+    # Measured 1.1 cm H, 9.5 cm V; the cameras 0.78 m from the true centres (0.7 m high: the EXIF camera's
+    # focal length refined with the 4 GCPs, 520 -> 530 px as in test_triangulate_simulated_photos).
+    assert ck['n'] == 2 and ck['horizontal_m'] < 1.5 * 0.011 and ck['vertical_m'] < 1.5 * 0.095
+    assert np.sqrt(np.mean(np.sum(err2 ** 2, axis=1))) < 1.5 * 0.781
 
 
 def test_triangulate_flags_exif_altitudes_relative_to_takeoff(exif_survey, tmp_path, capsys):
@@ -146,8 +188,8 @@ def test_triangulate_takeoff_height_options_are_checked(tmp_path, capsys):
 
 
 def test_triangulate_skips_empty_and_truncated_photos_and_names_them(exif_survey, tmp_path, capsys):
-    """Issue 15.8: a 0-byte file aborted the run and a truncated JPEG was oriented grey-padded with a
-    libjpeg message naming no file; now both are skipped, named, and the rest is oriented."""
+    """A 0-byte file and a truncated JPEG are skipped and named (the report's assumptions, a warning);
+    the rest is oriented."""
     import shutil
     flight, _, _ = exif_survey
     folder = tmp_path / 'flight' / 'photos'
@@ -166,3 +208,32 @@ def test_triangulate_skips_empty_and_truncated_photos_and_names_them(exif_survey
     note = next(s for s in rep['assumptions'] if 'files skipped' in s)
     assert 'EMPTY_000.JPG (empty file (0 bytes))' in note and 'CUT_0000.JPG (truncated or corrupt JPEG' in note
     assert 'EMPTY_000.JPG' in out.err and f'oriented {len(good)}/{len(good) + 2} images' in out.out
+
+
+def test_truth_and_calibration_files_beside_the_photos_are_not_read_for_the_camera(exif_survey, tmp_path):
+    """A photo folder beside a ground_truth.json whose camera is wrong (focal x2), holding a camera.yaml
+    as wrong: the block's camera is the EXIF one (what a user gets), self-calibrated as an EXIF camera."""
+    import shutil
+
+    import yaml
+
+    from photogram_ros.io.image_source import exif_intrinsics
+    from photogram_ros.io.photo_block import read_photo_block
+    flight, truth, _ = exif_survey
+    folder = tmp_path / 'flight' / 'photos'
+    folder.mkdir(parents=True)
+    shutil.copy(flight / 'ground_truth.json', tmp_path / 'flight' / 'ground_truth.json')
+    _wrong_truth_camera(tmp_path / 'flight')
+    wrong = json.loads((tmp_path / 'flight' / 'ground_truth.json').read_text())['camera']['camera_matrix']['data']
+    assert wrong[0] == pytest.approx(2 * truth.camera.fx)
+    calib = yaml.safe_load((flight / 'photos' / 'camera.yaml').read_text())
+    calib['camera_matrix']['data'][0] *= 2
+    (folder / 'camera.yaml').write_text(yaml.safe_dump(calib))
+    for p in sorted((flight / 'msl').glob('*.JPG')):
+        shutil.copy(p, folder / p.name)
+    block = read_photo_block(folder)
+    exif = exif_intrinsics(next(folder.glob('*.JPG'))).camera
+    assert block.camera_from_exif and block.camera.fx == exif.fx and tuple(block.camera.dist) == (0.0,) * 5
+    assert abs(block.camera.fx / truth.camera.fx - 1) < 1e-4
+    assert not any('truth' in a or 'camera.yaml' in a for a in block.assumptions)
+    assert any(a.startswith('no calibration given: camera from the EXIF') for a in block.assumptions)

@@ -36,7 +36,7 @@ from photogram_ros.io.trajectory import POSES_COLUMNS, write_trajectory_csv
 
 @dataclass
 class TriangulateOptions:
-    camera: str | None = None                 # calibration YAML; default: the bag's camera_info / sim truth
+    camera: str | None = None                 # calibration YAML; default: the bag's camera_info / the EXIF
     targets: str | None = None                # a bag's control file of ArUco targets (io/control_file.py)
     gcp: str | None = None                    # OpenDroneMap gcp_list.txt (its MTP* rows: manual tie points)
     mtp: str | None = None                    # manual tie points: "px py image name" rows (io/control_file.py)

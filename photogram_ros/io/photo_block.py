@@ -4,10 +4,10 @@ Positions come from an OpenDroneMap geo.txt beside the photos (`read_geo_txt`; h
 its accuracies as sigmas), else from each photo's EXIF GPS (`exif_position`; what the EXIF altitude
 is relative to as the user says, MSL by default, sigma 5 m horizontal and 2 m vertical).
 
-The camera: a calibration YAML (`--camera`), else for simulator output the truth beside the folder,
-else the photos' EXIF (core/exif_intrinsics.py: DJI XMP calibrated focal, FocalLength with the focal
-plane resolution or a known sensor width, or the 35 mm equivalent; principal point at the centre,
-distortion zero), all said in the report's assumptions.
+The camera: a calibration YAML (`--camera`), else the photos' EXIF (core/exif_intrinsics.py: DJI XMP
+calibrated focal, FocalLength with the focal plane resolution or a known sensor width, or the 35 mm
+equivalent; principal point at the centre, distortion zero), all said in the report's assumptions.
+Nothing else beside the folder (a simulator's ground_truth.json, a camera.yaml) is read for it.
 
 Features are detected on each photo decoded at reduced size (core/photo_matching.py: a 4000 px frame
 4x smaller, libjpeg decoding it directly), matched between candidate pairs from the geotags (and
@@ -24,7 +24,6 @@ feature positions and verified matches; the matches are the same wherever they r
 
 from __future__ import annotations
 
-import json
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -121,17 +120,13 @@ def _positions(src: Path, images: list[Path], exif_altitude, takeoff_h_m, takeof
 
 def _camera(src: Path, images: list[Path], camera_path, assumptions, log=None
             ) -> tuple[PinholeCamera, bool, list[Path]]:
-    """--camera, else the simulator truth beside the folder, else the EXIF of the photos; whether it came
-    from the EXIF; and the photos of that camera. From the EXIF, photos of two cameras (another image size,
-    or a focal length more than 5 % apart) are split by camera: the largest group is used, the others are
-    named in the assumptions as not used (one camera model per block)."""
+    """--camera, else the EXIF of the photos; whether it came from the EXIF; and the photos of that
+    camera. From the EXIF, photos of two cameras (another image size, or a focal length more than 5 %
+    apart) are split by camera: the largest group is used, the others are named in the assumptions as
+    not used (one camera model per block)."""
     if camera_path:
         assumptions.append(f'calibration from {camera_path}, held fixed')
         return camera_from_yaml(camera_path), False, images
-    if (src.parent / 'ground_truth.json').exists():
-        assumptions.append('calibration from the simulator truth beside the photos, held fixed')
-        cam = PinholeCamera.from_ros_yaml_dict(json.loads((src.parent / 'ground_truth.json').read_text())['camera'])
-        return cam, False, images
     groups = []          # [(first estimate, [paths])]: one per camera
     unknown = []         # photos without EXIF intrinsics: taken with the main camera
     for p in images:

@@ -1,11 +1,14 @@
-"""Survey-camera deliverables: geotagged JPEGs, an OpenDroneMap geo.txt and gcp_list.txt.
+"""Survey-camera deliverables: geotagged JPEGs, an OpenDroneMap geo.txt, gcp_list.txt and camera.yaml.
 
 Photos are taken at the front-overlap spacing a survey camera would use, from the same rendered
 frames as the bag. EXIF GPS altitude is above mean sea level, as the EXIF standard says; geo.txt
 carries the ellipsoidal height with per-image accuracy, as a PPK/RTK workflow would. The camera tags
 are a real camera's: FocalLength (mm, for a 3 um pixel pitch), FocalPlaneX/YResolution with its unit,
 FocalLengthIn35mmFilm (by the diagonal) and the image size, from which core/exif_intrinsics.py
-recovers the focal length in pixels.
+recovers the focal length in pixels (principal point centred, no distortion: what a user of the photos
+gets). camera.yaml is the simulated camera's calibration (principal point offset and distortion
+included) in the ROS camera_info YAML that `triangulate --camera` reads, for runs that want a
+calibrated camera; nothing reads it unless asked.
 """
 
 from __future__ import annotations
@@ -29,6 +32,7 @@ DIAGONAL_35MM_MM = 43.27
 PPK_RATE_HZ = 5.0               # the PPK track's epoch rate
 PPK_EPOCH_PHASE_S = 0.1         # its epochs' offset from the flight's own fix times
 SIM_BOOT_BEFORE_START_S = 94.3  # the autopilot booted this long before the first fix of the flight
+CAMERA_FILE = 'camera.yaml'     # the calibration beside the photos
 
 
 def _rational_dms(value_deg: float):
@@ -79,9 +83,14 @@ def write_photos(folder: Path, frames, truth, cfg, exif_fixes=None, geo_txt: boo
     """`frames`: [(index, image, FlightState)] of every rendered frame; writes the triggered ones.
 
     exif_fixes: the fixes (dicts as `truth.fixes`) the camera geotags its photos with (default: the
-    flight's own GNSS); geo_txt: also write geo.txt from them. Returns [(photo name, FrameTruth)].
+    flight's own GNSS); geo_txt: also write geo.txt from them. Also writes the camera's calibration
+    (CAMERA_FILE). Returns [(photo name, FrameTruth)].
     """
+    import yaml
+
     folder.mkdir(parents=True, exist_ok=False)
+    (folder / CAMERA_FILE).write_text(yaml.safe_dump(truth.camera.to_ros_yaml_dict('sim_camera'), sort_keys=False,
+                                                       default_flow_style=None))
     spacing_m = cfg.height_px * cfg.gsd_m * (1.0 - cfg.front_overlap)
     names, last = [], None
     geo_lines = ['EPSG:4326']
@@ -124,7 +133,8 @@ def write_photos(folder: Path, frames, truth, cfg, exif_fixes=None, geo_txt: boo
     if geo_txt:
         (folder / 'README.txt').write_text(
             'Simulated survey photos. EXIF GPS altitude is MSL (geoid: ' + geoid.MODEL_NAME + '); geo.txt '
-            'and gcp_list.txt heights are ellipsoidal (WGS84). Targets named CHK* are check points.\n')
+            'and gcp_list.txt heights are ellipsoidal (WGS84). Targets named CHK* are check points. The EXIF '
+            'states the focal length only; ' + CAMERA_FILE + ' is the full calibration (triangulate --camera).\n')
     return names
 
 
@@ -196,5 +206,6 @@ def write_ppk(folder: Path, frames, truth, cfg, antenna_at_t) -> list:
         'Timestamp.MRK has the exposures (GPS time) with the antenna -> camera offsets (mm, N/E/V, V down); '
         'flight.bin is an ArduPilot dataflash log of the same exposures (CAM: GPS time, body attitude). '
         '`photogram-ros geotag --pos flight.pos --events Timestamp.MRK --photos .` writes geo.txt. '
-        'gcp_list.txt heights are ellipsoidal; CHK* are check points.\n')
+        'gcp_list.txt heights are ellipsoidal; CHK* are check points. ' + CAMERA_FILE + ' is the camera\'s '
+        'calibration (triangulate --camera); the EXIF states the focal length only.\n')
     return names
