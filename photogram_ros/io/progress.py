@@ -36,6 +36,14 @@ def say_stderr(text: str) -> None:
     print(text, file=sys.stderr, flush=True)
 
 
+def sayer(progress, default: Say = say_stdout) -> Say | None:
+    """What a function's `progress` argument asks: True -> `default`, False/None -> None (silent), a
+    function -> that function."""
+    if callable(progress):
+        return progress
+    return default if progress else None
+
+
 def duration_text(seconds: float) -> str:
     """A duration for a person: '42 s', '2.1 min', '1.3 h'."""
     s = max(0.0, float(seconds))
@@ -65,12 +73,13 @@ class Progress:
         self.rate: float | None = None     # smoothed pieces per second; None until the first sample
         self.finished = False
 
-    def add(self, n: int = 1, extra: str = '') -> bool:
+    def add(self, n: int = 1, extra: str | Callable[[], str] = '') -> bool:
         """update(done + n)."""
         return self.update(self.done + n, extra)
 
-    def update(self, done: int, extra: str = '') -> bool:
-        """`done` pieces so far; says a line (with `extra` appended) when one is due. Returns whether it did."""
+    def update(self, done: int, extra: str | Callable[[], str] = '') -> bool:
+        """`done` pieces so far; says a line (with `extra` appended: a text, or a function giving it, called
+        only when a line is said) when one is due. Returns whether it did."""
         now = self.clock()
         self.done = int(done)
         dt = now - self._t_sample
@@ -82,7 +91,7 @@ class Progress:
         if self.say is None or self.finished or now - self._last_said < self.every_s:
             return False
         self._last_said = now
-        self.say(self.line(extra, now))
+        self.say(self.line(extra() if callable(extra) else extra, now))
         return True
 
     def eta_s(self) -> float | None:
@@ -111,8 +120,9 @@ class Progress:
                 + (f'ETA {duration_text(eta)}' if eta is not None else 'ETA unknown')
                 + (f'; {extra}' if extra else ''))
 
-    def finish(self, extra: str = '') -> str:
+    def finish(self, extra: str | Callable[[], str] = '') -> str:
         """The summary line, said once: 'what: done/total unit (pct %) in duration[; extra]'."""
+        extra = extra() if callable(extra) else extra
         text = f'{self.what}: {self._count()} in {duration_text(self.clock() - self.t0)}' + (
             f'; {extra}' if extra else '')
         if self.say is not None and not self.finished:
@@ -125,9 +135,9 @@ class Progress:
         reporter (its total from the calls) and says the summary when done reaches total."""
         def report(done: int, total: int) -> None:
             self.total = int(total) if total else None
-            self.update(done, extra() if extra else '')
+            self.update(done, extra or '')
             if self.total is not None and done >= self.total:
-                self.finish(extra() if extra else '')
+                self.finish(extra or '')
         return report
 
 
