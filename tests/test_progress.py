@@ -115,3 +115,32 @@ def test_steps_say_each_step_and_the_longest():
 
 def test_duration_text():
     assert [duration_text(s) for s in (0.4, 59.4, 126.0, 3600 * 1.26)] == ['0 s', '59 s', '2.1 min', '1.3 h']
+
+
+def test_triangulate_of_a_photo_folder_says_percents_of_photos_and_pairs(tmp_path, monkeypatch, capsys):
+    """`triangulate` of a small simulated photo folder: features counted in photos, matching in pairs, the
+    incremental adjustment in photos added, each with a percent and an ETA, each ending at 100 %; with
+    --quiet none of it."""
+    from photogram_ros import cli
+    from photogram_ros.io import progress
+    from photogram_ros.sim.scenario import preset, simulate
+    simulate(preset('tiny', photos=True, fps=1.0, line_length_m=30.0), tmp_path / 'flight')
+    photos = tmp_path / 'flight' / 'photos'
+    n = len(list(photos.glob('*.JPG')))
+    monkeypatch.setattr(progress, 'EVERY_S', 0.0)   # a line at every piece
+    small = ['--max-image-px', '500', '--max-features', '1000']
+    assert cli.main(['triangulate', str(photos), '--out', str(tmp_path / 'at'), *small]) == 0
+    err = capsys.readouterr().err.splitlines()
+    for what, unit, total in (('features', 'photos', n), ('matching', 'pairs', None),
+                              ('aerial triangulation', 'photos added', n)):
+        pat = rf'triangulate: {what}: (\d+)/(\d+) {unit} \((\d+) %\), \d+ s elapsed, ETA (\d+ s|[\d.]+ min|unknown).*'
+        lines = [m for m in (re.fullmatch(pat, s) for s in err) if m]
+        assert len(lines) >= 2, (what, err)
+        if total is not None:
+            assert all(int(m[2]) == total for m in lines)
+        assert any('ETA unknown' not in m[0] for m in lines), what
+        assert any(re.fullmatch(rf'triangulate: {what}: (\d+)/\1 {unit} \(100 %\) in \d+ s.*', s) for s in err), what
+    assert any(re.fullmatch(r'triangulate: full adjustment \(step \d+\), \d+ s elapsed', s) for s in err)
+    assert re.fullmatch(r'triangulate: \d+ steps in .*', [s for s in err if s.startswith('triangulate: ')][-1])
+    assert cli.main(['triangulate', str(photos), '--out', str(tmp_path / 'quiet'), '--quiet', *small]) == 0
+    assert not [s for s in capsys.readouterr().err.splitlines() if ' %' in s or 'elapsed' in s]

@@ -24,6 +24,7 @@ import time
 from typing import Callable
 
 Say = Callable[[str], None]
+EVERY_S = 5.0    # seconds between two lines of a Progress made without `every_s`
 
 
 def say_stdout(text: str) -> None:
@@ -57,15 +58,16 @@ def duration_text(seconds: float) -> str:
 class Progress:
     """Progress of one job of `total` pieces (None or 0: not known), named `what`, counted in `unit`.
 
-    update(done) takes the count done so far (add(n) adds to it); a line is said when `every_s` has
-    passed since the start or the last line. The rate is sampled at most every `sample_s` and smoothed
+    update(done) takes the count done so far (add(n) adds to it); a line is said when `every_s` (default
+    EVERY_S) has passed since the start or the last line. The rate is sampled at most every `sample_s` and smoothed
     with the time constant `tau_s`: ETA = (total - done) / rate.
     """
 
     def __init__(self, what: str, total: int | None = None, unit: str = '', say: Say | None = say_stdout,
-                 every_s: float = 5.0, clock: Callable[[], float] = time.monotonic, tau_s: float = 30.0,
+                 every_s: float | None = None, clock: Callable[[], float] = time.monotonic, tau_s: float = 30.0,
                  sample_s: float = 1.0):
-        self.what, self.unit, self.say, self.every_s, self.clock = what, unit, say, every_s, clock
+        self.what, self.unit, self.say, self.clock = what, unit, say, clock
+        self.every_s = EVERY_S if every_s is None else every_s
         self.total = int(total) if total else None
         self.tau_s, self.sample_s = tau_s, sample_s
         self.t0 = self._last_said = self._t_sample = clock()
@@ -166,7 +168,7 @@ class Steps:
         ends = [t for _, t in self.times[1:]] + [now]
         return [(name, end - t) for (name, t), end in zip(self.times, ends)]
 
-    def progress(self, name: str, total: int | None, unit: str, every_s: float = 5.0) -> Progress:
+    def progress(self, name: str, total: int | None, unit: str, every_s: float | None = None) -> Progress:
         """A step counted in pieces: starts the step and gives its Progress ('what: name: 3/40 unit ...')."""
         self.start(name)
         return Progress(f'{self.what}: {name}', total, unit, self.say, every_s, self.clock)
