@@ -72,3 +72,26 @@ def test_replay_of_the_sample_bag_says_percent_eta_and_every_step(tmp_path):
     assert [re.sub(r' \(step.*', '', s)[len('export: '):] for s in out if re.match(r'export: \w+ \(step', s)] == [
         'cloud', 'LAS', 'LAZ', 'PLY', 'DSM', 'DTM', 'ortho']
     assert any(re.fullmatch(r'export: ortho: (\d+)/\1 keyframes \(100 %\) in .*', s) for s in out), r.stdout
+
+
+def test_replay_frame_totals_of_a_bag_a_photo_folder_and_a_video(tmp_path):
+    """The totals the replay's percent is of: the bag's image count, the folder's photos, the video's frames."""
+    import cv2
+
+    from photogram_ros.io.bag import BagReader
+    from photogram_ros.io.image_source import FolderSource, VideoSource
+    from photogram_ros.nodes.replay_session import frame_total, frame_total_of_source
+    with BagReader(SAMPLE_BAG) as bag:
+        assert frame_total(bag.topics()) == 76
+    assert frame_total({}) is None
+    folder = tmp_path / 'photos'
+    folder.mkdir()
+    for k in range(5):
+        cv2.imwrite(str(folder / f'IMG_{k}.jpg'), np.full((48, 64, 3), 40 * k, np.uint8))
+    assert frame_total_of_source(FolderSource(folder)) == 5
+    video = tmp_path / 'v.avi'
+    w = cv2.VideoWriter(str(video), cv2.VideoWriter_fourcc(*'MJPG'), 10.0, (64, 48))
+    for k in range(12):
+        w.write(np.full((48, 64, 3), 10 * k, np.uint8))
+    w.release()
+    assert frame_total_of_source(VideoSource(str(video), start_ns=0)) == 12
