@@ -60,9 +60,9 @@ def _products_from(end: dict | None, matched_again: bool) -> tuple[str, list]:
     return ('final adjustment (map_final)' if matched_again else 'in-flight map (map)'), []
 
 
-def densify_with_params(map_dir, out_dir, params_file: str | None, progress=True, what: str = 'export'):
+def densify_with_params(map_dir, out_dir, params_file: str | None, progress=True):
     """io/densify.densify_map of `map_dir` (a folder or an open MapStore) with the file's parameters.
-    progress: True (lines on stderr), False, or a say(text) function (io/progress.py); `what` starts its lines."""
+    progress: True (lines on stderr: keyframes matched, percent, ETA), False, or a say(text) function."""
     from photogram_ros.io.progress import Progress, say_stderr, sayer
     from photogram_ros.core.fusion import FusionConfig
     from photogram_ros.core.pairs import PairCriteria
@@ -76,8 +76,7 @@ def densify_with_params(map_dir, out_dir, params_file: str | None, progress=True
     criteria = _core_params(PairCriteria, stereo_section, f'{params_file} stereo_node')
     fusion = _core_params(FusionConfig, map_section, f'{params_file} map_node')
 
-    matching = Progress(f'{what}: dense matching from the final poses', None, 'keyframes',
-                        sayer(progress, say_stderr))
+    matching = Progress('export: dense matching', None, 'keyframes', sayer(progress, say_stderr))
     return densify_map(map_dir, out_dir, stereo, criteria, fusion, matching.callback())
 
 
