@@ -33,6 +33,20 @@ COMMANDS = {
 ROS_COMMANDS = ('run', 'replay', 'play', 'record', 'ground-station')
 
 
+class HelpFormatter(argparse.HelpFormatter):
+    """`--help` shows each option's default, "(default: X)", unless its text already says it (the word
+    "default") or there is nothing to show (None, False, an empty string: the option is simply off)."""
+
+    def _get_help_string(self, action):
+        text = action.help or ''
+        d = action.default
+        if (not action.option_strings or d is None or d is False or d == '' or d is argparse.SUPPRESS
+                or isinstance(action, (argparse._HelpAction, argparse._VersionAction))
+                or 'default' in text.lower()):
+            return text
+        return f'{text} (default: %(default)s)'
+
+
 class _Parser(argparse.ArgumentParser):
     """An argument error is one line (what and where to look), exit status 2."""
 
@@ -41,12 +55,13 @@ class _Parser(argparse.ArgumentParser):
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = _Parser(prog='photogram-ros', description='Onboard photogrammetric mapping for drones.')
+    parser = _Parser(prog='photogram-ros', description='Onboard photogrammetric mapping for drones.',
+                     formatter_class=HelpFormatter)
     sub = parser.add_subparsers(dest='command', metavar='COMMAND')
     sub.required = True
     for name, module_name in COMMANDS.items():
         module = importlib.import_module(module_name)
-        p = sub.add_parser(name, help=module.HELP, description=module.HELP)
+        p = sub.add_parser(name, help=module.HELP, description=module.HELP, formatter_class=HelpFormatter)
         module.add_arguments(p)
         p.set_defaults(_run=module.run)
     return parser

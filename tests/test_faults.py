@@ -880,13 +880,13 @@ def test_replay_is_not_heard_on_the_users_domain(tmp_path, rclpy_context, share)
     try:
         line = ''
         for line in proc.stdout:
-            if 'replaying on ROS_DOMAIN_ID' in line or '[replay' in line:
+            if 'replaying on ROS_DOMAIN_ID' in line or line.startswith('replay: '):
                 break
         if not share:
             domain = int(line.split('ROS_DOMAIN_ID')[1].split(',')[0])
             assert domain != mine and 201 <= domain <= 232
         for line in proc.stdout:   # the replay is playing frames now
-            if '[replay' in line:
+            if line.startswith('replay: '):
                 break
         seen = set()
         for _ in range(20):

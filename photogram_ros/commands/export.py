@@ -30,6 +30,7 @@ def add_arguments(p) -> None:
     p.add_argument('--params', default=None,
                    help='parameter file whose stereo_node and map_node sections --densify uses (the flight\'s; '
                         'default: config/replay.yaml if present)')
+    p.add_argument('--quiet', action='store_true', help='no progress lines (on stderr)')
 
 
 def poses_label(end: dict | None) -> str:
@@ -53,6 +54,7 @@ def run(a) -> int:
     from photogram_ros.errors import ConfigError
     from photogram_ros.io.export import export_map
     from photogram_ros.io.map_store import MapStore
+    from photogram_ros.io.progress import say_stderr
 
     products = tuple(s.strip() for s in a.products.split(',') if s.strip())
     bad = [s for s in products if s not in PRODUCTS]
@@ -71,7 +73,7 @@ def run(a) -> int:
 
         from photogram_ros.commands.products import densify_with_params
         params = a.params if a.params is not None or not Path('config/replay.yaml').exists() else 'config/replay.yaml'
-        d = densify_with_params(store, Path(a.out) / 'map_final', params)
+        d = densify_with_params(store, Path(a.out) / 'map_final', params, progress=not a.quiet)
         print(f'{d.pairs_done} pairs matched again from {poses_label(store.flight_end())} in {d.seconds:.1f} s '
               f'-> {d.map_dir}'
               + (f'; skipped {d.pairs_skipped}' if d.pairs_skipped else ''))
@@ -82,7 +84,7 @@ def run(a) -> int:
             print(f'  from the GSD ({", ".join(d.derived)}): {GsdSettings(**d.gsd).summary()}')
         store = d.store
     res = export_map(store, a.out, a.crs, a.heights, a.dsm_res_m, a.ortho_res_m, products, origin,
-                     min_pairs=a.min_pairs, contour_interval_m=a.contours_m)
+                     min_pairs=a.min_pairs, contour_interval_m=a.contours_m, say=None if a.quiet else say_stderr)
     print(f'{res.points} points, {res.keyframes} keyframes -> {a.out} ({res.crs_with_heights}, {a.heights} heights)')
     if res.classes:
         c = res.classes

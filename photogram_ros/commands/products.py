@@ -9,8 +9,6 @@ checked here; the nodes' own names (topics, rates, the map folder) are the nodes
 
 from __future__ import annotations
 
-import sys
-
 
 def _core_params(cls, section: dict, where: str):
     """`cls` validated from the names of a node's section that it declares."""
@@ -62,8 +60,10 @@ def _products_from(end: dict | None, matched_again: bool) -> tuple[str, list]:
     return ('final adjustment (map_final)' if matched_again else 'in-flight map (map)'), []
 
 
-def densify_with_params(map_dir, out_dir, params_file: str | None, progress: bool = True):
-    """io/densify.densify_map of `map_dir` (a folder or an open MapStore) with the file's parameters."""
+def densify_with_params(map_dir, out_dir, params_file: str | None, progress=True):
+    """io/densify.densify_map of `map_dir` (a folder or an open MapStore) with the file's parameters.
+    progress: True (lines on stderr: keyframes matched, percent, ETA), False, or a say(text) function."""
+    from photogram_ros.io.progress import Progress, say_stderr, sayer
     from photogram_ros.core.fusion import FusionConfig
     from photogram_ros.core.pairs import PairCriteria
     from photogram_ros.core.stereo import StereoParams
@@ -76,22 +76,18 @@ def densify_with_params(map_dir, out_dir, params_file: str | None, progress: boo
     criteria = _core_params(PairCriteria, stereo_section, f'{params_file} stereo_node')
     fusion = _core_params(FusionConfig, map_section, f'{params_file} map_node')
 
-    def report(done, total):
-        if progress and (done == total or done % 25 == 0):
-            print(f'\rdense matching from the final adjustment: {done}/{total} keyframes', end='',
-                  file=sys.stderr, flush=True)
-            if done == total:
-                print(file=sys.stderr)
-
-    return densify_map(map_dir, out_dir, stereo, criteria, fusion, report)
+    matching = Progress('export: dense matching', None, 'keyframes', sayer(progress, say_stderr))
+    return densify_map(map_dir, out_dir, stereo, criteria, fusion, matching.callback())
 
 
 def export_products(map_dir, out, params_file: str | None, crs: str = '', live_map: bool = False,
-                    heights: str = 'ellipsoidal', min_pairs: int = 2, progress: bool = False, run: dict | None = None,
+                    heights: str = 'ellipsoidal', min_pairs: int = 2, progress=False, run: dict | None = None,
                     **report) -> dict:
     """Matched again from the final adjustment (unless live_map), exported in `crs` (UTM of the origin
     by default), with the flight report (`run` and `report`: build_report's run, truth, control,
-    diagnostics). Returns {'files', 'notes', 'crs', 'figures', 'points'}."""
+    diagnostics). progress: True (lines on stdout: the dense matching's keyframes, each product), False,
+    or a say(text) function. Returns {'files', 'notes', 'crs', 'figures', 'points'}."""
+    from photogram_ros.io.progress import sayer
     from pathlib import Path
 
     from photogram_ros.core.geodesy import utm_epsg
@@ -117,7 +113,7 @@ def export_products(map_dir, out, params_file: str | None, crs: str = '', live_m
     products, notes = store, []
     if not live_map:
         try:
-            d = densify_with_params(store, out / 'map_final', params_file, progress=progress)
+            d = densify_with_params(store, out / 'map_final', params_file, progress=sayer(progress))
             products = d.store
             run.update(densify_s=round(d.seconds, 2), densify_pairs=d.pairs_done, densify_stereo_s=round(d.stereo_s, 2),
                        densify_pairs_skipped=dict(d.pairs_skipped), gsd=d.gsd, gsd_derived=d.derived)
@@ -133,7 +129,7 @@ def export_products(map_dir, out, params_file: str | None, crs: str = '', live_m
     run['products_from'] = source
     notes += source_notes
     try:
-        ex = export_map(products, out, crs, heights, min_pairs=min_pairs)
+        ex = export_map(products, out, crs, heights, min_pairs=min_pairs, say=sayer(progress))
         files = {k: str(v) for k, v in ex.files.items()}
         run['map_points'] = ex.points
         run['dsm'] = ex.dsm

@@ -259,7 +259,7 @@ def _export_at_stop(a, roles, run_info=None, diagnostics=None) -> int:
     from photogram_ros.errors import PhotogramError
     try:
         res = export_products(map_dir_of(a.params), a.out, a.params, a.crs, a.live_map, run=run_info,
-                              diagnostics=diagnostics)
+                              diagnostics=diagnostics, progress=True)
     except (PhotogramError, OSError) as exc:   # the map itself is safe on disk: say how to export it later
         print(f'exports failed ({exc}); the map is on disk: photogram-ros export MAPDIR --densify', flush=True)
         return EXIT_EXPORT_FAILED

@@ -52,6 +52,7 @@ def add_arguments(p) -> None:
                         'workers need photogram_ros and the photos at the same path)')
     p.add_argument('--takeoff-heights', choices=('msl', 'ellipsoidal'), default='msl',
                    help='reference of --takeoff-altitude-m: msl (EGM2008; default) or ellipsoidal (WGS84)')
+    p.add_argument('--quiet', action='store_true', help='no progress lines (on stderr; warnings are still said)')
 
 
 def _floats(text: str, what: str, n: int) -> tuple:
@@ -76,7 +77,7 @@ def _bag_without_metadata(path) -> bool:
     return p.exists() and source_kind(p) == 'bag' and not (p / 'metadata.yaml').exists()
 
 
-def _triangulate_bag(src, out, opt, log):
+def _triangulate_bag(src, out, opt, log, progress):
     """triangulate()'s bag path for a bag without metadata.yaml (see _bag_without_metadata)."""
     import time
 
@@ -89,7 +90,7 @@ def _triangulate_bag(src, out, opt, log):
     block = read_bag_keyframes(src, opt.camera, control_set, log)
     if opt.exif_altitude:
         block.assumptions.append(f'--exif-altitude {opt.exif_altitude} ignored: a bag has no EXIF')
-    return adjust_block(block, out, opt, control_set, log, t0)
+    return adjust_block(block, out, opt, control_set, log, t0, progress)
 
 
 def run(a) -> int:
@@ -117,8 +118,8 @@ def run(a) -> int:
     from photogram_ros.io.out_dir import usable_folder
     usable_folder(a.out)   # a file or an uncreatable path: said now, not after the adjustment
     log = (lambda text: print(text, file=sys.stderr))
-    res = (_triangulate_bag(a.input, a.out, opt, log) if _bag_without_metadata(a.input)
-           else triangulate(a.input, a.out, opt, log=log))
+    res = (_triangulate_bag(a.input, a.out, opt, log, not a.quiet) if _bag_without_metadata(a.input)
+           else triangulate(a.input, a.out, opt, log=log, progress=not a.quiet))
     rep = res.report
     ck = rep['check']['rmse']
     rms = rep['reprojection_rms_px']

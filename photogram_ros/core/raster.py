@@ -258,13 +258,14 @@ class Keyframe:
 
 
 def orthomosaic(dsm: Raster, keyframes: list[Keyframe], grid_to_map=None, res_m: float | None = None,
-                margin_px: float = 2.0, max_off_nadir_deg: float = 45.0) -> Raster:
+                margin_px: float = 2.0, max_off_nadir_deg: float = 45.0, progress=None) -> Raster:
     """Drape keyframes on the DSM; per cell the keyframe seeing it closest to vertical wins.
 
     Choosing the most vertical view keeps relief displacement and occlusion smallest, and makes
     seams fall between neighbouring keyframes where both see the ground alike. Returns BGRA uint8
     with alpha 0 where no keyframe sees the cell or the DSM has no data. `grid_to_map(X, Y, Z)`
     maps grid coordinates (N,) x3 to map ENU (N, 3); identity when the grid is the map frame.
+    `progress(done, total)` (optional) is called before each keyframe and after the last.
     """
     if res_m is not None and abs(res_m - dsm.res_m) > 1e-9:
         dsm = resample(dsm, res_m)
@@ -280,7 +281,9 @@ def orthomosaic(dsm: Raster, keyframes: list[Keyframe], grid_to_map=None, res_m:
     best = np.full(flat.size, np.cos(np.radians(max_off_nadir_deg)), dtype=np.float64)
     colour = np.zeros((flat.size, 3), dtype=np.uint8)
     seen = np.zeros(flat.size, dtype=bool)
-    for kf in keyframes:
+    for k, kf in enumerate(keyframes):
+        if progress is not None:
+            progress(k, len(keyframes))
         if kf.image is None or kf.image.ndim != 3:
             raise DataError('orthomosaic keyframes need BGR images')
         cam = kf.camera
@@ -309,6 +312,8 @@ def orthomosaic(dsm: Raster, keyframes: list[Keyframe], grid_to_map=None, res_m:
         colour[idx] = _sample_image(kf.image, uv)
         best[idx] = cos_v
         seen[idx] = True
+    if progress is not None:
+        progress(len(keyframes), len(keyframes))
     flat_out = out.reshape(-1, 4)
     flat_out[flat[seen], :3] = colour[seen]
     flat_out[flat[seen], 3] = 255

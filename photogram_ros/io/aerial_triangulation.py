@@ -10,6 +10,10 @@ asked for), and writes into `out`:
 - sparse.ply and sparse.las: the tie points, ellipsoidal heights;
 - report.md/.html/.json: the adjustment's figures (core/at_report.py) and every assumption made.
 The output CRS is the one asked for, else the GCP file's, else the UTM zone of the origin.
+
+Progress (io/progress.py) goes to `progress(text)`: each step as it starts, and the photos of the
+features, the pairs of the matching and the photos added to the incremental adjustment counted with a
+percent and an ETA.
 """
 
 from __future__ import annotations
@@ -31,6 +35,7 @@ from photogram_ros.core.photo_matching import MatchingOptions
 from photogram_ros.errors import ConfigError
 from photogram_ros.io.export import GeoCloud, enu_to_crs, write_las, write_ply
 from photogram_ros.io.keyframe_block import KeyframeBlock
+from photogram_ros.io.progress import Progress, Steps, sayer
 from photogram_ros.io.trajectory import POSES_COLUMNS, write_trajectory_csv
 
 
@@ -76,14 +81,56 @@ class TriangulateResult:
     verdict: dict = field(default_factory=dict)  # core/block_check.py BlockVerdict.to_dict()
 
 
-def triangulate(src: str | Path, out: str | Path, opt: TriangulateOptions, log=None) -> TriangulateResult:
+# Labels and units of the photo block's jobs (io/photo_block.py's names for them).
+PHOTO_JOBS = {'features': ('features', 'photos'), 'matching pairs': ('matching', 'pairs'),
+              'matching more pairs for weakly linked photos': ('matching more pairs for weakly linked photos',
+                                                               'pairs')}
+
+
+class CountedRunner:
+    """A runner of io/dask_cluster.py whose named jobs report through io/progress.py (percent and ETA,
+    to `say`; None: silent) instead of the runner's own lines."""
+
+    def __init__(self, runner, say):
+        self.runner, self.say = runner, say
+        self.workers, self.where = runner.workers, runner.where
+
+    def run(self, fn, calls, what=None, log=None, keep=False, on_result=None, extra=None) -> list:
+        calls = list(calls)
+        if what is None or self.say is None:
+            return self.runner.run(fn, calls, None, None, keep, on_result)
+        label, unit = PHOTO_JOBS.get(what, (what, 'pieces'))
+        where = f' on {self.workers} workers{self.where}' if self.workers > 1 else ''
+        prog = Progress(f'triangulate: {label}{where}', len(calls), unit, self.say)
+
+        text = (lambda: extra().lstrip(', ')) if extra else ''   # extra(): ', 12 verified'
+
+        def counted(k, result):
+            if on_result is not None:
+                on_result(k, result)
+            prog.add(1, text)
+
+        out = self.runner.run(fn, calls, None, None, keep, counted)
+        prog.finish(text)
+        return out
+
+    def release(self, handles) -> None:
+        self.runner.release(handles)
+
+
+def triangulate(src: str | Path, out: str | Path, opt: TriangulateOptions, log=None,
+                progress=True) -> TriangulateResult:
     """Aerial triangulation of the bag or photo folder `src` into the folder `out` (see the module
-    docstring); log(text): progress lines and warnings."""
+    docstring); log(text): warnings and what was read; progress: True (progress lines to `log`), False
+    (none) or a say(text) function for them."""
     opt.check()
     t0 = time.monotonic()
     src = Path(src)
     control_set = None
+    say = sayer(progress, log)
+    steps = Steps('triangulate', None, say)
     if (src / 'metadata.yaml').exists():
+        steps.start('reading the bag\'s keyframes')
         from photogram_ros.io.bag_keyframes import read_bag_keyframes
         from photogram_ros.io.control_file import read_control_file
         if opt.targets:
@@ -96,10 +143,11 @@ def triangulate(src: str | Path, out: str | Path, opt: TriangulateOptions, log=N
     else:
         from photogram_ros.io.dask_cluster import open_runner
         from photogram_ros.io.photo_block import read_photo_block
+        steps.start('features and matching of the photos')
         with open_runner(opt.workers, opt.scheduler, log) as runner:
             block = read_photo_block(src, opt.camera, opt.neighbours, opt.exif_altitude, opt.takeoff_h_m,
-                                     opt.takeoff_heights, log, opt.matching, runner)
-    res = adjust_block(block, out, opt, control_set, log, t0)
+                                     opt.takeoff_heights, log, opt.matching, CountedRunner(runner, say))
+    res = adjust_block(block, out, opt, control_set, log, t0, steps=steps)
     return res
 
 
@@ -167,29 +215,29 @@ def auto_self_calibration(block: KeyframeBlock, n_gcps: int, assumptions: list) 
 
 
 def _triangulate_records(block: KeyframeBlock, opt: TriangulateOptions, control: list, target_obs: dict,
-                         refine: tuple, log=None, what: str = '', tie_obs: dict | None = None
-                         ) -> tuple[IncrementalAT, object]:
+                         refine: tuple, log=None, what: str = '', tie_obs: dict | None = None,
+                         steps: Steps | None = None) -> tuple[IncrementalAT, object]:
     """One incremental AT of the block's records (target observations `target_obs` and manual tie points
     `tie_obs` by photo name), the unregistered photos retried, and the full adjustment refining `refine`:
-    (at, its StepReport)."""
+    (at, its StepReport). `steps`: where its steps and the photos added are said."""
+    steps = steps or Steps('triangulate', None, None)
     lever = tuple(opt.lever_arm_cam_m)
     tie_obs = tie_obs or {}
     ties = {n for obs in tie_obs.values() for n in obs}
     at = IncrementalAT(block.camera, IncrementalOptions(window_size=opt.window, lever_arm_cam_m=lever), block.origin,
                        control, ties=ties)
-    t_at = time.monotonic()
-    last = t_at
-    for n, rec in enumerate(block.records):
+    added = steps.progress(f'aerial triangulation{what}', len(block.records), 'photos added')
+    oriented = (lambda: f'{len(at.registered)} oriented')
+    for rec in block.records:
         rec.target_uv = {**target_obs.get(rec.name, {}), **tie_obs.get(rec.name, {})}
         at.add_keyframe(rec)
-        if log is not None and (time.monotonic() - last >= 5.0 or n + 1 == len(block.records)):
-            last = time.monotonic()
-            log(f'aerial triangulation{what}: {n + 1}/{len(block.records)} added, {len(at.registered)} oriented '
-                f'({last - t_at:.0f} s)')
+        added.add(1, oriented)
+    added.finish(oriented)
     n_retry = at.retry_unregistered()     # photos that did not register in sequence: a second chance
     if log is not None and n_retry:
         log(f'aerial triangulation{what}: {n_retry} more oriented against the whole block')
     t_full = time.monotonic()
+    steps.start(f'full adjustment{what}')
     rep_adj = at.full_adjustment(refine_intrinsics=refine)
     if log is not None:
         log(f'full adjustment{what}{" with self-calibration of " + ", ".join(refine) if refine else ""}: '
@@ -244,14 +292,16 @@ def _tie_obs(rows: list, images: set, assumptions: list, log=None) -> dict:
 
 
 def adjust_block(block: KeyframeBlock, out: str | Path, opt: TriangulateOptions, control_set=None,
-                 log=None, t0: float | None = None) -> TriangulateResult:
+                 log=None, t0: float | None = None, progress=True, steps: Steps | None = None) -> TriangulateResult:
     """Incremental AT of the block's records, a full adjustment, then poses, sparse cloud and report.
 
     control_set: a bag's ControlSet, whose observations are already in the records; else opt.gcp.
     With control rows the block is first adjusted on its GNSS alone, every row and point is checked
     against it (core/control.py vet_control: rows naming the wrong photo, heights the GNSS contradicts),
     and the block is adjusted again with the control that passed.
+    progress: as triangulate()'s; `steps`: the job's Steps so far (then `progress` is not used).
     """
+    steps = steps or Steps('triangulate', None, sayer(progress, log))
     out = Path(out)
     origin, assumptions = block.origin, block.assumptions
     control, rows, file_heights, gcp_crs, tie_rows = _control_rows(block, opt, control_set, origin)
@@ -264,7 +314,8 @@ def adjust_block(block: KeyframeBlock, out: str | Path, opt: TriangulateOptions,
         refine0 = (tuple(opt.self_calibrate) if opt.self_calibrate is not None
                    else auto_self_calibration(block, 0, []))
         at, rep_adj = _triangulate_records(block, opt, [], {}, refine0, log, ' (GNSS only, to check the control)',
-                                           tie_obs)
+                                           tie_obs, steps)
+        steps.start('checking the control against the GNSS-only block')
         P0 = np.array([at.points[t] for t in at.points if t >= 0]).reshape(-1, 3)
         if at.georeferenced and not at.georef_provisional:
             vet = vet_control(at.camera, {at.kfs[k].name: at.kfs[k].map_T_cam for k in at.registered},
@@ -291,7 +342,7 @@ def adjust_block(block: KeyframeBlock, out: str | Path, opt: TriangulateOptions,
               else auto_self_calibration(block, n_gcps, assumptions))
     before = block.camera
     if at is None or target_obs:
-        at, rep_adj = _triangulate_records(block, opt, control, target_obs, refine, log, tie_obs=tie_obs)
+        at, rep_adj = _triangulate_records(block, opt, control, target_obs, refine, log, tie_obs=tie_obs, steps=steps)
     self_cal = _self_calibration(at, before, refine, assumptions, log) if refine else None
     conv = convergence(at, rep_adj.status)
     if conv is not None:
@@ -317,6 +368,7 @@ def adjust_block(block: KeyframeBlock, out: str | Path, opt: TriangulateOptions,
             assumptions.append(note)
             if log is not None:
                 log(f'warning: {note}')
+    steps.start('writing the poses, the sparse cloud and the report')
     out.mkdir(parents=True, exist_ok=True)
     kfs = [at.kfs[k] for k in at.registered]
     write_trajectory_csv(out / 'poses.csv', POSES_COLUMNS, [kf.name for kf in kfs],
@@ -353,6 +405,7 @@ def adjust_block(block: KeyframeBlock, out: str | Path, opt: TriangulateOptions,
     if self_cal is not None:
         rep['self_calibration'] = self_cal
     write_report(rep, out)
+    steps.finish()
     return TriangulateResult(out, rep, len(at.registered), block.n_inputs or len(block.records), len(P),
                              list(block.damage), rep['verdict'])
 

@@ -41,6 +41,7 @@ from photogram_ros.core.raster import (NODATA, Keyframe, Raster, cell_max, dsm_f
                                        orthomosaic)
 from photogram_ros.errors import ConfigError, DataError, GeodesyError
 from photogram_ros.io.map_store import MapStore, as_map_store
+from photogram_ros.io.progress import Progress, Steps
 from photogram_ros.params import param, validate
 
 HEIGHTS = ('ellipsoidal', 'orthometric')
@@ -482,9 +483,11 @@ def load_keyframes(store: MapStore) -> list[Keyframe]:
 
 
 def ortho_in_crs(dsm_ellipsoidal: Raster, keyframes: list[Keyframe], origin: LocalFrame, crs: str,
-                 res_m: float | None = None) -> Raster:
-    """Orthomosaic on a DSM gridded in `crs` whose values are WGS84 ellipsoidal heights. RGBA."""
-    bgra = orthomosaic(dsm_ellipsoidal, keyframes, lambda e, n, h: crs_to_enu(origin, e, n, h, crs), res_m)
+                 res_m: float | None = None, progress=None) -> Raster:
+    """Orthomosaic on a DSM gridded in `crs` whose values are WGS84 ellipsoidal heights. RGBA.
+    `progress(done, total)`: keyframes draped so far (core/raster.orthomosaic)."""
+    bgra = orthomosaic(dsm_ellipsoidal, keyframes, lambda e, n, h: crs_to_enu(origin, e, n, h, crs), res_m,
+                       progress=progress)
     rgba = bgra.data[:, :, [2, 1, 0, 3]].copy()
     return Raster(rgba, bgra.x0_m, bgra.y1_m, bgra.res_m, None)
 
@@ -505,13 +508,15 @@ class ExportResult:
 def export_map(map_dir: str | Path | MapStore, out_dir: str | Path, crs: str, heights: str = 'ellipsoidal',
                dsm_res_m: float = 0.0, ortho_res_m: float = 0.0, products=('las', 'laz', 'ply', 'dsm', 'dtm', 'ortho'),
                origin: LocalFrame | None = None, min_pairs: int = 1, dsm: DsmParams | None = None,
-               contour_interval_m: float = 0.0) -> ExportResult:
+               contour_interval_m: float = 0.0, say=None) -> ExportResult:
     """Write the requested products of a map folder (or an open MapStore) into out_dir (created).
 
     min_pairs=2 exports only cells confirmed by two stereo pairs: a cell one pair saw cannot be
     checked for gross matching errors (on the sample flight they hold most of the large errors).
     `dsm`: the DSM rules (default DsmParams(): lengths from the map's cell size).
     contour_interval_m > 0 also writes contours.gpkg: the DTM's contour lines at that interval (io/contours.py).
+    say(text): progress lines (io/progress.py): each product as it starts, the orthomosaic's keyframes
+    counted; None: none.
     """
     dsm = dsm or DsmParams()
     validate(dsm)
@@ -524,6 +529,12 @@ def export_map(map_dir: str | Path | MapStore, out_dir: str | Path, crs: str, he
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     res = ExportResult()
+    surface = any(k in products for k in ('dsm', 'dtm', 'ortho')) or contour_interval_m > 0
+    plan = (['cloud'] + [name for k, name in (('las', 'LAS'), ('laz', 'LAZ'), ('ply', 'PLY')) if k in products]
+            + ['DSM'] * surface + ['DTM'] * ('dtm' in products or contour_interval_m > 0)
+            + ['contours'] * (contour_interval_m > 0) + ['ortho'] * ('ortho' in products))
+    steps = Steps('export', len(plan), say)
+    steps.start('cloud')
     cloud = map_cloud(fusion, origin, crs, heights, min_pairs)
     res.points = cloud.x.size
     vertical_crs, note = product_crs(crs, heights)
@@ -535,12 +546,10 @@ def export_map(map_dir: str | Path | MapStore, out_dir: str | Path, crs: str, he
         res.notes += c['notes']
         res.classes = {'ground': c['counts'].get(2, 0), 'building': c['counts'].get(6, 0),
                        'unclassified': c['counts'].get(1, 0), 'buildings': c['buildings']}
-    if 'las' in products:
-        res.files['las'] = write_las(cloud, out / 'cloud.las')
-    if 'laz' in products:
-        res.files['laz'] = write_las(cloud, out / 'cloud.laz')
-    if 'ply' in products:
-        res.files['ply'] = write_ply(cloud, out / 'cloud.ply')
+    for key, name, write in (('las', 'LAS', write_las), ('laz', 'LAZ', write_las), ('ply', 'PLY', write_ply)):
+        if key in products:
+            steps.start(name)
+            res.files[key] = write(cloud, out / f'cloud.{key}')
     dsm_res = dsm_res_m or 2.0 * store.cell_m
     rules = dsm.for_cell(store.cell_m)
     res.dsm = {'cell_m': store.cell_m, 'res_m': dsm_res, 'max_spread_m': rules.max_spread_m,
@@ -549,7 +558,8 @@ def export_map(map_dir: str | Path | MapStore, out_dir: str | Path, crs: str, he
     centres = np.array([k['map_T_cam'][:3, 3] for k in store.keyframes()]).reshape(-1, 3)
     if contour_interval_m < 0:
         raise ConfigError(f'the contour interval must be positive (0: no contours), not {contour_interval_m} m')
-    if any(k in products for k in ('dsm', 'dtm', 'ortho')) or contour_interval_m > 0:
+    if surface:
+        steps.start('DSM')
         surf = surface_in_crs(fusion, origin, crs, heights, dsm_res, rules, min_pairs, centres, cloud)
         grid = surf.dsm
         res.dsm['valid_share'] = float(np.mean(grid.valid())) if grid.data.size else 0.0
@@ -562,6 +572,7 @@ def export_map(map_dir: str | Path | MapStore, out_dir: str | Path, crs: str, he
                 out / 'dsm.tif', crs, f'DSM, {heights} heights (m); band 2: stereo pairs that measured the cell, '
                 f'0 where interpolated', heights=heights, band_names=('height_m', 'pairs'))
     if 'dtm' in products or contour_interval_m > 0:
+        steps.start('DTM')
         dtm = dtm_from_points(cloud.x, cloud.y, cloud.z, grid, grid.valid(), weights=cloud.count, classes=cloud.classes)
         res.notes += [f'DTM: {n}' for n in dtm.notes]
         res.dtm = {'ground_points': dtm.ground_points, 'ground_cells_share': float(dtm.ground.mean()),
@@ -571,12 +582,14 @@ def export_map(map_dir: str | Path | MapStore, out_dir: str | Path, crs: str, he
                                              f'ground class), {heights} heights (m)', heights=heights)
         if contour_interval_m > 0:
             from photogram_ros.io.contours import contour_lines, write_contours_gpkg
+            steps.start('contours')
             lines = contour_lines(dtm.raster, contour_interval_m)
             res.files['contours'] = write_contours_gpkg(lines, out / 'contours.gpkg', crs,
                                                         f'DTM contours every {contour_interval_m:g} m, {heights} '
                                                         'heights (elevation_m)')
             res.dtm['contour_lines'] = len(lines)
     if 'ortho' in products:
+        steps.start('ortho')
         kfs = load_keyframes(store)
         res.keyframes = len(kfs)
         if not kfs:
@@ -584,7 +597,8 @@ def export_map(map_dir: str | Path | MapStore, out_dir: str | Path, crs: str, he
         else:
             dsm_ell = grid if heights == 'ellipsoidal' else surface_in_crs(
                 fusion, origin, crs, 'ellipsoidal', dsm_res, rules, min_pairs, centres).dsm
-            ortho = ortho_in_crs(dsm_ell, kfs, origin, crs, ortho_res_m or store.cell_m)
+            draped = Progress('export: ortho', len(kfs), 'keyframes', say, clock=steps.clock)
+            ortho = ortho_in_crs(dsm_ell, kfs, origin, crs, ortho_res_m or store.cell_m, draped.callback())
             seen = ortho.data[..., 3] > 0
             res.ortho = {'res_m': ortho.res_m, 'valid_share': float(seen.mean())}
             if len(centres):
@@ -599,4 +613,5 @@ def export_map(map_dir: str | Path | MapStore, out_dir: str | Path, crs: str, he
             'geoid': geoid.MODEL_NAME if heights == 'orthometric' else None, 'crs_with_heights': res.crs_with_heights,
             'classes': res.classes, 'dsm': res.dsm, 'dtm': res.dtm, 'ortho': res.ortho}
     (out / 'export.json').write_text(json.dumps(meta, indent=1))
+    steps.finish()
     return res

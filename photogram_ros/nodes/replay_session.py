@@ -31,6 +31,7 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.time import Time
 
+from photogram_ros.io.progress import Progress, Steps, say_stdout
 from photogram_ros.nodes.diagnostics import PROBLEM_SEPARATOR
 from photogram_ros.nodes.graph import NODES, Graph, GraphSpec
 from photogram_ros.nodes.player_node import PlayerNode
@@ -46,7 +47,8 @@ class ReplayOptions:
     rate: float = 0.0
     frame_timeout_s: float = 30.0
     drain_timeout_s: float = 300.0
-    progress: bool = True
+    progress: bool = True        # progress lines on stdout (io/progress.py): frames, then the end-of-flight steps
+    progress_every_s: float = 2.0
     extra: dict = field(default_factory=dict)
     # Roles run in a child process, on the second core (the tracker, which paces the player, and the
     # MAVLink decoder stay in this one): () runs everything in one process.
@@ -303,7 +305,9 @@ def run_replay(opts: ReplayOptions, context=None) -> dict:
     tracker = graph.nodes['tracker']
     images_sent = [0]
     t_start = time.monotonic()
-    last_print = [0.0]
+    say = say_stdout if opts.progress else None
+    frames = Progress('replay', frame_total(topics) if kind == 'bag' else frame_total_of_source(camera.source),
+                      'frames', say, opts.progress_every_s)
 
     mavlink = graph.nodes.get('mavlink')
     packets_sent = [0]
@@ -354,9 +358,7 @@ def run_replay(opts: ReplayOptions, context=None) -> dict:
         lag_wait_s[0] += time.monotonic() - t0
 
     def progress(stamp_ns):
-        if opts.progress and time.monotonic() - last_print[0] > 2.0:
-            last_print[0] = time.monotonic()
-            _print_progress(graph, images_sent[0], stamp_ns, t_start)
+        frames.update(images_sent[0], lambda: counts_text(graph.counts()))
 
     def on_message(m):
         player_clock.set_ros_time_override(Time(nanoseconds=m.stamp_ns, clock_type=ClockType.ROS_TIME))
@@ -389,6 +391,7 @@ def run_replay(opts: ReplayOptions, context=None) -> dict:
         return summary
 
     drain_left = []
+    end_steps = Steps('replay: end of flight', len(END_STEPS) + 1, say)
 
     def drain():
         """Until the graph has drained (Graph.drain: waits on the data; work lost on the way is not waited for)."""
@@ -402,8 +405,21 @@ def run_replay(opts: ReplayOptions, context=None) -> dict:
             summary = player.play(on_message=on_message, before_message=before_message)
         else:
             summary = play_camera()
+        frames.finish(lambda: counts_text(graph.counts()))
+        end_steps.start('the last frames through the graph')
         drain()
-        end = graph.finish_flight(settle=drain)
+        steps = [name for role, name in END_STEPS if role in roles]
+        end_steps.total = len(steps) + 1
+        if steps:
+            end_steps.start(steps[0])
+
+        def settle():   # Graph.finish_flight: after each node's end-of-flight step, in END_STEPS' order
+            drain()
+            if len(end_steps.times) <= len(steps):
+                end_steps.start(steps[len(end_steps.times) - 1])
+
+        end = graph.finish_flight(settle=settle)
+        end_steps.finish()
         wall_s = time.monotonic() - t_start
         counts = graph.counts()
         names = {role: getattr(getattr(graph.nodes.get(role), 'diag', None), 'name', f'/{NODES[role][2]}')
@@ -440,11 +456,38 @@ def _record_flight_end(map_dir: Path, end: dict) -> None:
         print(f'note: {map_dir} could not record how the flight ended: {exc}', flush=True)
 
 
-def _print_progress(graph: Graph, frames: int, stamp_ns: int, t_start: float) -> None:
-    parts = [f'frames {frames}']
-    for role, c in graph.counts().items():
+# Graph.finish_flight's steps, in its order: (role, what the step does).
+END_STEPS = (('tracker', 'the tracker\'s last keyframes'), ('bundle', 'final adjustment'),
+             ('stereo', 'the last stereo pairs'), ('map', 'closing the map\'s coverage'))
+
+
+def frame_total(topics: dict) -> int | None:
+    """Camera frames of a bag, from its topics (io/bag.py TopicInfo: the readable count); None: not known."""
+    n = sum(topics[t].count for t in IMAGE_TOPICS if t in topics and topics[t].count is not None)
+    return n or None
+
+
+def frame_total_of_source(source) -> int | None:
+    """Frames of the camera node's source: a photo folder's listing, a video file's frame count (None when
+    the container does not say, or for a device)."""
+    try:
+        return len(source) or None
+    except TypeError:
+        pass
+    cap = getattr(source, 'cap', None)
+    if cap is None or getattr(source, 'is_device', False):
+        return None
+    import cv2
+    n = cap.get(cv2.CAP_PROP_FRAME_COUNT)
+    return int(n) if n and n > 0 else None
+
+
+def counts_text(counts: dict) -> str:
+    """What the nodes have done so far (Graph.counts()), for a progress line."""
+    parts = []
+    for role, c in counts.items():
         key = {'tracker': 'keyframes', 'bundle': 'keyframes_adjusted', 'stereo': 'pairs_done',
                'map': 'points_fused'}.get(role)
         if key and key in c:
             parts.append(f'{role} {key.replace("_", " ")} {c[key]}')
-    print(f'[replay {time.monotonic() - t_start:6.1f} s] ' + ', '.join(parts), flush=True)
+    return ', '.join(parts)
