@@ -32,10 +32,10 @@ def flight_rtk():
     return simulate_keyframes(preset('tiny'), keyframe_interval_s=1.0, attitude_sigma_deg=None)
 
 
-def _stage(sk, **overrides):
+def _stage(sk, camera=None, out=None, **overrides):
     p = from_dict(AdjustmentParams, {'lever_arm_cam_m': [float(v) for v in sk.lever_arm_cam_m], **overrides})
-    stage = AdjustmentStage(p, DiagnosticsLog(), RecordedOutputs())
-    assert stage.set_camera(sk.camera)
+    stage = AdjustmentStage(p, DiagnosticsLog(), out or RecordedOutputs())
+    assert stage.set_camera(camera or sk.camera)
     return stage
 
 
@@ -129,6 +129,43 @@ def test_health_tells_a_good_block_from_one_that_does_not_orient(flight_rtk):
     assert any(lv == ERROR and t.startswith('no georeference after') for lv, t in bad.diag.problems)
     assert bad.diag.level() == ERROR and bad.diag.values['keyframes_registered_share'] == 0.0
     assert outcome.status == 'none' and not bad.out.pose_by_stamp
+
+
+class OrderedOutputs(RecordedOutputs):
+    """RecordedOutputs that also keep the order of the camera and pose publications."""
+
+    def __init__(self):
+        super().__init__()
+        self.order = []
+
+    def camera(self, camera, stamp_ns):
+        super().camera(camera, stamp_ns)
+        self.order.append('camera')
+
+    def poses(self, poses):
+        super().poses(poses)
+        self.order.append('poses')
+
+
+def test_the_final_adjustments_camera_goes_out_before_its_poses(flight_rtk):
+    """The stage starts from a camera whose k1 is 0.03 off the images' (-0.09 for -0.12) and refines k1, k2 in the
+    final adjustment (final_self_calibration): the camera it sends after the final adjustment is the refined one
+    (k1 -0.1192: 0.0008 off, gated at 1.5x), sent before the final poses adjusted with it. Without the
+    self-calibration the input camera goes out."""
+    sk = flight_rtk
+    wrong = dataclasses.replace(sk.camera, dist=np.add(sk.camera.dist, [0.03, 0.0, 0.0, 0.0, 0.0]))
+    stage = _stage(sk, camera=wrong, out=OrderedOutputs(), final_self_calibration='k1,k2')
+    assert _fly(stage, sk.records).status == 'done'
+    out = stage.out
+    cam, stamp = out.cameras[-1]
+    print(f'final camera k1 {cam.dist[0]:.5f} k2 {cam.dist[1]:.5f}, the images\' {sk.camera.dist[0]:.5f} '
+          f'{sk.camera.dist[1]:.5f}, the input\'s {wrong.dist[0]:.5f}')
+    assert abs(cam.dist[0] - sk.camera.dist[0]) < 1.5 * 0.0008 and cam == stage.at.camera
+    assert stamp == max(r.stamp_ns for r in sk.records if r.stamp_ns in out.pose_by_stamp)
+    assert out.order[-2:] == ['camera', 'poses']
+    plain = _stage(sk, out=OrderedOutputs())
+    assert _fly(plain, sk.records[:12]).status == 'done'
+    assert plain.out.cameras and plain.out.cameras[-1][0] == sk.camera
 
 
 def test_fix_policy():

@@ -5,7 +5,8 @@ Layout of a map directory:
     tiles/<ti>_<tj>.pgt           one append-only file per tile
     keyframes/<stamp_ns>.jpg      keyframe image
     keyframes/<stamp_ns>.json     its latest map_T_cam (rewritten atomically when the pose improves)
-    camera.json                   the keyframes' camera calibration
+    camera.json                   the keyframes' camera calibration: once the bundle adjuster has sent it, the
+                                  camera the final poses were adjusted with (camera_name final_adjustment)
     flight_end.json               how the flight ended: was the final adjustment made (written last)
 
 A tile file is a 32-byte header followed by blocks. A block is a 16-byte header (magic, record
@@ -32,6 +33,9 @@ from photogram_ros.core.fusion import CELL_DTYPE
 from photogram_ros.errors import DataError, StorageError
 
 FORMAT = 'photogram_ros.map'
+# camera.json's camera_name: the calibration the flight started with, or the one of the final adjustment's poses.
+CAMERA_INPUT = 'camera'
+CAMERA_FINAL = 'final_adjustment'
 VERSION = 1
 RECORD_DTYPE = np.dtype([('cell', '<u4')] + [(n, CELL_DTYPE.fields[n][0]) for n in CELL_DTYPE.names])
 _FILE_HEADER = struct.Struct('<8sIiiIdI')          # magic, version, ti, tj, tile_cells, cell_m, record size
@@ -282,13 +286,21 @@ class MapStore:
 
     # --- keyframes -------------------------------------------------------------------------------
 
-    def save_camera(self, camera) -> None:
-        self._write(self.root / 'camera.json', json.dumps(camera.to_ros_yaml_dict()).encode())
+    def save_camera(self, camera, name: str = 'camera') -> None:
+        """The keyframes' camera (ROS calibration YAML layout as JSON); `name` (its camera_name) says which:
+        CAMERA_INPUT, the calibration the flight started with, or CAMERA_FINAL, the one the final
+        adjustment's poses were adjusted with (its self-calibration)."""
+        self._write(self.root / 'camera.json', json.dumps(camera.to_ros_yaml_dict(name)).encode())
 
     def load_camera(self):
         from photogram_ros.core.camera import PinholeCamera
         p = self.root / 'camera.json'
         return PinholeCamera.from_ros_yaml_dict(json.loads(p.read_text())) if p.exists() else None
+
+    def camera_name(self) -> str | None:
+        """camera.json's camera_name (CAMERA_INPUT, CAMERA_FINAL or a calibration's own), None without one."""
+        p = self.root / 'camera.json'
+        return json.loads(p.read_text()).get('camera_name') if p.exists() else None
 
     def save_keyframe_image(self, stamp_ns: int, jpeg: bytes) -> None:
         self._write(self.keyframes_dir / f'{int(stamp_ns)}.jpg', jpeg)

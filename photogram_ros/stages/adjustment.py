@@ -8,7 +8,7 @@ Work (one thread at a time, under `work`): `take_work` hands out the keyframes t
 whether a full adjustment was asked for; `run_batch` adjusts them; `finish` and `full_adjustment` end the
 flight. `drain` does both at once for a caller without a worker thread (tests, offline commands).
 Out: through `out` (an `Outputs`): the georeference once, poses with their covariance, the path, the sparse
-cloud, the live quality document; through `diag` (count / set / problem(text, level)): the /diagnostics keys
+cloud, the live quality document, the camera a full adjustment's poses were adjusted with; through `diag` (count / set / problem(text, level)): the /diagnostics keys
 and problems with OK, WARN or ERROR. `DiagnosticsLog` and `RecordedOutputs` keep them for a caller without ROS.
 
 The policies (bundle_node's docstring tells them in full): a fix without a covariance gets one from its GNSS
@@ -159,12 +159,17 @@ class Outputs:
     def quality(self, doc: dict) -> None:
         """The live accuracy document (map/control_points)."""
 
+    def camera(self, camera, stamp_ns: int) -> None:
+        """The camera (core.camera.PinholeCamera) the poses of a full adjustment were adjusted with: the input
+        calibration, or its self-calibration (final_self_calibration); published before those poses."""
+
 
 class RecordedOutputs(Outputs):
     """Outputs kept in memory: the latest pose per stamp, every path, cloud, quality document."""
 
     def __init__(self):
         self.georeferences, self.pose_by_stamp, self.paths, self.clouds, self.qualities = [], {}, [], [], []
+        self.cameras = []
 
     def georeference(self, lat_deg, lon_deg, h_m, stamp_ns):
         self.georeferences.append((lat_deg, lon_deg, h_m, stamp_ns))
@@ -180,6 +185,9 @@ class RecordedOutputs(Outputs):
 
     def quality(self, doc):
         self.qualities.append(doc)
+
+    def camera(self, camera, stamp_ns):
+        self.cameras.append((camera, stamp_ns))
 
 
 class AdjustmentStage:
@@ -747,6 +755,9 @@ class AdjustmentStage:
             self._control_diagnostics()
             self.publish_quality()
             if self.at.georeferenced:
+                # The camera first: whoever matches the keyframes with these poses needs the intrinsics they
+                # were adjusted with (a self-calibration changes them).
+                self.out.camera(self.at.camera, self.at.kfs[self.at.registered[-1]].stamp_ns)
                 self._publish(window=list(self.at.registered), new=0)
                 self.publish_cloud(self.at.kfs[self.at.registered[-1]].stamp_ns)
             self.diag.count('full_adjustments')   # after publishing: a waiting caller gets the poses
