@@ -168,6 +168,48 @@ def test_the_final_adjustments_camera_goes_out_before_its_poses(flight_rtk):
     assert plain.out.cameras and plain.out.cameras[-1][0] == sk.camera
 
 
+def test_the_report_intersects_the_stages_detections_into_the_same_figures(flight_3d, tmp_path):
+    """The map folder as the map node keeps it (the published poses, the final camera, the last live accuracy
+    document with its detections, as JSON): the flight report's check-point and GCP figures equal the stage's
+    (map/control_points, what the ground station shows) to 0.1 mm: one method over one set of detections.
+    The GCP residuals come from the adjusted cameras, not from the adjusted target point its prior holds."""
+    import json
+
+    from photogram_ros.io.control_file import write_control_file
+    from photogram_ros.io.flight_report import build_report
+    from photogram_ros.io.map_store import CAMERA_FINAL, MapStore
+    sk, targets = flight_3d
+    survey = [SurveyedTarget(t.name, t.marker_id, *map(float, sk.origin.enu_to_geodetic(t.center_enu)), t.role)
+              for t in targets]
+    control = write_control_file(tmp_path / 'targets.txt', survey, 'EPSG:32632')
+    stage = _stage(sk, control_file=str(control))
+    assert _fly(stage, sk.records, {t.name: t.marker_id for t in targets}, STATUS_FIX).status == 'done'
+    doc = json.loads(json.dumps(stage.out.qualities[-1], default=lambda v: v.tolist()))
+    assert doc['check_rmse']['count'] == 4 and doc['gcp_rmse']['count'] == 5
+    assert all(len(r['detections']) >= r['images'] >= 2 for r in doc['check_points'] + doc['gcps'])
+    store = MapStore(tmp_path / 'map', 0.1, 256)
+    store.set_origin(stage.at.origin)
+    store.save_camera(stage.at.camera, CAMERA_FINAL)
+    for stamp, (T, _) in stage.out.pose_by_stamp.items():
+        store.save_keyframe_pose(stamp, T)
+        store.save_keyframe_image(stamp, b'')     # the figures read the stored detections, not the images
+    store.save_control_points(doc)
+    (tmp_path / 'report').mkdir()
+    fig = build_report(tmp_path / 'report', store, 'EPSG:32632', {}, control=stage.control)
+    chk, gcp = fig['check_points']['rmse'], fig['gcp_residuals']['rmse']
+    print(f"report check points {chk['horizontal_m'] * 100:.2f} / {chk['z_m'] * 100:.2f} cm, page "
+          f"{doc['check_rmse']['horizontal_m'] * 100:.2f} / {doc['check_rmse']['vertical_m'] * 100:.2f} cm; GCPs "
+          f"{gcp['horizontal_m'] * 100:.2f} / {gcp['z_m'] * 100:.2f} cm, page {doc['gcp_rmse']['horizontal_m'] * 100:.2f}"
+          f" / {doc['gcp_rmse']['vertical_m'] * 100:.2f} cm")
+    assert fig['check_points']['detections'].startswith('found by the tracker in flight')
+    assert chk['count'] == 4 and gcp['count'] == 5
+    for a, b in ((chk['horizontal_m'], doc['check_rmse']['horizontal_m']), (chk['z_m'], doc['check_rmse']['vertical_m']),
+                 (gcp['horizontal_m'], doc['gcp_rmse']['horizontal_m']), (gcp['z_m'], doc['gcp_rmse']['vertical_m'])):
+        assert abs(a - b) < 1e-4
+    # GCPs from the adjusted cameras: their residuals are not the prior's (σ 1 / 1 / 2 cm holds the point).
+    assert gcp['horizontal_m'] > 0.0
+
+
 def test_fix_policy():
     """No covariance: the GNSS mode's; RTK status with a 2 m sigma: not used (lost corrections); no position:
     not used. A keyframe waits for its fix; a later fix ends the wait."""

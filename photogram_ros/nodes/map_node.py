@@ -2,7 +2,8 @@
 
 Inputs: /map/dense_cloud (PointCloud2 in `map`, fields x, y, z and optionally rgb, confidence),
 /keyframes/image + /map/keyframe_pose + /camera/camera_info (saved in map_dir for the orthomosaic; once
-/map/camera_final, the camera of the bundle adjuster's full adjustment, comes, that one is saved instead),
+/map/camera_final, the camera of the bundle adjuster's full adjustment, comes, that one is saved instead;
+/map/control_points, the bundle adjuster's check points with their detections, saved for the report),
 and the geodetic origin of `map`: either the parameters origin_lat_deg/origin_lon_deg/origin_h_m
 (use_origin_params: true) or /map/georeference, a sensor_msgs/NavSatFix whose latitude, longitude
 and altitude (ellipsoidal, REP-145) are the `map` origin, published with transient-local QoS.
@@ -51,6 +52,7 @@ TOPIC_IMAGE = 'keyframes/image'
 TOPIC_POSE = 'map/keyframe_pose'
 TOPIC_INFO = 'camera/camera_info'
 TOPIC_CAMERA_FINAL = 'map/camera_final'
+TOPIC_CONTROL_POINTS = 'map/control_points'
 TOPIC_ORTHO = 'map/ortho_tiles'
 TOPIC_COVERAGE = 'map/coverage'
 TOPIC_SPARSE = 'map/sparse_cloud'
@@ -114,6 +116,10 @@ class MapNode(Node):
                                      callback_group=group)
             self.create_subscription(CameraInfo, TOPIC_CAMERA_FINAL, self._on_final_camera, latched,
                                      callback_group=group)
+        if p.save_keyframes:
+            from std_msgs.msg import String
+            self.create_subscription(String, TOPIC_CONTROL_POINTS, self._on_control_points, latched,
+                                     callback_group=group)
         if p.ortho:
             steady_timer(self, p.ortho_period_s, self._stream_ortho, group)
         if p.coverage:
@@ -164,6 +170,9 @@ class MapNode(Node):
 
     def _on_final_camera(self, msg: CameraInfo) -> None:
         self.stage.set_final_camera(lambda: msgs.camera_from_info(msg))
+
+    def _on_control_points(self, msg) -> None:
+        self.stage.set_control_points(lambda: msgs.json_from_msg(msg))
 
     # --- outputs ---------------------------------------------------------------------------------
 

@@ -30,9 +30,9 @@ import numpy as np
 from photogram_ros.core.at_report import convergence, redundancy_notes
 from photogram_ros.core.attitude import AttitudeHistory, antenna_offset_enu
 from photogram_ros.core.block_check import BlockCheckOptions, check_block, inputs_from_at
-from photogram_ros.core.control import TARGET_DTYPE, ControlSet, robust_intersection
+from photogram_ros.core.control import TARGET_DTYPE, ControlSet
 from photogram_ros.core.control_live import LiveControl, LiveControlOptions
-from photogram_ros.core.evaluation import ce90_le90
+from photogram_ros.core.evaluation import ce90_le90, intersect_targets
 from photogram_ros.core.geodesy import LocalFrame
 from photogram_ros.core.gnss_fix import COV_UNKNOWN, STATUS_GBAS_FIX, STATUS_SBAS_FIX, GnssFix
 from photogram_ros.core.incremental import IncrementalAT, IncrementalOptions, KeyframeRecord
@@ -557,30 +557,34 @@ class AdjustmentStage:
     # --- live quality -----------------------------------------------------------------------------
 
     def _target_rows(self, role: str) -> list[dict]:
-        """Surveyed targets of one role seen so far: check points intersected from the adjusted cameras
-        (core.control.robust_intersection over the oriented keyframes that saw them), GCPs as adjusted
-        (their point in the block); residual = estimate - survey, map ENU, m."""
-        at, rows = self.at, []
+        """Surveyed targets of one role seen so far, intersected from the adjusted cameras over the oriented
+        keyframes that saw them (core.evaluation.intersect_targets, as the flight report does; a GCP too, not
+        its adjusted point, which its own prior holds); residual = estimate - survey, map ENU, m. Each row
+        carries the detections it was intersected from ([stamp_ns, u, v]): the map folder keeps them, and the
+        report intersects the same detections by the same method."""
+        at = self.at
         registered = set(at.registered)
+        if role == 'gcp' and not at.georeferenced:
+            return []
+        targets, obs, surveyed = {}, {}, {}
         for t in self.control.targets:
             cp, use = self.live.surveyed.get(t.name), self.live.use_of(t.name)
-            obs = self.live.observations(t.name, registered)
-            if cp is None or t.role != role or len(obs) < (2 if role == 'check' else 1) \
-                    or (role == 'gcp' and use not in ('full', 'horizontal')):
+            if cp is None or t.role != role or (role == 'gcp' and use not in ('full', 'horizontal')):
                 continue
-            if role == 'gcp' and (len(obs) < 2 or not at.georeferenced):
-                continue
-            # GCPs as check points: intersected from the adjusted cameras, not the adjusted target point (which
-            # its own prior holds), as the flight report measures them.
-            got = robust_intersection(at.camera, np.array([at.kfs[k].map_T_cam for k, _ in obs]),
-                                      np.array([uv for _, uv in obs]).reshape(-1, 2), self.p.max_row_residual_px)
-            if got is None:
-                continue
-            xyz, n_images, rms_px = got
+            targets[t.name], surveyed[t.name] = (t, use), (t.name, cp.map_xyz)
+            obs[t.name] = self.live.observations(t.name, registered)
+        kids = sorted({k for o in obs.values() for k, _ in o})
+        col = {k: j for j, k in enumerate(kids)}
+        res = intersect_targets(at.camera, np.array([at.kfs[k].map_T_cam for k in kids]).reshape(-1, 4, 4),
+                                {n: [(col[k], uv) for k, uv in o] for n, o in obs.items()}, surveyed,
+                                self.p.max_row_residual_px)
+        rows = []
+        for name, r, n_images, rms_px in zip(res.names, res.residuals, res.n_views, res.rms_px):
+            t, use = targets[name]
             rows.append({'name': t.name, 'marker_id': t.marker_id, 'lat_deg': t.lat_deg, 'lon_deg': t.lon_deg,
-                         'h_m': t.h_m, 'residual_enu_m': [float(v) for v in np.asarray(xyz) - cp.map_xyz],
-                         'images': int(n_images), 'rms_px': None if not np.isfinite(rms_px) else float(rms_px),
-                         'use': use})
+                         'h_m': t.h_m, 'residual_enu_m': [float(v) for v in r], 'images': int(n_images),
+                         'rms_px': None if not np.isfinite(rms_px) else float(rms_px), 'use': use,
+                         'detections': [[int(at.kfs[k].stamp_ns), float(uv[0]), float(uv[1])] for k, uv in obs[name]]})
         return rows
 
     def quality(self) -> dict:
@@ -590,7 +594,8 @@ class AdjustmentStage:
         out = {'keyframes': n, 'fix_share': {c: (v / n if n else None) for c, v in self._fix_classes.items()},
                'georeference': ('none' if at is None or not at.georeferenced else
                                 'provisional' if at.georef_provisional else 'final'),
-               'check_points': [], 'gcps': [], 'check_rmse': None, 'gcp_rmse': None, 'gnss_bias_enu_m': None}
+               'check_points': [], 'gcps': [], 'check_rmse': None, 'gcp_rmse': None, 'gnss_bias_enu_m': None,
+               'max_row_residual_px': self.p.max_row_residual_px}
         if self.control is not None and self.at is not None and self.at.origin is not None:
             out['check_points'] = self._target_rows('check')
             out['gcps'] = self._target_rows('gcp')

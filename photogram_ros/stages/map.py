@@ -5,7 +5,8 @@ In (plain methods): `set_origin` (the georeference), `add_cloud` (a pair cloud i
 optionally rgb, confidence), `add_image` (a keyframe image, saved as JPEG), `add_pose` (a keyframe's
 map_T_cam), `add_keyframe_fix` (its GNSS position: the track for the coverage), `add_sparse` (tie points:
 the ground under the keyframes), `set_camera` (the input calibration), `set_final_camera` (the camera a full
-adjustment's poses were adjusted with: it replaces the input calibration in the map folder).
+adjustment's poses were adjusted with: it replaces the input calibration in the map folder), `set_control_points`
+(the bundle adjuster's check points and GCPs with their detections, kept in the map folder).
 Periodic (the node's timers): `flush` (changed cells and poses to disk), `stream` (block means of the
 changed tiles), `stream_ortho` (PNG tiles of the live orthomosaic), `update_coverage`, `update_diag`.
 Out: through `out` (a `MapOutputs`): the stream's points, the ortho tiles, the coverage GeoJSON; through
@@ -330,6 +331,18 @@ class MapStage:
             self._sparse_xyz = xyz[np.all(np.isfinite(xyz), axis=1)]
         except (PhotogramError, ValueError) as exc:
             self.diag.problem(f'sparse cloud not used for the coverage: {exc}')
+
+    @_locked
+    def set_control_points(self, load) -> None:
+        """The bundle adjuster's live accuracy document (`load` or `load()`: the dict; a conversion may raise
+        PhotogramError): the latest is kept in the map folder (control_points.json) with the detections the
+        flight report intersects again."""
+        try:
+            doc = _value(load)
+            if self.params.save_keyframes and isinstance(doc, dict) and (doc.get('check_points') or doc.get('gcps')):
+                self.store.save_control_points(doc)
+        except (PhotogramError, OSError, ValueError, TypeError) as exc:
+            self._write_failed('control points not saved', exc)
 
     @_locked
     def set_camera(self, load) -> None:
