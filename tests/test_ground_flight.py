@@ -11,6 +11,7 @@
 from __future__ import annotations
 
 import json
+import os
 import re
 import signal
 import subprocess
@@ -71,9 +72,10 @@ class Station:
 
 
 def replay(bag: Path, out: Path) -> subprocess.CompletedProcess:
+    # On the station's domain: a replay takes a domain of its own unless told.
     return subprocess.run([sys.executable, '-m', 'photogram_ros.cli', 'replay', str(bag), '--out', str(out), '--quiet',
-                           '--rate', '1', '--gcp', str(bag / 'targets.txt')], cwd=ROOT, capture_output=True, text=True,
-                          timeout=1200)
+                           '--rate', '1', '--gcp', str(bag / 'targets.txt'), '--domain', os.environ['ROS_DOMAIN_ID']],
+                          cwd=ROOT, capture_output=True, text=True, timeout=1200)
 
 
 def flown(tmp: Path, bag: Path, basemap: Path | None = None) -> dict:
@@ -132,19 +134,11 @@ def test_page_check_points_equal_the_report(plain):
     assert abs(a['check_rmse_h_m'] - rep['horizontal_m']) <= 0.005
 
 
-@pytest.mark.xfail(strict=True, reason='vertical 1.96 cm on the page, 1.35 cm in the report: bundle_node intersects '
-                                       'the tracker\'s detections (core.control.robust_intersection), the report '
-                                       're-detects the markers in the saved JPEG keyframes and triangulates them '
-                                       '(core.evaluation.triangulate_targets); one method over one set of '
-                                       'detections is needed in those files')
 def test_page_check_points_vertical_equals_the_report(plain):
     a = plain['final']['drones']['default']['accuracy']
     assert abs(a['check_rmse_v_m'] - plain['report']['check_points']['rmse']['z_m']) <= 0.005
 
 
-@pytest.mark.xfail(strict=True, reason='bundle_node takes a GCP residual from the adjusted target point, which the '
-                                       'GCP prior holds (0.8 / 0.3 cm); the report intersects the GCP from the '
-                                       'adjusted cameras (3.0 / 3.7 cm): bundle_node._target_rows must do the same')
 def test_page_gcp_residuals_equal_the_report(plain):
     g = plain['final']['drones']['default']['accuracy']['gcp_rmse']
     rep = plain['report']['gcp_residuals']['rmse']

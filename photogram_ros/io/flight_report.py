@@ -445,9 +445,9 @@ def build_report(out_dir: str | Path, map_dir: str | Path | MapStore, crs: str, 
     traj = write_trajectory(out, kfs, origin, crs)
     Ts = np.array([k['map_T_cam'] for k in kfs])
 
-    # Targets: found in the keyframes, triangulated from the adjusted poses. With a control file its
-    # check points are the check points and its GCPs are listed apart (the adjustment used them);
-    # without one every target of the truth is a check point (nothing constrained the block to them).
+    # Targets: the tracker's detections kept in the map folder (else found in the keyframes), intersected from
+    # the adjusted poses. With a control file its check points are the check points and its GCPs are listed
+    # apart (the adjustment used them); without one every target of the truth is a check point (nothing constrained the block to them).
     checks_surveyed, gcps_surveyed = {}, {}
     if control is not None:
         for t, c in zip(control.targets, control.in_map(origin)):
@@ -561,7 +561,7 @@ def _gcp_section(gcps, gsd: float | None, n_surveyed: int, diagnostics: dict | N
     fig['redundancy'] = redundancy_notes([{'name': r['name'], 'images': r['views'],
                                            'residual_m': [r['dx_m'], r['dy_m'], r['dz_m']]} for r in fit])
     sec = Section('GCP residuals', [
-        'Ground control points constrained the adjustment: their residuals (triangulated from the adjusted '
+        'Ground control points constrained the adjustment: their residuals (intersected from the adjusted '
         'cameras minus surveyed) show how well the block fits them, not its accuracy (see the check points).'
         + (f' The adjuster used {used} of {n_surveyed} GCPs.' if used is not None else '')]
         + [f'{t}.' for t in fig['redundancy'][1:]])
