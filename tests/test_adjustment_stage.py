@@ -4,6 +4,7 @@ diagnostics out. GCP vetting (a placeholder height), a segment after every track
 """
 
 import dataclasses
+import json
 import subprocess
 import sys
 
@@ -84,6 +85,14 @@ def test_gcp_with_a_placeholder_height_is_used_horizontally_only(flight_3d, tmp_
           f'({h / sk.gsd_m:.2f} GSD) over {q["check_rmse"]["count"]}')
     assert q['check_rmse']['count'] == 4 and h <= 1.5 * 0.28 * sk.gsd_m
     assert out.qualities and out.qualities[-1]['georeference'] == 'final'
+    # The report, from the detections the map folder keeps: GCP02, left out, with its 30 m; the others without
+    # their placeholder heights; the check points as the stage measured them.
+    doc = json.loads(json.dumps(out.qualities[-1], default=lambda v: v.tolist()))
+    fig = _report_from_the_map_folder(stage, doc, tmp_path, {'/bundle_node': {'values': dict(d.values)}})
+    use = {r['name']: r for r in fig['gcp_residuals']['points']}
+    assert use['GCP02']['use'] == 'not used' and abs(use['GCP02']['dx_m'] + 30.0) < 1.0
+    assert all(use[n]['use'] == 'horizontal only' and use[n]['dz_m'] is None for n in ('GCP01', 'GCP03', 'GCP04'))
+    assert abs(fig['check_points']['rmse']['horizontal_m'] - h) < 1e-4
 
 
 def test_the_flight_after_every_track_was_lost_is_a_segment_joined_through_its_gnss(flight_rtk):
@@ -168,25 +177,11 @@ def test_the_final_adjustments_camera_goes_out_before_its_poses(flight_rtk):
     assert plain.out.cameras and plain.out.cameras[-1][0] == sk.camera
 
 
-def test_the_report_intersects_the_stages_detections_into_the_same_figures(flight_3d, tmp_path):
-    """The map folder as the map node keeps it (the published poses, the final camera, the last live accuracy
-    document with its detections, as JSON): the flight report's check-point and GCP figures equal the stage's
-    (map/control_points, what the ground station shows) to 0.1 mm: one method over one set of detections.
-    The GCP residuals come from the adjusted cameras, not from the adjusted target point its prior holds."""
-    import json
-
-    from photogram_ros.io.control_file import write_control_file
+def _report_from_the_map_folder(stage, doc: dict, tmp_path, diagnostics=None) -> dict:
+    """The flight report's figures from a map folder as the map node keeps it: the published poses, the final
+    camera, the last live accuracy document (`doc`, as JSON) with its detections."""
     from photogram_ros.io.flight_report import build_report
     from photogram_ros.io.map_store import CAMERA_FINAL, MapStore
-    sk, targets = flight_3d
-    survey = [SurveyedTarget(t.name, t.marker_id, *map(float, sk.origin.enu_to_geodetic(t.center_enu)), t.role)
-              for t in targets]
-    control = write_control_file(tmp_path / 'targets.txt', survey, 'EPSG:32632')
-    stage = _stage(sk, control_file=str(control))
-    assert _fly(stage, sk.records, {t.name: t.marker_id for t in targets}, STATUS_FIX).status == 'done'
-    doc = json.loads(json.dumps(stage.out.qualities[-1], default=lambda v: v.tolist()))
-    assert doc['check_rmse']['count'] == 4 and doc['gcp_rmse']['count'] == 5
-    assert all(len(r['detections']) >= r['images'] >= 2 for r in doc['check_points'] + doc['gcps'])
     store = MapStore(tmp_path / 'map', 0.1, 256)
     store.set_origin(stage.at.origin)
     store.save_camera(stage.at.camera, CAMERA_FINAL)
@@ -195,7 +190,25 @@ def test_the_report_intersects_the_stages_detections_into_the_same_figures(fligh
         store.save_keyframe_image(stamp, b'')     # the figures read the stored detections, not the images
     store.save_control_points(doc)
     (tmp_path / 'report').mkdir()
-    fig = build_report(tmp_path / 'report', store, 'EPSG:32632', {}, control=stage.control)
+    return build_report(tmp_path / 'report', store, 'EPSG:32632', {}, control=stage.control, diagnostics=diagnostics)
+
+
+def test_the_report_intersects_the_stages_detections_into_the_same_figures(flight_3d, tmp_path):
+    """The map folder as the map node keeps it (the published poses, the final camera, the last live accuracy
+    document with its detections, as JSON): the flight report's check-point and GCP figures equal the stage's
+    (map/control_points, what the ground station shows) to 0.1 mm: one method over one set of detections.
+    The GCP residuals come from the adjusted cameras, not from the adjusted target point its prior holds."""
+    from photogram_ros.io.control_file import write_control_file
+    sk, targets = flight_3d
+    survey = [SurveyedTarget(t.name, t.marker_id, *map(float, sk.origin.enu_to_geodetic(t.center_enu)), t.role)
+              for t in targets]
+    control = write_control_file(tmp_path / 'targets.txt', survey, 'EPSG:32632')
+    stage = _stage(sk, control_file=str(control))
+    assert _fly(stage, sk.records, {t.name: t.marker_id for t in targets}, STATUS_FIX).status == 'done'
+    doc = json.loads(json.dumps(stage.out.qualities[-1], default=lambda v: v.tolist()))
+    assert doc['check_rmse']['count'] == 4 and doc['gcp_rmse']['count'] == 5
+    assert all(len(doc['detections'][r['name']]) >= r['images'] >= 2 for r in doc['check_points'] + doc['gcps'])
+    fig = _report_from_the_map_folder(stage, doc, tmp_path)
     chk, gcp = fig['check_points']['rmse'], fig['gcp_residuals']['rmse']
     print(f"report check points {chk['horizontal_m'] * 100:.2f} / {chk['z_m'] * 100:.2f} cm, page "
           f"{doc['check_rmse']['horizontal_m'] * 100:.2f} / {doc['check_rmse']['vertical_m'] * 100:.2f} cm; GCPs "

@@ -51,11 +51,10 @@ def target_observations(store: MapStore, kfs: list[dict], surveyed: dict) -> tup
     check points and GCPs from, by the same method) when the folder holds them, so the report's figures are
     the ones the ground station showed; else the markers found again in the saved keyframe images."""
     doc = store.control_points()
-    rows = list((doc or {}).get('check_points') or []) + list((doc or {}).get('gcps') or [])
-    if rows and all('detections' in r for r in rows):
+    if isinstance((doc or {}).get('detections'), dict):
         index = {int(k['stamp_ns']): i for i, k in enumerate(kfs)}
-        by_name = {r['name']: [(index[int(s)], np.array([u, v], float)) for s, u, v in r['detections']
-                               if int(s) in index] for r in rows}
+        by_name = {name: [(index[int(s)], np.array([u, v], float)) for s, u, v in dets if int(s) in index]
+                   for name, dets in doc['detections'].items()}
         max_px = float(doc.get('max_row_residual_px') or ControlVettingOptions().max_row_residual_px)
         return ({m: by_name.get(name, []) for m, (name, _) in surveyed.items()}, max_px,
                 'found by the tracker in flight (the detections the bundle adjuster intersected them from)')

@@ -559,9 +559,8 @@ class AdjustmentStage:
     def _target_rows(self, role: str) -> list[dict]:
         """Surveyed targets of one role seen so far, intersected from the adjusted cameras over the oriented
         keyframes that saw them (core.evaluation.intersect_targets, as the flight report does; a GCP too, not
-        its adjusted point, which its own prior holds); residual = estimate - survey, map ENU, m. Each row
-        carries the detections it was intersected from ([stamp_ns, u, v]): the map folder keeps them, and the
-        report intersects the same detections by the same method."""
+        its adjusted point, which its own prior holds); residual = estimate - survey, map ENU, m. The
+        detections are those `_detections` hands out, which the report intersects again by the same method."""
         at = self.at
         registered = set(at.registered)
         if role == 'gcp' and not at.georeferenced:
@@ -583,9 +582,20 @@ class AdjustmentStage:
             t, use = targets[name]
             rows.append({'name': t.name, 'marker_id': t.marker_id, 'lat_deg': t.lat_deg, 'lon_deg': t.lon_deg,
                          'h_m': t.h_m, 'residual_enu_m': [float(v) for v in r], 'images': int(n_images),
-                         'rms_px': None if not np.isfinite(rms_px) else float(rms_px), 'use': use,
-                         'detections': [[int(at.kfs[k].stamp_ns), float(uv[0]), float(uv[1])] for k, uv in obs[name]]})
+                         'rms_px': None if not np.isfinite(rms_px) else float(rms_px), 'use': use})
         return rows
+
+    def _detections(self) -> dict:
+        """{target name: [[stamp_ns, u, v], ...]} of every surveyed target in the oriented keyframes (the
+        detections vetting did not reject), whatever its use: the map folder keeps them and the flight report
+        intersects them as the live accuracy does (a GCP left out too, to show how far off it is)."""
+        registered = set(self.at.registered)
+        out = {}
+        for t in self.control.targets:
+            obs = self.live.observations(t.name, registered)
+            if obs:
+                out[t.name] = [[int(self.at.kfs[k].stamp_ns), float(uv[0]), float(uv[1])] for k, uv in obs]
+        return out
 
     def quality(self) -> dict:
         """The live accuracy figures (map/control_points)."""
@@ -611,6 +621,7 @@ class AdjustmentStage:
                 if not out[k]['count']:
                     out[k] = {'horizontal_m': None, 'vertical_m': None, 'count': 0}
             out['control'] = self.live.to_dict()
+            out['detections'] = self._detections()
         return out
 
     @staticmethod

@@ -339,7 +339,7 @@ class MapStage:
         flight report intersects again."""
         try:
             doc = _value(load)
-            if self.params.save_keyframes and isinstance(doc, dict) and (doc.get('check_points') or doc.get('gcps')):
+            if self.params.save_keyframes and isinstance(doc, dict) and doc.get('detections'):
                 self.store.save_control_points(doc)
         except (PhotogramError, OSError, ValueError, TypeError) as exc:
             self._write_failed('control points not saved', exc)
