@@ -23,8 +23,8 @@ Outputs:
   map/control_points  std_msgs/String (latched), JSON: the survey's live accuracy every `quality_every`
                       published keyframes and after a full adjustment: each check point intersected from
                       the adjusted cameras against its survey and the check-point RMSE (horizontal,
-                      vertical, count), the GCPs' residuals apart, the share of keyframes per GNSS fix
-                      class (core/survey_quality.py) and the GNSS bias estimate (with 3 GCPs or more)
+                      vertical, count), the GCPs' residuals apart (intersected too), every target's
+                      detections, the keyframe shares per GNSS fix class, the GNSS bias (3 GCPs or more)
   /diagnostics        solve time, cost, reprojection RMS, GNSS residual RMS, window size; with a
                       control file GCPs seen / used, GCP residual RMS, check points seen, unknown markers,
                       check_rmse_h_m / check_rmse_v_m / checks_measured; keyframe shares per fix class
