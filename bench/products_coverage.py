@@ -9,10 +9,16 @@ peer, minus the median dz over the cells compared (a constant offset: the two bl
 median / p90 |dz|, over all cells, the measured ones, the interpolated ones, and those inside the hull; for
 all and the measured cells also after a fitted plane (offset + tilt, least absolute deviations) instead of the
 constant offset, with the tilt (a tilted georeference is another problem than a noisy surface), and after a
-quadratic surface (a bowl: what an unmodelled lens distortion gives a block).
+quadratic surface (a bowl: what an unmodelled lens distortion gives a block), with the quadratic part's spread
+over the cells (its 5th to 95th percentile) and its curvatures. `--shift-m S` first moves our DSM horizontally by
+the offset (grid search +-S m in 0.25 m) that fits the peer best (the two georeferences differ horizontally too).
+`--photos DIR`: the adjusted camera heights (trajectory.csv) against the photos' EXIF altitudes (matched by the
+replay's stamps) after a constant and after a quadratic surface: whether the block's cameras bend away from the
+altitude the drone held (a dome of the cameras goes with a bowl of the ground).
 Prints one JSON line per folder.
 
     .venv/bin/python bench/products_coverage.py OUT [OUT ...] [--peer ../shared/data/photos/brighton_beach/odm_model.laz]
+        [--shift-m 2] [--photos ../shared/data/photos/brighton_beach/images]
 """
 
 from __future__ import annotations
@@ -21,6 +27,7 @@ import argparse
 import csv
 import json
 import sys
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -51,6 +58,67 @@ def peer_median(path, transform, shape) -> np.ndarray:
     return med.reshape(shape)
 
 
+def quadratic_part(e: np.ndarray, n: np.ndarray, dz: np.ndarray, iters: int = 3) -> dict:
+    """The quadratic surface fitted to dz (least absolute deviations, as plane_residual): the spread of its
+    quadratic terms over the cells (5th, 95th percentile, m) and its two curvatures (1/km; both positive: a
+    bowl of ours against the peer, both negative: a dome)."""
+    e, n = e - e.mean(), n - n.mean()
+    A = np.column_stack([np.ones_like(e), e, n, e * e, e * n, n * n])
+    w = np.ones_like(dz)
+    for _ in range(iters + 1):
+        coef = np.linalg.lstsq(A * w[:, None], dz * w, rcond=None)[0]
+        w = 1.0 / np.sqrt(np.maximum(np.abs(dz - A @ coef), 0.02))
+    q = A[:, 3:] @ coef[3:]
+    H = np.array([[2 * coef[3], coef[4]], [coef[4], 2 * coef[5]]])
+    return {'quadratic_p5_p95_m': [round(float(np.percentile(q, 5)), 3), round(float(np.percentile(q, 95)), 3)],
+            'curvatures_per_km': [round(float(v) * 1e3, 3) for v in np.linalg.eigvalsh(H)]}
+
+
+def best_shift(z, T, measured, peer: str, search_m: float) -> tuple[float, float]:
+    """The horizontal move (m, east and north) of our DSM that minimises the median |dz - median dz| against
+    the peer over the measured cells (grid search in 0.25 m steps)."""
+    import rasterio
+    best = (np.inf, 0.0, 0.0)
+    for dx in np.arange(-search_m, search_m + 1e-9, 0.25):
+        for dy in np.arange(-search_m, search_m + 1e-9, 0.25):
+            med = peer_median(peer, rasterio.Affine(T.a, T.b, T.c + dx, T.d, T.e, T.f + dy), z.shape)
+            both = measured & np.isfinite(med)
+            if both.sum() < 100:
+                continue
+            d = z[both] - med[both]
+            best = min(best, (float(np.median(np.abs(d - np.median(d)))), float(dx), float(dy)))
+    return best[1], best[2]
+
+
+def camera_heights(rows: list[dict], photos: str) -> dict:
+    """Adjusted camera heights against the photos' EXIF altitudes (read as MSL, as the replay reads them)."""
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+    from photogram_ros.core.geodesy import LocalFrame
+    from photogram_ros.io.image_source import FolderSource
+    from photogram_ros.io.photo_block import exif_position
+    by_stamp = {int(t): p for p, t in FolderSource(photos).entries}
+    est, ref = [], []
+    for r in rows:
+        p = by_stamp.get(int(r['stamp_ns']))
+        g = exif_position(p) if p is not None else None
+        if g is not None:
+            est.append((float(r['lat_deg']), float(r['lon_deg']), float(r['h_ellipsoid_m'])))
+            ref.append(g[:3])
+    if len(est) < 7:
+        return {'n': len(est)}
+    est, ref = np.array(est), np.array(ref, float)
+    o = LocalFrame(*ref.mean(axis=0))
+    E, G = o.geodetic_to_enu(*est.T), o.geodetic_to_enu(*ref.T)
+    dz = E[:, 2] - G[:, 2]
+    e, n = E[:, 0] - E[:, 0].mean(), E[:, 1] - E[:, 1].mean()
+    A = np.column_stack([np.ones_like(e), e, n, e * e, e * n, n * n])
+    rq = dz - A @ np.linalg.lstsq(A, dz, rcond=None)[0]
+    return {'n': len(est), 'exif_h_range_m': round(float(np.ptp(G[:, 2])), 2),
+            'adjusted_h_range_m': round(float(np.ptp(E[:, 2])), 2),
+            'rms_after_constant_m': round(float(np.std(dz)), 3),
+            'rms_after_quadratic_m': round(float(np.sqrt(np.mean(rq ** 2))), 3)}
+
+
 def plane_residual(e: np.ndarray, n: np.ndarray, dz: np.ndarray, iters: int = 3,
                    degree: int = 1) -> tuple[np.ndarray, tuple]:
     """dz minus a plane a + b e + c n (degree 1; degree 2 adds e^2, e n, n^2: a bowl or dome) fitted by
@@ -70,6 +138,9 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument('outs', nargs='+')
     ap.add_argument('--peer', default=None, help='a peer\'s LAS/LAZ of the same photos, in the products\' CRS')
+    ap.add_argument('--shift-m', type=float, default=0.0, help='search a horizontal move of our DSM against the '
+                                                                'peer within +- this, m (0: none)')
+    ap.add_argument('--photos', default=None, help='the replayed photo folder: camera heights against its EXIF')
     a = ap.parse_args()
     for out in a.outs:
         rows = list(csv.DictReader(open(f'{out}/trajectory.csv')))
@@ -86,7 +157,13 @@ def main() -> int:
         with rasterio.open(f'{out}/ortho.tif') as ds:
             alpha, To = ds.read(4), ds.transform
         res['ortho_valid_in_hull'] = float((alpha > 0)[hull(alpha.shape, To, e, n)].mean())
+        if a.photos:
+            res['cameras_vs_exif_height'] = camera_heights(rows, a.photos)
         if a.peer:
+            if a.shift_m > 0:
+                dx, dy = best_shift(z, T, measured, a.peer, a.shift_m)
+                res['peer_shift_m'] = [dx, dy]
+                T = rasterio.Affine(T.a, T.b, T.c + dx, T.d, T.e, T.f + dy)
             med = peer_median(a.peer, T, z.shape)
             for name, m in (('all', valid), ('measured', measured), ('filled', valid & ~measured),
                             ('all_in_hull', valid & h), ('measured_in_hull', measured & h)):
@@ -107,7 +184,9 @@ def main() -> int:
                                                  'tilt_n_mm_per_m': round(tilt[1] * 1e3, 2)}
                     dzq, _ = plane_residual(np.asarray(e_), np.asarray(n_), z[both] - med[both], degree=2)
                     res[f'peer_{name}_quadratic'] = {'median_abs_m': round(float(np.median(np.abs(dzq))), 3),
-                                                     'p90_abs_m': round(float(np.percentile(np.abs(dzq), 90)), 3)}
+                                                     'p90_abs_m': round(float(np.percentile(np.abs(dzq), 90)), 3),
+                                                     **quadratic_part(np.asarray(e_), np.asarray(n_),
+                                                                      z[both] - med[both])}
         print(json.dumps(res))
     return 0
 

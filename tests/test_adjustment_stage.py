@@ -4,6 +4,7 @@ diagnostics out. GCP vetting (a placeholder height), a segment after every track
 """
 
 import dataclasses
+import json
 import subprocess
 import sys
 
@@ -32,10 +33,10 @@ def flight_rtk():
     return simulate_keyframes(preset('tiny'), keyframe_interval_s=1.0, attitude_sigma_deg=None)
 
 
-def _stage(sk, **overrides):
+def _stage(sk, camera=None, out=None, **overrides):
     p = from_dict(AdjustmentParams, {'lever_arm_cam_m': [float(v) for v in sk.lever_arm_cam_m], **overrides})
-    stage = AdjustmentStage(p, DiagnosticsLog(), RecordedOutputs())
-    assert stage.set_camera(sk.camera)
+    stage = AdjustmentStage(p, DiagnosticsLog(), out or RecordedOutputs())
+    assert stage.set_camera(camera or sk.camera)
     return stage
 
 
@@ -84,6 +85,14 @@ def test_gcp_with_a_placeholder_height_is_used_horizontally_only(flight_3d, tmp_
           f'({h / sk.gsd_m:.2f} GSD) over {q["check_rmse"]["count"]}')
     assert q['check_rmse']['count'] == 4 and h <= 1.5 * 0.28 * sk.gsd_m
     assert out.qualities and out.qualities[-1]['georeference'] == 'final'
+    # The report, from the detections the map folder keeps: GCP02, left out, with its 30 m; the others without
+    # their placeholder heights; the check points as the stage measured them.
+    doc = json.loads(json.dumps(out.qualities[-1], default=lambda v: v.tolist()))
+    fig = _report_from_the_map_folder(stage, doc, tmp_path, {'/bundle_node': {'values': dict(d.values)}})
+    use = {r['name']: r for r in fig['gcp_residuals']['points']}
+    assert use['GCP02']['use'] == 'not used' and abs(use['GCP02']['dx_m'] + 30.0) < 1.0
+    assert all(use[n]['use'] == 'horizontal only' and use[n]['dz_m'] is None for n in ('GCP01', 'GCP03', 'GCP04'))
+    assert abs(fig['check_points']['rmse']['horizontal_m'] - h) < 1e-4
 
 
 def test_the_flight_after_every_track_was_lost_is_a_segment_joined_through_its_gnss(flight_rtk):
@@ -129,6 +138,89 @@ def test_health_tells_a_good_block_from_one_that_does_not_orient(flight_rtk):
     assert any(lv == ERROR and t.startswith('no georeference after') for lv, t in bad.diag.problems)
     assert bad.diag.level() == ERROR and bad.diag.values['keyframes_registered_share'] == 0.0
     assert outcome.status == 'none' and not bad.out.pose_by_stamp
+
+
+class OrderedOutputs(RecordedOutputs):
+    """RecordedOutputs that also keep the order of the camera and pose publications."""
+
+    def __init__(self):
+        super().__init__()
+        self.order = []
+
+    def camera(self, camera, stamp_ns):
+        super().camera(camera, stamp_ns)
+        self.order.append('camera')
+
+    def poses(self, poses):
+        super().poses(poses)
+        self.order.append('poses')
+
+
+def test_the_final_adjustments_camera_goes_out_before_its_poses(flight_rtk):
+    """The stage starts from a camera whose k1 is 0.03 off the images' (-0.09 for -0.12) and refines k1, k2 in the
+    final adjustment (final_self_calibration): the camera it sends after the final adjustment is the refined one
+    (k1 -0.1192: 0.0008 off, gated at 1.5x), sent before the final poses adjusted with it. Without the
+    self-calibration the input camera goes out."""
+    sk = flight_rtk
+    wrong = dataclasses.replace(sk.camera, dist=np.add(sk.camera.dist, [0.03, 0.0, 0.0, 0.0, 0.0]))
+    stage = _stage(sk, camera=wrong, out=OrderedOutputs(), final_self_calibration='k1,k2')
+    assert _fly(stage, sk.records).status == 'done'
+    out = stage.out
+    cam, stamp = out.cameras[-1]
+    print(f'final camera k1 {cam.dist[0]:.5f} k2 {cam.dist[1]:.5f}, the images\' {sk.camera.dist[0]:.5f} '
+          f'{sk.camera.dist[1]:.5f}, the input\'s {wrong.dist[0]:.5f}')
+    assert abs(cam.dist[0] - sk.camera.dist[0]) < 1.5 * 0.0008 and cam == stage.at.camera
+    assert stamp == max(r.stamp_ns for r in sk.records if r.stamp_ns in out.pose_by_stamp)
+    assert out.order[-2:] == ['camera', 'poses']
+    plain = _stage(sk, out=OrderedOutputs())
+    assert _fly(plain, sk.records[:12]).status == 'done'
+    assert plain.out.cameras and plain.out.cameras[-1][0] == sk.camera
+
+
+def _report_from_the_map_folder(stage, doc: dict, tmp_path, diagnostics=None) -> dict:
+    """The flight report's figures from a map folder as the map node keeps it: the published poses, the final
+    camera, the last live accuracy document (`doc`, as JSON) with its detections."""
+    from photogram_ros.io.flight_report import build_report
+    from photogram_ros.io.map_store import CAMERA_FINAL, MapStore
+    store = MapStore(tmp_path / 'map', 0.1, 256)
+    store.set_origin(stage.at.origin)
+    store.save_camera(stage.at.camera, CAMERA_FINAL)
+    for stamp, (T, _) in stage.out.pose_by_stamp.items():
+        store.save_keyframe_pose(stamp, T)
+        store.save_keyframe_image(stamp, b'')     # the figures read the stored detections, not the images
+    store.save_control_points(doc)
+    (tmp_path / 'report').mkdir()
+    return build_report(tmp_path / 'report', store, 'EPSG:32632', {}, control=stage.control, diagnostics=diagnostics)
+
+
+def test_the_report_intersects_the_stages_detections_into_the_same_figures(flight_3d, tmp_path):
+    """The map folder as the map node keeps it (the published poses, the final camera, the last live accuracy
+    document with its detections, as JSON): the flight report's check-point and GCP figures equal the stage's
+    (map/control_points, what the ground station shows) to 0.1 mm: one method over one set of detections.
+    The GCP residuals come from the adjusted cameras, not from the adjusted target point its prior holds."""
+    from photogram_ros.io.control_file import write_control_file
+    sk, targets = flight_3d
+    survey = [SurveyedTarget(t.name, t.marker_id, *map(float, sk.origin.enu_to_geodetic(t.center_enu)), t.role)
+              for t in targets]
+    control = write_control_file(tmp_path / 'targets.txt', survey, 'EPSG:32632')
+    stage = _stage(sk, control_file=str(control))
+    assert _fly(stage, sk.records, {t.name: t.marker_id for t in targets}, STATUS_FIX).status == 'done'
+    doc = json.loads(json.dumps(stage.out.qualities[-1], default=lambda v: v.tolist()))
+    assert doc['check_rmse']['count'] == 4 and doc['gcp_rmse']['count'] == 5
+    assert all(len(doc['detections'][r['name']]) >= r['images'] >= 2 for r in doc['check_points'] + doc['gcps'])
+    fig = _report_from_the_map_folder(stage, doc, tmp_path)
+    chk, gcp = fig['check_points']['rmse'], fig['gcp_residuals']['rmse']
+    print(f"report check points {chk['horizontal_m'] * 100:.2f} / {chk['z_m'] * 100:.2f} cm, page "
+          f"{doc['check_rmse']['horizontal_m'] * 100:.2f} / {doc['check_rmse']['vertical_m'] * 100:.2f} cm; GCPs "
+          f"{gcp['horizontal_m'] * 100:.2f} / {gcp['z_m'] * 100:.2f} cm, page {doc['gcp_rmse']['horizontal_m'] * 100:.2f}"
+          f" / {doc['gcp_rmse']['vertical_m'] * 100:.2f} cm")
+    assert fig['check_points']['detections'].startswith('found by the tracker in flight')
+    assert chk['count'] == 4 and gcp['count'] == 5
+    for a, b in ((chk['horizontal_m'], doc['check_rmse']['horizontal_m']), (chk['z_m'], doc['check_rmse']['vertical_m']),
+                 (gcp['horizontal_m'], doc['gcp_rmse']['horizontal_m']), (gcp['z_m'], doc['gcp_rmse']['vertical_m'])):
+        assert abs(a - b) < 1e-4
+    # GCPs from the adjusted cameras: their residuals are not the prior's (σ 1 / 1 / 2 cm holds the point).
+    assert gcp['horizontal_m'] > 0.0
 
 
 def test_fix_policy():

@@ -55,3 +55,22 @@ def test_map_stage_fuses_streams_and_persists(tmp_path):
     stage.update_diag()
     assert stage.diag.values['cell_m'] == 0.08 and stage.diag.values['tiles_on_disk'] >= 1
     assert MapStore(tmp_path / 'map').origin.lat_deg == pytest.approx(47.3977)
+
+
+def test_the_final_adjustments_camera_replaces_the_input_calibration(tmp_path):
+    """camera.json holds the camera_info calibration until the bundle adjuster's full adjustment sends the camera
+    its poses were adjusted with; a camera_info after that does not put the input back; densify and the report
+    read it from the folder."""
+    from photogram_ros.core.camera import PinholeCamera
+    from photogram_ros.io.map_store import CAMERA_FINAL, CAMERA_INPUT
+    p = from_dict(MapParams, {'map_dir': str(tmp_path / 'map'), 'cell_m': 0.08})
+    stage = MapStage(p, DiagnosticsLog(), Recorded())
+    exif = PinholeCamera(4000, 2250, 2900.0, 2900.0, 2000.0, 1125.0)
+    refined = PinholeCamera(4000, 2250, 2893.5, 2893.5, 2000.0, 1125.0, (-0.011, 0.02, 0.0, 0.0, 0.0))
+    stage.set_camera(exif)
+    store = MapStore(tmp_path / 'map')
+    assert store.load_camera() == exif and store.camera_name() == CAMERA_INPUT
+    stage.set_final_camera(lambda: refined)
+    stage.set_camera(exif)
+    assert store.load_camera() == refined and store.camera_name() == CAMERA_FINAL and stage.camera == refined
+    stage.close()

@@ -1,8 +1,8 @@
 """Accuracy figures: check points triangulated from adjusted cameras, trajectory and DSM against truth.
 
 Check points are found in the keyframe images (ArUco targets, as real GCP boards often are),
-triangulated from the ADJUSTED poses only, and compared with their surveyed coordinates; they never
-enter the adjustment. All coordinates here are in one `map` ENU frame: callers convert first.
+intersected from the ADJUSTED poses only (intersect_targets), and compared with their surveyed
+coordinates; they never enter the adjustment. All coordinates here are in one `map` ENU frame: callers convert first.
 """
 
 from __future__ import annotations
@@ -14,7 +14,6 @@ import cv2
 import numpy as np
 
 from photogram_ros.core.camera import PinholeCamera
-from photogram_ros.core.triangulation import triangulate_points
 
 
 @dataclass
@@ -153,6 +152,7 @@ class PointResiduals:
     surveyed_map: np.ndarray      # (K, 3)
     n_views: np.ndarray           # (K,)
     missing: list = field(default_factory=list)   # surveyed but not seen in >= 2 keyframes
+    rms_px: np.ndarray | None = None              # (K,) reprojection RMS of the detections used
 
     @property
     def residuals(self) -> np.ndarray:
@@ -171,32 +171,35 @@ class PointResiduals:
                 for n, d, v in zip(self.names, self.residuals, self.n_views)]
 
 
-def triangulate_targets(camera: PinholeCamera, map_T_cams: np.ndarray, detections: list[list[TargetDetection]],
-                        surveyed: dict, max_reproj_px: float = 3.0) -> PointResiduals:
-    """Triangulate each surveyed target (marker_id -> (name, xyz_map)) seen in >= 2 posed images."""
-    ids = sorted(surveyed)
-    index = {m: k for k, m in enumerate(ids)}
-    oc, op, uv = [], [], []
-    for c, dets in enumerate(detections):
-        for d in dets:
-            if d.marker_id in index:
-                oc.append(c)
-                op.append(index[d.marker_id])
-                uv.append(d.center_uv)
-    names, est, sur, views, missing = [], [], [], [], []
-    if oc:
-        tri = triangulate_points(camera, map_T_cams, np.array(oc), np.array(op), np.array(uv), n_points=len(ids))
-    for k, m in enumerate(ids):
-        name, xyz = surveyed[m]
-        if not oc or not tri.valid[k] or tri.reproj_rms_px[k] > max_reproj_px:
+def intersect_targets(camera: PinholeCamera, map_T_cams: np.ndarray, observations: dict, surveyed: dict,
+                      max_px: float = 10.0) -> PointResiduals:
+    """Each surveyed target intersected from the adjusted cameras, against its survey: the one method of the
+    live accuracy (stages/adjustment.py) and the flight report.
+
+    map_T_cams: (N, 4, 4) the posed images; observations: key -> [(image index, (u, v) px)] of the target's
+    detections; surveyed: key -> (name, (3,) surveyed xyz in map). A target is intersected robustly
+    (core.control.robust_intersection: the largest set of its detections within max_px of one point, the
+    point refined on them); one with fewer than two detections, or none that agree, is listed as missing.
+    Returns PointResiduals in the order of `surveyed`, with the detections used and their RMS (px)."""
+    from photogram_ros.core.control import robust_intersection
+    Ts = np.asarray(map_T_cams, float).reshape(-1, 4, 4)
+    names, est, sur, views, rms, missing = [], [], [], [], [], []
+    for key, (name, xyz) in surveyed.items():
+        obs = observations.get(key, [])
+        got = None
+        if len(obs) >= 2:
+            got = robust_intersection(camera, Ts[[int(c) for c, _ in obs]],
+                                      np.array([uv for _, uv in obs], float).reshape(-1, 2), max_px)
+        if got is None:
             missing.append(name)
             continue
         names.append(name)
-        est.append(tri.points_map[k])
+        est.append(np.asarray(got[0], float))
         sur.append(np.asarray(xyz, float))
-        views.append(int(tri.n_views[k]))
+        views.append(int(got[1]))
+        rms.append(float(got[2]))
     return PointResiduals(names, np.array(est).reshape(-1, 3), np.array(sur).reshape(-1, 3), np.array(views, int),
-                          missing)
+                          missing, np.array(rms, float))
 
 
 def trajectory_errors(est_centres_map: np.ndarray, true_centres_map: np.ndarray) -> dict:

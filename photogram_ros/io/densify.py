@@ -102,8 +102,8 @@ def densify_map(map_dir: str | Path | MapStore, out_dir: str | Path, stereo: Ste
 
     `criteria` and `stereo` are the nodes' (the flight's parameter file); the pairs are planned with
     criteria.for_final() and matched with its final_min_overlap (final_lr_check false: no left-right check).
-    `out_dir` gets the origin, camera and keyframes (hard links where the file system allows) of
-    `map_dir` and freshly fused tiles; an existing folder there is replaced. Pairs and depth searches
+    `out_dir` gets the origin, camera (the final adjustment's when the bundle adjuster sent it), the targets'
+    detections and the keyframes (hard links where the file system allows) of `map_dir` and freshly fused tiles; an existing folder there is replaced. Pairs and depth searches
     come from core/pairs.plan_pairs around the in-flight map's ground height, narrowed to the pair's
     tie points `tie_points_map` (N, 3, map m; default: none, the ground +- relief_m). Passing the in-flight
     map's surface (surface_points) makes the search narrower but is not the default: on the sample flight it
@@ -136,7 +136,10 @@ def densify_map(map_dir: str | Path | MapStore, out_dir: str | Path, stereo: Ste
         shutil.rmtree(out)
     dst = MapStore(out, fusion.cell_m, fusion.tile_cells)
     dst.set_origin(origin)
-    dst.save_camera(cam)
+    dst.save_camera(cam, src.camera_name() or 'camera')
+    control_points = src.control_points()   # the in-flight detections of the targets, for the report
+    if control_points is not None:
+        dst.save_control_points(control_points)
     for k in kfs:
         _link_or_copy(k['image_path'], dst.keyframes_dir / k['image_path'].name)
         dst.save_keyframe_pose(k['stamp_ns'], k['map_T_cam'])

@@ -3,8 +3,9 @@
 Everything is read back from disk (map folder, GeoTIFFs, LAS), so the report describes exactly what
 a user receives and can be rebuilt after the flight. Figures:
 - adjusted trajectory (CSV and GeoJSON, in the output CRS and WGS84, with omega-phi-kappa);
-- check points: found in the keyframes, triangulated from the adjusted poses, against their survey;
-  with a control file, its GCPs' residuals apart (they constrained the adjustment);
+- check points: the tracker's detections the bundle adjuster kept in the map folder (else the markers found
+  again in the keyframes), intersected from the adjusted poses as the live accuracy does, against their
+  survey; with a control file, its GCPs' residuals apart (they constrained the adjustment);
 - with ground truth: camera-centre errors, DSM (its measured and interpolated cells apart) and cloud
   against the true DEM, the DTM against it away from buildings, in metres and GSD;
 - the DSM's measured / interpolated split inside the camera centres' hull, an overlap map (photos per
@@ -25,11 +26,12 @@ import cv2
 import numpy as np
 
 from photogram_ros.core.at_report import redundancy_notes
-from photogram_ros.core.evaluation import (ce90_le90, detect_targets, surface_errors, trajectory_errors,
-                                           triangulate_targets)
+from photogram_ros.core.control import ControlVettingOptions
+from photogram_ros.core.evaluation import (ce90_le90, detect_targets, intersect_targets, surface_errors,
+                                           trajectory_errors)
 from photogram_ros.core.geodesy import LocalFrame, crs_to_geodetic, geodetic_to_crs
 from photogram_ros.io.at_report import ce90_text
-from photogram_ros.io.map_store import MapStore
+from photogram_ros.io.map_store import CAMERA_FINAL, MapStore
 from photogram_ros.io.report import Section, histogram_png, trajectory_png, write_report
 from photogram_ros.io.trajectory import TRAJECTORY_COLUMNS, write_trajectory_csv
 
@@ -40,6 +42,29 @@ def _target_figures(res, gsd_m: float | None) -> dict:
     if gsd_m and rm['count']:
         out['rmse_gsd'] = {'horizontal': rm['horizontal_m'] / gsd_m, 'vertical': rm['z_m'] / gsd_m}
     return out
+
+
+def target_observations(store: MapStore, kfs: list[dict], surveyed: dict) -> tuple[dict, float, str]:
+    """The detections of the surveyed targets (marker id -> (name, xyz)) in the map folder's keyframes `kfs`:
+    ({marker id: [(keyframe index, (u, v))]}, the largest pixel residual a detection may have, where they come
+    from). The bundle adjuster's own (control_points.json: the tracker's detections it intersected the live
+    check points and GCPs from, by the same method) when the folder holds them, so the report's figures are
+    the ones the ground station showed; else the markers found again in the saved keyframe images."""
+    doc = store.control_points()
+    if isinstance((doc or {}).get('detections'), dict):
+        index = {int(k['stamp_ns']): i for i, k in enumerate(kfs)}
+        by_name = {name: [(index[int(s)], np.array([u, v], float)) for s, u, v in dets if int(s) in index]
+                   for name, dets in doc['detections'].items()}
+        max_px = float(doc.get('max_row_residual_px') or ControlVettingOptions().max_row_residual_px)
+        return ({m: by_name.get(name, []) for m, (name, _) in surveyed.items()}, max_px,
+                'found by the tracker in flight (the detections the bundle adjuster intersected them from)')
+    obs: dict = {m: [] for m in surveyed}
+    for i, kf in enumerate(kfs):
+        img = cv2.imread(str(kf['image_path']), cv2.IMREAD_GRAYSCALE)
+        for d in (detect_targets(img) if img is not None else []):
+            if d.marker_id in obs:
+                obs[d.marker_id].append((i, d.center_uv))
+    return obs, ControlVettingOptions().max_row_residual_px, 'found in the saved keyframe images'
 
 
 def write_trajectory(out: Path, keyframes: list[dict], origin: LocalFrame, crs: str) -> dict:
@@ -419,9 +444,9 @@ def build_report(out_dir: str | Path, map_dir: str | Path | MapStore, crs: str, 
     traj = write_trajectory(out, kfs, origin, crs)
     Ts = np.array([k['map_T_cam'] for k in kfs])
 
-    # Targets: found in the keyframes, triangulated from the adjusted poses. With a control file its
-    # check points are the check points and its GCPs are listed apart (the adjustment used them);
-    # without one every target of the truth is a check point (nothing constrained the block to them).
+    # Targets: the tracker's detections kept in the map folder (else found in the keyframes), intersected from
+    # the adjusted poses. With a control file its check points are the check points and its GCPs are listed
+    # apart (the adjustment used them); without one every target of the truth is a check point (nothing constrained the block to them).
     checks_surveyed, gcps_surveyed = {}, {}
     if control is not None:
         for t, c in zip(control.targets, control.in_map(origin)):
@@ -430,25 +455,23 @@ def build_report(out_dir: str | Path, map_dir: str | Path | MapStore, crs: str, 
         # Truth is in its own ENU; the map may be anchored elsewhere: go through ECEF.
         for t in truth.targets:
             checks_surveyed[t.marker_id] = (t.name, origin.ecef_to_enu(truth.origin.enu_to_ecef(t.center_enu)))
-    detections = []
-    if checks_surveyed or gcps_surveyed:
-        for kf in kfs:
-            img = cv2.imread(str(kf['image_path']), cv2.IMREAD_GRAYSCALE)
-            detections.append(detect_targets(img) if img is not None else [])
+    surveyed = {**gcps_surveyed, **checks_surveyed}
+    observations, max_px, found_by = target_observations(store, kfs, surveyed) if surveyed else ({}, 0.0, '')
     gsd = truth.gsd_m if truth is not None else None
-    checks = triangulate_targets(cam, Ts, detections, checks_surveyed) if checks_surveyed else None
-    intro = ('Targets found in the keyframes and triangulated from the adjusted cameras (never used in the '
-             'adjustment), against their surveyed coordinates'
-             + (f' ({control.source}).' if control is not None else '.'))
+    checks = intersect_targets(cam, Ts, observations, checks_surveyed, max_px) if checks_surveyed else None
+    intro = (f'Targets {found_by}, intersected from the adjusted cameras (never used in the adjustment), against '
+             'their surveyed coordinates' + (f' ({control.source}).' if control is not None else '.'))
     sec = Section('Check points', [intro])
     if checks is not None:
         figures['check_points'] = _target_figures(checks, gsd)
+        figures['check_points']['detections'] = found_by
         figures['check_points']['ce90_le90'] = ce90_le90(checks.residuals)
         sec.tables.append(('Residuals (estimated - surveyed), m', checks.table()))
         sec.tables.append(('RMSE, m', [figures['check_points']['rmse']]))
         sec.text += ce90_text(figures['check_points']['ce90_le90'])
         if checks.missing:
-            sec.text.append(f'Not seen in two or more keyframes: {", ".join(checks.missing)}.')
+            sec.text.append(f'Not measured (seen in fewer than two keyframes, or detections that agree on no point): '
+                            f'{", ".join(checks.missing)}.')
     elif control is not None:
         sec.text.append(f'{control.source} names no check point (CHK* or --check): the accuracy of this map is '
                         'not measured.')
@@ -456,9 +479,8 @@ def build_report(out_dir: str | Path, map_dir: str | Path | MapStore, crs: str, 
         sec.text.append('No surveyed targets given (use --gcp targets.txt).')
     sections.append(sec)
     if gcps_surveyed:
-        sections.append(_gcp_section(triangulate_targets(cam, Ts, detections, gcps_surveyed), gsd, len(gcps_surveyed),
-                                     diagnostics, figures))
-    surveyed = {**gcps_surveyed, **checks_surveyed}
+        sections.append(_gcp_section(intersect_targets(cam, Ts, observations, gcps_surveyed, max_px), gsd,
+                                     len(gcps_surveyed), diagnostics, figures))
 
     if truth is not None:
         sections.append(_truth_section(out, truth, origin, crs, kfs, files, figures))
@@ -487,9 +509,13 @@ def build_report(out_dir: str | Path, map_dir: str | Path | MapStore, crs: str, 
     row = {'width_px': cam.width, 'height_px': cam.height, 'fx_px': round(cam.fx, 2), 'fy_px': round(cam.fy, 2),
            'cx_px': round(cam.cx, 2), 'cy_px': round(cam.cy, 2),
            **{k: float(f'{v:.5g}') for k, v in zip(('k1', 'k2', 'p1', 'p2', 'k3'), cam.dist)}}
+    final = store.camera_name() == CAMERA_FINAL
+    row['source'] = 'final adjustment' if final else 'input calibration'
     figures['camera'] = row
     sections.append(Section('Camera', ['The camera model the products were made with (the map folder\'s '
-                                       'camera.json).'],
+                                       'camera.json): ' + ('the one the final adjustment adjusted the poses with '
+                                                           '(its self-calibration when it refined the intrinsics).'
+                                                           if final else 'the calibration the flight started with.')],
                             tables=[('Intrinsics (pixels) and distortion (OpenCV model)', [row])]))
     overlap = overlap_png(out / 'overlap.png', files.get('dsm'), kfs, cam, origin, crs)
     if overlap:
@@ -534,7 +560,7 @@ def _gcp_section(gcps, gsd: float | None, n_surveyed: int, diagnostics: dict | N
     fig['redundancy'] = redundancy_notes([{'name': r['name'], 'images': r['views'],
                                            'residual_m': [r['dx_m'], r['dy_m'], r['dz_m']]} for r in fit])
     sec = Section('GCP residuals', [
-        'Ground control points constrained the adjustment: their residuals (triangulated from the adjusted '
+        'Ground control points constrained the adjustment: their residuals (intersected from the adjusted '
         'cameras minus surveyed) show how well the block fits them, not its accuracy (see the check points).'
         + (f' The adjuster used {used} of {n_surveyed} GCPs.' if used is not None else '')]
         + [f'{t}.' for t in fig['redundancy'][1:]])
@@ -542,7 +568,8 @@ def _gcp_section(gcps, gsd: float | None, n_surveyed: int, diagnostics: dict | N
                        'shown', rows))
     sec.tables.append(('RMSE over the GCPs used (vertical: over those used in height), m', [fig['rmse']]))
     if gcps.missing:
-        sec.text.append(f'Not seen in two or more keyframes: {", ".join(gcps.missing)}.')
+        sec.text.append(f'Not measured (seen in fewer than two keyframes, or detections that agree on no point): '
+                        f'{", ".join(gcps.missing)}.')
     faults = [p[1][len('control: '):] for p in bundle.get('problems', []) if str(p[1]).startswith('control: ')]
     fig['faults'] = list(dict.fromkeys(faults))
     if fig['faults']:

@@ -5,7 +5,9 @@ Layout of a map directory:
     tiles/<ti>_<tj>.pgt           one append-only file per tile
     keyframes/<stamp_ns>.jpg      keyframe image
     keyframes/<stamp_ns>.json     its latest map_T_cam (rewritten atomically when the pose improves)
-    camera.json                   the keyframes' camera calibration
+    camera.json                   the keyframes' camera calibration: once the bundle adjuster has sent it, the
+                                  camera the final poses were adjusted with (camera_name final_adjustment)
+    control_points.json           the bundle adjuster's latest check points and GCPs with their detections
     flight_end.json               how the flight ended: was the final adjustment made (written last)
 
 A tile file is a 32-byte header followed by blocks. A block is a 16-byte header (magic, record
@@ -32,6 +34,10 @@ from photogram_ros.core.fusion import CELL_DTYPE
 from photogram_ros.errors import DataError, StorageError
 
 FORMAT = 'photogram_ros.map'
+# camera.json's camera_name: the calibration the flight started with, or the one of the final adjustment's poses.
+CAMERA_INPUT = 'camera'
+CAMERA_FINAL = 'final_adjustment'
+CONTROL_POINTS_FILE = 'control_points.json'
 VERSION = 1
 RECORD_DTYPE = np.dtype([('cell', '<u4')] + [(n, CELL_DTYPE.fields[n][0]) for n in CELL_DTYPE.names])
 _FILE_HEADER = struct.Struct('<8sIiiIdI')          # magic, version, ti, tj, tile_cells, cell_m, record size
@@ -282,13 +288,34 @@ class MapStore:
 
     # --- keyframes -------------------------------------------------------------------------------
 
-    def save_camera(self, camera) -> None:
-        self._write(self.root / 'camera.json', json.dumps(camera.to_ros_yaml_dict()).encode())
+    def save_camera(self, camera, name: str = 'camera') -> None:
+        """The keyframes' camera (ROS calibration YAML layout as JSON); `name` (its camera_name) says which:
+        CAMERA_INPUT, the calibration the flight started with, or CAMERA_FINAL, the one the final
+        adjustment's poses were adjusted with (its self-calibration)."""
+        self._write(self.root / 'camera.json', json.dumps(camera.to_ros_yaml_dict(name)).encode())
 
     def load_camera(self):
         from photogram_ros.core.camera import PinholeCamera
         p = self.root / 'camera.json'
         return PinholeCamera.from_ros_yaml_dict(json.loads(p.read_text())) if p.exists() else None
+
+    def camera_name(self) -> str | None:
+        """camera.json's camera_name (CAMERA_INPUT, CAMERA_FINAL or a calibration's own), None without one."""
+        p = self.root / 'camera.json'
+        return json.loads(p.read_text()).get('camera_name') if p.exists() else None
+
+    def save_control_points(self, doc: dict) -> None:
+        """The bundle adjuster's latest live accuracy document (map/control_points): the check points and GCPs
+        with the detections each was intersected from, which the flight report intersects again."""
+        self._write(self.root / CONTROL_POINTS_FILE, json.dumps(doc).encode())
+
+    def control_points(self) -> dict | None:
+        """What save_control_points wrote, or None (no control file in flight, or unreadable)."""
+        p = self.root / CONTROL_POINTS_FILE
+        try:
+            return json.loads(p.read_text()) if p.exists() else None
+        except (OSError, ValueError):
+            return None
 
     def save_keyframe_image(self, stamp_ns: int, jpeg: bytes) -> None:
         self._write(self.keyframes_dir / f'{int(stamp_ns)}.jpg', jpeg)

@@ -18,11 +18,13 @@ Outputs:
   map/georeference    NavSatFix (latched): latitude, longitude and ellipsoidal altitude of the
                       origin of `map` (ENU tangent there). The origin is the configured one or the
                       first keyframe fix. Published once the block is georeferenced.
+  map/camera_final    CameraInfo (latched): after each full adjustment, before its poses, the camera they were
+                      adjusted with (final_self_calibration refines it); the products match with it
   map/control_points  std_msgs/String (latched), JSON: the survey's live accuracy every `quality_every`
                       published keyframes and after a full adjustment: each check point intersected from
                       the adjusted cameras against its survey and the check-point RMSE (horizontal,
-                      vertical, count), the GCPs' residuals apart, the share of keyframes per GNSS fix
-                      class (core/survey_quality.py) and the GNSS bias estimate (with 3 GCPs or more)
+                      vertical, count), the GCPs' residuals apart (intersected too), every target's
+                      detections, the keyframe shares per GNSS fix class, the GNSS bias (3 GCPs or more)
   /diagnostics        solve time, cost, reprojection RMS, GNSS residual RMS, window size; with a
                       control file GCPs seen / used, GCP residual RMS, check points seen, unknown markers,
                       check_rmse_h_m / check_rmse_v_m / checks_measured; keyframe shares per fix class
@@ -95,6 +97,7 @@ TOPIC_CLOUD = 'map/sparse_cloud'
 TOPIC_GEOREF = 'map/georeference'
 TOPIC_ATTITUDE = 'mavlink/attitude'
 TOPIC_CONTROL_POINTS = 'map/control_points'
+TOPIC_CAMERA_FINAL = 'map/camera_final'
 
 
 @dataclass
@@ -114,6 +117,7 @@ class _Publishers(Outputs):
         self._cloud = node.create_publisher(PointCloud2, TOPIC_CLOUD, QoSProfile(depth=2))
         self.georef = node.create_publisher(NavSatFix, TOPIC_GEOREF, latched)
         self._quality = node.create_publisher(String, TOPIC_CONTROL_POINTS, latched)
+        self._camera = node.create_publisher(CameraInfo, TOPIC_CAMERA_FINAL, latched)
 
     def georeference(self, lat_deg, lon_deg, h_m, stamp_ns):
         self.georef.publish(msgs.georeference_msg(lat_deg, lon_deg, h_m, stamp_ns))
@@ -130,6 +134,9 @@ class _Publishers(Outputs):
 
     def quality(self, doc):
         self._quality.publish(msgs.json_msg(doc))
+
+    def camera(self, camera, stamp_ns):
+        self._camera.publish(msgs.camera_info_msg(camera, stamp_ns))
 
 
 class BundleNode(Node):

@@ -1,7 +1,9 @@
 """Map node: fuses the pair clouds into the tiled map, keeps it safe on disk, streams it to the ground.
 
 Inputs: /map/dense_cloud (PointCloud2 in `map`, fields x, y, z and optionally rgb, confidence),
-/keyframes/image + /map/keyframe_pose + /camera/camera_info (saved in map_dir for the orthomosaic),
+/keyframes/image + /map/keyframe_pose + /camera/camera_info (saved in map_dir for the orthomosaic; once
+/map/camera_final, the camera of the bundle adjuster's full adjustment, comes, that one is saved instead;
+/map/control_points, the bundle adjuster's check points with their detections, saved for the report),
 and the geodetic origin of `map`: either the parameters origin_lat_deg/origin_lon_deg/origin_h_m
 (use_origin_params: true) or /map/georeference, a sensor_msgs/NavSatFix whose latitude, longitude
 and altitude (ellipsoidal, REP-145) are the `map` origin, published with transient-local QoS.
@@ -49,6 +51,8 @@ TOPIC_GEOREFERENCE = 'map/georeference'
 TOPIC_IMAGE = 'keyframes/image'
 TOPIC_POSE = 'map/keyframe_pose'
 TOPIC_INFO = 'camera/camera_info'
+TOPIC_CAMERA_FINAL = 'map/camera_final'
+TOPIC_CONTROL_POINTS = 'map/control_points'
 TOPIC_ORTHO = 'map/ortho_tiles'
 TOPIC_COVERAGE = 'map/coverage'
 TOPIC_SPARSE = 'map/sparse_cloud'
@@ -110,6 +114,12 @@ class MapNode(Node):
                                      callback_group=group)
             self.create_subscription(CameraInfo, TOPIC_INFO, self._on_info, qos_profile_sensor_data,
                                      callback_group=group)
+            self.create_subscription(CameraInfo, TOPIC_CAMERA_FINAL, self._on_final_camera, latched,
+                                     callback_group=group)
+        if p.save_keyframes:
+            from std_msgs.msg import String
+            self.create_subscription(String, TOPIC_CONTROL_POINTS, self._on_control_points, latched,
+                                     callback_group=group)
         if p.ortho:
             steady_timer(self, p.ortho_period_s, self._stream_ortho, group)
         if p.coverage:
@@ -157,6 +167,12 @@ class MapNode(Node):
 
     def _on_info(self, msg: CameraInfo) -> None:
         self.stage.set_camera(lambda: msgs.camera_from_info(msg))
+
+    def _on_final_camera(self, msg: CameraInfo) -> None:
+        self.stage.set_final_camera(lambda: msgs.camera_from_info(msg))
+
+    def _on_control_points(self, msg) -> None:
+        self.stage.set_control_points(lambda: msgs.json_from_msg(msg))
 
     # --- outputs ---------------------------------------------------------------------------------
 

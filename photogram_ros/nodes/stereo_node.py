@@ -2,7 +2,8 @@
 
 Inputs: /keyframes/image (Image), /map/keyframe_pose (PoseWithCovarianceStamped in `map`, stamped
 like its keyframe image; a later pose with the same stamp is a refinement and replaces the older
-one), /camera/camera_info. Output: /map/dense_cloud (PointCloud2 x, y, z float32 as RViz2 draws them,
+one), /camera/camera_info, /map/camera_final (the camera the bundle adjuster's full adjustment adjusted its
+poses with: pairs made after it use that one). Output: /map/dense_cloud (PointCloud2 x, y, z float32 as RViz2 draws them,
 rgb, confidence) per pair, optionally /stereo/disparity, and /diagnostics.
 """
 
@@ -18,7 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 from geometry_msgs.msg import PoseWithCovarianceStamped
 from rclpy.node import Node
-from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
 from sensor_msgs.msg import CameraInfo, Image, NavSatFix, PointCloud2
 from stereo_msgs.msg import DisparityImage
 
@@ -34,6 +35,7 @@ from photogram_ros.params import param
 TOPIC_IMAGE = 'keyframes/image'
 TOPIC_POSE = 'map/keyframe_pose'
 TOPIC_INFO = 'camera/camera_info'
+TOPIC_CAMERA_FINAL = 'map/camera_final'
 TOPIC_CLOUD = 'map/dense_cloud'
 TOPIC_DISPARITY = 'stereo/disparity'
 TOPIC_SPARSE = 'map/sparse_cloud'
@@ -93,6 +95,9 @@ class StereoNode(Node):
         self.create_subscription(Image, TOPIC_IMAGE, self._on_image, reliable)
         self.create_subscription(PoseWithCovarianceStamped, TOPIC_POSE, self._on_pose, reliable)
         self.create_subscription(CameraInfo, TOPIC_INFO, self._on_info, qos_profile_sensor_data)
+        self._camera_final = False   # the full adjustment's camera came: camera_info no longer replaces it
+        self.create_subscription(CameraInfo, TOPIC_CAMERA_FINAL, self._on_final_camera, QoSProfile(
+            depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL))
         self.ground_m = None if p.ground_from_sparse_cloud else p.ground_height_m
         self._tie_points = np.zeros((0, 3))   # the newest sparse cloud, map (m)
         self._flushing = False
@@ -124,16 +129,24 @@ class StereoNode(Node):
                     self.diag.count('keyframes_dropped_unpaired')
         return kf
 
-    def _on_info(self, msg: CameraInfo) -> None:
+    def _on_info(self, msg: CameraInfo, final: bool = False) -> None:
+        if self._camera_final and not final:
+            return
         try:
             cam = msgs.camera_from_info(msg)
         except PhotogramError as exc:
             self.diag.problem(f'bad camera_info: {exc}')
             return
+        self._camera_final = self._camera_final or final
         first = self.camera is None
         self.camera = cam
         if first:
             self._pair_pending()
+
+    def _on_final_camera(self, msg: CameraInfo) -> None:
+        """The camera the poses of a full adjustment were adjusted with: the keyframes paired from now on
+        are matched with it (they hold those poses)."""
+        self._on_info(msg, final=True)
 
     def _on_image(self, msg: Image) -> None:
         try:

@@ -8,7 +8,7 @@ Work (one thread at a time, under `work`): `take_work` hands out the keyframes t
 whether a full adjustment was asked for; `run_batch` adjusts them; `finish` and `full_adjustment` end the
 flight. `drain` does both at once for a caller without a worker thread (tests, offline commands).
 Out: through `out` (an `Outputs`): the georeference once, poses with their covariance, the path, the sparse
-cloud, the live quality document; through `diag` (count / set / problem(text, level)): the /diagnostics keys
+cloud, the live quality document, the camera a full adjustment's poses were adjusted with; through `diag` (count / set / problem(text, level)): the /diagnostics keys
 and problems with OK, WARN or ERROR. `DiagnosticsLog` and `RecordedOutputs` keep them for a caller without ROS.
 
 The policies (bundle_node's docstring tells them in full): a fix without a covariance gets one from its GNSS
@@ -30,9 +30,9 @@ import numpy as np
 from photogram_ros.core.at_report import convergence, redundancy_notes
 from photogram_ros.core.attitude import AttitudeHistory, antenna_offset_enu
 from photogram_ros.core.block_check import BlockCheckOptions, check_block, inputs_from_at
-from photogram_ros.core.control import TARGET_DTYPE, ControlSet, robust_intersection
+from photogram_ros.core.control import TARGET_DTYPE, ControlSet
 from photogram_ros.core.control_live import LiveControl, LiveControlOptions
-from photogram_ros.core.evaluation import ce90_le90
+from photogram_ros.core.evaluation import ce90_le90, intersect_targets
 from photogram_ros.core.geodesy import LocalFrame
 from photogram_ros.core.gnss_fix import COV_UNKNOWN, STATUS_GBAS_FIX, STATUS_SBAS_FIX, GnssFix
 from photogram_ros.core.incremental import IncrementalAT, IncrementalOptions, KeyframeRecord
@@ -159,12 +159,17 @@ class Outputs:
     def quality(self, doc: dict) -> None:
         """The live accuracy document (map/control_points)."""
 
+    def camera(self, camera, stamp_ns: int) -> None:
+        """The camera (core.camera.PinholeCamera) the poses of a full adjustment were adjusted with: the input
+        calibration, or its self-calibration (final_self_calibration); published before those poses."""
+
 
 class RecordedOutputs(Outputs):
     """Outputs kept in memory: the latest pose per stamp, every path, cloud, quality document."""
 
     def __init__(self):
         self.georeferences, self.pose_by_stamp, self.paths, self.clouds, self.qualities = [], {}, [], [], []
+        self.cameras = []
 
     def georeference(self, lat_deg, lon_deg, h_m, stamp_ns):
         self.georeferences.append((lat_deg, lon_deg, h_m, stamp_ns))
@@ -180,6 +185,9 @@ class RecordedOutputs(Outputs):
 
     def quality(self, doc):
         self.qualities.append(doc)
+
+    def camera(self, camera, stamp_ns):
+        self.cameras.append((camera, stamp_ns))
 
 
 class AdjustmentStage:
@@ -549,31 +557,45 @@ class AdjustmentStage:
     # --- live quality -----------------------------------------------------------------------------
 
     def _target_rows(self, role: str) -> list[dict]:
-        """Surveyed targets of one role seen so far: check points intersected from the adjusted cameras
-        (core.control.robust_intersection over the oriented keyframes that saw them), GCPs as adjusted
-        (their point in the block); residual = estimate - survey, map ENU, m."""
-        at, rows = self.at, []
+        """Surveyed targets of one role seen so far, intersected from the adjusted cameras over the oriented
+        keyframes that saw them (core.evaluation.intersect_targets, as the flight report does; a GCP too, not
+        its adjusted point, which its own prior holds); residual = estimate - survey, map ENU, m. The
+        detections are those `_detections` hands out, which the report intersects again by the same method."""
+        at = self.at
         registered = set(at.registered)
+        if role == 'gcp' and not at.georeferenced:
+            return []
+        targets, obs, surveyed = {}, {}, {}
         for t in self.control.targets:
             cp, use = self.live.surveyed.get(t.name), self.live.use_of(t.name)
-            obs = self.live.observations(t.name, registered)
-            if cp is None or t.role != role or len(obs) < (2 if role == 'check' else 1) \
-                    or (role == 'gcp' and use not in ('full', 'horizontal')):
+            if cp is None or t.role != role or (role == 'gcp' and use not in ('full', 'horizontal')):
                 continue
-            if role == 'gcp' and (len(obs) < 2 or not at.georeferenced):
-                continue
-            # GCPs as check points: intersected from the adjusted cameras, not the adjusted target point (which
-            # its own prior holds), as the flight report measures them.
-            got = robust_intersection(at.camera, np.array([at.kfs[k].map_T_cam for k, _ in obs]),
-                                      np.array([uv for _, uv in obs]).reshape(-1, 2), self.p.max_row_residual_px)
-            if got is None:
-                continue
-            xyz, n_images, rms_px = got
+            targets[t.name], surveyed[t.name] = (t, use), (t.name, cp.map_xyz)
+            obs[t.name] = self.live.observations(t.name, registered)
+        kids = sorted({k for o in obs.values() for k, _ in o})
+        col = {k: j for j, k in enumerate(kids)}
+        res = intersect_targets(at.camera, np.array([at.kfs[k].map_T_cam for k in kids]).reshape(-1, 4, 4),
+                                {n: [(col[k], uv) for k, uv in o] for n, o in obs.items()}, surveyed,
+                                self.p.max_row_residual_px)
+        rows = []
+        for name, r, n_images, rms_px in zip(res.names, res.residuals, res.n_views, res.rms_px):
+            t, use = targets[name]
             rows.append({'name': t.name, 'marker_id': t.marker_id, 'lat_deg': t.lat_deg, 'lon_deg': t.lon_deg,
-                         'h_m': t.h_m, 'residual_enu_m': [float(v) for v in np.asarray(xyz) - cp.map_xyz],
-                         'images': int(n_images), 'rms_px': None if not np.isfinite(rms_px) else float(rms_px),
-                         'use': use})
+                         'h_m': t.h_m, 'residual_enu_m': [float(v) for v in r], 'images': int(n_images),
+                         'rms_px': None if not np.isfinite(rms_px) else float(rms_px), 'use': use})
         return rows
+
+    def _detections(self) -> dict:
+        """{target name: [[stamp_ns, u, v], ...]} of every surveyed target in the oriented keyframes (the
+        detections vetting did not reject), whatever its use: the map folder keeps them and the flight report
+        intersects them as the live accuracy does (a GCP left out too, to show how far off it is)."""
+        registered = set(self.at.registered)
+        out = {}
+        for t in self.control.targets:
+            obs = self.live.observations(t.name, registered)
+            if obs:
+                out[t.name] = [[int(self.at.kfs[k].stamp_ns), float(uv[0]), float(uv[1])] for k, uv in obs]
+        return out
 
     def quality(self) -> dict:
         """The live accuracy figures (map/control_points)."""
@@ -582,7 +604,8 @@ class AdjustmentStage:
         out = {'keyframes': n, 'fix_share': {c: (v / n if n else None) for c, v in self._fix_classes.items()},
                'georeference': ('none' if at is None or not at.georeferenced else
                                 'provisional' if at.georef_provisional else 'final'),
-               'check_points': [], 'gcps': [], 'check_rmse': None, 'gcp_rmse': None, 'gnss_bias_enu_m': None}
+               'check_points': [], 'gcps': [], 'check_rmse': None, 'gcp_rmse': None, 'gnss_bias_enu_m': None,
+               'max_row_residual_px': self.p.max_row_residual_px}
         if self.control is not None and self.at is not None and self.at.origin is not None:
             out['check_points'] = self._target_rows('check')
             out['gcps'] = self._target_rows('gcp')
@@ -598,6 +621,7 @@ class AdjustmentStage:
                 if not out[k]['count']:
                     out[k] = {'horizontal_m': None, 'vertical_m': None, 'count': 0}
             out['control'] = self.live.to_dict()
+            out['detections'] = self._detections()
         return out
 
     @staticmethod
@@ -747,6 +771,9 @@ class AdjustmentStage:
             self._control_diagnostics()
             self.publish_quality()
             if self.at.georeferenced:
+                # The camera first: whoever matches the keyframes with these poses needs the intrinsics they
+                # were adjusted with (a self-calibration changes them).
+                self.out.camera(self.at.camera, self.at.kfs[self.at.registered[-1]].stamp_ns)
                 self._publish(window=list(self.at.registered), new=0)
                 self.publish_cloud(self.at.kfs[self.at.registered[-1]].stamp_ns)
             self.diag.count('full_adjustments')   # after publishing: a waiting caller gets the poses

@@ -4,7 +4,9 @@ ortho tiles, the coverage and the origin of `map`, without ROS.
 In (plain methods): `set_origin` (the georeference), `add_cloud` (a pair cloud in `map`: x, y, z and
 optionally rgb, confidence), `add_image` (a keyframe image, saved as JPEG), `add_pose` (a keyframe's
 map_T_cam), `add_keyframe_fix` (its GNSS position: the track for the coverage), `add_sparse` (tie points:
-the ground under the keyframes), `set_camera`.
+the ground under the keyframes), `set_camera` (the input calibration), `set_final_camera` (the camera a full
+adjustment's poses were adjusted with: it replaces the input calibration in the map folder), `set_control_points`
+(the bundle adjuster's check points and GCPs with their detections, kept in the map folder).
 Periodic (the node's timers): `flush` (changed cells and poses to disk), `stream` (block means of the
 changed tiles), `stream_ortho` (PNG tiles of the live orthomosaic), `update_coverage`, `update_diag`.
 Out: through `out` (a `MapOutputs`): the stream's points, the ortho tiles, the coverage GeoJSON; through
@@ -29,7 +31,7 @@ from photogram_ros.core.coverage import COVERAGE, FORWARD_OVERLAP, NOT_ORIENTED,
 from photogram_ros.core.fusion import Fusion, FusionConfig, downsample, pack_rgb
 from photogram_ros.core.geodesy import LocalFrame
 from photogram_ros.errors import ConfigError, PhotogramError
-from photogram_ros.io.map_store import MapStore
+from photogram_ros.io.map_store import CAMERA_FINAL, CAMERA_INPUT, MapStore
 from photogram_ros.params import param
 from photogram_ros.stages.report import ERROR, DiagnosticsLog
 
@@ -140,7 +142,8 @@ class MapStage:
                 self._survey_rings = read_survey_area(p.survey_area_file)
             except PhotogramError as exc:
                 raise ConfigError(f'map_node: {exc}') from exc
-        self._camera_saved = None
+        self._camera_saved = None     # (camera, its name in camera.json) last written
+        self._camera_final = False    # a full adjustment's camera came: the input calibration no longer counts
         self._poses_pending: dict = {}
         self._fuse_s = 0.0
         self._closed = False
@@ -329,17 +332,43 @@ class MapStage:
         except (PhotogramError, ValueError) as exc:
             self.diag.problem(f'sparse cloud not used for the coverage: {exc}')
 
+    @_locked
+    def set_control_points(self, load) -> None:
+        """The bundle adjuster's live accuracy document (`load` or `load()`: the dict; a conversion may raise
+        PhotogramError): the latest is kept in the map folder (control_points.json) with the detections the
+        flight report intersects again."""
+        try:
+            doc = _value(load)
+            if self.params.save_keyframes and isinstance(doc, dict) and doc.get('detections'):
+                self.store.save_control_points(doc)
+        except (PhotogramError, OSError, ValueError, TypeError) as exc:
+            self._write_failed('control points not saved', exc)
+
+    @_locked
     def set_camera(self, load) -> None:
         """The calibration (`load` or `load()`: the core.camera model; a conversion may raise PhotogramError),
-        saved with the keyframes."""
+        saved with the keyframes until a full adjustment's camera (set_final_camera) replaces it."""
+        if self._camera_final:
+            return
+        self._save_camera(load, CAMERA_INPUT)
+
+    @_locked
+    def set_final_camera(self, load) -> None:
+        """The camera a full adjustment's poses were adjusted with (`load` as in set_camera; its
+        self-calibration when it refined the intrinsics): saved as the keyframes' camera in place of the
+        input calibration, which no longer replaces it; the latest one counts."""
+        self._camera_final = True
+        self._save_camera(load, CAMERA_FINAL)
+
+    def _save_camera(self, load, name: str) -> None:
         try:
             cam = _value(load)
             self.camera = cam
             if not self.params.save_keyframes:
                 return
-            if cam != self._camera_saved:
-                self.store.save_camera(cam)
-                self._camera_saved = cam
+            if (cam, name) != self._camera_saved:
+                self.store.save_camera(cam, name)
+                self._camera_saved = (cam, name)
         except (PhotogramError, OSError) as exc:
             self._write_failed('camera info not saved', exc)
 
