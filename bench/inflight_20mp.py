@@ -16,7 +16,8 @@ drops what it cannot take. Bundle, stereo and map run in a child process (replay
 --processes 2). Timing hooks come from bench/replay_probe.py (no benchmark code in the nodes).
 
 Reported (JSON lines, and a markdown table with --table): photos in, keyframes taken, photos skipped
-by the overlap rule, photos dropped otherwise and why, keyframes oriented, lag from exposure (the
+by the overlap rule, photos dropped otherwise and why, keyframes oriented (given a pose on
+map/keyframe_pose before the end of the run, a segment joined through its GNSS included), lag from exposure (the
 moment the camera node published the photo) to the keyframe's first pose on map/keyframe_pose and to
 its first fused pair cloud (p50/p95/max, wall s), the real-time factor of the play (flight seconds
 over wall seconds until the map fused its last cloud), peak RSS of both processes, and the cores and
@@ -220,8 +221,8 @@ def run_period(a, period_s: float, extra: dict, tag: str) -> dict:
            'photos_in': n_in, 'photos_tracked': n_tracked, 'keyframes': n_kf,
            'skipped_by_overlap_rule': n_tracked - n_kf - tr.get('unusable', 0),
            'dropped_otherwise': sum(dropped.values()), 'dropped_why': dropped,
-           'oriented': bundle.get('keyframes_oriented', 0), 'not_oriented': bundle.get('keyframes_not_oriented', 0),
-           'oriented_share': round(bundle.get('keyframes_oriented', 0) / max(n_kf, 1), 3),
+           'oriented': len(lag_pose), 'oriented_share': round(len(lag_pose) / max(n_kf, 1), 3),
+           'bundle_counts': {k: bundle[k] for k in sorted(bundle) if k.startswith(('keyframes_', 'not_oriented'))},
            'lag_exposure_to_keyframe_s': lag_stats(lag_kf),
            'lag_exposure_to_pose_s': lag_stats(lag_pose), 'lag_exposure_to_fused_cloud_s': lag_stats(lag_cloud),
            'keyframes_in_fused_clouds': len(lag_cloud),
