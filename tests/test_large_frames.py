@@ -118,3 +118,66 @@ def test_a_compressed_frame_of_another_size_is_refused(frames):
     with pytest.raises(CalibrationError, match='calibration is for 2048x1536'):
         tr.process(EncodedImage(seq[0][1]), 1)
     assert tr.stats.frames == 0
+
+
+@pytest.mark.ros
+def test_photo_folder_through_camera_and_tracker_nodes_stays_compressed(frames, rclpy_context, tmp_path):
+    """camera_node publishes the large JPEGs undecoded on camera/image_raw/compressed; tracker_node decodes
+    them at its working size and publishes full-size keyframe images with full-resolution features."""
+    import threading
+    import time
+
+    import yaml
+    from rclpy.executors import MultiThreadedExecutor
+    from rclpy.node import Node
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+    from sensor_msgs.msg import Image, PointCloud2
+
+    from photogram_ros import msgs
+    from photogram_ros.nodes.camera_node import CameraNode
+    from photogram_ros.nodes.tracker_node import TrackerNode
+
+    seq, cam = frames
+    folder = tmp_path / 'photos'
+    folder.mkdir()
+    for i, (_, jpeg, _) in enumerate(seq[:4]):
+        (folder / f'IMG_{i:04d}.JPG').write_bytes(jpeg)        # no EXIF time: name order, 1 s apart
+    calib = tmp_path / 'camera.yaml'
+    calib.write_text(yaml.safe_dump(cam.to_ros_yaml_dict()))
+    tracker = TrackerNode(overrides={'reliable_input': True, 'queue_size': 100, 'input_depth': 100,
+                                     'calibration_file': str(calib)}, context=rclpy_context)
+    listener = Node('large_listener', context=rclpy_context)
+    images, features = [], []
+    qos = QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE)
+    listener.create_subscription(Image, '/keyframes/image', images.append, qos)
+    listener.create_subscription(PointCloud2, '/keyframes/features', features.append, qos)
+    camera = CameraNode(overrides={'source': str(folder), 'calibration_file': str(calib), 'rate': 0.0,
+                                   'compressed_above_px': 2000}, context=rclpy_context)
+    ex = MultiThreadedExecutor(num_threads=2, context=rclpy_context)
+    for n in (tracker, listener, camera):
+        ex.add_node(n)
+    thread = threading.Thread(target=ex.spin, daemon=True)
+    thread.start()
+    try:
+        deadline = time.monotonic() + 120
+        while time.monotonic() < deadline and tracker.frames_done < 4:
+            time.sleep(0.05)
+        assert camera.finished and camera.diag.counts().get('frames_compressed') == 4
+        n = tracker.flush(timeout_s=30.0)
+        deadline = time.monotonic() + 30
+        while time.monotonic() < deadline and len(features) < tracker.keyframes_published:
+            time.sleep(0.05)
+        counts = tracker.diag.counts()
+        assert counts.get('frames_decoded_reduced') == 4 and counts.get('frames_tracked') == 4, counts
+        assert tracker.keyframes_published >= 2 and len(features) == len(images) == tracker.keyframes_published, n
+        first_ns = msgs.ns_from_time(images[0].header.stamp)      # keyframe 0 is photo 0; photos 1 s apart
+        for img_msg, feat_msg in zip(images, features):
+            assert (img_msg.width, img_msg.height) == (W, H)
+            i = round((msgs.ns_from_time(img_msg.header.stamp) - first_ns) * 1e-9)
+            assert np.array_equal(msgs.image_from_msg(img_msg), seq[i][2])
+            obs = msgs.features_from_keyframe_msg(feat_msg)
+            assert obs['u'].max() > 0.75 * W and obs['v'].max() > 0.75 * H
+    finally:
+        ex.shutdown()
+        for n in (camera, tracker, listener):
+            n.destroy_node()

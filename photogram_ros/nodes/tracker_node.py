@@ -234,6 +234,7 @@ class TrackerNode(Node):
         cam = self.tracker.camera
         if (self.params.decode_reduced and hasattr(msg, 'format') and cam is not None
                 and max(cam.width, cam.height) > self.params.track_max_px):
+            self.diag.count('frames_decoded_reduced')
             return EncodedImage(bytes(msg.data))
         return msgs.image_from_msg(msg)
 
