@@ -214,6 +214,11 @@ def run_period(a, period_s: float, extra: dict, tag: str) -> dict:
     lag_kf = [probe.kf_published[s] - exposure[s] for s in kf_stamps if s in exposure]
     lag_cloud = [probe.kf_fused[s][0] - exposure[s] for s in kf_stamps if s in probe.kf_fused and s in exposure]
     last_fused = max((v[0] for v in probe.kf_fused.values()), default=t_end)
+    # Poses that came while photos were still coming (the flight's end: its last photo's period after it),
+    # apart from those that waited for the end of flight (a segment joined at the final adjustment).
+    flight_end = max(exposure.values(), default=t0) + period_s
+    lag_pose_flight = [poses.first[s] - exposure[s] for s in kf_stamps
+                       if s in poses.first and s in exposure and poses.first[s] <= flight_end]
     flight_s = run['bag_s'] + period_s   # the last photo's period is flown too
     tracker_node = 'tracker_node'
     tdiag = diag.get(tracker_node, diag.get('/' + tracker_node, {})).get('values', {})
@@ -224,7 +229,9 @@ def run_period(a, period_s: float, extra: dict, tag: str) -> dict:
            'oriented': len(lag_pose), 'oriented_share': round(len(lag_pose) / max(n_kf, 1), 3),
            'bundle_counts': {k: bundle[k] for k in sorted(bundle) if k.startswith(('keyframes_', 'not_oriented'))},
            'lag_exposure_to_keyframe_s': lag_stats(lag_kf),
-           'lag_exposure_to_pose_s': lag_stats(lag_pose), 'lag_exposure_to_fused_cloud_s': lag_stats(lag_cloud),
+           'lag_exposure_to_pose_s': lag_stats(lag_pose),
+           'lag_exposure_to_pose_in_flight_s': lag_stats(lag_pose_flight),
+           'poses_only_at_end_of_flight': len(lag_pose) - len(lag_pose_flight), 'lag_exposure_to_fused_cloud_s': lag_stats(lag_cloud),
            'keyframes_in_fused_clouds': len(lag_cloud),
            'stereo': {k: stereo[k] for k in sorted(stereo) if k.startswith(('pairs', 'keyframes', 'images'))},
            'tracker_diag': {k: tdiag[k] for k in sorted(tdiag) if k in (
@@ -249,6 +256,9 @@ TABLE_ROWS = [
     ('dropped otherwise (why)', lambda r: f"{r['dropped_otherwise']} {r['dropped_why'] or ''}".strip()),
     ('oriented share', lambda r: f"{r['oriented_share']:.3f} ({r['oriented']}/{r['keyframes']})"),
     ('lag exposure -> pose p50/p95/max, s', lambda r: '{p50}/{p95}/{max}'.format(**r['lag_exposure_to_pose_s'])),
+    ('... of the poses given in flight (n)', lambda r: '{p50}/{p95}/{max} ({n})'.format(**r['lag_exposure_to_pose_in_flight_s'])),
+    ('lag exposure -> keyframe published p50/p95/max, s',
+     lambda r: '{p50}/{p95}/{max}'.format(**r['lag_exposure_to_keyframe_s'])),
     ('lag exposure -> fused cloud p50/p95/max, s',
      lambda r: '{p50}/{p95}/{max}'.format(**r['lag_exposure_to_fused_cloud_s'])),
     ('keyframes in fused clouds', lambda r: r['keyframes_in_fused_clouds']),

@@ -103,7 +103,7 @@ class TrackerParams:
                                     'keyframe by descriptors', min=8, max=10000)
     track_max_px: int = param(1024, 'Frames whose long side exceeds this are tracked (KLT, detection, descriptors) '
                               'at a power-of-two reduction that fits, px: 1920 px at half size, 4000 px at a '
-                              'quarter; smaller frames as they are',
+                              'quarter, 5472 px (20 MP) at an eighth; smaller frames as they are',
                               min=160, max=20000)
     match_keyframes: int = param(4, 'At a break the frame is matched by descriptors (core/photo_matching.py) '
                                  'against this many recent keyframes, nearest by GNSS first', min=1, max=50)
