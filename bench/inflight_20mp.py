@@ -235,7 +235,7 @@ def run_period(a, period_s: float, extra: dict, tag: str) -> dict:
            'keyframes_in_fused_clouds': len(lag_cloud),
            'stereo': {k: stereo[k] for k in sorted(stereo) if k.startswith(('pairs', 'keyframes', 'images'))},
            'tracker_diag': {k: tdiag[k] for k in sorted(tdiag) if k in (
-               'process_ms', 'decode_ms', 'track_scale', 'keyframe_ms', 'target_detection_ms', 'fps')},
+               'process_ms', 'frame_from_msg_ms', 'keyframe_ms', 'target_detection_ms', 'fps')},
            'flight_s': round(flight_s, 1), 'wall_s': round(run['wall_s'], 1),
            'until_last_cloud_s': round(last_fused - t0, 1),
            'real_time_factor': round(flight_s / max(last_fused - t0, 1e-9), 3),
