@@ -173,6 +173,10 @@ def run_period(a, period_s: float, extra: dict, tag: str) -> dict:
     os.environ['PYTHONPATH'] = os.pathsep.join([str(site)] + [v for v in [old_pp] if v])
     os.environ[Probe.CHILD_ENV] = str(child_out)
     load_before = os.getloadavg()
+    try:   # VmHWM from here on: this run's peak, not an earlier run's in the same process
+        Path('/proc/self/clear_refs').write_text('5')
+    except OSError:
+        pass
     rclpy.init()
     poses = PoseListener()
     sampler = RssSampler(probe, period_s=1.0)
