@@ -18,7 +18,8 @@ drops what it cannot take. Bundle, stereo and map run in a child process (replay
 Reported (JSON lines, and a markdown table with --table): photos in, keyframes taken, photos skipped
 by the overlap rule, photos dropped otherwise and why, keyframes oriented (given a pose on
 map/keyframe_pose before the end of the run, a segment joined through its GNSS included), lag from exposure (the
-moment the camera node published the photo) to the keyframe's first pose on map/keyframe_pose and to
+photo's time on the camera's schedule: the first photo's publication plus its stamp's offset; how late the
+camera node published each is reported too) to the keyframe's first pose on map/keyframe_pose and to
 its first fused pair cloud (p50/p95/max, wall s), the real-time factor of the play (flight seconds
 over wall seconds until the map fused its last cloud), peak RSS of both processes, and the cores and
 load average of the machine around the run (bench/machine.py).
@@ -157,13 +158,13 @@ def run_period(a, period_s: float, extra: dict, tag: str) -> dict:
 
     folder, calib = build_flight(period_s, a.photos)
     probe = Probe().install()
-    exposure: dict[int, float] = {}
+    published: dict[int, float] = {}    # photo stamp -> when the camera node published it
     publish_next = CameraNode.publish_next
 
     def timed_publish(self):
         s = self.peek_stamp_ns()
         if s is not None:
-            exposure.setdefault(s, time.monotonic())
+            published.setdefault(s, time.monotonic())
         return publish_next(self)
     CameraNode.publish_next = timed_publish
     out = Path(a.keep) / tag if a.keep else Path(tempfile.mkdtemp(prefix='inflight20mp_'))
@@ -200,6 +201,11 @@ def run_period(a, period_s: float, extra: dict, tag: str) -> dict:
         else:
             os.environ['PYTHONPATH'] = old_pp
     load_after = os.getloadavg()
+    # Exposure: the photo's time on the camera's schedule (the first photo's publication + its stamp's offset),
+    # as a live camera takes it; a camera node late with a photo (decoding the previous) counts in the lags.
+    first = min(published) if published else 0
+    exposure = {s: published[first] + (s - first) * 1e-9 for s in published}
+    camera_late = [published[s] - exposure[s] for s in published]
     probe.merge_child(str(child_out))
     run, diag = res['run'], res['diagnostics']
     counts = run['counts']
@@ -237,6 +243,7 @@ def run_period(a, period_s: float, extra: dict, tag: str) -> dict:
            'lag_exposure_to_pose_in_flight_s': lag_stats(lag_pose_flight),
            'poses_only_at_end_of_flight': len(lag_pose) - len(lag_pose_flight), 'lag_exposure_to_fused_cloud_s': lag_stats(lag_cloud),
            'keyframes_in_fused_clouds': len(lag_cloud),
+           'camera_late_s': lag_stats(camera_late),
            'stereo': {k: stereo[k] for k in sorted(stereo) if k.startswith(('pairs', 'keyframes', 'images'))},
            'tracker_diag': {k: tdiag[k] for k in sorted(tdiag) if k in (
                'process_ms', 'frame_from_msg_ms', 'keyframe_ms', 'target_detection_ms', 'fps')},
