@@ -251,7 +251,7 @@ def run_period(a, period_s: float, extra: dict, tag: str) -> dict:
            'until_last_cloud_s': round(last_fused - t0, 1),
            'real_time_factor': round(flight_s / max(last_fused - t0, 1e-9), 3),
            'real_time_factor_with_end_of_flight': round(flight_s / run['wall_s'], 3),
-           'peak_rss_mb': round(sampler.peak_mb, 1), 'child_peak_rss_mb': probe.child_figures.get('peak_rss_mb'),
+           'peak_rss_mb': round(sampler.peak_mb, 1), 'child_peak_rss_mb': round(probe.child_figures.get('peak_rss_mb') or 0.0, 1),
            'cores': os.cpu_count(), 'load_avg_before': [round(x, 2) for x in load_before],
            'load_avg_after': [round(x, 2) for x in load_after]}
     emit(row)
