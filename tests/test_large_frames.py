@@ -181,3 +181,20 @@ def test_photo_folder_through_camera_and_tracker_nodes_stays_compressed(frames, 
         ex.shutdown()
         for n in (camera, tracker, listener):
             n.destroy_node()
+
+
+def test_camera_node_reads_large_whole_jpegs_undecoded(frames, tmp_path):
+    """JpegFile: a whole JPEG above the threshold comes as its bytes and header size; a truncated one, a small
+    one or a PNG is left to the usual decode (which names a truncated file's fault)."""
+    from photogram_ros.nodes.camera_node import JpegFile
+    seq, _ = frames
+    jpeg = seq[0][1]
+    whole, cut, png = tmp_path / 'a.jpg', tmp_path / 'b.jpg', tmp_path / 'c.png'
+    whole.write_bytes(jpeg)
+    cut.write_bytes(jpeg[:len(jpeg) // 2])
+    cv2.imwrite(str(png), seq[0][2][:600, :800])
+    got = JpegFile.read(whole, 2000)
+    assert got is not None and got.size == (W, H) and got.data == jpeg
+    assert JpegFile.read(whole, W) is None            # not above the threshold
+    assert JpegFile.read(cut, 2000) is None
+    assert JpegFile.read(png, 100) is None
