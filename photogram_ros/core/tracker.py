@@ -122,8 +122,8 @@ class TrackerParams:
                                  min=0.01, max=60.0)
 
 
-# cv2.imdecode flags that decode at 1/n of the size (libjpeg's DCT scaling; other formats decode and
-# resize), in grey and in colour; EXIF orientation is ignored as in the raw frames of a camera.
+# cv2.imdecode flags that decode in grey at 1/n of the size (a JPEG through libjpeg's DCT scaling; other
+# formats are decoded whole and resized by OpenCV); EXIF orientation is ignored as in a camera's raw frames.
 _REDUCED_GREY = {1: cv2.IMREAD_GRAYSCALE, 2: cv2.IMREAD_REDUCED_GRAYSCALE_2, 4: cv2.IMREAD_REDUCED_GRAYSCALE_4,
                  8: cv2.IMREAD_REDUCED_GRAYSCALE_8}
 

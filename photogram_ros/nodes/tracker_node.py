@@ -229,11 +229,11 @@ class TrackerNode(Node):
             self._publish_debug(image.full() if isinstance(image, EncodedImage) else image, stamp_ns, frame_id)
 
     def _frame_image(self, msg):
-        """The frame as the tracker takes it: a compressed frame larger than track_max_px stays compressed
-        (the tracker decodes it at its working size), anything else decoded (msgs.image_from_msg)."""
+        """The frame as the tracker takes it: a JPEG frame larger than track_max_px stays compressed (the
+        tracker decodes it at its working size), anything else decoded (msgs.image_from_msg)."""
         cam = self.tracker.camera
-        if (self.params.decode_reduced and hasattr(msg, 'format') and cam is not None
-                and max(cam.width, cam.height) > self.params.track_max_px):
+        if (self.params.decode_reduced and hasattr(msg, 'format') and 'jp' in msg.format.lower()
+                and cam is not None and max(cam.width, cam.height) > self.params.track_max_px):
             self.diag.count('frames_decoded_reduced')
             return EncodedImage(bytes(msg.data))
         return msgs.image_from_msg(msg)
