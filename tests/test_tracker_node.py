@@ -188,6 +188,7 @@ def test_frames_faster_than_the_tracker_are_dropped_oldest_first(rclpy_context):
                 tracker._on_image(msgs.image_msg(np.zeros((8, 8), np.uint8), (k + 1) * 1_000_000))
             kept = [msgs.ns_from_time(m.header.stamp) for m in tracker._frames]
         assert kept == [9_000_000, 10_000_000] and tracker.diag.counts()['drops'] == 8
+        assert any('frame dropped: frames come faster than the tracker' in m for _, m in tracker.diag._problems)
     finally:
         tracker.destroy_node()
 

@@ -9,7 +9,12 @@ range msgs.py reserves for them), /keyframes/fix (NavSatFix interpolated to the 
 has one), optionally /tracker/debug_image, and /diagnostics.
 
 Frames go into a bounded slot and a worker thread tracks them; when frames come faster than the
-worker, the oldest waiting frame is dropped and counted, so the tracker never falls behind.
+worker, the oldest waiting frame is dropped, counted (`drops`) and said on /diagnostics with the
+reason, so the tracker never falls behind. A compressed frame larger than `track_max_px`
+(a 20 MP photo) is decoded straight at the tracker's working size (core/tracker.EncodedImage), and at
+full size only if it becomes a keyframe. Keyframes go out from a second thread (`keyframe_thread`):
+the full decode, the target detection and the 60 MB image message of a 20 MP keyframe (about 0.7 s)
+stay off the frame loop; they are never dropped, and leave in keyframe order.
 A missing or inconsistent calibration is reported on /diagnostics as an error and the frames are
 not used until a good camera_info (or calibration_file) is there; the node stays up.
 """
@@ -30,7 +35,7 @@ from photogram_ros import msgs
 from photogram_ros.core.camera import load_calibration
 from photogram_ros.core.control import ARUCO_DICTIONARIES, detect_keyframe_targets
 from photogram_ros.core.gnss_fix import GnssFix
-from photogram_ros.core.tracker import Tracker, TrackerParams
+from photogram_ros.core.tracker import EncodedImage, Tracker, TrackerParams
 from photogram_ros.errors import CalibrationError, PhotogramError
 from photogram_ros.nodes.diagnostics import ERROR, WARN, Diagnostics
 from photogram_ros.nodes.node_main import run_node
@@ -58,6 +63,10 @@ class TrackerNodeParams(TrackerParams):
                                    choices=ARUCO_DICTIONARIES)
     health_window: int = param(20, 'health: keyframes over which the share after an unbridged break (tracking '
                                    'lost: a new segment) is judged', min=2, max=10000)
+    decode_reduced: bool = param(True, 'Decode compressed frames larger than track_max_px at the working size '
+                                 '(JPEG DCT scaling) and fully only for keyframes; false decodes every frame fully')
+    keyframe_thread: bool = param(True, 'Publish keyframes (full decode, target detection, image message) from a '
+                                  'thread of their own instead of the frame loop')
     health_max_lost: float = param(0.2, 'health: WARN above this share of the last health_window keyframes '
                                         'coming after an unbridged break (ERROR above 0.5)', min=0.0, max=1.0)
 
@@ -81,6 +90,7 @@ class TrackerNode(Node):
         self._stop = False
         self.keyframes_published = 0
         self._lost_history: deque = deque(maxlen=p.health_window)   # per keyframe: an unbridged break before it
+        self._last_frame_ms = float('nan')
         self.frames_done = 0   # frames tracked, refused or dropped: lets a bag replay wait for the tracker
 
         kf_qos = QoSProfile(depth=p.keyframe_qos_depth, reliability=ReliabilityPolicy.RELIABLE)
@@ -98,8 +108,15 @@ class TrackerNode(Node):
         # needs for its interpolation.
         self.create_subscription(NavSatFix, p.fix_topic, self._on_fix,
                                  QoSProfile(depth=200, reliability=ReliabilityPolicy.RELIABLE))
+        self._kf_out: deque = deque()          # (keyframe, frame_id) waiting for the publisher thread
+        self._kf_busy = False
+        self._kf_cond = threading.Condition()
         self._worker = threading.Thread(target=self._run, name='tracker_worker', daemon=True)
         self._worker.start()
+        self._publisher = None
+        if p.keyframe_thread:
+            self._publisher = threading.Thread(target=self._run_publisher, name='tracker_keyframes', daemon=True)
+            self._publisher.start()
 
     def compressed_topic(self, image_topic: str) -> str:
         """The compressed sibling of `image_topic` as image_transport finds it: `<image_topic as remapped>/
@@ -113,14 +130,19 @@ class TrackerNode(Node):
     # --- callbacks (executor thread): cheap, never raise -----------------------------------------
 
     def _on_image(self, msg) -> None:
+        dropped = False
         with self._cond:
             if len(self._frames) >= self.params.queue_size:
                 self._frames.popleft()
                 self.diag.count('drops')
                 self.frames_done += 1
+                dropped = True
             self._frames.append(msg)
             self._cond.notify()
         self.diag.count('frames_received')
+        if dropped:
+            self.diag.problem(f'frame dropped: frames come faster than the tracker takes them ({self.params.queue_size} '
+                              f'waiting; the last took {self._last_frame_ms:.0f} ms to decode and track)')
 
     def _on_camera_info(self, msg: CameraInfo) -> None:
         if self._camera_from_file is not None:
@@ -183,10 +205,13 @@ class TrackerNode(Node):
             return
         stamp_ns = msgs.ns_from_time(msg.header.stamp)
         try:
-            image = msgs.image_from_msg(msg)
             t0 = time.perf_counter()
+            image = self._frame_image(msg)
+            t1 = time.perf_counter()
             kfs = self.tracker.process(image, stamp_ns)
-            dt = time.perf_counter() - t0
+            dt = time.perf_counter() - t1
+            self.diag.set('frame_from_msg_ms', (t1 - t0) * 1e3)   # a compressed frame decodes in process()
+            self._last_frame_ms = (time.perf_counter() - t0) * 1e3
         except CalibrationError as exc:
             self.diag.count('frames_unused')
             self.diag.problem(f'frames not used: {exc}', ERROR)
@@ -198,10 +223,66 @@ class TrackerNode(Node):
         self.diag.count('frames_tracked')
         frame_id = msg.header.frame_id or 'camera_optical'
         for kf in kfs:
-            self._publish_keyframe(kf, frame_id)
+            self._send_keyframe(kf, frame_id)
         self._update_diagnostics(dt)
         if self.pub_debug is not None:
-            self._publish_debug(image, stamp_ns, frame_id)
+            self._publish_debug(image.full() if isinstance(image, EncodedImage) else image, stamp_ns, frame_id)
+
+    def _frame_image(self, msg):
+        """The frame as the tracker takes it: a JPEG frame larger than track_max_px stays compressed (the
+        tracker decodes it at its working size), anything else decoded (msgs.image_from_msg)."""
+        cam = self.tracker.camera
+        if (self.params.decode_reduced and hasattr(msg, 'format') and 'jp' in msg.format.lower()
+                and cam is not None and max(cam.width, cam.height) > self.params.track_max_px):
+            self.diag.count('frames_decoded_reduced')
+            return EncodedImage(bytes(msg.data))
+        return msgs.image_from_msg(msg)
+
+    # --- keyframes out ---------------------------------------------------------------------------
+
+    def _send_keyframe(self, kf, frame_id: str) -> None:
+        """Publish now (keyframe_thread false) or queue for the publisher thread (never dropped)."""
+        if self._publisher is None:
+            self._publish_keyframe(kf, frame_id)
+            return
+        with self._kf_cond:
+            self._kf_out.append((kf, frame_id))
+            self.diag.set('keyframes_queued', len(self._kf_out))
+            self._kf_cond.notify()
+
+    def _run_publisher(self) -> None:
+        while True:
+            with self._kf_cond:
+                while not self._kf_out and not self._stop:
+                    self._kf_cond.wait(0.5)
+                if not self._kf_out:
+                    return
+                kf, frame_id = self._kf_out.popleft()
+                self._kf_busy = True
+            try:
+                self._publish_keyframe(kf, frame_id)
+            except Exception as exc:   # the publisher must survive anything one keyframe can do
+                self.diag.problem(f'keyframe {kf.index} not published: {type(exc).__name__}: {exc}', ERROR)
+            finally:
+                with self._kf_cond:
+                    self._kf_busy = False
+                    self._kf_cond.notify_all()
+
+    def busy(self) -> bool:
+        """Keyframes made and not yet published (Graph.drain waits for them)."""
+        with self._kf_cond:
+            return bool(self._kf_out) or self._kf_busy
+
+    def wait_keyframes_out(self, timeout_s: float = 30.0) -> bool:
+        """Until every keyframe made so far is published; False if `timeout_s` passed first."""
+        deadline = time.monotonic() + timeout_s
+        with self._kf_cond:
+            while self._kf_out or self._kf_busy:
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    return False
+                self._kf_cond.wait(min(left, 0.1))
+        return True
 
     def _detect_targets(self, kf):
         if not self.params.detect_targets:
@@ -213,8 +294,17 @@ class TrackerNode(Node):
         return targets
 
     def _publish_keyframe(self, kf, frame_id: str) -> None:
-        targets = self._detect_targets(kf)
-        self.pub_image.publish(msgs.image_msg(kf.image, kf.stamp_ns, frame_id))
+        t0 = time.perf_counter()
+        try:
+            image = kf.image   # a compressed keyframe decodes here
+        except PhotogramError as exc:
+            # Its features still go out: the adjustment needs them more than stereo needs the image.
+            self.diag.count('keyframe_images_undecodable')
+            self.diag.problem(f'keyframe {kf.index}: {exc}: its image is not published')
+            image = None
+        targets = self._detect_targets(kf) if image is not None else None
+        if image is not None:
+            self.pub_image.publish(msgs.image_msg(image, kf.stamp_ns, frame_id))
         self.pub_features.publish(msgs.keyframe_features_msg(kf.observations, kf.stamp_ns, frame_id, targets))
         if kf.fix is not None:
             self.pub_fix.publish(msgs.navsatfix_from_gnss_fix(kf.fix))
@@ -222,6 +312,7 @@ class TrackerNode(Node):
             self.diag.count('keyframes_without_fix')
         self.keyframes_published += 1
         self.diag.count('keyframes')
+        self.diag.set('keyframe_ms', (time.perf_counter() - t0) * 1e3)
         # A bridged break is the normal way of photo-rate input (descriptor matching carries the tracks
         # on): counted; tracking lost (a new segment) is a problem, and judged over the last keyframes.
         lost = kf.break_before and not kf.bridged
@@ -277,7 +368,8 @@ class TrackerNode(Node):
                 self.tracker.add_fix(f)
             kfs = self.tracker.flush()
         for kf in kfs:
-            self._publish_keyframe(kf, 'camera_optical')
+            self._send_keyframe(kf, 'camera_optical')
+        self.wait_keyframes_out(max(deadline - time.monotonic(), 0.0) + 30.0)
         return len(kfs)
 
     def destroy_node(self) -> None:
@@ -285,6 +377,10 @@ class TrackerNode(Node):
             self._stop = True
             self._cond.notify_all()
         self._worker.join(timeout=5.0)
+        if self._publisher is not None:
+            with self._kf_cond:
+                self._kf_cond.notify_all()
+            self._publisher.join(timeout=30.0)   # the keyframes made are published first
         super().destroy_node()
 
 

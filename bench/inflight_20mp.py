@@ -1,0 +1,350 @@
+"""The in-flight graph on 20 MP photos (5472 x 3648) at a current mapping drone's photo rate.
+
+The flight: toledo's 42 real DJI survey photos (../shared/data/photos/toledo, 2400 x 1800, EXIF GPS),
+cropped to 3:2 (2400 x 1600, rows 100-1700) and upscaled x2.28 to 5472 x 3648, re-timed one photo per
+`--period` seconds (EXIF DateTimeOriginal / SubSec / OffsetTimeOriginal rewritten, the EXIF GPS kept,
+so the camera node publishes each photo's position as its fix), with a calibration file of the EXIF
+camera cropped and scaled the same way. Real photos rather than the simulator: real texture, real
+GNSS noise, and the live graph is known to orient toledo (29-31 keyframes, all oriented, in replay);
+the simulator at 20 MP would spend most of the bench's time rendering. The photos are built once into
+/tmp/photogram_bench_cache/inflight_20mp_<period>s (about 3 MB each).
+
+The run: photogram_ros.nodes.replay_session.run_replay with the camera node playing the folder at
+its EXIF timing (rate 1) and the replay's waits off (frame_timeout_s 0, max_lag_keyframes 0): photos
+come at the period whatever the graph does, as from a live camera, and the tracker's bounded queue
+drops what it cannot take. Bundle, stereo and map run in a child process (replay's default,
+--processes 2). Timing hooks come from bench/replay_probe.py (no benchmark code in the nodes).
+
+Reported (JSON lines, and a markdown table with --table): photos in, keyframes taken, photos skipped
+by the overlap rule, photos dropped otherwise and why, keyframes oriented (given a pose on
+map/keyframe_pose before the end of the run, a segment joined through its GNSS included), lag from exposure (the
+photo's time on the camera's schedule: the first photo's publication plus its stamp's offset; how late the
+camera node published each is reported too) to the keyframe's first pose on map/keyframe_pose and to
+its first fused pair cloud (p50/p95/max, wall s), the real-time factor of the play (flight seconds
+over wall seconds until the map fused its last cloud), peak RSS of both processes, and the cores and
+load average of the machine around the run (bench/machine.py).
+
+    .venv/bin/python bench/inflight_20mp.py [--periods 2,1] [--photos 42] [--set tracker.X=V] [--table out.md]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import tempfile
+import threading
+import time
+from datetime import datetime, timedelta, timezone
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / 'bench'))
+sys.path.insert(0, str(ROOT))
+os.environ.setdefault('ROS_DOMAIN_ID', '171')
+
+from machine import machine_info  # noqa: E402
+
+SRC = ROOT.parent / 'shared' / 'data' / 'photos' / 'toledo' / 'images'
+CACHE = Path('/tmp/photogram_bench_cache')
+SIZE = (5472, 3648)
+CROP = (0, 100, 2400, 1700)        # 3:2 window of the 2400 x 1800 photos
+T0 = datetime(2015, 10, 16, 13, 23, 30, tzinfo=timezone.utc)
+
+
+def emit(d: dict) -> None:
+    print(json.dumps(d), flush=True)
+
+
+def log(s: str) -> None:
+    print(s, file=sys.stderr, flush=True)
+
+
+def _one_photo(args) -> None:
+    src, dst, when = args
+    from PIL import Image
+    with Image.open(src) as im:
+        exif = im.getexif()
+        gps = exif.get_ifd(0x8825)   # loaded so that it is written back
+        ex = exif.get_ifd(0x8769)
+        ex[0x9003] = when.strftime('%Y:%m:%d %H:%M:%S')        # DateTimeOriginal
+        ex[0x9291] = f'{when.microsecond // 1000:03d}'          # SubSecTimeOriginal
+        ex[0x9011] = '+00:00'                                   # OffsetTimeOriginal
+        ex.pop(0xA405, None)    # FocalLengthIn35mmFilm: the calibration file gives the camera
+        assert gps, f'{src} has no EXIF GPS'
+        big = im.crop(CROP).resize(SIZE, Image.BICUBIC)
+        tmp = dst.with_suffix('.tmp')
+        big.save(tmp, 'JPEG', quality=90, exif=exif)
+        tmp.rename(dst)
+
+
+def build_flight(period_s: float, n_photos: int = 42, folder: Path | None = None) -> tuple[Path, Path]:
+    """The 20 MP photo folder and its calibration YAML (built once, cached): toledo's first `n_photos`
+    photos cropped to 3:2, upscaled to 5472 x 3648, `period_s` apart."""
+    import yaml
+
+    from photogram_ros.io.image_source import FolderSource
+    folder = folder or CACHE / f'inflight_20mp_{period_s:g}s_{n_photos}'
+    calib = folder.parent / (folder.name + '_camera.yaml')
+    src = FolderSource(SRC)
+    entries = src.entries[:n_photos]
+    folder.mkdir(parents=True, exist_ok=True)
+    jobs = [(p, folder / p.name, T0 + timedelta(seconds=i * period_s)) for i, (p, _) in enumerate(entries)]
+    jobs = [j for j in jobs if not j[1].exists()]
+    if jobs:
+        from concurrent.futures import ProcessPoolExecutor
+        t0 = time.perf_counter()
+        with ProcessPoolExecutor(2) as ex:
+            list(ex.map(_one_photo, jobs))
+        log(f'[20mp] built {len(jobs)} photos in {time.perf_counter() - t0:.0f} s into {folder}')
+    cam = src.exif_intrinsics().camera
+    factor = SIZE[0] / (CROP[2] - CROP[0])
+    from dataclasses import replace
+    cam = replace(cam, height=CROP[3] - CROP[1], cy=cam.cy - CROP[1]).scaled(factor)
+    calib.write_text(yaml.safe_dump(cam.to_ros_yaml_dict()))
+    return folder, calib
+
+
+def pct(v: list, q: float):
+    import numpy as np
+    return round(float(np.percentile(v, q)), 2) if v else None
+
+
+def lag_stats(v: list) -> dict:
+    return {'n': len(v), 'p50': pct(v, 50), 'p95': pct(v, 95), 'max': round(max(v), 2) if v else None}
+
+
+class PoseListener:
+    """First arrival (monotonic) of each keyframe stamp on map/keyframe_pose, in a thread of its own."""
+
+    def __init__(self):
+        import rclpy
+        from geometry_msgs.msg import PoseWithCovarianceStamped
+        from rclpy.executors import SingleThreadedExecutor
+        from rclpy.qos import QoSProfile, ReliabilityPolicy
+
+        from photogram_ros import msgs
+        self.first: dict[int, float] = {}
+        self.node = rclpy.create_node('bench_pose_listener')
+        self.node.create_subscription(
+            PoseWithCovarianceStamped, '/map/keyframe_pose',
+            lambda m: self.first.setdefault(msgs.ns_from_time(m.header.stamp), time.monotonic()),
+            QoSProfile(depth=200, reliability=ReliabilityPolicy.RELIABLE))
+        self.ex = SingleThreadedExecutor()
+        self.ex.add_node(self.node)
+        self._stop = threading.Event()
+        self.thread = threading.Thread(target=self._spin, daemon=True)
+        self.thread.start()
+
+    def _spin(self):
+        while not self._stop.is_set():
+            self.ex.spin_once(timeout_sec=0.1)
+
+    def stop(self):
+        self._stop.set()
+        self.thread.join(2.0)
+        self.ex.remove_node(self.node)
+        self.node.destroy_node()
+
+
+def run_period(a, period_s: float, extra: dict, tag: str) -> dict:
+    """One live-paced run of the 20 MP flight at `period_s`; returns the figures."""
+    import rclpy
+
+    from photogram_ros.nodes.camera_node import CameraNode
+    from photogram_ros.nodes.replay_session import ReplayOptions, run_replay
+    from replay_probe import Probe, RssSampler
+
+    folder, calib = build_flight(period_s, a.photos)
+    probe = Probe().install()
+    published: dict[int, float] = {}    # photo stamp -> when the camera node published it
+    publish_next = CameraNode.publish_next
+
+    def timed_publish(self):
+        s = self.peek_stamp_ns()
+        if s is not None:
+            published.setdefault(s, time.monotonic())
+        return publish_next(self)
+    CameraNode.publish_next = timed_publish
+    out = Path(a.keep) / tag if a.keep else Path(tempfile.mkdtemp(prefix='inflight20mp_'))
+    child_out = out / 'child_probe.json'
+    site = Probe.child_sitecustomize(out / 'probe_site', ROOT / 'bench')
+    old_pp = os.environ.get('PYTHONPATH')
+    os.environ['PYTHONPATH'] = os.pathsep.join([str(site)] + [v for v in [old_pp] if v])
+    os.environ[Probe.CHILD_ENV] = str(child_out)
+    load_before = os.getloadavg()
+    try:   # VmHWM from here on: this run's peak, not an earlier run's in the same process
+        Path('/proc/self/clear_refs').write_text('5')
+    except OSError:
+        pass
+    rclpy.init()
+    poses = PoseListener()
+    sampler = RssSampler(probe, period_s=1.0)
+    sampler.start()
+    t0 = time.monotonic()
+    try:
+        res = run_replay(ReplayOptions(bag=str(folder), out=str(out / 'replay'), params_file=a.params, rate=1.0,
+                                       progress=False, extra=extra, calibration_file=str(calib),
+                                       child_roles=('bundle', 'stereo', 'map'), frame_timeout_s=0.0,
+                                       max_lag_keyframes=0))
+    finally:
+        t_end = time.monotonic()
+        sampler.stop()
+        poses.stop()
+        rclpy.try_shutdown()
+        probe.uninstall()
+        CameraNode.publish_next = publish_next
+        os.environ.pop(Probe.CHILD_ENV, None)
+        if old_pp is None:
+            os.environ.pop('PYTHONPATH', None)
+        else:
+            os.environ['PYTHONPATH'] = old_pp
+    load_after = os.getloadavg()
+    # Exposure: the photo's time on the camera's schedule (the first photo's publication + its stamp's offset),
+    # as a live camera takes it; a camera node late with a photo (decoding the previous) counts in the lags.
+    first = min(published) if published else 0
+    exposure = {s: published[first] + (s - first) * 1e-9 for s in published}
+    camera_late = [published[s] - exposure[s] for s in published]
+    probe.merge_child(str(child_out))
+    run, diag = res['run'], res['diagnostics']
+    counts = run['counts']
+    tr = counts.get('tracker', {})
+    bundle = counts.get('bundle', {})
+    stereo = counts.get('stereo', {})
+    kf_stamps = list(probe.kf_order)
+    n_in = run['frames']
+    n_kf = len(kf_stamps)
+    n_tracked = tr.get('frames_tracked', 0)
+    dropped = {k: tr.get(k, 0) for k in ('drops', 'frames_unused', 'bad_images') if tr.get(k, 0)}
+    cam_counts = counts.get('camera', {})
+    dropped.update({f'camera_{k}': cam_counts[k] for k in ('skipped_unreadable', 'skipped_size_mismatch')
+                    if cam_counts.get(k)})
+    lag_pose = [poses.first[s] - exposure[s] for s in kf_stamps if s in poses.first and s in exposure]
+    lag_kf = [probe.kf_published[s] - exposure[s] for s in kf_stamps if s in exposure]
+    lag_cloud = [probe.kf_fused[s][0] - exposure[s] for s in kf_stamps if s in probe.kf_fused and s in exposure]
+    last_fused = max((v[0] for v in probe.kf_fused.values()), default=t_end)
+    # Poses that came while photos were still coming (the flight's end: its last photo's period after it),
+    # apart from those that waited for the end of flight (a segment joined at the final adjustment).
+    flight_end = max(exposure.values(), default=t0) + period_s
+    lag_pose_flight = [poses.first[s] - exposure[s] for s in kf_stamps
+                       if s in poses.first and s in exposure and poses.first[s] <= flight_end]
+    flight_s = run['bag_s'] + period_s   # the last photo's period is flown too
+    tracker_node = 'tracker_node'
+    tdiag = diag.get(tracker_node, diag.get('/' + tracker_node, {})).get('values', {})
+    row = {'bench': 'inflight_20mp', 'config': tag, 'period_s': period_s, 'size': f'{SIZE[0]}x{SIZE[1]}',
+           'photos_in': n_in, 'photos_tracked': n_tracked, 'keyframes': n_kf,
+           'skipped_by_overlap_rule': n_tracked - n_kf - tr.get('unusable', 0),
+           'dropped_otherwise': sum(dropped.values()), 'dropped_why': dropped,
+           'oriented': len(lag_pose), 'oriented_share': round(len(lag_pose) / max(n_kf, 1), 3),
+           'bundle_counts': {k: bundle[k] for k in sorted(bundle) if k.startswith(('keyframes_', 'not_oriented'))},
+           'lag_exposure_to_keyframe_s': lag_stats(lag_kf),
+           'lag_exposure_to_pose_s': lag_stats(lag_pose),
+           'lag_exposure_to_pose_in_flight_s': lag_stats(lag_pose_flight),
+           'poses_only_at_end_of_flight': len(lag_pose) - len(lag_pose_flight), 'lag_exposure_to_fused_cloud_s': lag_stats(lag_cloud),
+           'keyframes_in_fused_clouds': len(lag_cloud),
+           'camera_late_s': lag_stats(camera_late),
+           'stereo': {k: stereo[k] for k in sorted(stereo) if k.startswith(('pairs', 'keyframes', 'images'))},
+           'tracker_diag': {k: tdiag[k] for k in sorted(tdiag) if k in (
+               'process_ms', 'frame_from_msg_ms', 'keyframe_ms', 'target_detection_ms', 'fps')},
+           'flight_s': round(flight_s, 1), 'wall_s': round(run['wall_s'], 1),
+           'until_last_cloud_s': round(last_fused - t0, 1),
+           'real_time_factor': round(flight_s / max(last_fused - t0, 1e-9), 3),
+           'real_time_factor_with_end_of_flight': round(flight_s / run['wall_s'], 3),
+           'peak_rss_mb': round(sampler.peak_mb, 1), 'child_peak_rss_mb': round(probe.child_figures.get('peak_rss_mb') or 0.0, 1),
+           'cores': os.cpu_count(), 'load_avg_before': [round(x, 2) for x in load_before],
+           'load_avg_after': [round(x, 2) for x in load_after]}
+    emit(row)
+    per = {k: v for k, v in probe.breakdown(run['wall_s']).items() if v['calls']}
+    emit({'bench': 'inflight_20mp_methods', 'config': tag, 'methods': per})
+    return row
+
+
+TABLE_ROWS = [
+    ('photos in', lambda r: r['photos_in']),
+    ('keyframes', lambda r: r['keyframes']),
+    ('skipped by the overlap rule', lambda r: r['skipped_by_overlap_rule']),
+    ('dropped otherwise (why)', lambda r: f"{r['dropped_otherwise']} {r['dropped_why'] or ''}".strip()),
+    ('oriented share', lambda r: f"{r['oriented_share']:.3f} ({r['oriented']}/{r['keyframes']})"),
+    ('lag exposure -> pose p50/p95/max, s', lambda r: '{p50}/{p95}/{max}'.format(**r['lag_exposure_to_pose_s'])),
+    ('... of the poses given in flight (n)', lambda r: '{p50}/{p95}/{max} ({n})'.format(**r['lag_exposure_to_pose_in_flight_s'])),
+    ('lag exposure -> keyframe published p50/p95/max, s',
+     lambda r: '{p50}/{p95}/{max}'.format(**r['lag_exposure_to_keyframe_s'])),
+    ('lag exposure -> fused cloud p50/p95/max, s',
+     lambda r: '{p50}/{p95}/{max}'.format(**r['lag_exposure_to_fused_cloud_s'])),
+    ('keyframes in fused clouds', lambda r: r['keyframes_in_fused_clouds']),
+    ('stereo pairs done / skipped', lambda r: f"{r['stereo'].get('pairs_done', 0)} / "
+     f"{sum(v for k, v in r['stereo'].items() if k.startswith('pairs_skipped'))}"),
+    ('real-time factor (to the last fused cloud)', lambda r: r['real_time_factor']),
+    ('peak RSS main / child, MB', lambda r: f"{r['peak_rss_mb']} / {r['child_peak_rss_mb']}"),
+    ('cores, load avg (1 min) before/after', lambda r: f"{r['cores']}, {r['load_avg_before'][0]}/{r['load_avg_after'][0]}"),
+]
+
+
+def table(rows: list[dict]) -> str:
+    head = '| | ' + ' | '.join(f"{r['config']}" for r in rows) + ' |'
+    lines = [head, '|---' * (len(rows) + 1) + '|']
+    for name, fn in TABLE_ROWS:
+        lines.append(f'| {name} | ' + ' | '.join(str(fn(r)) for r in rows) + ' |')
+    return '\n'.join(lines) + '\n'
+
+
+def parse_sets(items) -> dict:
+    extra: dict = {}
+    for item in items:
+        key, _, value = item.partition('=')
+        role, _, name = key.partition('.')
+        extra.setdefault(role, {})[name] = json.loads(value) if value[:1] in '-0123456789[{tf' else value
+    return extra
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument('--periods', default='2,1', help='photo periods to run, s (comma list)')
+    ap.add_argument('--photos', type=int, default=42, help='photos of toledo used (at most 42)')
+    ap.add_argument('--params', default=str(ROOT / 'config' / 'replay.yaml'))
+    ap.add_argument('--set', action='append', default=[], metavar='ROLE.PARAM=VALUE',
+                    help='override a node parameter for every run')
+    ap.add_argument('--baseline-set', action='append', default=[], metavar='ROLE.PARAM=VALUE',
+                    help='also run each period with these overrides first (the baseline of the ratios)')
+    ap.add_argument('--keep', default='', help='keep the outputs in this folder')
+    ap.add_argument('--table', default='', help='write the markdown table to this file')
+    ap.add_argument('--json', default='', help='write all rows as one JSON file')
+    ap.add_argument('--build-only', action='store_true')
+    a = ap.parse_args()
+    periods = [float(p) for p in a.periods.split(',') if p.strip()]
+    emit({'machine': machine_info(), 'load_avg_before': [round(x, 2) for x in os.getloadavg()]})
+    if a.build_only:
+        for p in periods:
+            emit({'built': [str(x) for x in build_flight(p, a.photos)]})
+        return 0
+    extra = parse_sets(a.set)
+    rows = []
+    for p in periods:
+        if a.baseline_set:
+            base_extra = {r: {**extra.get(r, {}), **v} for r, v in parse_sets(a.baseline_set).items()}
+            base_extra = {**extra, **base_extra}
+            rows.append(run_period(a, p, base_extra, f'{p:g}s_baseline'))
+        rows.append(run_period(a, p, extra, f'{p:g}s'))
+        if a.baseline_set:
+            b, n = rows[-2], rows[-1]
+            emit({'bench': 'inflight_20mp_compare', 'period_s': p, 'baseline': a.baseline_set,
+                  'keyframes': [b['keyframes'], n['keyframes']], 'dropped': [b['dropped_otherwise'], n['dropped_otherwise']],
+                  'lag_pose_p95_ratio': _ratio(n['lag_exposure_to_pose_s']['p95'], b['lag_exposure_to_pose_s']['p95']),
+                  'lag_cloud_p95_ratio': _ratio(n['lag_exposure_to_fused_cloud_s']['p95'],
+                                                b['lag_exposure_to_fused_cloud_s']['p95']),
+                  'rtf_ratio': _ratio(n['real_time_factor'], b['real_time_factor'])})
+    if a.table:
+        Path(a.table).write_text(table(rows))
+    if a.json:
+        Path(a.json).write_text(json.dumps({'machine': machine_info(), 'rows': rows}, indent=1))
+    print(table(rows))
+    return 0
+
+
+def _ratio(x, y):
+    return round(x / y, 3) if x is not None and y else None
+
+
+if __name__ == '__main__':
+    sys.exit(main())
