@@ -1072,24 +1072,24 @@ class IncrementalAT:
         dz = np.array([r[k][2] for k in r]) + x @ self.gnss_slope
         return dz, x
 
-    def _level_block(self, kids: list[int], stated_v_m: float) -> dict | None:
+    def _level_block(self, kids: list[int]) -> dict | None:
         """The block's tilt, from the fixes' heights and from the cameras looking down, each as good as
         it is: the slope of the fixes' heights across the block (what the GNSS says of the tilt) has the
-        uncertainty of their vertical scatter about a block that looks down (robust, at least their
-        stated sigma) over their horizontal spread; the mean optical axis of a nadir flight is vertical
+        uncertainty of their vertical scatter about a block that looks down (robust, at least 2 cm) over
+        their horizontal spread; the mean optical axis of a nadir flight is vertical
         within `NADIR_PRIOR_DEG`. Their weighted mean is the tilt kept: the block is turned to it about
         its cameras' centre and the rest of the fixes' slope taken out of their heights (`gnss_slope`).
 
-        Only with `assume_nadir`, a block whose mean axis is within 45 degrees of nadir, and fewer than 3
-        GCPs (which fix the tilt themselves). Returns {'gnss_tilt_deg', 'kept_tilt_deg', 'turned_deg',
+        Only with `assume_nadir`, a block whose mean axis looks down, and fewer than 3 GCPs (which fix the
+        tilt themselves). Returns {'gnss_tilt_deg', 'kept_tilt_deg', 'turned_deg',
         'scatter_v_m'} when the block was turned by more than 0.05 degrees, else None."""
         if not self.opt.assume_nadir or self._n_gcps() >= 3 or len(kids) < self.opt.gnss_noise_min_keyframes:
             return None
         axes = np.array([self.kfs[k].map_T_cam[:3, 2] for k in self.registered])
         m = axes.mean(axis=0)
         m = m / np.linalg.norm(m)
-        if m[2] > -np.cos(np.radians(45.0)):
-            return None
+        if m[2] > -0.1:
+            return None     # cameras that look at or above the horizon: not a block that looks down
         if not self.gnss_slope.any():
             fixes = np.array([self.kfs[k].fix_enu[:2] - self.gnss_bias_enu[:2] for k in kids])
             self._gnss_slope_centre = fixes.mean(axis=0)
@@ -1100,7 +1100,7 @@ class IncrementalAT:
         lev = dz - x @ b
         n = len(lev)
         scatter = 1.4826 * float(np.median(np.abs(lev - np.median(lev)))) * np.sqrt(n / max(n - 3.0, 1.0))
-        sig_v = max(scatter, stated_v_m)
+        sig_v = max(scatter, 0.02)
         xc = x - x.mean(axis=0)
         info_g = xc.T @ xc / sig_v ** 2
         info_p = np.eye(2) / np.tan(np.radians(NADIR_PRIOR_DEG)) ** 2
@@ -1166,7 +1166,7 @@ class IncrementalAT:
             if level is not None:
                 out['level'] = level
             settled = bool(np.all(np.abs(stated * want - used) <= 0.1 * used))
-            turned = self._level_block(kids, float(stated[1] * want[1])) if rnd < 5 else None
+            turned = self._level_block(kids) if rnd < 5 else None
             if turned is not None:
                 level = {**turned, 'turned_deg': turned['turned_deg'] + (level or {}).get('turned_deg', 0.0)}
                 out['level'] = level
