@@ -1075,7 +1075,7 @@ class IncrementalAT:
     def _level_block(self, kids: list[int]) -> dict | None:
         """The block's tilt, from the fixes' heights and from the cameras looking down, each as good as
         it is: the slope of the fixes' heights across the block (what the GNSS says of the tilt) has the
-        uncertainty of their vertical scatter about a block that looks down (robust, at least 2 cm) over
+        uncertainty of their vertical scatter about a block that looks down (`_clipped_sigma`, at least 2 cm) over
         their horizontal spread; the mean optical axis of a nadir flight is vertical
         within `NADIR_PRIOR_DEG`. Their weighted mean is the tilt kept: the block is turned to it about
         its cameras' centre and the rest of the fixes' slope taken out of their heights (`gnss_slope`).
@@ -1099,7 +1099,7 @@ class IncrementalAT:
         # The fixes' heights about a block that looks down: their residuals with the block's slope out.
         lev = dz - x @ b
         n = len(lev)
-        scatter = 1.4826 * float(np.median(np.abs(lev - np.median(lev)))) * np.sqrt(n / max(n - 3.0, 1.0))
+        scatter = _clipped_sigma(lev - np.median(lev)) * np.sqrt(n / max(n - 3.0, 1.0))
         sig_v = max(scatter, 0.02)
         xc = x - x.mean(axis=0)
         info_g = xc.T @ xc / sig_v ** 2
@@ -1194,6 +1194,17 @@ class IncrementalAT:
             if rejected != self.gnss_rejected:
                 self.gnss_rejected = rejected
                 self._solve(list(self.registered), [], list(self.points), iters)
+                # The fixes back in (or out) move the heights' slope: levelled again.
+                for _ in range(4):
+                    turned = self._level_block(list(self.gnss_residuals()))
+                    if turned is None:
+                        break
+                    level = {**turned, 'turned_deg': turned['turned_deg'] + (level or {}).get('turned_deg', 0.0)}
+                    self._solve(list(self.registered), [], list(self.points), iters)
+            if level is not None:
+                axes = np.mean([self.kfs[k].map_T_cam[:3, 2] for k in self.registered], axis=0)
+                level['kept_tilt_deg'] = float(np.degrees(np.arccos(np.clip(-axes[2] / np.linalg.norm(axes), -1, 1))))
+                out['level'] = level
             out['rejected'] = [self.kfs[k].name for k in sorted(self.gnss_rejected)]
         self.gnss_noise = out
         return out
