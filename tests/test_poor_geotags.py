@@ -103,22 +103,22 @@ def test_wandering_heights_do_not_tilt_the_block(world):
     print(f'axis {ang:.2f} deg from truth; cameras {h:.2f} m H (geotags allow {allowed:.2f}) / {vv:.2f} m V; {g}; '
           f'{v.summary}')
     assert len(at.registered) == len(sk.records)
-    assert g['level']['gnss_tilt_deg'] > 20.0 and g['level']['kept_tilt_deg'] < 1.5 * 0.82
-    assert ang < 1.5 * 0.85                               # measured 0.85 deg (the heights' slope: 48)
-    assert vv < 1.5 * 0.42                                # measured 0.42 m
+    assert g['level']['gnss_tilt_deg'] > 20.0 and g['level']['kept_tilt_deg'] < 1.5 * 0.16
+    assert ang < 1.5 * 0.20                               # measured 0.20 deg (the heights' slope: 48)
+    assert vv < 1.5 * 0.40                                # measured 0.40 m
     assert h - allowed < 1.5 * 0.05                       # measured 14.32 m, the geotags allow 14.27
     assert v.figures['nadir']['share_within_deg'] == 1.0
     assert v.status == 'warning'
     f = next(f for f in v.findings if f.check == 'gnss_noise')
     assert 'horizontal' in f.text and 'vertical' in f.text and 'levelled' in f.text
-    # The estimate (5.15 m V, 3.28 m H) against the injected (standard deviation 11.9 m V, 3.4 m H about the
+    # The estimate (5.31 m V, 3.28 m H) against the injected (standard deviation 11.9 m V, 3.4 m H about the
     # mean): the heights' walk and its two levels in the robust estimate.
-    assert 3.5 < g['estimated_v_m'] < 1.5 * 5.15 and 2.0 < g['estimated_h_m'] < 1.5 * 3.28
+    assert 5.31 / 1.5 < g['estimated_v_m'] < 1.5 * 5.31 and 3.28 / 1.5 < g['estimated_h_m'] < 1.5 * 3.28
 
 
 def test_optimistic_stated_sigmas_are_said(world):
     """The same errors stated as 5 m H / 10 m V: levelled, and the verdict says the geotags are poor with
-    both estimates, though the vertical one is within 3x of what they state."""
+    both estimates, though neither is beyond 3x of what they state (5.4 m V about the levelled block)."""
     cfg, w = world
     sk = simulate_keyframes(cfg, gnss_mode='rtk_fixed', world=w)
     err = consumer_errors(len(sk.records))
@@ -126,9 +126,9 @@ def test_optimistic_stated_sigmas_are_said(world):
     ang, h, vv, allowed = _figures(at, sk, err)
     g = at.gnss_noise
     print(f'axis {ang:.2f} deg; cameras {h:.2f} m H (allow {allowed:.2f}) / {vv:.2f} m V; {g}; {v.summary}')
-    assert ang < 1.5 * 4.39 and vv < 1.5 * 0.67          # measured 4.39 deg, 0.67 m
-    assert v.status == 'warning' and any(f.check == 'gnss_noise' and 'vertical' in f.text for f in v.findings)
-    assert g['estimated_v_m'] > g['stated_v_m']
+    assert ang < 1.5 * 1.08 and vv < 1.5 * 0.19          # measured 1.08 deg, 0.19 m
+    assert v.status == 'warning'
+    assert any(f.check == 'gnss_noise' and 'vertical' in f.text and 'levelled' in f.text for f in v.findings)
 
 
 def test_a_pitched_camera_over_good_gnss_keeps_its_tilt(world):
@@ -141,7 +141,7 @@ def test_a_pitched_camera_over_good_gnss_keeps_its_tilt(world):
     at, v = _run(sk, sk.records)
     g = at.gnss_noise
     print(g, v.summary)
-    assert g.get('level', {}).get('turned_deg', 0.0) < 1.5 * 0.43     # measured 0.43 deg
+    assert g.get('level', {}).get('turned_deg', 0.0) < 1.5 * 0.71     # measured 0.71 deg
     assert v.status == 'ok', v.summary
 
 

@@ -1076,7 +1076,7 @@ class IncrementalAT:
         """The block's tilt, from the fixes' heights and from the cameras looking down, each as good as
         it is: the slope of the fixes' heights across the block (what the GNSS says of the tilt) has the
         uncertainty of their vertical scatter about a block that looks down (`_clipped_sigma`, at least 2 cm) over
-        their horizontal spread; the mean optical axis of a nadir flight is vertical
+        their horizontal spread, as many independent heights as their correlation from photo to photo leaves; the mean optical axis of a nadir flight is vertical
         within `NADIR_PRIOR_DEG`. Their weighted mean is the tilt kept: the block is turned to it about
         its cameras' centre and the rest of the fixes' slope taken out of their heights (`gnss_slope`).
 
@@ -1102,7 +1102,12 @@ class IncrementalAT:
         scatter = _clipped_sigma(lev - np.median(lev)) * np.sqrt(n / max(n - 3.0, 1.0))
         sig_v = max(scatter, 0.02)
         xc = x - x.mean(axis=0)
-        info_g = xc.T @ xc / sig_v ** 2
+        # Heights that wander are correlated from photo to photo: about the slope they give the block, their
+        # lag-one correlation in flight order makes fewer independent heights, (1 - rho) / (1 + rho) of them.
+        fit = dz - x @ self.gnss_slope
+        fit = (fit - fit.mean())[np.argsort(kids)]
+        rho = float(np.clip(np.sum(fit[1:] * fit[:-1]) / max(float(np.sum(fit ** 2)), 1e-12), 0.0, 0.95))
+        info_g = xc.T @ xc / sig_v ** 2 * (1.0 - rho) / (1.0 + rho)
         info_p = np.eye(2) / np.tan(np.radians(NADIR_PRIOR_DEG)) ** 2
         p = np.linalg.solve(info_g + info_p, info_g @ g)
         m_new = np.append(p, -1.0) / np.linalg.norm(np.append(p, -1.0))
@@ -1110,7 +1115,7 @@ class IncrementalAT:
         turn = float(np.arctan2(np.linalg.norm(axis), float(m @ m_new)))
         out = {'gnss_tilt_deg': float(np.degrees(np.arctan(np.linalg.norm(g)))),
                'kept_tilt_deg': float(np.degrees(np.arctan(np.linalg.norm(p)))),
-               'turned_deg': float(np.degrees(turn)), 'scatter_v_m': float(scatter)}
+               'turned_deg': float(np.degrees(turn)), 'scatter_v_m': float(scatter), 'correlation': rho}
         if np.degrees(turn) < 0.05:
             return None
         R = R_from_rotvec(axis / np.linalg.norm(axis) * turn)
