@@ -17,10 +17,32 @@ import pytest
 from conftest import shared_data
 from bench import held_out_proxies as hop
 
-# What `bench/held_out_proxies.py` measured (commit in the docstring of the report), per set and proxy:
-# shape against the unperturbed block (RMS 3D after a similarity, m), cameras' horizontal RMS from their true
-# positions as they are (m), the GNSS noise estimate (H, V, m).
-MEASURED = {}
+# What `bench/held_out_proxies.py` measured (product code of commit 93d3277; toledo's baseline from 0ce5f38, the
+# unperturbed photos, which the levelling leaves alone), per set and proxy: photos oriented, share within 15
+# degrees of nadir, shape against the unperturbed block (RMS 3D after a robust similarity, m), the cameras'
+# horizontal RMS from their true positions as they are (m; the geotags allow, by a rigid fit: toledo 0.33,
+# 15.00, 16.35, 15.00 m; brighton 0.56, 14.45, 14.34, 14.45 m), the GNSS noise estimate (H, V, m; injected:
+# toledo 0 / 3.7 / 3.5 / 3.7 m H, 23 m V; brighton 0 / 3.0 / 3.5 / 3.0 m H, 34-36 m V).
+# toledo missing_third: three photos (DJI_0091, 0099, 0100) are placed 66-105 m from their true position; the
+# verdict names their geotags as not used; the other 39 cameras sit 15 m off, as the geotags allow.
+MEASURED = {
+    ('toledo', 'alt_walk'): dict(oriented=42, nadir_share=1.0, shape_rms_3d_m=0.242, true_rigid_h_m=1.54,
+                                 estimated_h_m=1.07, estimated_v_m=24.29),
+    ('toledo', 'alt_walk_h'): dict(oriented=42, nadir_share=1.0, shape_rms_3d_m=0.929, true_rigid_h_m=15.09,
+                                   estimated_h_m=3.70, estimated_v_m=24.04),
+    ('toledo', 'missing_third'): dict(oriented=42, nadir_share=41 / 42, shape_rms_3d_m=0.365, true_rigid_h_m=26.88,
+                                      estimated_h_m=3.69, estimated_v_m=20.10),
+    ('toledo', 'optimistic'): dict(oriented=42, nadir_share=1.0, shape_rms_3d_m=0.616, true_rigid_h_m=15.12,
+                                   estimated_h_m=3.67, estimated_v_m=24.05),
+    ('brighton', 'alt_walk'): dict(oriented=18, nadir_share=1.0, shape_rms_3d_m=0.038, true_rigid_h_m=1.78,
+                                   estimated_h_m=0.99, estimated_v_m=36.96),
+    ('brighton', 'alt_walk_h'): dict(oriented=18, nadir_share=1.0, shape_rms_3d_m=0.276, true_rigid_h_m=13.91,
+                                     estimated_h_m=2.67, estimated_v_m=36.95),
+    ('brighton', 'missing_third'): dict(oriented=18, nadir_share=1.0, shape_rms_3d_m=0.077, true_rigid_h_m=14.71,
+                                        estimated_h_m=5.32, estimated_v_m=42.34),
+    ('brighton', 'optimistic'): dict(oriented=18, nadir_share=1.0, shape_rms_3d_m=0.249, true_rigid_h_m=14.39,
+                                     estimated_h_m=2.63, estimated_v_m=36.98),
+}
 
 
 @pytest.fixture(scope='module')
@@ -52,7 +74,7 @@ def test_held_out_proxy(set_name, kind, out, baselines):
     assert row['oriented'] == row['photos'] == m['oriented']
     assert row['verdict'] == 'warning' and 'gnss_noise' in row['verdict_checks']
     assert 'failed' not in row['verdict_checks'].values()
-    assert row['nadir_share'] >= m['nadir_share']
+    assert row['nadir_share'] >= m['nadir_share'] - 1e-9
     assert row['shape_rms_3d_m'] <= 1.5 * m['shape_rms_3d_m']
     assert row['true_rigid_h_m'] <= 1.5 * m['true_rigid_h_m']
     assert m['estimated_h_m'] / 1.5 <= g['estimated_h_m'] <= 1.5 * m['estimated_h_m']

@@ -312,7 +312,8 @@ def check_block(b: BlockInputs, o: BlockCheckOptions | None = None) -> BlockVerd
                                     'better than they are'))
     if rejected:
         findings.append(Finding('gnss_rejected', 'warning', f'{len(rejected)} geotags not used, far beyond the '
-                                f'flight\'s GNSS noise: {", ".join(rejected[:8])}', rejected[:50]))
+                                f'flight\'s GNSS noise from where the block puts their photos (a glitched geotag, or a '
+                                f'photo the tie points place poorly): {", ".join(rejected[:8])}', rejected[:50]))
     status = 'ok'
     for f in findings:
         status = _worse(status, f.status)
