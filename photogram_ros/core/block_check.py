@@ -53,6 +53,7 @@ class BlockCheckOptions:
     min_oriented_warn: float = 1.0      # share of photos oriented: warning under (1: any photo not oriented)
     min_oriented_failed: float = 0.5    # ... failed under
     noise_warn_factor: float = 3.0      # estimated GNSS noise / stated: warning above
+    level_warn_deg: float = 1.0         # tilt the GNSS heights gave the block beyond the one kept (deg): warning above
     check_warn: float = 5.0             # check-point RMSE / the datum's noise (>= 2 cm): warning above
     check_fail: float = 20.0            # ... failed above
 
@@ -296,14 +297,23 @@ def check_block(b: BlockInputs, o: BlockCheckOptions | None = None) -> BlockVerd
         est = np.array([g['estimated_h_m'], g['estimated_v_m']])
         figures['gnss_noise'] = dict(g)
         poor = est > o.noise_warn_factor * stated
-        if poor.any():
-            what = ' and '.join(f'{w} {e:.1f} m (stated {s:.1f} m)' for w, e, s, p in
-                                zip(('horizontal', 'vertical'), est, stated, poor) if p)
-            findings.append(Finding('gnss_noise', 'warning', f'the geotags are poorer than they state: estimated '
-                                    f'noise {what}; they were weighted as measured'))
+        lev = g.get('level') or {}
+        tilted = float(lev.get('gnss_tilt_deg', 0.0)) - float(lev.get('kept_tilt_deg', 0.0))
+        if poor.any() or tilted > o.level_warn_deg:
+            why = []
+            if poor.any():
+                why.append('poorer than they state')
+            if tilted > o.level_warn_deg:
+                why.append(f'their heights would tilt the block by {lev["gnss_tilt_deg"]:.1f} degrees where its '
+                           f'cameras look down: levelled to {lev["kept_tilt_deg"]:.1f} degrees')
+            findings.append(Finding('gnss_noise', 'warning', f'the geotags are poor ({"; ".join(why)}): estimated '
+                                    f'noise {est[0]:.1f} m horizontal, {est[1]:.1f} m vertical (stated {stated[0]:.1f} m, '
+                                    f'{stated[1]:.1f} m); they were weighted as measured, and the block is placed no '
+                                    'better than they are'))
     if rejected:
         findings.append(Finding('gnss_rejected', 'warning', f'{len(rejected)} geotags not used, far beyond the '
-                                f'flight\'s GNSS noise: {", ".join(rejected[:8])}', rejected[:50]))
+                                f'flight\'s GNSS noise from where the block puts their photos (a glitched geotag, or a '
+                                f'photo the tie points place poorly): {", ".join(rejected[:8])}', rejected[:50]))
     status = 'ok'
     for f in findings:
         status = _worse(status, f.status)

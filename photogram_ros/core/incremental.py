@@ -44,7 +44,7 @@ from photogram_ros.core.at_store import Keyframe, PointStore
 from photogram_ros.core.camera import PinholeCamera
 from photogram_ros.core.geodesy import LocalFrame
 from photogram_ros.core.gnss_fix import GnssFix
-from photogram_ros.core.rotations import invert_T, make_T
+from photogram_ros.core.rotations import R_from_rotvec, invert_T, make_T
 from photogram_ros.core.similarity import similarity_on_line, similarity_ransac, spread
 from photogram_ros.core.two_view import relative_pose
 from photogram_ros.core.window import neighbour_keyframes, select_window
@@ -52,6 +52,25 @@ from photogram_ros.errors import ConfigError, DataError
 from photogram_ros.params import param
 
 from photogram_ros.core.bundle import BundleOptions, BundleProblem, bundle_adjust
+
+# How far the mean optical axis of a nadir flight may lie from the vertical (1 sigma, degrees): a gimbal
+# held at nadir, or a camera fixed to look down, over a whole flight.
+NADIR_PRIOR_DEG = 2.0
+
+
+def _clipped_sigma(x: np.ndarray, k: float = 3.5, rounds: int = 5) -> float:
+    """Standard deviation (about zero) of the residuals `x` without those beyond `k` of it, from the median
+    absolute deviation on: glitches drop out, the spread of an error that wanders (a bimodal or flat
+    distribution, whose median absolute deviation is far below its spread) stays in."""
+    x = np.asarray(x, float).ravel()
+    sig = 1.4826 * float(np.median(np.abs(x)))
+    for _ in range(rounds):
+        keep = np.abs(x) <= k * max(sig, 1e-9)
+        new = float(np.sqrt(np.mean(x[keep] ** 2))) if keep.any() else sig
+        if abs(new - sig) <= 1e-3 * max(sig, 1e-9):
+            break
+        sig = new
+    return sig
 
 
 @dataclass
@@ -271,6 +290,11 @@ class IncrementalAT:
         self.gnss_sigma_scale_hv = np.ones(2)
         self.gnss_rejected: set[int] = set()
         self.gnss_noise: dict = {}
+        # Heights of a consumer geotag wander by tens of metres within a flight: their trend across the
+        # block would tilt it. A slope (dz/dE, dz/dN) taken out of the fixes' heights (about their
+        # horizontal centre) where the cameras' looking down says the trend is the fixes' (`_level_block`).
+        self.gnss_slope = np.zeros(2)
+        self._gnss_slope_centre = np.zeros(2)
 
     @property
     def lever_arm_cam_m(self) -> np.ndarray:
@@ -1039,18 +1063,90 @@ class IncrementalAT:
         S = np.diag(self.gnss_sigma_scale_hv[[0, 0, 1]])
         return S @ np.asarray(kf.fix_cov, float).reshape(3, 3) @ S
 
+    def _raw_height_residuals(self, kids: list[int]) -> tuple[np.ndarray, np.ndarray]:
+        """Vertical residuals (m) of the adjusted antennas against the fixes' own heights (no slope taken
+        out), and the fixes' horizontal positions about the slope centre (K, 2), of keyframes `kids`."""
+        r = self.gnss_residuals(kids)
+        x = np.array([self.kfs[k].fix_enu[:2] - self.gnss_bias_enu[:2] - self._gnss_slope_centre for k in r])
+        x = x.reshape(-1, 2)
+        dz = np.array([r[k][2] for k in r]) + x @ self.gnss_slope
+        return dz, x
+
+    def _level_block(self, kids: list[int]) -> dict | None:
+        """The block's tilt, from the fixes' heights and from the cameras looking down, each as good as
+        it is: the slope of the fixes' heights across the block (what the GNSS says of the tilt) has the
+        uncertainty of their vertical scatter about a block that looks down (`_clipped_sigma`, at least 2 cm) over
+        their horizontal spread, as many independent heights as their correlation from photo to photo leaves; the mean optical axis of a nadir flight is vertical
+        within `NADIR_PRIOR_DEG`. Their weighted mean is the tilt kept: the block is turned to it about
+        its cameras' centre and the rest of the fixes' slope taken out of their heights (`gnss_slope`).
+
+        Only with `assume_nadir`, a block whose mean axis looks down, and fewer than 3 GCPs (which fix the
+        tilt themselves). Returns {'gnss_tilt_deg', 'kept_tilt_deg', 'turned_deg',
+        'scatter_v_m'} when the block was turned by more than 0.05 degrees, else None."""
+        if not self.opt.assume_nadir or self._n_gcps() >= 3 or len(kids) < self.opt.gnss_noise_min_keyframes:
+            return None
+        axes = np.array([self.kfs[k].map_T_cam[:3, 2] for k in self.registered])
+        m = axes.mean(axis=0)
+        m = m / np.linalg.norm(m)
+        if m[2] > -0.1:
+            return None     # cameras that look at or above the horizon: not a block that looks down
+        if not self.gnss_slope.any():
+            fixes = np.array([self.kfs[k].fix_enu[:2] - self.gnss_bias_enu[:2] for k in kids])
+            self._gnss_slope_centre = fixes.mean(axis=0)
+        b = m[:2] / -m[2]                       # the block's slope (dz/dE, dz/dN) as its cameras look
+        dz, x = self._raw_height_residuals(kids)
+        g = b - self.gnss_slope                 # the slope the fixes' own heights give the block
+        # The fixes' heights about a block that looks down: their residuals with the block's slope out.
+        lev = dz - x @ b
+        n = len(lev)
+        scatter = _clipped_sigma(lev - np.median(lev)) * np.sqrt(n / max(n - 3.0, 1.0))
+        sig_v = max(scatter, 0.02)
+        xc = x - x.mean(axis=0)
+        # Heights that wander are correlated from photo to photo: about the slope they give the block, their
+        # lag-one correlation in flight order makes fewer independent heights, (1 - rho) / (1 + rho) of them.
+        fit = dz - x @ self.gnss_slope
+        fit = (fit - fit.mean())[np.argsort(kids)]
+        rho = float(np.clip(np.sum(fit[1:] * fit[:-1]) / max(float(np.sum(fit ** 2)), 1e-12), 0.0, 0.95))
+        info_g = xc.T @ xc / sig_v ** 2 * (1.0 - rho) / (1.0 + rho)
+        info_p = np.eye(2) / np.tan(np.radians(NADIR_PRIOR_DEG)) ** 2
+        p = np.linalg.solve(info_g + info_p, info_g @ g)
+        m_new = np.append(p, -1.0) / np.linalg.norm(np.append(p, -1.0))
+        axis = np.cross(m, m_new)
+        turn = float(np.arctan2(np.linalg.norm(axis), float(m @ m_new)))
+        out = {'gnss_tilt_deg': float(np.degrees(np.arctan(np.linalg.norm(g)))),
+               'kept_tilt_deg': float(np.degrees(np.arctan(np.linalg.norm(p)))),
+               'turned_deg': float(np.degrees(turn)), 'scatter_v_m': float(scatter), 'correlation': rho}
+        if np.degrees(turn) < 0.05:
+            return None
+        R = R_from_rotvec(axis / np.linalg.norm(axis) * turn)
+        c0 = np.mean([self.kfs[k].map_T_cam[:3, 3] for k in self.registered], axis=0)
+        for k in self.registered:
+            T = np.array(self.kfs[k].map_T_cam, float)
+            self.kfs[k].map_T_cam = make_T(R @ T[:3, :3], R @ (T[:3, 3] - c0) + c0)
+        ids, P = self.points.arrays()
+        if len(ids):
+            self.points.set_many(ids, (np.asarray(P) - c0) @ R.T + c0)
+        self.gnss_slope = p - g
+        return out
+
     def estimate_gnss_noise(self, iterations: int | None = None) -> dict:
         """The flight's GNSS noise from the residuals of the fixes (a variance-component estimate,
         horizontal and vertical apart, robust: median absolute deviations about the median, corrected
-        for the 7 datum parameters the fixes also carry). Where it exceeds the stated sigmas by half
-        again, the fixes are weighted by it and the block adjusted again, until the estimate settles;
-        then a fix beyond `gnss_outlier_sigma` estimated sigmas (and 3 stated ones) is not used (at most
-        a fifth of them) and the block adjusted once more. Returns (and keeps in `gnss_noise`) the stated
-        and estimated sigmas (m), the scale factors and the names of the rejected fixes."""
+        for the 7 datum parameters the fixes also carry; the vertical one against the fixes' own heights,
+        their trend across the block included). Where it exceeds the stated sigmas by half again, the
+        fixes are weighted by it and the block adjusted again, and the block's tilt is taken from the
+        fixes' heights and from its cameras looking down, each by its weight (`_level_block`), until both
+        settle; then a fix beyond `gnss_outlier_sigma` estimated sigmas (and 3 stated sigmas) is not used
+        (at most a fifth of them) and the block adjusted once more. Returns (and keeps in `gnss_noise`) the
+        stated and estimated sigmas (m), the scale factors, the names of the rejected fixes and, when the
+        block was levelled, `level` (the tilt the fixes' heights gave it and the one kept, degrees)."""
         iters = iterations or self.opt.full_iterations
         out = {}
-        for rnd in range(5):
-            r = self.gnss_residuals([k for k in self.registered if k not in self.gnss_rejected])
+        level = None
+        for rnd in range(6):
+            # Every fix, those kept out in flight too (a robust estimate: a few glitches do not move it, and
+            # a gate that kept out the far end of a wandering height would hide how poor the heights are).
+            r = self.gnss_residuals()
             if len(r) < self.opt.gnss_noise_min_keyframes or not self.georeferenced:
                 if self.gnss_rejected:
                     self.gnss_noise = {**self.gnss_noise,
@@ -1063,15 +1159,23 @@ class IncrementalAT:
             n = len(kids)
             redundancy = np.sqrt(3.0 * n / max(3.0 * n - 7.0, 1.0))
             h = R[:, :2] - np.median(R[:, :2], axis=0)
-            v = R[:, 2] - np.median(R[:, 2])
-            est = redundancy * 1.4826 * np.array([np.median(np.abs(h)), np.median(np.abs(v))])
+            dz, _ = self._raw_height_residuals(kids)
+            v = dz - np.median(dz)
+            est = redundancy * np.array([_clipped_sigma(h.ravel()), _clipped_sigma(v)])
             used = stated * self.gnss_sigma_scale_hv
             want = np.where(est > 1.5 * stated, est / stated, 1.0)
             want = np.maximum(want, 1.0)
             out = {'stated_h_m': float(stated[0]), 'stated_v_m': float(stated[1]), 'estimated_h_m': float(est[0]),
                    'estimated_v_m': float(est[1]), 'scale_h': float(want[0]), 'scale_v': float(want[1]),
                    'used_h_m': float(stated[0] * want[0]), 'used_v_m': float(stated[1] * want[1]), 'n': n}
-            if np.all(np.abs(stated * want - used) <= 0.1 * used):
+            if level is not None:
+                out['level'] = level
+            settled = bool(np.all(np.abs(stated * want - used) <= 0.1 * used))
+            turned = self._level_block(kids) if rnd < 5 else None
+            if turned is not None:
+                level = {**turned, 'turned_deg': turned['turned_deg'] + (level or {}).get('turned_deg', 0.0)}
+                out['level'] = level
+            if settled and turned is None:
                 break
             self.gnss_sigma_scale_hv = want
             self._solve(list(self.registered), [], list(self.points), iters)
@@ -1095,6 +1199,17 @@ class IncrementalAT:
             if rejected != self.gnss_rejected:
                 self.gnss_rejected = rejected
                 self._solve(list(self.registered), [], list(self.points), iters)
+                # The fixes back in (or out) move the heights' slope: levelled again.
+                for _ in range(4):
+                    turned = self._level_block(list(self.gnss_residuals()))
+                    if turned is None:
+                        break
+                    level = {**turned, 'turned_deg': turned['turned_deg'] + (level or {}).get('turned_deg', 0.0)}
+                    self._solve(list(self.registered), [], list(self.points), iters)
+            if level is not None:
+                axes = np.mean([self.kfs[k].map_T_cam[:3, 2] for k in self.registered], axis=0)
+                level['kept_tilt_deg'] = float(np.degrees(np.arccos(np.clip(-axes[2] / np.linalg.norm(axes), -1, 1))))
+                out['level'] = level
             out['rejected'] = [self.kfs[k].name for k in sorted(self.gnss_rejected)]
         self.gnss_noise = out
         return out
@@ -1102,6 +1217,8 @@ class IncrementalAT:
     def _gnss_target(self, kf: Keyframe) -> np.ndarray:
         """The fix moved so that `C + map_R_cam @ lever` should meet it (exact offset when known)."""
         fix = kf.fix_enu - self.gnss_bias_enu
+        if self.gnss_slope.any():
+            fix = fix + np.array([0.0, 0.0, float(self.gnss_slope @ (fix[:2] - self._gnss_slope_centre))])
         if kf.antenna_offset is None:
             return fix
         return fix - kf.antenna_offset + kf.map_T_cam[:3, :3] @ self._lever
