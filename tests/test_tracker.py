@@ -185,6 +185,44 @@ def test_keyframe_gets_interpolated_fix(survey_line):
         assert abs(kf.fix.lat_deg - (47.0 + w * 1e-6)) < 1e-12 and abs(kf.fix.h_m - (500 + w)) < 1e-9
 
 
+def _fed_with_lagging_fixes(frames, speed: float, stop_s: float | None = None, params=None):
+    """Frames with the fixes (5 Hz from the first frame on) handed to the tracker at `speed` times real time,
+    as a GNSS stream decoded late under load falls behind; none after `stop_s` (an outage)."""
+    t0 = frames.frames[0][0]
+    stamps = [t0 + k * 200_000_000 for k in range(0, 70)]
+    fixes = [GnssFix(47.0 + k * 1e-6, 8.0, 500.0, np.eye(3) * 0.01, s, 2) for k, s in enumerate(stamps)
+             if stop_s is None or s < t0 + stop_s * 1e9]
+    tr, kfs, given = Tracker(frames.camera, params), [], 0
+    for stamp, img, _ in frames.frames:
+        while given < len(fixes) and t0 + (fixes[given].stamp_ns - t0) / speed <= stamp:
+            tr.add_fix(fixes[given])
+            given += 1
+        kfs += tr.process(img, stamp)
+    return kfs
+
+
+def test_keyframes_wait_for_a_lagging_fix_stream(survey_line):
+    # Fixes decoded at 0.6x real time fall up to 4.8 s behind the frames (more than fix_wait_s) but keep
+    # coming: every keyframe released in the stream waits for its own fix instead of going without one.
+    kfs = _fed_with_lagging_fixes(survey_line, speed=0.6)
+    assert len(kfs) >= 4
+    assert all(kf.fix is not None and kf.fix.stamp_ns == kf.stamp_ns for kf in kfs), \
+        [(kf.index, kf.fix is not None) for kf in kfs]
+    # Bounded: a lag beyond fix_lag_max_s releases them without.
+    kfs = _fed_with_lagging_fixes(survey_line, speed=0.6, params=TrackerParams(fix_lag_max_s=2.0))
+    assert any(kf.fix is None for kf in kfs)
+
+
+def test_keyframes_do_not_wait_through_a_gnss_outage(survey_line):
+    # The fix stream stops at 4 s (an outage): the keyframes after it go without a fix once fix_wait_s
+    # has passed, not after fix_lag_max_s.
+    kfs = _fed_with_lagging_fixes(survey_line, speed=1.0, stop_s=4.0)
+    late = [kf for kf in kfs if kf.stamp_ns > survey_line.frames[0][0] + 4.2e9]
+    assert late and all(kf.fix is None for kf in late)
+    last_stamp = survey_line.frames[-1][0]
+    assert any(last_stamp - kf.stamp_ns < 6e9 for kf in late)    # released in the stream, not held to its end
+
+
 def test_fix_buffer_refuses_to_bridge_outages():
     buf = FixBuffer(max_gap_s=1.0)
     buf.add(GnssFix(47.0, 8.0, 500.0, np.eye(3), 0, 2))

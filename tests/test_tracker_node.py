@@ -53,7 +53,7 @@ def test_sample_bag_gives_keyframes_with_matching_stamps(sample_bag, rclpy_conte
         summary = player.play()
         assert summary.counts['/camera/image_raw/compressed'] == 76
         tracker.flush(timeout_s=20.0)
-        deadline = time.monotonic() + 10
+        deadline = time.monotonic() + 20
         while time.monotonic() < deadline and (len(listener.features) < tracker.keyframes_published
                                                or len(listener.images) < tracker.keyframes_published):
             time.sleep(0.05)
@@ -61,16 +61,19 @@ def test_sample_bag_gives_keyframes_with_matching_stamps(sample_bag, rclpy_conte
         s = tracker.tracker.stats
         print(f'{tracker.keyframes_published} keyframes from {s.frames} frames, {counts}, {s}')
         # 3 lines of ~90 m at 80 % overlap of a ~37 m footprint: a keyframe every ~7 m -> dozens.
-        assert s.frames >= 70 and counts.get('drops', 0) == 0
-        assert tracker.keyframes_published >= 20
-        assert len(listener.images) == len(listener.features) == tracker.keyframes_published
+        why = f'{tracker.keyframes_published} keyframes, {counts}, {s}'
+        assert s.frames >= 70 and counts.get('drops', 0) == 0, why
+        assert tracker.keyframes_published >= 20, why
+        assert len(listener.images) == len(listener.features) == tracker.keyframes_published, \
+            (len(listener.images), len(listener.features), why)
         img_stamps = [ns_from_time(m.header.stamp) for m in listener.images]
         feat_stamps = [ns_from_time(m.header.stamp) for m in listener.features]
         assert img_stamps == feat_stamps and img_stamps == sorted(img_stamps)
         truth = GroundTruth.load(sample_bag)
         assert all(truth.frame_by_stamp(t, tol_ns=0) is not None for t in img_stamps)
         fix_stamps = [ns_from_time(m.header.stamp) for m in listener.fixes]
-        assert len(fix_stamps) >= 0.9 * len(img_stamps) and set(fix_stamps) <= set(img_stamps)
+        assert len(fix_stamps) >= 0.9 * len(img_stamps) and set(fix_stamps) <= set(img_stamps), \
+            (len(fix_stamps), len(img_stamps), why)
         # Interpolated fix close to the true antenna position (RTK fixed: cm level).
         f0 = listener.fixes[len(listener.fixes) // 2]
         enu = truth.origin.geodetic_to_enu(f0.latitude, f0.longitude, f0.altitude)
@@ -220,7 +223,7 @@ def test_flush_takes_the_fixes_that_came_after_the_last_frame(rclpy_context, tmp
         return msgs.navsatfix_from_gnss_fix(GnssFix(47.0 + stamp * 1e-18, 8.0, 500.0, np.eye(3) * 0.01, stamp))
 
     try:
-        deadline = time.monotonic() + 10
+        deadline = time.monotonic() + 20
         while time.monotonic() < deadline and pub_img.get_subscription_count() == 0:
             time.sleep(0.05)
         stamps = [s for s, _, _ in sim.frames]
@@ -233,7 +236,7 @@ def test_flush_takes_the_fixes_that_came_after_the_last_frame(rclpy_context, tmp
         pub_fix.publish(fix_at(stamps[-1] + 10**8))     # after the last frame was tracked
         time.sleep(0.5)
         tracker.flush(timeout_s=10.0)
-        deadline = time.monotonic() + 10
+        deadline = time.monotonic() + 20
         while time.monotonic() < deadline and len(listener.features) < tracker.keyframes_published:
             time.sleep(0.05)
     finally:

@@ -117,6 +117,10 @@ class TrackerParams:
     fix_wait_s: float = param(1.5, 'How long (stream time) a keyframe waits for a GPS fix after its stamp, s '
                                     '(more than the GPS period: 1 Hz receivers are common)',
                               min=0.0, max=10.0)
+    fix_lag_max_s: float = param(20.0, 'While fixes keep arriving but lag behind the frames (a GNSS stream '
+                                       'decoded late under load), a keyframe waits up to this long (stream '
+                                       'time) for its fix; a fix stream that stops for fix_wait_s ends the '
+                                       'wait, s', min=0.0, max=120.0)
     fix_max_gap_s: float = param(2.5, 'No fix is interpolated across a GPS gap longer than this, s (2.5 GPS '
                                        'periods at 1 Hz: decoded fix stamps jitter)',
                                  min=0.01, max=60.0)
@@ -247,6 +251,7 @@ class Tracker:
         self._kf: _KfState | None = None
         self._recent: list[_KfState] = []   # the last match_keyframes keyframes, oldest first
         self._pending: list[Keyframe] = []
+        self._fix_seen = (None, None)   # (latest fix stamp, frame stamp when it first advanced to it)
         self._next_id = 0
         self._n_frames = 0
         self._velocity = np.zeros(2, np.float32)   # median image motion, px/s
@@ -714,14 +719,32 @@ class Tracker:
         return kf
 
     def _release(self, now_ns: int) -> list[Keyframe]:
-        """Keyframes whose GPS fix is known (a fix after the stamp arrived) or waited for long enough."""
+        """Keyframes whose GPS fix is known (a fix after the stamp arrived) or waited for long enough.
+
+        A keyframe waits fix_wait_s of stream time for a later fix. While the fix stream still advances
+        (its latest stamp moved within the last fix_wait_s) but lags behind the frames, it waits on, up to
+        fix_lag_max_s: a late fix stream must not strip keyframes of their positions. No fix at all, or a
+        stream that stopped (an outage), ends the wait after fix_wait_s."""
         out = []
         latest = self.fixes.latest_ns()
+        if latest is not None and latest != self._fix_seen[0]:
+            self._fix_seen = (latest, now_ns)
         wait_ns = int(self.params.fix_wait_s * 1e9)
+        lag_ns = max(wait_ns, int(self.params.fix_lag_max_s * 1e9))
+        advancing = latest is not None and now_ns - self._fix_seen[1] < wait_ns
         while self._pending:
             kf = self._pending[0]
-            if (latest is not None and latest >= kf.stamp_ns) or now_ns - kf.stamp_ns >= wait_ns:
+            waited = now_ns - kf.stamp_ns
+            if (latest is not None and latest >= kf.stamp_ns) or waited >= lag_ns or \
+                    (waited >= wait_ns and not advancing):
                 out.append(self._finish(self._pending.pop(0)))
             else:
                 break
         return out
+
+    def fix_lag_s(self) -> float:
+        """How far the newest fix is behind the oldest keyframe waiting for one, s (0: none waits)."""
+        latest = self.fixes.latest_ns()
+        if not self._pending or latest is None:
+            return 0.0
+        return max(0.0, (self._pending[0].stamp_ns - latest) * 1e-9)

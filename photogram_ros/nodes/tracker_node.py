@@ -340,6 +340,7 @@ class TrackerNode(Node):
         self.diag.set('gaps', s.gaps)
         self.diag.set('unusable_frames', s.unusable)
         self.diag.set('last_overlap', s.last_overlap)
+        self.diag.set('fix_lag_s', self.tracker.fix_lag_s())
 
     def _publish_debug(self, image, stamp_ns: int, frame_id: str) -> None:
         import cv2
@@ -353,19 +354,31 @@ class TrackerNode(Node):
     # --- lifecycle -------------------------------------------------------------------------------
 
     def flush(self, timeout_s: float = 5.0) -> int:
-        """Wait for queued frames, then emit the keyframes still waiting for a fix; returns their count."""
+        """Wait for queued frames (and for a lagging fix stream that still delivers), then emit the keyframes
+        still waiting for a fix; returns their count."""
         deadline = time.monotonic() + timeout_s
         while time.monotonic() < deadline:
             with self._cond:
                 if not self._frames:
                     break
             time.sleep(0.02)
-        with self._cond:
-            fixes = list(self._fixes)    # fixes after the last frame: the last keyframes need them
-            self._fixes.clear()
+        # Fixes after the last frame: the last keyframes need them. While the fix stream lags behind the
+        # keyframes still waiting and keeps coming, wait for it (until the deadline or 1 s of silence).
+        last_fix = time.monotonic()
+        while True:
+            with self._cond:
+                fixes = list(self._fixes)
+                self._fixes.clear()
+            with self._track_lock:
+                for f in fixes:
+                    self.tracker.add_fix(f)
+                lagging = self.tracker.fix_lag_s() > 0.0
+            now = time.monotonic()
+            last_fix = now if fixes else last_fix
+            if not lagging or now - last_fix > 1.0 or now > deadline:
+                break
+            time.sleep(0.05)
         with self._track_lock:
-            for f in fixes:
-                self.tracker.add_fix(f)
             kfs = self.tracker.flush()
         for kf in kfs:
             self._send_keyframe(kf, 'camera_optical')
