@@ -374,3 +374,35 @@ def test_ellipsoidal_heights_go_into_the_geokeys_of_tiff_and_bigtiff(tmp_path, b
     assert got.axis_info[2].name == 'Ellipsoidal height' and 'World Geodetic System 1984' in got.datum.name
     with pytest.raises(DataError):
         _set_vertical_geokey(path, 3855, 4979)      # the key is no longer 3855
+
+
+def test_las_of_a_cloud_wider_than_millimetres_can_span(tmp_path):
+    """A cloud 3,000 km wide does not fit 32-bit millimetres: the LAS takes a coarser scale and every point
+    reads back within it; non-finite coordinates are refused with a DataError, not a laspy traceback."""
+    import laspy
+
+    from photogram_ros.errors import DataError
+    from photogram_ros.io.export import GeoCloud, write_las
+    x = np.array([465712.25, 465750.0, -2204721.5])
+    y = np.array([5249481.5, 5249490.0, 5249500.0])
+    z = np.array([489.0, 496.25, 127757.5])
+    n = len(x)
+    cloud = GeoCloud(x, y, z, np.full((n, 3), 200, np.uint8), np.ones(n, np.uint32), np.ones(n, np.float32),
+                     'EPSG:32632', 'ellipsoidal')
+    las = laspy.read(write_las(cloud, tmp_path / 'wide.las'))
+    assert las.header.scales[0] == 0.01 and las.header.scales[1] == 0.001
+    assert np.allclose(las.x, x, atol=0.005) and np.allclose(las.z, z, atol=0.0005)
+    cloud.z[1] = np.nan
+    with pytest.raises(DataError, match='non-finite'):
+        write_las(cloud, tmp_path / 'nan.las')
+
+
+def test_tie_points_far_beyond_the_cameras_are_found():
+    from photogram_ros.core.triangulation import near_the_cameras
+    rng = np.random.default_rng(3)
+    centres = np.column_stack([np.linspace(0, 100, 11), np.zeros(11), np.full(11, 40.0)])
+    ground = np.column_stack([rng.uniform(-20, 120, 500), rng.uniform(-30, 30, 500), rng.normal(0, 1, 500)])
+    far = np.array([[-2.6e6, 0.0, 0.0], [0.0, 0.0, 1.3e5], [np.nan, 0.0, 0.0]])
+    ok = near_the_cameras(np.vstack([ground, far]), centres)
+    assert ok[:500].all() and not ok[500:].any()
+    assert near_the_cameras(ground, np.empty((0, 3))).all()

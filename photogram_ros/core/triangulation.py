@@ -96,3 +96,20 @@ def triangulate_points(camera, map_T_cams, obs_cam, obs_pt, obs_uv, n_points: in
     angle = _max_ray_angle(rays, op, P) if len(op) else np.zeros(P)
     valid = has & ~behind & np.all(np.isfinite(X), 1) & np.isfinite(rms)
     return Triangulation(points_map=X, valid=valid, n_views=n_views, angle_deg=angle, reproj_rms_px=rms)
+
+
+def near_the_cameras(points_map: np.ndarray, centres_map: np.ndarray, factor: float = 10.0) -> np.ndarray:
+    """Mask of the tie points within `factor` times the median distance from a point to its nearest camera.
+
+    points_map (N, 3) and centres_map (M, 3) in one metric frame, m. A point far beyond that (rays almost
+    parallel: a point kilometres away on a 40 m flight) is not ground the photos measured; the sparse cloud's
+    writers leave it out. With no camera every point is kept."""
+    from scipy.spatial import cKDTree
+    P = np.asarray(points_map, float).reshape(-1, 3)
+    C = np.asarray(centres_map, float).reshape(-1, 3)
+    finite = np.all(np.isfinite(P), axis=1)
+    if len(C) == 0 or not finite.any():
+        return finite
+    d = np.full(len(P), np.inf)
+    d[finite] = cKDTree(C).query(P[finite])[0]
+    return finite & (d <= factor * max(float(np.median(d[finite])), 1e-6))

@@ -32,6 +32,7 @@ from photogram_ros.io.at_report import write_report
 from photogram_ros.core.geodesy import LocalFrame, utm_epsg
 from photogram_ros.core.incremental import IncrementalAT, IncrementalOptions
 from photogram_ros.core.photo_matching import MatchingOptions
+from photogram_ros.core.triangulation import near_the_cameras
 from photogram_ros.errors import ConfigError
 from photogram_ros.io.export import GeoCloud, enu_to_crs, write_las, write_ply
 from photogram_ros.io.keyframe_block import KeyframeBlock
@@ -373,6 +374,11 @@ def adjust_block(block: KeyframeBlock, out: str | Path, opt: TriangulateOptions,
     kfs = [at.kfs[k] for k in at.registered]
     write_trajectory_csv(out / 'poses.csv', POSES_COLUMNS, [kf.name for kf in kfs],
                          np.array([kf.map_T_cam for kf in kfs]).reshape(-1, 4, 4), origin, crs)
+    near = near_the_cameras(P, np.array([kf.map_T_cam[:3, 3] for kf in kfs]).reshape(-1, 3))
+    if not near.all():
+        assumptions.append(f'{int((~near).sum())} of {len(P)} tie points lie more than 10 times the usual camera '
+                           'distance from every camera (rays almost parallel): left out of sparse.ply / sparse.las')
+        P = P[near]
     e, n, h = enu_to_crs(origin, P, crs)
     cloud = GeoCloud(e, n, h, np.full((len(P), 3), 200, np.uint8), np.ones(len(P), np.uint32),
                      np.ones(len(P), np.float32), crs, 'ellipsoidal')

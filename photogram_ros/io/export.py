@@ -160,8 +160,12 @@ def write_las(cloud: GeoCloud, path: str | Path) -> Path:
     import laspy
     path = Path(path)
     header = laspy.LasHeader(point_format=7, version='1.4')
-    header.offsets = [np.floor(cloud.x.min()), np.floor(cloud.y.min()), np.floor(cloud.z.min())]
-    header.scales = [0.001, 0.001, 0.001]
+    xyz = (cloud.x, cloud.y, cloud.z)
+    if not all(np.all(np.isfinite(v)) for v in xyz):
+        raise DataError(f'{path.name}: the cloud holds non-finite coordinates; nothing written')
+    header.offsets = [np.floor(v.min()) if v.size else 0.0 for v in xyz]
+    # Millimetres, or the finest power of ten whose 32-bit integers span the cloud's extent.
+    header.scales = [_las_scale(float(np.ptp(v)) if v.size else 0.0) for v in xyz]
     header.add_crs(product_crs(cloud.crs, cloud.heights)[0])
     header.add_extra_dims([laspy.ExtraBytesParams('observations', np.uint32, 'points fused in the cell'),
                            laspy.ExtraBytesParams('confidence', np.float32, 'mean stereo confidence')])
@@ -180,6 +184,13 @@ def write_las(cloud: GeoCloud, path: str | Path) -> Path:
     las.confidence = cloud.confidence
     las.write(str(path))
     return path
+
+
+def _las_scale(extent_m: float) -> float:
+    scale = 0.001
+    while extent_m / scale > 2_000_000_000:
+        scale *= 10.0
+    return scale
 
 
 _PLY_FIELDS = [('x', '<f8', 'double'), ('y', '<f8', 'double'), ('z', '<f8', 'double'),
