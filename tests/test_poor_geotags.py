@@ -163,3 +163,22 @@ def test_the_verdict_says_poor_geotags_with_both_estimates():
     # A turn within the prior's reach is not said.
     small = {**good, 'level': {'gnss_tilt_deg': 2.7, 'kept_tilt_deg': 2.4, 'turned_deg': 0.3}}
     assert check_block(dataclasses.replace(b, gnss_noise=small)).status == 'ok'
+
+
+def test_a_horizontal_scatter_no_gnss_shows_fails_the_block():
+    """Cameras 31.7 m about their geotags horizontally after a similarity (what a block broken by too little
+    overlap showed once its noise estimate had absorbed the damage): failed, whatever the stated sigmas;
+    the poor geotags of the held-out proxies (up to 5.3 m) stay a warning."""
+    n = 20
+    C = np.column_stack([np.repeat(np.arange(5) * 30.0, 4), np.tile(np.arange(4) * 25.0, 5), np.full(n, 50.0)])
+    T = np.tile(np.eye(4), (n, 1, 1))
+    T[:, :3, :3] = np.diag([1.0, -1.0, -1.0])
+    T[:, :3, 3] = C
+    b = BlockInputs([f'P{i:02d}.JPG' for i in range(n)], T, C.copy(), np.tile([5.0, 2.0], (n, 1)), np.zeros(n))
+    broken = {'stated_h_m': 5.0, 'stated_v_m': 2.0, 'estimated_h_m': 31.7, 'estimated_v_m': 53.8, 'used_h_m': 31.7,
+              'used_v_m': 53.8, 'n': n, 'rejected': []}
+    v = check_block(dataclasses.replace(b, gnss_noise=broken))
+    assert v.status == 'failed' and v.findings[0].check == 'gnss_noise_implausible', v.summary
+    assert '31.7 m' in v.findings[0].text
+    poor = {**broken, 'estimated_h_m': 5.3, 'used_h_m': 5.3, 'estimated_v_m': 42.3, 'used_v_m': 42.3}
+    assert check_block(dataclasses.replace(b, gnss_noise=poor)).status == 'warning'

@@ -26,7 +26,8 @@ The checks, each against what the data itself says:
   at least 2 cm): the block or the control is wrong.
 - convergence: a final adjustment that stopped short and still moves cameras: warning.
 - gnss_noise: the GNSS noise the adjustment estimated from the data, against what the fixes state:
-  geotags poorer than they claim are said, and those it rejected are named.
+  geotags poorer than they claim are said, and those it rejected are named; a horizontal scatter beyond
+  what any drone's GNSS shows in one flight (`noise_h_fail_m`) is a block whose shape is wrong: failed.
 """
 
 from __future__ import annotations
@@ -53,6 +54,9 @@ class BlockCheckOptions:
     min_oriented_warn: float = 1.0      # share of photos oriented: warning under (1: any photo not oriented)
     min_oriented_failed: float = 0.5    # ... failed under
     noise_warn_factor: float = 3.0      # estimated GNSS noise / stated: warning above
+    noise_h_fail_m: float = 10.0        # estimated horizontal GNSS noise (m, about a similarity) beyond both this and
+                                        # noise_warn_factor x stated: failed (no receiver scatters that much in one
+                                        # flight; the block's shape is wrong and the estimate absorbed it)
     level_warn_deg: float = 1.0         # tilt the GNSS heights gave the block beyond the one kept (deg): warning above
     check_warn: float = 5.0             # check-point RMSE / the datum's noise (>= 2 cm): warning above
     check_fail: float = 20.0            # ... failed above
@@ -310,6 +314,12 @@ def check_block(b: BlockInputs, o: BlockCheckOptions | None = None) -> BlockVerd
                                     f'noise {est[0]:.1f} m horizontal, {est[1]:.1f} m vertical (stated {stated[0]:.1f} m, '
                                     f'{stated[1]:.1f} m); they were weighted as measured, and the block is placed no '
                                     'better than they are'))
+        if est[0] > max(o.noise_h_fail_m, o.noise_warn_factor * stated[0]):
+            findings.append(Finding('gnss_noise_implausible', 'failed', f'the block\'s cameras scatter {est[0]:.1f} m '
+                                    'horizontally about their geotags after a similarity: more than any GNSS a drone '
+                                    f'carries scatters within one flight (> {o.noise_h_fail_m:g} m), so the block\'s '
+                                    'shape is wrong (too little overlap, wrong matches), not only the geotags: do not '
+                                    'use it'))
     if rejected:
         findings.append(Finding('gnss_rejected', 'warning', f'{len(rejected)} geotags not used, far beyond the '
                                 f'flight\'s GNSS noise from where the block puts their photos (a glitched geotag, or a '
