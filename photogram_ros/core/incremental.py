@@ -46,7 +46,7 @@ from photogram_ros.core.geodesy import LocalFrame
 from photogram_ros.core.gnss_fix import GnssFix
 from photogram_ros.core.rotations import R_from_rotvec, invert_T, make_T
 from photogram_ros.core.similarity import similarity_on_line, similarity_ransac, spread
-from photogram_ros.core.two_view import relative_pose
+from photogram_ros.core.two_view import relative_pose, scene_facing
 from photogram_ros.core.window import neighbour_keyframes, select_window
 from photogram_ros.errors import ConfigError, DataError
 from photogram_ros.params import param
@@ -137,7 +137,13 @@ class IncrementalOptions:
                                                  'its length before the georeference is final (a turn)',
                                            min=0.0, max=1.0)
     assume_nadir: bool = param(True, 'a straight first line georeferences provisionally, the roll about it '
-                                     'from a near-nadir camera (final at the first turn)')
+                                     'from a near-nadir camera (final at the first turn); and a relative pose '
+                                     'must see its tie points\' plane facing the camera (`min_facing`)')
+    min_facing: float = param(0.5, 'with assume_nadir: a relative pose (the first two keyframes, the relative '
+                                   'fallback) whose tie points\' best plane has a normal further than this |cos| '
+                                   'from the optical axis is not used: it sees the ground edge-on, the planar twin '
+                                   'of an aerial pair (0.5: 60 degrees, room for oblique cameras and relief)',
+                              min=0.0, max=1.0)
     use_gcps: bool = param(True, 'surveyed GCPs enter the adjustment as point priors (off: every target is a '
                                  'check point)')
     estimate_gnss_bias: bool = param(True, 'estimate a constant ENU GNSS offset in the full adjustment when >= 3 '
@@ -574,6 +580,13 @@ class IncrementalAT:
             m[neg] &= ~np.array([self.is_check(int(t)) for t in kf.track_ids[neg]])
         return m
 
+    def _faces_scene(self, res) -> bool:
+        """A relative pose's tie points lie in front of camera 1 on a plane it looks at (|cos| of the plane's
+        normal to the optical axis >= min_facing); always true without assume_nadir."""
+        if not self.opt.assume_nadir:
+            return True
+        return scene_facing(res.points_cam1[res.inliers]) >= self.opt.min_facing
+
     def _try_initialise(self) -> StepReport:
         new = self.kfs[-1]
         cands = []
@@ -586,7 +599,7 @@ class IncrementalAT:
                 continue
             thr = self.opt.pnp_threshold_px / self.camera.fx
             res = relative_pose(first.xn[i1], new.xn[i2], thr, self.opt.min_init_inliers)
-            if not res.ok or res.median_angle_deg < self.opt.min_init_angle_deg:
+            if not res.ok or res.median_angle_deg < self.opt.min_init_angle_deg or not self._faces_scene(res):
                 continue
             score = int(res.inliers.sum()) * min(1.0, res.median_angle_deg / (2 * self.opt.min_init_angle_deg))
             cands.append((score, first, res))
@@ -686,6 +699,8 @@ class IncrementalAT:
         thr = self.opt.pnp_threshold_px / self.camera.fx
         res = relative_pose(rk.xn[i1], kf.xn[i2], thr, self.opt.min_relative_inliers)
         T_r = rk.map_T_cam
+        if res.ok and not self._faces_scene(res):
+            return StepReport(kf.kid, False, 'relative: sees its tie points edge-on (the planar twin)')
         if res.ok:
             R, t = res.cam2_T_cam1[:3, :3], res.cam2_T_cam1[:3, 3]
             map_R = T_r[:3, :3] @ R.T
