@@ -124,6 +124,10 @@ class IncrementalOptions:
     loss_scale_px: float = param(1.0, 'robust loss scale, pixels', min=0.05, max=100.0)
     mtp_loss_scale_px: float = param(3.0, 'robust loss scale of the manual tie points (marked by hand to about '
                                           '1 px; kept through outlier removal), pixels', min=0.05, max=1000.0)
+    gcp_loss_scale_px: float = param(3.0, 'robust loss scale of the GCPs\' observations (markers found to a '
+                                          'fraction of a pixel or marked by hand, vetted against the block before '
+                                          'use), pixels: at the tie points\' scale a few pixels of camera-model '
+                                          'error would turn the GCPs\' pull down', min=0.05, max=1000.0)
     window_iterations: int = param(15, 'solver iterations of a window update', min=1, max=1000)
     full_iterations: int = param(50, 'solver iterations of a full adjustment (each round)', min=1, max=1000)
     lever_arm_cam_m: list = param([0.0, 0.0, 0.0], 'GNSS antenna position in the optical camera frame '
@@ -969,9 +973,12 @@ class IncrementalAT:
                if t < 0 and not self.is_check(t) and not self.is_tie(t)] if self.georeferenced and gcp_priors else []
         obs_pt = np.concatenate([slot[kid == k] for k in kids])
         tie_slots = [s for s, t in enumerate(tracks) if self.is_tie(t)]
+        gcp_slots = [s for s, _ in pri]
         scale = None
-        if tie_slots:
-            scale = np.where(np.isin(obs_pt, tie_slots), self.opt.mtp_loss_scale_px, self.opt.loss_scale_px)
+        if tie_slots or gcp_slots:
+            scale = np.full(len(obs_pt), self.opt.loss_scale_px)
+            scale[np.isin(obs_pt, tie_slots)] = self.opt.mtp_loss_scale_px
+            scale[np.isin(obs_pt, gcp_slots)] = self.opt.gcp_loss_scale_px
         prob = BundleProblem(
             camera=self.camera, map_T_cams=np.array([self.kfs[k].map_T_cam for k in kids]),
             points_map=self.points.get_many(tracks).reshape(-1, 3),
