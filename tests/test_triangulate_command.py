@@ -33,9 +33,14 @@ def _centre_rmse_m(rows, truth) -> float:
 @pytest.mark.slow
 def test_triangulate_simulated_photos(tmp_path):
     """Check points of the tiny survey (geo.txt of the flight's GNSS, 4 GCPs, 2 check points) with the
-    EXIF camera. `--self-calibrate auto` refines f, k1 and k2 (4 GCPs): measured f 520.0 -> 530.5 px (the
-    true 520.0), check points 13.0 cm H / 91.9 cm V, verdict FAILED (exit 4); with k1, k2 only 2.0 / 1.4 cm
-    (the calibrated camera held fixed: 3.6 / 1.0 cm)."""
+    EXIF camera. About every other geotag is 0.5 m behind its photo along the track (a photo between two
+    5 Hz fixes), so the GNSS noise estimate weights the fixes by about 0.2 m horizontally, and the
+    intrinsics are refined again under that weighting. `--self-calibrate auto` refines f, k1 and k2
+    (4 GCPs): measured f 520.0 -> 520.3 px (the true fx 520.0, fy 520.26), check points 1.0 cm H /
+    0.2 cm V, exit 0 (WARNING: the geotags are poorer than they state); with k1, k2 only 1.1 / 2.2 cm
+    (the calibrated camera held fixed: 3.6 / 1.0 cm). Two check points: a vertical RMSE below the
+    geotags' 2.9 cm sigma is partly luck, so the vertical of `auto` is gated at 1 cm at least, and its
+    f at 1 px."""
     simulate(preset('tiny', photos=True), tmp_path / 'flight')
     truth = GroundTruth.load(tmp_path / 'flight')
     _wrong_truth_camera(tmp_path / 'flight')
@@ -62,8 +67,10 @@ def test_triangulate_simulated_photos(tmp_path):
         assert len(rows) == n_photos and (out / 'sparse.las').stat().st_size > 10_000
         assert (out / 'report.md').exists()
     rc, rep, rows, ck = figures['auto']
-    assert rc in (0, 4) and rep['reprojection_rms_px'] < 1.5 * MEASURED['auto_rep_px']
-    assert ck['n'] == 2 and ck['horizontal_m'] < 1.5 * MEASURED['auto_h_m'] and ck['vertical_m'] < 1.5 * MEASURED['auto_v_m']
+    assert rc == 0 and rep['reprojection_rms_px'] < 1.5 * MEASURED['auto_rep_px']
+    assert ck['n'] == 2 and ck['horizontal_m'] < 1.5 * MEASURED['auto_h_m']
+    assert ck['vertical_m'] < max(1.5 * MEASURED['auto_v_m'], 0.01)
+    assert abs(rep['self_calibration']['fx']['after'] - truth.camera.fx) < 1.0
     assert _centre_rmse_m(rows, truth) < 1.5 * MEASURED['auto_centres_m']
     rc, rep, rows, ck = figures['k1k2']
     assert rc == 0 and rep['reprojection_rms_px'] < 1.5 * MEASURED['k1k2_rep_px']
@@ -71,8 +78,8 @@ def test_triangulate_simulated_photos(tmp_path):
     assert _centre_rmse_m(rows, truth) < 1.5 * MEASURED['k1k2_centres_m']
 
 
-MEASURED = dict(auto_rep_px=0.182, auto_h_m=0.130, auto_v_m=0.919, auto_centres_m=0.156,
-                k1k2_rep_px=0.170, k1k2_h_m=0.020, k1k2_v_m=0.014, k1k2_centres_m=0.134)
+MEASURED = dict(auto_rep_px=0.168, auto_h_m=0.010, auto_v_m=0.002, auto_centres_m=0.121,
+                k1k2_rep_px=0.168, k1k2_h_m=0.011, k1k2_v_m=0.022, k1k2_centres_m=0.122)
 
 
 # --- EXIF altitudes relative to take-off ---------------------------------------------

@@ -131,7 +131,11 @@ def _check_points(at, vetting) -> list[dict]:
 
 
 def _gcp_points(at, vetting) -> list[dict]:
-    from photogram_ros.core.incremental import intersect_point
+    """Each GCP: `residual_m` and `reprojection_rms_px` of the point intersected from the adjusted cameras
+    (as a check point), `adjusted_point_residual_m` and `adjusted_point_reprojection_rms_px` of the
+    adjusted point (held near its survey by its prior): rays that disagree with the survey show as the
+    latter RMS, in px, and as the former residual, in m."""
+    from photogram_ros.core.incremental import intersect_point, reprojection_residuals_px
     gcps = []
     uses = {n: p.use for n, p in vetting.points.items()} if vetting is not None else {}
     for name, c in at.control.items():
@@ -152,8 +156,11 @@ def _gcp_points(at, vetting) -> list[dict]:
             # Intersected from the adjusted cameras, as a check point: the adjusted point itself sits on its
             # prior even when its rays disagree with it (a robust loss gives up on them), a 0.0 cm lie.
             X, n, rms = hit
+            X_adj = np.asarray(at.points[tid], float)
+            r_adj = reprojection_residuals_px(at.camera, np.array(Ts), uv, X_adj)
             g = {'name': name, 'use': use, 'residual_m': (X - c.map_xyz).tolist(), 'images': n,
-                 'reprojection_rms_px': rms, 'adjusted_point_residual_m': (at.points[tid] - c.map_xyz).tolist(),
+                 'reprojection_rms_px': rms, 'adjusted_point_residual_m': (X_adj - c.map_xyz).tolist(),
+                 'adjusted_point_reprojection_rms_px': float(np.sqrt(np.mean(np.sum(r_adj ** 2, axis=1)))),
                  'surveyed_map_m': c.map_xyz.tolist()}
             if use == 'horizontal':
                 g['reason'] = vetting.points[name].reason

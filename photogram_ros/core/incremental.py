@@ -124,6 +124,10 @@ class IncrementalOptions:
     loss_scale_px: float = param(1.0, 'robust loss scale, pixels', min=0.05, max=100.0)
     mtp_loss_scale_px: float = param(3.0, 'robust loss scale of the manual tie points (marked by hand to about '
                                           '1 px; kept through outlier removal), pixels', min=0.05, max=1000.0)
+    gcp_loss_scale_px: float = param(3.0, 'robust loss scale of the GCPs\' observations (markers found to a '
+                                          'fraction of a pixel or marked by hand, vetted against the block before '
+                                          'use), pixels: at the tie points\' scale a few pixels of camera-model '
+                                          'error would turn the GCPs\' pull down', min=0.05, max=1000.0)
     window_iterations: int = param(15, 'solver iterations of a window update', min=1, max=1000)
     full_iterations: int = param(50, 'solver iterations of a full adjustment (each round)', min=1, max=1000)
     lever_arm_cam_m: list = param([0.0, 0.0, 0.0], 'GNSS antenna position in the optical camera frame '
@@ -984,9 +988,12 @@ class IncrementalAT:
                if t < 0 and not self.is_check(t) and not self.is_tie(t)] if self.georeferenced and gcp_priors else []
         obs_pt = np.concatenate([slot[kid == k] for k in kids])
         tie_slots = [s for s, t in enumerate(tracks) if self.is_tie(t)]
+        gcp_slots = [s for s, _ in pri]
         scale = None
-        if tie_slots:
-            scale = np.where(np.isin(obs_pt, tie_slots), self.opt.mtp_loss_scale_px, self.opt.loss_scale_px)
+        if tie_slots or gcp_slots:
+            scale = np.full(len(obs_pt), self.opt.loss_scale_px)
+            scale[np.isin(obs_pt, tie_slots)] = self.opt.mtp_loss_scale_px
+            scale[np.isin(obs_pt, gcp_slots)] = self.opt.gcp_loss_scale_px
         prob = BundleProblem(
             camera=self.camera, map_T_cams=np.array([self.kfs[k].map_T_cam for k in kids]),
             points_map=self.points.get_many(tracks).reshape(-1, 3),
@@ -1144,7 +1151,7 @@ class IncrementalAT:
         self.gnss_slope = p - g
         return out
 
-    def estimate_gnss_noise(self, iterations: int | None = None) -> dict:
+    def estimate_gnss_noise(self, iterations: int | None = None, refine_intrinsics: tuple = ()) -> dict:
         """The flight's GNSS noise from the residuals of the fixes (a variance-component estimate,
         horizontal and vertical apart, robust: median absolute deviations about the median, corrected
         for the 7 datum parameters the fixes also carry; the vertical one against the fixes' own heights,
@@ -1154,8 +1161,14 @@ class IncrementalAT:
         settle; then a fix beyond `gnss_outlier_sigma` estimated sigmas (and 3 stated sigmas) is not used
         (at most a fifth of them) and the block adjusted once more. Returns (and keeps in `gnss_noise`) the
         stated and estimated sigmas (m), the scale factors, the names of the rejected fixes and, when the
-        block was levelled, `level` (the tilt the fixes' heights gave it and the one kept, degrees)."""
+        block was levelled, `level` (the tilt the fixes' heights gave it and the one kept, degrees).
+
+        refine_intrinsics: the intrinsics the block's adjustments self-calibrate (e.g. ('f', 'k1', 'k2')),
+        refined again in every adjustment here: intrinsics fitted under the fixes' stated weights absorb
+        what the poorer fixes pull (geotags late along the track move the focal length, and with it the
+        ground's depth), and held afterwards they would keep that error."""
         iters = iterations or self.opt.full_iterations
+        refine = tuple(refine_intrinsics)
         out = {}
         level = None
         for rnd in range(6):
@@ -1193,7 +1206,7 @@ class IncrementalAT:
             if settled and turned is None:
                 break
             self.gnss_sigma_scale_hv = want
-            self._solve(list(self.registered), [], list(self.points), iters)
+            self._solve(list(self.registered), [], list(self.points), iters, refine)
         # Outliers: far beyond the noise the flight shows, and beyond what the fixes state. Fixes kept out in
         # flight (`_gate_fix`, `_try_georeference`) are judged again against the adjusted block: a block that
         # drifted in flight may have put good fixes out.
@@ -1213,14 +1226,14 @@ class IncrementalAT:
             rejected = {kids[i] for i in bad}
             if rejected != self.gnss_rejected:
                 self.gnss_rejected = rejected
-                self._solve(list(self.registered), [], list(self.points), iters)
+                self._solve(list(self.registered), [], list(self.points), iters, refine)
                 # The fixes back in (or out) move the heights' slope: levelled again.
                 for _ in range(4):
                     turned = self._level_block(list(self.gnss_residuals()))
                     if turned is None:
                         break
                     level = {**turned, 'turned_deg': turned['turned_deg'] + (level or {}).get('turned_deg', 0.0)}
-                    self._solve(list(self.registered), [], list(self.points), iters)
+                    self._solve(list(self.registered), [], list(self.points), iters, refine)
             if level is not None:
                 axes = np.mean([self.kfs[k].map_T_cam[:3, 2] for k in self.registered], axis=0)
                 level['kept_tilt_deg'] = float(np.degrees(np.arccos(np.clip(-axes[2] / np.linalg.norm(axes), -1, 1))))
@@ -1271,7 +1284,9 @@ class IncrementalAT:
                         refine_intrinsics: tuple = (), gnss_noise: bool = True) -> StepReport:
         """Adjust every registered keyframe and point; repeated so that removed outliers settle.
 
-        refine_intrinsics (e.g. ('f', 'k1')) self-calibrates the shared camera in this adjustment;
+        refine_intrinsics (e.g. ('f', 'k1')) self-calibrates the shared camera in this adjustment and in
+        the GNSS noise estimate's adjustments (the fixes weighted by their estimated noise); the GNSS
+        bias's adjustments hold it (with the bias free, the GCPs alone fix the cameras' heights);
         gnss_noise: estimate the flight's GNSS noise afterwards (`estimate_gnss_noise`, when the option
         is on and the block is georeferenced for good); such a final adjustment refines the option
         `final_self_calibration` when refine_intrinsics is not given.
@@ -1295,7 +1310,7 @@ class IncrementalAT:
             rep = self._solve(list(self.registered), [], tracks, iterations or self.opt.full_iterations,
                               refine_intrinsics)
         if gnss_noise and self.opt.estimate_gnss_noise and self.georeferenced and not self.georef_provisional:
-            self.estimate_gnss_noise(iterations)
+            self.estimate_gnss_noise(iterations, refine_intrinsics)
         if self.opt.estimate_gnss_bias and self._n_gcps() >= 3:
             self.gnss_bias_estimated = True
             for _ in range(self.opt.bias_iterations):
@@ -1410,8 +1425,17 @@ class IncrementalAT:
         return intersect_point(self.camera, np.array(Ts), uv)
 
 
+def reprojection_residuals_px(camera: PinholeCamera, map_T_cams: np.ndarray, uv: np.ndarray,
+                              X_map: np.ndarray) -> np.ndarray:
+    """(N, 2) pixels: the map point `X_map` (m) projected through the N cameras `map_T_cams` (camera to
+    map), minus its observations `uv` (px, as measured: distorted)."""
+    pc = np.einsum('nji,nj->ni', map_T_cams[:, :3, :3], X_map[None] - map_T_cams[:, :3, 3])
+    return camera.normalized_to_pixel(pc[:, :2] / pc[:, 2:3]) - uv
+
+
 def intersect_point(camera: PinholeCamera, map_T_cams: np.ndarray, uv: np.ndarray):
-    """Multi-ray intersection refined by Gauss-Newton on the reprojection error (cameras fixed)."""
+    """Multi-ray intersection refined by Gauss-Newton on the reprojection error (cameras fixed):
+    (map point, m; number of rays; RMS of its reprojection residuals, px), or None."""
     xn = camera.pixel_to_normalized(uv)
     dirs = np.einsum('nij,nj->ni', map_T_cams[:, :3, :3], np.column_stack([xn, np.ones(len(xn))]))
     X = triangulate_rays(map_T_cams[:, :3, 3], dirs, np.zeros(len(xn), int), 1)[0]
@@ -1419,8 +1443,7 @@ def intersect_point(camera: PinholeCamera, map_T_cams: np.ndarray, uv: np.ndarra
         return None
 
     def res(X):
-        pc = np.einsum('nji,nj->ni', map_T_cams[:, :3, :3], X[None] - map_T_cams[:, :3, 3])
-        return (camera.normalized_to_pixel(pc[:, :2] / pc[:, 2:3]) - uv).ravel()
+        return reprojection_residuals_px(camera, map_T_cams, uv, X).ravel()
 
     for _ in range(10):
         r = res(X)
