@@ -23,7 +23,8 @@ Per survey and pipeline, from poses.csv / trajectory.csv, report.json, sparse.la
 - the focal length after the adjustment against the EXIF one (triangulate);
 - wall time of the command(s).
 
-Variants (`--variants`, triangulate only): toledo with four geotags moved 80 m (a geo.txt beside copies
+Variants (`--variants`, triangulate only): toledo and brighton with every other photo (half the forward
+overlap); toledo with four geotags moved 80 m (a geo.txt beside copies
 of the photos), and toledo + brighton photos in one folder. Their rows name what was broken and what
 the verdict said; the other cameras are measured against the photos' own EXIF GPS.
 
@@ -544,8 +545,27 @@ def two_sites_block(dst: Path) -> dict:
     return ref
 
 
+def half_overlap_block(src: Path, dst: Path) -> dict:
+    """Every other photo of `src` (in name order, the flight's order) linked into `dst`: half the forward
+    overlap. Returns {image: EXIF (lat, lon, h)} of those photos."""
+    dst.mkdir(parents=True, exist_ok=True)
+    ref = exif_reference(src)
+    kept = sorted(ref)[::2]
+    for name in kept:
+        link = dst / name
+        if not link.exists():
+            link.symlink_to(src / name)
+    return {n: ref[n] for n in kept}
+
+
 def run_variants(out: Path) -> list[dict]:
     rows = []
+    for survey, src in (('toledo', TOLEDO / 'images'), ('brighton', BRIGHTON / 'images')):
+        folder = out / 'blocks' / f'{survey}_half'
+        ref = half_overlap_block(src, folder)
+        rows.append(run_photos(f'{survey}_half', 'triangulate', folder, out, None, reference=ref,
+                               extra_row={'broken': f'every other photo of {survey} ({len(ref)}): half the '
+                                                    'forward overlap'}))
     folder = out / 'blocks' / 'toledo_moved4'
     ref = moved_geotags_block(folder)
     row = run_photos('toledo_moved4', 'triangulate', folder, out, None, reference=ref,
