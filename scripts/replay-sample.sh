@@ -8,4 +8,5 @@ cd "$root"
 export ROS_DOMAIN_ID="${ROS_DOMAIN_ID:-$(( (RANDOM % 200) + 1 ))}"
 export ROS_AUTOMATIC_DISCOVERY_RANGE="${ROS_AUTOMATIC_DISCOVERY_RANGE:-LOCALHOST}"
 out="${1:-output/sample}"
-exec "$root/.venv/bin/photogram-ros" replay "$root/bags/sample_flight" --out "$out" "${@:2}"
+# The sample is simulated: --truth makes the report compare it with the simulator's ground truth.
+exec "$root/.venv/bin/photogram-ros" replay "$root/bags/sample_flight" --out "$out" --truth "$root/bags/sample_flight" "${@:2}"

@@ -36,7 +36,7 @@ def gate(name):
 def replay(sample_bag, tmp_path_factory):
     out = tmp_path_factory.mktemp('replay') / 'sample'
     r = subprocess.run([sys.executable, '-m', 'photogram_ros.cli', 'replay', str(sample_bag), '--out', str(out),
-                        '--quiet'], cwd=ROOT, capture_output=True, text=True, timeout=900)
+                        '--quiet', '--truth', str(sample_bag)], cwd=ROOT, capture_output=True, text=True, timeout=900)
     assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
     return out, json.loads((out / 'report.json').read_text()), GroundTruth.load(sample_bag), r.stdout
 

@@ -165,7 +165,7 @@ def bag_3d(tmp_path_factory):
 
 def _replay(bag, out, *args):
     r = subprocess.run([sys.executable, '-m', 'photogram_ros.cli', 'replay', str(bag), '--out', str(out), '--quiet',
-                        *args], cwd=ROOT, capture_output=True, text=True, timeout=600)
+                        '--truth', str(bag), *args], cwd=ROOT, capture_output=True, text=True, timeout=600)
     assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
     return json.loads((out / 'report.json').read_text()), r.stdout
 

@@ -74,7 +74,8 @@ class Station:
 def replay(bag: Path, out: Path) -> subprocess.CompletedProcess:
     # On the station's domain: a replay takes a domain of its own unless told.
     return subprocess.run([sys.executable, '-m', 'photogram_ros.cli', 'replay', str(bag), '--out', str(out), '--quiet',
-                           '--rate', '1', '--gcp', str(bag / 'targets.txt'), '--domain', os.environ['ROS_DOMAIN_ID']],
+                           '--rate', '1', '--gcp', str(bag / 'targets.txt'), '--domain', os.environ['ROS_DOMAIN_ID'],
+                           '--truth', str(bag)],
                           cwd=ROOT, capture_output=True, text=True, timeout=1200)
 
 

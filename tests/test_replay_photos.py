@@ -36,7 +36,7 @@ def test_photo_folder_replay_ends_by_itself_and_counts_keyframes(survey, tmp_pat
     photos = flight / 'photos'
     n_photos = len(list(photos.glob('*.JPG')))
     out = tmp_path / 'out'
-    r, text = _replay([photos], out)
+    r, text = _replay([photos, '--truth', flight], out)
     assert r.returncode == 0, text
     rep = json.loads((out / 'report.json').read_text())
     taken, oriented = rep['keyframes_taken'], rep['keyframes_oriented']
@@ -93,10 +93,10 @@ def _video_and_log(flight, truth, folder):
 
 def test_video_with_gnss_log_replay_ends_by_itself_and_maps(survey, tmp_path):
     flight, truth = survey
-    # Beside the bag: the replay takes the simulator's truth from the video's folder.
     video, log, calib, start_ns, n_frames = _video_and_log(flight, truth, flight)
     out = tmp_path / 'out'
-    r, text = _replay([video, '--gnss-log', log, '--calibration', calib, '--video-start', start_ns * 1e-9], out)
+    r, text = _replay([video, '--gnss-log', log, '--calibration', calib, '--video-start', start_ns * 1e-9,
+                       '--truth', flight], out)
     assert r.returncode == 0, text
     rep = json.loads((out / 'report.json').read_text())
     assert rep['run']['source'] == 'video' and rep['run']['frames'] == n_frames

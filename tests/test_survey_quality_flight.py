@@ -73,7 +73,7 @@ class Monitor:
 
 def replay(bag, out, *extra) -> subprocess.CompletedProcess:
     return subprocess.run([sys.executable, '-m', 'photogram_ros.cli', 'replay', str(bag), '--out', str(out), '--quiet',
-                           *extra], cwd=ROOT, capture_output=True, text=True, timeout=1200)
+                           '--truth', str(bag), *extra], cwd=ROOT, capture_output=True, text=True, timeout=1200)
 
 
 def station(out, port) -> subprocess.Popen:

@@ -16,7 +16,7 @@ EXIT_NOT_MAPPED = 5
 def add_arguments(p) -> None:
     p.add_argument('bag', metavar='FLIGHT',
                    help='rosbag2 folder (sqlite3 or MCAP), a folder of geotagged photos, or a video file (with '
-                        '--gnss-log); ground truth beside it (the simulator\'s) is used when present')
+                        '--gnss-log)')
     p.add_argument('--calibration', default='', help='camera calibration YAML for a video (a photo folder takes '
                                                     'its camera from the EXIF without it)')
     p.add_argument('--gnss-log', default='', help='GNSS fixes of a video: CSV with t_unix_s, lat_deg, lon_deg, h_m '
@@ -42,6 +42,10 @@ def add_arguments(p) -> None:
                    help='make the products from the in-flight map (pairs matched with the poses they had when '
                         'they left the bundle window) instead of matching the keyframes again with the final '
                         'adjustment\'s poses into OUT/map_final (the default; seconds for the sample)')
+    p.add_argument('--truth', default='', metavar='SIM_FLIGHT',
+                   help='for development: a simulated flight folder (`photogram-ros simulate`); the report then '
+                        'also compares the cameras, check points (its targets), DSM and cloud with its ground '
+                        'truth. Nothing of it enters the mapping or the products')
     p.add_argument('--quiet', action='store_true', help='no progress lines')
     reuse = p.add_mutually_exclusive_group()
     reuse.add_argument('--resume', action='store_true',
@@ -74,6 +78,7 @@ def run(a) -> int:
     from photogram_ros.nodes.node_main import init_ros
     from photogram_ros.io.control_file import read_control_file
     from photogram_ros.nodes.replay_session import ReplayOptions, run_replay, source_kind
+    from photogram_ros.errors import ConfigError
     from photogram_ros.sim.truth import GroundTruth
 
     from photogram_ros.io.out_dir import claim_output
@@ -86,6 +91,8 @@ def run(a) -> int:
     if a.crs:   # checked now, not after the whole replay
         check_output_crs(a.crs)
     source_kind(a.bag)   # a flight that is not there: said before any folder is made
+    if a.truth and not GroundTruth.exists(a.truth):
+        raise ConfigError(f'--truth {a.truth}: no simulator ground truth (ground_truth.json) there')
     domain = parse_domain(a.domain, '--domain') if a.domain is not None else own_domain(avoid=check_domain_env())
     control, extra = None, {}
     if a.gcp:   # read here first: a bad file is reported before the replay starts
@@ -110,9 +117,7 @@ def run(a) -> int:
                                        video_start_unix_s=a.video_start))
     finally:
         rclpy.try_shutdown()
-    # A simulator's photo folder sits in its flight folder, beside the truth.
-    where = a.bag if source_kind(a.bag) == 'bag' else str(Path(a.bag).resolve().parent)
-    truth = GroundTruth.load(where) if GroundTruth.exists(where) else None
+    truth = GroundTruth.load(a.truth) if a.truth else None
     prod = export_products(res['map_dir'], out, params, a.crs, a.live_map, 'orthometric' if a.orthometric else
                            'ellipsoidal', a.min_pairs, progress=not a.quiet, run=res['run'], truth=truth,
                            control=control, diagnostics=res['diagnostics'])

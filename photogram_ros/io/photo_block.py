@@ -323,6 +323,15 @@ def _match_block(images, feats, camera, pos, sigma_h_m, footprints, opt, factor,
     return matches
 
 
+def _central_origin(positions: list) -> LocalFrame:
+    """The local frame at the geotag nearest the median latitude and longitude of the block's photos
+    ((lat_deg, lon_deg, h_m, ...) each): a few photos of another site, far away, do not move it."""
+    P = np.array([p[:3] for p in positions], float)
+    med = np.median(P[:, :2], axis=0)
+    i = int(np.argmin(np.hypot(P[:, 0] - med[0], (P[:, 1] - med[1]) * np.cos(np.radians(med[0])))))
+    return LocalFrame(*P[i])
+
+
 def read_photo_block(src: str | Path, camera_path: str | Path | None = None, neighbours: int = 8,
                      exif_altitude: str | None = None, takeoff_h_m: float | None = None,
                      takeoff_heights: str = 'msl', log=None, matching: pm.MatchingOptions | None = None,
@@ -344,13 +353,16 @@ def read_photo_block(src: str | Path, camera_path: str | Path | None = None, nei
     if len(images) < 3:
         raise DataError(f'{src} holds {len(images)} usable images: at least 3 overlapping photos are needed')
     geo, exif_check = _positions(src, images, exif_altitude, takeoff_h_m, takeoff_heights, assumptions)
-    first = next((geo[p.name] for p in images if p.name in geo), None)
-    if first is None:
+    if not any(p.name in geo for p in images):
         raise DataError(f'no image in {src} has a position (EXIF GPS or geo.txt): georeferencing impossible')
-    origin = LocalFrame(first[0], first[1], first[2])
     given = images
     camera, from_exif, images = _camera(src, images, camera_path, assumptions, log)
     excluded = {p.name: 'another camera (one camera model per block)' for p in given if p not in set(images)}
+    placed = [geo[p.name] for p in images if p.name in geo]
+    if not placed:
+        raise DataError(f'no photo of the camera used in {src} has a position (EXIF GPS or geo.txt): '
+                        'georeferencing impossible')
+    origin = _central_origin(placed)
     stats = MatchStats(photos=len(images))
     t0 = time.monotonic()
     runner = runner or InProcessRunner()
