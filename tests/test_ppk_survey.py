@@ -111,8 +111,8 @@ def test_ppk_triangulation_without_gcps_against_exif_gps(flight, geotagged, tmp_
     _, n1, h1, v1 = rows[1]
     assert n1 == n and h1 <= 1.5 * MEASURED_CALIBRATED_M[0] and v1 <= 1.5 * MEASURED_CALIBRATED_M[1]
     _, n2, h2, v2 = rows[2]
-    assert n2 == n and h2 > 1.0 and v2 > 0.5                # EXIF alone: 4.5 m / 2.2 m
+    assert n2 == n and h2 > 0.7 and v2 > 0.5                # EXIF alone: measured 1.43 m / 0.98 m
 
 
-MEASURED_EXIF_CAMERA_M = (0.132, 0.150)     # check-point RMSE H, V
+MEASURED_EXIF_CAMERA_M = (0.151, 0.204)     # check-point RMSE H, V
 MEASURED_CALIBRATED_M = (0.028, 0.055)

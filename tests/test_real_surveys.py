@@ -141,6 +141,12 @@ MEASURED = {
                              'odm_median_abs_dz_m': 0.191},
     ('toledo_moved4', 'triangulate'): {'sim_h_m': 1.54, 'others_sim_h_m': 1.53, 'others_rigid_h_m': 1.55,
                                        'others_rigid_max_h_m': 3.39, 'broken_rigid_max_h_m': 2.01},
+    # Every other photo (half the forward overlap), measured at commit 79ba6e2.
+    ('toledo_half', 'triangulate'): {'oriented': 21, 'given': 21, 'sim_h_m': 1.88, 'sim_v_m': 1.91, 'rigid_h_m': 1.91,
+                                     'rigid_v_m': 1.90, 'reprojection_px': 0.461},
+    ('brighton_half', 'triangulate'): {'oriented': 9, 'given': 9, 'sim_h_m': 0.56, 'sim_v_m': 0.09,
+                                       'rigid_h_m': 0.56, 'rigid_v_m': 0.09, 'reprojection_px': 0.467},
+    ('two_sites', 'triangulate'): {'others_sim_h_m': 1.51, 'others_rigid_h_m': 1.53, 'others_rigid_max_h_m': 3.39},
 }
 ERRORS = ('sim_h_m', 'sim_v_m', 'rigid_h_m', 'rigid_v_m', 'reprojection_px')
 
@@ -248,3 +254,31 @@ def test_four_geotags_moved_80_m_are_named_and_the_others_stay_within_2_m(moved_
     for k in ('sim_h_m', 'others_sim_h_m', 'others_rigid_h_m', 'others_rigid_max_h_m'):
         assert row[k] <= 1.5 * m[k], f'{k}: {row[k]:.2f} > 1.5 x {m[k]}'
     assert max(row['broken_rigid_h_m']) <= 1.5 * m['broken_rigid_max_h_m']
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize('survey,images', [('toledo', ('toledo', 'images')),
+                                           ('brighton', ('brighton_beach', 'images'))])
+def test_half_the_overlap_still_orients_and_says_ok(bench_out, survey, images):
+    """Every other photo: toledo 21/21 (a relative pose that sees the ground edge-on once started it tipped,
+    median tilt 59 degrees), brighton 9/9; the cameras as close to their GNSS as with every photo."""
+    folder = bench_out / 'blocks' / f'{survey}_half'
+    ref = rs.half_overlap_block(shared_data('photos', *images), folder)
+    row = rs.run_photos(f'{survey}_half', 'triangulate', folder, bench_out, None, reference=ref)
+    gate(row, (f'{survey}_half', 'triangulate'))
+    assert row['nadir_share'] >= 0.95 and row['verdict']['status'] == 'ok'
+
+
+@pytest.mark.slow
+def test_two_cameras_in_one_folder_the_other_is_named_and_the_block_holds(bench_out):
+    """toledo's 42 and brighton's 18 photos in one folder: the 18 named as another camera, left out; toledo's
+    cameras 1.53 m H from their GNSS rigidly, as alone (the local frame is the block's, not the first photo's)."""
+    folder = bench_out / 'blocks' / 'two_sites'
+    ref = rs.two_sites_block(folder)
+    row = rs.run_photos('two_sites', 'triangulate', folder, bench_out, None, reference=ref)
+    row.update(rs.broken_block_figures(row, tuple(rs.exif_reference(shared_data('photos', 'brighton_beach', 'images')))))
+    m = MEASURED['two_sites', 'triangulate']
+    assert row['exit'] == 0 and row['oriented'] == 42 and row['broken_named_in_verdict'] == '18/18'
+    assert row['others_rigid_h_m'] <= 2.0
+    for k in ('others_sim_h_m', 'others_rigid_h_m', 'others_rigid_max_h_m'):
+        assert row[k] <= 1.5 * m[k], f'{k}: {row[k]:.2f} > 1.5 x {m[k]}'
