@@ -8,10 +8,11 @@ import pytest
 
 from photogram_ros.core.block_check import BlockInputs, check_block, inputs_from_at, tilt_from_nadir_deg
 from photogram_ros.core.gnss_fix import GnssFix
-from photogram_ros.core.incremental import IncrementalAT, IncrementalOptions
 from photogram_ros.core.rotations import R_from_rotvec
 from photogram_ros.sim.observations import simulate_keyframes
 from photogram_ros.sim.scenario import build_world, preset
+
+from helpers.adjust import adjust_keyframes
 
 
 @pytest.fixture(scope='module')
@@ -26,12 +27,7 @@ def _records(world, gnss_mode='rtk_fixed'):
 
 
 def _adjust(sk, records, **opt):
-    at = IncrementalAT(sk.camera, IncrementalOptions(lever_arm_cam_m=tuple(sk.lever_arm_cam_m), **opt),
-                       origin=sk.origin)
-    for r in records:
-        at.add_keyframe(r)
-    rep = at.full_adjustment()
-    return at, rep
+    return adjust_keyframes(sk, records, **opt)
 
 
 def _moved(sk, rec, d_enu_m):

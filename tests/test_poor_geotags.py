@@ -12,9 +12,11 @@ import pytest
 
 from photogram_ros.core.block_check import BlockInputs, check_block, inputs_from_at
 from photogram_ros.core.gnss_fix import GnssFix
-from photogram_ros.core.incremental import IncrementalAT, IncrementalOptions, _clipped_sigma
+from photogram_ros.core.incremental import _clipped_sigma
 from photogram_ros.sim.observations import simulate_keyframes
 from photogram_ros.sim.scenario import build_world, preset
+
+from helpers.adjust import adjust_keyframes
 
 
 def _walk(rng, n, ptp_m):
@@ -57,11 +59,7 @@ def _geotagged(sk, err, sigma_hv=(5.0, 2.0)):
 
 
 def _run(sk, records, **opt):
-    at = IncrementalAT(sk.camera, IncrementalOptions(lever_arm_cam_m=tuple(sk.lever_arm_cam_m), **opt),
-                       origin=sk.origin)
-    for r in records:
-        at.add_keyframe(r)
-    rep = at.full_adjustment()
+    at, rep = adjust_keyframes(sk, records, **opt)
     return at, check_block(inputs_from_at(at, adjustment={'status': rep.status}))
 
 
@@ -145,13 +143,19 @@ def test_a_pitched_camera_over_good_gnss_keeps_its_tilt(world):
     assert v.status == 'ok', v.summary
 
 
-def test_the_verdict_says_poor_geotags_with_both_estimates():
-    n = 20
-    C = np.column_stack([np.repeat(np.arange(5) * 30.0, 4), np.tile(np.arange(4) * 25.0, 5), np.full(n, 50.0)])
+def _nadir_block(n: int = 20) -> BlockInputs:
+    """A nadir block 50 m over flat ground, its fixes exact, stated 5 m H / 2 m V (EXIF geotags)."""
+    C = np.column_stack([np.repeat(np.arange(n // 4) * 30.0, 4), np.tile(np.arange(4) * 25.0, n // 4),
+                         np.full(n, 50.0)])
     T = np.tile(np.eye(4), (n, 1, 1))
     T[:, :3, :3] = np.diag([1.0, -1.0, -1.0])
     T[:, :3, 3] = C
-    b = BlockInputs([f'P{i:02d}.JPG' for i in range(n)], T, C.copy(), np.tile([5.0, 2.0], (n, 1)), np.zeros(n))
+    return BlockInputs([f'P{i:02d}.JPG' for i in range(n)], T, C.copy(), np.tile([5.0, 2.0], (n, 1)), np.zeros(n))
+
+
+def test_the_verdict_says_poor_geotags_with_both_estimates():
+    b = _nadir_block()
+    n = len(b.names)
     good = {'stated_h_m': 5.0, 'stated_v_m': 2.0, 'estimated_h_m': 1.2, 'estimated_v_m': 1.8, 'used_h_m': 5.0,
             'used_v_m': 2.0, 'n': n, 'rejected': []}
     assert check_block(dataclasses.replace(b, gnss_noise=good)).status == 'ok'
@@ -169,12 +173,8 @@ def test_a_horizontal_scatter_no_gnss_shows_fails_the_block():
     """Cameras 31.7 m about their geotags horizontally after a similarity (what a block broken by too little
     overlap showed once its noise estimate had absorbed the damage): failed, whatever the stated sigmas;
     the poor geotags of the held-out proxies (up to 5.3 m) stay a warning."""
-    n = 20
-    C = np.column_stack([np.repeat(np.arange(5) * 30.0, 4), np.tile(np.arange(4) * 25.0, 5), np.full(n, 50.0)])
-    T = np.tile(np.eye(4), (n, 1, 1))
-    T[:, :3, :3] = np.diag([1.0, -1.0, -1.0])
-    T[:, :3, 3] = C
-    b = BlockInputs([f'P{i:02d}.JPG' for i in range(n)], T, C.copy(), np.tile([5.0, 2.0], (n, 1)), np.zeros(n))
+    b = _nadir_block()
+    n = len(b.names)
     broken = {'stated_h_m': 5.0, 'stated_v_m': 2.0, 'estimated_h_m': 31.7, 'estimated_v_m': 53.8, 'used_h_m': 31.7,
               'used_v_m': 53.8, 'n': n, 'rejected': []}
     v = check_block(dataclasses.replace(b, gnss_noise=broken))
