@@ -49,10 +49,12 @@ def test_brighton_oriented_from_exif_alone_and_its_relief_matches_opendronemap(b
           f"(GSD {gsd_m * 100:.2f} cm at {depth_m:.1f} m), p90 {rel['p90_abs_dz_m'] * 100:.1f} cm")
     assert rel['n'] > 0.6 * len(pts)
     # Measured 10 cm (6 GSD): a bowl of +-10-20 cm between the two surfaces, ours holding the photos' EXIF
-    # heights (residual 0.19 m RMS) with k1 near 0; with those heights loosened to 10 m the block bends its
+    # heights with k1 near 0; with those heights loosened to 10 m the block bends its
     # cameras by 0.4 m and lands within 4-8 cm of ODM's shape, run to run.
     assert rel['median_abs_dz_m'] < 0.15 and rel['median_abs_dz_m'] < 8 * gsd_m
-    assert rep['gnss']['rmse']['vertical_m'] < 0.3
+    # The EXIF heights' residual: measured 0.43-0.47 m since the block is levelled between the heights' slope and
+    # its cameras looking down (core/incremental.py _level_block); 0.19 m when the heights alone set the tilt.
+    assert rep['gnss']['rmse']['vertical_m'] < 1.5 * 0.47
     # The XMP's barometric height above take-off (39.8-40.2 m) against the adjusted depth to the ground
     # (the take-off point lies in the block's relief of a few metres): the EXIF focal is right to ~10 %.
     assert abs(depth_m / 40.0 - 1.0) < 0.1
