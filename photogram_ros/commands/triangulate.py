@@ -37,7 +37,8 @@ def add_arguments(p) -> None:
     p.add_argument('--self-calibrate', default='auto', help='intrinsics refined in the final adjustment, e.g. '
                                                             '"f,k1,k2" (from f, cx, cy, k1, k2, p1, p2, k3), "none", '
                                                             'or "auto" (default: k1,k2 for a camera from the EXIF, '
-                                                            'and f too with 3+ GCPs; nothing for a calibration)')
+                                                            'f too with 3+ GCPs, cx,cy too with RTK/PPK-precise '
+                                                            'geotags; nothing for a calibration)')
     p.add_argument('--exif-altitude', choices=('msl', 'ellipsoidal', 'relative'), default=None,
                    help='what the photos\' EXIF GPSAltitude is: msl (the EXIF standard; default), ellipsoidal '
                         '(WGS84), or relative to the take-off point (many drones; needs --takeoff-altitude-m). '

@@ -201,15 +201,27 @@ def _self_calibration(at: IncrementalAT, before, refine: tuple, assumptions: lis
     return self_cal
 
 
+PRECISE_GEOTAG_SIGMA_H_M = 0.1   # geotags stated this good (RTK, PPK) hold the cameras where they were
+
+
 def auto_self_calibration(block: KeyframeBlock, n_gcps: int, assumptions: list) -> tuple:
     """What `--self-calibrate auto` refines: nothing for a calibrated camera; for a camera from the EXIF
-    (distortion unknown, taken as zero) k1 and k2, and f as well with 3 or more GCPs (their heights
-    fix the ground's depth; without them the focal of a near-nadir block trades off with it)."""
+    (distortion unknown, taken as zero; principal point at the image centre) k1 and k2; f as well with 3 or
+    more GCPs (their heights fix the ground's depth; without them the focal of a near-nadir block trades off
+    with it); and the principal point (cx, cy) when the geotags are RTK/PPK-precise (median stated horizontal
+    sigma <= PRECISE_GEOTAG_SIGMA_H_M): with the cameras held where they were, a principal point off by
+    d px moves the ground by height x d / f, the other way on each flight line flown the other way."""
     if not block.camera_from_exif:
         return ()
     refine = ('f', 'k1', 'k2') if n_gcps >= 3 else ('k1', 'k2')
     why = (f'f too: {n_gcps} GCPs give the ground\'s depth' if 'f' in refine else
            'f held at its EXIF value: without 3 GCPs with heights a near-nadir block does not determine it')
+    sig_h = [float(np.sqrt(0.5 * (r.fix.cov_enu_m2[0][0] + r.fix.cov_enu_m2[1][1]))) for r in block.records
+             if r.fix is not None]
+    if sig_h and float(np.median(sig_h)) <= PRECISE_GEOTAG_SIGMA_H_M:
+        refine += ('cx', 'cy')
+        why += (f'; the principal point too: the geotags are precise ({np.median(sig_h) * 100:.1f} cm stated, '
+                'median) and hold the cameras')
     assumptions.append(f'self-calibration (auto): the EXIF gives no distortion, so {", ".join(refine)} are refined; '
                        f'{why} (--self-calibrate none or a list to choose)')
     return refine
