@@ -161,15 +161,21 @@ def overlap_png(path: Path, dsm_path, kfs: list[dict], cam, origin: LocalFrame, 
     im = ax.imshow(grid, extent=(b.left, b.right, b.bottom, b.top), cmap='viridis', interpolation='nearest',
                    vmin=0, vmax=max(int(count.max()), 1))
     fig.colorbar(im, ax=ax, label='photos seeing the cell')
+    _save_map_figure(fig, ax, f'Overlap: photos per DSM cell ({crs})', path)
+    return {'median_photos': float(np.median(count)), 'share_2_or_more': float(np.mean(count >= 2)),
+            'share_5_or_more': float(np.mean(count >= 5))}
+
+
+def _save_map_figure(fig, ax, title: str, path: Path) -> None:
+    """A map figure (axes in CRS metres, equal scale, full coordinates) titled and written to `path`."""
+    import matplotlib.pyplot as plt
     ax.set_aspect('equal')
     ax.ticklabel_format(useOffset=False, style='plain')
     ax.tick_params(labelsize=7)
-    ax.set_title(f'Overlap: photos per DSM cell ({crs})')
+    ax.set_title(title)
     fig.tight_layout()
     fig.savefig(path)
     plt.close(fig)
-    return {'median_photos': float(np.median(count)), 'share_2_or_more': float(np.mean(count >= 2)),
-            'share_5_or_more': float(np.mean(count >= 5))}
 
 
 def check_point_arrows_png(path: Path, ortho_tif, points: list, title: str) -> Path:
@@ -200,13 +206,7 @@ def check_point_arrows_png(path: Path, ortho_tif, points: list, title: str) -> P
         ax.plot(x, y, 'k^', ms=5)
         ax.annotate(f'{name} {np.hypot(de, dn) * 100:.1f} cm, dZ {dz * 100:+.1f} cm', (x, y), fontsize=7,
                     xytext=(3, 3), textcoords='offset points', color='white' if extent else 'black')
-    ax.set_aspect('equal')
-    ax.ticklabel_format(useOffset=False, style='plain')
-    ax.tick_params(labelsize=7)
-    ax.set_title(f'{title} (arrows x{scale:.0f})')
-    fig.tight_layout()
-    fig.savefig(path)
-    plt.close(fig)
+    _save_map_figure(fig, ax, f'{title} (arrows x{scale:.0f})', path)
     return path
 
 

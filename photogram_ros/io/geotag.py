@@ -155,6 +155,13 @@ def _angles(pe, photo: Path | None) -> tuple[float, float, float]:
     return 0.0, 0.0, 0.0
 
 
+def _write_lines(path: Path, lines: list) -> None:
+    try:
+        Path(path).write_text('\n'.join(lines) + '\n')
+    except OSError as exc:
+        raise DataError(f'cannot write {path}: {exc}') from exc
+
+
 def write_geo_txt(path: Path, rows: list, photos: dict) -> None:
     """OpenDroneMap geo.txt: `EPSG:4326`, then `image lon lat h yaw pitch roll h_acc v_acc` per photo."""
     lines = ['EPSG:4326']
@@ -162,10 +169,7 @@ def write_geo_txt(path: Path, rows: list, photos: dict) -> None:
         y, p, r = _angles(pe, photos.get(name))
         lines.append(f'{name} {pe.lon_deg:.10f} {pe.lat_deg:.10f} {pe.h_m:.4f} {y:.3f} {p:.3f} {r:.3f} '
                      f'{pe.h_acc_m:.4f} {pe.v_acc_m:.4f}')
-    try:
-        Path(path).write_text('\n'.join(lines) + '\n')
-    except OSError as exc:
-        raise DataError(f'cannot write {path}: {exc}') from exc
+    _write_lines(path, lines)
 
 
 def write_csv(path: Path, rows: list, photos: dict) -> None:
@@ -176,7 +180,4 @@ def write_csv(path: Path, rows: list, photos: dict) -> None:
         week, tow = gps_s_to_week_tow(pe.event.t_gps_s)
         lines.append(f'{name},{pe.lat_deg:.10f},{pe.lon_deg:.10f},{pe.h_m:.4f},{pe.h_acc_m:.4f},{pe.v_acc_m:.4f},'
                      f'{y:.3f},{p:.3f},{r:.3f},{Q_NAMES.get(pe.q, pe.q)},{pe.how},{week},{tow:.6f}')
-    try:
-        Path(path).write_text('\n'.join(lines) + '\n')
-    except OSError as exc:
-        raise DataError(f'cannot write {path}: {exc}') from exc
+    _write_lines(path, lines)

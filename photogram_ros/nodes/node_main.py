@@ -87,6 +87,16 @@ def _interrupt(*_):
     raise KeyboardInterrupt
 
 
+def _start(argv) -> None:
+    """A console script's process: malloc arenas capped, rclpy up with `argv` (sys.argv when None), SIGINT
+    and SIGTERM as KeyboardInterrupt, and an end when the parent process ends."""
+    limit_malloc_arenas()
+    init_ros(args=argv if argv is not None else sys.argv)
+    signal.signal(signal.SIGTERM, _interrupt)
+    signal.signal(signal.SIGINT, _interrupt)
+    watch_parent(lambda: os.kill(os.getpid(), signal.SIGTERM))
+
+
 def run_node(cls, argv=None, on_exit=None, settle_s: float = 1.0) -> int:
     """Run one node until interrupted; then `on_exit(node)` (e.g. a final adjustment), or the node's
     own `flush()` (the tracker's last keyframes, stereo's last pairs), runs with the context alive,
@@ -95,11 +105,7 @@ def run_node(cls, argv=None, on_exit=None, settle_s: float = 1.0) -> int:
     SIGINT and SIGTERM both end the node this way. Bad configuration exits with status 2 and the
     reason on stderr.
     """
-    limit_malloc_arenas()
-    init_ros(args=argv if argv is not None else sys.argv)
-    signal.signal(signal.SIGTERM, _interrupt)
-    signal.signal(signal.SIGINT, _interrupt)
-    watch_parent(lambda: os.kill(os.getpid(), signal.SIGTERM))
+    _start(argv)
     node = None
     try:
         node = cls()
@@ -127,11 +133,7 @@ def run_node(cls, argv=None, on_exit=None, settle_s: float = 1.0) -> int:
 def run_job(cls, job, argv=None) -> int:
     """Run a node that does one job and ends (play a bag, publish a folder): `job(node)` returns the exit
     status. Bad configuration exits with 2, Ctrl-C or SIGTERM with 130."""
-    limit_malloc_arenas()
-    init_ros(args=argv if argv is not None else sys.argv)
-    signal.signal(signal.SIGTERM, _interrupt)
-    signal.signal(signal.SIGINT, _interrupt)
-    watch_parent(lambda: os.kill(os.getpid(), signal.SIGTERM))
+    _start(argv)
     node = None
     try:
         node = cls()
