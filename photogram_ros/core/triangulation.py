@@ -103,7 +103,7 @@ def near_the_cameras(points_map: np.ndarray, centres_map: np.ndarray, factor: fl
 
     points_map (N, 3) and centres_map (M, 3) in one metric frame, m. A point far beyond that (rays almost
     parallel: a point kilometres away on a 40 m flight) is not ground the photos measured; the sparse cloud's
-    writers leave it out. With no camera every point is kept."""
+    writers leave it out. Non-finite points are never kept; with no camera every finite point is."""
     from scipy.spatial import cKDTree
     P = np.asarray(points_map, float).reshape(-1, 3)
     C = np.asarray(centres_map, float).reshape(-1, 3)

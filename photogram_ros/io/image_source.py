@@ -418,12 +418,20 @@ class FolderSource:
         return exif_intrinsics(self.entries[0][0])
 
     def __iter__(self) -> Iterator[Frame]:
+        return self.frames()
+
+    def frames(self, undecoded=None) -> Iterator[Frame]:
+        """The photos as `Frame`s in shooting order, each decoded (BGR); `undecoded(path)` may give what to pass
+        instead of the decoded image (a JPEG's bytes), or None to decode it. A photo that cannot be decoded is
+        skipped and recorded in `skipped`."""
         for path, stamp_ns in self.entries:
-            try:
-                image = _decode(path)
-            except DataError as exc:
-                self.skipped.append((str(path), str(exc)))
-                continue
+            image = undecoded(path) if undecoded is not None else None
+            if image is None:
+                try:
+                    image = _decode(path)
+                except DataError as exc:
+                    self.skipped.append((str(path), str(exc)))
+                    continue
             yield Frame(stamp_ns, image, self.geo.get(path.name) or read_exif_gps(path), str(path))
 
 

@@ -160,20 +160,8 @@ class CameraNode(Node):
         with the reason when that fails)."""
         from photogram_ros.io.image_source import FolderSource
         if not isinstance(source, FolderSource):
-            yield from source
-            return
-        from photogram_ros.errors import DataError
-        from photogram_ros.io.image_source import Frame, _decode, read_exif_gps
-        for path, stamp_ns in source.entries:
-            jpeg = JpegFile.read(path, self.params.compressed_above_px)
-            if jpeg is None:
-                try:   # as FolderSource decodes it, its failure recorded the same way
-                    image = _decode(path)
-                except DataError as exc:
-                    source.skipped.append((str(path), str(exc)))
-                    continue
-            yield Frame(stamp_ns, jpeg if jpeg is not None else image,
-                        source.geo.get(path.name) or read_exif_gps(path), str(path))
+            return iter(source)
+        return source.frames(lambda path: JpegFile.read(path, self.params.compressed_above_px))
 
     def _count_skips(self) -> None:
         new = self.source.skipped[self._reported_skips:]
