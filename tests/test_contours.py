@@ -51,19 +51,12 @@ def test_geopackage_tables_and_geometries(tmp_path):
 
 
 def test_export_writes_contours_of_the_dtm_on_request(tmp_path):
-    from helpers.clouds import pair_cloud
+    from helpers.clouds import fused_map, pair_cloud
     from photogram_ros.cli import main
-    from photogram_ros.core.fusion import Fusion, FusionConfig
-    from photogram_ros.core.geodesy import LocalFrame
     from photogram_ros.io.contours import read_contours_gpkg
-    from photogram_ros.io.map_store import MapStore
-    store = MapStore(tmp_path / 'map', 0.25, 256)
-    store.set_origin(LocalFrame(47.3977, 8.5456, 488.0))
-    f = Fusion(FusionConfig(0.25, 256), store)
     rng = np.random.default_rng(4)
-    for _ in range(2):
-        f.add(pair_cloud(rng, lambda x, y: 0.1 * x, 0.0, 0.0, 20.0, 20.0, 40.0, 0.01))
-    f.flush()
+    fused_map(tmp_path / 'map', 0.25, [pair_cloud(rng, lambda x, y: 0.1 * x, 0.0, 0.0, 20.0, 20.0, 40.0, 0.01)
+                                       for _ in range(2)])
     out = tmp_path / 'out'
     assert main(['export', str(tmp_path / 'map'), '--crs', 'EPSG:32632', '--out', str(out), '--products', 'dtm',
                  '--contours-m', '1']) == 0

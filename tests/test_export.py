@@ -8,7 +8,7 @@ import cv2
 import numpy as np
 import pytest
 
-from helpers.clouds import pair_cloud
+from helpers.clouds import fused_map, pair_cloud
 
 LAT, LON, H = 47.3977, 8.5456, 488.0
 CRSES = ['EPSG:32632', 'EPSG:2056']
@@ -30,17 +30,10 @@ def oracle_crs(enu: np.ndarray, crs: str):
 
 @pytest.fixture(scope='module')
 def map_dir(tmp_path_factory):
-    from photogram_ros.core.fusion import Fusion, FusionConfig
-    from photogram_ros.core.geodesy import LocalFrame
-    from photogram_ros.io.map_store import MapStore
     d = tmp_path_factory.mktemp('exp') / 'map'
-    store = MapStore(d, 0.08, 256)
-    store.set_origin(LocalFrame(LAT, LON, H))
-    f = Fusion(FusionConfig(0.08, 256), store)
     rng = np.random.default_rng(5)
-    for k in range(4):
-        f.add(pair_cloud(rng, surface, -10.0 + 8 * k, 5.0, 10.0, 8.0, 60.0, 0.01, rgb=0x20A040))
-    f.flush()
+    fused_map(d, 0.08, (pair_cloud(rng, surface, -10.0 + 8 * k, 5.0, 10.0, 8.0, 60.0, 0.01, rgb=0x20A040)
+                        for k in range(4)), (LAT, LON, H))
     return d
 
 

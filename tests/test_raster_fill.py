@@ -8,7 +8,7 @@ import cv2
 import numpy as np
 import pytest
 
-from helpers.clouds import pair_cloud
+from helpers.clouds import fused_map, pair_cloud
 
 LAT, LON, H = 47.3977, 8.5456, 488.0
 
@@ -49,20 +49,16 @@ def test_fill_surface_keeps_steps_fills_only_the_region_and_leaves_the_rest():
 @pytest.fixture(scope='module')
 def holed_map(tmp_path_factory):
     """A map of a plane with a 12 m disk no pair measured (water, a crown), keyframes over all of it."""
-    from photogram_ros.core.fusion import Fusion, FusionConfig
-    from photogram_ros.core.geodesy import LocalFrame
-    from photogram_ros.io.map_store import MapStore
     d = tmp_path_factory.mktemp('fill') / 'map'
-    store = MapStore(d, 0.2, 256)
-    store.set_origin(LocalFrame(LAT, LON, H))
-    f = Fusion(FusionConfig(0.2, 256), store)
     rng = np.random.default_rng(3)
-    for k in range(4):
-        for _ in range(2):              # two pairs over each strip: every cell confirmed (min_pairs 2)
-            c = pair_cloud(rng, plane, -12.0 + 8 * k, 0.0, 10.0, 20.0, 60.0, 0.01)
-            c = c[np.hypot(c['x'] - 0.0, c['y'] - 2.0) > 6.0]
-            f.add(c)
-    f.flush()
+
+    def clouds():
+        for k in range(4):
+            for _ in range(2):              # two pairs over each strip: every cell confirmed (min_pairs 2)
+                c = pair_cloud(rng, plane, -12.0 + 8 * k, 0.0, 10.0, 20.0, 60.0, 0.01)
+                yield c[np.hypot(c['x'] - 0.0, c['y'] - 2.0) > 6.0]
+
+    store = fused_map(d, 0.2, clouds(), (LAT, LON, H))
     jpg = cv2.imencode('.jpg', np.zeros((8, 8, 3), np.uint8))[1].tobytes()
     for k, (x, y) in enumerate([(-16, -16), (16, -16), (16, 16), (-16, 16), (0, 0)]):
         T = np.eye(4)

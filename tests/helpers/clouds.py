@@ -20,3 +20,20 @@ def pair_cloud(rng, height_at, cx, cy, half_w, half_h, density_per_m2, sigma_z_m
     p['rgb'] = rgb
     p['confidence'] = 0.9
     return p
+
+
+ORIGIN_LLH = (47.3977, 8.5456, 488.0)   # the simulator's take-off point
+
+
+def fused_map(folder, cell_m: float, clouds, origin_llh=ORIGIN_LLH, tile_cells: int = 256):
+    """A map folder at `folder` with its origin, every pair cloud of `clouds` fused and flushed; its MapStore."""
+    from photogram_ros.core.fusion import Fusion, FusionConfig
+    from photogram_ros.core.geodesy import LocalFrame
+    from photogram_ros.io.map_store import MapStore
+    store = MapStore(folder, cell_m, tile_cells)
+    store.set_origin(LocalFrame(*origin_llh))
+    fusion = Fusion(FusionConfig(cell_m, tile_cells), store)
+    for cloud in clouds:
+        fusion.add(cloud)
+    fusion.flush()
+    return store
