@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
 import signal
 import subprocess
@@ -57,13 +58,26 @@ def graph(rclpy_context, tmp_path):
 
 
 
-def _start_map_node(map_dir, *params):
-    """map_node as its own process (the console-script path), with `-p name:=value` parameters."""
+@contextlib.contextmanager
+def _map_node_process(map_dir, *params):
+    """map_node as its own process (the console-script path), with `-p name:=value` parameters; killed on
+    leaving the block if it still runs."""
     cmd = [sys.executable, '-m', 'photogram_ros.nodes.map_node', '--ros-args', '-p', f'map_dir:={map_dir}',
            '-p', 'cell_m:=0.08']   # these tests read the map with 0.08 m cells (not from the GSD)
     for prm in params:
         cmd += ['-p', prm]
-    return subprocess.Popen(cmd, cwd=ROOT, env=dict(os.environ), stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    proc = subprocess.Popen(cmd, cwd=ROOT, env=dict(os.environ), stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    try:
+        yield proc
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+
+
+def _cells(cloud) -> set:
+    """The 0.08 m cells (ix, iy) a pair cloud's points fall in."""
+    return set(zip(np.floor(cloud['x'] / 0.08).astype(int).tolist(), np.floor(cloud['y'] / 0.08).astype(int).tolist()))
 
 
 def _cloud_feeder(name, context):
@@ -177,8 +191,7 @@ def test_kill_9_loses_only_the_last_seconds(rclpy_context, tmp_path):
     from photogram_ros.io.map_store import MapStore
 
     map_dir = tmp_path / 'map'
-    proc = _start_map_node(map_dir, 'flush_interval_s:=0.5', 'max_tiles_in_memory:=4')
-    try:
+    with _map_node_process(map_dir, 'flush_interval_s:=0.5', 'max_tiles_in_memory:=4') as proc:
         peer, pub = _cloud_feeder('crash_feeder', rclpy_context)
         assert pub.get_subscription_count() > 0, 'map_node did not start'
         rng = np.random.default_rng(3)
@@ -195,16 +208,11 @@ def test_kill_9_loses_only_the_last_seconds(rclpy_context, tmp_path):
         proc.wait(10)
         assert proc.returncode == -signal.SIGKILL
         peer.destroy_node()
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait()
 
     pts = Fusion(FusionConfig(0.08, 256), MapStore(map_dir)).points()
     have = set(zip(pts['ix'].tolist(), pts['iy'].tolist()))
     for c in early:
-        cells = set(zip(np.floor(c['x'] / 0.08).astype(int).tolist(), np.floor(c['y'] / 0.08).astype(int).tolist()))
-        assert len(cells & have) == len(cells), 'a cloud fused 1.5 s before the kill is missing on disk'
+        assert _cells(c) <= have, 'a cloud fused 1.5 s before the kill is missing on disk'
     assert np.abs(pts['z'] - surface(pts['x'], pts['y'])).max() < 0.15
     # A restarted node reloads the map and goes on.
     from photogram_ros.nodes.map_node import MapNode
@@ -250,8 +258,7 @@ def test_sigint_and_sigterm_flush_everything(rclpy_context, tmp_path, sig):
 
     map_dir = tmp_path / 'map'
     # A flush interval far longer than the test: only the shutdown path can have written the map.
-    proc = _start_map_node(map_dir, 'flush_interval_s:=600.0')
-    try:
+    with _map_node_process(map_dir, 'flush_interval_s:=600.0') as proc:
         peer, pub = _cloud_feeder('stop_feeder', rclpy_context)
         rng = np.random.default_rng(6)
         clouds = [pair_cloud(rng, surface, 0.0, 14.0 * k, 8.0, 6.0, 120.0, 0.02) for k in range(3)]
@@ -262,15 +269,8 @@ def test_sigint_and_sigterm_flush_everything(rclpy_context, tmp_path, sig):
         proc.wait(20)
         assert proc.returncode == 0, proc.stderr.read().decode()[-2000:]
         peer.destroy_node()
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait()
     pts = Fusion(FusionConfig(0.08, 256), MapStore(map_dir)).points()
-    want = set()
-    for c in clouds:
-        want |= set(zip(np.floor(c['x'] / 0.08).astype(int).tolist(), np.floor(c['y'] / 0.08).astype(int).tolist()))
-    assert set(zip(pts['ix'].tolist(), pts['iy'].tolist())) == want
+    assert set(zip(pts['ix'].tolist(), pts['iy'].tolist())) == set().union(*map(_cells, clouds))
 
 
 def _map_node(rclpy_context, tmp_path, **params):
