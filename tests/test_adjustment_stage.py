@@ -11,8 +11,9 @@ import sys
 import numpy as np
 import pytest
 from conftest import ROOT
+from helpers.control import targets_file
 
-from photogram_ros.core.control import TARGET_DTYPE, SurveyedTarget
+from photogram_ros.core.control import TARGET_DTYPE
 from photogram_ros.core.gnss_fix import COV_DIAGONAL_KNOWN, COV_UNKNOWN, STATUS_FIX, STATUS_GBAS_FIX
 from photogram_ros.params import from_dict
 from photogram_ros.sim.observations import simulate_keyframes
@@ -58,14 +59,9 @@ def test_gcp_with_a_placeholder_height_is_used_horizontally_only(flight_3d, tmp_
     """Every GCP's height written as 400 m (the ground is at 488 m), GCP02 30 m east of where it is: the stage
     uses four GCPs horizontally, leaves GCP02 out, says so with WARNs; the four check points' horizontal RMSE
     (measured 2.17 cm = 0.28 GSD) is gated at 1.5 times that."""
-    from photogram_ros.io.control_file import write_control_file
     sk, targets = flight_3d
-    survey = []
-    for t in targets:
-        lat, lon, h = sk.origin.enu_to_geodetic(t.center_enu + ([30.0, 0, 0] if t.name == 'GCP02' else 0))
-        survey.append(SurveyedTarget(t.name, t.marker_id, float(lat), float(lon),
-                                     400.0 if t.role == 'gcp' else float(h), t.role))
-    control = write_control_file(tmp_path / 'targets.txt', survey, 'EPSG:32632')
+    control = targets_file(tmp_path / 'targets.txt', sk.origin, targets, gcp_height_m=400.0,
+                           moved_enu_m={'GCP02': (30.0, 0.0, 0.0)})
     stage = _stage(sk, control_file=str(control))
     outcome = _fly(stage, sk.records, {t.name: t.marker_id for t in targets}, STATUS_FIX)
     d, q = stage.diag, stage.quality()
@@ -198,11 +194,8 @@ def test_the_report_intersects_the_stages_detections_into_the_same_figures(fligh
     document with its detections, as JSON): the flight report's check-point and GCP figures equal the stage's
     (map/control_points, what the ground station shows) to 0.1 mm: one method over one set of detections.
     The GCP residuals come from the adjusted cameras, not from the adjusted target point its prior holds."""
-    from photogram_ros.io.control_file import write_control_file
     sk, targets = flight_3d
-    survey = [SurveyedTarget(t.name, t.marker_id, *map(float, sk.origin.enu_to_geodetic(t.center_enu)), t.role)
-              for t in targets]
-    control = write_control_file(tmp_path / 'targets.txt', survey, 'EPSG:32632')
+    control = targets_file(tmp_path / 'targets.txt', sk.origin, targets)
     stage = _stage(sk, control_file=str(control))
     assert _fly(stage, sk.records, {t.name: t.marker_id for t in targets}, STATUS_FIX).status == 'done'
     doc = json.loads(json.dumps(stage.out.qualities[-1], default=lambda v: v.tolist()))

@@ -18,9 +18,9 @@ import sys
 import numpy as np
 import pytest
 from conftest import ROOT
+from helpers.control import targets_file
 from helpers.keyframe_feed import run_bundle
 from photogram_ros import msgs
-from photogram_ros.core.control import SurveyedTarget
 from photogram_ros.core.geodesy import LocalFrame
 from photogram_ros.core.incremental import intersect_point
 from photogram_ros.io.control_file import write_control_file
@@ -66,11 +66,7 @@ def test_bundle_node_uses_gcps_from_a_control_file(flight_3d, rclpy_context, tmp
     sk, targets = flight_3d
     gsd = sk.gsd_m
     marker_of = {t.name: t.marker_id for t in targets}
-    survey = []
-    for t in targets:
-        lat, lon, h = sk.origin.enu_to_geodetic(t.center_enu)
-        survey.append(SurveyedTarget(t.name, t.marker_id, float(lat), float(lon), float(h), t.role))
-    control = write_control_file(tmp_path / 'targets.txt', survey, 'EPSG:32632')
+    control = targets_file(tmp_path / 'targets.txt', sk.origin, targets)
 
     node, poses, georef = run_bundle(rclpy_context, sk, marker_of, {'control_file': str(control)})
     vals = _values(node)
@@ -103,12 +99,8 @@ def test_bundle_node_checks_gcps_before_using_them(flight_3d, rclpy_context, tmp
     sk, targets = flight_3d
     gsd = sk.gsd_m
     marker_of = {t.name: t.marker_id for t in targets}
-    survey = []
-    for t in targets:
-        lat, lon, h = sk.origin.enu_to_geodetic(t.center_enu + ([30.0, 0, 0] if t.name == 'GCP02' else 0))
-        survey.append(SurveyedTarget(t.name, t.marker_id, float(lat), float(lon),
-                                     400.0 if t.role == 'gcp' else float(h), t.role))
-    control = write_control_file(tmp_path / 'targets.txt', survey, 'EPSG:32632')
+    control = targets_file(tmp_path / 'targets.txt', sk.origin, targets, gcp_height_m=400.0,
+                           moved_enu_m={'GCP02': (30.0, 0.0, 0.0)})
     node, poses, georef = run_bundle(rclpy_context, sk, marker_of, {'control_file': str(control)})
     vals, problems, q = _values(node), node.diag.recent_problems(20), node.quality()
     node.destroy_node()
@@ -133,9 +125,7 @@ def test_final_adjustment_at_its_iteration_limit_says_how_far_from_converged(fli
     what more iterations would change, instead of a bare 'done'; GCP residuals not yet measured are absent,
     not 'nan'."""
     sk, targets = flight_3d
-    survey = [SurveyedTarget(t.name, t.marker_id, *map(float, sk.origin.enu_to_geodetic(t.center_enu)), t.role)
-              for t in targets]
-    control = write_control_file(tmp_path / 'targets.txt', survey, 'EPSG:32632')
+    control = targets_file(tmp_path / 'targets.txt', sk.origin, targets)
     node, _, _ = run_bundle(rclpy_context, sk, {t.name: t.marker_id for t in targets},
                              {'full_iterations': 2, 'control_file': str(control)})
     vals = _values(node)

@@ -10,10 +10,9 @@ apart, every keyframe counted as a 3D fix and the GNSS bias estimated from the G
 import numpy as np
 import pytest
 
+from helpers.control import targets_file
 from helpers.keyframe_feed import run_bundle
 from photogram_ros import msgs
-from photogram_ros.core.control import SurveyedTarget
-from photogram_ros.io.control_file import write_control_file
 from test_gcp_flight import _check_rmse, _values, flight_3d  # noqa: F401  (a fixture)
 
 pytestmark = pytest.mark.ros
@@ -21,11 +20,7 @@ pytestmark = pytest.mark.ros
 
 def test_live_check_points_are_those_of_the_published_poses(flight_3d, rclpy_context, tmp_path):  # noqa: F811
     sk, targets = flight_3d
-    survey = []
-    for t in targets:
-        lat, lon, h = sk.origin.enu_to_geodetic(t.center_enu)
-        survey.append(SurveyedTarget(t.name, t.marker_id, float(lat), float(lon), float(h), t.role))
-    control = write_control_file(tmp_path / 'targets.txt', survey, 'EPSG:32632')
+    control = targets_file(tmp_path / 'targets.txt', sk.origin, targets)
     node, poses, georef = run_bundle(rclpy_context, sk, {t.name: t.marker_id for t in targets},
                                      {'control_file': str(control), 'quality_every': 3})
     try:
