@@ -4,12 +4,12 @@ import numpy as np
 import pytest
 from geometry_msgs.msg import PoseWithCovarianceStamped
 from nav_msgs.msg import Path
-from rclpy.node import Node
-from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
-from sensor_msgs.msg import CameraInfo, NavSatFix, PointCloud2
+from rclpy.qos import QoSProfile
+from sensor_msgs.msg import NavSatFix, PointCloud2
 from std_msgs.msg import Empty
 
-from helpers.keyframe_feed import executor_with, feature_table, fix_msg, spin_until, start_bundle_node
+from helpers.keyframe_feed import (LATCHED, RELIABLE, executor_with, feature_table, fix_msg, spin_until,
+                                   start_bundle_node, tracker_feeder)
 from photogram_ros import msgs
 from photogram_ros.errors import ConfigError
 from photogram_ros.nodes.bundle_node import BundleNode
@@ -22,19 +22,14 @@ def test_bundle_node_orients_keyframes_from_topics(rclpy_context):
     sk = simulate_keyframes(preset('tiny'), keyframe_interval_s=1.0, attitude_sigma_deg=None)
     node = BundleNode(overrides={'lever_arm_cam_m': [float(v) for v in sk.lever_arm_cam_m], 'cloud_every': 3},
                       context=rclpy_context)
-    feeder = Node('feeder', context=rclpy_context)
-    reliable = QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE)
-    latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
-    pub_info = feeder.create_publisher(CameraInfo, 'camera/camera_info', QoSProfile(depth=5))
-    pub_feat = feeder.create_publisher(PointCloud2, 'keyframes/features', reliable)
-    pub_fix = feeder.create_publisher(NavSatFix, 'keyframes/fix', reliable)
+    feeder, pub_info, pub_feat, pub_fix = tracker_feeder(rclpy_context, 'feeder')
     pub_full = feeder.create_publisher(Empty, 'bundle/full_adjustment', QoSProfile(depth=2))
     poses, paths, clouds, georef = {}, [], [], []
     feeder.create_subscription(PoseWithCovarianceStamped, 'map/keyframe_pose',
-                               lambda m: poses.__setitem__(msgs.ns_from_time(m.header.stamp), m), reliable)
+                               lambda m: poses.__setitem__(msgs.ns_from_time(m.header.stamp), m), RELIABLE)
     feeder.create_subscription(Path, 'map/path', paths.append, QoSProfile(depth=5))
     feeder.create_subscription(PointCloud2, 'map/sparse_cloud', clouds.append, QoSProfile(depth=5))
-    feeder.create_subscription(NavSatFix, 'map/georeference', georef.append, latched)
+    feeder.create_subscription(NavSatFix, 'map/georeference', georef.append, LATCHED)
     ex = executor_with(rclpy_context, node, feeder)
     try:
         start_bundle_node(ex, node, pub_info, pub_feat, sk.camera, sk.records[0].stamp_ns)
@@ -162,11 +157,7 @@ def test_gimballed_camera_takes_its_antenna_offset_from_the_attitude_topic(rclpy
     with pytest.raises(ConfigError):
         BundleNode(overrides={'lever_arm_body_frd_m': lever, 'lever_arm_cam_m': [0.0, 0.0, 0.1]}, context=rclpy_context)
     node = BundleNode(overrides={'lever_arm_body_frd_m': lever}, context=rclpy_context)
-    feeder = Node('feeder_gimbal', context=rclpy_context)
-    reliable = QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE)
-    pub_info = feeder.create_publisher(CameraInfo, 'camera/camera_info', QoSProfile(depth=5))
-    pub_feat = feeder.create_publisher(PointCloud2, 'keyframes/features', reliable)
-    pub_fix = feeder.create_publisher(NavSatFix, 'keyframes/fix', reliable)
+    feeder, pub_info, pub_feat, pub_fix = tracker_feeder(rclpy_context, 'feeder_gimbal')
     pub_att = feeder.create_publisher(Imu, 'mavlink/attitude', QoSProfile(depth=100))
     ex = executor_with(rclpy_context, node, feeder)
     t0_ns = sk.records[0].stamp_ns
@@ -213,11 +204,7 @@ def test_health_is_an_error_with_the_reason_when_keyframes_do_not_orient(rclpy_c
     sk = simulate_keyframes(preset('tiny'), keyframe_interval_s=1.0, attitude_sigma_deg=None)
     node = BundleNode(overrides={'lever_arm_cam_m': [float(v) for v in sk.lever_arm_cam_m],
                                  'georef_warn_keyframes': 5}, context=rclpy_context)
-    feeder = Node('feeder', context=rclpy_context)
-    reliable = QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE)
-    pub_info = feeder.create_publisher(CameraInfo, 'camera/camera_info', QoSProfile(depth=5))
-    pub_feat = feeder.create_publisher(PointCloud2, 'keyframes/features', reliable)
-    pub_fix = feeder.create_publisher(NavSatFix, 'keyframes/fix', reliable)
+    feeder, pub_info, pub_feat, pub_fix = tracker_feeder(rclpy_context, 'feeder')
     ex = executor_with(rclpy_context, node, feeder)
     records = sk.records[:12]
     try:

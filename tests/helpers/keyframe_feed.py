@@ -46,6 +46,19 @@ def executor_with(context, *nodes):
     return ex
 
 
+RELIABLE = QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE)
+LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+
+
+def tracker_feeder(context, name: str):
+    """A node publishing what the tracker would: (node, camera_info, keyframes/features, keyframes/fix
+    publishers)."""
+    node = Node(name, context=context)
+    return (node, node.create_publisher(CameraInfo, 'camera/camera_info', QoSProfile(depth=5)),
+            node.create_publisher(PointCloud2, 'keyframes/features', RELIABLE),
+            node.create_publisher(NavSatFix, 'keyframes/fix', RELIABLE))
+
+
 def start_bundle_node(ex, node, pub_info, pub_feat, camera, stamp_ns: int) -> None:
     """Wait for the node's subscriptions, give it the calibration, wait until it is ready for keyframes."""
     spin_until(ex, lambda: pub_info.get_subscription_count() > 0 and pub_feat.get_subscription_count() > 0, 5)
@@ -61,19 +74,14 @@ def run_bundle(ctx, sk, marker_of: dict, overrides: dict, records=None, min_orie
     from photogram_ros.nodes.bundle_node import BundleNode
     node = BundleNode(overrides={'lever_arm_cam_m': [float(v) for v in sk.lever_arm_cam_m], **overrides},
                       context=ctx)
-    feeder = Node('gcp_feeder', context=ctx)
-    reliable = QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE)
-    latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
-    pub_info = feeder.create_publisher(CameraInfo, 'camera/camera_info', QoSProfile(depth=5))
-    pub_feat = feeder.create_publisher(PointCloud2, 'keyframes/features', reliable)
-    pub_fix = feeder.create_publisher(NavSatFix, 'keyframes/fix', reliable)
+    feeder, pub_info, pub_feat, pub_fix = tracker_feeder(ctx, 'gcp_feeder')
     poses, georef, n_msgs = {}, [], [0]
 
     def on_pose(m):
         poses[msgs.ns_from_time(m.header.stamp)] = m
         n_msgs[0] += 1
-    feeder.create_subscription(PoseWithCovarianceStamped, 'map/keyframe_pose', on_pose, reliable)
-    feeder.create_subscription(NavSatFix, 'map/georeference', georef.append, latched)
+    feeder.create_subscription(PoseWithCovarianceStamped, 'map/keyframe_pose', on_pose, RELIABLE)
+    feeder.create_subscription(NavSatFix, 'map/georeference', georef.append, LATCHED)
     ex = executor_with(ctx, node, feeder)
     try:
         start_bundle_node(ex, node, pub_info, pub_feat, sk.camera, sk.records[0].stamp_ns)
