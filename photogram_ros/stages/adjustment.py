@@ -223,6 +223,7 @@ class AdjustmentStage:
         # Attitudes cover the last two minutes of stamps: keyframes reach the adjuster seconds late.
         self._attitude = AttitudeHistory(max_age_ns=120 * 10**9)
         self._attitude_arrival = -1e9   # monotonic time of the newest attitude
+        self._first_keyframe_arrival = None   # monotonic time of the first keyframe
         self._full_requested = False
         self._busy = False
         self.cond = threading.Condition()
@@ -276,8 +277,10 @@ class AdjustmentStage:
             raise PhotogramError('non-finite pixel coordinates')
         target_uv, unknown = self.control.target_uv(targets) if self.control is not None else ({}, len(targets))
         with self.cond:
-            self._pending[stamp_ns] = (time.monotonic() if arrival_s is None else arrival_s,
-                                       np.asarray(track_ids).astype(np.int64), uv, target_uv)
+            arrival_s = time.monotonic() if arrival_s is None else arrival_s
+            self._pending[stamp_ns] = (arrival_s, np.asarray(track_ids).astype(np.int64), uv, target_uv)
+            if self._first_keyframe_arrival is None:
+                self._first_keyframe_arrival = arrival_s
             self.cond.notify()
         self.diag.count('keyframes_received')
         if len(targets):
@@ -305,10 +308,16 @@ class AdjustmentStage:
 
     def _waits_for_attitude(self, stamp: int) -> bool:
         """A gimballed camera's keyframe waits until an attitude after its stamp is in (attitudes and
-        keyframes come by different paths), unless attitudes stopped coming."""
-        newest = self._attitude.newest_ns
-        live = time.monotonic() - self._attitude_arrival < 1.0
-        return self.p.gimbal and live and newest is not None and newest < stamp - self._attitude.hold_ns
+        keyframes come by different paths, the attitude's often later at the start of a flight): while
+        attitudes come, or before the first one for fix_wait_s from the first keyframe; not once they
+        stopped coming (the caller bounds each keyframe's wait by fix_wait_s)."""
+        if not self.p.gimbal:
+            return False
+        now, newest = time.monotonic(), self._attitude.newest_ns
+        if newest is None:
+            return now - self._first_keyframe_arrival < self.p.fix_wait_s
+        live = now - self._attitude_arrival < 1.0
+        return live and newest < stamp - self._attitude.hold_ns
 
     def _record(self, stamp: int, ids, uv, fix, target_uv) -> KeyframeRecord:
         """A keyframe for the adjuster, with its antenna offset when the camera is gimballed. Called
