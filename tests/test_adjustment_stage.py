@@ -266,22 +266,26 @@ def test_a_gimballed_cameras_first_keyframes_wait_for_the_attitude_stream_to_sta
     import time
     gimbal = {'lever_arm_cam_m': [0.0, 0.0, 0.0], 'lever_arm_body_frd_m': [0.05, 0.0, -0.20]}
     r = flight_rtk.records[0]
-    f = r.fix
 
-    def keyframe(stage, arrival_s=None):
+    def keyframe(stage, r, arrival_s=None):
+        f = r.fix
         stage.add_fix(r.stamp_ns, f.lat_deg, f.lon_deg, f.h_m, np.diag(np.diag(f.cov_enu_m2)), STATUS_GBAS_FIX,
                       COV_DIAGONAL_KNOWN)
         stage.add_keyframe(r.stamp_ns, r.track_ids, r.uv, arrival_s=arrival_s)
 
     stage = _stage(flight_rtk, **gimbal)
-    keyframe(stage)
+    keyframe(stage, r)
     assert stage.drain() == 0                                 # no attitude yet: it waits
     for dt_ns in (-50_000_000, 50_000_000):                  # the autopilot's attitudes around the keyframe
         stage.add_attitude(r.stamp_ns + dt_ns, [0.0, 0.0, 0.0, 1.0])
     assert stage.drain() == 1
     assert stage.diag.counts().get('keyframes_without_attitude', 0) == 0
+    # Attitudes from a busy link arrive in bursts seconds apart: the next keyframe waits for the next burst.
+    time.sleep(1.2)
+    keyframe(stage, flight_rtk.records[1])
+    assert stage.drain() == 0
 
     silent = _stage(flight_rtk, **gimbal)
-    keyframe(silent, arrival_s=time.monotonic() - 60.0)       # a minute without any attitude
+    keyframe(silent, r, arrival_s=time.monotonic() - 60.0)       # a minute without any attitude
     assert silent.drain() == 1
     assert silent.diag.counts()['keyframes_without_attitude'] == 1

@@ -51,8 +51,9 @@ class AdjustmentParams(LiveControlOptions, IncrementalOptions):
     origin_lat_deg: float = param(0.0, 'map origin latitude, deg', min=-90.0, max=90.0)
     origin_lon_deg: float = param(0.0, 'map origin longitude, deg', min=-180.0, max=180.0)
     origin_h_m: float = param(0.0, 'map origin ellipsoidal height, m', min=-1e4, max=1e5)
-    fix_wait_s: float = param(10.0, 'how long (wall time) a keyframe waits for its fix before it is adjusted '
-                                    'without one, s; a later fix ends the wait at once', min=0.0, max=60.0)
+    fix_wait_s: float = param(10.0, 'how long (wall time) a keyframe waits for its fix (and a gimballed camera\'s '
+                                    'attitude) before it is adjusted without one, s; a later fix ends the wait at '
+                                    'once', min=0.0, max=60.0)
     sync_tolerance_ms: float = param(5.0, 'features and fix with stamps closer than this belong together, ms',
                                      min=0.0, max=1000.0)
     max_fix_sigma_m: float = param(50.0, 'fixes with a larger horizontal sigma are not used, m', min=0.01, max=1e4)
@@ -308,15 +309,16 @@ class AdjustmentStage:
 
     def _waits_for_attitude(self, stamp: int) -> bool:
         """A gimballed camera's keyframe waits until an attitude after its stamp is in (attitudes and
-        keyframes come by different paths, the attitude's often later at the start of a flight): while
-        attitudes come, or before the first one for fix_wait_s from the first keyframe; not once they
-        stopped coming (the caller bounds each keyframe's wait by fix_wait_s)."""
+        keyframes come by different paths, and attitudes decoded from a busy MAVLink link arrive seconds
+        late and in bursts): before the first one for fix_wait_s from the first keyframe, then while one
+        came within fix_wait_s; not once they stopped coming for that long (an outage). The caller bounds
+        each keyframe's wait by fix_wait_s."""
         if not self.p.gimbal:
             return False
         now, newest = time.monotonic(), self._attitude.newest_ns
         if newest is None:
             return now - self._first_keyframe_arrival < self.p.fix_wait_s
-        live = now - self._attitude_arrival < 1.0
+        live = now - self._attitude_arrival < self.p.fix_wait_s
         return live and newest < stamp - self._attitude.hold_ns
 
     def _record(self, stamp: int, ids, uv, fix, target_uv) -> KeyframeRecord:
