@@ -54,11 +54,11 @@ executor thread. When keyframes queue up behind an adjustment, the older ones of
 short window adjustment (`catch_up_iterations`) and only the newest the full one, so the node
 catches up instead of falling further behind; the poses are published once per batch.
 
-Lever arm: `lever_arm_cam_m` (antenna in the optical camera frame) is a fixed offset, right for a
-camera fixed to the body. A gimballed camera gives `lever_arm_body_frd_m` instead (antenna in the
-body frame): the node then follows the autopilot's attitude on `mavlink/attitude` (body FLU in ENU,
-from mavlink_node) and gives each keyframe its antenna offset in `map` (core/attitude.py); a
-keyframe without an attitude within 0.2 s falls back to the level-flight camera-frame offset.
+Lever arm: `lever_arm_cam_m` (antenna in the optical camera frame) is a fixed offset, right for a camera fixed
+to the body. A gimballed camera gives `lever_arm_body_frd_m` (antenna in the body frame): the node follows the
+autopilot's attitude on `mavlink/attitude` (body FLU in ENU; queued 2 min deep, as an adjustment may hold the
+executor for seconds) and gives each keyframe its antenna offset in `map` (core/attitude.py); a keyframe
+without an attitude within 0.2 s falls back to the level-flight camera-frame offset.
 """
 
 from __future__ import annotations
@@ -157,7 +157,8 @@ class BundleNode(Node):
         self.create_subscription(CameraInfo, TOPIC_INFO, self._on_info, QoSProfile(depth=5))
         self.create_subscription(Empty, TOPIC_FULL, self._on_full, QoSProfile(depth=2))
         if self.p.gimbal:
-            self.create_subscription(Imu, TOPIC_ATTITUDE, self._on_attitude, reliable)
+            self.create_subscription(Imu, TOPIC_ATTITUDE, self._on_attitude,
+                                     QoSProfile(depth=1200, reliability=ReliabilityPolicy.RELIABLE))
         # The timer only wakes the worker: a keyframe whose fix never comes is taken after fix_wait_s.
         self.create_timer(0.5, self._wake)
         self._stop = False
