@@ -34,6 +34,8 @@ TILE_BGR = (40, 160, 40)              # a green tile: easy to find in the screen
 BASE_BGR = (200, 120, 60)             # the base map: blue-grey, everywhere around the flight
 EVIL = '<img src=x onerror="document.body.dataset.pwned=1">'
 SCRIPT = '<script>document.body.dataset.pwned=2</script>'
+QUOTES = '"\'><svg onload=document.body.dataset.pwned=3>'
+LONG = 'CHK' + 'Ω✓ü' * 400                # 1,203 characters of unicode
 
 
 def _tile_png(bgr=TILE_BGR) -> bytes:
@@ -75,7 +77,8 @@ class Provider:
     def status(self):
         return {'limits': {'max_check_rmse_h_m': 0.05}, 'unknown_drones': {'/intruder': {
                     '/intruder/map/control_points': ['/intruder/' + SCRIPT]}},
-                'security': {'enabled': False, 'summary': 'NOT AVAILABLE: test'}, 'drones': {'drone1': {
+                'security': {'enabled': False, 'headline': 'DDS traffic NOT authenticated, NOT encrypted: test',
+                             'summary': 'NOT AVAILABLE: test'}, 'drones': {'drone1': {
             'ns': '/drone1' + EVIL, 'key': 'drone1', 'clouds': 3, 'points': 100, 'keyframes': 12, 'health': {},
             'ortho': {'tiles': 1, 'bytes_received': 1000, 'zoom': Z}, 'updated_unix_s': time.time(),
             'versions': {'coverage': 1, 'track': 1, 'targets': 1},
@@ -88,7 +91,8 @@ class Provider:
                          'fix_share': {'rtk_fixed': 1.0, 'rtk_float': 0.0, '3d': 0.0}, 'gnss_bias_enu_m': None,
                          'control': {'gcps': 5, 'gcps_held': 1, 'gcps_full': 2, 'gcps_horizontal_only': 1,
                                      'gcps_rejected': 1, 'gcps_not_seen': 0, 'control_detections_rejected': 0,
-                                     'faults': ['GCP GCP02 not used: its surveyed position is 29.78 m from <here>']}},
+                                     'faults': ['GCP GCP02 not used: its surveyed position is 29.78 m from <here>',
+                                                f'GCP {QUOTES} not seen', f'GCP {LONG} not seen']}},
             'go_no_go': {'verdict': 'NO-GO', 'checks': [{'name': 'largest gap, any kind (m²)', 'value': 448.0,
                                                          'state': 'NO-GO', 'status': 'measured'}],
                          'reasons': ['largest gap, any kind (m²): 448 (<= 25)']}}}}
@@ -111,6 +115,12 @@ class Provider:
                 'type': 'LineString', 'coordinates': [self.area[0], self.area[2]]}}],
             'targets': [{'type': 'Feature', 'geometry': {'type': 'Point', 'coordinates': self.gap[2]},
                          'properties': {'name': 'CHK01' + EVIL, 'role': 'check', 'residual_h_m': 0.02,
+                                        'residual_v_m': 0.01, 'images': 5}},
+                        {'type': 'Feature', 'geometry': {'type': 'Point', 'coordinates': self.gap[1]},
+                         'properties': {'name': 'CHK02' + QUOTES, 'role': 'check', 'residual_h_m': 0.03,
+                                        'residual_v_m': 0.01, 'images': 5}},
+                        {'type': 'Feature', 'geometry': {'type': 'Point', 'coordinates': self.gap[0]},
+                         'properties': {'name': LONG, 'role': 'gcp', 'residual_h_m': 0.01,
                                         'residual_v_m': 0.01, 'images': 5}}]}[kind]
         return {'type': 'FeatureCollection', 'features': feats}
 
@@ -137,7 +147,7 @@ def test_routes(server):
     assert d['coverage']['gap_list'][0]['area_m2'] == 448.0 and d['accuracy']['check_rmse_h_m'] == 0.038
     code, ctype, body = _get(server.url + f'tiles/drone1/{Z}/{X}/{Y}.png')
     assert ctype == 'image/png' and body[:4] == b'\x89PNG'
-    assert _get(server.url + 'static/leaflet/leaflet.js')[2].startswith(b'/* @preserve')
+    assert _get(server.url + 'static/vendor/leaflet/leaflet.js')[2].startswith(b'/* @preserve')
     for bad in (f'tiles/drone1/{Z}/{X}/{Y + 1}.png', 'drones/nobody/track.geojson', 'static/../server.py'):
         with pytest.raises(urllib.error.HTTPError) as e:
             _get(server.url + bad)
@@ -258,6 +268,8 @@ def test_page_renders_tiles_gap_and_verdict_in_chromium(server, tmp_path):
     assert '/drone1&lt;img src=x onerror=' in dom and '&lt;script&gt;document.body' in dom
     assert '<img src="x"' not in dom and '<img src=x' not in dom
     assert 'unknown drone /intruder (not counted)' in dom and 'unknown publisher /fake' in dom
+    assert '<svg onload' not in dom and 'GCP "\'&gt;&lt;svg onload=' in dom and f'GCP {LONG} not seen' in dom
+    assert 'DDS traffic NOT authenticated, NOT encrypted' in dom
     assert 'base map: base.mbtiles (mbtiles, zoom 15–19)' in dom and 'drone data' in dom
 
 
@@ -276,6 +288,8 @@ def test_tooltips_hold_names_as_text(server):
     assert got['pwned'] is None
     assert any(t.startswith('CHK01<img src=x onerror=') for t in texts), texts
     assert any(t.startswith('coverage<img src=x') for t in texts), texts
+    assert any(t.startswith('CHK02' + QUOTES) for t in texts), texts
+    assert any(t.startswith(LONG[:79] + '…:') for t in texts), texts     # a long name cut in its tooltip
     assert all(t['elements'] == 0 for t in got['tips'])
 
 
@@ -422,3 +436,32 @@ def test_websocket_from_another_origin_is_refused(server):
     with pytest.raises(urllib.error.HTTPError) as e:
         urllib.request.urlopen(req, timeout=5)
     assert e.value.code == 403
+
+
+def test_bad_paths_are_refused_with_4xx_and_no_traceback(server, caplog, capfd):
+    """Tile and base-map addresses with huge or impossible numbers, path traversal (plain, %-encoded, overlong
+    UTF-8), a NUL byte, an over-long file name or request line: each gets 4xx, nothing outside the page's
+    files is served, and no traceback is logged or printed."""
+    import http.client
+    import logging
+    caplog.set_level(logging.DEBUG)
+    paths = [f'/tiles/drone1/99/{X}/{Y}.png', '/tiles/drone1/999999999999/1/1.png', '/tiles/drone1/-1/1/1.png',
+             '/basemap/99/1/1', '/basemap/24/99999999999/1', '/basemap/17/1/1', '/static/../server.py',
+             '/static/%2e%2e/server.py', '/static/..%2fserver.py', '/static/vendor/../../server.py',
+             '/static/%c0%ae%c0%ae/server.py', '/static//etc/passwd', '//etc/passwd', '/static/%00',
+             '/static/index.html%00.js', '/static/' + 'a' * 5000, '/drones/drone1/..%2f..%2fx.geojson',
+             '/tiles/..%2f..%2f/1/1/1.png', '/%ff%fe', '/static/.hidden', '/' + 'x' * 20000]
+    got = {}
+    for p in paths:
+        c = http.client.HTTPConnection('127.0.0.1', server.port, timeout=5)
+        c.request('GET', p)
+        r = c.getresponse()
+        got[p[:60]] = (r.status, r.read())
+        c.close()
+    print({k: v[0] for k, v in got.items()})
+    assert all(400 <= code < 500 for code, _ in got.values()), got
+    assert not any(b'import' in body or b'root:' in body for _, body in got.values())
+    out, err = capfd.readouterr()
+    assert 'Traceback' not in out + err + caplog.text
+    assert not [r for r in caplog.records if r.exc_info], [r.getMessage()[:200] for r in caplog.records]
+    assert _get(server.url + 'static/vendor/leaflet/leaflet.css')[0] == 200     # the page's own files still are

@@ -19,6 +19,12 @@ function fmt(v, unit, digits) {   // v in metres (shown in cm), a share (shown i
   return (scale * v).toFixed(digits ?? 1) + ' ' + unit;
 }
 
+// A name for a one-line tooltip: at most 80 characters (the panel shows names in full).
+function short(t) {
+  const a = Array.from(String(t));
+  return a.length > 80 ? a.slice(0, 79).join('') + '…' : a.join('');
+}
+
 function escapeHTML(t) {
   return String(t).replace(/[&<>"']/g, c => ({'&': '&amp;', '<': '&lt;', '>': '&gt;', '"': '&quot;', "'": '&#39;'})[c]);
 }
@@ -51,12 +57,12 @@ function ensureLayers(key, zoom) {
           ? {color: '#ff003c', weight: 2, fillOpacity: 0.45}
           : {color: '#2f81f7', weight: 1.5, dashArray: '6 4', fill: false},
         onEachFeature: (f, lay) => f.properties.role === 'gap' &&
-          lay.bindTooltip(escapeHTML(`${f.properties.kind} gap ${f.properties.area_m2} m²`))}).addTo(map),
+          lay.bindTooltip(escapeHTML(`${short(f.properties.kind)} gap ${f.properties.area_m2} m²`))}).addTo(map),
       track: L.geoJSON(null, {style: {color: '#ffd33d', weight: 2}}).addTo(map),
       targets: L.geoJSON(null, {pointToLayer: (f, ll) => L.circleMarker(ll, {radius: 7, weight: 2,
           color: f.properties.role === 'gcp' ? '#2f81f7' : '#fff', fillColor: targetColour(f.properties),
           fillOpacity: f.properties.role === 'gcp' ? 0.1 : 0.95}).bindTooltip(escapeHTML(
-          `${f.properties.name}: ${cm(f.properties.residual_h_m)} H, ${cm(f.properties.residual_v_m)} V`))}).addTo(map),
+          `${short(f.properties.name)}: ${cm(f.properties.residual_h_m)} H, ${cm(f.properties.residual_v_m)} V`))}).addTo(map),
       ortho: null, zoom: null, fitted: false, versions: {}};
   }
   if (Number.isInteger(zoom) && l.zoom !== zoom) {
@@ -166,9 +172,12 @@ function showUnknown(st) {
     box.append(el('div', {className: 'unknown'}, '/diagnostics also from ',
       st.diagnostics_unknown_publishers.join(', '), ': drone health not counted'));
   }
+  // Whether the drones' DDS traffic is authenticated and encrypted, at the top of the panel; why, below it.
   const sec = st.security || {};
-  document.getElementById('security').textContent = sec.summary ? `ROS 2 security: ${sec.summary}` : '';
-  document.getElementById('security').className = sec.enabled ? 'secure' : 'insecure';
+  const box2 = document.getElementById('security');
+  box2.replaceChildren(el('b', {}, sec.headline || 'DDS security: not known'),
+    sec.summary ? el('details', {}, el('summary', {}, 'ROS 2 security'), sec.summary) : null);
+  box2.className = sec.enabled ? 'secure' : 'insecure';
 }
 
 async function apply(msg) {
