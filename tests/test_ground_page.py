@@ -38,6 +38,15 @@ QUOTES = '"\'><svg onload=document.body.dataset.pwned=3>'
 LONG = 'CHK' + 'Ω✓ü' * 400                # 1,203 characters of unicode
 
 
+# Opens every tooltip of the map -> {tips: [{text, elements}], pwned}: what a name in a tooltip became.
+TOOLTIPS_JS = """(() => { const out = [];
+  map.eachLayer(l => { if (l.getTooltip && l.getTooltip()) l.openTooltip(
+      l.getLatLng ? l.getLatLng() : l.getBounds().getCenter()); });
+  document.querySelectorAll('.leaflet-tooltip').forEach(t => out.push(
+    {text: t.textContent, elements: t.querySelectorAll('*').length}));
+  return {tips: out, pwned: document.body.dataset.pwned || null}; })()"""
+
+
 def _tile_png(bgr=TILE_BGR) -> bytes:
     img = np.zeros((TILE_PX, TILE_PX, 4), np.uint8)
     img[..., :3] = bgr
@@ -95,7 +104,9 @@ class Provider:
                                                 f'GCP {QUOTES} not seen', f'GCP {LONG} not seen']}},
             'go_no_go': {'verdict': 'NO-GO', 'checks': [{'name': 'largest gap, any kind (m²)', 'value': 448.0,
                                                          'state': 'NO-GO', 'status': 'measured'}],
-                         'reasons': ['largest gap, any kind (m²): 448 (<= 25)']}}}}
+                         'reasons': ['largest gap, any kind (m²): 448 (<= 25)'],
+                         'warnings': ['forward overlap 22 % between two keyframes of a line, below the target: '
+                                      '1530 m² between them']}}}}
 
     def tiles_since(self, key, seq):
         return (1, [[Z, X, Y]][seq:]) if key == 'drone1' else (0, [])
@@ -270,6 +281,7 @@ def test_page_renders_tiles_gap_and_verdict_in_chromium(server, tmp_path):
     assert 'unknown drone /intruder (not counted)' in dom and 'unknown publisher /fake' in dom
     assert '<svg onload' not in dom and 'GCP "\'&gt;&lt;svg onload=' in dom and f'GCP {LONG} not seen' in dom
     assert 'DDS traffic NOT authenticated, NOT encrypted' in dom
+    assert 'WARN 1' in dom and 'WARN: forward overlap 22 % between two keyframes of a line' in dom
     assert 'base map: base.mbtiles (mbtiles, zoom 15–19)' in dom and 'drone data' in dom
 
 
@@ -277,13 +289,7 @@ def test_page_renders_tiles_gap_and_verdict_in_chromium(server, tmp_path):
 def test_tooltips_hold_names_as_text(server):
     """Leaflet's tooltips take HTML: the page escapes the target and gap names it gives them. Every tooltip
     is opened; their text holds the names, and no element came of them."""
-    got = chromium(server.url, None, script="""
-        (() => { const out = [];
-          map.eachLayer(l => { if (l.getTooltip && l.getTooltip()) l.openTooltip(
-              l.getLatLng ? l.getLatLng() : l.getBounds().getCenter()); });
-          document.querySelectorAll('.leaflet-tooltip').forEach(t => out.push(
-            {text: t.textContent, elements: t.querySelectorAll('*').length}));
-          return {tips: out, pwned: document.body.dataset.pwned || null}; })()""")
+    got = chromium(server.url, None, script=TOOLTIPS_JS)
     texts = [t['text'] for t in got['tips']]
     assert got['pwned'] is None
     assert any(t.startswith('CHK01<img src=x onerror=') for t in texts), texts

@@ -27,9 +27,13 @@ def add_arguments(p) -> None:
 
 
 def run(a) -> int:
+    import signal
     import sys
     import time
     import traceback
+    early = []   # SIGINT / SIGTERM before the station's own handlers are in place (rclpy loads for a second)
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda signum, _frame: early.append(signum))
 
     import rclpy
 
@@ -47,6 +51,9 @@ def run(a) -> int:
         print(f'[ground station] {security["refuse"]}', file=sys.stderr, flush=True)
         return 2
     signals = StopSignals('saving')
+    if early:   # asked to stop while starting: it saves what it has (nothing yet) and exits 0
+        signals.signal_name = signal.Signals(early[0]).name
+        signals.stop.set()
     init_ros()
     try:
         node = GroundStationNode(overrides=values)

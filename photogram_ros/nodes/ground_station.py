@@ -472,9 +472,10 @@ class GroundStationNode(Node):
             props['gap_list'] = [{k: f['properties'].get(k) for k in ('kind', 'area_m2', 'min_views', 'centroid')}
                                  for f in cov.get('features', []) if f.get('properties', {}).get('role') == 'gap']
             out['coverage'] = props
+            props['low_forward_overlap'] = low_forward_overlap(props)
             figures.update(coverage_share=_number(props.get('coverage_share')),
                            gaps=[{'kind': g['kind'], 'area_m2': _number(g['area_m2']), 'min_views': g['min_views']}
-                                 for g in props['gap_list']])
+                                 for g in props['gap_list']], low_forward_overlap=props['low_forward_overlap'])
         geo = q.get('georeference') if q is not None else None
         geo = geo if geo in (GEOREF_FINAL, GEOREF_PROVISIONAL, GEOREF_NONE) else geo_diag
         if q is not None:
@@ -592,7 +593,24 @@ def diagnostic_figures(st: dict) -> dict:
             'gnss_bias_enu_m': [_number(v) for v in bias] if isinstance(bias, list) else None,
             'coverage_share': _number(cov.get('coverage_share')),
             'gaps': [[g.get('kind'), _number(g.get('area_m2'))] for g in cov.get('gap_list', [])] if cov else None,
+            'warnings': (st.get('go_no_go') or {}).get('warnings') or [],
             'updated_unix_s': st.get('updated_unix_s')}
+
+
+def low_forward_overlap(props: dict) -> list[dict]:
+    """The coverage's keyframe pairs below the target forward overlap -> [{'overlap', 'area_m2', 'stamps_ns'}]:
+    area_m2 is the stretch of the swath between the two keyframes (footprint width x their distance,
+    (1 - overlap) x footprint length)."""
+    w, length = _number(props.get('footprint_width_m')), _number(props.get('footprint_length_m'))
+    out = []
+    for row in props.get('low_forward_pairs') or []:
+        try:
+            a, b, o = int(row[0]), int(row[1]), float(row[2])
+        except (TypeError, ValueError, IndexError):
+            continue
+        area = w * max(1.0 - o, 0.0) * length if w and length else None
+        out.append({'overlap': o, 'area_m2': round(area, 1) if area is not None else None, 'stamps_ns': [a, b]})
+    return out
 
 
 def diagnostic_text(value) -> str:

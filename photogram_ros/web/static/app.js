@@ -12,6 +12,7 @@ let limits = {};
 let basemap = null;  // the base map's Leaflet layer, once the server says it has one
 let viewFitted = false;
 let lastStatus = null, lastPushMs = 0, socketOpen = false;
+let clockOffsetMs = 0;   // this browser's clock minus the station's (ages are on the station's clock)
 
 function fmt(v, unit, digits) {   // v in metres (shown in cm), a share (shown in %), or as it is
   if (typeof v !== 'number' || !Number.isFinite(v)) return '–';
@@ -127,8 +128,10 @@ function panel(key, d) {
     `${ctl.gcps_full} / ${ctl.gcps_horizontal_only} / ${ctl.gcps_rejected} / ${ctl.gcps_held} of ${ctl.gcps}`]);
   const verdict = ['GO', 'NO-GO', 'WAIT'].includes(g.verdict) ? g.verdict : 'WAIT';
   const box = el('div', {className: 'drone', id: `drone-${key}`},
-    el('h2', {}, d.ns, ' ', el('span', {className: `verdict ${verdict}`, id: `verdict-${key}`}, verdict)),
+    el('h2', {}, d.ns, ' ', el('span', {className: `verdict ${verdict}`, id: `verdict-${key}`}, verdict),
+      (g.warnings || []).length ? el('span', {className: 'verdict WARN'}, `WARN ${g.warnings.length}`) : null),
     (g.reasons || []).map(r => el('div', {className: 'reason'}, r)),
+    (g.warnings || []).map(w => el('div', {className: 'warn'}, 'WARN: ', w)),
     (ctl && Array.isArray(ctl.faults) ? ctl.faults : []).map(f => el('div', {className: 'reason'}, 'control: ', f)),
     Object.entries(d.unknown_publishers || {}).map(([t, who]) => el('div', {className: 'unknown'},
       `${t}: unknown publisher ${[].concat(who).join(', ')}, not counted (${(d.not_counted || {})[t] ?? 0} messages)`)),
@@ -184,6 +187,7 @@ async function apply(msg) {
   const st = msg.status;
   lastStatus = st;
   lastPushMs = Date.now();
+  if (typeof msg.server_time_unix_s === 'number') clockOffsetMs = lastPushMs - 1000 * msg.server_time_unix_s;
   limits = st.limits || {};
   setBasemap(st.basemap);
   const boxes = [];
@@ -205,7 +209,7 @@ function showUpdated() {   // when the figures were last updated, and whether th
   const e = document.getElementById('updated');
   if (!lastStatus) { e.textContent = socketOpen ? 'connected, no status yet' : 'not connected'; return; }
   const times = Object.values(lastStatus.drones || {}).map(d => d.updated_unix_s).filter(t => typeof t === 'number');
-  const data = times.length ? new Date(1000 * Math.max(...times)) : null;
+  const data = times.length ? new Date(1000 * Math.max(...times) + clockOffsetMs) : null;   // browser time
   const age = data ? Math.round((Date.now() - data.getTime()) / 1000) : null;
   e.textContent = (data ? `drone data ${data.toLocaleTimeString()} (${age} s ago)` : 'no drone data yet') +
     ` · status ${new Date(lastPushMs).toLocaleTimeString()}` + (socketOpen ? '' : ' · DISCONNECTED, retrying');
