@@ -88,7 +88,8 @@ class Provider:
                     '/intruder/map/control_points': ['/intruder/' + SCRIPT]}},
                 'security': {'enabled': False, 'headline': 'DDS traffic NOT authenticated, NOT encrypted: test',
                              'summary': 'NOT AVAILABLE: test'}, 'drones': {'drone1': {
-            'ns': '/drone1' + EVIL, 'key': 'drone1', 'clouds': 3, 'points': 100, 'keyframes': 12, 'health': {},
+            'ns': '/drone1' + EVIL, 'key': 'drone1', 'clouds': 3, 'points': 100, 'keyframes': 12,
+            'health': {'/drone1/tracker_node': [1, 'tracking lost' + SCRIPT], '/drone1/map_node': [0, 'OK']},
             'ortho': {'tiles': 1, 'bytes_received': 1000, 'zoom': Z}, 'updated_unix_s': time.time(),
             'versions': {'coverage': 1, 'track': 1, 'targets': 1},
             'unknown_publishers': {'/map/control_points': ['/fake' + SCRIPT]}, 'not_counted': {'/map/control_points': 3},
@@ -281,6 +282,7 @@ def test_page_renders_tiles_gap_and_verdict_in_chromium(server, tmp_path):
     assert 'unknown drone /intruder (not counted)' in dom and 'unknown publisher /fake' in dom
     assert '<svg onload' not in dom and 'GCP "\'&gt;&lt;svg onload=' in dom and f'GCP {LONG} not seen' in dom
     assert 'DDS traffic NOT authenticated, NOT encrypted' in dom
+    assert 'drone1/tracker_node WARN: tracking lost&lt;script&gt;' in dom and 'map_node WARN' not in dom
     assert 'WARN 1' in dom and 'WARN: forward overlap 22 % between two keyframes of a line' in dom
     assert 'base map: base.mbtiles (mbtiles, zoom 15–19)' in dom and 'drone data' in dom
 

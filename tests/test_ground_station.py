@@ -206,3 +206,14 @@ def test_low_forward_overlap_is_a_warning_with_its_area():
     assert g['verdict'] == 'GO' and g['warnings'] == [
         'forward overlap 22 % between two keyframes of a line, below the target: 1482 m² between them']
     assert low_forward_overlap({'low_forward_pairs': [[1, 2, 0.5]]})[0]['area_m2'] is None
+
+
+def test_a_drone_node_in_error_holds_the_verdict():
+    """bundle_node saying ERROR on /diagnostics (e.g. no georeference after 47 keyframes) is a reason and keeps
+    a GO at WAIT; a NO-GO stays NO-GO; WARN and STALE levels do not change it."""
+    from photogram_ros.nodes.ground_station import with_node_errors
+    go = {'verdict': 'GO', 'reasons': [], 'checks': [], 'warnings': []}
+    g = with_node_errors(go, {'/bundle_node': [2, 'no georeference after 47 keyframes'], '/map_node': [0, 'OK']})
+    assert g['verdict'] == 'WAIT' and g['reasons'] == ['bundle_node ERROR: no georeference after 47 keyframes']
+    assert with_node_errors({**go, 'verdict': 'NO-GO'}, {'/b': [2, 'x']})['verdict'] == 'NO-GO'
+    assert with_node_errors(go, {'/tracker_node': [1, 'tracking lost'], '/x': [3, 'stale']}) == go

@@ -206,11 +206,11 @@ def test_a_second_node_of_the_drones_name_is_not_counted_and_diagnostics_equal_s
     assert heard['default_gnss_bias_enu_m'] == '[0.001, -0.025, 0.004]'
 
 
-def _station(tmp_path, *extra, **kw):
+def _station(tmp_path, *extra, env=None, **kw):
     return subprocess.Popen([sys.executable, '-m', 'photogram_ros.cli', 'ground-station', '--out',
                              str(tmp_path / 'gs'), '--save-period', '1', *extra], cwd=ROOT,
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                            env={**os.environ, 'PYTHONUNBUFFERED': '1'}, **kw)
+                            env=env or {**os.environ, 'PYTHONUNBUFFERED': '1'}, **kw)
 
 
 def _wait_for(proc, text, timeout_s=60):
@@ -275,3 +275,58 @@ def test_a_crash_says_where_the_files_are(tmp_path):
     del head
     assert proc.returncode == 1
     assert 'stopped by an error' in err and str((tmp_path / 'gs').resolve()) in err and 'status.json' in err
+
+
+def test_the_commands_page_closes_idle_connections_and_refuses_remote_requests(tmp_path):
+    """`ground-station --web 0.0.0.0:PORT` with its defaults: a connection that sends half a request line and
+    one that sends nothing are closed by the server within 60 s; a request naming another host, or from
+    another address without the token, is refused (403); with the token it is served."""
+    import re
+    import socket
+
+    from test_ground_page import _lan_address, _served
+    proc = _station(tmp_path, '--web', '0.0.0.0:0')
+    try:
+        head = _wait_for(proc, 'map page on')
+        url = re.search(r'map page on (http://\S+)', head).group(1)
+        token = url.split('?token=')[1].split()[0]
+        port = int(url.split('/')[2].rsplit(':', 1)[1])
+        half, idle = socket.create_connection(('127.0.0.1', port)), socket.create_connection(('127.0.0.1', port))
+        half.sendall(b'GET /status.json HT')
+        for s in (half, idle):
+            s.settimeout(60)
+            try:
+                assert s.recv(100) == b''          # closed by the server, not by the 60 s timeout here
+            except ConnectionResetError:
+                pass
+            s.close()
+        local = f'http://127.0.0.1:{port}/status.json'
+        assert _served(None, local) == 200
+        assert _served(None, local, {'Host': 'station.example:80'}) == 403
+        lan = _lan_address()
+        if lan is not None:
+            assert _served(None, f'http://{lan}:{port}/status.json') == 403
+            assert _served(None, f'http://{lan}:{port}/status.json?token={token[:-1]}x') == 403
+            assert _served(None, f'http://{lan}:{port}/status.json', {'Authorization': f'Bearer {token}'}) == 200
+        proc.send_signal(signal.SIGINT)
+        out, err = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 0 and 'Traceback' not in err
+    assert 'DDS traffic NOT authenticated, NOT encrypted' in head or 'DDS traffic authenticated' in head
+
+
+def test_security_asked_for_without_the_plugins_is_refused_at_the_start(tmp_path):
+    """ROS_SECURITY_ENABLE=true with the PyPI wheels (Fast DDS without the security plugins): rcl could not
+    create the node; the station says why and what to do, exit 2, no traceback."""
+    from photogram_ros.nodes.ground_station import security_status
+    if security_status()['dds_security_plugins'] is not False:
+        pytest.skip('this Fast DDS has the security plugins')
+    ks = tmp_path / 'keystore' / 'enclaves' / 'gs'
+    ks.mkdir(parents=True)
+    proc = _station(tmp_path, env={**os.environ, 'PYTHONUNBUFFERED': '1', 'ROS_SECURITY_ENABLE': 'true',
+                                   'ROS_SECURITY_KEYSTORE': str(tmp_path / 'keystore'), 'ROS_SECURITY_ENCLAVE': '/gs'})
+    out, err = proc.communicate(timeout=60)
+    assert proc.returncode == 2 and 'Traceback' not in err
+    assert 'no DDS security plugins' in err and 'ROS_SECURITY_ENABLE' in err

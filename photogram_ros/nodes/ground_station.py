@@ -44,8 +44,8 @@ from std_msgs.msg import String
 
 from photogram_ros import msgs
 from photogram_ros.core.geodesy import LocalFrame, utm_epsg
-from photogram_ros.core.survey_quality import (GEOREF_FINAL, GEOREF_NONE, GEOREF_PROVISIONAL, GEOREF_UNKNOWN,
-                                               QualityLimits, go_no_go)
+from photogram_ros.core.survey_quality import (GEOREF_FINAL, GEOREF_NONE, GEOREF_PROVISIONAL, GEOREF_UNKNOWN, GO,
+                                               WAIT, QualityLimits, go_no_go)
 from photogram_ros.errors import PhotogramError
 from photogram_ros.nodes.diagnostics import Diagnostics
 from photogram_ros.nodes.ros_params import declare
@@ -356,7 +356,7 @@ class GroundStationNode(Node):
         for st in msg.status:
             ns, _, node = st.name.rpartition('/')
             drone = self.drones.get(ns)
-            if drone is None:
+            if drone is None or node not in DRONE_NODES:   # this station's own status, or no drone node
                 continue
             level = int.from_bytes(st.level, 'little') if isinstance(st.level, bytes) else int(st.level)
             with self._lock:
@@ -492,7 +492,7 @@ class GroundStationNode(Node):
                                        'count': out['accuracy']['check_count']},
                            fix_share=q.get('fix_share'))
         figures['georeference'] = geo
-        out['go_no_go'] = go_no_go(figures, self.params)
+        out['go_no_go'] = with_node_errors(go_no_go(figures, self.params), out['health'])
         return out
 
     def status(self) -> dict:
@@ -595,6 +595,15 @@ def diagnostic_figures(st: dict) -> dict:
             'gaps': [[g.get('kind'), _number(g.get('area_m2'))] for g in cov.get('gap_list', [])] if cov else None,
             'warnings': (st.get('go_no_go') or {}).get('warnings') or [],
             'updated_unix_s': st.get('updated_unix_s')}
+
+
+def with_node_errors(g: dict, health: dict) -> dict:
+    """A verdict with the drone's nodes that say ERROR on /diagnostics: each is a reason, and the verdict is
+    not GO while one does (a node's error is no figure to judge: WAIT, the reason says which node and why)."""
+    errors = [f'{name.lstrip("/")} ERROR: {msg}' for name, (level, msg) in sorted(health.items()) if level == 2]
+    if not errors:
+        return g
+    return {**g, 'verdict': WAIT if g['verdict'] == GO else g['verdict'], 'reasons': g['reasons'] + errors}
 
 
 def low_forward_overlap(props: dict) -> list[dict]:

@@ -132,6 +132,8 @@ function panel(key, d) {
       (g.warnings || []).length ? el('span', {className: 'verdict WARN'}, `WARN ${g.warnings.length}`) : null),
     (g.reasons || []).map(r => el('div', {className: 'reason'}, r)),
     (g.warnings || []).map(w => el('div', {className: 'warn'}, 'WARN: ', w)),
+    Object.entries(d.health || {}).filter(([, h]) => Array.isArray(h) && h[0] === 1).map(([n, h]) =>
+      el('div', {className: 'warn'}, `${n.replace(/^\//, '')} WARN: `, h[1])),
     (ctl && Array.isArray(ctl.faults) ? ctl.faults : []).map(f => el('div', {className: 'reason'}, 'control: ', f)),
     Object.entries(d.unknown_publishers || {}).map(([t, who]) => el('div', {className: 'unknown'},
       `${t}: unknown publisher ${[].concat(who).join(', ')}, not counted (${(d.not_counted || {})[t] ?? 0} messages)`)),
