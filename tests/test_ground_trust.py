@@ -47,9 +47,25 @@ def _diag(name: str, georef: str) -> DiagnosticArray:
                                                     values=[KeyValue(key='georeferenced', value=georef)])])
 
 
-def test_fake_publishers_change_no_verdict(tmp_path, rclpy_context):
+def _spinner(context, listener, *nodes):
+    """An executor over the nodes and the listener; the dict the station's /diagnostics values fill (as the
+    listener hears them); spin(seconds, until) runs the executor."""
     from rclpy.executors import SingleThreadedExecutor
+    ex = SingleThreadedExecutor(context=context)
+    for n in (*nodes, listener):
+        ex.add_node(n)
+    heard = {}
+    listener.create_subscription(DiagnosticArray, '/diagnostics', lambda m: heard.update(
+        {kv.key: kv.value for st in m.status if st.name == '/ground_station' for kv in st.values}), 50)
 
+    def spin(seconds, until=lambda: False):
+        t0 = time.monotonic()
+        while time.monotonic() - t0 < seconds and not until():
+            ex.spin_once(timeout_sec=0.05)
+    return ex, heard, spin
+
+
+def test_fake_publishers_change_no_verdict(tmp_path, rclpy_context):
     from photogram_ros.nodes.ground_station import GroundStationNode
     station = GroundStationNode({'out_dir': str(tmp_path / 'gs'), 'drones': '/drone1', 'web': '127.0.0.1:0',
                                  'save_period_s': 1.0}, context=rclpy_context)
@@ -59,17 +75,7 @@ def test_fake_publishers_change_no_verdict(tmp_path, rclpy_context):
     impostor = Node('impostor', namespace='/drone1', context=rclpy_context)     # in the drone's namespace
     stranger = Node('map_node', namespace='/drone9', context=rclpy_context)     # a drone not on the list
     listener = Node('diag_listener', context=rclpy_context)
-    ex = SingleThreadedExecutor(context=rclpy_context)
-    for n in (station, bundle, mapper, fake, impostor, stranger, listener):
-        ex.add_node(n)
-    station_diag = {}
-    listener.create_subscription(DiagnosticArray, '/diagnostics', lambda m: station_diag.update(
-        {kv.key: kv.value for st in m.status if st.name == '/ground_station' for kv in st.values}), 50)
-
-    def spin(seconds, until=lambda: False):
-        t0 = time.monotonic()
-        while time.monotonic() - t0 < seconds and not until():
-            ex.spin_once(timeout_sec=0.05)
+    ex, station_diag, spin = _spinner(rclpy_context, listener, station, bundle, mapper, fake, impostor, stranger)
 
     def drone():
         return station.status()['drones'].get('drone1', {})
@@ -148,25 +154,13 @@ def test_a_second_node_of_the_drones_name_is_not_counted_and_diagnostics_equal_s
     while the drone's own bundle_node publishes: the topic has two publishers of that name, so neither is
     counted and the verdict keeps its last trusted value. The station's /diagnostics carries every figure of
     status.json (check points H / V and count, GCP residuals, georeference, GNSS bias, gaps) with the same value."""
-    from rclpy.executors import SingleThreadedExecutor
-
     from photogram_ros.nodes.ground_station import GroundStationNode, diagnostic_figures, diagnostic_text
     station = GroundStationNode({'out_dir': str(tmp_path / 'gs'), 'drones': '/', 'save_period_s': 1.0},
                                 context=rclpy_context)
     bundle = Node('bundle_node', context=rclpy_context)
     mapper = Node('map_node', context=rclpy_context)
     listener = Node('diag_listener2', context=rclpy_context)
-    ex = SingleThreadedExecutor(context=rclpy_context)
-    for n in (station, bundle, mapper, listener):
-        ex.add_node(n)
-    heard = {}
-    listener.create_subscription(DiagnosticArray, '/diagnostics', lambda m: heard.update(
-        {kv.key: kv.value for st in m.status if st.name == '/ground_station' for kv in st.values}), 50)
-
-    def spin(seconds, until=lambda: False):
-        t0 = time.monotonic()
-        while time.monotonic() - t0 < seconds and not until():
-            ex.spin_once(timeout_sec=0.05)
+    ex, heard, spin = _spinner(rclpy_context, listener, station, bundle, mapper)
 
     q = _quality(0.03)
     q.update(georeference='final', gnss_bias_enu_m=[0.001, -0.025, 0.004],
