@@ -73,6 +73,18 @@ def make_mbtiles(path: Path, zooms=(15, 16, 17, 18, 19)) -> Path:
     return path
 
 
+def make_xyz(path: Path, zooms=(15, 16, 17, 18, 19)) -> Path:
+    """The tiles of make_mbtiles as an XYZ folder, Z/X/Y.png (y down from the north)."""
+    png = _tile_png(BASE_BGR)
+    for z in zooms:
+        x0, y0 = X >> (Z - z), Y >> (Z - z)
+        for x in range(x0 - 2, x0 + 3):
+            (path / str(z) / str(x)).mkdir(parents=True, exist_ok=True)
+            for y in range(y0 - 2, y0 + 3):
+                (path / str(z) / str(x) / f'{y}.png').write_bytes(png)
+    return path
+
+
 class Provider:
     def __init__(self):
         import morecantile
@@ -140,9 +152,11 @@ class Provider:
         return {'fileType': 'Plan'} if key == 'drone1' else None
 
 
-@pytest.fixture
-def server(tmp_path):
-    srv = WebServer(Provider(), '127.0.0.1', 0, basemap=open_basemap(make_mbtiles(tmp_path / 'base.mbtiles'))).start()
+@pytest.fixture(params=['mbtiles', 'xyz'])
+def server(tmp_path, request):
+    """The page's server over an offline base map made here: an MBTiles file, or an XYZ tile folder."""
+    base = make_mbtiles(tmp_path / 'base.mbtiles') if request.param == 'mbtiles' else make_xyz(tmp_path / 'xyz')
+    srv = WebServer(Provider(), '127.0.0.1', 0, basemap=open_basemap(base)).start()
     yield srv
     srv.stop()
 
@@ -284,7 +298,8 @@ def test_page_renders_tiles_gap_and_verdict_in_chromium(server, tmp_path):
     assert 'DDS traffic NOT authenticated, NOT encrypted' in dom
     assert 'drone1/tracker_node WARN: tracking lost&lt;script&gt;' in dom and 'map_node WARN' not in dom
     assert 'WARN 1' in dom and 'WARN: forward overlap 22 % between two keyframes of a line' in dom
-    assert 'base map: base.mbtiles (mbtiles, zoom 15–19)' in dom and 'drone data' in dom
+    assert ('base map: base.mbtiles (mbtiles, zoom 15–19)' in dom or 'base map: xyz (xyz, zoom 15–19)' in dom)
+    assert 'drone data' in dom
 
 
 @pytest.mark.skipif(CHROMIUM is None, reason='chromium is not installed (apt-get install chromium)')

@@ -26,6 +26,12 @@ function short(t) {
   return a.length > 80 ? a.slice(0, 79).join('') + '…' : a.join('');
 }
 
+// A line of the panel from a drone or a file: cut to 200 characters, the whole text in its tooltip (title).
+function clip(t) {
+  const a = Array.from(String(t));
+  return a.length > 200 ? el('span', {title: String(t)}, a.slice(0, 199).join('') + '…') : String(t);
+}
+
 function escapeHTML(t) {
   return String(t).replace(/[&<>"']/g, c => ({'&': '&amp;', '<': '&lt;', '>': '&gt;', '"': '&quot;', "'": '&#39;'})[c]);
 }
@@ -120,7 +126,7 @@ function panel(key, d) {
     ['gaps (all kinds)', `${(c.gap_list || []).length}, largest ${fmt(check(g, 'largest gap')?.value, 'm²', 0)}`],
     ['forward / side overlap', `${fmt(c.forward_overlap_median, '%', 0)} / ${fmt(c.side_overlap_min, '%', 0)}`],
     ['RTK fixed / float / 3D', `${fmt(fs.rtk_fixed, '%', 0)} / ${fmt(fs.rtk_float, '%', 0)} / ${fmt(fs['3d'], '%', 0)}`],
-    ['GNSS bias E N U', Array.isArray(a.gnss_bias_enu_m) ? a.gnss_bias_enu_m.map(v => (100 * Number(v)).toFixed(1)).join(' ') + ' cm' : '–'],
+    ['GNSS bias estimate E N U', Array.isArray(a.gnss_bias_enu_m) ? a.gnss_bias_enu_m.map(v => (100 * Number(v)).toFixed(1)).join(' ') + ' cm' : '–'],
     ['keyframes / ortho tiles', `${d.keyframes} / ${(d.ortho || {}).tiles}`],
   ];
   const ctl = a.control;
@@ -128,13 +134,14 @@ function panel(key, d) {
     `${ctl.gcps_full} / ${ctl.gcps_horizontal_only} / ${ctl.gcps_rejected} / ${ctl.gcps_held} of ${ctl.gcps}`]);
   const verdict = ['GO', 'NO-GO', 'WAIT'].includes(g.verdict) ? g.verdict : 'WAIT';
   const box = el('div', {className: 'drone', id: `drone-${key}`},
-    el('h2', {}, d.ns, ' ', el('span', {className: `verdict ${verdict}`, id: `verdict-${key}`}, verdict),
+    el('h2', {}, clip(d.ns), ' ', el('span', {className: `verdict ${verdict}`, id: `verdict-${key}`}, verdict),
       (g.warnings || []).length ? el('span', {className: 'verdict WARN'}, `WARN ${g.warnings.length}`) : null),
-    (g.reasons || []).map(r => el('div', {className: 'reason'}, r)),
+    (g.reasons || []).map(r => el('div', {className: 'reason'}, clip(r))),
     (g.warnings || []).map(w => el('div', {className: 'warn'}, 'WARN: ', w)),
     Object.entries(d.health || {}).filter(([, h]) => Array.isArray(h) && h[0] === 1).map(([n, h]) =>
-      el('div', {className: 'warn'}, `${n.replace(/^\//, '')} WARN: `, h[1])),
-    (ctl && Array.isArray(ctl.faults) ? ctl.faults : []).map(f => el('div', {className: 'reason'}, 'control: ', f)),
+      el('div', {className: 'warn'}, `${n.replace(/^\//, '')} WARN: `, clip(h[1]))),
+    (ctl && Array.isArray(ctl.faults) ? ctl.faults : []).map(f => el('div', {className: 'reason'}, 'control: ',
+      clip(f))),
     Object.entries(d.unknown_publishers || {}).map(([t, who]) => el('div', {className: 'unknown'},
       `${t}: unknown publisher ${[].concat(who).join(', ')}, not counted (${(d.not_counted || {})[t] ?? 0} messages)`)),
     el('table', {}, rows.map(([k, v]) => el('tr', {}, el('td', {}, k), el('td', {className: 'v'}, v)))));
