@@ -651,15 +651,15 @@ def security_status() -> dict:
     plugins = _dds_security_plugins() if rmw.startswith('rmw_fastrtps') else None
     enabled = asked and bool(keystore) and bool(enclave) and plugins is not False
     refuse = ''
-    plain = ('DDS traffic NOT authenticated, NOT encrypted: any node on this ROS_DOMAIN_ID can publish a drone\'s '
-             'topics under its names; the allow-list and the publisher check keep out nodes with other names, not '
-             'impostors.')
+    plain = 'DDS traffic NOT authenticated, NOT encrypted'
+    why = (': any node on this ROS_DOMAIN_ID can publish a drone\'s topics under its names; the allow-list and '
+           'the publisher check keep out nodes with other names, not impostors.')
     howto = ('For authenticated, encrypted topics use a ROS 2 installation whose Fast DDS has the security plugins '
              '(the Debian/ROS packages) with ros-jazzy-sros2, and set ROS_SECURITY_ENABLE=true, '
              'ROS_SECURITY_KEYSTORE, ROS_SECURITY_ENCLAVE.')
     if plugins is False:
-        headline = plain
-        summary = (f'{plain} SROS2 is NOT AVAILABLE here: the installed Fast DDS (libfastrtps of the PyPI ROS '
+        headline = plain + ' (SROS2 is not available with this ROS 2 installation)'
+        summary = (f'{plain}{why} SROS2 is NOT AVAILABLE here: the installed Fast DDS (libfastrtps of the PyPI ROS '
                    'wheels) is built without the DDS security plugins (authentication, access control, '
                    f'encryption). {howto}')
         if asked:
@@ -671,8 +671,8 @@ def security_status() -> dict:
         summary = (f'{headline}: ROS_SECURITY_ENABLE=true, enclave {enclave} in {keystore} ({rmw}); rcl refuses '
                    'to start when the enclave\'s files are missing')
     else:
-        headline = plain
-        summary = plain + ' ' + ('ROS_SECURITY_ENABLE is not set. ' if not asked else
+        headline = plain + (' (ROS_SECURITY_ENABLE is not set)' if not asked else ' (no keystore or enclave given)')
+        summary = plain + why + ' ' + ('ROS_SECURITY_ENABLE is not set. ' if not asked else
                                  'ROS_SECURITY_ENABLE=true without ROS_SECURITY_KEYSTORE and ROS_SECURITY_ENCLAVE. ')
         summary += ('The sros2 tools are installed: create a keystore and enclaves and set ROS_SECURITY_ENABLE=true, '
                     'ROS_SECURITY_KEYSTORE, ROS_SECURITY_ENCLAVE.' if sros2 else
