@@ -44,8 +44,8 @@ from std_msgs.msg import String
 
 from photogram_ros import msgs
 from photogram_ros.core.geodesy import LocalFrame, utm_epsg
-from photogram_ros.core.survey_quality import (GEOREF_FINAL, GEOREF_NONE, GEOREF_PROVISIONAL, GEOREF_UNKNOWN, GO,
-                                               WAIT, QualityLimits, go_no_go)
+from photogram_ros.core.survey_quality import (GEOREF_FINAL, GEOREF_NONE, GEOREF_PROVISIONAL, GEOREF_UNKNOWN,
+                                               GO, WAIT, QualityLimits, go_no_go)
 from photogram_ros.errors import PhotogramError
 from photogram_ros.nodes.diagnostics import Diagnostics
 from photogram_ros.nodes.ros_params import declare
@@ -317,7 +317,7 @@ class GroundStationNode(Node):
         try:
             z, x, y, png = msgs.ortho_tile_from_msg(msg)
             if not (0 <= z <= MAX_TILE_ZOOM and x < 2 ** z and y < 2 ** z):
-                raise PhotogramError(f'tile {z}/{x}/{y} is no XYZ tile (zoom 0-{MAX_TILE_ZOOM}, x and y < 2^zoom)')
+                raise PhotogramError(f'tile {z}/{x}/{y} is no XYZ tile (zoom 0-{MAX_TILE_ZOOM}, x, y < 2^zoom)')
         except PhotogramError as exc:
             self.diag.problem(f'{drone.ns}: ortho tile dropped: {exc}')
             return
@@ -475,7 +475,8 @@ class GroundStationNode(Node):
             props['low_forward_overlap'] = low_forward_overlap(props)
             figures.update(coverage_share=_number(props.get('coverage_share')),
                            gaps=[{'kind': g['kind'], 'area_m2': _number(g['area_m2']), 'min_views': g['min_views']}
-                                 for g in props['gap_list']], low_forward_overlap=props['low_forward_overlap'])
+                                 for g in props['gap_list']],
+                           low_forward_overlap=props['low_forward_overlap'])
         geo = q.get('georeference') if q is not None else None
         geo = geo if geo in (GEOREF_FINAL, GEOREF_PROVISIONAL, GEOREF_NONE) else geo_diag
         if q is not None:
@@ -592,7 +593,8 @@ def diagnostic_figures(st: dict) -> dict:
             'gcp_count': gcp.get('count'),
             'gnss_bias_enu_m': [_number(v) for v in bias] if isinstance(bias, list) else None,
             'coverage_share': _number(cov.get('coverage_share')),
-            'gaps': [[g.get('kind'), _number(g.get('area_m2'))] for g in cov.get('gap_list', [])] if cov else None,
+            'gaps': [[g.get('kind'), _number(g.get('area_m2'))] for g in cov.get('gap_list', [])]
+                    if cov else None,
             'warnings': (st.get('go_no_go') or {}).get('warnings') or [],
             'updated_unix_s': st.get('updated_unix_s')}
 
@@ -600,14 +602,16 @@ def diagnostic_figures(st: dict) -> dict:
 def with_node_errors(g: dict, health: dict) -> dict:
     """A verdict with the drone's nodes that say ERROR on /diagnostics: each is a reason, and the verdict is
     not GO while one does (a node's error is no figure to judge: WAIT, the reason says which node and why)."""
-    errors = [f'{name.lstrip("/")} ERROR: {msg}' for name, (level, msg) in sorted(health.items()) if level == 2]
+    errors = [f'{name.lstrip("/")} ERROR: {msg}' for name, (level, msg) in sorted(health.items())
+              if level == 2]
     if not errors:
         return g
     return {**g, 'verdict': WAIT if g['verdict'] == GO else g['verdict'], 'reasons': g['reasons'] + errors}
 
 
 def low_forward_overlap(props: dict) -> list[dict]:
-    """The coverage's keyframe pairs below the target forward overlap -> [{'overlap', 'area_m2', 'stamps_ns'}]:
+    """The coverage's keyframe pairs below the target forward overlap -> [{'overlap', 'area_m2',
+    'stamps_ns'}]:
     area_m2 is the stretch of the swath between the two keyframes (footprint width x their distance,
     (1 - overlap) x footprint length)."""
     w, length = _number(props.get('footprint_width_m')), _number(props.get('footprint_length_m'))
@@ -618,7 +622,7 @@ def low_forward_overlap(props: dict) -> list[dict]:
         except (TypeError, ValueError, IndexError):
             continue
         area = w * max(1.0 - o, 0.0) * length if w and length else None
-        out.append({'overlap': o, 'area_m2': round(area, 1) if area is not None else None, 'stamps_ns': [a, b]})
+        out.append({'overlap': o, 'area_m2': None if area is None else round(area, 1), 'stamps_ns': [a, b]})
     return out
 
 
@@ -650,36 +654,35 @@ def security_status() -> dict:
     sros2 = any((Path(p) / 'sros2').is_dir() for p in sys.path if p)   # the keystore / enclave tools
     plugins = _dds_security_plugins() if rmw.startswith('rmw_fastrtps') else None
     enabled = asked and bool(keystore) and bool(enclave) and plugins is not False
-    refuse = ''
+    env = 'ROS_SECURITY_ENABLE=true, ROS_SECURITY_KEYSTORE, ROS_SECURITY_ENCLAVE'
     plain = 'DDS traffic NOT authenticated, NOT encrypted'
-    why = (': any node on this ROS_DOMAIN_ID can publish a drone\'s topics under its names; the allow-list and '
-           'the publisher check keep out nodes with other names, not impostors.')
-    howto = ('For authenticated, encrypted topics use a ROS 2 installation whose Fast DDS has the security plugins '
-             '(the Debian/ROS packages) with ros-jazzy-sros2, and set ROS_SECURITY_ENABLE=true, '
-             'ROS_SECURITY_KEYSTORE, ROS_SECURITY_ENCLAVE.')
+    why = (": any node on this ROS_DOMAIN_ID can publish a drone's topics under its names; the allow-list "
+           'and the publisher check keep out nodes with other names, not impostors.')
+    howto = ('For authenticated, encrypted topics use a ROS 2 installation whose Fast DDS has the security '
+             f'plugins (the Debian/ROS packages) with ros-jazzy-sros2, and set {env}.')
+    refuse = ''
     if plugins is False:
         headline = plain + ' (SROS2 is not available with this ROS 2 installation)'
-        summary = (f'{plain}{why} SROS2 is NOT AVAILABLE here: the installed Fast DDS (libfastrtps of the PyPI ROS '
-                   'wheels) is built without the DDS security plugins (authentication, access control, '
+        summary = (f'{plain}{why} SROS2 is NOT AVAILABLE here: the installed Fast DDS (libfastrtps of the PyPI '
+                   'ROS wheels) is built without the DDS security plugins (authentication, access control, '
                    f'encryption). {howto}')
         if asked:
-            refuse = ('ROS_SECURITY_ENABLE=true, but the installed Fast DDS (the PyPI ROS wheels) has no DDS security '
-                      'plugins, so the station cannot authenticate or encrypt its topics. ' + howto
+            refuse = ('ROS_SECURITY_ENABLE=true, but the installed Fast DDS (the PyPI ROS wheels) has no DDS '
+                      'security plugins, so the station cannot authenticate or encrypt its topics. ' + howto
                       + ' Or unset ROS_SECURITY_ENABLE to run without security.')
     elif enabled:
-        headline = f'DDS traffic authenticated and encrypted (SROS2 enclave {enclave}, as its governance file says)'
-        summary = (f'{headline}: ROS_SECURITY_ENABLE=true, enclave {enclave} in {keystore} ({rmw}); rcl refuses '
-                   'to start when the enclave\'s files are missing')
+        headline = f'DDS traffic authenticated and encrypted (SROS2 enclave {enclave}, as its governance says)'
+        summary = (f'{headline}: ROS_SECURITY_ENABLE=true, enclave {enclave} in {keystore} ({rmw}); rcl '
+                   "refuses to start when the enclave's files are missing")
     else:
-        headline = plain + (' (ROS_SECURITY_ENABLE is not set)' if not asked else ' (no keystore or enclave given)')
-        summary = plain + why + ' ' + ('ROS_SECURITY_ENABLE is not set. ' if not asked else
-                                 'ROS_SECURITY_ENABLE=true without ROS_SECURITY_KEYSTORE and ROS_SECURITY_ENCLAVE. ')
-        summary += ('The sros2 tools are installed: create a keystore and enclaves and set ROS_SECURITY_ENABLE=true, '
-                    'ROS_SECURITY_KEYSTORE, ROS_SECURITY_ENCLAVE.' if sros2 else
+        headline = plain + (' (ROS_SECURITY_ENABLE is not set)' if not asked else ' (no keystore or enclave)')
+        summary = plain + why + (' ROS_SECURITY_ENABLE is not set. ' if not asked else
+                                 ' ROS_SECURITY_ENABLE=true without ROS_SECURITY_KEYSTORE and ROS_SECURITY_ENCLAVE. ')
+        summary += (f'The sros2 tools are installed: create a keystore and enclaves and set {env}.' if sros2 else
                     'The sros2 package (keystore and enclave tools) is not installed. ' + howto)
     return {'enabled': enabled, 'authenticated': enabled, 'encrypted': enabled, 'asked': asked, 'rmw': rmw,
-            'sros2_installed': sros2, 'dds_security_plugins': plugins, 'headline': headline, 'summary': summary,
-            'refuse': refuse}
+            'sros2_installed': sros2, 'dds_security_plugins': plugins, 'headline': headline,
+            'summary': summary, 'refuse': refuse}
 
 
 def _dds_security_plugins() -> bool | None:
