@@ -362,6 +362,10 @@ def test_every_interface_needs_the_token():
         assert srv.refused_requests >= 4
     finally:
         srv.stop()
+    from photogram_ros.errors import ConfigError
+    for weak in ('abc', 'x' * 11, 'with blanks in it'):
+        with pytest.raises(ConfigError):
+            WebServer(Provider(), '0.0.0.0', 0, token=weak)
     local = WebServer(Provider(), '127.0.0.1', 0).start()
     try:
         assert local.token is None and local.local_only

@@ -54,6 +54,7 @@ _DRONE = re.compile(rf'^/drones/{_NAME}/(coverage|track|targets)\.geojson$')
 _PLAN = re.compile(rf'^/drones/{_NAME}/refly\.plan$')
 _STATIC = re.compile(r'^(?:[A-Za-z0-9_-][A-Za-z0-9_.-]{0,63}/){0,4}[A-Za-z0-9_-][A-Za-z0-9_.-]{0,63}$')
 COOKIE = 'gs_token'
+MIN_TOKEN_CHARS = 12          # a token given by the user: shorter ones are guessed too easily
 LOOPBACK_NAMES = {'localhost', '127.0.0.1', '::1', '[::1]'}
 HEADERS = {'X-Content-Type-Options': 'nosniff', 'X-Frame-Options': 'DENY', 'Referrer-Policy': 'no-referrer',
            'Cache-Control': 'no-cache',
@@ -154,6 +155,9 @@ class WebServer:
         self.limits = limits or WebLimits()
         self.basemap = basemap
         self.local_only = is_loopback_host(host)
+        if token and (len(token) < MIN_TOKEN_CHARS or not token.isprintable() or ' ' in token):
+            raise ConfigError(f'--web-token: give at least {MIN_TOKEN_CHARS} printable characters without blanks '
+                              '(or none: the station generates one)')
         self.token = token or (None if self.local_only else secrets.token_urlsafe(18))
         self.refused_connections = 0
         self.refused_requests = 0
