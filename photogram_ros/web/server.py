@@ -292,7 +292,8 @@ class WebServer:
                 except asyncio.TimeoutError:
                     resp = web.Response(status=503, text='the answer took too long\n')
                 except Exception as exc:   # noqa: BLE001 (one line in the log, no traceback to the client)
-                    _LOG.warning('%s %s: %s: %s', request.method, request.path[:200], type(exc).__name__, exc)
+                    _LOG.warning('%s %r: %s: %s', request.method, request.path[:200], type(exc).__name__,
+                                 ' '.join(str(exc).split())[:200])
                     resp = web.Response(status=500, text='internal error\n')
             resp.headers.update(HEADERS)
             if request.query.get('token') and resp.status == 200 and self.token and request.path == '/':
@@ -416,7 +417,8 @@ class _OneLine(logging.Filter):
     def filter(self, record: logging.LogRecord) -> bool:
         if record.exc_info and record.exc_info[1] is not None:
             exc = record.exc_info[1]
-            record.msg = f'{record.getMessage()}: {type(exc).__name__}: {str(exc)[:200]}'
+            text = ' '.join(str(exc).split())[:200]      # one line: the client's bytes may hold line breaks
+            record.msg = f'{record.getMessage()}: {type(exc).__name__}: {text}'
             record.args, record.exc_info, record.exc_text = (), None, None
             record.levelno, record.levelname = logging.INFO, 'INFO'
         return True
