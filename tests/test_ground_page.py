@@ -492,3 +492,35 @@ def test_bad_paths_are_refused_with_4xx_and_no_traceback(server, caplog, capfd):
     assert 'Traceback' not in out + err + caplog.text
     assert not [r for r in caplog.records if r.exc_info], [r.getMessage()[:200] for r in caplog.records]
     assert _get(server.url + 'static/vendor/leaflet/leaflet.css')[0] == 200     # the page's own files still are
+
+
+def test_a_silent_websocket_is_closed():
+    """A client that opens the page's WebSocket and then answers nothing (no pong: a half-open peer) is closed
+    by the server's heartbeat: within 3 idle timeouts here (2 s), within 60 s with the defaults (20 s)."""
+    import base64
+    import os
+    srv = WebServer(Provider(), '127.0.0.1', 0, limits=WebLimits(idle_timeout_s=2.0)).start()
+    try:
+        s = socket.create_connection(('127.0.0.1', srv.port), timeout=10)
+        key = base64.b64encode(os.urandom(16)).decode()
+        s.sendall(f'GET /ws HTTP/1.1\r\nHost: 127.0.0.1:{srv.port}\r\nUpgrade: websocket\r\nConnection: Upgrade\r\n'
+                  f'Sec-WebSocket-Key: {key}\r\nSec-WebSocket-Version: 13\r\n\r\n'.encode())
+        s.settimeout(3 * 2.0)
+        got, closed = b'', False
+        try:
+            while True:                      # the status, then pings this client never answers
+                chunk = s.recv(65536)
+                if not chunk:
+                    closed = True
+                    break
+                got += chunk
+        except ConnectionResetError:
+            closed = True
+        except socket.timeout:
+            pass
+        s.close()
+        assert got.startswith(b'HTTP/1.1 101') and closed
+        assert srv.connections == 0
+    finally:
+        srv.stop()
+    assert 3 * WebLimits().idle_timeout_s <= 60
