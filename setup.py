@@ -26,11 +26,11 @@ setup(
     ],
     # The ground station's web page (Leaflet shipped with the package: it works offline).
     package_data={'photogram_ros': ['web/static/*.html', 'web/static/*.js', 'web/static/*.css',
-                                    'web/static/leaflet/*', 'web/static/leaflet/images/*']},
+                                    'web/static/vendor/leaflet/*', 'web/static/vendor/leaflet/images/*']},
     install_requires=['setuptools'],
     # colcon runs pytest (not unittest, which finds no test here) only when pytest is a test dependency.
     extras_require={'test': ['pytest']},
-    zip_safe=True,
+    zip_safe=False,   # the web page's files are read from the package folder
     maintainer='photogram_ros developers',
     maintainer_email='dev@photogram-ros.invalid',
     description='Onboard photogrammetric mapping for drones (ROS 2)',

@@ -34,6 +34,17 @@ TILE_BGR = (40, 160, 40)              # a green tile: easy to find in the screen
 BASE_BGR = (200, 120, 60)             # the base map: blue-grey, everywhere around the flight
 EVIL = '<img src=x onerror="document.body.dataset.pwned=1">'
 SCRIPT = '<script>document.body.dataset.pwned=2</script>'
+QUOTES = '"\'><svg onload=document.body.dataset.pwned=3>'
+LONG = 'CHK' + 'Ω✓ü' * 400                # 1,203 characters of unicode
+
+
+# Opens every tooltip of the map -> {tips: [{text, elements}], pwned}: what a name in a tooltip became.
+TOOLTIPS_JS = """(() => { const out = [];
+  map.eachLayer(l => { if (l.getTooltip && l.getTooltip()) l.openTooltip(
+      l.getLatLng ? l.getLatLng() : l.getBounds().getCenter()); });
+  document.querySelectorAll('.leaflet-tooltip').forEach(t => out.push(
+    {text: t.textContent, elements: t.querySelectorAll('*').length}));
+  return {tips: out, pwned: document.body.dataset.pwned || null}; })()"""
 
 
 def _tile_png(bgr=TILE_BGR) -> bytes:
@@ -62,6 +73,18 @@ def make_mbtiles(path: Path, zooms=(15, 16, 17, 18, 19)) -> Path:
     return path
 
 
+def make_xyz(path: Path, zooms=(15, 16, 17, 18, 19)) -> Path:
+    """The tiles of make_mbtiles as an XYZ folder, Z/X/Y.png (y down from the north)."""
+    png = _tile_png(BASE_BGR)
+    for z in zooms:
+        x0, y0 = X >> (Z - z), Y >> (Z - z)
+        for x in range(x0 - 2, x0 + 3):
+            (path / str(z) / str(x)).mkdir(parents=True, exist_ok=True)
+            for y in range(y0 - 2, y0 + 3):
+                (path / str(z) / str(x) / f'{y}.png').write_bytes(png)
+    return path
+
+
 class Provider:
     def __init__(self):
         import morecantile
@@ -75,8 +98,10 @@ class Provider:
     def status(self):
         return {'limits': {'max_check_rmse_h_m': 0.05}, 'unknown_drones': {'/intruder': {
                     '/intruder/map/control_points': ['/intruder/' + SCRIPT]}},
-                'security': {'enabled': False, 'summary': 'NOT AVAILABLE: test'}, 'drones': {'drone1': {
-            'ns': '/drone1' + EVIL, 'key': 'drone1', 'clouds': 3, 'points': 100, 'keyframes': 12, 'health': {},
+                'security': {'enabled': False, 'headline': 'DDS traffic NOT authenticated, NOT encrypted: test',
+                             'summary': 'NOT AVAILABLE: test'}, 'drones': {'drone1': {
+            'ns': '/drone1' + EVIL, 'key': 'drone1', 'clouds': 3, 'points': 100, 'keyframes': 12,
+            'health': {'/drone1/tracker_node': [1, 'tracking lost' + SCRIPT], '/drone1/map_node': [0, 'OK']},
             'ortho': {'tiles': 1, 'bytes_received': 1000, 'zoom': Z}, 'updated_unix_s': time.time(),
             'versions': {'coverage': 1, 'track': 1, 'targets': 1},
             'unknown_publishers': {'/map/control_points': ['/fake' + SCRIPT]}, 'not_counted': {'/map/control_points': 3},
@@ -88,10 +113,13 @@ class Provider:
                          'fix_share': {'rtk_fixed': 1.0, 'rtk_float': 0.0, '3d': 0.0}, 'gnss_bias_enu_m': None,
                          'control': {'gcps': 5, 'gcps_held': 1, 'gcps_full': 2, 'gcps_horizontal_only': 1,
                                      'gcps_rejected': 1, 'gcps_not_seen': 0, 'control_detections_rejected': 0,
-                                     'faults': ['GCP GCP02 not used: its surveyed position is 29.78 m from <here>']}},
+                                     'faults': ['GCP GCP02 not used: its surveyed position is 29.78 m from <here>',
+                                                f'GCP {QUOTES} not seen', f'GCP {LONG} not seen']}},
             'go_no_go': {'verdict': 'NO-GO', 'checks': [{'name': 'largest gap, any kind (m²)', 'value': 448.0,
                                                          'state': 'NO-GO', 'status': 'measured'}],
-                         'reasons': ['largest gap, any kind (m²): 448 (<= 25)']}}}}
+                         'reasons': ['largest gap, any kind (m²): 448 (<= 25)'],
+                         'warnings': ['forward overlap 22 % between two keyframes of a line, below the target: '
+                                      '1530 m² between them']}}}}
 
     def tiles_since(self, key, seq):
         return (1, [[Z, X, Y]][seq:]) if key == 'drone1' else (0, [])
@@ -111,6 +139,12 @@ class Provider:
                 'type': 'LineString', 'coordinates': [self.area[0], self.area[2]]}}],
             'targets': [{'type': 'Feature', 'geometry': {'type': 'Point', 'coordinates': self.gap[2]},
                          'properties': {'name': 'CHK01' + EVIL, 'role': 'check', 'residual_h_m': 0.02,
+                                        'residual_v_m': 0.01, 'images': 5}},
+                        {'type': 'Feature', 'geometry': {'type': 'Point', 'coordinates': self.gap[1]},
+                         'properties': {'name': 'CHK02' + QUOTES, 'role': 'check', 'residual_h_m': 0.03,
+                                        'residual_v_m': 0.01, 'images': 5}},
+                        {'type': 'Feature', 'geometry': {'type': 'Point', 'coordinates': self.gap[0]},
+                         'properties': {'name': LONG, 'role': 'gcp', 'residual_h_m': 0.01,
                                         'residual_v_m': 0.01, 'images': 5}}]}[kind]
         return {'type': 'FeatureCollection', 'features': feats}
 
@@ -118,9 +152,11 @@ class Provider:
         return {'fileType': 'Plan'} if key == 'drone1' else None
 
 
-@pytest.fixture
-def server(tmp_path):
-    srv = WebServer(Provider(), '127.0.0.1', 0, basemap=open_basemap(make_mbtiles(tmp_path / 'base.mbtiles'))).start()
+@pytest.fixture(params=['mbtiles', 'xyz'])
+def server(tmp_path, request):
+    """The page's server over an offline base map made here: an MBTiles file, or an XYZ tile folder."""
+    base = make_mbtiles(tmp_path / 'base.mbtiles') if request.param == 'mbtiles' else make_xyz(tmp_path / 'xyz')
+    srv = WebServer(Provider(), '127.0.0.1', 0, basemap=open_basemap(base)).start()
     yield srv
     srv.stop()
 
@@ -137,7 +173,7 @@ def test_routes(server):
     assert d['coverage']['gap_list'][0]['area_m2'] == 448.0 and d['accuracy']['check_rmse_h_m'] == 0.038
     code, ctype, body = _get(server.url + f'tiles/drone1/{Z}/{X}/{Y}.png')
     assert ctype == 'image/png' and body[:4] == b'\x89PNG'
-    assert _get(server.url + 'static/leaflet/leaflet.js')[2].startswith(b'/* @preserve')
+    assert _get(server.url + 'static/vendor/leaflet/leaflet.js')[2].startswith(b'/* @preserve')
     for bad in (f'tiles/drone1/{Z}/{X}/{Y + 1}.png', 'drones/nobody/track.geojson', 'static/../server.py'):
         with pytest.raises(urllib.error.HTTPError) as e:
             _get(server.url + bad)
@@ -258,24 +294,25 @@ def test_page_renders_tiles_gap_and_verdict_in_chromium(server, tmp_path):
     assert '/drone1&lt;img src=x onerror=' in dom and '&lt;script&gt;document.body' in dom
     assert '<img src="x"' not in dom and '<img src=x' not in dom
     assert 'unknown drone /intruder (not counted)' in dom and 'unknown publisher /fake' in dom
-    assert 'base map: base.mbtiles (mbtiles, zoom 15–19)' in dom and 'drone data' in dom
+    assert '<svg onload' not in dom and 'GCP "\'&gt;&lt;svg onload=' in dom and f'GCP {LONG} not seen' in dom
+    assert 'DDS traffic NOT authenticated, NOT encrypted' in dom
+    assert 'drone1/tracker_node WARN: tracking lost&lt;script&gt;' in dom and 'map_node WARN' not in dom
+    assert 'WARN 1' in dom and 'WARN: forward overlap 22 % between two keyframes of a line' in dom
+    assert ('base map: base.mbtiles (mbtiles, zoom 15–19)' in dom or 'base map: xyz (xyz, zoom 15–19)' in dom)
+    assert 'drone data' in dom
 
 
 @pytest.mark.skipif(CHROMIUM is None, reason='chromium is not installed (apt-get install chromium)')
 def test_tooltips_hold_names_as_text(server):
     """Leaflet's tooltips take HTML: the page escapes the target and gap names it gives them. Every tooltip
     is opened; their text holds the names, and no element came of them."""
-    got = chromium(server.url, None, script="""
-        (() => { const out = [];
-          map.eachLayer(l => { if (l.getTooltip && l.getTooltip()) l.openTooltip(
-              l.getLatLng ? l.getLatLng() : l.getBounds().getCenter()); });
-          document.querySelectorAll('.leaflet-tooltip').forEach(t => out.push(
-            {text: t.textContent, elements: t.querySelectorAll('*').length}));
-          return {tips: out, pwned: document.body.dataset.pwned || null}; })()""")
+    got = chromium(server.url, None, script=TOOLTIPS_JS)
     texts = [t['text'] for t in got['tips']]
     assert got['pwned'] is None
     assert any(t.startswith('CHK01<img src=x onerror=') for t in texts), texts
     assert any(t.startswith('coverage<img src=x') for t in texts), texts
+    assert any(t.startswith('CHK02' + QUOTES) for t in texts), texts
+    assert any(t.startswith(LONG[:79] + '…:') for t in texts), texts     # a long name cut in its tooltip
     assert all(t['elements'] == 0 for t in got['tips'])
 
 
@@ -325,6 +362,10 @@ def test_every_interface_needs_the_token():
         assert srv.refused_requests >= 4
     finally:
         srv.stop()
+    from photogram_ros.errors import ConfigError
+    for weak in ('abc', 'x' * 11, 'with blanks in it'):
+        with pytest.raises(ConfigError):
+            WebServer(Provider(), '0.0.0.0', 0, token=weak)
     local = WebServer(Provider(), '127.0.0.1', 0).start()
     try:
         assert local.token is None and local.local_only
@@ -422,3 +463,64 @@ def test_websocket_from_another_origin_is_refused(server):
     with pytest.raises(urllib.error.HTTPError) as e:
         urllib.request.urlopen(req, timeout=5)
     assert e.value.code == 403
+
+
+def test_bad_paths_are_refused_with_4xx_and_no_traceback(server, caplog, capfd):
+    """Tile and base-map addresses with huge or impossible numbers, path traversal (plain, %-encoded, overlong
+    UTF-8), a NUL byte, an over-long file name or request line: each gets 4xx, nothing outside the page's
+    files is served, and no traceback is logged or printed."""
+    import http.client
+    import logging
+    caplog.set_level(logging.DEBUG)
+    paths = [f'/tiles/drone1/99/{X}/{Y}.png', '/tiles/drone1/999999999999/1/1.png', '/tiles/drone1/-1/1/1.png',
+             '/basemap/99/1/1', '/basemap/24/99999999999/1', '/basemap/17/1/1', '/static/../server.py',
+             '/static/%2e%2e/server.py', '/static/..%2fserver.py', '/static/vendor/../../server.py',
+             '/static/%c0%ae%c0%ae/server.py', '/static//etc/passwd', '//etc/passwd', '/static/%00',
+             '/static/index.html%00.js', '/static/' + 'a' * 5000, '/drones/drone1/..%2f..%2fx.geojson',
+             '/tiles/..%2f..%2f/1/1/1.png', '/%ff%fe', '/static/.hidden', '/' + 'x' * 20000]
+    got = {}
+    for p in paths:
+        c = http.client.HTTPConnection('127.0.0.1', server.port, timeout=5)
+        c.request('GET', p)
+        r = c.getresponse()
+        got[p[:60]] = (r.status, r.read())
+        c.close()
+    print({k: v[0] for k, v in got.items()})
+    assert all(400 <= code < 500 for code, _ in got.values()), got
+    assert not any(b'import' in body or b'root:' in body for _, body in got.values())
+    out, err = capfd.readouterr()
+    assert 'Traceback' not in out + err + caplog.text
+    assert not [r for r in caplog.records if r.exc_info], [r.getMessage()[:200] for r in caplog.records]
+    assert _get(server.url + 'static/vendor/leaflet/leaflet.css')[0] == 200     # the page's own files still are
+
+
+def test_a_silent_websocket_is_closed():
+    """A client that opens the page's WebSocket and then answers nothing (no pong: a half-open peer) is closed
+    by the server's heartbeat: within 3 idle timeouts here (2 s), within 60 s with the defaults (20 s)."""
+    import base64
+    import os
+    srv = WebServer(Provider(), '127.0.0.1', 0, limits=WebLimits(idle_timeout_s=2.0)).start()
+    try:
+        s = socket.create_connection(('127.0.0.1', srv.port), timeout=10)
+        key = base64.b64encode(os.urandom(16)).decode()
+        s.sendall(f'GET /ws HTTP/1.1\r\nHost: 127.0.0.1:{srv.port}\r\nUpgrade: websocket\r\nConnection: Upgrade\r\n'
+                  f'Sec-WebSocket-Key: {key}\r\nSec-WebSocket-Version: 13\r\n\r\n'.encode())
+        s.settimeout(3 * 2.0)
+        got, closed = b'', False
+        try:
+            while True:                      # the status, then pings this client never answers
+                chunk = s.recv(65536)
+                if not chunk:
+                    closed = True
+                    break
+                got += chunk
+        except ConnectionResetError:
+            closed = True
+        except socket.timeout:
+            pass
+        s.close()
+        assert got.startswith(b'HTTP/1.1 101') and closed
+        assert srv.connections == 0
+    finally:
+        srv.stop()
+    assert 3 * WebLimits().idle_timeout_s <= 60

@@ -191,3 +191,29 @@ def test_station_shows_ortho_coverage_gap_and_accuracy(tmp_path, rclpy_context):
         ex.shutdown()
         for n in (peer, station, node):
             n.destroy_node()
+
+
+def test_low_forward_overlap_is_a_warning_with_its_area():
+    """A pair of keyframes below the target forward overlap (the ground between them seen by the neighbouring
+    lines: no gap) is a warning with the stretch between them, W x (1 - overlap) x L; the verdict stays."""
+    from photogram_ros.core.survey_quality import QualityLimits, go_no_go
+    from photogram_ros.nodes.ground_station import low_forward_overlap
+    props = {'footprint_width_m': 50.0, 'footprint_length_m': 38.0, 'low_forward_pairs': [[1, 2, 0.22], ['x']]}
+    low = low_forward_overlap(props)
+    assert low == [{'overlap': 0.22, 'area_m2': round(50.0 * 0.78 * 38.0, 1), 'stamps_ns': [1, 2]}]
+    g = go_no_go({'gaps': [], 'coverage_share': 1.0, 'georeference': 'final', 'low_forward_overlap': low,
+                  'check_rmse': {'horizontal_m': 0.02, 'vertical_m': 0.02, 'count': 4}}, QualityLimits())
+    assert g['verdict'] == 'GO' and g['warnings'] == [
+        'forward overlap 22 % between two keyframes of a line, below the target: 1482 m² between them']
+    assert low_forward_overlap({'low_forward_pairs': [[1, 2, 0.5]]})[0]['area_m2'] is None
+
+
+def test_a_drone_node_in_error_holds_the_verdict():
+    """bundle_node saying ERROR on /diagnostics (e.g. no georeference after 47 keyframes) is a reason and keeps
+    a GO at WAIT; a NO-GO stays NO-GO; WARN and STALE levels do not change it."""
+    from photogram_ros.nodes.ground_station import with_node_errors
+    go = {'verdict': 'GO', 'reasons': [], 'checks': [], 'warnings': []}
+    g = with_node_errors(go, {'/bundle_node': [2, 'no georeference after 47 keyframes'], '/map_node': [0, 'OK']})
+    assert g['verdict'] == 'WAIT' and g['reasons'] == ['bundle_node ERROR: no georeference after 47 keyframes']
+    assert with_node_errors({**go, 'verdict': 'NO-GO'}, {'/b': [2, 'x']})['verdict'] == 'NO-GO'
+    assert with_node_errors(go, {'/tracker_node': [1, 'tracking lost'], '/x': [3, 'stale']}) == go

@@ -27,14 +27,18 @@ def add_arguments(p) -> None:
 
 
 def run(a) -> int:
+    import signal
     import sys
     import time
     import traceback
+    early = []   # SIGINT / SIGTERM before the station's own handlers are in place (rclpy loads for a second)
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda signum, _frame: early.append(signum))
 
     import rclpy
 
     from photogram_ros.errors import PhotogramError
-    from photogram_ros.nodes.ground_station import GroundStationNode
+    from photogram_ros.nodes.ground_station import GroundStationNode, security_status
     from photogram_ros.nodes.node_main import StopSignals, init_ros
     from photogram_ros.params import load_params_file
     values = load_params_file(a.params).get('ground_station', {}) if a.params else {}
@@ -42,14 +46,22 @@ def run(a) -> int:
                       ('web', 'web'), ('web_token', 'web_token'), ('basemap', 'basemap')):
         if getattr(a, opt) is not None:
             values[name] = getattr(a, opt)
+    security = security_status()
+    if security['refuse']:
+        print(f'[ground station] {security["refuse"]}', file=sys.stderr, flush=True)
+        return 2
     signals = StopSignals('saving')
+    if early:   # asked to stop while starting: it saves what it has (nothing yet) and exits 0
+        signals.signal_name = signal.Signals(early[0]).name
+        signals.stop.set()
     init_ros()
     try:
         node = GroundStationNode(overrides=values)
-    except PhotogramError as exc:
-        print(f'[ground station] {exc}', file=sys.stderr, flush=True)
+    except (PhotogramError, RuntimeError) as exc:   # RuntimeError: rclpy's RCLError (e.g. a missing enclave)
+        print(f'[ground station] cannot start: {exc}', file=sys.stderr, flush=True)
         rclpy.try_shutdown()
         return 2
+    print(f'[ground station] {node.security["headline"]}', flush=True)
     print(f'[ground station] ROS 2 security: {node.security["summary"]}', flush=True)
     if node.web is not None:
         print(f'[ground station] map page on {node.web.url_with_token()}'

@@ -108,10 +108,12 @@ def go_no_go(figures: dict, limits: QualityLimits) -> dict:
         GEOREF_NONE or GEOREF_UNKNOWN (the station has not heard); only GEOREF_FINAL figures are judged;
       'coverage_share'; 'gaps' [{'kind', 'area_m2'}] every gap the map lists, whatever its kind
         (coverage, not_oriented, forward_overlap); else 'largest_gap_m2';
-      'fix_share' {class: share}.
+      'fix_share' {class: share};
+      'low_forward_overlap' [{'overlap', 'area_m2'}]: consecutive keyframes of a line overlapping less than
+        the target (the ground between them seen, else it is a forward_overlap gap): a warning each.
     -> {'verdict', 'checks': [{'name', 'value', 'limit', 'op', 'status', 'why', 'passes', 'state'}],
-        'reasons': [...]}: NO-GO when a measured figure fails its limit; else WAIT while a figure is
-        provisional or not measured (the reason says which); else GO.
+        'reasons': [...], 'warnings': [...]}: NO-GO when a measured figure fails its limit; else WAIT while
+        a figure is provisional or not measured (the reason says which); else GO. Warnings do not change it.
     """
     checks = []
     cp = figures.get('check_rmse') or {}
@@ -152,7 +154,11 @@ def go_no_go(figures: dict, limits: QualityLimits) -> dict:
         checks.append(_check('keyframes RTK fixed', share, limits.min_rtk_fixed_share, 'min'))
     states = [c['state'] for c in checks]
     verdict = NO_GO if NO_GO in states else WAIT if WAIT in states else GO
-    return {'verdict': verdict, 'checks': checks, 'reasons': [reason(c) for c in checks if c['state'] != GO]}
+    warnings = [f"forward overlap {100 * w['overlap']:.0f} % between two keyframes of a line, below the target"
+                + (f": {w['area_m2']:.0f} m² between them" if w.get('area_m2') is not None else '')
+                for w in figures.get('low_forward_overlap') or []]
+    return {'verdict': verdict, 'checks': checks, 'reasons': [reason(c) for c in checks if c['state'] != GO],
+            'warnings': warnings}
 
 
 def reason(c: dict) -> str:

@@ -45,7 +45,7 @@ from std_msgs.msg import String
 from photogram_ros import msgs
 from photogram_ros.core.geodesy import LocalFrame, utm_epsg
 from photogram_ros.core.survey_quality import (GEOREF_FINAL, GEOREF_NONE, GEOREF_PROVISIONAL, GEOREF_UNKNOWN,
-                                               QualityLimits, go_no_go)
+                                               GO, WAIT, QualityLimits, go_no_go)
 from photogram_ros.errors import PhotogramError
 from photogram_ros.nodes.diagnostics import Diagnostics
 from photogram_ros.nodes.ros_params import declare
@@ -59,6 +59,7 @@ PUBLISHER_OF = {CLOUD_SUFFIX: 'map_node', '/map/ortho_tiles': 'map_node', '/map/
 # Nodes of a drone's namespace whose /diagnostics the station takes (graph.py's nodes and a replay's player).
 DRONE_NODES = frozenset(PUBLISHER_OF.values()) | {'tracker_node', 'stereo_node', 'mavlink_node', 'camera_node',
                                                   'player'}
+MAX_TILE_ZOOM = 24          # an ortho tile's zoom at most (about 1 cm pixels)
 GEOREF_OF_DIAG = {'True': GEOREF_FINAL, 'provisional': GEOREF_PROVISIONAL, 'False': GEOREF_NONE}
 
 
@@ -199,6 +200,8 @@ class GroundStationNode(Node):
         infos = self._publishers_of(f'{drone_ns}{suffix}')
         bad = [f'{i.node_namespace.rstrip("/")}/{i.node_name}' for i in infos
                if i.node_namespace != want_ns or i.node_name != want_node]
+        if len(infos) - len(bad) > 1:   # two nodes of the drone's node name: one is not the drone's
+            bad.append(f'{want_ns.rstrip("/")}/{want_node} ({len(infos) - len(bad)} nodes of that name)')
         return bad, frozenset(bytes(i.endpoint_gid) for i in infos)
 
     def _take(self, drone: Drone, suffix: str, msg, handler) -> None:
@@ -214,7 +217,7 @@ class GroundStationNode(Node):
             key = (drone.ns, suffix, tuple(sorted(set(bad))))
             if key not in self._warned:
                 self._warned.add(key)
-                self.diag.problem(f'{drone.ns or "/"}{suffix}: published also by {", ".join(sorted(set(bad)))} '
+                self.diag.problem(f'{drone.ns}{suffix}: published also by {", ".join(sorted(set(bad)))} '
                                   f'(not {PUBLISHER_OF[suffix]} of {drone.ns or "/"}): its messages are not counted')
             self._notify()
             return
@@ -313,6 +316,8 @@ class GroundStationNode(Node):
     def _on_tile(self, drone: Drone, msg: CompressedImage) -> None:
         try:
             z, x, y, png = msgs.ortho_tile_from_msg(msg)
+            if not (0 <= z <= MAX_TILE_ZOOM and x < 2 ** z and y < 2 ** z):
+                raise PhotogramError(f'tile {z}/{x}/{y} is no XYZ tile (zoom 0-{MAX_TILE_ZOOM}, x, y < 2^zoom)')
         except PhotogramError as exc:
             self.diag.problem(f'{drone.ns}: ortho tile dropped: {exc}')
             return
@@ -351,7 +356,7 @@ class GroundStationNode(Node):
         for st in msg.status:
             ns, _, node = st.name.rpartition('/')
             drone = self.drones.get(ns)
-            if drone is None:
+            if drone is None or node not in DRONE_NODES:   # this station's own status, or no drone node
                 continue
             level = int.from_bytes(st.level, 'little') if isinstance(st.level, bytes) else int(st.level)
             with self._lock:
@@ -388,6 +393,8 @@ class GroundStationNode(Node):
         for c in g['checks']:
             name = c['name'].split(' (')[0].replace(',', '').replace(' ', '_')
             self.diag.set(f'{key}_{name}', 'not measured' if c['value'] is None else repr(c['value']))
+        for name, value in diagnostic_figures(st).items():
+            self.diag.set(f'{key}_{name}', diagnostic_text(value))
 
     def merged_cloud(self) -> np.ndarray:
         with self._lock:
@@ -465,9 +472,11 @@ class GroundStationNode(Node):
             props['gap_list'] = [{k: f['properties'].get(k) for k in ('kind', 'area_m2', 'min_views', 'centroid')}
                                  for f in cov.get('features', []) if f.get('properties', {}).get('role') == 'gap']
             out['coverage'] = props
+            props['low_forward_overlap'] = low_forward_overlap(props)
             figures.update(coverage_share=_number(props.get('coverage_share')),
                            gaps=[{'kind': g['kind'], 'area_m2': _number(g['area_m2']), 'min_views': g['min_views']}
-                                 for g in props['gap_list']])
+                                 for g in props['gap_list']],
+                           low_forward_overlap=props['low_forward_overlap'])
         geo = q.get('georeference') if q is not None else None
         geo = geo if geo in (GEOREF_FINAL, GEOREF_PROVISIONAL, GEOREF_NONE) else geo_diag
         if q is not None:
@@ -484,7 +493,7 @@ class GroundStationNode(Node):
                                        'count': out['accuracy']['check_count']},
                            fix_share=q.get('fix_share'))
         figures['georeference'] = geo
-        out['go_no_go'] = go_no_go(figures, self.params)
+        out['go_no_go'] = with_node_errors(go_no_go(figures, self.params), out['health'])
         return out
 
     def status(self) -> dict:
@@ -571,6 +580,57 @@ class GroundStationNode(Node):
         return super().destroy_node()
 
 
+def diagnostic_figures(st: dict) -> dict:
+    """The figures of a drone_status() that /diagnostics carries beside the checks, under flat names, with the
+    values of status.json (the page shows the same)."""
+    a = st.get('accuracy') or {}
+    gcp = a.get('gcp_rmse') or {}
+    cov = st.get('coverage') or {}
+    bias = a.get('gnss_bias_enu_m')
+    return {'check_rmse_h_m': a.get('check_rmse_h_m'), 'check_rmse_v_m': a.get('check_rmse_v_m'),
+            'check_count': a.get('check_count'), 'georeference': a.get('georeference'),
+            'gcp_rmse_h_m': _number(gcp.get('horizontal_m')), 'gcp_rmse_v_m': _number(gcp.get('vertical_m')),
+            'gcp_count': gcp.get('count'),
+            'gnss_bias_enu_m': [_number(v) for v in bias] if isinstance(bias, list) else None,
+            'coverage_share': _number(cov.get('coverage_share')),
+            'gaps': [[g.get('kind'), _number(g.get('area_m2'))] for g in cov.get('gap_list', [])]
+                    if cov else None,
+            'warnings': (st.get('go_no_go') or {}).get('warnings') or [],
+            'updated_unix_s': st.get('updated_unix_s')}
+
+
+def with_node_errors(g: dict, health: dict) -> dict:
+    """A verdict with the drone's nodes that say ERROR on /diagnostics: each is a reason, and the verdict is
+    not GO while one does (a node's error is no figure to judge: WAIT, the reason says which node and why)."""
+    errors = [f'{name.lstrip("/")} ERROR: {msg}' for name, (level, msg) in sorted(health.items())
+              if level == 2]
+    if not errors:
+        return g
+    return {**g, 'verdict': WAIT if g['verdict'] == GO else g['verdict'], 'reasons': g['reasons'] + errors}
+
+
+def low_forward_overlap(props: dict) -> list[dict]:
+    """The coverage's keyframe pairs below the target forward overlap -> [{'overlap', 'area_m2',
+    'stamps_ns'}]:
+    area_m2 is the stretch of the swath between the two keyframes (footprint width x their distance,
+    (1 - overlap) x footprint length)."""
+    w, length = _number(props.get('footprint_width_m')), _number(props.get('footprint_length_m'))
+    out = []
+    for row in props.get('low_forward_pairs') or []:
+        try:
+            a, b, o = int(row[0]), int(row[1]), float(row[2])
+        except (TypeError, ValueError, IndexError):
+            continue
+        area = w * max(1.0 - o, 0.0) * length if w and length else None
+        out.append({'overlap': o, 'area_m2': None if area is None else round(area, 1), 'stamps_ns': [a, b]})
+    return out
+
+
+def diagnostic_text(value) -> str:
+    """A figure as /diagnostics says it: 'not measured', a string as it is, a number in full (repr)."""
+    return 'not measured' if value is None else value if isinstance(value, str) else repr(value)
+
+
 def _number(v):
     """A figure from a drone's document as a float (None when it is not a finite number)."""
     if isinstance(v, bool) or not isinstance(v, (int, float)):
@@ -581,7 +641,11 @@ def _number(v):
 
 def security_status() -> dict:
     """What the installed ROS 2 middleware offers for security (SROS2: authentication, access control,
-    encryption) and whether this process asked for it (ROS_SECURITY_ENABLE / ROS_SECURITY_ENCLAVE)."""
+    encryption) and whether this process asked for it (ROS_SECURITY_ENABLE / ROS_SECURITY_ENCLAVE).
+
+    'headline' says in one line whether the DDS traffic is authenticated and encrypted; 'summary' adds why
+    and what to do. 'refuse' is set when security is asked for and the middleware cannot give it (rcl would
+    refuse to create the node: "This Fast DDS version doesn't have the security libraries")."""
     import sys
     rmw = os.environ.get('RMW_IMPLEMENTATION', 'rmw_fastrtps_cpp')
     asked = os.environ.get('ROS_SECURITY_ENABLE', '').lower() == 'true'
@@ -590,26 +654,35 @@ def security_status() -> dict:
     sros2 = any((Path(p) / 'sros2').is_dir() for p in sys.path if p)   # the keystore / enclave tools
     plugins = _dds_security_plugins() if rmw.startswith('rmw_fastrtps') else None
     enabled = asked and bool(keystore) and bool(enclave) and plugins is not False
+    env = 'ROS_SECURITY_ENABLE=true, ROS_SECURITY_KEYSTORE, ROS_SECURITY_ENCLAVE'
+    plain = 'DDS traffic NOT authenticated, NOT encrypted'
+    why = (": any node on this ROS_DOMAIN_ID can publish a drone's topics under its names; the allow-list "
+           'and the publisher check keep out nodes with other names, not impostors.')
+    howto = ('For authenticated, encrypted topics use a ROS 2 installation whose Fast DDS has the security '
+             f'plugins (the Debian/ROS packages) with ros-jazzy-sros2, and set {env}.')
+    refuse = ''
     if plugins is False:
-        summary = ('NOT AVAILABLE: the installed Fast DDS (libfastrtps, the PyPI ROS wheels) is built without the DDS '
-                   'security plugins (authentication, access control, encryption), so SROS2 cannot be used: any node '
-                   'on this ROS_DOMAIN_ID can publish a drone\'s topics under its names; the allow-list and the '
-                   'publisher check keep out nodes with other names, not impostors. For security use a ROS 2 '
-                   'installation whose Fast DDS has them (Debian/ROS packages) with ros-jazzy-sros2, and set '
-                   'ROS_SECURITY_ENABLE=true, ROS_SECURITY_KEYSTORE, ROS_SECURITY_ENCLAVE.')
+        headline = plain + ' (SROS2 is not available with this ROS 2 installation)'
+        summary = (f'{plain}{why} SROS2 is NOT AVAILABLE here: the installed Fast DDS (libfastrtps of the PyPI '
+                   'ROS wheels) is built without the DDS security plugins (authentication, access control, '
+                   f'encryption). {howto}')
+        if asked:
+            refuse = ('ROS_SECURITY_ENABLE=true, but the installed Fast DDS (the PyPI ROS wheels) has no DDS '
+                      'security plugins, so the station cannot authenticate or encrypt its topics. ' + howto
+                      + ' Or unset ROS_SECURITY_ENABLE to run without security.')
     elif enabled:
-        summary = (f'ROS_SECURITY_ENABLE=true, enclave {enclave} in {keystore} ({rmw}): DDS security is asked for; '
-                   'rcl refuses to start when the enclave\'s files are missing')
+        headline = f'DDS traffic authenticated and encrypted (SROS2 enclave {enclave}, as its governance says)'
+        summary = (f'{headline}: ROS_SECURITY_ENABLE=true, enclave {enclave} in {keystore} ({rmw}); rcl '
+                   "refuses to start when the enclave's files are missing")
     else:
-        summary = ('OFF: any node on this ROS_DOMAIN_ID can publish a drone\'s topics under its names; the allow-list '
-                   'and the publisher check keep out nodes with other names, not impostors. '
-                   + ('The sros2 tools are installed: create a keystore and enclaves and set ROS_SECURITY_ENABLE=true, '
-                      'ROS_SECURITY_KEYSTORE, ROS_SECURITY_ENCLAVE.' if sros2 else
-                      'The sros2 package (keystore and enclave tools) is not installed with the PyPI ROS wheels; in a '
-                      'ROS 2 installation (ros-jazzy-sros2) set ROS_SECURITY_ENABLE=true, ROS_SECURITY_KEYSTORE and '
-                      'ROS_SECURITY_ENCLAVE.'))
-    return {'enabled': enabled, 'rmw': rmw, 'sros2_installed': sros2, 'dds_security_plugins': plugins,
-            'summary': summary}
+        headline = plain + (' (ROS_SECURITY_ENABLE is not set)' if not asked else ' (no keystore or enclave)')
+        summary = plain + why + (' ROS_SECURITY_ENABLE is not set. ' if not asked else
+                                 ' ROS_SECURITY_ENABLE=true without ROS_SECURITY_KEYSTORE and ROS_SECURITY_ENCLAVE. ')
+        summary += (f'The sros2 tools are installed: create a keystore and enclaves and set {env}.' if sros2 else
+                    'The sros2 package (keystore and enclave tools) is not installed. ' + howto)
+    return {'enabled': enabled, 'authenticated': enabled, 'encrypted': enabled, 'asked': asked, 'rmw': rmw,
+            'sros2_installed': sros2, 'dds_security_plugins': plugins, 'headline': headline,
+            'summary': summary, 'refuse': refuse}
 
 
 def _dds_security_plugins() -> bool | None:

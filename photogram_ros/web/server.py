@@ -1,7 +1,7 @@
 """Web server of the ground station's page (aiohttp, in a thread of its own with its own event loop).
 
 Routes (GET):
-  /                              the map page (static/index.html: Leaflet, shipped in static/leaflet)
+  /                              the map page (static/index.html: Leaflet, shipped in static/vendor/leaflet)
   /static/...                    the page's files
   /ws                            WebSocket: the server pushes {'type': 'status', 'status': ..., 'tiles': ...}
                                  on connect and whenever the provider calls notify() (at most twice a second,
@@ -31,6 +31,7 @@ import asyncio
 import hmac
 import ipaddress
 import json
+import logging
 import math
 import mimetypes
 import re
@@ -51,7 +52,9 @@ _TILE = re.compile(rf'^/tiles/{_NAME}/(\d{{1,2}})/(\d{{1,10}})/(\d{{1,10}})\.png
 _BASEMAP = re.compile(r'^/basemap/(\d{1,2})/(\d{1,10})/(\d{1,10})$')
 _DRONE = re.compile(rf'^/drones/{_NAME}/(coverage|track|targets)\.geojson$')
 _PLAN = re.compile(rf'^/drones/{_NAME}/refly\.plan$')
+_STATIC = re.compile(r'^(?:[A-Za-z0-9_-][A-Za-z0-9_.-]{0,63}/){0,4}[A-Za-z0-9_-][A-Za-z0-9_.-]{0,63}$')
 COOKIE = 'gs_token'
+MIN_TOKEN_CHARS = 12          # a token given by the user: shorter ones are guessed too easily
 LOOPBACK_NAMES = {'localhost', '127.0.0.1', '::1', '[::1]'}
 HEADERS = {'X-Content-Type-Options': 'nosniff', 'X-Frame-Options': 'DENY', 'Referrer-Policy': 'no-referrer',
            'Cache-Control': 'no-cache',
@@ -152,6 +155,9 @@ class WebServer:
         self.limits = limits or WebLimits()
         self.basemap = basemap
         self.local_only = is_loopback_host(host)
+        if token and (len(token) < MIN_TOKEN_CHARS or not token.isprintable() or ' ' in token):
+            raise ConfigError(f'--web-token: give at least {MIN_TOKEN_CHARS} printable characters without blanks '
+                              '(or none: the station generates one)')
         self.token = token or (None if self.local_only else secrets.token_urlsafe(18))
         self.refused_connections = 0
         self.refused_requests = 0
@@ -198,7 +204,7 @@ class WebServer:
         app = web.Application(middlewares=[self._guard_mw], client_max_size=64 * 1024)
         app.router.add_get('/ws', self._ws)
         app.router.add_get('/{tail:.*}', self._get)
-        self._runner = web.AppRunner(app, access_log=None, handle_signals=False,
+        self._runner = web.AppRunner(app, access_log=None, handle_signals=False, logger=_QUIET,
                                      keepalive_timeout=self.limits.idle_timeout_s, shutdown_timeout=1.0)
         await self._runner.setup()
         factory = self._runner.server
@@ -281,7 +287,14 @@ class WebServer:
             elif request.path == '/ws':
                 return await handler(request)
             else:
-                resp = await asyncio.wait_for(handler(request), self.limits.request_timeout_s)
+                try:
+                    resp = await asyncio.wait_for(handler(request), self.limits.request_timeout_s)
+                except asyncio.TimeoutError:
+                    resp = web.Response(status=503, text='the answer took too long\n')
+                except Exception as exc:   # noqa: BLE001 (one line in the log, no traceback to the client)
+                    _LOG.warning('%s %r: %s: %s', request.method, request.path[:200], type(exc).__name__,
+                                 ' '.join(str(exc).split())[:200])
+                    resp = web.Response(status=500, text='internal error\n')
             resp.headers.update(HEADERS)
             if request.query.get('token') and resp.status == 200 and self.token and request.path == '/':
                 # The token comes once in the page's URL; from then on the cookie carries it (not in the history).
@@ -328,6 +341,9 @@ class WebServer:
 
     @staticmethod
     def _static(rel: str) -> web.Response:
+        # Names of the page's own files only: no '..', no empty, hidden or over-long parts, no NUL.
+        if not _STATIC.match(rel):
+            return _not_found()
         p = (STATIC / rel).resolve()
         if STATIC not in p.parents or not p.is_file():
             return _not_found()
@@ -392,6 +408,25 @@ class WebServer:
                 except (asyncio.TimeoutError, ConnectionError, RuntimeError):
                     self._clients.discard(ws)
                     await ws.close()
+
+
+class _OneLine(logging.Filter):
+    """aiohttp's connection errors (a malformed or over-long request: it answers 400) as one line, without the
+    traceback it attaches."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        if record.exc_info and record.exc_info[1] is not None:
+            exc = record.exc_info[1]
+            text = ' '.join(str(exc).split())[:200]      # one line: the client's bytes may hold line breaks
+            record.msg = f'{record.getMessage()}: {type(exc).__name__}: {text}'
+            record.args, record.exc_info, record.exc_text = (), None, None
+            record.levelno, record.levelname = logging.INFO, 'INFO'
+        return True
+
+
+_LOG = logging.getLogger('photogram_ros.web')
+_QUIET = logging.getLogger('photogram_ros.web.connections')
+_QUIET.addFilter(_OneLine())
 
 
 def _not_found() -> web.Response:

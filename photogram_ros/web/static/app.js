@@ -12,11 +12,24 @@ let limits = {};
 let basemap = null;  // the base map's Leaflet layer, once the server says it has one
 let viewFitted = false;
 let lastStatus = null, lastPushMs = 0, socketOpen = false;
+let clockOffsetMs = 0;   // this browser's clock minus the station's (ages are on the station's clock)
 
 function fmt(v, unit, digits) {   // v in metres (shown in cm), a share (shown in %), or as it is
   if (typeof v !== 'number' || !Number.isFinite(v)) return '–';
   const scale = unit === '%' || unit === 'cm' ? 100 : 1;
   return (scale * v).toFixed(digits ?? 1) + ' ' + unit;
+}
+
+// A name for a one-line tooltip: at most 80 characters (the panel shows names in full).
+function short(t) {
+  const a = Array.from(String(t));
+  return a.length > 80 ? a.slice(0, 79).join('') + '…' : a.join('');
+}
+
+// A line of the panel from a drone or a file: cut to 200 characters, the whole text in its tooltip (title).
+function clip(t) {
+  const a = Array.from(String(t));
+  return a.length > 200 ? el('span', {title: String(t)}, a.slice(0, 199).join('') + '…') : String(t);
 }
 
 function escapeHTML(t) {
@@ -51,12 +64,12 @@ function ensureLayers(key, zoom) {
           ? {color: '#ff003c', weight: 2, fillOpacity: 0.45}
           : {color: '#2f81f7', weight: 1.5, dashArray: '6 4', fill: false},
         onEachFeature: (f, lay) => f.properties.role === 'gap' &&
-          lay.bindTooltip(escapeHTML(`${f.properties.kind} gap ${f.properties.area_m2} m²`))}).addTo(map),
+          lay.bindTooltip(escapeHTML(`${short(f.properties.kind)} gap ${f.properties.area_m2} m²`))}).addTo(map),
       track: L.geoJSON(null, {style: {color: '#ffd33d', weight: 2}}).addTo(map),
       targets: L.geoJSON(null, {pointToLayer: (f, ll) => L.circleMarker(ll, {radius: 7, weight: 2,
           color: f.properties.role === 'gcp' ? '#2f81f7' : '#fff', fillColor: targetColour(f.properties),
           fillOpacity: f.properties.role === 'gcp' ? 0.1 : 0.95}).bindTooltip(escapeHTML(
-          `${f.properties.name}: ${cm(f.properties.residual_h_m)} H, ${cm(f.properties.residual_v_m)} V`))}).addTo(map),
+          `${short(f.properties.name)}: ${cm(f.properties.residual_h_m)} H, ${cm(f.properties.residual_v_m)} V`))}).addTo(map),
       ortho: null, zoom: null, fitted: false, versions: {}};
   }
   if (Number.isInteger(zoom) && l.zoom !== zoom) {
@@ -113,7 +126,7 @@ function panel(key, d) {
     ['gaps (all kinds)', `${(c.gap_list || []).length}, largest ${fmt(check(g, 'largest gap')?.value, 'm²', 0)}`],
     ['forward / side overlap', `${fmt(c.forward_overlap_median, '%', 0)} / ${fmt(c.side_overlap_min, '%', 0)}`],
     ['RTK fixed / float / 3D', `${fmt(fs.rtk_fixed, '%', 0)} / ${fmt(fs.rtk_float, '%', 0)} / ${fmt(fs['3d'], '%', 0)}`],
-    ['GNSS bias E N U', Array.isArray(a.gnss_bias_enu_m) ? a.gnss_bias_enu_m.map(v => (100 * Number(v)).toFixed(1)).join(' ') + ' cm' : '–'],
+    ['GNSS bias estimate E N U', Array.isArray(a.gnss_bias_enu_m) ? a.gnss_bias_enu_m.map(v => (100 * Number(v)).toFixed(1)).join(' ') + ' cm' : '–'],
     ['keyframes / ortho tiles', `${d.keyframes} / ${(d.ortho || {}).tiles}`],
   ];
   const ctl = a.control;
@@ -121,9 +134,14 @@ function panel(key, d) {
     `${ctl.gcps_full} / ${ctl.gcps_horizontal_only} / ${ctl.gcps_rejected} / ${ctl.gcps_held} of ${ctl.gcps}`]);
   const verdict = ['GO', 'NO-GO', 'WAIT'].includes(g.verdict) ? g.verdict : 'WAIT';
   const box = el('div', {className: 'drone', id: `drone-${key}`},
-    el('h2', {}, d.ns, ' ', el('span', {className: `verdict ${verdict}`, id: `verdict-${key}`}, verdict)),
-    (g.reasons || []).map(r => el('div', {className: 'reason'}, r)),
-    (ctl && Array.isArray(ctl.faults) ? ctl.faults : []).map(f => el('div', {className: 'reason'}, 'control: ', f)),
+    el('h2', {}, clip(d.ns), ' ', el('span', {className: `verdict ${verdict}`, id: `verdict-${key}`}, verdict),
+      (g.warnings || []).length ? el('span', {className: 'verdict WARN'}, `WARN ${g.warnings.length}`) : null),
+    (g.reasons || []).map(r => el('div', {className: 'reason'}, clip(r))),
+    (g.warnings || []).map(w => el('div', {className: 'warn'}, 'WARN: ', w)),
+    Object.entries(d.health || {}).filter(([, h]) => Array.isArray(h) && h[0] === 1).map(([n, h]) =>
+      el('div', {className: 'warn'}, `${n.replace(/^\//, '')} WARN: `, clip(h[1]))),
+    (ctl && Array.isArray(ctl.faults) ? ctl.faults : []).map(f => el('div', {className: 'reason'}, 'control: ',
+      clip(f))),
     Object.entries(d.unknown_publishers || {}).map(([t, who]) => el('div', {className: 'unknown'},
       `${t}: unknown publisher ${[].concat(who).join(', ')}, not counted (${(d.not_counted || {})[t] ?? 0} messages)`)),
     el('table', {}, rows.map(([k, v]) => el('tr', {}, el('td', {}, k), el('td', {className: 'v'}, v)))));
@@ -166,15 +184,19 @@ function showUnknown(st) {
     box.append(el('div', {className: 'unknown'}, '/diagnostics also from ',
       st.diagnostics_unknown_publishers.join(', '), ': drone health not counted'));
   }
+  // Whether the drones' DDS traffic is authenticated and encrypted, at the top of the panel; why, below it.
   const sec = st.security || {};
-  document.getElementById('security').textContent = sec.summary ? `ROS 2 security: ${sec.summary}` : '';
-  document.getElementById('security').className = sec.enabled ? 'secure' : 'insecure';
+  const box2 = document.getElementById('security');
+  box2.replaceChildren(el('b', {}, sec.headline || 'DDS security: not known'),
+    sec.summary ? el('details', {}, el('summary', {}, 'ROS 2 security'), sec.summary) : null);
+  box2.className = sec.enabled ? 'secure' : 'insecure';
 }
 
 async function apply(msg) {
   const st = msg.status;
   lastStatus = st;
   lastPushMs = Date.now();
+  if (typeof msg.server_time_unix_s === 'number') clockOffsetMs = lastPushMs - 1000 * msg.server_time_unix_s;
   limits = st.limits || {};
   setBasemap(st.basemap);
   const boxes = [];
@@ -196,7 +218,7 @@ function showUpdated() {   // when the figures were last updated, and whether th
   const e = document.getElementById('updated');
   if (!lastStatus) { e.textContent = socketOpen ? 'connected, no status yet' : 'not connected'; return; }
   const times = Object.values(lastStatus.drones || {}).map(d => d.updated_unix_s).filter(t => typeof t === 'number');
-  const data = times.length ? new Date(1000 * Math.max(...times)) : null;
+  const data = times.length ? new Date(1000 * Math.max(...times) + clockOffsetMs) : null;   // browser time
   const age = data ? Math.round((Date.now() - data.getTime()) / 1000) : null;
   e.textContent = (data ? `drone data ${data.toLocaleTimeString()} (${age} s ago)` : 'no drone data yet') +
     ` · status ${new Date(lastPushMs).toLocaleTimeString()}` + (socketOpen ? '' : ' · DISCONNECTED, retrying');
