@@ -287,6 +287,8 @@ class IncrementalAT:
         self._segment: IncrementalAT | None = None
         self._segment_kids: list[int] = []
         self.segments_joined = 0
+        # Keyframes of a block before a break that its GNSS could not place, given up for the segment after it.
+        self.unplaced_keyframes = 0
         # Each segment that joined: its keyframes and how ('gnss', or 'mtp' with the tie points used).
         self.segment_joins: list[dict] = []
         self.rng = np.random.default_rng(0)
@@ -471,10 +473,15 @@ class IncrementalAT:
             self._segment_kids = []
         self._segment_kids.append(kf.kid)
         seg = self._segment.add_keyframe(rec, window_iterations)
+        joins = self.segments_joined
+        # Every track lost early on the first line: the block joins the segment's turn (its full adjustment).
+        self._georeference_short_block()
         # Provisional too: a gap mid-line leaves a line until the next turn. Both in the map frame: the block
         # must be georeferenced as well. Manual tie points shared with the block join it without waiting.
         if self._segment_can_join():
-            n = self._join_segment()
+            self._join_segment()
+        if self.segments_joined > joins:
+            n = self.segment_joins[-1]['keyframes']
             rep = self._window_adjust(kf.kid, iterations=window_iterations) if kf.map_T_cam is not None \
                 else StepReport(kf.kid, False, seg.status)
             rep.joined = n
@@ -518,6 +525,32 @@ class IncrementalAT:
         if seg is None or not seg.registered or not self.georeferenced:
             return False
         return seg.georeferenced or self._ties_fit()[2]
+
+    def _georeference_short_block(self) -> bool:
+        """The block is too short to georeference by itself and the segment is georeferenced for good:
+        georeference the block provisionally on its line from 3 keyframes with a fix, or from any geometry
+        its GNSS places (it grows no more: what comes goes to the segment); its full adjustment then joins the
+        segment. When its GNSS cannot place it either (a few metres of line under the GNSS noise) and the
+        segment is the larger, give up the block's keyframes (not oriented) and take the segment in its place.
+        Returns whether the block is georeferenced now."""
+        seg = self._segment
+        if self.georeferenced or seg is None or not seg.georeferenced or seg.georef_provisional:
+            return False
+        if self._try_georeference(line_keyframes=3) or self._try_georeference(force=True):
+            return True
+        if len(seg.registered) <= len(self.registered):
+            return False
+        self.unplaced_keyframes += len(self.registered)
+        for k in self.registered:
+            self.kfs[k].map_T_cam = None
+        self.registered, self.points, self.track_kfs = [], PointStore(), {}
+        self._freezer = Freezer(self.opt)
+        self.georeferenced, self.georef_provisional = True, seg.georef_provisional
+        kids = self._segment_kids
+        self._join_segment()
+        for kid in kids:
+            self._freezer.seen(kid, self.kfs[kid].track_ids)
+        return True
 
     def _move_segment_onto_ties(self) -> int:
         """Move the segment (poses and points) onto the block through the manual tie points both have
@@ -890,10 +923,12 @@ class IncrementalAT:
 
     # --- georeference -------------------------------------------------------------------------
 
-    def _try_georeference(self, force: bool = False) -> bool:
-        """`force`: accept any non-collinear geometry (end of flight: nothing better will come)."""
+    def _try_georeference(self, force: bool = False, line_keyframes: int | None = None) -> bool:
+        """`force`: accept any non-collinear geometry (end of flight: nothing better will come).
+        `line_keyframes`: a straight line georeferences provisionally with this many keyframes with a fix
+        (at least 3) spread over 10 sigmas of their GNSS; default: twice georef_min_keyframes over 5 m too."""
         ks = [k for k in self.registered if self.kfs[k].fix_enu is not None]
-        if len(ks) < max(self.opt.georef_min_keyframes, 3):
+        if len(ks) < (max(self.opt.georef_min_keyframes, 3) if line_keyframes is None else max(line_keyframes, 3)):
             return False
         src = np.array([self.kfs[k].map_T_cam[:3, 3] for k in ks])
         dst = np.array([self.kfs[k].fix_enu if self.kfs[k].antenna_offset is None
@@ -924,7 +959,9 @@ class IncrementalAT:
             provisional = force and len(gcp) < 3 and side < 3.0 * sig / np.sqrt(n_in)
         elif self.georeferenced:
             return False    # provisional already; wait for the turn
-        elif self.opt.assume_nadir and sv[0] > max(10.0 * sig, 5.0) and len(ks) >= 2 * self.opt.georef_min_keyframes:
+        elif self.opt.assume_nadir and len(ks) >= (2 * self.opt.georef_min_keyframes if line_keyframes is None
+                                                   else line_keyframes) and sv[0] > max(
+                10.0 * sig, 5.0 if line_keyframes is None else 0.0):
             # Straight line: everything but the roll about it comes from GNSS; the roll from the
             # near-nadir camera. Provisional until the first turn.
             n = len(ks)   # the cameras alone (GCPs joined a forced fit above)
@@ -1296,7 +1333,7 @@ class IncrementalAT:
         rep = StepReport(-1, False, 'not_initialised')
         if not self.registered:
             return rep
-        if not self.georeferenced and self._try_georeference(force=True):
+        if not self.georeferenced and (self._georeference_short_block() or self._try_georeference(force=True)):
             rounds = max(rounds - 1, 1)
         if self._segment is not None and self._segment.registered:
             # End of flight (or asked for): a segment still waiting joins if its GNSS places it at all.

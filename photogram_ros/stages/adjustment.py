@@ -466,6 +466,12 @@ class AdjustmentStage:
             # flight keeps on disk (reading them would thaw every keyframe).
             self.live.observe(len(self.at.kfs) - 1, rec.target_uv)
         self._vet_control()
+        if self.at.unplaced_keyframes > self.diag.counts().get('keyframes_unplaced', 0):
+            n = self.at.unplaced_keyframes - self.diag.counts().get('keyframes_unplaced', 0)
+            self.diag.count('keyframes_unplaced', n)
+            self.diag.problem(f'every track was lost early: the {n} keyframes before the break span less than their '
+                              'GNSS noise and could not be placed (not oriented); the map holds the flight after it',
+                              WARN)
         if rep.joined:
             self.diag.count('keyframes_joined_from_a_segment', rep.joined)
             self.diag.problem(f'every track was lost: {rep.joined} keyframes after the break were oriented as a '
