@@ -161,6 +161,11 @@ class IncrementalOptions:
     final_self_calibration: str = param('', 'intrinsics the final full adjustment refines, comma separated (from f, '
                                              'cx, cy, k1, k2, p1, p2, k3; empty: none): a camera from the EXIF, whose '
                                              'distortion nobody measured, wants "k1,k2"')
+    gnss_height_from_track: bool = param(False, 'the GNSS noise estimate weights the fixes\' heights by their '
+                                                 'scatter from fix to fix in time when that is well below their '
+                                                 'stated sigma (a level flight\'s barometric heights)')
+    gnss_height_floor_m: float = param(0.05, 'the heights\' sigma from their scatter in time is at least this, m',
+                                       min=0.001, max=100.0)
     gnss_gate_m: float = param(1.0, 'a keyframe oriented from the block\'s tie points whose fix lies further than '
                                     'this (and 2 x gnss_outlier_sigma of its sigma) from it keeps its fix out, m',
                                min=0.0, max=1e6)
@@ -1094,6 +1099,22 @@ class IncrementalAT:
         dz = np.array([r[k][2] for k in r]) + x @ self.gnss_slope
         return dz, x
 
+    def _track_height_sigma(self, kids: list[int]) -> float | None:
+        """The fixes' vertical noise from photo to photo (m), or None when not asked for
+        (`gnss_height_from_track`) or with too few fixes: the robust scatter of the height differences of
+        fixes consecutive in time, over root 2, at least `gnss_height_floor_m`. A level flight's barometric
+        heights (a consumer geotag: metres off absolutely, centimetres from photo to photo) say how the
+        block may bend, which their stated sigma does not; a fix's offset common to the flight is the
+        datum's and left to it. A flight that climbs or whose heights jump between fixes gives a larger
+        figure, and then the stated sigma holds."""
+        if not self.opt.gnss_height_from_track or len(kids) < self.opt.gnss_noise_min_keyframes:
+            return None
+        ks = sorted(kids, key=lambda k: self.kfs[k].stamp_ns)
+        h = np.array([self.kfs[k].fix_enu[2] for k in ks])
+        d = np.diff(h)
+        sigma = 1.4826 * float(np.median(np.abs(d - np.median(d)))) / np.sqrt(2.0)
+        return max(sigma, self.opt.gnss_height_floor_m)
+
     def _level_block(self, kids: list[int]) -> dict | None:
         """The block's tilt, from the fixes' heights and from the cameras looking down, each as good as
         it is: the slope of the fixes' heights across the block (what the GNSS says of the tilt) has the
@@ -1193,6 +1214,9 @@ class IncrementalAT:
             used = stated * self.gnss_sigma_scale_hv
             want = np.where(est > 1.5 * stated, est / stated, 1.0)
             want = np.maximum(want, 1.0)
+            track_v = self._track_height_sigma(kids)
+            if track_v is not None and track_v < stated[1] / 1.5:
+                want[1] = track_v / stated[1]
             out = {'stated_h_m': float(stated[0]), 'stated_v_m': float(stated[1]), 'estimated_h_m': float(est[0]),
                    'estimated_v_m': float(est[1]), 'scale_h': float(want[0]), 'scale_v': float(want[1]),
                    'used_h_m': float(stated[0] * want[0]), 'used_v_m': float(stated[1] * want[1]), 'n': n}
