@@ -16,7 +16,7 @@ and poses.csv):
   sparse cloud of the same photos), B gridded as ODM is.
 
     .venv/bin/python bench/products_shape.py OUT [OUT ...] [--photos ../shared/data/photos/brighton_beach/images]
-        [--pair REPLAY_OUT TRIANGULATE_OUT]
+        [--pair REPLAY_OUT TRIANGULATE_OUT] [--no-odm]
 Prints one JSON line per folder (and per pair).
 """
 
@@ -127,9 +127,13 @@ def main() -> int:
     ap.add_argument('outs', nargs='*')
     ap.add_argument('--photos', default=str(BRIGHTON_PHOTOS))
     ap.add_argument('--pair', nargs=2, action='append', default=[], metavar=('A', 'B'))
+    ap.add_argument('--no-odm', action='store_true', help='cameras only (a survey without ODM\'s cloud: toledo)')
     a = ap.parse_args()
-    odm = rs.odm_grid()
+    odm = None if a.no_odm else rs.odm_grid()
     for out in map(Path, a.outs):
+        if odm is None:
+            print(json.dumps({'out': str(out), 'cameras_vs_exif': cameras(out, Path(a.photos))}))
+            continue
         P, what = ground_points(out)
         agree = rs.odm_agreement(P)
         res = {'out': str(out), 'ground': what, 'odm_offset_m': agree.get('offset_m'),

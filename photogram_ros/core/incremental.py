@@ -161,11 +161,10 @@ class IncrementalOptions:
     final_self_calibration: str = param('', 'intrinsics the final full adjustment refines, comma separated (from f, '
                                              'cx, cy, k1, k2, p1, p2, k3; empty: none): a camera from the EXIF, whose '
                                              'distortion nobody measured, wants "k1,k2"')
-    gnss_height_from_track: bool = param(False, 'the GNSS noise estimate weights the fixes\' heights by their '
-                                                 'scatter from fix to fix in time when that is well below their '
-                                                 'stated sigma (a level flight\'s barometric heights)')
-    gnss_height_floor_m: float = param(0.05, 'the heights\' sigma from their scatter in time is at least this, m',
-                                       min=0.001, max=100.0)
+    gnss_tighten: bool = param(False, 'the GNSS noise estimate may also weight the fixes tighter than they state '
+                                      '(a consumer geotag states metres): horizontally by their residuals about '
+                                      'the block, vertically by their heights\' scatter about the flight\'s plane')
+    gnss_tighten_floor_m: float = param(0.05, 'a tightened GNSS sigma is at least this, m', min=0.001, max=100.0)
     gnss_gate_m: float = param(1.0, 'a keyframe oriented from the block\'s tie points whose fix lies further than '
                                     'this (and 2 x gnss_outlier_sigma of its sigma) from it keeps its fix out, m',
                                min=0.0, max=1e6)
@@ -1099,21 +1098,21 @@ class IncrementalAT:
         dz = np.array([r[k][2] for k in r]) + x @ self.gnss_slope
         return dz, x
 
-    def _track_height_sigma(self, kids: list[int]) -> float | None:
-        """The fixes' vertical noise from photo to photo (m), or None when not asked for
-        (`gnss_height_from_track`) or with too few fixes: the robust scatter of the height differences of
-        fixes consecutive in time, over root 2, at least `gnss_height_floor_m`. A level flight's barometric
-        heights (a consumer geotag: metres off absolutely, centimetres from photo to photo) say how the
-        block may bend, which their stated sigma does not; a fix's offset common to the flight is the
-        datum's and left to it. A flight that climbs or whose heights jump between fixes gives a larger
-        figure, and then the stated sigma holds."""
-        if not self.opt.gnss_height_from_track or len(kids) < self.opt.gnss_noise_min_keyframes:
-            return None
-        ks = sorted(kids, key=lambda k: self.kfs[k].stamp_ns)
-        h = np.array([self.kfs[k].fix_enu[2] for k in ks])
-        d = np.diff(h)
-        sigma = 1.4826 * float(np.median(np.abs(d - np.median(d)))) / np.sqrt(2.0)
-        return max(sigma, self.opt.gnss_height_floor_m)
+    def _flight_plane_sigma(self, kids: list[int]) -> float:
+        """The fixes' vertical noise about the flight's plane (m): the robust scatter of their heights about
+        the plane fitted to them over their horizontal positions, corrected for its 3 parameters. A mapping
+        flight holds its altitude, so a level flight's barometric heights (a consumer geotag: metres off
+        absolutely, centimetres from photo to photo) say how far the block may bend, which their stated
+        sigma does not; their offset and tilt are the datum's. A flight over relief it follows, or heights
+        that wander (a GNSS height's slow drift), give a larger figure."""
+        X = np.array([self.kfs[k].fix_enu for k in kids])
+        A = np.column_stack([np.ones(len(X)), X[:, 0] - X[:, 0].mean(), X[:, 1] - X[:, 1].mean()])
+        w = np.ones(len(X))
+        for _ in range(4):   # least absolute deviations (reweighted)
+            coef = np.linalg.lstsq(A * w[:, None], X[:, 2] * w, rcond=None)[0]
+            w = 1.0 / np.sqrt(np.maximum(np.abs(X[:, 2] - A @ coef), 0.01))
+        r = X[:, 2] - A @ coef
+        return float(np.sqrt(len(X) / max(len(X) - 3.0, 1.0)) * _clipped_sigma(r - np.median(r)))
 
     def _level_block(self, kids: list[int]) -> dict | None:
         """The block's tilt, from the fixes' heights and from the cameras looking down, each as good as
@@ -1214,9 +1213,15 @@ class IncrementalAT:
             used = stated * self.gnss_sigma_scale_hv
             want = np.where(est > 1.5 * stated, est / stated, 1.0)
             want = np.maximum(want, 1.0)
-            track_v = self._track_height_sigma(kids)
-            if track_v is not None and track_v < stated[1] / 1.5:
-                want[1] = track_v / stated[1]
+            if self.opt.gnss_tighten and n >= self.opt.gnss_noise_min_keyframes:
+                # Fixes better than they state (a consumer geotag states metres): horizontally as the block's
+                # residuals say (a block cannot bend to follow its fixes sideways, its 7 datum parameters
+                # taken into account above); vertically as the heights' scatter about the flight's plane says
+                # (a block bends to its heights: its residuals would say what its bending left). Never looser
+                # than stated.
+                better = np.maximum([est[0], self._flight_plane_sigma(kids)], self.opt.gnss_tighten_floor_m)
+                tight = better < stated / 1.5
+                want[tight] = np.minimum(better[tight] / stated[tight], 1.0)
             out = {'stated_h_m': float(stated[0]), 'stated_v_m': float(stated[1]), 'estimated_h_m': float(est[0]),
                    'estimated_v_m': float(est[1]), 'scale_h': float(want[0]), 'scale_v': float(want[1]),
                    'used_h_m': float(stated[0] * want[0]), 'used_v_m': float(stated[1] * want[1]), 'n': n}
