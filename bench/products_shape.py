@@ -16,7 +16,7 @@ and poses.csv):
   sparse cloud of the same photos), B gridded as ODM is.
 
     .venv/bin/python bench/products_shape.py OUT [OUT ...] [--photos ../shared/data/photos/brighton_beach/images]
-        [--pair REPLAY_OUT TRIANGULATE_OUT] [--no-odm]
+        [--pair REPLAY_OUT TRIANGULATE_OUT] [--no-odm] [--pycolmap]
 Prints one JSON line per folder (and per pair).
 """
 
@@ -122,13 +122,36 @@ def cameras(out: Path, photos: Path) -> dict:
     return {'exif_h_range_m': round(float(np.ptp(G[:, 2])), 2), **shape(G[:, 0], G[:, 1], E[:, 2] - G[:, 2])}
 
 
+def pycolmap_cameras() -> dict:
+    """{variant: shape of pycolmap's vertical residuals (aligned camera - EXIF) over the EXIF positions} for
+    toledo's peer_pycolmap.json."""
+    from photogram_ros.core.geodesy import LocalFrame
+    ref = rs.exif_reference(rs.TOLEDO / 'images')
+    G = np.array(list(ref.values()), float)
+    o = LocalFrame(*G.mean(axis=0))
+    enu = {k: o.geodetic_to_enu(*np.array(v, float)) for k, v in ref.items()}
+    out = {}
+    for name, v in json.loads((rs.TOLEDO / 'peer_pycolmap.json').read_text())['variants'].items():
+        r = v.get('per_image_residual_enu_m') or {}
+        ks = [k for k in r if k in enu]
+        if len(ks) >= 7:
+            E, R = np.array([enu[k] for k in ks]), np.array([r[k] for k in ks], float)
+            out[name] = shape(E[:, 0], E[:, 1], R[:, 2])
+    return out
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument('outs', nargs='*')
     ap.add_argument('--photos', default=str(BRIGHTON_PHOTOS))
     ap.add_argument('--pair', nargs=2, action='append', default=[], metavar=('A', 'B'))
     ap.add_argument('--no-odm', action='store_true', help='cameras only (a survey without ODM\'s cloud: toledo)')
+    ap.add_argument('--pycolmap', action='store_true', help='also pycolmap\'s toledo cameras against the EXIF '
+                                                             '(peer_pycolmap.json: its residuals after its similarity)')
     a = ap.parse_args()
+    if a.pycolmap:
+        for name, shp in pycolmap_cameras().items():
+            print(json.dumps({'peer': f'pycolmap {name}', 'cameras_vs_exif': shp}))
     odm = None if a.no_odm else rs.odm_grid()
     for out in map(Path, a.outs):
         if odm is None:
