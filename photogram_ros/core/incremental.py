@@ -240,6 +240,23 @@ def _adjust(prob, loss: str, scale_px: float, iterations: int, refine: tuple = (
                                              refine_intrinsics=tuple(refine)))
 
 
+def flight_plane_sigma(fixes_enu: np.ndarray) -> float:
+    """The fixes' vertical noise about the flight's plane (m): the robust scatter (`_clipped_sigma`) of their
+    heights about the plane fitted to them over their horizontal positions (least absolute deviations),
+    corrected for its 3 parameters. A mapping flight holds its altitude, so a level flight's barometric heights
+    (a consumer geotag: metres off absolutely, centimetres from photo to photo) give centimetres here, which
+    their stated sigma does not say; their offset and tilt are the datum's. A flight over relief it follows,
+    or heights that wander, give more; a wander shaped like a bowl over the block does not show here."""
+    X = np.asarray(fixes_enu, float).reshape(-1, 3)
+    A = np.column_stack([np.ones(len(X)), X[:, 0] - X[:, 0].mean(), X[:, 1] - X[:, 1].mean()])
+    w = np.ones(len(X))
+    for _ in range(4):
+        coef = np.linalg.lstsq(A * w[:, None], X[:, 2] * w, rcond=None)[0]
+        w = 1.0 / np.sqrt(np.maximum(np.abs(X[:, 2] - A @ coef), 0.01))
+    r = X[:, 2] - A @ coef
+    return float(np.sqrt(len(X) / max(len(X) - 3.0, 1.0)) * _clipped_sigma(r - np.median(r)))
+
+
 def lever_arm_cam_from_frd(lever_frd_m) -> np.ndarray:
     """Body-FRD lever arm -> camera frame, for a nadir camera whose image top points forward.
 
@@ -1099,20 +1116,8 @@ class IncrementalAT:
         return dz, x
 
     def _flight_plane_sigma(self, kids: list[int]) -> float:
-        """The fixes' vertical noise about the flight's plane (m): the robust scatter of their heights about
-        the plane fitted to them over their horizontal positions, corrected for its 3 parameters. A mapping
-        flight holds its altitude, so a level flight's barometric heights (a consumer geotag: metres off
-        absolutely, centimetres from photo to photo) say how far the block may bend, which their stated
-        sigma does not; their offset and tilt are the datum's. A flight over relief it follows, or heights
-        that wander (a GNSS height's slow drift), give a larger figure."""
-        X = np.array([self.kfs[k].fix_enu for k in kids])
-        A = np.column_stack([np.ones(len(X)), X[:, 0] - X[:, 0].mean(), X[:, 1] - X[:, 1].mean()])
-        w = np.ones(len(X))
-        for _ in range(4):   # least absolute deviations (reweighted)
-            coef = np.linalg.lstsq(A * w[:, None], X[:, 2] * w, rcond=None)[0]
-            w = 1.0 / np.sqrt(np.maximum(np.abs(X[:, 2] - A @ coef), 0.01))
-        r = X[:, 2] - A @ coef
-        return float(np.sqrt(len(X) / max(len(X) - 3.0, 1.0)) * _clipped_sigma(r - np.median(r)))
+        """`flight_plane_sigma` of the fixes of keyframes `kids`."""
+        return flight_plane_sigma(np.array([self.kfs[k].fix_enu for k in kids]))
 
     def _level_block(self, kids: list[int]) -> dict | None:
         """The block's tilt, from the fixes' heights and from the cameras looking down, each as good as
