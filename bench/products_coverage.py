@@ -15,10 +15,14 @@ the offset (grid search +-S m in 0.25 m) that fits the peer best (the two georef
 `--photos DIR`: the adjusted camera heights (trajectory.csv) against the photos' EXIF altitudes (matched by the
 replay's stamps) after a constant and after a quadratic surface: whether the block's cameras bend away from the
 altitude the drone held (a dome of the cameras goes with a bowl of the ground).
+`--truth FLIGHT` (a simulated flight's folder, the replay's input beside its ground_truth.json): the DSM's
+measured cells against the true DEM and the keyframe centres against the true cameras, each after a constant
+and after a quadratic surface, with the quadratic part's spread and curvatures: the block's doming against
+truth (`truth_shape`).
 Prints one JSON line per folder.
 
     .venv/bin/python bench/products_coverage.py OUT [OUT ...] [--peer ../shared/data/photos/brighton_beach/odm_model.laz]
-        [--shift-m 2] [--photos ../shared/data/photos/brighton_beach/images]
+        [--shift-m 2] [--photos ../shared/data/photos/brighton_beach/images] [--truth SIMULATED_FLIGHT]
 """
 
 from __future__ import annotations
@@ -119,6 +123,42 @@ def camera_heights(rows: list[dict], photos: str) -> dict:
             'rms_after_quadratic_m': round(float(np.sqrt(np.mean(rq ** 2))), 3)}
 
 
+def _shape(e: np.ndarray, n: np.ndarray, dz: np.ndarray) -> dict:
+    """dz's median |dz| after a constant (its median) and after a quadratic surface, with that surface's
+    quadratic part (quadratic_part)."""
+    dzq, _ = plane_residual(e, n, dz, degree=2)
+    d0 = dz - np.median(dz)
+    return {'n': int(dz.size), 'median_abs_after_constant_m': round(float(np.median(np.abs(d0))), 3),
+            'median_abs_after_quadratic_m': round(float(np.median(np.abs(dzq))), 3),
+            **quadratic_part(e, n, dz)}
+
+
+def truth_shape(out: str, flight: str) -> dict:
+    """The DSM's measured cells (band 2 >= 1) against the simulator's true DEM and the keyframe centres
+    (trajectory.csv, matched by stamp) against the true cameras, heights in the truth's ENU: the shape of
+    the block against truth (a bowl or dome: both curvatures of one sign)."""
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+    from photogram_ros.io.flight_report import _raster_cells_enu
+    from photogram_ros.sim.truth import GroundTruth
+    truth = GroundTruth.load(flight)
+    enu, pairs, _ = _raster_cells_enu(f'{out}/dsm.tif', truth.crs, truth.origin.geodetic_to_enu)
+    m = pairs >= 1 if pairs is not None else np.ones(len(enu), bool)
+    dz = enu[m, 2] - truth.dem.sample(enu[m, 0], enu[m, 1])
+    ok = np.isfinite(dz)
+    res = {'gsd_m': truth.gsd_m, 'dsm_measured': _shape(enu[m, 0][ok], enu[m, 1][ok], dz[ok])}
+    est, true = [], []
+    for r in csv.DictReader(open(f'{out}/trajectory.csv')):
+        f = truth.frame_by_stamp(int(r['stamp_ns']), tol_ns=50_000_000)
+        if f is not None:
+            est.append(truth.origin.geodetic_to_enu(float(r['lat_deg']), float(r['lon_deg']),
+                                                    float(r['h_ellipsoid_m'])))
+            true.append(f.map_T_cam[:3, 3])
+    if len(est) >= 7:
+        E, T = np.array(est), np.array(true)
+        res['cameras'] = _shape(T[:, 0], T[:, 1], E[:, 2] - T[:, 2])
+    return res
+
+
 def plane_residual(e: np.ndarray, n: np.ndarray, dz: np.ndarray, iters: int = 3,
                    degree: int = 1) -> tuple[np.ndarray, tuple]:
     """dz minus a plane a + b e + c n (degree 1; degree 2 adds e^2, e n, n^2: a bowl or dome) fitted by
@@ -141,6 +181,7 @@ def main() -> int:
     ap.add_argument('--shift-m', type=float, default=0.0, help='search a horizontal move of our DSM against the '
                                                                 'peer within +- this, m (0: none)')
     ap.add_argument('--photos', default=None, help='the replayed photo folder: camera heights against its EXIF')
+    ap.add_argument('--truth', default=None, help='the simulated flight (ground_truth.json): shape against truth')
     a = ap.parse_args()
     for out in a.outs:
         rows = list(csv.DictReader(open(f'{out}/trajectory.csv')))
@@ -159,6 +200,8 @@ def main() -> int:
         res['ortho_valid_in_hull'] = float((alpha > 0)[hull(alpha.shape, To, e, n)].mean())
         if a.photos:
             res['cameras_vs_exif_height'] = camera_heights(rows, a.photos)
+        if a.truth:
+            res['truth_shape'] = truth_shape(out, a.truth)
         if a.peer:
             if a.shift_m > 0:
                 dx, dy = best_shift(z, T, measured, a.peer, a.shift_m)

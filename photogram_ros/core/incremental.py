@@ -161,6 +161,10 @@ class IncrementalOptions:
     final_self_calibration: str = param('', 'intrinsics the final full adjustment refines, comma separated (from f, '
                                              'cx, cy, k1, k2, p1, p2, k3; empty: none): a camera from the EXIF, whose '
                                              'distortion nobody measured, wants "k1,k2"')
+    gnss_tighten: bool = param(False, 'the GNSS noise estimate may also weight the fixes tighter than they state '
+                                      '(a consumer geotag states metres): horizontally by their residuals about '
+                                      'the block, vertically by their heights\' scatter about the flight\'s plane')
+    gnss_tighten_floor_m: float = param(0.05, 'a tightened GNSS sigma is at least this, m', min=0.001, max=100.0)
     gnss_gate_m: float = param(1.0, 'a keyframe oriented from the block\'s tie points whose fix lies further than '
                                     'this (and 2 x gnss_outlier_sigma of its sigma) from it keeps its fix out, m',
                                min=0.0, max=1e6)
@@ -234,6 +238,23 @@ class StepReport:
 def _adjust(prob, loss: str, scale_px: float, iterations: int, refine: tuple = ()):
     return bundle_adjust(prob, BundleOptions(loss=loss, loss_scale_px=scale_px, max_iterations=iterations,
                                              refine_intrinsics=tuple(refine)))
+
+
+def flight_plane_sigma(fixes_enu: np.ndarray) -> float:
+    """The fixes' vertical noise about the flight's plane (m): the robust scatter (`_clipped_sigma`) of their
+    heights about the plane fitted to them over their horizontal positions (least absolute deviations),
+    corrected for its 3 parameters. A mapping flight holds its altitude, so a level flight's barometric heights
+    (a consumer geotag: metres off absolutely, centimetres from photo to photo) give centimetres here, which
+    their stated sigma does not say; their offset and tilt are the datum's. A flight over relief it follows,
+    or heights that wander, give more; a wander shaped like a bowl over the block does not show here."""
+    X = np.asarray(fixes_enu, float).reshape(-1, 3)
+    A = np.column_stack([np.ones(len(X)), X[:, 0] - X[:, 0].mean(), X[:, 1] - X[:, 1].mean()])
+    w = np.ones(len(X))
+    for _ in range(4):
+        coef = np.linalg.lstsq(A * w[:, None], X[:, 2] * w, rcond=None)[0]
+        w = 1.0 / np.sqrt(np.maximum(np.abs(X[:, 2] - A @ coef), 0.01))
+    r = X[:, 2] - A @ coef
+    return float(np.sqrt(len(X) / max(len(X) - 3.0, 1.0)) * _clipped_sigma(r - np.median(r)))
 
 
 def lever_arm_cam_from_frd(lever_frd_m) -> np.ndarray:
@@ -1131,6 +1152,10 @@ class IncrementalAT:
         dz = np.array([r[k][2] for k in r]) + x @ self.gnss_slope
         return dz, x
 
+    def _flight_plane_sigma(self, kids: list[int]) -> float:
+        """`flight_plane_sigma` of the fixes of keyframes `kids`."""
+        return flight_plane_sigma(np.array([self.kfs[k].fix_enu for k in kids]))
+
     def _level_block(self, kids: list[int]) -> dict | None:
         """The block's tilt, from the fixes' heights and from the cameras looking down, each as good as
         it is: the slope of the fixes' heights across the block (what the GNSS says of the tilt) has the
@@ -1230,6 +1255,15 @@ class IncrementalAT:
             used = stated * self.gnss_sigma_scale_hv
             want = np.where(est > 1.5 * stated, est / stated, 1.0)
             want = np.maximum(want, 1.0)
+            if self.opt.gnss_tighten and n >= self.opt.gnss_noise_min_keyframes:
+                # Fixes better than they state (a consumer geotag states metres): horizontally as the block's
+                # residuals say (a block cannot bend to follow its fixes sideways, its 7 datum parameters
+                # taken into account above); vertically as the heights' scatter about the flight's plane says
+                # (a block bends to its heights: its residuals would say what its bending left). Never looser
+                # than stated.
+                better = np.maximum([est[0], self._flight_plane_sigma(kids)], self.opt.gnss_tighten_floor_m)
+                tight = better < stated / 1.5
+                want[tight] = np.minimum(better[tight] / stated[tight], 1.0)
             out = {'stated_h_m': float(stated[0]), 'stated_v_m': float(stated[1]), 'estimated_h_m': float(est[0]),
                    'estimated_v_m': float(est[1]), 'scale_h': float(want[0]), 'scale_v': float(want[1]),
                    'used_h_m': float(stated[0] * want[0]), 'used_v_m': float(stated[1] * want[1]), 'n': n}
