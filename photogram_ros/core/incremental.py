@@ -1384,15 +1384,26 @@ class IncrementalAT:
             self.estimate_gnss_noise(iterations, refine_intrinsics)
         if self.opt.estimate_gnss_bias and self._n_gcps() >= 3:
             self.gnss_bias_estimated = True
+            before = None   # (bias, residual mean) of the previous round
             for _ in range(self.opt.bias_iterations):
                 r = np.array(list(self.gnss_residuals().values()))
                 if not len(r):
                     break
-                # The residual mean is a fraction of the bias (the fixes still pull): iterate.
-                step = np.mean(r, axis=0)
+                # The residual mean is a fraction of the bias left (the fixes still pull the cameras, the GCPs
+                # hold them): after a first step by the mean itself, each axis steps to the secant's root,
+                # the fraction measured from the last two rounds (0.02-1: else the plain step).
+                mean = np.mean(r, axis=0)
+                frac = np.ones(3)
+                if before is not None:
+                    db, dr = self.gnss_bias_enu - before[0], mean - before[1]
+                    ok = np.abs(db) > 1e-6
+                    frac[ok] = dr[ok] / db[ok]
+                    frac[~ok | (frac < 0.02) | (frac > 1.0)] = 1.0
+                step = mean / frac
+                before = (self.gnss_bias_enu.copy(), mean)
                 self.gnss_bias_enu -= step
                 rep = self._solve(list(self.registered), [], list(self.points), iterations or self.opt.full_iterations)
-                if np.linalg.norm(step) < 0.005:
+                if np.linalg.norm(step) < 0.001:
                     break
         if self.opt.spill_frozen:
             self.freeze()   # the adjustment read every keyframe back: spill the frozen ones again
