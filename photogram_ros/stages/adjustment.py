@@ -225,6 +225,7 @@ class AdjustmentStage:
         self._attitude = AttitudeHistory(max_age_ns=120 * 10**9)
         self._attitude_arrival = -1e9   # monotonic time of the newest attitude
         self._first_keyframe_arrival = None   # monotonic time of the first keyframe
+        self._unplaced = 0                     # keyframes before an early break given up, already said
         self._full_requested = False
         self._busy = False
         self.cond = threading.Condition()
@@ -241,6 +242,7 @@ class AdjustmentStage:
                   if self.p.use_origin_params else None)
         with self.work:
             self.at = IncrementalAT(camera, self.p, origin=origin)
+            self._unplaced = 0
             self._control_to_map()
         self.wake()
         return True
@@ -466,8 +468,8 @@ class AdjustmentStage:
             # flight keeps on disk (reading them would thaw every keyframe).
             self.live.observe(len(self.at.kfs) - 1, rec.target_uv)
         self._vet_control()
-        if self.at.unplaced_keyframes > self.diag.counts().get('keyframes_unplaced', 0):
-            n = self.at.unplaced_keyframes - self.diag.counts().get('keyframes_unplaced', 0)
+        if self.at.unplaced_keyframes > self._unplaced:
+            n, self._unplaced = self.at.unplaced_keyframes - self._unplaced, self.at.unplaced_keyframes
             self.diag.count('keyframes_unplaced', n)
             self.diag.problem(f'every track was lost early: the {n} keyframes before the break span less than their '
                               'GNSS noise and could not be placed (not oriented); the map holds the flight after it',
