@@ -53,6 +53,8 @@ def run(a) -> int:
     bad = [r for r in roles if r not in NODES]
     if bad:
         raise ConfigError(f'unknown nodes {bad}; choose from {list(NODES)}')
+    if a.namespace:
+        check_namespace(a.namespace)
     spec = GraphSpec(roles=roles, params_file=a.params, namespace=a.namespace)
     check_params(spec)     # every mistake before the first frame, not at the end of the flight
     exporting = not a.no_export and 'map' in roles
@@ -110,6 +112,20 @@ def run(a) -> int:
                 'ended_by': signals.signal_name or 'end of the camera source',
                 'final_adjustment': end.final_adjustment, 'end_of_flight_errors': end.errors}
     return _after_flight(a, roles, end.as_dict(), run_info, diag_log.snapshot())
+
+
+def check_namespace(namespace: str) -> None:
+    """A ConfigError (exit 2, one line) for a namespace ROS 2 refuses, before any node starts."""
+    from rclpy.exceptions import InvalidNamespaceException
+    from rclpy.validate_namespace import validate_namespace
+
+    from photogram_ros.errors import ConfigError
+    try:
+        validate_namespace('/' + namespace.lstrip('/') if namespace != '/' else namespace)
+    except InvalidNamespaceException as exc:
+        why = str(exc).splitlines()[0].split(': ', 1)[-1].rstrip(':')
+        raise ConfigError(f'--namespace {namespace!r} is not a ROS 2 namespace ({why}): use letters, digits, '
+                          '"_" and "/", e.g. /drone1') from None
 
 
 def pace_camera(spec):
