@@ -26,6 +26,7 @@ import numpy as np
 import pytest
 
 from conftest import ROOT, SAMPLE_BAG, shared_data
+from helpers.processes import reaped
 from test_mavlink_node import _free_udp_port
 
 CLI = [sys.executable, '-m', 'photogram_ros.cli']
@@ -734,18 +735,17 @@ def test_record_killed_with_9_keeps_all_but_its_last_seconds(tmp_path, rclpy_con
                                    '--checkpoint', '1'], cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                             text=True)
     try:
-        t0 = time.monotonic()
-        _publish_while(proc, node, pub, lambda k: NavSatFix(latitude=47.0, longitude=8.5 + k * 1e-6),
-                       lambda: out.exists() or time.monotonic() - t0 > 60)
-        assert out.exists(), proc.stderr.read() if proc.poll() is not None else 'no bag folder in 60 s'
-        t1 = time.monotonic()
-        sent = _publish_while(proc, node, pub, lambda k: NavSatFix(latitude=47.0, longitude=8.5 + k * 1e-6),
-                              lambda: time.monotonic() - t1 > 8.0)
-        proc.kill()
-        proc.wait(timeout=30)
-    finally:
-        if proc.poll() is None:
+        with reaped(proc):
+            t0 = time.monotonic()
+            _publish_while(proc, node, pub, lambda k: NavSatFix(latitude=47.0, longitude=8.5 + k * 1e-6),
+                           lambda: out.exists() or time.monotonic() - t0 > 60)
+            assert out.exists(), proc.stderr.read() if proc.poll() is not None else 'no bag folder in 60 s'
+            t1 = time.monotonic()
+            sent = _publish_while(proc, node, pub, lambda k: NavSatFix(latitude=47.0, longitude=8.5 + k * 1e-6),
+                                  lambda: time.monotonic() - t1 > 8.0)
             proc.kill()
+            proc.wait(timeout=30)
+    finally:
         node.destroy_node()
     assert not (out / 'metadata.yaml').exists()        # cut short: no clean close
     with BagReader(out) as bag:
@@ -834,6 +834,63 @@ def test_bad_arguments_are_one_line_and_exit_2(tmp_path, args, words):
     res = cli('replay', SAMPLE_BAG, *args, '--quiet', timeout=60)
     assert res.returncode == 2 and words in res.stderr, res.stderr
     assert len(res.stderr.strip().splitlines()) == 1 and 'Traceback' not in res.stderr
+
+
+@pytest.mark.parametrize('args, words', [
+    (('simulate', '{o}', '--gap', 'abc'), '--gap \'abc\': give FROM:TO pairs'),
+    (('simulate', '{o}', '--outage', '20'), '--outage \'20\': give FROM:TO pairs'),
+    (('simulate', '{o}', '--corrupt-mavlink', '1:2:3'), 'give FROM:TO pairs'),
+    (('simulate', '{o}', '--gap', '5:3'), '0 <= FROM < TO'),
+    (('simulate', '{o}', '--size', '12'), '--size \'12\': give WIDTHxHEIGHT'),
+    (('simulate', '{o}', '--black', 'x'), '--black \'x\': not a number'),
+    (('simulate', '{o}', '--repeats', '0'), '--repeats 0'),
+    (('simulate', '{o}', '--drop', '2'), '--drop 2.0: a fraction'),
+    (('simulate', '{o}', '--tilt', '200'), '--tilt 200.0: degrees from nadir'),
+    (('simulate', '{o}', '--gnss-change', '30:bogus'), "unknown GNSS mode 'bogus'"),
+    (('record', '{o}', '--topics', ' , '), '--topics names no topic'),
+    (('record', '{o}', '--topics', '/a', '--duration', '-1'), '--duration -1'),
+    (('record', '{o}', '--topics', '/a', '--count', '-1'), '--count -1'),
+    (('record', '{o}', '--topics', '/a', '--discovery-timeout', '-1'), '--discovery-timeout -1'),
+    (('ground-station', '--out', '{o}', '--duration', '-1'), '--duration -1'),
+    (('ground-station', '--out', '{o}', '--web', '127.0.0.1:99999'), "--web '127.0.0.1:99999'"),
+    (('run', '--namespace', 'bad ns!', '--nodes', 'mavlink', '--out', '{o}'), "--namespace 'bad ns!' is not a ROS 2"),
+    (('replay', str(SAMPLE_BAG), '--out', '{o}', '--rate', '-1'), '--rate -1'),
+    (('replay', str(SAMPLE_BAG), '--out', '{o}', '--rate', 'nan'), '--rate nan'),
+    (('replay', str(SAMPLE_BAG), '--out', '{o}', '--min-pairs', '0'), '--min-pairs 0'),
+    (('replay', str(SAMPLE_BAG), '--out', '{o}', '--child-nodes', 'tracker'), '--child-nodes'),
+    (('replay', str(SAMPLE_BAG), '--out', '{o}', '--domain', '-1'), '--domain=-1 is out of range')])
+def test_every_commands_bad_arguments_are_one_line_and_exit_2(tmp_path, args, words):
+    """Values argparse takes but the command cannot use: said at once (exit 2, one line, no traceback),
+    before any process or folder is made."""
+    out = tmp_path / 'o'
+    res = cli(*[a.replace('{o}', str(out)) for a in args], timeout=60)
+    assert res.returncode == 2 and words in res.stderr, res.stderr[-2000:]
+    assert len(res.stderr.strip().splitlines()) == 1 and 'Traceback' not in res.stderr, res.stderr[-2000:]
+    assert not out.exists()
+
+
+def test_record_leaves_no_empty_bag_when_no_topic_appears(tmp_path):
+    res = cli('record', tmp_path / 'bag', '--topics', '/h28/nobody', '--discovery-timeout', '1', timeout=60)
+    assert res.returncode == 2 and "none of the topics ['/h28/nobody'] appeared" in res.stderr, res.stderr
+    assert not (tmp_path / 'bag').exists()
+
+
+def test_a_second_replay_on_a_shared_domain_is_refused(tmp_path):
+    """`replay --domain N` holds N as a replay's own domain is held: a second replay on N (both trackers
+    would take both flights' frames) is refused at once, and N is free again when the first ends."""
+    code = ('import time; from photogram_ros.nodes.ros_domain import shared_domain; '
+            'print(shared_domain(%d), flush=True); time.sleep(30)')
+    mine = int(os.environ['ROS_DOMAIN_ID'])
+    holder = subprocess.Popen([sys.executable, '-c', code % mine], cwd=ROOT, stdout=subprocess.PIPE, text=True,
+                              env={**os.environ, 'PYTHONPATH': str(ROOT)})
+    with reaped(holder):
+        assert int(holder.stdout.readline()) == mine
+        res = cli('replay', SAMPLE_BAG, '--out', tmp_path / 'o', '--domain', mine, '--quiet', timeout=60)
+        assert res.returncode == 2 and f'another replay on this machine plays on ROS_DOMAIN_ID {mine}' in res.stderr
+        assert len(res.stderr.strip().splitlines()) == 1 and not (tmp_path / 'o').exists()
+    again = subprocess.run([sys.executable, '-c', code.replace('time.sleep(30)', 'pass') % mine], cwd=ROOT,
+                           capture_output=True, text=True, env={**os.environ, 'PYTHONPATH': str(ROOT)}, timeout=60)
+    assert again.stdout.strip() == str(mine), again.stderr   # freed with its process
 
 
 @pytest.mark.parametrize('command', [['replay', str(SAMPLE_BAG), '--quiet'], ['play', str(SAMPLE_BAG)],
@@ -945,7 +1002,7 @@ def _run_photos(tmp_path, photos, stop_after_keyframes=0):
     proc = subprocess.Popen(CLI + ['run', '--params', str(cfg), '--nodes', 'camera,tracker,bundle,stereo,map',
                                    '--out', str(tmp_path / 'products')], cwd=ROOT, stdout=subprocess.PIPE,
                             stderr=subprocess.STDOUT, text=True)
-    try:
+    with reaped(proc):
         if stop_after_keyframes:
             deadline = time.monotonic() + 300
             while time.monotonic() < deadline and proc.poll() is None and \
@@ -953,9 +1010,6 @@ def _run_photos(tmp_path, photos, stop_after_keyframes=0):
                 time.sleep(0.2)
             proc.send_signal(signal.SIGTERM)
         out = proc.communicate(timeout=900)[0]
-    finally:
-        if proc.poll() is None:
-            proc.kill()
     report = json.loads((tmp_path / 'products' / 'report.json').read_text())
     return proc.returncode, out, report
 
