@@ -1124,7 +1124,10 @@ def test_control_files_from_spreadsheets_are_read(tmp_path, form, data):
 @pytest.mark.parametrize('data, words', [
     (lambda: b'PK\x03\x04' + bytes(range(256)) * 4, 'spreadsheet (.xlsx) rather than text'),
     (lambda: _gcp_text(',', ',').encode(), 'decimal commas as well as column separators'),
-    (lambda: b'\xff\xfe' + b'E\x00P\x00\x00\xd8', 'looks like UTF-16')])
+    (lambda: b'\xff\xfe' + b'E\x00P\x00\x00\xd8', 'looks like UTF-16'),
+    (lambda: b'\xd0\xcf\x11\xe0\xa1\xb1\x1a\xe1' + bytes(512), 'Excel 97-2003 spreadsheet (.xls) rather than text'),
+    (lambda: _gcp_text(';', ',', ';;;;;;').replace('465698,587', '465.698,587').encode(),
+     "'465.698,587' has a thousands separator")])
 def test_control_files_that_cannot_be_read_say_why(tmp_path, data, words):
     from photogram_ros.errors import DataError
     from photogram_ros.io.control_file import read_control_file
@@ -1172,6 +1175,32 @@ def test_mavlink_node_that_gets_nothing_usable_warns_with_the_reason(rclpy_conte
             said = node.diag.counts()['problems']
             node._update_diagnostics()   # nothing new arrived: nothing new to say
             assert node.diag.counts()['problems'] == said
+    finally:
+        node.destroy_node()
+
+
+def test_wrong_signing_key_warns_although_a_radios_unsigned_packets_pass(rclpy_context):
+    """A wrong signing key with allow_unsigned: the autopilot's signed packets are all rejected while a
+    telemetry radio's unsigned RADIO_STATUS pass; no fix, no attitude: WARN with the reason."""
+    from pymavlink.dialects.v20 import ardupilotmega as mavlink2
+
+    from photogram_ros.io.mavlink import signing_key
+    from photogram_ros.nodes.diagnostics import WARN
+    from photogram_ros.nodes.mavlink_node import MavlinkNode
+    from test_mavlink_node import _gps_stream
+    mav = mavlink2.MAVLink(None, srcSystem=1, srcComponent=1)
+    mav.signing.secret_key, mav.signing.sign_outgoing, mav.signing.timestamp = signing_key('guess'), True, 1
+    radio = mavlink2.MAVLink(None, srcSystem=51, srcComponent=68)
+    status = b''.join(radio.radio_status_encode(200, 190, 100, 40, 38, 0, 0).pack(radio) for _ in range(5))
+    node = MavlinkNode({'signing_key': 'fleet secret', 'allow_unsigned': True, 'diagnostics_period_s': 60.0},
+                       context=rclpy_context)
+    try:
+        node.diag.status()
+        node.feed(_gps_stream(mav, lat0=471000000) + status, None)
+        node._update_diagnostics()
+        st = node.diag.status()
+        assert node.stream.stats.packets >= 5 and node.published['fix'] == 0
+        assert st.level == WARN and 'wrong signature so far (signing_key differs' in st.message, st.message
     finally:
         node.destroy_node()
 
