@@ -797,6 +797,33 @@ def test_output_folder_is_locked_and_not_reused_silently(tmp_path):
     assert (theirs / 'thesis.tex').exists() and not (theirs / LOCK_NAME).exists()
 
 
+def test_claim_locks_the_lock_file_the_folder_holds_now(tmp_path, monkeypatch):
+    """Two claims at once: a refused claim removes the lock file it created while another claim has it
+    open; that one then locks the file the folder holds now, not the removed one (two writers would
+    each hold a lock of their own)."""
+    import fcntl
+
+    from photogram_ros.errors import ConfigError
+    from photogram_ros.io import out_dir
+    out = tmp_path / 'o'
+    real, calls = fcntl.flock, []
+
+    def flock(fd, op):
+        if not calls:   # the refused claim's cleanup, between this claim's open and its flock
+            (out / out_dir.LOCK_NAME).unlink()
+        calls.append(fd)
+        return real(fd, op)
+    monkeypatch.setattr(out_dir.fcntl, 'flock', flock)
+    lock = out_dir.claim_output(out, 'new', 'test')
+    monkeypatch.setattr(out_dir.fcntl, 'flock', real)
+    try:
+        assert len(calls) == 2 and os.path.samestat(os.fstat(lock.fd), os.stat(out / out_dir.LOCK_NAME))
+        with pytest.raises(ConfigError, match='is being written by another photogram-ros'):
+            out_dir.claim_output(out, 'resume', 'test')
+    finally:
+        lock.close()
+
+
 def test_replay_into_a_folder_another_replay_writes_is_refused(tmp_path):
     """Two `replay`s into one --out at once: the second is refused at once (exit 2, one line); the
     first one goes on; after it, reusing the folder needs --resume or --overwrite."""
