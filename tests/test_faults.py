@@ -1283,6 +1283,42 @@ def _graph(counts, busy=lambda: False):
     return g
 
 
+def _child_graph(code: str):
+    """A ChildGraph whose child is `code` in a Python process and whose status comes from a thread
+    (counters that never move, one status every 0.1 s), with no ROS."""
+    from photogram_ros.nodes.graph import ChildGraph
+    g = ChildGraph.__new__(ChildGraph)
+    g._status, g._cond, g._seq = {'counts': {'map': {'clouds': 3}}, 'busy': False, 'done': 0}, threading.Condition(), 0
+    g._status_at = time.monotonic()
+    g._send = lambda **command: 1
+    g.proc = subprocess.Popen([sys.executable, '-c', code])
+    stop = threading.Event()
+
+    def status():
+        while not stop.wait(0.1):
+            with g._cond:
+                g._status_at = time.monotonic()
+                g._cond.notify_all()
+    threading.Thread(target=status, daemon=True).start()
+    return g, stop
+
+
+@pytest.mark.parametrize('code, words', [
+    ('import time; time.sleep(60)', 'made no progress for 2 s'),          # waiting on a timeout
+    ('while True: pass', 'did not finish in 5 s')])                        # computing (a final adjustment)
+def test_an_end_of_flight_step_in_the_child_is_waited_for_while_it_works(code, words):
+    """An end-of-flight step in the replay's child process is waited for while the child works (a counter
+    moves, a node is busy, or it computes: CPU time) and no longer than `stall_s` once it does nothing;
+    the wait says what it waits for every 10 s. Before, it waited up to 600 s without a line."""
+    g, stop = _child_graph(code)
+    said = []
+    try:
+        with reaped(g.proc), pytest.raises(RuntimeError, match=re.escape(words)):
+            g.call('stereo', 'flush', timeout_s=5.0, stall_s=2.0, say=said.append)
+    finally:
+        stop.set()
+
+
 def test_drain_does_not_wait_its_timeout_on_work_lost_between_nodes():
     """Two keyframes counted as published by the tracker never reach the bundle adjuster (lost on the
     way) and nothing moves: the end of flight waits stall_s for them, says so, and goes on; before, it

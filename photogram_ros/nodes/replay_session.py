@@ -418,7 +418,7 @@ def run_replay(opts: ReplayOptions, context=None) -> dict:
             if len(end_steps.times) <= len(steps):
                 end_steps.start(steps[len(end_steps.times) - 1])
 
-        end = graph.finish_flight(settle=settle)
+        end = graph.finish_flight(settle=settle, say=(lambda text: print(text, flush=True)) if opts.progress else None)
         end_steps.finish()
         wall_s = time.monotonic() - t_start
         counts = graph.counts()
