@@ -896,6 +896,20 @@ def test_every_commands_bad_arguments_are_one_line_and_exit_2(tmp_path, args, wo
     assert not out.exists()
 
 
+@pytest.mark.parametrize('sig, status', [(signal.SIGTERM, 143), (signal.SIGINT, 130)])
+def test_a_command_stopped_before_it_handles_signals_says_so(tmp_path, sig, status):
+    """SIGTERM or SIGINT to a command that has no stop of its own (simulate, triangulate, a `run` still
+    starting): one line naming the signal, exit 128 + its number; before, SIGTERM ended it silently."""
+    proc = subprocess.Popen(CLI + ['simulate', str(tmp_path / 'sim'), '--preset', 'tiny'], cwd=ROOT,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    with reaped(proc):
+        assert 'rendered' in proc.stderr.read(len('\rrendered'))   # it is working
+        proc.send_signal(sig)
+        err = proc.communicate(timeout=60)[1]
+    assert proc.returncode == status and err.strip().splitlines()[-1].endswith(f'simulate: stopped by {sig.name}')
+    assert 'Traceback' not in err
+
+
 def test_record_leaves_no_empty_bag_when_no_topic_appears(tmp_path):
     res = cli('record', tmp_path / 'bag', '--topics', '/h28/nobody', '--discovery-timeout', '1', timeout=60)
     assert res.returncode == 2 and "none of the topics ['/h28/nobody'] appeared" in res.stderr, res.stderr
