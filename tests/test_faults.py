@@ -797,6 +797,18 @@ def test_output_folder_is_locked_and_not_reused_silently(tmp_path):
     assert (theirs / 'thesis.tex').exists() and not (theirs / LOCK_NAME).exists()
 
 
+@pytest.mark.parametrize('mode', ['--resume', '--overwrite'])
+def test_resume_or_overwrite_of_a_folder_that_is_not_ours_is_refused(tmp_path, mode):
+    """--resume into a folder no photogram-ros run wrote (no lock file, no map) would write a map among
+    the user's files; --overwrite would delete them: both refused, nothing written there."""
+    out = tmp_path / 'docs'
+    out.mkdir()
+    (out / 'notes.txt').write_text('mine')
+    res = cli('replay', SAMPLE_BAG, '--out', out, mode, '--quiet', timeout=60)
+    assert res.returncode == 2 and 'is not a photogram-ros output folder' in res.stderr, res.stderr
+    assert sorted(p.name for p in out.iterdir()) == ['notes.txt']
+
+
 def test_claim_locks_the_lock_file_the_folder_holds_now(tmp_path, monkeypatch):
     """Two claims at once: a refused claim removes the lock file it created while another claim has it
     open; that one then locks the file the folder holds now, not the removed one (two writers would

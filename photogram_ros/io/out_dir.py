@@ -12,7 +12,7 @@ A command that writes a folder (`replay --out`, `run`'s map folder and `--out`) 
 - a folder that already holds something is refused unless the caller says what to do with it:
   'resume' (continue the map in it; products are replaced) or 'overwrite' (delete what a previous
   photogram_ros run wrote there first). A folder that is not one of ours (no lock file, no map) is
-  never deleted.
+  never deleted, nor written into by a 'resume'.
 """
 
 from __future__ import annotations
@@ -137,10 +137,12 @@ def claim_output(path, mode: str = 'new', command: str = '', what: str = '--out'
             shown = ', '.join(previous[:5]) + (', ...' if len(previous) > 5 else '')
             raise ConfigError(f'{what} {p} holds a previous run ({shown}): --resume continues its map, '
                               '--overwrite replaces it, or choose a new folder')
+        ours = ours_before or (p / 'map.json').exists() or (p / 'map' / 'map.json').exists()
+        if previous and mode != 'new' and not ours:
+            doing = 'not deleting it' if mode == 'overwrite' else 'it holds no map to resume'
+            raise ConfigError(f'{what} {p} is not a photogram-ros output folder (it holds {", ".join(previous[:5])}'
+                              f'{", ..." if len(previous) > 5 else ""}): {doing}; choose a new folder')
         if previous and mode == 'overwrite':
-            if not (ours_before or (p / 'map.json').exists() or (p / 'map' / 'map.json').exists()):
-                raise ConfigError(f'{what} {p} is not a photogram-ros output folder (it holds {", ".join(previous[:5])}'
-                                  f'{", ..." if len(previous) > 5 else ""}): not deleting it; choose a new folder')
             for name in previous:
                 e = p / name
                 if e.is_dir() and not e.is_symlink():
