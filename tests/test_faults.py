@@ -922,6 +922,21 @@ def test_a_command_stopped_before_it_handles_signals_says_so(tmp_path, sig, stat
     assert 'Traceback' not in err
 
 
+def test_run_separate_with_a_photo_folder_at_rate_0_is_refused(tmp_path):
+    """`run --separate` cannot hold a camera at rate 0 to the tracker's pace: the camera process published
+    every photo at once and ended, and the flight ended before the tracker took one ("the tracker took
+    no keyframe", exit 0). Refused before anything starts, saying what to do."""
+    photos = tmp_path / 'photos'
+    photos.mkdir()
+    cfg = tmp_path / 'photos.yaml'
+    cfg.write_text(f'camera_node:\n  ros__parameters:\n    source: {photos}\n    rate: 0.0\n'
+                   f'map_node:\n  ros__parameters:\n    map_dir: {tmp_path / "map"}\n')
+    res = cli('run', '--separate', '--params', cfg, '--nodes', 'camera,tracker,bundle,stereo,map',
+              '--out', tmp_path / 'products', timeout=60)
+    assert res.returncode == 2 and '--separate with camera_node.rate 0' in res.stderr, res.stderr[-2000:]
+    assert len(res.stderr.strip().splitlines()) == 1 and not (tmp_path / 'map').exists()
+
+
 def test_record_leaves_no_empty_bag_when_no_topic_appears(tmp_path):
     res = cli('record', tmp_path / 'bag', '--topics', '/h28/nobody', '--discovery-timeout', '1', timeout=60)
     assert res.returncode == 2 and "none of the topics ['/h28/nobody'] appeared" in res.stderr, res.stderr

@@ -60,6 +60,12 @@ def run(a) -> int:
     exporting = not a.no_export and 'map' in roles
     if exporting and a.crs:
         check_output_crs(a.crs)
+    if a.separate and pace_camera(spec) is not spec:
+        # One process per node cannot hold the camera to the tracker's pace: the camera published every
+        # frame at once, ended, and the flight ended before the tracker took one.
+        raise ConfigError('--separate with camera_node.rate 0 (a photo folder or file as fast as the tracker takes '
+                          'it): only the one-process run paces the camera by the tracker; leave out --separate, or '
+                          'set camera_node.rate (1: the photos\' own timing)')
     _locks = claim_folders(a, roles, exporting)   # held (flock) until the command returns
     signals = StopSignals('finishing the flight (final adjustment, stereo, map flush, products)')
     if a.separate:
