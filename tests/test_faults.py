@@ -922,18 +922,20 @@ def test_a_command_stopped_before_it_handles_signals_says_so(tmp_path, sig, stat
     assert 'Traceback' not in err
 
 
-def test_run_separate_with_a_photo_folder_at_rate_0_is_refused(tmp_path):
-    """`run --separate` cannot hold a camera at rate 0 to the tracker's pace: the camera process published
-    every photo at once and ended, and the flight ended before the tracker took one ("the tracker took
-    no keyframe", exit 0). Refused before anything starts, saying what to do."""
+@pytest.mark.parametrize('rate', ['0.0', '1.0'])
+def test_run_separate_with_a_photo_folder_is_refused(tmp_path, rate):
+    """`run --separate` cannot hold a photo folder to the tracker: the camera process published its photos
+    (at rate 0 all at once) while the tracker process was starting, ended, and the flight ended before the
+    tracker took one ("the tracker took no keyframe", exit 0). Refused before anything starts."""
     photos = tmp_path / 'photos'
     photos.mkdir()
     cfg = tmp_path / 'photos.yaml'
-    cfg.write_text(f'camera_node:\n  ros__parameters:\n    source: {photos}\n    rate: 0.0\n'
+    cfg.write_text(f'camera_node:\n  ros__parameters:\n    source: {photos}\n    rate: {rate}\n'
                    f'map_node:\n  ros__parameters:\n    map_dir: {tmp_path / "map"}\n')
     res = cli('run', '--separate', '--params', cfg, '--nodes', 'camera,tracker,bundle,stereo,map',
               '--out', tmp_path / 'products', timeout=60)
-    assert res.returncode == 2 and '--separate with camera_node.rate 0' in res.stderr, res.stderr[-2000:]
+    assert res.returncode == 2 and '--separate with camera_node playing a photo folder' in res.stderr, \
+        res.stderr[-2000:]
     assert len(res.stderr.strip().splitlines()) == 1 and not (tmp_path / 'map').exists()
 
 
