@@ -939,6 +939,26 @@ def test_run_separate_with_a_photo_folder_is_refused(tmp_path, rate):
     assert len(res.stderr.strip().splitlines()) == 1 and not (tmp_path / 'map').exists()
 
 
+@pytest.mark.parametrize('storage', ['sqlite3', 'mcap'])
+def test_record_killed_before_its_first_message_is_said_to_be_cut_short(tmp_path, storage):
+    """kill -9 of `record` before its first message: bag-info said "0 messages" and exit 0 for sqlite3
+    (the issue's symptom), "not an MCAP file" for the empty .mcap; now both say the recording was cut
+    short before anything was committed (exit 3)."""
+    out = tmp_path / 'bag'
+    proc = subprocess.Popen(CLI + ['record', str(out), '--topics', '/h28/nobody', '--storage', storage], cwd=ROOT,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    with reaped(proc):
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline and not any(out.glob(f'*.{"db3" if storage == "sqlite3" else "mcap"}')):
+            time.sleep(0.1)
+        time.sleep(2.0)   # its tables written: the recorder waits for the topic (discovery, 10 s)
+        proc.kill()
+        proc.wait()
+    res = cli('bag-info', out, timeout=60)
+    assert res.returncode == 3, res.stdout + res.stderr
+    assert 'cut short' in res.stderr and '0 messages' in res.stdout, res.stderr
+
+
 def test_record_leaves_no_empty_bag_when_no_topic_appears(tmp_path):
     res = cli('record', tmp_path / 'bag', '--topics', '/h28/nobody', '--discovery-timeout', '1', timeout=60)
     assert res.returncode == 2 and "none of the topics ['/h28/nobody'] appeared" in res.stderr, res.stderr

@@ -212,6 +212,11 @@ class BagReader:
         self.storage = self._open()
         self._infos = self._count()
         self._report_losses()
+        if why and not self.errors and self.path.is_dir() and not any(i.count for i in self._infos.values()):
+            # A recording ends with its metadata.yaml; one cut before its first commit holds nothing.
+            self.errors.append(f'{self.path.name}: holds no message and no metadata.yaml: a recording cut short (a '
+                               'kill or a power loss) before its first message was committed, or one that received '
+                               'none')
 
     # --- opening ---------------------------------------------------------------------------------
 
