@@ -897,7 +897,13 @@ def test_bad_arguments_are_one_line_and_exit_2(tmp_path, args, words):
     (('replay', str(SAMPLE_BAG), '--out', '{o}', '--rate', 'nan'), '--rate nan'),
     (('replay', str(SAMPLE_BAG), '--out', '{o}', '--min-pairs', '0'), '--min-pairs 0'),
     (('replay', str(SAMPLE_BAG), '--out', '{o}', '--child-nodes', 'tracker'), '--child-nodes'),
-    (('replay', str(SAMPLE_BAG), '--out', '{o}', '--domain', '-1'), '--domain=-1 is out of range')])
+    (('replay', str(SAMPLE_BAG), '--out', '{o}', '--domain', '-1'), '--domain=-1 is out of range'),
+    (('export', str(SAMPLE_BAG), '--crs', 'EPSG:32632', '--out', '{o}', '--dsm-res-m', '-1'), '--dsm-res-m -1'),
+    (('export', str(SAMPLE_BAG), '--crs', 'EPSG:32632', '--out', '{o}', '--contours-m', 'nan'), '--contours-m nan'),
+    (('calibrate', str(SAMPLE_BAG / 'metadata.yaml'), '--min-views', '0', '--out', '{o}'), '--min-views 0'),
+    (('fixes', 'udpin:127.0.0.1:14999', '--sysid', '999'), '--sysid 999: choose 0 to 255'),
+    (('fixes', 'udpin:127.0.0.1:14999', '--duration', '-1'), '--duration -1'),
+    (('play', str(SAMPLE_BAG), '--remap', '/a:='), "remap '/a:=' must look like /from:=/to")])
 def test_every_commands_bad_arguments_are_one_line_and_exit_2(tmp_path, args, words):
     """Values argparse takes but the command cannot use: said at once (exit 2, one line, no traceback),
     before any process or folder is made."""
