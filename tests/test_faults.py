@@ -1388,6 +1388,30 @@ def test_an_end_of_flight_step_in_the_child_is_waited_for_while_it_works(code, w
         stop.set()
 
 
+def test_the_player_stops_holding_back_for_a_stalled_node():
+    """The player holds the flight while a node lags the tracker by more than max_lag_keyframes; a
+    node that has stalled (no mapping counter moves, nothing busy, its process not computing) ends
+    that wait after lag_stall_s (WorkWatch) instead of frame_timeout_s (30 s) at every new keyframe."""
+    from photogram_ros.nodes.graph import WorkWatch
+    stalled = _graph(_Counts(lambda k: {'tracker': {'keyframes': 40}, 'stereo': {'images': 5, 'pairs_done': 4}}))
+    stalled.child = None
+    watch = WorkWatch(stalled, period_s=0.05)
+    t0 = time.monotonic()
+    while watch.idle_s() < 0.5 and time.monotonic() - t0 < 10:
+        time.sleep(0.01)
+    assert 0.5 <= time.monotonic() - t0 < 2.0
+    working = _graph(_Counts(lambda k: {'tracker': {'keyframes': 40}, 'stereo': {'images': 5, 'pairs_done': k}}))
+    working.child = None
+    watch = WorkWatch(working, period_s=0.05)
+    time.sleep(0.6)
+    assert watch.idle_s() < 0.2   # a counter moves: it works
+    busy = _graph(_Counts(lambda k: {'stereo': {'pairs_done': 4}}), busy=lambda: True)
+    busy.child = None
+    watch = WorkWatch(busy, period_s=0.05)
+    time.sleep(0.6)
+    assert watch.idle_s() < 0.2   # a node computes in its own thread
+
+
 def test_drain_does_not_wait_its_timeout_on_work_lost_between_nodes():
     """Two keyframes counted as published by the tracker never reach the bundle adjuster (lost on the
     way) and nothing moves: the end of flight waits stall_s for them, says so, and goes on; before, it

@@ -426,6 +426,29 @@ def process_cpu_s(pid: int) -> float | None:
         return None
 
 
+class WorkWatch:
+    """How long a graph has done nothing: no mapping counter moved (Graph.activity(work_only=True)), no
+    node busy, and its child process (if any) not computing. Lets a wait that holds the player for a
+    lagging node end when that node has stalled instead of at a fixed timeout."""
+
+    def __init__(self, graph, period_s: float = 0.5):
+        self.graph, self.period_s = graph, period_s
+        self._pid = graph.child.proc.pid if getattr(graph, 'child', None) is not None else None
+        self._last = (graph.activity(work_only=True), process_cpu_s(self._pid) if self._pid else None)
+        self.moved = self._checked = time.monotonic()
+
+    def idle_s(self) -> float:
+        now = time.monotonic()
+        if now - self._checked >= self.period_s:
+            act, cpu = self.graph.activity(work_only=True), process_cpu_s(self._pid) if self._pid else None
+            computing = (cpu is not None and self._last[1] is not None
+                         and cpu - self._last[1] > CHILD_COMPUTING_CPU_S * (now - self._checked))
+            if act != self._last[0] or computing or self.graph.busy():
+                self.moved = now
+            self._last, self._checked = (act, cpu), now
+        return now - self.moved
+
+
 class ChildGraph:
     """The parent's handle on a child process running `spec.roles` (see child_main)."""
 
