@@ -965,6 +965,17 @@ def test_record_killed_before_its_first_message_is_said_to_be_cut_short(tmp_path
     assert 'cut short' in res.stderr and '0 messages' in res.stdout, res.stderr
 
 
+@pytest.mark.parametrize('link, words', [('/dev/ttyPHOTOGRAM9', 'no such device'),
+                                         ('tcp:no-such-host.invalid:5760', 'cannot open MAVLink link')])
+def test_fixes_on_a_link_that_cannot_open_says_why_and_keeps_stdout_clean(link, words):
+    """A serial device that is not there, a host that does not resolve: one line on stderr, exit 2, and
+    nothing but the CSV header on stdout (pymavlink printed its retries there, among the rows)."""
+    res = cli('fixes', link, '--duration', '1', timeout=60)
+    assert res.returncode == 2 and words in res.stderr and len(res.stderr.strip().splitlines()) == 1, res.stderr
+    assert res.stdout.strip().splitlines() == [res.stdout.strip().splitlines()[0]]
+    assert res.stdout.startswith('t_unix_s,')
+
+
 def test_record_leaves_no_empty_bag_when_no_topic_appears(tmp_path):
     res = cli('record', tmp_path / 'bag', '--topics', '/h28/nobody', '--discovery-timeout', '1', timeout=60)
     assert res.returncode == 2 and "none of the topics ['/h28/nobody'] appeared" in res.stderr, res.stderr
