@@ -61,9 +61,9 @@ def run(a) -> int:
     if exporting and a.crs:
         check_output_crs(a.crs)
     if a.separate and camera_plays_a_file(spec):
-        # One process per node cannot hold a folder or file to the tracker: the camera process published its
-        # frames (at rate 0 all at once) while the tracker process was still starting, ended, and the flight
-        # ended before the tracker took one ("the tracker took no keyframe").
+        # One process per node cannot hold a folder or file to the tracker: the camera process would publish
+        # its frames (at rate 0 all at once) while the tracker process starts, end, and so end the flight
+        # before the tracker took one ("the tracker took no keyframe").
         raise ConfigError('--separate with camera_node playing a photo folder or a video file: only the one-process '
                           'run holds the camera to the tracker and ends the flight when the tracker has taken the '
                           'last frame; leave out --separate (it is for a live camera device)')

@@ -63,8 +63,8 @@ class ReplayOptions:
     # dropped keyframe images before their poses came, so whole stretches got no cloud.
     max_lag_keyframes: int = 30
     # That wait ends early when the lagging nodes have stalled: no mapping counter moved, no node busy
-    # and the second process not computing for this long (a stalled node cost frame_timeout_s at each
-    # new keyframe: minutes at the end of a flight).
+    # and the second process not computing for this long (else a stalled node costs frame_timeout_s at
+    # each new keyframe: minutes at the end of a flight).
     lag_stall_s: float = 5.0
     # The replay stops (StorageError) when the disk of `out` has less than this free, and does not
     # start: a full disk fails every write of the map and the products, and the backpressure would
