@@ -917,7 +917,7 @@ def test_every_commands_bad_arguments_are_one_line_and_exit_2(tmp_path, args, wo
 @pytest.mark.parametrize('sig, status', [(signal.SIGTERM, 143), (signal.SIGINT, 130)])
 def test_a_command_stopped_before_it_handles_signals_says_so(tmp_path, sig, status):
     """SIGTERM or SIGINT to a command that has no stop of its own (simulate, triangulate, a `run` still
-    starting): one line naming the signal, exit 128 + its number; before, SIGTERM ended it silently."""
+    starting): one line naming the signal, exit 128 + its number, not a silent end."""
     proc = subprocess.Popen(CLI + ['simulate', str(tmp_path / 'sim'), '--preset', 'tiny'], cwd=ROOT,
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     with reaped(proc):
@@ -930,9 +930,9 @@ def test_a_command_stopped_before_it_handles_signals_says_so(tmp_path, sig, stat
 
 @pytest.mark.parametrize('rate', ['0.0', '1.0'])
 def test_run_separate_with_a_photo_folder_is_refused(tmp_path, rate):
-    """`run --separate` cannot hold a photo folder to the tracker: the camera process published its photos
-    (at rate 0 all at once) while the tracker process was starting, ended, and the flight ended before the
-    tracker took one ("the tracker took no keyframe", exit 0). Refused before anything starts."""
+    """`run --separate` cannot hold a photo folder to the tracker: the camera process would publish its
+    photos (at rate 0 all at once) while the tracker process starts and end the flight before the tracker
+    took one ("the tracker took no keyframe", exit 0). Refused before anything starts."""
     photos = tmp_path / 'photos'
     photos.mkdir()
     cfg = tmp_path / 'photos.yaml'
@@ -947,9 +947,8 @@ def test_run_separate_with_a_photo_folder_is_refused(tmp_path, rate):
 
 @pytest.mark.parametrize('storage', ['sqlite3', 'mcap'])
 def test_record_killed_before_its_first_message_is_said_to_be_cut_short(tmp_path, storage):
-    """kill -9 of `record` before its first message: bag-info said "0 messages" and exit 0 for sqlite3
-    (the issue's symptom), "not an MCAP file" for the empty .mcap; now both say the recording was cut
-    short before anything was committed (exit 3)."""
+    """kill -9 of `record` before its first message: bag-info says the recording was cut short (exit 3),
+    not "0 messages" with exit 0, whatever the storage."""
     out = tmp_path / 'bag'
     proc = subprocess.Popen(CLI + ['record', str(out), '--topics', '/h28/nobody', '--storage', storage], cwd=ROOT,
                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
@@ -1389,7 +1388,7 @@ def _child_graph(code: str):
 def test_an_end_of_flight_step_in_the_child_is_waited_for_while_it_works(code, words):
     """An end-of-flight step in the replay's child process is waited for while the child works (a counter
     moves, a node is busy, or it computes: CPU time) and no longer than `stall_s` once it does nothing;
-    the wait says what it waits for every 10 s. Before, it waited up to 600 s without a line."""
+    the wait says what it waits for every 10 s, and does not sit out a fixed 600 s."""
     g, stop = _child_graph(code)
     said = []
     try:
