@@ -382,6 +382,31 @@ def test_kill_9_of_replay_ends_its_child(tmp_path, tiny_flight):
             proc.kill()
 
 
+def test_sigterm_to_replay_stops_it_in_order(tmp_path, tiny_flight):
+    """SIGTERM to a replay mid-flight (`timeout`, a service manager): the graph shuts down in order (the
+    second process ends, the map flushes its tiles), one line "stopped by SIGTERM", exit 143, no
+    traceback; the map folder holds no flight_end.json, so later products say "in-flight poses"."""
+    out = tmp_path / 'out'
+    proc = subprocess.Popen(CLI + ['replay', str(tiny_flight), '--out', str(out), '--rate', '0.5'],
+                            cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    with reaped(proc):
+        children = []
+        deadline = time.monotonic() + 120
+        while time.monotonic() < deadline and not children:
+            children = _children(proc.pid)
+            time.sleep(0.2)
+        assert children, 'the replay started no child process'
+        deadline = time.monotonic() + 120
+        while time.monotonic() < deadline and not list((out / 'map' / 'keyframes').glob('*')):
+            time.sleep(0.2)
+        proc.send_signal(signal.SIGTERM)
+        text = proc.communicate(timeout=180)[0]
+    assert proc.returncode == 143 and text.strip().splitlines()[-1].endswith('replay: stopped by SIGTERM'), text[-3000:]
+    assert 'Traceback' not in text
+    assert not [c for c in children if os.path.exists(f'/proc/{c}') and 'zombie' not in _state(c)]
+    assert (out / 'map' / 'map.json').exists() and not (out / 'map' / 'flight_end.json').exists()
+
+
 def _state(pid: int) -> str:
     try:
         return Path(f'/proc/{pid}/status').read_text().split('State:')[1].split('\n')[0].lower()
