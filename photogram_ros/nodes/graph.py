@@ -428,21 +428,28 @@ def process_cpu_s(pid: int) -> float | None:
 
 class WorkWatch:
     """How long a graph has done nothing: no mapping counter moved (Graph.activity(work_only=True)), no
-    node busy, and its child process (if any) not computing. Lets a wait that holds the player for a
-    lagging node end when that node has stalled instead of at a fixed timeout."""
+    node busy, and its nodes not computing (the child process's CPU time, or this process's). Lets a
+    wait that holds the player for a lagging node end when that node has stalled instead of at a fixed
+    timeout."""
+
+    # This process's own CPU seconds a second above which its nodes count as computing (the waiting
+    # player and DDS take a few per cent).
+    OWN_COMPUTING_CPU_S = 0.3
 
     def __init__(self, graph, period_s: float = 0.5):
         self.graph, self.period_s = graph, period_s
-        self._pid = graph.child.proc.pid if getattr(graph, 'child', None) is not None else None
-        self._last = (graph.activity(work_only=True), process_cpu_s(self._pid) if self._pid else None)
+        child = getattr(graph, 'child', None)
+        self._pid = child.proc.pid if child is not None else os.getpid()
+        self._threshold = CHILD_COMPUTING_CPU_S if child is not None else self.OWN_COMPUTING_CPU_S
+        self._last = (graph.activity(work_only=True), process_cpu_s(self._pid))
         self.moved = self._checked = time.monotonic()
 
     def idle_s(self) -> float:
         now = time.monotonic()
         if now - self._checked >= self.period_s:
-            act, cpu = self.graph.activity(work_only=True), process_cpu_s(self._pid) if self._pid else None
+            act, cpu = self.graph.activity(work_only=True), process_cpu_s(self._pid)
             computing = (cpu is not None and self._last[1] is not None
-                         and cpu - self._last[1] > CHILD_COMPUTING_CPU_S * (now - self._checked))
+                         and cpu - self._last[1] > self._threshold * (now - self._checked))
             if act != self._last[0] or computing or self.graph.busy():
                 self.moved = now
             self._last, self._checked = (act, cpu), now
