@@ -357,18 +357,26 @@ def _children(pid: int) -> list[int]:
     return [int(p) for p in out.split()]
 
 
+def _replay_with_its_child(flight, out):
+    """A replay of `flight` at half speed, once its second process runs: (process, the child pids)."""
+    proc = subprocess.Popen(CLI + ['replay', str(flight), '--out', str(out), '--rate', '0.5'],
+                            cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    children = []
+    deadline = time.monotonic() + 120
+    while time.monotonic() < deadline and not children and proc.poll() is None:
+        children = _children(proc.pid)
+        time.sleep(0.2)
+    if not children:
+        proc.kill()
+        raise AssertionError('the replay started no child process: ' + proc.communicate()[0][-2000:])
+    return proc, children
+
+
 def test_kill_9_of_replay_ends_its_child(tmp_path, tiny_flight):
     """The replay's second process (bundle, stereo, map) dies with its parent, however the parent ends:
     it watches a pipe from it."""
-    proc = subprocess.Popen(CLI + ['replay', str(tiny_flight), '--out', str(tmp_path / 'out'), '--rate', '0.5'],
-                            cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    proc, children = _replay_with_its_child(tiny_flight, tmp_path / 'out')
     try:
-        children = []
-        deadline = time.monotonic() + 120
-        while time.monotonic() < deadline and not children:
-            children = _children(proc.pid)
-            time.sleep(0.2)
-        assert children, 'the replay started no child process'
         time.sleep(8.0)
         proc.kill()
         proc.wait(timeout=30)
@@ -387,15 +395,8 @@ def test_sigterm_to_replay_stops_it_in_order(tmp_path, tiny_flight):
     second process ends, the map flushes its tiles), one line "stopped by SIGTERM", exit 143, no
     traceback; the map folder holds no flight_end.json, so later products say "in-flight poses"."""
     out = tmp_path / 'out'
-    proc = subprocess.Popen(CLI + ['replay', str(tiny_flight), '--out', str(out), '--rate', '0.5'],
-                            cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    proc, children = _replay_with_its_child(tiny_flight, out)
     with reaped(proc):
-        children = []
-        deadline = time.monotonic() + 120
-        while time.monotonic() < deadline and not children:
-            children = _children(proc.pid)
-            time.sleep(0.2)
-        assert children, 'the replay started no child process'
         deadline = time.monotonic() + 120
         while time.monotonic() < deadline and not list((out / 'map' / 'keyframes').glob('*')):
             time.sleep(0.2)
