@@ -82,12 +82,43 @@ def os_error_text(exc: OSError) -> str:
     return f'{where}: {exc.strerror or exc}'
 
 
+class Stopped(BaseException):
+    """SIGTERM before the command installed its own handling (while it imports and checks its input); a
+    BaseException, as KeyboardInterrupt, so that no `except Exception` takes it."""
+
+
+def _stop_on_sigterm() -> None:
+    """SIGTERM ends the command like Ctrl-C until the command installs its own handling (run, record,
+    ground-station: they finish their work first): said in one line, not a silent exit 143."""
+    import signal
+    import threading
+
+    def stop(signum, frame):
+        raise Stopped()
+    if threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGTERM, stop)
+
+
 def main(argv=None) -> int:
+    _stop_on_sigterm()
+    command = ['photogram-ros']
+    try:
+        return _main(argv, command)
+    except KeyboardInterrupt:
+        print(f'{" ".join(command)}: stopped by SIGINT', file=sys.stderr)
+        return 130
+    except Stopped:
+        print(f'{" ".join(command)}: stopped by SIGTERM', file=sys.stderr)
+        return 143
+
+
+def _main(argv, command: list) -> int:
     # Cap glibc's malloc arenas before any command starts rclpy (its DDS threads would each take
     # one): see nodes/process_memory.py. Cheap and harmless for the commands without threads.
     from photogram_ros.nodes.process_memory import limit_malloc_arenas
     limit_malloc_arenas()
     args = build_parser().parse_args(argv)
+    command.append(args.command)
     try:
         if args.command in ROS_COMMANDS:
             from photogram_ros.nodes.ros_domain import check_domain_env
@@ -99,8 +130,6 @@ def main(argv=None) -> int:
     except OSError as exc:   # a path that cannot be written or read: said in one line, no traceback
         print(f'photogram-ros {args.command}: error: {os_error_text(exc)}', file=sys.stderr)
         return 2
-    except KeyboardInterrupt:
-        return 130
 
 
 if __name__ == '__main__':

@@ -26,6 +26,7 @@ import numpy as np
 import pytest
 
 from conftest import ROOT, SAMPLE_BAG, shared_data
+from helpers.processes import reaped
 from test_mavlink_node import _free_udp_port
 
 CLI = [sys.executable, '-m', 'photogram_ros.cli']
@@ -356,18 +357,26 @@ def _children(pid: int) -> list[int]:
     return [int(p) for p in out.split()]
 
 
+def _replay_with_its_child(flight, out):
+    """A replay of `flight` at half speed, once its second process runs: (process, the child pids)."""
+    proc = subprocess.Popen(CLI + ['replay', str(flight), '--out', str(out), '--rate', '0.5'],
+                            cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    children = []
+    deadline = time.monotonic() + 120
+    while time.monotonic() < deadline and not children and proc.poll() is None:
+        children = _children(proc.pid)
+        time.sleep(0.2)
+    if not children:
+        proc.kill()
+        raise AssertionError('the replay started no child process: ' + proc.communicate()[0][-2000:])
+    return proc, children
+
+
 def test_kill_9_of_replay_ends_its_child(tmp_path, tiny_flight):
     """The replay's second process (bundle, stereo, map) dies with its parent, however the parent ends:
     it watches a pipe from it."""
-    proc = subprocess.Popen(CLI + ['replay', str(tiny_flight), '--out', str(tmp_path / 'out'), '--rate', '0.5'],
-                            cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    proc, children = _replay_with_its_child(tiny_flight, tmp_path / 'out')
     try:
-        children = []
-        deadline = time.monotonic() + 120
-        while time.monotonic() < deadline and not children:
-            children = _children(proc.pid)
-            time.sleep(0.2)
-        assert children, 'the replay started no child process'
         time.sleep(8.0)
         proc.kill()
         proc.wait(timeout=30)
@@ -379,6 +388,24 @@ def test_kill_9_of_replay_ends_its_child(tmp_path, tiny_flight):
     finally:
         if proc.poll() is None:
             proc.kill()
+
+
+def test_sigterm_to_replay_stops_it_in_order(tmp_path, tiny_flight):
+    """SIGTERM to a replay mid-flight (`timeout`, a service manager): the graph shuts down in order (the
+    second process ends, the map flushes its tiles), one line "stopped by SIGTERM", exit 143, no
+    traceback; the map folder holds no flight_end.json, so later products say "in-flight poses"."""
+    out = tmp_path / 'out'
+    proc, children = _replay_with_its_child(tiny_flight, out)
+    with reaped(proc):
+        deadline = time.monotonic() + 120
+        while time.monotonic() < deadline and not list((out / 'map' / 'keyframes').glob('*')):
+            time.sleep(0.2)
+        proc.send_signal(signal.SIGTERM)
+        text = proc.communicate(timeout=180)[0]
+    assert proc.returncode == 143 and text.strip().splitlines()[-1].endswith('replay: stopped by SIGTERM'), text[-3000:]
+    assert 'Traceback' not in text
+    assert not [c for c in children if os.path.exists(f'/proc/{c}') and 'zombie' not in _state(c)]
+    assert (out / 'map' / 'map.json').exists() and not (out / 'map' / 'flight_end.json').exists()
 
 
 def _state(pid: int) -> str:
@@ -734,18 +761,17 @@ def test_record_killed_with_9_keeps_all_but_its_last_seconds(tmp_path, rclpy_con
                                    '--checkpoint', '1'], cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                             text=True)
     try:
-        t0 = time.monotonic()
-        _publish_while(proc, node, pub, lambda k: NavSatFix(latitude=47.0, longitude=8.5 + k * 1e-6),
-                       lambda: out.exists() or time.monotonic() - t0 > 60)
-        assert out.exists(), proc.stderr.read() if proc.poll() is not None else 'no bag folder in 60 s'
-        t1 = time.monotonic()
-        sent = _publish_while(proc, node, pub, lambda k: NavSatFix(latitude=47.0, longitude=8.5 + k * 1e-6),
-                              lambda: time.monotonic() - t1 > 8.0)
-        proc.kill()
-        proc.wait(timeout=30)
-    finally:
-        if proc.poll() is None:
+        with reaped(proc):
+            t0 = time.monotonic()
+            _publish_while(proc, node, pub, lambda k: NavSatFix(latitude=47.0, longitude=8.5 + k * 1e-6),
+                           lambda: out.exists() or time.monotonic() - t0 > 60)
+            assert out.exists(), proc.stderr.read() if proc.poll() is not None else 'no bag folder in 60 s'
+            t1 = time.monotonic()
+            sent = _publish_while(proc, node, pub, lambda k: NavSatFix(latitude=47.0, longitude=8.5 + k * 1e-6),
+                                  lambda: time.monotonic() - t1 > 8.0)
             proc.kill()
+            proc.wait(timeout=30)
+    finally:
         node.destroy_node()
     assert not (out / 'metadata.yaml').exists()        # cut short: no clean close
     with BagReader(out) as bag:
@@ -797,6 +823,45 @@ def test_output_folder_is_locked_and_not_reused_silently(tmp_path):
     assert (theirs / 'thesis.tex').exists() and not (theirs / LOCK_NAME).exists()
 
 
+@pytest.mark.parametrize('mode', ['--resume', '--overwrite'])
+def test_resume_or_overwrite_of_a_folder_that_is_not_ours_is_refused(tmp_path, mode):
+    """--resume into a folder no photogram-ros run wrote (no lock file, no map) would write a map among
+    the user's files; --overwrite would delete them: both refused, nothing written there."""
+    out = tmp_path / 'docs'
+    out.mkdir()
+    (out / 'notes.txt').write_text('mine')
+    res = cli('replay', SAMPLE_BAG, '--out', out, mode, '--quiet', timeout=60)
+    assert res.returncode == 2 and 'is not a photogram-ros output folder' in res.stderr, res.stderr
+    assert sorted(p.name for p in out.iterdir()) == ['notes.txt']
+
+
+def test_claim_locks_the_lock_file_the_folder_holds_now(tmp_path, monkeypatch):
+    """Two claims at once: a refused claim removes the lock file it created while another claim has it
+    open; that one then locks the file the folder holds now, not the removed one (two writers would
+    each hold a lock of their own)."""
+    import fcntl
+
+    from photogram_ros.errors import ConfigError
+    from photogram_ros.io import out_dir
+    out = tmp_path / 'o'
+    real, calls = fcntl.flock, []
+
+    def flock(fd, op):
+        if not calls:   # the refused claim's cleanup, between this claim's open and its flock
+            (out / out_dir.LOCK_NAME).unlink()
+        calls.append(fd)
+        return real(fd, op)
+    monkeypatch.setattr(out_dir.fcntl, 'flock', flock)
+    lock = out_dir.claim_output(out, 'new', 'test')
+    monkeypatch.setattr(out_dir.fcntl, 'flock', real)
+    try:
+        assert len(calls) == 2 and os.path.samestat(os.fstat(lock.fd), os.stat(out / out_dir.LOCK_NAME))
+        with pytest.raises(ConfigError, match='is being written by another photogram-ros'):
+            out_dir.claim_output(out, 'resume', 'test')
+    finally:
+        lock.close()
+
+
 def test_replay_into_a_folder_another_replay_writes_is_refused(tmp_path):
     """Two `replay`s into one --out at once: the second is refused at once (exit 2, one line); the
     first one goes on; after it, reusing the folder needs --resume or --overwrite."""
@@ -834,6 +899,130 @@ def test_bad_arguments_are_one_line_and_exit_2(tmp_path, args, words):
     res = cli('replay', SAMPLE_BAG, *args, '--quiet', timeout=60)
     assert res.returncode == 2 and words in res.stderr, res.stderr
     assert len(res.stderr.strip().splitlines()) == 1 and 'Traceback' not in res.stderr
+
+
+@pytest.mark.parametrize('args, words', [
+    (('simulate', '{o}', '--gap', 'abc'), '--gap \'abc\': give FROM:TO pairs'),
+    (('simulate', '{o}', '--outage', '20'), '--outage \'20\': give FROM:TO pairs'),
+    (('simulate', '{o}', '--corrupt-mavlink', '1:2:3'), 'give FROM:TO pairs'),
+    (('simulate', '{o}', '--gap', '5:3'), '0 <= FROM < TO'),
+    (('simulate', '{o}', '--size', '12'), '--size \'12\': give WIDTHxHEIGHT'),
+    (('simulate', '{o}', '--black', 'x'), '--black \'x\': not a number'),
+    (('simulate', '{o}', '--repeats', '0'), '--repeats 0'),
+    (('simulate', '{o}', '--drop', '2'), '--drop 2.0: a fraction'),
+    (('simulate', '{o}', '--tilt', '200'), '--tilt 200.0: degrees from nadir'),
+    (('simulate', '{o}', '--gnss-change', '30:bogus'), "unknown GNSS mode 'bogus'"),
+    (('record', '{o}', '--topics', ' , '), '--topics names no topic'),
+    (('record', '{o}', '--topics', '/a', '--duration', '-1'), '--duration -1'),
+    (('record', '{o}', '--topics', '/a', '--count', '-1'), '--count -1'),
+    (('record', '{o}', '--topics', '/a', '--discovery-timeout', '-1'), '--discovery-timeout -1'),
+    (('ground-station', '--out', '{o}', '--duration', '-1'), '--duration -1'),
+    (('ground-station', '--out', '{o}', '--web', '127.0.0.1:99999'), "--web '127.0.0.1:99999'"),
+    (('run', '--namespace', 'bad ns!', '--nodes', 'mavlink', '--out', '{o}'), "--namespace 'bad ns!' is not a ROS 2"),
+    (('replay', str(SAMPLE_BAG), '--out', '{o}', '--rate', '-1'), '--rate -1'),
+    (('replay', str(SAMPLE_BAG), '--out', '{o}', '--rate', 'nan'), '--rate nan'),
+    (('replay', str(SAMPLE_BAG), '--out', '{o}', '--min-pairs', '0'), '--min-pairs 0'),
+    (('replay', str(SAMPLE_BAG), '--out', '{o}', '--child-nodes', 'tracker'), '--child-nodes'),
+    (('replay', str(SAMPLE_BAG), '--out', '{o}', '--domain', '-1'), '--domain=-1 is out of range'),
+    (('export', str(SAMPLE_BAG), '--crs', 'EPSG:32632', '--out', '{o}', '--dsm-res-m', '-1'), '--dsm-res-m -1'),
+    (('export', str(SAMPLE_BAG), '--crs', 'EPSG:32632', '--out', '{o}', '--contours-m', 'nan'), '--contours-m nan'),
+    (('calibrate', str(SAMPLE_BAG / 'metadata.yaml'), '--min-views', '0', '--out', '{o}'), '--min-views 0'),
+    (('fixes', 'udpin:127.0.0.1:14999', '--sysid', '999'), '--sysid 999: choose 0 to 255'),
+    (('fixes', 'udpin:127.0.0.1:14999', '--duration', '-1'), '--duration -1'),
+    (('play', str(SAMPLE_BAG), '--remap', '/a:='), "remap '/a:=' must look like /from:=/to")])
+def test_every_commands_bad_arguments_are_one_line_and_exit_2(tmp_path, args, words):
+    """Values argparse takes but the command cannot use: said at once (exit 2, one line, no traceback),
+    before any process or folder is made."""
+    out = tmp_path / 'o'
+    res = cli(*[a.replace('{o}', str(out)) for a in args], timeout=60)
+    assert res.returncode == 2 and words in res.stderr, res.stderr[-2000:]
+    assert len(res.stderr.strip().splitlines()) == 1 and 'Traceback' not in res.stderr, res.stderr[-2000:]
+    assert not out.exists()
+
+
+@pytest.mark.parametrize('sig, status', [(signal.SIGTERM, 143), (signal.SIGINT, 130)])
+def test_a_command_stopped_before_it_handles_signals_says_so(tmp_path, sig, status):
+    """SIGTERM or SIGINT to a command that has no stop of its own (simulate, triangulate, a `run` still
+    starting): one line naming the signal, exit 128 + its number, not a silent end."""
+    proc = subprocess.Popen(CLI + ['simulate', str(tmp_path / 'sim'), '--preset', 'tiny'], cwd=ROOT,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    with reaped(proc):
+        assert 'rendered' in proc.stderr.read(len('\rrendered'))   # it is working
+        proc.send_signal(sig)
+        err = proc.communicate(timeout=60)[1]
+    assert proc.returncode == status and err.strip().splitlines()[-1].endswith(f'simulate: stopped by {sig.name}')
+    assert 'Traceback' not in err
+
+
+@pytest.mark.parametrize('rate', ['0.0', '1.0'])
+def test_run_separate_with_a_photo_folder_is_refused(tmp_path, rate):
+    """`run --separate` cannot hold a photo folder to the tracker: the camera process would publish its
+    photos (at rate 0 all at once) while the tracker process starts and end the flight before the tracker
+    took one ("the tracker took no keyframe", exit 0). Refused before anything starts."""
+    photos = tmp_path / 'photos'
+    photos.mkdir()
+    cfg = tmp_path / 'photos.yaml'
+    cfg.write_text(f'camera_node:\n  ros__parameters:\n    source: {photos}\n    rate: {rate}\n'
+                   f'map_node:\n  ros__parameters:\n    map_dir: {tmp_path / "map"}\n')
+    res = cli('run', '--separate', '--params', cfg, '--nodes', 'camera,tracker,bundle,stereo,map',
+              '--out', tmp_path / 'products', timeout=60)
+    assert res.returncode == 2 and '--separate with camera_node playing a photo folder' in res.stderr, \
+        res.stderr[-2000:]
+    assert len(res.stderr.strip().splitlines()) == 1 and not (tmp_path / 'map').exists()
+
+
+@pytest.mark.parametrize('storage', ['sqlite3', 'mcap'])
+def test_record_killed_before_its_first_message_is_said_to_be_cut_short(tmp_path, storage):
+    """kill -9 of `record` before its first message: bag-info says the recording was cut short (exit 3),
+    not "0 messages" with exit 0, whatever the storage."""
+    out = tmp_path / 'bag'
+    proc = subprocess.Popen(CLI + ['record', str(out), '--topics', '/h28/nobody', '--storage', storage], cwd=ROOT,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    with reaped(proc):
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline and not any(out.glob(f'*.{"db3" if storage == "sqlite3" else "mcap"}')):
+            time.sleep(0.1)
+        time.sleep(2.0)   # its tables written: the recorder waits for the topic (discovery, 10 s)
+        proc.kill()
+        proc.wait()
+    res = cli('bag-info', out, timeout=60)
+    assert res.returncode == 3, res.stdout + res.stderr
+    assert 'cut short' in res.stderr and '0 messages' in res.stdout, res.stderr
+
+
+@pytest.mark.parametrize('link, words', [('/dev/ttyPHOTOGRAM9', 'no such device'),
+                                         ('tcp:no-such-host.invalid:5760', 'cannot open MAVLink link')])
+def test_fixes_on_a_link_that_cannot_open_says_why_and_keeps_stdout_clean(link, words):
+    """A serial device that is not there, a host that does not resolve: one line on stderr, exit 2, and
+    nothing but the CSV header on stdout (pymavlink printed its retries there, among the rows)."""
+    res = cli('fixes', link, '--duration', '1', timeout=60)
+    assert res.returncode == 2 and words in res.stderr and len(res.stderr.strip().splitlines()) == 1, res.stderr
+    assert res.stdout.strip().splitlines() == [res.stdout.strip().splitlines()[0]]
+    assert res.stdout.startswith('t_unix_s,')
+
+
+def test_record_leaves_no_empty_bag_when_no_topic_appears(tmp_path):
+    res = cli('record', tmp_path / 'bag', '--topics', '/h28/nobody', '--discovery-timeout', '1', timeout=60)
+    assert res.returncode == 2 and "none of the topics ['/h28/nobody'] appeared" in res.stderr, res.stderr
+    assert not (tmp_path / 'bag').exists()
+
+
+def test_a_second_replay_on_a_shared_domain_is_refused(tmp_path):
+    """`replay --domain N` holds N as a replay's own domain is held: a second replay on N (both trackers
+    would take both flights' frames) is refused at once, and N is free again when the first ends."""
+    code = ('import time; from photogram_ros.nodes.ros_domain import shared_domain; '
+            'print(shared_domain(%d), flush=True); time.sleep(30)')
+    mine = int(os.environ['ROS_DOMAIN_ID'])
+    holder = subprocess.Popen([sys.executable, '-c', code % mine], cwd=ROOT, stdout=subprocess.PIPE, text=True,
+                              env={**os.environ, 'PYTHONPATH': str(ROOT)})
+    with reaped(holder):
+        assert int(holder.stdout.readline()) == mine
+        res = cli('replay', SAMPLE_BAG, '--out', tmp_path / 'o', '--domain', mine, '--quiet', timeout=60)
+        assert res.returncode == 2 and f'another replay on this machine plays on ROS_DOMAIN_ID {mine}' in res.stderr
+        assert len(res.stderr.strip().splitlines()) == 1 and not (tmp_path / 'o').exists()
+    again = subprocess.run([sys.executable, '-c', code.replace('time.sleep(30)', 'pass') % mine], cwd=ROOT,
+                           capture_output=True, text=True, env={**os.environ, 'PYTHONPATH': str(ROOT)}, timeout=60)
+    assert again.stdout.strip() == str(mine), again.stderr   # freed with its process
 
 
 @pytest.mark.parametrize('command', [['replay', str(SAMPLE_BAG), '--quiet'], ['play', str(SAMPLE_BAG)],
@@ -945,7 +1134,7 @@ def _run_photos(tmp_path, photos, stop_after_keyframes=0):
     proc = subprocess.Popen(CLI + ['run', '--params', str(cfg), '--nodes', 'camera,tracker,bundle,stereo,map',
                                    '--out', str(tmp_path / 'products')], cwd=ROOT, stdout=subprocess.PIPE,
                             stderr=subprocess.STDOUT, text=True)
-    try:
+    with reaped(proc):
         if stop_after_keyframes:
             deadline = time.monotonic() + 300
             while time.monotonic() < deadline and proc.poll() is None and \
@@ -953,9 +1142,6 @@ def _run_photos(tmp_path, photos, stop_after_keyframes=0):
                 time.sleep(0.2)
             proc.send_signal(signal.SIGTERM)
         out = proc.communicate(timeout=900)[0]
-    finally:
-        if proc.poll() is None:
-            proc.kill()
     report = json.loads((tmp_path / 'products' / 'report.json').read_text())
     return proc.returncode, out, report
 
@@ -1070,7 +1256,10 @@ def test_control_files_from_spreadsheets_are_read(tmp_path, form, data):
 @pytest.mark.parametrize('data, words', [
     (lambda: b'PK\x03\x04' + bytes(range(256)) * 4, 'spreadsheet (.xlsx) rather than text'),
     (lambda: _gcp_text(',', ',').encode(), 'decimal commas as well as column separators'),
-    (lambda: b'\xff\xfe' + b'E\x00P\x00\x00\xd8', 'looks like UTF-16')])
+    (lambda: b'\xff\xfe' + b'E\x00P\x00\x00\xd8', 'looks like UTF-16'),
+    (lambda: b'\xd0\xcf\x11\xe0\xa1\xb1\x1a\xe1' + bytes(512), 'Excel 97-2003 spreadsheet (.xls) rather than text'),
+    (lambda: _gcp_text(';', ',', ';;;;;;').replace('465698,587', '465.698,587').encode(),
+     "'465.698,587' has a thousands separator")])
 def test_control_files_that_cannot_be_read_say_why(tmp_path, data, words):
     from photogram_ros.errors import DataError
     from photogram_ros.io.control_file import read_control_file
@@ -1118,6 +1307,32 @@ def test_mavlink_node_that_gets_nothing_usable_warns_with_the_reason(rclpy_conte
             said = node.diag.counts()['problems']
             node._update_diagnostics()   # nothing new arrived: nothing new to say
             assert node.diag.counts()['problems'] == said
+    finally:
+        node.destroy_node()
+
+
+def test_wrong_signing_key_warns_although_a_radios_unsigned_packets_pass(rclpy_context):
+    """A wrong signing key with allow_unsigned: the autopilot's signed packets are all rejected while a
+    telemetry radio's unsigned RADIO_STATUS pass; no fix, no attitude: WARN with the reason."""
+    from pymavlink.dialects.v20 import ardupilotmega as mavlink2
+
+    from photogram_ros.io.mavlink import signing_key
+    from photogram_ros.nodes.diagnostics import WARN
+    from photogram_ros.nodes.mavlink_node import MavlinkNode
+    from test_mavlink_node import _gps_stream
+    mav = mavlink2.MAVLink(None, srcSystem=1, srcComponent=1)
+    mav.signing.secret_key, mav.signing.sign_outgoing, mav.signing.timestamp = signing_key('guess'), True, 1
+    radio = mavlink2.MAVLink(None, srcSystem=51, srcComponent=68)
+    status = b''.join(radio.radio_status_encode(200, 190, 100, 40, 38, 0, 0).pack(radio) for _ in range(5))
+    node = MavlinkNode({'signing_key': 'fleet secret', 'allow_unsigned': True, 'diagnostics_period_s': 60.0},
+                       context=rclpy_context)
+    try:
+        node.diag.status()
+        node.feed(_gps_stream(mav, lat0=471000000) + status, None)
+        node._update_diagnostics()
+        st = node.diag.status()
+        assert node.stream.stats.packets >= 5 and node.published['fix'] == 0
+        assert st.level == WARN and 'wrong signature so far (signing_key differs' in st.message, st.message
     finally:
         node.destroy_node()
 
@@ -1171,6 +1386,66 @@ def _graph(counts, busy=lambda: False):
     g = Graph.__new__(Graph)
     g.counts, g.busy = counts, busy
     return g
+
+
+def _child_graph(code: str):
+    """A ChildGraph whose child is `code` in a Python process and whose status comes from a thread
+    (counters that never move, one status every 0.1 s), with no ROS."""
+    from photogram_ros.nodes.graph import ChildGraph
+    g = ChildGraph.__new__(ChildGraph)
+    g._status, g._cond, g._seq = {'counts': {'map': {'clouds': 3}}, 'busy': False, 'done': 0}, threading.Condition(), 0
+    g._status_at = time.monotonic()
+    g._send = lambda **command: 1
+    g.proc = subprocess.Popen([sys.executable, '-c', code])
+    stop = threading.Event()
+
+    def status():
+        while not stop.wait(0.1):
+            with g._cond:
+                g._status_at = time.monotonic()
+                g._cond.notify_all()
+    threading.Thread(target=status, daemon=True).start()
+    return g, stop
+
+
+@pytest.mark.parametrize('code, words', [
+    ('import time; time.sleep(60)', 'made no progress for 2 s'),          # waiting on a timeout
+    ('while True: pass', 'did not finish in 5 s')])                        # computing (a final adjustment)
+def test_an_end_of_flight_step_in_the_child_is_waited_for_while_it_works(code, words):
+    """An end-of-flight step in the replay's child process is waited for while the child works (a counter
+    moves, a node is busy, or it computes: CPU time) and no longer than `stall_s` once it does nothing;
+    the wait says what it waits for every 10 s, and does not sit out a fixed 600 s."""
+    g, stop = _child_graph(code)
+    said = []
+    try:
+        with reaped(g.proc), pytest.raises(RuntimeError, match=re.escape(words)):
+            g.call('stereo', 'flush', timeout_s=5.0, stall_s=2.0, say=said.append)
+    finally:
+        stop.set()
+
+
+def test_the_player_stops_holding_back_for_a_stalled_node():
+    """The player holds the flight while a node lags the tracker by more than max_lag_keyframes; a
+    node that has stalled (no mapping counter moves, nothing busy, its process not computing) ends
+    that wait after lag_stall_s (WorkWatch) instead of frame_timeout_s (30 s) at every new keyframe."""
+    from photogram_ros.nodes.graph import WorkWatch
+    stalled = _graph(_Counts(lambda k: {'tracker': {'keyframes': 40}, 'stereo': {'images': 5, 'pairs_done': 4}}))
+    stalled.child = None
+    watch = WorkWatch(stalled, period_s=0.05)
+    t0 = time.monotonic()
+    while watch.idle_s() < 0.5 and time.monotonic() - t0 < 10:
+        time.sleep(0.01)
+    assert 0.5 <= time.monotonic() - t0 < 2.0
+    working = _graph(_Counts(lambda k: {'tracker': {'keyframes': 40}, 'stereo': {'images': 5, 'pairs_done': k}}))
+    working.child = None
+    watch = WorkWatch(working, period_s=0.05)
+    time.sleep(0.6)
+    assert watch.idle_s() < 0.2   # a counter moves: it works
+    busy = _graph(_Counts(lambda k: {'stereo': {'pairs_done': 4}}), busy=lambda: True)
+    busy.child = None
+    watch = WorkWatch(busy, period_s=0.05)
+    time.sleep(0.6)
+    assert watch.idle_s() < 0.2   # a node computes in its own thread
 
 
 def test_drain_does_not_wait_its_timeout_on_work_lost_between_nodes():

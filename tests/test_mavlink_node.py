@@ -13,6 +13,7 @@ import time
 import numpy as np
 import pytest
 
+from helpers.processes import reaped
 from photogram_ros.io.mavlink import read_tlog
 from test_mavlink_parse import sample_dir  # noqa: F401  (fixture)
 
@@ -70,29 +71,28 @@ def test_udp_loopback_to_subscriber_in_another_process(rclpy_context, sample_dir
     stop = threading.Event()
     node = spinner = None
     try:
-        assert sub.stdout.readline().strip() == b'ready'
-        port = _free_udp_port()
-        node = MavlinkNode({'url': f'udpin:127.0.0.1:{port}'}, context=rclpy_context)
-        spinner = threading.Thread(target=_spin, args=(node, rclpy_context, stop), daemon=True)
-        spinner.start()
-        deadline = time.monotonic() + 20
-        while node.pub_fix.get_subscription_count() < 1 and time.monotonic() < deadline:
-            time.sleep(0.05)
-        assert node.pub_fix.get_subscription_count() >= 1, 'subscriber never matched'
-        # Stream the flight's packets as the autopilot would, 20x faster than recorded.
-        msgs, _ = read_tlog(sample_dir / 'flight.tlog')
-        tx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        t0, wall0 = msgs[0][1], time.monotonic()
-        for m, t in msgs:
-            delay = wall0 + (t - t0) / 20.0 - time.monotonic()
-            if delay > 0:
-                time.sleep(delay)
-            tx.sendto(bytes(m._msgbuf), ('127.0.0.1', port))
-        tx.close()
-        sub.wait(timeout=60)
+        with reaped(sub):
+            assert sub.stdout.readline().strip() == b'ready'
+            port = _free_udp_port()
+            node = MavlinkNode({'url': f'udpin:127.0.0.1:{port}'}, context=rclpy_context)
+            spinner = threading.Thread(target=_spin, args=(node, rclpy_context, stop), daemon=True)
+            spinner.start()
+            deadline = time.monotonic() + 20
+            while node.pub_fix.get_subscription_count() < 1 and time.monotonic() < deadline:
+                time.sleep(0.05)
+            assert node.pub_fix.get_subscription_count() >= 1, 'subscriber never matched'
+            # Stream the flight's packets as the autopilot would, 20x faster than recorded.
+            msgs, _ = read_tlog(sample_dir / 'flight.tlog')
+            tx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+            t0, wall0 = msgs[0][1], time.monotonic()
+            for m, t in msgs:
+                delay = wall0 + (t - t0) / 20.0 - time.monotonic()
+                if delay > 0:
+                    time.sleep(delay)
+                tx.sendto(bytes(m._msgbuf), ('127.0.0.1', port))
+            tx.close()
+            sub.wait(timeout=60)
     finally:
-        if sub.poll() is None:
-            sub.kill()
         stop.set()
         if spinner is not None:
             spinner.join(timeout=5)

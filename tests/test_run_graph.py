@@ -8,6 +8,7 @@ import time
 import pytest
 
 from conftest import ROOT
+from helpers.processes import reaped
 from photogram_ros.params import load_params_file
 
 pytestmark = pytest.mark.ros
@@ -58,16 +59,13 @@ def test_run_starts_all_nodes_and_sigint_flushes_the_map(tmp_path, sample_bag):
     proc = subprocess.Popen([sys.executable, '-m', 'photogram_ros.cli', 'run', '--params', str(cfg),
                              '--out', str(tmp_path / 'products')], cwd=ROOT,
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-    try:
+    with reaped(proc):
         deadline = time.monotonic() + 60
         while time.monotonic() < deadline and not (tmp_path / 'map' / 'map.json').exists():
             time.sleep(0.5)
         time.sleep(3.0)
         proc.send_signal(signal.SIGINT)
         out = proc.communicate(timeout=60)[0]
-    finally:
-        if proc.poll() is None:
-            proc.kill()
     assert proc.returncode == 0, out[-3000:]
     assert 'photogram_ros running: mavlink, tracker, bundle, stereo, map' in out
     assert (tmp_path / 'map' / 'map.json').exists()

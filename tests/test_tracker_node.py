@@ -249,3 +249,25 @@ def test_flush_takes_the_fixes_that_came_after_the_last_frame(rclpy_context, tmp
     tracker.destroy_node()
     listener.node.destroy_node()
     feeder.destroy_node()
+
+
+def test_flush_waits_for_the_queue_while_the_tracker_takes_frames(rclpy_context, tmp_path, monkeypatch):
+    """On a loaded machine the tracker takes its queue slowly: the end of the flight waits for every
+    queued frame while frames are being taken (no frame taken for `timeout_s` ends the wait), instead
+    of flushing past the queue after a fixed time (those frames then missed the final adjustment)."""
+    from photogram_ros.core.camera import save_opencv_yaml
+    from photogram_ros.nodes.tracker_node import TrackerNode
+    from test_tracker import SimFrames
+    save_opencv_yaml(SimFrames(2.0).camera, tmp_path / 'cam.yaml')
+    tracker = TrackerNode(overrides={'calibration_file': str(tmp_path / 'cam.yaml'), 'queue_size': 100,
+                                     'detect_targets': False}, context=rclpy_context)
+    monkeypatch.setattr(tracker, '_handle', lambda msg, cam, fixes: time.sleep(0.1))
+    try:
+        with tracker._cond:
+            tracker._frames.extend(object() for _ in range(30))   # 3 s of tracking, 6x the stall bound
+            tracker._cond.notify_all()
+        tracker.flush(timeout_s=0.5)
+        with tracker._cond:
+            assert not tracker._frames and tracker.frames_done == 30
+    finally:
+        tracker.destroy_node()

@@ -22,8 +22,11 @@ def run(a) -> int:
 
     from photogram_ros.core.calibration import calibrate, parse_board
     from photogram_ros.core.camera import save_opencv_yaml
-    from photogram_ros.errors import DataError
+    from photogram_ros.errors import ConfigError, DataError
 
+    if a.min_views < 3:
+        raise ConfigError(f'--min-views {a.min_views}: at least 3 views of the board (fewer cannot separate the '
+                          'focal length from the board\'s distance)')
     views = []
     for path in a.images:
         img = cv2.imread(path, cv2.IMREAD_GRAYSCALE)

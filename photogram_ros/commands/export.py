@@ -62,6 +62,11 @@ def run(a) -> int:
         raise ConfigError(f'unknown products {bad}; choose from {list(PRODUCTS)}')
     if a.min_pairs < 1:
         raise ConfigError(f'--min-pairs must be at least 1, not {a.min_pairs}')
+    for opt, v, what in (('--dsm-res-m', a.dsm_res_m, 'the DSM cell size'), ('--ortho-res-m', a.ortho_res_m,
+                                                                            'the orthomosaic cell size'),
+                         ('--contours-m', a.contours_m, 'the contour interval')):
+        if not 0 <= v < 1e6:   # said before any matching or writing, not after minutes of it
+            raise ConfigError(f'{opt} {v:g}: {what} in metres, more than 0 (0: the default)')
     if a.crs:
         from photogram_ros.commands.products import check_output_crs
         check_output_crs(a.crs)   # before any matching or writing

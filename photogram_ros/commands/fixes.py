@@ -176,10 +176,22 @@ def _print_events(a) -> int:
     return 0
 
 
+def check_arguments(a) -> None:
+    """The numbers argparse takes but a link cannot use: a ConfigError before anything is printed."""
+    from photogram_ros.errors import ConfigError
+    for opt, v, lo, hi in (('--sysid', a.sysid, 0, 255), ('--compid', a.compid, 0, 255),
+                           ('--baud', a.baud, 300, 10_000_000)):
+        if not lo <= v <= hi:
+            raise ConfigError(f'{opt} {v}: choose {lo} to {hi}' + (' (0: any)' if opt != '--baud' else ''))
+    if not 0 <= a.duration < float('inf'):
+        raise ConfigError(f'--duration {a.duration:g}: seconds of a live link to read, 0 (until Ctrl-C) or more')
+
+
 def run(a) -> int:
     """Exit status 0; 2 when the input holds no MAVLink (or no GNSS topic); 3 when the bag is damaged
     (the fixes it still holds are printed)."""
     import sys
+    check_arguments(a)
     if getattr(a, 'events', False):
         try:
             return _print_events(a)

@@ -37,10 +37,15 @@ def run(a) -> int:
 
     import rclpy
 
-    from photogram_ros.errors import PhotogramError
+    from photogram_ros.errors import ConfigError, PhotogramError
     from photogram_ros.nodes.ground_station import GroundStationNode, security_status
     from photogram_ros.nodes.node_main import StopSignals, init_ros
     from photogram_ros.params import load_params_file
+    from photogram_ros.web.server import parse_host_port
+    if not 0 <= a.duration < float('inf'):   # said before anything starts, like --web below
+        raise ConfigError(f'--duration {a.duration:g}: seconds to run, 0 (until Ctrl-C) or more')
+    if a.web:
+        parse_host_port(a.web)
     values = load_params_file(a.params).get('ground_station', {}) if a.params else {}
     for opt, name in (('drones', 'drones'), ('out', 'out_dir'), ('crs', 'crs'), ('save_period', 'save_period_s'),
                       ('web', 'web'), ('web_token', 'web_token'), ('basemap', 'basemap')):

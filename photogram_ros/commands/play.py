@@ -30,7 +30,12 @@ def player_overrides(a) -> dict:
 def run(a) -> int:
     import rclpy
 
-    from photogram_ros.nodes.player_node import PlayerNode
+    from photogram_ros.nodes.player_node import PlayerNode, PlayerParams
+    from photogram_ros.params import from_dict
+    from photogram_ros.errors import ConfigError
+    if not 0 <= a.rate <= 10000:   # nan too
+        raise ConfigError(f'--rate {a.rate:g}: the speed factor, 0 (as fast as subscribers acknowledge) to 10000')
+    from_dict(PlayerParams, player_overrides(a), where='play').check()   # before ROS starts: one line, exit 2
     rclpy.init()
     node = None
     try:

@@ -19,6 +19,7 @@ def add_arguments(p) -> None:
 
 
 def run(a) -> int:
+    import shutil
     import signal
     import threading
 
@@ -29,19 +30,31 @@ def run(a) -> int:
     from photogram_ros.nodes.recorder import Recorder
     if not 0.1 <= a.checkpoint <= 600:
         raise ConfigError(f'--checkpoint {a.checkpoint}: choose 0.1 to 600 s')
+    for opt, v, what in (('--duration', a.duration, 'seconds, 0 = until Ctrl-C'),
+                         ('--count', a.count, 'messages, 0 = no limit')):
+        if not 0 <= v < float('inf'):
+            raise ConfigError(f'{opt} {v:g}: {what}')
+    if not 0 < a.discovery_timeout <= 3600:
+        raise ConfigError(f'--discovery-timeout {a.discovery_timeout:g}: choose more than 0 and up to 3600 s')
+    topics = [t.strip() for t in a.topics.split(',') if t.strip()]
+    if not topics:
+        raise ConfigError('--topics names no topic: give them comma separated, e.g. --topics /gps/fix,/camera/image_raw')
 
     stop = threading.Event()   # SIGINT and SIGTERM end the recording between two messages: the bag closes
     for sig in (signal.SIGINT, signal.SIGTERM):   # with its metadata.yaml
         signal.signal(sig, lambda *_: stop.set())
     init_ros()
     rec = None
+    discovered = False
     try:
-        rec = Recorder(a.out, [t.strip() for t in a.topics.split(',') if t.strip()],
-                       storage=a.storage, checkpoint_s=a.checkpoint)
+        rec = Recorder(a.out, topics, storage=a.storage, checkpoint_s=a.checkpoint)
         n = rec.run(duration_s=a.duration, max_count=a.count, discovery_timeout_s=a.discovery_timeout, stop=stop)
+        discovered = True
         print(f'recorded {n} messages to {a.out}')
         return 0
     finally:
         if rec is not None:
             rec.close()
+            if not discovered and rec.count == 0:   # none of the topics appeared: no empty bag is left
+                shutil.rmtree(a.out, ignore_errors=True)
         rclpy.try_shutdown()

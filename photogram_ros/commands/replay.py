@@ -82,18 +82,30 @@ def run(a) -> int:
     from photogram_ros.sim.truth import GroundTruth
 
     from photogram_ros.io.out_dir import claim_output
-    from photogram_ros.nodes.ros_domain import check_domain_env, own_domain, parse_domain, use_domain
+    from photogram_ros.nodes.ros_domain import (check_domain_env, own_domain, parse_domain, shared_domain,
+                                                  use_domain)
 
     params = a.params
     if params is None and Path('config/replay.yaml').exists():
         params = 'config/replay.yaml'
     out = Path(a.out)
+    if not 0 <= a.rate <= 10000:   # said before any process starts
+        raise ConfigError(f'--rate {a.rate:g}: the flight\'s speed factor, 0 (as fast as the mapper keeps up) '
+                          'to 10000')
+    if a.min_pairs < 1:
+        raise ConfigError(f'--min-pairs {a.min_pairs}: 1 (keep every cell) or more')
+    if not -1e12 < a.video_start < 1e12:
+        raise ConfigError(f'--video-start {a.video_start:g}: the Unix time of the video\'s first frame, s')
+    child = tuple(r.strip() for r in a.child_nodes.split(',') if r.strip()) if a.processes == 2 else ()
+    if set(child) - {'bundle', 'stereo', 'map'}:
+        raise ConfigError(f'--child-nodes {a.child_nodes!r}: choose among bundle, stereo, map')
     if a.crs:   # checked now, not after the whole replay
         check_output_crs(a.crs)
     source_kind(a.bag)   # a flight that is not there: said before any folder is made
     if a.truth and not GroundTruth.exists(a.truth):
         raise ConfigError(f'--truth {a.truth}: no simulator ground truth (ground_truth.json) there')
-    domain = parse_domain(a.domain, '--domain') if a.domain is not None else own_domain(avoid=check_domain_env())
+    domain = shared_domain(parse_domain(a.domain, '--domain')) if a.domain is not None else \
+        own_domain(avoid=check_domain_env())
     control, extra = None, {}
     if a.gcp:   # read here first: a bad file is reported before the replay starts
         control = read_control_file(a.gcp, a.check.split(','), a.gcp_heights)
@@ -110,7 +122,6 @@ def run(a) -> int:
               'ROS 2 tool)', flush=True)
     init_ros()   # Ctrl-C is a KeyboardInterrupt: the graph still shuts down in order (the map flushes)
     try:
-        child = tuple(r.strip() for r in a.child_nodes.split(',') if r.strip()) if a.processes == 2 else ()
         res = run_replay(ReplayOptions(bag=a.bag, out=str(out), params_file=params, rate=a.rate,
                                        progress=not a.quiet, child_roles=child, extra=extra,
                                        calibration_file=a.calibration, gnss_log=a.gnss_log,

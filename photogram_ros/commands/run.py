@@ -53,11 +53,20 @@ def run(a) -> int:
     bad = [r for r in roles if r not in NODES]
     if bad:
         raise ConfigError(f'unknown nodes {bad}; choose from {list(NODES)}')
+    if a.namespace:
+        check_namespace(a.namespace)
     spec = GraphSpec(roles=roles, params_file=a.params, namespace=a.namespace)
     check_params(spec)     # every mistake before the first frame, not at the end of the flight
     exporting = not a.no_export and 'map' in roles
     if exporting and a.crs:
         check_output_crs(a.crs)
+    if a.separate and camera_plays_a_file(spec):
+        # One process per node cannot hold a folder or file to the tracker: the camera process would publish
+        # its frames (at rate 0 all at once) while the tracker process starts, end, and so end the flight
+        # before the tracker took one ("the tracker took no keyframe").
+        raise ConfigError('--separate with camera_node playing a photo folder or a video file: only the one-process '
+                          'run holds the camera to the tracker and ends the flight when the tracker has taken the '
+                          'last frame; leave out --separate (it is for a live camera device)')
     _locks = claim_folders(a, roles, exporting)   # held (flock) until the command returns
     signals = StopSignals('finishing the flight (final adjustment, stereo, map flush, products)')
     if a.separate:
@@ -110,6 +119,29 @@ def run(a) -> int:
                 'ended_by': signals.signal_name or 'end of the camera source',
                 'final_adjustment': end.final_adjustment, 'end_of_flight_errors': end.errors}
     return _after_flight(a, roles, end.as_dict(), run_info, diag_log.snapshot())
+
+
+def check_namespace(namespace: str) -> None:
+    """A ConfigError (exit 2, one line) for a namespace ROS 2 refuses, before any node starts."""
+    from rclpy.exceptions import InvalidNamespaceException
+    from rclpy.validate_namespace import validate_namespace
+
+    from photogram_ros.errors import ConfigError
+    try:
+        validate_namespace('/' + namespace.lstrip('/') if namespace != '/' else namespace)
+    except InvalidNamespaceException as exc:
+        why = str(exc).splitlines()[0].split(': ', 1)[-1].rstrip(':')
+        raise ConfigError(f'--namespace {namespace!r} is not a ROS 2 namespace ({why}): use letters, digits, '
+                          '"_" and "/", e.g. /drone1') from None
+
+
+def camera_plays_a_file(spec) -> bool:
+    """The graph has a camera node whose source is a photo folder or a video file (not a device)."""
+    from photogram_ros.nodes.graph import role_values
+    if 'camera' not in spec.roles:
+        return False
+    source = str(role_values(spec, 'camera').get('source', '')).strip()
+    return bool(source) and not source.isdigit() and not source.startswith('/dev/')
 
 
 def pace_camera(spec):
@@ -205,21 +237,76 @@ def _run_separate(a, spec, signals) -> int:
 
     from photogram_ros.nodes.graph import start_separate
     procs = start_separate(spec)
+    monitor = SeparateMonitor(spec)   # the nodes' /diagnostics: the report's accounting
+    t0 = time.monotonic()
     print(f'photogram_ros running: {", ".join(spec.roles)}, one process each', flush=True)
     signals.wait(alive=lambda: all(p.poll() is None for p in procs))
+    flight_s = time.monotonic() - t0
     rcs = []
-    for role, p in zip(spec.roles, procs):
-        if p.poll() is None:
-            p.send_signal(signal.SIGINT)
-        try:
-            rcs.append(p.wait(timeout=600))
-        except Exception:
-            p.kill()
-            rcs.append(p.wait())
+    try:
+        for role, p in zip(spec.roles, procs):
+            if p.poll() is None:
+                p.send_signal(signal.SIGINT)
+            try:
+                rcs.append(p.wait(timeout=600))
+            except Exception:
+                p.kill()
+                rcs.append(p.wait())
+    finally:
+        counts, diagnostics = monitor.close()
     failed = [f'{r} exited with status {rc}' for r, rc in zip(spec.roles, rcs) if rc]
     end = {'final_adjustment': 'unknown' if 'bundle' in spec.roles else 'none',
            'reason': 'run --separate: bundle_node adjusts at its own exit', 'errors': failed}
-    return _after_flight(a, spec.roles, end)
+    wall_s = time.monotonic() - t0
+    frames = max(counts.get('tracker', {}).get('frames_received', 0), counts.get('camera', {}).get('frames', 0))
+    run_info = {'source': 'run', 'frames': frames, 'bag_s': flight_s, 'wall_s': wall_s,
+                'real_time_factor': flight_s / max(wall_s, 1e-9), 'counts': counts,
+                'ended_by': signals.signal_name or 'a node process ended', 'final_adjustment': end['final_adjustment'],
+                'end_of_flight_errors': failed}
+    return _after_flight(a, spec.roles, end, run_info, diagnostics)
+
+
+class SeparateMonitor:
+    """`run --separate`: listens to the nodes' /diagnostics from this process for the run's accounting
+    (their last counters: frames, keyframes, pairs; a node's last period before its exit may be missing)."""
+
+    def __init__(self, spec):
+        import threading
+
+        import rclpy
+        from rclpy.node import Node
+
+        from photogram_ros.nodes.node_main import init_ros
+        from photogram_ros.nodes.replay_session import DiagnosticsLog
+        init_ros()
+        self.spec = spec
+        self.node = Node('run_monitor', **({'namespace': spec.namespace} if spec.namespace else {}))
+        self.log = DiagnosticsLog(self.node)
+        self._stop = threading.Event()
+
+        def spin():
+            while not self._stop.is_set() and rclpy.ok():
+                rclpy.spin_once(self.node, timeout_sec=0.1)
+        self._thread = threading.Thread(target=spin, daemon=True, name='run-monitor')
+        self._thread.start()
+
+    def close(self) -> tuple[dict, dict]:
+        """(role -> the node's last numeric counters, the /diagnostics snapshot); stops listening."""
+        import rclpy
+
+        from photogram_ros.nodes.graph import NODES
+        self._stop.set()
+        self._thread.join(timeout=5.0)
+        self.node.destroy_node()
+        rclpy.try_shutdown()
+        snap = self.log.snapshot()
+        counts = {}
+        for role in self.spec.roles:
+            for name, d in snap.items():
+                if name.rstrip('/').endswith('/' + NODES[role][2]) or name == NODES[role][2]:
+                    counts[role] = {k: v for k, v in d['values'].items()
+                                    if isinstance(v, (int, float)) and not isinstance(v, bool)}
+        return counts, snap
 
 
 def _after_flight(a, roles, end: dict, run_info: dict | None = None, diagnostics: dict | None = None) -> int:

@@ -5,12 +5,37 @@ from __future__ import annotations
 HELP = 'simulate a survey flight: a bag, a .tlog and the ground truth beside them'
 
 
-def _pairs(text: str, kind=float):
-    """'10:20,30:40' -> [(10.0, 20.0), (30.0, 40.0)]"""
+def _number(text: str, option: str, example: str) -> float:
+    from photogram_ros.errors import ConfigError
+    try:
+        v = float(text)
+    except ValueError:
+        v = float('nan')
+    if v != v or v in (float('inf'), float('-inf')):
+        raise ConfigError(f'{option} {text!r}: not a number (e.g. {option} "{example}")')
+    return v
+
+
+def _pairs(text: str, option: str, example: str, kind=None) -> list:
+    """'10:20,30:40' -> [(10.0, 20.0), (30.0, 40.0)]; `kind` converts the second value (a number by
+    default). A ConfigError naming the option and an example for anything else."""
+    from photogram_ros.errors import ConfigError
     out = []
     for item in filter(None, (s.strip() for s in text.split(','))):
-        a, b = item.split(':', 1)
-        out.append((float(a), kind(b)))
+        a, sep, b = item.partition(':')
+        if not sep or ':' in b:
+            raise ConfigError(f'{option} {item!r}: give FROM:TO pairs separated by commas, e.g. {option} "{example}"')
+        out.append((_number(a, option, example), kind(b) if kind else _number(b, option, example)))
+    return out
+
+
+def _intervals(text: str, option: str, example: str) -> list:
+    """FROM:TO pairs with FROM < TO (seconds from the start)."""
+    from photogram_ros.errors import ConfigError
+    out = _pairs(text, option, example)
+    for a, b in out:
+        if not 0 <= a < b:
+            raise ConfigError(f'{option} {a:g}:{b:g}: an interval of seconds from the start needs 0 <= FROM < TO')
     return out
 
 
@@ -43,6 +68,10 @@ def add_arguments(p) -> None:
 
 
 def config_from_args(a):
+    import re
+
+    from photogram_ros.errors import ConfigError
+    from photogram_ros.sim.gnss import MODES
     from photogram_ros.sim.scenario import preset
     o = {}
     for arg, key in (('seed', 'seed'), ('fps', 'fps'), ('altitude', 'altitude_m'), ('speed', 'speed_mps'),
@@ -51,14 +80,27 @@ def config_from_args(a):
         if getattr(a, arg) is not None:
             o[key] = getattr(a, arg)
     if a.size:
-        w, h = (int(v) for v in a.size.lower().split('x'))
+        m = re.fullmatch(r'\s*(\d+)\s*[xX]\s*(\d+)\s*', a.size)
+        if not m:
+            raise ConfigError(f'--size {a.size!r}: give WIDTHxHEIGHT in pixels, e.g. 1280x960')
+        w, h = int(m.group(1)), int(m.group(2))
         o.update(width_px=w, height_px=h, focal_px=520.0 * w / 640.0)
-    o['gnss_changes'] = _pairs(a.gnss_change, str)
-    o['gnss_outages'] = _pairs(a.outage)
-    o['frame_gaps'] = _pairs(a.gap)
-    o['black_frames'] = [float(s) for s in a.black.split(',') if s.strip()]
-    o['exposure_jumps'] = _pairs(a.exposure_jump)
-    o['mavlink_corruption'] = _pairs(a.corrupt_mavlink)
+    for arg, key, lo, hi, what in (('drop', 'drop_fraction', 0.0, 0.99, 'a fraction of the frames'),
+                                   ('tilt', 'camera_tilt_deg', -60.0, 60.0, 'degrees from nadir'),
+                                   ('repeats', 'repeats', 1, 100, 'times the pattern is flown'),
+                                   ('seed', 'seed', 0, 2 ** 32 - 1, 'a random seed')):
+        v = getattr(a, arg)
+        if v is not None and not lo <= v <= hi:
+            raise ConfigError(f'--{arg} {v}: {what}, {lo} to {hi}')
+    o['gnss_changes'] = _pairs(a.gnss_change, '--gnss-change', '30:rtk_float,60:rtk_fixed', str.strip)
+    for _, mode in o['gnss_changes']:
+        if mode not in MODES:
+            raise ConfigError(f'--gnss-change: unknown GNSS mode {mode!r}; choose from {sorted(MODES)}')
+    o['gnss_outages'] = _intervals(a.outage, '--outage', '20:30')
+    o['frame_gaps'] = _intervals(a.gap, '--gap', '12:14,40:42')
+    o['black_frames'] = [_number(s, '--black', '25,33') for s in a.black.split(',') if s.strip()]
+    o['exposure_jumps'] = _pairs(a.exposure_jump, '--exposure-jump', '30:1.6')
+    o['mavlink_corruption'] = _intervals(a.corrupt_mavlink, '--corrupt-mavlink', '40:45')
     if a.raw_images:
         o['image_transport'] = 'raw'
     if a.mcap:

@@ -212,6 +212,11 @@ class BagReader:
         self.storage = self._open()
         self._infos = self._count()
         self._report_losses()
+        if why and not self.errors and self.path.is_dir() and not any(i.count for i in self._infos.values()):
+            # A recording ends with its metadata.yaml; one cut before its first commit holds nothing.
+            self.errors.append(f'{self.path.name}: holds no message and no metadata.yaml: a recording cut short (a '
+                               'kill or a power loss) before its first message was committed, or one that received '
+                               'none')
 
     # --- opening ---------------------------------------------------------------------------------
 
@@ -295,7 +300,9 @@ class BagReader:
                 counts.setdefault(name, (mtype, 0, qos))
             self._scan_span = (min(stamps), max(stamps)) if stamps else None
             if self._scan.stopped:
-                self.errors.append(f'{self._scan.path.name}: damaged MCAP ({self._scan_why}): {self._scan.stopped}'
+                # Without metadata.yaml the rosbag2 reader says only that: the scan says what the file holds.
+                why = '' if 'metadata' in self._scan_why.lower() else f' ({self._scan_why})'
+                self.errors.append(f'{self._scan.path.name}: damaged MCAP{why}: {self._scan.stopped}'
                                    + (f'; {self._scan.chunks_lost} chunks lost' if self._scan.chunks_lost else '')
                                    + '; read record by record up to there')
         elif self._ros1 is not None:

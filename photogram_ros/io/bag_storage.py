@@ -99,6 +99,9 @@ class SqliteFile:
             for tid, name, mtype, q in con.execute(f'SELECT id, name, type, {qos} FROM topics'):
                 self.topics[tid] = (name, mtype, q or '')
         except sqlite3.DatabaseError as exc:
+            if 'no such table' in str(exc) and not (self.path.parent / 'metadata.yaml').exists():
+                raise UnreadableStorage(f'{self.path.name} holds no tables and there is no metadata.yaml: a recording '
+                                        'cut short (a kill or a power loss) as it started; nothing to read') from exc
             raise UnreadableStorage(f'{self.path.name}: its topics table is unreadable ({exc})') from exc
         finally:
             con.close()
@@ -354,7 +357,8 @@ class McapScan:
         buf = self.path.read_bytes()
         self._footer = False
         if not buf.startswith(MCAP_MAGIC):
-            self.stopped = 'not an MCAP file (no magic)'
+            self.stopped = ('an empty file (cut short before anything was written)' if not buf else
+                            'not an MCAP file (no magic)')
             return
         try:
             for op, body in self._records(buf, len(MCAP_MAGIC), len(buf), True):

@@ -70,6 +70,7 @@ def _crs_of(text: str, where: str):
 
 
 _DECIMAL_COMMA = re.compile(r'[-+]?\d+,\d+')
+_THOUSANDS = re.compile(r'[-+]?\d{1,3}([.,\u00a0\u202f\' ]\d{3})+([.,]\d+)?')
 
 
 def read_text_lines(path: Path, what: str) -> tuple[list[str], str]:
@@ -80,6 +81,12 @@ def read_text_lines(path: Path, what: str) -> tuple[list[str], str]:
         data = path.read_bytes()
     except OSError as exc:
         raise DataError(f'cannot read the {what} {path}: {exc.strerror or exc}') from None
+    for magic, kind in ((b'PK\x03\x04', 'spreadsheet (.xlsx) rather than text (a ZIP file'),
+                        (b'\xd0\xcf\x11\xe0', 'Excel 97-2003 spreadsheet (.xls) rather than text ('),
+                        (b'%PDF', 'PDF rather than text (')):
+        if data.startswith(magic):
+            raise DataError(f'{path}: the {what} is a {kind}): save it from the spreadsheet as "CSV UTF-8" or '
+                            'plain text')
     if data.startswith(b'\xef\xbb\xbf'):
         enc = 'utf-8-sig'
     elif data.startswith((b'\xff\xfe', b'\xfe\xff')):
@@ -147,6 +154,9 @@ def _number(s: str, what: str, where: str) -> float:
     try:
         v = float(s)
     except ValueError:
+        if _THOUSANDS.fullmatch(s):
+            raise DataError(f'{where}: {what} {s!r} has a thousands separator: write the number without it (as the '
+                            'spreadsheet\'s "General" number format does)') from None
         raise DataError(f'{where}: {what} {s!r} is not a number') from None
     if not np.isfinite(v):
         raise DataError(f'{where}: {what} is {s!r}: a finite number is needed')

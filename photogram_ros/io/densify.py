@@ -118,7 +118,12 @@ def densify_map(map_dir: str | Path | MapStore, out_dir: str | Path, stereo: Ste
     src = as_map_store(map_dir)
     cam, origin, kfs = src.load_camera(), src.origin, sorted(src.keyframes(), key=lambda k: k['stamp_ns'])
     if cam is None or origin is None or len(kfs) < 2:
-        raise DataError(f'{src.root}: no camera, origin or at least two posed keyframes to densify')
+        missing = [w for w, gone in (('no camera (camera.json)', cam is None),
+                                     ('no origin (the bundle adjuster georeferenced no keyframe)', origin is None),
+                                     (f'{len(kfs)} posed keyframes (2 are needed)', len(kfs) < 2)) if gone]
+        images = len(list((src.root / 'keyframes').glob('*.jpg')))
+        raise DataError(f'{src.root}: nothing to densify: ' + ', '.join(missing)
+                        + (f'; {images} keyframe images were saved before the flight was cut short' if images else ''))
     out = Path(out_dir)
     if out.resolve() == src.root.resolve():
         raise DataError('densify writes a new map folder: give another out_dir than the map itself')

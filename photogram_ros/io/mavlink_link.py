@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import contextlib
+import io
 import os
 
 from photogram_ros.errors import MavlinkError
@@ -22,9 +24,17 @@ class Link:
             raise MavlinkError(f'{url!r} is not a link: use udpin:HOST:PORT, udpout:HOST:PORT, tcp:HOST:PORT, '
                                'tcpin:HOST:PORT or a serial device such as /dev/ttyUSB0')
         self.url = url
+        if url.startswith('/dev/') and not os.path.exists(url):
+            raise MavlinkError(f'cannot open MAVLink link {url}: no such device (is the autopilot or radio plugged in?)')
+        said = io.StringIO()
         try:
-            self.conn = mavutil.mavlink_connection(url, baud=baud, autoreconnect=True, source_system=255,
-                                                   source_component=191)
+            # pymavlink prints its retries ("... sleeping") on stdout, where `fixes` writes its rows.
+            with contextlib.redirect_stdout(said):
+                self.conn = mavutil.mavlink_connection(url, baud=baud, autoreconnect=True, source_system=255,
+                                                       source_component=191)
+        except ModuleNotFoundError as exc:
+            raise MavlinkError(f'cannot open MAVLink link {url}: serial links need the pyserial package '
+                               f'({exc})') from exc
         except Exception as exc:   # pymavlink raises socket, serial and OS errors alike
             raise MavlinkError(f'cannot open MAVLink link {url}: {exc}') from exc
 

@@ -12,7 +12,7 @@ A command that writes a folder (`replay --out`, `run`'s map folder and `--out`) 
 - a folder that already holds something is refused unless the caller says what to do with it:
   'resume' (continue the map in it; products are replaced) or 'overwrite' (delete what a previous
   photogram_ros run wrote there first). A folder that is not one of ours (no lock file, no map) is
-  never deleted.
+  never deleted, nor written into by a 'resume'.
 """
 
 from __future__ import annotations
@@ -84,6 +84,30 @@ def usable_folder(path, what: str = '--out') -> Path:
     return p
 
 
+def _open_and_lock(lock: Path, what: str, p: Path) -> tuple[int, bool, bool]:
+    """(fd, whether this call created the lock file, whether it holds the flock). A lock file that a
+    refused claim removed after this one opened it is not the folder's lock any more (another
+    process may create and lock a new one): the claim then opens the file the path names now."""
+    for _ in range(20):
+        created = not lock.exists()
+        try:
+            fd = os.open(lock, os.O_RDWR | os.O_CREAT, 0o644)
+        except OSError as exc:
+            raise ConfigError(f'{what} {p}: cannot create its lock file ({exc.strerror or exc})') from None
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            return fd, created, False
+        try:
+            same = os.path.samestat(os.fstat(fd), os.stat(lock))
+        except FileNotFoundError:
+            same = False
+        if same:
+            return fd, created, True
+        os.close(fd)
+    raise ConfigError(f'{what} {p}: its lock file keeps changing: another photogram-ros is claiming it; try again')
+
+
 def claim_output(path, mode: str = 'new', command: str = '', what: str = '--out') -> OutputLock:
     """Lock `path` (created if needed) for this process and apply `mode` to what it already holds:
     'new' refuses a folder with anything in it, 'resume' keeps it, 'overwrite' deletes a previous
@@ -96,14 +120,8 @@ def claim_output(path, mode: str = 'new', command: str = '', what: str = '--out'
         ours_before = bool(lock.read_text().strip())
     except OSError:
         ours_before = False
-    created = not lock.exists()
-    try:
-        fd = os.open(lock, os.O_RDWR | os.O_CREAT, 0o644)
-    except OSError as exc:
-        raise ConfigError(f'{what} {p}: cannot create its lock file ({exc.strerror or exc})') from None
-    try:
-        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-    except OSError:
+    fd, created, taken = _open_and_lock(lock, what, p)
+    if not taken:
         try:
             owner = json.loads(os.pread(fd, 4096, 0).decode() or '{}')
         except (OSError, ValueError):
@@ -119,10 +137,12 @@ def claim_output(path, mode: str = 'new', command: str = '', what: str = '--out'
             shown = ', '.join(previous[:5]) + (', ...' if len(previous) > 5 else '')
             raise ConfigError(f'{what} {p} holds a previous run ({shown}): --resume continues its map, '
                               '--overwrite replaces it, or choose a new folder')
+        ours = ours_before or (p / 'map.json').exists() or (p / 'map' / 'map.json').exists()
+        if previous and mode != 'new' and not ours:
+            doing = 'not deleting it' if mode == 'overwrite' else 'it holds no map to resume'
+            raise ConfigError(f'{what} {p} is not a photogram-ros output folder (it holds {", ".join(previous[:5])}'
+                              f'{", ..." if len(previous) > 5 else ""}): {doing}; choose a new folder')
         if previous and mode == 'overwrite':
-            if not (ours_before or (p / 'map.json').exists() or (p / 'map' / 'map.json').exists()):
-                raise ConfigError(f'{what} {p} is not a photogram-ros output folder (it holds {", ".join(previous[:5])}'
-                                  f'{", ..." if len(previous) > 5 else ""}): not deleting it; choose a new folder')
             for name in previous:
                 e = p / name
                 if e.is_dir() and not e.is_symlink():

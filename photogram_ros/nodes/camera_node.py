@@ -62,6 +62,10 @@ class CameraParams:
     frame_id: str = param('camera_optical', 'frame_id of images and camera_info')
     fix_frame_id: str = param('gps', 'frame_id of the EXIF fixes')
     autostart: bool = param(True, 'Publish on a timer from the start; false leaves it to publish_next() calls')
+    wait_for_subscribers: int = param(1, 'Folders and files: the first frame waits until this many subscribers '
+                                         'take the images, their camera_info and the fixes (a tracker in another '
+                                         'process that starts later misses none); 0 = at once. A device never '
+                                         'waits', min=0, max=100)
 
 
 class CameraNode(Node):
@@ -101,6 +105,7 @@ class CameraNode(Node):
         self._last_ns = None
         self._wall0 = None
         self._reported_skips = 0
+        self._started = self._said_waiting = False   # the first frame waits for wait_for_subscribers
         self._timer = self.create_timer(0.005, self._tick) if p.autostart else None
 
     def _calibration(self, p):
@@ -228,7 +233,7 @@ class CameraNode(Node):
 
     def _tick(self) -> None:
         p = self.params
-        if self.finished:
+        if self.finished or not self._subscribed():
             return
         if p.rate == 0:
             if all(pub.wait_for_all_acked(Duration(nanoseconds=0)) for pub in (self.pub_image, self.pub_compressed)):
@@ -245,6 +250,23 @@ class CameraNode(Node):
         due = self._wall0[0] + (stamp_ns - self._wall0[1]) * 1e-9 / p.rate
         if due <= now or getattr(self.source, 'is_device', False):
             self.publish_next()
+
+
+    def _subscribed(self) -> bool:
+        """Whether a folder or file may start: wait_for_subscribers take its images (said once while not)."""
+        if self._started or getattr(self.source, 'is_device', False) or not self.params.wait_for_subscribers:
+            return True
+        # Each topic matches on its own: the images, their camera_info and the fixes must all be taken.
+        n = min(max(self.pub_image.get_subscription_count(), self.pub_compressed.get_subscription_count()),
+                self.pub_info.get_subscription_count(),
+                self.pub_fix.get_subscription_count() if self.params.publish_exif_fix else 1 << 30)
+        self._started = n >= self.params.wait_for_subscribers
+        if not self._started and not self._said_waiting:
+            self._said_waiting = True
+            self.get_logger().info(f'waiting for {self.params.wait_for_subscribers} subscriber(s) of the images, '
+                                   'camera_info and fixes before the first frame (wait_for_subscribers)')
+            self.diag.set('state', 'waiting for subscribers')
+        return self._started
 
 
 class JpegFile:

@@ -29,6 +29,7 @@ import subprocess
 import sys
 import threading
 import time
+from pathlib import Path
 from dataclasses import asdict, dataclass, field
 
 from photogram_ros.errors import ConfigError, PhotogramError
@@ -317,17 +318,18 @@ class Graph:
         diag = getattr(self.nodes.get(role), 'diag', None)
         return diag.recent_problems() if diag is not None else []
 
-    def finish_flight(self, settle=lambda: time.sleep(2.0)) -> FlightEnd:
+    def finish_flight(self, settle=lambda: time.sleep(2.0), say=None) -> FlightEnd:
         """End of flight, in data-flow order: the tracker emits the keyframes it still holds, the
         bundle adjuster runs its final adjustment and republishes the poses, stereo pairs the
         keyframes still waiting, the map closes its coverage (every survey cell counts as passed, so
-        the last gaps go out); `settle` lets the downstream nodes consume each step's output.
+        the last gaps go out); `settle` lets the downstream nodes consume each step's output; `say`
+        gets a line every 10 s while a step in the child process takes long.
         Returns whether the final adjustment was made, and every step that failed."""
         end = FlightEnd(reason='no bundle node' if 'bundle' not in self.spec.roles else '')
         for role, method in (('tracker', 'flush'), ('bundle', 'finish'), ('stereo', 'flush'),
                              ('map', 'finish_coverage')):
             if self.child is not None and role in self.child.spec.roles:
-                fn = functools.partial(self.child.call, role, method)
+                fn = functools.partial(self.child.call, role, method, say=say)
             else:
                 fn = getattr(self.nodes.get(role), method, None)
             if not callable(fn):
@@ -410,6 +412,50 @@ def _reliable(depth: int = 10):
     return QoSProfile(depth=depth, reliability=ReliabilityPolicy.RELIABLE)
 
 
+# CPU seconds per second of wall time above which the child counts as computing (its idle DDS and
+# status threads take about 0.01).
+CHILD_COMPUTING_CPU_S = 0.05
+
+
+def process_cpu_s(pid: int) -> float | None:
+    """CPU time (user + system, s) of process `pid` so far, from /proc; None where it cannot be read."""
+    try:
+        fields = Path(f'/proc/{pid}/stat').read_text().rsplit(')', 1)[1].split()
+        return (int(fields[11]) + int(fields[12])) / os.sysconf('SC_CLK_TCK')
+    except (OSError, ValueError, IndexError):
+        return None
+
+
+class WorkWatch:
+    """How long a graph has done nothing: no mapping counter moved (Graph.activity(work_only=True)), no
+    node busy, and its nodes not computing (the child process's CPU time, or this process's). Lets a
+    wait that holds the player for a lagging node end when that node has stalled instead of at a fixed
+    timeout."""
+
+    # This process's own CPU seconds a second above which its nodes count as computing (the waiting
+    # player and DDS take a few per cent).
+    OWN_COMPUTING_CPU_S = 0.3
+
+    def __init__(self, graph, period_s: float = 0.5):
+        self.graph, self.period_s = graph, period_s
+        child = getattr(graph, 'child', None)
+        self._pid = child.proc.pid if child is not None else os.getpid()
+        self._threshold = CHILD_COMPUTING_CPU_S if child is not None else self.OWN_COMPUTING_CPU_S
+        self._last = (graph.activity(work_only=True), process_cpu_s(self._pid))
+        self.moved = self._checked = time.monotonic()
+
+    def idle_s(self) -> float:
+        now = time.monotonic()
+        if now - self._checked >= self.period_s:
+            act, cpu = self.graph.activity(work_only=True), process_cpu_s(self._pid)
+            computing = (cpu is not None and self._last[1] is not None
+                         and cpu - self._last[1] > self._threshold * (now - self._checked))
+            if act != self._last[0] or computing or self.graph.busy():
+                self.moved = now
+            self._last, self._checked = (act, cpu), now
+        return now - self.moved
+
+
 class ChildGraph:
     """The parent's handle on a child process running `spec.roles` (see child_main)."""
 
@@ -419,6 +465,7 @@ class ChildGraph:
         self.spec = spec
         self.node = Node('graph_parent', **node_kwargs)
         self._status: dict = {}
+        self._status_at = time.monotonic()   # when the last status came (the child sends one every 0.2 s)
         self._cond = threading.Condition()
         self._seq = 0
         token = f'p{os.getpid()}'
@@ -444,6 +491,7 @@ class ChildGraph:
     def _on_status(self, msg) -> None:
         with self._cond:
             self._status = json.loads(msg.data)
+            self._status_at = time.monotonic()
             self._cond.notify_all()
 
     def _wait(self, what, timeout_s: float) -> bool:
@@ -497,13 +545,37 @@ class ChildGraph:
         self._pub.publish(String(data=json.dumps({'seq': seq, **command})))
         return seq
 
-    def call(self, role: str, method: str, timeout_s: float = 600.0) -> None:
-        """Run `method` of the child's `role` node and wait until it returned."""
+    def call(self, role: str, method: str, timeout_s: float = 600.0, stall_s: float = 90.0, say=None) -> None:
+        """Run `method` of the child's `role` node and wait until it returned. Waits on the child's status:
+        while it works (a counter moves, a node is busy) up to `timeout_s`; a child that sends no status,
+        or whose counters stand still with no node busy, for `stall_s` is not waited for any longer (a
+        RuntimeError saying so; the child computing, more than CHILD_COMPUTING_CPU_S of CPU time a
+        second, counts as work: a final adjustment moves no counter). `say(text)` gets a line every 10 s."""
         seq = self._send(call=[role, method])
-        if not self._wait(lambda st: st.get('done', 0) >= seq, timeout_s):
+        t0 = moved = last_said = time.monotonic()
+        last, cpu = None, process_cpu_s(self.proc.pid)
+        while not self._wait(lambda st: st.get('done', 0) >= seq, 1.0):
+            now = time.monotonic()
             if self.proc.poll() is not None:
                 raise RuntimeError(f'child process: ended (exit status {self.proc.poll()}) before {role}.{method}')
-            raise RuntimeError(f'child process: {role}.{method} did not finish in {timeout_s:.0f} s')
+            with self._cond:
+                status_age, counts, busy = now - self._status_at, self._status.get('counts'), self._status.get('busy')
+            cpu_now = process_cpu_s(self.proc.pid)
+            computing = cpu is None or cpu_now is None or cpu_now - cpu > CHILD_COMPUTING_CPU_S
+            cpu = cpu_now
+            if counts != last or busy or computing:
+                last, moved = counts, now
+            if status_age > stall_s:
+                raise RuntimeError(f'child process: no status for {status_age:.0f} s during {role}.{method} (it hangs)')
+            if now - moved > stall_s:
+                raise RuntimeError(f'child process: {role}.{method} made no progress for {stall_s:.0f} s '
+                                   '(no counter moved, no node busy): not waited for')
+            if now - t0 > timeout_s:
+                raise RuntimeError(f'child process: {role}.{method} did not finish in {timeout_s:.0f} s')
+            if say is not None and now - last_said > 10.0:
+                last_said = now
+                say(f'end of flight: {now - t0:.0f} s: waiting for {role} ({method}) in the child process'
+                    + (' (computing)' if busy else ''))
         err = self._status.get('errors', {}).get(str(seq))
         if err:
             raise RuntimeError(err)

@@ -116,7 +116,8 @@ class MavlinkNode(Node):
         self._link_up = False
         self._best_fix_type = None
         self._damaged_reported = 0
-        self._seen = (0, 0, 0, 0)   # (bytes_in, packets, signature_rejected, unsigned_rejected) at the last update
+        # (bytes_in, packets, signature_rejected, unsigned_rejected, fixes + attitudes published) at the last update
+        self._seen = (0, 0, 0, 0, 0)
         self.published = {'fix': 0, 'attitude': 0, 'trigger': 0}
         self.input_done = threading.Event()
         self._thread = None
@@ -294,20 +295,24 @@ class MavlinkNode(Node):
         """WARN reasons when bytes or packets arrived since the last update but none could be used: every
         packet rejected by the signature check (a wrong signing_key, or an autopilot that does not sign),
         or bytes that hold no MAVLink packet at all (a wrong baud rate, another protocol)."""
-        now = (st.bytes_in, st.packets, st.signature_rejected, st.unsigned_rejected)
-        bytes_new, packets_new, bad_sig, unsigned = (a - b for a, b in zip(now, self._seen))
+        used = self.published['fix'] + self.published['attitude']
+        now = (st.bytes_in, st.packets, st.signature_rejected, st.unsigned_rejected, used)
+        bytes_new, packets_new, bad_sig, unsigned, used_new = (a - b for a, b in zip(now, self._seen))
         self._seen = now
-        if packets_new or not bytes_new:
+        if not bytes_new or used_new:
             return []
-        if bad_sig or unsigned:
+        if bad_sig or unsigned:   # the packets that passed (a radio's, another component's) gave no fix
+            what = 'every packet is rejected' if not packets_new else 'no fix or attitude passes'
             out = []
             if bad_sig:
-                out.append(f'no usable MAVLink: every packet is rejected: {st.signature_rejected} with a wrong '
-                           'signature so far (signing_key differs from the autopilot\'s?); no GNSS fix, no attitude')
+                out.append(f'no usable MAVLink: {what}: {st.signature_rejected} with a wrong signature so far '
+                           '(signing_key differs from the autopilot\'s?); no GNSS fix, no attitude')
             if unsigned:
-                out.append(f'no usable MAVLink: every packet is rejected: {st.unsigned_rejected} unsigned so far '
-                           '(the autopilot does not sign: enable signing on it, or set allow_unsigned); no GNSS fix')
+                out.append(f'no usable MAVLink: {what}: {st.unsigned_rejected} unsigned so far (the autopilot does '
+                           'not sign: enable signing on it, or set allow_unsigned); no GNSS fix')
             return out
+        if packets_new:
+            return []
         if st.packets == 0 and bytes_new > 280:   # more than the longest packet: not one cut by the period
             return [f'no usable MAVLink: {st.bytes_in} bytes received and no packet decodes (a wrong baud rate, '
                     'or not MAVLink?); no GNSS fix, no attitude']

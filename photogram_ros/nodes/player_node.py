@@ -75,8 +75,10 @@ class PlayerParams:
         for item in self.topic_list(self.remap):
             if ':=' not in item:
                 raise ConfigError(f'remap {item!r} must look like /from:=/to')
-            a, b = item.split(':=', 1)
-            out[a.strip()] = b.strip()
+            a, b = (v.strip() for v in item.split(':=', 1))
+            if not a or not b:
+                raise ConfigError(f'remap {item!r} must look like /from:=/to (both topics named)')
+            out[a] = b
         return out
 
     def check(self) -> None:

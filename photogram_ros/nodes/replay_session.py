@@ -33,7 +33,7 @@ from rclpy.time import Time
 
 from photogram_ros.io.progress import Progress, Steps, say_stdout
 from photogram_ros.nodes.diagnostics import PROBLEM_SEPARATOR
-from photogram_ros.nodes.graph import NODES, Graph, GraphSpec
+from photogram_ros.nodes.graph import NODES, Graph, GraphSpec, WorkWatch
 from photogram_ros.nodes.player_node import PlayerNode
 
 IMAGE_TOPICS = ('/camera/image_raw', '/camera/image_raw/compressed')
@@ -62,6 +62,10 @@ class ReplayOptions:
     # backlog grew the memory with the flight's length, and past stereo's max_keyframes (80) stereo
     # dropped keyframe images before their poses came, so whole stretches got no cloud.
     max_lag_keyframes: int = 30
+    # That wait ends early when the lagging nodes have stalled: no mapping counter moved, no node busy
+    # and the second process not computing for this long (else a stalled node costs frame_timeout_s at
+    # each new keyframe: minutes at the end of a flight).
+    lag_stall_s: float = 5.0
     # The replay stops (StorageError) when the disk of `out` has less than this free, and does not
     # start: a full disk fails every write of the map and the products, and the backpressure would
     # then wait frame_timeout_s on every frame for a map that cannot keep up.
@@ -345,13 +349,15 @@ def run_replay(opts: ReplayOptions, context=None) -> dict:
 
     def wait_downstream():
         """Hold the player while a later node lags the tracker by more than max_lag_keyframes. A lag
-        that does not shrink within frame_timeout_s is accepted from then on (a keyframe that never
-        shows in a counter must not stall every later frame)."""
+        that does not shrink within frame_timeout_s, or while the graph does nothing for lag_stall_s, is
+        accepted from then on (a keyframe that never shows in a counter, or a stalled node, must not
+        stall every later frame)."""
         if downstream_lag(graph.counts()) - lag_slack[0] <= opts.max_lag_keyframes:
             return
         t0 = time.monotonic()
-        wait_for(lambda: downstream_lag(graph.counts()) - lag_slack[0] <= opts.max_lag_keyframes,
-                 opts.frame_timeout_s)
+        watch = WorkWatch(graph)
+        wait_for(lambda: downstream_lag(graph.counts()) - lag_slack[0] <= opts.max_lag_keyframes
+                 or watch.idle_s() > opts.lag_stall_s, opts.frame_timeout_s)
         lag = downstream_lag(graph.counts())
         if lag - lag_slack[0] > opts.max_lag_keyframes:
             lag_slack[0] = lag - opts.max_lag_keyframes
@@ -418,7 +424,7 @@ def run_replay(opts: ReplayOptions, context=None) -> dict:
             if len(end_steps.times) <= len(steps):
                 end_steps.start(steps[len(end_steps.times) - 1])
 
-        end = graph.finish_flight(settle=settle)
+        end = graph.finish_flight(settle=settle, say=(lambda text: print(text, flush=True)) if opts.progress else None)
         end_steps.finish()
         wall_s = time.monotonic() - t_start
         counts = graph.counts()

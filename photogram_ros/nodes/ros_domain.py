@@ -8,7 +8,8 @@
   drone). It takes a domain of its own among 201..232 (above the usual 0..101 range and the domains a
   test session picks): a domain is taken by holding an exclusive flock(2) on a file in the temporary
   folder for the life of the process, so two replays on one machine never share one, and a replay
-  killed with -9 frees its domain with its end.
+  killed with -9 frees its domain with its end. `replay --domain N` holds N the same way
+  (`shared_domain`): a second replay on N is refused.
 """
 
 from __future__ import annotations
@@ -73,6 +74,17 @@ def own_domain(avoid: int | None = None) -> int:
             return d
     raise ConfigError(f'every domain id {OWN_DOMAINS.start}..{DOMAIN_MAX} is held by another replay on this '
                       'machine: wait for one to end, or share a domain with --domain N')
+
+
+def shared_domain(domain: int) -> int:
+    """`replay --domain N`: hold N as `own_domain` holds its domain, so that two replays never play on
+    one domain (each one's tracker would take the other's frames and fixes). A ConfigError when
+    another replay on this machine holds N."""
+    if not _try_take(domain):
+        raise ConfigError(f'--domain {domain}: another replay on this machine plays on ROS_DOMAIN_ID {domain}; '
+                          'two replays on one domain mix their flights: choose another --domain, or leave it '
+                          'out (a free domain of its own)')
+    return domain
 
 
 def use_domain(domain: int) -> None:

@@ -353,15 +353,23 @@ class TrackerNode(Node):
 
     # --- lifecycle -------------------------------------------------------------------------------
 
-    def flush(self, timeout_s: float = 5.0) -> int:
+    def flush(self, timeout_s: float = 5.0, max_wait_s: float = 600.0) -> int:
         """Wait for queued frames (and for a lagging fix stream that still delivers), then emit the keyframes
-        still waiting for a fix; returns their count."""
-        deadline = time.monotonic() + timeout_s
-        while time.monotonic() < deadline:
+        still waiting for a fix; returns their count. The queue is waited for while the tracker takes
+        frames from it (a loaded machine tracks slowly, and a frame flushed past would miss the final
+        adjustment): until it is empty, no frame was taken for `timeout_s`, or `max_wait_s`."""
+        start = moved = time.monotonic()
+        last = None
+        while True:
             with self._cond:
-                if not self._frames:
-                    break
+                queued, done = len(self._frames), self.frames_done
+            now = time.monotonic()
+            if not queued or now - moved > timeout_s or now - start > max_wait_s:
+                break
+            if done != last:
+                last, moved = done, now
             time.sleep(0.02)
+        deadline = time.monotonic() + timeout_s
         # Fixes after the last frame: the last keyframes need them. While the fix stream lags behind the
         # keyframes still waiting and keeps coming, wait for it (until the deadline or 1 s of silence).
         last_fix = time.monotonic()
