@@ -13,7 +13,7 @@ ROOT = Path(__file__).resolve().parents[1]
 SHARED_DATA = ROOT.parent / 'shared' / 'data'
 SAMPLE_BAG = ROOT / 'bags' / 'sample_flight'
 
-os.environ.setdefault('ROS_DOMAIN_ID', str(random.randint(1, 200)))
+os.environ.setdefault('ROS_DOMAIN_ID', str(random.randint(1, 101)))   # ports below the ephemeral range
 os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
 
 

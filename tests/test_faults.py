@@ -1073,7 +1073,7 @@ def test_replay_is_not_heard_on_the_users_domain(tmp_path, rclpy_context, share)
                 break
         if not share:
             domain = int(line.split('ROS_DOMAIN_ID')[1].split(',')[0])
-            assert domain != mine and 201 <= domain <= 232
+            assert domain != mine and 215 <= domain <= 232
         for line in proc.stdout:   # the replay is playing frames now
             if line.startswith('replay: '):
                 break

@@ -55,7 +55,7 @@ def add_arguments(p) -> None:
                             '--out that holds anything is refused; a folder another replay is writing always is)')
     p.add_argument('--domain', type=int, default=None, metavar='N',
                    help='ROS_DOMAIN_ID to replay on, e.g. your own to watch the replay in RViz or Foxglove '
-                        '(default: a free domain of its own in 201-232, so that no other ROS 2 process hears '
+                        '(default: a free domain of its own in 215-232, so that no other ROS 2 process hears '
                         'the old flight and the replay hears no one else)')
     p.add_argument('--processes', type=int, choices=(1, 2), default=2,
                    help='2 (default): the --child-nodes run in a second process, on a second core (one Python '

@@ -5,8 +5,9 @@
   is too high" on every node). A ConfigError (one line, exit 2) otherwise.
 - `own_domain()`: an offline replay needs nobody else on its graph, and must not feed an old flight
   into anyone's (two replays from two terminals, a replay on a ground-station PC beside a flying
-  drone). It takes a domain of its own among 201..232 (above the usual 0..101 range and the domains a
-  test session picks): a domain is taken by holding an exclusive flock(2) on a file in the temporary
+  drone). It takes a domain of its own among 215..232, whose ports lie above Linux's ephemeral port range
+  (32768..60999, where the OS hands out ports that would collide with them) as those of 0..101 lie below
+  it, and apart from the domains a test session picks (1..101): a domain is taken by holding an exclusive flock(2) on a file in the temporary
   folder for the life of the process, so two replays on one machine never share one, and a replay
   killed with -9 frees its domain with its end. `replay --domain N` holds N the same way
   (`shared_domain`): a second replay on N is refused.
@@ -22,7 +23,7 @@ from pathlib import Path
 from photogram_ros.errors import ConfigError
 
 DOMAIN_MAX = 232
-OWN_DOMAINS = range(201, DOMAIN_MAX + 1)
+OWN_DOMAINS = range(215, DOMAIN_MAX + 1)
 
 _held: list[int] = []   # lock file descriptors, kept open for the life of the process
 
@@ -65,7 +66,7 @@ def _try_take(domain: int) -> bool:
 
 
 def own_domain(avoid: int | None = None) -> int:
-    """A domain id in 201..232 that no other photogram_ros process on this machine holds (and not
+    """A domain id in 215..232 that no other photogram_ros process on this machine holds (and not
     `avoid`, the user's own); it is held until the process ends. ConfigError when all are taken."""
     start = os.getpid() % len(OWN_DOMAINS)
     for k in range(len(OWN_DOMAINS)):
