@@ -188,9 +188,8 @@ def main() -> int:
                     help='also trace Python allocations: the N sites that grew most between --settle and the '
                     'end of the bag (slows the replay: its RSS figures are not the reference ones); with '
                     '--processes 2 in the child process (bundle, stereo, map) only')
-    ap.add_argument('--processes', type=int, choices=(1, 2), default=2,
-                    help='2 (photogram-ros replay\'s default): bundle, stereo and map in a child process, '
-                    'sampled too (its RSS, malloc figures and holdings, with the prefix child_); 1: one process')
+    ap.add_argument('--processes', type=int, choices=(1, 2), default=2, help='as `photogram-ros replay '
+                    '--processes`; the child process is sampled too (figures with the prefix child_)')
     a = ap.parse_args()
     child_roles = ('bundle', 'stereo', 'map') if a.processes == 2 else ()
     trace_here = a.tracemalloc if not child_roles else 0

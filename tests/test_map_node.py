@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 
 from helpers.clouds import pair_cloud
+from helpers.processes import reaped
 
 pytestmark = pytest.mark.ros
 ROOT = Path(__file__).resolve().parents[1]
@@ -66,13 +67,9 @@ def _map_node_process(map_dir, *params):
            '-p', 'cell_m:=0.08']   # these tests read the map with 0.08 m cells (not from the GSD)
     for prm in params:
         cmd += ['-p', prm]
-    proc = subprocess.Popen(cmd, cwd=ROOT, env=dict(os.environ), stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
-    try:
+    with reaped(subprocess.Popen(cmd, cwd=ROOT, env=dict(os.environ), stdout=subprocess.DEVNULL,
+                                 stderr=subprocess.PIPE)) as proc:
         yield proc
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait()
 
 
 def _cells(cloud) -> set:

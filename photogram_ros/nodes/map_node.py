@@ -93,8 +93,7 @@ class _Publishers(MapOutputs):
 class MapNode(Node):
     def __init__(self, overrides: dict | None = None, **node_kwargs):
         super().__init__('map_node', **node_kwargs)
-        self.params: MapParams = declare(self, MapParams, overrides)
-        p = self.params
+        p = self.params = declare(self, MapParams, overrides)
         self.diag = Diagnostics(self)
         self.pubs = _Publishers(self, p)
         self.stage = MapStage(p, StageDiagnostics(self.diag), self.pubs, self.get_logger().info)

@@ -85,8 +85,7 @@ class _Keyframe:
 class StereoNode(Node):
     def __init__(self, overrides: dict | None = None, **node_kwargs):
         super().__init__('stereo_node', **node_kwargs)
-        self.params: StereoNodeParams = declare(self, StereoNodeParams, overrides)
-        p = self.params
+        p = self.params = declare(self, StereoNodeParams, overrides)
         self.diag = Diagnostics(self)
         self.camera = None
         self._kf: OrderedDict[int, _Keyframe] = OrderedDict()
