@@ -1385,25 +1385,28 @@ class IncrementalAT:
         if self.opt.estimate_gnss_bias and self._n_gcps() >= 3:
             self.gnss_bias_estimated = True
             before = None   # (bias, residual mean) of the previous round
-            for _ in range(self.opt.bias_iterations):
+            for i in range(self.opt.bias_iterations):
                 r = np.array(list(self.gnss_residuals().values()))
                 if not len(r):
                     break
-                # The residual mean is a fraction of the bias left (the fixes still pull the cameras, the GCPs
-                # hold them): after a first step by the mean itself, each axis steps to the secant's root,
-                # the fraction measured from the last two rounds (0.02-1: else the plain step).
+                # The residual mean is the fraction of the bias left that the GCPs hold against the fixes (a
+                # few percent with many fixes): a first step of at least 5 mm on each axis measures that
+                # fraction, then each axis steps to the secant's root of the last two rounds (fractions
+                # outside 0.001-1: the plain step by the mean).
                 mean = np.mean(r, axis=0)
-                frac = np.ones(3)
-                if before is not None:
+                if before is None:
+                    step = mean + np.copysign(0.005, mean)
+                else:
                     db, dr = self.gnss_bias_enu - before[0], mean - before[1]
-                    ok = np.abs(db) > 1e-6
+                    frac = np.ones(3)
+                    ok = np.abs(db) > 1e-4
                     frac[ok] = dr[ok] / db[ok]
-                    frac[~ok | (frac < 0.02) | (frac > 1.0)] = 1.0
-                step = mean / frac
+                    frac[~ok | (frac < 0.001) | (frac > 1.0)] = 1.0
+                    step = mean / frac
                 before = (self.gnss_bias_enu.copy(), mean)
                 self.gnss_bias_enu -= step
                 rep = self._solve(list(self.registered), [], list(self.points), iterations or self.opt.full_iterations)
-                if np.linalg.norm(step) < 0.001:
+                if i and np.linalg.norm(step) < 0.001:
                     break
         if self.opt.spill_frozen:
             self.freeze()   # the adjustment read every keyframe back: spill the frozen ones again
