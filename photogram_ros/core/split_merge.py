@@ -37,7 +37,7 @@ from photogram_ros.params import param
 class SplitMergeOptions:
     """When and how a photo block is split into overlapping sub-blocks and merged back."""
     split_photos: int = param(250, 'photos a block may have before it is split; also the target size of a '
-                                   'sub-block\'s core (photos), the overlap comes on top', min=20, max=100000)
+                                   'sub-block\'s core (photos), the overlap comes on top', min=10, max=100000)
     overlap_m: float = param(0.0, 'overlap radius (m): photos within it of a sub-block\'s core photos join that '
                                   'sub-block; 0: the median distance from a photo to its overlap_neighbours-th '
                                   'nearest photo', min=0.0, max=100000.0)
