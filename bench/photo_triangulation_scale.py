@@ -17,7 +17,8 @@ per mode and worker count, for the wall and the CPU time (the latter the machine
 With --repeat the worker counts alternate and the fastest run of each is kept.
 
     .venv/bin/python bench/photo_triangulation_scale.py [--photos 100 600] [--workers 2] [--sims DIR]
-        [--modes split single] [--split-photos N] [--single-max 150] [--matching-only] [--repeat 1]
+        [--modes split single] [--split-photos N] [--single-max 150] [--counts 1 2] [--matching-only]
+        [--repeat 1]
 """
 
 from __future__ import annotations
@@ -121,6 +122,9 @@ def main() -> int:
                     help='split: split-merge above --split-photos; single: one block (workers 1 only)')
     ap.add_argument('--split-photos', type=int, default=None, help='split-merge block size (default: the option\'s)')
     ap.add_argument('--single-max', type=int, default=150, help='run the single block only up to this many photos')
+    ap.add_argument('--counts', type=int, nargs='+', default=None,
+                    help='split mode: the worker counts to run (default: 1 and --workers; no comparison line '
+                         'unless both)')
     ap.add_argument('--repeat', type=int, default=1, help='runs per survey and worker count (the fastest kept)')
     a = ap.parse_args()
     tmp = None if a.sims else tempfile.TemporaryDirectory()
@@ -135,7 +139,7 @@ def main() -> int:
         for mode in modes:
             if mode == 'single' and n > a.single_max:
                 continue
-            for w in ((1,) if mode == 'single' else (1, a.workers)):
+            for w in ((1,) if mode == 'single' else tuple(a.counts or (1, a.workers))):
                 runs[(mode, w)] = []
         for _ in range(a.repeat):           # interleaved: a change of the machine's load hits both
             for (mode, w) in runs:
@@ -148,7 +152,7 @@ def main() -> int:
                        baseline='workers 1 (in process)' if w == 1 else None)
             best[(n, mode, w)] = row
             print(json.dumps(row), flush=True)
-        if ('split', 1) not in runs:
+        if ('split', 1) not in runs or ('split', a.workers) not in runs:
             continue
         one, many = best[(n, 'split', 1)], best[(n, 'split', a.workers)]
         cmp = {'bench': 'photo_triangulation_scale', 'compare': f'workers {a.workers} / workers 1',
