@@ -11,9 +11,14 @@ asked for), and writes into `out`:
 - report.md/.html/.json: the adjustment's figures (core/at_report.py) and every assumption made.
 The output CRS is the one asked for, else the GCP file's, else the UTM zone of the origin.
 
+A photo folder of more than `options.split.split_photos` photos is adjusted by split-merge
+(`split_merge_block`): overlapping sub-blocks (core/split_merge.py), each adjusted as above as one
+task of the runner (a Dask cluster with --workers/--scheduler; each sub-block's own outputs in
+out/sub_blocks/NN), merged into one block by a similarity per sub-block, checked as one block.
+
 Progress (io/progress.py) goes to `progress(text)`: each step as it starts, and the photos of the
 features, the pairs of the matching and the photos added to the incremental adjustment counted with a
-percent and an ETA.
+percent and an ETA; split-merge counts the sub-blocks done across the cluster.
 """
 
 from __future__ import annotations
