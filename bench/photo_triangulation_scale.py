@@ -84,7 +84,8 @@ def run_once(photos: Path, workers: int, matching_only: bool, split: int | None 
         with tempfile.TemporaryDirectory() as out:
             res = triangulate(photos, out, TriangulateOptions(gcp=str(photos / 'gcp_list.txt'),
                                                               lever_arm_cam_m=LEVER_ARM_CAM_M, workers=workers,
-                                                              split=sm), progress=False)
+                                                              split=sm),
+                              log=lambda text: print(f'# {text}', file=sys.stderr, flush=True))
         row['wall_s'] = round(time.perf_counter() - t0, 2)
         row['cpu_s'] = round(_cpu_s() - cc0, 2)
         rep = res.report
