@@ -3,23 +3,16 @@ against the single block of the same simulated survey, in this process and on a 
 `dask worker` processes started here on 127.0.0.1."""
 
 import json
-import os
-import shutil
-import socket
-import subprocess
-import sys
-import time
-from pathlib import Path
 
 import pytest
 
-from conftest import ROOT
 from photogram_ros.cli import main
 from photogram_ros.core.split_merge import SplitMergeOptions
 from photogram_ros.errors import ConfigError
 from photogram_ros.io.aerial_triangulation import TriangulateOptions, triangulate
 from photogram_ros.params import from_dict
 from photogram_ros.sim.scenario import preset, simulate
+from test_photo_dask import scheduler_and_two_workers
 
 SPLIT = 30          # photos per sub-block's core: the survey below (41 photos) splits in 2
 LEVER = (0.0, -0.05, -0.2)
@@ -85,45 +78,17 @@ def test_split_merge_check_points_match_the_single_block(split_here, single):
     assert json.loads((out / 'report.json').read_text())['check']['rmse'] == ck
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(('127.0.0.1', 0))
-        return s.getsockname()[1]
-
-
 @pytest.mark.slow
 def test_split_merge_on_a_scheduler_and_two_workers_matches_in_process(survey, split_here, tmp_path):
-    dask = shutil.which('dask', path=str(Path(sys.executable).parent))
-    assert dask, 'the dask command of dask[distributed] is not installed beside this Python'
-    address = f'tcp://127.0.0.1:{_free_port()}'
-    env = {**os.environ, 'PYTHONPATH': str(ROOT)}
-    procs = [subprocess.Popen([dask, 'scheduler', '--host', '127.0.0.1', '--port', address.rsplit(':', 1)[1],
-                               '--no-dashboard'], env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)]
-    try:
-        for _ in range(2):
-            procs.append(subprocess.Popen([dask, 'worker', address, '--nthreads', '1', '--host', '127.0.0.1',
-                                           '--no-dashboard'], env=env, cwd=tmp_path,
-                                          stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
-        from distributed import Client
-        with Client(address, timeout=60) as c:
-            c.wait_for_workers(2, timeout=120)
+    with scheduler_and_two_workers(tmp_path) as address:
         out = tmp_path / 'cluster'
         rc = main(['triangulate', str(survey), '--gcp', str(survey / 'gcp_list.txt'), '--out', str(out),
                    '--lever-arm=0,-0.05,-0.2', '--split-photos', str(SPLIT), '--quiet', '--scheduler', address])
-        assert rc in (0, 4)
-        here, there = split_here[0].report, json.loads((out / 'report.json').read_text())
-        assert len(there['split_merge']['sub_blocks']) == 2
-        assert there['registered'] == here['registered']
-        assert there['check']['rmse']['n'] == here['check']['rmse']['n'] == 4
-        for k in ('horizontal_m', 'vertical_m'):
-            assert there['check']['rmse'][k] == pytest.approx(here['check']['rmse'][k], rel=1e-3, abs=1e-4)
-        assert there['verdict']['status'] == here['verdict']['status']
-    finally:
-        for p in reversed(procs):
-            p.terminate()
-        deadline = time.monotonic() + 30
-        for p in procs:
-            try:
-                p.wait(max(0.1, deadline - time.monotonic()))
-            except subprocess.TimeoutExpired:
-                p.kill()
+    assert rc in (0, 4)
+    here, there = split_here[0].report, json.loads((out / 'report.json').read_text())
+    assert len(there['split_merge']['sub_blocks']) == 2
+    assert there['registered'] == here['registered']
+    assert there['check']['rmse']['n'] == here['check']['rmse']['n'] == 4
+    for k in ('horizontal_m', 'vertical_m'):
+        assert there['check']['rmse'][k] == pytest.approx(here['check']['rmse'][k], rel=1e-3, abs=1e-4)
+    assert there['verdict']['status'] == here['verdict']['status']

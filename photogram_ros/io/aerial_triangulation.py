@@ -400,20 +400,8 @@ def _adjust_and_write(block: KeyframeBlock, out: str | Path, opt: TriangulateOpt
             if log is not None:
                 log(f'warning: {note}')
     steps.start('writing the poses, the sparse cloud and the report')
-    out.mkdir(parents=True, exist_ok=True)
-    kfs = [at.kfs[k] for k in at.registered]
-    write_trajectory_csv(out / 'poses.csv', POSES_COLUMNS, [kf.name for kf in kfs],
-                         np.array([kf.map_T_cam for kf in kfs]).reshape(-1, 4, 4), origin, crs)
-    near = near_the_cameras(P, np.array([kf.map_T_cam[:3, 3] for kf in kfs]).reshape(-1, 3))
-    if not near.all():
-        assumptions.append(f'{int((~near).sum())} of {len(P)} tie points lie more than 10 times the usual camera '
-                           'distance from every camera (rays almost parallel): left out of sparse.ply / sparse.las')
-        P = P[near]
-    e, n, h = enu_to_crs(origin, P, crs)
-    cloud = GeoCloud(e, n, h, np.full((len(P), 3), 200, np.uint8), np.ones(len(P), np.uint32),
-                     np.ones(len(P), np.float32), crs, 'ellipsoidal')
-    write_ply(cloud, out / 'sparse.ply')
-    write_las(cloud, out / 'sparse.las')
+    P = _write_poses_and_cloud(out, [at.kfs[k].name for k in at.registered],
+                               [at.kfs[k].map_T_cam for k in at.registered], P, origin, crs, assumptions)
     rep = build_report(at, assumptions, vetting=vet,
                        gnss_without_gcps=gnss_without if vet is not None and target_obs else None)
     inputs = inputs_from_at(at, len(block.records), adj, block.expect_nadir, block.excluded)
@@ -444,6 +432,26 @@ def _adjust_and_write(block: KeyframeBlock, out: str | Path, opt: TriangulateOpt
     steps.finish()
     return (TriangulateResult(out, rep, len(at.registered), block.n_inputs or len(block.records), len(P),
                               list(block.damage), rep['verdict']), at, inputs)
+
+
+def _write_poses_and_cloud(out: Path, names: list, map_T_cams: list, P: np.ndarray, origin: LocalFrame, crs: str,
+                           assumptions: list) -> np.ndarray:
+    """poses.csv of the oriented photos, and sparse.ply / sparse.las of the tie points P (map ENU, m) near
+    the cameras (the others are said in the assumptions); returns the points written."""
+    out.mkdir(parents=True, exist_ok=True)
+    Ts = np.array(map_T_cams).reshape(-1, 4, 4)
+    write_trajectory_csv(out / 'poses.csv', POSES_COLUMNS, list(names), Ts, origin, crs)
+    near = near_the_cameras(P, Ts[:, :3, 3])
+    if not near.all():
+        assumptions.append(f'{int((~near).sum())} of {len(P)} tie points lie more than 10 times the usual camera '
+                           'distance from every camera (rays almost parallel): left out of sparse.ply / sparse.las')
+        P = P[near]
+    e, n, h = enu_to_crs(origin, P, crs)
+    cloud = GeoCloud(e, n, h, np.full((len(P), 3), 200, np.uint8), np.ones(len(P), np.uint32),
+                     np.ones(len(P), np.float32), crs, 'ellipsoidal')
+    write_ply(cloud, out / 'sparse.ply')
+    write_las(cloud, out / 'sparse.las')
+    return P
 
 
 def _trusted_ground(control: list, vet) -> list:
@@ -648,22 +656,10 @@ def split_merge_block(block: KeyframeBlock, out: str | Path, opt: TriangulateOpt
     _, _, _, gcp_crs, _ = _control_rows(block, opt, None, origin)
     crs = opt.crs or gcp_crs or f'EPSG:{utm_epsg(origin.lat_deg, origin.lon_deg)}'
     steps.start('writing the poses, the sparse cloud and the report')
-    out.mkdir(parents=True, exist_ok=True)
     oriented = [nm for nm in names if nm in mr.map_T_cam]
-    write_trajectory_csv(out / 'poses.csv', POSES_COLUMNS, oriented,
-                         np.array([mr.map_T_cam[nm] for nm in oriented]).reshape(-1, 4, 4), origin, crs)
-    P = mr.points_map_m
     assumptions = list(block.assumptions)
-    near = near_the_cameras(P, np.array([mr.map_T_cam[nm][:3, 3] for nm in oriented]).reshape(-1, 3))
-    if not near.all():
-        assumptions.append(f'{int((~near).sum())} of {len(P)} tie points lie more than 10 times the usual camera '
-                           'distance from every camera (rays almost parallel): left out of sparse.ply / sparse.las')
-        P = P[near]
-    e, nn, h = enu_to_crs(origin, P, crs)
-    cloud = GeoCloud(e, nn, h, np.full((len(P), 3), 200, np.uint8), np.ones(len(P), np.uint32),
-                     np.ones(len(P), np.float32), crs, 'ellipsoidal')
-    write_ply(cloud, out / 'sparse.ply')
-    write_las(cloud, out / 'sparse.las')
+    P = _write_poses_and_cloud(out, oriented, [mr.map_T_cam[nm] for nm in oriented], mr.points_map_m, origin, crs,
+                               assumptions)
     assumptions.append(
         f'split-merge adjustment: {len(recs)} photos (more than {sm.split_photos}) in {part.n} overlapping sub-blocks '
         f'(k-means of the geotags, overlap radius {part.overlap_m:.1f} m), each adjusted on its own GNSS and the GCPs '
