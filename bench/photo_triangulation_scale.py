@@ -146,6 +146,7 @@ def main() -> int:
             for (mode, w) in runs:
                 runs[(mode, w)].append(run_once(photos, w, a.matching_only,
                                                 0 if mode == 'single' else a.split_photos))
+                print(json.dumps({'bench': 'photo_triangulation_scale', 'run': runs[(mode, w)][-1]}), flush=True)
         for (mode, w), rows in runs.items():
             row = min(rows, key=lambda r: r[key])
             row.update(bench='photo_triangulation_scale', data=str(photos), runs=[r[key] for r in rows],
