@@ -9,6 +9,7 @@ import socket
 import subprocess
 import sys
 import time
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -128,9 +129,10 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
-@pytest.mark.slow
-def test_scheduler_and_two_worker_processes_on_localhost(survey, tmp_path):
-    photos, alone = survey
+@contextmanager
+def scheduler_and_two_workers(cwd):
+    """A `dask scheduler` and 2 `dask worker` processes of 1 thread on 127.0.0.1 (workers in `cwd`) for the
+    length of the block; yields the scheduler's address."""
     dask = shutil.which('dask', path=str(Path(sys.executable).parent))
     assert dask, 'the dask command of dask[distributed] is not installed beside this Python'
     address = f'tcp://127.0.0.1:{_free_port()}'
@@ -140,19 +142,12 @@ def test_scheduler_and_two_worker_processes_on_localhost(survey, tmp_path):
     try:
         for _ in range(2):
             procs.append(subprocess.Popen([dask, 'worker', address, '--nthreads', '1', '--host', '127.0.0.1',
-                                           '--no-dashboard'], env=env, cwd=tmp_path,
+                                           '--no-dashboard'], env=env, cwd=cwd,
                                           stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
         from distributed import Client
         with Client(address, timeout=60) as c:
             c.wait_for_workers(2, timeout=120)
-        lines = []
-        with open_runner(1, address, log=lines.append) as runner:
-            assert runner.workers == 2
-            block = read_photo_block(photos, runner=runner, log=lines.append)
-        _same_block(alone, block)
-        assert f'Dask cluster at {address}: 2 workers' in lines
-        n = alone.stats['photos']
-        assert f'features: {n}/{n} on 2 workers at {address} (' in '\n'.join(lines)
+        yield address
     finally:
         for p in reversed(procs):
             p.terminate()
@@ -162,3 +157,17 @@ def test_scheduler_and_two_worker_processes_on_localhost(survey, tmp_path):
                 p.wait(max(0.1, deadline - time.monotonic()))
             except subprocess.TimeoutExpired:
                 p.kill()
+
+
+@pytest.mark.slow
+def test_scheduler_and_two_worker_processes_on_localhost(survey, tmp_path):
+    photos, alone = survey
+    with scheduler_and_two_workers(tmp_path) as address:
+        lines = []
+        with open_runner(1, address, log=lines.append) as runner:
+            assert runner.workers == 2
+            block = read_photo_block(photos, runner=runner, log=lines.append)
+        _same_block(alone, block)
+        assert f'Dask cluster at {address}: 2 workers' in lines
+        n = alone.stats['photos']
+        assert f'features: {n}/{n} on 2 workers at {address} (' in '\n'.join(lines)

@@ -46,11 +46,18 @@ def add_arguments(p) -> None:
     p.add_argument('--takeoff-altitude-m', type=float, default=None,
                    help='height of the take-off point (m), for --exif-altitude relative')
     p.add_argument('--workers', type=int, default=1,
-                   help='photos: features and pair matching on a local Dask cluster of this many worker processes '
-                        '(default 1: in this process, no Dask); the adjustment runs here')
+                   help='photos: features, pair matching and the sub-blocks of a split block on a local Dask cluster '
+                        'of this many worker processes (default 1: in this process, no Dask)')
     p.add_argument('--scheduler', default=None,
-                   help='photos: features and pair matching on the existing Dask cluster at tcp://HOST:PORT (its '
-                        'workers need photogram_ros and the photos at the same path)')
+                   help='photos: features, pair matching and sub-blocks on the existing Dask cluster at '
+                        'tcp://HOST:PORT (its workers need photogram_ros and the photos and --out at the same path)')
+    p.add_argument('--split-photos', type=int, default=None,
+                   help='photos: a block of more photos than this is adjusted as overlapping sub-blocks (one Dask '
+                        'task each with --workers/--scheduler), merged and checked as one block; 0: never split '
+                        '(default: SplitMergeOptions.split_photos, measured in bench/notes_photo_triangulation_scale.md)')
+    p.add_argument('--overlap-m', type=float, default=None,
+                   help='photos, split-merge: overlap radius between sub-blocks in metres (default: the median '
+                        'distance from a photo to its 8th nearest photo)')
     p.add_argument('--takeoff-heights', choices=('msl', 'ellipsoidal'), default='msl',
                    help='reference of --takeoff-altitude-m: msl (EGM2008; default) or ellipsoidal (WGS84)')
     p.add_argument('--quiet', action='store_true', help='no progress lines (on stderr; warnings are still said)')
@@ -99,6 +106,7 @@ def run(a) -> int:
 
     from photogram_ros.core.control import ControlVettingOptions
     from photogram_ros.core.photo_matching import MatchingOptions
+    from photogram_ros.core.split_merge import SplitMergeOptions
     from photogram_ros.io.aerial_triangulation import TriangulateOptions, triangulate
     from photogram_ros.params import from_dict
 
@@ -107,6 +115,9 @@ def run(a) -> int:
         v.strip() for v in a.self_calibrate.split(',') if v.strip())
     matching = from_dict(MatchingOptions, {'max_image_px': a.max_image_px, 'max_features': a.max_features,
                                            'neighbours': a.neighbours}, 'triangulate')
+    split_values = {k: v for k, v in (('split_photos', a.split_photos), ('overlap_m', a.overlap_m))
+                    if v is not None}
+    split = (None if a.split_photos == 0 else from_dict(SplitMergeOptions, split_values, 'triangulate'))
     opt = TriangulateOptions(
         camera=a.camera, targets=a.targets, gcp=a.gcp, mtp=a.mtp,
         check_names=tuple(s.strip() for s in a.check.split(',') if s.strip()),
@@ -114,7 +125,7 @@ def run(a) -> int:
         window=a.window, lever_arm_cam_m=_floats(a.lever_arm, '--lever-arm', 3),
         self_calibrate=refine, matching=matching,
         exif_altitude=a.exif_altitude, takeoff_h_m=a.takeoff_altitude_m, takeoff_heights=a.takeoff_heights,
-        workers=a.workers, scheduler=a.scheduler,
+        workers=a.workers, scheduler=a.scheduler, split=split,
         vetting=ControlVettingOptions(contradicted_heights='horizontal' if a.gcp_heights == 'checked' else 'use'))
     from photogram_ros.io.out_dir import usable_folder
     usable_folder(a.out)   # a file or an uncreatable path: said now, not after the adjustment

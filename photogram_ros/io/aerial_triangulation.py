@@ -11,9 +11,14 @@ asked for), and writes into `out`:
 - report.md/.html/.json: the adjustment's figures (core/at_report.py) and every assumption made.
 The output CRS is the one asked for, else the GCP file's, else the UTM zone of the origin.
 
+A photo folder of more than `options.split.split_photos` photos is adjusted by split-merge
+(`split_merge_block`): overlapping sub-blocks (core/split_merge.py), each adjusted as above as one
+task of the runner (a Dask cluster with --workers/--scheduler; each sub-block's own outputs in
+out/sub_blocks/NN), merged into one block by a similarity per sub-block, checked as one block.
+
 Progress (io/progress.py) goes to `progress(text)`: each step as it starts, and the photos of the
 features, the pairs of the matching and the photos added to the incremental adjustment counted with a
-percent and an ETA.
+percent and an ETA; split-merge counts the sub-blocks done across the cluster.
 """
 
 from __future__ import annotations
@@ -32,6 +37,7 @@ from photogram_ros.io.at_report import write_report
 from photogram_ros.core.geodesy import LocalFrame, utm_epsg
 from photogram_ros.core.incremental import IncrementalAT, IncrementalOptions
 from photogram_ros.core.photo_matching import MatchingOptions
+from photogram_ros.core.split_merge import SplitMergeOptions
 from photogram_ros.core.triangulation import near_the_cameras
 from photogram_ros.errors import ConfigError
 from photogram_ros.io.export import GeoCloud, enu_to_crs, write_las, write_ply
@@ -61,6 +67,8 @@ class TriangulateOptions:
     vetting: ControlVettingOptions = field(default_factory=ControlVettingOptions)   # control rows and heights
     workers: int = 1                          # photos: local Dask worker processes (1: this process, no Dask)
     scheduler: str | None = None              # photos: an existing Dask cluster, tcp://HOST:PORT
+    # photos: blocks above split.split_photos adjusted as overlapping sub-blocks and merged; None: never split
+    split: SplitMergeOptions | None = field(default_factory=SplitMergeOptions)
 
     def check(self) -> None:
         if self.takeoff_h_m is not None and self.exif_altitude != 'relative':
@@ -85,7 +93,8 @@ class TriangulateResult:
 # Labels and units of the photo block's jobs (io/photo_block.py's names for them).
 PHOTO_JOBS = {'features': ('features', 'photos'), 'matching pairs': ('matching', 'pairs'),
               'matching more pairs for weakly linked photos': ('matching more pairs for weakly linked photos',
-                                                               'pairs')}
+                                                               'pairs'),
+             'sub-blocks': ('adjustment of the sub-blocks', 'sub-blocks')}
 
 
 class CountedRunner:
@@ -146,10 +155,12 @@ def triangulate(src: str | Path, out: str | Path, opt: TriangulateOptions, log=N
         from photogram_ros.io.photo_block import read_photo_block
         steps.start('features and matching of the photos')
         with open_runner(opt.workers, opt.scheduler, log) as runner:
+            counted = CountedRunner(runner, say)
             block = read_photo_block(src, opt.camera, opt.neighbours, opt.exif_altitude, opt.takeoff_h_m,
-                                     opt.takeoff_heights, log, opt.matching, CountedRunner(runner, say))
-    res = adjust_block(block, out, opt, control_set, log, t0, steps=steps)
-    return res
+                                     opt.takeoff_heights, log, opt.matching, counted)
+            if opt.split is not None and len(block.records) > opt.split.split_photos:
+                return split_merge_block(block, out, opt, counted, log, t0, steps)
+    return adjust_block(block, out, opt, control_set, log, t0, steps=steps)
 
 
 def _self_calibration(at: IncrementalAT, before, refine: tuple, assumptions: list, log=None) -> dict:
@@ -314,6 +325,13 @@ def adjust_block(block: KeyframeBlock, out: str | Path, opt: TriangulateOptions,
     and the block is adjusted again with the control that passed.
     progress: as triangulate()'s; `steps`: the job's Steps so far (then `progress` is not used).
     """
+    return _adjust_and_write(block, out, opt, control_set, log, t0, progress, steps)[0]
+
+
+def _adjust_and_write(block: KeyframeBlock, out: str | Path, opt: TriangulateOptions, control_set=None,
+                      log=None, t0: float | None = None, progress=True,
+                      steps: Steps | None = None) -> tuple[TriangulateResult, IncrementalAT, object]:
+    """adjust_block(), and its adjusted IncrementalAT and BlockInputs."""
     steps = steps or Steps('triangulate', None, sayer(progress, log))
     out = Path(out)
     origin, assumptions = block.origin, block.assumptions
@@ -382,20 +400,8 @@ def adjust_block(block: KeyframeBlock, out: str | Path, opt: TriangulateOptions,
             if log is not None:
                 log(f'warning: {note}')
     steps.start('writing the poses, the sparse cloud and the report')
-    out.mkdir(parents=True, exist_ok=True)
-    kfs = [at.kfs[k] for k in at.registered]
-    write_trajectory_csv(out / 'poses.csv', POSES_COLUMNS, [kf.name for kf in kfs],
-                         np.array([kf.map_T_cam for kf in kfs]).reshape(-1, 4, 4), origin, crs)
-    near = near_the_cameras(P, np.array([kf.map_T_cam[:3, 3] for kf in kfs]).reshape(-1, 3))
-    if not near.all():
-        assumptions.append(f'{int((~near).sum())} of {len(P)} tie points lie more than 10 times the usual camera '
-                           'distance from every camera (rays almost parallel): left out of sparse.ply / sparse.las')
-        P = P[near]
-    e, n, h = enu_to_crs(origin, P, crs)
-    cloud = GeoCloud(e, n, h, np.full((len(P), 3), 200, np.uint8), np.ones(len(P), np.uint32),
-                     np.ones(len(P), np.float32), crs, 'ellipsoidal')
-    write_ply(cloud, out / 'sparse.ply')
-    write_las(cloud, out / 'sparse.las')
+    P = _write_poses_and_cloud(out, [at.kfs[k].name for k in at.registered],
+                               [at.kfs[k].map_T_cam for k in at.registered], P, origin, crs, assumptions)
     rep = build_report(at, assumptions, vetting=vet,
                        gnss_without_gcps=gnss_without if vet is not None and target_obs else None)
     inputs = inputs_from_at(at, len(block.records), adj, block.expect_nadir, block.excluded)
@@ -424,8 +430,28 @@ def adjust_block(block: KeyframeBlock, out: str | Path, opt: TriangulateOptions,
         rep['self_calibration'] = self_cal
     write_report(rep, out)
     steps.finish()
-    return TriangulateResult(out, rep, len(at.registered), block.n_inputs or len(block.records), len(P),
-                             list(block.damage), rep['verdict'])
+    return (TriangulateResult(out, rep, len(at.registered), block.n_inputs or len(block.records), len(P),
+                              list(block.damage), rep['verdict']), at, inputs)
+
+
+def _write_poses_and_cloud(out: Path, names: list, map_T_cams: list, P: np.ndarray, origin: LocalFrame, crs: str,
+                           assumptions: list) -> np.ndarray:
+    """poses.csv of the oriented photos, and sparse.ply / sparse.las of the tie points P (map ENU, m) near
+    the cameras (the others are said in the assumptions); returns the points written."""
+    out.mkdir(parents=True, exist_ok=True)
+    Ts = np.array(map_T_cams).reshape(-1, 4, 4)
+    write_trajectory_csv(out / 'poses.csv', POSES_COLUMNS, list(names), Ts, origin, crs)
+    near = near_the_cameras(P, Ts[:, :3, 3])
+    if not near.all():
+        assumptions.append(f'{int((~near).sum())} of {len(P)} tie points lie more than 10 times the usual camera '
+                           'distance from every camera (rays almost parallel): left out of sparse.ply / sparse.las')
+        P = P[near]
+    e, n, h = enu_to_crs(origin, P, crs)
+    cloud = GeoCloud(e, n, h, np.full((len(P), 3), 200, np.uint8), np.ones(len(P), np.uint32),
+                     np.ones(len(P), np.float32), crs, 'ellipsoidal')
+    write_ply(cloud, out / 'sparse.ply')
+    write_las(cloud, out / 'sparse.las')
+    return P
 
 
 def _trusted_ground(control: list, vet) -> list:
@@ -474,3 +500,213 @@ def relative_exif_note(origin: LocalFrame, points_map_m, photos_geodetic, contro
             'the whole block is strained): rerun with --exif-altitude relative --takeoff-altitude-m H (the take-off '
             'point\'s height above MSL; add --takeoff-heights ellipsoidal for a WGS84 one), or with '
             '--exif-altitude msl if the site really lies there')
+
+
+# --- split-merge: a large photo block adjusted as overlapping sub-blocks (core/split_merge.py) ---------------
+
+@dataclass
+class SubBlockRun:
+    """What one sub-block's adjustment sends back (small: no IncrementalAT crosses the cluster)."""
+    sub: object                 # core/split_merge.py SubBlock
+    report: dict                # its report.json's figures (also written to out/sub_blocks/NN)
+    inputs: object | None       # core/block_check.py BlockInputs of its photos (None: it failed)
+    wall_s: float
+    cpu_s: float                # this process's CPU time in it (the worker's, on a cluster)
+
+
+def adjust_sub_block(index: int, block: KeyframeBlock, out: str | Path, opt: TriangulateOptions) -> SubBlockRun:
+    """One sub-block adjusted as a block of its own (GNSS, control vetting, GCPs it sees, full adjustment)
+    into `out` (its own poses.csv and report); an adjustment that raises is a failed sub-block."""
+    from photogram_ros.core.split_merge import SubBlock
+    from photogram_ros.errors import PhotogramError
+    t0, c0 = time.monotonic(), time.process_time()
+    names = [r.name for r in block.records]
+    try:
+        res, at, inputs = _adjust_and_write(block, out, opt, None, None, t0, progress=False)
+    except (PhotogramError, np.linalg.LinAlgError, ValueError) as e:
+        sub = SubBlock(index, names, status='failed', summary=f'FAILED: its adjustment stopped: {e}')
+        return SubBlockRun(sub, {}, None, time.monotonic() - t0, time.process_time() - c0)
+    ids, P = at.points.arrays()
+    keep = ids >= 0                 # tie points (targets have negative ids)
+    checks = {p['name']: (np.asarray(p['surveyed_map_m'], float) + np.asarray(p['residual_m'], float), p['images'])
+              for p in res.report['check']['points']}
+    v = res.verdict
+    sub = SubBlock(index, names, {at.kfs[k].name: at.kfs[k].map_T_cam for k in at.registered},
+                   np.asarray(ids[keep], np.int64), np.asarray(P[keep], float).reshape(-1, 3), checks,
+                   v.get('status', 'ok'), v.get('summary', ''))
+    return SubBlockRun(sub, res.report, inputs, time.monotonic() - t0, time.process_time() - c0)
+
+
+def _sub_block(block: KeyframeBlock, idx) -> KeyframeBlock:
+    """The photos `idx` of the block as a block of their own, in the same map frame."""
+    return KeyframeBlock(block.camera, block.origin, [block.records[i] for i in idx], list(block.assumptions),
+                         len(idx), None, block.camera_from_exif, {}, [], block.expect_nadir, {})
+
+
+def _merged_gnss_noise(runs: list) -> dict:
+    """The sub-blocks' GNSS noise estimates as one: the photo-weighted RMS of each figure, the rejected
+    geotags of all."""
+    out: dict = {}
+    runs = [r for r in runs if r.inputs is not None and r.inputs.gnss_noise]
+    if not runs:
+        return out
+    w = np.array([len(r.sub.names) for r in runs], float)
+    for key in ('used_h_m', 'used_v_m', 'estimated_h_m', 'estimated_v_m', 'stated_h_m', 'stated_v_m'):
+        vals = [r.inputs.gnss_noise.get(key) for r in runs]
+        if all(v is not None for v in vals):
+            out[key] = float(np.sqrt(np.sum(w * np.square(vals)) / w.sum()))
+    ns = [r.inputs.gnss_noise.get('n') for r in runs]
+    if all(n is not None for n in ns):
+        out['n'] = int(sum(ns))
+    out['rejected'] = sorted({n for r in runs for n in r.inputs.gnss_noise.get('rejected', [])})
+    return out
+
+
+def split_merge_block(block: KeyframeBlock, out: str | Path, opt: TriangulateOptions, runner, log=None,
+                      t0: float | None = None, steps: Steps | None = None) -> TriangulateResult:
+    """A photo block above opt.split.split_photos photos: overlapping sub-blocks (core/split_merge.py
+    partition), each adjusted by adjust_sub_block as one task of `runner` (io/dask_cluster.py; its
+    report in out/sub_blocks/NN), merged (core/split_merge.py merge), and the merged block written as
+    adjust_block writes one (poses.csv, sparse.ply/.las, report) and checked as one: the block check of
+    the merged cameras, with the merge's findings (a failed sub-block, an overlap that disagrees) and
+    each sub-block's own verdict beside it."""
+    from photogram_ros.core.at_report import gnss_figures, rmse_xyz
+    from photogram_ros.core.block_check import BlockInputs, BlockVerdict, Finding, STATUS_ORDER
+    from photogram_ros.core.evaluation import ce90_le90
+    from photogram_ros.core.split_merge import merge, partition
+    t0 = t0 if t0 is not None else time.monotonic()
+    steps = steps or Steps('triangulate', None, None)
+    out = Path(out)
+    sm = opt.split
+    origin, recs = block.origin, block.records
+    pos = np.full((len(recs), 3), np.nan)
+    for i, r in enumerate(recs):
+        if r.fix is not None:
+            pos[i] = origin.geodetic_to_enu(r.fix.lat_deg, r.fix.lon_deg, r.fix.h_m)
+    part = partition(pos, sm)
+    steps.start(f'split-merge: {len(recs)} photos in {part.n} overlapping sub-blocks')
+    if log is not None:
+        log(f'split-merge: {len(recs)} photos > {sm.split_photos}: {part.n} sub-blocks of '
+            f'{", ".join(str(len(m)) for m in part.members)} photos (overlap radius {part.overlap_m:.1f} m)')
+    t_at = time.monotonic()
+    calls = [(k, _sub_block(block, m), out / 'sub_blocks' / f'{k:02d}', opt) for k, m in enumerate(part.members)]
+    runs = runner.run(adjust_sub_block, calls, 'sub-blocks')
+    t_merge = time.monotonic()
+    steps.start('merging the sub-blocks')
+    core_of = {recs[i].name: int(part.labels[i]) for i in range(len(recs))}
+    mr = merge([r.sub for r in runs], sm, core_of)
+    sims = mr.similarities
+    # The merged block's figures: each photo's from the sub-block its pose came from.
+    per_image, gcp_rows, checks_rep = [], {}, []
+    for r in runs:
+        k = r.sub.index
+        for p in r.report.get('per_image', []):
+            if mr.source.get(p['image']) == k:
+                q = dict(p)
+                q['position_map_m'] = [float(v) for v in mr.map_T_cam[p['image']][:3, 3]]
+                q['sub_block'] = k
+                per_image.append(q)
+        for g in r.report.get('gcp', {}).get('points', []):
+            if g.get('residual_m') is not None and g['images'] > gcp_rows.get(g['name'], {}).get('images', -1):
+                gcp_rows[g['name']] = dict(g, sub_block=k)
+    surveyed = {p['name']: p['surveyed_map_m'] for r in runs for p in r.report.get('check', {}).get('points', [])}
+    for name, (X, n_img) in sorted(mr.checks.items()):
+        checks_rep.append({'name': name, 'residual_m': (X - np.asarray(surveyed[name])).tolist(), 'images': n_img,
+                           'reprojection_rms_px': None, 'surveyed_map_m': surveyed[name]})
+    # The block check of the merged cameras.
+    names = [r.name for r in recs]
+    n = len(names)
+    T = np.full((n, 4, 4), np.nan)
+    fix, sig, gz = np.full((n, 3), np.nan), np.full((n, 2), np.nan), np.full(n, np.nan)
+    by_run = {r.sub.index: r for r in runs}
+    for i, name in enumerate(names):
+        if name in mr.map_T_cam:
+            T[i] = mr.map_T_cam[name]
+        k = mr.source.get(name, int(part.labels[i]))
+        inp = by_run[k].inputs if k in by_run else None
+        j = inp.names.index(name) if inp is not None and name in inp.names else None
+        if j is not None:
+            fix[i], sig[i] = inp.fix_enu_m[j], inp.fix_sigma_hv_m[j]
+            if np.isfinite(inp.ground_z_m[j]) and sims[k] is not None:
+                gz[i] = sims[k].apply(np.array([[*inp.map_T_cam[j, :2, 3], inp.ground_z_m[j]]]))[0, 2]
+        elif np.isfinite(pos[i]).all():
+            fix[i] = pos[i]
+    ck = rmse_xyz(np.array([c['residual_m'] for c in checks_rep]))
+    statuses = [r.report.get('adjustment_status', 'failed') for r in runs if r.inputs is not None]
+    adj = {'status': 'failed' if not statuses else
+           next((s for s in statuses if s in ('failed', 'diverged')), statuses[0])}
+    inputs = BlockInputs(names, T, fix, sig, gz, _merged_gnss_noise(runs), adj, block.expect_nadir,
+                         block.n_inputs or n, dict(block.excluded),
+                         (ck['horizontal_m'], ck['vertical_m'], ck['n']) if ck.get('n') else None)
+    v = check_block(inputs)
+    findings = list(v.findings) + list(mr.findings)
+    for r in runs:
+        if r.sub.status == 'warning':
+            findings.append(Finding('sub_block', 'warning', f'sub-block {r.sub.index}: {r.sub.summary}'))
+    status = 'ok'
+    for f in findings:
+        status = f.status if STATUS_ORDER.index(f.status) > STATUS_ORDER.index(status) else status
+    findings.sort(key=lambda f: -STATUS_ORDER.index(f.status))
+    figures = dict(v.figures)
+    figures['split_merge'] = {'sub_blocks': part.n, 'overlaps': mr.overlaps, 'left_out': mr.left_out}
+    verdict = BlockVerdict(status, findings, figures)
+    if log is not None and verdict.status != 'ok':
+        log(f'warning: block check: {verdict.summary}')
+    # Outputs.
+    _, _, _, gcp_crs, _ = _control_rows(block, opt, None, origin)
+    crs = opt.crs or gcp_crs or f'EPSG:{utm_epsg(origin.lat_deg, origin.lon_deg)}'
+    steps.start('writing the poses, the sparse cloud and the report')
+    oriented = [nm for nm in names if nm in mr.map_T_cam]
+    assumptions = list(block.assumptions)
+    P = _write_poses_and_cloud(out, oriented, [mr.map_T_cam[nm] for nm in oriented], mr.points_map_m, origin, crs,
+                               assumptions)
+    assumptions.append(
+        f'split-merge adjustment: {len(recs)} photos (more than {sm.split_photos}) in {part.n} overlapping sub-blocks '
+        f'(k-means of the geotags, overlap radius {part.overlap_m:.1f} m), each adjusted on its own GNSS and the GCPs '
+        'it sees (its report in sub_blocks/NN), merged by one similarity each over all overlaps (shared cameras and '
+        'tie points); each photo\'s pose from its own sub-block, tie and check points averaged over their copies; no '
+        'global adjustment after the merge. Each sub-block self-calibrates its own camera: the camera here is '
+        'sub-block 0\'s; check points are intersected in each sub-block with its camera')
+    for r in runs:
+        assumptions.append(f'sub-block {r.sub.index}: {len(r.sub.names)} photos, {len(r.sub.map_T_cam)} oriented, '
+                           f'{r.wall_s:.0f} s; {r.sub.summary or r.sub.status}')
+    obs = [p['observations'] for p in per_image]
+    rms = [p['reprojection_rms_px'] for p in per_image]
+    tot = sum(o for o, x in zip(obs, rms) if x is not None)
+    rms_px = (float(np.sqrt(sum(o * x * x for o, x in zip(obs, rms) if x is not None) / tot)) if tot else None)
+    gres = np.array([p['gnss_residual_enu_m'] for p in per_image if p['gnss_residual_enu_m'] is not None])
+    gcps = sorted(gcp_rows.values(), key=lambda g: g['name'])
+    r0 = next((r.report for r in runs if r.report), {})
+    now = time.monotonic()
+    rep = {
+        'format': 'photogram_ros aerial triangulation report v1',
+        'origin': origin.to_dict(),
+        'frame': 'map: ENU at origin (x east, y north, z up), m; heights ellipsoidal',
+        'georeferenced': True, 'keyframes': n, 'registered': len(oriented), 'points': int(len(mr.point_ids)),
+        'observations': int(sum(obs)), 'camera': r0.get('camera', {}), 'reprojection_rms_px': rms_px,
+        'gnss': {'rmse': gnss_figures(gres), 'estimated_bias_enu_m': [0.0, 0.0, 0.0]},
+        'gcp': {'points': gcps, 'rmse': rmse_xyz(np.array([g['residual_m'] for g in gcps])), 'redundancy': []},
+        'check': {'points': checks_rep, 'rmse': ck,
+                  'ce90_le90': ce90_le90(np.array([c['residual_m'] for c in checks_rep]))},
+        'mtp': {'points': []},
+        'reprojection_histogram': {'n': 0, 'counts': [], 'edges_px': []},
+        'per_image': per_image, 'assumptions': assumptions, 'verdict': verdict.to_dict(), 'crs': crs,
+        'adjustment_status': adj['status'],
+        'split_merge': {'sub_blocks': [{'index': r.sub.index, 'photos': len(r.sub.names),
+                                        'oriented': len(r.sub.map_T_cam), 'status': r.sub.status,
+                                        'summary': r.sub.summary, 'wall_s': round(r.wall_s, 2),
+                                        'cpu_s': round(r.cpu_s, 2),
+                                        'check_rmse': r.report.get('check', {}).get('rmse'),
+                                        'camera': r.report.get('camera')} for r in runs],
+                        'overlap_radius_m': part.overlap_m, 'overlaps': mr.overlaps, 'left_out': mr.left_out,
+                        'similarities': [None if s is None else {'scale': s.scale, 'R': s.R.tolist(),
+                                                                 't_m': s.t.tolist()} for s in sims]},
+        'timing_s': {'reading_and_matching': round(t_at - t0, 2), 'aerial_triangulation': round(now - t_at, 2),
+                     'sub_blocks': round(t_merge - t_at, 2), 'merge_and_write': round(now - t_merge, 2),
+                     'total': round(now - t0, 2)},
+    }
+    if block.stats:
+        rep['matching'] = block.stats
+    write_report(rep, out)
+    steps.finish()
+    return TriangulateResult(out, rep, len(oriented), block.n_inputs or n, len(P), [], rep['verdict'])
