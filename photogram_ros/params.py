@@ -77,6 +77,18 @@ def from_assignments(cls, items: list[str], where: str = ''):
     return from_dict(cls, values, where)
 
 
+def floats(text: str, what: str, n: int) -> tuple:
+    """'0.02,0.02,0.03' -> (0.02, 0.02, 0.03): `n` numbers separated by commas (an option's value, named
+    `what` in the ConfigError otherwise)."""
+    try:
+        v = tuple(float(s) for s in text.split(','))
+    except ValueError:
+        v = ()
+    if len(v) != n:
+        raise ConfigError(f'{what} takes {n} numbers separated by commas, got {text!r}')
+    return v
+
+
 def to_dict(obj) -> dict:
     return {f.name: getattr(obj, f.name) for f in fields_of(type(obj))}
 

@@ -929,7 +929,8 @@ def test_bad_arguments_are_one_line_and_exit_2(tmp_path, args, words):
     (('calibrate', str(SAMPLE_BAG / 'metadata.yaml'), '--min-views', '0', '--out', '{o}'), '--min-views 0'),
     (('fixes', 'udpin:127.0.0.1:14999', '--sysid', '999'), '--sysid 999: choose 0 to 255'),
     (('fixes', 'udpin:127.0.0.1:14999', '--duration', '-1'), '--duration -1'),
-    (('play', str(SAMPLE_BAG), '--remap', '/a:='), "remap '/a:=' must look like /from:=/to")])
+    (('play', str(SAMPLE_BAG), '--remap', '/a:='), "remap '/a:=' must look like /from:=/to"),
+    (('triangulate', str(SAMPLE_BAG), '--out', '{o}', '--window', '-3'), "'window_size' = -3 is outside [2, 200]")])
 def test_every_commands_bad_arguments_are_one_line_and_exit_2(tmp_path, args, words):
     """Values argparse takes but the command cannot use: said at once (exit 2, one line, no traceback),
     before any process or folder is made."""

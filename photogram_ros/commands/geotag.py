@@ -43,7 +43,7 @@ def run(a) -> int:
     import sys
     from pathlib import Path
 
-    from photogram_ros.commands.triangulate import _floats
+    from photogram_ros.params import floats
     from photogram_ros.core.exposure_positions import Q_NAMES, ExposureOptions
     from photogram_ros.errors import ConfigError
     from photogram_ros.io.geotag import GeotagInput, geotag
@@ -55,7 +55,7 @@ def run(a) -> int:
     if out is None:
         raise ConfigError('give --out geo.txt (or --photos DIR to write DIR/geo.txt)')
     opt = ExposureOptions(max_gap_s=float(a.max_gap), sigma_scale=float(a.sigma_scale),
-                          lever_arm_frd_m=_floats(a.lever_arm, '--lever-arm', 3),
+                          lever_arm_frd_m=floats(a.lever_arm, '--lever-arm', 3),
                           accept_q={'fix': 1, 'float': 2, 'all': 6}[a.accept])
     res = geotag(GeotagInput(a.pos, a.events, folder, out, a.csv, a.match, a.match_tolerance, a.utc_offset,
                              a.event_type, a.accept_no_fix, a.skip_unplaced, opt))

@@ -63,17 +63,6 @@ def add_arguments(p) -> None:
     p.add_argument('--quiet', action='store_true', help='no progress lines (on stderr; warnings are still said)')
 
 
-def _floats(text: str, what: str, n: int) -> tuple:
-    from photogram_ros.errors import ConfigError
-    try:
-        v = tuple(float(s) for s in text.split(','))
-    except ValueError:
-        v = ()
-    if len(v) != n:
-        raise ConfigError(f'{what} takes {n} numbers separated by commas, got {text!r}')
-    return v
-
-
 def _bag_without_metadata(path) -> bool:
     """A bag that triangulate() would not take for one: a rosbag2 folder without its metadata.yaml (what a
     recording cut short leaves; bag-info and replay read it from its storage file) or a bare .db3 / .mcap
@@ -108,7 +97,7 @@ def run(a) -> int:
     from photogram_ros.core.photo_matching import MatchingOptions
     from photogram_ros.core.split_merge import SplitMergeOptions
     from photogram_ros.io.aerial_triangulation import TriangulateOptions, triangulate
-    from photogram_ros.params import from_dict
+    from photogram_ros.params import floats, from_dict
 
     cal = a.self_calibrate.strip().lower()
     refine = None if cal == 'auto' else () if cal in ('', 'none') else tuple(
@@ -121,13 +110,14 @@ def run(a) -> int:
     opt = TriangulateOptions(
         camera=a.camera, targets=a.targets, gcp=a.gcp, mtp=a.mtp,
         check_names=tuple(s.strip() for s in a.check.split(',') if s.strip()),
-        crs=a.crs, gcp_sigma_enu_m=_floats(a.gcp_sigma, '--gcp-sigma', 3), neighbours=a.neighbours,
-        window=a.window, lever_arm_cam_m=_floats(a.lever_arm, '--lever-arm', 3),
+        crs=a.crs, gcp_sigma_enu_m=floats(a.gcp_sigma, '--gcp-sigma', 3), neighbours=a.neighbours,
+        window=a.window, lever_arm_cam_m=floats(a.lever_arm, '--lever-arm', 3),
         self_calibrate=refine, matching=matching,
         exif_altitude=a.exif_altitude, takeoff_h_m=a.takeoff_altitude_m, takeoff_heights=a.takeoff_heights,
         workers=a.workers, scheduler=a.scheduler, split=split,
         vetting=ControlVettingOptions(contradicted_heights='horizontal' if a.gcp_heights == 'checked' else 'use'))
     from photogram_ros.io.out_dir import usable_folder
+    opt.check()
     usable_folder(a.out)   # a file or an uncreatable path: said now, not after the adjustment
     log = (lambda text: print(text, file=sys.stderr))
     res = (_triangulate_bag(a.input, a.out, opt, log, not a.quiet) if _bag_without_metadata(a.input)

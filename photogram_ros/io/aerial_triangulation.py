@@ -71,6 +71,8 @@ class TriangulateOptions:
     split: SplitMergeOptions | None = field(default_factory=SplitMergeOptions)
 
     def check(self) -> None:
+        from photogram_ros.params import from_dict
+        from_dict(IncrementalOptions, {'window_size': self.window}, 'triangulate --window')   # its declared range
         if self.takeoff_h_m is not None and self.exif_altitude != 'relative':
             raise ConfigError('--takeoff-altitude-m is only used with --exif-altitude relative (EXIF altitudes '
                               'above the take-off point): add that, or drop --takeoff-altitude-m')
