@@ -54,10 +54,10 @@ executor thread. When keyframes queue up behind an adjustment, the older ones of
 short window adjustment (`catch_up_iterations`) and only the newest the full one, so the node
 catches up instead of falling further behind; the poses are published once per batch.
 
-Lever arm: `lever_arm_cam_m` (antenna in the camera frame) is fixed, for a camera fixed to the body; a gimballed
-camera gives `lever_arm_body_frd_m` (body frame) and the node follows `mavlink/attitude` (body FLU in ENU, queued
-2 min deep: an adjustment may hold the executor for seconds) for each keyframe's antenna offset in `map`
-(core/attitude.py); without an attitude within 0.2 s, the level-flight camera-frame offset.
+Lever arm: `lever_arm_cam_m` (antenna in the camera frame) is fixed, for a camera fixed to the body; a gimbal
+gives `lever_arm_body_frd_m` (body frame), turned by `mavlink/attitude` (body FLU in ENU, queued 2 min deep: an
+adjustment may hold the executor for seconds) into each keyframe's antenna offset in `map` (core/attitude.py);
+without an attitude within 0.2 s, the level-flight camera-frame offset.
 """
 
 from __future__ import annotations
