@@ -74,3 +74,32 @@ def test_the_final_adjustments_camera_replaces_the_input_calibration(tmp_path):
     stage.set_camera(exif)
     assert store.load_camera() == refined and store.camera_name() == CAMERA_FINAL and stage.camera == refined
     stage.close()
+
+
+def test_keyframe_fixes_that_came_before_the_georeference_still_place_the_coverage(tmp_path):
+    """The first keyframes' fixes reach the map before the block is georeferenced (no origin yet), and those
+    keyframes are oriented only later: their fixes are kept and place them on the track (stand-ins), instead
+    of leaving a hole in the coverage that reads as a gap."""
+    from photogram_ros.core.geodesy import LocalFrame
+    from photogram_ros.sim.scenario import preset
+    stage = MapStage(from_dict(MapParams, {'map_dir': str(tmp_path / 'map'), 'cell_m': 0.1}), DiagnosticsLog(),
+                     Recorded())
+    stage.set_camera(preset('tiny').camera())
+    origin = LocalFrame(47.3977, 8.5456, 488.0)
+    poses = []
+    for k in range(6):                       # a line east at 40 m, looking down, a keyframe every 8 m
+        T = np.eye(4)
+        T[:3, :3] = np.diag([1.0, -1.0, -1.0])
+        T[:3, 3] = (8.0 * k, 0.0, 40.0)
+        poses.append((1000 + k, T))
+        stage.add_keyframe_fix(1000 + k, *origin.enu_to_geodetic(T[:3, 3]), 2)
+    stage.set_origin(origin.lat_deg, origin.lon_deg, origin.h_m)
+    ground = np.zeros(400, dtype=[('x', 'f4'), ('y', 'f4'), ('z', 'f4')])   # tie points on flat ground
+    x, y = np.meshgrid(np.linspace(-20, 60, 20), np.linspace(-20, 20, 20))
+    ground['x'], ground['y'] = x.ravel(), y.ravel()
+    stage.add_sparse(ground)
+    for stamp, T in poses[2:]:              # the first two are oriented only later
+        stage.add_pose(stamp, T)
+    stage.update_coverage()
+    assert len(stage.coverage) == 6
+    assert not stage.coverage.oriented(1000) and stage.coverage.oriented(1005)

@@ -130,6 +130,7 @@ class MapStage:
         self.coverage = None         # core.coverage.Coverage, once the camera is known
         self._cov_poses: dict = {}   # stamp -> map_T_cam not yet in the coverage
         self._cov_fixes: dict = {}   # stamp -> keyframe fix in map ENU (the track, oriented or not)
+        self._cov_fixes_early: dict = {}   # stamp -> (lat, lon, h) of fixes that came before the origin
         self._oriented: dict = {}    # stamp -> map_T_cam of the oriented keyframes (attitude for stand-ins)
         self._cov_dirty = False
         self._sparse_xyz = None      # (N, 3) latest tie points: the ground under the keyframes
@@ -290,7 +291,10 @@ class MapStage:
     @_locked
     def add_keyframe_fix(self, stamp_ns: int, lat_deg: float, lon_deg: float, h_m: float, status: int) -> None:
         """A keyframe's GNSS position (NavSatStatus status; < 0: none): its place on the track for the coverage."""
-        if self.store.origin is None or status < 0:
+        if status < 0:
+            return
+        if self.store.origin is None:   # the georeference comes later: kept until it does
+            self._cov_fixes_early[stamp_ns] = (lat_deg, lon_deg, h_m)
             return
         try:
             self._cov_fixes[stamp_ns] = np.asarray(
@@ -476,6 +480,9 @@ class MapStage:
         changed, publish_coverage."""
         if self.camera is None or self.store.origin is None:
             return
+        early, self._cov_fixes_early = self._cov_fixes_early, {}
+        for stamp, llh in early.items():
+            self.add_keyframe_fix(stamp, *llh, 0)
         if self.coverage is None:
             from photogram_ros.io.mission import survey_area_in_map
             area = survey_area_in_map(self._survey_rings, self.store.origin) if self._survey_rings else None
