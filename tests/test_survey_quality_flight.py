@@ -12,6 +12,7 @@
 from __future__ import annotations
 
 import json
+import os
 import shutil
 import subprocess
 import sys
@@ -72,8 +73,10 @@ class Monitor:
 
 
 def replay(bag, out, *extra) -> subprocess.CompletedProcess:
+    """On the monitor's domain: a replay takes a domain of its own unless told."""
     return subprocess.run([sys.executable, '-m', 'photogram_ros.cli', 'replay', str(bag), '--out', str(out), '--quiet',
-                           '--truth', str(bag), *extra], cwd=ROOT, capture_output=True, text=True, timeout=1200)
+                           '--truth', str(bag), '--domain', os.environ['ROS_DOMAIN_ID'], *extra], cwd=ROOT,
+                          capture_output=True, text=True, timeout=1200)
 
 
 def station(out, port) -> subprocess.Popen:
