@@ -77,6 +77,11 @@ def test_verdict_names_each_way_a_flight_fails_to_map():
         'keyframes_received': 14, 'keyframes_oriented': 13, 'keyframes_not_oriented': 1}}, 14)
     assert good['keyframes_not_oriented'] == 0 and good['keyframes_not_oriented_by_reason'] == {}
     assert good['keyframes_oriented_after_the_window_gave_up'] == 1
+    # The keyframes before an early break that their GNSS could not place are named as given up.
+    early = keyframe_accounting({'tracker': {'keyframes': 27}, 'bundle': {
+        'keyframes_received': 27, 'keyframes_oriented': 27, 'keyframes_unplaced': 6}}, 21)
+    assert early['keyframes_not_oriented_by_reason'] == {
+        'given up: before an early break, a line too short for its GNSS': 6}
     assert mapping_verdict(good, True, 0.73, True) == {'mapped': True, 'failures': [], 'warnings': [],
                                                         'dsm_valid_share': 0.73}
     assert mapping_verdict(good, True, 0.3, True)['mapped'] is True

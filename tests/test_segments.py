@@ -4,10 +4,10 @@ them, against the simulator's truth."""
 
 from __future__ import annotations
 
-import dataclasses
-
 import numpy as np
 import pytest
+
+from test_incremental import _lost_every_track
 
 from photogram_ros.core.incremental import IncrementalAT, IncrementalOptions
 from photogram_ros.sim.observations import simulate_keyframes
@@ -18,11 +18,6 @@ from photogram_ros.sim.scenario import build_world, preset
 def flight():
     cfg = preset('tiny')
     return simulate_keyframes(cfg, world=build_world(cfg, np.random.default_rng(cfg.seed)), attitude_sigma_deg=None)
-
-
-def _lost_every_track(records, k_break: int):
-    return [r if i < k_break else dataclasses.replace(r, track_ids=np.asarray(r.track_ids) + 10**6, target_uv={})
-            for i, r in enumerate(records)]
 
 
 @pytest.mark.parametrize('k_break', [3, 5, 7])

@@ -566,7 +566,7 @@ class IncrementalAT:
             self.kfs[k].map_T_cam = None
         self.registered, self.points, self.track_kfs = [], PointStore(), {}
         self._freezer = Freezer(self.opt)
-        self.georeferenced, self.georef_provisional = True, seg.georef_provisional
+        self.georeferenced, self.georef_provisional = True, False   # the segment's, georeferenced for good
         kids = self._segment_kids
         self._join_segment()
         for kid in kids:

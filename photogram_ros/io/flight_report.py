@@ -247,8 +247,11 @@ def keyframe_accounting(counts: dict, oriented: int, bundle_status: str | None =
         status = bundle_status
         why['not oriented by the bundle adjuster' + (f' (its last status: {status})' if status else '')] = \
             int(b.get('keyframes_not_oriented', 0))
+    # Keyframes before an early break that their GNSS could not place, given up for the flight after it.
+    why['given up: before an early break, a line too short for its GNSS'] = int(b.get('keyframes_unplaced', 0))
     why['oriented in flight, no georeferenced pose in the map'] = max(0, out['keyframes_oriented_in_flight']
-                                                                       - int(oriented))
+                                                                       - int(oriented)
+                                                                       - int(b.get('keyframes_unplaced', 0)))
     why = {k: v for k, v in why.items() if v}
     missing = max(0, taken - int(oriented))
     counted = sum(why.values())
