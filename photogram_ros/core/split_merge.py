@@ -25,6 +25,7 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.cluster.vq import kmeans2
 
 from photogram_ros.core.block_check import STATUS_ORDER, Finding
 from photogram_ros.core.rotations import R_from_rotvec
@@ -62,25 +63,6 @@ class Partition:
         return len(self.members)
 
 
-def _kmeans(X: np.ndarray, k: int, rng: np.random.Generator, iterations: int = 60) -> np.ndarray:
-    """Labels (N,) of k clusters of X (N, 2): k-means++ seeding, Lloyd iterations."""
-    C = [X[rng.integers(len(X))]]
-    for _ in range(1, k):
-        d2 = np.min(np.sum((X[:, None, :] - np.array(C)[None]) ** 2, axis=2), axis=1)
-        C.append(X[rng.choice(len(X), p=d2 / d2.sum())] if d2.sum() > 0 else X[rng.integers(len(X))])
-    C = np.array(C)
-    labels = np.zeros(len(X), int)
-    for it in range(iterations):
-        new = np.argmin(np.sum((X[:, None, :] - C[None]) ** 2, axis=2), axis=1)
-        if it and np.array_equal(new, labels):
-            break
-        labels = new
-        for j in range(k):
-            if np.any(labels == j):
-                C[j] = X[labels == j].mean(axis=0)
-    return labels
-
-
 def partition(positions_en_m: np.ndarray, opt: SplitMergeOptions | None = None, seed: int = 0) -> Partition:
     """Overlapping, spatially compact sub-blocks of photos at `positions_en_m` (N, 2+; E, N in metres; NaN
     rows: no position). One sub-block when N <= split_photos."""
@@ -95,7 +77,7 @@ def partition(positions_en_m: np.ndarray, opt: SplitMergeOptions | None = None, 
     if k == 1 or has.sum() < 2 * k:
         return Partition(np.zeros(n, int), [np.arange(n)], 0.0)
     X = P[has]
-    labels_has = _kmeans(X, k, np.random.default_rng(seed))
+    labels_has = kmeans2(X, k, minit='++', seed=np.random.default_rng(seed))[1]
     # Empty clusters (duplicate positions) are dropped and the rest renumbered.
     used = np.unique(labels_has)
     labels_has = np.searchsorted(used, labels_has)
