@@ -4,6 +4,7 @@ import json
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 import pytest
 
@@ -33,7 +34,15 @@ def test_replay_delivers_every_message_in_order_to_another_process(sample_bag, t
         node = PlayerNode(overrides={'bag': str(sample_bag), 'rate': 0.0, 'topics': ','.join(topics),
                                      'wait_for_subscribers': len(topics), 'wait_timeout_s': 30.0},
                           context=rclpy_context)
-        summary = node.play()
+        ready = Path(f'{out}.ready')
+
+        def hold_until_the_subscriber_matched(_m):
+            deadline = time.monotonic() + 60
+            while not ready.exists() and time.monotonic() < deadline:
+                time.sleep(0.05)
+
+        summary = node.play(before_message=hold_until_the_subscriber_matched)
+        assert ready.exists(), 'the subscriber never matched the player\'s publishers'
         assert summary.total == len(expected) and not summary.errors
         sub.wait(timeout=150)
     finally:

@@ -6,7 +6,9 @@ damage and the damage is reported.
 
 rate 0 plays as fast as subscribers acknowledge, and loses nothing to the subscribers that exist
 when it starts: it first waits until DDS discovery has matched them (a publisher that starts at once
-sends the first seconds of a bag to nobody), then publishes `ack_window` messages per topic and waits
+sends the first seconds of a bag to nobody; the subscriber's own side of the match can come later still on a
+loaded machine, so a consumer that must have every message holds the first one back, through `play`'s
+`before_message`, until its subscriptions count a publisher), then publishes `ack_window` messages per topic and waits
 until every subscriber has acknowledged them. A reliable KEEP_LAST subscriber keeps only its last
 `depth` unread messages and acknowledges what it stored, not what its callback took, so nothing but
 the pace protects it: one window per acknowledgement round trip (Fast DDS answers in about 5 ms) is

@@ -1,6 +1,9 @@
 """Runs in its own process: subscribes to topics and writes a key of each message received, in order.
 
 usage: python raw_subscriber.py OUT.json EXPECTED_TOTAL TIMEOUT_S TOPIC:TYPE [TOPIC:TYPE ...]
+
+Once every subscription has matched a publisher (its own side of the DDS match, which can come later than
+the publisher's under load), it writes OUT.json.ready.
 """
 
 import json
@@ -27,8 +30,13 @@ def main():
                                      lambda m, topic=topic: received.append((topic, message_key(m))), qos)
             for topic, t in specs]
     deadline = time.monotonic() + timeout
+    ready = False
     while time.monotonic() < deadline and len(received) < expected:
         rclpy.spin_once(node, timeout_sec=0.1)
+        if not ready and all(s.get_publisher_count() > 0 for s in subs):
+            ready = True
+            with open(out + '.ready', 'w'):
+                pass
     with open(out, 'w') as f:
         json.dump(received, f)
     del subs
