@@ -23,7 +23,7 @@ def _block(rise_m: float, geotag_sigma_m: float, lines=(-25.0, 0.0, 25.0), seed:
     T[:, :3, :3] = np.diag([1.0, -1.0, -1.0])
     T[:, :3, 3] = C
     return BlockInputs([f'p{i:02d}.jpg' for i in range(n)], T, fix, np.tile([3.0, 5.0], (n, 1)), np.zeros(n),
-                       self_calibration=self_calibration or {})
+                       adjustment={'status': 'converged'}, self_calibration=self_calibration or {})
 
 
 def test_a_domed_block_warns_with_its_rise():
@@ -49,6 +49,13 @@ def test_level_blocks_and_loose_geotags_stay_ok(rise_m, sigma_m):
 def test_two_lines_do_not_determine_a_dome():
     v = check_block(_block(-0.6, 0.05, lines=(-12.0, 12.0)))
     assert v.status == 'ok' and v.figures['dome']['rise_sigma_m'] is None
+
+
+def test_a_block_in_flight_is_not_judged():
+    b = _block(-0.6, 0.05)
+    b.adjustment = {}
+    v = check_block(b)
+    assert v.status == 'ok' and 'dome' not in v.figures
 
 
 def test_the_threshold_is_an_option():

@@ -61,6 +61,19 @@ def test_undetermined_or_failed_parameters_are_left_out():
     assert sel.kept == ('f', 'k1') and sel.trials[0].refine == ('f',)
 
 
+def test_the_covariance_is_asked_only_of_a_candidate_that_pays():
+    evaluate, _ = _table({(): 0.695, ('k1',): 0.6946, ('k2',): 0.6330, ('k1', 'k2'): 0.6306})
+    asked = []
+
+    def determine(trial):
+        asked.append(trial.refine)
+        trial.height_correlation = {n: 0.2 for n in trial.refine}
+        trial.sigmas = {n: 0.001 for n in trial.refine}
+    sel = select_stepwise(('k1', 'k2'), evaluate, determine=determine)
+    assert asked == [('k2',)] and sel.kept == ('k2',)
+    assert sel.to_dict()['trials'][2]['height_correlation'] == {'k2': 0.2}
+
+
 def test_height_bowl_measures_a_dome_against_scatter():
     rng = np.random.default_rng(1)
     E, N = np.meshgrid(np.linspace(-40, 40, 9), [-20.0, 0.0, 20.0])

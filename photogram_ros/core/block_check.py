@@ -29,7 +29,7 @@ The checks, each against what the data itself says:
   (core/self_calibration.py `height_bowl`): its rise at the block's radius against the geotags' own scatter
   about it. A level flight's altitudes (a barometer: centimetres from photo to photo) cannot dome, so a
   block whose cameras dome against them by far more than that scatter is bent, most often by self-calibrated
-  radial distortion in a flat nadir block of parallel lines: warning.
+  radial distortion in a flat nadir block of parallel lines: warning. Judged after a full adjustment only.
 - gnss_noise: the GNSS noise the adjustment estimated from the data, against what the fixes state:
   geotags poorer than they claim are said, and those it rejected are named; a horizontal scatter beyond
   what any drone's GNSS shows in one flight (`noise_h_fail_m`) is a block whose shape is wrong: failed.
@@ -218,6 +218,8 @@ def _gnss_fit(b: BlockInputs, o: BlockCheckOptions, oriented: np.ndarray, findin
 
 
 def _dome(b: BlockInputs, o: BlockCheckOptions, oriented: np.ndarray, findings: list, figures: dict) -> None:
+    if not (b.adjustment or {}).get('status'):
+        return   # a block in flight between full adjustments: its window updates leave it bent until the next one
     rejected = set(b.gnss_noise.get('rejected', []))
     use = oriented & np.all(np.isfinite(b.fix_enu_m), axis=1) & np.array([n not in rejected for n in b.names])
     if use.sum() < 7:

@@ -1458,10 +1458,12 @@ class IncrementalAT:
             return ()
         prob = b.prob
 
+        results = {}
+
         def evaluate(refine: tuple) -> Trial:
             res = bundle_adjust(prob, BundleOptions(loss=self.opt.loss, loss_scale_px=self.opt.loss_scale_px,
-                                                    max_iterations=iters, refine_intrinsics=tuple(refine),
-                                                    compute_covariance=bool(refine)))
+                                                    max_iterations=iters, refine_intrinsics=tuple(refine)))
+            results[tuple(refine)] = res
             cam = res.camera if res.camera is not None else prob.camera
             T = np.asarray(res.map_T_cams)
             P = np.asarray(res.points_map)
@@ -1478,12 +1480,21 @@ class IncrementalAT:
                 Tg = T[prob.gnss_cam]
                 ant = Tg[:, :3, 3] + Tg[:, :3, :3] @ prob.lever_arm_cam_m
                 bowl = height_bowl(prob.gnss_pos_map[:, :2], ant[:, 2] - prob.gnss_pos_map[:, 2]).get('rise_m')
-            sig = res.intrinsics_sigma() if refine else {}
-            corr = res.intrinsics_height_correlation() if refine else {}
-            return Trial(tuple(refine), rms, values, sig, corr, bowl, res.status)
+            return Trial(tuple(refine), rms, values, bowl_m=bowl, status=res.status)
+
+        def determine(trial: Trial) -> None:
+            # The covariance at the trial's result (zero iterations): sigmas and correlations with the height.
+            res = results[trial.refine]
+            at_res = replace(prob, camera=res.camera if res.camera is not None else prob.camera,
+                             map_T_cams=np.asarray(res.map_T_cams), points_map=np.asarray(res.points_map))
+            cov = bundle_adjust(at_res, BundleOptions(loss=self.opt.loss, loss_scale_px=self.opt.loss_scale_px,
+                                                      max_iterations=0, refine_intrinsics=trial.refine,
+                                                      compute_covariance=True))
+            trial.sigmas = cov.intrinsics_sigma()
+            trial.height_correlation = cov.intrinsics_height_correlation()
 
         sel = select_stepwise(candidates, evaluate, min_gain_fraction=self.opt.self_calibration_min_gain,
-                              min_gain_px=self.opt.self_calibration_min_gain_px)
+                              min_gain_px=self.opt.self_calibration_min_gain_px, determine=determine)
         self.self_calibration = sel
         return sel.kept
 

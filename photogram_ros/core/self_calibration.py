@@ -124,10 +124,13 @@ class Selection:
 
 def select_stepwise(candidates, evaluate: Callable[[tuple], Trial], base: tuple = (),
                     min_gain_fraction: float = MIN_GAIN_FRACTION, min_gain_px: float = MIN_GAIN_PX,
-                    max_height_correlation: float = MAX_HEIGHT_CORRELATION) -> Selection:
+                    max_height_correlation: float = MAX_HEIGHT_CORRELATION,
+                    determine: Callable[[Trial], None] | None = None) -> Selection:
     """Greedy forward selection of `candidates` (see the module docstring); `evaluate(refine)` adjusts the block
-    with `refine` (base plus the candidates so far plus one) from the same start and returns its Trial.
-    Raises ConfigError on a name that is not an intrinsic, or on thresholds that are not positive."""
+    with `refine` (base plus the candidates so far plus one) from the same start and returns its Trial;
+    `determine(trial)`, when given, fills in the trial's sigmas and height correlations (a covariance: asked
+    only of a candidate that pays enough to be kept). Raises ConfigError on a name that is not an intrinsic, or
+    on thresholds that are not positive."""
     candidates = tuple(dict.fromkeys(c for c in candidates if c not in base))
     bad = [c for c in (*candidates, *base) if c not in INTRINSICS]
     if bad:
@@ -150,10 +153,13 @@ def select_stepwise(candidates, evaluate: Callable[[tuple], Trial], base: tuple 
         order = sorted(tried, key=lambda ct: -gains[ct[0]] if np.isfinite(gains[ct[0]]) else np.inf)
         best, t = order[0]
         d = decisions[best]
+        pays = d.gain_fraction >= min_gain_fraction and d.gain_px >= min_gain_px
+        if pays and determine is not None and np.isfinite(t.rms_px) and t.status != 'failed':
+            determine(t)
         corr = t.height_correlation.get(best)
         if not np.isfinite(t.rms_px) or t.status == 'failed':
             d.reason = 'its adjustment failed'
-        elif d.gain_fraction < min_gain_fraction or d.gain_px < min_gain_px:
+        elif not pays:
             d.reason = f'below the threshold {100 * min_gain_fraction:g} % / {min_gain_px:g} px'
         elif corr is not None and abs(corr) >= max_height_correlation:
             d.reason = f'not determined: correlation with the block\'s height {corr:+.3f}'
