@@ -1442,14 +1442,16 @@ class IncrementalAT:
     def select_self_calibration(self, candidates: tuple, iterations: int | None = None) -> tuple:
         """The stepwise self-calibration (core/self_calibration.py `select_stepwise`): which of `candidates`
         the block's final adjustment refines. The candidates start from the camera as given (a self-calibration
-        made before is undone), and each trial adjusts one and the same problem (the block as it is: its active
-        observations, its poses and points as the start, the fixes at their current weights) with its intrinsics
-        refined; none of them changes the block. A trial is measured by the RMS of its reprojection residuals,
-        each capped at `max_reprojection_px` (an outlier counts no more than that; an observation the lens's
-        distortion moved that far counts in full once a model explains it), the refined values with their sigmas
+        made before is undone), and each trial adjusts one and the same problem (the block's active observations,
+        the fixes at their current weights) with its intrinsics refined, from the result of the trial of the
+        intrinsics kept so far (the first, none refined, from the block as it is). A trial is measured by the RMS
+        of its reprojection residuals, each capped at `max_reprojection_px` (an outlier counts no more than that;
+        an observation the lens's distortion moved that far counts in full once a model explains it), the
+        refined values with their sigmas
         and correlations with the block's height, and the cameras' bowl against their geotags' heights
-        (`height_bowl`, at the block's radius). The caller adjusts the block with the kept intrinsics. Returns
-        them (also in `self.self_calibration`)."""
+        (`height_bowl`, at the block's radius). The block takes the kept trial's poses, points and camera (no
+        observation is dropped here); the caller adjusts it with the kept intrinsics. Returns them (also in
+        `self.self_calibration`)."""
         iters = iterations or self.opt.full_iterations
         self.camera = _with_intrinsics_of(self.camera, self._camera_given, candidates)
         b = self._problem(list(self.registered), [], list(self.points))
@@ -1460,9 +1462,16 @@ class IncrementalAT:
 
         results = {}
 
+        def started(res):
+            return replace(prob, camera=res.camera if res.camera is not None else prob.camera,
+                           map_T_cams=np.asarray(res.map_T_cams), points_map=np.asarray(res.points_map))
+
         def evaluate(refine: tuple) -> Trial:
-            res = bundle_adjust(prob, BundleOptions(loss=self.opt.loss, loss_scale_px=self.opt.loss_scale_px,
-                                                    max_iterations=iters, refine_intrinsics=tuple(refine)))
+            # From the adjustment of the intrinsics kept so far (the first from the block as it is).
+            before = results.get(tuple(refine[:-1])) if refine else None
+            res = bundle_adjust(prob if before is None else started(before),
+                                BundleOptions(loss=self.opt.loss, loss_scale_px=self.opt.loss_scale_px,
+                                              max_iterations=iters, refine_intrinsics=tuple(refine)))
             results[tuple(refine)] = res
             cam = res.camera if res.camera is not None else prob.camera
             T = np.asarray(res.map_T_cams)
@@ -1484,10 +1493,7 @@ class IncrementalAT:
 
         def determine(trial: Trial) -> None:
             # The covariance at the trial's result (zero iterations): sigmas and correlations with the height.
-            res = results[trial.refine]
-            at_res = replace(prob, camera=res.camera if res.camera is not None else prob.camera,
-                             map_T_cams=np.asarray(res.map_T_cams), points_map=np.asarray(res.points_map))
-            cov = bundle_adjust(at_res, BundleOptions(loss=self.opt.loss, loss_scale_px=self.opt.loss_scale_px,
+            cov = bundle_adjust(started(results[trial.refine]), BundleOptions(loss=self.opt.loss, loss_scale_px=self.opt.loss_scale_px,
                                                       max_iterations=0, refine_intrinsics=trial.refine,
                                                       compute_covariance=True))
             trial.sigmas = cov.intrinsics_sigma()
@@ -1496,6 +1502,15 @@ class IncrementalAT:
         sel = select_stepwise(candidates, evaluate, min_gain_fraction=self.opt.self_calibration_min_gain,
                               min_gain_px=self.opt.self_calibration_min_gain_px, determine=determine)
         self.self_calibration = sel
+        # The block starts the adjustments that follow from the kept trial's result.
+        res = results.get(tuple(sel.kept))
+        if res is not None and res.status != 'failed':
+            if res.camera is not None:
+                self.camera = res.camera
+            for j, k in enumerate(b.kids):
+                self.kfs[k].map_T_cam = np.asarray(res.map_T_cams[j])
+            if b.tracks:
+                self.points.set_many(b.tracks, np.asarray(res.points_map))
         return sel.kept
 
     # --- memory: freezing what can no longer enter a window (core/at_freeze.py) --------------------
