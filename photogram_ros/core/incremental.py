@@ -1449,9 +1449,9 @@ class IncrementalAT:
         an observation the lens's distortion moved that far counts in full once a model explains it), the
         refined values with their sigmas
         and correlations with the block's height, and the cameras' bowl against their geotags' heights
-        (`height_bowl`, at the block's radius). The block takes the kept trial's poses, points and camera (no
-        observation is dropped here); the caller adjusts it with the kept intrinsics. Returns them (also in
-        `self.self_calibration`)."""
+        (`height_bowl`, at the block's radius). The block is left as it was (only the candidates back at their
+        given values): the caller adjusts it with the kept intrinsics, along the same path as an explicit list
+        of them. Returns them (also in `self.self_calibration`)."""
         iters = iterations or self.opt.full_iterations
         self.camera = _with_intrinsics_of(self.camera, self._camera_given, candidates)
         b = self._problem(list(self.registered), [], list(self.points))
@@ -1502,15 +1502,6 @@ class IncrementalAT:
         sel = select_stepwise(candidates, evaluate, min_gain_fraction=self.opt.self_calibration_min_gain,
                               min_gain_px=self.opt.self_calibration_min_gain_px, determine=determine)
         self.self_calibration = sel
-        # The block starts the adjustments that follow from the kept trial's result.
-        res = results.get(tuple(sel.kept))
-        if res is not None and res.status != 'failed':
-            if res.camera is not None:
-                self.camera = res.camera
-            for j, k in enumerate(b.kids):
-                self.kfs[k].map_T_cam = np.asarray(res.map_T_cams[j])
-            if b.tracks:
-                self.points.set_many(b.tracks, np.asarray(res.points_map))
         return sel.kept
 
     # --- memory: freezing what can no longer enter a window (core/at_freeze.py) --------------------
