@@ -60,6 +60,10 @@ from photogram_ros.core.bundle import BundleOptions, BundleProblem, bundle_adjus
 NADIR_PRIOR_DEG = 2.0
 # What final_self_calibration "auto" selects from, stepwise: the radial distortion of a camera from the EXIF.
 AUTO_CANDIDATES = ('k1', 'k2')
+# A self-calibration trial stops once a step lowers its cost by less than this fraction (its reprojection RMS by
+# about half of it, 0.005 %), far inside the 2 % a candidate must gain; the adjustments keep 1e-6. On the
+# simulator's sample flight (76 keyframes) the trials take 44 s instead of 80 s, choosing alike.
+TRIAL_FUNCTION_TOLERANCE = 1e-4
 
 
 def _clipped_sigma(x: np.ndarray, k: float = 3.5, rounds: int = 5) -> float:
@@ -1471,7 +1475,8 @@ class IncrementalAT:
             before = results.get(tuple(refine[:-1])) if refine else None
             res = bundle_adjust(prob if before is None else started(before),
                                 BundleOptions(loss=self.opt.loss, loss_scale_px=self.opt.loss_scale_px,
-                                              max_iterations=iters, refine_intrinsics=tuple(refine)))
+                                              max_iterations=iters, refine_intrinsics=tuple(refine),
+                                              function_tolerance=TRIAL_FUNCTION_TOLERANCE))
             results[tuple(refine)] = res
             cam = res.camera if res.camera is not None else prob.camera
             T = np.asarray(res.map_T_cams)
