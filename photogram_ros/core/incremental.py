@@ -62,7 +62,7 @@ NADIR_PRIOR_DEG = 2.0
 AUTO_CANDIDATES = ('k1', 'k2')
 # A self-calibration trial stops once a step lowers its cost by less than this fraction (its reprojection RMS by
 # about half of it, 0.005 %), far inside the 2 % a candidate must gain; the adjustments keep 1e-6. On the
-# simulator's sample flight (76 keyframes) the trials take 44 s instead of 80 s, choosing alike.
+# simulator's sample flight (76 keyframes) the trials take 44 s with it, 80 s at 1e-6, and choose alike.
 TRIAL_FUNCTION_TOLERANCE = 1e-4
 
 
@@ -1451,9 +1451,9 @@ class IncrementalAT:
         intrinsics kept so far (the first, none refined, from the block as it is). A trial is measured by the RMS
         of its reprojection residuals, each capped at `max_reprojection_px` (an outlier counts no more than that;
         an observation the lens's distortion moved that far counts in full once a model explains it), the
-        refined values with their sigmas
-        and correlations with the block's height, and the cameras' bowl against their geotags' heights
-        (`height_bowl`, at the block's radius). The block is left as it was (only the candidates back at their
+        refined values with their sigmas and correlations with the block's height (asked only of a candidate
+        that pays), and the cameras' bowl against their geotags' heights (`height_bowl`, at the block's
+        radius). The block is left as it was (only the candidates back at their
         given values): the caller adjusts it with the kept intrinsics, along the same path as an explicit list
         of them. Returns them (also in `self.self_calibration`)."""
         iters = iterations or self.opt.full_iterations
