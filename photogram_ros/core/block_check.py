@@ -240,9 +240,10 @@ def _dome(b: BlockInputs, o: BlockCheckOptions, oriented: np.ndarray, findings: 
                f'{", ".join(sel.get("candidates", []))})' if sel else '')
         shape = 'dome' if bowl['rise_m'] < 0 else 'bowl'
         findings.append(Finding('dome', 'warning', f'the block is bent: its cameras {shape} against their geotag '
-                                f'heights by {bowl["rise_m"]:+.2f} m at the block\'s radius ({bowl["radius_m"]:.0f} m), '
-                                f'{ratio:.1f}x the geotags\' own scatter about that surface ({bowl["scatter_m"]:.3f} '
-                                f'm) and {t:.1f}x its standard error; likely cause: self-calibrated radial distortion in a flat nadir block of '
+                                f'heights by {bowl["rise_m"]:+.2f} m at the block\'s radius '
+                                f'({bowl["radius_m"]:.0f} m), {ratio:.1f}x the geotags\' own scatter about that '
+                                f'surface ({bowl["scatter_m"]:.3f} m) and {t:.1f}x its standard error; likely cause: '
+                                'self-calibrated radial distortion in a flat nadir block of '
                                 f'parallel lines{how}, which trades off with the block\'s curvature (fly cross '
                                 'lines or add GCPs with heights; a calibrated camera)'))
 

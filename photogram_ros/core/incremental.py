@@ -1498,9 +1498,10 @@ class IncrementalAT:
 
         def determine(trial: Trial) -> None:
             # The covariance at the trial's result (zero iterations): sigmas and correlations with the height.
-            cov = bundle_adjust(started(results[trial.refine]), BundleOptions(loss=self.opt.loss, loss_scale_px=self.opt.loss_scale_px,
-                                                      max_iterations=0, refine_intrinsics=trial.refine,
-                                                      compute_covariance=True))
+            cov = bundle_adjust(started(results[trial.refine]),
+                                BundleOptions(loss=self.opt.loss, loss_scale_px=self.opt.loss_scale_px,
+                                              max_iterations=0, refine_intrinsics=trial.refine,
+                                              compute_covariance=True))
             trial.sigmas = cov.intrinsics_sigma()
             trial.height_correlation = cov.intrinsics_height_correlation()
 

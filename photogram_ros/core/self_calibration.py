@@ -183,14 +183,14 @@ def select_stepwise(candidates, evaluate: Callable[[tuple], Trial], base: tuple 
 
 def height_bowl(xy_m, dz_m, radius_m: float | None = None) -> dict:
     """The bowl of `dz_m` (N,) (camera height minus geotag height, m) over the cameras' horizontal positions
-    `xy_m` (N, 2): a quadratic surface fitted by least absolute deviations (iteratively reweighted), then by least squares over the
-    cameras it does not reject; its
-    quadratic part's rise at `radius_m` from the cameras' centre along the mean curvature (m; negative: the
-    cameras dome against their geotags; radius default: the farthest camera), and the scatter of dz about the
-    surface (`scatter_m`: the RMS about it of the cameras within 5 robust sigmas, for 6 parameters): how
-    consistent the geotag heights are relative to each other; and the rise's standard error from that scatter
-    and the cameras' layout (`rise_sigma_m`, inf when the layout does not determine a quadratic). Needs 7 or more cameras (DataError-free: with
-    fewer, {'n': N} only)."""
+    `xy_m` (N, 2): a quadratic surface fitted by least absolute deviations (iteratively reweighted), then by least
+    squares over the cameras it does not reject. Returns its quadratic part's rise at `radius_m` from the
+    cameras' centre along the mean curvature (`rise_m`; negative: the cameras dome against their geotags; radius
+    default: the farthest camera), its curvatures (1/km), the scatter of dz about the surface (`scatter_m`: the
+    RMS about it of the cameras within 5 robust sigmas, for 6 parameters): how consistent the geotag heights are
+    relative to each other; and the rise's standard error from that scatter and the cameras' layout
+    (`rise_sigma_m`, inf when the layout does not determine a quadratic). Needs 7 or more cameras: with fewer,
+    {'n': N} only."""
     xy = np.asarray(xy_m, float).reshape(-1, 2)
     dz = np.asarray(dz_m, float).ravel()
     ok = np.all(np.isfinite(xy), axis=1) & np.isfinite(dz)

@@ -312,8 +312,9 @@ def write_report(rep: dict, out_dir) -> tuple[Path, Path]:
     sel = rep.get('self_calibration_selection')
     if sel:
         cam.text.append(f"Stepwise self-calibration from {', '.join(sel['candidates'])}: kept "
-                        f"{', '.join(sel['kept']) or 'none'}. A candidate is kept when it lowers the reprojection RMS "
-                        f"by at least {100 * sel['min_gain_fraction']:g} % and {sel['min_gain_px']:g} px and is "
+                        f"{', '.join(sel['kept']) or 'none'}. A candidate is kept when it lowers the reprojection "
+                        "RMS (every trial on the same observations, residuals capped at the outlier threshold) by "
+                        f"at least {100 * sel['min_gain_fraction']:g} % and {sel['min_gain_px']:g} px and is "
                         "determined; the bowl is the cameras' against their geotag heights at the block's radius "
                         "(negative: a dome).")
         cam.tables.append(('Stepwise self-calibration: candidates', _selection_rows(sel)))
