@@ -47,11 +47,16 @@ def test_a_lens_with_k1_keeps_both():
 
 def test_undetermined_or_failed_parameters_are_left_out():
     def evaluate(refine):
-        corr = {'f': 0.97} if 'f' in refine else {}
-        return Trial(tuple(refine), 1.0 - 0.2 * ('f' in refine) - 0.1 * ('k1' in refine), height_correlation=corr)
+        # f pays most but moves by 2 px at a sigma of 1 px; a correlation with the height alone is not used.
+        sig = {'f': 1.0, 'k1': 0.001} if refine else {}
+        moved = {n: {'f': 2.0, 'k1': -0.08}[n] for n in refine}
+        return Trial(tuple(refine), 1.0 - 0.2 * ('f' in refine) - 0.1 * ('k1' in refine), moved=moved, sigmas=sig,
+                     height_correlation={'k1': -0.95} if 'k1' in refine else {})
     sel = select_stepwise(('f', 'k1'), evaluate)
     assert sel.kept == ()
     assert 'not determined' in sel.decisions[0].reason
+    sel = select_stepwise(('k1',), evaluate)
+    assert sel.kept == ('k1',)
     with pytest.raises(ConfigError):
         select_stepwise(('k9',), evaluate)
     with pytest.raises(ConfigError):
@@ -59,6 +64,8 @@ def test_undetermined_or_failed_parameters_are_left_out():
     # base is always refined, candidates come after it
     sel = select_stepwise(('k1',), evaluate, base=('f',))
     assert sel.kept == ('f', 'k1') and sel.trials[0].refine == ('f',)
+    with pytest.raises(ConfigError):
+        select_stepwise(('k1',), evaluate, min_sigmas=-1.0)
 
 
 def test_the_covariance_is_asked_only_of_a_candidate_that_pays():

@@ -1451,8 +1451,8 @@ class IncrementalAT:
         intrinsics kept so far (the first, none refined, from the block as it is). A trial is measured by the RMS
         of its reprojection residuals, each capped at `max_reprojection_px` (an outlier counts no more than that;
         an observation the lens's distortion moved that far counts in full once a model explains it), the
-        refined values with their sigmas and correlations with the block's height (asked only of a candidate
-        that pays), and the cameras' bowl against their geotags' heights (`height_bowl`, at the block's
+        refined values (and how far they moved from the given ones) with their sigmas and correlations with the
+        block's height (asked only of a candidate that pays), and the cameras' bowl against their geotags' heights (`height_bowl`, at the block's
         radius). The block is left as it was (only the candidates back at their
         given values): the caller adjusts it with the kept intrinsics, along the same path as an explicit list
         of them. Returns them (also in `self.self_calibration`)."""
@@ -1487,14 +1487,18 @@ class IncrementalAT:
             err = np.linalg.norm(cam.normalized_to_pixel(pc[:, :2] / z[:, None]) - prob.obs_uv, axis=1)
             err = np.minimum(np.nan_to_num(err, nan=np.inf), self.opt.max_reprojection_px)
             rms = float(np.sqrt(np.mean(err ** 2))) if res.status != 'failed' else float('nan')
-            values = {n: float(v) for n, v in (('f', cam.fx), ('cx', cam.cx), ('cy', cam.cy),
-                                                *zip(('k1', 'k2', 'p1', 'p2', 'k3'), cam.dist)) if n in refine}
+            given = self._camera_given
+
+            def named(c):
+                return {'f': c.fx, 'cx': c.cx, 'cy': c.cy, **dict(zip(('k1', 'k2', 'p1', 'p2', 'k3'), c.dist))}
+            values = {n: float(v) for n, v in named(cam).items() if n in refine}
+            moved = {n: v - float(named(given)[n]) for n, v in values.items()}
             bowl = None
             if prob.gnss_cam is not None and len(prob.gnss_cam) >= 7:
                 Tg = T[prob.gnss_cam]
                 ant = Tg[:, :3, 3] + Tg[:, :3, :3] @ prob.lever_arm_cam_m
                 bowl = height_bowl(prob.gnss_pos_map[:, :2], ant[:, 2] - prob.gnss_pos_map[:, 2]).get('rise_m')
-            return Trial(tuple(refine), rms, values, bowl_m=bowl, status=res.status)
+            return Trial(tuple(refine), rms, values, moved, bowl_m=bowl, status=res.status)
 
         def determine(trial: Trial) -> None:
             # The covariance at the trial's result (zero iterations): sigmas and correlations with the height.

@@ -314,8 +314,8 @@ def write_report(rep: dict, out_dir) -> tuple[Path, Path]:
         cam.text.append(f"Stepwise self-calibration from {', '.join(sel['candidates'])}: kept "
                         f"{', '.join(sel['kept']) or 'none'}. A candidate is kept when it lowers the reprojection "
                         "RMS (every trial on the same observations, residuals capped at the outlier threshold) by "
-                        f"at least {100 * sel['min_gain_fraction']:g} % and {sel['min_gain_px']:g} px and is "
-                        "determined; the bowl is the cameras' against their geotag heights at the block's radius "
+                        f"at least {100 * sel['min_gain_fraction']:g} % and {sel['min_gain_px']:g} px and moves "
+                        f"by at least {sel.get('min_sigmas', 3.0):g} of its sigmas; the bowl is the cameras' against their geotag heights at the block's radius "
                         "(negative: a dome).")
         cam.tables.append(('Stepwise self-calibration: candidates', _selection_rows(sel)))
         cam.tables.append(('Stepwise self-calibration: trials', _trial_rows(sel)))
