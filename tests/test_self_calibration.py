@@ -64,6 +64,7 @@ def test_undetermined_or_failed_parameters_are_left_out():
     # base is always refined, candidates come after it
     sel = select_stepwise(('k1',), evaluate, base=('f',))
     assert sel.kept == ('f', 'k1') and sel.trials[0].refine == ('f',)
+    assert 'stepwise from k1; f refined throughout' in sel.text() and 'with f refined' in sel.text()
     with pytest.raises(ConfigError):
         select_stepwise(('k1',), evaluate, min_sigmas=-1.0)
 

@@ -60,6 +60,8 @@ from photogram_ros.core.bundle import BundleOptions, BundleProblem, bundle_adjus
 NADIR_PRIOR_DEG = 2.0
 # What final_self_calibration "auto" selects from, stepwise: the radial distortion of a camera from the EXIF.
 AUTO_CANDIDATES = ('k1', 'k2')
+# Intrinsics a stepwise self-calibration refines whenever they are candidates (`select_self_calibration`).
+SELF_CALIBRATION_BASE = ('f', 'cx', 'cy')
 # A self-calibration trial stops once a step lowers its cost by less than this fraction (its reprojection RMS by
 # about half of it, 0.005 %), far inside the 2 % a candidate must gain; the adjustments keep 1e-6. On the
 # simulator's sample flight (76 keyframes) the trials take 44 s with it, 80 s at 1e-6, and choose alike.
@@ -1445,7 +1447,8 @@ class IncrementalAT:
 
     def select_self_calibration(self, candidates: tuple, iterations: int | None = None) -> tuple:
         """The stepwise self-calibration (core/self_calibration.py `select_stepwise`): which of `candidates`
-        the block's final adjustment refines. The candidates start from the camera as given (a self-calibration
+        the block's final adjustment refines: f, cx and cy among them always (`SELF_CALIBRATION_BASE`), the
+        distortion terms when they pay. The candidates start from the camera as given (a self-calibration
         made before is undone), and each trial adjusts one and the same problem (the block's active observations,
         the fixes at their current weights) with its intrinsics refined, from the result of the trial of the
         intrinsics kept so far (the first, none refined, from the block as it is). A trial is measured by the RMS
@@ -1509,7 +1512,12 @@ class IncrementalAT:
             trial.sigmas = cov.intrinsics_sigma()
             trial.height_correlation = cov.intrinsics_height_correlation()
 
-        sel = select_stepwise(candidates, evaluate, min_gain_fraction=self.opt.self_calibration_min_gain,
+        # The focal and the principal point, when asked for, are refined in every trial: what they are worth shows
+        # against GCP heights or precise geotags, not in the reprojection (the simulator's PPK flight: the principal
+        # point buys 0.7 % of the RMS and halves the check points' error). The distortion terms are selected.
+        base = tuple(c for c in candidates if c in SELF_CALIBRATION_BASE)
+        sel = select_stepwise(tuple(c for c in candidates if c not in base), evaluate, base=base,
+                              min_gain_fraction=self.opt.self_calibration_min_gain,
                               min_gain_px=self.opt.self_calibration_min_gain_px, determine=determine)
         self.self_calibration = sel
         return sel.kept

@@ -102,11 +102,12 @@ class Selection:
     min_gain_fraction: float
     min_gain_px: float
     min_sigmas: float = MIN_SIGMAS
+    base: tuple = ()
 
     def to_dict(self) -> dict:
         return {'method': 'stepwise', 'candidates': list(self.candidates), 'kept': list(self.kept),
                 'min_gain_fraction': self.min_gain_fraction, 'min_gain_px': self.min_gain_px,
-                'min_sigmas': self.min_sigmas,
+                'min_sigmas': self.min_sigmas, 'base': list(self.base),
                 'decisions': [d.to_dict() for d in self.decisions], 'trials': [t.to_dict() for t in self.trials]}
 
     def text(self) -> str:
@@ -121,9 +122,11 @@ class Selection:
                              f'{"lowers" if d.gain_px >= 0 else "raises"} the reprojection RMS by '
                              f'{abs(d.gain_px):.4f} px ({100 * abs(d.gain_fraction):.2f} %; {d.reason})')
         bowls = [f'{"+".join(t.refine) or "none"} {t.bowl_m:+.2f} m' for t in self.trials if t.bowl_m is not None]
-        return (f'self-calibration (stepwise from {", ".join(self.candidates)}): kept '
-                f'{", ".join(self.kept) or "none"}; '
-                + (f'with none refined {first.rms_px:.4f} px; ' if first is not None else '') + '; '.join(parts)
+        base = ', '.join(self.base)
+        return (f'self-calibration (stepwise from {", ".join(self.candidates)}'
+                + (f'; {base} refined throughout' if base else '') + f'): kept {", ".join(self.kept) or "none"}; '
+                + (f'with {base or "none"} refined {first.rms_px:.4f} px; ' if first is not None else '')
+                + '; '.join(parts)
                 + f' (a parameter is kept when it lowers the reprojection RMS by >= {100 * self.min_gain_fraction:g} '
                   f'% and >= {self.min_gain_px:g} px and moves by >= {self.min_sigmas:g} of its sigmas)'
                 + (f'; the cameras\' bowl against their geotag heights at the block\'s radius per trial: '
@@ -186,7 +189,7 @@ def select_stepwise(candidates, evaluate: Callable[[tuple], Trial], base: tuple 
     for c in candidates:
         decisions.setdefault(c, Decision(c, False, None, None, 'not tried'))
     return Selection(candidates, kept, trials, [decisions[c] for c in candidates], float(min_gain_fraction),
-                     float(min_gain_px), float(min_sigmas))
+                     float(min_gain_px), float(min_sigmas), tuple(base))
 
 
 def height_bowl(xy_m, dz_m, radius_m: float | None = None) -> dict:
