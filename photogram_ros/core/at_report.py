@@ -241,6 +241,11 @@ def build_report(at, assumptions: list[str] | None = None, gsd_m: float | None =
         'per_image': per_image,
         'assumptions': list(assumptions or []),
     }
+    sel = getattr(at, 'self_calibration', None)
+    if sel is not None:
+        # The stepwise self-calibration: every trial, what each candidate bought and what was kept.
+        rep['self_calibration_selection'] = sel.to_dict()
+        rep['assumptions'].append(sel.text())
     if vetting is not None:
         rep['control'] = vetting.to_dict()
     if gnss_without_gcps is not None:

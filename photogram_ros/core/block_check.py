@@ -25,6 +25,11 @@ The checks, each against what the data itself says:
 - check_points: check points that disagree with the block far beyond the noise of its datum (its GNSS,
   at least 2 cm): the block or the control is wrong.
 - convergence: a final adjustment that stopped short and still moves cameras: warning.
+- dome: the cameras' heights against their geotag heights, a quadratic surface over the block
+  (core/self_calibration.py `height_bowl`): its rise at the block's radius against the geotags' own scatter
+  about it. A level flight's altitudes (a barometer: centimetres from photo to photo) cannot dome, so a
+  block whose cameras dome against them by far more than that scatter is bent, most often by self-calibrated
+  radial distortion in a flat nadir block of parallel lines: warning. Judged after a full adjustment only.
 - gnss_noise: the GNSS noise the adjustment estimated from the data, against what the fixes state:
   geotags poorer than they claim are said, and those it rejected are named; a horizontal scatter beyond
   what any drone's GNSS shows in one flight (`noise_h_fail_m`) is a block whose shape is wrong: failed.
@@ -36,6 +41,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from photogram_ros.core.self_calibration import height_bowl
 from photogram_ros.core.similarity import similarity_ransac, umeyama
 
 STATUS_ORDER = ('ok', 'warning', 'failed')
@@ -60,6 +66,11 @@ class BlockCheckOptions:
     level_warn_deg: float = 1.0         # tilt the GNSS heights gave the block beyond the one kept (deg): warning above
     check_warn: float = 5.0             # check-point RMSE / the datum's noise (>= 2 cm): warning above
     check_fail: float = 20.0            # ... failed above
+    dome_warn_ratio: float = 4.0        # |rise| of the cameras' bowl against their geotag heights at the block's
+                                        # radius / the geotags' scatter about it (at least 1 cm), and / the rise's
+                                        # standard error (the cameras' layout: one or two lines do not determine
+                                        # it): warning above both (and dome_warn_m)
+    dome_warn_m: float = 0.15           # ... and |rise| above this, m
 
 
 @dataclass
@@ -112,6 +123,7 @@ class BlockInputs:
     n_photos: int | None = None
     excluded: dict = field(default_factory=dict)    # photo name -> why it was left out of the block
     check_rmse_hv_m: tuple | None = None            # check points: (RMSE horizontal m, vertical m, count)
+    self_calibration: dict = field(default_factory=dict)  # the stepwise self-calibration's selection (to_dict())
 
 
 def inputs_from_at(at, n_photos: int | None = None, adjustment: dict | None = None,
@@ -141,8 +153,10 @@ def inputs_from_at(at, n_photos: int | None = None, adjustment: dict | None = No
             P = at.keyframe_points(kf.kid) if thaw or not kf.frozen else np.zeros((0, 3))
             if len(P):
                 gz[i] = float(np.median(P[:, 2]))
+    sel = getattr(at, 'self_calibration', None)
     return BlockInputs([kf.name for kf in kfs], T, fix, sig, gz, dict(at.gnss_noise), adjustment or {},
-                       expect_nadir, n_photos if n_photos is not None else n, dict(excluded or {}))
+                       expect_nadir, n_photos if n_photos is not None else n, dict(excluded or {}),
+                       self_calibration=sel.to_dict() if sel is not None else {})
 
 
 def _worse(a: str, b: str) -> str:
@@ -201,6 +215,37 @@ def _gnss_fit(b: BlockInputs, o: BlockCheckOptions, oriented: np.ndarray, findin
                                 f'{int(out.sum())} geotags lie far from where the block puts their photos (more than '
                                 f'{o.gnss_outlier:g}x the GNSS noise; up to {rh[out].max():.1f} m H, {rv[out].max():.1f} m '
                                 f'V): glitched geotags or photos of another site: {", ".join(names[:8])}', names[:50]))
+
+
+def _dome(b: BlockInputs, o: BlockCheckOptions, oriented: np.ndarray, findings: list, figures: dict) -> None:
+    if not (b.adjustment or {}).get('status'):
+        return   # a block in flight between full adjustments: its window updates leave it bent until the next one
+    rejected = set(b.gnss_noise.get('rejected', []))
+    use = oriented & np.all(np.isfinite(b.fix_enu_m), axis=1) & np.array([n not in rejected for n in b.names])
+    if use.sum() < 7:
+        return
+    C = b.map_T_cam[use, :3, 3]
+    F = b.fix_enu_m[use]
+    bowl = height_bowl(F[:, :2], C[:, 2] - F[:, 2])
+    # The geotags' scatter at least 1 cm (heights are written to the centimetre at best).
+    scatter = max(bowl['scatter_m'], 0.01)
+    ratio = abs(bowl['rise_m']) / scatter
+    rs = bowl['rise_sigma_m']
+    t = abs(bowl['rise_m']) / rs if np.isfinite(rs) and rs > 0 else 0.0
+    figures['dome'] = {**bowl, 'rise_sigma_m': rs if np.isfinite(rs) else None, 'ratio_to_scatter': ratio,
+                       'ratio_to_sigma': t}
+    if ratio > o.dome_warn_ratio and t > o.dome_warn_ratio and abs(bowl['rise_m']) > o.dome_warn_m:
+        sel = b.self_calibration or {}
+        how = (f' (the stepwise self-calibration kept {", ".join(sel.get("kept", [])) or "none"} of '
+               f'{", ".join(sel.get("candidates", []))})' if sel else '')
+        shape = 'dome' if bowl['rise_m'] < 0 else 'bowl'
+        findings.append(Finding('dome', 'warning', f'the block is bent: its cameras {shape} against their geotag '
+                                f'heights by {bowl["rise_m"]:+.2f} m at the block\'s radius '
+                                f'({bowl["radius_m"]:.0f} m), {ratio:.1f}x the geotags\' own scatter about that '
+                                f'surface ({bowl["scatter_m"]:.3f} m) and {t:.1f}x its standard error; likely cause: '
+                                'self-calibrated radial distortion in a flat nadir block of '
+                                f'parallel lines{how}, which trades off with the block\'s curvature (fly cross '
+                                'lines or add GCPs with heights; a calibrated camera)'))
 
 
 def check_block(b: BlockInputs, o: BlockCheckOptions | None = None) -> BlockVerdict:
@@ -293,6 +338,7 @@ def check_block(b: BlockInputs, o: BlockCheckOptions | None = None) -> BlockVerd
                                     f'the {n_chk} check points disagree with the block by {h:.2f} m H / {v:.2f} m V, '
                                     f'{ratio:.0f}x the noise of its datum ({noise[0]:.2f} m H, {noise[1]:.2f} m V): '
                                     'the block or the control file is wrong'))
+    _dome(b, o, oriented, findings, figures)
     # GNSS noise.
     g = b.gnss_noise
     rejected = list(g.get('rejected', []))

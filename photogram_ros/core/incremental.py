@@ -45,6 +45,8 @@ from photogram_ros.core.camera import PinholeCamera
 from photogram_ros.core.geodesy import LocalFrame
 from photogram_ros.core.gnss_fix import GnssFix
 from photogram_ros.core.rotations import R_from_rotvec, invert_T, make_T
+from photogram_ros.core.self_calibration import (INTRINSICS, MIN_GAIN_FRACTION, MIN_GAIN_PX, Selection, Trial,
+                                                 height_bowl, select_stepwise)
 from photogram_ros.core.similarity import similarity_on_line, similarity_ransac, spread
 from photogram_ros.core.two_view import relative_pose, scene_facing
 from photogram_ros.core.window import neighbour_keyframes, select_window
@@ -56,6 +58,14 @@ from photogram_ros.core.bundle import BundleOptions, BundleProblem, bundle_adjus
 # How far the mean optical axis of a nadir flight may lie from the vertical (1 sigma, degrees): a gimbal
 # held at nadir, or a camera fixed to look down, over a whole flight.
 NADIR_PRIOR_DEG = 2.0
+# What final_self_calibration "auto" selects from, stepwise: the radial distortion of a camera from the EXIF.
+AUTO_CANDIDATES = ('k1', 'k2')
+# Intrinsics a stepwise self-calibration refines whenever they are candidates (`select_self_calibration`).
+SELF_CALIBRATION_BASE = ('f', 'cx', 'cy')
+# A self-calibration trial stops once a step lowers its cost by less than this fraction (its reprojection RMS by
+# about half of it, 0.005 %), far inside the 2 % a candidate must gain; the adjustments keep 1e-6. On the
+# simulator's sample flight (76 keyframes) the trials take 44 s with it, 80 s at 1e-6, and choose alike.
+TRIAL_FUNCTION_TOLERANCE = 1e-4
 
 
 def _clipped_sigma(x: np.ndarray, k: float = 3.5, rounds: int = 5) -> float:
@@ -159,8 +169,15 @@ class IncrementalOptions:
     gnss_noise_min_keyframes: int = param(8, 'oriented keyframes with a fix the GNSS noise estimate needs',
                                           min=4, max=100000)
     final_self_calibration: str = param('', 'intrinsics the final full adjustment refines, comma separated (from f, '
-                                             'cx, cy, k1, k2, p1, p2, k3; empty: none): a camera from the EXIF, whose '
-                                             'distortion nobody measured, wants "k1,k2"')
+                                             'cx, cy, k1, k2, p1, p2, k3; empty: none; all of them refined), or '
+                                             '"auto": stepwise from k1, k2, each kept only when it pays in '
+                                             'reprojection (core/self_calibration.py): a camera from the EXIF, whose '
+                                             'distortion nobody measured, wants "auto"')
+    self_calibration_min_gain: float = param(MIN_GAIN_FRACTION, 'stepwise self-calibration: a candidate intrinsic '
+                                             'is kept when it lowers the reprojection RMS by at least this fraction '
+                                             'of it (and self_calibration_min_gain_px)', min=0.0, max=1.0)
+    self_calibration_min_gain_px: float = param(MIN_GAIN_PX, 'stepwise self-calibration: ... and by at least this, '
+                                                'px', min=0.0, max=100.0)
     gnss_tighten: bool = param(False, 'the GNSS noise estimate may also weight the fixes tighter than they state '
                                       '(a consumer geotag states metres): horizontally by their residuals about '
                                       'the block, vertically by their heights\' scatter about the flight\'s plane')
@@ -189,18 +206,25 @@ class IncrementalOptions:
         if len(self.lever_arm_body_frd_m) != 3:
             raise ConfigError(f'lever_arm_body_frd_m needs 3 numbers (forward, right, down), got '
                               f'{self.lever_arm_body_frd_m}')
-        bad = [v for v in self.final_refine if v not in ('f', 'cx', 'cy', 'k1', 'k2', 'p1', 'p2', 'k3')]
+        bad = [v for v in self.final_refine if v not in INTRINSICS]
         if bad:
             raise ConfigError(f'final_self_calibration: {bad} are not intrinsics; choose from f, cx, cy, k1, k2, p1, '
-                              'p2, k3')
+                              'p2, k3, or give "auto"')
         if any(self.lever_arm_body_frd_m) and any(self.lever_arm_cam_m):
             raise ConfigError('give the GNSS lever arm once: lever_arm_cam_m for a camera fixed to the body, '
                               'lever_arm_body_frd_m for a gimballed camera (the other all zeros)')
 
     @property
     def final_refine(self) -> tuple:
-        """final_self_calibration as a tuple of names."""
+        """final_self_calibration as a tuple of names (with "auto": the candidates of the stepwise selection)."""
+        if self.final_stepwise:
+            return AUTO_CANDIDATES
         return tuple(v.strip() for v in self.final_self_calibration.split(',') if v.strip())
+
+    @property
+    def final_stepwise(self) -> bool:
+        """final_self_calibration is "auto": the final adjustment selects from the candidates stepwise."""
+        return self.final_self_calibration.strip().lower() == 'auto'
 
     @property
     def gimbal(self) -> bool:
@@ -287,6 +311,10 @@ class IncrementalAT:
     def __init__(self, camera: PinholeCamera, options: IncrementalOptions | None = None,
                  origin: LocalFrame | None = None, control: list[ControlPoint] | None = None, ties=()):
         self.camera = camera
+        # The camera as given: a stepwise self-calibration starts its candidates from these values.
+        self._camera_given = camera
+        # The last stepwise self-calibration's selection (core/self_calibration.py), None when none was made.
+        self.self_calibration: Selection | None = None
         self.opt = options or IncrementalOptions()
         self.origin = origin
         self.kfs: list[Keyframe] = []
@@ -1352,18 +1380,21 @@ class IncrementalAT:
         return rep
 
     def full_adjustment(self, iterations: int | None = None, rounds: int = 2,
-                        refine_intrinsics: tuple = (), gnss_noise: bool = True) -> StepReport:
+                        refine_intrinsics: tuple = (), gnss_noise: bool = True,
+                        stepwise: bool = False) -> StepReport:
         """Adjust every registered keyframe and point; repeated so that removed outliers settle.
 
         refine_intrinsics (e.g. ('f', 'k1')) self-calibrates the shared camera in this adjustment and in
         the GNSS noise estimate's adjustments (the fixes weighted by their estimated noise); the GNSS
         bias's adjustments hold it (with the bias free, the GCPs alone fix the cameras' heights);
+        stepwise: refine_intrinsics are candidates, of which `select_self_calibration` keeps those that pay;
         gnss_noise: estimate the flight's GNSS noise afterwards (`estimate_gnss_noise`, when the option
         is on and the block is georeferenced for good); such a final adjustment refines the option
-        `final_self_calibration` when refine_intrinsics is not given.
+        `final_self_calibration` when refine_intrinsics is not given (stepwise when it is "auto").
         """
         if not refine_intrinsics and gnss_noise:
             refine_intrinsics = self.opt.final_refine
+            stepwise = stepwise or self.opt.final_stepwise
         rep = StepReport(-1, False, 'not_initialised')
         if not self.registered:
             return rep
@@ -1376,6 +1407,8 @@ class IncrementalAT:
                 self._join_segment()
         if self.ties:
             self._retriangulate_ties()
+        if stepwise and refine_intrinsics:
+            refine_intrinsics = self.select_self_calibration(refine_intrinsics, iterations)
         for _ in range(rounds):
             tracks = list(self.points)
             rep = self._solve(list(self.registered), [], tracks, iterations or self.opt.full_iterations,
@@ -1411,6 +1444,83 @@ class IncrementalAT:
         if self.opt.spill_frozen:
             self.freeze()   # the adjustment read every keyframe back: spill the frozen ones again
         return rep
+
+    def select_self_calibration(self, candidates: tuple, iterations: int | None = None) -> tuple:
+        """The stepwise self-calibration (core/self_calibration.py `select_stepwise`): which of `candidates`
+        the block's final adjustment refines: f, cx and cy among them always (`SELF_CALIBRATION_BASE`), the
+        distortion terms when they pay. The candidates start from the camera as given (a self-calibration
+        made before is undone), and each trial adjusts one and the same problem (the block's active observations,
+        the fixes at their current weights) with its intrinsics refined, from the result of the trial of the
+        intrinsics kept so far (the first, none refined, from the block as it is). A trial is measured by the RMS
+        of its reprojection residuals, each capped at `max_reprojection_px` (an outlier counts no more than that;
+        an observation the lens's distortion moved that far counts in full once a model explains it), the
+        refined values (and how far they moved from the given ones) with their sigmas and correlations with the
+        block's height (asked only of a candidate that pays), and the cameras' bowl against their geotags' heights (`height_bowl`, at the block's
+        radius). The block is left as it was (only the candidates back at their
+        given values): the caller adjusts it with the kept intrinsics, along the same path as an explicit list
+        of them. Returns them (also in `self.self_calibration`)."""
+        iters = iterations or self.opt.full_iterations
+        self.camera = _with_intrinsics_of(self.camera, self._camera_given, candidates)
+        b = self._problem(list(self.registered), [], list(self.points))
+        if b.prob is None:
+            self.self_calibration = None
+            return ()
+        prob = b.prob
+
+        results = {}
+
+        def started(res):
+            return replace(prob, camera=res.camera if res.camera is not None else prob.camera,
+                           map_T_cams=np.asarray(res.map_T_cams), points_map=np.asarray(res.points_map))
+
+        def evaluate(refine: tuple) -> Trial:
+            # From the adjustment of the intrinsics kept so far (the first from the block as it is).
+            before = results.get(tuple(refine[:-1])) if refine else None
+            res = bundle_adjust(prob if before is None else started(before),
+                                BundleOptions(loss=self.opt.loss, loss_scale_px=self.opt.loss_scale_px,
+                                              max_iterations=iters, refine_intrinsics=tuple(refine),
+                                              function_tolerance=TRIAL_FUNCTION_TOLERANCE))
+            results[tuple(refine)] = res
+            cam = res.camera if res.camera is not None else prob.camera
+            T = np.asarray(res.map_T_cams)
+            P = np.asarray(res.points_map)
+            To = T[prob.obs_cam]
+            pc = np.einsum('nji,nj->ni', To[:, :3, :3], P[prob.obs_pt] - To[:, :3, 3])
+            z = np.where(pc[:, 2] > 1e-9, pc[:, 2], np.nan)
+            err = np.linalg.norm(cam.normalized_to_pixel(pc[:, :2] / z[:, None]) - prob.obs_uv, axis=1)
+            err = np.minimum(np.nan_to_num(err, nan=np.inf), self.opt.max_reprojection_px)
+            rms = float(np.sqrt(np.mean(err ** 2))) if res.status != 'failed' else float('nan')
+            given = self._camera_given
+
+            def named(c):
+                return {'f': c.fx, 'cx': c.cx, 'cy': c.cy, **dict(zip(('k1', 'k2', 'p1', 'p2', 'k3'), c.dist))}
+            values = {n: float(v) for n, v in named(cam).items() if n in refine}
+            moved = {n: v - float(named(given)[n]) for n, v in values.items()}
+            bowl = None
+            if prob.gnss_cam is not None and len(prob.gnss_cam) >= 7:
+                Tg = T[prob.gnss_cam]
+                ant = Tg[:, :3, 3] + Tg[:, :3, :3] @ prob.lever_arm_cam_m
+                bowl = height_bowl(prob.gnss_pos_map[:, :2], ant[:, 2] - prob.gnss_pos_map[:, 2]).get('rise_m')
+            return Trial(tuple(refine), rms, values, moved, bowl_m=bowl, status=res.status)
+
+        def determine(trial: Trial) -> None:
+            # The covariance at the trial's result (zero iterations): sigmas and correlations with the height.
+            cov = bundle_adjust(started(results[trial.refine]),
+                                BundleOptions(loss=self.opt.loss, loss_scale_px=self.opt.loss_scale_px,
+                                              max_iterations=0, refine_intrinsics=trial.refine,
+                                              compute_covariance=True))
+            trial.sigmas = cov.intrinsics_sigma()
+            trial.height_correlation = cov.intrinsics_height_correlation()
+
+        # The focal and the principal point, when asked for, are refined in every trial: what they are worth shows
+        # against GCP heights or precise geotags, not in the reprojection (the simulator's PPK flight: the principal
+        # point buys 0.7 % of the RMS and halves the check points' error). The distortion terms are selected.
+        base = tuple(c for c in candidates if c in SELF_CALIBRATION_BASE)
+        sel = select_stepwise(tuple(c for c in candidates if c not in base), evaluate, base=base,
+                              min_gain_fraction=self.opt.self_calibration_min_gain,
+                              min_gain_px=self.opt.self_calibration_min_gain_px, determine=determine)
+        self.self_calibration = sel
+        return sel.kept
 
     # --- memory: freezing what can no longer enter a window (core/at_freeze.py) --------------------
 
@@ -1508,6 +1618,16 @@ class IncrementalAT:
         if len(Ts) < 2:
             return None
         return intersect_point(self.camera, np.array(Ts), uv)
+
+
+def _with_intrinsics_of(camera: PinholeCamera, given: PinholeCamera, names) -> PinholeCamera:
+    """`camera` with the intrinsics `names` ('f', 'cx', 'cy', 'k1', 'k2', 'p1', 'p2', 'k3') taken from `given`."""
+    kw = {}
+    if 'f' in names:
+        kw.update(fx=given.fx, fy=given.fy)
+    kw.update({n: getattr(given, n) for n in ('cx', 'cy') if n in names})
+    dist = [given.dist[i] if n in names else camera.dist[i] for i, n in enumerate(('k1', 'k2', 'p1', 'p2', 'k3'))]
+    return replace(camera, dist=tuple(dist), **kw)
 
 
 def reprojection_residuals_px(camera: PinholeCamera, map_T_cams: np.ndarray, uv: np.ndarray,

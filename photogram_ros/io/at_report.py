@@ -192,6 +192,18 @@ def _self_cal_rows(rep: dict) -> list[dict]:
             for k, v in sc.items() if isinstance(v, dict) and 'before' in v]
 
 
+def _selection_rows(sel: dict) -> list[dict]:
+    return [{'parameter': d['name'], 'kept': 'yes' if d['kept'] else 'no', 'RMS gain px': d['gain_px'],
+             'RMS gain %': None if d['gain_fraction'] is None else 100 * d['gain_fraction'], 'why': d['reason']}
+            for d in sel['decisions']]
+
+
+def _trial_rows(sel: dict) -> list[dict]:
+    return [{'refined': ', '.join(t['refine']) or 'none', 'RMS px': t['rms_px'],
+             'values': ', '.join(f'{k} {v:.5g}' for k, v in t['values'].items()),
+             'bowl m': t.get('bowl_m')} for t in sel['trials']]
+
+
 def _focal_text(rep: dict) -> list[str]:
     f = (rep.get('self_calibration') or {}).get('focal')
     if not f:
@@ -297,6 +309,16 @@ def write_report(rep: dict, out_dir) -> tuple[Path, Path]:
                         'unit weight' + (f' s0 = {s0:.3f} px' if s0 is not None else '') + ').')
         cam.tables.append(('Self-calibration', sc_rows))
     cam.text += _focal_text(rep)
+    sel = rep.get('self_calibration_selection')
+    if sel:
+        cam.text.append(f"Stepwise self-calibration from {', '.join(sel['candidates'])}: kept "
+                        f"{', '.join(sel['kept']) or 'none'}. A candidate is kept when it lowers the reprojection "
+                        "RMS (every trial on the same observations, residuals capped at the outlier threshold) by "
+                        f"at least {100 * sel['min_gain_fraction']:g} % and {sel['min_gain_px']:g} px and moves "
+                        f"by at least {sel.get('min_sigmas', 3.0):g} of its sigmas; the bowl is the cameras' against their geotag heights at the block's radius "
+                        "(negative: a dome).")
+        cam.tables.append(('Stepwise self-calibration: candidates', _selection_rows(sel)))
+        cam.tables.append(('Stepwise self-calibration: trials', _trial_rows(sel)))
     sections.append(cam)
     if rep.get('matching'):
         sections.append(Section('Matching', _matching_text(rep)))

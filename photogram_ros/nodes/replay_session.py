@@ -251,9 +251,9 @@ def _camera_setup(opts: ReplayOptions, extra: dict) -> tuple:
     roles = ('camera', 'tracker', 'bundle', 'stereo', 'map')
     no_body_lever_arm(opts, extra, roles, 'a photo folder or a video has no attitude')
     if source_kind(opts.bag) == 'photos' and not opts.calibration_file:
-        # The EXIF gives the focal length, not the lens's distortion: the final adjustment refines k1, k2,
-        # as `triangulate` does for such a camera.
-        extra.setdefault('bundle', {}).setdefault('final_self_calibration', 'k1,k2')
+        # The EXIF gives the focal length, not the lens's distortion: the final adjustment self-calibrates
+        # k1, k2 stepwise (each kept only when it pays), as `triangulate` does for such a camera.
+        extra.setdefault('bundle', {}).setdefault('final_self_calibration', 'auto')
     return roles
 
 
