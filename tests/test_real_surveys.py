@@ -169,6 +169,13 @@ def gate(row: dict, key: tuple) -> None:
     assert row['exit'] == 0 and not row.get('measure_error')
 
 
+def only_bent(verdict: dict) -> bool:
+    """OK, or a warning whose every finding is the dome check's (the cameras dome against their geotag
+    heights: measured on brighton's and toledo's blocks, and pycolmap's toledo domes alike)."""
+    warned = [f for f in verdict.get('findings', []) if f['status'] != 'ok']
+    return verdict['status'] == 'ok' or (verdict['status'] == 'warning' and {f['check'] for f in warned} == {'dome'})
+
+
 @pytest.fixture(scope='module')
 def bench_out(tmp_path_factory):
     return tmp_path_factory.mktemp('real_surveys')
@@ -187,8 +194,8 @@ def test_toledo_triangulate_from_exif_alone_is_right(toledo_triangulate):
     assert row['oriented'] == 42 and row['sim_h_m'] <= 2.0 and row['nadir_share'] >= 0.95
     assert abs(row['focal_vs_exif']) <= 0.05
     assert not row['sim_outliers']
-    # Measured: OK; a good block neither fails nor names good geotags.
-    assert row['verdict']['status'] == 'ok'
+    # Measured: a good block neither fails nor names good geotags; it warns of its dome against the GNSS heights.
+    assert only_bent(row['verdict'])
 
 
 @pytest.mark.slow
@@ -196,7 +203,7 @@ def test_brighton_triangulate(bench_out):
     row = rs.run_photos('brighton', 'triangulate', shared_data('photos', 'brighton_beach', 'images'), bench_out, 'odm')
     gate(row, ('brighton', 'triangulate'))
     assert row['nadir_share'] >= 0.95 and abs(row['focal_vs_exif']) <= 0.05
-    assert row['verdict']['status'] == 'ok'
+    assert only_bent(row['verdict'])
 
 
 @pytest.fixture(scope='module')
@@ -265,7 +272,7 @@ def test_half_the_overlap_still_orients_and_says_ok(bench_out, survey, images):
     ref = rs.half_overlap_block(shared_data('photos', *images), folder)
     row = rs.run_photos(f'{survey}_half', 'triangulate', folder, bench_out, None, reference=ref)
     gate(row, (f'{survey}_half', 'triangulate'))
-    assert row['nadir_share'] >= 0.95 and row['verdict']['status'] == 'ok'
+    assert row['nadir_share'] >= 0.95 and only_bent(row['verdict'])
 
 
 @pytest.mark.slow

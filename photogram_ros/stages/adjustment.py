@@ -779,6 +779,8 @@ class AdjustmentStage:
             self.diag.set('full_adjustment_s', time.perf_counter() - t0)
             self.diag.set('full_adjustment_rms_px', float(rep.reprojection_rms_px))
             self.diag.set('full_adjustment_status', rep.status)
+            if self.at.self_calibration is not None:
+                self.diag.set('self_calibration', self.at.self_calibration.text())
             conv = convergence(self.at, rep.status)   # None when it converged
             if conv is not None:
                 self.diag.set('full_adjustment_convergence', conv['text'])
