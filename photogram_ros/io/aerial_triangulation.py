@@ -786,8 +786,8 @@ def split_merge_block(block: KeyframeBlock, out: str | Path, opt: TriangulateOpt
             why = f'it stopped: {e}'
         if glob is not None and glob['rep_adj'].status == 'failed':
             why, glob = f'its solver failed ({glob["figures"]["solves"]} solves)', None
+    t_global_end = time.monotonic()
     if glob is not None:
-        now = time.monotonic()
         sm_rep['global_adjustment'] = glob['figures']
         gf = glob['figures']
         mv = gf['camera_moves']
@@ -810,7 +810,7 @@ def split_merge_block(block: KeyframeBlock, out: str | Path, opt: TriangulateOpt
                  'verdict_figures': {'split_merge': {'sub_blocks': part.n, 'overlaps': mr.overlaps,
                                                      'left_out': mr.left_out, 'global_adjustment': gf['status']}},
                  'timing_s': {'sub_blocks': round(t_merge - t_at, 2), 'merge': round(t_global - t_merge, 2),
-                              'global_adjustment': round(now - t_global, 2)}}
+                              'global_adjustment': round(t_global_end - t_global, 2)}}
         return _finish_block(block, out, opt, glob['at'], glob['rep_adj'], glob['refine'], glob['control'],
                              glob['vetting'], None, crs, t0, t_at, steps, log, merge_findings, extra)[0]
     if why:
@@ -904,7 +904,7 @@ def split_merge_block(block: KeyframeBlock, out: str | Path, opt: TriangulateOpt
         'split_merge': sm_rep,
         'timing_s': {'reading_and_matching': round(t_at - t0, 2), 'aerial_triangulation': round(now - t_at, 2),
                      'sub_blocks': round(t_merge - t_at, 2), 'merge': round(t_global - t_merge, 2),
-                     'global_adjustment': round(time.monotonic() - t_global, 2) if why else 0.0,
+                     'global_adjustment': round(t_global_end - t_global, 2),
                      'total': round(now - t0, 2)},
     }
     if block.stats:
