@@ -387,7 +387,8 @@ def _finish_block(block: KeyframeBlock, out: Path, opt: TriangulateOptions, at: 
     """The adjusted block `at` (its final adjustment's StepReport `rep_adj`, the intrinsics it refined) written
     into `out`: poses, sparse cloud, report (with the control vetting `vet`) and the block check, its verdict
     with `extra_findings` (core/block_check.py Finding) beside the check's own; `extra`: more report keys
-    (its 'timing_s' added to the report's, its 'verdict_figures' to the verdict's figures). Returns (result, the block check's BlockInputs)."""
+    (its 'timing_s' added to the report's, its 'verdict_figures' to the verdict's figures). Returns (result,
+    the block check's BlockInputs)."""
     origin, assumptions = block.origin, block.assumptions
     before = block.camera
     self_cal = _self_calibration(at, before, refine, assumptions, log) if refine else None
