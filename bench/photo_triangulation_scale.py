@@ -11,8 +11,8 @@ this process and of its finished child processes (the local cluster's workers), 
 average before and after. A split-merge run also gives the merged block's check-point RMSE before the global
 adjustment and the global adjustment's solves, iterations, time and how far it moved the cameras. Modes:
 'split' (split-merge above --split-photos photos: sub-blocks as Dask tasks) and 'single' (today's one block,
---split-photos 0; run with workers 1 only, and only up to --single-max photos). Then per survey a comparison line (speedups, parallel efficiency = speedup /
-workers, the check-point RMSE of split-merge against the single block, whether the matches are the
+--split-photos 0; run with workers 1 only, and only up to --single-max photos). Then per survey a comparison
+line (speedups, parallel efficiency = speedup / workers, the check-point RMSE of split-merge against the single block, whether the matches are the
 same) and a growth line: the exponent b of time ~ photos^b between the smallest and the largest survey,
 per mode and worker count, for the wall and the CPU time (the latter the machine's load changes less).
 With --repeat the worker counts alternate and the fastest run of each is kept.
