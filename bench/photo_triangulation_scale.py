@@ -1,21 +1,21 @@
 """`triangulate PHOTOS` scaled out: `--workers 2` (a local Dask cluster) against `--workers 1` (in process, the
 baseline, measured in the same run), split-merge against the single block, and the time growth with the photos.
 
-Data: simulated surveys made here (or reused from --sims) with the recipe of bench/photo_triangulation.py
-(preset survey, 640x480, n/20 lines of 140 m, photos at 80 % forward overlap) but rendered at 0.65 fps,
-one frame about every photo (the photos are the same kind; the simulation 3x faster): about 100 and 600
-photos. Per survey, mode and worker count one JSON line: wall time of reading + matching (features per
-photo, matching per pair) and, unless --matching-only, of the whole triangulation with its check-point
-RMSE (the photos' EXIF camera with the final self-calibration, as for a user's photos), the CPU time of
-this process and of its finished child processes (the local cluster's workers), the machine's load
-average before and after. A split-merge run also gives the merged block's check-point RMSE before the global
-adjustment and the global adjustment's solves, iterations, time and how far it moved the cameras. Modes:
-'split' (split-merge above --split-photos photos: sub-blocks as Dask tasks) and 'single' (today's one block,
---split-photos 0; run with workers 1 only, and only up to --single-max photos). Then per survey a comparison
-line (speedups, parallel efficiency = speedup / workers, the check-point RMSE of split-merge against the single block, whether the matches are the
-same) and a growth line: the exponent b of time ~ photos^b between the smallest and the largest survey,
-per mode and worker count, for the wall and the CPU time (the latter the machine's load changes less).
-With --repeat the worker counts alternate and the fastest run of each is kept.
+Data: simulated surveys made here (or reused from --sims) with the recipe of bench/photo_triangulation.py (preset
+survey, 640x480, n/20 lines of 140 m, photos at 80 % forward overlap) but rendered at 0.65 fps, one frame about
+every photo (the photos are the same kind; the simulation 3x faster): about 100 and 600 photos. Per survey, mode
+and worker count one JSON line: wall time of reading + matching (features per photo, matching per pair) and, unless
+--matching-only, of the whole triangulation with its check-point RMSE (the photos' EXIF camera with the final
+self-calibration, as for a user's photos), the CPU time of this process and of its finished child processes (the
+local cluster's workers), the machine's load average before and after. A split-merge run also gives the merged
+block's check-point RMSE before the global adjustment and the global adjustment's solves, iterations, time and how
+far it moved the cameras. Modes: 'split' (split-merge above --split-photos photos: sub-blocks as Dask tasks) and
+'single' (today's one block, --split-photos 0; run with workers 1 only, and only up to --single-max photos). Then
+per survey a comparison line (speedups, parallel efficiency = speedup / workers, the check-point RMSE of
+split-merge against the single block, whether the matches are the same) and a growth line: the exponent b of time ~
+photos^b between the smallest and the largest survey, per mode and worker count, for the wall and the CPU time (the
+latter the machine's load changes less). With --repeat the worker counts alternate and the fastest run of each is
+kept.
 
     .venv/bin/python bench/photo_triangulation_scale.py [--photos 100 600] [--workers 2] [--sims DIR]
         [--modes split single] [--split-photos N] [--single-max 150] [--counts 1 2] [--matching-only]
