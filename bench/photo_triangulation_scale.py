@@ -1,20 +1,21 @@
 """`triangulate PHOTOS` scaled out: `--workers 2` (a local Dask cluster) against `--workers 1` (in process, the
 baseline, measured in the same run), split-merge against the single block, and the time growth with the photos.
 
-Data: simulated surveys made here (or reused from --sims) with the recipe of bench/photo_triangulation.py
-(preset survey, 640x480, n/20 lines of 140 m, photos at 80 % forward overlap) but rendered at 0.65 fps,
-one frame about every photo (the photos are the same kind; the simulation 3x faster): about 100 and 600
-photos. Per survey, mode and worker count one JSON line: wall time of reading + matching (features per
-photo, matching per pair) and, unless --matching-only, of the whole triangulation with its check-point
-RMSE (the photos' EXIF camera with the final self-calibration, as for a user's photos), the CPU time of
-this process and of its finished child processes (the local cluster's workers), the machine's load
-average before and after. Modes: 'split' (split-merge above --split-photos photos: sub-blocks as Dask
-tasks) and 'single' (today's one block, --split-photos 0; run with workers 1 only, and only up to
---single-max photos). Then per survey a comparison line (speedups, parallel efficiency = speedup /
-workers, the check-point RMSE of split-merge against the single block, whether the matches are the
-same) and a growth line: the exponent b of time ~ photos^b between the smallest and the largest survey,
-per mode and worker count, for the wall and the CPU time (the latter the machine's load changes less).
-With --repeat the worker counts alternate and the fastest run of each is kept.
+Data: simulated surveys made here (or reused from --sims) with the recipe of bench/photo_triangulation.py (preset
+survey, 640x480, n/20 lines of 140 m, photos at 80 % forward overlap) but rendered at 0.65 fps, one frame about
+every photo (the photos are the same kind; the simulation 3x faster): about 100 and 600 photos. Per survey, mode
+and worker count one JSON line: wall time of reading + matching (features per photo, matching per pair) and, unless
+--matching-only, of the whole triangulation with its check-point RMSE (the photos' EXIF camera with the final
+self-calibration, as for a user's photos), the CPU time of this process and of its finished child processes (the
+local cluster's workers), the machine's load average before and after. A split-merge run also gives the merged
+block's check-point RMSE before the global adjustment and the global adjustment's solves, iterations, time and how
+far it moved the cameras. Modes: 'split' (split-merge above --split-photos photos: sub-blocks as Dask tasks) and
+'single' (today's one block, --split-photos 0; run with workers 1 only, and only up to --single-max photos). Then
+per survey a comparison line (speedups, parallel efficiency = speedup / workers, the check-point RMSE of
+split-merge against the single block, whether the matches are the same) and a growth line: the exponent b of time ~
+photos^b between the smallest and the largest survey, per mode and worker count, for the wall and the CPU time (the
+latter the machine's load changes less). With --repeat the worker counts alternate and the fastest run of each is
+kept.
 
     .venv/bin/python bench/photo_triangulation_scale.py [--photos 100 600] [--workers 2] [--sims DIR]
         [--modes split single] [--split-photos N] [--single-max 150] [--counts 1 2] [--matching-only]
@@ -96,12 +97,29 @@ def run_once(photos: Path, workers: int, matching_only: bool, split: int | None 
         row.update(oriented=res.registered, tie_points=res.tie_points, check_n=ck.get('n', 0),
                    check_h_m=ck.get('horizontal_m'), check_v_m=ck.get('vertical_m'),
                    reprojection_rms_px=rep['reprojection_rms_px'], verdict=res.verdict.get('summary'))
+        sc = rep.get('self_calibration') or {}
+        gn = rep.get('gnss_noise') or {}
+        row.update(fx_px=(sc.get('fx') or {}).get('after'), gnss_used_hv_m=[gn.get('used_h_m'), gn.get('used_v_m')],
+                   gnss_rejected=len(gn.get('rejected', [])), gnss_bias_enu_m=rep['gnss'].get('estimated_bias_enu_m'))
         smr = rep.get('split_merge')
         if smr:
             row['sub_blocks'] = [{k: b[k] for k in ('photos', 'oriented', 'status', 'wall_s', 'cpu_s')}
                                  for b in smr['sub_blocks']]
             row['overlap_camera_rms_m'] = [round(o['camera_rms_m'], 4) for o in smr['overlaps']]
-            row['merge_s'] = rep['timing_s']['merge_and_write']
+            row['merge_s'] = rep['timing_s'].get('merge')
+            mck = smr.get('merged_check_rmse') or {}
+            row['merged_check_h_m'], row['merged_check_v_m'] = mck.get('horizontal_m'), mck.get('vertical_m')
+            g = smr.get('global_adjustment')
+            if g:
+                mv = g['camera_moves']
+                row['global_adjustment'] = {
+                    'status': g['status'], 'solves': g['solves'], 'iterations': g['iterations'],
+                    'solve_iterations': g['solve_iterations'], 'wall_s': g['wall_s'], 'cpu_s': g['cpu_s'],
+                    'observations_left_out': g['seed']['observations_left_out'],
+                    'observations': g['seed']['observations'],
+                    'camera_moved_rms_m': round(mv.get('centre_rms_m', 0.0), 4),
+                    'camera_moved_max_m': round(mv.get('centre_max_m', 0.0), 4),
+                    'attitude_moved_rms_deg': round(mv.get('attitude_rms_deg', 0.0), 5)}
     row.update(photos=stats['photos'], features_s=stats['features_s'], pairs_s=stats['matching_s'],
                pairs_tried=stats['pairs_tried'], pairs_verified=stats['pairs_verified'],
                pair_status=stats['pair_status'], track_lengths=stats['track_lengths'], load_after=_load())

@@ -16,12 +16,15 @@ from test_photo_dask import scheduler_and_two_workers
 
 SPLIT = 30          # photos per sub-block's core: the survey below (41 photos) splits in 2
 LEVER = (0.0, -0.05, -0.2)
-# Measured on this survey (bench/notes_photo_triangulation_scale.md): check-point RMSE split in 2 sub-blocks
-# (about 25 photos each) against the single block: 1.29 / 0.98 cm horizontal (ratio 1.31), 2.73 / 2.16 cm
-# vertical (ratio 1.26); the shared cameras 3.6 cm RMS apart after the merge's similarities. Gated at 1.5x.
-CHECK_SPLIT_M = {'horizontal_m': 1.5 * 0.0129, 'vertical_m': 1.5 * 0.0273}
-CHECK_RATIO = {'horizontal_m': 1.5 * 1.31, 'vertical_m': 1.5 * 1.26}
+# Measured on this survey (`-m slow -s` prints them; bench/notes_photo_triangulation_scale.md): check-point RMSE
+# split in 2 sub-blocks (24, 24 photos) and adjusted globally after the merge 0.92 / 1.22 cm (H / V; the merged
+# block before it 1.30 / 2.66 cm), the single block 3.51 / 6.37 cm; the shared cameras 3.6 cm RMS apart after the
+# merge's similarities; the global adjustment (5 solves, 17 iterations, 12 s) moved the cameras 2.7 cm RMS. Gated
+# at 1.5x the measured figures, and the ratios to the single block at the 10 % the issue asks.
+CHECK_SPLIT_M = {'horizontal_m': 1.5 * 0.0092, 'vertical_m': 1.5 * 0.0122}
+CHECK_RATIO = {'horizontal_m': 1.1, 'vertical_m': 1.1}
 OVERLAP_RMS_M = 1.5 * 0.036
+GLOBAL_MOVED_RMS_M = 1.5 * 0.027
 
 
 @pytest.fixture(scope='module')
@@ -74,8 +77,18 @@ def test_split_merge_check_points_match_the_single_block(split_here, single):
     for k in ('horizontal_m', 'vertical_m'):
         assert ck[k] <= CHECK_SPLIT_M[k], (k, ck[k], ck1[k])
         assert ck[k] <= CHECK_RATIO[k] * ck1[k], (k, ck[k], ck1[k])
+    # The global adjustment ran after the merge: converged, moved the cameras by centimetres, and its check
+    # points are better than the merged block's horizontally.
+    g = sm['global_adjustment']
+    print('global adjustment:', {k: g[k] for k in ('status', 'solves', 'iterations', 'wall_s')}, g['camera_moves'],
+          'merged block\'s check RMSE:', sm['merged_check_rmse'])
+    assert g['status'] in ('converged', 'max_iterations') and g['solves'] >= 1 and g['iterations'] >= 1
+    assert g['seed']['oriented'] == res.registered
+    assert 0 < g['camera_moves']['centre_rms_m'] <= GLOBAL_MOVED_RMS_M
+    assert ck['horizontal_m'] < sm['merged_check_rmse']['horizontal_m']
+    assert rep['timing_s']['global_adjustment'] > 0
     assert res.verdict['status'] != 'failed'
-    assert 'split_merge' in res.verdict['figures']
+    assert res.verdict['figures']['split_merge']['global_adjustment'] == g['status']
     assert (out / 'poses.csv').read_text().count('\n') == res.registered + 1
     assert json.loads((out / 'report.json').read_text())['check']['rmse'] == ck
 

@@ -17,6 +17,12 @@ block's map frame: ENU metres at one origin), and merged:
   overlap whose shared cameras still disagree beyond `overlap_warn_m` / `overlap_fail_m` after the
   similarities, a sub-block that failed (left out of the merge) and a sub-block that shares nothing with
   the rest (kept where its own GNSS puts it) are findings naming the sub-blocks, never silently merged.
+- `seed_adjustment(at, records, map_T_cam, point_ids, points_map_m, target_uv)`: the merged block as the state
+  of an empty IncrementalAT (core/incremental.py): every photo a keyframe, the merged ones oriented at their
+  merged poses, the merged tie points as its points (observations that reproject beyond the gate left out), the
+  GCPs intersected from the merged cameras, georeferenced for good. Its `full_adjustment` is then the global
+  adjustment of the whole block (GNSS, GCPs, the final self-calibration) without an incremental pass.
+- `camera_moves(before, after)`: how far an adjustment moved the cameras (centres in m, attitudes in deg).
 """
 
 from __future__ import annotations
@@ -27,10 +33,12 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.cluster.vq import kmeans2
 
+from photogram_ros.core.at_store import Keyframe
 from photogram_ros.core.block_check import STATUS_ORDER, Finding
+from photogram_ros.core.camera import PinholeCamera
 from photogram_ros.core.rotations import R_from_rotvec
 from photogram_ros.core.similarity import Similarity
-from photogram_ros.errors import DataError
+from photogram_ros.errors import ConfigError, DataError
 from photogram_ros.params import param
 
 
@@ -50,6 +58,12 @@ class SplitMergeOptions:
     max_shared_points: int = param(1000, 'shared tie points per overlap used for the similarities (an even '
                                           'subsample above it)', min=0, max=1000000)
     iterations: int = param(8, 'Gauss-Newton iterations of the similarities', min=1, max=100)
+    global_adjustment: bool = param(True, 'after the merge, one bundle adjustment of the whole block (every photo, '
+                                          'its GNSS, the GCPs, the final self-calibration) starting from the merged '
+                                          'poses and tie points; off: the merged block is the result')
+    seed_gate_px: float = param(5.0, 'global adjustment: an observation of a merged tie point that reprojects '
+                                     'further than this (px) from it through the merged camera is left out',
+                                min=0.5, max=1000.0)
 
 
 @dataclass
@@ -294,3 +308,124 @@ def merge(sub_blocks: list, opt: SplitMergeOptions | None = None, core_of: dict 
             acc[1] += n_img
     checks = {nm: (v[0] / v[1], v[1]) for nm, v in checks.items() if v[1] > 0}
     return MergeResult(poses, source, uid, Pm, checks, out_sims, overlaps, findings, left_out)
+
+
+def mean_camera(cameras: list, weights) -> PinholeCamera:
+    """The weighted mean of the intrinsics of cameras of one size (the sub-blocks' self-calibrations): the
+    starting camera of the global adjustment."""
+    if not cameras:
+        raise DataError('mean_camera needs at least one camera')
+    w = np.asarray(weights, float).reshape(-1)
+    if len(w) != len(cameras) or not np.all(w >= 0) or w.sum() <= 0:
+        raise DataError(f'mean_camera: {len(cameras)} cameras need as many non-negative weights, got {w}')
+    if len({(c.width, c.height) for c in cameras}) != 1:
+        raise DataError('mean_camera: the cameras differ in image size: '
+                        f'{sorted({(c.width, c.height) for c in cameras})}')
+    w = w / w.sum()
+
+    def avg(get):
+        return float(np.sum(w * np.array([get(c) for c in cameras], float)))
+    c0 = cameras[0]
+    return PinholeCamera(c0.width, c0.height, avg(lambda c: c.fx), avg(lambda c: c.fy), avg(lambda c: c.cx),
+                         avg(lambda c: c.cy), tuple(avg(lambda c, i=i: c.dist[i]) for i in range(5)))
+
+
+def seed_adjustment(at, records: list, map_T_cam: dict, point_ids, points_map_m, target_uv: dict) -> dict:
+    """Make the empty IncrementalAT `at` hold the merged block, ready for its `full_adjustment`.
+
+    records: core/incremental.py KeyframeRecord of every photo of the block (in order); map_T_cam: photo name
+    -> (4, 4) merged pose (map ENU, camera to map; a photo without one is a keyframe not oriented);
+    point_ids / points_map_m: (M,) track ids and (M, 3) map ENU m of the merged tie points; target_uv: photo
+    name -> {target name: (u, v) px} of the GCP (and manual tie point) observations the adjustment takes
+    (the records' own target_uv are not read). A merged point's observation in an oriented photo that
+    reprojects further than `gate_px` (at.opt.max_reprojection_px x 2, as a new keyframe's check of the
+    points it sees again) is left inactive; a point with fewer than 2 active observations left is not
+    kept. The GCPs the observations name are intersected from the merged cameras (`triangulate_targets`).
+    The block is georeferenced for good (the merged block is in the map frame of its sub-blocks' GNSS and
+    GCPs). Returns {'keyframes', 'oriented', 'points', 'observations', 'observations_left_out', 'gcps'}.
+
+    This writes the adjuster's state (its keyframes, registration order, points and their keyframes) from
+    outside, as `add_keyframe` and `_register` would: no method of IncrementalAT takes poses and points
+    that are already known."""
+    if at.kfs:
+        raise DataError(f'seed_adjustment needs an empty adjuster; it holds {len(at.kfs)} keyframes')
+    if at.origin is None:
+        raise DataError('seed_adjustment needs an adjuster with its map origin (the block\'s)')
+    if at.opt.spill_frozen:
+        raise ConfigError('seed_adjustment needs an adjuster with spill_frozen off: its keyframes do not come '
+                          'through add_keyframe, which the freezing follows')
+    ids_m = np.asarray(point_ids, np.int64).reshape(-1)
+    P = np.asarray(points_map_m, float).reshape(-1, 3)
+    if len(ids_m) != len(P):
+        raise DataError(f'seed_adjustment: {len(ids_m)} point ids but {len(P)} points')
+    order = np.argsort(ids_m)
+    ids_sorted, P_sorted = ids_m[order], P[order]
+    gate_px = 2.0 * at.opt.max_reprojection_px
+    n_obs = n_out = 0
+    for rec in records:
+        ids = np.asarray(rec.track_ids, np.int64).ravel()
+        uv = np.asarray(rec.uv, float).reshape(-1, 2)
+        if len(ids) != len(uv):
+            raise DataError(f'photo {rec.name}: {len(ids)} track ids but {len(uv)} pixel positions')
+        tuv = target_uv.get(rec.name, {})
+        if tuv:
+            ids = np.concatenate([ids, [at._new_target_track(n) for n in tuv]])
+            uv = np.vstack([uv, np.asarray(list(tuv.values()), float).reshape(-1, 2)])
+        ids, first = np.unique(ids, return_index=True)
+        uv = uv[first]
+        fix_enu = fix_cov = None
+        if rec.fix is not None:
+            fix_enu = np.asarray(at.origin.geodetic_to_enu(rec.fix.lat_deg, rec.fix.lon_deg, rec.fix.h_m), float)
+            fix_cov = np.asarray(rec.fix.cov_enu_m2, float).reshape(3, 3)
+        active = np.ones(len(ids), bool)
+        kf = Keyframe(len(at.kfs), int(rec.stamp_ns), rec.name or str(rec.stamp_ns), ids, uv,
+                      at.camera.pixel_to_normalized(uv), active, fix_enu, fix_cov)
+        if rec.antenna_offset_map_m is not None:
+            kf.antenna_offset = np.asarray(rec.antenna_offset_map_m, float).reshape(3)
+        at.kfs.append(kf)
+        T = map_T_cam.get(kf.name)
+        if T is None:
+            continue
+        kf.map_T_cam = np.array(T, float)
+        kf.reg_seq = len(at.registered)
+        at.registered.append(kf.kid)
+        pos = np.clip(np.searchsorted(ids_sorted, ids), 0, max(len(ids_sorted) - 1, 0))
+        has = (ids_sorted[pos] == ids) if len(ids_sorted) else np.zeros(len(ids), bool)
+        if has.any():
+            e = at.reprojection_px(kf.map_T_cam, P_sorted[pos[has]], uv[has])
+            far = ~(e <= gate_px)
+            active[np.flatnonzero(has)[far]] = False
+            n_obs += int(has.sum())
+            n_out += int(far.sum())
+        for t in ids[active].tolist():
+            at.track_kfs.setdefault(t, []).append(kf.kid)
+    keep = np.array([len(at.track_kfs.get(int(t), ())) >= 2 for t in ids_m], bool)
+    if keep.any():
+        at.points.set_many(ids_m[keep], P[keep])
+    at.georeferenced = True
+    at.georef_provisional = False
+    gcps = at.triangulate_targets(sorted({n for o in target_uv.values() for n in o}))
+    return {'keyframes': len(at.kfs), 'oriented': len(at.registered), 'points': int(keep.sum()),
+            'observations': n_obs, 'observations_left_out': n_out, 'gcps': gcps}
+
+
+def camera_moves(before: dict, after: dict) -> dict:
+    """How far `after` (photo name -> (4, 4) camera-to-map pose) moved the cameras of `before`: RMS and max of
+    the centres' displacement (m, 3D and horizontal) and of the attitude change (deg), over the photos in both;
+    the photos in only one of them counted."""
+    common = sorted(set(before) & set(after))
+    out = {'photos': len(common), 'only_before': len(set(before) - set(after)),
+           'only_after': len(set(after) - set(before))}
+    if not common:
+        return out
+    A = np.array([before[n] for n in common], float)
+    B = np.array([after[n] for n in common], float)
+    d = B[:, :3, 3] - A[:, :3, 3]
+    dR = np.einsum('nji,njk->nik', A[:, :3, :3], B[:, :3, :3])
+    ang = np.degrees(np.arccos(np.clip((np.trace(dR, axis1=1, axis2=2) - 1) / 2, -1.0, 1.0)))
+    d3, dh = np.linalg.norm(d, axis=1), np.linalg.norm(d[:, :2], axis=1)
+    out.update(centre_rms_m=float(np.sqrt(np.mean(d3 ** 2))), centre_max_m=float(d3.max()),
+               centre_h_rms_m=float(np.sqrt(np.mean(dh ** 2))), centre_v_rms_m=float(np.sqrt(np.mean(d[:, 2] ** 2))),
+               centre_mean_m=d.mean(axis=0).tolist(),
+               attitude_rms_deg=float(np.sqrt(np.mean(ang ** 2))), attitude_max_deg=float(ang.max()))
+    return out

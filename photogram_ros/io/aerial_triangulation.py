@@ -332,8 +332,9 @@ def adjust_block(block: KeyframeBlock, out: str | Path, opt: TriangulateOptions,
 
 def _adjust_and_write(block: KeyframeBlock, out: str | Path, opt: TriangulateOptions, control_set=None,
                       log=None, t0: float | None = None, progress=True,
-                      steps: Steps | None = None) -> tuple[TriangulateResult, IncrementalAT, object]:
-    """adjust_block(), and its adjusted IncrementalAT and BlockInputs."""
+                      steps: Steps | None = None) -> tuple[TriangulateResult, IncrementalAT, object, dict]:
+    """adjust_block(), and its adjusted IncrementalAT, BlockInputs and control: {'vetting' (ControlVetting or
+    None), 'control' (the ControlPoints as adjusted), 'target_obs' (the GCP observations used, by photo)}."""
     steps = steps or Steps('triangulate', None, sayer(progress, log))
     out = Path(out)
     origin, assumptions = block.origin, block.assumptions
@@ -373,9 +374,23 @@ def _adjust_and_write(block: KeyframeBlock, out: str | Path, opt: TriangulateOpt
         sum(c.role == 'gcp' for c in control)
     refine = (tuple(opt.self_calibrate) if opt.self_calibrate is not None
               else auto_self_calibration(block, n_gcps, assumptions))
-    before = block.camera
     if at is None or target_obs:
         at, rep_adj = _triangulate_records(block, opt, control, target_obs, refine, log, tie_obs=tie_obs, steps=steps)
+    res, inputs = _finish_block(block, out, opt, at, rep_adj, refine, control, vet,
+                                gnss_without if vet is not None and target_obs else None, crs, t0, t_at, steps, log)
+    return res, at, inputs, {'vetting': vet, 'control': control, 'target_obs': target_obs}
+
+
+def _finish_block(block: KeyframeBlock, out: Path, opt: TriangulateOptions, at: IncrementalAT, rep_adj, refine: tuple,
+                  control: list, vet, gnss_without_gcps, crs: str, t0: float | None, t_at: float, steps: Steps,
+                  log=None, extra_findings=(), extra: dict | None = None) -> tuple[TriangulateResult, object]:
+    """The adjusted block `at` (its final adjustment's StepReport `rep_adj`, the intrinsics it refined) written
+    into `out`: poses, sparse cloud, report (with the control vetting `vet`) and the block check, its verdict
+    with `extra_findings` (core/block_check.py Finding) beside the check's own; `extra`: more report keys
+    (its 'timing_s' added to the report's, its 'verdict_figures' to the verdict's figures). Returns (result,
+    the block check's BlockInputs)."""
+    origin, assumptions = block.origin, block.assumptions
+    before = block.camera
     self_cal = _self_calibration(at, before, refine, assumptions, log) if refine else None
     conv = convergence(at, rep_adj.status)
     if conv is not None:
@@ -404,13 +419,14 @@ def _adjust_and_write(block: KeyframeBlock, out: str | Path, opt: TriangulateOpt
     steps.start('writing the poses, the sparse cloud and the report')
     P = _write_poses_and_cloud(out, [at.kfs[k].name for k in at.registered],
                                [at.kfs[k].map_T_cam for k in at.registered], P, origin, crs, assumptions)
-    rep = build_report(at, assumptions, vetting=vet,
-                       gnss_without_gcps=gnss_without if vet is not None and target_obs else None)
+    rep = build_report(at, assumptions, vetting=vet, gnss_without_gcps=gnss_without_gcps)
     inputs = inputs_from_at(at, len(block.records), adj, block.expect_nadir, block.excluded)
     ck = rep['check']['rmse']
     if ck.get('n'):
         inputs.check_rmse_hv_m = (ck['horizontal_m'], ck['vertical_m'], ck['n'])
-    verdict = check_block(inputs)
+    verdict = _with_findings(check_block(inputs), extra_findings)
+    extra = dict(extra or {})
+    verdict.figures.update(extra.pop('verdict_figures', {}))
     if log is not None and verdict.status != 'ok':
         log(f'warning: block check: {verdict.summary}')
     rep['verdict'] = verdict.to_dict()
@@ -430,10 +446,25 @@ def _adjust_and_write(block: KeyframeBlock, out: str | Path, opt: TriangulateOpt
                        'total': round(now - (t0 if t0 is not None else t_at), 2)}
     if self_cal is not None:
         rep['self_calibration'] = self_cal
+    rep['timing_s'].update(extra.pop('timing_s', {}))
+    rep.update(extra)
     write_report(rep, out)
     steps.finish()
     return (TriangulateResult(out, rep, len(at.registered), block.n_inputs or len(block.records), len(P),
-                              list(block.damage), rep['verdict']), at, inputs)
+                              list(block.damage), rep['verdict']), inputs)
+
+
+def _with_findings(verdict, findings) -> object:
+    """core/block_check.py BlockVerdict with `findings` added, worst first, its status the worst of all."""
+    from photogram_ros.core.block_check import STATUS_ORDER, BlockVerdict
+    findings = list(verdict.findings) + list(findings)
+    if len(findings) == len(verdict.findings):
+        return verdict
+    status = 'ok'
+    for f in findings:
+        status = f.status if STATUS_ORDER.index(f.status) > STATUS_ORDER.index(status) else status
+    findings.sort(key=lambda f: -STATUS_ORDER.index(f.status))
+    return BlockVerdict(status, findings, dict(verdict.figures))
 
 
 def _write_poses_and_cloud(out: Path, names: list, map_T_cams: list, P: np.ndarray, origin: LocalFrame, crs: str,
@@ -514,6 +545,15 @@ class SubBlockRun:
     inputs: object | None       # core/block_check.py BlockInputs of its photos (None: it failed)
     wall_s: float
     cpu_s: float                # this process's CPU time in it (the worker's, on a cluster)
+    # What the global adjustment after the merge starts from: the sub-block's self-calibrated camera, its GNSS
+    # noise scale (h, v) and bias (ENU m), the photos whose fix it did not use, its control vetting
+    # (core/control.py ControlVetting or None) and the control points as it adjusted them.
+    camera: object | None = None
+    gnss_scale_hv: tuple = (1.0, 1.0)
+    gnss_bias_enu_m: tuple = (0.0, 0.0, 0.0)
+    gnss_rejected: tuple = ()
+    vetting: object | None = None
+    control: list = field(default_factory=list)
 
 
 def adjust_sub_block(index: int, block: KeyframeBlock, out: str | Path, opt: TriangulateOptions) -> SubBlockRun:
@@ -524,7 +564,7 @@ def adjust_sub_block(index: int, block: KeyframeBlock, out: str | Path, opt: Tri
     t0, c0 = time.monotonic(), time.process_time()
     names = [r.name for r in block.records]
     try:
-        res, at, inputs = _adjust_and_write(block, out, opt, None, None, t0, progress=False)
+        res, at, inputs, ctl = _adjust_and_write(block, out, opt, None, None, t0, progress=False)
     except (PhotogramError, np.linalg.LinAlgError, ValueError) as e:
         sub = SubBlock(index, names, status='failed', summary=f'FAILED: its adjustment stopped: {e}')
         return SubBlockRun(sub, {}, None, time.monotonic() - t0, time.process_time() - c0)
@@ -536,7 +576,9 @@ def adjust_sub_block(index: int, block: KeyframeBlock, out: str | Path, opt: Tri
     sub = SubBlock(index, names, {at.kfs[k].name: at.kfs[k].map_T_cam for k in at.registered},
                    np.asarray(ids[keep], np.int64), np.asarray(P[keep], float).reshape(-1, 3), checks,
                    v.get('status', 'ok'), v.get('summary', ''))
-    return SubBlockRun(sub, res.report, inputs, time.monotonic() - t0, time.process_time() - c0)
+    return SubBlockRun(sub, res.report, inputs, time.monotonic() - t0, time.process_time() - c0, at.camera,
+                       tuple(float(x) for x in at.gnss_sigma_scale_hv), tuple(float(x) for x in at.gnss_bias_enu),
+                       tuple(at.kfs[k].name for k in sorted(at.gnss_rejected)), ctl['vetting'], list(ctl['control']))
 
 
 def _sub_block(block: KeyframeBlock, idx) -> KeyframeBlock:
@@ -564,6 +606,124 @@ def _merged_gnss_noise(runs: list) -> dict:
     return out
 
 
+def _merged_vetting(runs: list, core_of: dict):
+    """One core/control.py ControlVetting of the whole block from the sub-blocks' (each against its own
+    GNSS-only adjustment): each control row's fate from the sub-block whose core holds its photo (else from
+    one that has the photo), each point's use from the sub-block that had the most usable rows of it, the
+    faults of all. None when no sub-block vetted control."""
+    from photogram_ros.core.control import ControlVetting
+    vets = {r.sub.index: r.vetting for r in runs if r.vetting is not None}
+    if not vets:
+        return None
+    ref = next(iter(vets.values()))
+    rows = []
+    for i, f in enumerate(ref.rows):
+        pick = vets.get(core_of.get(f.row.image))
+        if pick is None or len(pick.rows) != len(ref.rows):
+            pick = next((v for v in vets.values() if len(v.rows) == len(ref.rows)
+                         and v.rows[i].fate != 'photo_not_in_set'), ref)
+        rows.append(pick.rows[i])
+    points = {}
+    for v in vets.values():
+        for name, p in v.points.items():
+            if name not in points or p.usable_rows > points[name].usable_rows:
+                points[name] = p
+    notes = list(dict.fromkeys(n for v in vets.values() for n in v.notes))
+    wrong = {k: w for v in vets.values() for k, w in v.wrong_photos.items()}
+    suspect = next((v.height_suspect for v in vets.values() if v.height_suspect), '')
+    return ControlVetting(rows, points, wrong, suspect, notes)
+
+
+class _SolveLog:
+    """Each bundle adjustment the adjuster (core/incremental.py) runs while entered: its iterations, status and
+    seconds (wraps the module's `bundle_adjust`, restored on exit; one adjuster at a time in this process)."""
+
+    def __init__(self):
+        self.solves: list = []
+
+    def __enter__(self):
+        import photogram_ros.core.incremental as inc
+        self._inc, self._orig = inc, inc.bundle_adjust
+
+        def counted(problem, options=None):
+            t = time.monotonic()
+            res = self._orig(problem, options)
+            self.solves.append({'iterations': int(res.iterations), 'status': res.status,
+                                's': round(time.monotonic() - t, 2)})
+            return res
+        inc.bundle_adjust = counted
+        return self
+
+    def __exit__(self, *exc):
+        self._inc.bundle_adjust = self._orig
+        return False
+
+
+def _global_adjustment(block: KeyframeBlock, mr, runs: list, core_of: dict, opt: TriangulateOptions,
+                       log=None) -> dict:
+    """The merged block (core/split_merge.py MergeResult `mr`) adjusted as one block: an IncrementalAT seeded
+    with the merged poses and tie points (core/split_merge.py seed_adjustment) and the sub-blocks' mean camera,
+    GNSS noise scale, bias and rejected fixes, its GCP observations and control points as the sub-blocks vetted
+    them (`_merged_vetting`), then the single block's final adjustment (`full_adjustment`: GNSS noise, bias,
+    the self-calibration `auto_self_calibration` or opt.self_calibrate chooses). Returns {'at', 'rep_adj',
+    'refine', 'control', 'vetting', 'figures'}; figures: the solves, their iterations, wall and CPU time, the
+    seed, and how far it moved the cameras from the merged block (core/split_merge.py camera_moves)."""
+    from photogram_ros.core.split_merge import camera_moves, mean_camera, seed_adjustment
+    t0, c0 = time.monotonic(), time.process_time()
+    good = [r for r in runs if r.inputs is not None and r.camera is not None and r.sub.index not in mr.left_out]
+    if not good:
+        raise ConfigError('no sub-block to start the global adjustment from')
+    names = {r.name for r in block.records}
+    notes: list = []
+    control, rows, _, _, tie_rows = _control_rows(block, opt, None, block.origin)
+    tie_obs = _tie_obs(tie_rows, names, notes, log)
+    vet = _merged_vetting(good, core_of) if rows else None
+    target_obs: dict = {}
+    if vet is not None:
+        control = vet.control_points(control)
+        used = {n for n, p in vet.points.items() if p.role == 'gcp' and p.use in ('full', 'horizontal')}
+        target_obs = {img: {n: uv for n, uv in obs.items() if n in used} for img, obs in vet.accepted_uv().items()}
+        target_obs = {k: v for k, v in target_obs.items() if v}
+    n_gcps = (sum(p.role == 'gcp' and p.use == 'full' for p in vet.points.values()) if vet is not None else
+              sum(c.role == 'gcp' for c in control))
+    refine = (tuple(opt.self_calibrate) if opt.self_calibrate is not None
+              else auto_self_calibration(block, n_gcps, notes))
+    w = np.array([len(r.sub.map_T_cam) for r in good], float)
+    camera = mean_camera([r.camera for r in good], w)
+    ties = {n for o in tie_obs.values() for n in o}
+    at = IncrementalAT(camera, IncrementalOptions(window_size=opt.window, lever_arm_cam_m=tuple(opt.lever_arm_cam_m),
+                                                  spill_frozen=False), block.origin, control, ties=ties)
+    tuv = {nm: {**target_obs.get(nm, {}), **tie_obs.get(nm, {})} for nm in names}
+    seed = seed_adjustment(at, block.records, mr.map_T_cam, mr.point_ids, mr.points_map_m, tuv)
+    at.gnss_sigma_scale_hv = np.sum(w[:, None] * np.array([r.gnss_scale_hv for r in good]), axis=0) / w.sum()
+    at.gnss_bias_enu = np.sum(w[:, None] * np.array([r.gnss_bias_enu_m for r in good]), axis=0) / w.sum()
+    rejected = {n for r in good for n in r.gnss_rejected}
+    at.gnss_rejected = {kf.kid for kf in at.kfs if kf.name in rejected}
+    if log is not None:
+        log(f'split-merge: global adjustment of {seed["oriented"]} photos, {seed["points"]} tie points '
+            f'({seed["observations_left_out"]} of {seed["observations"]} observations beyond '
+            f'{2 * at.opt.max_reprojection_px:.0f} px of the merged block left out), GCPs {len(seed["gcps"])}'
+            + (f', self-calibrating {", ".join(refine)}' if refine else ''))
+    with _SolveLog() as solves:
+        rep_adj = at.full_adjustment(refine_intrinsics=refine)
+    after = {at.kfs[k].name: at.kfs[k].map_T_cam for k in at.registered}
+    figures = {'status': rep_adj.status, 'solves': len(solves.solves),
+               'iterations': int(sum(s['iterations'] for s in solves.solves)),
+               'solve_iterations': [s['iterations'] for s in solves.solves],
+               'wall_s': round(time.monotonic() - t0, 2), 'cpu_s': round(time.process_time() - c0, 2),
+               'seed': {k: v for k, v in seed.items() if k != 'gcps'}, 'gcps': seed['gcps'],
+               'camera_moves': camera_moves(mr.map_T_cam, after),
+               'camera_start': {'fx': camera.fx, 'fy': camera.fy, 'cx': camera.cx, 'cy': camera.cy,
+                                'dist': list(camera.dist)}}
+    if log is not None:
+        mv = figures['camera_moves']
+        log(f'split-merge: global adjustment {rep_adj.status}: {figures["solves"]} solves, {figures["iterations"]} '
+            f'iterations, {figures["wall_s"]:.1f} s; cameras moved {mv.get("centre_rms_m", 0.0) * 100:.2f} cm RMS '
+            f'(max {mv.get("centre_max_m", 0.0) * 100:.2f} cm), {mv.get("attitude_rms_deg", 0.0):.4f} deg RMS')
+    block.assumptions.extend(notes)
+    return {'at': at, 'rep_adj': rep_adj, 'refine': refine, 'control': control, 'vetting': vet, 'figures': figures}
+
+
 def split_merge_block(block: KeyframeBlock, out: str | Path, opt: TriangulateOptions, runner, log=None,
                       t0: float | None = None, steps: Steps | None = None) -> TriangulateResult:
     """A photo block above opt.split.split_photos photos: overlapping sub-blocks (core/split_merge.py
@@ -573,9 +733,10 @@ def split_merge_block(block: KeyframeBlock, out: str | Path, opt: TriangulateOpt
     the merged cameras, with the merge's findings (a failed sub-block, an overlap that disagrees) and
     each sub-block's own verdict beside it."""
     from photogram_ros.core.at_report import gnss_figures, rmse_xyz
-    from photogram_ros.core.block_check import BlockInputs, BlockVerdict, Finding, STATUS_ORDER
+    from photogram_ros.core.block_check import BlockInputs, Finding
     from photogram_ros.core.evaluation import ce90_le90
     from photogram_ros.core.split_merge import merge, partition
+    from photogram_ros.errors import PhotogramError
     t0 = t0 if t0 is not None else time.monotonic()
     steps = steps or Steps('triangulate', None, None)
     out = Path(out)
@@ -598,8 +759,68 @@ def split_merge_block(block: KeyframeBlock, out: str | Path, opt: TriangulateOpt
     core_of = {recs[i].name: int(part.labels[i]) for i in range(len(recs))}
     mr = merge([r.sub for r in runs], sm, core_of)
     sims = mr.similarities
+    surveyed = {p['name']: p['surveyed_map_m'] for r in runs for p in r.report.get('check', {}).get('points', [])}
+    checks_rep = [{'name': name, 'residual_m': (X - np.asarray(surveyed[name])).tolist(), 'images': n_img,
+                   'reprojection_rms_px': None, 'surveyed_map_m': surveyed[name]}
+                  for name, (X, n_img) in sorted(mr.checks.items())]
+    ck = rmse_xyz(np.array([c['residual_m'] for c in checks_rep]))
+    if log is not None and ck.get('n'):
+        log(f'split-merge: merged block\'s check points {ck["horizontal_m"] * 100:.2f} / '
+            f'{ck["vertical_m"] * 100:.2f} cm (H / V, n={ck["n"]}) before the global adjustment')
+    merge_findings = list(mr.findings) + [Finding('sub_block', 'warning', f'sub-block {r.sub.index}: {r.sub.summary}')
+                                          for r in runs if r.sub.status == 'warning']
+    sm_rep = {'sub_blocks': [{'index': r.sub.index, 'photos': len(r.sub.names), 'oriented': len(r.sub.map_T_cam),
+                              'status': r.sub.status, 'summary': r.sub.summary, 'wall_s': round(r.wall_s, 2),
+                              'cpu_s': round(r.cpu_s, 2), 'check_rmse': r.report.get('check', {}).get('rmse'),
+                              'camera': r.report.get('camera')} for r in runs],
+              'overlap_radius_m': part.overlap_m, 'overlaps': mr.overlaps, 'left_out': mr.left_out,
+              'similarities': [None if s is None else {'scale': s.scale, 'R': s.R.tolist(), 't_m': s.t.tolist()}
+                               for s in sims],
+              'merged_check_rmse': ck}
+    glob, why = None, ''
+    t_global = time.monotonic()
+    if sm.global_adjustment and mr.map_T_cam:
+        steps.start(f'global adjustment of the merged block ({len(mr.map_T_cam)} photos)')
+        try:
+            glob = _global_adjustment(block, mr, runs, core_of, opt, log)
+        except (PhotogramError, np.linalg.LinAlgError, ValueError) as e:
+            why = f'it stopped: {e}'
+        if glob is not None and glob['rep_adj'].status == 'failed':
+            why, glob = f'its solver failed ({glob["figures"]["solves"]} solves)', None
+    t_global_end = time.monotonic()
+    if glob is not None:
+        sm_rep['global_adjustment'] = glob['figures']
+        gf = glob['figures']
+        mv = gf['camera_moves']
+        block.assumptions.append(
+            f'split-merge adjustment: {len(recs)} photos (more than {sm.split_photos}) in {part.n} overlapping '
+            f'sub-blocks (k-means of the geotags, overlap radius {part.overlap_m:.1f} m), each adjusted on its own '
+            'GNSS and the GCPs it sees (its report in sub_blocks/NN), merged by one similarity each over all overlaps '
+            '(shared cameras and tie points); then one global adjustment of the whole block (every photo\'s GNSS, '
+            'the GCPs, the self-calibration) from the merged poses, tie points and the sub-blocks\' mean camera: '
+            f'{gf["solves"]} solves, {gf["iterations"]} iterations, {gf["wall_s"]:.0f} s; it moved the cameras '
+            f'{mv.get("centre_rms_m", 0.0) * 100:.1f} cm RMS (max {mv.get("centre_max_m", 0.0) * 100:.1f} cm) and '
+            f'{mv.get("attitude_rms_deg", 0.0):.3f} deg RMS. Control rows and points as each photo\'s own sub-block '
+            'vetted them against its GNSS-only adjustment')
+        for r in runs:
+            block.assumptions.append(f'sub-block {r.sub.index}: {len(r.sub.names)} photos, {len(r.sub.map_T_cam)} '
+                                     f'oriented, {r.wall_s:.0f} s; {r.sub.summary or r.sub.status}')
+        _, _, _, gcp_crs, _ = _control_rows(block, opt, None, origin)
+        crs = opt.crs or gcp_crs or f'EPSG:{utm_epsg(origin.lat_deg, origin.lon_deg)}'
+        extra = {'split_merge': sm_rep,
+                 'verdict_figures': {'split_merge': {'sub_blocks': part.n, 'overlaps': mr.overlaps,
+                                                     'left_out': mr.left_out, 'global_adjustment': gf['status']}},
+                 'timing_s': {'sub_blocks': round(t_merge - t_at, 2), 'merge': round(t_global - t_merge, 2),
+                              'global_adjustment': round(t_global_end - t_global, 2)}}
+        return _finish_block(block, out, opt, glob['at'], glob['rep_adj'], glob['refine'], glob['control'],
+                             glob['vetting'], None, crs, t0, t_at, steps, log, merge_findings, extra)[0]
+    if why:
+        merge_findings.append(Finding('global_adjustment', 'warning', f'the global adjustment after the merge did '
+                                      f'not finish ({why}): the merged block without it is the result'))
+        if log is not None:
+            log(f'warning: split-merge: the global adjustment did not finish ({why})')
     # The merged block's figures: each photo's from the sub-block its pose came from.
-    per_image, gcp_rows, checks_rep = [], {}, []
+    per_image, gcp_rows = [], {}
     for r in runs:
         k = r.sub.index
         for p in r.report.get('per_image', []):
@@ -611,10 +832,6 @@ def split_merge_block(block: KeyframeBlock, out: str | Path, opt: TriangulateOpt
         for g in r.report.get('gcp', {}).get('points', []):
             if g.get('residual_m') is not None and g['images'] > gcp_rows.get(g['name'], {}).get('images', -1):
                 gcp_rows[g['name']] = dict(g, sub_block=k)
-    surveyed = {p['name']: p['surveyed_map_m'] for r in runs for p in r.report.get('check', {}).get('points', [])}
-    for name, (X, n_img) in sorted(mr.checks.items()):
-        checks_rep.append({'name': name, 'residual_m': (X - np.asarray(surveyed[name])).tolist(), 'images': n_img,
-                           'reprojection_rms_px': None, 'surveyed_map_m': surveyed[name]})
     # The block check of the merged cameras.
     names = [r.name for r in recs]
     n = len(names)
@@ -633,25 +850,15 @@ def split_merge_block(block: KeyframeBlock, out: str | Path, opt: TriangulateOpt
                 gz[i] = sims[k].apply(np.array([[*inp.map_T_cam[j, :2, 3], inp.ground_z_m[j]]]))[0, 2]
         elif np.isfinite(pos[i]).all():
             fix[i] = pos[i]
-    ck = rmse_xyz(np.array([c['residual_m'] for c in checks_rep]))
     statuses = [r.report.get('adjustment_status', 'failed') for r in runs if r.inputs is not None]
     adj = {'status': 'failed' if not statuses else
            next((s for s in statuses if s in ('failed', 'diverged')), statuses[0])}
     inputs = BlockInputs(names, T, fix, sig, gz, _merged_gnss_noise(runs), adj, block.expect_nadir,
                          block.n_inputs or n, dict(block.excluded),
                          (ck['horizontal_m'], ck['vertical_m'], ck['n']) if ck.get('n') else None)
-    v = check_block(inputs)
-    findings = list(v.findings) + list(mr.findings)
-    for r in runs:
-        if r.sub.status == 'warning':
-            findings.append(Finding('sub_block', 'warning', f'sub-block {r.sub.index}: {r.sub.summary}'))
-    status = 'ok'
-    for f in findings:
-        status = f.status if STATUS_ORDER.index(f.status) > STATUS_ORDER.index(status) else status
-    findings.sort(key=lambda f: -STATUS_ORDER.index(f.status))
-    figures = dict(v.figures)
-    figures['split_merge'] = {'sub_blocks': part.n, 'overlaps': mr.overlaps, 'left_out': mr.left_out}
-    verdict = BlockVerdict(status, findings, figures)
+    verdict = _with_findings(check_block(inputs), merge_findings)
+    verdict.figures['split_merge'] = {'sub_blocks': part.n, 'overlaps': mr.overlaps, 'left_out': mr.left_out,
+                                      'global_adjustment': 'failed' if why else 'off'}
     if log is not None and verdict.status != 'ok':
         log(f'warning: block check: {verdict.summary}')
     # Outputs.
@@ -667,8 +874,9 @@ def split_merge_block(block: KeyframeBlock, out: str | Path, opt: TriangulateOpt
         f'(k-means of the geotags, overlap radius {part.overlap_m:.1f} m), each adjusted on its own GNSS and the GCPs '
         'it sees (its report in sub_blocks/NN), merged by one similarity each over all overlaps (shared cameras and '
         'tie points); each photo\'s pose from its own sub-block, tie and check points averaged over their copies; no '
-        'global adjustment after the merge. Each sub-block self-calibrates its own camera: the camera here is '
-        'sub-block 0\'s; check points are intersected in each sub-block with its camera')
+        f'global adjustment after the merge ({why or "split.global_adjustment off"}). Each sub-block self-calibrates '
+        'its own camera: the camera here is sub-block 0\'s; check points are intersected in each sub-block with its '
+        'camera')
     for r in runs:
         assumptions.append(f'sub-block {r.sub.index}: {len(r.sub.names)} photos, {len(r.sub.map_T_cam)} oriented, '
                            f'{r.wall_s:.0f} s; {r.sub.summary or r.sub.status}')
@@ -694,17 +902,10 @@ def split_merge_block(block: KeyframeBlock, out: str | Path, opt: TriangulateOpt
         'reprojection_histogram': {'n': 0, 'counts': [], 'edges_px': []},
         'per_image': per_image, 'assumptions': assumptions, 'verdict': verdict.to_dict(), 'crs': crs,
         'adjustment_status': adj['status'],
-        'split_merge': {'sub_blocks': [{'index': r.sub.index, 'photos': len(r.sub.names),
-                                        'oriented': len(r.sub.map_T_cam), 'status': r.sub.status,
-                                        'summary': r.sub.summary, 'wall_s': round(r.wall_s, 2),
-                                        'cpu_s': round(r.cpu_s, 2),
-                                        'check_rmse': r.report.get('check', {}).get('rmse'),
-                                        'camera': r.report.get('camera')} for r in runs],
-                        'overlap_radius_m': part.overlap_m, 'overlaps': mr.overlaps, 'left_out': mr.left_out,
-                        'similarities': [None if s is None else {'scale': s.scale, 'R': s.R.tolist(),
-                                                                 't_m': s.t.tolist()} for s in sims]},
+        'split_merge': sm_rep,
         'timing_s': {'reading_and_matching': round(t_at - t0, 2), 'aerial_triangulation': round(now - t_at, 2),
-                     'sub_blocks': round(t_merge - t_at, 2), 'merge_and_write': round(now - t_merge, 2),
+                     'sub_blocks': round(t_merge - t_at, 2), 'merge': round(t_global - t_merge, 2),
+                     'global_adjustment': round(t_global_end - t_global, 2),
                      'total': round(now - t0, 2)},
     }
     if block.stats:
