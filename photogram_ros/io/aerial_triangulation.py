@@ -235,7 +235,8 @@ def auto_self_calibration(block: KeyframeBlock, n_gcps: int, assumptions: list) 
         refine += ('cx', 'cy')
         why += (f'; the principal point too: the geotags are precise ({np.median(sig_h) * 100:.1f} cm stated, '
                 'median) and hold the cameras')
-    assumptions.append(f'self-calibration (auto): the EXIF gives no distortion, so {", ".join(refine)} are refined; '
+    assumptions.append(f'self-calibration (auto): the EXIF gives no distortion, so {", ".join(refine)} are candidates '
+                       '(a distortion term is kept only when it pays: see the selection); '
                        f'{why} (--self-calibrate none or a list to choose)')
     return refine
 
@@ -264,7 +265,7 @@ def _triangulate_records(block: KeyframeBlock, opt: TriangulateOptions, control:
         log(f'aerial triangulation{what}: {n_retry} more oriented against the whole block')
     t_full = time.monotonic()
     steps.start(f'full adjustment{what}')
-    rep_adj = at.full_adjustment(refine_intrinsics=refine)
+    rep_adj = at.full_adjustment(refine_intrinsics=refine, stepwise=opt.self_calibrate is None)
     if log is not None:
         log(f'full adjustment{what}{" with self-calibration of " + ", ".join(refine) if refine else ""}: '
             f'{rep_adj.status}, {time.monotonic() - t_full:.1f} s')
@@ -391,6 +392,7 @@ def _finish_block(block: KeyframeBlock, out: Path, opt: TriangulateOptions, at: 
     the block check's BlockInputs)."""
     origin, assumptions = block.origin, block.assumptions
     before = block.camera
+    refine = at.self_calibration.kept if at.self_calibration is not None else refine
     self_cal = _self_calibration(at, before, refine, assumptions, log) if refine else None
     conv = convergence(at, rep_adj.status)
     if conv is not None:
@@ -705,7 +707,7 @@ def _global_adjustment(block: KeyframeBlock, mr, runs: list, core_of: dict, opt:
             f'{2 * at.opt.max_reprojection_px:.0f} px of the merged block left out), GCPs {len(seed["gcps"])}'
             + (f', self-calibrating {", ".join(refine)}' if refine else ''))
     with _SolveLog() as solves:
-        rep_adj = at.full_adjustment(refine_intrinsics=refine)
+        rep_adj = at.full_adjustment(refine_intrinsics=refine, stepwise=opt.self_calibrate is None)
     after = {at.kfs[k].name: at.kfs[k].map_T_cam for k in at.registered}
     figures = {'status': rep_adj.status, 'solves': len(solves.solves),
                'iterations': int(sum(s['iterations'] for s in solves.solves)),
