@@ -330,7 +330,8 @@ def mean_camera(cameras: list, weights) -> PinholeCamera:
                          avg(lambda c: c.cy), tuple(avg(lambda c, i=i: c.dist[i]) for i in range(5)))
 
 
-def seed_adjustment(at, records: list, map_T_cam: dict, point_ids, points_map_m, target_uv: dict) -> dict:
+def seed_adjustment(at, records: list, map_T_cam: dict, point_ids, points_map_m, target_uv: dict,
+                    gate_px: float | None = None) -> dict:
     """Make the empty IncrementalAT `at` hold the merged block, ready for its `full_adjustment`.
 
     records: core/incremental.py KeyframeRecord of every photo of the block (in order); map_T_cam: photo name
@@ -338,7 +339,7 @@ def seed_adjustment(at, records: list, map_T_cam: dict, point_ids, points_map_m,
     point_ids / points_map_m: (M,) track ids and (M, 3) map ENU m of the merged tie points; target_uv: photo
     name -> {target name: (u, v) px} of the GCP (and manual tie point) observations the adjustment takes
     (the records' own target_uv are not read). A merged point's observation in an oriented photo that
-    reprojects further than `gate_px` (at.opt.max_reprojection_px x 2, as a new keyframe's check of the
+    reprojects further than `gate_px` (None: at.opt.max_reprojection_px x 2, as a new keyframe's check of the
     points it sees again) is left inactive; a point with fewer than 2 active observations left is not
     kept. The GCPs the observations name are intersected from the merged cameras (`triangulate_targets`).
     The block is georeferenced for good (the merged block is in the map frame of its sub-blocks' GNSS and
@@ -360,7 +361,7 @@ def seed_adjustment(at, records: list, map_T_cam: dict, point_ids, points_map_m,
         raise DataError(f'seed_adjustment: {len(ids_m)} point ids but {len(P)} points')
     order = np.argsort(ids_m)
     ids_sorted, P_sorted = ids_m[order], P[order]
-    gate_px = 2.0 * at.opt.max_reprojection_px
+    gate_px = 2.0 * at.opt.max_reprojection_px if gate_px is None else float(gate_px)
     n_obs = n_out = 0
     for rec in records:
         ids = np.asarray(rec.track_ids, np.int64).ravel()

@@ -696,7 +696,8 @@ def _global_adjustment(block: KeyframeBlock, mr, runs: list, core_of: dict, opt:
     at = IncrementalAT(camera, IncrementalOptions(window_size=opt.window, lever_arm_cam_m=tuple(opt.lever_arm_cam_m),
                                                   spill_frozen=False), block.origin, control, ties=ties)
     tuv = {nm: {**target_obs.get(nm, {}), **tie_obs.get(nm, {})} for nm in names}
-    seed = seed_adjustment(at, block.records, mr.map_T_cam, mr.point_ids, mr.points_map_m, tuv)
+    gate_px = opt.split.seed_gate_px if opt.split is not None else None
+    seed = seed_adjustment(at, block.records, mr.map_T_cam, mr.point_ids, mr.points_map_m, tuv, gate_px)
     at.gnss_sigma_scale_hv = np.sum(w[:, None] * np.array([r.gnss_scale_hv for r in good]), axis=0) / w.sum()
     at.gnss_bias_enu = np.sum(w[:, None] * np.array([r.gnss_bias_enu_m for r in good]), axis=0) / w.sum()
     rejected = {n for r in good for n in r.gnss_rejected}
@@ -704,7 +705,7 @@ def _global_adjustment(block: KeyframeBlock, mr, runs: list, core_of: dict, opt:
     if log is not None:
         log(f'split-merge: global adjustment of {seed["oriented"]} photos, {seed["points"]} tie points '
             f'({seed["observations_left_out"]} of {seed["observations"]} observations beyond '
-            f'{2 * at.opt.max_reprojection_px:.0f} px of the merged block left out), GCPs {len(seed["gcps"])}'
+            f'{gate_px or 2 * at.opt.max_reprojection_px:.1f} px of the merged block left out), GCPs {len(seed["gcps"])}'
             + (f', self-calibrating {", ".join(refine)}' if refine else ''))
     with _SolveLog() as solves:
         rep_adj = at.full_adjustment(refine_intrinsics=refine, stepwise=opt.self_calibrate is None)
