@@ -7,7 +7,7 @@ import pytest
 from photogram_ros.core.rotations import R_from_rotvec
 from photogram_ros.core.similarity import Similarity, umeyama
 from photogram_ros.core.split_merge import (SplitMergeOptions, SubBlock, camera_moves, mean_camera, merge, partition,
-                                            seed_adjustment, solve_similarities)
+                                            solve_similarities)
 from photogram_ros.errors import ConfigError, DataError
 from photogram_ros.params import from_dict
 
@@ -213,7 +213,7 @@ GLOBAL_FROM_TRUTH_M = 1.5 * 0.0006
 
 def test_global_adjustment_from_the_merged_block_recovers_the_truth():
     """Sub-blocks that are each moved and bent, merged, then adjusted as one block from the merged poses and
-    points (seed_adjustment + full_adjustment, no incremental pass): the deformation the merge's similarities
+    points (IncrementalAT.seed + full_adjustment, no incremental pass): the deformation the merge's similarities
     cannot undo is gone, and the solution is the one the same adjustment reaches from the truth."""
     import time
 
@@ -234,7 +234,7 @@ def test_global_adjustment_from_the_merged_block_recovers_the_truth():
         d = np.array([poses[nm][:3, 3] - truth[nm][:3, 3] for nm in names])
         return float(np.sqrt(np.mean(np.sum(d ** 2, axis=1))))
     at = IncrementalAT(cam, IncrementalOptions(spill_frozen=False), origin, [])
-    seed = seed_adjustment(at, records, mr.map_T_cam, mr.point_ids, mr.points_map_m, {})
+    seed = at.seed(records, mr.map_T_cam, mr.point_ids, mr.points_map_m, {})
     assert seed['keyframes'] == seed['oriented'] == len(names)
     assert seed['observations_left_out'] >= 30
     t0 = time.monotonic()
@@ -250,7 +250,7 @@ def test_global_adjustment_from_the_merged_block_recovers_the_truth():
     assert mv['photos'] == len(names) and mv['centre_rms_m'] > 0.5 * before_m
     # The same adjustment started from the truth: the optimum the global adjustment should reach.
     at0 = IncrementalAT(cam, IncrementalOptions(spill_frozen=False), origin, [])
-    seed_adjustment(at0, records, truth, np.arange(len(X)), X, {})
+    at0.seed(records, truth, np.arange(len(X)), X, {})
     at0.full_adjustment()
     ref = {at0.kfs[k].name: at0.kfs[k].map_T_cam for k in at0.registered}
     d = camera_moves(ref, after)
@@ -259,24 +259,24 @@ def test_global_adjustment_from_the_merged_block_recovers_the_truth():
     assert d['centre_rms_m'] <= GLOBAL_FROM_TRUTH_M
 
 
-def test_seed_adjustment_and_mean_camera_reject_bad_input():
+def test_seed_and_mean_camera_reject_bad_input():
     from photogram_ros.core.camera import PinholeCamera
     from photogram_ros.core.incremental import IncrementalAT, IncrementalOptions
     cam, origin, C, X, truth, records = _observed_block(lines=2, per_line=4, n_points=200)
     with pytest.raises(ConfigError, match='spill_frozen'):
-        seed_adjustment(IncrementalAT(cam, IncrementalOptions(), origin), records, truth, np.arange(len(X)), X, {})
+        IncrementalAT(cam, IncrementalOptions(), origin).seed(records, truth, np.arange(len(X)), X, {})
     with pytest.raises(DataError, match='point ids'):
-        seed_adjustment(IncrementalAT(cam, IncrementalOptions(spill_frozen=False), origin), records, truth,
+        IncrementalAT(cam, IncrementalOptions(spill_frozen=False), origin).seed(records, truth,
                         np.arange(3), X, {})
     at = IncrementalAT(cam, IncrementalOptions(spill_frozen=False), origin)
     # A photo without a merged pose is a keyframe not oriented; a point seen by fewer than 2 oriented photos
     # is not kept.
     part = {k: v for k, v in truth.items() if k != 'IMG_0000'}
-    seed = seed_adjustment(at, records, part, np.arange(len(X)), X, {})
+    seed = at.seed(records, part, np.arange(len(X)), X, {})
     assert seed['keyframes'] == 8 and seed['oriented'] == 7 and at.kfs[0].map_T_cam is None
     assert 0 < seed['points'] < len(X) and seed['observations_left_out'] == 0
     with pytest.raises(DataError, match='empty'):
-        seed_adjustment(at, records, truth, np.arange(len(X)), X, {})
+        at.seed(records, truth, np.arange(len(X)), X, {})
     other = PinholeCamera(640, 480, 510.0, 510.0, 322.0, 238.0, (0.01, 0, 0, 0, 0))
     m = mean_camera([cam, other], [3, 1])
     assert m.fx == pytest.approx(502.5) and m.cx == pytest.approx(320.5) and m.dist[0] == pytest.approx(0.0025)

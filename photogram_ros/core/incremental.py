@@ -315,6 +315,8 @@ class IncrementalAT:
         self._camera_given = camera
         # The last stepwise self-calibration's selection (core/self_calibration.py), None when none was made.
         self.self_calibration: Selection | None = None
+        # Every adjustment of the block's keyframes (_solve): its iterations, status and seconds.
+        self.solves: list[dict] = []
         self.opt = options or IncrementalOptions()
         self.origin = origin
         self.kfs: list[Keyframe] = []
@@ -1102,7 +1104,10 @@ class IncrementalAT:
         if b.prob is None:
             return StepReport(kids[-1] if kids else -1, True, 'nothing_to_adjust')
         prob = b.prob
+        t0 = time.monotonic()
         res = _adjust(prob, self.opt.loss, self.opt.loss_scale_px, iterations, refine)
+        self.solves.append({'iterations': int(res.iterations), 'status': res.status,
+                            's': round(time.monotonic() - t0, 2)})
         if refine and res.status != 'failed':
             self.camera = res.camera   # self-calibration: every later step uses the refined intrinsics
         for j, k in enumerate(kids):
@@ -1378,6 +1383,82 @@ class IncrementalAT:
                           self.opt.window_iterations if iterations is None else iterations)
         rep.kid = kid
         return rep
+
+    def seed(self, records: list, map_T_cam: dict, point_ids, points_map_m, target_uv: dict,
+                        gate_px: float | None = None) -> dict:
+        """Make this empty adjuster hold the merged block, ready for its `full_adjustment`.
+
+        records: core/incremental.py KeyframeRecord of every photo of the block (in order); map_T_cam: photo name
+        -> (4, 4) merged pose (map ENU, camera to map; a photo without one is a keyframe not oriented);
+        point_ids / points_map_m: (M,) track ids and (M, 3) map ENU m of the merged tie points; target_uv: photo
+        name -> {target name: (u, v) px} of the GCP (and manual tie point) observations the adjustment takes
+        (the records' own target_uv are not read). A merged point's observation in an oriented photo that
+        reprojects further than `gate_px` (None: self.opt.max_reprojection_px x 2, as a new keyframe's check of the
+        points it sees again) is left inactive; a point with fewer than 2 active observations left is not
+        kept. The GCPs the observations name are intersected from the merged cameras (`triangulate_targets`).
+        The block is georeferenced for good (the merged block is in the map frame of its sub-blocks' GNSS and
+        GCPs). Returns {'keyframes', 'oriented', 'points', 'observations', 'observations_left_out', 'gcps'}.
+        Keyframes come in as `add_keyframe` and `_register` would make them, with poses and points already known."""
+        if self.kfs:
+            raise DataError(f'seed needs an empty adjuster; it holds {len(self.kfs)} keyframes')
+        if self.origin is None:
+            raise DataError('seed needs an adjuster with its map origin (the block\'s)')
+        if self.opt.spill_frozen:
+            raise ConfigError('seed needs an adjuster with spill_frozen off: its keyframes do not come '
+                              'through add_keyframe, which the freezing follows')
+        ids_m = np.asarray(point_ids, np.int64).reshape(-1)
+        P = np.asarray(points_map_m, float).reshape(-1, 3)
+        if len(ids_m) != len(P):
+            raise DataError(f'seed: {len(ids_m)} point ids but {len(P)} points')
+        order = np.argsort(ids_m)
+        ids_sorted, P_sorted = ids_m[order], P[order]
+        gate_px = 2.0 * self.opt.max_reprojection_px if gate_px is None else float(gate_px)
+        n_obs = n_out = 0
+        for rec in records:
+            ids = np.asarray(rec.track_ids, np.int64).ravel()
+            uv = np.asarray(rec.uv, float).reshape(-1, 2)
+            if len(ids) != len(uv):
+                raise DataError(f'photo {rec.name}: {len(ids)} track ids but {len(uv)} pixel positions')
+            tuv = target_uv.get(rec.name, {})
+            if tuv:
+                ids = np.concatenate([ids, [self._new_target_track(n) for n in tuv]])
+                uv = np.vstack([uv, np.asarray(list(tuv.values()), float).reshape(-1, 2)])
+            ids, first = np.unique(ids, return_index=True)
+            uv = uv[first]
+            fix_enu = fix_cov = None
+            if rec.fix is not None:
+                fix_enu = np.asarray(self.origin.geodetic_to_enu(rec.fix.lat_deg, rec.fix.lon_deg, rec.fix.h_m), float)
+                fix_cov = np.asarray(rec.fix.cov_enu_m2, float).reshape(3, 3)
+            active = np.ones(len(ids), bool)
+            kf = Keyframe(len(self.kfs), int(rec.stamp_ns), rec.name or str(rec.stamp_ns), ids, uv,
+                          self.camera.pixel_to_normalized(uv), active, fix_enu, fix_cov)
+            if rec.antenna_offset_map_m is not None:
+                kf.antenna_offset = np.asarray(rec.antenna_offset_map_m, float).reshape(3)
+            self.kfs.append(kf)
+            T = map_T_cam.get(kf.name)
+            if T is None:
+                continue
+            kf.map_T_cam = np.array(T, float)
+            kf.reg_seq = len(self.registered)
+            self.registered.append(kf.kid)
+            pos = np.clip(np.searchsorted(ids_sorted, ids), 0, max(len(ids_sorted) - 1, 0))
+            has = (ids_sorted[pos] == ids) if len(ids_sorted) else np.zeros(len(ids), bool)
+            if has.any():
+                e = self.reprojection_px(kf.map_T_cam, P_sorted[pos[has]], uv[has])
+                far = ~(e <= gate_px)
+                active[np.flatnonzero(has)[far]] = False
+                n_obs += int(has.sum())
+                n_out += int(far.sum())
+            for t in ids[active].tolist():
+                self.track_kfs.setdefault(t, []).append(kf.kid)
+        keep = np.array([len(self.track_kfs.get(int(t), ())) >= 2 for t in ids_m], bool)
+        if keep.any():
+            self.points.set_many(ids_m[keep], P[keep])
+        self.georeferenced = True
+        self.georef_provisional = False
+        gcps = self.triangulate_targets(sorted({n for o in target_uv.values() for n in o}))
+        return {'keyframes': len(self.kfs), 'oriented': len(self.registered), 'points': int(keep.sum()),
+                'observations': n_obs, 'observations_left_out': n_out, 'gcps': gcps}
 
     def full_adjustment(self, iterations: int | None = None, rounds: int = 2,
                         refine_intrinsics: tuple = (), gnss_noise: bool = True,

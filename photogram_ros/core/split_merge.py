@@ -17,8 +17,8 @@ block's map frame: ENU metres at one origin), and merged:
   overlap whose shared cameras still disagree beyond `overlap_warn_m` / `overlap_fail_m` after the
   similarities, a sub-block that failed (left out of the merge) and a sub-block that shares nothing with
   the rest (kept where its own GNSS puts it) are findings naming the sub-blocks, never silently merged.
-- `seed_adjustment(at, records, map_T_cam, point_ids, points_map_m, target_uv)`: the merged block as the state
-  of an empty IncrementalAT (core/incremental.py): every photo a keyframe, the merged ones oriented at their
+- The global adjustment starts from the merged block as the state of an empty adjuster (core/incremental.py
+  `IncrementalAT.seed`): every photo a keyframe, the merged ones oriented at their
   merged poses, the merged tie points as its points (observations that reproject beyond the gate left out), the
   GCPs intersected from the merged cameras, georeferenced for good. Its `full_adjustment` is then the global
   adjustment of the whole block (GNSS, GCPs, the final self-calibration) without an incremental pass.
@@ -33,12 +33,11 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.cluster.vq import kmeans2
 
-from photogram_ros.core.at_store import Keyframe
 from photogram_ros.core.block_check import STATUS_ORDER, Finding
 from photogram_ros.core.camera import PinholeCamera
 from photogram_ros.core.rotations import R_from_rotvec
 from photogram_ros.core.similarity import Similarity
-from photogram_ros.errors import ConfigError, DataError
+from photogram_ros.errors import DataError
 from photogram_ros.params import param
 
 
@@ -328,86 +327,6 @@ def mean_camera(cameras: list, weights) -> PinholeCamera:
     c0 = cameras[0]
     return PinholeCamera(c0.width, c0.height, avg(lambda c: c.fx), avg(lambda c: c.fy), avg(lambda c: c.cx),
                          avg(lambda c: c.cy), tuple(avg(lambda c, i=i: c.dist[i]) for i in range(5)))
-
-
-def seed_adjustment(at, records: list, map_T_cam: dict, point_ids, points_map_m, target_uv: dict,
-                    gate_px: float | None = None) -> dict:
-    """Make the empty IncrementalAT `at` hold the merged block, ready for its `full_adjustment`.
-
-    records: core/incremental.py KeyframeRecord of every photo of the block (in order); map_T_cam: photo name
-    -> (4, 4) merged pose (map ENU, camera to map; a photo without one is a keyframe not oriented);
-    point_ids / points_map_m: (M,) track ids and (M, 3) map ENU m of the merged tie points; target_uv: photo
-    name -> {target name: (u, v) px} of the GCP (and manual tie point) observations the adjustment takes
-    (the records' own target_uv are not read). A merged point's observation in an oriented photo that
-    reprojects further than `gate_px` (None: at.opt.max_reprojection_px x 2, as a new keyframe's check of the
-    points it sees again) is left inactive; a point with fewer than 2 active observations left is not
-    kept. The GCPs the observations name are intersected from the merged cameras (`triangulate_targets`).
-    The block is georeferenced for good (the merged block is in the map frame of its sub-blocks' GNSS and
-    GCPs). Returns {'keyframes', 'oriented', 'points', 'observations', 'observations_left_out', 'gcps'}.
-
-    This writes the adjuster's state (its keyframes, registration order, points and their keyframes) from
-    outside, as `add_keyframe` and `_register` would: no method of IncrementalAT takes poses and points
-    that are already known."""
-    if at.kfs:
-        raise DataError(f'seed_adjustment needs an empty adjuster; it holds {len(at.kfs)} keyframes')
-    if at.origin is None:
-        raise DataError('seed_adjustment needs an adjuster with its map origin (the block\'s)')
-    if at.opt.spill_frozen:
-        raise ConfigError('seed_adjustment needs an adjuster with spill_frozen off: its keyframes do not come '
-                          'through add_keyframe, which the freezing follows')
-    ids_m = np.asarray(point_ids, np.int64).reshape(-1)
-    P = np.asarray(points_map_m, float).reshape(-1, 3)
-    if len(ids_m) != len(P):
-        raise DataError(f'seed_adjustment: {len(ids_m)} point ids but {len(P)} points')
-    order = np.argsort(ids_m)
-    ids_sorted, P_sorted = ids_m[order], P[order]
-    gate_px = 2.0 * at.opt.max_reprojection_px if gate_px is None else float(gate_px)
-    n_obs = n_out = 0
-    for rec in records:
-        ids = np.asarray(rec.track_ids, np.int64).ravel()
-        uv = np.asarray(rec.uv, float).reshape(-1, 2)
-        if len(ids) != len(uv):
-            raise DataError(f'photo {rec.name}: {len(ids)} track ids but {len(uv)} pixel positions')
-        tuv = target_uv.get(rec.name, {})
-        if tuv:
-            ids = np.concatenate([ids, [at._new_target_track(n) for n in tuv]])
-            uv = np.vstack([uv, np.asarray(list(tuv.values()), float).reshape(-1, 2)])
-        ids, first = np.unique(ids, return_index=True)
-        uv = uv[first]
-        fix_enu = fix_cov = None
-        if rec.fix is not None:
-            fix_enu = np.asarray(at.origin.geodetic_to_enu(rec.fix.lat_deg, rec.fix.lon_deg, rec.fix.h_m), float)
-            fix_cov = np.asarray(rec.fix.cov_enu_m2, float).reshape(3, 3)
-        active = np.ones(len(ids), bool)
-        kf = Keyframe(len(at.kfs), int(rec.stamp_ns), rec.name or str(rec.stamp_ns), ids, uv,
-                      at.camera.pixel_to_normalized(uv), active, fix_enu, fix_cov)
-        if rec.antenna_offset_map_m is not None:
-            kf.antenna_offset = np.asarray(rec.antenna_offset_map_m, float).reshape(3)
-        at.kfs.append(kf)
-        T = map_T_cam.get(kf.name)
-        if T is None:
-            continue
-        kf.map_T_cam = np.array(T, float)
-        kf.reg_seq = len(at.registered)
-        at.registered.append(kf.kid)
-        pos = np.clip(np.searchsorted(ids_sorted, ids), 0, max(len(ids_sorted) - 1, 0))
-        has = (ids_sorted[pos] == ids) if len(ids_sorted) else np.zeros(len(ids), bool)
-        if has.any():
-            e = at.reprojection_px(kf.map_T_cam, P_sorted[pos[has]], uv[has])
-            far = ~(e <= gate_px)
-            active[np.flatnonzero(has)[far]] = False
-            n_obs += int(has.sum())
-            n_out += int(far.sum())
-        for t in ids[active].tolist():
-            at.track_kfs.setdefault(t, []).append(kf.kid)
-    keep = np.array([len(at.track_kfs.get(int(t), ())) >= 2 for t in ids_m], bool)
-    if keep.any():
-        at.points.set_many(ids_m[keep], P[keep])
-    at.georeferenced = True
-    at.georef_provisional = False
-    gcps = at.triangulate_targets(sorted({n for o in target_uv.values() for n in o}))
-    return {'keyframes': len(at.kfs), 'oriented': len(at.registered), 'points': int(keep.sum()),
-            'observations': n_obs, 'observations_left_out': n_out, 'gcps': gcps}
 
 
 def camera_moves(before: dict, after: dict) -> dict:

@@ -636,41 +636,16 @@ def _merged_vetting(runs: list, core_of: dict):
     return ControlVetting(rows, points, wrong, suspect, notes)
 
 
-class _SolveLog:
-    """Each bundle adjustment the adjuster (core/incremental.py) runs while entered: its iterations, status and
-    seconds (wraps the module's `bundle_adjust`, restored on exit; one adjuster at a time in this process)."""
-
-    def __init__(self):
-        self.solves: list = []
-
-    def __enter__(self):
-        import photogram_ros.core.incremental as inc
-        self._inc, self._orig = inc, inc.bundle_adjust
-
-        def counted(problem, options=None):
-            t = time.monotonic()
-            res = self._orig(problem, options)
-            self.solves.append({'iterations': int(res.iterations), 'status': res.status,
-                                's': round(time.monotonic() - t, 2)})
-            return res
-        inc.bundle_adjust = counted
-        return self
-
-    def __exit__(self, *exc):
-        self._inc.bundle_adjust = self._orig
-        return False
-
-
 def _global_adjustment(block: KeyframeBlock, mr, runs: list, core_of: dict, opt: TriangulateOptions,
                        log=None) -> dict:
     """The merged block (core/split_merge.py MergeResult `mr`) adjusted as one block: an IncrementalAT seeded
-    with the merged poses and tie points (core/split_merge.py seed_adjustment) and the sub-blocks' mean camera,
+    with the merged poses and tie points (core/incremental.py IncrementalAT.seed) and the sub-blocks' mean camera,
     GNSS noise scale, bias and rejected fixes, its GCP observations and control points as the sub-blocks vetted
     them (`_merged_vetting`), then the single block's final adjustment (`full_adjustment`: GNSS noise, bias,
     the self-calibration `auto_self_calibration` or opt.self_calibrate chooses). Returns {'at', 'rep_adj',
     'refine', 'control', 'vetting', 'figures'}; figures: the solves, their iterations, wall and CPU time, the
     seed, and how far it moved the cameras from the merged block (core/split_merge.py camera_moves)."""
-    from photogram_ros.core.split_merge import camera_moves, mean_camera, seed_adjustment
+    from photogram_ros.core.split_merge import camera_moves, mean_camera
     t0, c0 = time.monotonic(), time.process_time()
     good = [r for r in runs if r.inputs is not None and r.camera is not None and r.sub.index not in mr.left_out]
     if not good:
@@ -697,7 +672,7 @@ def _global_adjustment(block: KeyframeBlock, mr, runs: list, core_of: dict, opt:
                                                   spill_frozen=False), block.origin, control, ties=ties)
     tuv = {nm: {**target_obs.get(nm, {}), **tie_obs.get(nm, {})} for nm in names}
     gate_px = opt.split.seed_gate_px if opt.split is not None else None
-    seed = seed_adjustment(at, block.records, mr.map_T_cam, mr.point_ids, mr.points_map_m, tuv, gate_px)
+    seed = at.seed(block.records, mr.map_T_cam, mr.point_ids, mr.points_map_m, tuv, gate_px)
     at.gnss_sigma_scale_hv = np.sum(w[:, None] * np.array([r.gnss_scale_hv for r in good]), axis=0) / w.sum()
     at.gnss_bias_enu = np.sum(w[:, None] * np.array([r.gnss_bias_enu_m for r in good]), axis=0) / w.sum()
     rejected = {n for r in good for n in r.gnss_rejected}
@@ -707,12 +682,13 @@ def _global_adjustment(block: KeyframeBlock, mr, runs: list, core_of: dict, opt:
             f'({seed["observations_left_out"]} of {seed["observations"]} observations beyond '
             f'{gate_px or 2 * at.opt.max_reprojection_px:.1f} px of the merged block left out), GCPs {len(seed["gcps"])}'
             + (f', self-calibrating {", ".join(refine)}' if refine else ''))
-    with _SolveLog() as solves:
-        rep_adj = at.full_adjustment(refine_intrinsics=refine, stepwise=opt.self_calibrate is None)
+    n_solves = len(at.solves)
+    rep_adj = at.full_adjustment(refine_intrinsics=refine, stepwise=opt.self_calibrate is None)
+    solves = at.solves[n_solves:]
     after = {at.kfs[k].name: at.kfs[k].map_T_cam for k in at.registered}
-    figures = {'status': rep_adj.status, 'solves': len(solves.solves),
-               'iterations': int(sum(s['iterations'] for s in solves.solves)),
-               'solve_iterations': [s['iterations'] for s in solves.solves],
+    figures = {'status': rep_adj.status, 'solves': len(solves),
+               'iterations': int(sum(s['iterations'] for s in solves)),
+               'solve_iterations': [s['iterations'] for s in solves],
                'wall_s': round(time.monotonic() - t0, 2), 'cpu_s': round(time.process_time() - c0, 2),
                'seed': {k: v for k, v in seed.items() if k != 'gcps'}, 'gcps': seed['gcps'],
                'camera_moves': camera_moves(mr.map_T_cam, after),
