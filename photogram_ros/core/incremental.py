@@ -259,6 +259,20 @@ class StepReport:
     joined: int = 0                 # keyframes of a segment that joined the block with this step
 
 
+def _reprojection_errors_px(camera: PinholeCamera, map_T_cams: np.ndarray, points_map_m: np.ndarray,
+                            uv_px: np.ndarray) -> np.ndarray:
+    """(n,) pixel distance of each observation: the point points_map_m[i] (map m) seen from map_T_cams[i]
+    (4, 4, camera to map) against uv_px[i] (distorted pixels); NaN behind the camera."""
+    pc = np.einsum('nji,nj->ni', map_T_cams[:, :3, :3], points_map_m - map_T_cams[:, :3, 3])
+    z = np.where(pc[:, 2] > 1e-9, pc[:, 2], np.nan)
+    return np.linalg.norm(camera.normalized_to_pixel(pc[:, :2] / z[:, None]) - uv_px, axis=1)
+
+
+def _intrinsics_by_name(camera: PinholeCamera) -> dict:
+    """The camera's intrinsics by their self-calibration names (f is fx)."""
+    return {'f': camera.fx, 'cx': camera.cx, 'cy': camera.cy, **dict(zip(('k1', 'k2', 'p1', 'p2', 'k3'), camera.dist))}
+
+
 def _adjust(prob, loss: str, scale_px: float, iterations: int, refine: tuple = ()):
     return bundle_adjust(prob, BundleOptions(loss=loss, loss_scale_px=scale_px, max_iterations=iterations,
                                              refine_intrinsics=tuple(refine)))
@@ -1116,12 +1130,7 @@ class IncrementalAT:
         if tracks:
             self.points.set_many(tracks, np.asarray(res.points_map))
         # Observations the robust loss down-weighted past the threshold are outliers: remove them.
-        P = np.asarray(res.points_map)[slot]
-        Ts = self._poses_of(kid)
-        pc = np.einsum('nji,nj->ni', Ts[:, :3, :3], P - Ts[:, :3, 3])
-        z = np.where(pc[:, 2] > 1e-9, pc[:, 2], np.nan)
-        uv = prob.obs_uv
-        err = np.linalg.norm(self.camera.normalized_to_pixel(pc[:, :2] / z[:, None]) - uv, axis=1)
+        err = _reprojection_errors_px(self.camera, self._poses_of(kid), np.asarray(res.points_map)[slot], prob.obs_uv)
         bad = ~(err <= self.opt.max_reprojection_px)
         if res.status == 'failed' or np.median(err[np.isfinite(err)]) > self.opt.max_reprojection_px:
             bad[:] = False   # not converged: residuals say nothing about outliers yet
@@ -1549,6 +1558,7 @@ class IncrementalAT:
         prob = b.prob
 
         results = {}
+        given_by_name = _intrinsics_by_name(self._camera_given)
 
         def started(res):
             return replace(prob, camera=res.camera if res.camera is not None else prob.camera,
@@ -1565,18 +1575,11 @@ class IncrementalAT:
             cam = res.camera if res.camera is not None else prob.camera
             T = np.asarray(res.map_T_cams)
             P = np.asarray(res.points_map)
-            To = T[prob.obs_cam]
-            pc = np.einsum('nji,nj->ni', To[:, :3, :3], P[prob.obs_pt] - To[:, :3, 3])
-            z = np.where(pc[:, 2] > 1e-9, pc[:, 2], np.nan)
-            err = np.linalg.norm(cam.normalized_to_pixel(pc[:, :2] / z[:, None]) - prob.obs_uv, axis=1)
+            err = _reprojection_errors_px(cam, T[prob.obs_cam], P[prob.obs_pt], prob.obs_uv)
             err = np.minimum(np.nan_to_num(err, nan=np.inf), self.opt.max_reprojection_px)
             rms = float(np.sqrt(np.mean(err ** 2))) if res.status != 'failed' else float('nan')
-            given = self._camera_given
-
-            def named(c):
-                return {'f': c.fx, 'cx': c.cx, 'cy': c.cy, **dict(zip(('k1', 'k2', 'p1', 'p2', 'k3'), c.dist))}
-            values = {n: float(v) for n, v in named(cam).items() if n in refine}
-            moved = {n: v - float(named(given)[n]) for n, v in values.items()}
+            values = {n: float(v) for n, v in _intrinsics_by_name(cam).items() if n in refine}
+            moved = {n: v - float(given_by_name[n]) for n, v in values.items()}
             bowl = None
             if prob.gnss_cam is not None and len(prob.gnss_cam) >= 7:
                 Tg = T[prob.gnss_cam]
