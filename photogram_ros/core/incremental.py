@@ -62,6 +62,8 @@ NADIR_PRIOR_DEG = 2.0
 AUTO_CANDIDATES = ('k1', 'k2')
 # Intrinsics a stepwise self-calibration refines whenever they are candidates (`select_self_calibration`).
 SELF_CALIBRATION_BASE = ('f', 'cx', 'cy')
+# The lens distortion terms: what the incremental pass may refine (`pass_self_calibration`).
+DISTORTION_TERMS = ('k1', 'k2', 'p1', 'p2', 'k3')
 # A self-calibration trial stops once a step lowers its cost by less than this fraction (its reprojection RMS by
 # about half of it, 0.005 %), far inside the 2 % a candidate must gain; the adjustments keep 1e-6. On the
 # simulator's sample flight (76 keyframes) the trials take 44 s with it, 80 s at 1e-6, and choose alike.
@@ -173,6 +175,15 @@ class IncrementalOptions:
                                              '"auto": stepwise from k1, k2, each kept only when it pays in '
                                              'reprojection (core/self_calibration.py): a camera from the EXIF, whose '
                                              'distortion nobody measured, wants "auto"')
+    pass_self_calibration: str = param('', 'distortion terms the full adjustments during the incremental pass refine '
+                                            '(at the final georeference, then as the block grows: growth_ratio), '
+                                            'comma separated from k1, k2, p1, p2, k3; empty: none. A camera whose '
+                                            'distortion nobody measured (the EXIF\'s) wants k1,k2 on a long block: '
+                                            'without them the block bends away from precise geotags, metres at '
+                                            'the first photos of a line')
+    growth_ratio: float = param(0.0, 'a full adjustment of the whole block (refining pass_self_calibration) each time '
+                                     'the oriented keyframes have grown by this factor since the last one; 0: none',
+                                min=0.0, max=100.0)
     self_calibration_min_gain: float = param(MIN_GAIN_FRACTION, 'stepwise self-calibration: a candidate intrinsic '
                                              'is kept when it lowers the reprojection RMS by at least this fraction '
                                              'of it (and self_calibration_min_gain_px)', min=0.0, max=1.0)
@@ -210,6 +221,12 @@ class IncrementalOptions:
         if bad:
             raise ConfigError(f'final_self_calibration: {bad} are not intrinsics; choose from f, cx, cy, k1, k2, p1, '
                               'p2, k3, or give "auto"')
+        bad = [v for v in self.pass_refine if v not in DISTORTION_TERMS]
+        if bad:
+            raise ConfigError(f'pass_self_calibration: {bad} are not distortion terms; choose from '
+                              f'{", ".join(DISTORTION_TERMS)}')
+        if 0.0 < self.growth_ratio < 1.05:
+            raise ConfigError(f'growth_ratio {self.growth_ratio}: give 0 (no growth adjustments) or at least 1.05')
         if any(self.lever_arm_body_frd_m) and any(self.lever_arm_cam_m):
             raise ConfigError('give the GNSS lever arm once: lever_arm_cam_m for a camera fixed to the body, '
                               'lever_arm_body_frd_m for a gimballed camera (the other all zeros)')
@@ -220,6 +237,11 @@ class IncrementalOptions:
         if self.final_stepwise:
             return AUTO_CANDIDATES
         return tuple(v.strip() for v in self.final_self_calibration.split(',') if v.strip())
+
+    @property
+    def pass_refine(self) -> tuple:
+        """pass_self_calibration as a tuple of names."""
+        return tuple(v.strip() for v in self.pass_self_calibration.split(',') if v.strip())
 
     @property
     def final_stepwise(self) -> bool:
@@ -372,6 +394,8 @@ class IncrementalAT:
         # horizontal centre) where the cameras' looking down says the trend is the fixes' (`_level_block`).
         self.gnss_slope = np.zeros(2)
         self._gnss_slope_centre = np.zeros(2)
+        # Oriented keyframes at the last full adjustment (`growth_ratio`).
+        self._full_adjusted_n = 0
 
     @property
     def lever_arm_cam_m(self) -> np.ndarray:
@@ -508,6 +532,9 @@ class IncrementalAT:
                 elif rep.status != 'registered_gnss_rotation':
                     self._gate_fix(kf)
                 rep = self._window_adjust(kf.kid, iterations=window_iterations)
+                if self._growth_due():
+                    self.full_adjustment(iterations=self.opt.full_iterations, rounds=1, gnss_noise=False,
+                                         refine_intrinsics=self.opt.pass_refine, gnss_bias=False)
             elif self._segment_wanted(kf):
                 rep = self._grow_segment(kf, rec, rep, window_iterations)
         rep.solve_s = time.perf_counter() - t0
@@ -516,6 +543,11 @@ class IncrementalAT:
         if self.opt.spill_frozen and kf.kid % max(self.opt.freeze_every, 1) == 0:
             self.freeze()
         return rep
+
+    def _growth_due(self) -> bool:
+        """The block, georeferenced for good, has grown by growth_ratio since its last full adjustment."""
+        return (self.opt.growth_ratio > 0.0 and self.georeferenced and not self.georef_provisional
+                and len(self.registered) >= self.opt.growth_ratio * max(self._full_adjusted_n, 1))
 
     # --- segments: the flight after every track was lost -------------------------------------------
 
@@ -700,7 +732,7 @@ class IncrementalAT:
             if len(ids) < self.opt.min_init_inliers:
                 continue
             thr = self.opt.pnp_threshold_px / self.camera.fx
-            res = relative_pose(first.xn[i1], new.xn[i2], thr, self.opt.min_init_inliers)
+            res = relative_pose(self._xn(first, i1), self._xn(new, i2), thr, self.opt.min_init_inliers)
             if not res.ok or res.median_angle_deg < self.opt.min_init_angle_deg or not self._faces_scene(res):
                 continue
             score = int(res.inliers.sum()) * min(1.0, res.median_angle_deg / (2 * self.opt.min_init_angle_deg))
@@ -737,7 +769,7 @@ class IncrementalAT:
         if n < max(self.opt.min_pnp_inliers, 6):
             return StepReport(kf.kid, False, f'too_few_known_points ({n})')
         obj = self.points.get_many(kf.track_ids[have])
-        img = kf.xn[have]
+        img = self._xn(kf, have)
         prev = self.kfs[self.registered[-1]].map_T_cam
         cam_T_map = invert_T(prev)
         rvec0, _ = cv2.Rodrigues(cam_T_map[:3, :3])
@@ -799,7 +831,7 @@ class IncrementalAT:
         i1 = np.array([rk.index(int(t)) for t in common])
         i2 = np.array([kf.index(int(t)) for t in common])
         thr = self.opt.pnp_threshold_px / self.camera.fx
-        res = relative_pose(rk.xn[i1], kf.xn[i2], thr, self.opt.min_relative_inliers)
+        res = relative_pose(self._xn(rk, i1), self._xn(kf, i2), thr, self.opt.min_relative_inliers)
         T_r = rk.map_T_cam
         if res.ok and not self._faces_scene(res):
             return StepReport(kf.kid, False, 'relative: sees its tie points edge-on (the planar twin)')
@@ -838,7 +870,7 @@ class IncrementalAT:
         import cv2
         if not self.georeferenced or kf.fix_enu is None:
             return None
-        H, mask = cv2.findHomography(rk.xn[i1], kf.xn[i2], cv2.RANSAC, 2 * thr)
+        H, mask = cv2.findHomography(self._xn(rk, i1), self._xn(kf, i2), cv2.RANSAC, 2 * thr)
         if H is None or int(mask.sum()) < self.opt.min_relative_inliers:
             return None
         U, _, Vt = np.linalg.svd(H)
@@ -873,6 +905,13 @@ class IncrementalAT:
         if world.max() < 1e-6:
             return None
         return gnss_m * float(np.sum(block * world) / np.sum(world * world))
+
+    def _xn(self, kf: Keyframe, idx) -> np.ndarray:
+        """Undistorted normalised coordinates of kf's observations `idx` with the current camera: those
+        stored with the keyframe (made with the camera as given) until a self-calibration changes it."""
+        if self.camera == self._camera_given:
+            return kf.xn[idx]
+        return self.camera.pixel_to_normalized(kf.uv[idx])
 
     def reprojection_px(self, map_T_cam: np.ndarray, X: np.ndarray, uv: np.ndarray) -> np.ndarray:
         """(n,) pixel distance between the points X (n, 3, map) seen from map_T_cam and uv (n, 2
@@ -922,7 +961,7 @@ class IncrementalAT:
             counts = np.bincount(slot, minlength=len(tracks))
             ks = list(dict.fromkeys(kid.tolist()))     # _gather groups by keyframe, in this order
             Ts = self._poses_of(kid)
-            xn = np.concatenate([self.kfs[k].xn[oi[kid == k]] for k in ks])
+            xn = np.concatenate([self._xn(self.kfs[k], oi[kid == k]) for k in ks])
             uv = np.concatenate([self.kfs[k].uv[oi[kid == k]] for k in ks])
             dirs = np.einsum('nij,nj->ni', Ts[:, :3, :3], np.column_stack([xn, np.ones(len(xn))]))
             X = triangulate_rays(Ts[:, :3, 3], dirs, slot, len(tracks))
@@ -1042,7 +1081,8 @@ class IncrementalAT:
             return False
         if self.georeferenced:   # provisional -> final: GNSS priors of the whole block fix the roll
             self.georef_provisional = False
-            self.full_adjustment(iterations=self.opt.full_iterations, rounds=1, gnss_noise=False)
+            self.full_adjustment(iterations=self.opt.full_iterations, rounds=1, gnss_noise=False,
+                                 refine_intrinsics=self.opt.pass_refine)
             return True
         # Fixes far from where the georeferenced block puts their cameras are glitches: not used.
         far = np.linalg.norm(s.apply(src[:len(ks)]) - dst[:len(ks)], axis=1) > thr
@@ -1055,7 +1095,8 @@ class IncrementalAT:
             self.points.set_many(ids, np.array([s.apply(p[None])[0] for p in P]))
         self.georeferenced = True
         self.georef_provisional = provisional
-        self.full_adjustment(iterations=self.opt.full_iterations, rounds=1, gnss_noise=False)
+        self.full_adjustment(iterations=self.opt.full_iterations, rounds=1, gnss_noise=False,
+                             refine_intrinsics=() if provisional else self.opt.pass_refine)
         return True
 
     # --- adjustment -----------------------------------------------------------------------------
@@ -1168,17 +1209,64 @@ class IncrementalAT:
 
     def _gate_fix(self, kf: Keyframe) -> bool:
         """A new keyframe oriented from the block's tie points, whose fix lies far beyond its sigma
-        (and `gnss_gate_m`) from where the block puts it, keeps its fix out of the adjustment (a
-        glitched geotag: weighted as stated it would drag the block after it). True when rejected."""
+        (and `gnss_gate_m`) from where the block puts it, keeps its fix out of the adjustment when the
+        photos contradict the fix (a glitched geotag: weighted as stated it would drag the block after it).
+        Far from the resection alone is not enough: a pose the window's tie points hold loosely (the first
+        photo of a line) can be metres off where its fix is right, and a keyframe without its fix carries
+        that error on to the next one, each registered from the last, so the block would leave its GNSS
+        for good. A far fix is therefore tried in the window adjustment (`_fix_trial`, nothing written):
+        it stays in when the adjusted camera comes within the gate of it without its tie points' errors
+        growing. True when rejected."""
         if kf.fix_enu is None or kf.map_T_cam is None:
             return False
-        d = kf.map_T_cam[:3, 3] + kf.map_T_cam[:3, :3] @ self._lever - self._gnss_target(kf)
+        if not self._fix_far(kf, kf.map_T_cam):
+            return False
+        if self._fix_trial(kf):
+            return False
+        self.gnss_rejected.add(kf.kid)
+        return True
+
+    def _fix_far(self, kf: Keyframe, map_T_cam: np.ndarray, about_m=None) -> bool:
+        """The antenna of a camera at `map_T_cam` lies further from kf's fix (plus `about_m`, ENU m, when
+        given) than the gate: on some axis beyond 2 x gnss_outlier_sigma of the fix's sigma (scaled by
+        the estimated noise) and gnss_gate_m."""
+        d = self._antenna_residual(kf, map_T_cam) - (0.0 if about_m is None else np.asarray(about_m, float))
         sig = np.sqrt(np.diag(self._fix_cov_used(kf)))
-        far = np.abs(d) > np.maximum(self.opt.gnss_outlier_sigma * 2.0 * sig, self.opt.gnss_gate_m)
-        if far.any():
-            self.gnss_rejected.add(kf.kid)
-            return True
-        return False
+        return bool((np.abs(d) > np.maximum(self.opt.gnss_outlier_sigma * 2.0 * sig, self.opt.gnss_gate_m)).any())
+
+    def _antenna_residual(self, kf: Keyframe, map_T_cam: np.ndarray) -> np.ndarray:
+        """Antenna of a camera at `map_T_cam` minus kf's fix as adjusted (bias taken off), ENU m."""
+        return map_T_cam[:3, 3] + map_T_cam[:3, :3] @ self._lever - self._gnss_target(kf)
+
+    def _fix_trial(self, kf: Keyframe) -> bool:
+        """The window adjustment of keyframe kf with its fix in, solved without writing anything back: True
+        when the photos agree with the fix: kf's adjusted antenna comes within the gate (`_fix_far`) of its
+        fix as the window's other fixes lie from theirs (their median residual: a block that is not yet
+        self-calibrated can sit off its GNSS by a common amount, which says nothing about one geotag), and
+        the median reprojection error of kf's observations stays within max(2 x, + 1 px) of the
+        resection's and within max_reprojection_px."""
+        sel = self._window_selection()
+        b = self._problem(sel.free_kfs, sel.fixed_kfs, sel.track_ids)
+        if b.prob is None or kf.kid not in b.kids:
+            return False
+        prob = b.prob
+        j = b.kids.index(kf.kid)
+        mine = np.asarray(prob.obs_cam) == j
+        if not mine.any():
+            return False
+        res = _adjust(prob, self.opt.loss, self.opt.loss_scale_px, self.opt.window_iterations)
+        if res.status == 'failed':
+            return False
+        T = np.asarray(res.map_T_cams)
+        others = [self._antenna_residual(self.kfs[b.kids[i]], T[i]) for i in b.gnss_cams if i != j]
+        about = np.median(others, axis=0) if others else None
+        before = _reprojection_errors_px(self.camera, np.asarray(prob.map_T_cams)[prob.obs_cam[mine]],
+                                         np.asarray(prob.points_map)[prob.obs_pt[mine]], prob.obs_uv[mine])
+        after = _reprojection_errors_px(self.camera, T[prob.obs_cam[mine]],
+                                        np.asarray(res.points_map)[prob.obs_pt[mine]], prob.obs_uv[mine])
+        med0, med1 = float(np.nanmedian(before)), float(np.nanmedian(after))
+        return (not self._fix_far(kf, T[j], about) and np.isfinite(med1)
+                and med1 <= min(max(2.0 * med0, med0 + 1.0), self.opt.max_reprojection_px))
 
     def _fix_cov_used(self, kf: Keyframe) -> np.ndarray:
         """The fix's covariance (ENU m^2) scaled by the flight's estimated GNSS noise."""
@@ -1382,12 +1470,17 @@ class IncrementalAT:
         t = kf.track_ids[kf.active]
         return t[self.points.contains_many(t)].astype(np.int64)
 
+    def _window_selection(self):
+        """The window of the newest registered keyframes and the older ones held fixed with them
+        (core/window.py select_window)."""
+        return select_window(self.registered, self.opt.window_size,
+                             {k: self._kf_tracks(k) for k in self.registered[-self.opt.window_size:]},
+                             self.track_kfs, self.opt.max_fixed_keyframes)
+
     def _window_adjust(self, kid: int, full: bool = False, iterations: int | None = None) -> StepReport:
         if full:
             return self.full_adjustment(iterations=self.opt.full_iterations, rounds=1, gnss_noise=False)
-        sel = select_window(self.registered, self.opt.window_size, {k: self._kf_tracks(k)
-                                                                    for k in self.registered[-self.opt.window_size:]},
-                            self.track_kfs, self.opt.max_fixed_keyframes)
+        sel = self._window_selection()
         rep = self._solve(sel.free_kfs, sel.fixed_kfs, sel.track_ids,
                           self.opt.window_iterations if iterations is None else iterations)
         rep.kid = kid
@@ -1471,7 +1564,7 @@ class IncrementalAT:
 
     def full_adjustment(self, iterations: int | None = None, rounds: int = 2,
                         refine_intrinsics: tuple = (), gnss_noise: bool = True,
-                        stepwise: bool = False) -> StepReport:
+                        stepwise: bool = False, gnss_bias: bool = True) -> StepReport:
         """Adjust every registered keyframe and point; repeated so that removed outliers settle.
 
         refine_intrinsics (e.g. ('f', 'k1')) self-calibrates the shared camera in this adjustment and in
@@ -1480,7 +1573,8 @@ class IncrementalAT:
         stepwise: refine_intrinsics are candidates, of which `select_self_calibration` keeps those that pay;
         gnss_noise: estimate the flight's GNSS noise afterwards (`estimate_gnss_noise`, when the option
         is on and the block is georeferenced for good); such a final adjustment refines the option
-        `final_self_calibration` when refine_intrinsics is not given (stepwise when it is "auto").
+        `final_self_calibration` when refine_intrinsics is not given (stepwise when it is "auto");
+        gnss_bias: estimate the GNSS bias (when the option is on and 3 GCPs make it observable).
         """
         if not refine_intrinsics and gnss_noise:
             refine_intrinsics = self.opt.final_refine
@@ -1505,7 +1599,8 @@ class IncrementalAT:
                               refine_intrinsics)
         if gnss_noise and self.opt.estimate_gnss_noise and self.georeferenced and not self.georef_provisional:
             self.estimate_gnss_noise(iterations, refine_intrinsics)
-        if self.opt.estimate_gnss_bias and self._n_gcps() >= 3:
+        self._full_adjusted_n = len(self.registered)
+        if gnss_bias and self.opt.estimate_gnss_bias and self._n_gcps() >= 3:
             self.gnss_bias_estimated = True
             before = None   # (bias, residual mean) of the previous round
             for i in range(self.opt.bias_iterations):

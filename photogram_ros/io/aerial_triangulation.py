@@ -35,7 +35,7 @@ from photogram_ros.core.at_report import (build_report, convergence, focal_deter
 from photogram_ros.core.control import ControlRow, ControlVettingOptions, unchecked_vetting, vet_control
 from photogram_ros.io.at_report import write_report
 from photogram_ros.core.geodesy import LocalFrame, utm_epsg
-from photogram_ros.core.incremental import IncrementalAT, IncrementalOptions
+from photogram_ros.core.incremental import DISTORTION_TERMS, IncrementalAT, IncrementalOptions
 from photogram_ros.core.photo_matching import MatchingOptions
 from photogram_ros.core.split_merge import SplitMergeOptions
 from photogram_ros.core.triangulation import near_the_cameras
@@ -214,6 +214,7 @@ def _self_calibration(at: IncrementalAT, before, refine: tuple, assumptions: lis
     return self_cal
 
 
+PASS_GROWTH_RATIO = 1.5           # the block's full adjustments during the pass, with its distortion refined
 PRECISE_GEOTAG_SIGMA_H_M = 0.1   # geotags stated this good (RTK, PPK) hold the cameras where they were
 
 
@@ -251,8 +252,12 @@ def _triangulate_records(block: KeyframeBlock, opt: TriangulateOptions, control:
     lever = tuple(opt.lever_arm_cam_m)
     tie_obs = tie_obs or {}
     ties = {n for obs in tie_obs.values() for n in obs}
-    at = IncrementalAT(block.camera, IncrementalOptions(window_size=opt.window, lever_arm_cam_m=lever), block.origin,
-                       control, ties=ties)
+    # The distortion to be refined is refined in the pass too, at each 1.5-fold growth of the block: an uncalibrated
+    # lens bends a long block away from its geotags (bench/notes_photo_triangulation_scale.md).
+    in_pass = tuple(t for t in refine if t in DISTORTION_TERMS)
+    at = IncrementalAT(block.camera, IncrementalOptions(
+        window_size=opt.window, lever_arm_cam_m=lever, pass_self_calibration=','.join(in_pass),
+        growth_ratio=PASS_GROWTH_RATIO if in_pass else 0.0), block.origin, control, ties=ties)
     added = steps.progress(f'aerial triangulation{what}', len(block.records), 'photos added')
     oriented = (lambda: f'{len(at.registered)} oriented')
     for rec in block.records:
