@@ -125,8 +125,12 @@ def write_photos(folder: Path, frames, truth, cfg, exif_fixes=None, geo_txt: boo
         lat, lon, h = truth.origin.enu_to_geodetic(t.center_enu)
         x, y, z = geodetic_to_crs(lat, lon, h, truth.crs)
         for name, ft in names:
-            uv, ok = cam.project(transform_points(invert_T(ft.map_T_cam), t.center_enu[None]))
-            if ok[0] and cam.in_image(uv, margin_px=20)[0]:
+            pc = transform_points(invert_T(ft.map_T_cam), t.center_enu[None])
+            uv, ok = cam.project(pc)
+            # A point far outside the view can land inside the image through the distortion polynomial's
+            # fold-over: it is seen only when the pixel undistorts back to its own direction.
+            seen = ok[0] and np.linalg.norm(cam.pixel_to_normalized(uv)[0] - pc[0, :2] / pc[0, 2]) < 1e-3
+            if seen and cam.in_image(uv, margin_px=20)[0]:
                 lines.append(f'{float(x):.4f} {float(y):.4f} {float(z):.4f} {uv[0, 0]:.2f} {uv[0, 1]:.2f} '
                              f'{name} {t.name}')
     (folder / 'gcp_list.txt').write_text('\n'.join(lines) + '\n')
