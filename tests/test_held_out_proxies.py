@@ -67,7 +67,11 @@ def baselines(out):
 @pytest.mark.parametrize('set_name,kind', sorted(MEASURED))
 def test_held_out_proxy(set_name, kind, out, baselines):
     base_row, base_poses = baselines(set_name)
-    assert base_row['verdict'] == 'ok' and base_row['oriented'] == base_row['photos']
+    # The unperturbed block: OK, or warned only by the dome check (the cameras dome against their geotag heights, as
+    # tests/test_real_surveys.py `only_bent` accepts: measured on brighton's and toledo's blocks).
+    warned = {c for c, st in base_row.get('verdict_checks', {}).items() if st != 'ok'}
+    assert base_row['verdict'] == 'ok' or (base_row['verdict'] == 'warning' and warned == {'dome'})
+    assert base_row['oriented'] == base_row['photos']
     row = hop.run_one(set_name, kind, 'triangulate', out, base_poses)
     m = MEASURED[set_name, kind]
     g = row['gnss_noise']

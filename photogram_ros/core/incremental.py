@@ -184,6 +184,9 @@ class IncrementalOptions:
     growth_ratio: float = param(0.0, 'a full adjustment of the whole block (refining pass_self_calibration) each time '
                                      'the oriented keyframes have grown by this factor since the last one; 0: none',
                                 min=0.0, max=100.0)
+    pass_min_keyframes: int = param(50, 'the pass refines its distortion (and adjusts on growth) once this many keyframes '
+                                        'are oriented: a block of a few windows is adjusted whole at the end anyway',
+                                    min=2, max=1000000)
     self_calibration_min_gain: float = param(MIN_GAIN_FRACTION, 'stepwise self-calibration: a candidate intrinsic '
                                              'is kept when it lowers the reprojection RMS by at least this fraction '
                                              'of it (and self_calibration_min_gain_px)', min=0.0, max=1.0)
@@ -533,8 +536,7 @@ class IncrementalAT:
                     self._gate_fix(kf)
                 rep = self._window_adjust(kf.kid, iterations=window_iterations)
                 if self._growth_due():
-                    self.full_adjustment(iterations=self.opt.full_iterations, rounds=1, gnss_noise=False,
-                                         refine_intrinsics=self.opt.pass_refine, gnss_bias=False)
+                    self._pass_adjustment(gnss_bias=False)
             elif self._segment_wanted(kf):
                 rep = self._grow_segment(kf, rec, rep, window_iterations)
         rep.solve_s = time.perf_counter() - t0
@@ -544,10 +546,25 @@ class IncrementalAT:
             self.freeze()
         return rep
 
+    def _pass_adjustment(self, gnss_bias: bool = True) -> StepReport:
+        """A full adjustment during the pass (one round, no GNSS noise estimate), from pass_min_keyframes on
+        with the distortion terms of pass_self_calibration selected stepwise (each kept only when it pays, as the final adjustment's): the
+        final adjustment's selection, and the one the block reports, is not this one."""
+        final = self.self_calibration
+        refine = self.opt.pass_refine if len(self.registered) >= self.opt.pass_min_keyframes else ()
+        rep = self.full_adjustment(iterations=self.opt.full_iterations, rounds=1, gnss_noise=False,
+                                   refine_intrinsics=refine, stepwise=bool(refine), gnss_bias=gnss_bias)
+        self.self_calibration = final
+        return rep
+
     def _growth_due(self) -> bool:
-        """The block, georeferenced for good, has grown by growth_ratio since its last full adjustment."""
+        """The block, georeferenced for good and of pass_min_keyframes, has grown by growth_ratio since its
+        last full adjustment (or reached pass_min_keyframes since)."""
+        n = len(self.registered)
         return (self.opt.growth_ratio > 0.0 and self.georeferenced and not self.georef_provisional
-                and len(self.registered) >= self.opt.growth_ratio * max(self._full_adjusted_n, 1))
+                and n >= self.opt.pass_min_keyframes
+                and (n >= self.opt.growth_ratio * max(self._full_adjusted_n, 1)
+                     or self._full_adjusted_n < self.opt.pass_min_keyframes))
 
     # --- segments: the flight after every track was lost -------------------------------------------
 
@@ -1081,8 +1098,7 @@ class IncrementalAT:
             return False
         if self.georeferenced:   # provisional -> final: GNSS priors of the whole block fix the roll
             self.georef_provisional = False
-            self.full_adjustment(iterations=self.opt.full_iterations, rounds=1, gnss_noise=False,
-                                 refine_intrinsics=self.opt.pass_refine)
+            self._pass_adjustment()
             return True
         # Fixes far from where the georeferenced block puts their cameras are glitches: not used.
         far = np.linalg.norm(s.apply(src[:len(ks)]) - dst[:len(ks)], axis=1) > thr
@@ -1095,8 +1111,10 @@ class IncrementalAT:
             self.points.set_many(ids, np.array([s.apply(p[None])[0] for p in P]))
         self.georeferenced = True
         self.georef_provisional = provisional
-        self.full_adjustment(iterations=self.opt.full_iterations, rounds=1, gnss_noise=False,
-                             refine_intrinsics=() if provisional else self.opt.pass_refine)
+        if provisional:
+            self.full_adjustment(iterations=self.opt.full_iterations, rounds=1, gnss_noise=False)
+        else:
+            self._pass_adjustment()
         return True
 
     # --- adjustment -----------------------------------------------------------------------------
