@@ -4,7 +4,7 @@ glitched geotag is still refused.
 
 Against the simulator's truth: a 'survey' flight of 8 lines (300 keyframes, RTK fixes, lens k1 -0.12), adjusted
 with the lens taken as distortion-free. Measured (`scripts/test.sh tests/test_pass_self_calibration.py -s`):
-with the pass's self-calibration 0 fixes refused, cameras at most 4.8 cm from the truth, k1 -0.117; without it
+with the pass's self-calibration 0 fixes refused, cameras at most 4.9 cm from the truth, k1 -0.117; without it
 (the baseline, printed) 200 of 300 fixes refused and cameras up to 44.5 m from the truth.
 """
 import dataclasses
@@ -44,7 +44,7 @@ def test_the_pass_refines_the_distortion_and_keeps_the_block_on_its_geotags(flig
           f'up to {err.max() * 100:.1f} cm, k1 {at.camera.dist[0]:+.4f} (true {sk.camera.dist[0]:+.4f})')
     assert len(at.registered) == len(sk.records)
     assert not at.gnss_rejected
-    assert err.max() <= 1.5 * 0.048
+    assert err.max() <= 1.5 * 0.049
     assert abs(at.camera.dist[0] - sk.camera.dist[0]) <= 0.01
     # The baseline is what the option is for: the same flight leaves its geotags without it.
     assert base_err.max() > 10 * err.max()
@@ -61,7 +61,7 @@ def test_a_glitched_geotag_is_still_refused(flight):
     at, err = _run(sk, records, pass_self_calibration='k1,k2', growth_ratio=1.5)
     assert k in at.gnss_rejected
     assert len(at.gnss_rejected) <= 2
-    assert err.max() <= 1.5 * 0.048
+    assert err.max() <= 1.5 * 0.049
 
 
 @pytest.mark.parametrize('options', [{'pass_self_calibration': 'f'}, {'pass_self_calibration': 'k1,cx'},
