@@ -69,3 +69,18 @@ def test_a_glitched_geotag_is_still_refused(flight):
 def test_options_that_cannot_work_are_refused(options):
     with pytest.raises(ConfigError):
         IncrementalOptions(**options).check()
+
+
+def test_the_simulators_control_rows_leave_out_targets_folded_into_the_image():
+    """sim/photos.py target_pixel: the lens of the 'survey' preset (k1 -0.12, k2 0.05, k3 -0.01) folds a point
+    2.45 focal lengths off the axis to pixel (200, 246), inside the 640 x 480 image; no gcp_list row may name it."""
+    from photogram_ros.core.camera import PinholeCamera
+    from photogram_ros.sim.photos import target_pixel
+    cam = PinholeCamera(640, 480, 520.0, 520.26, 320.2, 238.2, (-0.12, 0.05, 0.0005, -0.0003, -0.01))
+    down = np.diag([1.0, -1.0, -1.0, 1.0])      # camera at the origin, looking down (map z up)
+    down[2, 3] = 40.0
+    folded = np.array([2.45 * 40.0, 0.13 * 40.0, 0.0])
+    assert cam.in_image(cam.normalized_to_pixel(np.array([[2.45, -0.13]])), margin_px=20)[0]
+    assert target_pixel(cam, down, folded) is None
+    uv = target_pixel(cam, down, np.array([0.3 * 40.0, -0.2 * 40.0, 0.0]))
+    assert uv is not None and np.allclose(cam.pixel_to_normalized(uv[None])[0], [0.3, 0.2], atol=1e-6)

@@ -79,6 +79,19 @@ def exif_bytes(lat_deg: float, lon_deg: float, alt_msl_m: float, when: datetime,
     return exif.tobytes()
 
 
+def target_pixel(cam, map_T_cam: np.ndarray, point_map_m: np.ndarray, margin_px: float = 20.0):
+    """(2,) distorted pixel of the map point seen by a camera at map_T_cam (4, 4, camera to map), or None when
+    the camera does not see it: behind it, outside the image (less `margin_px`), or outside the view and
+    folded into the image by the distortion polynomial (its pixel does not undistort back to its direction)."""
+    pc = transform_points(invert_T(map_T_cam), np.asarray(point_map_m, float).reshape(1, 3))
+    uv, ok = cam.project(pc)
+    if not ok[0] or not cam.in_image(uv, margin_px=margin_px)[0]:
+        return None
+    if np.linalg.norm(cam.pixel_to_normalized(uv)[0] - pc[0, :2] / pc[0, 2]) >= 1e-3:
+        return None
+    return uv[0]
+
+
 def write_photos(folder: Path, frames, truth, cfg, exif_fixes=None, geo_txt: bool = True) -> list:
     """`frames`: [(index, image, FlightState)] of every rendered frame; writes the triggered ones.
 
@@ -125,14 +138,9 @@ def write_photos(folder: Path, frames, truth, cfg, exif_fixes=None, geo_txt: boo
         lat, lon, h = truth.origin.enu_to_geodetic(t.center_enu)
         x, y, z = geodetic_to_crs(lat, lon, h, truth.crs)
         for name, ft in names:
-            pc = transform_points(invert_T(ft.map_T_cam), t.center_enu[None])
-            uv, ok = cam.project(pc)
-            # A point far outside the view can land inside the image through the distortion polynomial's
-            # fold-over: it is seen only when the pixel undistorts back to its own direction.
-            seen = ok[0] and np.linalg.norm(cam.pixel_to_normalized(uv)[0] - pc[0, :2] / pc[0, 2]) < 1e-3
-            if seen and cam.in_image(uv, margin_px=20)[0]:
-                lines.append(f'{float(x):.4f} {float(y):.4f} {float(z):.4f} {uv[0, 0]:.2f} {uv[0, 1]:.2f} '
-                             f'{name} {t.name}')
+            uv = target_pixel(cam, ft.map_T_cam, t.center_enu)
+            if uv is not None:
+                lines.append(f'{float(x):.4f} {float(y):.4f} {float(z):.4f} {uv[0]:.2f} {uv[1]:.2f} {name} {t.name}')
     (folder / 'gcp_list.txt').write_text('\n'.join(lines) + '\n')
     if geo_txt:
         (folder / 'README.txt').write_text(
