@@ -19,8 +19,10 @@ elapsed time and an estimate of the time left (`extra()` appends its text).
 
 from __future__ import annotations
 
+import numbers
 import time
 from contextlib import contextmanager
+from pathlib import Path
 
 from photogram_ros.errors import ConfigError
 
@@ -85,7 +87,9 @@ class DaskRunner:
     def run(self, fn, calls, what=None, log=None, keep=False, on_result=None, extra=None) -> list:
         from distributed import as_completed
         calls = list(calls)
-        futures = [self.client.submit(_single_threaded, fn, *args, pure=False) for args in calls]
+        sent: dict = {}
+        futures = [self.client.submit(_single_threaded, fn, *(self._shipped(a, sent) for a in args), pure=False)
+                   for args in calls]
         index = {f.key: k for k, f in enumerate(futures)}
         prog = Progress(log, what, len(calls), f' on {self.workers} workers{self.where}')
         out = [None] * len(calls)
@@ -106,6 +110,17 @@ class DaskRunner:
             done += 1
             prog.step(done, extra() if extra else '')
         return out
+
+    def _shipped(self, arg, sent: dict):
+        """The argument as a task gets it: numbers, text, paths and futures as they are; any other object
+        sent to the cluster once (by identity: `sent`, kept for the calls of one run) and passed as its
+        future, so that a block's records or the shared options are not pickled into every task's graph."""
+        from distributed import Future
+        if arg is None or isinstance(arg, (numbers.Number, str, bytes, Path, Future)):
+            return arg
+        if id(arg) not in sent:
+            sent[id(arg)] = self.client.scatter(arg, hash=False)
+        return sent[id(arg)]
 
     def release(self, handles) -> None:
         """Free the workers' copies of kept results."""
