@@ -176,3 +176,21 @@ def test_dsm_against_the_true_dem():
           f'completeness {completeness:.3f}')
     assert rmse <= 2 * gsd
     assert completeness >= 0.95
+
+
+def test_a_pair_that_the_map_rejects_everywhere_fuses_nothing_and_goes_on():
+    """A pair cloud whose every point lands on a fused cell and disagrees with it (1.5 m off) adds nothing,
+    counts its points as rejected and leaves the map as it was."""
+    rng = np.random.default_rng(2)
+    f = Fusion(FusionConfig(cell_m=0.1, tile_cells=64))
+    first = pair_cloud(rng, plane, 0, 0, 2, 2, 300, 0.02)
+    f.add(first)
+    f.add(pair_cloud(rng, plane, 0, 0, 2, 2, 300, 0.02))
+    before = f.points()
+    lifted = first.copy()
+    lifted['z'] += 1.5
+    rejected = f.stats.points_rejected
+    assert f.add(lifted) == 0
+    assert f.stats.points_rejected - rejected == lifted.size
+    after = f.points()
+    assert after['x'].size == before['x'].size and np.array_equal(after['z'], before['z'])

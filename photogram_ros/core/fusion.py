@@ -289,6 +289,9 @@ class Fusion:
                 takeover[disputed_c[d_tile == h][over]] = True
                 self.stats.cells_replaced += int(over.sum())
         use = good | (gated & takeover[ckey])
+        if not use.any():
+            self.stats.points_rejected += len(use)
+            return 0     # every point disagreed with what the map holds there
         if not use.all():
             x, y, z, ckey = x[use], y[use], z[use], ckey[use]
             rgb = rgb[use] if rgb is not None else None
