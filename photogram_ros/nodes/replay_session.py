@@ -252,8 +252,13 @@ def _camera_setup(opts: ReplayOptions, extra: dict) -> tuple:
     no_body_lever_arm(opts, extra, roles, 'a photo folder or a video has no attitude')
     if source_kind(opts.bag) == 'photos' and not opts.calibration_file:
         # The EXIF gives the focal length, not the lens's distortion: the final adjustment self-calibrates
-        # k1, k2 stepwise (each kept only when it pays), as `triangulate` does for such a camera.
-        extra.setdefault('bundle', {}).setdefault('final_self_calibration', 'auto')
+        # k1, k2 stepwise (each kept only when it pays), as `triangulate` does for such a camera, and so does
+        # the pass from pass_min_keyframes on, at each 1.5-fold growth (a long block bends away from its
+        # geotags without).
+        bundle = extra.setdefault('bundle', {})
+        bundle.setdefault('final_self_calibration', 'auto')
+        bundle.setdefault('pass_self_calibration', 'k1,k2')
+        bundle.setdefault('growth_ratio', 1.5)
     return roles
 
 
