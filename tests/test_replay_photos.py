@@ -46,8 +46,9 @@ def test_photo_folder_replay_ends_by_itself_and_counts_keyframes(survey, tmp_pat
           f"{rep.get('camera')}")
     # The final adjustment refines k1, k2 of the EXIF camera (k = 0; the simulator's lens has -0.12, 0.05) and
     # the products are matched with that camera: measured 0.768 of the mapped area measured by stereo (0.489
-    # while they were matched with the EXIF camera) and the measured cells 2.65 GSD RMSE from the true DEM (2.84 with the trial of far fixes)
-    # (10.3 GSD), k1 -0.1213 (-0.1209 with a far fix refused without its trial in the window); gated at 1.5x.
+    # while they were matched with the EXIF camera) and the measured cells 2.65 GSD RMSE from the true DEM
+    # (10.3 GSD), k1 -0.1209; with a far fix tried in the window before it is refused (it is used here):
+    # k1 -0.1213, 2.84 GSD; gated at 1.5x.
     assert rep['mapping']['mapped'] and rep['mapping']['dsm_valid_share'] > 0.768 / 1.5
     assert rep['camera']['source'] == 'final adjustment'
     print(f"k1 {rep['camera']['k1']:+.5f}, DSM measured cells {rep['dsm_vs_truth_measured']['rmse_gsd']:.2f} GSD RMSE")
