@@ -64,6 +64,9 @@ AUTO_CANDIDATES = ('k1', 'k2')
 SELF_CALIBRATION_BASE = ('f', 'cx', 'cy')
 # The lens distortion terms: what the incremental pass may refine (`pass_self_calibration`).
 DISTORTION_TERMS = ('k1', 'k2', 'p1', 'p2', 'k3')
+# growth_ratio for a camera whose distortion is refined in the pass (triangulate, replay of a photo folder): a
+# geometric series of full adjustments costs about 3 of the final block's.
+PASS_GROWTH_RATIO = 1.5
 # A self-calibration trial stops once a step lowers its cost by less than this fraction (its reprojection RMS by
 # about half of it, 0.005 %), far inside the 2 % a candidate must gain; the adjustments keep 1e-6. On the
 # simulator's sample flight (76 keyframes) the trials take 44 s with it, 80 s at 1e-6, and choose alike.
@@ -239,12 +242,12 @@ class IncrementalOptions:
         """final_self_calibration as a tuple of names (with "auto": the candidates of the stepwise selection)."""
         if self.final_stepwise:
             return AUTO_CANDIDATES
-        return tuple(v.strip() for v in self.final_self_calibration.split(',') if v.strip())
+        return _names(self.final_self_calibration)
 
     @property
     def pass_refine(self) -> tuple:
         """pass_self_calibration as a tuple of names."""
-        return tuple(v.strip() for v in self.pass_self_calibration.split(',') if v.strip())
+        return _names(self.pass_self_calibration)
 
     @property
     def final_stepwise(self) -> bool:
@@ -547,9 +550,9 @@ class IncrementalAT:
         return rep
 
     def _pass_adjustment(self, gnss_bias: bool = True) -> StepReport:
-        """A full adjustment during the pass (one round, no GNSS noise estimate), from pass_min_keyframes on
-        with the distortion terms of pass_self_calibration selected stepwise (each kept only when it pays, as the final adjustment's): the
-        final adjustment's selection, and the one the block reports, is not this one."""
+        """A full adjustment during the pass (one round, no GNSS noise estimate); from pass_min_keyframes on,
+        the distortion terms of pass_self_calibration are selected stepwise in it (each kept only when it pays,
+        as in the final adjustment). The block reports the final adjustment's selection, not this one."""
         final = self.self_calibration
         refine = self.opt.pass_refine if len(self.registered) >= self.opt.pass_min_keyframes else ()
         rep = self.full_adjustment(iterations=self.opt.full_iterations, rounds=1, gnss_noise=False,
@@ -1815,6 +1818,11 @@ class IncrementalAT:
         if len(Ts) < 2:
             return None
         return intersect_point(self.camera, np.array(Ts), uv)
+
+
+def _names(text: str) -> tuple:
+    """A comma-separated list of names as a tuple (blanks dropped)."""
+    return tuple(v.strip() for v in text.split(',') if v.strip())
 
 
 def _with_intrinsics_of(camera: PinholeCamera, given: PinholeCamera, names) -> PinholeCamera:

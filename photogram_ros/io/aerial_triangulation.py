@@ -35,7 +35,7 @@ from photogram_ros.core.at_report import (build_report, convergence, focal_deter
 from photogram_ros.core.control import ControlRow, ControlVettingOptions, unchecked_vetting, vet_control
 from photogram_ros.io.at_report import write_report
 from photogram_ros.core.geodesy import LocalFrame, utm_epsg
-from photogram_ros.core.incremental import DISTORTION_TERMS, IncrementalAT, IncrementalOptions
+from photogram_ros.core.incremental import DISTORTION_TERMS, PASS_GROWTH_RATIO, IncrementalAT, IncrementalOptions
 from photogram_ros.core.photo_matching import MatchingOptions
 from photogram_ros.core.split_merge import SplitMergeOptions
 from photogram_ros.core.triangulation import near_the_cameras
@@ -214,7 +214,6 @@ def _self_calibration(at: IncrementalAT, before, refine: tuple, assumptions: lis
     return self_cal
 
 
-PASS_GROWTH_RATIO = 1.5           # the block's full adjustments during the pass, with its distortion refined
 PRECISE_GEOTAG_SIGMA_H_M = 0.1   # geotags stated this good (RTK, PPK) hold the cameras where they were
 
 

@@ -31,6 +31,7 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.time import Time
 
+from photogram_ros.core.incremental import AUTO_CANDIDATES, PASS_GROWTH_RATIO
 from photogram_ros.io.progress import Progress, Steps, say_stdout
 from photogram_ros.nodes.diagnostics import PROBLEM_SEPARATOR
 from photogram_ros.nodes.graph import NODES, Graph, GraphSpec, WorkWatch
@@ -257,8 +258,8 @@ def _camera_setup(opts: ReplayOptions, extra: dict) -> tuple:
         # geotags without).
         bundle = extra.setdefault('bundle', {})
         bundle.setdefault('final_self_calibration', 'auto')
-        bundle.setdefault('pass_self_calibration', 'k1,k2')
-        bundle.setdefault('growth_ratio', 1.5)
+        bundle.setdefault('pass_self_calibration', ','.join(AUTO_CANDIDATES))
+        bundle.setdefault('growth_ratio', PASS_GROWTH_RATIO)
     return roles
 
 
