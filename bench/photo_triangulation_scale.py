@@ -15,11 +15,13 @@ per survey a comparison line (speedups, parallel efficiency = speedup / workers,
 split-merge against the single block, whether the matches are the same) and a growth line: the exponent b of time ~
 photos^b between the smallest and the largest survey, per mode and worker count, for the wall and the CPU time (the
 latter the machine's load changes less). With --repeat the worker counts alternate and the fastest run of each is
-kept.
+kept. --previous reads the result lines of earlier runs of this bench on the same surveys: a run they hold is not made
+again and enters the comparison and growth lines as if made here (so a long run can be made apart from the others,
+on an idle machine).
 
     .venv/bin/python bench/photo_triangulation_scale.py [--photos 100 600] [--workers 2] [--sims DIR]
         [--modes split single] [--split-photos N] [--single-max 150] [--counts 1 2] [--matching-only]
-        [--repeat 1]
+        [--repeat 1] [--previous RESULTS.jsonl ...]
 """
 
 from __future__ import annotations
@@ -70,7 +72,8 @@ def _cpu_s() -> float:
 
 def run_once(photos: Path, workers: int, matching_only: bool, split: int | None = None) -> dict:
     """One run; split: None (the options' default), 0 (never split: the single block) or a photo count."""
-    row = {'workers': workers, 'mode': 'single' if split == 0 else 'split', 'load_before': _load()}
+    row = {'workers': workers, 'mode': 'single' if split == 0 else 'split', 'data': str(photos),
+           'load_before': _load()}
     t0, c0, cc0 = time.perf_counter(), time.process_time(), _cpu_s()
     if matching_only:
         with open_runner(workers) as runner:
@@ -126,6 +129,26 @@ def run_once(photos: Path, workers: int, matching_only: bool, split: int | None 
     return row
 
 
+def previous_results(paths: list) -> dict:
+    """{(survey size, mode, workers): result line} from earlier outputs of this bench (the lines that name a
+    survey's folder, fN/photos; comparisons and growth lines are left out)."""
+    best = {}
+    for path in paths:
+        for line in Path(path).read_text().splitlines():
+            try:
+                row = json.loads(line)
+            except json.JSONDecodeError:
+                continue
+            if isinstance(row, dict) and isinstance(row.get('run'), dict):
+                row = row['run']           # one run's line (written as soon as the run ends)
+            if not isinstance(row, dict) or 'data' not in row or 'mode' not in row or 'workers' not in row:
+                continue
+            name = Path(row['data']).parent.name
+            if name.startswith('f') and name[1:].isdigit():
+                best[(int(name[1:]), row['mode'], int(row['workers']))] = row
+    return best
+
+
 def _ratio(a, b):
     return round(a / b, 3) if a is not None and b else None
 
@@ -145,13 +168,15 @@ def main() -> int:
                     help='split mode: the worker counts to run (default: 1 and --workers; no comparison line '
                          'unless both)')
     ap.add_argument('--repeat', type=int, default=1, help='runs per survey and worker count (the fastest kept)')
+    ap.add_argument('--previous', nargs='+', default=[],
+                    help='output of earlier runs of this bench: the runs they hold are not made again')
     a = ap.parse_args()
     tmp = None if a.sims else tempfile.TemporaryDirectory()
     sims = Path(a.sims or tmp.name)
     sims.mkdir(parents=True, exist_ok=True)
     key = 'matching_wall_s' if a.matching_only else 'wall_s'
     modes = ['split'] if a.matching_only else a.modes
-    best = {}
+    best = previous_results(a.previous)
     for n in a.photos:
         photos = simulated_photos(n, sims)
         runs = {}
@@ -159,7 +184,8 @@ def main() -> int:
             if mode == 'single' and n > a.single_max:
                 continue
             for w in ((1,) if mode == 'single' else tuple(a.counts or (1, a.workers))):
-                runs[(mode, w)] = []
+                if (n, mode, w) not in best:
+                    runs[(mode, w)] = []
         for _ in range(a.repeat):           # interleaved: a change of the machine's load hits both
             for (mode, w) in runs:
                 runs[(mode, w)].append(run_once(photos, w, a.matching_only,
@@ -172,7 +198,7 @@ def main() -> int:
                        baseline='workers 1 (in process)' if w == 1 else None)
             best[(n, mode, w)] = row
             print(json.dumps(row), flush=True)
-        if ('split', 1) not in runs or ('split', a.workers) not in runs:
+        if (n, 'split', 1) not in best or (n, 'split', a.workers) not in best:
             continue
         one, many = best[(n, 'split', 1)], best[(n, 'split', a.workers)]
         cmp = {'bench': 'photo_triangulation_scale', 'compare': f'workers {a.workers} / workers 1',

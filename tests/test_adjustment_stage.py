@@ -173,6 +173,42 @@ def test_the_final_adjustments_camera_goes_out_before_its_poses(flight_rtk):
     assert plain.out.cameras and plain.out.cameras[-1][0] == sk.camera
 
 
+def test_the_pass_sends_its_refined_camera_before_the_poses_it_moved(flight_rtk):
+    """In flight, a full adjustment of the pass (growth_ratio) that refines the lens (pass_self_calibration) sends
+    the refined camera, then every keyframe's pose, before the final adjustment: the stereo node pairs the
+    keyframes with the intrinsics their poses were adjusted with. The input camera's k1 is 0.03 off the images'."""
+    sk = flight_rtk
+    wrong = dataclasses.replace(sk.camera, dist=np.add(sk.camera.dist, [0.03, 0.0, 0.0, 0.0, 0.0]))
+    stage = _stage(sk, camera=wrong, out=OrderedOutputs(), pass_self_calibration='k1,k2', growth_ratio=1.5,
+                   pass_min_keyframes=10)
+    n = len(sk.records)
+    for r in sk.records[:-1]:
+        f = r.fix
+        stage.add_fix(r.stamp_ns, f.lat_deg, f.lon_deg, f.h_m, np.diag(np.diag(f.cov_enu_m2)), STATUS_GBAS_FIX,
+                      COV_DIAGONAL_KNOWN)
+        stage.add_keyframe(r.stamp_ns, r.track_ids, r.uv, np.zeros(0, TARGET_DTYPE))
+        assert stage.drain() == 1
+    out = stage.out
+    assert out.cameras, 'no refined camera was sent during the pass'
+    cam, stamp = out.cameras[0]
+    print(f'{n - 1} keyframes, {len(out.cameras)} cameras sent in flight; the first k1 {cam.dist[0]:+.4f} at '
+          f'keyframe {[r.stamp_ns for r in sk.records].index(stamp)}; input {wrong.dist[0]:+.4f}, '
+          f'images {sk.camera.dist[0]:+.4f}')
+    assert abs(cam.dist[0] - sk.camera.dist[0]) < 0.5 * abs(wrong.dist[0] - sk.camera.dist[0])
+    i = out.order.index('camera')
+    assert out.order[i + 1] == 'poses'
+    assert all(stage.at.kfs[k].stamp_ns in out.pose_by_stamp for k in stage.at.registered)
+    # Without the pass's self-calibration no camera goes out before the final adjustment.
+    plain = _stage(sk, camera=wrong, out=OrderedOutputs())
+    for r in sk.records[:20]:
+        f = r.fix
+        plain.add_fix(r.stamp_ns, f.lat_deg, f.lon_deg, f.h_m, np.diag(np.diag(f.cov_enu_m2)), STATUS_GBAS_FIX,
+                      COV_DIAGONAL_KNOWN)
+        plain.add_keyframe(r.stamp_ns, r.track_ids, r.uv, np.zeros(0, TARGET_DTYPE))
+        assert plain.drain() == 1
+    assert not plain.out.cameras
+
+
 def _report_from_the_map_folder(stage, doc: dict, tmp_path, diagnostics=None) -> dict:
     """The flight report's figures from a map folder as the map node keeps it: the published poses, the final
     camera, the last live accuracy document (`doc`, as JSON) with its detections."""

@@ -285,6 +285,8 @@ class StepReport:
     window_size: int = 0
     n_points: int = 0
     joined: int = 0                 # keyframes of a segment that joined the block with this step
+    block_adjusted: bool = False    # a full adjustment of the pass (growth_ratio) moved every keyframe and may
+                                    # have refined the lens (pass_self_calibration)
 
 
 def _reprojection_errors_px(camera: PinholeCamera, map_T_cams: np.ndarray, points_map_m: np.ndarray,
@@ -540,6 +542,7 @@ class IncrementalAT:
                 rep = self._window_adjust(kf.kid, iterations=window_iterations)
                 if self._growth_due():
                     self._pass_adjustment(gnss_bias=False)
+                    rep.block_adjusted = True
             elif self._segment_wanted(kf):
                 rep = self._grow_segment(kf, rec, rep, window_iterations)
         rep.solve_s = time.perf_counter() - t0

@@ -162,7 +162,8 @@ class Outputs:
 
     def camera(self, camera, stamp_ns: int) -> None:
         """The camera (core.camera.PinholeCamera) the poses of a full adjustment were adjusted with: the input
-        calibration, or its self-calibration (final_self_calibration); published before those poses."""
+        calibration, or its self-calibration (final_self_calibration, or the pass's: pass_self_calibration);
+        published before those poses."""
 
 
 class RecordedOutputs(Outputs):
@@ -209,6 +210,7 @@ class AdjustmentStage:
         self._control_in_map = False
         self.at: IncrementalAT | None = None
         self.camera = None
+        self._camera_sent = None   # the camera the stereo node matches with: the input, or a refined one sent
         self._pending: dict[int, tuple] = {}   # stamp -> (arrival, track ids, uv, {target name: uv})
         self._fixes: dict[int, GnssFix] = {}
         self._georef_sent = False
@@ -217,6 +219,7 @@ class AdjustmentStage:
         self._published_final = False
         self._n_since_cloud = 0
         self._unpublished = 0   # keyframes oriented in a batch before its newest, not yet published
+        self._block_moved = False   # a full adjustment of the pass moved every keyframe since the last publication
         self._centre_cov: dict[int, np.ndarray] = {}   # keyframe id -> last marginal centre covariance
         self._cov_updates = 0
         self._fix_classes = {c: 0 for c in FIX_CLASSES}   # keyframes adjusted, per GNSS fix class
@@ -237,7 +240,7 @@ class AdjustmentStage:
         """The calibration (the first one counts): starts the adjuster. False when one was set already."""
         if self.camera is not None:
             return False
-        self.camera = camera
+        self.camera = self._camera_sent = camera
         origin = (LocalFrame(self.p.origin_lat_deg, self.p.origin_lon_deg, self.p.origin_h_m)
                   if self.p.use_origin_params else None)
         with self.work:
@@ -483,6 +486,7 @@ class AdjustmentStage:
             self.diag.count('keyframes_oriented')
         else:
             self._count_not_oriented(rep.status)
+        self._block_moved = self._block_moved or rep.block_adjusted
         if not publish:
             if rep.registered:
                 self._unpublished += 1
@@ -496,7 +500,9 @@ class AdjustmentStage:
         if not self._published_final and not self.at.georef_provisional:
             # Provisional -> final georeference moved every keyframe: republish them all.
             self._published_final = True
-            self._publish(window=list(self.at.registered))
+            self._publish_block(rec.stamp_ns)
+        elif self._block_moved:
+            self._publish_block(rec.stamp_ns, new=1 + earlier)
         else:
             # A segment that joined (core/incremental.py: the flight after every track was lost) is published
             # whole: its keyframes had no pose until now.
@@ -677,6 +683,15 @@ class AdjustmentStage:
 
     # --- outputs ----------------------------------------------------------------------------------
 
+    def _publish_block(self, stamp_ns: int, new: int = 1) -> None:
+        """Every pose (an adjustment moved them all), after the camera they were adjusted with when a full
+        adjustment of the pass refined the lens (pass_self_calibration): the stereo node matches with it."""
+        self._block_moved = False
+        if self.at.camera != self._camera_sent:
+            self._camera_sent = self.at.camera
+            self.out.camera(self.at.camera, stamp_ns)
+        self._publish(window=list(self.at.registered), new=new)
+
     def _publish(self, window, new: int = 1) -> None:
         """Poses of `window`, the path, and the sparse cloud once `new` keyframes make cloud_every."""
         at = self.at
@@ -794,6 +809,7 @@ class AdjustmentStage:
             if self.at.georeferenced:
                 # The camera first: whoever matches the keyframes with these poses needs the intrinsics they
                 # were adjusted with (a self-calibration changes them).
+                self._camera_sent = self.at.camera
                 self.out.camera(self.at.camera, self.at.kfs[self.at.registered[-1]].stamp_ns)
                 self._publish(window=list(self.at.registered), new=0)
                 self.publish_cloud(self.at.kfs[self.at.registered[-1]].stamp_ns)
