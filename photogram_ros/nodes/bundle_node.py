@@ -19,7 +19,9 @@ Outputs:
                       origin of `map` (ENU tangent there). The origin is the configured one or the
                       first keyframe fix. Published once the block is georeferenced.
   map/camera_final    CameraInfo (latched): after each full adjustment, before its poses, the camera they were
-                      adjusted with (final_self_calibration refines it); the products match with it
+                      adjusted with (final_self_calibration refines it; in flight, a full adjustment of the
+                      pass that refined the lens, pass_self_calibration, sends it before every pose it
+                      moved); the stereo pairs and the products match with it
   map/control_points  std_msgs/String (latched), JSON: the survey's live accuracy every `quality_every`
                       published keyframes and after a full adjustment: each check point intersected from
                       the adjusted cameras against its survey and the check-point RMSE (horizontal,
