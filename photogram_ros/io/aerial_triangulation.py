@@ -69,15 +69,9 @@ class TriangulateOptions:
     scheduler: str | None = None              # photos: an existing Dask cluster, tcp://HOST:PORT
     # photos: blocks above split.split_photos adjusted as overlapping sub-blocks and merged; None: never split
     split: SplitMergeOptions | None = field(default_factory=SplitMergeOptions)
-    # With control rows, the adjustment with the GCPs that passed the vetting starts from the GNSS-only block they
-    # were vetted against ('gnss_block'), or builds the block again photo by photo with them ('photos': twice the
-    # time; what a block the GNSS does not fix always gets)
-    control_from: str = 'gnss_block'
 
     def check(self) -> None:
         from photogram_ros.params import from_dict
-        if self.control_from not in ('gnss_block', 'photos'):
-            raise ConfigError(f'control_from {self.control_from!r}: use gnss_block or photos')
         from_dict(IncrementalOptions, {'window_size': self.window}, 'triangulate --window')   # its declared range
         if self.takeoff_h_m is not None and self.exif_altitude != 'relative':
             raise ConfigError('--takeoff-altitude-m is only used with --exif-altitude relative (EXIF altitudes '
@@ -282,41 +276,6 @@ def _triangulate_records(block: KeyframeBlock, opt: TriangulateOptions, control:
     return at, rep_adj
 
 
-def _readjust_with_control(block: KeyframeBlock, opt: TriangulateOptions, at0: IncrementalAT, control: list,
-                           target_obs: dict, tie_obs: dict, refine: tuple, log=None,
-                           steps: Steps | None = None) -> tuple[IncrementalAT, object]:
-    """The GNSS-only block `at0`, which the control was vetted against, adjusted again with the control that
-    passed: a new IncrementalAT seeded (IncrementalAT.seed) with its poses, tie points and camera, its GNSS noise
-    scale, bias and rejected fixes, the accepted GCP observations `target_obs` and the manual tie points `tie_obs`
-    (photo name -> {name: (u, v) px}); the photos it did not orient tried again against the whole block; then the
-    full adjustment refining `refine`. Returns (at, its StepReport), as _triangulate_records, without building
-    the block a second time photo by photo."""
-    steps = steps or Steps('triangulate', None, None)
-    steps.start('full adjustment with the control')
-    t_full = time.monotonic()
-    ties = {n for obs in tie_obs.values() for n in obs}
-    at = IncrementalAT(at0.camera, IncrementalOptions(window_size=opt.window, lever_arm_cam_m=tuple(opt.lever_arm_cam_m),
-                                                      spill_frozen=False), block.origin, control, ties=ties)
-    ids, P = at0.points.arrays()
-    tie = ids >= 0                  # tie points (targets have negative ids: they come again from target_obs)
-    tuv = {r.name: {**target_obs.get(r.name, {}), **tie_obs.get(r.name, {})} for r in block.records}
-    seed = at.seed(block.records, {at0.kfs[k].name: at0.kfs[k].map_T_cam for k in at0.registered},
-                   ids[tie], P[tie], tuv)
-    at.gnss_sigma_scale_hv = np.array(at0.gnss_sigma_scale_hv, float)
-    at.gnss_bias_enu = np.array(at0.gnss_bias_enu, float)
-    rejected = {at0.kfs[k].name for k in at0.gnss_rejected}
-    at.gnss_rejected = {kf.kid for kf in at.kfs if kf.name in rejected}
-    n_retry = at.retry_unregistered()
-    rep_adj = at.full_adjustment(refine_intrinsics=refine, stepwise=opt.self_calibrate is None)
-    if log is not None:
-        log(f'full adjustment with the control (from the GNSS-only block: {seed["oriented"]} photos, '
-            f'{seed["points"]} tie points, GCPs {", ".join(seed["gcps"]) or "none"}'
-            f'{f", {n_retry} more oriented" if n_retry else ""})'
-            f'{" with self-calibration of " + ", ".join(refine) if refine else ""}: {rep_adj.status}, '
-            f'{time.monotonic() - t_full:.1f} s')
-    return at, rep_adj
-
-
 def _control_rows(block: KeyframeBlock, opt: TriangulateOptions, control_set, origin):
     """(control points, rows, heights as written, CRS, manual tie point rows) of a bag's targets (their
     detections in the records) or of opt.gcp, and the MTPs of opt.gcp and opt.mtp."""
@@ -420,12 +379,7 @@ def _adjust_and_write(block: KeyframeBlock, out: str | Path, opt: TriangulateOpt
         sum(c.role == 'gcp' for c in control)
     refine = (tuple(opt.self_calibrate) if opt.self_calibrate is not None
               else auto_self_calibration(block, n_gcps, assumptions))
-    if (at is not None and target_obs and opt.control_from == 'gnss_block' and at.georeferenced
-            and not at.georef_provisional):
-        # The GNSS-only block the control was vetted against holds the geometry: start from it. Without it
-        # (a single line, no GNSS) the GCPs are what georeferences the block, photo by photo.
-        at, rep_adj = _readjust_with_control(block, opt, at, control, target_obs, tie_obs, refine, log, steps)
-    elif at is None or target_obs:
+    if at is None or target_obs:
         at, rep_adj = _triangulate_records(block, opt, control, target_obs, refine, log, tie_obs=tie_obs, steps=steps)
     res, inputs = _finish_block(block, out, opt, at, rep_adj, refine, control, vet,
                                 gnss_without if vet is not None and target_obs else None, crs, t0, t_at, steps, log)
