@@ -1,6 +1,7 @@
 """The malloc arena cap is applied where glibc exists and is a no-op elsewhere."""
 
 import ctypes.util
+import os
 import subprocess
 import sys
 
@@ -90,3 +91,38 @@ print(before - after)
 '''
     out = subprocess.run([sys.executable, '-c', code], check=True, capture_output=True, text=True).stdout
     assert int(out.strip()) > 20_000      # kB: most of the ~160 MB of freed holes return to the system
+
+
+def test_reuse_freed_buffers_sets_both_thresholds(monkeypatch):
+    calls = []
+    monkeypatch.setattr(pm.ctypes.util, 'find_library', lambda name: 'libc.so.6')
+    monkeypatch.setattr(pm.ctypes, 'CDLL', lambda name: _FakeLibc(calls))
+    assert pm.reuse_freed_buffers() is True
+    assert calls == [(pm.M_MMAP_THRESHOLD, 32 << 20), (pm.M_TRIM_THRESHOLD, 64 << 20)]
+    monkeypatch.setattr(pm.ctypes.util, 'find_library', lambda name: None)
+    assert pm.reuse_freed_buffers() is False
+
+
+@pytest.mark.skipif(not ctypes.util.find_library('c') or sys.platform != 'linux', reason='needs glibc')
+def test_temporaries_stop_faulting_under_a_fixed_trim_threshold():
+    # MALLOC_TRIM_THRESHOLD_ (as Dask's nanny sets it) freezes glibc's mmap threshold at 128 KiB:
+    # every 1.6 MB temporary is mapped afresh and faulted in page by page, until the thresholds are set.
+    code = r'''
+import resource, sys
+import numpy as np
+from photogram_ros.nodes.process_memory import reuse_freed_buffers
+if sys.argv[1] == 'reuse' and not reuse_freed_buffers():
+    raise SystemExit('mallopt refused')
+x = np.ones((200, 1000))
+before = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
+for _ in range(1000):
+    x * 1.0001 + 1.0
+print(resource.getrusage(resource.RUSAGE_SELF).ru_minflt - before)
+'''
+    env = dict(os.environ, MALLOC_TRIM_THRESHOLD_='65536')
+
+    def faults(mode):
+        out = subprocess.run([sys.executable, '-c', code, mode], check=True, capture_output=True, text=True, env=env)
+        return int(out.stdout.strip())
+    assert faults('frozen') > 200_000       # the test could fail: about 400 faults per temporary
+    assert faults('reuse') < 10_000

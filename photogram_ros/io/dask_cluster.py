@@ -71,9 +71,14 @@ class InProcessRunner:
 
 def _single_threaded(fn, *args):
     """fn(*args) in a Dask worker thread, OpenCV's own thread pool off: the cluster's workers are
-    the parallelism (one thread each on a local cluster)."""
+    the parallelism (one thread each on a local cluster). The worker's malloc serves large numpy
+    buffers from its heap again (`reuse_freed_buffers`): Dask's nanny starts workers with
+    MALLOC_TRIM_THRESHOLD_ set, which makes glibc map and unmap every buffer over 128 KiB."""
     import cv2
+
+    from photogram_ros.nodes.process_memory import reuse_freed_buffers
     cv2.setNumThreads(1)
+    reuse_freed_buffers()
     return fn(*args)
 
 
