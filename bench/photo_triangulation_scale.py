@@ -70,11 +70,16 @@ def _cpu_s() -> float:
     return time.process_time() + ch.ru_utime + ch.ru_stime
 
 
+def _sys_s() -> float:
+    """Kernel CPU time of this process and of its ended child processes (page faults, mmap, I/O)."""
+    return sum(resource.getrusage(who).ru_stime for who in (resource.RUSAGE_SELF, resource.RUSAGE_CHILDREN))
+
+
 def run_once(photos: Path, workers: int, matching_only: bool, split: int | None = None) -> dict:
     """One run; split: None (the options' default), 0 (never split: the single block) or a photo count."""
     row = {'workers': workers, 'mode': 'single' if split == 0 else 'split', 'data': str(photos),
            'load_before': _load()}
-    t0, c0, cc0 = time.perf_counter(), time.process_time(), _cpu_s()
+    t0, c0, cc0, s0 = time.perf_counter(), time.process_time(), _cpu_s(), _sys_s()
     if matching_only:
         with open_runner(workers) as runner:
             block = read_photo_block(photos, runner=runner)
@@ -92,6 +97,7 @@ def run_once(photos: Path, workers: int, matching_only: bool, split: int | None 
                               log=lambda text: print(f'# {text}', file=sys.stderr, flush=True))
         row['wall_s'] = round(time.perf_counter() - t0, 2)
         row['cpu_s'] = round(_cpu_s() - cc0, 2)
+        row['sys_s'] = round(_sys_s() - s0, 2)
         rep = res.report
         stats = rep['matching']
         row['matching_wall_s'] = rep['timing_s']['reading_and_matching']
