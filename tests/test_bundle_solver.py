@@ -128,7 +128,7 @@ def test_rtk_gnss_recovers_camera_centres_within_few_cm():
     T0, X0 = perturb(s)
     g = gnss(s, 0.02)
     prob = BundleProblem(CAM, T0, X0, s['obs_cam'], s['obs_pt'], s['uv'], **g)
-    res = bundle_adjust(prob, BundleOptions(loss='huber', compute_covariance=True))
+    res = bundle_adjust(prob, BundleOptions(loss='huber', compute_covariance=True, point_covariance=True))
     assert res.status == 'converged', res.reason
     assert res.final_cost < 0.01 * res.initial_cost
     err = centre_rmse(res.map_T_cams, s['T'])
@@ -145,6 +145,20 @@ def test_rtk_gnss_recovers_camera_centres_within_few_cm():
     pt_err = np.linalg.norm(res.points_map - s['X'], axis=1)
     pt_sd = np.sqrt(np.trace(res.point_cov, axis1=1, axis2=2))
     assert 0.3 < np.sqrt(np.mean(pt_err ** 2)) / np.sqrt(np.mean(pt_sd ** 2)) < 3.0
+
+
+def test_point_covariance_only_when_asked_and_the_rest_unchanged():
+    s = block(seed=2)
+    T0, X0 = perturb(s)
+    prob = BundleProblem(CAM, T0, X0, s['obs_cam'], s['obs_pt'], s['uv'], **gnss(s, 0.02))
+    opt = dict(loss='huber', compute_covariance=True, refine_intrinsics=('f', 'k1'))
+    both = bundle_adjust(prob, BundleOptions(**opt, point_covariance=True))
+    cams = bundle_adjust(prob, BundleOptions(**opt))
+    assert both.point_cov is not None and both.point_cov.shape == (len(X0), 3, 3)
+    assert cams.point_cov is None
+    np.testing.assert_array_equal(cams.cam_centre_cov, both.cam_centre_cov)
+    np.testing.assert_array_equal(cams.intrinsics_cov, both.intrinsics_cov)
+    np.testing.assert_array_equal(cams.intrinsics_height_corr, both.intrinsics_height_corr)
 
 
 def test_gcp_priors_fix_the_gauge_without_gnss():

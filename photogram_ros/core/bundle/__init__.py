@@ -56,7 +56,7 @@ def bundle_adjust(problem: BundleProblem, options: BundleOptions | None = None) 
     R, t, X, intr = out['R'], out['t'], out['X'], out['intr']
     cam_cov = pt_cov = intr_cov = var = corr = None
     if options.compute_covariance and out['status'] != 'failed':
-        cam_cov, pt_cov, intr_cov, corr = solver.covariance(R, t, X, intr)
+        cam_cov, pt_cov, intr_cov, corr = solver.covariance(R, t, X, intr, points=options.point_covariance)
         var = solver.variance_factor(out['cost'])
         if intr_cov is not None:
             intr_cov = intr_cov * (var if var is not None else np.nan)

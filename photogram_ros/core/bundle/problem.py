@@ -36,6 +36,9 @@ class BundleOptions:
     gradient_tolerance: float = 1e-10
     parameter_tolerance: float = 1e-8
     compute_covariance: bool = False
+    # With compute_covariance, the points' marginal covariances too: a dense product of the reduced camera
+    # system's inverse with every point's columns, whose cost grows with cameras^2 x points.
+    point_covariance: bool = False
     initial_trust_radius: float = 1e4
     dense_limit: int = 3000                  # reduced camera systems larger than this are solved sparsely
 
@@ -181,7 +184,7 @@ class BundleResult:
     # figure of least-squares adjustment in photogrammetry (e.g. Luhmann et al., Close-Range
     # Photogrammetry, ch. 2.4): sigmas then follow the actual image noise, not a nominal 1 px.
     cam_centre_cov: np.ndarray | None = None
-    point_cov: np.ndarray | None = None
+    point_cov: np.ndarray | None = None              # only with BundleOptions.point_covariance
     intrinsics_cov: np.ndarray | None = None         # (K, kf, kf) over intrinsics_names, scaled
     intrinsics_names: tuple = ()                     # BundleOptions.refine_intrinsics ('f' = fx and fy)
     # (K, kf) correlation of each intrinsic with the block's height (mean camera-centre height minus

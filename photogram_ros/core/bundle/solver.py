@@ -518,10 +518,11 @@ class Solver:
         RT = np.transpose(R[free], (0, 2, 1))
         return np.concatenate([-_cross_cols(RT, t[free]), -RT], axis=2)
 
-    def covariance(self, R, t, X, intr):
+    def covariance(self, R, t, X, intr, points: bool = True):
         """Marginal covariances at the estimate, unscaled (inverse of J^T J at the residuals' weights).
 
-        Returns camera centres (C,3,3), points (P,3,3), the free intrinsics per group (K,kf,kf) and the
+        Returns camera centres (C,3,3), points (P,3,3; None unless `points`), the free intrinsics per group
+        (K,kf,kf) and the
         correlation of each free intrinsic with the block's height (K, kf; see `_height_correlation`);
         all None when the system is singular (free gauge). S^-1 of the reduced camera system is the
         marginal covariance of every camera-side unknown, intrinsics included, with the points
@@ -541,7 +542,18 @@ class Solver:
             Spose = Sc[ix[:, :, None], ix[:, None, :]]
             J = self._centre_jacobian(R, t, free)
             cam_cov[free] = J @ Spose @ np.transpose(J, (0, 2, 1))
-        pt_cov = np.zeros((len(X), 3, 3))
+        pt_cov = self._point_covariance(W, Vinv, Sc, len(X)) if points else None
+        intr_cov = corr = None
+        if st.kf:
+            ix = st.intr_col[:, None] + np.arange(st.kf)
+            intr_cov = Sc[ix[:, :, None], ix[:, None, :]]
+            corr = self._height_correlation(R, t, Vinv, W, Sc)
+        return cam_cov, pt_cov, intr_cov, corr
+
+    def _point_covariance(self, W, Vinv, Sc, n_points: int):
+        """(P, 3, 3) marginal covariances of the points: V^-1 + V^-1 W^T S^-1 W V^-1 per point."""
+        st = self.st
+        pt_cov = np.zeros((n_points, 3, 3))
         blocks = np.zeros((st.npf, 3, 3))
         Wc = W.tocsr().tocsc()
         for a in range(0, st.npf, 2000):
@@ -550,12 +562,7 @@ class Solver:
             Q = Sc @ Wk
             blocks[a:b] = np.einsum('rka,rkb->kab', Wk.reshape(st.nc, b - a, 3), Q.reshape(st.nc, b - a, 3))
         pt_cov[st.pt_col >= 0] = Vinv + Vinv @ blocks @ Vinv
-        intr_cov = corr = None
-        if st.kf:
-            ix = st.intr_col[:, None] + np.arange(st.kf)
-            intr_cov = Sc[ix[:, :, None], ix[:, None, :]]
-            corr = self._height_correlation(R, t, Vinv, W, Sc)
-        return cam_cov, pt_cov, intr_cov, corr
+        return pt_cov
 
     def _height_correlation(self, R, t, Vinv, W, Sc):
         """(K, kf) correlation of each free intrinsic with the block's height H = mean height (map z)
