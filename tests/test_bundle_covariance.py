@@ -7,6 +7,7 @@ import pytest
 
 from photogram_ros.core.bundle import BundleOptions, BundleProblem, bundle_adjust
 from photogram_ros.core.camera import PinholeCamera
+from photogram_ros.core.rotations import R_from_rotvec
 from test_bundle_solver import block, gnss, perturb
 
 TRUTH = PinholeCamera(1000, 800, 900.0, 900.0, 500.0, 400.0, (-0.08, 0.0, 0.0, 0.0, 0.0))
@@ -85,3 +86,75 @@ def test_focal_height_correlation_matches_monte_carlo():
         mc, cov = _monte_carlo_f_and_height(tilt, sigma)
         print(f'tilt {tilt} deg, GNSS {sigma} m: correlation Monte Carlo {mc:+.3f}, covariance {cov:+.3f}')
         assert lo <= cov <= hi and abs(mc - cov) < 0.15
+
+
+def _joint_information(s, cam, T, X, g, gcp_idx, gcp_sigma_m, with_bias):
+    """J^T J of the problem by central differences in its own unknowns: per camera a small rotation and its
+    centre, the points, f (fx = fy) and, with_bias, the GNSS bias added to every fix's residual. Unit weights
+    for the pixels, the fixes whitened by their sigmas, the GCPs by theirs: the solver's weights with loss
+    'linear'."""
+    C, P = len(T), len(X)
+    L = np.linalg.inv(np.linalg.cholesky(g['gnss_cov_map']))
+
+    def residuals(x):
+        k = 0
+        Ts = T.copy()
+        for c in range(C):
+            Ts[c, :3, :3] = R_from_rotvec(x[k:k + 3]) @ T[c, :3, :3]
+            Ts[c, :3, 3] = T[c, :3, 3] + x[k + 3:k + 6]
+            k += 6
+        Xs = X + x[k:k + 3 * P].reshape(P, 3)
+        k += 3 * P
+        f = cam.fx + x[k]
+        c2 = PinholeCamera(cam.width, cam.height, f, f, cam.cx, cam.cy, cam.dist)
+        b = x[k + 1:k + 4] if with_bias else np.zeros(3)
+        R = Ts[s['obs_cam'], :3, :3]
+        pc = np.einsum('nji,nj->ni', R, Xs[s['obs_pt']] - Ts[s['obs_cam'], :3, 3])
+        r = [(c2.project(pc)[0] - s['uv']).ravel()]
+        ant = np.einsum('cij,j->ci', Ts[:, :3, :3], g['lever_arm_cam_m']) + Ts[:, :3, 3]
+        r.append(np.einsum('cij,cj->ci', L, ant - g['gnss_pos_map'] + b).ravel())
+        r.append(((Xs[gcp_idx] - X[gcp_idx]) / gcp_sigma_m).ravel())
+        return np.concatenate(r)
+
+    n = 6 * C + 3 * P + 1 + (3 if with_bias else 0)
+    J = np.empty((len(residuals(np.zeros(n))), n))
+    for j in range(n):
+        d = np.zeros(n)
+        d[j] = 1e-6
+        J[:, j] = (residuals(d) - residuals(-d)) / 2e-6
+    return J.T @ J, 6 * C + 3 * P
+
+
+def test_focal_variance_with_the_gnss_bias_free_matches_the_joint_adjustment():
+    """The covariance as if the GNSS bias were one more unknown (a Woodbury update of the reduced system's
+    inverse) against the inverse of the whole problem's information with the bias as explicit columns, by
+    finite differences. On a block whose heights the GCPs hold only through their relief, the freed bias
+    loosens the focal length several times over."""
+    cam = PinholeCamera(1000, 800, 900.0, 900.0, 500.0, 400.0)
+    s = block(seed=4, n_lines=2, per_line=4, n_pts=60, tilt_deg=1.0, camera=cam, noise_px=0.5)
+    g = gnss(s, 0.03)
+    gcp_idx = np.arange(5)
+    gcp_sigma = 0.02
+    prob = BundleProblem(cam, s['T'], s['X'], s['obs_cam'], s['obs_pt'], s['uv'], **g,
+                         point_priors_idx=gcp_idx, point_priors_map=s['X'][gcp_idx],
+                         point_priors_sigma_m=np.full((5, 3), gcp_sigma))
+    held = bundle_adjust(prob, BundleOptions(loss='linear', refine_intrinsics=('f',), max_iterations=0,
+                                             compute_covariance=True))
+    free = bundle_adjust(prob, BundleOptions(loss='linear', refine_intrinsics=('f',), max_iterations=0,
+                                             compute_covariance=True, gnss_bias_free=True))
+    q_held = held.intrinsics_cov[0][0, 0] / held.variance_factor
+    q_free = free.intrinsics_cov[0][0, 0] / free.variance_factor
+    for with_bias, q in ((False, q_held), (True, q_free)):
+        N, k_f = _joint_information(s, cam, s['T'], s['X'], g, gcp_idx, gcp_sigma, with_bias)
+        Ninv = np.linalg.inv(N)
+        assert q == pytest.approx(Ninv[k_f, k_f], rel=0.02), (with_bias, q, Ninv[k_f, k_f])
+        if with_bias:   # the bias's own covariance, all of it
+            qb = free.gnss_bias_cov / free.variance_factor
+            assert np.allclose(qb, Ninv[k_f + 1:, k_f + 1:], rtol=0.02, atol=1e-3 * np.abs(qb).max()), qb
+    assert held.gnss_bias_cov is None
+    assert q_free > 4.0 * q_held, (q_free, q_held)
+    # Without GCPs nothing holds the block once the fixes may move together: no covariance.
+    alone = bundle_adjust(BundleProblem(cam, s['T'], s['X'], s['obs_cam'], s['obs_pt'], s['uv'], **g),
+                          BundleOptions(loss='linear', refine_intrinsics=('f',), max_iterations=0,
+                                        compute_covariance=True, gnss_bias_free=True))
+    assert alone.intrinsics_cov is None

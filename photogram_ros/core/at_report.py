@@ -282,10 +282,11 @@ def intrinsics_sigma(at, refine: tuple) -> dict:
 
     The full adjustment of IncrementalAT does not ask for covariances, so this evaluates them at its
     result: the same problem (every registered keyframe and point, GNSS and GCP priors), zero
-    iterations, covariance on. Returns name -> sigma (px for f, cx, cy; unitless for k1..k3),
-    's0_px' (a-posteriori sigma of unit weight) and 'height_correlation' (name -> correlation with the
-    block's height: mean camera height minus mean tie-point height), or {} when the block has no datum
-    or nothing to adjust.
+    iterations, covariance on; with the GNSS bias free beside the intrinsics when the block estimated it (a
+    flat nadir block trades the bias's height for the focal length, which a sigma with the bias held hides).
+    Returns name -> sigma (px for f, cx, cy; unitless for k1..k3), 's0_px' (a-posteriori sigma of unit
+    weight) and 'height_correlation' (name -> correlation with the block's height: mean camera height minus
+    mean tie-point height), or {} when the block has no datum or nothing to adjust.
     """
     kids, tracks = list(at.registered), list(at.points)
     if not refine or not kids or not tracks:
@@ -295,7 +296,7 @@ def intrinsics_sigma(at, refine: tuple) -> dict:
         return {}
     res = bundle_adjust(prob, BundleOptions(loss=at.opt.loss, loss_scale_px=at.opt.loss_scale_px,
                                             max_iterations=0, refine_intrinsics=tuple(refine),
-                                            compute_covariance=True))
+                                            compute_covariance=True, gnss_bias_free=at.gnss_bias_estimated))
     sig = res.intrinsics_sigma()
     if sig and res.variance_factor is not None:
         sig['s0_px'] = float(np.sqrt(res.variance_factor))

@@ -54,12 +54,15 @@ def bundle_adjust(problem: BundleProblem, options: BundleOptions | None = None) 
     solver = Solver(d, options)
     out = solver.run()
     R, t, X, intr = out['R'], out['t'], out['X'], out['intr']
-    cam_cov = pt_cov = intr_cov = var = corr = None
+    cam_cov = pt_cov = intr_cov = var = corr = bias_cov = None
     if options.compute_covariance and out['status'] != 'failed':
-        cam_cov, pt_cov, intr_cov, corr = solver.covariance(R, t, X, intr, points=options.point_covariance)
+        cam_cov, pt_cov, intr_cov, corr, bias_cov = solver.covariance(R, t, X, intr, points=options.point_covariance,
+                                                                     gnss_bias_free=options.gnss_bias_free)
         var = solver.variance_factor(out['cost'])
         if intr_cov is not None:
             intr_cov = intr_cov * (var if var is not None else np.nan)
+        if bias_cov is not None:
+            bias_cov = bias_cov * (var if var is not None else np.nan)
     camera = None
     if problem.model is None and problem.camera is not None:
         fx, fy, cx, cy, *dist = intr[0]
@@ -70,7 +73,7 @@ def bundle_adjust(problem: BundleProblem, options: BundleOptions | None = None) 
                         map_T_cams=_map_T_cams(R, t), points_map=X, camera=camera, intrinsics=intr,
                         rms=_rms(solver, R, t, X, intr), cam_centre_cov=cam_cov, point_cov=pt_cov,
                         intrinsics_cov=intr_cov, intrinsics_names=tuple(options.refine_intrinsics),
-                        intrinsics_height_corr=corr,
+                        intrinsics_height_corr=corr, gnss_bias_cov=bias_cov,
                         variance_factor=var,
                         seconds=out['seconds'], cost_history=out['hist'], time_history=out['hist_t'])
 

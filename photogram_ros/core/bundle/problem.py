@@ -39,6 +39,10 @@ class BundleOptions:
     # With compute_covariance, the points' marginal covariances too: a dense product of the reduced camera
     # system's inverse with every point's columns, whose cost grows with cameras^2 x points.
     point_covariance: bool = False
+    # With compute_covariance, the covariances as if a constant offset of all GNSS fixes (the GNSS bias, ENU m)
+    # were one more unknown: what a block that estimates its GNSS bias from GCPs knows. The fixes then hold the
+    # cameras relative to each other only, and a focal length that trades off with the block's height shows it.
+    gnss_bias_free: bool = False
     initial_trust_radius: float = 1e4
     dense_limit: int = 3000                  # reduced camera systems larger than this are solved sparsely
 
@@ -190,6 +194,8 @@ class BundleResult:
     # (K, kf) correlation of each intrinsic with the block's height (mean camera-centre height minus
     # mean point height, map z): near +-1 the intrinsic is not determined (focal vs the ground's depth).
     intrinsics_height_corr: np.ndarray | None = None
+    # (3, 3) ENU m^2, scaled: the GNSS bias's covariance as one more unknown (BundleOptions.gnss_bias_free).
+    gnss_bias_cov: np.ndarray | None = None
     variance_factor: float | None = None             # s0^2 (None without redundancy)
     seconds: float = 0.0
     cost_history: list = field(default_factory=list)     # cost after each accepted step

@@ -518,7 +518,7 @@ class Solver:
         RT = np.transpose(R[free], (0, 2, 1))
         return np.concatenate([-_cross_cols(RT, t[free]), -RT], axis=2)
 
-    def covariance(self, R, t, X, intr, points: bool = True):
+    def covariance(self, R, t, X, intr, points: bool = True, gnss_bias_free: bool = False):
         """Marginal covariances at the estimate, unscaled (inverse of J^T J at the residuals' weights).
 
         Returns camera centres (C,3,3), points (P,3,3; None unless `points`), the free intrinsics per group
@@ -526,13 +526,21 @@ class Solver:
         correlation of each free intrinsic with the block's height (K, kf; see `_height_correlation`);
         all None when the system is singular (free gauge). S^-1 of the reduced camera system is the
         marginal covariance of every camera-side unknown, intrinsics included, with the points
-        already marginalised by the Schur complement.
+        already marginalised by the Schur complement. gnss_bias_free: as if the fixes' constant offset were
+        one more unknown (`_free_gnss_bias`), whose (3, 3) covariance comes fifth (else None); all None when
+        nothing else (GCPs) then holds the block.
         """
         st = self.st
         inv = self._reduced_inverse(R, t, X, intr)
         if inv is None:
-            return None, None, None, None
+            return None, None, None, None, None
         lin, Vinv, Wd, Sc = inv
+        bias_cov = None
+        if gnss_bias_free and 'gnss_cam' in self.d:
+            freed = self._free_gnss_bias(R, t, Sc)
+            if freed is None:
+                return None, None, None, None, None
+            Sc, bias_cov = freed
         W = self._W(Wd)
         C = len(R)
         cam_cov = np.zeros((C, 3, 3))
@@ -548,7 +556,36 @@ class Solver:
             ix = st.intr_col[:, None] + np.arange(st.kf)
             intr_cov = Sc[ix[:, :, None], ix[:, None, :]]
             corr = self._height_correlation(R, t, Vinv, W, Sc)
-        return cam_cov, pt_cov, intr_cov, corr
+        return cam_cov, pt_cov, intr_cov, corr, bias_cov
+
+    def _free_gnss_bias(self, R, t, Sc):
+        """(Sc', Cb): Sc with the GNSS bias b (3, ENU m; each fix's residual L_m (antenna_m - fix_m + b)) marginalised as
+        one more unknown. The joint information [[S, A], [A^T, M]] with A = sum_m J_m^T L_m (J_m the fix's
+        whitened Jacobian in the camera-side unknowns) and M = sum_m L_m^T L_m leaves S - A M^-1 A^T on the camera
+        side, whose inverse is Sc + Sc A (M - A^T Sc A)^-1 A^T Sc (Woodbury); Cb = (M - A^T Sc A)^-1 is the
+        bias's own (unscaled) covariance. None when M - A^T Sc A is not positive definite: the fixes were all
+        that held the block's position."""
+        d, st = self.d, self.st
+        c = d['gnss_cam']
+        cols = st.cam_col[c]
+        L = d['gnss_W']
+        M = np.einsum('mki,mkj->ij', L, L)
+        A = np.zeros((st.nc, 3))
+        free = cols >= 0
+        if free.any():
+            v = d['lever'][None, :] - t[c[free]]
+            RT = np.transpose(R[c[free]], (0, 2, 1))
+            J = L[free] @ np.concatenate([_cross_cols(RT, v), -RT], axis=2)       # (F, 3, 6)
+            JL = np.einsum('mka,mkj->maj', J, L[free])                             # (F, 6, 3)
+            np.add.at(A, cols[free][:, None] + np.arange(6), JL)
+        SA = Sc @ A
+        G = M - A.T @ SA
+        try:
+            np.linalg.cholesky(G)
+        except np.linalg.LinAlgError:
+            return None
+        Gi = np.linalg.inv(G)
+        return Sc + SA @ Gi @ SA.T, Gi
 
     def _point_covariance(self, W, Vinv, Sc, n_points: int):
         """(P, 3, 3) marginal covariances of the points: V^-1 + V^-1 W^T S^-1 W V^-1 per point."""
