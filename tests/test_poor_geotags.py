@@ -164,6 +164,11 @@ def test_the_verdict_says_poor_geotags_with_both_estimates():
     v = check_block(dataclasses.replace(b, gnss_noise=lev))
     assert v.status == 'warning' and v.findings[0].check == 'gnss_noise'
     assert '1.2 m horizontal, 5.0 m vertical' in v.findings[0].text and 'levelled to 1.0 degrees' in v.findings[0].text
+    # RTK geotags poorer than they state say their centimetres, not "0.0 m".
+    rtk = {**good, 'stated_h_m': 0.014, 'stated_v_m': 0.029, 'estimated_h_m': 0.047, 'estimated_v_m': 0.024}
+    v = check_block(dataclasses.replace(b, gnss_noise=rtk))
+    assert v.status == 'warning' and v.findings[0].check == 'gnss_noise'
+    assert '4.7 cm horizontal, 2.4 cm vertical (stated 1.4 cm, 2.9 cm)' in v.findings[0].text, v.findings[0].text
     # A turn within the prior's reach is not said.
     small = {**good, 'level': {'gnss_tilt_deg': 2.7, 'kept_tilt_deg': 2.4, 'turned_deg': 0.3}}
     assert check_block(dataclasses.replace(b, gnss_noise=small)).status == 'ok'

@@ -159,6 +159,11 @@ def inputs_from_at(at, n_photos: int | None = None, adjustment: dict | None = No
                        self_calibration=sel.to_dict() if sel is not None else {})
 
 
+def _length(m: float) -> str:
+    """A length for a finding's text: metres to 0.1 m from 1 m up, centimetres to 0.1 cm below (RTK geotags)."""
+    return f'{m:.1f} m' if abs(m) >= 1.0 else f'{m * 100:.1f} cm'
+
+
 def _worse(a: str, b: str) -> str:
     return a if STATUS_ORDER.index(a) >= STATUS_ORDER.index(b) else b
 
@@ -357,9 +362,9 @@ def check_block(b: BlockInputs, o: BlockCheckOptions | None = None) -> BlockVerd
                 why.append(f'their heights would tilt the block by {lev["gnss_tilt_deg"]:.1f} degrees where its '
                            f'cameras look down: levelled to {lev["kept_tilt_deg"]:.1f} degrees')
             findings.append(Finding('gnss_noise', 'warning', f'the geotags are poor ({"; ".join(why)}): estimated '
-                                    f'noise {est[0]:.1f} m horizontal, {est[1]:.1f} m vertical (stated {stated[0]:.1f} m, '
-                                    f'{stated[1]:.1f} m); they were weighted as measured, and the block is placed no '
-                                    'better than they are'))
+                                    f'noise {_length(est[0])} horizontal, {_length(est[1])} vertical (stated '
+                                    f'{_length(stated[0])}, {_length(stated[1])}); they were weighted as measured, and '
+                                    'the block is placed no better than they are'))
         if est[0] > max(o.noise_h_fail_m, o.noise_warn_factor * stated[0]):
             findings.append(Finding('gnss_noise_implausible', 'failed', f'the block\'s cameras scatter {est[0]:.1f} m '
                                     'horizontally about their geotags after a similarity: more than any GNSS a drone '
