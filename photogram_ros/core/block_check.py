@@ -218,8 +218,8 @@ def _gnss_fit(b: BlockInputs, o: BlockCheckOptions, oriented: np.ndarray, findin
         names = [np.asarray(b.names, object)[has][out][i] for i in worst]
         findings.append(Finding('gnss_outliers', 'warning',
                                 f'{int(out.sum())} geotags lie far from where the block puts their photos (more than '
-                                f'{o.gnss_outlier:g}x the GNSS noise; up to {rh[out].max():.1f} m H, {rv[out].max():.1f} m '
-                                f'V): glitched geotags or photos of another site: {", ".join(names[:8])}', names[:50]))
+                                f'{o.gnss_outlier:g}x the GNSS noise; up to {_length(rh[out].max())} H, '
+                                f'{_length(rv[out].max())} V): glitched geotags or photos of another site: {", ".join(names[:8])}', names[:50]))
 
 
 def _dome(b: BlockInputs, o: BlockCheckOptions, oriented: np.ndarray, findings: list, figures: dict) -> None:
