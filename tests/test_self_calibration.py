@@ -7,7 +7,6 @@ import dataclasses
 import numpy as np
 import pytest
 
-from photogram_ros.core.bundle import bundle_adjust
 from photogram_ros.core.incremental import IncrementalAT, IncrementalOptions
 from photogram_ros.core.self_calibration import Trial, height_bowl, select_stepwise
 from photogram_ros.errors import ConfigError
@@ -83,23 +82,6 @@ def test_the_covariance_is_asked_only_of_a_candidate_that_pays():
     assert sel.to_dict()['trials'][2]['height_correlation'] == {'k2': 0.2}
 
 
-def test_a_steps_trials_go_to_evaluate_many_together_and_select_the_same():
-    table = {(): 0.695, ('k1',): 0.6946, ('k2',): 0.6330, ('k1', 'k2'): 0.6306}
-    evaluate, calls = _table(table)
-    batches = []
-
-    def evaluate_many(refines):
-        batches.append([tuple(r) for r in refines])
-        return [evaluate(r) for r in refines]
-    sel = select_stepwise(('k1', 'k2'), evaluate, evaluate_many=evaluate_many)
-    # The first step's two candidates in one batch; the base and a step of one candidate alone.
-    assert batches == [[('k1',), ('k2',)]]
-    assert calls == [(), ('k1',), ('k2',), ('k2', 'k1')]
-    serial = select_stepwise(('k1', 'k2'), _table(table)[0])
-    assert sel.kept == serial.kept == ('k2',)
-    assert [t.rms_px for t in sel.trials] == [t.rms_px for t in serial.trials]
-
-
 def test_height_bowl_measures_a_dome_against_scatter():
     rng = np.random.default_rng(1)
     E, N = np.meshgrid(np.linspace(-40, 40, 9), [-20.0, 0.0, 20.0])
@@ -119,9 +101,9 @@ def tiny():
     return cfg, build_world(cfg, np.random.default_rng(cfg.seed))
 
 
-def _auto(tiny, dist, adjustment_map=None):
+def _auto(tiny, dist):
     """The final adjustment ("auto") of the tiny flight seen through a lens `dist`, from an EXIF-like camera
-    (the true one without distortion); adjustment_map: how a step's trials run (None: one after the other)."""
+    (the true one without distortion)."""
     cfg, world = tiny
     sk = simulate_keyframes(dataclasses.replace(cfg, dist=dist), gnss_mode='rtk_fixed', world=world)
     cam0 = dataclasses.replace(sk.camera, dist=(0.0, 0.0, 0.0, 0.0, 0.0))
@@ -129,7 +111,6 @@ def _auto(tiny, dist, adjustment_map=None):
                                                 final_self_calibration='auto'), origin=sk.origin)
     for r in sk.records:
         at.add_keyframe(r)
-    at.adjustment_map = adjustment_map
     rep = at.full_adjustment()
     return at, rep
 
@@ -149,24 +130,3 @@ def test_auto_leaves_out_a_k1_the_lens_has_not(tiny):
     print(sel.text())
     assert sel.kept == ('k2',)
     assert at.camera.dist[0] == 0.0 and at.camera.dist[1] == pytest.approx(0.05, abs=0.01)
-
-
-def test_a_steps_trials_through_an_adjustment_map_give_the_same_calibration(tiny):
-    # The map gets each step's adjustments together (a cluster runs them side by side); here it runs them on copies
-    # of their problems, as a worker would get them, and the block self-calibrates as without it.
-    batches = []
-
-    def adjustment_map(calls):
-        import pickle
-        batches.append([o.refine_intrinsics for _, o in calls])
-        return [bundle_adjust(*pickle.loads(pickle.dumps(c))) for c in calls]
-    dist = (-0.12, 0.05, 0.0, 0.0, 0.0)
-    at, rep = _auto(tiny, dist, adjustment_map)
-    serial, rep_serial = _auto(tiny, dist)
-    assert batches and all(len(b) > 1 for b in batches)
-    assert batches[0][0][-1] == 'k1' and batches[0][1][-1] == 'k2'
-    assert at.self_calibration.kept == serial.self_calibration.kept
-    assert [t.rms_px for t in at.self_calibration.trials] == pytest.approx(
-        [t.rms_px for t in serial.self_calibration.trials], rel=1e-9)
-    assert at.camera.dist == pytest.approx(serial.camera.dist, rel=1e-9, abs=1e-12)
-    assert rep.reprojection_rms_px == pytest.approx(rep_serial.reprojection_rms_px, rel=1e-9)

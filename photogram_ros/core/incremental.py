@@ -361,10 +361,6 @@ class IncrementalAT:
         self.self_calibration: Selection | None = None
         # Every adjustment of the block's keyframes (_solve): its iterations, status and seconds.
         self.solves: list[dict] = []
-        # How the independent adjustments of one step of the stepwise self-calibration run: None, one after
-        # the other here; else a callable taking [(BundleProblem, BundleOptions), ...] and returning their
-        # BundleResults in order (a cluster's workers side by side: io/aerial_triangulation.py).
-        self.adjustment_map = None
         self.opt = options or IncrementalOptions()
         self.origin = origin
         self.kfs: list[Keyframe] = []
@@ -1687,27 +1683,13 @@ class IncrementalAT:
             return replace(prob, camera=res.camera if res.camera is not None else prob.camera,
                            map_T_cams=np.asarray(res.map_T_cams), points_map=np.asarray(res.points_map))
 
-        starts = {}
-
-        def adjustment(refine: tuple) -> tuple:
-            # From the adjustment of the intrinsics kept so far (the first from the block as it is); one start
-            # object per kept set, shared by the step's trials.
-            kept = tuple(refine[:-1]) if refine else None
-            before = results.get(kept) if kept is not None else None
-            if before is not None and kept not in starts:
-                starts[kept] = started(before)
-            return (prob if before is None else starts[kept],
-                    BundleOptions(loss=self.opt.loss, loss_scale_px=self.opt.loss_scale_px, max_iterations=iters,
-                                  refine_intrinsics=tuple(refine), function_tolerance=TRIAL_FUNCTION_TOLERANCE))
-
         def evaluate(refine: tuple) -> Trial:
-            return trial_of(refine, bundle_adjust(*adjustment(refine)))
-
-        def evaluate_many(refines: list) -> list:
-            done = self.adjustment_map([adjustment(r) for r in refines])
-            return [trial_of(r, res) for r, res in zip(refines, done)]
-
-        def trial_of(refine: tuple, res) -> Trial:
+            # From the adjustment of the intrinsics kept so far (the first from the block as it is).
+            before = results.get(tuple(refine[:-1])) if refine else None
+            res = bundle_adjust(prob if before is None else started(before),
+                                BundleOptions(loss=self.opt.loss, loss_scale_px=self.opt.loss_scale_px,
+                                              max_iterations=iters, refine_intrinsics=tuple(refine),
+                                              function_tolerance=TRIAL_FUNCTION_TOLERANCE))
             results[tuple(refine)] = res
             cam = res.camera if res.camera is not None else prob.camera
             T = np.asarray(res.map_T_cams)
@@ -1739,8 +1721,7 @@ class IncrementalAT:
         base = tuple(c for c in candidates if c in SELF_CALIBRATION_BASE)
         sel = select_stepwise(tuple(c for c in candidates if c not in base), evaluate, base=base,
                               min_gain_fraction=self.opt.self_calibration_min_gain,
-                              min_gain_px=self.opt.self_calibration_min_gain_px, determine=determine,
-                              evaluate_many=evaluate_many if self.adjustment_map is not None else None)
+                              min_gain_px=self.opt.self_calibration_min_gain_px, determine=determine)
         self.self_calibration = sel
         return sel.kept
 

@@ -136,14 +136,12 @@ class Selection:
 def select_stepwise(candidates, evaluate: Callable[[tuple], Trial], base: tuple = (),
                     min_gain_fraction: float = MIN_GAIN_FRACTION, min_gain_px: float = MIN_GAIN_PX,
                     min_sigmas: float = MIN_SIGMAS,
-                    determine: Callable[[Trial], None] | None = None,
-                    evaluate_many: Callable[[list], list] | None = None) -> Selection:
+                    determine: Callable[[Trial], None] | None = None) -> Selection:
     """Greedy forward selection of `candidates` (see the module docstring); `evaluate(refine)` adjusts the block
     with `refine` (base plus the candidates so far plus one) from the same start and returns its Trial;
-    `evaluate_many(refines)`, when given, returns the Trials of one step's candidates, in order (the step's
-    trials are independent of each other: it may run them side by side); `determine(trial)`, when given, fills
-    in the trial's sigmas and height correlations (a covariance: asked only of a candidate that pays enough to
-    be kept). Raises ConfigError on a name that is not an intrinsic, or on thresholds that are not positive."""
+    `determine(trial)`, when given, fills in the trial's sigmas and height correlations (a covariance: asked
+    only of a candidate that pays enough to be kept). Raises ConfigError on a name that is not an intrinsic, or
+    on thresholds that are not positive."""
     candidates = tuple(dict.fromkeys(c for c in candidates if c not in base))
     bad = [c for c in (*candidates, *base) if c not in INTRINSICS]
     if bad:
@@ -156,10 +154,7 @@ def select_stepwise(candidates, evaluate: Callable[[tuple], Trial], base: tuple 
     decisions: dict[str, Decision] = {}
     remaining = list(candidates)
     while remaining:
-        refines = [kept + (c,) for c in remaining]
-        trials_now = (evaluate_many(refines) if evaluate_many is not None and len(refines) > 1
-                      else [evaluate(r) for r in refines])
-        tried = list(zip(remaining, trials_now))
+        tried = [(c, evaluate(kept + (c,))) for c in remaining]
         trials += [t for _, t in tried]
         gains = {c: current.rms_px - t.rms_px for c, t in tried}
         for c, t in tried:

@@ -30,7 +30,6 @@ from pathlib import Path
 import numpy as np
 
 from photogram_ros.core.block_check import check_block, inputs_from_at
-from photogram_ros.core.bundle import bundle_adjust
 from photogram_ros.core.at_report import (build_report, convergence, focal_determination, gnss_figures,
                                         intrinsics_sigma)
 from photogram_ros.core.control import ControlRow, ControlVettingOptions, unchecked_vetting, vet_control
@@ -642,13 +641,12 @@ def _merged_vetting(runs: list, core_of: dict):
 
 
 def _global_adjustment(block: KeyframeBlock, mr, runs: list, core_of: dict, opt: TriangulateOptions,
-                       log=None, runner=None) -> dict:
+                       log=None) -> dict:
     """The merged block (core/split_merge.py MergeResult `mr`) adjusted as one block: an IncrementalAT seeded
     with the merged poses and tie points (core/incremental.py IncrementalAT.seed) and the sub-blocks' mean camera,
     GNSS noise scale, bias and rejected fixes, its GCP observations and control points as the sub-blocks vetted
     them (`_merged_vetting`), then the single block's final adjustment (`full_adjustment`: GNSS noise, bias,
-    the self-calibration `auto_self_calibration` or opt.self_calibrate chooses; the trials of each step of a
-    stepwise one run as tasks of `runner` when it has more than one worker). Returns {'at', 'rep_adj',
+    the self-calibration `auto_self_calibration` or opt.self_calibrate chooses). Returns {'at', 'rep_adj',
     'refine', 'control', 'vetting', 'figures'}; figures: the solves, their iterations, wall and CPU time, the
     seed, and how far it moved the cameras from the merged block (core/split_merge.py camera_moves)."""
     from photogram_ros.core.split_merge import camera_moves, mean_camera
@@ -676,8 +674,6 @@ def _global_adjustment(block: KeyframeBlock, mr, runs: list, core_of: dict, opt:
     ties = {n for o in tie_obs.values() for n in o}
     at = IncrementalAT(camera, IncrementalOptions(window_size=opt.window, lever_arm_cam_m=tuple(opt.lever_arm_cam_m),
                                                   spill_frozen=False), block.origin, control, ties=ties)
-    if runner is not None and runner.workers > 1:
-        at.adjustment_map = lambda calls: runner.run(bundle_adjust, calls)
     tuv = {nm: {**target_obs.get(nm, {}), **tie_obs.get(nm, {})} for nm in names}
     gate_px = opt.split.seed_gate_px if opt.split is not None else None
     seed = at.seed(block.records, mr.map_T_cam, mr.point_ids, mr.points_map_m, tuv, gate_px)
@@ -769,7 +765,7 @@ def split_merge_block(block: KeyframeBlock, out: str | Path, opt: TriangulateOpt
     if sm.global_adjustment and mr.map_T_cam:
         steps.start(f'global adjustment of the merged block ({len(mr.map_T_cam)} photos)')
         try:
-            glob = _global_adjustment(block, mr, runs, core_of, opt, log, runner)
+            glob = _global_adjustment(block, mr, runs, core_of, opt, log)
         except (PhotogramError, np.linalg.LinAlgError, ValueError) as e:
             why = f'it stopped: {e}'
         if glob is not None and glob['rep_adj'].status == 'failed':
