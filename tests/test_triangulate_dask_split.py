@@ -107,7 +107,7 @@ def test_split_merge_on_a_scheduler_and_two_workers_matches_in_process(survey, s
     for k in ('horizontal_m', 'vertical_m'):
         assert there['check']['rmse'][k] == pytest.approx(here['check']['rmse'][k], rel=1e-3, abs=1e-4)
     assert there['verdict']['status'] == here['verdict']['status']
-    # The global adjustment's self-calibration trials ran on the workers: the same camera as in this process.
+    # The cluster's run self-calibrates the same camera as this process.
     for k in ('fx', 'cx', 'cy', 'k1', 'k2'):
         assert there['self_calibration'][k]['after'] == pytest.approx(here['self_calibration'][k]['after'],
                                                                       rel=1e-6, abs=1e-9)
