@@ -5,8 +5,8 @@ root="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 cd "$root"
 # This checkout's package first, whichever checkout the editable install in .venv points at.
 export PYTHONPATH="$root${PYTHONPATH:+:$PYTHONPATH}"
-# A domain of our own per run, so concurrent sessions on one machine never hear each other; 1..101 keep
-# Fast DDS's ports (7400 + 250 x domain) below Linux's ephemeral port range.
-export ROS_DOMAIN_ID="${ROS_DOMAIN_ID:-$(( (RANDOM % 101) + 1 ))}"
+# ROS_DOMAIN_ID stays as the caller set it: a test session reserves a free domain of its own
+# (tests/conftest.py), a replay takes one (photogram_ros/nodes/ros_domain.py), so concurrent sessions on
+# one machine never hear each other.
 export RMW_IMPLEMENTATION="${RMW_IMPLEMENTATION:-rmw_fastrtps_cpp}"
 export ROS_AUTOMATIC_DISCOVERY_RANGE="${ROS_AUTOMATIC_DISCOVERY_RANGE:-LOCALHOST}"

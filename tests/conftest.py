@@ -1,9 +1,8 @@
-"""Shared fixtures. Every test session gets its own ROS_DOMAIN_ID (set by scripts/test.sh, or here)."""
+"""Shared fixtures. Every test session gets a ROS_DOMAIN_ID of its own (unless ROS_DOMAIN_ID is set)."""
 
 from __future__ import annotations
 
 import os
-import random
 import shutil
 from pathlib import Path
 
@@ -13,7 +12,11 @@ ROOT = Path(__file__).resolve().parents[1]
 SHARED_DATA = ROOT.parent / 'shared' / 'data'
 SAMPLE_BAG = ROOT / 'bags' / 'sample_flight'
 
-os.environ.setdefault('ROS_DOMAIN_ID', str(random.randint(1, 101)))   # ports below the ephemeral range
+if not os.environ.get('ROS_DOMAIN_ID'):
+    # A domain in 1..101 (ports below the ephemeral range) that nobody on this machine's network is on,
+    # reserved until the session ends; child processes inherit it.
+    from photogram_ros.nodes.ros_domain import reserve_test_domain
+    os.environ['ROS_DOMAIN_ID'] = str(reserve_test_domain())
 os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
 
 

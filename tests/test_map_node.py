@@ -8,6 +8,7 @@ import signal
 import subprocess
 import sys
 import time
+import uuid
 from pathlib import Path
 
 import numpy as np
@@ -61,14 +62,18 @@ def graph(rclpy_context, tmp_path):
 
 @contextlib.contextmanager
 def _map_node_process(map_dir, *params):
-    """map_node as its own process (the console-script path), with `-p name:=value` parameters; killed on
-    leaving the block if it still runs."""
-    cmd = [sys.executable, '-m', 'photogram_ros.nodes.map_node', '--ros-args', '-p', f'map_dir:={map_dir}',
+    """map_node as its own process (the console-script path), with `-p name:=value` parameters, named
+    `proc.node_name` (one no other node has: its /diagnostics are its own); killed on leaving the block
+    if it still runs."""
+    name = f'map_node_{uuid.uuid4().hex[:8]}'
+    cmd = [sys.executable, '-m', 'photogram_ros.nodes.map_node', '--ros-args', '-r', f'__node:={name}',
+           '-p', f'map_dir:={map_dir}',
            '-p', 'cell_m:=0.08']   # these tests read the map with 0.08 m cells (not from the GSD)
     for prm in params:
         cmd += ['-p', prm]
     with reaped(subprocess.Popen(cmd, cwd=ROOT, env=dict(os.environ), stdout=subprocess.DEVNULL,
                                  stderr=subprocess.PIPE)) as proc:
+        proc.node_name = f'/{name}'
         yield proc
 
 
@@ -158,8 +163,8 @@ def test_keyframes_saved_for_the_orthomosaic(graph):
     assert store.load_camera() == cam
 
 
-def _diag_clouds(rclpy_context, timeout_s, want):
-    """Number of clouds the map node reports on /diagnostics (polls until `want` or timeout)."""
+def _diag_clouds(rclpy_context, timeout_s, want, node_name):
+    """Number of clouds the map node `node_name` reports on /diagnostics (polls until `want` or timeout)."""
     from diagnostic_msgs.msg import DiagnosticArray
     from rclpy.executors import SingleThreadedExecutor
     from rclpy.node import Node
@@ -168,7 +173,7 @@ def _diag_clouds(rclpy_context, timeout_s, want):
 
     def on_diag(msg):
         for st in msg.status:
-            if 'map_node' in st.name:
+            if st.name == node_name:
                 for kv in st.values:
                     if kv.key == 'clouds':
                         seen['clouds'] = int(kv.value)
@@ -196,7 +201,7 @@ def test_kill_9_loses_only_the_last_seconds(rclpy_context, tmp_path):
         early = [pair_cloud(rng, surface, 0.0, 14.0 * k, 8.0, 6.0, 120.0, 0.02) for k in range(12)]
         for k, c in enumerate(early):
             pub.publish(msgs.pointcloud2_msg(c, k, 'map'))
-        assert _diag_clouds(rclpy_context, 20.0, len(early)) >= len(early)
+        assert _diag_clouds(rclpy_context, 20.0, len(early), proc.node_name) >= len(early)
         time.sleep(1.5)                       # > flush_interval_s: the early clouds must now be durable
         late = pair_cloud(rng, surface, 0.0, 14.0 * 12, 8.0, 6.0, 120.0, 0.02)
         for k in range(5):                    # still arriving when the process dies
@@ -261,7 +266,7 @@ def test_sigint_and_sigterm_flush_everything(rclpy_context, tmp_path, sig):
         clouds = [pair_cloud(rng, surface, 0.0, 14.0 * k, 8.0, 6.0, 120.0, 0.02) for k in range(3)]
         for k, c in enumerate(clouds):
             pub.publish(msgs.pointcloud2_msg(c, k, 'map'))
-        assert _diag_clouds(rclpy_context, 20.0, len(clouds)) >= len(clouds)
+        assert _diag_clouds(rclpy_context, 20.0, len(clouds), proc.node_name) >= len(clouds)
         proc.send_signal(sig)
         proc.wait(20)
         assert proc.returncode == 0, proc.stderr.read().decode()[-2000:]

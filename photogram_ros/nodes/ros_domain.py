@@ -10,22 +10,34 @@
   it, and apart from the domains a test session picks (1..101): a domain is taken by holding an exclusive flock(2) on a file in the temporary
   folder for the life of the process, so two replays on one machine never share one, and a replay
   killed with -9 frees its domain with its end. `replay --domain N` holds N the same way
-  (`shared_domain`): a second replay on N is refused.
+  (`shared_domain`): a second replay on N is refused. A domain whose UDP ports are bound on this
+  machine's network (a ROS 2 system already on it, or a session in another container sharing the
+  network, where the lock files are not shared) is skipped too (`domains_in_use`).
+- `reserve_test_domain()`: a test session's domain among 1..101, chosen free by the same port check
+  and reserved for the life of the session by binding one port of its block, so that a session started
+  later on this machine's network sees it taken.
 """
 
 from __future__ import annotations
 
 import fcntl
 import os
+import random
+import socket
 import tempfile
+from collections.abc import Sequence
 from pathlib import Path
 
 from photogram_ros.errors import ConfigError
 
 DOMAIN_MAX = 232
 OWN_DOMAINS = range(215, DOMAIN_MAX + 1)
+TEST_DOMAINS = range(1, 102)
+PORT_BASE = 7400             # Fast DDS: domain d owns UDP ports PORT_BASE + PORTS_PER_DOMAIN x d and the next 249
+PORTS_PER_DOMAIN = 250
+_RESERVE_OFFSET = PORTS_PER_DOMAIN - 1   # participant 119's user port: the last of the block, the least used
 
-_held: list[int] = []   # lock file descriptors, kept open for the life of the process
+_held: list = []   # lock file descriptors and reservation sockets, kept open for the life of the process
 
 
 def parse_domain(value, where: str = 'ROS_DOMAIN_ID') -> int:
@@ -65,16 +77,67 @@ def _try_take(domain: int) -> bool:
     return True
 
 
+def domains_in_use(udp_tables=('/proc/net/udp', '/proc/net/udp6')) -> set[int]:
+    """Domain ids 0..232 with a UDP port of their block bound on this machine's network, by any process
+    of any user or container that shares it: a DDS participant is on the domain, or a session reserved it.
+    `udp_tables` are Linux's socket tables (hexadecimal `address:port` in the second column); an unreadable
+    table counts nothing, so elsewhere than on Linux only the lock files keep sessions apart."""
+    used = set()
+    for table in udp_tables:
+        try:
+            lines = Path(table).read_text().splitlines()[1:]
+        except OSError:
+            continue
+        for line in lines:
+            fields = line.split()
+            try:
+                port = int(fields[1].rsplit(':', 1)[1], 16)
+            except (IndexError, ValueError):
+                continue
+            d = (port - PORT_BASE) // PORTS_PER_DOMAIN
+            if port >= PORT_BASE and d <= DOMAIN_MAX:
+                used.add(d)
+    return used
+
+
+def _reserve(domain: int) -> bool:
+    """Bind the last UDP port of `domain`'s block for the life of the process (False: already bound)."""
+    s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    try:
+        s.bind(('0.0.0.0', PORT_BASE + PORTS_PER_DOMAIN * domain + _RESERVE_OFFSET))
+    except OSError:
+        s.close()
+        return False
+    _held.append(s)
+    return True
+
+
+def reserve_test_domain(domains: Sequence[int] = TEST_DOMAINS) -> int:
+    """A domain id for a test session: one of `domains` with no UDP port of its block bound on this
+    machine's network, reserved by binding its last port until the process ends (the session's nodes
+    and child processes join it through ROS_DOMAIN_ID). ConfigError when every one is in use."""
+    busy = domains_in_use()
+    order = list(domains)
+    random.shuffle(order)
+    for d in order:
+        if d not in busy and _reserve(d):
+            return d
+    raise ConfigError(f'every domain id {min(order)}..{max(order)} has a DDS participant on this machine: set '
+                      'ROS_DOMAIN_ID to one of your own for the tests')
+
+
 def own_domain(avoid: int | None = None) -> int:
-    """A domain id in 215..232 that no other photogram_ros process on this machine holds (and not
-    `avoid`, the user's own); it is held until the process ends. ConfigError when all are taken."""
+    """A domain id in 215..232 that no other photogram_ros process on this machine holds, with no UDP port
+    of its block bound by anyone on this machine's network (`domains_in_use`), and not `avoid`, the
+    user's own; it is held until the process ends. ConfigError when all are taken."""
+    busy = domains_in_use()
     start = os.getpid() % len(OWN_DOMAINS)
     for k in range(len(OWN_DOMAINS)):
         d = OWN_DOMAINS[(start + k) % len(OWN_DOMAINS)]
-        if d != avoid and _try_take(d):
+        if d != avoid and d not in busy and _try_take(d):
             return d
-    raise ConfigError(f'every domain id {OWN_DOMAINS.start}..{DOMAIN_MAX} is held by another replay on this '
-                      'machine: wait for one to end, or share a domain with --domain N')
+    raise ConfigError(f'every domain id {OWN_DOMAINS.start}..{DOMAIN_MAX} is held by another replay or has a DDS '
+                      'participant on this machine: wait for one to end, or share a domain with --domain N')
 
 
 def shared_domain(domain: int) -> int:
