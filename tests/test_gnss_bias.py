@@ -3,8 +3,13 @@ estimated to the centimetre, against the true mean error of the flight's fixes."
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 
+from photogram_ros.core.block_check import check_block, inputs_from_at
+from photogram_ros.core.incremental import IncrementalAT, IncrementalOptions
+from photogram_ros.sim.observations import simulate_keyframes
 from test_incremental import _rmse_hv, _run, world  # noqa: F401  (a fixture)
 
 
@@ -20,6 +25,29 @@ def test_rtk_bias_of_a_few_centimetres_is_estimated_with_five_gcps(world):  # no
           f'{np.round(at.gnss_bias_enu * 100, 1)} cm ({off * 100:.2f} cm apart); check RMSE h {h * 100:.2f} cm, '
           f'v {v * 100:.2f} cm')
     assert at.gnss_bias_estimated
+    settle = at.gnss_bias_rounds
+    print(f'bias estimate: {settle}')
+    assert settle['settled'] and settle['last_step_m'] < 0.001 and 2 <= settle['rounds'] <= 10
+    v_check = check_block(inputs_from_at(at, adjustment={'status': 'converged'}))
+    assert v_check.figures['gnss_bias']['settled'] and not any(f.check == 'gnss_bias' for f in v_check.findings)
     assert abs(true_bias[2]) > 0.03                        # this flight's fixes are 4 cm low: a bias to find
     assert off <= 1.5 * 0.0193                             # measured 1.93 cm (3.93 cm with the bias left at 0.2 cm)
     assert v <= 1.5 * 0.0117                               # measured 1.17 cm (3.75 cm with the bias left at 0.2 cm)
+
+
+def test_a_bias_estimate_that_did_not_settle_is_a_warning(world):  # noqa: F811
+    """One adjustment of the bias (its first step, which measures how much of the bias the GCPs hold, is
+    never its last): the block check says the bias did not settle, with the step it was still taking."""
+    cfg, w = world
+    sk = simulate_keyframes(dataclasses.replace(cfg, seed=7), gnss_mode='rtk_fixed', world=w)
+    at = IncrementalAT(sk.camera, IncrementalOptions(lever_arm_cam_m=tuple(sk.lever_arm_cam_m), bias_iterations=1),
+                       origin=sk.origin, control=sk.control)
+    for r in sk.records:
+        at.add_keyframe(r)
+    rep = at.full_adjustment()
+    v = check_block(inputs_from_at(at, adjustment={'status': rep.status}))
+    found = [f for f in v.findings if f.check == 'gnss_bias']
+    assert at.gnss_bias_rounds['rounds'] == 1 and not at.gnss_bias_rounds['settled']
+    assert at.gnss_bias_rounds['last_step_m'] >= 0.005 * np.sqrt(3)     # at least 5 mm on each axis
+    assert v.status in ('warning', 'failed') and len(found) == 1 and found[0].status == 'warning'
+    assert 'did not settle in 1 adjustments' in found[0].text and 'cm' in found[0].text, found[0].text

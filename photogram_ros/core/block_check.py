@@ -25,6 +25,9 @@ The checks, each against what the data itself says:
 - check_points: check points that disagree with the block far beyond the noise of its datum (its GNSS,
   at least 2 cm): the block or the control is wrong.
 - convergence: a final adjustment that stopped short and still moves cameras: warning.
+- gnss_bias: the GNSS bias the final adjustment estimated against >= 3 GCPs did not settle (its last step
+  still 1 mm or more after its rounds): the block's place between its GCPs and its fixes is uncertain by about
+  that step: warning.
 - dome: the cameras' heights against their geotag heights, a quadratic surface over the block
   (core/self_calibration.py `height_bowl`): its rise at the block's radius against the geotags' own scatter
   about it. A level flight's altitudes (a barometer: centimetres from photo to photo) cannot dome, so a
@@ -124,6 +127,8 @@ class BlockInputs:
     excluded: dict = field(default_factory=dict)    # photo name -> why it was left out of the block
     check_rmse_hv_m: tuple | None = None            # check points: (RMSE horizontal m, vertical m, count)
     self_calibration: dict = field(default_factory=dict)  # the stepwise self-calibration's selection (to_dict())
+    gnss_bias: dict = field(default_factory=dict)   # the estimated GNSS bias: {'bias_enu_m', 'settled', 'rounds',
+                                                    # 'last_step_m'}; empty when it was not estimated
 
 
 def inputs_from_at(at, n_photos: int | None = None, adjustment: dict | None = None,
@@ -154,9 +159,10 @@ def inputs_from_at(at, n_photos: int | None = None, adjustment: dict | None = No
             if len(P):
                 gz[i] = float(np.median(P[:, 2]))
     sel = getattr(at, 'self_calibration', None)
+    bias = {'bias_enu_m': [float(v) for v in at.gnss_bias_enu], **at.gnss_bias_rounds} if at.gnss_bias_rounds else {}
     return BlockInputs([kf.name for kf in kfs], T, fix, sig, gz, dict(at.gnss_noise), adjustment or {},
                        expect_nadir, n_photos if n_photos is not None else n, dict(excluded or {}),
-                       self_calibration=sel.to_dict() if sel is not None else {})
+                       self_calibration=sel.to_dict() if sel is not None else {}, gnss_bias=bias)
 
 
 def _length(m: float) -> str:
@@ -327,6 +333,15 @@ def check_block(b: BlockInputs, o: BlockCheckOptions | None = None) -> BlockVerd
     elif adj.get('matters'):
         findings.append(Finding('convergence', 'warning', adj.get('text') or 'the final adjustment did not converge '
                                 'and would still move cameras'))
+    # The GNSS bias against the GCPs.
+    if b.gnss_bias:
+        figures['gnss_bias'] = dict(b.gnss_bias)
+        if not b.gnss_bias.get('settled', True):
+            step = b.gnss_bias.get('last_step_m', float('nan'))
+            findings.append(Finding('gnss_bias', 'warning', f'the GNSS bias against the GCPs did not settle in '
+                                    f'{b.gnss_bias.get("rounds", 0)} adjustments (its last step '
+                                    f'{_length(step) if np.isfinite(step) else "unknown"}): the block sits between its '
+                                    'GCPs and its fixes to about that'))
     # Check points: surveyed truth the block did not use. Far beyond the noise the block's datum carries
     # (its GNSS, at least 2 cm), the block or the control is wrong.
     if b.check_rmse_hv_m is not None:

@@ -392,6 +392,8 @@ class IncrementalAT:
         # and tilt trade off over flat ground). With GCPs the bias is observable: estimated here.
         self.gnss_bias_enu = np.zeros(3)
         self.gnss_bias_estimated = False       # a full adjustment with >= 3 GCPs estimated it
+        # How that estimate ended: {'settled': its last step under 1 mm, 'rounds': adjustments, 'last_step_m'}.
+        self.gnss_bias_rounds: dict = {}
         # The GNSS noise as the data shows it: factors (horizontal, vertical) on the fixes' stated sigmas
         # (never below 1), and the keyframes whose fix is not used (far beyond that noise).
         self.gnss_sigma_scale_hv = np.ones(2)
@@ -1624,9 +1626,11 @@ class IncrementalAT:
         if gnss_noise and self.opt.estimate_gnss_noise and self.georeferenced and not self.georef_provisional:
             self.estimate_gnss_noise(iterations, refine_intrinsics)
         self._full_adjusted_n = len(self.registered)
-        if gnss_bias and self.opt.estimate_gnss_bias and self._n_gcps() >= 3:
+        if gnss_bias and self.opt.estimate_gnss_bias and self._n_gcps() >= 3 and self.opt.bias_iterations:
             self.gnss_bias_estimated = True
             before = None   # (bias, residual mean) of the previous round
+            step = np.full(3, np.nan)
+            settled, rounds = False, 0
             for i in range(self.opt.bias_iterations):
                 r = np.array(list(self.gnss_residuals().values()))
                 if not len(r):
@@ -1648,8 +1652,11 @@ class IncrementalAT:
                 before = (self.gnss_bias_enu.copy(), mean)
                 self.gnss_bias_enu -= step
                 rep = self._solve(list(self.registered), [], list(self.points), iterations or self.opt.full_iterations)
+                rounds = i + 1
                 if i and np.linalg.norm(step) < 0.001:
+                    settled = True
                     break
+            self.gnss_bias_rounds = {'settled': settled, 'rounds': rounds, 'last_step_m': float(np.linalg.norm(step))}
         if self.opt.spill_frozen:
             self.freeze()   # the adjustment read every keyframe back: spill the frozen ones again
         return rep
