@@ -51,3 +51,21 @@ def test_a_bias_estimate_that_did_not_settle_is_a_warning(world):  # noqa: F811
     assert at.gnss_bias_rounds['last_step_m'] >= 0.005 * np.sqrt(3)     # at least 5 mm on each axis
     assert v.status in ('warning', 'failed') and len(found) == 1 and found[0].status == 'warning'
     assert 'did not settle in 1 adjustments' in found[0].text and 'cm' in found[0].text, found[0].text
+
+
+def test_gcps_without_any_fix_have_no_bias_to_settle(world):  # noqa: F811
+    """Photos without geotags, 5 GCPs: there is no GNSS bias to estimate, and the block check says nothing of
+    one. (GCPs alone do not georeference a block: it stays in its relative frame, and the check fails it
+    as not looking at the ground below it rather than passing it.)"""
+    cfg, w = world
+    sk = simulate_keyframes(dataclasses.replace(cfg, seed=7), gnss_mode='rtk_fixed', world=w)
+    at = IncrementalAT(sk.camera, IncrementalOptions(lever_arm_cam_m=tuple(sk.lever_arm_cam_m)),
+                       origin=sk.origin, control=sk.control)
+    for r in sk.records:
+        at.add_keyframe(dataclasses.replace(r, fix=None))
+    rep = at.full_adjustment()
+    v = check_block(inputs_from_at(at, adjustment={'status': rep.status}))
+    assert len(at.registered) == len(sk.records)
+    assert at.gnss_bias_rounds == {} and 'gnss_bias' not in v.figures
+    assert not any(f.check == 'gnss_bias' for f in v.findings)
+    assert not at.georeferenced and v.status == 'failed'

@@ -1656,7 +1656,9 @@ class IncrementalAT:
                 if i and np.linalg.norm(step) < 0.001:
                     settled = True
                     break
-            self.gnss_bias_rounds = {'settled': settled, 'rounds': rounds, 'last_step_m': float(np.linalg.norm(step))}
+            # No residual at all: no camera has a fix, there is no bias to settle.
+            self.gnss_bias_rounds = {'settled': settled, 'rounds': rounds,
+                                     'last_step_m': float(np.linalg.norm(step))} if rounds else {}
         if self.opt.spill_frozen:
             self.freeze()   # the adjustment read every keyframe back: spill the frozen ones again
         return rep
