@@ -7,7 +7,6 @@ import os
 import socket
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import pytest
@@ -77,16 +76,20 @@ def test_replays_skip_a_domain_another_container_is_on():
     """A replay's own domain: every one of 215..232 but one has a port bound (as a ROS 2 system in
     another container on this network would): the replay takes the one left, though no lock file says
     the others are held."""
-    left = max(d for d in ros_domain.OWN_DOMAINS if d not in ros_domain.domains_in_use())
+    code = 'from photogram_ros.nodes.ros_domain import own_domain; print(own_domain())'
+
+    def replay_domain():
+        return subprocess.run([sys.executable, '-c', code], cwd=ROOT, capture_output=True, text=True, timeout=60,
+                              env={**os.environ, 'PYTHONPATH': str(ROOT)})
+
+    first = replay_domain()                 # free of locks and ports; freed again as its process ended
+    left = int(first.stdout)
     held = [_bind(_block(d)[10]) for d in ros_domain.OWN_DOMAINS
             if d != left and d not in ros_domain.domains_in_use()]
-    code = ('from photogram_ros.nodes.ros_domain import own_domain; print(own_domain())')
     try:
-        res = subprocess.run([sys.executable, '-c', code], cwd=ROOT, capture_output=True, text=True, timeout=60,
-                             env={**os.environ, 'PYTHONPATH': str(ROOT)})
-        assert res.stdout.strip() == str(left), res.stderr
+        second = replay_domain()
+        assert second.stdout.strip() == str(left), second.stderr
         held.append(_bind(_block(left)[10]))
-        time.sleep(0.05)
         with pytest.raises(ConfigError, match='DDS participant'):
             ros_domain.own_domain()
     finally:
