@@ -336,12 +336,11 @@ def check_block(b: BlockInputs, o: BlockCheckOptions | None = None) -> BlockVerd
     # The GNSS bias against the GCPs.
     if b.gnss_bias:
         figures['gnss_bias'] = dict(b.gnss_bias)
-        if not b.gnss_bias.get('settled', True):
-            step = b.gnss_bias.get('last_step_m', float('nan'))
+        if not b.gnss_bias['settled']:
             findings.append(Finding('gnss_bias', 'warning', f'the GNSS bias against the GCPs did not settle in '
-                                    f'{b.gnss_bias.get("rounds", 0)} adjustments (its last step '
-                                    f'{_length(step) if np.isfinite(step) else "unknown"}): the block sits between its '
-                                    'GCPs and its fixes to about that'))
+                                    f'{b.gnss_bias["rounds"]} adjustments (its last step '
+                                    f'{_length(b.gnss_bias["last_step_m"])}): the block sits between its GCPs and '
+                                    'its fixes to about that'))
     # Check points: surveyed truth the block did not use. Far beyond the noise the block's datum carries
     # (its GNSS, at least 2 cm), the block or the control is wrong.
     if b.check_rmse_hv_m is not None:

@@ -1629,7 +1629,6 @@ class IncrementalAT:
         if gnss_bias and self.opt.estimate_gnss_bias and self._n_gcps() >= 3 and self.opt.bias_iterations:
             self.gnss_bias_estimated = True
             before = None   # (bias, residual mean) of the previous round
-            step = np.full(3, np.nan)
             settled, rounds = False, 0
             for i in range(self.opt.bias_iterations):
                 r = np.array(list(self.gnss_residuals().values()))
