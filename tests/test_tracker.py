@@ -185,9 +185,12 @@ def test_keyframe_gets_interpolated_fix(survey_line):
         assert abs(kf.fix.lat_deg - (47.0 + w * 1e-6)) < 1e-12 and abs(kf.fix.h_m - (500 + w)) < 1e-9
 
 
-def _fed_with_lagging_fixes(frames, speed: float, stop_s: float | None = None, params=None):
+def _fed_with_lagging_fixes(frames, speed: float, stop_s: float | None = None, params=None,
+                            replay_rate: float | None = None):
     """Frames with the fixes (5 Hz from the first frame on) handed to the tracker at `speed` times real time,
-    as a GNSS stream decoded late under load falls behind; none after `stop_s` (an outage)."""
+    as a GNSS stream decoded late under load falls behind; none after `stop_s` (an outage). With
+    `replay_rate` the frames come at that many times real time and the tracker is given that clock (a
+    node's receive clock in a fast replay); without, it waits on the frame stamps."""
     t0 = frames.frames[0][0]
     stamps = [t0 + k * 200_000_000 for k in range(0, 70)]
     fixes = [GnssFix(47.0 + k * 1e-6, 8.0, 500.0, np.eye(3) * 0.01, s, 2) for k, s in enumerate(stamps)
@@ -197,7 +200,8 @@ def _fed_with_lagging_fixes(frames, speed: float, stop_s: float | None = None, p
         while given < len(fixes) and t0 + (fixes[given].stamp_ns - t0) / speed <= stamp:
             tr.add_fix(fixes[given])
             given += 1
-        kfs += tr.process(img, stamp)
+        clock = None if replay_rate is None else t0 + int((stamp - t0) / replay_rate)
+        kfs += tr.process(img, stamp, clock_ns=clock)
     return kfs
 
 
@@ -211,6 +215,24 @@ def test_keyframes_wait_for_a_lagging_fix_stream(survey_line):
     # Bounded: a lag beyond fix_lag_max_s releases them without.
     kfs = _fed_with_lagging_fixes(survey_line, speed=0.6, params=TrackerParams(fix_lag_max_s=2.0))
     assert any(kf.fix is None for kf in kfs)
+
+
+def test_fix_waits_are_measured_on_the_clock_the_tracker_is_given(survey_line):
+    # A replay at 4x real time whose fixes are delivered at 0.6x the frames' pace: 4.8 s of stream behind
+    # at the end, 1.2 s of the node's clock. Waits on the frame stamps give up (fix_lag_max_s 2 s); waits
+    # on the clock keep every keyframe's fix.
+    slow = TrackerParams(fix_lag_max_s=2.0)
+    kfs = _fed_with_lagging_fixes(survey_line, speed=0.6, params=slow)
+    assert any(kf.fix is None for kf in kfs)
+    kfs = _fed_with_lagging_fixes(survey_line, speed=0.6, params=slow, replay_rate=4.0)
+    assert len(kfs) >= 4 and all(kf.fix is not None and kf.fix.stamp_ns == kf.stamp_ns for kf in kfs), \
+        [(kf.index, kf.fix is not None) for kf in kfs]
+    # An outage is still one on that clock: after fix_wait_s of it without a new fix, keyframes go on
+    # without (in the stream, not held to its end).
+    kfs = _fed_with_lagging_fixes(survey_line, speed=1.0, stop_s=2.0, params=TrackerParams(fix_wait_s=0.5),
+                                  replay_rate=2.0)
+    late = [kf for kf in kfs if kf.stamp_ns > survey_line.frames[0][0] + 2.2e9]
+    assert late and all(kf.fix is None for kf in late)
 
 
 def test_keyframes_do_not_wait_through_a_gnss_outage(survey_line):

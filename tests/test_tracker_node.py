@@ -251,6 +251,71 @@ def test_flush_takes_the_fixes_that_came_after_the_last_frame(rclpy_context, tmp
     feeder.destroy_node()
 
 
+def test_flush_waits_for_the_fixes_of_every_keyframe_still_waiting(rclpy_context, tmp_path):
+    """At the end of a replay the fix stream trails the keyframes by several of them (an executor that
+    delivers fixes late under load): flush() waits while it trails the newest keyframe still waiting and
+    keeps coming, so every keyframe gets its fix, not only the oldest."""
+    import threading
+
+    from rclpy.node import Node
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+    from sensor_msgs.msg import Image, NavSatFix
+
+    from photogram_ros import msgs
+    from photogram_ros.core.camera import save_opencv_yaml
+    from photogram_ros.core.gnss_fix import GnssFix
+    from photogram_ros.nodes.tracker_node import TrackerNode
+    from test_tracker import SimFrames
+    sim = SimFrames(6.0)
+    save_opencv_yaml(sim.camera, tmp_path / 'cam.yaml')
+    tracker = TrackerNode(overrides={'calibration_file': str(tmp_path / 'cam.yaml'), 'reliable_input': True,
+                                     'queue_size': 100, 'input_depth': 100, 'detect_targets': False,
+                                     'fix_wait_s': 10.0},
+                          context=rclpy_context)
+    listener = Listener(rclpy_context)
+    feeder = Node('feeder', context=rclpy_context)
+    qos = QoSProfile(depth=200, reliability=ReliabilityPolicy.RELIABLE)
+    pub_img = feeder.create_publisher(Image, 'camera/image_raw', qos)
+    pub_fix = feeder.create_publisher(NavSatFix, 'gps/fix', qos)
+    ex, _ = _spin([tracker, listener.node, feeder], rclpy_context)
+
+    def fix_at(stamp):
+        return msgs.navsatfix_from_gnss_fix(GnssFix(47.0 + stamp * 1e-18, 8.0, 500.0, np.eye(3) * 0.01, stamp))
+
+    stamps = [s for s, _, _ in sim.frames]
+    fix_stamps = list(range(stamps[0] - 10**8, stamps[-1] + 3 * 10**8, 2 * 10**8))   # 5 Hz
+    try:
+        deadline = time.monotonic() + 20
+        while time.monotonic() < deadline and pub_img.get_subscription_count() == 0:
+            time.sleep(0.05)
+        pub_fix.publish(fix_at(fix_stamps[0]))
+        for stamp, img, _ in sim.frames:
+            pub_img.publish(msgs.image_msg(img, stamp))
+        deadline = time.monotonic() + 30
+        while time.monotonic() < deadline and tracker.frames_done < len(stamps):
+            time.sleep(0.05)
+        flushing = threading.Thread(target=tracker.flush, kwargs={'timeout_s': 20.0})
+        flushing.start()
+        for stamp in fix_stamps[1:]:       # the rest trickles in while flush() waits
+            time.sleep(0.1)
+            pub_fix.publish(fix_at(stamp))
+        flushing.join(30.0)
+        deadline = time.monotonic() + 20
+        while time.monotonic() < deadline and (len(listener.features) < tracker.keyframes_published
+                                               or len(listener.fixes) < tracker.keyframes_published):
+            time.sleep(0.05)
+    finally:
+        ex.shutdown()
+    kf_stamps = [msgs.ns_from_time(m.header.stamp) for m in listener.features]
+    with_fix = {msgs.ns_from_time(m.header.stamp) for m in listener.fixes}
+    print(f'{len(kf_stamps)} keyframes, {len(with_fix)} with a fix, {tracker.diag.counts()}')
+    assert not flushing.is_alive()
+    assert len(kf_stamps) >= 3 and set(kf_stamps) == with_fix, (kf_stamps, sorted(with_fix))
+    tracker.destroy_node()
+    listener.node.destroy_node()
+    feeder.destroy_node()
+
+
 def test_flush_waits_for_the_queue_while_the_tracker_takes_frames(rclpy_context, tmp_path, monkeypatch):
     """On a loaded machine the tracker takes its queue slowly: the end of the flight waits for every
     queued frame while frames are being taken (no frame taken for `timeout_s` ends the wait), instead

@@ -114,13 +114,14 @@ class TrackerParams:
                                  min=0.0, max=1.0)
     gap_s: float = param(0.0, 'A frame interval above this is a gap, s (0: 2.5 x the usual interval)',
                          min=0.0, max=3600.0)
-    fix_wait_s: float = param(1.5, 'How long (stream time) a keyframe waits for a GPS fix after its stamp, s '
+    fix_wait_s: float = param(1.5, 'How long a keyframe waits for a GPS fix after it is made (on the clock '
+                                    'process() is given: the frame stamps, or a node\'s receive clock), s '
                                     '(more than the GPS period: 1 Hz receivers are common)',
                               min=0.0, max=10.0)
     fix_lag_max_s: float = param(20.0, 'While fixes keep arriving but lag behind the frames (a GNSS stream '
-                                       'decoded late under load), a keyframe waits up to this long (stream '
-                                       'time) for its fix; a fix stream that stops for fix_wait_s ends the '
-                                       'wait, s', min=0.0, max=120.0)
+                                       'delivered late under load), a keyframe waits up to this long (on the '
+                                       'same clock) for its fix; a fix stream that stops for fix_wait_s ends '
+                                       'the wait, s', min=0.0, max=120.0)
     fix_max_gap_s: float = param(2.5, 'No fix is interpolated across a GPS gap longer than this, s (2.5 GPS '
                                        'periods at 1 Hz: decoded fix stamps jitter)',
                                  min=0.01, max=60.0)
@@ -250,8 +251,9 @@ class Tracker:
         self._prev: _Frame | None = None
         self._kf: _KfState | None = None
         self._recent: list[_KfState] = []   # the last match_keyframes keyframes, oldest first
-        self._pending: list[Keyframe] = []
-        self._fix_seen = (None, None)   # (latest fix stamp, frame stamp when it first advanced to it)
+        self._pending: list[tuple[Keyframe, int]] = []   # (keyframe, clock when it was made, ns)
+        self._clock_ns = 0
+        self._fix_seen = (None, None)   # (latest fix stamp, clock when it first advanced to it)
         self._next_id = 0
         self._n_frames = 0
         self._velocity = np.zeros(2, np.float32)   # median image motion, px/s
@@ -291,12 +293,19 @@ class Tracker:
 
     # --- the frame pipeline ----------------------------------------------------------------------
 
-    def process(self, image: np.ndarray | EncodedImage, stamp_ns: int) -> list[Keyframe]:
+    def process(self, image: np.ndarray | EncodedImage, stamp_ns: int, clock_ns: int | None = None) \
+            -> list[Keyframe]:
         """Track one frame (an (H, W[, 3]) uint8 array, or an EncodedImage decoded here at the working size);
         returns the keyframes completed so far (usually none or one). CalibrationError when the frame's size
-        is not the camera's, DataError when an EncodedImage cannot be decoded."""
+        is not the camera's, DataError when an EncodedImage cannot be decoded.
+
+        `clock_ns` is the time the waits for GPS fixes (fix_wait_s, fix_lag_max_s) are measured on: the
+        frame's stamp when None (stream time: an offline run gives the same keyframes at any speed); a
+        node passes its monotonic clock, so fixes its executor delivers late under load are waited for in
+        real time, however fast the frames of a backlog or a replay go by."""
         import time
         t0 = time.perf_counter()
+        self._clock_ns = int(stamp_ns if clock_ns is None else clock_ns)
         try:
             return self._process(image, int(stamp_ns))
         finally:
@@ -323,7 +332,7 @@ class Tracker:
         if std < self.params.min_contrast_dn or mean > 250.0:
             self.stats.unusable += 1
             self._lost = True
-            return self._release(stamp_ns)
+            return self._release()
         if self._scale < 1.0 and not encoded:
             gray = cv2.resize(gray, (self._work_cam.width, self._work_cam.height), interpolation=cv2.INTER_AREA)
         g = self._normalise(gray, mean, std)
@@ -336,7 +345,7 @@ class Tracker:
             self._track(cur)
         self.stats.tracks_alive = len(cur.ids)
         self._prev = cur
-        return self._release(stamp_ns)
+        return self._release()
 
     def _reduced_grey(self, image: EncodedImage) -> np.ndarray:
         """A compressed frame decoded at the working size (CalibrationError when its size is not the camera's)."""
@@ -360,7 +369,7 @@ class Tracker:
 
     def flush(self) -> list[Keyframe]:
         """At the end of the stream: emit the keyframes still waiting for a GPS fix."""
-        out = [self._finish(k) for k in self._pending]
+        out = [self._finish(k) for k, _ in self._pending]
         self._pending = []
         return out
 
@@ -712,19 +721,20 @@ class Tracker:
         self._break_since_kf = self._bridged_since_kf = False
         self._kf = _KfState(frame, kf, {int(i): r for r, i in enumerate(all_ids)}, xn)
         self._recent = (self._recent + [self._kf])[-self.params.match_keyframes:]
-        self._pending.append(kf)
+        self._pending.append((kf, self._clock_ns))
 
     def _finish(self, kf: Keyframe) -> Keyframe:
         kf.fix = self.fixes.at(kf.stamp_ns)
         return kf
 
-    def _release(self, now_ns: int) -> list[Keyframe]:
+    def _release(self) -> list[Keyframe]:
         """Keyframes whose GPS fix is known (a fix after the stamp arrived) or waited for long enough.
 
-        A keyframe waits fix_wait_s of stream time for a later fix. While the fix stream still advances
-        (its latest stamp moved within the last fix_wait_s) but lags behind the frames, it waits on, up to
-        fix_lag_max_s: a late fix stream must not strip keyframes of their positions. No fix at all, or a
-        stream that stopped (an outage), ends the wait after fix_wait_s."""
+        A keyframe waits fix_wait_s (on process()'s clock) for a later fix. While the fix stream still
+        advances (its latest stamp moved within the last fix_wait_s) but lags behind the frames, it waits
+        on, up to fix_lag_max_s: a late fix stream must not strip keyframes of their positions. No fix at
+        all, or a stream that stopped (an outage), ends the wait after fix_wait_s."""
+        now_ns = self._clock_ns
         out = []
         latest = self.fixes.latest_ns()
         if latest is not None and latest != self._fix_seen[0]:
@@ -733,18 +743,19 @@ class Tracker:
         lag_ns = max(wait_ns, int(self.params.fix_lag_max_s * 1e9))
         advancing = latest is not None and now_ns - self._fix_seen[1] < wait_ns
         while self._pending:
-            kf = self._pending[0]
-            waited = now_ns - kf.stamp_ns
+            kf, made_ns = self._pending[0]
+            waited = now_ns - made_ns
             if (latest is not None and latest >= kf.stamp_ns) or waited >= lag_ns or \
                     (waited >= wait_ns and not advancing):
-                out.append(self._finish(self._pending.pop(0)))
+                out.append(self._finish(self._pending.pop(0)[0]))
             else:
                 break
         return out
 
-    def fix_lag_s(self) -> float:
-        """How far the newest fix is behind the oldest keyframe waiting for one, s (0: none waits)."""
+    def fix_lag_s(self, newest: bool = False) -> float:
+        """How far the newest fix is behind the oldest keyframe waiting for one (newest=True: the newest such
+        keyframe, which the end of a stream waits for), s; 0 when none waits."""
         latest = self.fixes.latest_ns()
         if not self._pending or latest is None:
             return 0.0
-        return max(0.0, (self._pending[0].stamp_ns - latest) * 1e-9)
+        return max(0.0, (self._pending[-1 if newest else 0][0].stamp_ns - latest) * 1e-9)

@@ -208,7 +208,7 @@ class TrackerNode(Node):
             t0 = time.perf_counter()
             image = self._frame_image(msg)
             t1 = time.perf_counter()
-            kfs = self.tracker.process(image, stamp_ns)
+            kfs = self.tracker.process(image, stamp_ns, clock_ns=time.monotonic_ns())
             dt = time.perf_counter() - t1
             self.diag.set('frame_from_msg_ms', (t1 - t0) * 1e3)   # a compressed frame decodes in process()
             self._last_frame_ms = (time.perf_counter() - t0) * 1e3
@@ -371,7 +371,7 @@ class TrackerNode(Node):
             time.sleep(0.02)
         deadline = time.monotonic() + timeout_s
         # Fixes after the last frame: the last keyframes need them. While the fix stream lags behind the
-        # keyframes still waiting and keeps coming, wait for it (until the deadline or 1 s of silence).
+        # newest keyframe still waiting and keeps coming, wait for it (until the deadline or 1 s of silence).
         last_fix = time.monotonic()
         while True:
             with self._cond:
@@ -380,7 +380,7 @@ class TrackerNode(Node):
             with self._track_lock:
                 for f in fixes:
                     self.tracker.add_fix(f)
-                lagging = self.tracker.fix_lag_s() > 0.0
+                lagging = self.tracker.fix_lag_s(newest=True) > 0.0
             now = time.monotonic()
             last_fix = now if fixes else last_fix
             if not lagging or now - last_fix > 1.0 or now > deadline:
