@@ -7,6 +7,9 @@ and returns a `BlockVerdict`: 'ok', 'warning' or 'failed', with one `Finding` pe
 ok, each naming its reason and the photos it concerns.
 
 The checks, each against what the data itself says:
+- georeference: a block that neither its GNSS (3 cameras with a fix, off a line) nor 3 GCPs placed in the
+  map frame sits in an arbitrary frame of its own: failed, and the checks that need the map's up and its
+  place (gnss_rigid, ground_below, nadir) are not judged.
 - gnss_fit: the cameras against their own GNSS through a robust similarity (the block's shape alone),
   residuals normalised by the GNSS noise (the estimated one where the adjustment estimated it). A block
   whose shape disagrees with its GNSS far beyond that noise is folded or tipped: failed. Cameras whose
@@ -129,6 +132,8 @@ class BlockInputs:
     self_calibration: dict = field(default_factory=dict)  # the stepwise self-calibration's selection (to_dict())
     gnss_bias: dict = field(default_factory=dict)   # the estimated GNSS bias: {'bias_enu_m', 'settled', 'rounds',
                                                     # 'last_step_m'}; empty when it was not estimated
+    georeferenced: bool | None = None               # the block was placed in the map frame (None: not known)
+    gcps_in_block: int = 0                          # GCPs with a point in the block (its datum besides the GNSS)
 
 
 def inputs_from_at(at, n_photos: int | None = None, adjustment: dict | None = None,
@@ -162,7 +167,8 @@ def inputs_from_at(at, n_photos: int | None = None, adjustment: dict | None = No
     bias = {'bias_enu_m': [float(v) for v in at.gnss_bias_enu], **at.gnss_bias_rounds} if at.gnss_bias_rounds else {}
     return BlockInputs([kf.name for kf in kfs], T, fix, sig, gz, dict(at.gnss_noise), adjustment or {},
                        expect_nadir, n_photos if n_photos is not None else n, dict(excluded or {}),
-                       self_calibration=sel.to_dict() if sel is not None else {}, gnss_bias=bias)
+                       self_calibration=sel.to_dict() if sel is not None else {}, gnss_bias=bias,
+                       georeferenced=bool(at.georeferenced), gcps_in_block=at.gcps_in_block())
 
 
 def _length(m: float) -> str:
@@ -182,6 +188,37 @@ def tilt_from_nadir_deg(map_T_cam: np.ndarray) -> np.ndarray:
     """(N,) angle (degrees) between each camera's optical axis and straight down (map up = +z)."""
     z = np.asarray(map_T_cam, float).reshape(-1, 4, 4)[:, :3, 2]
     return np.degrees(np.arccos(np.clip(-z[:, 2], -1.0, 1.0)))
+
+
+_NOT_PLACED = 'not judged: the block is not georeferenced (its frame is arbitrary)'
+
+
+def _georeference(b: BlockInputs, oriented: np.ndarray, findings: list, figures: dict) -> bool:
+    """Whether the block sits in the map frame; a finding when it does not."""
+    n_fix = int((oriented & np.all(np.isfinite(b.fix_enu_m), axis=1)).sum())
+    figures['georeference'] = {'georeferenced': b.georeferenced, 'cameras_with_fix': n_fix,
+                               'gcps_in_block': int(b.gcps_in_block)}
+    if b.georeferenced is not False:
+        return True
+    findings.append(Finding('georeference', 'failed', f'the block is not georeferenced: {n_fix} of '
+                            f'{int(oriented.sum())} oriented cameras have a GNSS fix and {b.gcps_in_block} GCPs are '
+                            'in it (3 cameras with a fix or 3 GCPs, not on a line, place it): its coordinates are '
+                            'in an arbitrary frame of its own, not the map\'s'))
+    return False
+
+
+def _nadir(b: BlockInputs, o: BlockCheckOptions, T: np.ndarray, oriented: np.ndarray, names: list, findings: list,
+           figures: dict) -> None:
+    tilt = tilt_from_nadir_deg(T[oriented])
+    near = tilt <= o.nadir_tilt_deg
+    figures['nadir'] = {'share_within_deg': float(near.mean()), 'deg': o.nadir_tilt_deg,
+                        'median_tilt_deg': float(np.median(tilt)), 'max_tilt_deg': float(np.max(tilt)),
+                        'expected': b.expect_nadir}
+    if b.expect_nadir and near.mean() < o.nadir_share_warn:
+        st = 'failed' if near.mean() < o.nadir_share_fail else 'warning'
+        findings.append(Finding('nadir', st, f'{100 * near.mean():.0f} % of the cameras look within '
+                                f'{o.nadir_tilt_deg:g} degrees of nadir (median tilt {np.median(tilt):.0f} degrees) '
+                                'on a flight that looked down', _names(np.asarray(names, object)[oriented], ~near, 50)))
 
 
 def _gnss_fit(b: BlockInputs, o: BlockCheckOptions, oriented: np.ndarray, findings: list, figures: dict) -> None:
@@ -284,10 +321,11 @@ def check_block(b: BlockInputs, o: BlockCheckOptions | None = None) -> BlockVerd
         findings.append(Finding('photos_not_used', 'warning', f'{len(b.excluded)} photos left out of the block '
                                 f'({"; ".join(why)}): {", ".join(list(b.excluded)[:8])}', list(b.excluded)[:50]))
     _gnss_fit(b, o, oriented, findings, figures)
+    placed = _georeference(b, oriented, findings, figures)
     # Rigid: the adjusted cameras against their fixes as they are.
     rejected = set(b.gnss_noise.get('rejected', []))
     has = oriented & np.all(np.isfinite(b.fix_enu_m), axis=1) & np.array([n not in rejected for n in names])
-    if has.any():
+    if has.any() and placed:
         r = T[has, :3, 3] - b.fix_enu_m[has]
         rh, rv = np.hypot(r[:, 0], r[:, 1]), np.abs(r[:, 2])
         figures['gnss_rigid'] = {'rms_h_m': float(np.sqrt(np.mean(rh ** 2))), 'rms_v_m': float(np.sqrt(np.mean(rv ** 2)))}
@@ -305,7 +343,7 @@ def check_block(b: BlockInputs, o: BlockCheckOptions | None = None) -> BlockVerd
     # The ground below the cameras.
     gz = np.asarray(b.ground_z_m, float).reshape(-1)
     seen = oriented & np.isfinite(gz)
-    if seen.any():
+    if seen.any() and placed:
         below = T[seen, 2, 3] > gz[seen]
         figures['ground_below'] = {'share': float(below.mean()), 'n': int(seen.sum()),
                                    'median_height_above_ground_m': float(np.median(T[seen, 2, 3] - gz[seen]))}
@@ -315,16 +353,11 @@ def check_block(b: BlockInputs, o: BlockCheckOptions | None = None) -> BlockVerd
                                     'cameras (their tie points are not below them): the block is tipped over',
                                     _names(np.asarray(names, object)[seen], ~below, 50)))
     # Nadir.
-    tilt = tilt_from_nadir_deg(T[oriented])
-    near = tilt <= o.nadir_tilt_deg
-    figures['nadir'] = {'share_within_deg': float(near.mean()), 'deg': o.nadir_tilt_deg,
-                        'median_tilt_deg': float(np.median(tilt)), 'max_tilt_deg': float(np.max(tilt)),
-                        'expected': b.expect_nadir}
-    if b.expect_nadir and near.mean() < o.nadir_share_warn:
-        st = 'failed' if near.mean() < o.nadir_share_fail else 'warning'
-        findings.append(Finding('nadir', st, f'{100 * near.mean():.0f} % of the cameras look within '
-                                f'{o.nadir_tilt_deg:g} degrees of nadir (median tilt {np.median(tilt):.0f} degrees) '
-                                'on a flight that looked down', _names(np.asarray(names, object)[oriented], ~near, 50)))
+    if placed:
+        _nadir(b, o, T, oriented, names, findings, figures)
+    else:
+        figures['nadir'] = {'note': _NOT_PLACED}
+        figures['ground_below'] = {'note': _NOT_PLACED}
     # Convergence.
     adj = b.adjustment or {}
     figures['adjustment'] = dict(adj)
@@ -357,7 +390,8 @@ def check_block(b: BlockInputs, o: BlockCheckOptions | None = None) -> BlockVerd
                                     f'the {n_chk} check points disagree with the block by {h:.2f} m H / {v:.2f} m V, '
                                     f'{ratio:.0f}x the noise of its datum ({noise[0]:.2f} m H, {noise[1]:.2f} m V): '
                                     'the block or the control file is wrong'))
-    _dome(b, o, oriented, findings, figures)
+    if placed:
+        _dome(b, o, oriented, findings, figures)
     # GNSS noise.
     g = b.gnss_noise
     rejected = list(g.get('rejected', []))

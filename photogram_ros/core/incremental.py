@@ -1057,6 +1057,8 @@ class IncrementalAT:
         `line_keyframes`: a straight line georeferences provisionally with this many keyframes with a fix
         (at least 3) spread over 10 sigmas of their GNSS; default: twice georef_min_keyframes over 5 m too."""
         ks = [k for k in self.registered if self.kfs[k].fix_enu is not None]
+        if len(ks) < 3 and not self.georeferenced:
+            return self._georeference_by_gcps()
         if len(ks) < (max(self.opt.georef_min_keyframes, 3) if line_keyframes is None else max(line_keyframes, 3)):
             return False
         src = np.array([self.kfs[k].map_T_cam[:3, 3] for k in ks])
@@ -1067,8 +1069,7 @@ class IncrementalAT:
         if force:
             # End of flight: GCPs (three or more) join the fit. On a straight line the GNSS leaves the roll
             # about it to noise, and the GCPs off the line fix it.
-            gcp = [(self.points[t], self.control[n].map_xyz) for n, t in self._target_ids.items()
-                   if t in self.points and not self.is_check(t)]
+            gcp = self._gcp_pairs()
             if len(gcp) >= 3:
                 src = np.vstack([src, [p for p, _ in gcp]])
                 dst = np.vstack([dst, [q for _, q in gcp]])
@@ -1112,6 +1113,38 @@ class IncrementalAT:
         far = np.linalg.norm(s.apply(src[:len(ks)]) - dst[:len(ks)], axis=1) > thr
         if far.sum() <= len(ks) // 4:
             self.gnss_rejected |= {k for k, f in zip(ks, far) if f}
+        self._apply_georeference(s, provisional)
+        return True
+
+    def gcps_in_block(self) -> int:
+        """How many GCPs have a point in the block (the datum it has besides its GNSS)."""
+        return len(self._gcp_pairs())
+
+    def _gcp_pairs(self) -> list[tuple[np.ndarray, np.ndarray]]:
+        """(triangulated point, surveyed map position) of every GCP with a point in the block (not check
+        points, not manual tie points)."""
+        return [(self.points[t], self.control[n].map_xyz) for n, t in self._target_ids.items()
+                if t in self.points and not self.is_check(t) and not self.is_tie(t)]
+
+    def _georeference_by_gcps(self) -> bool:
+        """A block whose cameras have fewer than 3 fixes (photos without geotags, a GNSS outage from the
+        start): 3 or more GCPs triangulated in it, not on a line, georeference it by the similarity of their
+        points onto their surveyed positions. Each must fit it within 5 cm + 2 % of the GCPs' extent (the
+        relative block's scale drift); False (not georeferenced) when they do not, or are too few."""
+        gcp = self._gcp_pairs()
+        if len(gcp) < 3:
+            return False
+        src = np.array([p for p, _ in gcp], float)
+        dst = np.array([q for _, q in gcp], float)
+        thr = 0.05 + 0.02 * 2 * spread(dst)[0]
+        res = similarity_ransac(src, dst, thr, self.rng, min_spread_ratio=self.opt.georef_min_spread_ratio)
+        if not res.ok or not res.inliers.all():
+            return False
+        self._apply_georeference(res.sim, provisional=False)
+        return True
+
+    def _apply_georeference(self, s, provisional: bool) -> None:
+        """Move the block by the similarity `s` into the map frame, then adjust it with its datum."""
         for k in self.registered:
             self.kfs[k].map_T_cam = s.apply_pose(self.kfs[k].map_T_cam)
         ids, P = self.points.arrays()
@@ -1123,7 +1156,6 @@ class IncrementalAT:
             self.full_adjustment(iterations=self.opt.full_iterations, rounds=1, gnss_noise=False)
         else:
             self._pass_adjustment()
-        return True
 
     # --- adjustment -----------------------------------------------------------------------------
 

@@ -118,9 +118,11 @@ def verdict_lines(rep: dict) -> list[str]:
     v = rep.get('verdict')
     if not v:
         return []
+    by_gcps = v.get('figures', {}).get('georeference', {}).get('cameras_with_fix', 3) < 3
     L = [f"**Verdict: {v['status'].upper()}**" + ('' if v['findings'] else
-                                                   ': the block agrees with its GNSS, looks at the ground below it '
-                                                   'and converged'), '']
+                                                   (': the block is placed by its GCPs' if by_gcps else
+                                                    ': the block agrees with its GNSS') +
+                                                   ', looks at the ground below it and converged'), '']
     for f in v['findings']:
         L.append(f"- {f['status'].upper()} ({f['check']}): {f['text']}")
     fig = v.get('figures', {})
@@ -128,9 +130,11 @@ def verdict_lines(rep: dict) -> list[str]:
     if 'rms_h_m' in g:
         L.append(f"- cameras against their GNSS after a similarity: {g['rms_h_m']:.2f} m H, {g['rms_v_m']:.2f} m V "
                  f"({g['normalised_rms']:.1f}x the GNSS noise of {g['noise_h_m']:.2f} m H / {g['noise_v_m']:.2f} m V)")
-    if n:
+    if 'share_within_deg' in n:
         L.append(f"- {100 * n['share_within_deg']:.0f} % of the cameras within {n['deg']:g} degrees of nadir "
                  f"(median tilt {n['median_tilt_deg']:.1f} degrees)")
+    elif 'note' in n:
+        L.append(f"- nadir: {n['note']}")
     return L + ['']
 
 
