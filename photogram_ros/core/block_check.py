@@ -90,6 +90,13 @@ class Finding:
         return {'check': self.check, 'status': self.status, 'text': self.text, 'photos': list(self.photos)}
 
 
+def ok_summary(figures: dict) -> str:
+    """What a block without findings was found to do, from its check's `figures`."""
+    by_gcps = figures.get('georeference', {}).get('cameras_with_fix', 3) < 3
+    return (f"the block {'is placed by its GCPs' if by_gcps else 'agrees with its GNSS'}, looks at the ground "
+            'below it and converged')
+
+
 @dataclass
 class BlockVerdict:
     status: str                                     # 'ok', 'warning', 'failed'
@@ -100,7 +107,7 @@ class BlockVerdict:
     def summary(self) -> str:
         """One line: the status and the worst reasons."""
         if not self.findings:
-            return 'OK: the block agrees with its GNSS, looks at the ground below it and converged'
+            return f'OK: {ok_summary(self.figures)}'
         return f'{self.status.upper()}: ' + '; '.join(f.text for f in self.findings[:3]) + \
             (f' (+{len(self.findings) - 3} more)' if len(self.findings) > 3 else '')
 

@@ -156,11 +156,19 @@ def triangulate(src: str | Path, out: str | Path, opt: TriangulateOptions, log=N
         from photogram_ros.io.dask_cluster import open_runner
         from photogram_ros.io.photo_block import read_photo_block
         steps.start('features and matching of the photos')
+        gcp_origin = None
+        if opt.gcp:
+            from photogram_ros.io.control_file import read_gcp_list
+            gcp_origin = read_gcp_list(opt.gcp, opt.check_names).central_origin()
         with open_runner(opt.workers, opt.scheduler, log) as runner:
             counted = CountedRunner(runner, say)
             block = read_photo_block(src, opt.camera, opt.neighbours, opt.exif_altitude, opt.takeoff_h_m,
-                                     opt.takeoff_heights, log, opt.matching, counted)
-            if opt.split is not None and len(block.records) > opt.split.split_photos:
+                                     opt.takeoff_heights, log, opt.matching, counted, gcp_origin)
+            with_fix = sum(r.fix is not None for r in block.records)
+            if opt.split is not None and len(block.records) > opt.split.split_photos and not with_fix:
+                block.assumptions.append('not split into sub-blocks: without positions the photos cannot be '
+                                         'grouped, the block is adjusted whole')
+            elif opt.split is not None and len(block.records) > opt.split.split_photos:
                 return split_merge_block(block, out, opt, counted, log, t0, steps)
     return adjust_block(block, out, opt, control_set, log, t0, steps=steps)
 
@@ -220,15 +228,18 @@ PRECISE_GEOTAG_SIGMA_H_M = 0.1   # geotags stated this good (RTK, PPK) hold the 
 def auto_self_calibration(block: KeyframeBlock, n_gcps: int, assumptions: list) -> tuple:
     """What `--self-calibrate auto` refines: nothing for a calibrated camera; for a camera from the EXIF
     (distortion unknown, taken as zero; principal point at the image centre) k1 and k2; f as well with 3 or
-    more GCPs (their heights fix the ground's depth; without them the focal of a near-nadir block trades off
-    with it); and the principal point (cx, cy) when the geotags are RTK/PPK-precise (median stated horizontal
+    more GCPs and cameras with a fix (the GCPs' heights fix the ground's depth below the cameras' own; without
+    either the focal of a near-nadir block trades off with its depth); and the principal point (cx, cy) when the geotags are RTK/PPK-precise (median stated horizontal
     sigma <= PRECISE_GEOTAG_SIGMA_H_M): with the cameras held where they were, a principal point off by
     d px moves the ground by height x d / f, the other way on each flight line flown the other way."""
     if not block.camera_from_exif:
         return ()
-    refine = ('f', 'k1', 'k2') if n_gcps >= 3 else ('k1', 'k2')
-    why = (f'f too: {n_gcps} GCPs give the ground\'s depth' if 'f' in refine else
-           'f held at its EXIF value: without 3 GCPs with heights a near-nadir block does not determine it')
+    with_fix = sum(r.fix is not None for r in block.records)
+    refine = ('f', 'k1', 'k2') if n_gcps >= 3 and with_fix >= 3 else ('k1', 'k2')
+    why = (f'f too: {n_gcps} GCPs give the ground\'s depth below the geotagged cameras' if 'f' in refine else
+           'f held at its EXIF value: without 3 GCPs with heights a near-nadir block does not determine it'
+           if with_fix >= 3 else 'f held at its EXIF value: without geotags the cameras\' heights trade off with it '
+           '(the GCPs fix the ground, not how far above it the cameras are)')
     sig_h = [float(np.sqrt(0.5 * (r.fix.cov_enu_m2[0][0] + r.fix.cov_enu_m2[1][1]))) for r in block.records
              if r.fix is not None]
     if sig_h and float(np.median(sig_h)) <= PRECISE_GEOTAG_SIGMA_H_M:

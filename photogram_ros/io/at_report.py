@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
+from photogram_ros.core.block_check import ok_summary
 from photogram_ros.io.report import (Section, format_cell, histogram_png, md_table, series_png, trajectory_png,
                                      vectors_png)
 from photogram_ros.io.report import write_report as write_sections
@@ -118,11 +119,7 @@ def verdict_lines(rep: dict) -> list[str]:
     v = rep.get('verdict')
     if not v:
         return []
-    by_gcps = v.get('figures', {}).get('georeference', {}).get('cameras_with_fix', 3) < 3
-    L = [f"**Verdict: {v['status'].upper()}**" + ('' if v['findings'] else
-                                                   (': the block is placed by its GCPs' if by_gcps else
-                                                    ': the block agrees with its GNSS') +
-                                                   ', looks at the ground below it and converged'), '']
+    L = [f"**Verdict: {v['status'].upper()}**" + ('' if v['findings'] else f": {ok_summary(v.get('figures', {}))}"), '']
     for f in v['findings']:
         L.append(f"- {f['status'].upper()} ({f['check']}): {f['text']}")
     fig = v.get('figures', {})

@@ -288,6 +288,14 @@ class GcpList:
         """{image name: {MTP name: (2,) distorted pixel}} (the first row of an MTP in a photo)."""
         return tie_uv(self.tie_rows)
 
+    def central_origin(self) -> LocalFrame | None:
+        """A local frame at the median latitude, longitude and height of the GCPs (of every point when none
+        is a GCP): the map's origin for photos without positions; None for a list without points."""
+        pts = [g for n, g in self.points.items() if self.roles[n] == 'gcp'] or list(self.points.values())
+        if not pts:
+            return None
+        return LocalFrame(*(float(v) for v in np.median(np.array(pts, float), axis=0)))
+
     def in_map(self, origin: LocalFrame, sigma_enu_m) -> list[ControlPoint]:
         """Control points in the ENU frame at `origin`, all with the sigmas E, N, U (m) given."""
         sigma = np.asarray(sigma_enu_m, float)

@@ -335,14 +335,16 @@ def _central_origin(positions: list) -> LocalFrame:
 def read_photo_block(src: str | Path, camera_path: str | Path | None = None, neighbours: int = 8,
                      exif_altitude: str | None = None, takeoff_h_m: float | None = None,
                      takeoff_heights: str = 'msl', log=None, matching: pm.MatchingOptions | None = None,
-                     runner=None) -> KeyframeBlock:
+                     runner=None, origin_without_positions: LocalFrame | None = None) -> KeyframeBlock:
     """The photos of the folder `src` as a KeyframeBlock, in file-name order.
 
     neighbours: photos matched with each photo first (replaces matching.neighbours); exif_altitude
     ('msl', 'ellipsoidal', 'relative' with takeoff_h_m in takeoff_heights, or None: msl, checked
     after the adjustment); log(text): progress lines and warnings; matching: feature and matching
     options (core.photo_matching.MatchingOptions); runner: where features and pair matching run
-    (io/dask_cluster.py; default: this process, in order). The block's `stats` holds MatchStats.to_dict().
+    (io/dask_cluster.py; default: this process, in order); origin_without_positions: the map frame's origin
+    when no photo has a position (a block the GCPs place; every pair is matched), which is refused
+    without it. The block's `stats` holds MatchStats.to_dict().
     """
     src = Path(src)
     if not src.is_dir():
@@ -353,16 +355,22 @@ def read_photo_block(src: str | Path, camera_path: str | Path | None = None, nei
     if len(images) < 3:
         raise DataError(f'{src} holds {len(images)} usable images: at least 3 overlapping photos are needed')
     geo, exif_check = _positions(src, images, exif_altitude, takeoff_h_m, takeoff_heights, assumptions)
-    if not any(p.name in geo for p in images):
-        raise DataError(f'no image in {src} has a position (EXIF GPS or geo.txt): georeferencing impossible')
+    if not any(p.name in geo for p in images) and origin_without_positions is None:
+        raise DataError(f'no image in {src} has a position (EXIF GPS or geo.txt): georeferencing impossible '
+                        '(give the photos\' positions in a geo.txt, or a GCP file with 3 GCPs or more: --gcp)')
     given = images
     camera, from_exif, images = _camera(src, images, camera_path, assumptions, log)
     excluded = {p.name: 'another camera (one camera model per block)' for p in given if p not in set(images)}
     placed = [geo[p.name] for p in images if p.name in geo]
-    if not placed:
+    if not placed and origin_without_positions is None:
         raise DataError(f'no photo of the camera used in {src} has a position (EXIF GPS or geo.txt): '
-                        'georeferencing impossible')
-    origin = _central_origin(placed)
+                        'georeferencing impossible (give a GCP file with 3 GCPs or more: --gcp)')
+    if placed:
+        origin = _central_origin(placed)
+    else:
+        origin = origin_without_positions
+        assumptions.append('no photo has a position (EXIF GPS or geo.txt): every pair of photos is matched, and '
+                           'the GCPs alone place the block (3 or more needed)')
     stats = MatchStats(photos=len(images))
     t0 = time.monotonic()
     runner = runner or InProcessRunner()
@@ -377,7 +385,7 @@ def read_photo_block(src: str | Path, camera_path: str | Path | None = None, nei
     stats.features = [len(uv) for uv in uvs]
     stats.features_s = time.monotonic() - t0
     pos = np.array([origin.geodetic_to_enu(*geo[p.name][:3]) if p.name in geo else [np.nan] * 3 for p in images])
-    sigma_h = float(np.median([geo[p.name][3] for p in images if p.name in geo]))
+    sigma_h = float(np.median([geo[p.name][3] for p in placed])) if placed else 0.0
     footprints = _footprints(images, pos, camera)
     if footprints is not None:
         assumptions.append('candidate pairs by footprint overlap (DJI XMP gimbal yaw and height above take-off)')
