@@ -1086,9 +1086,15 @@ def test_replay_is_not_heard_on_the_users_domain(tmp_path, rclpy_context, share)
         seen.discard('h28_listener')
         assert bool(seen) == share, seen
     finally:
-        proc.kill()
-        proc.wait()
+        # The listener goes first, then the replay ends as a user ends it (SIGTERM): a peer killed on this
+        # session's domain can leave DDS waiting on it when a node of this process is destroyed.
         node.destroy_node()
+        proc.terminate()
+        try:
+            proc.communicate(timeout=120)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.communicate()
 
 
 def test_a_second_publisher_of_a_graph_topic_is_a_warning(rclpy_context):
