@@ -196,44 +196,55 @@ def test_frames_faster_than_the_tracker_are_dropped_oldest_first(rclpy_context):
         tracker.destroy_node()
 
 
-def test_flush_takes_the_fixes_that_came_after_the_last_frame(rclpy_context, tmp_path):
-    """The last keyframe's fix arrives after its frame was tracked (a 1 Hz receiver): flush() at the end
-    of the flight hands the waiting fixes to the tracker first, so that keyframe gets its fix."""
+def _fix_at(stamp):
+    """A NavSatFix at `stamp` (ns) whose latitude carries the stamp."""
+    from photogram_ros import msgs
+    from photogram_ros.core.gnss_fix import GnssFix
+    return msgs.navsatfix_from_gnss_fix(GnssFix(47.0 + stamp * 1e-18, 8.0, 500.0, np.eye(3) * 0.01, stamp))
+
+
+def _fed_tracker(rclpy_context, tmp_path, sim_s: float, depth: int, **overrides):
+    """A tracker node on `sim_s` s of rendered frames (its calibration from a file, no targets), a Listener, and
+    a feeder node's reliable image and fix publishers of history `depth`, all spinning once the tracker
+    subscribes: (sim, tracker, listener, feeder, pub_img, pub_fix, executor)."""
     from rclpy.node import Node
     from rclpy.qos import QoSProfile, ReliabilityPolicy
     from sensor_msgs.msg import Image, NavSatFix
 
-    from photogram_ros import msgs
     from photogram_ros.core.camera import save_opencv_yaml
-    from photogram_ros.core.gnss_fix import GnssFix
     from photogram_ros.nodes.tracker_node import TrackerNode
     from test_tracker import SimFrames
-    sim = SimFrames(2.0)
+    sim = SimFrames(sim_s)
     save_opencv_yaml(sim.camera, tmp_path / 'cam.yaml')
     tracker = TrackerNode(overrides={'calibration_file': str(tmp_path / 'cam.yaml'), 'reliable_input': True,
-                                     'queue_size': 100, 'detect_targets': False}, context=rclpy_context)
+                                     'queue_size': 100, 'detect_targets': False, **overrides}, context=rclpy_context)
     listener = Listener(rclpy_context)
     feeder = Node('feeder', context=rclpy_context)
-    qos = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
+    qos = QoSProfile(depth=depth, reliability=ReliabilityPolicy.RELIABLE)
     pub_img = feeder.create_publisher(Image, 'camera/image_raw', qos)
     pub_fix = feeder.create_publisher(NavSatFix, 'gps/fix', qos)
     ex, _ = _spin([tracker, listener.node, feeder], rclpy_context)
+    deadline = time.monotonic() + 20
+    while time.monotonic() < deadline and pub_img.get_subscription_count() == 0:
+        time.sleep(0.05)
+    return sim, tracker, listener, feeder, pub_img, pub_fix, ex
 
-    def fix_at(stamp):
-        return msgs.navsatfix_from_gnss_fix(GnssFix(47.0 + stamp * 1e-18, 8.0, 500.0, np.eye(3) * 0.01, stamp))
 
+def test_flush_takes_the_fixes_that_came_after_the_last_frame(rclpy_context, tmp_path):
+    """The last keyframe's fix arrives after its frame was tracked (a 1 Hz receiver): flush() at the end
+    of the flight hands the waiting fixes to the tracker first, so that keyframe gets its fix."""
+    from photogram_ros import msgs
+    sim, tracker, listener, feeder, pub_img, pub_fix, ex = _fed_tracker(rclpy_context, tmp_path, 2.0,
+                                                                        depth=100)
     try:
-        deadline = time.monotonic() + 20
-        while time.monotonic() < deadline and pub_img.get_subscription_count() == 0:
-            time.sleep(0.05)
         stamps = [s for s, _, _ in sim.frames]
-        pub_fix.publish(fix_at(stamps[0] - 10**8))
+        pub_fix.publish(_fix_at(stamps[0] - 10**8))
         for stamp, img, _ in sim.frames:
             pub_img.publish(msgs.image_msg(img, stamp))
         deadline = time.monotonic() + 30
         while time.monotonic() < deadline and tracker.frames_done < len(stamps):
             time.sleep(0.05)
-        pub_fix.publish(fix_at(stamps[-1] + 10**8))     # after the last frame was tracked
+        pub_fix.publish(_fix_at(stamps[-1] + 10**8))     # after the last frame was tracked
         time.sleep(0.5)
         tracker.flush(timeout_s=10.0)
         deadline = time.monotonic() + 20
@@ -257,38 +268,13 @@ def test_flush_waits_for_the_fixes_of_every_keyframe_still_waiting(rclpy_context
     keeps coming, so every keyframe gets its fix, not only the oldest."""
     import threading
 
-    from rclpy.node import Node
-    from rclpy.qos import QoSProfile, ReliabilityPolicy
-    from sensor_msgs.msg import Image, NavSatFix
-
     from photogram_ros import msgs
-    from photogram_ros.core.camera import save_opencv_yaml
-    from photogram_ros.core.gnss_fix import GnssFix
-    from photogram_ros.nodes.tracker_node import TrackerNode
-    from test_tracker import SimFrames
-    sim = SimFrames(6.0)
-    save_opencv_yaml(sim.camera, tmp_path / 'cam.yaml')
-    tracker = TrackerNode(overrides={'calibration_file': str(tmp_path / 'cam.yaml'), 'reliable_input': True,
-                                     'queue_size': 100, 'input_depth': 100, 'detect_targets': False,
-                                     'fix_wait_s': 10.0},
-                          context=rclpy_context)
-    listener = Listener(rclpy_context)
-    feeder = Node('feeder', context=rclpy_context)
-    qos = QoSProfile(depth=200, reliability=ReliabilityPolicy.RELIABLE)
-    pub_img = feeder.create_publisher(Image, 'camera/image_raw', qos)
-    pub_fix = feeder.create_publisher(NavSatFix, 'gps/fix', qos)
-    ex, _ = _spin([tracker, listener.node, feeder], rclpy_context)
-
-    def fix_at(stamp):
-        return msgs.navsatfix_from_gnss_fix(GnssFix(47.0 + stamp * 1e-18, 8.0, 500.0, np.eye(3) * 0.01, stamp))
-
+    sim, tracker, listener, feeder, pub_img, pub_fix, ex = _fed_tracker(rclpy_context, tmp_path, 6.0, depth=200,
+                                                                        input_depth=100, fix_wait_s=10.0)
     stamps = [s for s, _, _ in sim.frames]
     fix_stamps = list(range(stamps[0] - 10**8, stamps[-1] + 3 * 10**8, 2 * 10**8))   # 5 Hz
     try:
-        deadline = time.monotonic() + 20
-        while time.monotonic() < deadline and pub_img.get_subscription_count() == 0:
-            time.sleep(0.05)
-        pub_fix.publish(fix_at(fix_stamps[0]))
+        pub_fix.publish(_fix_at(fix_stamps[0]))
         for stamp, img, _ in sim.frames:
             pub_img.publish(msgs.image_msg(img, stamp))
         deadline = time.monotonic() + 30
@@ -298,7 +284,7 @@ def test_flush_waits_for_the_fixes_of_every_keyframe_still_waiting(rclpy_context
         flushing.start()
         for stamp in fix_stamps[1:]:       # the rest trickles in while flush() waits
             time.sleep(0.1)
-            pub_fix.publish(fix_at(stamp))
+            pub_fix.publish(_fix_at(stamp))
         flushing.join(30.0)
         deadline = time.monotonic() + 20
         while time.monotonic() < deadline and (len(listener.features) < tracker.keyframes_published

@@ -87,7 +87,6 @@ MEASURED = dict(auto_rep_px=0.168, auto_h_m=0.014, auto_v_m=0.003, auto_centres_
 def _with_gps_altitude(jpeg: bytes, alt_m: float) -> bytes:
     """The JPEG with its EXIF GPSAltitude replaced, pixels untouched (the APP1 segment is swapped)."""
     import io
-    import struct
 
     from PIL import Image
     from PIL.TiffImagePlugin import IFDRational
@@ -96,6 +95,12 @@ def _with_gps_altitude(jpeg: bytes, alt_m: float) -> bytes:
     gps = exif.get_ifd(0x8825)
     gps[5] = 0 if alt_m >= 0 else 1                     # GPSAltitudeRef: 1 = below the reference
     gps[6] = IFDRational(int(round(abs(alt_m) * 1000)), 1000)
+    return with_exif(jpeg, exif)
+
+
+def with_exif(jpeg: bytes, exif) -> bytes:
+    """The JPEG with its EXIF APP1 segment replaced by `exif` (a PIL Exif), pixels untouched."""
+    import struct
     app1 = exif.tobytes()                                # starts with b'Exif\0\0'
     i = 2
     while jpeg[i:i + 2] != b'\xff\xe1' or jpeg[i + 4:i + 10] != b'Exif\x00\x00':

@@ -8,27 +8,22 @@ import csv
 import io
 import json
 import shutil
-import struct
 
 import numpy as np
 import pytest
 
 from photogram_ros.cli import main
 from photogram_ros.sim.scenario import preset, simulate
+from test_triangulate_command import with_exif
 
 
 def _without_gps(jpeg: bytes) -> bytes:
-    """The JPEG with the GPS IFD taken out of its EXIF, pixels untouched (the APP1 segment is swapped)."""
+    """The JPEG with the GPS IFD taken out of its EXIF, pixels untouched."""
     from PIL import Image
     with Image.open(io.BytesIO(jpeg)) as im:
         exif = im.getexif()
     del exif[0x8825]
-    app1 = exif.tobytes()
-    i = 2
-    while jpeg[i:i + 2] != b'\xff\xe1' or jpeg[i + 4:i + 10] != b'Exif\x00\x00':
-        i += 2 + struct.unpack('>H', jpeg[i + 2:i + 4])[0]
-    n = struct.unpack('>H', jpeg[i + 2:i + 4])[0]
-    return jpeg[:i] + b'\xff\xe1' + struct.pack('>H', len(app1) + 2) + app1 + jpeg[i + 2 + n:]
+    return with_exif(jpeg, exif)
 
 
 @pytest.fixture(scope='module')

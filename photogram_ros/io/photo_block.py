@@ -385,7 +385,7 @@ def read_photo_block(src: str | Path, camera_path: str | Path | None = None, nei
     stats.features = [len(uv) for uv in uvs]
     stats.features_s = time.monotonic() - t0
     pos = np.array([origin.geodetic_to_enu(*geo[p.name][:3]) if p.name in geo else [np.nan] * 3 for p in images])
-    sigma_h = float(np.median([geo[p.name][3] for p in placed])) if placed else 0.0
+    sigma_h = float(np.median([g[3] for g in placed])) if placed else 0.0
     footprints = _footprints(images, pos, camera)
     if footprints is not None:
         assumptions.append('candidate pairs by footprint overlap (DJI XMP gimbal yaw and height above take-off)')
