@@ -1,8 +1,10 @@
-"""photogram-ros triangulate: offline aerial triangulation of a flight bag or a folder of geotagged photos."""
+"""photogram-ros triangulate: offline aerial triangulation of a flight bag or a folder of photos (geotagged, or placed
+by their GCPs)."""
 
 from __future__ import annotations
 
-HELP = 'aerial triangulation of a flight bag or of geotagged photos (EXIF GPS or geo.txt), GCPs/check points; report'
+HELP = ('aerial triangulation of a flight bag or of photos (geotagged: EXIF GPS or geo.txt; without positions: placed '
+        'by their GCPs), GCPs/check points; report')
 
 
 def add_arguments(p) -> None:
