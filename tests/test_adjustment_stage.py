@@ -41,12 +41,14 @@ def _stage(sk, camera=None, out=None, **overrides):
     return stage
 
 
-def _fly(stage, records, marker_of: dict | None = None, status: int = STATUS_GBAS_FIX):
-    """Each record's fix, then its features and target rows; the stage adjusts what is ready after each."""
+def _fly(stage, records, marker_of: dict | None = None, status: int = STATUS_GBAS_FIX, fixes: bool = True):
+    """Each record's fix (unless `fixes` is False), then its features and target rows; the stage adjusts what is
+    ready after each."""
     for r in records:
         f = r.fix
-        stage.add_fix(r.stamp_ns, f.lat_deg, f.lon_deg, f.h_m, np.diag(np.diag(f.cov_enu_m2)), status,
-                      COV_DIAGONAL_KNOWN)
+        if fixes:
+            stage.add_fix(r.stamp_ns, f.lat_deg, f.lon_deg, f.h_m, np.diag(np.diag(f.cov_enu_m2)), status,
+                          COV_DIAGONAL_KNOWN)
         rows = np.zeros(len(r.target_uv), TARGET_DTYPE)
         for i, (name, uv) in enumerate(r.target_uv.items()):
             rows[i]['marker_id'], rows[i]['u'], rows[i]['v'] = (marker_of or {}).get(name, 999), uv[0], uv[1]
@@ -89,6 +91,25 @@ def test_gcp_with_a_placeholder_height_is_used_horizontally_only(flight_3d, tmp_
     assert use['GCP02']['use'] == 'not used' and abs(use['GCP02']['dx_m'] + 30.0) < 1.0
     assert all(use[n]['use'] == 'horizontal only' and use[n]['dz_m'] is None for n in ('GCP01', 'GCP03', 'GCP04'))
     assert abs(fig['check_points']['rmse']['horizontal_m'] - h) < 1e-4
+
+
+def test_a_flight_without_any_fix_is_placed_by_its_gcps_at_the_end(flight_3d, tmp_path):
+    """No fix in the whole flight, 5 GCPs in the control file: at the end the map's origin is the GCPs' centre
+    (a WARN says so), the GCPs are taken as given and place the block; the check points against the truth."""
+    sk, targets = flight_3d
+    control = targets_file(tmp_path / 'targets.txt', sk.origin, targets)
+    stage = _stage(sk, control_file=str(control), fix_wait_s=0.0)
+    outcome = _fly(stage, sk.records, {t.name: t.marker_id for t in targets}, fixes=False)
+    q = stage.quality()
+    warns = [t for lv, t in stage.diag.problems if lv == WARN]
+    h, v = q['check_rmse']['horizontal_m'], q['check_rmse']['vertical_m']
+    print(f'stage, no fix, 5 GCPs: {outcome.status}, check RMSE h {h * 100:.2f} cm v {v * 100:.2f} cm '
+          f'({h / sk.gsd_m:.2f} / {v / sk.gsd_m:.2f} GSD) over {q["check_rmse"]["count"]}')
+    assert outcome.status == 'done' and not outcome.failed and stage.at.georeferenced
+    assert any(t.startswith('no GNSS fix came in this flight') for t in warns)
+    assert q['check_rmse']['count'] == 4
+    assert h <= 1.5 * 0.0098 and v <= max(1.5 * 0.0053, 0.01)   # measured 0.98 / 0.53 cm (0.13 / 0.07 GSD)
+    assert len(stage.out.pose_by_stamp) == len(sk.records)
 
 
 def test_the_flight_after_every_track_was_lost_is_a_segment_joined_through_its_gnss(flight_rtk):

@@ -127,6 +127,15 @@ class ControlSet:
         return {f'{prefix}{m}': np.array([float(row['u']), float(row['v'])]) for row, m in zip(targets, ids.tolist())
                 if m not in self.by_marker and m not in twice}
 
+    def central_origin(self) -> LocalFrame | None:
+        """A local frame at the median latitude, longitude and height of the GCPs (of every target when none is
+        a GCP): the map's origin for a flight without GNSS; None without targets."""
+        pts = [(t.lat_deg, t.lon_deg, t.h_m) for t in self.targets if t.role == 'gcp'] or \
+            [(t.lat_deg, t.lon_deg, t.h_m) for t in self.targets]
+        if not pts:
+            return None
+        return LocalFrame(*(float(v) for v in np.median(np.array(pts, float), axis=0)))
+
     def in_map(self, origin: LocalFrame, sigma_h_m: float | None = None,
                sigma_v_m: float | None = None) -> list[ControlPoint]:
         """Control points in the ENU frame at `origin`; sigmas given here override the file's."""

@@ -1116,6 +1116,14 @@ class IncrementalAT:
         self._apply_georeference(s, provisional)
         return True
 
+    def set_origin(self, origin: LocalFrame) -> bool:
+        """The map frame's origin when no fix has set it (a flight without GNSS, placed by its GCPs): False,
+        and nothing changed, once one is set."""
+        if self.origin is not None:
+            return False
+        self.origin = origin
+        return True
+
     def gcps_in_block(self) -> int:
         """How many GCPs have a point in the block (the datum it has besides its GNSS)."""
         return len(self._gcp_pairs())

@@ -436,6 +436,17 @@ class AdjustmentStage:
         self.at.set_control(self.live.adjuster_control())
         self._control_in_map = True
 
+    def _origin_from_control(self) -> None:
+        """End of a flight in which no fix came: the map's origin at the control file's GCPs, so that they
+        can place the block (3 or more); said on /diagnostics."""
+        if self.control is None or self.at.origin is not None:
+            return
+        origin = self.control.central_origin()
+        if origin is not None and self.at.set_origin(origin):
+            self.diag.problem('no GNSS fix came in this flight: the map\'s origin is the centre of the control '
+                              'file\'s GCPs, and the GCPs alone place the block (3 or more needed)', WARN)
+            self._control_to_map()
+
     def _vet_control(self, final: bool = False) -> None:
         """Check the targets now due against the block (core/control_live.py); each fault is a WARN."""
         if self.live is None:
@@ -772,6 +783,7 @@ class AdjustmentStage:
                         self.diag.count('keyframes_oriented_at_end', n)
                 except Exception as exc:   # the full adjustment still runs
                     self.diag.problem(f'second chance of unoriented keyframes failed: {exc}')
+                self._origin_from_control()
                 self._vet_control(final=True)   # targets seen too seldom to be checked in flight
             return self.full_adjustment()
 
