@@ -109,7 +109,9 @@ def test_a_flight_without_any_fix_is_placed_by_its_gcps_at_the_end(flight_3d, tm
     assert any(t.startswith('no GNSS fix came in this flight') for t in warns)
     assert q['check_rmse']['count'] == 4
     assert h <= 1.5 * 0.0098 and v <= max(1.5 * 0.0053, 0.01)   # measured 0.98 / 0.53 cm (0.13 / 0.07 GSD)
-    assert len(stage.out.pose_by_stamp) == len(sk.records)
+    assert len(stage.out.pose_by_stamp) == len(sk.records) and len(stage.out.georeferences) == 1
+    assert abs(stage.out.georeferences[0][0] - np.median([t.lat_deg for t in stage.control.targets
+                                                           if t.role == 'gcp'])) < 1e-9
 
 
 def test_the_flight_after_every_track_was_lost_is_a_segment_joined_through_its_gnss(flight_rtk):
