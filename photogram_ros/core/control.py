@@ -55,6 +55,16 @@ class SurveyedTarget:
     sigma_v_m: float | None = None
 
 
+def control_origin(points: list) -> LocalFrame | None:
+    """A local frame at the median latitude, longitude and height of the GCPs among `points` ((lat_deg, lon_deg,
+    h_m, role) each; of every point when none is a GCP): the map's origin for a block without positions of its
+    own; None without points."""
+    pts = [p[:3] for p in points if p[3] == 'gcp'] or [p[:3] for p in points]
+    if not pts:
+        return None
+    return LocalFrame(*(float(v) for v in np.median(np.array(pts, float), axis=0)))
+
+
 class ControlSet:
     """The surveyed targets of one flight, looked up by marker id."""
 
@@ -128,13 +138,8 @@ class ControlSet:
                 if m not in self.by_marker and m not in twice}
 
     def central_origin(self) -> LocalFrame | None:
-        """A local frame at the median latitude, longitude and height of the GCPs (of every target when none is
-        a GCP): the map's origin for a flight without GNSS; None without targets."""
-        pts = [(t.lat_deg, t.lon_deg, t.h_m) for t in self.targets if t.role == 'gcp'] or \
-            [(t.lat_deg, t.lon_deg, t.h_m) for t in self.targets]
-        if not pts:
-            return None
-        return LocalFrame(*(float(v) for v in np.median(np.array(pts, float), axis=0)))
+        """The map's origin for a flight without GNSS: control_origin() of the targets."""
+        return control_origin([(t.lat_deg, t.lon_deg, t.h_m, t.role) for t in self.targets])
 
     def in_map(self, origin: LocalFrame, sigma_h_m: float | None = None,
                sigma_v_m: float | None = None) -> list[ControlPoint]:

@@ -1057,7 +1057,7 @@ class IncrementalAT:
         `line_keyframes`: a straight line georeferences provisionally with this many keyframes with a fix
         (at least 3) spread over 10 sigmas of their GNSS; default: twice georef_min_keyframes over 5 m too."""
         ks = [k for k in self.registered if self.kfs[k].fix_enu is not None]
-        if len(ks) < 3 and not self.georeferenced:
+        if not self.georeferenced and (not ks or (force and len(ks) < 3)):
             return self._georeference_by_gcps()
         if len(ks) < (max(self.opt.georef_min_keyframes, 3) if line_keyframes is None else max(line_keyframes, 3)):
             return False
@@ -1135,8 +1135,8 @@ class IncrementalAT:
                 if t in self.points and not self.is_check(t) and not self.is_tie(t)]
 
     def _georeference_by_gcps(self) -> bool:
-        """A block whose cameras have fewer than 3 fixes (photos without geotags, a GNSS outage from the
-        start): 3 or more GCPs triangulated in it, not on a line, georeference it by the similarity of their
+        """A block whose cameras have no fix (photos without geotags, a GNSS outage from the start), or fewer
+        than 3 at the end: 3 or more GCPs triangulated in it, not on a line, georeference it by the similarity of their
         points onto their surveyed positions. Each must fit it within 5 cm + 2 % of the GCPs' extent (the
         relative block's scale drift); False (not georeferenced) when they do not, or are too few."""
         gcp = self._gcp_pairs()

@@ -164,12 +164,11 @@ def triangulate(src: str | Path, out: str | Path, opt: TriangulateOptions, log=N
             counted = CountedRunner(runner, say)
             block = read_photo_block(src, opt.camera, opt.neighbours, opt.exif_altitude, opt.takeoff_h_m,
                                      opt.takeoff_heights, log, opt.matching, counted, gcp_origin)
-            with_fix = sum(r.fix is not None for r in block.records)
-            if opt.split is not None and len(block.records) > opt.split.split_photos and not with_fix:
+            if opt.split is not None and len(block.records) > opt.split.split_photos:
+                if any(r.fix is not None for r in block.records):
+                    return split_merge_block(block, out, opt, counted, log, t0, steps)
                 block.assumptions.append('not split into sub-blocks: without positions the photos cannot be '
                                          'grouped, the block is adjusted whole')
-            elif opt.split is not None and len(block.records) > opt.split.split_photos:
-                return split_merge_block(block, out, opt, counted, log, t0, steps)
     return adjust_block(block, out, opt, control_set, log, t0, steps=steps)
 
 
@@ -236,10 +235,13 @@ def auto_self_calibration(block: KeyframeBlock, n_gcps: int, assumptions: list) 
         return ()
     with_fix = sum(r.fix is not None for r in block.records)
     refine = ('f', 'k1', 'k2') if n_gcps >= 3 and with_fix >= 3 else ('k1', 'k2')
-    why = (f'f too: {n_gcps} GCPs give the ground\'s depth below the geotagged cameras' if 'f' in refine else
-           'f held at its EXIF value: without 3 GCPs with heights a near-nadir block does not determine it'
-           if with_fix >= 3 else 'f held at its EXIF value: without geotags the cameras\' heights trade off with it '
-           '(the GCPs fix the ground, not how far above it the cameras are)')
+    if 'f' in refine:
+        why = f'f too: {n_gcps} GCPs give the ground\'s depth below the geotagged cameras'
+    elif with_fix >= 3:
+        why = 'f held at its EXIF value: without 3 GCPs with heights a near-nadir block does not determine it'
+    else:
+        why = ('f held at its EXIF value: without geotags the cameras\' heights trade off with it (the GCPs fix '
+               'the ground, not how far above it the cameras are)')
     sig_h = [float(np.sqrt(0.5 * (r.fix.cov_enu_m2[0][0] + r.fix.cov_enu_m2[1][1]))) for r in block.records
              if r.fix is not None]
     if sig_h and float(np.median(sig_h)) <= PRECISE_GEOTAG_SIGMA_H_M:

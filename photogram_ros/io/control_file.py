@@ -43,7 +43,7 @@ from pathlib import Path
 import numpy as np
 
 from photogram_ros.core import geoid
-from photogram_ros.core.control import ControlRow, ControlSet, SurveyedTarget, is_check_name
+from photogram_ros.core.control import ControlRow, ControlSet, SurveyedTarget, control_origin, is_check_name
 from photogram_ros.core.geodesy import LocalFrame, crs_to_geodetic, geodetic_to_crs
 from photogram_ros.core.incremental import ControlPoint
 from photogram_ros.errors import DataError, GeodesyError
@@ -289,12 +289,8 @@ class GcpList:
         return tie_uv(self.tie_rows)
 
     def central_origin(self) -> LocalFrame | None:
-        """A local frame at the median latitude, longitude and height of the GCPs (of every point when none
-        is a GCP): the map's origin for photos without positions; None for a list without points."""
-        pts = [g for n, g in self.points.items() if self.roles[n] == 'gcp'] or list(self.points.values())
-        if not pts:
-            return None
-        return LocalFrame(*(float(v) for v in np.median(np.array(pts, float), axis=0)))
+        """The map's origin for photos without positions: control_origin() of the points."""
+        return control_origin([(*g, self.roles[n]) for n, g in self.points.items()])
 
     def in_map(self, origin: LocalFrame, sigma_enu_m) -> list[ControlPoint]:
         """Control points in the ENU frame at `origin`, all with the sigmas E, N, U (m) given."""
