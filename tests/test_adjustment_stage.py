@@ -106,6 +106,7 @@ def test_a_flight_without_any_fix_is_placed_by_its_gcps_at_the_end(flight_3d, tm
     print(f'stage, no fix, 5 GCPs: {outcome.status}, check RMSE h {h * 100:.2f} cm v {v * 100:.2f} cm '
           f'({h / sk.gsd_m:.2f} / {v / sk.gsd_m:.2f} GSD) over {q["check_rmse"]["count"]}')
     assert outcome.status == 'done' and not outcome.failed and stage.at.georeferenced
+    assert stage.diag.values['georeferenced'] == 'True'   # what the ground station shows
     assert any(t.startswith('no GNSS fix came in this flight') for t in warns)
     assert q['check_rmse']['count'] == 4
     assert h <= 1.5 * 0.0098 and v <= max(1.5 * 0.0053, 0.01)   # measured 0.98 / 0.53 cm (0.13 / 0.07 GSD)

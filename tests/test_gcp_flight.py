@@ -7,7 +7,7 @@ without them is off by the receiver's metres, which proves the GCPs are what doe
 - the whole graph on a rendered flight (slow: 60 s on a quiet machine, 110 s under load; a 27-frame
   flight rendered, then replayed with and without the GCPs): `photogram-ros replay BAG --gcp
   BAG/targets.txt`, the tracker detecting the markers, the flight report's check points against the
-  truth. In CI the pieces run apart: this node test, the tracker's detections on the sample bag
+  truth; and a flight whose receiver never got a fix, placed by its GCPs alone at the end. In CI the pieces run apart: this node test, the tracker's detections on the sample bag
   (test_tracker_node.py) and the report with a control file (test_e2e_replay.py).
 """
 
@@ -210,3 +210,38 @@ def test_replay_with_placeholder_heights_names_them_and_keeps_the_gnss_heights(b
     assert cp['rmse']['horizontal_m'] <= 1.5 * REPLAY_GSD[0] * gsd   # the GCPs still hold it horizontally
     assert cp['rmse']['z_m'] < 10.0                              # not bent 90 m down to the placeholders
     assert 'placeholder' in (tmp_path / 'ph' / 'report.md').read_text()
+
+
+@pytest.fixture(scope='module')
+def bag_no_fix(tmp_path_factory):
+    from photogram_ros.sim.scenario import preset, simulate
+    out = tmp_path_factory.mktemp('sim_nofix') / 'tiny_no_fix'
+    simulate(preset('tiny', gnss_mode='3d', n_gcp=5, n_check=4, fps=1.0, gnss_outages=[(-5.0, 1e6)]), out)
+    return out
+
+
+@pytest.mark.slow
+def test_replay_of_a_flight_without_any_fix_is_placed_by_its_gcps(bag_no_fix, tmp_path):
+    """The receiver never got a fix: the whole graph maps the flight in its own frame, the GCPs place it at the
+    end, and the report, the console and the products say so (check points against the truth)."""
+    import rasterio
+    from photogram_ros.sim.truth import GroundTruth
+    gsd = GroundTruth.load(bag_no_fix).gsd_m
+    rep, stdout = _replay(bag_no_fix, tmp_path / 'nofix', '--gcp', str(bag_no_fix / 'targets.txt'))
+    print(stdout)
+    cp, bundle = rep['check_points'], rep['nodes']['/bundle_node']['values']
+    h, v = cp['rmse']['horizontal_m'], cp['rmse']['z_m']
+    print(f'replay without any fix, 5 GCPs: check RMSE h {h * 100:.1f} cm ({h / gsd:.2f} GSD), v {v * 100:.1f} cm '
+          f'({v / gsd:.2f} GSD); cameras {rep["trajectory_vs_truth"]["rmse_m"] * 100:.1f} cm RMS from the truth; '
+          f'DSM {rep["dsm_completeness"] * 100:.1f} % of the hull')
+    assert rep['keyframes_without_fix'] == rep['keyframes_taken'] and rep['keyframes_oriented'] == rep['keyframes_taken']
+    assert sorted(p['name'] for p in cp['points']) == ['CHK01', 'CHK02', 'CHK03', 'CHK04']
+    assert h <= 1.5 * 0.018 and v <= 1.5 * 0.020             # measured 1.8 / 2.0 cm (0.24 / 0.26 GSD)
+    assert rep['trajectory_vs_truth']['rmse_m'] <= 1.5 * 0.046
+    assert bundle['verdict_summary'].startswith('OK: the block is placed by its GCPs')
+    assert bundle['georeferenced'] == 'True' and bundle['gcps_used'] == 5
+    assert 'no GNSS fix came in this flight' in stdout and 'no GNSS fix came in this flight' in \
+        (tmp_path / 'nofix' / 'report.md').read_text()
+    assert rep['dsm_completeness'] >= 0.98
+    with rasterio.open(tmp_path / 'nofix' / 'dsm.tif') as ds:
+        assert 'UTM zone 32N' in ds.crs.to_wkt()

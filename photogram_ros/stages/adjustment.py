@@ -530,11 +530,16 @@ class AdjustmentStage:
         d.set('gnss_residual_rms_m', float(rep.gnss_rms_m))
         d.set('window_size', rep.window_size)
         d.set('points', len(self.at.points))
-        d.set('georeferenced', 'provisional' if self.at.georef_provisional else str(self.at.georeferenced))
+        self._set_georeferenced()
         self._control_diagnostics()
         self._since_quality += 1
         if self._since_quality >= self.p.quality_every:
             self.publish_quality()
+
+    def _set_georeferenced(self) -> None:
+        """'georeferenced' on diagnostics (the ground station shows a drone's targets by it): True, False or
+        provisional."""
+        self.diag.set('georeferenced', 'provisional' if self.at.georef_provisional else str(self.at.georeferenced))
 
     # --- health -----------------------------------------------------------------------------------
 
@@ -806,6 +811,7 @@ class AdjustmentStage:
             self.diag.set('full_adjustment_s', time.perf_counter() - t0)
             self.diag.set('full_adjustment_rms_px', float(rep.reprojection_rms_px))
             self.diag.set('full_adjustment_status', rep.status)
+            self._set_georeferenced()   # the end of a flight without fixes places the block by its GCPs
             if self.at.self_calibration is not None:
                 self.diag.set('self_calibration', self.at.self_calibration.text())
             conv = convergence(self.at, rep.status)   # None when it converged
