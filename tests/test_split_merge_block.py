@@ -66,10 +66,17 @@ def block():
     return kb, cam, C, X, truth, partition(C, SplitMergeOptions(split_photos=SPLIT))
 
 
-def _adjust(block, tmp_path, failed=(), **sm):
+def _adjust(block, tmp_path, failed=(), selections=None, **sm):
+    """selections: each sub-block's self_calibration_selection in its report (the camera is then one from the
+    EXIF, whose intrinsics `auto` self-calibrates)."""
     kb, cam, C, X, truth, part = block
     opt = TriangulateOptions(split=SplitMergeOptions(split_photos=SPLIT, **sm))
     runs = _runs(cam, C, X, truth, kb.records, part, failed)
+    if selections is not None:
+        kb.camera_from_exif = True
+        for r, sel in zip(runs, selections):
+            if sel is not None:
+                r.report['self_calibration_selection'] = sel
     return split_merge_block(kb, tmp_path, opt, _StandIn(runs), None)
 
 
@@ -130,3 +137,44 @@ def test_a_failed_sub_block_is_named_after_the_global_adjustment(block, tmp_path
     assert any('sub-block 1 left out of the merge' in f['text'] for f in res.verdict['findings'])
     # The global adjustment ran on what the other sub-block oriented: its photos only.
     assert rep['split_merge']['global_adjustment']['seed']['oriented'] == len(part.members[0]) == res.registered
+
+
+def _stepwise(*kept):
+    return {'method': 'stepwise', 'candidates': ['k1', 'k2'], 'kept': list(kept)}
+
+
+def test_the_global_adjustment_refines_what_the_sub_blocks_chose(block, tmp_path, monkeypatch):
+    """Every sub-block selected its self-calibration stepwise: the global adjustment refines the distortion terms
+    one of them kept, from their mean camera, with no trials of its own."""
+    from photogram_ros.core.incremental import IncrementalAT
+
+    def no_trials(*a, **k):
+        raise AssertionError('the global adjustment ran a stepwise selection of its own')
+    monkeypatch.setattr(IncrementalAT, 'select_self_calibration', no_trials)
+    res = _adjust(block, tmp_path, selections=[_stepwise('k1'), _stepwise()])
+    g = res.report['split_merge']['global_adjustment']
+    assert g['refine_chosen_by'] == 'sub_blocks' and 'k1' in g['refine'] and 'k2' not in g['refine']
+    assert g['status'] == 'converged'
+    assert any('as the sub-blocks\' stepwise selections chose' in a and 'sub-block 0 kept k1' in a
+               and 'sub-block 1 kept none' in a for a in res.report['assumptions'])
+
+
+def test_without_every_sub_blocks_selection_the_global_adjustment_selects_its_own(block, tmp_path):
+    res = _adjust(block, tmp_path, selections=[_stepwise('k1'), None])
+    g = res.report['split_merge']['global_adjustment']
+    assert g['refine_chosen_by'] == 'stepwise'
+    assert res.report['self_calibration_selection']['method'] == 'stepwise'
+
+
+def test_sub_blocks_selection_keeps_the_base_terms_and_any_kept_distortion_term():
+    from types import SimpleNamespace
+    from photogram_ros.io.aerial_triangulation import sub_blocks_selection
+
+    def runs(*sels):
+        return [SimpleNamespace(report={} if s is None else {'self_calibration_selection': s}) for s in sels]
+    cands = ('f', 'k1', 'k2', 'cx', 'cy')
+    assert sub_blocks_selection(runs(_stepwise('f', 'k1'), _stepwise('f', 'k2')), cands) == cands
+    assert sub_blocks_selection(runs(_stepwise('f'), _stepwise('f', 'k2')), cands) == ('f', 'k2', 'cx', 'cy')
+    assert sub_blocks_selection(runs(_stepwise(), _stepwise()), ('k1', 'k2')) == ()
+    assert sub_blocks_selection(runs(_stepwise('k1'), None), cands) is None
+    assert sub_blocks_selection(runs({'method': 'given', 'kept': ['k1']}), cands) is None

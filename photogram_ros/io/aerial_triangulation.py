@@ -35,7 +35,8 @@ from photogram_ros.core.at_report import (build_report, convergence, focal_deter
 from photogram_ros.core.control import ControlRow, ControlVettingOptions, unchecked_vetting, vet_control
 from photogram_ros.io.at_report import write_report
 from photogram_ros.core.geodesy import LocalFrame, utm_epsg
-from photogram_ros.core.incremental import DISTORTION_TERMS, PASS_GROWTH_RATIO, IncrementalAT, IncrementalOptions
+from photogram_ros.core.incremental import (DISTORTION_TERMS, PASS_GROWTH_RATIO, SELF_CALIBRATION_BASE, IncrementalAT,
+                                           IncrementalOptions)
 from photogram_ros.core.photo_matching import MatchingOptions
 from photogram_ros.core.split_merge import SplitMergeOptions
 from photogram_ros.core.triangulation import near_the_cameras
@@ -653,13 +654,28 @@ def _merged_vetting(runs: list, core_of: dict):
     return ControlVetting(rows, points, wrong, suspect, notes)
 
 
+def sub_blocks_selection(runs: list, candidates: tuple) -> tuple | None:
+    """What the global adjustment after the merge refines of `candidates` when every sub-block chose its own
+    self-calibration stepwise (its report's `self_calibration_selection`): the base terms (f, cx, cy among the
+    candidates) and each distortion term that at least one sub-block kept. Each sub-block chose on part of the
+    same photos, from the camera as given; the global adjustment starts from their mean camera, against which
+    trials of its own would find nothing left to gain and would hold the distortion at the sub-blocks' mean.
+    None when a sub-block made no stepwise selection (the global adjustment then makes its own)."""
+    sels = [r.report.get('self_calibration_selection') for r in runs]
+    if not sels or any(not s or s.get('method') != 'stepwise' for s in sels):
+        return None
+    kept = {k for s in sels for k in s.get('kept', [])}
+    return tuple(c for c in candidates if c in SELF_CALIBRATION_BASE or c in kept)
+
+
 def _global_adjustment(block: KeyframeBlock, mr, runs: list, core_of: dict, opt: TriangulateOptions,
                        log=None) -> dict:
     """The merged block (core/split_merge.py MergeResult `mr`) adjusted as one block: an IncrementalAT seeded
     with the merged poses and tie points (core/incremental.py IncrementalAT.seed) and the sub-blocks' mean camera,
     GNSS noise scale, bias and rejected fixes, its GCP observations and control points as the sub-blocks vetted
     them (`_merged_vetting`), then the single block's final adjustment (`full_adjustment`: GNSS noise, bias,
-    the self-calibration `auto_self_calibration` or opt.self_calibrate chooses). Returns {'at', 'rep_adj',
+    the self-calibration opt.self_calibrate names, else what the sub-blocks chose (`sub_blocks_selection`) of
+    `auto_self_calibration`'s candidates, else a stepwise selection of its own). Returns {'at', 'rep_adj',
     'refine', 'control', 'vetting', 'figures'}; figures: the solves, their iterations, wall and CPU time, the
     seed, and how far it moved the cameras from the merged block (core/split_merge.py camera_moves)."""
     from photogram_ros.core.split_merge import camera_moves, mean_camera
@@ -682,6 +698,16 @@ def _global_adjustment(block: KeyframeBlock, mr, runs: list, core_of: dict, opt:
               sum(c.role == 'gcp' for c in control))
     refine = (tuple(opt.self_calibrate) if opt.self_calibrate is not None
               else auto_self_calibration(block, n_gcps, notes))
+    stepwise = opt.self_calibrate is None
+    chosen = sub_blocks_selection(good, refine) if stepwise and refine else None
+    if chosen is not None:
+        refine, stepwise = chosen, False
+        notes.append(f'self-calibration of the global adjustment: {", ".join(refine) or "none"}, as the sub-blocks\' '
+                     'stepwise selections chose (the base terms and every distortion term one of them kept: '
+                     + '; '.join(f'sub-block {r.sub.index} kept '
+                                 f'{", ".join(r.report["self_calibration_selection"]["kept"]) or "none"}'
+                                 for r in good)
+                     + '), refined from their mean camera')
     w = np.array([len(r.sub.map_T_cam) for r in good], float)
     camera = mean_camera([r.camera for r in good], w)
     ties = {n for o in tie_obs.values() for n in o}
@@ -700,7 +726,7 @@ def _global_adjustment(block: KeyframeBlock, mr, runs: list, core_of: dict, opt:
             f'{gate_px or 2 * at.opt.max_reprojection_px:.1f} px of the merged block left out), GCPs {len(seed["gcps"])}'
             + (f', self-calibrating {", ".join(refine)}' if refine else ''))
     n_solves = len(at.solves)
-    rep_adj = at.full_adjustment(refine_intrinsics=refine, stepwise=opt.self_calibrate is None)
+    rep_adj = at.full_adjustment(refine_intrinsics=refine, stepwise=stepwise)
     solves = at.solves[n_solves:]
     after = {at.kfs[k].name: at.kfs[k].map_T_cam for k in at.registered}
     figures = {'status': rep_adj.status, 'solves': len(solves),
@@ -709,6 +735,8 @@ def _global_adjustment(block: KeyframeBlock, mr, runs: list, core_of: dict, opt:
                'wall_s': round(time.monotonic() - t0, 2), 'cpu_s': round(time.process_time() - c0, 2),
                'seed': {k: v for k, v in seed.items() if k != 'gcps'}, 'gcps': seed['gcps'],
                'camera_moves': camera_moves(mr.map_T_cam, after),
+               'refine': list(refine), 'refine_chosen_by': ('sub_blocks' if chosen is not None else
+                                                            'stepwise' if stepwise and refine else 'given'),
                'camera_start': {'fx': camera.fx, 'fy': camera.fy, 'cx': camera.cx, 'cy': camera.cy,
                                 'dist': list(camera.dist)}}
     if log is not None:
