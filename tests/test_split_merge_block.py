@@ -144,8 +144,8 @@ def _stepwise(*kept):
 
 
 def test_the_global_adjustment_refines_what_the_sub_blocks_chose(block, tmp_path, monkeypatch):
-    """Every sub-block selected its self-calibration stepwise: the global adjustment refines the distortion terms
-    one of them kept, from their mean camera, with no trials of its own."""
+    """Every sub-block selected its self-calibration stepwise: the global adjustment refines the base terms and
+    holds the distortion at the sub-blocks' mean camera, with no trials of its own."""
     from photogram_ros.core.incremental import IncrementalAT
 
     def no_trials(*a, **k):
@@ -153,9 +153,9 @@ def test_the_global_adjustment_refines_what_the_sub_blocks_chose(block, tmp_path
     monkeypatch.setattr(IncrementalAT, 'select_self_calibration', no_trials)
     res = _adjust(block, tmp_path, selections=[_stepwise('k1'), _stepwise()])
     g = res.report['split_merge']['global_adjustment']
-    assert g['refine_chosen_by'] == 'sub_blocks' and 'k1' in g['refine'] and 'k2' not in g['refine']
+    assert g['refine_chosen_by'] == 'sub_blocks' and not {'k1', 'k2'} & set(g['refine'])
     assert g['status'] == 'converged'
-    assert any('as the sub-blocks\' stepwise selections chose' in a and 'sub-block 0 kept k1' in a
+    assert any('distortion held at the sub-blocks\' photo-weighted mean' in a and 'sub-block 0 kept k1' in a
                and 'sub-block 1 kept none' in a for a in res.report['assumptions'])
 
 
@@ -166,15 +166,14 @@ def test_without_every_sub_blocks_selection_the_global_adjustment_selects_its_ow
     assert res.report['self_calibration_selection']['method'] == 'stepwise'
 
 
-def test_sub_blocks_selection_keeps_the_base_terms_and_any_kept_distortion_term():
+def test_sub_blocks_selection_refines_the_base_terms_only():
     from types import SimpleNamespace
     from photogram_ros.io.aerial_triangulation import sub_blocks_selection
 
     def runs(*sels):
         return [SimpleNamespace(report={} if s is None else {'self_calibration_selection': s}) for s in sels]
     cands = ('f', 'k1', 'k2', 'cx', 'cy')
-    assert sub_blocks_selection(runs(_stepwise('f', 'k1'), _stepwise('f', 'k2')), cands) == cands
-    assert sub_blocks_selection(runs(_stepwise('f'), _stepwise('f', 'k2')), cands) == ('f', 'k2', 'cx', 'cy')
+    assert sub_blocks_selection(runs(_stepwise('f', 'k1'), _stepwise('f', 'k2')), cands) == ('f', 'cx', 'cy')
     assert sub_blocks_selection(runs(_stepwise(), _stepwise()), ('k1', 'k2')) == ()
     assert sub_blocks_selection(runs(_stepwise('k1'), None), cands) is None
     assert sub_blocks_selection(runs({'method': 'given', 'kept': ['k1']}), cands) is None

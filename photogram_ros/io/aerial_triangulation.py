@@ -657,15 +657,14 @@ def _merged_vetting(runs: list, core_of: dict):
 def sub_blocks_selection(runs: list, candidates: tuple) -> tuple | None:
     """What the global adjustment after the merge refines of `candidates` when every sub-block chose its own
     self-calibration stepwise (its report's `self_calibration_selection`): the base terms (f, cx, cy among the
-    candidates) and each distortion term that at least one sub-block kept. Each sub-block chose on part of the
-    same photos, from the camera as given; the global adjustment starts from their mean camera, against which
-    trials of its own would find nothing left to gain and would hold the distortion at the sub-blocks' mean.
-    None when a sub-block made no stepwise selection (the global adjustment then makes its own)."""
+    candidates), which hang on the whole block's datum (its GCP heights, its geotags). The distortion terms stay
+    at the sub-blocks' photo-weighted mean (`mean_camera`), the camera the global adjustment starts from: each
+    sub-block determined them on its own photos. None when a sub-block made no stepwise selection (the global
+    adjustment then makes its own)."""
     sels = [r.report.get('self_calibration_selection') for r in runs]
     if not sels or any(not s or s.get('method') != 'stepwise' for s in sels):
         return None
-    kept = {k for s in sels for k in s.get('kept', [])}
-    return tuple(c for c in candidates if c in SELF_CALIBRATION_BASE or c in kept)
+    return tuple(c for c in candidates if c in SELF_CALIBRATION_BASE)
 
 
 def _global_adjustment(block: KeyframeBlock, mr, runs: list, core_of: dict, opt: TriangulateOptions,
@@ -702,12 +701,11 @@ def _global_adjustment(block: KeyframeBlock, mr, runs: list, core_of: dict, opt:
     chosen = sub_blocks_selection(good, refine) if stepwise and refine else None
     if chosen is not None:
         refine, stepwise = chosen, False
-        notes.append(f'self-calibration of the global adjustment: {", ".join(refine) or "none"}, as the sub-blocks\' '
-                     'stepwise selections chose (the base terms and every distortion term one of them kept: '
-                     + '; '.join(f'sub-block {r.sub.index} kept '
-                                 f'{", ".join(r.report["self_calibration_selection"]["kept"]) or "none"}'
-                                 for r in good)
-                     + '), refined from their mean camera')
+        notes.append(f'self-calibration of the global adjustment: {", ".join(refine) or "none"} refined; the '
+                     'distortion held at the sub-blocks\' photo-weighted mean, as their stepwise selections determined '
+                     'it (' + '; '.join(f'sub-block {r.sub.index} kept '
+                                        f'{", ".join(r.report["self_calibration_selection"]["kept"]) or "none"}'
+                                        for r in good) + ')')
     w = np.array([len(r.sub.map_T_cam) for r in good], float)
     camera = mean_camera([r.camera for r in good], w)
     ties = {n for o in tie_obs.values() for n in o}
