@@ -20,13 +20,14 @@ LEVER = (0.0, -0.05, -0.2)
 # split in 2 sub-blocks (24, 24 photos) and adjusted globally after the merge 0.92 / 1.22 cm (H / V; the merged
 # block before it 1.30 / 2.66 cm), the single block 3.51 / 6.37 cm; the shared cameras 3.6 cm RMS apart after the
 # merge's similarities; the global adjustment (5 solves, 17 iterations, 12 s) moved the cameras 2.7 cm RMS. The
-# survey simulated on another machine of this class gives split 0.96 / 1.83 cm, single 4.65 / 5.67 cm (the
-# simulation is not the same to the bit from machine to machine). Gated at 1.5x the larger measured figures, and
-# the ratios to the single block at the 10 % the issue asks.
+# survey simulated on another machine of this class gives split 0.96 / 1.83 cm, single 4.65 / 5.67 cm, the
+# cameras moved 4.9 cm RMS by the global adjustment (6 solves, 20 iterations): the simulation is not the same to
+# the bit from machine to machine. Gated at 1.5x the larger measured figures, and the ratios to the single block
+# at the 10 % the issue asks.
 CHECK_SPLIT_M = {'horizontal_m': 1.5 * 0.0096, 'vertical_m': 1.5 * 0.0183}
 CHECK_RATIO = {'horizontal_m': 1.1, 'vertical_m': 1.1}
 OVERLAP_RMS_M = 1.5 * 0.036
-GLOBAL_MOVED_RMS_M = 1.5 * 0.027
+GLOBAL_MOVED_RMS_M = 1.5 * 0.0485
 
 
 @pytest.fixture(scope='module')
