@@ -94,6 +94,7 @@ def test_the_global_adjustment_after_the_merge_recovers_the_truth(block, tmp_pat
     rep = json.loads((tmp_path / 'report.json').read_text())
     g = rep['split_merge']['global_adjustment']
     assert g['status'] == 'converged' and g['solves'] >= 1 and g['seed']['oriented'] == len(truth)
+    assert g['refine'] == [] and g['refine_chosen_by'] == 'none'   # a calibrated camera: nothing to refine
     assert res.registered == len(truth) == rep['registered']
     d = np.array([poses[n][:3, 3] - truth[n][:3, 3] for n in truth])
     rms = float(np.sqrt(np.mean(np.sum(d ** 2, axis=1))))
@@ -143,7 +144,7 @@ def _stepwise(*kept):
     return {'method': 'stepwise', 'candidates': ['k1', 'k2'], 'kept': list(kept)}
 
 
-def test_the_global_adjustment_refines_what_the_sub_blocks_chose(block, tmp_path, monkeypatch):
+def test_the_global_adjustment_holds_the_distortion_the_sub_blocks_chose(block, tmp_path, monkeypatch):
     """Every sub-block selected its self-calibration stepwise: the global adjustment refines the base terms and
     holds the distortion at the sub-blocks' mean camera, with no trials of its own."""
     from photogram_ros.core.incremental import IncrementalAT

@@ -733,8 +733,9 @@ def _global_adjustment(block: KeyframeBlock, mr, runs: list, core_of: dict, opt:
                'wall_s': round(time.monotonic() - t0, 2), 'cpu_s': round(time.process_time() - c0, 2),
                'seed': {k: v for k, v in seed.items() if k != 'gcps'}, 'gcps': seed['gcps'],
                'camera_moves': camera_moves(mr.map_T_cam, after),
-               'refine': list(refine), 'refine_chosen_by': ('sub_blocks' if chosen is not None else
-                                                            'stepwise' if stepwise and refine else 'given'),
+               'refine': list(refine), 'refine_chosen_by': ('given' if opt.self_calibrate is not None else
+                                                            'sub_blocks' if chosen is not None else
+                                                            'stepwise' if refine else 'none'),
                'camera_start': {'fx': camera.fx, 'fy': camera.fy, 'cx': camera.cx, 'cy': camera.cy,
                                 'dist': list(camera.dist)}}
     if log is not None:
