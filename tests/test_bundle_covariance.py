@@ -8,7 +8,7 @@ import pytest
 from photogram_ros.core.bundle import BundleOptions, BundleProblem, bundle_adjust
 from photogram_ros.core.camera import PinholeCamera
 from photogram_ros.core.rotations import R_from_rotvec
-from test_bundle_solver import block, gnss, perturb
+from test_bundle_solver import block, centre_rmse, gnss, perturb
 
 TRUTH = PinholeCamera(1000, 800, 900.0, 900.0, 500.0, 400.0, (-0.08, 0.0, 0.0, 0.0, 0.0))
 FREE = ('f', 'cx', 'cy', 'k1', 'k2')
@@ -158,3 +158,49 @@ def test_focal_variance_with_the_gnss_bias_free_matches_the_joint_adjustment():
                           BundleOptions(loss='linear', refine_intrinsics=('f',), max_iterations=0,
                                         compute_covariance=True, gnss_bias_free=True))
     assert alone.intrinsics_cov is None
+
+
+def test_the_gnss_bias_estimated_as_unknowns_is_recovered_with_the_covariance_of_the_bias_freed():
+    """Fixes all off by one offset (a GNSS receiver's bias), 5 GCPs: the solver estimates the offset as 3 unknowns
+    beside the poses and points. It recovers the offset to within its sigma (a few cm against metres), puts the
+    cameras back on the truth, and its covariance is the one the Woodbury update (`gnss_bias_free`) gives with the
+    bias held at the estimate: two independent computations of the same inverse."""
+    cam = PinholeCamera(1000, 800, 900.0, 900.0, 500.0, 400.0)
+    s = block(seed=1, n_lines=3, per_line=6, n_pts=150, tilt_deg=3.0, camera=cam, noise_px=0.5)
+    g = gnss(s, 0.03)
+    bias_enu_m = np.array([1.7, -2.4, 3.1])
+    g['gnss_pos_map'] = g['gnss_pos_map'] + bias_enu_m
+    gcp_idx = np.arange(0, 150, 30)
+    gcps = dict(point_priors_idx=gcp_idx, point_priors_map=s['X'][gcp_idx], point_priors_sigma_m=np.full((5, 3), 0.02))
+    T0, X0 = perturb(s, 0.3, 0.5, 0.3)
+    T0[:, :3, 3] += bias_enu_m           # the block starts where its fixes put it
+    X0 = X0 + bias_enu_m
+    est = bundle_adjust(BundleProblem(cam, T0, X0, s['obs_cam'], s['obs_pt'], s['uv'], **g, **gcps),
+                        BundleOptions(loss='linear', max_iterations=100, estimate_gnss_bias=True,
+                                      compute_covariance=True))
+    assert est.status == 'converged', est.reason
+    sd = np.sqrt(np.diag(est.gnss_bias_cov))
+    err = est.gnss_bias_enu_m - bias_enu_m
+    assert np.all(np.abs(err) < 3.0 * sd), (err, sd)
+    assert np.all(sd < 0.05), sd
+    assert np.abs(err).max() < 0.05, err
+    assert centre_rmse(est.map_T_cams, s['T']) < 0.1   # 6.0 cm: the fixes' 3 cm noise and the GCPs' 2 cm
+    # The same optimum from the truth (the bias from zero): the solve did not stop short.
+    from_truth = bundle_adjust(BundleProblem(cam, s['T'], s['X'], s['obs_cam'], s['obs_pt'], s['uv'], **g, **gcps),
+                               BundleOptions(loss='linear', max_iterations=100, estimate_gnss_bias=True))
+    assert np.abs(from_truth.gnss_bias_enu_m - est.gnss_bias_enu_m).max() < 1e-4
+    # Held at its estimate, the bias freed by the Woodbury update: the same covariance.
+    g_held = dict(g, gnss_pos_map=g['gnss_pos_map'] - est.gnss_bias_enu_m)
+    held = bundle_adjust(BundleProblem(cam, est.map_T_cams, est.points_map, s['obs_cam'], s['obs_pt'], s['uv'],
+                                       **g_held, **gcps),
+                         BundleOptions(loss='linear', max_iterations=0, compute_covariance=True, gnss_bias_free=True))
+    assert held.gnss_bias_enu_m is None
+    # (the bias's covariance comes scaled by the variance factor, whose redundancy counts the bias's 3 unknowns
+    # only where they are unknowns: compared unscaled)
+    q_est, q_held = est.gnss_bias_cov / est.variance_factor, held.gnss_bias_cov / held.variance_factor
+    assert np.allclose(q_est, q_held, rtol=1e-6, atol=1e-9 * np.abs(q_est).max()), (q_est, q_held)
+    assert np.allclose(est.cam_centre_cov, held.cam_centre_cov, rtol=1e-6, atol=1e-9 * np.abs(est.cam_centre_cov).max())
+    # Without the bias as unknowns the GCPs and the offset fixes pull against each other: the block lands between.
+    plain = bundle_adjust(BundleProblem(cam, T0, X0, s['obs_cam'], s['obs_pt'], s['uv'], **g, **gcps),
+                          BundleOptions(loss='linear', max_iterations=100))
+    assert centre_rmse(plain.map_T_cams, s['T']) > 0.5

@@ -92,8 +92,10 @@ def test_models_jacobians_match_finite_differences():
             assert np.allclose(fd, Jk[:, :, k], rtol=1e-5, atol=1e-4)
 
 
-def test_full_gradient_with_priors_matches_finite_differences():
-    """J^T r of every residual type (reprojection, GNSS with lever arm, GCP, attitude) vs FD of the cost."""
+@pytest.mark.parametrize('gnss_bias', [False, True])
+def test_full_gradient_with_priors_matches_finite_differences(gnss_bias):
+    """J^T r of every residual type (reprojection, GNSS with lever arm, GCP, attitude) vs FD of the cost;
+    with the GNSS bias as unknowns, at a bias away from zero, their gradient too."""
     s = block(seed=1, n_lines=2, per_line=4, n_pts=60)
     T0, X0 = perturb(s, 0.3, 0.5, 0.3)
     g = gnss(s, sigma=0.05)
@@ -102,25 +104,31 @@ def test_full_gradient_with_priors_matches_finite_differences():
                          point_priors_sigma_m=np.array([0.02, 0.02, 0.04]),
                          attitude_cam=np.array([1, 2]), attitude_map_R_cam=s['T'][[1, 2], :3, :3],
                          attitude_sigma_rad=np.array([0.01, 0.01, 0.03]))
-    opts = BundleOptions(loss='cauchy', loss_scale_px=2.0, refine_intrinsics=('f', 'cx', 'k1', 'p2'))
+    opts = BundleOptions(loss='cauchy', loss_scale_px=2.0, refine_intrinsics=('f', 'cx', 'k1', 'p2'),
+                         estimate_gnss_bias=gnss_bias)
     sol = Solver(prob.resolved(), opts)
     d = sol.d
-    lin = sol.linearise(d['R'], d['t'], d['X'], d['intr'])
+    b = np.array([0.3, -0.2, 0.5]) if gnss_bias else np.zeros(3)
+    lin = sol.linearise(d['R'], d['t'], d['X'], d['intr'], b)
     # With a robust loss, J^T r of the IRLS-weighted system is exactly the cost gradient.
     grad = np.concatenate([lin['gc'], lin['gp'].ravel()])
     n = sol.st.nc
     rng = np.random.default_rng(0)
-    for k in list(rng.choice(n, 25, replace=False)) + list(n + rng.choice(len(grad) - n, 15, replace=False)):
+    bias = list(sol.st.bias_col + np.arange(3)) if gnss_bias else []
+    assert (sol.st.bias_col >= 0) == gnss_bias
+    for k in list(rng.choice(n, 25, replace=False)) + bias + list(n + rng.choice(len(grad) - n, 15, replace=False)):
         if k < n and not sol.st.real[k]:
             continue
         e = np.zeros(len(grad))
         e[k] = 1e-6
         cost = []
         for sgn in (1, -1):
-            st = sol.apply(d['R'], d['t'], d['X'], d['intr'], sgn * e[:n], sgn * e[n:].reshape(-1, 3))
+            st = sol.apply(d['R'], d['t'], d['X'], d['intr'], b, sgn * e[:n], sgn * e[n:].reshape(-1, 3))
             cost.append(sum(sol.cost_parts(*st).values()))
         fd = (cost[0] - cost[1]) / 2e-6
         assert fd == pytest.approx(grad[k], rel=2e-4, abs=1e-3 * max(1.0, np.abs(grad).max() * 1e-4))
+    if gnss_bias:
+        assert np.abs(grad[bias]).max() > 1.0     # the bias away from its optimum: a gradient that could be wrong
 
 
 def test_rtk_gnss_recovers_camera_centres_within_few_cm():

@@ -75,7 +75,8 @@ def test_per_observation_loss_scale_is_the_cost_gradient_and_equals_a_common_sca
     d = base.d
     # The same scale for each observation: the same cost as the common scale.
     same = Solver(_problem(np.full(n, 1.0))[1].resolved(), opts)
-    assert same.cost_parts(d['R'], d['t'], d['X'], d['intr']) == base.cost_parts(d['R'], d['t'], d['X'], d['intr'])
+    z = np.zeros(3)
+    assert same.cost_parts(d['R'], d['t'], d['X'], d['intr'], z) == base.cost_parts(d['R'], d['t'], d['X'], d['intr'], z)
     # Scales of their own: J^T r of the weighted system is the gradient of the cost (finite differences).
     scale = np.where(np.arange(n) % 3 == 0, 20.0, 5.0)
     sol = Solver(_problem(scale)[1].resolved(), opts)
@@ -83,7 +84,7 @@ def test_per_observation_loss_scale_is_the_cost_gradient_and_equals_a_common_sca
     r = sol._reproj(d['R'], d['t'], d['X'], d['intr'], False)[0]
     e = np.linalg.norm(r, axis=1)
     assert ((e > 5.0) & (e < 20.0)).sum() > 20     # residuals between the scales: the scales matter
-    lin = sol.linearise(d['R'], d['t'], d['X'], d['intr'])
+    lin = sol.linearise(d['R'], d['t'], d['X'], d['intr'], z)
     grad = np.concatenate([lin['gc'], lin['gp'].ravel()])
     nc = sol.st.nc
     for k in list(range(0, nc, 5)) + list(nc + np.arange(0, len(grad) - nc, 17)):
@@ -91,7 +92,7 @@ def test_per_observation_loss_scale_is_the_cost_gradient_and_equals_a_common_sca
             continue
         step = np.zeros(len(grad))
         step[k] = 1e-6
-        cost = [sum(sol.cost_parts(*sol.apply(d['R'], d['t'], d['X'], d['intr'], sg * step[:nc],
+        cost = [sum(sol.cost_parts(*sol.apply(d['R'], d['t'], d['X'], d['intr'], z, sg * step[:nc],
                                               sg * step[nc:].reshape(-1, 3))).values()) for sg in (1, -1)]
         assert (cost[0] - cost[1]) / 2e-6 == pytest.approx(grad[k], rel=2e-4, abs=1e-3)
     res = bundle_adjust(_problem(scale)[1], opts)

@@ -167,7 +167,9 @@ class IncrementalOptions:
                                  'check point)')
     estimate_gnss_bias: bool = param(True, 'estimate a constant ENU GNSS offset in the full adjustment when >= 3 '
                                            'GCPs make it observable')
-    bias_iterations: int = param(10, 'full adjustments of the GNSS bias estimate, at most', min=0, max=1000)
+    bias_iterations: int = param(10, 'full adjustments with the GNSS bias as unknowns, at most (the outliers each '
+                                     'removes can move the bias of the next; settled when it moves under 1 mm)',
+                                 min=0, max=1000)
     estimate_gnss_noise: bool = param(True, 'the full adjustment estimates the flight\'s GNSS noise (horizontal and '
                                             'vertical apart) from its residuals and weights the fixes by it when '
                                             'they are poorer than they state; fixes far beyond it are not used')
@@ -303,9 +305,9 @@ def _intrinsics_by_name(camera: PinholeCamera) -> dict:
     return {'f': camera.fx, 'cx': camera.cx, 'cy': camera.cy, **dict(zip(('k1', 'k2', 'p1', 'p2', 'k3'), camera.dist))}
 
 
-def _adjust(prob, loss: str, scale_px: float, iterations: int, refine: tuple = ()):
+def _adjust(prob, loss: str, scale_px: float, iterations: int, refine: tuple = (), gnss_bias: bool = False):
     return bundle_adjust(prob, BundleOptions(loss=loss, loss_scale_px=scale_px, max_iterations=iterations,
-                                             refine_intrinsics=tuple(refine)))
+                                             refine_intrinsics=tuple(refine), estimate_gnss_bias=gnss_bias))
 
 
 def flight_plane_sigma(fixes_enu: np.ndarray) -> float:
@@ -1219,14 +1221,21 @@ class IncrementalAT:
             point_priors_sigma_m=np.array([c.sigma_m for _, c in pri]).reshape(-1, 3))
         return _Problem(prob, kids, tracks, slot, kid, oi, fixed_mask, gk)
 
-    def _solve(self, free: list[int], fixed: list[int], tracks, iterations: int, refine: tuple = ()) -> StepReport:
+    def _solve(self, free: list[int], fixed: list[int], tracks, iterations: int, refine: tuple = (),
+               gnss_bias: bool = False) -> StepReport:
+        """Adjust keyframes `free` (beside `fixed`, held) and `tracks`; refine: the intrinsics self-calibrated;
+        gnss_bias: the fixes' common offset as 3 more unknowns, added to `gnss_bias_enu` (only GCPs then hold the
+        block's position: the caller makes sure they do). Observations left beyond `max_reprojection_px` are
+        removed (hand-measured ones kept)."""
         b = self._problem(free, fixed, tracks)
         kids, tracks, slot, kid, oi, fixed_mask, gk = b.kids, b.tracks, b.slot, b.kid, b.oi, b.fixed_mask, b.gnss_cams
         if b.prob is None:
             return StepReport(kids[-1] if kids else -1, True, 'nothing_to_adjust')
         prob = b.prob
         t0 = time.monotonic()
-        res = _adjust(prob, self.opt.loss, self.opt.loss_scale_px, iterations, refine)
+        res = _adjust(prob, self.opt.loss, self.opt.loss_scale_px, iterations, refine, gnss_bias)
+        if res.gnss_bias_enu_m is not None and res.status != 'failed':
+            self.gnss_bias_enu = self.gnss_bias_enu + res.gnss_bias_enu_m
         self.solves.append({'iterations': int(res.iterations), 'status': res.status,
                             's': round(time.monotonic() - t0, 2)})
         if refine and res.status != 'failed':
@@ -1668,30 +1677,17 @@ class IncrementalAT:
         self._full_adjusted_n = len(self.registered)
         if gnss_bias and self.opt.estimate_gnss_bias and self._n_gcps() >= 3 and self.opt.bias_iterations:
             self.gnss_bias_estimated = True
-            before = None   # (bias, residual mean) of the previous round
-            settled, rounds = False, 0
-            for i in range(self.opt.bias_iterations):
-                r = np.array(list(self.gnss_residuals().values()))
-                if not len(r):
-                    break
-                # The residual mean is the fraction of the bias left that the GCPs hold against the fixes (a
-                # few percent with many fixes): a first step of at least 5 mm on each axis measures that
-                # fraction, then each axis steps to the secant's root of the last two rounds (fractions
-                # outside 0.001-1: the plain step by the mean).
-                mean = np.mean(r, axis=0)
-                if before is None:
-                    step = mean + np.copysign(0.005, mean)
-                else:
-                    db, dr = self.gnss_bias_enu - before[0], mean - before[1]
-                    frac = np.ones(3)
-                    ok = np.abs(db) > 1e-4
-                    frac[ok] = dr[ok] / db[ok]
-                    frac[~ok | (frac < 0.001) | (frac > 1.0)] = 1.0
-                    step = mean / frac
-                before = (self.gnss_bias_enu.copy(), mean)
-                self.gnss_bias_enu -= step
-                rep = self._solve(list(self.registered), [], list(self.points), iterations or self.opt.full_iterations)
+            # The bias is 3 unknowns of the adjustment beside the poses and points (the intrinsics held): one solve
+            # finds it; each solve then removes the observations it leaves as outliers, which can move it again.
+            settled, rounds, step = False, 0, np.zeros(3)
+            for i in range(self.opt.bias_iterations if self.gnss_residuals() else 0):
+                before = self.gnss_bias_enu.copy()
+                rep = self._solve(list(self.registered), [], list(self.points), iterations or self.opt.full_iterations,
+                                  gnss_bias=True)
+                step = self.gnss_bias_enu - before
                 rounds = i + 1
+                if rep.status == 'failed':
+                    break
                 if i and np.linalg.norm(step) < 0.001:
                     settled = True
                     break

@@ -32,12 +32,12 @@ def _map_T_cams(R, t):
     return T
 
 
-def _rms(solver, R, t, X, intr):
+def _rms(solver, R, t, X, intr, b):
     d = solver.d
     rms = {}
     r = solver._reproj(R, t, X, intr, False)[0]
     rms['reprojection_px'] = float(np.sqrt(np.mean(np.sum(r * r, axis=1)))) if len(r) else float('nan')
-    rms['gnss_m'] = (float(np.sqrt(np.mean(np.sum(solver._gnss_err(R, t) ** 2, axis=1))))
+    rms['gnss_m'] = (float(np.sqrt(np.mean(np.sum(solver._gnss_err(R, t, b) ** 2, axis=1))))
                      if 'gnss_cam' in d else None)
     rms['gcp_m'] = (float(np.sqrt(np.mean(np.sum((X[d['pp_idx']] - d['pp_pos']) ** 2, axis=1))))
                     if 'pp_idx' in d else None)
@@ -53,10 +53,10 @@ def bundle_adjust(problem: BundleProblem, options: BundleOptions | None = None) 
     d = problem.resolved()
     solver = Solver(d, options)
     out = solver.run()
-    R, t, X, intr = out['R'], out['t'], out['X'], out['intr']
+    R, t, X, intr, b = out['R'], out['t'], out['X'], out['intr'], out['b']
     cam_cov = pt_cov = intr_cov = var = corr = bias_cov = None
     if options.compute_covariance and out['status'] != 'failed':
-        cam_cov, pt_cov, intr_cov, corr, bias_cov = solver.covariance(R, t, X, intr, points=options.point_covariance,
+        cam_cov, pt_cov, intr_cov, corr, bias_cov = solver.covariance(R, t, X, intr, b, points=options.point_covariance,
                                                                      gnss_bias_free=options.gnss_bias_free)
         var = solver.variance_factor(out['cost'])
         if intr_cov is not None:
@@ -71,9 +71,10 @@ def bundle_adjust(problem: BundleProblem, options: BundleOptions | None = None) 
     return BundleResult(status=out['status'], reason=out['reason'], initial_cost=float(out['init']),
                         final_cost=float(out['cost']), iterations=out['iters'], successful_steps=out['ok'],
                         map_T_cams=_map_T_cams(R, t), points_map=X, camera=camera, intrinsics=intr,
-                        rms=_rms(solver, R, t, X, intr), cam_centre_cov=cam_cov, point_cov=pt_cov,
+                        rms=_rms(solver, R, t, X, intr, b), cam_centre_cov=cam_cov, point_cov=pt_cov,
                         intrinsics_cov=intr_cov, intrinsics_names=tuple(options.refine_intrinsics),
                         intrinsics_height_corr=corr, gnss_bias_cov=bias_cov,
+                        gnss_bias_enu_m=np.asarray(b, float) if solver.st.bias_col >= 0 else None,
                         variance_factor=var,
                         seconds=out['seconds'], cost_history=out['hist'], time_history=out['hist_t'])
 

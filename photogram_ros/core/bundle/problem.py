@@ -43,6 +43,10 @@ class BundleOptions:
     # were one more unknown: what a block that estimates its GNSS bias from GCPs knows. The fixes then hold the
     # cameras relative to each other only, and a focal length that trades off with the block's height shows it.
     gnss_bias_free: bool = False
+    # A constant offset of all GNSS fixes (the GNSS bias, ENU m) as 3 more unknowns, from zero: each fix's
+    # residual is antenna - (gnss_pos_map - bias). Only the GCPs (point priors) or fixed cameras then hold the
+    # block's position: without them the bias and the block's translation trade off freely.
+    estimate_gnss_bias: bool = False
     initial_trust_radius: float = 1e4
     dense_limit: int = 3000                  # reduced camera systems larger than this are solved sparsely
 
@@ -194,7 +198,11 @@ class BundleResult:
     # (K, kf) correlation of each intrinsic with the block's height (mean camera-centre height minus
     # mean point height, map z): near +-1 the intrinsic is not determined (focal vs the ground's depth).
     intrinsics_height_corr: np.ndarray | None = None
-    # (3, 3) ENU m^2, scaled: the GNSS bias's covariance as one more unknown (BundleOptions.gnss_bias_free).
+    # (3,) ENU m: the GNSS bias estimated (BundleOptions.estimate_gnss_bias; None when not, or no fix): the fixes
+    # adjusted are gnss_pos_map minus it.
+    gnss_bias_enu_m: np.ndarray | None = None
+    # (3, 3) ENU m^2, scaled: the GNSS bias's covariance as an unknown (BundleOptions.estimate_gnss_bias or
+    # gnss_bias_free).
     gnss_bias_cov: np.ndarray | None = None
     variance_factor: float | None = None             # s0^2 (None without redundancy)
     seconds: float = 0.0

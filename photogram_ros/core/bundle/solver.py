@@ -64,7 +64,7 @@ class _Structure:
     whose products scipy runs about twice as fast as scalar CSR.
     """
 
-    def __init__(self, d, sel, dense_limit):
+    def __init__(self, d, sel, dense_limit, gnss_bias: bool = False):
         C, P = len(d['R']), len(d['X'])
         self.kf = sel.shape[1]
         self.kf3 = -(-self.kf // 3) * 3
@@ -75,6 +75,11 @@ class _Structure:
         G = len(d['intr'])
         self.intr_col = n_pose + self.kf3 * np.arange(G)
         self.nc = n_pose + self.kf3 * G
+        # The GNSS bias (3 unknowns, ENU m) comes after the intrinsics: a chunk of 3 that no observation touches.
+        self.bias_col = -1
+        if gnss_bias and 'gnss_cam' in d:
+            self.bias_col = self.nc
+            self.nc += 3
         real = np.ones(self.nc, bool)
         for k in range(self.kf, self.kf3):
             real[self.intr_col + k] = False
@@ -108,6 +113,8 @@ class _Structure:
             if name in d:
                 c = self.cam_col[d[name]]
                 pidx = np.where(c[:, None] >= 0, c[:, None] + np.arange(6), self.trash)
+                if name == 'gnss_cam' and self.bias_col >= 0:
+                    pidx = np.concatenate([pidx, np.broadcast_to(self.bias_col + np.arange(3), (len(c), 3))], axis=1)
                 self.prior_idx[name] = pidx
                 keys.append((pidx[:, :, None] * n1 + pidx[:, None, :]).ravel())
         ukeys, self.u_inv = np.unique(np.concatenate(keys), return_inverse=True)
@@ -192,7 +199,7 @@ class Solver:
         self.d = d
         self.o = options
         self.sel = d['model'].selector(options.refine_intrinsics)
-        self.st = _Structure(d, self.sel, options.dense_limit)
+        self.st = _Structure(d, self.sel, options.dense_limit, gnss_bias=options.estimate_gnss_bias)
 
     # --- residuals --------------------------------------------------------------------------
 
@@ -205,14 +212,14 @@ class Solver:
         r = uv - d['obs_uv']
         return r, RX, Rc, Jp, Jk
 
-    def cost_parts(self, R, t, X, intr):
+    def cost_parts(self, R, t, X, intr, b):
         d = self.d
         r = self._reproj(R, t, X, intr, False)[0]
         s = np.einsum('ni,ni->n', r, r)
         rho, _ = losses.evaluate(self.o.loss, s, d.get('obs_scale', self.o.loss_scale_px))
         parts = {'reprojection': 0.5 * float(rho.sum())}
         if 'gnss_cam' in d:
-            e = self._gnss_err(R, t)
+            e = self._gnss_err(R, t, b)
             rw = np.einsum('mij,mj->mi', d['gnss_W'], e)
             parts['gnss'] = 0.5 * float(np.sum(rw * rw))
         if 'pp_idx' in d:
@@ -223,18 +230,19 @@ class Solver:
             parts['attitude'] = 0.5 * float(np.sum((phi / d['att_sigma']) ** 2))
         return parts
 
-    def _gnss_err(self, R, t):
+    def _gnss_err(self, R, t, b):
+        """Antenna minus fix adjusted (gnss_pos - b, b the GNSS bias: zero unless estimated), (M, 3) m."""
         d = self.d
         c = d['gnss_cam']
         v = d['lever'][None, :] - t[c]
-        return np.einsum('mji,mj->mi', R[c], v) - d['gnss_pos']
+        return np.einsum('mji,mj->mi', R[c], v) - d['gnss_pos'] + b
 
     def _att_err(self, R):
         d = self.d
         E = R[d['att_cam']] @ np.transpose(d['att_R'], (0, 2, 1))
         return Rotation.from_matrix(E).as_rotvec()
 
-    def linearise(self, R, t, X, intr):
+    def linearise(self, R, t, X, intr, b):
         """Normal-equation pieces at the current estimate."""
         d, st = self.d, self.st
         r, RX, Rc, Jp, Jk = self._reproj(R, t, X, intr, True)
@@ -271,8 +279,10 @@ class Solver:
             v = d['lever'][None, :] - t[c]
             RT = np.transpose(R[c], (0, 2, 1))
             J = np.concatenate([_cross_cols(RT, v), -RT], axis=2)
+            if st.bias_col >= 0:
+                J = np.concatenate([J, np.broadcast_to(np.eye(3), (len(c), 3, 3))], axis=2)
             J = d['gnss_W'] @ J
-            rg = np.einsum('mij,mj->mi', d['gnss_W'], self._gnss_err(R, t))
+            rg = np.einsum('mij,mj->mi', d['gnss_W'], self._gnss_err(R, t, b))
             u_vals.append(np.einsum('mka,mkb->mab', J, J).ravel())
             gc += np.bincount(st.prior_idx['gnss_cam'].ravel(), np.einsum('mka,mk->ma', J, rg).ravel(),
                               minlength=nc1)
@@ -402,9 +412,11 @@ class Solver:
             return np.stack([np.bincount(ptc, acc[:, k], minlength=st.npf) for k in range(3)], axis=1)
         return S, rhs, wt_dc
 
-    def apply(self, R, t, X, intr, dc, dp):
+    def apply(self, R, t, X, intr, b, dc, dp):
         st = self.st
         R, t, X, intr = R.copy(), t.copy(), X.copy(), intr.copy()
+        if st.bias_col >= 0:
+            b = b + dc[st.bias_col:st.bias_col + 3]
         free = st.cam_col >= 0
         if free.any():
             dpose = dc[st.cam_col[free][:, None] + np.arange(6)]
@@ -414,25 +426,25 @@ class Solver:
             dk = dc[st.intr_col[:, None] + np.arange(st.kf)]
             intr += dk @ self.sel.T
         X[st.pt_col >= 0] += dp
-        return R, t, X, intr
+        return R, t, X, intr, b
 
     # --- the loop -------------------------------------------------------------------------
 
     def run(self):
         o, d = self.o, self.d
-        R, t, X, intr = d['R'], d['t'], d['X'], d['intr']
+        R, t, X, intr, b = d['R'], d['t'], d['X'], d['intr'], np.zeros(3)
         t0 = time.perf_counter()
-        cost = sum(self.cost_parts(R, t, X, intr).values())
+        cost = sum(self.cost_parts(R, t, X, intr, b).values())
         init = cost
         hist = [cost]
         hist_t = [time.perf_counter() - t0]
         if not np.isfinite(cost):
             return dict(status='failed', reason='initial cost is not finite (a point on a camera centre?)',
-                        R=R, t=t, X=X, intr=intr, init=init, cost=cost, iters=0, ok=0, hist=hist, hist_t=hist_t,
+                        R=R, t=t, X=X, intr=intr, b=b, init=init, cost=cost, iters=0, ok=0, hist=hist, hist_t=hist_t,
                         seconds=time.perf_counter() - t0, lin=None)
         radius, nu = float(o.initial_trust_radius), 2.0
         status, reason, iters, ok = 'max_iterations', f'stopped after {o.max_iterations} iterations', 0, 0
-        lin = self.linearise(R, t, X, intr)
+        lin = self.linearise(R, t, X, intr, b)
         while iters < o.max_iterations:
             gmax = max(np.abs(lin['gc']).max(initial=0.0), np.abs(lin['gp']).max(initial=0.0))
             if gmax <= o.gradient_tolerance:
@@ -453,12 +465,12 @@ class Solver:
             if snorm <= o.parameter_tolerance * (xnorm + o.parameter_tolerance):
                 status, reason = 'converged', 'step below parameter tolerance'
                 break
-            Rn, tn, Xn, kn = self.apply(R, t, X, intr, dc, dp)
-            new = sum(self.cost_parts(Rn, tn, Xn, kn).values())
+            Rn, tn, Xn, kn, bn = self.apply(R, t, X, intr, b, dc, dp)
+            new = sum(self.cost_parts(Rn, tn, Xn, kn, bn).values())
             rho = (cost - new) / pred if pred > 0 else -1.0
             if np.isfinite(new) and rho > 1e-3:
                 ok += 1
-                R, t, X, intr = Rn, tn, Xn, kn
+                R, t, X, intr, b = Rn, tn, Xn, kn, bn
                 rel = (cost - new) / max(cost, 1e-300)
                 cost = new
                 hist.append(cost)
@@ -469,14 +481,14 @@ class Solver:
                 if rel < o.function_tolerance:
                     status, reason = 'converged', 'relative cost decrease below function tolerance'
                     break
-                lin = self.linearise(R, t, X, intr)
+                lin = self.linearise(R, t, X, intr, b)
             else:
                 radius /= nu
                 nu *= 2.0
                 if radius < 1e-32:
                     status, reason = 'converged', 'no further decrease possible (trust region collapsed)'
                     break
-        return dict(status=status, reason=reason, R=R, t=t, X=X, intr=intr, init=init, cost=cost,
+        return dict(status=status, reason=reason, R=R, t=t, X=X, intr=intr, b=b, init=init, cost=cost,
                     iters=iters, ok=ok, hist=hist, hist_t=hist_t, seconds=time.perf_counter() - t0)
 
     # --- covariance -----------------------------------------------------------------------
@@ -488,11 +500,11 @@ class Solver:
         r = n_res - int(st.real.sum()) - 3 * st.npf
         return 2.0 * float(cost) / r if r > 0 else None
 
-    def _reduced_inverse(self, R, t, X, intr):
+    def _reduced_inverse(self, R, t, X, intr, b):
         """(lin, Vinv, Wd, Sc): the inverse Sc of the reduced camera system S = U - W V^-1 W^T (zeros
         on the intrinsics' padding) at the estimate; None when singular (free gauge)."""
         st = self.st
-        lin = self.linearise(R, t, X, intr)
+        lin = self.linearise(R, t, X, intr, b)
         V = lin['V']
         try:
             np.linalg.cholesky(V)
@@ -518,7 +530,7 @@ class Solver:
         RT = np.transpose(R[free], (0, 2, 1))
         return np.concatenate([-_cross_cols(RT, t[free]), -RT], axis=2)
 
-    def covariance(self, R, t, X, intr, points: bool = True, gnss_bias_free: bool = False):
+    def covariance(self, R, t, X, intr, b, points: bool = True, gnss_bias_free: bool = False):
         """Marginal covariances at the estimate, unscaled (inverse of J^T J at the residuals' weights).
 
         Returns camera centres (C,3,3), points (P,3,3; None unless `points`), the free intrinsics per group
@@ -528,15 +540,19 @@ class Solver:
         marginal covariance of every camera-side unknown, intrinsics included, with the points
         already marginalised by the Schur complement. gnss_bias_free: as if the fixes' constant offset were
         one more unknown (`_free_gnss_bias`), whose (3, 3) covariance comes fifth (else None); all None when
-        nothing else (GCPs) then holds the block.
+        nothing else (GCPs) then holds the block. A bias the solver estimates (`BundleOptions.estimate_gnss_bias`)
+        is an unknown of S already: its covariance is S^-1's.
         """
         st = self.st
-        inv = self._reduced_inverse(R, t, X, intr)
+        inv = self._reduced_inverse(R, t, X, intr, b)
         if inv is None:
             return None, None, None, None, None
         lin, Vinv, Wd, Sc = inv
         bias_cov = None
-        if gnss_bias_free and 'gnss_cam' in self.d:
+        if st.bias_col >= 0:
+            ix = st.bias_col + np.arange(3)
+            bias_cov = Sc[np.ix_(ix, ix)].copy()
+        elif gnss_bias_free and 'gnss_cam' in self.d:
             freed = self._free_gnss_bias(R, t, Sc)
             if freed is None:
                 return None, None, None, None, None
