@@ -182,9 +182,9 @@ def test_the_gnss_bias_estimated_as_unknowns_is_recovered_with_the_covariance_of
     sd = np.sqrt(np.diag(est.gnss_bias_cov))
     err = est.gnss_bias_enu_m - bias_enu_m
     assert np.all(np.abs(err) < 3.0 * sd), (err, sd)
-    assert np.all(sd < 0.05), sd
-    assert np.abs(err).max() < 0.05, err
-    assert centre_rmse(est.map_T_cams, s['T']) < 0.1   # 6.0 cm: the fixes' 3 cm noise and the GCPs' 2 cm
+    assert np.all(sd < 1.5 * 0.0273), sd                          # measured 2.3 / 2.7 / 2.4 cm
+    assert np.abs(err).max() < 1.5 * 0.0253, err                 # measured 1.9 / -2.5 / -1.5 cm
+    assert centre_rmse(est.map_T_cams, s['T']) < 1.5 * 0.0602   # the fixes' 3 cm noise and the GCPs' 2 cm
     # The same optimum from the truth (the bias from zero): the solve did not stop short.
     from_truth = bundle_adjust(BundleProblem(cam, s['T'], s['X'], s['obs_cam'], s['obs_pt'], s['uv'], **g, **gcps),
                                BundleOptions(loss='linear', max_iterations=100, estimate_gnss_bias=True))
@@ -203,4 +203,4 @@ def test_the_gnss_bias_estimated_as_unknowns_is_recovered_with_the_covariance_of
     # Without the bias as unknowns the GCPs and the offset fixes pull against each other: the block lands between.
     plain = bundle_adjust(BundleProblem(cam, T0, X0, s['obs_cam'], s['obs_pt'], s['uv'], **g, **gcps),
                           BundleOptions(loss='linear', max_iterations=100))
-    assert centre_rmse(plain.map_T_cams, s['T']) > 0.5
+    assert centre_rmse(plain.map_T_cams, s['T']) > 0.5          # measured 4.14 m

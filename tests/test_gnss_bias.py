@@ -95,4 +95,4 @@ def test_a_glitched_geotag_the_adjustment_rejected_does_not_move_the_bias(world)
     print(f'bias clean {np.round(runs["clean"].gnss_bias_enu * 100, 1)} cm, with the glitch '
           f'{np.round(glitched.gnss_bias_enu * 100, 1)} cm: moved {moved * 100:.2f} cm')
     assert glitched.gnss_bias_rounds['settled']
-    assert moved < 0.01
+    assert moved < 1.5 * 0.0016                                  # measured 0.16 cm (the loop before it: 107 m)
