@@ -18,8 +18,11 @@ Per survey and pipeline, from poses.csv / trajectory.csv, report.json, sparse.la
 - replay against triangulate: the same photos' camera centres (both georeferenced), RMS and max;
 - share of cameras within 15 degrees of nadir (the optical axis against the local vertical), median tilt;
 - reprojection RMS (px) from report.json;
-- DSM completeness: share of the DSM cells inside the convex hull of the camera centres that hold a height;
-- agreement with the peer; the verdict (report.json `verdict`, else n/a) and the command's last line;
+- DSM completeness: share of the DSM cells inside the convex hull of the camera centres that hold a height,
+  and of them the share measured by stereo (dsm.tif band 2 >= 1; the rest interpolated);
+- agreement with the peer: brighton's DSM against ODM's cloud after a constant 3D offset over every cell
+  both hold, and over those inside the camera centres' hull (the ground every flight line passed over), all
+  and measured by stereo; the verdict (report.json `verdict`, else n/a) and the command's last line;
 - the focal length after the adjustment against the EXIF one (triangulate);
 - wall time of the command(s).
 
@@ -222,20 +225,36 @@ def read_dsm(path: str | Path):
         return z, ds.transform, ds.crs.to_string()
 
 
-def dsm_completeness(dsm_path: str | Path, lat_deg, lon_deg) -> dict:
-    """Share of the DSM's cells inside the convex hull of the camera centres (lat/lon) that hold a height,
-    and the share of the whole raster."""
+def read_dsm_measured(path: str | Path) -> np.ndarray | None:
+    """The DSM's cells measured by stereo (band 2, the pairs that measured the cell, >= 1), or None for a
+    one-band DSM."""
+    import rasterio
+    with rasterio.open(path) as ds:
+        return ds.read(2) >= 1 if ds.count > 1 else None
+
+
+def camera_hull_mask(shape: tuple, tr, crs: str, lat_deg, lon_deg) -> np.ndarray:
+    """The raster cells (shape, affine `tr`, `crs`) inside the convex hull of the camera centres (lat/lon)."""
     import cv2
-    z, tr, crs = read_dsm(dsm_path)
     e, n, _ = geodetic_to_crs(np.asarray(lat_deg, float), np.asarray(lon_deg, float), np.zeros(len(lat_deg)), crs)
-    inv = ~tr
-    cols, rows = inv @ (np.asarray(e, float), np.asarray(n, float))
+    cols, rows = ~tr @ (np.asarray(e, float), np.asarray(n, float))
     hull = cv2.convexHull(np.column_stack([cols, rows]).astype(np.float32))
-    mask = np.zeros(z.shape, np.uint8)
+    mask = np.zeros(shape, np.uint8)
     cv2.fillConvexPoly(mask, np.round(hull.reshape(-1, 2)).astype(np.int32), 1)
-    inside = mask.astype(bool)
+    return mask.astype(bool)
+
+
+def dsm_completeness(dsm_path: str | Path, lat_deg, lon_deg) -> dict:
+    """Share of the DSM's cells inside the convex hull of the camera centres (lat/lon) that hold a height, the
+    share of them measured by stereo (band 2; all of them for a one-band DSM), and the share of the whole
+    raster holding a height."""
+    z, tr, crs = read_dsm(dsm_path)
+    inside = camera_hull_mask(z.shape, tr, crs, lat_deg, lon_deg)
     valid = np.isfinite(z)
+    measured = read_dsm_measured(dsm_path)
+    measured = valid if measured is None else valid & measured
     return {'dsm_hull_share': float(valid[inside].mean()) if inside.any() else float('nan'),
+            'dsm_measured_hull_share': float(measured[inside].mean()) if inside.any() else float('nan'),
             'dsm_raster_share': float(valid.mean()), 'dsm_hull_cells': int(inside.sum())}
 
 
@@ -299,10 +318,12 @@ def sparse_points(las_path: str | Path) -> tuple[np.ndarray, str]:
     return np.column_stack([las.x, las.y, las.z]), (crs.to_string() if crs is not None else '')
 
 
-def dsm_points(dsm_path: str | Path) -> tuple[np.ndarray, str]:
-    """dsm.tif -> ((N, 3) cell centres with a height, CRS string)."""
+def dsm_points(dsm_path: str | Path, cells: np.ndarray | None = None) -> tuple[np.ndarray, str]:
+    """dsm.tif -> ((N, 3) cell centres with a height, CRS string); only the cells where `cells` (a boolean
+    raster of the DSM's shape) is true when given."""
     z, tr, crs = read_dsm(dsm_path)
-    j, i = np.nonzero(np.isfinite(z))
+    keep = np.isfinite(z) if cells is None else np.isfinite(z) & cells
+    j, i = np.nonzero(keep)
     x, y = tr @ (i + 0.5, j + 0.5)
     return np.column_stack([x, y, z[j, i]]), crs
 
@@ -419,6 +440,15 @@ def measure(out: str | Path, pipeline: str, reference: dict, by: str = 'image', 
         if dsm.exists():
             pts, crs = dsm_points(dsm)
             row['peer'] = {'against': 'dsm.tif cells', **odm_agreement(to_crs(pts, crs))}
+            if poses:
+                z, tr, _ = read_dsm(dsm)
+                inside = camera_hull_mask(z.shape, tr, crs, [p['lat_deg'] for p in poses.values()],
+                                          [p['lon_deg'] for p in poses.values()])
+                measured = read_dsm_measured(dsm)
+                for key, cells in (('peer_in_hull', inside),
+                                   ('peer_in_hull_measured', inside if measured is None else inside & measured)):
+                    pts, _ = dsm_points(dsm, cells)
+                    row[key] = {'against': 'dsm.tif cells in the camera hull', **odm_agreement(to_crs(pts, crs))}
         elif (out / 'sparse.las').exists():
             pts, crs = sparse_points(out / 'sparse.las')
             row['peer'] = {'against': 'sparse.las', **odm_agreement(to_crs(pts, crs or report.get('crs', '')))}
@@ -613,8 +643,11 @@ def peer_text(row: dict) -> str:
     if not p:
         return '—'
     if 'median_abs_dz_m' in p:
+        hull, hull_m = row.get('peer_in_hull') or {}, row.get('peer_in_hull_measured') or {}
         return (f"ODM vs our {p['against']}: median \\|dz\\| {p['median_abs_dz_m'] * 100:.1f} cm, p90 "
-                f"{p['p90_abs_dz_m'] * 100:.0f} cm (offset {p['offset_m']} m)")
+                f"{p['p90_abs_dz_m'] * 100:.0f} cm (offset {p['offset_m']} m)"
+                + (f"; in the camera hull {hull['median_abs_dz_m'] * 100:.1f} cm (measured cells "
+                   f"{hull_m['median_abs_dz_m'] * 100:.1f} cm)" if hull.get('n') and hull_m.get('n') else ''))
     if 'diff_h_m' in p:
         q = row.get('peer_fixfocal') or {}
         return (f"pycolmap ({p['n']} photos) {p['peer_h_m']:.2f} / {p['peer_v_m']:.2f} m, ours (plain similarity) "
@@ -647,7 +680,8 @@ def verdict_words(row: dict) -> str:
 
 def markdown(rows: list[dict], commit: str) -> str:
     head = ('| survey | pipeline | oriented | GNSS RMS H / V after robust similarity (m) | rigid H / V (m) | '
-            f'within {NADIR_DEG:g}° of nadir (median tilt) | reprojection (px) | DSM completeness in camera hull | '
+            f'within {NADIR_DEG:g}° of nadir (median tilt) | reprojection (px) | DSM completeness in camera hull (measured by '
+            'stereo) | '
             'peer | verdict (report.json) | last line | wall (s) |')
     lines = [f'Measured with the product code of commit {commit}.', '', head, '|' + '---|' * 12]
     for r in rows:
@@ -659,7 +693,10 @@ def markdown(rows: list[dict], commit: str) -> str:
             + (f" keyframes of {r['photos']} images" if r['pipeline'] == 'replay' and r.get('photos') else ''),
             f"{_f(r.get('sim_h_m'))} / {_f(r.get('sim_v_m'))}{out}", f"{_f(r.get('rigid_h_m'))} / {_f(r.get('rigid_v_m'))}",
             f"{_f(r.get('nadir_share'), '.0%')} ({_f(r.get('tilt_median_deg'), '.1f', '°')})",
-            _f(r.get('reprojection_px'), '.3f'), _f(r.get('dsm_hull_share'), '.1%'), peer_text(r), verdict_text(r),
+            _f(r.get('reprojection_px'), '.3f'),
+            _f(r.get('dsm_hull_share'), '.1%') + (f" ({_f(r['dsm_measured_hull_share'], '.1%')} measured)"
+                                                  if r.get('dsm_measured_hull_share') is not None else ''),
+            peer_text(r), verdict_text(r),
             r.get('last_line', '').replace('|', '\\|')[:160] or r.get('stderr_last', '')[:160],
             f"{r.get('wall_s', 0):.0f} |"]))
     both = [r for r in rows if r.get('vs_triangulate', {}).get('n')]

@@ -65,9 +65,11 @@ def test_verdict_names_each_way_a_flight_fails_to_map():
     v = mapping_verdict(acc, georeferenced=True, dsm_share=0.028, mapped_products=True)
     assert not v['mapped'] and len(v['failures']) == 2
     assert 'only 1 of 34 keyframes (3 %)' in v['failures'][0] and '2.8 % of the DSM' in v['failures'][1]
-    # A DSM with holes over much of its area (trees, water) is a warning, not a failed flight.
+    # A DSM measured by stereo over under half its area (trees, water: the rest interpolated) is a warning,
+    # not a failed flight.
     holes = mapping_verdict(acc, georeferenced=True, dsm_share=0.3, mapped_products=True)
     assert holes['warnings'] and '30.0 %' in holes['warnings'][0] and len(holes['failures']) == 1
+    assert 'interpolated over much of its area' in holes['warnings'][0]
     # Per-reason counters of the adjuster, when it has them, replace its last status.
     counts['bundle'].update(not_oriented_too_few_known_points=30, not_oriented_no_fix=2)
     acc = keyframe_accounting(counts, 1, 'whatever')

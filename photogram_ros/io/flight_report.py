@@ -304,8 +304,8 @@ def dsm_valid_share(dsm_path) -> float | None:
 def mapping_verdict(accounting: dict, georeferenced: bool, dsm_share: float | None, mapped_products: bool) -> dict:
     """{'mapped': bool, 'failures': [sentences], 'warnings': [sentences]}: a flight with no georeferenced
     keyframe, fewer than half of its keyframes oriented, or a DSM nearly empty (or none while keyframes were
-    oriented) did not map; a DSM with holes over much of its area (trees, water, low overlap) mapped, with a
-    warning."""
+    oriented) did not map; a DSM measured by stereo over under MIN_DSM_VALID_SHARE of its area (trees, water,
+    low overlap: the rest interpolated) mapped, with a warning."""
     failures, warnings = [], []
     taken, oriented = accounting['keyframes_taken'], accounting['keyframes_oriented']
     if taken == 0:
@@ -323,8 +323,8 @@ def mapping_verdict(accounting: dict, georeferenced: bool, dsm_share: float | No
         if dsm_share < FAILED_DSM_VALID_SHARE:
             failures.append(f'the DSM is nearly empty: {said}')
         else:
-            warnings.append(f'the DSM has holes over much of its area: {said} (trees, water and plain roofs give '
-                            'no height; or too little overlap)')
+            warnings.append(f'the DSM is interpolated over much of its area: only {said} (trees, water and plain '
+                            'roofs give stereo no height; or too little overlap)')
     elif dsm_share is None and georeferenced and mapped_products:
         failures.append('no DSM was written')
     return {'mapped': not failures, 'failures': failures, 'warnings': warnings, 'dsm_valid_share': dsm_share}
