@@ -83,6 +83,9 @@ def test_gcp_with_a_placeholder_height_is_used_horizontally_only(flight_3d, tmp_
           f'({h / sk.gsd_m:.2f} GSD) over {q["check_rmse"]["count"]}')
     assert q['check_rmse']['count'] == 4 and h <= 1.5 * 0.36 * sk.gsd_m
     assert out.qualities and out.qualities[-1]['georeference'] == 'final'
+    # The figures published in flight come from the in-flight block, the last from the final adjustment.
+    assert out.qualities[-1]['block'] == 'adjusted' and q['block'] == 'adjusted'
+    assert any(d['block'] == 'in_flight' for d in out.qualities[:-1])
     # The report, from the detections the map folder keeps: GCP02, left out, with its 30 m; the others without
     # their placeholder heights; the check points as the stage measured them.
     doc = json.loads(json.dumps(out.qualities[-1], default=lambda v: v.tolist()))

@@ -2,7 +2,8 @@
 
 - The plain sample flight with its targets, the page's status.json polled every 5 s: never NO-GO (WAIT
   while the block is georeferenced provisionally: 6.08 m over 2 check points; WAIT while 2-4 check points
-  cannot tell 5.2-6.6 cm from the 5 cm limit), GO after the final adjustment, and then the page's check
+  cannot tell 5.2-6.6 cm from the 5 cm limit, the reason saying the figure is the in-flight block's), GO
+  after the final adjustment, and then the page's check
   points and GCP residuals equal the report's within 0.5 cm. The page over an MBTiles base map made here: screenshot.
 - The flight whose camera stopped 10 s (`simulate --gap 30:40`): never GO while a listed gap (any kind: here
   a forward-overlap gap of about 1,200 m² that the neighbouring lines see) is 25 m² or more.
@@ -134,6 +135,17 @@ def test_plain_flight_is_never_nogo_and_ends_go(plain):
     assert not [p for p in polls if p['verdict'] == 'NO-GO'], polls
     assert any(p['verdict'] == 'WAIT' and any('provisional' in r for r in p['reasons']) for p in polls), polls
     assert _summary(plain['final'])['verdict'] == 'GO', _summary(plain['final'])
+
+
+def test_check_point_figures_not_go_in_flight_say_they_come_from_the_in_flight_block(plain):
+    # A check-point figure that is not GO while the flight goes on (WAIT: too few points to tell; NO-GO: beyond
+    # the limit at 95 %) comes from the in-flight block, and its reason says so; the final verdict does not.
+    polls = [_summary(s) for _, s in plain['polls']]
+    judged = [r for p in polls if p['georef'] == 'final' for r in p['reasons'] or []
+              if r.startswith('check points') and 'not measured' not in r]
+    print('\n'.join(judged))
+    assert judged and all('from the in-flight block, before its final adjustment' in r for r in judged)
+    assert not any('in-flight' in r for r in _summary(plain['final'])['reasons'] or [])
 
 
 def test_page_check_points_equal_the_report(plain):

@@ -34,7 +34,7 @@ LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability
 
 
 def _quality(h_m: float) -> dict:
-    return {'stamp_ns': 1, 'keyframes': 40, 'fix_share': {'rtk_fixed': 1.0},
+    return {'stamp_ns': 1, 'keyframes': 40, 'fix_share': {'rtk_fixed': 1.0}, 'block': 'in_flight',
             'check_rmse': {'horizontal_m': h_m, 'vertical_m': 0.02, 'count': 4},
             'gcp_rmse': {'horizontal_m': None, 'vertical_m': None, 'count': 0}, 'gnss_bias_enu_m': None,
             'check_points': [{'name': 'CHK01', 'marker_id': 5, 'lat_deg': 47.3977, 'lon_deg': 8.5456, 'h_m': 490.0,
@@ -93,6 +93,8 @@ def test_fake_publishers_change_no_verdict(tmp_path, rclpy_context):
         before = drone()
         assert before['go_no_go']['verdict'] == 'NO-GO', before['go_no_go']
         assert before['accuracy']['check_rmse_h_m'] == 0.20 and before['accuracy']['georeference'] == 'final'
+        # The bundle node's figures came from its in-flight block: the reason says so.
+        assert 'in-flight block, before its final adjustment' in before['go_no_go']['reasons'][0]
         assert not before['unknown_publishers']
 
         tiles_before, cov_before = station.status()['drones']['drone1']['ortho'], before.get('coverage')

@@ -14,8 +14,8 @@ from photogram_ros.core.fusion import Fusion, FusionConfig, pack_rgb
 from photogram_ros.core.geodesy import LocalFrame
 from photogram_ros.core.gnss_fix import GnssFix
 from photogram_ros.core.ortho_tiles import TILE_PX, OrthoTiler
-from photogram_ros.core.survey_quality import (GEOREF_FINAL, GEOREF_PROVISIONAL, GEOREF_UNKNOWN, GO, NO_GO,
-                                               PROVISIONAL, WAIT, QualityLimits, fix_class, go_no_go, rmse,
+from photogram_ros.core.survey_quality import (BLOCK_ADJUSTED, BLOCK_IN_FLIGHT, GEOREF_FINAL, GEOREF_PROVISIONAL,
+                                               GEOREF_UNKNOWN, GO, NO_GO, PROVISIONAL, WAIT, QualityLimits, fix_class, go_no_go, rmse,
                                                rmse_lower_bound)
 from photogram_ros.errors import DataError
 from photogram_ros.io.mission import read_survey_area, refly_plan, survey_area_in_map
@@ -169,6 +169,26 @@ def test_go_no_go_judges_only_figures_of_a_block_georeferenced_for_good():
     strict = QualityLimits(max_check_rmse_h_m=0.05, nogo_confidence=0.0)
     assert go_no_go({'check_rmse': {'horizontal_m': 0.0537, 'vertical_m': 0.0, 'count': 4}, 'coverage_share': 1.0,
                      'gaps': []}, strict)['verdict'] == NO_GO
+
+
+def test_a_check_point_figure_of_the_in_flight_block_says_so_when_it_is_not_go():
+    """The sample flight's one NO-GO poll (7.28 cm over 3 check points, before the final adjustment, which ended
+    at 1.42 cm): NO-GO stays NO-GO, and its reason says it comes from the in-flight block; the same figure of
+    the adjusted block, or a GO, says nothing more."""
+    lim = QualityLimits(max_check_rmse_h_m=0.05, min_coverage=0.98, max_gap_m2=25.0)
+
+    def verdict(h, n, block):
+        return go_no_go({'check_rmse': {'horizontal_m': h, 'vertical_m': 0.02, 'count': n}, 'block': block,
+                         'georeference': GEOREF_FINAL, 'coverage_share': 1.0, 'gaps': []}, lim)
+
+    flight = verdict(0.0728, 3, BLOCK_IN_FLIGHT)
+    assert flight['verdict'] == NO_GO and 'in-flight block, before its final adjustment' in flight['reasons'][0]
+    final = verdict(0.0728, 3, BLOCK_ADJUSTED)
+    assert final['verdict'] == NO_GO and 'in-flight' not in final['reasons'][0]
+    wait = verdict(0.0563, 3, BLOCK_IN_FLIGHT)
+    assert wait['verdict'] == WAIT and 'cannot tell' in wait['reasons'][0] and 'in-flight' in wait['reasons'][0]
+    assert verdict(0.0142, 4, BLOCK_IN_FLIGHT) == {**verdict(0.0142, 4, BLOCK_ADJUSTED)} and \
+        verdict(0.0142, 4, BLOCK_IN_FLIGHT)['verdict'] == GO
 
 
 def test_every_gap_kind_counts():

@@ -66,6 +66,9 @@ class QualityLimits:
 # How far a figure can be trusted (the `status` of each check).
 MEASURED, PROVISIONAL, NOT_MEASURED = 'measured', 'provisional', 'not measured'
 GEOREF_FINAL, GEOREF_PROVISIONAL, GEOREF_NONE, GEOREF_UNKNOWN = 'final', 'provisional', 'none', 'unknown'
+# Which adjustment the accuracy figures come from: the in-flight block (window adjustments since the last full
+# one) or the whole block adjusted after its last keyframe (the final adjustment).
+BLOCK_IN_FLIGHT, BLOCK_ADJUSTED = 'in_flight', 'adjusted'
 
 
 def _check(name: str, value, limit: float, ok_when: str, status: str = MEASURED, why: str = '') -> dict:
@@ -106,6 +109,8 @@ def go_no_go(figures: dict, limits: QualityLimits) -> dict:
       'georeference': the state of the block the accuracy figures come from: GEOREF_FINAL (georeferenced
         for good), GEOREF_PROVISIONAL (on a first straight line: the roll about it is not known yet),
         GEOREF_NONE or GEOREF_UNKNOWN (the station has not heard); only GEOREF_FINAL figures are judged;
+      'block': BLOCK_IN_FLIGHT or BLOCK_ADJUSTED (the adjustment the check points come from); a check that
+        is not GO on the in-flight block says so in its reason (the final adjustment may move it);
       'coverage_share'; 'gaps' [{'kind', 'area_m2'}] every gap the map lists, whatever its kind
         (coverage, not_oriented, forward_overlap); else 'largest_gap_m2';
       'fix_share' {class: share};
@@ -141,6 +146,9 @@ def go_no_go(figures: dict, limits: QualityLimits) -> dict:
                 c['state'] = WAIT
                 c['why'] = (f'above the limit, but {n_cp} check points cannot tell at '
                             f'{100 * limits.nogo_confidence:.0f} % (lower bound {_fmt(low)})')
+        if c['status'] == MEASURED and c['state'] != GO and figures.get('block') == BLOCK_IN_FLIGHT:
+            c['why'] = '; '.join(w for w in (c['why'], 'from the in-flight block, before its final adjustment')
+                                 if w)
         checks.append(c)
     if limits.min_coverage > 0:
         checks.append(_check('coverage', figures.get('coverage_share'), limits.min_coverage, 'min'))

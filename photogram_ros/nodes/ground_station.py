@@ -44,8 +44,8 @@ from std_msgs.msg import String
 
 from photogram_ros import msgs
 from photogram_ros.core.geodesy import LocalFrame, utm_epsg
-from photogram_ros.core.survey_quality import (GEOREF_FINAL, GEOREF_NONE, GEOREF_PROVISIONAL, GEOREF_UNKNOWN,
-                                               GO, WAIT, QualityLimits, go_no_go)
+from photogram_ros.core.survey_quality import (BLOCK_ADJUSTED, BLOCK_IN_FLIGHT, GEOREF_FINAL, GEOREF_NONE,
+                                               GEOREF_PROVISIONAL, GEOREF_UNKNOWN, GO, WAIT, QualityLimits, go_no_go)
 from photogram_ros.errors import PhotogramError
 from photogram_ros.nodes.diagnostics import Diagnostics
 from photogram_ros.nodes.ros_params import declare
@@ -492,6 +492,8 @@ class GroundStationNode(Node):
                                        'vertical_m': out['accuracy']['check_rmse_v_m'],
                                        'count': out['accuracy']['check_count']},
                            fix_share=q.get('fix_share'))
+            if q.get('block') in (BLOCK_IN_FLIGHT, BLOCK_ADJUSTED):
+                figures['block'] = q['block']
         figures['georeference'] = geo
         out['go_no_go'] = with_node_errors(go_no_go(figures, self.params), out['health'])
         return out

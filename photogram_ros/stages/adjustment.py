@@ -36,7 +36,7 @@ from photogram_ros.core.evaluation import ce90_le90, intersect_targets
 from photogram_ros.core.geodesy import LocalFrame
 from photogram_ros.core.gnss_fix import COV_UNKNOWN, STATUS_GBAS_FIX, STATUS_SBAS_FIX, GnssFix
 from photogram_ros.core.incremental import IncrementalAT, IncrementalOptions, KeyframeRecord
-from photogram_ros.core.survey_quality import FIX_CLASSES, fix_class, rmse
+from photogram_ros.core.survey_quality import BLOCK_ADJUSTED, BLOCK_IN_FLIGHT, FIX_CLASSES, fix_class, rmse
 from photogram_ros.errors import PhotogramError
 from photogram_ros.params import param
 from photogram_ros.stages.report import ERROR, OK, WARN, DiagnosticsLog  # noqa: F401  (OK: for callers)
@@ -229,6 +229,7 @@ class AdjustmentStage:
         self._attitude_arrival = -1e9   # monotonic time of the newest attitude
         self._first_keyframe_arrival = None   # monotonic time of the first keyframe
         self._unplaced = 0                     # keyframes before an early break given up, already said
+        self._adjusted_whole = False           # a full adjustment ran after the last keyframe
         self._full_requested = False
         self._busy = False
         self.cond = threading.Condition()
@@ -468,6 +469,7 @@ class AdjustmentStage:
         """Adjust one keyframe (under `work`); one that is not published (an older one of a batch) gets the
         short catch-up window adjustment."""
         try:
+            self._adjusted_whole = False
             rep = self.at.add_keyframe(rec, None if publish else min(self.p.catch_up_iterations,
                                                                       self.p.window_iterations))
         except Exception as exc:
@@ -645,6 +647,7 @@ class AdjustmentStage:
         out = {'keyframes': n, 'fix_share': {c: (v / n if n else None) for c, v in self._fix_classes.items()},
                'georeference': ('none' if at is None or not at.georeferenced else
                                 'provisional' if at.georef_provisional else 'final'),
+               'block': BLOCK_ADJUSTED if self._adjusted_whole else BLOCK_IN_FLIGHT,
                'check_points': [], 'gcps': [], 'check_rmse': None, 'gcp_rmse': None, 'gnss_bias_enu_m': None,
                'max_row_residual_px': self.p.max_row_residual_px}
         if self.control is not None and self.at is not None and self.at.origin is not None:
@@ -811,6 +814,7 @@ class AdjustmentStage:
             self.diag.set('full_adjustment_s', time.perf_counter() - t0)
             self.diag.set('full_adjustment_rms_px', float(rep.reprojection_rms_px))
             self.diag.set('full_adjustment_status', rep.status)
+            self._adjusted_whole = True
             self._set_georeferenced()   # the end of a flight without fixes places the block by its GCPs
             if self.at.self_calibration is not None:
                 self.diag.set('self_calibration', self.at.self_calibration.text())
