@@ -43,6 +43,27 @@ def test_points_behind_camera_are_flagged():
     assert list(ok) == [False, True]
 
 
+
+def test_directions_beyond_the_fold_of_the_distortion_are_flagged():
+    # The radial polynomial r (1 + k1 r^2 + k2 r^4 + k3 r^6) of this barrel lens stops growing at the radius
+    # where its slope, found here by a dense scan (the oracle), reaches zero: a direction beyond it would land
+    # back inside the image. A ground point 2.35 off the axis (67 degrees) projects to a pixel in the image
+    # (406, 430): flagged, as the camera cannot see it; every direction inside the image is kept.
+    r = np.linspace(0.0, 4.0, 400001)
+    k1, k2, _, _, k3 = CAM.dist
+    rd = r * (1 + k1 * r ** 2 + k2 * r ** 4 + k3 * r ** 6)
+    fold = r[np.argmax(np.diff(rd) <= 0)]
+    assert CAM.max_radius_n() == pytest.approx(fold, abs=1e-4) and 1.5 < fold < 2.5
+    far = np.array([[0.98, 2.14, 1.0]])
+    uv, ok = CAM.project(far)
+    assert CAM.in_image(uv)[0] and not ok[0]
+    corners = CAM.unproject(np.array([[0.0, 0.0], [639.0, 479.0], [0.0, 479.0], [639.0, 0.0]]))
+    assert CAM.project(corners * 30.0)[1].all()
+    # No fold without distortion, or with a pincushion lens (k1 > 0): nothing beyond the image is flagged.
+    for dist in ((0.0,) * 5, (0.1, 0.0, 0.0, 0.0, 0.0)):
+        cam = PinholeCamera(640, 480, 500.0, 500.0, 320.0, 240.0, dist)
+        assert cam.max_radius_n() == float('inf') and cam.project(far)[1][0]
+
 def test_camera_info_and_yaml_round_trip():
     f = CAM.to_camera_info_fields()
     assert PinholeCamera.from_camera_info_fields(f['width'], f['height'], f['distortion_model'], f['d'], f['k']) == CAM

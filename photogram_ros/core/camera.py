@@ -126,13 +126,31 @@ class PinholeCamera:
         xd = np.stack([(uv[..., 0] - self.cx) / self.fx, (uv[..., 1] - self.cy) / self.fy], axis=-1)
         return self.undistort_normalized(xd)
 
+    def max_radius_n(self) -> float:
+        """The undistorted normalized radius (tan of the angle off the optical axis) up to which the radial
+        distortion keeps the image radius growing, r (1 + k1 r^2 + k2 r^4 + k3 r^6); inf when it always does.
+        Beyond it the polynomial folds back: a direction far outside the field of view would land inside the
+        image (a strong barrel lens, k1 < 0, folds at about 1.5-2.5)."""
+        k1, k2, _, _, k3 = self.dist
+        # d/dr of r (1 + k1 r^2 + k2 r^4 + k3 r^6) = 1 + 3 k1 s + 5 k2 s^2 + 7 k3 s^3 with s = r^2.
+        coeffs = np.trim_zeros(np.array([7.0 * k3, 5.0 * k2, 3.0 * k1, 1.0]), 'f')
+        roots = np.roots(coeffs) if len(coeffs) > 1 else np.array([])
+        s = roots[(np.abs(roots.imag) < 1e-12) & (roots.real > 0)].real
+        return float(np.sqrt(s.min())) if len(s) else float('inf')
+
     def project(self, points_cam: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(N, 3) points in the optical camera frame -> (N, 2) pixels and a mask of z > 0."""
+        """(N, 3) points in the optical camera frame -> (N, 2) pixels and a mask of the points the camera can
+        image: in front (z > 0) and within max_radius_n of the optical axis (beyond it the distortion folds
+        back into the image; such a point's pixel is meaningless)."""
         p = np.asarray(points_cam, dtype=float)
         z = p[..., 2]
         in_front = z > 1e-9
         zs = np.where(in_front, z, 1.0)
-        uv = self.normalized_to_pixel(p[..., :2] / zs[..., None])
+        xy = p[..., :2] / zs[..., None]
+        uv = self.normalized_to_pixel(xy)
+        r_max = self.max_radius_n()
+        if np.isfinite(r_max):
+            in_front = in_front & (np.sum(xy * xy, axis=-1) < r_max * r_max)
         return uv, in_front
 
     def unproject(self, uv: np.ndarray) -> np.ndarray:
