@@ -318,14 +318,20 @@ def sparse_points(las_path: str | Path) -> tuple[np.ndarray, str]:
     return np.column_stack([las.x, las.y, las.z]), (crs.to_string() if crs is not None else '')
 
 
+def cell_points(z: np.ndarray, tr, cells: np.ndarray | None = None) -> np.ndarray:
+    """(N, 3) centres and heights of the raster cells (heights `z`, NaN where empty; affine `tr`) holding a
+    height, only where `cells` (a boolean raster of z's shape) is true when given."""
+    keep = np.isfinite(z) if cells is None else np.isfinite(z) & cells
+    j, i = np.nonzero(keep)
+    x, y = tr @ (i + 0.5, j + 0.5)
+    return np.column_stack([x, y, z[j, i]])
+
+
 def dsm_points(dsm_path: str | Path, cells: np.ndarray | None = None) -> tuple[np.ndarray, str]:
     """dsm.tif -> ((N, 3) cell centres with a height, CRS string); only the cells where `cells` (a boolean
     raster of the DSM's shape) is true when given."""
     z, tr, crs = read_dsm(dsm_path)
-    keep = np.isfinite(z) if cells is None else np.isfinite(z) & cells
-    j, i = np.nonzero(keep)
-    x, y = tr @ (i + 0.5, j + 0.5)
-    return np.column_stack([x, y, z[j, i]]), crs
+    return cell_points(z, tr, cells), crs
 
 
 def to_crs(points: np.ndarray, crs: str, dst: str = 'EPSG:32615') -> np.ndarray:
@@ -438,17 +444,16 @@ def measure(out: str | Path, pipeline: str, reference: dict, by: str = 'image', 
         row['peer_fixfocal'] = pycolmap_agreement(res['per_camera_sim_enu_m'], variant='exhaustive_fixfocal')
     elif peer == 'odm':
         if dsm.exists():
-            pts, crs = dsm_points(dsm)
-            row['peer'] = {'against': 'dsm.tif cells', **odm_agreement(to_crs(pts, crs))}
+            z, tr, crs = read_dsm(dsm)
+            row['peer'] = {'against': 'dsm.tif cells', **odm_agreement(to_crs(cell_points(z, tr), crs))}
             if poses:
-                z, tr, _ = read_dsm(dsm)
                 inside = camera_hull_mask(z.shape, tr, crs, [p['lat_deg'] for p in poses.values()],
                                           [p['lon_deg'] for p in poses.values()])
                 measured = read_dsm_measured(dsm)
                 for key, cells in (('peer_in_hull', inside),
                                    ('peer_in_hull_measured', inside if measured is None else inside & measured)):
-                    pts, _ = dsm_points(dsm, cells)
-                    row[key] = {'against': 'dsm.tif cells in the camera hull', **odm_agreement(to_crs(pts, crs))}
+                    row[key] = {'against': 'dsm.tif cells in the camera hull',
+                                **odm_agreement(to_crs(cell_points(z, tr, cells), crs))}
         elif (out / 'sparse.las').exists():
             pts, crs = sparse_points(out / 'sparse.las')
             row['peer'] = {'against': 'sparse.las', **odm_agreement(to_crs(pts, crs or report.get('crs', '')))}

@@ -43,7 +43,6 @@ def test_points_behind_camera_are_flagged():
     assert list(ok) == [False, True]
 
 
-
 def test_directions_beyond_the_fold_of_the_distortion_are_flagged():
     # The radial polynomial r (1 + k1 r^2 + k2 r^4 + k3 r^6) of this barrel lens stops growing at the radius
     # where its slope, found here by a dense scan (the oracle), reaches zero: a direction beyond it would land
@@ -63,6 +62,7 @@ def test_directions_beyond_the_fold_of_the_distortion_are_flagged():
     for dist in ((0.0,) * 5, (0.1, 0.0, 0.0, 0.0, 0.0)):
         cam = PinholeCamera(640, 480, 500.0, 500.0, 320.0, 240.0, dist)
         assert cam.max_radius_n() == float('inf') and cam.project(far)[1][0]
+
 
 def test_camera_info_and_yaml_round_trip():
     f = CAM.to_camera_info_fields()

@@ -81,13 +81,11 @@ def exif_bytes(lat_deg: float, lon_deg: float, alt_msl_m: float, when: datetime,
 
 def target_pixel(cam, map_T_cam: np.ndarray, point_map_m: np.ndarray, margin_px: float = 20.0):
     """(2,) distorted pixel of the map point seen by a camera at map_T_cam (4, 4, camera to map), or None when
-    the camera does not see it: behind it, outside the image (less `margin_px`), or outside the view and
-    folded into the image by the distortion polynomial (its pixel does not undistort back to its direction)."""
+    the camera does not see it: behind it, beyond the fold of its distortion (PinholeCamera.project), or
+    outside the image (less `margin_px`)."""
     pc = transform_points(invert_T(map_T_cam), np.asarray(point_map_m, float).reshape(1, 3))
     uv, ok = cam.project(pc)
     if not ok[0] or not cam.in_image(uv, margin_px=margin_px)[0]:
-        return None
-    if np.linalg.norm(cam.pixel_to_normalized(uv)[0] - pc[0, :2] / pc[0, 2]) >= 1e-3:
         return None
     return uv[0]
 
