@@ -22,7 +22,7 @@ from photogram_ros.sim.truth import GroundTruth
 pytestmark = pytest.mark.ros
 
 MEASURED = {
-    'check_h': 0.57, 'check_v': 0.40, 'cameras_m': 0.030,
+    'check_h': 0.55, 'check_v': 0.33, 'cameras_m': 0.030,
     'dsm_measured_median': 0.64, 'dsm_measured_p90': 1.41, 'dsm_measured_rmse': 1.13, 'dsm_all_median': 0.66,
     'dsm_filled_median': 1.01, 'dtm_rmse': 0.99, 'cloud_median': 0.66, 'cloud_p90': 1.48,
 }
@@ -65,7 +65,11 @@ def test_products_exist_with_crs_and_bounds(replay):
 def test_check_points_and_cameras_against_truth(replay):
     _, rep, truth, _ = replay
     cp = rep['check_points']['rmse']
-    assert cp['count'] == 9
+    # GCP02, at a corner of the block, is seen in 2 images of one line: intersected too weakly to count (vertical
+    # DOP 11.6), it is listed apart.
+    assert cp['count'] == 8
+    weak = rep['check_points']['weak']
+    assert [w['name'] for w in weak] == ['GCP02'] and weak[0]['views'] == 2 and weak[0]['dop_v'] > 5.0
     assert cp['horizontal_m'] <= gate('check_h') * truth.gsd_m
     assert cp['z_m'] <= gate('check_v') * truth.gsd_m
     tr = rep['trajectory_vs_truth']
@@ -112,12 +116,14 @@ def test_report_with_a_control_file_lists_gcps_apart(replay, sample_bag, tmp_pat
     from photogram_ros.io.control_file import read_control_file
     from photogram_ros.io.flight_report import build_report
     out, rep, truth, _ = replay
-    assert rep['check_points']['rmse']['count'] == len(truth.targets) and 'gcp_residuals' not in rep
+    assert rep['check_points']['rmse']['count'] + len(rep['check_points']['weak']) == len(truth.targets)
+    assert 'gcp_residuals' not in rep
     bundle = rep['nodes']['/bundle_node']['values']
     assert bundle['target_detections'] > 0 and bundle['target_detections_ignored'] == bundle['target_detections']
     fig = build_report(tmp_path, out / 'map', 'EPSG:32632', {}, control=read_control_file(sample_bag / 'targets.txt'))
     assert sorted(p['name'] for p in fig['check_points']['points']) == ['CHK01', 'CHK02', 'CHK03', 'CHK04']
-    assert sorted(p['name'] for p in fig['gcp_residuals']['points']) == ['GCP01', 'GCP02', 'GCP03', 'GCP04', 'GCP05']
+    assert sorted(p['name'] for p in fig['gcp_residuals']['points']) == ['GCP01', 'GCP03', 'GCP04', 'GCP05']
+    assert [w['name'] for w in fig['gcp_residuals']['weak']] == ['GCP02']
     assert fig['gcp_residuals']['rmse']['horizontal_m'] <= 1.5 * truth.gsd_m
     assert 'GCP residuals' in (tmp_path / 'report.md').read_text()
     assert fig['check_points']['ce90_le90']['n'] == 4 and 'CE90' in (tmp_path / 'report.md').read_text()
@@ -125,16 +131,17 @@ def test_report_with_a_control_file_lists_gcps_apart(replay, sample_bag, tmp_pat
     # used horizontally only has no height residual, one left out is not in the RMSE, the faults are listed.
     said = 'GCP GCP01: its surveyed height is 90.00 m below ...; a placeholder?; used horizontally only'
     diag = {'/bundle_node': {'values': {'gcps_used': '4', 'gcps_horizontal_only_names': 'GCP01',
-                                        'gcps_rejected_names': 'GCP02'},
+                                        'gcps_rejected_names': 'GCP04'},
                              'problems': [[3.0, f'control: {said}'], [4.0, 'bad keyframe fix: x']]}}
     (tmp_path / 'vetted').mkdir()
     fig = build_report(tmp_path / 'vetted', out / 'map', 'EPSG:32632', {},
                        control=read_control_file(sample_bag / 'targets.txt'), diagnostics=diag)
     g = fig['gcp_residuals']
     use = {p['name']: (p['use'], p['dz_m']) for p in g['points']}
-    assert use['GCP01'] == ('horizontal only', None) and use['GCP02'] == ('not used', None)
+    assert use['GCP01'] == ('horizontal only', None) and use['GCP04'] == ('not used', None)
     assert use['GCP03'][0] == 'full' and use['GCP03'][1] is not None
-    assert g['rmse']['count'] == 4 and g['rmse']['count_vertical'] == 3 and g['faults'] == [said]
+    # GCP02 is intersected too weakly to count (above), GCP04 was not used, GCP01 has no height.
+    assert g['rmse']['count'] == 3 and g['rmse']['count_vertical'] == 2 and g['faults'] == [said]
     assert said in (tmp_path / 'vetted' / 'report.md').read_text()
 
 

@@ -145,6 +145,13 @@ def _diagonal_intersection(c: np.ndarray) -> np.ndarray:
     return p + t * r
 
 
+# A target intersected with a dilution of precision above this (horizontally or vertically) is not measured yet:
+# seen in 2 or 3 neighbouring images of one line, its intersection's own noise is what its residual shows (the
+# simulator's sample flight: vertical DOP 11 / 5.6 from 2 / 3 images, 16-39 cm off from 2), not the block's
+# error. From 4 images along a line it counts (DOP 3.5-3.7); seen across lines it is under 1 (0.8-0.9 there).
+MAX_INTERSECTION_DOP = 5.0
+
+
 @dataclass
 class PointResiduals:
     names: list
@@ -153,6 +160,9 @@ class PointResiduals:
     n_views: np.ndarray           # (K,)
     missing: list = field(default_factory=list)   # surveyed but not seen in >= 2 keyframes
     rms_px: np.ndarray | None = None              # (K,) reprojection RMS of the detections used
+    # Intersected, but too weakly to count (intersection_dop above the limit): [{'name', 'views', 'dop_h',
+    # 'dop_v'}] (a DOP None: the rays do not fix the point); neither in the residuals nor in `missing`.
+    weak: list = field(default_factory=list)
 
     @property
     def residuals(self) -> np.ndarray:
@@ -171,27 +181,58 @@ class PointResiduals:
                 for n, d, v in zip(self.names, self.residuals, self.n_views)]
 
 
+def intersection_dop(camera: PinholeCamera, map_T_cams: np.ndarray, uv: np.ndarray, X_map: np.ndarray) -> tuple:
+    """(horizontal, vertical) dilution of precision of the point X_map (m) intersected from its detections uv (N, 2)
+    px in the cameras map_T_cams (N, 4, 4, camera to map): its standard deviation, in ground pixels (the rays'
+    mean depth over the focal length), for one pixel of detection noise per axis; horizontal is the 2D one
+    (sqrt of the east and north variances summed). inf when the rays do not fix the point."""
+    from photogram_ros.core.incremental import reprojection_residuals_px
+    Ts, uv, X = np.asarray(map_T_cams, float).reshape(-1, 4, 4), np.asarray(uv, float).reshape(-1, 2), np.asarray(X_map, float)
+    r0 = reprojection_residuals_px(camera, Ts, uv, X).ravel()
+    step = 1e-4 * max(1.0, float(np.linalg.norm(X - Ts[:, :3, 3].mean(axis=0))))
+    J = np.column_stack([(reprojection_residuals_px(camera, Ts, uv, X + d).ravel() - r0) / step
+                         for d in np.eye(3) * step])
+    try:
+        C = np.linalg.inv(J.T @ J)
+    except np.linalg.LinAlgError:
+        return float('inf'), float('inf')
+    depth = np.einsum('nj,nj->n', Ts[:, :3, 2], X[None] - Ts[:, :3, 3]).mean()
+    gsd = depth / camera.fx
+    if not (np.all(np.isfinite(C)) and gsd > 0) or C[2, 2] < 0 or C[0, 0] + C[1, 1] < 0:
+        return float('inf'), float('inf')
+    return float(np.sqrt(C[0, 0] + C[1, 1]) / gsd), float(np.sqrt(C[2, 2]) / gsd)
+
+
 def intersect_targets(camera: PinholeCamera, map_T_cams: np.ndarray, observations: dict, surveyed: dict,
-                      max_px: float = 10.0) -> PointResiduals:
+                      max_px: float = 10.0, max_dop: float = MAX_INTERSECTION_DOP) -> PointResiduals:
     """Each surveyed target intersected from the adjusted cameras, against its survey: the one method of the
     live accuracy (stages/adjustment.py) and the flight report.
 
     map_T_cams: (N, 4, 4) the posed images; observations: key -> [(image index, (u, v) px)] of the target's
     detections; surveyed: key -> (name, (3,) surveyed xyz in map). A target is intersected robustly
     (core.control.robust_intersection: the largest set of its detections within max_px of one point, the
-    point refined on them); one with fewer than two detections, or none that agree, is listed as missing.
+    point refined on them); one with fewer than two detections, or none that agree, is listed as missing; one whose
+    detections in use fix it with a dilution of precision above max_dop (`intersection_dop`, either axis) is
+    listed as weak: its residual would measure its own intersection's noise, not the block.
     Returns PointResiduals in the order of `surveyed`, with the detections used and their RMS (px)."""
     from photogram_ros.core.control import robust_intersection
+    from photogram_ros.core.incremental import reprojection_residuals_px
     Ts = np.asarray(map_T_cams, float).reshape(-1, 4, 4)
-    names, est, sur, views, rms, missing = [], [], [], [], [], []
+    names, est, sur, views, rms, missing, weak = [], [], [], [], [], [], []
     for key, (name, xyz) in surveyed.items():
         obs = observations.get(key, [])
         got = None
         if len(obs) >= 2:
-            got = robust_intersection(camera, Ts[[int(c) for c, _ in obs]],
-                                      np.array([uv for _, uv in obs], float).reshape(-1, 2), max_px)
+            Tk, uv = Ts[[int(c) for c, _ in obs]], np.array([uv for _, uv in obs], float).reshape(-1, 2)
+            got = robust_intersection(camera, Tk, uv, max_px)
         if got is None:
             missing.append(name)
+            continue
+        used = np.linalg.norm(reprojection_residuals_px(camera, Tk, uv, np.asarray(got[0], float)), axis=1) <= max_px
+        dop_h, dop_v = intersection_dop(camera, Tk[used], uv[used], got[0]) if used.sum() >= 2 else (np.inf, np.inf)
+        if not max(dop_h, dop_v) <= max_dop:
+            weak.append({'name': name, 'views': int(got[1]), 'dop_h': round(dop_h, 2) if np.isfinite(dop_h) else None,
+                         'dop_v': round(dop_v, 2) if np.isfinite(dop_v) else None})
             continue
         names.append(name)
         est.append(np.asarray(got[0], float))
@@ -199,7 +240,7 @@ def intersect_targets(camera: PinholeCamera, map_T_cams: np.ndarray, observation
         views.append(int(got[1]))
         rms.append(float(got[2]))
     return PointResiduals(names, np.array(est).reshape(-1, 3), np.array(sur).reshape(-1, 3), np.array(views, int),
-                          missing, np.array(rms, float))
+                          missing, np.array(rms, float), weak)
 
 
 def trajectory_errors(est_centres_map: np.ndarray, true_centres_map: np.ndarray) -> dict:

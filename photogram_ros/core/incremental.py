@@ -167,6 +167,14 @@ class IncrementalOptions:
                                  'check point)')
     estimate_gnss_bias: bool = param(True, 'estimate a constant ENU GNSS offset in the full adjustment when >= 3 '
                                            'GCPs make it observable')
+    control_adjustment: bool = param(True, 'in flight, a full adjustment of the whole block (with the GNSS noise '
+                                           'estimate and the GNSS bias) each time its GCPs change (3 or more: one '
+                                           'seen, or one the vetting took out): the window adjustments hold the '
+                                           'older keyframes, so without it GCPs seen later cannot move them, and '
+                                           'the live check points show a block the final adjustment will move')
+    control_adjustment_max_keyframes: int = param(1000, 'the control adjustment runs on blocks of at most this '
+                                                        'many oriented keyframes (its cost grows with the block)',
+                                                  min=1, max=10000000)
     bias_iterations: int = param(10, 'full adjustments with the GNSS bias as unknowns, at most (the outliers each '
                                      'removes can move the bias of the next; settled when it moves under 1 mm)',
                                  min=0, max=1000)
@@ -408,6 +416,8 @@ class IncrementalAT:
         self._gnss_slope_centre = np.zeros(2)
         # Oriented keyframes at the last full adjustment (`growth_ratio`).
         self._full_adjusted_n = 0
+        # The GCPs in the block at the last control adjustment (`control_adjustment`), by name.
+        self._control_adjusted_gcps: frozenset = frozenset()
 
     @property
     def lever_arm_cam_m(self) -> np.ndarray:
@@ -547,6 +557,9 @@ class IncrementalAT:
                 if self._growth_due():
                     self._pass_adjustment(gnss_bias=False)
                     rep.block_adjusted = True
+                if self._control_due():
+                    self._control_adjustment()
+                    rep.block_adjusted = True
             elif self._segment_wanted(kf):
                 rep = self._grow_segment(kf, rec, rep, window_iterations)
         rep.solve_s = time.perf_counter() - t0
@@ -575,6 +588,25 @@ class IncrementalAT:
                 and n >= self.opt.pass_min_keyframes
                 and (n >= self.opt.growth_ratio * max(self._full_adjusted_n, 1)
                      or self._full_adjusted_n < self.opt.pass_min_keyframes))
+
+    def _control_due(self) -> bool:
+        """The block, georeferenced for good and of at most control_adjustment_max_keyframes, holds 3 GCPs or
+        more, and not the same ones as at its last control adjustment (one came, or the vetting took one out)."""
+        if not (self.opt.control_adjustment and self.opt.use_gcps and self.georeferenced
+                and not self.georef_provisional and len(self.registered) <= self.opt.control_adjustment_max_keyframes):
+            return False
+        gcps = self._gcp_names()
+        return len(gcps) >= 3 and gcps != self._control_adjusted_gcps
+
+    def _control_adjustment(self) -> StepReport:
+        """The whole block adjusted on its GCPs: one round, the GNSS noise estimate (fixes poorer than they state
+        would otherwise bend the block their way), then the GNSS bias; no self-calibration. The older keyframes
+        move with the block; the later window adjustments take the fixes less the bias, weighted by their noise."""
+        self._control_adjusted_gcps = self._gcp_names()
+        self._solve(list(self.registered), [], list(self.points), self.opt.full_iterations)
+        if self.opt.estimate_gnss_noise:
+            self.estimate_gnss_noise()
+        return self.full_adjustment(iterations=self.opt.full_iterations, rounds=1, gnss_noise=False, gnss_bias=True)
 
     # --- segments: the flight after every track was lost -------------------------------------------
 
@@ -1657,6 +1689,12 @@ class IncrementalAT:
         rep = StepReport(-1, False, 'not_initialised')
         if not self.registered:
             return rep
+        if gnss_noise and self.gnss_bias_estimated:
+            # The final adjustment estimates the bias afresh, after its own self-calibration and GNSS noise estimate:
+            # the focal length and the bias's height trade off on a flat block, so one from the control adjustments
+            # in flight (fixes weighted as stated, the lens held) would steer where the final one lands.
+            self.gnss_bias_enu = np.zeros(3)
+            self.gnss_bias_estimated = False
         if not self.georeferenced and (self._georeference_short_block() or self._try_georeference(force=True)):
             rounds = max(rounds - 1, 1)
         if self._segment is not None and self._segment.registered:
@@ -1833,8 +1871,12 @@ class IncrementalAT:
             return np.full(3, 10.0)
         return np.sqrt(np.median([np.diag(c) for c in cov], axis=0))
 
+    def _gcp_names(self) -> frozenset:
+        """The GCPs the adjustment uses: targets triangulated in the block that are not check points."""
+        return frozenset(n for n, t in self._target_ids.items() if t in self.points and not self.is_check(t))
+
     def _n_gcps(self) -> int:
-        return sum(1 for n, t in self._target_ids.items() if t in self.points and not self.is_check(t))
+        return len(self._gcp_names())
 
     # --- results ----------------------------------------------------------------------------------
 

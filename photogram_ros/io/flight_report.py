@@ -27,8 +27,8 @@ import numpy as np
 
 from photogram_ros.core.at_report import redundancy_notes
 from photogram_ros.core.control import ControlVettingOptions
-from photogram_ros.core.evaluation import (ce90_le90, detect_targets, intersect_targets, surface_errors,
-                                           trajectory_errors)
+from photogram_ros.core.evaluation import (MAX_INTERSECTION_DOP, ce90_le90, detect_targets, intersect_targets,
+                                           surface_errors, trajectory_errors)
 from photogram_ros.core.geodesy import LocalFrame, crs_to_geodetic, geodetic_to_crs
 from photogram_ros.io.at_report import ce90_text
 from photogram_ros.io.map_store import CAMERA_FINAL, MapStore
@@ -38,10 +38,19 @@ from photogram_ros.io.trajectory import TRAJECTORY_COLUMNS, write_trajectory_csv
 
 def _target_figures(res, gsd_m: float | None) -> dict:
     rm = res.rmse()
-    out = {'rmse': rm, 'points': res.table(), 'not_seen': res.missing}
+    out = {'rmse': rm, 'points': res.table(), 'not_seen': res.missing, 'weak': res.weak}
     if gsd_m and rm['count']:
         out['rmse_gsd'] = {'horizontal': rm['horizontal_m'] / gsd_m, 'vertical': rm['z_m'] / gsd_m}
     return out
+
+
+def weak_text(weak: list[dict]) -> str:
+    """The targets intersected too weakly to count (core.evaluation.intersect_targets), in words."""
+    def dop(v):
+        return 'unfixed' if v is None else f'{v:.1f}'
+    names = ', '.join(f"{w['name']} ({w['views']} images, DOP {dop(w['dop_h'])} H / {dop(w['dop_v'])} V)" for w in weak)
+    return (f'Not counted (their images fix them too weakly: a dilution of precision above '
+            f'{MAX_INTERSECTION_DOP:g}, seen in a few neighbouring images of one line): {names}.')
 
 
 def target_observations(store: MapStore, kfs: list[dict], surveyed: dict) -> tuple[dict, float, str]:
@@ -475,6 +484,8 @@ def build_report(out_dir: str | Path, map_dir: str | Path | MapStore, crs: str, 
         if checks.missing:
             sec.text.append(f'Not measured (seen in fewer than two keyframes, or detections that agree on no point): '
                             f'{", ".join(checks.missing)}.')
+        if checks.weak:
+            sec.text.append(weak_text(checks.weak))
     elif control is not None:
         sec.text.append(f'{control.source} names no check point (CHK* or --check): the accuracy of this map is '
                         'not measured.')
@@ -573,6 +584,8 @@ def _gcp_section(gcps, gsd: float | None, n_surveyed: int, diagnostics: dict | N
     if gcps.missing:
         sec.text.append(f'Not measured (seen in fewer than two keyframes, or detections that agree on no point): '
                         f'{", ".join(gcps.missing)}.')
+    if gcps.weak:
+        sec.text.append(weak_text(gcps.weak))
     faults = [p[1][len('control: '):] for p in bundle.get('problems', []) if str(p[1]).startswith('control: ')]
     fig['faults'] = list(dict.fromkeys(faults))
     if fig['faults']:

@@ -599,15 +599,17 @@ class AdjustmentStage:
 
     # --- live quality -----------------------------------------------------------------------------
 
-    def _target_rows(self, role: str) -> list[dict]:
+    def _target_rows(self, role: str) -> tuple[list[dict], list[dict]]:
         """Surveyed targets of one role seen so far, intersected from the adjusted cameras over the oriented
         keyframes that saw them (core.evaluation.intersect_targets, as the flight report does; a GCP too, not
         its adjusted point, which its own prior holds); residual = estimate - survey, map ENU, m. The
-        detections are those `_detections` hands out, which the report intersects again by the same method."""
+        detections are those `_detections` hands out, which the report intersects again by the same method.
+        Returns (rows, weak): weak lists those intersected too weakly to count ({'name', 'views', 'dop_h',
+        'dop_v'})."""
         at = self.at
         registered = set(at.registered)
         if role == 'gcp' and not at.georeferenced:
-            return []
+            return [], []
         targets, obs, surveyed = {}, {}, {}
         for t in self.control.targets:
             cp, use = self.live.surveyed.get(t.name), self.live.use_of(t.name)
@@ -626,7 +628,7 @@ class AdjustmentStage:
             rows.append({'name': t.name, 'marker_id': t.marker_id, 'lat_deg': t.lat_deg, 'lon_deg': t.lon_deg,
                          'h_m': t.h_m, 'residual_enu_m': [float(v) for v in r], 'images': int(n_images),
                          'rms_px': None if not np.isfinite(rms_px) else float(rms_px), 'use': use})
-        return rows
+        return rows, res.weak
 
     def _detections(self) -> dict:
         """{target name: [[stamp_ns, u, v], ...]} of every surveyed target in the oriented keyframes (the
@@ -651,8 +653,8 @@ class AdjustmentStage:
                'check_points': [], 'gcps': [], 'check_rmse': None, 'gcp_rmse': None, 'gnss_bias_enu_m': None,
                'max_row_residual_px': self.p.max_row_residual_px}
         if self.control is not None and self.at is not None and self.at.origin is not None:
-            out['check_points'] = self._target_rows('check')
-            out['gcps'] = self._target_rows('gcp')
+            out['check_points'], out['check_points_weak'] = self._target_rows('check')
+            out['gcps'], out['gcps_weak'] = self._target_rows('gcp')
             checks = [r['residual_enu_m'] for r in out['check_points']]
             out['check_rmse'] = rmse(checks)
             out['check_ce90_le90'] = ce90_le90(checks)
