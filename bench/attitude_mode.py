@@ -43,11 +43,11 @@ from photogram_ros.stages.adjustment import (AdjustmentParams, AdjustmentStage, 
                                              RecordedOutputs)
 
 
-def fly(sk, targets, control: str = ''):
+def fly(sk, targets, control: str = '', **overrides):
     """The stage fed keyframe by keyframe (RTK fixes, target rows), then finished: (stage, last in-flight
-    quality)."""
+    quality); overrides: AdjustmentParams by name."""
     p = from_dict(AdjustmentParams, {'lever_arm_cam_m': [float(v) for v in sk.lever_arm_cam_m],
-                                     'control_file': control})
+                                     'control_file': control, **overrides})
     stage = AdjustmentStage(p, DiagnosticsLog(), RecordedOutputs())
     stage.set_camera(sk.camera)
     marker = {t.name: t.marker_id for t in targets}

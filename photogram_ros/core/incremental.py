@@ -38,6 +38,7 @@ import time
 from dataclasses import dataclass, field, replace
 
 import numpy as np
+import scipy.linalg
 
 from photogram_ros.core.at_freeze import Freezer
 from photogram_ros.core.at_store import Keyframe, PointStore
@@ -109,6 +110,13 @@ class ControlPoint:
     role: str                       # 'gcp' (used) or 'check' (never used)
 
 
+GNSS_TILT_MODES = ('never', 'auto', 'always')
+# The "auto" tilt's F-test level. With 5 GCPs (2 degrees of freedom left) its quantile is 9.0 (19.0 at 95 %); the
+# simulator's sample flight gives F 1.3 at most over six flights whose fixes lean 2 mm/m or less, and 17.9 for one
+# whose fixes lean 10 mm/m (bench/gnss_tilt.py).
+TILT_TEST_LEVEL = 0.90
+
+
 @dataclass
 class IncrementalOptions:
     """The aerial triangulation's parameters (ROS-free; nodes/bundle_node.py's set extends it)."""
@@ -175,6 +183,18 @@ class IncrementalOptions:
     control_adjustment_max_keyframes: int = param(1000, 'the control adjustment runs on blocks of at most this '
                                                         'many oriented keyframes (its cost grows with the block)',
                                                   min=1, max=10000000)
+    gnss_tilt: str = param('never', 'with the GNSS bias, a tilt of the fixes\' heights across the block (2 more '
+                                    'unknowns), where the GCPs used in height spread over it in both directions '
+                                    '(gnss_tilt_min_spread): fixes that lean by several mm/m (a strip flown on a '
+                                    'float fix, a wandering fix) would otherwise turn the block. "always"; "auto": '
+                                    'the final adjustment keeps it when it lowers the GCPs\' height residuals '
+                                    'significantly (an F-test at 90 %, 4 GCPs or more); "never" (the default: with 5 '
+                                    'GCPs, a lean of 2 mm/m or less is estimated no better than it is left, '
+                                    'bench/gnss_tilt.py)')
+    gnss_tilt_min_spread: float = param(0.3, 'the tilt is estimated when, along every horizontal direction, the GCPs '
+                                             'used in height spread (RMS about their centre) by at least this '
+                                             'fraction of the fixes\' spread: GCPs on one line never', min=0.0,
+                                        max=10.0)
     bias_iterations: int = param(10, 'full adjustments with the GNSS bias as unknowns, at most (the outliers each '
                                      'removes can move the bias of the next; settled when it moves under 1 mm)',
                                  min=0, max=1000)
@@ -241,6 +261,8 @@ class IncrementalOptions:
         if bad:
             raise ConfigError(f'pass_self_calibration: {bad} are not distortion terms; choose from '
                               f'{", ".join(DISTORTION_TERMS)}')
+        if self.gnss_tilt not in GNSS_TILT_MODES:
+            raise ConfigError(f'gnss_tilt {self.gnss_tilt!r}: choose one of {", ".join(GNSS_TILT_MODES)}')
         if 0.0 < self.growth_ratio < 1.05:
             raise ConfigError(f'growth_ratio {self.growth_ratio}: give 0 (no growth adjustments) or at least 1.05')
         if any(self.lever_arm_body_frd_m) and any(self.lever_arm_cam_m):
@@ -313,9 +335,11 @@ def _intrinsics_by_name(camera: PinholeCamera) -> dict:
     return {'f': camera.fx, 'cx': camera.cx, 'cy': camera.cy, **dict(zip(('k1', 'k2', 'p1', 'p2', 'k3'), camera.dist))}
 
 
-def _adjust(prob, loss: str, scale_px: float, iterations: int, refine: tuple = (), gnss_bias: bool = False):
+def _adjust(prob, loss: str, scale_px: float, iterations: int, refine: tuple = (), gnss_bias: bool = False,
+            gnss_tilt: bool = False):
     return bundle_adjust(prob, BundleOptions(loss=loss, loss_scale_px=scale_px, max_iterations=iterations,
-                                             refine_intrinsics=tuple(refine), estimate_gnss_bias=gnss_bias))
+                                             refine_intrinsics=tuple(refine), estimate_gnss_bias=gnss_bias,
+                                             estimate_gnss_tilt=gnss_tilt))
 
 
 def flight_plane_sigma(fixes_enu: np.ndarray) -> float:
@@ -402,6 +426,10 @@ class IncrementalAT:
         # and tilt trade off over flat ground). With GCPs the bias is observable: estimated here.
         self.gnss_bias_enu = np.zeros(3)
         self.gnss_bias_estimated = False       # a full adjustment with >= 3 GCPs estimated it
+        self.gnss_tilt_estimated = False       # ... and the tilt of the fixes' heights with it (`gnss_slope`)
+        # The "auto" tilt's test at the last final adjustment: {'gcps', 'rss_bias_m2', 'rss_tilt_m2', 'f', 'f_crit',
+        # 'kept'} (empty when not made).
+        self.gnss_tilt_test: dict = {}
         # How that estimate ended: {'settled': its last step under 1 mm, 'rounds': adjustments, 'last_step_m'}.
         self.gnss_bias_rounds: dict = {}
         # The GNSS noise as the data shows it: factors (horizontal, vertical) on the fixes' stated sigmas
@@ -606,7 +634,8 @@ class IncrementalAT:
         self._solve(list(self.registered), [], list(self.points), self.opt.full_iterations)
         if self.opt.estimate_gnss_noise:
             self.estimate_gnss_noise()
-        return self.full_adjustment(iterations=self.opt.full_iterations, rounds=1, gnss_noise=False, gnss_bias=True)
+        return self.full_adjustment(iterations=self.opt.full_iterations, rounds=1, gnss_noise=False, gnss_bias=True,
+                                    tilt_test=False)
 
     # --- segments: the flight after every track was lost -------------------------------------------
 
@@ -1254,20 +1283,30 @@ class IncrementalAT:
         return _Problem(prob, kids, tracks, slot, kid, oi, fixed_mask, gk)
 
     def _solve(self, free: list[int], fixed: list[int], tracks, iterations: int, refine: tuple = (),
-               gnss_bias: bool = False) -> StepReport:
+               gnss_bias: bool = False, gnss_tilt: bool = False) -> StepReport:
         """Adjust keyframes `free` (beside `fixed`, held) and `tracks`; refine: the intrinsics self-calibrated;
         gnss_bias: the fixes' common offset as 3 more unknowns, added to `gnss_bias_enu` (only GCPs then hold the
-        block's position: the caller makes sure they do). Observations left beyond `max_reprojection_px` are
-        removed (hand-measured ones kept)."""
+        block's position: the caller makes sure they do); gnss_tilt: with it, the tilt of the fixes' heights as
+        2 more, taken into `gnss_slope` (the caller makes sure GCPs spread to hold it). Observations left beyond
+        `max_reprojection_px` are removed (hand-measured ones kept)."""
         b = self._problem(free, fixed, tracks)
         kids, tracks, slot, kid, oi, fixed_mask, gk = b.kids, b.tracks, b.slot, b.kid, b.oi, b.fixed_mask, b.gnss_cams
         if b.prob is None:
             return StepReport(kids[-1] if kids else -1, True, 'nothing_to_adjust')
         prob = b.prob
+        gnss_tilt = gnss_bias and gnss_tilt and prob.gnss_cam is not None and len(prob.gnss_cam) >= 3
+        if gnss_tilt:
+            if not self.gnss_slope.any():
+                self._gnss_slope_centre = np.mean(np.asarray(prob.gnss_pos_map, float)[:, :2], axis=0)
+            prob = replace(prob, gnss_tilt_centre_m=self._gnss_slope_centre)
         t0 = time.monotonic()
-        res = _adjust(prob, self.opt.loss, self.opt.loss_scale_px, iterations, refine, gnss_bias)
+        res = _adjust(prob, self.opt.loss, self.opt.loss_scale_px, iterations, refine, gnss_bias, gnss_tilt)
         if res.gnss_bias_enu_m is not None and res.status != 'failed':
             self.gnss_bias_enu = self.gnss_bias_enu + res.gnss_bias_enu_m
+            if res.gnss_tilt is not None:
+                # The fixes' heights adjusted: less the tilt . (EN - centre); `_gnss_target` adds gnss_slope . (EN - centre).
+                self.gnss_slope = self.gnss_slope - res.gnss_tilt
+                self.gnss_tilt_estimated = True
         self.solves.append({'iterations': int(res.iterations), 'status': res.status,
                             's': round(time.monotonic() - t0, 2)})
         if refine and res.status != 'failed':
@@ -1671,7 +1710,7 @@ class IncrementalAT:
 
     def full_adjustment(self, iterations: int | None = None, rounds: int = 2,
                         refine_intrinsics: tuple = (), gnss_noise: bool = True,
-                        stepwise: bool = False, gnss_bias: bool = True) -> StepReport:
+                        stepwise: bool = False, gnss_bias: bool = True, tilt_test: bool = True) -> StepReport:
         """Adjust every registered keyframe and point; repeated so that removed outliers settle.
 
         refine_intrinsics (e.g. ('f', 'k1')) self-calibrates the shared camera in this adjustment and in
@@ -1681,7 +1720,9 @@ class IncrementalAT:
         gnss_noise: estimate the flight's GNSS noise afterwards (`estimate_gnss_noise`, when the option
         is on and the block is georeferenced for good); such a final adjustment refines the option
         `final_self_calibration` when refine_intrinsics is not given (stepwise when it is "auto");
-        gnss_bias: estimate the GNSS bias (when the option is on and 3 GCPs make it observable).
+        gnss_bias: estimate the GNSS bias (when the option is on and 3 GCPs make it observable);
+        tilt_test: with gnss_tilt "auto", test whether the tilt pays (`_tilt_tested`); else the last test's outcome
+        stands.
         """
         if not refine_intrinsics and gnss_noise:
             refine_intrinsics = self.opt.final_refine
@@ -1695,6 +1736,8 @@ class IncrementalAT:
             # in flight (fixes weighted as stated, the lens held) would steer where the final one lands.
             self.gnss_bias_enu = np.zeros(3)
             self.gnss_bias_estimated = False
+            if self.gnss_tilt_estimated:
+                self.gnss_slope, self.gnss_tilt_estimated = np.zeros(2), False
         if not self.georeferenced and (self._georeference_short_block() or self._try_georeference(force=True)):
             rounds = max(rounds - 1, 1)
         if self._segment is not None and self._segment.registered:
@@ -1715,26 +1758,75 @@ class IncrementalAT:
         self._full_adjusted_n = len(self.registered)
         if gnss_bias and self.opt.estimate_gnss_bias and self._n_gcps() >= 3 and self.opt.bias_iterations:
             self.gnss_bias_estimated = True
-            # The bias is 3 unknowns of the adjustment beside the poses and points (the intrinsics held): one solve
-            # finds it; each solve then removes the observations it leaves as outliers, which can move it again.
-            settled, rounds, step = False, 0, np.zeros(3)
-            for i in range(self.opt.bias_iterations if self.gnss_residuals() else 0):
-                before = self.gnss_bias_enu.copy()
-                rep = self._solve(list(self.registered), [], list(self.points), iterations or self.opt.full_iterations,
-                                  gnss_bias=True)
-                step = self.gnss_bias_enu - before
-                rounds = i + 1
-                if rep.status == 'failed':
-                    break
-                if i and np.linalg.norm(step) < 0.001:
-                    settled = True
-                    break
-            # No residual at all: no camera has a fix, there is no bias to settle.
-            self.gnss_bias_rounds = {'settled': settled, 'rounds': rounds,
-                                     'last_step_m': float(np.linalg.norm(step))} if rounds else {}
+            mode = self.opt.gnss_tilt if tilt_test or self.opt.gnss_tilt != 'auto' else (
+                'always' if self.gnss_tilt_estimated else 'never')
+            tilt = mode != 'never' and self._gnss_tilt_observable()
+            if tilt and mode == 'auto':
+                rep, settle = self._tilt_tested(iterations)
+            else:
+                rep, settle = self._bias_rounds(iterations, tilt)
+            self.gnss_bias_rounds = settle
         if self.opt.spill_frozen:
             self.freeze()   # the adjustment read every keyframe back: spill the frozen ones again
         return rep
+
+    def _bias_rounds(self, iterations: int | None, tilt: bool) -> tuple[StepReport, dict]:
+        """Full adjustments with the GNSS bias (and the tilt) as unknowns until the bias settles: (the last
+        solve's report, {'settled', 'rounds', 'last_step_m'}, empty when no camera has a fix)."""
+        # The bias is 3 unknowns of the adjustment beside the poses and points (the intrinsics held): one solve
+        # finds it; each solve then removes the observations it leaves as outliers, which can move it again.
+        rep = StepReport(-1, False, 'no_fix')
+        settled, rounds, step = False, 0, np.zeros(3)
+        if not tilt:
+            self.gnss_tilt_estimated = False
+        for i in range(self.opt.bias_iterations if self.gnss_residuals() else 0):
+            before = self.gnss_bias_enu.copy()
+            rep = self._solve(list(self.registered), [], list(self.points), iterations or self.opt.full_iterations,
+                              gnss_bias=True, gnss_tilt=tilt)
+            step = self.gnss_bias_enu - before
+            rounds = i + 1
+            if rep.status == 'failed':
+                break
+            if i and np.linalg.norm(step) < 0.001:
+                settled = True
+                break
+        return rep, ({'settled': settled, 'rounds': rounds, 'last_step_m': float(np.linalg.norm(step))}
+                     if rounds else {})
+
+    def _tilt_tested(self, iterations: int | None) -> tuple[StepReport, dict]:
+        """gnss_tilt "auto": the bias alone, then with the tilt; the tilt is kept when it lowers the GCPs' height
+        residuals (intersected from the adjusted cameras) by more than chance: F = ((RSS_bias - RSS_tilt) / 2) /
+        (RSS_tilt / (n - 3)) above its TILT_TEST_LEVEL quantile with (2, n - 3) degrees of freedom, n GCPs used in
+        height (at least 4). Otherwise the bias is adjusted alone again from where the tilt left the block."""
+        from scipy.stats import f as f_dist
+        rep, settle = self._bias_rounds(iterations, tilt=False)
+        rss0, n = self._gcp_height_rss()
+        if n < 4:
+            self.gnss_tilt_test = {}
+            return rep, settle
+        slope, centre = self.gnss_slope.copy(), self._gnss_slope_centre.copy()
+        rep_t, settle_t = self._bias_rounds(iterations, tilt=True)
+        rss1, _ = self._gcp_height_rss()
+        f = (rss0 - rss1) / 2.0 / max(rss1 / (n - 3), 1e-12)
+        f_crit = float(f_dist.ppf(TILT_TEST_LEVEL, 2, n - 3))
+        kept = bool(rep_t.status != 'failed' and f > f_crit)
+        self.gnss_tilt_test = {'gcps': n, 'rss_bias_m2': float(rss0), 'rss_tilt_m2': float(rss1), 'f': float(f),
+                               'f_crit': f_crit, 'kept': kept}
+        if kept:
+            return rep_t, settle_t
+        self.gnss_slope, self._gnss_slope_centre = slope, centre
+        return self._bias_rounds(iterations, tilt=False)
+
+    def _gcp_height_rss(self) -> tuple[float, int]:
+        """(sum of squared height residuals, m^2, count) of the GCPs used in height, each intersected from the
+        adjusted cameras minus its survey."""
+        r = []
+        for n in self._gcp_names():
+            if self.control[n].sigma_m[2] < 1.0:
+                got = self.intersect_target(n)
+                if got is not None:
+                    r.append(float(got[0][2] - self.control[n].map_xyz[2]))
+        return float(np.sum(np.square(r))), len(r)
 
     def select_self_calibration(self, candidates: tuple, iterations: int | None = None) -> tuple:
         """The stepwise self-calibration (core/self_calibration.py `select_stepwise`): which of `candidates`
@@ -1870,6 +1962,23 @@ class IncrementalAT:
         if not cov:
             return np.full(3, 10.0)
         return np.sqrt(np.median([np.diag(c) for c in cov], axis=0))
+
+    def _gnss_tilt_observable(self) -> bool:
+        """estimate_gnss_tilt is on and the GCPs used in height spread over the block in every direction: along
+        any horizontal direction u, their RMS about their centre is at least gnss_tilt_min_spread times the
+        fixes' (the smallest generalised eigenvalue of the two 2x2 scatter matrices); GCPs on one line never."""
+        if self.opt.gnss_tilt == 'never':
+            return False
+        names = [n for n in self._gcp_names() if self.control[n].sigma_m[2] < 1.0]
+        fixes = np.array([self.kfs[k].fix_enu[:2] for k in self.registered
+                          if self.kfs[k].fix_enu is not None and k not in self.gnss_rejected]).reshape(-1, 2)
+        if len(names) < 3 or len(fixes) < 3:
+            return False
+        g = np.array([self.control[n].map_xyz[:2] for n in names], float)
+        cg, cf = np.cov((g - g.mean(axis=0)).T, bias=True), np.cov((fixes - fixes.mean(axis=0)).T, bias=True)
+        if np.linalg.eigvalsh(cf)[0] < 1.0:
+            return False     # the fixes on one line: no lean across it to find
+        return bool(scipy.linalg.eigh(cg, cf, eigvals_only=True)[0] >= self.opt.gnss_tilt_min_spread ** 2)
 
     def _gcp_names(self) -> frozenset:
         """The GCPs the adjustment uses: targets triangulated in the block that are not check points."""

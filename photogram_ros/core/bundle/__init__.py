@@ -74,7 +74,8 @@ def bundle_adjust(problem: BundleProblem, options: BundleOptions | None = None) 
                         rms=_rms(solver, R, t, X, intr, b), cam_centre_cov=cam_cov, point_cov=pt_cov,
                         intrinsics_cov=intr_cov, intrinsics_names=tuple(options.refine_intrinsics),
                         intrinsics_height_corr=corr, gnss_bias_cov=bias_cov,
-                        gnss_bias_enu_m=np.asarray(b, float) if solver.st.bias_col >= 0 else None,
+                        gnss_bias_enu_m=np.asarray(b[:3], float) if solver.st.bias_col >= 0 else None,
+                        gnss_tilt=np.asarray(b[3:5], float) if solver.st.n_bias == 5 else None,
                         variance_factor=var,
                         seconds=out['seconds'], cost_history=out['hist'], time_history=out['hist_t'])
 

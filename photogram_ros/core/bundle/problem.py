@@ -47,6 +47,11 @@ class BundleOptions:
     # residual is antenna - (gnss_pos_map - bias). Only the GCPs (point priors) or fixed cameras then hold the
     # block's position: without them the bias and the block's translation trade off freely.
     estimate_gnss_bias: bool = False
+    # With estimate_gnss_bias, a tilt of the fixes' heights as 2 more unknowns (dU/dE, dU/dN, m/m, from zero):
+    # each fix's height residual also has + tilt . (fix_EN - centre), the centre BundleProblem.gnss_tilt_centre_m
+    # or the fixes' mean. A GNSS error that wanders between strips flown minutes apart leans the fixes across
+    # them; GCPs spread over the block in both directions observe it, GCPs on one line do not.
+    estimate_gnss_tilt: bool = False
     initial_trust_radius: float = 1e4
     dense_limit: int = 3000                  # reduced camera systems larger than this are solved sparsely
 
@@ -76,6 +81,7 @@ class BundleProblem:
     gnss_pos_map: np.ndarray | None = None   # (M, 3) antenna position in map
     gnss_cov_map: np.ndarray | None = None   # (M, 3, 3) m^2
     lever_arm_cam_m: np.ndarray | None = None  # (3,) antenna in the camera frame
+    gnss_tilt_centre_m: np.ndarray | None = None  # (2,) E, N map: where the GNSS tilt is zero (None: the fixes' mean)
     point_priors_idx: np.ndarray | None = None   # (G,) GCP point indices
     point_priors_map: np.ndarray | None = None   # (G, 3)
     point_priors_sigma_m: np.ndarray | None = None  # (G, 3)
@@ -150,7 +156,9 @@ class BundleProblem:
             except np.linalg.LinAlgError:
                 raise DataError('a GNSS covariance is not positive definite: check the fix covariances') from None
             lever = np.zeros(3) if self.lever_arm_cam_m is None else np.asarray(self.lever_arm_cam_m, float).reshape(3)
-            out.update(gnss_cam=gc, gnss_pos=gp, gnss_W=np.linalg.inv(L), lever=lever)
+            out.update(gnss_cam=gc, gnss_pos=gp, gnss_W=np.linalg.inv(L), lever=lever,
+                       gnss_tilt_centre=(None if self.gnss_tilt_centre_m is None else
+                                         np.asarray(self.gnss_tilt_centre_m, float).reshape(2)))
         # Point priors (GCPs)
         if self.point_priors_idx is not None and len(self.point_priors_idx):
             gi = np.asarray(self.point_priors_idx, dtype=np.int64).ravel()
@@ -201,6 +209,9 @@ class BundleResult:
     # (3,) ENU m: the GNSS bias estimated (BundleOptions.estimate_gnss_bias; None when not, or no fix): the fixes
     # adjusted are gnss_pos_map minus it.
     gnss_bias_enu_m: np.ndarray | None = None
+    # (2,) m/m: the tilt of the fixes' heights estimated (dU/dE, dU/dN; BundleOptions.estimate_gnss_tilt, else None):
+    # the fixes' heights adjusted are also less it . (fix_EN - its centre).
+    gnss_tilt: np.ndarray | None = None
     # (3, 3) ENU m^2, scaled: the GNSS bias's covariance as an unknown (BundleOptions.estimate_gnss_bias or
     # gnss_bias_free).
     gnss_bias_cov: np.ndarray | None = None

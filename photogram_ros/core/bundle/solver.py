@@ -64,7 +64,7 @@ class _Structure:
     whose products scipy runs about twice as fast as scalar CSR.
     """
 
-    def __init__(self, d, sel, dense_limit, gnss_bias: bool = False):
+    def __init__(self, d, sel, dense_limit, gnss_bias: bool = False, gnss_tilt: bool = False):
         C, P = len(d['R']), len(d['X'])
         self.kf = sel.shape[1]
         self.kf3 = -(-self.kf // 3) * 3
@@ -75,14 +75,19 @@ class _Structure:
         G = len(d['intr'])
         self.intr_col = n_pose + self.kf3 * np.arange(G)
         self.nc = n_pose + self.kf3 * G
-        # The GNSS bias (3 unknowns, ENU m) comes after the intrinsics: a chunk of 3 that no observation touches.
+        # The GNSS bias (3 unknowns, ENU m) comes after the intrinsics: a chunk of 3 that no observation touches;
+        # with the tilt, a second chunk holds its 2 slopes (and one unused column).
         self.bias_col = -1
+        self.n_bias = 0
         if gnss_bias and 'gnss_cam' in d:
             self.bias_col = self.nc
-            self.nc += 3
+            self.n_bias = 5 if gnss_tilt else 3
+            self.nc += 6 if gnss_tilt else 3
         real = np.ones(self.nc, bool)
         for k in range(self.kf, self.kf3):
             real[self.intr_col + k] = False
+        if self.n_bias == 5:
+            real[self.bias_col + 5] = False
         self.real = real
         self.trash = self.nc
         free_p = ~d['fixed_points']
@@ -114,7 +119,8 @@ class _Structure:
                 c = self.cam_col[d[name]]
                 pidx = np.where(c[:, None] >= 0, c[:, None] + np.arange(6), self.trash)
                 if name == 'gnss_cam' and self.bias_col >= 0:
-                    pidx = np.concatenate([pidx, np.broadcast_to(self.bias_col + np.arange(3), (len(c), 3))], axis=1)
+                    nb = 6 if self.n_bias == 5 else 3
+                    pidx = np.concatenate([pidx, np.broadcast_to(self.bias_col + np.arange(nb), (len(c), nb))], axis=1)
                 self.prior_idx[name] = pidx
                 keys.append((pidx[:, :, None] * n1 + pidx[:, None, :]).ravel())
         ukeys, self.u_inv = np.unique(np.concatenate(keys), return_inverse=True)
@@ -199,7 +205,13 @@ class Solver:
         self.d = d
         self.o = options
         self.sel = d['model'].selector(options.refine_intrinsics)
-        self.st = _Structure(d, self.sel, options.dense_limit, gnss_bias=options.estimate_gnss_bias)
+        self.st = _Structure(d, self.sel, options.dense_limit, gnss_bias=options.estimate_gnss_bias,
+                             gnss_tilt=options.estimate_gnss_bias and options.estimate_gnss_tilt)
+        if self.st.n_bias == 5:
+            # The tilt's lever: each fix's horizontal offset from the fixes' centre (or the one given), m.
+            gp = d['gnss_pos'][:, :2]
+            centre = gp.mean(axis=0) if d.get('gnss_tilt_centre') is None else d['gnss_tilt_centre']
+            self.tilt_arm = gp - centre
 
     # --- residuals --------------------------------------------------------------------------
 
@@ -231,11 +243,15 @@ class Solver:
         return parts
 
     def _gnss_err(self, R, t, b):
-        """Antenna minus fix adjusted (gnss_pos - b, b the GNSS bias: zero unless estimated), (M, 3) m."""
+        """Antenna minus fix adjusted (gnss_pos - b, b the GNSS bias: zero unless estimated; with the tilt, the
+        fix's height also less b[3:5] . its horizontal offset from the centre), (M, 3) m."""
         d = self.d
         c = d['gnss_cam']
         v = d['lever'][None, :] - t[c]
-        return np.einsum('mji,mj->mi', R[c], v) - d['gnss_pos'] + b
+        e = np.einsum('mji,mj->mi', R[c], v) - d['gnss_pos'] + b[:3]
+        if self.st.n_bias == 5:
+            e[:, 2] += self.tilt_arm @ b[3:5]
+        return e
 
     def _att_err(self, R):
         d = self.d
@@ -281,6 +297,10 @@ class Solver:
             J = np.concatenate([_cross_cols(RT, v), -RT], axis=2)
             if st.bias_col >= 0:
                 J = np.concatenate([J, np.broadcast_to(np.eye(3), (len(c), 3, 3))], axis=2)
+            if st.n_bias == 5:
+                Jt = np.zeros((len(c), 3, 3))
+                Jt[:, 2, :2] = self.tilt_arm
+                J = np.concatenate([J, Jt], axis=2)
             J = d['gnss_W'] @ J
             rg = np.einsum('mij,mj->mi', d['gnss_W'], self._gnss_err(R, t, b))
             u_vals.append(np.einsum('mka,mkb->mab', J, J).ravel())
@@ -416,7 +436,7 @@ class Solver:
         st = self.st
         R, t, X, intr = R.copy(), t.copy(), X.copy(), intr.copy()
         if st.bias_col >= 0:
-            b = b + dc[st.bias_col:st.bias_col + 3]
+            b = b + dc[st.bias_col:st.bias_col + st.n_bias]
         free = st.cam_col >= 0
         if free.any():
             dpose = dc[st.cam_col[free][:, None] + np.arange(6)]
@@ -432,7 +452,7 @@ class Solver:
 
     def run(self):
         o, d = self.o, self.d
-        R, t, X, intr, b = d['R'], d['t'], d['X'], d['intr'], np.zeros(3)
+        R, t, X, intr, b = d['R'], d['t'], d['X'], d['intr'], np.zeros(max(self.st.n_bias, 3))
         t0 = time.perf_counter()
         cost = sum(self.cost_parts(R, t, X, intr, b).values())
         init = cost
