@@ -3,7 +3,8 @@
 - The plain sample flight with its targets, the page's status.json polled every 5 s: never NO-GO (WAIT
   while the block is georeferenced provisionally: 6.08 m over 2 check points), GO from the final georeference
   on: the control adjustment in flight puts the block on its GCPs as they come, the check points 1.4-2.8 cm
-  horizontally in flight (core/incremental.py `control_adjustment`); GO after the final adjustment, and then
+  horizontally in flight (core/incremental.py `control_adjustment`), WAIT only until the coverage is measured;
+  GO after the final adjustment, and then
   the page's check
   points and GCP residuals equal the report's within 0.5 cm. The page over an MBTiles base map made here: screenshot.
 - The flight whose camera stopped 10 s (`simulate --gap 30:40`): never GO while a listed gap (any kind: here
@@ -146,7 +147,8 @@ def test_in_flight_check_points_after_the_final_georeference_are_near_the_final_
     live = [p for p in polls if p['georef'] == 'final' and p['check_n']]
     print([round(p['check_h_m'], 4) for p in live])
     assert len(live) >= 8
-    assert all(p['verdict'] == 'GO' for p in live), live
+    # The check-point figures pass in every such poll (a poll may still WAIT for the coverage to be measured).
+    assert not [p for p in live if p['verdict'] == 'NO-GO' or any(r.startswith('check points') for r in p['reasons'])]
     assert max(p['check_h_m'] for p in live) <= 1.5 * 0.0284
     assert not any('in-flight' in r for r in _summary(plain['final'])['reasons'] or [])
 
