@@ -31,40 +31,19 @@ from scipy.spatial.transform import Rotation
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / 'tests'))
 
 from helpers.control import targets_file  # noqa: E402
+from helpers.stage_flight import fly_stage  # noqa: E402
 
 from photogram_ros.core.bundle import bundle_adjust  # noqa: E402
 from photogram_ros.core.bundle.problem import BundleOptions  # noqa: E402
-from photogram_ros.core.control import TARGET_DTYPE  # noqa: E402
-from photogram_ros.core.gnss_fix import COV_DIAGONAL_KNOWN, STATUS_GBAS_FIX  # noqa: E402
-from photogram_ros.params import from_dict  # noqa: E402
 from photogram_ros.sim.observations import simulate_keyframes  # noqa: E402
 from photogram_ros.sim.scenario import build_world, preset  # noqa: E402
-from photogram_ros.stages.adjustment import (AdjustmentParams, AdjustmentStage, DiagnosticsLog,  # noqa: E402
-                                             RecordedOutputs)
 
 
 def fly(sk, targets, control: str = '', **overrides):
     """The stage fed keyframe by keyframe (RTK fixes, target rows), then finished: (stage, last in-flight
     quality); overrides: AdjustmentParams by name."""
-    p = from_dict(AdjustmentParams, {'lever_arm_cam_m': [float(v) for v in sk.lever_arm_cam_m],
-                                     'control_file': control, **overrides})
-    stage = AdjustmentStage(p, DiagnosticsLog(), RecordedOutputs())
-    stage.set_camera(sk.camera)
-    marker = {t.name: t.marker_id for t in targets}
-    last = None
-    for r in sk.records:
-        f = r.fix
-        stage.add_fix(r.stamp_ns, f.lat_deg, f.lon_deg, f.h_m, np.diag(np.diag(f.cov_enu_m2)), STATUS_GBAS_FIX,
-                      COV_DIAGONAL_KNOWN)
-        rows = np.zeros(len(r.target_uv), TARGET_DTYPE)
-        for j, (name, uv) in enumerate(r.target_uv.items()):
-            rows[j]['marker_id'], rows[j]['u'], rows[j]['v'] = marker[name], uv[0], uv[1]
-        stage.add_keyframe(r.stamp_ns, r.track_ids, r.uv, rows if control else None)
-        stage.drain()
-        if control:
-            last = stage.quality()
-    stage.finish()
-    return stage, last
+    stage, live = fly_stage(sk, targets, control, **overrides)
+    return stage, (live[-1][1] if live else None)
 
 
 def truth_in_at(sk, at):

@@ -13,13 +13,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from helpers.control import targets_file
+from helpers.stage_flight import fly_stage
 
-from photogram_ros.core.control import TARGET_DTYPE
-from photogram_ros.core.gnss_fix import COV_DIAGONAL_KNOWN, STATUS_GBAS_FIX
-from photogram_ros.params import from_dict
 from photogram_ros.sim.observations import simulate_keyframes
 from photogram_ros.sim.scenario import build_world, preset
-from photogram_ros.stages.adjustment import AdjustmentParams, AdjustmentStage, DiagnosticsLog, RecordedOutputs
 
 
 @pytest.fixture(scope='module')
@@ -35,24 +32,7 @@ def _fly(sample, tmp_path, listed=None, **overrides):
     sk, targets = sample
     tmp_path.mkdir(parents=True, exist_ok=True)
     control = targets_file(tmp_path / 'targets.txt', sk.origin, targets if listed is None else listed)
-    p = from_dict(AdjustmentParams, {'lever_arm_cam_m': [float(v) for v in sk.lever_arm_cam_m],
-                                     'control_file': str(control), **overrides})
-    stage = AdjustmentStage(p, DiagnosticsLog(), RecordedOutputs())
-    stage.set_camera(sk.camera)
-    marker = {t.name: t.marker_id for t in targets}
-    live = []
-    for r in sk.records:
-        f = r.fix
-        stage.add_fix(r.stamp_ns, f.lat_deg, f.lon_deg, f.h_m, np.diag(np.diag(f.cov_enu_m2)), STATUS_GBAS_FIX,
-                      COV_DIAGONAL_KNOWN)
-        rows = np.zeros(len(r.target_uv), TARGET_DTYPE)
-        for j, (name, uv) in enumerate(r.target_uv.items()):
-            rows[j]['marker_id'], rows[j]['u'], rows[j]['v'] = marker[name], uv[0], uv[1]
-        stage.add_keyframe(r.stamp_ns, r.track_ids, r.uv, rows)
-        stage.drain()
-        live.append((stage.at.control_summary()['gcps_used'], stage.quality()))
-    stage.finish()
-    return stage, live
+    return fly_stage(sk, targets, control, **overrides)
 
 
 def _hv(q: dict) -> np.ndarray:
