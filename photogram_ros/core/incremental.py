@@ -112,7 +112,7 @@ class ControlPoint:
 
 GNSS_TILT_MODES = ('never', 'auto', 'always')
 # The "auto" tilt's F-test level. With 5 GCPs (2 degrees of freedom left) its quantile is 9.0 (19.0 at 95 %); the
-# simulator's sample flight gives F 1.3 at most over six flights whose fixes lean 2 mm/m or less, and 17.9 for one
+# simulator's sample flight gives F 1.3 at most over six flights whose fixes lean 2 mm/m or less, and 11.0 for one
 # whose fixes lean 10 mm/m (bench/gnss_tilt.py).
 TILT_TEST_LEVEL = 0.90
 
@@ -1762,20 +1762,20 @@ class IncrementalAT:
                 'always' if self.gnss_tilt_estimated else 'never')
             tilt = mode != 'never' and self._gnss_tilt_observable()
             if tilt and mode == 'auto':
-                rep, settle = self._tilt_tested(iterations)
+                rep, settle = self._tilt_tested(iterations, rep)
             else:
-                rep, settle = self._bias_rounds(iterations, tilt)
+                rep, settle = self._bias_rounds(iterations, tilt, rep)
             self.gnss_bias_rounds = settle
         if self.opt.spill_frozen:
             self.freeze()   # the adjustment read every keyframe back: spill the frozen ones again
         return rep
 
-    def _bias_rounds(self, iterations: int | None, tilt: bool) -> tuple[StepReport, dict]:
+    def _bias_rounds(self, iterations: int | None, tilt: bool, rep: StepReport) -> tuple[StepReport, dict]:
         """Full adjustments with the GNSS bias (and the tilt) as unknowns until the bias settles: (the last
-        solve's report, {'settled', 'rounds', 'last_step_m'}, empty when no camera has a fix)."""
+        solve's report, `rep` when none ran; {'settled', 'rounds', 'last_step_m'}, empty when no camera has a
+        fix)."""
         # The bias is 3 unknowns of the adjustment beside the poses and points (the intrinsics held): one solve
         # finds it; each solve then removes the observations it leaves as outliers, which can move it again.
-        rep = StepReport(-1, False, 'no_fix')
         settled, rounds, step = False, 0, np.zeros(3)
         if not tilt:
             self.gnss_tilt_estimated = False
@@ -1793,19 +1793,19 @@ class IncrementalAT:
         return rep, ({'settled': settled, 'rounds': rounds, 'last_step_m': float(np.linalg.norm(step))}
                      if rounds else {})
 
-    def _tilt_tested(self, iterations: int | None) -> tuple[StepReport, dict]:
+    def _tilt_tested(self, iterations: int | None, rep: StepReport) -> tuple[StepReport, dict]:
         """gnss_tilt "auto": the bias alone, then with the tilt; the tilt is kept when it lowers the GCPs' height
         residuals (intersected from the adjusted cameras) by more than chance: F = ((RSS_bias - RSS_tilt) / 2) /
         (RSS_tilt / (n - 3)) above its TILT_TEST_LEVEL quantile with (2, n - 3) degrees of freedom, n GCPs used in
         height (at least 4). Otherwise the bias is adjusted alone again from where the tilt left the block."""
         from scipy.stats import f as f_dist
-        rep, settle = self._bias_rounds(iterations, tilt=False)
+        rep, settle = self._bias_rounds(iterations, False, rep)
         rss0, n = self._gcp_height_rss()
         if n < 4:
             self.gnss_tilt_test = {}
             return rep, settle
         slope, centre = self.gnss_slope.copy(), self._gnss_slope_centre.copy()
-        rep_t, settle_t = self._bias_rounds(iterations, tilt=True)
+        rep_t, settle_t = self._bias_rounds(iterations, True, rep)
         rss1, _ = self._gcp_height_rss()
         f = (rss0 - rss1) / 2.0 / max(rss1 / (n - 3), 1e-12)
         f_crit = float(f_dist.ppf(TILT_TEST_LEVEL, 2, n - 3))
@@ -1815,7 +1815,7 @@ class IncrementalAT:
         if kept:
             return rep_t, settle_t
         self.gnss_slope, self._gnss_slope_centre = slope, centre
-        return self._bias_rounds(iterations, tilt=False)
+        return self._bias_rounds(iterations, False, rep)
 
     def _gcp_height_rss(self) -> tuple[float, int]:
         """(sum of squared height residuals, m^2, count) of the GCPs used in height, each intersected from the
@@ -1964,7 +1964,7 @@ class IncrementalAT:
         return np.sqrt(np.median([np.diag(c) for c in cov], axis=0))
 
     def _gnss_tilt_observable(self) -> bool:
-        """estimate_gnss_tilt is on and the GCPs used in height spread over the block in every direction: along
+        """gnss_tilt is not "never" and the GCPs used in height spread over the block in every direction: along
         any horizontal direction u, their RMS about their centre is at least gnss_tilt_min_spread times the
         fixes' (the smallest generalised eigenvalue of the two 2x2 scatter matrices); GCPs on one line never."""
         if self.opt.gnss_tilt == 'never':
