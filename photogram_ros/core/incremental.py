@@ -1821,12 +1821,16 @@ class IncrementalAT:
         """(sum of squared height residuals, m^2, count) of the GCPs used in height, each intersected from the
         adjusted cameras minus its survey."""
         r = []
-        for n in self._gcp_names():
-            if self.control[n].sigma_m[2] < 1.0:
-                got = self.intersect_target(n)
-                if got is not None:
-                    r.append(float(got[0][2] - self.control[n].map_xyz[2]))
+        for n in self._gcps_in_height():
+            got = self.intersect_target(n)
+            if got is not None:
+                r.append(float(got[0][2] - self.control[n].map_xyz[2]))
         return float(np.sum(np.square(r))), len(r)
+
+    def _gcps_in_height(self) -> list[str]:
+        """The GCPs used whose heights the adjustment uses (not those used horizontally only: their vertical
+        sigma is HORIZONTAL_ONLY_SIGMA_V_M)."""
+        return sorted(n for n in self._gcp_names() if self.control[n].sigma_m[2] < 1.0)
 
     def select_self_calibration(self, candidates: tuple, iterations: int | None = None) -> tuple:
         """The stepwise self-calibration (core/self_calibration.py `select_stepwise`): which of `candidates`
@@ -1969,7 +1973,7 @@ class IncrementalAT:
         fixes' (the smallest generalised eigenvalue of the two 2x2 scatter matrices); GCPs on one line never."""
         if self.opt.gnss_tilt == 'never':
             return False
-        names = [n for n in self._gcp_names() if self.control[n].sigma_m[2] < 1.0]
+        names = self._gcps_in_height()
         fixes = np.array([self.kfs[k].fix_enu[:2] for k in self.registered
                           if self.kfs[k].fix_enu is not None and k not in self.gnss_rejected]).reshape(-1, 2)
         if len(names) < 3 or len(fixes) < 3:

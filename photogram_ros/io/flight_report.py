@@ -49,8 +49,8 @@ def weak_text(weak: list[dict]) -> str:
     def dop(v):
         return 'unfixed' if v is None else f'{v:.1f}'
     names = ', '.join(f"{w['name']} ({w['views']} images, DOP {dop(w['dop_h'])} H / {dop(w['dop_v'])} V)" for w in weak)
-    return (f'Not counted (their images fix them too weakly: a dilution of precision above '
-            f'{MAX_INTERSECTION_DOP:g}, seen in a few neighbouring images of one line): {names}.')
+    return (f'Not counted (their images fix them too weakly, a dilution of precision above '
+            f'{MAX_INTERSECTION_DOP:g}: too few images, too close together): {names}.')
 
 
 def target_observations(store: MapStore, kfs: list[dict], surveyed: dict) -> tuple[dict, float, str]:

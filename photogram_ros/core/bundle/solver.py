@@ -78,16 +78,17 @@ class _Structure:
         # The GNSS bias (3 unknowns, ENU m) comes after the intrinsics: a chunk of 3 that no observation touches;
         # with the tilt, a second chunk holds its 2 slopes (and one unused column).
         self.bias_col = -1
-        self.n_bias = 0
+        self.n_bias = 0          # the bias's unknowns: 3, or 5 with the tilt
+        self.bias_width = 0      # their columns, padded to chunks of 3
         if gnss_bias and 'gnss_cam' in d:
             self.bias_col = self.nc
             self.n_bias = 5 if gnss_tilt else 3
-            self.nc += 6 if gnss_tilt else 3
+            self.bias_width = -(-self.n_bias // 3) * 3
+            self.nc += self.bias_width
         real = np.ones(self.nc, bool)
         for k in range(self.kf, self.kf3):
             real[self.intr_col + k] = False
-        if self.n_bias == 5:
-            real[self.bias_col + 5] = False
+        real[self.bias_col + self.n_bias:self.bias_col + self.bias_width] = False
         self.real = real
         self.trash = self.nc
         free_p = ~d['fixed_points']
@@ -119,8 +120,8 @@ class _Structure:
                 c = self.cam_col[d[name]]
                 pidx = np.where(c[:, None] >= 0, c[:, None] + np.arange(6), self.trash)
                 if name == 'gnss_cam' and self.bias_col >= 0:
-                    nb = 6 if self.n_bias == 5 else 3
-                    pidx = np.concatenate([pidx, np.broadcast_to(self.bias_col + np.arange(nb), (len(c), nb))], axis=1)
+                    w = self.bias_width
+                    pidx = np.concatenate([pidx, np.broadcast_to(self.bias_col + np.arange(w), (len(c), w))], axis=1)
                 self.prior_idx[name] = pidx
                 keys.append((pidx[:, :, None] * n1 + pidx[:, None, :]).ravel())
         ukeys, self.u_inv = np.unique(np.concatenate(keys), return_inverse=True)
