@@ -2,9 +2,11 @@
 
 Publishes camera/image_raw (bgr8), camera/camera_info (the calibration, every frame) and, for
 geotagged photos, gps/fix from the EXIF GPS stamped at the photo time, so survey photos without a
-flight log still georeference. A photo folder without `calibration_file` takes its camera from the
-first photo's EXIF (core/exif_intrinsics.py: focal length in pixels, principal point centred, no
-distortion), said on /diagnostics. A video file has no GPS of its own: `gnss_log` names a CSV of
+flight log still georeference. A photo folder plays the photos of the camera most of it was taken with
+(image size and EXIF make and model: io/image_source.FolderSource); a photo of another size or camera
+(a panorama, a thumbnail) is named on /diagnostics and left out. Without `calibration_file` the camera
+comes from the EXIF of that camera's first photo (core/exif_intrinsics.py: focal length in pixels,
+principal point centred, no distortion), said on /diagnostics. A video file has no GPS of its own: `gnss_log` names a CSV of
 fixes (io/image_source.read_fix_log: the columns `photogram-ros fixes --format csv` writes from a
 .tlog, a dataflash .bin or a bag), published on gps/fix in time order with the frames, as a live
 receiver would; `video_start_unix_s` places the video on the log's clock. A camera driver already
@@ -98,6 +100,7 @@ class CameraNode(Node):
         self.pub_info = self.create_publisher(CameraInfo, 'camera/camera_info', qos)
         self.pub_fix = self.create_publisher(NavSatFix, 'gps/fix', qos)
         self.finished = False
+        self.stopped = False         # stop_input(): the end of flight takes no more frames
         self._frames = self._iterate(self.source)
         self._next = None
         self._offset_ns = 0          # added to stamps on each loop so that time never goes back
@@ -131,6 +134,8 @@ class CameraNode(Node):
 
     def _peek(self):
         """The next frame to publish, reopening the source when looping; None at the end."""
+        if self.stopped:
+            return None
         if self._next is not None:
             return self._next
         while True:
@@ -170,8 +175,9 @@ class CameraNode(Node):
 
     def _count_skips(self) -> None:
         new = self.source.skipped[self._reported_skips:]
+        other = set(getattr(self.source, 'other_camera', ()))
         for path, why in new:
-            self.diag.count('skipped_unreadable')
+            self.diag.count('skipped_other_camera' if (path, why) in other else 'skipped_unreadable')
             self.diag.problem(f'skipped {path}: {why}')
         self._reported_skips = len(self.source.skipped)
 
@@ -230,6 +236,17 @@ class CameraNode(Node):
             self.diag.publish()
             if self._timer is not None:
                 self._timer.cancel()
+
+    def stop_input(self) -> None:
+        """The flight is being stopped: publish no more frames (a live camera, or a looping folder, goes on
+        producing on the ground; the end of flight works on what was taken)."""
+        if self.stopped:
+            return
+        self.stopped = True
+        self._next = None
+        if self._timer is not None:
+            self._timer.cancel()
+        self.diag.set('state', 'stopped: the end of flight takes no more frames')
 
     def _tick(self) -> None:
         p = self.params
@@ -301,7 +318,8 @@ def _publish_all(node) -> int:
         node.pub_image.wait_for_all_acked(Duration(seconds=5))
         c = node.diag.counts()
         print(f'camera_node: published {c.get("frames", 0)} frames, {c.get("fixes", 0)} EXIF fixes; skipped '
-              f'{c.get("skipped_unreadable", 0)} unreadable files')
+              f'{c.get("skipped_unreadable", 0)} unreadable files and {c.get("skipped_other_camera", 0)} of another '
+              'camera')
     return 0
 
 

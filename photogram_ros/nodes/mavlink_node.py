@@ -141,6 +141,8 @@ class MavlinkNode(Node):
         return self.get_clock().now().nanoseconds * 1e-9
 
     def _on_bytes(self, msg: UInt8MultiArray) -> None:
+        if self._stop.is_set():   # stop_input(): the flight is being stopped
+            return
         self.feed(msgs.bytes_from_msg(msg), self._now_s())
         self.messages_in += 1   # lets a bag replay wait until every recorded packet is decoded
 
@@ -282,6 +284,9 @@ class MavlinkNode(Node):
         if self.input_done.is_set():
             d.set('link_state', 'end of log')
             return
+        if self._stop.is_set():
+            d.set('link_state', 'stopped: the end of flight takes no more input')
+            return
         if quiet and self._link_up:
             d.problem(f'MAVLink link lost: no packet for {self.params.link_timeout_s:g} s', WARN)
         elif not quiet and not self._link_up and self._last_packet_mono is not None:
@@ -317,6 +322,12 @@ class MavlinkNode(Node):
             return [f'no usable MAVLink: {st.bytes_in} bytes received and no packet decodes (a wrong baud rate, '
                     'or not MAVLink?); no GNSS fix, no attitude']
         return []
+
+    def stop_input(self) -> None:
+        """The flight is being stopped: read and publish no more (the link's thread ends within 0.2 s;
+        bytes on input_topic are ignored), so the end of flight works on what came before."""
+        self._stop.set()
+        self.diag.set('link_state', 'stopped: the end of flight takes no more input')
 
     def destroy_node(self):
         self._stop.set()
