@@ -94,9 +94,14 @@ class Frame:
 
 
 def _exif(path):
+    """A photo's EXIF; the image is not decoded, so a panorama's size is no decompression bomb here."""
+    import warnings
+
     from PIL import Image
-    with Image.open(path) as im:
-        return im.getexif()
+    with warnings.catch_warnings():
+        warnings.simplefilter('ignore', Image.DecompressionBombWarning)
+        with Image.open(path) as im:
+            return im.getexif()
 
 
 def read_exif_gps(path) -> ExifGps | None:
@@ -311,10 +316,13 @@ def image_file_problem(path) -> str | None:
         return f'cannot be read: {exc}'
     if size == 0:
         return 'empty file (0 bytes)'
+    import warnings
     try:
-        with Image.open(path) as im:
-            fmt = im.format
-    except (OSError, SyntaxError, ValueError) as exc:
+        with warnings.catch_warnings():
+            warnings.simplefilter('ignore', Image.DecompressionBombWarning)
+            with Image.open(path) as im:
+                fmt = im.format
+    except (OSError, SyntaxError, ValueError, Image.DecompressionBombError) as exc:
         return f'not an image: {exc}'
     if fmt == 'JPEG':
         with open(path, 'rb') as fh:
@@ -327,6 +335,39 @@ def image_file_problem(path) -> str | None:
             except (OSError, SyntaxError, ValueError) as exc:
                 return f'truncated or corrupt JPEG: {exc}'
     return None
+
+
+def camera_of(path) -> tuple[int, int, str]:
+    """(width, height, 'Make Model' from the EXIF) of a photo, read from its header; a panorama of any size
+    is read without Pillow's decompression-bomb warning (it is only measured here)."""
+    import warnings
+
+    from PIL import Image
+    with warnings.catch_warnings():
+        warnings.simplefilter('ignore', Image.DecompressionBombWarning)
+        with Image.open(path) as im:
+            size = im.size
+            try:
+                exif = im.getexif()
+                model = ' '.join(t for t in (_text(exif.get(TAG_MAKE)), _text(exif.get(TAG_MODEL))) if t)
+            except (OSError, SyntaxError, ValueError):
+                model = ''
+    return int(size[0]), int(size[1]), model
+
+
+def camera_words(key: tuple) -> str:
+    """(3600, 2700, 'DJI FC6310') -> '3600x2700 DJI FC6310' ('camera unnamed in the EXIF' without a model)."""
+    w, h, model = key
+    return f'{w}x{h} ' + (model or '(camera unnamed in the EXIF)')
+
+
+def majority_camera(cameras: dict) -> tuple | None:
+    """The camera (width, height, model) most photos of `cameras` (path -> camera_of) were taken with; on a
+    tie, the one of the first photo among the tied. None for no photo."""
+    counts: dict = {}
+    for key in cameras.values():
+        counts[key] = counts.get(key, 0) + 1
+    return max(counts, key=lambda k: counts[k]) if counts else None
 
 
 def _decode(path: Path) -> np.ndarray:
@@ -344,8 +385,11 @@ def _decode(path: Path) -> np.ndarray:
 class FolderSource:
     """The photos of a folder in shooting order; iterate for `Frame`s.
 
-    Photos without EXIF DateTimeOriginal (a PNG among JPEGs) are skipped and named while at least
-    half of the folder has its time: the others keep their real timing. When most have none, the
+    One camera per block: the photos of the camera most of the folder was taken with (image size and
+    EXIF make and model, `camera`) are played; the others (a panorama, a thumbnail, another camera's
+    photo) are named in `skipped` and `other_camera` and left out, so a stray image never sinks the
+    flight. Photos without EXIF DateTimeOriginal (a PNG among JPEGs) are skipped and named while at
+    least half of the folder has its time: the others keep their real timing. When most have none, the
     folder plays in file-name order, `fallback_period_s` apart."""
 
     def __init__(self, folder, utc_offset_s: float = 0.0, fallback_period_s: float = 1.0):
@@ -357,24 +401,42 @@ class FolderSource:
             raise DataError(f'{folder} holds no {"/".join(s[1:].upper() for s in IMAGE_SUFFIXES)} images')
         self.notes: list[str] = []
         self.skipped: list[tuple[str, str]] = []   # (path, why)
-        timed = []
+        self.other_camera: list[tuple[str, str]] = []   # (path, why): photos of another camera, left out
+        usable, cameras = [], {}
         for p in files:
             why = image_file_problem(p)
             if why is not None:
                 # Not usable at all: skipped here, so it does not change how the others are timed.
                 self.skipped.append((str(p), f'{p.name}: {why}'))
                 continue
-            timed.append((p, *read_exif_time_ns(p, utc_offset_s)))
-        if not timed:
+            usable.append(p)
+            cameras[p] = camera_of(p)
+        if not usable:
             raise DataError(f'{folder}: none of its {len(files)} image files can be read '
                             f'({"; ".join(w for _, w in self.skipped[:3])})')
+        timed = [(p, *read_exif_time_ns(p, utc_offset_s)) for p in usable]
         files = [e[0] for e in timed]
         missing = [p for p, t, _, _ in timed if t is None]
-        if 2 * len(missing) <= len(timed):
+        by_time = 2 * len(missing) <= len(timed)
+        if by_time:
             for p in missing:
                 self.skipped.append((str(p), f'{p.name} has no EXIF DateTimeOriginal while {len(timed) - len(missing)} '
                                              'photos of the folder have one: skipped (its time is unknown)'))
             timed = [e for e in timed if e[1] is not None]
+        # One camera per block, among the photos that can be placed in time.
+        self.camera = majority_camera({e[0]: cameras[e[0]] for e in timed})
+        odd = [e[0] for e in timed if cameras[e[0]] != self.camera]
+        for p in odd:
+            why = (f'{p.name}: {camera_words(cameras[p])}, another camera than the block\'s '
+                   f'{camera_words(self.camera)} ({len(timed) - len(odd)} photos): left out')
+            self.skipped.append((str(p), why))
+            self.other_camera.append((str(p), why))
+        if odd:
+            self.notes.append(f'one camera per block: {camera_words(self.camera)} ({len(timed) - len(odd)} of '
+                              f'{len(timed)} photos); left out {len(odd)} of another camera or size: '
+                              + ', '.join(p.name for p in odd[:10]) + (', ...' if len(odd) > 10 else ''))
+        timed = [e for e in timed if cameras[e[0]] == self.camera]
+        if by_time:
             # Name as tie-breaker: burst photos can share a second when SubSec is absent.
             timed.sort(key=lambda e: (e[1], e[0].name))
             self.entries = [(p, t) for p, t, _, _ in timed]
@@ -395,7 +457,7 @@ class FolderSource:
             if t0 is None:
                 t0 = int(min(p.stat().st_mtime_ns for p in files))
             step = int(round(fallback_period_s * 1e9))
-            self.entries = [(p, t0 + i * step) for i, p in enumerate(files)]
+            self.entries = [(e[0], t0 + i * step) for i, e in enumerate(timed)]
 
         # Positions from a geo.txt beside the photos (a PPK geotag) replace their EXIF GPS.
         self.geo: dict = {}
