@@ -519,7 +519,7 @@ class ExportResult:
 def export_map(map_dir: str | Path | MapStore, out_dir: str | Path, crs: str, heights: str = 'ellipsoidal',
                dsm_res_m: float = 0.0, ortho_res_m: float = 0.0, products=('las', 'laz', 'ply', 'dsm', 'dtm', 'ortho'),
                origin: LocalFrame | None = None, min_pairs: int = 1, dsm: DsmParams | None = None,
-               contour_interval_m: float = 0.0, say=None) -> ExportResult:
+               contour_interval_m: float = 0.0, say=None, damaged: list | None = None) -> ExportResult:
     """Write the requested products of a map folder (or an open MapStore) into out_dir (created).
 
     min_pairs=2 exports only cells confirmed by two stereo pairs: a cell one pair saw cannot be
@@ -527,12 +527,16 @@ def export_map(map_dir: str | Path | MapStore, out_dir: str | Path, crs: str, he
     `dsm`: the DSM rules (default DsmParams(): lengths from the map's cell size).
     contour_interval_m > 0 also writes contours.gpkg: the DTM's contour lines at that interval (io/contours.py).
     say(text): progress lines (io/progress.py): each product as it starts, the orthomosaic's keyframes
-    counted; None: none.
+    counted; None: none. The map's tiles are checked first (MapStore.check_tiles): each damaged tile is
+    named in the notes and export.json's damaged_tiles, with what rebuilds its points; `damaged`: tiles of
+    another map these products were rebuilt for (named the same way, as rebuilt).
     """
     dsm = dsm or DsmParams()
     validate(dsm)
     _check_projected(crs)
-    store, fusion = open_map(map_dir)
+    store = as_map_store(map_dir)
+    damage = [f'{store.tiles_dir / d.path.name}: {d.what}' for d in store.check_tiles()]
+    store, fusion = open_map(store)
     origin = origin or store.origin
     if origin is None:
         raise DataError(f'{store.root} has no geodetic origin (map.json "origin" is null): the map node never '
@@ -540,6 +544,13 @@ def export_map(map_dir: str | Path | MapStore, out_dir: str | Path, crs: str, he
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     res = ExportResult()
+    for d in damage:
+        res.notes.append(f'damaged map tile {d}; its points are missing from these products: photogram-ros export '
+                         f'{store.root} --densify rebuilds them from the keyframes')
+        if say is not None:
+            say(f'export: damaged map tile {d}')
+    res.notes += [f'damaged map tile {d}; its points were rebuilt from the keyframes (matched again)'
+                  for d in damaged or []]
     surface = any(k in products for k in ('dsm', 'dtm', 'ortho')) or contour_interval_m > 0
     plan = (['cloud'] + [name for k, name in (('las', 'LAS'), ('laz', 'LAZ'), ('ply', 'PLY')) if k in products]
             + ['DSM'] * surface + ['DTM'] * ('dtm' in products or contour_interval_m > 0)
@@ -622,7 +633,9 @@ def export_map(map_dir: str | Path | MapStore, out_dir: str | Path, crs: str, he
     meta = {'crs': crs, 'heights': heights, 'origin': origin.to_dict(), 'points': res.points, 'min_pairs': min_pairs,
             'keyframes': res.keyframes, 'files': {k: str(v) for k, v in res.files.items()}, 'notes': res.notes,
             'geoid': geoid.MODEL_NAME if heights == 'orthometric' else None, 'crs_with_heights': res.crs_with_heights,
-            'classes': res.classes, 'dsm': res.dsm, 'dtm': res.dtm, 'ortho': res.ortho}
+            'classes': res.classes, 'dsm': res.dsm, 'dtm': res.dtm, 'ortho': res.ortho,
+            'damaged_tiles': [{'tile': d, 'points': 'missing'} for d in damage]
+            + [{'tile': d, 'points': 'rebuilt from the keyframes'} for d in damaged or []]}
     (out / 'export.json').write_text(json.dumps(meta, indent=1))
     steps.finish()
     return res
