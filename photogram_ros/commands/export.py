@@ -2,8 +2,11 @@
 
 from __future__ import annotations
 
+import sys
+
 HELP = 'write LAS/LAZ, PLY, DSM, DTM and orthomosaic GeoTIFFs of a map folder in any EPSG CRS'
 PRODUCTS = ('las', 'laz', 'ply', 'dsm', 'dtm', 'ortho')
+EXIT_EXPORT_FAILED = 3   # some products not written (a full disk): the others are whole, export.json says which
 
 
 def add_arguments(p) -> None:
@@ -55,7 +58,7 @@ def poses_label(end: dict | None) -> str:
 
 def run(a) -> int:
     from photogram_ros.errors import ConfigError, DataError
-    from photogram_ros.io.export import export_map
+    from photogram_ros.io.export import ProductsIncomplete, export_map
     from photogram_ros.io.map_store import MapStore
     from photogram_ros.io.progress import say_stderr
 
@@ -113,9 +116,15 @@ def run(a) -> int:
             from photogram_ros.core.gsd import GsdSettings
             print(f'  from the GSD ({", ".join(d.derived)}): {GsdSettings(**d.gsd).summary()}')
         store = d.store
-    res = export_map(store, a.out, a.crs, a.heights, a.dsm_res_m, a.ortho_res_m, products, origin,
-                     min_pairs=a.min_pairs, contour_interval_m=a.contours_m, say=None if a.quiet else say_stderr,
-                     damaged=rebuilt)
+    try:
+        res = export_map(store, a.out, a.crs, a.heights, a.dsm_res_m, a.ortho_res_m, products, origin,
+                         min_pairs=a.min_pairs, contour_interval_m=a.contours_m, say=None if a.quiet else say_stderr,
+                         damaged=rebuilt)
+    except ProductsIncomplete as exc:   # a full disk: each product is whole or absent
+        for k, v in exc.result.files.items():
+            print(f'  {k}: {v}')
+        print(f'photogram-ros export: products not written: {exc}', file=sys.stderr)
+        return EXIT_EXPORT_FAILED
     print(f'{res.points} points, {res.keyframes} keyframes -> {a.out} ({res.crs_with_heights}, {a.heights} heights)')
     if res.classes:
         c = res.classes
