@@ -318,6 +318,8 @@ class CameraPacer:
             self._wait(lambda: downstream_lag(self.graph.counts()) <= self.max_lag)
             if self._stop.is_set() or not camera.publish_next():
                 return
+            if camera.waiting:   # a watched folder (watch_quiet_s) waits for its next photo
+                self._stop.wait(0.2)
 
     def stop(self) -> None:
         self._done.set()

@@ -382,6 +382,9 @@ def _decode(path: Path) -> np.ndarray:
     return np.ascontiguousarray(rgb[:, :, ::-1])
 
 
+PENDING_MAX_S = 30.0   # FolderSource.refresh: a new file that does not become a whole image in this long is skipped
+
+
 class FolderSource:
     """The photos of a folder in shooting order; iterate for `Frame`s.
 
@@ -394,6 +397,10 @@ class FolderSource:
 
     def __init__(self, folder, utc_offset_s: float = 0.0, fallback_period_s: float = 1.0):
         self.folder = Path(folder)
+        self.utc_offset_s = utc_offset_s
+        self.next_index = 0
+        self._pending: dict = {}   # refresh(): path -> (its size at the last look, first seen), while it may grow
+        self.activity_at = 0.0     # refresh(): when a new file was last seen (time.monotonic)
         if not self.folder.is_dir():
             raise ConfigError(f'{folder} is not a folder of images')
         files = sorted(p for p in self.folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
@@ -482,11 +489,14 @@ class FolderSource:
     def __iter__(self) -> Iterator[Frame]:
         return self.frames()
 
-    def frames(self, undecoded=None) -> Iterator[Frame]:
-        """The photos as `Frame`s in shooting order, each decoded (BGR); `undecoded(path)` may give what to pass
-        instead of the decoded image (a JPEG's bytes), or None to decode it. A photo that cannot be decoded is
-        skipped and recorded in `skipped`."""
-        for path, stamp_ns in self.entries:
+    def frames(self, undecoded=None, start: int = 0) -> Iterator[Frame]:
+        """The photos as `Frame`s in shooting order from entry `start`, each decoded (BGR); `undecoded(path)` may
+        give what to pass instead of the decoded image (a JPEG's bytes), or None to decode it. A photo that cannot
+        be decoded is skipped and recorded in `skipped`. `next_index`: the entry the next frame comes from."""
+        self.next_index = start
+        while self.next_index < len(self.entries):   # entries refresh() appends are played too
+            path, stamp_ns = self.entries[self.next_index]
+            self.next_index += 1
             image = undecoded(path) if undecoded is not None else None
             if image is None:
                 try:
@@ -495,6 +505,71 @@ class FolderSource:
                     self.skipped.append((str(path), str(exc)))
                     continue
             yield Frame(stamp_ns, image, self.geo.get(path.name) or read_exif_gps(path), str(path))
+
+    def refresh(self) -> int:
+        """Photos that appeared in the folder since it was listed (a companion computer downloading from the
+        camera during the flight), appended to `entries` in shooting order; returns how many. A file is taken
+        once whole: its size the same at two refreshes and it decodes as an image (a JPEG still being copied
+        lacks its end); while one is still being copied none is taken (it may be older than the others), unless
+        it stays broken for PENDING_MAX_S (then it is named in `skipped`). A new photo of another camera, without an EXIF time, or taken before the last photo
+        listed (time never goes back) is named in `skipped` and left out."""
+        known = {p for p, _ in self.entries} | {Path(p) for p, _ in self.skipped}
+        now = time.monotonic()
+        ready, growing = [], []
+        for p in sorted(self.folder.iterdir()):
+            if p.suffix.lower() not in IMAGE_SUFFIXES or p in known:
+                continue
+            try:
+                size = p.stat().st_size
+            except OSError:
+                continue
+            seen = self._pending.get(p)
+            if seen is None or seen[0] != size:
+                self._pending[p] = (size, now if seen is None else seen[1])   # looked at again next time
+                growing.append(p)
+                continue
+            why = 'empty file (0 bytes)' if size == 0 else image_file_problem(p)
+            if why is None:
+                ready.append(p)
+            elif now - seen[1] > PENDING_MAX_S:   # never became whole
+                del self._pending[p]
+                self.skipped.append((str(p), f'{p.name}: {why} after {PENDING_MAX_S:g} s'))
+            else:
+                growing.append(p)
+        if growing or ready:
+            self.activity_at = now
+        # A photo still being copied may be older than the whole ones: those taken after it wait for it (its
+        # EXIF, at the file's start, usually reads already; when it does not, all wait).
+        first_growing = None
+        for p in growing:
+            t = read_exif_time_ns(p, self.utc_offset_s)[0]
+            if t is None:
+                return 0
+            first_growing = t if first_growing is None else min(first_growing, t)
+        new = []
+        for p in ready:
+            t = read_exif_time_ns(p, self.utc_offset_s)[0]
+            if first_growing is not None and (t is None or t >= first_growing):
+                continue
+            del self._pending[p]
+            camera = camera_of(p)
+            last_ns = self.entries[-1][1] if self.entries else None
+            why = None
+            if self.camera is not None and camera != self.camera:
+                why = (f'{p.name}: {camera_words(camera)}, another camera than the block\'s '
+                       f'{camera_words(self.camera)}: left out')
+                self.other_camera.append((str(p), why))
+            elif t is None:
+                why = f'{p.name} has no EXIF DateTimeOriginal: skipped (its time is unknown)'
+            elif last_ns is not None and t <= last_ns:
+                why = f'{p.name} was taken before the last photo played (time never goes back): skipped'
+            if why is not None:
+                self.skipped.append((str(p), why))
+                continue
+            new.append((p, t))
+        new.sort(key=lambda e: (e[1], e[0].name))
+        self.entries.extend(new)
+        return len(new)
 
 
 class VideoSource:
