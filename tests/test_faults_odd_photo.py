@@ -114,3 +114,21 @@ def test_replay_of_a_survey_with_an_odd_first_photo_orients_the_others(tmp_path)
     assert taken >= 20 and oriented >= 0.95 * taken, rep
     cam = json.dumps(rep['nodes']['/camera_node'])
     assert 'DJI_0062.JPG' in cam, cam[:2000]
+
+
+def test_identical_duplicate_photos_are_named_and_dropped(tmp_path):
+    """The same photo downloaded twice (another name, the same bytes) goes into the block once, the copy
+    named; in a watched folder too."""
+    from photogram_ros.io.image_source import FolderSource
+    photos = _toledo_with_odd_first_photo(tmp_path, n=3)
+    (photos / 'DJI_0062.JPG').unlink()
+    first = sorted(photos.glob('*.JPG'))[0]
+    shutil.copy2(first, photos / 'copy_of_first.JPG')
+    src = FolderSource(photos)
+    assert len(src.entries) == 3 and 'copy_of_first.JPG' not in {p.name for p, _ in src.entries}
+    why = dict((Path(p).name, w) for p, w in src.skipped)
+    assert why['copy_of_first.JPG'] == f'copy_of_first.JPG: identical to {first.name} (a duplicate copy): skipped'
+    last = sorted(photos.glob('DJI_*.JPG'))[-1]
+    shutil.copy2(last, photos / 'zz_again.JPG')
+    assert src.refresh() == 0 and src.refresh() == 0
+    assert any(p.endswith('zz_again.JPG') and f'identical to {last.name}' in w for p, w in src.skipped), src.skipped

@@ -370,6 +370,16 @@ def majority_camera(cameras: dict) -> tuple | None:
     return max(counts, key=lambda k: counts[k]) if counts else None
 
 
+def _digest(path: Path) -> bytes:
+    """A hash of the file's bytes (duplicate copies of a photo)."""
+    import hashlib
+    h = hashlib.blake2b(digest_size=16)
+    with open(path, 'rb') as fh:
+        for chunk in iter(lambda: fh.read(1 << 20), b''):
+            h.update(chunk)
+    return h.digest()
+
+
 def _decode(path: Path) -> np.ndarray:
     """Decode fully with Pillow: it refuses truncated JPEGs, where OpenCV returns a grey-padded image."""
     from PIL import Image
@@ -430,6 +440,7 @@ class FolderSource:
                 self.skipped.append((str(p), f'{p.name} has no EXIF DateTimeOriginal while {len(timed) - len(missing)} '
                                              'photos of the folder have one: skipped (its time is unknown)'))
             timed = [e for e in timed if e[1] is not None]
+        timed = self._drop_duplicates(timed)
         # One camera per block, among the photos that can be placed in time.
         self.camera = majority_camera({e[0]: cameras[e[0]] for e in timed})
         odd = [e[0] for e in timed if cameras[e[0]] != self.camera]
@@ -477,6 +488,26 @@ class FolderSource:
 
     def __len__(self) -> int:
         return len(self.entries)
+
+    def _drop_duplicates(self, timed: list) -> list:
+        """`timed` ((path, time, ...) rows) without the byte-identical copies of a photo (the same file
+        downloaded twice): each named in `skipped` with the photo it copies; the first by name is kept.
+        Only photos of one size and time are compared byte for byte."""
+        groups: dict = {}
+        for e in sorted(timed, key=lambda e: e[0].name):
+            groups.setdefault((e[0].stat().st_size, e[1]), []).append(e)
+        dropped = set()
+        for same in groups.values():
+            seen: dict = {}
+            for e in same if len(same) > 1 else ():
+                digest = _digest(e[0])
+                if digest in seen:
+                    dropped.add(e[0])
+                    self.skipped.append((str(e[0]), f'{e[0].name}: identical to {seen[digest].name} (a duplicate '
+                                                     'copy): skipped'))
+                else:
+                    seen[digest] = e[0]
+        return [e for e in timed if e[0] not in dropped]
 
     def exif_intrinsics(self):
         """core.exif_intrinsics.ExifIntrinsics from the first photo's EXIF (CalibrationError without a focal
@@ -561,6 +592,9 @@ class FolderSource:
                 self.other_camera.append((str(p), why))
             elif t is None:
                 why = f'{p.name} has no EXIF DateTimeOriginal: skipped (its time is unknown)'
+            elif (twin := next((q for q, tq in self.entries if tq == t and q.stat().st_size == p.stat().st_size
+                                and _digest(q) == _digest(p)), None)) is not None:
+                why = f'{p.name}: identical to {twin.name} (a duplicate copy): skipped'
             elif last_ns is not None and t <= last_ns:
                 why = f'{p.name} was taken before the last photo played (time never goes back): skipped'
             if why is not None:
