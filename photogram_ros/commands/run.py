@@ -209,7 +209,7 @@ def finish_within_bounds(graph, skip, timeout_s: float, max_rss_mb: float, say):
     def work():
         settle = (lambda: graph.drain(timeout_s=60.0, say=say, work_only=True, abort=skip))
         try:
-            result['end'] = graph.finish_flight(settle=settle, say=say, abort=skip)
+            result['end'] = graph.finish_flight(settle=settle, say=say, abort=skip, announce=True)
         except Exception as exc:   # said and recorded; the products of what exists are still written
             result['error'] = f'end of flight failed: {type(exc).__name__}: {exc}'
 

@@ -339,13 +339,13 @@ class Graph:
         diag = getattr(self.nodes.get(role), 'diag', None)
         return diag.recent_problems() if diag is not None else []
 
-    def finish_flight(self, settle=lambda: time.sleep(2.0), say=None, abort=None) -> FlightEnd:
+    def finish_flight(self, settle=lambda: time.sleep(2.0), say=None, abort=None, announce: bool = False) -> FlightEnd:
         """End of flight, in data-flow order: the tracker emits the keyframes it still holds, the
         bundle adjuster runs its final adjustment and republishes the poses, stereo pairs the
         keyframes still waiting, the map closes its coverage (every survey cell counts as passed, so
         the last gaps go out); `settle` lets the downstream nodes consume each step's output; `say`
-        gets a line at each step (with its time and this process's memory) and every 10 s while a step
-        in the child process takes long. `abort` (an Event): once set, the steps not begun are skipped
+        gets a line every 10 s while a step in the child process takes long, and with `announce` one at
+        each step (with its time and this process's memory). `abort` (an Event): once set, the steps not begun are skipped
         (a second signal, or the end of flight's time bound), and said in `errors`.
         Returns whether the final adjustment was made, and every step that failed."""
         end = FlightEnd(reason='no bundle node' if 'bundle' not in self.spec.roles else '')
@@ -362,7 +362,7 @@ class Graph:
                 if role == 'bundle':
                     end.final_adjustment, end.reason = 'failed', 'skipped: the end of flight was cut short'
                 continue
-            if say is not None:
+            if say is not None and announce:
                 say(f'end of flight: {time.monotonic() - t0:.0f} s: {FINISH_STEP_WORDS[role, method]} '
                     f'(RSS {rss_mb():.0f} MB)')
             before, error = self.counts().get(role, {}), ''
