@@ -130,3 +130,15 @@ def test_a_damaged_map_without_keyframes_says_its_points_are_lost(tmp_path):
     assert 'the damaged tiles cannot be rebuilt' in out and 'nothing to densify' in out, out
     meta = json.loads((tmp_path / 'out' / 'export.json').read_text())
     assert [d['points'] for d in meta['damaged_tiles']] == ['missing'] and gone.name in meta['damaged_tiles'][0]['tile']
+
+
+def test_keyframes_without_a_pose_are_said_not_dropped_silently(flight_map, tmp_path):
+    """A map left by a crash holds keyframe images the bundle adjuster never oriented: the export says how
+    many are not in the products (before: nothing said, the report counted only the posed ones)."""
+    m = _copy(flight_map, tmp_path)
+    (m / 'keyframes' / '3.json').unlink()
+    r = _cli('export', m, '--crs', CRS, '--out', tmp_path / 'out', '--products', 'las', '--keep-damaged', '--quiet')
+    assert r.returncode == 0, r.stdout + r.stderr
+    assert 'note: 1 keyframe images have no pose' in r.stdout and '2 posed keyframes are' in r.stdout, r.stdout
+    meta = json.loads((tmp_path / 'out' / 'export.json').read_text())
+    assert any('1 keyframe images' in n and '3.jpg' in n for n in meta['notes']), meta['notes']

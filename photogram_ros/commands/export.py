@@ -79,6 +79,10 @@ def run(a) -> int:
     from photogram_ros.commands.products import parse_origin
     origin = parse_origin(a.origin) if a.origin else None
     store = MapStore(a.map_dir)
+    unposed = store.unposed_keyframe_images()
+    if unposed:
+        print(f'note: {len(unposed)} keyframe images have no pose (taken before the flight was cut short, never '
+              f'oriented): not in the products; {len(store.keyframes())} posed keyframes are', flush=True)
     damage = store.check_tiles()
     for d in damage:
         print(f'damaged map tile {store.tiles_dir / d.path.name}: {d.what}', flush=True)

@@ -609,6 +609,10 @@ def export_map(map_dir: str | Path | MapStore, out_dir: str | Path, crs: str, he
             say(f'export: damaged map tile {d}')
     res.notes += [f'damaged map tile {d}; its points were rebuilt from the keyframes (matched again)'
                   for d in damaged or []]
+    unposed = store.unposed_keyframe_images()
+    if unposed:
+        res.notes.append(f'{len(unposed)} keyframe images of {store.root} have no pose (taken before the flight was '
+                         f'cut short, never oriented; first {unposed[0].name}): not in these products')
     surface = any(k in products for k in ('dsm', 'dtm', 'ortho')) or contour_interval_m > 0
     plan = (['cloud'] + [name for k, name in (('las', 'LAS'), ('laz', 'LAZ'), ('ply', 'PLY')) if k in products]
             + ['DSM'] * surface + ['DTM'] * ('dtm' in products or contour_interval_m > 0)

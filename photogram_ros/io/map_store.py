@@ -413,6 +413,11 @@ class MapStore:
         body = {'stamp_ns': int(stamp_ns), 'map_T_cam': np.asarray(map_T_cam, float).tolist()}
         self._write(self.keyframes_dir / f'{int(stamp_ns)}.json', json.dumps(body).encode())
 
+    def unposed_keyframe_images(self) -> list[Path]:
+        """Keyframe images saved without a pose: taken before the flight was cut short (a crash) and never
+        oriented by the bundle adjuster; keyframes() leaves them out."""
+        return [p for p in sorted(self.keyframes_dir.glob('*.jpg')) if not p.with_suffix('.json').exists()]
+
     def keyframes(self) -> list[dict]:
         """[{'stamp_ns', 'image_path', 'map_T_cam'}] for keyframes that have both image and pose."""
         out = []
