@@ -33,7 +33,7 @@ def _rss_mb(pid: int) -> float:
     return 0.0
 
 
-def _looping_run(tmp_path: Path, photos: Path, stop_after_s: float, signals=(signal.SIGTERM,),
+def looping_run(tmp_path: Path, photos: Path, stop_after_s: float, signals=(signal.SIGTERM,),
                  gap_s: float = 5.0, extra: tuple = (), bound_s: float = 600.0):
     """`run` of a camera_node looping over `photos` (rate 0, as fast as the tracker takes them), the signals
     sent `stop_after_s` after it runs (then `gap_s` apart). Returns (exit status, output, seconds from the
@@ -88,7 +88,7 @@ def test_a_looping_camera_stopped_by_sigterm_stops_and_says_mapping_failed(tmp_p
     FAILED, as `replay`)."""
     from test_replay_unmappable import write_white_wall
     photos = write_white_wall(tmp_path / 'wall', n=4)
-    rc, out, took_s, _, products = _looping_run(tmp_path, photos, stop_after_s=8.0, bound_s=300.0)
+    rc, out, took_s, _, products = looping_run(tmp_path, photos, stop_after_s=8.0, bound_s=300.0)
     assert rc == 5, out[-3000:]
     assert 'SIGTERM: stopped camera after' in out, out[-3000:]
     assert 'end of flight: 0 s: final adjustment' in out or 'final adjustment (RSS' in out, out[-3000:]
@@ -102,7 +102,7 @@ def test_a_second_signal_skips_to_writing_what_exists(tmp_path):
     products of what exists are written (the report among them)."""
     from test_replay_unmappable import write_white_wall
     photos = write_white_wall(tmp_path / 'wall', n=4)
-    rc, out, _, _, products = _looping_run(tmp_path, photos, stop_after_s=8.0,
+    rc, out, _, _, products = looping_run(tmp_path, photos, stop_after_s=8.0,
                                               signals=(signal.SIGTERM, signal.SIGINT), gap_s=0.3, bound_s=300.0)
     assert 'SIGINT again: skipping the end-of-flight steps left' in out, out[-3000:]
     assert rc != 0 and (products / 'report.md').exists(), out[-3000:]
@@ -163,7 +163,7 @@ def test_a_looping_real_survey_stopped_after_60_s_ends_within_bounds(tmp_path):
     src = shared_data('photos', 'toledo', 'images')
     photos = tmp_path / 'photos'
     shutil.copytree(src, photos)
-    rc, out, took_s, rss, products = _looping_run(tmp_path, photos, stop_after_s=60.0, bound_s=900.0)
+    rc, out, took_s, rss, products = looping_run(tmp_path, photos, stop_after_s=60.0, bound_s=900.0)
     report = json.loads((products / 'report.json').read_text())
     print(f"toledo loop: SIGTERM -> exit {took_s:.0f} s, RSS peaks: in flight {rss['before']:.0f} MB, end-of-flight "
           f"steps {rss['after']:.0f} MB, products {rss['products']:.0f} MB, {report['run'].get('frames')} frames")
