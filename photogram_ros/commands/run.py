@@ -83,7 +83,7 @@ def run(a) -> int:
                           'run holds the camera to the tracker and ends the flight when the tracker has taken the '
                           'last frame; leave out --separate (it is for a live camera device)')
     _locks = claim_folders(a, roles, exporting)   # held (flock) until the command returns
-    signals = RunSignals()
+    signals = RunSignals(skippable=not a.separate)
     if a.separate:
         return _run_separate(a, spec, signals)
     paced = pace_camera(spec)
@@ -152,11 +152,12 @@ class RunSignals:
     later ones say that kill -9 stops at once. Works also when a shell started `run` in the background
     with SIGINT ignored (a supervisor's SIGINT means stop)."""
 
-    def __init__(self):
+    def __init__(self, skippable: bool = True):
         import signal
         import threading
         self.stop, self.skip = threading.Event(), threading.Event()
         self.signal_name = ''
+        self.skippable = skippable   # run --separate: each node process ends its own flight
         for sig in (signal.SIGINT, signal.SIGTERM):
             signal.signal(sig, self._on_signal)
 
@@ -167,13 +168,14 @@ class RunSignals:
         if not self.stop.is_set():
             self.signal_name = name
             self.stop.set()
-        elif not self.skip.is_set():
+        elif not self.skip.is_set() and self.skippable:
             self.skip.set()
             print(f'{name} again: skipping the end-of-flight steps left; writing the products of what exists '
                   '(the in-flight map)', file=sys.stderr, flush=True)
         else:
-            print(f'{name} again: still writing the products; kill -9 stops at once (the map on disk stays '
-                  'consistent: photogram-ros export MAPDIR --densify makes them later)', file=sys.stderr, flush=True)
+            print(f'{name} again: still stopping; kill -9 stops at once (the map on disk stays '
+                  'consistent: photogram-ros export MAPDIR --densify makes the products later)', file=sys.stderr,
+                  flush=True)
 
     def wait(self, period_s: float = 0.5, alive=lambda: True) -> None:
         """Until a signal came (or `alive()` turns false)."""
