@@ -2,8 +2,11 @@
 
 from __future__ import annotations
 
+import sys
+
 HELP = 'write LAS/LAZ, PLY, DSM, DTM and orthomosaic GeoTIFFs of a map folder in any EPSG CRS'
 PRODUCTS = ('las', 'laz', 'ply', 'dsm', 'dtm', 'ortho')
+EXIT_EXPORT_FAILED = 3   # some products not written (a full disk): the others are whole, export.json says which
 
 
 def add_arguments(p) -> None:
@@ -30,6 +33,9 @@ def add_arguments(p) -> None:
     p.add_argument('--params', default=None,
                    help='parameter file whose stereo_node and map_node sections --densify uses (the flight\'s; '
                         'default: config/replay.yaml if present)')
+    p.add_argument('--keep-damaged', action='store_true',
+                   help='export what the map\'s tiles hold when some are damaged or missing (named in the output '
+                        'and export.json) instead of rebuilding the cloud from the keyframes as --densify does')
     p.add_argument('--quiet', action='store_true', help='no progress lines (on stderr)')
 
 
@@ -51,8 +57,8 @@ def poses_label(end: dict | None) -> str:
 
 
 def run(a) -> int:
-    from photogram_ros.errors import ConfigError
-    from photogram_ros.io.export import export_map
+    from photogram_ros.errors import ConfigError, DataError
+    from photogram_ros.io.export import ProductsIncomplete, export_map
     from photogram_ros.io.map_store import MapStore
     from photogram_ros.io.progress import say_stderr
 
@@ -73,12 +79,38 @@ def run(a) -> int:
     from photogram_ros.commands.products import parse_origin
     origin = parse_origin(a.origin) if a.origin else None
     store = MapStore(a.map_dir)
+    unposed = store.unposed_keyframe_images()
+    if unposed:
+        print(f'note: {len(unposed)} keyframe images have no pose (taken before the flight was cut short, never '
+              f'oriented): not in the products; {len(store.keyframes())} posed keyframes are', flush=True)
+    damage = store.check_tiles()
+    for d in damage:
+        print(f'damaged map tile {store.tiles_dir / d.path.name}: {d.what}', flush=True)
+    rebuilt, auto = [], False
+    if damage and not a.densify:
+        if a.keep_damaged:
+            print(f'--keep-damaged: the products hold what the other tiles hold; photogram-ros export {a.map_dir} '
+                  '--densify rebuilds the lost points from the keyframes', flush=True)
+        else:
+            print(f'rebuilding the cloud from the {len(store.keyframes())} keyframes (as --densify; --keep-damaged '
+                  'exports what the tiles hold)', flush=True)
+            a.densify = auto = True
+    if a.densify and damage:
+        rebuilt = [f'{store.tiles_dir / d.path.name}: {d.what}' for d in damage]
     if a.densify:
         from pathlib import Path
 
         from photogram_ros.commands.products import densify_with_params
         params = a.params if a.params is not None or not Path('config/replay.yaml').exists() else 'config/replay.yaml'
-        d = densify_with_params(store, Path(a.out) / 'map_final', params, progress=not a.quiet)
+        try:
+            d = densify_with_params(store, Path(a.out) / 'map_final', params, progress=not a.quiet)
+        except DataError as exc:
+            if not auto:
+                raise
+            print(f'the damaged tiles cannot be rebuilt ({exc}): the products hold what the other tiles hold',
+                  flush=True)
+            a.densify, rebuilt = False, []
+    if a.densify:
         print(f'{d.pairs_done} pairs matched again from {poses_label(store.flight_end())} in {d.seconds:.1f} s '
               f'-> {d.map_dir}'
               + (f'; skipped {d.pairs_skipped}' if d.pairs_skipped else ''))
@@ -88,8 +120,15 @@ def run(a) -> int:
             from photogram_ros.core.gsd import GsdSettings
             print(f'  from the GSD ({", ".join(d.derived)}): {GsdSettings(**d.gsd).summary()}')
         store = d.store
-    res = export_map(store, a.out, a.crs, a.heights, a.dsm_res_m, a.ortho_res_m, products, origin,
-                     min_pairs=a.min_pairs, contour_interval_m=a.contours_m, say=None if a.quiet else say_stderr)
+    try:
+        res = export_map(store, a.out, a.crs, a.heights, a.dsm_res_m, a.ortho_res_m, products, origin,
+                         min_pairs=a.min_pairs, contour_interval_m=a.contours_m, say=None if a.quiet else say_stderr,
+                         damaged=rebuilt)
+    except ProductsIncomplete as exc:   # a full disk: each product is whole or absent
+        for k, v in exc.result.files.items():
+            print(f'  {k}: {v}')
+        print(f'photogram-ros export: products not written: {exc}', file=sys.stderr)
+        return EXIT_EXPORT_FAILED
     print(f'{res.points} points, {res.keyframes} keyframes -> {a.out} ({res.crs_with_heights}, {a.heights} heights)')
     if res.classes:
         c = res.classes

@@ -1,11 +1,15 @@
 """photogram-ros run: start the whole mapper (live, on the companion computer).
 
 SIGINT or SIGTERM ends the flight, and so does the end of a camera_node's photo folder or video file
-(not a device, not `loop`) once the tracker has taken its last frame: the tracker emits its last
-keyframes, the bundle adjuster makes the final adjustment and republishes every pose, stereo pairs
-what waits, the map flushes, and the products are matched again from the final poses. All of it runs while rclpy is still up (see
-nodes/node_main.py); the exit status is not 0 when the final adjustment or the exports failed. A
-flight that mapped nothing (the report's Verdict) ends with a line "MAPPING FAILED: why" (exit 0).
+(not a device, not `loop`) once the tracker has taken its last frame. A signal stops every source at
+once (the camera's frames, the MAVLink link: a camera on the ground would go on producing), then the
+tracker emits its last keyframes, the bundle adjuster makes the final adjustment and republishes every
+pose, stereo pairs what waits, the map flushes, and the products are matched again from the final
+poses, each step with a progress line. All of it runs while rclpy is still up (see
+nodes/node_main.py). A second signal, or the end of flight passing `--end-timeout-s` (or
+`--end-max-rss-mb`), skips the steps left and writes what exists: the in-flight map's products and the
+report. The exit status is not 0 when the final adjustment or the exports failed, or when the flight
+mapped nothing (the report's Verdict: a line "MAPPING FAILED: why", exit 5 as in `replay`).
 """
 
 from __future__ import annotations
@@ -17,6 +21,7 @@ HELP = 'start every mapping node (mavlink, tracker, bundle, stereo, map) with on
 # Exit statuses besides 0 (and 2, a configuration error): the map on disk is safe in every case.
 EXIT_EXPORT_FAILED = 3
 EXIT_FINISH_FAILED = 4
+EXIT_NOT_MAPPED = 5
 
 
 def add_arguments(p) -> None:
@@ -32,6 +37,13 @@ def add_arguments(p) -> None:
                                                             'photogram-ros export MAPDIR --densify)')
     p.add_argument('--live-map', action='store_true', help='export the in-flight map instead of matching the '
                                                            'keyframes again from the final adjustment')
+    p.add_argument('--end-timeout-s', type=float, default=600.0,
+                   help='bound on the end-of-flight steps after the stop (final adjustment, stereo, map flush): '
+                        'past it the steps left are skipped and the products come from the in-flight map '
+                        '(as after a second SIGINT/SIGTERM); default 600')
+    p.add_argument('--end-max-rss-mb', type=float, default=0.0,
+                   help='bound on this process\'s memory during the end-of-flight steps, MB: past it they are cut '
+                        'short the same way; 0 = no bound (default)')
     reuse = p.add_mutually_exclusive_group()
     reuse.add_argument('--resume', action='store_true',
                        help='the map folder holds a finished flight: continue that map (the products in --out are '
@@ -48,11 +60,14 @@ def run(a) -> int:
     from photogram_ros.commands.products import check_output_crs
     from photogram_ros.errors import ConfigError
     from photogram_ros.nodes.graph import NODES, Graph, GraphSpec, check_params, roles_for
-    from photogram_ros.nodes.node_main import StopSignals, init_ros
+    from photogram_ros.nodes.node_main import init_ros
     roles = tuple(r.strip() for r in a.nodes.split(',') if r.strip()) or roles_for(a.params)
     bad = [r for r in roles if r not in NODES]
     if bad:
         raise ConfigError(f'unknown nodes {bad}; choose from {list(NODES)}')
+    if not a.end_timeout_s > 0 or not a.end_max_rss_mb >= 0:   # also refuses nan
+        raise ConfigError('--end-timeout-s must be above 0 s (e.g. 600) and --end-max-rss-mb 0 (no bound) or more '
+                          '(e.g. 3000)')
     if a.namespace:
         check_namespace(a.namespace)
     spec = GraphSpec(roles=roles, params_file=a.params, namespace=a.namespace)
@@ -68,7 +83,7 @@ def run(a) -> int:
                           'run holds the camera to the tracker and ends the flight when the tracker has taken the '
                           'last frame; leave out --separate (it is for a live camera device)')
     _locks = claim_folders(a, roles, exporting)   # held (flock) until the command returns
-    signals = StopSignals('finishing the flight (final adjustment, stereo, map flush, products)')
+    signals = RunSignals(skippable=not a.separate)
     if a.separate:
         return _run_separate(a, spec, signals)
     paced = pace_camera(spec)
@@ -88,30 +103,40 @@ def run(a) -> int:
         print(f'photogram_ros running: {", ".join(graph.nodes)} (SIGINT or SIGTERM ends the flight: final '
               f'adjustment, map flush' + (f', products in {a.out}/)' if exporting else ')'), flush=True)
         pacer = CameraPacer(graph, signals.stop) if paced else None
-        signals.wait(alive=lambda: not source_ended(graph))
+        memory = PeakMemory()
+        signals.wait(alive=lambda: memory.sample() and not source_ended(graph))
         flight_s = time.monotonic() - t0
         say = (lambda text: print(text, flush=True))
-        if not signals.signal_name:   # the source ended: what it sent goes through the graph first
+        if pacer is not None:
+            pacer.stop()
+        if signals.signal_name:   # nothing more comes in: the end of flight works on what was taken
+            stopped = graph.stop_sources()
+            say(f'{signals.signal_name}: stopped ' + (', '.join(stopped) or 'no source in this process')
+                + f' after {flight_s:.0f} s of flight (RSS {memory.now_mb:.0f} MB, peak {memory.peak_mb:.0f} MB)')
+        else:   # the source ended: what it sent goes through the graph first
             print('end of the camera source: waiting for the tracker, bundle, stereo and map to take every '
                   'frame', flush=True)
-            graph.drain(timeout_s=600.0, say=say, work_only=True)
+            graph.drain(timeout_s=600.0, say=say, work_only=True, abort=signals.stop)
+            graph.stop_sources()
         print(f'{signals.signal_name or "end of the camera source"}: ending the flight (final adjustment, stereo, '
-              'map flush)', flush=True)
-        # Each end-of-flight step's output goes through before the next; live inputs may still arrive
-        # (a camera on the ground), so a step waits at most a minute.
-        end = graph.finish_flight(settle=lambda: graph.drain(timeout_s=60.0, say=say, work_only=True))
+              f'map flush; at most {a.end_timeout_s:g} s, a second signal skips to the products of what exists)',
+              flush=True)
+        end = finish_within_bounds(graph, signals.skip, a.end_timeout_s, a.end_max_rss_mb, say)
         counts = graph.counts()
         names = {role: getattr(getattr(n, 'diag', None), 'name', f'/{NODES[role][2]}')
                  for role, n in graph.nodes.items()}
-        if pacer is not None:
-            pacer.stop()
     finally:
         if graph is not None:
             graph.shutdown()
         if monitor is not None:
             monitor.destroy_node()
         rclpy.try_shutdown()
+    from photogram_ros.nodes.process_memory import trim_heap
+    trim_heap()   # the nodes' memory back to the system before the products are made
     diag_log.add(counts, names)
+    if signals.skip.is_set() and not a.live_map:
+        a.live_map = True
+        print('end of flight cut short: the products come from the in-flight map', flush=True)
     wall_s = time.monotonic() - t0
     frames = max(counts.get('tracker', {}).get('frames_received', 0), counts.get('camera', {}).get('frames', 0))
     run_info = {'source': 'run', 'frames': frames, 'bag_s': flight_s, 'wall_s': wall_s,
@@ -119,6 +144,107 @@ def run(a) -> int:
                 'ended_by': signals.signal_name or 'end of the camera source',
                 'final_adjustment': end.final_adjustment, 'end_of_flight_errors': end.errors}
     return _after_flight(a, roles, end.as_dict(), run_info, diag_log.snapshot())
+
+
+class RunSignals:
+    """SIGINT and SIGTERM for `run`: the first sets `stop` (the flight ends: sources stopped, end-of-flight
+    steps); the second sets `skip` (the steps left are skipped: the products of what exists are written);
+    later ones say that kill -9 stops at once. Works also when a shell started `run` in the background
+    with SIGINT ignored (a supervisor's SIGINT means stop)."""
+
+    def __init__(self, skippable: bool = True):
+        import signal
+        import threading
+        self.stop, self.skip = threading.Event(), threading.Event()
+        self.signal_name = ''
+        self.skippable = skippable   # run --separate: each node process ends its own flight
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(sig, self._on_signal)
+
+    def _on_signal(self, signum, _frame) -> None:
+        import signal
+        import sys
+        name = signal.Signals(signum).name
+        if not self.stop.is_set():
+            self.signal_name = name
+            self.stop.set()
+        elif not self.skip.is_set() and self.skippable:
+            self.skip.set()
+            print(f'{name} again: skipping the end-of-flight steps left; writing the products of what exists '
+                  '(the in-flight map)', file=sys.stderr, flush=True)
+        else:
+            print(f'{name} again: still stopping; kill -9 stops at once (the map on disk stays '
+                  'consistent: photogram-ros export MAPDIR --densify makes the products later)', file=sys.stderr,
+                  flush=True)
+
+    def wait(self, period_s: float = 0.5, alive=lambda: True) -> None:
+        """Until a signal came (or `alive()` turns false)."""
+        while not self.stop.wait(period_s) and alive():
+            pass
+
+
+class PeakMemory:
+    """This process's resident memory over the flight: `sample()` (True, to sit in a wait's alive check)
+    records the current and the peak RSS."""
+
+    def __init__(self):
+        self.now_mb = self.peak_mb = 0.0
+        self.sample()
+
+    def sample(self) -> bool:
+        from photogram_ros.nodes.graph import rss_mb
+        self.now_mb = rss_mb()
+        self.peak_mb = max(self.peak_mb, self.now_mb)
+        return True
+
+
+def finish_within_bounds(graph, skip, timeout_s: float, max_rss_mb: float, say):
+    """graph.finish_flight in a worker thread, watched from here: a line every 10 s; past `timeout_s`, or
+    this process's RSS above `max_rss_mb` (0: no bound), or once `skip` is set (a second signal), the
+    steps left are skipped and the step running is waited for at most 10 s more. Returns the FlightEnd
+    (the final adjustment 'failed' with the reason when it was cut short before it ended)."""
+    import threading
+
+    from photogram_ros.nodes.graph import FlightEnd, rss_mb
+    result: dict = {}
+
+    def work():
+        settle = (lambda: graph.drain(timeout_s=60.0, say=say, work_only=True, abort=skip))
+        try:
+            result['end'] = graph.finish_flight(settle=settle, say=say, abort=skip, announce=True)
+        except Exception as exc:   # said and recorded; the products of what exists are still written
+            result['error'] = f'end of flight failed: {type(exc).__name__}: {exc}'
+
+    thread = threading.Thread(target=work, daemon=True, name='end-of-flight')
+    t0 = last_said = time.monotonic()
+    thread.start()
+    why = ''
+    while thread.is_alive():
+        thread.join(0.5)
+        now, rss = time.monotonic(), rss_mb()
+        if not why and not skip.is_set() and now - t0 > timeout_s:
+            why = f'not done after {timeout_s:g} s (--end-timeout-s)'
+        if not why and not skip.is_set() and max_rss_mb and rss > max_rss_mb:
+            why = f'RSS {rss:.0f} MB above --end-max-rss-mb {max_rss_mb:g}'
+        if why and not skip.is_set():
+            say(f'end of flight: {why}: skipping the steps left')
+            skip.set()
+        if skip.is_set():
+            thread.join(10.0)
+            break
+        if now - last_said >= 10.0:
+            last_said = now
+            say(f'end of flight: {now - t0:.0f} s (RSS {rss:.0f} MB)')
+    if 'end' in result:
+        end = result['end']
+    else:
+        cut = why or 'a second signal'
+        end = FlightEnd('failed', f'cut short by {cut} before the final adjustment ended',
+                        [result.get('error') or f'end of flight cut short by {cut} while a step was running'])
+    if why and not any(why in e for e in end.errors):
+        end.errors.append(f'end of flight cut short: {why}')
+    say(f'end of flight: steps done in {time.monotonic() - t0:.0f} s (RSS {rss_mb():.0f} MB)')
+    return end
 
 
 def check_namespace(namespace: str) -> None:
@@ -194,6 +320,8 @@ class CameraPacer:
             self._wait(lambda: downstream_lag(self.graph.counts()) <= self.max_lag)
             if self._stop.is_set() or not camera.publish_next():
                 return
+            if camera.waiting:   # a watched folder (watch_quiet_s) waits for its next photo
+                self._stop.wait(0.2)
 
     def stop(self) -> None:
         self._done.set()
@@ -355,6 +483,7 @@ def _export_at_stop(a, roles, run_info=None, diagnostics=None) -> int:
     if res.get('files'):
         print(f"products in {a.out}/ ({res['crs']}): " + ', '.join(sorted(res['files'])) + ', report', flush=True)
     verdict = res.get('figures', {}).get('mapping')
-    if verdict and not verdict['mapped']:   # said, not an exit status: a live stop is not a failed command
+    if verdict and not verdict['mapped']:
         print('MAPPING FAILED: ' + '; '.join(verdict['failures']), flush=True)
+        return EXIT_NOT_MAPPED
     return 0

@@ -25,6 +25,7 @@ its cells back to map ENU and draping the keyframes (core.raster.orthomosaic).
 
 from __future__ import annotations
 
+import errno
 import json
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -39,7 +40,7 @@ from photogram_ros.core.geodesy import LocalFrame, crs_to_geodetic, crs_wkt, geo
 from photogram_ros.core.dtm import dtm_from_points
 from photogram_ros.core.raster import (NODATA, Keyframe, Raster, cell_max, dsm_from_points, fill_surface, hull_mask,
                                        orthomosaic)
-from photogram_ros.errors import ConfigError, DataError, GeodesyError
+from photogram_ros.errors import ConfigError, DataError, GeodesyError, StorageError
 from photogram_ros.io.map_store import MapStore, as_map_store
 from photogram_ros.io.progress import Progress, Steps
 from photogram_ros.params import param, validate
@@ -113,6 +114,63 @@ def _check_projected(crs: str) -> None:
     if not c.is_projected:
         raise GeodesyError(f'{crs} is not a projected CRS: rasters and clouds need metric easting/northing '
                            '(e.g. the UTM zone EPSG:326xx, or a national grid such as EPSG:2056)')
+
+
+# --- whole files ----------------------------------------------------------------------------------
+
+
+class ProductsIncomplete(StorageError):
+    """Some products could not be written (a full disk): the message names each path and why; `result`
+    (ExportResult) holds the products that were written whole, and export.json says which failed."""
+
+    def __init__(self, message: str, errno_: int | None, result: 'ExportResult'):
+        super().__init__(message, errno_)
+        self.result = result
+
+
+def part_path(path: Path) -> Path:
+    """The temporary name a product is written under until it is whole: '.cloud.part.laz' beside
+    'cloud.laz' (the suffix kept: writers choose their format by it)."""
+    return path.with_name(f'.{path.stem}.part{path.suffix}')
+
+
+def write_whole(path: str | Path, write) -> Path:
+    """`write(tmp)` writes the file under part_path(path); once it returned, the file is flushed to disk and
+    renamed to `path`. A failure (a full disk) removes the partial file and raises a StorageError naming
+    `path`: a product is on disk whole under its final name, or not at all."""
+    import os
+    path = Path(path)
+    tmp = part_path(path)
+    try:
+        write(tmp)
+        fd = os.open(tmp, os.O_RDONLY)
+        try:
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+        os.replace(tmp, path)
+    except OSError as exc:
+        tmp.unlink(missing_ok=True)
+        Path(str(tmp) + '.aux.xml').unlink(missing_ok=True)
+        cause = _disk_full(exc) or exc
+        why = 'the disk is full' if cause.errno == errno.ENOSPC else (cause.strerror or str(cause))
+        raise StorageError(f'{path}: not written: {why}', cause.errno) from exc
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+    return path
+
+
+def _disk_full(exc: BaseException) -> OSError | None:
+    """The OSError behind a writer's failure (rasterio and laspy wrap the system's error), else None."""
+    seen = exc
+    while seen is not None:
+        if 'No space left on device' in str(seen):
+            return OSError(errno.ENOSPC, 'No space left on device')
+        if isinstance(seen, OSError) and seen.errno is not None:
+            return seen
+        seen = seen.__cause__ or seen.__context__
+    return None
 
 
 # --- reading a map folder --------------------------------------------------------------------------
@@ -519,7 +577,7 @@ class ExportResult:
 def export_map(map_dir: str | Path | MapStore, out_dir: str | Path, crs: str, heights: str = 'ellipsoidal',
                dsm_res_m: float = 0.0, ortho_res_m: float = 0.0, products=('las', 'laz', 'ply', 'dsm', 'dtm', 'ortho'),
                origin: LocalFrame | None = None, min_pairs: int = 1, dsm: DsmParams | None = None,
-               contour_interval_m: float = 0.0, say=None) -> ExportResult:
+               contour_interval_m: float = 0.0, say=None, damaged: list | None = None) -> ExportResult:
     """Write the requested products of a map folder (or an open MapStore) into out_dir (created).
 
     min_pairs=2 exports only cells confirmed by two stereo pairs: a cell one pair saw cannot be
@@ -527,12 +585,16 @@ def export_map(map_dir: str | Path | MapStore, out_dir: str | Path, crs: str, he
     `dsm`: the DSM rules (default DsmParams(): lengths from the map's cell size).
     contour_interval_m > 0 also writes contours.gpkg: the DTM's contour lines at that interval (io/contours.py).
     say(text): progress lines (io/progress.py): each product as it starts, the orthomosaic's keyframes
-    counted; None: none.
+    counted; None: none. The map's tiles are checked first (MapStore.check_tiles): each damaged tile is
+    named in the notes and export.json's damaged_tiles, with what rebuilds its points; `damaged`: tiles of
+    another map these products were rebuilt for (named the same way, as rebuilt).
     """
     dsm = dsm or DsmParams()
     validate(dsm)
     _check_projected(crs)
-    store, fusion = open_map(map_dir)
+    store = as_map_store(map_dir)
+    damage = [f'{store.tiles_dir / d.path.name}: {d.what}' for d in store.check_tiles()]
+    store, fusion = open_map(store)
     origin = origin or store.origin
     if origin is None:
         raise DataError(f'{store.root} has no geodetic origin (map.json "origin" is null): the map node never '
@@ -540,6 +602,17 @@ def export_map(map_dir: str | Path | MapStore, out_dir: str | Path, crs: str, he
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     res = ExportResult()
+    for d in damage:
+        res.notes.append(f'damaged map tile {d}; its points are missing from these products: photogram-ros export '
+                         f'{store.root} --densify rebuilds them from the keyframes')
+        if say is not None:
+            say(f'export: damaged map tile {d}')
+    res.notes += [f'damaged map tile {d}; its points were rebuilt from the keyframes (matched again)'
+                  for d in damaged or []]
+    unposed = store.unposed_keyframe_images()
+    if unposed:
+        res.notes.append(f'{len(unposed)} keyframe images of {store.root} have no pose (taken before the flight was '
+                         f'cut short, never oriented; first {unposed[0].name}): not in these products')
     surface = any(k in products for k in ('dsm', 'dtm', 'ortho')) or contour_interval_m > 0
     plan = (['cloud'] + [name for k, name in (('las', 'LAS'), ('laz', 'LAZ'), ('ply', 'PLY')) if k in products]
             + ['DSM'] * surface + ['DTM'] * ('dtm' in products or contour_interval_m > 0)
@@ -557,10 +630,28 @@ def export_map(map_dir: str | Path | MapStore, out_dir: str | Path, crs: str, he
         res.notes += c['notes']
         res.classes = {'ground': c['counts'].get(2, 0), 'building': c['counts'].get(6, 0),
                        'unclassified': c['counts'].get(1, 0), 'buildings': c['buildings']}
+    failed: dict = {}   # product -> why it was not written (each named with its path)
+
+    def keep(key, path, write) -> None:
+        """The product `key` written whole at `path` by write(tmp), or its failure recorded: a full disk
+        stops this product, not the smaller ones after it."""
+        try:
+            res.files[key] = write_whole(path, write)
+        except StorageError as exc:
+            failed[key] = (str(exc), exc.errno)
+        except Exception as exc:   # a writer that wraps the system's error (rasterio, laspy)
+            cause = _disk_full(exc)
+            if cause is None:
+                raise
+            failed[key] = (f'{path}: not written: ' + ('the disk is full' if cause.errno == errno.ENOSPC else
+                                                      cause.strerror or str(cause)), cause.errno)
+        if key in failed and say is not None:
+            say(f'export: {failed[key][0]}')
+
     for key, name, write in (('las', 'LAS', write_las), ('laz', 'LAZ', write_las), ('ply', 'PLY', write_ply)):
         if key in products:
             steps.start(name)
-            res.files[key] = write(cloud, out / f'cloud.{key}')
+            keep(key, out / f'cloud.{key}', lambda tmp, write=write: write(cloud, tmp))
     dsm_res = dsm_res_m or 2.0 * store.cell_m
     rules = dsm.for_cell(store.cell_m)
     res.dsm = {'cell_m': store.cell_m, 'res_m': dsm_res, 'max_spread_m': rules.max_spread_m,
@@ -578,10 +669,10 @@ def export_map(map_dir: str | Path | MapStore, out_dir: str | Path, crs: str, he
         if surf.camera_hull.any():
             res.dsm['camera_hull'] = surf.shares(surf.camera_hull)
         if 'dsm' in products:
-            res.files['dsm'] = write_geotiff(
+            keep('dsm', out / 'dsm.tif', lambda tmp: write_geotiff(
                 Raster(np.dstack([grid.data, surf.pairs]), grid.x0_m, grid.y1_m, grid.res_m, NODATA),
-                out / 'dsm.tif', crs, f'DSM, {heights} heights (m); band 2: stereo pairs that measured the cell, '
-                f'0 where interpolated', heights=heights, band_names=('height_m', 'pairs'))
+                tmp, crs, f'DSM, {heights} heights (m); band 2: stereo pairs that measured the cell, '
+                f'0 where interpolated', heights=heights, band_names=('height_m', 'pairs')))
     if 'dtm' in products or contour_interval_m > 0:
         steps.start('DTM')
         dtm = dtm_from_points(cloud.x, cloud.y, cloud.z, grid, grid.valid(), weights=cloud.count, classes=cloud.classes)
@@ -589,15 +680,15 @@ def export_map(map_dir: str | Path | MapStore, out_dir: str | Path, crs: str, he
         res.dtm = {'ground_points': dtm.ground_points, 'ground_cells_share': float(dtm.ground.mean()),
                    'valid_share': float(np.mean(dtm.raster.valid()))}
         if 'dtm' in products:
-            res.files['dtm'] = write_geotiff(dtm.raster, out / 'dtm.tif', crs, f'DTM (bare ground, from the cloud\'s '
-                                             f'ground class), {heights} heights (m)', heights=heights)
+            keep('dtm', out / 'dtm.tif', lambda tmp: write_geotiff(
+                dtm.raster, tmp, crs, f'DTM (bare ground, from the cloud\'s ground class), {heights} heights (m)',
+                heights=heights))
         if contour_interval_m > 0:
             from photogram_ros.io.contours import contour_lines, write_contours_gpkg
             steps.start('contours')
             lines = contour_lines(dtm.raster, contour_interval_m)
-            res.files['contours'] = write_contours_gpkg(lines, out / 'contours.gpkg', crs,
-                                                        f'DTM contours every {contour_interval_m:g} m, {heights} '
-                                                        'heights (elevation_m)')
+            keep('contours', out / 'contours.gpkg', lambda tmp: write_contours_gpkg(
+                lines, tmp, crs, f'DTM contours every {contour_interval_m:g} m, {heights} heights (elevation_m)'))
             res.dtm['contour_lines'] = len(lines)
     if 'ortho' in products:
         steps.start('ortho')
@@ -617,12 +708,23 @@ def export_map(map_dir: str | Path | MapStore, out_dir: str | Path, crs: str, he
                 inside = hull_mask(ortho.shape, *ortho.to_pixel(ce, cn))
                 if inside.any():
                     res.ortho['camera_hull'] = {'cells': int(inside.sum()), 'valid': float(seen[inside].mean())}
-            res.files['ortho'] = write_geotiff(ortho, out / 'ortho.tif', crs, 'orthomosaic RGBA', rgba=True,
-                                               heights=heights)
+            keep('ortho', out / 'ortho.tif', lambda tmp: write_geotiff(ortho, tmp, crs, 'orthomosaic RGBA', rgba=True,
+                                                                       heights=heights))
     meta = {'crs': crs, 'heights': heights, 'origin': origin.to_dict(), 'points': res.points, 'min_pairs': min_pairs,
             'keyframes': res.keyframes, 'files': {k: str(v) for k, v in res.files.items()}, 'notes': res.notes,
             'geoid': geoid.MODEL_NAME if heights == 'orthometric' else None, 'crs_with_heights': res.crs_with_heights,
-            'classes': res.classes, 'dsm': res.dsm, 'dtm': res.dtm, 'ortho': res.ortho}
-    (out / 'export.json').write_text(json.dumps(meta, indent=1))
+            'classes': res.classes, 'dsm': res.dsm, 'dtm': res.dtm, 'ortho': res.ortho,
+            'damaged_tiles': [{'tile': d, 'points': 'missing'} for d in damage]
+            + [{'tile': d, 'points': 'rebuilt from the keyframes'} for d in damaged or []],
+            'failed': {k: why for k, (why, _) in failed.items()}}
+    try:
+        write_whole(out / 'export.json', lambda tmp: tmp.write_text(json.dumps(meta, indent=1)))
+    except StorageError as exc:
+        failed['export.json'] = (str(exc), exc.errno)
     steps.finish()
+    if failed:
+        kept = ', '.join(sorted(Path(v).name for v in res.files.values())) or 'none'
+        raise ProductsIncomplete('; '.join(why for why, _ in failed.values()) + f' (written whole: {kept}; the map '
+                                 f'in {store.root} is safe: free space and export again)',
+                                 next(iter(failed.values()))[1], res)
     return res

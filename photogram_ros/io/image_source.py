@@ -94,9 +94,14 @@ class Frame:
 
 
 def _exif(path):
+    """A photo's EXIF; the image is not decoded, so a panorama's size is no decompression bomb here."""
+    import warnings
+
     from PIL import Image
-    with Image.open(path) as im:
-        return im.getexif()
+    with warnings.catch_warnings():
+        warnings.simplefilter('ignore', Image.DecompressionBombWarning)
+        with Image.open(path) as im:
+            return im.getexif()
 
 
 def read_exif_gps(path) -> ExifGps | None:
@@ -311,10 +316,13 @@ def image_file_problem(path) -> str | None:
         return f'cannot be read: {exc}'
     if size == 0:
         return 'empty file (0 bytes)'
+    import warnings
     try:
-        with Image.open(path) as im:
-            fmt = im.format
-    except (OSError, SyntaxError, ValueError) as exc:
+        with warnings.catch_warnings():
+            warnings.simplefilter('ignore', Image.DecompressionBombWarning)
+            with Image.open(path) as im:
+                fmt = im.format
+    except (OSError, SyntaxError, ValueError, Image.DecompressionBombError) as exc:
         return f'not an image: {exc}'
     if fmt == 'JPEG':
         with open(path, 'rb') as fh:
@@ -329,6 +337,49 @@ def image_file_problem(path) -> str | None:
     return None
 
 
+def camera_of(path) -> tuple[int, int, str]:
+    """(width, height, 'Make Model' from the EXIF) of a photo, read from its header; a panorama of any size
+    is read without Pillow's decompression-bomb warning (it is only measured here)."""
+    import warnings
+
+    from PIL import Image
+    with warnings.catch_warnings():
+        warnings.simplefilter('ignore', Image.DecompressionBombWarning)
+        with Image.open(path) as im:
+            size = im.size
+            try:
+                exif = im.getexif()
+                model = ' '.join(t for t in (_text(exif.get(TAG_MAKE)), _text(exif.get(TAG_MODEL))) if t)
+            except (OSError, SyntaxError, ValueError):
+                model = ''
+    return int(size[0]), int(size[1]), model
+
+
+def camera_words(key: tuple) -> str:
+    """(3600, 2700, 'DJI FC6310') -> '3600x2700 DJI FC6310' ('camera unnamed in the EXIF' without a model)."""
+    w, h, model = key
+    return f'{w}x{h} ' + (model or '(camera unnamed in the EXIF)')
+
+
+def majority_camera(cameras: dict) -> tuple | None:
+    """The camera (width, height, model) most photos of `cameras` (path -> camera_of) were taken with; on a
+    tie, the one of the first photo among the tied. None for no photo."""
+    counts: dict = {}
+    for key in cameras.values():
+        counts[key] = counts.get(key, 0) + 1
+    return max(counts, key=lambda k: counts[k]) if counts else None
+
+
+def _digest(path: Path) -> bytes:
+    """A hash of the file's bytes (duplicate copies of a photo)."""
+    import hashlib
+    h = hashlib.blake2b(digest_size=16)
+    with open(path, 'rb') as fh:
+        for chunk in iter(lambda: fh.read(1 << 20), b''):
+            h.update(chunk)
+    return h.digest()
+
+
 def _decode(path: Path) -> np.ndarray:
     """Decode fully with Pillow: it refuses truncated JPEGs, where OpenCV returns a grey-padded image."""
     from PIL import Image
@@ -341,15 +392,25 @@ def _decode(path: Path) -> np.ndarray:
     return np.ascontiguousarray(rgb[:, :, ::-1])
 
 
+PENDING_MAX_S = 30.0   # FolderSource.refresh: a new file that does not become a whole image in this long is skipped
+
+
 class FolderSource:
     """The photos of a folder in shooting order; iterate for `Frame`s.
 
-    Photos without EXIF DateTimeOriginal (a PNG among JPEGs) are skipped and named while at least
-    half of the folder has its time: the others keep their real timing. When most have none, the
+    One camera per block: the photos of the camera most of the folder was taken with (image size and
+    EXIF make and model, `camera`) are played; the others (a panorama, a thumbnail, another camera's
+    photo) are named in `skipped` and `other_camera` and left out, so a stray image never sinks the
+    flight. Photos without EXIF DateTimeOriginal (a PNG among JPEGs) are skipped and named while at
+    least half of the folder has its time: the others keep their real timing. When most have none, the
     folder plays in file-name order, `fallback_period_s` apart."""
 
     def __init__(self, folder, utc_offset_s: float = 0.0, fallback_period_s: float = 1.0):
         self.folder = Path(folder)
+        self.utc_offset_s = utc_offset_s
+        self.next_index = 0
+        self._pending: dict = {}   # refresh(): path -> (its size at the last look, first seen), while it may grow
+        self.activity_at = 0.0     # refresh(): when a new file was last seen (time.monotonic)
         if not self.folder.is_dir():
             raise ConfigError(f'{folder} is not a folder of images')
         files = sorted(p for p in self.folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
@@ -357,24 +418,43 @@ class FolderSource:
             raise DataError(f'{folder} holds no {"/".join(s[1:].upper() for s in IMAGE_SUFFIXES)} images')
         self.notes: list[str] = []
         self.skipped: list[tuple[str, str]] = []   # (path, why)
-        timed = []
+        self.other_camera: list[tuple[str, str]] = []   # (path, why): photos of another camera, left out
+        usable, cameras = [], {}
         for p in files:
             why = image_file_problem(p)
             if why is not None:
                 # Not usable at all: skipped here, so it does not change how the others are timed.
                 self.skipped.append((str(p), f'{p.name}: {why}'))
                 continue
-            timed.append((p, *read_exif_time_ns(p, utc_offset_s)))
-        if not timed:
+            usable.append(p)
+            cameras[p] = camera_of(p)
+        if not usable:
             raise DataError(f'{folder}: none of its {len(files)} image files can be read '
                             f'({"; ".join(w for _, w in self.skipped[:3])})')
+        timed = [(p, *read_exif_time_ns(p, utc_offset_s)) for p in usable]
         files = [e[0] for e in timed]
         missing = [p for p, t, _, _ in timed if t is None]
-        if 2 * len(missing) <= len(timed):
+        by_time = 2 * len(missing) <= len(timed)
+        if by_time:
             for p in missing:
                 self.skipped.append((str(p), f'{p.name} has no EXIF DateTimeOriginal while {len(timed) - len(missing)} '
                                              'photos of the folder have one: skipped (its time is unknown)'))
             timed = [e for e in timed if e[1] is not None]
+        timed = self._drop_duplicates(timed)
+        # One camera per block, among the photos that can be placed in time.
+        self.camera = majority_camera({e[0]: cameras[e[0]] for e in timed})
+        odd = [e[0] for e in timed if cameras[e[0]] != self.camera]
+        for p in odd:
+            why = (f'{p.name}: {camera_words(cameras[p])}, another camera than the block\'s '
+                   f'{camera_words(self.camera)} ({len(timed) - len(odd)} photos): left out')
+            self.skipped.append((str(p), why))
+            self.other_camera.append((str(p), why))
+        if odd:
+            self.notes.append(f'one camera per block: {camera_words(self.camera)} ({len(timed) - len(odd)} of '
+                              f'{len(timed)} photos); left out {len(odd)} of another camera or size: '
+                              + ', '.join(p.name for p in odd[:10]) + (', ...' if len(odd) > 10 else ''))
+        timed = [e for e in timed if cameras[e[0]] == self.camera]
+        if by_time:
             # Name as tie-breaker: burst photos can share a second when SubSec is absent.
             timed.sort(key=lambda e: (e[1], e[0].name))
             self.entries = [(p, t) for p, t, _, _ in timed]
@@ -395,7 +475,7 @@ class FolderSource:
             if t0 is None:
                 t0 = int(min(p.stat().st_mtime_ns for p in files))
             step = int(round(fallback_period_s * 1e9))
-            self.entries = [(p, t0 + i * step) for i, p in enumerate(files)]
+            self.entries = [(e[0], t0 + i * step) for i, e in enumerate(timed)]
 
         # Positions from a geo.txt beside the photos (a PPK geotag) replace their EXIF GPS.
         self.geo: dict = {}
@@ -409,6 +489,26 @@ class FolderSource:
     def __len__(self) -> int:
         return len(self.entries)
 
+    def _drop_duplicates(self, timed: list) -> list:
+        """`timed` ((path, time, ...) rows) without the byte-identical copies of a photo (the same file
+        downloaded twice): each named in `skipped` with the photo it copies; the first by name is kept.
+        Only photos of one size and time are compared byte for byte."""
+        groups: dict = {}
+        for e in sorted(timed, key=lambda e: e[0].name):
+            groups.setdefault((e[0].stat().st_size, e[1]), []).append(e)
+        dropped = set()
+        for same in groups.values():
+            seen: dict = {}
+            for e in same if len(same) > 1 else ():
+                digest = _digest(e[0])
+                if digest in seen:
+                    dropped.add(e[0])
+                    self.skipped.append((str(e[0]), f'{e[0].name}: identical to {seen[digest].name} (a duplicate '
+                                                     'copy): skipped'))
+                else:
+                    seen[digest] = e[0]
+        return [e for e in timed if e[0] not in dropped]
+
     def exif_intrinsics(self):
         """core.exif_intrinsics.ExifIntrinsics from the first photo's EXIF (CalibrationError without a focal
         length); for a folder without a calibration file."""
@@ -420,11 +520,14 @@ class FolderSource:
     def __iter__(self) -> Iterator[Frame]:
         return self.frames()
 
-    def frames(self, undecoded=None) -> Iterator[Frame]:
-        """The photos as `Frame`s in shooting order, each decoded (BGR); `undecoded(path)` may give what to pass
-        instead of the decoded image (a JPEG's bytes), or None to decode it. A photo that cannot be decoded is
-        skipped and recorded in `skipped`."""
-        for path, stamp_ns in self.entries:
+    def frames(self, undecoded=None, start: int = 0) -> Iterator[Frame]:
+        """The photos as `Frame`s in shooting order from entry `start`, each decoded (BGR); `undecoded(path)` may
+        give what to pass instead of the decoded image (a JPEG's bytes), or None to decode it. A photo that cannot
+        be decoded is skipped and recorded in `skipped`. `next_index`: the entry the next frame comes from."""
+        self.next_index = start
+        while self.next_index < len(self.entries):   # entries refresh() appends are played too
+            path, stamp_ns = self.entries[self.next_index]
+            self.next_index += 1
             image = undecoded(path) if undecoded is not None else None
             if image is None:
                 try:
@@ -433,6 +536,74 @@ class FolderSource:
                     self.skipped.append((str(path), str(exc)))
                     continue
             yield Frame(stamp_ns, image, self.geo.get(path.name) or read_exif_gps(path), str(path))
+
+    def refresh(self) -> int:
+        """Photos that appeared in the folder since it was listed (a companion computer downloading from the
+        camera during the flight), appended to `entries` in shooting order; returns how many. A file is taken
+        once whole: its size the same at two refreshes and it decodes as an image (a JPEG still being copied
+        lacks its end); while one is still being copied none is taken (it may be older than the others), unless
+        it stays broken for PENDING_MAX_S (then it is named in `skipped`). A new photo of another camera, without an EXIF time, or taken before the last photo
+        listed (time never goes back) is named in `skipped` and left out."""
+        known = {p for p, _ in self.entries} | {Path(p) for p, _ in self.skipped}
+        now = time.monotonic()
+        ready, growing = [], []
+        for p in sorted(self.folder.iterdir()):
+            if p.suffix.lower() not in IMAGE_SUFFIXES or p in known:
+                continue
+            try:
+                size = p.stat().st_size
+            except OSError:
+                continue
+            seen = self._pending.get(p)
+            if seen is None or seen[0] != size:
+                self._pending[p] = (size, now if seen is None else seen[1])   # looked at again next time
+                growing.append(p)
+                continue
+            why = 'empty file (0 bytes)' if size == 0 else image_file_problem(p)
+            if why is None:
+                ready.append(p)
+            elif now - seen[1] > PENDING_MAX_S:   # never became whole
+                del self._pending[p]
+                self.skipped.append((str(p), f'{p.name}: {why} after {PENDING_MAX_S:g} s'))
+            else:
+                growing.append(p)
+        if growing or ready:
+            self.activity_at = now
+        # A photo still being copied may be older than the whole ones: those taken after it wait for it (its
+        # EXIF, at the file's start, usually reads already; when it does not, all wait).
+        first_growing = None
+        for p in growing:
+            t = read_exif_time_ns(p, self.utc_offset_s)[0]
+            if t is None:
+                return 0
+            first_growing = t if first_growing is None else min(first_growing, t)
+        new = []
+        for p in ready:
+            t = read_exif_time_ns(p, self.utc_offset_s)[0]
+            if first_growing is not None and (t is None or t >= first_growing):
+                continue
+            del self._pending[p]
+            camera = camera_of(p)
+            last_ns = self.entries[-1][1] if self.entries else None
+            why = None
+            if self.camera is not None and camera != self.camera:
+                why = (f'{p.name}: {camera_words(camera)}, another camera than the block\'s '
+                       f'{camera_words(self.camera)}: left out')
+                self.other_camera.append((str(p), why))
+            elif t is None:
+                why = f'{p.name} has no EXIF DateTimeOriginal: skipped (its time is unknown)'
+            elif (twin := next((q for q, tq in self.entries if tq == t and q.stat().st_size == p.stat().st_size
+                                and _digest(q) == _digest(p)), None)) is not None:
+                why = f'{p.name}: identical to {twin.name} (a duplicate copy): skipped'
+            elif last_ns is not None and t <= last_ns:
+                why = f'{p.name} was taken before the last photo played (time never goes back): skipped'
+            if why is not None:
+                self.skipped.append((str(p), why))
+                continue
+            new.append((p, t))
+        new.sort(key=lambda e: (e[1], e[0].name))
+        self.entries.extend(new)
+        return len(new)
 
 
 class VideoSource:

@@ -10,6 +10,8 @@ Layout of a map directory:
     control_points.json           the bundle adjuster's latest check points and GCPs with their detections
     flight_end.json               how the flight ended: was the final adjustment made (written last)
 
+    tiles/index.json              each tile's size at its last sync (written after the tiles' fsync)
+
 A tile file is a 32-byte header followed by blocks. A block is a 16-byte header (magic, record
 count, CRC-32 of the payload) and fixed-size records (cell index + the cell's full state). A flush
 appends the cells that changed since the last flush; reading replays the blocks and the last record
@@ -17,6 +19,12 @@ of a cell wins. A block cut short or garbled by a crash fails its length or CRC 
 stops there and the next append truncates the torn tail first, so a kill -9 loses only what was
 not yet flushed. Files that have grown much larger than their content are rewritten compactly
 (temporary file, fsync, rename).
+
+`check_tiles` compares the tiles with the index: a tile deleted, cut short, or whose blocks before its
+synced size fail their check (overwritten), or whose header is not a tile's, is a `TileDamage` naming
+the file and what was lost; a header that is not a tile's leaves the tile out of `tile_keys` so the
+rest of the map still reads. A map without an index (written before it existed) can only tell the
+blocks that fail their check.
 """
 
 from __future__ import annotations
@@ -26,6 +34,7 @@ import json
 import os
 import struct
 import zlib
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -45,6 +54,21 @@ _FILE_MAGIC = b'PGRTILE1'
 _BLOCK_HEADER = struct.Struct('<IIII')             # magic, n records, crc32, reserved
 _BLOCK_MAGIC = 0x4B4C4250                          # 'PBLK'
 _FILE_HEADER_SIZE = 40
+
+
+TILE_INDEX = 'index.json'   # in tiles/
+
+
+@dataclass(frozen=True)
+class TileDamage:
+    """A map tile that lost cells: `what` says how (missing, cut short, overwritten, not a tile)."""
+
+    key: tuple
+    path: Path
+    what: str
+
+    def __str__(self) -> str:
+        return f'{self.path.name}: {self.what}'
 
 
 def _atomic_write(path: Path, data: bytes) -> None:
@@ -101,6 +125,8 @@ class MapStore:
         self.tile_cells = int(self.meta['tile_cells'])
         self._good_size: dict[tuple[int, int], int] = {}
         self._unsynced: set[Path] = set()
+        self._index = self._read_index()   # (ti, tj) -> the tile's size at its last sync; None: no index
+        self._unreadable: set[tuple[int, int]] = set()   # tiles check_tiles found are not tiles of this map
         self.bytes_written = 0
         self.write_failures = 0          # writes that failed (a full disk, a folder gone): map_node's diagnostics
         self.last_write_error: StorageError | None = None
@@ -157,6 +183,7 @@ class MapStore:
         return self.tiles_dir / f'{int(key[0])}_{int(key[1])}.pgt'
 
     def tile_keys(self) -> list[tuple[int, int]]:
+        """The tiles on disk (but those check_tiles found unreadable)."""
         keys = []
         for p in self.tiles_dir.glob('*.pgt'):
             try:
@@ -164,7 +191,56 @@ class MapStore:
                 keys.append((int(a), int(b)))
             except ValueError:
                 continue
-        return sorted(keys)
+        return sorted(k for k in keys if k not in self._unreadable)
+
+    def _read_index(self) -> dict | None:
+        p = self.tiles_dir / TILE_INDEX
+        try:
+            body = json.loads(p.read_text())
+            return {tuple(int(v) for v in k.split('_')): int(n) for k, n in body['sizes'].items()}
+        except FileNotFoundError:
+            return None
+        except (OSError, ValueError, KeyError, TypeError, AttributeError):
+            return {}   # a damaged index: tiles are still checked block by block
+
+    def _write_index(self) -> None:
+        body = {'sizes': {f'{k[0]}_{k[1]}': n for k, n in sorted(self._index.items())}}
+        self._write(self.tiles_dir / TILE_INDEX, json.dumps(body).encode())
+
+    def check_tiles(self) -> list[TileDamage]:
+        """Every tile that lost cells, named with how: missing (in the index, not on disk), cut short or
+        overwritten (its whole blocks end before its size at the last sync), not a tile of this map (its
+        header). Without an index, a tile whose blocks fail their check after some byte (a crash's torn
+        tail, or damage) is named too. Unreadable tiles are left out of tile_keys from here on."""
+        out = []
+        index = self._index or {}
+        on_disk = {}
+        for p in self.tiles_dir.glob('*.pgt'):
+            try:
+                a, b = p.stem.split('_')
+                on_disk[(int(a), int(b))] = p
+            except ValueError:
+                continue
+        for key in sorted(set(index) - set(on_disk)):
+            out.append(TileDamage(key, self._tile_path(key), f'missing (deleted?): it held {index[key]} bytes of '
+                                                             'cells at the last sync'))
+        for key, path in sorted(on_disk.items()):
+            try:
+                size = path.stat().st_size
+                _, good = self._read_records(path, key)
+            except (OSError, DataError) as exc:
+                self._unreadable.add(key)
+                out.append(TileDamage(key, path, f'unreadable, left out: {exc}'))
+                continue
+            known = index.get(key)
+            if known is not None and good < known:
+                what = (f'cut short: {size} bytes of the {known} it held' if size < known else
+                        f'damaged (overwritten?): its blocks fail their check from byte {good} of {known}')
+                out.append(TileDamage(key, path, what + f': the cells of {known - good} bytes lost'))
+            elif self._index is None and good < size:
+                out.append(TileDamage(key, path, f'its blocks fail their check from byte {good} of {size} (a crash '
+                                                 'cut its last write, or the file was damaged)'))
+        return out
 
     def _read_records(self, path: Path, key) -> tuple[np.ndarray, int]:
         data = path.read_bytes()
@@ -263,6 +339,9 @@ class MapStore:
         self._write(path, data)
         self._good_size[key] = len(data)
         self._unsynced.discard(path)
+        if self._index is not None and key in self._index:   # smaller now: the index must not claim more
+            self._index[key] = len(data)
+            self._write_index()
 
     def sync(self) -> None:
         """fsync every tile file appended since the last sync (and the folder, for new files)."""
@@ -281,6 +360,16 @@ class MapStore:
                 os.fsync(fd)
             finally:
                 os.close(fd)
+            # The sizes synced: what check_tiles expects at least (a map from before the index gets one now).
+            self._index = dict(self._index or {})
+            for path in self._unsynced:
+                try:
+                    key = tuple(int(v) for v in path.stem.split('_'))
+                except ValueError:
+                    continue
+                if key in self._good_size:
+                    self._index[key] = self._good_size[key]
+            self._write_index()
         self._unsynced.clear()
 
     def disk_bytes(self) -> int:
@@ -323,6 +412,11 @@ class MapStore:
     def save_keyframe_pose(self, stamp_ns: int, map_T_cam: np.ndarray) -> None:
         body = {'stamp_ns': int(stamp_ns), 'map_T_cam': np.asarray(map_T_cam, float).tolist()}
         self._write(self.keyframes_dir / f'{int(stamp_ns)}.json', json.dumps(body).encode())
+
+    def unposed_keyframe_images(self) -> list[Path]:
+        """Keyframe images saved without a pose: taken before the flight was cut short (a crash) and never
+        oriented by the bundle adjuster; keyframes() leaves them out."""
+        return [p for p in sorted(self.keyframes_dir.glob('*.jpg')) if not p.with_suffix('.json').exists()]
 
     def keyframes(self) -> list[dict]:
         """[{'stamp_ns', 'image_path', 'map_T_cam'}] for keyframes that have both image and pose."""

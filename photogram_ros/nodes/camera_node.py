@@ -2,9 +2,11 @@
 
 Publishes camera/image_raw (bgr8), camera/camera_info (the calibration, every frame) and, for
 geotagged photos, gps/fix from the EXIF GPS stamped at the photo time, so survey photos without a
-flight log still georeference. A photo folder without `calibration_file` takes its camera from the
-first photo's EXIF (core/exif_intrinsics.py: focal length in pixels, principal point centred, no
-distortion), said on /diagnostics. A video file has no GPS of its own: `gnss_log` names a CSV of
+flight log still georeference. A photo folder plays the photos of the camera most of it was taken with
+(image size and EXIF make and model: io/image_source.FolderSource); a photo of another size or camera
+(a panorama, a thumbnail) is named on /diagnostics and left out. Without `calibration_file` the camera
+comes from the EXIF of that camera's first photo (core/exif_intrinsics.py: focal length in pixels,
+principal point centred, no distortion), said on /diagnostics. A video file has no GPS of its own: `gnss_log` names a CSV of
 fixes (io/image_source.read_fix_log: the columns `photogram-ros fixes --format csv` writes from a
 .tlog, a dataflash .bin or a bag), published on gps/fix in time order with the frames, as a live
 receiver would; `video_start_unix_s` places the video on the log's clock. A camera driver already
@@ -62,6 +64,10 @@ class CameraParams:
     frame_id: str = param('camera_optical', 'frame_id of images and camera_info')
     fix_frame_id: str = param('gps', 'frame_id of the EXIF fixes')
     autostart: bool = param(True, 'Publish on a timer from the start; false leaves it to publish_next() calls')
+    watch_quiet_s: float = param(0.0, 'A photo folder: after its last photo, wait for new ones (a companion computer '
+                                      'downloading from the camera during the flight) until none came for this long, '
+                                      's; 0 = the folder ends at its last photo. For run and camera_node (a replay '
+                                      'plays the folder as listed)', min=0.0, max=86400.0)
     wait_for_subscribers: int = param(1, 'Folders and files: the first frame waits until this many subscribers '
                                          'take the images, their camera_info and the fixes (a tracker in another '
                                          'process that starts later misses none); 0 = at once. A device never '
@@ -98,6 +104,10 @@ class CameraNode(Node):
         self.pub_info = self.create_publisher(CameraInfo, 'camera/camera_info', qos)
         self.pub_fix = self.create_publisher(NavSatFix, 'gps/fix', qos)
         self.finished = False
+        self.stopped = False         # stop_input(): the end of flight takes no more frames
+        self.waiting = False         # watch_quiet_s: the folder's photos are played, new ones are waited for
+        self._quiet_since = None     # since when no new photo came (watch_quiet_s)
+        self._last_scan = 0.0
         self._frames = self._iterate(self.source)
         self._next = None
         self._offset_ns = 0          # added to stamps on each loop so that time never goes back
@@ -131,6 +141,8 @@ class CameraNode(Node):
 
     def _peek(self):
         """The next frame to publish, reopening the source when looping; None at the end."""
+        if self.stopped:
+            return None
         if self._next is not None:
             return self._next
         while True:
@@ -138,6 +150,11 @@ class CameraNode(Node):
                 frame = next(self._frames)
             except StopIteration:
                 self._count_skips()
+                watching = self._watch()
+                if watching is not None:
+                    if watching:
+                        continue    # new photos in the folder
+                    return None     # waiting for them (self.waiting)
                 if not self.params.loop or self._last_ns is None:
                     return None
                 # Next pass starts one mean frame interval after the last frame of this one.
@@ -159,19 +176,46 @@ class CameraNode(Node):
             self._next = frame
             return frame
 
-    def _iterate(self, source):
+    def _watch(self) -> bool | None:
+        """At the end of a watched folder's photos: True when new photos came (the frames go on), False while
+        waiting for them, None when the folder is not watched or stayed quiet for watch_quiet_s (its end)."""
+        from photogram_ros.io.image_source import FolderSource
+        quiet_s = self.params.watch_quiet_s
+        if quiet_s <= 0 or self.stopped or not isinstance(self.source, FolderSource):
+            return None
+        now = time.monotonic()
+        if self._quiet_since is None:
+            self._quiet_since = now
+            self.diag.set('state', f'watching {self.params.source} for new photos (the end after {quiet_s:g} s '
+                                   'without one)')
+        if now - self._last_scan >= WATCH_PERIOD_S:
+            self._last_scan = now
+            added = self.source.refresh()
+            self._count_skips()
+            self._quiet_since = max(self._quiet_since, self.source.activity_at)   # a file being copied: not quiet
+            if added:
+                self._frames = self._iterate(self.source, self.source.next_index)
+                self._quiet_since, self.waiting = None, False
+                self.diag.count('photos_arrived', added)
+                self.diag.set('state', 'playing')
+                return True
+        self.waiting = now - self._quiet_since < quiet_s
+        return False if self.waiting else None
+
+    def _iterate(self, source, start: int = 0):
         """The source's frames; a folder's JPEG photos larger than compressed_above_px come as JpegFile
         (bytes read, not decoded); one whose bytes are not a whole JPEG is decoded as usual (and skipped
         with the reason when that fails)."""
         from photogram_ros.io.image_source import FolderSource
         if not isinstance(source, FolderSource):
             return iter(source)
-        return source.frames(lambda path: JpegFile.read(path, self.params.compressed_above_px))
+        return source.frames(lambda path: JpegFile.read(path, self.params.compressed_above_px), start)
 
     def _count_skips(self) -> None:
         new = self.source.skipped[self._reported_skips:]
+        other = set(getattr(self.source, 'other_camera', ()))
         for path, why in new:
-            self.diag.count('skipped_unreadable')
+            self.diag.count('skipped_other_camera' if (path, why) in other else 'skipped_unreadable')
             self.diag.problem(f'skipped {path}: {why}')
         self._reported_skips = len(self.source.skipped)
 
@@ -191,6 +235,8 @@ class CameraNode(Node):
         """Publish the next frame (image, camera_info, EXIF fix); False when the source is exhausted."""
         frame = self._peek()
         if frame is None:
+            if self.waiting:   # a watched folder: no new photo yet
+                return True
             self._finish()
             return False
         self._next = None
@@ -231,6 +277,17 @@ class CameraNode(Node):
             if self._timer is not None:
                 self._timer.cancel()
 
+    def stop_input(self) -> None:
+        """The flight is being stopped: publish no more frames (a live camera, or a looping folder, goes on
+        producing on the ground; the end of flight works on what was taken)."""
+        if self.stopped:
+            return
+        self.stopped = True
+        self._next = None
+        if self._timer is not None:
+            self._timer.cancel()
+        self.diag.set('state', 'stopped: the end of flight takes no more frames')
+
     def _tick(self) -> None:
         p = self.params
         if self.finished or not self._subscribed():
@@ -241,7 +298,8 @@ class CameraNode(Node):
             return
         frame = self._peek()
         if frame is None:
-            self._finish()
+            if not self.waiting:
+                self._finish()
             return
         stamp_ns = frame.stamp_ns + self._offset_ns
         now = time.monotonic()
@@ -267,6 +325,9 @@ class CameraNode(Node):
                                    'camera_info and fixes before the first frame (wait_for_subscribers)')
             self.diag.set('state', 'waiting for subscribers')
         return self._started
+
+
+WATCH_PERIOD_S = 1.0   # how often a watched folder is listed again
 
 
 class JpegFile:
@@ -301,7 +362,8 @@ def _publish_all(node) -> int:
         node.pub_image.wait_for_all_acked(Duration(seconds=5))
         c = node.diag.counts()
         print(f'camera_node: published {c.get("frames", 0)} frames, {c.get("fixes", 0)} EXIF fixes; skipped '
-              f'{c.get("skipped_unreadable", 0)} unreadable files')
+              f'{c.get("skipped_unreadable", 0)} unreadable files and {c.get("skipped_other_camera", 0)} of another '
+              'camera')
     return 0
 
 

@@ -273,15 +273,34 @@ class Graph:
                     total += v
         return int(total)
 
+    def stop_sources(self) -> list[str]:
+        """Stop every input of the graph at once (the camera's frames, the MAVLink link): what the end of
+        flight works on is what was taken before. Returns the roles stopped."""
+        stopped = []
+        for role in SOURCE_ROLES:
+            if self.child is not None and role in self.child.spec.roles:
+                try:
+                    self.child.call(role, 'stop_input', timeout_s=10.0, stall_s=10.0)
+                except RuntimeError as exc:
+                    print(f'graph: {role} could not be stopped: {exc}', file=sys.stderr, flush=True)
+                    continue
+            elif callable(getattr(self.nodes.get(role), 'stop_input', None)):
+                self.nodes[role].stop_input()
+            else:
+                continue
+            stopped.append(role)
+        return stopped
+
     def drain(self, quiet_s: float = 1.0, timeout_s: float = 300.0, stall_s: float = 30.0, say=None,
-              work_only: bool = False) -> dict:
+              work_only: bool = False, abort=None) -> dict:
         """Wait until the data in the graph has gone through it: nothing in flight between nodes
         (`in_flight`), no node busy, and no counter moved for `quiet_s`. Waits on the data, not on a
         clock: work counted in flight while nothing moves at all (no counter, no busy node) for
         `stall_s` was lost on the way and is not waited for; `timeout_s` bounds the whole wait.
         `say(text)` gets a line every 10 s of waiting (what is waited for). `work_only`: a live graph's
-        inputs keep moving their counters: only the mapping work's count (activity). Returns what was
-        still in flight when the wait ended ({} when the graph drained)."""
+        inputs keep moving their counters: only the mapping work's count (activity). `abort` (an Event)
+        ends the wait when set. Returns what was still in flight when the wait ended ({} when the graph
+        drained)."""
         t0 = time.monotonic()
         moved_at = quiet_since = t0
         last, last_said = self.activity(work_only), t0
@@ -296,6 +315,8 @@ class Graph:
             last = now
             if now_t - quiet_since > quiet_s:
                 return {}
+            if abort is not None and abort.is_set():
+                return flight or ({'busy': 1} if busy else {})
             if flight and now_t - moved_at > stall_s:
                 if say is not None:
                     say(f'end of flight: nothing moved for {stall_s:.0f} s with '
@@ -318,22 +339,32 @@ class Graph:
         diag = getattr(self.nodes.get(role), 'diag', None)
         return diag.recent_problems() if diag is not None else []
 
-    def finish_flight(self, settle=lambda: time.sleep(2.0), say=None) -> FlightEnd:
+    def finish_flight(self, settle=lambda: time.sleep(2.0), say=None, abort=None, announce: bool = False) -> FlightEnd:
         """End of flight, in data-flow order: the tracker emits the keyframes it still holds, the
         bundle adjuster runs its final adjustment and republishes the poses, stereo pairs the
         keyframes still waiting, the map closes its coverage (every survey cell counts as passed, so
         the last gaps go out); `settle` lets the downstream nodes consume each step's output; `say`
-        gets a line every 10 s while a step in the child process takes long.
+        gets a line every 10 s while a step in the child process takes long, and with `announce` one at
+        each step (with its time and this process's memory). `abort` (an Event): once set, the steps not begun are skipped
+        (a second signal, or the end of flight's time bound), and said in `errors`.
         Returns whether the final adjustment was made, and every step that failed."""
         end = FlightEnd(reason='no bundle node' if 'bundle' not in self.spec.roles else '')
-        for role, method in (('tracker', 'flush'), ('bundle', 'finish'), ('stereo', 'flush'),
-                             ('map', 'finish_coverage')):
+        t0 = time.monotonic()
+        for role, method in FINISH_STEPS:
             if self.child is not None and role in self.child.spec.roles:
                 fn = functools.partial(self.child.call, role, method, say=say)
             else:
                 fn = getattr(self.nodes.get(role), method, None)
             if not callable(fn):
                 continue
+            if abort is not None and abort.is_set():
+                end.errors.append(f'{role}: {method} skipped (the end of flight was cut short)')
+                if role == 'bundle':
+                    end.final_adjustment, end.reason = 'failed', 'skipped: the end of flight was cut short'
+                continue
+            if say is not None and announce:
+                say(f'end of flight: {time.monotonic() - t0:.0f} s: {FINISH_STEP_WORDS[role, method]} '
+                    f'(RSS {rss_mb():.0f} MB)')
             before, error = self.counts().get(role, {}), ''
             try:
                 fn()
@@ -361,6 +392,28 @@ class Graph:
             n.destroy_node()
         if self.child is not None:
             self.child.node.destroy_node()
+
+
+# The end-of-flight steps, in data-flow order (Graph.finish_flight), and how the progress lines name them.
+FINISH_STEPS = (('tracker', 'flush'), ('bundle', 'finish'), ('stereo', 'flush'), ('map', 'finish_coverage'))
+FINISH_STEP_WORDS = {('tracker', 'flush'): 'the tracker emits the keyframes it holds',
+                     ('bundle', 'finish'): 'final adjustment',
+                     ('stereo', 'flush'): 'stereo pairs the keyframes still waiting',
+                     ('map', 'finish_coverage'): 'the map closes its coverage'}
+
+# The roles whose nodes bring data into the graph (Graph.stop_sources): each has stop_input().
+SOURCE_ROLES = ('camera', 'mavlink')
+
+
+def rss_mb(pid: int | str = 'self') -> float:
+    """Resident memory of process `pid` (this one by default), MB, from /proc; 0 where it cannot be read."""
+    try:
+        for line in Path(f'/proc/{pid}/status').read_text().splitlines():
+            if line.startswith('VmRSS:'):
+                return int(line.split()[1]) / 1024.0
+    except (OSError, ValueError, IndexError):
+        pass
+    return 0.0
 
 
 # The counters of the mapping work itself, per role (Graph.activity(work_only=True)).

@@ -120,6 +120,8 @@ class MavlinkNode(Node):
         self._seen = (0, 0, 0, 0, 0)
         self.published = {'fix': 0, 'attitude': 0, 'trigger': 0}
         self.input_done = threading.Event()
+        self._last_bytes_s = None          # _note_gap: the latest clock reading at raw bytes
+        self._longest_silence_s = 0.0
         self._thread = None
         self._diag_timer = self.create_timer(p.diagnostics_period_s, self._update_diagnostics)
         if p.url:
@@ -141,8 +143,36 @@ class MavlinkNode(Node):
         return self.get_clock().now().nanoseconds * 1e-9
 
     def _on_bytes(self, msg: UInt8MultiArray) -> None:
-        self.feed(msgs.bytes_from_msg(msg), self._now_s())
+        if self._stop.is_set():   # stop_input(): the flight is being stopped
+            return
+        now_s = self._now_s()
+        self._note_gap(now_s)
+        self.feed(msgs.bytes_from_msg(msg), now_s)
         self.messages_in += 1   # lets a bag replay wait until every recorded packet is decoded
+
+    def _note_gap(self, now_s: float) -> None:
+        """Raw bytes (a bag, or a bridge) on the node's clock, the flight's in a replay: a silence of the
+        autopilot longer than link_timeout_s, or the clock going back, is a WARN naming when and how long
+        (the wall-clock link check cannot see a silence recorded in a bag)."""
+        last = self._last_bytes_s
+        if now_s <= 0.0:    # no clock yet (use_sim_time before the first /clock)
+            return
+        self._last_bytes_s = now_s if last is None else max(last, now_s)
+        if last is None:
+            return
+        gap = now_s - last
+        if gap > self.params.link_timeout_s:
+            self.diag.count('link_silences')
+            self._longest_silence_s = max(self._longest_silence_s, gap)
+            self.diag.set('link_longest_silence_s', round(self._longest_silence_s, 1))
+            self.diag.problem(f'the autopilot was silent for {gap:.1f} s (clock {last:.1f} -> {now_s:.1f} s, more '
+                              f'than link_timeout_s {self.params.link_timeout_s:g}): no fix, attitude or camera '
+                              'event in that time', WARN)
+        elif gap < -1.0:
+            self._last_bytes_s = now_s   # the new time line from here: said once
+            self.diag.count('link_clock_back')
+            self.diag.problem(f'the clock went back {-gap:.1f} s between two MAVLink messages ({last:.1f} -> '
+                              f'{now_s:.1f} s): a bag played twice or a stamp jump', WARN)
 
     def feed(self, data: bytes, arrival_s: float | None, final: bool = False) -> None:
         """Raw bytes from any transport -> decoded messages -> published topics."""
@@ -282,6 +312,9 @@ class MavlinkNode(Node):
         if self.input_done.is_set():
             d.set('link_state', 'end of log')
             return
+        if self._stop.is_set():
+            d.set('link_state', 'stopped: the end of flight takes no more input')
+            return
         if quiet and self._link_up:
             d.problem(f'MAVLink link lost: no packet for {self.params.link_timeout_s:g} s', WARN)
         elif not quiet and not self._link_up and self._last_packet_mono is not None:
@@ -317,6 +350,12 @@ class MavlinkNode(Node):
             return [f'no usable MAVLink: {st.bytes_in} bytes received and no packet decodes (a wrong baud rate, '
                     'or not MAVLink?); no GNSS fix, no attitude']
         return []
+
+    def stop_input(self) -> None:
+        """The flight is being stopped: read and publish no more (the link's thread ends within 0.2 s;
+        bytes on input_topic are ignored), so the end of flight works on what came before."""
+        self._stop.set()
+        self.diag.set('link_state', 'stopped: the end of flight takes no more input')
 
     def destroy_node(self):
         self._stop.set()
