@@ -20,6 +20,7 @@ a user receives and can be rebuilt after the flight. Figures:
 from __future__ import annotations
 
 import json
+import shutil
 from pathlib import Path
 
 import cv2
@@ -32,6 +33,7 @@ from photogram_ros.core.evaluation import (MAX_INTERSECTION_DOP, ce90_le90, dete
 from photogram_ros.core.geodesy import LocalFrame, crs_to_geodetic, geodetic_to_crs
 from photogram_ros.io.at_report import ce90_text
 from photogram_ros.io.map_store import CAMERA_FINAL, MapStore
+from photogram_ros.io.tf_bag import write_trajectory_mcap
 from photogram_ros.io.report import Section, histogram_png, trajectory_png, write_report
 from photogram_ros.io.trajectory import TRAJECTORY_COLUMNS, write_trajectory_csv
 
@@ -77,9 +79,15 @@ def target_observations(store: MapStore, kfs: list[dict], surveyed: dict) -> tup
 
 
 def write_trajectory(out: Path, keyframes: list[dict], origin: LocalFrame, crs: str) -> dict:
-    """Adjusted keyframe poses as CSV (CRS + WGS84 + omega-phi-kappa, io/trajectory.py) and GeoJSON."""
+    """Adjusted keyframe poses as CSV (CRS + WGS84 + omega-phi-kappa, io/trajectory.py), GeoJSON and a ROS 2
+    recording of their frame tree (the rosbag2 folder trajectory/, its trajectory.mcap: /tf, /tf_static, map/path;
+    io/tf_bag.py)."""
     if not keyframes:
         return {}
+    bag = out / 'trajectory'
+    if (bag / 'metadata.yaml').exists() or (bag / 'trajectory.mcap').exists():
+        shutil.rmtree(bag)      # the recording of an earlier report in this folder
+    write_trajectory_mcap(bag, [k['stamp_ns'] for k in keyframes], [k['map_T_cam'] for k in keyframes])
     t = write_trajectory_csv(out / 'trajectory.csv', TRAJECTORY_COLUMNS,
                              [Path(k['image_path']).name for k in keyframes],
                              np.array([k['map_T_cam'] for k in keyframes]), origin, crs,
