@@ -15,6 +15,7 @@ NODES = {
     'stereo_node': 'photogram_ros.nodes.stereo_node:main',
     'map_node': 'photogram_ros.nodes.map_node:main',
     'player_node': 'photogram_ros.nodes.player_node:main',
+    'px4_adapter': 'photogram_ros.nodes.px4_adapter:main',      # PX4 uXRCE-DDS in place of mavlink_node
 }
 
 # Extras: requirements.txt's lines sorted by what they are for (the rest are runtime dependencies).
