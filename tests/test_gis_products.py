@@ -11,9 +11,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from helpers.clouds import fused_map, pair_cloud
+import test_export
 
-LAT, LON, H = 47.3977, 8.5456, 488.0        # UTM 32N
+map_dir = test_export.map_dir      # the fused map of tests/test_export.py (near Zurich: UTM 32N), a fixture
+
 UTM = 32632
 
 
@@ -24,19 +25,6 @@ def _export_wired() -> bool:
 
 wired = pytest.mark.skipif(not _export_wired(), reason='io/export.py does not call io/crs_tags yet '
                            '(write_geotiff: geotiff_georef, write_las: describe_las)')
-
-
-def surface(x, y):
-    return 2.0 + 0.04 * x + 0.5 * np.sin(0.2 * y)
-
-
-@pytest.fixture(scope='module')
-def map_dir(tmp_path_factory):
-    d = tmp_path_factory.mktemp('gis') / 'map'
-    rng = np.random.default_rng(5)
-    fused_map(d, 0.08, (pair_cloud(rng, surface, -10.0 + 8 * k, 5.0, 10.0, 8.0, 60.0, 0.01, rgb=0x20A040)
-                        for k in range(4)), (LAT, LON, H))
-    return d
 
 
 def _alone(path: Path, tmp: Path) -> Path:
