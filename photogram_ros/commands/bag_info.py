@@ -21,7 +21,8 @@ def run(a) -> int:
         recorded = any(t.expected is not None for t in infos)
         print(f'{a.bag}: {bag.storage}, {bag.duration_ns * 1e-9:.1f} s readable, '
               f'{sum(t.count for t in infos)} messages'
-              + (f' of {sum(t.expected or 0 for t in infos)} recorded' if recorded else ''))
+              + (f' of {sum(t.expected or 0 for t in infos)} recorded' if recorded else '')
+              + (f', ROS {bag.metadata.ros_distro}' if bag.metadata is not None and bag.metadata.ros_distro else ''))
         for t in infos:
             line = f'  {t.topic:40s} {t.msgtype:36s} {t.count:8d}'
             if t.expected is not None and t.expected != t.count:

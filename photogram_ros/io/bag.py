@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import heapq
 import importlib
+import re
 import sqlite3
 from dataclasses import dataclass
 from functools import lru_cache
@@ -81,8 +82,26 @@ def bag_qos(profile):
                bool(profile.avoid_ros_namespace_conventions))
 
 
+ROS_DISTRO = 'jazzy'          # the distro of the message definitions written (rosbags' ROS2_JAZZY type store)
+MCAP_COMPRESSION = ('zstd', '')
+
+
+def latched_qos(depth: int = 1):
+    """The rosbags Qos of a latched topic (reliable, transient local: /tf_static, map/georeference), without rclpy."""
+    from rosbags.interfaces import Qos, QosDurability, QosHistory, QosLiveliness, QosReliability, QosTime
+    never = QosTime(9223372036, 854775807)      # rmw's infinite duration, as rosbag2 (Jazzy) records it
+    return Qos(QosHistory.KEEP_LAST, depth, QosReliability.RELIABLE, QosDurability.TRANSIENT_LOCAL, never, never,
+               QosLiveliness.AUTOMATIC, never, False)
+
+
 class BagWriter:
     """Writes rclpy messages to a rosbag2 (sqlite3 by default, or MCAP, ROS 2 Jazzy's default).
+
+    MCAP chunks are zstd-compressed unless `compression=''` (rosbag2's default storage preset for MCAP
+    records them uncompressed; `ros2 bag record --storage-preset-profile zstd_fast` as here). The bag's
+    metadata (metadata.yaml and the MCAP's own rosbag2 record) names the ROS distro of the message
+    definitions, ROS_DISTRO. Messages without an rclpy class (tf2_msgs is not among the PyPI wheels)
+    are written from rosbags' type store (`write_typed`).
 
     `checkpoint_s` > 0 (a recorder): what was written is made durable at least that often, so that a
     recording cut short by a kill or a power loss keeps all but its last seconds: sqlite3 writes in WAL
@@ -90,8 +109,10 @@ class BagWriter:
     simulator, conversions): one transaction and 1 MB chunks, written whole at the end.
     """
 
-    def __init__(self, path: str | Path, storage: str = 'sqlite3', checkpoint_s: float = 0.0):
+    def __init__(self, path: str | Path, storage: str = 'sqlite3', checkpoint_s: float = 0.0,
+                 compression: str = 'zstd'):
         from rosbags.rosbag2 import StoragePlugin, Writer
+        from rosbags.rosbag2.enums import CompressionFormat, CompressionMode
         from rosbags.typesys import Stores, get_typestore
         self.path = Path(path)
         if self.path.exists():
@@ -100,7 +121,12 @@ class BagWriter:
         if plugin is None:
             raise BagError(f'unknown bag storage {storage!r}: use sqlite3 or mcap')
         self._typestore = get_typestore(Stores.ROS2_JAZZY)
+        if compression not in MCAP_COMPRESSION:
+            raise BagError(f'unknown MCAP chunk compression {compression!r}: use zstd or none (\'\')')
         self._writer = Writer(self.path, version=9, storage_plugin=plugin)
+        self.compression = compression if storage == 'mcap' else ''
+        if self.compression:
+            self._writer.set_compression(CompressionMode.STORAGE, CompressionFormat.ZSTD)
         self._connections = {}
         self.count = 0
         self.storage = storage
@@ -123,7 +149,14 @@ class BagWriter:
         return self
 
     def __exit__(self, *exc) -> None:
+        storage_close = self._writer.storage.close
+
+        def close_with_distro(version, metadata: str):
+            return storage_close(version, _with_distro(metadata))
+        self._writer.storage.close = close_with_distro
         self._writer.close()
+        meta = self.path / 'metadata.yaml'
+        meta.write_text(_with_distro(meta.read_text()))
         if self.checkpoint_s > 0 and self.storage == 'sqlite3':
             # A finished bag is a plain rollback-journal database, as every reader expects.
             db = next(self.path.glob('*.db3'), None)
@@ -160,11 +193,13 @@ class BagWriter:
         return False
 
     def add_topic(self, topic: str, msgtype: str, msgdef: str | None = None, qos=()) -> None:
-        """`qos`: the publishers' rclpy QoSProfiles, recorded as the topic's offered_qos_profiles (rosbag2
-        play offers the same ones again)."""
+        """`qos`: the publishers' rclpy QoSProfiles (or rosbags Qos, e.g. latched_qos()), recorded as the topic's
+        offered_qos_profiles (rosbag2 play offers the same ones again)."""
         if topic in self._connections:
             return
-        kwargs = {'typestore': self._typestore, 'offered_qos_profiles': [bag_qos(q) for q in qos]}
+        from rosbags.interfaces import Qos
+        kwargs = {'typestore': self._typestore,
+                  'offered_qos_profiles': [q if isinstance(q, Qos) else bag_qos(q) for q in qos]}
         if msgtype not in self._typestore.fielddefs:
             if msgdef is None:
                 raise BagError(f'message type {msgtype!r} of topic {topic} is not in the ROS 2 Jazzy '
@@ -177,6 +212,16 @@ class BagWriter:
         self.add_topic(topic, msgtype_of(msg))
         self.write_raw(topic, stamp_ns, serialize(msg))
 
+    def write_typed(self, topic: str, stamp_ns: int, msg) -> None:
+        """Write a message built from the type store's classes (`self.types`), serialized by rosbags."""
+        self.add_topic(topic, msg.__msgtype__)
+        self.write_raw(topic, stamp_ns, bytes(self._typestore.serialize_cdr(msg, msg.__msgtype__)))
+
+    @property
+    def types(self):
+        """The ROS 2 Jazzy type store (rosbags): `bag.types.types['tf2_msgs/msg/TFMessage']` is a message class."""
+        return self._typestore
+
     def write_raw(self, topic: str, stamp_ns: int, data: bytes) -> None:
         if topic not in self._connections:
             raise BagError(f'topic {topic} has not been added to the bag')
@@ -185,6 +230,11 @@ class BagWriter:
         self._pending += 1
         if self.checkpoint_s > 0:
             self.checkpoint_if_due()
+
+
+def _with_distro(metadata_yaml: str) -> str:
+    """rosbags writes `ros_distro: rosbags` into the metadata; the distro of the definitions is ROS_DISTRO."""
+    return re.sub(r'^(\s*)ros_distro: rosbags$', rf'\g<1>ros_distro: {ROS_DISTRO}', metadata_yaml, flags=re.M)
 
 
 class BagReader:

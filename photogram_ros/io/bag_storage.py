@@ -44,6 +44,7 @@ class Metadata:
     start_ns: int
     duration_ns: int
     compression: str = ''
+    ros_distro: str = ''                      # the ROS distro of the message definitions ('rosbags': unknown)
 
 
 def read_metadata(folder: Path) -> tuple[Metadata | None, str]:
@@ -63,7 +64,8 @@ def read_metadata(folder: Path) -> tuple[Metadata | None, str]:
         file_counts = {Path(f['path']).name: int(f['message_count']) for f in info.get('files') or []}
         return Metadata(str(info['storage_identifier']), files, file_counts, topics, int(info['message_count']),
                         int(info['starting_time']['nanoseconds_since_epoch']), int(info['duration']['nanoseconds']),
-                        str(info.get('compression_mode') or '').lower().replace('none', '')), ''
+                        str(info.get('compression_mode') or '').lower().replace('none', ''),
+                        str(info.get('ros_distro') or '')), ''
     except Exception as exc:   # YAML errors, missing keys, wrong types: all mean "unreadable"
         why = ' '.join(str(exc).split())[:160]
         return None, f'metadata.yaml is unreadable ({type(exc).__name__}: {why}): nothing to compare the counts with'
@@ -315,6 +317,7 @@ class McapScan:
     schemas: dict = field(default_factory=dict)     # schema id -> msgtype
     stopped: str = ''                               # why the read ended before the footer, '' if it reached it
     chunks_lost: int = 0
+    compressions: set = field(default_factory=set)  # the chunks' compressions read ('' for uncompressed ones)
 
     def _records(self, buf: bytes, pos: int, end: int, top: bool) -> Iterator[tuple]:
         while pos < end:
@@ -367,6 +370,7 @@ class McapScan:
                     continue
                 size, crc = struct.unpack_from('<QI', body, 16)
                 comp, p = _str(body, 28)
+                self.compressions.add(comp)
                 n = struct.unpack_from('<Q', body, p)[0]
                 try:
                     raw = _decompress(body[p + 8:p + 8 + n], comp, size)

@@ -20,6 +20,7 @@ a user receives and can be rebuilt after the flight. Figures:
 from __future__ import annotations
 
 import json
+import shutil
 from pathlib import Path
 
 import cv2
@@ -31,7 +32,11 @@ from photogram_ros.core.evaluation import (MAX_INTERSECTION_DOP, ce90_le90, dete
                                            surface_errors, trajectory_errors)
 from photogram_ros.core.geodesy import LocalFrame, crs_to_geodetic, geodetic_to_crs
 from photogram_ros.io.at_report import ce90_text
+from photogram_ros.io import flight_inputs
+from photogram_ros.io.flight_overview import (calibration_rows, capture_section, dsm_preview_png, gnss_section,
+                                             place_labels, product_heights)
 from photogram_ros.io.map_store import CAMERA_FINAL, MapStore
+from photogram_ros.io.tf_bag import write_trajectory_mcap
 from photogram_ros.io.report import Section, histogram_png, trajectory_png, write_report
 from photogram_ros.io.trajectory import TRAJECTORY_COLUMNS, write_trajectory_csv
 
@@ -77,9 +82,15 @@ def target_observations(store: MapStore, kfs: list[dict], surveyed: dict) -> tup
 
 
 def write_trajectory(out: Path, keyframes: list[dict], origin: LocalFrame, crs: str) -> dict:
-    """Adjusted keyframe poses as CSV (CRS + WGS84 + omega-phi-kappa, io/trajectory.py) and GeoJSON."""
+    """Adjusted keyframe poses as CSV (CRS + WGS84 + omega-phi-kappa, io/trajectory.py), GeoJSON and a ROS 2
+    recording of their frame tree (the rosbag2 folder trajectory/, its trajectory.mcap: /tf, /tf_static, map/path;
+    io/tf_bag.py)."""
     if not keyframes:
         return {}
+    bag = out / 'trajectory'
+    if (bag / 'metadata.yaml').exists() or (bag / 'trajectory.mcap').exists():
+        shutil.rmtree(bag)      # the recording of an earlier report in this folder
+    write_trajectory_mcap(bag, [k['stamp_ns'] for k in keyframes], [k['map_T_cam'] for k in keyframes])
     t = write_trajectory_csv(out / 'trajectory.csv', TRAJECTORY_COLUMNS,
                              [Path(k['image_path']).name for k in keyframes],
                              np.array([k['map_T_cam'] for k in keyframes]), origin, crs,
@@ -187,9 +198,11 @@ def _save_map_figure(fig, ax, title: str, path: Path) -> None:
     plt.close(fig)
 
 
-def check_point_arrows_png(path: Path, ortho_tif, points: list, title: str) -> Path:
+def check_point_arrows_png(path: Path, ortho_tif, points: list, title: str, placed: list | None = None) -> Path:
     """Check-point errors as arrows on the orthomosaic: points [(name, easting, northing, dE, dN, dZ)] in
-    metres; the arrows are scaled so the longest spans a tenth of the map, its scale printed."""
+    metres; the arrows are scaled so the longest spans a tenth of the map, its scale printed. The labels are
+    placed where they overlap no other label or point (io/flight_overview.place_labels; their display boxes
+    appended to `placed` when given)."""
     import matplotlib
     matplotlib.use('Agg')
     import matplotlib.pyplot as plt
@@ -211,11 +224,20 @@ def check_point_arrows_png(path: Path, ortho_tif, points: list, title: str) -> P
     scale = 0.1 * span / longest
     ax.quiver(e, n, d[:, 0] * scale, d[:, 1] * scale, angles='xy', scale_units='xy', scale=1, color='#ee3377',
               width=0.004)
-    for name, x, y, de, dn, dz in points:
-        ax.plot(x, y, 'k^', ms=5)
-        ax.annotate(f'{name} {np.hypot(de, dn) * 100:.1f} cm, dZ {dz * 100:+.1f} cm', (x, y), fontsize=7,
-                    xytext=(3, 3), textcoords='offset points', color='white' if extent else 'black')
-    _save_map_figure(fig, ax, f'{title} (arrows x{scale:.0f})', path)
+    ax.plot(e, n, 'k^', ms=5)
+    ax.set_aspect('equal')
+    ax.ticklabel_format(useOffset=False, style='plain')
+    ax.tick_params(labelsize=7)
+    ax.set_title(f'{title} (arrows x{scale:.0f})')
+    fig.tight_layout()
+    fig.canvas.draw()       # the axes' final place: the labels are placed in display space
+    boxes = place_labels(fig, ax, list(zip(e, n)), [f'{name} {np.hypot(de, dn) * 100:.1f} cm, dZ {dz * 100:+.1f} cm'
+                                                      for name, _, _, de, dn, dz in points],
+                         colour='white' if extent else 'black')
+    if placed is not None:
+        placed += boxes
+    fig.savefig(path)
+    plt.close(fig)
     return path
 
 
@@ -455,6 +477,10 @@ def build_report(out_dir: str | Path, map_dir: str | Path | MapStore, crs: str, 
         return figures
     traj = write_trajectory(out, kfs, origin, crs)
     Ts = np.array([k['map_T_cam'] for k in kfs])
+    sections.append(capture_section(out, kfs, cam, origin, files, run or {}, traj, figures))
+    if dsm_preview_png(out / 'dsm.png', files.get('dsm'), crs, product_heights(out)):
+        sections.append(Section('DSM', ['The digital surface model (dsm.tif) over its hillshade.'],
+                                figures=[('DSM heights', 'dsm.png')]))
 
     # Targets: the tracker's detections kept in the map folder (else found in the keyframes), intersected from
     # the adjusted poses. With a control file its check points are the check points and its GCPs are listed
@@ -520,17 +546,23 @@ def build_report(out_dir: str | Path, map_dir: str | Path | MapStore, crs: str, 
         sections.append(Section('Check-point errors on the map', figures=[('Horizontal error of each check point '
                                                                             '(arrow), vertical in the label',
                                                                             'check_points.png')]))
-    row = {'width_px': cam.width, 'height_px': cam.height, 'fx_px': round(cam.fx, 2), 'fy_px': round(cam.fy, 2),
-           'cx_px': round(cam.cx, 2), 'cy_px': round(cam.cy, 2),
-           **{k: float(f'{v:.5g}') for k, v in zip(('k1', 'k2', 'p1', 'p2', 'k3'), cam.dist)}}
+    sections.append(gnss_section(out, kfs, origin, flight_inputs.keyframe_fixes(store.root), figures))
+    row = {k: v for k, v in calibration_rows(None, cam)[0].items() if k != 'camera'}
     final = store.camera_name() == CAMERA_FINAL
     row['source'] = 'final adjustment' if final else 'input calibration'
     figures['camera'] = row
+    before = flight_inputs.input_camera(store.root)
+    rows = calibration_rows(before, cam)
+    figures['calibration'] = rows
     sections.append(Section('Camera', ['The camera model the products were made with (the map folder\'s '
                                        'camera.json): ' + ('the one the final adjustment adjusted the poses with '
                                                            '(its self-calibration when it refined the intrinsics).'
-                                                           if final else 'the calibration the flight started with.')],
-                            tables=[('Intrinsics (pixels) and distortion (OpenCV model)', [row])]))
+                                                           if final else 'the calibration the flight started with.')]
+                            + ([] if before is not None else ['The calibration the flight started with was not kept '
+                                                              '(no camera_input.json): before and after cannot be '
+                                                              'compared.']),
+                            tables=[('Calibration before and after: intrinsics (pixels) and distortion (OpenCV model)',
+                                     rows)]))
     overlap = overlap_png(out / 'overlap.png', files.get('dsm'), kfs, cam, origin, crs)
     if overlap:
         figures['overlap'] = overlap

@@ -1,13 +1,13 @@
 """The flight report: Markdown and HTML with figures, and report.json with every figure's numbers.
 
 A report is a list of sections; each holds paragraphs, tables (lists of dicts) and figures (PNG files
-written beside the report). The same numbers go to report.json, so scripts never parse the prose.
+written beside the report), rendered through the Jinja2 templates of io/templates (shipped as package
+data; HTML autoescaped). The same numbers go to report.json, so scripts never parse the prose.
 """
 
 from __future__ import annotations
 
 import base64
-import html
 import json
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -55,35 +55,69 @@ def _jsonable(o):
     return o
 
 
+def software_info() -> dict:
+    """What made the report: photogram_ros's version, the git commit of its checkout (with '-dirty' when the
+    checkout has changes; '' when installed from a package), Python, the command line and the time (UTC)."""
+    import platform
+    import shlex
+    import subprocess
+    import sys
+    from datetime import datetime, timezone
+
+    from photogram_ros import __version__
+    commit = ''
+    root = Path(__file__).resolve().parents[2]
+    if (root / '.git').exists():
+        try:
+            commit = subprocess.run(['git', '-C', str(root), 'describe', '--always', '--dirty', '--abbrev=10'],
+                                    capture_output=True, text=True, timeout=10).stdout.strip()
+        except (OSError, subprocess.SubprocessError):
+            commit = ''
+    return {'photogram_ros': __version__, 'commit': commit, 'python': platform.python_version(),
+            'command': ' '.join(shlex.quote(a) for a in [Path(sys.argv[0]).name] + sys.argv[1:]) if sys.argv else '',
+            'generated_utc': datetime.now(timezone.utc).strftime('%Y-%m-%d %H:%M:%S UTC')}
+
+
+def software_section(info: dict) -> Section:
+    return Section('Software', [f"photogram_ros {info['photogram_ros']}"
+                                + (f" (commit {info['commit']})" if info['commit'] else '')
+                                + f", Python {info['python']}; report made {info['generated_utc']}.",
+                                f"Command: {info['command']}"])
+
+
+def _environment():
+    """Jinja2 templates shipped with the package (io/templates); HTML escapes every value (the text holds
+    file names, photo names and messages from the flight: never trusted as markup)."""
+    from jinja2 import Environment, FileSystemLoader, StrictUndefined, select_autoescape
+    env = Environment(loader=FileSystemLoader(str(TEMPLATES)), autoescape=select_autoescape(['html', 'html.j2']),
+                      undefined=StrictUndefined, keep_trailing_newline=True, trim_blocks=True, lstrip_blocks=True)
+    env.filters['md_cell'] = lambda v: str(v).replace('|', '\\|').replace('\n', ' ')
+    return env
+
+
+TEMPLATES = Path(__file__).resolve().parent / 'templates'
+
+
 def write_report(out_dir: str | Path, title: str, sections: list[Section], figures: dict) -> dict:
-    """Write report.md, report.html and report.json to `out_dir`; returns the paths."""
+    """Write report.md, report.html (figures embedded) and report.json to `out_dir`, from the templates
+    io/templates/report.{md,html}.j2, with a last section saying which software made it (also in
+    report.json's 'software'); returns the paths."""
     out = Path(out_dir)
-    md = [f'# {title}', '']
-    body = [f'<h1>{html.escape(title)}</h1>']
-    for s in sections:
-        md += [f'## {s.title}', '']
-        body.append(f'<h2>{html.escape(s.title)}</h2>')
-        for p in s.text:
-            md += [p, '']
-            body.append(f'<p>{html.escape(p)}</p>')
+    info = software_info()
+    figures.setdefault('software', info)
+    ctx = []
+    for s in list(sections) + [software_section(figures['software'])]:
+        tables = []
         for caption, rows in s.tables:
-            md += [f'**{caption}**', ''] + md_table(rows) + ['']
-            body.append(f'<p><b>{html.escape(caption)}</b></p>')
-            if rows:
-                cols = list(rows[0])
-                body.append('<table border="1" cellspacing="0" cellpadding="3"><tr>'
-                            + ''.join(f'<th>{html.escape(c)}</th>' for c in cols) + '</tr>'
-                            + ''.join('<tr>' + ''.join(f'<td>{html.escape(format_cell(r.get(c)))}</td>' for c in cols)
-                                      + '</tr>' for r in rows) + '</table>')
-        for caption, png in s.figures:
-            md += [f'![{caption}]({png})', '']
-            data = base64.b64encode((out / png).read_bytes()).decode('ascii')
-            body.append(f'<figure><img src="data:image/png;base64,{data}" style="max-width:900px">'
-                        f'<figcaption>{html.escape(caption)}</figcaption></figure>')
-    (out / 'report.md').write_text('\n'.join(md))
-    (out / 'report.html').write_text('<!doctype html><html><head><meta charset="utf-8"><title>'
-                                     + html.escape(title) + '</title></head><body style="font-family:sans-serif">'
-                                     + '\n'.join(body) + '</body></html>')
+            cols = list(rows[0]) if rows else []
+            tables.append({'caption': caption, 'columns': cols,
+                           'rows': [[format_cell(r.get(c)) for c in cols] for r in rows]})
+        figs = [{'caption': caption, 'png': png,
+                 'data': base64.b64encode((out / png).read_bytes()).decode('ascii')} for caption, png in s.figures]
+        ctx.append({'title': s.title, 'text': list(s.text), 'tables': tables, 'figures': figs})
+    env = _environment()
+    (out / 'report.md').write_text(env.get_template('report.md.j2').render(title=title, sections=ctx))
+    (out / 'report.html').write_text(env.get_template('report.html.j2').render(title=title, sections=ctx))
     (out / 'report.json').write_text(json.dumps(_jsonable(figures), indent=1))
     return {'md': out / 'report.md', 'html': out / 'report.html', 'json': out / 'report.json'}
 

@@ -13,6 +13,9 @@ Outputs:
                       their own stamps, the refined keyframes of the window (a later pose with the
                       same stamp replaces the earlier one)
   map/path            nav_msgs/Path of all oriented keyframes
+  /tf, /tf_static     the drone's frame tree (core/frames.py: map -> <ns>/odom -> <ns>/base_link ->
+                      <ns>/camera_optical), odom -> base_link at each published pose, where tf2_msgs is
+                      importable (nodes/tf_publisher.py); without it /diagnostics says so (`tf`)
   map/sparse_cloud    PointCloud2 x, y, z, track_id of the tie points around the window (every
                       `cloud_every` keyframes; `cloud_recent_only` off: the whole block)
   map/georeference    NavSatFix (latched): latitude, longitude and ellipsoidal altitude of the
@@ -82,7 +85,9 @@ from photogram_ros.errors import PhotogramError
 from photogram_ros.nodes.diagnostics import ERROR, Diagnostics
 from photogram_ros.nodes.node_main import run_node
 from photogram_ros.nodes.ros_params import declare
+from photogram_ros.nodes import tf_publisher
 from photogram_ros.nodes.stage_diagnostics import StageDiagnostics
+from photogram_ros.nodes.tf_publisher import TfPublisher
 from photogram_ros.stages.adjustment import (  # noqa: F401  (the node's names for the stage's)
     PLAIN_FIX_SIGMA_M, UNKNOWN_FIX_SIGMA_M, AdjustmentOutcome, AdjustmentParams, AdjustmentStage, Outputs,
     fix_sigma_limit_m, pose_covariance, unknown_fix_covariance)
@@ -119,13 +124,16 @@ class _Publishers(Outputs):
         self.georef = node.create_publisher(NavSatFix, TOPIC_GEOREF, latched)
         self._quality = node.create_publisher(String, TOPIC_CONTROL_POINTS, latched)
         self._camera = node.create_publisher(CameraInfo, TOPIC_CAMERA_FINAL, latched)
+        self.tf = TfPublisher(node)
 
     def georeference(self, lat_deg, lon_deg, h_m, stamp_ns):
         self.georef.publish(msgs.georeference_msg(lat_deg, lon_deg, h_m, stamp_ns))
 
     def poses(self, poses):
+        poses = list(poses)
         for map_T_cam, stamp_ns, cov in poses:
             self.pose.publish(msgs.pose_with_covariance_from_T(map_T_cam, stamp_ns, 'map', cov))
+        self.tf.poses(poses)
 
     def path(self, map_T_cams, stamps_ns, stamp_ns):
         self._path.publish(msgs.path_msg(map_T_cams, stamps_ns, stamp_ns))
@@ -148,7 +156,10 @@ class BundleNode(Node):
         self.p = declare(self, BundleNodeParams, overrides)
         self.diag = Diagnostics(self)
         # A bad control file stops the start, naming the line.
-        self.stage = AdjustmentStage(self.p, StageDiagnostics(self.diag), _Publishers(self))
+        self.outputs = _Publishers(self)
+        self.stage = AdjustmentStage(self.p, StageDiagnostics(self.diag), self.outputs)
+        if not self.outputs.tf.available:
+            self.diag.set('tf', tf_publisher.NOT_AVAILABLE)
         reliable = QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE)
         # Fixes first: the executor serves ready subscriptions in creation order, and a burst of
         # features must not keep their fixes waiting.

@@ -53,12 +53,24 @@ from photogram_ros.params import param
 
 CLOUD_SUFFIX = '/map/cloud_downsampled'
 # The drone topics the station takes -> the node (in the drone's namespace) that publishes them.
+# The drone's live position (gps/fix) comes from its MAVLink node, its camera node (a photo folder's EXIF) or an
+# adapter of MAVROS / PX4 uXRCE-DDS (nodes/px4_adapter.py); a replay's player republishes the recorded one.
+FIX_SUFFIX = '/gps/fix'
+FIX_PUBLISHERS = ('mavlink_node', 'camera_node', 'px4_adapter', 'player')
 PUBLISHER_OF = {CLOUD_SUFFIX: 'map_node', '/map/ortho_tiles': 'map_node', '/map/coverage': 'map_node',
                 '/map/georeference': 'bundle_node', '/map/keyframe_pose': 'bundle_node',
-                '/map/control_points': 'bundle_node'}
+                '/map/control_points': 'bundle_node', FIX_SUFFIX: FIX_PUBLISHERS}
 # Nodes of a drone's namespace whose /diagnostics the station takes (graph.py's nodes and a replay's player).
-DRONE_NODES = frozenset(PUBLISHER_OF.values()) | {'tracker_node', 'stereo_node', 'mavlink_node', 'camera_node',
-                                                  'player'}
+DRONE_NODES = frozenset(n for v in PUBLISHER_OF.values() for n in ((v,) if isinstance(v, str) else v)) | {
+    'tracker_node', 'stereo_node', 'mavlink_node', 'camera_node', 'player'}
+LIVE_TRACK_STEP_M = 1.0       # the live track keeps a fix this far from the last one kept
+LIVE_TRACK_MAX = 5000         # ... and at most this many (every other one dropped beyond)
+
+
+def publisher_names(suffix: str) -> tuple:
+    """The node names that may publish a drone's topic (PUBLISHER_OF)."""
+    v = PUBLISHER_OF[suffix]
+    return (v,) if isinstance(v, str) else tuple(v)
 MAX_TILE_ZOOM = 24          # an ortho tile's zoom at most (about 1 cm pixels)
 GEOREF_OF_DIAG = {'True': GEOREF_FINAL, 'provisional': GEOREF_PROVISIONAL, 'False': GEOREF_NONE}
 
@@ -119,7 +131,9 @@ class Drone:
     quality: dict | None = None                  # JSON of <ns>/map/control_points
     georef_diag: str = GEOREF_UNKNOWN            # bundle_node's `georeferenced` on /diagnostics
     tile_log: list = field(default_factory=list)  # (z, x, y) in the order they came (the page's push)
-    versions: dict = field(default_factory=lambda: {'coverage': 0, 'track': 0, 'targets': 0})
+    versions: dict = field(default_factory=lambda: {'coverage': 0, 'track': 0, 'targets': 0, 'live': 0})
+    position: dict | None = None                 # the latest fix of <ns>/gps/fix (lat_deg, lon_deg, h_m, ...)
+    live_track: list = field(default_factory=list)   # [(lon_deg, lat_deg)] of the fixes, LIVE_TRACK_STEP_M apart
     updated_unix_s: float | None = None          # when a counted message last came
     not_counted: dict = field(default_factory=dict)   # topic -> messages not counted (unknown publishers)
     unknown_publishers: dict = field(default_factory=dict)   # topic -> ['/ns/node', ...] seen on it
@@ -186,6 +200,7 @@ class GroundStationNode(Node):
             QoSProfile(depth=100, reliability=ReliabilityPolicy.BEST_EFFORT))
         sub(String, '/map/coverage', lambda d, m: self._on_document(d, m, 'coverage'), latched)
         sub(String, '/map/control_points', lambda d, m: self._on_document(d, m, 'quality'), latched)
+        sub(NavSatFix, FIX_SUFFIX, self._on_fix, QoSProfile(depth=10, reliability=ReliabilityPolicy.BEST_EFFORT))
         self.get_logger().info(f'following drone {ns or "/"}')
 
     def _publishers_of(self, topic: str) -> list:
@@ -196,12 +211,14 @@ class GroundStationNode(Node):
 
     def _foreign(self, drone_ns: str, suffix: str) -> tuple[list[str], frozenset]:
         """Publishers of the drone's topic other than the drone's own node for it, and every publisher's gid."""
-        want_ns, want_node = drone_ns or '/', PUBLISHER_OF[suffix]
+        want_ns, wanted = drone_ns or '/', publisher_names(suffix)
         infos = self._publishers_of(f'{drone_ns}{suffix}')
         bad = [f'{i.node_namespace.rstrip("/")}/{i.node_name}' for i in infos
-               if i.node_namespace != want_ns or i.node_name != want_node]
-        if len(infos) - len(bad) > 1:   # two nodes of the drone's node name: one is not the drone's
-            bad.append(f'{want_ns.rstrip("/")}/{want_node} ({len(infos) - len(bad)} nodes of that name)')
+               if i.node_namespace != want_ns or i.node_name not in wanted]
+        own = [i.node_name for i in infos if i.node_namespace == want_ns and i.node_name in wanted]
+        for name in sorted(set(own)):
+            if own.count(name) > 1:   # two nodes of the drone's node name: one is not the drone's
+                bad.append(f'{want_ns.rstrip("/")}/{name} ({own.count(name)} nodes of that name)')
         return bad, frozenset(bytes(i.endpoint_gid) for i in infos)
 
     def _take(self, drone: Drone, suffix: str, msg, handler) -> None:
@@ -218,7 +235,8 @@ class GroundStationNode(Node):
             if key not in self._warned:
                 self._warned.add(key)
                 self.diag.problem(f'{drone.ns}{suffix}: published also by {", ".join(sorted(set(bad)))} '
-                                  f'(not {PUBLISHER_OF[suffix]} of {drone.ns or "/"}): its messages are not counted')
+                                  f'(not {" or ".join(publisher_names(suffix))} of {drone.ns or "/"}): its messages '
+                                  'are not counted')
             self._notify()
             return
         with self._lock:
@@ -312,6 +330,24 @@ class GroundStationNode(Node):
         with self._lock:
             drone.poses[msgs.ns_from_time(msg.header.stamp)] = tuple(float(v) for v in T[:3, 3])
             drone.versions['track'] += 1
+
+    def _on_fix(self, drone: Drone, msg: NavSatFix) -> None:
+        """The drone's live position: the latest fix, and its track (a fix kept LIVE_TRACK_STEP_M from the last)."""
+        if msg.status.status < 0 or not (np.isfinite(msg.latitude) and np.isfinite(msg.longitude)
+                                         and -90 <= msg.latitude <= 90 and -180 <= msg.longitude <= 180):
+            return      # no fix
+        lat, lon = float(msg.latitude), float(msg.longitude)
+        with self._lock:
+            drone.position = {'lat_deg': lat, 'lon_deg': lon, 'h_m': float(msg.altitude),
+                              'status': int(msg.status.status), 'stamp_ns': msgs.ns_from_time(msg.header.stamp),
+                              'received_unix_s': time.time()}
+            last = drone.live_track[-1] if drone.live_track else None
+            if last is None or np.hypot((lon - last[0]) * 111_320.0 * np.cos(np.radians(lat)),
+                                        (lat - last[1]) * 110_540.0) >= LIVE_TRACK_STEP_M:
+                drone.live_track.append((lon, lat))
+                if len(drone.live_track) > LIVE_TRACK_MAX:
+                    drone.live_track = drone.live_track[::2]
+            drone.versions['live'] += 1
 
     def _on_tile(self, drone: Drone, msg: CompressedImage) -> None:
         try:
@@ -466,6 +502,9 @@ class GroundStationNode(Node):
                    'updated_unix_s': d.updated_unix_s, 'versions': dict(d.versions),
                    'not_counted': dict(d.not_counted), 'unknown_publishers': dict(d.unknown_publishers)}
             cov, q, geo_diag = d.coverage, d.quality, d.georef_diag
+            if d.position is not None:
+                out['position'] = {**d.position, 'age_s': round(time.time() - d.position['received_unix_s'], 1),
+                                   'track_points': len(d.live_track)}
         figures = {}
         if cov is not None:
             props = dict(cov.get('properties', {}))
@@ -525,7 +564,8 @@ class GroundStationNode(Node):
             return d.tiles.get((z, x, y)) if d is not None else None
 
     def geojson(self, key: str, kind: str) -> dict | None:
-        """'coverage' (gaps, survey area), 'track' (keyframe centres) or 'targets' (check points, GCPs)."""
+        """'coverage' (gaps, survey area), 'track' (keyframe centres), 'targets' (check points, GCPs) or 'live'
+        (the drone's live position as a Point and its GNSS track as a LineString)."""
         d = self._drone(key)
         if d is None:
             return None
@@ -533,7 +573,17 @@ class GroundStationNode(Node):
             if kind == 'coverage':
                 return d.coverage or {'type': 'FeatureCollection', 'features': []}
             origin, poses, q = d.origin, sorted(d.poses.items()), d.quality
+            position, live = (dict(d.position) if d.position else None), list(d.live_track)
         feats = []
+        if kind == 'live':
+            if len(live) >= 2:
+                feats.append({'type': 'Feature', 'properties': {'role': 'track', 'fixes': len(live)},
+                              'geometry': {'type': 'LineString', 'coordinates': [list(p) for p in live]}})
+            if position is not None:
+                feats.append({'type': 'Feature', 'properties': {'role': 'position', 'h_m': position['h_m'],
+                                                                'status': position['status'],
+                                                                'drone': drone_key(d.ns)},
+                              'geometry': {'type': 'Point', 'coordinates': [position['lon_deg'], position['lat_deg']]}})
         if kind == 'track' and origin is not None and poses:
             lat, lon, _ = origin.enu_to_geodetic(np.array([p for _, p in poses]).reshape(-1, 3))
             feats.append({'type': 'Feature', 'properties': {'keyframes': len(poses)}, 'geometry': {

@@ -13,6 +13,7 @@ Routes (GET):
   /drones/DRONE/coverage.geojson the drone's gaps and survey area (GeoJSON, WGS84)
   /drones/DRONE/track.geojson    its keyframe track
   /drones/DRONE/targets.geojson  its check points and GCPs with their residuals
+  /drones/DRONE/live.geojson     its live position (its latest gps/fix) and GNSS track
   /drones/DRONE/refly.plan       a QGroundControl plan re-flying its gaps
 The provider (the ground station node) answers with a document or None (404); every answer is built
 under the provider's own lock, the server only serialises it.
@@ -50,7 +51,7 @@ STATIC = Path(__file__).resolve().parent / 'static'
 _NAME = r'([A-Za-z0-9_.-]+)'
 _TILE = re.compile(rf'^/tiles/{_NAME}/(\d{{1,2}})/(\d{{1,10}})/(\d{{1,10}})\.png$')   # longer numbers: no tile (404)
 _BASEMAP = re.compile(r'^/basemap/(\d{1,2})/(\d{1,10})/(\d{1,10})$')
-_DRONE = re.compile(rf'^/drones/{_NAME}/(coverage|track|targets)\.geojson$')
+_DRONE = re.compile(rf'^/drones/{_NAME}/(coverage|track|targets|live)\.geojson$')
 _PLAN = re.compile(rf'^/drones/{_NAME}/refly\.plan$')
 _STATIC = re.compile(r'^(?:[A-Za-z0-9_-][A-Za-z0-9_.-]{0,63}/){0,4}[A-Za-z0-9_-][A-Za-z0-9_.-]{0,63}$')
 COOKIE = 'gs_token'

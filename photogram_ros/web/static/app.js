@@ -1,5 +1,5 @@
 // The ground station's map page: per drone the growing ortho (XYZ tiles) over the offline base map, the
-// track, the coverage gaps, the targets coloured by residual, and the go / no-go panel. The server pushes
+// drone's live position and GNSS track, the keyframe track, the coverage gaps, the targets coloured by residual, and the go / no-go panel. The server pushes
 // the status over a WebSocket (/ws) whenever it changes; the layers are fetched when their version changes.
 // Every string that came from a drone or a file is put on the page as text (textContent, or escaped for
 // Leaflet's tooltips), never as HTML.
@@ -7,7 +7,7 @@
 const map = L.map('map', {zoomControl: true, maxZoom: 23});
 map.setView([0, 0], 2);
 L.control.scale({imperial: false}).addTo(map);
-const layers = {};   // drone key -> {ortho, coverage, track, targets, zoom, fitted, versions}
+const layers = {};   // drone key -> {ortho, coverage, track, targets, live, zoom, fitted, versions}
 let limits = {};
 let basemap = null;  // the base map's Leaflet layer, once the server says it has one
 let viewFitted = false;
@@ -66,6 +66,11 @@ function ensureLayers(key, zoom) {
         onEachFeature: (f, lay) => f.properties.role === 'gap' &&
           lay.bindTooltip(escapeHTML(`${short(f.properties.kind)} gap ${f.properties.area_m2} m²`))}).addTo(map),
       track: L.geoJSON(null, {style: {color: '#ffd33d', weight: 2}}).addTo(map),
+      // The drone where its GNSS puts it now, and the track its fixes drew (GET /drones/KEY/live.geojson).
+      live: L.geoJSON(null, {style: {color: '#00e5ff', weight: 1.5, opacity: 0.8},
+        pointToLayer: (f, ll) => L.circleMarker(ll, {radius: 8, weight: 3, color: '#fff', fillColor: '#ff3d00',
+          fillOpacity: 1}).bindTooltip(escapeHTML(`${short(f.properties.drone)}: ` +
+          `${Number(f.properties.h_m).toFixed(1)} m (fix status ${f.properties.status})`))}).addTo(map),
       targets: L.geoJSON(null, {pointToLayer: (f, ll) => L.circleMarker(ll, {radius: 7, weight: 2,
           color: f.properties.role === 'gcp' ? '#2f81f7' : '#fff', fillColor: targetColour(f.properties),
           fillOpacity: f.properties.role === 'gcp' ? 0.1 : 0.95}).bindTooltip(escapeHTML(
@@ -157,14 +162,14 @@ function panel(key, d) {
 async function refreshLayers(key, d) {
   const l = ensureLayers(key, null);
   const v = d.versions || {};
-  const kinds = ['coverage', 'track', 'targets'].filter(k => l.versions[k] !== v[k]);
+  const kinds = ['coverage', 'track', 'targets', 'live'].filter(k => l.versions[k] !== v[k]);
   const docs = await Promise.all(kinds.map(k => getJSON(`/drones/${safeKey(key)}/${k}.geojson`)));
   kinds.forEach((k, i) => { l[k].clearLayers(); if (docs[i]) l[k].addData(docs[i]); l.versions[k] = v[k]; });
-  const b = L.featureGroup([l.coverage, l.track, l.targets]).getBounds();
+  const b = L.featureGroup([l.coverage, l.track, l.targets, l.live]).getBounds();
   if (!l.fitted && b.isValid()) {   // the view fits the drones on their first data
     const all = L.latLngBounds([]);
     for (const x of Object.values(layers)) {
-      const bx = L.featureGroup([x.coverage, x.track, x.targets]).getBounds();
+      const bx = L.featureGroup([x.coverage, x.track, x.targets, x.live]).getBounds();
       if (bx.isValid()) all.extend(bx);
     }
     map.fitBounds(all.pad(0.2), {maxZoom: 20});

@@ -1,0 +1,76 @@
+"""What the flight started from, kept in the map folder for the report: each keyframe's GNSS fix and the
+input camera calibration (before a final adjustment's self-calibration replaces camera.json).
+
+    keyframe_fixes.jsonl   one JSON object a line: stamp_ns, lat_deg, lon_deg, h_m (ellipsoidal), status
+                           (NavSatStatus), appended as the keyframes' fixes come (`append_keyframe_fix`)
+    camera_input.json      the first calibration the flight was given (`save_input_camera`), in camera.json's
+                           layout (the ROS calibration YAML as JSON)
+
+The flight report reads them (`keyframe_fixes`, `input_camera`) for the GNSS residuals per photo and the
+calibration before and after; `copy_inputs` carries them into the map folder densify makes. A folder
+without them gives a report that says so.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+FIXES_FILE = 'keyframe_fixes.jsonl'
+INPUT_CAMERA_FILE = 'camera_input.json'
+
+
+def append_keyframe_fix(root: str | Path, stamp_ns: int, lat_deg: float, lon_deg: float, h_m: float,
+                        status: int) -> None:
+    """Append one keyframe's fix (a later line for the same stamp replaces an earlier one when read)."""
+    row = {'stamp_ns': int(stamp_ns), 'lat_deg': float(lat_deg), 'lon_deg': float(lon_deg), 'h_m': float(h_m),
+           'status': int(status)}
+    with open(Path(root) / FIXES_FILE, 'a') as f:
+        f.write(json.dumps(row) + '\n')
+
+
+def keyframe_fixes(root: str | Path) -> dict[int, dict]:
+    """stamp_ns -> {'lat_deg', 'lon_deg', 'h_m', 'status'}; {} without the file. A line cut short by a kill
+    (the last one) is skipped."""
+    path = Path(root) / FIXES_FILE
+    out: dict[int, dict] = {}
+    if not path.exists():
+        return out
+    for line in path.read_text().splitlines():
+        try:
+            row = json.loads(line)
+            out[int(row['stamp_ns'])] = {k: row[k] for k in ('lat_deg', 'lon_deg', 'h_m', 'status')}
+        except (ValueError, KeyError, TypeError):
+            continue
+    return out
+
+
+def save_input_camera(root: str | Path, camera, name: str = 'input') -> bool:
+    """Keep the flight's first calibration (a later call leaves it); True when written."""
+    path = Path(root) / INPUT_CAMERA_FILE
+    if path.exists():
+        return False
+    tmp = path.with_suffix('.json.tmp')
+    tmp.write_text(json.dumps(camera.to_ros_yaml_dict(name)))
+    tmp.replace(path)
+    return True
+
+
+def input_camera(root: str | Path):
+    """The core.camera model saved by save_input_camera, or None."""
+    from photogram_ros.core.camera import PinholeCamera
+    from photogram_ros.errors import PhotogramError
+    path = Path(root) / INPUT_CAMERA_FILE
+    try:
+        return PinholeCamera.from_ros_yaml_dict(json.loads(path.read_text())) if path.exists() else None
+    except (OSError, ValueError, KeyError, PhotogramError):
+        return None
+
+
+def copy_inputs(src_root: str | Path, dst_root: str | Path) -> None:
+    """Carry the flight's inputs into another map folder (densify's)."""
+    for name in (FIXES_FILE, INPUT_CAMERA_FILE):
+        src = Path(src_root) / name
+        if src.exists():
+            shutil.copyfile(src, Path(dst_root) / name)
