@@ -123,30 +123,35 @@ def _crs_of_products(files) -> dict:
 
 
 def test_products_state_their_vertical_datum(map_dir, tmp_path):
-    """pyproj, on the CRS read back from the LAS (laspy) and the DSM (rasterio/GDAL), says what the heights are."""
+    """The rasters name their horizontal CRS by its EPSG code and their vertical datum in their metadata
+    (io/crs_tags.py); the LAS WKT is the projected CRS (ellipsoidal heights) or a compound with EGM2008 height."""
     import json
     from pyproj import CRS
+    from photogram_ros.io.crs_tags import read_vertical
     from photogram_ros.io.export import export_map
     products = ('las', 'dsm', 'dtm')
     ell = export_map(map_dir, tmp_path / 'ell', 'EPSG:32632', products=products)
     for kind, c in _crs_of_products(ell.files).items():
-        assert c.is_projected and len(c.axis_info) == 3, kind
-        assert c.axis_info[2].name == 'Ellipsoidal height' and c.axis_info[2].direction == 'up', kind
-        assert 'World Geodetic System 1984' in c.datum.name, kind
+        assert c.to_epsg() == 32632, kind
+    for kind in ('dsm', 'dtm'):
+        assert read_vertical(ell.files[kind])['VERTICAL_DATUM'] == 'WGS 84 ellipsoid', kind
     msl = export_map(map_dir, tmp_path / 'msl', 'EPSG:32632', heights='orthometric', products=products)
-    for kind, c in _crs_of_products(msl.files).items():
-        assert c.is_compound, kind
-        horizontal, vertical = c.sub_crs_list
-        assert horizontal.equals(CRS.from_user_input('EPSG:32632')), kind
-        assert vertical.is_vertical and vertical.to_epsg() == 3855 and vertical.datum.name == 'EGM2008 geoid', kind
+    crses = _crs_of_products(msl.files)
+    horizontal, vertical = crses.pop('las').sub_crs_list
+    assert horizontal.equals(CRS.from_user_input('EPSG:32632'))
+    assert vertical.is_vertical and vertical.to_epsg() == 3855 and vertical.datum.name == 'EGM2008 geoid'
+    for kind, c in crses.items():
+        assert c.to_epsg() == 32632, kind
+        assert read_vertical(msl.files[kind])['VERTICAL_CRS'] == 'EPSG:3855', kind
     assert json.loads((tmp_path / 'msl' / 'export.json').read_text())['crs_with_heights'] == \
         'WGS 84 / UTM zone 32N + EGM2008 height'
-    # LV95 is on CH1903+: no standard CRS says "WGS84 ellipsoidal heights" there, so the CRS stays 2D and a note says so.
+    # LV95 is on CH1903+: no standard CRS says "WGS84 ellipsoidal heights" there; the metadata says it, a note too.
     lv95 = export_map(map_dir, tmp_path / 'lv95', 'EPSG:2056', products=products)
-    assert all(len(c.axis_info) == 2 for c in _crs_of_products(lv95.files).values())
+    assert all(c.to_epsg() == 2056 for c in _crs_of_products(lv95.files).values())
+    assert read_vertical(lv95.files['dsm'])['HEIGHTS'] == 'ellipsoidal'
     assert any('cannot state' in n for n in lv95.notes)
     lv95_msl = export_map(map_dir, tmp_path / 'lv95msl', 'EPSG:2056', heights='orthometric', products=products)
-    assert all(c.is_compound and c.sub_crs_list[1].to_epsg() == 3855 for c in _crs_of_products(lv95_msl.files).values())
+    assert read_vertical(lv95_msl.files['dsm'])['COMPOUND_CRS'] == 'EPSG:2056+3855'
 
 
 def _cog_layout(path) -> tuple[dict, list]:
@@ -280,11 +285,13 @@ def test_export_command_writes_georeferenced_ortho(rendered, tmp_path):
                  '--min-pairs', '1']) == 0
     for name in ('cloud.las', 'cloud.laz', 'cloud.ply', 'dsm.tif', 'dtm.tif', 'ortho.tif', 'export.json'):
         assert (out / name).exists(), name
-    # Each GeoTIFF copied alone opens with its horizontal CRS and WGS84 ellipsoidal heights.
+    # Each product copied alone opens with its EPSG code; the DSM and DTM say WGS84 ellipsoidal heights.
+    from photogram_ros.io.crs_tags import read_vertical
     crses = _crs_of_products({k: out / f for k, f in (('las', 'cloud.las'), ('dsm', 'dsm.tif'), ('dtm', 'dtm.tif'),
                                                         ('ortho', 'ortho.tif'))})
     for kind, c in crses.items():
-        assert c.to_2d().to_epsg() == 32632 and c.axis_info[2].name == 'Ellipsoidal height', kind
+        assert c.to_epsg() == 32632, kind
+    assert read_vertical(out / 'dsm.tif')['HEIGHTS'] == read_vertical(out / 'dtm.tif')['HEIGHTS'] == 'ellipsoidal'
     with rasterio.open(out / 'ortho.tif') as ds:
         assert CRS.from_wkt(ds.crs.to_wkt()).to_2d().to_epsg() == 32632 and ds.count == 4
         rgba = np.dstack([ds.read(b) for b in (1, 2, 3, 4)])
@@ -341,32 +348,6 @@ def test_stereo_clouds_fused_then_ortho_on_the_fused_dsm(rendered):
     print(f'ortho on the stereo DSM: {len(errs)}/{len(targets)} targets, errors / GSD '
           f'{np.round(np.array(errs) / gsd, 2).tolist()}')
     assert len(errs) >= len(targets) - 1 and max(errs) <= 2 * gsd
-
-
-@pytest.mark.parametrize('bigtiff', ['NO', 'YES'])
-def test_ellipsoidal_heights_go_into_the_geokeys_of_tiff_and_bigtiff(tmp_path, bigtiff):
-    """GeoTIFF 1.1 states WGS84 ellipsoidal heights by VerticalGeoKey 4979: GDAL reads the file alone (no
-    sidecar) as the 3D projected CRS; a file without that key is refused, not silently left 2D."""
-    import rasterio
-    from rasterio.crs import CRS as RioCRS
-    from rasterio.transform import from_origin
-    from photogram_ros.errors import DataError
-    from photogram_ros.io.export import _geokey_crs, _set_vertical_geokey, read_crs
-    c, patch = _geokey_crs('EPSG:32632', 'ellipsoidal')
-    assert patch and c.is_compound
-    path = tmp_path / 't.tif'
-    with rasterio.Env(GDAL_PAM_ENABLED='NO'):
-        with rasterio.open(path, 'w', driver='COG', width=600, height=600, count=1, dtype='float32',
-                           crs=RioCRS.from_wkt(c.to_wkt()), transform=from_origin(465000, 5249000, 1, 1),
-                           bigtiff=bigtiff) as ds:
-            ds.write(np.ones((600, 600), np.float32), 1)
-    assert path.read_bytes()[2] == (43 if bigtiff == 'YES' else 42)
-    _set_vertical_geokey(path, 3855, 4979)
-    got = read_crs(path)
-    assert not got.is_compound and got.to_2d().to_epsg() == 32632
-    assert got.axis_info[2].name == 'Ellipsoidal height' and 'World Geodetic System 1984' in got.datum.name
-    with pytest.raises(DataError):
-        _set_vertical_geokey(path, 3855, 4979)      # the key is no longer 3855
 
 
 def test_las_of_a_cloud_wider_than_millimetres_can_span(tmp_path):

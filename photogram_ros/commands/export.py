@@ -32,7 +32,7 @@ def add_arguments(p) -> None:
                         'poses they had when they left the bundle window) and export that')
     p.add_argument('--params', default=None,
                    help='parameter file whose stereo_node and map_node sections --densify uses (the flight\'s; '
-                        'default: config/replay.yaml if present)')
+                        'default: the package\'s config/replay.yaml)')
     p.add_argument('--keep-damaged', action='store_true',
                    help='export what the map\'s tiles hold when some are damaged or missing (named in the output '
                         'and export.json) instead of rebuilding the cloud from the keyframes as --densify does')
@@ -101,7 +101,9 @@ def run(a) -> int:
         from pathlib import Path
 
         from photogram_ros.commands.products import densify_with_params
-        params = a.params if a.params is not None or not Path('config/replay.yaml').exists() else 'config/replay.yaml'
+        from photogram_ros.package_files import config_file
+        found = config_file('replay.yaml')   # the package's, wherever the command runs
+        params = a.params if a.params is not None or found is None else str(found)
         try:
             d = densify_with_params(store, Path(a.out) / 'map_final', params, progress=not a.quiet)
         except DataError as exc:

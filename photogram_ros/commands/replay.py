@@ -25,7 +25,7 @@ def add_arguments(p) -> None:
     p.add_argument('--video-start', type=float, default=0.0,
                    help='Unix time of the video\'s first frame (default: the first fix of --gnss-log)')
     p.add_argument('--out', default='output/replay', help='output folder')
-    p.add_argument('--params', default=None, help='ROS 2 parameter file (default: config/replay.yaml if present)')
+    p.add_argument('--params', default=None, help='ROS 2 parameter file (default: the package\'s config/replay.yaml)')
     p.add_argument('--rate', type=float, default=0.0, help='bag time speed; 0 = as fast as the mapper keeps up')
     p.add_argument('--crs', default='', help='output CRS, e.g. EPSG:2056 (default: UTM zone of the map origin)')
     p.add_argument('--orthometric', action='store_true', help='heights above the EGM2008 geoid instead of the ellipsoid')
@@ -86,8 +86,10 @@ def run(a) -> int:
                                                   use_domain)
 
     params = a.params
-    if params is None and Path('config/replay.yaml').exists():
-        params = 'config/replay.yaml'
+    if params is None:
+        from photogram_ros.package_files import config_file
+        found = config_file('replay.yaml')   # from the package, wherever the command runs
+        params = str(found) if found is not None else None
     out = Path(a.out)
     if not 0 <= a.rate <= 10000:   # said before any process starts
         raise ConfigError(f'--rate {a.rate:g}: the flight\'s speed factor, 0 (as fast as the mapper keeps up) '

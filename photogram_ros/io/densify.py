@@ -33,6 +33,7 @@ from photogram_ros.core.fusion import Fusion, FusionConfig, downsample
 from photogram_ros.core.pairs import BELOW_GROUND, PairCriteria, plan_pairs
 from photogram_ros.core.stereo import StereoParams, stereo_pair
 from photogram_ros.errors import DataError, PhotogramError
+from photogram_ros.io import flight_inputs
 from photogram_ros.io.map_store import MapStore, as_map_store
 
 
@@ -145,6 +146,7 @@ def densify_map(map_dir: str | Path | MapStore, out_dir: str | Path, stereo: Ste
     control_points = src.control_points()   # the in-flight detections of the targets, for the report
     if control_points is not None:
         dst.save_control_points(control_points)
+    flight_inputs.copy_inputs(src.root, dst.root)   # the flight's fixes and first calibration, for the report
     for k in kfs:
         _link_or_copy(k['image_path'], dst.keyframes_dir / k['image_path'].name)
         dst.save_keyframe_pose(k['stamp_ns'], k['map_T_cam'])

@@ -3,15 +3,14 @@
 Map ENU coordinates go to WGS84 through the map's LocalFrame, then to the requested CRS with pyproj
 (easting, northing). Heights are WGS84 ellipsoidal by default; `heights='orthometric'` gives
 heights above the EGM2008 geoid instead. Only the horizontal part of the CRS is taken from PROJ,
-so a datum shift between WGS84 and e.g. CH1903+ never changes the height reference silently. The
-products carry their vertical reference in their CRS (`product_crs`), where GDAL, PDAL and QGIS read
-it: EGM2008 heights as a compound CRS (e.g. EPSG:32632+3855), ellipsoidal heights as the projected
-CRS promoted to 3D when its datum is WGS84's (a CRS on another datum, e.g. CH1903+, has no standard
-way to say "WGS84 ellipsoidal heights": it stays 2D and export.json notes it).
+so a datum shift between WGS84 and e.g. CH1903+ never changes the height reference silently. GIS tools
+name the products' CRS by its EPSG code (io/crs_tags.py): the GeoTIFFs hold the 2D CRS in their GeoKeys
+and the DSM and DTM their vertical datum in their metadata (HEIGHTS, VERTICAL_DATUM, VERTICAL_CRS); the
+LAS WKT is the projected CRS, compound with EGM2008 height (e.g. EPSG:32632+3855) for orthometric heights.
 
 LAS/LAZ points are classified (core.ground: 2 ground, 6 building, 1 the rest) with return 1 of 1.
-Rasters are Cloud-Optimized GeoTIFFs (GDAL's COG driver: tiled, deflate, overviews) whose CRS, with its
-vertical part, is in the file's own GeoKeys (write_geotiff): a .tif copied alone keeps it.
+Rasters are Cloud-Optimized GeoTIFFs (GDAL's COG driver: tiled, deflate, overviews) whose CRS and
+vertical datum are in the file itself (write_geotiff): a .tif copied alone keeps them.
 
 The DSM holds the cells stereo measured and, inside what the photos saw (the camera centres' hull),
 heights interpolated where stereo measured none (surface_in_crs); its band 2 gives the stereo pairs
@@ -36,11 +35,12 @@ from photogram_ros.core import geoid
 from photogram_ros.core.gsd import AUTO, dsm_lengths_for_cell
 from photogram_ros.core.fusion import Fusion, FusionConfig
 from photogram_ros.core.ground import GroundParams, classify_points
-from photogram_ros.core.geodesy import LocalFrame, crs_to_geodetic, crs_wkt, geodetic_to_crs
+from photogram_ros.core.geodesy import LocalFrame, crs_to_geodetic, geodetic_to_crs
 from photogram_ros.core.dtm import dtm_from_points
 from photogram_ros.core.raster import (NODATA, Keyframe, Raster, cell_max, dsm_from_points, fill_surface, hull_mask,
                                        orthomosaic)
 from photogram_ros.errors import ConfigError, DataError, GeodesyError, StorageError
+from photogram_ros.io.crs_tags import describe_las, geotiff_georef
 from photogram_ros.io.map_store import MapStore, as_map_store
 from photogram_ros.io.progress import Progress, Steps
 from photogram_ros.params import param, validate
@@ -210,7 +210,7 @@ def classify_cloud(cloud: GeoCloud, p: GroundParams | None = None) -> dict:
 
 
 def write_las(cloud: GeoCloud, path: str | Path) -> Path:
-    """LAS 1.4 point format 7 (RGB), CRS with its vertical part as an OGC WKT VLR; .laz compresses (lazrs).
+    """LAS 1.4 point format 7 (RGB), CRS as an OGC WKT1 VLR with EPSG ids (io/crs_tags.py); .laz compresses (lazrs).
 
     Every point is return 1 of 1 (a photogrammetric point is the only return of its ray; 0 is invalid
     in LAS 1.4) with its class from cloud.classes (1, unclassified, when not classified).
@@ -224,11 +224,10 @@ def write_las(cloud: GeoCloud, path: str | Path) -> Path:
     header.offsets = [np.floor(v.min()) if v.size else 0.0 for v in xyz]
     # Millimetres, or the finest power of ten whose 32-bit integers span the cloud's extent.
     header.scales = [_las_scale(float(np.ptp(v)) if v.size else 0.0) for v in xyz]
-    header.add_crs(product_crs(cloud.crs, cloud.heights)[0])
+    describe_las(header, cloud.crs, cloud.heights)     # WKT1 with EPSG ids, System Identifier (io/crs_tags.py)
     header.add_extra_dims([laspy.ExtraBytesParams('observations', np.uint32, 'points fused in the cell'),
                            laspy.ExtraBytesParams('confidence', np.float32, 'mean stereo confidence')])
     header.generating_software = 'photogram_ros'
-    header.system_identifier = f'heights: {cloud.heights}'[:32]
     las = laspy.LasData(header)
     las.x, las.y, las.z = cloud.x, cloud.y, cloud.z
     las.return_number = np.ones(cloud.x.size, np.uint8)
@@ -307,94 +306,26 @@ def read_ply(path: str | Path) -> tuple[np.ndarray, list[str]]:
 
 
 COG_BLOCK_PX = 256
-WGS84_3D = 4979               # EPSG code of WGS 84 geographic 3D: ellipsoidal heights in GeoTIFF 1.1
-_EGM2008_CODE = 3855
-
-
-def _geokey_crs(crs: str, heights: str):
-    """(pyproj CRS GDAL writes into the GeoKeys, True when its vertical key must be set to WGS 84 3D after).
-
-    GDAL writes a compound CRS (horizontal + EGM2008 height) as GeoKeys (ProjectedCRSGeoKey and
-    VerticalGeoKey) but a projected CRS promoted to 3D (ellipsoidal heights) only into a .aux.xml
-    sidecar, which a file copied alone loses. GeoTIFF 1.1 (OGC 19-008r4, VerticalGeoKey) states
-    ellipsoidal heights by a VerticalGeoKey naming the geographic 3D CRS of the horizontal datum
-    (4979 for WGS 84), which GDAL reads back as the 3D projected CRS. So for ellipsoidal heights GDAL
-    writes a compound CRS (named for ellipsoidal heights) whose vertical key is then set to 4979.
-    """
-    from pyproj.crs import CompoundCRS
-    c, _ = product_crs(crs, heights)
-    if c.is_compound or len(c.axis_info) < 3:
-        return c, False
-    horizontal = c.to_2d()
-    from pyproj import CRS
-    return CompoundCRS(f'{horizontal.name} + WGS 84 ellipsoidal height',
-                       [horizontal, CRS.from_epsg(_EGM2008_CODE)]), True
-
-
-def _set_vertical_geokey(path: Path, old: int, new: int) -> None:
-    """Replace the value `old` of VerticalGeoKey (4096) in the GeoKey directory (tag 34735) of the first
-    IFD of a (Big)TIFF by `new`, in place.
-
-    The key is stored inline (TIFFTagLocation 0, count 1): one SHORT, the same size before and after,
-    so the file's layout (COG ghost area, tile offsets) stays as GDAL wrote it.
-    """
-    import struct
-    with open(path, 'r+b') as f:
-        head = f.read(16)
-        end = {b'II': '<', b'MM': '>'}.get(head[:2])
-        if end is None:
-            raise DataError(f'{path} is not a TIFF file')
-        big = struct.unpack(end + 'H', head[2:4])[0] == 43
-        ifd = struct.unpack(end + 'Q', head[8:16])[0] if big else struct.unpack(end + 'I', head[4:8])[0]
-        f.seek(ifd)
-        n = struct.unpack(end + ('Q' if big else 'H'), f.read(8 if big else 2))[0]
-        entry, value_at = (20, 12) if big else (12, 8)
-        entries = f.read(n * entry)
-        for k in range(n):
-            e = entries[k * entry:(k + 1) * entry]
-            tag, typ = struct.unpack(end + 'HH', e[:4])
-            if tag != 34735 or typ != 3:
-                continue
-            count = struct.unpack(end + ('Q' if big else 'I'), e[4:value_at])[0]
-            inline = count * 2 <= (8 if big else 4)
-            at = (ifd + (8 if big else 2) + k * entry + value_at if inline else
-                  struct.unpack(end + ('Q' if big else 'I'), e[value_at:])[0])
-            f.seek(at)
-            keys = list(struct.unpack(end + f'{count}H', f.read(2 * count)))
-            for i in range(4, count - 3, 4):
-                if keys[i:i + 4] == [4096, 0, 1, old]:
-                    f.seek(at + 2 * (i + 3))
-                    f.write(struct.pack(end + 'H', new))
-                    return
-    raise DataError(f'{path}: no vertical GeoKey {old} to state ellipsoidal heights in; the file\'s CRS '
-                    'lacks its vertical part')
 
 
 def write_geotiff(r: Raster, path: str | Path, crs: str, description: str = '', rgba: bool = False,
                   heights: str | None = None, band_names: tuple = ()) -> Path:
     """A Cloud-Optimized GeoTIFF (GDAL's COG driver: 256-px tiles, deflate, overviews down to one tile).
 
-    The CRS is in the file's GeoKeys, with its vertical reference when `heights` is given
-    (product_crs: EGM2008 heights as a compound CRS, WGS84 ellipsoidal heights as a 3D projected CRS,
-    GeoTIFF 1.1's VerticalGeoKey 4979): the .tif copied alone opens with both in GDAL, no .aux.xml
-    sidecar is written. None writes the 2D CRS. Overviews average (no-data and alpha aware).
+    The 2D CRS is in the file's GeoKeys by its EPSG code; with `heights` (not for rgba) the vertical
+    datum is in the metadata and band 1's unit is metre (io/crs_tags.geotiff_georef): the .tif copied
+    alone keeps both, no .aux.xml sidecar is written. Overviews average (no-data and alpha aware).
     `band_names` describe the bands (GDAL band descriptions).
     """
     import rasterio
-    from rasterio.crs import CRS
     from rasterio.enums import ColorInterp
     from rasterio.transform import from_origin
     path = Path(path)
     data = r.data
     bands = data.shape[2] if data.ndim == 3 else 1
-    patch = False
-    if heights is None:
-        wkt = crs_wkt(crs)
-    else:
-        c, patch = _geokey_crs(crs, heights)
-        wkt = c.to_wkt()
+    g = geotiff_georef(crs, None if rgba else heights)     # 2D CRS by EPSG code, vertical datum tags (io/crs_tags.py)
     profile = dict(driver='COG', width=r.shape[1], height=r.shape[0], count=bands, dtype=data.dtype,
-                   crs=CRS.from_wkt(wkt), transform=from_origin(r.x0_m, r.y1_m, r.res_m, r.res_m),
+                   crs=g.crs, transform=from_origin(r.x0_m, r.y1_m, r.res_m, r.res_m),
                    compress='deflate', predictor='yes', blocksize=COG_BLOCK_PX, overviews='auto',
                    resampling='average', bigtiff='if_safer')
     if r.nodata is not None and not rgba:
@@ -408,15 +339,12 @@ def write_geotiff(r: Raster, path: str | Path, crs: str, description: str = '', 
                     ds.write(data[:, :, b], b + 1)
             if rgba:
                 ds.colorinterp = [ColorInterp.red, ColorInterp.green, ColorInterp.blue, ColorInterp.alpha]
-            elif heights is not None:
-                ds.units = ('metre',) + ('',) * (bands - 1)
+            elif g.height_unit:
+                ds.units = (g.height_unit,) + ('',) * (bands - 1)
             for i, name in enumerate(band_names[:bands]):
                 ds.set_band_description(i + 1, name)
-            if description:
-                ds.update_tags(DESCRIPTION=description)
+            ds.update_tags(**g.tags, **({'DESCRIPTION': description} if description else {}))
     Path(str(path) + '.aux.xml').unlink(missing_ok=True)
-    if patch:
-        _set_vertical_geokey(path, _EGM2008_CODE, WGS84_3D)
     return path
 
 
