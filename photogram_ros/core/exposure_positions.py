@@ -89,9 +89,37 @@ class AntennaTrack:
     line: np.ndarray           # (N,) line number of each epoch in its file
     source: str = ''           # the file, for messages
     notes: list = field(default_factory=list)
+    format: str = ''           # the format it was read as ('RTKLIB .pos', 'NovAtel GrafNav/Inertial Explorer', ...)
+    time_system: str = 'GPST'  # the file's own time system (GPST, UTC, ...); t_gps_s is converted to GPS time
+    q_native: np.ndarray | None = None   # (N,) the format's own quality number or name, as written
+    week_known: bool = True    # False: t_gps_s holds seconds of an unknown GPS week (a file without dates)
 
     def __len__(self) -> int:
         return len(self.t_gps_s)
+
+    def sigma_enu_m(self) -> np.ndarray:
+        """(N, 3) per-epoch 1-sigma east, north, up (0 where the file gave none)."""
+        return np.sqrt(np.maximum(np.diagonal(self.cov_enu_m2, axis1=1, axis2=2), 0.0))
+
+    def in_week_of(self, t_gps_s: float) -> 'AntennaTrack':
+        """A track of seconds of week (`week_known` False) put in the GPS week of `t_gps_s` (an event's time);
+        a track that passes the end of the week goes on into the next one. Itself when its week is known."""
+        if self.week_known:
+            return self
+        week = int(t_gps_s // SECONDS_PER_WEEK)
+        sow = np.asarray(self.t_gps_s, float)
+        wraps = np.concatenate([[0], np.cumsum(np.diff(sow) < -SECONDS_PER_WEEK / 2)])
+        t = week * SECONDS_PER_WEEK + sow + wraps * SECONDS_PER_WEEK
+        # the events may start in the week after the one the track starts in
+        if t[0] - t_gps_s > SECONDS_PER_WEEK / 2:
+            t -= SECONDS_PER_WEEK
+        elif t_gps_s - t[-1] > SECONDS_PER_WEEK / 2:
+            t += SECONDS_PER_WEEK
+        out = AntennaTrack(t, self.ecef_m, self.cov_enu_m2, self.q, self.line, self.source, list(self.notes),
+                           self.format, self.time_system, self.q_native, True)
+        out.notes.append(f'{self.source}: times are seconds of week; GPS week {int(t[0] // SECONDS_PER_WEEK)} taken '
+                         'from the events')
+        return out
 
     def median_interval_s(self) -> float:
         d = np.diff(self.t_gps_s)
@@ -126,6 +154,9 @@ class ExposureOptions:
     lever_arm_frd_m: tuple = param((0.0, 0.0, 0.0), 'the antenna relative to the camera in the body frame, '
                                                     'forward, right, down, m (not with MRK offsets)')
     accept_q: int = param(6, 'worst RTKLIB quality used (1 fix, 2 float, 5 single, 6 all)', min=1, max=6)
+    event_delay_s: float = param(0.0, 'the exposure this long after its event mark (the shutter\'s delay; '
+                                      'negative: before), s; every event is moved by it along the track',
+                                 min=-1.0, max=1.0)
 
     def __post_init__(self):
         validate(self)
@@ -243,13 +274,16 @@ def place_exposures(track: AntennaTrack, events: list, opt: ExposureOptions | No
         raise DataError('the events carry their own antenna-camera offsets (a DJI MRK): leave --lever-arm out')
     times = np.array([ev.t_gps_s for ev in events], float)
     at_events = _is_at_events(track, times, opt.at_event_tolerance_s)
+    if at_events and opt.event_delay_s != 0.0:
+        raise DataError(f'{track.source} is a solution at the events (one epoch per event mark): it cannot be '
+                        'moved by an event delay; give the trajectory (the .pos of every epoch) instead')
     max_gap = opt.max_gap_s if opt.max_gap_s > 0 else 2.5 * track.median_interval_s()
     usable = track.q <= opt.accept_q
     out, problems, notes = [], [], []
-    hint = _time_base_hint(track, times)
+    hint = _time_base_hint(track, times + opt.event_delay_s)
     t_first, t_last = track.t_gps_s[0], track.t_gps_s[-1]
     for ev in events:
-        t = ev.t_gps_s
+        t = ev.t_gps_s + opt.event_delay_s
         name = f'{ev.where} {ev.unit} {ev.line} (event {ev.seq}' + (f', {ev.photo}' if ev.photo else '') + ')'
         if at_events:
             k = int(np.argmin(np.abs(track.t_gps_s - t)))
