@@ -265,3 +265,40 @@ def test_geotag_command_says_the_format(tmp_path, capsys):
     err = capsys.readouterr().err
     assert rc == 0 and 'read as Leica Infinity CSV' in err and '-5.0 ms' in err
     assert math.isfinite(float((tmp_path / 'g.txt').read_text().splitlines()[1].split()[1]))
+
+
+REAL = {  # excerpts of real public RTKLIB solutions (tests/data/trajectories/README.md: source and licence)
+    'real_rtklib_demo5_ublox_excerpt.pos': 'RTKLIB-demo5 .pos',
+    'real_matrtklib_kinematic_excerpt.pos': 'RTKLIB .pos',
+}
+
+
+@pytest.mark.parametrize('name', sorted(REAL))
+def test_real_rtklib_excerpts_placed_as_an_independent_interpolation(name):
+    """Exposures inside every 1 s interval whose neighbours are 1 s away too (where the track is interpolated
+    cubically) equal scipy's cubic Hermite spline on the raw columns; an exposure in a 4 s hole is refused."""
+    from photogram_ros.core.exposure_positions import CameraEvent, place_exposures
+    track = read_trajectory(DATA / name, require_fix=False)
+    assert track.format == REAL[name] and track.time_system == 'GPST'
+    raw = raw_rtklib_demo5(DATA / name)
+    t = np.array([r[0] for r in raw])
+    d = np.diff(t)
+    ks = [k for k in range(1, len(t) - 2) if d[k - 1] == d[k] == d[k + 1] == 1.0]
+    times = np.array([t[k] + 0.137 + 0.7 * (i % 2) for i, k in enumerate(ks)])
+    events = [CameraEvent(i + 1, float(tt), i + 1, where='test') for i, tt in enumerate(times)]
+    holes = [t[k] + 1.9 for k in range(len(d)) if d[k] >= 4.0]
+    events += [CameraEvent(900 + i, float(tt), 900 + i, where='test') for i, tt in enumerate(holes)]
+    placed = place_exposures(track, events)
+    assert len(placed.placed) == len(times) and len(placed.problems) == len(holes)
+    assert all('gap' in p for p in placed.problems)
+    ours = _ecef([pe.antenna_lat_deg for pe in placed.placed], [pe.antenna_lon_deg for pe in placed.placed],
+                 [pe.antenna_h_m for pe in placed.placed])
+    ref = independent_antenna(raw, times)
+    dist = np.linalg.norm(ours - ref, axis=1)
+    print(f'{name}: {len(times)} exposures, max {dist.max() * 1000:.3f} mm from the independent interpolation; '
+          f'{len(holes)} in holes refused')
+    assert len(times) >= 10 and dist.max() < 1e-3
+    # the file's sigmas became the accuracies: the float epochs' decimetres, the fixed ones' millimetres
+    acc = np.array([pe.h_acc_m for pe in placed.placed])
+    q = np.array([pe.q for pe in placed.placed])
+    assert np.all(acc[q == 1] < 0.01) and (not np.any(q == 2) or np.all(acc[q == 2] >= 0.10))
