@@ -302,3 +302,75 @@ def test_real_rtklib_excerpts_placed_as_an_independent_interpolation(name):
     acc = np.array([pe.h_acc_m for pe in placed.placed])
     q = np.array([pe.q for pe in placed.placed])
     assert np.all(acc[q == 1] < 0.01) and (not np.any(q == 2) or np.all(acc[q == 2] >= 0.10))
+
+
+# The header of a real Inertial Explorer 8.30 export and its first epoch, as the CReSIS toolbox's
+# read_gps_novatel.m quotes them (a comment of that file in the CReSIS toolbox, e.g. CReSIS/OLD_cresis-toolbox): CorrTime
+# (GPS seconds of week), Date (MDY), latitude/longitude in +/-D M S, H-Ell, the attitude.
+CRESIS_IE = """
+Project:     rover_diff_antarctica_01022010
+Program:     Inertial Explorer Version 8.30.0623
+Profile:     CReSIS
+Source:      GPS Epochs(Smoothed TC Combined)
+
+Datum:       WGS84, (processing datum)
+Master 1:    Name base_antarctica, Status ENABLED
+             Antenna height 0.054 m, to L1-PC (JPSLEGANT_E, MeasDist 0.000 m to mark/ARP)
+             Position -80 00 42.83213, -119 33 24.98087, 1496.009 m (WGS84, Ellipsoidal hgt)
+Remote:      Antenna height 0.000 m, to L1-PC (Generic)
+SD/Covariance Scaling Settings:
+  Position: No scaling (1-sigma)
+  Velocity: No scaling (1-sigma)
+  Attitude: No scaling (1-sigma)
+  Increase SD on kinematic float: Yes
+
+ CorrTime       Date         Latitude        Longitude        H-Ell        Heading        HdngSep         HdngSD          Pitch        PtchSep        PitchSD           Roll        RollSep         RollSD
+    (sec)      (MDY)       (+/-D M S)       (+/-D M S)          (m)          (Deg)          (Deg)          (Deg)          (Deg)          (Deg)          (Deg)          (Deg)          (Deg)          (Deg)
+598861.01  1/02/2010  -79 28 10.85149 -112 03 17.05073     1765.359  51.2305580000 359.9682999998   0.0198516510  -1.2856740000 359.9926000000   0.0049116057   0.0289810000 359.9872000003   0.0048216125
+"""
+
+
+def test_a_real_inertial_explorer_header_and_epoch(tmp_path):
+    p = tmp_path / 'rover_diff.txt'
+    p.write_text(CRESIS_IE + '598862.01  1/02/2010  -79 28 10.80000 -112 03 17.00000     1765.400' + ' 0' * 9
+                 + '\n\nFooter lines\n   - not an epoch\n')
+    t = read_trajectory(p)
+    assert t.format.startswith('NovAtel Inertial Explorer export') and t.time_system == 'GPST' and len(t) == 2
+    from photogram_ros.core.geodesy import ecef_to_geodetic
+    lat, lon, h = (float(v) for v in ecef_to_geodetic(*t.ecef_m[0]))
+    assert lat == pytest.approx(-(79 + 28 / 60 + 10.85149 / 3600), abs=1e-9)
+    assert lon == pytest.approx(-(112 + 3 / 60 + 17.05073 / 3600), abs=1e-9) and h == pytest.approx(1765.359, abs=1e-4)
+    # 2010-01-02 is the Saturday of GPS week 1564: 598861.01 s into it
+    assert t.t_gps_s[0] == pytest.approx(1564 * WEEK_S + 598861.01, abs=1e-6)
+    assert any('no Q column' in n for n in t.notes)
+
+
+def test_inertial_explorer_hour_minute_second_columns_and_ecef_sigmas(tmp_path):
+    """The layout of an IE export with `UTCDate UT UT UTCTim` (units `(MDY) ho mi (sec)`), DMS, X/Y/Z-ECEF with
+    their SDs, attitude, Q (as a public writer of the IE 8.60 layout, IEWriter.cpp, writes it)."""
+    src = read_trajectory(DATA / 'inertial_explorer_5hz_utc.csv')
+    from photogram_ros.core.geodesy import ecef_to_geodetic
+    lines = ['Program:     Inertial Explorer Version 8.60.4609', 'UTC Offset:  18s', '', '',
+             'UTCDate     UT UT UTCTim       Latitude        Longitude         H-Ell         X-ECEF        SDX-ECEF'
+             '       Y-ECEF       SDY-ECEF       Z-ECEF       SDZ-ECEF       Roll       RollSD      Q        Heave',
+             '(MDY)       ho mi  (sec)      (+/-D M S)       (+/-D M S)         (m)           (m)             (m)'
+             '           (m)          (m)            (m)          (m)          (deg)       (deg)                (m)']
+    for k in range(len(src)):
+        dt = datetime.fromtimestamp(src.t_gps_s[k] + GPS0 - 18, tz=timezone.utc)
+        la, lo, h = (float(v) for v in ecef_to_geodetic(*src.ecef_m[k]))
+        x, y, z = src.ecef_m[k]
+
+        def dms(v):
+            d = int(v)
+            m = int((v - d) * 60)
+            return f'{d} {m} {((v - d) * 60 - m) * 60:.6f}'
+        lines.append(f'{dt:%m/%d/%Y}  {dt:%H} {dt:%M} {dt.second + dt.microsecond / 1e6:06.3f}     {dms(la)} {dms(lo)}'
+                     f'     {h:.6f}      {x:.3f}      0.010      {y:.3f}      0.010      {z:.3f}      0.010      0.5'
+                     f'      0.01      1      0.0')
+    p = tmp_path / 'ie.txt'
+    p.write_text('\n'.join(lines) + '\n')
+    t = read_trajectory(p)
+    assert t.time_system == 'UTC' and len(t) == len(src)
+    assert np.abs(t.t_gps_s - src.t_gps_s).max() < 2e-3
+    assert np.linalg.norm(t.ecef_m - src.ecef_m, axis=1).max() < 1e-3
+    assert np.allclose(t.sigma_enu_m(), 0.010, atol=1e-6)         # isotropic ECEF sigmas stay 1 cm on each axis

@@ -8,17 +8,20 @@ mapped by their names, whatever the profile's order and whatever else it exports
 
 | column (names read)                          | becomes                                              |
 |----------------------------------------------|------------------------------------------------------|
-| `GPSTime` (sec) + `GPSWeek` or a `Date`      | GPS time (seconds of week; the week from the `GPSWeek` column, else the date, else the events') |
-| `GPSTime` as `HH:MM:SS` + `Date`              | GPS time                                             |
-| `UTCTime` (sec of day or `HH:MM:SS`) + `UTCDate`/`Date`; `UTCTime` alone as UTC seconds of week | UTC -> GPS time (leap seconds) |
+| `GPSTime` or `CorrTime` (sec) + `GPSWeek` or a `Date` | GPS time: seconds of week (the week from the `GPSWeek` column, else the date, else the events'), or seconds of the day of the `Date` |
+| `GPSTime` as `HH:MM:SS`, or hour / minute / second columns (units `ho mi (sec)`), + `Date` | GPS time |
+| `UTCTime` (sec or `HH:MM:SS`, or `ho mi (sec)` columns) + `UTCDate`/`Date` (units `(MDY)` or `(DMY)`); `UTCTime` alone as UTC seconds of week | UTC -> GPS time (leap seconds: the header's `UTC Offset`, else 18 s) |
 | `Latitude`, `Longitude` (deg, or `+/-D M S` as three numbers) | WGS84 latitude, longitude         |
 | `H-Ell`                                      | ellipsoidal height (an `H-MSL` alone is refused)     |
 | `X-ECEF`, `Y-ECEF`, `Z-ECEF`                  | the position, instead of latitude/longitude/height   |
 | `SDNorth`, `SDEast` (or `SDLat`, `SDLon`), `SDHeight` | per-axis 1-sigma north, east, up            |
 | `SDHoriz`                                    | horizontal 1-sigma sqrt(sdn^2+sde^2): sdn = sde = SDHoriz/sqrt(2) |
+| `SDX-ECEF`, `SDY-ECEF`, `SDZ-ECEF`            | ECEF sigmas, turned into north, east, up             |
 | `Q`                                          | quality, 1..6: 1 fixed integer -> fix; 2 stable float, 3 converging float -> float; 4, 5 DGPS -> dgps; 6 single point -> single |
 
-Anything else (`NS`, `PDOP`, velocities, attitude of an Inertial Explorer export) is skipped.
+Anything else (`NS`, `PDOP`, velocities, attitude of an Inertial Explorer export) is skipped, and so are
+text lines among or after the epochs (a footer). Column names cut to their column's width, as
+Inertial Explorer writes them (`UTCTim`, `GPSTim`), are read as the whole name.
 """
 
 from __future__ import annotations
@@ -41,7 +44,7 @@ GRAFNAV_Q = {1: 1, 2: 2, 3: 2, 4: 4, 5: 4, 6: 5}
 _TIME = ('gpstime', 'utctime', 'gpsweek', 'gpssow', 'gpsseconds')
 _POS = ('latitude', 'longitude', 'x-ecef')
 _GRAFNAV_ONLY = ('h-ell', 'h-msl', 'sdhoriz', 'sdheight', 'sdnorth', 'sdeast', 'q')
-_ALIASES = {'lat': 'latitude', 'lon': 'longitude', 'long': 'longitude', 'week': 'gpsweek', 'gpsdate': 'date',
+_ALIASES = {'corrtime': 'gpstime', 'gpstim': 'gpstime', 'utctim': 'utctime', 'lat': 'latitude', 'lon': 'longitude', 'long': 'longitude', 'week': 'gpsweek', 'gpsdate': 'date',
             'utcdate': 'utcdate', 'sdht': 'sdheight', 'sd-height': 'sdheight', 'sd-north': 'sdnorth',
             'sd-east': 'sdeast', 'sd-horiz': 'sdhoriz', 'quality': 'q', 'hell': 'h-ell', 'ellhgt': 'h-ell',
             'sdlat': 'sdnorth', 'sdlon': 'sdeast', 'sdlong': 'sdeast', 'x': 'x-ecef', 'y': 'y-ecef', 'z': 'z-ecef'}
@@ -118,12 +121,18 @@ class GrafNavReader:
         units = [''] * len(names)
         first = h + 1
         if first < len(lines) and lines[first].strip().startswith('('):
-            units = re.findall(r'\(([^)]*)\)', lines[first])
-            units += [''] * (len(names) - len(units))
+            ul = lines[first].strip()
+            units = [u.strip().strip('()').lower() for u in (ul.split(',') if ',' in ul else
+                                                               re.findall(r'\([^)]*\)|\S+', ul))]
+            units = (units + [''] * len(names))[:len(names)]
             first += 1
-            for k, u in enumerate(units[:len(names)]):
-                if names[k] in ('latitude', 'longitude') and re.search(r'd\s*m\s*s', u.lower()):
+            for k, u in enumerate(units):
+                if names[k] in ('latitude', 'longitude') and re.search(r'd\s*m\s*s', u):
                     widths[k] = 3
+                elif u == 'ho':            # UTC or GPS time split into hour, minute, second columns
+                    names[k] = 'hour'
+                elif u == 'mi':
+                    names[k] = 'minute'
         if 'h-ell' not in names and 'x-ecef' not in names:
             got = 'H-MSL (above the geoid)' if 'h-msl' in names else 'no height'
             raise DataError(f'{path} line {h + 1}: {got}: export H-Ell (ellipsoidal height) in the profile')
@@ -164,10 +173,12 @@ class GrafNavReader:
         q, qn, line = np.zeros(n_ep, int), [], np.zeros(n_ep, int)
         week_known, system = True, 'GPST'
         time_unit = units[col['gpstime']].lower() if 'gpstime' in col else ''
+        date_unit = next((units[col[d]] for d in ('date', 'utcdate') if d in col), '')
+        order = 'dmy' if date_unit.startswith('d') else 'mdy'
         notes = []
         for i, (n, v) in enumerate(rows):
             try:
-                t[i], system, wk = self._time(v, time_unit, utc_offset)
+                t[i], system, wk = self._time(v, time_unit, utc_offset, order)
                 week_known &= wk
                 if 'x-ecef' in v:
                     la, lo, hh = ecef_to_geodetic(float(v['x-ecef'][0]), float(v['y-ecef'][0]), float(v['z-ecef'][0]))
@@ -182,6 +193,8 @@ class GrafNavReader:
                     sd[i, 1] = float(v['sdeast'][0])
                 if 'sdhoriz' in v and not ('sdnorth' in v and 'sdeast' in v):
                     sd[i, 0] = sd[i, 1] = per_axis_from_horizontal(float(v['sdhoriz'][0]))
+                if 'sdx-ecef' in v and 'sdnorth' not in v and 'sdhoriz' not in v:
+                    sd[i] = _ecef_sd_to_neu(lat[i], lon[i], [float(v[f'sd{a}-ecef'][0]) for a in 'xyz'])
                 if 'sdheight' in v:
                     sd[i, 2] = float(v['sdheight'][0])
                 raw_q = int(float(v['q'][0])) if 'q' in v else 1
@@ -210,34 +223,48 @@ class GrafNavReader:
         return track
 
     @staticmethod
-    def _time(v: dict, time_unit: str, utc_offset: int | None) -> tuple[float, str, bool]:
+    def _time(v: dict, time_unit: str, utc_offset: int | None, order: str = 'mdy') -> tuple[float, str, bool]:
         """(GPS seconds (or seconds of week when no week is known), the file's time system, week known)."""
         date = (v.get('date') or v.get('utcdate') or [None])[0]
-        if 'gpstime' in v:
-            tok = v['gpstime'][0]
-            if ':' in tok or 'h' in time_unit and 'm' in time_unit and 'sec' not in time_unit:
-                if date is None:
-                    raise ValueError('a GPS time of day needs a Date column')
-                return datetime_to_gps_s(f'{date} {tok}', 'GPST', 'mdy')[0], 'GPST', True
-            sow = float(tok)
-            if 'gpsweek' in v:
-                return week_tow_to_gps_s(int(float(v['gpsweek'][0])), sow), 'GPST', True
-            if date is not None:
-                midnight = datetime_to_gps_s(f'{date} 00:00:00', 'GPST', 'mdy')[0]
-                week = round((midnight - sow) / SECONDS_PER_WEEK)
-                return week_tow_to_gps_s(week, sow), 'GPST', True
-            return sow, 'GPST', False
-        if 'utctime' in v:
-            tok = v['utctime'][0]
-            if date is not None:
-                sod = seconds_of_day(tok)
-                hh, rem = divmod(sod, 3600.0)
-                mm, ss = divmod(rem, 60.0)
-                return datetime_to_gps_s(f'{date} {int(hh):02d}:{int(mm):02d}:{ss:09.6f}', 'UTC', 'mdy')[0], 'UTC', True
-            if 'gpsweek' in v:
-                return (week_tow_to_gps_s(int(float(v['gpsweek'][0])), float(tok)) + (utc_offset or 18)), 'UTC', True
-            return float(tok) + (utc_offset if utc_offset is not None else 18), 'UTC', False
-        raise ValueError('no GPSTime or UTCTime column')
+        system = 'GPST' if 'gpstime' in v else 'UTC'
+        key = 'gpstime' if 'gpstime' in v else 'utctime' if 'utctime' in v else None
+        if key is None:
+            raise ValueError('no GPSTime, CorrTime or UTCTime column')
+        tok = v[key][0]
+        if 'hour' in v and 'minute' in v:            # hour, minute and second columns
+            sod = int(float(v['hour'][0])) * 3600 + int(float(v['minute'][0])) * 60 + float(tok)
+        elif ':' in tok or (time_unit in ('hms', 'h:m:s', 'hh:mm:ss')):
+            sod = seconds_of_day(tok)
+        else:
+            sod = None
+        if sod is not None:
+            if date is None:
+                raise ValueError(f'a time of day ({key}) needs a Date column')
+            midnight = datetime_to_gps_s(f'{date} 00:00:00', system, order)[0]
+            return midnight + sod, system, True
+        sec = float(tok)
+        leap = utc_offset if utc_offset is not None else 18
+        if 'gpsweek' in v:
+            t = week_tow_to_gps_s(int(float(v['gpsweek'][0])), sec)
+            return (t + leap if system == 'UTC' else t), system, True
+        if date is not None:
+            midnight = datetime_to_gps_s(f'{date} 00:00:00', system, order)[0]
+            sow_midnight = midnight % SECONDS_PER_WEEK
+            if abs(sec - (sow_midnight + 43200.0)) <= 86400.0 or abs(sec + SECONDS_PER_WEEK - sow_midnight) < 86400.0:
+                week = round((midnight - sec) / SECONDS_PER_WEEK)      # seconds of week, its week from the date
+                return week_tow_to_gps_s(week, sec), system, True
+            if 0.0 <= sec < 86401.0:                                  # seconds of the day
+                return midnight + sec, system, True
+            raise ValueError(f'{key} {sec} is neither a second of the week nor of the day of {date}')
+        return (sec + leap if system == 'UTC' else sec), system, False
+
+
+def _ecef_sd_to_neu(lat_deg: float, lon_deg: float, sd_xyz) -> list[float]:
+    """ECEF per-axis sigmas (uncorrelated) -> sigmas north, east, up."""
+    from photogram_ros.core.geodesy import ecef_R_enu
+    R = ecef_R_enu(lat_deg, lon_deg)                       # columns: east, north, up in ECEF
+    c = R.T @ np.diag(np.square(sd_xyz)) @ R
+    return [float(np.sqrt(c[1, 1])), float(np.sqrt(c[0, 0])), float(np.sqrt(c[2, 2]))]
 
 
 register(GrafNavReader())
