@@ -259,6 +259,7 @@ def write_rtk_photos(folder: Path, frames, truth, cfg) -> list:
     from photogram_ros.sim.gnss import MODES
 
     rng = np.random.default_rng(cfg.seed + 31_000)
+    rng_float = np.random.default_rng(cfg.seed + 32_000)    # apart: the fixed photos' errors do not depend on it
     m = MODES['rtk_fixed']
     fixed_sd = (m.h_acc_m, m.h_acc_m, m.v_acc_m)
     float_sd = (0.5, 0.5, 0.8)
@@ -269,7 +270,7 @@ def write_rtk_photos(folder: Path, frames, truth, cfg) -> list:
         is_float = cfg.rtk_float_every > 0 and n % cfg.rtk_float_every == cfg.rtk_float_every - 1
         err = rng.normal(0.0, 1.0, 3) * np.array(fixed_sd)
         if is_float:
-            a = rng.uniform(0, 2 * np.pi)
+            a = rng_float.uniform(0, 2 * np.pi)
             err = err + np.array([np.cos(a), np.sin(a), 0.0]) * cfg.rtk_float_offset_m
         lat, lon, h = (float(v) for v in truth.origin.enu_to_geodetic(ft.map_T_cam[:3, 3] + err))
         written[ft.index] = (34 if is_float else 50, float_sd if is_float else fixed_sd, err.tolist())

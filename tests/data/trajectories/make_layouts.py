@@ -16,7 +16,7 @@ from pyproj import Transformer
 
 HERE = Path(__file__).parent
 LAT0, LON0, H0 = 46.5190, 6.5668, 455.0      # a field near Lausanne
-WEEK, SOW0 = 2304, 378000.2                  # GPS week 2304 (2024-03-03 .. 09), Friday 09:00 GPST
+WEEK, SOW0 = 2304, 378000.2                  # GPS week 2304 (2024-03-03 .. 09), Thursday 09:00 GPST
 LEAP = 18
 RATE = 5.0
 N = 240                                      # 48 s
