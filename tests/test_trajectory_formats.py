@@ -374,3 +374,15 @@ def test_inertial_explorer_hour_minute_second_columns_and_ecef_sigmas(tmp_path):
     assert np.abs(t.t_gps_s - src.t_gps_s).max() < 2e-3
     assert np.linalg.norm(t.ecef_m - src.ecef_m, axis=1).max() < 1e-3
     assert np.allclose(t.sigma_enu_m(), 0.010, atol=1e-6)         # isotropic ECEF sigmas stay 1 cm on each axis
+
+
+def test_linear_interpolation_on_request(tmp_path):
+    res = geotag(GeotagInput(str(DATA / 'tbc_5hz.csv'), str(MRK), None, str(tmp_path / 'g.txt'),
+                             options=ExposureOptions(interpolation='linear')))
+    t, lat, lon, h = (np.array(v) for v in zip(*raw_tbc(DATA / 'tbc_5hz.csv')))
+    xyz = _ecef(lat, lon, h)
+    times = _mrk_times()
+    ref = np.column_stack([np.interp(times, t, xyz[:, i]) for i in range(3)])
+    ours = _ecef([pe.antenna_lat_deg for _, pe in res.rows], [pe.antenna_lon_deg for _, pe in res.rows],
+                 [pe.antenna_h_m for _, pe in res.rows])
+    assert np.linalg.norm(ours - ref, axis=1).max() < 1e-3

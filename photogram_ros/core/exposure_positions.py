@@ -154,6 +154,9 @@ class ExposureOptions:
     lever_arm_frd_m: tuple = param((0.0, 0.0, 0.0), 'the antenna relative to the camera in the body frame, '
                                                     'forward, right, down, m (not with MRK offsets)')
     accept_q: int = param(6, 'worst RTKLIB quality used (1 fix, 2 float, 5 single, 6 all)', min=1, max=6)
+    interpolation: str = param('cubic', 'between two epochs: cubic (Hermite, centred-difference velocities; '
+                                        'linear next to a gap or an end) or linear',
+                               choices=('cubic', 'linear'))
     event_delay_s: float = param(0.0, 'the exposure this long after its event mark (the shutter\'s delay; '
                                       'negative: before), s; every event is moved by it along the track',
                                  min=-1.0, max=1.0)
@@ -242,7 +245,7 @@ def _time_base_hint(track: AntennaTrack, times: np.ndarray) -> str:
     return ''
 
 
-def _interpolate(track: AntennaTrack, a: int, b: int, t: float, max_gap: float) -> np.ndarray:
+def _interpolate(track: AntennaTrack, a: int, b: int, t: float, max_gap: float, cubic: bool = True) -> np.ndarray:
     """The antenna at t between epochs a and b: cubic Hermite with centred-difference velocities when the
     epochs before a and after b are there without a gap (exact under constant acceleration), else linear."""
     ta, tb = track.t_gps_s[a], track.t_gps_s[b]
@@ -250,7 +253,7 @@ def _interpolate(track: AntennaTrack, a: int, b: int, t: float, max_gap: float) 
     if b == a or tb <= ta:
         return pa.copy()
     s = (t - ta) / (tb - ta)
-    if a >= 1 and b + 1 < len(track) and ta - track.t_gps_s[a - 1] <= max_gap and \
+    if cubic and a >= 1 and b + 1 < len(track) and ta - track.t_gps_s[a - 1] <= max_gap and \
             track.t_gps_s[b + 1] - tb <= max_gap:
         h = tb - ta
         va = (pb - track.ecef_m[a - 1]) / (tb - track.t_gps_s[a - 1])
@@ -321,7 +324,7 @@ def place_exposures(track: AntennaTrack, events: list, opt: ExposureOptions | No
                 problems.append(f'{name}: its epoch at line {int(track.line[bad])} is Q={int(track.q[bad])} '
                                 f'({Q_NAMES.get(int(track.q[bad]), "?")}), worse than accepted')
                 continue
-            ant = _interpolate(track, a, b, t, max_gap)
+            ant = _interpolate(track, a, b, t, max_gap, opt.interpolation == 'cubic')
             worse = a if np.trace(track.cov_enu_m2[a]) >= np.trace(track.cov_enu_m2[b]) else b
             cov, q, how, kh = track.cov_enu_m2[worse], int(max(track.q[a], track.q[b])), 'interpolated', a
         a_lat, a_lon, a_h = (float(v) for v in ecef_to_geodetic(*ant))
