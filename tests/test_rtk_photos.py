@@ -96,3 +96,26 @@ def test_rtk_xmp_weights_like_a_geo_txt_and_a_float_third_is_kept_down(rtk_fligh
     assert h <= 1.1 * h_g + 0.005 and v <= 1.1 * v_g + 0.005
     n_f, h_f, v_f = rows['XMP, a third FLOAT 1 m off']
     assert n_f == n and h_f <= 1.5 * h + 0.01 and v_f <= 1.5 * v + 0.01
+
+
+def test_photo_block_takes_each_photos_rtk_sigmas_and_counts_the_flags(tmp_path):
+    from photogram_ros.io.photo_block import read_photo_block
+    rng = np.random.default_rng(3)
+    flags = [(50, 0.012, 0.010, 0.025), (50, 0.011, 0.011, 0.022), (34, 0.6, 0.5, 0.9), (16, 0.9, 0.9, 2.0), None]
+    for k, f in enumerate(flags):
+        p = tmp_path / f'DJI_{k:04d}.JPG'
+        Image.fromarray(rng.integers(0, 255, (240, 320, 3), dtype=np.uint8)).save(
+            p, quality=90, exif=exif_bytes(46.5 + k * 1e-5, 6.5, 500.0, datetime(2024, 3, 8, tzinfo=timezone.utc), 4.4,
+                                           (320, 240)))
+        if f is not None:
+            insert_xmp(p, dji_rtk_xmp(*f))
+    block = read_photo_block(tmp_path)
+    assert block.stats['rtk_flags'] == {'50': 2, '34': 1, '16': 1}
+    said = [a for a in block.assumptions if 'RtkFlag' in a]
+    assert len(said) == 1 and '2 fixed (narrow-lane) (50)' in said[0] and '1 float (34)' in said[0] \
+        and '1 single (16)' in said[0] and '1 photos without an RTK flag' in said[0]
+    sig = {r.name: (np.sqrt(r.fix.cov_enu_m2[0][0]), np.sqrt(r.fix.cov_enu_m2[2][2])) for r in block.records}
+    assert sig['DJI_0000.JPG'][0] == pytest.approx(np.sqrt((0.012 ** 2 + 0.010 ** 2) / 2), abs=1e-6)
+    assert sig['DJI_0002.JPG'] == pytest.approx((np.sqrt((0.6 ** 2 + 0.5 ** 2) / 2), 0.9), abs=1e-6)
+    assert sig['DJI_0003.JPG'] == pytest.approx((1.5, 3.0))            # the single class's floor
+    assert sig['DJI_0004.JPG'] == pytest.approx((EXIF_SIGMA_H_M, 2.0))  # no XMP: the EXIF sigmas
