@@ -69,18 +69,13 @@ def _triangulate(folder: Path, out: Path) -> dict:
 
 
 def rtk_runs(where: Path, name: str) -> list[dict]:
-    from photogram_ros.io.photo_block import dji_rtk_accuracy, exif_position
+    from photogram_ros.sim.photos import write_geo_txt_from_exif_and_rtk_xmp
     clean, floaty = where / 'rtk_clean', where / 'rtk_float'
     simulate(preset(name, fps=1.0, rtk_photos=True), clean)
     simulate(preset(name, fps=1.0, rtk_photos=True, rtk_float_every=3, rtk_float_offset_m=1.0), floaty)
     hand = where / 'rtk_hand' / 'rtk'
     shutil.copytree(clean / 'rtk', hand)
-    lines = ['EPSG:4326']
-    for p in sorted(hand.glob('*.JPG')):
-        lat, lon, h, _, _ = exif_position(p)
-        _, sh, sv = dji_rtk_accuracy(p)
-        lines.append(f'{p.name} {lon:.10f} {lat:.10f} {h:.4f} 0 0 0 {sh:.4f} {sv:.4f}')
-    (hand / 'geo.txt').write_text('\n'.join(lines) + '\n')
+    write_geo_txt_from_exif_and_rtk_xmp(hand)
     rows = []
     for case, folder in (('rtk_xmp', clean / 'rtk'), ('rtk_hand_geo_txt', hand), ('rtk_xmp_third_float_1m', floaty / 'rtk')):
         rep = _triangulate(folder, where / f'tri_{case}')

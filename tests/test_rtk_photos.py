@@ -64,7 +64,7 @@ def _triangulate(folder, out):
 
 @pytest.mark.slow
 def test_rtk_xmp_weights_like_a_geo_txt_and_a_float_third_is_kept_down(rtk_flights, tmp_path):
-    from photogram_ros.io.photo_block import exif_position
+    from photogram_ros.sim.photos import write_geo_txt_from_exif_and_rtk_xmp
     clean, floaty, truth = rtk_flights
     rtk = clean / 'rtk'
     written = json.loads((floaty / 'rtk' / 'rtk_truth.json').read_text())
@@ -73,12 +73,7 @@ def test_rtk_xmp_weights_like_a_geo_txt_and_a_float_third_is_kept_down(rtk_fligh
     # the same photos with a hand-made geo.txt of the same positions and sigmas
     hand = tmp_path / 'hand' / 'rtk'
     shutil.copytree(rtk, hand)
-    lines = ['EPSG:4326']
-    for p in sorted(hand.glob('*.JPG')):
-        lat, lon, h, _, _ = exif_position(p)
-        _, sh, sv = dji_rtk_accuracy(p)
-        lines.append(f'{p.name} {lon:.10f} {lat:.10f} {h:.4f} 0 0 0 {sh:.4f} {sv:.4f}')
-    (hand / 'geo.txt').write_text('\n'.join(lines) + '\n')
+    write_geo_txt_from_exif_and_rtk_xmp(hand)
     rep_geo = _triangulate(hand, tmp_path / 'geo')
     rep_float = _triangulate(floaty / 'rtk', tmp_path / 'float')
     rows = {}

@@ -26,7 +26,7 @@ import numpy as np
 
 from photogram_ros.core.exposure_positions import AntennaTrack, week_tow_to_gps_s
 from photogram_ros.errors import DataError
-from photogram_ros.io.trajectory_formats import (datetime_to_gps_s, per_axis_from_horizontal, register,
+from photogram_ros.io.trajectory_formats import (datetime_to_gps_s, per_axis_from_horizontal, read_lines, register,
                                                  track_from_epochs)
 
 
@@ -119,10 +119,7 @@ class CsvTrajectoryReader:
 
     def read(self, path: Path) -> AntennaTrack:
         path = Path(path)
-        try:
-            lines = path.read_text(errors='replace').lstrip('\ufeff').splitlines()
-        except OSError as exc:
-            raise DataError(f'cannot read {path}: {exc}') from exc
+        lines = read_lines(path)
         found = self._header(lines[:400])
         if found is None:
             raise DataError(f'{path}: no column line naming the latitude and longitude ({self.expects})')

@@ -81,6 +81,14 @@ def head_lines(path: Path, n: int = HEAD_LINES) -> list[str]:
     return raw.decode('utf-8', errors='replace').lstrip('\ufeff').splitlines()[:n]
 
 
+def read_lines(path: Path) -> list[str]:
+    """A text file's lines (a leading byte-order mark dropped); DataError when it cannot be read."""
+    try:
+        return Path(path).read_text(errors='replace').lstrip('\ufeff').splitlines()
+    except OSError as exc:
+        raise DataError(f'cannot read {path}: {exc}') from exc
+
+
 def sniff(path: str | Path) -> tuple[TrajectoryReader, list[tuple[str, float]]]:
     """The reader surest of the file, and every reader's score (name, score) that recognised it."""
     _load_readers()
@@ -206,5 +214,5 @@ def quality_counts(track: Trajectory) -> str:
 
 
 __all__ = ['HEAD_LINES', 'READERS', 'Trajectory', 'TrajectoryReader', 'datetime_to_gps_s', 'head_lines',
-           'per_axis_from_horizontal', 'quality_counts', 'read_trajectory', 'register', 'seconds_of_day', 'sniff',
+           'per_axis_from_horizontal', 'quality_counts', 'read_lines', 'read_trajectory', 'register', 'seconds_of_day', 'sniff',
            'track_from_epochs']

@@ -35,7 +35,7 @@ import numpy as np
 from photogram_ros.core.exposure_positions import SECONDS_PER_WEEK, AntennaTrack, week_tow_to_gps_s
 from photogram_ros.core.geodesy import ecef_to_geodetic
 from photogram_ros.errors import DataError
-from photogram_ros.io.trajectory_formats import (datetime_to_gps_s, per_axis_from_horizontal, register,
+from photogram_ros.io.trajectory_formats import (datetime_to_gps_s, per_axis_from_horizontal, read_lines, register,
                                                  seconds_of_day, track_from_epochs)
 
 PROGRAM_WORDS = ('grafnav', 'grafnet', 'inertial explorer', 'waypoint', 'novatel')
@@ -107,10 +107,7 @@ class GrafNavReader:
 
     def read(self, path: Path) -> AntennaTrack:
         path = Path(path)
-        try:
-            lines = path.read_text(errors='replace').lstrip('\ufeff').splitlines()
-        except OSError as exc:
-            raise DataError(f'cannot read {path}: {exc}') from exc
+        lines = read_lines(path)
         h = _header_index(lines[:400])
         if h is None:
             raise DataError(f'{path}: no column line naming the time ({", ".join(_TIME)}) and Latitude/Longitude (or '

@@ -292,3 +292,17 @@ def write_rtk_photos(folder: Path, frames, truth, cfg) -> list:
         'RtkStdLon/Lat/Hgt (m). rtk_truth.json: each photo\'s flag and the error written into its EXIF (ENU, m). '
         'gcp_list.txt heights are ellipsoidal; CHK* are check points.\n')
     return names
+
+
+def write_geo_txt_from_exif_and_rtk_xmp(folder: Path) -> Path:
+    """The geo.txt a user would make by hand for DJI RTK photos: each photo's EXIF position (altitude MSL,
+    turned ellipsoidal) with its XMP RTK sigmas as the accuracies (io/photo_block.dji_rtk_accuracy)."""
+    from photogram_ros.io.photo_block import dji_rtk_accuracy, exif_position
+    lines = ['EPSG:4326']
+    for p in sorted(Path(folder).glob('*.JPG')):
+        lat, lon, h, _, _ = exif_position(p)
+        _, sh, sv = dji_rtk_accuracy(p)
+        lines.append(f'{p.name} {lon:.10f} {lat:.10f} {h:.4f} 0 0 0 {sh:.4f} {sv:.4f}')
+    out = Path(folder) / 'geo.txt'
+    out.write_text('\n'.join(lines) + '\n')
+    return out
