@@ -6,7 +6,8 @@
    max; along-track part).
 2. DJI RTK photos: `simulate --rtk-photos` (EXIF GPS = the RTK camera centre, XMP RtkFlag/RtkStd*); `triangulate`
    without GCPs (every target a check point) on (a) the XMP, (b) the same photos with a hand-made geo.txt of the
-   same positions and sigmas, (c) a third of the photos FLOAT (flag 34, 0.5 / 0.8 m stated) and 1 m off.
+   same positions and sigmas, (c) a third of the photos FLOAT (flag 34, 0.5 / 0.8 m stated) at their true
+   positions, (d) the same third FLOAT and 1 m off (the fixed photos' errors the same in all).
 
 One JSON line per result, with the commit, whether the product code was clean, the cores and the load:
     .venv/bin/python bench/ppk_formats.py [--preset tiny] [--out bench/results/ppk_formats_<commit>.jsonl]
@@ -70,18 +71,22 @@ def _triangulate(folder: Path, out: Path) -> dict:
 
 def rtk_runs(where: Path, name: str) -> list[dict]:
     from photogram_ros.sim.photos import write_geo_txt_from_exif_and_rtk_xmp
-    clean, floaty = where / 'rtk_clean', where / 'rtk_float'
-    simulate(preset(name, fps=1.0, rtk_photos=True), clean)
-    simulate(preset(name, fps=1.0, rtk_photos=True, rtk_float_every=3, rtk_float_offset_m=1.0), floaty)
+    folders = {}
+    for case, extra in (('rtk_xmp', {}), ('rtk_xmp_third_float_0m', {'rtk_float_every': 3, 'rtk_float_offset_m': 0.0}),
+                        ('rtk_xmp_third_float_1m', {'rtk_float_every': 3, 'rtk_float_offset_m': 1.0})):
+        simulate(preset(name, fps=1.0, rtk_photos=True, **extra), where / case)
+        folders[case] = where / case / 'rtk'
     hand = where / 'rtk_hand' / 'rtk'
-    shutil.copytree(clean / 'rtk', hand)
+    shutil.copytree(folders['rtk_xmp'], hand)
     write_geo_txt_from_exif_and_rtk_xmp(hand)
+    folders['rtk_hand_geo_txt'] = hand
     rows = []
-    for case, folder in (('rtk_xmp', clean / 'rtk'), ('rtk_hand_geo_txt', hand), ('rtk_xmp_third_float_1m', floaty / 'rtk')):
+    for case, folder in folders.items():
         rep = _triangulate(folder, where / f'tri_{case}')
         ck = rep['check']['rmse']
         rows.append({'case': case, 'preset': name, 'photos': len(list(folder.glob('*.JPG'))), 'check_n': ck['n'],
                      'check_h_m': round(ck['horizontal_m'], 4), 'check_v_m': round(ck['vertical_m'], 4),
+                     'verdict': rep.get('verdict', {}).get('status'),
                      'rtk_flags': rep.get('matching', {}).get('rtk_flags'), 'gnss_noise': rep.get('gnss_noise')})
     return rows
 
@@ -91,6 +96,7 @@ def main() -> int:
     ap.add_argument('--preset', default='tiny', help='simulator preset of the RTK photo survey')
     ap.add_argument('--out', help='JSON lines file (default bench/results/ppk_formats_<commit>.jsonl)')
     ap.add_argument('--skip-rtk', action='store_true')
+    ap.add_argument('--skip-delay', action='store_true')
     a = ap.parse_args()
     commit = git('rev-parse', '--short', 'HEAD')
     clean = not git('status', '--porcelain', 'photogram_ros', 'bench/ppk_formats.py')
@@ -99,7 +105,7 @@ def main() -> int:
             'load_avg_before': [round(x, 2) for x in os.getloadavg()]}
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
-        for s in (0.0, 1.0):
+        for s in (() if a.skip_delay else (0.0, 1.0)):
             rows += delay_run(Path(tmp), s)
         if not a.skip_rtk:
             rows += rtk_runs(Path(tmp), a.preset)
