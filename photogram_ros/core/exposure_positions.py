@@ -233,6 +233,15 @@ def _is_at_events(track: AntennaTrack, times: np.ndarray, tol_s: float) -> bool:
     return bool(np.all(near <= tol_s) and len(track) <= 2 * len(times) + 2)
 
 
+def _quality_text(track: AntennaTrack, k: int) -> str:
+    """'Q=2 (float)', with the file's own quality when its format has another scale."""
+    q = int(track.q[k])
+    text = f'Q={q} ({Q_NAMES.get(q, "?")})'
+    if track.q_native is not None and str(track.q_native[k]) != str(q):
+        text += f', {track.q_native[k]} in the file'
+    return text
+
+
 def _time_base_hint(track: AntennaTrack, times: np.ndarray) -> str:
     """A note when the events fall outside the track but would fit it 18 s (the leap seconds) off."""
     t0, t1 = track.t_gps_s[0], track.t_gps_s[-1]
@@ -295,8 +304,8 @@ def place_exposures(track: AntennaTrack, events: list, opt: ExposureOptions | No
                                 f'{int(track.line[k])}, {track.t_gps_s[k] - t:+.3f} s)')
                 continue
             if not usable[k]:
-                problems.append(f'{name}: its solution (line {int(track.line[k])}) is Q={int(track.q[k])} '
-                                f'({Q_NAMES.get(int(track.q[k]), "?")}), worse than accepted')
+                problems.append(f'{name}: its solution (line {int(track.line[k])}) is {_quality_text(track, k)}, worse '
+                                'than accepted')
                 continue
             ant, cov, q, how, kh = track.ecef_m[k], track.cov_enu_m2[k], int(track.q[k]), 'at event', k
         else:
@@ -321,8 +330,8 @@ def place_exposures(track: AntennaTrack, events: list, opt: ExposureOptions | No
                 continue
             if not (usable[a] and usable[b]):
                 bad = a if not usable[a] else b
-                problems.append(f'{name}: its epoch at line {int(track.line[bad])} is Q={int(track.q[bad])} '
-                                f'({Q_NAMES.get(int(track.q[bad]), "?")}), worse than accepted')
+                problems.append(f'{name}: its epoch at line {int(track.line[bad])} is {_quality_text(track, bad)}, worse '
+                                'than accepted')
                 continue
             ant = _interpolate(track, a, b, t, max_gap, opt.interpolation == 'cubic')
             worse = a if np.trace(track.cov_enu_m2[a]) >= np.trace(track.cov_enu_m2[b]) else b

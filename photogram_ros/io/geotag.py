@@ -109,7 +109,7 @@ def geotag(a: GeotagInput, log=None) -> GeotagResult:
         track = read_trajectory(a.pos, require_fix=not a.accept_no_fix)
         if not track.week_known:
             track = track.in_week_of(float(np.median([ev.t_gps_s for ev in events])))
-        notes.append(f'trajectory quality: {quality_counts(track)}')
+        track.notes.append(f'trajectory quality: {quality_counts(track)}')
     elif mrk_rows is not None:
         track = ce.mrk_track(mrk_rows, a.events)
         notes.append('positions: the MRK\'s own onboard RTK solution (no --pos given)')
