@@ -65,7 +65,7 @@ def _triangulate(folder, out):
     return json.loads((out / 'report.json').read_text())
 
 
-# bench/results/ppk_formats_<commit>.jsonl (bench/ppk_formats.py, preset tiny): check points H, V (m) with a third of
+# bench/results/ppk_formats_32c2764.jsonl (bench/ppk_formats.py, preset tiny): check points H, V (m) with a third of
 # the photos FLOAT (0.5 / 0.8 m stated), 1 m off
 MEASURED_THIRD_FLOAT_M = (0.086, 0.066)
 
