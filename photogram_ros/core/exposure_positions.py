@@ -1,8 +1,8 @@
 """Camera positions at exposure times from a post-processed antenna track (PPK geotagging).
 
-In: an `AntennaTrack` (antenna solutions in GPS time, ECEF, ENU covariance and RTKLIB quality Q per
-epoch: what io/rtklib_pos.py reads) and `CameraEvent`s (exposure times in GPS time, with the
-antenna -> camera offset of a DJI Timestamp.MRK or the body attitude for a lever arm: what
+In: an `AntennaTrack` (antenna solutions in GPS time, ECEF, ENU covariance and quality per epoch on
+RTKLIB's scale Q, beside the file's own: what the readers of io/trajectory_formats.py read) and
+`CameraEvent`s (exposure times in GPS time, with the antenna -> camera offset of a DJI Timestamp.MRK or the body attitude for a lever arm: what
 io/camera_events.py reads). Out: `place_exposures` -> one `PlacedExposure` per event (camera and
 antenna WGS84 position, ellipsoidal height, per-axis horizontal and vertical 1-sigma, how it was
 found) and the problems of the events it could not place, each naming the event's line.
@@ -15,7 +15,10 @@ found) and the problems of the events it could not place, each naming the event'
   interpolated in ECEF between the two epochs around the exposure, never past its ends and never
   across a gap longer than `max_gap_s`: cubic Hermite with centred-difference velocities from the
   epochs on either side (exact under constant acceleration; linear interpolation of a 5 Hz track
-  cuts a 3 m/s^2 manoeuvre by up to 1.5 cm), linear next to a gap or an end.
+  cuts a 3 m/s^2 manoeuvre by up to 1.5 cm), linear next to a gap or an end (or everywhere, with
+  `interpolation='linear'`). Every exposure is first moved by `event_delay_s` from its event mark (a
+  shutter that opens after the mark); a track of seconds of week without its week
+  (`AntennaTrack.week_known`) is put in the events' week (`AntennaTrack.in_week_of`).
 - Lever arm: a per-event offset in local north, east, down (the MRK's N, E, V: camera = antenna + N
   north, + E east, height - V), or the antenna's position relative to the camera in the body FRD frame
   (`lever_arm_frd_m`, as the simulator and bundle_node state it) turned by the event's attitude; an

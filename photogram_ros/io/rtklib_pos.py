@@ -10,6 +10,9 @@ Refused, naming the line: heights the header calls geodetic (a geoid RTKLIB chos
 ellipsoidal ones), the Tokyo datum, baseline (e/n/u) solutions, a line that does not parse, Q outside
 1..6, and a file with no fixed (Q=1) epoch unless `require_fix=False`.
 
+`RtklibPosReader`: the format in io/trajectory_formats.py's registry (sniffed by its `%` column line;
+the flavour, RTKLIB / RTKLIB-demo5 / Emlid Studio, from the `% program` line).
+
 `write_pos(path, ...)`: the same layout (lat/lon, GPST calendar times), for the simulator.
 """
 
