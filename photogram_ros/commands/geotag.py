@@ -2,14 +2,20 @@
 
 from __future__ import annotations
 
-HELP = ('PPK geotagging: an RTKLIB .pos track and the camera events (DJI Timestamp.MRK, ArduPilot .bin CAM/TRIG, '
+HELP = ('PPK geotagging: a post-processed antenna track (RTKLIB/Emlid .pos, GrafNav/Inertial Explorer export, '
+        'Emlid/TBC/Leica CSV, recognised by content) and the camera events (DJI Timestamp.MRK, ArduPilot .bin CAM/TRIG, '
         '.tlog CAMERA_FEEDBACK / PX4 CAMERA_TRIGGER / CAMERA_IMAGE_CAPTURED, or the photos\' EXIF times) -> '
         'OpenDroneMap geo.txt and a CSV for Pix4D/Metashape')
 
 
+# --accept -> the worst quality used on the common scale (RTKLIB Q: 1 fix, 2 float, 3 sbas, 4 dgps, 5 single, 6 ppp).
+ACCEPT_Q = {'fix': 1, 'float': 2, 'dgps': 4, 'single': 5, 'all': 6}
+
+
 def add_arguments(p) -> None:
-    p.add_argument('--pos', help='RTKLIB solution (.pos: lat/lon/height or x/y/z-ecef, GPST or UTC as its header '
-                                 'says), a trajectory at 1-20 Hz or a solution at the events (*_events.pos); '
+    p.add_argument('--pos', help='the post-processed antenna track, recognised by its content: RTKLIB / RTKLIB-demo5 '
+                                 '/ Emlid Studio .pos (and *_events.pos), a NovAtel GrafNav / Inertial Explorer '
+                                 'ASCII export, an Emlid Studio, Trimble Business Center or Leica Infinity CSV; '
                                  'not given with a DJI MRK: the MRK\'s own onboard RTK positions')
     p.add_argument('--events', required=True, help='Timestamp.MRK, an ArduPilot .bin, a .tlog, or "exif" (the '
                                                    'photos\' EXIF times)')
@@ -32,8 +38,15 @@ def add_arguments(p) -> None:
     p.add_argument('--max-gap', type=float, default=-1.0,
                    help='longest track gap an exposure is interpolated across, s (-1: 2.5x the epoch interval)')
     p.add_argument('--sigma-scale', type=float, default=1.0, help='factor on the solution\'s formal sigmas')
-    p.add_argument('--accept', choices=('fix', 'float', 'all'), default='all',
-                   help='worst solution quality used for a photo (fix: Q=1 only)')
+    p.add_argument('--accept', choices=tuple(ACCEPT_Q), default='all',
+                   help='worst solution quality used for a photo, on the one scale every format maps to (fix < float '
+                        '< sbas < dgps < single < ppp; docs/commands.md has each format\'s table)')
+    p.add_argument('--interpolation', choices=('cubic', 'linear'), default='cubic',
+                   help='between two epochs: cubic (Hermite on centred-difference velocities, linear next to a gap '
+                        'or an end) or linear')
+    p.add_argument('--event-delay-ms', type=float, default=0.0,
+                   help='the exposure this long after its event mark (the shutter\'s delay), ms; negative: before. '
+                        'Every event is moved along the trajectory by it before interpolation')
     p.add_argument('--accept-no-fix', action='store_true', help='use a .pos that has no fixed epoch at all')
     p.add_argument('--skip-unplaced', action='store_true',
                    help='write the photos that could be placed and list the others, instead of stopping')
@@ -56,7 +69,8 @@ def run(a) -> int:
         raise ConfigError('give --out geo.txt (or --photos DIR to write DIR/geo.txt)')
     opt = ExposureOptions(max_gap_s=float(a.max_gap), sigma_scale=float(a.sigma_scale),
                           lever_arm_frd_m=floats(a.lever_arm, '--lever-arm', 3),
-                          accept_q={'fix': 1, 'float': 2, 'all': 6}[a.accept])
+                          accept_q=ACCEPT_Q[a.accept], event_delay_s=float(a.event_delay_ms) * 1e-3,
+                          interpolation=a.interpolation)
     res = geotag(GeotagInput(a.pos, a.events, folder, out, a.csv, a.match, a.match_tolerance, a.utc_offset,
                              a.event_type, a.accept_no_fix, a.skip_unplaced, opt))
     for n in res.notes:

@@ -1,8 +1,8 @@
 """Camera positions at exposure times from a post-processed antenna track (PPK geotagging).
 
-In: an `AntennaTrack` (antenna solutions in GPS time, ECEF, ENU covariance and RTKLIB quality Q per
-epoch: what io/rtklib_pos.py reads) and `CameraEvent`s (exposure times in GPS time, with the
-antenna -> camera offset of a DJI Timestamp.MRK or the body attitude for a lever arm: what
+In: an `AntennaTrack` (antenna solutions in GPS time, ECEF, ENU covariance and quality per epoch on
+RTKLIB's scale Q, beside the file's own: what the readers of io/trajectory_formats.py read) and
+`CameraEvent`s (exposure times in GPS time, with the antenna -> camera offset of a DJI Timestamp.MRK or the body attitude for a lever arm: what
 io/camera_events.py reads). Out: `place_exposures` -> one `PlacedExposure` per event (camera and
 antenna WGS84 position, ellipsoidal height, per-axis horizontal and vertical 1-sigma, how it was
 found) and the problems of the events it could not place, each naming the event's line.
@@ -15,7 +15,10 @@ found) and the problems of the events it could not place, each naming the event'
   interpolated in ECEF between the two epochs around the exposure, never past its ends and never
   across a gap longer than `max_gap_s`: cubic Hermite with centred-difference velocities from the
   epochs on either side (exact under constant acceleration; linear interpolation of a 5 Hz track
-  cuts a 3 m/s^2 manoeuvre by up to 1.5 cm), linear next to a gap or an end.
+  cuts a 3 m/s^2 manoeuvre by up to 1.5 cm), linear next to a gap or an end (or everywhere, with
+  `interpolation='linear'`). Every exposure is first moved by `event_delay_s` from its event mark (a
+  shutter that opens after the mark); a track of seconds of week without its week
+  (`AntennaTrack.week_known`) is put in the events' week (`AntennaTrack.in_week_of`).
 - Lever arm: a per-event offset in local north, east, down (the MRK's N, E, V: camera = antenna + N
   north, + E east, height - V), or the antenna's position relative to the camera in the body FRD frame
   (`lever_arm_frd_m`, as the simulator and bundle_node state it) turned by the event's attitude; an
@@ -89,9 +92,37 @@ class AntennaTrack:
     line: np.ndarray           # (N,) line number of each epoch in its file
     source: str = ''           # the file, for messages
     notes: list = field(default_factory=list)
+    format: str = ''           # the format it was read as ('RTKLIB .pos', 'NovAtel GrafNav/Inertial Explorer', ...)
+    time_system: str = 'GPST'  # the file's own time system (GPST, UTC, ...); t_gps_s is converted to GPS time
+    q_native: np.ndarray | None = None   # (N,) the format's own quality number or name, as written
+    week_known: bool = True    # False: t_gps_s holds seconds of an unknown GPS week (a file without dates)
 
     def __len__(self) -> int:
         return len(self.t_gps_s)
+
+    def sigma_enu_m(self) -> np.ndarray:
+        """(N, 3) per-epoch 1-sigma east, north, up (0 where the file gave none)."""
+        return np.sqrt(np.maximum(np.diagonal(self.cov_enu_m2, axis1=1, axis2=2), 0.0))
+
+    def in_week_of(self, t_gps_s: float) -> 'AntennaTrack':
+        """A track of seconds of week (`week_known` False) put in the GPS week of `t_gps_s` (an event's time);
+        a track that passes the end of the week goes on into the next one. Itself when its week is known."""
+        if self.week_known:
+            return self
+        week = int(t_gps_s // SECONDS_PER_WEEK)
+        sow = np.asarray(self.t_gps_s, float)
+        wraps = np.concatenate([[0], np.cumsum(np.diff(sow) < -SECONDS_PER_WEEK / 2)])
+        t = week * SECONDS_PER_WEEK + sow + wraps * SECONDS_PER_WEEK
+        # the events may start in the week after the one the track starts in
+        if t[0] - t_gps_s > SECONDS_PER_WEEK / 2:
+            t -= SECONDS_PER_WEEK
+        elif t_gps_s - t[-1] > SECONDS_PER_WEEK / 2:
+            t += SECONDS_PER_WEEK
+        out = AntennaTrack(t, self.ecef_m, self.cov_enu_m2, self.q, self.line, self.source, list(self.notes),
+                           self.format, self.time_system, self.q_native, True)
+        out.notes.append(f'{self.source}: times are seconds of week; GPS week {int(t[0] // SECONDS_PER_WEEK)} taken '
+                         'from the events')
+        return out
 
     def median_interval_s(self) -> float:
         d = np.diff(self.t_gps_s)
@@ -126,6 +157,12 @@ class ExposureOptions:
     lever_arm_frd_m: tuple = param((0.0, 0.0, 0.0), 'the antenna relative to the camera in the body frame, '
                                                     'forward, right, down, m (not with MRK offsets)')
     accept_q: int = param(6, 'worst RTKLIB quality used (1 fix, 2 float, 5 single, 6 all)', min=1, max=6)
+    interpolation: str = param('cubic', 'between two epochs: cubic (Hermite, centred-difference velocities; '
+                                        'linear next to a gap or an end) or linear',
+                               choices=('cubic', 'linear'))
+    event_delay_s: float = param(0.0, 'the exposure this long after its event mark (the shutter\'s delay; '
+                                      'negative: before), s; every event is moved by it along the track',
+                                 min=-1.0, max=1.0)
 
     def __post_init__(self):
         validate(self)
@@ -199,6 +236,15 @@ def _is_at_events(track: AntennaTrack, times: np.ndarray, tol_s: float) -> bool:
     return bool(np.all(near <= tol_s) and len(track) <= 2 * len(times) + 2)
 
 
+def _quality_text(track: AntennaTrack, k: int) -> str:
+    """'Q=2 (float)', with the file's own quality when its format has another scale."""
+    q = int(track.q[k])
+    text = f'Q={q} ({Q_NAMES.get(q, "?")})'
+    if track.q_native is not None and str(track.q_native[k]) != str(q):
+        text += f', {track.q_native[k]} in the file'
+    return text
+
+
 def _time_base_hint(track: AntennaTrack, times: np.ndarray) -> str:
     """A note when the events fall outside the track but would fit it 18 s (the leap seconds) off."""
     t0, t1 = track.t_gps_s[0], track.t_gps_s[-1]
@@ -211,7 +257,7 @@ def _time_base_hint(track: AntennaTrack, times: np.ndarray) -> str:
     return ''
 
 
-def _interpolate(track: AntennaTrack, a: int, b: int, t: float, max_gap: float) -> np.ndarray:
+def _interpolate(track: AntennaTrack, a: int, b: int, t: float, max_gap: float, cubic: bool = True) -> np.ndarray:
     """The antenna at t between epochs a and b: cubic Hermite with centred-difference velocities when the
     epochs before a and after b are there without a gap (exact under constant acceleration), else linear."""
     ta, tb = track.t_gps_s[a], track.t_gps_s[b]
@@ -219,7 +265,7 @@ def _interpolate(track: AntennaTrack, a: int, b: int, t: float, max_gap: float) 
     if b == a or tb <= ta:
         return pa.copy()
     s = (t - ta) / (tb - ta)
-    if a >= 1 and b + 1 < len(track) and ta - track.t_gps_s[a - 1] <= max_gap and \
+    if cubic and a >= 1 and b + 1 < len(track) and ta - track.t_gps_s[a - 1] <= max_gap and \
             track.t_gps_s[b + 1] - tb <= max_gap:
         h = tb - ta
         va = (pb - track.ecef_m[a - 1]) / (tb - track.t_gps_s[a - 1])
@@ -243,13 +289,16 @@ def place_exposures(track: AntennaTrack, events: list, opt: ExposureOptions | No
         raise DataError('the events carry their own antenna-camera offsets (a DJI MRK): leave --lever-arm out')
     times = np.array([ev.t_gps_s for ev in events], float)
     at_events = _is_at_events(track, times, opt.at_event_tolerance_s)
+    if at_events and opt.event_delay_s != 0.0:
+        raise DataError(f'{track.source} is a solution at the events (one epoch per event mark): it cannot be '
+                        'moved by an event delay; give the trajectory (the .pos of every epoch) instead')
     max_gap = opt.max_gap_s if opt.max_gap_s > 0 else 2.5 * track.median_interval_s()
     usable = track.q <= opt.accept_q
     out, problems, notes = [], [], []
-    hint = _time_base_hint(track, times)
+    hint = _time_base_hint(track, times + opt.event_delay_s)
     t_first, t_last = track.t_gps_s[0], track.t_gps_s[-1]
     for ev in events:
-        t = ev.t_gps_s
+        t = ev.t_gps_s + opt.event_delay_s
         name = f'{ev.where} {ev.unit} {ev.line} (event {ev.seq}' + (f', {ev.photo}' if ev.photo else '') + ')'
         if at_events:
             k = int(np.argmin(np.abs(track.t_gps_s - t)))
@@ -258,8 +307,8 @@ def place_exposures(track: AntennaTrack, events: list, opt: ExposureOptions | No
                                 f'{int(track.line[k])}, {track.t_gps_s[k] - t:+.3f} s)')
                 continue
             if not usable[k]:
-                problems.append(f'{name}: its solution (line {int(track.line[k])}) is Q={int(track.q[k])} '
-                                f'({Q_NAMES.get(int(track.q[k]), "?")}), worse than accepted')
+                problems.append(f'{name}: its solution (line {int(track.line[k])}) is {_quality_text(track, k)}, worse '
+                                'than accepted')
                 continue
             ant, cov, q, how, kh = track.ecef_m[k], track.cov_enu_m2[k], int(track.q[k]), 'at event', k
         else:
@@ -284,10 +333,10 @@ def place_exposures(track: AntennaTrack, events: list, opt: ExposureOptions | No
                 continue
             if not (usable[a] and usable[b]):
                 bad = a if not usable[a] else b
-                problems.append(f'{name}: its epoch at line {int(track.line[bad])} is Q={int(track.q[bad])} '
-                                f'({Q_NAMES.get(int(track.q[bad]), "?")}), worse than accepted')
+                problems.append(f'{name}: its epoch at line {int(track.line[bad])} is {_quality_text(track, bad)}, worse '
+                                'than accepted')
                 continue
-            ant = _interpolate(track, a, b, t, max_gap)
+            ant = _interpolate(track, a, b, t, max_gap, opt.interpolation == 'cubic')
             worse = a if np.trace(track.cov_enu_m2[a]) >= np.trace(track.cov_enu_m2[b]) else b
             cov, q, how, kh = track.cov_enu_m2[worse], int(max(track.q[a], track.q[b])), 'interpolated', a
         a_lat, a_lon, a_h = (float(v) for v in ecef_to_geodetic(*ant))

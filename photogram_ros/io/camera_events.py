@@ -26,8 +26,16 @@ from photogram_ros.core.exposure_positions import (GPS_EPOCH_UNIX_S, AntennaTrac
                                                    track_from_geodetic, utc_unix_to_gps_s, week_tow_to_gps_s)
 from photogram_ros.errors import DataError
 
-# MRK onboard RTK flag -> RTKLIB quality.
-MRK_FLAG_Q = {50: 1, 34: 2, 16: 5}
+# DJI RTK position flag (the MRK's `flag,Q` and a photo's XMP `drone-dji:RtkFlag`; DJI OSDK
+# Telemetry::RTK posHealthFlag) -> the common quality scale (RTKLIB Q: 1 fix, 2 float, 3 sbas, 4 dgps,
+# 5 single). 48/50 integer (L1, narrow-lane) -> fix; 49 wide-lane integer and 32-34 float -> float;
+# 18 SBAS -> sbas; 17 pseudorange differential, 20 OmniSTAR VBS -> dgps; 16 single point, 19 propagated
+# by a Kalman filter, 8 Doppler, 1-2 fixed by command -> single. 0 (no solution) maps to nothing.
+DJI_RTK_FLAG_Q = {50: 1, 48: 1, 49: 2, 34: 2, 33: 2, 32: 2, 18: 3, 17: 4, 20: 4, 16: 5, 19: 5, 8: 5, 1: 5, 2: 5}
+DJI_RTK_FLAG_NAMES = {50: 'fixed (narrow-lane)', 48: 'fixed (L1)', 49: 'wide-lane integer', 34: 'float', 33: 'float',
+                      32: 'float', 18: 'SBAS', 17: 'differential', 20: 'OmniSTAR', 16: 'single', 19: 'propagated',
+                      8: 'Doppler', 1: 'fixed by command', 2: 'fixed height', 0: 'no solution'}
+MRK_FLAG_Q = DJI_RTK_FLAG_Q
 _MRK_HEAD = re.compile(r'^\s*(\d+)\s+(\d+(?:\.\d*)?)\s+\[\s*(\d+)\s*\]')
 
 
@@ -46,13 +54,50 @@ class MrkRow:
     flag: int
 
 
-def read_mrk(path: str | Path) -> list[MrkRow]:
-    """A DJI Timestamp.MRK -> rows in file order (see the module docstring)."""
+def _cut_last(lines: list[str]) -> int | None:
+    """The index of the last non-empty line when it is cut off (the card pulled or the battery gone while
+    the drone wrote it): it does not parse, or lacks fields the line before it has. None otherwise."""
+    filled = [k for k, ln in enumerate(lines) if ln.strip()]
+    if len(filled) < 2:
+        return None
+    k, prev = filled[-1], lines[filled[-2]]
+    line = lines[k]
+    if _MRK_HEAD.match(line) is None:
+        return k
+    for tag in ('N', 'E', 'V', 'Lat', 'Lon', 'Ellh', 'Q'):
+        if _mrk_field(prev, tag) is not None and _mrk_field(line, tag) is None:
+            return k
+    return None
+
+
+def mrk_cut_line(path: str | Path) -> tuple[int, int | None] | None:
+    """(line number, the photo number it begins with or None) of an MRK's cut-off last line; None when whole."""
+    try:
+        lines = Path(path).read_text(errors='replace').splitlines()
+    except OSError:
+        return None
+    k = _cut_last(lines)
+    if k is None:
+        return None
+    m = re.match(r'^\s*(\d+)\s', lines[k])
+    return k + 1, int(m.group(1)) if m else None
+
+
+def read_mrk(path: str | Path, notes: list | None = None) -> list[MrkRow]:
+    """A DJI Timestamp.MRK -> rows in file order (see the module docstring). A cut-off last line is
+    skipped and named in `notes` (a list to append to); any other line that does not parse is an error."""
     path = Path(path)
     try:
         lines = path.read_text(errors='replace').splitlines()
     except OSError as exc:
         raise DataError(f'cannot read {path}: {exc}') from exc
+    cut = _cut_last(lines)
+    if cut is not None:
+        msg = (f'{path} line {cut + 1}: cut off ({lines[cut].strip()[:50]!r}): skipped, its photo has no event '
+               '(the file ends in the middle of a line)')
+        if notes is not None:
+            notes.append(msg)
+        lines = lines[:cut]
     rows = []
     for n, line in enumerate(lines, 1):
         if not line.strip():
@@ -89,8 +134,8 @@ def mrk_track(rows: list[MrkRow], path='') -> AntennaTrack:
         raise DataError(f'{path}: its lines carry no position (Lat/Lon/Ellh): give the PPK track with --pos')
     bad = [r for r in ok if r.flag not in MRK_FLAG_Q]
     if bad:
-        raise DataError(f'{path} line {bad[0].event.line}: RTK flag {bad[0].flag} is none of 50 (fixed), 34 (float), '
-                        '16 (single)')
+        raise DataError(f'{path} line {bad[0].event.line}: RTK flag {bad[0].flag} is none of DJI\'s position flags '
+                        f'({", ".join(str(k) for k in sorted(MRK_FLAG_Q))}: 50 fixed, 34 float, 16 single ...)')
     cov = np.array([np.diag([r.sd_neu_m[1] ** 2, r.sd_neu_m[0] ** 2, r.sd_neu_m[2] ** 2])
                     if np.all(np.isfinite(r.sd_neu_m)) else np.zeros((3, 3)) for r in ok])
     return track_from_geodetic([r.event.t_gps_s for r in ok], [r.lat_deg for r in ok], [r.lon_deg for r in ok],
@@ -264,5 +309,5 @@ def event_kind(path: str | Path) -> str:
     return 'mrk' if _MRK_HEAD.match(first) else 'tlog'
 
 
-__all__ = ['GPS_EPOCH_UNIX_S', 'MrkRow', 'read_events', 'read_mrk', 'mrk_track', 'write_mrk', 'read_dataflash_events',
+__all__ = ['GPS_EPOCH_UNIX_S', 'MrkRow', 'mrk_cut_line', 'read_events', 'read_mrk', 'mrk_track', 'write_mrk', 'read_dataflash_events',
            'read_tlog_events', 'read_exif_events', 'photo_times_gps_s', 'event_kind']

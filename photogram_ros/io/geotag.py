@@ -1,6 +1,8 @@
 """PPK geotagging: a post-processed antenna track + camera events + photos -> geo.txt and a CSV.
 
-`geotag(GeotagInput)` reads the track (io/rtklib_pos.py; or a DJI MRK's own onboard RTK positions
+`geotag(GeotagInput)` reads the track (io/trajectory_formats.read_trajectory: RTKLIB/Emlid .pos,
+GrafNav/Inertial Explorer exports, Emlid/TBC/Leica CSV, recognised by their content; a track of
+seconds of week without a week takes the events' week; or a DJI MRK's own onboard RTK positions
 when no track is given), the events (io/camera_events.py), matches photos to events
 (core.exposure_positions.match_photos), places each exposure (core.exposure_positions.place_exposures)
 and writes:
@@ -20,19 +22,21 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import numpy as np
+
 from photogram_ros.core.exposure_positions import (Q_NAMES, ExposureOptions, Placement, gps_s_to_week_tow,
                                                    match_photos, place_exposures)
 from photogram_ros.errors import DataError
 from photogram_ros.io import camera_events as ce
 from photogram_ros.io.image_source import IMAGE_SUFFIXES, read_dji_xmp, xmp_float
-from photogram_ros.io.rtklib_pos import read_pos
+from photogram_ros.io.trajectory_formats import quality_counts, read_trajectory
 
 MAX_LISTED = 12
 
 
 @dataclass
 class GeotagInput:
-    pos: str | None               # RTKLIB .pos (None: the MRK's own positions)
+    pos: str | None               # a trajectory file of any read format (None: the MRK's own positions)
     events: str                   # Timestamp.MRK, .bin, .tlog, or 'exif'
     photos: str | None            # folder of photos (None: the events file's folder if it has any)
     out: str                      # geo.txt to write
@@ -83,6 +87,7 @@ def geotag(a: GeotagInput, log=None) -> GeotagResult:
     if a.photos and not photos:
         raise DataError(f'{folder} holds no photo ({", ".join(IMAGE_SUFFIXES)})')
     mrk_rows = None
+    cut_seq = None                # the photo number of an MRK's cut-off last line
     if a.events == 'exif':
         if not photos:
             raise DataError('--events exif needs --photos DIR')
@@ -91,7 +96,9 @@ def geotag(a: GeotagInput, log=None) -> GeotagResult:
     else:
         kind = ce.event_kind(a.events)
         if kind == 'mrk':
-            mrk_rows = ce.read_mrk(a.events)
+            mrk_rows = ce.read_mrk(a.events, notes)
+            cut = ce.mrk_cut_line(a.events)
+            cut_seq = cut[1] if cut else None
             events = [r.event for r in mrk_rows]
         elif kind == 'dataflash':
             events = ce.read_dataflash_events(a.events, a.event_kind)
@@ -99,7 +106,10 @@ def geotag(a: GeotagInput, log=None) -> GeotagResult:
             events = ce.read_tlog_events(a.events, a.event_kind)
         notes.append(f'{len(events)} events from {a.events} ({kind})')
     if a.pos:
-        track = read_pos(a.pos, require_fix=not a.accept_no_fix)
+        track = read_trajectory(a.pos, require_fix=not a.accept_no_fix)
+        if not track.week_known:
+            track = track.in_week_of(float(np.median([ev.t_gps_s for ev in events])))
+        track.notes.append(f'trajectory quality: {quality_counts(track)}')
     elif mrk_rows is not None:
         track = ce.mrk_track(mrk_rows, a.events)
         notes.append('positions: the MRK\'s own onboard RTK solution (no --pos given)')
@@ -130,7 +140,13 @@ def geotag(a: GeotagInput, log=None) -> GeotagResult:
     placement = place_exposures(track, events_used, a.options)
     problems += placement.problems
     notes += [f'placement: {placement.mode}'] + [f'antenna -> camera: {n}' for n in placement.notes]
-    unplaced = [p for p in problems if 'has no photo' not in p]
+    if a.options.event_delay_s:
+        notes.append(f'every exposure placed {a.options.event_delay_s * 1000:+.1f} ms from its event mark '
+                     '(--event-delay-ms)')
+    cut_photo = [p for p in problems if cut_seq is not None and p.endswith(f': no event numbered {cut_seq}')]
+    unplaced = [p for p in problems if 'has no photo' not in p and p not in cut_photo]
+    for p in cut_photo:
+        notes.append(f'{p.split(":")[0]} left out: its MRK line was cut off')
     if unplaced and not a.skip_unplaced:
         raise DataError(f'{len(unplaced)} photos or events without a position (pass --skip-unplaced to write '
                         'the others):' + _listed(unplaced))

@@ -2,7 +2,9 @@
 
 Positions come from an OpenDroneMap geo.txt beside the photos (`read_geo_txt`; heights ellipsoidal,
 its accuracies as sigmas), else from each photo's EXIF GPS (`exif_position`; what the EXIF altitude
-is relative to as the user says, MSL by default, sigma 5 m horizontal and 2 m vertical).
+is relative to as the user says, MSL by default, sigma 5 m horizontal and 2 m vertical, or a DJI RTK
+photo's own sigmas and fix flag from its XMP: `dji_rtk_accuracy`; the report's assumptions and
+`matching.rtk_flags` count the photos per flag).
 
 The camera: a calibration YAML (`--camera`), else the photos' EXIF (core/exif_intrinsics.py: DJI XMP
 calibrated focal, FocalLength with the focal plane resolution or a known sensor width, or the 35 mm
@@ -49,6 +51,8 @@ from photogram_ros.io.keyframe_block import KeyframeBlock, camera_from_yaml
 # heights then 0.4 m off; with 2 m: k1 -0.0005, heights within 0.19 m, the same from 0.5 to 2 m).
 EXIF_SIGMA_H_M = 5.0
 EXIF_SIGMA_V_M = 2.0
+# Sigmas of a DJI RTK-fixed photo whose XMP states no RtkStd* (per-axis horizontal, vertical).
+RTK_FIXED_DEFAULT_M = (0.02, 0.03)
 
 
 def read_geo_txt(path: str | Path) -> dict[str, tuple[float, float, float, float, float]]:
@@ -91,17 +95,46 @@ def exif_position(path: str | Path, altitude: str = 'msl', takeoff_h_m: float | 
     return fix.lat_deg, fix.lon_deg, h_m, EXIF_SIGMA_H_M, EXIF_SIGMA_V_M
 
 
+def dji_rtk_accuracy(path: str | Path) -> tuple[int, float, float] | None:
+    """A DJI RTK photo's own solution quality from its XMP: (RtkFlag, per-axis horizontal and vertical
+    1-sigma in metres), or None when the XMP has no RtkFlag (not an RTK drone) or flag 0 (no solution).
+
+    The sigmas are RtkStdLon, RtkStdLat (horizontal: sqrt((lon^2 + lat^2) / 2)) and RtkStdHgt, each at
+    least the floor of the flag's quality class (io/camera_events.DJI_RTK_FLAG_Q ->
+    core.exposure_positions.Q_FLOOR_M: a float or single solution's formal sigma is optimistic); a flag
+    without sigmas takes its class's floor, and a fixed one without sigmas 2 cm / 3 cm."""
+    from photogram_ros.core.exposure_positions import Q_FLOOR_M
+    from photogram_ros.io.camera_events import DJI_RTK_FLAG_Q
+    xmp = read_dji_xmp(path)
+    flag = xmp_float(xmp, 'RtkFlag')
+    if flag is None or int(flag) == 0:
+        return None
+    flag = int(flag)
+    floor_h, floor_v = Q_FLOOR_M.get(DJI_RTK_FLAG_Q.get(flag, 5), Q_FLOOR_M[5])
+    lon_m, lat_m, hgt_m = (xmp_float(xmp, k) for k in ('RtkStdLon', 'RtkStdLat', 'RtkStdHgt'))
+    if lon_m is None or lat_m is None or hgt_m is None:
+        return flag, max(floor_h, RTK_FIXED_DEFAULT_M[0]), max(floor_v, RTK_FIXED_DEFAULT_M[1])
+    return flag, max((0.5 * (lon_m ** 2 + lat_m ** 2)) ** 0.5, floor_h, 1e-3), max(hgt_m, floor_v, 1e-3)
+
+
 def _positions(src: Path, images: list[Path], exif_altitude, takeoff_h_m, takeoff_heights, assumptions):
-    """{image name: geo.txt/EXIF position}, and the EXIF positions to check as MSL (or None)."""
+    """{image name: geo.txt/EXIF position}, the EXIF positions to check as MSL (or None), and the count of
+    photos per DJI RtkFlag ({} without RTK XMP)."""
     if (src / 'geo.txt').exists():
         assumptions.append('positions from geo.txt (heights ellipsoidal, per-image accuracy used as sigma)')
         if exif_altitude:
             assumptions.append(f'--exif-altitude {exif_altitude} ignored: positions come from geo.txt')
-        return read_geo_txt(src / 'geo.txt'), None
+        return read_geo_txt(src / 'geo.txt'), None, {}
     geo = {}
+    flags = {}
     for p in images:
         g = exif_position(p, exif_altitude or 'msl', takeoff_h_m, takeoff_heights)
         if g:
+            rtk = dji_rtk_accuracy(p)
+            if rtk is not None:
+                g = (*g[:3], rtk[1], rtk[2])
+            key = rtk[0] if rtk is not None else None
+            flags[key] = flags.get(key, 0) + 1
             geo[p.name] = g
     if exif_altitude == 'relative':
         ref = 'MSL (EGM2008)' if takeoff_heights == 'msl' else 'ellipsoidal'
@@ -111,11 +144,23 @@ def _positions(src: Path, images: list[Path], exif_altitude, takeoff_h_m, takeof
         how = 'EXIF altitude taken as ellipsoidal (WGS84), as --exif-altitude ellipsoidal says'
     else:
         how = 'EXIF altitude taken as MSL (EGM2008) and converted to ellipsoidal'
-    assumptions.append(f'positions from EXIF GPS; {how}; sigma {EXIF_SIGMA_H_M:g} m horizontal, {EXIF_SIGMA_V_M:g} m '
-                       'vertical (the heights of one flight agree far better than their absolute error)')
+    rtk_counts = {k: n for k, n in flags.items() if k is not None}
+    if rtk_counts:
+        from photogram_ros.io.camera_events import DJI_RTK_FLAG_NAMES
+        said = ', '.join(f'{n} {DJI_RTK_FLAG_NAMES.get(k, "flag")} ({k})' for k, n in
+                         sorted(rtk_counts.items(), key=lambda kn: -kn[1]))
+        none = flags.get(None, 0)
+        assumptions.append(f'positions from EXIF GPS; {how}; DJI RTK XMP (drone-dji:RtkFlag, RtkStdLon/Lat/Hgt) of '
+                           f'{sum(rtk_counts.values())} photos: {said}; each weighted by its RTK sigmas, at least its '
+                           'flag\'s quality floor (float 10 / 20 cm, single 1.5 / 3 m)'
+                           + (f'; {none} photos without an RTK flag: sigma {EXIF_SIGMA_H_M:g} m horizontal, '
+                              f'{EXIF_SIGMA_V_M:g} m vertical' if none else ''))
+    else:
+        assumptions.append(f'positions from EXIF GPS; {how}; sigma {EXIF_SIGMA_H_M:g} m horizontal, {EXIF_SIGMA_V_M:g} m '
+                           'vertical (the heights of one flight agree far better than their absolute error)')
     # Checked once the block has a ground: only then can an MSL reading be seen to be wrong.
     check = np.array([g[:3] for g in geo.values()]) if exif_altitude is None and geo else None
-    return geo, check
+    return geo, check, {str(k): n for k, n in rtk_counts.items()}
 
 
 def _camera(src: Path, images: list[Path], camera_path, assumptions, log=None
@@ -354,7 +399,7 @@ def read_photo_block(src: str | Path, camera_path: str | Path | None = None, nei
     images, n_files = _usable_images(src, assumptions, log)
     if len(images) < 3:
         raise DataError(f'{src} holds {len(images)} usable images: at least 3 overlapping photos are needed')
-    geo, exif_check = _positions(src, images, exif_altitude, takeoff_h_m, takeoff_heights, assumptions)
+    geo, exif_check, rtk_flags = _positions(src, images, exif_altitude, takeoff_h_m, takeoff_heights, assumptions)
     if not any(p.name in geo for p in images) and origin_without_positions is None:
         raise DataError(f'no image in {src} has a position (EXIF GPS or geo.txt): georeferencing impossible '
                         '(give the photos\' positions in a geo.txt, or a GCP file with 3 GCPs or more: --gcp)')
@@ -408,6 +453,9 @@ def read_photo_block(src: str | Path, camera_path: str | Path | None = None, nei
         g = geo.get(p.name)
         fix = GnssFix(g[0], g[1], g[2], np.diag([g[3] ** 2, g[3] ** 2, g[4] ** 2])) if g else None
         records.append(KeyframeRecord(0, tr[keep], uv[keep], fix, p.name))
+    block_stats = stats.to_dict()
+    if rtk_flags:
+        block_stats['rtk_flags'] = rtk_flags      # photos per DJI RtkFlag (the report's)
     return KeyframeBlock(camera, origin, records, assumptions, n_inputs=n_files, exif_geodetic=exif_check,
-                         camera_from_exif=from_exif, stats=stats.to_dict(),
+                         camera_from_exif=from_exif, stats=block_stats,
                          expect_nadir=_looked_down(images, assumptions), excluded=excluded)

@@ -10,6 +10,9 @@ Refused, naming the line: heights the header calls geodetic (a geoid RTKLIB chos
 ellipsoidal ones), the Tokyo datum, baseline (e/n/u) solutions, a line that does not parse, Q outside
 1..6, and a file with no fixed (Q=1) epoch unless `require_fix=False`.
 
+`RtklibPosReader`: the format in io/trajectory_formats.py's registry (sniffed by its `%` column line;
+the flavour, RTKLIB / RTKLIB-demo5 / Emlid Studio, from the `% program` line).
+
 `write_pos(path, ...)`: the same layout (lat/lon, GPST calendar times), for the simulator.
 """
 
@@ -147,7 +150,55 @@ def read_pos(path: str | Path, require_fix: bool = True) -> AntennaTrack:
         order = np.argsort(t, kind='stable')
         track = AntennaTrack(t[order], xyz[order], cov[order], qs[order], line[order], str(path))
     track.notes.append(f'{path.name}: {len(rows)} epochs, times in {system} (column header line {header_line})')
+    track.time_system, track.q_native = system, qs.copy()
+    track.format = _flavour(text.splitlines()[:40])
     return track
+
+
+def _flavour(head: list[str]) -> str:
+    """'RTKLIB .pos', 'RTKLIB-demo5 .pos' or 'Emlid Studio .pos' from the `% program` line."""
+    for ln in head:
+        low = ln.lower()
+        if low.startswith('%') and 'program' in low:
+            if 'emlid' in low:
+                return 'Emlid Studio .pos (RTKLIB layout)'
+            if 'demo5' in low:
+                return 'RTKLIB-demo5 .pos'
+            break
+    return 'RTKLIB .pos'
+
+
+class RtklibPosReader:
+    """RTKLIB / RTKLIB-demo5 / Emlid Studio solution files (`.pos`, `_events.pos`): a `%` header whose
+    last line names the time system and the columns (`%  GPST  latitude(deg) longitude(deg) height(m)
+    Q ns sdn(m) ...`). Quality: RTKLIB's Q as it is (1 fix, 2 float, 3 sbas, 4 dgps, 5 single, 6 ppp)."""
+
+    name = 'RTKLIB .pos'
+    expects = ('a "%" header ending in a column line "%  GPST|UTC  latitude(deg) longitude(deg) height(m)  Q  ns  '
+               'sdn(m) ..." (or x-ecef(m) ...)')
+
+    def sniff(self, head_lines: list[str]) -> float | None:
+        for ln in head_lines:
+            s = ln.strip()
+            if not s.startswith('%'):
+                continue
+            cols = s.lstrip('%').split()
+            if len(cols) > 3 and cols[0] in ('GPST', 'UTC', 'JST'):
+                names = ' '.join(cols[1:]).lower()
+                if any(k in names for k in ('latitude(', 'x-ecef(', 'baseline(')):
+                    return 1.0
+        return None
+
+    def read(self, path: Path) -> AntennaTrack:
+        return read_pos(path, require_fix=False)
+
+
+def _register() -> None:
+    from photogram_ros.io.trajectory_formats import register
+    register(RtklibPosReader())
+
+
+_register()
 
 
 def write_pos(path: str | Path, t_gps_s, lat_deg, lon_deg, h_m, q, sd_neu_m, ns=20, program='photogram_ros simulator'):
@@ -177,4 +228,4 @@ def write_pos(path: str | Path, t_gps_s, lat_deg, lon_deg, h_m, q, sd_neu_m, ns=
     Path(path).write_text('\n'.join(lines) + '\n')
 
 
-__all__ = ['read_pos', 'write_pos']
+__all__ = ['RtklibPosReader', 'read_pos', 'write_pos']

@@ -90,12 +90,32 @@ def target_pixel(cam, map_T_cam: np.ndarray, point_map_m: np.ndarray, margin_px:
     return uv[0]
 
 
-def write_photos(folder: Path, frames, truth, cfg, exif_fixes=None, geo_txt: bool = True) -> list:
+def dji_rtk_xmp(flag: int, std_lon_m: float, std_lat_m: float, std_hgt_m: float) -> bytes:
+    """An XMP packet as a DJI RTK drone writes its solution's quality: drone-dji:RtkFlag (50 fixed, 34 float,
+    16 single) and RtkStdLon, RtkStdLat, RtkStdHgt (1-sigma, m)."""
+    return ('<?xpacket begin="\ufeff" id="W5M0MpCehiHzreSzNTczkc9d"?>'
+            '<x:xmpmeta xmlns:x="adobe:ns:meta/"><rdf:RDF xmlns:rdf="http://www.w3.org/1999/02/22-rdf-syntax-ns#">'
+            '<rdf:Description rdf:about="DJI Meta Data" xmlns:drone-dji="http://www.dji.com/drone-dji/1.0/" '
+            f'drone-dji:RtkFlag="{int(flag)}" drone-dji:RtkStdLon="{std_lon_m:.5f}" '
+            f'drone-dji:RtkStdLat="{std_lat_m:.5f}" drone-dji:RtkStdHgt="{std_hgt_m:.5f}"/>'
+            '</rdf:RDF></x:xmpmeta><?xpacket end="w"?>').encode('utf-8')
+
+
+def insert_xmp(jpeg: Path, packet: bytes) -> None:
+    """Put an XMP packet (APP1, Adobe's XMP namespace) right after the JPEG's SOI."""
+    data = Path(jpeg).read_bytes()
+    body = b'http://ns.adobe.com/xap/1.0/\x00' + packet
+    seg = b'\xff\xe1' + (len(body) + 2).to_bytes(2, 'big') + body
+    Path(jpeg).write_bytes(data[:2] + seg + data[2:])
+
+
+def write_photos(folder: Path, frames, truth, cfg, exif_fixes=None, geo_txt: bool = True, xmp=None) -> list:
     """`frames`: [(index, image, FlightState)] of every rendered frame; writes the triggered ones.
 
     exif_fixes: the fixes (dicts as `truth.fixes`) the camera geotags its photos with (default: the
-    flight's own GNSS); geo_txt: also write geo.txt from them. Also writes the camera's calibration
-    (CAMERA_FILE). Returns [(photo name, FrameTruth)].
+    flight's own GNSS), or a function (FrameTruth) -> such a fix; geo_txt: also write geo.txt from them;
+    xmp: a function (photo name, FrameTruth) -> an XMP packet to put in the photo, or None. Also writes the
+    camera's calibration (CAMERA_FILE). Returns [(photo name, FrameTruth)].
     """
     import yaml
 
@@ -112,8 +132,9 @@ def write_photos(folder: Path, frames, truth, cfg, exif_fixes=None, geo_txt: boo
         last = st.pos_enu[:2].copy()
         ft = truth.frames[k]
         # Photo position = GNSS antenna measurement nearest in time, as the camera geotags it.
-        fix = min((f for f in fix_by_t if 'lat_deg' in f),
-                  key=lambda f: abs(f['t_fix_unix_s'] - ft.stamp_ns * 1e-9), default=None)
+        fix = fix_by_t(ft) if callable(fix_by_t) else min(
+            (f for f in fix_by_t if 'lat_deg' in f), key=lambda f: abs(f['t_fix_unix_s'] - ft.stamp_ns * 1e-9),
+            default=None)
         if fix is None:
             continue
         name = f'IMG_{k:04d}.JPG'
@@ -124,6 +145,8 @@ def write_photos(folder: Path, frames, truth, cfg, exif_fixes=None, geo_txt: boo
         Image.fromarray(rgb).save(folder / name, quality=92,
                                   exif=exif_bytes(fix['lat_deg'], fix['lon_deg'], fix['alt_msl_m'], when,
                                                   cfg.focal_px * PIXEL_PITCH_MM, (img.shape[1], img.shape[0])))
+        if xmp is not None:
+            insert_xmp(folder / name, xmp(name, ft))
         geo_lines.append(f"{name} {fix['lon_deg']:.9f} {fix['lat_deg']:.9f} {fix['h_m']:.3f} 0 0 0 "
                          f"{fix['h_acc_m']:.3f} {fix['v_acc_m']:.3f}")
         names.append((name, ft))
@@ -175,7 +198,7 @@ def write_ppk(folder: Path, frames, truth, cfg, antenna_at_t) -> list:
         rel = float(t - t0_unix)
         a = antenna_at_t(rel + t0_unix)
         e_c = consumer.sample(rel).error_enu_m
-        e_s = survey.sample(rel).error_enu_m
+        e_s = survey.sample(rel).error_enu_m * cfg.ppk_sigma_scale
         lat, lon, h = (float(v) for v in truth.origin.enu_to_geodetic(a + e_c))
         exif_fixes.append({'t_fix_unix_s': float(t), 'lat_deg': lat, 'lon_deg': lon, 'h_m': h,
                            'alt_msl_m': float(geoid.ellipsoid_to_msl_m(lat, lon, h)),
@@ -190,7 +213,9 @@ def write_ppk(folder: Path, frames, truth, cfg, antenna_at_t) -> list:
     t_exp, off, llh, seqs = [], [], [], []
     for name, ft in names:
         t_s = ft.stamp_ns * 1e-9
-        t_exp.append(utc_unix_to_gps_s(ft.stamp_ns // 1_000_000_000) + (ft.stamp_ns % 1_000_000_000) * 1e-9)
+        # the event mark: the exposure less the shutter's delay
+        t_exp.append(utc_unix_to_gps_s(ft.stamp_ns // 1_000_000_000) + (ft.stamp_ns % 1_000_000_000) * 1e-9
+                     - cfg.ppk_shutter_delay_ms * 1e-3)
         d_enu = ft.map_T_cam[:3, 3] - ft.antenna_enu
         off.append([d_enu[1], d_enu[0], -d_enu[2]])
         fx = min(exif_fixes, key=lambda f: abs(f['t_fix_unix_s'] - t_s))
@@ -207,7 +232,7 @@ def write_ppk(folder: Path, frames, truth, cfg, antenna_at_t) -> list:
                      'lon_deg': lon, 'alt_msl_m': float(geoid.ellipsoid_to_msl_m(lat, lon, h)),
                      'rel_alt_m': h - truth.origin.h_m, 'roll_deg': np.degrees(st.roll_rad),
                      'pitch_deg': np.degrees(st.pitch_rad), 'yaw_deg': np.degrees(st.yaw_rad)})
-    write_cam_log(folder / 'flight.bin', cams)
+    write_cam_log(folder / 'flight.bin', cams)   # CAM at the event marks (t_exp), as the MRK
     write_mrk(folder / 'Timestamp.MRK', t_exp, np.array(off), llh[:, 0], llh[:, 1], llh[:, 2],
               [(MODES['3d'].h_acc_m, MODES['3d'].h_acc_m, MODES['3d'].v_acc_m)] * len(names), flag=16, seqs=seqs)
     (folder / 'README.txt').write_text(
@@ -219,3 +244,65 @@ def write_ppk(folder: Path, frames, truth, cfg, antenna_at_t) -> list:
         'gcp_list.txt heights are ellipsoidal; CHK* are check points. ' + CAMERA_FILE + ' is the camera\'s '
         'calibration (triangulate --camera); the EXIF states the focal length only.\n')
     return names
+
+
+def write_rtk_photos(folder: Path, frames, truth, cfg) -> list:
+    """What a DJI RTK drone (Phantom 4 RTK, M300 + P1) leaves in `folder`: photos whose EXIF GPS is the camera
+    centre from its RTK solution (altitude MSL), and whose XMP carries the solution's flag and sigmas
+    (drone-dji:RtkFlag, RtkStdLon/Lat/Hgt). Fixed photos: the RTK-fixed error model's noise, flag 50;
+    with `cfg.rtk_float_every` n > 0 every n-th photo FLOAT, flag 34, its position `cfg.rtk_float_offset_m`
+    off horizontally in a random direction, with the larger sigmas a float solution states. Also
+    `rtk_truth.json`: per photo its flag and the position error written (for tests). Draws from its
+    own random stream."""
+    import json
+
+    from photogram_ros.sim.gnss import MODES
+
+    rng = np.random.default_rng(cfg.seed + 31_000)
+    rng_float = np.random.default_rng(cfg.seed + 32_000)    # apart: the fixed photos' errors do not depend on it
+    m = MODES['rtk_fixed']
+    fixed_sd = (m.h_acc_m, m.h_acc_m, m.v_acc_m)
+    float_sd = (0.5, 0.5, 0.8)
+    written = {}
+
+    def fix_for(ft):
+        n = len(written)          # the photo's number in the survey, from 0
+        is_float = cfg.rtk_float_every > 0 and n % cfg.rtk_float_every == cfg.rtk_float_every - 1
+        err = rng.normal(0.0, 1.0, 3) * np.array(fixed_sd)
+        if is_float:
+            a = rng_float.uniform(0, 2 * np.pi)
+            err = err + np.array([np.cos(a), np.sin(a), 0.0]) * cfg.rtk_float_offset_m
+        lat, lon, h = (float(v) for v in truth.origin.enu_to_geodetic(ft.map_T_cam[:3, 3] + err))
+        written[ft.index] = (34 if is_float else 50, float_sd if is_float else fixed_sd, err.tolist())
+        return {'t_fix_unix_s': ft.stamp_ns * 1e-9, 'lat_deg': lat, 'lon_deg': lon, 'h_m': h,
+                'alt_msl_m': float(geoid.ellipsoid_to_msl_m(lat, lon, h)), 'h_acc_m': fixed_sd[0],
+                'v_acc_m': fixed_sd[2]}
+
+    def xmp_for(name, ft):
+        flag, sd, _ = written[ft.index]
+        return dji_rtk_xmp(flag, sd[1], sd[0], sd[2])
+
+    names = write_photos(folder, frames, truth, cfg, exif_fixes=fix_for, geo_txt=False, xmp=xmp_for)
+    (folder / 'rtk_truth.json').write_text(json.dumps(
+        {name: {'flag': written[ft.index][0], 'sd_neu_m': list(written[ft.index][1]),
+                'error_enu_m': written[ft.index][2]} for name, ft in names}, indent=1))
+    (folder / 'README.txt').write_text(
+        'Simulated DJI RTK photo survey: EXIF GPS is the camera centre from the drone\'s RTK solution (altitude MSL, '
+        'geoid ' + geoid.MODEL_NAME + '); each photo\'s XMP has drone-dji:RtkFlag (50 fixed, 34 float) and '
+        'RtkStdLon/Lat/Hgt (m). rtk_truth.json: each photo\'s flag and the error written into its EXIF (ENU, m). '
+        'gcp_list.txt heights are ellipsoidal; CHK* are check points.\n')
+    return names
+
+
+def write_geo_txt_from_exif_and_rtk_xmp(folder: Path) -> Path:
+    """The geo.txt a user would make by hand for DJI RTK photos: each photo's EXIF position (altitude MSL,
+    turned ellipsoidal) with its XMP RTK sigmas as the accuracies (io/photo_block.dji_rtk_accuracy)."""
+    from photogram_ros.io.photo_block import dji_rtk_accuracy, exif_position
+    lines = ['EPSG:4326']
+    for p in sorted(Path(folder).glob('*.JPG')):
+        lat, lon, h, _, _ = exif_position(p)
+        _, sh, sv = dji_rtk_accuracy(p)
+        lines.append(f'{p.name} {lon:.10f} {lat:.10f} {h:.4f} 0 0 0 {sh:.4f} {sv:.4f}')
+    out = Path(folder) / 'geo.txt'
+    out.write_text('\n'.join(lines) + '\n')
+    return out

@@ -84,6 +84,11 @@ class SimConfig:
     photos: bool = False                  # also write geotagged JPEGs + gcp_list.txt
     front_overlap: float = 0.80           # photo trigger spacing for `photos`
     ppk: bool = False                     # also write a PPK drone's photos, .pos and Timestamp.MRK in ppk/
+    ppk_shutter_delay_ms: float = 0.0     # ppk/: the exposure this long after the event mark the MRK and .bin write
+    ppk_sigma_scale: float = 1.0          # ppk/: factor on the .pos track's error (0: the true antenna track)
+    rtk_photos: bool = False              # also write a DJI RTK drone's photos in rtk/ (RTK EXIF GPS, RtkFlag XMP)
+    rtk_float_every: int = 0              # rtk/: every n-th photo FLOAT (flag 34) and rtk_float_offset_m off (0: none)
+    rtk_float_offset_m: float = 1.0
 
     def validate(self) -> None:
         if self.gnss_mode not in MODES:
@@ -250,7 +255,7 @@ def simulate(cfg: SimConfig, out_dir: str | Path, progress=None) -> GroundTruth:
         else:
             bag_msgs.append((arrive_ns, TOPIC_IMAGE_RAW, msgs.image_msg(img, stamp_ns)))
         bag_msgs.append((arrive_ns, TOPIC_CAMERA_INFO, msgs.camera_info_msg(camera, stamp_ns)))
-        if cfg.photos or cfg.ppk:
+        if cfg.photos or cfg.ppk or cfg.rtk_photos:
             photos.append((k, img, st))
         if progress:
             progress(k + 1, len(times))
@@ -286,6 +291,9 @@ def simulate(cfg: SimConfig, out_dir: str | Path, progress=None) -> GroundTruth:
         from photogram_ros.sim.photos import write_ppk
         write_ppk(out_dir / 'ppk', photos, truth, cfg,
                   lambda t_unix: antenna_at(flight.state(max(t_unix - START_UNIX_S, 0.0))))
+    if cfg.rtk_photos:
+        from photogram_ros.sim.photos import write_rtk_photos
+        write_rtk_photos(out_dir / 'rtk', photos, truth, cfg)
     return truth
 
 
