@@ -1,6 +1,8 @@
 """Stereo node: pairs posed keyframes, computes dense depth, publishes each pair's cloud in `map`.
 
-Inputs: /keyframes/image (Image), /map/keyframe_pose (PoseWithCovarianceStamped in `map`, stamped
+Inputs: /keyframes/image (Image; at a reduction of the camera_info's size, e.g. tracker_node's
+keyframe_image_reduction, the camera is scaled to it and the matching downscale follows, so pairs are matched
+at the resolution the GSD settings say; what the node holds per keyframe is that reduced image), /map/keyframe_pose (PoseWithCovarianceStamped in `map`, stamped
 like its keyframe image; a later pose with the same stamp is a refinement and replaces the older
 one), /camera/camera_info, /map/camera_final (the camera the bundle adjuster's full adjustment adjusted its
 poses with: pairs made after it use that one). Output: /map/dense_cloud (PointCloud2 x, y, z float32 as RViz2 draws them,
@@ -201,7 +203,7 @@ class StereoNode(Node):
         """The parameters with the GSD-bound lengths derived at the first pair (stated in the log and on
         /diagnostics), from the camera and the posed keyframes' median height above the ground."""
         if self._matching is None:
-            cam = self._camera_for(kf.image)
+            cam = self.camera   # the full resolution's GSD, whatever the keyframe images' reduction
             z = [self._kf[s].map_T_cam[2, 3] for s in self._posed if s in self._kf]
             height = float(np.median(z) if z else kf.map_T_cam[2, 3]) - self.ground_m
             self.gsd = gsd.derive(cam.width, cam.height, cam.fx, height, self.params.downscale)
@@ -287,8 +289,10 @@ class StereoNode(Node):
         if pair.from_tie_points:
             self.diag.count('pairs_depth_from_tie_points')
         try:
-            res = stereo.stereo_pair(self._camera_for(a.image), a.image, a.map_T_cam, b.image, b.map_T_cam, p,
-                                     pair.depth_range_m)
+            cam = self._camera_for(a.image)
+            # Keyframe images reduced (tracker_node keyframe_image_reduction): matched at the same resolution.
+            p = gsd.for_reduced_images(p, self.camera.width / cam.width)
+            res = stereo.stereo_pair(cam, a.image, a.map_T_cam, b.image, b.map_T_cam, p, pair.depth_range_m)
         except Exception as exc:
             self.diag.count('pairs_failed')
             self.diag.problem(f'stereo pair {a.stamp_ns}/{b.stamp_ns} failed: {exc}')

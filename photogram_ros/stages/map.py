@@ -2,7 +2,9 @@
 ortho tiles, the coverage and the origin of `map`, without ROS.
 
 In (plain methods): `set_origin` (the georeference), `add_cloud` (a pair cloud in `map`: x, y, z and
-optionally rgb, confidence), `add_image` (a keyframe image, saved as JPEG), `add_pose` (a keyframe's
+optionally rgb, confidence), `add_image` (a keyframe image, saved as JPEG; one smaller than the camera, the
+copy reduced for stereo, only until `add_image_jpeg` brings the full-resolution JPEG, which is saved as it
+came and never replaced by a reduced one), `add_pose` (a keyframe's
 map_T_cam), `add_keyframe_fix` (its GNSS position: the track for the coverage), `add_sparse` (tie points:
 the ground under the keyframes), `set_camera` (the input calibration), `set_final_camera` (the camera a full
 adjustment's poses were adjusted with: it replaces the input calibration in the map folder), `set_control_points`
@@ -146,6 +148,8 @@ class MapStage:
         self._camera_saved = None     # (camera, its name in camera.json) last written
         self._camera_final = False    # a full adjustment's camera came: the input calibration no longer counts
         self._poses_pending: dict = {}
+        self._full_jpeg: set = set()       # stamps whose full-resolution JPEG is saved (add_image_jpeg)
+        self._images_saved: set = set()    # stamps with a saved image
         self._fuse_s = 0.0
         self._closed = False
 
@@ -249,18 +253,34 @@ class MapStage:
 
     def add_image(self, stamp_ns: int, load) -> None:
         """A keyframe image (`load` or `load()`: the (H, W[, 3]) array; a conversion may raise PhotogramError),
-        saved as JPEG."""
+        saved as JPEG, unless the full-resolution JPEG of that keyframe came already (add_image_jpeg)."""
+        if stamp_ns in self._full_jpeg:
+            return
         try:
             import cv2
             img = _value(load)
             ok, buf = cv2.imencode('.jpg', img, [cv2.IMWRITE_JPEG_QUALITY, self.params.jpeg_quality])
             if not ok:
                 raise ConfigError('JPEG encoding of a keyframe failed')
-            self._keyframes_unfused += 1
-            self.store.save_keyframe_image(stamp_ns, buf.tobytes())
-            self.diag.count('keyframes_saved')
+            self._save_image(stamp_ns, buf.tobytes())
         except (PhotogramError, OSError) as exc:
             self._write_failed('keyframe image not saved', exc)
+
+    def add_image_jpeg(self, stamp_ns: int, data: bytes) -> None:
+        """A keyframe's full-resolution JPEG (as the camera encoded it), saved as it is: it replaces a reduced
+        copy add_image saved, and no later add_image replaces it."""
+        try:
+            self._full_jpeg.add(stamp_ns)
+            self._save_image(stamp_ns, bytes(data))
+        except OSError as exc:
+            self._write_failed('keyframe image not saved', exc)
+
+    def _save_image(self, stamp_ns: int, jpeg: bytes) -> None:
+        self.store.save_keyframe_image(stamp_ns, jpeg)
+        if stamp_ns not in self._images_saved:
+            self._images_saved.add(stamp_ns)
+            self._keyframes_unfused += 1
+            self.diag.count('keyframes_saved')
 
     @_locked
     def add_pose(self, stamp: int, load) -> None:
