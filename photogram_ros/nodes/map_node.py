@@ -40,6 +40,7 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image, NavSatFix, PointCloud2
 
 from photogram_ros import msgs
+from photogram_ros.core.pace import ThreadCaps, limit_threads
 from photogram_ros.nodes.diagnostics import Diagnostics, steady_timer
 from photogram_ros.nodes.node_main import run_node
 from photogram_ros.nodes.ros_params import declare
@@ -63,8 +64,9 @@ TOPIC_KEYFRAME_FIX = 'keyframes/fix'
 
 
 @dataclass
-class MapParams(MapStageParams):
-    """The node's parameters: the map stage's (stages/map.py: fusion, coverage, folder, origin, streams)."""
+class MapParams(MapStageParams, ThreadCaps):
+    """The node's parameters: the map stage's (stages/map.py: fusion, coverage, folder, origin, streams) and its
+    process's thread pools (core/pace.py)."""
 
 
 class _Publishers(MapOutputs):
@@ -100,6 +102,8 @@ class MapNode(Node):
         self.diag = Diagnostics(self)
         self.pubs = _Publishers(self, p)
         self.stage = MapStage(p, StageDiagnostics(self.diag), self.pubs, self.get_logger().info)
+        for k, v in limit_threads(p.cv_threads, p.blas_threads).items():
+            self.diag.set(k, v)
         group = MutuallyExclusiveCallbackGroup()   # the map is not thread-safe; graph.py spins multi-threaded
         # KEEP_ALL: the map is the sink that persists the flight; a burst of pair clouds while it is
         # fusing must queue, not overwrite clouds that were never fused.

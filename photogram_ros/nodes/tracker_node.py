@@ -41,6 +41,7 @@ from photogram_ros.core import gsd
 from photogram_ros.core.camera import load_calibration
 from photogram_ros.core.control import ARUCO_DICTIONARIES, detect_keyframe_targets, detect_keyframe_targets_encoded
 from photogram_ros.core.gnss_fix import GnssFix
+from photogram_ros.core.pace import ThreadCaps, limit_threads
 from photogram_ros.core.tracker import EncodedImage, Tracker, TrackerParams
 from photogram_ros.errors import CalibrationError, PhotogramError
 from photogram_ros.nodes.diagnostics import ERROR, WARN, Diagnostics
@@ -55,7 +56,7 @@ MAX_ENCODED_KEPT = 32
 
 
 @dataclass
-class TrackerNodeParams(TrackerParams):
+class TrackerNodeParams(TrackerParams, ThreadCaps):
     image_topic: str = param('camera/image_raw', 'Raw image topic; "<topic>/compressed" is subscribed too')
     camera_info_topic: str = param('camera/camera_info', 'CameraInfo topic (ignored with calibration_file)')
     fix_topic: str = param('gps/fix', 'NavSatFix topic interpolated to keyframe stamps')
@@ -94,6 +95,8 @@ class TrackerNode(Node):
         super().__init__('tracker_node', **node_kwargs)
         self.params = p = declare(self, TrackerNodeParams, overrides)
         self.diag = Diagnostics(self)
+        for k, v in limit_threads(p.cv_threads, p.blas_threads).items():
+            self.diag.set(k, v)
         self.tracker = Tracker(None, TrackerParams(**{k: getattr(p, k) for k in TrackerParams.__dataclass_fields__}))
         self._camera_from_file = None
         if p.calibration_file:

@@ -32,6 +32,7 @@ from photogram_ros.core import gsd
 from photogram_ros.core.coverage import COVERAGE, FORWARD_OVERLAP, NOT_ORIENTED, Coverage, CoverageConfig
 from photogram_ros.core.fusion import Fusion, FusionConfig, downsample, pack_rgb
 from photogram_ros.core.geodesy import LocalFrame
+from photogram_ros.core.pace import CpuShare
 from photogram_ros.errors import ConfigError, PhotogramError
 from photogram_ros.io.map_store import CAMERA_FINAL, CAMERA_INPUT, MapStore
 from photogram_ros.params import param
@@ -66,6 +67,10 @@ class MapParams(FusionConfig, CoverageConfig):
                                     'the finest not finer than this', min=0.01, max=1000.0)
     ortho_period_s: float = param(2.0, 'Period of map/ortho_tiles batches, s', min=0.05, max=3600.0)
     ortho_max_tiles: int = param(16, 'Most ortho tiles per batch; the rest follows next period', min=1, max=10000)
+    ortho_cpu_share: float = param(0.0, 'Share of one core the ortho tiles may take over 20 s (0: no limit); over '
+                                        'it a batch is deferred to a later period (ortho_batches_deferred), so the '
+                                        'pose chain keeps the pace; the tiles then show the newer map', min=0.0,
+                                   max=256.0)
     coverage: bool = param(True, 'Follow the survey coverage and its gaps (map/coverage, /diagnostics)')
     coverage_period_s: float = param(1.0, 'Period of the coverage update and of map/coverage, s',
                                      min=0.1, max=3600.0)
@@ -151,6 +156,7 @@ class MapStage:
         self._full_jpeg: set = set()       # stamps whose full-resolution JPEG is saved (add_image_jpeg)
         self._images_saved: set = set()    # stamps with a saved image
         self._fuse_s = 0.0
+        self._ortho_share = CpuShare(p.ortho_cpu_share)
         self._closed = False
 
     # --- GSD-bound geometry ----------------------------------------------------------------------
@@ -459,6 +465,13 @@ class MapStage:
         """PNGs of the XYZ tiles the changed fusion tiles touch (kept for later while nobody is `listening`)."""
         if not self._ortho_pending or self.store.origin is None or not listening:
             return
+        if self._ortho_share.over():
+            self.diag.count('ortho_batches_deferred')
+            return
+        with self._ortho_share.measure():
+            self._render_ortho(now_ns)
+
+    def _render_ortho(self, now_ns: int) -> None:
         from photogram_ros.core.ortho_tiles import OrthoTiler
         p = self.params
         if self.ortho is None:
