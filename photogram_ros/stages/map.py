@@ -488,8 +488,9 @@ class MapStage:
         import cv2
         t0 = time.perf_counter()
         stamp = self._stamp_ns(now_ns)
+        colours: dict = {}   # each fusion tile's block colours, once per batch
         for t in batch:
-            img = self.ortho.render(t, self.fusion.tile_records)
+            img = self.ortho.render(t, self.fusion.tile_records, colours)
             if not img[..., 3].any():
                 continue
             ok, buf = cv2.imencode('.png', img, [cv2.IMWRITE_PNG_COMPRESSION, 6])
