@@ -12,7 +12,7 @@ import pytest
 
 from photogram_ros.core.pace import CpuShare, limit_threads, nice_this_thread
 from photogram_ros.errors import ConfigError
-from test_stereo_node import _run_three
+from test_stereo_node import _run_three, three_keyframes  # noqa: F401  (three_keyframes: the fixture)
 
 
 def test_cpu_share_counts_the_work_in_its_window():
@@ -77,15 +77,7 @@ def test_companion_profile_is_read_by_every_node():
     assert got['map_node'].ortho_cpu_share > 0 and got['tracker_node'].cv_threads > 0
 
 
-@pytest.fixture(scope='module')
-def three_keyframes():
-    from helpers.sim_world import rendered, world
-    cfg = world('tiny')[0]
-    frames = [(1_780_000_000_000_000_000 + int(t * 1e9), T, img) for t, T, img in rendered((2.0, 3.8, 5.6))]
-    return cfg.camera(), frames
-
-
-def test_stereo_over_its_share_sheds_pairs_and_says_so(rclpy_context, three_keyframes):
+def test_stereo_over_its_share_sheds_pairs_and_says_so(rclpy_context, three_keyframes):  # noqa: F811
     cam, frames = three_keyframes
     params = {'downscale': 0.5, 'fill_holes_m': 0.0}
     whole, _ = _run_three(rclpy_context, frames, cam, params, 0.05)
@@ -97,7 +89,7 @@ def test_stereo_over_its_share_sheds_pairs_and_says_so(rclpy_context, three_keyf
     assert any('shed' in t and 'export --densify' in t for t in node.diag.recent_problems(10))
 
 
-def test_stereo_pairs_reduced_images_in_a_niced_worker(rclpy_context, three_keyframes):
+def test_stereo_pairs_reduced_images_in_a_niced_worker(rclpy_context, three_keyframes):  # noqa: F811
     """Keyframe images at half size (camera_info at full size), paired in a worker thread: the same pairs."""
     cam, frames = three_keyframes
     half = [(s, T, cv2.resize(img, (cam.width // 2, cam.height // 2), interpolation=cv2.INTER_AREA))
@@ -108,3 +100,40 @@ def test_stereo_pairs_reduced_images_in_a_niced_worker(rclpy_context, three_keyf
     assert node.gsd.downscale == 0.5 and node.gsd.width_px == cam.width   # the full camera's GSD settings
     values = {kv.key: kv.value for kv in node.diag.status().values}
     assert int(values['worker_nice']) >= 5
+
+
+def test_ortho_batches_over_their_share_wait_for_a_later_period(tmp_path):
+    from photogram_ros.core.stereo import CLOUD_DTYPE
+    from photogram_ros.params import from_dict
+    from photogram_ros.stages.map import MapOutputs, MapParams, MapStage
+
+    class Tiles(MapOutputs):
+        def __init__(self):
+            self.tiles = []
+
+        def ortho_tile(self, z, x, y, png, stamp_ns):
+            self.tiles.append((z, x, y))
+
+    def stage(share):
+        out = Tiles()
+        st = MapStage(from_dict(MapParams, {
+            'map_dir': str(tmp_path / f'map{share}'), 'use_origin_params': True, 'origin_lat_deg': 39.86,
+            'origin_lon_deg': -4.02, 'origin_h_m': 500.0, 'coverage': False, 'cell_m': 0.17, 'ortho_max_tiles': 2,
+            'ortho_cpu_share': share}), out=out)
+        rng = np.random.default_rng(0)
+        c = np.zeros(100_000, CLOUD_DTYPE)
+        c['x'], c['y'] = rng.uniform(0, 120, c.size), rng.uniform(0, 80, c.size)
+        c['rgb'], c['confidence'] = rng.integers(0, 2 ** 24, c.size), 1.0
+        st.add_cloud('map', 1, c)
+        return st, out
+    free, free_out = stage(0.0)
+    free.stream_ortho(True)
+    free.stream_ortho(True)
+    capped, capped_out = stage(1e-6)
+    capped.stream_ortho(True)      # the first batch goes out: nothing was spent yet
+    capped.stream_ortho(True)      # over the share now: deferred, the tiles still pending
+    assert len(capped_out.tiles) < len(free_out.tiles) and capped_out.tiles
+    assert capped.diag.counts()['ortho_batches_deferred'] == 1
+    assert not free.diag.counts().get('ortho_batches_deferred')
+    free.close()
+    capped.close()
