@@ -133,18 +133,33 @@ class StereoNode(Node):
         self._lock = threading.RLock()
         self._wake = threading.Condition(self._lock)
         self._stop = False
+        self._wanted = False     # the worker has keyframes to look at
+        self._running = False    # the worker is matching a batch (outside the lock)
         self._worker = None
         if p.worker_nice > 0:
             self._worker = threading.Thread(target=self._run_worker, name='stereo_pairs', daemon=True)
             self._worker.start()
 
     def _run_worker(self) -> None:
+        """Plan under the lock, match outside it: the callbacks (executor threads the adjuster shares in the
+        mapping process) never wait for a pair."""
         self.diag.set('worker_nice', nice_this_thread(self.params.worker_nice))
-        with self._lock:
-            while not self._stop:
-                self._wake.wait(0.5)
-                if not self._stop:
-                    self._pair_pending()
+        while True:
+            with self._lock:
+                while not self._wanted and not self._stop:
+                    self._wake.wait(0.5)
+                if self._stop:
+                    return
+                self._wanted, todo = False, []
+                self._pair_pending(todo)
+                self._running = bool(todo)
+            try:
+                for a, b, pair in todo:
+                    self._run_pair(a, b, pair)
+            finally:
+                with self._lock:
+                    self._running = False
+                    self._wake.notify_all()
 
     def destroy_node(self) -> None:
         if self._worker is not None:
@@ -267,6 +282,8 @@ class StereoNode(Node):
             self._flushing = True
             if self.ground_m is None:
                 self.ground_m = self.params.ground_height_m
+            while self._running:   # the worker's batch goes out first
+                self._wake.wait(0.5)
             self._pair_pending()
 
     def _on_sparse(self, msg: PointCloud2) -> None:
@@ -292,15 +309,16 @@ class StereoNode(Node):
     def _pair_soon(self, kf: _Keyframe | None) -> None:
         """Pair `kf` (None: every keyframe waiting) now, or wake the worker (worker_nice). Under the lock."""
         if self._worker is not None:
-            self._wake.notify()
+            self._wanted = True
+            self._wake.notify_all()
         elif kf is None:
             self._pair_pending()
         else:
             self._maybe_pair(kf)
 
-    def _pair_pending(self) -> None:
+    def _pair_pending(self, todo: list | None = None) -> None:
         for kf in list(self._kf.values()):
-            self._maybe_pair(kf)
+            self._maybe_pair(kf, todo)
 
     def _camera_for(self, image: np.ndarray):
         cam = self.camera
@@ -309,7 +327,8 @@ class StereoNode(Node):
             cam = cam.scaled(w / cam.width)   # keyframes published at a reduced resolution
         return cam
 
-    def _maybe_pair(self, kf: _Keyframe) -> None:
+    def _maybe_pair(self, kf: _Keyframe, todo: list | None = None) -> None:
+        """Pair `kf` if it is due: its pairs matched now, or (a, b, pair) appended to `todo` for the worker."""
         if kf.paired or not kf.complete or self.ground_m is None:
             return
         if not self._flushing and self._newer_posed(kf) < self.params.settle_keyframes:
@@ -345,7 +364,10 @@ class StereoNode(Node):
                               f'({self.ground_m} m): set ground_height_m')
             return
         for pair in plan.pairs:
-            self._run_pair(self._kf[pair.other], kf, pair)
+            if todo is None:
+                self._run_pair(self._kf[pair.other], kf, pair)
+            else:
+                todo.append((self._kf[pair.other], kf, pair))
 
     def _run_pair(self, a: _Keyframe, b: _Keyframe, pair: PlannedPair) -> None:
         p = self._matching
