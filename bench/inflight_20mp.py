@@ -246,7 +246,9 @@ def run_period(a, period_s: float, extra: dict, tag: str) -> dict:
            'camera_late_s': lag_stats(camera_late),
            'stereo': {k: stereo[k] for k in sorted(stereo) if k.startswith(('pairs', 'keyframes', 'images'))},
            'tracker_diag': {k: tdiag[k] for k in sorted(tdiag) if k in (
-               'process_ms', 'frame_from_msg_ms', 'keyframe_ms', 'target_detection_ms', 'fps')},
+               'process_ms', 'frame_from_msg_ms', 'keyframe_ms', 'target_detection_ms', 'keyframe_images_ms',
+               'keyframe_image_reduction', 'fps')},
+           'map_counts': {k: v for k, v in counts.get('map', {}).items() if k.startswith(('ortho', 'clouds', 'keyframes'))},
            'flight_s': round(flight_s, 1), 'wall_s': round(run['wall_s'], 1),
            'until_last_cloud_s': round(last_fused - t0, 1),
            'real_time_factor': round(flight_s / max(last_fused - t0, 1e-9), 3),
@@ -275,6 +277,8 @@ TABLE_ROWS = [
     ('keyframes in fused clouds', lambda r: r['keyframes_in_fused_clouds']),
     ('stereo pairs done / skipped', lambda r: f"{r['stereo'].get('pairs_done', 0)} / "
      f"{sum(v for k, v in r['stereo'].items() if k.startswith('pairs_skipped'))}"),
+    ('keyframes whose stereo pairs were shed', lambda r: r['stereo'].get('keyframes_shed', 0)),
+    ('ortho batches deferred', lambda r: r.get('map_counts', {}).get('ortho_batches_deferred', 0)),
     ('real-time factor (to the last fused cloud)', lambda r: r['real_time_factor']),
     ('peak RSS main / child, MB', lambda r: f"{r['peak_rss_mb']} / {r['child_peak_rss_mb']}"),
     ('cores, load avg (1 min) before/after', lambda r: f"{r['cores']}, {r['load_avg_before'][0]}/{r['load_avg_after'][0]}"),

@@ -70,6 +70,31 @@ def compressed_image_msg(image: np.ndarray, stamp_ns: int, frame_id: str = 'came
     return msg
 
 
+def compressed_msg_from_bytes(data, stamp_ns: int, frame_id: str = 'camera_optical',
+                              fmt: str = 'jpeg') -> CompressedImage:
+    """Already-encoded image bytes (a camera's JPEG as it came) -> sensor_msgs/CompressedImage, not re-encoded."""
+    msg = CompressedImage(header=header(stamp_ns, frame_id), format=fmt)
+    msg.data = bytes(data)
+    return msg
+
+
+def decode_reduced(data, reduce: int) -> np.ndarray:
+    """Encoded image bytes (JPEG, PNG: what cv2.imdecode reads) -> BGR at 1/`reduce` (1, 2, 4 or 8) of the
+    full size, (ceil(H/reduce), ceil(W/reduce), 3): a JPEG through libjpeg's DCT scaling (a 20 MP photo at a
+    quarter in about 0.06 s instead of 0.25 s for the full decode). EXIF orientation is ignored, as in the
+    camera's frames. DataError if undecodable."""
+    import cv2
+    flags = {1: cv2.IMREAD_COLOR, 2: cv2.IMREAD_REDUCED_COLOR_2, 4: cv2.IMREAD_REDUCED_COLOR_4,
+             8: cv2.IMREAD_REDUCED_COLOR_8}
+    if reduce not in flags:
+        raise DataError(f'reduced decode by {reduce}: use 1, 2, 4 or 8')
+    buf = np.frombuffer(data, np.uint8) if not isinstance(data, np.ndarray) else data.reshape(-1)
+    img = cv2.imdecode(buf, flags[reduce] | cv2.IMREAD_IGNORE_ORIENTATION) if buf.size else None
+    if img is None:
+        raise DataError(f'compressed image ({buf.size} bytes) cannot be decoded')
+    return img
+
+
 def image_from_msg(msg) -> np.ndarray:
     """sensor_msgs/Image or CompressedImage -> numpy (BGR uint8 for colour, 2-D for mono)."""
     if hasattr(msg, 'format'):  # CompressedImage

@@ -169,6 +169,21 @@ def detect_keyframe_targets(image: np.ndarray, camera: PinholeCamera,
     return out
 
 
+def detect_keyframe_targets_encoded(data, camera: PinholeCamera, dictionary: str = 'DICT_4X4_50') -> np.ndarray:
+    """detect_keyframe_targets of a keyframe still compressed (its JPEG bytes, as the camera sent them): decoded
+    in grey only (libjpeg's luma, no colour conversion: about a third of the colour decode's time at 20 MP), then
+    searched as detect_targets searches (above 2000 px: squares found on a reduced copy, markers read at full
+    resolution in the regions around them). DataError if undecodable or not the camera's size."""
+    buf = np.frombuffer(data, np.uint8) if not isinstance(data, np.ndarray) else data.reshape(-1)
+    grey = cv2.imdecode(buf, cv2.IMREAD_GRAYSCALE | cv2.IMREAD_IGNORE_ORIENTATION) if buf.size else None
+    if grey is None:
+        raise DataError(f'keyframe image ({buf.size} bytes) cannot be decoded for the target search')
+    if (grey.shape[1], grey.shape[0]) != (camera.width, camera.height):
+        raise DataError(f'keyframe image is {grey.shape[1]}x{grey.shape[0]}, the camera {camera.width}x'
+                        f'{camera.height}')
+    return detect_keyframe_targets(grey, camera, dictionary)
+
+
 # --- control rows checked against the GNSS-only block ---------------------------------------
 #
 # A control file from the field has faults a surveyor does not see: rows naming a photo of another

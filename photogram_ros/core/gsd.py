@@ -23,6 +23,13 @@ A parameter set to AUTO (-1, the default of every one of them) takes the derived
 stereo_pair and plan_pairs resolve from their own pair's height, the nodes and densify once per
 flight (stated in the log, on /diagnostics and in the report); any other value is the user's. The
 fusion cell must be known before fusing (map_node derives it at the first pair cloud).
+
+Keyframe images travel to stereo at the resolution the map's cell needs, not the camera's
+(`keyframe_reduction`): the largest power-of-two reduction (at most 8, as libjpeg decodes directly)
+whose pixel is still no larger than the fusion cell (the cell is 0.78 of the cloud spacing, the
+spacing GSD / downscale): 1 for the simulator's 640 x 480 (the cell is 1.56 of its pixels), 2 for
+1080p, 4 for a 12-20 MP photo. Stereo then matches the reduced images at `downscale x reduction`
+(`for_reduced_images`), the same matched resolution and GSD settings as from the full images.
 """
 
 from __future__ import annotations
@@ -135,6 +142,40 @@ def resolve(obj, settings: GsdSettings):
     if not names:
         return obj, []
     return dataclasses.replace(obj, **{n: getattr(settings, n) for n in names}), names
+
+
+# The fusion cell in cloud spacings at the reference (0.78): the map's cell in matched pixels.
+CELL_PER_SPACING = REF_LENGTHS_M['cell_m'] / REF_SPACING_M
+MAX_KEYFRAME_REDUCTION = 8
+
+
+def keyframe_reduction(width_px: int, height_px: int, downscale: float = AUTO) -> int:
+    """The power-of-two reduction (1, 2, 4 or 8) of keyframe images whose pixel is no larger than the map's
+    cell: the cell spans CELL_PER_SPACING / downscale full-resolution pixels (downscale AUTO: the matching
+    downscale of this size). 1 at the simulator's 640 x 480, 4 at 20 MP."""
+    ds = matching_downscale(width_px, height_px) if downscale == AUTO else float(downscale)
+    if not 0 < ds <= 1:
+        raise ConfigError(f'matching downscale {ds} must be in (0, 1]')
+    cell_px = CELL_PER_SPACING / ds
+    r = 1
+    while 2 * r <= min(cell_px, MAX_KEYFRAME_REDUCTION) + 1e-9:
+        r *= 2
+    return r
+
+
+def for_reduced_images(params, reduction: float):
+    """A copy of the (resolved) stereo parameters for images reduced by `reduction` (full pixels per reduced
+    pixel): the matching downscale relative to the reduced image, so the matched resolution is unchanged
+    (the metric lengths are). The parameters as they are for a reduction of 1."""
+    if reduction == 1:
+        return params
+    if params.downscale == AUTO:
+        raise ConfigError('resolve the matching downscale (gsd.resolve) before reducing the images')
+    ds = params.downscale * float(reduction)
+    if not 0 < ds <= 1:
+        raise ConfigError(f'keyframe images reduced {reduction}x are coarser than the matching downscale '
+                          f'{params.downscale}: send them at a smaller reduction')
+    return dataclasses.replace(params, downscale=ds)
 
 
 def check_auto_or_at_least(obj, minima: dict) -> None:

@@ -93,8 +93,9 @@ class OrthoTiler:
         rgb = np.stack([blocks(cells[ch].reshape(T, T).astype(np.float32) * occ) for ch in ('r', 'g', 'b')], -1)
         return rgb / np.maximum(cnt, 1)[..., None], cnt
 
-    def render(self, t: XYZ, records_of) -> np.ndarray:
-        """BGRA uint8 (256, 256, 4) of tile t from the fusion tiles records_of(key) returns."""
+    def render(self, t: XYZ, records_of, colours: dict | None = None) -> np.ndarray:
+        """BGRA uint8 (256, 256, 4) of tile t from the fusion tiles records_of(key) returns. `colours`: a dict kept
+        over the tiles of one batch, holding each fusion tile's block colours once (XYZ tiles share them)."""
         nw, ne, sw = self.tile_corners_enu(t)
         f = (np.arange(TILE_PX) + 0.5) / TILE_PX
         P = nw + f[None, :, None] * (ne - nw) + f[:, None, None] * (sw - nw)   # (row, col, 2)
@@ -103,11 +104,18 @@ class OrthoTiler:
         T = self.tile_cells
         kx, ky = gx // T, gy // T
         out = np.zeros((TILE_PX, TILE_PX, 4), np.uint8)
-        for key in {(int(a), int(b)) for a, b in zip(kx.ravel(), ky.ravel())}:
-            cells = records_of(key)
-            if cells is None:
+        # The fusion tiles under the tile's pixels (a few of 65536 pixels' keys: packed, then unique).
+        x0, y0 = int(kx.min()), int(ky.min())
+        span = int(ky.max()) - y0 + 1
+        packed = np.unique((kx - x0) * span + (ky - y0))
+        colours = {} if colours is None else colours
+        for key in [(x0 + int(k) // span, y0 + int(k) % span) for k in packed]:
+            if key not in colours:
+                cells = records_of(key)
+                colours[key] = None if cells is None else self._block_colours(cells)
+            if colours[key] is None:
                 continue
-            rgb, cnt = self._block_colours(cells)
+            rgb, cnt = colours[key]
             sel = (kx == key[0]) & (ky == key[1])
             bi = (gy[sel] - key[1] * T) // self.block
             bj = (gx[sel] - key[0] * T) // self.block

@@ -1,7 +1,9 @@
 """Map node: fuses the pair clouds into the tiled map, keeps it safe on disk, streams it to the ground.
 
 Inputs: /map/dense_cloud (PointCloud2 in `map`, fields x, y, z and optionally rgb, confidence),
-/keyframes/image + /map/keyframe_pose + /camera/camera_info (saved in map_dir for the orthomosaic; once
+/keyframes/image + /map/keyframe_pose + /camera/camera_info (saved in map_dir for the orthomosaic; a
+keyframe image reduced for stereo is replaced by its full-resolution JPEG from /keyframes/image/compressed,
+saved as it came; once
 /map/camera_final, the camera of the bundle adjuster's full adjustment, comes, that one is saved instead;
 /map/control_points, the bundle adjuster's check points with their detections, saved for the report),
 and the geodetic origin of `map`: either the parameters origin_lat_deg/origin_lon_deg/origin_h_m
@@ -38,6 +40,7 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image, NavSatFix, PointCloud2
 
 from photogram_ros import msgs
+from photogram_ros.core.pace import ThreadCaps, limit_threads
 from photogram_ros.nodes.diagnostics import Diagnostics, steady_timer
 from photogram_ros.nodes.node_main import run_node
 from photogram_ros.nodes.ros_params import declare
@@ -49,6 +52,7 @@ TOPIC_CLOUD = 'map/dense_cloud'   # relative: a drone's namespace prefixes them
 TOPIC_DOWNSAMPLED = 'map/cloud_downsampled'
 TOPIC_GEOREFERENCE = 'map/georeference'
 TOPIC_IMAGE = 'keyframes/image'
+TOPIC_IMAGE_FULL = 'keyframes/image/compressed'   # the full-resolution JPEG when keyframes/image is reduced
 TOPIC_POSE = 'map/keyframe_pose'
 TOPIC_INFO = 'camera/camera_info'
 TOPIC_CAMERA_FINAL = 'map/camera_final'
@@ -60,8 +64,9 @@ TOPIC_KEYFRAME_FIX = 'keyframes/fix'
 
 
 @dataclass
-class MapParams(MapStageParams):
-    """The node's parameters: the map stage's (stages/map.py: fusion, coverage, folder, origin, streams)."""
+class MapParams(MapStageParams, ThreadCaps):
+    """The node's parameters: the map stage's (stages/map.py: fusion, coverage, folder, origin, streams) and its
+    process's thread pools (core/pace.py)."""
 
 
 class _Publishers(MapOutputs):
@@ -97,6 +102,8 @@ class MapNode(Node):
         self.diag = Diagnostics(self)
         self.pubs = _Publishers(self, p)
         self.stage = MapStage(p, StageDiagnostics(self.diag), self.pubs, self.get_logger().info)
+        for k, v in limit_threads(p.cv_threads, p.blas_threads).items():
+            self.diag.set(k, v)
         group = MutuallyExclusiveCallbackGroup()   # the map is not thread-safe; graph.py spins multi-threaded
         # KEEP_ALL: the map is the sink that persists the flight; a burst of pair clouds while it is
         # fusing must queue, not overwrite clouds that were never fused.
@@ -108,6 +115,8 @@ class MapNode(Node):
                                  callback_group=group)
         if p.save_keyframes:
             self.create_subscription(Image, TOPIC_IMAGE, self._on_image, reliable, callback_group=group)
+            self.create_subscription(CompressedImage, TOPIC_IMAGE_FULL, self._on_image_jpeg, reliable,
+                                     callback_group=group)
         if p.save_keyframes or p.coverage:
             self.create_subscription(PoseWithCovarianceStamped, TOPIC_POSE, self._on_pose, reliable,
                                      callback_group=group)
@@ -153,6 +162,9 @@ class MapNode(Node):
 
     def _on_image(self, msg: Image) -> None:
         self.stage.add_image(msgs.ns_from_time(msg.header.stamp), lambda: msgs.image_from_msg(msg))
+
+    def _on_image_jpeg(self, msg: CompressedImage) -> None:
+        self.stage.add_image_jpeg(msgs.ns_from_time(msg.header.stamp), bytes(msg.data))
 
     def _on_pose(self, msg: PoseWithCovarianceStamped) -> None:
         self.stage.add_pose(msgs.ns_from_time(msg.header.stamp), lambda: msgs.T_from_pose_with_covariance(msg)[0])

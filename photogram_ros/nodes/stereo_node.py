@@ -1,17 +1,25 @@
 """Stereo node: pairs posed keyframes, computes dense depth, publishes each pair's cloud in `map`.
 
-Inputs: /keyframes/image (Image), /map/keyframe_pose (PoseWithCovarianceStamped in `map`, stamped
+Inputs: /keyframes/image (Image; at a reduction of the camera_info's size, e.g. tracker_node's
+keyframe_image_reduction, the camera is scaled to it and the matching downscale follows, so pairs are matched
+at the resolution the GSD settings say; what the node holds per keyframe is that reduced image), /map/keyframe_pose (PoseWithCovarianceStamped in `map`, stamped
 like its keyframe image; a later pose with the same stamp is a refinement and replaces the older
 one), /camera/camera_info, /map/camera_final (the camera the bundle adjuster's full adjustment adjusted its
 poses with: pairs made after it use that one). Output: /map/dense_cloud (PointCloud2 x, y, z float32 as RViz2 draws them,
 rgb, confidence) per pair, optionally /stereo/disparity, and /diagnostics.
+
+The pace (core/pace.py, config/companion.yaml): with `worker_nice` the pairs are matched in a worker thread
+of that niceness (the callbacks only record and wake it); with `cpu_share` the matching keeps to that share
+of a core, and a keyframe that settles while stereo is over it has its pairs shed (`keyframes_shed`, a WARN)
+but stays a partner of later keyframes; the matching after landing (io/densify.py) plans and matches every
+pair again from the stored keyframes. The end of flight (`flush`) sheds nothing.
 """
 
 from __future__ import annotations
 
 import bisect
-
 import sys
+import threading
 import time
 from collections import OrderedDict
 from dataclasses import dataclass
@@ -25,6 +33,7 @@ from stereo_msgs.msg import DisparityImage
 
 from photogram_ros import msgs
 from photogram_ros.core import gsd, offheap, stereo
+from photogram_ros.core.pace import CpuShare, ThreadCaps, limit_threads, nice_this_thread
 from photogram_ros.core.pairs import BELOW_GROUND, PairCriteria, PlannedPair, plan_pairs
 from photogram_ros.errors import PhotogramError
 from photogram_ros.nodes.diagnostics import Diagnostics
@@ -43,7 +52,7 @@ TOPIC_FIX = 'keyframes/fix'
 
 
 @dataclass
-class StereoNodeParams(stereo.StereoParams, PairCriteria):
+class StereoNodeParams(stereo.StereoParams, PairCriteria, ThreadCaps):
     """The matcher's (core/stereo.py) and the pair planner's (core/pairs.py) parameters, and the node's:
     where the ground height and tie points come from, the keyframes it holds, when it pairs them."""
     ground_height_m: float = param(0.0, 'expected ground height in map (z, m), centre of the depth search; '
@@ -66,6 +75,14 @@ class StereoNodeParams(stereo.StereoParams, PairCriteria):
     settle_keyframes: int = param(10, 'pair a keyframe only once this many newer keyframes have poses: by then '
                                       'it has left the bundle window and its pose no longer changes (match the '
                                       'bundle window_size; 0 pairs at once)', min=0, max=1000)
+    cpu_share: float = param(0.0, 'share of one core the pairs may take over cpu_share_window_s (0: no limit); '
+                                  'over it, the pairs of a keyframe that settles are shed (counted in '
+                                  'keyframes_shed, a WARN on /diagnostics) and left to the matching after landing '
+                                  '(export --densify, replay\'s map_final), so the pose chain keeps the pace',
+                             min=0.0, max=256.0)
+    cpu_share_window_s: float = param(20.0, 'the window of cpu_share, s', min=1.0, max=3600.0)
+    worker_nice: int = param(0, 'match pairs in a worker thread of this niceness (yielding to the pose chain in the '
+                                'same process); 0: in the subscription callbacks', min=0, max=19)
 
 
 @dataclass
@@ -109,6 +126,48 @@ class StereoNode(Node):
         self._matching: StereoNodeParams | None = None if gsd.unresolved(p) else p
         self.cloud_pub = self.create_publisher(PointCloud2, TOPIC_CLOUD, reliable)
         self.disp_pub = self.create_publisher(DisparityImage, TOPIC_DISPARITY, 5) if p.publish_disparity else None
+        for k, v in limit_threads(p.cv_threads, p.blas_threads).items():
+            self.diag.set(k, v)
+        self.share = CpuShare(p.cpu_share, p.cpu_share_window_s)
+        # With worker_nice the pairing runs in a worker thread; the callbacks only record and wake it.
+        self._lock = threading.RLock()
+        self._wake = threading.Condition(self._lock)
+        self._stop = False
+        self._wanted = False     # the worker has keyframes to look at
+        self._running = False    # the worker is matching a batch (outside the lock)
+        self._worker = None
+        if p.worker_nice > 0:
+            self._worker = threading.Thread(target=self._run_worker, name='stereo_pairs', daemon=True)
+            self._worker.start()
+
+    def _run_worker(self) -> None:
+        """Plan under the lock, match outside it: the callbacks (executor threads the adjuster shares in the
+        mapping process) never wait for a pair."""
+        self.diag.set('worker_nice', nice_this_thread(self.params.worker_nice))
+        while True:
+            with self._lock:
+                while not self._wanted and not self._stop:
+                    self._wake.wait(0.5)
+                if self._stop:
+                    return
+                self._wanted, todo = False, []
+                self._pair_pending(todo)
+                self._running = bool(todo)
+            try:
+                for a, b, pair in todo:
+                    self._run_pair(a, b, pair)
+            finally:
+                with self._lock:
+                    self._running = False
+                    self._wake.notify_all()
+
+    def destroy_node(self) -> None:
+        if self._worker is not None:
+            with self._lock:
+                self._stop = True
+                self._wake.notify_all()
+            self._worker.join(timeout=30.0)
+        super().destroy_node()
 
     # --- inputs ----------------------------------------------------------------------------------
 
@@ -136,11 +195,12 @@ class StereoNode(Node):
         except PhotogramError as exc:
             self.diag.problem(f'bad camera_info: {exc}')
             return
-        self._camera_final = self._camera_final or final
-        first = self.camera is None
-        self.camera = cam
-        if first:
-            self._pair_pending()
+        with self._lock:
+            self._camera_final = self._camera_final or final
+            first = self.camera is None
+            self.camera = cam
+            if first:
+                self._pair_soon(None)
 
     def _on_final_camera(self, msg: CameraInfo) -> None:
         """The camera the poses of a full adjustment were adjusted with: the keyframes paired from now on
@@ -152,12 +212,13 @@ class StereoNode(Node):
             img = msgs.image_from_msg(msg)
             if img.ndim == 3 and img.shape[2] != 3:
                 raise PhotogramError(f'keyframe image has {img.shape[2]} channels; publish bgr8 or mono8')
-            kf = self._entry(msgs.ns_from_time(msg.header.stamp))
-            # Held until max_keyframes newer ones came: off the heap, where it would pin the pairs'
-            # temporaries around it (core/offheap.py).
-            kf.image = offheap.copy(img)
-            self.diag.count('images')
-            self._maybe_pair(kf)
+            with self._lock:
+                kf = self._entry(msgs.ns_from_time(msg.header.stamp))
+                # Held until max_keyframes newer ones came: off the heap, where it would pin the pairs'
+                # temporaries around it (core/offheap.py).
+                kf.image = offheap.copy(img)
+                self.diag.count('images')
+                self._pair_soon(kf)
         except Exception as exc:  # one bad keyframe must not stop the node
             self.diag.problem(f'keyframe image rejected: {exc}')
 
@@ -166,14 +227,15 @@ class StereoNode(Node):
             if msg.header.frame_id not in ('map', '/map'):
                 raise PhotogramError(f'keyframe pose is in frame {msg.header.frame_id!r}, expected map')
             T, cov = msgs.T_from_pose_with_covariance(msg)
-            kf = self._entry(msgs.ns_from_time(msg.header.stamp))
-            if kf.map_T_cam is None:
-                bisect.insort(self._posed, kf.stamp_ns)
-            kf.map_T_cam = T
-            kf.sigma_m = float(np.sqrt(max(np.trace(cov[:3, :3]), 0.0)))
-            self.diag.count('poses')
-            if self._newer_posed(kf) == 0:
-                self._pair_pending()   # a new newest pose may settle older keyframes
+            with self._lock:
+                kf = self._entry(msgs.ns_from_time(msg.header.stamp))
+                if kf.map_T_cam is None:
+                    bisect.insort(self._posed, kf.stamp_ns)
+                kf.map_T_cam = T
+                kf.sigma_m = float(np.sqrt(max(np.trace(cov[:3, :3]), 0.0)))
+                self.diag.count('poses')
+                if self._newer_posed(kf) == 0:
+                    self._pair_soon(None)   # a new newest pose may settle older keyframes
         except Exception as exc:
             self.diag.problem(f'keyframe pose rejected: {exc}')
 
@@ -182,10 +244,9 @@ class StereoNode(Node):
             cov = np.asarray(msg.position_covariance, float).reshape(3, 3)
             if msg.position_covariance_type == NavSatFix.COVARIANCE_TYPE_UNKNOWN or msg.status.status < 0:
                 return
-            kf = self._kf.get(msgs.ns_from_time(msg.header.stamp))
-            if kf is None:
+            with self._lock:
                 kf = self._entry(msgs.ns_from_time(msg.header.stamp))
-            kf.fix_sigma_m = float(np.sqrt(max(np.trace(cov), 0.0)))
+                kf.fix_sigma_m = float(np.sqrt(max(np.trace(cov), 0.0)))
         except Exception as exc:
             self.diag.problem(f'keyframe fix rejected: {exc}')
 
@@ -201,7 +262,7 @@ class StereoNode(Node):
         """The parameters with the GSD-bound lengths derived at the first pair (stated in the log and on
         /diagnostics), from the camera and the posed keyframes' median height above the ground."""
         if self._matching is None:
-            cam = self._camera_for(kf.image)
+            cam = self.camera   # the full resolution's GSD, whatever the keyframe images' reduction
             z = [self._kf[s].map_T_cam[2, 3] for s in self._posed if s in self._kf]
             height = float(np.median(z) if z else kf.map_T_cam[2, 3]) - self.ground_m
             self.gsd = gsd.derive(cam.width, cam.height, cam.fx, height, self.params.downscale)
@@ -215,11 +276,15 @@ class StereoNode(Node):
         return len(self._posed) - bisect.bisect_right(self._posed, kf.stamp_ns)
 
     def flush(self) -> None:
-        """End of flight: pair every keyframe still waiting, with the poses it has now."""
-        self._flushing = True
-        if self.ground_m is None:
-            self.ground_m = self.params.ground_height_m
-        self._pair_pending()
+        """End of flight: pair every keyframe still waiting, with the poses it has now (nothing is shed: the
+        flight no longer needs the CPU)."""
+        with self._lock:
+            self._flushing = True
+            if self.ground_m is None:
+                self.ground_m = self.params.ground_height_m
+            while self._running:   # the worker's batch goes out first
+                self._wake.wait(0.5)
+            self._pair_pending()
 
     def _on_sparse(self, msg: PointCloud2) -> None:
         try:
@@ -229,20 +294,31 @@ class StereoNode(Node):
             z = xyz[:, 2]
             if z.size < 20:
                 return
-            self._tie_points = xyz
-            first = self.ground_m is None
-            self.ground_m = float(np.median(z))
-            self.diag.set('ground_height_m', self.ground_m)
-            if first:
-                self._pair_pending()
+            with self._lock:
+                self._tie_points = xyz
+                first = self.ground_m is None
+                self.ground_m = float(np.median(z))
+                self.diag.set('ground_height_m', self.ground_m)
+                if first:
+                    self._pair_soon(None)
         except Exception as exc:
             self.diag.problem(f'sparse cloud rejected: {exc}')
 
     # --- pairing ---------------------------------------------------------------------------------
 
-    def _pair_pending(self) -> None:
-        for kf in list(self._kf.values()):
+    def _pair_soon(self, kf: _Keyframe | None) -> None:
+        """Pair `kf` (None: every keyframe waiting) now, or wake the worker (worker_nice). Under the lock."""
+        if self._worker is not None:
+            self._wanted = True
+            self._wake.notify_all()
+        elif kf is None:
+            self._pair_pending()
+        else:
             self._maybe_pair(kf)
+
+    def _pair_pending(self, todo: list | None = None) -> None:
+        for kf in list(self._kf.values()):
+            self._maybe_pair(kf, todo)
 
     def _camera_for(self, image: np.ndarray):
         cam = self.camera
@@ -251,7 +327,8 @@ class StereoNode(Node):
             cam = cam.scaled(w / cam.width)   # keyframes published at a reduced resolution
         return cam
 
-    def _maybe_pair(self, kf: _Keyframe) -> None:
+    def _maybe_pair(self, kf: _Keyframe, todo: list | None = None) -> None:
+        """Pair `kf` if it is due: its pairs matched now, or (a, b, pair) appended to `todo` for the worker."""
         if kf.paired or not kf.complete or self.ground_m is None:
             return
         if not self._flushing and self._newer_posed(kf) < self.params.settle_keyframes:
@@ -264,6 +341,14 @@ class StereoNode(Node):
         if kf.map_T_cam[2, 3] <= self.ground_m:
             self.diag.problem(f'keyframe at z={kf.map_T_cam[2, 3]:.1f} m is not above the ground '
                               f'({self.ground_m} m): set ground_height_m')
+            return
+        if not self._flushing and self.share.over():
+            # Stereo is over its CPU share: the pose chain comes first. The keyframe stays a partner of later
+            # ones; its own pairs are matched after landing (export --densify / replay's map_final).
+            self.diag.count('keyframes_shed')
+            self.diag.problem(f'stereo pairs shed in flight (stereo over its CPU share of {self.params.cpu_share:g} '
+                              'core; keyframes_shed counts the keyframes): the in-flight map has gaps there until '
+                              'the matching after landing (export --densify, replay\'s map_final)')
             return
         p = self._matching_params(kf)
         if kf.sigma_m > self.sigma_limit_m(kf):
@@ -279,7 +364,10 @@ class StereoNode(Node):
                               f'({self.ground_m} m): set ground_height_m')
             return
         for pair in plan.pairs:
-            self._run_pair(self._kf[pair.other], kf, pair)
+            if todo is None:
+                self._run_pair(self._kf[pair.other], kf, pair)
+            else:
+                todo.append((self._kf[pair.other], kf, pair))
 
     def _run_pair(self, a: _Keyframe, b: _Keyframe, pair: PlannedPair) -> None:
         p = self._matching
@@ -287,8 +375,11 @@ class StereoNode(Node):
         if pair.from_tie_points:
             self.diag.count('pairs_depth_from_tie_points')
         try:
-            res = stereo.stereo_pair(self._camera_for(a.image), a.image, a.map_T_cam, b.image, b.map_T_cam, p,
-                                     pair.depth_range_m)
+            cam = self._camera_for(a.image)
+            # Keyframe images reduced (tracker_node keyframe_image_reduction): matched at the same resolution.
+            p = gsd.for_reduced_images(p, self.camera.width / cam.width)
+            with self.share.measure():
+                res = stereo.stereo_pair(cam, a.image, a.map_T_cam, b.image, b.map_T_cam, p, pair.depth_range_m)
         except Exception as exc:
             self.diag.count('pairs_failed')
             self.diag.problem(f'stereo pair {a.stamp_ns}/{b.stamp_ns} failed: {exc}')

@@ -3,7 +3,11 @@
 Subscribes `<image_topic>` (sensor_msgs/Image) and `<image_topic>/compressed` (CompressedImage; a
 remapping of image_topic moves it too, image_transport's convention),
 `camera_info_topic` and `fix_topic`. Publishes per keyframe, all with the keyframe image's stamp:
-/keyframes/image (Image bgr8), /keyframes/features (PointCloud2: track_id uint32, u, v, xn, yn
+/keyframes/image (Image bgr8, at the resolution the map's cell needs: reduced by `keyframe_image_reduction`,
+from the GSD by default, core/gsd.keyframe_reduction: 1 at 640 x 480, 4 at 20 MP; stereo scales the camera
+to it), /keyframes/image/compressed (CompressedImage: the full-resolution JPEG, the camera's own bytes when
+the frame came compressed, only when the image above is reduced: the map saves it for the products after
+landing), /keyframes/features (PointCloud2: track_id uint32, u, v, xn, yn
 float64; see core/tracker.py; with `detect_targets` also the keyframe's ArUco targets, in the id
 range msgs.py reserves for them), /keyframes/fix (NavSatFix interpolated to the stamp, when GPS
 has one), optionally /tracker/debug_image, and /diagnostics.
@@ -12,9 +16,10 @@ Frames go into a bounded slot and a worker thread tracks them; when frames come 
 worker, the oldest waiting frame is dropped, counted (`drops`) and said on /diagnostics with the
 reason, so the tracker never falls behind. A compressed frame larger than `track_max_px`
 (a 20 MP photo) is decoded straight at the tracker's working size (core/tracker.EncodedImage), and at
-full size only if it becomes a keyframe. Keyframes go out from a second thread (`keyframe_thread`):
-the full decode, the target detection and the 60 MB image message of a 20 MP keyframe (about 0.7 s)
-stay off the frame loop; they are never dropped, and leave in keyframe order.
+full size never: a keyframe's image is decoded again at its reduction (libjpeg's DCT scaling), its targets
+searched on a grey decode (core/control.detect_keyframe_targets_encoded). Keyframes go out from a second
+thread (`keyframe_thread`): the decodes, the target detection and the messages of a 20 MP keyframe stay off
+the frame loop; they are never dropped, and leave in keyframe order.
 A missing or inconsistent calibration is reported on /diagnostics as an error and the frames are
 not used until a good camera_info (or calibration_file) is there; the node stays up.
 """
@@ -24,7 +29,7 @@ from __future__ import annotations
 import sys
 import threading
 import time
-from collections import deque
+from collections import OrderedDict, deque
 from dataclasses import dataclass
 
 from rclpy.node import Node
@@ -32,9 +37,11 @@ from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image, NavSatFix, PointCloud2
 
 from photogram_ros import msgs
+from photogram_ros.core import gsd
 from photogram_ros.core.camera import load_calibration
-from photogram_ros.core.control import ARUCO_DICTIONARIES, detect_keyframe_targets
+from photogram_ros.core.control import ARUCO_DICTIONARIES, detect_keyframe_targets, detect_keyframe_targets_encoded
 from photogram_ros.core.gnss_fix import GnssFix
+from photogram_ros.core.pace import ThreadCaps, limit_threads
 from photogram_ros.core.tracker import EncodedImage, Tracker, TrackerParams
 from photogram_ros.errors import CalibrationError, PhotogramError
 from photogram_ros.nodes.diagnostics import ERROR, WARN, Diagnostics
@@ -43,8 +50,13 @@ from photogram_ros.nodes.ros_params import declare
 from photogram_ros.params import param
 
 
+# Compressed frames kept for their keyframe's image: a keyframe waits at most for its GNSS fix (fix_lag_max_s,
+# 20 frames at 1 Hz); an older one is decoded from the tracker's keyframe instead.
+MAX_ENCODED_KEPT = 32
+
+
 @dataclass
-class TrackerNodeParams(TrackerParams):
+class TrackerNodeParams(TrackerParams, ThreadCaps):
     image_topic: str = param('camera/image_raw', 'Raw image topic; "<topic>/compressed" is subscribed too')
     camera_info_topic: str = param('camera/camera_info', 'CameraInfo topic (ignored with calibration_file)')
     fix_topic: str = param('gps/fix', 'NavSatFix topic interpolated to keyframe stamps')
@@ -67,6 +79,13 @@ class TrackerNodeParams(TrackerParams):
                                  '(JPEG DCT scaling) and fully only for keyframes; false decodes every frame fully')
     keyframe_thread: bool = param(True, 'Publish keyframes (full decode, target detection, image message) from a '
                                   'thread of their own instead of the frame loop')
+    keyframe_image_reduction: int = param(0, 'Keyframe images on keyframes/image are reduced by this (1, 2, 4 '
+                                          'or 8; 0: from the GSD, the largest whose pixel is no larger than '
+                                          'the map cell: 1 at 640x480, 4 at 20 MP); a reduced one also goes '
+                                          'out at full resolution as JPEG on keyframes/image/compressed',
+                                          choices=(0, 1, 2, 4, 8))
+    jpeg_quality: int = param(90, 'JPEG quality of keyframes/image/compressed when the frame came raw', min=10,
+                              max=100)
     health_max_lost: float = param(0.2, 'health: WARN above this share of the last health_window keyframes '
                                         'coming after an unbridged break (ERROR above 0.5)', min=0.0, max=1.0)
 
@@ -76,6 +95,8 @@ class TrackerNode(Node):
         super().__init__('tracker_node', **node_kwargs)
         self.params = p = declare(self, TrackerNodeParams, overrides)
         self.diag = Diagnostics(self)
+        for k, v in limit_threads(p.cv_threads, p.blas_threads).items():
+            self.diag.set(k, v)
         self.tracker = Tracker(None, TrackerParams(**{k: getattr(p, k) for k in TrackerParams.__dataclass_fields__}))
         self._camera_from_file = None
         if p.calibration_file:
@@ -95,6 +116,7 @@ class TrackerNode(Node):
 
         kf_qos = QoSProfile(depth=p.keyframe_qos_depth, reliability=ReliabilityPolicy.RELIABLE)
         self.pub_image = self.create_publisher(Image, 'keyframes/image', kf_qos)
+        self.pub_image_full = self.create_publisher(CompressedImage, 'keyframes/image/compressed', kf_qos)
         self.pub_features = self.create_publisher(PointCloud2, 'keyframes/features', kf_qos)
         self.pub_fix = self.create_publisher(NavSatFix, 'keyframes/fix', kf_qos)
         self.pub_debug = self.create_publisher(Image, 'tracker/debug_image', 2) if p.publish_debug_image else None
@@ -108,6 +130,9 @@ class TrackerNode(Node):
         # needs for its interpolation.
         self.create_subscription(NavSatFix, p.fix_topic, self._on_fix,
                                  QoSProfile(depth=200, reliability=ReliabilityPolicy.RELIABLE))
+        # The compressed frames the tracker was given, by stamp, until their keyframe is published (or a newer
+        # keyframe is): a keyframe's image is decoded from them at its reduction, never at full size.
+        self._encoded: OrderedDict[int, EncodedImage] = OrderedDict()
         self._kf_out: deque = deque()          # (keyframe, frame_id) waiting for the publisher thread
         self._kf_busy = False
         self._kf_cond = threading.Condition()
@@ -235,7 +260,12 @@ class TrackerNode(Node):
         if (self.params.decode_reduced and hasattr(msg, 'format') and 'jp' in msg.format.lower()
                 and cam is not None and max(cam.width, cam.height) > self.params.track_max_px):
             self.diag.count('frames_decoded_reduced')
-            return EncodedImage(bytes(msg.data))
+            enc = EncodedImage(bytes(msg.data))
+            with self._kf_cond:
+                self._encoded[msgs.ns_from_time(msg.header.stamp)] = enc
+                while len(self._encoded) > MAX_ENCODED_KEPT:
+                    self._encoded.popitem(last=False)
+            return enc
         return msgs.image_from_msg(msg)
 
     # --- keyframes out ---------------------------------------------------------------------------
@@ -284,27 +314,72 @@ class TrackerNode(Node):
                 self._kf_cond.wait(min(left, 0.1))
         return True
 
-    def _detect_targets(self, kf):
+    def image_reduction(self) -> int:
+        """The reduction of the keyframe images on keyframes/image (keyframe_image_reduction, or the GSD's)."""
+        cam = self.tracker.camera
+        r = self.params.keyframe_image_reduction
+        return r if r or cam is None else gsd.keyframe_reduction(cam.width, cam.height)
+
+    def _encoded_of(self, stamp_ns: int) -> EncodedImage | None:
+        """The compressed frame of a keyframe (and the older ones forgotten: keyframes go out in order)."""
+        with self._kf_cond:
+            enc = self._encoded.pop(stamp_ns, None)
+            while self._encoded and next(iter(self._encoded)) < stamp_ns:
+                self._encoded.popitem(last=False)
+        return enc
+
+    def _keyframe_images(self, kf, reduction: int):
+        """(the image for keyframes/image at `reduction`, the full-resolution JPEG bytes or None when not reduced,
+        the target rows or None). A compressed keyframe is decoded at the reduction only (and in grey for its
+        targets); a raw one is reduced with INTER_AREA and encoded once. PhotogramError if undecodable."""
+        import cv2
+        cam = self.tracker.camera
+        enc = self._encoded_of(kf.stamp_ns)
+        t0 = time.perf_counter()
+        if enc is not None:
+            image = msgs.decode_reduced(enc.data, reduction)
+            size = cam.scaled(1.0 / reduction)
+            image = image[:size.height, :size.width]   # libjpeg rounds the reduced size up
+            jpeg = enc.data if reduction > 1 else None
+            targets = self._targets(detect_keyframe_targets_encoded, enc.data, cam)
+        else:
+            if reduction > 1:   # a raw frame, or a compressed one forgotten (MAX_ENCODED_KEPT) while it waited
+                self.diag.count('keyframe_images_reduced_from_full')
+            full = kf.image
+            targets = self._targets(detect_keyframe_targets, full, cam)
+            image, jpeg = full, None
+            if reduction > 1:
+                size = cam.scaled(1.0 / reduction)
+                image = cv2.resize(full, (size.width, size.height), interpolation=cv2.INTER_AREA)
+                ok, buf = cv2.imencode('.jpg', full, [cv2.IMWRITE_JPEG_QUALITY, self.params.jpeg_quality])
+                jpeg = buf if ok else None
+        self.diag.set('keyframe_images_ms', (time.perf_counter() - t0) * 1e3)   # decodes and target search
+        return image, jpeg, targets
+
+    def _targets(self, detect, image, cam):
         if not self.params.detect_targets:
             return None
         t0 = time.perf_counter()
-        targets = detect_keyframe_targets(kf.image, self.tracker.camera, self.params.target_dictionary)
+        targets = detect(image, cam, self.params.target_dictionary)
         self.diag.set('target_detection_ms', (time.perf_counter() - t0) * 1e3)
         self.diag.count('targets_detected', len(targets))
         return targets
 
     def _publish_keyframe(self, kf, frame_id: str) -> None:
         t0 = time.perf_counter()
+        reduction = self.image_reduction()
         try:
-            image = kf.image   # a compressed keyframe decodes here
+            image, jpeg, targets = self._keyframe_images(kf, reduction)
         except PhotogramError as exc:
             # Its features still go out: the adjustment needs them more than stereo needs the image.
             self.diag.count('keyframe_images_undecodable')
             self.diag.problem(f'keyframe {kf.index}: {exc}: its image is not published')
-            image = None
-        targets = self._detect_targets(kf) if image is not None else None
+            image = jpeg = targets = None
         if image is not None:
             self.pub_image.publish(msgs.image_msg(image, kf.stamp_ns, frame_id))
+            self.diag.set('keyframe_image_reduction', reduction)
+        if jpeg is not None:
+            self.pub_image_full.publish(msgs.compressed_msg_from_bytes(jpeg, kf.stamp_ns, frame_id))
         self.pub_features.publish(msgs.keyframe_features_msg(kf.observations, kf.stamp_ns, frame_id, targets))
         if kf.fix is not None:
             self.pub_fix.publish(msgs.navsatfix_from_gnss_fix(kf.fix))

@@ -2,7 +2,9 @@
 ortho tiles, the coverage and the origin of `map`, without ROS.
 
 In (plain methods): `set_origin` (the georeference), `add_cloud` (a pair cloud in `map`: x, y, z and
-optionally rgb, confidence), `add_image` (a keyframe image, saved as JPEG), `add_pose` (a keyframe's
+optionally rgb, confidence), `add_image` (a keyframe image, saved as JPEG; one smaller than the camera, the
+copy reduced for stereo, only until `add_image_jpeg` brings the full-resolution JPEG, which is saved as it
+came and never replaced by a reduced one), `add_pose` (a keyframe's
 map_T_cam), `add_keyframe_fix` (its GNSS position: the track for the coverage), `add_sparse` (tie points:
 the ground under the keyframes), `set_camera` (the input calibration), `set_final_camera` (the camera a full
 adjustment's poses were adjusted with: it replaces the input calibration in the map folder), `set_control_points`
@@ -30,6 +32,7 @@ from photogram_ros.core import gsd
 from photogram_ros.core.coverage import COVERAGE, FORWARD_OVERLAP, NOT_ORIENTED, Coverage, CoverageConfig
 from photogram_ros.core.fusion import Fusion, FusionConfig, downsample, pack_rgb
 from photogram_ros.core.geodesy import LocalFrame
+from photogram_ros.core.pace import CpuShare
 from photogram_ros.errors import ConfigError, PhotogramError
 from photogram_ros.io.map_store import CAMERA_FINAL, CAMERA_INPUT, MapStore
 from photogram_ros.params import param
@@ -64,6 +67,10 @@ class MapParams(FusionConfig, CoverageConfig):
                                     'the finest not finer than this', min=0.01, max=1000.0)
     ortho_period_s: float = param(2.0, 'Period of map/ortho_tiles batches, s', min=0.05, max=3600.0)
     ortho_max_tiles: int = param(16, 'Most ortho tiles per batch; the rest follows next period', min=1, max=10000)
+    ortho_cpu_share: float = param(0.0, 'Share of one core the ortho tiles may take over 20 s (0: no limit); over '
+                                        'it a batch is deferred to a later period (ortho_batches_deferred), so the '
+                                        'pose chain keeps the pace; the tiles then show the newer map', min=0.0,
+                                   max=256.0)
     coverage: bool = param(True, 'Follow the survey coverage and its gaps (map/coverage, /diagnostics)')
     coverage_period_s: float = param(1.0, 'Period of the coverage update and of map/coverage, s',
                                      min=0.1, max=3600.0)
@@ -146,7 +153,10 @@ class MapStage:
         self._camera_saved = None     # (camera, its name in camera.json) last written
         self._camera_final = False    # a full adjustment's camera came: the input calibration no longer counts
         self._poses_pending: dict = {}
+        self._full_jpeg: set = set()       # stamps whose full-resolution JPEG is saved (add_image_jpeg)
+        self._images_saved: set = set()    # stamps with a saved image
         self._fuse_s = 0.0
+        self._ortho_share = CpuShare(p.ortho_cpu_share)
         self._closed = False
 
     # --- GSD-bound geometry ----------------------------------------------------------------------
@@ -249,18 +259,34 @@ class MapStage:
 
     def add_image(self, stamp_ns: int, load) -> None:
         """A keyframe image (`load` or `load()`: the (H, W[, 3]) array; a conversion may raise PhotogramError),
-        saved as JPEG."""
+        saved as JPEG, unless the full-resolution JPEG of that keyframe came already (add_image_jpeg)."""
+        if stamp_ns in self._full_jpeg:
+            return
         try:
             import cv2
             img = _value(load)
             ok, buf = cv2.imencode('.jpg', img, [cv2.IMWRITE_JPEG_QUALITY, self.params.jpeg_quality])
             if not ok:
                 raise ConfigError('JPEG encoding of a keyframe failed')
-            self._keyframes_unfused += 1
-            self.store.save_keyframe_image(stamp_ns, buf.tobytes())
-            self.diag.count('keyframes_saved')
+            self._save_image(stamp_ns, buf.tobytes())
         except (PhotogramError, OSError) as exc:
             self._write_failed('keyframe image not saved', exc)
+
+    def add_image_jpeg(self, stamp_ns: int, data: bytes) -> None:
+        """A keyframe's full-resolution JPEG (as the camera encoded it), saved as it is: it replaces a reduced
+        copy add_image saved, and no later add_image replaces it."""
+        try:
+            self._full_jpeg.add(stamp_ns)
+            self._save_image(stamp_ns, bytes(data))
+        except OSError as exc:
+            self._write_failed('keyframe image not saved', exc)
+
+    def _save_image(self, stamp_ns: int, jpeg: bytes) -> None:
+        self.store.save_keyframe_image(stamp_ns, jpeg)
+        if stamp_ns not in self._images_saved:
+            self._images_saved.add(stamp_ns)
+            self._keyframes_unfused += 1
+            self.diag.count('keyframes_saved')
 
     @_locked
     def add_pose(self, stamp: int, load) -> None:
@@ -439,6 +465,13 @@ class MapStage:
         """PNGs of the XYZ tiles the changed fusion tiles touch (kept for later while nobody is `listening`)."""
         if not self._ortho_pending or self.store.origin is None or not listening:
             return
+        if self._ortho_share.over():
+            self.diag.count('ortho_batches_deferred')
+            return
+        with self._ortho_share.measure():
+            self._render_ortho(now_ns)
+
+    def _render_ortho(self, now_ns: int) -> None:
         from photogram_ros.core.ortho_tiles import OrthoTiler
         p = self.params
         if self.ortho is None:
@@ -455,8 +488,9 @@ class MapStage:
         import cv2
         t0 = time.perf_counter()
         stamp = self._stamp_ns(now_ns)
+        colours: dict = {}   # each fusion tile's block colours, once per batch
         for t in batch:
-            img = self.ortho.render(t, self.fusion.tile_records)
+            img = self.ortho.render(t, self.fusion.tile_records, colours)
             if not img[..., 3].any():
                 continue
             ok, buf = cv2.imencode('.png', img, [cv2.IMWRITE_PNG_COMPRESSION, 6])
