@@ -34,6 +34,7 @@ from photogram_ros.core.fusion import Fusion, FusionConfig, downsample, pack_rgb
 from photogram_ros.core.geodesy import LocalFrame
 from photogram_ros.core.pace import CpuShare
 from photogram_ros.errors import ConfigError, PhotogramError
+from photogram_ros.io import flight_inputs
 from photogram_ros.io.map_store import CAMERA_FINAL, CAMERA_INPUT, MapStore
 from photogram_ros.params import param
 from photogram_ros.stages.report import ERROR, DiagnosticsLog
@@ -319,6 +320,11 @@ class MapStage:
         """A keyframe's GNSS position (NavSatStatus status; < 0: none): its place on the track for the coverage."""
         if status < 0:
             return
+        if self.params.save_keyframes:
+            try:   # the flight's own fixes, for the report's GNSS residuals per photo
+                flight_inputs.append_keyframe_fix(self.store.root, stamp_ns, lat_deg, lon_deg, h_m, status)
+            except OSError as exc:
+                self._write_failed('keyframe fix not saved', exc)
         if self.store.origin is None:   # the georeference comes later: kept until it does
             self._cov_fixes_early[stamp_ns] = (lat_deg, lon_deg, h_m)
             return
@@ -399,6 +405,8 @@ class MapStage:
             if (cam, name) != self._camera_saved:
                 self.store.save_camera(cam, name)
                 self._camera_saved = (cam, name)
+                if name == CAMERA_INPUT:   # the calibration the flight started with, for the report's before/after
+                    flight_inputs.save_input_camera(self.store.root, cam)
         except (PhotogramError, OSError) as exc:
             self._write_failed('camera info not saved', exc)
 
