@@ -114,12 +114,16 @@ class Block:
         return self.kfs[kid]
 
     def keyframes(self, last: int | None = None) -> list[Keyframe]:
-        """Every keyframe in arrival order (the newest `last` of them when given)."""
-        return list(self.kfs if last is None else self.kfs[-last:] if last > 0 else [])
+        """Every keyframe in arrival order (`kfs[-last:]` when `last` is given)."""
+        return list(self.kfs if last is None else self.kfs[-last:])
 
     def oriented(self, last: int | None = None) -> list[int]:
-        """Ids of the oriented keyframes in order of registration (the newest `last` of them when given)."""
-        return list(self.registered if last is None else self.registered[-last:] if last > 0 else [])
+        """Ids of the oriented keyframes in order of registration (`[-last:]` of them when `last` is given)."""
+        return list(self.registered if last is None else self.registered[-last:])
+
+    def last_oriented(self) -> Keyframe | None:
+        """The keyframe oriented last, None before the first."""
+        return self.kfs[self.registered[-1]] if self.registered else None
 
     def oriented_names(self) -> list[str]:
         return [self.kfs[k].name for k in self.registered]
@@ -159,9 +163,12 @@ class Block:
         """(M, 3) map ENU (m) of the tracker's tie points (no targets)."""
         return np.array([self.points[t] for t in self.points if t >= 0]).reshape(-1, 3)
 
-    def hot_track_ids(self) -> np.ndarray:
-        """Tracker track ids (>= 0) that oriented keyframes still observe in memory (the window and its margin)."""
-        return np.fromiter((t for t in self.track_kfs if t >= 0), np.int64)
+    def tie_point_ids(self, hot: bool = False) -> np.ndarray:
+        """(M,) int64 tracker track ids (>= 0) with a point, in the order they were made; `hot`: only the hot
+        tracks (those the window and its margin still observe: a bounded set on a long flight), in the order
+        they became hot."""
+        ids = np.fromiter((t for t in (self.track_kfs if hot else self.points) if t >= 0), np.int64)
+        return ids[self.points.contains_many(ids)] if len(ids) else ids
 
     def tie_names(self) -> list[str]:
         return sorted(self.ties)

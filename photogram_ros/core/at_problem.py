@@ -87,6 +87,10 @@ class BlockAdjustment:
         # The last stepwise self-calibration's selection (core/self_calibration.py), None when none was made.
         self.self_calibration: Selection | None = None
 
+    def solve_log(self) -> list[dict]:
+        """Every adjustment so far: {'iterations', 'status', 's'} (copies), oldest first."""
+        return [dict(s) for s in self.solves]
+
     def problem(self, free_kids: list[int], fixed_kids: list[int], tracks) -> BundleProblem | None:
         """The bundle problem of the adjuster's state that every adjustment solves.
 
@@ -161,7 +165,7 @@ class BlockAdjustment:
         if res.gnss_bias_enu_m is not None and res.status != 'failed':
             self.datum.bias_enu = self.datum.bias_enu + res.gnss_bias_enu_m
             if res.gnss_tilt is not None:
-                # The fixes' heights adjusted: less the tilt . (EN - centre); `_gnss_target` adds gnss_slope . (EN - centre).
+                # The fixes' heights adjusted: less the tilt . (EN - centre); `GnssDatum.target` adds gnss_slope . (EN - centre).
                 self.datum.slope = self.datum.slope - res.gnss_tilt
                 self.datum.tilt_estimated = True
         self.solves.append({'iterations': int(res.iterations), 'status': res.status,

@@ -28,6 +28,10 @@ class Segments:
         # Keyframes of a block before a break that its GNSS could not place, given up for the segment after it.
         self.unplaced = 0
 
+    def joins_made(self) -> list[dict]:
+        """Each segment that joined: {'keyframes', 'through' ('gnss' or 'mtp'), 'mtps'} (copies)."""
+        return [dict(j) for j in self.joins]
+
     def start(self, adjuster) -> None:
         """Grow the keyframes that follow in `adjuster`, a new segment."""
         self.current, self.kids = adjuster, []

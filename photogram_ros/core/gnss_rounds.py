@@ -70,6 +70,10 @@ class GnssRounds:
         # 'kept'} (empty when not made).
         self.tilt_test: dict = {}
 
+    def noise_estimate(self) -> dict:
+        """The last GNSS noise estimate (`estimate_noise`), a copy; empty when none was made."""
+        return dict(self.noise)
+
     def gate_fix(self, kf: Keyframe) -> bool:
         """A new keyframe oriented from the block's tie points, whose fix lies far beyond its sigma
         (and `gnss_gate_m`) from where the block puts it, keeps its fix out of the adjustment when the
@@ -134,7 +138,7 @@ class GnssRounds:
     def level_block(self, kids: list[int]) -> dict | None:
         """The block's tilt, from the fixes' heights and from the cameras looking down, each as good as
         it is: the slope of the fixes' heights across the block (what the GNSS says of the tilt) has the
-        uncertainty of their vertical scatter about a block that looks down (`_clipped_sigma`, at least 2 cm) over
+        uncertainty of their vertical scatter about a block that looks down (`clipped_sigma`, at least 2 cm) over
         their horizontal spread, as many independent heights as their correlation from photo to photo leaves; the mean optical axis of a nadir flight is vertical
         within `NADIR_PRIOR_DEG`. Their weighted mean is the tilt kept: the block is turned to it about
         its cameras' centre and the rest of the fixes' slope taken out of their heights (`gnss_slope`).
@@ -194,7 +198,7 @@ class GnssRounds:
         for the 7 datum parameters the fixes also carry; the vertical one against the fixes' own heights,
         their trend across the block included). Where it exceeds the stated sigmas by half again, the
         fixes are weighted by it and the block adjusted again, and the block's tilt is taken from the
-        fixes' heights and from its cameras looking down, each by its weight (`_level_block`), until both
+        fixes' heights and from its cameras looking down, each by its weight (`level_block`), until both
         settle; then a fix beyond `gnss_outlier_sigma` estimated sigmas (and 3 stated sigmas) is not used
         (at most a fifth of them) and the block adjusted once more. Returns (and keeps in `gnss_noise`) the
         stated and estimated sigmas (m), the scale factors, the names of the rejected fixes and, when the
@@ -254,7 +258,7 @@ class GnssRounds:
             self.datum.sigma_scale_hv = want
             self.adjustment.solve(list(self.block.registered), [], list(self.block.points), iters, refine)
         # Outliers: far beyond the noise the flight shows, and beyond what the fixes state. Fixes kept out in
-        # flight (`_gate_fix`, `_try_georeference`) are judged again against the adjusted block: a block that
+        # flight (`gate_fix`, IncrementalAT `_try_georeference`) are judged again against the adjusted block: a block that
         # drifted in flight may have put good fixes out.
         if out:
             kept = self.datum.residuals([k for k in self.block.registered if k not in self.datum.rejected])

@@ -624,7 +624,7 @@ class IncrementalAT:
         is on and the block is georeferenced for good); such a final adjustment refines the option
         `final_self_calibration` when refine_intrinsics is not given (stepwise when it is "auto");
         gnss_bias: estimate the GNSS bias (when the option is on and 3 GCPs make it observable);
-        tilt_test: with gnss_tilt "auto", test whether the tilt pays (`_tilt_tested`); else the last test's outcome
+        tilt_test: with gnss_tilt "auto", test whether the tilt pays (GnssRounds.tilt_tested); else the last test's outcome
         stands.
         """
         if not refine_intrinsics and gnss_noise:
