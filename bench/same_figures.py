@@ -2,7 +2,7 @@
 two checkouts (the base one given, this one), their report.json compared value by value (timings left out).
 
     PYTHONPATH=$PWD .venv/bin/python bench/same_figures.py --base /tmp/house-base \
-        --photos ../shared/data/photos/brighton_beach/images
+        --photos ../shared/data/photos/brighton_beach/images [--extra "--split-photos 8"]
 
 Writes one JSON line to bench/results/same_figures_<commit>.jsonl: the commit, whether the tree was clean, the
 machine and its load, the headline figures of each side, and every value that differs (none for a refactor).
@@ -54,10 +54,10 @@ def headline(rep: dict) -> dict:
             'check_rmse': ck, 'camera': rep.get('camera')}
 
 
-def triangulate(checkout: Path, photos: Path, out: Path) -> dict:
+def triangulate(checkout: Path, photos: Path, out: Path, extra: list) -> dict:
     env = dict(os.environ, PYTHONPATH=str(checkout))
     subprocess.run([str(checkout / '.venv' / 'bin' / 'photogram-ros'), 'triangulate', str(photos), '--out', str(out),
-                    '--quiet'], check=True, env=env, capture_output=True, text=True)
+                    '--quiet', *extra], check=True, env=env, capture_output=True, text=True)
     return json.loads((out / 'report.json').read_text())
 
 
@@ -65,25 +65,27 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split('\n')[0])
     ap.add_argument('--base', required=True, help='the checkout before the change (with its .venv)')
     ap.add_argument('--photos', required=True, help='a folder of geotagged photos')
+    ap.add_argument('--extra', default='', help='more triangulate arguments, e.g. "--split-photos 8" (split-merge)')
     a = ap.parse_args()
+    extra = a.extra.split()
     commit = subprocess.run(['git', 'rev-parse', '--short', 'HEAD'], cwd=ROOT, capture_output=True,
                             text=True).stdout.strip()
     base_commit = subprocess.run(['git', 'rev-parse', '--short', 'HEAD'], cwd=a.base, capture_output=True,
                                  text=True).stdout.strip()
     clean = not subprocess.run(['git', 'status', '--porcelain'], cwd=ROOT, capture_output=True, text=True).stdout
     row = {'bench': 'same_figures', 'commit': commit, 'base_commit': base_commit, 'clean_tree': clean,
-           'photos': str(a.photos), 'machine': machine_info(), 'load_avg_before': os.getloadavg(),
+           'photos': str(a.photos), 'extra': extra, 'machine': machine_info(), 'load_avg_before': os.getloadavg(),
            'time_utc': time.strftime('%Y-%m-%dT%H:%M:%SZ', time.gmtime())}
     with tempfile.TemporaryDirectory() as tmp:
-        before = triangulate(Path(a.base).resolve(), Path(a.photos).resolve(), Path(tmp) / 'before')
-        after = triangulate(ROOT, Path(a.photos).resolve(), Path(tmp) / 'after')
+        before = triangulate(Path(a.base).resolve(), Path(a.photos).resolve(), Path(tmp) / 'before', extra)
+        after = triangulate(ROOT, Path(a.photos).resolve(), Path(tmp) / 'after', extra)
     diffs = differences(before, after)
     row.update({'before': headline(before), 'after': headline(after), 'differences': diffs,
                 'identical': not diffs, 'load_avg_after': os.getloadavg()})
     out = HERE / 'results' / f'same_figures_{commit}.jsonl'
     with open(out, 'a') as f:
         f.write(json.dumps(row) + '\n')
-    print(f'{"identical" if not diffs else f"{len(diffs)} differences"} ({Path(a.photos).name}); wrote {out}')
+    print(f'{"identical" if not diffs else f"{len(diffs)} differences"} ({a.photos} {a.extra}); wrote {out}')
     for d in diffs[:20]:
         print(' ', d)
     return 0 if not diffs else 1
