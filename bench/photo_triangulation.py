@@ -31,7 +31,8 @@ sys.path.insert(0, str(ROOT))
 from bench.machine import machine_info  # noqa: E402
 from photogram_ros.core.geodesy import LocalFrame  # noqa: E402
 from photogram_ros.core.two_view import essential_ransac  # noqa: E402
-from photogram_ros.io.aerial_triangulation import TriangulateOptions, triangulate  # noqa: E402
+from photogram_ros.io.aerial_triangulation import TriangulateOptions  # noqa: E402
+from photogram_ros.io.triangulate_action import triangulate  # noqa: E402
 from photogram_ros.io.image_source import IMAGE_SUFFIXES, exif_intrinsics, image_file_problem  # noqa: E402
 from photogram_ros.io.photo_block import exif_position, read_photo_block  # noqa: E402
 

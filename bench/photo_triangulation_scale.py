@@ -41,7 +41,8 @@ sys.path.insert(0, str(ROOT))
 
 from bench.machine import machine_info  # noqa: E402
 from photogram_ros.core.split_merge import SplitMergeOptions  # noqa: E402
-from photogram_ros.io.aerial_triangulation import TriangulateOptions, triangulate  # noqa: E402
+from photogram_ros.io.aerial_triangulation import TriangulateOptions  # noqa: E402
+from photogram_ros.io.triangulate_action import triangulate  # noqa: E402
 from photogram_ros.io.dask_cluster import open_runner  # noqa: E402
 from photogram_ros.io.photo_block import read_photo_block  # noqa: E402
 

@@ -30,7 +30,8 @@ sys.path.insert(0, str(ROOT))
 from bench.photo_triangulation_scale import LEVER_ARM_CAM_M, simulated_photos  # noqa: E402
 from photogram_ros.core.geodesy import LocalFrame  # noqa: E402
 from photogram_ros.core.split_merge import SplitMergeOptions  # noqa: E402
-from photogram_ros.io.aerial_triangulation import TriangulateOptions, triangulate  # noqa: E402
+from photogram_ros.io.aerial_triangulation import TriangulateOptions  # noqa: E402
+from photogram_ros.io.triangulate_action import triangulate  # noqa: E402
 
 
 def cameras_against_truth(out: Path, truth: dict) -> dict:

@@ -1,4 +1,5 @@
-"""photogram_ros.core must import and work with no ROS package importable, and never import photogram_ros.io."""
+"""photogram_ros.core must import and work with no ROS package importable; the package's imports, drawn as a graph,
+point down the layers only (docs/architecture.md) and go round in no circle."""
 
 import ast
 import subprocess
@@ -39,24 +40,137 @@ def test_core_imports_without_ros():
     assert n_modules >= 4
 
 
-def _imports(path):
-    """Every module an import statement of the file names (module level or inside a function)."""
-    for node in ast.walk(ast.parse(path.read_text(), str(path))):
-        if isinstance(node, ast.Import):
-            yield from (a.name for a in node.names)
-        elif isinstance(node, ast.ImportFrom) and node.module:
-            yield node.module
-            yield from (f'{node.module}.{a.name}' for a in node.names)
+# The layers from the bottom (docs/architecture.md): a module may import its own layer and those below it only.
+# By the module's first name under photogram_ros ('' is the package's own __init__).
+LAYERS = [('', 'errors', 'params', 'package_files'), ('core',), ('msgs',), ('io',), ('sim',), ('stages',), ('web',), ('nodes',),
+          ('commands',), ('cli',)]
+LAYER = {name: i for i, names in enumerate(LAYERS) for name in names}
+# Circles left in the GNSS and photo readers, which another change reworks (one reader interface): each entry is
+# one circle exactly as it stands, to be deleted when it is gone; a module joining one, or any other circle, fails.
+KNOWN_CYCLES = [
+    # io/image_source.py reads a geo.txt beside the photos with io/photo_block.py's reader, which is built on it.
+    {'photogram_ros.io.image_source', 'photogram_ros.io.photo_block'},
+    # ... and with io/camera_events.py, which reads the photos' times through io/image_source.py.
+    {'photogram_ros.io.camera_events', 'photogram_ros.io.image_source', 'photogram_ros.io.photo_block'},
+    # io/trajectory_formats.py's registry imports its readers, which import its base from it.
+    {'photogram_ros.io.rtklib_pos', 'photogram_ros.io.trajectory_csv', 'photogram_ros.io.trajectory_formats',
+     'photogram_ros.io.trajectory_grafnav'},
+]
 
 
-def test_core_imports_nothing_from_io(tmp_path):
-    """core is the numerics under io (files, reports) and nodes: an import the other way round is a cycle
-    in the layering, even a lazy one inside a function."""
-    files = sorted((ROOT / 'photogram_ros' / 'core').rglob('*.py'))
-    assert len(files) >= 20
-    bad = [f'{f.relative_to(ROOT)}: {m}' for f in files for m in _imports(f)
-           if m == 'photogram_ros.io' or m.startswith('photogram_ros.io.')]
-    assert not bad, bad
-    lazy = tmp_path / 'lazy.py'   # the check sees a lazy import and `from photogram_ros import io`
-    lazy.write_text('def f():\n    from photogram_ros.io.report import Section\n    from photogram_ros import io\n')
-    assert {'photogram_ros.io.report', 'photogram_ros.io'} <= set(_imports(lazy))
+def _module_name(path) -> str:
+    rel = path.relative_to(ROOT).with_suffix('')
+    parts = list(rel.parts[:-1] if rel.name == '__init__' else rel.parts)
+    return '.'.join(parts)
+
+
+def import_graph() -> dict:
+    """{module: set of the package's modules it imports} over every .py under photogram_ros/, lazy imports inside
+    functions too: `from a.b import c` is an arrow to module a.b.c when that is a module, else to a.b; an import of
+    a module's own parent package (which Python runs first anyway) is no arrow."""
+    files = {_module_name(f): f for f in (ROOT / 'photogram_ros').rglob('*.py')}
+
+    def resolve(name):
+        while name and name not in files:
+            name = name.rpartition('.')[0]
+        return name or None
+
+    graph = {}
+    for mod, f in files.items():
+        out = set()
+        package = mod if f.name == '__init__.py' else mod.rpartition('.')[0]
+        for node in ast.walk(ast.parse(f.read_text(), str(f))):
+            if isinstance(node, ast.Import):
+                names = [a.name for a in node.names]
+            elif isinstance(node, ast.ImportFrom):
+                base = node.module or ''
+                if node.level:
+                    up = package.split('.')[:len(package.split('.')) - node.level + 1]
+                    base = '.'.join(up + ([base] if base else []))
+                names = [f'{base}.{a.name}' if f'{base}.{a.name}' in files else base for a in node.names]
+            else:
+                continue
+            for n in names:
+                t = resolve(n) if n.startswith('photogram_ros') else None
+                if t is not None and t != mod and not mod.startswith(t + '.'):
+                    out.add(t)
+        graph[mod] = out
+    return graph
+
+
+def _layer(mod: str) -> int:
+    parts = mod.split('.')
+    return LAYER[parts[1] if len(parts) > 1 else '']
+
+
+def _cycles(graph: dict) -> list[set]:
+    """The strongly connected components of more than one module (Tarjan, iterative)."""
+    index, low, on, stack, out, counter = {}, {}, set(), [], [], [0]
+    for root in graph:
+        if root in index:
+            continue
+        work = [(root, iter(sorted(graph[root])))]
+        index[root] = low[root] = counter[0]
+        counter[0] += 1
+        stack.append(root)
+        on.add(root)
+        while work:
+            v, it = work[-1]
+            w = next(it, None)
+            if w is not None:
+                if w not in index:
+                    index[w] = low[w] = counter[0]
+                    counter[0] += 1
+                    stack.append(w)
+                    on.add(w)
+                    work.append((w, iter(sorted(graph.get(w, ())))))
+                elif w in on:
+                    low[v] = min(low[v], index[w])
+                continue
+            work.pop()
+            if work:
+                low[work[-1][0]] = min(low[work[-1][0]], low[v])
+            if low[v] == index[v]:
+                comp = set()
+                while True:
+                    w = stack.pop()
+                    on.discard(w)
+                    comp.add(w)
+                    if w == v:
+                        break
+                if len(comp) > 1:
+                    out.append(comp)
+    return out
+
+
+def test_every_module_has_a_layer():
+    graph = import_graph()
+    assert len(graph) >= 100
+    unplaced = [m for m in graph if (m.split('.') + [''])[1] not in LAYER]
+    assert not unplaced, f'place these in LAYERS (and docs/architecture.md): {unplaced}'
+
+
+def test_no_import_arrow_points_up_the_layers():
+    graph = import_graph()
+    up = sorted(f'{m} -> {t}' for m, ts in graph.items() for t in ts if _layer(t) > _layer(m))
+    assert not up, up
+
+
+def test_no_import_cycle():
+    cycles = [c for c in _cycles(import_graph()) if c not in KNOWN_CYCLES]
+    assert not cycles, cycles
+
+
+def test_the_graph_sees_what_the_checks_need():
+    """The checks above could fail: a lazy arrow up and a circle of two are found."""
+    graph = {'photogram_ros.core.a': {'photogram_ros.io.b'}, 'photogram_ros.io.b': {'photogram_ros.core.a'},
+             'photogram_ros.io.c': set()}
+    assert _cycles(graph) == [{'photogram_ros.core.a', 'photogram_ros.io.b'}]
+    assert _layer('photogram_ros.io.b') > _layer('photogram_ros.core.a')
+    assert _layer('photogram_ros.cli') > _layer('photogram_ros.commands.run') > _layer('photogram_ros.nodes.graph')
+    real = import_graph()
+    assert 'photogram_ros.core.incremental' in real['photogram_ros.stages.adjustment']
+    assert 'photogram_ros.core.triangulation' in real['photogram_ros.core.bundle']   # a lazy import, in a function
+    # `from photogram_ros.core.bundle import losses` is an arrow to the submodule, not to its package.
+    assert 'photogram_ros.core.bundle.losses' in real['photogram_ros.core.bundle.solver']
+    assert 'photogram_ros.core.bundle' not in real['photogram_ros.core.bundle.solver']

@@ -12,7 +12,7 @@ import pytest
 
 from photogram_ros.core.block_check import BlockInputs, check_block, inputs_from_at
 from photogram_ros.core.gnss_fix import GnssFix
-from photogram_ros.core.incremental import _clipped_sigma
+from photogram_ros.core.gnss_rounds import clipped_sigma
 from photogram_ros.sim.observations import simulate_keyframes
 from photogram_ros.sim.scenario import build_world, preset
 
@@ -80,12 +80,12 @@ def test_clipped_sigma_keeps_a_wandering_spread_and_drops_glitches():
     rng = np.random.default_rng(3)
     x = rng.normal(0.0, 2.0, 2000)
     x[:100] += 80.0                                      # glitches: 5 %
-    assert _clipped_sigma(x) == pytest.approx(2.0, rel=0.08)
+    assert clipped_sigma(x) == pytest.approx(2.0, rel=0.08)
     # Two levels 20 m apart (a height that wandered and stayed): the spread is 10 m, the median absolute
     # deviation's sigma half again as much.
     y = np.concatenate([rng.normal(-10.0, 1.0, 1000), rng.normal(10.0, 1.0, 1000)])
     assert 1.4826 * np.median(np.abs(y)) > 14.0
-    assert _clipped_sigma(y) == pytest.approx(float(np.sqrt(np.mean(y ** 2))), rel=0.02)
+    assert clipped_sigma(y) == pytest.approx(float(np.sqrt(np.mean(y ** 2))), rel=0.02)
 
 
 def test_wandering_heights_do_not_tilt_the_block(world):

@@ -30,7 +30,8 @@ def flight(tmp_path_factory):
 
 
 def _triangulate(folder, out, camera=None):
-    from photogram_ros.io.aerial_triangulation import TriangulateOptions, triangulate
+    from photogram_ros.io.aerial_triangulation import TriangulateOptions
+    from photogram_ros.io.triangulate_action import triangulate
     names = sorted({ln.split()[6] for ln in (folder / 'gcp_list.txt').read_text().splitlines()[1:]})
     opt = TriangulateOptions(gcp=str(folder / 'gcp_list.txt'), check_names=tuple(names),
                              camera=str(camera) if camera else None)

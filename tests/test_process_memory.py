@@ -62,8 +62,8 @@ def test_environment_value_wins(monkeypatch, env, applied):
     else:
         monkeypatch.setenv('MALLOC_ARENA_MAX', env)
     calls = []
-    monkeypatch.setattr(pm.ctypes.util, 'find_library', lambda name: 'libc.so.6')
-    monkeypatch.setattr(pm.ctypes, 'CDLL', lambda name: _FakeLibc(calls))
+    monkeypatch.setattr(ctypes.util, 'find_library', lambda name: 'libc.so.6')
+    monkeypatch.setattr(ctypes, 'CDLL', lambda name: _FakeLibc(calls))
     assert pm.arena_cap() == applied
     assert limit_malloc_arenas() is True
     assert calls == [(pm.M_ARENA_MAX, applied)]     # a set, positive MALLOC_ARENA_MAX is what mallopt gets
@@ -72,7 +72,7 @@ def test_environment_value_wins(monkeypatch, env, applied):
 
 
 def test_no_glibc_is_a_polite_no(monkeypatch):
-    monkeypatch.setattr(pm.ctypes.util, 'find_library', lambda name: None)
+    monkeypatch.setattr(ctypes.util, 'find_library', lambda name: None)
     assert limit_malloc_arenas() is False
 
 
@@ -95,11 +95,11 @@ print(before - after)
 
 def test_reuse_freed_buffers_sets_both_thresholds(monkeypatch):
     calls = []
-    monkeypatch.setattr(pm.ctypes.util, 'find_library', lambda name: 'libc.so.6')
-    monkeypatch.setattr(pm.ctypes, 'CDLL', lambda name: _FakeLibc(calls))
+    monkeypatch.setattr(ctypes.util, 'find_library', lambda name: 'libc.so.6')
+    monkeypatch.setattr(ctypes, 'CDLL', lambda name: _FakeLibc(calls))
     assert pm.reuse_freed_buffers() is True
     assert calls == [(pm.M_MMAP_THRESHOLD, 32 << 20), (pm.M_TRIM_THRESHOLD, 64 << 20)]
-    monkeypatch.setattr(pm.ctypes.util, 'find_library', lambda name: None)
+    monkeypatch.setattr(ctypes.util, 'find_library', lambda name: None)
     assert pm.reuse_freed_buffers() is False
 
 

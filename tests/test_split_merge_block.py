@@ -1,4 +1,4 @@
-"""io/aerial_triangulation.py split_merge_block on a synthetic block (no images): the sub-blocks' adjustments are
+"""io/split_merge_action.py split_merge_block on a synthetic block (no images): the sub-blocks' adjustments are
 stood in for by a runner that returns each sub-block as its own adjustment would leave it (moved and bent: see
 test_split_merge.py), then the merge, the global adjustment after it, the block check and the outputs run as in
 `triangulate`. Also the merged block as the result when the global adjustment is off or fails, and a failed
@@ -9,11 +9,12 @@ import json
 import numpy as np
 import pytest
 
-import photogram_ros.io.aerial_triangulation as atm
+import photogram_ros.io.split_merge_action as atm
 from photogram_ros.core.block_check import BlockInputs
 from photogram_ros.core.split_merge import SplitMergeOptions, partition
 from photogram_ros.errors import DataError
-from photogram_ros.io.aerial_triangulation import SubBlockRun, TriangulateOptions, split_merge_block
+from photogram_ros.io.aerial_triangulation import TriangulateOptions
+from photogram_ros.io.split_merge_action import SubBlockRun, split_merge_block
 from photogram_ros.io.keyframe_block import KeyframeBlock
 from test_split_merge import _deformed_sub_blocks, _moves, _observed_block
 
@@ -147,11 +148,11 @@ def _stepwise(*kept):
 def test_the_global_adjustment_holds_the_distortion_the_sub_blocks_chose(block, tmp_path, monkeypatch):
     """Every sub-block selected its self-calibration stepwise: the global adjustment refines the base terms and
     holds the distortion at the sub-blocks' mean camera, with no trials of its own."""
-    from photogram_ros.core.incremental import IncrementalAT
+    from photogram_ros.core.at_problem import BlockAdjustment
 
     def no_trials(*a, **k):
         raise AssertionError('the global adjustment ran a stepwise selection of its own')
-    monkeypatch.setattr(IncrementalAT, 'select_self_calibration', no_trials)
+    monkeypatch.setattr(BlockAdjustment, 'select_self_calibration', no_trials)
     res = _adjust(block, tmp_path, selections=[_stepwise('k1'), _stepwise()])
     g = res.report['split_merge']['global_adjustment']
     assert g['refine_chosen_by'] == 'sub_blocks' and not {'k1', 'k2'} & set(g['refine'])
@@ -169,7 +170,7 @@ def test_without_every_sub_blocks_selection_the_global_adjustment_selects_its_ow
 
 def test_sub_blocks_selection_refines_the_base_terms_only():
     from types import SimpleNamespace
-    from photogram_ros.io.aerial_triangulation import sub_blocks_selection
+    from photogram_ros.io.split_merge_action import sub_blocks_selection
 
     def runs(*sels):
         return [SimpleNamespace(report={} if s is None else {'self_calibration_selection': s}) for s in sels]

@@ -1,4 +1,4 @@
-"""`triangulate PHOTOS` with split-merge (io/aerial_triangulation.py split_merge_block): the merged block
+"""`triangulate PHOTOS` with split-merge (io/split_merge_action.py split_merge_block): the merged block
 against the single block of the same simulated survey, in this process and on a `dask scheduler` + 2
 `dask worker` processes started here on 127.0.0.1."""
 
@@ -9,7 +9,8 @@ import pytest
 from photogram_ros.cli import main
 from photogram_ros.core.split_merge import SplitMergeOptions
 from photogram_ros.errors import ConfigError
-from photogram_ros.io.aerial_triangulation import TriangulateOptions, triangulate
+from photogram_ros.io.aerial_triangulation import TriangulateOptions
+from photogram_ros.io.triangulate_action import triangulate
 from photogram_ros.params import from_dict
 from photogram_ros.sim.scenario import preset, simulate
 from test_photo_dask import scheduler_and_two_workers

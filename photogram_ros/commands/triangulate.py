@@ -65,31 +65,14 @@ def add_arguments(p) -> None:
     p.add_argument('--quiet', action='store_true', help='no progress lines (on stderr; warnings are still said)')
 
 
-def _bag_without_metadata(path) -> bool:
-    """A bag that triangulate() would not take for one: a rosbag2 folder without its metadata.yaml (what a
-    recording cut short leaves; bag-info and replay read it from its storage file) or a bare .db3 / .mcap
-    / ROS 1 .bag file."""
+def _is_bag(path) -> bool:
+    """A flight bag: a rosbag2 folder (with its metadata.yaml, or without, as a recording cut short leaves it) or a
+    bare .db3 / .mcap / ROS 1 .bag file."""
     from pathlib import Path
 
     from photogram_ros.nodes.replay_session import source_kind
     p = Path(path)
-    return p.exists() and source_kind(p) == 'bag' and not (p / 'metadata.yaml').exists()
-
-
-def _triangulate_bag(src, out, opt, log, progress):
-    """triangulate()'s bag path for a bag without metadata.yaml (see _bag_without_metadata)."""
-    import time
-
-    from photogram_ros.io.aerial_triangulation import adjust_block
-    from photogram_ros.io.bag_keyframes import read_bag_keyframes
-    from photogram_ros.io.control_file import read_control_file
-    opt.check()
-    t0 = time.monotonic()
-    control_set = read_control_file(opt.targets, opt.check_names) if opt.targets else None
-    block = read_bag_keyframes(src, opt.camera, control_set, log)
-    if opt.exif_altitude:
-        block.assumptions.append(f'--exif-altitude {opt.exif_altitude} ignored: a bag has no EXIF')
-    return adjust_block(block, out, opt, control_set, log, t0, progress)
+    return p.exists() and source_kind(p) == 'bag'
 
 
 def run(a) -> int:
@@ -98,7 +81,8 @@ def run(a) -> int:
     from photogram_ros.core.control import ControlVettingOptions
     from photogram_ros.core.photo_matching import MatchingOptions
     from photogram_ros.core.split_merge import SplitMergeOptions
-    from photogram_ros.io.aerial_triangulation import TriangulateOptions, triangulate
+    from photogram_ros.io.aerial_triangulation import TriangulateOptions
+    from photogram_ros.io.triangulate_action import triangulate
     from photogram_ros.params import floats, from_dict
 
     cal = a.self_calibrate.strip().lower()
@@ -122,8 +106,7 @@ def run(a) -> int:
     opt.check()
     usable_folder(a.out)   # a file or an uncreatable path: said now, not after the adjustment
     log = (lambda text: print(text, file=sys.stderr))
-    res = (_triangulate_bag(a.input, a.out, opt, log, not a.quiet) if _bag_without_metadata(a.input)
-           else triangulate(a.input, a.out, opt, log=log, progress=not a.quiet))
+    res = triangulate(a.input, a.out, opt, log=log, progress=not a.quiet, bag=_is_bag(a.input))
     rep = res.report
     ck = rep['check']['rmse']
     rms = rep['reprojection_rms_px']

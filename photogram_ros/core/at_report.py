@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from photogram_ros.core.at_geometry import intersect_point, reprojection_residuals_px
 from photogram_ros.core.bundle import BundleOptions, bundle_adjust
 from photogram_ros.core.evaluation import ce90_le90
 
@@ -43,12 +44,12 @@ def _per_image(at, residuals: list | None = None) -> list[dict]:
     without a finite residual has none (None) and says why; points behind its camera are counted."""
     gres = at.gnss_residuals()
     out = []
-    for k in at.registered:
-        kf = at.kfs[k]
-        m = kf.active & np.array([int(t) in at.points for t in kf.track_ids], bool)
+    for k in at.block.oriented():
+        kf = at.block.keyframe(k)
+        m = kf.active & np.array([at.block.has_point(int(t)) for t in kf.track_ids], bool)
         rms, note, behind = None, '', 0
         if m.any():
-            X = np.array([at.points[int(t)] for t in kf.track_ids[m]])
+            X = np.array([at.block.point(int(t)) for t in kf.track_ids[m]])
             e = at.reprojection_px(kf.map_T_cam, X, kf.uv[m])
             fin = np.isfinite(e)
             behind = int((~fin).sum())
@@ -108,16 +109,15 @@ def redundancy_notes(gcps: list[dict]) -> list[str]:
 def _check_points(at, vetting) -> list[dict]:
     """Check points intersected from the adjusted cameras: from the rows the vetting kept (by photo name),
     else from every observation of the target."""
-    from photogram_ros.core.incremental import intersect_point
     out = []
-    poses = {at.kfs[k].name: at.kfs[k].map_T_cam for k in at.registered}
-    for name, c in at.control.items():
+    poses = at.block.poses_by_name()
+    for name, c in at.block.control_points().items():
         if vetting is not None:
             p = vetting.points.get(name)
             if p is None or p.role != 'check':
                 continue
             rows = [f.row for f in vetting.rows if f.fate == 'used' and f.row.name == name and f.row.image in poses]
-            hit = (intersect_point(at.camera, np.array([poses[r.image] for r in rows]),
+            hit = (intersect_point(at.block.camera, np.array([poses[r.image] for r in rows]),
                                    np.array([r.uv for r in rows], float)) if len(rows) >= 2 else None)
         elif c.role == 'gcp' and at.opt.use_gcps:
             continue
@@ -135,10 +135,9 @@ def _gcp_points(at, vetting) -> list[dict]:
     (as a check point), `adjusted_point_residual_m` and `adjusted_point_reprojection_rms_px` of the
     adjusted point (held near its survey by its prior): rays that disagree with the survey show as the
     latter RMS, in px, and as the former residual, in m."""
-    from photogram_ros.core.incremental import intersect_point, reprojection_residuals_px
     gcps = []
     uses = {n: p.use for n, p in vetting.points.items()} if vetting is not None else {}
-    for name, c in at.control.items():
+    for name, c in at.block.control_points().items():
         if uses.get(name) == 'unused':
             p = vetting.points[name]
             gcps.append({'name': name, 'use': 'unused', 'reason': p.reason, 'residual_m': None, 'images': 0,
@@ -149,15 +148,15 @@ def _gcp_points(at, vetting) -> list[dict]:
         use = uses.get(name, 'full')
         tid = at.target_track(name)
         hit = None
-        if tid is not None and tid in at.points:
+        if tid is not None and at.block.has_point(tid):
             Ts, uv = at.observations_of(tid)
-            hit = intersect_point(at.camera, np.array(Ts), uv) if len(Ts) >= 2 else None
+            hit = intersect_point(at.block.camera, np.array(Ts), uv) if len(Ts) >= 2 else None
         if hit is not None:
             # Intersected from the adjusted cameras, as a check point: the adjusted point itself sits on its
             # prior even when its rays disagree with it (a robust loss gives up on them), a 0.0 cm lie.
             X, n, rms = hit
-            X_adj = np.asarray(at.points[tid], float)
-            r_adj = reprojection_residuals_px(at.camera, np.array(Ts), uv, X_adj)
+            X_adj = np.asarray(at.block.point(tid), float)
+            r_adj = reprojection_residuals_px(at.block.camera, np.array(Ts), uv, X_adj)
             g = {'name': name, 'use': use, 'residual_m': (X - c.map_xyz).tolist(), 'images': n,
                  'reprojection_rms_px': rms, 'adjusted_point_residual_m': (X_adj - c.map_xyz).tolist(),
                  'adjusted_point_reprojection_rms_px': float(np.sqrt(np.mean(np.sum(r_adj ** 2, axis=1)))),
@@ -177,14 +176,14 @@ def tie_points(at) -> list[dict]:
     it was marked, the reprojection residual (adjusted point projected minus the mark, px), whether the
     observation took part in the adjustment, and the RMS over its photos."""
     out = []
-    names = {kf.name: k for k, kf in ((k, at.kfs[k]) for k in at.registered)}
-    for name in sorted(at.ties):
+    names = set(at.block.oriented_names())
+    for name in at.block.tie_names():
         tid = at.target_track(name)
         if tid is None:
             continue
-        X = np.asarray(at.points[tid], float) if tid in at.points else None
+        X = np.asarray(at.block.point(tid), float) if at.block.has_point(tid) else None
         photos = []
-        for kf in at.kfs:
+        for kf in at.block.keyframes():
             i = kf.index(tid)
             if i is None:
                 continue
@@ -194,7 +193,7 @@ def tie_points(at) -> list[dict]:
                 T = kf.map_T_cam
                 pc = (X - T[:3, 3]) @ T[:3, :3]
                 if pc[2] > 1e-9:
-                    d = at.camera.normalized_to_pixel((pc[:2] / pc[2])[None])[0] - kf.uv[i]
+                    d = at.block.camera.normalized_to_pixel((pc[:2] / pc[2])[None])[0] - kf.uv[i]
                     row['residual_px'] = [float(v) for v in d]
                     row['residual_norm_px'] = float(np.hypot(*d))
             photos.append(row)
@@ -227,12 +226,12 @@ def build_report(at, assumptions: list[str] | None = None, gsd_m: float | None =
         'origin': at.origin.to_dict() if at.origin is not None else None,
         'frame': 'map: ENU at origin (x east, y north, z up), m; heights ellipsoidal',
         'georeferenced': bool(at.georeferenced),
-        'keyframes': len(at.kfs), 'registered': len(at.registered), 'points': len(at.points),
+        'keyframes': at.block.n_keyframes, 'registered': at.block.n_oriented, 'points': at.block.n_points,
         'observations': int(sum(nobs)),
-        'camera': {'width': at.camera.width, 'height': at.camera.height, 'fx': at.camera.fx, 'fy': at.camera.fy,
-                   'cx': at.camera.cx, 'cy': at.camera.cy, 'dist': list(at.camera.dist)},
+        'camera': {'width': at.block.camera.width, 'height': at.block.camera.height, 'fx': at.block.camera.fx, 'fy': at.block.camera.fy,
+                   'cx': at.block.camera.cx, 'cy': at.block.camera.cy, 'dist': list(at.block.camera.dist)},
         'reprojection_rms_px': total_rms,
-        'gnss': {'rmse': gnss_figures(gres), 'estimated_bias_enu_m': at.gnss_bias_enu.tolist()},
+        'gnss': {'rmse': gnss_figures(gres), 'estimated_bias_enu_m': at.datum.bias_enu.tolist()},
         'gcp': {'points': gcps, 'rmse': _rmse_gcps(gcps), 'redundancy': redundancy_notes(gcps) if gcps else []},
         'check': {'points': checks, 'rmse': rmse_xyz(np.array([c['residual_m'] for c in checks])),
                   'ce90_le90': ce90_le90(np.array([c['residual_m'] for c in checks]))},
@@ -288,7 +287,7 @@ def intrinsics_sigma(at, refine: tuple) -> dict:
     weight) and 'height_correlation' (name -> correlation with the block's height: mean camera height minus
     mean tie-point height), or {} when the block has no datum or nothing to adjust.
     """
-    kids, tracks = list(at.registered), list(at.points)
+    kids, tracks = at.block.oriented(), at.block.point_ids()
     if not refine or not kids or not tracks:
         return {}
     prob = at.problem(kids, [], tracks)
@@ -296,7 +295,7 @@ def intrinsics_sigma(at, refine: tuple) -> dict:
         return {}
     res = bundle_adjust(prob, BundleOptions(loss=at.opt.loss, loss_scale_px=at.opt.loss_scale_px,
                                             max_iterations=0, refine_intrinsics=tuple(refine),
-                                            compute_covariance=True, gnss_bias_free=at.gnss_bias_estimated))
+                                            compute_covariance=True, gnss_bias_free=at.datum.bias_estimated))
     sig = res.intrinsics_sigma()
     if sig and res.variance_factor is not None:
         sig['s0_px'] = float(np.sqrt(res.variance_factor))
@@ -325,15 +324,15 @@ def focal_determination(at, sig: dict) -> dict:
     c = sig.get('height_correlation', {}).get('f')
     if c is None or 'f' not in sig:
         return {}
-    kids = [k for k in at.registered if at.kfs[k].map_T_cam is not None]
-    axis_z = np.array([at.kfs[k].map_T_cam[2, 2] for k in kids])
+    kids = [k for k in at.block.oriented() if at.block.keyframe(k).map_T_cam is not None]
+    axis_z = np.array([at.block.keyframe(k).map_T_cam[2, 2] for k in kids])
     tilt = np.degrees(np.arccos(np.clip(-axis_z, -1.0, 1.0)))
     tilt95 = float(np.percentile(tilt, 95)) if len(tilt) else float('nan')
-    sv = [float(np.sqrt(at.kfs[k].fix_cov[2, 2])) for k in kids if at.kfs[k].fix_cov is not None]
+    sv = [float(np.sqrt(at.block.keyframe(k).fix_cov[2, 2])) for k in kids if at.block.keyframe(k).fix_cov is not None]
     sigma_v = float(np.median(sv)) if sv else float('inf')
     gcps = int(at.control_summary().get('gcps_used', 0))
     nadir = tilt95 < NADIR_TILT_DEG and gcps < MIN_GCP_HEIGHTS
-    rel = sig['f'] / max(float(at.camera.fx), 1e-9)
+    rel = sig['f'] / max(float(at.block.camera.fx), 1e-9)
     out = {'height_correlation': float(c), 'sigma_relative': float(rel), 'tilt_p95_deg': tilt95,
            'gnss_sigma_v_m': sigma_v, 'gcps_with_heights': gcps}
     if nadir and sigma_v >= LOOSE_GNSS_SIGMA_V_M:
@@ -359,10 +358,10 @@ def convergence(at, status: str, more_iterations: int = 5) -> dict | None:
     """How far from converged an adjustment that stopped at its iteration limit is: `more_iterations`
     further iterations from its result (not applied), their relative cost decrease (the first one's: the
     stopped adjustment's next step) and the largest camera move; None when it converged."""
-    if status != 'max_iterations' or not at.registered:
+    if status != 'max_iterations' or not at.block.n_oriented:
         return None
-    kids = list(at.registered)
-    prob = at.problem(kids, [], list(at.points))
+    kids = at.block.oriented()
+    prob = at.problem(kids, [], at.block.point_ids())
     if prob is None:
         return None
     res = bundle_adjust(prob, BundleOptions(loss=at.opt.loss, loss_scale_px=at.opt.loss_scale_px,

@@ -275,7 +275,7 @@ class Keyframe:
                  antenna_offset=None):
         self.kid, self.stamp_ns, self.name = kid, stamp_ns, name
         self.fix_enu, self.fix_cov, self.map_T_cam, self.antenna_offset = fix_enu, fix_cov, map_T_cam, antenna_offset
-        self.reg_seq = -1          # position in IncrementalAT.registered, -1 while not registered
+        self.reg_seq = -1          # position in Block.registered (core/at_block.py), -1 while not registered
         nonneg = track_ids[track_ids >= 0]
         self.id_lo = int(nonneg.min()) if len(nonneg) else 0
         self.id_hi = int(nonneg.max()) if len(nonneg) else -1

@@ -19,6 +19,7 @@ from dataclasses import dataclass, field, replace
 import cv2
 import numpy as np
 
+from photogram_ros.core.at_geometry import consensus, row_residuals
 from photogram_ros.core.camera import PinholeCamera
 from photogram_ros.core.evaluation import detect_targets
 from photogram_ros.core.geodesy import LocalFrame
@@ -320,58 +321,6 @@ class ControlVetting:
                 'height_suspect': self.height_suspect, 'faults': list(self.notes)}
 
 
-def _row_residuals(camera: PinholeCamera, Ts: np.ndarray, uv: np.ndarray, X: np.ndarray):
-    """Reprojection distance (px) of X in each camera, and the same on the ground (m, px * depth / f)."""
-    pc = np.einsum('nji,nj->ni', Ts[:, :3, :3], X[None] - Ts[:, :3, 3])
-    z = pc[:, 2]
-    ok = z > 1e-6
-    e = np.full(len(uv), np.inf)
-    if ok.any():
-        e[ok] = np.linalg.norm(camera.normalized_to_pixel(pc[ok, :2] / z[ok, None]) - uv[ok], axis=1)
-    return e, np.where(ok, e * np.abs(z) / camera.fx, np.inf)
-
-
-def _consensus(camera: PinholeCamera, Ts: np.ndarray, uv: np.ndarray, thr_px: float):
-    """The largest set of rows that agree on one point (every pair tried): (X, inlier mask) or (None, none)."""
-    from photogram_ros.core.incremental import intersect_point
-    n = len(uv)
-    best, best_key = None, None
-    for i in range(n):
-        for j in range(i + 1, n):
-            hit = intersect_point(camera, Ts[[i, j]], uv[[i, j]])
-            if hit is None:
-                continue
-            e, _ = _row_residuals(camera, Ts, uv, hit[0])
-            inl = e <= thr_px
-            key = (int(inl.sum()), -float(np.sum(np.minimum(e, thr_px))))
-            if inl[i] and inl[j] and (best_key is None or key > best_key):
-                best, best_key = inl, key
-    if best is None:
-        return None, np.zeros(n, bool)
-    hit = intersect_point(camera, Ts[best], uv[best])
-    if hit is None:
-        return None, np.zeros(n, bool)
-    X = hit[0]
-    e, _ = _row_residuals(camera, Ts, uv, X)
-    inl = e <= thr_px
-    if inl.sum() >= 2 and not np.array_equal(inl, best):
-        hit = intersect_point(camera, Ts[inl], uv[inl])
-        X = hit[0] if hit is not None else X
-    return X, inl if inl.sum() >= 2 else best
-
-
-def robust_intersection(camera: PinholeCamera, map_T_cams: np.ndarray, uv: np.ndarray, max_px: float):
-    """A point from its observations when some may be wrong: (xyz, n used, RMS px) of the largest set of
-    observations within max_px of one point (every pair tried when all of them do not agree), or None."""
-    from photogram_ros.core.incremental import intersect_point
-    Ts, uv = np.asarray(map_T_cams, float).reshape(-1, 4, 4), np.asarray(uv, float).reshape(-1, 2)
-    got = intersect_point(camera, Ts, uv) if len(uv) >= 2 else None
-    if got is not None and np.all(_row_residuals(camera, Ts, uv, got[0])[0] <= max_px):
-        return got
-    X, inl = _consensus(camera, Ts, uv, max_px) if len(uv) >= 3 else (None, None)
-    return None if X is None else intersect_point(camera, Ts[inl], uv[inl])
-
-
 def _ray_on_plane(camera: PinholeCamera, T: np.ndarray, uv: np.ndarray, z0: float) -> np.ndarray | None:
     d = T[:3, :3] @ np.append(camera.pixel_to_normalized(np.asarray(uv, float)[None])[0], 1.0)
     if abs(d[2]) < 1e-9:
@@ -423,9 +372,9 @@ def vet_control(camera: PinholeCamera, poses: dict, images: set, rows: list[Cont
         points[name] = p
         Ts = np.array([poses[f.row.image] for f in cand]).reshape(-1, 4, 4)
         uv = np.array([f.row.uv for f in cand], float).reshape(-1, 2)
-        X, inl = _consensus(camera, Ts, uv, opt.max_row_residual_px) if len(cand) >= 2 else (None, np.zeros(0, bool))
+        X, inl = consensus(camera, Ts, uv, opt.max_row_residual_px) if len(cand) >= 2 else (None, np.zeros(0, bool))
         if X is not None:
-            e, em = _row_residuals(camera, Ts, uv, X)
+            e, em = row_residuals(camera, Ts, uv, X)
             for f, ei, emi, ok in zip(cand, e, em, inl):
                 f.residual_px, f.residual_m = float(ei), float(emi)
                 if not ok:

@@ -43,7 +43,8 @@ import numpy as np
 
 from photogram_ros.core.control import (ControlRow, ControlVetting, ControlVettingOptions, unchecked_vetting,
                                         vet_control)
-from photogram_ros.core.incremental import ControlPoint, IncrementalAT
+from photogram_ros.core.at_block import ControlPoint
+from photogram_ros.core.incremental import IncrementalAT
 from photogram_ros.params import param
 
 
@@ -100,7 +101,7 @@ class LiveControl:
         pending = [n for n in self.surveyed if n not in self.vetting.points and n in self._obs]
         if not pending or (weak and not final):
             return []
-        registered = set(at.registered)
+        registered = set(at.block.oriented())
         need = 1 if final else self.opt.control_min_keyframes
         seen = {n: self.observations(n, registered) for n in pending}
         due = [n for n in pending if len(seen[n]) >= need]
@@ -109,18 +110,18 @@ class LiveControl:
         rows, kid_of = [], {}
         for n in due:
             for k, uv in seen[n]:
-                rows.append(ControlRow(0, at.kfs[k].name, n, uv))
-                kid_of[at.kfs[k].name] = k
-        poses = {name: at.kfs[k].map_T_cam for name, k in kid_of.items()}
+                rows.append(ControlRow(0, at.block.keyframe(k).name, n, uv))
+                kid_of[at.block.keyframe(k).name] = k
+        poses = {name: at.block.keyframe(k).map_T_cam for name, k in kid_of.items()}
         if weak:
             # The flight ends without a GNSS-only block that could judge the control (it never turned: the
             # roll about its line is an assumption that only the GCPs can fix). Take them as given.
             why = ('the block has no georeference from its GNSS' if not at.georeferenced else
                    'the flight never turned, so the GNSS leaves the roll about its line undetermined')
-            later = unchecked_vetting(at.camera, poses, set(poses), rows, [self.surveyed[n] for n in due], why,
+            later = unchecked_vetting(at.block.camera, poses, set(poses), rows, [self.surveyed[n] for n in due], why,
                                       self.file_heights)
         else:
-            later = vet_control(at.camera, poses, set(poses), rows, [self.surveyed[n] for n in due],
+            later = vet_control(at.block.camera, poses, set(poses), rows, [self.surveyed[n] for n in due],
                                 at.fix_sigma_enu_m(), _ground_near(at, [self.surveyed[n].map_xyz for n in due]),
                                 self.file_heights, self.opt, detected=True)
         new = self.vetting.merge(later, self.file_heights, self.opt)
@@ -151,11 +152,10 @@ class LiveControl:
 def _ground_near(at: IncrementalAT, xyz_m: list, radius_m: float = 50.0) -> np.ndarray:
     """(N, 3) tie points of the hot tracks (those the window still sees) near the given points: the
     ground under a target seen once."""
-    ids = np.fromiter((t for t in at.track_kfs if t >= 0), np.int64)
-    ids = ids[at.points.contains_many(ids)] if len(ids) else ids
+    ids = at.block.tie_point_ids(hot=True)
     if not len(ids):
         return np.zeros((0, 3))
-    P = at.points.get_many(ids).reshape(-1, 3)
+    P = at.block.points_of(ids).reshape(-1, 3)
     near = np.zeros(len(P), bool)
     for x in xyz_m:
         near |= np.hypot(P[:, 0] - x[0], P[:, 1] - x[1]) < radius_m

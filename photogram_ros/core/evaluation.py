@@ -13,6 +13,7 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
+from photogram_ros.core.at_geometry import reprojection_residuals_px, robust_intersection
 from photogram_ros.core.camera import PinholeCamera
 
 
@@ -186,7 +187,6 @@ def intersection_dop(camera: PinholeCamera, map_T_cams: np.ndarray, uv: np.ndarr
     px in the cameras map_T_cams (N, 4, 4, camera to map): its standard deviation, in ground pixels (the rays'
     mean depth over the focal length), for one pixel of detection noise per axis; horizontal is the 2D one
     (sqrt of the east and north variances summed). inf when the rays do not fix the point."""
-    from photogram_ros.core.incremental import reprojection_residuals_px
     Ts, uv, X = np.asarray(map_T_cams, float).reshape(-1, 4, 4), np.asarray(uv, float).reshape(-1, 2), np.asarray(X_map, float)
     r0 = reprojection_residuals_px(camera, Ts, uv, X).ravel()
     step = 1e-4 * max(1.0, float(np.linalg.norm(X - Ts[:, :3, 3].mean(axis=0))))
@@ -210,13 +210,11 @@ def intersect_targets(camera: PinholeCamera, map_T_cams: np.ndarray, observation
 
     map_T_cams: (N, 4, 4) the posed images; observations: key -> [(image index, (u, v) px)] of the target's
     detections; surveyed: key -> (name, (3,) surveyed xyz in map). A target is intersected robustly
-    (core.control.robust_intersection: the largest set of its detections within max_px of one point, the
+    (core.at_geometry.robust_intersection: the largest set of its detections within max_px of one point, the
     point refined on them); one with fewer than two detections, or none that agree, is listed as missing; one whose
     detections in use fix it with a dilution of precision above max_dop (`intersection_dop`, either axis) is
     listed as weak: its residual would measure its own intersection's noise, not the block.
     Returns PointResiduals in the order of `surveyed`, with the detections used and their RMS (px)."""
-    from photogram_ros.core.control import robust_intersection
-    from photogram_ros.core.incremental import reprojection_residuals_px
     Ts = np.asarray(map_T_cams, float).reshape(-1, 4, 4)
     names, est, sur, views, rms, missing, weak = [], [], [], [], [], [], []
     for key, (name, xyz) in surveyed.items():

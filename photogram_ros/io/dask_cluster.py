@@ -76,7 +76,7 @@ def _single_threaded(fn, *args):
     MALLOC_TRIM_THRESHOLD_ set, which makes glibc map and unmap every buffer over 128 KiB."""
     import cv2
 
-    from photogram_ros.nodes.process_memory import reuse_freed_buffers
+    from photogram_ros.io.malloc_thresholds import reuse_freed_buffers
     cv2.setNumThreads(1)
     reuse_freed_buffers()
     return fn(*args)

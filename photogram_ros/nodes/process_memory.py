@@ -11,27 +11,19 @@ their heavy work outside malloc's locks, so the cap costs no measurable speed.
 
 from __future__ import annotations
 
-import ctypes
-import ctypes.util
 import os
 
-M_TRIM_THRESHOLD = -1     # mallopt parameter numbers, glibc's malloc.h
-M_MMAP_THRESHOLD = -3
+from photogram_ros.io.malloc_thresholds import (M_MMAP_THRESHOLD, M_TRIM_THRESHOLD, MMAP_THRESHOLD_BYTES,
+                                                TRIM_THRESHOLD_BYTES, reuse_freed_buffers)
+from photogram_ros.io.malloc_thresholds import libc as _libc
+
+# What this module offers; the malloc thresholds come from io/malloc_thresholds.py.
+__all__ = ['DEFAULT_ARENAS', 'M_ARENA_MAX', 'M_MMAP_THRESHOLD', 'M_TRIM_THRESHOLD', 'MMAP_THRESHOLD_BYTES',
+           'TRIM_THRESHOLD_BYTES', 'arena_cap', 'limit_malloc_arenas', 'reuse_freed_buffers', 'start_heap_trimmer',
+           'trim_heap']
+
 M_ARENA_MAX = -8
 DEFAULT_ARENAS = 2
-MMAP_THRESHOLD_BYTES = 32 << 20   # glibc's own ceiling for its sliding mmap threshold on 64-bit
-TRIM_THRESHOLD_BYTES = 2 * MMAP_THRESHOLD_BYTES
-
-
-def _libc():
-    """glibc as a ctypes library, or None (no C library found, or not one ctypes can load)."""
-    name = ctypes.util.find_library('c')
-    if not name:
-        return None
-    try:
-        return ctypes.CDLL(name)
-    except OSError:
-        return None
 
 
 def arena_cap(arenas: int | None = None) -> int:
@@ -54,26 +46,6 @@ def limit_malloc_arenas(arenas: int | None = None) -> bool:
     try:
         return libc is not None and bool(libc.mallopt(M_ARENA_MAX, arenas))
     except AttributeError:              # musl or another libc without mallopt
-        return False
-
-
-def reuse_freed_buffers(mmap_threshold_bytes: int = MMAP_THRESHOLD_BYTES,
-                        trim_threshold_bytes: int = TRIM_THRESHOLD_BYTES) -> bool:
-    """Serve buffers under `mmap_threshold_bytes` from malloc's heap and give the heap's top back to the
-    system only past `trim_threshold_bytes` (glibc mallopt); False without glibc.
-
-    glibc slides its mmap threshold up to 32 MiB as large buffers are freed, so a loop of numpy
-    temporaries reuses the same heap memory. Setting any threshold (MALLOC_TRIM_THRESHOLD_ in the
-    environment, as Dask's nanny does for its workers) freezes the mmap threshold at 128 KiB: every
-    temporary over it is then mapped, zeroed page by page and unmapped again (1.6 MB temporaries in a
-    loop ran 7x slower, most of it kernel time). This sets both thresholds where glibc's sliding one
-    ends up.
-    """
-    libc = _libc()
-    try:
-        return (libc is not None and bool(libc.mallopt(M_MMAP_THRESHOLD, int(mmap_threshold_bytes)))
-                and bool(libc.mallopt(M_TRIM_THRESHOLD, int(trim_threshold_bytes))))
-    except AttributeError:
         return False
 
 

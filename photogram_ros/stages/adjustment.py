@@ -27,18 +27,18 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from photogram_ros.core.at_report import convergence, redundancy_notes
+from photogram_ros.core.at_report import convergence
 from photogram_ros.core.attitude import AttitudeHistory, antenna_offset_enu
 from photogram_ros.core.block_check import BlockCheckOptions, check_block, inputs_from_at
 from photogram_ros.core.control import TARGET_DTYPE, ControlSet
 from photogram_ros.core.control_live import LiveControl, LiveControlOptions
-from photogram_ros.core.evaluation import ce90_le90, intersect_targets
 from photogram_ros.core.geodesy import LocalFrame
 from photogram_ros.core.gnss_fix import COV_UNKNOWN, STATUS_GBAS_FIX, STATUS_SBAS_FIX, GnssFix
 from photogram_ros.core.incremental import IncrementalAT, IncrementalOptions, KeyframeRecord
-from photogram_ros.core.survey_quality import BLOCK_ADJUSTED, BLOCK_IN_FLIGHT, FIX_CLASSES, fix_class, rmse
+from photogram_ros.core.survey_quality import FIX_CLASSES, fix_class
 from photogram_ros.errors import PhotogramError
 from photogram_ros.params import param
+from photogram_ros.stages.live_quality import live_quality
 from photogram_ros.stages.report import ERROR, OK, WARN, DiagnosticsLog  # noqa: F401  (OK: for callers)
 
 
@@ -479,10 +479,10 @@ class AdjustmentStage:
         self._control_to_map()
         self._fix_classes[fix_class(rec.fix)] += 1
         self._health(rep)
-        if self.live is not None and rec.target_uv and self.at.kfs and self.at.kfs[-1].stamp_ns == rec.stamp_ns:
+        if self.live is not None and rec.target_uv and self.at.block.n_keyframes and self.at.block.keyframe(-1).stamp_ns == rec.stamp_ns:
             # The live accuracy reads these instead of the keyframes' observation tables, which a long
             # flight keeps on disk (reading them would thaw every keyframe).
-            self.live.observe(len(self.at.kfs) - 1, rec.target_uv)
+            self.live.observe(self.at.block.n_keyframes - 1, rec.target_uv)
         self._vet_control()
         if self.at.unplaced_keyframes > self._unplaced:
             n, self._unplaced = self.at.unplaced_keyframes - self._unplaced, self.at.unplaced_keyframes
@@ -519,7 +519,7 @@ class AdjustmentStage:
         else:
             # A segment that joined (core/incremental.py: the flight after every track was lost) is published
             # whole: its keyframes had no pose until now.
-            self._publish(window=self.at.registered[-(max(self.p.window_size, rep.joined) + earlier):],
+            self._publish(window=self.at.block.oriented(last=max(self.p.window_size, rep.joined) + earlier),
                           new=1 + earlier)
 
     def _report(self, rep) -> None:
@@ -531,7 +531,7 @@ class AdjustmentStage:
         d.set('reprojection_rms_px', float(rep.reprojection_rms_px))
         d.set('gnss_residual_rms_m', float(rep.gnss_rms_m))
         d.set('window_size', rep.window_size)
-        d.set('points', len(self.at.points))
+        d.set('points', self.at.block.n_points)
         self._set_georeferenced()
         self._control_diagnostics()
         self._since_quality += 1
@@ -551,19 +551,19 @@ class AdjustmentStage:
         at = self.at
         if rep is not None and not rep.registered:
             self._last_failure = rep.status
-        recent = at.kfs[-self.p.health_window:]
+        recent = at.block.keyframes(last=self.p.health_window)
         n_bad = sum(kf.map_T_cam is None for kf in recent)
-        self.diag.set('keyframes_registered', len(at.registered))
-        self.diag.set('keyframes_registered_share', len(at.registered) / max(len(at.kfs), 1))
+        self.diag.set('keyframes_registered', at.block.n_oriented)
+        self.diag.set('keyframes_registered_share', at.block.n_oriented / max(at.block.n_keyframes, 1))
         share = n_bad / max(len(recent), 1)
         if len(recent) >= min(5, self.p.health_window) and share > self.p.health_max_unoriented:
             self.diag.problem(f'{n_bad} of the last {len(recent)} keyframes are not oriented (last reason: '
                               f'{self._last_failure})', ERROR if share > 0.5 else WARN)
-        if at.georeferenced and not at.georef_provisional and len(at.registered) % 10 == 0:
+        if at.georeferenced and not at.georef_provisional and at.block.n_oriented % 10 == 0:
             self._block_check()
-        with_fix = sum(kf.fix_enu is not None for kf in at.kfs)
+        with_fix = sum(kf.fix_enu is not None for kf in at.block.keyframes())
         if not at.georeferenced and with_fix >= self.p.georef_warn_keyframes:
-            why = (f'{len(at.registered)} keyframes oriented' if at.registered else 'no keyframe oriented yet')
+            why = (f'{at.block.n_oriented} keyframes oriented' if at.block.n_oriented else 'no keyframe oriented yet')
             self.diag.problem(f'no georeference after {with_fix} keyframes with a GNSS fix ({why}; the fixes must '
                               'spread beyond their noise, and the block must be oriented)',
                               ERROR if with_fix >= 2 * self.p.georef_warn_keyframes else WARN)
@@ -595,90 +595,14 @@ class AdjustmentStage:
         for use in ('horizontal', 'unused'):
             names = [t.name for t in self.control.targets if t.role == 'gcp' and self.live.use_of(t.name) == use]
             self.diag.set(f'gcps_{"horizontal_only" if use == "horizontal" else "rejected"}_names', ','.join(names))
-        self.diag.set('gnss_bias_enu_m', ' '.join(f'{v:.3f}' for v in self.at.gnss_bias_enu))
+        self.diag.set('gnss_bias_enu_m', ' '.join(f'{v:.3f}' for v in self.at.datum.bias_enu))
 
     # --- live quality -----------------------------------------------------------------------------
 
-    def _target_rows(self, role: str) -> tuple[list[dict], list[dict]]:
-        """Surveyed targets of one role seen so far, intersected from the adjusted cameras over the oriented
-        keyframes that saw them (core.evaluation.intersect_targets, as the flight report does; a GCP too, not
-        its adjusted point, which its own prior holds); residual = estimate - survey, map ENU, m. The
-        detections are those `_detections` hands out, which the report intersects again by the same method.
-        Returns (rows, weak): weak lists those intersected too weakly to count ({'name', 'views', 'dop_h',
-        'dop_v'})."""
-        at = self.at
-        registered = set(at.registered)
-        if role == 'gcp' and not at.georeferenced:
-            return [], []
-        targets, obs, surveyed = {}, {}, {}
-        for t in self.control.targets:
-            cp, use = self.live.surveyed.get(t.name), self.live.use_of(t.name)
-            if cp is None or t.role != role or (role == 'gcp' and use not in ('full', 'horizontal')):
-                continue
-            targets[t.name], surveyed[t.name] = (t, use), (t.name, cp.map_xyz)
-            obs[t.name] = self.live.observations(t.name, registered)
-        kids = sorted({k for o in obs.values() for k, _ in o})
-        col = {k: j for j, k in enumerate(kids)}
-        res = intersect_targets(at.camera, np.array([at.kfs[k].map_T_cam for k in kids]).reshape(-1, 4, 4),
-                                {n: [(col[k], uv) for k, uv in o] for n, o in obs.items()}, surveyed,
-                                self.p.max_row_residual_px)
-        rows = []
-        for name, r, n_images, rms_px in zip(res.names, res.residuals, res.n_views, res.rms_px):
-            t, use = targets[name]
-            rows.append({'name': t.name, 'marker_id': t.marker_id, 'lat_deg': t.lat_deg, 'lon_deg': t.lon_deg,
-                         'h_m': t.h_m, 'residual_enu_m': [float(v) for v in r], 'images': int(n_images),
-                         'rms_px': None if not np.isfinite(rms_px) else float(rms_px), 'use': use})
-        return rows, res.weak
-
-    def _detections(self) -> dict:
-        """{target name: [[stamp_ns, u, v], ...]} of every surveyed target in the oriented keyframes (the
-        detections vetting did not reject), whatever its use: the map folder keeps them and the flight report
-        intersects them as the live accuracy does (a GCP left out too, to show how far off it is)."""
-        registered = set(self.at.registered)
-        out = {}
-        for t in self.control.targets:
-            obs = self.live.observations(t.name, registered)
-            if obs:
-                out[t.name] = [[int(self.at.kfs[k].stamp_ns), float(uv[0]), float(uv[1])] for k, uv in obs]
-        return out
-
     def quality(self) -> dict:
-        """The live accuracy figures (map/control_points)."""
-        n = sum(self._fix_classes.values())
-        at = self.at
-        out = {'keyframes': n, 'fix_share': {c: (v / n if n else None) for c, v in self._fix_classes.items()},
-               'georeference': ('none' if at is None or not at.georeferenced else
-                                'provisional' if at.georef_provisional else 'final'),
-               'block': BLOCK_ADJUSTED if self._adjusted_whole else BLOCK_IN_FLIGHT,
-               'check_points': [], 'gcps': [], 'check_rmse': None, 'gcp_rmse': None, 'gnss_bias_enu_m': None,
-               'max_row_residual_px': self.p.max_row_residual_px}
-        if self.control is not None and self.at is not None and self.at.origin is not None:
-            out['check_points'], out['check_points_weak'] = self._target_rows('check')
-            out['gcps'], out['gcps_weak'] = self._target_rows('gcp')
-            checks = [r['residual_enu_m'] for r in out['check_points']]
-            out['check_rmse'] = rmse(checks)
-            out['check_ce90_le90'] = ce90_le90(checks)
-            out['gcp_rmse'] = self._gcp_rmse(out['gcps'])
-            out['gcp_redundancy'] = redundancy_notes([{'name': r['name'], 'images': r['images'],
-                                                       'residual_m': r['residual_enu_m']} for r in out['gcps']])
-            if len(out['gcps']) >= 3 and self.at.gnss_bias_estimated:
-                out['gnss_bias_enu_m'] = [float(v) for v in self.at.gnss_bias_enu]
-            for k in ('check_rmse', 'gcp_rmse'):
-                if not out[k]['count']:
-                    out[k] = {'horizontal_m': None, 'vertical_m': None, 'count': 0}
-            out['control'] = self.live.to_dict()
-            out['detections'] = self._detections()
-        return out
-
-    @staticmethod
-    def _gcp_rmse(gcps: list[dict]) -> dict:
-        """GCP residual RMSE; the vertical over the GCPs used in height only (None without one): the height
-        of a GCP used horizontally is not the survey's, its residual there means nothing."""
-        out = rmse([r['residual_enu_m'] for r in gcps])
-        full = rmse([r['residual_enu_m'] for r in gcps if r['use'] == 'full'])
-        out['count_vertical'] = full['count']
-        out['vertical_m'] = full['vertical_m'] if full['count'] else None
-        return out
+        """The live accuracy figures (map/control_points): stages/live_quality.py `live_quality`."""
+        return live_quality(self.at, self.control, self.live, self._fix_classes, self._adjusted_whole,
+                            self.p.max_row_residual_px)
 
     def publish_quality(self) -> None:
         """The live quality document out, its figures on diagnostics."""
@@ -690,7 +614,8 @@ class AdjustmentStage:
         except Exception as exc:   # figures must never stop the adjustment
             self.diag.problem(f'live accuracy failed: {type(exc).__name__}: {exc}')
             return
-        stamp = self.at.kfs[self.at.registered[-1]].stamp_ns if self.at.registered else 0
+        last = self.at.block.last_oriented()
+        stamp = last.stamp_ns if last is not None else 0
         self.out.quality({'stamp_ns': stamp, **q})
         for c, v in q['fix_share'].items():
             if v is not None:
@@ -708,24 +633,24 @@ class AdjustmentStage:
         """Every pose (an adjustment moved them all), after the camera they were adjusted with when a full
         adjustment of the pass refined the lens (pass_self_calibration): the stereo node matches with it."""
         self._block_moved = False
-        if self.at.camera != self._camera_sent:
-            self._camera_sent = self.at.camera
-            self.out.camera(self.at.camera, stamp_ns)
-        self._publish(window=list(self.at.registered), new=new)
+        if self.at.block.camera != self._camera_sent:
+            self._camera_sent = self.at.block.camera
+            self.out.camera(self.at.block.camera, stamp_ns)
+        self._publish(window=self.at.block.oriented(), new=new)
 
     def _publish(self, window, new: int = 1) -> None:
         """Poses of `window`, the path, and the sparse cloud once `new` keyframes make cloud_every."""
         at = self.at
         if not self._georef_sent and at.origin is not None:
             o = at.origin
-            self.out.georeference(o.lat_deg, o.lon_deg, o.h_m, at.kfs[window[-1]].stamp_ns)
+            self.out.georeference(o.lat_deg, o.lon_deg, o.h_m, at.block.keyframe(window[-1]).stamp_ns)
             self._georef_sent = True
         centre_cov = self._centre_covariances(window)
-        self.out.poses([(at.kfs[k].map_T_cam, at.kfs[k].stamp_ns, pose_covariance(at.kfs[k], centre_cov.get(k)))
-                        for k in window])
-        stamp = at.kfs[window[-1]].stamp_ns
-        self.out.path([at.kfs[k].map_T_cam for k in at.registered], [at.kfs[k].stamp_ns for k in at.registered],
-                      stamp)
+        kfs = [at.block.keyframe(k) for k in window]
+        self.out.poses([(kf.map_T_cam, kf.stamp_ns, pose_covariance(kf, centre_cov.get(kf.kid))) for kf in kfs])
+        stamp = at.block.keyframe(window[-1]).stamp_ns
+        path = [at.block.keyframe(k) for k in at.block.oriented()]
+        self.out.path([kf.map_T_cam for kf in path], [kf.stamp_ns for kf in path], stamp)
         self._n_since_cloud += new
         if self._n_since_cloud >= self.p.cloud_every:
             self._n_since_cloud = 0
@@ -758,16 +683,14 @@ class AdjustmentStage:
         return self._centre_cov
 
     def publish_cloud(self, stamp_ns: int) -> None:
-        if not self.at.points:
+        if not self.at.block.n_points:
             return
-        # Hot tracks are those the window and its margin still observe (core/incremental.py): a bounded
+        # Hot tracks are those the window and its margin still observe (core/at_block.py): a bounded
         # set on a long flight, where the whole block would grow the message (and DDS's buffers) with it.
-        source = self.at.track_kfs if self.p.cloud_recent_only else self.at.points
-        ids = np.fromiter((t for t in source if t >= 0), np.int64)
-        ids = ids[self.at.points.contains_many(ids)]
+        ids = self.at.block.tie_point_ids(hot=self.p.cloud_recent_only)
         if not len(ids):
             return
-        self.out.cloud(self.at.points.get_many(ids), stamp_ns, ids)
+        self.out.cloud(self.at.block.points_of(ids), stamp_ns, ids)
 
     # --- end of flight ----------------------------------------------------------------------------
 
@@ -786,7 +709,7 @@ class AdjustmentStage:
                     recs.append(self._record(stamp, ids, uv, self._match_fix(stamp), target_uv))
             for rec in recs:
                 process(rec)
-            if self.at.registered:
+            if self.at.block.n_oriented:
                 try:
                     n = self.at.retry_unregistered()
                     if n:
@@ -806,13 +729,13 @@ class AdjustmentStage:
             return out
 
     def _full_adjustment(self) -> AdjustmentOutcome:
-        if self.at is None or not self.at.registered:
+        if self.at is None or not self.at.block.n_oriented:
             return AdjustmentOutcome('none', 'no keyframe was oriented')
         try:
             t0 = time.perf_counter()
             rep = self.at.full_adjustment()
             if rep.status == 'failed':
-                raise PhotogramError(f'the solver failed ({len(self.at.registered)} keyframes)')
+                raise PhotogramError(f'the solver failed ({self.at.block.n_oriented} keyframes)')
             self.diag.set('full_adjustment_s', time.perf_counter() - t0)
             self.diag.set('full_adjustment_rms_px', float(rep.reprojection_rms_px))
             self.diag.set('full_adjustment_status', rep.status)
@@ -833,10 +756,10 @@ class AdjustmentStage:
             if self.at.georeferenced:
                 # The camera first: whoever matches the keyframes with these poses needs the intrinsics they
                 # were adjusted with (a self-calibration changes them).
-                self._camera_sent = self.at.camera
-                self.out.camera(self.at.camera, self.at.kfs[self.at.registered[-1]].stamp_ns)
-                self._publish(window=list(self.at.registered), new=0)
-                self.publish_cloud(self.at.kfs[self.at.registered[-1]].stamp_ns)
+                self._camera_sent = self.at.block.camera
+                self.out.camera(self.at.block.camera, self.at.block.last_oriented().stamp_ns)
+                self._publish(window=self.at.block.oriented(), new=0)
+                self.publish_cloud(self.at.block.last_oriented().stamp_ns)
             self.diag.count('full_adjustments')   # after publishing: a waiting caller gets the poses
             return AdjustmentOutcome('done', rep.status)
         except Exception as exc:

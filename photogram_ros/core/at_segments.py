@@ -1,0 +1,122 @@
+"""Segments: the flight after every track was lost.
+
+Keyframes that share no tie point with the block (a long gap in the frames) start a block of their own, a segment
+(an adjuster of its own in the same map frame, core/incremental.py), which joins the block through the manual tie
+points both have (a similarity fitted to three or more, a shift to one or two) or else through its GNSS once that
+georeferences it. `Segments` holds the segment being grown, the block's ids of its keyframes, and the joins made.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from photogram_ros.core.at_store import Keyframe
+from photogram_ros.core.similarity import spread
+
+
+class Segments:
+    """The segments of `block` (core/at_block.py)."""
+
+    def __init__(self, block):
+        self.block = block
+        # The segment's adjuster (an IncrementalAT) and the block's ids of its keyframes (in order).
+        self.current = None
+        self.kids: list[int] = []
+        self.joined = 0
+        # Each segment that joined: its keyframes and how ('gnss', or 'mtp' with the tie points used).
+        self.joins: list[dict] = []
+        # Keyframes of a block before a break that its GNSS could not place, given up for the segment after it.
+        self.unplaced = 0
+
+    def joins_made(self) -> list[dict]:
+        """Each segment that joined: {'keyframes', 'through' ('gnss' or 'mtp'), 'mtps'} (copies)."""
+        return [dict(j) for j in self.joins]
+
+    def start(self, adjuster) -> None:
+        """Grow the keyframes that follow in `adjuster`, a new segment."""
+        self.current, self.kids = adjuster, []
+
+    def wanted(self, kf: Keyframe) -> bool:
+        """A keyframe with a fix that shares no track with the block (no point, no observation in an oriented
+        keyframe): the tracker lost every track. One that shares tracks waits for them to become points."""
+        if not self.block.opt.segments or not self.block.registered or kf.fix_enu is None:
+            return False
+        if self.current is not None:
+            return True
+        ids = kf.track_ids[kf.track_ids >= 0]
+        return not (self.block.points.contains_many(ids).any() or any(int(t) in self.block.track_kfs for t in ids))
+
+    def shared_ties(self) -> list[tuple[np.ndarray, np.ndarray]]:
+        """(segment point, block point) of the manual tie points both have triangulated (map frame)."""
+        seg = self.current
+        if seg is None or not self.block.ties:
+            return []
+        out = []
+        for name in sorted(self.block.ties):
+            a, b = seg.block.target_ids.get(name), self.block.target_ids.get(name)
+            if a is not None and b is not None and a in seg.block.points and b in self.block.points:
+                out.append((np.asarray(seg.block.points[a], float), np.asarray(self.block.points[b], float)))
+        return out
+
+    def ties_fit(self):
+        """(similarity segment -> block, manual tie points used, whether it is a full similarity): a
+        similarity from three or more shared MTPs that span an area (not on a line), else a shift from
+        their offsets (the segment's own georeference then gives the rotation and scale); None without."""
+        from photogram_ros.core.similarity import Similarity, umeyama
+        pairs = self.shared_ties()
+        if not pairs:
+            return None, 0, False
+        src = np.array([p for p, _ in pairs])
+        dst = np.array([q for _, q in pairs])
+        sv = spread(src)
+        if len(pairs) >= 3 and sv[1] >= 0.2 * sv[0] > 0:
+            return umeyama(src, dst), len(pairs), True
+        return Similarity(1.0, np.eye(3), np.median(dst - src, axis=0)), len(pairs), False
+
+    def can_join(self) -> bool:
+        """The block is georeferenced and the segment is too (by its GNSS), or shares manual tie points that
+        place it alone (three or more spanning an area)."""
+        seg = self.current
+        if seg is None or not seg.block.registered or not self.block.georeferenced:
+            return False
+        return seg.block.georeferenced or self.ties_fit()[2]
+
+    def move_onto_ties(self) -> int:
+        """Move the segment (poses and points) onto the block through the manual tie points both have
+        (`ties_fit`). Returns how many were used."""
+        s, n, full = self.ties_fit()
+        seg = self.current
+        if s is None or not (full or seg.block.georeferenced):
+            return 0
+        for k in seg.block.registered:
+            seg.block.kfs[k].map_T_cam = s.apply_pose(seg.block.kfs[k].map_T_cam)
+        ids, P = seg.block.points.arrays()
+        if len(ids):
+            seg.block.points.set_many(ids, s.apply(P))
+        seg.block.georeferenced = True
+        return n
+
+    def join(self) -> int:
+        """Move the segment's oriented keyframes and points into the block (through the manual tie points
+        both share, when there are any, else through its GNSS); returns how many joined."""
+        n_ties = self.move_onto_ties()
+        seg, kids = self.current, self.kids
+        self.current, self.kids = None, []
+        for s_kid in seg.block.registered:
+            kf, skf = self.block.kfs[kids[s_kid]], seg.block.kfs[s_kid]
+            kf.map_T_cam = np.asarray(skf.map_T_cam, float).copy()
+            # The segment's outliers, by tracker id (its target ids are numbered on their own).
+            dropped = skf.track_ids[~skf.active]
+            kf.active[np.isin(kf.track_ids, dropped[dropped >= 0])] = False
+            self.block.enrol(kf)
+        ids, P = seg.block.points.arrays()
+        # Tracker ids only: the segment numbers its targets on its own; the block triangulates them below.
+        new = (~self.block.points.contains_many(ids) & (ids >= 0)) if len(ids) else np.zeros(0, bool)
+        if new.any():
+            self.block.points.set_many(ids[new], P[new])
+        self.block.retriangulate_ties()
+        self.joined += 1
+        self.joins.append({'keyframes': len(seg.block.registered), 'through': 'mtp' if n_ties else 'gnss',
+                           'mtps': n_ties})
+        return len(seg.block.registered)
+
