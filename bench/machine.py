@@ -1,7 +1,26 @@
-"""The machine's figures, printed beside every benchmark result (absolute times mean little here)."""
+"""The machine's figures, and the one writer of benchmark result files.
 
+Every bench writes its results through `ResultWriter`: JSON lines, each carrying the exact commit the
+code was at (`commit`, 40 hex digits), whether the working tree had uncommitted changes to anything but
+bench/results (`clean`), the machine's cores and load average when the line was written, the UTC time, and
+the modules (paths in the repository) the figure measures. bench/render_figures.py renders the docs'
+tables from these files and marks a figure stale when one of its modules changed (git log) after `commit`.
+
+    with ResultWriter('bench/results/stereo_middlebury.jsonl', 'stereo_middlebury',
+                      modules=['photogram_ros/core/stereo.py']) as w:
+        w.write({'scene': 'venus', 'bad2': 0.003})
+"""
+
+from __future__ import annotations
+
+import datetime
+import json
 import os
 import platform
+import subprocess
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
 
 
 def machine_info() -> dict:
@@ -18,3 +37,55 @@ def machine_info() -> dict:
     import numpy
     return {'cpu': cpu, 'cores': os.cpu_count(), 'python': platform.python_version(), 'numpy': numpy.__version__,
             'opencv': cv2.__version__}
+
+
+def _git(*args: str) -> str:
+    return subprocess.run(['git', *args], cwd=ROOT, capture_output=True, text=True, check=True).stdout.strip()
+
+
+def tree_state() -> dict:
+    """{'commit': HEAD's full hash, 'clean': no uncommitted change outside bench/results, 'dirty': those paths}."""
+    try:
+        commit = _git('rev-parse', 'HEAD')
+        dirty = [line[3:] for line in _git('status', '--porcelain', '--untracked-files=no').splitlines()
+                 if not line[3:].startswith('bench/results/')]
+    except (OSError, subprocess.CalledProcessError):
+        return {'commit': 'unknown', 'clean': False, 'dirty': ['not a git checkout']}
+    return {'commit': commit, 'clean': not dirty, 'dirty': dirty[:20]}
+
+
+class ResultWriter:
+    """Appends result lines to `path`, each stamped with the commit, the clean-tree flag, the machine's cores,
+    its load average (1, 5, 15 min) at that moment, the UTC time, the bench's name and `modules` (the
+    repository paths the figures measure: a change to one of them after `commit` makes the figure stale).
+    `fresh` truncates the file first."""
+
+    def __init__(self, path: str | Path, bench: str, modules: list[str], fresh: bool = True):
+        if not modules:
+            raise ValueError('a result names the modules it measures (paths in the repository)')
+        self.path = Path(path)
+        self.bench = bench
+        self.modules = list(modules)
+        self.state = tree_state()
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        if fresh:
+            self.path.write_text('')
+
+    def stamp(self) -> dict:
+        return {'bench': self.bench, 'commit': self.state['commit'], 'clean': self.state['clean'],
+                'cores': os.cpu_count(), 'load_avg': [round(x, 2) for x in os.getloadavg()],
+                'utc': datetime.datetime.now(datetime.timezone.utc).strftime('%Y-%m-%dT%H:%M:%SZ'),
+                'modules': self.modules}
+
+    def write(self, row: dict) -> dict:
+        """Append `row` (its own keys win over none of the stamp's: the stamp is authoritative)."""
+        line = {**row, **self.stamp()}
+        with open(self.path, 'a') as fh:
+            fh.write(json.dumps(line, default=str) + '\n')
+        return line
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        return False
