@@ -55,7 +55,8 @@ def tree_state() -> dict:
 
 
 class ResultWriter:
-    """Appends result lines to `path`, each stamped with the commit, the clean-tree flag, the machine's cores,
+    """Appends result lines to `path`, each stamped with the commit the bench started at, the clean-tree flag (false
+    when the tree had uncommitted changes at the start or at that line, or HEAD moved), the machine's cores,
     its load average (1, 5, 15 min) at that moment, the UTC time, the bench's name and `modules` (the
     repository paths the figures measure: a change to one of them after `commit` makes the figure stale).
     `fresh` truncates the file first."""
@@ -72,7 +73,10 @@ class ResultWriter:
             self.path.write_text('')
 
     def stamp(self) -> dict:
-        return {'bench': self.bench, 'commit': self.state['commit'], 'clean': self.state['clean'],
+        # The tree as it is at this line: a change made while a long bench runs marks the lines after it.
+        now = tree_state()
+        clean = self.state['clean'] and now['clean'] and now['commit'] == self.state['commit']
+        return {'bench': self.bench, 'commit': self.state['commit'], 'clean': clean,
                 'cores': os.cpu_count(), 'load_avg': [round(x, 2) for x in os.getloadavg()],
                 'utc': datetime.datetime.now(datetime.timezone.utc).strftime('%Y-%m-%dT%H:%M:%SZ'),
                 'modules': self.modules}
