@@ -599,6 +599,41 @@ def half_overlap_block(src: Path, dst: Path) -> dict:
     return {n: ref[n] for n in kept}
 
 
+def noisy_geotags_block(src: Path, dst: Path, sigma_h_m: float = 17.0, seed: int = 0) -> dict:
+    """The photos of `src` (linked) in `dst` with a geo.txt of their EXIF positions moved by Gaussian noise of
+    `sigma_h_m` horizontally (a compact camera's GPS; stated 5 m, as the EXIF would). Returns {image: EXIF
+    (lat, lon, h)}: the block is measured against the photos' own, unperturbed geotags."""
+    dst.mkdir(parents=True, exist_ok=True)
+    ref = exif_reference(src)
+    for name in ref:
+        link = dst / name
+        if not link.exists():
+            link.symlink_to(src / name)
+    frame = LocalFrame(*np.mean(np.array(list(ref.values())), axis=0))
+    rng = np.random.default_rng(seed)
+    geo = {}
+    for name in sorted(ref):
+        enu = frame.geodetic_to_enu(*ref[name]).reshape(3)
+        enu[:2] += rng.normal(0.0, sigma_h_m, 2)
+        lat, lon, h = frame.enu_to_geodetic(enu)
+        geo[name] = (float(np.ravel(lat)[0]), float(np.ravel(lon)[0]), float(np.ravel(h)[0]))
+    write_geo_txt(dst / 'geo.txt', geo)
+    return ref
+
+
+def run_noisy(out: Path, surveys=('brighton', 'toledo'), sigma_h_m: float = 17.0) -> list[dict]:
+    """`triangulate` on brighton's and toledo's photos with geotags scattered `sigma_h_m` (noisy_geotags_block)."""
+    rows = []
+    for survey in surveys:
+        src = (BRIGHTON if survey == 'brighton' else TOLEDO) / 'images'
+        folder = out / 'blocks' / f'{survey}_noisy'
+        ref = noisy_geotags_block(src, folder, sigma_h_m)
+        rows.append(run_photos(f'{survey}_noisy', 'triangulate', folder, out, None, reference=ref,
+                               extra_row={'broken': f'geotags of {survey} scattered {sigma_h_m:g} m horizontally '
+                                                    '(geo.txt, stated 5 m)'}))
+    return rows
+
+
 def run_variants(out: Path) -> list[dict]:
     rows = []
     for survey, src in (('toledo', TOLEDO / 'images'), ('brighton', BRIGHTON / 'images')):
@@ -746,7 +781,7 @@ def git_commit() -> str:
         return 'unknown'
 
 
-def run_all(surveys, pipelines, variants: bool, out: Path) -> list[dict]:
+def run_all(surveys, pipelines, variants: bool, out: Path, noisy=()) -> list[dict]:
     out.mkdir(parents=True, exist_ok=True)
     commit = git_commit()
     rows = []
@@ -784,6 +819,8 @@ def run_all(surveys, pipelines, variants: bool, out: Path) -> list[dict]:
     if variants:
         for row in run_variants(out):
             keep(row)
+    for row in run_noisy(out, noisy) if noisy else []:
+        keep(row)
     return rows
 
 
@@ -793,6 +830,8 @@ def main(argv=None) -> int:
     ap.add_argument('--pipelines', default=','.join(PIPELINES), help='pipelines, comma separated')
     ap.add_argument('--variants', action='store_true', help='also the broken blocks (toledo with four geotags '
                                                             'moved 80 m; toledo + brighton in one folder)')
+    ap.add_argument('--noisy', default='', help='also brighton and/or toledo with geotags scattered 17 m '
+                                                '(comma separated)')
     ap.add_argument('--out', default='/tmp/real_surveys', help='output folder')
     ap.add_argument('--remeasure', action='store_true', help='measure the outputs already in --out again (no '
                                                               'command is run; wall times as recorded)')
@@ -805,7 +844,7 @@ def main(argv=None) -> int:
     if bad:
         ap.error(f'unknown {bad}; surveys {SURVEYS}, pipelines {PIPELINES}')
     out = Path(a.out)
-    rows = run_all(surveys, pipelines, a.variants, out)
+    rows = run_all(surveys, pipelines, a.variants, out, [x for x in a.noisy.split(',') if x])
     print(markdown(rows, rows[0]['commit'] if rows else git_commit()))
     return 0
 
