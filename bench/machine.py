@@ -1,8 +1,8 @@
 """The machine's figures, and the one writer of benchmark result files.
 
 Every bench writes its results through `ResultWriter`: JSON lines, each carrying the exact commit the
-code was at (`commit`, 40 hex digits), whether the working tree had uncommitted changes to anything but
-bench/results (`clean`), the machine's cores and load average when the line was written, the UTC time, and
+code was at (`commit`, 40 hex digits), whether the working tree had uncommitted changes to the code a bench
+runs (`clean`: photogram_ros, config, bench but its results, scripts), the machine's cores and load average when the line was written, the UTC time, and
 the modules (paths in the repository) the figure measures. bench/render_figures.py renders the docs'
 tables from these files and marks a figure stale when one of its modules changed (git log) after `commit`.
 
@@ -43,20 +43,32 @@ def _git(*args: str) -> str:
     return subprocess.run(['git', *args], cwd=ROOT, capture_output=True, text=True, check=True).stdout.strip()
 
 
+# The code a bench runs: an uncommitted change here makes its lines not clean (tests and docs do not run).
+CODE = ('photogram_ros', 'config', 'bench', 'scripts', 'setup.py')
+
+
 def tree_state() -> dict:
-    """{'commit': HEAD's full hash, 'clean': no uncommitted change outside bench/results, 'dirty': those paths}."""
+    """{'commit': HEAD's full hash, 'clean': no uncommitted change to CODE (bench/results aside), 'dirty': those}."""
     try:
         commit = _git('rev-parse', 'HEAD')
-        dirty = [line[3:] for line in _git('status', '--porcelain', '--untracked-files=no').splitlines()
-                 if not line[3:].startswith('bench/results/')]
+        dirty = [line.split(None, 1)[1] for line in _git('status', '--porcelain', '--untracked-files=no', '--', *CODE).splitlines()
+                 if not line.split(None, 1)[1].startswith('bench/results/')]
     except (OSError, subprocess.CalledProcessError):
         return {'commit': 'unknown', 'clean': False, 'dirty': ['not a git checkout']}
     return {'commit': commit, 'clean': not dirty, 'dirty': dirty[:20]}
 
 
+def code_changed(a: str, b: str) -> bool:
+    """Whether CODE differs between commits a and b."""
+    try:
+        return bool(_git('diff', '--name-only', a, b, '--', *CODE))
+    except (OSError, subprocess.CalledProcessError):
+        return True
+
+
 class ResultWriter:
     """Appends result lines to `path`, each stamped with the commit the bench started at, the clean-tree flag (false
-    when the tree had uncommitted changes at the start or at that line, or HEAD moved), the machine's cores,
+    when the code had uncommitted changes at the start or at that line, or a new commit changed it), the cores,
     its load average (1, 5, 15 min) at that moment, the UTC time, the bench's name and `modules` (the
     repository paths the figures measure: a change to one of them after `commit` makes the figure stale).
     `fresh` truncates the file first."""
@@ -75,7 +87,8 @@ class ResultWriter:
     def stamp(self) -> dict:
         # The tree as it is at this line: a change made while a long bench runs marks the lines after it.
         now = tree_state()
-        clean = self.state['clean'] and now['clean'] and now['commit'] == self.state['commit']
+        clean = self.state['clean'] and now['clean'] and (now['commit'] == self.state['commit']
+                                                          or not code_changed(self.state['commit'], now['commit']))
         return {'bench': self.bench, 'commit': self.state['commit'], 'clean': clean,
                 'cores': os.cpu_count(), 'load_avg': [round(x, 2) for x in os.getloadavg()],
                 'utc': datetime.datetime.now(datetime.timezone.utc).strftime('%Y-%m-%dT%H:%M:%SZ'),

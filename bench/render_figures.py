@@ -216,6 +216,8 @@ def cm(v) -> str:
 def verdict(line: dict, most: int = 260) -> str:
     v = line.get('verdict')
     text = v.get('summary', '') if isinstance(v, dict) else str(v or '')
+    if isinstance(v, dict) and v.get('decided_by'):
+        text = f'[decided by {", ".join(v["decided_by"])}] {text}'
     if not isinstance(v, dict) and line.get('last_line'):
         text = f'{text.upper()} ({line["last_line"]})' if text else line['last_line']
     return text if len(text) <= most else text[:most].rsplit(' ', 1)[0] + ' …'
@@ -315,6 +317,39 @@ def _control_cells(x: dict, _lines) -> list:
             'stage\'s time (same run)']
 
 
+PPK_CMD = '.venv/bin/python bench/ppk_survey.py --out F'
+
+
+def _ppk(label, case):
+    return Figure((label,), 'ppk_survey*.jsonl', {'case': case},
+                  lambda x, _: [f'check points {cm(x["check_h_m"])} H / {cm(x["check_v_m"])} V '
+                                f'({x["check_h_gsd"]:.2f} / {x["check_v_gsd"]:.2f} GSD), {x["check_n"]} targets'],
+                  PRODUCT, PPK_CMD)
+
+
+PPK_POSITIONS = Figure(('PPK photo survey (`simulate --ppk`, `geotag`; tiny preset): camera positions',),
+                       'ppk_survey*.jsonl', {'case': 'camera_positions'},
+                       lambda x, _: [f'geotags {cm(x["median_m"])} median from the true camera centres (max '
+                                     f'{cm(x["max_m"])}); against the MRK offsets: ArduPilot CAM + lever arm '
+                                     f'{1000 * x["cam_bin_vs_mrk_max_m"]:.1f} mm, .tlog '
+                                     f'{1000 * x["tlog_vs_mrk_max_m"]:.1f} mm, EXIF times '
+                                     f'{1000 * x["exif_vs_mrk_max_m"]:.1f} mm (max)'], PRODUCT, PPK_CMD)
+
+
+def _ground_cells(x: dict, _lines) -> list:
+    eq = max(x['check_diff_h_m'], x['check_diff_v_m'], x['gcp_diff_h_m'], x['gcp_diff_v_m'])
+    return [f'final check points on the page **{cm(x["page_check_h_m"])} / {cm(x["page_check_v_m"])}** '
+            f'({x["page_check_n"]}), GCP residuals {cm(x["page_gcp_h_m"])} / {cm(x["page_gcp_v_m"])}, equal to the '
+            f'report\'s to {1000 * eq:.4f} mm; in flight from the final georeference on at most '
+            f'{cm(x["live_check_h_max_m"])} H over {x["live_final_polls"]} polls; {x["nogo_polls"]} NO-GO of '
+            f'{x["polls"]} polls, final {x["final_verdict"]}']
+
+
+GROUND = Figure(('plain sample flight with its targets file at `--rate 1` beside the ground station',),
+                'ground_flight*.jsonl', {'bench': 'ground_flight'}, _ground_cells, ('photogram_ros',),
+                'ROS_DOMAIN_ID=N .venv/bin/python bench/ground_flight.py --out F')
+
+
 BRIGHTON_TRI = _survey('', 'brighton', 'triangulate')
 BRIGHTON_REP = _survey('', 'brighton', 'replay')
 TOLEDO_TRI = _survey('', 'toledo', 'triangulate')
@@ -351,8 +386,10 @@ TABLES: dict[str, Table] = {
                '.venv/bin/python bench/control_adjustment_cost.py'),
         Figure(('control adjustment in flight: the survey preset',), 'control_adjustment_cost*.jsonl', {'preset': 'survey'},
                _control_cells, PRODUCT, '.venv/bin/python bench/control_adjustment_cost.py'),
-        _none('PPK photo survey (`simulate --ppk`, `geotag`, `triangulate` without GCPs; tiny preset)',
-              command='scripts/test.sh tests/test_ppk_survey.py -m slow -s'),
+        PPK_POSITIONS,
+        _ppk('PPK photo survey: `triangulate` on the PPK geotags with the photos\' EXIF camera', 'triangulate_ppk_exif_camera'),
+        _ppk('... with the camera\'s calibration (`--camera camera.yaml`)', 'triangulate_ppk_calibrated'),
+        _ppk('... the same photos on their EXIF GPS alone', 'triangulate_exif_gps'),
         _none('geotag interpolation', command='scripts/test.sh tests/test_geotag.py'),
         _none('manual tie points across a cut', command='scripts/test.sh tests/test_manual_tie_points.py -m slow -s'),
         _none('the flight after every track was lost', command='scripts/test.sh tests/test_incremental.py tests/test_bundle_node.py'),
@@ -372,7 +409,9 @@ TABLES: dict[str, Table] = {
          _survey('toledo, every other photo', 'toledo_half', 'triangulate'),
          _survey('brighton_beach, every other photo', 'brighton_half', 'triangulate'),
          _survey('toledo, four geotags moved 80 m', 'toledo_moved4', 'triangulate'),
-         _survey('toledo (42) and brighton (18) in one folder', 'two_sites', 'triangulate'))),
+         _survey('toledo (42) and brighton (18) in one folder', 'two_sites', 'triangulate'),
+         _survey('brighton_beach, geotags scattered 17 m', 'brighton_noisy', 'triangulate'),
+         _survey('toledo, geotags scattered 17 m', 'toledo_noisy', 'triangulate'))),
     'real-agreement': Table(
         ('survey', 'photos in both', '`replay`\'s cameras against `triangulate`\'s'),
         (_agreement('brighton_beach', 'brighton'), _agreement('toledo', 'toledo'), _agreement('seneca_part', 'seneca'))),
@@ -385,7 +424,9 @@ TABLES: dict[str, Table] = {
          _verdict('toledo, every other photo', 'toledo_half', 'triangulate'),
          _verdict('brighton_beach, every other photo', 'brighton_half', 'triangulate'),
          _verdict('toledo, four geotags moved 80 m', 'toledo_moved4', 'triangulate'),
-         _verdict('toledo and brighton in one folder', 'two_sites', 'triangulate'))),
+         _verdict('toledo and brighton in one folder', 'two_sites', 'triangulate'),
+         _verdict('brighton_beach, geotags scattered 17 m', 'brighton_noisy', 'triangulate'),
+         _verdict('toledo, geotags scattered 17 m', 'toledo_noisy', 'triangulate'))),
     'held-out': Table(('what', 'figure'), (
         _none('toledo and brighton with consumer-camera geotags made from their own (heights wandering ~100 m, a '
               'wandering 15 m bias, a third missing, stated sigmas too small) through `triangulate`',
@@ -414,8 +455,7 @@ TABLES: dict[str, Table] = {
     'ground': Table(('what', 'figure'), (
         _none('sample flight, camera stopped 10 s in its outer line (`simulate --gap 61:71`, `--rate 1`)',
               command='scripts/test.sh tests/test_survey_quality_flight.py -m slow'),
-        _none('plain sample flight with its targets file at `--rate 1`: the page\'s verdicts and final check points',
-              command='scripts/test.sh tests/test_ground_flight.py -m slow -s'),
+        GROUND,
         _none('`simulate --gap 30:40`, `--gap 38:44,64:70`', command='scripts/test.sh tests/test_ground_flight.py -m slow -s'),
         _none('`simulate --gap 8:14` (every track lost on the first line)', command='scripts/test.sh tests/test_segments.py -s'),
         _none('tile stream and the cost in map_node', command='.venv/bin/python bench/ground_stream.py'))),
@@ -465,11 +505,13 @@ TABLES: dict[str, Table] = {
         _none('sample flight end to end (RTK, no GCPs); its DSM', tail=('[simulated](docs/measurements.md#accuracy-on-simulated-flights)',),
               command='scripts/replay-sample.sh OUT'),
         _none('consumer GNSS (~2 m) + 5 GCPs, checked in flight', tail=('same',), command='scripts/test.sh tests/test_gcp_flight.py -m slow -s'),
-        _none('PPK photo survey (`geotag`, no GCPs)', tail=('same',), command='scripts/test.sh tests/test_ppk_survey.py -m slow -s'),
+        _readme('PPK photo survey (`geotag`, no GCPs)', _ppk('', 'triangulate_ppk_calibrated'),
+                lambda x, _: f'check points **{cm(x["check_h_m"])} / {cm(x["check_v_m"])}** with the camera\'s '
+                'calibration', 'same'),
         _none('consumer geotags that wander (held-out proxies)', tail=('[real surveys](docs/measurements.md#real-surveys)',),
               command='.venv/bin/python bench/held_out_proxies.py --out OUT'),
-        _none('ground station (the sample flight at real speed)', tail=('[ground station](docs/measurements.md#survey-quality-at-the-ground-station)',),
-              command='scripts/test.sh tests/test_ground_flight.py -m slow -s'),
+        _readme('ground station (the sample flight at real speed)', GROUND,
+                lambda x, lines: _ground_cells(x, lines)[0], '[ground station](docs/measurements.md#survey-quality-at-the-ground-station)'),
         _none('real time and memory', tail=('[speed](docs/measurements.md#speed-real-time-and-memory)',),
               command='.venv/bin/python bench/e2e_realtime.py; .venv/bin/python bench/memory_soak.py'))),
 }
