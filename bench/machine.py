@@ -2,7 +2,7 @@
 
 Every bench writes its results through `ResultWriter`: JSON lines, each carrying the exact commit the
 code was at (`commit`, 40 hex digits), whether the working tree had uncommitted changes to the code a bench
-runs (`clean`: photogram_ros, config, bench but its results, scripts), the machine's cores and load average when the line was written, the UTC time, and
+runs (`clean`: the product, bench/machine.py and the bench's own script), the machine's cores and load average when the line was written, the UTC time, and
 the modules (paths in the repository) the figure measures. bench/render_figures.py renders the docs'
 tables from these files and marks a figure stale when one of its modules changed (git log) after `commit`.
 
@@ -43,25 +43,33 @@ def _git(*args: str) -> str:
     return subprocess.run(['git', *args], cwd=ROOT, capture_output=True, text=True, check=True).stdout.strip()
 
 
-# The code a bench runs: an uncommitted change here makes its lines not clean (tests and docs do not run).
-CODE = ('photogram_ros', 'config', 'bench', 'scripts', 'setup.py')
+# The code a bench runs: the product, this file and the bench's own script (`__main__`); an uncommitted change
+# there makes its lines not clean (tests, docs and the other benches do not run).
+PRODUCT_CODE = ('photogram_ros', 'config', 'scripts', 'setup.py', 'bench/machine.py')
+
+
+def _code() -> tuple:
+    import __main__
+    script = Path(getattr(__main__, '__file__', '') or '').resolve()
+    own = (script.relative_to(ROOT).as_posix(),) if script.is_file() and script.is_relative_to(ROOT) else ()
+    return PRODUCT_CODE + own
 
 
 def tree_state() -> dict:
-    """{'commit': HEAD's full hash, 'clean': no uncommitted change to CODE (bench/results aside), 'dirty': those}."""
+    """{'commit': HEAD's full hash, 'clean': no uncommitted change to the code it runs (_code()), 'dirty': those}."""
     try:
         commit = _git('rev-parse', 'HEAD')
-        dirty = [line.split(None, 1)[1] for line in _git('status', '--porcelain', '--untracked-files=no', '--', *CODE).splitlines()
-                 if not line.split(None, 1)[1].startswith('bench/results/')]
+        dirty = [line.split(None, 1)[1]
+                 for line in _git('status', '--porcelain', '--untracked-files=no', '--', *_code()).splitlines()]
     except (OSError, subprocess.CalledProcessError):
         return {'commit': 'unknown', 'clean': False, 'dirty': ['not a git checkout']}
     return {'commit': commit, 'clean': not dirty, 'dirty': dirty[:20]}
 
 
 def code_changed(a: str, b: str) -> bool:
-    """Whether CODE differs between commits a and b."""
+    """Whether the code a bench runs differs between commits a and b."""
     try:
-        return bool(_git('diff', '--name-only', a, b, '--', *CODE))
+        return bool(_git('diff', '--name-only', a, b, '--', *_code()))
     except (OSError, subprocess.CalledProcessError):
         return True
 

@@ -552,17 +552,21 @@ def write_geo_txt(path: Path, positions: dict[str, tuple[float, float, float]], 
     path.write_text('\n'.join(lines) + '\n')
 
 
-def moved_geotags_block(dst: Path, moved: tuple[str, ...] = MOVED_PHOTOS, move_m: float = MOVE_M) -> dict:
-    """toledo's photos (linked) in `dst` with a geo.txt of their EXIF positions, `moved` ones shifted by
-    `move_m` horizontally (east, north, west, south in turn). Returns {image: true (lat, lon, h)}."""
+def linked_block(src: Path, dst: Path):
+    """The photos of `src` linked into `dst`: ({image: EXIF (lat, lon, h)}, a LocalFrame at their mean)."""
     dst.mkdir(parents=True, exist_ok=True)
-    src = TOLEDO / 'images'
     ref = exif_reference(src)
     for name in ref:
         link = dst / name
         if not link.exists():
             link.symlink_to(src / name)
-    frame = LocalFrame(*np.mean(np.array(list(ref.values())), axis=0))
+    return ref, LocalFrame(*np.mean(np.array(list(ref.values())), axis=0))
+
+
+def moved_geotags_block(dst: Path, moved: tuple[str, ...] = MOVED_PHOTOS, move_m: float = MOVE_M) -> dict:
+    """toledo's photos (linked) in `dst` with a geo.txt of their EXIF positions, `moved` ones shifted by
+    `move_m` horizontally (east, north, west, south in turn). Returns {image: true (lat, lon, h)}."""
+    ref, frame = linked_block(TOLEDO / 'images', dst)
     geo = dict(ref)
     for k, name in enumerate(moved):
         enu = frame.geodetic_to_enu(*ref[name]).reshape(3)
@@ -603,13 +607,7 @@ def noisy_geotags_block(src: Path, dst: Path, sigma_h_m: float = 17.0, seed: int
     """The photos of `src` (linked) in `dst` with a geo.txt of their EXIF positions moved by Gaussian noise of
     `sigma_h_m` horizontally (a compact camera's GPS; stated 5 m, as the EXIF would). Returns {image: EXIF
     (lat, lon, h)}: the block is measured against the photos' own, unperturbed geotags."""
-    dst.mkdir(parents=True, exist_ok=True)
-    ref = exif_reference(src)
-    for name in ref:
-        link = dst / name
-        if not link.exists():
-            link.symlink_to(src / name)
-    frame = LocalFrame(*np.mean(np.array(list(ref.values())), axis=0))
+    ref, frame = linked_block(src, dst)
     rng = np.random.default_rng(seed)
     geo = {}
     for name in sorted(ref):

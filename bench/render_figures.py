@@ -370,6 +370,19 @@ BAL_CERES = Figure(('BAL problem-49-7776: ours against Ceres (pycolmap)',), 'bun
 SCALE_W2 = Figure(('635 simulated photos, split-merge (2 sub-blocks), 2 workers',), SCALE,
                   {'run.mode': 'split', 'run.workers': 2, 'run.oriented': lambda v: v is not None and v > 600},
                   _scale_cells, PRODUCT, SCALE_CMD)
+# The real sets' rows of bench/real_surveys.py: (label, survey, pipeline).
+REAL_ROWS = (
+    ('brighton_beach (18 DJI FC300S, EXIF only)', 'brighton', 'triangulate'), ('brighton_beach', 'brighton', 'replay'),
+    ('toledo (42 DJI FC350, EXIF only)', 'toledo', 'triangulate'), ('toledo', 'toledo', 'replay'),
+    ('seneca_part (41 NIR photos, fixed wing)', 'seneca', 'triangulate'), ('seneca_part', 'seneca', 'replay'),
+    ('phantom3_village (100 video frames, `import-frames` then `replay`)', 'phantom3', 'replay'),
+    ('toledo, every other photo', 'toledo_half', 'triangulate'),
+    ('brighton_beach, every other photo', 'brighton_half', 'triangulate'),
+    ('toledo, four geotags moved 80 m', 'toledo_moved4', 'triangulate'),
+    ('toledo (42) and brighton (18) in one folder', 'two_sites', 'triangulate'),
+    ('brighton_beach, geotags scattered 17 m', 'brighton_noisy', 'triangulate'),
+    ('toledo, geotags scattered 17 m', 'toledo_noisy', 'triangulate'))
+
 
 TABLES: dict[str, Table] = {
     'simulated': Table(('what', 'figure'), (
@@ -398,35 +411,11 @@ TABLES: dict[str, Table] = {
         _none('self-calibration', command='scripts/test.sh tests/test_bundle_solver.py tests/test_bundle_covariance.py'))),
     'real-surveys': Table(
         ('survey', 'pipeline', 'oriented', 'cameras − GNSS after a robust similarity, H / V', 'rigid H / V',
-         'within 15° of nadir', 'reprojection', 'peer'),
-        (_survey('brighton_beach (18 DJI FC300S, EXIF only)', 'brighton', 'triangulate'),
-         _survey('brighton_beach', 'brighton', 'replay'),
-         _survey('toledo (42 DJI FC350, EXIF only)', 'toledo', 'triangulate'),
-         _survey('toledo', 'toledo', 'replay'),
-         _survey('seneca_part (41 NIR photos, fixed wing)', 'seneca', 'triangulate'),
-         _survey('seneca_part', 'seneca', 'replay'),
-         _survey('phantom3_village (100 video frames, `import-frames` then `replay`)', 'phantom3', 'replay'),
-         _survey('toledo, every other photo', 'toledo_half', 'triangulate'),
-         _survey('brighton_beach, every other photo', 'brighton_half', 'triangulate'),
-         _survey('toledo, four geotags moved 80 m', 'toledo_moved4', 'triangulate'),
-         _survey('toledo (42) and brighton (18) in one folder', 'two_sites', 'triangulate'),
-         _survey('brighton_beach, geotags scattered 17 m', 'brighton_noisy', 'triangulate'),
-         _survey('toledo, geotags scattered 17 m', 'toledo_noisy', 'triangulate'))),
+         'within 15° of nadir', 'reprojection', 'peer'), tuple(_survey(*r) for r in REAL_ROWS)),
     'real-agreement': Table(
         ('survey', 'photos in both', '`replay`\'s cameras against `triangulate`\'s'),
         (_agreement('brighton_beach', 'brighton'), _agreement('toledo', 'toledo'), _agreement('seneca_part', 'seneca'))),
-    'real-verdicts': Table(
-        ('survey', 'pipeline', 'verdict'),
-        (_verdict('brighton_beach', 'brighton', 'triangulate'), _verdict('brighton_beach', 'brighton', 'replay'),
-         _verdict('toledo', 'toledo', 'triangulate'), _verdict('toledo', 'toledo', 'replay'),
-         _verdict('seneca_part', 'seneca', 'triangulate'), _verdict('seneca_part', 'seneca', 'replay'),
-         _verdict('phantom3_village', 'phantom3', 'replay'),
-         _verdict('toledo, every other photo', 'toledo_half', 'triangulate'),
-         _verdict('brighton_beach, every other photo', 'brighton_half', 'triangulate'),
-         _verdict('toledo, four geotags moved 80 m', 'toledo_moved4', 'triangulate'),
-         _verdict('toledo and brighton in one folder', 'two_sites', 'triangulate'),
-         _verdict('brighton_beach, geotags scattered 17 m', 'brighton_noisy', 'triangulate'),
-         _verdict('toledo, geotags scattered 17 m', 'toledo_noisy', 'triangulate'))),
+    'real-verdicts': Table(('survey', 'pipeline', 'verdict'), tuple(_verdict(*r) for r in REAL_ROWS)),
     'held-out': Table(('what', 'figure'), (
         _none('toledo and brighton with consumer-camera geotags made from their own (heights wandering ~100 m, a '
               'wandering 15 m bias, a third missing, stated sigmas too small) through `triangulate`',
