@@ -10,8 +10,9 @@ of their lines it takes (`where`: key -> value) and how it writes them (`cells`:
 row's cells). Of the files that hold such a line, the newest is used: the one whose line records the latest
 commit (git's commit time; a file without a commit counts as oldest). The last cell of every row names that
 file and the commit it was measured at, and says:
-- **stale** when one of the figure's modules (the line's `modules`, else the Figure's) changed after that
-  commit (git log, or an uncommitted change in the working tree),
+- **stale** when one of the figure's modules (the line's `modules`, else the Figure's; less the Figure's
+  `ignore`, each said why in the spec) changed after that commit (git log, or an uncommitted change in the
+  working tree),
 - "modified tree" when the line says the tree had uncommitted changes (`clean` false), and "tree state not
   recorded" for files written before bench/machine.py's ResultWriter,
 - "no result file" (and no figure) when no file holds the line.
@@ -123,6 +124,7 @@ class Figure:
     modules: tuple = PRODUCT
     command: str = ''
     tail: tuple = ()          # hand-written cells after the figure's (e.g. a link to the section)
+    ignore: tuple = ()        # paths inside the modules whose change does not touch this figure (said in the spec)
 
 
 @dataclass
@@ -158,7 +160,7 @@ def source_cell(src: Source | None, fig: Figure) -> str:
     if not src.commit:
         return f'`{rel}`, commit not in this history: **stale**'
     notes = []
-    n = changed_since(src.commit, src.modules)
+    n = changed_since(src.commit, src.modules + tuple(f':(exclude){p}' for p in fig.ignore))
     if n:
         notes.append(f'**stale**: {", ".join(src.modules)} changed in {n} commit{"s" if n > 1 else ""} since')
     if src.clean is False:
@@ -265,8 +267,14 @@ SCALE = 'photo_triangulation_scale*.jsonl'
 SCALE_CMD = '.venv/bin/python bench/photo_triangulation_scale.py --photos 600 --modes split --counts 1 2 --split-photos 320'
 
 
+# The block check runs after a block is oriented and only writes its verdict (no real set is split into sub-blocks,
+# whose merge reads their verdicts): a change to it leaves the orientation figures as they are, not the verdicts.
+AFTER_ORIENTATION = ('photogram_ros/core/block_check.py',)
+
+
 def _survey(label, survey, pipeline):
-    return Figure((label, pipeline), REAL, {'survey': survey, 'pipeline': pipeline}, survey_cells, PRODUCT, REAL_CMD)
+    return Figure((label, pipeline), REAL, {'survey': survey, 'pipeline': pipeline}, survey_cells, PRODUCT, REAL_CMD,
+                  ignore=AFTER_ORIENTATION)
 
 
 def _verdict(label, survey, pipeline):
@@ -276,7 +284,7 @@ def _verdict(label, survey, pipeline):
 
 def _agreement(label, survey):
     return Figure((label,), REAL, {'survey': survey, 'pipeline': 'replay vs triangulate'}, agreement_cells, PRODUCT,
-                  REAL_CMD)
+                  REAL_CMD, ignore=AFTER_ORIENTATION)
 
 
 def _stereo(scene):
@@ -292,7 +300,7 @@ def _none(*label, command='', tail=()):
 def _readme(label, fig: Figure, cells, more: str) -> Figure:
     """A README headline row: the figure's line, said in one cell, and the docs section."""
     return Figure((label,), fig.results, fig.where, lambda x, lines: [cells(x, lines)], fig.modules, fig.command,
-                  (more,))
+                  (more,), fig.ignore)
 
 
 def _scale_cells(x: dict, lines: list) -> list:
