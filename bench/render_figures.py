@@ -348,7 +348,7 @@ def _ground_cells(x: dict, _lines) -> list:
     eq = max(x['check_diff_h_m'], x['check_diff_v_m'], x['gcp_diff_h_m'], x['gcp_diff_v_m'])
     return [f'final check points on the page **{cm(x["page_check_h_m"])} / {cm(x["page_check_v_m"])}** '
             f'({x["page_check_n"]}), GCP residuals {cm(x["page_gcp_h_m"])} / {cm(x["page_gcp_v_m"])}, equal to the '
-            f'report\'s to {1000 * eq:.4f} mm; in flight from the final georeference on at most '
+            f'report\'s to {"under 0.001 mm" if eq < 1e-6 else f"{1000 * eq:.3f} mm"}; in flight from the final georeference on at most '
             f'{cm(x["live_check_h_max_m"])} H over {x["live_final_polls"]} polls; {x["nogo_polls"]} NO-GO of '
             f'{x["polls"]} polls, final {x["final_verdict"]}']
 
