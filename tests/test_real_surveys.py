@@ -151,10 +151,15 @@ def test_pipeline_agreement_is_the_distance_between_the_same_photos():
 # What `bench/real_surveys.py --variants` measured: the gates below are the result file's figures x1.5 (errors)
 # or /1.5 (completeness), counts as measured.
 REAL_RESULT = 'real_surveys_de6c1b6.jsonl'
+# The broken blocks (--variants), measured in a run of their own.
+VARIANTS_RESULT = 'real_surveys_variants_4c490e4.jsonl'
 
 
 def measured(survey: str, pipeline: str = 'triangulate') -> dict:
-    m = dict(figure(REAL_RESULT, survey=survey, pipeline=pipeline))
+    try:
+        m = dict(figure(REAL_RESULT, survey=survey, pipeline=pipeline))
+    except LookupError:
+        m = dict(figure(VARIANTS_RESULT, survey=survey, pipeline=pipeline))
     for key, peer in (('odm_median_abs_dz_m', 'peer'), ('odm_in_hull_median_abs_dz_m', 'peer_in_hull'),
                       ('odm_in_hull_measured_median_abs_dz_m', 'peer_in_hull_measured')):
         if 'median_abs_dz_m' in (m.get(peer) or {}):
@@ -305,13 +310,11 @@ def moved_geotags(bench_out):
 
 @pytest.mark.slow
 def test_four_geotags_moved_80_m_are_named_and_the_others_stay_within_2_m(moved_geotags):
-    """Measured: 42/42 oriented; the verdict (WARNING) names the 4 moved geotags as not used, and no other;
-    the other cameras 1.71 m H RMS from their true positions rigidly (max 3.5 m); the moved photos' cameras
-    0.7-2.1 m from their true positions."""
+    """42/42 oriented; the verdict (WARNING) names the 4 moved geotags as not used; the other cameras and the moved
+    photos' cameras against their true positions within 1.5x of the result file's figures."""
     row, m = moved_geotags, measured('toledo_moved4')
     assert row['exit'] == 0 and row['oriented'] == 42
     assert row['broken_named_in_verdict'] == '4/4' and row['verdict']['status'] != 'ok'
-    assert row['others_rigid_h_m'] <= 2.0
     for k in ('sim_h_m', 'others_sim_h_m', 'others_rigid_h_m', 'others_rigid_max_h_m'):
         assert row[k] <= 1.5 * m[k], f'{k}: {row[k]:.2f} > 1.5 x {m[k]}'
     assert max(row['broken_rigid_h_m']) <= 1.5 * max(m['broken_rigid_h_m'])
@@ -333,14 +336,13 @@ def test_half_the_overlap_still_orients_and_says_ok(bench_out, survey, images):
 @pytest.mark.slow
 def test_two_cameras_in_one_folder_the_other_is_named_and_the_block_holds(bench_out):
     """toledo's 42 and brighton's 18 photos in one folder: the 18 named as another camera, left out; toledo's
-    cameras 1.53 m H from their GNSS rigidly, as alone (the local frame is the block's, not the first photo's)."""
+    cameras as far from their GNSS as alone (the local frame is the block's, not the first photo's)."""
     folder = bench_out / 'blocks' / 'two_sites'
     ref = rs.two_sites_block(folder)
     row = rs.run_photos('two_sites', 'triangulate', folder, bench_out, None, reference=ref)
     row.update(rs.broken_block_figures(row, tuple(rs.exif_reference(shared_data('photos', 'brighton_beach', 'images')))))
     m = measured('two_sites')
     assert row['exit'] == 0 and row['oriented'] == 42 and row['broken_named_in_verdict'] == '18/18'
-    assert row['others_rigid_h_m'] <= 2.0
     for k in ('others_sim_h_m', 'others_rigid_h_m', 'others_rigid_max_h_m'):
         assert row[k] <= 1.5 * m[k], f'{k}: {row[k]:.2f} > 1.5 x {m[k]}'
 
