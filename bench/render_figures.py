@@ -218,7 +218,7 @@ def cm(v) -> str:
 def verdict(line: dict, most: int = 260) -> str:
     v = line.get('verdict')
     text = v.get('summary', '') if isinstance(v, dict) else str(v or '')
-    if isinstance(v, dict) and v.get('decided_by'):
+    if isinstance(v, dict) and v.get('decided_by') and 'decided by' not in text:
         text = f'[decided by {", ".join(v["decided_by"])}] {text}'
     if not isinstance(v, dict) and line.get('last_line'):
         text = f'{text.upper()} ({line["last_line"]})' if text else line['last_line']
@@ -260,7 +260,7 @@ def stereo_cells(x: dict, lines: list) -> list:
 # --- the tables ------------------------------------------------------------------------------------------
 
 REAL = 'real_surveys*.jsonl'
-REAL_CMD = 'ROS_DOMAIN_ID=N .venv/bin/python bench/real_surveys.py --variants --out OUT'
+REAL_CMD = 'ROS_DOMAIN_ID=N .venv/bin/python bench/real_surveys.py --variants --noisy brighton,toledo --out OUT'
 STEREO_CMD = '.venv/bin/python bench/stereo_middlebury.py ../shared/data/stereo/{tsukuba,venus,cones,teddy} --out F'
 BAL_CMD = '.venv/bin/python bench/bundle_bal.py ../shared/data/bal/problem-49-7776-pre.txt --peers --out F'
 SCALE = 'photo_triangulation_scale*.jsonl'
