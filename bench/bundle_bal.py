@@ -1,6 +1,6 @@
 """Solve a BAL problem with our bundle adjuster and, with --peers, with SciPy and Ceres (pycolmap).
 
-    .venv/bin/python bench/bundle_bal.py ../shared/data/bal/problem-49-7776-pre.txt --peers
+    .venv/bin/python bench/bundle_bal.py ../shared/data/bal/problem-49-7776-pre.txt --peers [--out FILE]
 
 One JSON line per solver: seconds, iterations, initial/final cost = 0.5 * sum of squared pixel
 residuals over ALL observations (also those behind a camera, which COLMAP's own cost skips, so every
@@ -29,6 +29,7 @@ from scipy.spatial.transform import Rotation  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from bench.machine import ResultWriter  # noqa: E402
 from photogram_ros.core.bundle import BALModel, BundleOptions, bundle_adjust  # noqa: E402
 from photogram_ros.io.bal import read_bal  # noqa: E402
 
@@ -103,7 +104,9 @@ def main(argv=None):
     ap.add_argument('--ftol', type=float, default=1e-4)
     ap.add_argument('--repeat', type=int, default=3, help='runs per solver, interleaved; medians reported')
     ap.add_argument('--no-scipy', action='store_true', help='with --peers, skip the (slow) SciPy peer')
+    ap.add_argument('--out', default='/tmp/bundle_bal.jsonl', help='result file (JSON lines)')
     a = ap.parse_args(argv)
+    writer = ResultWriter(a.out, 'bundle_bal', ['photogram_ros/core/bundle', 'photogram_ros/io/bal.py'])
     b = read_bal(a.problem)
     init, init_rms = bal_cost(b.cam_rotvec, b.cam_t, b.intrinsics, b.points, b)
     base = dict(problem=Path(a.problem).name, cameras=len(b.cam_t), points=len(b.points),
@@ -117,8 +120,8 @@ def main(argv=None):
             import bench_pycolmap_bal  # noqa: F401
             solvers.append(('ceres', run_ceres))
         except ImportError as exc:
-            print(json.dumps(dict(base, solver='ceres_pycolmap', error=f'pycolmap not installed ({exc}); '
-                                  'pip install -r bench/requirements-peers.txt')), flush=True)
+            print(json.dumps(writer.write(dict(base, solver='ceres_pycolmap', error=f'pycolmap not installed '
+                                               f'({exc}); pip install -r bench/requirements-peers.txt'))), flush=True)
     # Interleaved repeats so that a load change on the (shared) machine hits every solver alike.
     runs = {k: [] for k, _ in solvers}
     for _ in range(max(1, a.repeat)):
@@ -150,7 +153,7 @@ def main(argv=None):
             if reach:
                 out['our_seconds_to_reach_peer_cost'] = hist_t[reach[0]]
                 out['time_ratio_peer_over_ours_same_cost'] = row['seconds'] / hist_t[reach[0]]
-        print(json.dumps(out), flush=True)
+        print(json.dumps(writer.write(out)), flush=True)
 
 
 if __name__ == '__main__':

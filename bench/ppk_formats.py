@@ -63,7 +63,8 @@ def delay_run(where: Path, sigma_scale: float) -> list[dict]:
 
 
 def _triangulate(folder: Path, out: Path) -> dict:
-    from photogram_ros.io.aerial_triangulation import TriangulateOptions, triangulate
+    from photogram_ros.io.aerial_triangulation import TriangulateOptions
+    from photogram_ros.io.triangulate_action import triangulate
     names = sorted({ln.split()[6] for ln in (folder / 'gcp_list.txt').read_text().splitlines()[1:]})
     triangulate(str(folder), str(out), TriangulateOptions(gcp=str(folder / 'gcp_list.txt'), check_names=tuple(names)))
     return json.loads((out / 'report.json').read_text())

@@ -6,6 +6,7 @@ Surveys (../shared/data, see its README):
   constant 3D offset);
 - toledo: photos/toledo/images, 42 DJI FC350 photos with EXIF GPS; peer: peer_pycolmap.json (pycolmap's
   per-photo residuals after a similarity to the same EXIF GPS);
+- seneca: photos/seneca_part/images, 41 near-infrared photos of a fixed-wing survey with EXIF GPS; no peer;
 - phantom3: video/phantom3_village, 100 1080p frames made a bag with `import-frames --noise-h-m 1.5
   --noise-v-m 3` (a 3D fix's noise on the published trajectory), then replayed; its reference is that
   published trajectory (a stand-in GNSS track, not truth). `triangulate` is not run on it (no EXIF).
@@ -31,7 +32,8 @@ overlap); toledo with four geotags moved 80 m (a geo.txt beside copies
 of the photos), and toledo + brighton photos in one folder. Their rows name what was broken and what
 the verdict said; the other cameras are measured against the photos' own EXIF GPS.
 
-Writes OUT/real_surveys.jsonl (one row a run) and OUT/real_surveys.md (the table); each command's output
+Writes OUT/real_surveys.jsonl (one row a run, through bench/machine.py's ResultWriter: commit, clean-tree
+flag, cores, load) and OUT/real_surveys.md (the table); each command's output
 folder, log and outcome (.run.json) stay in OUT, and `--remeasure` measures them again without running.
 The commands run one after the other (about 12 minutes for all on 2 loaded cores, 17 with --variants).
 
@@ -59,12 +61,16 @@ sys.path.insert(0, str(ROOT))
 from photogram_ros.core.geodesy import LocalFrame, geodetic_to_crs  # noqa: E402
 from photogram_ros.core.rotations import map_R_cam_from_opk  # noqa: E402
 from photogram_ros.core.similarity import umeyama  # noqa: E402
+from bench.machine import ResultWriter  # noqa: E402
 
 DATA = ROOT.parent / 'shared' / 'data'
 BRIGHTON = DATA / 'photos' / 'brighton_beach'
 TOLEDO = DATA / 'photos' / 'toledo'
+SENECA = DATA / 'photos' / 'seneca_part'
 PHANTOM3 = DATA / 'video' / 'phantom3_village'
-SURVEYS = ('brighton', 'toledo', 'phantom3')
+SURVEYS = ('brighton', 'toledo', 'seneca', 'phantom3')
+# What every figure of this bench measures: the whole product code (a change there makes them stale).
+MODULES = ['photogram_ros', 'config']
 PIPELINES = ('triangulate', 'replay')
 NADIR_DEG = 15.0
 MOVED_PHOTOS = ('DJI_0066.JPG', 'DJI_0075.JPG', 'DJI_0086.JPG', 'DJI_0097.JPG')
@@ -546,17 +552,21 @@ def write_geo_txt(path: Path, positions: dict[str, tuple[float, float, float]], 
     path.write_text('\n'.join(lines) + '\n')
 
 
-def moved_geotags_block(dst: Path, moved: tuple[str, ...] = MOVED_PHOTOS, move_m: float = MOVE_M) -> dict:
-    """toledo's photos (linked) in `dst` with a geo.txt of their EXIF positions, `moved` ones shifted by
-    `move_m` horizontally (east, north, west, south in turn). Returns {image: true (lat, lon, h)}."""
+def linked_block(src: Path, dst: Path):
+    """The photos of `src` linked into `dst`: ({image: EXIF (lat, lon, h)}, a LocalFrame at their mean)."""
     dst.mkdir(parents=True, exist_ok=True)
-    src = TOLEDO / 'images'
     ref = exif_reference(src)
     for name in ref:
         link = dst / name
         if not link.exists():
             link.symlink_to(src / name)
-    frame = LocalFrame(*np.mean(np.array(list(ref.values())), axis=0))
+    return ref, LocalFrame(*np.mean(np.array(list(ref.values())), axis=0))
+
+
+def moved_geotags_block(dst: Path, moved: tuple[str, ...] = MOVED_PHOTOS, move_m: float = MOVE_M) -> dict:
+    """toledo's photos (linked) in `dst` with a geo.txt of their EXIF positions, `moved` ones shifted by
+    `move_m` horizontally (east, north, west, south in turn). Returns {image: true (lat, lon, h)}."""
+    ref, frame = linked_block(TOLEDO / 'images', dst)
     geo = dict(ref)
     for k, name in enumerate(moved):
         enu = frame.geodetic_to_enu(*ref[name]).reshape(3)
@@ -591,6 +601,35 @@ def half_overlap_block(src: Path, dst: Path) -> dict:
         if not link.exists():
             link.symlink_to(src / name)
     return {n: ref[n] for n in kept}
+
+
+def noisy_geotags_block(src: Path, dst: Path, sigma_h_m: float = 17.0, seed: int = 0) -> dict:
+    """The photos of `src` (linked) in `dst` with a geo.txt of their EXIF positions moved by Gaussian noise of
+    `sigma_h_m` horizontally (a compact camera's GPS; stated 5 m, as the EXIF would). Returns {image: EXIF
+    (lat, lon, h)}: the block is measured against the photos' own, unperturbed geotags."""
+    ref, frame = linked_block(src, dst)
+    rng = np.random.default_rng(seed)
+    geo = {}
+    for name in sorted(ref):
+        enu = frame.geodetic_to_enu(*ref[name]).reshape(3)
+        enu[:2] += rng.normal(0.0, sigma_h_m, 2)
+        lat, lon, h = frame.enu_to_geodetic(enu)
+        geo[name] = (float(np.ravel(lat)[0]), float(np.ravel(lon)[0]), float(np.ravel(h)[0]))
+    write_geo_txt(dst / 'geo.txt', geo)
+    return ref
+
+
+def run_noisy(out: Path, surveys=('brighton', 'toledo'), sigma_h_m: float = 17.0) -> list[dict]:
+    """`triangulate` on brighton's and toledo's photos with geotags scattered `sigma_h_m` (noisy_geotags_block)."""
+    rows = []
+    for survey in surveys:
+        src = (BRIGHTON if survey == 'brighton' else TOLEDO) / 'images'
+        folder = out / 'blocks' / f'{survey}_noisy'
+        ref = noisy_geotags_block(src, folder, sigma_h_m)
+        rows.append(run_photos(f'{survey}_noisy', 'triangulate', folder, out, None, reference=ref,
+                               extra_row={'broken': f'geotags of {survey} scattered {sigma_h_m:g} m horizontally '
+                                                    '(geo.txt, stated 5 m)'}))
+    return rows
 
 
 def run_variants(out: Path) -> list[dict]:
@@ -740,17 +779,16 @@ def git_commit() -> str:
         return 'unknown'
 
 
-def run_all(surveys, pipelines, variants: bool, out: Path) -> list[dict]:
+def run_all(surveys, pipelines, variants: bool, out: Path, noisy=()) -> list[dict]:
     out.mkdir(parents=True, exist_ok=True)
     commit = git_commit()
     rows = []
-    jsonl = out / 'real_surveys.jsonl'
+    writer = ResultWriter(out / 'real_surveys.jsonl', 'real_surveys', MODULES)
 
     def keep(row):
         row['commit'] = commit
         rows.append(row)
-        with open(jsonl, 'a') as fh:
-            fh.write(json.dumps({k: v for k, v in row.items() if not k.startswith('per_camera')}, default=str) + '\n')
+        writer.write({k: v for k, v in row.items() if not k.startswith('per_camera')})
         (out / 'real_surveys.md').write_text(markdown(rows, commit))
         print(f"{row['survey']} {row['pipeline']}: {row.get('oriented')}/{row.get('given')} oriented, "
               f"{_f(row.get('sim_h_m'))} / {_f(row.get('sim_v_m'))} m after a similarity, "
@@ -763,22 +801,24 @@ def run_all(surveys, pipelines, variants: bool, out: Path) -> list[dict]:
                 keep(run_photos(s, p, BRIGHTON / 'images', out, 'odm'))
             elif s == 'toledo':
                 keep(run_photos(s, p, TOLEDO / 'images', out, 'pycolmap'))
+            elif s == 'seneca':
+                keep(run_photos(s, p, SENECA / 'images', out, None))
             elif s == 'phantom3' and p == 'replay':
                 keep(run_phantom3(out))
-        if s in ('brighton', 'toledo') and set(PIPELINES) <= set(pipelines):
-            folder = (BRIGHTON if s == 'brighton' else TOLEDO) / 'images'
+        if s in ('brighton', 'toledo', 'seneca') and set(PIPELINES) <= set(pipelines):
+            folder = {'brighton': BRIGHTON, 'toledo': TOLEDO, 'seneca': SENECA}[s] / 'images'
             tri, rep = out / f'{s}_triangulate' / 'poses.csv', out / f'{s}_replay' / 'trajectory.csv'
             if tri.exists() and rep.exists():
                 names = photo_stamps(folder)
                 rp = {names.get(p['stamp_ns'], n): p for n, p in read_poses(rep).items()}
                 rows[-1]['vs_triangulate'] = pipeline_agreement(read_poses(tri), rp)
                 (out / 'real_surveys.md').write_text(markdown(rows, commit))
-                with open(jsonl, 'a') as fh:
-                    fh.write(json.dumps({'survey': s, 'pipeline': 'replay vs triangulate',
-                                         **rows[-1]['vs_triangulate']}) + '\n')
+                writer.write({'survey': s, 'pipeline': 'replay vs triangulate', **rows[-1]['vs_triangulate']})
     if variants:
         for row in run_variants(out):
             keep(row)
+    for row in run_noisy(out, noisy) if noisy else []:
+        keep(row)
     return rows
 
 
@@ -788,6 +828,8 @@ def main(argv=None) -> int:
     ap.add_argument('--pipelines', default=','.join(PIPELINES), help='pipelines, comma separated')
     ap.add_argument('--variants', action='store_true', help='also the broken blocks (toledo with four geotags '
                                                             'moved 80 m; toledo + brighton in one folder)')
+    ap.add_argument('--noisy', default='', help='also brighton and/or toledo with geotags scattered 17 m '
+                                                '(comma separated)')
     ap.add_argument('--out', default='/tmp/real_surveys', help='output folder')
     ap.add_argument('--remeasure', action='store_true', help='measure the outputs already in --out again (no '
                                                               'command is run; wall times as recorded)')
@@ -800,8 +842,7 @@ def main(argv=None) -> int:
     if bad:
         ap.error(f'unknown {bad}; surveys {SURVEYS}, pipelines {PIPELINES}')
     out = Path(a.out)
-    (out / 'real_surveys.jsonl').unlink(missing_ok=True)
-    rows = run_all(surveys, pipelines, a.variants, out)
+    rows = run_all(surveys, pipelines, a.variants, out, [x for x in a.noisy.split(',') if x])
     print(markdown(rows, rows[0]['commit'] if rows else git_commit()))
     return 0
 

@@ -1,6 +1,7 @@
 """Stereo module vs plain OpenCV SGBM on Middlebury-layout scenes: one JSON line per scene and method.
 
 Usage: .venv/bin/python bench/stereo_middlebury.py SCENE_DIR [SCENE_DIR ...] [--param name=value ...]
+           [--out bench/results/stereo_middlebury_COMMIT.jsonl]
 Both methods use the same SGBM core parameters (mode, block size, P1/P2, disparity range); "plain" has
 no uniqueness, speckle or left-right filtering, "ours" is photogram_ros.core.stereo.match with the given
 parameters, "ours_lr_on"/"ours_lr_off" the same with the left-right check (lr_check) forced on/off.
@@ -20,6 +21,7 @@ import cv2
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from bench.machine import ResultWriter  # noqa: E402
 from photogram_ros.core import stereo  # noqa: E402
 from photogram_ros.core.stereo_eval import load_scene, score  # noqa: E402
 from photogram_ros.params import from_assignments  # noqa: E402
@@ -61,11 +63,13 @@ def main(argv=None) -> int:
     ap.add_argument('scenes', nargs='+', help='scene folders (imL.png, imR.png, groundtruth.png, info.txt)')
     ap.add_argument('--param', action='append', default=[], help='StereoParams override name=value')
     ap.add_argument('--repeats', type=int, default=3)
+    ap.add_argument('--out', default='/tmp/stereo_middlebury.jsonl', help='result file (JSON lines)')
     a = ap.parse_args(argv)
     params = from_assignments(stereo.StereoParams, a.param)
+    writer = ResultWriter(a.out, 'stereo_middlebury', ['photogram_ros/core/stereo.py', 'photogram_ros/core/stereo_eval.py'])
     for scene in a.scenes:
         for row in evaluate(scene, params, a.repeats):
-            print(json.dumps(row), flush=True)
+            print(json.dumps(writer.write({**row, 'params': a.param})), flush=True)
     return 0
 
 

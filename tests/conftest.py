@@ -21,8 +21,12 @@ os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
 
 
 def shared_data(*parts) -> Path:
+    """A path in ../shared/data: the test skips without it, or fails when PHOTOGRAM_ROS_REQUIRE_DATA is set
+    (the real-data lane of .ci/run)."""
     p = SHARED_DATA.joinpath(*parts)
     if not p.exists():
+        if os.environ.get('PHOTOGRAM_ROS_REQUIRE_DATA'):
+            pytest.fail(f'shared data {p} not present (the real-data lane needs ../shared/data beside the clone)')
         pytest.skip(f'shared data {p} not present')
     return p
 

@@ -152,3 +152,80 @@ def test_ground_above_the_cameras_unconverged_and_nothing_oriented():
     T[:8] = np.nan
     v = check_block(dataclasses.replace(b, map_T_cam=T))
     assert v.status == 'warning' and v.findings[0].photos == b.names[:8]
+
+
+def _far_geotags(b, sigma_h_m=17.0, seed=3):
+    """`b` with geotags scattered `sigma_h_m` horizontally (a compact camera's GPS), the noise estimated so."""
+    rng = np.random.default_rng(seed)
+    n = len(b.names)
+    fix = b.fix_enu_m + np.column_stack([rng.normal(0, sigma_h_m, (n, 2)), rng.normal(0, 3.0, n)])
+    g = {'stated_h_m': 5.0, 'stated_v_m': 3.0, 'estimated_h_m': sigma_h_m, 'estimated_v_m': 3.0,
+         'used_h_m': sigma_h_m, 'used_v_m': 3.0, 'n': n, 'rejected': []}
+    return dataclasses.replace(b, fix_enu_m=fix, gnss_noise=g)
+
+
+def _folded(b, fold_deg=35.0, from_x_m=75.0):
+    """`b` folded: the cameras beyond x = from_x_m (two of its five strips) and the ground they see turned by
+    fold_deg about the north axis through (from_x_m, 0): the geotags stay where they were."""
+    R = R_from_rotvec([0.0, np.radians(fold_deg), 0.0])
+    T = b.map_T_cam.copy()
+    side = T[:, 0, 3] > from_x_m
+    c = np.array([from_x_m, 0.0, 0.0])
+    T[side, :3, :3] = R @ T[side, :3, :3]
+    T[side, :3, 3] = (T[side, :3, 3] - c) @ R.T + c
+    ground = np.where(side, (np.array([[from_x_m + 10.0, 0.0, 0.0]]) - c) @ R.T[:, 2] + c[2], b.ground_z_m)
+    return dataclasses.replace(b, map_T_cam=T, ground_z_m=ground)
+
+
+def test_a_right_block_with_geotags_scattered_17_m_is_a_warning_placed_no_better_than_them():
+    """The held-out compact camera's case: the block's shape is right, its geotags scatter 17 m. Not FAILED:
+    WARNING, "placed no better than its geotags (17 m)", the internal evidence that vouched for the shape named."""
+    v = check_block(_far_geotags(_synthetic_block()))
+    print(v.summary, v.decided_by, v.figures['shape'])
+    assert v.status == 'warning', v.summary
+    assert any('placed no better than its geotags (17 m)' in f.text for f in v.findings)
+    assert {'view_axes', 'strips'} <= set(v.figures['shape']['evidence'])
+    assert v.to_dict()['decided_by'] == v.decided_by and 'geotags_far' in v.decided_by
+
+
+@pytest.mark.parametrize('far', [False, True])
+def test_a_folded_block_fails_whatever_its_geotags(far):
+    """Two of five strips folded 35 degrees with the ground they see: FAILED on the block's own evidence (its
+    strips tilt unlike the rest), with exact geotags and with geotags scattered 17 m alike."""
+    b = _synthetic_block()
+    folded = _folded(_far_geotags(b) if far else b)
+    v = check_block(folded)
+    print(v.summary, v.decided_by, v.figures['shape']['strips'])
+    assert v.status == 'failed' and 'strips' in v.decided_by, v.summary
+    bad = next(f for f in v.findings if f.check == 'strips')
+    assert set(bad.photos) == {'P12.JPG', 'P15.JPG', 'P16.JPG', 'P19.JPG'}
+    assert not any(f.check == 'geotags_far' for f in v.findings)
+
+
+def test_a_block_tipped_whole_fails_with_geotags_scattered_17_m():
+    b = _far_geotags(_synthetic_block())
+    R = R_from_rotvec([np.radians(85.0), 0.0, 0.0])
+    c = b.map_T_cam[:, :3, 3].mean(axis=0)
+    T = b.map_T_cam.copy()
+    T[:, :3, :3] = R @ T[:, :3, :3]
+    T[:, :3, 3] = (T[:, :3, 3] - c) @ R.T + c
+    v = check_block(dataclasses.replace(b, map_T_cam=T))
+    assert v.status == 'failed' and 'nadir' in v.decided_by, v.summary
+
+
+def test_tie_evidence_of_an_adjusted_flight(world):
+    """The tie points' own evidence from the adjuster: sub-pixel reprojection, rays meeting at several degrees, one
+    overlap graph; a good flight is OK on it and says so."""
+    sk = _records(world)
+    at, rep = _adjust(sk, sk.records)
+    b = inputs_from_at(at, adjustment={'status': rep.status})
+    t = b.tie
+    print(t['reprojection_px'], t['ray_angle_deg'], t['parts'])
+    assert t['reprojection_px'] < 1.0 and t['ray_angle_deg']['median'] > 3.0 and t['parts'] == 1
+    v = check_block(b)
+    assert v.status == 'ok' and {'reprojection', 'ray_angles', 'overlap_graph'} <= set(v.decided_by)
+    assert 'its shape holds by its own evidence' in v.summary
+    # A block in two parts that share no tie point: said, the parts named.
+    two = dataclasses.replace(b, tie={**t, 'component': [0] * 10 + [1] * (len(b.names) - 10), 'parts': 2})
+    v = check_block(two)
+    assert v.status == 'warning' and 'overlap_graph' in v.decided_by

@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 
 from conftest import shared_data
+from figures import figure
 from photogram_ros.core.camera import PinholeCamera
 from photogram_ros.core.geodesy import LocalFrame
 from photogram_ros.core.gnss_fix import STATUS_FIX, GnssFix
@@ -21,6 +22,10 @@ from photogram_ros.core.similarity import umeyama
 from photogram_ros.core.tracker import Tracker, TrackerParams
 
 pytestmark = pytest.mark.slow
+
+# The same photos and frames through `replay` (tracker_node and bundle_node chaining these classes), as
+# bench/real_surveys.py measured them: the gates below hold the counts as measured and the errors within 1.5x.
+REAL_RESULT = 'real_surveys_17e5a71.jsonl'
 
 
 def fly(frames, camera, fixes_for, tracker_params=None):
@@ -64,11 +69,12 @@ def test_brighton_beach_photos_orient_in_flight():
           f'{tr.stats.breaks} breaks, {len(at.registered)} oriented ({share:.0%}); tracks seen 3+ times '
           f'{int(np.sum(lengths >= 3))}, 4+ {int(np.sum(lengths >= 4))}; tracker '
           f'{tr.stats.process_s / tr.stats.frames:.2f} s/photo; GNSS residual {at.gnss_rms_m():.2f} m')
-    assert n >= 15 and share >= 0.9
+    m = figure(REAL_RESULT, survey='brighton', pipeline='replay')
+    assert n == m['keyframes_taken'] and len(at.registered) == m['keyframes_oriented'], (n, REAL_RESULT)
     assert at.georeferenced
     assert np.sum(lengths >= 3) >= 20 * n, 'points must be seen by 3+ keyframes'
-    # EXIF GPS of a consumer receiver (sigma 5 m given): the adjusted cameras agree with it to metres.
-    assert at.gnss_rms_m() < 5.0
+    # EXIF GPS of a consumer receiver (sigma 5 m given): the adjusted cameras against it as `replay`'s are.
+    assert at.gnss_rms_m() <= 1.5 * float(np.hypot(m['rigid_h_m'], m['rigid_v_m']))
 
 
 def phantom3_frames():
@@ -105,5 +111,8 @@ def test_phantom3_video_keyframes_orient_near_the_trajectory():
           f'{tr.stats.bridged} bridged), {len(at.registered)} oriented ({share:.0%}); camera centres '
           f'{rms:.2f} m RMS from the trajectory ({rms_sim:.2f} m after a similarity fit; GNSS noise '
           f'{sig_h} m / {sig_v} m); tracker {tr.stats.process_s / tr.stats.frames * 1e3:.0f} ms/frame')
-    assert share >= 0.9
-    assert rms <= 3.0
+    m = figure(REAL_RESULT, survey='phantom3', pipeline='replay')
+    assert share >= m['keyframes_oriented'] / m['keyframes_taken']
+    # Against the published trajectory after a similarity (the block's shape), and as placed by the noisy fixes.
+    assert rms_sim <= 1.5 * float(np.hypot(m['sim_h_m'], m['sim_v_m']))
+    assert rms <= 1.5 * float(np.hypot(m['rigid_h_m'], m['rigid_v_m']))

@@ -59,7 +59,8 @@ def rtk_flights(tmp_path_factory):
 
 
 def _triangulate(folder, out):
-    from photogram_ros.io.aerial_triangulation import TriangulateOptions, triangulate
+    from photogram_ros.io.aerial_triangulation import TriangulateOptions
+    from photogram_ros.io.triangulate_action import triangulate
     names = sorted({ln.split()[6] for ln in (folder / 'gcp_list.txt').read_text().splitlines()[1:]})
     triangulate(str(folder), str(out), TriangulateOptions(gcp=str(folder / 'gcp_list.txt'), check_names=tuple(names)))
     return json.loads((out / 'report.json').read_text())

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from conftest import shared_data
+from figures import figure
 from photogram_ros.core import stereo
 from photogram_ros.core.camera import PinholeCamera
 from photogram_ros.core.pairs import PairCriteria, choose_pairs, overlap_fraction
@@ -24,9 +25,9 @@ GSD_M = 40.0 / 520.0
 
 # --- Middlebury ----------------------------------------------------------------------------------
 
-# Measured bad-2 of the module on the nonocc mask with the left-right check (tsukuba 0.0165, venus 0.0029;
-# 0.021 and 0.0054 without it); bands leave ~30 % margin over the check-off figures.
-BAD2_BAND = {'tsukuba': 0.028, 'venus': 0.008}
+# The module's bad-2 on the nonocc mask, as bench/stereo_middlebury.py measured it (method 'ours': the
+# defaults): gated at 1.5x.
+MIDDLEBURY = 'stereo_middlebury_a0c1781.jsonl'
 
 
 @pytest.mark.parametrize('name', ['tsukuba', 'venus'])
@@ -41,8 +42,9 @@ def test_middlebury_bad2_no_worse_than_plain_sgbm(name):
     s_plain, s_ours = score(plain, sc.gt_px, mask), score(ours, sc.gt_px, mask)
     assert s_ours['bad2'] <= s_plain['bad2']
     assert s_ours['bad1'] <= s_plain['bad1']
-    assert s_ours['bad2'] < BAD2_BAND[name]
-    assert s_ours['density'] > 0.9
+    m = figure(MIDDLEBURY, scene=name, method='ours')
+    assert s_ours['bad2'] <= 1.5 * m['bad2'], f"bad-2 {s_ours['bad2']:.4f} > 1.5 x {m['bad2']} ({MIDDLEBURY})"
+    assert s_ours['density'] >= m['density'] / 1.5
 
 
 def test_lr_check_rejects_occlusions_and_lowers_bad2():

@@ -6,22 +6,32 @@ camera has none; their stated sigmas; the tie points each camera sees; how the f
 and returns a `BlockVerdict`: 'ok', 'warning' or 'failed', with one `Finding` per check that is not
 ok, each naming its reason and the photos it concerns.
 
-The checks, each against what the data itself says:
+The block's shape is judged on evidence from the photos themselves, never on how good its geotags are
+assumed to be; the geotags then say how well the block is placed. The verdict names the checks that decided
+it (`decided_by`), and `figures['shape']` holds the internal evidence:
+- shape (internal evidence): the reprojection RMS of the tie points, their rays' intersection angles, the
+  overlap graph (cameras joined by shared tie points: parts that share none are joined through their
+  geotags only), and per-strip consistency: the flight's strips (runs of cameras along one heading) each
+  look the way the whole block looks. A strip whose cameras look `fold_deg` or more away from the rest's,
+  or a nadir flight whose cameras do not look one way, is a folded block: failed, whatever its geotags.
+  Leave-strip-out: each strip's cameras against their geotags through the similarity of the other
+  strips, against the scatter of the geotags themselves (a figure, said when a strip stands out).
 - georeference: a block that neither its GNSS (3 cameras with a fix, off a line) nor 3 GCPs placed in the
   map frame sits in an arbitrary frame of its own: failed, and the checks that need the map's up and its
   place (gnss_rigid, ground_below, nadir) are not judged.
 - gnss_fit: the cameras against their own GNSS through a robust similarity (the block's shape alone),
-  residuals normalised by the GNSS noise (the estimated one where the adjustment estimated it). A block
-  whose shape disagrees with its GNSS far beyond that noise is folded or tipped: failed. Cameras whose
-  fix lies far from where the rest of the block puts them (a glitched geotag, a photo of another site)
-  are named.
+  residuals normalised by the GNSS noise (the estimated one where the adjustment estimated it). Far beyond
+  that noise: failed when the geotags hold to what they state (RTK-like: the estimated noise within
+  `noise_warn_factor` of the stated one) and the shape's own evidence does not vouch for it; otherwise a
+  warning (the block and its geotags disagree). Cameras whose fix lies far from where the rest of the block
+  puts them (a glitched geotag, a photo of another site) are named.
 - gnss_rigid: the adjusted cameras against their GNSS as they are (the block's own georeference), normalised
   by the same noise: a block placed far from its own fixes is failed.
 - ground_below: the tie points each camera sees lie below it. A block tipped over puts its ground beside
   or above its cameras: failed.
 - nadir: the share of cameras within `nadir_tilt_deg` of nadir, against the flight's expectation (a
   mapping flight looks down unless told otherwise): a block whose cameras look sideways while the flight
-  looked down is failed.
+  looked down is failed (tipped).
 - photos_not_used: photos left out before the adjustment (another camera in the folder) are named.
 - oriented: photos not oriented are named (a warning under `min_oriented_warn` oriented, by default any;
   under `min_oriented_failed`, failed).
@@ -38,7 +48,8 @@ The checks, each against what the data itself says:
   radial distortion in a flat nadir block of parallel lines: warning. Judged after a full adjustment only.
 - gnss_noise: the GNSS noise the adjustment estimated from the data, against what the fixes state:
   geotags poorer than they claim are said, and those it rejected are named; a horizontal scatter beyond
-  what any drone's GNSS shows in one flight (`noise_h_fail_m`) is a block whose shape is wrong: failed.
+  `noise_h_far_m` on a block whose own evidence holds is said as such: the block is placed no better than
+  its geotags (a compact camera's or a phone's GPS scatters that much).
 """
 
 from __future__ import annotations
@@ -66,9 +77,19 @@ class BlockCheckOptions:
     min_oriented_warn: float = 1.0      # share of photos oriented: warning under (1: any photo not oriented)
     min_oriented_failed: float = 0.5    # ... failed under
     noise_warn_factor: float = 3.0      # estimated GNSS noise / stated: warning above
-    noise_h_fail_m: float = 10.0        # estimated horizontal GNSS noise (m, about a similarity) beyond both this and
-                                        # noise_warn_factor x stated: failed (no receiver scatters that much in one
-                                        # flight; the block's shape is wrong and the estimate absorbed it)
+    noise_h_far_m: float = 10.0         # estimated horizontal GNSS noise (m, about a similarity) beyond both this and
+                                        # noise_warn_factor x stated: the block is placed no better than its geotags
+                                        # (a warning of its own; the shape is judged on internal evidence)
+    fold_deg: float = 15.0              # a strip's median tilt from the vertical this far from the rest's: folded
+    axis_share_fail: float = 0.5        # nadir flight: share of cameras within nadir_tilt_deg of the block's own
+                                        # median optical axis, failed under (its parts look different ways)
+    strip_turn_deg: float = 45.0        # a heading change between consecutive cameras this large starts a strip
+    min_strip: int = 3                  # cameras in a strip for it to be judged
+    reprojection_warn_px: float = 3.0   # tie points' reprojection RMS: warning above (wrong matches, a wrong camera)
+    ray_angle_warn_deg: float = 1.0     # median intersection angle of the tie points' rays: warning under (depth
+                                        # weakly determined: the shape rests on little)
+    strip_out_warn: float = 4.0         # leave-strip-out: a strip's mean residual against its geotags, through the
+                                        # other strips' similarity, / its standard error: said above
     level_warn_deg: float = 1.0         # tilt the GNSS heights gave the block beyond the one kept (deg): warning above
     check_warn: float = 5.0             # check-point RMSE / the datum's noise (>= 2 cm): warning above
     check_fail: float = 20.0            # ... failed above
@@ -93,8 +114,9 @@ class Finding:
 def ok_summary(figures: dict) -> str:
     """What a block without findings was found to do, from its check's `figures`."""
     by_gcps = figures.get('georeference', {}).get('cameras_with_fix', 3) < 3
+    shape = figures.get('shape', {}).get('text')
     return (f"the block {'is placed by its GCPs' if by_gcps else 'agrees with its GNSS'}, looks at the ground "
-            'below it and converged')
+            'below it and converged' + (f'; its shape holds by its own evidence ({shape})' if shape else ''))
 
 
 @dataclass
@@ -104,16 +126,25 @@ class BlockVerdict:
     figures: dict = field(default_factory=dict)     # what was measured, by check
 
     @property
+    def decided_by(self) -> list:
+        """The checks that set the status: the findings at the verdict's status, or (OK) the internal evidence
+        that vouched for the block's shape."""
+        if self.findings:
+            return sorted({f.check for f in self.findings if f.status == self.status})
+        return list(self.figures.get('shape', {}).get('evidence', []))
+
+    @property
     def summary(self) -> str:
         """One line: the status and the worst reasons."""
         if not self.findings:
             return f'OK: {ok_summary(self.figures)}'
-        return f'{self.status.upper()}: ' + '; '.join(f.text for f in self.findings[:3]) + \
+        return f'{self.status.upper()} (decided by {", ".join(self.decided_by)}): ' + \
+            '; '.join(f.text for f in self.findings[:3]) + \
             (f' (+{len(self.findings) - 3} more)' if len(self.findings) > 3 else '')
 
     def to_dict(self) -> dict:
-        return {'status': self.status, 'summary': self.summary, 'findings': [f.to_dict() for f in self.findings],
-                'figures': self.figures}
+        return {'status': self.status, 'summary': self.summary, 'decided_by': self.decided_by,
+                'findings': [f.to_dict() for f in self.findings], 'figures': self.figures}
 
 
 @dataclass
@@ -141,6 +172,9 @@ class BlockInputs:
                                                     # 'last_step_m'}; empty when it was not estimated
     georeferenced: bool | None = None               # the block was placed in the map frame (None: not known)
     gcps_in_block: int = 0                          # GCPs with a point in the block (its datum besides the GNSS)
+    tie: dict = field(default_factory=dict)         # the tie points' own evidence (tie_evidence): reprojection_px,
+                                                    # ray_angle_deg (median, p10), component (N,) overlap-graph part
+                                                    # of each camera (-1: none); empty when not known
 
 
 def inputs_from_at(at, n_photos: int | None = None, adjustment: dict | None = None,
@@ -175,7 +209,77 @@ def inputs_from_at(at, n_photos: int | None = None, adjustment: dict | None = No
     return BlockInputs([kf.name for kf in kfs], T, fix, sig, gz, dict(at.gnss_noise), adjustment or {},
                        expect_nadir, n_photos if n_photos is not None else n, dict(excluded or {}),
                        self_calibration=sel.to_dict() if sel is not None else {}, gnss_bias=bias,
-                       georeferenced=bool(at.georeferenced), gcps_in_block=at.gcps_in_block())
+                       georeferenced=bool(at.georeferenced), gcps_in_block=at.gcps_in_block(),
+                       tie=tie_evidence(at, thaw))
+
+
+def tie_evidence(at, thaw: bool = True, max_points_per_camera: int = 400, min_shared: int = 5) -> dict:
+    """The tie points' own evidence on the block of IncrementalAT `at`: {'reprojection_px': RMS over the oriented
+    cameras' observations, 'ray_angle_deg': {'median', 'p10'} of the largest angle between the rays that meet
+    at each tie point, 'component': (N,) the overlap-graph part of each keyframe (cameras sharing >= `min_shared`
+    tie points are joined; -1 not oriented or not read), 'parts': the number of parts}. Up to
+    `max_points_per_camera` observations of each camera are used (evenly spread); thaw False (in flight):
+    frozen keyframes are not read."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+    kfs = list(at.kfs)
+    n = len(kfs)
+    sq, cnt = 0.0, 0
+    rows, tids, dirs = [], [], []
+    for i, kf in enumerate(kfs):
+        if kf.map_T_cam is None or (kf.frozen and not thaw):
+            continue
+        ids, uv, active = kf.track_ids, kf.uv, kf.active
+        keep = active & (ids >= 0)
+        ids, uv = ids[keep], uv[keep]
+        has = at.points.contains_many(ids)
+        ids, uv = ids[has], uv[has]
+        if len(ids) > max_points_per_camera:
+            pick = np.linspace(0, len(ids) - 1, max_points_per_camera).astype(int)
+            ids, uv = ids[pick], uv[pick]
+        if not len(ids):
+            continue
+        X = at.points.get_many(ids).reshape(-1, 3)
+        e = at.reprojection_px(kf.map_T_cam, X, uv)
+        e = e[np.isfinite(e)]
+        sq, cnt = sq + float(np.sum(e ** 2)), cnt + len(e)
+        d = X - np.asarray(kf.map_T_cam, float)[:3, 3]
+        dirs.append(d / np.linalg.norm(d, axis=1, keepdims=True))
+        rows.append(np.full(len(ids), i))
+        tids.append(ids.astype(np.int64))
+    out = {'reprojection_px': float(np.sqrt(sq / cnt)) if cnt else None, 'ray_angle_deg': None,
+           'component': [-1] * n, 'parts': 0}
+    if not rows:
+        return out
+    r, t, d = np.concatenate(rows), np.concatenate(tids), np.concatenate(dirs)
+    u, col = np.unique(t, return_inverse=True)
+    # Rays meeting at each tie point: the largest angle between one ray and the points' mean ray, twice
+    # (the spread of the rays; two rays: their angle).
+    mean = np.zeros((len(u), 3))
+    np.add.at(mean, col, d)
+    seen = np.bincount(col, minlength=len(u))
+    mean /= np.linalg.norm(mean, axis=1, keepdims=True)
+    ang = np.degrees(np.arccos(np.clip(np.sum(d * mean[col], axis=1), -1.0, 1.0)))
+    spread = np.zeros(len(u))
+    np.maximum.at(spread, col, ang)
+    multi = 2.0 * spread[seen >= 2]
+    if len(multi):
+        out['ray_angle_deg'] = {'median': float(np.median(multi)), 'p10': float(np.percentile(multi, 10)),
+                                'points': int(len(multi))}
+    # The overlap graph: cameras x tie points, cameras joined by >= min_shared shared points.
+    A = coo_matrix((np.ones(len(r)), (r, col)), shape=(n, len(u))).tocsr()
+    shared = (A @ A.T).tocoo()
+    strong = shared.data >= min_shared
+    G = coo_matrix((np.ones(int(strong.sum())), (shared.row[strong], shared.col[strong])), shape=(n, n))
+    _, labels = connected_components(G, directed=False)
+    used = np.zeros(n, bool)
+    used[np.unique(r)] = True
+    comp = np.where(used, labels, -1)
+    parts = np.unique(comp[comp >= 0])
+    remap = {int(c): k for k, c in enumerate(sorted(parts, key=lambda c: -int(np.sum(comp == c))))}
+    out['component'] = [remap.get(int(c), -1) for c in comp]
+    out['parts'] = len(parts)
+    return out
 
 
 def _length(m: float) -> str:
@@ -228,6 +332,139 @@ def _nadir(b: BlockInputs, o: BlockCheckOptions, T: np.ndarray, oriented: np.nda
                                 'on a flight that looked down', _names(np.asarray(names, object)[oriented], ~near, 50)))
 
 
+def _unit(v: np.ndarray) -> np.ndarray:
+    return v / np.linalg.norm(v, axis=-1, keepdims=True)
+
+
+def _angle_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    return np.degrees(np.arccos(np.clip(np.sum(_unit(a) * _unit(b), axis=-1), -1.0, 1.0)))
+
+
+def strips_of(centres_m: np.ndarray, turn_deg: float = 45.0) -> list:
+    """The flight's strips: runs of consecutive cameras (in flight order, `centres_m` (N, 3)) along one heading;
+    a heading change beyond `turn_deg` from the strip's first step starts a new one. Steps under a tenth of
+    the median step (hovering) keep the strip. Returns a list of index arrays."""
+    n = len(centres_m)
+    if n < 2:
+        return [np.arange(n)]
+    step = np.diff(centres_m[:, :2], axis=0)
+    length = np.linalg.norm(step, axis=1)
+    small = length < 0.1 * max(float(np.median(length)), 1e-9)
+    strips, start, heading = [], 0, None
+    for i in range(n - 1):
+        if small[i]:
+            continue
+        h = step[i] / length[i]
+        if heading is None:
+            heading = h
+        elif np.degrees(np.arccos(np.clip(h @ heading, -1.0, 1.0))) > turn_deg:
+            strips.append(np.arange(start, i + 1))
+            start, heading = i + 1, None
+    strips.append(np.arange(start, n))
+    return strips
+
+
+def _shape(b: BlockInputs, o: BlockCheckOptions, T: np.ndarray, oriented: np.ndarray, names: list, findings: list,
+           figures: dict) -> bool:
+    """The block's shape on the photos' own evidence: whether it failed (folded). Fills figures['shape']."""
+    idx = np.flatnonzero(oriented)
+    axes = T[idx, :3, 2]
+    C = T[idx, :3, 3]
+    med = _unit(np.median(axes, axis=0))
+    ang = _angle_deg(axes, med)
+    share = float(np.mean(ang <= o.nadir_tilt_deg))
+    fig = {'view_axes': {'share_within_deg': share, 'deg': o.nadir_tilt_deg, 'median_deg': float(np.median(ang))}}
+    evidence, text, failed = [], [], False
+    nm = np.asarray(names, object)
+    judged = bool(b.expect_nadir) and len(idx) >= 2 * o.min_strip
+    if judged and share < o.axis_share_fail:
+        failed = True
+        findings.append(Finding('view_axes', 'failed', f'the cameras do not look one way: {100 * share:.0f} % of them '
+                                f'within {o.nadir_tilt_deg:g} degrees of the block\'s own median axis on a flight that '
+                                'looked down: the block is folded', _names(nm[idx], ang > o.nadir_tilt_deg, 50)))
+    elif judged:
+        evidence.append('view_axes')
+    # Per strip: its cameras' median tilt from the vertical against the strips' median. The tilt's size, not its
+    # direction: a camera pitched on its body looks forward on every strip, the other way on
+    # the way back; a folded part of the block tilts by the fold.
+    strips = [s for s in strips_of(C, o.strip_turn_deg) if len(s) >= o.min_strip]
+    tilt = tilt_from_nadir_deg(T[idx])
+    per = []
+    if len(strips) >= 2:
+        strip_tilt = np.array([np.median(tilt[st]) for st in strips])
+        usual = float(np.median(strip_tilt))          # the strips' majority
+        for k, st in enumerate(strips):
+            per.append({'strip': k, 'photos': [str(nm[idx[st[0]]]), str(nm[idx[st[-1]]])], 'cameras': int(len(st)),
+                        'tilt_from_usual_deg': float(abs(strip_tilt[k] - usual)), 'tilt_deg': float(strip_tilt[k])})
+    fig['strips'] = per
+    if per:
+        worst = max(per, key=lambda x: x['tilt_from_usual_deg'])
+        if judged and b.georeferenced is not False and worst['tilt_from_usual_deg'] > o.fold_deg:
+            failed = True
+            bad = [x for x in per if x['tilt_from_usual_deg'] > o.fold_deg]
+            findings.append(Finding('strips', 'failed', f'{len(bad)} of {len(per)} strips tilt unlike the rest of '
+                                    f'the block (by up to {worst["tilt_from_usual_deg"]:.0f} degrees, strip '
+                                    f'{worst["photos"][0]}..{worst["photos"][1]}; more than {o.fold_deg:g}): the block '
+                                    'is folded', [p for x in bad for p in x['photos']]))
+        elif judged and b.georeferenced is not False:
+            evidence.append('strips')
+            text.append(f'{len(per)} strips within {worst["tilt_from_usual_deg"]:.1f} degrees of one another')
+    # Leave-strip-out against the geotags (a figure): each strip's mean residual through the other strips'
+    # similarity, against the geotags' scatter about that similarity / sqrt(its cameras).
+    fix = b.fix_enu_m[idx]
+    ok = np.all(np.isfinite(fix), axis=1)
+    lso = []
+    for k, st in enumerate(strips):
+        rest = np.setdiff1d(np.flatnonzero(ok), st)
+        st = st[ok[st]]
+        if len(st) < o.min_strip or len(rest) < 4:
+            continue
+        sim = umeyama(C[rest], fix[rest])
+        scatter = float(np.sqrt(np.mean(np.sum((sim.apply(C[rest]) - fix[rest])[:, :2] ** 2, axis=1))))
+        mean_h = float(np.linalg.norm(np.mean(sim.apply(C[st]) - fix[st], axis=0)[:2]))
+        lso.append({'strip': k, 'mean_h_m': mean_h, 'ratio': mean_h / max(scatter / np.sqrt(len(st)), 1e-3)})
+    fig['leave_strip_out'] = lso
+    t = b.tie or {}
+    rp = t.get('reprojection_px')
+    fig['reprojection_px'] = rp
+    if rp is not None:
+        if rp > o.reprojection_warn_px:
+            findings.append(Finding('reprojection', 'warning', f'the tie points reproject at {rp:.2f} px RMS (more '
+                                    f'than {o.reprojection_warn_px:g}): wrong matches or a wrong camera model bend '
+                                    'the block'))
+        else:
+            evidence.append('reprojection')
+            text.append(f'reprojection {rp:.2f} px')
+    ra = t.get('ray_angle_deg')
+    fig['ray_angle_deg'] = ra
+    if ra:
+        if ra['median'] < o.ray_angle_warn_deg:
+            findings.append(Finding('ray_angles', 'warning', f'the tie points\' rays meet at {ra["median"]:.2f} degrees '
+                                    f'(median; under {o.ray_angle_warn_deg:g}): their depth, and the block\'s shape, '
+                                    'rest on little'))
+        else:
+            evidence.append('ray_angles')
+            text.append(f'rays meeting at {ra["median"]:.0f} degrees (median)')
+    comp = np.asarray(t.get('component') or [], int)
+    if len(comp) == len(names):
+        parts = [np.flatnonzero(comp == c) for c in range(int(t.get('parts', 0)))]
+        fig['overlap_graph'] = {'parts': len(parts), 'cameras': [int(len(p)) for p in parts]}
+        if len(parts) > 1:
+            small = [names[i] for p in parts[1:] for i in p]
+            findings.append(Finding('overlap_graph', 'warning', f'the block is {len(parts)} parts that share no tie '
+                                    f'points ({", ".join(str(len(p)) for p in parts)} cameras): they are joined '
+                                    'through their geotags only, and placed relative to one another no better than '
+                                    'those', small[:50]))
+        elif parts:
+            evidence.append('overlap_graph')
+            text.append('one overlap graph')
+    fig['evidence'] = evidence
+    fig['text'] = ', '.join(text)
+    fig['failed'] = failed
+    figures['shape'] = fig
+    return failed
+
+
 def _gnss_fit(b: BlockInputs, o: BlockCheckOptions, oriented: np.ndarray, findings: list, figures: dict) -> None:
     has = oriented & np.all(np.isfinite(b.fix_enu_m), axis=1)
     rejected = set(b.gnss_noise.get('rejected', []))
@@ -258,11 +495,18 @@ def _gnss_fit(b: BlockInputs, o: BlockCheckOptions, oriented: np.ndarray, findin
                            'noise_v_m': float(noise[1]), 'normalised_rms': fit, 'scale': float(sim.scale),
                            'outliers': _names(np.asarray(b.names, object)[has], out, 50)}
     if fit > o.gnss_fit_warn:
-        st = 'failed' if fit > o.gnss_fit_fail else 'warning'
+        # Far beyond their noise, the geotags fail the block only when they hold to what they state (the noise
+        # the adjustment estimated from them within noise_warn_factor of it): then they are evidence of its shape.
+        est = [g.get('estimated_h_m'), g.get('estimated_v_m')]
+        credible = None in est or (est[0] <= o.noise_warn_factor * g.get('stated_h_m', np.inf)
+                                   and est[1] <= o.noise_warn_factor * g.get('stated_v_m', np.inf))
+        st = 'failed' if fit > o.gnss_fit_fail and credible else 'warning'
+        why = ('the block is folded, tipped or mis-matched' if st == 'failed' else
+               'the geotags are poorer than they state, or the block is bent: it is placed no better than its '
+               f'geotags ({_length(float(np.hypot(rms_h, rms_v)))})')
         findings.append(Finding('gnss_fit', st, f'the block\'s shape disagrees with its own GNSS: cameras '
                                 f'{rms_h:.2f} m H / {rms_v:.2f} m V from it after a similarity, {fit:.1f}x the GNSS '
-                                f'noise ({noise[0]:.2f} m H, {noise[1]:.2f} m V): the block is folded, tipped or '
-                                'mis-matched', []))
+                                f'noise ({noise[0]:.2f} m H, {noise[1]:.2f} m V): {why}', []))
     if out.any():
         worst = np.argsort(-norm[out])
         names = [np.asarray(b.names, object)[has][out][i] for i in worst]
@@ -327,6 +571,7 @@ def check_block(b: BlockInputs, o: BlockCheckOptions | None = None) -> BlockVerd
         why = sorted(set(b.excluded.values()))
         findings.append(Finding('photos_not_used', 'warning', f'{len(b.excluded)} photos left out of the block '
                                 f'({"; ".join(why)}): {", ".join(list(b.excluded)[:8])}', list(b.excluded)[:50]))
+    shape_failed = _shape(b, o, T, oriented, names, findings, figures)
     _gnss_fit(b, o, oriented, findings, figures)
     placed = _georeference(b, oriented, findings, figures)
     # Rigid: the adjusted cameras against their fixes as they are.
@@ -420,12 +665,12 @@ def check_block(b: BlockInputs, o: BlockCheckOptions | None = None) -> BlockVerd
                                     f'noise {_length(est[0])} horizontal, {_length(est[1])} vertical (stated '
                                     f'{_length(stated[0])}, {_length(stated[1])}); they were weighted as measured, and '
                                     'the block is placed no better than they are'))
-        if est[0] > max(o.noise_h_fail_m, o.noise_warn_factor * stated[0]):
-            findings.append(Finding('gnss_noise_implausible', 'failed', f'the block\'s cameras scatter {est[0]:.1f} m '
-                                    'horizontally about their geotags after a similarity: more than any GNSS a drone '
-                                    f'carries scatters within one flight (> {o.noise_h_fail_m:g} m), so the block\'s '
-                                    'shape is wrong (too little overlap, wrong matches), not only the geotags: do not '
-                                    'use it'))
+        if est[0] > max(o.noise_h_far_m, o.noise_warn_factor * stated[0]) and not shape_failed:
+            shape = figures['shape'].get('text') or 'no internal evidence against it'
+            findings.append(Finding('geotags_far', 'warning', f'the cameras scatter {est[0]:.1f} m horizontally about '
+                                    'their geotags after a similarity (a compact camera\'s or a phone\'s GPS does); '
+                                    f'the block\'s shape holds by its own evidence ({shape}): it is placed no better '
+                                    f'than its geotags ({est[0]:.0f} m)'))
     if rejected:
         findings.append(Finding('gnss_rejected', 'warning', f'{len(rejected)} geotags not used, far beyond the '
                                 f'flight\'s GNSS noise from where the block puts their photos (a glitched geotag, or a '

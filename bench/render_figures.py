@@ -1,0 +1,558 @@
+"""Render the figure tables of docs/measurements.md and README.md from the result files in bench/results.
+
+    .venv/bin/python bench/render_figures.py           # rewrite the tables in place
+    .venv/bin/python bench/render_figures.py --check   # exit 1 and name the tables that differ
+
+A table sits between `<!-- figures:NAME -->` and `<!-- /figures:NAME -->` in a document; everything
+outside the markers is hand-written and left alone. Each table is one entry of TABLES below: its columns and
+its rows, one `Figure` a row. A Figure names the result files it reads (a glob under bench/results), which
+of their lines it takes (`where`: key -> value) and how it writes them (`cells`: the chosen line -> the
+row's cells). Of the files that hold such a line, the newest is used: the one whose line records the latest
+commit (git's commit time; a file without a commit counts as oldest). The last cell of every row names that
+file and the commit it was measured at, and says:
+- **stale** when one of the figure's modules (the line's `modules`, else the Figure's; less the Figure's
+  `ignore`, each said why in the spec) changed after that commit (git log, or an uncommitted change in the
+  working tree),
+- "modified tree" when the line says the tree had uncommitted changes (`clean` false), and "tree state not
+  recorded" for files written before bench/machine.py's ResultWriter,
+- "no result file" (and no figure) when no file holds the line.
+
+A new bench's figure is one Figure in one TABLES entry (and its markers in the document, once).
+tests/test_figures_rendered.py fails when the committed documents differ from what this renders.
+"""
+
+from __future__ import annotations
+
+import argparse
+import functools
+import json
+import re
+import subprocess
+import sys
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable
+
+ROOT = Path(__file__).resolve().parents[1]
+RESULTS = ROOT / 'bench' / 'results'
+DOCUMENTS = ('README.md', 'docs/measurements.md')
+PRODUCT = ('photogram_ros', 'config')        # the whole product code: what an end-to-end figure measures
+NO_FILE = 'no result file'
+
+
+# --- git -------------------------------------------------------------------------------------------------
+
+
+def _git(*args: str) -> str:
+    r = subprocess.run(['git', *args], cwd=ROOT, capture_output=True, text=True)
+    return r.stdout.strip() if r.returncode == 0 else ''
+
+
+@functools.lru_cache(maxsize=None)
+def full_commit(rev: str) -> str:
+    """The full hash of `rev` when it is a commit of this history, else ''."""
+    return _git('rev-parse', '--verify', '--quiet', f'{rev}^{{commit}}') if rev else ''
+
+
+@functools.lru_cache(maxsize=None)
+def commit_time(commit: str) -> int:
+    out = _git('log', '-1', '--format=%ct', commit) if commit else ''
+    return int(out) if out else -1
+
+
+@functools.lru_cache(maxsize=None)
+def changed_since(commit: str, modules: tuple[str, ...]) -> int:
+    """Commits after `commit` that change `modules`, plus 1 when the working tree changes them now."""
+    n = _git('rev-list', '--count', f'{commit}..HEAD', '--', *modules)
+    dirty = _git('status', '--porcelain', '--untracked-files=no', '--', *modules)
+    return int(n or 0) + (1 if dirty else 0)
+
+
+# --- result files ----------------------------------------------------------------------------------------
+
+
+def read_lines(path: Path) -> list[dict]:
+    rows = []
+    for line in path.read_text().splitlines():
+        line = line.strip()
+        if line:
+            try:
+                rows.append(json.loads(line))
+            except json.JSONDecodeError:
+                continue
+    return rows
+
+
+def line_commit(line: dict, path: Path) -> str:
+    """The exact commit a line was measured at: its `commit` (the ResultWriter's full hash; older benches
+    wrote 'PRODUCT (HEAD abc1234)': the HEAD is the tree that ran), else the file name's _<hex> suffix."""
+    c = str(line.get('commit') or '')
+    m = re.search(r'HEAD ([0-9a-f]{7,40})', c) or re.match(r'([0-9a-f]{7,40})\b', c) \
+        or re.search(r'_([0-9a-f]{7,40})\.jsonl$', path.name)
+    return full_commit(m.group(1)) if m else ''
+
+
+def line_clean(line: dict) -> bool | None:
+    if 'clean' in line:
+        return bool(line['clean'])
+    return False if '+modified' in str(line.get('commit', '')) else None
+
+
+def matches(line: dict, where: dict) -> bool:
+    for k, v in where.items():
+        x = line
+        for part in k.split('.'):
+            x = x.get(part) if isinstance(x, dict) else None
+        if callable(v):
+            if not v(x):
+                return False
+        elif x != v:
+            return False
+    return True
+
+
+@dataclass(frozen=True)
+class Figure:
+    """One row of a rendered table: `label` (its first cells, hand-written: what was measured), the result
+    files `results` (a glob under bench/results; '' for a figure no bench writes yet), the line taken
+    (`where`: dotted keys, values or predicates; the last matching line of a file), `cells` ((that line, every
+    line of its file) -> the figure's cells) and `modules` (used when the line does not name its own)."""
+    label: tuple
+    results: str = ''
+    where: dict = field(default_factory=dict)
+    cells: Callable[[dict, list], list] | None = None
+    modules: tuple = PRODUCT
+    command: str = ''
+    tail: tuple = ()          # hand-written cells after the figure's (e.g. a link to the section)
+    ignore: tuple = ()        # paths inside the modules whose change does not touch this figure (said in the spec)
+
+
+@dataclass
+class Source:
+    path: Path
+    line: dict
+    lines: list
+    commit: str
+    clean: bool | None
+    modules: tuple
+
+
+def newest(fig: Figure) -> Source | None:
+    best, best_key = None, None
+    for path in sorted(RESULTS.glob(fig.results)) if fig.results else []:
+        lines = read_lines(path)
+        hits = [x for x in lines if matches(x, fig.where)]
+        if not hits:
+            continue
+        line = hits[-1]
+        commit = line_commit(line, path)
+        key = (commit_time(commit), path.name)
+        if best_key is None or key > best_key:
+            best_key = key
+            best = Source(path, line, lines, commit, line_clean(line), tuple(line.get('modules') or fig.modules))
+    return best
+
+
+def source_cell(src: Source | None, fig: Figure) -> str:
+    if src is None:
+        return NO_FILE + (f' (measure: `{fig.command}`)' if fig.command else '')
+    rel = src.path.relative_to(ROOT).as_posix() if src.path.is_relative_to(ROOT) else src.path.name
+    if not src.commit:
+        return f'`{rel}`, commit not in this history: **stale**'
+    notes = []
+    n = changed_since(src.commit, src.modules + tuple(f':(exclude){p}' for p in fig.ignore))
+    if n:
+        notes.append(f'**stale**: {", ".join(src.modules)} changed in {n} commit{"s" if n > 1 else ""} since')
+    if src.clean is False:
+        notes.append('modified tree')
+    elif src.clean is None:
+        notes.append('tree state not recorded')
+    return f'`{rel}` @ {src.commit[:7]}' + (f' ({"; ".join(notes)})' if notes else '')
+
+
+def _esc(v) -> str:
+    return str(v).replace('|', '\\|').replace('\n', ' ')
+
+
+@dataclass(frozen=True)
+class Table:
+    columns: tuple            # the header, without the last column (the result file)
+    rows: tuple               # Figure
+
+
+def render_table(t: Table) -> str:
+    width = len(t.columns)
+    out = ['| ' + ' | '.join(t.columns) + ' | result file |', '|' + '---|' * (width + 1)]
+    for fig in t.rows:
+        src = newest(fig)
+        label = [str(c) for c in fig.label]
+        body = list(fig.cells(src.line, src.lines)) if src is not None and fig.cells is not None else []
+        cells = label + (body or ['—'] * max(0, width - len(label) - len(fig.tail))) + [str(c) for c in fig.tail]
+        # Cells beyond the table's width join the last one; missing cells are dashes.
+        cells = cells[:width - 1] + ['; '.join(c for c in cells[width - 1:] if c)] if len(cells) > width else \
+            cells + ['—'] * (width - len(cells))
+        out.append('| ' + ' | '.join(_esc(c) for c in cells + [source_cell(src, fig)]) + ' |')
+    return '\n'.join(out)
+
+
+# --- formatting helpers for the specs --------------------------------------------------------------------
+
+
+def f(v, fmt: str = '.2f', unit: str = '') -> str:
+    if v is None:
+        return 'n/a'
+    try:
+        return format(v, fmt) + unit
+    except (TypeError, ValueError):
+        return str(v)
+
+
+def pct(v) -> str:
+    return 'n/a' if v is None else f'{100 * v:.0f} %'
+
+
+def cm(v) -> str:
+    return 'n/a' if v is None else f'{100 * v:.1f} cm'
+
+
+def verdict(line: dict, most: int = 260) -> str:
+    v = line.get('verdict')
+    text = v.get('summary', '') if isinstance(v, dict) else str(v or '')
+    if isinstance(v, dict) and v.get('decided_by') and 'decided by' not in text:
+        text = f'[decided by {", ".join(v["decided_by"])}] {text}'
+    if not isinstance(v, dict) and line.get('last_line'):
+        text = f'{text.upper()} ({line["last_line"]})' if text else line['last_line']
+    return text if len(text) <= most else text[:most].rsplit(' ', 1)[0] + ' …'
+
+
+def survey_cells(x: dict, _lines=None) -> list:
+    """A real-survey row: oriented, after a robust similarity H / V, rigid H / V, nadir, reprojection, peer."""
+    peer = x.get('peer') or {}
+    if 'median_abs_dz_m' in peer:
+        hull = x.get('peer_in_hull') or {}
+        p = (f'ODM against our {"DSM" if x["pipeline"] == "replay" else "sparse cloud"} after a constant offset: '
+             f'median |dz| {cm(peer["median_abs_dz_m"])}'
+             + (f', {cm(hull["median_abs_dz_m"])} inside the camera centres\' hull' if hull else ''))
+    elif 'peer_h_m' in peer:
+        p = (f'pycolmap {peer["peer_h_m"]:.2f} / {peer["peer_v_m"]:.2f} m after its similarity; per photo '
+             f'{peer["diff_h_m"]:.2f} m H apart')
+    else:
+        p = '—'
+    measured = x.get('dsm_measured_hull_share')
+    return [f'{x.get("oriented")}/{x.get("given")}' + (' keyframes' if x.get('pipeline') == 'replay' else ''),
+            f'{f(x.get("sim_h_m"))} / {f(x.get("sim_v_m"))} m', f'{f(x.get("rigid_h_m"))} / {f(x.get("rigid_v_m"))} m',
+            f'{pct(x.get("nadir_share"))} (median {f(x.get("tilt_median_deg"), ".1f")}°)',
+            f'{f(x.get("reprojection_px"), ".3f")} px' + (f'; DSM: {pct(measured)} of the camera centres\' hull '
+                                                          'measured by stereo' if measured is not None else ''), p]
+
+
+def agreement_cells(x: dict, _lines=None) -> list:
+    return [f'{x["n"]}', f'{x["rms_3d_m"]:.2f} m RMS 3D ({x["h_m"]:.2f} m H / {x["v_m"]:.2f} m V), max '
+            f'{x["max_3d_m"]:.2f} m']
+
+
+def stereo_cells(x: dict, lines: list) -> list:
+    plain = next((y for y in lines if y.get('scene') == x['scene'] and y.get('method') == 'plain_sgbm'), {})
+    return [f'bad-2 {x["bad2"]:.4f} at density {x["density"]:.2f}; plain SGBM in the same run '
+            f'{f(plain.get("bad2"), ".4f")} at {f(plain.get("density"))}']
+
+
+# --- the tables ------------------------------------------------------------------------------------------
+
+REAL = 'real_surveys*.jsonl'
+REAL_CMD = 'ROS_DOMAIN_ID=N .venv/bin/python bench/real_surveys.py --variants --noisy brighton,toledo --out OUT'
+STEREO_CMD = '.venv/bin/python bench/stereo_middlebury.py ../shared/data/stereo/{tsukuba,venus,cones,teddy} --out F'
+BAL_CMD = '.venv/bin/python bench/bundle_bal.py ../shared/data/bal/problem-49-7776-pre.txt --peers --out F'
+SCALE = 'photo_triangulation_scale*.jsonl'
+SCALE_CMD = '.venv/bin/python bench/photo_triangulation_scale.py --photos 600 --modes split --counts 1 2 --split-photos 320'
+
+
+# The block check runs after a block is oriented and only writes its verdict (no real set is split into sub-blocks,
+# whose merge reads their verdicts): a change to it leaves the orientation figures as they are, not the verdicts.
+AFTER_ORIENTATION = ('photogram_ros/core/block_check.py',)
+
+
+def _survey(label, survey, pipeline):
+    return Figure((label, pipeline), REAL, {'survey': survey, 'pipeline': pipeline}, survey_cells, PRODUCT, REAL_CMD,
+                  ignore=AFTER_ORIENTATION)
+
+
+def _verdict(label, survey, pipeline):
+    return Figure((label, pipeline), REAL, {'survey': survey, 'pipeline': pipeline}, lambda x, _: [verdict(x)],
+                  PRODUCT, REAL_CMD)
+
+
+def _agreement(label, survey):
+    return Figure((label,), REAL, {'survey': survey, 'pipeline': 'replay vs triangulate'}, agreement_cells, PRODUCT,
+                  REAL_CMD, ignore=AFTER_ORIENTATION)
+
+
+def _stereo(scene):
+    return Figure((f'stereo on Middlebury {scene} (the module\'s default)',), 'stereo_middlebury*.jsonl',
+                  {'scene': scene, 'method': 'ours'}, stereo_cells, ('photogram_ros/core/stereo.py',), STEREO_CMD)
+
+
+def _none(*label, command='', tail=()):
+    """A row no bench writes a result file for (yet): its figure is not quoted."""
+    return Figure(tuple(label), '', command=command, tail=tuple(tail))
+
+
+def _readme(label, fig: Figure, cells, more: str) -> Figure:
+    """A README headline row: the figure's line, said in one cell, and the docs section."""
+    return Figure((label,), fig.results, fig.where, lambda x, lines: [cells(x, lines)], fig.modules, fig.command,
+                  (more,), fig.ignore)
+
+
+def _scale_cells(x: dict, lines: list) -> list:
+    r = x['run']
+    cmp_ = next((y for y in lines if y.get('compare')), {})
+    return [f'{r["oriented"]}/635 oriented, check points {cm(r["check_h_m"])} / '
+            f'{cm(r["check_v_m"])} (n={r["check_n"]}), {r["wall_s"]:.0f} s wall on {r["workers"]} worker(s) at load '
+            f'{r["load_before"]}' + (f'; 2 workers {cmp_["speedup"]:.2f}x faster than 1 in the same run'
+                                     if cmp_.get('speedup') and r['workers'] == 2 else '')]
+
+
+def _split_cells(x: dict, lines: list) -> list:
+    r = x['run']
+    return [f'{r["oriented"]} oriented, check points {cm(r["check_h_m"])} / {cm(r["check_v_m"])}, {r["wall_s"]:.0f} s wall']
+
+
+def _control_cells(x: dict, _lines) -> list:
+    w, wo = x['with'], x['without']
+    return [f'{x["keyframes"]} keyframes, {x["gcps"]} GCPs: live check points (median) {cm(w["live_check_median_m"][0])} '
+            f'/ {cm(w["live_check_median_m"][1])} against {cm(wo["live_check_median_m"][0])} / '
+            f'{cm(wo["live_check_median_m"][1])} without the control adjustment, for {x["time_ratio"]:.2f}x the '
+            'stage\'s time (same run)']
+
+
+PPK_CMD = '.venv/bin/python bench/ppk_survey.py --out F'
+
+
+def _ppk(label, case):
+    return Figure((label,), 'ppk_survey*.jsonl', {'case': case},
+                  lambda x, _: [f'check points {cm(x["check_h_m"])} H / {cm(x["check_v_m"])} V '
+                                f'({x["check_h_gsd"]:.2f} / {x["check_v_gsd"]:.2f} GSD), {x["check_n"]} targets'],
+                  PRODUCT, PPK_CMD)
+
+
+PPK_POSITIONS = Figure(('PPK photo survey (`simulate --ppk`, `geotag`; tiny preset): camera positions',),
+                       'ppk_survey*.jsonl', {'case': 'camera_positions'},
+                       lambda x, _: [f'geotags {cm(x["median_m"])} median from the true camera centres (max '
+                                     f'{cm(x["max_m"])}); against the MRK offsets: ArduPilot CAM + lever arm '
+                                     f'{1000 * x["cam_bin_vs_mrk_max_m"]:.1f} mm, .tlog '
+                                     f'{1000 * x["tlog_vs_mrk_max_m"]:.1f} mm, EXIF times '
+                                     f'{1000 * x["exif_vs_mrk_max_m"]:.1f} mm (max)'], PRODUCT, PPK_CMD)
+
+
+def _ground_cells(x: dict, _lines) -> list:
+    eq = max(x['check_diff_h_m'], x['check_diff_v_m'], x['gcp_diff_h_m'], x['gcp_diff_v_m'])
+    return [f'final check points on the page **{cm(x["page_check_h_m"])} / {cm(x["page_check_v_m"])}** '
+            f'({x["page_check_n"]}), GCP residuals {cm(x["page_gcp_h_m"])} / {cm(x["page_gcp_v_m"])}, equal to the '
+            f'report\'s to {"under 0.001 mm" if eq < 1e-6 else f"{1000 * eq:.3f} mm"}; in flight from the final georeference on at most '
+            f'{cm(x["live_check_h_max_m"])} H over {x["live_final_polls"]} polls; {x["nogo_polls"]} NO-GO of '
+            f'{x["polls"]} polls, final {x["final_verdict"]}']
+
+
+GROUND = Figure(('plain sample flight with its targets file at `--rate 1` beside the ground station',),
+                'ground_flight*.jsonl', {'bench': 'ground_flight'}, _ground_cells, ('photogram_ros',),
+                'ROS_DOMAIN_ID=N .venv/bin/python bench/ground_flight.py --out F')
+
+
+BRIGHTON_TRI = _survey('', 'brighton', 'triangulate')
+BRIGHTON_REP = _survey('', 'brighton', 'replay')
+TOLEDO_TRI = _survey('', 'toledo', 'triangulate')
+TOLEDO_AGREE = _agreement('', 'toledo')
+SENECA_TRI = _survey('', 'seneca', 'triangulate')
+PHANTOM3 = _survey('', 'phantom3', 'replay')
+BAL_SCIPY = Figure(('BAL problem-49-7776 (real photos): ours against SciPy',), 'bundle_bal*.jsonl',
+                   {'problem': 'problem-49-7776-pre.txt', 'solver': 'scipy_least_squares_trf'},
+                   lambda x, _: [f'{x["time_ratio_peer_over_ours"]:.1f}x faster than SciPy\'s least_squares (trf, '
+                                 f'sparse finite differences; same run), final cost {x["cost_ratio_ours_over_peer"]:.3f}x '
+                                 'SciPy\'s'], ('photogram_ros/core/bundle', 'photogram_ros/io/bal.py'), BAL_CMD)
+BAL_CERES = Figure(('BAL problem-49-7776: ours against Ceres (pycolmap)',), 'bundle_bal*.jsonl',
+                   {'problem': 'problem-49-7776-pre.txt', 'solver': 'ceres_pycolmap', 'seconds': lambda v: v is not None},
+                   lambda x, _: [f'{x["time_ratio_ours_over_peer"]:.2f}x Ceres\'s time (same run), final cost '
+                                 f'{x["cost_ratio_ours_over_peer"]:.3f}x Ceres\'s'],
+                   ('photogram_ros/core/bundle', 'photogram_ros/io/bal.py'),
+                   'pip install -r bench/requirements-peers.txt; ' + BAL_CMD)
+SCALE_W2 = Figure(('635 simulated photos, split-merge (2 sub-blocks), 2 workers',), SCALE,
+                  {'run.mode': 'split', 'run.workers': 2, 'run.oriented': lambda v: v is not None and v > 600},
+                  _scale_cells, PRODUCT, SCALE_CMD)
+# The real sets' rows of bench/real_surveys.py: (label, survey, pipeline).
+REAL_ROWS = (
+    ('brighton_beach (18 DJI FC300S, EXIF only)', 'brighton', 'triangulate'), ('brighton_beach', 'brighton', 'replay'),
+    ('toledo (42 DJI FC350, EXIF only)', 'toledo', 'triangulate'), ('toledo', 'toledo', 'replay'),
+    ('seneca_part (41 NIR photos, fixed wing)', 'seneca', 'triangulate'), ('seneca_part', 'seneca', 'replay'),
+    ('phantom3_village (100 video frames, `import-frames` then `replay`)', 'phantom3', 'replay'),
+    ('toledo, every other photo', 'toledo_half', 'triangulate'),
+    ('brighton_beach, every other photo', 'brighton_half', 'triangulate'),
+    ('toledo, four geotags moved 80 m', 'toledo_moved4', 'triangulate'),
+    ('toledo (42) and brighton (18) in one folder', 'two_sites', 'triangulate'),
+    ('brighton_beach, geotags scattered 17 m', 'brighton_noisy', 'triangulate'),
+    ('toledo, geotags scattered 17 m', 'toledo_noisy', 'triangulate'))
+
+
+TABLES: dict[str, Table] = {
+    'simulated': Table(('what', 'figure'), (
+        _none('sample flight end to end (RTK, no GCPs): check points, keyframes oriented, camera centres',
+              command='scripts/replay-sample.sh OUT'),
+        _none('dense cloud, DSM and DTM of the sample flight against the true DEM; overlap', command='scripts/replay-sample.sh OUT'),
+        _none('aerial triangulation, RTK, no GCPs; 3D GNSS (~2 m) + 5 GCPs', command='scripts/test.sh tests/test_incremental.py -s'),
+        _none('3D GNSS (~2 m) + 5 GCPs in flight (`replay --gcp`)', command='scripts/test.sh tests/test_gcp_flight.py -m slow -s'),
+        _none('no GNSS at all + GCPs', command='scripts/test.sh tests/test_triangulate_gcp_only.py tests/test_gcp_georeference.py -s'),
+        _none('sample flight with its targets file (RTK + 5 GCPs)', command='photogram-ros replay bags/sample_flight --out OUT '
+              '--gcp bags/sample_flight/targets.txt --truth bags/sample_flight'),
+        Figure(('control adjustment in flight: the sample flight as keyframes through the adjustment stage',),
+               'control_adjustment_cost*.jsonl', {'preset': 'sample'}, _control_cells, PRODUCT,
+               '.venv/bin/python bench/control_adjustment_cost.py'),
+        Figure(('control adjustment in flight: the survey preset',), 'control_adjustment_cost*.jsonl', {'preset': 'survey'},
+               _control_cells, PRODUCT, '.venv/bin/python bench/control_adjustment_cost.py'),
+        PPK_POSITIONS,
+        _ppk('PPK photo survey: `triangulate` on the PPK geotags with the photos\' EXIF camera', 'triangulate_ppk_exif_camera'),
+        _ppk('... with the camera\'s calibration (`--camera camera.yaml`)', 'triangulate_ppk_calibrated'),
+        _ppk('... the same photos on their EXIF GPS alone', 'triangulate_exif_gps'),
+        _none('geotag interpolation', command='scripts/test.sh tests/test_geotag.py'),
+        _none('manual tie points across a cut', command='scripts/test.sh tests/test_manual_tie_points.py -m slow -s'),
+        _none('the flight after every track was lost', command='scripts/test.sh tests/test_incremental.py tests/test_bundle_node.py'),
+        _none('simulated photo folder in flight (`replay PHOTOS`, EXIF camera, k1 self-calibrated)',
+              command='scripts/test.sh tests/test_replay_photos.py'),
+        _none('self-calibration', command='scripts/test.sh tests/test_bundle_solver.py tests/test_bundle_covariance.py'))),
+    'real-surveys': Table(
+        ('survey', 'pipeline', 'oriented', 'cameras − GNSS after a robust similarity, H / V', 'rigid H / V',
+         'within 15° of nadir', 'reprojection', 'peer'), tuple(_survey(*r) for r in REAL_ROWS)),
+    'real-agreement': Table(
+        ('survey', 'photos in both', '`replay`\'s cameras against `triangulate`\'s'),
+        (_agreement('brighton_beach', 'brighton'), _agreement('toledo', 'toledo'), _agreement('seneca_part', 'seneca'))),
+    'real-verdicts': Table(('survey', 'pipeline', 'verdict'), tuple(_verdict(*r) for r in REAL_ROWS)),
+    'held-out': Table(('what', 'figure'), (
+        _none('toledo and brighton with consumer-camera geotags made from their own (heights wandering ~100 m, a '
+              'wandering 15 m bias, a third missing, stated sigmas too small) through `triangulate`',
+              command='ROS_DOMAIN_ID=N .venv/bin/python bench/held_out_proxies.py --out OUT'),)),
+    'real-more': Table(('what', 'figure'), (
+        _none('matching from the final adjustment: pairs along and across the lines', command='.venv/bin/python bench/products_pairs.py OUT/map'),
+        _none('photo-survey speed (`triangulate PHOTOS`) against a bare OpenCV baseline', command='.venv/bin/python bench/photo_triangulation.py'),
+        _none('Dask matching (`--workers 2` against `--workers 1`)', command='.venv/bin/python bench/photo_triangulation_scale.py --matching-only'),
+        Figure(('104 simulated photos, one block',), 'split_merge_paths*.jsonl', {'run.split_photos': 0}, _split_cells,
+               PRODUCT, '.venv/bin/python bench/split_merge_paths.py --photos 100 --split-photos 60'),
+        Figure(('104 simulated photos, split-merge in 2 sub-blocks',), 'split_merge_paths*.jsonl', {'run.split_photos': 60},
+               _split_cells, PRODUCT, '.venv/bin/python bench/split_merge_paths.py --photos 100 --split-photos 60'),
+        Figure(('635 simulated photos, split-merge (2 sub-blocks), 1 worker',), SCALE,
+               {'run.mode': 'split', 'run.workers': 1, 'run.oriented': lambda v: v is not None and v > 600}, _scale_cells,
+               PRODUCT, SCALE_CMD),
+        SCALE_W2,
+        Figure(('635 simulated photos, one block',), SCALE,
+               {'run.mode': 'single', 'run.oriented': lambda v: v is not None and v > 600}, _scale_cells, PRODUCT,
+               SCALE_CMD.replace('--modes split', '--modes single')),
+        _none('long blocks from a camera without a calibration (300-keyframe RTK flight, k1 −0.12 taken as none)',
+              command='scripts/test.sh tests/test_pass_self_calibration.py -s'))),
+    'control': Table(('what', 'figure'), (
+        _none('control files with field faults (simulated photo survey)', command='scripts/test.sh tests/test_control_faults.py tests/test_control_report.py'),
+        _none('control files with field faults in flight (bundle_node)', command='scripts/test.sh tests/test_control_live.py tests/test_gcp_flight.py'),
+        _none('target detection', command='.venv/bin/python bench/target_detection.py'))),
+    'ground': Table(('what', 'figure'), (
+        _none('sample flight, camera stopped 10 s in its outer line (`simulate --gap 61:71`, `--rate 1`)',
+              command='scripts/test.sh tests/test_survey_quality_flight.py -m slow'),
+        GROUND,
+        _none('`simulate --gap 30:40`, `--gap 38:44,64:70`', command='scripts/test.sh tests/test_ground_flight.py -m slow -s'),
+        _none('`simulate --gap 8:14` (every track lost on the first line)', command='scripts/test.sh tests/test_segments.py -s'),
+        _none('tile stream and the cost in map_node', command='.venv/bin/python bench/ground_stream.py'))),
+    'components': Table(('what', 'figure'), (
+        BAL_SCIPY, BAL_CERES, _stereo('tsukuba'), _stereo('venus'), _stereo('cones'), _stereo('teddy'),
+        _none('tracker: accuracy and frame rate', command='.venv/bin/python bench/tracker_fps.py'),
+        _none('calibration on OpenCV\'s chessboard images', command='scripts/test.sh tests/test_calibration.py'),
+        _none('stereo speed: the module against a bare SGBM compute', command='.venv/bin/python bench/stereo_speed.py'),
+        _none('MAVLink parsing against pymavlink', command='.venv/bin/python bench/mavlink_parse.py'),
+        _none('map fusion', command='.venv/bin/python bench/fusion_throughput.py'))),
+    'speed': Table(('what', 'figure'), (
+        _none('replay of the sample bag', command='scripts/replay-sample.sh OUT'),
+        _none('sliding-window update', command='.venv/bin/python bench/window_latency.py'),
+        _none('bag player; the simulator\'s rendering', command='.venv/bin/python bench/replay_throughput.py'),
+        _none('real time (a 5 fps, 640×480 survey through `replay`)', command='.venv/bin/python bench/e2e_realtime.py'),
+        _none('memory over a 34-minute flight', command='.venv/bin/python bench/memory_soak.py --minutes 30'),
+        _none('20 MP photos in flight', command='ROS_DOMAIN_ID=N .venv/bin/python bench/inflight_20mp.py'),
+        _none('a recording killed with `kill -9`', command='scripts/test.sh tests/test_faults.py -k record_killed'))),
+    'readme-headline': Table(('what', 'figure', 'more'), (
+        _readme('real DJI survey offline (brighton_beach, 18 photos, no calibration, no GCPs)', BRIGHTON_TRI,
+                lambda x, _: f'**{x["oriented"]}/{x["given"]} oriented**, reprojection {x["reprojection_px"]:.2f} px, '
+                f'cameras {x["sim_h_m"]:.2f} m H / {x["sim_v_m"]:.2f} m V from their own GPS after a similarity',
+                '[real surveys](docs/measurements.md#real-surveys)'),
+        _readme('the same photos in flight (`replay`)', BRIGHTON_REP,
+                lambda x, _: f'**{x["oriented"]}/{x["given"]} keyframes oriented**; DSM '
+                f'{pct(x["dsm_measured_hull_share"])} of the camera centres\' hull measured by stereo, '
+                f'**{cm(x["peer_in_hull"]["median_abs_dz_m"])}** median from OpenDroneMap\'s cloud inside that hull',
+                'same'),
+        _readme('real DJI survey (toledo, 42 photos, EXIF only)', TOLEDO_TRI,
+                lambda x, _: f'**{x["oriented"]}/{x["given"]} oriented, cameras {x["sim_h_m"]:.2f} m H from their own '
+                f'GPS**, {pct(x["nadir_share"])} within 15° of nadir', 'same'),
+        _readme('toledo in flight against offline', TOLEDO_AGREE,
+                lambda x, _: f'`replay`\'s cameras {x["rms_3d_m"]:.2f} m RMS from `triangulate`\'s over {x["n"]} photos',
+                'same'),
+        _readme('real fixed-wing survey (seneca_part, 41 near-infrared photos)', SENECA_TRI,
+                lambda x, _: f'**{x["oriented"]}/{x["given"]} oriented**, cameras {x["sim_h_m"]:.2f} m H from their GPS',
+                'same'),
+        _readme('real drone video (phantom3_village, 1080p, 100 frames)', PHANTOM3,
+                lambda x, _: f'**{x["oriented"]}/{x["given"]} keyframes oriented**, cameras {x["sim_h_m"]:.2f} m H '
+                'after a similarity to the published trajectory', 'same'),
+        _readme('bundle adjustment (BAL problem-49)', BAL_SCIPY,
+                lambda x, _: f'**{x["time_ratio_peer_over_ours"]:.1f}x faster than SciPy\'s least_squares**, final cost '
+                f'{x["cost_ratio_ours_over_peer"]:.3f}x', '[components](docs/measurements.md#components)'),
+        _readme('stereo on Middlebury venus', _stereo('venus'), lambda x, lines: stereo_cells(x, lines)[0], 'same'),
+        _readme('635 simulated photos, split-merge on 2 workers', SCALE_W2, lambda x, lines: _scale_cells(x, lines)[0],
+                '[real surveys](docs/measurements.md#real-surveys)'),
+        _none('sample flight end to end (RTK, no GCPs); its DSM', tail=('[simulated](docs/measurements.md#accuracy-on-simulated-flights)',),
+              command='scripts/replay-sample.sh OUT'),
+        _none('consumer GNSS (~2 m) + 5 GCPs, checked in flight', tail=('same',), command='scripts/test.sh tests/test_gcp_flight.py -m slow -s'),
+        _readme('PPK photo survey (`geotag`, no GCPs)', _ppk('', 'triangulate_ppk_calibrated'),
+                lambda x, _: f'check points **{cm(x["check_h_m"])} / {cm(x["check_v_m"])}** with the camera\'s '
+                'calibration', 'same'),
+        _none('consumer geotags that wander (held-out proxies)', tail=('[real surveys](docs/measurements.md#real-surveys)',),
+              command='.venv/bin/python bench/held_out_proxies.py --out OUT'),
+        _readme('ground station (the sample flight at real speed)', GROUND,
+                lambda x, lines: _ground_cells(x, lines)[0], '[ground station](docs/measurements.md#survey-quality-at-the-ground-station)'),
+        _none('real time and memory', tail=('[speed](docs/measurements.md#speed-real-time-and-memory)',),
+              command='.venv/bin/python bench/e2e_realtime.py; .venv/bin/python bench/memory_soak.py'))),
+}
+
+
+# --- documents -------------------------------------------------------------------------------------------
+
+MARK = re.compile(r'(<!-- figures:(?P<name>[\w-]+) -->\n)(?P<body>.*?)(<!-- /figures:(?P=name) -->)', re.S)
+
+
+def render_text(text: str) -> str:
+    def sub(m):
+        name = m.group('name')
+        if name not in TABLES:
+            raise KeyError(f'a document names the table "{name}", which bench/render_figures.py does not define')
+        return m.group(1) + render_table(TABLES[name]) + '\n' + m.group(4)
+    return MARK.sub(sub, text)
+
+
+def render_all() -> dict[str, tuple[str, str]]:
+    """{document: (committed text, rendered text)}."""
+    out = {}
+    for doc in DOCUMENTS:
+        text = (ROOT / doc).read_text()
+        out[doc] = (text, render_text(text))
+    return out
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split('\n')[0])
+    ap.add_argument('--check', action='store_true', help='do not write: exit 1 when a document differs')
+    a = ap.parse_args(argv)
+    bad = []
+    for doc, (old, new) in render_all().items():
+        if old != new:
+            bad.append(doc)
+            if not a.check:
+                (ROOT / doc).write_text(new)
+    if a.check and bad:
+        print(f'rendered tables differ in {", ".join(bad)}: run .venv/bin/python bench/render_figures.py')
+        return 1
+    print(('rewrote ' + ', '.join(bad)) if bad else 'every rendered table is up to date')
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())

@@ -1,0 +1,58 @@
+"""The figure tables of README.md and docs/measurements.md are what bench/render_figures.py renders from the
+result files in bench/results (re-render: `.venv/bin/python bench/render_figures.py`)."""
+
+import importlib.util
+import json
+import shutil
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+needs_git = pytest.mark.skipif(shutil.which('git') is None or not (ROOT / '.git').exists(),
+                               reason='the render reads the commits of the result files from git')
+
+
+def _render():
+    spec = importlib.util.spec_from_file_location('render_figures', ROOT / 'bench' / 'render_figures.py')
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules['render_figures'] = mod
+    spec.loader.exec_module(mod)
+    return mod
+
+
+@needs_git
+def test_committed_docs_equal_the_rendered_tables():
+    r = _render()
+    differ = [doc for doc, (old, new) in r.render_all().items() if old != new]
+    assert not differ, (f'{differ}: the figure tables differ from the result files; run '
+                        '.venv/bin/python bench/render_figures.py and commit the documents')
+
+
+@needs_git
+def test_every_table_a_document_names_is_defined_and_every_table_is_used():
+    r = _render()
+    names = set()
+    for doc in r.DOCUMENTS:
+        names |= {m.group('name') for m in r.MARK.finditer((ROOT / doc).read_text())}
+    assert names == set(r.TABLES)
+
+
+def test_a_figure_is_taken_from_the_newest_file_and_marked_stale_when_its_modules_changed(tmp_path, monkeypatch):
+    r = _render()
+    head = r.full_commit('HEAD')
+    first = r._git('rev-list', '--max-parents=0', 'HEAD').split()[0]
+    old, new = tmp_path / 'x_old.jsonl', tmp_path / 'x_new.jsonl'
+    old.write_text(json.dumps({'k': 1, 'v': 1.0, 'commit': first, 'clean': True, 'modules': ['photogram_ros']}) + '\n')
+    new.write_text(json.dumps({'k': 1, 'v': 2.0, 'commit': head, 'clean': False, 'modules': ['photogram_ros']}) + '\n')
+    monkeypatch.setattr(r, 'RESULTS', tmp_path)
+    fig = r.Figure(('x',), 'x_*.jsonl', {'k': 1}, lambda x, _: [f'{x["v"]:.1f}'], ('photogram_ros',))
+    src = r.newest(fig)
+    assert src.path == new and src.line['v'] == 2.0
+    assert 'modified tree' in r.source_cell(src, fig)
+    old_only = r.Figure(('x',), 'x_old.jsonl', {'k': 1}, lambda x, _: [f'{x["v"]:.1f}'], ('photogram_ros',))
+    assert '**stale**' in r.source_cell(r.newest(old_only), old_only)
+    none = r.Figure(('y',), 'x_*.jsonl', {'k': 2}, command='bench/y.py')
+    table = r.render_table(r.Table(('what', 'figure'), (fig, none)))
+    assert '| x | 2.0 |' in table and '| y | — | no result file (measure: `bench/y.py`) |' in table
