@@ -183,7 +183,7 @@ def inputs_from_at(at, n_photos: int | None = None, adjustment: dict | None = No
     """BlockInputs of an IncrementalAT `at` (core/incremental.py) after its adjustment: every keyframe,
     oriented or not; `adjustment` {'status', 'matters', 'text'} of its final adjustment. thaw False (in
     flight): keyframes spilled to disk are not read back for their ground height (it stays NaN)."""
-    kfs = list(at.kfs)
+    kfs = at.block.keyframes()
     n = len(kfs)
     T = np.full((n, 4, 4), np.nan)
     fix = np.full((n, 3), np.nan)
@@ -194,7 +194,7 @@ def inputs_from_at(at, n_photos: int | None = None, adjustment: dict | None = No
     res = at.gnss_residuals([kf.kid for kf in kfs if kf.map_T_cam is not None])
     for i, kf in enumerate(kfs):
         if kf.fix_enu is not None:
-            fix[i] = np.asarray(kf.fix_enu, float) - at.gnss_bias_enu
+            fix[i] = np.asarray(kf.fix_enu, float) - at.datum.bias_enu
             c = np.asarray(kf.fix_cov, float).reshape(3, 3)
             sig[i] = np.sqrt([0.5 * (c[0, 0] + c[1, 1]), c[2, 2]])
         if kf.map_T_cam is not None:
@@ -205,11 +205,12 @@ def inputs_from_at(at, n_photos: int | None = None, adjustment: dict | None = No
             if len(P):
                 gz[i] = float(np.median(P[:, 2]))
     sel = getattr(at, 'self_calibration', None)
-    bias = {'bias_enu_m': [float(v) for v in at.gnss_bias_enu], **at.gnss_bias_rounds} if at.gnss_bias_rounds else {}
-    return BlockInputs([kf.name for kf in kfs], T, fix, sig, gz, dict(at.gnss_noise), adjustment or {},
+    settle = at.rounds.settle
+    bias = {'bias_enu_m': [float(v) for v in at.datum.bias_enu], **settle} if settle else {}
+    return BlockInputs([kf.name for kf in kfs], T, fix, sig, gz, at.rounds.noise_estimate(), adjustment or {},
                        expect_nadir, n_photos if n_photos is not None else n, dict(excluded or {}),
                        self_calibration=sel.to_dict() if sel is not None else {}, gnss_bias=bias,
-                       georeferenced=bool(at.georeferenced), gcps_in_block=at.gcps_in_block(),
+                       georeferenced=bool(at.block.georeferenced), gcps_in_block=at.gcps_in_block(),
                        tie=tie_evidence(at, thaw))
 
 
@@ -222,7 +223,7 @@ def tie_evidence(at, thaw: bool = True, max_points_per_camera: int = 400, min_sh
     frozen keyframes are not read."""
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
-    kfs = list(at.kfs)
+    kfs = at.block.keyframes()
     n = len(kfs)
     sq, cnt = 0.0, 0
     rows, tids, dirs = [], [], []
@@ -232,14 +233,14 @@ def tie_evidence(at, thaw: bool = True, max_points_per_camera: int = 400, min_sh
         ids, uv, active = kf.track_ids, kf.uv, kf.active
         keep = active & (ids >= 0)
         ids, uv = ids[keep], uv[keep]
-        has = at.points.contains_many(ids)
+        has = at.block.has_points(ids)
         ids, uv = ids[has], uv[has]
         if len(ids) > max_points_per_camera:
             pick = np.linspace(0, len(ids) - 1, max_points_per_camera).astype(int)
             ids, uv = ids[pick], uv[pick]
         if not len(ids):
             continue
-        X = at.points.get_many(ids).reshape(-1, 3)
+        X = at.block.points_of(ids).reshape(-1, 3)
         e = at.reprojection_px(kf.map_T_cam, X, uv)
         e = e[np.isfinite(e)]
         sq, cnt = sq + float(np.sum(e ** 2)), cnt + len(e)
