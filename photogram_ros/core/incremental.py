@@ -286,8 +286,9 @@ class IncrementalAT:
         # The GCPs in the block at the last control adjustment (`control_adjustment`), by name.
         self._control_adjusted_gcps: frozenset = frozenset()
 
-    # Read-only views of the parts' state, for the tests; the package reads the parts' public queries
-    # (at.block, at.datum, at.rounds), never these.
+    # Read-only views of the parts' state: the flags and the self-calibration for the stages, the containers
+    # (kfs, registered, points, ...) for the tests only; the package reads those through the parts' public
+    # queries (at.block, at.datum, at.rounds; tests/test_code_shape.py).
     camera = _read('block', 'camera', 'The shared camera (refined by a self-calibration).')
     kfs = _read('block', 'kfs', 'Every keyframe (core/at_block.py).')
     registered = _read('block', 'registered', 'Ids of the oriented keyframes in order of registration.')
