@@ -120,8 +120,9 @@ class ChainStore:
     """What cross-keyframe matching keeps of each keyframe: its stamp, its position (local metres, once its
     GNSS fix is known), and the SIFT features it published as tracks: reduced-image pixels (float32),
     RootSIFT descriptors quantised to uint8 (value x 255: RootSIFT components lie in [0, 1]) and their track
-    ids (uint32). 140 bytes per feature plus ~100 per keyframe: 1500 features ~ 210 kB, a 300-keyframe
-    flight ~ 63 MB. Beyond `max_keyframes` the oldest keyframe's features are dropped (counted in `dropped`):
+    ids (uint32), and every track id the keyframe published (uint32). 140 bytes per feature, 4 per track and ~100
+    per keyframe: 1500 features of a photo-rate keyframe publishing 4000 tracks ~ 226 kB, a 300-keyframe
+    flight ~ 68 MB. Beyond `max_keyframes` the oldest keyframe's features are dropped (counted in `dropped`):
     a longer flight keeps matching its newest `max_keyframes`."""
 
     def __init__(self, max_keyframes: int):
@@ -133,13 +134,17 @@ class ChainStore:
         self.uv: list[np.ndarray] = []
         self.desc: list[np.ndarray] = []
         self.ids: list[np.ndarray] = []
+        self.seen: list[np.ndarray] = []
         self.dropped = 0
 
     def __len__(self) -> int:
         return len(self.keys)
 
-    def add(self, key: int, stamp_ns: int, uv: np.ndarray, desc: np.ndarray, ids: np.ndarray) -> None:
-        """A keyframe's published SIFT tracks (desc float RootSIFT in [0, 1], quantised here)."""
+    def add(self, key: int, stamp_ns: int, uv: np.ndarray, desc: np.ndarray, ids: np.ndarray,
+            seen: np.ndarray | None = None) -> None:
+        """A keyframe's published SIFT tracks (desc float RootSIFT in [0, 1], quantised here); `seen`: every
+        track id the keyframe published (KLT ones too: whether a new keyframe is linked to it already)."""
+        self.seen.append(np.asarray(ids if seen is None else seen, np.uint32).ravel())
         self.keys.append(int(key))
         self.stamps.append(int(stamp_ns))
         self.positions.append(None)
@@ -148,7 +153,8 @@ class ChainStore:
         self.desc.append(np.clip(np.rint(np.asarray(desc, np.float32) * 255.0), 0, 255).astype(np.uint8))
         self.ids.append(np.asarray(ids, np.uint32).ravel())
         while len(self.keys) > self.max_keyframes:
-            for lst in (self.keys, self.stamps, self.positions, self.sigma_h_m, self.uv, self.desc, self.ids):
+            for lst in (self.keys, self.stamps, self.positions, self.sigma_h_m, self.uv, self.desc, self.ids,
+                        self.seen):
                 del lst[0]
             self.dropped += 1
 
@@ -165,5 +171,5 @@ class ChainStore:
         return self.desc[i].astype(np.float32) * np.float32(1.0 / 255.0)
 
     def nbytes(self) -> int:
-        return int(sum(u.nbytes + d.nbytes + t.nbytes for u, d, t in zip(self.uv, self.desc, self.ids))
-                   + 100 * len(self.keys))
+        return int(sum(u.nbytes + d.nbytes + t.nbytes + s.nbytes
+                       for u, d, t, s in zip(self.uv, self.desc, self.ids, self.seen)) + 100 * len(self.keys))

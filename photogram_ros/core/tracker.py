@@ -123,6 +123,10 @@ class TrackerParams:
                                      'newest; ~210 kB each at 1500 features)', min=1, max=100000)
     chain_linked_ids: int = param(50, 'An earlier keyframe already sharing this many track ids with the new one '
                                   '(KLT, or an earlier match) is not matched again', min=1, max=100000)
+    chain_klt_keyframes: bool = param(False, 'Also keyframes that KLT carried (video-rate input, no break since the '
+                                      'last keyframe) get SIFT features, publish chain_features of them as tracks '
+                                      'and are matched with the earlier keyframes they overlap; off: only frames '
+                                      'at a break and the keyframes after one (photo-rate input)')
     klt_min_share: float = param(0.2, 'Fewer KLT survivors than this share of the previous frame\'s tracks also '
                                  'tries descriptor matching (photo-rate input: motion far beyond KLT)',
                                  min=0.0, max=1.0)
@@ -613,7 +617,7 @@ class Tracker:
         for i in chosen:
             if ch.keys[i] in cur.chain_tried:
                 continue
-            if len(have) and int(np.isin(ch.ids[i], have).sum()) >= p.chain_linked_ids:
+            if len(have) and int(np.isin(ch.seen[i], have).sum()) >= p.chain_linked_ids:
                 continue
             out.append(i)
         return out
@@ -801,12 +805,13 @@ class Tracker:
         return pts if self._scale == 1.0 else (pts + 0.5) / self._scale - 0.5
 
     def _wants_features(self, frame: _Frame) -> bool:
-        """Descriptors for a new keyframe: every one with cross-keyframe matching on (chain_neighbours > 0);
-        without it the first one, and every one while the stream needs descriptor matching (a break
+        """Descriptors for a new keyframe: every one with chain_klt_keyframes (and chain_neighbours > 0);
+        else the first one, and every one while the stream needs descriptor matching (a break
         bridged since, or at, the last keyframe: photo-rate input), so that a later frame matching them
         continues their tracks."""
-        return (self.params.chain_neighbours > 0 or frame.features is not None or not self._recent
-                or self._bridged_since_kf or self._recent[-1].keyframe.bridged)
+        p = self.params
+        return ((p.chain_neighbours > 0 and p.chain_klt_keyframes) or frame.features is not None
+                or not self._recent or self._bridged_since_kf or self._recent[-1].keyframe.bridged)
 
     def _publish_features(self, frame: _Frame) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The keyframe's SIFT features that become its tracks: inside the image, one per track id, all of them
@@ -862,7 +867,7 @@ class Tracker:
         self._recent = (self._recent + [self._kf])[-self.params.match_keyframes:]
         self._count_views(all_ids)
         if chain is not None:
-            self.chain.add(kf.index, kf.stamp_ns, *chain)
+            self.chain.add(kf.index, kf.stamp_ns, *chain, seen=all_ids)
             self.stats.chain_bytes = self.chain.nbytes()
             self.stats.chain_dropped = self.chain.dropped
         kept = {id(k) for k in self._recent}
