@@ -11,12 +11,20 @@ per grid cell, so one textured corner cannot take all the features).
 Beyond KLT's reach (photo-rate input 0.1-2 Hz, a gap, a fast turn, a black frame: fewer than
 `recover_min_tracks` survivors or under `klt_min_share` of the tracks) the frame is matched by
 descriptors (core/photo_matching.py: SIFT on the reduced frame, ratio test, essential matrix) against
-the last `match_keyframes` keyframes, nearest by GNSS first. A matched feature takes the track id its
-match carries in that keyframe, so points are seen by 3+ keyframes; the KLT tracks of the nearest
-matched keyframe are refined onto the frame through the homography of the matches (sub-pixel, ids
-kept). Keyframes made while descriptor matching is in use (and the first one) carry every SIFT feature
-as a track of its own, which a later frame can continue. A break is counted either way; `bridged`
-says the ids continued.
+the chain: the earlier keyframes whose footprints it overlaps by GNSS (photo_matching.earlier_candidates,
+the way `triangulate` plans its pairs: the `chain_neighbours` nearest and any within that distance plus
+the fixes' uncertainty, across strips and turns), and the last `match_keyframes` keyframes, nearest
+first. A matched feature takes the track id its matches carry (the id published by the most keyframes
+where they differ: the likeliest to be a point the adjuster knows), so a keyframe shares tie points with
+every oriented keyframe it overlaps, not only the previous one; the KLT tracks of the nearest matched
+keyframe still held are refined onto the frame through the homography of the matches (sub-pixel, ids
+kept). A keyframe made after a break is matched with the chain's candidates not tried yet and publishes
+every SIFT feature as a track (those without an id start one), which later keyframes continue. With
+`chain_klt_keyframes` keyframes KLT carried (video rate) do the same with `chain_features` of theirs.
+What the chain keeps per keyframe (core.keyframes.ChainStore): `chain_features` SIFT features (uint8
+descriptors, reduced-image pixels, track ids) and the ids it published: ~226 kB for a photo-rate
+keyframe (1500 features, 4000 tracks), the newest `chain_max_keyframes`; plus one byte per track id
+(how many keyframes published it). A break is counted either way; `bridged` says the ids continued.
 
 Keyframes are chosen for mapping: a new one when the front overlap with the last keyframe falls to
 `keyframe_overlap` (the frame closest to the target is taken, which may be the previous frame),
@@ -120,7 +128,7 @@ class TrackerParams:
                                 'to match (those linked to earlier keyframes first, then the strongest): 140 bytes '
                                 'each', min=50, max=50000)
     chain_max_keyframes: int = param(600, 'Keyframes whose features are kept for cross-keyframe matching (the '
-                                     'newest; ~210 kB each at 1500 features)', min=1, max=100000)
+                                     'newest; ~226 kB each at 1500 features of 4000 tracks)', min=1, max=100000)
     chain_linked_ids: int = param(50, 'An earlier keyframe already sharing this many track ids with the new one '
                                   '(KLT, or an earlier match) is not matched again', min=1, max=100000)
     chain_klt_keyframes: bool = param(False, 'Also keyframes that KLT carried (video-rate input, no break since the '
