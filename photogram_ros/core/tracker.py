@@ -596,8 +596,8 @@ class Tracker:
         """Chain entries (core.keyframes.ChainStore) to match the frame with: the earlier keyframes whose
         footprints it overlaps by GNSS (photo_matching.earlier_candidates: the chain_neighbours nearest and any
         within reach, across strips), nearest first; at a break also the last match_keyframes keyframes (the
-        only ones without positions). Not those the frame was matched with already, nor those it already
-        shares chain_linked_ids track ids with."""
+        only ones without positions). Not those the frame was matched with already, nor (but at a break)
+        those it already shares chain_linked_ids track ids with."""
         p = self.params
         ch = self.chain
         ch.locate(self._position_of)
@@ -625,7 +625,8 @@ class Tracker:
         for i in chosen:
             if ch.keys[i] in cur.chain_tried:
                 continue
-            if len(have) and int(np.isin(ch.seen[i], have).sum()) >= p.chain_linked_ids:
+            # (At a break the KLT survivors are no link: most are coincidences far beyond KLT's reach.)
+            if not at_break and len(have) and int(np.isin(ch.seen[i], have).sum()) >= p.chain_linked_ids:
                 continue
             out.append(i)
         return out
