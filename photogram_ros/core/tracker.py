@@ -703,9 +703,6 @@ class Tracker:
             return None
         got = cur.feat_ids
         verified = self._chain_match(cur, self._candidates(cur, at_break=True))
-        if int((got >= 0).sum()) < opt.min_inliers:
-            got[:] = -1
-            return None
         refined = (np.empty((0, 2), np.float32), np.empty(0, np.uint32))
         states = {k.keyframe.index: k for k in self._recent}
         for i, uv_kf, dst in verified:
@@ -714,11 +711,44 @@ class Tracker:
                 refined = self._refine_through_homography(k, uv_kf, f.uv[dst], cur)
                 if len(refined[1]):
                     break
+        if not len(refined[1]):
+            refined = self._recover_from_klt_keyframes(cur)
+        if int((got >= 0).sum()) < opt.min_inliers and not len(refined[1]):
+            got[:] = -1
+            return None
         self._dedupe_feature_ids(cur)
         inside = self._work_cam.in_image(f.uv, margin_px=self._win[0] / 2 + 1)
         take = (got >= 0) & inside & ~np.isin(got, refined[1].astype(np.int64))   # KLT-refined positions win
         return (np.concatenate([refined[0], f.uv[take].astype(np.float32)]),
                 np.concatenate([refined[1], got[take].astype(np.uint32)]))
+
+    def _recover_from_klt_keyframes(self, cur: _Frame):
+        """The last keyframes KLT carried (not in the chain: no SIFT tracks published), newest first: the
+        frame matched with their features (computed now), their KLT tracks refined onto it through the
+        homography of the matches (ids kept); a matched feature takes the id the keyframe's feature got (a
+        new one: that keyframe is out, later frames continue it). (pts, ids) of the refined tracks."""
+        none = (np.empty((0, 2), np.float32), np.empty(0, np.uint32))
+        stored = set(self.chain.keys)
+        f, got = cur.features, cur.feat_ids
+        for k in reversed(self._recent):
+            if k.keyframe.index in stored or k.keyframe.index in cur.chain_tried:
+                continue
+            cur.chain_tried.add(k.keyframe.index)
+            self._features_of(k.frame)
+            self.stats.chain_pairs += 1
+            m = match_pair(k.frame.features, f, self._work_cam, self._match_options())
+            if not m.verified:
+                continue
+            self.stats.chain_verified += 1
+            rows, dst = m.matches[:, 0], m.matches[:, 1]
+            open_ = got[dst] < 0
+            fresh = open_ & (k.frame.feat_ids[rows] < 0)
+            k.frame.feat_ids[rows[fresh]] = self._new_ids(int(fresh.sum()))
+            got[dst[open_]] = k.frame.feat_ids[rows[open_]]
+            refined = self._refine_through_homography(k, k.frame.features.uv[rows], f.uv[dst], cur)
+            if len(refined[1]):
+                return refined
+        return none
 
     @staticmethod
     def _dedupe_feature_ids(frame: _Frame) -> None:
