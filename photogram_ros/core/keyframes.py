@@ -44,6 +44,16 @@ class FixBuffer:
     def latest_ns(self) -> int | None:
         return self._stamps[-1] if self._stamps else None
 
+    def near(self, stamp_ns: int, max_s: float) -> GnssFix | None:
+        """The fix at `stamp_ns` (interpolated), else the fix nearest in time within `max_s`, else None."""
+        got = self.at(stamp_ns)
+        if got is not None or not self._stamps:
+            return got
+        i = bisect.bisect_left(self._stamps, stamp_ns)
+        near = [k for k in (i - 1, i) if 0 <= k < len(self._stamps)]
+        k = min(near, key=lambda k: abs(self._stamps[k] - stamp_ns))
+        return self._fixes[k] if abs(self._stamps[k] - stamp_ns) <= max_s * 1e9 else None
+
     def at(self, stamp_ns: int) -> GnssFix | None:
         """The fix at `stamp_ns` interpolated linearly, or None outside the data or across an outage."""
         i = bisect.bisect_left(self._stamps, stamp_ns)
@@ -104,3 +114,62 @@ def homography_overlap(grid: OverlapGrid, xn_kf: np.ndarray, xn_cur: np.ndarray,
         return None, 0
     return grid.overlap(H), int(inl.sum())
 
+
+
+class ChainStore:
+    """What cross-keyframe matching keeps of each keyframe: its stamp, its position (local metres, once its
+    GNSS fix is known), and the SIFT features it published as tracks: reduced-image pixels (float32),
+    RootSIFT descriptors quantised to uint8 (value x 255: RootSIFT components lie in [0, 1]) and their track
+    ids (uint32), and every track id the keyframe published (uint32). 140 bytes per feature, 4 per track and ~100
+    per keyframe: 1500 features of a photo-rate keyframe publishing 4000 tracks ~ 226 kB, a 300-keyframe
+    flight ~ 68 MB. Beyond `max_keyframes` the oldest keyframe's features are dropped (counted in `dropped`):
+    a longer flight keeps matching its newest `max_keyframes`."""
+
+    def __init__(self, max_keyframes: int):
+        self.max_keyframes = int(max_keyframes)
+        self.stamps: list[int] = []
+        self.keys: list[int] = []              # the keyframe index of each entry
+        self.positions: list = []              # (3,) local metres, or None until the fix is known
+        self.sigma_h_m: list[float] = []
+        self.uv: list[np.ndarray] = []
+        self.desc: list[np.ndarray] = []
+        self.ids: list[np.ndarray] = []
+        self.seen: list[np.ndarray] = []
+        self.dropped = 0
+
+    def __len__(self) -> int:
+        return len(self.keys)
+
+    def add(self, key: int, stamp_ns: int, uv: np.ndarray, desc: np.ndarray, ids: np.ndarray,
+            seen: np.ndarray | None = None) -> None:
+        """A keyframe's published SIFT tracks (desc float RootSIFT in [0, 1], quantised here); `seen`: every
+        track id the keyframe published (KLT ones too: whether a new keyframe is linked to it already)."""
+        self.seen.append(np.asarray(ids if seen is None else seen, np.uint32).ravel())
+        self.keys.append(int(key))
+        self.stamps.append(int(stamp_ns))
+        self.positions.append(None)
+        self.sigma_h_m.append(0.0)
+        self.uv.append(np.asarray(uv, np.float32).reshape(-1, 2))
+        self.desc.append(np.clip(np.rint(np.asarray(desc, np.float32) * 255.0), 0, 255).astype(np.uint8))
+        self.ids.append(np.asarray(ids, np.uint32).ravel())
+        while len(self.keys) > self.max_keyframes:
+            for lst in (self.keys, self.stamps, self.positions, self.sigma_h_m, self.uv, self.desc, self.ids,
+                        self.seen):
+                del lst[0]
+            self.dropped += 1
+
+    def locate(self, position_of) -> None:
+        """Give the entries still without a position one: `position_of(stamp_ns)` -> ((3,) m, sigma_h_m) or None."""
+        for i, p in enumerate(self.positions):
+            if p is None:
+                got = position_of(self.stamps[i])
+                if got is not None:
+                    self.positions[i], self.sigma_h_m[i] = np.asarray(got[0], float), float(got[1])
+
+    def descriptors(self, i: int) -> np.ndarray:
+        """Entry i's descriptors as float32 RootSIFT (what FLANN matches)."""
+        return self.desc[i].astype(np.float32) * np.float32(1.0 / 255.0)
+
+    def nbytes(self) -> int:
+        return int(sum(u.nbytes + d.nbytes + t.nbytes + s.nbytes
+                       for u, d, t, s in zip(self.uv, self.desc, self.ids, self.seen)) + 100 * len(self.keys))

@@ -72,6 +72,7 @@ class PhotoFeatures:
     name: str
     uv: np.ndarray          # (K, 2) full-photo pixels
     desc: np.ndarray        # (K, 128) float32, RootSIFT
+    response: np.ndarray | None = None   # (K,) SIFT response (strength) of each feature, when known
 
 
 @dataclass
@@ -125,7 +126,7 @@ def extract(name: str, gray: np.ndarray, factor_xy=(1.0, 1.0), opt: MatchingOpti
         return PhotoFeatures(name, np.zeros((0, 2)), np.zeros((0, 128), np.float32))
     desc = desc / np.maximum(desc.sum(axis=1, keepdims=True), 1e-9)
     uv = to_full_px(np.array([k.pt for k in kps], float), factor_xy)
-    return PhotoFeatures(name, uv, np.sqrt(desc).astype(np.float32))
+    return PhotoFeatures(name, uv, np.sqrt(desc).astype(np.float32), np.array([k.response for k in kps], np.float32))
 
 
 def _ratio_matches(a: PhotoFeatures, b: PhotoFeatures, ratio: float) -> np.ndarray:
@@ -219,6 +220,19 @@ def candidate_order(positions_m: np.ndarray, neighbours: int, sigma_h_m: float =
             reach = (d[i, order[i, k - 1]] if k else 0.0) + 2.0 * np.sqrt(2.0) * sigma_h_m
             first[i] = max(k, int(np.sum(d[i, order[i]] <= reach)))
     return order, first
+
+
+def earlier_candidates(positions_m: np.ndarray, new_m: np.ndarray, neighbours: int,
+                       sigma_h_m: float = 0.0) -> tuple[np.ndarray, int]:
+    """A new photo's partners among earlier ones (all with a position), as `candidate_order` ranks a photo's
+    partners in a block of them all: (indices into `positions_m` from the nearest, how many of them are first
+    candidates: the `neighbours` nearest and every one within the k-th distance + 2 sqrt(2) sigma_h_m)."""
+    p = np.vstack([np.asarray(positions_m, float).reshape(-1, np.shape(new_m)[-1]),
+                   np.asarray(new_m, float).reshape(1, -1)])
+    if len(p) < 2:
+        return np.zeros(0, int), 0
+    order, first = candidate_order(p, neighbours, sigma_h_m)
+    return order[-1], int(first[-1])
 
 
 def candidate_pairs(order: np.ndarray, first: np.ndarray) -> list[tuple[int, int]]:

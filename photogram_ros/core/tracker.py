@@ -11,12 +11,20 @@ per grid cell, so one textured corner cannot take all the features).
 Beyond KLT's reach (photo-rate input 0.1-2 Hz, a gap, a fast turn, a black frame: fewer than
 `recover_min_tracks` survivors or under `klt_min_share` of the tracks) the frame is matched by
 descriptors (core/photo_matching.py: SIFT on the reduced frame, ratio test, essential matrix) against
-the last `match_keyframes` keyframes, nearest by GNSS first. A matched feature takes the track id its
-match carries in that keyframe, so points are seen by 3+ keyframes; the KLT tracks of the nearest
-matched keyframe are refined onto the frame through the homography of the matches (sub-pixel, ids
-kept). Keyframes made while descriptor matching is in use (and the first one) carry every SIFT feature
-as a track of its own, which a later frame can continue. A break is counted either way; `bridged`
-says the ids continued.
+the chain: the earlier keyframes whose footprints it overlaps by GNSS (photo_matching.earlier_candidates,
+the way `triangulate` plans its pairs: the `chain_neighbours` nearest and any within that distance plus
+the fixes' uncertainty, across strips and turns), and the last `match_keyframes` keyframes, nearest
+first. A matched feature takes the track id its matches carry (the id published by the most keyframes
+where they differ: the likeliest to be a point the adjuster knows), so a keyframe shares tie points with
+every oriented keyframe it overlaps, not only the previous one; the KLT tracks of the nearest matched
+keyframe still held are refined onto the frame through the homography of the matches (sub-pixel, ids
+kept). A keyframe made after a break is matched with the chain's candidates not tried yet and publishes
+every SIFT feature as a track (those without an id start one), which later keyframes continue. With
+`chain_klt_keyframes` keyframes KLT carried (video rate) do the same with `chain_features` of theirs.
+What the chain keeps per keyframe (core.keyframes.ChainStore): `chain_features` SIFT features (uint8
+descriptors, reduced-image pixels, track ids) and the ids it published: ~226 kB for a photo-rate
+keyframe (1500 features, 4000 tracks), the newest `chain_max_keyframes`; plus one byte per track id
+(how many keyframes published it). A break is counted either way; `bridged` says the ids continued.
 
 Keyframes are chosen for mapping: a new one when the front overlap with the last keyframe falls to
 `keyframe_overlap` (the frame closest to the target is taken, which may be the previous frame),
@@ -57,8 +65,9 @@ import numpy as np
 
 from photogram_ros.core.camera import PinholeCamera
 from photogram_ros.core.gnss_fix import GnssFix
-from photogram_ros.core.keyframes import FixBuffer, OverlapGrid, gps_distance_m, homography_overlap
-from photogram_ros.core.photo_matching import MatchingOptions, PhotoFeatures, extract, match_pair
+from photogram_ros.core.geodesy import LocalFrame
+from photogram_ros.core.keyframes import ChainStore, FixBuffer, OverlapGrid, gps_distance_m, homography_overlap
+from photogram_ros.core.photo_matching import MatchingOptions, PhotoFeatures, earlier_candidates, extract, match_pair
 from photogram_ros.core.two_view import essential_ransac
 from photogram_ros.errors import CalibrationError, DataError
 from photogram_ros.params import param
@@ -109,6 +118,23 @@ class TrackerParams:
                                  'against this many recent keyframes, nearest by GNSS first', min=1, max=50)
     match_features: int = param(4000, 'SIFT features per frame matched at a break (their track ids continue in '
                                 'the keyframes that see them again)', min=100, max=50000)
+    chain_neighbours: int = param(8, 'Each new keyframe (and a frame at a break) is matched by descriptors against '
+                                  'the earlier keyframes whose footprints it overlaps, from their GNSS positions, '
+                                  'across strips too: this many nearest and any within that distance plus the '
+                                  'fixes\' uncertainty (photo_matching.earlier_candidates, as triangulate plans its '
+                                  'pairs); its features take their track ids. 0: off (a break matches only the '
+                                  'last match_keyframes)', min=0, max=100)
+    chain_features: int = param(1500, 'SIFT features a keyframe publishes as tracks and keeps for later keyframes '
+                                'to match (those linked to earlier keyframes first, then the strongest): 140 bytes '
+                                'each', min=50, max=50000)
+    chain_max_keyframes: int = param(600, 'Keyframes whose features are kept for cross-keyframe matching (the '
+                                     'newest; ~226 kB each at 1500 features of 4000 tracks)', min=1, max=100000)
+    chain_linked_ids: int = param(50, 'An earlier keyframe already sharing this many track ids with the new one '
+                                  '(KLT, or an earlier match) is not matched again', min=1, max=100000)
+    chain_klt_keyframes: bool = param(False, 'Also keyframes that KLT carried (video-rate input, no break since the '
+                                      'last keyframe) get SIFT features, publish chain_features of them as tracks '
+                                      'and are matched with the earlier keyframes they overlap; off: only frames '
+                                      'at a break and the keyframes after one (photo-rate input)')
     klt_min_share: float = param(0.2, 'Fewer KLT survivors than this share of the previous frame\'s tracks also '
                                  'tries descriptor matching (photo-rate input: motion far beyond KLT)',
                                  min=0.0, max=1.0)
@@ -211,6 +237,10 @@ class TrackerStats:
     last_overlap: float = float('nan')
     out_of_order: int = 0
     process_s: float = 0.0     # total time in process()
+    chain_pairs: int = 0       # keyframe pairs matched by descriptors (breaks and cross-keyframe)
+    chain_verified: int = 0    # ... of them verified
+    chain_bytes: int = 0       # what cross-keyframe matching keeps (core.keyframes.ChainStore)
+    chain_dropped: int = 0     # keyframes whose features were dropped (beyond chain_max_keyframes)
 
 
 @dataclass
@@ -230,6 +260,7 @@ class _Frame:
     # matching its features continues them): (M, 2) reduced-image pixels and (M,) ids.
     extra_pts: np.ndarray = field(default_factory=lambda: np.empty((0, 2), np.float32))
     extra_ids: np.ndarray = field(default_factory=lambda: np.empty(0, np.uint32))
+    chain_tried: set = field(default_factory=set)   # keyframe indices this frame was matched with
 
 
 @dataclass
@@ -252,6 +283,10 @@ class Tracker:
         self._kf: _KfState | None = None
         self._recent: list[_KfState] = []   # the last match_keyframes keyframes, oldest first
         self._pending: list[tuple[Keyframe, int]] = []   # (keyframe, clock when it was made, ns)
+        self.chain = ChainStore(self.params.chain_max_keyframes)
+        self._held: list[_KfState] = []   # the keyframe states whose full features are held (= _recent)
+        self._views = np.zeros(0, np.uint8)   # per track id: keyframes that published it (capped at 255)
+        self._origin: LocalFrame | None = None   # local frame of the chain's positions (the first fix)
         self._clock_ns = 0
         self._fix_seen = (None, None)   # (latest fix stamp, clock when it first advanced to it)
         self._next_id = 0
@@ -286,6 +321,7 @@ class Tracker:
         self._prev = None     # points of another calibration cannot be continued
         self._kf = None
         self._recent = []
+        self.chain = ChainStore(self.params.chain_max_keyframes)
 
     def add_fix(self, fix: GnssFix | dict) -> None:
         """A GNSS fix, or the dict of msgs.fix_from_navsatfix."""
@@ -540,61 +576,188 @@ class Tracker:
         self._next_id += n
         return t
 
-    def _candidates(self, cur: _Frame) -> list[_KfState]:
-        """The recent keyframes to match, nearest by GNSS first (newest first without fixes)."""
-        kfs = list(reversed(self._recent))
-        b = self.fixes.at(cur.stamp_ns)
-        if b is None:
-            return kfs
-        def dist(k):
-            a = self.fixes.at(k.keyframe.stamp_ns)
-            return gps_distance_m(a, b) if a is not None else float('inf')
-        return sorted(kfs, key=dist)
+    def _position_of(self, stamp_ns: int):
+        """((3,) local metres, horizontal sigma m) of the GNSS fix at (or nearest, within fix_max_gap_s) the
+        stamp, in the chain's local frame (at the first fix used); None without one."""
+        fix = self.fixes.near(stamp_ns, self.params.fix_max_gap_s)
+        if fix is None:
+            return None
+        if self._origin is None:
+            self._origin = LocalFrame(fix.lat_deg, fix.lon_deg, fix.h_m)
+        enu = np.asarray(self._origin.geodetic_to_enu(fix.lat_deg, fix.lon_deg, fix.h_m), float).reshape(3)
+        return enu, float(fix.horizontal_sigma_m)
+
+    def _shared_ids(self, frame: _Frame) -> np.ndarray:
+        """The track ids the frame holds so far (KLT, and features linked by descriptors)."""
+        got = frame.feat_ids[frame.feat_ids >= 0] if frame.feat_ids is not None else np.empty(0, np.int64)
+        return np.concatenate([frame.ids.astype(np.int64), got])
+
+    def _candidates(self, cur: _Frame, at_break: bool) -> list[int]:
+        """Chain entries (core.keyframes.ChainStore) to match the frame with: the earlier keyframes whose
+        footprints it overlaps by GNSS (photo_matching.earlier_candidates: the chain_neighbours nearest and any
+        within reach, across strips), nearest first; at a break also the last match_keyframes keyframes (the
+        only ones without positions). Not those the frame was matched with already, nor (but at a break)
+        those it already shares chain_linked_ids track ids with."""
+        p = self.params
+        ch = self.chain
+        ch.locate(self._position_of)
+        if not at_break and p.chain_neighbours == 0:
+            return []
+        n = len(ch)
+        recent = list(range(n - 1, max(-1, n - 1 - p.match_keyframes), -1))
+        here = self._position_of(cur.stamp_ns)
+        placed = [i for i in range(n) if ch.positions[i] is not None]
+        chosen: list[int] = []
+        if here is not None and placed and p.chain_neighbours > 0:
+            sigma = max(here[1], float(np.median([ch.sigma_h_m[i] for i in placed])))
+            order, first = earlier_candidates(np.array([ch.positions[i] for i in placed]), here[0],
+                                              p.chain_neighbours, sigma)
+            chosen = [placed[int(k)] for k in order[:min(first, 2 * p.chain_neighbours)]]
+        if at_break or here is None:
+            if here is not None:
+                def dist(i):
+                    q = ch.positions[i]
+                    return float(np.linalg.norm((q - here[0])[:2])) if q is not None else float('inf')
+                recent = sorted(recent, key=dist)
+            chosen = chosen + [i for i in recent if i not in chosen]
+        have = self._shared_ids(cur)
+        out = []
+        for i in chosen:
+            if ch.keys[i] in cur.chain_tried:
+                continue
+            # (At a break the KLT survivors are no link: most are coincidences far beyond KLT's reach.)
+            if not at_break and len(have) and int(np.isin(ch.seen[i], have).sum()) >= p.chain_linked_ids:
+                continue
+            out.append(i)
+        return out
+
+    def _views_of(self, ids: np.ndarray) -> np.ndarray:
+        ids = np.asarray(ids, np.int64)
+        v = np.zeros(len(ids), np.int64)
+        ok = ids < len(self._views)
+        v[ok] = self._views[ids[ok]]
+        return v
+
+    def _count_views(self, ids: np.ndarray) -> None:
+        ids = np.asarray(ids, np.int64)
+        if not len(ids):
+            return
+        top = int(ids.max()) + 1
+        if top > len(self._views):
+            self._views = np.concatenate([self._views, np.zeros(max(top - len(self._views), 4096), np.uint8)])
+        np.add.at(self._views, ids, 1)
+        np.minimum(self._views, 254, out=self._views)
+
+    def _entry_features(self, i: int) -> tuple[PhotoFeatures, np.ndarray]:
+        """A chain entry's features and track ids (-1: not published): all of a keyframe still among the
+        last match_keyframes, else the ones the chain keeps."""
+        key = self.chain.keys[i]
+        for k in self._recent:
+            if k.keyframe.index == key and k.frame.features is not None:
+                return k.frame.features, k.frame.feat_ids
+        ch = self.chain
+        return PhotoFeatures('', ch.uv[i].astype(np.float64), ch.descriptors(i)), ch.ids[i].astype(np.int64)
+
+    def _chain_match(self, cur: _Frame, entries: list[int]) -> list[tuple[int, np.ndarray, np.ndarray]]:
+        """Descriptor matching (photo_matching.match_pair: ratio test, essential-matrix RANSAC) of the frame's
+        features against the chain entries; a feature without a track id takes the id its matches carry, the
+        one seen by the most keyframes where they differ (the likeliest to be known to the adjuster; then the
+        oldest). Returns the verified (entry, entry pixels, frame features) in the order tried."""
+        opt = self._match_options()
+        f, got = cur.features, cur.feat_ids
+        ch = self.chain
+        verified, dsts, tids = [], [], []
+        for i in entries:
+            cur.chain_tried.add(ch.keys[i])
+            self.stats.chain_pairs += 1
+            feats, ids = self._entry_features(i)
+            m = match_pair(feats, f, self._work_cam, opt)
+            if not m.verified:
+                continue
+            self.stats.chain_verified += 1
+            rows, dst = m.matches[:, 0], m.matches[:, 1]
+            verified.append((i, feats.uv[rows], dst))
+            keep = ids[rows] >= 0
+            dsts.append(dst[keep])
+            tids.append(ids[rows][keep].astype(np.int64))
+        if dsts:
+            dst, tid = np.concatenate(dsts), np.concatenate(tids)
+            open_ = got[dst] < 0
+            dst, tid = dst[open_], tid[open_]
+            order = np.lexsort((tid, -self._views_of(tid), dst))
+            dst, tid = dst[order], tid[order]
+            first = np.concatenate([[True], dst[1:] != dst[:-1]]) if len(dst) else np.zeros(0, bool)
+            got[dst[first]] = tid[first]
+        return verified
 
     def _recover(self, cur: _Frame):
-        """Descriptor matching (core/photo_matching.py: SIFT, ratio test, essential-matrix RANSAC)
-        of the frame against the recent keyframes, nearest first. A matched feature takes the track
-        id its match carries in that keyframe (a keyframe feature without one starts a track now);
-        the KLT tracks of the nearest verified keyframe are refined onto the frame through the
-        homography of the matches (sub-pixel, their ids kept). Returns (pts, ids) of the linked
-        tracks, or None when no keyframe verified enough matches; the frame's unmatched features
-        become keyframe-only tracks (`extra_*`) that later frames can match."""
+        """Descriptor matching of the frame at a break against the chain's candidates (`_candidates`: the
+        keyframes it overlaps by GNSS, and the last ones), nearest first. A matched feature takes the track
+        id its match carries in that keyframe; the KLT tracks of the nearest verified keyframe still held
+        are refined onto the frame through the homography of the matches (sub-pixel, their ids kept).
+        Returns (pts, ids) of the linked tracks, or None when no keyframe verified enough matches."""
         opt = self._match_options()
         self._features_of(cur)
         f = cur.features
         if len(f.uv) < opt.min_inliers:
             return None
         got = cur.feat_ids
-        linked = 0
+        verified = self._chain_match(cur, self._candidates(cur, at_break=True))
         refined = (np.empty((0, 2), np.float32), np.empty(0, np.uint32))
-        for k in self._candidates(cur):
+        states = {k.keyframe.index: k for k in self._recent}
+        for i, uv_kf, dst in verified:
+            k = states.get(self.chain.keys[i])
+            if k is not None:
+                refined = self._refine_through_homography(k, uv_kf, f.uv[dst], cur)
+                if len(refined[1]):
+                    break
+        if not len(refined[1]):
+            refined = self._recover_from_klt_keyframes(cur)
+        if int((got >= 0).sum()) < opt.min_inliers and not len(refined[1]):
+            got[:] = -1
+            return None
+        self._dedupe_feature_ids(cur)
+        inside = self._work_cam.in_image(f.uv, margin_px=self._win[0] / 2 + 1)
+        take = (got >= 0) & inside & ~np.isin(got, refined[1].astype(np.int64))   # KLT-refined positions win
+        return (np.concatenate([refined[0], f.uv[take].astype(np.float32)]),
+                np.concatenate([refined[1], got[take].astype(np.uint32)]))
+
+    def _recover_from_klt_keyframes(self, cur: _Frame):
+        """The last keyframes KLT carried (not in the chain: no SIFT tracks published), newest first: the
+        frame matched with their features (computed now), their KLT tracks refined onto it through the
+        homography of the matches (ids kept); a matched feature takes the id the keyframe's feature got (a
+        new one: that keyframe is out, later frames continue it). (pts, ids) of the refined tracks."""
+        none = (np.empty((0, 2), np.float32), np.empty(0, np.uint32))
+        stored = set(self.chain.keys)
+        f, got = cur.features, cur.feat_ids
+        for k in reversed(self._recent):
+            if k.keyframe.index in stored or k.keyframe.index in cur.chain_tried:
+                continue
+            cur.chain_tried.add(k.keyframe.index)
             self._features_of(k.frame)
-            m = match_pair(k.frame.features, f, self._work_cam, opt)
+            self.stats.chain_pairs += 1
+            m = match_pair(k.frame.features, f, self._work_cam, self._match_options())
             if not m.verified:
                 continue
+            self.stats.chain_verified += 1
             rows, dst = m.matches[:, 0], m.matches[:, 1]
             open_ = got[dst] < 0
             fresh = open_ & (k.frame.feat_ids[rows] < 0)
-            k.frame.feat_ids[rows[fresh]] = self._new_ids(int(fresh.sum()))   # that keyframe is out: from here on
+            k.frame.feat_ids[rows[fresh]] = self._new_ids(int(fresh.sum()))
             got[dst[open_]] = k.frame.feat_ids[rows[open_]]
-            linked += int(open_.sum())
-            if not len(refined[1]):
-                refined = self._refine_through_homography(k, k.frame.features.uv[rows], f.uv[dst], cur)
-        if linked < opt.min_inliers:
-            got[:] = -1
-            return None
-        # One feature per track id (two features matched to one track: keep the first).
+            refined = self._refine_through_homography(k, k.frame.features.uv[rows], f.uv[dst], cur)
+            if len(refined[1]):
+                return refined
+        return none
+
+    @staticmethod
+    def _dedupe_feature_ids(frame: _Frame) -> None:
+        """One feature per track id (two features matched to one track: keep the first)."""
+        got = frame.feat_ids
         _, first = np.unique(np.where(got >= 0, got, -1 - np.arange(len(got))), return_index=True)
         dup = np.ones(len(got), bool)
         dup[first] = False
         got[dup] = -1
-        free = got < 0
-        got[free] = self._new_ids(int(free.sum()))
-        inside = self._work_cam.in_image(f.uv, margin_px=self._win[0] / 2 + 1)
-        take = ~free & inside & ~np.isin(got, refined[1].astype(np.int64))   # KLT-refined positions win
-        cur.extra_pts, cur.extra_ids = f.uv[free & inside].astype(np.float32), got[free & inside].astype(np.uint32)
-        return (np.concatenate([refined[0], f.uv[take].astype(np.float32)]),
-                np.concatenate([refined[1], got[take].astype(np.uint32)]))
 
     def _refine_through_homography(self, k: _KfState, uv_kf, uv_cur, cur: _Frame):
         """The keyframe's KLT tracks onto the frame: its image warped by the homography of the
@@ -681,25 +844,45 @@ class Tracker:
         return pts if self._scale == 1.0 else (pts + 0.5) / self._scale - 0.5
 
     def _wants_features(self, frame: _Frame) -> bool:
-        """Descriptors for a new keyframe: the first one, and every one while the stream needs
-        descriptor matching (a break bridged since, or at, the last keyframe: photo-rate input),
-        so that a later frame matching them continues their tracks."""
-        return (frame.features is not None or not self._recent or self._bridged_since_kf
-                or self._recent[-1].keyframe.bridged)
+        """Descriptors for a new keyframe: every one with chain_klt_keyframes (and chain_neighbours > 0);
+        else the first one, and every one while the stream needs descriptor matching (a break
+        bridged since, or at, the last keyframe: photo-rate input), so that a later frame matching them
+        continues their tracks."""
+        p = self.params
+        return ((p.chain_neighbours > 0 and p.chain_klt_keyframes) or frame.features is not None
+                or not self._recent or self._bridged_since_kf or self._recent[-1].keyframe.bridged)
 
-    def _add_feature_tracks(self, frame: _Frame) -> None:
-        """Every SIFT feature of a keyframe without a track starts a keyframe-only one."""
-        self._features_of(frame)
+    def _publish_features(self, frame: _Frame) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The keyframe's SIFT features that become its tracks: inside the image, one per track id, all of them
+        after a break (photo-rate input: descriptors carry the chain), else those linked to earlier keyframes
+        then the strongest others, chain_features in all. New ones get new ids and join the keyframe's
+        descriptor tracks (`extra_*`) unless a KLT track carries their id already. Returns what the chain
+        keeps of them: chain_features, linked first (reduced-image pixels, RootSIFT descriptors, track ids)."""
+        self._dedupe_feature_ids(frame)
         f, fid = frame.features, frame.feat_ids
-        lone = (fid < 0) & self._work_cam.in_image(f.uv, margin_px=self._win[0] / 2 + 1)
-        if lone.any():
-            fid[lone] = self._new_ids(int(lone.sum()))
-            frame.extra_pts = np.concatenate([frame.extra_pts, f.uv[lone].astype(np.float32)])
-            frame.extra_ids = np.concatenate([frame.extra_ids, fid[lone].astype(np.uint32)])
+        ok = self._work_cam.in_image(f.uv, margin_px=self._win[0] / 2 + 1)
+        strength = f.response if f.response is not None else np.zeros(len(fid), np.float32)
+        order = np.lexsort((-strength, fid < 0))       # linked first, then the strongest
+        order = order[ok[order]]
+        if not (self._break_since_kf or not self._recent):
+            order = order[:self.params.chain_features]
+        fid[np.setdiff1d(np.arange(len(fid)), order)] = -1
+        lone = order[fid[order] < 0]
+        fid[lone] = self._new_ids(len(lone))
+        shown = np.concatenate([frame.ids, frame.extra_ids]).astype(np.int64)
+        add = order[~np.isin(fid[order], shown)]
+        frame.extra_pts = np.concatenate([frame.extra_pts, f.uv[add].astype(np.float32)])
+        frame.extra_ids = np.concatenate([frame.extra_ids, fid[add].astype(np.uint32)])
+        order = order[:self.params.chain_features]
+        return f.uv[order], f.desc[order], fid[order]
 
     def _make_keyframe(self, frame: _Frame, overlap: float) -> None:
+        chain = None
         if self._wants_features(frame):
-            self._add_feature_tracks(frame)
+            self._features_of(frame)
+            if len(frame.features.uv):
+                self._chain_match(frame, self._candidates(frame, at_break=False))
+            chain = self._publish_features(frame)
         all_ids = np.concatenate([frame.ids, frame.extra_ids])
         _, first = np.unique(all_ids, return_index=True)
         first.sort()
@@ -721,6 +904,16 @@ class Tracker:
         self._break_since_kf = self._bridged_since_kf = False
         self._kf = _KfState(frame, kf, {int(i): r for r, i in enumerate(all_ids)}, xn)
         self._recent = (self._recent + [self._kf])[-self.params.match_keyframes:]
+        self._count_views(all_ids)
+        if chain is not None:
+            self.chain.add(kf.index, kf.stamp_ns, *chain, seen=all_ids)
+            self.stats.chain_bytes = self.chain.nbytes()
+            self.stats.chain_dropped = self.chain.dropped
+        kept = {id(k) for k in self._recent}
+        for k in self._held:
+            if id(k) not in kept:
+                k.frame.features = k.frame.feat_ids = None   # the chain keeps what later keyframes match
+        self._held = list(self._recent)
         self._pending.append((kf, self._clock_ns))
 
     def _finish(self, kf: Keyframe) -> Keyframe:

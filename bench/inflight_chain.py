@@ -1,0 +1,248 @@
+"""The chain in flight: how many of the keyframes whose photos `triangulate` orients `replay` orients, on every
+real photo and video set in ../shared/data and on its every-other-photo variant (half the forward overlap).
+
+Sets (../shared/data, see its README):
+- brighton: photos/brighton_beach/images (18 DJI photos, EXIF GPS);
+- toledo: photos/toledo/images (42 DJI photos, EXIF GPS);
+- seneca: photos/seneca_part/images (41 near-infrared photos of a fixed wing, EXIF GPS, roll and crab in turns);
+- phantom3: video/phantom3_village (100 1080p keyframes of a video): `replay` gets the bag `import-frames`
+  makes of it (the published trajectory plus a 3D fix's noise, 1.5 m / 3 m, as bench/real_surveys.py does);
+  `triangulate` gets the frames as a photo folder with an OpenDroneMap geo.txt of the same kind of noisy
+  positions and the config.cfg's pinhole camera as a calibration YAML (the frames carry no EXIF).
+Variant `half`: every other photo (frame) of the set linked into a folder of its own (bench/real_surveys.py's
+half_overlap_block; for phantom3 every other frame with its config.cfg and trajectory.txt).
+
+Per set and variant, one JSON line: photos; `triangulate`'s oriented photos (poses.csv); `replay`'s keyframes
+taken (report.json) and oriented (trajectory.csv, by stamp -> photo); replay-oriented keyframes among the
+photos triangulate oriented; `share` = that over the keyframes whose photos triangulate oriented. replay
+names only its oriented keyframes, so when it took fewer keyframes than photos (video) the denominator is
+bounded by min(keyframes taken, photos triangulate oriented): `share` is then a lower bound
+(`share_exact` false). Also the tracker's breaks / bridged / problems and the adjuster's not-oriented reasons
+from report.json, wall times, the commit (bench/real_surveys.git_commit: '+modified' for a dirty tree), the
+cores and the load average. Commands run one after the other, `replay` at rate 0 (no time pressure).
+`--triangulate-from` takes triangulate's results from another run's folder (it does not use the tracker).
+
+    ROS_DOMAIN_ID=100 .venv/bin/python bench/inflight_chain.py [--only seneca,toledo] [--variants all,half]
+        [--out /tmp/inflight_chain] [--results bench/results]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / 'bench'))
+
+import real_surveys as rs  # noqa: E402
+from machine import machine_info  # noqa: E402
+
+DATA = rs.DATA
+SETS = {'brighton': DATA / 'photos' / 'brighton_beach' / 'images', 'toledo': DATA / 'photos' / 'toledo' / 'images',
+        'seneca': DATA / 'photos' / 'seneca_part' / 'images', 'phantom3': DATA / 'video' / 'phantom3_village'}
+VARIANTS = ('all', 'half')
+PHANTOM3_NOISE_M = (1.5, 3.0)
+TRIANGULATE_FROM: Path | None = None   # --triangulate-from
+
+
+def clean_tree() -> bool:
+    """No uncommitted change to the product code (photogram_ros/, config/)."""
+    out = subprocess.run(['git', 'status', '--porcelain', 'photogram_ros', 'config'], cwd=ROOT, capture_output=True,
+                         text=True).stdout
+    return not out.strip()
+
+
+# --- the phantom3 video as a photo folder and a bag -------------------------------------------------------
+
+
+def video_set(dst: Path, every: int) -> Path:
+    """phantom3_village's config.cfg, trajectory.txt and every `every`-th frame of rgb/ linked into `dst`."""
+    src = SETS['phantom3']
+    (dst / 'rgb').mkdir(parents=True, exist_ok=True)
+    for name in ('config.cfg', 'trajectory.txt'):
+        if not (dst / name).exists():
+            (dst / name).symlink_to(src / name)
+    for p in sorted((src / 'rgb').glob('*.jpg'))[::every]:
+        if not (dst / 'rgb' / p.name).exists():
+            (dst / 'rgb' / p.name).symlink_to(p)
+    return dst
+
+
+def video_photo_folder(dataset: Path, dst: Path, seed: int = 0) -> tuple[Path, Path]:
+    """The frames of a Map2DFusion data set as a photo folder `dst` with a geo.txt (the trajectory plus a 3D
+    fix's noise, ellipsoidal heights), and a calibration YAML from its config.cfg. Returns (folder, yaml)."""
+    from photogram_ros.io.frame_import import read_map2dfusion_config, read_track
+    camera, origin = read_map2dfusion_config(dataset / 'config.cfg')
+    track = read_track(dataset / 'trajectory.txt')
+    dst.mkdir(parents=True, exist_ok=True)
+    rng = np.random.default_rng(seed)
+    sh, sv = PHANTOM3_NOISE_M
+    noisy = track[:, 1:4] + rng.normal(0.0, [sh, sh, sv], (len(track), 3))
+    lat, lon, h = (np.ravel(v) for v in origin.enu_to_geodetic(noisy))
+    lines = ['EPSG:4326']
+    for t, a, o, z in zip(track[:, 0], lat, lon, h):
+        name = f'{t:.6f}.jpg'
+        if (dataset / 'rgb' / name).exists():
+            if not (dst / name).exists():
+                (dst / name).symlink_to((dataset / 'rgb' / name).resolve())
+            lines.append(f'{name} {o:.9f} {a:.9f} {z:.3f} 0 0 0 {sh:g} {sv:g}')
+    (dst / 'geo.txt').write_text('\n'.join(lines) + '\n')
+    yml = dst.parent / f'{dst.name}_camera.yaml'
+    yml.write_text(json.dumps({
+        'image_width': camera.width, 'image_height': camera.height, 'camera_name': 'phantom3',
+        'camera_matrix': {'rows': 3, 'cols': 3, 'data': [camera.fx, 0.0, camera.cx, 0.0, camera.fy, camera.cy,
+                                                         0.0, 0.0, 1.0]},
+        'distortion_model': 'plumb_bob', 'distortion_coefficients': {'rows': 1, 'cols': 5, 'data': [0.0] * 5}}))
+    return dst, yml
+
+
+def video_stamps(dataset: Path) -> dict[int, str]:
+    """{stamp_ns: frame name} of a Map2DFusion data set's frames (named by their Unix time)."""
+    return {int(round(float(p.stem) * 1e9)): p.name for p in (dataset / 'rgb').glob('*.jpg')}
+
+
+# --- one set ------------------------------------------------------------------------------------------------
+
+
+def tracker_and_adjuster(report: dict) -> dict:
+    """What the tracker and the adjuster said (report.json): breaks, bridged, lost-tracking problems,
+    not-oriented reasons."""
+    nodes = report.get('nodes', {})
+    tv = nodes.get('/tracker_node', {}).get('values', {})
+    probs = nodes.get('/tracker_node', {}).get('problems', [])
+    return {'tracker_breaks': tv.get('breaks'), 'tracker_bridged': tv.get('bridged'),
+            'tracking_lost': sum('tracking lost' in str(p[-1]) for p in probs),
+            'tracker_process_ms': tv.get('process_ms'),
+            'not_oriented_by_reason': report.get('keyframes_not_oriented_by_reason'),
+            'segments_joined_keyframes': nodes.get('/bundle_node', {}).get('values', {}).get(
+                'keyframes_joined_from_a_segment'),
+            'keyframes_oriented_in_flight': report.get('keyframes_oriented_in_flight')}
+
+
+def run_set(name: str, variant: str, out: Path, timeout_s: float) -> dict:
+    every = 2 if variant == 'half' else 1
+    tag = f'{name}_{variant}'
+    work = out / tag
+    if not rs.REMEASURE:
+        shutil.rmtree(work, ignore_errors=True)
+    work.mkdir(parents=True, exist_ok=True)
+    row = {'set': name, 'variant': variant}
+    if name == 'phantom3':
+        dataset = video_set(work / 'data', every)
+        folder, yml = video_photo_folder(dataset, work / 'photos')
+        tri_cmd = ['triangulate', str(folder), '--out', str(work / 'triangulate'), '--camera', str(yml), '--quiet']
+        bag = work / 'bag'
+        imp = ['import-frames', str(dataset), '--out', str(bag), '--noise-h-m', str(PHANTOM3_NOISE_M[0]),
+               '--noise-v-m', str(PHANTOM3_NOISE_M[1])]
+        r_imp = rs.run_command(imp, work / 'import.log', timeout_s)
+        rep_cmd = ['replay', str(bag), '--out', str(work / 'replay'), '--quiet']
+        names = video_stamps(dataset)
+        photos = len(names)
+        row['import_exit'] = r_imp['exit']
+    else:
+        folder = SETS[name]
+        if every > 1:
+            folder = work / 'photos'
+            rs.half_overlap_block(SETS[name], folder)
+        tri_cmd = ['triangulate', str(folder), '--out', str(work / 'triangulate'), '--quiet']
+        rep_cmd = ['replay', str(folder), '--out', str(work / 'replay'), '--quiet']
+        names = rs.photo_stamps(folder)
+        photos = rs.photo_count(folder)
+    if TRIANGULATE_FROM is None:
+        r_tri = rs.run_command(tri_cmd, work / 'triangulate.log', timeout_s)
+        tri_poses = work / 'triangulate' / 'poses.csv'
+    else:
+        # triangulate's outputs of an earlier run of this bench (the same photos; triangulate does not use the
+        # tracker): waited for while that run is still going.
+        done = TRIANGULATE_FROM / tag / 'triangulate.run.json'
+        t0 = time.monotonic()
+        while not done.exists() and time.monotonic() - t0 < timeout_s:
+            time.sleep(10)
+        r_tri = json.loads(done.read_text()) if done.exists() else {'exit': None, 'wall_s': None}
+        r_tri['from'] = str(TRIANGULATE_FROM / tag)
+        tri_poses = TRIANGULATE_FROM / tag / 'triangulate' / 'poses.csv'
+    r_rep = rs.run_command(rep_cmd, work / 'replay.log', timeout_s)
+    tri = set(rs.read_poses(tri_poses)) if tri_poses.exists() else set()
+    traj = work / 'replay' / 'trajectory.csv'
+    rep = {names.get(p.get('stamp_ns'), n) for n, p in rs.read_poses(traj).items()} if traj.exists() else set()
+    rj = work / 'replay' / 'report.json'
+    report = json.loads(rj.read_text()) if rj.exists() else {}
+    taken = int(report.get('keyframes_taken') or 0)
+    both = len(rep & tri)
+    exact = taken == photos
+    denom = len(tri) if exact else min(taken, len(tri))
+    row.update({'photos': photos, 'triangulate_oriented': len(tri), 'replay_keyframes': taken,
+                'replay_oriented': len(rep), 'replay_oriented_of_triangulated': both,
+                'keyframes_triangulated': denom, 'share': round(both / denom, 4) if denom else None,
+                'share_exact': exact, 'triangulate_exit': r_tri['exit'], 'replay_exit': r_rep['exit'],
+                'triangulate_wall_s': r_tri['wall_s'], 'replay_wall_s': r_rep['wall_s'],
+                'replay_last_line': r_rep.get('last_line', '')[:300],
+                'triangulate_command': 'photogram-ros ' + ' '.join(tri_cmd),
+                'replay_command': 'photogram-ros ' + ' '.join(rep_cmd)})
+    row.update(tracker_and_adjuster(report))
+    return row
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split('\n')[0])
+    ap.add_argument('--only', default=','.join(SETS), help='sets, comma separated')
+    ap.add_argument('--variants', default=','.join(VARIANTS), help='variants, comma separated (all, half)')
+    ap.add_argument('--out', default='/tmp/inflight_chain', help='work folder (command outputs and logs)')
+    ap.add_argument('--results', default=str(ROOT / 'bench' / 'results'), help='folder of the JSON-lines file')
+    ap.add_argument('--timeout-s', type=float, default=1800.0, help='per command')
+    ap.add_argument('--triangulate-from', default=None,
+                    help="another run's --out: take triangulate's results from there (waiting for them) instead of "
+                         'running it again (triangulate does not use the tracker)')
+    ap.add_argument('--remeasure', action='store_true', help='measure the outputs already in --out again')
+    a = ap.parse_args(argv)
+    rs.REMEASURE = a.remeasure
+    global TRIANGULATE_FROM
+    TRIANGULATE_FROM = Path(a.triangulate_from) if a.triangulate_from else None
+    sets = [s for s in a.only.split(',') if s]
+    variants = [v for v in a.variants.split(',') if v]
+    bad = [s for s in sets if s not in SETS] + [v for v in variants if v not in VARIANTS]
+    if bad:
+        ap.error(f'unknown {bad}: sets {list(SETS)}, variants {list(VARIANTS)}')
+    out = Path(a.out)
+    out.mkdir(parents=True, exist_ok=True)
+    commit = rs.git_commit()
+    short = commit.split()[0].replace('+modified', '')
+    results = Path(a.results) / f'inflight_chain_{short}.jsonl'
+    results.parent.mkdir(parents=True, exist_ok=True)
+    head = {'bench': 'inflight_chain', 'commit': commit, 'clean_tree': clean_tree(), 'cores': os.cpu_count(),
+            'machine': machine_info(), 'load_avg_before': [round(x, 2) for x in os.getloadavg()],
+            'started_utc': time.strftime('%Y-%m-%dT%H:%M:%SZ', time.gmtime())}
+    with open(results, 'a') as fh:
+        fh.write(json.dumps(head) + '\n')
+    for s in sets:
+        for v in variants:
+            load0 = os.getloadavg()
+            try:
+                row = run_set(s, v, out, a.timeout_s)
+            except subprocess.TimeoutExpired as exc:
+                row = {'set': s, 'variant': v, 'error': f'timeout after {exc.timeout} s'}
+            row.update({'commit': commit, 'clean_tree': head['clean_tree'], 'cores': os.cpu_count(),
+                        'load_avg_before': [round(x, 2) for x in load0],
+                        'load_avg_after': [round(x, 2) for x in os.getloadavg()]})
+            with open(results, 'a') as fh:
+                fh.write(json.dumps(row, default=str) + '\n')
+            print(f"{s} {v}: triangulate {row.get('triangulate_oriented')}/{row.get('photos')}, replay "
+                  f"{row.get('replay_oriented')}/{row.get('replay_keyframes')} keyframes, "
+                  f"{row.get('replay_oriented_of_triangulated')}/{row.get('keyframes_triangulated')} of "
+                  f"triangulate's = {row.get('share')} ({'exact' if row.get('share_exact') else 'lower bound'}); "
+                  f"tracking lost {row.get('tracking_lost')}", flush=True)
+    print(f'results: {results}')
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())
