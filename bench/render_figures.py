@@ -392,6 +392,86 @@ REAL_ROWS = (
     ('toledo, geotags scattered 17 m', 'toledo_noisy', 'triangulate'))
 
 
+CHAIN = 'inflight_chain*.jsonl'
+CHAIN_CMD = 'ROS_DOMAIN_ID=N .venv/bin/python bench/inflight_chain.py --out F'
+CHAIN_SETS = (('seneca_part (41 NIR photos, fixed wing)', 'seneca'), ('brighton_beach (18 photos)', 'brighton'),
+              ('toledo (42 photos)', 'toledo'), ('phantom3_village (100 video frames)', 'phantom3'))
+
+
+def _chain_cells(x: dict, _lines) -> list:
+    share = x.get('share')
+    return [f'{x["photos"]}', f'{x["triangulate_oriented"]}',
+            f'{x["replay_oriented"]}/{x["replay_keyframes"]}',
+            '—' if share is None else f'**{x["replay_oriented_of_triangulated"]}/{x["keyframes_triangulated"]} '
+            f'({share * 100:.0f} %)**' + ('' if x.get('share_exact', True) else ' (lower bound)')]
+
+
+def _chain(label, survey, variant):
+    return Figure((label, 'every photo' if variant == 'all' else 'every other photo'), CHAIN,
+                  {'set': survey, 'variant': variant}, _chain_cells, PRODUCT, CHAIN_CMD)
+
+
+def _chain_main(label, survey, variant):
+    """The same row measured on the code before the chain (main at 8a9c63c, in the chain's own bench)."""
+    return Figure((label + ', before the chain', 'every photo' if variant == 'all' else 'every other photo'),
+                  'inflight_chain_8a9c63c.jsonl', {'set': survey, 'variant': variant}, _chain_cells, PRODUCT, CHAIN_CMD)
+
+
+BUDGET = 'stage_budget*.jsonl'
+BUDGET_CMD = '.venv/bin/python bench/stage_budget.py --out F'
+BUDGET_ROWS = (('tracking (KLT, detection; 1/8 decode)', 'tracking', 'photo'),
+               ('descriptor matching', 'descriptor_matching', 'photo'),
+               ('pose (resection)', 'pose_resection', 'photo'),
+               ('window adjustment', 'window_adjustment', 'photo'),
+               ('keyframe image decode, full size', 'decode_full_keyframe', 'call'),
+               ('keyframe image decode at the map cell (1/4)', 'decode_keyframe_reduced', 'call'),
+               ('targets (ArUco) as the node searches them', 'targets_as_node', 'call'),
+               ('stereo pair, reduced keyframe images', 'stereo_pair_reduced_images', 'call'),
+               ('fusion', 'fusion', 'call'),
+               ('ortho tiles', 'tiles', 'call'),
+               ('keyframe image message, full 20 MP raw', 'message_image_full_raw', 'call'),
+               ('keyframe image message, reduced', 'message_image_reduced_raw', 'call'))
+
+
+def _budget_cells(x: dict, lines: list) -> list:
+    per = x['cpu_s_per_photo'] if x.get('cpu_s_per_photo') is not None else x.get('cpu_s_per_call')
+    stage = x['stage']
+    # The floor is measured once per stage family ('decode', 'stereo_pair', 'messages', ...): the longest whose
+    # name starts this stage's.
+    floors = sorted(((y['stage'], y['floor_cpu_s_per_call']) for y in lines if y.get('floor_cpu_s_per_call') is not None
+                     and stage.startswith(y['stage'].rstrip('s'))), key=lambda t: -len(t[0]))
+    floor = floors[0][1] if floors else None
+    return [f'{per:.3f} s a photo ({x["cpu_s_per_call"]:.3f} s a call, {x["calls"]} calls)' if per is not None else '—',
+            '—' if floor is None else f'{floor:.4f} s a call']
+
+
+def _budget(label, stage, _per):
+    return Figure((label,), BUDGET, {'stage': stage}, _budget_cells, PRODUCT, BUDGET_CMD)
+
+
+PACE_20MP = 'inflight_20mp_pace_*.jsonl'
+PACE_20MP_CMD = 'ROS_DOMAIN_ID=N .venv/bin/python bench/inflight_20mp.py --periods 1,0.7 (main, then this tree)'
+
+
+def _pace_cells(x: dict, lines: list) -> list:
+    runs = [y for y in lines if y.get('bench') == 'inflight_20mp' and y.get('config') == x['config']]
+    if len(runs) < 2:
+        return ['—']
+    base, new = runs[0], runs[-1]
+
+    def one(r):
+        return (f'{r["oriented"]}/{r["keyframes"]} oriented, {r["dropped_otherwise"]} dropped; pose lag p50/p95 '
+                f'{r["lag_exposure_to_pose_s"]["p50"]:.0f}/{r["lag_exposure_to_pose_s"]["p95"]:.0f} s, fused cloud '
+                f'p95 {r["lag_exposure_to_fused_cloud_s"]["p95"]:.0f} s; peak RSS '
+                f'{r.get("peak_rss_mb", 0):.0f} + {r.get("child_peak_rss_mb", 0):.0f} MB (main + child process)')
+    return [f'{one(new)}; main in the same run: {one(base)}']
+
+
+def _pace(period):
+    return Figure((f'20 MP photos (toledo upscaled), one every {period.rstrip("s")} s, through the graph',), PACE_20MP,
+                  {'bench': 'inflight_20mp', 'config': period}, _pace_cells, PRODUCT, PACE_20MP_CMD)
+
+
 TABLES: dict[str, Table] = {
     'simulated': Table(('what', 'figure'), (
         _none('sample flight end to end (RTK, no GCPs): check points, keyframes oriented, camera centres',
@@ -463,6 +543,13 @@ TABLES: dict[str, Table] = {
         _none('stereo speed: the module against a bare SGBM compute', command='.venv/bin/python bench/stereo_speed.py'),
         _none('MAVLink parsing against pymavlink', command='.venv/bin/python bench/mavlink_parse.py'),
         _none('map fusion', command='.venv/bin/python bench/fusion_throughput.py'))),
+    'inflight-chain': Table(('survey', 'photos used', 'photos', '`triangulate` oriented', '`replay` keyframes oriented',
+                             '`replay` oriented among the keyframes whose photo `triangulate` oriented'),
+                            tuple(_chain(label, sv, v) for label, sv in CHAIN_SETS for v in ('all', 'half'))
+                            + tuple(_chain_main(label, sv, v) for label, sv in CHAIN_SETS[:2] for v in ('all', 'half'))),
+    'stage-budget': Table(('stage (20 MP, toledo upscaled)', 'CPU', 'floor (the least the stage can cost)'),
+                          tuple(_budget(*r) for r in BUDGET_ROWS)),
+    'inflight-20mp': Table(('what', 'figure'), (_pace('1s'), _pace('0.7s'))),
     'speed': Table(('what', 'figure'), (
         _none('replay of the sample bag', command='scripts/replay-sample.sh OUT'),
         _none('sliding-window update', command='.venv/bin/python bench/window_latency.py'),
