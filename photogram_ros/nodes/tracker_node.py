@@ -396,7 +396,8 @@ class TrackerNode(Node):
             self.diag.count('keyframes_bridged')
         if lost:
             self.diag.problem(f'tracking lost before keyframe {kf.index} (no descriptor match with the last '
-                              'keyframes: its tracks start a new segment)')
+                              'keyframes nor with any earlier keyframe it overlaps by GNSS: its tracks start a new '
+                              'segment)')
         n_lost = sum(self._lost_history)
         share = n_lost / len(self._lost_history)
         if len(self._lost_history) >= 5 and share > self.params.health_max_lost:
