@@ -61,13 +61,23 @@ class Registration:
                     self.block.track_kfs.setdefault(t, []).append(kf.kid)
             self.block.triangulate_new(new)
             # Keyframes between (and before) the pair were waiting: register them now.
-            for kf in self.block.kfs:
-                if kf.map_T_cam is None:
-                    if self.resect(kf).registered or (self.opt.relative_fallback
-                                                         and self.relative(kf).registered):
-                        self.block.triangulate_new(kf)
+            self.register_waiting()
             return new.kid
         return None
+
+    def register_waiting(self) -> int:
+        """Every keyframe without a pose tried again (resection, then the relative fallback), in passes until a
+        pass orients none: a keyframe that shares tracks only with another waiting one (a chain 0 -> 1 -> the
+        block) is oriented once that one is. Returns how many were oriented."""
+        n, progress = 0, True
+        while progress:
+            progress = False
+            for kf in self.block.kfs:
+                if kf.map_T_cam is None and (self.resect(kf).registered
+                                             or (self.opt.relative_fallback and self.relative(kf).registered)):
+                    self.block.triangulate_new(kf)
+                    n, progress = n + 1, True
+        return n
 
     def resect(self, kf: Keyframe) -> StepReport:
         import cv2

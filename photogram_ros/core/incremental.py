@@ -500,14 +500,7 @@ class IncrementalAT:
         """Photos that did not register in sequence get a second chance against the whole block
         (resection against every point, then triangulation); returns how many registered now.
         Adjust afterwards (`full_adjustment`)."""
-        n = 0
-        for kf in self.block.kfs:
-            if kf.map_T_cam is None and self.block.registered and (
-                    self.registration.resect(kf).registered
-                    or (self.opt.relative_fallback and self.registration.relative(kf).registered)):
-                self.block.triangulate_new(kf)
-                n += 1
-        return n
+        return self.registration.register_waiting() if self.block.registered else 0
 
     def _try_georeference(self, force: bool = False, line_keyframes: int | None = None) -> bool:
         """`force`: accept any non-collinear geometry (end of flight: nothing better will come).

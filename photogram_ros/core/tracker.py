@@ -131,6 +131,11 @@ class TrackerParams:
                                      'newest; ~226 kB each at 1500 features of 4000 tracks)', min=1, max=100000)
     chain_linked_ids: int = param(50, 'An earlier keyframe already sharing this many track ids with the new one '
                                   '(KLT, or an earlier match) is not matched again', min=1, max=100000)
+    features_on: str = param('normalised', 'Image the SIFT features of descriptor matching are detected on: the '
+                             'reduced grey after the tracker\'s photometric normalisation (normalised), or as decoded '
+                             '(raw): CLAHE makes KLT precise but can cost a weak pair its verified matches (brighton_beach '
+                             'every other photo: DJI_0018-DJI_0020 verify raw, not after CLAHE); raw is not yet measured '
+                             'on every real set', choices=('raw', 'normalised'))
     chain_klt_keyframes: bool = param(False, 'Also keyframes that KLT carried (video-rate input, no break since the '
                                       'last keyframe) get SIFT features, publish chain_features of them as tracks '
                                       'and are matched with the earlier keyframes they overlap; off: only frames '
@@ -249,6 +254,7 @@ class _Frame:
     stamp_ns: int
     image: np.ndarray          # original image (BGR or grey), or the EncodedImage it came as
     gray: np.ndarray           # normalised grey
+    raw: np.ndarray | None     # the reduced grey before normalisation (None: the same as gray)
     pyr: list
     pts: np.ndarray            # (N, 2) float32 pixels of the reduced image
     ids: np.ndarray            # (N,) uint32
@@ -373,7 +379,8 @@ class Tracker:
             gray = cv2.resize(gray, (self._work_cam.width, self._work_cam.height), interpolation=cv2.INTER_AREA)
         g = self._normalise(gray, mean, std)
         # (Python's calcOpticalFlowPyrLK cannot take prebuilt pyramids; it builds them itself.)
-        cur = _Frame(index, stamp_ns, image, g, g, np.empty((0, 2), np.float32), np.empty(0, np.uint32))
+        raw = gray if g is not gray and self.params.features_on == 'raw' else None
+        cur = _Frame(index, stamp_ns, image, g, raw, g, np.empty((0, 2), np.float32), np.empty(0, np.uint32))
         if self._prev is None or self._kf is None:
             cur.pts, cur.ids = self._top_up(cur, cur.pts, cur.ids)
             self._make_keyframe(cur, overlap=float('nan'))
@@ -568,7 +575,9 @@ class Tracker:
     def _features_of(self, frame: _Frame) -> None:
         """SIFT features of a frame (reduced-image pixels), without track ids yet (-1)."""
         if frame.features is None:
-            frame.features = extract(str(frame.index), frame.gray, (1.0, 1.0), self._match_options())
+            img = frame.raw if frame.raw is not None else frame.gray
+            frame.features = extract(str(frame.index), img, (1.0, 1.0), self._match_options())
+            frame.raw = None   # only the features needed it
             frame.feat_ids = np.full(len(frame.features.uv), -1, np.int64)
 
     def _new_ids(self, n: int) -> np.ndarray:
