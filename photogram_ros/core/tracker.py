@@ -66,10 +66,11 @@ import numpy as np
 from photogram_ros.core.camera import PinholeCamera
 from photogram_ros.core.gnss_fix import GnssFix
 from photogram_ros.core.geodesy import LocalFrame
+from photogram_ros.core.klt import KltStep
+from photogram_ros.core.keyframe_image import EncodedImage, Keyframe
 from photogram_ros.core.keyframes import ChainStore, FixBuffer, OverlapGrid, gps_distance_m, homography_overlap
 from photogram_ros.core.photo_matching import MatchingOptions, PhotoFeatures, earlier_candidates, extract, match_pair
-from photogram_ros.core.two_view import essential_ransac
-from photogram_ros.errors import CalibrationError, DataError
+from photogram_ros.errors import CalibrationError
 from photogram_ros.params import param
 
 FEATURE_DTYPE = np.dtype([('track_id', '<u4'), ('u', '<f8'), ('v', '<f8'), ('xn', '<f8'), ('yn', '<f8')])
@@ -158,78 +159,6 @@ class TrackerParams:
                                  min=0.01, max=60.0)
 
 
-# cv2.imdecode flags that decode in grey at 1/n of the size (a JPEG through libjpeg's DCT scaling; other
-# formats are decoded whole and resized by OpenCV); EXIF orientation is ignored as in a camera's raw frames.
-_REDUCED_GREY = {1: cv2.IMREAD_GRAYSCALE, 2: cv2.IMREAD_REDUCED_GRAYSCALE_2, 4: cv2.IMREAD_REDUCED_GRAYSCALE_4,
-                 8: cv2.IMREAD_REDUCED_GRAYSCALE_8}
-
-
-class EncodedImage:
-    """A frame still compressed: `data` the bytes of a JPEG (or PNG, TIFF: what cv2.imdecode reads), as a
-    camera or a photo folder gives them (sensor_msgs/CompressedImage's data). The tracker decodes it at
-    its working size; `full()` decodes it at full size (BGR), once."""
-
-    def __init__(self, data):
-        self.data = np.frombuffer(data, np.uint8) if not isinstance(data, np.ndarray) else data.reshape(-1)
-        self._full: np.ndarray | None = None
-
-    def reduced_grey(self, reduce: int) -> np.ndarray:
-        """The grey image at 1/`reduce` of the full size (a power of two), pixel i covering full pixels
-        [reduce*i, reduce*(i+1)): (ceil(H/reduce), ceil(W/reduce)) uint8. DataError if undecodable."""
-        flag = _REDUCED_GREY.get(min(reduce, 8))
-        out = cv2.imdecode(self.data, flag | cv2.IMREAD_IGNORE_ORIENTATION) if self.data.size else None
-        if out is None:
-            raise DataError(f'compressed frame ({self.data.size} bytes) cannot be decoded')
-        if reduce > 8:
-            h, w = out.shape
-            k = reduce // 8
-            out = cv2.resize(out, (-(-w // k), -(-h // k)), interpolation=cv2.INTER_AREA)
-        return out
-
-    def full(self) -> np.ndarray:
-        """The full-size image, BGR uint8 (decoded the first time). DataError if undecodable."""
-        if self._full is None:
-            img = cv2.imdecode(self.data, cv2.IMREAD_COLOR | cv2.IMREAD_IGNORE_ORIENTATION) if self.data.size else None
-            if img is None:
-                raise DataError(f'compressed frame ({self.data.size} bytes) cannot be decoded')
-            self._full = img
-        return self._full
-
-
-@dataclass
-class Keyframe:
-    index: int
-    frame_index: int
-    stamp_ns: int
-    image: np.ndarray          # BGR (read through the property below: a compressed keyframe decodes on first read)
-    observations: np.ndarray
-    fix: GnssFix | None = None
-    overlap: float = float('nan')
-    break_before: bool = False
-    bridged: bool = False
-    # The full image's (width, height): known before an EncodedImage is decoded.
-    size: tuple = (0, 0)
-
-
-def _keyframe_image(self) -> np.ndarray:
-    img = self.__dict__['image']
-    if isinstance(img, EncodedImage):
-        img = img.full()
-        if (img.shape[1], img.shape[0]) != tuple(self.size):
-            raise DataError(f'keyframe {self.index}: the photo decodes to {img.shape[1]}x{img.shape[0]}, its '
-                            f'reduced decode said {self.size[0]}x{self.size[1]}')
-        self.__dict__['image'] = img
-    return img
-
-
-def _set_keyframe_image(self, value) -> None:
-    self.__dict__['image'] = value
-
-
-# The dataclass keeps `image` as its field; reading it decodes a compressed keyframe once.
-Keyframe.image = property(_keyframe_image, _set_keyframe_image)
-
-
 @dataclass
 class TrackerStats:
     frames: int = 0
@@ -269,6 +198,15 @@ class _Frame:
     chain_tried: set = field(default_factory=set)   # keyframe indices this frame was matched with
 
 
+
+def _dedupe_feature_ids(frame: _Frame) -> None:
+    """One feature per track id of `frame` (two features matched to one track: keep the first)."""
+    got = frame.feat_ids
+    _, first = np.unique(np.where(got >= 0, got, -1 - np.arange(len(got))), return_index=True)
+    dup = np.ones(len(got), bool)
+    dup[first] = False
+    got[dup] = -1
+
 @dataclass
 class _KfState:
     frame: _Frame
@@ -306,7 +244,6 @@ class Tracker:
         self._clahe = cv2.createCLAHE(2.0, (8, 8))
         p = self.params
         self._win = (p.klt_window_px | 1, p.klt_window_px | 1)
-        self._criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 0.01)
         if camera is not None:
             self.set_camera(camera)
 
@@ -323,6 +260,7 @@ class Tracker:
             reduce *= 2
         self._scale = 1.0 / reduce          # reduced px per full px
         self._work_cam = camera if self._scale == 1.0 else camera.scaled(self._scale)
+        self._klt_step = KltStep(self.params, self._work_cam)
         self._grid = OverlapGrid(camera)
         self._prev = None     # points of another calibration cannot be continued
         self._kf = None
@@ -444,7 +382,7 @@ class Tracker:
         if len(i0) > 2 * p.max_features:   # descriptor tracks of a keyframe: KLT follows a spread share
             sel = np.linspace(0, len(i0) - 1, 2 * p.max_features).astype(int)
             p0, i0 = p0[sel], i0[sel]
-        pts, ids, flow = self._klt(prev.pyr, cur.pyr, p0, i0, self._velocity * dt)
+        pts, ids, flow = self._klt_step.track(prev.pyr, cur.pyr, p0, i0, self._velocity * dt)
         if len(ids) >= p.recover_min_tracks and flow is not None:
             self._velocity = (flow / dt).astype(np.float32)
         weak = len(ids) < max(p.recover_min_tracks, p.klt_min_share * len(i0))
@@ -463,66 +401,6 @@ class Tracker:
         self._lost = False
         cur.pts, cur.ids = self._top_up(cur, pts, ids)
         self._decide(cur)
-
-    def _klt_pair(self, img0, img1, p0, guess, levels):
-        """Forward KLT from `guess` and backward check; (p1, ok, residual) for (N, 2) float32 points."""
-        p = self.params
-        flags = cv2.OPTFLOW_USE_INITIAL_FLOW
-        q0 = p0.reshape(-1, 1, 2).astype(np.float32)
-        p1, st, err = cv2.calcOpticalFlowPyrLK(img0, img1, q0, guess.reshape(-1, 1, 2).astype(np.float32),
-                                               winSize=self._win, maxLevel=levels, criteria=self._criteria,
-                                               flags=flags)
-        pb, st2, _ = cv2.calcOpticalFlowPyrLK(img1, img0, p1, q0.copy(), winSize=self._win, maxLevel=levels,
-                                              criteria=self._criteria, flags=flags)
-        p1, pb, err = p1.reshape(-1, 2), pb.reshape(-1, 2), err.ravel()
-        ok = (st.ravel() == 1) & (st2.ravel() == 1) & (np.linalg.norm(pb - p0.reshape(-1, 2), axis=1) < p.fb_max_px)
-        ok &= self._work_cam.in_image(p1, margin_px=2.0)
-        if ok.sum() > 10 and p.klt_err_factor > 0:
-            # A window whose content changes (an occluding edge sliding over the background) keeps a
-            # large residual: it is not the image of one ground point.
-            ok &= err <= p.klt_err_factor * np.median(err[ok])
-        return p1, ok
-
-    def _klt(self, img0, img1, p0, ids, guess_shift):
-        """KLT img0 -> img1 (de-rotated when the camera turns), FB and essential-matrix checks."""
-        if len(p0) == 0:
-            return p0, ids, None
-        p = self.params
-        p0 = p0.reshape(-1, 2).astype(np.float32)
-        p1, ok = self._klt_pair(img0, img1, p0, p0 + np.asarray(guess_shift, np.float32), p.klt_levels)
-        if ok.sum() >= 10 and p.derotate_deg > 0:
-            A, _ = cv2.estimateAffinePartial2D(p0[ok], p1[ok], method=cv2.RANSAC, ransacReprojThreshold=3.0)
-            if A is not None and (abs(np.degrees(np.arctan2(A[1, 0], A[0, 0]))) > p.derotate_deg
-                                  or abs(np.hypot(A[0, 0], A[1, 0]) - 1.0) > 0.02):
-                # KLT fits translations only: under rotation its estimate drifts coherently, frame
-                # after frame. Tracking from the previous image turned onto this one removes that.
-                h, w = img1.shape[:2]
-                warped = cv2.warpAffine(img0, A, (w, h), flags=cv2.INTER_LINEAR)
-                q0 = p0 @ A[:, :2].T.astype(np.float32) + A[:, 2].astype(np.float32)
-                p1, ok2 = self._klt_pair(warped, img1, q0, np.where(ok[:, None], p1, q0), 1)
-                ok = ok2
-        if ok.sum() < p.klt_min_share * len(ok):
-            # Most windows lost their point: far beyond KLT's reach (photo-rate input). The few
-            # survivors are mostly coincidences; RANSAC on them would only cost time.
-            return p0[:0], ids[:0], None
-        p0, p1, ids = p0[ok], p1[ok], ids[ok]
-        keep = self._epipolar_inliers(p0, p1)
-        p0, p1, ids = p0[keep], p1[keep], ids[keep]
-        flow = np.median(p1 - p0, axis=0) if len(p1) else None
-        return p1.astype(np.float32), ids, flow
-
-    def _epipolar_inliers(self, p0, p1, xn0=None, method: str = 'ransac') -> np.ndarray:
-        n = len(p1)
-        if n < 8:
-            return np.zeros(n, bool)
-        xn0 = self._work_cam.pixel_to_normalized(p0) if xn0 is None else xn0
-        xn1 = self._work_cam.pixel_to_normalized(p1)
-        if np.median(np.linalg.norm(xn1 - xn0, axis=1)) * self._work_cam.fx < 1.0:
-            return np.ones(n, bool)   # no baseline to speak of: E is undetermined, FB check must do
-        E, mask = essential_ransac(xn0, xn1, self.params.ransac_px / self._work_cam.fx, method=method)
-        if E is None:
-            return np.zeros(n, bool)
-        return mask
 
     def _top_up(self, cur: _Frame, pts, ids):
         """Detect new corners in the grid cells that have fallen below their share of features."""
@@ -717,7 +595,8 @@ class Tracker:
         for i, uv_kf, dst in verified:
             k = states.get(self.chain.keys[i])
             if k is not None:
-                refined = self._refine_through_homography(k, uv_kf, f.uv[dst], cur)
+                refined = self._klt_step.through_homography(k.frame.gray, k.frame.pts, k.frame.ids, uv_kf, f.uv[dst],
+                                                             cur.gray)
                 if len(refined[1]):
                     break
         if not len(refined[1]):
@@ -725,7 +604,7 @@ class Tracker:
         if int((got >= 0).sum()) < opt.min_inliers and not len(refined[1]):
             got[:] = -1
             return None
-        self._dedupe_feature_ids(cur)
+        _dedupe_feature_ids(cur)
         inside = self._work_cam.in_image(f.uv, margin_px=self._win[0] / 2 + 1)
         take = (got >= 0) & inside & ~np.isin(got, refined[1].astype(np.int64))   # KLT-refined positions win
         return (np.concatenate([refined[0], f.uv[take].astype(np.float32)]),
@@ -754,43 +633,12 @@ class Tracker:
             fresh = open_ & (k.frame.feat_ids[rows] < 0)
             k.frame.feat_ids[rows[fresh]] = self._new_ids(int(fresh.sum()))
             got[dst[open_]] = k.frame.feat_ids[rows[open_]]
-            refined = self._refine_through_homography(k, k.frame.features.uv[rows], f.uv[dst], cur)
+            refined = self._klt_step.through_homography(k.frame.gray, k.frame.pts, k.frame.ids,
+                                                             k.frame.features.uv[rows], f.uv[dst], cur.gray)
             if len(refined[1]):
                 return refined
         return none
 
-    @staticmethod
-    def _dedupe_feature_ids(frame: _Frame) -> None:
-        """One feature per track id (two features matched to one track: keep the first)."""
-        got = frame.feat_ids
-        _, first = np.unique(np.where(got >= 0, got, -1 - np.arange(len(got))), return_index=True)
-        dup = np.ones(len(got), bool)
-        dup[first] = False
-        got[dup] = -1
-
-    def _refine_through_homography(self, k: _KfState, uv_kf, uv_cur, cur: _Frame):
-        """The keyframe's KLT tracks onto the frame: its image warped by the homography of the
-        matches, KLT from the warped positions (the parallax residual left), epipolar check."""
-        none = (np.empty((0, 2), np.float32), np.empty(0, np.uint32))
-        p_kf = k.frame.pts
-        if len(p_kf) < 8:
-            return none
-        H, inl = cv2.findHomography(uv_kf.astype(np.float32), uv_cur.astype(np.float32), cv2.RANSAC, 8.0)
-        if H is None or int(inl.sum()) < 15:
-            return none
-        h, w = cur.gray.shape
-        warped = cv2.warpPerspective(k.frame.gray, H, (w, h), flags=cv2.INTER_LINEAR)
-        guess = cv2.perspectiveTransform(p_kf.reshape(-1, 1, 2).astype(np.float64), H).reshape(-1, 2)
-        inside = self._work_cam.in_image(guess, margin_px=self._win[0] / 2)
-        if inside.sum() < 8:
-            return none
-        guess = guess[inside].astype(np.float32)
-        ids, xn_kf = k.frame.ids[inside], self._work_cam.pixel_to_normalized(p_kf[inside].astype(np.float64))
-        pts, ok = self._klt_pair(warped, cur.pyr, guess, guess, 2)
-        if ok.sum() < 8:
-            return none
-        keep = self._epipolar_inliers(None, pts[ok], xn_kf[ok], 'usac')
-        return pts[ok][keep].astype(np.float32), ids[ok][keep]
 
     # --- keyframes -------------------------------------------------------------------------------
 
@@ -867,7 +715,7 @@ class Tracker:
         then the strongest others, chain_features in all. New ones get new ids and join the keyframe's
         descriptor tracks (`extra_*`) unless a KLT track carries their id already. Returns what the chain
         keeps of them: chain_features, linked first (reduced-image pixels, RootSIFT descriptors, track ids)."""
-        self._dedupe_feature_ids(frame)
+        _dedupe_feature_ids(frame)
         f, fid = frame.features, frame.feat_ids
         ok = self._work_cam.in_image(f.uv, margin_px=self._win[0] / 2 + 1)
         strength = f.response if f.response is not None else np.zeros(len(fid), np.float32)
