@@ -149,7 +149,10 @@ def newest(fig: Figure) -> Source | None:
         key = (commit_time(commit), path.name)
         if best_key is None or key > best_key:
             best_key = key
-            best = Source(path, line, lines, commit, line_clean(line), tuple(line.get('modules') or fig.modules))
+            clean = line_clean(line)
+            if clean is None and lines and 'clean_tree' in lines[0]:   # an older bench's header line says it
+                clean = bool(lines[0]['clean_tree'])
+            best = Source(path, line, lines, commit, clean, tuple(line.get('modules') or fig.modules))
     return best
 
 
