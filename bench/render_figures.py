@@ -562,6 +562,14 @@ TABLES: dict[str, Table] = {
         _none('20 MP photos in flight', command='ROS_DOMAIN_ID=N .venv/bin/python bench/inflight_20mp.py'),
         _none('a recording killed with `kill -9`', command='scripts/test.sh tests/test_faults.py -k record_killed'))),
     'readme-headline': Table(('what', 'figure', 'more'), (
+        _readme('real fixed-wing survey in flight (seneca_part, 41 near-infrared photos, `replay`)',
+                _chain('seneca_part', 'seneca', 'all'),
+                lambda x, _: f'**{x["replay_oriented_of_triangulated"]}/{x["keyframes_triangulated"]} of the keyframes '
+                f'whose photos `triangulate` orients** ({x["replay_oriented"]}/{x["replay_keyframes"]} keyframes)',
+                '[real surveys](docs/measurements.md#real-surveys)'),
+        _readme('the same, every other photo (half the forward overlap)', _chain('seneca_part', 'seneca', 'half'),
+                lambda x, _: f'{x["replay_oriented_of_triangulated"]}/{x["keyframes_triangulated"]} of `triangulate`\'s '
+                f'({x["replay_oriented"]}/{x["replay_keyframes"]} keyframes)', 'same'),
         _readme('real DJI survey offline (brighton_beach, 18 photos, no calibration, no GCPs)', BRIGHTON_TRI,
                 lambda x, _: f'**{x["oriented"]}/{x["given"]} oriented**, reprojection {x["reprojection_px"]:.2f} px, '
                 f'cameras {x["sim_h_m"]:.2f} m H / {x["sim_v_m"]:.2f} m V from their own GPS after a similarity',
