@@ -131,7 +131,7 @@ def test_photo_folder_through_camera_and_tracker_nodes_stays_compressed(frames, 
     from rclpy.executors import MultiThreadedExecutor
     from rclpy.node import Node
     from rclpy.qos import QoSProfile, ReliabilityPolicy
-    from sensor_msgs.msg import Image, PointCloud2
+    from sensor_msgs.msg import CompressedImage, Image, PointCloud2
 
     from photogram_ros import msgs
     from photogram_ros.nodes.camera_node import CameraNode
@@ -150,6 +150,8 @@ def test_photo_folder_through_camera_and_tracker_nodes_stays_compressed(frames, 
     images, features = [], []
     qos = QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE)
     listener.create_subscription(Image, '/keyframes/image', images.append, qos)
+    jpegs = []
+    listener.create_subscription(CompressedImage, '/keyframes/image/compressed', jpegs.append, qos)
     listener.create_subscription(PointCloud2, '/keyframes/features', features.append, qos)
     camera = CameraNode(overrides={'source': str(folder), 'calibration_file': str(calib), 'rate': 0.0,
                                    'compressed_above_px': 2000}, context=rclpy_context)
@@ -165,16 +167,22 @@ def test_photo_folder_through_camera_and_tracker_nodes_stays_compressed(frames, 
         assert camera.finished and camera.diag.counts().get('frames_compressed') == 4
         n = tracker.flush(timeout_s=30.0)
         deadline = time.monotonic() + 30
-        while time.monotonic() < deadline and len(features) < tracker.keyframes_published:
+        while time.monotonic() < deadline and min(len(features), len(jpegs)) < tracker.keyframes_published:
             time.sleep(0.05)
         counts = tracker.diag.counts()
         assert counts.get('frames_decoded_reduced') == 4 and counts.get('frames_tracked') == 4, counts
         assert tracker.keyframes_published >= 2 and len(features) == len(images) == tracker.keyframes_published, n
         first_ns = msgs.ns_from_time(images[0].header.stamp)      # keyframe 0 is photo 0; photos 1 s apart
-        for img_msg, feat_msg in zip(images, features):
-            assert (img_msg.width, img_msg.height) == (W, H)
+        assert len(jpegs) == len(images)
+        for img_msg, jpeg_msg, feat_msg in zip(images, jpegs, features):
+            # keyframes/image at the map cell's resolution (4 x reduced at 4096 x 3072), decoded at that
+            # reduction from the camera's JPEG; keyframes/image/compressed the camera's own bytes, full size.
+            assert (img_msg.width, img_msg.height) == (W // 4, H // 4)
             i = round((msgs.ns_from_time(img_msg.header.stamp) - first_ns) * 1e-9)
-            assert np.array_equal(msgs.image_from_msg(img_msg), seq[i][2])
+            assert jpeg_msg.header.stamp == img_msg.header.stamp and bytes(jpeg_msg.data) == seq[i][1]
+            assert np.array_equal(msgs.image_from_msg(img_msg),
+                                  cv2.imdecode(np.frombuffer(seq[i][1], np.uint8),
+                                               cv2.IMREAD_REDUCED_COLOR_4 | cv2.IMREAD_IGNORE_ORIENTATION))
             obs = msgs.features_from_keyframe_msg(feat_msg)
             assert obs['u'].max() > 0.75 * W and obs['v'].max() > 0.75 * H
     finally:
