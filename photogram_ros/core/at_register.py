@@ -35,12 +35,12 @@ class Registration:
         waiting are registered against them. Returns the newest keyframe's id, None while no pair is found (the
         caller adjusts the block in full)."""
         new = self.block.kfs[-1]
+        rows_new = np.flatnonzero(self.block.usable(new))
         cands = []
         for first in self.block.kfs[:-1]:
-            ids, i1, i2 = np.intersect1d(first.track_ids[self.block.usable(first)], new.track_ids[self.block.usable(new)],
-                                         return_indices=True)
-            i1 = np.flatnonzero(self.block.usable(first))[i1]
-            i2 = np.flatnonzero(self.block.usable(new))[i2]
+            rows_first = np.flatnonzero(self.block.usable(first))
+            ids, i1, i2 = np.intersect1d(first.track_ids[rows_first], new.track_ids[rows_new], return_indices=True)
+            i1, i2 = rows_first[i1], rows_new[i2]
             if len(ids) < self.opt.min_init_inliers:
                 continue
             thr = self.opt.pnp_threshold_px / self.block.camera.fx
