@@ -34,6 +34,9 @@ class KeyframeRecord:
     # Antenna minus camera centre in map ENU (m), from the autopilot attitude and the body lever
     # arm; when None the fixed camera-frame lever arm of the options is used instead.
     antenna_offset_map_m: np.ndarray | None = None
+    # The camera's orientation in map ENU (3x3, camera -> map) from the autopilot's attitude and the camera's
+    # mount or gimbal, before any adjustment; None when unknown. A prior, not a measurement of the block.
+    map_R_cam_prior: np.ndarray | None = None
 
 
 @dataclass
