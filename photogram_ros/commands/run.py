@@ -131,8 +131,12 @@ def run(a) -> int:
         if monitor is not None:
             monitor.destroy_node()
         rclpy.try_shutdown()
-    from photogram_ros.nodes.process_memory import trim_heap
-    trim_heap()   # the nodes' memory back to the system before the products are made
+    # The flight's nodes (tracker images, the map's tiles in memory, the bundle's problem) go before the products
+    # are made: held, they would add to what the dense matching and the rasters need.
+    graph = monitor = pacer = None
+    memory.sample()
+    print(f'end of flight: the nodes\' memory released for the products (RSS {memory.now_mb:.0f} -> '
+          f'{release_memory():.0f} MB)', flush=True)
     diag_log.add(counts, names)
     if signals.skip.is_set() and not a.live_map:
         a.live_map = True
@@ -181,6 +185,18 @@ class RunSignals:
         """Until a signal came (or `alive()` turns false)."""
         while not self.stop.wait(period_s) and alive():
             pass
+
+
+def release_memory() -> float:
+    """Collect unreachable objects (reference cycles hold the nodes) and give malloc's free pages back to the
+    system (process_memory.trim_heap); returns this process's RSS after, MB."""
+    import gc
+
+    from photogram_ros.nodes.graph import rss_mb
+    from photogram_ros.nodes.process_memory import trim_heap
+    gc.collect()
+    trim_heap()
+    return rss_mb()
 
 
 class PeakMemory:

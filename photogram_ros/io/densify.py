@@ -96,6 +96,44 @@ def _link_or_copy(src: Path, dst: Path) -> None:
         shutil.copyfile(src, dst)
 
 
+MAX_IMAGES_HELD = 6   # decoded keyframe images held at once while matching (13 MB each at 2400x1800)
+
+
+class ImageCache:
+    """Decoded keyframe images for the pairs of keyframes 0, 1, ... in turn: `uses[i]` lists the images the
+    pairs of keyframe i read. An image is dropped after its last use, and past `max_held` the one needed
+    latest goes first (read again when its turn comes): memory stays at a few images, not the flight's."""
+
+    def __init__(self, path_of, uses: list[list[int]], max_held: int = MAX_IMAGES_HELD):
+        self.path_of, self.max_held = path_of, max(int(max_held), 2)
+        self.uses = {}   # image -> the keyframes (in order) whose pairs read it
+        for i, used in enumerate(uses):
+            for j in dict.fromkeys(used):
+                self.uses.setdefault(j, []).append(i)
+        self.held: dict[int, np.ndarray] = {}
+        self.reads = 0
+
+    def _next_use(self, j: int, now: int) -> int:
+        return next((i for i in self.uses.get(j, ()) if i >= now), 1 << 62)
+
+    def get(self, j: int, now: int) -> np.ndarray:
+        """Image j for the pairs of keyframe `now` (BGR); a DataError when it cannot be read."""
+        if j not in self.held:
+            img = cv2.imread(str(self.path_of(j)), cv2.IMREAD_COLOR)
+            if img is None:
+                raise DataError(f'keyframe image {self.path_of(j)} is unreadable')
+            self.reads += 1
+            while len(self.held) >= self.max_held:
+                del self.held[max(self.held, key=lambda k: self._next_use(k, now))]
+            self.held[j] = img
+        return self.held[j]
+
+    def done(self, now: int) -> None:
+        """The pairs of keyframe `now` are matched: images no later keyframe reads are dropped."""
+        for j in [j for j in self.held if self._next_use(j, now + 1) == 1 << 62]:
+            del self.held[j]
+
+
 def densify_map(map_dir: str | Path | MapStore, out_dir: str | Path, stereo: StereoParams, criteria: PairCriteria,
                 fusion: FusionConfig, progress=None, tie_points_map: np.ndarray | None = None) -> DensifyResult:
     """Match the keyframes of `map_dir` (a folder or an open MapStore) with their final poses into a new
@@ -154,16 +192,7 @@ def densify_map(map_dir: str | Path | MapStore, out_dir: str | Path, stereo: Ste
                         derived=sorted(set(names_s + names_c + names_f)))
     fuser = Fusion(fusion, dst)
     C = np.array([k['map_T_cam'][:3, 3] for k in kfs])
-    images: dict[int, np.ndarray] = {}     # the partners of the coming keyframes, not the whole flight
-
-    def image(i):
-        if i not in images:
-            img = cv2.imread(str(kfs[i]['image_path']), cv2.IMREAD_COLOR)
-            if img is None:
-                raise DataError(f'keyframe image {kfs[i]["image_path"]} is unreadable')
-            images[i] = img
-        return images[i]
-
+    plans = []   # each keyframe's pairs, from the poses alone: when each image is last needed is known up front
     for i, kf in enumerate(kfs):
         T = kf['map_T_cam']
         height = float(T[2, 3] - res.ground_m)
@@ -172,17 +201,22 @@ def densify_map(map_dir: str | Path | MapStore, out_dir: str | Path, stereo: Ste
         reach = 2.0 * max(height, 0.0) * max(cam.width, cam.height) / cam.fx
         near = np.flatnonzero(np.linalg.norm(C[:i] - C[i], axis=1) < reach)
         others = {int(j): kfs[j]['map_T_cam'] for j in near}
-        plan = plan_pairs(cam, T, others, res.ground_m, criteria, (stereo.min_depth_m, stereo.max_depth_m),
-                          tie_points_map)
+        plans.append(plan_pairs(cam, T, others, res.ground_m, criteria, (stereo.min_depth_m, stereo.max_depth_m),
+                                tie_points_map))
+    images = ImageCache(lambda i: kfs[i]['image_path'],
+                        [[i] + [p.other for p in plan.pairs] if plan.status != BELOW_GROUND else []
+                         for i, plan in enumerate(plans)])
+
+    for i, (kf, plan) in enumerate(zip(kfs, plans)):
+        T = kf['map_T_cam']
         if plan.status == BELOW_GROUND:
             res.pairs_skipped['below_ground'] = res.pairs_skipped.get('below_ground', 0) + 1
-            continue
-        for pair in plan.pairs:
+        for pair in plan.pairs if plan.status != BELOW_GROUND else ():
             res.pairs_depth_from_tie_points += pair.from_tie_points
             t_pair = time.perf_counter()
             try:
-                r = stereo_pair(cam, image(pair.other), kfs[pair.other]['map_T_cam'], image(i), T, stereo,
-                                pair.depth_range_m)
+                r = stereo_pair(cam, images.get(pair.other, i), kfs[pair.other]['map_T_cam'], images.get(i, i), T,
+                                stereo, pair.depth_range_m)
             except (PhotogramError, cv2.error) as exc:
                 res.pairs_skipped['failed'] = res.pairs_skipped.get('failed', 0) + 1
                 if len(res.pairs_failed) < MAX_FAILED_NAMED:
@@ -195,9 +229,8 @@ def densify_map(map_dir: str | Path | MapStore, out_dir: str | Path, stereo: Ste
                 continue
             res.points_fused += fuser.add(r.cloud)
             res.pairs_done += 1
-        for j in [j for j in images if np.linalg.norm(C[j] - C[i]) >= reach and j < i]:
-            del images[j]
-        if progress is not None:
+        images.done(i)
+        if progress is not None and plan.status != BELOW_GROUND:
             progress(i + 1, len(kfs))
     fuser.flush()
     dst.sync()

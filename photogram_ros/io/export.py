@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import errno
 import json
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -466,20 +467,47 @@ def surface_in_crs(fusion: Fusion, origin: LocalFrame, crs: str, heights: str, r
     return Surface(grid, pairs, region, cam_hull)
 
 
-def load_keyframes(store: MapStore) -> list[Keyframe]:
-    import cv2
-    cam = store.load_camera()
-    if cam is None:
-        return []
-    out = []
-    for kf in store.keyframes():
-        img = cv2.imread(str(kf['image_path']), cv2.IMREAD_COLOR)
-        if img is not None and img.shape[:2] == (cam.height, cam.width):
-            out.append(Keyframe(img, kf['map_T_cam'], cam))
-    return out
+class StoredKeyframes(Sequence):
+    """The map folder's keyframes whose image has the camera's size, as core/raster.Keyframe, each image
+    decoded when it is read (the orthomosaic drapes them one at a time): one image in memory, not the
+    flight's. The sizes come from the JPEG headers (with their EXIF orientation, as cv2.imread applies it)."""
+
+    def __init__(self, store: MapStore):
+        self.camera = store.load_camera()
+        self.entries = []
+        if self.camera is None:
+            return
+        for kf in store.keyframes():
+            if _image_size(kf['image_path']) == (self.camera.width, self.camera.height):
+                self.entries.append((kf['image_path'], kf['map_T_cam']))
+
+    def __len__(self) -> int:
+        return len(self.entries)
+
+    def __getitem__(self, i) -> Keyframe:
+        import cv2
+        path, map_T_cam = self.entries[i]
+        img = cv2.imread(str(path), cv2.IMREAD_COLOR)
+        if img is None or img.shape[:2] != (self.camera.height, self.camera.width):
+            raise DataError(f'keyframe image {path} cannot be read as a {self.camera.width}x{self.camera.height} '
+                            'photo (changed since the export began?)')
+        return Keyframe(img, map_T_cam, self.camera)
 
 
-def ortho_in_crs(dsm_ellipsoidal: Raster, keyframes: list[Keyframe], origin: LocalFrame, crs: str,
+def _image_size(path) -> tuple[int, int] | None:
+    """(width, height) of an image file as cv2.imread would decode it (EXIF orientation applied), from its
+    header; None when it cannot be read."""
+    from PIL import Image, UnidentifiedImageError
+    try:
+        with Image.open(path) as im:
+            w, h = im.size
+            turned = im.getexif().get(0x0112, 1) in (5, 6, 7, 8)
+    except (OSError, UnidentifiedImageError, ValueError):
+        return None
+    return (h, w) if turned else (w, h)
+
+
+def ortho_in_crs(dsm_ellipsoidal: Raster, keyframes: Sequence[Keyframe], origin: LocalFrame, crs: str,
                  res_m: float | None = None, progress=None) -> Raster:
     """Orthomosaic on a DSM gridded in `crs` whose values are WGS84 ellipsoidal heights. RGBA.
     `progress(done, total)`: keyframes draped so far (core/raster.orthomosaic)."""
@@ -620,7 +648,7 @@ def export_map(map_dir: str | Path | MapStore, out_dir: str | Path, crs: str, he
             res.dtm['contour_lines'] = len(lines)
     if 'ortho' in products:
         steps.start('ortho')
-        kfs = load_keyframes(store)
+        kfs = StoredKeyframes(store)
         res.keyframes = len(kfs)
         if not kfs:
             res.notes.append('no orthomosaic: the map folder holds no keyframes with images, poses and camera')
