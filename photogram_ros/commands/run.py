@@ -215,13 +215,15 @@ class PeakMemory:
 
 
 def finish_within_bounds(graph, skip, timeout_s: float, max_rss_mb: float, say):
-    """graph.finish_flight in a worker thread, watched from here: a line every 10 s; past `timeout_s`, or
-    this process's RSS above `max_rss_mb` (0: no bound), or once `skip` is set (a second signal), the
-    steps left are skipped and the step running is waited for at most 10 s more. Returns the FlightEnd
-    (the final adjustment 'failed' with the reason when it was cut short before it ended)."""
+    """graph.finish_flight in a worker thread, watched from here every 0.5 s (the heap trimmed each time, so
+    RSS is what the steps hold): a line every 10 s; past `timeout_s`, or this process's RSS above
+    `max_rss_mb` (0: no bound), or once `skip` is set (a second signal), the steps left are skipped and
+    the step running is waited for at most 10 s more. Returns the FlightEnd (the final adjustment
+    'failed' with the reason when it was cut short before it ended)."""
     import threading
 
     from photogram_ros.nodes.graph import FlightEnd, rss_mb
+    from photogram_ros.nodes.process_memory import trim_heap
     result: dict = {}
 
     def work():
@@ -237,6 +239,7 @@ def finish_within_bounds(graph, skip, timeout_s: float, max_rss_mb: float, say):
     why = ''
     while thread.is_alive():
         thread.join(0.5)
+        trim_heap()   # what the steps free goes back at once, not at the in-flight trimmer's next turn
         now, rss = time.monotonic(), rss_mb()
         if not why and not skip.is_set() and now - t0 > timeout_s:
             why = f'not done after {timeout_s:g} s (--end-timeout-s)'

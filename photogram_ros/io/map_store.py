@@ -179,7 +179,8 @@ class MapStore:
 
     # --- tiles -----------------------------------------------------------------------------------
 
-    def _tile_path(self, key) -> Path:
+    def tile_path(self, key) -> Path:
+        """The file of tile `key` (i, j), whether or not it exists."""
         return self.tiles_dir / f'{int(key[0])}_{int(key[1])}.pgt'
 
     def tile_keys(self) -> list[tuple[int, int]]:
@@ -222,7 +223,7 @@ class MapStore:
             except ValueError:
                 continue
         for key in sorted(set(index) - set(on_disk)):
-            out.append(TileDamage(key, self._tile_path(key), f'missing (deleted?): it held {index[key]} bytes of '
+            out.append(TileDamage(key, self.tile_path(key), f'missing (deleted?): it held {index[key]} bytes of '
                                                              'cells at the last sync'))
         for key, path in sorted(on_disk.items()):
             try:
@@ -267,7 +268,7 @@ class MapStore:
     def load_tile(self, key) -> np.ndarray | None:
         """The tile's cells (dense, CELL_DTYPE) or None if the tile was never written."""
         key = (int(key[0]), int(key[1]))
-        path = self._tile_path(key)
+        path = self.tile_path(key)
         if not path.exists():
             return None
         recs, good = self._read_records(path, key)
@@ -286,7 +287,7 @@ class MapStore:
 
     def append_cells(self, key, cell_idx: np.ndarray, cells: np.ndarray) -> None:
         key = (int(key[0]), int(key[1]))
-        path = self._tile_path(key)
+        path = self.tile_path(key)
         recs = np.empty(cell_idx.size, dtype=RECORD_DTYPE)
         recs['cell'] = cell_idx
         for name in CELL_DTYPE.names:
@@ -335,7 +336,7 @@ class MapStore:
         data = (_FILE_HEADER.pack(_FILE_MAGIC, VERSION, key[0], key[1], self.tile_cells, self.cell_m,
                                   RECORD_DTYPE.itemsize).ljust(_FILE_HEADER_SIZE, b'\0')
                 + _BLOCK_HEADER.pack(_BLOCK_MAGIC, recs.size, zlib.crc32(payload), 0) + payload)
-        path = self._tile_path(key)
+        path = self.tile_path(key)
         self._write(path, data)
         self._good_size[key] = len(data)
         self._unsynced.discard(path)
