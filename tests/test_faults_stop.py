@@ -157,8 +157,9 @@ def test_stop_sources_stops_the_camera_and_the_mavlink_link():
 @pytest.mark.slow
 def test_a_looping_real_survey_stopped_after_60_s_ends_within_bounds(tmp_path):
     """The issue's case: a real survey folder (toledo, 42 photos) played in a loop, SIGTERM after 60 s:
-    `run` exits within 1.5x the bench's time with products and a report, and its RSS in the end-of-flight
-    steps stays within 1.1x its in-flight peak (before the fix: 2.1 -> 6.6 GB as it went on taking keyframes)."""
+    `run` exits within 2 minutes with products and a report, and its RSS in the end-of-flight steps and while
+    making the products stays within its in-flight peak (before the fix: 2.1 -> 6.6 GB as it went on taking
+    keyframes)."""
     src = shared_data('photos', 'toledo', 'images')
     photos = tmp_path / 'photos'
     shutil.copytree(src, photos)
@@ -168,9 +169,11 @@ def test_a_looping_real_survey_stopped_after_60_s_ends_within_bounds(tmp_path):
           f"steps {rss['after']:.0f} MB, products {rss['products']:.0f} MB, {report['run'].get('frames')} frames")
     assert rc in (0, 4), out[-3000:]
     assert 'SIGTERM: stopped camera after' in out, out[-3000:]
-    # bench/results/faults_stop_04e7438.jsonl (load 25 on 2 cores): SIGTERM to exit 104.5 s; RSS peaks 745 MB in
-    # flight, 1.054x that in the end-of-flight steps, 1.301x making the products (matched again, rasters).
-    assert took_s < 1.5 * 104.5, (took_s, out[-3000:])
-    assert rss['after'] <= 1.1 * rss['before'], rss
-    assert rss['products'] <= 1.5 * rss['before'], rss
+    # bench/results/faults_stop_07804c5.jsonl (load 14-18 on 2 cores): SIGTERM to exit 65.1 s; RSS 0.977x the
+    # in-flight peak in the end-of-flight steps, 0.735x making the products (the nodes released first, keyframe
+    # images held a few at a time). The exit's gate is the issue's 2 minutes: 1.45x the 83.0 s of
+    # faults_stop_1ccf789.jsonl at the same load. RSS never above the in-flight peak, as the issue asks.
+    assert took_s < 120.0, (took_s, out[-3000:])
+    assert rss['after'] <= rss['before'], rss
+    assert rss['products'] <= rss['before'], rss
     assert (products / 'report.md').exists() and (products / 'cloud.las').stat().st_size > 0
