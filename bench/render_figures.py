@@ -1,7 +1,10 @@
 """Render the figure tables of docs/measurements.md and README.md from the result files in bench/results.
 
     .venv/bin/python bench/render_figures.py           # rewrite the tables in place
-    .venv/bin/python bench/render_figures.py --check   # exit 1 and name the tables that differ
+    .venv/bin/python bench/render_figures.py --check   # list every figure (its result file, fresh or stale);
+                                                       # exit 1 and name the documents whose tables differ
+    .venv/bin/python bench/render_figures.py --check --strict   # ... exit 1 also when a figure is stale or
+                                                                # has no result file
 
 A table sits between `<!-- figures:NAME -->` and `<!-- /figures:NAME -->` in a document; everything
 outside the markers is hand-written and left alone. Each table is one entry of TABLES below: its columns and
@@ -165,12 +168,57 @@ def source_cell(src: Source | None, fig: Figure) -> str:
     notes = []
     n = changed_since(src.commit, src.modules + tuple(f':(exclude){p}' for p in fig.ignore))
     if n:
-        notes.append(f'**stale**: {", ".join(src.modules)} changed in {n} commit{"s" if n > 1 else ""} since')
+        # Not the count of commits: the rendered text changes when a figure turns stale, not with every commit
+        # after (`--check` lists the count).
+        notes.append(f'**stale**: {", ".join(src.modules)} changed since')
     if src.clean is False:
         notes.append('modified tree')
     elif src.clean is None:
         notes.append('tree state not recorded')
     return f'`{rel}` @ {src.commit[:7]}' + (f' ({"; ".join(notes)})' if notes else '')
+
+
+def figure_state(fig: Figure) -> dict:
+    """Where a figure comes from: {'file', 'commit', 'state'}; state is 'fresh', 'stale' (a module it measures
+    changed since its commit, or the commit is not in this history), 'modified tree' (fresh, but measured on a
+    tree with uncommitted changes), 'tree state not recorded' (fresh, from a file written before the
+    ResultWriter) or 'no result file'; 'changed' counts the commits (+1 for the working tree) since."""
+    src = newest(fig)
+    if src is None:
+        return {'file': None, 'commit': None, 'state': NO_FILE, 'changed': None, 'command': fig.command}
+    rel = src.path.relative_to(ROOT).as_posix() if src.path.is_relative_to(ROOT) else src.path.name
+    if not src.commit:
+        return {'file': rel, 'commit': None, 'state': 'stale', 'changed': None, 'command': fig.command}
+    n = changed_since(src.commit, src.modules + tuple(f':(exclude){p}' for p in fig.ignore))
+    state = ('stale' if n else 'modified tree' if src.clean is False else
+             'tree state not recorded' if src.clean is None else 'fresh')
+    return {'file': rel, 'commit': src.commit[:7], 'state': state, 'changed': n, 'command': fig.command}
+
+
+def listing() -> list[dict]:
+    """Every figure of every table a document renders: {'document', 'table', 'figure' (its label), **figure_state}."""
+    out = []
+    for doc in DOCUMENTS:
+        for m in MARK.finditer((ROOT / doc).read_text()):
+            name = m.group('name')
+            for fig in TABLES[name].rows if name in TABLES else ():
+                out.append({'document': doc, 'table': name, 'figure': ' / '.join(str(c) for c in fig.label if c),
+                            **figure_state(fig)})
+    return out
+
+
+def listing_text(rows: list[dict]) -> str:
+    lines = []
+    for r in rows:
+        where = (f"{r['file']} @ {r['commit']}" if r['commit'] else (r['file'] or '')) or \
+            (f"measure: {r['command']}" if r['command'] else '')
+        more = f" ({r['changed']} commit{'s' if r['changed'] != 1 else ''} since)" if r.get('changed') else ''
+        lines.append(f"{r['state'].upper():24} {r['document']}#{r['table']}: {r['figure'][:90]} <- {where}{more}")
+    counts = {}
+    for r in rows:
+        counts[r['state']] = counts.get(r['state'], 0) + 1
+    lines.append(f'{len(rows)} figures: ' + ', '.join(f'{v} {k}' for k, v in sorted(counts.items())))
+    return '\n'.join(lines)
 
 
 def _esc(v) -> str:
@@ -637,8 +685,17 @@ def render_all() -> dict[str, tuple[str, str]]:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split('\n')[0])
-    ap.add_argument('--check', action='store_true', help='do not write: exit 1 when a document differs')
+    ap.add_argument('--check', action='store_true', help='do not write: list every figure with its result file and '
+                                                         'whether it is stale; exit 1 when a document differs')
+    ap.add_argument('--strict', action='store_true', help='with --check: exit 1 also when a figure is stale or has '
+                                                          'no result file')
+    ap.add_argument('--json', action='store_true', help='with --check: the listing as JSON lines')
     a = ap.parse_args(argv)
+    not_fresh = []
+    if a.check:
+        rows = listing()
+        print('\n'.join(json.dumps(r) for r in rows) if a.json else listing_text(rows))
+        not_fresh = [r for r in rows if r['state'] in ('stale', NO_FILE)]
     bad = []
     for doc, (old, new) in render_all().items():
         if old != new:
@@ -647,6 +704,9 @@ def main(argv=None) -> int:
                 (ROOT / doc).write_text(new)
     if a.check and bad:
         print(f'rendered tables differ in {", ".join(bad)}: run .venv/bin/python bench/render_figures.py')
+        return 1
+    if a.check and a.strict and not_fresh:
+        print(f'{len(not_fresh)} figures are stale or have no result file')
         return 1
     print(('rewrote ' + ', '.join(bad)) if bad else 'every rendered table is up to date')
     return 0
