@@ -443,6 +443,50 @@ REAL_ROWS = (
     ('toledo, geotags scattered 17 m', 'toledo_noisy', 'triangulate'))
 
 
+BLOCK_VERDICTS = 'block_verdicts*.jsonl'
+BLOCK_VERDICTS_CMD = 'ROS_DOMAIN_ID=N .venv/bin/python bench/block_verdicts.py --out OUT'
+# bench/block_verdicts.py: (label, set, variant) of its `triangulate` rows.
+BLOCK_VERDICT_ROWS = tuple(
+    (f'{label}, {what}', s, v) for s, label in (('brighton', 'brighton_beach'), ('toledo', 'toledo'))
+    for v, what in (('clean', 'every photo'), ('half', 'every other photo'), ('moved', 'geotags moved 80 m'),
+                    ('foreign', '3 photos of another camera added'),
+                    ('heights', 'heights wandering 100 m' + (' and a wandering 15 m bias' if s == 'toledo' else '')),
+                    ('noisy', 'geotags scattered 17 m')))
+
+
+def _shape_text(x: dict) -> str:
+    share = x.get('shape_share')
+    if share is None:
+        return ''
+    return (f'shape {100 * share:.2f} % of the block\'s size ({x["shape_rms_m"]:.2f} m RMS over {x["shape_n"]} '
+            f'cameras) from {x.get("reference")}')
+
+
+def _block_verdict_cells(x: dict, _lines) -> list:
+    shape = _shape_text(x)
+    return [verdict(x, 200) + (f'; {shape}' if shape else '')]
+
+
+def _broken_cells(x: dict, lines: list) -> list:
+    """Every tipped and folded block of the set (its clean, noisy and wandering-heights runs, each with its own
+    geotags, the clean one also with them scattered 17 m): how many FAILED, by which checks."""
+    rows = [y for y in lines if y.get('set') == x['set'] and y.get('kind') in ('tipped', 'folded')]
+    failed = [y for y in rows if (y.get('verdict') or {}).get('status') == 'failed']
+    by = sorted({c for y in failed for c in (y.get('verdict') or {}).get('decided_by', [])})
+    return [f'**{len(failed)} of {len(rows)} FAILED** (decided by {", ".join(by)}): tipped 30° and 85° whole, folded '
+            '30° along its last strips; from the clean, wandering-heights and noisy-geotag blocks']
+
+
+def _block_verdict(label, survey, variant):
+    return Figure((label, 'triangulate'), BLOCK_VERDICTS, {'set': survey, 'variant': variant, 'kind': 'triangulate'},
+                  _block_verdict_cells, PRODUCT, BLOCK_VERDICTS_CMD)
+
+
+def _broken(label, survey):
+    return Figure((label, 'the block check'), BLOCK_VERDICTS, {'set': survey, 'kind': 'folded'}, _broken_cells,
+                  PRODUCT, BLOCK_VERDICTS_CMD)
+
+
 CHAIN = 'inflight_chain*.jsonl'
 CHAIN_CMD = 'ROS_DOMAIN_ID=N .venv/bin/python bench/inflight_chain.py --out F'
 CHAIN_SETS = (('seneca_part (41 NIR photos, fixed wing)', 'seneca'), ('brighton_beach (18 photos)', 'brighton'),
@@ -554,7 +598,10 @@ TABLES: dict[str, Table] = {
     'real-agreement': Table(
         ('survey', 'photos in both', '`replay`\'s cameras against `triangulate`\'s'),
         (_agreement('brighton_beach', 'brighton'), _agreement('toledo', 'toledo'), _agreement('seneca_part', 'seneca'))),
-    'real-verdicts': Table(('survey', 'pipeline', 'verdict'), tuple(_verdict(*r) for r in REAL_ROWS)),
+    'real-verdicts': Table(('survey', 'pipeline', 'verdict'), tuple(_verdict(*r) for r in REAL_ROWS)
+                           + tuple(_block_verdict(*r) for r in BLOCK_VERDICT_ROWS)
+                           + (_broken('brighton_beach, tipped or folded', 'brighton'),
+                              _broken('toledo, tipped or folded', 'toledo'))),
     'held-out': Table(('what', 'figure'), (
         _none('toledo and brighton with consumer-camera geotags made from their own (heights wandering ~100 m, a '
               'wandering 15 m bias, a third missing, stated sigmas too small) through `triangulate`',
