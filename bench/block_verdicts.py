@@ -22,9 +22,10 @@ photos moved 80 m, geo.txt); foreign (photos of the other set's camera added to 
 (bench/held_out_proxies.py's alt_walk: the EXIF heights plus a random walk of 100 m peak to peak; toledo
 alt_walk_h: plus a wandering 15 m horizontal bias); noisy (geotags scattered 17 m horizontally, stated 5 m).
 
-`--recheck` runs no command: it reads each run's block_inputs.pkl and outputs again and writes the rows with
-the block check of the code now (the orientation is what its run wrote: `orientation_commit`;
-`orientation_code_changed` says whether the code other than core/block_check.py changed since).
+`--recheck` runs no command for a run already in OUT (its .run.json): it reads its block_inputs.pkl and outputs
+again and writes the rows with the block check of the code now (the orientation is what its run wrote, on
+`orientation_commit`; `orientation_code_changed` says whether the code other than core/block_check.py changed
+since); runs not in OUT are made. Variants `--variants` lists run in its order, clean first.
 
     ROS_DOMAIN_ID=N .venv/bin/python bench/block_verdicts.py --out DIR [--sets brighton,toledo]
         [--variants clean,half,moved,foreign,heights,noisy] [--recheck] [--result bench/results/F.jsonl]
@@ -86,13 +87,15 @@ def triangulate(folder: Path, dst: Path, log: Path, recheck: bool) -> dict:
     if recheck and saved.exists():
         return json.loads(saved.read_text())
     shutil.rmtree(dst, ignore_errors=True)
+    state = tree_state()          # the code the run starts on
     t0 = time.monotonic()
     r = subprocess.run([sys.executable, str(Path(__file__).resolve()), '--run-one', str(folder), str(dst)],
                        cwd=ROOT, capture_output=True, text=True, timeout=3600)
     log.write_text(f'--- stdout\n{r.stdout}\n--- stderr\n{r.stderr}')
     lines = [ln for ln in r.stdout.splitlines() if ln.strip()]
     outcome = {'exit': r.returncode, 'wall_s': round(time.monotonic() - t0, 1),
-               'last_line': lines[-1] if lines else '', 'orientation_commit': tree_state()['commit']}
+               'last_line': lines[-1] if lines else '', 'orientation_commit': state['commit'],
+               'orientation_clean': state['clean']}
     saved.write_text(json.dumps(outcome))
     return outcome
 
@@ -355,8 +358,8 @@ def main(argv=None) -> int:
     ap.add_argument('--out', default='/tmp/block_verdicts', help='output folder (runs, logs, block_verdicts.jsonl)')
     ap.add_argument('--sets', default=','.join(SETS), help='sets, comma separated')
     ap.add_argument('--variants', default=','.join(VARIANTS), help='variants, comma separated')
-    ap.add_argument('--recheck', action='store_true', help='run no command: the block check of the code now on the '
-                                                           'inputs each run kept')
+    ap.add_argument('--recheck', action='store_true', help='reuse the runs already in OUT: the block check of the code '
+                                                           'now on the inputs each run kept')
     ap.add_argument('--result', default=None, help='result file (default OUT/block_verdicts.jsonl)')
     ap.add_argument('--run-one', nargs=2, metavar=('SRC', 'OUT'), help=argparse.SUPPRESS)
     a = ap.parse_args(argv)
