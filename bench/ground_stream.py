@@ -69,12 +69,12 @@ def main():
         print(res.stderr[-2000:], file=sys.stderr)
         return 1
     per_min = {k: v[1] / (flight_s / 60.0) for k, v in tot.items()}
-    w.write(({'bag': Path(a.bag).name, 'rate': a.rate, 'flight_s': round(flight_s, 1),
+    w.write({'bag': Path(a.bag).name, 'rate': a.rate, 'flight_s': round(flight_s, 1),
                       'ortho_tiles': tot['ortho'][0], 'ortho_mean_tile_kb': round(tot['ortho'][1] / max(tot['ortho'][0], 1) / 1e3, 1),
                       'ortho_mb_per_flight_min': round(per_min['ortho'] / 1e6, 3),
                       'baseline_cloud_messages': tot['cloud'][0],
                       'baseline_cloud_mb_per_flight_min': round(per_min['cloud'] / 1e6, 3),
-                      'ratio_ortho_to_cloud': round(per_min['ortho'] / max(per_min['cloud'], 1), 3)}))
+                      'ratio_ortho_to_cloud': round(per_min['ortho'] / max(per_min['cloud'], 1), 3)})
     node.destroy_node()
     rclpy.try_shutdown()
     return 0
