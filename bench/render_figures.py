@@ -443,6 +443,22 @@ REAL_ROWS = (
     ('toledo, geotags scattered 17 m', 'toledo_noisy', 'triangulate'))
 
 
+def _mavlink_cells(x: dict, lines: list) -> list:
+    """Per log: the node's parser and parser + ingest against a bare pymavlink recv_match loop (same run)."""
+    out = []
+    for y in lines:
+        if y.get('method') == 'node_parser':
+            ingest = next((z for z in lines if z.get('log') == y['log'] and z.get('method') == 'node_parser_plus_ingest'), {})
+            out.append(f'{y["log"]} ({y["messages"]} messages{"" if y.get("same_count") else ", counts differ"}): parser '
+                       f'{y["ratio_vs_bare"]:.2f}x, parser + ingest {f(ingest.get("ratio_vs_bare"))}x')
+    return ['time against a bare pymavlink recv_match loop in the same run (best of 3): ' + '; '.join(out)]
+
+
+MAVLINK = Figure(('MAVLink parsing against pymavlink',), 'mavlink_parse*.jsonl', {'method': 'node_parser'}, _mavlink_cells,
+                 ('photogram_ros/io/mavlink.py', 'photogram_ros/io/mavlink_framing.py', 'photogram_ros/io/mavlink_ingest.py',
+                  'photogram_ros/nodes/mavlink_node.py'), '.venv/bin/python bench/mavlink_parse.py --out F')
+
+
 BLOCK_VERDICTS = 'block_verdicts*.jsonl'
 BLOCK_VERDICTS_CMD = 'ROS_DOMAIN_ID=N .venv/bin/python bench/block_verdicts.py --out OUT'
 # bench/block_verdicts.py: (label, set, variant) of its `triangulate` rows.
@@ -639,7 +655,7 @@ TABLES: dict[str, Table] = {
         _none('tracker: accuracy and frame rate', command='.venv/bin/python bench/tracker_fps.py'),
         _none('calibration on OpenCV\'s chessboard images', command='scripts/test.sh tests/test_calibration.py'),
         _none('stereo speed: the module against a bare SGBM compute', command='.venv/bin/python bench/stereo_speed.py'),
-        _none('MAVLink parsing against pymavlink', command='.venv/bin/python bench/mavlink_parse.py'),
+        MAVLINK,
         _none('map fusion', command='.venv/bin/python bench/fusion_throughput.py'))),
     'inflight-chain': Table(('survey', 'photos used', 'photos', '`triangulate` oriented', '`replay` keyframes oriented',
                              '`replay` oriented among the keyframes whose photo `triangulate` oriented'),
