@@ -493,6 +493,10 @@ def _broken_cells(x: dict, lines: list) -> list:
             '30° along its last strips; from the clean, wandering-heights and noisy-geotag blocks']
 
 
+def _held_out_cells(x: dict, _lines) -> list:
+    return [f'{x["oriented"]}/{x["photos"]} oriented; {_shape_text(x)}; {verdict(x, 160)}']
+
+
 def _block_verdict(label, survey, variant):
     return Figure((label, 'triangulate'), BLOCK_VERDICTS, {'set': survey, 'variant': variant, 'kind': 'triangulate'},
                   _block_verdict_cells, PRODUCT, BLOCK_VERDICTS_CMD)
@@ -619,6 +623,13 @@ TABLES: dict[str, Table] = {
                            + (_broken('brighton_beach, tipped or folded', 'brighton'),
                               _broken('toledo, tipped or folded', 'toledo'))),
     'held-out': Table(('what', 'figure'), (
+        Figure(('brighton_beach with its EXIF heights wandering 100 m peak to peak (held_out_proxies alt_walk) through '
+                '`triangulate`',), BLOCK_VERDICTS, {'set': 'brighton', 'variant': 'heights', 'kind': 'triangulate'},
+               _held_out_cells, PRODUCT, BLOCK_VERDICTS_CMD),
+        Figure(('toledo with its EXIF heights wandering 100 m and a wandering 15 m horizontal bias (held_out_proxies '
+                'alt_walk_h) through `triangulate`',), BLOCK_VERDICTS,
+               {'set': 'toledo', 'variant': 'heights', 'kind': 'triangulate'}, _held_out_cells, PRODUCT,
+               BLOCK_VERDICTS_CMD),
         _none('toledo and brighton with consumer-camera geotags made from their own (heights wandering ~100 m, a '
               'wandering 15 m bias, a third missing, stated sigmas too small) through `triangulate`',
               command='ROS_DOMAIN_ID=N .venv/bin/python bench/held_out_proxies.py --out OUT'),)),
