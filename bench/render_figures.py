@@ -373,7 +373,7 @@ def _control_cells(x: dict, _lines) -> list:
     return [f'{x["keyframes"]} keyframes, {x["gcps"]} GCPs: live check points (median) {cm(w["live_check_median_m"][0])} '
             f'/ {cm(w["live_check_median_m"][1])} against {cm(wo["live_check_median_m"][0])} / '
             f'{cm(wo["live_check_median_m"][1])} without the control adjustment, for {x["time_ratio"]:.2f}x the '
-            'stage\'s time (same run)']
+            'stage\'s time (same run' + (f', load average {x["load_avg"][0]:.0f}' if x.get('load_avg') else '') + ')']
 
 
 PPK_CMD = '.venv/bin/python bench/ppk_survey.py --out F'
