@@ -2,7 +2,8 @@
 keyframes through the adjustment stage with GCPs, once with it and once without, in the same run. Per flight: the
 keyframes, the control adjustments made, the seconds of the whole run (every keyframe's adjustment as in flight,
 then the final adjustment), the ratio with / without, and the live check points' median once 3 GCPs are used
-(H / V, m).
+(H / V, m). One line a flight, through bench/machine.py's ResultWriter (commit, clean-tree flag, cores, load) into
+--out (default /tmp/control_adjustment_cost.jsonl), and on stdout.
 
     .venv/bin/python bench/control_adjustment_cost.py [--presets sample survey] [--out FILE.jsonl]
 """
@@ -10,7 +11,6 @@ then the final adjustment), the ratio with / without, and the live check points'
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import tempfile
 import time
@@ -18,11 +18,14 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / 'tests'))
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / 'tests'))
+sys.path.insert(0, str(ROOT))
 
 from helpers.control import targets_file  # noqa: E402
 from helpers.stage_flight import fly_stage  # noqa: E402
 
+from bench.machine import ResultWriter  # noqa: E402
 from photogram_ros.sim.observations import simulate_keyframes  # noqa: E402
 from photogram_ros.sim.scenario import build_world, preset  # noqa: E402
 
@@ -51,14 +54,11 @@ def measure(name: str, n_gcp: int, n_check: int) -> dict:
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument('--presets', nargs='+', default=['sample', 'survey'])
-    ap.add_argument('--out', help='append the JSON lines to this file')
+    ap.add_argument('--out', help='the result file (JSON lines; default /tmp/control_adjustment_cost.jsonl)')
     a = ap.parse_args()
-    rows = [measure(p, 5 if p == 'sample' else 8, 4) for p in a.presets]
-    text = ''.join(json.dumps(r) + '\n' for r in rows)
-    if a.out:
-        with open(a.out, 'a') as f:
-            f.write(text)
-    sys.stdout.write(text)
+    w = ResultWriter.for_bench(a.out, 'control_adjustment_cost', ['photogram_ros', 'config'])
+    for p in a.presets:
+        w.write(measure(p, 5 if p == 'sample' else 8, 4))
     return 0
 
 

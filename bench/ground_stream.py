@@ -9,7 +9,6 @@ usage: .venv/bin/python bench/ground_stream.py [BAG] [--rate R]
 """
 
 import argparse
-import json
 import os
 import subprocess
 import sys
@@ -19,14 +18,17 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / 'bench'))
-from machine import machine_info  # noqa: E402
+from machine import ResultWriter, machine_info  # noqa: E402
 
 
 def main():
     ap = argparse.ArgumentParser()
     ap.add_argument('bag', nargs='?', default=str(ROOT / 'bags' / 'sample_flight'))
     ap.add_argument('--rate', type=float, default=1.0, help='bag time speed of the replay (1: as flown)')
+    ap.add_argument('--out', default=None, help='the result file (JSON lines through bench/machine.py\'s ResultWriter; '
+                                                'default /tmp/ground_stream.jsonl)')
     a = ap.parse_args()
+    w = ResultWriter.for_bench(a.out, 'ground_stream', ['photogram_ros', 'config'])
     os.environ.setdefault('ROS_DOMAIN_ID', '227')
     import rclpy
     from rclpy.executors import SingleThreadedExecutor
@@ -36,7 +38,7 @@ def main():
     from sensor_msgs.msg import CompressedImage, PointCloud2
 
     from photogram_ros.io.bag import BagReader
-    print(json.dumps({'machine': machine_info()}))
+    w.write({'machine': machine_info()})
     with BagReader(a.bag) as r:
         flight_s = r.duration_ns / 1e9
     rclpy.init()
@@ -67,12 +69,12 @@ def main():
         print(res.stderr[-2000:], file=sys.stderr)
         return 1
     per_min = {k: v[1] / (flight_s / 60.0) for k, v in tot.items()}
-    print(json.dumps({'bench': 'ground_stream', 'bag': Path(a.bag).name, 'rate': a.rate, 'flight_s': round(flight_s, 1),
+    w.write({'bag': Path(a.bag).name, 'rate': a.rate, 'flight_s': round(flight_s, 1),
                       'ortho_tiles': tot['ortho'][0], 'ortho_mean_tile_kb': round(tot['ortho'][1] / max(tot['ortho'][0], 1) / 1e3, 1),
                       'ortho_mb_per_flight_min': round(per_min['ortho'] / 1e6, 3),
                       'baseline_cloud_messages': tot['cloud'][0],
                       'baseline_cloud_mb_per_flight_min': round(per_min['cloud'] / 1e6, 3),
-                      'ratio_ortho_to_cloud': round(per_min['ortho'] / max(per_min['cloud'], 1), 3)}))
+                      'ratio_ortho_to_cloud': round(per_min['ortho'] / max(per_min['cloud'], 1), 3)})
     node.destroy_node()
     rclpy.try_shutdown()
     return 0

@@ -26,7 +26,9 @@ Seeds are fixed (one per set and kind). Per proxy, from the files the command wr
 - the GNSS noise the adjustment estimated (report.json gnss_noise) against the injected one: the
   per-axis RMS of the horizontal error about its mean, and the vertical error's standard deviation.
 
-Writes OUT/held_out_proxies.json and OUT/held_out_proxies.md; commands' folders and logs stay in OUT.
+Writes OUT/held_out_proxies.jsonl (one line a run, through bench/machine.py's ResultWriter: commit, clean-tree
+flag, cores, load; the result file), OUT/held_out_proxies.json and OUT/held_out_proxies.md; commands' folders and
+logs stay in OUT.
 
     ROS_DOMAIN_ID=45 .venv/bin/python bench/held_out_proxies.py [--sets toledo,brighton]
         [--kinds alt_walk,alt_walk_h,missing_third,optimistic] [--replay toledo:alt_walk_h] [--out DIR]
@@ -47,6 +49,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from bench import real_surveys as rs  # noqa: E402
+from bench.machine import ResultWriter  # noqa: E402
 from photogram_ros.core.geodesy import LocalFrame  # noqa: E402
 
 SETS = {'toledo': rs.TOLEDO / 'images', 'brighton': rs.BRIGHTON / 'images'}
@@ -279,10 +282,11 @@ def run_all(sets, kinds, replay: list[tuple[str, str]], out: Path) -> list[dict]
     out.mkdir(parents=True, exist_ok=True)
     commit = rs.git_commit()
     rows = []
+    writer = ResultWriter(out / 'held_out_proxies.jsonl', 'held_out_proxies', ['photogram_ros', 'config'])
 
     def keep(row):
-        row['commit'] = commit
-        rows.append(row)
+        rows.append({**row, 'commit': commit})
+        writer.write(row)
         (out / 'held_out_proxies.json').write_text(json.dumps(rows, indent=1, default=str))
         (out / 'held_out_proxies.md').write_text(markdown(rows, commit))
         g = row.get('gnss_noise') or {}

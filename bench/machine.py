@@ -79,14 +79,16 @@ class ResultWriter:
     when the code had uncommitted changes at the start or at that line, or a new commit changed it), the cores,
     its load average (1, 5, 15 min) at that moment, the UTC time, the bench's name and `modules` (the
     repository paths the figures measure: a change to one of them after `commit` makes the figure stale).
-    `fresh` truncates the file first."""
+    `fresh` truncates the file first; `echo` also prints each line on stdout (benches whose lines were read
+    from their output)."""
 
-    def __init__(self, path: str | Path, bench: str, modules: list[str], fresh: bool = True):
+    def __init__(self, path: str | Path, bench: str, modules: list[str], fresh: bool = True, echo: bool = False):
         if not modules:
             raise ValueError('a result names the modules it measures (paths in the repository)')
         self.path = Path(path)
         self.bench = bench
         self.modules = list(modules)
+        self.echo = echo
         self.state = tree_state()
         self.path.parent.mkdir(parents=True, exist_ok=True)
         if fresh:
@@ -105,9 +107,21 @@ class ResultWriter:
     def write(self, row: dict) -> dict:
         """Append `row` (its own keys win over none of the stamp's: the stamp is authoritative)."""
         line = {**row, **self.stamp()}
+        text = json.dumps(line, default=str)
         with open(self.path, 'a') as fh:
-            fh.write(json.dumps(line, default=str) + '\n')
+            fh.write(text + '\n')
+        if self.echo:
+            print(text, flush=True)
         return line
+
+    @classmethod
+    def for_bench(cls, out: str | Path | None, bench: str, modules: list[str], echo: bool = True) -> 'ResultWriter':
+        """A bench's writer: `out` (its --out), else /tmp/<bench>.jsonl; says on stderr where the lines go."""
+        import sys
+        path = Path(out) if out else Path('/tmp') / f'{bench}.jsonl'
+        print(f'{bench}: result lines to {path} (copy to bench/results/{bench}_COMMIT.jsonl to quote them)',
+              file=sys.stderr, flush=True)
+        return cls(path, bench, modules, echo=echo)
 
     def __enter__(self):
         return self

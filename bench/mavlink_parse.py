@@ -3,17 +3,24 @@
 Prints one JSON line per log and method; `ratio` = time of the method / time of the bare loop
 (target for the node's parser: <= 1.3). Best of `--repeat` runs each, to damp the shared machine.
 
-    .venv/bin/python bench/mavlink_parse.py [--repeat 3] [LOG ...]
+The lines go through bench/machine.py's ResultWriter (commit, clean-tree flag, cores, load) into --out (default
+/tmp/mavlink_parse.jsonl), and on stdout.
+
+    .venv/bin/python bench/mavlink_parse.py [--repeat 3] [--out FILE.jsonl] [LOG ...]
 """
 
 from __future__ import annotations
 
 import argparse
-import json
+import sys
 import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from bench.machine import ResultWriter  # noqa: E402
+
 DEFAULT_LOGS = [ROOT.parent / 'shared' / 'data' / 'mavlink' / 'phoenix_mission1_2018-09-17_16-44-06.tlog',
                 ROOT.parent / 'shared' / 'data' / 'mavlink' / 'sitl_vtol.tlog',
                 ROOT / 'bags' / 'sample_flight' / 'flight.tlog']
@@ -75,19 +82,22 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument('logs', nargs='*', type=Path, default=DEFAULT_LOGS)
     ap.add_argument('--repeat', type=int, default=3)
+    ap.add_argument('--out', default=None, help='the result file (JSON lines; default /tmp/mavlink_parse.jsonl)')
     a = ap.parse_args()
+    w = ResultWriter.for_bench(a.out, 'mavlink_parse', ['photogram_ros/io/mavlink.py', 'photogram_ros/io/mavlink_framing.py',
+                                                        'photogram_ros/io/mavlink_ingest.py',
+                                                        'photogram_ros/nodes/mavlink_node.py'])
     node_parser(a.logs[0]) if a.logs and a.logs[0].exists() else None   # warm imports and geoid cache
     node_full_ingest(a.logs[0]) if a.logs and a.logs[0].exists() else None
     for path in a.logs:
         if not path.exists():
-            print(json.dumps({'log': str(path), 'skipped': 'missing'}))
+            w.write({'log': str(path), 'skipped': 'missing'})
             continue
         base_s, base_n = best_time(bare_pymavlink, path, a.repeat)
         for name, fn in METHODS.items():
             t, n = (base_s, base_n) if name == 'pymavlink_recv_match' else best_time(fn, path, a.repeat)
-            print(json.dumps({'log': path.name, 'method': name, 'messages': n, 'seconds': round(t, 4),
-                              'msgs_per_s': round(n / t), 'ratio_vs_bare': round(t / base_s, 3),
-                              'same_count': n == base_n}), flush=True)
+            w.write({'log': path.name, 'method': name, 'messages': n, 'seconds': round(t, 4),
+                     'msgs_per_s': round(n / t), 'ratio_vs_bare': round(t / base_s, 3), 'same_count': n == base_n})
 
 
 if __name__ == '__main__':

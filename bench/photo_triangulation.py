@@ -16,7 +16,6 @@ with a hand-made calibration: 143 s) are for a set not stored here and are not r
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import tempfile
 import time
@@ -28,7 +27,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from bench.machine import machine_info  # noqa: E402
+from bench.machine import ResultWriter, machine_info  # noqa: E402
 from photogram_ros.core.geodesy import LocalFrame  # noqa: E402
 from photogram_ros.core.two_view import essential_ransac  # noqa: E402
 from photogram_ros.io.aerial_triangulation import TriangulateOptions  # noqa: E402
@@ -100,7 +99,10 @@ def main() -> int:
     ap.add_argument('--sim-photos', type=int, default=100,
                     help='a simulated survey of about this many photos (0: none)')
     ap.add_argument('--no-baseline', action='store_true')
+    ap.add_argument('--out', default=None, help='the result file (JSON lines through bench/machine.py\'s ResultWriter; '
+                                                'default /tmp/photo_triangulation.jsonl)')
     a = ap.parse_args()
+    w = ResultWriter.for_bench(a.out, 'photo_triangulation', ['photogram_ros', 'config'])
     folders = [Path(p) for p in a.photos] if a.photos is not None else ([BRIGHTON] if BRIGHTON.is_dir() else [])
     with tempfile.TemporaryDirectory() as tmp:
         if a.sim_photos:
@@ -112,7 +114,7 @@ def main() -> int:
                 row['matching_speed_ratio'] = round(row['ours']['matching_photos_per_s']
                                                     / row['baseline']['photos_per_s'], 2)
             row['machine'] = machine_info()
-            print(json.dumps(row), flush=True)
+            w.write(row)
     return 0
 
 

@@ -21,7 +21,10 @@ on an idle machine).
 
     .venv/bin/python bench/photo_triangulation_scale.py [--photos 100 600] [--workers 2] [--sims DIR]
         [--modes split single] [--split-photos N] [--single-max 150] [--counts 1 2] [--matching-only]
-        [--repeat 1] [--previous RESULTS.jsonl ...]
+        [--repeat 1] [--previous RESULTS.jsonl ...] [--out FILE.jsonl]
+
+Every line goes through bench/machine.py's ResultWriter (commit, clean-tree flag, cores, load) into --out (default
+/tmp/photo_triangulation_scale.jsonl), and on stdout.
 """
 
 from __future__ import annotations
@@ -39,7 +42,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from bench.machine import machine_info  # noqa: E402
+from bench.machine import ResultWriter, machine_info  # noqa: E402
 from photogram_ros.core.split_merge import SplitMergeOptions  # noqa: E402
 from photogram_ros.io.aerial_triangulation import TriangulateOptions  # noqa: E402
 from photogram_ros.io.triangulate_action import triangulate  # noqa: E402
@@ -177,7 +180,10 @@ def main() -> int:
     ap.add_argument('--repeat', type=int, default=1, help='runs per survey and worker count (the fastest kept)')
     ap.add_argument('--previous', nargs='+', default=[],
                     help='output of earlier runs of this bench: the runs they hold are not made again')
+    ap.add_argument('--out', default=None, help='the result file (JSON lines; default '
+                                                '/tmp/photo_triangulation_scale.jsonl)')
     a = ap.parse_args()
+    out = ResultWriter.for_bench(a.out, 'photo_triangulation_scale', ['photogram_ros', 'config'])
     tmp = None if a.sims else tempfile.TemporaryDirectory()
     sims = Path(a.sims or tmp.name)
     sims.mkdir(parents=True, exist_ok=True)
@@ -197,14 +203,14 @@ def main() -> int:
             for (mode, w) in runs:
                 runs[(mode, w)].append(run_once(photos, w, a.matching_only,
                                                 0 if mode == 'single' else a.split_photos))
-                print(json.dumps({'bench': 'photo_triangulation_scale', 'run': runs[(mode, w)][-1]}), flush=True)
+                out.write({'bench': 'photo_triangulation_scale', 'run': runs[(mode, w)][-1]})
         for (mode, w), rows in runs.items():
             row = min(rows, key=lambda r: r[key])
             row.update(bench='photo_triangulation_scale', data=str(photos), runs=[r[key] for r in rows],
                        loads=[r['load_before'] for r in rows],
                        baseline='workers 1 (in process)' if w == 1 else None)
             best[(n, mode, w)] = row
-            print(json.dumps(row), flush=True)
+            out.write(row)
         if (n, 'split', 1) not in best or (n, 'split', a.workers) not in best:
             continue
         one, many = best[(n, 'split', 1)], best[(n, 'split', a.workers)]
@@ -226,7 +232,7 @@ def main() -> int:
                            split_over_single_check_v=_ratio(one['check_v_m'], single['check_v_m']),
                            split_speedup_over_single_workers1=_ratio(single['wall_s'], one['wall_s']),
                            split_cpu_over_single=_ratio(one['cpu_s'], single['cpu_s']))
-        print(json.dumps(cmp), flush=True)
+        out.write(cmp)
     if len(a.photos) > 1:
         lo, hi = min(a.photos), max(a.photos)
         growth = {'bench': 'photo_triangulation_scale', 'growth': 'time ~ photos^b'}
@@ -243,8 +249,8 @@ def main() -> int:
             r0, r1 = best[(lo, 'split', 1)], best[(hi, 'split', 1)]
             growth['b_matching_cpu_s_workers1'] = round(math.log(r1['matching_cpu_s'] / r0['matching_cpu_s'])
                                                         / math.log(r1['photos'] / r0['photos']), 2)
-        print(json.dumps(growth), flush=True)
-    print(json.dumps({'bench': 'photo_triangulation_scale', 'machine': machine_info()}), flush=True)
+        out.write(growth)
+    out.write({'bench': 'photo_triangulation_scale', 'machine': machine_info()})
     if tmp is not None:
         tmp.cleanup()
     return 0

@@ -1,7 +1,10 @@
 """Render the figure tables of docs/measurements.md and README.md from the result files in bench/results.
 
     .venv/bin/python bench/render_figures.py           # rewrite the tables in place
-    .venv/bin/python bench/render_figures.py --check   # exit 1 and name the tables that differ
+    .venv/bin/python bench/render_figures.py --check   # list every figure (its result file, fresh or stale);
+                                                       # exit 1 and name the documents whose tables differ
+    .venv/bin/python bench/render_figures.py --check --strict   # ... exit 1 also when a figure is stale or
+                                                                # has no result file
 
 A table sits between `<!-- figures:NAME -->` and `<!-- /figures:NAME -->` in a document; everything
 outside the markers is hand-written and left alone. Each table is one entry of TABLES below: its columns and
@@ -165,12 +168,57 @@ def source_cell(src: Source | None, fig: Figure) -> str:
     notes = []
     n = changed_since(src.commit, src.modules + tuple(f':(exclude){p}' for p in fig.ignore))
     if n:
-        notes.append(f'**stale**: {", ".join(src.modules)} changed in {n} commit{"s" if n > 1 else ""} since')
+        # Not the count of commits: the rendered text changes when a figure turns stale, not with every commit
+        # after (`--check` lists the count).
+        notes.append(f'**stale**: {", ".join(src.modules)} changed since')
     if src.clean is False:
         notes.append('modified tree')
     elif src.clean is None:
         notes.append('tree state not recorded')
     return f'`{rel}` @ {src.commit[:7]}' + (f' ({"; ".join(notes)})' if notes else '')
+
+
+def figure_state(fig: Figure) -> dict:
+    """Where a figure comes from: {'file', 'commit', 'state'}; state is 'fresh', 'stale' (a module it measures
+    changed since its commit, or the commit is not in this history), 'modified tree' (fresh, but measured on a
+    tree with uncommitted changes), 'tree state not recorded' (fresh, from a file written before the
+    ResultWriter) or 'no result file'; 'changed' counts the commits (+1 for the working tree) since."""
+    src = newest(fig)
+    if src is None:
+        return {'file': None, 'commit': None, 'state': NO_FILE, 'changed': None, 'command': fig.command}
+    rel = src.path.relative_to(ROOT).as_posix() if src.path.is_relative_to(ROOT) else src.path.name
+    if not src.commit:
+        return {'file': rel, 'commit': None, 'state': 'stale', 'changed': None, 'command': fig.command}
+    n = changed_since(src.commit, src.modules + tuple(f':(exclude){p}' for p in fig.ignore))
+    state = ('stale' if n else 'modified tree' if src.clean is False else
+             'tree state not recorded' if src.clean is None else 'fresh')
+    return {'file': rel, 'commit': src.commit[:7], 'state': state, 'changed': n, 'command': fig.command}
+
+
+def listing() -> list[dict]:
+    """Every figure of every table a document renders: {'document', 'table', 'figure' (its label), **figure_state}."""
+    out = []
+    for doc in DOCUMENTS:
+        for m in MARK.finditer((ROOT / doc).read_text()):
+            name = m.group('name')
+            for fig in TABLES[name].rows if name in TABLES else ():
+                out.append({'document': doc, 'table': name, 'figure': ' / '.join(str(c) for c in fig.label if c),
+                            **figure_state(fig)})
+    return out
+
+
+def listing_text(rows: list[dict]) -> str:
+    lines = []
+    for r in rows:
+        where = (f"{r['file']} @ {r['commit']}" if r['commit'] else (r['file'] or '')) or \
+            (f"measure: {r['command']}" if r['command'] else '')
+        more = f" ({r['changed']} commit{'s' if r['changed'] != 1 else ''} since)" if r.get('changed') else ''
+        lines.append(f"{r['state'].upper():24} {r['document']}#{r['table']}: {r['figure'][:90]} <- {where}{more}")
+    counts = {}
+    for r in rows:
+        counts[r['state']] = counts.get(r['state'], 0) + 1
+    lines.append(f'{len(rows)} figures: ' + ', '.join(f'{v} {k}' for k, v in sorted(counts.items())))
+    return '\n'.join(lines)
 
 
 def _esc(v) -> str:
@@ -325,7 +373,7 @@ def _control_cells(x: dict, _lines) -> list:
     return [f'{x["keyframes"]} keyframes, {x["gcps"]} GCPs: live check points (median) {cm(w["live_check_median_m"][0])} '
             f'/ {cm(w["live_check_median_m"][1])} against {cm(wo["live_check_median_m"][0])} / '
             f'{cm(wo["live_check_median_m"][1])} without the control adjustment, for {x["time_ratio"]:.2f}x the '
-            'stage\'s time (same run)']
+            'stage\'s time (same run' + (f', load average {x["load_avg"][0]:.0f}' if x.get('load_avg') else '') + ')']
 
 
 PPK_CMD = '.venv/bin/python bench/ppk_survey.py --out F'
@@ -393,6 +441,70 @@ REAL_ROWS = (
     ('toledo (42) and brighton (18) in one folder', 'two_sites', 'triangulate'),
     ('brighton_beach, geotags scattered 17 m', 'brighton_noisy', 'triangulate'),
     ('toledo, geotags scattered 17 m', 'toledo_noisy', 'triangulate'))
+
+
+def _mavlink_cells(x: dict, lines: list) -> list:
+    """Per log: the node's parser and parser + ingest against a bare pymavlink recv_match loop (same run)."""
+    out = []
+    for y in lines:
+        if y.get('method') == 'node_parser':
+            ingest = next((z for z in lines if z.get('log') == y['log'] and z.get('method') == 'node_parser_plus_ingest'), {})
+            out.append(f'{y["log"]} ({y["messages"]} messages{"" if y.get("same_count") else ", counts differ"}): parser '
+                       f'{y["ratio_vs_bare"]:.2f}x, parser + ingest {f(ingest.get("ratio_vs_bare"))}x')
+    return ['time against a bare pymavlink recv_match loop in the same run (best of 3): ' + '; '.join(out)]
+
+
+MAVLINK = Figure(('MAVLink parsing against pymavlink',), 'mavlink_parse*.jsonl', {'method': 'node_parser'}, _mavlink_cells,
+                 ('photogram_ros/io/mavlink.py', 'photogram_ros/io/mavlink_framing.py', 'photogram_ros/io/mavlink_ingest.py',
+                  'photogram_ros/nodes/mavlink_node.py'), '.venv/bin/python bench/mavlink_parse.py --out F')
+
+
+BLOCK_VERDICTS = 'block_verdicts*.jsonl'
+BLOCK_VERDICTS_CMD = 'ROS_DOMAIN_ID=N .venv/bin/python bench/block_verdicts.py --out OUT'
+# bench/block_verdicts.py: (label, set, variant) of its `triangulate` rows.
+BLOCK_VERDICT_ROWS = tuple(
+    (f'{label}, {what}', s, v) for s, label in (('brighton', 'brighton_beach'), ('toledo', 'toledo'))
+    for v, what in (('clean', 'every photo'), ('half', 'every other photo'), ('moved', 'geotags moved 80 m'),
+                    ('foreign', '3 photos of another camera added'),
+                    ('heights', 'heights wandering 100 m' + (' and a wandering 15 m bias' if s == 'toledo' else '')),
+                    ('noisy', 'geotags scattered 17 m')))
+
+
+def _shape_text(x: dict) -> str:
+    share = x.get('shape_share')
+    if share is None:
+        return ''
+    return (f'shape {100 * share:.2f} % of the block\'s size ({x["shape_rms_m"]:.2f} m RMS over {x["shape_n"]} '
+            f'cameras) from {x.get("reference")}')
+
+
+def _block_verdict_cells(x: dict, _lines) -> list:
+    shape = _shape_text(x)
+    return [verdict(x, 200) + (f'; {shape}' if shape else '')]
+
+
+def _broken_cells(x: dict, lines: list) -> list:
+    """Every tipped and folded block of the set (its clean, noisy and wandering-heights runs, each with its own
+    geotags, the clean one also with them scattered 17 m): how many FAILED, by which checks."""
+    rows = [y for y in lines if y.get('set') == x['set'] and y.get('kind') in ('tipped', 'folded')]
+    failed = [y for y in rows if (y.get('verdict') or {}).get('status') == 'failed']
+    by = sorted({c for y in failed for c in (y.get('verdict') or {}).get('decided_by', [])})
+    return [f'**{len(failed)} of {len(rows)} FAILED** (decided by {", ".join(by)}): tipped 30° and 85° whole, folded '
+            '30° along its last strips; from the clean, wandering-heights and noisy-geotag blocks']
+
+
+def _held_out_cells(x: dict, _lines) -> list:
+    return [f'{x["oriented"]}/{x["photos"]} oriented; {_shape_text(x)}; {verdict(x, 160)}']
+
+
+def _block_verdict(label, survey, variant):
+    return Figure((label, 'triangulate'), BLOCK_VERDICTS, {'set': survey, 'variant': variant, 'kind': 'triangulate'},
+                  _block_verdict_cells, PRODUCT, BLOCK_VERDICTS_CMD)
+
+
+def _broken(label, survey):
+    return Figure((label, 'the block check'), BLOCK_VERDICTS, {'set': survey, 'kind': 'folded'}, _broken_cells,
+                  PRODUCT, BLOCK_VERDICTS_CMD)
 
 
 CHAIN = 'inflight_chain*.jsonl'
@@ -506,8 +618,22 @@ TABLES: dict[str, Table] = {
     'real-agreement': Table(
         ('survey', 'photos in both', '`replay`\'s cameras against `triangulate`\'s'),
         (_agreement('brighton_beach', 'brighton'), _agreement('toledo', 'toledo'), _agreement('seneca_part', 'seneca'))),
-    'real-verdicts': Table(('survey', 'pipeline', 'verdict'), tuple(_verdict(*r) for r in REAL_ROWS)),
+    # brighton's and toledo's `triangulate` verdicts, and their variants', come from bench/block_verdicts.py (its
+    # runs keep the block check's inputs, so its rows are re-judged on the block check of the code now).
+    'real-verdicts': Table(('survey', 'pipeline', 'verdict'),
+                           tuple(_verdict(*r) for r in REAL_ROWS[:7] if not (r[1] in ('brighton', 'toledo')
+                                                                              and r[2] == 'triangulate'))
+                           + tuple(_block_verdict(*r) for r in BLOCK_VERDICT_ROWS)
+                           + (_broken('brighton_beach, tipped or folded', 'brighton'),
+                              _broken('toledo, tipped or folded', 'toledo'))),
     'held-out': Table(('what', 'figure'), (
+        Figure(('brighton_beach with its EXIF heights wandering 100 m peak to peak (held_out_proxies alt_walk) through '
+                '`triangulate`',), BLOCK_VERDICTS, {'set': 'brighton', 'variant': 'heights', 'kind': 'triangulate'},
+               _held_out_cells, PRODUCT, BLOCK_VERDICTS_CMD),
+        Figure(('toledo with its EXIF heights wandering 100 m and a wandering 15 m horizontal bias (held_out_proxies '
+                'alt_walk_h) through `triangulate`',), BLOCK_VERDICTS,
+               {'set': 'toledo', 'variant': 'heights', 'kind': 'triangulate'}, _held_out_cells, PRODUCT,
+               BLOCK_VERDICTS_CMD),
         _none('toledo and brighton with consumer-camera geotags made from their own (heights wandering ~100 m, a '
               'wandering 15 m bias, a third missing, stated sigmas too small) through `triangulate`',
               command='ROS_DOMAIN_ID=N .venv/bin/python bench/held_out_proxies.py --out OUT'),)),
@@ -544,7 +670,7 @@ TABLES: dict[str, Table] = {
         _none('tracker: accuracy and frame rate', command='.venv/bin/python bench/tracker_fps.py'),
         _none('calibration on OpenCV\'s chessboard images', command='scripts/test.sh tests/test_calibration.py'),
         _none('stereo speed: the module against a bare SGBM compute', command='.venv/bin/python bench/stereo_speed.py'),
-        _none('MAVLink parsing against pymavlink', command='.venv/bin/python bench/mavlink_parse.py'),
+        MAVLINK,
         _none('map fusion', command='.venv/bin/python bench/fusion_throughput.py'))),
     'inflight-chain': Table(('survey', 'photos used', 'photos', '`triangulate` oriented', '`replay` keyframes oriented',
                              '`replay` oriented among the keyframes whose photo `triangulate` oriented'),
@@ -637,8 +763,17 @@ def render_all() -> dict[str, tuple[str, str]]:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split('\n')[0])
-    ap.add_argument('--check', action='store_true', help='do not write: exit 1 when a document differs')
+    ap.add_argument('--check', action='store_true', help='do not write: list every figure with its result file and '
+                                                         'whether it is stale; exit 1 when a document differs')
+    ap.add_argument('--strict', action='store_true', help='with --check: exit 1 also when a figure is stale or has '
+                                                          'no result file')
+    ap.add_argument('--json', action='store_true', help='with --check: the listing as JSON lines')
     a = ap.parse_args(argv)
+    not_fresh = []
+    if a.check:
+        rows = listing()
+        print('\n'.join(json.dumps(r) for r in rows) if a.json else listing_text(rows))
+        not_fresh = [r for r in rows if r['state'] in ('stale', NO_FILE)]
     bad = []
     for doc, (old, new) in render_all().items():
         if old != new:
@@ -647,6 +782,9 @@ def main(argv=None) -> int:
                 (ROOT / doc).write_text(new)
     if a.check and bad:
         print(f'rendered tables differ in {", ".join(bad)}: run .venv/bin/python bench/render_figures.py')
+        return 1
+    if a.check and a.strict and not_fresh:
+        print(f'{len(not_fresh)} figures are stale or have no result file')
         return 1
     print(('rewrote ' + ', '.join(bad)) if bad else 'every rendered table is up to date')
     return 0

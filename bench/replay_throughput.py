@@ -2,9 +2,12 @@
 
 Baseline in the same run: reading the same messages from the bag without publishing (BagReader
 alone), so the ratio is the cost of DDS transport and pacing on top of storage.
-usage: .venv/bin/python bench/replay_throughput.py [BAG]
+The lines go through bench/machine.py's ResultWriter (commit, clean-tree flag, cores, load) into --out (default
+/tmp/replay_throughput.jsonl), and on stdout.
+usage: .venv/bin/python bench/replay_throughput.py [BAG] [--out FILE.jsonl]
 """
 
+import argparse
 import json
 import os
 import subprocess
@@ -14,7 +17,7 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / 'bench'))
-from machine import machine_info  # noqa: E402
+from machine import ResultWriter, machine_info  # noqa: E402
 
 import rclpy  # noqa: E402
 
@@ -23,9 +26,14 @@ from photogram_ros.nodes.player_node import PlayerNode  # noqa: E402
 
 
 def main():
-    bag = Path(sys.argv[1]) if len(sys.argv) > 1 else ROOT / 'bags' / 'sample_flight'
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument('bag', nargs='?', default=str(ROOT / 'bags' / 'sample_flight'))
+    ap.add_argument('--out', default=None, help='the result file (JSON lines; default /tmp/replay_throughput.jsonl)')
+    a = ap.parse_args()
+    bag = Path(a.bag)
+    w = ResultWriter.for_bench(a.out, 'replay_throughput', ['photogram_ros/io/bag.py', 'photogram_ros/nodes/player_node.py'])
     os.environ.setdefault('ROS_DOMAIN_ID', '91')
-    print(json.dumps({'machine': machine_info()}))
+    w.write({'machine': machine_info()})
     with BagReader(bag) as r:
         topics = {t: i.msgtype for t, i in r.topics().items()}
         t0 = time.perf_counter()
@@ -46,11 +54,11 @@ def main():
     out.unlink()
     node.destroy_node()
     rclpy.shutdown()
-    print(json.dumps({'bench': 'replay_throughput', 'bag': bag.name, 'messages': summary.total,
+    w.write({'bag': bag.name, 'messages': summary.total,
                       'received_by_other_process': received, 'MB': round(nbytes / 1e6, 2),
                       'msgs_per_s': round(summary.total / summary.wall_s), 'MB_per_s': round(nbytes / 1e6 / summary.wall_s, 1),
                       'real_time_factor': round(summary.bag_s / summary.wall_s, 1),
-                      'baseline_read_msgs_per_s': round(n / t_read), 'ratio_to_baseline': round(summary.wall_s / t_read, 1)}))
+                      'baseline_read_msgs_per_s': round(n / t_read), 'ratio_to_baseline': round(summary.wall_s / t_read, 1)})
 
 
 if __name__ == '__main__':

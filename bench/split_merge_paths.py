@@ -8,8 +8,11 @@ the focal length found and its sigma (the report's, with the GNSS bias free besi
 estimated, the GNSS noise used and the geotags rejected, and the cameras against the simulator's true centres
 (mean and RMS height error, horizontal RMS): a bias that is not the fixes' own shows as the cameras' mean height
 error. The simulator's fixes are RTK (about 1 cm / 3 cm, no bias); its geotags lag along the track (about 0.2 m).
+The lines go through bench/machine.py's ResultWriter (commit, clean-tree flag, cores, load) into --out (default
+/tmp/split_merge_paths.jsonl), and on stdout.
 
     .venv/bin/python bench/split_merge_paths.py [--photos 100] [--sims DIR] [--split-photos 60] [--keep DIR]
+        [--out FILE.jsonl]
 """
 
 from __future__ import annotations
@@ -27,6 +30,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from bench.machine import ResultWriter  # noqa: E402
 from bench.photo_triangulation_scale import LEVER_ARM_CAM_M, simulated_photos  # noqa: E402
 from photogram_ros.core.geodesy import LocalFrame  # noqa: E402
 from photogram_ros.core.split_merge import SplitMergeOptions  # noqa: E402
@@ -78,14 +82,16 @@ def main() -> None:
                     help='where the simulated surveys are made or found')
     ap.add_argument('--split-photos', type=int, default=60, help='split-merge above this many photos')
     ap.add_argument('--keep', type=Path, default=None, help='keep the runs\' outputs here (else temporary)')
+    ap.add_argument('--out', default=None, help='the result file (JSON lines; default /tmp/split_merge_paths.jsonl)')
     a = ap.parse_args()
+    w = ResultWriter.for_bench(a.out, 'split_merge_paths', ['photogram_ros', 'config'])
     photos = simulated_photos(a.photos, a.sims)
     truth = json.loads((photos.parent / 'ground_truth.json').read_text())
     err = np.array([f['error_enu_m'] for f in truth['fixes']])
-    print(json.dumps({'bench': 'split_merge_paths', 'survey': str(photos), 'fix_error_mean_enu_m': err.mean(0).tolist(),
-                      'fix_error_sd_enu_m': err.std(0).tolist()}), flush=True)
+    w.write({'survey': str(photos), 'fix_error_mean_enu_m': err.mean(0).tolist(),
+             'fix_error_sd_enu_m': err.std(0).tolist()})
     for split in (0, a.split_photos):
-        print(json.dumps({'bench': 'split_merge_paths', 'run': run(photos, split, a.keep)}), flush=True)
+        w.write({'run': run(photos, split, a.keep)})
 
 
 if __name__ == '__main__':

@@ -56,3 +56,34 @@ def test_a_figure_is_taken_from_the_newest_file_and_marked_stale_when_its_module
     none = r.Figure(('y',), 'x_*.jsonl', {'k': 2}, command='bench/y.py')
     table = r.render_table(r.Table(('what', 'figure'), (fig, none)))
     assert '| x | 2.0 |' in table and '| y | — | no result file (measure: `bench/y.py`) |' in table
+
+
+def test_the_check_lists_every_figure_with_its_file_and_whether_it_is_stale(tmp_path, monkeypatch):
+    r = _render()
+    head = r.full_commit('HEAD')
+    first = r._git('rev-list', '--max-parents=0', 'HEAD').split()[0]
+    (tmp_path / 'x_new.jsonl').write_text(json.dumps({'k': 1, 'commit': head, 'clean': True,
+                                                      'modules': ['photogram_ros']}) + '\n')
+    (tmp_path / 'y_old.jsonl').write_text(json.dumps({'k': 1, 'commit': first, 'clean': True,
+                                                      'modules': ['photogram_ros']}) + '\n')
+    monkeypatch.setattr(r, 'RESULTS', tmp_path)
+    monkeypatch.setattr(r, 'changed_since', lambda commit, modules: 0 if commit == head else 3)
+    fresh = r.figure_state(r.Figure(('x',), 'x_*.jsonl', {'k': 1}))
+    stale = r.figure_state(r.Figure(('y',), 'y_*.jsonl', {'k': 1}))
+    none = r.figure_state(r.Figure(('z',), 'z_*.jsonl', {'k': 1}, command='bench/z.py'))
+    assert (fresh['state'], fresh['file'], fresh['commit']) == ('fresh', 'x_new.jsonl', head[:7])
+    assert (stale['state'], stale['changed']) == ('stale', 3)
+    assert none['state'] == 'no result file' and none['command'] == 'bench/z.py'
+    text = r.listing_text([{'document': 'd.md', 'table': 't', 'figure': 'y', **stale},
+                           {'document': 'd.md', 'table': 't', 'figure': 'z', **none}])
+    assert 'STALE' in text and 'y_old.jsonl' in text and 'measure: bench/z.py' in text
+    assert text.splitlines()[-1] == '2 figures: 1 no result file, 1 stale'
+
+
+@needs_git
+def test_the_listing_covers_every_figure_of_the_documents():
+    r = _render()
+    rows = r.listing()
+    assert len(rows) == sum(len(r.TABLES[t].rows) for t in {x['table'] for x in rows})
+    assert {x['state'] for x in rows} <= {'fresh', 'stale', 'modified tree', 'tree state not recorded',
+                                          'no result file'}

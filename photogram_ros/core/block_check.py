@@ -77,9 +77,9 @@ class BlockCheckOptions:
     min_oriented_warn: float = 1.0      # share of photos oriented: warning under (1: any photo not oriented)
     min_oriented_failed: float = 0.5    # ... failed under
     noise_warn_factor: float = 3.0      # estimated GNSS noise / stated: warning above
-    noise_h_far_m: float = 10.0         # estimated horizontal GNSS noise (m, about a similarity) beyond both this and
-                                        # noise_warn_factor x stated: the block is placed no better than its geotags
-                                        # (a warning of its own; the shape is judged on internal evidence)
+    noise_h_far_m: float = 10.0         # estimated horizontal GNSS noise (m, about a similarity) beyond this: the
+                                        # block is placed no better than its geotags, whatever they state (a warning
+                                        # of its own; the shape is judged on internal evidence)
     fold_deg: float = 15.0              # a strip's median tilt from the vertical this far from the rest's: folded
     axis_share_fail: float = 0.5        # nadir flight: share of cameras within nadir_tilt_deg of the block's own
                                         # median optical axis, failed under (its parts look different ways)
@@ -666,7 +666,8 @@ def check_block(b: BlockInputs, o: BlockCheckOptions | None = None) -> BlockVerd
                                     f'noise {_length(est[0])} horizontal, {_length(est[1])} vertical (stated '
                                     f'{_length(stated[0])}, {_length(stated[1])}); they were weighted as measured, and '
                                     'the block is placed no better than they are'))
-        if est[0] > max(o.noise_h_far_m, o.noise_warn_factor * stated[0]) and not shape_failed:
+        # Beyond noise_h_far_m the block's place is as poor as its geotags, even when they state nearly as much.
+        if est[0] > o.noise_h_far_m and not shape_failed:
             shape = figures['shape'].get('text') or 'no internal evidence against it'
             findings.append(Finding('geotags_far', 'warning', f'the cameras scatter {est[0]:.1f} m horizontally about '
                                     'their geotags after a similarity (a compact camera\'s or a phone\'s GPS does); '
