@@ -2,8 +2,8 @@
 
 In (plain methods, any thread): `set_camera` (the calibration; keyframes wait for it), `add_fix` (a keyframe
 fix: geodetic position, ENU covariance, NavSatStatus status and covariance type), `add_keyframe` (stamp,
-track ids, pixels, the target rows the tracker found), `add_attitude` (body FLU in ENU, for a gimballed
-camera), `request_full_adjustment`.
+track ids, pixels, the target rows the tracker found), `add_attitude` (body FLU in ENU: a gimballed
+camera's antenna offset, every keyframe's orientation prior), `request_full_adjustment`.
 Work (one thread at a time, under `work`): `take_work` hands out the keyframes that may be adjusted now and
 whether a full adjustment was asked for; `run_batch` adjusts them; `finish` and `full_adjustment` end the
 flight. `drain` does both at once for a caller without a worker thread (tests, offline commands).
@@ -17,6 +17,21 @@ until a later fix says there is none or fix_wait_s passes; a batch's older keyfr
 adjustment and one publication covers the batch; the marginal covariance is recomputed every
 covariance_every updates; surveyed targets are vetted against the block (core/control_live.py) before use;
 health: the share not oriented, a block without georeference, the block check (core/block_check.py).
+
+Provisional poses (publish_provisional, on by default: the in-flight map's poses come from the first keyframes,
+labelled): a straight first line georeferences the block provisionally (the roll about the line is assumed,
+core/incremental.py); its poses go out at once, each labelled in its covariance (core/pose_status.py: the
+provisional roll about the line added to the rotation block; msgs.pose_is_provisional tells it from a
+message), and /diagnostics says it: `georeferenced` = provisional, `poses_provisional` (published poses
+that are provisional now) and `poses_provisional_last_stamp_ns` (the newest). The final georeference at the
+turn publishes every pose again, final, with the same stamps: they replace the provisional ones and
+`poses_provisional` drops to 0. A flight that ends on its straight line keeps them provisional (a WARN).
+Whoever fuses poses into a map (stereo) waits for the final ones.
+
+Orientation prior: each keyframe whose stamp an autopilot attitude (`add_attitude`) covers carries
+`map_R_cam_prior`, the camera's orientation in map from that attitude and the mount (`camera_mount`,
+`mount_rpy_deg`; core/attitude.py camera_prior_map_R_cam): the whole body attitude for a camera fixed to
+the body, the body's yaw alone for a gimballed one. The adjuster may use it for the roll about the first line.
 """
 
 from __future__ import annotations
@@ -28,15 +43,17 @@ from dataclasses import dataclass
 import numpy as np
 
 from photogram_ros.core.at_report import convergence
-from photogram_ros.core.attitude import AttitudeHistory, antenna_offset_enu
+from photogram_ros.core.attitude import (AttitudeHistory, antenna_offset_enu, camera_prior_map_R_cam,
+                                         flu_R_cam_of_mount)
 from photogram_ros.core.block_check import BlockCheckOptions, check_block, inputs_from_at
 from photogram_ros.core.control import TARGET_DTYPE, ControlSet
 from photogram_ros.core.control_live import LiveControl, LiveControlOptions
 from photogram_ros.core.geodesy import LocalFrame
 from photogram_ros.core.gnss_fix import COV_UNKNOWN, STATUS_GBAS_FIX, STATUS_SBAS_FIX, GnssFix
 from photogram_ros.core.incremental import IncrementalAT, IncrementalOptions, KeyframeRecord
+from photogram_ros.core.pose_status import line_direction, provisional_covariance
 from photogram_ros.core.survey_quality import FIX_CLASSES, fix_class
-from photogram_ros.errors import PhotogramError
+from photogram_ros.errors import ConfigError, PhotogramError
 from photogram_ros.params import param
 from photogram_ros.stages.live_quality import live_quality
 from photogram_ros.stages.report import ERROR, OK, WARN, DiagnosticsLog  # noqa: F401  (OK: for callers)
@@ -93,9 +110,28 @@ class AdjustmentParams(LiveControlOptions, IncrementalOptions):
     quality_every: int = param(5, 'publish the live accuracy (map/control_points: check points intersected '
                                   'from the adjusted cameras, fix shares) every this many published keyframes',
                                   min=1, max=1000)
-    publish_provisional: bool = param(False, 'publish poses while the georeference is still provisional (a '
-                                             'straight first line leaves the roll about it to an assumption '
-                                             'until the first turn); off, poses start at the first turn')
+    publish_provisional: bool = param(True, 'publish poses while the georeference is still provisional (a '
+                                            'straight first line leaves the roll about it to an assumption until '
+                                            'the first turn), labelled provisional in their covariance '
+                                            '(core/pose_status.py) and on /diagnostics, and published again when '
+                                            'the turn makes them final; off, poses start at the first turn')
+    camera_mount: str = param('auto', 'how the camera hangs, for its orientation prior from the autopilot '
+                                      'attitude: fixed (turns with the body), gimbal (held at mount_rpy_deg from '
+                                      'nadir, turning with the body\'s yaw only), auto (gimbal when '
+                                      'lever_arm_body_frd_m is set, else fixed)', choices=('auto', 'fixed', 'gimbal'))
+    mount_rpy_deg: list = param([0.0, 0.0, 0.0], 'the camera\'s roll, pitch, yaw from the nominal mount (nadir, image '
+                                'top toward the nose) about the body\'s forward, right, down axes, deg (pitch > 0 '
+                                'looks ahead); a gimbal: its set angles from nadir')
+
+    def check(self) -> None:
+        super().check()
+        if len(self.mount_rpy_deg) != 3:
+            raise ConfigError(f'mount_rpy_deg needs 3 numbers (roll, pitch, yaw, deg), got {self.mount_rpy_deg}')
+
+    @property
+    def gimballed(self) -> bool:
+        """The camera is held by a gimbal (camera_mount, or auto: a body lever arm is set)."""
+        return self.camera_mount == 'gimbal' or (self.camera_mount == 'auto' and self.gimbal)
 
 
 # 1-sigma E, N, U (m) of a fix that gives no covariance, by its NavSatFix status: what such a receiver
@@ -117,18 +153,19 @@ def fix_sigma_limit_m(status: int, p) -> float:
     return p.max_fix_sigma_m
 
 
-def pose_covariance(kf, centre_cov: np.ndarray | None = None) -> np.ndarray:
+def pose_covariance(kf, centre_cov: np.ndarray | None = None, provisional_line=None) -> np.ndarray:
     """Pose covariance (x, y, z, roll, pitch, yaw): the position block is the marginal covariance
     of the camera centre when given; otherwise the fix's variance (the adjusted centre is at
     least that good) or 100 m^2 without a fix. The angles get 1 mrad^2 (the solver gives no
-    orientation marginals)."""
+    orientation marginals); a provisional pose (`provisional_line`: the first line's direction in map)
+    gets the provisional roll about that line on top (core/pose_status.py), its label."""
     C = np.zeros((6, 6))
     if centre_cov is not None:
         C[:3, :3] = 0.5 * (centre_cov + centre_cov.T)
     else:
         C[:3, :3] = np.diag(np.diag(kf.fix_cov) if kf.fix_cov is not None else np.full(3, 100.0))
     C[3:, 3:] = np.eye(3) * 1e-6
-    return C
+    return C if provisional_line is None else provisional_covariance(C, provisional_line)
 
 
 @dataclass
@@ -227,6 +264,8 @@ class AdjustmentStage:
         # Attitudes cover the last two minutes of stamps: keyframes reach the adjuster seconds late.
         self._attitude = AttitudeHistory(max_age_ns=120 * 10**9)
         self._attitude_arrival = -1e9   # monotonic time of the newest attitude
+        self._flu_R_cam = flu_R_cam_of_mount(p.mount_rpy_deg)   # the camera's mount on the body
+        self._provisional_stamps: set[int] = set()   # keyframes whose last published pose is provisional
         self._first_keyframe_arrival = None   # monotonic time of the first keyframe
         self._unplaced = 0                     # keyframes before an early break given up, already said
         self._adjusted_whole = False           # a full adjustment ran after the last keyframe
@@ -328,11 +367,16 @@ class AdjustmentStage:
         return live and newest < stamp - self._attitude.hold_ns
 
     def _record(self, stamp: int, ids, uv, fix, target_uv) -> KeyframeRecord:
-        """A keyframe for the adjuster, with its antenna offset when the camera is gimballed. Called
-        with cond held (the attitude history)."""
-        offset = None
+        """A keyframe for the adjuster, with its antenna offset when the camera is gimballed and its
+        orientation prior from the autopilot attitude and the mount when an attitude covers its stamp
+        (`camera_prior_map_R_cam`). Called with cond held (the attitude history)."""
+        offset = prior = None
+        enu_R_flu = self._attitude.at(stamp) if len(self._attitude) else None
+        if enu_R_flu is not None:
+            prior = camera_prior_map_R_cam(enu_R_flu, self._flu_R_cam, self.p.gimballed)
+        elif len(self._attitude):
+            self.diag.count('keyframes_without_attitude_prior')
         if self.p.gimbal:
-            enu_R_flu = self._attitude.at(stamp)
             if enu_R_flu is None:
                 self.diag.count('keyframes_without_attitude')
                 self.diag.problem('lever_arm_body_frd_m is set but no attitude (mavlink/attitude) covers the '
@@ -341,7 +385,8 @@ class AdjustmentStage:
                                   'camera frame (lever_arm_cam_m) for a camera fixed to the body, or zeros')
             else:
                 offset = antenna_offset_enu(enu_R_flu, self.p.lever_arm_body_frd_m)
-        return KeyframeRecord(stamp, ids, uv, fix, target_uv=target_uv, antenna_offset_map_m=offset)
+        return KeyframeRecord(stamp, ids, uv, fix, target_uv=target_uv, antenna_offset_map_m=offset,
+                              map_R_cam_prior=prior)
 
     def _match_fix(self, stamp: int) -> GnssFix | None:
         tol = int(self.p.sync_tolerance_ms * 1e6)
@@ -647,14 +692,27 @@ class AdjustmentStage:
             self._georef_sent = True
         centre_cov = self._centre_covariances(window)
         kfs = [at.block.keyframe(k) for k in window]
-        self.out.poses([(kf.map_T_cam, kf.stamp_ns, pose_covariance(kf, centre_cov.get(kf.kid))) for kf in kfs])
-        stamp = at.block.keyframe(window[-1]).stamp_ns
         path = [at.block.keyframe(k) for k in at.block.oriented()]
+        line = None
+        if at.georef_provisional:   # labelled: the roll about the first line is an assumption until the turn
+            line = line_direction(np.array([kf.map_T_cam[:3, 3] for kf in path]))
+            self._provisional_stamps.update(kf.stamp_ns for kf in kfs)
+        else:
+            self._provisional_stamps.difference_update(kf.stamp_ns for kf in kfs)
+        self.out.poses([(kf.map_T_cam, kf.stamp_ns, pose_covariance(kf, centre_cov.get(kf.kid), line))
+                        for kf in kfs])
+        self._say_provisional()
+        stamp = at.block.keyframe(window[-1]).stamp_ns
         self.out.path([kf.map_T_cam for kf in path], [kf.stamp_ns for kf in path], stamp)
         self._n_since_cloud += new
         if self._n_since_cloud >= self.p.cloud_every:
             self._n_since_cloud = 0
             self.publish_cloud(stamp)
+
+    def _say_provisional(self) -> None:
+        """/diagnostics: how many published poses are provisional now, and the newest such stamp."""
+        self.diag.set('poses_provisional', len(self._provisional_stamps))
+        self.diag.set('poses_provisional_last_stamp_ns', max(self._provisional_stamps, default=0))
 
     def _centre_covariances(self, window) -> dict:
         """Keyframe id -> (3, 3) marginal covariance of its camera centre (map ENU, m^2) for the newest
@@ -741,6 +799,10 @@ class AdjustmentStage:
             self.diag.set('full_adjustment_status', rep.status)
             self._adjusted_whole = True
             self._set_georeferenced()   # the end of a flight without fixes places the block by its GCPs
+            if self.at.georeferenced and self.at.georef_provisional:
+                self.diag.problem('the georeference is still provisional: the fixes lie on one straight line, so '
+                                  'the roll about it is the near-nadir assumption; the poses are published '
+                                  'labelled provisional (a turn, or 3 GCPs, makes them final)', WARN)
             if self.at.self_calibration is not None:
                 self.diag.set('self_calibration', self.at.self_calibration.text())
             conv = convergence(self.at, rep.status)   # None when it converged
