@@ -18,6 +18,12 @@ adjustment and one publication covers the batch; the marginal covariance is reco
 covariance_every updates; surveyed targets are vetted against the block (core/control_live.py) before use;
 health: the share not oriented, a block without georeference, the block check (core/block_check.py).
 
+The pace: per keyframe the window adjustment (it stops once a step gains under 1e-4 of the cost,
+core/at_problem.py WINDOW_FUNCTION_TOLERANCE), then the poses go out; what can wait comes after them: the
+figures on /diagnostics, the live quality (every quality_every), the control vetting and the block check (every
+10 oriented keyframes). A keyframe queued behind others (a batch) gets the catch-up adjustment and none of that:
+the batch's newest does it once for the batch.
+
 Provisional poses (publish_provisional, on by default: the in-flight map's poses come from the first keyframes,
 labelled): a straight first line georeferences the block provisionally (the roll about the line is assumed,
 core/incremental.py); its poses go out at once, each labelled in its covariance (core/pose_status.py: the
@@ -266,6 +272,7 @@ class AdjustmentStage:
         self._attitude_arrival = -1e9   # monotonic time of the newest attitude
         self._flu_R_cam = flu_R_cam_of_mount(p.mount_rpy_deg)   # the camera's mount on the body
         self._provisional_stamps: set[int] = set()   # keyframes whose last published pose is provisional
+        self._checked_at = 0   # keyframes oriented at the last block check (one every 10, after the poses)
         self._first_keyframe_arrival = None   # monotonic time of the first keyframe
         self._unplaced = 0                     # keyframes before an early break given up, already said
         self._adjusted_whole = False           # a full adjustment ran after the last keyframe
@@ -528,7 +535,6 @@ class AdjustmentStage:
             # The live accuracy reads these instead of the keyframes' observation tables, which a long
             # flight keeps on disk (reading them would thaw every keyframe).
             self.live.observe(self.at.block.n_keyframes - 1, rec.target_uv)
-        self._vet_control()
         if self.at.unplaced_keyframes > self._unplaced:
             n, self._unplaced = self.at.unplaced_keyframes - self._unplaced, self.at.unplaced_keyframes
             self.diag.count('keyframes_unplaced', n)
@@ -546,11 +552,21 @@ class AdjustmentStage:
             self._count_not_oriented(rep.status)
         self._block_moved = self._block_moved or rep.block_adjusted
         if not publish:
+            # Queued behind: the figures, the control vetting and the block check wait for the batch's newest.
             if rep.registered:
                 self._unpublished += 1
             return
-        self._report(rep)
         earlier, self._unpublished = self._unpublished, 0
+        self._publish_poses(rec, rep, earlier)   # the poses first: the figures below can wait
+        self._report(rep)
+        self._vet_control()
+        if (self.at.georeferenced and not self.at.georef_provisional
+                and self.at.block.n_oriented >= self._checked_at + 10):
+            self._checked_at = self.at.block.n_oriented
+            self._block_check()
+
+    def _publish_poses(self, rec, rep, earlier: int) -> None:
+        """The poses a keyframe's adjustment (and the `earlier` ones of its batch) gave, once georeferenced."""
         if not (self.at.georeferenced and rep.registered):
             return
         if self.at.georef_provisional and not self.p.publish_provisional:
@@ -604,8 +620,6 @@ class AdjustmentStage:
         if len(recent) >= min(5, self.p.health_window) and share > self.p.health_max_unoriented:
             self.diag.problem(f'{n_bad} of the last {len(recent)} keyframes are not oriented (last reason: '
                               f'{self._last_failure})', ERROR if share > 0.5 else WARN)
-        if at.georeferenced and not at.georef_provisional and at.block.n_oriented % 10 == 0:
-            self._block_check()
         with_fix = sum(kf.fix_enu is not None for kf in at.block.keyframes())
         if not at.georeferenced and with_fix >= self.p.georef_warn_keyframes:
             why = (f'{at.block.n_oriented} keyframes oriented' if at.block.n_oriented else 'no keyframe oriented yet')
