@@ -97,10 +97,12 @@ class AdjustmentParams(LiveControlOptions, IncrementalOptions):
                                         'ones queued behind it (the newest of a batch gets the full adjustment): '
                                         'lets the node catch up after a long adjustment', min=1, max=100)
     marginal_covariance: bool = param(True, 'pose covariance from the window adjustment\'s marginal covariance of '
-                                            'the camera centres (one more linearisation per update); off: the '
-                                            'fix\'s variance as a stand-in')
+                                            'the camera centres (one more linearisation per update, made after '
+                                            'the poses went out: a keyframe\'s first pose has the stand-in, the '
+                                            'window\'s next ones its marginal); off: the fix\'s variance as a '
+                                            'stand-in')
     covariance_every: int = param(3, 'recompute the marginal covariance every this many window updates (it costs '
-                                     'about a fifth of an update); poses in between reuse their last one',
+                                     'about half a window update); poses in between reuse their last one',
                                   min=1, max=100)
     control_file: str = param('', 'surveyed targets (first line a CRS, then "name marker_id x y z [sigma_h_m '
                                   'sigma_v_m]"; names CHK* are check points): the tracker\'s ArUco detections '
@@ -697,14 +699,17 @@ class AdjustmentStage:
             self.out.camera(self.at.block.camera, stamp_ns)
         self._publish(window=self.at.block.oriented(), new=new)
 
-    def _publish(self, window, new: int = 1) -> None:
-        """Poses of `window`, the path, and the sparse cloud once `new` keyframes make cloud_every."""
+    def _publish(self, window, new: int = 1, final: bool = False) -> None:
+        """Poses of `window`, the path, and the sparse cloud once `new` keyframes make cloud_every; `final`: after
+        a full adjustment (the covariances first)."""
         at = self.at
         if not self._georef_sent and at.origin is not None:
             o = at.origin
             self.out.georeference(o.lat_deg, o.lon_deg, o.h_m, at.block.keyframe(window[-1]).stamp_ns)
             self._georef_sent = True
-        centre_cov = self._centre_covariances(window)
+        # In flight the marginal covariances are refreshed after the poses went out (the poses carry the last
+        # ones): the refresh costs about half a window update. After a full adjustment they come first.
+        centre_cov = self._centre_covariances(window) if final else dict(self._centre_cov)
         kfs = [at.block.keyframe(k) for k in window]
         path = [at.block.keyframe(k) for k in at.block.oriented()]
         line = None
@@ -715,6 +720,8 @@ class AdjustmentStage:
             self._provisional_stamps.difference_update(kf.stamp_ns for kf in kfs)
         self.out.poses([(kf.map_T_cam, kf.stamp_ns, pose_covariance(kf, centre_cov.get(kf.kid), line))
                         for kf in kfs])
+        if not final:
+            self._centre_covariances(window)
         self._say_provisional()
         stamp = at.block.keyframe(window[-1]).stamp_ns
         self.out.path([kf.map_T_cam for kf in path], [kf.stamp_ns for kf in path], stamp)
@@ -733,7 +740,9 @@ class AdjustmentStage:
         window_size keyframes of `window`, from one linearisation of the window problem at the
         current estimate (the keyframes sharing its points held, as in the window adjustment). A
         keyframe further back keeps its last one; between recomputations (covariance_every) the last
-        ones are reused, and a keyframe without one gets the stand-in."""
+        ones are reused, and a keyframe without one gets the stand-in. In flight a pose goes out with the
+        covariance of the last recomputation before it (its keyframe's first pose: the stand-in; the window's
+        next publications carry its marginal)."""
         if not self.p.marginal_covariance or not window:
             return {}
         self._cov_updates += 1
@@ -834,7 +843,7 @@ class AdjustmentStage:
                 # were adjusted with (a self-calibration changes them).
                 self._camera_sent = self.at.block.camera
                 self.out.camera(self.at.block.camera, self.at.block.last_oriented().stamp_ns)
-                self._publish(window=self.at.block.oriented(), new=0)
+                self._publish(window=self.at.block.oriented(), new=0, final=True)
                 self.publish_cloud(self.at.block.last_oriented().stamp_ns)
             self.diag.count('full_adjustments')   # after publishing: a waiting caller gets the poses
             return AdjustmentOutcome('done', rep.status)
