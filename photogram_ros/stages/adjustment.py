@@ -176,6 +176,21 @@ def pose_covariance(kf, centre_cov: np.ndarray | None = None, provisional_line=N
     return C if provisional_line is None else provisional_covariance(C, provisional_line)
 
 
+def label_provisional(at, kfs, path, stamps: set, diag) -> np.ndarray | None:
+    """The first line's direction that labels the poses of keyframes `kfs` provisional (pose_covariance), None
+    once the georeference is final; `stamps` keeps the keyframes whose last published pose is provisional, said
+    on /diagnostics (poses_provisional, poses_provisional_last_stamp_ns). `path`: every oriented keyframe."""
+    line = None
+    if at.georef_provisional:   # the roll about the first line is an assumption until the turn
+        line = line_direction(np.array([kf.map_T_cam[:3, 3] for kf in path]))
+        stamps.update(kf.stamp_ns for kf in kfs)
+    else:
+        stamps.difference_update(kf.stamp_ns for kf in kfs)
+    diag.set('poses_provisional', len(stamps))
+    diag.set('poses_provisional_last_stamp_ns', max(stamps, default=0))
+    return line
+
+
 @dataclass
 class AdjustmentOutcome:
     """What a final (full) adjustment came to: 'done', 'failed' or 'none' (nothing to adjust), and why."""
@@ -376,9 +391,8 @@ class AdjustmentStage:
         return live and newest < stamp - self._attitude.hold_ns
 
     def _record(self, stamp: int, ids, uv, fix, target_uv) -> KeyframeRecord:
-        """A keyframe for the adjuster, with its antenna offset when the camera is gimballed and its
-        orientation prior from the autopilot attitude and the mount when an attitude covers its stamp
-        (`camera_prior_map_R_cam`). Called with cond held (the attitude history)."""
+        """A keyframe for the adjuster, with a gimballed camera's antenna offset and the orientation prior from an
+        attitude covering its stamp and the mount (`camera_prior_map_R_cam`). Called with cond held (attitudes)."""
         offset = prior = None
         enu_R_flu = self._attitude.at(stamp) if len(self._attitude) else None
         if enu_R_flu is not None:
@@ -700,40 +714,27 @@ class AdjustmentStage:
         self._publish(window=self.at.block.oriented(), new=new)
 
     def _publish(self, window, new: int = 1, final: bool = False) -> None:
-        """Poses of `window`, the path, and the sparse cloud once `new` keyframes make cloud_every; `final`: after
-        a full adjustment (the covariances first)."""
+        """Poses of `window` (`final`: a full adjustment's), the path, the sparse cloud once `new` make cloud_every."""
         at = self.at
         if not self._georef_sent and at.origin is not None:
             o = at.origin
             self.out.georeference(o.lat_deg, o.lon_deg, o.h_m, at.block.keyframe(window[-1]).stamp_ns)
             self._georef_sent = True
-        # In flight the marginal covariances are refreshed after the poses went out (the poses carry the last
-        # ones): the refresh costs about half a window update. After a full adjustment they come first.
+        # In flight the covariances are refreshed after the poses (half a window update); after a full one first.
         centre_cov = self._centre_covariances(window) if final else dict(self._centre_cov)
         kfs = [at.block.keyframe(k) for k in window]
         path = [at.block.keyframe(k) for k in at.block.oriented()]
-        line = None
-        if at.georef_provisional:   # labelled: the roll about the first line is an assumption until the turn
-            line = line_direction(np.array([kf.map_T_cam[:3, 3] for kf in path]))
-            self._provisional_stamps.update(kf.stamp_ns for kf in kfs)
-        else:
-            self._provisional_stamps.difference_update(kf.stamp_ns for kf in kfs)
+        line = label_provisional(at, kfs, path, self._provisional_stamps, self.diag)
         self.out.poses([(kf.map_T_cam, kf.stamp_ns, pose_covariance(kf, centre_cov.get(kf.kid), line))
                         for kf in kfs])
         if not final:
             self._centre_covariances(window)
-        self._say_provisional()
         stamp = at.block.keyframe(window[-1]).stamp_ns
         self.out.path([kf.map_T_cam for kf in path], [kf.stamp_ns for kf in path], stamp)
         self._n_since_cloud += new
         if self._n_since_cloud >= self.p.cloud_every:
             self._n_since_cloud = 0
             self.publish_cloud(stamp)
-
-    def _say_provisional(self) -> None:
-        """/diagnostics: how many published poses are provisional now, and the newest such stamp."""
-        self.diag.set('poses_provisional', len(self._provisional_stamps))
-        self.diag.set('poses_provisional_last_stamp_ns', max(self._provisional_stamps, default=0))
 
     def _centre_covariances(self, window) -> dict:
         """Keyframe id -> (3, 3) marginal covariance of its camera centre (map ENU, m^2) for the newest
