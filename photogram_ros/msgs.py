@@ -279,6 +279,13 @@ def T_from_pose_with_covariance(msg) -> tuple[np.ndarray, np.ndarray]:
     return make_T(R_from_quat(q), t), np.asarray(msg.pose.covariance, dtype=float).reshape(6, 6)
 
 
+def pose_is_provisional(msg) -> bool:
+    """Whether a PoseWithCovarianceStamped from the bundle node is provisional (the roll about the first line
+    assumed, before the first turn): its covariance carries the label (core/pose_status.py)."""
+    from photogram_ros.core.pose_status import is_provisional
+    return is_provisional(np.asarray(msg.pose.covariance, dtype=float))
+
+
 def disparity_image_msg(disparity_px: np.ndarray, stamp_ns: int, f_px: float, baseline_m: float,
                         frame_id: str = 'camera_rect', delta_d: float = 1.0 / 16.0):
     """Float disparity (NaN = none; depth = f * baseline / d) -> stereo_msgs/DisparityImage."""

@@ -9,6 +9,13 @@ exact: antenna - camera centre = ENU_R_FLU(t) @ lever_FLU, the lever arm measure
 
 Attitudes are REP-103 (body FLU in ENU), as mavlink_node publishes them; lever arms are given in
 body FRD (the autopilot's frame, how integrators measure them) and converted here.
+
+The same attitude gives the camera's orientation before any adjustment (`camera_prior_map_R_cam`): a camera
+fixed to the body turns with it (body attitude x the camera's mount); a gimballed camera is held at its set
+angles from nadir whatever the body does, turning with the body's yaw only. The mount is given as roll, pitch,
+yaw (deg) about the body's forward, right, down axes from the nominal mount (core/frames.py: nadir, image top
+toward the nose), turning the camera as the same body angles would turn the body: pitch > 0 (nose up) looks
+ahead of nadir, roll > 0 (right side down) looks to the left.
 """
 
 from __future__ import annotations
@@ -19,11 +26,37 @@ import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
 FLU_FROM_FRD = np.diag([1.0, -1.0, -1.0])
+# Body FRD <- camera optical for the nominal nadir mount, image top forward: optical x = body right, optical
+# y = body backward, optical z = body down (core/frames.py BASE_T_OPTICAL_NADIR, in FRD).
+FRD_R_OPTICAL_NADIR = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
 
 
 def antenna_offset_enu(enu_R_flu: np.ndarray, lever_arm_frd_m) -> np.ndarray:
     """Antenna minus camera centre in ENU (m) for a lever arm in body FRD (m) and a body attitude."""
     return np.asarray(enu_R_flu, float) @ (FLU_FROM_FRD @ np.asarray(lever_arm_frd_m, float))
+
+
+def flu_R_cam_of_mount(mount_rpy_deg=(0.0, 0.0, 0.0)) -> np.ndarray:
+    """Body FLU <- camera optical (3x3) for a camera turned by roll, pitch, yaw (deg, about body forward, right,
+    down, applied yaw-pitch-roll) from the nominal nadir mount."""
+    frd_R_mount = Rotation.from_euler('ZYX', np.asarray(mount_rpy_deg, float)[::-1], degrees=True).as_matrix()
+    return FLU_FROM_FRD @ frd_R_mount @ FRD_R_OPTICAL_NADIR
+
+
+def level_with_yaw(enu_R_flu: np.ndarray) -> np.ndarray:
+    """The body attitude without its roll and pitch: a rotation about up by the heading of the body's nose."""
+    R = np.asarray(enu_R_flu, float)
+    yaw = np.arctan2(R[1, 0], R[0, 0])
+    c, s = np.cos(yaw), np.sin(yaw)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def camera_prior_map_R_cam(enu_R_flu: np.ndarray, flu_R_cam: np.ndarray, gimbal: bool) -> np.ndarray:
+    """The camera's orientation in map ENU (camera optical -> map) from the body attitude (FLU in ENU) and
+    the mount (`flu_R_cam_of_mount`): turned by the whole attitude for a camera fixed to the body, by the
+    body's yaw alone for a gimballed one (the gimbal holds its set angles against roll and pitch)."""
+    body = level_with_yaw(enu_R_flu) if gimbal else np.asarray(enu_R_flu, float)
+    return body @ flu_R_cam
 
 
 class AttitudeHistory:

@@ -7,11 +7,16 @@ Inputs (relative names, so a namespace per drone works):
                       ellipsoidal altitude); optional: a keyframe without a fix is adjusted without
   keyframes/image     Image (only counted: geometry needs the features alone)
   camera/camera_info  CameraInfo (the calibration; keyframes wait for it)
+  mavlink/attitude    Imu, body FLU in ENU (optional): each keyframe's orientation prior from it and the camera's
+                      mount (camera_mount, mount_rpy_deg); a gimbal's antenna offset (see Lever arm)
   bundle/full_adjustment  std_msgs/Empty: adjust the whole block now (also done on shutdown)
 Outputs:
   map/keyframe_pose   PoseWithCovarianceStamped in `map` for the new keyframe and, re-stamped with
                       their own stamps, the refined keyframes of the window (a later pose with the
-                      same stamp replaces the earlier one)
+                      same stamp replaces the earlier one). Before the first turn (a straight first line)
+                      the poses are provisional: their covariance carries the provisional roll about the
+                      line (core/pose_status.py; msgs.pose_is_provisional), /diagnostics says
+                      georeferenced=provisional and poses_provisional; the final ones replace them at the turn
   map/path            nav_msgs/Path of all oriented keyframes
   /tf, /tf_static     the drone's frame tree (core/frames.py: map -> <ns>/odom -> <ns>/base_link ->
                       <ns>/camera_optical), odom -> base_link at each published pose, where tf2_msgs is
@@ -168,9 +173,9 @@ class BundleNode(Node):
         self.create_subscription(Image, TOPIC_IMAGE, lambda m: self.diag.count('images'), reliable)
         self.create_subscription(CameraInfo, TOPIC_INFO, self._on_info, QoSProfile(depth=5))
         self.create_subscription(Empty, TOPIC_FULL, self._on_full, QoSProfile(depth=2))
-        if self.p.gimbal:
-            self.create_subscription(Imu, TOPIC_ATTITUDE, self._on_attitude,
-                                     QoSProfile(depth=1200, reliability=ReliabilityPolicy.RELIABLE))
+        # Every camera: the attitude gives each keyframe its orientation prior (and a gimbal its antenna offset).
+        self.create_subscription(Imu, TOPIC_ATTITUDE, self._on_attitude,
+                                 QoSProfile(depth=1200, reliability=ReliabilityPolicy.RELIABLE))
         # The timer only wakes the worker: a keyframe whose fix never comes is taken after fix_wait_s.
         self.create_timer(0.5, self._wake)
         self._stop = False

@@ -2,8 +2,8 @@
 
 In (plain methods, any thread): `set_camera` (the calibration; keyframes wait for it), `add_fix` (a keyframe
 fix: geodetic position, ENU covariance, NavSatStatus status and covariance type), `add_keyframe` (stamp,
-track ids, pixels, the target rows the tracker found), `add_attitude` (body FLU in ENU, for a gimballed
-camera), `request_full_adjustment`.
+track ids, pixels, the target rows the tracker found), `add_attitude` (body FLU in ENU: a gimballed
+camera's antenna offset, every keyframe's orientation prior), `request_full_adjustment`.
 Work (one thread at a time, under `work`): `take_work` hands out the keyframes that may be adjusted now and
 whether a full adjustment was asked for; `run_batch` adjusts them; `finish` and `full_adjustment` end the
 flight. `drain` does both at once for a caller without a worker thread (tests, offline commands).
@@ -17,6 +17,27 @@ until a later fix says there is none or fix_wait_s passes; a batch's older keyfr
 adjustment and one publication covers the batch; the marginal covariance is recomputed every
 covariance_every updates; surveyed targets are vetted against the block (core/control_live.py) before use;
 health: the share not oriented, a block without georeference, the block check (core/block_check.py).
+
+The pace: per keyframe the window adjustment (it stops once a step gains under 1e-4 of the cost,
+core/at_problem.py WINDOW_FUNCTION_TOLERANCE), then the poses go out; what can wait comes after them: the
+figures on /diagnostics, the live quality (every quality_every), the control vetting and the block check (every
+10 oriented keyframes). A keyframe queued behind others (a batch) gets the catch-up adjustment and none of that:
+the batch's newest does it once for the batch.
+
+Provisional poses (publish_provisional, on by default: the in-flight map's poses come from the first keyframes,
+labelled): a straight first line georeferences the block provisionally (the roll about the line is assumed,
+core/incremental.py); its poses go out at once, each labelled in its covariance (core/pose_status.py: the
+provisional roll about the line added to the rotation block; msgs.pose_is_provisional tells it from a
+message), and /diagnostics says it: `georeferenced` = provisional, `poses_provisional` (published poses
+that are provisional now) and `poses_provisional_last_stamp_ns` (the newest). The final georeference at the
+turn publishes every pose again, final, with the same stamps: they replace the provisional ones and
+`poses_provisional` drops to 0. A flight that ends on its straight line keeps them provisional (a WARN).
+Whoever fuses poses into a map (stereo) waits for the final ones.
+
+Orientation prior: each keyframe whose stamp an autopilot attitude (`add_attitude`) covers carries
+`map_R_cam_prior`, the camera's orientation in map from that attitude and the mount (`camera_mount`,
+`mount_rpy_deg`; core/attitude.py camera_prior_map_R_cam): the whole body attitude for a camera fixed to
+the body, the body's yaw alone for a gimballed one. The adjuster may use it for the roll about the first line.
 """
 
 from __future__ import annotations
@@ -28,15 +49,17 @@ from dataclasses import dataclass
 import numpy as np
 
 from photogram_ros.core.at_report import convergence
-from photogram_ros.core.attitude import AttitudeHistory, antenna_offset_enu
+from photogram_ros.core.attitude import (AttitudeHistory, antenna_offset_enu, camera_prior_map_R_cam,
+                                         flu_R_cam_of_mount)
 from photogram_ros.core.block_check import BlockCheckOptions, check_block, inputs_from_at
 from photogram_ros.core.control import TARGET_DTYPE, ControlSet
 from photogram_ros.core.control_live import LiveControl, LiveControlOptions
 from photogram_ros.core.geodesy import LocalFrame
 from photogram_ros.core.gnss_fix import COV_UNKNOWN, STATUS_GBAS_FIX, STATUS_SBAS_FIX, GnssFix
 from photogram_ros.core.incremental import IncrementalAT, IncrementalOptions, KeyframeRecord
+from photogram_ros.core.pose_status import line_direction, provisional_covariance
 from photogram_ros.core.survey_quality import FIX_CLASSES, fix_class
-from photogram_ros.errors import PhotogramError
+from photogram_ros.errors import ConfigError, PhotogramError
 from photogram_ros.params import param
 from photogram_ros.stages.live_quality import live_quality
 from photogram_ros.stages.report import ERROR, OK, WARN, DiagnosticsLog  # noqa: F401  (OK: for callers)
@@ -74,10 +97,12 @@ class AdjustmentParams(LiveControlOptions, IncrementalOptions):
                                         'ones queued behind it (the newest of a batch gets the full adjustment): '
                                         'lets the node catch up after a long adjustment', min=1, max=100)
     marginal_covariance: bool = param(True, 'pose covariance from the window adjustment\'s marginal covariance of '
-                                            'the camera centres (one more linearisation per update); off: the '
-                                            'fix\'s variance as a stand-in')
+                                            'the camera centres (one more linearisation per update, made after '
+                                            'the poses went out: a keyframe\'s first pose has the stand-in, the '
+                                            'window\'s next ones its marginal); off: the fix\'s variance as a '
+                                            'stand-in')
     covariance_every: int = param(3, 'recompute the marginal covariance every this many window updates (it costs '
-                                     'about a fifth of an update); poses in between reuse their last one',
+                                     'about half a window update); poses in between reuse their last one',
                                   min=1, max=100)
     control_file: str = param('', 'surveyed targets (first line a CRS, then "name marker_id x y z [sigma_h_m '
                                   'sigma_v_m]"; names CHK* are check points): the tracker\'s ArUco detections '
@@ -93,9 +118,28 @@ class AdjustmentParams(LiveControlOptions, IncrementalOptions):
     quality_every: int = param(5, 'publish the live accuracy (map/control_points: check points intersected '
                                   'from the adjusted cameras, fix shares) every this many published keyframes',
                                   min=1, max=1000)
-    publish_provisional: bool = param(False, 'publish poses while the georeference is still provisional (a '
-                                             'straight first line leaves the roll about it to an assumption '
-                                             'until the first turn); off, poses start at the first turn')
+    publish_provisional: bool = param(True, 'publish poses while the georeference is still provisional (a '
+                                            'straight first line leaves the roll about it to an assumption until '
+                                            'the first turn), labelled provisional in their covariance '
+                                            '(core/pose_status.py) and on /diagnostics, and published again when '
+                                            'the turn makes them final; off, poses start at the first turn')
+    camera_mount: str = param('auto', 'how the camera hangs, for its orientation prior from the autopilot '
+                                      'attitude: fixed (turns with the body), gimbal (held at mount_rpy_deg from '
+                                      'nadir, turning with the body\'s yaw only), auto (gimbal when '
+                                      'lever_arm_body_frd_m is set, else fixed)', choices=('auto', 'fixed', 'gimbal'))
+    mount_rpy_deg: list = param([0.0, 0.0, 0.0], 'the camera\'s roll, pitch, yaw from the nominal mount (nadir, image '
+                                'top toward the nose) about the body\'s forward, right, down axes, deg (pitch > 0 '
+                                'looks ahead); a gimbal: its set angles from nadir')
+
+    def check(self) -> None:
+        super().check()
+        if len(self.mount_rpy_deg) != 3:
+            raise ConfigError(f'mount_rpy_deg needs 3 numbers (roll, pitch, yaw, deg), got {self.mount_rpy_deg}')
+
+    @property
+    def gimballed(self) -> bool:
+        """The camera is held by a gimbal (camera_mount, or auto: a body lever arm is set)."""
+        return self.camera_mount == 'gimbal' or (self.camera_mount == 'auto' and self.gimbal)
 
 
 # 1-sigma E, N, U (m) of a fix that gives no covariance, by its NavSatFix status: what such a receiver
@@ -117,18 +161,34 @@ def fix_sigma_limit_m(status: int, p) -> float:
     return p.max_fix_sigma_m
 
 
-def pose_covariance(kf, centre_cov: np.ndarray | None = None) -> np.ndarray:
+def pose_covariance(kf, centre_cov: np.ndarray | None = None, provisional_line=None) -> np.ndarray:
     """Pose covariance (x, y, z, roll, pitch, yaw): the position block is the marginal covariance
     of the camera centre when given; otherwise the fix's variance (the adjusted centre is at
     least that good) or 100 m^2 without a fix. The angles get 1 mrad^2 (the solver gives no
-    orientation marginals)."""
+    orientation marginals); a provisional pose (`provisional_line`: the first line's direction in map)
+    gets the provisional roll about that line on top (core/pose_status.py), its label."""
     C = np.zeros((6, 6))
     if centre_cov is not None:
         C[:3, :3] = 0.5 * (centre_cov + centre_cov.T)
     else:
         C[:3, :3] = np.diag(np.diag(kf.fix_cov) if kf.fix_cov is not None else np.full(3, 100.0))
     C[3:, 3:] = np.eye(3) * 1e-6
-    return C
+    return C if provisional_line is None else provisional_covariance(C, provisional_line)
+
+
+def label_provisional(at, kfs, path, stamps: set, diag) -> np.ndarray | None:
+    """The first line's direction that labels the poses of keyframes `kfs` provisional (pose_covariance), None
+    once the georeference is final; `stamps` keeps the keyframes whose last published pose is provisional, said
+    on /diagnostics (poses_provisional, poses_provisional_last_stamp_ns). `path`: every oriented keyframe."""
+    line = None
+    if at.georef_provisional:   # the roll about the first line is an assumption until the turn
+        line = line_direction(np.array([kf.map_T_cam[:3, 3] for kf in path]))
+        stamps.update(kf.stamp_ns for kf in kfs)
+    else:
+        stamps.difference_update(kf.stamp_ns for kf in kfs)
+    diag.set('poses_provisional', len(stamps))
+    diag.set('poses_provisional_last_stamp_ns', max(stamps, default=0))
+    return line
 
 
 @dataclass
@@ -227,6 +287,9 @@ class AdjustmentStage:
         # Attitudes cover the last two minutes of stamps: keyframes reach the adjuster seconds late.
         self._attitude = AttitudeHistory(max_age_ns=120 * 10**9)
         self._attitude_arrival = -1e9   # monotonic time of the newest attitude
+        self._flu_R_cam = flu_R_cam_of_mount(p.mount_rpy_deg)   # the camera's mount on the body
+        self._provisional_stamps: set[int] = set()   # keyframes whose last published pose is provisional
+        self._checked_at = 0   # keyframes oriented at the last block check (one every 10, after the poses)
         self._first_keyframe_arrival = None   # monotonic time of the first keyframe
         self._unplaced = 0                     # keyframes before an early break given up, already said
         self._adjusted_whole = False           # a full adjustment ran after the last keyframe
@@ -328,11 +391,15 @@ class AdjustmentStage:
         return live and newest < stamp - self._attitude.hold_ns
 
     def _record(self, stamp: int, ids, uv, fix, target_uv) -> KeyframeRecord:
-        """A keyframe for the adjuster, with its antenna offset when the camera is gimballed. Called
-        with cond held (the attitude history)."""
-        offset = None
+        """A keyframe for the adjuster, with a gimballed camera's antenna offset and the orientation prior from an
+        attitude covering its stamp and the mount (`camera_prior_map_R_cam`). Called with cond held (attitudes)."""
+        offset = prior = None
+        enu_R_flu = self._attitude.at(stamp) if len(self._attitude) else None
+        if enu_R_flu is not None:
+            prior = camera_prior_map_R_cam(enu_R_flu, self._flu_R_cam, self.p.gimballed)
+        elif len(self._attitude):
+            self.diag.count('keyframes_without_attitude_prior')
         if self.p.gimbal:
-            enu_R_flu = self._attitude.at(stamp)
             if enu_R_flu is None:
                 self.diag.count('keyframes_without_attitude')
                 self.diag.problem('lever_arm_body_frd_m is set but no attitude (mavlink/attitude) covers the '
@@ -341,7 +408,8 @@ class AdjustmentStage:
                                   'camera frame (lever_arm_cam_m) for a camera fixed to the body, or zeros')
             else:
                 offset = antenna_offset_enu(enu_R_flu, self.p.lever_arm_body_frd_m)
-        return KeyframeRecord(stamp, ids, uv, fix, target_uv=target_uv, antenna_offset_map_m=offset)
+        return KeyframeRecord(stamp, ids, uv, fix, target_uv=target_uv, antenna_offset_map_m=offset,
+                              map_R_cam_prior=prior)
 
     def _match_fix(self, stamp: int) -> GnssFix | None:
         tol = int(self.p.sync_tolerance_ms * 1e6)
@@ -483,7 +551,6 @@ class AdjustmentStage:
             # The live accuracy reads these instead of the keyframes' observation tables, which a long
             # flight keeps on disk (reading them would thaw every keyframe).
             self.live.observe(self.at.block.n_keyframes - 1, rec.target_uv)
-        self._vet_control()
         if self.at.unplaced_keyframes > self._unplaced:
             n, self._unplaced = self.at.unplaced_keyframes - self._unplaced, self.at.unplaced_keyframes
             self.diag.count('keyframes_unplaced', n)
@@ -501,11 +568,21 @@ class AdjustmentStage:
             self._count_not_oriented(rep.status)
         self._block_moved = self._block_moved or rep.block_adjusted
         if not publish:
+            # Queued behind: the figures, the control vetting and the block check wait for the batch's newest.
             if rep.registered:
                 self._unpublished += 1
             return
-        self._report(rep)
         earlier, self._unpublished = self._unpublished, 0
+        self._publish_poses(rec, rep, earlier)   # the poses first: the figures below can wait
+        self._report(rep)
+        self._vet_control()
+        if (self.at.georeferenced and not self.at.georef_provisional
+                and self.at.block.n_oriented >= self._checked_at + 10):
+            self._checked_at = self.at.block.n_oriented
+            self._block_check()
+
+    def _publish_poses(self, rec, rep, earlier: int) -> None:
+        """The poses a keyframe's adjustment (and the `earlier` ones of its batch) gave, once georeferenced."""
         if not (self.at.georeferenced and rep.registered):
             return
         if self.at.georef_provisional and not self.p.publish_provisional:
@@ -559,8 +636,6 @@ class AdjustmentStage:
         if len(recent) >= min(5, self.p.health_window) and share > self.p.health_max_unoriented:
             self.diag.problem(f'{n_bad} of the last {len(recent)} keyframes are not oriented (last reason: '
                               f'{self._last_failure})', ERROR if share > 0.5 else WARN)
-        if at.georeferenced and not at.georef_provisional and at.block.n_oriented % 10 == 0:
-            self._block_check()
         with_fix = sum(kf.fix_enu is not None for kf in at.block.keyframes())
         if not at.georeferenced and with_fix >= self.p.georef_warn_keyframes:
             why = (f'{at.block.n_oriented} keyframes oriented' if at.block.n_oriented else 'no keyframe oriented yet')
@@ -638,18 +713,23 @@ class AdjustmentStage:
             self.out.camera(self.at.block.camera, stamp_ns)
         self._publish(window=self.at.block.oriented(), new=new)
 
-    def _publish(self, window, new: int = 1) -> None:
-        """Poses of `window`, the path, and the sparse cloud once `new` keyframes make cloud_every."""
+    def _publish(self, window, new: int = 1, final: bool = False) -> None:
+        """Poses of `window` (`final`: a full adjustment's), the path, the sparse cloud once `new` make cloud_every."""
         at = self.at
         if not self._georef_sent and at.origin is not None:
             o = at.origin
             self.out.georeference(o.lat_deg, o.lon_deg, o.h_m, at.block.keyframe(window[-1]).stamp_ns)
             self._georef_sent = True
-        centre_cov = self._centre_covariances(window)
+        # In flight the covariances are refreshed after the poses (half a window update); after a full one first.
+        centre_cov = self._centre_covariances(window) if final else dict(self._centre_cov)
         kfs = [at.block.keyframe(k) for k in window]
-        self.out.poses([(kf.map_T_cam, kf.stamp_ns, pose_covariance(kf, centre_cov.get(kf.kid))) for kf in kfs])
-        stamp = at.block.keyframe(window[-1]).stamp_ns
         path = [at.block.keyframe(k) for k in at.block.oriented()]
+        line = label_provisional(at, kfs, path, self._provisional_stamps, self.diag)
+        self.out.poses([(kf.map_T_cam, kf.stamp_ns, pose_covariance(kf, centre_cov.get(kf.kid), line))
+                        for kf in kfs])
+        if not final:
+            self._centre_covariances(window)
+        stamp = at.block.keyframe(window[-1]).stamp_ns
         self.out.path([kf.map_T_cam for kf in path], [kf.stamp_ns for kf in path], stamp)
         self._n_since_cloud += new
         if self._n_since_cloud >= self.p.cloud_every:
@@ -661,7 +741,9 @@ class AdjustmentStage:
         window_size keyframes of `window`, from one linearisation of the window problem at the
         current estimate (the keyframes sharing its points held, as in the window adjustment). A
         keyframe further back keeps its last one; between recomputations (covariance_every) the last
-        ones are reused, and a keyframe without one gets the stand-in."""
+        ones are reused, and a keyframe without one gets the stand-in. In flight a pose goes out with the
+        covariance of the last recomputation before it (its keyframe's first pose: the stand-in; the window's
+        next publications carry its marginal)."""
         if not self.p.marginal_covariance or not window:
             return {}
         self._cov_updates += 1
@@ -741,6 +823,10 @@ class AdjustmentStage:
             self.diag.set('full_adjustment_status', rep.status)
             self._adjusted_whole = True
             self._set_georeferenced()   # the end of a flight without fixes places the block by its GCPs
+            if self.at.georeferenced and self.at.georef_provisional:
+                self.diag.problem('the georeference is still provisional: the fixes lie on one straight line, so '
+                                  'the roll about it is the near-nadir assumption; the poses are published '
+                                  'labelled provisional (a turn, or 3 GCPs, makes them final)', WARN)
             if self.at.self_calibration is not None:
                 self.diag.set('self_calibration', self.at.self_calibration.text())
             conv = convergence(self.at, rep.status)   # None when it converged
@@ -758,7 +844,7 @@ class AdjustmentStage:
                 # were adjusted with (a self-calibration changes them).
                 self._camera_sent = self.at.block.camera
                 self.out.camera(self.at.block.camera, self.at.block.last_oriented().stamp_ns)
-                self._publish(window=self.at.block.oriented(), new=0)
+                self._publish(window=self.at.block.oriented(), new=0, final=True)
                 self.publish_cloud(self.at.block.last_oriented().stamp_ns)
             self.diag.count('full_adjustments')   # after publishing: a waiting caller gets the poses
             return AdjustmentOutcome('done', rep.status)
