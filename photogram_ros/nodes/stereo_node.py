@@ -226,6 +226,10 @@ class StereoNode(Node):
         try:
             if msg.header.frame_id not in ('map', '/map'):
                 raise PhotogramError(f'keyframe pose is in frame {msg.header.frame_id!r}, expected map')
+            if msgs.pose_is_provisional(msg):
+                # The roll about the first line is not known yet: no depth from it; the turn republishes it final.
+                self.diag.count('poses_provisional_held')
+                return
             T, cov = msgs.T_from_pose_with_covariance(msg)
             with self._lock:
                 kf = self._entry(msgs.ns_from_time(msg.header.stamp))
