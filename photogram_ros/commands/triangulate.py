@@ -96,14 +96,13 @@ def run(a) -> int:
     opt = TriangulateOptions(
         camera=a.camera, targets=a.targets, gcp=a.gcp, mtp=a.mtp,
         check_names=tuple(s.strip() for s in a.check.split(',') if s.strip()),
-        crs=a.crs, gcp_sigma_enu_m=floats(a.gcp_sigma, '--gcp-sigma', 3), neighbours=a.neighbours,
+        crs=a.crs, gcp_sigma_enu_m=floats(a.gcp_sigma, '--gcp-sigma', 3),
         window=a.window, lever_arm_cam_m=floats(a.lever_arm, '--lever-arm', 3),
         self_calibrate=refine, matching=matching,
         exif_altitude=a.exif_altitude, takeoff_h_m=a.takeoff_altitude_m, takeoff_heights=a.takeoff_heights,
         workers=a.workers, scheduler=a.scheduler, split=split,
         vetting=ControlVettingOptions(contradicted_heights='horizontal' if a.gcp_heights == 'checked' else 'use'))
     from photogram_ros.io.out_dir import usable_folder
-    opt.check()
     usable_folder(a.out)   # a file or an uncreatable path: said now, not after the adjustment
     log = (lambda text: print(text, file=sys.stderr))
     res = triangulate(a.input, a.out, opt, log=log, progress=not a.quiet, bag=_is_bag(a.input))
