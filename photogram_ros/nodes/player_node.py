@@ -27,12 +27,12 @@ from dataclasses import dataclass, field
 
 from rclpy.duration import Duration
 from rclpy.node import Node
-from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rosgraph_msgs.msg import Clock
 
 from photogram_ros.errors import BagError, ConfigError
 from photogram_ros.io.bag import BagReader, msg_class
 from photogram_ros.msgs import time_from_ns
+from photogram_ros.nodes import qos
 from photogram_ros.nodes.diagnostics import ERROR, Diagnostics
 from photogram_ros.nodes.node_main import run_job
 from photogram_ros.nodes.ros_params import declare
@@ -118,7 +118,7 @@ class PlayerNode(Node):
         super().__init__('player', **kwargs)
         self.params = declare(self, PlayerParams, overrides)
         self.diag = Diagnostics(self)
-        self._clock_pub = self.create_publisher(Clock, '/clock', 10)
+        self._clock_pub = self.create_publisher(Clock, '/clock', qos.clock())
         self._pubs = {}
         self.stop_requested = False
 
@@ -126,8 +126,7 @@ class PlayerNode(Node):
         if out_topic not in self._pubs:
             # rate 0: the history is one acknowledgement window (see the module docstring).
             depth = self.params.ack_window if self.params.rate == 0 else self.params.qos_depth
-            qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=depth, reliability=ReliabilityPolicy.RELIABLE)
-            self._pubs[out_topic] = self.create_publisher(msg_class(msgtype), out_topic, qos)
+            self._pubs[out_topic] = self.create_publisher(msg_class(msgtype), out_topic, qos.reliable(depth))
         return self._pubs[out_topic]
 
     def _wait_for_subscribers(self) -> None:

@@ -21,13 +21,13 @@ import sys
 from dataclasses import dataclass
 
 from rclpy.node import Node
-from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import Imu, NavSatFix
 from std_msgs.msg import UInt8
 
 from photogram_ros import msgs
 from photogram_ros.core.px4 import Px4Clock, enu_flu_from_ned_frd, fix_from_sensor_gps
 from photogram_ros.errors import ConfigError
+from photogram_ros.nodes import qos
 from photogram_ros.nodes.diagnostics import Diagnostics
 from photogram_ros.nodes.node_main import run_node
 from photogram_ros.nodes.ros_params import declare
@@ -62,13 +62,12 @@ class Px4Adapter(Node):
         self.diag = Diagnostics(self)
         self.clock = Px4Clock()
         sensor_gps, vehicle_attitude = px4_message_types()
-        px4_qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10, reliability=ReliabilityPolicy.BEST_EFFORT)
-        out_qos = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
-        self.pub_fix = self.create_publisher(NavSatFix, 'gps/fix', out_qos)
-        self.pub_fix_type = self.create_publisher(UInt8, 'gps/fix_type', out_qos)
-        self.pub_att = self.create_publisher(Imu, 'mavlink/attitude', out_qos)
-        self.create_subscription(sensor_gps, self.p.gps_topic, self.on_gps, px4_qos)
-        self.create_subscription(vehicle_attitude, self.p.attitude_topic, self.on_attitude, px4_qos)
+        # PX4's uXRCE-DDS topics are best effort; every topic is overridable from the parameters (nodes/qos.py).
+        self.pub_fix = qos.publisher(self, NavSatFix, 'gps/fix', qos.reliable(100))
+        self.pub_fix_type = qos.publisher(self, UInt8, 'gps/fix_type', qos.reliable(100))
+        self.pub_att = qos.publisher(self, Imu, 'mavlink/attitude', qos.reliable(100))
+        qos.subscription(self, sensor_gps, self.p.gps_topic, self.on_gps, qos.sensor_data(10))
+        qos.subscription(self, vehicle_attitude, self.p.attitude_topic, self.on_attitude, qos.sensor_data(10))
         self._att_var = (self.p.attitude_sigma_rp_rad ** 2, self.p.attitude_sigma_rp_rad ** 2,
                          self.p.attitude_sigma_yaw_rad ** 2)
 

@@ -33,6 +33,7 @@ from rclpy.time import Time
 
 from photogram_ros.core.incremental import AUTO_CANDIDATES, PASS_GROWTH_RATIO
 from photogram_ros.io.progress import Progress, Steps, say_stdout
+from photogram_ros.nodes import qos
 from photogram_ros.nodes.diagnostics import PROBLEM_SEPARATOR
 from photogram_ros.nodes.graph import NODES, Graph, GraphSpec, WorkWatch
 from photogram_ros.nodes.player_node import PlayerNode
@@ -100,7 +101,7 @@ class DiagnosticsLog:
         self.t0 = time.monotonic()
         self.nodes: dict = {}
         self._lock = threading.Lock()
-        node.create_subscription(DiagnosticArray, '/diagnostics', self._on, 100)
+        node.create_subscription(DiagnosticArray, '/diagnostics', self._on, qos.reliable(100))
 
     def _on(self, msg: DiagnosticArray) -> None:
         t = time.monotonic() - self.t0
@@ -301,7 +302,7 @@ def run_replay(opts: ReplayOptions, context=None) -> dict:
             raise DataError(f'{opts.bag}: no frame could be read (see the camera node\'s messages above)')
     listener = Node('replay_monitor', **kwargs)
     from rosgraph_msgs.msg import Clock
-    clock_pub = listener.create_publisher(Clock, '/clock', 10)
+    clock_pub = listener.create_publisher(Clock, '/clock', qos.clock())
     diag_log = DiagnosticsLog(listener)
     graph.executor.add_node(listener)
     # The player only publishes: not spinning it keeps its entities out of the executor's wait set,
@@ -385,7 +386,7 @@ def run_replay(opts: ReplayOptions, context=None) -> dict:
         from rosgraph_msgs.msg import Clock
 
         from photogram_ros.msgs import time_from_ns
-        clock = listener.create_publisher(Clock, '/clock', 10)
+        clock = listener.create_publisher(Clock, '/clock', qos.clock())
         summary, t0, last_ns = PlaySummary(), time.monotonic(), bag_start_ns
         while (stamp_ns := camera.peek_stamp_ns()) is not None:
             if opts.rate > 0:   # the flight's timing, sped up by `rate`
