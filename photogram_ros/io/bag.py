@@ -193,7 +193,8 @@ class BagWriter:
         return False
 
     def add_topic(self, topic: str, msgtype: str, msgdef: str | None = None, qos=()) -> None:
-        """`qos`: the publishers' rclpy QoSProfiles (or rosbags Qos, e.g. latched_qos()), recorded as the topic's
+        """`msgdef`: the .msg text of a type outside the ROS 2 Jazzy type store (px4_msgs: io/bag_px4.py).
+        `qos`: the publishers' rclpy QoSProfiles (or rosbags Qos, e.g. latched_qos()), recorded as the topic's
         offered_qos_profiles (rosbag2 play offers the same ones again)."""
         if topic in self._connections:
             return
@@ -204,7 +205,9 @@ class BagWriter:
             if msgdef is None:
                 raise BagError(f'message type {msgtype!r} of topic {topic} is not in the ROS 2 Jazzy '
                                'type store and no definition was given')
-            kwargs = {'msgdef': msgdef, 'rihs01': '', 'offered_qos_profiles': kwargs['offered_qos_profiles']}
+            # Registered (.msg text) so that the bag records its definition and type hash, as rosbag2 does.
+            from rosbags.typesys import get_types_from_msg
+            self._typestore.register(get_types_from_msg(msgdef, msgtype))
         self._connections[topic] = self._writer.add_connection(topic, msgtype, **kwargs)
 
     def write(self, topic: str, stamp_ns: int, msg) -> None:

@@ -55,6 +55,22 @@ def px4_message_types():
                           f'in your workspace and source it ({exc})') from exc
 
 
+def fix_messages(fix: dict, stamp_ns: int, frame_id: str) -> tuple:
+    """A fix of core/px4.fix_from_sensor_gps -> (gps/fix_type UInt8, gps/fix NavSatFix), as mavlink_node publishes
+    them: per-axis variances from eph/epv (DIAGONAL_KNOWN), UNKNOWN without them."""
+    var = fix['var_enu_m2']
+    navsat = msgs.navsatfix_msg(stamp_ns, fix['lat_deg'], fix['lon_deg'], fix['h_m'], fix['status'],
+                                var if var is not None else [0.0, 0.0, 0.0],
+                                NavSatFix.COVARIANCE_TYPE_DIAGONAL_KNOWN if var is not None else
+                                NavSatFix.COVARIANCE_TYPE_UNKNOWN, frame_id)
+    return UInt8(data=fix['fix_type'] & 0xFF), navsat
+
+
+def attitude_message(stamp_ns: int, q_enu_flu_xyzw, var_rad2, frame_id: str) -> Imu:
+    """An attitude (FLU body in ENU) -> the mavlink/attitude Imu."""
+    return msgs.imu_orientation_msg(stamp_ns, q_enu_flu_xyzw, var_rad2, frame_id=frame_id)
+
+
 class Px4Adapter(Node):
     def __init__(self, overrides: dict | None = None, **node_kwargs):
         super().__init__('px4_adapter', **node_kwargs)
@@ -78,12 +94,9 @@ class Px4Adapter(Node):
             self.diag.count('fixes_without_position')
             return
         stamp = fix['stamp_ns'] if fix['stamp_ns'] is not None else self.get_clock().now().nanoseconds
-        var = fix['var_enu_m2']
-        self.pub_fix_type.publish(UInt8(data=fix['fix_type'] & 0xFF))
-        self.pub_fix.publish(msgs.navsatfix_msg(stamp, fix['lat_deg'], fix['lon_deg'], fix['h_m'], fix['status'],
-                                                var if var is not None else [0.0, 0.0, 0.0],
-                                                NavSatFix.COVARIANCE_TYPE_DIAGONAL_KNOWN if var is not None else
-                                                NavSatFix.COVARIANCE_TYPE_UNKNOWN, self.p.frame_id))
+        fix_type, navsat = fix_messages(fix, stamp, self.p.frame_id)
+        self.pub_fix_type.publish(fix_type)
+        self.pub_fix.publish(navsat)
         self.diag.count('fixes')
 
     def on_attitude(self, msg) -> None:
@@ -91,8 +104,8 @@ class Px4Adapter(Node):
         if stamp is None:
             self.diag.count('attitudes_before_utc')
             return
-        self.pub_att.publish(msgs.imu_orientation_msg(stamp, enu_flu_from_ned_frd(msg.q), self._att_var,
-                                                      frame_id=self.p.attitude_frame_id))
+        self.pub_att.publish(attitude_message(stamp, enu_flu_from_ned_frd(msg.q), self._att_var,
+                                              self.p.attitude_frame_id))
         self.diag.count('attitudes')
 
 

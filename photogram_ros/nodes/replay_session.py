@@ -32,6 +32,7 @@ from rclpy.parameter import Parameter
 from rclpy.time import Time
 
 from photogram_ros.core.incremental import AUTO_CANDIDATES, PASS_GROWTH_RATIO
+from photogram_ros.io.bag_px4 import SENSOR_GPS, VEHICLE_ATTITUDE
 from photogram_ros.io.progress import Progress, Steps, say_stdout
 from photogram_ros.nodes import qos
 from photogram_ros.nodes.diagnostics import PROBLEM_SEPARATOR
@@ -215,14 +216,21 @@ def _bag_setup(opts: ReplayOptions, extra: dict):
         roles = ('mavlink', 'tracker', 'bundle', 'stereo', 'map')
     else:
         roles = ('tracker', 'bundle', 'stereo', 'map')
+        if SENSOR_GPS in {i.msgtype for i in topics.values()}:
+            # The player publishes PX4's fixes as /gps/fix (nodes/player_node.Px4Playback): a recorded one would
+            # be a second source.
+            exclude += [t for t in ('/gps/fix', '/gps/fix_type') if t in topics]
     if not bag_has_attitude(topics):
-        no_body_lever_arm(opts, extra, roles, 'the bag records no attitude (no /mavlink/from_fcu, no mavlink/attitude)')
+        no_body_lever_arm(opts, extra, roles, 'the bag records no attitude (no /mavlink/from_fcu, no mavlink/attitude, '
+                          'no PX4 VehicleAttitude)')
     return roles, exclude, topics, start_ns, warnings
 
 
 def bag_has_attitude(topics) -> bool:
-    """The bag's topics carry the body's attitude: raw MAVLink (ATTITUDE), or mavlink_node's output."""
-    return '/mavlink/from_fcu' in topics or any(t.endswith('mavlink/attitude') for t in topics)
+    """The bag's topics (BagReader.topics()) carry the body's attitude: raw MAVLink (ATTITUDE), mavlink_node's
+    output, or PX4's VehicleAttitude."""
+    return ('/mavlink/from_fcu' in topics or any(t.endswith('mavlink/attitude') for t in topics)
+            or any(getattr(i, 'msgtype', '') == VEHICLE_ATTITUDE for i in topics.values()))
 
 
 def no_body_lever_arm(opts: ReplayOptions, extra: dict, roles: tuple, why: str) -> bool:
