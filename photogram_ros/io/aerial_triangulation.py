@@ -38,6 +38,30 @@ from photogram_ros.io.progress import Steps, sayer
 from photogram_ros.io.trajectory import POSES_COLUMNS, write_trajectory_csv
 
 
+def is_targets_file(path) -> bool:
+    """A control file of ArUco targets ("name marker_id x y z [sigma_h_m sigma_v_m]" rows, as `replay --gcp` reads
+    it), not an OpenDroneMap gcp_list.txt ("x y z px py image [name]" rows): told by its first row after the CRS
+    line. False for a file that cannot be read (the gcp_list.txt reader then says why)."""
+    import re
+    try:
+        with open(path, encoding='utf-8', errors='replace') as f:
+            rows = [ln.split('#', 1)[0].strip() for ln in f]
+    except OSError:
+        return False
+    rows = [r for r in rows if r.strip(';, \t"\'')]
+    if len(rows) < 2:
+        return False
+    tokens = [t for t in re.split(r'[\s,;]+', rows[1]) if t]
+
+    def number(t):
+        try:
+            float(t)
+            return True
+        except ValueError:
+            return False
+    return len(tokens) in (5, 7) and not number(tokens[0]) and tokens[1].isdigit()
+
+
 @dataclass
 class TriangulateOptions:
     """Everything `triangulate` is asked, validated when it is made (`photogram-ros triangulate` makes it once from
@@ -61,6 +85,8 @@ class TriangulateOptions:
     takeoff_h_m: float | None = None          # for exif_altitude 'relative'
     takeoff_heights: str = 'msl'              # reference of takeoff_h_m: 'msl' or 'ellipsoidal'
     vetting: ControlVettingOptions = field(default_factory=ControlVettingOptions)   # control rows and heights
+    # vertical datum of the targets file's heights (io/control_file.HEIGHTS; a gcp_list.txt's CRS says its own)
+    control_heights: str = 'auto'
     workers: int = 1                          # photos: local Dask worker processes (1: this process, no Dask)
     scheduler: str | None = None              # photos: an existing Dask cluster, tcp://HOST:PORT
     # photos: blocks above split.split_photos adjusted as overlapping sub-blocks and merged; None: never split
@@ -76,6 +102,17 @@ class TriangulateOptions:
         if self.exif_altitude == 'relative' and self.takeoff_h_m is None:
             raise ConfigError('--exif-altitude relative needs the take-off point\'s height: --takeoff-altitude-m H '
                               '(m above mean sea level; add --takeoff-heights ellipsoidal for a WGS84 height)')
+        from photogram_ros.io.control_file import HEIGHTS
+        if self.gcp and not self.targets and is_targets_file(self.gcp):
+            # --gcp means "the control file" in every command: a targets file (replay --gcp's format) is one.
+            self.targets, self.gcp = self.gcp, None
+        if self.control_heights not in HEIGHTS:
+            raise ConfigError(f'--gcp-heights {self.control_heights!r}: one of {", ".join(HEIGHTS)} (the vertical '
+                              'datum of the control file\'s heights)')
+        if self.control_heights != 'auto' and self.gcp and not self.targets:
+            raise ConfigError(f'--gcp-heights {self.control_heights}: a gcp_list.txt ({self.gcp}) says the datum of '
+                              'its heights by the CRS of its first line (a compound one, e.g. EPSG:32632+3855, for '
+                              'EGM2008 heights): drop --gcp-heights, or name that CRS in the file')
         self.check_names = tuple(self.check_names)
         self.lever_arm_cam_m = tuple(self.lever_arm_cam_m)
         if self.self_calibrate is not None:
@@ -86,7 +123,7 @@ class TriangulateOptions:
         self.neighbours = self.matching.neighbours
         self.adjustment = from_dict(IncrementalOptions, {'window_size': self.window,
                                                          'lever_arm_cam_m': self.lever_arm_cam_m},
-                                    'triangulate --window/--lever-arm')
+                                    'triangulate --window/--lever-arm-cam')
 
     def refine(self, block: KeyframeBlock, n_gcps: int, assumptions: list) -> tuple:
         """The intrinsics the final adjustment refines: those asked for, else `auto_self_calibration`'s."""
@@ -484,4 +521,4 @@ def relative_exif_note(origin: LocalFrame, points_map_m, photos_geodetic, contro
             'MSL, or photos below the ground). Heights here are then off by about the take-off height (with GCPs, '
             'the whole block is strained): rerun with --exif-altitude relative --takeoff-altitude-m H (the take-off '
             'point\'s height above MSL; add --takeoff-heights ellipsoidal for a WGS84 one), or with '
-            '--exif-altitude msl if the site really lies there')
+            '--exif-altitude orthometric (EGM2008, the EXIF standard\'s MSL) if the site really lies there')

@@ -79,7 +79,7 @@ def read_bag_block(src: Path, opt: TriangulateOptions, log=None):
     control file's targets found in them."""
     from photogram_ros.io.bag_keyframes import read_bag_keyframes
     from photogram_ros.io.control_file import read_control_file
-    control_set = read_control_file(opt.targets, opt.check_names) if opt.targets else None
+    control_set = read_control_file(opt.targets, opt.check_names, opt.control_heights) if opt.targets else None
     block = read_bag_keyframes(src, opt.camera, control_set, log)
     if opt.exif_altitude:
         block.assumptions.append(f'--exif-altitude {opt.exif_altitude} ignored: a bag has no EXIF')
