@@ -148,3 +148,40 @@ def test_sample_flight_maps_from_recorded_px4_topics(sample_bag, tmp_path):
     assert cp['count'] >= 6
     assert cp['horizontal_m'] <= gate('check_h') * gsd_m and cp['z_m'] <= gate('check_v') * gsd_m
     assert rep['trajectory_vs_truth']['rmse_m'] <= gate('cameras_m')
+
+
+OLD_SENSOR_GPS = '''uint64 timestamp
+int32 lat
+int32 lon
+int32 alt
+int32 alt_ellipsoid
+uint8 fix_type
+float32 eph
+float32 epv
+uint64 time_utc_usec
+'''   # the position fields of SensorGps before PX4 v1.15 (1e-7 degrees, millimetres), as such a bag records them
+
+
+def test_a_recording_of_an_older_px4_reads_through_its_own_definition(tmp_path):
+    """rosbag2 records each type's definition: a SensorGps of a release before v1.15 (lat/lon in 1e-7 degrees)
+    reads through the bag's own, not the shipped v1.15 fields."""
+    from photogram_ros.io.bag import BagReader, BagWriter
+    from photogram_ros.io.bag_px4 import SENSOR_GPS, TOPIC_GPS, Px4Records, px4_topics
+    bag = tmp_path / 'old_px4'
+    with BagWriter(bag, storage='mcap') as w:
+        w.add_topic(TOPIC_GPS, SENSOR_GPS, msgdef=OLD_SENSOR_GPS)
+        cls = w.types.types[SENSOR_GPS]
+        w.write_raw(TOPIC_GPS, 1_781_000_000_200_000_000, bytes(w.types.serialize_cdr(
+            cls(timestamp=5_000_000, lat=473977000, lon=85456000, alt=440000, alt_ellipsoid=488000, fix_type=6,
+                eph=0.02, epv=0.03, time_utc_usec=1_781_000_000_123_456), SENSOR_GPS)))
+    with BagReader(bag) as r:
+        text = r.message_definition(TOPIC_GPS)
+        assert text.strip() == OLD_SENSOR_GPS.strip()
+        [m] = list(r.messages(list(px4_topics(r.topics()))))
+    records = Px4Records({SENSOR_GPS: text})
+    kind, stamp, fix = records.read(m.msgtype, m.stamp_ns, m.data)
+    assert records.recorded == [SENSOR_GPS] and kind == 'fix' and stamp == 1_781_000_000_123_456_000
+    assert fix['lat_deg'] == pytest.approx(47.3977) and fix['h_m'] == pytest.approx(488.0) and fix['fix_type'] == 6
+    # Read with the shipped v1.15 fields instead, the record does not fit: skipped with the reason, never a wrong fix.
+    kind, _, why = Px4Records().read(m.msgtype, m.stamp_ns, m.data)
+    assert kind == 'skipped' and 'does not match' in why

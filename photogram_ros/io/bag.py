@@ -427,6 +427,17 @@ class BagReader:
         """topic -> TopicInfo; `count` is what messages() can yield, `expected` what was recorded."""
         return dict(self._infos)
 
+    def message_definition(self, topic: str) -> str | None:
+        """The .msg text the recording holds for `topic`'s type (its own definition, without those of the types it
+        uses), or None when the bag does not say (read from its storage files, or not in .msg form)."""
+        if self._rosbags is None:
+            return None
+        for c in self._rosbags.connections:
+            d = getattr(c, 'msgdef', None)
+            if c.topic == topic and d is not None and getattr(d.format, 'name', '') == 'MSG' and d.data.strip():
+                return d.data.split('\n' + '=' * 80, 1)[0]
+        return None
+
     def verify(self) -> None:
         """Read every message once, so that `topics()` counts what really reads back (a damaged file
         can list a row whose data is gone); worth it for a damaged bag, whose readable part is small."""

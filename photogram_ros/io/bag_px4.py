@@ -2,8 +2,9 @@
 
 A bag recorded on a PX4 drone (`ros2 bag record /fmu/out/vehicle_gps_position /fmu/out/vehicle_attitude ...`)
 holds px4_msgs CDR. px4_msgs has no PyPI wheel, so the rclpy classes are missing here; rosbags reads the
-records from the message definitions shipped with the package (photogram_ros/io/px4_msgs/*.msg, PX4 v1.15's
-fields), registered into its ROS 2 Jazzy type store. `Px4Records` turns each record into what px4_adapter
+records from the definitions the recording holds (rosbag2 stores them: a bag of any PX4 release reads as it
+was recorded), else from those shipped with the package (photogram_ros/io/px4_msgs/*.msg, PX4 v1.15's fields),
+registered into its ROS 2 Jazzy type store. `Px4Records` turns each record into what px4_adapter
 publishes live, through core/px4.py's conversions: ('fix', stamp_ns, fix dict of fix_from_sensor_gps) and
 ('attitude', stamp_ns, q_enu_flu_xyzw) on the UNIX clock through the fixes' UTC times (Px4Clock); a record
 that cannot be used comes back as ('skipped', stamp_ns, reason).
@@ -35,14 +36,21 @@ def px4_msgdef(msgtype: str) -> str:
     return path.read_text()
 
 
+def _typestore(definitions: tuple):
+    from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+    store = get_typestore(Stores.ROS2_JAZZY)
+    for msgtype, text in definitions:
+        try:
+            store.register(get_types_from_msg(text, msgtype))
+        except Exception as exc:   # rosbags' own parse errors
+            raise BagError(f'the definition of {msgtype} cannot be read ({exc})') from exc
+    return store
+
+
 @lru_cache(maxsize=1)
 def px4_typestore():
     """rosbags' ROS 2 Jazzy type store with SensorGps and VehicleAttitude registered from the shipped definitions."""
-    from rosbags.typesys import Stores, get_types_from_msg, get_typestore
-    store = get_typestore(Stores.ROS2_JAZZY)
-    for msgtype in PX4_TYPES:
-        store.register(get_types_from_msg(px4_msgdef(msgtype), msgtype))
-    return store
+    return _typestore(tuple((t, px4_msgdef(t)) for t in PX4_TYPES))
 
 
 def px4_topics(topics: dict) -> dict:
@@ -56,17 +64,21 @@ def serialize_px4(msg) -> bytes:
 
 
 class Px4Records:
-    """Recorded PX4 messages (CDR) -> fixes and attitudes, in the order they are fed (see the module docstring)."""
+    """Recorded PX4 messages (CDR) -> fixes and attitudes, in the order they are fed (see the module docstring).
+    `definitions`: msgtype -> the .msg text the bag recorded (BagReader.message_definition), or None."""
 
-    def __init__(self):
+    def __init__(self, definitions: dict | None = None):
         self.clock = Px4Clock()
-        self.store = px4_typestore()
+        recorded = {t: d for t, d in (definitions or {}).items() if t in PX4_TYPES and d}
+        self.recorded = sorted(recorded)      # the types read from the bag's own definitions
+        self.store = (_typestore(tuple((t, recorded.get(t) or px4_msgdef(t)) for t in PX4_TYPES)) if recorded
+                      else px4_typestore())
 
     def read(self, msgtype: str, stamp_ns: int, data: bytes) -> tuple:
         try:
             msg = self.store.deserialize_cdr(data, msgtype)
         except Exception as exc:   # rosbags raises its own errors, or struct/index errors on a record that is short
-            return ('skipped', stamp_ns, f'{msgtype} record does not match PX4 v1.15\'s fields ({exc})')
+            return ('skipped', stamp_ns, f'{msgtype} record does not match its definition ({exc})')
         if msgtype == SENSOR_GPS:
             self.clock.update(int(msg.timestamp), int(msg.time_utc_usec))
             fix = fix_from_sensor_gps(msg)

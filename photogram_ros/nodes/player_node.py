@@ -128,10 +128,10 @@ class Px4Playback:
     """Recorded PX4 messages -> [(output topic, CDR)] as px4_adapter publishes them, with its default frames and
     attitude sigmas; what cannot be used is counted in `skipped` (reason -> count)."""
 
-    def __init__(self, topics: dict):
+    def __init__(self, topics: dict, definitions: dict | None = None):
         from photogram_ros.nodes.px4_adapter import Px4AdapterParams
         self.topics = dict(topics)            # recorded topic -> px4_msgs type
-        self.records = Px4Records()
+        self.records = Px4Records(definitions)     # msgtype -> the .msg text the bag recorded
         self.p = Px4AdapterParams()
         self.skipped: dict = {}
 
@@ -234,7 +234,7 @@ class PlayerNode(Node):
                 raise BagError(f'topics {missing} are not in {p.bag}; it has {sorted(infos)}')
             chosen = [t for t in chosen if t not in set(p.topic_list(p.exclude))]
             px4 = px4_topics({t: infos[t] for t in chosen})
-            self._px4 = Px4Playback(px4) if px4 else None
+            self._px4 = Px4Playback(px4, {m: bag.message_definition(t) for t, m in px4.items()}) if px4 else None
             playable = list(px4)
             for out, msgtype in (self._px4.outputs().items() if self._px4 else ()):
                 self._publisher(remaps.get(out, out), msgtype)
