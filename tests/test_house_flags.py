@@ -72,3 +72,13 @@ def test_gcp_takes_a_targets_file_and_a_gcp_list(tmp_path):
         TriangulateOptions(gcp=str(odm), control_heights='orthometric')
     with pytest.raises(ConfigError, match='--gcp-heights'):
         TriangulateOptions(targets=str(targets), control_heights='geoid')
+
+
+def test_the_body_lever_arm_definition_for_geotag_to_adopt():
+    import argparse
+
+    from photogram_ros.commands import common_args
+    p = argparse.ArgumentParser()
+    common_args.add_lever_arm_body(p, 'turned by each event\'s attitude')
+    assert p.parse_args(['--lever-arm', '0.1,0,-0.2']).lever_arm == '0.1,0,-0.2'
+    assert 'forward,right,down' in p.format_help() and p.parse_args([]).lever_arm == '0,0,0'

@@ -106,6 +106,14 @@ def add_heights(p, old_flag: str | None = None) -> None:
                        new_flag='--heights orthometric', help=argparse.SUPPRESS)
 
 
+def add_lever_arm_body(p, extra_help: str = '') -> None:
+    """--lever-arm: the GNSS antenna from the camera in the body frame (forward, right, down), m, as `geotag` and the
+    bundle node's lever_arm_body_frd_m take it; `extra_help`: what the command adds (e.g. how it is turned)."""
+    p.add_argument('--lever-arm', default='0,0,0',
+                   help='the GNSS antenna from the camera in the body frame, forward,right,down, m: "x,y,z"'
+                        + (f'. {extra_help}' if extra_help else '') + ' (default: 0,0,0)')
+
+
 def add_lever_arm_cam(p, old_flag: str | None = None) -> None:
     """--lever-arm-cam; `old_flag` (e.g. '--lever-arm'): its deprecated spelling, same value."""
     p.add_argument('--lever-arm-cam', default='0,0,0', help=LEVER_ARM_CAM_HELP + ' (default: 0,0,0)')
