@@ -28,8 +28,8 @@ def add_arguments(p) -> None:
                                     'sensor table or the 35 mm equivalent; principal point centred, no distortion)')
     p.add_argument('--crs', help='output CRS (default: the GCP CRS, else the UTM zone of the first photo)')
     p.add_argument('--gcp-sigma', default='0.02,0.02,0.03', help='GCP sigma E,N,U in metres')
-    common_args.add_gcp_heights(p, '--targets (a gcp_list.txt says its datum by its CRS: a compound one, e.g. '
-                                   'EPSG:32632+3855, for EGM2008 heights)', old_policy=True)
+    common_args.add_gcp_heights(p, 'a targets file (--targets, or --gcp; a gcp_list.txt says it by its own CRS)',
+                                old_policy=True)
     common_args.add_gcp_height_check(p)
     p.add_argument('--neighbours', type=int, default=8, help='photos matched with each photo first (nearest by '
                                                              'position, or largest footprint overlap)')

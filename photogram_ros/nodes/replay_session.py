@@ -458,6 +458,8 @@ def run_replay(opts: ReplayOptions, context=None) -> dict:
            'waited_for_downstream_s': round(lag_wait_s[0], 1),
            'bag_read': {t: [i.count, i.expected] for t, i in topics.items()}, 'bag_warnings': bag_warnings,
            'final_adjustment': end.final_adjustment, 'end_of_flight_errors': end.errors, 'counts': counts}
+    if summary.px4_skipped:
+        run['px4_records_not_published'] = dict(summary.px4_skipped)
     if drain_left:
         run['drain_gave_up'] = drain_left
     if any(lost.values()):
