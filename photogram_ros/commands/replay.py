@@ -8,6 +8,8 @@ replay ends by itself at the end of the flight and writes the products and the r
 
 from __future__ import annotations
 
+from photogram_ros.commands import common_args
+
 HELP = ('replay a flight (bag, photo folder, or video + GNSS log) through the whole mapper; writes clouds, DSM, '
         'ortho, trajectory and report to --out')
 EXIT_NOT_MAPPED = 5
@@ -28,16 +30,14 @@ def add_arguments(p) -> None:
     p.add_argument('--params', default=None, help='ROS 2 parameter file (default: the package\'s config/replay.yaml)')
     p.add_argument('--rate', type=float, default=0.0, help='bag time speed; 0 = as fast as the mapper keeps up')
     p.add_argument('--crs', default='', help='output CRS, e.g. EPSG:2056 (default: UTM zone of the map origin)')
-    p.add_argument('--orthometric', action='store_true', help='heights above the EGM2008 geoid instead of the ellipsoid')
+    common_args.add_heights(p, old_flag='--orthometric')
     p.add_argument('--min-pairs', type=int, default=2,
                    help='export only cells confirmed by this many stereo pairs (1 keeps everything)')
     p.add_argument('--gcp', default='', help='control-point file of the flight\'s ArUco targets (first line a CRS, '
                                          'then "name marker_id x y z [sigma_h_m sigma_v_m]"): GCPs constrain the '
                                          'adjustment, CHK* names are check points; the simulator writes targets.txt')
     p.add_argument('--check', default='', help='more check-point names of the --gcp file, comma separated')
-    p.add_argument('--gcp-heights', default='auto', choices=('auto', 'ellipsoidal', 'orthometric'),
-                   help='heights of the --gcp file (auto: EGM2008 orthometric only for a compound CRS, e.g. '
-                        'EPSG:32632+3855; else ellipsoidal)')
+    common_args.add_gcp_heights(p, 'the --gcp file')
     p.add_argument('--live-map', action='store_true',
                    help='make the products from the in-flight map (pairs matched with the poses they had when '
                         'they left the bundle window) instead of matching the keyframes again with the final '
@@ -131,9 +131,9 @@ def run(a) -> int:
     finally:
         rclpy.try_shutdown()
     truth = GroundTruth.load(a.truth) if a.truth else None
-    prod = export_products(res['map_dir'], out, params, a.crs, a.live_map, 'orthometric' if a.orthometric else
-                           'ellipsoidal', a.min_pairs, progress=not a.quiet, run=res['run'], truth=truth,
-                           control=control, diagnostics=res['diagnostics'])
+    prod = export_products(res['map_dir'], out, params, a.crs, a.live_map, a.heights, a.min_pairs,
+                           progress=not a.quiet, run=res['run'], truth=truth, control=control,
+                           diagnostics=res['diagnostics'])
     files, notes, figures = prod['files'], prod['notes'], prod['figures']
     res['run'] = figures.get('run', res['run'])
     (out / 'run.json').write_text(json.dumps({**res['run'], 'notes': notes}, indent=1, default=str))

@@ -3,6 +3,8 @@ by their GCPs)."""
 
 from __future__ import annotations
 
+from photogram_ros.commands import common_args
+
 HELP = ('aerial triangulation of a flight bag or of photos (geotagged: EXIF GPS or geo.txt; without positions: placed '
         'by their GCPs), GCPs/check points; report')
 
@@ -10,8 +12,9 @@ HELP = ('aerial triangulation of a flight bag or of photos (geotagged: EXIF GPS 
 def add_arguments(p) -> None:
     p.add_argument('input', help='a flight bag (images + /gps/fix or raw MAVLink), or a folder of geotagged JPEGs '
                                  '(with an optional OpenDroneMap geo.txt)')
-    p.add_argument('--gcp', help='OpenDroneMap gcp_list.txt (first line a CRS; names CHK* are check points, MTP* '
-                                 'manual tie points)')
+    p.add_argument('--gcp', help='the control file: an OpenDroneMap gcp_list.txt (first line a CRS; names CHK* are '
+                                 'check points, MTP* manual tie points), or for a bag the targets file `replay --gcp` '
+                                 'reads (the same as --targets)')
     p.add_argument('--mtp', help='manual tie points: one row per mark, "px py image name" (points without '
                                  'coordinates marked in several photos where matching fails)')
     p.add_argument('--targets', help='for a bag: the flight\'s control file of ArUco targets, as `replay --gcp` reads '
@@ -25,26 +28,27 @@ def add_arguments(p) -> None:
                                     'sensor table or the 35 mm equivalent; principal point centred, no distortion)')
     p.add_argument('--crs', help='output CRS (default: the GCP CRS, else the UTM zone of the first photo)')
     p.add_argument('--gcp-sigma', default='0.02,0.02,0.03', help='GCP sigma E,N,U in metres')
-    p.add_argument('--gcp-heights', choices=('checked', 'use'), default='checked',
-                   help='checked (default): a GCP height the GNSS-only block contradicts far beyond both sigmas '
-                        '(placeholders such as 0 or 400 m) is reported and the GCP used horizontally only; use: '
-                        'every height as given (the block bends to fit it)')
+    common_args.add_gcp_heights(p, 'a targets file (--targets, or --gcp; a gcp_list.txt says it by its own CRS)',
+                                old_policy=True)
+    common_args.add_gcp_height_check(p)
     p.add_argument('--neighbours', type=int, default=8, help='photos matched with each photo first (nearest by '
                                                              'position, or largest footprint overlap)')
     p.add_argument('--max-image-px', type=int, default=1000, help='photos: long side of the reduced photo features '
                                                                   'are detected on (px)')
     p.add_argument('--max-features', type=int, default=4000, help='photos: SIFT features per photo')
     p.add_argument('--window', type=int, default=10, help='sliding-window size of the incremental adjustment')
-    p.add_argument('--lever-arm', default='0,0,0', help='antenna in the camera frame x,y,z (m)')
+    common_args.add_lever_arm_cam(p, old_flag='--lever-arm')
     p.add_argument('--self-calibrate', default='auto', help='intrinsics refined in the final adjustment, e.g. '
                                                             '"f,k1,k2" (from f, cx, cy, k1, k2, p1, p2, k3), "none", '
                                                             'or "auto" (default: k1,k2 for a camera from the EXIF, '
                                                             'f too with 3+ GCPs, cx,cy too with RTK/PPK-precise '
                                                             'geotags; nothing for a calibration)')
-    p.add_argument('--exif-altitude', choices=('msl', 'ellipsoidal', 'relative'), default=None,
-                   help='what the photos\' EXIF GPSAltitude is: msl (the EXIF standard; default), ellipsoidal '
-                        '(WGS84), or relative to the take-off point (many drones; needs --takeoff-altitude-m). '
-                        'Not given: msl, and the report says if the adjusted ground makes that look wrong')
+    p.add_argument('--exif-altitude', choices=common_args.datum_choices('relative'), action=common_args.Datum,
+                   metavar=common_args.datum_metavar('relative'), default=None,
+                   help='what the photos\' EXIF GPSAltitude is: orthometric (EGM2008; "above mean sea level", the '
+                        'EXIF standard; default), ellipsoidal (WGS84), or relative to the take-off point (many '
+                        'drones; needs --takeoff-altitude-m). Not given: orthometric, and the report says if the '
+                        'adjusted ground makes that look wrong')
     p.add_argument('--takeoff-altitude-m', type=float, default=None,
                    help='height of the take-off point (m), for --exif-altitude relative')
     p.add_argument('--workers', type=int, default=1,
@@ -60,8 +64,10 @@ def add_arguments(p) -> None:
     p.add_argument('--overlap-m', type=float, default=None,
                    help='photos, split-merge: overlap radius between sub-blocks in metres (default: the median '
                         'distance from a photo to its 8th nearest photo)')
-    p.add_argument('--takeoff-heights', choices=('msl', 'ellipsoidal'), default='msl',
-                   help='reference of --takeoff-altitude-m: msl (EGM2008; default) or ellipsoidal (WGS84)')
+    p.add_argument('--takeoff-heights', choices=common_args.datum_choices(), action=common_args.Datum,
+                   metavar=common_args.datum_metavar(), default='orthometric',
+                   help='vertical datum of --takeoff-altitude-m: orthometric (EGM2008; default) or ellipsoidal '
+                        '(WGS84)')
     p.add_argument('--quiet', action='store_true', help='no progress lines (on stderr; warnings are still said)')
 
 
@@ -73,6 +79,11 @@ def _is_bag(path) -> bool:
     from photogram_ros.nodes.replay_session import source_kind
     p = Path(path)
     return p.exists() and source_kind(p) == 'bag'
+
+
+def _msl(datum: str | None) -> str | None:
+    """The command's datum spelling -> TriangulateOptions' ('orthometric' is its 'msl': EGM2008)."""
+    return 'msl' if datum == 'orthometric' else datum
 
 
 def run(a) -> int:
@@ -96,14 +107,14 @@ def run(a) -> int:
     opt = TriangulateOptions(
         camera=a.camera, targets=a.targets, gcp=a.gcp, mtp=a.mtp,
         check_names=tuple(s.strip() for s in a.check.split(',') if s.strip()),
-        crs=a.crs, gcp_sigma_enu_m=floats(a.gcp_sigma, '--gcp-sigma', 3), neighbours=a.neighbours,
-        window=a.window, lever_arm_cam_m=floats(a.lever_arm, '--lever-arm', 3),
+        crs=a.crs, gcp_sigma_enu_m=floats(a.gcp_sigma, '--gcp-sigma', 3),
+        window=a.window, lever_arm_cam_m=floats(a.lever_arm_cam, '--lever-arm-cam', 3),
         self_calibrate=refine, matching=matching,
-        exif_altitude=a.exif_altitude, takeoff_h_m=a.takeoff_altitude_m, takeoff_heights=a.takeoff_heights,
+        exif_altitude=_msl(a.exif_altitude), takeoff_h_m=a.takeoff_altitude_m,
+        takeoff_heights=_msl(a.takeoff_heights), control_heights=a.gcp_heights,
         workers=a.workers, scheduler=a.scheduler, split=split,
-        vetting=ControlVettingOptions(contradicted_heights='horizontal' if a.gcp_heights == 'checked' else 'use'))
+        vetting=ControlVettingOptions(contradicted_heights='horizontal' if a.gcp_height_check == 'checked' else 'use'))
     from photogram_ros.io.out_dir import usable_folder
-    opt.check()
     usable_folder(a.out)   # a file or an uncreatable path: said now, not after the adjustment
     log = (lambda text: print(text, file=sys.stderr))
     res = triangulate(a.input, a.out, opt, log=log, progress=not a.quiet, bag=_is_bag(a.input))

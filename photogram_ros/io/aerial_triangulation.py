@@ -16,7 +16,7 @@ io/split_merge_action.py `split_merge_block` (a large photo block as overlapping
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -38,8 +38,36 @@ from photogram_ros.io.progress import Steps, sayer
 from photogram_ros.io.trajectory import POSES_COLUMNS, write_trajectory_csv
 
 
+def is_targets_file(path) -> bool:
+    """A control file of ArUco targets ("name marker_id x y z [sigma_h_m sigma_v_m]" rows, as `replay --gcp` reads
+    it), not an OpenDroneMap gcp_list.txt ("x y z px py image [name]" rows): told by its first row after the CRS
+    line. False for a file that cannot be read (the gcp_list.txt reader then says why)."""
+    import re
+    try:
+        with open(path, encoding='utf-8', errors='replace') as f:
+            rows = [ln.split('#', 1)[0].strip() for ln in f]
+    except OSError:
+        return False
+    rows = [r for r in rows if r.strip(';, \t"\'')]
+    if len(rows) < 2:
+        return False
+    tokens = [t for t in re.split(r'[\s,;]+', rows[1]) if t]
+
+    def number(t):
+        try:
+            float(t)
+            return True
+        except ValueError:
+            return False
+    return len(tokens) in (5, 7) and not number(tokens[0]) and tokens[1].isdigit()
+
+
 @dataclass
 class TriangulateOptions:
+    """Everything `triangulate` is asked, validated when it is made (`photogram-ros triangulate` makes it once from
+    its arguments) and handed down whole: each stage reads its own part (`matching`, `adjustment`, `vetting`,
+    `split`) or field, and nothing below re-reads, re-defaults or re-checks it."""
+
     camera: str | None = None                 # calibration YAML; default: the bag's camera_info / the EXIF
     targets: str | None = None                # a bag's control file of ArUco targets (io/control_file.py)
     gcp: str | None = None                    # OpenDroneMap gcp_list.txt (its MTP* rows: manual tie points)
@@ -47,7 +75,7 @@ class TriangulateOptions:
     check_names: tuple = ()                   # check points besides CHK*
     crs: str | None = None                    # output CRS
     gcp_sigma_enu_m: tuple = (0.02, 0.02, 0.03)
-    neighbours: int = 8                       # photos matched with each photo
+    neighbours: int | None = None             # photos matched with each photo; None: matching.neighbours
     window: int = 10                          # sliding-window size
     lever_arm_cam_m: tuple = (0.0, 0.0, 0.0)  # antenna in the camera frame
     # Intrinsics refined in the final adjustment ('f', 'k1', ...); None: automatic (`auto_self_calibration`).
@@ -57,20 +85,51 @@ class TriangulateOptions:
     takeoff_h_m: float | None = None          # for exif_altitude 'relative'
     takeoff_heights: str = 'msl'              # reference of takeoff_h_m: 'msl' or 'ellipsoidal'
     vetting: ControlVettingOptions = field(default_factory=ControlVettingOptions)   # control rows and heights
+    # vertical datum of the targets file's heights (io/control_file.HEIGHTS; a gcp_list.txt's CRS says its own)
+    control_heights: str = 'auto'
     workers: int = 1                          # photos: local Dask worker processes (1: this process, no Dask)
     scheduler: str | None = None              # photos: an existing Dask cluster, tcp://HOST:PORT
     # photos: blocks above split.split_photos adjusted as overlapping sub-blocks and merged; None: never split
     split: SplitMergeOptions | None = field(default_factory=SplitMergeOptions)
+    # The incremental adjustment's options (window, lever arm), made and validated here from the fields above.
+    adjustment: IncrementalOptions = field(init=False, repr=False)
 
-    def check(self) -> None:
+    def __post_init__(self) -> None:
         from photogram_ros.params import from_dict
-        from_dict(IncrementalOptions, {'window_size': self.window}, 'triangulate --window')   # its declared range
         if self.takeoff_h_m is not None and self.exif_altitude != 'relative':
             raise ConfigError('--takeoff-altitude-m is only used with --exif-altitude relative (EXIF altitudes '
                               'above the take-off point): add that, or drop --takeoff-altitude-m')
         if self.exif_altitude == 'relative' and self.takeoff_h_m is None:
             raise ConfigError('--exif-altitude relative needs the take-off point\'s height: --takeoff-altitude-m H '
                               '(m above mean sea level; add --takeoff-heights ellipsoidal for a WGS84 height)')
+        from photogram_ros.io.control_file import HEIGHTS
+        if self.gcp and not self.targets and is_targets_file(self.gcp):
+            # --gcp means "the control file" in every command: a targets file (replay --gcp's format) is one.
+            self.targets, self.gcp = self.gcp, None
+        if self.control_heights not in HEIGHTS:
+            raise ConfigError(f'--gcp-heights {self.control_heights!r}: one of {", ".join(HEIGHTS)} (the vertical '
+                              'datum of the control file\'s heights)')
+        if self.control_heights != 'auto' and self.gcp and not self.targets:
+            raise ConfigError(f'--gcp-heights {self.control_heights}: a gcp_list.txt ({self.gcp}) says the datum of '
+                              'its heights by the CRS of its first line (a compound one, e.g. EPSG:32632+3855, for '
+                              'EGM2008 heights): drop --gcp-heights, or name that CRS in the file')
+        self.check_names = tuple(self.check_names)
+        self.lever_arm_cam_m = tuple(self.lever_arm_cam_m)
+        if self.self_calibrate is not None:
+            self.self_calibrate = tuple(self.self_calibrate)
+        if self.neighbours is not None:
+            self.matching = from_dict(MatchingOptions, {**self.matching.__dict__, 'neighbours': int(self.neighbours)},
+                                      'triangulate --neighbours')
+        self.neighbours = self.matching.neighbours
+        self.adjustment = from_dict(IncrementalOptions, {'window_size': self.window,
+                                                         'lever_arm_cam_m': self.lever_arm_cam_m},
+                                    'triangulate --window/--lever-arm-cam')
+
+    def refine(self, block: KeyframeBlock, n_gcps: int, assumptions: list) -> tuple:
+        """The intrinsics the final adjustment refines: those asked for, else `auto_self_calibration`'s."""
+        if self.self_calibrate is not None:
+            return self.self_calibrate
+        return auto_self_calibration(block, n_gcps, assumptions)
 
 
 @dataclass
@@ -173,15 +232,14 @@ def _triangulate_records(block: KeyframeBlock, opt: TriangulateOptions, control:
     `tie_obs` by photo name), the unregistered photos retried, and the full adjustment refining `refine`:
     (at, its StepReport). `steps`: where its steps and the photos added are said."""
     steps = steps or Steps('triangulate', None, None)
-    lever = tuple(opt.lever_arm_cam_m)
     tie_obs = tie_obs or {}
     ties = {n for obs in tie_obs.values() for n in obs}
     # The distortion to be refined is refined in the pass too, at each 1.5-fold growth of the block: an uncalibrated
     # lens bends a long block away from its geotags (bench/notes_photo_triangulation_scale.md).
     in_pass = tuple(t for t in refine if t in DISTORTION_TERMS)
-    at = IncrementalAT(block.camera, IncrementalOptions(
-        window_size=opt.window, lever_arm_cam_m=lever, pass_self_calibration=','.join(in_pass),
-        growth_ratio=PASS_GROWTH_RATIO if in_pass else 0.0), block.origin, control, ties=ties)
+    at = IncrementalAT(block.camera, replace(opt.adjustment, pass_self_calibration=','.join(in_pass),
+                                            growth_ratio=PASS_GROWTH_RATIO if in_pass else 0.0),
+                       block.origin, control, ties=ties)
     added = steps.progress(f'aerial triangulation{what}', len(block.records), 'photos added')
     oriented = (lambda: f'{at.block.n_oriented} oriented')
     for rec in block.records:
@@ -201,9 +259,10 @@ def _triangulate_records(block: KeyframeBlock, opt: TriangulateOptions, control:
     return at, rep_adj
 
 
-def control_rows(block: KeyframeBlock, opt: TriangulateOptions, control_set, origin):
+def control_rows(block: KeyframeBlock, opt: TriangulateOptions, control_set, origin, gcps=None):
     """(control points, rows, heights as written, CRS, manual tie point rows) of a bag's targets (their
-    detections in the records) or of opt.gcp, and the MTPs of opt.gcp and opt.mtp."""
+    detections in the records) or of opt.gcp (`gcps`: that file as io/control_file.py read_gcp_list read it
+    already; None: read here), and the MTPs of opt.gcp and opt.mtp."""
     from photogram_ros.io.control_file import read_gcp_list, read_tie_list
     ties = read_tie_list(opt.mtp) if opt.mtp else []
     if control_set is not None:
@@ -211,7 +270,7 @@ def control_rows(block: KeyframeBlock, opt: TriangulateOptions, control_set, ori
                 for n, uv in rec.target_uv.items()]
         return control_set.in_map(origin), rows, {}, None, ties
     if opt.gcp:
-        gcps = read_gcp_list(opt.gcp, opt.check_names)
+        gcps = gcps if gcps is not None else read_gcp_list(opt.gcp, opt.check_names)
         return (gcps.in_map(origin, opt.gcp_sigma_enu_m), gcps.rows, gcps.file_heights, gcps.crs,
                 gcps.tie_rows + ties)
     return [], [], {}, None, ties
@@ -248,36 +307,36 @@ def manual_tie_obs(rows: list, images: set, assumptions: list, log=None) -> dict
 
 
 def adjust_block(block: KeyframeBlock, out: str | Path, opt: TriangulateOptions, control_set=None,
-                 log=None, t0: float | None = None, progress=True, steps: Steps | None = None) -> TriangulateResult:
+                 log=None, t0: float | None = None, progress=True, steps: Steps | None = None,
+                 gcps=None) -> TriangulateResult:
     """Incremental AT of the block's records, a full adjustment, then poses, sparse cloud and report.
 
-    control_set: a bag's ControlSet, whose observations are already in the records; else opt.gcp.
+    control_set: a bag's ControlSet, whose observations are already in the records; else opt.gcp (`gcps`: as
+    read already, or None).
     With control rows the block is first adjusted on its GNSS alone, every row and point is checked
     against it (core/control.py vet_control: rows naming the wrong photo, heights the GNSS contradicts),
     and the block is adjusted again with the control that passed.
     progress: as triangulate()'s; `steps`: the job's Steps so far (then `progress` is not used).
     """
-    return adjust_and_write(block, out, opt, control_set, log, t0, progress, steps)[0]
+    return adjust_and_write(block, out, opt, control_set, log, t0, progress, steps, gcps)[0]
 
 
 def adjust_and_write(block: KeyframeBlock, out: str | Path, opt: TriangulateOptions, control_set=None,
-                      log=None, t0: float | None = None, progress=True,
-                      steps: Steps | None = None) -> tuple[TriangulateResult, IncrementalAT, object, dict]:
+                      log=None, t0: float | None = None, progress=True, steps: Steps | None = None,
+                      gcps=None) -> tuple[TriangulateResult, IncrementalAT, object, dict]:
     """adjust_block(), and its adjusted IncrementalAT, BlockInputs and control: {'vetting' (ControlVetting or
     None), 'control' (the ControlPoints as adjusted), 'target_obs' (the GCP observations used, by photo)}."""
     steps = steps or Steps('triangulate', None, sayer(progress, log))
     out = Path(out)
     origin, assumptions = block.origin, block.assumptions
-    control, rows, file_heights, gcp_crs, tie_rows = control_rows(block, opt, control_set, origin)
+    control, rows, file_heights, gcp_crs, tie_rows = control_rows(block, opt, control_set, origin, gcps)
     tie_obs = manual_tie_obs(tie_rows, {r.name for r in block.records}, assumptions, log)
     crs = opt.crs or gcp_crs or f'EPSG:{utm_epsg(origin.lat_deg, origin.lon_deg)}'
     t_at = time.monotonic()
     vet, gnss_without, target_obs = None, None, {}
     at = rep_adj = None
     if rows:
-        refine0 = (tuple(opt.self_calibrate) if opt.self_calibrate is not None
-                   else auto_self_calibration(block, 0, []))
-        at, rep_adj = _triangulate_records(block, opt, [], {}, refine0, log, ' (GNSS only, to check the control)',
+        at, rep_adj = _triangulate_records(block, opt, [], {}, opt.refine(block, 0, []), log, ' (GNSS only, to check the control)',
                                            tie_obs, steps)
         steps.start('checking the control against the GNSS-only block')
         P0 = at.block.tie_point_cloud()
@@ -302,8 +361,7 @@ def adjust_and_write(block: KeyframeBlock, out: str | Path, opt: TriangulateOpti
             at.set_control(control)   # the GNSS-only block is the result: check points from the vetted rows
     n_gcps = sum(p.role == 'gcp' and p.use == 'full' for p in vet.points.values()) if vet else \
         sum(c.role == 'gcp' for c in control)
-    refine = (tuple(opt.self_calibrate) if opt.self_calibrate is not None
-              else auto_self_calibration(block, n_gcps, assumptions))
+    refine = opt.refine(block, n_gcps, assumptions)
     if at is None or target_obs:
         at, rep_adj = _triangulate_records(block, opt, control, target_obs, refine, log, tie_obs=tie_obs, steps=steps)
     res, inputs = finish_block(block, out, opt, at, rep_adj, refine, control, vet,
@@ -338,8 +396,7 @@ def finish_block(block: KeyframeBlock, out: Path, opt: TriangulateOptions, at: I
     lost = [kf.name for kf in at.block.keyframes() if kf.map_T_cam is None]
     if lost:
         assumptions.append(f'{len(lost)} photos could not be oriented (blurred or without overlap): {lost[:10]}')
-    lever = tuple(opt.lever_arm_cam_m)
-    assumptions.append('lever arm antenna-camera ' + str(lever) + ' m in the camera frame')
+    assumptions.append('lever arm antenna-camera ' + str(opt.lever_arm_cam_m) + ' m in the camera frame')
     P = at.block.tie_point_cloud()
     if block.exif_geodetic is not None:
         note = relative_exif_note(origin, P, block.exif_geodetic, _trusted_ground(control, vet))
@@ -464,4 +521,4 @@ def relative_exif_note(origin: LocalFrame, points_map_m, photos_geodetic, contro
             'MSL, or photos below the ground). Heights here are then off by about the take-off height (with GCPs, '
             'the whole block is strained): rerun with --exif-altitude relative --takeoff-altitude-m H (the take-off '
             'point\'s height above MSL; add --takeoff-heights ellipsoidal for a WGS84 one), or with '
-            '--exif-altitude msl if the site really lies there')
+            '--exif-altitude orthometric (EGM2008, the EXIF standard\'s MSL) if the site really lies there')

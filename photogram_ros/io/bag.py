@@ -193,7 +193,8 @@ class BagWriter:
         return False
 
     def add_topic(self, topic: str, msgtype: str, msgdef: str | None = None, qos=()) -> None:
-        """`qos`: the publishers' rclpy QoSProfiles (or rosbags Qos, e.g. latched_qos()), recorded as the topic's
+        """`msgdef`: the .msg text of a type outside the ROS 2 Jazzy type store (px4_msgs: io/bag_px4.py).
+        `qos`: the publishers' rclpy QoSProfiles (or rosbags Qos, e.g. latched_qos()), recorded as the topic's
         offered_qos_profiles (rosbag2 play offers the same ones again)."""
         if topic in self._connections:
             return
@@ -204,7 +205,9 @@ class BagWriter:
             if msgdef is None:
                 raise BagError(f'message type {msgtype!r} of topic {topic} is not in the ROS 2 Jazzy '
                                'type store and no definition was given')
-            kwargs = {'msgdef': msgdef, 'rihs01': '', 'offered_qos_profiles': kwargs['offered_qos_profiles']}
+            # Registered (.msg text) so that the bag records its definition and type hash, as rosbag2 does.
+            from rosbags.typesys import get_types_from_msg
+            self._typestore.register(get_types_from_msg(msgdef, msgtype))
         self._connections[topic] = self._writer.add_connection(topic, msgtype, **kwargs)
 
     def write(self, topic: str, stamp_ns: int, msg) -> None:
@@ -423,6 +426,17 @@ class BagReader:
     def topics(self) -> dict[str, TopicInfo]:
         """topic -> TopicInfo; `count` is what messages() can yield, `expected` what was recorded."""
         return dict(self._infos)
+
+    def message_definition(self, topic: str) -> str | None:
+        """The .msg text the recording holds for `topic`'s type (its own definition, without those of the types it
+        uses), or None when the bag does not say (read from its storage files, or not in .msg form)."""
+        if self._rosbags is None:
+            return None
+        for c in self._rosbags.connections:
+            d = getattr(c, 'msgdef', None)
+            if c.topic == topic and d is not None and getattr(d.format, 'name', '') == 'MSG' and d.data.strip():
+                return d.data.split('\n' + '=' * 80, 1)[0]
+        return None
 
     def verify(self) -> None:
         """Read every message once, so that `topics()` counts what really reads back (a damaged file

@@ -88,3 +88,20 @@ def read_dataflash_fixes(path, error_model: gf.ErrorModel | None = None):
             continue
         fixes.append(res.fix)
     return fixes, counts
+
+
+class DataflashFixes:
+    """An ArduPilot dataflash log as a GnssSource (io/gnss_source.py): `read_dataflash_fixes`'s fixes and counts."""
+
+    def __init__(self, path, error_model: gf.ErrorModel | None = None):
+        self.name = str(path)
+        self.error_model = error_model
+        self._counts: dict = {}
+
+    def fixes(self):
+        fixes, counts = read_dataflash_fixes(self.name, self.error_model)
+        self._counts = dict(counts)
+        yield from fixes
+
+    def counts(self) -> dict:
+        return dict(self._counts)

@@ -27,6 +27,7 @@ import numpy as np
 
 from photogram_ros.core import gnss_fix as gf
 from photogram_ros.errors import ConfigError, DataError
+from photogram_ros.io.geo_txt import read_geo_txt
 
 IMAGE_SUFFIXES = ('.jpg', '.jpeg', '.png', '.tif', '.tiff')
 GPS_IFD = 0x8825
@@ -480,7 +481,6 @@ class FolderSource:
         # Positions from a geo.txt beside the photos (a PPK geotag) replace their EXIF GPS.
         self.geo: dict = {}
         if (self.folder / 'geo.txt').exists():
-            from photogram_ros.io.photo_block import read_geo_txt
             self.geo = {name: GeoTxtPosition(*g) for name, g in read_geo_txt(self.folder / 'geo.txt').items()}
             self.notes.append(f'positions of {sum(p.name in self.geo for p, _ in self.entries)} of '
                               f'{len(self.entries)} photos from geo.txt (ellipsoidal heights, its accuracies as '

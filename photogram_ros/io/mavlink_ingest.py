@@ -398,3 +398,27 @@ def fixes_from_messages(messages, **ingest_kwargs) -> tuple[list, Ingest]:
                 out.append(ev)
     ing.flush()
     return out, ing
+
+
+class TlogFixes:
+    """A MAVLink telemetry log (.tlog) as a GnssSource (io/gnss_source.py): the fixes the MAVLink node publishes on
+    /gps/fix (the best receiver's; `all_receivers`: every receiver's as well), from `read_tlog` and `Ingest` with
+    `ingest_kwargs`; counts: the link's (io/mavlink_framing.py LinkStats) and the fixes given."""
+
+    def __init__(self, path, all_receivers: bool = False, **ingest_kwargs):
+        self.name = str(path)
+        self.all_receivers = all_receivers
+        self.ingest_kwargs = ingest_kwargs
+        self._counts: dict = {}
+
+    def fixes(self):
+        from photogram_ros.io.mavlink_framing import read_tlog
+        messages, stats = read_tlog(self.name)
+        events, _ = fixes_from_messages(messages, **self.ingest_kwargs)
+        out = [ev.fix for ev in events if ev.best or self.all_receivers]
+        self._counts = {'messages': len(messages), 'fixes': len(out),
+                        **{k: v for k, v in stats.as_dict().items() if k != 'by_type'}}
+        yield from out
+
+    def counts(self) -> dict:
+        return dict(self._counts)

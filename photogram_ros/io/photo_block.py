@@ -1,6 +1,6 @@
 """A folder of geotagged photos as keyframe records (`photogram-ros triangulate FOLDER`).
 
-Positions come from an OpenDroneMap geo.txt beside the photos (`read_geo_txt`; heights ellipsoidal,
+Positions come from an OpenDroneMap geo.txt beside the photos (io/geo_txt.read_geo_txt; heights ellipsoidal,
 its accuracies as sigmas), else from each photo's EXIF GPS (`exif_position`; what the EXIF altitude
 is relative to as the user says, MSL by default, sigma 5 m horizontal and 2 m vertical, or a DJI RTK
 photo's own sigmas and fix flag from its XMP: `dji_rtk_accuracy`; the report's assumptions and
@@ -35,49 +35,18 @@ import numpy as np
 
 from photogram_ros.core import photo_matching as pm
 from photogram_ros.core.camera import PinholeCamera
-from photogram_ros.core.geodesy import LocalFrame, crs_to_geodetic
+from photogram_ros.core.geodesy import LocalFrame
 from photogram_ros.core.gnss_fix import GnssFix
 from photogram_ros.core.incremental import KeyframeRecord
 from photogram_ros.errors import CalibrationError, DataError
 from photogram_ros.io.dask_cluster import InProcessRunner
+from photogram_ros.io.geo_txt import EXIF_SIGMA_H_M, EXIF_SIGMA_V_M, read_geo_txt
 from photogram_ros.io.image_source import (IMAGE_SUFFIXES, exif_altitude_to_ellipsoidal_m, exif_intrinsics,
                                            image_file_problem, read_dji_xmp, read_exif_gps, xmp_float)
 from photogram_ros.io.keyframe_block import KeyframeBlock, camera_from_yaml
 
-# Sigmas of an EXIF geotag (a consumer GNSS), and of a geo.txt line without accuracies. The heights
-# of one flight agree far better than their absolute error (DJI writes a barometric-fused altitude:
-# decimetres over a flight); a 10 m sigma let a near-nadir block bend its cameras by 0.4 m into a
-# dome that trades with the lens's k1 (brighton_beach: k1 0.013-0.017 from run to run, the GNSS
-# heights then 0.4 m off; with 2 m: k1 -0.0005, heights within 0.19 m, the same from 0.5 to 2 m).
-EXIF_SIGMA_H_M = 5.0
-EXIF_SIGMA_V_M = 2.0
 # Sigmas of a DJI RTK-fixed photo whose XMP states no RtkStd* (per-axis horizontal, vertical).
 RTK_FIXED_DEFAULT_M = (0.02, 0.03)
-
-
-def read_geo_txt(path: str | Path) -> dict[str, tuple[float, float, float, float, float]]:
-    """OpenDroneMap geo.txt -> {image name: (lat_deg, lon_deg, h_m ellipsoidal, h_acc_m, v_acc_m)}.
-
-    First line a CRS, then ``image x y z [omega phi kappa] [h_acc v_acc]`` (geographic: x = longitude).
-    """
-    path = Path(path)
-    lines = [ln.split() for ln in path.read_text().splitlines() if ln.strip() and not ln.startswith('#')]
-    if not lines:
-        raise DataError(f'{path} is empty')
-    crs = ' '.join(lines[0])
-    out = {}
-    for ln in lines[1:]:
-        if len(ln) < 4:
-            raise DataError(f'{path}: line {" ".join(ln)!r} needs: image x y z [omega phi kappa] [h_acc v_acc]')
-        x, y, z = (float(v) for v in ln[1:4])
-        if crs.upper() in ('EPSG:4326', 'WGS84', 'EPSG:4979'):
-            lat, lon, h = y, x, z
-        else:
-            lat, lon, h = (float(v) for v in crs_to_geodetic(x, y, z, crs))
-        h_acc = float(ln[7]) if len(ln) >= 9 else EXIF_SIGMA_H_M
-        v_acc = float(ln[8]) if len(ln) >= 9 else EXIF_SIGMA_V_M
-        out[ln[0]] = (lat, lon, h, max(h_acc, 1e-3), max(v_acc, 1e-3))
-    return out
 
 
 def exif_position(path: str | Path, altitude: str = 'msl', takeoff_h_m: float | None = None,

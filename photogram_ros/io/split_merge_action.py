@@ -9,7 +9,7 @@ merged block as one (`_global_adjustment`) and writes and checks it as one block
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -18,10 +18,10 @@ from photogram_ros.core.at_report import gnss_figures, rmse_xyz
 from photogram_ros.core.block_check import Finding, check_block
 from photogram_ros.core.evaluation import ce90_le90
 from photogram_ros.core.geodesy import utm_epsg
-from photogram_ros.core.incremental import SELF_CALIBRATION_BASE, IncrementalAT, IncrementalOptions
+from photogram_ros.core.incremental import SELF_CALIBRATION_BASE, IncrementalAT
 from photogram_ros.errors import ConfigError
 from photogram_ros.io.aerial_triangulation import (TriangulateOptions, TriangulateResult, adjust_and_write,
-                                                   auto_self_calibration, control_rows, finish_block, manual_tie_obs,
+                                                   control_rows, finish_block, manual_tie_obs,
                                                    with_findings, write_poses_and_cloud)
 from photogram_ros.io.at_report import write_report
 from photogram_ros.io.keyframe_block import KeyframeBlock
@@ -139,7 +139,7 @@ def sub_blocks_selection(runs: list, candidates: tuple) -> tuple | None:
 
 
 def _global_adjustment(block: KeyframeBlock, mr, runs: list, core_of: dict, opt: TriangulateOptions,
-                       log=None) -> dict:
+                       control: tuple, log=None) -> dict:
     """The merged block (core/split_merge.py MergeResult `mr`) adjusted as one block: an IncrementalAT seeded
     with the merged poses and tie points (core/incremental.py IncrementalAT.seed) and the sub-blocks' mean camera,
     GNSS noise scale, bias and rejected fixes, its GCP observations and control points as the sub-blocks vetted
@@ -155,13 +155,12 @@ def _global_adjustment(block: KeyframeBlock, mr, runs: list, core_of: dict, opt:
         raise ConfigError('no sub-block to start the global adjustment from')
     names = {r.name for r in block.records}
     notes: list = []
-    control, vet, target_obs, tie_obs, n_gcps = _global_control(block, opt, good, core_of, names, notes, log)
+    control, vet, target_obs, tie_obs, n_gcps = _global_control(control, good, core_of, names, notes, log)
     refine, stepwise, chosen = _global_refine(block, opt, good, n_gcps, notes)
     w = np.array([len(r.sub.map_T_cam) for r in good], float)
     camera = mean_camera([r.camera for r in good], w)
     ties = {n for o in tie_obs.values() for n in o}
-    at = IncrementalAT(camera, IncrementalOptions(window_size=opt.window, lever_arm_cam_m=tuple(opt.lever_arm_cam_m),
-                                                  spill_frozen=False), block.origin, control, ties=ties)
+    at = IncrementalAT(camera, replace(opt.adjustment, spill_frozen=False), block.origin, control, ties=ties)
     tuv = {nm: {**target_obs.get(nm, {}), **tie_obs.get(nm, {})} for nm in names}
     gate_px = opt.split.seed_gate_px if opt.split is not None else None
     seed = at.seed(block.records, mr.map_T_cam, mr.point_ids, mr.points_map_m, tuv, gate_px)
@@ -197,11 +196,11 @@ def _global_adjustment(block: KeyframeBlock, mr, runs: list, core_of: dict, opt:
     return {'at': at, 'rep_adj': rep_adj, 'refine': refine, 'control': control, 'vetting': vet, 'figures': figures}
 
 
-def _global_control(block: KeyframeBlock, opt: TriangulateOptions, good: list, core_of: dict, names: set,
-                    notes: list, log=None):
+def _global_control(control_of_file: tuple, good: list, core_of: dict, names: set, notes: list, log=None):
     """(control points, merged vetting or None, GCP observations used by photo, manual tie point observations by
-    photo, GCPs used in full) of the global adjustment: the control as the sub-blocks vetted it."""
-    control, rows, _, _, tie_rows = control_rows(block, opt, None, block.origin)
+    photo, GCPs used in full) of the global adjustment: the control of the file (`control_rows`) as the sub-blocks
+    vetted it."""
+    control, rows, _, _, tie_rows = control_of_file
     tie_obs = manual_tie_obs(tie_rows, names, notes, log)
     vet = _merged_vetting(good, core_of) if rows else None
     target_obs: dict = {}
@@ -217,8 +216,7 @@ def _global_control(block: KeyframeBlock, opt: TriangulateOptions, good: list, c
 
 def _global_refine(block: KeyframeBlock, opt: TriangulateOptions, good: list, n_gcps: int, notes: list):
     """(intrinsics refined, stepwise, the sub-blocks' choice or None) of the global adjustment."""
-    refine = (tuple(opt.self_calibrate) if opt.self_calibrate is not None
-              else auto_self_calibration(block, n_gcps, notes))
+    refine = opt.refine(block, n_gcps, notes)
     stepwise = opt.self_calibrate is None
     chosen = sub_blocks_selection(good, refine) if stepwise and refine else None
     if chosen is not None:
@@ -245,6 +243,9 @@ def split_merge_block(block: KeyframeBlock, out: str | Path, opt: TriangulateOpt
     steps = steps or Steps('triangulate', None, None)
     out = Path(out)
     sm = opt.split
+    # The control file read once: its points and rows for the global adjustment, its CRS for the output.
+    control = control_rows(block, opt, None, block.origin)
+    crs = opt.crs or control[3] or f'EPSG:{utm_epsg(block.origin.lat_deg, block.origin.lon_deg)}'
     pos = _geotag_positions(block)
     part = partition(pos, sm)
     steps.start(f'split-merge: {len(block.records)} photos in {part.n} overlapping sub-blocks')
@@ -265,18 +266,19 @@ def split_merge_block(block: KeyframeBlock, out: str | Path, opt: TriangulateOpt
     t_global = time.monotonic()
     if sm.global_adjustment and mr.map_T_cam:
         steps.start(f'global adjustment of the merged block ({len(mr.map_T_cam)} photos)')
-        glob, why = _try_global_adjustment(block, mr, runs, core_of, opt, log)
+        glob, why = _try_global_adjustment(block, mr, runs, core_of, opt, control, log)
     timing = {'sub_blocks': round(t_merge - t_at, 2), 'merge': round(t_global - t_merge, 2),
               'global_adjustment': round(time.monotonic() - t_global, 2)}
     if glob is not None:
-        return _write_global(block, out, opt, glob, runs, part, mr, sm_rep, findings, timing, t0, t_at, steps, log)
+        return _write_global(block, out, opt, crs, glob, runs, part, mr, sm_rep, findings, timing, t0, t_at, steps,
+                             log)
     if why:
         findings.append(Finding('global_adjustment', 'warning', f'the global adjustment after the merge did '
                                 f'not finish ({why}): the merged block without it is the result'))
         if log is not None:
             log(f'warning: split-merge: the global adjustment did not finish ({why})')
     merged = _Merged(runs, part, mr, pos, ck, checks_rep, sm_rep, why)
-    return _write_merged(block, out, opt, merged, findings, timing, t0, t_at, steps, log)
+    return _write_merged(block, out, opt, crs, merged, findings, timing, t0, t_at, steps, log)
 
 
 def _geotag_positions(block: KeyframeBlock) -> np.ndarray:
@@ -321,12 +323,12 @@ def _split_merge_figures(runs: list, part, mr, ck: dict) -> dict:
 
 
 def _try_global_adjustment(block: KeyframeBlock, mr, runs: list, core_of: dict, opt: TriangulateOptions,
-                           log=None) -> tuple[dict | None, str]:
+                           control: tuple, log=None) -> tuple[dict | None, str]:
     """(`_global_adjustment`'s result, '') or (None, why it did not finish)."""
     from photogram_ros.errors import PhotogramError
     glob, why = None, ''
     try:
-        glob = _global_adjustment(block, mr, runs, core_of, opt, log)
+        glob = _global_adjustment(block, mr, runs, core_of, opt, control, log)
     except (PhotogramError, np.linalg.LinAlgError, ValueError) as e:
         why = f'it stopped: {e}'
     if glob is not None and glob['rep_adj'].status == 'failed':
@@ -334,13 +336,7 @@ def _try_global_adjustment(block: KeyframeBlock, mr, runs: list, core_of: dict, 
     return glob, why
 
 
-def _output_crs(block: KeyframeBlock, opt: TriangulateOptions) -> str:
-    """The CRS asked for, else the GCP file's, else the UTM zone of the block's origin."""
-    _, _, _, gcp_crs, _ = control_rows(block, opt, None, block.origin)
-    return opt.crs or gcp_crs or f'EPSG:{utm_epsg(block.origin.lat_deg, block.origin.lon_deg)}'
-
-
-def _write_global(block: KeyframeBlock, out: Path, opt: TriangulateOptions, glob: dict, runs: list, part, mr,
+def _write_global(block: KeyframeBlock, out: Path, opt: TriangulateOptions, crs: str, glob: dict, runs: list, part, mr,
                   sm_rep: dict, findings: list, timing: dict, t0: float, t_at: float, steps: Steps,
                   log=None) -> TriangulateResult:
     """The globally adjusted block written as adjust_block writes one (io/aerial_triangulation.py finish_block),
@@ -365,7 +361,7 @@ def _write_global(block: KeyframeBlock, out: Path, opt: TriangulateOptions, glob
                                                  'left_out': mr.left_out, 'global_adjustment': gf['status']}},
              'timing_s': timing}
     return finish_block(block, out, opt, glob['at'], glob['rep_adj'], glob['refine'], glob['control'],
-                        glob['vetting'], None, _output_crs(block, opt), t0, t_at, steps, log, findings, extra)[0]
+                        glob['vetting'], None, crs, t0, t_at, steps, log, findings, extra)[0]
 
 
 def _sub_block_lines(runs: list) -> list[str]:
@@ -387,7 +383,7 @@ class _Merged:
     why: str                    # why there is no global adjustment ('' when it was off)
 
 
-def _write_merged(block: KeyframeBlock, out: Path, opt: TriangulateOptions, m: _Merged, findings: list,
+def _write_merged(block: KeyframeBlock, out: Path, opt: TriangulateOptions, crs: str, m: _Merged, findings: list,
                   timing: dict, t0: float, t_at: float, steps: Steps, log=None) -> TriangulateResult:
     """The merged block itself as the result: each photo's figures from the sub-block its pose came from, the
     block check of the merged cameras, poses, sparse cloud and report."""
@@ -398,7 +394,6 @@ def _write_merged(block: KeyframeBlock, out: Path, opt: TriangulateOptions, m: _
                                       'global_adjustment': 'failed' if m.why else 'off'}
     if log is not None and verdict.status != 'ok':
         log(f'warning: block check: {verdict.summary}')
-    crs = _output_crs(block, opt)
     steps.start('writing the poses, the sparse cloud and the report')
     names = [r.name for r in block.records]
     oriented = [nm for nm in names if nm in m.mr.map_T_cam]

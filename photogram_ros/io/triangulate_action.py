@@ -64,7 +64,6 @@ def triangulate(src: str | Path, out: str | Path, opt: TriangulateOptions, log=N
     docstring); log(text): warnings and what was read; progress: True (progress lines to `log`), False
     (none) or a say(text) function for them; bag: whether `src` is a flight bag (None: a folder with a
     metadata.yaml is one; a bag cut short has none, or is a bare storage file: say so)."""
-    opt.check()
     t0 = time.monotonic()
     src = Path(src)
     steps = Steps('triangulate', None, sayer(progress, log))
@@ -80,7 +79,7 @@ def read_bag_block(src: Path, opt: TriangulateOptions, log=None):
     control file's targets found in them."""
     from photogram_ros.io.bag_keyframes import read_bag_keyframes
     from photogram_ros.io.control_file import read_control_file
-    control_set = read_control_file(opt.targets, opt.check_names) if opt.targets else None
+    control_set = read_control_file(opt.targets, opt.check_names, opt.control_heights) if opt.targets else None
     block = read_bag_keyframes(src, opt.camera, control_set, log)
     if opt.exif_altitude:
         block.assumptions.append(f'--exif-altitude {opt.exif_altitude} ignored: a bag has no EXIF')
@@ -95,17 +94,18 @@ def _triangulate_photos(src: Path, out, opt: TriangulateOptions, log, t0: float,
     from photogram_ros.io.dask_cluster import open_runner
     from photogram_ros.io.photo_block import read_photo_block
     steps.start('features and matching of the photos')
-    gcp_origin = None
+    gcps = None
     if opt.gcp:
         from photogram_ros.io.control_file import read_gcp_list
-        gcp_origin = read_gcp_list(opt.gcp, opt.check_names).central_origin()
+        gcps = read_gcp_list(opt.gcp, opt.check_names)
     with open_runner(opt.workers, opt.scheduler, log) as runner:
         counted = CountedRunner(runner, steps.say)
         block = read_photo_block(src, opt.camera, opt.neighbours, opt.exif_altitude, opt.takeoff_h_m,
-                                 opt.takeoff_heights, log, opt.matching, counted, gcp_origin)
+                                 opt.takeoff_heights, log, opt.matching, counted,
+                                 gcps.central_origin() if gcps is not None else None)
         if opt.split is not None and len(block.records) > opt.split.split_photos:
             if any(r.fix is not None for r in block.records):
                 return split_merge_block(block, out, opt, counted, log, t0, steps)
             block.assumptions.append('not split into sub-blocks: without positions the photos cannot be '
                                      'grouped, the block is adjusted whole')
-    return adjust_block(block, out, opt, None, log, t0, steps=steps)
+    return adjust_block(block, out, opt, None, log, t0, steps=steps, gcps=gcps)

@@ -19,6 +19,8 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 
+from photogram_ros.nodes import qos
+
 OK, WARN, ERROR = DiagnosticStatus.OK, DiagnosticStatus.WARN, DiagnosticStatus.ERROR
 PROBLEM_SEPARATOR = ' | '
 
@@ -43,7 +45,7 @@ class Diagnostics:
         self._unpublished: list[str] = []   # problems since the last status: all of them are published
         self._level = OK
         self._rate_marks: dict[str, deque] = {}
-        self._pub = node.create_publisher(DiagnosticArray, '/diagnostics', 10)
+        self._pub = node.create_publisher(DiagnosticArray, '/diagnostics', qos.diagnostics())
         self._timer = steady_timer(node, period_s, self.publish)
 
     def count(self, key: str, n: int = 1) -> None:

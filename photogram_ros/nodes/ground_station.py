@@ -38,7 +38,6 @@ import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseWithCovarianceStamped
 from rclpy.node import Node
-from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import CompressedImage, NavSatFix, PointCloud2
 from std_msgs.msg import String
 
@@ -47,6 +46,7 @@ from photogram_ros.core.geodesy import LocalFrame, utm_epsg
 from photogram_ros.core.survey_quality import (BLOCK_ADJUSTED, BLOCK_IN_FLIGHT, GEOREF_FINAL, GEOREF_NONE,
                                                GEOREF_PROVISIONAL, GEOREF_UNKNOWN, GO, WAIT, QualityLimits, go_no_go)
 from photogram_ros.errors import PhotogramError
+from photogram_ros.nodes import qos
 from photogram_ros.nodes.diagnostics import Diagnostics
 from photogram_ros.nodes.ros_params import declare
 from photogram_ros.params import param
@@ -186,21 +186,17 @@ class GroundStationNode(Node):
         if ns in self.drones:
             return
         drone = self.drones[ns] = Drone(ns)
-        best_effort = QoSProfile(depth=5, reliability=ReliabilityPolicy.BEST_EFFORT)
-        latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
-                             durability=DurabilityPolicy.TRANSIENT_LOCAL)
+        # Over the radio link: each drone's topics overridable from the parameters (nodes/qos.py).
+        def sub(msg_type, suffix, handler, profile):
+            qos.subscription(self, msg_type, f'{ns}{suffix}', lambda m: self._take(drone, suffix, m, handler), profile)
 
-        def sub(msg_type, suffix, handler, qos):
-            self.create_subscription(msg_type, f'{ns}{suffix}', lambda m: self._take(drone, suffix, m, handler), qos)
-
-        sub(PointCloud2, CLOUD_SUFFIX, self._on_cloud, best_effort)
-        sub(NavSatFix, '/map/georeference', self._on_origin, latched)
-        sub(PoseWithCovarianceStamped, '/map/keyframe_pose', self._on_pose, QoSProfile(depth=50))
-        sub(CompressedImage, '/map/ortho_tiles', self._on_tile,
-            QoSProfile(depth=100, reliability=ReliabilityPolicy.BEST_EFFORT))
-        sub(String, '/map/coverage', lambda d, m: self._on_document(d, m, 'coverage'), latched)
-        sub(String, '/map/control_points', lambda d, m: self._on_document(d, m, 'quality'), latched)
-        sub(NavSatFix, FIX_SUFFIX, self._on_fix, QoSProfile(depth=10, reliability=ReliabilityPolicy.BEST_EFFORT))
+        sub(PointCloud2, CLOUD_SUFFIX, self._on_cloud, qos.best_effort(5))
+        sub(NavSatFix, '/map/georeference', self._on_origin, qos.latched())
+        sub(PoseWithCovarianceStamped, '/map/keyframe_pose', self._on_pose, qos.reliable(50))
+        sub(CompressedImage, '/map/ortho_tiles', self._on_tile, qos.best_effort(100))
+        sub(String, '/map/coverage', lambda d, m: self._on_document(d, m, 'coverage'), qos.latched())
+        sub(String, '/map/control_points', lambda d, m: self._on_document(d, m, 'quality'), qos.latched())
+        sub(NavSatFix, FIX_SUFFIX, self._on_fix, qos.best_effort(10))
         self.get_logger().info(f'following drone {ns or "/"}')
 
     def _publishers_of(self, topic: str) -> list:

@@ -3,7 +3,8 @@
 Input: a link named by `url` (udpin:/udpout:/tcp:/tcpin:/serial device/.tlog file), or raw bytes
 on `input_topic` (std_msgs/UInt8MultiArray, one or more packets each, as bags carry them).
 
-Output (all RELIABLE, depth 100, which also matches best-effort subscribers):
+Output (all RELIABLE, depth 100, which also matches best-effort subscribers; each overridable per topic from the
+parameters file, nodes/qos.py):
 - /gps/fix (sensor_msgs/NavSatFix): the best receiver's fix, stamped at the fix epoch on the UNIX
   clock, altitude above the WGS84 ellipsoid (REP-145). Status: RTK float/fixed -> GBAS_FIX,
   DGPS/PPP -> SBAS_FIX, 2D/3D/static -> FIX, none -> NO_FIX with NaN position and UNKNOWN covariance.
@@ -27,7 +28,6 @@ import time
 from dataclasses import dataclass
 
 from rclpy.node import Node
-from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import NavSatFix
 from std_msgs.msg import UInt8, UInt8MultiArray
 
@@ -38,6 +38,7 @@ from photogram_ros.io.mavlink_framing import MavlinkStream, read_tlog, signing_k
 from photogram_ros.io.mavlink_ingest import Attitude, FixEvent, Ingest, Trigger
 from photogram_ros.io.mavlink_link import Link, is_live_url
 from photogram_ros.nodes.diagnostics import ERROR, OK, WARN, Diagnostics
+from photogram_ros.nodes import qos
 from photogram_ros.nodes.node_main import run_node
 from photogram_ros.nodes.ros_params import declare
 from photogram_ros.params import param
@@ -89,6 +90,9 @@ class MavlinkParams:
             raise ConfigError('uere_m needs 9 non-negative values, one per MAVLink fix type 0..8')
 
 
+OUTPUT_DEPTH = 100   # history of the output topics (reliable; overridable per topic: nodes/qos.py)
+
+
 class MavlinkNode(Node):
     def __init__(self, overrides: dict | None = None, **node_kwargs):
         super().__init__('mavlink_node', **node_kwargs)
@@ -101,14 +105,12 @@ class MavlinkNode(Node):
                              error_model=gf.ErrorModel(tuple(float(v) for v in p.uere_m), p.vdop_over_hdop),
                              max_fix_age_s=p.max_fix_age_s, trigger_source=p.trigger_source,
                              on_problem=self.diag.problem)
-        qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100, reliability=ReliabilityPolicy.RELIABLE)
-        self._qos = qos
-        self.pub_fix = self.create_publisher(NavSatFix, 'gps/fix', qos)
-        self.pub_fix_type = self.create_publisher(UInt8, 'gps/fix_type', qos)
+        self.pub_fix = qos.publisher(self, NavSatFix, 'gps/fix', qos.reliable(OUTPUT_DEPTH))
+        self.pub_fix_type = qos.publisher(self, UInt8, 'gps/fix_type', qos.reliable(OUTPUT_DEPTH))
         self.pub_rx: dict = {}
         from sensor_msgs.msg import Imu
-        self.pub_att = self.create_publisher(Imu, 'mavlink/attitude', qos)
-        self.pub_trigger = self.create_publisher(NavSatFix, 'camera/trigger', qos)
+        self.pub_att = qos.publisher(self, Imu, 'mavlink/attitude', qos.reliable(OUTPUT_DEPTH))
+        self.pub_trigger = qos.publisher(self, NavSatFix, 'camera/trigger', qos.reliable(OUTPUT_DEPTH))
         self._att_var = (p.attitude_sigma_rp_rad ** 2, p.attitude_sigma_rp_rad ** 2, p.attitude_sigma_yaw_rad ** 2)
         self._lock = threading.Lock()
         self._stop = threading.Event()
@@ -133,9 +135,7 @@ class MavlinkNode(Node):
             self._thread.start()
         else:
             self.messages_in = 0
-            self.create_subscription(UInt8MultiArray, p.input_topic, self._on_bytes,
-                                     QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1000,
-                                                reliability=ReliabilityPolicy.RELIABLE))
+            qos.subscription(self, UInt8MultiArray, p.input_topic, self._on_bytes, qos.reliable(1000))
 
     # --- inputs ------------------------------------------------------------------------------------
 
@@ -249,7 +249,8 @@ class MavlinkNode(Node):
 
     def _rx_pub(self, receiver: int):
         if receiver not in self.pub_rx:
-            self.pub_rx[receiver] = self.create_publisher(NavSatFix, f'gps/fix_{receiver + 1}', self._qos)
+            self.pub_rx[receiver] = qos.publisher(self, NavSatFix, f'gps/fix_{receiver + 1}',
+                                                  qos.reliable(OUTPUT_DEPTH))
         return self.pub_rx[receiver]
 
     def _fix_msg(self, fix: gf.Fix) -> NavSatFix:

@@ -18,6 +18,10 @@ then asks for the acknowledgement at once; a KEEP_ALL writer waits for the perio
 Now and then (one wait in thirty on a sparse topic beside a busy one) the acknowledgement still
 comes only with the periodic heartbeat although the subscriber has the messages: a wait ends after
 `ack_timeout_s` and the player goes on (counted as `late_acks`), which lost nothing in the tests.
+
+PX4 uXRCE-DDS topics (px4_msgs/SensorGps, VehicleAttitude) are not played as recorded (px4_msgs has no PyPI
+wheel): they go out as what px4_adapter publishes live, /gps/fix_type, /gps/fix and /mavlink/attitude (read
+through io/bag_px4.py and core/px4.py's conversions).
 """
 
 from __future__ import annotations
@@ -27,12 +31,13 @@ from dataclasses import dataclass, field
 
 from rclpy.duration import Duration
 from rclpy.node import Node
-from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rosgraph_msgs.msg import Clock
 
 from photogram_ros.errors import BagError, ConfigError
-from photogram_ros.io.bag import BagReader, msg_class
+from photogram_ros.io.bag import BagReader, msg_class, serialize
+from photogram_ros.io.bag_px4 import SENSOR_GPS, Px4Records, px4_topics
 from photogram_ros.msgs import time_from_ns
+from photogram_ros.nodes import qos
 from photogram_ros.nodes.diagnostics import ERROR, Diagnostics
 from photogram_ros.nodes.node_main import run_job
 from photogram_ros.nodes.ros_params import declare
@@ -96,6 +101,7 @@ class PlaySummary:
     wall_s: float = 0.0
     bag_s: float = 0.0
     subscribers: dict = field(default_factory=dict)  # rate 0: topic -> subscriptions matched before playing
+    px4_skipped: dict = field(default_factory=dict)  # PX4 records not published: reason -> count
 
     @property
     def total(self) -> int:
@@ -109,8 +115,45 @@ class PlaySummary:
             out.append(f'  {t}: {self.counts[t]} messages, {self.bytes[t] / 1e6:.2f} MB{subs}')
         for t, why in sorted(self.skipped.items()):
             out.append(f'  skipped {t}: {why}')
+        out += [f'  PX4 records not published: {n}, {why}' for why, n in sorted(self.px4_skipped.items())]
         out += [f'  error: {e}' for e in self.errors]
         return out
+
+
+PX4_OUTPUTS = {'/gps/fix_type': 'std_msgs/msg/UInt8', '/gps/fix': 'sensor_msgs/msg/NavSatFix',
+               '/mavlink/attitude': 'sensor_msgs/msg/Imu'}
+
+
+class Px4Playback:
+    """Recorded PX4 messages -> [(output topic, CDR)] as px4_adapter publishes them, with its default frames and
+    attitude sigmas; what cannot be used is counted in `skipped` (reason -> count)."""
+
+    def __init__(self, topics: dict, definitions: dict | None = None):
+        from photogram_ros.nodes.px4_adapter import Px4AdapterParams
+        self.topics = dict(topics)            # recorded topic -> px4_msgs type
+        self.records = Px4Records(definitions)     # msgtype -> the .msg text the bag recorded
+        self.p = Px4AdapterParams()
+        self.skipped: dict = {}
+
+    def outputs(self) -> dict:
+        """Output topic -> message type, for the topics this bag's PX4 records give."""
+        types = set(self.topics.values())
+        keep = ('/gps/fix_type', '/gps/fix') if SENSOR_GPS in types else ()
+        keep += ('/mavlink/attitude',) if types - {SENSOR_GPS} else ()
+        return {t: PX4_OUTPUTS[t] for t in keep}
+
+    def messages(self, m) -> list:
+        from photogram_ros.nodes.px4_adapter import attitude_message, fix_messages
+        kind, stamp_ns, value = self.records.read(m.msgtype, m.stamp_ns, m.data)
+        if kind == 'fix':
+            fix_type, navsat = fix_messages(value, stamp_ns, self.p.frame_id)
+            return [('/gps/fix_type', serialize(fix_type)), ('/gps/fix', serialize(navsat))]
+        if kind == 'attitude':
+            var = (self.p.attitude_sigma_rp_rad ** 2, self.p.attitude_sigma_rp_rad ** 2,
+                   self.p.attitude_sigma_yaw_rad ** 2)
+            return [('/mavlink/attitude', serialize(attitude_message(stamp_ns, value, var, self.p.attitude_frame_id)))]
+        self.skipped[value] = self.skipped.get(value, 0) + 1
+        return []
 
 
 class PlayerNode(Node):
@@ -118,16 +161,16 @@ class PlayerNode(Node):
         super().__init__('player', **kwargs)
         self.params = declare(self, PlayerParams, overrides)
         self.diag = Diagnostics(self)
-        self._clock_pub = self.create_publisher(Clock, '/clock', 10)
+        self._clock_pub = self.create_publisher(Clock, '/clock', qos.clock())
         self._pubs = {}
+        self._px4 = None
         self.stop_requested = False
 
     def _publisher(self, out_topic: str, msgtype: str):
         if out_topic not in self._pubs:
             # rate 0: the history is one acknowledgement window (see the module docstring).
             depth = self.params.ack_window if self.params.rate == 0 else self.params.qos_depth
-            qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=depth, reliability=ReliabilityPolicy.RELIABLE)
-            self._pubs[out_topic] = self.create_publisher(msg_class(msgtype), out_topic, qos)
+            self._pubs[out_topic] = self.create_publisher(msg_class(msgtype), out_topic, qos.reliable(depth))
         return self._pubs[out_topic]
 
     def _wait_for_subscribers(self) -> None:
@@ -190,8 +233,12 @@ class PlayerNode(Node):
             if missing:
                 raise BagError(f'topics {missing} are not in {p.bag}; it has {sorted(infos)}')
             chosen = [t for t in chosen if t not in set(p.topic_list(p.exclude))]
-            playable = []
-            for t in chosen:
+            px4 = px4_topics({t: infos[t] for t in chosen})
+            self._px4 = Px4Playback(px4, {m: bag.message_definition(t) for t, m in px4.items()}) if px4 else None
+            playable = list(px4)
+            for out, msgtype in (self._px4.outputs().items() if self._px4 else ()):
+                self._publisher(remaps.get(out, out), msgtype)
+            for t in (t for t in chosen if t not in px4):
                 try:
                     self._publisher(remaps.get(t, t), infos[t].msgtype)
                     playable.append(t)
@@ -212,6 +259,9 @@ class PlayerNode(Node):
                 if not p.loop or self.stop_requested or summary.errors:
                     break
         summary.wall_s = time.monotonic() - t_wall0
+        if self._px4 is not None:
+            summary.px4_skipped = dict(self._px4.skipped)
+            self.diag.count('px4_records_skipped', sum(self._px4.skipped.values()))
         self.diag.publish()
         return summary
 
@@ -230,22 +280,29 @@ class PlayerNode(Node):
             if p.publish_clock and (last_clock_ns is None or m.stamp_ns - last_clock_ns >= 10_000_000):
                 self._clock_pub.publish(Clock(clock=time_from_ns(m.stamp_ns)))
                 last_clock_ns = m.stamp_ns
-            out = remaps.get(m.topic, m.topic)
-            pub = self._pubs[out]
             if before_message is not None:
                 before_message(m)
-            pub.publish(m.data)
-            n_out = summary.counts.get(out, 0) + 1
-            summary.counts[out] = n_out
-            if p.rate == 0 and n_out % p.ack_window == 0:
-                self._wait_acked(out, pub)
-            summary.bytes[out] = summary.bytes.get(out, 0) + len(m.data)
-            self.diag.count('published')
+            if self._px4 is not None and m.topic in self._px4.topics:
+                outs = self._px4.messages(m)
+            else:
+                outs = [(m.topic, m.data)]
+            for topic, data in outs:
+                self._publish(remaps.get(topic, topic), data, summary)
             if on_message is not None:
                 on_message(m)
         if p.rate == 0:
             for topic, pub in self._pubs.items():
                 self._wait_acked(topic, pub, at_end=True)
+
+    def _publish(self, out: str, data: bytes, summary: PlaySummary) -> None:
+        pub = self._pubs[out]
+        pub.publish(data)
+        n_out = summary.counts.get(out, 0) + 1
+        summary.counts[out] = n_out
+        if self.params.rate == 0 and n_out % self.params.ack_window == 0:
+            self._wait_acked(out, pub)
+        summary.bytes[out] = summary.bytes.get(out, 0) + len(data)
+        self.diag.count('published')
 
 
 def _play(node) -> int:

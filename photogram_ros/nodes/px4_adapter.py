@@ -21,13 +21,13 @@ import sys
 from dataclasses import dataclass
 
 from rclpy.node import Node
-from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import Imu, NavSatFix
 from std_msgs.msg import UInt8
 
 from photogram_ros import msgs
 from photogram_ros.core.px4 import Px4Clock, enu_flu_from_ned_frd, fix_from_sensor_gps
 from photogram_ros.errors import ConfigError
+from photogram_ros.nodes import qos
 from photogram_ros.nodes.diagnostics import Diagnostics
 from photogram_ros.nodes.node_main import run_node
 from photogram_ros.nodes.ros_params import declare
@@ -55,6 +55,22 @@ def px4_message_types():
                           f'in your workspace and source it ({exc})') from exc
 
 
+def fix_messages(fix: dict, stamp_ns: int, frame_id: str) -> tuple:
+    """A fix of core/px4.fix_from_sensor_gps -> (gps/fix_type UInt8, gps/fix NavSatFix), as mavlink_node publishes
+    them: per-axis variances from eph/epv (DIAGONAL_KNOWN), UNKNOWN without them."""
+    var = fix['var_enu_m2']
+    navsat = msgs.navsatfix_msg(stamp_ns, fix['lat_deg'], fix['lon_deg'], fix['h_m'], fix['status'],
+                                var if var is not None else [0.0, 0.0, 0.0],
+                                NavSatFix.COVARIANCE_TYPE_DIAGONAL_KNOWN if var is not None else
+                                NavSatFix.COVARIANCE_TYPE_UNKNOWN, frame_id)
+    return UInt8(data=fix['fix_type'] & 0xFF), navsat
+
+
+def attitude_message(stamp_ns: int, q_enu_flu_xyzw, var_rad2, frame_id: str) -> Imu:
+    """An attitude (FLU body in ENU) -> the mavlink/attitude Imu."""
+    return msgs.imu_orientation_msg(stamp_ns, q_enu_flu_xyzw, var_rad2, frame_id=frame_id)
+
+
 class Px4Adapter(Node):
     def __init__(self, overrides: dict | None = None, **node_kwargs):
         super().__init__('px4_adapter', **node_kwargs)
@@ -62,13 +78,12 @@ class Px4Adapter(Node):
         self.diag = Diagnostics(self)
         self.clock = Px4Clock()
         sensor_gps, vehicle_attitude = px4_message_types()
-        px4_qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10, reliability=ReliabilityPolicy.BEST_EFFORT)
-        out_qos = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
-        self.pub_fix = self.create_publisher(NavSatFix, 'gps/fix', out_qos)
-        self.pub_fix_type = self.create_publisher(UInt8, 'gps/fix_type', out_qos)
-        self.pub_att = self.create_publisher(Imu, 'mavlink/attitude', out_qos)
-        self.create_subscription(sensor_gps, self.p.gps_topic, self.on_gps, px4_qos)
-        self.create_subscription(vehicle_attitude, self.p.attitude_topic, self.on_attitude, px4_qos)
+        # PX4's uXRCE-DDS topics are best effort; every topic is overridable from the parameters (nodes/qos.py).
+        self.pub_fix = qos.publisher(self, NavSatFix, 'gps/fix', qos.reliable(100))
+        self.pub_fix_type = qos.publisher(self, UInt8, 'gps/fix_type', qos.reliable(100))
+        self.pub_att = qos.publisher(self, Imu, 'mavlink/attitude', qos.reliable(100))
+        qos.subscription(self, sensor_gps, self.p.gps_topic, self.on_gps, qos.sensor_data(10))
+        qos.subscription(self, vehicle_attitude, self.p.attitude_topic, self.on_attitude, qos.sensor_data(10))
         self._att_var = (self.p.attitude_sigma_rp_rad ** 2, self.p.attitude_sigma_rp_rad ** 2,
                          self.p.attitude_sigma_yaw_rad ** 2)
 
@@ -79,12 +94,9 @@ class Px4Adapter(Node):
             self.diag.count('fixes_without_position')
             return
         stamp = fix['stamp_ns'] if fix['stamp_ns'] is not None else self.get_clock().now().nanoseconds
-        var = fix['var_enu_m2']
-        self.pub_fix_type.publish(UInt8(data=fix['fix_type'] & 0xFF))
-        self.pub_fix.publish(msgs.navsatfix_msg(stamp, fix['lat_deg'], fix['lon_deg'], fix['h_m'], fix['status'],
-                                                var if var is not None else [0.0, 0.0, 0.0],
-                                                NavSatFix.COVARIANCE_TYPE_DIAGONAL_KNOWN if var is not None else
-                                                NavSatFix.COVARIANCE_TYPE_UNKNOWN, self.p.frame_id))
+        fix_type, navsat = fix_messages(fix, stamp, self.p.frame_id)
+        self.pub_fix_type.publish(fix_type)
+        self.pub_fix.publish(navsat)
         self.diag.count('fixes')
 
     def on_attitude(self, msg) -> None:
@@ -92,8 +104,8 @@ class Px4Adapter(Node):
         if stamp is None:
             self.diag.count('attitudes_before_utc')
             return
-        self.pub_att.publish(msgs.imu_orientation_msg(stamp, enu_flu_from_ned_frd(msg.q), self._att_var,
-                                                      frame_id=self.p.attitude_frame_id))
+        self.pub_att.publish(attitude_message(stamp, enu_flu_from_ned_frd(msg.q), self._att_var,
+                                              self.p.attitude_frame_id))
         self.diag.count('attitudes')
 
 

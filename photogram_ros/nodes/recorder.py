@@ -11,10 +11,11 @@ import time
 
 import rclpy
 from rclpy.node import Node
-from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.qos import ReliabilityPolicy
 
 from photogram_ros.errors import BagError
 from photogram_ros.io.bag import BagWriter, msg_class
+from photogram_ros.nodes import qos
 
 
 class Recorder:
@@ -37,10 +38,9 @@ class Recorder:
                 # Reliable loses nothing, but a reliable subscription does not match best-effort
                 # publishers (sensor-data QoS), so those are recorded best-effort.
                 reliable = all(i.qos_profile.reliability == ReliabilityPolicy.RELIABLE for i in publishers)
-                qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1000,
-                                 reliability=ReliabilityPolicy.RELIABLE if reliable else ReliabilityPolicy.BEST_EFFORT)
+                profile = qos.reliable(1000) if reliable else qos.best_effort(1000)
                 self._subs[name] = self.node.create_subscription(
-                    msg_class(msgtype), name, lambda data, t=name: self._on_message(t, data), qos, raw=True)
+                    msg_class(msgtype), name, lambda data, t=name: self._on_message(t, data), profile, raw=True)
 
     def _on_message(self, topic: str, data: bytes) -> None:
         with self._lock:

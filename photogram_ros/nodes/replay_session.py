@@ -32,7 +32,9 @@ from rclpy.parameter import Parameter
 from rclpy.time import Time
 
 from photogram_ros.core.incremental import AUTO_CANDIDATES, PASS_GROWTH_RATIO
+from photogram_ros.io.bag_px4 import SENSOR_GPS, VEHICLE_ATTITUDE
 from photogram_ros.io.progress import Progress, Steps, say_stdout
+from photogram_ros.nodes import qos
 from photogram_ros.nodes.diagnostics import PROBLEM_SEPARATOR
 from photogram_ros.nodes.graph import NODES, Graph, GraphSpec, WorkWatch
 from photogram_ros.nodes.player_node import PlayerNode
@@ -100,7 +102,7 @@ class DiagnosticsLog:
         self.t0 = time.monotonic()
         self.nodes: dict = {}
         self._lock = threading.Lock()
-        node.create_subscription(DiagnosticArray, '/diagnostics', self._on, 100)
+        node.create_subscription(DiagnosticArray, '/diagnostics', self._on, qos.reliable(100))
 
     def _on(self, msg: DiagnosticArray) -> None:
         t = time.monotonic() - self.t0
@@ -214,14 +216,21 @@ def _bag_setup(opts: ReplayOptions, extra: dict):
         roles = ('mavlink', 'tracker', 'bundle', 'stereo', 'map')
     else:
         roles = ('tracker', 'bundle', 'stereo', 'map')
+        if SENSOR_GPS in {i.msgtype for i in topics.values()}:
+            # The player publishes PX4's fixes as /gps/fix (nodes/player_node.Px4Playback): a recorded one would
+            # be a second source.
+            exclude += [t for t in ('/gps/fix', '/gps/fix_type') if t in topics]
     if not bag_has_attitude(topics):
-        no_body_lever_arm(opts, extra, roles, 'the bag records no attitude (no /mavlink/from_fcu, no mavlink/attitude)')
+        no_body_lever_arm(opts, extra, roles, 'the bag records no attitude (no /mavlink/from_fcu, no mavlink/attitude, '
+                          'no PX4 VehicleAttitude)')
     return roles, exclude, topics, start_ns, warnings
 
 
 def bag_has_attitude(topics) -> bool:
-    """The bag's topics carry the body's attitude: raw MAVLink (ATTITUDE), or mavlink_node's output."""
-    return '/mavlink/from_fcu' in topics or any(t.endswith('mavlink/attitude') for t in topics)
+    """The bag's topics (BagReader.topics()) carry the body's attitude: raw MAVLink (ATTITUDE), mavlink_node's
+    output, or PX4's VehicleAttitude."""
+    return ('/mavlink/from_fcu' in topics or any(t.endswith('mavlink/attitude') for t in topics)
+            or any(getattr(i, 'msgtype', '') == VEHICLE_ATTITUDE for i in topics.values()))
 
 
 def no_body_lever_arm(opts: ReplayOptions, extra: dict, roles: tuple, why: str) -> bool:
@@ -301,7 +310,7 @@ def run_replay(opts: ReplayOptions, context=None) -> dict:
             raise DataError(f'{opts.bag}: no frame could be read (see the camera node\'s messages above)')
     listener = Node('replay_monitor', **kwargs)
     from rosgraph_msgs.msg import Clock
-    clock_pub = listener.create_publisher(Clock, '/clock', 10)
+    clock_pub = listener.create_publisher(Clock, '/clock', qos.clock())
     diag_log = DiagnosticsLog(listener)
     graph.executor.add_node(listener)
     # The player only publishes: not spinning it keeps its entities out of the executor's wait set,
@@ -385,7 +394,7 @@ def run_replay(opts: ReplayOptions, context=None) -> dict:
         from rosgraph_msgs.msg import Clock
 
         from photogram_ros.msgs import time_from_ns
-        clock = listener.create_publisher(Clock, '/clock', 10)
+        clock = listener.create_publisher(Clock, '/clock', qos.clock())
         summary, t0, last_ns = PlaySummary(), time.monotonic(), bag_start_ns
         while (stamp_ns := camera.peek_stamp_ns()) is not None:
             if opts.rate > 0:   # the flight's timing, sped up by `rate`
@@ -449,6 +458,8 @@ def run_replay(opts: ReplayOptions, context=None) -> dict:
            'waited_for_downstream_s': round(lag_wait_s[0], 1),
            'bag_read': {t: [i.count, i.expected] for t, i in topics.items()}, 'bag_warnings': bag_warnings,
            'final_adjustment': end.final_adjustment, 'end_of_flight_errors': end.errors, 'counts': counts}
+    if summary.px4_skipped:
+        run['px4_records_not_published'] = dict(summary.px4_skipped)
     if drain_left:
         run['drain_gave_up'] = drain_left
     if any(lost.values()):

@@ -8,6 +8,7 @@ from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescri
 from rclpy.node import Node
 
 from photogram_ros.errors import ConfigError
+from photogram_ros.nodes.qos import is_override
 from photogram_ros.params import fields_of, from_dict
 
 
@@ -41,7 +42,8 @@ def declare(node: Node, cls, overrides: dict | None = None):
             raise ConfigError(f'{node.get_name()}: parameter {f.name!r}: {exc}') from exc
         values[f.name] = p.value
     given = set(getattr(node, '_parameter_overrides', {}) or {}) | set(overrides or {})
-    unknown = sorted(k for k in given if k not in values and k != 'use_sim_time')
+    # rclpy's QoS overrides (nodes/qos.py) are declared when their publisher or subscription is made.
+    unknown = sorted(k for k in given if k not in values and k != 'use_sim_time' and not is_override(k))
     if unknown:
         from_dict(cls, {k: None for k in unknown}, where=node.get_name())  # raises with suggestions
     return from_dict(cls, values, where=node.get_name())
