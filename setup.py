@@ -57,7 +57,7 @@ setup(
     # The ground station's web page (Leaflet shipped with the package: it works offline) and the report's templates.
     package_data={'photogram_ros': ['web/static/*.html', 'web/static/*.js', 'web/static/*.css',
                                     'web/static/vendor/leaflet/*', 'web/static/vendor/leaflet/images/*',
-                                    'io/templates/*']},
+                                    'io/templates/*', 'io/px4_msgs/*.msg']},
     install_requires=['setuptools'] + REQUIRES['install'],
     # colcon runs pytest (not unittest, which finds no test here) only when pytest is a test dependency.
     extras_require={'test': REQUIRES['test'], 'ros': REQUIRES['ros']},
