@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import sys
 
+from photogram_ros.commands import common_args
+
 HELP = 'write LAS/LAZ, PLY, DSM, DTM and orthomosaic GeoTIFFs of a map folder in any EPSG CRS'
 PRODUCTS = ('las', 'laz', 'ply', 'dsm', 'dtm', 'ortho')
 EXIT_EXPORT_FAILED = 3   # some products not written (a full disk): the others are whole, export.json says which
@@ -13,8 +15,7 @@ def add_arguments(p) -> None:
     p.add_argument('map_dir', help='map folder written by map_node (map_dir parameter)')
     p.add_argument('--crs', required=True, help='output CRS, e.g. EPSG:32632 (UTM 32N) or EPSG:2056 (Swiss LV95)')
     p.add_argument('--out', required=True, help='output folder (created)')
-    p.add_argument('--heights', choices=('ellipsoidal', 'orthometric'), default='ellipsoidal',
-                   help='WGS84 ellipsoidal heights (default) or orthometric heights above the EGM2008 geoid')
+    common_args.add_heights(p)
     p.add_argument('--dsm-res-m', type=float, default=0.0,
                    help='DSM cell size in metres (default: 2 fusion cells, about 2 GSD)')
     p.add_argument('--ortho-res-m', type=float, default=0.0,
