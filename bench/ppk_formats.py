@@ -7,10 +7,14 @@
 2. DJI RTK photos: `simulate --rtk-photos` (EXIF GPS = the RTK camera centre, XMP RtkFlag/RtkStd*); `triangulate`
    without GCPs (every target a check point) on (a) the XMP, (b) the same photos with a hand-made geo.txt of the
    same positions and sigmas, (c) a third of the photos FLOAT (flag 34, 0.5 / 0.8 m stated) at their true
-   positions, (d) the same third FLOAT and 1 m off (the fixed photos' errors the same in all).
+   positions, (d) the same third FLOAT and 1 m off (the fixed photos' errors the same in all); each row has its
+   ratio to (a). `--georeference proposed` runs (c) and (d) again with the change to
+   IncrementalAT._try_georeference that `proposed_georeference` emulates (only the precise fixes,
+   GnssDatum.similarity_fixes, in the similarity that places the block); rows say which (`georeference`).
 
 One JSON line per result, with the commit, whether the product code was clean, the cores and the load:
     .venv/bin/python bench/ppk_formats.py [--preset tiny] [--out bench/results/ppk_formats_<commit>.jsonl]
+        [--skip-delay] [--cases rtk_xmp,rtk_xmp_third_float_1m] [--georeference as_is,proposed]
 """
 
 from __future__ import annotations
