@@ -7,15 +7,20 @@
 2. DJI RTK photos: `simulate --rtk-photos` (EXIF GPS = the RTK camera centre, XMP RtkFlag/RtkStd*); `triangulate`
    without GCPs (every target a check point) on (a) the XMP, (b) the same photos with a hand-made geo.txt of the
    same positions and sigmas, (c) a third of the photos FLOAT (flag 34, 0.5 / 0.8 m stated) at their true
-   positions, (d) the same third FLOAT and 1 m off (the fixed photos' errors the same in all).
+   positions, (d) the same third FLOAT and 1 m off (the fixed photos' errors the same in all); each row has its
+   ratio to (a). `--georeference proposed` runs (c) and (d) again with the change to
+   IncrementalAT._try_georeference that `proposed_georeference` emulates (only the precise fixes,
+   GnssDatum.similarity_fixes, in the similarity that places the block); rows say which (`georeference`).
 
 One JSON line per result, with the commit, whether the product code was clean, the cores and the load:
     .venv/bin/python bench/ppk_formats.py [--preset tiny] [--out bench/results/ppk_formats_<commit>.jsonl]
+        [--skip-delay] [--cases rtk_xmp,rtk_xmp_third_float_1m] [--georeference as_is,proposed]
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import shutil
@@ -62,6 +67,58 @@ def delay_run(where: Path, sigma_scale: float) -> list[dict]:
     return rows
 
 
+@contextlib.contextmanager
+def proposed_georeference():
+    """Measures the change proposed for core/incremental.py (`IncrementalAT._try_georeference`, not this
+    branch's to edit): the similarity that georeferences the block takes only the fixes
+    `GnssDatum.similarity_fixes` selects (`ks = self.datum.similarity_fixes(ks, 3)` after the GCP-only
+    branch), while every adjustment keeps every fix at its stated sigma. Emulated here by holding the other fixes
+    out while `_try_georeference` runs and putting them back for the adjustments it calls. Bench only."""
+    from photogram_ros.core.incremental import IncrementalAT
+    names = ('_try_georeference', '_apply_georeference', '_pass_adjustment', '_georeference_by_gcps')
+    orig = {n: getattr(IncrementalAT, n) for n in names}
+    hidden: list[dict] = []
+
+    def show(kfs, held):
+        for k, fix in held.items():
+            kfs[k].fix_enu = fix
+
+    def try_georeference(self, *a, **kw):
+        kfs = self.block.kfs
+        ks = [k for k in self.block.registered if kfs[k].fix_enu is not None]
+        held = {k: kfs[k].fix_enu for k in set(ks) - set(self.datum.similarity_fixes(ks, 3))}
+        for k in held:
+            kfs[k].fix_enu = None
+        hidden.append(held)
+        try:
+            return orig['_try_georeference'](self, *a, **kw)
+        finally:
+            show(kfs, hidden.pop())
+
+    def with_every_fix(name):
+        def call(self, *a, **kw):
+            held = hidden.pop() if hidden else {}
+            show(self.block.kfs, held)
+            hidden.append({})          # nested calls: every fix is shown already
+            try:
+                return orig[name](self, *a, **kw)
+            finally:
+                hidden.pop()
+                for k in held:
+                    self.block.kfs[k].fix_enu = None
+                hidden.append(held)
+        return call
+
+    IncrementalAT._try_georeference = try_georeference
+    for n in names[1:]:
+        setattr(IncrementalAT, n, with_every_fix(n))
+    try:
+        yield
+    finally:
+        for n, f in orig.items():
+            setattr(IncrementalAT, n, f)
+
+
 def _triangulate(folder: Path, out: Path) -> dict:
     from photogram_ros.io.aerial_triangulation import TriangulateOptions
     from photogram_ros.io.triangulate_action import triangulate
@@ -70,25 +127,50 @@ def _triangulate(folder: Path, out: Path) -> dict:
     return json.loads((out / 'report.json').read_text())
 
 
-def rtk_runs(where: Path, name: str) -> list[dict]:
+RTK_CASES = {'rtk_xmp': {}, 'rtk_xmp_third_float_0m': {'rtk_float_every': 3, 'rtk_float_offset_m': 0.0},
+             'rtk_xmp_third_float_1m': {'rtk_float_every': 3, 'rtk_float_offset_m': 1.0}}
+
+
+def rtk_runs(where: Path, name: str, cases=tuple(RTK_CASES) + ('rtk_hand_geo_txt',),
+             georeference=('as_is',)) -> list[dict]:
+    """`triangulate` on each case of the RTK photo survey (preset `name`), for each georeference mode: 'as_is'
+    (the product code) and 'proposed' (`proposed_georeference`; not run again on the clean survey, whose fixes
+    all state the same sigmas, when 'as_is' ran it). Each row has its check-point RMSE and its ratio to the clean
+    survey's."""
     from photogram_ros.sim.photos import write_geo_txt_from_exif_and_rtk_xmp
     folders = {}
-    for case, extra in (('rtk_xmp', {}), ('rtk_xmp_third_float_0m', {'rtk_float_every': 3, 'rtk_float_offset_m': 0.0}),
-                        ('rtk_xmp_third_float_1m', {'rtk_float_every': 3, 'rtk_float_offset_m': 1.0})):
-        simulate(preset(name, fps=1.0, rtk_photos=True, **extra), where / case)
+    for case in cases:
+        if case == 'rtk_hand_geo_txt':
+            continue
+        simulate(preset(name, fps=1.0, rtk_photos=True, **RTK_CASES[case]), where / case)
         folders[case] = where / case / 'rtk'
-    hand = where / 'rtk_hand' / 'rtk'
-    shutil.copytree(folders['rtk_xmp'], hand)
-    write_geo_txt_from_exif_and_rtk_xmp(hand)
-    folders['rtk_hand_geo_txt'] = hand
+    if 'rtk_hand_geo_txt' in cases:
+        hand = where / 'rtk_hand' / 'rtk'
+        if 'rtk_xmp' not in folders:
+            simulate(preset(name, fps=1.0, rtk_photos=True), where / 'rtk_xmp')
+        shutil.copytree(where / 'rtk_xmp' / 'rtk', hand)
+        write_geo_txt_from_exif_and_rtk_xmp(hand)
+        folders['rtk_hand_geo_txt'] = hand
     rows = []
-    for case, folder in folders.items():
-        rep = _triangulate(folder, where / f'tri_{case}')
-        ck = rep['check']['rmse']
-        rows.append({'case': case, 'preset': name, 'photos': len(list(folder.glob('*.JPG'))), 'check_n': ck['n'],
-                     'check_h_m': round(ck['horizontal_m'], 4), 'check_v_m': round(ck['vertical_m'], 4),
-                     'verdict': rep.get('verdict', {}).get('status'),
-                     'rtk_flags': rep.get('matching', {}).get('rtk_flags'), 'gnss_noise': rep.get('gnss_noise')})
+    clean = None
+    for mode in georeference:
+        for case, folder in folders.items():
+            if mode == 'proposed' and case in ('rtk_xmp', 'rtk_hand_geo_txt') and clean is not None:
+                continue      # every photo's sigmas alike: the proposed selection takes every fix, nothing changes
+            with proposed_georeference() if mode == 'proposed' else contextlib.nullcontext():
+                rep = _triangulate(folder, where / f'tri_{case}_{mode}')
+            ck = rep['check']['rmse']
+            row = {'case': case, 'preset': name, 'georeference': mode, 'photos': len(list(folder.glob('*.JPG'))),
+                   'check_n': ck['n'], 'check_h_m': round(ck['horizontal_m'], 4),
+                   'check_v_m': round(ck['vertical_m'], 4), 'verdict': rep.get('verdict', {}).get('status'),
+                   'rtk_flags': rep.get('matching', {}).get('rtk_flags'), 'gnss_noise': rep.get('gnss_noise')}
+            if case == 'rtk_xmp':
+                clean = row
+            elif clean is not None:
+                row['ratio_to_clean_h'] = round(row['check_h_m'] / clean['check_h_m'], 3)
+                row['ratio_to_clean_v'] = round(row['check_v_m'] / clean['check_v_m'], 3)
+            rows.append(row)
+            sys.stderr.write(json.dumps(row) + '\n')
     return rows
 
 
@@ -98,6 +180,11 @@ def main() -> int:
     ap.add_argument('--out', help='JSON lines file (default bench/results/ppk_formats_<commit>.jsonl)')
     ap.add_argument('--skip-rtk', action='store_true')
     ap.add_argument('--skip-delay', action='store_true')
+    ap.add_argument('--cases', default=','.join(tuple(RTK_CASES) + ('rtk_hand_geo_txt',)),
+                    help='RTK photo survey cases, comma-separated (rtk_xmp first: the others get their ratio to it)')
+    ap.add_argument('--georeference', default='as_is',
+                    help='as_is, proposed or both (comma-separated): proposed measures the change to '
+                         'IncrementalAT._try_georeference this bench emulates (proposed_georeference)')
     a = ap.parse_args()
     commit = git('rev-parse', '--short', 'HEAD')
     clean = not git('status', '--porcelain', 'photogram_ros', 'bench/ppk_formats.py')
@@ -109,12 +196,11 @@ def main() -> int:
         for s in (() if a.skip_delay else (0.0, 1.0)):
             rows += delay_run(Path(tmp), s)
         if not a.skip_rtk:
-            rows += rtk_runs(Path(tmp), a.preset)
+            rows += rtk_runs(Path(tmp), a.preset, tuple(a.cases.split(',')), tuple(a.georeference.split(',')))
     head['load_avg_after'] = [round(x, 2) for x in os.getloadavg()]
     with open(out, 'a') as f:
         for r in rows:
             f.write(json.dumps({**head, **r}) + '\n')
-            sys.stderr.write(json.dumps(r) + '\n')
     sys.stderr.write(f'wrote {out}\n')
     return 0
 

@@ -15,6 +15,10 @@ import numpy as np
 from photogram_ros.core.at_geometry import lever_arm_cam_from_frd
 from photogram_ros.core.at_store import Keyframe
 
+# A fix enters the similarity that georeferences the block when its stated sigma is within this factor of the
+# precise fixes' (the lower quartile of the flight's): RTK fixed (1-3 cm) beside float (decimetres) stays apart.
+PRECISE_FIX_RATIO = 3.0
+
 
 class GnssDatum:
     """The fixes' datum of a block (core/at_block.py `Block`), for the options `opt` (IncrementalOptions)."""
@@ -68,6 +72,29 @@ class GnssDatum:
         """The fix's covariance (ENU m^2) scaled by the flight's estimated GNSS noise."""
         S = np.diag(self.sigma_scale_hv[[0, 0, 1]])
         return S @ np.asarray(kf.fix_cov, float).reshape(3, 3) @ S
+
+    def stated_sigmas_hv(self, kids) -> np.ndarray:
+        """(K, 2) the stated sigmas (m) of keyframes `kids`' fixes: horizontal (per axis, the RMS of E and N) and
+        vertical, as their covariances say (the fix's own RtkStd*, sdn/sde/sdu, h_acc...), before any scale."""
+        cov = np.array([np.asarray(self.block.kfs[k].fix_cov, float).reshape(3, 3) for k in kids]).reshape(-1, 3, 3)
+        return np.maximum(np.column_stack([np.sqrt((cov[:, 0, 0] + cov[:, 1, 1]) / 2.0), np.sqrt(cov[:, 2, 2])]), 1e-6)
+
+    def similarity_fixes(self, kids, min_count: int = 3, ratio: float = PRECISE_FIX_RATIO) -> list:
+        """Of keyframes `kids` (each with a fix), those whose fixes are fit to place the block by a similarity:
+        the precise ones, whose stated sigma (sqrt of the covariance's trace) is within `ratio` times the lower
+        quartile of theirs. A fix that states decimetres beside fixes that state centimetres (a DJI RTK photo
+        flagged FLOAT among fixed ones) would have the weight of a centimetre fix in an unweighted similarity:
+        on a straight first line, metre errors across it decide the roll about the line and can turn the block
+        upside down. All of `kids` when fewer than `min_count` are precise (nothing better to place it by) or
+        when their sigmas are all alike."""
+        kids = list(kids)
+        if len(kids) <= min_count:
+            return kids
+        sig = np.sqrt([np.trace(np.asarray(self.block.kfs[k].fix_cov, float).reshape(3, 3)) for k in kids])
+        keep = sig <= ratio * float(np.percentile(sig, 25))
+        if keep.sum() < min_count:
+            return kids
+        return [k for k, ok in zip(kids, keep) if ok]
 
     def residuals(self, kids=None) -> dict:
         """Keyframe id -> ENU residual (m) of the adjusted antenna position minus the fix."""

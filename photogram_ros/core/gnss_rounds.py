@@ -223,16 +223,20 @@ class GnssRounds:
                 return self.noise
             kids = list(r)
             R = np.array([r[k] for k in kids])
-            stated = np.array([np.sqrt(np.mean([np.mean(np.diag(self.block.kfs[k].fix_cov)[:2]) for k in kids])),
-                               np.sqrt(np.mean([self.block.kfs[k].fix_cov[2, 2] for k in kids]))])
+            # Each fix's residual over its own stated sigma: fixes of mixed quality (RTK fixed beside float photos)
+            # each count by what they state, and the scale factors are on those sigmas. Reported in metres on the
+            # fixes' RMS stated sigma (`stated`; the estimate is the factor times it).
+            s_hv = self.datum.stated_sigmas_hv(kids)
+            stated = np.sqrt(np.mean(s_hv ** 2, axis=0))
             n = len(kids)
             redundancy = np.sqrt(3.0 * n / max(3.0 * n - 7.0, 1.0))
-            h = R[:, :2] - np.median(R[:, :2], axis=0)
+            h = (R[:, :2] - np.median(R[:, :2], axis=0)) / s_hv[:, :1]
             dz, _ = self.datum.raw_height_residuals(kids)
-            v = dz - np.median(dz)
-            est = redundancy * np.array([clipped_sigma(h.ravel()), clipped_sigma(v)])
-            used = stated * self.datum.sigma_scale_hv
-            want = np.where(est > 1.5 * stated, est / stated, 1.0)
+            v = (dz - np.median(dz)) / s_hv[:, 1]
+            factor = redundancy * np.array([clipped_sigma(h.ravel()), clipped_sigma(v)])
+            est = factor * stated
+            used = self.datum.sigma_scale_hv
+            want = np.where(factor > 1.5, factor, 1.0)
             want = np.maximum(want, 1.0)
             if self.opt.gnss_tighten and n >= self.opt.gnss_noise_min_keyframes:
                 # Fixes better than they state (a consumer geotag states metres): horizontally as the block's
@@ -248,7 +252,7 @@ class GnssRounds:
                    'used_h_m': float(stated[0] * want[0]), 'used_v_m': float(stated[1] * want[1]), 'n': n}
             if level is not None:
                 out['level'] = level
-            settled = bool(np.all(np.abs(stated * want - used) <= 0.1 * used))
+            settled = bool(np.all(np.abs(want - used) <= 0.1 * used))
             turned = self.level_block(kids) if rnd < 5 else None
             if turned is not None:
                 level = {**turned, 'turned_deg': turned['turned_deg'] + (level or {}).get('turned_deg', 0.0)}
@@ -266,11 +270,14 @@ class GnssRounds:
             r = self.datum.residuals()
             kids = list(r)
             R = np.array([r[k] for k in kids]) - med
-            sig = np.array([max(out['estimated_h_m'], out['stated_h_m'] * 0.5),
-                            max(out['estimated_v_m'], out['stated_v_m'] * 0.5)])
+            # Each fix against its own stated sigma: beyond gnss_outlier_sigma of it scaled by the flight's noise
+            # (at least half the stated), and beyond 3 stated sigmas.
+            s_hv = self.datum.stated_sigmas_hv(kids)
+            f_hv = np.maximum(np.array([out['estimated_h_m'] / out['stated_h_m'],
+                                        out['estimated_v_m'] / out['stated_v_m']]), 0.5)
             h = np.linalg.norm(R[:, :2], axis=1) / np.sqrt(2)
-            dev = np.maximum(h / sig[0], np.abs(R[:, 2]) / sig[1])
-            floor = np.maximum(h / out['stated_h_m'], np.abs(R[:, 2]) / out['stated_v_m'])
+            floor = np.maximum(h / s_hv[:, 0], np.abs(R[:, 2]) / s_hv[:, 1])
+            dev = np.maximum(h / (s_hv[:, 0] * f_hv[0]), np.abs(R[:, 2]) / (s_hv[:, 1] * f_hv[1]))
             bad = np.flatnonzero((dev > self.opt.gnss_outlier_sigma) & (floor > 3.0))
             bad = bad[np.argsort(-dev[bad])][:len(kids) // 5]
             rejected = {kids[i] for i in bad}
