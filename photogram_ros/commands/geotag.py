@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from photogram_ros.commands import common_args
+
 HELP = ('PPK geotagging: a post-processed antenna track (RTKLIB/Emlid .pos, GrafNav/Inertial Explorer export, '
         'Emlid/TBC/Leica CSV, recognised by content) and the camera events (DJI Timestamp.MRK, ArduPilot .bin CAM/TRIG, '
         '.tlog CAMERA_FEEDBACK / PX4 CAMERA_TRIGGER / CAMERA_IMAGE_CAPTURED, or the photos\' EXIF times) -> '
@@ -24,10 +26,8 @@ def add_arguments(p) -> None:
     p.add_argument('--out', help='geo.txt to write (default: geo.txt in the photos\' folder, where triangulate reads '
                                  'it)')
     p.add_argument('--csv', help='CSV to write (default: beside --out, .csv)')
-    p.add_argument('--lever-arm', default='0,0,0',
-                   help='the antenna relative to the camera in the body frame, forward,right,down in metres '
-                        '(turned by each event\'s attitude; level along the track without one). Not with an MRK: '
-                        'its per-photo N/E/V offsets are the lever arm')
+    common_args.add_lever_arm_body(p, 'Turned by each event\'s attitude; level along the track without one. Not '
+                                      'with an MRK: its per-photo N/E/V offsets are the lever arm')
     p.add_argument('--match', choices=('auto', 'number', 'order', 'time'), default='auto',
                    help='photo <-> event: by the number in the photo name, by order, by EXIF time, or auto')
     p.add_argument('--match-tolerance', type=float, default=1.5, help='largest time mismatch of a pair, s')
