@@ -381,6 +381,11 @@ class IncrementalAT:
                        self.block.camera.pixel_to_normalized(uv), np.ones(len(ids), bool), fix_enu, fix_cov)
         if rec.antenna_offset_map_m is not None:
             kf.antenna_offset = np.asarray(rec.antenna_offset_map_m, float).reshape(3)
+        if rec.map_R_cam_prior is not None:
+            R = np.asarray(rec.map_R_cam_prior, float)
+            if R.shape != (3, 3) or not np.allclose(R.T @ R, np.eye(3), atol=1e-3):
+                raise DataError(f'keyframe {rec.stamp_ns}: map_R_cam_prior must be a 3x3 rotation, got {R.tolist()}')
+            kf.map_R_cam_prior = R
         self.block.add(kf)
         t0 = time.perf_counter()
         if not self.block.registered:
@@ -561,16 +566,20 @@ class IncrementalAT:
         elif self.opt.assume_nadir and len(ks) >= (2 * self.opt.georef_min_keyframes if line_keyframes is None
                                                    else line_keyframes) and sv[0] > max(
                 10.0 * sig, 5.0 if line_keyframes is None else 0.0):
-            # Straight line: everything but the roll about it comes from GNSS; the roll from the
-            # near-nadir camera. Provisional until the first turn.
+            # Straight line: everything but the roll about it comes from GNSS; the roll from the cameras'
+            # attitude priors (the autopilot and the mount: a fixed wing banks and crabs) when they have them,
+            # else from the near-nadir camera. Provisional until the first turn.
             n = len(ks)   # the cameras alone (GCPs joined a forced fit above)
             dirs = np.array([self.block.kfs[k].map_T_cam[:3, 2] for k in ks])
-            s = similarity_on_line(src[:n], dst[:n], dirs)
+            prior = [k for k in ks if self.block.kfs[k].map_R_cam_prior is not None]
+            att = (np.array([self.block.kfs[k].map_T_cam[:3, :3] for k in prior]),
+                   np.array([self.block.kfs[k].map_R_cam_prior for k in prior])) if len(prior) >= 3 else None
+            s = similarity_on_line(src[:n], dst[:n], dirs, attitude_priors=att)
             # A glitched fix on the line would tilt it: fitted again without the fixes far from the first fit.
             near = np.linalg.norm(s.apply(src[:n]) - dst[:n], axis=1) <= max(thr, 3.0 * float(np.median(
                 np.linalg.norm(s.apply(src[:n]) - dst[:n], axis=1))))
             if 3 <= near.sum() < n:
-                s = similarity_on_line(src[:n][near], dst[:n][near], dirs[near])
+                s = similarity_on_line(src[:n][near], dst[:n][near], dirs[near], attitude_priors=att)
             provisional = True
         else:
             return False
