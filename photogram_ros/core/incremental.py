@@ -101,6 +101,11 @@ class IncrementalOptions:
                                           'keyframe it shares most tracks with, scaled by the known points it sees '
                                           'or by GNSS', )
     min_relative_inliers: int = param(25, 'relative-pose inliers that fallback needs', min=8, max=100000)
+    min_relative_inliers_gnss: int = param(12, 'relative-pose inliers that fallback needs, with a georeferenced '
+                                               'block, when the pose it gives puts the keyframe\'s antenna within '
+                                               '3 x the block\'s GNSS residual RMS of its fix (a keyframe that '
+                                               'shares only a few two-view tracks: half the forward overlap)',
+                                           min=8, max=100000)
     segments: bool = param(True, 'keyframes that share no tie point with the block (every track lost: a long gap '
                                  'in the frames) start a segment of their own, which joins the block through the '
                                  'tracker\'s tie points both have triangulated as soon as they are '
