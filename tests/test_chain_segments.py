@@ -90,7 +90,9 @@ def test_a_segment_joins_through_shared_tie_points_as_soon_as_they_exist(flight,
     print(f'break at {K_BREAK}, chain from {K_CHAIN} ({n_wrong} of {n_cont} continued tracks on a wrong id): joined '
           f'at keyframe {joined_at} {joins}; the join put the segment\'s centres within {placed[0][0]:.3f} m and '
           f'its rotations within {placed[0][1]:.3f} deg of the truth')
-    # The segment's tracks become points of the block at the second chained keyframe: the join is there.
+    # The first chained keyframe resects straight into the block (its tracks are the block's points), the
+    # segment's tracks it continues become points of the block with the second: the join is there.
+    assert reps[K_CHAIN].registered and not any(r.registered for r in reps[K_BREAK:K_CHAIN])
     assert joined_at == [K_CHAIN + 1]
     assert len(joins) == 1 and joins[0]['through'] == 'ties' and joins[0]['keyframes'] == K_CHAIN - K_BREAK
     assert 8 <= joins[0]['ties'] <= n_cont - n_wrong
