@@ -20,7 +20,10 @@ bounded by min(keyframes taken, photos triangulate oriented): `share` is then a 
 (`share_exact` false). Also the tracker's breaks / bridged / problems and the adjuster's not-oriented reasons
 from report.json, wall times, the commit (bench/real_surveys.git_commit: '+modified' for a dirty tree), the
 cores and the load average. Commands run one after the other, `replay` at rate 0 (no time pressure).
-`--triangulate-from` takes triangulate's results from another run's folder (it does not use the tracker).
+`--triangulate-from` takes triangulate's results from another run's folder (it does not use the tracker), or from
+another run's result file (.jsonl): its counts, and the names of the photos it oriented when the row has them
+(`triangulate_oriented_names`; or every photo when it oriented every one); else `share` is bounded (`share_bounds`,
+`share` the lower bound, `share_exact` false).
 
     ROS_DOMAIN_ID=100 .venv/bin/python bench/inflight_chain.py [--only seneca,toledo] [--variants all,half]
         [--out /tmp/inflight_chain] [--results bench/results]
@@ -52,6 +55,7 @@ SETS = {'brighton': DATA / 'photos' / 'brighton_beach' / 'images', 'toledo': DAT
 VARIANTS = ('all', 'half')
 PHANTOM3_NOISE_M = (1.5, 3.0)
 TRIANGULATE_FROM: Path | None = None   # --triangulate-from
+REPLAY_PARAMS: str | None = None       # --params
 
 
 def clean_tree() -> bool:
@@ -113,6 +117,18 @@ def video_stamps(dataset: Path) -> dict[int, str]:
 # --- one set ------------------------------------------------------------------------------------------------
 
 
+def _old_replay(row: dict) -> Path | None:
+    """The trajectory.csv of an earlier run's replay whose oriented photos include every one triangulate oriented
+    (its row says so), when it is still there; else None."""
+    if row.get('replay_oriented_of_triangulated') != row.get('triangulate_oriented'):
+        return None
+    cmd = row.get('replay_command', '').split()
+    if '--out' not in cmd:
+        return None
+    traj = Path(cmd[cmd.index('--out') + 1]) / 'trajectory.csv'
+    return traj if traj.exists() else None
+
+
 def tracker_and_adjuster(report: dict) -> dict:
     """What the tracker and the adjuster said (report.json): breaks, bridged, lost-tracking problems,
     not-oriented reasons."""
@@ -144,7 +160,8 @@ def run_set(name: str, variant: str, out: Path, timeout_s: float) -> dict:
         imp = ['import-frames', str(dataset), '--out', str(bag), '--noise-h-m', str(PHANTOM3_NOISE_M[0]),
                '--noise-v-m', str(PHANTOM3_NOISE_M[1])]
         r_imp = rs.run_command(imp, work / 'import.log', timeout_s)
-        rep_cmd = ['replay', str(bag), '--out', str(work / 'replay'), '--quiet']
+        rep_cmd = ['replay', str(bag), '--out', str(work / 'replay'), '--quiet'] + (
+            ['--params', REPLAY_PARAMS] if REPLAY_PARAMS else [])
         names = video_stamps(dataset)
         photos = len(names)
         row['import_exit'] = r_imp['exit']
@@ -154,12 +171,24 @@ def run_set(name: str, variant: str, out: Path, timeout_s: float) -> dict:
             folder = work / 'photos'
             rs.half_overlap_block(SETS[name], folder)
         tri_cmd = ['triangulate', str(folder), '--out', str(work / 'triangulate'), '--quiet']
-        rep_cmd = ['replay', str(folder), '--out', str(work / 'replay'), '--quiet']
+        rep_cmd = ['replay', str(folder), '--out', str(work / 'replay'), '--quiet'] + (
+            ['--params', REPLAY_PARAMS] if REPLAY_PARAMS else [])
         names = rs.photo_stamps(folder)
         photos = rs.photo_count(folder)
+    tri_known = None   # triangulate's oriented photos from a result file: (count, names or None)
     if TRIANGULATE_FROM is None:
         r_tri = rs.run_command(tri_cmd, work / 'triangulate.log', timeout_s)
         tri_poses = work / 'triangulate' / 'poses.csv'
+    elif TRIANGULATE_FROM.suffix == '.jsonl':
+        # triangulate's counts of an earlier run of this bench (the same photos), from its result file.
+        old = [json.loads(ln) for ln in TRIANGULATE_FROM.read_text().splitlines() if ln.strip()]
+        old = [o for o in old if o.get('set') == name and o.get('variant') == variant]
+        if not old or old[-1].get('triangulate_oriented') is None:
+            raise SystemExit(f'{TRIANGULATE_FROM} has no triangulate row for {tag}')
+        o = old[-1]
+        r_tri = {'exit': o.get('triangulate_exit'), 'wall_s': o.get('triangulate_wall_s'), 'from': str(TRIANGULATE_FROM)}
+        tri_known = (int(o['triangulate_oriented']), o.get('triangulate_oriented_names'), _old_replay(o))
+        tri_poses = None
     else:
         # triangulate's outputs of an earlier run of this bench (the same photos; triangulate does not use the
         # tracker): waited for while that run is still going.
@@ -171,23 +200,49 @@ def run_set(name: str, variant: str, out: Path, timeout_s: float) -> dict:
         r_tri['from'] = str(TRIANGULATE_FROM / tag)
         tri_poses = TRIANGULATE_FROM / tag / 'triangulate' / 'poses.csv'
     r_rep = rs.run_command(rep_cmd, work / 'replay.log', timeout_s)
-    tri = set(rs.read_poses(tri_poses)) if tri_poses.exists() else set()
     traj = work / 'replay' / 'trajectory.csv'
     rep = {names.get(p.get('stamp_ns'), n) for n, p in rs.read_poses(traj).items()} if traj.exists() else set()
     rj = work / 'replay' / 'report.json'
     report = json.loads(rj.read_text()) if rj.exists() else {}
     taken = int(report.get('keyframes_taken') or 0)
-    both = len(rep & tri)
     exact = taken == photos
-    denom = len(tri) if exact else min(taken, len(tri))
-    row.update({'photos': photos, 'triangulate_oriented': len(tri), 'replay_keyframes': taken,
+    bounds = rep_of = None
+    if tri_known is None:
+        tri = set(rs.read_poses(tri_poses)) if tri_poses.exists() else set()
+        n_tri = len(tri)
+    else:
+        n_tri, tri_names, old_rep = tri_known
+        tri = set(tri_names) if tri_names is not None else (set(names.values()) if n_tri == photos else None)
+        if tri is None and old_rep is not None:
+            row['share_inferred_from'] = str(old_rep)
+            old_rep = {names.get(p.get('stamp_ns'), n) for n, p in rs.read_poses(old_rep).items()}
+            row['earlier_replay_oriented_not_now'] = sorted(old_rep - rep)
+            if rep >= old_rep:
+                # The earlier run's replay oriented every photo triangulate oriented, and this one every
+                # photo that one did: so every photo triangulate oriented too.
+                rep_of = n_tri
+    if tri is not None:
+        both = len(rep & tri)
+    elif rep_of is not None:
+        both = rep_of
+    else:
+        # Only triangulate's count is known: replay's oriented photos among its, at least those beyond the
+        # photos it did not orient, at most all.
+        bounds = (max(0, len(rep) - (photos - n_tri)), min(len(rep), n_tri))
+        both, exact = bounds[0], False
+    denom = n_tri if taken == photos else min(taken, n_tri)
+    row.update({'photos': photos, 'triangulate_oriented': n_tri, 'replay_keyframes': taken,
                 'replay_oriented': len(rep), 'replay_oriented_of_triangulated': both,
                 'keyframes_triangulated': denom, 'share': round(both / denom, 4) if denom else None,
                 'share_exact': exact, 'triangulate_exit': r_tri['exit'], 'replay_exit': r_rep['exit'],
                 'triangulate_wall_s': r_tri['wall_s'], 'replay_wall_s': r_rep['wall_s'],
                 'replay_last_line': r_rep.get('last_line', '')[:300],
                 'triangulate_command': 'photogram-ros ' + ' '.join(tri_cmd),
-                'replay_command': 'photogram-ros ' + ' '.join(rep_cmd)})
+                'replay_command': 'photogram-ros ' + ' '.join(rep_cmd),
+                'triangulate_from': r_tri.get('from'),
+                'triangulate_oriented_names': sorted(tri) if tri is not None else None})
+    if bounds is not None:
+        row['share_bounds'] = [round(b / denom, 4) if denom else None for b in bounds]
     row.update(tracker_and_adjuster(report))
     return row
 
@@ -200,13 +255,16 @@ def main(argv=None) -> int:
     ap.add_argument('--results', default=str(ROOT / 'bench' / 'results'), help='folder of the JSON-lines file')
     ap.add_argument('--timeout-s', type=float, default=1800.0, help='per command')
     ap.add_argument('--triangulate-from', default=None,
-                    help="another run's --out: take triangulate's results from there (waiting for them) instead of "
-                         'running it again (triangulate does not use the tracker)')
+                    help="another run's --out: take triangulate's results from there (waiting for them), or its "
+                         'result file (.jsonl: the counts, and the names when it has them), instead of running it '
+                         'again (triangulate does not use the tracker)')
+    ap.add_argument('--params', default=None, help="replay's ROS 2 parameter file (default: the package's)")
     ap.add_argument('--remeasure', action='store_true', help='measure the outputs already in --out again')
     a = ap.parse_args(argv)
     rs.REMEASURE = a.remeasure
-    global TRIANGULATE_FROM
-    TRIANGULATE_FROM = Path(a.triangulate_from) if a.triangulate_from else None
+    global TRIANGULATE_FROM, REPLAY_PARAMS
+    TRIANGULATE_FROM = Path(a.triangulate_from).resolve() if a.triangulate_from else None
+    REPLAY_PARAMS = str(Path(a.params).resolve()) if a.params else None
     sets = [s for s in a.only.split(',') if s]
     variants = [v for v in a.variants.split(',') if v]
     bad = [s for s in sets if s not in SETS] + [v for v in variants if v not in VARIANTS]
@@ -219,6 +277,7 @@ def main(argv=None) -> int:
     results = Path(a.results) / f'inflight_chain_{short}.jsonl'
     results.parent.mkdir(parents=True, exist_ok=True)
     head = {'bench': 'inflight_chain', 'commit': commit, 'clean_tree': clean_tree(), 'cores': os.cpu_count(),
+            'replay_params': REPLAY_PARAMS, 'triangulate_from': str(TRIANGULATE_FROM) if TRIANGULATE_FROM else None,
             'machine': machine_info(), 'load_avg_before': [round(x, 2) for x in os.getloadavg()],
             'started_utc': time.strftime('%Y-%m-%dT%H:%M:%SZ', time.gmtime())}
     with open(results, 'a') as fh:

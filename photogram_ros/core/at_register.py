@@ -125,11 +125,24 @@ class Registration:
         self.block.enrol(kf)
         return StepReport(kf.kid, True, 'registered')
 
+    def gnss_tolerance_m(self, kf: Keyframe) -> float | None:
+        """How far kf's antenna may lie from its fix for a pose from fewer tracks than min_relative_inliers:
+        3 x the GNSS residual RMS of the block's oriented keyframes (>= 3 of them, the block georeferenced), at
+        least 0.1 m (`relative` adds 2 % of the baseline); None when the fix cannot vouch for it (no fix, its
+        fix not used, too few residuals)."""
+        if not self.block.georeferenced or kf.fix_enu is None or kf.kid in self.datum.rejected:
+            return None
+        r = [v for k, v in self.datum.residuals().items() if k not in self.datum.rejected]
+        if len(r) < 3:
+            return None
+        return max(3.0 * float(np.sqrt(np.mean(np.sum(np.array(r) ** 2, axis=1)))), 0.1)
+
     def relative(self, kf: Keyframe) -> StepReport:
         """Orientation from the relative pose to the registered keyframe sharing most usable tracks
         with `kf` (essential matrix, core/two_view.py); the baseline length from the known points
         both see (depth ratio, >= 5 of them) or else from the GNSS fixes (the block's scale from its
-        registered keyframes' fixes while not georeferenced)."""
+        registered keyframes' fixes while not georeferenced). With fewer than min_relative_inliers (down to
+        min_relative_inliers_gnss), only when its fix agrees with the pose (`gnss_tolerance_m`)."""
         use = self.block.usable(kf)
         ids = kf.track_ids[use]
         best = None
@@ -140,14 +153,22 @@ class Registration:
             common = np.intersect1d(rk.track_ids[self.block.usable(rk)], ids)
             if best is None or len(common) > len(best[1]):
                 best = (r, common)
-        if best is None or len(best[1]) < self.opt.min_relative_inliers:
-            return StepReport(kf.kid, False, f'relative: too_few_shared_tracks ({0 if best is None else len(best[1])})')
+        n_shared = 0 if best is None else len(best[1])
+        tol = None
+        if n_shared < self.opt.min_relative_inliers:
+            tol = self.gnss_tolerance_m(kf) if n_shared >= self.opt.min_relative_inliers_gnss else None
+            if tol is None:
+                return StepReport(kf.kid, False, f'relative: too_few_shared_tracks ({n_shared})')
         r, common = best
         rk = self.block.kfs[r]
         i1 = np.array([rk.index(int(t)) for t in common])
         i2 = np.array([kf.index(int(t)) for t in common])
         thr = self.opt.pnp_threshold_px / self.block.camera.fx
-        res = relative_pose(self.block.xn(rk, i1), self.block.xn(kf, i2), thr, self.opt.min_relative_inliers)
+        # A few matches at the resection's threshold can all fit a wrong essential matrix (no clear cheirality
+        # winner) with plain RANSAC: OpenCV's USAC (local optimisation) for those.
+        res = relative_pose(self.block.xn(rk, i1), self.block.xn(kf, i2), thr,
+                            self.opt.min_relative_inliers if tol is None else self.opt.min_relative_inliers_gnss,
+                            method='ransac' if tol is None else 'usac')
         T_r = rk.map_T_cam
         if res.ok and not self.faces_scene(res):
             return StepReport(kf.kid, False, 'relative: sees its tie points edge-on (the planar twin)')
@@ -158,14 +179,22 @@ class Registration:
             scale = self.relative_scale(rk, kf, common[res.inliers], res, d_map)
             if scale is None:
                 return StepReport(kf.kid, False, 'relative: no_scale (neither known points nor GNSS)')
-            kf.map_T_cam = make_T(map_R, T_r[:3, 3] + scale * d_map)
+            T = make_T(map_R, T_r[:3, 3] + scale * d_map)
+            if tol is not None:
+                # ... and the direction of the baseline from a few matches: 2 % of its length (1.1 degrees).
+                tol += 0.02 * scale
+                off = float(np.linalg.norm(self.datum.antenna_residual(kf, T)))
+                if off > tol:
+                    return StepReport(kf.kid, False, f'relative: {n_shared} shared tracks, its fix {off:.1f} m from '
+                                                     f'the pose they give (> {tol:.1f} m)')
+            kf.map_T_cam = T
             inl = res.inliers
             status = 'registered_relative'
         else:
             # Too short a baseline (or a turn on the spot) for the essential matrix: with a georeferenced
             # block and a fix, the rotation from the homography of the shared tracks (a rotation when
             # the baseline is short against the height), the position from GNSS; the adjustment refines.
-            got = self.gnss_and_rotation(rk, kf, i1, i2, thr)
+            got = self.gnss_and_rotation(rk, kf, i1, i2, thr) if tol is None else None
             if got is None:
                 return StepReport(kf.kid, False, f'relative: {res.status}')
             kf.map_T_cam, inl = got

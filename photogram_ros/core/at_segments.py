@@ -1,9 +1,12 @@
 """Segments: the flight after every track was lost.
 
 Keyframes that share no tie point with the block (a long gap in the frames) start a block of their own, a segment
-(an adjuster of its own in the same map frame, core/incremental.py), which joins the block through the manual tie
-points both have (a similarity fitted to three or more, a shift to one or two) or else through its GNSS once that
-georeferences it. `Segments` holds the segment being grown, the block's ids of its keyframes, and the joins made.
+(an adjuster of its own in the same map frame, core/incremental.py), which joins the block as soon as it can:
+through the tracker's tie points both have triangulated (the tracker's chain gives a keyframe after a break the
+ids of the earlier keyframes it overlaps: a RANSAC similarity fitted to those shared points, whether or not
+either is georeferenced), through the manual tie points both have (a similarity fitted to three or more, a shift
+to one or two), or else through its GNSS once that georeferences it. `Segments` holds the segment being grown,
+the block's ids of its keyframes, and the joins made.
 """
 
 from __future__ import annotations
@@ -11,7 +14,13 @@ from __future__ import annotations
 import numpy as np
 
 from photogram_ros.core.at_store import Keyframe
-from photogram_ros.core.similarity import spread
+from photogram_ros.core.similarity import Similarity, similarity_ransac, spread
+
+# A shared tie point fits the similarity segment -> block within this fraction of the distance the block's
+# cameras see it from (triangulation noise of short baselines; a wrong track is off by a footprint's share).
+TIE_FIT_DEPTH_FRACTION = 0.02
+# The shared points the similarity keeps must span an area: their second spread at least this of their first.
+TIE_MIN_SPREAD_RATIO = 0.2
 
 
 class Segments:
@@ -23,13 +32,14 @@ class Segments:
         self.current = None
         self.kids: list[int] = []
         self.joined = 0
-        # Each segment that joined: its keyframes and how ('gnss', or 'mtp' with the tie points used).
+        # Each segment that joined: its keyframes and how ('ties', 'mtp' or 'gnss', with the points used).
         self.joins: list[dict] = []
         # Keyframes of a block before a break that its GNSS could not place, given up for the segment after it.
         self.unplaced = 0
 
     def joins_made(self) -> list[dict]:
-        """Each segment that joined: {'keyframes', 'through' ('gnss' or 'mtp'), 'mtps'} (copies)."""
+        """Each segment that joined: {'keyframes', 'through' ('ties': the tracker's tie points, 'mtp': manual
+        tie points, 'gnss'), 'mtps', 'ties' (the tracker's tie points the similarity kept)} (copies)."""
         return [dict(j) for j in self.joins]
 
     def start(self, adjuster) -> None:
@@ -81,6 +91,44 @@ class Segments:
             return False
         return seg.block.georeferenced or self.ties_fit()[2]
 
+    def tracks_fit(self, min_points: int, rng: np.random.Generator | None = None):
+        """(similarity segment -> block, the shared ids it fits, the shared ids it does not) from the tracker's
+        tie points both have triangulated: RANSAC (a wrong track, a feature matched to the wrong one, is left
+        out), at least `min_points` inliers spanning an area and at least half of the shared points; (None, ids,
+        ids) without. Neither needs to be georeferenced: the similarity carries the scale between them."""
+        seg = self.current
+        none = np.zeros(0, np.int64)
+        if seg is None or not seg.block.registered or not self.block.registered:
+            return None, none, none
+        ids, P = seg.block.points.arrays()
+        if not len(ids):
+            return None, none, none
+        both = (ids >= 0) & self.block.points.contains_many(ids)
+        ids, src = ids[both], P[both]
+        if len(ids) < max(min_points, 3):
+            return None, none, none
+        dst = self.block.points.get_many(ids)
+        C = np.array([self.block.kfs[k].map_T_cam[:3, 3] for k in self.block.registered])
+        depth = np.median(np.min(np.linalg.norm(dst[:, None, :] - C[None, :, :], axis=2), axis=1))
+        res = similarity_ransac(src, dst, TIE_FIT_DEPTH_FRACTION * depth, rng or np.random.default_rng(0),
+                                min_spread_ratio=TIE_MIN_SPREAD_RATIO)
+        if not res.ok:
+            return None, none, none
+        n = int(res.inliers.sum())
+        sv = spread(dst[res.inliers])
+        if n < min_points or 2 * n < len(ids) or sv[1] < TIE_MIN_SPREAD_RATIO * sv[0]:
+            return None, none, none
+        return res.sim, ids[res.inliers], ids[~res.inliers]
+
+    def move_onto(self, s: Similarity) -> None:
+        """Move the segment (poses and points) by the similarity `s`."""
+        seg = self.current
+        for k in seg.block.registered:
+            seg.block.kfs[k].map_T_cam = s.apply_pose(seg.block.kfs[k].map_T_cam)
+        ids, P = seg.block.points.arrays()
+        if len(ids):
+            seg.block.points.set_many(ids, s.apply(P))
+
     def move_onto_ties(self) -> int:
         """Move the segment (poses and points) onto the block through the manual tie points both have
         (`ties_fit`). Returns how many were used."""
@@ -88,26 +136,35 @@ class Segments:
         seg = self.current
         if s is None or not (full or seg.block.georeferenced):
             return 0
-        for k in seg.block.registered:
-            seg.block.kfs[k].map_T_cam = s.apply_pose(seg.block.kfs[k].map_T_cam)
-        ids, P = seg.block.points.arrays()
-        if len(ids):
-            seg.block.points.set_many(ids, s.apply(P))
+        self.move_onto(s)
         seg.block.georeferenced = True
         return n
 
-    def join(self) -> int:
+    def join_by_tracks(self, min_points: int) -> int:
+        """Join the segment through the tracker's tie points both have triangulated (`tracks_fit`), moving it
+        onto the block first; its keyframes' observations of the shared points the similarity does not fit are
+        not used. Returns how many keyframes joined (0: no fit)."""
+        s, fit, bad = self.tracks_fit(min_points)
+        if s is None:
+            return 0
+        self.move_onto(s)
+        return self.join(through='ties', n_ties=len(fit), drop_ids=bad)
+
+    def join(self, through: str | None = None, n_ties: int = 0, drop_ids=None) -> int:
         """Move the segment's oriented keyframes and points into the block (through the manual tie points
-        both share, when there are any, else through its GNSS); returns how many joined."""
-        n_ties = self.move_onto_ties()
+        both share, when there are any, else through its GNSS; `through` 'ties': the caller moved it onto the
+        block by the tracker's tie points, `n_ties` of them, `drop_ids` the shared ids that disagree); returns
+        how many joined."""
+        n_mtps = 0 if through == 'ties' else self.move_onto_ties()
         seg, kids = self.current, self.kids
         self.current, self.kids = None, []
+        drop = np.zeros(0, np.int64) if drop_ids is None else np.asarray(drop_ids, np.int64)
         for s_kid in seg.block.registered:
             kf, skf = self.block.kfs[kids[s_kid]], seg.block.kfs[s_kid]
             kf.map_T_cam = np.asarray(skf.map_T_cam, float).copy()
             # The segment's outliers, by tracker id (its target ids are numbered on their own).
             dropped = skf.track_ids[~skf.active]
-            kf.active[np.isin(kf.track_ids, dropped[dropped >= 0])] = False
+            kf.active[np.isin(kf.track_ids, np.concatenate([dropped[dropped >= 0], drop]))] = False
             self.block.enrol(kf)
         ids, P = seg.block.points.arrays()
         # Tracker ids only: the segment numbers its targets on its own; the block triangulates them below.
@@ -116,7 +173,7 @@ class Segments:
             self.block.points.set_many(ids[new], P[new])
         self.block.retriangulate_ties()
         self.joined += 1
-        self.joins.append({'keyframes': len(seg.block.registered), 'through': 'mtp' if n_ties else 'gnss',
-                           'mtps': n_ties})
+        how = through or ('mtp' if n_mtps else 'gnss')
+        self.joins.append({'keyframes': len(seg.block.registered), 'through': how, 'mtps': n_mtps,
+                           'ties': n_ties})
         return len(seg.block.registered)
-

@@ -268,13 +268,14 @@ class Keyframe:
     on disk (`KeyframeSpill`) once frozen. Reading an array of a frozen keyframe thaws it, so every
     caller stays correct; the freeze pass (core/at_freeze.py) spills it again when it may."""
 
-    __slots__ = ('kid', 'stamp_ns', 'name', 'fix_enu', 'fix_cov', 'map_T_cam', 'antenna_offset', 'reg_seq',
-                 'id_lo', 'id_hi', 'has_targets', '_arr', '_spill', '_disk_active')
+    __slots__ = ('kid', 'stamp_ns', 'name', 'fix_enu', 'fix_cov', 'map_T_cam', 'antenna_offset', 'map_R_cam_prior',
+                 'reg_seq', 'id_lo', 'id_hi', 'has_targets', '_arr', '_spill', '_disk_active')
 
     def __init__(self, kid, stamp_ns, name, track_ids, uv, xn, active, fix_enu, fix_cov, map_T_cam=None,
                  antenna_offset=None):
         self.kid, self.stamp_ns, self.name = kid, stamp_ns, name
         self.fix_enu, self.fix_cov, self.map_T_cam, self.antenna_offset = fix_enu, fix_cov, map_T_cam, antenna_offset
+        self.map_R_cam_prior = None   # (3, 3) camera -> map from the autopilot's attitude and the mount, or None
         self.reg_seq = -1          # position in Block.registered (core/at_block.py), -1 while not registered
         nonneg = track_ids[track_ids >= 0]
         self.id_lo = int(nonneg.min()) if len(nonneg) else 0

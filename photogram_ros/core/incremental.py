@@ -101,9 +101,19 @@ class IncrementalOptions:
                                           'keyframe it shares most tracks with, scaled by the known points it sees '
                                           'or by GNSS', )
     min_relative_inliers: int = param(25, 'relative-pose inliers that fallback needs', min=8, max=100000)
+    min_relative_inliers_gnss: int = param(12, 'relative-pose inliers that fallback needs, with a georeferenced '
+                                               'block, when the pose it gives puts the keyframe\'s antenna within '
+                                               '3 x the block\'s GNSS residual RMS of its fix (a keyframe that '
+                                               'shares only a few two-view tracks: half the forward overlap)',
+                                           min=8, max=100000)
     segments: bool = param(True, 'keyframes that share no tie point with the block (every track lost: a long gap '
-                                 'in the frames) start a segment of their own, which joins the block through its '
-                                 'GNSS once that georeferences it (or at the end of the flight)')
+                                 'in the frames) start a segment of their own, which joins the block through the '
+                                 'tracker\'s tie points both have triangulated as soon as they are '
+                                 '`segment_min_tie_points`, else through its GNSS once that georeferences it (or at '
+                                 'the end of the flight)')
+    segment_min_tie_points: int = param(8, 'a segment joins the block through the tracker\'s tie points both have '
+                                           'triangulated when a RANSAC similarity fits this many of them (and at '
+                                           'least half), spread over an area', min=3, max=100000)
     loss: str = param('huber', 'robust loss on reprojection errors', choices=('huber', 'cauchy', 'linear'))
     loss_scale_px: float = param(1.0, 'robust loss scale, pixels', min=0.05, max=100.0)
     mtp_loss_scale_px: float = param(3.0, 'robust loss scale of the manual tie points (marked by hand to about '
@@ -376,6 +386,11 @@ class IncrementalAT:
                        self.block.camera.pixel_to_normalized(uv), np.ones(len(ids), bool), fix_enu, fix_cov)
         if rec.antenna_offset_map_m is not None:
             kf.antenna_offset = np.asarray(rec.antenna_offset_map_m, float).reshape(3)
+        if rec.map_R_cam_prior is not None:
+            R = np.asarray(rec.map_R_cam_prior, float)
+            if R.shape != (3, 3) or not np.allclose(R.T @ R, np.eye(3), atol=1e-3):
+                raise DataError(f'keyframe {rec.stamp_ns}: map_R_cam_prior must be a 3x3 rotation, got {R.tolist()}')
+            kf.map_R_cam_prior = R
         self.block.add(kf)
         t0 = time.perf_counter()
         if not self.block.registered:
@@ -387,11 +402,14 @@ class IncrementalAT:
                 rep = rel if rel.registered else StepReport(kf.kid, False, f'{rep.status}; {rel.status}')
             if rep.registered:
                 self.block.triangulate_new(kf)
+                # The segment's tracks it continues became points of the block: the segment joins through them.
+                joined = self._join_segment_by_tracks()
                 if not self.block.georeferenced or self.block.provisional:
                     self._try_georeference()
                 elif rep.status != 'registered_gnss_rotation':
                     self.rounds.gate_fix(kf)
                 rep = self._window_adjust(kf.kid, iterations=window_iterations)
+                rep.joined = joined
                 if self._growth_due():
                     self._pass_adjustment(gnss_bias=False)
                     rep.block_adjusted = True
@@ -459,20 +477,31 @@ class IncrementalAT:
         joins = self.segments.joined
         # Every track lost early on the first line: the block joins the segment's turn (its full adjustment).
         self._georeference_short_block()
-        # Provisional too: a gap mid-line leaves a line until the next turn. Both in the map frame: the block
+        # The tracker's tie points shared with the block join it at once, in whatever frame both are. Else
+        # provisional too: a gap mid-line leaves a line until the next turn. Both in the map frame: the block
         # must be georeferenced as well. Manual tie points shared with the block join it without waiting.
-        if self.segments.can_join():
+        if not self._join_segment_by_tracks() and self.segments.can_join():
             self.segments.join()
         if self.segments.joined > joins:
-            n = self.segments.joins[-1]['keyframes']
+            n, how = self.segments.joins[-1]['keyframes'], self.segments.joins[-1]['through']
+            if how == 'ties' and (not self.block.georeferenced or self.block.provisional):
+                self._try_georeference()
             rep = self._window_adjust(kf.kid, iterations=window_iterations) if kf.map_T_cam is not None \
                 else StepReport(kf.kid, False, seg.status)
             rep.joined = n
-            rep.status = f'registered (a segment of {n} keyframes joined through its GNSS)' if rep.registered \
+            through = {'ties': 'the tracker\'s tie points', 'mtp': 'manual tie points'}.get(how, 'its GNSS')
+            rep.status = f'registered (a segment of {n} keyframes joined through {through})' if rep.registered \
                 else rep.status
             return rep
         return StepReport(kf.kid, False, f'{failed.status}; in a segment of its own, not georeferenced yet '
                                          f'({self.segments.current.block.n_oriented} of {len(self.segments.kids)} oriented)')
+
+    def _join_segment_by_tracks(self) -> int:
+        """The segment (if any) joins the block through the tracker's tie points both have triangulated
+        (core/at_segments.py `join_by_tracks`); returns how many keyframes joined."""
+        if self.segments.current is None:
+            return 0
+        return self.segments.join_by_tracks(self.opt.segment_min_tie_points)
 
     def _georeference_short_block(self) -> bool:
         """The block is too short to georeference by itself and the segment is georeferenced for good:
@@ -542,16 +571,20 @@ class IncrementalAT:
         elif self.opt.assume_nadir and len(ks) >= (2 * self.opt.georef_min_keyframes if line_keyframes is None
                                                    else line_keyframes) and sv[0] > max(
                 10.0 * sig, 5.0 if line_keyframes is None else 0.0):
-            # Straight line: everything but the roll about it comes from GNSS; the roll from the
-            # near-nadir camera. Provisional until the first turn.
+            # Straight line: everything but the roll about it comes from GNSS; the roll from the cameras'
+            # attitude priors (the autopilot and the mount: a fixed wing banks and crabs) when they have them,
+            # else from the near-nadir camera. Provisional until the first turn.
             n = len(ks)   # the cameras alone (GCPs joined a forced fit above)
             dirs = np.array([self.block.kfs[k].map_T_cam[:3, 2] for k in ks])
-            s = similarity_on_line(src[:n], dst[:n], dirs)
+            prior = [k for k in ks if self.block.kfs[k].map_R_cam_prior is not None]
+            att = (np.array([self.block.kfs[k].map_T_cam[:3, :3] for k in prior]),
+                   np.array([self.block.kfs[k].map_R_cam_prior for k in prior])) if len(prior) >= 3 else None
+            s = similarity_on_line(src[:n], dst[:n], dirs, attitude_priors=att)
             # A glitched fix on the line would tilt it: fitted again without the fixes far from the first fit.
             near = np.linalg.norm(s.apply(src[:n]) - dst[:n], axis=1) <= max(thr, 3.0 * float(np.median(
                 np.linalg.norm(s.apply(src[:n]) - dst[:n], axis=1))))
             if 3 <= near.sum() < n:
-                s = similarity_on_line(src[:n][near], dst[:n][near], dirs[near])
+                s = similarity_on_line(src[:n][near], dst[:n][near], dirs[near], attitude_priors=att)
             provisional = True
         else:
             return False

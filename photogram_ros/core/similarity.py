@@ -112,12 +112,42 @@ def similarity_ransac(src, dst, threshold_m: float, rng: np.random.Generator | N
     return SimilarityResult('ok', s, best, rms)
 
 
-def similarity_on_line(src: np.ndarray, dst: np.ndarray, view_dirs_src: np.ndarray,
-                       down_dst=(0.0, 0.0, -1.0)) -> Similarity:
-    """Similarity for (nearly) collinear points: scale, translation and line direction from the
-    points, the roll about the line from the assumption that the cameras look down on average.
+# A camera's roll about the line from its attitude prior counts when within this of the most agreed one, rad.
+ROLL_PRIOR_AGREE_RAD = np.radians(3.0)
 
-    `view_dirs_src`: optical axes of the cameras in the source frame. A provisional answer for a
+
+def roll_from_priors(line_dir: np.ndarray, R0: np.ndarray, src_R_cam: np.ndarray, dst_R_cam: np.ndarray):
+    """The rotation about `line_dir` (target frame) that, after R0, best turns the cameras' orientations in the
+    source frame `src_R_cam` (n, 3, 3) onto their priors in the target frame `dst_R_cam` (n, 3, 3), robustly:
+    each camera's own angle, the one closest to most others (a few bad priors do not move it), averaged with
+    those within ROLL_PRIOR_AGREE_RAD of it. None when fewer than half the cameras agree with it."""
+    d = np.asarray(line_dir, float)
+    A = np.einsum('ij,njk->nik', R0, np.asarray(src_R_cam, float))
+    B = np.asarray(dst_R_cam, float)
+    # Per camera, theta maximising trace(B^T Rot(d, theta) A) (Rodrigues, summed over the three axes).
+    ad, bd = A.transpose(0, 2, 1) @ d, B.transpose(0, 2, 1) @ d
+    cos_part = np.einsum('nij,nij->n', A, B) - np.sum(ad * bd, axis=1)
+    sin_part = np.einsum('nij,nij->n', np.cross(d[None, :, None], A, axis=1), B)
+    theta = np.arctan2(sin_part, cos_part)
+    gap = np.abs(np.angle(np.exp(1j * (theta[:, None] - theta[None, :]))))
+    best = int(np.argmin(np.sum(np.minimum(gap, ROLL_PRIOR_AGREE_RAD * 10), axis=1)))
+    near = gap[best] <= ROLL_PRIOR_AGREE_RAD
+    if 2 * near.sum() < len(theta):
+        return None
+    t = theta[best] + float(np.mean(np.angle(np.exp(1j * (theta[near] - theta[best])))))
+    K = np.array([[0, -d[2], d[1]], [d[2], 0, -d[0]], [-d[1], d[0], 0]])
+    return np.eye(3) + np.sin(t) * K + (1 - np.cos(t)) * K @ K
+
+
+def similarity_on_line(src: np.ndarray, dst: np.ndarray, view_dirs_src: np.ndarray,
+                       down_dst=(0.0, 0.0, -1.0), attitude_priors=None) -> Similarity:
+    """Similarity for (nearly) collinear points: scale, translation and line direction from the
+    points, the roll about the line from the cameras' attitude priors when given and enough agree
+    (`roll_from_priors`), else from the assumption that the cameras look down on average.
+
+    `view_dirs_src`: optical axes of the cameras in the source frame. `attitude_priors`: (src_R_cam
+    (n, 3, 3), dst_R_cam (n, 3, 3)), the orientations of the cameras that have a prior in the source
+    frame and in the target frame (the autopilot's attitude and the mount). A provisional answer for a
     straight first flight line; the first turn makes the full similarity observable.
     """
     src = np.asarray(src, float)
@@ -145,6 +175,10 @@ def similarity_on_line(src: np.ndarray, dst: np.ndarray, view_dirs_src: np.ndarr
             v1 = np.cross(d1, dd)
             vx1 = np.array([[0, -v1[2], v1[1]], [v1[2], 0, -v1[0]], [-v1[1], v1[0], 0]])
             R0 = (np.eye(3) + vx1 + vx1 @ vx1 / (1.0 + float(d1 @ dd))) @ R0
+    Rr = None if attitude_priors is None or not len(attitude_priors[0]) else roll_from_priors(dd, R0, *attitude_priors)
+    if Rr is not None:
+        R = Rr @ R0
+        return Similarity(scale, R, md - scale * R @ ms)
     a = R0 @ np.mean(view_dirs_src, axis=0)
     g = np.asarray(down_dst, float)
     # Roll theta about dd maximising g . Rot(dd, theta) a (Rodrigues, closed form).

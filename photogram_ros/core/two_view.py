@@ -90,7 +90,7 @@ def triangulate_two_view(R: np.ndarray, t: np.ndarray, xn1: np.ndarray, xn2: np.
     return X, X[:, 2], z2
 
 
-def relative_pose(xn1, xn2, threshold_n: float = 1e-3, min_inliers: int = 15) -> TwoViewResult:
+def relative_pose(xn1, xn2, threshold_n: float = 1e-3, min_inliers: int = 15, method: str = 'ransac') -> TwoViewResult:
     """Pose of camera 2 relative to camera 1 from matched normalized coordinates.
 
     Of the four decompositions of E the one that puts most inliers in front of both cameras wins
@@ -101,7 +101,7 @@ def relative_pose(xn1, xn2, threshold_n: float = 1e-3, min_inliers: int = 15) ->
     xn1, xn2 = _check_pairs(xn1, xn2)
     if len(xn1) < max(min_inliers, 5):
         return TwoViewResult('too_few_points', inliers=np.zeros(len(xn1), bool))
-    E, inl = essential_ransac(xn1, xn2, threshold_n)
+    E, inl = essential_ransac(xn1, xn2, threshold_n, method=method)
     if E is None or inl.sum() < min_inliers:
         return TwoViewResult('too_few_points', inliers=inl)
     best = None
