@@ -538,6 +538,9 @@ class IncrementalAT:
         ks = [k for k in self.block.registered if self.block.kfs[k].fix_enu is not None]
         if not self.block.georeferenced and (not ks or (force and len(ks) < 3)):
             return self._georeference_by_gcps()
+        # Fixes of mixed quality (RTK fixed beside FLOAT photos): only the precise ones place the block; the
+        # adjustments that follow weight every fix by its own sigma.
+        ks = self.datum.similarity_fixes(ks, 3)
         if len(ks) < (max(self.opt.georef_min_keyframes, 3) if line_keyframes is None else max(line_keyframes, 3)):
             return False
         src = np.array([self.block.kfs[k].map_T_cam[:3, 3] for k in ks])

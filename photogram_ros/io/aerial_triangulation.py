@@ -389,6 +389,7 @@ def finish_block(block: KeyframeBlock, out: Path, opt: TriangulateOptions, at: I
     adj = {'status': rep_adj.status, **({'matters': conv['matters'], 'text': conv['text']} if conv else {})}
     for j in at.segments.joins_made():
         how = (f'through {j["mtps"]} manual tie points' if j['through'] == 'mtp' else
+               f'through {j["ties"]} automatic tie points shared across the gap' if j['through'] == 'ties' else
                'through its GNSS alone (no tie point joins it to the rest: its position relative to the block is '
                'only as good as the GNSS; manual tie points across the gap would tie it)')
         assumptions.append(f'a part of {j["keyframes"]} photos that shares no automatic tie point with the rest of the '

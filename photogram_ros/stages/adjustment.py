@@ -559,9 +559,10 @@ class AdjustmentStage:
                               WARN)
         if rep.joined:
             self.diag.count('keyframes_joined_from_a_segment', rep.joined)
-            self.diag.problem(f'every track was lost: {rep.joined} keyframes after the break were oriented as a '
-                              'segment of their own and joined the block through their GNSS (no tie point links '
-                              'the two: their relative accuracy is the GNSS\'s)', WARN)
+            text, tied = _join_text(rep.joined, (self.at.segments.joins_made() or [{'through': 'gnss'}])[-1])
+            self.diag.set('last_segment_join', text)
+            if not tied:
+                self.diag.problem(text, WARN)
         if rep.registered:
             self.diag.count('keyframes_oriented')
         else:
@@ -851,3 +852,14 @@ class AdjustmentStage:
         except Exception as exc:
             self.diag.problem(f'full adjustment failed: {exc}', ERROR)
             return AdjustmentOutcome('failed', f'full adjustment failed: {exc}')
+
+
+def _join_text(n: int, join: dict) -> tuple[str, bool]:
+    """What a segment's join says (core/at_segments.Segments.joins_made), and whether tie points tied it."""
+    if join['through'] == 'ties':
+        return f'{n} keyframes after a break in the tracks joined the block through {join["ties"]} tie points', True
+    if join['through'] == 'mtp':
+        return (f'every track was lost: {n} keyframes after the break joined the block through {join["mtps"]} manual '
+                'tie points'), True
+    return (f'every track was lost: {n} keyframes after the break were oriented as a segment of their own and joined '
+            'the block through their GNSS (no tie point links the two: their relative accuracy is the GNSS\'s)'), False
