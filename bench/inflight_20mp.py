@@ -106,6 +106,65 @@ def build_flight(period_s: float, n_photos: int = 42, folder: Path | None = None
     return folder, calib
 
 
+# The simulated flight (--flight sim): the simulator's survey rendered at SIM_SIZE, one photo a second, each
+# upscaled to SIZE (x4) with its EXIF GPS kept; its ArUco targets' control file beside it.
+SIM_SIZE = (1368, 912)
+SIM_FLIGHT = dict(fps=1.0, width_px=SIM_SIZE[0], height_px=SIM_SIZE[1], focal_px=520.0 * SIM_SIZE[0] / 640,
+                  altitude_m=80.0, speed_mps=8.0, turn_speed_mps=5.0, line_length_m=350.0, n_lines=6,
+                  photos=True, front_overlap=0.0)
+
+
+def _upscale_photo(args) -> None:
+    src, dst = args
+    from PIL import Image
+    with Image.open(src) as im:
+        exif = im.getexif()
+        exif.get_ifd(0x8825)   # loaded so that it is written back
+        ex = exif.get_ifd(0x8769)
+        for tag in (0xA002, 0xA003, 0xA20E, 0xA20F, 0xA210, 0xA405):   # the rendered size's sensor tags
+            ex.pop(tag, None)
+        big = im.resize(SIZE, Image.BICUBIC)
+        tmp = dst.with_suffix('.tmp')
+        big.save(tmp, 'JPEG', quality=90, exif=exif)
+        tmp.rename(dst)
+
+
+def build_sim_flight(n_photos: int) -> tuple[Path, Path, Path]:
+    """The simulated 20 MP flight (built once, cached): (photo folder, calibration YAML, control file). The
+    simulator's survey (SIM_FLIGHT: 6 lines of 350 m at 80 m, 8 m/s, a frame a second, 318 frames) rendered at
+    SIM_SIZE and every frame a photo; the first `n_photos` upscaled to SIZE."""
+    import shutil
+
+    import yaml
+
+    from photogram_ros.core.camera import PinholeCamera
+    from photogram_ros.sim.scenario import preset, simulate
+    src = CACHE / 'sim20mp_src'
+    if not (src / 'photos' / 'camera.yaml').exists():
+        if src.exists():
+            shutil.rmtree(src)
+        t0 = time.perf_counter()
+        simulate(preset('sample', **SIM_FLIGHT), src)
+        log(f'[20mp] simulated {src} in {time.perf_counter() - t0:.0f} s')
+    folder = CACHE / f'inflight_20mp_sim_{n_photos}'
+    calib = folder.parent / (folder.name + '_camera.yaml')
+    control = folder.parent / (folder.name + '_targets.txt')
+    photos = sorted((src / 'photos').glob('IMG_*.JPG'))[:n_photos]
+    folder.mkdir(parents=True, exist_ok=True)
+    jobs = [(p, folder / p.name) for p in photos if not (folder / p.name).exists()]
+    if jobs:
+        from concurrent.futures import ProcessPoolExecutor
+        t0 = time.perf_counter()
+        with ProcessPoolExecutor(2) as ex:
+            list(ex.map(_upscale_photo, jobs))
+        log(f'[20mp] upscaled {len(jobs)} photos in {time.perf_counter() - t0:.0f} s into {folder}')
+    d = yaml.safe_load((src / 'photos' / 'camera.yaml').read_text())
+    cam = PinholeCamera.from_ros_yaml_dict(d).scaled(SIZE[0] / SIM_SIZE[0])
+    calib.write_text(yaml.safe_dump(cam.to_ros_yaml_dict()))
+    shutil.copyfile(src / 'targets.txt', control)
+    return folder, calib, control
+
+
 def pct(v: list, q: float):
     import numpy as np
     return round(float(np.percentile(v, q)), 2) if v else None
