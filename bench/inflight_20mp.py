@@ -1,5 +1,12 @@
 """The in-flight graph on 20 MP photos (5472 x 3648) at a current mapping drone's photo rate.
 
+Two flights (--flight): toledo (below), or `sim`: the simulator's survey (SIM_FLIGHT: 6 lines of 350 m at
+80 m above ground, 8 m/s, a photo every second, 318 photos, 9 ArUco targets surveyed in its control file)
+rendered at 1368 x 912 and upscaled x4 to 20 MP (build_sim_flight; cached in
+/tmp/photogram_bench_cache/inflight_20mp_sim_<n>), played at its own 1 s period with its control file given to
+the adjuster (and through the graph to the tracker's target search). Rendering and upscaling 318 photos takes
+about 10 CPU minutes, once.
+
 The flight: toledo's 42 real DJI survey photos (../shared/data/photos/toledo, 2400 x 1800, EXIF GPS),
 cropped to 3:2 (2400 x 1600, rows 100-1700) and upscaled x2.28 to 5472 x 3648, re-timed one photo per
 `--period` seconds (EXIF DateTimeOriginal / SubSec / OffsetTimeOriginal rewritten, the EXIF GPS kept,
@@ -15,13 +22,16 @@ come at the period whatever the graph does, as from a live camera, and the track
 drops what it cannot take. Bundle, stereo and map run in a child process (replay's default,
 --processes 2). Timing hooks come from bench/replay_probe.py (no benchmark code in the nodes).
 
-Reported (JSON lines, and a markdown table with --table): photos in, keyframes taken, photos skipped
+Reported (JSON lines, --out appends them to a file; a markdown table with --table): photos in, keyframes taken, photos skipped
 by the overlap rule, photos dropped otherwise and why, keyframes oriented (given a pose on
 map/keyframe_pose before the end of the run, a segment joined through its GNSS included), lag from exposure (the
 photo's time on the camera's schedule: the first photo's publication plus its stamp's offset; how late the
 camera node published each is reported too) to the keyframe's first pose on map/keyframe_pose and to
-its first fused pair cloud (p50/p95/max, wall s), the real-time factor of the play (flight seconds
-over wall seconds until the map fused its last cloud), peak RSS of both processes, and the cores and
+its first fused pair cloud (p50/p95/max, wall s; over the whole flight and over the keyframes exposed in its
+last minute), the first pose after the first photo, what was shed (frames the tracker dropped, keyframes whose
+stereo pairs were shed, ortho batches deferred), the real-time factor of the play (flight seconds
+over wall seconds until the map fused its last cloud), peak RSS of both processes (and their sum, an upper
+bound of all mapping processes' peak together), the tracker's target search counts, and the cores and
 load average of the machine around the run (bench/machine.py).
 
     .venv/bin/python bench/inflight_20mp.py [--periods 2,1] [--photos 42] [--set tracker.X=V] [--table out.md]
@@ -53,8 +63,19 @@ CROP = (0, 100, 2400, 1700)        # 3:2 window of the 2400 x 1800 photos
 T0 = datetime(2015, 10, 16, 13, 23, 30, tzinfo=timezone.utc)
 
 
+OUT: list = []   # the JSON lines file (--out), when given
+
+
 def emit(d: dict) -> None:
     print(json.dumps(d), flush=True)
+    if OUT:
+        with open(OUT[0], 'a') as f:
+            f.write(json.dumps(d) + '\n')
+
+
+def git(*args) -> str:
+    import subprocess
+    return subprocess.run(['git', *args], cwd=ROOT, capture_output=True, text=True).stdout.strip()
 
 
 def log(s: str) -> None:
@@ -215,7 +236,11 @@ def run_period(a, period_s: float, extra: dict, tag: str) -> dict:
     from photogram_ros.nodes.replay_session import ReplayOptions, run_replay
     from replay_probe import Probe, RssSampler
 
-    folder, calib = build_flight(period_s, a.photos)
+    if a.flight == 'sim':   # the simulated survey: its surveyed targets go to the adjuster (and the tracker)
+        folder, calib, control = build_sim_flight(a.photos)
+        extra = {**extra, 'bundle': {'control_file': str(control), **extra.get('bundle', {})}}
+    else:
+        folder, calib = build_flight(period_s, a.photos)
     probe = Probe().install()
     published: dict[int, float] = {}    # photo stamp -> when the camera node published it
     publish_next = CameraNode.publish_next
@@ -289,9 +314,22 @@ def run_period(a, period_s: float, extra: dict, tag: str) -> dict:
     lag_pose_flight = [poses.first[s] - exposure[s] for s in kf_stamps
                        if s in poses.first and s in exposure and poses.first[s] <= flight_end]
     flight_s = run['bag_s'] + period_s   # the last photo's period is flown too
+    # The flight's last minute: keyframes exposed in its last 60 s.
+    last_min = {s for s in kf_stamps if s in exposure and exposure[s] >= flight_end - period_s - 60.0}
+    lag_pose_last = [poses.first[s] - exposure[s] for s in last_min if s in poses.first]
+    lag_cloud_last = [probe.kf_fused[s][0] - exposure[s] for s in last_min if s in probe.kf_fused]
+    first_photo = min(exposure.values(), default=None)
+    first_pose_s = (round(min(poses.first.values()) - first_photo, 2)
+                    if poses.first and first_photo is not None else None)
+    map_counts = counts.get('map', {})
+    shed = {'tracker_frames_dropped': dropped, 'stereo_keyframes_shed': stereo.get('keyframes_shed', 0),
+            'stereo_pairs_shed': sum(v for k, v in stereo.items() if k.startswith('pairs_shed')),
+            'ortho_batches_deferred': map_counts.get('ortho_batches_deferred', 0)}
     tracker_node = 'tracker_node'
     tdiag = diag.get(tracker_node, diag.get('/' + tracker_node, {})).get('values', {})
-    row = {'bench': 'inflight_20mp', 'config': tag, 'period_s': period_s, 'size': f'{SIZE[0]}x{SIZE[1]}',
+    row = {'bench': 'inflight_20mp', 'flight': a.flight, 'config': tag, 'period_s': period_s,
+           'size': f'{SIZE[0]}x{SIZE[1]}', 'commit': git('rev-parse', '--short', 'HEAD'),
+           'clean_tree': not git('status', '--porcelain', '--', 'photogram_ros', 'bench/inflight_20mp.py'),
            'photos_in': n_in, 'photos_tracked': n_tracked, 'keyframes': n_kf,
            'skipped_by_overlap_rule': n_tracked - n_kf - tr.get('unusable', 0),
            'dropped_otherwise': sum(dropped.values()), 'dropped_why': dropped,
@@ -302,17 +340,25 @@ def run_period(a, period_s: float, extra: dict, tag: str) -> dict:
            'lag_exposure_to_pose_in_flight_s': lag_stats(lag_pose_flight),
            'poses_only_at_end_of_flight': len(lag_pose) - len(lag_pose_flight), 'lag_exposure_to_fused_cloud_s': lag_stats(lag_cloud),
            'keyframes_in_fused_clouds': len(lag_cloud),
+           'last_minute_keyframes': len(last_min),
+           'lag_exposure_to_pose_last_minute_s': lag_stats(lag_pose_last),
+           'lag_exposure_to_fused_cloud_last_minute_s': lag_stats(lag_cloud_last),
+           'first_pose_after_first_photo_s': first_pose_s,
+           'shed': shed,
            'camera_late_s': lag_stats(camera_late),
            'stereo': {k: stereo[k] for k in sorted(stereo) if k.startswith(('pairs', 'keyframes', 'images'))},
            'tracker_diag': {k: tdiag[k] for k in sorted(tdiag) if k in (
                'process_ms', 'frame_from_msg_ms', 'keyframe_ms', 'target_detection_ms', 'keyframe_images_ms',
-               'keyframe_image_reduction', 'fps')},
+               'target_detection_ms_total', 'keyframe_image_reduction', 'fps')},
+           'tracker_target_search': {k: v for k, v in tr.items() if k.startswith(('keyframes_target', 'target',
+                                                                                 'targets'))},
            'map_counts': {k: v for k, v in counts.get('map', {}).items() if k.startswith(('ortho', 'clouds', 'keyframes'))},
            'flight_s': round(flight_s, 1), 'wall_s': round(run['wall_s'], 1),
            'until_last_cloud_s': round(last_fused - t0, 1),
            'real_time_factor': round(flight_s / max(last_fused - t0, 1e-9), 3),
            'real_time_factor_with_end_of_flight': round(flight_s / run['wall_s'], 3),
            'peak_rss_mb': round(sampler.peak_mb, 1), 'child_peak_rss_mb': round(probe.child_figures.get('peak_rss_mb') or 0.0, 1),
+           'peak_rss_all_mapping_mb_upper_bound': round(sampler.peak_mb + (probe.child_figures.get('peak_rss_mb') or 0.0), 1),
            'cores': os.cpu_count(), 'load_avg_before': [round(x, 2) for x in load_before],
            'load_avg_after': [round(x, 2) for x in load_after]}
     emit(row)
@@ -333,6 +379,11 @@ TABLE_ROWS = [
      lambda r: '{p50}/{p95}/{max}'.format(**r['lag_exposure_to_keyframe_s'])),
     ('lag exposure -> fused cloud p50/p95/max, s',
      lambda r: '{p50}/{p95}/{max}'.format(**r['lag_exposure_to_fused_cloud_s'])),
+    ('... in the last minute p50/p95 (n)', lambda r: '{p50}/{p95} ({n})'.format(
+        **r.get('lag_exposure_to_fused_cloud_last_minute_s', {'p50': None, 'p95': None, 'n': 0}))),
+    ('lag exposure -> pose in the last minute p50/p95 (n)', lambda r: '{p50}/{p95} ({n})'.format(
+        **r.get('lag_exposure_to_pose_last_minute_s', {'p50': None, 'p95': None, 'n': 0}))),
+    ('first pose after the first photo, s', lambda r: r.get('first_pose_after_first_photo_s')),
     ('keyframes in fused clouds', lambda r: r['keyframes_in_fused_clouds']),
     ('stereo pairs done / skipped', lambda r: f"{r['stereo'].get('pairs_done', 0)} / "
      f"{sum(v for k, v in r['stereo'].items() if k.startswith('pairs_skipped'))}"),
@@ -364,7 +415,10 @@ def parse_sets(items) -> dict:
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument('--periods', default='2,1', help='photo periods to run, s (comma list)')
-    ap.add_argument('--photos', type=int, default=42, help='photos of toledo used (at most 42)')
+    ap.add_argument('--flight', default='toledo', choices=('toledo', 'sim'),
+                    help='toledo\'s 42 real photos upscaled, or the simulated survey (318 photos, a second apart, '
+                         'with surveyed targets; its period is always 1 s)')
+    ap.add_argument('--photos', type=int, default=42, help='photos used (toledo: at most 42; sim: at most 318)')
     ap.add_argument('--params', default=str(ROOT / 'config' / 'replay.yaml'))
     ap.add_argument('--set', action='append', default=[], metavar='ROLE.PARAM=VALUE',
                     help='override a node parameter for every run')
@@ -373,13 +427,18 @@ def main() -> int:
     ap.add_argument('--keep', default='', help='keep the outputs in this folder')
     ap.add_argument('--table', default='', help='write the markdown table to this file')
     ap.add_argument('--json', default='', help='write all rows as one JSON file')
+    ap.add_argument('--out', default='', help='append every JSON line to this file (e.g. '
+                                               'bench/results/inflight_20mp_<commit>.jsonl)')
     ap.add_argument('--build-only', action='store_true')
     a = ap.parse_args()
     periods = [float(p) for p in a.periods.split(',') if p.strip()]
+    if a.out:
+        OUT.append(a.out)
     emit({'machine': machine_info(), 'load_avg_before': [round(x, 2) for x in os.getloadavg()]})
     if a.build_only:
         for p in periods:
-            emit({'built': [str(x) for x in build_flight(p, a.photos)]})
+            built = build_sim_flight(a.photos) if a.flight == 'sim' else build_flight(p, a.photos)
+            emit({'built': [str(x) for x in built]})
         return 0
     extra = parse_sets(a.set)
     rows = []
