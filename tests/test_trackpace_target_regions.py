@@ -107,3 +107,13 @@ def test_a_reduced_image_of_another_size_is_refused(width):
     regions = target_regions(CAM, _control(truth), GROUND.lat_deg, GROUND.lon_deg, GROUND.h_m + HEIGHT_M)
     with pytest.raises(DataError, match='no integer reduction'):
         detect_targets_in_regions(jpg, np.zeros((750, width + 100), np.uint8), CAM, regions)
+
+
+def test_the_graph_gives_the_tracker_the_adjusters_control_file():
+    from photogram_ros.nodes.graph import GraphSpec, role_values
+    spec = GraphSpec(extra={'bundle': {'control_file': '/x/targets.txt', 'control_heights': 'orthometric'}})
+    v = role_values(spec, 'tracker')
+    assert v['control_file'] == '/x/targets.txt' and v['control_heights'] == 'orthometric'
+    own = GraphSpec(extra={'bundle': {'control_file': '/x/targets.txt'}, 'tracker': {'control_file': '/y.txt'}})
+    assert role_values(own, 'tracker')['control_file'] == '/y.txt'
+    assert 'control_file' not in role_values(GraphSpec(), 'tracker')
