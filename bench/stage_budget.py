@@ -142,8 +142,9 @@ def run(n_photos: int) -> tuple[list[dict], dict]:
     b.wrap(tracker_mod, 'match_pair', 'descriptor_matching')
     if hasattr(tracker_mod, 'DescriptorIndex'):   # the frame's FLANN index, built once for its matches
         b.wrap(tracker_mod, 'DescriptorIndex', 'descriptor_matching')
-    b.wrap(IncrementalAT, '_register', 'pose_resection')
-    b.wrap(IncrementalAT, '_register_relative', 'pose_resection')
+    from photogram_ros.core.at_register import Registration
+    b.wrap(Registration, 'resect', 'pose_resection')
+    b.wrap(Registration, 'relative', 'pose_resection')
     b.wrap(IncrementalAT, '_window_adjust', 'window_adjustment')
     window_calls = []
     win = IncrementalAT._window_adjust
