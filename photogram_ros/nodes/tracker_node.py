@@ -16,8 +16,11 @@ Frames go into a bounded slot and a worker thread tracks them; when frames come 
 worker, the oldest waiting frame is dropped, counted (`drops`) and said on /diagnostics with the
 reason, so the tracker never falls behind. A compressed frame larger than `track_max_px`
 (a 20 MP photo) is decoded straight at the tracker's working size (core/tracker.EncodedImage), and at
-full size never: a keyframe's image is decoded again at its reduction (libjpeg's DCT scaling), its targets
-searched on a grey decode (core/control.detect_keyframe_targets_encoded). Keyframes go out from a second
+full size never: a keyframe's image is decoded again at its reduction (libjpeg's DCT scaling). Its targets
+are searched only where the surveyed targets of `control_file` (the graph passes bundle_node's) can be, from
+the keyframe's GNSS fix (`target_search` regions, core/control.target_regions): squares on that reduced
+image, a full-resolution grey decode only when one lies where a target can be, read in windows around them;
+no control file or no target near the footprint: no search. Keyframes go out from a second
 thread (`keyframe_thread`): the decodes, the target detection and the messages of a 20 MP keyframe stay off
 the frame loop; they are never dropped, and leave in keyframe order.
 A missing or inconsistent calibration is reported on /diagnostics as an error and the frames are
@@ -73,8 +76,9 @@ class TrackerNodeParams(TrackerParams, ThreadCaps, TargetRegionOptions):
                              min=1, max=10000)
     publish_debug_image: bool = param(False, 'Publish /tracker/debug_image with the tracks drawn')
     keyframe_qos_depth: int = param(20, 'History depth of the reliable keyframe publishers', min=1, max=10000)
-    detect_targets: bool = param(True, 'Find ArUco targets (GCPs, check points) in every keyframe and send them '
-                                 'with its features (a few ms per keyframe; bundle_node.control_file names them)')
+    detect_targets: bool = param(True, 'Find ArUco targets (GCPs, check points) in keyframes and send them '
+                                 'with their features (where target_search says; bundle_node.control_file names '
+                                 'them)')
     target_dictionary: str = param('DICT_4X4_50', 'ArUco dictionary of the target boards',
                                    choices=ARUCO_DICTIONARIES)
     target_search: str = param('regions', 'Where targets are searched: only where the surveyed targets of '
