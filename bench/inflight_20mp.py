@@ -1,11 +1,11 @@
 """The in-flight graph on 20 MP photos (5472 x 3648) at a current mapping drone's photo rate.
 
 Two flights (--flight): toledo (below), or `sim`: the simulator's survey (SIM_FLIGHT: 6 lines of 350 m at
-80 m above ground, 8 m/s, a photo every second, 318 photos, 9 ArUco targets surveyed in its control file)
+80 m above ground, 8 m/s, a photo every second, 317 photos, 9 ArUco targets surveyed in its control file)
 rendered at 1368 x 912 and upscaled x4 to 20 MP (build_sim_flight; cached in
 /tmp/photogram_bench_cache/inflight_20mp_sim_<n>), played at its own 1 s period with its control file given to
-the adjuster (and through the graph to the tracker's target search). Rendering and upscaling 318 photos takes
-about 10 CPU minutes, once.
+the adjuster (and through the graph to the tracker's target search). Rendering takes about 8 CPU
+minutes (39 min wall on the loaded 2-core machine), upscaling about 1 CPU s a photo, once.
 
 The flight: toledo's 42 real DJI survey photos (../shared/data/photos/toledo, 2400 x 1800, EXIF GPS),
 cropped to 3:2 (2400 x 1600, rows 100-1700) and upscaled x2.28 to 5472 x 3648, re-timed one photo per
@@ -132,7 +132,10 @@ def build_flight(period_s: float, n_photos: int = 42, folder: Path | None = None
 SIM_SIZE = (1368, 912)
 SIM_FLIGHT = dict(fps=1.0, width_px=SIM_SIZE[0], height_px=SIM_SIZE[1], focal_px=520.0 * SIM_SIZE[0] / 640,
                   altitude_m=80.0, speed_mps=8.0, turn_speed_mps=5.0, line_length_m=350.0, n_lines=6,
-                  photos=True, front_overlap=0.0)
+                  photos=True, front_overlap=0.97)   # a photo at every frame (2 m trigger spacing, frames 5-8 m apart)
+
+
+EVERY_FRAME = 'every_frame.txt'   # in the simulated photos' folder: a photo was written for every frame
 
 
 def _upscale_photo(args) -> None:
@@ -150,10 +153,41 @@ def _upscale_photo(args) -> None:
         tmp.rename(dst)
 
 
+def _photos_from_bag(src: Path) -> None:
+    """Every frame of the simulated bag written as a geotagged photo (sim/photos.write_photos), from the bag's
+    JPEG frames: for a cache simulated with a front overlap that took fewer photos than frames."""
+    import shutil
+    from types import SimpleNamespace
+
+    import cv2
+    import numpy as np
+    from rclpy.serialization import deserialize_message
+    from sensor_msgs.msg import CompressedImage
+
+    from photogram_ros.io.bag import BagReader
+    from photogram_ros.msgs import ns_from_time
+    from photogram_ros.sim.photos import write_photos
+    from photogram_ros.sim.scenario import preset
+    from photogram_ros.sim.truth import GroundTruth
+    truth = GroundTruth.load(src)
+
+    def frames():
+        with BagReader(src) as bag:
+            for m in bag.messages(['/camera/image_raw/compressed']):
+                msg = deserialize_message(m.data, CompressedImage)
+                ft = truth.frame_by_stamp(ns_from_time(msg.header.stamp))
+                img = cv2.imdecode(np.frombuffer(bytes(msg.data), np.uint8), cv2.IMREAD_COLOR)
+                yield ft.index, img, SimpleNamespace(pos_enu=ft.map_T_cam[:3, 3])
+    shutil.rmtree(src / 'photos')
+    n = len(write_photos(src / 'photos', frames(), truth, preset('sample', **SIM_FLIGHT)))
+    (src / 'photos' / EVERY_FRAME).write_text(f'{n}\n')
+    log(f'[20mp] {n} photos written from the frames of {src}')
+
+
 def build_sim_flight(n_photos: int) -> tuple[Path, Path, Path]:
     """The simulated 20 MP flight (built once, cached): (photo folder, calibration YAML, control file). The
-    simulator's survey (SIM_FLIGHT: 6 lines of 350 m at 80 m, 8 m/s, a frame a second, 318 frames) rendered at
-    SIM_SIZE and every frame a photo; the first `n_photos` upscaled to SIZE."""
+    simulator's survey (SIM_FLIGHT: 6 lines of 350 m at 80 m, 8 m/s, a frame a second, 317 frames) rendered at
+    SIM_SIZE and every frame a photo (317); the first `n_photos` upscaled to SIZE."""
     import shutil
 
     import yaml
@@ -167,6 +201,8 @@ def build_sim_flight(n_photos: int) -> tuple[Path, Path, Path]:
         t0 = time.perf_counter()
         simulate(preset('sample', **SIM_FLIGHT), src)
         log(f'[20mp] simulated {src} in {time.perf_counter() - t0:.0f} s')
+    if not (src / 'photos' / EVERY_FRAME).exists():
+        _photos_from_bag(src)
     folder = CACHE / f'inflight_20mp_sim_{n_photos}'
     calib = folder.parent / (folder.name + '_camera.yaml')
     control = folder.parent / (folder.name + '_targets.txt')
@@ -416,9 +452,9 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument('--periods', default='2,1', help='photo periods to run, s (comma list)')
     ap.add_argument('--flight', default='toledo', choices=('toledo', 'sim'),
-                    help='toledo\'s 42 real photos upscaled, or the simulated survey (318 photos, a second apart, '
+                    help='toledo\'s 42 real photos upscaled, or the simulated survey (317 photos, a second apart, '
                          'with surveyed targets; its period is always 1 s)')
-    ap.add_argument('--photos', type=int, default=42, help='photos used (toledo: at most 42; sim: at most 318)')
+    ap.add_argument('--photos', type=int, default=42, help='photos used (toledo: at most 42; sim: at most 317)')
     ap.add_argument('--params', default=str(ROOT / 'config' / 'replay.yaml'))
     ap.add_argument('--set', action='append', default=[], metavar='ROLE.PARAM=VALUE',
                     help='override a node parameter for every run')
