@@ -64,6 +64,7 @@ T0 = datetime(2015, 10, 16, 13, 23, 30, tzinfo=timezone.utc)
 
 
 OUT: list = []   # the JSON lines file (--out), when given
+CODE: dict = {}  # the commit and clean-tree flag of the code run, taken when the bench starts
 
 
 def emit(d: dict) -> None:
@@ -364,8 +365,7 @@ def run_period(a, period_s: float, extra: dict, tag: str) -> dict:
     tracker_node = 'tracker_node'
     tdiag = diag.get(tracker_node, diag.get('/' + tracker_node, {})).get('values', {})
     row = {'bench': 'inflight_20mp', 'flight': a.flight, 'config': tag, 'period_s': period_s,
-           'size': f'{SIZE[0]}x{SIZE[1]}', 'commit': git('rev-parse', '--short', 'HEAD'),
-           'clean_tree': not git('status', '--porcelain', '--', 'photogram_ros', 'bench/inflight_20mp.py'),
+           'size': f'{SIZE[0]}x{SIZE[1]}', **CODE,
            'photos_in': n_in, 'photos_tracked': n_tracked, 'keyframes': n_kf,
            'skipped_by_overlap_rule': n_tracked - n_kf - tr.get('unusable', 0),
            'dropped_otherwise': sum(dropped.values()), 'dropped_why': dropped,
@@ -470,6 +470,8 @@ def main() -> int:
     periods = [float(p) for p in a.periods.split(',') if p.strip()]
     if a.out:
         OUT.append(a.out)
+    CODE.update(commit=git('rev-parse', '--short', 'HEAD'),
+                clean_tree=not git('status', '--porcelain', '--', 'photogram_ros', 'bench/inflight_20mp.py'))
     emit({'machine': machine_info(), 'load_avg_before': [round(x, 2) for x in os.getloadavg()]})
     if a.build_only:
         for p in periods:

@@ -160,11 +160,16 @@ def detect_keyframe_targets(image: np.ndarray, camera: PinholeCamera,
     if dictionary not in ARUCO_DICTIONARIES:
         raise DataError(f'unknown ArUco dictionary {dictionary!r}; choose from {list(ARUCO_DICTIONARIES)}')
     dets = detect_targets(image, getattr(cv2.aruco, dictionary))
-    out = np.zeros(len(dets), TARGET_DTYPE)
-    if dets:
-        uv = np.array([d.center_uv for d in dets], float)
+    return _target_rows([(d.marker_id, d.center_uv) for d in dets], camera)
+
+
+def _target_rows(found: list, camera: PinholeCamera) -> np.ndarray:
+    """[(marker id, (2,) centre pixel)] -> TARGET_DTYPE rows."""
+    out = np.zeros(len(found), TARGET_DTYPE)
+    if found:
+        uv = np.array([c for _, c in found], float).reshape(-1, 2)
         xn = camera.pixel_to_normalized(uv)
-        out['marker_id'] = [d.marker_id for d in dets]
+        out['marker_id'] = [m for m, _ in found]
         out['u'], out['v'] = uv[:, 0], uv[:, 1]
         out['xn'], out['yn'] = xn[:, 0], xn[:, 1]
     return out
@@ -175,6 +180,11 @@ def detect_keyframe_targets_encoded(data, camera: PinholeCamera, dictionary: str
     in grey only (libjpeg's luma, no colour conversion: about a third of the colour decode's time at 20 MP), then
     searched as detect_targets searches (above 2000 px: squares found on a reduced copy, markers read at full
     resolution in the regions around them). DataError if undecodable or not the camera's size."""
+    return detect_keyframe_targets(_full_grey(data, camera), camera, dictionary)
+
+
+def _full_grey(data, camera: PinholeCamera) -> np.ndarray:
+    """A keyframe's JPEG bytes decoded in grey at full size; DataError if undecodable or not the camera's size."""
     buf = np.frombuffer(data, np.uint8) if not isinstance(data, np.ndarray) else data.reshape(-1)
     grey = cv2.imdecode(buf, cv2.IMREAD_GRAYSCALE | cv2.IMREAD_IGNORE_ORIENTATION) if buf.size else None
     if grey is None:
@@ -182,7 +192,7 @@ def detect_keyframe_targets_encoded(data, camera: PinholeCamera, dictionary: str
     if (grey.shape[1], grey.shape[0]) != (camera.width, camera.height):
         raise DataError(f'keyframe image is {grey.shape[1]}x{grey.shape[0]}, the camera {camera.width}x'
                         f'{camera.height}')
-    return detect_keyframe_targets(grey, camera, dictionary)
+    return grey
 
 
 # --- targets searched only where they can be ------------------------------------------------------
@@ -315,13 +325,7 @@ def detect_targets_in_regions(encoded, reduced_grey: np.ndarray, camera: Pinhole
     stats['squares'] = len(windows)
     if not windows:
         return np.zeros(0, TARGET_DTYPE), stats
-    buf = np.frombuffer(encoded, np.uint8) if not isinstance(encoded, np.ndarray) else encoded.reshape(-1)
-    grey = cv2.imdecode(buf, cv2.IMREAD_GRAYSCALE | cv2.IMREAD_IGNORE_ORIENTATION) if buf.size else None
-    if grey is None:
-        raise DataError(f'keyframe image ({buf.size} bytes) cannot be decoded for the target search')
-    if (grey.shape[1], grey.shape[0]) != (camera.width, camera.height):
-        raise DataError(f'keyframe image is {grey.shape[1]}x{grey.shape[0]}, the camera {camera.width}x'
-                        f'{camera.height}')
+    grey = _full_grey(encoded, camera)
     stats['full_decode'] = 1
     windows = _merged(windows)
     stats['windows'] = len(windows)
@@ -333,14 +337,7 @@ def detect_targets_in_regions(encoded, reduced_grey: np.ndarray, camera: Pinhole
             c = d.center_uv + np.array([a0, b0], float)
             if not any(m == d.marker_id and np.linalg.norm(c - o) < 1.0 for m, o in found):
                 found.append((d.marker_id, c))
-    out = np.zeros(len(found), TARGET_DTYPE)
-    if found:
-        uv = np.array([c for _, c in found], float)
-        xn = camera.pixel_to_normalized(uv)
-        out['marker_id'] = [m for m, _ in found]
-        out['u'], out['v'] = uv[:, 0], uv[:, 1]
-        out['xn'], out['yn'] = xn[:, 0], xn[:, 1]
-    return out, stats
+    return _target_rows(found, camera), stats
 
 
 # detect_targets' reduced search and windows (core/evaluation.py): squares from 2 % of the reduced image's long
