@@ -117,3 +117,12 @@ def test_the_graph_gives_the_tracker_the_adjusters_control_file():
     own = GraphSpec(extra={'bundle': {'control_file': '/x/targets.txt'}, 'tracker': {'control_file': '/y.txt'}})
     assert role_values(own, 'tracker')['control_file'] == '/y.txt'
     assert 'control_file' not in role_values(GraphSpec(), 'tracker')
+
+
+def test_a_compressed_keyframe_hands_out_its_bytes_until_decoded():
+    from photogram_ros.core.keyframe_image import EncodedImage, Keyframe
+    ok, jpg = cv2.imencode('.jpg', np.full((64, 96, 3), 128, np.uint8))
+    kf = Keyframe(0, 0, 1, EncodedImage(jpg.tobytes()), np.zeros(0), size=(96, 64))
+    assert kf.encoded() is not None and kf.encoded().data.size == jpg.size
+    assert kf.image.shape == (64, 96, 3) and kf.encoded() is None   # decoded: the raw image from now on
+    assert Keyframe(1, 1, 2, np.zeros((4, 4, 3), np.uint8), np.zeros(0)).encoded() is None

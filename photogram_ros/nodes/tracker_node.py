@@ -56,7 +56,7 @@ from photogram_ros.params import param
 
 
 # Compressed frames kept for their keyframe's image: a keyframe waits at most for its GNSS fix (fix_lag_max_s,
-# 20 frames at 1 Hz); an older one is decoded from the tracker's keyframe instead.
+# 20 frames at 1 Hz); beyond, the keyframe's own compressed image (Keyframe.encoded) is used.
 MAX_ENCODED_KEPT = 32
 # The control of a flight without a control file: no target to search for (target_search regions).
 _NO_CONTROL = ControlSet([])
@@ -357,6 +357,8 @@ class TrackerNode(Node):
         import cv2
         cam = self.tracker.camera
         enc = self._encoded_of(kf.stamp_ns)
+        if enc is None:   # forgotten while the keyframe waited: the keyframe holds its compressed image too
+            enc = kf.encoded()
         t0 = time.perf_counter()
         regions = self._target_regions(kf, cam)
         if enc is not None:
@@ -372,7 +374,7 @@ class TrackerNode(Node):
             else:
                 targets = None
         else:
-            if reduction > 1:   # a raw frame, or a compressed one forgotten (MAX_ENCODED_KEPT) while it waited
+            if reduction > 1:   # a raw frame
                 self.diag.count('keyframe_images_reduced_from_full')
             full = kf.image
             searched = regions is None or regions.box(cam) is not None
