@@ -1,5 +1,12 @@
 """The in-flight graph on 20 MP photos (5472 x 3648) at a current mapping drone's photo rate.
 
+Two flights (--flight): toledo (below), or `sim`: the simulator's survey (SIM_FLIGHT: 6 lines of 350 m at
+80 m above ground, 8 m/s, a photo every second, 317 photos, 9 ArUco targets surveyed in its control file)
+rendered at 1368 x 912 and upscaled x4 to 20 MP (build_sim_flight; cached in
+/tmp/photogram_bench_cache/inflight_20mp_sim_<n>), played at its own 1 s period with its control file given to
+the adjuster (and through the graph to the tracker's target search). Rendering takes about 8 CPU
+minutes (39 min wall on the loaded 2-core machine), upscaling about 1 CPU s a photo, once.
+
 The flight: toledo's 42 real DJI survey photos (../shared/data/photos/toledo, 2400 x 1800, EXIF GPS),
 cropped to 3:2 (2400 x 1600, rows 100-1700) and upscaled x2.28 to 5472 x 3648, re-timed one photo per
 `--period` seconds (EXIF DateTimeOriginal / SubSec / OffsetTimeOriginal rewritten, the EXIF GPS kept,
@@ -15,13 +22,16 @@ come at the period whatever the graph does, as from a live camera, and the track
 drops what it cannot take. Bundle, stereo and map run in a child process (replay's default,
 --processes 2). Timing hooks come from bench/replay_probe.py (no benchmark code in the nodes).
 
-Reported (JSON lines, and a markdown table with --table): photos in, keyframes taken, photos skipped
+Reported (JSON lines, --out appends them to a file; a markdown table with --table): photos in, keyframes taken, photos skipped
 by the overlap rule, photos dropped otherwise and why, keyframes oriented (given a pose on
 map/keyframe_pose before the end of the run, a segment joined through its GNSS included), lag from exposure (the
 photo's time on the camera's schedule: the first photo's publication plus its stamp's offset; how late the
 camera node published each is reported too) to the keyframe's first pose on map/keyframe_pose and to
-its first fused pair cloud (p50/p95/max, wall s), the real-time factor of the play (flight seconds
-over wall seconds until the map fused its last cloud), peak RSS of both processes, and the cores and
+its first fused pair cloud (p50/p95/max, wall s; over the whole flight and over the keyframes exposed in its
+last minute), the first pose after the first photo, what was shed (frames the tracker dropped, keyframes whose
+stereo pairs were shed, ortho batches deferred), the real-time factor of the play (flight seconds
+over wall seconds until the map fused its last cloud), peak RSS of both processes (and their sum, an upper
+bound of all mapping processes' peak together), the tracker's target search counts, and the cores and
 load average of the machine around the run (bench/machine.py).
 
     .venv/bin/python bench/inflight_20mp.py [--periods 2,1] [--photos 42] [--set tracker.X=V] [--table out.md]
@@ -53,8 +63,20 @@ CROP = (0, 100, 2400, 1700)        # 3:2 window of the 2400 x 1800 photos
 T0 = datetime(2015, 10, 16, 13, 23, 30, tzinfo=timezone.utc)
 
 
+OUT: list = []   # the JSON lines file (--out), when given
+CODE: dict = {}  # the commit and clean-tree flag of the code run, taken when the bench starts
+
+
 def emit(d: dict) -> None:
     print(json.dumps(d), flush=True)
+    if OUT:
+        with open(OUT[0], 'a') as f:
+            f.write(json.dumps(d) + '\n')
+
+
+def git(*args) -> str:
+    import subprocess
+    return subprocess.run(['git', *args], cwd=ROOT, capture_output=True, text=True).stdout.strip()
 
 
 def log(s: str) -> None:
@@ -104,6 +126,101 @@ def build_flight(period_s: float, n_photos: int = 42, folder: Path | None = None
     cam = replace(cam, height=CROP[3] - CROP[1], cy=cam.cy - CROP[1]).scaled(factor)
     calib.write_text(yaml.safe_dump(cam.to_ros_yaml_dict()))
     return folder, calib
+
+
+# The simulated flight (--flight sim): the simulator's survey rendered at SIM_SIZE, one photo a second, each
+# upscaled to SIZE (x4) with its EXIF GPS kept; its ArUco targets' control file beside it.
+SIM_SIZE = (1368, 912)
+SIM_FLIGHT = dict(fps=1.0, width_px=SIM_SIZE[0], height_px=SIM_SIZE[1], focal_px=520.0 * SIM_SIZE[0] / 640,
+                  altitude_m=80.0, speed_mps=8.0, turn_speed_mps=5.0, line_length_m=350.0, n_lines=6,
+                  photos=True, front_overlap=0.97)   # a photo at every frame (2 m trigger spacing, frames 5-8 m apart)
+
+
+EVERY_FRAME = 'every_frame.txt'   # in the simulated photos' folder: a photo was written for every frame
+
+
+def _upscale_photo(args) -> None:
+    src, dst = args
+    from PIL import Image
+    with Image.open(src) as im:
+        exif = im.getexif()
+        exif.get_ifd(0x8825)   # loaded so that it is written back
+        ex = exif.get_ifd(0x8769)
+        for tag in (0xA002, 0xA003, 0xA20E, 0xA20F, 0xA210, 0xA405):   # the rendered size's sensor tags
+            ex.pop(tag, None)
+        big = im.resize(SIZE, Image.BICUBIC)
+        tmp = dst.with_suffix('.tmp')
+        big.save(tmp, 'JPEG', quality=90, exif=exif)
+        tmp.rename(dst)
+
+
+def _photos_from_bag(src: Path) -> None:
+    """Every frame of the simulated bag written as a geotagged photo (sim/photos.write_photos), from the bag's
+    JPEG frames: for a cache simulated with a front overlap that took fewer photos than frames."""
+    import shutil
+    from types import SimpleNamespace
+
+    import cv2
+    import numpy as np
+    from rclpy.serialization import deserialize_message
+    from sensor_msgs.msg import CompressedImage
+
+    from photogram_ros.io.bag import BagReader
+    from photogram_ros.msgs import ns_from_time
+    from photogram_ros.sim.photos import write_photos
+    from photogram_ros.sim.scenario import preset
+    from photogram_ros.sim.truth import GroundTruth
+    truth = GroundTruth.load(src)
+
+    def frames():
+        with BagReader(src) as bag:
+            for m in bag.messages(['/camera/image_raw/compressed']):
+                msg = deserialize_message(m.data, CompressedImage)
+                ft = truth.frame_by_stamp(ns_from_time(msg.header.stamp))
+                img = cv2.imdecode(np.frombuffer(bytes(msg.data), np.uint8), cv2.IMREAD_COLOR)
+                yield ft.index, img, SimpleNamespace(pos_enu=ft.map_T_cam[:3, 3])
+    shutil.rmtree(src / 'photos')
+    n = len(write_photos(src / 'photos', frames(), truth, preset('sample', **SIM_FLIGHT)))
+    (src / 'photos' / EVERY_FRAME).write_text(f'{n}\n')
+    log(f'[20mp] {n} photos written from the frames of {src}')
+
+
+def build_sim_flight(n_photos: int) -> tuple[Path, Path, Path]:
+    """The simulated 20 MP flight (built once, cached): (photo folder, calibration YAML, control file). The
+    simulator's survey (SIM_FLIGHT: 6 lines of 350 m at 80 m, 8 m/s, a frame a second, 317 frames) rendered at
+    SIM_SIZE and every frame a photo (317); the first `n_photos` upscaled to SIZE."""
+    import shutil
+
+    import yaml
+
+    from photogram_ros.core.camera import PinholeCamera
+    from photogram_ros.sim.scenario import preset, simulate
+    src = CACHE / 'sim20mp_src'
+    if not (src / 'photos' / 'camera.yaml').exists():
+        if src.exists():
+            shutil.rmtree(src)
+        t0 = time.perf_counter()
+        simulate(preset('sample', **SIM_FLIGHT), src)
+        log(f'[20mp] simulated {src} in {time.perf_counter() - t0:.0f} s')
+    if not (src / 'photos' / EVERY_FRAME).exists():
+        _photos_from_bag(src)
+    folder = CACHE / f'inflight_20mp_sim_{n_photos}'
+    calib = folder.parent / (folder.name + '_camera.yaml')
+    control = folder.parent / (folder.name + '_targets.txt')
+    photos = sorted((src / 'photos').glob('IMG_*.JPG'))[:n_photos]
+    folder.mkdir(parents=True, exist_ok=True)
+    jobs = [(p, folder / p.name) for p in photos if not (folder / p.name).exists()]
+    if jobs:
+        from concurrent.futures import ProcessPoolExecutor
+        t0 = time.perf_counter()
+        with ProcessPoolExecutor(2) as ex:
+            list(ex.map(_upscale_photo, jobs))
+        log(f'[20mp] upscaled {len(jobs)} photos in {time.perf_counter() - t0:.0f} s into {folder}')
+    d = yaml.safe_load((src / 'photos' / 'camera.yaml').read_text())
+    cam = PinholeCamera.from_ros_yaml_dict(d).scaled(SIZE[0] / SIM_SIZE[0])
+    calib.write_text(yaml.safe_dump(cam.to_ros_yaml_dict()))
+    shutil.copyfile(src / 'targets.txt', control)
+    return folder, calib, control
 
 
 def pct(v: list, q: float):
@@ -156,7 +273,11 @@ def run_period(a, period_s: float, extra: dict, tag: str) -> dict:
     from photogram_ros.nodes.replay_session import ReplayOptions, run_replay
     from replay_probe import Probe, RssSampler
 
-    folder, calib = build_flight(period_s, a.photos)
+    if a.flight == 'sim':   # the simulated survey: its surveyed targets go to the adjuster (and the tracker)
+        folder, calib, control = build_sim_flight(a.photos)
+        extra = {**extra, 'bundle': {'control_file': str(control), **extra.get('bundle', {})}}
+    else:
+        folder, calib = build_flight(period_s, a.photos)
     probe = Probe().install()
     published: dict[int, float] = {}    # photo stamp -> when the camera node published it
     publish_next = CameraNode.publish_next
@@ -230,9 +351,21 @@ def run_period(a, period_s: float, extra: dict, tag: str) -> dict:
     lag_pose_flight = [poses.first[s] - exposure[s] for s in kf_stamps
                        if s in poses.first and s in exposure and poses.first[s] <= flight_end]
     flight_s = run['bag_s'] + period_s   # the last photo's period is flown too
+    # The flight's last minute: keyframes exposed in its last 60 s.
+    last_min = {s for s in kf_stamps if s in exposure and exposure[s] >= flight_end - period_s - 60.0}
+    lag_pose_last = [poses.first[s] - exposure[s] for s in last_min if s in poses.first]
+    lag_cloud_last = [probe.kf_fused[s][0] - exposure[s] for s in last_min if s in probe.kf_fused]
+    first_photo = min(exposure.values(), default=None)
+    first_pose_s = (round(min(poses.first.values()) - first_photo, 2)
+                    if poses.first and first_photo is not None else None)
+    map_counts = counts.get('map', {})
+    shed = {'tracker_frames_dropped': dropped, 'stereo_keyframes_shed': stereo.get('keyframes_shed', 0),
+            'stereo_pairs_shed': sum(v for k, v in stereo.items() if k.startswith('pairs_shed')),
+            'ortho_batches_deferred': map_counts.get('ortho_batches_deferred', 0)}
     tracker_node = 'tracker_node'
     tdiag = diag.get(tracker_node, diag.get('/' + tracker_node, {})).get('values', {})
-    row = {'bench': 'inflight_20mp', 'config': tag, 'period_s': period_s, 'size': f'{SIZE[0]}x{SIZE[1]}',
+    row = {'bench': 'inflight_20mp', 'flight': a.flight, 'config': tag, 'period_s': period_s,
+           'size': f'{SIZE[0]}x{SIZE[1]}', **CODE,
            'photos_in': n_in, 'photos_tracked': n_tracked, 'keyframes': n_kf,
            'skipped_by_overlap_rule': n_tracked - n_kf - tr.get('unusable', 0),
            'dropped_otherwise': sum(dropped.values()), 'dropped_why': dropped,
@@ -243,17 +376,25 @@ def run_period(a, period_s: float, extra: dict, tag: str) -> dict:
            'lag_exposure_to_pose_in_flight_s': lag_stats(lag_pose_flight),
            'poses_only_at_end_of_flight': len(lag_pose) - len(lag_pose_flight), 'lag_exposure_to_fused_cloud_s': lag_stats(lag_cloud),
            'keyframes_in_fused_clouds': len(lag_cloud),
+           'last_minute_keyframes': len(last_min),
+           'lag_exposure_to_pose_last_minute_s': lag_stats(lag_pose_last),
+           'lag_exposure_to_fused_cloud_last_minute_s': lag_stats(lag_cloud_last),
+           'first_pose_after_first_photo_s': first_pose_s,
+           'shed': shed,
            'camera_late_s': lag_stats(camera_late),
            'stereo': {k: stereo[k] for k in sorted(stereo) if k.startswith(('pairs', 'keyframes', 'images'))},
            'tracker_diag': {k: tdiag[k] for k in sorted(tdiag) if k in (
                'process_ms', 'frame_from_msg_ms', 'keyframe_ms', 'target_detection_ms', 'keyframe_images_ms',
-               'keyframe_image_reduction', 'fps')},
+               'target_detection_ms_total', 'keyframe_image_reduction', 'fps')},
+           'tracker_target_search': {k: v for k, v in tr.items() if k.startswith(('keyframes_target', 'target',
+                                                                                 'targets'))},
            'map_counts': {k: v for k, v in counts.get('map', {}).items() if k.startswith(('ortho', 'clouds', 'keyframes'))},
            'flight_s': round(flight_s, 1), 'wall_s': round(run['wall_s'], 1),
            'until_last_cloud_s': round(last_fused - t0, 1),
            'real_time_factor': round(flight_s / max(last_fused - t0, 1e-9), 3),
            'real_time_factor_with_end_of_flight': round(flight_s / run['wall_s'], 3),
            'peak_rss_mb': round(sampler.peak_mb, 1), 'child_peak_rss_mb': round(probe.child_figures.get('peak_rss_mb') or 0.0, 1),
+           'peak_rss_all_mapping_mb_upper_bound': round(sampler.peak_mb + (probe.child_figures.get('peak_rss_mb') or 0.0), 1),
            'cores': os.cpu_count(), 'load_avg_before': [round(x, 2) for x in load_before],
            'load_avg_after': [round(x, 2) for x in load_after]}
     emit(row)
@@ -274,6 +415,11 @@ TABLE_ROWS = [
      lambda r: '{p50}/{p95}/{max}'.format(**r['lag_exposure_to_keyframe_s'])),
     ('lag exposure -> fused cloud p50/p95/max, s',
      lambda r: '{p50}/{p95}/{max}'.format(**r['lag_exposure_to_fused_cloud_s'])),
+    ('... in the last minute p50/p95 (n)', lambda r: '{p50}/{p95} ({n})'.format(
+        **r.get('lag_exposure_to_fused_cloud_last_minute_s', {'p50': None, 'p95': None, 'n': 0}))),
+    ('lag exposure -> pose in the last minute p50/p95 (n)', lambda r: '{p50}/{p95} ({n})'.format(
+        **r.get('lag_exposure_to_pose_last_minute_s', {'p50': None, 'p95': None, 'n': 0}))),
+    ('first pose after the first photo, s', lambda r: r.get('first_pose_after_first_photo_s')),
     ('keyframes in fused clouds', lambda r: r['keyframes_in_fused_clouds']),
     ('stereo pairs done / skipped', lambda r: f"{r['stereo'].get('pairs_done', 0)} / "
      f"{sum(v for k, v in r['stereo'].items() if k.startswith('pairs_skipped'))}"),
@@ -305,7 +451,10 @@ def parse_sets(items) -> dict:
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument('--periods', default='2,1', help='photo periods to run, s (comma list)')
-    ap.add_argument('--photos', type=int, default=42, help='photos of toledo used (at most 42)')
+    ap.add_argument('--flight', default='toledo', choices=('toledo', 'sim'),
+                    help='toledo\'s 42 real photos upscaled, or the simulated survey (317 photos, a second apart, '
+                         'with surveyed targets; its period is always 1 s)')
+    ap.add_argument('--photos', type=int, default=42, help='photos used (toledo: at most 42; sim: at most 317)')
     ap.add_argument('--params', default=str(ROOT / 'config' / 'replay.yaml'))
     ap.add_argument('--set', action='append', default=[], metavar='ROLE.PARAM=VALUE',
                     help='override a node parameter for every run')
@@ -314,13 +463,20 @@ def main() -> int:
     ap.add_argument('--keep', default='', help='keep the outputs in this folder')
     ap.add_argument('--table', default='', help='write the markdown table to this file')
     ap.add_argument('--json', default='', help='write all rows as one JSON file')
+    ap.add_argument('--out', default='', help='append every JSON line to this file (e.g. '
+                                               'bench/results/inflight_20mp_<commit>.jsonl)')
     ap.add_argument('--build-only', action='store_true')
     a = ap.parse_args()
     periods = [float(p) for p in a.periods.split(',') if p.strip()]
+    if a.out:
+        OUT.append(a.out)
+    CODE.update(commit=git('rev-parse', '--short', 'HEAD'),
+                clean_tree=not git('status', '--porcelain', '--', 'photogram_ros', 'bench/inflight_20mp.py'))
     emit({'machine': machine_info(), 'load_avg_before': [round(x, 2) for x in os.getloadavg()]})
     if a.build_only:
         for p in periods:
-            emit({'built': [str(x) for x in build_flight(p, a.photos)]})
+            built = build_sim_flight(a.photos) if a.flight == 'sim' else build_flight(p, a.photos)
+            emit({'built': [str(x) for x in built]})
         return 0
     extra = parse_sets(a.set)
     rows = []

@@ -17,9 +17,13 @@ OpenCV's worker threads count, the other engineers' jobs do not):
   IncrementalAT's registration and window update timed apart, the rest of the stage as 'adjustment_other');
   floor of the pose: cv2.solvePnPRansac on 300 of the keyframe's points; of the window: the cheapest
   window update of the run (a keyframe joining an adjusted window).
-- targets: core/control.detect_keyframe_targets on the full image (what the tracker node ran) and on the
-  photo as the node now gives it (control.detect_keyframe_targets_encoded: candidates on the 1/4 decode,
-  full decode only around candidates); floor: the candidate search alone on the 1/8 grey.
+- targets: core/control.detect_keyframe_targets on the full image (what the tracker node ran), on the
+  photo searched everywhere (control.detect_keyframe_targets_encoded: the grey decode, candidates on a 1/4
+  copy, full resolution around candidates: target_search everywhere), and searched only where surveyed
+  targets can be (control.target_regions + detect_targets_in_regions on the keyframe image's reduced decode,
+  as the tracker node does with a control file). Toledo has no surveyed targets: SURVEY_TARGETS places
+  three boards on the ground under photos of the flight (the ground EXIF_HEIGHT_M below their EXIF
+  altitudes), so the rings are where a surveyor's would be; floor: the candidate search alone on the 1/8 grey.
 - stereo pair: core/stereo.stereo_pair on consecutive keyframes with the final poses, from full-size images
   and from images at the keyframe reduction (gsd.keyframe_reduction) with the camera scaled; floor: SGBM alone
   on two images of the matched size with the pair's disparity count.
@@ -101,6 +105,21 @@ def photos_and_fixes(n: int):
     return out, load_calibration(calib)
 
 
+# Made-up boards for the region search on toledo (no surveyed targets): on the ground under these photos.
+SURVEY_TARGETS = (4, 14, 30)
+EXIF_HEIGHT_M = 100.0   # toledo's height above ground, about (its EXIF altitudes are above the take-off point)
+
+
+def survey_targets(photos):
+    from photogram_ros.core.control import ControlSet, SurveyedTarget
+    out = []
+    for k, i in enumerate(SURVEY_TARGETS):
+        fix = photos[i][2] if i < len(photos) else None
+        if fix is not None:
+            out.append(SurveyedTarget(f'T{k}', k, fix.lat_deg, fix.lon_deg, fix.h_m - EXIF_HEIGHT_M, 'gcp'))
+    return ControlSet(out)
+
+
 def run(n_photos: int) -> tuple[list[dict], dict]:
     from rclpy.serialization import serialize_message
 
@@ -121,8 +140,11 @@ def run(n_photos: int) -> tuple[list[dict], dict]:
     # The tracker's descriptor matching, timed apart (it runs inside Tracker.process).
     b.wrap(tracker_mod, 'extract', 'descriptor_matching')
     b.wrap(tracker_mod, 'match_pair', 'descriptor_matching')
-    b.wrap(IncrementalAT, '_register', 'pose_resection')
-    b.wrap(IncrementalAT, '_register_relative', 'pose_resection')
+    if hasattr(tracker_mod, 'DescriptorIndex'):   # the frame's FLANN index, built once for its matches
+        b.wrap(tracker_mod, 'DescriptorIndex', 'descriptor_matching')
+    from photogram_ros.core.at_register import Registration
+    b.wrap(Registration, 'resect', 'pose_resection')
+    b.wrap(Registration, 'relative', 'pose_resection')
     b.wrap(IncrementalAT, '_window_adjust', 'window_adjustment')
     window_calls = []
     win = IncrementalAT._window_adjust
@@ -149,6 +171,9 @@ def run(n_photos: int) -> tuple[list[dict], dict]:
     bf = cv2.BFMatcher(cv2.NORM_L2)
     n_kf_targets = 0
     kf_reduction = gsd.keyframe_reduction(cam.width, cam.height)
+    regional = hasattr(control, 'target_regions')
+    surveyed = survey_targets(photos) if regional else None
+    rings = 0
     for path, stamp, fix in photos:
         data = np.fromfile(str(path), np.uint8)
         full = b.time('decode_full', cv2.imdecode, data, cv2.IMREAD_COLOR)
@@ -188,6 +213,15 @@ def run(n_photos: int) -> tuple[list[dict], dict]:
             small = cv2.imdecode(encoded.data, cv2.IMREAD_REDUCED_COLOR_8)
             b.time('message_image_full_raw', lambda im=image: serialize_message(msgs.image_msg(im, kf.stamp_ns)))
             reduced = b.time('decode_keyframe_reduced', msgs.decode_reduced, encoded.data, kf_reduction)
+            if regional and kf.fix is not None:
+                def in_regions(k=kf, im=reduced, data=encoded.data):
+                    cov = np.asarray(k.fix.cov_enu_m2)
+                    reg = control.target_regions(cam, surveyed, k.fix.lat_deg, k.fix.lon_deg, k.fix.h_m,
+                                                 float(np.sqrt(max(cov[0, 0], cov[1, 1]))))
+                    grey = cv2.cvtColor(im, cv2.COLOR_BGR2GRAY)
+                    return reg, control.detect_targets_in_regions(data, grey, cam, reg)
+                reg, _ = b.time('targets_in_regions', in_regions)
+                rings += bool(reg.rings_px)
             b.time('message_image_reduced_raw', lambda im=reduced: serialize_message(msgs.image_msg(im, kf.stamp_ns)))
             floors.time('messages', lambda im=small: serialize_message(msgs.image_msg(im, kf.stamp_ns)))
             b.time('message_features', lambda k=kf: serialize_message(msgs.keyframe_features_msg(
@@ -278,7 +312,8 @@ def run(n_photos: int) -> tuple[list[dict], dict]:
                                               if floors.calls.get(name) else None)})
     summary = {'photos': n, 'keyframes': len(keyframes), 'posed': len(posed), 'reduction': kf_reduction,
                'camera': f'{cam.width}x{cam.height}', 'gsd': settings.as_dict(), 'pairs': dict(statuses),
-               'targets_on_keyframes': n_kf_targets}
+               'targets_on_keyframes': n_kf_targets,
+               'keyframes_with_a_surveyed_target_near': rings if regional else None}
     return rows, summary
 
 
@@ -290,7 +325,9 @@ ORDER = [('decode_full', 'decode, full BGR (per photo)'), ('decode_reduced_2', '
          ('adjustment_other', 'rest of the adjustment stage'),
          ('decode_full_keyframe', 'keyframe full decode (before)'),
          ('targets_full_image', 'targets (ArUco) on the full image (before)'),
-         ('targets_as_node', 'targets as the node now finds them'), ('targets', 'targets floor (1/8 candidates)'),
+         ('targets_as_node', 'targets searched everywhere (grey decode, 1/4 candidates)'),
+         ('targets_in_regions', 'targets searched where surveyed targets can be (regions)'),
+         ('targets', 'targets floor (1/8 candidates)'),
          ('decode_keyframe_reduced', 'keyframe image at the map\'s reduction'),
          ('stereo_pair_full_images', 'stereo pair, full images (before)'),
          ('stereo_pair_reduced_images', 'stereo pair, reduced images'), ('stereo_pair', 'stereo floor (SGBM alone)'),
@@ -310,7 +347,8 @@ def table(rows: list[dict], summary: dict) -> str:
         lines.append(f"| {label} | {r['calls']} | {r['cpu_s_per_call']} | {r['cpu_s_per_photo']} | "
                      f"{r['floor_cpu_s_per_call']} |")
     lines.append(f"\n{summary['photos']} photos ({summary['camera']}), {summary['keyframes']} keyframes, "
-                 f"{summary['posed']} posed; keyframe image reduction {summary['reduction']}; pairs {summary['pairs']}")
+                 f"{summary['posed']} posed; keyframe image reduction {summary['reduction']}; pairs {summary['pairs']}; "
+                 f"keyframes with a surveyed target near {summary.get('keyframes_with_a_surveyed_target_near')}")
     return '\n'.join(lines) + '\n'
 
 

@@ -42,8 +42,9 @@ def test_sample_bag_gives_keyframes_with_matching_stamps(sample_bag, rclpy_conte
     from photogram_ros.nodes.tracker_node import TrackerNode
     from photogram_ros.sim.truth import GroundTruth
 
-    tracker = TrackerNode(overrides={'reliable_input': True, 'queue_size': 100, 'input_depth': 100},
-                          context=rclpy_context)
+    # The flight's surveyed targets: searched in each keyframe only where they can be (target_search regions).
+    tracker = TrackerNode(overrides={'reliable_input': True, 'queue_size': 100, 'input_depth': 100,
+                                     'control_file': str(sample_bag / 'targets.txt')}, context=rclpy_context)
     listener = Listener(rclpy_context)
     player = PlayerNode(overrides={'bag': str(sample_bag), 'rate': 4.0, 'wait_for_subscribers': 3,
                                    'topics': '/camera/image_raw/compressed,/camera/camera_info,/gps/fix'},

@@ -160,11 +160,16 @@ def detect_keyframe_targets(image: np.ndarray, camera: PinholeCamera,
     if dictionary not in ARUCO_DICTIONARIES:
         raise DataError(f'unknown ArUco dictionary {dictionary!r}; choose from {list(ARUCO_DICTIONARIES)}')
     dets = detect_targets(image, getattr(cv2.aruco, dictionary))
-    out = np.zeros(len(dets), TARGET_DTYPE)
-    if dets:
-        uv = np.array([d.center_uv for d in dets], float)
+    return _target_rows([(d.marker_id, d.center_uv) for d in dets], camera)
+
+
+def _target_rows(found: list, camera: PinholeCamera) -> np.ndarray:
+    """[(marker id, (2,) centre pixel)] -> TARGET_DTYPE rows."""
+    out = np.zeros(len(found), TARGET_DTYPE)
+    if found:
+        uv = np.array([c for _, c in found], float).reshape(-1, 2)
         xn = camera.pixel_to_normalized(uv)
-        out['marker_id'] = [d.marker_id for d in dets]
+        out['marker_id'] = [m for m, _ in found]
         out['u'], out['v'] = uv[:, 0], uv[:, 1]
         out['xn'], out['yn'] = xn[:, 0], xn[:, 1]
     return out
@@ -175,6 +180,11 @@ def detect_keyframe_targets_encoded(data, camera: PinholeCamera, dictionary: str
     in grey only (libjpeg's luma, no colour conversion: about a third of the colour decode's time at 20 MP), then
     searched as detect_targets searches (above 2000 px: squares found on a reduced copy, markers read at full
     resolution in the regions around them). DataError if undecodable or not the camera's size."""
+    return detect_keyframe_targets(_full_grey(data, camera), camera, dictionary)
+
+
+def _full_grey(data, camera: PinholeCamera) -> np.ndarray:
+    """A keyframe's JPEG bytes decoded in grey at full size; DataError if undecodable or not the camera's size."""
     buf = np.frombuffer(data, np.uint8) if not isinstance(data, np.ndarray) else data.reshape(-1)
     grey = cv2.imdecode(buf, cv2.IMREAD_GRAYSCALE | cv2.IMREAD_IGNORE_ORIENTATION) if buf.size else None
     if grey is None:
@@ -182,7 +192,178 @@ def detect_keyframe_targets_encoded(data, camera: PinholeCamera, dictionary: str
     if (grey.shape[1], grey.shape[0]) != (camera.width, camera.height):
         raise DataError(f'keyframe image is {grey.shape[1]}x{grey.shape[0]}, the camera {camera.width}x'
                         f'{camera.height}')
-    return detect_keyframe_targets(grey, camera, dictionary)
+    return grey
+
+
+# --- targets searched only where they can be ------------------------------------------------------
+#
+# A keyframe's GNSS position and the surveyed targets' coordinates say where a target can appear in its image:
+# a target d metres (horizontally) from the camera, H metres below it, is imaged about d * f / H pixels from the
+# principal point of a nadir camera, at an azimuth the unknown heading leaves open. The GNSS error, the tilt of
+# the camera from nadir (gimbal, roll in a turn) and the lens's distortion widen that radius into a ring; a
+# target whose ring misses the image is not looked for. The rings' bounding box is searched for squares on the
+# reduced image (the keyframe's image for keyframes/image, decoded once at its reduction), and the full
+# resolution is decoded only when a square lies in a ring, then searched only around each such square.
+
+@dataclass
+class TargetRegionOptions:
+    """How far from its GNSS-predicted place a target is looked for."""
+    gnss_margin_m: float = param(5.0, 'target search: horizontal GNSS error allowed beyond 3 sigma of the fix, m',
+                                 min=0.0, max=10000.0)
+    tilt_margin_deg: float = param(15.0, 'target search: camera tilt from nadir allowed (gimbal, roll and pitch), '
+                                         'deg', min=0.0, max=60.0)
+    radius_margin: float = param(0.05, 'target search: relative slack on the predicted image radius (the lens distortion, '
+                                       'the relief of the terrain)', min=0.0, max=1.0)
+
+
+@dataclass
+class TargetRegions:
+    """Where the targets of a ControlSet can be in one keyframe's image.
+
+    status: 'rings' (rings_px holds (marker_id, r_min_px, r_max_px) about the principal point for each
+    target that can be in the image; empty: none can, nothing to search), or 'unknown' (no usable height of
+    the camera above the targets: the whole image is to be searched), with `why`."""
+    status: str
+    rings_px: list = field(default_factory=list)
+    why: str = ''
+
+    def box(self, camera: PinholeCamera) -> tuple[int, int, int, int] | None:
+        """The image box (u0, v0, u1, v1) the rings cover, or None when they cover nothing."""
+        if self.status != 'rings':
+            return (0, 0, camera.width, camera.height)
+        if not self.rings_px:
+            return None
+        r = max(r1 for _, _, r1 in self.rings_px)
+        u0, v0 = max(0, int(camera.cx - r)), max(0, int(camera.cy - r))
+        u1, v1 = min(camera.width, int(np.ceil(camera.cx + r)) + 1), min(camera.height, int(np.ceil(camera.cy + r)) + 1)
+        return (u0, v0, u1, v1) if u1 > u0 and v1 > v0 else None
+
+    def contains(self, camera: PinholeCamera, uv: np.ndarray, slack_px: float = 0.0) -> np.ndarray:
+        """(N,) whether pixels `uv` (N, 2) lie in a ring (widened by slack_px); all True when unknown."""
+        uv = np.asarray(uv, float).reshape(-1, 2)
+        if self.status != 'rings':
+            return np.ones(len(uv), bool)
+        r = np.hypot(uv[:, 0] - camera.cx, uv[:, 1] - camera.cy)
+        out = np.zeros(len(uv), bool)
+        for _, r0, r1 in self.rings_px:
+            out |= (r >= r0 - slack_px) & (r <= r1 + slack_px)
+        return out
+
+
+def target_regions(camera: PinholeCamera, control: ControlSet, lat_deg: float, lon_deg: float, h_m: float,
+                   sigma_h_m: float = 0.0, opt: TargetRegionOptions | None = None) -> TargetRegions:
+    """The rings of the image in which the targets of `control` can appear, for a camera at the GNSS position
+    (lat_deg, lon_deg, h_m: ellipsoidal, like the control's heights) with a horizontal sigma `sigma_h_m`."""
+    opt = opt or TargetRegionOptions()
+    if not control.targets:
+        return TargetRegions('rings', [], 'no surveyed targets')
+    frame = LocalFrame(float(lat_deg), float(lon_deg), float(h_m))
+    enu = np.asarray(frame.geodetic_to_enu(np.array([t.lat_deg for t in control.targets], float),
+                                           np.array([t.lon_deg for t in control.targets], float),
+                                           np.array([t.h_m for t in control.targets], float)), float).reshape(-1, 3)
+    height_m = -enu[:, 2]
+    if not np.all(np.isfinite(enu)) or np.any(height_m < 1.0):
+        return TargetRegions('unknown', [], f'the camera is {float(np.min(height_m)):.1f} m above a target by its '
+                             'GNSS height and the control\'s: the heights do not tell where the targets are')
+    f_px = 0.5 * (camera.fx + camera.fy)
+    half_diag_px = max(np.hypot(u - camera.cx, v - camera.cy) for u in (0, camera.width) for v in (0, camera.height))
+    rings = []
+    for t, (e, n, _), hgt in zip(control.targets, enu, height_m):
+        d = float(np.hypot(e, n))
+        m = opt.gnss_margin_m + 3.0 * sigma_h_m + hgt * np.tan(np.radians(opt.tilt_margin_deg))
+        r0 = max(0.0, d - m) * f_px / hgt * (1.0 - opt.radius_margin)
+        r1 = (d + m) * f_px / hgt * (1.0 + opt.radius_margin)
+        if r0 <= half_diag_px:
+            rings.append((t.marker_id, float(r0), float(r1)))
+    return TargetRegions('rings', rings, '' if rings else 'no surveyed target near the footprint')
+
+
+def detect_targets_in_regions(encoded, reduced_grey: np.ndarray, camera: PinholeCamera, regions: TargetRegions,
+                              dictionary: str = 'DICT_4X4_50') -> tuple[np.ndarray, dict]:
+    """detect_keyframe_targets of a compressed keyframe searched only in `regions`: squares looked for on
+    `reduced_grey` (the keyframe decoded at an integer reduction, e.g. libjpeg's DCT scaling) within the
+    regions' box; the JPEG `encoded` decoded at full resolution (grey) only when a square lies in a ring, and
+    searched there only in a window around each such square (the same margins as detect_targets' windows).
+    Returns (TARGET_DTYPE rows, {'squares', 'windows', 'window_px', 'full_decode'} counts: squares in the rings,
+    full-resolution windows searched and their pixels, full decodes). DataError if undecodable."""
+    if dictionary not in ARUCO_DICTIONARIES:
+        raise DataError(f'unknown ArUco dictionary {dictionary!r}; choose from {list(ARUCO_DICTIONARIES)}')
+    stats = {'squares': 0, 'windows': 0, 'window_px': 0, 'full_decode': 0}
+    box = regions.box(camera)
+    if box is None:
+        return np.zeros(0, TARGET_DTYPE), stats
+    f = camera.width / reduced_grey.shape[1]
+    if abs(f - round(f)) > 0.02 or round(f) < 1:
+        raise DataError(f'reduced image {reduced_grey.shape[1]} px wide is no integer reduction of the camera\'s '
+                        f'{camera.width} px')
+    f = int(round(f))
+    u0, v0, u1, v1 = (int(box[0] // f), int(box[1] // f), int(-(-box[2] // f)), int(-(-box[3] // f)))
+    small = reduced_grey[v0:v1, u0:u1]
+    if min(small.shape) < 8:
+        return np.zeros(0, TARGET_DTYPE), stats
+    prm = cv2.aruco.DetectorParameters()
+    prm.cornerRefinementMethod = cv2.aruco.CORNER_REFINE_NONE
+    # Squares from 2 % of the reduced image's long side as perimeter (detect_targets' reduced search), whatever
+    # the box's size; up to the whole reduced image's.
+    long_small = max(small.shape)
+    prm.minMarkerPerimeterRate = _REDUCED_MIN_PERIMETER_RATE * max(reduced_grey.shape) / long_small
+    prm.maxMarkerPerimeterRate = 4.0 * max(reduced_grey.shape) / long_small
+    det = cv2.aruco.ArucoDetector(cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, dictionary)), prm)
+    corners, _, rejected = det.detectMarkers(small)
+    windows = []
+    for c in list(corners) + list(rejected):
+        uv = (c.reshape(4, 2).astype(float) + np.array([u0, v0]) + 0.5) * f - 0.5
+        centre = uv.mean(axis=0)
+        side = float(np.max(np.ptp(uv, axis=0)))
+        if not regions.contains(camera, centre[None], slack_px=side)[0]:
+            continue
+        pad = _WINDOW_MARGIN_PX + 2 * f + _WINDOW_MARGIN_SIDES * side
+        lo = np.floor(uv.min(axis=0) - pad).astype(int)
+        hi = np.ceil(uv.max(axis=0) + pad).astype(int)
+        windows.append((max(0, int(lo[0])), max(0, int(lo[1])), min(camera.width, int(hi[0]) + 1),
+                        min(camera.height, int(hi[1]) + 1)))
+    stats['squares'] = len(windows)
+    if not windows:
+        return np.zeros(0, TARGET_DTYPE), stats
+    grey = _full_grey(encoded, camera)
+    stats['full_decode'] = 1
+    windows = _merged(windows)
+    stats['windows'] = len(windows)
+    stats['window_px'] = int(sum((a1 - a0) * (b1 - b0) for a0, b0, a1, b1 in windows))
+    found = []
+    aruco = getattr(cv2.aruco, dictionary)
+    for a0, b0, a1, b1 in windows:
+        for d in detect_targets(grey[b0:b1, a0:a1], aruco):
+            c = d.center_uv + np.array([a0, b0], float)
+            if not any(m == d.marker_id and np.linalg.norm(c - o) < 1.0 for m, o in found):
+                found.append((d.marker_id, c))
+    return _target_rows(found, camera), stats
+
+
+# detect_targets' reduced search and windows (core/evaluation.py): squares from 2 % of the reduced image's long
+# side as perimeter; a window reaches 20 px, two reduced pixels and one square's side beyond the square.
+_REDUCED_MIN_PERIMETER_RATE = 0.02
+_WINDOW_MARGIN_PX = 20
+_WINDOW_MARGIN_SIDES = 1.0
+
+
+def _merged(boxes: list) -> list:
+    """Overlapping boxes (u0, v0, u1, v1) merged until disjoint."""
+    boxes = [list(b) for b in boxes]
+    merged = True
+    while merged:
+        merged = False
+        for i in range(len(boxes)):
+            for j in range(i + 1, len(boxes)):
+                a, b = boxes[i], boxes[j]
+                if a[0] < b[2] and b[0] < a[2] and a[1] < b[3] and b[1] < a[3]:
+                    boxes[i] = [min(a[0], b[0]), min(a[1], b[1]), max(a[2], b[2]), max(a[3], b[3])]
+                    del boxes[j]
+                    merged = True
+                    break
+            if merged:
+                break
+    return [tuple(b) for b in boxes]
 
 
 # --- control rows checked against the GNSS-only block ---------------------------------------

@@ -75,9 +75,17 @@ def _keyframe_image(self) -> np.ndarray:
     return img
 
 
+def _keyframe_encoded(self) -> EncodedImage | None:
+    """The compressed image the keyframe still holds (a frame that came compressed, not decoded at full size
+    yet), or None."""
+    img = self.__dict__['image']
+    return img if isinstance(img, EncodedImage) else None
+
+
 def _set_keyframe_image(self, value) -> None:
     self.__dict__['image'] = value
 
 
 # The dataclass keeps `image` as its field; reading it decodes a compressed keyframe once.
 Keyframe.image = property(_keyframe_image, _set_keyframe_image)
+Keyframe.encoded = _keyframe_encoded

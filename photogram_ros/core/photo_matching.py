@@ -129,11 +129,32 @@ def extract(name: str, gray: np.ndarray, factor_xy=(1.0, 1.0), opt: MatchingOpti
     return PhotoFeatures(name, uv, np.sqrt(desc).astype(np.float32), np.array([k.response for k in kps], np.float32))
 
 
-def _ratio_matches(a: PhotoFeatures, b: PhotoFeatures, ratio: float) -> np.ndarray:
-    """(M, 2) ratio-test matches a -> b, one per feature of b (the closest)."""
-    cv2.setRNGSeed(0)       # FLANN's randomised kd-trees: the same matches on every run
-    flann = cv2.FlannBasedMatcher(dict(algorithm=1, trees=4), dict(checks=32))
-    knn = flann.knnMatch(a.desc, b.desc, k=2)
+class DescriptorIndex:
+    """FLANN kd-trees (OpenCV, 4 randomised trees, 32 checks) over one photo's descriptors, built once and
+    searched by the features of any number of other photos: a frame matched against several earlier
+    keyframes pays for its index once. The trees are seeded, so matches are the same on every run and the
+    same as an index built for a single pair."""
+
+    def __init__(self, desc: np.ndarray):
+        cv2.setRNGSeed(0)       # FLANN's randomised kd-trees: the same matches on every run
+        self.size = len(desc)
+        self._flann = cv2.FlannBasedMatcher(dict(algorithm=1, trees=4), dict(checks=32))
+        if self.size >= 2:
+            self._flann.add([np.ascontiguousarray(desc, np.float32)])
+            self._flann.train()
+
+    def knn2(self, query: np.ndarray) -> list:
+        """The two nearest indexed descriptors of each query descriptor (cv2.DMatch pairs)."""
+        if self.size < 2 or not len(query):
+            return []
+        return self._flann.knnMatch(np.ascontiguousarray(query, np.float32), k=2)
+
+
+def _ratio_matches(a: PhotoFeatures, b: PhotoFeatures, ratio: float, index_b: DescriptorIndex | None = None
+                   ) -> np.ndarray:
+    """(M, 2) ratio-test matches a -> b, one per feature of b (the closest); index_b: b's DescriptorIndex
+    (built here when not given)."""
+    knn = (index_b or DescriptorIndex(b.desc)).knn2(a.desc)
     rows = [(m[0].queryIdx, m[0].trainIdx, m[0].distance) for m in knn
             if len(m) == 2 and m[0].distance < ratio * m[1].distance]
     if not rows:
@@ -146,16 +167,18 @@ def _ratio_matches(a: PhotoFeatures, b: PhotoFeatures, ratio: float) -> np.ndarr
 
 
 def match_pair(a: PhotoFeatures, b: PhotoFeatures, camera: PinholeCamera, opt: MatchingOptions | None = None,
-               px_per_feature_px: float = 1.0, i: int = 0, j: int = 1) -> PairMatch:
+               px_per_feature_px: float = 1.0, i: int = 0, j: int = 1,
+               index_b: DescriptorIndex | None = None) -> PairMatch:
     """Ratio-test matches of `a` and `b` verified by an essential matrix (see the module docstring).
 
-    `px_per_feature_px`: full-photo pixels per reduced-image pixel (the RANSAC threshold's unit)."""
+    `px_per_feature_px`: full-photo pixels per reduced-image pixel (the RANSAC threshold's unit); `index_b`:
+    b's DescriptorIndex when b is matched against several photos (built once by the caller)."""
     opt = opt or MatchingOptions()
     sizes = (len(a.uv), len(b.uv))
     none = np.zeros((0, 2), int)
     if min(sizes) < opt.min_inliers:
         return PairMatch(i, j, sizes, 0, 0, none, 'too_few_features')
-    pairs = _ratio_matches(a, b, opt.ratio)
+    pairs = _ratio_matches(a, b, opt.ratio, index_b)
     if len(pairs) < opt.min_inliers:
         return PairMatch(i, j, sizes, len(pairs), 0, none, 'too_few_matches')
     thr_n = opt.ransac_px * px_per_feature_px / camera.fx

@@ -69,7 +69,8 @@ from photogram_ros.core.geodesy import LocalFrame
 from photogram_ros.core.klt import KltStep
 from photogram_ros.core.keyframe_image import EncodedImage, Keyframe
 from photogram_ros.core.keyframes import ChainStore, FixBuffer, OverlapGrid, gps_distance_m, homography_overlap
-from photogram_ros.core.photo_matching import MatchingOptions, PhotoFeatures, earlier_candidates, extract, match_pair
+from photogram_ros.core.photo_matching import (DescriptorIndex, MatchingOptions, PhotoFeatures, earlier_candidates,
+                                               extract, match_pair)
 from photogram_ros.errors import CalibrationError
 from photogram_ros.params import param
 
@@ -196,6 +197,7 @@ class _Frame:
     extra_pts: np.ndarray = field(default_factory=lambda: np.empty((0, 2), np.float32))
     extra_ids: np.ndarray = field(default_factory=lambda: np.empty(0, np.uint32))
     chain_tried: set = field(default_factory=set)   # keyframe indices this frame was matched with
+    desc_index: DescriptorIndex | None = None   # FLANN trees over `features`, built at its first match
 
 
 
@@ -458,6 +460,13 @@ class Tracker:
             frame.raw = None   # only the features needed it
             frame.feat_ids = np.full(len(frame.features.uv), -1, np.int64)
 
+    @staticmethod
+    def _descriptor_index(frame: _Frame) -> DescriptorIndex:
+        """The frame's DescriptorIndex: built once, searched by every keyframe it is matched against."""
+        if frame.desc_index is None or frame.desc_index.size != len(frame.features.desc):
+            frame.desc_index = DescriptorIndex(frame.features.desc)
+        return frame.desc_index
+
     def _new_ids(self, n: int) -> np.ndarray:
         t = np.arange(self._next_id, self._next_id + n, dtype=np.int64)
         self._next_id += n
@@ -558,7 +567,7 @@ class Tracker:
             cur.chain_tried.add(ch.keys[i])
             self.stats.chain_pairs += 1
             feats, ids = self._entry_features(i)
-            m = match_pair(feats, f, self._work_cam, opt)
+            m = match_pair(feats, f, self._work_cam, opt, index_b=self._descriptor_index(cur))
             if not m.verified:
                 continue
             self.stats.chain_verified += 1
@@ -624,7 +633,8 @@ class Tracker:
             cur.chain_tried.add(k.keyframe.index)
             self._features_of(k.frame)
             self.stats.chain_pairs += 1
-            m = match_pair(k.frame.features, f, self._work_cam, self._match_options())
+            m = match_pair(k.frame.features, f, self._work_cam, self._match_options(),
+                           index_b=self._descriptor_index(cur))
             if not m.verified:
                 continue
             self.stats.chain_verified += 1

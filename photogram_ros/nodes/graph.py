@@ -129,6 +129,12 @@ def role_values(spec: GraphSpec, role: str, sections: dict | None = None) -> dic
         if name.split('/')[-1] == script:
             values.update(section)
     values.update((spec.extra or {}).get(role, {}))
+    if role == 'tracker' and not values.get('control_file'):
+        # The tracker searches for the adjuster's surveyed targets only where they can be (target_search).
+        bundle = role_values(spec, 'bundle', sections)
+        for key in ('control_file', 'control_heights'):
+            if bundle.get(key):
+                values[key] = bundle[key]
     return values
 
 

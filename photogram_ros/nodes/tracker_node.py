@@ -16,8 +16,11 @@ Frames go into a bounded slot and a worker thread tracks them; when frames come 
 worker, the oldest waiting frame is dropped, counted (`drops`) and said on /diagnostics with the
 reason, so the tracker never falls behind. A compressed frame larger than `track_max_px`
 (a 20 MP photo) is decoded straight at the tracker's working size (core/tracker.EncodedImage), and at
-full size never: a keyframe's image is decoded again at its reduction (libjpeg's DCT scaling), its targets
-searched on a grey decode (core/control.detect_keyframe_targets_encoded). Keyframes go out from a second
+full size never: a keyframe's image is decoded again at its reduction (libjpeg's DCT scaling). Its targets
+are searched only where the surveyed targets of `control_file` (the graph passes bundle_node's) can be, from
+the keyframe's GNSS fix (`target_search` regions, core/control.target_regions): squares on that reduced
+image, a full-resolution grey decode only when one lies where a target can be, read in windows around them;
+no control file or no target near the footprint: no search. Keyframes go out from a second
 thread (`keyframe_thread`): the decodes, the target detection and the messages of a 20 MP keyframe stay off
 the frame loop; they are never dropped, and leave in keyframe order.
 A missing or inconsistent calibration is reported on /diagnostics as an error and the frames are
@@ -32,6 +35,7 @@ import time
 from collections import OrderedDict, deque
 from dataclasses import dataclass
 
+import numpy as np
 from rclpy.node import Node
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image, NavSatFix, PointCloud2
@@ -39,7 +43,8 @@ from sensor_msgs.msg import CameraInfo, CompressedImage, Image, NavSatFix, Point
 from photogram_ros import msgs
 from photogram_ros.core import gsd
 from photogram_ros.core.camera import load_calibration
-from photogram_ros.core.control import ARUCO_DICTIONARIES, detect_keyframe_targets, detect_keyframe_targets_encoded
+from photogram_ros.core.control import (ARUCO_DICTIONARIES, ControlSet, TargetRegionOptions, detect_keyframe_targets,
+                                        detect_keyframe_targets_encoded, detect_targets_in_regions, target_regions)
 from photogram_ros.core.gnss_fix import GnssFix
 from photogram_ros.core.pace import ThreadCaps, limit_threads
 from photogram_ros.core.tracker import EncodedImage, Tracker, TrackerParams
@@ -51,12 +56,14 @@ from photogram_ros.params import param
 
 
 # Compressed frames kept for their keyframe's image: a keyframe waits at most for its GNSS fix (fix_lag_max_s,
-# 20 frames at 1 Hz); an older one is decoded from the tracker's keyframe instead.
+# 20 frames at 1 Hz); beyond, the keyframe's own compressed image (Keyframe.encoded) is used.
 MAX_ENCODED_KEPT = 32
+# The control of a flight without a control file: no target to search for (target_search regions).
+_NO_CONTROL = ControlSet([])
 
 
 @dataclass
-class TrackerNodeParams(TrackerParams, ThreadCaps):
+class TrackerNodeParams(TrackerParams, ThreadCaps, TargetRegionOptions):
     image_topic: str = param('camera/image_raw', 'Raw image topic; "<topic>/compressed" is subscribed too')
     camera_info_topic: str = param('camera/camera_info', 'CameraInfo topic (ignored with calibration_file)')
     fix_topic: str = param('gps/fix', 'NavSatFix topic interpolated to keyframe stamps')
@@ -69,10 +76,20 @@ class TrackerNodeParams(TrackerParams, ThreadCaps):
                              min=1, max=10000)
     publish_debug_image: bool = param(False, 'Publish /tracker/debug_image with the tracks drawn')
     keyframe_qos_depth: int = param(20, 'History depth of the reliable keyframe publishers', min=1, max=10000)
-    detect_targets: bool = param(True, 'Find ArUco targets (GCPs, check points) in every keyframe and send them '
-                                 'with its features (a few ms per keyframe; bundle_node.control_file names them)')
+    detect_targets: bool = param(True, 'Find ArUco targets (GCPs, check points) in keyframes and send them '
+                                 'with their features (where target_search says; bundle_node.control_file names '
+                                 'them)')
     target_dictionary: str = param('DICT_4X4_50', 'ArUco dictionary of the target boards',
                                    choices=ARUCO_DICTIONARIES)
+    target_search: str = param('regions', 'Where targets are searched: only where the surveyed targets of '
+                               'control_file can be, from the keyframe\'s GNSS position (regions: no control file, '
+                               'no search; core/control.target_regions), or the whole image (everywhere: also '
+                               'markers no control file lists, which become tie points)',
+                               choices=('regions', 'everywhere'))
+    control_file: str = param('', 'Surveyed targets for the target search (io/control_file.py; the graph passes '
+                                  'bundle_node.control_file when this is empty)')
+    control_heights: str = param('auto', 'Heights of control_file: ellipsoidal, orthometric (EGM2008), or auto',
+                                 choices=('auto', 'ellipsoidal', 'orthometric'))
     health_window: int = param(20, 'health: keyframes over which the share after an unbridged break (tracking '
                                    'lost: a new segment) is judged', min=2, max=10000)
     decode_reduced: bool = param(True, 'Decode compressed frames larger than track_max_px at the working size '
@@ -99,6 +116,11 @@ class TrackerNode(Node):
             self.diag.set(k, v)
         self.tracker = Tracker(None, TrackerParams(**{k: getattr(p, k) for k in TrackerParams.__dataclass_fields__}))
         self._camera_from_file = None
+        self.control = None
+        self._target_ms_total = 0.0   # CPU of the target searches, all keyframes
+        if p.control_file:   # a bad file: fail at start
+            from photogram_ros.io.control_file import read_control_file
+            self.control = read_control_file(p.control_file, (), p.control_heights)
         if p.calibration_file:
             self._camera_from_file = load_calibration(p.calibration_file)   # bad file: fail at start
             self.tracker.set_camera(self._camera_from_file)
@@ -335,18 +357,28 @@ class TrackerNode(Node):
         import cv2
         cam = self.tracker.camera
         enc = self._encoded_of(kf.stamp_ns)
+        if enc is None:   # forgotten while the keyframe waited: the keyframe holds its compressed image too
+            enc = kf.encoded()
         t0 = time.perf_counter()
+        regions = self._target_regions(kf, cam)
         if enc is not None:
             image = msgs.decode_reduced(enc.data, reduction)
             size = cam.scaled(1.0 / reduction)
             image = image[:size.height, :size.width]   # libjpeg rounds the reduced size up
             jpeg = enc.data if reduction > 1 else None
-            targets = self._targets(detect_keyframe_targets_encoded, enc.data, cam)
+            if regions is not None and regions.status == 'rings' and reduction > 1:
+                targets = self._targets(lambda data, c, d: self._search_regions(data, image, c, regions, d),
+                                        enc.data, cam)
+            elif regions is None or regions.box(cam) is not None:
+                targets = self._targets(detect_keyframe_targets_encoded, enc.data, cam)
+            else:
+                targets = None
         else:
-            if reduction > 1:   # a raw frame, or a compressed one forgotten (MAX_ENCODED_KEPT) while it waited
+            if reduction > 1:   # a raw frame
                 self.diag.count('keyframe_images_reduced_from_full')
             full = kf.image
-            targets = self._targets(detect_keyframe_targets, full, cam)
+            searched = regions is None or regions.box(cam) is not None
+            targets = self._targets(detect_keyframe_targets, full, cam) if searched else None
             image, jpeg = full, None
             if reduction > 1:
                 size = cam.scaled(1.0 / reduction)
@@ -356,12 +388,45 @@ class TrackerNode(Node):
         self.diag.set('keyframe_images_ms', (time.perf_counter() - t0) * 1e3)   # decodes and target search
         return image, jpeg, targets
 
+    def _target_regions(self, kf, cam):
+        """Where keyframe `kf`'s targets can be (core/control.TargetRegions; status 'rings' with no ring: not
+        searched), or None: searched everywhere (target_search everywhere, or no GNSS fix to predict from)."""
+        p = self.params
+        if not p.detect_targets or p.target_search == 'everywhere':
+            return None
+        if self.control is None:
+            self.diag.count('keyframes_target_search_off_no_control')
+            return target_regions(cam, _NO_CONTROL, 0.0, 0.0, 0.0)
+        if kf.fix is None:
+            self.diag.count('keyframes_target_search_whole_no_fix')
+            return None
+        sigma_h = float(np.sqrt(max(kf.fix.cov_enu_m2[0, 0], kf.fix.cov_enu_m2[1, 1], 0.0)))
+        regions = target_regions(cam, self.control, kf.fix.lat_deg, kf.fix.lon_deg, kf.fix.h_m, sigma_h, p)
+        if regions.status != 'rings':
+            self.diag.count('keyframes_target_search_whole_no_height')
+            self.diag.problem(f'keyframe {kf.index}: targets searched in the whole image: {regions.why}')
+            return None
+        if not regions.rings_px:
+            self.diag.count('keyframes_target_search_none_near')
+        return regions
+
+    def _search_regions(self, data, image, cam, regions, dictionary):
+        import cv2
+        grey = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
+        targets, stats = detect_targets_in_regions(data, grey, cam, regions, dictionary)
+        self.diag.count('keyframes_target_search_regions')
+        self.diag.count('target_search_full_decodes', stats['full_decode'])
+        self.diag.count('target_search_windows', stats['windows'])
+        return targets
+
     def _targets(self, detect, image, cam):
         if not self.params.detect_targets:
             return None
         t0 = time.perf_counter()
         targets = detect(image, cam, self.params.target_dictionary)
+        self._target_ms_total += (time.perf_counter() - t0) * 1e3
         self.diag.set('target_detection_ms', (time.perf_counter() - t0) * 1e3)
+        self.diag.set('target_detection_ms_total', self._target_ms_total)
         self.diag.count('targets_detected', len(targets))
         return targets
 
