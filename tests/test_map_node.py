@@ -386,3 +386,24 @@ def test_a_full_disk_counts_write_failures_on_diagnostics(rclpy_context, tmp_pat
         ex.shutdown()
         peer.destroy_node()
         node.destroy_node()
+
+
+def test_a_provisional_pose_is_held_and_the_final_one_taken(graph):
+    """A pose labelled provisional (core/pose_status.py: the roll about the first line assumed) is not draped:
+    counted as held; the same keyframe's final pose is taken."""
+    from geometry_msgs.msg import PoseWithCovarianceStamped
+    from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+    from photogram_ros import msgs
+    from photogram_ros.core.pose_status import provisional_covariance
+    node, peer, _, _, ex, _ = graph
+    pub = peer.create_publisher(PoseWithCovarianceStamped, '/map/keyframe_pose', QoSProfile(
+        history=HistoryPolicy.KEEP_ALL, depth=1, reliability=ReliabilityPolicy.RELIABLE))
+    _spin_until(ex, lambda: pub.get_subscription_count() > 0, 5.0)
+    T = np.eye(4)
+    T[:3, 3] = (10.0, 5.0, 80.0)
+    final = np.diag([0.01, 0.01, 0.02, 1e-6, 1e-6, 1e-6])
+    pub.publish(msgs.pose_with_covariance_from_T(T, 10**9, covariance=provisional_covariance(final, (1, 0, 0))))
+    assert _spin_until(ex, lambda: node.diag.counts().get('poses_provisional_held', 0) == 1, 5.0)
+    pub.publish(msgs.pose_with_covariance_from_T(T, 10**9, covariance=final))
+    _spin_until(ex, lambda: False, 0.5)
+    assert node.diag.counts().get('poses_provisional_held', 0) == 1

@@ -719,7 +719,7 @@ def _height_verdict(vet: ControlVetting, file_heights: dict, opt: ControlVetting
             p.use = 'horizontal'
             p.reason = why + '; used horizontally only'
         else:
-            p.reason = why + '; used as given (--gcp-heights use): the block is bent to fit it'
+            p.reason = why + '; used as given (--gcp-height-check use): the block is bent to fit it'
 
 
 def _height_text(p: PointCheck) -> str:

@@ -167,6 +167,10 @@ class MapNode(Node):
         self.stage.add_image_jpeg(msgs.ns_from_time(msg.header.stamp), bytes(msg.data))
 
     def _on_pose(self, msg: PoseWithCovarianceStamped) -> None:
+        if msgs.pose_is_provisional(msg):
+            # The roll about the first line is not known yet: not draped; the turn republishes it final.
+            self.diag.count('poses_provisional_held')
+            return
         self.stage.add_pose(msgs.ns_from_time(msg.header.stamp), lambda: msgs.T_from_pose_with_covariance(msg)[0])
 
     def _on_keyframe_fix(self, msg: NavSatFix) -> None:
