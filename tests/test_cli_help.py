@@ -41,7 +41,7 @@ def test_known_defaults_are_shown(capsys):
     assert 'orthomosaic cell size in metres (default: one fusion cell, about 1 GSD)' in export
     assert '(default: las,laz,ply,dsm,dtm,ortho)' in export
     # An option whose help says its default is not told twice.
-    assert 'ellipsoidal heights (default) or orthometric' in export and 'default: ellipsoidal' not in export
+    assert 'WGS84 ellipsoidal (default) or orthometric' in export and 'default: ellipsoidal' not in export
 
 
 def test_help_from_the_installed_command():

@@ -440,7 +440,9 @@ def test_parameter_errors_of_the_child_process_come_at_once(tmp_path):
     worse = tmp_path / 'worse.yaml'
     worse.write_text(f'bundle_node:\n  ros__parameters:\n    control_file: {tmp_path / "no_such_targets.txt"}\n')
     res = cli('replay', SAMPLE_BAG, '--out', tmp_path / 'o2', '--params', worse, '--quiet', timeout=120)
-    assert res.returncode == 2 and 'did not start' in res.stderr
+    # The tracker's target search reads the same file in the first process: named before any child starts.
+    assert res.returncode == 2 and 'cannot read the control-point file' in res.stderr \
+        and 'no_such_targets.txt' in res.stderr and 'Traceback' not in res.stderr
 
 
 def test_config_mistakes_get_clear_messages(tmp_path):

@@ -201,6 +201,13 @@ class _Frame:
 
 
 
+def _descriptor_index(frame: _Frame) -> DescriptorIndex:
+    """The frame's DescriptorIndex: built once, searched by every keyframe it is matched against."""
+    if frame.desc_index is None or frame.desc_index.size != len(frame.features.desc):
+        frame.desc_index = DescriptorIndex(frame.features.desc)
+    return frame.desc_index
+
+
 def _dedupe_feature_ids(frame: _Frame) -> None:
     """One feature per track id of `frame` (two features matched to one track: keep the first)."""
     got = frame.feat_ids
@@ -460,13 +467,6 @@ class Tracker:
             frame.raw = None   # only the features needed it
             frame.feat_ids = np.full(len(frame.features.uv), -1, np.int64)
 
-    @staticmethod
-    def _descriptor_index(frame: _Frame) -> DescriptorIndex:
-        """The frame's DescriptorIndex: built once, searched by every keyframe it is matched against."""
-        if frame.desc_index is None or frame.desc_index.size != len(frame.features.desc):
-            frame.desc_index = DescriptorIndex(frame.features.desc)
-        return frame.desc_index
-
     def _new_ids(self, n: int) -> np.ndarray:
         t = np.arange(self._next_id, self._next_id + n, dtype=np.int64)
         self._next_id += n
@@ -567,7 +567,7 @@ class Tracker:
             cur.chain_tried.add(ch.keys[i])
             self.stats.chain_pairs += 1
             feats, ids = self._entry_features(i)
-            m = match_pair(feats, f, self._work_cam, opt, index_b=self._descriptor_index(cur))
+            m = match_pair(feats, f, self._work_cam, opt, index_b=_descriptor_index(cur))
             if not m.verified:
                 continue
             self.stats.chain_verified += 1
@@ -634,7 +634,7 @@ class Tracker:
             self._features_of(k.frame)
             self.stats.chain_pairs += 1
             m = match_pair(k.frame.features, f, self._work_cam, self._match_options(),
-                           index_b=self._descriptor_index(cur))
+                           index_b=_descriptor_index(cur))
             if not m.verified:
                 continue
             self.stats.chain_verified += 1
