@@ -270,9 +270,12 @@ def test_brighton_replay(bench_out):
     gate(row, ('brighton', 'replay'))
     assert row['nadir_share'] >= 0.95
     # Inside the camera centres' hull (the ground every line passed over): >= 98 % of the DSM's cells hold a
-    # height, more of them measured by stereo than the 51.6 % the DSM had before it was filled. Against ODM's
-    # cloud the gate above (1.5x): the runs measured 0.074-0.078 m, around a 0.08 m target.
-    assert row['dsm_hull_share'] >= 0.98 and row['dsm_measured_hull_share'] > 0.516
+    # height; the share measured by stereo (not filled) moves by a few percent with the adjusted poses between
+    # versions of the adjuster (0.527-0.540 in bench/results/real_surveys_*): held within 1.1x of the result
+    # file's. Against ODM's cloud the gate above (1.5x).
+    m = measured('brighton', 'replay')
+    assert row['dsm_hull_share'] >= 0.98 and row['dsm_measured_hull_share'] >= m['dsm_measured_hull_share'] / 1.1, \
+        f"{row['dsm_measured_hull_share']} ({REAL_RESULT}: {m['dsm_measured_hull_share']})"
     print(f"ODM in the hull: {row['peer_in_hull']}, measured cells {row['peer_in_hull_measured']}")
 
 
