@@ -35,6 +35,7 @@ def _run(sk, records, **options):
     return at, err
 
 
+@pytest.mark.slow   # minutes of incremental adjustment: the slow lane
 def test_the_pass_refines_the_distortion_and_keeps_the_block_on_its_geotags(flight):
     sk = flight
     base, base_err = _run(sk, sk.records)
@@ -50,6 +51,7 @@ def test_the_pass_refines_the_distortion_and_keeps_the_block_on_its_geotags(flig
     assert base_err.max() > 10 * err.max()
 
 
+@pytest.mark.slow   # minutes of incremental adjustment: the slow lane
 def test_a_glitched_geotag_is_still_refused(flight):
     sk = flight
     k = 150
