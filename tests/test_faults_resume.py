@@ -6,6 +6,7 @@ and not oriented, with the reason, instead of the report's "N of N" over this ru
 from __future__ import annotations
 
 import json
+import os
 
 import numpy as np
 
@@ -26,22 +27,25 @@ def test_keyframes_taken_before_a_crash_are_counted_as_taken_and_those_without_a
     from photogram_ros.io.flight_report import keyframe_accounting
     root = tmp_path / 'map'
     assert keyframes_before(root) is None   # a new map: nothing to count
-    store = _map_with_keyframes(root, posed=[10, 20], unposed=[30, 40])
+    store = _map_with_keyframes(root, posed=[10, 20, 25], unposed=[30, 40])
+    for p in store.keyframes_dir.iterdir():   # saved an hour before the restart
+        os.utime(p, (p.stat().st_mtime - 3600,) * 2)
     before = keyframes_before(root)
-    assert before == {'posed': [10, 20], 'unposed': [30, 40]}
-    # The resumed run: 3 new keyframes, all oriented; the stored 30 got a pose meanwhile, 40 did not.
-    for s in (50, 60, 70, 30):
+    assert {k: before[k] for k in ('posed', 'unposed')} == {'posed': [10, 20, 25], 'unposed': [30, 40]}
+    # The resumed run: 3 new keyframes, all oriented (25 among them: taken again, its image saved anew, counted
+    # as this run's); the stored 30 and 40 stay without a pose.
+    for s in (50, 25, 70):
         store.save_keyframe_image(s, b'\xff\xd8\xff\xd9')
         store.save_keyframe_pose(s, np.eye(4))
     counts = {'tracker': {'keyframes': 3}, 'bundle': {'keyframes_received': 3, 'keyframes_oriented': 3}}
     oriented = len(store.keyframes())
     plain = keyframe_accounting(json.loads(json.dumps(counts)), oriented)
-    assert plain['keyframes_taken'] == 3 and oriented == 6   # before: 6 "oriented" of 3 taken
+    assert plain["keyframes_taken"] == 3 and oriented == 5   # before: 5 "oriented" of 3 taken
     resumed = count_keyframes_before(counts, before, root)
-    assert resumed == {'keyframes': 4, 'posed': 2, 'unposed': 2, 'still_unposed': 1}
+    assert resumed == {'keyframes': 4, 'posed': 2, 'unposed': 2, 'still_unposed': 2}
     acc = keyframe_accounting(counts, oriented)
-    assert acc['keyframes_taken'] == 7 and acc['keyframes_oriented'] == 6 and acc['keyframes_not_oriented'] == 1, acc
+    assert acc['keyframes_taken'] == 7 and acc['keyframes_oriented'] == 5 and acc['keyframes_not_oriented'] == 2, acc
     assert acc['keyframes_not_oriented_by_reason'] == {
-        'not oriented: taken before the restart without a pose': 1}, acc
+        'not oriented: taken before the restart without a pose': 2}, acc
     out = capsys.readouterr().out
-    assert 'resumed map: 4 keyframes taken before this run (2 oriented then, 1 without a pose, not oriented' in out
+    assert 'resumed map: 4 keyframes taken before this run (2 oriented then, 2 without a pose, not oriented' in out

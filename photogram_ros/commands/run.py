@@ -373,7 +373,8 @@ def claim_folders(a, roles, exporting: bool) -> list:
 
 def keyframes_before(map_dir) -> dict | None:
     """The keyframes a map folder holds before this run (a resumed flight: taken before a crash or a restart):
-    {'posed': stamps with a pose, 'unposed': stamps of the images saved without one}; None for a new map."""
+    {'posed': stamps with a pose, 'unposed': stamps of the images saved without one, 'at': when they were listed
+    (Unix s)}; None for a new map."""
     from pathlib import Path
 
     from photogram_ros.io.map_store import MapStore
@@ -381,7 +382,7 @@ def keyframes_before(map_dir) -> dict | None:
         return None
     store = MapStore(map_dir)
     return {'posed': sorted(int(k['stamp_ns']) for k in store.keyframes()),
-            'unposed': sorted(int(p.stem) for p in store.unposed_keyframe_images())}
+            'unposed': sorted(int(p.stem) for p in store.unposed_keyframe_images()), 'at': time.time()}
 
 
 def count_keyframes_before(counts: dict, before: dict, map_dir) -> dict:
@@ -390,18 +391,31 @@ def count_keyframes_before(counts: dict, before: dict, map_dir) -> dict:
     them: `keyframes` and `keyframes_received` each by all of them, and the ones still without a pose as
     `not_oriented_taken_before_the_restart_without_a_pose` (their features were not stored: this run's adjuster
     cannot orient them), so the report counts them as taken but not oriented. Said on the console; returns
-    {'keyframes', 'posed', 'unposed', 'still_unposed'} for the report's run section."""
+    {'keyframes', 'posed', 'unposed', 'still_unposed'} for the report's run section. A keyframe this run took
+    again (a photo folder played from its start: the map saved its image anew) is this run's, not counted here."""
     from photogram_ros.io.map_store import MapStore
-    n = len(before['posed']) + len(before['unposed'])
-    unposed_now = {int(p.stem) for p in MapStore(map_dir).unposed_keyframe_images()}
-    still = sum(1 for s in before['unposed'] if s in unposed_now)
+    store = MapStore(map_dir)
+
+    def kept(stamps):   # not saved again by this run
+        out = []
+        for s in stamps:
+            try:
+                if store.keyframe_image_path(s).stat().st_mtime < before['at']:
+                    out.append(s)
+            except OSError:
+                out.append(s)   # gone since: still one taken before
+        return out
+    posed, unposed = kept(before['posed']), kept(before['unposed'])
+    n = len(posed) + len(unposed)
+    unposed_now = {int(p.stem) for p in store.unposed_keyframe_images()}
+    still = sum(1 for s in unposed if s in unposed_now)
     tracker, bundle = counts.setdefault('tracker', {}), counts.setdefault('bundle', {})
     tracker['keyframes'] = tracker.get('keyframes', 0) + n
     bundle['keyframes_received'] = bundle.get('keyframes_received', 0) + n
     if still:
         key = 'not_oriented_taken_before_the_restart_without_a_pose'
         bundle[key] = bundle.get(key, 0) + still
-    out = {'keyframes': n, 'posed': len(before['posed']), 'unposed': len(before['unposed']), 'still_unposed': still}
+    out = {'keyframes': n, 'posed': len(posed), 'unposed': len(unposed), 'still_unposed': still}
     if n:
         print(f"resumed map: {n} keyframes taken before this run ({out['posed']} oriented then"
               + (f", {still} without a pose, not oriented: their features were not stored, so this run's "
