@@ -86,6 +86,7 @@ def measure(survey: str, tmp: Path) -> dict:
 
 
 def main() -> int:
+    from faults_stop import append_result
     from machine import machine_info, tree_state
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument('--survey', choices=sorted(SURVEYS), default='brighton')
@@ -98,11 +99,7 @@ def main() -> int:
     row = {'bench': 'faults_odd_photo', **state, **row, 'machine': machine_info(),
            'load_avg_before': [round(x, 2) for x in load_before],
            'load_avg_after': [round(x, 2) for x in os.getloadavg()]}
-    print(json.dumps(row), flush=True)
-    dst = ROOT / 'bench' / 'results' / f'faults_odd_photo_{state["commit"][:7]}.jsonl'
-    with open(dst, 'a') as f:
-        f.write(json.dumps(row) + '\n')
-    print(f'-> {dst}', file=sys.stderr)
+    append_result('faults_odd_photo', state['commit'][:7], row)
     return 0 if row['odd']['exit'] == row['plain']['exit'] else 1
 
 
