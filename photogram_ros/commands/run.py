@@ -84,6 +84,8 @@ def run(a) -> int:
                           'last frame; leave out --separate (it is for a live camera device)')
     _locks = claim_folders(a, roles, exporting)   # held (flock) until the command returns
     before = keyframes_before(map_dir_of(a.params)) if 'map' in roles else None
+    if before is not None:
+        spec = in_the_map_origin(spec, map_dir_of(a.params))
     signals = RunSignals(skippable=not a.separate)
     if a.separate:
         return _run_separate(a, spec, signals, before)
@@ -383,6 +385,28 @@ def keyframes_before(map_dir) -> dict | None:
     store = MapStore(map_dir)
     return {'posed': sorted(int(k['stamp_ns']) for k in store.keyframes()),
             'unposed': sorted(int(p.stem) for p in store.unposed_keyframe_images()), 'at': time.time()}
+
+
+def in_the_map_origin(spec, map_dir):
+    """A resumed map that has its origin: the bundle adjuster anchors `map` there (use_origin_params and origin_*
+    over the parameters file, said on the console), so the poses of this run are in the frame of the map's tiles
+    and earlier keyframes (from its own first fix they would be tens of metres off, and the map keeps its old
+    origin). A configured origin (bundle_node use_origin_params) is left as it is."""
+    import dataclasses
+
+    from photogram_ros.io.map_store import MapStore
+    from photogram_ros.nodes.graph import role_values
+    if 'bundle' not in spec.roles or role_values(spec, 'bundle').get('use_origin_params'):
+        return spec
+    origin = MapStore(map_dir).origin
+    if origin is None:
+        return spec
+    extra = {r: dict(v) for r, v in (spec.extra or {}).items()}
+    extra.setdefault('bundle', {}).update({'use_origin_params': True, 'origin_lat_deg': float(origin.lat_deg),
+                                           'origin_lon_deg': float(origin.lon_deg), 'origin_h_m': float(origin.h_m)})
+    print(f'resumed map: the adjuster anchors map at its origin ({origin.lat_deg:.7f}, {origin.lon_deg:.7f}, '
+          f'{origin.h_m:.2f} m)', flush=True)
+    return dataclasses.replace(spec, extra=extra)
 
 
 def count_keyframes_before(counts: dict, before: dict, map_dir) -> dict:
