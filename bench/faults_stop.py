@@ -52,12 +52,17 @@ def main() -> int:
            'keyframes_oriented': report.get('keyframes_oriented'), 'machine': machine_info(),
            'load_avg_before': [round(x, 2) for x in load_before],
            'load_avg_after': [round(x, 2) for x in os.getloadavg()]}
+    append_result('faults_stop', commit, row)
+    return 0 if rc in (0, 4) else 1
+
+
+def append_result(bench: str, commit: str, row: dict) -> None:
+    """Print `row` and append it as a JSON line to bench/results/<bench>_<commit>.jsonl."""
     print(json.dumps(row), flush=True)
-    dst = ROOT / 'bench' / 'results' / f'faults_stop_{commit}.jsonl'
+    dst = ROOT / 'bench' / 'results' / f'{bench}_{commit}.jsonl'
     with open(dst, 'a') as f:
         f.write(json.dumps(row) + '\n')
     print(f'-> {dst}', file=sys.stderr)
-    return 0 if rc in (0, 4) else 1
 
 
 if __name__ == '__main__':

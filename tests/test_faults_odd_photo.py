@@ -132,3 +132,19 @@ def test_identical_duplicate_photos_are_named_and_dropped(tmp_path):
     shutil.copy2(last, photos / 'zz_again.JPG')
     assert src.refresh() == 0 and src.refresh() == 0
     assert any(p.endswith('zz_again.JPG') and f'identical to {last.name}' in w for p, w in src.skipped), src.skipped
+
+
+@pytest.mark.slow
+@pytest.mark.ros
+def test_replay_of_brighton_with_an_odd_first_photo_orients_as_many_as_the_plain_survey(tmp_path):
+    """brighton (18 photos, 4000x2250) with a 3240x1822 copy of its first photo sorting first, against the plain
+    survey in the same run (bench/faults_odd_photo.py): the odd photo named by camera_node, and at least 95 % as
+    many keyframes oriented as the plain survey's (bench/results/faults_odd_photo_f6bcca0.jsonl: 18 of 18 both)."""
+    sys.path.insert(0, str(ROOT / 'bench'))
+    from faults_odd_photo import measure
+    row = measure('brighton', tmp_path)
+    print({k: row[k] for k in ('plain', 'odd', 'oriented_odd_over_plain')})
+    assert row['plain']['exit'] == 0 and row['odd']['exit'] == 0, row['_stderr']
+    assert row['odd_named_by_camera_node'], row
+    assert row['odd']['keyframes_taken'] >= 0.95 * row['plain']['keyframes_taken'], row
+    assert row['odd']['keyframes_oriented'] >= 0.95 * row['plain']['keyframes_oriented'] >= 0.95 * 17, row

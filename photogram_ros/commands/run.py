@@ -83,9 +83,12 @@ def run(a) -> int:
                           'run holds the camera to the tracker and ends the flight when the tracker has taken the '
                           'last frame; leave out --separate (it is for a live camera device)')
     _locks = claim_folders(a, roles, exporting)   # held (flock) until the command returns
+    before = keyframes_before(map_dir_of(a.params)) if 'map' in roles else None
+    if before is not None:
+        spec = in_the_map_origin(spec, map_dir_of(a.params))
     signals = RunSignals(skippable=not a.separate)
     if a.separate:
-        return _run_separate(a, spec, signals)
+        return _run_separate(a, spec, signals, before)
     paced = pace_camera(spec)
     spec, paced = paced, paced is not spec
     init_ros()
@@ -147,6 +150,8 @@ def run(a) -> int:
                 'real_time_factor': flight_s / max(wall_s, 1e-9), 'counts': counts,
                 'ended_by': signals.signal_name or 'end of the camera source',
                 'final_adjustment': end.final_adjustment, 'end_of_flight_errors': end.errors}
+    if before is not None:
+        run_info['resumed'] = count_keyframes_before(counts, before, map_dir_of(a.params))
     return _after_flight(a, roles, end.as_dict(), run_info, diag_log.snapshot())
 
 
@@ -368,6 +373,81 @@ def claim_folders(a, roles, exporting: bool) -> list:
     return locks
 
 
+def keyframes_before(map_dir) -> dict | None:
+    """The keyframes a map folder holds before this run (a resumed flight: taken before a crash or a restart):
+    {'posed': stamps with a pose, 'unposed': stamps of the images saved without one, 'at': when they were listed
+    (Unix s)}; None for a new map."""
+    from pathlib import Path
+
+    from photogram_ros.io.map_store import MapStore
+    if not (Path(map_dir) / 'map.json').exists():
+        return None
+    store = MapStore(map_dir)
+    return {'posed': sorted(int(k['stamp_ns']) for k in store.keyframes()),
+            'unposed': sorted(int(p.stem) for p in store.unposed_keyframe_images()), 'at': time.time()}
+
+
+def in_the_map_origin(spec, map_dir):
+    """A resumed map that has its origin: the bundle adjuster anchors `map` there (use_origin_params and origin_*
+    over the parameters file, said on the console), so the poses of this run are in the frame of the map's tiles
+    and earlier keyframes (from its own first fix they would be tens of metres off, and the map keeps its old
+    origin). A configured origin (bundle_node use_origin_params) is left as it is."""
+    import dataclasses
+
+    from photogram_ros.io.map_store import MapStore
+    from photogram_ros.nodes.graph import role_values
+    if 'bundle' not in spec.roles or role_values(spec, 'bundle').get('use_origin_params'):
+        return spec
+    origin = MapStore(map_dir).origin
+    if origin is None:
+        return spec
+    extra = {r: dict(v) for r, v in (spec.extra or {}).items()}
+    extra.setdefault('bundle', {}).update({'use_origin_params': True, 'origin_lat_deg': float(origin.lat_deg),
+                                           'origin_lon_deg': float(origin.lon_deg), 'origin_h_m': float(origin.h_m)})
+    print(f'resumed map: the adjuster anchors map at its origin ({origin.lat_deg:.7f}, {origin.lon_deg:.7f}, '
+          f'{origin.h_m:.2f} m)', flush=True)
+    return dataclasses.replace(spec, extra=extra)
+
+
+def count_keyframes_before(counts: dict, before: dict, map_dir) -> dict:
+    """A resumed flight's accounting: the keyframes of the map from before this run are taken too. The tracker
+    and bundle counters of `counts` (role -> Graph.counts(), what the report's keyframe accounting reads) gain
+    them: `keyframes` and `keyframes_received` each by all of them, and the ones still without a pose as
+    `not_oriented_taken_before_the_restart_without_a_pose` (their features were not stored: this run's adjuster
+    cannot orient them), so the report counts them as taken but not oriented. Said on the console; returns
+    {'keyframes', 'posed', 'unposed', 'still_unposed'} for the report's run section. A keyframe this run took
+    again (a photo folder played from its start: the map saved its image anew) is this run's, not counted here."""
+    from photogram_ros.io.map_store import MapStore
+    store = MapStore(map_dir)
+
+    def kept(stamps):   # not saved again by this run
+        out = []
+        for s in stamps:
+            try:
+                if store.keyframe_image_path(s).stat().st_mtime < before['at']:
+                    out.append(s)
+            except OSError:
+                out.append(s)   # gone since: still one taken before
+        return out
+    posed, unposed = kept(before['posed']), kept(before['unposed'])
+    n = len(posed) + len(unposed)
+    unposed_now = {int(p.stem) for p in store.unposed_keyframe_images()}
+    still = sum(1 for s in unposed if s in unposed_now)
+    tracker, bundle = counts.setdefault('tracker', {}), counts.setdefault('bundle', {})
+    tracker['keyframes'] = tracker.get('keyframes', 0) + n
+    bundle['keyframes_received'] = bundle.get('keyframes_received', 0) + n
+    if still:
+        key = 'not_oriented_taken_before_the_restart_without_a_pose'
+        bundle[key] = bundle.get(key, 0) + still
+    out = {'keyframes': n, 'posed': len(posed), 'unposed': len(unposed), 'still_unposed': still}
+    if n:
+        print(f"resumed map: {n} keyframes taken before this run ({out['posed']} oriented then"
+              + (f", {still} without a pose, not oriented: their features were not stored, so this run's "
+                 'adjuster cannot take them; the report counts them as taken, not oriented' if still else '')
+              + ')', flush=True)
+    return out
+
+
 def source_ended(graph) -> bool:
     """The graph's camera node played its folder or file to the end and the tracker has taken every frame
     (a device or a looping source never ends; without a camera node the flight ends on a signal)."""
@@ -377,7 +457,7 @@ def source_ended(graph) -> bool:
     return tracker is None or tracker.frames_done >= camera.diag.counts().get('frames', 0)
 
 
-def _run_separate(a, spec, signals) -> int:
+def _run_separate(a, spec, signals, before: dict | None = None) -> int:
     """One process per node; at the stop each is ended and waited for in data-flow order, so the final
     adjustment (bundle_node's exit), stereo's last pairs and the map's flush follow one another."""
     import signal
@@ -410,6 +490,8 @@ def _run_separate(a, spec, signals) -> int:
                 'real_time_factor': flight_s / max(wall_s, 1e-9), 'counts': counts,
                 'ended_by': signals.signal_name or 'a node process ended', 'final_adjustment': end['final_adjustment'],
                 'end_of_flight_errors': failed}
+    if before is not None:
+        run_info['resumed'] = count_keyframes_before(counts, before, map_dir_of(a.params))
     return _after_flight(a, spec.roles, end, run_info, diagnostics)
 
 

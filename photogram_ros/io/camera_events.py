@@ -279,11 +279,12 @@ def read_exif_events(photos: list[Path], utc_offset_s: float = 0.0) -> list[Came
     return out
 
 
-def read_events(path: str | Path, kind: str = 'auto') -> list[CameraEvent]:
-    """The camera events of a Timestamp.MRK, an ArduPilot .bin or a .tlog (kind: the message type or auto)."""
+def read_events(path: str | Path, kind: str = 'auto', notes: list | None = None) -> list[CameraEvent]:
+    """The camera events of a Timestamp.MRK, an ArduPilot .bin or a .tlog (kind: the message type or auto); an
+    MRK's cut-off last line is skipped and named in `notes` (a list to append to)."""
     which = event_kind(path)
     if which == 'mrk':
-        return [r.event for r in read_mrk(path)]
+        return [r.event for r in read_mrk(path, notes)]
     if which == 'dataflash':
         return read_dataflash_events(path, kind)
     return read_tlog_events(path, kind)

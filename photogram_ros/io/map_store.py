@@ -407,8 +407,12 @@ class MapStore:
         except (OSError, ValueError):
             return None
 
+    def keyframe_image_path(self, stamp_ns: int) -> Path:
+        """Where the image of the keyframe stamped `stamp_ns` is saved."""
+        return self.keyframes_dir / f'{int(stamp_ns)}.jpg'
+
     def save_keyframe_image(self, stamp_ns: int, jpeg: bytes) -> None:
-        self._write(self.keyframes_dir / f'{int(stamp_ns)}.jpg', jpeg)
+        self._write(self.keyframe_image_path(stamp_ns), jpeg)
 
     def save_keyframe_pose(self, stamp_ns: int, map_T_cam: np.ndarray) -> None:
         body = {'stamp_ns': int(stamp_ns), 'map_T_cam': np.asarray(map_T_cam, float).tolist()}

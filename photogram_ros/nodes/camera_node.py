@@ -25,11 +25,11 @@ from dataclasses import dataclass
 import rclpy
 from rclpy.duration import Duration
 from rclpy.node import Node
-from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image, NavSatFix
 
 from photogram_ros import msgs
 from photogram_ros.errors import CalibrationError, ConfigError, PhotogramError
+from photogram_ros.nodes import qos as qos_profiles
 from photogram_ros.nodes.diagnostics import Diagnostics
 from photogram_ros.nodes.node_main import run_job
 from photogram_ros.nodes.ros_params import declare
@@ -97,12 +97,12 @@ class CameraNode(Node):
             self.diag.set('note', note)
             self.get_logger().info(note)
         # rate 0 relies on acknowledgements: KEEP_ALL so that unacknowledged frames are not overwritten.
-        history = HistoryPolicy.KEEP_ALL if p.rate == 0 else HistoryPolicy.KEEP_LAST
-        qos = QoSProfile(history=history, depth=10, reliability=ReliabilityPolicy.RELIABLE)
-        self.pub_image = self.create_publisher(Image, 'camera/image_raw', qos)
-        self.pub_compressed = self.create_publisher(CompressedImage, 'camera/image_raw/compressed', qos)
-        self.pub_info = self.create_publisher(CameraInfo, 'camera/camera_info', qos)
-        self.pub_fix = self.create_publisher(NavSatFix, 'gps/fix', qos)
+        def qos():
+            return qos_profiles.keep_all() if p.rate == 0 else qos_profiles.reliable(10)
+        self.pub_image = self.create_publisher(Image, 'camera/image_raw', qos())
+        self.pub_compressed = self.create_publisher(CompressedImage, 'camera/image_raw/compressed', qos())
+        self.pub_info = self.create_publisher(CameraInfo, 'camera/camera_info', qos())
+        self.pub_fix = self.create_publisher(NavSatFix, 'gps/fix', qos())
         self.finished = False
         self.stopped = False         # stop_input(): the end of flight takes no more frames
         self.waiting = False         # watch_quiet_s: the folder's photos are played, new ones are waited for

@@ -37,7 +37,6 @@ from dataclasses import dataclass
 
 import numpy as np
 from rclpy.node import Node
-from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image, NavSatFix, PointCloud2
 
 from photogram_ros import msgs
@@ -49,6 +48,7 @@ from photogram_ros.core.gnss_fix import GnssFix
 from photogram_ros.core.pace import ThreadCaps, limit_threads
 from photogram_ros.core.tracker import EncodedImage, Tracker, TrackerParams
 from photogram_ros.errors import CalibrationError, PhotogramError
+from photogram_ros.nodes import qos
 from photogram_ros.nodes.diagnostics import ERROR, WARN, Diagnostics
 from photogram_ros.nodes.node_main import run_node
 from photogram_ros.nodes.ros_params import declare
@@ -135,23 +135,25 @@ class TrackerNode(Node):
         self._lost_history: deque = deque(maxlen=p.health_window)   # per keyframe: an unbridged break before it
         self._last_frame_ms = float('nan')
         self.frames_done = 0   # frames tracked, refused or dropped: lets a bag replay wait for the tracker
+        self._last_stamp_ns = None   # the stamp of the last frame tracked: time never goes back
+        self._stamp_fault = None     # the frames dropped for their stamp since the last one tracked (_stamp_goes_on)
 
-        kf_qos = QoSProfile(depth=p.keyframe_qos_depth, reliability=ReliabilityPolicy.RELIABLE)
-        self.pub_image = self.create_publisher(Image, 'keyframes/image', kf_qos)
-        self.pub_image_full = self.create_publisher(CompressedImage, 'keyframes/image/compressed', kf_qos)
-        self.pub_features = self.create_publisher(PointCloud2, 'keyframes/features', kf_qos)
-        self.pub_fix = self.create_publisher(NavSatFix, 'keyframes/fix', kf_qos)
-        self.pub_debug = self.create_publisher(Image, 'tracker/debug_image', 2) if p.publish_debug_image else None
-        img_qos = QoSProfile(depth=p.input_depth, history=HistoryPolicy.KEEP_LAST,
-                             reliability=ReliabilityPolicy.RELIABLE if p.reliable_input
-                             else ReliabilityPolicy.BEST_EFFORT)
-        self.create_subscription(Image, p.image_topic, self._on_image, img_qos)
-        self.create_subscription(CompressedImage, self.compressed_topic(p.image_topic), self._on_image, img_qos)
-        self.create_subscription(CameraInfo, p.camera_info_topic, self._on_camera_info, 10)
+        self.pub_image = self.create_publisher(Image, 'keyframes/image', qos.keyframes(p.keyframe_qos_depth))
+        self.pub_image_full = self.create_publisher(CompressedImage, 'keyframes/image/compressed',
+                                                    qos.keyframes(p.keyframe_qos_depth))
+        self.pub_features = self.create_publisher(PointCloud2, 'keyframes/features', qos.keyframes(p.keyframe_qos_depth))
+        self.pub_fix = self.create_publisher(NavSatFix, 'keyframes/fix', qos.keyframes(p.keyframe_qos_depth))
+        self.pub_debug = (self.create_publisher(Image, 'tracker/debug_image', qos.reliable(2))
+                          if p.publish_debug_image else None)
+
+        def img_qos():
+            return qos.reliable(p.input_depth) if p.reliable_input else qos.best_effort(p.input_depth)
+        self.create_subscription(Image, p.image_topic, self._on_image, img_qos())
+        self.create_subscription(CompressedImage, self.compressed_topic(p.image_topic), self._on_image, img_qos())
+        self.create_subscription(CameraInfo, p.camera_info_topic, self._on_camera_info, qos.reliable(10))
         # Fixes come 5-20 per frame: a deep history so a busy executor does not lose the ones a keyframe
         # needs for its interpolation.
-        self.create_subscription(NavSatFix, p.fix_topic, self._on_fix,
-                                 QoSProfile(depth=200, reliability=ReliabilityPolicy.RELIABLE))
+        self.create_subscription(NavSatFix, p.fix_topic, self._on_fix, qos.reliable(200))
         # The compressed frames the tracker was given, by stamp, until their keyframe is published (or a newer
         # keyframe is): a keyframe's image is decoded from them at its reduction, never at full size.
         self._encoded: OrderedDict[int, EncodedImage] = OrderedDict()
@@ -251,6 +253,8 @@ class TrackerNode(Node):
             self.diag.problem(f'frames not used: {self._camera_error or "no calibration"}', ERROR)
             return
         stamp_ns = msgs.ns_from_time(msg.header.stamp)
+        if not self._stamp_goes_on(stamp_ns):
+            return
         try:
             t0 = time.perf_counter()
             image = self._frame_image(msg)
@@ -274,6 +278,34 @@ class TrackerNode(Node):
         self._update_diagnostics(dt)
         if self.pub_debug is not None:
             self._publish_debug(image.full() if isinstance(image, EncodedImage) else image, stamp_ns, frame_id)
+
+    def _stamp_goes_on(self, stamp_ns: int) -> bool:
+        """Whether a frame's stamp comes after the last tracked frame's. A frame whose stamp repeats it or goes back
+        (a camera clock reset, a bag recorded twice over) is dropped, counted (`stamps_repeated`, `stamps_back`) and
+        named on /diagnostics with its stamp: the first of a run of them at once, the run's span when time goes on."""
+        last = self._last_stamp_ns
+        if last is not None and stamp_ns <= last:
+            kind = 'stamps_repeated' if stamp_ns == last else 'stamps_back'
+            self.diag.count(kind)
+            self.diag.count('frames_dropped_stamp')
+            if self._stamp_fault is None:
+                self._stamp_fault = [stamp_ns, stamp_ns, 0]
+                what = ("repeats the last tracked frame's" if kind == 'stamps_repeated'
+                        else f'goes back {(last - stamp_ns) * 1e-9:.3f} s from the last tracked frame\'s')
+                self.diag.problem(f'frame stamped {stamp_ns * 1e-9:.3f} s dropped: its stamp {what} '
+                                  f'({last * 1e-9:.3f} s); frames are dropped until time goes on')
+            f = self._stamp_fault
+            f[0], f[1], f[2] = min(f[0], stamp_ns), max(f[1], stamp_ns), f[2] + 1
+            return False
+        if self._stamp_fault is not None:
+            lo, hi, n = self._stamp_fault
+            self._stamp_fault = None
+            span = f'stamped {lo * 1e-9:.3f} s' if n == 1 else f'stamped {lo * 1e-9:.3f} to {hi * 1e-9:.3f} s'
+            self.diag.problem(f'{n} frame(s) {span} dropped: not after the frame tracked before them '
+                              f'({last * 1e-9:.3f} s); tracking goes on at {stamp_ns * 1e-9:.3f} s')
+            self.diag.set('stamp_faults_last', f'{n} frame(s) {span}')
+        self._last_stamp_ns = stamp_ns
+        return True
 
     def _frame_image(self, msg):
         """The frame as the tracker takes it: a JPEG frame larger than track_max_px stays compressed (the
