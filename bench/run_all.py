@@ -80,6 +80,9 @@ BENCHES: tuple[Bench, ...] = (
                             '--set', 'tracker.cv_threads=2', '--out', '{out}'), 8,
           'inflight-20mp (the simulated 317-photo survey), speed "20 MP photos in flight" (add ~40 min the first '
           'time: the rendered flight is cached in /tmp/photogram_bench_cache)', ros=True),
+    Bench('sample_flight', ('bench/sample_flight.py', '--work', '{work}', '--out', '{out}'), 8,
+          'simulated: the sample flight end to end, its DSM, with its targets file; speed: replay of the sample bag; '
+          'README sample flight row', ros=True),
     Bench('stereo_middlebury', ('bench/stereo_middlebury.py', *STEREO_SCENES, '--out', '{out}'), 1,
           'components: stereo on Middlebury; README stereo row', needs=('{data}/stereo/venus',)),
     Bench('bundle_bal', ('bench/bundle_bal.py', '{data}/bal/problem-49-7776-pre.txt', '--peers', '--out', '{out}'), 8,
@@ -113,12 +116,16 @@ BENCHES: tuple[Bench, ...] = (
     Bench('ppk_survey', ('bench/ppk_survey.py', '--out', '{out}'), 6, 'simulated: PPK photo survey; README PPK row'),
     Bench('photo_triangulation', ('bench/photo_triangulation.py', '--out', '{out}'), 6,
           'real-more: photo-survey speed against a bare OpenCV baseline', needs=('{data}/photos/brighton_beach',)),
+    Bench('photo_triangulation_matching', ('bench/photo_triangulation_scale.py', '--photos', '100', '--matching-only',
+                                           '--counts', '1', '2', '--out', '{out}'), 8,
+          'real-more: Dask matching (2 workers against 1)'),
     Bench('split_merge_paths', ('bench/split_merge_paths.py', '--photos', '100', '--split-photos', '60',
                                 '--out', '{out}'), 12, 'real-more: 104 simulated photos, one block and split-merge'),
     Bench('photo_triangulation_scale', ('bench/photo_triangulation_scale.py', '--photos', '600', '--modes', 'split',
                                         'single', '--counts', '1', '2', '--split-photos', '320', '--single-max', '700',
-                                        '--out', '{out}'), 270,
-          'real-more: 635 simulated photos (split-merge on 1 and 2 workers, one block); README 635-photo row'),
+                                        '--out', '{out}'), 130,
+          'real-more: 635 simulated photos (split-merge on 1 and 2 workers, one block); README 635-photo row',
+          timeout_min=360),
 )
 BY_NAME = {b.name: b for b in BENCHES}
 
@@ -222,9 +229,10 @@ def main(argv=None) -> int:
         for b in benches:
             m, how = expected(b, rec)
             total += m
-            cmd = ' '.join(b.command(f'bench/results/{b.name}_{commit7}.jsonl', str(work_root / b.name)))
-            print(f'{b.name:26} {m:6.1f} min ({how}; cumulative {total:.0f})  {"[ROS] " if b.ros else ""}{b.feeds}\n'
-                  f'{"":26} {cmd}')
+            work = work_root / b.name
+            cmd = ' '.join(b.command(str(work / f'{b.name}.jsonl'), str(work)))
+            print(f'{b.name:28} {m:6.1f} min ({how}; cumulative {total:.0f})  {"[ROS] " if b.ros else ""}{b.feeds}\n'
+                  f'{"":28} {cmd}\n{"":28} -> bench/results/{b.name}_{commit7}.jsonl')
         print(f'{len(benches)} benches, {total:.0f} min expected')
         return 0
     if not DATA.is_dir():
