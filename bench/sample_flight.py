@@ -53,6 +53,13 @@ def run_one(name: str, work: Path) -> dict:
     row = {'run': name, 'command': 'photogram-ros replay bags/sample_flight --truth bags/sample_flight '
            + ' '.join(a.replace(str(ROOT) + '/', '') for a in RUNS[name]), 'exit': r.returncode,
            'command_wall_s': round(time.monotonic() - t0, 1), 'last_line': lines[-1] if lines else ''}
+    row.update(measure(out))
+    return row
+
+
+def measure(out: Path) -> dict:
+    """report.json's and run.json's figures of a replay's output folder."""
+    row = {}
     report = out / 'report.json'
     if report.exists():
         figures = json.loads(report.read_text())
