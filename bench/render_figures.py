@@ -344,7 +344,8 @@ def _agreement(label, survey):
 
 def _stereo(scene):
     return Figure((f'stereo on Middlebury {scene} (the module\'s default)',), 'stereo_middlebury*.jsonl',
-                  {'scene': scene, 'method': 'ours'}, stereo_cells, ('photogram_ros/core/stereo.py',), STEREO_CMD)
+                  {'scene': scene, 'method': 'ours'}, stereo_cells,
+                  ('photogram_ros/core/stereo.py', 'photogram_ros/core/stereo_eval.py'), STEREO_CMD)
 
 
 def _none(*label, command='', tail=()):
@@ -381,6 +382,8 @@ def _control_cells(x: dict, _lines) -> list:
 
 
 PPK_CMD = '.venv/bin/python bench/ppk_survey.py --out F'
+# bench/control_adjustment_cost.py: simulated keyframes through stages/adjustment.AdjustmentStage (no ROS nodes).
+CONTROL_MODULES = ('photogram_ros/core', 'photogram_ros/stages', 'photogram_ros/sim', 'photogram_ros/params.py', 'config')
 
 
 def _ppk(label, case):
@@ -848,10 +851,10 @@ TABLES: dict[str, Table] = {
     'simulated': Table(('what', 'figure'), (
         SAMPLE_RTK, SAMPLE_DSM, SAMPLE_GCP,
         Figure(('control adjustment in flight: the sample flight as keyframes through the adjustment stage',),
-               'control_adjustment_cost*.jsonl', {'preset': 'sample'}, _control_cells, PRODUCT,
+               'control_adjustment_cost*.jsonl', {'preset': 'sample'}, _control_cells, CONTROL_MODULES,
                '.venv/bin/python bench/control_adjustment_cost.py'),
         Figure(('control adjustment in flight: the survey preset',), 'control_adjustment_cost*.jsonl', {'preset': 'survey'},
-               _control_cells, PRODUCT, '.venv/bin/python bench/control_adjustment_cost.py'),
+               _control_cells, CONTROL_MODULES, '.venv/bin/python bench/control_adjustment_cost.py'),
         PPK_POSITIONS,
         _ppk('PPK photo survey: `triangulate` on the PPK geotags with the photos\' EXIF camera', 'triangulate_ppk_exif_camera'),
         _ppk('... with the camera\'s calibration (`--camera camera.yaml`)', 'triangulate_ppk_calibrated'),
