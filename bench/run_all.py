@@ -255,7 +255,8 @@ def main(argv=None) -> int:
                                 'why': f'not started: {spent:.0f} min spent of a {a.budget_min:.0f} min budget'}))
             continue
         print(f'run_all: {b.name} (expected {b.minutes:.0f} min, {spent:.0f} min spent) ...', flush=True)
-        r = run_one(b, work_root, commit7, a.domain)
+        # Named for the commit the bench starts at (the one its lines record), should HEAD move during the run.
+        r = run_one(b, work_root, short_commit(), a.domain)
         print(f'run_all: {b.name}: {"ok" if r["exit"] == 0 else "FAILED " + r["why"]} in {r["wall_min"]:.1f} min'
               + (f' -> {r["result_file"]}' if r['result_file'] else ''), flush=True)
         if r['exit'] is not None:
