@@ -48,10 +48,11 @@ def run_one(name: str, work: Path) -> dict:
     env = dict(os.environ, PYTHONPATH=str(ROOT))
     t0 = time.monotonic()
     r = subprocess.run(cmd, cwd=ROOT, env=env, capture_output=True, text=True)
-    lines = (r.stdout + r.stderr).strip().splitlines()
+    lines = r.stdout.strip().splitlines()       # the command's own summary (the nodes log on stderr)
     (work / f'{name}.log').write_text(r.stdout + r.stderr)
-    row = {'run': name, 'command': 'photogram-ros replay bags/sample_flight --truth bags/sample_flight '
-           + ' '.join(a.replace(str(ROOT) + '/', '') for a in RUNS[name]), 'exit': r.returncode,
+    row = {'run': name, 'command': ' '.join(['photogram-ros replay bags/sample_flight --truth bags/sample_flight']
+                                            + [a.replace(str(ROOT) + '/', '') for a in RUNS[name]]),
+           'exit': r.returncode,
            'command_wall_s': round(time.monotonic() - t0, 1), 'last_line': lines[-1] if lines else ''}
     row.update(measure(out))
     return row
