@@ -80,7 +80,7 @@ BENCHES: tuple[Bench, ...] = (
                             '--set', 'tracker.cv_threads=2', '--out', '{out}'), 8,
           'inflight-20mp (the simulated 317-photo survey), speed "20 MP photos in flight" (add ~40 min the first '
           'time: the rendered flight is cached in /tmp/photogram_bench_cache)', ros=True),
-    Bench('sample_flight', ('bench/sample_flight.py', '--work', '{work}', '--out', '{out}'), 8,
+    Bench('sample_flight', ('bench/sample_flight.py', '--work', '{work}', '--out', '{out}'), 6,
           'simulated: the sample flight end to end, its DSM, with its targets file; speed: replay of the sample bag; '
           'README sample flight row', ros=True),
     Bench('stereo_middlebury', ('bench/stereo_middlebury.py', *STEREO_SCENES, '--out', '{out}'), 1,
@@ -114,7 +114,7 @@ BENCHES: tuple[Bench, ...] = (
     Bench('control_adjustment_cost', ('bench/control_adjustment_cost.py', '--out', '{out}'), 5,
           'simulated: control adjustment in flight'),
     Bench('ppk_survey', ('bench/ppk_survey.py', '--out', '{out}'), 6, 'simulated: PPK photo survey; README PPK row'),
-    Bench('photo_triangulation', ('bench/photo_triangulation.py', '--out', '{out}'), 6,
+    Bench('photo_triangulation', ('bench/photo_triangulation.py', '--out', '{out}'), 12,
           'real-more: photo-survey speed against a bare OpenCV baseline', needs=('{data}/photos/brighton_beach',)),
     Bench('photo_triangulation_matching', ('bench/photo_triangulation_scale.py', '--photos', '100', '--matching-only',
                                            '--counts', '1', '2', '--out', '{out}'), 8,
