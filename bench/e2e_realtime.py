@@ -2,8 +2,9 @@
 
 The survey is simulated once into /tmp/photogram_bench_cache (rendering is slow and not measured),
 then replayed through the full graph (run_replay, config/replay.yaml: mavlink, tracker, bundle,
-stereo, map in one process) with timers wrapped around each node's per-message work. Prints JSON
-lines: the real-time factor against the 2x target, the time per node as fractions of the replay's
+stereo, map in one process) with timers wrapped around each node's per-message work. JSON lines (bench/machine.py's
+ResultWriter: commit, clean-tree flag, cores, load; a line's `kind` says what it holds) to --out and stdout:
+the real-time factor against the 2x target, the time per node as fractions of the replay's
 wall time (wall inside the method, and the thread's CPU time, which excludes waiting for the GIL),
 the keyframe-to-cloud latency (tracker publishes keyframe k -> map fuses the first pair cloud that
 contains k), and, as the baseline measured in the same run, the same frames through the bare core
@@ -34,14 +35,23 @@ sys.path.insert(0, str(ROOT / 'bench'))
 sys.path.insert(0, str(ROOT))
 os.environ.setdefault('ROS_DOMAIN_ID', '170')
 
-from machine import machine_info  # noqa: E402
+from machine import ResultWriter, machine_info  # noqa: E402
 from replay_probe import Probe, RssSampler, simulate_cached  # noqa: E402
 
 TARGET_RTF = 2.0
 
 
+WRITER: ResultWriter | None = None     # main() sets it: every line goes through bench/machine.py's ResultWriter
+
+
 def emit(d: dict) -> None:
-    print(json.dumps(d), flush=True)
+    """One result line (its `bench` as `kind`: e2e_realtime, e2e_latency, ...), to --out and stdout."""
+    d = dict(d)
+    kind = d.pop('bench', None)
+    if WRITER is None:
+        print(json.dumps({'kind': kind, **d}), flush=True)
+    else:
+        WRITER.write({'kind': kind, **d} if kind else d)
 
 
 def log(s: str) -> None:
@@ -241,7 +251,10 @@ def main() -> int:
     ap.add_argument('--no-bare-tracker', action='store_true', help='skip the bare-tracker baseline')
     ap.add_argument('--profile', action='store_true', help='CPU profile of this process\'s threads with yappi '
                     '(bench/requirements-peers.txt): the top functions by own time, as one more JSON line')
+    ap.add_argument('--out', default=None, help='the result file (JSON lines; default /tmp/e2e_realtime.jsonl)')
     a = ap.parse_args()
+    global WRITER
+    WRITER = ResultWriter.for_bench(a.out, 'e2e_realtime', ['photogram_ros', 'config'])
 
     from photogram_ros.sim.scenario import preset
     over = {'fps': a.fps, 'gps_rate_hz': a.gps_rate}

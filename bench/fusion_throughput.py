@@ -2,15 +2,15 @@
 
 The baseline bins the same points into the same cells with np.bincount (count + mean z): the
 least any 2.5D gridding must do. Fusion also keeps position and colour means, z variance, runs the
-speckle and pair-consistency gates and writes into tiles. Prints JSON lines; target >= 2 M points/s.
+speckle and pair-consistency gates and writes into tiles. JSON lines (bench/machine.py's ResultWriter: commit,
+clean-tree flag, cores, load) to --out and stdout; target >= 2 M points/s.
 
-    .venv/bin/python bench/fusion_throughput.py [--points-per-cloud 400000] [--clouds 12]
+    .venv/bin/python bench/fusion_throughput.py [--points-per-cloud 400000] [--clouds 12] [--out F]
 """
 
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import sys
 import tempfile
@@ -20,6 +20,7 @@ import numpy as np
 
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), '..'))
 
+from bench.machine import ResultWriter  # noqa: E402
 from photogram_ros.core.fusion import Fusion, FusionConfig  # noqa: E402
 from photogram_ros.core.stereo import CLOUD_DTYPE  # noqa: E402
 
@@ -73,7 +74,9 @@ def main() -> int:
     ap.add_argument('--clouds', type=int, default=12)
     ap.add_argument('--cell-m', type=float, default=0.08)
     ap.add_argument('--repeats', type=int, default=3)
+    ap.add_argument('--out', default=None, help='the result file (JSON lines; default /tmp/fusion_throughput.jsonl)')
     a = ap.parse_args()
+    w = ResultWriter.for_bench(a.out, 'fusion_throughput', ['photogram_ros/core/fusion.py', 'photogram_ros/io/map_store.py'])
     clouds = make_clouds(a.clouds, a.points_per_cloud)
     n = a.clouds * a.points_per_cloud
     best = {'baseline': np.inf, 'fusion': np.inf, 'fusion+store': np.inf}
@@ -83,9 +86,9 @@ def main() -> int:
         with tempfile.TemporaryDirectory() as d:
             best['fusion+store'] = min(best['fusion+store'], fusion(clouds, a.cell_m, d))
     for name, s in best.items():
-        print(json.dumps({'bench': 'fusion_throughput', 'method': name, 'points': n, 'seconds': round(s, 4),
+        w.write({'method': name, 'points': n, 'seconds': round(s, 4),
                           'points_per_s': round(n / s), 'ratio_to_baseline': round(best['baseline'] / s, 4),
-                          'target_points_per_s': 2_000_000, 'meets_target': bool(n / s >= 2e6)}))
+                          'target_points_per_s': 2_000_000, 'meets_target': bool(n / s >= 2e6), 'repeats': a.repeats})
     return 0
 
 

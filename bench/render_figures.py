@@ -13,7 +13,8 @@ of their lines it takes (`where`: key -> value) and how it writes them (`cells`:
 row's cells). Of the files that hold such a line, the newest is used: the one whose line records the latest
 commit (git's commit time; a file without a commit counts as oldest). The last cell of every row names that
 file and the commit it was measured at, and says:
-- **stale** when one of the figure's modules (the line's `modules`, else the Figure's; less the Figure's
+- **stale** when one of the figure's modules (the Figure's when its spec names them: a component figure
+  names its component; else the line's `modules`, else the whole product; less the Figure's
   `ignore`, each said why in the spec) changed after that commit (git log, or an uncommitted change in the
   working tree),
 - "modified tree" when the line says the tree had uncommitted changes (`clean` false), and "tree state not
@@ -121,12 +122,13 @@ class Figure:
     """One row of a rendered table: `label` (its first cells, hand-written: what was measured), the result
     files `results` (a glob under bench/results; '' for a figure no bench writes yet), the line taken
     (`where`: dotted keys, values or predicates; the last matching line of a file), `cells` ((that line, every
-    line of its file) -> the figure's cells) and `modules` (used when the line does not name its own)."""
+    line of its file) -> the figure's cells) and `modules` (what the figure measures: when given, they win over
+    the line's own, which name what the bench runs; None: the line's, else the whole product)."""
     label: tuple
     results: str = ''
     where: dict = field(default_factory=dict)
     cells: Callable[[dict, list], list] | None = None
-    modules: tuple = PRODUCT
+    modules: tuple | None = None
     command: str = ''
     tail: tuple = ()          # hand-written cells after the figure's (e.g. a link to the section)
     ignore: tuple = ()        # paths inside the modules whose change does not touch this figure (said in the spec)
@@ -157,7 +159,7 @@ def newest(fig: Figure) -> Source | None:
             clean = line_clean(line)
             if clean is None and lines and 'clean_tree' in lines[0]:   # an older bench's header line says it
                 clean = bool(lines[0]['clean_tree'])
-            best = Source(path, line, lines, commit, clean, tuple(line.get('modules') or fig.modules))
+            best = Source(path, line, lines, commit, clean, tuple(fig.modules or line.get('modules') or PRODUCT))
     return best
 
 
@@ -342,7 +344,8 @@ def _agreement(label, survey):
 
 def _stereo(scene):
     return Figure((f'stereo on Middlebury {scene} (the module\'s default)',), 'stereo_middlebury*.jsonl',
-                  {'scene': scene, 'method': 'ours'}, stereo_cells, ('photogram_ros/core/stereo.py',), STEREO_CMD)
+                  {'scene': scene, 'method': 'ours'}, stereo_cells,
+                  ('photogram_ros/core/stereo.py', 'photogram_ros/core/stereo_eval.py'), STEREO_CMD)
 
 
 def _none(*label, command='', tail=()):
@@ -379,13 +382,15 @@ def _control_cells(x: dict, _lines) -> list:
 
 
 PPK_CMD = '.venv/bin/python bench/ppk_survey.py --out F'
+# bench/control_adjustment_cost.py: simulated keyframes through stages/adjustment.AdjustmentStage (no ROS nodes).
+CONTROL_MODULES = ('photogram_ros/core', 'photogram_ros/stages', 'photogram_ros/sim', 'photogram_ros/params.py', 'config')
 
 
 def _ppk(label, case):
     return Figure((label,), 'ppk_survey*.jsonl', {'case': case},
                   lambda x, _: [f'check points {cm(x["check_h_m"])} H / {cm(x["check_v_m"])} V '
                                 f'({x["check_h_gsd"]:.2f} / {x["check_v_gsd"]:.2f} GSD), {x["check_n"]} targets'],
-                  PRODUCT, PPK_CMD)
+                  None, PPK_CMD)
 
 
 PPK_POSITIONS = Figure(('PPK photo survey (`simulate --ppk`, `geotag`; tiny preset): camera positions',),
@@ -394,7 +399,7 @@ PPK_POSITIONS = Figure(('PPK photo survey (`simulate --ppk`, `geotag`; tiny pres
                                      f'{cm(x["max_m"])}); against the MRK offsets: ArduPilot CAM + lever arm '
                                      f'{1000 * x["cam_bin_vs_mrk_max_m"]:.1f} mm, .tlog '
                                      f'{1000 * x["tlog_vs_mrk_max_m"]:.1f} mm, EXIF times '
-                                     f'{1000 * x["exif_vs_mrk_max_m"]:.1f} mm (max)'], PRODUCT, PPK_CMD)
+                                     f'{1000 * x["exif_vs_mrk_max_m"]:.1f} mm (max)'], None, PPK_CMD)
 
 
 def _ground_cells(x: dict, _lines) -> list:
@@ -457,8 +462,8 @@ def _mavlink_cells(x: dict, lines: list) -> list:
 
 
 MAVLINK = Figure(('MAVLink parsing against pymavlink',), 'mavlink_parse*.jsonl', {'method': 'node_parser'}, _mavlink_cells,
-                 ('photogram_ros/io/mavlink.py', 'photogram_ros/io/mavlink_framing.py', 'photogram_ros/io/mavlink_ingest.py',
-                  'photogram_ros/nodes/mavlink_node.py'), '.venv/bin/python bench/mavlink_parse.py --out F')
+                 ('photogram_ros/io/mavlink.py', 'photogram_ros/io/mavlink_framing.py', 'photogram_ros/io/mavlink_ingest.py'),
+                 '.venv/bin/python bench/mavlink_parse.py --out F')
 
 
 BLOCK_VERDICTS = 'block_verdicts*.jsonl'
@@ -562,8 +567,27 @@ def _budget_cells(x: dict, lines: list) -> list:
             '—' if floor is None else f'{floor:.4f} s a call']
 
 
+# What each stage's figure measures: the code bench/stage_budget.py calls for it (a component's figure goes stale
+# with its component, not with the rest of the product).
+_CORE = 'photogram_ros/core/'
+BUDGET_MODULES = {
+    'tracking': (_CORE + 'tracker.py', _CORE + 'klt.py', _CORE + 'keyframes.py', _CORE + 'keyframe_image.py'),
+    'descriptor_matching': (_CORE + 'photo_matching.py',),
+    'pose_resection': ('photogram_ros/core', 'photogram_ros/stages/adjustment.py'),
+    'window_adjustment': ('photogram_ros/core', 'photogram_ros/stages/adjustment.py'),
+    'decode_full_keyframe': (_CORE + 'keyframe_image.py',),
+    'decode_keyframe_reduced': (_CORE + 'keyframe_image.py', _CORE + 'gsd.py'),
+    'targets_as_node': (_CORE + 'control.py', _CORE + 'evaluation.py', _CORE + 'keyframe_image.py'),
+    'stereo_pair_reduced_images': (_CORE + 'stereo.py', _CORE + 'gsd.py', _CORE + 'keyframe_image.py'),
+    'fusion': (_CORE + 'fusion.py', 'photogram_ros/stages/map.py'),
+    'tiles': (_CORE + 'ortho_tiles.py', 'photogram_ros/stages/map.py'),
+    'message_image_full_raw': ('photogram_ros/msgs.py',),
+    'message_image_reduced_raw': ('photogram_ros/msgs.py', _CORE + 'keyframe_image.py'),
+}
+
+
 def _budget(label, stage, _per):
-    return Figure((label,), BUDGET, {'stage': stage}, _budget_cells, PRODUCT, BUDGET_CMD)
+    return Figure((label,), BUDGET, {'stage': stage}, _budget_cells, BUDGET_MODULES[stage], BUDGET_CMD)
 
 
 PACE_20MP = 'inflight_20mp_pace_*.jsonl'
@@ -611,31 +635,230 @@ def _sim_20mp():
                   {'bench': 'inflight_20mp', 'flight': 'sim', 'config': '1s'}, _sim_cells, PRODUCT, SIM_20MP_CMD)
 
 
+# --- figures of the benches converted to the ResultWriter (bench/run_all.py runs each) ----------------------
+
+
+def _g(x: dict, path: str):
+    """x's value at a dotted path, else None."""
+    for part in path.split('.'):
+        x = x.get(part) if isinstance(x, dict) else None
+    return x
+
+
+SAMPLE = 'sample_flight*.jsonl'
+SAMPLE_CMD = 'ROS_DOMAIN_ID=N .venv/bin/python bench/sample_flight.py --out F'
+
+
+def _check_points(x: dict, key: str = 'check_points') -> str:
+    r = _g(x, f'{key}.rmse') or {}
+    return (f'{cm(r.get("horizontal_m"))} H / {cm(r.get("z_m"))} V RMSE over {r.get("count")} targets'
+            if r.get('count') else 'none measured')
+
+
+def _sample_cells(x: dict, _lines) -> list:
+    tr = x.get('trajectory_vs_truth') or {}
+    return [f'check points {_check_points(x)}; keyframes {x.get("keyframes_oriented")}/{x.get("keyframes_taken")} '
+            f'oriented; keyframe camera centres {cm(tr.get("rmse_horizontal_m"))} H / {cm(tr.get("rmse_vertical_m"))} '
+            f'V RMSE from the truth (max {cm(tr.get("max_m"))}, {tr.get("count")} keyframes)']
+
+
+def _surface(e: dict | None) -> str:
+    e = e or {}
+    return (f'median |dz| {cm(e.get("median_abs_m"))} ({f(e.get("median_abs_gsd"), ".1f")} GSD), p90 '
+            f'{cm(e.get("p90_abs_m"))}' if e.get('count') else 'n/a')
+
+
+def _sample_dsm_cells(x: dict, _lines) -> list:
+    ov = x.get('overlap') or {}
+    return [f'DSM against the true DEM {_surface(x.get("dsm_vs_truth"))}; its cells measured by stereo '
+            f'{_surface(x.get("dsm_vs_truth_measured"))}; away from walls {_surface(x.get("dsm_vs_truth_away_from_walls"))}; '
+            f'DTM away from buildings {_surface(x.get("dtm_vs_truth_away_from_buildings"))}; DSM over '
+            f'{pct(x.get("dsm_completeness"))} of the flown area ({pct(x.get("dsm_measured_completeness"))} measured); '
+            f'photos a DSM cell: median {f(ov.get("median_photos"), ".0f")}']
+
+
+def _sample_gcp_cells(x: dict, _lines) -> list:
+    return [f'check points {_check_points(x)}; GCP residuals (the fit) {_check_points(x, "gcp_residuals")}; '
+            f'keyframes {x.get("keyframes_oriented")}/{x.get("keyframes_taken")} oriented']
+
+
+def _sample_speed_cells(x: dict, _lines) -> list:
+    r = x.get('replay') or {}
+    return [f'{r.get("frames")} frames ({f(r.get("bag_s"), ".0f")} s of flight) in {f(r.get("wall_s"), ".0f")} s: '
+            f'real-time factor {f(r.get("real_time_factor"))} (load average {x.get("load_avg", ["?"])[0]})']
+
+
+SAMPLE_RTK = Figure(('sample flight end to end (RTK, no GCPs): check points, keyframes oriented, camera centres',),
+                    SAMPLE, {'run': 'rtk', 'exit': 0}, _sample_cells, PRODUCT, SAMPLE_CMD)
+SAMPLE_DSM = Figure(('dense cloud, DSM and DTM of the sample flight against the true DEM; overlap',), SAMPLE,
+                    {'run': 'rtk', 'exit': 0}, _sample_dsm_cells, PRODUCT, SAMPLE_CMD)
+SAMPLE_GCP = Figure(('sample flight with its targets file (RTK + 5 GCPs)',), SAMPLE, {'run': 'gcp', 'exit': 0},
+                    _sample_gcp_cells, PRODUCT, SAMPLE_CMD)
+SAMPLE_SPEED = Figure(('replay of the sample bag',), SAMPLE, {'run': 'rtk', 'exit': 0}, _sample_speed_cells, PRODUCT,
+                      SAMPLE_CMD)
+
+HELD_OUT = 'held_out_proxies*.jsonl'
+HELD_OUT_CMD = 'ROS_DOMAIN_ID=N .venv/bin/python bench/held_out_proxies.py --out OUT'
+HELD_OUT_KINDS = ('alt_walk', 'alt_walk_h', 'missing_third', 'optimistic')
+
+
+def _held_out_proxy_cells(x: dict, lines: list) -> list:
+    out = []
+    for y in lines:
+        if y.get('kind') in HELD_OUT_KINDS and y.get('pipeline') == 'triangulate':
+            out.append(f'{y["set"]} {y["kind"]}: {y.get("oriented")}/{y.get("photos")}, shape '
+                       f'{f(y.get("shape_rms_3d_m"))} m RMS 3D from the unperturbed block, '
+                       f'{f(y.get("true_rigid_h_m"))} m H from the true positions (the geotags allow '
+                       f'{f(y.get("allowed_h_m"))} m), {str(y.get("verdict") or "n/a").upper()}')
+    return ['; '.join(out)]
+
+
+HELD_OUT_PROXIES = Figure(('toledo and brighton with consumer-camera geotags made from their own (heights wandering '
+                           '~100 m, a wandering 15 m bias, a third missing, stated sigmas too small) through '
+                           '`triangulate`',), HELD_OUT,
+                          {'kind': lambda v: v in HELD_OUT_KINDS, 'pipeline': 'triangulate'}, _held_out_proxy_cells,
+                          PRODUCT, HELD_OUT_CMD)
+
+
+def _held_out_readme(x: dict, lines: list) -> str:
+    rows = [y for y in lines if y.get('kind') in HELD_OUT_KINDS and y.get('pipeline') == 'triangulate']
+    failed = sum(str(y.get('verdict') or '').lower() == 'failed' for y in rows)
+    oriented = sum((y.get('oriented') or 0) == y.get('photos') for y in rows)
+    return f'{oriented} of {len(rows)} proxy blocks fully oriented, {failed} FAILED'
+
+
+PHOTO_TRI = 'photo_triangulation_[0-9a-f]*.jsonl'
+
+
+def _photo_tri_cells(x: dict, lines: list) -> list:
+    out = []
+    for y in lines:
+        if y.get('ours'):
+            o, b = y['ours'], y.get('baseline') or {}
+            out.append(f'{Path(str(y.get("data"))).name}: {o.get("photos")} photos, {o.get("oriented")} oriented, '
+                       f'matching {f(o.get("matching_photos_per_s"))} photos/s against {f(b.get("photos_per_s"))} for '
+                       f'a bare OpenCV SIFT + ratio + RANSAC loop ({f(y.get("matching_speed_ratio"))}x), whole '
+                       f'`triangulate` {f(o.get("triangulate_photos_per_s"))} photos/s')
+    return ['; '.join(out)]
+
+
+PHOTO_TRI_FIG = Figure(('photo-survey speed (`triangulate PHOTOS`) against a bare OpenCV baseline',), PHOTO_TRI,
+                       {'ours': lambda v: v is not None}, _photo_tri_cells, PRODUCT,
+                       '.venv/bin/python bench/photo_triangulation.py --out F')
+DASK = Figure(('Dask matching (`--workers 2` against `--workers 1`)',), 'photo_triangulation_*.jsonl',
+              {'compare': 'workers 2 / workers 1', 'matching_speedup': lambda v: v is not None},
+              lambda x, _: [f'matching {x["matching_speedup"]:.2f}x faster on 2 workers than on 1 ({x["photos"]} '
+                            f'simulated photos, same run), same matches: {x.get("same_matches")}'],
+              PRODUCT, '.venv/bin/python bench/photo_triangulation_scale.py --photos 100 --matching-only --counts 1 2 '
+              '--out F')
+
+
+def _target_cells(x: dict, lines: list) -> list:
+    out = [f'{y["set"]} ({y["image"]}): {y["new_ms_median"]:.1f} ms a frame (median) against '
+           f'{y["baseline_ms_median"]:.1f} ms for the whole-image full-resolution search ({y["ratio_median"]:.1f}x), '
+           f'{y["detections_new"]} / {y["detections_baseline"]} detections'
+           for y in lines if y.get('new_ms_median') is not None]
+    tk = next((y for y in lines if y.get('set') == 'tracker_keyframes'), None)
+    if tk:
+        out.append(f'on the tracker\'s keyframes {tk["detection_ms_median"]:.1f} ms a keyframe, '
+                   f'{100 * tk["overhead_vs_tracker"]:.0f} % of the tracker\'s own time')
+    return ['; '.join(out)]
+
+
+TARGETS = Figure(('target detection',), 'target_detection*.jsonl', {'set': 'sample_bag'}, _target_cells,
+                 ('photogram_ros/core/evaluation.py', 'photogram_ros/core/control.py'),
+                 '.venv/bin/python bench/target_detection.py --out F')
+
+
+def _ground_stream_cells(x: dict, _lines) -> list:
+    return [f'{x["ortho_tiles"]} ortho tiles of {x["ortho_mean_tile_kb"]:.0f} kB: {x["ortho_mb_per_flight_min"]:.2f} MB '
+            f'a flight minute against {x["baseline_cloud_mb_per_flight_min"]:.2f} MB for the downsampled cloud '
+            f'({x["ratio_ortho_to_cloud"]:.2f}x; the sample flight at rate {x["rate"]})']
+
+
+GROUND_STREAM = Figure(('tile stream and the cost in map_node',), 'ground_stream*.jsonl',
+                       {'ortho_tiles': lambda v: v is not None}, _ground_stream_cells, PRODUCT,
+                       'ROS_DOMAIN_ID=N .venv/bin/python bench/ground_stream.py --out F')
+
+
+def _tracker_cells(x: dict, lines: list) -> list:
+    return ['; '.join(f'{y["size"]}: {y["tracker_fps"]:.0f} fps against {y["baseline_fps"]:.0f} fps for a bare '
+                      f'goodFeaturesToTrack + pyramidal KLT loop ({y["time_ratio_tracker_over_baseline"]:.2f}x its time; '
+                      f'{y["frames"]} frames, one core), {y["keyframes"]} keyframes'
+                      for y in lines if y.get('tracker_fps') is not None)]
+
+
+TRACKER = Figure(('tracker: frame rate',), 'tracker_fps*.jsonl', {'tracker_fps': lambda v: v is not None},
+                 _tracker_cells, ('photogram_ros/core/tracker.py', 'photogram_ros/core/klt.py',
+                                  'photogram_ros/core/keyframes.py', 'photogram_ros/core/photo_matching.py'),
+                 '.venv/bin/python bench/tracker_fps.py --out F')
+
+
+def _stereo_speed_cells(x: dict, lines: list) -> list:
+    return ['; '.join(f'{y["image"]}: the module {y["full_ms"]:.0f} ms a pair against {y["bare_padded_sgbm_ms"]:.0f} ms '
+                      f'for SGBM alone on the same padded pair ({y["overhead_ratio"]:.2f}x wall, '
+                      f'{y["overhead_ratio_cpu"]:.2f}x CPU)' for y in lines if y.get('kind') == 'stereo_speed')]
+
+
+STEREO_SPEED = Figure(('stereo speed: the module against a bare SGBM compute',), 'stereo_speed*.jsonl',
+                      {'kind': 'stereo_speed'}, _stereo_speed_cells,
+                      ('photogram_ros/core/stereo.py', 'photogram_ros/core/gsd.py'),
+                      '.venv/bin/python bench/stereo_speed.py --out F')
+
+
+def _fusion_cells(x: dict, lines: list) -> list:
+    by = {y.get('method'): y for y in lines}
+    fu, st, base = by.get('fusion', {}), by.get('fusion+store', {}), by.get('baseline', {})
+    return [f'{f(fu.get("points_per_s", 0) / 1e6, ".1f")} M points/s ({f(st.get("points_per_s", 0) / 1e6, ".1f")} M with '
+            f'the tile store) against {f(base.get("points_per_s", 0) / 1e6, ".1f")} M for a bare numpy binning of the '
+            f'same points ({f(fu.get("ratio_to_baseline"))}x its rate; {fu.get("points")} points, best of '
+            f'{fu.get("repeats")})']
+
+
+FUSION = Figure(('map fusion',), 'fusion_throughput*.jsonl', {'method': 'fusion'}, _fusion_cells,
+                ('photogram_ros/core/fusion.py', 'photogram_ros/io/map_store.py'),
+                '.venv/bin/python bench/fusion_throughput.py --out F')
+WINDOW = Figure(('sliding-window update',), 'window_latency*.jsonl', {'kind': 'summary'},
+                lambda x, _: [f'median {x["median_ms"]:.0f} ms, p95 {x["p95_ms"]:.0f} ms an update over '
+                              f'{x["keyframes"]} keyframes (window {x["window"]}; last 100 over the first '
+                              f'{x["flatness_last_over_first_block"]:.2f}x); one full adjustment of the block '
+                              f'{x["baseline_full_adjustment_s"]:.1f} s = {x["ratio_full_over_window_median"]:.0f} '
+                              'window updates (same run)'],
+                ('photogram_ros/core/incremental.py', 'photogram_ros/core/window.py', 'photogram_ros/core/bundle',
+                 'photogram_ros/core/resection.py', 'photogram_ros/core/triangulation.py'),
+                '.venv/bin/python bench/window_latency.py --out F')
+PLAYER = Figure(('bag player',), 'replay_throughput*.jsonl', {'msgs_per_s': lambda v: v is not None},
+                lambda x, _: [f'{x["msgs_per_s"]} messages/s ({x["MB_per_s"]} MB/s, {x["real_time_factor"]}x real '
+                              f'time) to another process, {x["received_by_other_process"]}/{x["messages"]} received; '
+                              f'reading the bag alone {x["baseline_read_msgs_per_s"]} messages/s '
+                              f'({x["ratio_to_baseline"]}x the time)'],
+                ('photogram_ros/io/bag.py', 'photogram_ros/io/bag_storage.py', 'photogram_ros/nodes/player_node.py'),
+                'ROS_DOMAIN_ID=N .venv/bin/python bench/replay_throughput.py --out F')
+
+
+def _e2e_cells(x: dict, lines: list) -> list:
+    runs = [y for y in lines if y.get('kind') == 'e2e_realtime']
+    return ['; '.join(f'config {y["config"]}: {y["frames"]} frames ({y["bag_s"]:.0f} s of flight) in {y["wall_s"]:.0f} s, '
+                      f'real-time factor {y["real_time_factor"]:.2f} (target {y.get("target_real_time_factor")}), '
+                      f'{y["keyframes"]} keyframes' for y in runs)]
+
+
+E2E = Figure(('real time (a 5 fps, 640×480 survey through `replay`)',), 'e2e_realtime*.jsonl', {'kind': 'e2e_realtime'},
+             _e2e_cells, PRODUCT, 'ROS_DOMAIN_ID=N .venv/bin/python bench/e2e_realtime.py --out F')
+
+
 TABLES: dict[str, Table] = {
     'simulated': Table(('what', 'figure'), (
-        _none('sample flight end to end (RTK, no GCPs): check points, keyframes oriented, camera centres',
-              command='scripts/replay-sample.sh OUT'),
-        _none('dense cloud, DSM and DTM of the sample flight against the true DEM; overlap', command='scripts/replay-sample.sh OUT'),
-        _none('aerial triangulation, RTK, no GCPs; 3D GNSS (~2 m) + 5 GCPs', command='scripts/test.sh tests/test_incremental.py -s'),
-        _none('3D GNSS (~2 m) + 5 GCPs in flight (`replay --gcp`)', command='scripts/test.sh tests/test_gcp_flight.py -m slow -s'),
-        _none('no GNSS at all + GCPs', command='scripts/test.sh tests/test_triangulate_gcp_only.py tests/test_gcp_georeference.py -s'),
-        _none('sample flight with its targets file (RTK + 5 GCPs)', command='photogram-ros replay bags/sample_flight --out OUT '
-              '--gcp bags/sample_flight/targets.txt --truth bags/sample_flight'),
+        SAMPLE_RTK, SAMPLE_DSM, SAMPLE_GCP,
         Figure(('control adjustment in flight: the sample flight as keyframes through the adjustment stage',),
-               'control_adjustment_cost*.jsonl', {'preset': 'sample'}, _control_cells, PRODUCT,
+               'control_adjustment_cost*.jsonl', {'preset': 'sample'}, _control_cells, CONTROL_MODULES,
                '.venv/bin/python bench/control_adjustment_cost.py'),
         Figure(('control adjustment in flight: the survey preset',), 'control_adjustment_cost*.jsonl', {'preset': 'survey'},
-               _control_cells, PRODUCT, '.venv/bin/python bench/control_adjustment_cost.py'),
+               _control_cells, CONTROL_MODULES, '.venv/bin/python bench/control_adjustment_cost.py'),
         PPK_POSITIONS,
         _ppk('PPK photo survey: `triangulate` on the PPK geotags with the photos\' EXIF camera', 'triangulate_ppk_exif_camera'),
         _ppk('... with the camera\'s calibration (`--camera camera.yaml`)', 'triangulate_ppk_calibrated'),
-        _ppk('... the same photos on their EXIF GPS alone', 'triangulate_exif_gps'),
-        _none('geotag interpolation', command='scripts/test.sh tests/test_geotag.py'),
-        _none('manual tie points across a cut', command='scripts/test.sh tests/test_manual_tie_points.py -m slow -s'),
-        _none('the flight after every track was lost', command='scripts/test.sh tests/test_incremental.py tests/test_bundle_node.py'),
-        _none('simulated photo folder in flight (`replay PHOTOS`, EXIF camera, k1 self-calibrated)',
-              command='scripts/test.sh tests/test_replay_photos.py'),
-        _none('self-calibration', command='scripts/test.sh tests/test_bundle_solver.py tests/test_bundle_covariance.py'))),
+        _ppk('... the same photos on their EXIF GPS alone', 'triangulate_exif_gps'))),
     'real-surveys': Table(
         ('survey', 'pipeline', 'oriented', 'cameras − GNSS after a robust similarity, H / V', 'rigid H / V',
          'within 15° of nadir', 'reprojection', 'peer'), tuple(_survey(*r) for r in REAL_ROWS)),
@@ -658,13 +881,9 @@ TABLES: dict[str, Table] = {
                 'alt_walk_h) through `triangulate`',), BLOCK_VERDICTS,
                {'set': 'toledo', 'variant': 'heights', 'kind': 'triangulate'}, _held_out_cells, PRODUCT,
                BLOCK_VERDICTS_CMD),
-        _none('toledo and brighton with consumer-camera geotags made from their own (heights wandering ~100 m, a '
-              'wandering 15 m bias, a third missing, stated sigmas too small) through `triangulate`',
-              command='ROS_DOMAIN_ID=N .venv/bin/python bench/held_out_proxies.py --out OUT'),)),
+        HELD_OUT_PROXIES)),
     'real-more': Table(('what', 'figure'), (
-        _none('matching from the final adjustment: pairs along and across the lines', command='.venv/bin/python bench/products_pairs.py OUT/map'),
-        _none('photo-survey speed (`triangulate PHOTOS`) against a bare OpenCV baseline', command='.venv/bin/python bench/photo_triangulation.py'),
-        _none('Dask matching (`--workers 2` against `--workers 1`)', command='.venv/bin/python bench/photo_triangulation_scale.py --matching-only'),
+        PHOTO_TRI_FIG, DASK,
         Figure(('104 simulated photos, one block',), 'split_merge_paths*.jsonl', {'run.split_photos': 0}, _split_cells,
                PRODUCT, '.venv/bin/python bench/split_merge_paths.py --photos 100 --split-photos 60'),
         Figure(('104 simulated photos, split-merge in 2 sub-blocks',), 'split_merge_paths*.jsonl', {'run.split_photos': 60},
@@ -675,27 +894,15 @@ TABLES: dict[str, Table] = {
         SCALE_W2,
         Figure(('635 simulated photos, one block',), SCALE,
                {'run.mode': 'single', 'run.oriented': lambda v: v is not None and v > 600}, _scale_cells, PRODUCT,
-               SCALE_CMD.replace('--modes split', '--modes single')),
-        _none('long blocks from a camera without a calibration (300-keyframe RTK flight, k1 −0.12 taken as none)',
-              command='scripts/test.sh tests/test_pass_self_calibration.py -s'))),
-    'control': Table(('what', 'figure'), (
-        _none('control files with field faults (simulated photo survey)', command='scripts/test.sh tests/test_control_faults.py tests/test_control_report.py'),
-        _none('control files with field faults in flight (bundle_node)', command='scripts/test.sh tests/test_control_live.py tests/test_gcp_flight.py'),
-        _none('target detection', command='.venv/bin/python bench/target_detection.py'))),
-    'ground': Table(('what', 'figure'), (
-        _none('sample flight, camera stopped 10 s in its outer line (`simulate --gap 61:71`, `--rate 1`)',
-              command='scripts/test.sh tests/test_survey_quality_flight.py -m slow'),
-        GROUND,
-        _none('`simulate --gap 30:40`, `--gap 38:44,64:70`', command='scripts/test.sh tests/test_ground_flight.py -m slow -s'),
-        _none('`simulate --gap 8:14` (every track lost on the first line)', command='scripts/test.sh tests/test_segments.py -s'),
-        _none('tile stream and the cost in map_node', command='.venv/bin/python bench/ground_stream.py'))),
+               SCALE_CMD.replace('--modes split', '--modes single')))),
+    'control': Table(('what', 'figure'), (TARGETS,)),
+    'ground': Table(('what', 'figure'), (GROUND, GROUND_STREAM)),
+    # BAL against Ceres needs pycolmap (bench/requirements-peers.txt), which the project's virtualenv does not hold:
+    # its row comes back when a result file holds a Ceres line (bench/bundle_bal.py --peers with pycolmap installed).
     'components': Table(('what', 'figure'), (
-        BAL_SCIPY, BAL_CERES, _stereo('tsukuba'), _stereo('venus'), _stereo('cones'), _stereo('teddy'),
-        _none('tracker: accuracy and frame rate', command='.venv/bin/python bench/tracker_fps.py'),
-        _none('calibration on OpenCV\'s chessboard images', command='scripts/test.sh tests/test_calibration.py'),
-        _none('stereo speed: the module against a bare SGBM compute', command='.venv/bin/python bench/stereo_speed.py'),
-        MAVLINK,
-        _none('map fusion', command='.venv/bin/python bench/fusion_throughput.py'))),
+        (BAL_SCIPY,) + ((BAL_CERES,) if newest(BAL_CERES) else ()) + (
+            _stereo('tsukuba'), _stereo('venus'), _stereo('cones'), _stereo('teddy'), TRACKER, STEREO_SPEED, MAVLINK,
+            FUSION))),
     'inflight-chain': Table(('survey', 'photos used', 'photos', '`triangulate` oriented', '`replay` keyframes oriented',
                              '`replay` oriented among the keyframes whose photo `triangulate` oriented'),
                             tuple(_chain(label, sv, v) for label, sv in CHAIN_SETS for v in ('all', 'half'))
@@ -704,13 +911,9 @@ TABLES: dict[str, Table] = {
                           tuple(_budget(*r) for r in BUDGET_ROWS)),
     'inflight-20mp': Table(('what', 'figure'), (_sim_20mp(), _pace('1s'), _pace('0.7s'))),
     'speed': Table(('what', 'figure'), (
-        _none('replay of the sample bag', command='scripts/replay-sample.sh OUT'),
-        _none('sliding-window update', command='.venv/bin/python bench/window_latency.py'),
-        _none('bag player; the simulator\'s rendering', command='.venv/bin/python bench/replay_throughput.py'),
-        _none('real time (a 5 fps, 640×480 survey through `replay`)', command='.venv/bin/python bench/e2e_realtime.py'),
-        _none('memory over a 34-minute flight', command='.venv/bin/python bench/memory_soak.py --minutes 30'),
-        _none('20 MP photos in flight', command='ROS_DOMAIN_ID=N .venv/bin/python bench/inflight_20mp.py'),
-        _none('a recording killed with `kill -9`', command='scripts/test.sh tests/test_faults.py -k record_killed'))),
+        SAMPLE_SPEED, WINDOW, PLAYER, E2E,
+        Figure(('20 MP photos in flight',), SIM_20MP, {'bench': 'inflight_20mp', 'flight': 'sim', 'config': '1s'},
+               _sim_cells, PRODUCT, SIM_20MP_CMD))),
     'readme-headline': Table(('what', 'figure', 'more'), (
         _readme('real fixed-wing survey in flight (seneca_part, 41 near-infrared photos, `replay`)',
                 _chain('seneca_part', 'seneca', 'all'),
@@ -747,18 +950,18 @@ TABLES: dict[str, Table] = {
         _readme('stereo on Middlebury venus', _stereo('venus'), lambda x, lines: stereo_cells(x, lines)[0], 'same'),
         _readme('635 simulated photos, split-merge on 2 workers', SCALE_W2, lambda x, lines: _scale_cells(x, lines)[0],
                 '[real surveys](docs/measurements.md#real-surveys)'),
-        _none('sample flight end to end (RTK, no GCPs); its DSM', tail=('[simulated](docs/measurements.md#accuracy-on-simulated-flights)',),
-              command='scripts/replay-sample.sh OUT'),
-        _none('consumer GNSS (~2 m) + 5 GCPs, checked in flight', tail=('same',), command='scripts/test.sh tests/test_gcp_flight.py -m slow -s'),
+        _readme('sample flight end to end (RTK, no GCPs); its DSM', SAMPLE_RTK,
+                lambda x, lines: f'{_sample_cells(x, lines)[0]}; DSM {_surface(x.get("dsm_vs_truth"))} from the true DEM',
+                '[simulated](docs/measurements.md#accuracy-on-simulated-flights)'),
         _readme('PPK photo survey (`geotag`, no GCPs)', _ppk('', 'triangulate_ppk_calibrated'),
                 lambda x, _: f'check points **{cm(x["check_h_m"])} / {cm(x["check_v_m"])}** with the camera\'s '
                 'calibration', 'same'),
-        _none('consumer geotags that wander (held-out proxies)', tail=('[real surveys](docs/measurements.md#real-surveys)',),
-              command='.venv/bin/python bench/held_out_proxies.py --out OUT'),
+        _readme('consumer geotags that wander (held-out proxies)', HELD_OUT_PROXIES, _held_out_readme,
+                '[real surveys](docs/measurements.md#real-surveys)'),
         _readme('ground station (the sample flight at real speed)', GROUND,
                 lambda x, lines: _ground_cells(x, lines)[0], '[ground station](docs/measurements.md#survey-quality-at-the-ground-station)'),
-        _none('real time and memory', tail=('[speed](docs/measurements.md#speed-real-time-and-memory)',),
-              command='.venv/bin/python bench/e2e_realtime.py; .venv/bin/python bench/memory_soak.py'))),
+        _readme('real time', E2E, lambda x, lines: _e2e_cells(x, lines)[0],
+                '[speed](docs/measurements.md#speed-real-time-and-memory)'))),
 }
 
 

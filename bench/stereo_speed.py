@@ -18,11 +18,13 @@ trajectory, 166 m above the ground) matched with the settings derived from its G
 downscale 0.25, lengths x3.4) against, in the same run, the simulator's settings the shipped
 configs held before (downscale 0.5, relief 25 m, 2 m hole fill, 1 m edge step): one JSON line with
 both times and the speed-up ratio.
+
+The lines go through bench/machine.py's ResultWriter (commit, clean-tree flag, cores, load) to --out and stdout; a
+line's `kind` says which measurement it is (stereo_speed, stereo_speed_real_1080p).
 """
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import time
 from dataclasses import replace
@@ -33,6 +35,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from bench.machine import ResultWriter  # noqa: E402
 from photogram_ros.core import stereo  # noqa: E402
 from photogram_ros.core.rotations import make_T  # noqa: E402
 from photogram_ros.params import from_assignments  # noqa: E402
@@ -202,15 +205,20 @@ def main(argv=None) -> int:
     ap.add_argument('--scales', default='1,2', help='image sizes as multiples of 640x480')
     ap.add_argument('--param', action='append', default=[], help='StereoParams override name=value')
     ap.add_argument('--real-1080p', action='store_true', help='only the real 1080p pair: derived vs old settings')
+    ap.add_argument('--out', default=None, help='the result file (JSON lines; default /tmp/stereo_speed.jsonl)')
     a = ap.parse_args(argv)
+    w = ResultWriter.for_bench(a.out, 'stereo_speed', ['photogram_ros/core/stereo.py', 'photogram_ros/core/gsd.py'])
+
+    def emit(row: dict) -> None:
+        w.write({'kind': row.pop('bench'), **row})
     if a.real_1080p:
-        print(json.dumps(bench_real(a.repeats)), flush=True)
+        emit(bench_real(a.repeats))
         return 0
     # The module's former defaults (full resolution, no hole filling), so the overhead ratio stays comparable;
     # the parameters now default to lengths from the GSD (core/gsd.py; --real-1080p measures those).
     params = from_assignments(stereo.StereoParams, ['downscale=1.0', 'fill_holes_m=0.0', 'edge_step_m=1.0', *a.param])
     for s in (int(x) for x in a.scales.split(',')):
-        print(json.dumps(bench(s, params, a.repeats)), flush=True)
+        emit(bench(s, params, a.repeats))
     return 0
 
 

@@ -7,15 +7,14 @@ same with markers painted in (18-100 px); real 4000x2250 photos (brighton_beach,
 (4000x3000) frame with markers painted in (36-200 px). Per set: median and p90 ms of both, the ratio,
 the detections of both and the largest centre difference. Then the tracker on the sample flight (its own
 time per keyframe) and `detect_keyframe_targets` on its keyframes, as the tracker node runs it.
-One JSON line per set.
+One JSON line per set (bench/machine.py's ResultWriter: commit, clean-tree flag, cores, load) to --out and stdout.
 
-    .venv/bin/python bench/target_detection.py [--bag bags/sample_flight] [--repeat 3]
+    .venv/bin/python bench/target_detection.py [--bag bags/sample_flight] [--repeat 3] [--out F]
 """
 
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import sys
 import time
@@ -32,6 +31,7 @@ sys.path.insert(0, str(ROOT / 'tests'))
 from test_target_detection_fast import full_resolution_detection, paint_markers  # noqa: E402
 from tracker_fps import load_frames  # noqa: E402
 
+from bench.machine import ResultWriter  # noqa: E402
 from photogram_ros.core.control import detect_keyframe_targets  # noqa: E402
 from photogram_ros.core.evaluation import detect_targets  # noqa: E402
 from photogram_ros.core.tracker import Tracker  # noqa: E402
@@ -121,12 +121,15 @@ def main() -> int:
     ap = argparse.ArgumentParser()
     ap.add_argument('--bag', default=str(ROOT / 'bags' / 'sample_flight'))
     ap.add_argument('--repeat', type=int, default=3, help='runs per frame; the fastest counts')
+    ap.add_argument('--out', default=None, help='the result file (JSON lines; default /tmp/target_detection.jsonl)')
     a = ap.parse_args()
+    w = ResultWriter.for_bench(a.out, 'target_detection', ['photogram_ros/core/evaluation.py',
+                                                           'photogram_ros/core/control.py'])
     cv2.setNumThreads(1)   # one core, as the tracker node's worker thread
     camera, frames = load_frames(Path(a.bag), 10**6)
     for name, imgs in frame_sets([img for _, img in frames]):
-        print(json.dumps(compare_set(name, imgs, a.repeat)), flush=True)
-    print(json.dumps(tracker_overhead(camera, frames, a.repeat)))
+        w.write(compare_set(name, imgs, a.repeat))
+    w.write(tracker_overhead(camera, frames, a.repeat))
     return 0
 
 

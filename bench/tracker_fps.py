@@ -3,19 +3,19 @@
 Frames: the sample flight's images (640x480, JPEG decoded beforehand so decoding is not timed),
 and the same frames upscaled to 1280x960 with the calibration scaled to match. The baseline runs
 on the same frames with the same window, pyramid depth and feature budget, re-detecting when
-fewer than half its features survive. Prints one JSON line per resolution.
+fewer than half its features survive. One JSON line per resolution (bench/machine.py's ResultWriter: commit,
+clean-tree flag, cores, load) to --out and stdout.
 
 Real 1080p (`--real`): the phantom3 village keyframes (1920x1080, ../shared/data), the
 tracker as shipped (tracking a half-size image) against the same tracker on the full frame
 (`track_max_px` above the width: what it did before) and the bare loop on the full frame.
 
-    .venv/bin/python bench/tracker_fps.py [--bag bags/sample_flight] [--frames 76] [--repeat 2] [--real]
+    .venv/bin/python bench/tracker_fps.py [--bag bags/sample_flight] [--frames 76] [--repeat 2] [--real] [--out F]
 """
 
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import sys
 import time
@@ -27,6 +27,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from bench.machine import ResultWriter  # noqa: E402
 from photogram_ros.core.tracker import Tracker, TrackerParams  # noqa: E402
 
 
@@ -80,7 +81,12 @@ def load_phantom3(n: int):
     return PinholeCamera(1920, 1080, 1220.0, 1220.0, 960.0, 540.0), frames
 
 
-def bench_real(n: int, repeat: int) -> None:
+# What the figure measures: the tracker and the KLT / keyframe code it runs.
+MODULES = ['photogram_ros/core/tracker.py', 'photogram_ros/core/klt.py', 'photogram_ros/core/keyframes.py',
+           'photogram_ros/core/photo_matching.py']
+
+
+def bench_real(n: int, repeat: int, w: ResultWriter) -> None:
     camera, frames = load_phantom3(n)
     shipped = TrackerParams()
     full = TrackerParams(track_max_px=20000, klt_levels=shipped.klt_levels + 1,
@@ -94,12 +100,11 @@ def bench_real(n: int, repeat: int) -> None:
             best[name] = min(best[name], t)
         best['baseline'] = min(best['baseline'], run_baseline(frames, full))
     ms = {k: round(v / len(frames) * 1e3, 1) for k, v in best.items()}
-    print(json.dumps({'bench': 'tracker_fps', 'size': '1920x1080 phantom3_village', 'frames': len(frames),
+    w.write({'size': '1920x1080 phantom3_village', 'frames': len(frames),
                       'ms_per_frame': ms, 'time_ratio_shipped_over_full_frame': round(best['shipped'] / best['full_frame'], 2),
                       'time_ratio_shipped_over_baseline': round(best['shipped'] / best['baseline'], 2),
                       'keyframes': {k: v.stats.keyframes for k, v in trs.items()},
-                      'breaks': {k: v.stats.breaks for k, v in trs.items()}, 'threads': cv2.getNumThreads()}),
-          flush=True)
+                      'breaks': {k: v.stats.breaks for k, v in trs.items()}, 'threads': cv2.getNumThreads()})
 
 
 def main() -> int:
@@ -108,12 +113,14 @@ def main() -> int:
     ap.add_argument('--frames', type=int, default=76)
     ap.add_argument('--repeat', type=int, default=2, help='timed passes; the best is reported')
     ap.add_argument('--real', action='store_true', help='only the phantom3 1080p frames')
+    ap.add_argument('--out', default=None, help='the result file (JSON lines; default /tmp/tracker_fps.jsonl)')
     a = ap.parse_args()
+    w = ResultWriter.for_bench(a.out, 'tracker_fps', MODULES)
     cv2.setNumThreads(1)
     if hasattr(os, 'sched_setaffinity'):
         os.sched_setaffinity(0, {sorted(os.sched_getaffinity(0))[0]})
     if a.real:
-        bench_real(min(a.frames, 60), a.repeat)
+        bench_real(min(a.frames, 60), a.repeat, w)
         return 0
     camera, frames = load_frames(Path(a.bag), a.frames)
     params = TrackerParams()
@@ -132,12 +139,12 @@ def main() -> int:
             best_t = min(best_t, t)
             best_b = min(best_b, run_baseline(fr, p))
         n = len(fr)
-        print(json.dumps({'bench': 'tracker_fps', 'size': f'{cam.width}x{cam.height}', 'frames': n,
+        w.write({'size': f'{cam.width}x{cam.height}', 'frames': n,
                           'tracker_fps': round(n / best_t, 1), 'baseline_fps': round(n / best_b, 1),
                           'time_ratio_tracker_over_baseline': round(best_t / best_b, 2),
                           'target_fps': 30 if scale == 1.0 else 10, 'keyframes': tr.stats.keyframes,
                           'breaks': tr.stats.breaks, 'tracks_alive': tr.stats.tracks_alive,
-                          'threads': cv2.getNumThreads()}), flush=True)
+                          'threads': cv2.getNumThreads()})
     return 0
 
 

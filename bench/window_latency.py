@@ -4,25 +4,36 @@ A synthetic lawnmower flight (40 m height, 520 px focal, 640x480, ~300 tracked g
 keyframe, 0.3 px noise, RTK-like fixes) is fed keyframe by keyframe to IncrementalAT with a
 10-keyframe window. Each update (PnP, triangulation, window adjustment) is timed; the baseline in
 the same run is a full adjustment of the whole block at the end, i.e. what a non-windowed system
-would pay per keyframe. Prints JSON lines: latency per 100-keyframe block, median/p95, ratios.
+would pay per keyframe. JSON lines (bench/machine.py's ResultWriter: commit, clean-tree flag, cores, load) to
+--out and stdout: latency per 100-keyframe block, median/p95, ratios.
 
-    .venv/bin/python bench/window_latency.py [--keyframes 500] [--window 10]
+    .venv/bin/python bench/window_latency.py [--keyframes 500] [--window 10] [--out F]
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import sys
 import time
+from pathlib import Path
 
 import numpy as np
 
-from photogram_ros.core.camera import PinholeCamera
-from photogram_ros.core.geodesy import LocalFrame
-from photogram_ros.core.gnss_fix import GnssFix
-from photogram_ros.core.incremental import IncrementalAT, IncrementalOptions, KeyframeRecord
-from photogram_ros.core.rotations import invert_T, make_T, transform_points
-from photogram_ros.sim.observations import in_fov
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from bench.machine import ResultWriter  # noqa: E402
+from photogram_ros.core.camera import PinholeCamera  # noqa: E402
+from photogram_ros.core.geodesy import LocalFrame  # noqa: E402
+from photogram_ros.core.gnss_fix import GnssFix  # noqa: E402
+from photogram_ros.core.incremental import IncrementalAT, IncrementalOptions, KeyframeRecord  # noqa: E402
+from photogram_ros.core.rotations import invert_T, make_T, transform_points  # noqa: E402
+from photogram_ros.sim.observations import in_fov  # noqa: E402
+
+
+# What the figure measures: the incremental adjustment and its window (core/incremental and the solver under it).
+MODULES = ['photogram_ros/core/incremental.py', 'photogram_ros/core/window.py', 'photogram_ros/core/bundle',
+           'photogram_ros/core/resection.py', 'photogram_ros/core/triangulation.py']
 
 
 def flight(n_kf: int, per_line: int = 50, spacing_m: float = 5.0, line_gap_m: float = 17.0):
@@ -47,7 +58,9 @@ def main() -> int:
     ap.add_argument('--keyframes', type=int, default=500)
     ap.add_argument('--window', type=int, default=10)
     ap.add_argument('--points-per-image', type=int, default=300)
+    ap.add_argument('--out', default=None, help='the result file (JSON lines; default /tmp/window_latency.jsonl)')
     a = ap.parse_args()
+    w = ResultWriter.for_bench(a.out, 'window_latency', MODULES)
     cam = PinholeCamera(640, 480, 520.0, 520.0, 320.2, 238.3, (-0.12, 0.05, 0.0005, -0.0003, -0.01))
     origin = LocalFrame(47.3977, 8.5456, 488.0)
     poses = flight(a.keyframes)
@@ -87,14 +100,14 @@ def main() -> int:
             blocks.append({'keyframes': f'{b0}-{min(b0 + 100, a.keyframes)}', 'median_ms': round(float(np.median(blk)), 1),
                            'p95_ms': round(float(np.percentile(blk, 95)), 1),
                            'cpu_median_ms': round(float(np.median(blk_cpu)), 1)})
-            print(json.dumps({'bench': 'window_latency', **blocks[-1]}))
+            w.write({'kind': 'block', **blocks[-1]})
     t0 = time.perf_counter()
     full = at.full_adjustment(rounds=1)
     full_s = time.perf_counter() - t0
     cam_err = None
     C = np.array([at.kfs[k].map_T_cam[:3, 3] for k in at.registered])
     cam_err = float(np.sqrt(np.mean(np.sum((C - poses[at.registered, :3, 3]) ** 2, axis=1))))
-    out = {'bench': 'window_latency', 'keyframes': a.keyframes, 'window': a.window,
+    out = {'kind': 'summary', 'keyframes': a.keyframes, 'window': a.window,
            'points_per_image_mean': round(float(np.mean(nobs)), 1), 'registered': len(at.registered),
            'points': len(at.points),
            'median_ms': round(float(np.median(steady)), 1), 'p95_ms': round(float(np.percentile(steady, 95)), 1),
@@ -104,7 +117,7 @@ def main() -> int:
            'baseline_full_adjustment_s': round(full_s, 2), 'full_status': full.status,
            'ratio_full_over_window_median': round(full_s * 1e3 / float(np.median(steady)), 1),
            'camera_rmse_after_full_m': round(cam_err, 4)}
-    print(json.dumps(out))
+    w.write(out)
     return 0
 
 

@@ -28,3 +28,18 @@ def figure(result_file: str, **where) -> dict:
     if found is None:
         raise LookupError(f'no line with {where} in bench/results/{result_file}')
     return found
+
+
+def newest_figure(pattern: str, **where) -> tuple[str, dict]:
+    """(file name, line): the line bench/render_figures.py renders for a figure of the result files matching
+    `pattern` (a glob under bench/results, e.g. 'real_surveys*.jsonl') and `where`: of the files holding such a
+    line, the one measured at the latest commit (git's commit time), its last such line. A gate that reads its
+    figure here moves with the newest result file committed, and names that file."""
+    import sys
+    if str(ROOT) not in sys.path:
+        sys.path.insert(0, str(ROOT))
+    from bench.render_figures import Figure, newest
+    src = newest(Figure(('gate',), pattern, dict(where)))
+    if src is None:
+        raise LookupError(f'no line with {where} in bench/results/{pattern}')
+    return src.path.name, src.line

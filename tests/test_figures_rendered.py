@@ -87,3 +87,35 @@ def test_the_listing_covers_every_figure_of_the_documents():
     assert len(rows) == sum(len(r.TABLES[t].rows) for t in {x['table'] for x in rows})
     assert {x['state'] for x in rows} <= {'fresh', 'stale', 'modified tree', 'tree state not recorded',
                                           'no result file'}
+
+
+# Figures bench/run_all.py does not re-measure, and why: they compare two trees (main, then a branch) in one run.
+NOT_IN_RUN_ALL = {'inflight_chain_8a9c63c.jsonl': 'the code before the in-flight chain, kept as the comparison',
+                  'inflight_20mp_pace_*.jsonl': 'main and a branch in the same run (--periods 1,0.7)'}
+
+
+def test_every_rendered_figure_is_measured_by_a_bench_of_run_all():
+    """Each figure's result files (a glob under bench/results) match the file one of run_all's benches writes
+    (bench/results/<name>_<commit7>.jsonl), so one run of run_all can refresh every figure."""
+    import fnmatch
+    r = _render()
+    sys.path.insert(0, str(ROOT))
+    from bench.run_all import BENCHES
+    made = [f'{b.name}_0123abc.jsonl' for b in BENCHES]
+    missing = sorted({fig.results for t in r.TABLES.values() for fig in t.rows
+                      if fig.results not in NOT_IN_RUN_ALL and not any(fnmatch.fnmatch(m, fig.results) for m in made)})
+    assert not missing, f'no bench of bench/run_all.py writes {missing}'
+
+
+@needs_git
+def test_a_gate_reads_the_line_the_table_renders():
+    """tests/figures.newest_figure: the newest result file by its commit, the same line render_figures renders."""
+    r = _render()
+    sys.path.insert(0, str(ROOT / 'tests'))
+    from figures import newest_figure
+    for fig in (r.MAVLINK, r.BRIGHTON_TRI, r.TOLEDO_AGREE):
+        src = r.newest(fig)
+        name, line = newest_figure(fig.results, **fig.where)
+        assert (name, line) == (src.path.name, src.line)
+    with pytest.raises(LookupError):
+        newest_figure('real_surveys*.jsonl', survey='no such survey')
