@@ -120,6 +120,20 @@ def test_the_player_plays_mavros_topics_as_the_mappers_unless_the_bag_has_anothe
     assert mavros_remaps(cam, {}) == {}
 
 
+@pytest.mark.ros
+def test_the_player_publishes_the_stored_mavros_topics_as_the_mappers(rclpy_context):
+    from photogram_ros.nodes.player_node import PlayerNode
+    for mavros, want in ((True, {'/gps/fix': 389, '/mavlink/attitude': 778}),
+                         (False, {MAVROS_FIX: 389, MAVROS_IMU: 778})):
+        node = PlayerNode(overrides={'bag': str(MAVROS_BAG), 'rate': 0.0, 'discovery_s': 0.0, 'mavros': mavros},
+                          context=rclpy_context)
+        try:
+            summary = node.play()
+        finally:
+            node.destroy_node()
+        assert summary.counts == want and not summary.errors and not summary.skipped, mavros
+
+
 def join_camera_frames(sample_bag, recording, out) -> None:
     """One MCAP bag: the sample bag's camera frames and every topic of `recording` (with its recorded definitions),
     each message at its recorded bag time."""
