@@ -571,10 +571,42 @@ def build_report(out_dir: str | Path, map_dir: str | Path | MapStore, crs: str, 
                                             f"photos, {overlap['share_5_or_more'] * 100:.1f} % in 5 or more."],
                                 figures=[('Photos per DSM cell', 'overlap.png')]))
 
+    sections.append(parameters_section(run or {}, figures))
     if diagnostics:
         sections.append(_problems_section(diagnostics, figures))
     write_report(out, 'photogram_ros flight report', sections, figures)
     return figures
+
+
+def parameters_section(run: dict, figures: dict) -> Section:
+    """The processing parameters the run was given, as OpenDroneMap's report lists its options: each node's
+    parameters from the run's parameters file (run['params_file'], a ROS 2 parameters YAML) and what the command
+    set over them (run['parameter_overrides'], role -> {name: value}); also figures['parameters']."""
+    import yaml
+    path = run.get('params_file')
+    overrides = run.get('parameter_overrides') or {}
+    sec = Section('Parameters')
+    rows = []
+    if path:
+        try:
+            doc = yaml.safe_load(Path(path).read_text()) or {}
+        except (OSError, yaml.YAMLError) as exc:
+            doc = {}
+            sec.text.append(f'The parameters file {path} could not be read again for this report: {exc}.')
+        for node, body in sorted(doc.items()):
+            params = (body or {}).get('ros__parameters', {}) if isinstance(body, dict) else {}
+            rows += [{'node': node, 'parameter': k, 'value': json.dumps(v), 'from': 'file'}
+                     for k, v in sorted(params.items())]
+        sec.text.insert(0, f'Parameters file: {path}.')
+    else:
+        sec.text.append('The run did not record its parameters file: the parameters are the command\'s defaults '
+                        'and its options (see Software).')
+    rows += [{'node': role, 'parameter': k, 'value': json.dumps(v, default=str), 'from': 'command'}
+             for role, vals in sorted(overrides.items()) for k, v in sorted((vals or {}).items())]
+    figures['parameters'] = {'file': path, 'rows': rows}
+    if rows:
+        sec.tables.append(('Parameters (value from the file, or set by the command over it)', rows))
+    return sec
 
 
 def _gcp_section(gcps, gsd: float | None, n_surveyed: int, diagnostics: dict | None, figures: dict) -> Section:

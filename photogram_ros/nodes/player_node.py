@@ -22,6 +22,11 @@ comes only with the periodic heartbeat although the subscriber has the messages:
 PX4 uXRCE-DDS topics (px4_msgs/SensorGps, VehicleAttitude) are not played as recorded (px4_msgs has no PyPI
 wheel): they go out as what px4_adapter publishes live, /gps/fix_type, /gps/fix and /mavlink/attitude (read
 through io/bag_px4.py and core/px4.py's conversions).
+
+MAVROS topics go out under the names the mapper subscribes to (`mavros`, on by default), as their messages are:
+/mavros/global_position/raw/fix (NavSatFix, ellipsoidal height) as /gps/fix and /mavros/imu/data (Imu, base_link
+FLU in ENU, the convention of mavlink/attitude) as /mavlink/attitude, each only when the bag does not record the
+mapper's own topic; an explicit `remap` of a MAVROS topic wins.
 """
 
 from __future__ import annotations
@@ -35,7 +40,7 @@ from rosgraph_msgs.msg import Clock
 
 from photogram_ros.errors import BagError, ConfigError
 from photogram_ros.io.bag import BagReader, msg_class, serialize
-from photogram_ros.io.bag_px4 import SENSOR_GPS, Px4Records, px4_topics
+from photogram_ros.io.bag_px4 import SENSOR_GPS, VEHICLE_ATTITUDE, Px4Records, px4_topics
 from photogram_ros.msgs import time_from_ns
 from photogram_ros.nodes import qos
 from photogram_ros.nodes.diagnostics import ERROR, Diagnostics
@@ -55,6 +60,8 @@ class PlayerParams:
     topics: str = param('', 'Comma-separated topics to play; empty plays every topic')
     exclude: str = param('', 'Comma-separated topics not to play')
     remap: str = param('', 'Comma-separated renames, e.g. "/fix:=/gps/fix,/cam:=/camera/image_raw"')
+    mavros: bool = param(True, 'Play MAVROS\'s /mavros/global_position/raw/fix as /gps/fix and /mavros/imu/data as '
+                         '/mavlink/attitude (each when the bag does not record that topic itself)')
     loop: bool = param(False, 'Start again from the beginning when the bag ends')
     publish_clock: bool = param(True, 'Publish /clock with the bag time')
     qos_depth: int = param(200, 'History depth of the reliable publishers when rate > 0', min=1, max=100000)
@@ -90,6 +97,22 @@ class PlayerParams:
 
     def check(self) -> None:
         self.remaps()
+
+
+# MAVROS's topic -> the mapper's topic that carries the same message with the same conventions.
+MAVROS_INPUTS = {'/mavros/global_position/raw/fix': '/gps/fix', '/mavros/imu/data': '/mavlink/attitude'}
+
+
+def mavros_remaps(recorded: dict, remaps: dict) -> dict:
+    """The renames that play a bag's MAVROS topics as the mapper's (MAVROS_INPUTS), from the bag's topics
+    (BagReader.topics()): a MAVROS topic recorded is renamed unless `remaps` renames it already or the bag holds
+    another source of the same thing (the mapper's topic itself, raw MAVLink that mavlink_node decodes, or PX4's
+    record that the player turns into it)."""
+    types = {getattr(i, 'msgtype', '') for i in recorded.values()}
+    other = {'/gps/fix': '/mavlink/from_fcu' in recorded or SENSOR_GPS in types,
+             '/mavlink/attitude': '/mavlink/from_fcu' in recorded or VEHICLE_ATTITUDE in types}
+    return {src: dst for src, dst in MAVROS_INPUTS.items()
+            if src in recorded and dst not in recorded and src not in remaps and not other[dst]}
 
 
 @dataclass
@@ -228,6 +251,8 @@ class PlayerNode(Node):
         remaps = p.remaps()
         with BagReader(p.bag) as bag:
             infos = bag.topics()
+            if p.mavros:
+                remaps.update(mavros_remaps(infos, remaps))
             chosen = p.topic_list(p.topics) or sorted(infos)
             missing = [t for t in chosen if t not in infos]
             if missing:

@@ -116,6 +116,14 @@ function statusWord(c) {   // a figure's state for the table: provisional / not 
   return c.value === null ? ' (not measured)' : c.status === 'provisional' ? ' (provisional)' : ' (wait)';
 }
 
+// The drone's latest fix: where it is, how old, and how many points its track on the map has.
+function livePosition(p) {
+  if (!p || !Number.isFinite(p.lat_deg) || !Number.isFinite(p.lon_deg)) return 'no fix yet';
+  const ns = p.lat_deg >= 0 ? 'N' : 'S', ew = p.lon_deg >= 0 ? 'E' : 'W';
+  return `${Math.abs(p.lat_deg).toFixed(6)}° ${ns} ${Math.abs(p.lon_deg).toFixed(6)}° ${ew}, ` +
+    `${Number(p.h_m).toFixed(1)} m, ${Number(p.age_s).toFixed(0)} s ago, track ${p.track_points ?? 0} points`;
+}
+
 function panel(key, d) {
   const g = d.go_no_go || {verdict: 'WAIT', reasons: [], checks: []};
   const c = d.coverage || {}, a = d.accuracy || {};
@@ -133,6 +141,7 @@ function panel(key, d) {
     ['RTK fixed / float / 3D', `${fmt(fs.rtk_fixed, '%', 0)} / ${fmt(fs.rtk_float, '%', 0)} / ${fmt(fs['3d'], '%', 0)}`],
     ['GNSS bias estimate E N U', Array.isArray(a.gnss_bias_enu_m) ? a.gnss_bias_enu_m.map(v => (100 * Number(v)).toFixed(1)).join(' ') + ' cm' : '–'],
     ['keyframes / ortho tiles', `${d.keyframes} / ${(d.ortho || {}).tiles}`],
+    ['position (GNSS)', livePosition(d.position)],
   ];
   const ctl = a.control;
   if (ctl) rows.splice(4, 0, ['GCPs used / horizontally / not / held',
