@@ -213,10 +213,5 @@ def test_sample_flight_maps_from_the_recorded_mavros_topics(sample_bag, tmp_path
     """MAVROS's raw fix and imu/data, played by the player as /gps/fix and /mavlink/attitude. The fixes carry no
     RTK status (MAVROS marks every 3D fix STATUS_FIX): each is weighted by its own covariance."""
     stdout, rep = _mapped_from(MAVROS_BAG, sample_bag, tmp_path)
-    if 'body lever arm' in stdout:
-        # nodes/replay_session.bag_has_attitude does not count /mavros/imu/data: the replay leaves the sample
-        # flight's body lever arm (antenna 20 cm above the camera) out although the player plays the attitude.
-        cp = rep['check_points']['rmse']
-        pytest.xfail('the replay left the body lever arm out: replay_session.bag_has_attitude does not count '
-                     f"{MAVROS_IMU} (check points {cp['horizontal_m'] * 100:.1f} cm H, {cp['z_m'] * 100:.1f} cm V)")
+    assert 'body lever arm' not in stdout          # imu/data came: the body lever arm is applied
     _within_e2e_gates(rep, sample_bag)

@@ -361,6 +361,17 @@ def mapping_verdict(accounting: dict, georeferenced: bool, dsm_share: float | No
     return {'mapped': not failures, 'failures': failures, 'warnings': warnings, 'dsm_valid_share': dsm_share}
 
 
+def input_faults(tracker: dict, mavlink: dict) -> dict:
+    """The input faults the nodes counted on /diagnostics (frames dropped for a stamp that repeated or went back,
+    autopilot link silences, the autopilot's clock going back), the non-zero ones by name."""
+    named = (('frames_dropped_stamp_back', tracker.get('stamps_back')),
+             ('frames_dropped_stamp_repeated', tracker.get('stamps_repeated')),
+             ('link_silences', mavlink.get('link_silences')),
+             ('link_longest_silence_s', mavlink.get('link_longest_silence_s')),
+             ('link_clock_back', mavlink.get('link_clock_back')))
+    return {k: v for k, v in named if isinstance(v, (int, float)) and not isinstance(v, bool) and v}
+
+
 def _health_sections(figures: dict, kfs, files: dict, run: dict, diagnostics: dict | None, georeferenced: bool):
     """The verdict and the nodes' health, for the top of the report (also into `figures`)."""
     def values(name):
@@ -387,6 +398,14 @@ def _health_sections(figures: dict, kfs, files: dict, run: dict, diagnostics: di
     if acc['keyframes_not_oriented']:
         text.append(f"{acc['keyframes_not_oriented']} keyframes not oriented, by reason (the nodes' counters): "
                     + '; '.join(f'{k}: {v}' for k, v in acc['keyframes_not_oriented_by_reason'].items()) + '.')
+    faults = input_faults(values('tracker_node'), values('mavlink_node'))
+    figures['input_faults'] = faults
+    if faults:
+        text.append('Input faults: ' + '; '.join(f'{k.replace("_", " ")}: {v}' for k, v in faults.items()) + '.')
+    resumed = (run or {}).get('resumed')
+    if resumed and resumed.get('keyframes'):
+        text.append(f"Resumed map: {resumed['keyframes']} keyframes taken before the restart ({resumed['posed']} "
+                    f"oriented then, {resumed['still_unposed']} without a pose, not oriented).")
     bad = [h for h in health[1:] if h['worst_level'] != 'OK']
     text.append(f'{len(bad)} of {len(health) - 1} nodes reported WARN or ERROR on /diagnostics'
                 + (': ' + ', '.join(f"{h['node']} {h['worst_level']}" for h in bad) if bad else '') + '.'

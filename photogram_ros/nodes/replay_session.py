@@ -228,8 +228,9 @@ def _bag_setup(opts: ReplayOptions, extra: dict):
 
 def bag_has_attitude(topics) -> bool:
     """The bag's topics (BagReader.topics()) carry the body's attitude: raw MAVLink (ATTITUDE), mavlink_node's
-    output, or PX4's VehicleAttitude."""
+    output, MAVROS's imu/data (the player plays it as /mavlink/attitude) or PX4's VehicleAttitude."""
     return ('/mavlink/from_fcu' in topics or any(t.endswith('mavlink/attitude') for t in topics)
+            or '/mavros/imu/data' in topics
             or any(getattr(i, 'msgtype', '') == VEHICLE_ATTITUDE for i in topics.values()))
 
 
@@ -457,7 +458,8 @@ def run_replay(opts: ReplayOptions, context=None) -> dict:
            'bag_errors': summary.errors, 'skipped_topics': summary.skipped,
            'waited_for_downstream_s': round(lag_wait_s[0], 1),
            'bag_read': {t: [i.count, i.expected] for t, i in topics.items()}, 'bag_warnings': bag_warnings,
-           'final_adjustment': end.final_adjustment, 'end_of_flight_errors': end.errors, 'counts': counts}
+           'final_adjustment': end.final_adjustment, 'end_of_flight_errors': end.errors, 'counts': counts,
+           'params_file': str(opts.params_file) if opts.params_file else None, 'parameter_overrides': extra}
     if summary.px4_skipped:
         run['px4_records_not_published'] = dict(summary.px4_skipped)
     if drain_left:
