@@ -1,15 +1,9 @@
 """Antenna trajectories from the post-processing programs surveyors use, recognised by their content.
 
-One reader per format behind one small protocol (`TrajectoryReader`, in io/trajectory_base.py with the
-helpers the readers share), in a registry (`READERS`; a new format is one more `register(...)`). The
-registry imports the readers; a reader imports io/trajectory_base.py only:
-- `sniff(head_lines) -> float | None`: how sure the reader is that the file's first lines are its
-  format (0..1; None: not its format), from the header, the column names and the time system;
-- `read(path) -> AntennaTrack`: the epochs in the shared typed arrays of
-  core.exposure_positions.AntennaTrack: GPS times, WGS84 ECEF positions, per-epoch ENU covariance
-  (the file's sigmas), the quality on one ordered scale (`q`: RTKLIB's 1 fix, 2 float, 3 sbas,
-  4 dgps, 5 single, 6 ppp) beside the file's own quality (`q_native`), the file's time system and
-  the format's name.
+One reader per format behind one small protocol (`TrajectoryReader`: `sniff` the file's first lines,
+`read` it into the shared track type; io/trajectory_base.py, with the helpers the readers share), in a
+registry (`READERS`; a new format is one more `register(...)`). The registry imports the readers; a
+reader imports io/trajectory_base.py only.
 
 `read_trajectory(path)` sniffs the file's first `HEAD_LINES` lines with every reader and reads it
 with the one that is surest; it says which format it recognised (the track's first note) and refuses
