@@ -5,9 +5,10 @@ from __future__ import annotations
 import sys
 
 from photogram_ros.commands import common_args
+from photogram_ros.io.products import product_names
 
 HELP = 'write LAS/LAZ, PLY, DSM, DTM and orthomosaic GeoTIFFs of a map folder in any EPSG CRS'
-PRODUCTS = ('las', 'laz', 'ply', 'dsm', 'dtm', 'ortho')
+PRODUCTS = product_names()   # the export registry's products by name (io/products/), in its order
 EXIT_EXPORT_FAILED = 3   # some products not written (a full disk): the others are whole, export.json says which
 
 

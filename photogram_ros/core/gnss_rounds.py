@@ -14,6 +14,7 @@ import scipy.linalg
 from photogram_ros.core.at_geometry import reprojection_errors_px
 from photogram_ros.core.at_problem import StepReport, adjust
 from photogram_ros.core.at_store import Keyframe
+from photogram_ros.core.gnss_datum import PRECISE_FIX_RATIO
 from photogram_ros.core.rotations import R_from_rotvec, make_T
 
 # How far the mean optical axis of a nadir flight may lie from the vertical (1 sigma, degrees): a gimbal
@@ -23,6 +24,10 @@ NADIR_PRIOR_DEG = 2.0
 # simulator's sample flight gives F 1.3 at most over six flights whose fixes lean 2 mm/m or less, and 11.0 for one
 # whose fixes lean 10 mm/m (bench/gnss_tilt.py).
 TILT_TEST_LEVEL = 0.90
+# The fix gate judges a new fix about the block's offset from its last this many fixes at least as precise (a block
+# drifts along a flight), when at least GATE_OFFSET_MIN of them are there.
+GATE_OFFSET_FIXES = 10
+GATE_OFFSET_MIN = 3
 
 
 def clipped_sigma(x: np.ndarray, k: float = 3.5, rounds: int = 5) -> float:
@@ -83,10 +88,15 @@ class GnssRounds:
         that error on to the next one, each registered from the last, so the block would leave its GNSS
         for good. A far fix is therefore tried in the window adjustment (`_fix_trial`, nothing written):
         it stays in when the adjusted camera comes within the gate of it without its tie points' errors
-        growing. True when rejected."""
+        growing. Far is judged about where the block's other fixes at least as precise as this one put the block
+        (`_precise_offset`): a block that drifted off its GNSS as a whole (a third of its fixes FLOAT and a metre
+        off) says nothing about one fix, and an RTK-fixed fix is never refused where a FLOAT one would be kept.
+        True when rejected."""
         if kf.fix_enu is None or kf.map_T_cam is None:
             return False
-        if not self._fix_far(kf, kf.map_T_cam):
+        others = [k for k in self.block.registered if k != kf.kid and k not in self.datum.rejected]
+        offset = self._precise_offset(kf, others[-GATE_OFFSET_FIXES:], self.datum.residuals)
+        if not self._fix_far(kf, kf.map_T_cam, offset):
             return False
         if self._fix_trial(kf):
             return False
@@ -101,11 +111,22 @@ class GnssRounds:
         sig = np.sqrt(np.diag(self.datum.fix_cov_used(kf)))
         return bool((np.abs(d) > np.maximum(self.opt.gnss_outlier_sigma * 2.0 * sig, self.opt.gnss_gate_m)).any())
 
+    def _precise_offset(self, kf: Keyframe, kids: list[int], residuals, min_count: int = GATE_OFFSET_MIN
+                        ) -> np.ndarray | None:
+        """Where the block sits off its GNSS as the fixes of keyframes `kids` at least as precise as kf's say (their
+        stated sigma within PRECISE_FIX_RATIO of kf's): their median residual (`residuals(kids)` -> {kid: ENU m});
+        None when fewer than `min_count` of them have a fix."""
+        own = float(np.sqrt(np.trace(np.asarray(kf.fix_cov, float).reshape(3, 3))))
+        kids = [k for k in kids if self.block.kfs[k].fix_enu is not None and float(np.sqrt(np.trace(
+            np.asarray(self.block.kfs[k].fix_cov, float).reshape(3, 3)))) <= PRECISE_FIX_RATIO * own]
+        r = list(residuals(kids).values())
+        return np.median(r, axis=0) if r and len(r) >= min_count else None
+
     def _fix_trial(self, kf: Keyframe) -> bool:
         """The window adjustment of keyframe kf with its fix in, solved without writing anything back: True
         when the photos agree with the fix: kf's adjusted antenna comes within the gate (`_fix_far`) of its
-        fix as the window's other fixes lie from theirs (their median residual: a block that is not yet
-        self-calibrated can sit off its GNSS by a common amount, which says nothing about one geotag), and
+        fix as the window's other fixes at least as precise lie from theirs (`_precise_offset`: a block that is not
+        yet self-calibrated can sit off its GNSS by a common amount, which says nothing about one geotag), and
         the median reprojection error of kf's observations stays within max(2 x, + 1 px) of the
         resection's and within max_reprojection_px."""
         sel = self.adjustment.window_selection()
@@ -121,8 +142,9 @@ class GnssRounds:
         if res.status == 'failed':
             return False
         T = np.asarray(res.map_T_cams)
-        others = [self.datum.antenna_residual(self.block.kfs[b.kids[i]], T[i]) for i in b.gnss_cams if i != j]
-        about = np.median(others, axis=0) if others else None
+        at = {b.kids[i]: T[i] for i in b.gnss_cams if i != j}
+        about = self._precise_offset(kf, list(at), lambda kids: {
+            k: self.datum.antenna_residual(self.block.kfs[k], at[k]) for k in kids}, min_count=1)
         before = reprojection_errors_px(self.block.camera, np.asarray(prob.map_T_cams)[prob.obs_cam[mine]],
                                          np.asarray(prob.points_map)[prob.obs_pt[mine]], prob.obs_uv[mine])
         after = reprojection_errors_px(self.block.camera, T[prob.obs_cam[mine]],

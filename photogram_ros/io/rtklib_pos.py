@@ -193,13 +193,6 @@ class RtklibPosReader:
         return read_pos(path, require_fix=False)
 
 
-def _register() -> None:
-    from photogram_ros.io.trajectory_formats import register
-    register(RtklibPosReader())
-
-
-_register()
-
 
 def write_pos(path: str | Path, t_gps_s, lat_deg, lon_deg, h_m, q, sd_neu_m, ns=20, program='photogram_ros simulator'):
     """An RTKLIB-layout .pos (lat/lon/ellipsoidal height, GPST calendar times); sd_neu_m: (N, 3) sdn, sde, sdu."""

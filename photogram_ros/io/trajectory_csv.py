@@ -26,8 +26,8 @@ import numpy as np
 
 from photogram_ros.core.exposure_positions import AntennaTrack, week_tow_to_gps_s
 from photogram_ros.errors import DataError
-from photogram_ros.io.trajectory_formats import (datetime_to_gps_s, per_axis_from_horizontal, read_lines, register,
-                                                 track_from_epochs)
+from photogram_ros.io.trajectory_base import (datetime_to_gps_s, per_axis_from_horizontal, read_lines,
+                                              track_from_epochs)
 
 
 def norm(name: str) -> str:
@@ -260,8 +260,5 @@ class LeicaInfinityCsvReader(CsvTrajectoryReader):
     OWN_COLUMNS = ('ellip. hgt.', 'sd lat', 'sd lon', 'sd hgt', 'posn. qlty', 'hgt. qlty', '1d cq', '2d cq', 'sol. type')
     PROGRAM_WORDS = ('leica', 'infinity')
 
-
-for _reader in (EmlidCsvReader(), TbcCsvReader(), LeicaInfinityCsvReader()):
-    register(_reader)
 
 __all__ = ['CsvTrajectoryReader', 'EmlidCsvReader', 'LeicaInfinityCsvReader', 'TbcCsvReader']

@@ -35,8 +35,8 @@ import numpy as np
 from photogram_ros.core.exposure_positions import SECONDS_PER_WEEK, AntennaTrack, week_tow_to_gps_s
 from photogram_ros.core.geodesy import ecef_to_geodetic
 from photogram_ros.errors import DataError
-from photogram_ros.io.trajectory_formats import (datetime_to_gps_s, per_axis_from_horizontal, read_lines, register,
-                                                 seconds_of_day, track_from_epochs)
+from photogram_ros.io.trajectory_base import (datetime_to_gps_s, per_axis_from_horizontal, read_lines,
+                                              seconds_of_day, track_from_epochs)
 
 PROGRAM_WORDS = ('grafnav', 'grafnet', 'inertial explorer', 'waypoint', 'novatel')
 # GrafNav / Inertial Explorer quality number -> the common scale (RTKLIB Q).
@@ -263,7 +263,5 @@ def _ecef_sd_to_neu(lat_deg: float, lon_deg: float, sd_xyz) -> list[float]:
     c = R.T @ np.diag(np.square(sd_xyz)) @ R
     return [float(np.sqrt(c[1, 1])), float(np.sqrt(c[0, 0])), float(np.sqrt(c[2, 2]))]
 
-
-register(GrafNavReader())
 
 __all__ = ['GRAFNAV_Q', 'GrafNavReader']

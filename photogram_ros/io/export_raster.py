@@ -1,0 +1,242 @@
+"""The rasters of the exports: Cloud-Optimized GeoTIFFs, the DSM with its filled cells, the orthomosaic.
+
+Rasters are Cloud-Optimized GeoTIFFs (GDAL's COG driver: tiled, deflate, overviews) whose CRS and
+vertical datum are in the file itself (write_geotiff, io/crs_tags.py): a .tif copied alone keeps them.
+The DSM holds the cells stereo measured and, inside what the photos saw (the camera centres' hull),
+heights interpolated where stereo measured none (surface_in_crs); its band 2 gives the stereo pairs
+that measured each cell, 0 where interpolated. Rasters are built in the output CRS's own grid
+(north-up in that CRS): the DSM from the fused cells' CRS coordinates, the orthomosaic by mapping each
+of its cells back to map ENU and draping the keyframes (core.raster.orthomosaic).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from photogram_ros.core.fusion import Fusion
+from photogram_ros.core.geodesy import LocalFrame
+from photogram_ros.core.gsd import AUTO, dsm_lengths_for_cell
+from photogram_ros.core.raster import (NODATA, Keyframe, Raster, cell_max, dsm_from_points, fill_surface, hull_mask,
+                                       orthomosaic)
+from photogram_ros.errors import ConfigError, DataError
+from photogram_ros.io.crs_tags import geotiff_georef
+from photogram_ros.io.export_cloud import GeoCloud, crs_to_enu, enu_to_crs, map_cloud
+from photogram_ros.io.map_store import MapStore
+from photogram_ros.params import param
+
+# --- rasters ---------------------------------------------------------------------------------------
+
+
+COG_BLOCK_PX = 256
+
+
+def write_geotiff(r: Raster, path: str | Path, crs: str, description: str = '', rgba: bool = False,
+                  heights: str | None = None, band_names: tuple = ()) -> Path:
+    """A Cloud-Optimized GeoTIFF (GDAL's COG driver: 256-px tiles, deflate, overviews down to one tile).
+
+    The 2D CRS is in the file's GeoKeys by its EPSG code; with `heights` (not for rgba) the vertical
+    datum is in the metadata and band 1's unit is metre (io/crs_tags.geotiff_georef): the .tif copied
+    alone keeps both, no .aux.xml sidecar is written. Overviews average (no-data and alpha aware).
+    `band_names` describe the bands (GDAL band descriptions).
+    """
+    import rasterio
+    from rasterio.enums import ColorInterp
+    from rasterio.transform import from_origin
+    path = Path(path)
+    data = r.data
+    bands = data.shape[2] if data.ndim == 3 else 1
+    g = geotiff_georef(crs, None if rgba else heights)     # 2D CRS by EPSG code, vertical datum tags (io/crs_tags.py)
+    profile = dict(driver='COG', width=r.shape[1], height=r.shape[0], count=bands, dtype=data.dtype,
+                   crs=g.crs, transform=from_origin(r.x0_m, r.y1_m, r.res_m, r.res_m),
+                   compress='deflate', predictor='yes', blocksize=COG_BLOCK_PX, overviews='auto',
+                   resampling='average', bigtiff='if_safer')
+    if r.nodata is not None and not rgba:
+        profile['nodata'] = r.nodata
+    with rasterio.Env(GDAL_PAM_ENABLED='NO'):
+        with rasterio.open(path, 'w', **profile) as ds:
+            if data.ndim == 2:
+                ds.write(data, 1)
+            else:
+                for b in range(bands):
+                    ds.write(data[:, :, b], b + 1)
+            if rgba:
+                ds.colorinterp = [ColorInterp.red, ColorInterp.green, ColorInterp.blue, ColorInterp.alpha]
+            elif g.height_unit:
+                ds.units = (g.height_unit,) + ('',) * (bands - 1)
+            for i, name in enumerate(band_names[:bands]):
+                ds.set_band_description(i + 1, name)
+            ds.update_tags(**g.tags, **({'DESCRIPTION': description} if description else {}))
+    Path(str(path) + '.aux.xml').unlink(missing_ok=True)
+    return path
+
+
+def read_crs(path: str | Path):
+    """The pyproj CRS a GeoTIFF holds in its own GeoKeys (no sidecar read), or None."""
+    import rasterio
+    from pyproj import CRS
+    with rasterio.Env(GDAL_PAM_ENABLED='NO'):
+        with rasterio.open(path) as ds:
+            return CRS.from_wkt(ds.crs.to_wkt()) if ds.crs else None
+
+
+@dataclass
+class DsmParams:
+    """How the DSM is gridded from the fused cells (core/raster.dsm_from_points).
+
+    A DSM cell straddling a wall is no-data rather than half-way up it; a cell needs `min_count` fused
+    cells (a sliver of roof or ground alone sits off the cell centre, where a wall makes its height
+    wrong); gaps up to `fill_gaps_m` between agreeing sides (textureless tracks) are interpolated. On
+    the sample flight these took the DSM RMSE against the true DEM from 2.8 to 2.0 GSD. The two
+    lengths are the sample's (0.5 m, 3 m with 0.12 m cells) scaled with the map's cell size unless
+    set (core/gsd.dsm_lengths_for_cell): with the sample's lengths a 1080p flight at 166 m, whose
+    cells are 0.4 m, kept 2.8 % of its DSM.
+    """
+    max_spread_m: float = param(AUTO, 'a DSM cell whose fused points span more height is no-data (a wall), m; '
+                                      '-1: from the map cell (0.5 m at 0.12 m cells)', min=AUTO, max=1e3)
+    min_count: int = param(3, 'fused cells a DSM cell needs', min=1, max=100)
+    fill_gaps_m: float = param(AUTO, 'gaps up to this wide between agreeing sides are interpolated, m (0: none); '
+                                     '-1: from the map cell (3 m at 0.12 m cells)', min=AUTO, max=1e4)
+    canopy_top: bool = param(True, 'a DSM cell whose points spread more than max_spread_m keeps the top (upper '
+                                   'quartile) of its heights when the heights around it run on without a wall\'s '
+                                   'gap (vegetation: core/raster.rough_surface_cells); False: every such cell is '
+                                   'no-data')
+    fill: bool = param(True, 'cells stereo did not measure, inside the hull of the camera centres (widened by a '
+                             'quarter of the flying height), are interpolated from the measured heights around '
+                             'them; band 2 of dsm.tif says which: pairs that measured the cell, 0 where '
+                             'interpolated; False: no-data there')
+
+    def check(self) -> None:
+        for name in ('max_spread_m', 'fill_gaps_m'):
+            v = getattr(self, name)
+            if v != AUTO and v < 0:
+                raise ConfigError(f'DSM parameter {name!r} = {v} must be at least 0, or -1 to follow the map cell')
+
+    def for_cell(self, cell_m: float) -> 'DsmParams':
+        """A copy with the AUTO lengths set for fused cells of `cell_m`."""
+        spread, gaps = dsm_lengths_for_cell(cell_m)
+        return DsmParams(spread if self.max_spread_m == AUTO else self.max_spread_m, self.min_count,
+                         gaps if self.fill_gaps_m == AUTO else self.fill_gaps_m, self.canopy_top, self.fill)
+
+
+def dsm_in_crs(cloud: GeoCloud, res_m: float, dsm: DsmParams, bounds=None) -> Raster:
+    """The DSM of `cloud` at `res_m` with resolved DsmParams (DsmParams.for_cell); `bounds` (west, south,
+    east, north) fixes the grid (default: the cloud's extent)."""
+    if AUTO in (dsm.max_spread_m, dsm.fill_gaps_m):
+        raise ConfigError('DsmParams left to the map cell: resolve them first (DsmParams.for_cell)')
+    return dsm_from_points(cloud.x, cloud.y, cloud.z, res_m, weights=cloud.count, max_spread_m=dsm.max_spread_m,
+                           z_sigma=cloud.sigma_z, min_count=dsm.min_count, fill_gaps_m=dsm.fill_gaps_m,
+                           canopy=dsm.canopy_top, bounds=bounds)
+
+
+FILLED = 0.0     # band 2 of dsm.tif for a cell no stereo pair measured (interpolated)
+FILL_MARGIN_AGL = 0.25   # the filled area reaches this share of the flying height beyond the camera centres' hull
+
+
+@dataclass
+class Surface:
+    """The DSM as exported: heights (band 1) and how each cell was obtained (band 2)."""
+    dsm: Raster                  # float32 heights, NODATA where nothing is known
+    pairs: np.ndarray            # float32 (rows, cols): pairs that measured the cell; FILLED; NODATA
+    region: np.ndarray           # bool: the cells filling may reach (camera centres' hull, widened)
+    camera_hull: np.ndarray      # bool: the cells inside the convex hull of the camera centres
+
+    def shares(self, mask: np.ndarray) -> dict:
+        """Shares of the cells of `mask` holding a height, measured by stereo pairs, interpolated."""
+        n = max(int(mask.sum()), 1)
+        p = self.pairs[mask]
+        return {'cells': int(mask.sum()), 'valid': float(np.sum(p != NODATA) / n),
+                'measured': float(np.sum((p != NODATA) & (p >= 1)) / n),
+                'filled': float(np.sum(p == FILLED) / n)}
+
+
+def surface_in_crs(fusion: Fusion, origin: LocalFrame, crs: str, heights: str, res_m: float, rules: DsmParams,
+                   min_pairs: int, camera_centres_map: np.ndarray, cloud: GeoCloud | None = None) -> Surface:
+    """The DSM in `crs` from the cells `min_pairs` pairs measured; with rules.fill the cells it leaves
+    inside what the photos saw are interpolated from the heights around them (core/raster.fill_surface).
+
+    What the photos saw: the convex hull of the camera centres (`camera_centres_map`, (K, 3) map ENU),
+    widened by FILL_MARGIN_AGL times the height above the DSM's median (the ground around the nadir
+    points that every photo of a line holds). Cells one pair measured are not used: on the simulator
+    they were worse than interpolation (median 1.5 against 1.1 GSD over the flown area), on brighton
+    no better (0.32 against 0.32 m median against OpenDroneMap). `cloud`: map_cloud(fusion, origin,
+    crs, heights, min_pairs) if already made.
+    """
+    cloud = cloud or map_cloud(fusion, origin, crs, heights, min_pairs)
+    grid = dsm_in_crs(cloud, res_m, rules)
+    measured = grid.valid()
+    pairs = np.where(measured, cell_max(cloud.x, cloud.y, cloud.pairs, grid).astype(np.float32), NODATA)
+    cam_hull = region = np.zeros(grid.shape, bool)
+    if len(camera_centres_map) and measured.any():
+        ce, cn, ch = enu_to_crs(origin, np.asarray(camera_centres_map, float), crs, heights)
+        cam_hull = hull_mask(grid.shape, *grid.to_pixel(ce, cn))
+        agl_m = max(float(np.median(ch) - np.median(grid.data[measured])), 0.0)
+        r = int(round(FILL_MARGIN_AGL * agl_m / grid.res_m))
+        region = cam_hull.copy()
+        if r > 0:
+            import cv2
+            cols, rows = grid.to_pixel(ce, cn)
+            seed = np.zeros(grid.shape, np.uint8)
+            seed[cam_hull] = 1
+            ok = (cols >= 0) & (rows >= 0) & (cols < grid.shape[1]) & (rows < grid.shape[0])
+            seed[np.round(rows[ok]).astype(int), np.round(cols[ok]).astype(int)] = 1
+            region = cv2.dilate(seed, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))) > 0
+    if rules.fill and region.any():
+        d = fill_surface(grid.data, region)
+        pairs[(d != NODATA) & (pairs == NODATA)] = FILLED
+        grid = Raster(d, grid.x0_m, grid.y1_m, grid.res_m, NODATA)
+    pairs[(grid.data != NODATA) & (pairs == NODATA)] = FILLED
+    return Surface(grid, pairs, region, cam_hull)
+
+
+class StoredKeyframes(Sequence):
+    """The map folder's keyframes whose image has the camera's size, as core/raster.Keyframe, each image
+    decoded when it is read (the orthomosaic drapes them one at a time): one image in memory, not the
+    flight's. The sizes come from the JPEG headers (with their EXIF orientation, as cv2.imread applies it)."""
+
+    def __init__(self, store: MapStore):
+        self.camera = store.load_camera()
+        self.entries = []
+        if self.camera is None:
+            return
+        for kf in store.keyframes():
+            if _image_size(kf['image_path']) == (self.camera.width, self.camera.height):
+                self.entries.append((kf['image_path'], kf['map_T_cam']))
+
+    def __len__(self) -> int:
+        return len(self.entries)
+
+    def __getitem__(self, i) -> Keyframe:
+        import cv2
+        path, map_T_cam = self.entries[i]
+        img = cv2.imread(str(path), cv2.IMREAD_COLOR)
+        if img is None or img.shape[:2] != (self.camera.height, self.camera.width):
+            raise DataError(f'keyframe image {path} cannot be read as a {self.camera.width}x{self.camera.height} '
+                            'photo (changed since the export began?)')
+        return Keyframe(img, map_T_cam, self.camera)
+
+
+def _image_size(path) -> tuple[int, int] | None:
+    """(width, height) of an image file as cv2.imread would decode it (EXIF orientation applied), from its
+    header; None when it cannot be read."""
+    from PIL import Image, UnidentifiedImageError
+    try:
+        with Image.open(path) as im:
+            w, h = im.size
+            turned = im.getexif().get(0x0112, 1) in (5, 6, 7, 8)
+    except (OSError, UnidentifiedImageError, ValueError):
+        return None
+    return (h, w) if turned else (w, h)
+
+
+def ortho_in_crs(dsm_ellipsoidal: Raster, keyframes: Sequence[Keyframe], origin: LocalFrame, crs: str,
+                 res_m: float | None = None, progress=None) -> Raster:
+    """Orthomosaic on a DSM gridded in `crs` whose values are WGS84 ellipsoidal heights. RGBA.
+    `progress(done, total)`: keyframes draped so far (core/raster.orthomosaic)."""
+    bgra = orthomosaic(dsm_ellipsoidal, keyframes, lambda e, n, h: crs_to_enu(origin, e, n, h, crs), res_m,
+                       progress=progress)
+    rgba = bgra.data[:, :, [2, 1, 0, 3]].copy()
+    return Raster(rgba, bgra.x0_m, bgra.y1_m, bgra.res_m, None)
