@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import sys
+
 from photogram_ros.io.fix_rows import RowWriter, fix_row, navsat_row
 
 HELP = 'print the GNSS fixes of a .tlog, dataflash .bin, bag or live MAVLink link as CSV, GeoJSON or JSON lines'
@@ -138,7 +140,11 @@ def _event_rows(a):
     from photogram_ros.core.exposure_positions import gps_s_to_utc_unix, gps_s_to_week_tow
     from photogram_ros.io.camera_events import read_events
     from photogram_ros.io.fix_rows import utc_text
-    for ev in read_events(a.source, a.event_type):
+    notes: list[str] = []
+    events = read_events(a.source, a.event_type, notes)
+    for note in notes:
+        print(f'note: {note}', file=sys.stderr)
+    for ev in events:
         week, tow = gps_s_to_week_tow(ev.t_gps_s)
         unix = gps_s_to_utc_unix(ev.t_gps_s)
         llh = ev.logged_llh or (None, None, None)
