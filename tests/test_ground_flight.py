@@ -21,7 +21,7 @@ import pytest
 
 from bench.ground_flight import BAG, Station, page_figures, replay
 from conftest import ROOT
-from figures import figure
+from figures import newest_figure
 
 pytestmark = [pytest.mark.ros, pytest.mark.slow]
 
@@ -84,7 +84,7 @@ def test_plain_flight_is_never_nogo_and_ends_go(plain):
 
 
 # What bench/ground_flight.py measured on the same flight: the gates below hold each figure within 1.5x.
-GROUND_RESULT = 'ground_flight_99ec1ad.jsonl'
+GROUND_RESULT = 'ground_flight*.jsonl'   # the newest result file of the bench (tests/figures.newest_figure)
 # The page and the report intersect the tracker's detections by one method (core.evaluation.intersect_targets):
 # equal to rounding. The gate on their difference: 1.5x the larger of the measured difference and 0.001 mm.
 EQUAL_M = 1e-6
@@ -96,7 +96,7 @@ def test_in_flight_check_points_after_the_final_georeference_are_near_the_final_
     polls = [_summary(s) for _, s in plain['polls']]
     live = [p for p in polls if p['georef'] == 'final' and p['check_n']]
     print([round(p['check_h_m'], 4) for p in live])
-    m = figure(GROUND_RESULT, bench='ground_flight')
+    ground_result, m = newest_figure(GROUND_RESULT, bench='ground_flight')
     assert len(live) >= m['live_final_polls'] / 1.5
     # The check-point figures pass in every such poll (a poll may still WAIT for the coverage to be measured).
     assert not [p for p in live if p['verdict'] == 'NO-GO' or any(r.startswith('check points') for r in p['reasons'])]
@@ -108,8 +108,8 @@ def test_page_check_points_equal_the_report_and_hold_the_measured_figures(plain)
     """The page (bundle_node's last map/control_points) and the report: the same check points and GCP
     residuals, and those the figures of the result file (within 1.5x)."""
     got = page_figures(plain['final'], plain['report'], plain['polls'])
-    m = figure(GROUND_RESULT, bench='ground_flight')
-    print({k: got[k] for k in got}, f'measured ({GROUND_RESULT}):', {k: m[k] for k in got})
+    ground_result, m = newest_figure(GROUND_RESULT, bench='ground_flight')
+    print({k: got[k] for k in got}, f'measured ({ground_result}):', {k: m[k] for k in got})
     assert got['page_check_n'] == got['report_check_n'] == m['page_check_n']
     for k in ('check_diff_h_m', 'check_diff_v_m', 'gcp_diff_h_m', 'gcp_diff_v_m'):
         assert got[k] <= 1.5 * max(m[k], EQUAL_M), k

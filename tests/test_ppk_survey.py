@@ -15,10 +15,10 @@ from __future__ import annotations
 import pytest
 
 from bench import ppk_survey as ppk_bench
-from figures import figure
+from figures import newest_figure
 
 # What bench/ppk_survey.py measured; the gates below hold each figure within 1.5x.
-PPK_RESULT = 'ppk_survey_316199d.jsonl'
+PPK_RESULT = 'ppk_survey*.jsonl'   # the newest result file of the bench (tests/figures.newest_figure)
 
 
 @pytest.fixture(scope='module')
@@ -43,8 +43,8 @@ def test_ppk_camera_positions(flight, geotagged, tmp_path):
     from photogram_ros.io.camera_events import read_mrk
     assert {r.flag for r in read_mrk(root / 'ppk' / 'Timestamp.MRK')} == {16}
     got = ppk_bench.camera_positions(root, truth, tmp_path)
-    m = figure(PPK_RESULT, case='camera_positions')
-    print({k: got[k] for k in got}, f'measured ({PPK_RESULT}):', {k: m[k] for k in got})
+    ppk_result, m = newest_figure(PPK_RESULT, case='camera_positions')
+    print({k: got[k] for k in got}, f'measured ({ppk_result}):', {k: m[k] for k in got})
     # The geotags against the true camera centres (the PPK error model's few centimetres).
     assert got['median_m'] <= 1.5 * m['median_m']
     # The ArduPilot log's CAM (attitude in 0.01 deg) + lever arm and the .tlog's CAMERA_FEEDBACK against the MRK
@@ -66,8 +66,8 @@ def test_ppk_triangulation_without_gcps_against_exif_gps(flight, geotagged, tmp_
                                        'triangulate_exif_gps'))
     assert ppk['check_n'] >= 4 and cal['check_n'] == exif['check_n'] == ppk['check_n']
     for case in ('triangulate_ppk_exif_camera', 'triangulate_ppk_calibrated'):
-        m = figure(PPK_RESULT, case=case)
+        ppk_result, m = newest_figure(PPK_RESULT, case=case)
         assert got[case]['check_h_m'] <= 1.5 * m['check_h_m'] and got[case]['check_v_m'] <= 1.5 * m['check_v_m'], case
     # EXIF GPS alone: metres off (the baseline the PPK geotags improve on), within 1.5x of its measure either way.
-    m = figure(PPK_RESULT, case='triangulate_exif_gps')
+    ppk_result, m = newest_figure(PPK_RESULT, case='triangulate_exif_gps')
     assert m['check_h_m'] / 1.5 <= exif['check_h_m'] <= 1.5 * m['check_h_m']
