@@ -3,7 +3,8 @@
 Two flights (--flight): toledo (below), or `sim`: the simulator's survey (SIM_FLIGHT: 6 lines of 350 m at
 80 m above ground, 8 m/s, a photo every second, 317 photos, 9 ArUco targets surveyed in its control file)
 rendered at 1368 x 912 and upscaled x4 to 20 MP (build_sim_flight; cached in
-/tmp/photogram_bench_cache/inflight_20mp_sim_<n>), played at its own 1 s period with its control file given to
+/tmp/photogram_bench_cache/inflight_20mp_sim_<n>), played at --periods (1 s: its own timing; 0.7 s: 1/0.7 times as
+fast, the same photos a camera takes every 0.7 s) with its control file given to
 the adjuster (and through the graph to the tracker's target search). Rendering takes about 8 CPU
 minutes (39 min wall on the loaded 2-core machine), upscaling about 1 CPU s a photo, once.
 
@@ -32,7 +33,13 @@ last minute), the first pose after the first photo, what was shed (frames the tr
 stereo pairs were shed, ortho batches deferred), the real-time factor of the play (flight seconds
 over wall seconds until the map fused its last cloud), peak RSS of both processes (and their sum, an upper
 bound of all mapping processes' peak together), the tracker's target search counts, and the cores and
-load average of the machine around the run (bench/machine.py).
+load average of the machine around the run (bench/machine.py). Also: the lag from exposure to the keyframe's first
+final (not provisional) pose and from that pose to its first fused cloud (the part stereo and the map add), and how
+far the poses moved after their first fused cloud (pose_moved_after_fused: was pairing that early sound).
+With --export-dsm, after each run `photogram-ros export MAP --densify --products dsm` on its stored map (the pairs
+shed in flight matched there from the stored keyframes); each later run's DSM against the first run's
+(inflight_20mp_dsm rows: median and p90 |dz| over the cells stereo measured in both, in m and in the GSD, with both
+runs' shed counts and the shed WARNs said on /diagnostics).
 
     .venv/bin/python bench/inflight_20mp.py [--periods 2,1] [--photos 42] [--set tracker.X=V] [--table out.md]
 """
@@ -223,13 +230,37 @@ def build_sim_flight(n_photos: int) -> tuple[Path, Path, Path]:
     return folder, calib, control
 
 
-def pct(v: list, q: float):
+def pct(v: list, q: float, digits: int = 2):
     import numpy as np
-    return round(float(np.percentile(v, q)), 2) if v else None
+    return round(float(np.percentile(v, q)), digits) if v else None
 
 
-def lag_stats(v: list) -> dict:
-    return {'n': len(v), 'p50': pct(v, 50), 'p95': pct(v, 95), 'max': round(max(v), 2) if v else None}
+def lag_stats(v: list, digits: int = 2) -> dict:
+    return {'n': len(v), 'p50': pct(v, 50, digits), 'p95': pct(v, 95, digits),
+            'max': round(max(v), digits) if v else None}
+
+
+def pose_moved_after_fused(history: dict, fused_at: dict, flight_end: float) -> dict:
+    """How far each keyframe's pose moved after its first fused cloud (the pose stereo paired it with: its last
+    final pose before then) until its last pose in flight and its last pose at all (the final adjustment's): the
+    centre in m and the rotation in degrees, p50/p95/max over the fused keyframes."""
+    import numpy as np
+    out = {}
+    for name, until in (('in_flight', flight_end), ('final', float('inf'))):
+        move_m, turn_deg = [], []
+        for s, t_fused in fused_at.items():
+            final = [(t, T) for t, prov, T in history.get(s, ()) if not prov]
+            at = [T for t, T in final if t <= t_fused]
+            later = [T for t, T in final if t <= until]
+            if not at or not later:
+                continue
+            A, B = at[-1], later[-1]
+            move_m.append(float(np.linalg.norm(B[:3, 3] - A[:3, 3])))
+            c = (np.trace(A[:3, :3].T @ B[:3, :3]) - 1.0) / 2.0
+            turn_deg.append(float(np.degrees(np.arccos(np.clip(c, -1.0, 1.0)))))
+        out[f'centre_m_{name}'] = lag_stats(move_m, 3)
+        out[f'rotation_deg_{name}'] = lag_stats(turn_deg, 4)
+    return out
 
 
 class PoseListener:
@@ -243,11 +274,19 @@ class PoseListener:
 
         from photogram_ros import msgs
         self.first: dict[int, float] = {}
+        self.first_final: dict[int, float] = {}   # the first pose that was not provisional
+        self.history: dict[int, list] = {}        # stamp -> [(monotonic, provisional, map_T_cam)]
+
+        def on_pose(m):
+            now, s = time.monotonic(), msgs.ns_from_time(m.header.stamp)
+            provisional = msgs.pose_is_provisional(m)
+            self.first.setdefault(s, now)
+            if not provisional:
+                self.first_final.setdefault(s, now)
+            self.history.setdefault(s, []).append((now, provisional, msgs.T_from_pose_with_covariance(m)[0]))
         self.node = rclpy.create_node('bench_pose_listener')
-        self.node.create_subscription(
-            PoseWithCovarianceStamped, '/map/keyframe_pose',
-            lambda m: self.first.setdefault(msgs.ns_from_time(m.header.stamp), time.monotonic()),
-            QoSProfile(depth=200, reliability=ReliabilityPolicy.RELIABLE))
+        self.node.create_subscription(PoseWithCovarianceStamped, '/map/keyframe_pose', on_pose,
+                                      QoSProfile(depth=200, reliability=ReliabilityPolicy.RELIABLE))
         self.ex = SingleThreadedExecutor()
         self.ex.add_node(self.node)
         self._stop = threading.Event()
@@ -273,8 +312,10 @@ def run_period(a, period_s: float, extra: dict, tag: str) -> dict:
     from photogram_ros.nodes.replay_session import ReplayOptions, run_replay
     from replay_probe import Probe, RssSampler
 
+    rate = 1.0
     if a.flight == 'sim':   # the simulated survey: its surveyed targets go to the adjuster (and the tracker)
         folder, calib, control = build_sim_flight(a.photos)
+        rate = 1.0 / period_s   # its photos are 1 s apart: played 1/period_s times as fast
         extra = {**extra, 'bundle': {'control_file': str(control), **extra.get('bundle', {})}}
     else:
         folder, calib = build_flight(period_s, a.photos)
@@ -305,7 +346,7 @@ def run_period(a, period_s: float, extra: dict, tag: str) -> dict:
     sampler.start()
     t0 = time.monotonic()
     try:
-        res = run_replay(ReplayOptions(bag=str(folder), out=str(out / 'replay'), params_file=a.params, rate=1.0,
+        res = run_replay(ReplayOptions(bag=str(folder), out=str(out / 'replay'), params_file=a.params, rate=rate,
                                        progress=False, extra=extra, calibration_file=str(calib),
                                        child_roles=('bundle', 'stereo', 'map'), frame_timeout_s=0.0,
                                        max_lag_keyframes=0))
@@ -325,7 +366,7 @@ def run_period(a, period_s: float, extra: dict, tag: str) -> dict:
     # Exposure: the photo's time on the camera's schedule (the first photo's publication + its stamp's offset),
     # as a live camera takes it; a camera node late with a photo (decoding the previous) counts in the lags.
     first = min(published) if published else 0
-    exposure = {s: published[first] + (s - first) * 1e-9 for s in published}
+    exposure = {s: published[first] + (s - first) * 1e-9 / rate for s in published}
     camera_late = [published[s] - exposure[s] for s in published]
     probe.merge_child(str(child_out))
     run, diag = res['run'], res['diagnostics']
@@ -350,11 +391,23 @@ def run_period(a, period_s: float, extra: dict, tag: str) -> dict:
     flight_end = max(exposure.values(), default=t0) + period_s
     lag_pose_flight = [poses.first[s] - exposure[s] for s in kf_stamps
                        if s in poses.first and s in exposure and poses.first[s] <= flight_end]
-    flight_s = run['bag_s'] + period_s   # the last photo's period is flown too
+    flight_s = run['bag_s'] / rate + period_s   # the last photo's period is flown too
     # The flight's last minute: keyframes exposed in its last 60 s.
     last_min = {s for s in kf_stamps if s in exposure and exposure[s] >= flight_end - period_s - 60.0}
     lag_pose_last = [poses.first[s] - exposure[s] for s in last_min if s in poses.first]
     lag_cloud_last = [probe.kf_fused[s][0] - exposure[s] for s in last_min if s in probe.kf_fused]
+    # The stereo node pairs final (not provisional) poses: the lag it adds is final pose -> fused cloud.
+    lag_final_pose = [poses.first_final[s] - exposure[s] for s in kf_stamps if s in poses.first_final and s in exposure]
+    lag_final_to_cloud = [probe.kf_fused[s][0] - poses.first_final[s] for s in kf_stamps
+                          if s in probe.kf_fused and s in poses.first_final]
+    lag_final_to_cloud_last = [probe.kf_fused[s][0] - poses.first_final[s] for s in last_min
+                               if s in probe.kf_fused and s in poses.first_final]
+    if a.keep:   # every pose each keyframe was given (monotonic s, provisional, map_T_cam), and when it was fused
+        (out / 'pose_history.json').write_text(json.dumps(
+            {'poses': {str(s): [(t, p, T.tolist()) for t, p, T in h] for s, h in poses.history.items()},
+             'fused': {str(s): v[0] for s, v in probe.kf_fused.items()},
+             'exposure': {str(s): v for s, v in exposure.items()}, 'flight_end': flight_end}))
+    moved = pose_moved_after_fused(poses.history, {s: v[0] for s, v in probe.kf_fused.items()}, flight_end)
     first_photo = min(exposure.values(), default=None)
     first_pose_s = (round(min(poses.first.values()) - first_photo, 2)
                     if poses.first and first_photo is not None else None)
@@ -363,6 +416,10 @@ def run_period(a, period_s: float, extra: dict, tag: str) -> dict:
             'stereo_pairs_shed': sum(v for k, v in stereo.items() if k.startswith('pairs_shed')),
             'ortho_batches_deferred': map_counts.get('ortho_batches_deferred', 0)}
     tracker_node = 'tracker_node'
+    sdiag = diag.get('stereo_node', diag.get('/stereo_node', {}))
+    # What was shed as /diagnostics said it: the stereo node's WARNs about shed pairs, the tracker's drops.
+    shed['said_on_diagnostics'] = sorted({text for _, text in sdiag.get('problems', []) if 'shed' in text})
+    shed['gsd_m'] = sdiag.get('values', {}).get('gsd_m')
     tdiag = diag.get(tracker_node, diag.get('/' + tracker_node, {})).get('values', {})
     row = {'bench': 'inflight_20mp', 'flight': a.flight, 'config': tag, 'period_s': period_s,
            'size': f'{SIZE[0]}x{SIZE[1]}', **CODE,
@@ -380,6 +437,10 @@ def run_period(a, period_s: float, extra: dict, tag: str) -> dict:
            'lag_exposure_to_pose_last_minute_s': lag_stats(lag_pose_last),
            'lag_exposure_to_fused_cloud_last_minute_s': lag_stats(lag_cloud_last),
            'first_pose_after_first_photo_s': first_pose_s,
+           'lag_exposure_to_final_pose_s': lag_stats(lag_final_pose),
+           'lag_final_pose_to_fused_cloud_s': lag_stats(lag_final_to_cloud),
+           'lag_final_pose_to_fused_cloud_last_minute_s': lag_stats(lag_final_to_cloud_last),
+           'pose_moved_after_fused': moved,
            'shed': shed,
            'camera_late_s': lag_stats(camera_late),
            'stereo': {k: stereo[k] for k in sorted(stereo) if k.startswith(('pairs', 'keyframes', 'images'))},
@@ -397,6 +458,7 @@ def run_period(a, period_s: float, extra: dict, tag: str) -> dict:
            'peak_rss_all_mapping_mb_upper_bound': round(sampler.peak_mb + (probe.child_figures.get('peak_rss_mb') or 0.0), 1),
            'cores': os.cpu_count(), 'load_avg_before': [round(x, 2) for x in load_before],
            'load_avg_after': [round(x, 2) for x in load_after]}
+    row['map_dir'] = str(res['map_dir'])
     emit(row)
     per = {k: v for k, v in probe.breakdown(run['wall_s']).items() if v['calls']}
     emit({'bench': 'inflight_20mp_methods', 'config': tag, 'methods': per})
@@ -420,6 +482,8 @@ TABLE_ROWS = [
     ('lag exposure -> pose in the last minute p50/p95 (n)', lambda r: '{p50}/{p95} ({n})'.format(
         **r.get('lag_exposure_to_pose_last_minute_s', {'p50': None, 'p95': None, 'n': 0}))),
     ('first pose after the first photo, s', lambda r: r.get('first_pose_after_first_photo_s')),
+    ('lag final pose -> fused cloud p50/p95 (n)', lambda r: '{p50}/{p95} ({n})'.format(
+        **r.get('lag_final_pose_to_fused_cloud_s', {'p50': None, 'p95': None, 'n': 0}))),
     ('keyframes in fused clouds', lambda r: r['keyframes_in_fused_clouds']),
     ('stereo pairs done / skipped', lambda r: f"{r['stereo'].get('pairs_done', 0)} / "
      f"{sum(v for k, v in r['stereo'].items() if k.startswith('pairs_skipped'))}"),
@@ -429,6 +493,70 @@ TABLE_ROWS = [
     ('peak RSS main / child, MB', lambda r: f"{r['peak_rss_mb']} / {r['child_peak_rss_mb']}"),
     ('cores, load avg (1 min) before/after', lambda r: f"{r['cores']}, {r['load_avg_before'][0]}/{r['load_avg_after'][0]}"),
 ]
+
+
+def utm_epsg(lat_deg: float, lon_deg: float) -> str:
+    zone = int((lon_deg + 180.0) // 6.0) % 60 + 1
+    return f'EPSG:{32600 + zone if lat_deg >= 0 else 32700 + zone}'
+
+
+def export_dsm(map_dir: str, out: Path, params: str) -> dict:
+    """`photogram-ros export MAP --densify --products dsm` as a surveyor runs it after landing (the pairs shed in
+    flight are matched there from the stored keyframes, io/densify.py); the DSM's path, the wall time and what
+    export printed."""
+    import subprocess
+
+    from photogram_ros.io.map_store import MapStore
+    origin = MapStore(map_dir).origin
+    crs = utm_epsg(origin.lat_deg, origin.lon_deg)
+    env = {**os.environ, 'PYTHONPATH': str(ROOT)}
+    env.pop('PHOTOGRAM_PROBE_CHILD_OUT', None)
+    t0 = time.perf_counter()
+    r = subprocess.run([sys.executable, '-m', 'photogram_ros.cli', 'export', map_dir, '--crs', crs, '--out', str(out),
+                        '--densify', '--params', params, '--products', 'dsm', '--quiet'],
+                       capture_output=True, text=True, env=env)
+    return {'dsm': str(out / 'dsm.tif'), 'crs': crs, 'exit': r.returncode, 'wall_s': round(time.perf_counter() - t0, 1),
+            'printed': r.stdout.strip().splitlines()[:3] + ([r.stderr.strip()[-400:]] if r.returncode else [])}
+
+
+def compare_dsm(dsm: str, reference: str) -> dict:
+    """|dz| between two DSM GeoTIFFs over the cells stereo measured in both (band 2 > 0: not interpolated), the
+    DSM resampled onto the reference's grid (nearest): median, p90, the cells compared."""
+    import numpy as np
+    import rasterio
+    from rasterio.warp import Resampling, reproject
+    with rasterio.open(reference) as ref, rasterio.open(dsm) as ds:
+        z_ref, n_ref = ref.read(1).astype(float), ref.read(2)
+        z, n = np.full(z_ref.shape, np.nan), np.zeros(z_ref.shape, np.float32)
+        src_z = ds.read(1).astype(float)
+        if ds.nodata is not None:
+            src_z[src_z == ds.nodata] = np.nan
+        reproject(src_z, z, src_transform=ds.transform, src_crs=ds.crs, dst_transform=ref.transform, dst_crs=ref.crs,
+                  resampling=Resampling.nearest, src_nodata=np.nan, dst_nodata=np.nan)
+        reproject(ds.read(2).astype(np.float32), n, src_transform=ds.transform, src_crs=ds.crs,
+                  dst_transform=ref.transform, dst_crs=ref.crs, resampling=Resampling.nearest)
+        if ref.nodata is not None:
+            z_ref[z_ref == ref.nodata] = np.nan
+    both = np.isfinite(z) & np.isfinite(z_ref) & (n > 0) & (n_ref > 0)
+    dz = np.abs(z[both] - z_ref[both])
+    return {'cells_compared': int(both.sum()), 'cells_reference_measured': int(np.sum(np.isfinite(z_ref) & (n_ref > 0))),
+            'median_abs_dz_m': round(float(np.median(dz)), 4) if dz.size else None,
+            'p90_abs_dz_m': round(float(np.percentile(dz, 90)), 4) if dz.size else None}
+
+
+def dsm_row(a, row: dict, ref: dict, out_root: Path) -> dict:
+    """Export the run's stored map (densify included) and compare its DSM with the reference run's."""
+    mine = export_dsm(row['map_dir'], out_root / f"export_{row['config']}", a.params)
+    d = {'bench': 'inflight_20mp_dsm', 'config': row['config'], 'reference': ref['config'], **CODE,
+         'export': mine, 'reference_export': ref.get('export'), 'shed': row['shed'], 'reference_shed': ref['shed']}
+    if mine['exit'] == 0 and ref.get('export', {}).get('exit') == 0:
+        d.update(compare_dsm(mine['dsm'], ref['export']['dsm']))
+        g = row['shed'].get('gsd_m') or ref['shed'].get('gsd_m')
+        if g and d['median_abs_dz_m'] is not None:
+            d['gsd_m'] = g
+            d['median_abs_dz_gsd'] = round(d['median_abs_dz_m'] / g, 3)
+            d['within_1_gsd'] = d['median_abs_dz_gsd'] <= 1.0
+    return d
 
 
 def table(rows: list[dict]) -> str:
@@ -453,7 +581,7 @@ def main() -> int:
     ap.add_argument('--periods', default='2,1', help='photo periods to run, s (comma list)')
     ap.add_argument('--flight', default='toledo', choices=('toledo', 'sim'),
                     help='toledo\'s 42 real photos upscaled, or the simulated survey (317 photos, a second apart, '
-                         'with surveyed targets; its period is always 1 s)')
+                         'with surveyed targets; played 1/period times as fast: at 0.7 s a photo every 0.7 s)')
     ap.add_argument('--photos', type=int, default=42, help='photos used (toledo: at most 42; sim: at most 317)')
     ap.add_argument('--params', default=str(ROOT / 'config' / 'replay.yaml'))
     ap.add_argument('--set', action='append', default=[], metavar='ROLE.PARAM=VALUE',
@@ -466,6 +594,9 @@ def main() -> int:
     ap.add_argument('--out', default='', help='append every JSON line to this file (e.g. '
                                                'bench/results/inflight_20mp_<commit>.jsonl)')
     ap.add_argument('--build-only', action='store_true')
+    ap.add_argument('--export-dsm', action='store_true',
+                    help='after each run, `export --densify --products dsm` its stored map; the first period\'s '
+                         'run is the reference the later ones\' DSMs are compared with (median |dz|, in GSD)')
     a = ap.parse_args()
     periods = [float(p) for p in a.periods.split(',') if p.strip()]
     if a.out:
@@ -480,12 +611,22 @@ def main() -> int:
         return 0
     extra = parse_sets(a.set)
     rows = []
+    ref = None   # the first run, exported: the DSM the later runs' are compared with (--export-dsm)
+    out_root = Path(a.keep) if a.keep else Path(tempfile.mkdtemp(prefix='inflight20mp_dsm_'))
     for p in periods:
         if a.baseline_set:
             base_extra = {r: {**extra.get(r, {}), **v} for r, v in parse_sets(a.baseline_set).items()}
             base_extra = {**extra, **base_extra}
             rows.append(run_period(a, p, base_extra, f'{p:g}s_baseline'))
         rows.append(run_period(a, p, extra, f'{p:g}s'))
+        if a.export_dsm:
+            if ref is None:
+                ref = dict(rows[-1], export=export_dsm(rows[-1]['map_dir'], out_root / f"export_{rows[-1]['config']}",
+                                                       a.params))
+                emit({'bench': 'inflight_20mp_dsm', 'config': ref['config'], 'reference': None, **CODE,
+                      'export': ref['export'], 'shed': ref['shed']})
+            else:
+                emit(dsm_row(a, rows[-1], ref, out_root))
         if a.baseline_set:
             b, n = rows[-2], rows[-1]
             emit({'bench': 'inflight_20mp_compare', 'period_s': p, 'baseline': a.baseline_set,

@@ -36,11 +36,11 @@ from dataclasses import dataclass
 from geometry_msgs.msg import PoseWithCovarianceStamped
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.node import Node
-from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image, NavSatFix, PointCloud2
 
 from photogram_ros import msgs
 from photogram_ros.core.pace import ThreadCaps, limit_threads
+from photogram_ros.nodes import qos
 from photogram_ros.nodes.diagnostics import Diagnostics, steady_timer
 from photogram_ros.nodes.node_main import run_node
 from photogram_ros.nodes.ros_params import declare
@@ -73,17 +73,13 @@ class _Publishers(MapOutputs):
     """The map's streams as messages on the node's topics."""
 
     def __init__(self, node: Node, p: MapParams):
-        latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
-                             durability=DurabilityPolicy.TRANSIENT_LOCAL)
-        self.stream_pub = node.create_publisher(PointCloud2, TOPIC_DOWNSAMPLED,
-                                                QoSProfile(depth=2, reliability=ReliabilityPolicy.BEST_EFFORT))
+        self.stream_pub = node.create_publisher(PointCloud2, TOPIC_DOWNSAMPLED, qos.best_effort(2))
         self.ortho_pub = self.coverage_pub = None
         if p.ortho:   # one message per tile: a batch must fit the history
-            self.ortho_pub = node.create_publisher(CompressedImage, TOPIC_ORTHO, QoSProfile(
-                depth=p.ortho_max_tiles, reliability=ReliabilityPolicy.BEST_EFFORT))
+            self.ortho_pub = node.create_publisher(CompressedImage, TOPIC_ORTHO, qos.best_effort(p.ortho_max_tiles))
         if p.coverage:
             from std_msgs.msg import String
-            self.coverage_pub = node.create_publisher(String, TOPIC_COVERAGE, latched)
+            self.coverage_pub = node.create_publisher(String, TOPIC_COVERAGE, qos.latched())
 
     def stream(self, points, stamp_ns):
         self.stream_pub.publish(msgs.pointcloud2_msg(points, stamp_ns, 'map'))
@@ -107,33 +103,30 @@ class MapNode(Node):
         group = MutuallyExclusiveCallbackGroup()   # the map is not thread-safe; graph.py spins multi-threaded
         # KEEP_ALL: the map is the sink that persists the flight; a burst of pair clouds while it is
         # fusing must queue, not overwrite clouds that were never fused.
-        reliable = QoSProfile(history=HistoryPolicy.KEEP_ALL, depth=1, reliability=ReliabilityPolicy.RELIABLE)
-        latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
-                             durability=DurabilityPolicy.TRANSIENT_LOCAL)
-        self.create_subscription(PointCloud2, TOPIC_CLOUD, self._on_cloud, reliable, callback_group=group)
-        self.create_subscription(NavSatFix, TOPIC_GEOREFERENCE, self._on_georeference, latched,
+        self.create_subscription(PointCloud2, TOPIC_CLOUD, self._on_cloud, qos.keep_all(), callback_group=group)
+        self.create_subscription(NavSatFix, TOPIC_GEOREFERENCE, self._on_georeference, qos.latched(),
                                  callback_group=group)
         if p.save_keyframes:
-            self.create_subscription(Image, TOPIC_IMAGE, self._on_image, reliable, callback_group=group)
-            self.create_subscription(CompressedImage, TOPIC_IMAGE_FULL, self._on_image_jpeg, reliable,
+            self.create_subscription(Image, TOPIC_IMAGE, self._on_image, qos.keep_all(), callback_group=group)
+            self.create_subscription(CompressedImage, TOPIC_IMAGE_FULL, self._on_image_jpeg, qos.keep_all(),
                                      callback_group=group)
         if p.save_keyframes or p.coverage:
-            self.create_subscription(PoseWithCovarianceStamped, TOPIC_POSE, self._on_pose, reliable,
+            self.create_subscription(PoseWithCovarianceStamped, TOPIC_POSE, self._on_pose, qos.keep_all(),
                                      callback_group=group)
-            self.create_subscription(CameraInfo, TOPIC_INFO, self._on_info, qos_profile_sensor_data,
+            self.create_subscription(CameraInfo, TOPIC_INFO, self._on_info, qos.sensor_data(5),
                                      callback_group=group)
-            self.create_subscription(CameraInfo, TOPIC_CAMERA_FINAL, self._on_final_camera, latched,
+            self.create_subscription(CameraInfo, TOPIC_CAMERA_FINAL, self._on_final_camera, qos.latched(),
                                      callback_group=group)
         if p.save_keyframes:
             from std_msgs.msg import String
-            self.create_subscription(String, TOPIC_CONTROL_POINTS, self._on_control_points, latched,
+            self.create_subscription(String, TOPIC_CONTROL_POINTS, self._on_control_points, qos.latched(),
                                      callback_group=group)
         if p.ortho:
             steady_timer(self, p.ortho_period_s, self._stream_ortho, group)
         if p.coverage:
-            self.create_subscription(PointCloud2, TOPIC_SPARSE, self._on_sparse, QoSProfile(depth=2),
+            self.create_subscription(PointCloud2, TOPIC_SPARSE, self._on_sparse, qos.reliable(2),
                                      callback_group=group)
-            self.create_subscription(NavSatFix, TOPIC_KEYFRAME_FIX, self._on_keyframe_fix, reliable,
+            self.create_subscription(NavSatFix, TOPIC_KEYFRAME_FIX, self._on_keyframe_fix, qos.keep_all(),
                                      callback_group=group)
             steady_timer(self, p.coverage_period_s, self._update_coverage, group)
         steady_timer(self, p.flush_interval_s, self.flush, group)

@@ -8,10 +8,16 @@ one), /camera/camera_info, /map/camera_final (the camera the bundle adjuster's f
 poses with: pairs made after it use that one). Output: /map/dense_cloud (PointCloud2 x, y, z float32 as RViz2 draws them,
 rgb, confidence) per pair, optionally /stereo/disparity, and /diagnostics.
 
+When a keyframe pairs: with its final pose (a provisional one gives no depth) and its older partners, once its
+pose has settled: its last refinement moved it less than settle_move_m and settle_min_keyframes newer keyframes have
+final poses, or its pose stood still for settle_s (the flight's end), or at the latest settle_keyframes newer
+keyframes have final poses. A keyframe waiting for its pose is the last evicted by max_keyframes.
+
 The pace (core/pace.py, config/companion.yaml): with `worker_nice` the pairs are matched in a worker thread
 of that niceness (the callbacks only record and wake it); with `cpu_share` the matching keeps to that share
 of a core, and a keyframe that settles while stereo is over it has its pairs shed (`keyframes_shed`, a WARN)
-but stays a partner of later keyframes; the matching after landing (io/densify.py) plans and matches every
+but stays a partner of later keyframes; a pair whose turn comes more than max_pair_lag_s after its keyframe's
+final pose (stereo starved of CPU, behind) is shed the same way (pairs_shed_late); the matching after landing (io/densify.py) plans and matches every
 pair again from the stored keyframes. The end of flight (`flush`) sheds nothing.
 """
 
@@ -27,7 +33,6 @@ from dataclasses import dataclass
 import numpy as np
 from geometry_msgs.msg import PoseWithCovarianceStamped
 from rclpy.node import Node
-from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
 from sensor_msgs.msg import CameraInfo, Image, NavSatFix, PointCloud2
 from stereo_msgs.msg import DisparityImage
 
@@ -36,7 +41,8 @@ from photogram_ros.core import gsd, offheap, stereo
 from photogram_ros.core.pace import CpuShare, ThreadCaps, limit_threads, nice_this_thread
 from photogram_ros.core.pairs import BELOW_GROUND, PairCriteria, PlannedPair, plan_pairs
 from photogram_ros.errors import PhotogramError
-from photogram_ros.nodes.diagnostics import Diagnostics
+from photogram_ros.nodes import qos
+from photogram_ros.nodes.diagnostics import Diagnostics, steady_timer
 from photogram_ros.nodes.node_main import run_node
 from photogram_ros.nodes.ros_params import declare
 from photogram_ros.params import param
@@ -72,15 +78,30 @@ class StereoNodeParams(stereo.StereoParams, PairCriteria, ThreadCaps):
                                          f'3D fix (~2-4 m) is refused only when the adjustment placed it much '
                                          f'worse than its fix; 0: max_position_sigma_m alone', min=0.0, max=100.0)
     publish_disparity: bool = param(False, f'also publish each pair\'s disparity on {TOPIC_DISPARITY}')
-    settle_keyframes: int = param(10, 'pair a keyframe only once this many newer keyframes have poses: by then '
-                                      'it has left the bundle window and its pose no longer changes (match the '
-                                      'bundle window_size; 0 pairs at once)', min=0, max=1000)
+    settle_keyframes: int = param(10, 'the longest a keyframe waits for its pairs: once this many newer keyframes '
+                                      'have final poses it has left the bundle window and its pose no longer '
+                                      'changes (match the bundle window_size; 0 pairs at once)', min=0, max=1000)
+    settle_min_keyframes: int = param(1, 'a keyframe pairs earlier, once this many newer keyframes have final poses '
+                                         'and its last pose refinement moved it less than settle_move_m (its pose '
+                                         'has settled in the window); >= settle_keyframes: only settle_keyframes',
+                                      min=0, max=1000)
+    settle_move_m: float = param(0.05, 'a pose refinement moving the keyframe less than this has settled it: the '
+                                       'camera centre\'s shift plus its height above the ground times the rotation '
+                                       '(rad), m', min=0.0, max=100.0)
+    settle_s: float = param(5.0, 'a keyframe whose final pose has not moved by settle_move_m for this long pairs '
+                                 'whatever came after it (the flight\'s end, a pause), s (steady clock; 0: never)',
+                            min=0.0, max=3600.0)
     cpu_share: float = param(0.0, 'share of one core the pairs may take over cpu_share_window_s (0: no limit); '
                                   'over it, the pairs of a keyframe that settles are shed (counted in '
                                   'keyframes_shed, a WARN on /diagnostics) and left to the matching after landing '
                                   '(export --densify, replay\'s map_final), so the pose chain keeps the pace',
                              min=0.0, max=256.0)
     cpu_share_window_s: float = param(20.0, 'the window of cpu_share, s', min=1.0, max=3600.0)
+    max_pair_lag_s: float = param(10.0, 'a pair whose newer keyframe got its final pose longer ago than this when its '
+                                        'turn comes is shed (stereo is behind: the live map stays current, with a '
+                                        'gap there, counted in pairs_shed_late and keyframes_shed, a WARN) and left '
+                                        'to the matching after landing; the end of flight sheds nothing; 0: never',
+                                  min=0.0, max=3600.0)
     worker_nice: int = param(0, 'match pairs in a worker thread of this niceness (yielding to the pose chain in the '
                                 'same process); 0: in the subscription callbacks', min=0, max=19)
 
@@ -93,6 +114,11 @@ class _Keyframe:
     sigma_m: float = 0.0
     fix_sigma_m: float = float('nan')   # 3D sigma of its GNSS fix (NaN: none came)
     paired: bool = False
+    last_move_m: float = float('inf')   # how far the last pose refinement moved it (settle_move_m's measure)
+    moved_at: float = 0.0               # steady time of the pose's last move of settle_move_m or more
+    final_at: float = 0.0               # steady time of its first final pose
+    shed: bool = False                  # some of its pairs were shed
+    paired_T: np.ndarray | None = None  # the pose its pairs were matched with
 
     @property
     def complete(self) -> bool:
@@ -107,28 +133,30 @@ class StereoNode(Node):
         self.camera = None
         self._kf: OrderedDict[int, _Keyframe] = OrderedDict()
         self._ms: list[float] = []
-        reliable = QoSProfile(depth=20, reliability=ReliabilityPolicy.RELIABLE)
-        self.create_subscription(Image, TOPIC_IMAGE, self._on_image, reliable)
-        self.create_subscription(PoseWithCovarianceStamped, TOPIC_POSE, self._on_pose, reliable)
-        self.create_subscription(CameraInfo, TOPIC_INFO, self._on_info, qos_profile_sensor_data)
+        self.create_subscription(Image, TOPIC_IMAGE, self._on_image, qos.keyframes(20))
+        self.create_subscription(PoseWithCovarianceStamped, TOPIC_POSE, self._on_pose, qos.keyframes(20))
+        self.create_subscription(CameraInfo, TOPIC_INFO, self._on_info, qos.sensor_data(5))
         self._camera_final = False   # the full adjustment's camera came: camera_info no longer replaces it
-        self.create_subscription(CameraInfo, TOPIC_CAMERA_FINAL, self._on_final_camera, QoSProfile(
-            depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL))
+        self.create_subscription(CameraInfo, TOPIC_CAMERA_FINAL, self._on_final_camera, qos.latched())
         self.ground_m = None if p.ground_from_sparse_cloud else p.ground_height_m
         self._tie_points = np.zeros((0, 3))   # the newest sparse cloud, map (m)
         self._flushing = False
         self._posed: list[int] = []   # stamps of keyframes with a pose, sorted
+        self._moved_after_pairs_m = 0.0   # the most a pose moved after its pairs were matched
         if p.ground_from_sparse_cloud:
-            self.create_subscription(PointCloud2, TOPIC_SPARSE, self._on_sparse, QoSProfile(depth=2))
+            self.create_subscription(PointCloud2, TOPIC_SPARSE, self._on_sparse, qos.reliable(2))
         if p.fix_sigma_factor > 0:
-            self.create_subscription(NavSatFix, TOPIC_FIX, self._on_fix, reliable)
+            self.create_subscription(NavSatFix, TOPIC_FIX, self._on_fix, qos.keyframes(20))
         self.gsd: gsd.GsdSettings | None = None   # derived at the first pair (or never: every length was set)
         self._matching: StereoNodeParams | None = None if gsd.unresolved(p) else p
-        self.cloud_pub = self.create_publisher(PointCloud2, TOPIC_CLOUD, reliable)
-        self.disp_pub = self.create_publisher(DisparityImage, TOPIC_DISPARITY, 5) if p.publish_disparity else None
+        self.cloud_pub = self.create_publisher(PointCloud2, TOPIC_CLOUD, qos.reliable(20))
+        self.disp_pub = (self.create_publisher(DisparityImage, TOPIC_DISPARITY, qos.reliable(5))
+                         if p.publish_disparity else None)
         for k, v in limit_threads(p.cv_threads, p.blas_threads).items():
             self.diag.set(k, v)
         self.share = CpuShare(p.cpu_share, p.cpu_share_window_s)
+        if p.settle_s > 0:
+            steady_timer(self, min(1.0, p.settle_s), self._on_settle_timer)
         # With worker_nice the pairing runs in a worker thread; the callbacks only record and wake it.
         self._lock = threading.RLock()
         self._wake = threading.Condition(self._lock)
@@ -175,9 +203,13 @@ class StereoNode(Node):
         kf = self._kf.get(stamp_ns)
         if kf is None:
             kf = self._kf[stamp_ns] = _Keyframe(stamp_ns)
-            # Bounded memory: drop the oldest (also half-received ones whose partner never came).
+            # Bounded memory: drop the oldest keyframe that is paired or has no image; only when every kept one
+            # is an image waiting for its pairs, the oldest of those (its pose came too late, or never).
             while len(self._kf) > self.params.max_keyframes:
-                stamp, old = self._kf.popitem(last=False)
+                stamp = next((s for s, o in self._kf.items() if o.paired or o.image is None), None)
+                if stamp is None:
+                    stamp = next(iter(self._kf))
+                old = self._kf.pop(stamp)
                 if old.map_T_cam is not None:
                     self._posed.remove(stamp)
                 self.diag.count('keyframes_dropped')
@@ -235,11 +267,19 @@ class StereoNode(Node):
                 kf = self._entry(msgs.ns_from_time(msg.header.stamp))
                 if kf.map_T_cam is None:
                     bisect.insort(self._posed, kf.stamp_ns)
+                    kf.final_at = time.monotonic()
+                else:
+                    kf.last_move_m = self.pose_move_m(kf.map_T_cam, T)
+                    if kf.paired and kf.paired_T is not None:   # how sound pairing before settle_keyframes was
+                        self._moved_after_pairs_m = max(self._moved_after_pairs_m, self.pose_move_m(kf.paired_T, T))
+                        self.diag.set('pose_moved_after_pairs_max_m', round(self._moved_after_pairs_m, 3))
+                if kf.map_T_cam is None or kf.last_move_m >= self.params.settle_move_m:
+                    kf.moved_at = time.monotonic()
                 kf.map_T_cam = T
                 kf.sigma_m = float(np.sqrt(max(np.trace(cov[:3, :3]), 0.0)))
                 self.diag.count('poses')
-                if self._newer_posed(kf) == 0:
-                    self._pair_soon(None)   # a new newest pose may settle older keyframes
+                # A new newest pose may settle older keyframes; a refinement may settle this one.
+                self._pair_soon(None if self._newer_posed(kf) == 0 else kf)
         except Exception as exc:
             self.diag.problem(f'keyframe pose rejected: {exc}')
 
@@ -278,6 +318,34 @@ class StereoNode(Node):
 
     def _newer_posed(self, kf: _Keyframe) -> int:
         return len(self._posed) - bisect.bisect_right(self._posed, kf.stamp_ns)
+
+    def pose_move_m(self, before: np.ndarray, after: np.ndarray) -> float:
+        """How far a pose refinement moved a keyframe: the camera centre's shift plus its height above the
+        ground times the rotation angle (the shift of the ground under it), m."""
+        shift = float(np.linalg.norm(after[:3, 3] - before[:3, 3]))
+        c = (np.trace(before[:3, :3].T @ after[:3, :3]) - 1.0) / 2.0
+        height = max(float(after[2, 3] - (self.ground_m or 0.0)), 0.0)
+        return shift + height * float(np.arccos(np.clip(c, -1.0, 1.0)))
+
+    def _settled(self, kf: _Keyframe) -> bool:
+        """Whether `kf`'s pose has settled enough to pair it (the settle_* parameters)."""
+        p = self.params
+        newer = self._newer_posed(kf)
+        if newer >= p.settle_keyframes:
+            return True
+        if newer >= p.settle_min_keyframes and kf.last_move_m < p.settle_move_m:
+            self.diag.count('keyframes_settled_early')
+            return True
+        if p.settle_s > 0 and time.monotonic() - kf.moved_at >= p.settle_s:
+            self.diag.count('keyframes_settled_still')
+            return True
+        return False
+
+    def _on_settle_timer(self) -> None:
+        """Keyframes whose pose stood still for settle_s pair even when no newer keyframe comes."""
+        with self._lock:
+            if any(not kf.paired and kf.complete for kf in self._kf.values()):
+                self._pair_soon(None)
 
     def flush(self) -> None:
         """End of flight: pair every keyframe still waiting, with the poses it has now (nothing is shed: the
@@ -335,12 +403,13 @@ class StereoNode(Node):
         """Pair `kf` if it is due: its pairs matched now, or (a, b, pair) appended to `todo` for the worker."""
         if kf.paired or not kf.complete or self.ground_m is None:
             return
-        if not self._flushing and self._newer_posed(kf) < self.params.settle_keyframes:
+        if not self._flushing and not self._settled(kf):
             return
         if self.camera is None:
             self.diag.problem('no camera_info yet: keyframes wait for the calibration')
             return
         kf.paired = True
+        kf.paired_T = kf.map_T_cam
         self.diag.count('keyframes')
         if kf.map_T_cam[2, 3] <= self.ground_m:
             self.diag.problem(f'keyframe at z={kf.map_T_cam[2, 3]:.1f} m is not above the ground '
@@ -349,10 +418,7 @@ class StereoNode(Node):
         if not self._flushing and self.share.over():
             # Stereo is over its CPU share: the pose chain comes first. The keyframe stays a partner of later
             # ones; its own pairs are matched after landing (export --densify / replay's map_final).
-            self.diag.count('keyframes_shed')
-            self.diag.problem(f'stereo pairs shed in flight (stereo over its CPU share of {self.params.cpu_share:g} '
-                              'core; keyframes_shed counts the keyframes): the in-flight map has gaps there until '
-                              'the matching after landing (export --densify, replay\'s map_final)')
+            self._shed(kf, f'stereo over its CPU share of {self.params.cpu_share:g} core')
             return
         p = self._matching_params(kf)
         if kf.sigma_m > self.sigma_limit_m(kf):
@@ -373,8 +439,25 @@ class StereoNode(Node):
             else:
                 todo.append((self._kf[pair.other], kf, pair))
 
+    def _shed(self, kf: _Keyframe, why: str) -> None:
+        """`kf`'s pairs (or one of them) are left to the matching after landing: counted, said."""
+        if not kf.shed:
+            kf.shed = True
+            self.diag.count('keyframes_shed')
+        self.diag.problem(f'stereo pairs shed in flight ({why}; keyframes_shed counts the keyframes): the in-flight '
+                          'map has gaps there until the matching after landing (export --densify, replay\'s '
+                          'map_final)')
+
     def _run_pair(self, a: _Keyframe, b: _Keyframe, pair: PlannedPair) -> None:
         p = self._matching
+        lag_s = time.monotonic() - b.final_at
+        if not self._flushing and self.params.max_pair_lag_s > 0 and lag_s > self.params.max_pair_lag_s:
+            # Stereo is behind (starved of CPU): the newer keyframes go first, this pair after landing.
+            self.diag.count('pairs_shed_late')
+            self.diag.set('shed_pair_lag_s', round(lag_s, 1))
+            with self._lock:
+                self._shed(b, f'stereo behind the poses by more than max_pair_lag_s {self.params.max_pair_lag_s:g} s')
+            return
         t0 = time.perf_counter()
         if pair.from_tie_points:
             self.diag.count('pairs_depth_from_tie_points')
