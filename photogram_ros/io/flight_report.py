@@ -361,6 +361,15 @@ def mapping_verdict(accounting: dict, georeferenced: bool, dsm_share: float | No
     return {'mapped': not failures, 'failures': failures, 'warnings': warnings, 'dsm_valid_share': dsm_share}
 
 
+def shed_in_flight(stereo: dict, mapper: dict) -> dict:
+    """What the nodes shed in flight to keep the pose chain's pace (their /diagnostics counters), the non-zero
+    ones by what they mean."""
+    named = (('keyframes whose stereo pairs were shed', stereo.get('keyframes_shed')),
+             ('stereo pairs shed for lag', stereo.get('pairs_shed_late')),
+             ('ortho batches deferred', mapper.get('ortho_batches_deferred')))
+    return {k: v for k, v in named if isinstance(v, (int, float)) and not isinstance(v, bool) and v}
+
+
 def input_faults(tracker: dict, mavlink: dict) -> dict:
     """The input faults the nodes counted on /diagnostics (frames dropped for a stamp that repeated or went back,
     autopilot link silences, the autopilot's clock going back), the non-zero ones by name."""
@@ -398,6 +407,11 @@ def _health_sections(figures: dict, kfs, files: dict, run: dict, diagnostics: di
     if acc['keyframes_not_oriented']:
         text.append(f"{acc['keyframes_not_oriented']} keyframes not oriented, by reason (the nodes' counters): "
                     + '; '.join(f'{k}: {v}' for k, v in acc['keyframes_not_oriented_by_reason'].items()) + '.')
+    shed = shed_in_flight(values('stereo_node'), values('map_node'))
+    figures['shed_in_flight'] = shed
+    if shed:
+        text.append('Shed in flight (the pose chain first; export --densify matches the shed pairs again from the '
+                    'stored keyframes): ' + ', '.join(f'{k} {v:g}' for k, v in shed.items()) + '.')
     faults = input_faults(values('tracker_node'), values('mavlink_node'))
     figures['input_faults'] = faults
     if faults:
