@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from conftest import shared_data
-from figures import figure
+from figures import newest_figure
 from photogram_ros.core import stereo
 from photogram_ros.core.camera import PinholeCamera
 from photogram_ros.core.pairs import PairCriteria, choose_pairs, overlap_fraction
@@ -27,7 +27,7 @@ GSD_M = 40.0 / 520.0
 
 # The module's bad-2 on the nonocc mask, as bench/stereo_middlebury.py measured it (method 'ours': the
 # defaults): gated at 1.5x.
-MIDDLEBURY = 'stereo_middlebury_a0c1781.jsonl'
+MIDDLEBURY = 'stereo_middlebury*.jsonl'   # the newest result file of the bench, as the table renders it
 
 
 @pytest.mark.parametrize('name', ['tsukuba', 'venus'])
@@ -42,8 +42,8 @@ def test_middlebury_bad2_no_worse_than_plain_sgbm(name):
     s_plain, s_ours = score(plain, sc.gt_px, mask), score(ours, sc.gt_px, mask)
     assert s_ours['bad2'] <= s_plain['bad2']
     assert s_ours['bad1'] <= s_plain['bad1']
-    m = figure(MIDDLEBURY, scene=name, method='ours')
-    assert s_ours['bad2'] <= 1.5 * m['bad2'], f"bad-2 {s_ours['bad2']:.4f} > 1.5 x {m['bad2']} ({MIDDLEBURY})"
+    middlebury, m = newest_figure(MIDDLEBURY, scene=name, method='ours')
+    assert s_ours['bad2'] <= 1.5 * m['bad2'], f"bad-2 {s_ours['bad2']:.4f} > 1.5 x {m['bad2']} ({middlebury})"
     assert s_ours['density'] >= m['density'] / 1.5
 
 
