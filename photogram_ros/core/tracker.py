@@ -133,11 +133,12 @@ class TrackerParams:
                                      'newest; ~226 kB each at 1500 features of 4000 tracks)', min=1, max=100000)
     chain_linked_ids: int = param(50, 'An earlier keyframe already sharing this many track ids with the new one '
                                   '(KLT, or an earlier match) is not matched again', min=1, max=100000)
-    features_on: str = param('normalised', 'Image the SIFT features of descriptor matching are detected on: the '
-                             'reduced grey after the tracker\'s photometric normalisation (normalised), or as decoded '
-                             '(raw): CLAHE makes KLT precise but can cost a weak pair its verified matches (brighton_beach '
-                             'every other photo: DJI_0018-DJI_0020 verify raw, not after CLAHE); raw is not yet measured '
-                             'on every real set', choices=('raw', 'normalised'))
+    features_on: str = param('raw', 'Image the SIFT features of descriptor matching are detected on: the reduced '
+                             'grey as decoded (raw), or after the tracker\'s photometric normalisation (normalised). '
+                             'CLAHE makes KLT precise but costs weak pairs their verified matches (brighton_beach every '
+                             'other photo: DJI_0018-DJI_0020 give 20 inliers raw, 9 after CLAHE); SIFT normalises its '
+                             'descriptors itself, and seneca\'s near-infrared links the same keyframes either way',
+                             choices=('raw', 'normalised'))
     chain_klt_keyframes: bool = param(False, 'Also keyframes that KLT carried (video-rate input, no break since the '
                                       'last keyframe) get SIFT features, publish chain_features of them as tracks '
                                       'and are matched with the earlier keyframes they overlap; off: only frames '
