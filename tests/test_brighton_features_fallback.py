@@ -36,7 +36,7 @@ def _shared_with_first(kfs) -> int:
 
 
 def test_first_photo_of_every_other_brighton_links_through_the_other_image():
-    tr, kfs, names = _every_other_brighton(TrackerParams())
+    tr, kfs, names = _every_other_brighton(TrackerParams(features_fallback=True))
     assert names[:2] == ['DJI_0018.JPG', 'DJI_0020.JPG'] and len(kfs) == 9
     assert tr.stats.other_bridged >= 1
     assert tr.stats.bridged == tr.stats.breaks, 'every break bridged'

@@ -138,12 +138,13 @@ class TrackerParams:
                              '(raw). Raw alone loses seneca\'s near-infrared keyframes in replay (inflight_chain_69c54e1: '
                              '34 of its 38 against 38); features_fallback adds the other image where a break needs it',
                              choices=('raw', 'normalised'))
-    features_fallback: bool = param(True, 'Keyframes after a break (photo-rate input) also publish SIFT features of '
+    features_fallback: bool = param(False, 'Keyframes after a break (photo-rate input) also publish SIFT features of '
                                     'the other image (raw <-> normalised; one more extraction per keyframe), and a '
                                     'frame at a break that verifies no keyframe with features_on is matched once '
                                     'more on its other image against the last match_keyframes keyframes\' '
                                     '(brighton_beach every other photo: DJI_0018-DJI_0020 give 20 inliers raw, 9 '
-                                    'after CLAHE)')
+                                    'after CLAHE). Off by default: the adjuster still leaves such a keyframe '
+                                    'uninitialised when it has one partner, and its cost per keyframe is unmeasured')
     chain_klt_keyframes: bool = param(False, 'Also keyframes that KLT carried (video-rate input, no break since the '
                                       'last keyframe) get SIFT features, publish chain_features of them as tracks '
                                       'and are matched with the earlier keyframes they overlap; off: only frames '
