@@ -40,13 +40,13 @@ def test_a_break_early_on_the_first_line_leaves_a_short_block_that_joins_the_seg
 
 
 def test_a_short_block_its_consumer_gnss_cannot_place_gives_way_to_the_segment(flight):
-    """With a 3D fix (metres of noise) the 5-7 keyframes before the break span less than their GNSS noise and
-    cannot be placed: they are given up (not oriented, counted), and the flight after the break is mapped where
-    its GNSS puts it, instead of nothing at all."""
+    """With a 3D fix (1.4 m of noise) the 4 keyframes before the break (15 m of line: under
+    georef_line_min_keyframes, and its heading to 7 degrees only) cannot be placed: they are given up (not oriented, counted),
+    and the flight after the break is mapped where its GNSS puts it, instead of nothing at all."""
     cfg = preset('tiny')
     sk = simulate_keyframes(cfg, gnss_mode='3d', world=build_world(cfg, np.random.default_rng(cfg.seed)),
                             attitude_sigma_deg=None)
-    k_break = 6
+    k_break = 4
     recs = _lost_every_track(sk.records, k_break)
     at = IncrementalAT(sk.camera, IncrementalOptions(lever_arm_cam_m=tuple(sk.lever_arm_cam_m)), origin=sk.origin)
     reps = [at.add_keyframe(r) for r in recs]

@@ -36,11 +36,31 @@ class Segments:
         self.joins: list[dict] = []
         # Keyframes of a block before a break that its GNSS could not place, given up for the segment after it.
         self.unplaced = 0
+        # The last try to join the current segment through the tracker's tie points (`tracks_fit`): the ids its
+        # keyframes share with the block's ('observed': seen by an oriented keyframe of both; 'points':
+        # triangulated in both), the similarity's inliers, and why it did not join ('' when it did).
+        self.last_fit = self._fit_note(0, 0, 0, 'no segment')
 
     def joins_made(self) -> list[dict]:
         """Each segment that joined: {'keyframes', 'through' ('ties': the tracker's tie points, 'mtp': manual
-        tie points, 'gnss'), 'mtps', 'ties' (the tracker's tie points the similarity kept)} (copies)."""
+        tie points, 'gnss'), 'mtps', 'ties' (the tracker's tie points the similarity kept), 'shared_observed',
+        'shared_points' (tracker ids its keyframes shared with the block, seen / triangulated in both, at its
+        last try through the tie points), 'why' (why that try did not join it; '' when it did)} (copies)."""
         return [dict(j) for j in self.joins]
+
+    @staticmethod
+    def _fit_note(observed: int, points: int, inliers: int, why: str) -> dict:
+        return {'shared_observed': int(observed), 'shared_points': int(points), 'inliers': int(inliers), 'why': why}
+
+    def shared_observed(self) -> int:
+        """Tracker ids the current segment's oriented keyframes observe that an oriented keyframe of the block
+        observes too (what the tracker handed on across the break, triangulated or not)."""
+        seg = self.current
+        if seg is None:
+            return 0
+        ids = [seg.block.kfs[k].track_ids for k in seg.block.registered]
+        ids = np.unique(np.concatenate(ids)) if ids else np.zeros(0, np.int64)
+        return int(sum(1 for t in ids if t >= 0 and int(t) in self.block.track_kfs))
 
     def start(self, adjuster) -> None:
         """Grow the keyframes that follow in `adjuster`, a new segment."""
@@ -99,13 +119,15 @@ class Segments:
         seg = self.current
         none = np.zeros(0, np.int64)
         if seg is None or not seg.block.registered or not self.block.registered:
+            self.last_fit = self._fit_note(0, 0, 0, 'the segment has no oriented keyframe yet')
             return None, none, none
+        observed = self.shared_observed()
         ids, P = seg.block.points.arrays()
-        if not len(ids):
-            return None, none, none
-        both = (ids >= 0) & self.block.points.contains_many(ids)
+        both = ((ids >= 0) & self.block.points.contains_many(ids)) if len(ids) else np.zeros(0, bool)
         ids, src = ids[both], P[both]
         if len(ids) < max(min_points, 3):
+            self.last_fit = self._fit_note(observed, len(ids), 0, f'{len(ids)} shared tie points triangulated in '
+                                           f'both (of {observed} ids seen in both), under {max(min_points, 3)}')
             return None, none, none
         dst = self.block.points.get_many(ids)
         C = np.array([self.block.kfs[k].map_T_cam[:3, 3] for k in self.block.registered])
@@ -113,10 +135,16 @@ class Segments:
         res = similarity_ransac(src, dst, TIE_FIT_DEPTH_FRACTION * depth, rng or np.random.default_rng(0),
                                 min_spread_ratio=TIE_MIN_SPREAD_RATIO)
         if not res.ok:
+            self.last_fit = self._fit_note(observed, len(ids), 0, f'no similarity fits {len(ids)} shared tie points '
+                                           f'(RANSAC: {res.status})')
             return None, none, none
         n = int(res.inliers.sum())
         sv = spread(dst[res.inliers])
-        if n < min_points or 2 * n < len(ids) or sv[1] < TIE_MIN_SPREAD_RATIO * sv[0]:
+        why = (f'{n} of {len(ids)} shared tie points fit, under {min_points}' if n < min_points else
+               f'{n} of {len(ids)} shared tie points fit, under half' if 2 * n < len(ids) else
+               f'the {n} fitting shared tie points lie on a line' if sv[1] < TIE_MIN_SPREAD_RATIO * sv[0] else '')
+        self.last_fit = self._fit_note(observed, len(ids), n, why)
+        if why:
             return None, none, none
         return res.sim, ids[res.inliers], ids[~res.inliers]
 
@@ -175,5 +203,6 @@ class Segments:
         self.joined += 1
         how = through or ('mtp' if n_mtps else 'gnss')
         self.joins.append({'keyframes': len(seg.block.registered), 'through': how, 'mtps': n_mtps,
-                           'ties': n_ties})
+                           'ties': n_ties, **self.last_fit})
+        self.last_fit = self._fit_note(0, 0, 0, 'no segment')
         return len(seg.block.registered)

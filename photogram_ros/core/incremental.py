@@ -131,6 +131,14 @@ class IncrementalOptions:
                                        'keyframes carry their antenna offset from the attitude (bundle_node follows '
                                        'mavlink/attitude); zeros: lever_arm_cam_m is used')
     georef_min_keyframes: int = param(4, 'keyframes with a fix before the block is georeferenced', min=3, max=10000)
+    georef_line_heading_deg: float = param(5.0, 'a straight first line georeferences provisionally (assume_nadir) '
+                                                'once its fixes give the line\'s heading to this 1-sigma, deg: '
+                                                'horizontal GNSS sigma / (the fixes\' RMS spread along the line x '
+                                                'sqrt(their count)); with georef_line_min_keyframes of them over 5 m '
+                                                'at least', min=0.1, max=90.0)
+    georef_line_min_keyframes: int = param(6, 'keyframes with a fix a straight first line needs before it '
+                                              'georeferences provisionally (assume_nadir; georef_line_heading_deg)',
+                                           min=3, max=10000)
     georef_min_spread_ratio: float = param(0.05, 'the fixes must spread across their line by this fraction of '
                                                  'its length before the georeference is final (a turn)',
                                            min=0.0, max=1.0)
@@ -534,7 +542,8 @@ class IncrementalAT:
     def _try_georeference(self, force: bool = False, line_keyframes: int | None = None) -> bool:
         """`force`: accept any non-collinear geometry (end of flight: nothing better will come).
         `line_keyframes`: a straight line georeferences provisionally with this many keyframes with a fix
-        (at least 3) spread over 10 sigmas of their GNSS; default: twice georef_min_keyframes over 5 m too."""
+        (at least 3) spread over 10 sigmas of their GNSS; default: georef_line_min_keyframes over 5 m whose fixes
+        give the line's heading to georef_line_heading_deg (`line_heading_sigma_rad`)."""
         ks = [k for k in self.block.registered if self.block.kfs[k].fix_enu is not None]
         if not self.block.georeferenced and (not ks or (force and len(ks) < 3)):
             return self._georeference_by_gcps()
@@ -571,9 +580,11 @@ class IncrementalAT:
             provisional = force and len(gcp) < 3 and side < 3.0 * sig / np.sqrt(n_in)
         elif self.block.georeferenced:
             return False    # provisional already; wait for the turn
-        elif self.opt.assume_nadir and len(ks) >= (2 * self.opt.georef_min_keyframes if line_keyframes is None
-                                                   else line_keyframes) and sv[0] > max(
-                10.0 * sig, 5.0 if line_keyframes is None else 0.0):
+        elif self.opt.assume_nadir and (
+                (line_keyframes is None and len(ks) >= self.opt.georef_line_min_keyframes and sv[0] > 5.0
+                 and line_heading_sigma_rad(
+                    [self.block.kfs[k].fix_cov for k in ks], sv[0]) <= np.radians(self.opt.georef_line_heading_deg))
+                or (line_keyframes is not None and len(ks) >= line_keyframes and sv[0] > 10.0 * sig)):
             # Straight line: everything but the roll about it comes from GNSS; the roll from the cameras'
             # attitude priors (the autopilot and the mount: a fixed wing banks and crabs) when they have them,
             # else from the near-nadir camera. Provisional until the first turn.
@@ -717,3 +728,13 @@ class IncrementalAT:
 def _names(text: str) -> tuple:
     """A comma-separated list of names as a tuple (blanks dropped)."""
     return tuple(v.strip() for v in text.split(',') if v.strip())
+
+
+def line_heading_sigma_rad(fix_covs, along_spread_m: float) -> float:
+    """1-sigma (rad) of a straight line's heading fitted to its fixes: the median horizontal sigma of one fix
+    (sqrt of the mean of its E and N variances) over their RMS spread along the line times sqrt(their count)."""
+    covs = [np.asarray(c, float).reshape(3, 3) for c in fix_covs]
+    if not covs or along_spread_m <= 0.0:
+        return float('inf')
+    sig_h = float(np.sqrt(np.median([0.5 * (c[0, 0] + c[1, 1]) for c in covs])))
+    return sig_h / (along_spread_m * np.sqrt(len(covs)))

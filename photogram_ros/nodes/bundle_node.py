@@ -80,7 +80,6 @@ import numpy as np
 from geometry_msgs.msg import PoseWithCovarianceStamped
 from nav_msgs.msg import Path
 from rclpy.node import Node
-from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import CameraInfo, Image, Imu, NavSatFix, PointCloud2
 from std_msgs.msg import Empty, String
 
@@ -90,7 +89,7 @@ from photogram_ros.errors import PhotogramError
 from photogram_ros.nodes.diagnostics import ERROR, Diagnostics
 from photogram_ros.nodes.node_main import run_node
 from photogram_ros.nodes.ros_params import declare
-from photogram_ros.nodes import tf_publisher
+from photogram_ros.nodes import qos, tf_publisher
 from photogram_ros.nodes.stage_diagnostics import StageDiagnostics
 from photogram_ros.nodes.tf_publisher import TfPublisher
 from photogram_ros.stages.adjustment import (  # noqa: F401  (the node's names for the stage's)
@@ -120,15 +119,12 @@ class _Publishers(Outputs):
     """The stage's results as messages on the node's topics."""
 
     def __init__(self, node: Node):
-        reliable = QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE)
-        latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
-                             durability=DurabilityPolicy.TRANSIENT_LOCAL)
-        self.pose = node.create_publisher(PoseWithCovarianceStamped, TOPIC_POSE, reliable)
-        self._path = node.create_publisher(Path, TOPIC_PATH, QoSProfile(depth=2))
-        self._cloud = node.create_publisher(PointCloud2, TOPIC_CLOUD, QoSProfile(depth=2))
-        self.georef = node.create_publisher(NavSatFix, TOPIC_GEOREF, latched)
-        self._quality = node.create_publisher(String, TOPIC_CONTROL_POINTS, latched)
-        self._camera = node.create_publisher(CameraInfo, TOPIC_CAMERA_FINAL, latched)
+        self.pose = node.create_publisher(PoseWithCovarianceStamped, TOPIC_POSE, qos.reliable(50))
+        self._path = node.create_publisher(Path, TOPIC_PATH, qos.reliable(2))
+        self._cloud = node.create_publisher(PointCloud2, TOPIC_CLOUD, qos.reliable(2))
+        self.georef = node.create_publisher(NavSatFix, TOPIC_GEOREF, qos.latched())
+        self._quality = node.create_publisher(String, TOPIC_CONTROL_POINTS, qos.latched())
+        self._camera = node.create_publisher(CameraInfo, TOPIC_CAMERA_FINAL, qos.latched())
         self.tf = TfPublisher(node)
 
     def georeference(self, lat_deg, lon_deg, h_m, stamp_ns):
@@ -165,17 +161,16 @@ class BundleNode(Node):
         self.stage = AdjustmentStage(self.p, StageDiagnostics(self.diag), self.outputs)
         if not self.outputs.tf.available:
             self.diag.set('tf', tf_publisher.NOT_AVAILABLE)
-        reliable = QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE)
         # Fixes first: the executor serves ready subscriptions in creation order, and a burst of
         # features must not keep their fixes waiting.
-        self.create_subscription(NavSatFix, TOPIC_FIX, self._on_fix, reliable)
-        self.create_subscription(PointCloud2, TOPIC_FEATURES, self._on_features, reliable)
-        self.create_subscription(Image, TOPIC_IMAGE, lambda m: self.diag.count('images'), reliable)
-        self.create_subscription(CameraInfo, TOPIC_INFO, self._on_info, QoSProfile(depth=5))
-        self.create_subscription(Empty, TOPIC_FULL, self._on_full, QoSProfile(depth=2))
+        self.create_subscription(NavSatFix, TOPIC_FIX, self._on_fix, qos.reliable(50))
+        self.create_subscription(PointCloud2, TOPIC_FEATURES, self._on_features, qos.reliable(50))
+        self.create_subscription(Image, TOPIC_IMAGE, lambda m: self.diag.count('images'), qos.reliable(50))
+        self.create_subscription(CameraInfo, TOPIC_INFO, self._on_info, qos.reliable(5))
+        self.create_subscription(Empty, TOPIC_FULL, self._on_full, qos.reliable(2))
         # Every camera: the attitude gives each keyframe its orientation prior (and a gimbal its antenna offset).
         self.create_subscription(Imu, TOPIC_ATTITUDE, self._on_attitude,
-                                 QoSProfile(depth=1200, reliability=ReliabilityPolicy.RELIABLE))
+                                 qos.reliable(1200))
         # The timer only wakes the worker: a keyframe whose fix never comes is taken after fix_wait_s.
         self.create_timer(0.5, self._wake)
         self._stop = False

@@ -557,6 +557,8 @@ class AdjustmentStage:
             self.diag.problem(f'every track was lost early: the {n} keyframes before the break span less than their '
                               'GNSS noise and could not be placed (not oriented); the map holds the flight after it',
                               WARN)
+        if self.at.segments.current is not None:   # a segment waiting to join: why its tie points do not join it
+            self.diag.set('segment_join_ties', _fit_text(self.at.segments.last_fit))
         if rep.joined:
             self.diag.count('keyframes_joined_from_a_segment', rep.joined)
             text, tied = _join_text(rep.joined, (self.at.segments.joins_made() or [{'through': 'gnss'}])[-1])
@@ -862,4 +864,12 @@ def _join_text(n: int, join: dict) -> tuple[str, bool]:
         return (f'every track was lost: {n} keyframes after the break joined the block through {join["mtps"]} manual '
                 'tie points'), True
     return (f'every track was lost: {n} keyframes after the break were oriented as a segment of their own and joined '
-            'the block through their GNSS (no tie point links the two: their relative accuracy is the GNSS\'s)'), False
+            'the block through their GNSS (no tie point links the two: their relative accuracy is the GNSS\'s; '
+            f'{_fit_text(join)})'), False
+
+
+def _fit_text(fit: dict) -> str:
+    """A segment's last try through the tracker's tie points (core/at_segments.Segments.last_fit), in words."""
+    return (f'tracker ids shared with the block: {fit.get("shared_observed", 0)} seen in both, '
+            f'{fit.get("shared_points", 0)} triangulated in both, {fit.get("inliers", 0)} fitting'
+            + (f': {fit["why"]}' if fit.get('why') else ''))
