@@ -1,9 +1,10 @@
 """MAVROS input without MAVLink: the sample flight's fixes recorded as MAVROS publishes them
 (/mavros/global_position/raw/fix, NavSatFix with STATUS_FIX for RTK too, no raw MAVLink) are taken by
 tracker_node's `fix_topic` (docs/nodes.md, "Inputs from MAVROS and PX4 uXRCE-DDS"), and the replay maps the
-flight from them: every keyframe oriented, the check points measured. (MAVROS's attitude, /mavros/imu/data,
-reaches bundle_node only through a remap, which a replay does not make: the body lever arm is left out here,
-as for any bag without an attitude.)"""
+flight from them: every keyframe oriented, the check points measured. (With tracker_node taking MAVROS's fix by
+its own name, the player leaves MAVROS's topics under their names (replay_session.player_plays_mavros), so no
+attitude is played and the body lever arm is left out here, as for any bag without an attitude; the player's own
+MAVROS mapping, with the attitude, is tests/test_eco_autopilot_replay.py.)"""
 
 from __future__ import annotations
 

@@ -220,17 +220,30 @@ def _bag_setup(opts: ReplayOptions, extra: dict):
             # The player publishes PX4's fixes as /gps/fix (nodes/player_node.Px4Playback): a recorded one would
             # be a second source.
             exclude += [t for t in ('/gps/fix', '/gps/fix_type') if t in topics]
-    if not bag_has_attitude(topics):
+    if not bag_has_attitude(topics, player_plays_mavros(opts, extra, roles)):
         no_body_lever_arm(opts, extra, roles, 'the bag records no attitude (no /mavlink/from_fcu, no mavlink/attitude, '
                           'no PX4 VehicleAttitude)')
     return roles, exclude, topics, start_ns, warnings
 
 
-def bag_has_attitude(topics) -> bool:
+MAVROS_FIX_TOPIC = '/mavros/global_position/raw/fix'
+
+
+def player_plays_mavros(opts: ReplayOptions, extra: dict, roles: tuple) -> bool:
+    """Whether the player plays a bag's MAVROS topics under the mapper's names (player_node `mavros`): not when
+    tracker_node is set to take MAVROS's fix by its own name (`fix_topic`, docs/nodes.md), which the renamed
+    topic would no longer reach."""
+    from photogram_ros.nodes.graph import GraphSpec, role_values
+    tracker = role_values(GraphSpec(roles=roles, params_file=opts.params_file, extra=extra), 'tracker')
+    return str(tracker.get('fix_topic', '')).lstrip('/') != MAVROS_FIX_TOPIC.lstrip('/')
+
+
+def bag_has_attitude(topics, mavros_played: bool = True) -> bool:
     """The bag's topics (BagReader.topics()) carry the body's attitude: raw MAVLink (ATTITUDE), mavlink_node's
-    output, MAVROS's imu/data (the player plays it as /mavlink/attitude) or PX4's VehicleAttitude."""
+    output, MAVROS's imu/data when the player plays it as /mavlink/attitude (`mavros_played`), or PX4's
+    VehicleAttitude."""
     return ('/mavlink/from_fcu' in topics or any(t.endswith('mavlink/attitude') for t in topics)
-            or '/mavros/imu/data' in topics
+            or (mavros_played and '/mavros/imu/data' in topics)
             or any(getattr(i, 'msgtype', '') == VEHICLE_ATTITUDE for i in topics.values()))
 
 
@@ -300,7 +313,8 @@ def run_replay(opts: ReplayOptions, context=None) -> dict:
     kwargs = {'context': context} if context is not None else {}
     player = camera = None
     if kind == 'bag':
-        player = PlayerNode(overrides={'bag': str(opts.bag), 'rate': float(opts.rate), 'exclude': ','.join(exclude)},
+        player = PlayerNode(overrides={'bag': str(opts.bag), 'rate': float(opts.rate), 'exclude': ','.join(exclude),
+                                       'mavros': player_plays_mavros(opts, extra, roles)},
                             parameter_overrides=[Parameter('use_sim_time', value=True)], **kwargs)
         player_clock = player.get_clock()
     else:
