@@ -41,6 +41,11 @@ class Segments:
         # triangulated in both), the similarity's inliers, and why it did not join ('' when it did).
         self.last_fit = self._fit_note(0, 0, 0, 'no segment')
 
+    def last_join_try(self) -> dict:
+        """The waiting segment's last try to join through the tracker's tie points: the tracker ids it shares
+        with the block (seen / triangulated in both / fitting) and why it did not join (a copy)."""
+        return dict(self.last_fit)
+
     def joins_made(self) -> list[dict]:
         """Each segment that joined: {'keyframes', 'through' ('ties': the tracker's tie points, 'mtp': manual
         tie points, 'gnss'), 'mtps', 'ties' (the tracker's tie points the similarity kept), 'shared_observed',

@@ -593,12 +593,9 @@ class IncrementalAT:
             prior = [k for k in ks if self.block.kfs[k].map_R_cam_prior is not None]
             att = (np.array([self.block.kfs[k].map_T_cam[:3, :3] for k in prior]),
                    np.array([self.block.kfs[k].map_R_cam_prior for k in prior])) if len(prior) >= 3 else None
-            s = similarity_on_line(src[:n], dst[:n], dirs, attitude_priors=att)
-            # A glitched fix on the line would tilt it: fitted again without the fixes far from the first fit.
-            near = np.linalg.norm(s.apply(src[:n]) - dst[:n], axis=1) <= max(thr, 3.0 * float(np.median(
-                np.linalg.norm(s.apply(src[:n]) - dst[:n], axis=1))))
-            if 3 <= near.sum() < n:
-                s = similarity_on_line(src[:n][near], dst[:n][near], dirs[near], attitude_priors=att)
+            s = line_similarity_robust(src[:n], dst[:n], dirs, att, thr)
+            if s is None:
+                return False    # the line's fixes do not agree on one placement yet (a glitched fix): wait
             provisional = True
         else:
             return False
@@ -738,3 +735,20 @@ def line_heading_sigma_rad(fix_covs, along_spread_m: float) -> float:
         return float('inf')
     sig_h = float(np.sqrt(np.median([0.5 * (c[0, 0] + c[1, 1]) for c in covs])))
     return sig_h / (along_spread_m * np.sqrt(len(covs)))
+
+
+def line_similarity_robust(src, dst, dirs, att, thr: float):
+    """The similarity of a straight line's cameras onto their fixes (core/similarity.similarity_on_line) with its
+    glitched fixes left out: the fix farthest from the fit is dropped while one is beyond `thr` (at most a quarter
+    of them); None when the fixes left still do not fit within `thr` (the line waits for more keyframes)."""
+    keep = np.ones(len(src), bool)
+    for dropped in range(len(src) // 4 + 1):
+        s = similarity_on_line(src[keep], dst[keep], dirs[keep], attitude_priors=att)
+        r = np.linalg.norm(s.apply(src) - dst, axis=1)
+        if not (r[keep] > thr).any():
+            return s
+        if dropped == len(src) // 4 or keep.sum() <= 3:
+            return None
+        keep[int(np.argmax(np.where(keep, r, -np.inf)))] = False
+    return None
+

@@ -135,16 +135,9 @@ class TrackerParams:
                                   '(KLT, or an earlier match) is not matched again', min=1, max=100000)
     features_on: str = param('normalised', 'Image the SIFT features of descriptor matching are detected on: the '
                              'reduced grey after the tracker\'s photometric normalisation (normalised), or as decoded '
-                             '(raw). Raw alone loses seneca\'s near-infrared keyframes in replay (inflight_chain_69c54e1: '
-                             '34 of its 38 against 38); features_fallback adds the other image where a break needs it',
-                             choices=('raw', 'normalised'))
-    features_fallback: bool = param(False, 'Keyframes after a break (photo-rate input) also publish SIFT features of '
-                                    'the other image (raw <-> normalised; one more extraction per keyframe), and a '
-                                    'frame at a break that verifies no keyframe with features_on is matched once '
-                                    'more on its other image against the last match_keyframes keyframes\' '
-                                    '(brighton_beach every other photo: DJI_0018-DJI_0020 give 20 inliers raw, 9 '
-                                    'after CLAHE). Off by default: the adjuster still leaves such a keyframe '
-                                    'uninitialised when it has one partner, and its cost per keyframe is unmeasured')
+                             '(raw): CLAHE makes KLT precise but can cost a weak pair its verified matches (brighton_beach '
+                             'every other photo: DJI_0018-DJI_0020 verify raw, not after CLAHE); raw is not yet measured '
+                             'on every real set', choices=('raw', 'normalised'))
     chain_klt_keyframes: bool = param(False, 'Also keyframes that KLT carried (video-rate input, no break since the '
                                       'last keyframe) get SIFT features, publish chain_features of them as tracks '
                                       'and are matched with the earlier keyframes they overlap; off: only frames '
@@ -183,7 +176,6 @@ class TrackerStats:
     chain_verified: int = 0    # ... of them verified
     chain_bytes: int = 0       # what cross-keyframe matching keeps (core.keyframes.ChainStore)
     chain_dropped: int = 0     # keyframes whose features were dropped (beyond chain_max_keyframes)
-    other_bridged: int = 0     # breaks bridged by the features of the other image only (features_fallback)
 
 
 @dataclass
@@ -192,7 +184,7 @@ class _Frame:
     stamp_ns: int
     image: np.ndarray          # original image (BGR or grey), or the EncodedImage it came as
     gray: np.ndarray           # normalised grey
-    raw: np.ndarray | None     # the reduced grey before normalisation (None: the same as gray), while needed
+    raw: np.ndarray | None     # the reduced grey before normalisation (None: the same as gray)
     pyr: list
     pts: np.ndarray            # (N, 2) float32 pixels of the reduced image
     ids: np.ndarray            # (N,) uint32
@@ -200,8 +192,6 @@ class _Frame:
     fix: GnssFix | None = None
     features: PhotoFeatures | None = None   # SIFT of the reduced image, computed at a break
     feat_ids: np.ndarray | None = None      # (K,) int64 track id per feature (-1: none)
-    other: PhotoFeatures | None = None      # SIFT of the other image (features_fallback), and its ids
-    other_ids: np.ndarray | None = None
     # Descriptor tracks this frame starts as a keyframe (not followed by KLT; a later frame
     # matching its features continues them): (M, 2) reduced-image pixels and (M,) ids.
     extra_pts: np.ndarray = field(default_factory=lambda: np.empty((0, 2), np.float32))
@@ -220,11 +210,7 @@ def _descriptor_index(frame: _Frame) -> DescriptorIndex:
 
 def _dedupe_feature_ids(frame: _Frame) -> None:
     """One feature per track id of `frame` (two features matched to one track: keep the first)."""
-    _dedupe(frame.feat_ids)
-
-
-def _dedupe(got: np.ndarray) -> None:
-    """One feature per track id in the (K,) ids `got` (-1: none), in place: the first keeps it."""
+    got = frame.feat_ids
     _, first = np.unique(np.where(got >= 0, got, -1 - np.arange(len(got))), return_index=True)
     dup = np.ones(len(got), bool)
     dup[first] = False
@@ -340,7 +326,7 @@ class Tracker:
             gray = cv2.resize(gray, (self._work_cam.width, self._work_cam.height), interpolation=cv2.INTER_AREA)
         g = self._normalise(gray, mean, std)
         # (Python's calcOpticalFlowPyrLK cannot take prebuilt pyramids; it builds them itself.)
-        raw = gray if g is not gray and (self.params.features_on == 'raw' or self.params.features_fallback) else None
+        raw = gray if g is not gray and self.params.features_on == 'raw' else None
         cur = _Frame(index, stamp_ns, image, g, raw, g, np.empty((0, 2), np.float32), np.empty(0, np.uint32))
         if self._prev is None or self._kf is None:
             cur.pts, cur.ids = self._top_up(cur, cur.pts, cur.ids)
@@ -476,19 +462,10 @@ class Tracker:
     def _features_of(self, frame: _Frame) -> None:
         """SIFT features of a frame (reduced-image pixels), without track ids yet (-1)."""
         if frame.features is None:
-            img = frame.raw if frame.raw is not None and self.params.features_on == 'raw' else frame.gray
+            img = frame.raw if frame.raw is not None else frame.gray
             frame.features = extract(str(frame.index), img, (1.0, 1.0), self._match_options())
+            frame.raw = None   # only the features needed it
             frame.feat_ids = np.full(len(frame.features.uv), -1, np.int64)
-
-    def _other_of(self, frame: _Frame) -> PhotoFeatures | None:
-        """features_fallback: SIFT of the image features_on does not use (raw <-> normalised), ids -1; None
-        without one (normalize 'none', the fallback off, or computed already and dropped)."""
-        if frame.other is None and frame.raw is not None and self.params.features_fallback:
-            img = frame.gray if self.params.features_on == 'raw' else frame.raw
-            frame.other = extract(str(frame.index), img, (1.0, 1.0), self._match_options())
-            frame.other_ids = np.full(len(frame.other.uv), -1, np.int64)
-            frame.raw = None
-        return frame.other
 
     def _new_ids(self, n: int) -> np.ndarray:
         t = np.arange(self._next_id, self._next_id + n, dtype=np.int64)
@@ -635,46 +612,12 @@ class Tracker:
             refined = self._recover_from_klt_keyframes(cur)
         if int((got >= 0).sum()) < opt.min_inliers and not len(refined[1]):
             got[:] = -1
-            return self._recover_other(cur) if not verified else None
+            return None
         _dedupe_feature_ids(cur)
         inside = self._work_cam.in_image(f.uv, margin_px=self._win[0] / 2 + 1)
         take = (got >= 0) & inside & ~np.isin(got, refined[1].astype(np.int64))   # KLT-refined positions win
         return (np.concatenate([refined[0], f.uv[take].astype(np.float32)]),
                 np.concatenate([refined[1], got[take].astype(np.uint32)]))
-
-    def _recover_other(self, cur: _Frame):
-        """features_fallback, at a break no keyframe verified: the frame's features of its other image matched
-        with those the last keyframes published (held with them), nearest by GNSS first; a matched feature
-        takes the keyframe's track id. (pts, ids) of the linked tracks of the first keyframe that verifies, or
-        None."""
-        opt = self._match_options()
-        f = self._other_of(cur)
-        if f is None or len(f.uv) < opt.min_inliers:
-            return None
-        here = self._position_of(cur.stamp_ns)
-
-        def dist(k):
-            q = self._position_of(k.keyframe.stamp_ns)
-            return float(np.linalg.norm((q[0] - here[0])[:2])) if q is not None and here is not None else 0.0
-        inside = self._work_cam.in_image(f.uv, margin_px=self._win[0] / 2 + 1)
-        for k in sorted(reversed(self._recent), key=dist):
-            if k.frame.other is None:
-                continue
-            self.stats.chain_pairs += 1
-            m = match_pair(k.frame.other, f, self._work_cam, opt)
-            if not m.verified:
-                continue
-            self.stats.chain_verified += 1
-            rows, dst = m.matches[:, 0], m.matches[:, 1]
-            keep = (k.frame.other_ids[rows] >= 0) & inside[dst]
-            cur.other_ids[dst[keep]] = k.frame.other_ids[rows[keep]]
-            _dedupe(cur.other_ids)
-            take = cur.other_ids >= 0
-            if int(take.sum()) >= opt.min_inliers:
-                self.stats.other_bridged += 1
-                return f.uv[take].astype(np.float32), cur.other_ids[take].astype(np.uint32)
-            cur.other_ids[:] = -1
-        return None
 
     def _recover_from_klt_keyframes(self, cur: _Frame):
         """The last keyframes KLT carried (not in the chain: no SIFT tracks published), newest first: the
@@ -798,31 +741,7 @@ class Tracker:
         frame.extra_pts = np.concatenate([frame.extra_pts, f.uv[add].astype(np.float32)])
         frame.extra_ids = np.concatenate([frame.extra_ids, fid[add].astype(np.uint32)])
         order = order[:self.params.chain_features]
-        if (self._break_since_kf or not self._recent) and self._other_of(frame) is not None:
-            self._publish_other(frame)
         return f.uv[order], f.desc[order], fid[order]
-
-    def _publish_other(self, frame: _Frame) -> None:
-        """features_fallback: the keyframe's features of its other image published as tracks too (for a later
-        frame's fallback match): one within 1 px of a published track takes its id, the others new ids."""
-        from scipy.spatial import cKDTree
-        o, oid = frame.other, frame.other_ids
-        _dedupe(oid)
-        ok = self._work_cam.in_image(o.uv, margin_px=self._win[0] / 2 + 1)
-        oid[~ok] = -1
-        shown_uv = np.concatenate([frame.pts, frame.extra_pts]).astype(np.float64)
-        shown = np.concatenate([frame.ids, frame.extra_ids]).astype(np.int64)
-        lone = np.flatnonzero(ok & (oid < 0))
-        if len(shown) and len(lone):
-            d, near = cKDTree(shown_uv).query(o.uv[lone], distance_upper_bound=1.0)
-            hit = np.isfinite(d)
-            oid[lone[hit]] = shown[near[hit]]
-            _dedupe(oid)
-            lone = np.flatnonzero(ok & (oid < 0))
-        oid[lone] = self._new_ids(len(lone))
-        add = np.flatnonzero(ok & ~np.isin(oid, shown))
-        frame.extra_pts = np.concatenate([frame.extra_pts, o.uv[add].astype(np.float32)])
-        frame.extra_ids = np.concatenate([frame.extra_ids, oid[add].astype(np.uint32)])
 
     def _make_keyframe(self, frame: _Frame, overlap: float) -> None:
         chain = None
@@ -861,7 +780,6 @@ class Tracker:
         for k in self._held:
             if id(k) not in kept:
                 k.frame.features = k.frame.feat_ids = None   # the chain keeps what later keyframes match
-                k.frame.other = k.frame.other_ids = k.frame.raw = None
         self._held = list(self._recent)
         self._pending.append((kf, self._clock_ns))
 

@@ -554,17 +554,10 @@ class AdjustmentStage:
         if self.at.unplaced_keyframes > self._unplaced:
             n, self._unplaced = self.at.unplaced_keyframes - self._unplaced, self.at.unplaced_keyframes
             self.diag.count('keyframes_unplaced', n)
-            self.diag.problem(f'every track was lost early: the {n} keyframes before the break span less than their '
-                              'GNSS noise and could not be placed (not oriented); the map holds the flight after it',
-                              WARN)
-        if self.at.segments.current is not None:   # a segment waiting to join: why its tie points do not join it
-            self.diag.set('segment_join_ties', _fit_text(self.at.segments.last_fit))
-        if rep.joined:
-            self.diag.count('keyframes_joined_from_a_segment', rep.joined)
-            text, tied = _join_text(rep.joined, (self.at.segments.joins_made() or [{'through': 'gnss'}])[-1])
-            self.diag.set('last_segment_join', text)
-            if not tied:
-                self.diag.problem(text, WARN)
+            self.diag.problem(f'every track was lost early: the {n} keyframes before the break span less than '
+                              'their GNSS noise and could not be placed (not oriented); the map holds the flight '
+                              'after it', WARN)
+        _segment_diagnostics(self.diag, self.at.segments, rep.joined)
         if rep.registered:
             self.diag.count('keyframes_oriented')
         else:
@@ -856,6 +849,19 @@ class AdjustmentStage:
             return AdjustmentOutcome('failed', f'full adjustment failed: {exc}')
 
 
+def _segment_diagnostics(diag, segments, joined: int) -> None:
+    """/diagnostics of the adjuster's segments after a keyframe: why a waiting segment's tie points do not join
+    it yet (`segment_join_ties`), and the join of `joined` keyframes (a WARN when only the GNSS joined them)."""
+    if segments.current is not None:
+        diag.set('segment_join_ties', _fit_text(segments.last_join_try()))
+    if joined:
+        diag.count('keyframes_joined_from_a_segment', joined)
+        text, tied = _join_text(joined, (segments.joins_made() or [{'through': 'gnss'}])[-1])
+        diag.set('last_segment_join', text)
+        if not tied:
+            diag.problem(text, WARN)
+
+
 def _join_text(n: int, join: dict) -> tuple[str, bool]:
     """What a segment's join says (core/at_segments.Segments.joins_made), and whether tie points tied it."""
     if join['through'] == 'ties':
@@ -869,7 +875,7 @@ def _join_text(n: int, join: dict) -> tuple[str, bool]:
 
 
 def _fit_text(fit: dict) -> str:
-    """A segment's last try through the tracker's tie points (core/at_segments.Segments.last_fit), in words."""
+    """A segment's last try through the tracker's tie points (core/at_segments.Segments.last_join_try), in words."""
     return (f'tracker ids shared with the block: {fit.get("shared_observed", 0)} seen in both, '
             f'{fit.get("shared_points", 0)} triangulated in both, {fit.get("inliers", 0)} fitting'
             + (f': {fit["why"]}' if fit.get('why') else ''))
