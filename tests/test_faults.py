@@ -780,8 +780,9 @@ def test_record_killed_with_9_keeps_all_but_its_last_seconds(tmp_path, rclpy_con
         got = bag.topics()['/h28/fix'].count
         msgs = list(bag.messages())
     assert len(msgs) == got
-    # All but the last seconds: at least what was published up to 2.5 s before the kill.
-    assert got >= sent * (8.0 - 2.5) / 8.0 - 20, (got, sent)
+    # All but the last seconds: at least what was published up to 3 s before the kill (a checkpoint a second,
+    # and on a loaded machine the recorder's executor takes the publisher's messages up to a second late).
+    assert got >= sent * (8.0 - 3.0) / 8.0 - 20, (got, sent)
     res = cli('bag-info', out)
     assert res.returncode == 3, res.stdout + res.stderr
     assert f'{got} messages' in res.stdout and ('cut short' in res.stderr), res.stderr
