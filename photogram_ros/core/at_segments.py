@@ -64,8 +64,8 @@ class Segments:
         if seg is None:
             return 0
         ids = [seg.block.kfs[k].track_ids for k in seg.block.registered]
-        ids = np.unique(np.concatenate(ids)) if ids else np.zeros(0, np.int64)
-        return int(sum(1 for t in ids if t >= 0 and int(t) in self.block.track_kfs))
+        ids = np.concatenate(ids) if ids else np.zeros(0, np.int64)
+        return len(set(ids[ids >= 0].tolist()) & self.block.track_kfs.keys())
 
     def start(self, adjuster) -> None:
         """Grow the keyframes that follow in `adjuster`, a new segment."""

@@ -37,7 +37,7 @@ from photogram_ros.io.progress import Progress, Steps, say_stdout
 from photogram_ros.nodes import qos
 from photogram_ros.nodes.diagnostics import PROBLEM_SEPARATOR
 from photogram_ros.nodes.graph import NODES, Graph, GraphSpec, WorkWatch
-from photogram_ros.nodes.player_node import PlayerNode
+from photogram_ros.nodes.player_node import MAVROS_INPUTS, PlayerNode, mavros_remaps
 
 IMAGE_TOPICS = ('/camera/image_raw', '/camera/image_raw/compressed')
 
@@ -226,7 +226,7 @@ def _bag_setup(opts: ReplayOptions, extra: dict):
     return roles, exclude, topics, start_ns, warnings
 
 
-MAVROS_FIX_TOPIC = '/mavros/global_position/raw/fix'
+MAVROS_FIX_TOPIC = next(src for src, dst in MAVROS_INPUTS.items() if dst == '/gps/fix')
 
 
 def player_plays_mavros(opts: ReplayOptions, extra: dict, roles: tuple) -> bool:
@@ -243,7 +243,7 @@ def bag_has_attitude(topics, mavros_played: bool = True) -> bool:
     output, MAVROS's imu/data when the player plays it as /mavlink/attitude (`mavros_played`), or PX4's
     VehicleAttitude."""
     return ('/mavlink/from_fcu' in topics or any(t.endswith('mavlink/attitude') for t in topics)
-            or (mavros_played and '/mavros/imu/data' in topics)
+            or (mavros_played and '/mavlink/attitude' in mavros_remaps(topics, {}).values())
             or any(getattr(i, 'msgtype', '') == VEHICLE_ATTITUDE for i in topics.values()))
 
 

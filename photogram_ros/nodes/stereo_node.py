@@ -40,6 +40,7 @@ from photogram_ros import msgs
 from photogram_ros.core import gsd, offheap, stereo
 from photogram_ros.core.pace import CpuShare, ThreadCaps, limit_threads, nice_this_thread
 from photogram_ros.core.pairs import BELOW_GROUND, PairCriteria, PlannedPair, plan_pairs
+from photogram_ros.core.rotations import angle_between_R
 from photogram_ros.errors import PhotogramError
 from photogram_ros.nodes import qos
 from photogram_ros.nodes.diagnostics import Diagnostics, steady_timer
@@ -323,9 +324,8 @@ class StereoNode(Node):
         """How far a pose refinement moved a keyframe: the camera centre's shift plus its height above the
         ground times the rotation angle (the shift of the ground under it), m."""
         shift = float(np.linalg.norm(after[:3, 3] - before[:3, 3]))
-        c = (np.trace(before[:3, :3].T @ after[:3, :3]) - 1.0) / 2.0
         height = max(float(after[2, 3] - (self.ground_m or 0.0)), 0.0)
-        return shift + height * float(np.arccos(np.clip(c, -1.0, 1.0)))
+        return shift + height * angle_between_R(before[:3, :3], after[:3, :3])
 
     def _settled(self, kf: _Keyframe) -> bool:
         """Whether `kf`'s pose has settled enough to pair it (the settle_* parameters)."""
