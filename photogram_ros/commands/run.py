@@ -16,6 +16,8 @@ from __future__ import annotations
 
 import time
 
+from photogram_ros.commands import common_args
+
 HELP = 'start every mapping node (mavlink, tracker, bundle, stereo, map) with one parameter file'
 
 # Exit statuses besides 0 (and 2, a configuration error): the map on disk is safe in every case.
@@ -33,6 +35,7 @@ def add_arguments(p) -> None:
     p.add_argument('--out', default='products', help='where the survey products go when the mapper stops (SIGINT or '
                                                     'SIGTERM): clouds, DSM, orthomosaic, trajectory, report')
     p.add_argument('--crs', default='', help='CRS of the products (default: UTM zone of the map origin)')
+    common_args.add_heights(p)
     p.add_argument('--no-export', action='store_true', help='only flush the map when stopping (export later with '
                                                             'photogram-ros export MAPDIR --densify)')
     p.add_argument('--live-map', action='store_true', help='export the in-flight map instead of matching the '
@@ -149,7 +152,8 @@ def run(a) -> int:
     run_info = {'source': 'run', 'frames': frames, 'bag_s': flight_s, 'wall_s': wall_s,
                 'real_time_factor': flight_s / max(wall_s, 1e-9), 'counts': counts,
                 'ended_by': signals.signal_name or 'end of the camera source',
-                'final_adjustment': end.final_adjustment, 'end_of_flight_errors': end.errors}
+                'final_adjustment': end.final_adjustment, 'end_of_flight_errors': end.errors,
+                'params_file': a.params, 'parameter_overrides': spec.extra or {}}
     if before is not None:
         run_info['resumed'] = count_keyframes_before(counts, before, map_dir_of(a.params))
     return _after_flight(a, roles, end.as_dict(), run_info, diag_log.snapshot())
@@ -489,7 +493,7 @@ def _run_separate(a, spec, signals, before: dict | None = None) -> int:
     run_info = {'source': 'run', 'frames': frames, 'bag_s': flight_s, 'wall_s': wall_s,
                 'real_time_factor': flight_s / max(wall_s, 1e-9), 'counts': counts,
                 'ended_by': signals.signal_name or 'a node process ended', 'final_adjustment': end['final_adjustment'],
-                'end_of_flight_errors': failed}
+                'end_of_flight_errors': failed, 'params_file': a.params, 'parameter_overrides': spec.extra or {}}
     if before is not None:
         run_info['resumed'] = count_keyframes_before(counts, before, map_dir_of(a.params))
     return _after_flight(a, spec.roles, end, run_info, diagnostics)
@@ -574,7 +578,7 @@ def _export_at_stop(a, roles, run_info=None, diagnostics=None) -> int:
     from photogram_ros.commands.products import export_products
     from photogram_ros.errors import PhotogramError
     try:
-        res = export_products(map_dir_of(a.params), a.out, a.params, a.crs, a.live_map, run=run_info,
+        res = export_products(map_dir_of(a.params), a.out, a.params, a.crs, a.live_map, a.heights, run=run_info,
                               diagnostics=diagnostics, progress=True)
     except (PhotogramError, OSError) as exc:   # the map itself is safe on disk: say how to export it later
         print(f'exports failed ({exc}); the map is on disk: photogram-ros export MAPDIR --densify', flush=True)
