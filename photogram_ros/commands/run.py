@@ -89,6 +89,7 @@ def run(a) -> int:
     before = keyframes_before(map_dir_of(a.params)) if 'map' in roles else None
     if before is not None:
         spec = in_the_map_origin(spec, map_dir_of(a.params))
+        spec = feed_unposed_keyframes(spec, map_dir_of(a.params), before)
     signals = RunSignals(skippable=not a.separate)
     if a.separate:
         return _run_separate(a, spec, signals, before)
@@ -413,14 +414,36 @@ def in_the_map_origin(spec, map_dir):
     return dataclasses.replace(spec, extra=extra)
 
 
+def feed_unposed_keyframes(spec, map_dir, before: dict):
+    """A resumed map that holds keyframes saved without a pose (taken before the crash, not yet oriented): the
+    camera node plays their stored images first, with their stamps and fixes (camera_node resume_keyframes_of),
+    so that this run's tracker and adjuster orient them. Without a camera node in this run (a camera driver
+    publishing the images) nothing can feed them: said, and the report counts them as not oriented."""
+    import dataclasses
+    if not before['unposed']:
+        return spec
+    if 'camera' not in spec.roles or 'tracker' not in spec.roles:
+        print(f"resumed map: {len(before['unposed'])} keyframes saved before the restart without a pose cannot be "
+              'fed again (no camera_node and tracker in this run): they stay not oriented', flush=True)
+        return spec
+    extra = {r: dict(v) for r, v in (spec.extra or {}).items()}
+    extra.setdefault('camera', {})['resume_keyframes_of'] = str(map_dir)
+    print(f"resumed map: the {len(before['unposed'])} keyframes saved before the restart without a pose go through "
+          'the tracker and the adjuster first (their stored images, stamps and fixes)', flush=True)
+    return dataclasses.replace(spec, extra=extra)
+
+
 def count_keyframes_before(counts: dict, before: dict, map_dir) -> dict:
-    """A resumed flight's accounting: the keyframes of the map from before this run are taken too. The tracker
-    and bundle counters of `counts` (role -> Graph.counts(), what the report's keyframe accounting reads) gain
-    them: `keyframes` and `keyframes_received` each by all of them, and the ones still without a pose as
-    `not_oriented_taken_before_the_restart_without_a_pose` (their features were not stored: this run's adjuster
-    cannot orient them), so the report counts them as taken but not oriented. Said on the console; returns
-    {'keyframes', 'posed', 'unposed', 'still_unposed'} for the report's run section. A keyframe this run took
-    again (a photo folder played from its start: the map saved its image anew) is this run's, not counted here."""
+    """A resumed flight's accounting: the keyframes of the map from before this run are taken too. One whose image
+    this run saved again is this run's (fed again from the map's store, feed_unposed_keyframes, or a photo folder
+    played from its start) and counted by this run's tracker and adjuster; the others are added to the tracker
+    and bundle counters of `counts` (role -> Graph.counts(), what the report's keyframe accounting reads):
+    `keyframes` and `keyframes_received` each by all of them, and those still without a pose as
+    `not_oriented_taken_before_the_restart_without_a_pose`, so the report counts them as taken but not
+    oriented. Said on the console; returns {'keyframes', 'posed', 'unposed', 'still_unposed', 'taken_again',
+    'taken_again_oriented'} for the report's run section: `keyframes`, `posed`, `unposed` and `still_unposed`
+    count the ones not taken again; `taken_again` the keyframes without a pose before this run that it took again,
+    `taken_again_oriented` how many of those now have one."""
     from photogram_ros.io.map_store import MapStore
     store = MapStore(map_dir)
 
@@ -434,20 +457,26 @@ def count_keyframes_before(counts: dict, before: dict, map_dir) -> dict:
                 out.append(s)   # gone since: still one taken before
         return out
     posed, unposed = kept(before['posed']), kept(before['unposed'])
+    again = sorted(set(before['unposed']) - set(unposed))
     n = len(posed) + len(unposed)
     unposed_now = {int(p.stem) for p in store.unposed_keyframe_images()}
     still = sum(1 for s in unposed if s in unposed_now)
+    again_oriented = sum(1 for s in again if s not in unposed_now)
     tracker, bundle = counts.setdefault('tracker', {}), counts.setdefault('bundle', {})
     tracker['keyframes'] = tracker.get('keyframes', 0) + n
     bundle['keyframes_received'] = bundle.get('keyframes_received', 0) + n
     if still:
         key = 'not_oriented_taken_before_the_restart_without_a_pose'
         bundle[key] = bundle.get(key, 0) + still
-    out = {'keyframes': n, 'posed': len(posed), 'unposed': len(unposed), 'still_unposed': still}
-    if n:
-        print(f"resumed map: {n} keyframes taken before this run ({out['posed']} oriented then"
-              + (f", {still} without a pose, not oriented: their features were not stored, so this run's "
-                 'adjuster cannot take them; the report counts them as taken, not oriented' if still else '')
+    out = {'keyframes': n, 'posed': len(posed), 'unposed': len(unposed), 'still_unposed': still,
+           'taken_again': len(again), 'taken_again_oriented': again_oriented}
+    if n or again:
+        print(f"resumed map: {n + len(again)} keyframes taken before this run ({out['posed']} oriented then"
+              + (f'; {len(again)} without a pose then taken again by this run, {again_oriented} of them oriented now'
+                 if again else '')
+              + (f", {still} without a pose, not oriented: this run did not take them again (not fed to its "
+                 "tracker, or not made keyframes by it); the report counts them as taken, not oriented"
+                 if still else '')
               + ')', flush=True)
     return out
 
