@@ -10,6 +10,11 @@ nodes/node_main.py). A second signal, or the end of flight passing `--end-timeou
 `--end-max-rss-mb`), skips the steps left and writes what exists: the in-flight map's products and the
 report. The exit status is not 0 when the final adjustment or the exports failed, or when the flight
 mapped nothing (the report's Verdict: a line "MAPPING FAILED: why", exit 5 as in `replay`).
+
+A map folder left by a crash is resumed: the adjuster anchors `map` at its origin, and the keyframes it holds
+without a pose (taken before the crash, not yet oriented) go through the tracker and adjuster first, from their
+stored images, stamps and fixes (camera_node resume_keyframes_of), so that the report counts them oriented.
+`--heights` is the products' height datum, as in `replay` and `export` (commands/common_args.py).
 """
 
 from __future__ import annotations

@@ -393,6 +393,19 @@ def _decode(path: Path) -> np.ndarray:
     return np.ascontiguousarray(rgb[:, :, ::-1])
 
 
+def _image_or_skip(path: Path, undecoded, skipped: list):
+    """What `undecoded(path)` gives (a JPEG's bytes), else the decoded image; None when it cannot be decoded,
+    recorded in `skipped`."""
+    image = undecoded(path) if undecoded is not None else None
+    if image is not None:
+        return image
+    try:
+        return _decode(path)
+    except DataError as exc:
+        skipped.append((str(path), str(exc)))
+        return None
+
+
 PENDING_MAX_S = 30.0   # FolderSource.refresh: a new file that does not become a whole image in this long is skipped
 
 
@@ -528,14 +541,9 @@ class FolderSource:
         while self.next_index < len(self.entries):   # entries refresh() appends are played too
             path, stamp_ns = self.entries[self.next_index]
             self.next_index += 1
-            image = undecoded(path) if undecoded is not None else None
-            if image is None:
-                try:
-                    image = _decode(path)
-                except DataError as exc:
-                    self.skipped.append((str(path), str(exc)))
-                    continue
-            yield Frame(stamp_ns, image, self.geo.get(path.name) or read_exif_gps(path), str(path))
+            image = _image_or_skip(path, undecoded, self.skipped)
+            if image is not None:
+                yield Frame(stamp_ns, image, self.geo.get(path.name) or read_exif_gps(path), str(path))
 
     def refresh(self) -> int:
         """Photos that appeared in the folder since it was listed (a companion computer downloading from the
@@ -701,13 +709,9 @@ class StoredKeyframes:
             stamp_ns = int(path.stem)
             if before_ns is not None and stamp_ns >= before_ns:
                 return
-            image = undecoded(path) if undecoded is not None else None
+            image = _image_or_skip(path, undecoded, self.skipped)
             if image is None:
-                try:
-                    image = _decode(path)
-                except DataError as exc:
-                    self.skipped.append((str(path), str(exc)))
-                    continue
+                continue
             fix = self.fixes.get(stamp_ns)
             gps = None if fix is None or fix.get('status', 0) < 0 else StoredFix(
                 fix['lat_deg'], fix['lon_deg'], fix['h_m'], int(fix.get('status', gf.STATUS_FIX)),

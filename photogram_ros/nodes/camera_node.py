@@ -13,8 +13,10 @@ receiver would; `video_start_unix_s` places the video on the log's clock. A came
 publishing these topics needs no ingest node. JPEG photos larger than `compressed_above_px` (20 MP
 survey photos) go out undecoded, as their file's bytes on camera/image_raw/compressed: the tracker
 decodes them at its working size (about 0.1 s for 20 MP instead of 0.25 s for the full decode here and
-60 MB per raw image message). `publish_next` / `peek_stamp_ns` let a replay
-(nodes/replay_session.py) drive the frames itself, one at a time (`autostart` false).
+60 MB per raw image message). With `resume_keyframes_of` (run resuming a map after a crash) the map's
+keyframes saved without a pose are played first, their stored images with their stamps and kept fixes
+(io/image_source.StoredKeyframes), so that the tracker and adjuster orient them. `publish_next` /
+`peek_stamp_ns` let a replay (nodes/replay_session.py) drive the frames itself, one at a time (`autostart` false).
 """
 
 from __future__ import annotations
@@ -69,10 +71,10 @@ class CameraParams:
                                       'downloading from the camera during the flight) until none came for this long, '
                                       's; 0 = the folder ends at its last photo. For run and camera_node (a replay '
                                       'plays the folder as listed)', min=0.0, max=86400.0)
-    resume_keyframes_of: str = param('', 'A map folder whose keyframes were saved without a pose (taken before a crash, '
-                                         'never oriented): their images are played first, with their stamps and the '
-                                         'fixes the map kept, those stamped before the source\'s first frame, so that '
-                                         'this run orients them; run --resume sets it. "" = none')
+    resume_keyframes_of: str = param('', 'A map folder whose keyframes were saved without a pose (taken before a '
+                                         'crash, never oriented): their images are played first, with their stamps '
+                                         'and the fixes the map kept, those stamped before the source\'s first frame, '
+                                         'so that this run orients them; run sets it when it resumes a map. "" = none')
     wait_for_subscribers: int = param(1, 'Folders and files: the first frame waits until this many subscribers '
                                          'take the images, their camera_info and the fixes (a tracker in another '
                                          'process that starts later misses none); 0 = at once. A device never '
