@@ -101,6 +101,7 @@ def export_products(map_dir, out, params_file: str | None, crs: str = '', live_m
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     run = dict(run or {})
+    run['heights'] = heights   # the report states and lists it (the same option in run, replay and export)
     store = MapStore(map_dir)    # opened once: densify reads it, export and the report read the products' map
     end = store.flight_end()
     if end is not None:

@@ -10,11 +10,18 @@ nodes/node_main.py). A second signal, or the end of flight passing `--end-timeou
 `--end-max-rss-mb`), skips the steps left and writes what exists: the in-flight map's products and the
 report. The exit status is not 0 when the final adjustment or the exports failed, or when the flight
 mapped nothing (the report's Verdict: a line "MAPPING FAILED: why", exit 5 as in `replay`).
+
+A map folder left by a crash is resumed: the adjuster anchors `map` at its origin, and the keyframes it holds
+without a pose (taken before the crash, not yet oriented) go through the tracker and adjuster first, from their
+stored images, stamps and fixes (camera_node resume_keyframes_of), so that the report counts them oriented.
+`--heights` is the products' height datum, as in `replay` and `export` (commands/common_args.py).
 """
 
 from __future__ import annotations
 
 import time
+
+from photogram_ros.commands import common_args
 
 HELP = 'start every mapping node (mavlink, tracker, bundle, stereo, map) with one parameter file'
 
@@ -33,6 +40,7 @@ def add_arguments(p) -> None:
     p.add_argument('--out', default='products', help='where the survey products go when the mapper stops (SIGINT or '
                                                     'SIGTERM): clouds, DSM, orthomosaic, trajectory, report')
     p.add_argument('--crs', default='', help='CRS of the products (default: UTM zone of the map origin)')
+    common_args.add_heights(p)
     p.add_argument('--no-export', action='store_true', help='only flush the map when stopping (export later with '
                                                             'photogram-ros export MAPDIR --densify)')
     p.add_argument('--live-map', action='store_true', help='export the in-flight map instead of matching the '
@@ -86,6 +94,7 @@ def run(a) -> int:
     before = keyframes_before(map_dir_of(a.params)) if 'map' in roles else None
     if before is not None:
         spec = in_the_map_origin(spec, map_dir_of(a.params))
+        spec = feed_unposed_keyframes(spec, map_dir_of(a.params), before)
     signals = RunSignals(skippable=not a.separate)
     if a.separate:
         return _run_separate(a, spec, signals, before)
@@ -149,7 +158,8 @@ def run(a) -> int:
     run_info = {'source': 'run', 'frames': frames, 'bag_s': flight_s, 'wall_s': wall_s,
                 'real_time_factor': flight_s / max(wall_s, 1e-9), 'counts': counts,
                 'ended_by': signals.signal_name or 'end of the camera source',
-                'final_adjustment': end.final_adjustment, 'end_of_flight_errors': end.errors}
+                'final_adjustment': end.final_adjustment, 'end_of_flight_errors': end.errors,
+                'params_file': a.params, 'parameter_overrides': spec.extra or {}}
     if before is not None:
         run_info['resumed'] = count_keyframes_before(counts, before, map_dir_of(a.params))
     return _after_flight(a, roles, end.as_dict(), run_info, diag_log.snapshot())
@@ -409,14 +419,36 @@ def in_the_map_origin(spec, map_dir):
     return dataclasses.replace(spec, extra=extra)
 
 
+def feed_unposed_keyframes(spec, map_dir, before: dict):
+    """A resumed map that holds keyframes saved without a pose (taken before the crash, not yet oriented): the
+    camera node plays their stored images first, with their stamps and fixes (camera_node resume_keyframes_of),
+    so that this run's tracker and adjuster orient them. Without a camera node in this run (a camera driver
+    publishing the images) nothing can feed them: said, and the report counts them as not oriented."""
+    import dataclasses
+    if not before['unposed']:
+        return spec
+    if 'camera' not in spec.roles or 'tracker' not in spec.roles:
+        print(f"resumed map: {len(before['unposed'])} keyframes saved before the restart without a pose cannot be "
+              'fed again (no camera_node and tracker in this run): they stay not oriented', flush=True)
+        return spec
+    extra = {r: dict(v) for r, v in (spec.extra or {}).items()}
+    extra.setdefault('camera', {})['resume_keyframes_of'] = str(map_dir)
+    print(f"resumed map: the {len(before['unposed'])} keyframes saved before the restart without a pose go through "
+          'the tracker and the adjuster first (their stored images, stamps and fixes)', flush=True)
+    return dataclasses.replace(spec, extra=extra)
+
+
 def count_keyframes_before(counts: dict, before: dict, map_dir) -> dict:
-    """A resumed flight's accounting: the keyframes of the map from before this run are taken too. The tracker
-    and bundle counters of `counts` (role -> Graph.counts(), what the report's keyframe accounting reads) gain
-    them: `keyframes` and `keyframes_received` each by all of them, and the ones still without a pose as
-    `not_oriented_taken_before_the_restart_without_a_pose` (their features were not stored: this run's adjuster
-    cannot orient them), so the report counts them as taken but not oriented. Said on the console; returns
-    {'keyframes', 'posed', 'unposed', 'still_unposed'} for the report's run section. A keyframe this run took
-    again (a photo folder played from its start: the map saved its image anew) is this run's, not counted here."""
+    """A resumed flight's accounting: the keyframes of the map from before this run are taken too. One whose image
+    this run saved again is this run's (fed again from the map's store, feed_unposed_keyframes, or a photo folder
+    played from its start) and counted by this run's tracker and adjuster; the others are added to the tracker
+    and bundle counters of `counts` (role -> Graph.counts(), what the report's keyframe accounting reads):
+    `keyframes` and `keyframes_received` each by all of them, and those still without a pose as
+    `not_oriented_taken_before_the_restart_without_a_pose`, so the report counts them as taken but not
+    oriented. Said on the console; returns {'keyframes', 'posed', 'unposed', 'still_unposed', 'taken_again',
+    'taken_again_oriented'} for the report's run section: `keyframes`, `posed`, `unposed` and `still_unposed`
+    count the ones not taken again; `taken_again` the keyframes without a pose before this run that it took again,
+    `taken_again_oriented` how many of those now have one."""
     from photogram_ros.io.map_store import MapStore
     store = MapStore(map_dir)
 
@@ -430,20 +462,26 @@ def count_keyframes_before(counts: dict, before: dict, map_dir) -> dict:
                 out.append(s)   # gone since: still one taken before
         return out
     posed, unposed = kept(before['posed']), kept(before['unposed'])
+    again = sorted(set(before['unposed']) - set(unposed))
     n = len(posed) + len(unposed)
     unposed_now = {int(p.stem) for p in store.unposed_keyframe_images()}
     still = sum(1 for s in unposed if s in unposed_now)
+    again_oriented = sum(1 for s in again if s not in unposed_now)
     tracker, bundle = counts.setdefault('tracker', {}), counts.setdefault('bundle', {})
     tracker['keyframes'] = tracker.get('keyframes', 0) + n
     bundle['keyframes_received'] = bundle.get('keyframes_received', 0) + n
     if still:
         key = 'not_oriented_taken_before_the_restart_without_a_pose'
         bundle[key] = bundle.get(key, 0) + still
-    out = {'keyframes': n, 'posed': len(posed), 'unposed': len(unposed), 'still_unposed': still}
-    if n:
-        print(f"resumed map: {n} keyframes taken before this run ({out['posed']} oriented then"
-              + (f", {still} without a pose, not oriented: their features were not stored, so this run's "
-                 'adjuster cannot take them; the report counts them as taken, not oriented' if still else '')
+    out = {'keyframes': n, 'posed': len(posed), 'unposed': len(unposed), 'still_unposed': still,
+           'taken_again': len(again), 'taken_again_oriented': again_oriented}
+    if n or again:
+        print(f"resumed map: {n + len(again)} keyframes taken before this run ({out['posed']} oriented then"
+              + (f'; {len(again)} without a pose then taken again by this run, {again_oriented} of them oriented now'
+                 if again else '')
+              + (f", {still} without a pose, not oriented: this run did not take them again (not fed to its "
+                 "tracker, or not made keyframes by it); the report counts them as taken, not oriented"
+                 if still else '')
               + ')', flush=True)
     return out
 
@@ -489,7 +527,7 @@ def _run_separate(a, spec, signals, before: dict | None = None) -> int:
     run_info = {'source': 'run', 'frames': frames, 'bag_s': flight_s, 'wall_s': wall_s,
                 'real_time_factor': flight_s / max(wall_s, 1e-9), 'counts': counts,
                 'ended_by': signals.signal_name or 'a node process ended', 'final_adjustment': end['final_adjustment'],
-                'end_of_flight_errors': failed}
+                'end_of_flight_errors': failed, 'params_file': a.params, 'parameter_overrides': spec.extra or {}}
     if before is not None:
         run_info['resumed'] = count_keyframes_before(counts, before, map_dir_of(a.params))
     return _after_flight(a, spec.roles, end, run_info, diagnostics)
@@ -574,7 +612,7 @@ def _export_at_stop(a, roles, run_info=None, diagnostics=None) -> int:
     from photogram_ros.commands.products import export_products
     from photogram_ros.errors import PhotogramError
     try:
-        res = export_products(map_dir_of(a.params), a.out, a.params, a.crs, a.live_map, run=run_info,
+        res = export_products(map_dir_of(a.params), a.out, a.params, a.crs, a.live_map, a.heights, run=run_info,
                               diagnostics=diagnostics, progress=True)
     except (PhotogramError, OSError) as exc:   # the map itself is safe on disk: say how to export it later
         print(f'exports failed ({exc}); the map is on disk: photogram-ros export MAPDIR --densify', flush=True)

@@ -2,7 +2,7 @@
 input camera calibration (before a final adjustment's self-calibration replaces camera.json).
 
     keyframe_fixes.jsonl   one JSON object a line: stamp_ns, lat_deg, lon_deg, h_m (ellipsoidal), status
-                           (NavSatStatus), appended as the keyframes' fixes come (`append_keyframe_fix`)
+                           (NavSatStatus), optional sigma_h_m, sigma_v_m, appended as the keyframes' fixes come (`append_keyframe_fix`)
     camera_input.json      the first calibration the flight was given (`save_input_camera`), in camera.json's
                            layout (the ROS calibration YAML as JSON)
 
@@ -22,17 +22,20 @@ INPUT_CAMERA_FILE = 'camera_input.json'
 
 
 def append_keyframe_fix(root: str | Path, stamp_ns: int, lat_deg: float, lon_deg: float, h_m: float,
-                        status: int) -> None:
-    """Append one keyframe's fix (a later line for the same stamp replaces an earlier one when read)."""
+                        status: int, sigma_h_m: float | None = None, sigma_v_m: float | None = None) -> None:
+    """Append one keyframe's fix (a later line for the same stamp replaces an earlier one when read); its
+    1-sigmas, m, when given (a resumed run feeds the fix again with them)."""
     row = {'stamp_ns': int(stamp_ns), 'lat_deg': float(lat_deg), 'lon_deg': float(lon_deg), 'h_m': float(h_m),
            'status': int(status)}
+    if sigma_h_m is not None and sigma_v_m is not None:
+        row.update(sigma_h_m=float(sigma_h_m), sigma_v_m=float(sigma_v_m))
     with open(Path(root) / FIXES_FILE, 'a') as f:
         f.write(json.dumps(row) + '\n')
 
 
 def keyframe_fixes(root: str | Path) -> dict[int, dict]:
-    """stamp_ns -> {'lat_deg', 'lon_deg', 'h_m', 'status'}; {} without the file. A line cut short by a kill
-    (the last one) is skipped."""
+    """stamp_ns -> {'lat_deg', 'lon_deg', 'h_m', 'status'[, 'sigma_h_m', 'sigma_v_m']}; {} without the file. A
+    line cut short by a kill (the last one) is skipped."""
     path = Path(root) / FIXES_FILE
     out: dict[int, dict] = {}
     if not path.exists():
@@ -40,7 +43,8 @@ def keyframe_fixes(root: str | Path) -> dict[int, dict]:
     for line in path.read_text().splitlines():
         try:
             row = json.loads(line)
-            out[int(row['stamp_ns'])] = {k: row[k] for k in ('lat_deg', 'lon_deg', 'h_m', 'status')}
+            fix = {k: row[k] for k in ('lat_deg', 'lon_deg', 'h_m', 'status')}
+            out[int(row['stamp_ns'])] = {**fix, **{k: row[k] for k in ('sigma_h_m', 'sigma_v_m') if k in row}}
         except (ValueError, KeyError, TypeError):
             continue
     return out

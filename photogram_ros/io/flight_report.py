@@ -498,7 +498,9 @@ def build_report(out_dir: str | Path, map_dir: str | Path | MapStore, crs: str, 
                      if 'densify_s' in run else '')
             s.text.append(f"Clouds, DSM and orthomosaic from the {run['products_from']}{extra}.")
         s.text += _settings_lines(run)
-    s.text.append(f'Coordinates in {crs}, heights above the WGS84 ellipsoid unless stated.')
+    s.text.append(f'Coordinates in {crs}, heights above the WGS84 ellipsoid unless stated'
+                  + ('; the products\' heights (cloud, DSM, DTM) are orthometric, above the EGM2008 geoid '
+                     '(--heights orthometric).' if (run or {}).get('heights') == 'orthometric' else '.'))
     sections.append(s)
     georeferenced = origin is not None and bool(kfs) and cam is not None
     sections[:0] = _health_sections(figures, kfs, files, run, diagnostics, georeferenced)
@@ -636,6 +638,9 @@ def parameters_section(run: dict, figures: dict) -> Section:
                         'and its options (see Software).')
     rows += [{'node': role, 'parameter': k, 'value': json.dumps(v, default=str), 'from': 'command'}
              for role, vals in sorted(overrides.items()) for k, v in sorted((vals or {}).items())]
+    if run.get('heights'):
+        rows.append({'node': 'products', 'parameter': '--heights', 'value': json.dumps(run['heights']),
+                     'from': 'command'})
     figures['parameters'] = {'file': path, 'rows': rows}
     if rows:
         sec.tables.append(('Parameters (value from the file, or set by the command over it)', rows))

@@ -90,7 +90,7 @@ class GeoTxtPosition:
 class Frame:
     stamp_ns: int
     image: np.ndarray     # BGR uint8 (H, W, 3)
-    gps: ExifGps | GeoTxtPosition | None   # a photo's geo.txt position, else its EXIF GPS
+    gps: ExifGps | GeoTxtPosition | StoredFix | None   # a photo's geo.txt position, else its EXIF GPS
     path: str             # file path, or the video source and frame index
 
 
@@ -393,6 +393,19 @@ def _decode(path: Path) -> np.ndarray:
     return np.ascontiguousarray(rgb[:, :, ::-1])
 
 
+def _image_or_skip(path: Path, undecoded, skipped: list):
+    """What `undecoded(path)` gives (a JPEG's bytes), else the decoded image; None when it cannot be decoded,
+    recorded in `skipped`."""
+    image = undecoded(path) if undecoded is not None else None
+    if image is not None:
+        return image
+    try:
+        return _decode(path)
+    except DataError as exc:
+        skipped.append((str(path), str(exc)))
+        return None
+
+
 PENDING_MAX_S = 30.0   # FolderSource.refresh: a new file that does not become a whole image in this long is skipped
 
 
@@ -528,14 +541,9 @@ class FolderSource:
         while self.next_index < len(self.entries):   # entries refresh() appends are played too
             path, stamp_ns = self.entries[self.next_index]
             self.next_index += 1
-            image = undecoded(path) if undecoded is not None else None
-            if image is None:
-                try:
-                    image = _decode(path)
-                except DataError as exc:
-                    self.skipped.append((str(path), str(exc)))
-                    continue
-            yield Frame(stamp_ns, image, self.geo.get(path.name) or read_exif_gps(path), str(path))
+            image = _image_or_skip(path, undecoded, self.skipped)
+            if image is not None:
+                yield Frame(stamp_ns, image, self.geo.get(path.name) or read_exif_gps(path), str(path))
 
     def refresh(self) -> int:
         """Photos that appeared in the folder since it was listed (a companion computer downloading from the
@@ -651,6 +659,64 @@ class VideoSource:
                 k += 1
         finally:
             self.cap.release()
+
+
+@dataclass(frozen=True)
+class StoredFix:
+    """A keyframe's GNSS fix as the map folder kept it (io/flight_inputs.keyframe_fixes: WGS84, ellipsoidal height,
+    NavSatStatus status; its 1-sigmas when stored, else the ones `gnss_fix` is given)."""
+
+    lat_deg: float
+    lon_deg: float
+    h_m: float            # ellipsoidal (WGS84), m
+    status: int = gf.STATUS_FIX
+    sigma_h_m: float | None = None
+    sigma_v_m: float | None = None
+
+    def gnss_fix(self, stamp_ns: int, sigma_h_m: float, sigma_v_m: float, *args, **kwargs) -> gf.GnssFix:
+        known = self.sigma_h_m is not None and self.sigma_v_m is not None
+        sh, sv = (self.sigma_h_m, self.sigma_v_m) if known else (sigma_h_m, sigma_v_m)
+        cov = np.diag([sh * sh, sh * sh, sv * sv])
+        return gf.GnssFix(self.lat_deg, self.lon_deg, self.h_m, cov, int(stamp_ns), int(self.status),
+                          gf.COV_DIAGONAL_KNOWN if known else gf.COV_APPROXIMATED)
+
+
+class StoredKeyframes:
+    """The keyframes a map folder holds without a pose (taken before a crash cut the flight short, never oriented
+    by the adjuster), as frames to feed again: each keyframe's saved image (the camera's full resolution) with its
+    stamp and the fix the map kept for it (io/flight_inputs.keyframe_fixes; None when it kept none). A resumed
+    `run` plays them before its camera's frames (camera_node `resume_keyframes_of`) so that this run's tracker and
+    adjuster orient them like any keyframe. An image that cannot be decoded is named in `skipped`."""
+
+    def __init__(self, map_dir):
+        from photogram_ros.io.flight_inputs import keyframe_fixes
+        from photogram_ros.io.map_store import MapStore
+        self.map_dir = Path(map_dir)
+        self.images = MapStore(self.map_dir).unposed_keyframe_images()   # in stamp order
+        self.fixes = keyframe_fixes(self.map_dir)
+        self.skipped: list[tuple[str, str]] = []
+        n_fix = sum(1 for p in self.images if int(p.stem) in self.fixes)
+        self.notes = [f'{len(self.images)} keyframes of {self.map_dir} saved before the restart without a pose '
+                      f'({n_fix} with their fix) are played first, for this run to orient them'] if self.images else []
+
+    def stamps_ns(self) -> list[int]:
+        return [int(p.stem) for p in self.images]
+
+    def frames(self, undecoded=None, before_ns: int | None = None) -> Iterator[Frame]:
+        """The stored keyframes stamped before `before_ns` (None: all) as `Frame`s in stamp order, decoded (BGR)
+        unless `undecoded(path)` gives what to pass instead (FolderSource.frames' convention)."""
+        for path in self.images:
+            stamp_ns = int(path.stem)
+            if before_ns is not None and stamp_ns >= before_ns:
+                return
+            image = _image_or_skip(path, undecoded, self.skipped)
+            if image is None:
+                continue
+            fix = self.fixes.get(stamp_ns)
+            gps = None if fix is None or fix.get('status', 0) < 0 else StoredFix(
+                fix['lat_deg'], fix['lon_deg'], fix['h_m'], int(fix.get('status', gf.STATUS_FIX)),
+                fix.get('sigma_h_m'), fix.get('sigma_v_m'))
+            yield Frame(stamp_ns, image, gps, str(path))
 
 
 def open_source(source: str, utc_offset_s: float = 0.0, fallback_period_s: float = 1.0,

@@ -13,8 +13,10 @@ receiver would; `video_start_unix_s` places the video on the log's clock. A came
 publishing these topics needs no ingest node. JPEG photos larger than `compressed_above_px` (20 MP
 survey photos) go out undecoded, as their file's bytes on camera/image_raw/compressed: the tracker
 decodes them at its working size (about 0.1 s for 20 MP instead of 0.25 s for the full decode here and
-60 MB per raw image message). `publish_next` / `peek_stamp_ns` let a replay
-(nodes/replay_session.py) drive the frames itself, one at a time (`autostart` false).
+60 MB per raw image message). With `resume_keyframes_of` (run resuming a map after a crash) the map's
+keyframes saved without a pose are played first, their stored images with their stamps and kept fixes
+(io/image_source.StoredKeyframes), so that the tracker and adjuster orient them. `publish_next` /
+`peek_stamp_ns` let a replay (nodes/replay_session.py) drive the frames itself, one at a time (`autostart` false).
 """
 
 from __future__ import annotations
@@ -29,6 +31,7 @@ from sensor_msgs.msg import CameraInfo, CompressedImage, Image, NavSatFix
 
 from photogram_ros import msgs
 from photogram_ros.errors import CalibrationError, ConfigError, PhotogramError
+from photogram_ros.io.image_source import StoredKeyframes
 from photogram_ros.nodes import qos as qos_profiles
 from photogram_ros.nodes.diagnostics import Diagnostics
 from photogram_ros.nodes.node_main import run_job
@@ -68,6 +71,10 @@ class CameraParams:
                                       'downloading from the camera during the flight) until none came for this long, '
                                       's; 0 = the folder ends at its last photo. For run and camera_node (a replay '
                                       'plays the folder as listed)', min=0.0, max=86400.0)
+    resume_keyframes_of: str = param('', 'A map folder whose keyframes were saved without a pose (taken before a '
+                                         'crash, never oriented): their images are played first, with their stamps '
+                                         'and the fixes the map kept, those stamped before the source\'s first frame, '
+                                         'so that this run orients them; run sets it when it resumes a map. "" = none')
     wait_for_subscribers: int = param(1, 'Folders and files: the first frame waits until this many subscribers '
                                          'take the images, their camera_info and the fixes (a tracker in another '
                                          'process that starts later misses none); 0 = at once. A device never '
@@ -108,12 +115,19 @@ class CameraNode(Node):
         self.waiting = False         # watch_quiet_s: the folder's photos are played, new ones are waited for
         self._quiet_since = None     # since when no new photo came (watch_quiet_s)
         self._last_scan = 0.0
-        self._frames = self._iterate(self.source)
+        self._stored = StoredKeyframes(p.resume_keyframes_of) if p.resume_keyframes_of else None
+        self._resumed: set[int] = set()   # stamps of the stored keyframes played (resume_keyframes_of)
+        if self._stored is not None:
+            for note in self._stored.notes:
+                self.diag.set('note', note)
+                self.get_logger().info(note)
+        self._frames = self._after_stored(self._iterate(self.source))
         self._next = None
         self._offset_ns = 0          # added to stamps on each loop so that time never goes back
         self._first_ns = None
         self._last_ns = None
         self._wall0 = None
+        self._wall0_resumed = False
         self._reported_skips = 0
         self._started = self._said_waiting = False   # the first frame waits for wait_for_subscribers
         self._timer = self.create_timer(0.005, self._tick) if p.autostart else None
@@ -211,6 +225,26 @@ class CameraNode(Node):
             return iter(source)
         return source.frames(lambda path: JpegFile.read(path, self.params.compressed_above_px), start)
 
+    def _after_stored(self, frames):
+        """`frames` after the map's stored keyframes without a pose (resume_keyframes_of) stamped before the first
+        of them (a folder played again from its start takes its own keyframes again)."""
+        if self._stored is None:
+            yield from frames
+            return
+        frames = iter(frames)
+        first = next(frames, None)
+        undecoded = (lambda path: JpegFile.read(path, self.params.compressed_above_px))
+        for frame in self._stored.frames(undecoded, before_ns=None if first is None else first.stamp_ns):
+            self._resumed.add(frame.stamp_ns)
+            yield frame
+        for path, why in self._stored.skipped:
+            self.diag.count('resumed_keyframes_unreadable')
+            self.diag.problem(f'stored keyframe {path} not played again: {why}')
+        self._stored.skipped.clear()
+        if first is not None:
+            yield first
+            yield from frames
+
     def _count_skips(self) -> None:
         new = self.source.skipped[self._reported_skips:]
         other = set(getattr(self.source, 'other_camera', ()))
@@ -245,10 +279,11 @@ class CameraNode(Node):
             self._first_ns = stamp_ns
         self._last_ns = stamp_ns
         p = self.params
+        resumed = frame.stamp_ns in self._resumed
         try:
             # The fix goes first so that a consumer holding the image already has its position.
             self._publish_log_fixes(stamp_ns)
-            if p.publish_exif_fix and frame.gps is not None:
+            if (p.publish_exif_fix or resumed) and frame.gps is not None:
                 fix = frame.gps.gnss_fix(stamp_ns, p.exif_sigma_m, 2.0 * p.exif_sigma_m)
                 self.pub_fix.publish(msgs.navsatfix_from_gnss_fix(fix, p.fix_frame_id))
                 self.diag.count('fixes')
@@ -264,6 +299,8 @@ class CameraNode(Node):
             self.diag.problem(f'{frame.path}: {exc}')
             return True
         self.diag.count('frames')
+        if resumed:
+            self.diag.count('resumed_keyframes')
         self.diag.set('rate_hz', self.diag.rate_hz('frames'))
         self.diag.set('last_frame', frame.path)
         return True
@@ -303,10 +340,13 @@ class CameraNode(Node):
             return
         stamp_ns = frame.stamp_ns + self._offset_ns
         now = time.monotonic()
-        if self._wall0 is None:
-            self._wall0 = (now, stamp_ns)
+        resumed = frame.stamp_ns in self._resumed
+        # Stored keyframes go out at their own spacing (even before a device's frames), then the source's clock
+        # starts afresh at its first frame (the restart's gap is not waited for).
+        if self._wall0 is None or (self._wall0_resumed and not resumed):
+            self._wall0, self._wall0_resumed = (now, stamp_ns), resumed
         due = self._wall0[0] + (stamp_ns - self._wall0[1]) * 1e-9 / p.rate
-        if due <= now or getattr(self.source, 'is_device', False):
+        if due <= now or (getattr(self.source, 'is_device', False) and not resumed):
             self.publish_next()
 
 
