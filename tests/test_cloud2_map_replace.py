@@ -139,3 +139,54 @@ def test_stereo_pairs_provisional_poses_and_says_the_placement(rclpy_context):
         ex.shutdown()
         node.destroy_node()
         peer.destroy_node()
+
+
+def test_map_node_places_a_cloud_again_when_its_provisional_pose_turns_final(rclpy_context, tmp_path):
+    import time
+
+    from geometry_msgs.msg import PoseWithCovarianceStamped
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.node import Node
+    from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+    from sensor_msgs.msg import PointCloud2
+
+    from photogram_ros import msgs
+    from photogram_ros.core.pose_status import provisional_covariance
+    from photogram_ros.nodes.map_node import MapNode
+
+    node = MapNode({'map_dir': str(tmp_path / 'map'), 'cell_m': 0.1, 'use_origin_params': True,
+                    'origin_lat_deg': 47.3977, 'origin_lon_deg': 8.5456, 'origin_h_m': 488.0, 'ortho': False,
+                    'coverage': False, 'save_keyframes': False}, context=rclpy_context)
+    peer = Node('cloud2_map_peer', context=rclpy_context)
+    reliable = QoSProfile(history=HistoryPolicy.KEEP_ALL, depth=1, reliability=ReliabilityPolicy.RELIABLE)
+    pub_place = peer.create_publisher(PoseWithCovarianceStamped, '/map/dense_cloud_pose', reliable)
+    pub_cloud = peer.create_publisher(PointCloud2, '/map/dense_cloud', reliable)
+    pub_pose = peer.create_publisher(PoseWithCovarianceStamped, '/map/keyframe_pose', reliable)
+    ex = SingleThreadedExecutor(context=rclpy_context)
+    ex.add_node(node)
+    ex.add_node(peer)
+
+    def spin(cond, timeout_s):
+        end = time.monotonic() + timeout_s
+        while time.monotonic() < end and not cond():
+            ex.spin_once(timeout_sec=0.05)
+        return cond()
+    try:
+        assert spin(lambda: pub_place.get_subscription_count() and pub_cloud.get_subscription_count()
+                    and pub_pose.get_subscription_count(), 10.0)
+        final_cov = np.diag([0.02 ** 2] * 3 + [1e-6] * 3)
+        prov_cov = provisional_covariance(final_cov, (1.0, 0.0, 0.0))
+        stamp = 7 * 10**9
+        cloud = pair_cloud(np.random.default_rng(1), _flat, 20.0, 0.0, 5.0, 5.0, 150.0, 0.01)
+        pub_place.publish(msgs.pose_with_covariance_from_T(_pose(20.0, 0.0), stamp, 'map', prov_cov))
+        pub_cloud.publish(msgs.dense_cloud_msg(cloud, stamp, 'map'))
+        assert spin(lambda: node.diag.counts().get('clouds', 0) == 1, 10.0)
+        x0 = float(np.mean(node.fusion.points()['x']))
+        pub_pose.publish(msgs.pose_with_covariance_from_T(_pose(22.0, 1.0), stamp, 'map', final_cov))
+        assert spin(lambda: node.diag.counts().get('clouds_replaced', 0) == 1, 10.0)
+        pts = node.fusion.points()
+        assert abs(float(np.mean(pts['x'])) - x0 - 2.0) < 0.05 and abs(float(np.mean(pts['y'])) - 1.0) < 0.1
+    finally:
+        ex.shutdown()
+        peer.destroy_node()
+        node.destroy_node()
