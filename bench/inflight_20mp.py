@@ -262,6 +262,42 @@ def pose_moved_after_first_fused(history: dict, fused_at: dict) -> dict:
     return {'centre_m': lag_stats(move_m, 3), 'fused_with_provisional_pose': provisional}
 
 
+def relative_pose_moved_after_fused(history: dict, fused_at: dict) -> dict:
+    """What a pair's depth depends on: each fused keyframe's pose relative to the keyframe before it, at its first
+    fused cloud (the latest poses of any status then) against the last poses: the change of the relative centre
+    in m, and of the baseline's length as a ratio (the depth's scale error a cloud placed again keeps), p50/p95/max."""
+    import numpy as np
+    stamps = sorted(history)
+    move_m, scale = [], []
+    for prev, s in zip(stamps, stamps[1:]):
+        if s not in fused_at:
+            continue
+        t = fused_at[s]
+        a_then = [T for tt, _, T in history[prev] if tt <= t]
+        b_then = [T for tt, _, T in history[s] if tt <= t]
+        if not a_then or not b_then:
+            continue
+        rel_then = np.linalg.inv(a_then[-1]) @ b_then[-1]
+        rel_end = np.linalg.inv(history[prev][-1][2]) @ history[s][-1][2]
+        move_m.append(float(np.linalg.norm(rel_end[:3, 3] - rel_then[:3, 3])))
+        base = float(np.linalg.norm(rel_then[:3, 3]))
+        if base > 1e-6:
+            scale.append(abs(float(np.linalg.norm(rel_end[:3, 3])) / base - 1.0))
+    return {'relative_centre_m': lag_stats(move_m, 3), 'baseline_scale_change': lag_stats(scale, 4)}
+
+
+def summarise_kept(keep: Path) -> dict:
+    """The pose figures of a kept run (--keep: its pose_history.json), recomputed."""
+    d = json.loads((keep / 'pose_history.json').read_text())
+    import numpy as np
+    history = {int(s): [(t, p, np.array(T)) for t, p, T in h] for s, h in d['poses'].items()}
+    fused = {int(s): t for s, t in d['fused'].items()}
+    return {'bench': 'inflight_20mp_kept', 'config': keep.name, 'kept': str(keep), **CODE,
+            'pose_moved_after_first_fused_any_status': pose_moved_after_first_fused(history, fused),
+            'relative_pose_moved_after_first_fused': relative_pose_moved_after_fused(history, fused),
+            'pose_moved_after_fused': pose_moved_after_fused(history, fused, d['flight_end'])}
+
+
 def pose_moved_after_fused(history: dict, fused_at: dict, flight_end: float) -> dict:
     """How far each keyframe's pose moved after its first fused cloud (the pose stereo paired it with: its last
     final pose before then) until its last pose in flight and its last pose at all (the final adjustment's): the
@@ -465,6 +501,8 @@ def run_period(a, period_s: float, extra: dict, tag: str) -> dict:
            'pose_moved_after_fused': moved,
            'pose_moved_after_first_fused_any_status': pose_moved_after_first_fused(
                poses.history, {s: v[0] for s, v in probe.kf_fused.items()}),
+           'relative_pose_moved_after_first_fused': relative_pose_moved_after_fused(
+               poses.history, {s: v[0] for s, v in probe.kf_fused.items()}),
            'shed': shed,
            'camera_late_s': lag_stats(camera_late),
            'stereo': {k: stereo[k] for k in sorted(stereo) if k.startswith(('pairs', 'keyframes', 'images'))},
@@ -623,6 +661,8 @@ def main() -> int:
     ap.add_argument('--out', default='', help='append every JSON line to this file (e.g. '
                                                'bench/results/inflight_20mp_<commit>.jsonl)')
     ap.add_argument('--build-only', action='store_true')
+    ap.add_argument('--summarise-kept', default='', metavar='DIR',
+                    help='recompute the pose figures of a run kept with --keep (DIR: its period folder, e.g. KEEP/1s)')
     ap.add_argument('--export-dsm', action='store_true',
                     help='after each run, `export --densify --products dsm` its stored map; the first period\'s '
                          'run is the reference the later ones\' DSMs are compared with (median |dz|, in GSD)')
@@ -633,6 +673,9 @@ def main() -> int:
     CODE.update(commit=git('rev-parse', '--short', 'HEAD'),
                 clean_tree=not git('status', '--porcelain', '--', 'photogram_ros', 'bench/inflight_20mp.py'))
     emit({'machine': machine_info(), 'load_avg_before': [round(x, 2) for x in os.getloadavg()]})
+    if a.summarise_kept:
+        emit(summarise_kept(Path(a.summarise_kept)))
+        return 0
     if a.build_only:
         for p in periods:
             built = build_sim_flight(a.photos) if a.flight == 'sim' else build_flight(p, a.photos)

@@ -77,6 +77,18 @@ def test_a_move_that_cannot_be_followed_is_counted_and_said(tmp_path):
     assert any('clouds_moved_not_replaced' in text for _, text in stage.diag.problems)
 
 
+def test_the_cell_follows_the_gsd_from_provisional_poses_before_the_first_final_one(tmp_path):
+    from photogram_ros.core.camera import PinholeCamera
+    rng = np.random.default_rng(6)
+    stage = _stage(tmp_path, cell_m=-1.0)
+    stage.set_camera(PinholeCamera(5472, 3648, 4666.0, 4666.0, 2736.0, 1824.0))
+    stage.set_keyframe_pose(3, _pose(0.0, 0.0, 82.0), True)
+    stage.set_cloud_placement(3, _pose(0.0, 0.0, 82.0), True)
+    stage.add_cloud('map', 3, pair_cloud(rng, _flat, 0.0, 0.0, 5.0, 5.0, 50.0, 0.01))
+    assert not stage.diag.problems
+    assert stage.gsd is not None and abs(stage.gsd.flying_height_m - 80.0) < 0.5
+
+
 def test_stereo_pairs_provisional_poses_and_says_the_placement(rclpy_context):
     import time
 

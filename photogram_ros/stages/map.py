@@ -145,6 +145,7 @@ class MapStage:
         self._keyframes_unfused = 0    # keyframe poses since the last cloud that fused points
         self._clouds_unfused = 0       # clouds since then (that fused nothing)
         self._pose_z: dict = {}        # stamp -> camera height in map (the flying height for the GSD)
+        self._provisional_z: dict = {}  # the same from provisional poses, before the first final one
         if p.use_origin_params:
             self._set_origin(LocalFrame(p.origin_lat_deg, p.origin_lon_deg, p.origin_h_m))
         self._stream_pending: set = set(self.store.tile_keys())   # a restarted map streams what it has
@@ -198,11 +199,12 @@ class MapStage:
     def _derive_cell(self, cloud_z: np.ndarray) -> None:
         """First pair cloud: the cell from the GSD (camera, newest keyframe height above this cloud)."""
         self._cell_pending = False
-        if self.camera is None or not self._pose_z:
+        heights = self._pose_z or self._provisional_z   # before the first turn: the provisional poses' heights
+        if self.camera is None or not heights:
             self.diag.problem(f'cell_m from the GSD needs camera_info and a keyframe pose before the first pair '
                               f'cloud: keeping {self.store.cell_m} m')
             return
-        height = self._pose_z[max(self._pose_z)] - float(np.median(cloud_z))
+        height = heights[max(heights)] - float(np.median(cloud_z))
         try:
             self.gsd = gsd.derive(self.camera.width, self.camera.height, self.camera.fx, height)
         except ConfigError as exc:
@@ -291,10 +293,12 @@ class MapStage:
     @_locked
     def set_keyframe_pose(self, stamp_ns: int, load, provisional: bool) -> None:
         """A keyframe's latest pose, provisional or final: its fused clouds follow it (replace_moved)."""
-        if self.placements is None:
-            return
         try:
-            self.placements.pose(stamp_ns, _value(load), provisional)
+            T = _value(load)
+            if provisional and not self._pose_z and len(self._provisional_z) < 1000:
+                self._provisional_z[stamp_ns] = float(T[2, 3])   # the flying height until a final pose comes
+            if self.placements is not None:
+                self.placements.pose(stamp_ns, T, provisional)
         except PhotogramError as exc:
             self.diag.problem(f'keyframe pose rejected: {exc}')
 
