@@ -12,6 +12,14 @@ from photogram_ros.stages.map import MapParams, MapStage
 from photogram_ros.stages.report import DiagnosticsLog
 
 
+def _spin_until(executor, cond, timeout_s):
+    import time
+    end = time.monotonic() + timeout_s
+    while time.monotonic() < end and not cond():
+        executor.spin_once(timeout_sec=0.05)
+    return cond()
+
+
 def _flat(x, y):
     return 2.0 + 0.0 * x
 
@@ -90,8 +98,6 @@ def test_the_cell_follows_the_gsd_from_provisional_poses_before_the_first_final_
 
 
 def test_stereo_pairs_provisional_poses_and_says_the_placement(rclpy_context):
-    import time
-
     from geometry_msgs.msg import PoseWithCovarianceStamped
     from helpers.sim_world import rendered, world
     from rclpy.executors import SingleThreadedExecutor
@@ -124,10 +130,7 @@ def test_stereo_pairs_provisional_poses_and_says_the_placement(rclpy_context):
     pub_info = peer.create_publisher(CameraInfo, '/camera/camera_info', qos.reliable())
 
     def spin(cond, timeout_s):
-        end = time.monotonic() + timeout_s
-        while time.monotonic() < end and not cond():
-            ex.spin_once(timeout_sec=0.05)
-        return cond()
+        return _spin_until(ex, cond, timeout_s)
     try:
         assert spin(lambda: pub_img.get_subscription_count() and pub_pose.get_subscription_count()
                     and pub_info.get_subscription_count(), 10.0)
@@ -154,8 +157,6 @@ def test_stereo_pairs_provisional_poses_and_says_the_placement(rclpy_context):
 
 
 def test_map_node_places_a_cloud_again_when_its_provisional_pose_turns_final(rclpy_context, tmp_path):
-    import time
-
     from geometry_msgs.msg import PoseWithCovarianceStamped
     from rclpy.executors import SingleThreadedExecutor
     from rclpy.node import Node
@@ -179,10 +180,7 @@ def test_map_node_places_a_cloud_again_when_its_provisional_pose_turns_final(rcl
     ex.add_node(peer)
 
     def spin(cond, timeout_s):
-        end = time.monotonic() + timeout_s
-        while time.monotonic() < end and not cond():
-            ex.spin_once(timeout_sec=0.05)
-        return cond()
+        return _spin_until(ex, cond, timeout_s)
     try:
         assert spin(lambda: pub_place.get_subscription_count() and pub_cloud.get_subscription_count()
                     and pub_pose.get_subscription_count(), 10.0)
