@@ -425,7 +425,8 @@ class Fusion:
         for name, v in (('r', mr), ('g', mg), ('b', mb)):
             c[name] = np.clip(np.rint(v), 0, 255)
         c['confidence'] = np.clip(np.rint(np.asarray(mc, np.float64) * 255.0), 0, 255)
-        return Contribution(base, cell, c)
+        # Kept while its keyframe's pose may move (minutes): off the heap, like the tiles.
+        return Contribution(base, cell, offheap.copy(c))
 
     def remove(self, contrib: Contribution) -> None:
         """Take a recorded contribution out of its cells: the reverse of the running-mean update (Chan's, undone);

@@ -82,7 +82,7 @@ class MapParams(FusionConfig, CoverageConfig):
                                      min=0.1, max=3600.0)
     survey_area_file: str = param('', 'Survey area: a QGroundControl .plan (its Survey polygon or geofence) or a '
                                       'GeoJSON polygon; "" = the flight lines\' swaths')
-    replace_move_m: float = param(0.1, 'a keyframe whose pose moved this far from the pose one of its fused clouds '
+    replace_move_m: float = param(0.25, 'a keyframe whose pose moved this far from the pose one of its fused clouds '
                                        'was placed with (centre shift + height x rotation, m), or whose provisional '
                                        'pose turned final, has that cloud taken out of the map and fused again at '
                                        'its new pose; 0: clouds stay where they were fused', min=0.0, max=1e3)
@@ -90,7 +90,7 @@ class MapParams(FusionConfig, CoverageConfig):
                                             'it again), MB; past it the oldest finally placed ones are dropped and a '
                                             'later move of theirs is counted (clouds_moved_not_replaced), a WARN',
                                      min=0.0, max=1e5)
-    replace_budget_s: float = param(0.3, 'the most one replace_moved round spends placing clouds again, s (the rest '
+    replace_budget_s: float = param(0.2, 'the most one replace_moved round spends placing clouds again, s (the rest '
                                          'in the next round: new clouds go first)', min=0.01, max=3600.0)
     warn_unfused_keyframes: int = param(20, 'WARN on /diagnostics when this many keyframes came (images, or poses '
                                             'without save_keyframes) and '
