@@ -27,7 +27,7 @@ def _flat(x, y):
 def _stage(tmp_path, **kw):
     p = from_dict(MapParams, {'map_dir': str(tmp_path / 'map'), 'cell_m': 0.1, 'use_origin_params': True,
                               'origin_lat_deg': 47.3977, 'origin_lon_deg': 8.5456, 'origin_h_m': 488.0,
-                              'coverage': False, 'ortho': False, **kw})
+                              'coverage': False, 'ortho': False, 'replace_move_m': 0.25, **kw})
     return MapStage(p, DiagnosticsLog())
 
 
@@ -113,7 +113,7 @@ def test_stereo_pairs_provisional_poses_and_says_the_placement(rclpy_context):
     cam = cfg.camera()
     frames = [(1_780_000_000_000_000_000 + int(t * 1e9), T, img) for t, T, img in rendered((2.0, 3.8, 5.6))]
     node = StereoNode({'ground_from_sparse_cloud': False, 'downscale': 0.5, 'fill_holes_m': 0.0,
-                       'settle_keyframes': 0}, context=rclpy_context)
+                       'settle_keyframes': 0, 'pair_provisional': True}, context=rclpy_context)
     peer = Node('cloud2_peer', context=rclpy_context)
     ex = SingleThreadedExecutor(context=rclpy_context)
     ex.add_node(node)
@@ -169,7 +169,7 @@ def test_map_node_places_a_cloud_again_when_its_provisional_pose_turns_final(rcl
 
     node = MapNode({'map_dir': str(tmp_path / 'map'), 'cell_m': 0.1, 'use_origin_params': True,
                     'origin_lat_deg': 47.3977, 'origin_lon_deg': 8.5456, 'origin_h_m': 488.0, 'ortho': False,
-                    'coverage': False, 'save_keyframes': False}, context=rclpy_context)
+                    'coverage': False, 'save_keyframes': False, 'replace_move_m': 0.25}, context=rclpy_context)
     peer = Node('cloud2_map_peer', context=rclpy_context)
     reliable = QoSProfile(history=HistoryPolicy.KEEP_ALL, depth=1, reliability=ReliabilityPolicy.RELIABLE)
     pub_place = peer.create_publisher(PoseWithCovarianceStamped, '/map/dense_cloud_pose', reliable)

@@ -82,10 +82,13 @@ class MapParams(FusionConfig, CoverageConfig):
                                      min=0.1, max=3600.0)
     survey_area_file: str = param('', 'Survey area: a QGroundControl .plan (its Survey polygon or geofence) or a '
                                       'GeoJSON polygon; "" = the flight lines\' swaths')
-    replace_move_m: float = param(0.25, 'a keyframe whose pose moved this far from the pose one of its fused clouds '
-                                       'was placed with (centre shift + height x rotation, m), or whose provisional '
-                                       'pose turned final, has that cloud taken out of the map and fused again at '
-                                       'its new pose; 0: clouds stay where they were fused', min=0.0, max=1e3)
+    replace_move_m: float = param(0.0, 'a keyframe whose pose moved this far from the pose one of its fused clouds '
+                                      'was placed with (centre shift + height x rotation, m), or whose provisional '
+                                      'pose turned final, has that cloud taken out of the map and fused again at '
+                                      'its new pose (0.25: about 2 cells; needed with stereo pair_provisional); 0: '
+                                      'clouds stay where they were fused (the 317-photo 20 MP bench at 0.25 took the '
+                                      'mapping process over the 1.5 GB bound: bench/notes_inflight_20mp.md)',
+                                  min=0.0, max=1e3)
     replace_memory_mb: float = param(160.0, 'memory for what each fused cloud merged into the cells (kept to place '
                                             'it again), MB; past it the oldest finally placed ones are dropped and a '
                                             'later move of theirs is counted (clouds_moved_not_replaced), a WARN',
@@ -313,6 +316,8 @@ class MapStage:
             if budget_s is not None and time.perf_counter() - t0 > budget_s:
                 break
             part = self.placements.part(stamp, i)
+            if part.contribution is None:   # dropped for memory by an earlier move of this round: counted there
+                continue
             T_new, provisional = self.placements.pose_of(stamp)
             if part.contribution.cell_m != self.cell_m:   # fused before the cell was derived: cannot be moved
                 self.placements.cannot_follow(stamp, i)
