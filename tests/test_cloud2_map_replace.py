@@ -73,6 +73,21 @@ def test_a_cloud_fused_with_a_provisional_pose_is_placed_again_when_the_pose_tur
     stage.close()
 
 
+def test_placing_again_keeps_to_its_cpu_share_in_flight_and_finishes_at_the_end(tmp_path):
+    rng = np.random.default_rng(8)
+    stage = _stage(tmp_path, replace_cpu_share=0.001)
+    for k in range(3):
+        stage.set_cloud_placement(k, _pose(12.0 * k, 0.0), True)
+        stage.add_cloud('map', k, pair_cloud(rng, _flat, 12.0 * k, 0.0, 5.0, 5.0, 150.0, 0.01))
+    for k in range(3):
+        stage.set_keyframe_pose(k, _pose(12.0 * k + 1.0, 0.0), False)
+    assert stage.replace_moved(budget_s=10.0) == 1            # the share is spent by the first one
+    assert stage.diag.counts()['replace_rounds_deferred'] == 1
+    assert stage.replace_moved() == 2                          # the end (close) places every one left
+    stage.update_diag()
+    assert stage.diag.values['keyframes_fused_provisional'] == 0
+
+
 def test_a_move_that_cannot_be_followed_is_counted_and_said(tmp_path):
     rng = np.random.default_rng(4)
     stage = _stage(tmp_path, replace_memory_mb=0.0)          # nothing kept to place again

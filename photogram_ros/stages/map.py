@@ -95,6 +95,10 @@ class MapParams(FusionConfig, CoverageConfig):
                                      min=0.0, max=1e5)
     replace_budget_s: float = param(0.2, 'the most one replace_moved round spends placing clouds again, s (the rest '
                                          'in the next round: new clouds go first)', min=0.01, max=3600.0)
+    replace_cpu_share: float = param(0.1, 'share of one core placing clouds again may take over 20 s in flight (0: no '
+                                          'limit); over it the rest waits (the map\'s clouds and keyframe images go '
+                                          'first: they queue in memory while the map is busy); the map\'s close '
+                                          'places every one left', min=0.0, max=256.0)
     warn_unfused_keyframes: int = param(20, 'WARN on /diagnostics when this many keyframes came (images, or poses '
                                             'without save_keyframes) and '
                                             'nothing was fused since the last fused cloud (thrice as many before '
@@ -178,6 +182,7 @@ class MapStage:
         self._fuse_s = 0.0
         self.placements = Placements(p.replace_move_m, int(p.replace_memory_mb * 1e6)) if p.replace_move_m > 0 else None
         self._ortho_share = CpuShare(p.ortho_cpu_share)
+        self._replace_share = CpuShare(p.replace_cpu_share)
         self._closed = False
 
     # --- GSD-bound geometry ----------------------------------------------------------------------
@@ -308,12 +313,13 @@ class MapStage:
     @_locked
     def replace_moved(self, budget_s: float | None = None) -> int:
         """Place again the fused clouds whose keyframe's pose moved (replace_move_m) or turned final, for at most
-        `budget_s` (None: all); returns how many."""
+        `budget_s` and within replace_cpu_share (None: all, whatever the share); returns how many."""
         if self.placements is None:
             return 0
         t0, done = time.perf_counter(), 0
         for stamp, i in self.placements.due():
-            if budget_s is not None and time.perf_counter() - t0 > budget_s:
+            if budget_s is not None and (time.perf_counter() - t0 > budget_s or self._replace_share.over()):
+                self.diag.count('replace_rounds_deferred')
                 break
             part = self.placements.part(stamp, i)
             if part.contribution is None:   # dropped for memory by an earlier move of this round: counted there
@@ -322,7 +328,8 @@ class MapStage:
             if part.contribution.cell_m != self.cell_m:   # fused before the cell was derived: cannot be moved
                 self.placements.cannot_follow(stamp, i)
                 continue
-            _, contribution = self.fusion.move(part.contribution, T_new @ np.linalg.inv(part.map_T_cam))
+            with self._replace_share.measure():
+                _, contribution = self.fusion.move(part.contribution, T_new @ np.linalg.inv(part.map_T_cam))
             self.placements.replaced(stamp, i, contribution)
             done += 1
             self.diag.count('clouds_replaced')
