@@ -35,11 +35,17 @@ over wall seconds until the map fused its last cloud), peak RSS of both processe
 bound of all mapping processes' peak together), the tracker's target search counts, and the cores and
 load average of the machine around the run (bench/machine.py). Also: the lag from exposure to the keyframe's first
 final (not provisional) pose and from that pose to its first fused cloud (the part stereo and the map add), and how
-far the poses moved after their first fused cloud (pose_moved_after_fused: was pairing that early sound).
+far the poses moved after their first fused cloud (pose_moved_after_fused: from the last final pose before it;
+pose_moved_after_first_fused_any_status: from the pose of any status, a provisional one included, it was fused
+with, which is how far the map node had to place that cloud again: stages/map.py replace_moved, counted in
+map_counts clouds_replaced).
 With --export-dsm, after each run `photogram-ros export MAP --densify --products dsm` on its stored map (the pairs
 shed in flight matched there from the stored keyframes); each later run's DSM against the first run's
 (inflight_20mp_dsm rows: median and p90 |dz| over the cells stereo measured in both, in m and in the GSD, with both
-runs' shed counts and the shed WARNs said on /diagnostics).
+runs' shed counts and the shed WARNs said on /diagnostics). The reference is the first run's `export --densify`:
+every pair planned and matched again after landing from all its stored keyframes and final poses (io/densify.py
+reads no in-flight pair, shed or not, only the in-flight map's median height as the centre of the depth search),
+so it is a DSM that shed nothing whatever the first run shed in flight; each dsm row says so (`reference_is`).
 
     .venv/bin/python bench/inflight_20mp.py [--periods 2,1] [--photos 42] [--set tracker.X=V] [--table out.md]
 """
@@ -238,6 +244,58 @@ def pct(v: list, q: float, digits: int = 2):
 def lag_stats(v: list, digits: int = 2) -> dict:
     return {'n': len(v), 'p50': pct(v, 50, digits), 'p95': pct(v, 95, digits),
             'max': round(max(v), digits) if v else None}
+
+
+def pose_moved_after_first_fused(history: dict, fused_at: dict) -> dict:
+    """How far each keyframe's pose moved from the pose of its first fused cloud (its latest pose of any status,
+    provisional included, before then) to its last pose: the centre in m, p50/p95/max, and how many were fused
+    with a provisional pose."""
+    import numpy as np
+    move_m, provisional = [], 0
+    for s, t_fused in fused_at.items():
+        h = history.get(s, ())
+        at = [(prov, T) for t, prov, T in h if t <= t_fused]
+        if not at or not h:
+            continue
+        provisional += bool(at[-1][0])
+        move_m.append(float(np.linalg.norm(h[-1][2][:3, 3] - at[-1][1][:3, 3])))
+    return {'centre_m': lag_stats(move_m, 3), 'fused_with_provisional_pose': provisional}
+
+
+def relative_pose_moved_after_fused(history: dict, fused_at: dict) -> dict:
+    """What a pair's depth depends on: each fused keyframe's pose relative to the keyframe before it, at its first
+    fused cloud (the latest poses of any status then) against the last poses: the change of the relative centre
+    in m, and of the baseline's length as a ratio (the depth's scale error a cloud placed again keeps), p50/p95/max."""
+    import numpy as np
+    stamps = sorted(history)
+    move_m, scale = [], []
+    for prev, s in zip(stamps, stamps[1:]):
+        if s not in fused_at:
+            continue
+        t = fused_at[s]
+        a_then = [T for tt, _, T in history[prev] if tt <= t]
+        b_then = [T for tt, _, T in history[s] if tt <= t]
+        if not a_then or not b_then:
+            continue
+        rel_then = np.linalg.inv(a_then[-1]) @ b_then[-1]
+        rel_end = np.linalg.inv(history[prev][-1][2]) @ history[s][-1][2]
+        move_m.append(float(np.linalg.norm(rel_end[:3, 3] - rel_then[:3, 3])))
+        base = float(np.linalg.norm(rel_then[:3, 3]))
+        if base > 1e-6:
+            scale.append(abs(float(np.linalg.norm(rel_end[:3, 3])) / base - 1.0))
+    return {'relative_centre_m': lag_stats(move_m, 3), 'baseline_scale_change': lag_stats(scale, 4)}
+
+
+def summarise_kept(keep: Path) -> dict:
+    """The pose figures of a kept run (--keep: its pose_history.json), recomputed."""
+    d = json.loads((keep / 'pose_history.json').read_text())
+    import numpy as np
+    history = {int(s): [(t, p, np.array(T)) for t, p, T in h] for s, h in d['poses'].items()}
+    fused = {int(s): t for s, t in d['fused'].items()}
+    return {'bench': 'inflight_20mp_kept', 'config': keep.name, 'kept': str(keep), **CODE,
+            'pose_moved_after_first_fused_any_status': pose_moved_after_first_fused(history, fused),
+            'relative_pose_moved_after_first_fused': relative_pose_moved_after_fused(history, fused),
+            'pose_moved_after_fused': pose_moved_after_fused(history, fused, d['flight_end'])}
 
 
 def pose_moved_after_fused(history: dict, fused_at: dict, flight_end: float) -> dict:
@@ -441,6 +499,10 @@ def run_period(a, period_s: float, extra: dict, tag: str) -> dict:
            'lag_final_pose_to_fused_cloud_s': lag_stats(lag_final_to_cloud),
            'lag_final_pose_to_fused_cloud_last_minute_s': lag_stats(lag_final_to_cloud_last),
            'pose_moved_after_fused': moved,
+           'pose_moved_after_first_fused_any_status': pose_moved_after_first_fused(
+               poses.history, {s: v[0] for s, v in probe.kf_fused.items()}),
+           'relative_pose_moved_after_first_fused': relative_pose_moved_after_fused(
+               poses.history, {s: v[0] for s, v in probe.kf_fused.items()}),
            'shed': shed,
            'camera_late_s': lag_stats(camera_late),
            'stereo': {k: stereo[k] for k in sorted(stereo) if k.startswith(('pairs', 'keyframes', 'images'))},
@@ -548,6 +610,7 @@ def dsm_row(a, row: dict, ref: dict, out_root: Path) -> dict:
     """Export the run's stored map (densify included) and compare its DSM with the reference run's."""
     mine = export_dsm(row['map_dir'], out_root / f"export_{row['config']}", a.params)
     d = {'bench': 'inflight_20mp_dsm', 'config': row['config'], 'reference': ref['config'], **CODE,
+         'reference_is': REFERENCE_IS,
          'export': mine, 'reference_export': ref.get('export'), 'shed': row['shed'], 'reference_shed': ref['shed']}
     if mine['exit'] == 0 and ref.get('export', {}).get('exit') == 0:
         d.update(compare_dsm(mine['dsm'], ref['export']['dsm']))
@@ -557,6 +620,10 @@ def dsm_row(a, row: dict, ref: dict, out_root: Path) -> dict:
             d['median_abs_dz_gsd'] = round(d['median_abs_dz_m'] / g, 3)
             d['within_1_gsd'] = d['median_abs_dz_gsd'] <= 1.0
     return d
+
+
+REFERENCE_IS = ('the first run\'s export --densify: every pair matched again after landing from all its stored keyframes '
+                'and final poses (no in-flight pair read, shed or not)')
 
 
 def table(rows: list[dict]) -> str:
@@ -594,6 +661,8 @@ def main() -> int:
     ap.add_argument('--out', default='', help='append every JSON line to this file (e.g. '
                                                'bench/results/inflight_20mp_<commit>.jsonl)')
     ap.add_argument('--build-only', action='store_true')
+    ap.add_argument('--summarise-kept', default='', metavar='DIR',
+                    help='recompute the pose figures of a run kept with --keep (DIR: its period folder, e.g. KEEP/1s)')
     ap.add_argument('--export-dsm', action='store_true',
                     help='after each run, `export --densify --products dsm` its stored map; the first period\'s '
                          'run is the reference the later ones\' DSMs are compared with (median |dz|, in GSD)')
@@ -604,6 +673,9 @@ def main() -> int:
     CODE.update(commit=git('rev-parse', '--short', 'HEAD'),
                 clean_tree=not git('status', '--porcelain', '--', 'photogram_ros', 'bench/inflight_20mp.py'))
     emit({'machine': machine_info(), 'load_avg_before': [round(x, 2) for x in os.getloadavg()]})
+    if a.summarise_kept:
+        emit(summarise_kept(Path(a.summarise_kept)))
+        return 0
     if a.build_only:
         for p in periods:
             built = build_sim_flight(a.photos) if a.flight == 'sim' else build_flight(p, a.photos)
@@ -624,6 +696,7 @@ def main() -> int:
                 ref = dict(rows[-1], export=export_dsm(rows[-1]['map_dir'], out_root / f"export_{rows[-1]['config']}",
                                                        a.params))
                 emit({'bench': 'inflight_20mp_dsm', 'config': ref['config'], 'reference': None, **CODE,
+                      'reference_is': REFERENCE_IS,
                       'export': ref['export'], 'shed': ref['shed']})
             else:
                 emit(dsm_row(a, rows[-1], ref, out_root))

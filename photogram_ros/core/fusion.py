@@ -15,6 +15,12 @@ Outliers are rejected in three steps, all vectorised over the pair's points:
    pairs that built the cell, the cell is rebuilt from the newest pair, so a bad first pair
    cannot lock a cell forever.
 
+A fused pair cloud can be moved (`add(..., record=True)` returns its `Contribution`: what it merged into each
+cell, at the cell's resolution; `move` takes it out of its cells exactly, the reverse of the running-mean update,
+and fuses it again transformed, as a keyframe's cloud follows its pose; `remove` only takes it out). A cell
+rebuilt by step 3 after the contribution was fused no longer holds it: taking it out there empties at most
+what the cell holds.
+
 Memory is bounded by evicting the least recently touched tiles to a store (see io/map_store.py)
 once more than `max_tiles_in_memory` are held; an evicted tile reloads on demand. Without a store
 nothing is evicted (there would be nowhere to put it).
@@ -42,6 +48,57 @@ CELL_DTYPE = np.dtype([
     ('r', '<f4'), ('g', '<f4'), ('b', '<f4'),    # mean colour, 0..255
     ('confidence', '<f4'),   # mean stereo confidence
 ])
+
+
+# What one fused cloud merged into one cell (Fusion.add(record=True)), compact: cell indices relative to the
+# contribution's base cell, the point mean's position inside its cell in 1/256 of the cell, colour and
+# confidence quantised to a byte (what taking it out again leaves is within those steps).
+CONTRIB_DTYPE = np.dtype([
+    ('di', '<i2'), ('dj', '<i2'),   # cell index - the contribution's base cell
+    ('n', '<u2'),                   # points merged
+    ('fx', 'u1'), ('fy', 'u1'),     # mean position inside the cell, 1/256 of cell_m
+    ('z', '<f4'),                   # mean z, m
+    ('m2_z', '<f2'),                # the points' sum of squared z deviations, m^2
+    ('r', 'u1'), ('g', 'u1'), ('b', 'u1'),
+    ('confidence', 'u1'),           # mean stereo confidence x 255
+])
+
+
+@dataclass
+class Contribution:
+    """What one fused cloud merged into the map, cell by cell (CONTRIB_DTYPE), at the map's cell resolution."""
+    base: tuple[int, int]     # global cell index (ix, iy) the records' di, dj are relative to
+    cell_m: float
+    cells: np.ndarray         # CONTRIB_DTYPE
+
+    @property
+    def nbytes(self) -> int:
+        return int(self.cells.nbytes)
+
+    def ij(self) -> tuple[np.ndarray, np.ndarray]:
+        return (self.base[0] + self.cells['di'].astype(np.int64), self.base[1] + self.cells['dj'].astype(np.int64))
+
+    def points(self, map_T_map: np.ndarray | None = None) -> np.ndarray:
+        """The contribution as one weighted point per cell (x, y, z, rgb, confidence, n, m2_z), map ENU, moved
+        by `map_T_map` (4x4, the new placement times the old one's inverse) when given."""
+        c = self.cells
+        ix, iy = self.ij()
+        xyz = np.column_stack([(ix + (c['fx'] + 0.5) / 256.0) * self.cell_m,
+                               (iy + (c['fy'] + 0.5) / 256.0) * self.cell_m, c['z'].astype(np.float64)])
+        if map_T_map is not None:
+            xyz = xyz @ map_T_map[:3, :3].T + map_T_map[:3, 3]
+        out = np.empty(len(c), dtype=[('x', '<f8'), ('y', '<f8'), ('z', '<f8'), ('rgb', '<u4'),
+                                      ('confidence', '<f4'), ('n', '<u4'), ('m2_z', '<f4')])
+        out['x'], out['y'], out['z'] = xyz[:, 0], xyz[:, 1], xyz[:, 2]
+        out['rgb'] = pack_rgb(c['r'], c['g'], c['b'])
+        out['confidence'] = c['confidence'] / 255.0
+        out['n'] = c['n']
+        out['m2_z'] = c['m2_z']
+        return out
+
+    @property
+    def median_z_m(self) -> float:
+        return float(np.median(self.cells['z'])) if len(self.cells) else 0.0
 
 
 @dataclass
@@ -183,8 +240,14 @@ class Fusion:
 
     # --- fusing ----------------------------------------------------------------------------------
 
-    def add(self, points: np.ndarray) -> int:
-        """Fuse one pair cloud; returns the number of points accepted."""
+    def add(self, points: np.ndarray, record: bool = False):
+        """Fuse one pair cloud; returns the number of points accepted, and with `record` also its Contribution
+        (None when nothing was fused or the cloud spans more than an int16 of cells). Optional fields `n` (points
+        a point stands for) and `m2_z` (their sum of squared z deviations) fuse a Contribution's points again."""
+        accepted, contrib = self._add(points, record)
+        return (accepted, contrib) if record else accepted
+
+    def _add(self, points: np.ndarray, record: bool):
         names = points.dtype.names or ()
         if not {'x', 'y', 'z'} <= set(names):
             raise DataError(f'a cloud to fuse needs x, y, z fields; got {names}')
@@ -194,6 +257,8 @@ class Fusion:
         z = np.asarray(points['z'], dtype=np.float64)
         rgb = np.asarray(points['rgb']) if 'rgb' in names else None
         conf = np.asarray(points['confidence']) if 'confidence' in names else None
+        wt = np.asarray(points['n'], dtype=np.float64) if 'n' in names else None
+        m2w = np.asarray(points['m2_z'], dtype=np.float64) if 'm2_z' in names else None
         ok = np.isfinite(x) & np.isfinite(y) & np.isfinite(z)
         if conf is not None and self.config.min_confidence > 0:
             ok &= conf >= self.config.min_confidence
@@ -204,8 +269,10 @@ class Fusion:
             x, y, z = x[ok], y[ok], z[ok]
             rgb = rgb[ok] if rgb is not None else None
             conf = conf[ok] if conf is not None else None
+            wt = wt[ok] if wt is not None else None
+            m2w = m2w[ok] if m2w is not None else None
         if x.size == 0:
-            return 0
+            return 0, None
         T = cfg.tile_cells
         TT = T * T
         ix = np.floor(x / cfg.cell_m).astype(np.int64)
@@ -291,22 +358,27 @@ class Fusion:
         use = good | (gated & takeover[ckey])
         if not use.any():
             self.stats.points_rejected += len(use)
-            return 0     # every point disagreed with what the map holds there
+            return 0, None     # every point disagreed with what the map holds there
         if not use.all():
             x, y, z, ckey = x[use], y[use], z[use], ckey[use]
             rgb = rgb[use] if rgb is not None else None
             conf = conf[use] if conf is not None else None
+            wt = wt[use] if wt is not None else None
+            m2w = m2w[use] if m2w is not None else None
+        w1 = np.ones(x.size) if wt is None else wt
 
-        cnt = np.bincount(ckey, minlength=nbins)
+        cnt = np.bincount(ckey, w1, minlength=nbins)
         occ_c = np.flatnonzero(cnt)
         n_p = cnt[occ_c].astype(np.float64)
         occ = cell_of_bin[occ_c]
 
         def mean_of(v):
-            return np.bincount(ckey, v, minlength=nbins)[occ_c] / n_p
+            return np.bincount(ckey, w1 * v, minlength=nbins)[occ_c] / n_p
 
         mx, my, mz = mean_of(x), mean_of(y), mean_of(z)
-        m2_p = np.maximum(np.bincount(ckey, z * z, minlength=nbins)[occ_c] - n_p * mz * mz, 0.0)
+        m2_p = np.maximum(np.bincount(ckey, w1 * z * z, minlength=nbins)[occ_c] - n_p * mz * mz, 0.0)
+        if m2w is not None:
+            m2_p = m2_p + np.bincount(ckey, m2w, minlength=nbins)[occ_c]
         if rgb is not None:
             bgra = np.ascontiguousarray(rgb, dtype='<u4').view(np.uint8).reshape(-1, 4)
             mr, mg, mb = mean_of(bgra[:, 2]), mean_of(bgra[:, 1]), mean_of(bgra[:, 0])
@@ -329,8 +401,87 @@ class Fusion:
         accepted = int(x.size)
         self.stats.points_fused += accepted
         self.stats.points_rejected += len(use) - accepted
+        contrib = None
+        if record:
+            keys = np.asarray(tile_keys, dtype=np.int64)[occ_tile]
+            ix = keys[:, 0] * T + occ_local % T
+            iy = keys[:, 1] * T + occ_local // T
+            contrib = self._contribution(ix, iy, n_p, mx, my, mz, m2_p, mr, mg, mb, mc)
         self._evict({tile_keys[int(h)] for h in hit})
-        return accepted
+        return accepted, contrib
+
+    def _contribution(self, ix, iy, n_p, mx, my, mz, m2_p, mr, mg, mb, mc) -> Contribution | None:
+        base = (int(ix.min()), int(iy.min()))
+        if ix.max() - base[0] > 32767 or iy.max() - base[1] > 32767:
+            return None
+        cell = self.config.cell_m
+        c = np.empty(ix.size, dtype=CONTRIB_DTYPE)
+        c['di'], c['dj'] = ix - base[0], iy - base[1]
+        c['n'] = np.minimum(n_p, 65535)
+        c['fx'] = np.clip(np.floor((mx / cell - ix) * 256.0), 0, 255)
+        c['fy'] = np.clip(np.floor((my / cell - iy) * 256.0), 0, 255)
+        c['z'] = mz
+        c['m2_z'] = np.minimum(m2_p, 65000.0)
+        for name, v in (('r', mr), ('g', mg), ('b', mb)):
+            c[name] = np.clip(np.rint(v), 0, 255)
+        c['confidence'] = np.clip(np.rint(np.asarray(mc, np.float64) * 255.0), 0, 255)
+        # Kept while its keyframe's pose may move (minutes): off the heap, like the tiles.
+        return Contribution(base, cell, offheap.copy(c))
+
+    def remove(self, contrib: Contribution) -> None:
+        """Take a recorded contribution out of its cells: the reverse of the running-mean update (Chan's, undone);
+        a cell left without points is emptied."""
+        if contrib.cell_m != self.config.cell_m:
+            raise DataError(f'a contribution at {contrib.cell_m} m cells cannot leave a map of {self.config.cell_m} m')
+        pts = contrib.points()
+        ix, iy = contrib.ij()
+        T = self.config.tile_cells
+        ti, tj = ix // T, iy // T
+        local = (iy - tj * T) * T + (ix - ti * T)
+        packed = (ti << 32) + (tj & 0xFFFFFFFF)
+        for u in np.unique(packed):
+            key = (int(u) >> 32, _int32(int(u) & 0xFFFFFFFF))
+            sel = packed == u
+            tile = self._tile(key)
+            ox, oy = self.tile_origin_m(key)
+            p = pts[sel]
+            bgr = np.ascontiguousarray(p['rgb'], dtype='<u4').view(np.uint8).reshape(-1, 4)
+            self._unmerge(tile, local[sel], p['n'].astype(np.float64), p['x'] - ox, p['y'] - oy,
+                          p['z'].astype(np.float64), p['m2_z'].astype(np.float64), bgr[:, 2], bgr[:, 1], bgr[:, 0],
+                          p['confidence'].astype(np.float64))
+            self.changed_tiles.add(key)
+            self._evict({key})
+
+    def move(self, contrib: Contribution, map_T_map: np.ndarray) -> tuple[int, Contribution | None]:
+        """Take `contrib` out and fuse it again moved by `map_T_map` (new placement x old placement^-1): a
+        keyframe's cloud following its pose. Returns (points accepted, the new contribution)."""
+        pts = contrib.points(map_T_map)
+        self.remove(contrib)
+        return self.add(pts, record=True)
+
+    @staticmethod
+    def _unmerge(tile: Tile, idx, n_p, mx, my, mz, m2_p, mr, mg, mb, mc) -> None:
+        c = tile.f
+        n = c['n'][idx].astype(np.float64)
+        n_old = n - n_p
+        gone = n_old <= 0.5
+        keep = ~gone
+        w = np.where(keep, n_p / np.maximum(n_old, 1.0), 0.0)   # mean_old = mean + (mean - v) n_p / n_old
+        for name, v in (('x', mx), ('y', my), ('r', mr), ('g', mg), ('b', mb), ('confidence', mc)):
+            cur = c[name][idx].astype(np.float64)
+            c[name][idx] = cur + (cur - v) * w
+        z_cur = c['z'][idx].astype(np.float64)
+        z_old = z_cur + (z_cur - mz) * w
+        delta = mz - z_old
+        m2 = c['m2_z'][idx] - m2_p - delta * delta * np.maximum(n_old, 0.0) * n_p / np.maximum(n, 1.0)
+        c['m2_z'][idx] = np.maximum(m2, 0.0)
+        c['z'][idx] = z_old
+        c['n'][idx] = np.maximum(np.rint(n_old), 0)
+        c['n_pairs'][idx] = np.maximum(c['n_pairs'][idx].astype(np.int64) - 1, 0)
+        if gone.any():
+            for arr in c.values():
+                arr[idx[gone]] = 0
+        tile.dirty[idx] = True
 
     @staticmethod
     def _merge(tile: Tile, idx, n_p, mx, my, mz, m2_p, mr, mg, mb, mc) -> None:

@@ -11,6 +11,12 @@ and the geodetic origin of `map`: either the parameters origin_lat_deg/origin_lo
 and altitude (ellipsoidal, REP-145) are the `map` origin, published with transient-local QoS.
 A map_dir that already holds a map keeps its origin and reloads (restart after a crash).
 
+/map/dense_cloud_pose (PoseWithCovarianceStamped: the pose stereo placed its next pair cloud of that keyframe
+with, provisional or final by its covariance) and every pose on /map/keyframe_pose, provisional ones included:
+a fused cloud whose keyframe's pose moved by replace_move_m, or turned final, is taken out of the map and fused
+again at the new pose (stages/map.py replace_moved, every 0.5 s); /diagnostics says keyframes_fused_provisional
+(keyframes whose clouds are placed with a provisional pose now) and counts clouds_replaced.
+
 Outputs: /map/cloud_downsampled (best effort: block means of the tiles that changed, at most
 stream_max_points per message, at most one message per stream_period_s); /map/ortho_tiles (best
 effort, the same way: the XYZ / Web Mercator tiles of the live orthomosaic that changed, one
@@ -49,6 +55,7 @@ from photogram_ros.stages.map import STREAM_DTYPE, MapOutputs, MapStage  # noqa:
 from photogram_ros.stages.map import MapParams as MapStageParams
 
 TOPIC_CLOUD = 'map/dense_cloud'   # relative: a drone's namespace prefixes them
+TOPIC_CLOUD_POSE = 'map/dense_cloud_pose'
 TOPIC_DOWNSAMPLED = 'map/cloud_downsampled'
 TOPIC_GEOREFERENCE = 'map/georeference'
 TOPIC_IMAGE = 'keyframes/image'
@@ -102,7 +109,10 @@ class MapNode(Node):
             self.diag.set(k, v)
         group = MutuallyExclusiveCallbackGroup()   # the map is not thread-safe; graph.py spins multi-threaded
         # KEEP_ALL: the map is the sink that persists the flight; a burst of pair clouds while it is
-        # fusing must queue, not overwrite clouds that were never fused.
+        # fusing must queue, not overwrite clouds that were never fused. A cloud's placement is published
+        # before it (subscribed first: taken first when both wait).
+        self.create_subscription(PoseWithCovarianceStamped, TOPIC_CLOUD_POSE, self._on_cloud_pose, qos.keep_all(),
+                                 callback_group=group)
         self.create_subscription(PointCloud2, TOPIC_CLOUD, self._on_cloud, qos.keep_all(), callback_group=group)
         self.create_subscription(NavSatFix, TOPIC_GEOREFERENCE, self._on_georeference, qos.latched(),
                                  callback_group=group)
@@ -110,7 +120,7 @@ class MapNode(Node):
             self.create_subscription(Image, TOPIC_IMAGE, self._on_image, qos.keep_all(), callback_group=group)
             self.create_subscription(CompressedImage, TOPIC_IMAGE_FULL, self._on_image_jpeg, qos.keep_all(),
                                      callback_group=group)
-        if p.save_keyframes or p.coverage:
+        if p.save_keyframes or p.coverage or p.replace_move_m > 0:
             self.create_subscription(PoseWithCovarianceStamped, TOPIC_POSE, self._on_pose, qos.keep_all(),
                                      callback_group=group)
             self.create_subscription(CameraInfo, TOPIC_INFO, self._on_info, qos.sensor_data(5),
@@ -129,6 +139,8 @@ class MapNode(Node):
             self.create_subscription(NavSatFix, TOPIC_KEYFRAME_FIX, self._on_keyframe_fix, qos.keep_all(),
                                      callback_group=group)
             steady_timer(self, p.coverage_period_s, self._update_coverage, group)
+        if p.replace_move_m > 0:
+            steady_timer(self, 0.5, self._replace_moved, group)
         steady_timer(self, p.flush_interval_s, self.flush, group)
         steady_timer(self, p.stream_period_s, self._stream, group)
         steady_timer(self, 1.0, self._update_diag, group)
@@ -153,6 +165,13 @@ class MapNode(Node):
         self.stage.add_cloud(msg.header.frame_id, msgs.ns_from_time(msg.header.stamp),
                              lambda: msgs.points_from_pointcloud2(msg))
 
+    def _on_cloud_pose(self, msg: PoseWithCovarianceStamped) -> None:
+        self.stage.set_cloud_placement(msgs.ns_from_time(msg.header.stamp),
+                                       lambda: msgs.T_from_pose_with_covariance(msg)[0], msgs.pose_is_provisional(msg))
+
+    def _replace_moved(self) -> None:
+        self.stage.replace_moved(self.params.replace_budget_s)
+
     def _on_image(self, msg: Image) -> None:
         self.stage.add_image(msgs.ns_from_time(msg.header.stamp), lambda: msgs.image_from_msg(msg))
 
@@ -160,7 +179,12 @@ class MapNode(Node):
         self.stage.add_image_jpeg(msgs.ns_from_time(msg.header.stamp), bytes(msg.data))
 
     def _on_pose(self, msg: PoseWithCovarianceStamped) -> None:
-        if msgs.pose_is_provisional(msg):
+        provisional = msgs.pose_is_provisional(msg)
+        self.stage.set_keyframe_pose(msgs.ns_from_time(msg.header.stamp),
+                                     lambda: msgs.T_from_pose_with_covariance(msg)[0], provisional)
+        if not (self.params.save_keyframes or self.params.coverage):
+            return
+        if provisional:
             # The roll about the first line is not known yet: not draped; the turn republishes it final.
             self.diag.count('poses_provisional_held')
             return

@@ -6,12 +6,19 @@ at the resolution the GSD settings say; what the node holds per keyframe is that
 like its keyframe image; a later pose with the same stamp is a refinement and replaces the older
 one), /camera/camera_info, /map/camera_final (the camera the bundle adjuster's full adjustment adjusted its
 poses with: pairs made after it use that one). Output: /map/dense_cloud (PointCloud2 x, y, z float32 as RViz2 draws them,
-rgb, confidence) per pair, optionally /stereo/disparity, and /diagnostics.
+rgb, confidence) per pair, each preceded by /map/dense_cloud_pose (the newer keyframe's pose the cloud is placed
+with, with that pose's covariance: provisional or final as the adjuster labelled it, core/pose_status.py),
+optionally /stereo/disparity, and /diagnostics.
 
-When a keyframe pairs: with its final pose (a provisional one gives no depth) and its older partners, once its
-pose has settled: its last refinement moved it less than settle_move_m and settle_min_keyframes newer keyframes have
-final poses, or its pose stood still for settle_s (the flight's end), or at the latest settle_keyframes newer
-keyframes have final poses. A keyframe waiting for its pose is the last evicted by max_keyframes.
+When a keyframe pairs: with its final pose, or with pair_provisional (off by default) its provisional one too
+(before the first turn the georeference is an assumption, but the pair's relative pose, all its depth depends
+on, is not; the map node then needs replace_move_m > 0 to place the cloud again), and its older partners
+of the same status, once its pose has settled relative to the keyframe before it: its last refinement moved it,
+relative to that keyframe, less than settle_move_m and settle_min_keyframes newer keyframes have poses, or its
+pose stood still for settle_s (the flight's end), or at the latest settle_keyframes newer keyframes have poses.
+The cloud goes out placed with the pose of the moment; when that pose moves later (the georeference made final at
+the turn, a refinement), the map node places the cloud again (stages/map.py replace_moved). A keyframe waiting for
+its pose is the last evicted by max_keyframes.
 
 The pace (core/pace.py, config/companion.yaml): with `worker_nice` the pairs are matched in a worker thread
 of that niceness (the callbacks only record and wake it); with `cpu_share` the matching keeps to that share
@@ -40,7 +47,7 @@ from photogram_ros import msgs
 from photogram_ros.core import gsd, offheap, stereo
 from photogram_ros.core.pace import CpuShare, ThreadCaps, limit_threads, nice_this_thread
 from photogram_ros.core.pairs import BELOW_GROUND, PairCriteria, PlannedPair, plan_pairs
-from photogram_ros.core.rotations import angle_between_R
+from photogram_ros.core.placements import pose_move_m
 from photogram_ros.errors import PhotogramError
 from photogram_ros.nodes import qos
 from photogram_ros.nodes.diagnostics import Diagnostics, steady_timer
@@ -53,6 +60,7 @@ TOPIC_POSE = 'map/keyframe_pose'
 TOPIC_INFO = 'camera/camera_info'
 TOPIC_CAMERA_FINAL = 'map/camera_final'
 TOPIC_CLOUD = 'map/dense_cloud'
+TOPIC_CLOUD_POSE = 'map/dense_cloud_pose'
 TOPIC_DISPARITY = 'stereo/disparity'
 TOPIC_SPARSE = 'map/sparse_cloud'
 TOPIC_FIX = 'keyframes/fix'
@@ -80,16 +88,16 @@ class StereoNodeParams(stereo.StereoParams, PairCriteria, ThreadCaps):
                                          f'worse than its fix; 0: max_position_sigma_m alone', min=0.0, max=100.0)
     publish_disparity: bool = param(False, f'also publish each pair\'s disparity on {TOPIC_DISPARITY}')
     settle_keyframes: int = param(10, 'the longest a keyframe waits for its pairs: once this many newer keyframes '
-                                      'have final poses it has left the bundle window and its pose no longer '
+                                      'have poses it has left the bundle window and its pose no longer '
                                       'changes (match the bundle window_size; 0 pairs at once)', min=0, max=1000)
-    settle_min_keyframes: int = param(1, 'a keyframe pairs earlier, once this many newer keyframes have final poses '
-                                         'and its last pose refinement moved it less than settle_move_m (its pose '
-                                         'has settled in the window); >= settle_keyframes: only settle_keyframes',
+    settle_min_keyframes: int = param(1, 'a keyframe pairs earlier, once this many newer keyframes have poses '
+                                         'and its last pose refinement moved it less than settle_move_m relative to '
+                                         'the keyframe before it (its pose has settled in the window); >= settle_keyframes: only settle_keyframes',
                                       min=0, max=1000)
     settle_move_m: float = param(0.05, 'a pose refinement moving the keyframe less than this has settled it: the '
                                        'camera centre\'s shift plus its height above the ground times the rotation '
                                        '(rad), m', min=0.0, max=100.0)
-    settle_s: float = param(5.0, 'a keyframe whose final pose has not moved by settle_move_m for this long pairs '
+    settle_s: float = param(5.0, 'a keyframe whose pose has not moved by settle_move_m for this long pairs '
                                  'whatever came after it (the flight\'s end, a pause), s (steady clock; 0: never)',
                             min=0.0, max=3600.0)
     cpu_share: float = param(0.0, 'share of one core the pairs may take over cpu_share_window_s (0: no limit); '
@@ -98,11 +106,16 @@ class StereoNodeParams(stereo.StereoParams, PairCriteria, ThreadCaps):
                                   '(export --densify, replay\'s map_final), so the pose chain keeps the pace',
                              min=0.0, max=256.0)
     cpu_share_window_s: float = param(20.0, 'the window of cpu_share, s', min=1.0, max=3600.0)
-    max_pair_lag_s: float = param(10.0, 'a pair whose newer keyframe got its final pose longer ago than this when its '
+    max_pair_lag_s: float = param(10.0, 'a pair whose newer keyframe got its first pose to pair with longer ago than this when its '
                                         'turn comes is shed (stereo is behind: the live map stays current, with a '
                                         'gap there, counted in pairs_shed_late and keyframes_shed, a WARN) and left '
                                         'to the matching after landing; the end of flight sheds nothing; 0: never',
                                   min=0.0, max=3600.0)
+    pair_provisional: bool = param(False, 'pair keyframes with provisional poses (before the first turn; labelled '
+                                          f'in their covariance): the cloud goes out placed with that pose, said '
+                                          f'provisional on {TOPIC_CLOUD_POSE}, and the map places it again once the '
+                                          'pose is final (needs map replace_move_m > 0); false: wait for the final '
+                                          'pose')
     worker_nice: int = param(0, 'match pairs in a worker thread of this niceness (yielding to the pose chain in the '
                                 'same process); 0: in the subscription callbacks', min=0, max=19)
 
@@ -112,18 +125,31 @@ class _Keyframe:
     stamp_ns: int
     image: np.ndarray | None = None
     map_T_cam: np.ndarray | None = None
+    covariance: np.ndarray | None = None   # of its latest pose (6x6), as published: it carries the provisional label
+    provisional: bool = False
+    rel_stamp: int = 0                     # the posed keyframe before it when its pose last came
+    rel_T: np.ndarray | None = None        # its pose relative to that keyframe then (settle_move_m's measure)
     sigma_m: float = 0.0
     fix_sigma_m: float = float('nan')   # 3D sigma of its GNSS fix (NaN: none came)
     paired: bool = False
     last_move_m: float = float('inf')   # how far the last pose refinement moved it (settle_move_m's measure)
     moved_at: float = 0.0               # steady time of the pose's last move of settle_move_m or more
-    final_at: float = 0.0               # steady time of its first final pose
+    final_at: float = 0.0               # steady time of its first pose it may pair with
     shed: bool = False                  # some of its pairs were shed
     paired_T: np.ndarray | None = None  # the pose its pairs were matched with
 
     @property
     def complete(self) -> bool:
         return self.image is not None and self.map_T_cam is not None
+
+
+@dataclass
+class _PairJob:
+    """A planned pair with the poses it is matched and placed with (those of its planning)."""
+    pair: PlannedPair
+    a_T: np.ndarray
+    b_T: np.ndarray
+    b_covariance: np.ndarray | None
 
 
 class StereoNode(Node):
@@ -150,6 +176,7 @@ class StereoNode(Node):
             self.create_subscription(NavSatFix, TOPIC_FIX, self._on_fix, qos.keyframes(20))
         self.gsd: gsd.GsdSettings | None = None   # derived at the first pair (or never: every length was set)
         self._matching: StereoNodeParams | None = None if gsd.unresolved(p) else p
+        self.cloud_pose_pub = self.create_publisher(PoseWithCovarianceStamped, TOPIC_CLOUD_POSE, qos.reliable(20))
         self.cloud_pub = self.create_publisher(PointCloud2, TOPIC_CLOUD, qos.reliable(20))
         self.disp_pub = (self.create_publisher(DisparityImage, TOPIC_DISPARITY, qos.reliable(5))
                          if p.publish_disparity else None)
@@ -259,24 +286,29 @@ class StereoNode(Node):
         try:
             if msg.header.frame_id not in ('map', '/map'):
                 raise PhotogramError(f'keyframe pose is in frame {msg.header.frame_id!r}, expected map')
-            if msgs.pose_is_provisional(msg):
+            provisional = msgs.pose_is_provisional(msg)
+            if provisional and not self.params.pair_provisional:
                 # The roll about the first line is not known yet: no depth from it; the turn republishes it final.
                 self.diag.count('poses_provisional_held')
                 return
             T, cov = msgs.T_from_pose_with_covariance(msg)
             with self._lock:
                 kf = self._entry(msgs.ns_from_time(msg.header.stamp))
+                if provisional:
+                    self.diag.count('poses_provisional')
                 if kf.map_T_cam is None:
                     bisect.insort(self._posed, kf.stamp_ns)
                     kf.final_at = time.monotonic()
                 else:
-                    kf.last_move_m = self.pose_move_m(kf.map_T_cam, T)
-                    if kf.paired and kf.paired_T is not None:   # how sound pairing before settle_keyframes was
+                    kf.last_move_m = self._relative_move_m(kf, T)
+                    if kf.paired and kf.paired_T is not None and kf.provisional == provisional:
+                        # How far the pose moved after its pairs were matched (the map places the cloud again).
                         self._moved_after_pairs_m = max(self._moved_after_pairs_m, self.pose_move_m(kf.paired_T, T))
                         self.diag.set('pose_moved_after_pairs_max_m', round(self._moved_after_pairs_m, 3))
                 if kf.map_T_cam is None or kf.last_move_m >= self.params.settle_move_m:
                     kf.moved_at = time.monotonic()
-                kf.map_T_cam = T
+                self._remember_relative(kf, T)
+                kf.map_T_cam, kf.covariance, kf.provisional = T, cov, provisional
                 kf.sigma_m = float(np.sqrt(max(np.trace(cov[:3, :3]), 0.0)))
                 self.diag.count('poses')
                 # A new newest pose may settle older keyframes; a refinement may settle this one.
@@ -323,9 +355,28 @@ class StereoNode(Node):
     def pose_move_m(self, before: np.ndarray, after: np.ndarray) -> float:
         """How far a pose refinement moved a keyframe: the camera centre's shift plus its height above the
         ground times the rotation angle (the shift of the ground under it), m."""
-        shift = float(np.linalg.norm(after[:3, 3] - before[:3, 3]))
-        height = max(float(after[2, 3] - (self.ground_m or 0.0)), 0.0)
-        return shift + height * angle_between_R(before[:3, :3], after[:3, :3])
+        return pose_move_m(before, after, self.ground_m or 0.0)
+
+    def _before(self, kf: _Keyframe) -> _Keyframe | None:
+        """The posed keyframe just older than `kf`."""
+        i = bisect.bisect_left(self._posed, kf.stamp_ns)
+        return self._kf.get(self._posed[i - 1]) if i > 0 else None
+
+    def _remember_relative(self, kf: _Keyframe, map_T_cam: np.ndarray) -> None:
+        prev = self._before(kf)
+        kf.rel_stamp = prev.stamp_ns if prev is not None else 0
+        kf.rel_T = np.linalg.inv(prev.map_T_cam) @ map_T_cam if prev is not None else None
+
+    def _relative_move_m(self, kf: _Keyframe, map_T_cam: np.ndarray) -> float:
+        """How far a pose refinement moved `kf` relative to the posed keyframe before it (what a pair's depth
+        depends on; the block moving as a whole, e.g. its georeference made final, does not count); the
+        absolute move when it has no such keyframe or another one than last time."""
+        prev = self._before(kf)
+        if prev is None or kf.rel_T is None or prev.stamp_ns != kf.rel_stamp:
+            return self.pose_move_m(kf.map_T_cam, map_T_cam)
+        rel = np.linalg.inv(prev.map_T_cam) @ map_T_cam
+        # Both relative poses expressed at the older keyframe's current pose: a move in map units.
+        return self.pose_move_m(prev.map_T_cam @ kf.rel_T, prev.map_T_cam @ rel)
 
     def _settled(self, kf: _Keyframe) -> bool:
         """Whether `kf`'s pose has settled enough to pair it (the settle_* parameters)."""
@@ -410,6 +461,8 @@ class StereoNode(Node):
             return
         kf.paired = True
         kf.paired_T = kf.map_T_cam
+        if kf.provisional:
+            self.diag.count('keyframes_paired_provisional')
         self.diag.count('keyframes')
         if kf.map_T_cam[2, 3] <= self.ground_m:
             self.diag.problem(f'keyframe at z={kf.map_T_cam[2, 3]:.1f} m is not above the ground '
@@ -425,8 +478,10 @@ class StereoNode(Node):
             self.diag.count('pairs_skipped_poor_pose')
             self.diag.set('last_skip', f'pose sigma {kf.sigma_m:.2f} m > {self.sigma_limit_m(kf):.2f} m')
             return
+        # Partners of the same status: a provisional and a final pose are in different georeferences.
         others = {s: o.map_T_cam for s, o in self._kf.items()
-                  if o is not kf and o.complete and o.paired and o.sigma_m <= self.sigma_limit_m(o)}
+                  if o is not kf and o.complete and o.paired and o.provisional == kf.provisional
+                  and o.sigma_m <= self.sigma_limit_m(o)}
         plan = plan_pairs(self._camera_for(kf.image), kf.map_T_cam, others, self.ground_m, p,
                           (p.min_depth_m, p.max_depth_m), self._tie_points)
         if plan.status == BELOW_GROUND:
@@ -434,10 +489,12 @@ class StereoNode(Node):
                               f'({self.ground_m} m): set ground_height_m')
             return
         for pair in plan.pairs:
+            # The poses of the moment go with the pair: the depth and the cloud's placement use these.
+            job = _PairJob(pair, self._kf[pair.other].map_T_cam, kf.map_T_cam, kf.covariance)
             if todo is None:
-                self._run_pair(self._kf[pair.other], kf, pair)
+                self._run_pair(self._kf[pair.other], kf, job)
             else:
-                todo.append((self._kf[pair.other], kf, pair))
+                todo.append((self._kf[pair.other], kf, job))
 
     def _shed(self, kf: _Keyframe, why: str) -> None:
         """`kf`'s pairs (or one of them) are left to the matching after landing: counted, said."""
@@ -448,8 +505,9 @@ class StereoNode(Node):
                           'map has gaps there until the matching after landing (export --densify, replay\'s '
                           'map_final)')
 
-    def _run_pair(self, a: _Keyframe, b: _Keyframe, pair: PlannedPair) -> None:
+    def _run_pair(self, a: _Keyframe, b: _Keyframe, job: _PairJob) -> None:
         p = self._matching
+        pair = job.pair
         lag_s = time.monotonic() - b.final_at
         if not self._flushing and self.params.max_pair_lag_s > 0 and lag_s > self.params.max_pair_lag_s:
             # Stereo is behind (starved of CPU): the newer keyframes go first, this pair after landing.
@@ -466,7 +524,7 @@ class StereoNode(Node):
             # Keyframe images reduced (tracker_node keyframe_image_reduction): matched at the same resolution.
             p = gsd.for_reduced_images(p, self.camera.width / cam.width)
             with self.share.measure():
-                res = stereo.stereo_pair(cam, a.image, a.map_T_cam, b.image, b.map_T_cam, p, pair.depth_range_m)
+                res = stereo.stereo_pair(cam, a.image, job.a_T, b.image, job.b_T, p, pair.depth_range_m)
         except Exception as exc:
             self.diag.count('pairs_failed')
             self.diag.problem(f'stereo pair {a.stamp_ns}/{b.stamp_ns} failed: {exc}')
@@ -476,6 +534,8 @@ class StereoNode(Node):
             self.diag.count(f'pairs_skipped_{res.status}')
             self.diag.set('last_skip', res.message)
             return
+        # The placement first (the map takes it for the next cloud of b), then the cloud.
+        self.cloud_pose_pub.publish(msgs.pose_with_covariance_from_T(job.b_T, b.stamp_ns, 'map', job.b_covariance))
         self.cloud_pub.publish(msgs.dense_cloud_msg(res.cloud, b.stamp_ns, 'map'))
         if self.disp_pub is not None:
             d = res.disparity.disparity_px + np.float32(res.rect.shift_px)

@@ -8,8 +8,12 @@ came and never replaced by a reduced one), `add_pose` (a keyframe's
 map_T_cam), `add_keyframe_fix` (its GNSS position: the track for the coverage), `add_sparse` (tie points:
 the ground under the keyframes), `set_camera` (the input calibration), `set_final_camera` (the camera a full
 adjustment's poses were adjusted with: it replaces the input calibration in the map folder), `set_control_points`
-(the bundle adjuster's check points and GCPs with their detections, kept in the map folder).
-Periodic (the node's timers): `flush` (changed cells and poses to disk), `stream` (block means of the
+(the bundle adjuster's check points and GCPs with their detections, kept in the map folder),
+`set_cloud_placement` (the pose stereo placed a keyframe's next pair cloud with, provisional or final) and
+`set_keyframe_pose` (every pose of a keyframe, provisional ones included): a keyframe whose pose moved by
+replace_move_m from a fused cloud's placement (or turned final) has that cloud placed again (core/placements.py,
+core/fusion.py Fusion.move), by `replace_moved`.
+Periodic (the node's timers): `replace_moved`, `flush` (changed cells and poses to disk), `stream` (block means of the
 changed tiles), `stream_ortho` (PNG tiles of the live orthomosaic), `update_coverage`, `update_diag`.
 Out: through `out` (a `MapOutputs`): the stream's points, the ortho tiles, the coverage GeoJSON; through
 `diag` (stages/report.py): the /diagnostics keys and problems. Every method runs under `lock` (the fusion and
@@ -33,6 +37,7 @@ from photogram_ros.core.coverage import COVERAGE, FORWARD_OVERLAP, NOT_ORIENTED,
 from photogram_ros.core.fusion import Fusion, FusionConfig, downsample, pack_rgb
 from photogram_ros.core.geodesy import LocalFrame
 from photogram_ros.core.pace import CpuShare
+from photogram_ros.core.placements import Placements
 from photogram_ros.errors import ConfigError, PhotogramError
 from photogram_ros.io import flight_inputs
 from photogram_ros.io.map_store import CAMERA_FINAL, CAMERA_INPUT, MapStore
@@ -77,6 +82,23 @@ class MapParams(FusionConfig, CoverageConfig):
                                      min=0.1, max=3600.0)
     survey_area_file: str = param('', 'Survey area: a QGroundControl .plan (its Survey polygon or geofence) or a '
                                       'GeoJSON polygon; "" = the flight lines\' swaths')
+    replace_move_m: float = param(0.0, 'a keyframe whose pose moved this far from the pose one of its fused clouds '
+                                      'was placed with (centre shift + height x rotation, m), or whose provisional '
+                                      'pose turned final, has that cloud taken out of the map and fused again at '
+                                      'its new pose (0.25: about 2 cells; needed with stereo pair_provisional); 0: '
+                                      'clouds stay where they were fused (the 317-photo 20 MP bench at 0.25 took the '
+                                      'mapping process over the 1.5 GB bound: bench/notes_inflight_20mp.md)',
+                                  min=0.0, max=1e3)
+    replace_memory_mb: float = param(160.0, 'memory for what each fused cloud merged into the cells (kept to place '
+                                            'it again), MB; past it the oldest finally placed ones are dropped and a '
+                                            'later move of theirs is counted (clouds_moved_not_replaced), a WARN',
+                                     min=0.0, max=1e5)
+    replace_budget_s: float = param(0.2, 'the most one replace_moved round spends placing clouds again, s (the rest '
+                                         'in the next round: new clouds go first)', min=0.01, max=3600.0)
+    replace_cpu_share: float = param(0.1, 'share of one core placing clouds again may take over 20 s in flight (0: no '
+                                          'limit); over it the rest waits (the map\'s clouds and keyframe images go '
+                                          'first: they queue in memory while the map is busy); the map\'s close '
+                                          'places every one left', min=0.0, max=256.0)
     warn_unfused_keyframes: int = param(20, 'WARN on /diagnostics when this many keyframes came (images, or poses '
                                             'without save_keyframes) and '
                                             'nothing was fused since the last fused cloud (thrice as many before '
@@ -130,6 +152,7 @@ class MapStage:
         self._keyframes_unfused = 0    # keyframe poses since the last cloud that fused points
         self._clouds_unfused = 0       # clouds since then (that fused nothing)
         self._pose_z: dict = {}        # stamp -> camera height in map (the flying height for the GSD)
+        self._provisional_z: dict = {}  # the same from provisional poses, before the first final one
         if p.use_origin_params:
             self._set_origin(LocalFrame(p.origin_lat_deg, p.origin_lon_deg, p.origin_h_m))
         self._stream_pending: set = set(self.store.tile_keys())   # a restarted map streams what it has
@@ -157,7 +180,9 @@ class MapStage:
         self._full_jpeg: set = set()       # stamps whose full-resolution JPEG is saved (add_image_jpeg)
         self._images_saved: set = set()    # stamps with a saved image
         self._fuse_s = 0.0
+        self.placements = Placements(p.replace_move_m, int(p.replace_memory_mb * 1e6)) if p.replace_move_m > 0 else None
         self._ortho_share = CpuShare(p.ortho_cpu_share)
+        self._replace_share = CpuShare(p.replace_cpu_share)
         self._closed = False
 
     # --- GSD-bound geometry ----------------------------------------------------------------------
@@ -182,11 +207,12 @@ class MapStage:
     def _derive_cell(self, cloud_z: np.ndarray) -> None:
         """First pair cloud: the cell from the GSD (camera, newest keyframe height above this cloud)."""
         self._cell_pending = False
-        if self.camera is None or not self._pose_z:
+        heights = self._pose_z or self._provisional_z   # before the first turn: the provisional poses' heights
+        if self.camera is None or not heights:
             self.diag.problem(f'cell_m from the GSD needs camera_info and a keyframe pose before the first pair '
                               f'cloud: keeping {self.store.cell_m} m')
             return
-        height = self._pose_z[max(self._pose_z)] - float(np.median(cloud_z))
+        height = heights[max(heights)] - float(np.median(cloud_z))
         try:
             self.gsd = gsd.derive(self.camera.width, self.camera.height, self.camera.fx, height)
         except ConfigError as exc:
@@ -239,7 +265,11 @@ class MapStage:
             if self._cell_pending and pts.size:
                 self._derive_cell(np.asarray(pts['z'], float))
             t0 = time.perf_counter()
-            n = self.fusion.add(pts)
+            if self.placements is not None:
+                n, contribution = self.fusion.add(pts, record=True)
+                self.placements.fused(stamp_ns, contribution)
+            else:
+                n = self.fusion.add(pts)
             if n:
                 self._keyframes_unfused = self._clouds_unfused = 0
             else:
@@ -257,6 +287,60 @@ class MapStage:
         except (ValueError, TypeError) as exc:
             self.diag.count('clouds_dropped')
             self.diag.problem(f'dense cloud dropped (malformed): {exc}')
+
+    @_locked
+    def set_cloud_placement(self, stamp_ns: int, load, provisional: bool) -> None:
+        """The pose (`load` or `load()`: map_T_cam) stereo placed its next pair cloud of keyframe `stamp_ns` with."""
+        if self.placements is None:
+            return
+        try:
+            self.placements.placed_with(stamp_ns, _value(load), provisional)
+        except PhotogramError as exc:
+            self.diag.problem(f'dense cloud placement rejected: {exc}')
+
+    @_locked
+    def set_keyframe_pose(self, stamp_ns: int, load, provisional: bool) -> None:
+        """A keyframe's latest pose, provisional or final: its fused clouds follow it (replace_moved)."""
+        try:
+            T = _value(load)
+            if provisional and not self._pose_z and len(self._provisional_z) < 1000:
+                self._provisional_z[stamp_ns] = float(T[2, 3])   # the flying height until a final pose comes
+            if self.placements is not None:
+                self.placements.pose(stamp_ns, T, provisional)
+        except PhotogramError as exc:
+            self.diag.problem(f'keyframe pose rejected: {exc}')
+
+    @_locked
+    def replace_moved(self, budget_s: float | None = None) -> int:
+        """Place again the fused clouds whose keyframe's pose moved (replace_move_m) or turned final, for at most
+        `budget_s` and within replace_cpu_share (None: all, whatever the share); returns how many."""
+        if self.placements is None:
+            return 0
+        t0, done = time.perf_counter(), 0
+        for stamp, i in self.placements.due():
+            if budget_s is not None and (time.perf_counter() - t0 > budget_s or self._replace_share.over()):
+                self.diag.count('replace_rounds_deferred')
+                break
+            part = self.placements.part(stamp, i)
+            if part.contribution is None:   # dropped for memory by an earlier move of this round: counted there
+                continue
+            T_new, provisional = self.placements.pose_of(stamp)
+            if part.contribution.cell_m != self.cell_m:   # fused before the cell was derived: cannot be moved
+                self.placements.cannot_follow(stamp, i)
+                continue
+            with self._replace_share.measure():
+                _, contribution = self.fusion.move(part.contribution, T_new @ np.linalg.inv(part.map_T_cam))
+            self.placements.replaced(stamp, i, contribution)
+            done += 1
+            self.diag.count('clouds_replaced')
+            if provisional:
+                self.diag.count('clouds_replaced_provisional')
+        if done:
+            self._stream_pending |= self.fusion.changed_tiles
+            self._ortho_pending |= self.fusion.changed_tiles
+            self.fusion.changed_tiles.clear()
+            self._fuse_s += time.perf_counter() - t0
+        return done
 
     def add_image(self, stamp_ns: int, load) -> None:
         """A keyframe image (`load` or `load()`: the (H, W[, 3]) array; a conversion may raise PhotogramError),
@@ -594,6 +678,16 @@ class MapStage:
         d.set('cell_m', self.cell_m)
         d.set('write_failures', self.store.write_failures)
         d.set('keyframes_unfused', self._keyframes_unfused)
+        if self.placements is not None:
+            # Fused clouds placed with a provisional pose (before the first turn): said, and placed again final.
+            d.set('keyframes_fused_provisional', self.placements.provisional_keyframes())
+            d.set('replace_memory_mb', round(self.placements.nbytes / 1e6, 1))
+            d.set('clouds_placement_dropped', self.placements.dropped)
+            d.set('clouds_moved_not_replaced', self.placements.moved_not_replaced)
+            if self.placements.moved_not_replaced:
+                d.problem('keyframes moved after their clouds were fused and what those clouds merged was no longer '
+                          'kept (replace_memory_mb): clouds_moved_not_replaced of them stay where they were fused '
+                          'until the matching after landing (export --densify)')
         # Before the first fused cloud stereo waits for settled poses and a ground height: thrice as long.
         n = self.params.warn_unfused_keyframes * (1 if self.fusion.stats.points_fused else 3)
         if self._keyframes_unfused >= n:
@@ -619,5 +713,6 @@ class MapStage:
         """Flush everything to disk (shutdown, SIGINT, SIGTERM)."""
         if not self._closed:
             self._closed = True
+            self.replace_moved()
             self.flush()
 
