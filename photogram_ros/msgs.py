@@ -168,6 +168,17 @@ def fix_from_navsatfix(msg: NavSatFix) -> dict:
             'covariance_type': msg.position_covariance_type, 'frame_id': msg.header.frame_id}
 
 
+def fix_sigmas_m(msg: NavSatFix) -> tuple[float | None, float | None]:
+    """(horizontal, vertical) 1-sigma of a NavSatFix's position, m: the larger of the east and north
+    standard deviations and the up one; (None, None) when its covariance is unknown or not finite."""
+    if msg.position_covariance_type == NavSatFix.COVARIANCE_TYPE_UNKNOWN:
+        return None, None
+    cov = np.asarray(msg.position_covariance, dtype=float).reshape(-1)
+    if cov.size != 9 or not np.all(np.isfinite(cov[[0, 4, 8]])) or min(cov[0], cov[4], cov[8]) < 0:
+        return None, None
+    return float(np.sqrt(max(cov[0], cov[4]))), float(np.sqrt(cov[8]))
+
+
 # --- raw bytes (MAVLink in bags) -----------------------------------------------------------------
 
 

@@ -191,8 +191,9 @@ class MapNode(Node):
         self.stage.add_pose(msgs.ns_from_time(msg.header.stamp), lambda: msgs.T_from_pose_with_covariance(msg)[0])
 
     def _on_keyframe_fix(self, msg: NavSatFix) -> None:
+        sigma_h_m, sigma_v_m = msgs.fix_sigmas_m(msg)
         self.stage.add_keyframe_fix(msgs.ns_from_time(msg.header.stamp), msg.latitude, msg.longitude, msg.altitude,
-                                    msg.status.status)
+                                    msg.status.status, sigma_h_m, sigma_v_m)
 
     def _on_sparse(self, msg: PointCloud2) -> None:
         self.stage.add_sparse(lambda: msgs.points_from_pointcloud2(msg))

@@ -400,13 +400,16 @@ class MapStage:
                 self._write_failed('keyframe pose not saved', exc)
 
     @_locked
-    def add_keyframe_fix(self, stamp_ns: int, lat_deg: float, lon_deg: float, h_m: float, status: int) -> None:
-        """A keyframe's GNSS position (NavSatStatus status; < 0: none): its place on the track for the coverage."""
+    def add_keyframe_fix(self, stamp_ns: int, lat_deg: float, lon_deg: float, h_m: float, status: int,
+                         sigma_h_m: float | None = None, sigma_v_m: float | None = None) -> None:
+        """A keyframe's GNSS position (NavSatStatus status; < 0: none) and its 1-sigmas, m, when known: its
+        place on the track for the coverage, saved for the report and for a resumed run to feed again."""
         if status < 0:
             return
         if self.params.save_keyframes:
             try:   # the flight's own fixes, for the report's GNSS residuals per photo
-                flight_inputs.append_keyframe_fix(self.store.root, stamp_ns, lat_deg, lon_deg, h_m, status)
+                flight_inputs.append_keyframe_fix(self.store.root, stamp_ns, lat_deg, lon_deg, h_m, status,
+                                                  sigma_h_m, sigma_v_m)
             except OSError as exc:
                 self._write_failed('keyframe fix not saved', exc)
         if self.store.origin is None:   # the georeference comes later: kept until it does
