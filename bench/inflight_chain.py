@@ -136,6 +136,8 @@ def tracker_and_adjuster(report: dict) -> dict:
     tv = nodes.get('/tracker_node', {}).get('values', {})
     probs = nodes.get('/tracker_node', {}).get('problems', [])
     return {'tracker_breaks': tv.get('breaks'), 'tracker_bridged': tv.get('bridged'),
+            'tracker_cross_strip_revisits': tv.get('cross_strip_revisits'),
+            'tracker_cross_strip_stored': tv.get('cross_strip_stored'),
             'tracking_lost': sum('tracking lost' in str(p[-1]) for p in probs),
             'tracker_process_ms': tv.get('process_ms'),
             'not_oriented_by_reason': report.get('keyframes_not_oriented_by_reason'),

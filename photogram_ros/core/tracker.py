@@ -21,6 +21,9 @@ keyframe still held are refined onto the frame through the homography of the mat
 kept). A keyframe made after a break is matched with the chain's candidates not tried yet and publishes
 every SIFT feature as a track (those without an id start one), which later keyframes continue. With
 `chain_klt_keyframes` keyframes KLT carried (video rate) do the same with `chain_features` of theirs.
+Without it, core/cross_strip.py gives SIFT features to every `cross_strip_store_every`-th keyframe KLT carried
+(kept in the chain) and to one whose GNSS footprint overlaps a chain entry of another strip (matched with those
+only), so that strips KLT carried share tie points.
 What the chain keeps per keyframe (core.keyframes.ChainStore): `chain_features` SIFT features (uint8
 descriptors, reduced-image pixels, track ids) and the ids it published: ~226 kB for a photo-rate
 keyframe (1500 features, 4000 tracks), the newest `chain_max_keyframes`; plus one byte per track id
@@ -58,12 +61,14 @@ On ROS the table travels as a PointCloud2 with exactly these named fields (msgs.
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
 
 from photogram_ros.core.camera import PinholeCamera
+from photogram_ros.core.cross_strip import CrossStrip, CrossStripParams
 from photogram_ros.core.gnss_fix import GnssFix
 from photogram_ros.core.geodesy import LocalFrame
 from photogram_ros.core.klt import KltStep
@@ -78,7 +83,7 @@ FEATURE_DTYPE = np.dtype([('track_id', '<u4'), ('u', '<f8'), ('v', '<f8'), ('xn'
 
 
 @dataclass
-class TrackerParams:
+class TrackerParams(CrossStripParams):
     grid_cols: int = param(8, 'Detection grid columns (features are spread over the cells)', min=1, max=64)
     grid_rows: int = param(6, 'Detection grid rows', min=1, max=64)
     max_features: int = param(400, 'Tracks kept alive per frame (topped up per cell)', min=16, max=20000)
@@ -237,6 +242,7 @@ class Tracker:
         self._recent: list[_KfState] = []   # the last match_keyframes keyframes, oldest first
         self._pending: list[tuple[Keyframe, int]] = []   # (keyframe, clock when it was made, ns)
         self.chain = ChainStore(self.params.chain_max_keyframes)
+        self.cross = CrossStrip(self.params)   # which keyframes KLT carried get SIFT features
         self._held: list[_KfState] = []   # the keyframe states whose full features are held (= _recent)
         self._views = np.zeros(0, np.uint8)   # per track id: keyframes that published it (capped at 255)
         self._origin: LocalFrame | None = None   # local frame of the chain's positions (the first fix)
@@ -292,7 +298,6 @@ class Tracker:
         frame's stamp when None (stream time: an offline run gives the same keyframes at any speed); a
         node passes its monotonic clock, so fixes its executor delivers late under load are waited for in
         real time, however fast the frames of a backlog or a replay go by."""
-        import time
         t0 = time.perf_counter()
         self._clock_ns = int(stamp_ns if clock_ns is None else clock_ns)
         try:
@@ -649,7 +654,6 @@ class Tracker:
                 return refined
         return none
 
-
     # --- keyframes -------------------------------------------------------------------------------
 
     def _measure(self, cur: _Frame):
@@ -745,10 +749,16 @@ class Tracker:
 
     def _make_keyframe(self, frame: _Frame, overlap: float) -> None:
         chain = None
-        if self._wants_features(frame):
+        wanted = self._wants_features(frame)
+        entries = self._candidates(frame, at_break=False) if wanted or self.cross.on else []
+        cross = self.cross.plan(self.stats.keyframes, self._position_of(frame.stamp_ns), overlap, wanted,
+                                self.chain, entries)
+        if wanted or cross is not None:
             self._features_of(frame)
             if len(frame.features.uv):
-                self._chain_match(frame, self._candidates(frame, at_break=False))
+                self._chain_match(frame, entries if wanted else cross)
+                if not wanted:
+                    self.cross.adopt_klt_ids(frame.features.uv, frame.feat_ids, frame.pts, frame.ids)
             chain = self._publish_features(frame)
         all_ids = np.concatenate([frame.ids, frame.extra_ids])
         _, first = np.unique(all_ids, return_index=True)

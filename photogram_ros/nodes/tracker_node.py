@@ -510,6 +510,8 @@ class TrackerNode(Node):
         self.diag.set('keyframe_rate_hz', self.diag.rate_hz('keyframes', 30.0))
         self.diag.set('breaks', s.breaks)
         self.diag.set('bridged', s.bridged)
+        self.diag.set('cross_strip_revisits', self.tracker.cross.revisits)   # keyframes matched across strips
+        self.diag.set('cross_strip_stored', self.tracker.cross.stored)
         self.diag.set('gaps', s.gaps)
         self.diag.set('unusable_frames', s.unusable)
         self.diag.set('last_overlap', s.last_overlap)
