@@ -446,10 +446,11 @@ class IncrementalAT:
 
     def _orient_waiting(self, kf: Keyframe, georeferenced_before: bool) -> int:
         """Keyframes still without a pose (taken before the block's first pair, or left by resection and the
-        relative fallback for too few known points), outside a segment, tried again from two views
-        (`Registration.two_view`: gated, scaled by GNSS): those sharing min_relative_inliers_gnss tracks with the
-        newly oriented `kf`, against it; every one against the recent oriented keyframes when the block has
-        just been georeferenced (before, no fix can vouch for a two-view pose). Returns how many got a pose."""
+        relative fallback for too few known points), outside a segment, tried again: by resection (the points the
+        block knows now), else from two views (`Registration.two_view`: gated, scaled by GNSS). Those sharing
+        min_relative_inliers_gnss tracks with the newly oriented `kf`, two views with it; every one, two views with
+        the recent oriented keyframes, when the block has just been georeferenced (before, no fix can vouch for a
+        two-view pose). Returns how many got a pose."""
         if not self.opt.relative_fallback or not self.block.georeferenced:
             return 0
         in_segment = set(self.segments.kids)
@@ -461,7 +462,7 @@ class IncrementalAT:
                 continue
             if georeferenced_before and len(np.intersect1d(w.track_ids, ids)) < self.opt.min_relative_inliers_gnss:
                 continue
-            if self.registration.two_view(w, partners, 'waiting').registered:
+            if self.registration.resect(w).registered or self.registration.two_view(w, partners, 'waiting').registered:
                 self.block.triangulate_new(w)
                 n += 1
         return n
