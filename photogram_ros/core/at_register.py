@@ -194,6 +194,10 @@ class Registration:
         self.block.enrol(kf)
         return StepReport(kf.kid, True, status)
 
+    def n_two_view(self) -> int:
+        """How many keyframes were oriented from two views (`two_view`)."""
+        return len(self.two_view_oriented)
+
     def two_view(self, kf: Keyframe, partners, refused: str) -> StepReport:
         """kf oriented from the few tracks it shares with one of the oriented keyframes `partners`, scaled by GNSS
         and gated (core/at_two_view.py), when its fix can vouch for the pose (`gnss_tolerance_m`); else a report

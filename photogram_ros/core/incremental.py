@@ -367,6 +367,7 @@ class IncrementalAT:
     memory_stats = _delegate('block', 'memory_stats')
     freeze = _delegate('block', 'freeze')
     set_control = _delegate('block', 'set_control')
+    n_two_view_oriented = _delegate('registration', 'n_two_view')
 
     def add_ties(self, names) -> None:
         """Make targets `names` manual tie points (in flight: ArUco markers the control file does not list,
@@ -426,9 +427,9 @@ class IncrementalAT:
                     self._try_georeference()
                 elif rep.status != 'registered_gnss_rotation':
                     self.rounds.gate_fix(kf)
-                self._orient_waiting(kf, georeferenced_before)
+                waiting = self._orient_waiting(kf, georeferenced_before)
                 rep = self._window_adjust(kf.kid, iterations=window_iterations)
-                rep.joined = joined
+                rep.joined, rep.waiting_oriented = joined, waiting
                 if self._growth_due():
                     self._pass_adjustment(gnss_bias=False)
                     rep.block_adjusted = True
