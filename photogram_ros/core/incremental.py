@@ -751,6 +751,7 @@ class IncrementalAT:
             return StepReport(self.block.kfs[-1].kid, False, 'waiting_for_initialisation')
         rep = self.full_adjustment(iterations=self.opt.full_iterations, rounds=1, gnss_noise=False)
         rep.status = 'initialised'
+        rep.waiting_oriented = len(self.block.registered) - 1   # the pair's first and the keyframes registered with it
         return rep
 
     def _window_adjust(self, kid: int, iterations: int | None = None) -> StepReport:
