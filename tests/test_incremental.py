@@ -150,9 +150,10 @@ def test_georeference_waits_for_a_turn_and_report_files(world, tmp_path):
     assert 'Check points' in md.read_text() and 'CHK01' in markdown(rep)
 
 
-def test_a_photo_that_missed_its_turn_registers_on_retry(world):
-    """A keyframe that comes before the pair that starts the block is never registered in sequence;
-    retry_unregistered resects it against the whole block, and it lands where the truth has it."""
+def test_a_photo_that_missed_its_turn_registers_in_flight(world):
+    """A keyframe that comes before the pair that starts the block is not registered in sequence; it is resected
+    as soon as a later keyframe shares its tracks (IncrementalAT._orient_waiting), nothing is left for the
+    end-of-flight retry, and it lands where the truth has it."""
     cfg, w = world
     sk = simulate_keyframes(cfg, world=w)
     late = 12
@@ -160,8 +161,9 @@ def test_a_photo_that_missed_its_turn_registers_on_retry(world):
                        origin=sk.origin, control=sk.control)
     for r in [sk.records[late]] + sk.records[:late] + sk.records[late + 1:]:
         at.add_keyframe(r)
-    assert at.kfs[0].map_T_cam is None and len(at.registered) == len(sk.records) - 1
-    assert at.retry_unregistered() == 1 and at.retry_unregistered() == 0
+    assert at.kfs[0].map_T_cam is not None and len(at.registered) == len(sk.records)
+    assert 0 not in at.two_view_oriented    # resected: it shares points the block knows
+    assert at.retry_unregistered() == 0
     at.full_adjustment()
     err = np.linalg.norm(at.kfs[0].map_T_cam[:3, 3] - sk.true_map_T_cam[late][:3, 3])
     others = np.array([np.linalg.norm(at.kfs[k].map_T_cam[:3, 3] - sk.true_map_T_cam[k - 1 if k <= late else k][:3, 3])

@@ -58,6 +58,7 @@ class StepReport:
     window_size: int = 0
     n_points: int = 0
     joined: int = 0                 # keyframes of a segment that joined the block with this step
+    waiting_oriented: int = 0       # earlier keyframes that were waiting for a pose, oriented with this step
     block_adjusted: bool = False    # a full adjustment of the pass (growth_ratio) moved every keyframe and may
 
 

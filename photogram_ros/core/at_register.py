@@ -11,6 +11,7 @@ import numpy as np
 
 from photogram_ros.core.at_problem import StepReport
 from photogram_ros.core.at_store import Keyframe
+from photogram_ros.core.at_two_view import two_view_pose
 from photogram_ros.core.rotations import invert_T, make_T
 from photogram_ros.core.two_view import relative_pose, scene_facing
 
@@ -21,6 +22,7 @@ class Registration:
 
     def __init__(self, block, datum, opt):
         self.block, self.datum, self.opt = block, datum, opt
+        self.two_view_oriented: dict[int, str] = {}   # keyframes oriented from two views: {kid: how (`two_view`)}
 
     def faces_scene(self, res) -> bool:
         """A relative pose's tie points lie in front of camera 1 on a plane it looks at (|cos| of the plane's
@@ -128,7 +130,7 @@ class Registration:
     def gnss_tolerance_m(self, kf: Keyframe) -> float | None:
         """How far kf's antenna may lie from its fix for a pose from fewer tracks than min_relative_inliers:
         3 x the GNSS residual RMS of the block's oriented keyframes (>= 3 of them, the block georeferenced), at
-        least 0.1 m (`relative` adds 2 % of the baseline); None when the fix cannot vouch for it (no fix, its
+        least 0.1 m (core/at_two_view.py adds 2 % of the baseline); None when the fix cannot vouch for it (no fix, its
         fix not used, too few residuals)."""
         if not self.block.georeferenced or kf.fix_enu is None or kf.kid in self.datum.rejected:
             return None
@@ -141,8 +143,8 @@ class Registration:
         """Orientation from the relative pose to the registered keyframe sharing most usable tracks
         with `kf` (essential matrix, core/two_view.py); the baseline length from the known points
         both see (depth ratio, >= 5 of them) or else from the GNSS fixes (the block's scale from its
-        registered keyframes' fixes while not georeferenced). With fewer than min_relative_inliers (down to
-        min_relative_inliers_gnss), only when its fix agrees with the pose (`gnss_tolerance_m`)."""
+        registered keyframes' fixes while not georeferenced). With fewer than min_relative_inliers shared tracks:
+        `two_view` (the gated two-view pose, scaled by GNSS) with any of the recent oriented keyframes."""
         use = self.block.usable(kf)
         ids = kf.track_ids[use]
         best = None
@@ -154,21 +156,15 @@ class Registration:
             if best is None or len(common) > len(best[1]):
                 best = (r, common)
         n_shared = 0 if best is None else len(best[1])
-        tol = None
         if n_shared < self.opt.min_relative_inliers:
-            tol = self.gnss_tolerance_m(kf) if n_shared >= self.opt.min_relative_inliers_gnss else None
-            if tol is None:
-                return StepReport(kf.kid, False, f'relative: too_few_shared_tracks ({n_shared})')
+            return self.two_view(kf, self.block.registered[-2 * self.opt.window_size:],
+                                 f'relative: too_few_shared_tracks ({n_shared})')
         r, common = best
         rk = self.block.kfs[r]
         i1 = np.array([rk.index(int(t)) for t in common])
         i2 = np.array([kf.index(int(t)) for t in common])
         thr = self.opt.pnp_threshold_px / self.block.camera.fx
-        # A few matches at the resection's threshold can all fit a wrong essential matrix (no clear cheirality
-        # winner) with plain RANSAC: OpenCV's USAC (local optimisation) for those.
-        res = relative_pose(self.block.xn(rk, i1), self.block.xn(kf, i2), thr,
-                            self.opt.min_relative_inliers if tol is None else self.opt.min_relative_inliers_gnss,
-                            method='ransac' if tol is None else 'usac')
+        res = relative_pose(self.block.xn(rk, i1), self.block.xn(kf, i2), thr, self.opt.min_relative_inliers)
         T_r = rk.map_T_cam
         if res.ok and not self.faces_scene(res):
             return StepReport(kf.kid, False, 'relative: sees its tie points edge-on (the planar twin)')
@@ -179,22 +175,14 @@ class Registration:
             scale = self.relative_scale(rk, kf, common[res.inliers], res, d_map)
             if scale is None:
                 return StepReport(kf.kid, False, 'relative: no_scale (neither known points nor GNSS)')
-            T = make_T(map_R, T_r[:3, 3] + scale * d_map)
-            if tol is not None:
-                # ... and the direction of the baseline from a few matches: 2 % of its length (1.1 degrees).
-                tol += 0.02 * scale
-                off = float(np.linalg.norm(self.datum.antenna_residual(kf, T)))
-                if off > tol:
-                    return StepReport(kf.kid, False, f'relative: {n_shared} shared tracks, its fix {off:.1f} m from '
-                                                     f'the pose they give (> {tol:.1f} m)')
-            kf.map_T_cam = T
+            kf.map_T_cam = make_T(map_R, T_r[:3, 3] + scale * d_map)
             inl = res.inliers
             status = 'registered_relative'
         else:
             # Too short a baseline (or a turn on the spot) for the essential matrix: with a georeferenced
             # block and a fix, the rotation from the homography of the shared tracks (a rotation when
             # the baseline is short against the height), the position from GNSS; the adjustment refines.
-            got = self.gnss_and_rotation(rk, kf, i1, i2, thr) if tol is None else None
+            got = self.gnss_and_rotation(rk, kf, i1, i2, thr)
             if got is None:
                 return StepReport(kf.kid, False, f'relative: {res.status}')
             kf.map_T_cam, inl = got
@@ -205,6 +193,30 @@ class Registration:
         kf.active[use & known & out] = False      # known points that disagree with the relative pose
         self.block.enrol(kf)
         return StepReport(kf.kid, True, status)
+
+    def n_two_view(self) -> int:
+        """How many keyframes were oriented from two views (`two_view`)."""
+        return len(self.two_view_oriented)
+
+    def two_view(self, kf: Keyframe, partners, refused: str) -> StepReport:
+        """kf oriented from the few tracks it shares with one of the oriented keyframes `partners`, scaled by GNSS
+        and gated (core/at_two_view.py), when its fix can vouch for the pose (`gnss_tolerance_m`); else a report
+        `refused` and why. What it orients is in `two_view_oriented` ({kid: how})."""
+        tol = self.gnss_tolerance_m(kf)
+        if tol is None:
+            return StepReport(kf.kid, False, refused)
+        got = two_view_pose(self.block, self.datum, self.opt, kf, partners, tol)
+        if isinstance(got, str):
+            return StepReport(kf.kid, False, f'{refused}; {got}')
+        use = self.block.usable(kf)
+        kf.map_T_cam = got.map_T_cam
+        out = np.ones(len(kf.track_ids), bool)
+        out[got.rows] = False
+        known = self.block.points.contains_many(kf.track_ids) & ~self.block.tie_mask(kf.track_ids)
+        kf.active[use & known & out] = False      # known points that disagree with the two-view pose
+        self.block.enrol(kf)
+        self.two_view_oriented[kf.kid] = got.status
+        return StepReport(kf.kid, True, got.status)
 
     def gnss_and_rotation(self, rk: Keyframe, kf: Keyframe, i1, i2, thr: float):
         """(map_T_cam, inlier mask over i1/i2) of `kf` from its fix and the homography rotation to `rk`;

@@ -104,8 +104,15 @@ class IncrementalOptions:
     min_relative_inliers_gnss: int = param(12, 'relative-pose inliers that fallback needs, with a georeferenced '
                                                'block, when the pose it gives puts the keyframe\'s antenna within '
                                                '3 x the block\'s GNSS residual RMS of its fix (a keyframe that '
-                                               'shares only a few two-view tracks: half the forward overlap)',
+                                               'shares only a few two-view tracks: half the forward overlap; '
+                                               'core/at_two_view.py)',
                                            min=8, max=100000)
+    two_view_min_angle_deg: float = param(2.0, 'a keyframe oriented from two views (fewer than '
+                                               'min_relative_inliers shared tracks, scaled by GNSS) needs this median '
+                                               'ray angle, deg', min=0.0, max=60.0)
+    two_view_max_direction_deg: float = param(5.0, '... and the baseline direction its images give within this (plus '
+                                                   'atan(GNSS tolerance / baseline)) of the direction between the '
+                                                   'two fixes, deg', min=0.1, max=90.0)
     segments: bool = param(True, 'keyframes that share no tie point with the block (every track lost: a long gap '
                                  'in the frames) start a segment of their own, which joins the block through the '
                                  'tracker\'s tie points both have triangulated as soon as they are '
@@ -330,6 +337,8 @@ class IncrementalAT:
     segments_joined = _read('segments', 'joined', 'Segments that joined the block.')
     segment_joins = _read('segments', 'joins', 'Each segment that joined: its keyframes and how.')
     unplaced_keyframes = _read('segments', 'unplaced', 'Keyframes given up for the segment after a break.')
+    two_view_oriented = _read('registration', 'two_view_oriented', 'Keyframes oriented from two views, scaled by '
+                              'GNSS: {kid: how (its status)}.')
     lever_arm_cam_m = property(lambda self: self.datum.lever.copy(),
                                doc='(3,) antenna in the camera frame (m) of a keyframe without its own antenna offset.')
     freezing_stopped = _read('block', 'freezing_stopped', 'Why this block is no longer frozen (\'\' while it is).')
@@ -358,6 +367,7 @@ class IncrementalAT:
     memory_stats = _delegate('block', 'memory_stats')
     freeze = _delegate('block', 'freeze')
     set_control = _delegate('block', 'set_control')
+    n_two_view_oriented = _delegate('registration', 'n_two_view')
 
     def add_ties(self, names) -> None:
         """Make targets `names` manual tie points (in flight: ArUco markers the control file does not list,
@@ -412,12 +422,14 @@ class IncrementalAT:
                 self.block.triangulate_new(kf)
                 # The segment's tracks it continues became points of the block: the segment joins through them.
                 joined = self._join_segment_by_tracks()
+                georeferenced_before = self.block.georeferenced
                 if not self.block.georeferenced or self.block.provisional:
                     self._try_georeference()
                 elif rep.status != 'registered_gnss_rotation':
                     self.rounds.gate_fix(kf)
+                waiting = self._orient_waiting(kf, georeferenced_before)
                 rep = self._window_adjust(kf.kid, iterations=window_iterations)
-                rep.joined = joined
+                rep.joined, rep.waiting_oriented = joined, waiting
                 if self._growth_due():
                     self._pass_adjustment(gnss_bias=False)
                     rep.block_adjusted = True
@@ -432,6 +444,29 @@ class IncrementalAT:
         if self.opt.spill_frozen and kf.kid % max(self.opt.freeze_every, 1) == 0:
             self.block.freeze()
         return rep
+
+    def _orient_waiting(self, kf: Keyframe, georeferenced_before: bool) -> int:
+        """Keyframes still without a pose (taken before the block's first pair, or left by resection and the
+        relative fallback for too few known points), outside a segment, tried again: by resection (the points the
+        block knows now), else from two views (`Registration.two_view`: gated, scaled by GNSS). Those sharing
+        min_relative_inliers_gnss tracks with the newly oriented `kf`, two views with it; every one, two views with
+        the recent oriented keyframes, when the block has just been georeferenced (before, no fix can vouch for a
+        two-view pose). Returns how many got a pose."""
+        if not self.opt.relative_fallback or not self.block.georeferenced:
+            return 0
+        in_segment = set(self.segments.kids)
+        ids = kf.track_ids[self.block.usable(kf)]
+        partners = [kf.kid] if georeferenced_before else self.block.registered[-2 * self.opt.window_size:]
+        n = 0
+        for w in self.block.kfs:
+            if w.map_T_cam is not None or w.frozen or w.kid in in_segment:
+                continue
+            if georeferenced_before and len(np.intersect1d(w.track_ids, ids)) < self.opt.min_relative_inliers_gnss:
+                continue
+            if self.registration.resect(w).registered or self.registration.two_view(w, partners, 'waiting').registered:
+                self.block.triangulate_new(w)
+                n += 1
+        return n
 
     def _pass_adjustment(self, gnss_bias: bool = True) -> StepReport:
         """A full adjustment during the pass (one round, no GNSS noise estimate); from pass_min_keyframes on,
@@ -716,6 +751,7 @@ class IncrementalAT:
             return StepReport(self.block.kfs[-1].kid, False, 'waiting_for_initialisation')
         rep = self.full_adjustment(iterations=self.opt.full_iterations, rounds=1, gnss_noise=False)
         rep.status = 'initialised'
+        rep.waiting_oriented = len(self.block.registered) - 1   # the pair's first and the keyframes registered with it
         return rep
 
     def _window_adjust(self, kid: int, iterations: int | None = None) -> StepReport:

@@ -558,10 +558,11 @@ class AdjustmentStage:
                               'their GNSS noise and could not be placed (not oriented); the map holds the flight '
                               'after it', WARN)
         _segment_diagnostics(self.diag, self.at.segments, rep.joined)
-        if rep.registered:
-            self.diag.count('keyframes_oriented')
-        else:
+        if not rep.registered:
             self._count_not_oriented(rep.status)
+        if rep.registered or rep.waiting_oriented:   # and keyframes that waited, oriented with it (by two views too)
+            self.diag.count('keyframes_oriented', int(rep.registered) + rep.waiting_oriented)
+        self.diag.set('keyframes_oriented_two_view', self.at.n_two_view_oriented())
         self._block_moved = self._block_moved or rep.block_adjusted
         if not publish:
             # Queued behind: the figures, the control vetting and the block check wait for the batch's newest.
