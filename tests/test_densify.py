@@ -195,3 +195,14 @@ def test_final_criteria_replace_the_partners_and_overlap():
     c = PairCriteria(max_pairs_along=1, max_pairs_across=0, min_overlap=0.5, final_pairs_along=3,
                      final_pairs_across=2, final_min_overlap=0.2).for_final()
     assert (c.max_pairs_along, c.max_pairs_across, c.min_overlap) == (3, 2, 0.2)
+
+
+def test_products_that_cannot_be_made_still_write_a_failed_report(map_dir, tmp_path):
+    """No cell seen by min_pairs stereo pairs: no products, but the report is written and its verdict says
+    why (not 'mapped' with no DSM)."""
+    from photogram_ros.commands.products import export_products
+    res = export_products(map_dir, tmp_path / 'out', None, min_pairs=99, run={'counts': {}})
+    assert res['files'] == {} and any('no products' in n and 'seen by 99' in n for n in res['notes'])
+    rep = json.loads((tmp_path / 'out' / 'report.json').read_text())
+    assert rep['mapping']['mapped'] is False
+    assert any('no products were made' in f and 'seen by 99 stereo pairs' in f for f in rep['mapping']['failures'])

@@ -130,7 +130,15 @@ def export_products(map_dir, out, params_file: str | None, crs: str = '', live_m
     run['products_from'] = source
     notes += source_notes
     try:
-        ex = export_map(products, out, crs, heights, min_pairs=min_pairs, say=sayer(progress))
+        try:
+            ex = export_map(products, out, crs, heights, min_pairs=min_pairs, say=sayer(progress))
+        except StorageError:
+            raise
+        except PhotogramError as exc:   # nothing to export (no cell seen by min_pairs pairs): still a report
+            run['products_error'] = str(exc)
+            figures = build_report(out, products, crs, {}, run=run, **report)
+            return {'files': {}, 'notes': notes + [f'no products: {exc}'], 'crs': crs, 'figures': figures,
+                    'points': 0}
         files = {k: str(v) for k, v in ex.files.items()}
         run['map_points'] = ex.points
         run['dsm'] = ex.dsm

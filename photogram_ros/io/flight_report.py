@@ -332,10 +332,11 @@ def dsm_valid_share(dsm_path) -> float | None:
     return float(valid[hull > 0].mean())
 
 
-def mapping_verdict(accounting: dict, georeferenced: bool, dsm_share: float | None, mapped_products: bool) -> dict:
+def mapping_verdict(accounting: dict, georeferenced: bool, dsm_share: float | None, mapped_products: bool,
+                    products_error: str | None = None) -> dict:
     """{'mapped': bool, 'failures': [sentences], 'warnings': [sentences]}: a flight with no georeferenced
-    keyframe, fewer than half of its keyframes oriented, or a DSM nearly empty (or none while keyframes were
-    oriented) did not map; a DSM measured by stereo over under MIN_DSM_VALID_SHARE of its area (trees, water,
+    keyframe, fewer than half of its keyframes oriented, products that could not be made (`products_error`:
+    why), or a DSM nearly empty (or none while keyframes were oriented) did not map; a DSM measured by stereo over under MIN_DSM_VALID_SHARE of its area (trees, water,
     low overlap: the rest interpolated) mapped, with a warning."""
     failures, warnings = [], []
     taken, oriented = accounting['keyframes_taken'], accounting['keyframes_oriented']
@@ -358,6 +359,8 @@ def mapping_verdict(accounting: dict, georeferenced: bool, dsm_share: float | No
                             'roofs give stereo no height; or too little overlap)')
     elif dsm_share is None and georeferenced and mapped_products:
         failures.append('no DSM was written')
+    if products_error:
+        failures.append(f'no products were made: {products_error}')
     return {'mapped': not failures, 'failures': failures, 'warnings': warnings, 'dsm_valid_share': dsm_share}
 
 
@@ -389,7 +392,8 @@ def _health_sections(figures: dict, kfs, files: dict, run: dict, diagnostics: di
     acc = keyframe_accounting((run or {}).get('counts', {}), len(kfs) if georeferenced else 0,
                               values('bundle_node').get('status'),
                               unusable if isinstance(unusable, (int, float)) else None)
-    verdict = mapping_verdict(acc, georeferenced, dsm_valid_share(files.get('dsm')), bool(files))
+    verdict = mapping_verdict(acc, georeferenced, dsm_valid_share(files.get('dsm')), bool(files),
+                              (run or {}).get('products_error'))
     # The flight as a whole is a row of its own: at ERROR when it did not map, whatever the nodes said.
     level = 'ERROR' if not verdict['mapped'] else 'WARN' if verdict['warnings'] else 'OK'
     health = [{'node': 'replay', 'worst_level': level, 'problems': len(verdict['failures'] + verdict['warnings']),
