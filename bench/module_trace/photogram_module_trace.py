@@ -10,7 +10,8 @@ calls `install()` in a bench's own process and reads the tree with `collect()`.
 
 A process writes its file when it starts ("final": false), again every POLL_S seconds when its list grew, and
 for the last time ("final": true) at exit, on SIGTERM when nothing else handles it (the default handler is
-chained: the process still ends) and at the end of a forked multiprocessing child. A process killed with -9 (or
+chained: the process still ends) and at the end of a forked multiprocessing child (a forked child writes only
+then: one killed with -9 is not seen, its modules are mostly its parent's). A process killed with -9 (or
 ended by os._exit) leaves a file that is not final: `collect()` reports it, and the result falls back to the
 whole product.
 """
@@ -145,18 +146,31 @@ def _poll() -> None:
 
 
 def _after_fork() -> None:
-    # A forked child is a child of the process that forked it: its file goes in that process's children's folder.
+    # A forked child is a child of the process that forked it: its file goes in that process's children's folder,
+    # written at its end only (no thread, no write here: a child about to exec another program must not leave an
+    # unfinished file behind; an exec'd Python writes its own, under the same pid).
     parent_children = _state.get('children')
     if parent_children:
-        _begin(parent_children, late=False)
-        try:
-            import multiprocessing.util as mpu     # a multiprocessing child ends with os._exit after its finalizers
-            mpu.Finalize(None, _write, args=(True, 'multiprocessing child end'), exitpriority=0)
-        except Exception:
-            pass
+        _begin(parent_children, late=False, eager=False)
+        if 'multiprocessing' in sys.modules:
+            try:
+                # A multiprocessing child ends with os._exit after its finalizers; it clears those it inherited
+                # first, then runs its after-fork hooks: register the finalizer from one of those.
+                import multiprocessing.util as mpu
+                _state['mp_hook'] = hook = _Hook()
+                mpu.register_after_fork(hook, _Hook.register_finalizer)
+            except Exception:
+                pass
 
 
-def _begin(folder: str, late: bool) -> None:
+class _Hook:
+    @staticmethod
+    def register_finalizer(_self) -> None:
+        import multiprocessing.util as mpu
+        mpu.Finalize(None, _write, args=(True, 'multiprocessing child end'), exitpriority=0)
+
+
+def _begin(folder: str, late: bool, eager: bool = True) -> None:
     pid = os.getpid()
     children = os.path.join(folder, str(pid))
     os.makedirs(children, exist_ok=True)
@@ -164,8 +178,9 @@ def _begin(folder: str, late: bool) -> None:
                   late=late, written=None)
     os.environ[TRACE_DIR_ENV] = children
     os.environ[TRACE_PID_ENV] = str(pid)
-    _write(False)
-    threading.Thread(target=_poll, daemon=True, name='module-trace').start()
+    if eager:
+        _write(False)
+        threading.Thread(target=_poll, daemon=True, name='module-trace').start()
 
 
 def _child_env(env):
