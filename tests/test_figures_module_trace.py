@@ -163,3 +163,29 @@ def test_the_trace_runs_a_sitecustomize_it_shadows(tmp_path):
     assert out.stdout.strip() == '1', out.stderr
     docs = [json.loads(p.read_text()) for p in (tmp_path / 'trace').glob('*.json')]
     assert len(docs) == 1 and docs[0]['final'] and 'photogram_ros/errors.py' in docs[0]['files']
+
+
+def test_a_forked_multiprocessing_child_adds_the_modules_it_imported(tmp_path):
+    script = tmp_path / 'pool.py'
+    script.write_text(textwrap.dedent(f'''
+        import json, multiprocessing as mp, sys
+        sys.path.insert(0, {str(ROOT)!r})
+        from bench import machine
+        machine.start_module_trace()
+
+        def work(_):
+            import photogram_ros.core.geodesy  # noqa: F401
+            return 1
+
+        if __name__ == '__main__':
+            with mp.get_context('fork').Pool(2) as p:
+                p.map(work, range(4))
+            print(json.dumps(machine.executed_modules(['photogram_ros', 'config'])))
+    '''))
+    env = {k: v for k, v in os.environ.items() if not k.startswith('PHOTOGRAM_MODULE_TRACE')}
+    env['PYTHONPATH'] = str(ROOT)
+    out = subprocess.run([sys.executable, str(script)], env=env, capture_output=True, text=True, timeout=120,
+                         check=True)
+    modules, trace = json.loads(out.stdout.splitlines()[-1])
+    assert trace['complete'] and trace['processes'] == 3, trace
+    assert 'photogram_ros/core/geodesy.py' in modules
