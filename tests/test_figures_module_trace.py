@@ -3,7 +3,6 @@ bench process and every Python process it starts; a figure then goes stale only 
 (bench/render_figures.py), and a result whose trace is incomplete (a child killed with -9) keeps the whole
 product."""
 
-import importlib.util
 import json
 import os
 import shutil
@@ -13,17 +12,10 @@ import textwrap
 from pathlib import Path
 
 import pytest
+from test_figures_rendered import _render
 
 ROOT = Path(__file__).resolve().parents[1]
 needs_git = pytest.mark.skipif(shutil.which('git') is None, reason='the staleness reads git')
-
-
-def _render():
-    spec = importlib.util.spec_from_file_location('render_figures', ROOT / 'bench' / 'render_figures.py')
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules['render_figures'] = mod
-    spec.loader.exec_module(mod)
-    return mod
 
 
 # A bench in miniature: the trace started as a bench script's import of bench/machine.py starts it, children
