@@ -17,8 +17,8 @@ file and the commit it was measured at, and says:
   names its component; else the line's `modules`, else the whole product; less the Figure's
   `ignore`, each said why in the spec) changed after that commit (git log, or an uncommitted change in the
   working tree). A line whose modules were traced (`module_trace.complete`: the files the bench and its child
-  processes ran, bench/machine.py) is stale when one of those files differs between its commit and HEAD (git
-  diff) or in the working tree,
+  processes ran, bench/machine.py; those of every line of its file) is stale when one of those files differs
+  between its commit and HEAD (git diff) or in the working tree,
 - "modified tree" when the line says the tree had uncommitted changes (`clean` false), and "tree state not
   recorded" for files written before bench/machine.py's ResultWriter,
 - "no result file" (and no figure) when no file holds the line.
@@ -185,9 +185,13 @@ def newest(fig: Figure) -> Source | None:
             clean = line_clean(line)
             if clean is None and lines and 'clean_tree' in lines[0]:   # an older bench's header line says it
                 clean = bool(lines[0]['clean_tree'])
-            traced = not fig.modules and line_traced(line)
-            best = Source(path, line, lines, commit, clean, tuple(fig.modules or line.get('modules') or PRODUCT),
-                          traced)
+            # A figure's cells may read any line of its file: a traced figure's modules are every line's (each
+            # line's trace holds what the bench ran until then), when every line's trace is complete.
+            traced = not fig.modules and all(line_traced(x) for x in lines if 'modules' in x)
+            # (else the declared modules: a traced line beside an incomplete one is not measured alone)
+            modules = (tuple(sorted({m for x in lines for m in x.get('modules') or ()})) if traced else
+                       tuple(fig.modules or line.get('modules_declared') or line.get('modules') or PRODUCT))
+            best = Source(path, line, lines, commit, clean, modules, traced)
     return best
 
 

@@ -104,16 +104,25 @@ def test_a_traced_figure_stays_fresh_after_an_unrelated_change_and_goes_stale_wh
     results = tmp_path / 'bench' / 'results'
     results.mkdir(parents=True)
     base = {'k': 1, 'commit': measured, 'clean': True}
-    (results / 'traced_x.jsonl').write_text(json.dumps(
-        {**base, 'modules': ['photogram_ros/__init__.py', 'photogram_ros/a.py', 'config/replay.yaml'],
-         'module_trace': {'complete': True, 'processes': 2, 'running': 0}}) + '\n')
+    trace = {'complete': True, 'processes': 2, 'running': 0}
+    (results / 'traced_x.jsonl').write_text(
+        json.dumps({**base, 'modules': ['photogram_ros/__init__.py', 'config/replay.yaml'], 'module_trace': trace})
+        + '\n' + json.dumps({**base, 'k': 2, 'modules': ['photogram_ros/__init__.py', 'photogram_ros/a.py'],
+                             'module_trace': trace}) + '\n')
     (results / 'declared_x.jsonl').write_text(json.dumps({**base, 'modules': ['photogram_ros', 'config']}) + '\n')
+    # a traced line beside one whose trace is incomplete: the file's figures keep the whole product
+    (results / 'mixed_x.jsonl').write_text(
+        json.dumps({**base, 'modules': ['photogram_ros/__init__.py'], 'module_trace': trace,
+                    'modules_declared': ['photogram_ros', 'config']}) + '\n'
+        + json.dumps({**base, 'k': 2, 'modules': ['photogram_ros', 'config'], 'module_trace': {'complete': False}})
+        + '\n')
     (results / 'killed_x.jsonl').write_text(json.dumps(
         {**base, 'modules': ['photogram_ros', 'config'],
          'module_trace': {'complete': False, 'why': '1 process(es) ended without writing their modules'}}) + '\n')
     monkeypatch.setattr(r, 'ROOT', tmp_path)
     monkeypatch.setattr(r, 'RESULTS', results)
-    traced, declared, killed = (r.Figure(('x',), f'{n}_x.jsonl', {'k': 1}) for n in ('traced', 'declared', 'killed'))
+    traced, declared, killed, mixed = (r.Figure(('x',), f'{n}_x.jsonl', {'k': 1})
+                                       for n in ('traced', 'declared', 'killed', 'mixed'))
 
     def state(fig):        # the render caches git's answers for one run; here the repository moves between calls
         r.files_changed.cache_clear()
@@ -127,6 +136,7 @@ def test_a_traced_figure_stays_fresh_after_an_unrelated_change_and_goes_stale_wh
     # without a (complete) trace: the whole product, stale as before
     assert state(declared)['state'] == 'stale'
     assert state(killed)['state'] == 'stale'
+    assert state(mixed)['state'] == 'stale'
     assert '**stale**: photogram_ros, config changed since' in r.source_cell(r.newest(killed), killed)
 
     (tmp_path / 'photogram_ros' / 'a.py').write_text('x = 3\n')   # uncommitted change to a file it ran
