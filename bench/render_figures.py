@@ -16,7 +16,7 @@ file and the commit it was measured at, and says:
 - **stale** when one of the figure's modules (the Figure's when its spec names them: a component figure
   names its component; else the line's `modules`, else the whole product; less the Figure's
   `ignore`, each said why in the spec) changed after that commit (git log, or an uncommitted change in the
-  working tree). A line whose modules were traced (`module_trace.complete`: the files the bench and its child
+  working tree). A line whose modules were traced (of them, those inside the Figure's modules when it names some) (`module_trace.complete`: the files the bench and its child
   processes ran, bench/machine.py; those of every line of its file) is stale when one of those files differs
   between its commit and HEAD (git diff) or in the working tree,
 - "modified tree" when the line says the tree had uncommitted changes (`clean` false), and "tree state not
@@ -160,6 +160,17 @@ def line_traced(line: dict) -> bool:
     return isinstance(t, dict) and t.get('complete') is True and bool(line.get('modules'))
 
 
+def traced_modules(ran: set, spec: tuple | None) -> tuple:
+    """A traced figure's modules: the files its bench ran; those inside the Figure's own modules when it names
+    some narrower than the whole product (a component's figure: what ran of its component, and its paths outside
+    the product as they are)."""
+    if not spec or tuple(spec) == PRODUCT:
+        return tuple(sorted(ran))
+    inside = {m for m in ran if any(m == p or m.startswith(p.rstrip('/') + '/') for p in spec)}
+    inside |= {p for p in spec if p.split('/')[0] not in PRODUCT}
+    return tuple(sorted(inside)) or tuple(spec)
+
+
 def changes(src: Source, fig: Figure) -> tuple[int, tuple]:
     """(how many commits changed the figure's modules since its line's commit, +1 for the working tree; or, for a
     traced line, how many of the files it ran differ; those files)."""
@@ -187,10 +198,12 @@ def newest(fig: Figure) -> Source | None:
                 clean = bool(lines[0]['clean_tree'])
             # A figure's cells may read any line of its file: a traced figure's modules are every line's (each
             # line's trace holds what the bench ran until then), when every line's trace is complete.
-            traced = not fig.modules and all(line_traced(x) for x in lines if 'modules' in x)
+            recorded = [x for x in lines if 'modules' in x]
+            traced = bool(recorded) and all(line_traced(x) for x in recorded)
             # (else the declared modules: a traced line beside an incomplete one is not measured alone)
-            modules = (tuple(sorted({m for x in lines for m in x.get('modules') or ()})) if traced else
-                       tuple(fig.modules or line.get('modules_declared') or line.get('modules') or PRODUCT))
+            modules = tuple(fig.modules or line.get('modules_declared') or line.get('modules') or PRODUCT)
+            if traced:
+                modules = traced_modules({m for x in lines for m in x.get('modules') or ()}, fig.modules)
             best = Source(path, line, lines, commit, clean, modules, traced)
     return best
 

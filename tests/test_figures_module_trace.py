@@ -110,6 +110,7 @@ def test_a_traced_figure_stays_fresh_after_an_unrelated_change_and_goes_stale_wh
         + '\n' + json.dumps({**base, 'k': 2, 'modules': ['photogram_ros/__init__.py', 'photogram_ros/a.py'],
                              'module_trace': trace}) + '\n')
     (results / 'declared_x.jsonl').write_text(json.dumps({**base, 'modules': ['photogram_ros', 'config']}) + '\n')
+    (results / 'old_x.jsonl').write_text(json.dumps(base) + '\n')      # before ResultWriter named modules
     # a traced line beside one whose trace is incomplete: the file's figures keep the whole product
     (results / 'mixed_x.jsonl').write_text(
         json.dumps({**base, 'modules': ['photogram_ros/__init__.py'], 'module_trace': trace,
@@ -121,8 +122,8 @@ def test_a_traced_figure_stays_fresh_after_an_unrelated_change_and_goes_stale_wh
          'module_trace': {'complete': False, 'why': '1 process(es) ended without writing their modules'}}) + '\n')
     monkeypatch.setattr(r, 'ROOT', tmp_path)
     monkeypatch.setattr(r, 'RESULTS', results)
-    traced, declared, killed, mixed = (r.Figure(('x',), f'{n}_x.jsonl', {'k': 1})
-                                       for n in ('traced', 'declared', 'killed', 'mixed'))
+    traced, declared, killed, mixed, old = (r.Figure(('x',), f'{n}_x.jsonl', {'k': 1})
+                                            for n in ('traced', 'declared', 'killed', 'mixed', 'old'))
 
     def state(fig):        # the render caches git's answers for one run; here the repository moves between calls
         r.files_changed.cache_clear()
@@ -133,10 +134,17 @@ def test_a_traced_figure_stays_fresh_after_an_unrelated_change_and_goes_stale_wh
     assert state(traced)['state'] == 'fresh'
     assert state(traced)['traced'] == 3
     assert 'stale' not in r.source_cell(r.newest(traced), traced)
+    # a Figure naming the whole product (an end-to-end figure) takes the trace; one naming its component, what
+    # ran of it
+    assert state(r.Figure(('x',), 'traced_x.jsonl', {'k': 1}, modules=r.PRODUCT))['state'] == 'fresh'
+    component = r.Figure(('x',), 'traced_x.jsonl', {'k': 1}, modules=('photogram_ros/a.py', 'photogram_ros/b.py'))
+    assert state(component)['state'] == 'fresh'       # of its component, a.py ran, b.py did not
+    assert r.newest(component).modules == ('photogram_ros/a.py',)
     # without a (complete) trace: the whole product, stale as before
     assert state(declared)['state'] == 'stale'
     assert state(killed)['state'] == 'stale'
     assert state(mixed)['state'] == 'stale'
+    assert state(old)['state'] == 'stale' and not r.newest(old).traced
     assert '**stale**: photogram_ros, config changed since' in r.source_cell(r.newest(killed), killed)
 
     (tmp_path / 'photogram_ros' / 'a.py').write_text('x = 3\n')   # uncommitted change to a file it ran
@@ -145,6 +153,7 @@ def test_a_traced_figure_stays_fresh_after_an_unrelated_change_and_goes_stale_wh
     assert state(traced)['state'] == 'fresh'
 
     _commit_change(tmp_path, git, 'photogram_ros/a.py')
+    assert state(component)['state'] == 'stale'
     st = state(traced)
     assert (st['state'], st['changed_files']) == ('stale', ['photogram_ros/a.py'])
     assert '**stale**: a file it ran changed since' in r.source_cell(r.newest(traced), traced)
