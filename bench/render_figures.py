@@ -775,7 +775,11 @@ def _held_out_readme(x: dict, lines: list) -> str:
     rows = [y for y in lines if y.get('kind') in HELD_OUT_KINDS and y.get('pipeline') == 'triangulate']
     failed = sum(str(y.get('verdict') or '').lower() == 'failed' for y in rows)
     oriented = sum((y.get('oriented') or 0) == y.get('photos') for y in rows)
-    return f'{oriented} of {len(rows)} proxy blocks fully oriented, {failed} FAILED'
+    replays = [f'`replay` {y["set"]} {y["kind"]}: {y.get("oriented")}/{y.get("photos")}'
+               + (f' (exit {y["exit"]})' if y.get('exit') else '')
+               for y in lines if y.get('kind') in HELD_OUT_KINDS and y.get('pipeline') == 'replay']
+    return (f'{oriented} of {len(rows)} proxy blocks fully oriented, {failed} FAILED'
+            + ''.join(f'; {r}' for r in replays))
 
 
 PHOTO_TRI = 'photo_triangulation_[0-9a-f]*.jsonl'
