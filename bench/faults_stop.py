@@ -4,10 +4,11 @@ memory after the signal as a ratio to its in-flight peak, measured in the same r
 A copy of the toledo survey (42 photos, 2400x1800) is played by camera_node in a loop (rate 0, as fast as
 the tracker takes them), SIGTERM after `--stop-after-s` of flight; the run's RSS is sampled from /proc
 every 0.2 s: its peak in flight, in the end-of-flight steps (until "end of flight: steps done") and while
-the products are made. Writes one JSON line (with the commit, whether the tree was clean, cores and load)
-to bench/results/faults_stop_<commit>.jsonl.
+the products are made. Writes one JSON line (bench/machine.py's ResultWriter: the commit, whether the tree was
+clean, cores, load, the modules the run ran) to --out (default /tmp/faults_stop.jsonl; bench/run_all.py copies it
+to bench/results/faults_stop_<commit7>.jsonl).
 
-    .venv/bin/python bench/faults_stop.py [--stop-after-s 60]
+    ROS_DOMAIN_ID=N .venv/bin/python bench/faults_stop.py [--stop-after-s 60] [--out FILE]
 """
 
 from __future__ import annotations
@@ -16,7 +17,6 @@ import argparse
 import json
 import os
 import shutil
-import subprocess
 import sys
 import tempfile
 from pathlib import Path
@@ -25,24 +25,23 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path[:0] = [str(ROOT / 'bench'), str(ROOT / 'tests'), str(ROOT)]
 os.environ.setdefault('ROS_DOMAIN_ID', '152')
 
-from machine import machine_info  # noqa: E402
+from machine import ResultWriter, machine_info  # noqa: E402
 
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument('--stop-after-s', type=float, default=60.0)
+    ap.add_argument('--out', default=None, help='the result file (default /tmp/faults_stop.jsonl)')
     a = ap.parse_args()
     from test_faults_stop import looping_run
-    commit = subprocess.run(['git', 'rev-parse', '--short', 'HEAD'], cwd=ROOT, capture_output=True,
-                            text=True).stdout.strip()
-    clean = not subprocess.run(['git', 'status', '--porcelain'], cwd=ROOT, capture_output=True, text=True).stdout
+    w = ResultWriter.for_bench(a.out, 'faults_stop', ['photogram_ros', 'config'])
     load_before = os.getloadavg()
     with tempfile.TemporaryDirectory(prefix='faults_stop_') as tmp:
         tmp = Path(tmp)
         shutil.copytree(ROOT.parent / 'shared' / 'data' / 'photos' / 'toledo' / 'images', tmp / 'photos')
         rc, out, took_s, rss, products = looping_run(tmp, tmp / 'photos', stop_after_s=a.stop_after_s, bound_s=1800.0)
         report = json.loads((products / 'report.json').read_text()) if (products / 'report.json').exists() else {}
-    row = {'bench': 'faults_stop', 'commit': commit, 'clean_tree': clean, 'data': 'toledo looping (42 photos)',
+    row = {'data': 'toledo looping (42 photos)',
            'stop_after_s': a.stop_after_s, 'exit_status': rc, 'signal_to_exit_s': round(took_s, 1),
            'rss_in_flight_peak_mb': round(rss['before']), 'rss_end_of_flight_peak_mb': round(rss['after']),
            'rss_products_peak_mb': round(rss['products']),
@@ -52,12 +51,12 @@ def main() -> int:
            'keyframes_oriented': report.get('keyframes_oriented'), 'machine': machine_info(),
            'load_avg_before': [round(x, 2) for x in load_before],
            'load_avg_after': [round(x, 2) for x in os.getloadavg()]}
-    append_result('faults_stop', commit, row)
+    w.write(row)
     return 0 if rc in (0, 4) else 1
 
 
 def append_result(bench: str, commit: str, row: dict) -> None:
-    """Print `row` and append it as a JSON line to bench/results/<bench>_<commit>.jsonl."""
+    """Print `row` and append it as a JSON line to bench/results/<bench>_<commit>.jsonl (bench/faults_odd_photo.py)."""
     print(json.dumps(row), flush=True)
     dst = ROOT / 'bench' / 'results' / f'{bench}_{commit}.jsonl'
     with open(dst, 'a') as f:

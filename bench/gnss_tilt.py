@@ -6,7 +6,8 @@ error wanders with a 60 s time constant), for several simulated flights (seeds) 
 Per run and mode of `gnss_tilt` (never: the bias alone; always: the bias and the tilt; auto: the tilt kept when an
 F-test on the GCPs' height residuals says it pays): the check points' RMSE (H, V) after the final adjustment, the
 camera centres' mean offset from the truth (E, N, U), the cameras' mean rotation against the truth about E and N
-(mrad), and whether the tilt was estimated. One JSON line per run on stdout or --out; a table on stderr.
+(mrad), and whether the tilt was estimated. One JSON line per run on stdout, or appended to --out through
+bench/machine.py's ResultWriter (commit, clean-tree flag, cores, load, the modules it ran); a table on stderr.
 
     .venv/bin/python bench/gnss_tilt.py [--seeds 1 2 3 4 5 6] [--lean 0.01] [--out FILE.jsonl]
 """
@@ -25,6 +26,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from attitude_mode import block_against_truth, fly, targets_file  # noqa: E402
+from machine import ResultWriter  # noqa: E402
 
 from photogram_ros.sim.observations import simulate_keyframes  # noqa: E402
 from photogram_ros.sim.scenario import build_world, preset  # noqa: E402
@@ -79,12 +81,12 @@ def main() -> int:
         test = f"{t['f']:.1f} ({t['f_crit']:.1f}), {'yes' if t['kept'] else 'no'}" if t else 'not made'
         sys.stderr.write(f"| {r['seed']} | {r['lean_added_m_per_m'] * 1e3:g} | {' | '.join(cells)} | {' | '.join(cams)} | "
                          f'{test} |\n')
-    text = ''.join(json.dumps(r) + '\n' for r in rows)
     if a.out:
-        with open(a.out, 'a') as f:
-            f.write(text)
+        w = ResultWriter(a.out, 'gnss_tilt', ['photogram_ros', 'config'], fresh=False)
+        for r in rows:
+            w.write(r)
     else:
-        sys.stdout.write(text)
+        sys.stdout.write(''.join(json.dumps(r) + '\n' for r in rows))
     return 0
 
 

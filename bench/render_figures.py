@@ -16,7 +16,9 @@ file and the commit it was measured at, and says:
 - **stale** when one of the figure's modules (the Figure's when its spec names them: a component figure
   names its component; else the line's `modules`, else the whole product; less the Figure's
   `ignore`, each said why in the spec) changed after that commit (git log, or an uncommitted change in the
-  working tree),
+  working tree). A line whose modules were traced (of them, those inside the Figure's modules when it names some) (`module_trace.complete`: the files the bench and its child
+  processes ran, bench/machine.py; those of every line of its file) is stale when one of those files differs
+  between its commit and HEAD (git diff) or in the working tree,
 - "modified tree" when the line says the tree had uncommitted changes (`clean` false), and "tree state not
   recorded" for files written before bench/machine.py's ResultWriter,
 - "no result file" (and no figure) when no file holds the line.
@@ -70,6 +72,14 @@ def changed_since(commit: str, modules: tuple[str, ...]) -> int:
     n = _git('rev-list', '--count', f'{commit}..HEAD', '--', *modules)
     dirty = _git('status', '--porcelain', '--untracked-files=no', '--', *modules)
     return int(n or 0) + (1 if dirty else 0)
+
+
+@functools.lru_cache(maxsize=None)
+def files_changed(commit: str, files: tuple[str, ...]) -> tuple[str, ...]:
+    """Those of `files` (pathspecs) that differ between `commit` and HEAD, or in the working tree now."""
+    out = set(_git('diff', '--name-only', commit, 'HEAD', '--', *files).splitlines())
+    out |= set(_git('diff', '--name-only', 'HEAD', '--', *files).splitlines())
+    return tuple(sorted(x for x in out if x))
 
 
 # --- result files ----------------------------------------------------------------------------------------
@@ -142,6 +152,33 @@ class Source:
     commit: str
     clean: bool | None
     modules: tuple
+    traced: bool = False      # `modules` are the files the bench ran (bench/machine.py's trace), not declared
+
+
+def line_traced(line: dict) -> bool:
+    t = line.get('module_trace')
+    return isinstance(t, dict) and t.get('complete') is True and bool(line.get('modules'))
+
+
+def traced_modules(ran: set, spec: tuple | None) -> tuple:
+    """A traced figure's modules: the files its bench ran; those inside the Figure's own modules when it names
+    some narrower than the whole product (a component's figure: what ran of its component, and its paths outside
+    the product as they are)."""
+    if not spec or tuple(spec) == PRODUCT:
+        return tuple(sorted(ran))
+    inside = {m for m in ran if any(m == p or m.startswith(p.rstrip('/') + '/') for p in spec)}
+    inside |= {p for p in spec if p.split('/')[0] not in PRODUCT}
+    return tuple(sorted(inside)) or tuple(spec)
+
+
+def changes(src: Source, fig: Figure) -> tuple[int, tuple]:
+    """(how many commits changed the figure's modules since its line's commit, +1 for the working tree; or, for a
+    traced line, how many of the files it ran differ; those files)."""
+    excluded = tuple(f':(exclude){p}' for p in fig.ignore)
+    if src.traced:
+        changed = files_changed(src.commit, src.modules + excluded)
+        return len(changed), changed
+    return changed_since(src.commit, src.modules + excluded), ()
 
 
 def newest(fig: Figure) -> Source | None:
@@ -159,7 +196,15 @@ def newest(fig: Figure) -> Source | None:
             clean = line_clean(line)
             if clean is None and lines and 'clean_tree' in lines[0]:   # an older bench's header line says it
                 clean = bool(lines[0]['clean_tree'])
-            best = Source(path, line, lines, commit, clean, tuple(fig.modules or line.get('modules') or PRODUCT))
+            # A figure's cells may read any line of its file: a traced figure's modules are every line's (each
+            # line's trace holds what the bench ran until then), when every line's trace is complete.
+            recorded = [x for x in lines if 'modules' in x]
+            traced = bool(recorded) and all(line_traced(x) for x in recorded)
+            # (else the declared modules: a traced line beside an incomplete one is not measured alone)
+            modules = tuple(fig.modules or line.get('modules_declared') or line.get('modules') or PRODUCT)
+            if traced:
+                modules = traced_modules({m for x in lines for m in x.get('modules') or ()}, fig.modules)
+            best = Source(path, line, lines, commit, clean, modules, traced)
     return best
 
 
@@ -170,11 +215,12 @@ def source_cell(src: Source | None, fig: Figure) -> str:
     if not src.commit:
         return f'`{rel}`, commit not in this history: **stale**'
     notes = []
-    n = changed_since(src.commit, src.modules + tuple(f':(exclude){p}' for p in fig.ignore))
+    n, _ = changes(src, fig)
     if n:
         # Not the count of commits: the rendered text changes when a figure turns stale, not with every commit
-        # after (`--check` lists the count).
-        notes.append(f'**stale**: {", ".join(src.modules)} changed since')
+        # after (`--check` lists the count, and a traced line's changed files).
+        notes.append('**stale**: a file it ran changed since' if src.traced
+                     else f'**stale**: {", ".join(src.modules)} changed since')
     if src.clean is False:
         notes.append('modified tree')
     elif src.clean is None:
@@ -193,10 +239,11 @@ def figure_state(fig: Figure) -> dict:
     rel = src.path.relative_to(ROOT).as_posix() if src.path.is_relative_to(ROOT) else src.path.name
     if not src.commit:
         return {'file': rel, 'commit': None, 'state': 'stale', 'changed': None, 'command': fig.command}
-    n = changed_since(src.commit, src.modules + tuple(f':(exclude){p}' for p in fig.ignore))
+    n, files = changes(src, fig)
     state = ('stale' if n else 'modified tree' if src.clean is False else
              'tree state not recorded' if src.clean is None else 'fresh')
-    return {'file': rel, 'commit': src.commit[:7], 'state': state, 'changed': n, 'command': fig.command}
+    return {'file': rel, 'commit': src.commit[:7], 'state': state, 'changed': n, 'command': fig.command,
+            'traced': len(src.modules) if src.traced else None, 'changed_files': list(files)}
 
 
 def listing() -> list[dict]:
@@ -217,6 +264,10 @@ def listing_text(rows: list[dict]) -> str:
         where = (f"{r['file']} @ {r['commit']}" if r['commit'] else (r['file'] or '')) or \
             (f"measure: {r['command']}" if r['command'] else '')
         more = f" ({r['changed']} commit{'s' if r['changed'] != 1 else ''} since)" if r.get('changed') else ''
+        if r.get('traced'):
+            more = (f" ({r['changed']} of the {r['traced']} files it ran changed: "
+                    f"{', '.join(r['changed_files'][:4])}{' ...' if r['changed'] > 4 else ''})" if r.get('changed')
+                    else f" ({r['traced']} files it ran, none changed)")
         lines.append(f"{r['state'].upper():24} {r['document']}#{r['table']}: {r['figure'][:90]} <- {where}{more}")
     counts = {}
     for r in rows:
@@ -724,7 +775,11 @@ def _held_out_readme(x: dict, lines: list) -> str:
     rows = [y for y in lines if y.get('kind') in HELD_OUT_KINDS and y.get('pipeline') == 'triangulate']
     failed = sum(str(y.get('verdict') or '').lower() == 'failed' for y in rows)
     oriented = sum((y.get('oriented') or 0) == y.get('photos') for y in rows)
-    return f'{oriented} of {len(rows)} proxy blocks fully oriented, {failed} FAILED'
+    replays = [f'`replay` {y["set"]} {y["kind"]}: {y.get("oriented")}/{y.get("photos")}'
+               + (f' (exit {y["exit"]})' if y.get('exit') else '')
+               for y in lines if y.get('kind') in HELD_OUT_KINDS and y.get('pipeline') == 'replay']
+    return (f'{oriented} of {len(rows)} proxy blocks fully oriented, {failed} FAILED'
+            + ''.join(f'; {r}' for r in replays))
 
 
 PHOTO_TRI = 'photo_triangulation_[0-9a-f]*.jsonl'

@@ -203,7 +203,14 @@ class Probe:
             '    _probe = Probe().install()\n'
             f'    atexit.register(_probe.dump_child, os.environ[{Probe.CHILD_ENV!r}])\n'
             f'    if os.environ.get({Probe.CHILD_SAMPLES_ENV!r}):\n'
-            f'        _probe.start_child_sampler(os.environ[{Probe.CHILD_SAMPLES_ENV!r}])\n')
+            f'        _probe.start_child_sampler(os.environ[{Probe.CHILD_SAMPLES_ENV!r}])\n'
+            # The next sitecustomize on the path (bench/module_trace's, when bench/machine.py traces the
+            # modules a bench runs) would be shadowed by this one: run it too.
+            'try:\n'
+            '    import photogram_module_trace\n'
+            '    photogram_module_trace.chain_next_sitecustomize(__file__)\n'
+            'except ImportError:\n'
+            '    pass\n')
         return folder
 
     def start_child_sampler(self, path: str, period_s: float = 3.0) -> None:

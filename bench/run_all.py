@@ -2,7 +2,9 @@
 result file to bench/results/<name>_<commit>.jsonl.
 
     .venv/bin/python bench/run_all.py --list                 # each bench, its command and expected minutes
+    .venv/bin/python bench/run_all.py --groups               # the named groups, their benches and minutes
     ROS_DOMAIN_ID=N .venv/bin/python bench/run_all.py [--only a,b] [--skip c] [--budget-min 45] [--dry-run]
+    ROS_DOMAIN_ID=N .venv/bin/python bench/run_all.py --only long_short   # a named group (GROUPS below)
 
 From a clean clone beside ../shared (the benches read ../shared/data):
 
@@ -126,8 +128,31 @@ BENCHES: tuple[Bench, ...] = (
                                         '--out', '{out}'), 130,
           'real-more: 635 simulated photos (split-merge on 1 and 2 workers, one block); README 635-photo row',
           timeout_min=360),
+    Bench('gnss_tilt', ('bench/gnss_tilt.py', '--out', '{out}'), 10,
+          'docs/parameters.md: why gnss_tilt defaults to never (6 simulated sample flights with 5 GCPs, one leaning; '
+          'not rendered)'),
+    Bench('faults_stop', ('bench/faults_stop.py', '--out', '{out}'), 6,
+          'docs/faults.md: `run` with a camera that never ends, stopped by SIGTERM (exit time, RSS; not rendered)',
+          ros=True, needs=('{data}/photos/toledo',)),
 )
 BY_NAME = {b.name: b for b in BENCHES}
+
+# Named groups for --only / --skip (a name here stands for its benches, in this order). The long benches are
+# those whose figures can only stay fresh when a run of them is cheap to start: `long_short` (each under ~15 min)
+# first, then `long` (the hour-long ones).
+GROUPS: dict[str, tuple[str, ...]] = {
+    'real': ('real_surveys', 'real_surveys_variants', 'inflight_chain', 'block_verdicts', 'held_out_proxies'),
+    'components': ('stereo_middlebury', 'bundle_bal', 'mavlink_parse', 'stereo_speed', 'fusion_throughput',
+                   'tracker_fps', 'window_latency', 'target_detection', 'replay_throughput'),
+    'simulated': ('inflight_20mp', 'sample_flight', 'control_adjustment_cost', 'ppk_survey', 'ground_stream',
+                  'ground_flight', 'e2e_realtime', 'split_merge_paths', 'photo_triangulation_matching',
+                  'photo_triangulation_scale'),
+    'long_short': ('bundle_bal', 'control_adjustment_cost', 'ppk_survey', 'ground_stream', 'ground_flight',
+                   'e2e_realtime', 'photo_triangulation', 'photo_triangulation_matching', 'split_merge_paths'),
+    'long': ('block_verdicts', 'held_out_proxies', 'inflight_chain', 'photo_triangulation_scale'),
+    'faults': ('faults_stop',),
+    'adjustment': ('gnss_tilt',),
+}
 
 
 def short_commit() -> str:
@@ -152,13 +177,33 @@ def expected(b: Bench, recorded: dict) -> tuple[float, str]:
     return (recorded[b.name], 'recorded') if b.name in recorded else (b.minutes, 'estimate')
 
 
+def _names(text: str) -> list[str]:
+    """Comma-separated bench and group names -> bench names (a group's in its order, each once)."""
+    out: list[str] = []
+    for n in (x.strip() for x in text.split(',')):
+        for m in GROUPS.get(n, (n,) if n else ()):
+            if m not in out:
+                out.append(m)
+    return out
+
+
 def select(only: str, skip: str) -> list[Bench]:
-    names = [n for n in (only.split(',') if only else [b.name for b in BENCHES]) if n]
-    dropped = {n for n in skip.split(',') if n}
+    names = _names(only) if only else [b.name for b in BENCHES]
+    dropped = set(_names(skip))
     unknown = [n for n in names + sorted(dropped) if n not in BY_NAME]
     if unknown:
-        raise SystemExit(f'unknown bench(es) {unknown}; known: {", ".join(BY_NAME)}')
+        raise SystemExit(f'unknown bench(es) {unknown}; known: {", ".join(BY_NAME)}; groups: {", ".join(GROUPS)}')
     return [BY_NAME[n] for n in names if n not in dropped]
+
+
+def groups_text(recorded: dict) -> str:
+    lines = []
+    for g, names in GROUPS.items():
+        mins = [expected(BY_NAME[n], recorded) for n in names]
+        lines.append(f'{g:12} {sum(m for m, _ in mins):5.0f} min  ' + ', '.join(
+            f'{n} {m:.0f}{"" if how == "recorded" else "~"}' for n, (m, how) in zip(names, mins)))
+    lines.append('(minutes: from the newest run_all record that ran the bench; ~ an estimate)')
+    return '\n'.join(lines)
 
 
 def run_one(b: Bench, work_root: Path, commit7: str, domain: str) -> dict:
@@ -212,14 +257,18 @@ def run_one(b: Bench, work_root: Path, commit7: str, domain: str) -> dict:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument('--list', action='store_true', help='list the benches, their commands and expected minutes')
-    ap.add_argument('--only', default='', help='these benches (comma separated), in this order')
-    ap.add_argument('--skip', default='', help='not these benches (comma separated)')
+    ap.add_argument('--only', default='', help='these benches or groups (comma separated), in this order')
+    ap.add_argument('--skip', default='', help='not these benches or groups (comma separated)')
+    ap.add_argument('--groups', action='store_true', help='list the named groups, their benches and minutes')
     ap.add_argument('--budget-min', type=float, default=0.0, help='start no bench once this many minutes have passed')
     ap.add_argument('--work', default='', help='work folder (default /tmp/run_all_<commit7>)')
     ap.add_argument('--domain', default=os.environ.get('ROS_DOMAIN_ID', ''),
                     help='ROS_DOMAIN_ID for the benches that start ROS nodes (default: the environment\'s)')
     ap.add_argument('--dry-run', action='store_true', help='print what would run')
     a = ap.parse_args(argv)
+    if a.groups:
+        print(groups_text(recorded_minutes()))
+        return 0
     benches = select(a.only, a.skip)
     commit7 = short_commit()
     work_root = Path(a.work or f'/tmp/run_all_{commit7}')
