@@ -17,7 +17,8 @@ from photogram_ros.core.gnss_fix import GnssFix
 from photogram_ros.core.keyframes import ChainStore
 from photogram_ros.core.tracker import TrackerParams
 
-OFF = dict(cross_strip_store_every=0, cross_strip_min_back=0)
+OFF = dict(cross_strip_store_every=0, cross_strip_min_back=0)   # the defaults
+ON = dict(cross_strip_store_every=3, cross_strip_min_back=6)
 LINE_1_END_S, LINE_2_START_S = 12.5, 22.0    # the tiny preset's first line, its turn, its second line
 
 
@@ -55,7 +56,7 @@ def _crossing(frames, kfs):
 def runs(two_lines):
     fixes = _fixes(two_lines)
     return {name: two_lines.run(TrackerParams(**values), fixes=fixes)
-            for name, values in (('off', OFF), ('cross', {}))}
+            for name, values in (('off', OFF), ('cross', ON))}
 
 
 def test_second_line_keyframes_share_track_ids_with_the_first(two_lines, runs):
@@ -85,7 +86,7 @@ def test_a_keyframe_no_other_strip_overlaps_gets_no_sift(two_lines, runs):
     tr, kfs = runs['cross']
     a, _ = _strips(two_lines, kfs)
     # On the first line no earlier strip exists: only every store_every-th keyframe (and the first) has features.
-    store = TrackerParams().cross_strip_store_every
+    store = ON['cross_strip_store_every']
     in_chain = set(tr.chain.keys)
     first_line = [k.index for k in a]
     assert [i for i in first_line if i in in_chain] == [i for i in first_line if i % store == 0]

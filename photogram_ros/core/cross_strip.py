@@ -17,6 +17,8 @@ keyframes get SIFT features all the same:
 The features of such a keyframe that no match linked take the id of the KLT track they sit on
 (`adopt_track_ids`, within `cross_strip_adopt_px`), so that what a later strip matches is a track the earlier
 strip's keyframes already triangulate, not a point seen once.
+
+Off by default (`cross_strip_store_every` 0, `cross_strip_min_back` 0); bench/chain_cross_strip.py measures it.
 """
 
 from __future__ import annotations
@@ -32,15 +34,18 @@ from photogram_ros.params import param
 
 @dataclass
 class CrossStripParams:
-    cross_strip_store_every: int = param(3, 'Every this many keyframes (by index), one that KLT carried also gets '
+    cross_strip_store_every: int = param(0, 'Every this many keyframes (by index), one that KLT carried also gets '
                                          'SIFT features and keeps chain_features of them in the chain, for a later '
-                                         'strip overlapping its footprint to match (core/cross_strip.py); 0: off',
+                                         'strip overlapping its footprint to match (core/cross_strip.py); 0: off '
+                                         '(the default: with 3 and cross_strip_min_back 6, seneca_part\'s replay DSM '
+                                         'held 8-10 % measured cells against 10-11 % without, at 2.5x the tracker\'s '
+                                         'CPU per keyframe on 20 MP; no accuracy gain measured yet)',
                                          min=0, max=1000)
-    cross_strip_min_back: int = param(6, 'A keyframe KLT carried gets SIFT features and is matched with the chain\'s '
+    cross_strip_min_back: int = param(0, 'A keyframe KLT carried gets SIFT features and is matched with the chain\'s '
                                       'earlier keyframes whose GNSS footprints it overlaps (within cross_strip_reach) '
                                       'that are at least this many keyframes older and share fewer than '
                                       'chain_linked_ids track ids with it (another strip, not the recent KLT chain); '
-                                      '0: off', min=0, max=100000)
+                                      '0: off (the default; 6 with cross_strip_store_every 3)', min=0, max=100000)
     cross_strip_revisit_every: int = param(2, 'A keyframe KLT carried is matched with another strip\'s keyframes only '
                                            'when none of the last this many - 1 keyframes was (1: every one that '
                                            'overlaps another strip; 2: at most every other)', min=1, max=1000)
