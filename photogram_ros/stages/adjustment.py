@@ -61,6 +61,7 @@ from photogram_ros.core.pose_status import line_direction, provisional_covarianc
 from photogram_ros.core.survey_quality import FIX_CLASSES, fix_class
 from photogram_ros.errors import ConfigError, PhotogramError
 from photogram_ros.params import param
+from photogram_ros.stages.adjustment_counts import NotOrientedCounts
 from photogram_ros.stages.live_quality import live_quality
 from photogram_ros.stages.report import ERROR, OK, WARN, DiagnosticsLog  # noqa: F401  (OK: for callers)
 
@@ -279,6 +280,7 @@ class AdjustmentStage:
         self._published_final = False
         self._n_since_cloud = 0
         self._unpublished = 0   # keyframes oriented in a batch before its newest, not yet published
+        self._not_oriented = NotOrientedCounts(self.diag)
         self._block_moved = False   # a full adjustment of the pass moved every keyframe since the last publication
         self._centre_cov: dict[int, np.ndarray] = {}   # keyframe id -> last marginal centre covariance
         self._cov_updates = 0
@@ -526,13 +528,6 @@ class AdjustmentStage:
         except Exception as exc:   # the control's figures must never stop the adjustment
             self.diag.problem(f'control vetting failed: {type(exc).__name__}: {exc}')
 
-    def _count_not_oriented(self, status: str) -> None:
-        """keyframes_not_oriented, and a counter per reason (not_oriented_<status>, e.g.
-        not_oriented_too_few_known_points) that the flight report lists."""
-        self.diag.count('keyframes_not_oriented')
-        reason = status.split(' (')[0].strip().replace(' ', '_') or 'unknown'
-        self.diag.count(f'not_oriented_{reason}')
-
     def process(self, rec: KeyframeRecord, publish: bool = True) -> None:
         """Adjust one keyframe (under `work`); one that is not published (an older one of a batch) gets the
         short catch-up window adjustment."""
@@ -559,9 +554,11 @@ class AdjustmentStage:
                               'after it', WARN)
         _segment_diagnostics(self.diag, self.at.segments, rep.joined)
         if not rep.registered:
-            self._count_not_oriented(rep.status)
+            self._not_oriented.count(rep.status, rec.stamp_ns)
         if rep.registered or rep.waiting_oriented:   # and keyframes that waited, oriented with it (by two views too)
             self.diag.count('keyframes_oriented', int(rep.registered) + rep.waiting_oriented)
+            if rep.waiting_oriented:
+                self._not_oriented.oriented_since(self.at.block, int(rep.registered) + rep.waiting_oriented)
         self.diag.set('keyframes_oriented_two_view', self.at.n_two_view_oriented())
         self._block_moved = self._block_moved or rep.block_adjusted
         if not publish:
