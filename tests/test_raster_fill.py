@@ -93,3 +93,45 @@ def test_dsm_is_filled_inside_the_camera_hull_and_band_2_says_what_was_measured(
     err = np.abs(enu[:, 2] - plane(enu[:, 0], enu[:, 1]))
     print(f'filled disk |dz| median {np.median(err[in_disk]):.3f} m, max {err[in_disk].max():.3f} m')
     assert np.median(err[in_disk]) < 0.033 and err[in_disk].max() < 0.08     # measured 0.022 / 0.052 m
+
+
+def _strips_map(folder, one_pair_offset_m: float):
+    """A plane in four strips: two pairs over the outer ones, one pair over the inner two (60 % forward overlap
+    leaves one pair per spot), that one pair's heights `one_pair_offset_m` off the plane."""
+    rng = np.random.default_rng(5)
+
+    def clouds():
+        for k in range(4):
+            inner = k in (1, 2)
+            for _ in range(1 if inner else 2):
+                shift = one_pair_offset_m if inner else 0.0
+                yield pair_cloud(rng, lambda x, y: plane(x, y) + shift, -12.0 + 8 * k, 0.0, 4.0, 20.0, 60.0, 0.01)
+
+    store = fused_map(folder, 0.2, clouds(), (LAT, LON, H))
+    jpg = cv2.imencode('.jpg', np.zeros((8, 8, 3), np.uint8))[1].tobytes()
+    for k, (x, y) in enumerate([(-16, -20), (16, -20), (16, 20), (-16, 20)]):
+        T = np.eye(4)
+        T[:3, :3] = np.diag([1.0, -1.0, -1.0])
+        T[:3, 3] = (x, y, 40.0)
+        store.save_keyframe_image(k, jpg)
+        store.save_keyframe_pose(k, T)
+    return folder
+
+
+@pytest.mark.parametrize('offset_m', [0.0, 1.5])
+def test_one_pair_cells_check_the_interpolated_dsm_and_say_how_far_they_differ(tmp_path, offset_m):
+    """With min_pairs 2 the cells one pair measured are not in the DSM's heights (interpolated there) but
+    export.json's dsm.one_pair_check compares them with the interpolation: a plane agrees, a strip one pair put
+    1.5 m off the interpolation between its confirmed neighbours is named by that difference."""
+    from photogram_ros.io.export import export_map
+    res = export_map(_strips_map(tmp_path / 'map', offset_m), tmp_path / 'out', 'EPSG:32632', products=('dsm',),
+                     min_pairs=2)
+    hull, check = res.dsm['camera_hull'], res.dsm['one_pair_check']
+    assert 0.3 < hull['filled_one_pair'] <= hull['filled']          # the inner strips: one pair, interpolated
+    assert check['cells'] > 1000
+    if offset_m == 0.0:
+        assert check['median_abs_dz_m'] < 0.14    # 0.095 m: push-pull bends across the 16 m wide hole
+    else:
+        assert check['median_abs_dz_m'] == pytest.approx(offset_m, abs=0.3)
+    one = export_map(tmp_path / 'map', tmp_path / 'all', 'EPSG:32632', products=('dsm',), min_pairs=1)
+    assert 'one_pair_check' not in one.dsm and 'filled_one_pair' not in one.dsm['camera_hull']

@@ -143,6 +143,11 @@ def run(a) -> int:
         print(f"  DSM inside the camera centres' hull: {hull['valid'] * 100:.1f} % of the cells hold a height, "
               f"{hull['measured'] * 100:.1f} % measured by stereo, {hull['filled'] * 100:.1f} % interpolated "
               '(band 2 of dsm.tif: pairs, 0 interpolated)')
+    check = (res.dsm or {}).get('one_pair_check')
+    if hull and check and check.get('cells'):
+        print(f"  of the interpolated cells {hull['filled_one_pair'] * 100:.1f} % of the hull were measured by one "
+              f"stereo pair (fewer than --min-pairs): it differs from the interpolation by "
+              f"{check['median_abs_dz_m']:.2f} m (median), {check['p90_abs_dz_m']:.2f} m (p90)")
     for k, v in res.files.items():
         print(f'  {k}: {v}')
     for n in res.notes:

@@ -101,6 +101,7 @@ def export_map(map_dir: str | Path | MapStore, out_dir: str | Path, crs: str, he
                     ortho_res_m or store.cell_m, dsm.for_cell(store.cell_m), contour_interval_m,
                     np.array([k['map_T_cam'][:3, 3] for k in store.keyframes()]).reshape(-1, 3), None, res,
                     None, Writers(write_las, write_ply, write_geotiff), say)
+    res.keyframes = len(job.centres)   # the posed keyframes; the orthomosaic counts those it drapes
     chosen = [p for p in PRODUCTS if p.chosen(job)]
     job.steps = steps = Steps('export', len(plan(chosen)), say)
     steps.start('cloud')

@@ -143,14 +143,36 @@ class Surface:
     pairs: np.ndarray            # float32 (rows, cols): pairs that measured the cell; FILLED; NODATA
     region: np.ndarray           # bool: the cells filling may reach (camera centres' hull, widened)
     camera_hull: np.ndarray      # bool: the cells inside the convex hull of the camera centres
+    # Interpolated cells that fewer stereo pairs than min_pairs measured (one pair, unchecked): where they are,
+    # and that height minus the interpolated one, m (NaN elsewhere). None: not looked at (min_pairs 1).
+    one_pair: np.ndarray | None = None
+    one_pair_dz_m: np.ndarray | None = None
 
     def shares(self, mask: np.ndarray) -> dict:
-        """Shares of the cells of `mask` holding a height, measured by stereo pairs, interpolated."""
+        """Shares of the cells of `mask` holding a height, measured by stereo pairs, interpolated, and of the
+        interpolated ones those that fewer pairs than min_pairs measured too (`one_pair`)."""
         n = max(int(mask.sum()), 1)
         p = self.pairs[mask]
-        return {'cells': int(mask.sum()), 'valid': float(np.sum(p != NODATA) / n),
-                'measured': float(np.sum((p != NODATA) & (p >= 1)) / n),
-                'filled': float(np.sum(p == FILLED) / n)}
+        out = {'cells': int(mask.sum()), 'valid': float(np.sum(p != NODATA) / n),
+               'measured': float(np.sum((p != NODATA) & (p >= 1)) / n),
+               'filled': float(np.sum(p == FILLED) / n)}
+        if self.one_pair is not None:
+            out['filled_one_pair'] = float(np.sum(self.one_pair[mask]) / n)
+        return out
+
+    def one_pair_check(self, mask: np.ndarray | None = None) -> dict | None:
+        """How the interpolated heights agree with what one stereo pair measured in the same cells (within
+        `mask`, default all): cells compared and |dz| median / p90, bias (median dz), m. None when there is
+        nothing to compare."""
+        if self.one_pair is None:
+            return None
+        sel = self.one_pair if mask is None else self.one_pair & mask
+        dz = self.one_pair_dz_m[sel]
+        if dz.size == 0:
+            return {'cells': 0}
+        a = np.abs(dz)
+        return {'cells': int(dz.size), 'median_abs_dz_m': float(np.median(a)),
+                'p90_abs_dz_m': float(np.percentile(a, 90)), 'bias_m': float(np.median(dz))}
 
 
 def surface_in_crs(fusion: Fusion, origin: LocalFrame, crs: str, heights: str, res_m: float, rules: DsmParams,
@@ -160,10 +182,13 @@ def surface_in_crs(fusion: Fusion, origin: LocalFrame, crs: str, heights: str, r
 
     What the photos saw: the convex hull of the camera centres (`camera_centres_map`, (K, 3) map ENU),
     widened by FILL_MARGIN_AGL times the height above the DSM's median (the ground around the nadir
-    points that every photo of a line holds). Cells one pair measured are not used: on the simulator
-    they were worse than interpolation (median 1.5 against 1.1 GSD over the flown area), on brighton
-    no better (0.32 against 0.32 m median against OpenDroneMap). `cloud`: map_cloud(fusion, origin,
-    crs, heights, min_pairs) if already made.
+    points that every photo of a line holds). Cells one pair measured are not used for the heights: on
+    the simulator they were worse than interpolation (median 1.5 against 1.1 GSD over the flown area), on
+    brighton no better (0.32 against 0.32 m median against OpenDroneMap). They check the interpolation
+    instead (Surface.one_pair, one_pair_check): with min_pairs > 1 the cells fewer pairs measured are
+    gridded alike, and where the DSM is interpolated their heights are compared with it; on a survey with
+    one pair per spot (60 % forward overlap) that is most of the DSM's evidence. `cloud`:
+    map_cloud(fusion, origin, crs, heights, min_pairs) if already made.
     """
     cloud = cloud or map_cloud(fusion, origin, crs, heights, min_pairs)
     grid = dsm_in_crs(cloud, res_m, rules)
@@ -189,7 +214,39 @@ def surface_in_crs(fusion: Fusion, origin: LocalFrame, crs: str, heights: str, r
         pairs[(d != NODATA) & (pairs == NODATA)] = FILLED
         grid = Raster(d, grid.x0_m, grid.y1_m, grid.res_m, NODATA)
     pairs[(grid.data != NODATA) & (pairs == NODATA)] = FILLED
-    return Surface(grid, pairs, region, cam_hull)
+    surface = Surface(grid, pairs, region, cam_hull)
+    if min_pairs > 1:
+        surface.one_pair, surface.one_pair_dz_m = _one_pair_check(fusion, origin, crs, heights, rules, min_pairs,
+                                                                  surface)
+    return surface
+
+
+def _one_pair_check(fusion: Fusion, origin: LocalFrame, crs: str, heights: str, rules: DsmParams, min_pairs: int,
+                    surface: Surface) -> tuple[np.ndarray, np.ndarray]:
+    """The interpolated cells of `surface` that fewer than `min_pairs` pairs measured, gridded by the DSM's
+    spread rules (one fused cell is enough: a pair's points are sparser than the DSM's cells at a quarter
+    scale; no filling), and there that height minus the interpolated one (NaN elsewhere)."""
+    shape = surface.dsm.shape
+    where, dz = np.zeros(shape, bool), np.full(shape, np.nan, np.float32)
+    try:
+        everything = map_cloud(fusion, origin, crs, heights, 1)
+    except DataError:
+        return where, dz
+    few = everything.pairs < min_pairs
+    if not few.any():
+        return where, dz
+    grid = surface.dsm
+    half = 0.25 * grid.res_m      # inside the DSM's own edges: grid_for snaps them back to the same grid
+    west, south, east, north = grid.bounds
+    one = dsm_from_points(everything.x[few], everything.y[few], everything.z[few], grid.res_m,
+                          weights=everything.count[few], bounds=(west + half, south + half, east - half, north - half),
+                          max_spread_m=rules.max_spread_m, z_sigma=everything.sigma_z[few],
+                          min_count=1, fill_gaps_m=0.0, canopy=rules.canopy_top)
+    if one.shape != shape:
+        raise DataError(f'the one-pair grid {one.shape} does not match the DSM\'s {shape}')
+    where = (surface.pairs == FILLED) & one.valid()
+    dz[where] = one.data[where] - grid.data[where]
+    return where, dz
 
 
 class StoredKeyframes(Sequence):

@@ -106,6 +106,9 @@ class ExportJob:
         self.res.dsm['raster'] = surf.shares(np.ones(grid.shape, bool))
         if surf.camera_hull.any():
             self.res.dsm['camera_hull'] = surf.shares(surf.camera_hull)
+        check = surf.one_pair_check(surf.camera_hull if surf.camera_hull.any() else None)
+        if check is not None:
+            self.res.dsm['one_pair_check'] = check
         return surf
 
     def _dtm(self):
