@@ -332,12 +332,35 @@ def dsm_valid_share(dsm_path) -> float | None:
     return float(valid[hull > 0].mean())
 
 
+def dsm_one_pair_evidence(dsm_path) -> dict | None:
+    """What one stereo pair measured of the DSM's interpolated cells, from the export.json beside dsm.tif
+    (io/export: dsm.camera_hull.filled_one_pair, dsm.one_pair_check, dsm.max_spread_m as the tolerance);
+    None without it."""
+    if not dsm_path:
+        return None
+    try:
+        dsm = json.loads((Path(dsm_path).parent / 'export.json').read_text()).get('dsm') or {}
+    except (OSError, ValueError):
+        return None
+    check = dsm.get('one_pair_check') or {}
+    if not check.get('cells'):
+        return None
+    return {'share': float((dsm.get('camera_hull') or {}).get('filled_one_pair', 0.0)),
+            'median_abs_dz_m': float(check['median_abs_dz_m']), 'p90_abs_dz_m': float(check['p90_abs_dz_m']),
+            'tolerance_m': float(dsm.get('max_spread_m', 0.0))}
+
+
 def mapping_verdict(accounting: dict, georeferenced: bool, dsm_share: float | None, mapped_products: bool,
-                    products_error: str | None = None) -> dict:
+                    products_error: str | None = None, dsm_one_pair: dict | None = None) -> dict:
     """{'mapped': bool, 'failures': [sentences], 'warnings': [sentences]}: a flight with no georeferenced
     keyframe, fewer than half of its keyframes oriented, products that could not be made (`products_error`:
-    why), or a DSM nearly empty (or none while keyframes were oriented) did not map; a DSM measured by stereo over under MIN_DSM_VALID_SHARE of its area (trees, water,
-    low overlap: the rest interpolated) mapped, with a warning."""
+    why), or a DSM nearly empty (or none while keyframes were oriented) did not map; a DSM measured by stereo
+    over under MIN_DSM_VALID_SHARE of its area (trees, water, low overlap: the rest interpolated) mapped, with a
+    warning. A DSM that two agreeing pairs measured over under FAILED_DSM_VALID_SHARE of its area mapped, with a
+    warning, when one pair measured enough more of it and agrees with its interpolated heights (`dsm_one_pair`:
+    export.json's dsm.camera_hull.filled_one_pair as 'share' and dsm.one_pair_check, with 'tolerance_m' the
+    DSM's max_spread_m): a survey flown with one pair per spot (60 % forward overlap) has no second pair to
+    check with, and the one pair is the evidence there is."""
     failures, warnings = [], []
     taken, oriented = accounting['keyframes_taken'], accounting['keyframes_oriented']
     if taken == 0:
@@ -352,11 +375,22 @@ def mapping_verdict(accounting: dict, georeferenced: bool, dsm_share: float | No
     if dsm_share is not None and dsm_share < MIN_DSM_VALID_SHARE:
         said = (f'{dsm_share * 100:.1f} % of the DSM\'s cells over the mapped area (the convex hull of its '
                 f'measured heights) hold a height measured by stereo (dsm.tif band 2; the rest is interpolated)')
-        if dsm_share < FAILED_DSM_VALID_SHARE:
-            failures.append(f'the DSM is nearly empty: {said}')
+        one = dsm_one_pair or {}
+        share_one, median_m = one.get('share') or 0.0, one.get('median_abs_dz_m')
+        one_said = ''
+        if share_one > 0 and median_m is not None:
+            one_said = (f'; one stereo pair measured {share_one * 100:.1f} % of the camera hull\'s cells too, '
+                        f'{median_m:.2f} m from the interpolated heights (median; p90 {one.get("p90_abs_dz_m", 0):.2f} '
+                        f'm): no second pair checked them')
+        agrees = median_m is not None and median_m <= one.get('tolerance_m', 0.0)
+        if dsm_share < FAILED_DSM_VALID_SHARE and not (agrees and dsm_share + share_one >= FAILED_DSM_VALID_SHARE):
+            failures.append(f'the DSM is nearly empty: {said}' + one_said
+                            + (' (more than the DSM\'s spread limit: the interpolation is not what stereo saw)'
+                               if one_said and not agrees else ''))
         else:
-            warnings.append(f'the DSM is interpolated over much of its area: only {said} (trees, water and plain '
-                            'roofs give stereo no height; or too little overlap)')
+            warnings.append(f'the DSM is interpolated over much of its area: only {said}{one_said} (trees, water and '
+                            'plain roofs give stereo no height; or too little overlap: a second pair needs three photos '
+                            'of a spot along a line, over 67 % forward overlap, or the band two lines share)')
     elif dsm_share is None and georeferenced and mapped_products:
         failures.append('no DSM was written')
     if products_error:
@@ -393,7 +427,7 @@ def _health_sections(figures: dict, kfs, files: dict, run: dict, diagnostics: di
                               values('bundle_node').get('status'),
                               unusable if isinstance(unusable, (int, float)) else None)
     verdict = mapping_verdict(acc, georeferenced, dsm_valid_share(files.get('dsm')), bool(files),
-                              (run or {}).get('products_error'))
+                              (run or {}).get('products_error'), dsm_one_pair_evidence(files.get('dsm')))
     # The flight as a whole is a row of its own: at ERROR when it did not map, whatever the nodes said.
     level = 'ERROR' if not verdict['mapped'] else 'WARN' if verdict['warnings'] else 'OK'
     health = [{'node': 'replay', 'worst_level': level, 'problems': len(verdict['failures'] + verdict['warnings']),
