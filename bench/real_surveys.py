@@ -20,7 +20,9 @@ Per survey and pipeline, from poses.csv / trajectory.csv, report.json, sparse.la
 - share of cameras within 15 degrees of nadir (the optical axis against the local vertical), median tilt;
 - reprojection RMS (px) from report.json;
 - DSM completeness: share of the DSM cells inside the convex hull of the camera centres that hold a height,
-  and of them the share measured by stereo (dsm.tif band 2 >= 1; the rest interpolated);
+  and of them the share measured by stereo (dsm.tif band 2 >= 1; the rest interpolated); of the interpolated ones
+  those only one stereo pair measured and how far that pair's heights lie from the interpolation (export.json
+  dsm.one_pair_check: `dsm_one_pair`);
 - agreement with the peer: brighton's DSM against ODM's cloud after a constant 3D offset over every cell
   both hold, and over those inside the camera centres' hull (the ground every flight line passed over), all
   and measured by stereo; the verdict (report.json `verdict`, else n/a) and the command's last line;
@@ -441,6 +443,11 @@ def measure(out: str | Path, pipeline: str, reference: dict, by: str = 'image', 
     dsm = out / 'dsm.tif'
     if dsm.exists() and poses:
         row.update(dsm_completeness(dsm, [p['lat_deg'] for p in poses.values()], [p['lon_deg'] for p in poses.values()]))
+    exported = json.loads((out / 'export.json').read_text()).get('dsm', {}) if (out / 'export.json').exists() else {}
+    if exported.get('one_pair_check'):
+        # The cells only one stereo pair measured, against the interpolated DSM there (io/export_raster).
+        row['dsm_one_pair'] = {'hull_share': (exported.get('camera_hull') or {}).get('filled_one_pair'),
+                               **exported['one_pair_check']}
     if photos is not None and row.get('fx_after_px'):
         f0 = exif_focal_px(photos)
         row['fx_exif_px'] = f0
