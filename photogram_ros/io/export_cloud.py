@@ -112,7 +112,9 @@ def map_cloud(fusion: Fusion, origin: LocalFrame, crs: str, heights: str = 'elli
         p = {k: v[keep] for k, v in p.items()}
     if p['x'].size == 0:
         raise DataError('the map holds no fused points yet' if min_pairs <= 1 else
-                        f'no cell of the map was seen by {min_pairs} stereo pairs (lower min_pairs)')
+                        f'no cell of the map was measured by {min_pairs} stereo pairs that agree (too little overlap '
+                        f'for a second pair); `export MAP --min-pairs 1` writes the cells one pair measured, '
+                        f'unchecked')
     e, n, h = enu_to_crs(origin, np.column_stack([p['x'], p['y'], p['z']]), crs, heights)
     rgb = np.column_stack([p['r'], p['g'], p['b']])
     return GeoCloud(e, n, h, np.clip(np.rint(rgb), 0, 255).astype(np.uint8), p['n'].astype(np.uint32),
