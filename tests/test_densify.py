@@ -205,4 +205,4 @@ def test_products_that_cannot_be_made_still_write_a_failed_report(map_dir, tmp_p
     assert res['files'] == {} and any('no products' in n and 'measured by 99 stereo pairs' in n for n in res['notes'])
     rep = json.loads((tmp_path / 'out' / 'report.json').read_text())
     assert rep['mapping']['mapped'] is False
-    assert any('no products were made' in f and 'seen by 99 stereo pairs' in f for f in rep['mapping']['failures'])
+    assert any('no products were made' in f and 'measured by 99 stereo pairs' in f for f in rep['mapping']['failures'])
