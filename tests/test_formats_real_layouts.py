@@ -88,8 +88,8 @@ def _authors_way(traj: Path, mrk: Path) -> tuple[np.ndarray, np.ndarray]:
 @pytest.mark.parametrize('interpolation', ['linear', 'cubic'])
 def test_waypoint_m300_profile_with_its_mrk_offsets(interpolation, tmp_path):
     """The Waypoint profile (UTCTime in weeks, HMS and sec; GPSTime in HMS and sec; SDHoriz/SDHeight; Q), CRLF,
-    a trailing blank line, and a DJI MRK with offsets: every photo placed; linear interpolation equals the
-    authors' way within 1 mm; the default cubic stays within the held-out flight's 2 mm median / 5 mm max."""
+    a trailing blank line, and a DJI MRK with offsets: every photo placed; linear interpolation (the default)
+    equals the authors' way within 1 mm; on these smooth lines cubic stays within 2 mm median / 5 mm max of it."""
     traj, mrk = DATA / 'waypoint_m300_5hz.txt', DATA / 'm300_Timestamp.MRK'
     res = geotag(GeotagInput(str(traj), str(mrk), None, str(tmp_path / 'geo.txt'),
                              options=ExposureOptions(interpolation=interpolation)))
@@ -139,3 +139,32 @@ def test_mrk_offset_signs_follow_djis_documentation(tmp_path):
     for (_, pe), enu in zip(res.rows, ([0.107, 0.101, -0.129], [-0.025, -0.040, 0.010])):
         cam = _ecef([pe.lat_deg], [pe.lon_deg], [pe.h_m])[0]
         assert np.linalg.norm(R.T @ (cam - x0) - np.array(enu)) < 1e-4
+
+
+def test_a_real_mrk_line_without_padding(tmp_path):
+    """An MRK line as a public DJI-metadata test quotes it (`-40,N\t0,E\t86,V`, no padding; a single-point
+    flag 16): the offsets, the GPS time and the onboard position are read."""
+    mrk = tmp_path / 'flight_Timestamp.MRK'
+    mrk.write_text('1\t400373.488877\t[2264]\t-40,N\t0,E\t86,V\t44.42824637,Lat\t1.26196331,Lon\t359.494,Ellh\t'
+                   '0.028, 0.031, 0.055\t16,Q\n')
+    (row,) = read_mrk(mrk)
+    assert np.allclose(row.event.offset_ned_m, [-0.040, 0.0, 0.086])
+    assert row.event.t_gps_s == pytest.approx(2264 * 604800 + 400373.488877)
+    assert (row.lat_deg, row.lon_deg, row.h_m, row.flag) == (44.42824637, 1.26196331, 359.494, 16)
+    assert row.sd_neu_m == (0.028, 0.031, 0.055)
+
+
+def test_inertial_explorer_week_column_and_a_bare_unit_in_the_units_line(tmp_path):
+    """`Week GPSTime UTCTime Longitude Latitude H-Ell ...` over `week (sec) (sec) (deg) ...` (the Inertial
+    Explorer 8.90 column layout quoted in public code), a text line among the epochs: GPS time, week known."""
+    p = tmp_path / 'ie.txt'
+    p.write_text('Project:     gici\nProgram:     Inertial Explorer Version 8.90.6611\n\n'
+                 'Week     GPSTime     UTCTime       Longitude       Latitude     H-Ell         Heading\n'
+                 'week       (sec)       (sec)           (deg)          (deg)       (m)           (deg)\n'
+                 '2254  120974.000  120956.000  121.0000000000  31.0000000000    10.000    359.0000000000\n'
+                 'a text line\n'
+                 '2254  120975.000  120957.000  121.0000100000  31.0000200000    11.000      1.0000000000\n')
+    track = read_trajectory(p)
+    assert track.format.startswith('NovAtel Inertial Explorer export') and track.time_system == 'GPST'
+    assert track.week_known and np.allclose(track.t_gps_s, 2254 * 604800 + np.array([120974.0, 120975.0]))
+    assert any('1 text lines between the epochs skipped (first: line 7)' in n for n in track.notes)

@@ -41,9 +41,9 @@ def add_arguments(p) -> None:
     p.add_argument('--accept', choices=tuple(ACCEPT_Q), default='all',
                    help='worst solution quality used for a photo, on the one scale every format maps to (fix < float '
                         '< sbas < dgps < single < ppp; docs/commands.md has each format\'s table)')
-    p.add_argument('--interpolation', choices=('cubic', 'linear'), default='cubic',
-                   help='between two epochs: cubic (Hermite on centred-difference velocities, linear next to a gap '
-                        'or an end) or linear')
+    p.add_argument('--interpolation', choices=('linear', 'cubic'), default=None,
+                   help='between two epochs: linear (as the surveyors\' PPK tools interpolate) or cubic (Hermite on '
+                        'centred-difference velocities, linear next to a gap or an end); default linear')
     p.add_argument('--event-delay-ms', type=float, default=0.0,
                    help='the exposure this long after its event mark (the shutter\'s delay), ms; negative: before. '
                         'Every event is moved along the trajectory by it before interpolation')
@@ -70,7 +70,7 @@ def run(a) -> int:
     opt = ExposureOptions(max_gap_s=float(a.max_gap), sigma_scale=float(a.sigma_scale),
                           lever_arm_frd_m=floats(a.lever_arm, '--lever-arm', 3),
                           accept_q=ACCEPT_Q[a.accept], event_delay_s=float(a.event_delay_ms) * 1e-3,
-                          interpolation=a.interpolation)
+                          **({'interpolation': a.interpolation} if a.interpolation else {}))
     res = geotag(GeotagInput(a.pos, a.events, folder, out, a.csv, a.match, a.match_tolerance, a.utc_offset,
                              a.event_type, a.accept_no_fix, a.skip_unplaced, opt))
     for n in res.notes:
