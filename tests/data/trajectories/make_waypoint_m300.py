@@ -1,8 +1,9 @@
 """Writes `waypoint_m300_5hz.txt` and `m300_Timestamp.MRK` (see LAYOUT_SOURCES.md): a simulated DJI M300 mapping
-flight's 5 Hz antenna trajectory in the column layout of a real NovAtel Waypoint (GrafNav) export profile that
-an M300 PPK workflow reads (UTCDate; UTCTime in weeks, HMS and seconds; GPSTime in HMS and seconds; Latitude,
-Longitude in degrees; H-Ell; SDHoriz; SDHeight; Q; 19 lines before the first epoch; Windows line ends), and
-its Timestamp.MRK in DJI's layout with per-photo antenna -> camera offsets (mm, N/E/V).
+flight's 5 Hz antenna trajectory with exactly the header, column and units lines of a real M300 NovAtel
+Waypoint GrafNav 8.90 export (UTCDate YMD; UTCTime in fractional weeks, H:MM:SS.ss and seconds; GPSTime in
+H:MM:SS.sss and seconds; Latitude, Longitude in degrees; H-Ell; SDHoriz; SDHeight; Q 1/2; 19 lines before the
+first epoch; a trailing blank line), and its Timestamp.MRK in DJI's layout with per-photo antenna -> camera
+offsets (mm, N/E/V; Windows line ends).
 Run from the repository root: `python tests/data/trajectories/make_waypoint_m300.py`. Deterministic.
 """
 
@@ -46,9 +47,10 @@ def geodetic(e, n, u):
     return np.asarray(lat), np.asarray(lon), np.asarray(h)
 
 
-def hms(sow: float) -> str:
+def hms(sow: float, decimals: int) -> str:
+    """H:MM:SS.ss as the export writes it (no leading zero on the hour)."""
     s = sow % 86400
-    return f'{int(s // 3600):02d}:{int(s % 3600 // 60):02d}:{s % 60:05.2f}'
+    return f'{int(s // 3600)}:{int(s % 3600 // 60):02d}:{s % 60:0{3 + decimals}.{decimals}f}'
 
 
 def main():
@@ -56,27 +58,30 @@ def main():
     t = np.arange(N) / RATE
     e, n, u = (np.array(v) for v in zip(*[enu_at(float(x)) for x in t]))
     noise = rng.normal(0, 0.004, (N, 3)).cumsum(axis=0) * 0.3          # correlated PPK noise, mm level
+    noise[:, 2] += rng.normal(0, 0.006, N)                              # and the real export's cm height noise
     lat, lon, h = geodetic(e + noise[:, 0], n + noise[:, 1], u + noise[:, 2])
-    head = ['Project:     M300_PPK', 'Program:     GrafNav Version 8.80.2520', 'Profile:     M300_5Hz',
-            'Source:      GNSS Epochs(Combined)', 'ProcessInfo: Processed by Unknown on 11/7/2022 at 09:41:27',
-            '', 'Datum:       WGS84, (processing datum)', 'Master 1:    Name BASE, Status ENABLED',
-            '             Antenna height 1.520 m, to L1PC [HXCGX606A(NONE)]',
-            '             Position 13 44 12.12000, 100 32 00.00000, 38.412 m (WGS84, Ellipsoidal hgt)',
+    # the header, column and units lines exactly as the real export's (a leading blank line, 19 lines before the
+    # first epoch); the base station's name and position are this file's own
+    head = ['', 'Project:     PPK', 'Program:     GrafNav Version 8.90.6611', 'Profile:     Research',
+            'Source:      GNSS Epochs(GNSS Combined)', 'ProcessInfo: PPK by Unknown on 11/15/2022 at 20:51:00', '',
+            'Datum:       WGS84', 'Master 1:    Name BASE, Status ENABLED',
+            '             Antenna height 1.871 m, to L1PC [Generic(NONE)]',
+            '             Lat, Lon, El Hgt 13 44 12.12000, 100 32 00.00000, 38.412 m [WGS84, N/A]',
             'Remote:      Antenna height 0.000 m, to L1PC [Generic(NONE)]', 'UTC Offset:  18 s',
-            'SD Scaling Settings:', '  Position: 1.0000', '', '',
-            '  UTCDate     UTCTime    UTCTime     UTCTime     GPSTime     GPSTime       Latitude      Longitude'
-            '        H-Ell   SDHoriz  SDHeight  Q',
-            '    (MDY)     (weeks)      (HMS)       (sec)       (HMS)       (sec)          (deg)          (deg)'
-            '          (m)       (m)       (m)',
-            '']
+            'SD Scaling Settings:', '  Position: 1.0000', '  Velocity: 1.0000', '',
+            '   UTCDate    UTCTime     UTCTime   UTCTime     GPSTime   GPSTime       Latitude      Longitude        '
+            'H-Ell      SDHoriz     SDHeight Q',
+            '     (YMD)    (weeks)       (HMS)     (sec)       (HMS)     (sec)          (deg)          (deg)          '
+            '(m)          (m)          (m)  ']
     rows = []
+    q = np.where(rng.random(N) < 0.06, 2, 1)                   # a few float epochs among the fixed, as the real
     for k in range(N):
         g = SOW0 + t[k]
         c = g - LEAP
-        sdh, sdv = 0.011 + 0.002 * rng.random(), 0.019 + 0.004 * rng.random()
-        rows.append(f'11/06/2022  {WEEK:10d} {hms(c):>10s} {c:11.2f} {hms(g):>11s} {g:11.2f} {lat[k]:14.9f} '
-                    f'{lon[k]:14.9f} {h[k]:12.4f} {sdh:9.4f} {sdv:9.4f}  1')
-    (HERE / 'waypoint_m300_5hz.txt').write_bytes(('\r\n'.join(head + rows) + '\r\n\r\n').encode())
+        sdh, sdv = 0.005 + 0.002 * (q[k] - 1), 0.009 + 0.002 * (q[k] - 1)
+        rows.append(f'2022/11/06 {WEEK + c / 604800:.5f} {hms(c, 2):>11s} {c:9.2f} {hms(g, 3):>11s} {g:9.3f}  '
+                    f'{lat[k]:13.10f} {lon[k]:14.10f} {h[k]:12.3f} {sdh:12.3f} {sdv:12.3f} {q[k]}')
+    (HERE / 'waypoint_m300_5hz.txt').write_text('\n'.join(head + rows) + '\n\n')
     # photos every 2 s on the lines (not in the turn), 0.037 s after an arbitrary epoch phase
     mrk = []
     times = [x for x in np.arange(1.037, t[-1] - 1, 2.0) if not 25 <= x <= 25 + 20 * math.pi / 8]
