@@ -4,7 +4,6 @@ positions at the events against interpolations written here, independently of th
 
 from __future__ import annotations
 
-import re
 from datetime import datetime, timezone
 from pathlib import Path
 
