@@ -172,3 +172,19 @@ def test_inertial_explorer_week_column_and_a_bare_unit_in_the_units_line(tmp_pat
     assert track.format.startswith('NovAtel Inertial Explorer export') and track.time_system == 'GPST'
     assert track.week_known and np.allclose(track.t_gps_s, 2254 * 604800 + np.array([120974.0, 120975.0]))
     assert any('1 text lines between the epochs skipped (first: line 7)' in n for n in track.notes)
+
+
+def test_the_issue_command_without_photos_or_out_writes_geo_txt_here(tmp_path, monkeypatch, capsys):
+    """`photogram-ros geotag --pos PPK_5Hz.txt --events DJI_..._Timestamp.MRK` as issue #45 runs it: no photos beside
+    the MRK and no --out: geo.txt and geo.csv in the current folder, every exposure placed, the format said."""
+    from photogram_ros.cli import main
+    work = tmp_path / 'flight'
+    work.mkdir()
+    (work / 'PPK_5Hz.txt').write_bytes((DATA / 'waypoint_m300_5hz.txt').read_bytes())
+    (work / 'DJI_202211061253_001_Timestamp.MRK').write_bytes((DATA / 'm300_Timestamp.MRK').read_bytes())
+    monkeypatch.chdir(tmp_path)
+    rc = main(['geotag', '--pos', str(work / 'PPK_5Hz.txt'), '--events', str(work / 'DJI_202211061253_001_Timestamp.MRK')])
+    cap = capsys.readouterr()
+    assert rc == 0 and 'read as NovAtel GrafNav export' in cap.err and 'geotagged 25 photos' in cap.out
+    rows = (tmp_path / 'geo.csv').read_text().splitlines()
+    assert len(rows) == 26 and len((tmp_path / 'geo.txt').read_text().splitlines()) == 26

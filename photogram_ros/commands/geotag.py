@@ -24,7 +24,7 @@ def add_arguments(p) -> None:
     p.add_argument('--photos', help='folder of the photos (default: the events file\'s folder when it holds '
                                     'photos); without photos the rows are named event_NNNN')
     p.add_argument('--out', help='geo.txt to write (default: geo.txt in the photos\' folder, where triangulate reads '
-                                 'it)')
+                                 'it; without photos, geo.txt in the current folder)')
     p.add_argument('--csv', help='CSV to write (default: beside --out, .csv)')
     common_args.add_lever_arm_body(p, 'Turned by each event\'s attitude; level along the track without one. Not '
                                       'with an MRK: its per-photo N/E/V offsets are the lever arm')
@@ -58,15 +58,12 @@ def run(a) -> int:
 
     from photogram_ros.params import floats
     from photogram_ros.core.exposure_positions import Q_NAMES, ExposureOptions
-    from photogram_ros.errors import ConfigError
     from photogram_ros.io.geotag import GeotagInput, geotag
 
     from photogram_ros.io.geotag import photos_in
     folder = a.photos or (str(Path(a.events).parent) if a.events != 'exif' and photos_in(Path(a.events).parent)
                           else None)
-    out = a.out or (str(Path(folder) / 'geo.txt') if folder else None)
-    if out is None:
-        raise ConfigError('give --out geo.txt (or --photos DIR to write DIR/geo.txt)')
+    out = a.out or str(Path(folder) / 'geo.txt' if folder else Path('geo.txt'))
     opt = ExposureOptions(max_gap_s=float(a.max_gap), sigma_scale=float(a.sigma_scale),
                           lever_arm_frd_m=floats(a.lever_arm, '--lever-arm', 3),
                           accept_q=ACCEPT_Q[a.accept], event_delay_s=float(a.event_delay_ms) * 1e-3,
