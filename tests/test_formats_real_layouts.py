@@ -188,3 +188,16 @@ def test_the_issue_command_without_photos_or_out_writes_geo_txt_here(tmp_path, m
     assert rc == 0 and 'read as NovAtel GrafNav export' in cap.err and 'geotagged 25 photos' in cap.out
     rows = (tmp_path / 'geo.csv').read_text().splitlines()
     assert len(rows) == 26 and len((tmp_path / 'geo.txt').read_text().splitlines()) == 26
+
+
+def test_a_cut_off_last_line_of_the_m300_mrk_is_skipped_and_named(tmp_path):
+    """The M300 MRK (CRLF) with its last line cut mid-field, as a card pulled while the drone wrote it (#48): the
+    whole lines are read, the cut one skipped and named with its line number."""
+    text = (DATA / 'm300_Timestamp.MRK').read_bytes()
+    assert text.endswith(b'\r\n') and text.count(b'\r\n') == 25
+    cut = text + b'26\t21249.037000\t[2235]\t    12,N\t   -3'
+    mrk = tmp_path / 'cut_Timestamp.MRK'
+    mrk.write_bytes(cut)
+    notes: list = []
+    rows = read_mrk(mrk, notes)
+    assert len(rows) == 25 and len(notes) == 1 and 'line 26: cut off' in notes[0]
