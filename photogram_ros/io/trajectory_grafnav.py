@@ -19,8 +19,11 @@ mapped by their names, whatever the profile's order and whatever else it exports
 | `SDX-ECEF`, `SDY-ECEF`, `SDZ-ECEF`            | ECEF sigmas, turned into north, east, up             |
 | `Q`                                          | quality, 1..6: 1 fixed integer -> fix; 2 stable float, 3 converging float -> float; 4, 5 DGPS -> dgps; 6 single point -> single |
 
-Anything else (`NS`, `PDOP`, velocities, attitude of an Inertial Explorer export) is skipped, and so are
-text lines among or after the epochs (a footer). Column names cut to their column's width, as
+A profile may export one time in several units (a real M300 Waypoint export: `UTCTime` in weeks, HMS and
+seconds, `GPSTime` in HMS and seconds): the column in seconds is read, the GPS one before the UTC one. A units
+line may hold a bare unit (`week`). Anything else (`NS`, `PDOP`, velocities, attitude of an Inertial Explorer
+export, a `Column/Variable Contents` block in the header) is skipped, and so are text lines among or after the
+epochs (a footer); a last epoch cut off mid-line (the file truncated) is skipped and named in the notes. Column names cut to their column's width, as
 Inertial Explorer writes them (`UTCTim`, `GPSTim`), are read as the whole name.
 """
 
