@@ -12,9 +12,16 @@
    IncrementalAT._try_georeference that `proposed_georeference` emulates (only the precise fixes,
    GnssDatum.similarity_fixes, in the similarity that places the block); rows say which (`georeference`).
 
+3. The authors' way (`--layouts`): each trajectory + MRK pair of tests/data/trajectories (and `--real-waypoint FILE`,
+   a real Waypoint export, with events every 2 s and the MRK offsets of the pair) placed by `geotag` with linear
+   and cubic interpolation, against the camera positions a public M300 + Waypoint workflow computes (latitude,
+   longitude and H-Ell interpolated linearly in GPS time, then the offset east = E, north = N, up = -V):
+   median and max (mm), over all exposures and over those where the track accelerates less than 1 m/s^2.
+
 One JSON line per result, with the commit, whether the product code was clean, the cores and the load:
     .venv/bin/python bench/ppk_formats.py [--preset tiny] [--out bench/results/ppk_formats_<commit>.jsonl]
         [--skip-delay] [--cases rtk_xmp,rtk_xmp_third_float_1m] [--georeference as_is,proposed]
+        [--layouts [--real-waypoint PPK_Trajectory.txt]]
 """
 
 from __future__ import annotations
@@ -55,15 +62,78 @@ def delay_run(where: Path, sigma_scale: float) -> list[dict]:
     ppk = root / 'ppk'
     frame = {f'IMG_{f.index:04d}.JPG': f for f in truth.frames}
     rows = []
-    for delay_ms in (0.0, 30.0):
+    for delay_ms, how in ((0.0, 'linear'), (30.0, 'linear'), (30.0, 'cubic')):
         res = geotag(GeotagInput(str(ppk / 'flight.pos'), str(ppk / 'Timestamp.MRK'), str(ppk), str(root / 'geo.txt'),
-                                 options=ExposureOptions(event_delay_s=delay_ms * 1e-3)))
+                                 options=ExposureOptions(event_delay_s=delay_ms * 1e-3, interpolation=how)))
         err = np.array([truth.origin.geodetic_to_enu(pe.lat_deg, pe.lon_deg, pe.h_m) - frame[n].map_T_cam[:3, 3]
                         for n, pe in res.rows])
         e = np.linalg.norm(err, axis=1)
-        rows.append({'case': 'event_delay', 'speed_mps': 12.0, 'shutter_delay_ms': 30.0, 'event_delay_ms': delay_ms,
+        rows.append({'case': 'event_delay', 'interpolation': how, 'speed_mps': 12.0, 'shutter_delay_ms': 30.0,
+                     'event_delay_ms': delay_ms,
                      'track_error_scale': sigma_scale, 'photos': len(e), 'median_m': round(float(np.median(e)), 5),
                      'p90_m': round(float(np.percentile(e, 90)), 5), 'max_m': round(float(e.max()), 5)})
+    return rows
+
+
+DATA = ROOT / 'tests' / 'data' / 'trajectories'
+LAYOUT_PAIRS = (('waypoint_m300_5hz.txt', 'm300_Timestamp.MRK'),)
+
+
+def _ecef(lat, lon, h) -> np.ndarray:
+    from pyproj import Transformer
+    tr = Transformer.from_crs('EPSG:4979', 'EPSG:4978', always_xy=True)
+    return np.column_stack(tr.transform(np.asarray(lon), np.asarray(lat), np.asarray(h)))
+
+
+def authors_way(track, t_gps_s: np.ndarray, offsets_ned_m: np.ndarray) -> np.ndarray:
+    """Camera ECEF as the M300 + Waypoint workflow computes it: lat, lon, h linear in time, then E, N, -V."""
+    from photogram_ros.core.geodesy import ecef_R_enu, ecef_to_geodetic
+    llh = np.array([ecef_to_geodetic(*x) for x in track.ecef_m])
+    lat, lon, h = (np.interp(t_gps_s, track.t_gps_s, llh[:, k]) for k in range(3))
+    ant = _ecef(lat, lon, h)
+    return np.array([a + ecef_R_enu(la, lo) @ np.array([o[1], o[0], -o[2]])
+                     for a, la, lo, o in zip(ant, lat, lon, offsets_ned_m)])
+
+
+def layouts_run(where: Path, real_waypoint: str | None, real_source: str = '') -> list[dict]:
+    from photogram_ros.core.exposure_positions import CameraEvent, place_exposures
+    from photogram_ros.io.camera_events import read_mrk
+    from photogram_ros.io.trajectory_formats import read_trajectory
+    pairs = [(DATA / a, DATA / b, 'tests/data/trajectories (layout of a real M300 Waypoint export, simulated epochs)')
+             for a, b in LAYOUT_PAIRS]
+    if real_waypoint:
+        pairs.append((Path(real_waypoint), None, f'{real_waypoint}: {real_source or "a real Waypoint export"}; '
+                      'events every 2 s with the MRK offsets of the first pair'))
+    rows = []
+    for traj, mrk, source in pairs:
+        track = read_trajectory(traj, require_fix=False)
+        if mrk is not None:
+            events = [r.event for r in read_mrk(mrk)]
+        else:
+            offs = [r.event.offset_ned_m for r in read_mrk(DATA / LAYOUT_PAIRS[0][1])]
+            times = np.arange(track.t_gps_s[0] + 0.4 + 0.137, track.t_gps_s[-1] - 0.4, 2.0)
+            events = [CameraEvent(k + 1, float(x), k + 1, offs[k % len(offs)], where='bench')
+                      for k, x in enumerate(times)]
+        t = np.array([e.t_gps_s for e in events])
+        ref = authors_way(track, t, np.array([e.offset_ned_m for e in events]))
+        # the track's acceleration around each event (second differences of the epochs)
+        v = np.gradient(track.ecef_m, track.t_gps_s, axis=0)
+        acc = np.linalg.norm(np.gradient(v, track.t_gps_s, axis=0), axis=1)
+        acc_at = np.interp(t, track.t_gps_s, acc)
+        for how in ('linear', 'cubic'):
+            placed = place_exposures(track, events, ExposureOptions(interpolation=how))
+            ours = _ecef([p.lat_deg for p in placed.placed], [p.lon_deg for p in placed.placed],
+                         [p.h_m for p in placed.placed])
+            k = [events.index(p.event) for p in placed.placed]
+            d = np.linalg.norm(ours - ref[k], axis=1) * 1000
+            calm = d[acc_at[k] < 1.0]
+            rows.append({'case': 'authors_way', 'file': traj.name, 'source': source, 'format': track.format,
+                         'interpolation': how, 'exposures': len(events), 'placed': len(placed.placed),
+                         'median_mm': round(float(np.median(d)), 4), 'max_mm': round(float(d.max()), 4),
+                         'calm_exposures': len(calm),
+                         'calm_median_mm': round(float(np.median(calm)), 4) if len(calm) else None,
+                         'calm_max_mm': round(float(calm.max()), 4) if len(calm) else None})
+            sys.stderr.write(json.dumps(rows[-1]) + '\n')
     return rows
 
 
@@ -182,6 +252,9 @@ def main() -> int:
     ap.add_argument('--skip-delay', action='store_true')
     ap.add_argument('--cases', default=','.join(tuple(RTK_CASES) + ('rtk_hand_geo_txt',)),
                     help='RTK photo survey cases, comma-separated (rtk_xmp first: the others get their ratio to it)')
+    ap.add_argument('--layouts', action='store_true', help='the authors\' way on the M300 layout (section 3)')
+    ap.add_argument('--real-waypoint', help='a real Waypoint export to measure section 3 on as well')
+    ap.add_argument('--real-source', default='', help='where --real-waypoint comes from (written in its rows)')
     ap.add_argument('--georeference', default='as_is',
                     help='as_is, proposed or both (comma-separated): proposed measures the change to '
                          'IncrementalAT._try_georeference this bench emulates (proposed_georeference)')
@@ -195,6 +268,8 @@ def main() -> int:
     with tempfile.TemporaryDirectory() as tmp:
         for s in (() if a.skip_delay else (0.0, 1.0)):
             rows += delay_run(Path(tmp), s)
+        if a.layouts:
+            rows += layouts_run(Path(tmp), a.real_waypoint, a.real_source)
         if not a.skip_rtk:
             rows += rtk_runs(Path(tmp), a.preset, tuple(a.cases.split(',')), tuple(a.georeference.split(',')))
     head['load_avg_after'] = [round(x, 2) for x in os.getloadavg()]

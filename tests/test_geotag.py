@@ -131,7 +131,7 @@ def test_interpolation_is_exact_under_constant_acceleration_and_refuses_to_extra
     rng = np.random.default_rng(3)
     rel = np.sort(rng.uniform(0.3, 11.5, 40))
     events = [CameraEvent(k + 1, week_tow_to_gps_s(WEEK, TOW0 + r), k + 1) for k, r in enumerate(rel)]
-    res = place_exposures(track, events)
+    res = place_exposures(track, events, ExposureOptions(interpolation='cubic'))
     assert res.mode == 'trajectory' and not res.problems and len(res.placed) == 40
     err = [np.linalg.norm(_llh_to_enu(pe.lat_deg, pe.lon_deg, pe.h_m) - _path_enu(r)) for pe, r in zip(res.placed, rel)]
     print(f'cubic interpolation error max {max(err) * 1000:.3f} mm')

@@ -119,9 +119,13 @@ def _ecef(lat, lon, h) -> np.ndarray:
     return np.column_stack([x, y, z])
 
 
-def independent_antenna(raw, times) -> np.ndarray:
+def independent_antenna(raw, times, cubic: bool = False) -> np.ndarray:
+    """The antenna at `times` from the raw columns: linear in ECEF between epochs (geotag's default), or scipy's
+    cubic Hermite spline on centred-difference velocities."""
     t, lat, lon, h = (np.array(v) for v in zip(*raw))
     xyz = _ecef(lat, lon, h)
+    if not cubic:
+        return np.column_stack([np.interp(times, t, xyz[:, k]) for k in range(3)])
     spline = CubicHermiteSpline(t - t[0], xyz, np.gradient(xyz, t - t[0], axis=0))
     return spline(times - t[0])
 
@@ -230,7 +234,7 @@ def test_event_delay_moves_each_exposure_along_the_track(tmp_path):
     err = {}
     for delay in (0.0, 0.030):
         res = geotag(GeotagInput(str(DATA / 'rtklib_demo5_5hz.pos'), str(marks), None, str(tmp_path / 'g.txt'),
-                                 options=ExposureOptions(event_delay_s=delay)))
+                                 options=ExposureOptions(event_delay_s=delay, interpolation='cubic')))
         ours = _ecef([pe.lat_deg for _, pe in res.rows], [pe.lon_deg for _, pe in res.rows],
                      [pe.h_m for _, pe in res.rows])
         err[delay] = np.linalg.norm(ours - ref, axis=1)
@@ -288,12 +292,12 @@ def test_real_rtklib_excerpts_placed_as_an_independent_interpolation(name):
     events = [CameraEvent(i + 1, float(tt), i + 1, where='test') for i, tt in enumerate(times)]
     holes = [t[k] + 1.9 for k in range(len(d)) if d[k] >= 4.0]
     events += [CameraEvent(900 + i, float(tt), 900 + i, where='test') for i, tt in enumerate(holes)]
-    placed = place_exposures(track, events)
+    placed = place_exposures(track, events, ExposureOptions(interpolation='cubic'))
     assert len(placed.placed) == len(times) and len(placed.problems) == len(holes)
     assert all('gap' in p for p in placed.problems)
     ours = _ecef([pe.antenna_lat_deg for pe in placed.placed], [pe.antenna_lon_deg for pe in placed.placed],
                  [pe.antenna_h_m for pe in placed.placed])
-    ref = independent_antenna(raw, times)
+    ref = independent_antenna(raw, times, cubic=True)
     dist = np.linalg.norm(ours - ref, axis=1)
     print(f'{name}: {len(times)} exposures, max {dist.max() * 1000:.3f} mm from the independent interpolation; '
           f'{len(holes)} in holes refused')
@@ -376,13 +380,10 @@ def test_inertial_explorer_hour_minute_second_columns_and_ecef_sigmas(tmp_path):
     assert np.allclose(t.sigma_enu_m(), 0.010, atol=1e-6)         # isotropic ECEF sigmas stay 1 cm on each axis
 
 
-def test_linear_interpolation_on_request(tmp_path):
+def test_cubic_interpolation_on_request(tmp_path):
     res = geotag(GeotagInput(str(DATA / 'tbc_5hz.csv'), str(MRK), None, str(tmp_path / 'g.txt'),
-                             options=ExposureOptions(interpolation='linear')))
-    t, lat, lon, h = (np.array(v) for v in zip(*raw_tbc(DATA / 'tbc_5hz.csv')))
-    xyz = _ecef(lat, lon, h)
-    times = _mrk_times()
-    ref = np.column_stack([np.interp(times, t, xyz[:, i]) for i in range(3)])
+                             options=ExposureOptions(interpolation='cubic')))
+    ref = independent_antenna(raw_tbc(DATA / 'tbc_5hz.csv'), _mrk_times(), cubic=True)
     ours = _ecef([pe.antenna_lat_deg for _, pe in res.rows], [pe.antenna_lon_deg for _, pe in res.rows],
                  [pe.antenna_h_m for _, pe in res.rows])
     assert np.linalg.norm(ours - ref, axis=1).max() < 1e-3

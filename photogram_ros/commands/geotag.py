@@ -24,7 +24,7 @@ def add_arguments(p) -> None:
     p.add_argument('--photos', help='folder of the photos (default: the events file\'s folder when it holds '
                                     'photos); without photos the rows are named event_NNNN')
     p.add_argument('--out', help='geo.txt to write (default: geo.txt in the photos\' folder, where triangulate reads '
-                                 'it)')
+                                 'it; without photos, geo.txt in the current folder)')
     p.add_argument('--csv', help='CSV to write (default: beside --out, .csv)')
     common_args.add_lever_arm_body(p, 'Turned by each event\'s attitude; level along the track without one. Not '
                                       'with an MRK: its per-photo N/E/V offsets are the lever arm')
@@ -41,9 +41,9 @@ def add_arguments(p) -> None:
     p.add_argument('--accept', choices=tuple(ACCEPT_Q), default='all',
                    help='worst solution quality used for a photo, on the one scale every format maps to (fix < float '
                         '< sbas < dgps < single < ppp; docs/commands.md has each format\'s table)')
-    p.add_argument('--interpolation', choices=('cubic', 'linear'), default='cubic',
-                   help='between two epochs: cubic (Hermite on centred-difference velocities, linear next to a gap '
-                        'or an end) or linear')
+    p.add_argument('--interpolation', choices=('linear', 'cubic'), default=None,
+                   help='between two epochs: linear (as the surveyors\' PPK tools interpolate) or cubic (Hermite on '
+                        'centred-difference velocities, linear next to a gap or an end); default linear')
     p.add_argument('--event-delay-ms', type=float, default=0.0,
                    help='the exposure this long after its event mark (the shutter\'s delay), ms; negative: before. '
                         'Every event is moved along the trajectory by it before interpolation')
@@ -58,19 +58,16 @@ def run(a) -> int:
 
     from photogram_ros.params import floats
     from photogram_ros.core.exposure_positions import Q_NAMES, ExposureOptions
-    from photogram_ros.errors import ConfigError
     from photogram_ros.io.geotag import GeotagInput, geotag
 
     from photogram_ros.io.geotag import photos_in
     folder = a.photos or (str(Path(a.events).parent) if a.events != 'exif' and photos_in(Path(a.events).parent)
                           else None)
-    out = a.out or (str(Path(folder) / 'geo.txt') if folder else None)
-    if out is None:
-        raise ConfigError('give --out geo.txt (or --photos DIR to write DIR/geo.txt)')
+    out = a.out or str(Path(folder) / 'geo.txt' if folder else Path('geo.txt'))
     opt = ExposureOptions(max_gap_s=float(a.max_gap), sigma_scale=float(a.sigma_scale),
                           lever_arm_frd_m=floats(a.lever_arm, '--lever-arm', 3),
                           accept_q=ACCEPT_Q[a.accept], event_delay_s=float(a.event_delay_ms) * 1e-3,
-                          interpolation=a.interpolation)
+                          **({'interpolation': a.interpolation} if a.interpolation else {}))
     res = geotag(GeotagInput(a.pos, a.events, folder, out, a.csv, a.match, a.match_tolerance, a.utc_offset,
                              a.event_type, a.accept_no_fix, a.skip_unplaced, opt))
     for n in res.notes:

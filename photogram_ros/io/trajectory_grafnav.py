@@ -19,8 +19,11 @@ mapped by their names, whatever the profile's order and whatever else it exports
 | `SDX-ECEF`, `SDY-ECEF`, `SDZ-ECEF`            | ECEF sigmas, turned into north, east, up             |
 | `Q`                                          | quality, 1..6: 1 fixed integer -> fix; 2 stable float, 3 converging float -> float; 4, 5 DGPS -> dgps; 6 single point -> single |
 
-Anything else (`NS`, `PDOP`, velocities, attitude of an Inertial Explorer export) is skipped, and so are
-text lines among or after the epochs (a footer). Column names cut to their column's width, as
+A profile may export one time in several units (a real M300 Waypoint export: `UTCTime` in weeks, HMS and
+seconds, `GPSTime` in HMS and seconds): the column in seconds is read, the GPS one before the UTC one. A units
+line may hold a bare unit (`week`). Anything else (`NS`, `PDOP`, velocities, attitude of an Inertial Explorer
+export, a `Column/Variable Contents` block in the header) is skipped, and so are text lines among or after the
+epochs (a footer); a last epoch cut off mid-line (the file truncated) is skipped and named in the notes. Column names cut to their column's width, as
 Inertial Explorer writes them (`UTCTim`, `GPSTim`), are read as the whole name.
 """
 
@@ -70,6 +73,30 @@ def _header_index(lines: list[str]) -> int | None:
     return None
 
 
+def _is_units_line(line: str) -> bool:
+    """The line of units under the column names: '(sec) (deg) ...' (a bare unit such as `week` among them)."""
+    toks = re.findall(r'\([^)]*\)|\S+', line.strip())
+    return bool(toks) and not any(_num(t) for t in toks) and sum(t.startswith('(') for t in toks) * 2 >= len(toks)
+
+
+def _one_of_each(names: list[str], units: list[str]) -> list[str]:
+    """A profile that exports one variable in several units (Waypoint: `UTCTime` in weeks, HMS and seconds;
+    `GPSTime` in HMS and seconds) keeps, per name, its column in seconds (else the first); a time column in
+    weeks becomes the week (`gpsweek` / `utcweek`); the others are renamed out of the way."""
+    out = list(names)
+    for k, (nm, u) in enumerate(zip(names, units)):
+        if nm in ('gpstime', 'utctime') and u.startswith('week'):
+            out[k] = 'gpsweek' if nm == 'gpstime' else 'utcweek'
+    for nm in set(out):
+        ks = [k for k, n in enumerate(out) if n == nm]
+        if len(ks) > 1:
+            keep = next((k for k in ks if units[k] in ('sec', 's')), ks[0])
+            for k in ks:
+                if k != keep:
+                    out[k] = f'{nm}[{units[k] or k}]'
+    return out
+
+
 def _num(tok: str) -> bool:
     try:
         float(tok)
@@ -117,7 +144,7 @@ class GrafNavReader:
         widths = [1] * len(names)
         units = [''] * len(names)
         first = h + 1
-        if first < len(lines) and lines[first].strip().startswith('('):
+        if first < len(lines) and _is_units_line(lines[first]):
             ul = lines[first].strip()
             units = [u.strip().strip('()').lower() for u in (ul.split(',') if ',' in ul else
                                                                re.findall(r'\([^)]*\)|\S+', ul))]
@@ -130,6 +157,7 @@ class GrafNavReader:
                     names[k] = 'hour'
                 elif u == 'mi':
                     names[k] = 'minute'
+            names = _one_of_each(names, units)
         if 'h-ell' not in names and 'x-ecef' not in names:
             got = 'H-MSL (above the geoid)' if 'h-msl' in names else 'no height'
             raise DataError(f'{path} line {h + 1}: {got}: export H-Ell (ellipsoidal height) in the profile')
@@ -139,7 +167,8 @@ class GrafNavReader:
             if m:
                 utc_offset = abs(int(m.group(1)))
         col = {n: k for k, n in enumerate(names)}
-        rows, skipped, widths_set = [], [], False
+        rows, skipped, widths_set, cut = [], [], False, None
+        last = max((k for k, ln in enumerate(lines) if ln.strip()), default=-1)
         for n in range(first, len(lines)):
             toks = _split(lines[n])
             if not toks or not toks[0]:
@@ -152,6 +181,9 @@ class GrafNavReader:
                 if extra == 4 and widths[col.get('latitude', 0)] == 1 and 'latitude' in col:
                     widths[col['latitude']] = widths[col['longitude']] = 3   # DMS without a units line
                 widths_set = True
+            if len(toks) < sum(widths) and n == last and rows:
+                cut = f'{path.name} line {n + 1}: cut off ({len(toks)} of {sum(widths)} values): skipped'
+                continue
             if len(toks) < sum(widths):
                 raise DataError(f'{path} line {n + 1}: {len(toks)} values, the column line ({h + 1}) names '
                                 f'{sum(widths)}: {lines[n].strip()[:70]!r}')
@@ -160,7 +192,10 @@ class GrafNavReader:
             rows.append((n + 1, val))
         if not rows:
             raise DataError(f'{path} holds no epoch after its column line ({h + 1})')
-        return self._track(path, rows, names, units, col, utc_offset, program, skipped)
+        track = self._track(path, rows, names, units, col, utc_offset, program, skipped)
+        if cut:
+            track.notes.append(cut + ' (the file ends in the middle of an epoch)')
+        return track
 
     def _track(self, path, rows, names, units, col, utc_offset, program, skipped) -> AntennaTrack:
         n_ep = len(rows)
