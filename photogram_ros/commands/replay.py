@@ -78,6 +78,7 @@ def run(a) -> int:
     from photogram_ros.nodes.node_main import init_ros
     from photogram_ros.io.control_file import read_control_file
     from photogram_ros.nodes.replay_session import ReplayOptions, run_replay, source_kind
+    from photogram_ros.io.flight_report import keyframes_line
     from photogram_ros.errors import ConfigError
     from photogram_ros.sim.truth import GroundTruth
 
@@ -141,8 +142,7 @@ def run(a) -> int:
     print(f"replayed {r['frames']} frames ({r['bag_s']:.1f} s of flight) in {r['wall_s']:.1f} s, "
           f"real-time factor {r['real_time_factor']:.2f}; {figures.get('keyframes', 0)} keyframes, "
           f"{r.get('map_points', 0)} map points")
-    print(f"keyframes: {figures.get('keyframes_taken', 0)} taken, {figures.get('keyframes_oriented', 0)} oriented"
-          + ''.join(f'; {v} {k}' for k, v in figures.get('keyframes_not_oriented_by_reason', {}).items()))
+    print(keyframes_line(figures))
     for h in figures.get('health', []):
         if h['worst_level'] != 'OK':
             print(f"health: {h['node']} {h['worst_level']}: {' | '.join(h['reasons'])[:300]}")

@@ -611,6 +611,7 @@ def _export_at_stop(a, roles, run_info=None, diagnostics=None) -> int:
         return 0
     from photogram_ros.commands.products import export_products
     from photogram_ros.errors import PhotogramError
+    from photogram_ros.io.flight_report import keyframes_line
     try:
         res = export_products(map_dir_of(a.params), a.out, a.params, a.crs, a.live_map, a.heights, run=run_info,
                               diagnostics=diagnostics, progress=True)
@@ -621,6 +622,8 @@ def _export_at_stop(a, roles, run_info=None, diagnostics=None) -> int:
         print(f'note: {n}', flush=True)
     if res.get('files'):
         print(f"products in {a.out}/ ({res['crs']}): " + ', '.join(sorted(res['files'])) + ', report', flush=True)
+    if 'keyframes_taken' in res.get('figures', {}):
+        print(keyframes_line(res['figures']), flush=True)
     verdict = res.get('figures', {}).get('mapping')
     if verdict and not verdict['mapped']:
         print('MAPPING FAILED: ' + '; '.join(verdict['failures']), flush=True)
