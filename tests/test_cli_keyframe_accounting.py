@@ -60,3 +60,12 @@ def test_in_flight_reasons_that_add_up_are_the_reasons_and_the_rest_is_unaccount
     assert few['keyframes_not_oriented_by_reason'] == {'unaccounted (no node counted why)': 2}
     assert keyframes_line(keyframe_accounting({'tracker': {'keyframes': 3}}, 3)) == \
         'keyframes: 3 taken, 3 oriented, 0 not oriented'
+
+
+def test_end_of_flight_reasons_of_a_block_without_georeference():
+    """The adjuster oriented 8 of 10 but the map has no georeferenced pose: those 8 are named, not unaccounted."""
+    counts = {'tracker': {'keyframes': 10},
+              'bundle': {'keyframes_received': 10, 'keyframes_oriented': 8, 'not_oriented_at_end_no_fix': 2}}
+    acc = keyframe_accounting(counts, 0)
+    assert acc['keyframes_not_oriented_by_reason'] == {
+        'not oriented: no fix': 2, 'oriented by the bundle adjuster, no georeferenced pose in the map': 8}, acc

@@ -14,7 +14,8 @@ a user receives and can be rebuilt after the flight. Figures:
 - at the top, whether the flight mapped at all (`mapping_verdict`: a georeferenced keyframe, half of
   the keyframes oriented, half of the DSM's cells holding a height), how many keyframes the tracker
   took and how many were oriented, why the others were not (`keyframe_accounting`, from the nodes'
-  counters: reasons that add up to the keyframes not oriented, the adjuster's in-flight reasons apart), and every node's worst /diagnostics level with its reasons (`node_health`).
+  counters: reasons that add up to the keyframes not oriented, the adjuster's in-flight reasons apart), and
+  every node's worst /diagnostics level with its reasons (`node_health`).
 """
 
 from __future__ import annotations
@@ -302,6 +303,9 @@ def keyframe_accounting(counts: dict, oriented: int, bundle_status: str | None =
     why = {k: v for k, v in sure.items() if v}
     if at_end:
         why.update({f'not oriented: {k.replace("_", " ")}': v for k, v in at_end.items() if v})
+        # The adjuster holds them oriented, the map has no georeferenced pose for them.
+        why['oriented by the bundle adjuster, no georeferenced pose in the map'] = max(0, missing - sum(why.values()))
+        why = {k: v for k, v in why.items() if v}
     else:
         if per_reason:
             in_flight = {f'not oriented: {k.replace("_", " ")}': v for k, v in per_reason.items()}
