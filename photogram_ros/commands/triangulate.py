@@ -27,6 +27,7 @@ def add_arguments(p) -> None:
                                     'photos\' EXIF (focal length from a DJI XMP, the focal-plane resolution, a '
                                     'sensor table or the 35 mm equivalent; principal point centred, no distortion)')
     p.add_argument('--crs', help='output CRS (default: the GCP CRS, else the UTM zone of the first photo)')
+    common_args.add_heights(p)
     p.add_argument('--gcp-sigma', default='0.02,0.02,0.03', help='GCP sigma E,N,U in metres')
     common_args.add_gcp_heights(p, 'a targets file (--targets, or --gcp; a gcp_list.txt says it by its own CRS)',
                                 old_policy=True)
@@ -117,7 +118,7 @@ def run(a) -> int:
     from photogram_ros.io.out_dir import usable_folder
     usable_folder(a.out)   # a file or an uncreatable path: said now, not after the adjustment
     log = (lambda text: print(text, file=sys.stderr))
-    res = triangulate(a.input, a.out, opt, log=log, progress=not a.quiet, bag=_is_bag(a.input))
+    res = triangulate(a.input, a.out, opt, log=log, progress=not a.quiet, bag=_is_bag(a.input), heights=a.heights)
     rep = res.report
     ck = rep['check']['rmse']
     rms = rep['reprojection_rms_px']
