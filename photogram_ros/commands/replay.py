@@ -31,6 +31,7 @@ def add_arguments(p) -> None:
     p.add_argument('--rate', type=float, default=0.0, help='bag time speed; 0 = as fast as the mapper keeps up')
     p.add_argument('--crs', default='', help='output CRS, e.g. EPSG:2056 (default: UTM zone of the map origin)')
     common_args.add_heights(p, old_flag='--orthometric')
+    common_args.add_exif_altitude(p, 'For a photo folder (camera_node\'s exif_altitude)')
     p.add_argument('--min-pairs', type=int, default=2,
                    help='export only cells confirmed by this many stereo pairs (1 keeps everything)')
     p.add_argument('--gcp', default='', help='control-point file of the flight\'s ArUco targets (first line a CRS, '
@@ -110,6 +111,9 @@ def run(a) -> int:
     domain = shared_domain(parse_domain(a.domain, '--domain')) if a.domain is not None else \
         own_domain(avoid=check_domain_env())
     control, extra = None, {}
+    camera = common_args.exif_altitude_overrides(a)   # checked before any process starts
+    if camera:
+        extra['camera'] = camera
     if a.gcp:   # read here first: a bad file is reported before the replay starts
         control = read_control_file(a.gcp, a.check.split(','), a.gcp_heights)
         extra['bundle'] = {'control_file': str(Path(a.gcp).resolve()), 'check_names': a.check,
