@@ -116,3 +116,5 @@ def test_replay_takes_triangulates_exif_altitude_options(capsys):
     assert exif_altitude_overrides(parse(['replay', 'photos'])) == {}
     with pytest.raises(ConfigError, match='take-off point need its height'):
         exif_altitude_overrides(parse(['replay', 'photos', '--exif-altitude', 'relative']))
+    assert options('run')[1:] == tri[1:]
+    assert exif_altitude_overrides(parse(['run', '--exif-altitude', 'ellipsoidal'])) == {'exif_altitude': 'ellipsoidal'}

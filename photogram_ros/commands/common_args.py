@@ -127,10 +127,12 @@ def add_exif_altitude(p, not_given: str = 'Not given: orthometric') -> None:
 
 
 def exif_altitude_overrides(a) -> dict:
-    """camera_node's parameters of --exif-altitude, --takeoff-altitude-m, --takeoff-heights (those given), checked
-    now as camera_node would check them (io/image_source.exif_altitude_reading)."""
+    """camera_node's parameters of --exif-altitude, --takeoff-altitude-m, --takeoff-heights (those given); with
+    --exif-altitude checked now as camera_node would check them (io/image_source.exif_altitude_reading; a take-off
+    height alone goes with the parameter file's exif_altitude, which camera_node checks)."""
     from photogram_ros.io.image_source import exif_altitude_reading
-    exif_altitude_reading(a.exif_altitude or 'orthometric', a.takeoff_altitude_m, a.takeoff_heights)
+    if a.exif_altitude:
+        exif_altitude_reading(a.exif_altitude, a.takeoff_altitude_m, a.takeoff_heights)
     out = {}
     if a.exif_altitude:
         out['exif_altitude'] = a.exif_altitude
