@@ -65,6 +65,21 @@ def add_arguments(p) -> None:
                    help='nodes of the second process with --processes 2 (among bundle, stereo, map)')
 
 
+def resume_extra(extra: dict, kind: str, params_file: str | None, map_dir, before: dict) -> dict:
+    """`extra` (role -> parameter overrides) for a replay resuming the map `map_dir` that holds keyframes from before
+    (commands/run.keyframes_before): the adjuster anchored at the map's origin, and for a photo folder or a video
+    (`kind`, replay_session.source_kind) the keyframes saved without a pose fed again first by camera_node
+    (resume_keyframes_of), as `run --resume` does (commands/run.in_the_map_origin, feed_unposed_keyframes). A bag
+    is played again whole: its frames are taken again as they come."""
+    from photogram_ros.commands.run import feed_unposed_keyframes, in_the_map_origin
+    from photogram_ros.nodes.graph import GraphSpec
+    roles = ('tracker', 'bundle') if kind == 'bag' else ('camera', 'tracker', 'bundle')
+    spec = in_the_map_origin(GraphSpec(roles=roles, params_file=params_file, extra=extra), map_dir)
+    if kind != 'bag':
+        spec = feed_unposed_keyframes(spec, map_dir, before)
+    return {r: dict(v) for r, v in (spec.extra or {}).items()}
+
+
 def run(a) -> int:
     """Exit status 0; 2 bad input (before the first frame); 3 the bag was damaged (what it held was
     mapped); 4 the final adjustment failed (products from the in-flight poses); 5 the flight did not
@@ -80,6 +95,7 @@ def run(a) -> int:
     from photogram_ros.io.control_file import read_control_file
     from photogram_ros.nodes.replay_session import ReplayOptions, run_replay, source_kind
     from photogram_ros.io.flight_report import keyframes_line
+    from photogram_ros.commands.run import count_keyframes_before, keyframes_before
     from photogram_ros.errors import ConfigError
     from photogram_ros.sim.truth import GroundTruth
 
@@ -123,6 +139,9 @@ def run(a) -> int:
     lock = claim_output(out, 'resume' if a.resume else 'overwrite' if a.overwrite else 'new', 'replay')
     if lock.previous:
         print(f'note: --resume: continuing the map in {out}', flush=True)
+    before = keyframes_before(out / 'map') if a.resume else None
+    if before is not None:
+        extra = resume_extra(extra, source_kind(a.bag), params, out / 'map', before)
     use_domain(domain)
     if a.domain is None and not a.quiet:
         print(f'replaying on ROS_DOMAIN_ID {domain}, a domain of its own (--domain N to watch it from another '
@@ -135,6 +154,8 @@ def run(a) -> int:
                                        video_start_unix_s=a.video_start))
     finally:
         rclpy.try_shutdown()
+    if before is not None:   # the keyframes of the map from before this replay are taken too (the report's N of N)
+        res['run']['resumed'] = count_keyframes_before(res['run'].setdefault('counts', {}), before, out / 'map')
     truth = GroundTruth.load(a.truth) if a.truth else None
     prod = export_products(res['map_dir'], out, params, a.crs, a.live_map, a.heights, a.min_pairs,
                            progress=not a.quiet, run=res['run'], truth=truth, control=control,
