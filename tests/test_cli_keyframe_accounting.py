@@ -33,15 +33,16 @@ def test_in_flight_reasons_of_keyframes_oriented_later_are_not_counted_as_not_or
 def test_the_adjusters_end_of_flight_reasons_are_each_keyframes_final_one():
     counts = {'tracker': dict(SENECA_EVERY_OTHER['tracker'], keyframes=22),
               'bundle': dict(SENECA_EVERY_OTHER['bundle'], not_oriented_at_end_too_few_known_points=3,
-                             not_oriented_at_end_given_up_before_an_early_break=1)}
+                             not_oriented_at_end_given_up_after_being_oriented=1)}
     acc = keyframe_accounting(counts, 17)
     assert acc['keyframes_not_oriented'] == 5
     assert acc['keyframes_not_oriented_by_reason'] == {
         'never reached the bundle adjuster': 1, 'not oriented: too few known points': 3,
-        'not oriented: given up before an early break': 1}, acc
+        'given up: before an early break (a line too short for its GNSS)': 1}, acc
     assert 'keyframes_oriented_after_the_window_gave_up' not in acc
     assert keyframes_line(acc) == ('keyframes: 22 taken, 17 oriented, 5 not oriented: 1 never reached the bundle '
-                                   'adjuster; 3 too few known points; 1 given up before an early break')
+                                   'adjuster; 3 too few known points; 1 given up before an early break (a line '
+                                   'too short for its GNSS)')
 
 
 def test_in_flight_reasons_that_add_up_are_the_reasons_and_the_rest_is_unaccounted():

@@ -252,6 +252,8 @@ NOT_ORIENTED_PREFIX = 'not_oriented_'   # bundle_node counters per reason (not_o
 # the reasons given in flight (a later step orients some of those keyframes: a segment joined, the final
 # adjustment's second chance).
 AT_END_PREFIX = 'not_oriented_at_end_'
+# The end-of-flight reason of a keyframe oriented once and given up since (not counted not oriented in flight).
+GIVEN_UP_AT_END = 'given_up_after_being_oriented'
 # Per-reason counters that hold at the end by how they are counted (from the map folder, not in flight).
 FINAL_REASONS = ('taken_before_the_restart_without_a_pose',)
 UNPLACED_REASON = 'given up: before an early break (a line too short for its GNSS)'
@@ -302,7 +304,8 @@ def keyframe_accounting(counts: dict, oriented: int, bundle_status: str | None =
     sure.update({f'not oriented: {k.replace("_", " ")}': per_reason.pop(k) for k in FINAL_REASONS if k in per_reason})
     why = {k: v for k, v in sure.items() if v}
     if at_end:
-        why.update({f'not oriented: {k.replace("_", " ")}': v for k, v in at_end.items() if v})
+        why.update({(UNPLACED_REASON if k == GIVEN_UP_AT_END else f'not oriented: {k.replace("_", " ")}'): v
+                    for k, v in at_end.items() if v})
         # The adjuster holds them oriented, the map has no georeferenced pose for them.
         why['oriented by the bundle adjuster, no georeferenced pose in the map'] = max(0, missing - sum(why.values()))
         why = {k: v for k, v in why.items() if v}
