@@ -44,10 +44,9 @@ def test_replay_resume_after_a_crash_orients_the_keyframes_taken_before_it_witho
     last keyframes before the 7th photo gone), then `replay --resume` of its last 12 photos into the same --out:
     the 3 stored keyframes are fed again and oriented near where the first replay had them, and the report counts
     every keyframe of the flight."""
-    import shutil
-
     from conftest import shared_data
     from photogram_ros.io.image_source import open_source
+    from test_faults_resume import moved_from
     photos = sorted(shared_data('photos', 'brighton_beach', 'images').glob('*.JPG'))
     for name, part in (('a', photos[:10]), ('b', photos[6:])):
         (tmp_path / name).mkdir()
@@ -73,12 +72,7 @@ def test_replay_resume_after_a_crash_orients_the_keyframes_taken_before_it_witho
     assert rep['run']['counts']['camera']['resumed_keyframes'] == 3, rep['run']['counts']['camera']
     assert rep['run']['resumed'] == {'keyframes': n_kept, 'posed': n_kept, 'unposed': 0, 'still_unposed': 0,
                                      'taken_again': 3, 'taken_again_oriented': 3}, rep['run']['resumed']
-
-    def moved_m(stamp, T):
-        p = kf / f'{stamp}.json'
-        return float(np.linalg.norm(np.asarray(json.loads(p.read_text())['map_T_cam'])[:3, 3] - T[:3, 3])) \
-            if p.exists() else None
-    moved = {s: moved_m(s, T) for s, T in cut.items()}
+    moved = moved_from(kf, cut)
     taken_now = rep['run']['counts']['tracker']['keyframes'] - n_kept
     print(f'replay --resume: {n_kept} keyframes kept, {taken_now} in the second replay (3 fed again, moved from the '
           f'first replay\'s poses by {moved} m); report {rep["keyframes_oriented"]} of {rep["keyframes_taken"]} '

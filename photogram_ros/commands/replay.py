@@ -3,7 +3,9 @@
 The flight is a bag, a folder of geotagged photos (played in EXIF time order with their EXIF GPS, the
 camera from the EXIF unless --calibration) or a video file with its GNSS log (--gnss-log, a CSV as
 `photogram-ros fixes --format csv` writes from a .tlog, a dataflash .bin or a bag; --calibration). The
-replay ends by itself at the end of the flight and writes the products and the report.
+replay ends by itself at the end of the flight and writes the products and the report. `--resume` continues the
+map in --out as `run --resume` does (`resume_extra`): the adjuster anchored at the map's origin, the keyframes saved
+without a pose (a crash) fed again first, and the keyframes from before counted in the report.
 """
 
 from __future__ import annotations
@@ -50,7 +52,8 @@ def add_arguments(p) -> None:
     p.add_argument('--quiet', action='store_true', help='no progress lines')
     reuse = p.add_mutually_exclusive_group()
     reuse.add_argument('--resume', action='store_true',
-                       help='--out holds a previous replay: continue its map (products are replaced)')
+                       help='--out holds a previous replay: continue its map (products are replaced; its '
+                            'keyframes saved without a pose, as a crash leaves them, are fed again first)')
     reuse.add_argument('--overwrite', action='store_true',
                        help='--out holds a previous replay: delete it first (without --resume or --overwrite an '
                             '--out that holds anything is refused; a folder another replay is writing always is)')
