@@ -57,6 +57,16 @@ def test_keyframes_taken_before_a_crash_are_counted_as_taken_and_those_without_a
             'this run, 1 of them oriented now, 1 without a pose, not oriented') in out, out
 
 
+def moved_from(keyframes_dir, cut: dict) -> dict:
+    """stamp -> how far (m) the camera of the keyframe pose saved in `keyframes_dir` lies from `cut`'s (stamp ->
+    map_T_cam), None where it has no pose."""
+    def moved_m(stamp, T):
+        p = keyframes_dir / f'{stamp}.json'
+        return float(np.linalg.norm(np.asarray(json.loads(p.read_text())['map_T_cam'])[:3, 3] - T[:3, 3])) \
+            if p.exists() else None
+    return {s: moved_m(s, T) for s, T in cut.items()}
+
+
 def _run(cfg, *args, timeout_s: float = 1200.0):
     import subprocess
     import sys
@@ -113,11 +123,7 @@ def test_run_after_a_crash_orients_the_keyframes_taken_before_it_without_a_pose(
     assert f'resumed map: {len(before_b)} keyframes taken before this run ({n_kept} oriented then; 3 without a ' \
            'pose then taken again by this run, 3 of them oriented now)' in out, out[-3000:]
     # Oriented again, in the map's frame: where the first run had them.
-    def moved_m(stamp, T):
-        p = kf / f'{stamp}.json'
-        return float(np.linalg.norm(np.asarray(json.loads(p.read_text())['map_T_cam'])[:3, 3] - T[:3, 3])) \
-            if p.exists() else None
-    moved = {s: moved_m(s, T) for s, T in cut.items()}
+    moved = moved_from(kf, cut)
     taken_now = rep['run']['counts']['tracker']['keyframes'] - n_kept
     print(f'resumed: {n_kept} keyframes kept, {taken_now} in the second run (3 of them fed again, moved from the '
           f'first run\'s poses by {moved} m); report {rep["keyframes_oriented"]} of {rep["keyframes_taken"]} '

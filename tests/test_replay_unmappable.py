@@ -83,7 +83,7 @@ def test_verdict_names_each_way_a_flight_fails_to_map():
     early = keyframe_accounting({'tracker': {'keyframes': 27}, 'bundle': {
         'keyframes_received': 27, 'keyframes_oriented': 27, 'keyframes_unplaced': 6}}, 21)
     assert early['keyframes_not_oriented_by_reason'] == {
-        'given up: before an early break, a line too short for its GNSS': 6}
+        'given up: before an early break (a line too short for its GNSS)': 6}
     assert mapping_verdict(good, True, 0.73, True) == {'mapped': True, 'failures': [], 'warnings': [],
                                                         'dsm_valid_share': 0.73}
     assert mapping_verdict(good, True, 0.3, True)['mapped'] is True

@@ -6,6 +6,9 @@
 - ``--gcp-height-check {checked,use}``: checked, a GCP height the GNSS-only block contradicts far beyond both
   sigmas is reported and the GCP used horizontally only; use, every height as given.
 - ``--heights {ellipsoidal,orthometric}``: the heights of the products written (WGS84 ellipsoid, or EGM2008).
+- ``--exif-altitude {ellipsoidal,orthometric,relative}``, ``--takeoff-altitude-m``, ``--takeoff-heights``: how the
+  photos' EXIF GPSAltitude is read (io/image_source.exif_altitude_reading), in `triangulate` and in the live graph
+  (`replay`: camera_node's exif_altitude, takeoff_altitude_m, takeoff_heights).
 - Height datum values are ``ellipsoidal`` (WGS84) and ``orthometric`` (EGM2008) everywhere; ``msl`` is read as
   ``orthometric``.
 - ``--lever-arm-cam X,Y,Z``: the GNSS antenna from the camera in the camera frame (x right, y down, z along
@@ -104,6 +107,39 @@ def add_heights(p, old_flag: str | None = None) -> None:
     if old_flag:
         p.add_argument(old_flag, dest='heights', nargs=0, const='orthometric', action=_Alias,
                        new_flag='--heights orthometric', help=argparse.SUPPRESS)
+
+
+def add_exif_altitude(p, not_given: str = 'Not given: orthometric') -> None:
+    """--exif-altitude, --takeoff-altitude-m and --takeoff-heights: how the photos' EXIF GPSAltitude is read (one rule
+    for triangulate and camera_node: io/image_source.exif_altitude_reading); `not_given`: what the command does
+    without --exif-altitude."""
+    p.add_argument('--exif-altitude', choices=datum_choices('relative'), action=Datum,
+                   metavar=datum_metavar('relative'), default=None,
+                   help='what the photos\' EXIF GPSAltitude is: orthometric (EGM2008; "above mean sea level", the '
+                        'EXIF standard; default; a DJI XMP AbsoluteAltitude where the EXIF has none), ellipsoidal '
+                        '(WGS84), or relative to the take-off point (many drones; needs --takeoff-altitude-m). '
+                        + not_given)
+    p.add_argument('--takeoff-altitude-m', type=float, default=None,
+                   help='height of the take-off point (m), for --exif-altitude relative')
+    p.add_argument('--takeoff-heights', choices=datum_choices(), action=Datum, metavar=datum_metavar(),
+                   default='orthometric',
+                   help='vertical datum of --takeoff-altitude-m: orthometric (EGM2008; default) or ellipsoidal (WGS84)')
+
+
+def exif_altitude_overrides(a) -> dict:
+    """camera_node's parameters of --exif-altitude, --takeoff-altitude-m, --takeoff-heights (those given); with
+    --exif-altitude checked now as camera_node would check them (io/image_source.exif_altitude_reading; a take-off
+    height alone goes with the parameter file's exif_altitude, which camera_node checks)."""
+    from photogram_ros.io.image_source import exif_altitude_reading
+    if a.exif_altitude:
+        exif_altitude_reading(a.exif_altitude, a.takeoff_altitude_m, a.takeoff_heights)
+    out = {}
+    if a.exif_altitude:
+        out['exif_altitude'] = a.exif_altitude
+    if a.takeoff_altitude_m is not None:
+        out['takeoff_altitude_m'] = float(a.takeoff_altitude_m)
+        out['takeoff_heights'] = a.takeoff_heights
+    return out
 
 
 def add_lever_arm_body(p, extra_help: str = '') -> None:

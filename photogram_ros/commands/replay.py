@@ -3,7 +3,9 @@
 The flight is a bag, a folder of geotagged photos (played in EXIF time order with their EXIF GPS, the
 camera from the EXIF unless --calibration) or a video file with its GNSS log (--gnss-log, a CSV as
 `photogram-ros fixes --format csv` writes from a .tlog, a dataflash .bin or a bag; --calibration). The
-replay ends by itself at the end of the flight and writes the products and the report.
+replay ends by itself at the end of the flight and writes the products and the report. `--resume` continues the
+map in --out as `run --resume` does (`resume_extra`): the adjuster anchored at the map's origin, the keyframes saved
+without a pose (a crash) fed again first, and the keyframes from before counted in the report.
 """
 
 from __future__ import annotations
@@ -31,6 +33,7 @@ def add_arguments(p) -> None:
     p.add_argument('--rate', type=float, default=0.0, help='bag time speed; 0 = as fast as the mapper keeps up')
     p.add_argument('--crs', default='', help='output CRS, e.g. EPSG:2056 (default: UTM zone of the map origin)')
     common_args.add_heights(p, old_flag='--orthometric')
+    common_args.add_exif_altitude(p, 'For a photo folder (camera_node\'s exif_altitude)')
     p.add_argument('--min-pairs', type=int, default=2,
                    help='export only cells confirmed by this many stereo pairs (1 keeps everything)')
     p.add_argument('--gcp', default='', help='control-point file of the flight\'s ArUco targets (first line a CRS, '
@@ -49,7 +52,8 @@ def add_arguments(p) -> None:
     p.add_argument('--quiet', action='store_true', help='no progress lines')
     reuse = p.add_mutually_exclusive_group()
     reuse.add_argument('--resume', action='store_true',
-                       help='--out holds a previous replay: continue its map (products are replaced)')
+                       help='--out holds a previous replay: continue its map (products are replaced; its '
+                            'keyframes saved without a pose, as a crash leaves them, are fed again first)')
     reuse.add_argument('--overwrite', action='store_true',
                        help='--out holds a previous replay: delete it first (without --resume or --overwrite an '
                             '--out that holds anything is refused; a folder another replay is writing always is)')
@@ -62,6 +66,21 @@ def add_arguments(p) -> None:
                         'process uses about one core); 1: every node in one process')
     p.add_argument('--child-nodes', default='bundle,stereo,map',
                    help='nodes of the second process with --processes 2 (among bundle, stereo, map)')
+
+
+def resume_extra(extra: dict, kind: str, params_file: str | None, map_dir, before: dict) -> dict:
+    """`extra` (role -> parameter overrides) for a replay resuming the map `map_dir` that holds keyframes from before
+    (commands/run.keyframes_before): the adjuster anchored at the map's origin, and for a photo folder or a video
+    (`kind`, replay_session.source_kind) the keyframes saved without a pose fed again first by camera_node
+    (resume_keyframes_of), as `run --resume` does (commands/run.in_the_map_origin, feed_unposed_keyframes). A bag
+    is played again whole: its frames are taken again as they come."""
+    from photogram_ros.commands.run import feed_unposed_keyframes, in_the_map_origin
+    from photogram_ros.nodes.graph import GraphSpec
+    roles = ('tracker', 'bundle') if kind == 'bag' else ('camera', 'tracker', 'bundle')
+    spec = in_the_map_origin(GraphSpec(roles=roles, params_file=params_file, extra=extra), map_dir)
+    if kind != 'bag':
+        spec = feed_unposed_keyframes(spec, map_dir, before)
+    return {r: dict(v) for r, v in (spec.extra or {}).items()}
 
 
 def run(a) -> int:
@@ -78,6 +97,8 @@ def run(a) -> int:
     from photogram_ros.nodes.node_main import init_ros
     from photogram_ros.io.control_file import read_control_file
     from photogram_ros.nodes.replay_session import ReplayOptions, run_replay, source_kind
+    from photogram_ros.io.flight_report import keyframes_line
+    from photogram_ros.commands.run import count_keyframes_before, keyframes_before
     from photogram_ros.errors import ConfigError
     from photogram_ros.sim.truth import GroundTruth
 
@@ -109,6 +130,9 @@ def run(a) -> int:
     domain = shared_domain(parse_domain(a.domain, '--domain')) if a.domain is not None else \
         own_domain(avoid=check_domain_env())
     control, extra = None, {}
+    camera = common_args.exif_altitude_overrides(a)   # checked before any process starts
+    if camera:
+        extra['camera'] = camera
     if a.gcp:   # read here first: a bad file is reported before the replay starts
         control = read_control_file(a.gcp, a.check.split(','), a.gcp_heights)
         extra['bundle'] = {'control_file': str(Path(a.gcp).resolve()), 'check_names': a.check,
@@ -118,6 +142,9 @@ def run(a) -> int:
     lock = claim_output(out, 'resume' if a.resume else 'overwrite' if a.overwrite else 'new', 'replay')
     if lock.previous:
         print(f'note: --resume: continuing the map in {out}', flush=True)
+    before = keyframes_before(out / 'map') if a.resume else None
+    if before is not None:
+        extra = resume_extra(extra, source_kind(a.bag), params, out / 'map', before)
     use_domain(domain)
     if a.domain is None and not a.quiet:
         print(f'replaying on ROS_DOMAIN_ID {domain}, a domain of its own (--domain N to watch it from another '
@@ -130,6 +157,8 @@ def run(a) -> int:
                                        video_start_unix_s=a.video_start))
     finally:
         rclpy.try_shutdown()
+    if before is not None:   # the keyframes of the map from before this replay are taken too (the report's N of N)
+        res['run']['resumed'] = count_keyframes_before(res['run'].setdefault('counts', {}), before, out / 'map')
     truth = GroundTruth.load(a.truth) if a.truth else None
     prod = export_products(res['map_dir'], out, params, a.crs, a.live_map, a.heights, a.min_pairs,
                            progress=not a.quiet, run=res['run'], truth=truth, control=control,
@@ -141,8 +170,7 @@ def run(a) -> int:
     print(f"replayed {r['frames']} frames ({r['bag_s']:.1f} s of flight) in {r['wall_s']:.1f} s, "
           f"real-time factor {r['real_time_factor']:.2f}; {figures.get('keyframes', 0)} keyframes, "
           f"{r.get('map_points', 0)} map points")
-    print(f"keyframes: {figures.get('keyframes_taken', 0)} taken, {figures.get('keyframes_oriented', 0)} oriented"
-          + ''.join(f'; {v} {k}' for k, v in figures.get('keyframes_not_oriented_by_reason', {}).items()))
+    print(keyframes_line(figures))
     for h in figures.get('health', []):
         if h['worst_level'] != 'OK':
             print(f"health: {h['node']} {h['worst_level']}: {' | '.join(h['reasons'])[:300]}")

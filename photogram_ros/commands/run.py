@@ -41,6 +41,8 @@ def add_arguments(p) -> None:
                                                     'SIGTERM): clouds, DSM, orthomosaic, trajectory, report')
     p.add_argument('--crs', default='', help='CRS of the products (default: UTM zone of the map origin)')
     common_args.add_heights(p)
+    common_args.add_exif_altitude(p, 'For camera_node\'s photo folder (its exif_altitude; not given: the parameter '
+                                     'file\'s)')
     p.add_argument('--no-export', action='store_true', help='only flush the map when stopping (export later with '
                                                             'photogram-ros export MAPDIR --densify)')
     p.add_argument('--live-map', action='store_true', help='export the in-flight map instead of matching the '
@@ -78,7 +80,9 @@ def run(a) -> int:
                           '(e.g. 3000)')
     if a.namespace:
         check_namespace(a.namespace)
-    spec = GraphSpec(roles=roles, params_file=a.params, namespace=a.namespace)
+    camera = common_args.exif_altitude_overrides(a)
+    spec = GraphSpec(roles=roles, params_file=a.params, namespace=a.namespace,
+                     extra={'camera': camera} if camera and 'camera' in roles else None)
     check_params(spec)     # every mistake before the first frame, not at the end of the flight
     exporting = not a.no_export and 'map' in roles
     if exporting and a.crs:
@@ -611,6 +615,7 @@ def _export_at_stop(a, roles, run_info=None, diagnostics=None) -> int:
         return 0
     from photogram_ros.commands.products import export_products
     from photogram_ros.errors import PhotogramError
+    from photogram_ros.io.flight_report import keyframes_line
     try:
         res = export_products(map_dir_of(a.params), a.out, a.params, a.crs, a.live_map, a.heights, run=run_info,
                               diagnostics=diagnostics, progress=True)
@@ -621,6 +626,8 @@ def _export_at_stop(a, roles, run_info=None, diagnostics=None) -> int:
         print(f'note: {n}', flush=True)
     if res.get('files'):
         print(f"products in {a.out}/ ({res['crs']}): " + ', '.join(sorted(res['files'])) + ', report', flush=True)
+    if 'keyframes_taken' in res.get('figures', {}):
+        print(keyframes_line(res['figures']), flush=True)
     verdict = res.get('figures', {}).get('mapping')
     if verdict and not verdict['mapped']:
         print('MAPPING FAILED: ' + '; '.join(verdict['failures']), flush=True)

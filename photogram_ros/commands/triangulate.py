@@ -27,6 +27,7 @@ def add_arguments(p) -> None:
                                     'photos\' EXIF (focal length from a DJI XMP, the focal-plane resolution, a '
                                     'sensor table or the 35 mm equivalent; principal point centred, no distortion)')
     p.add_argument('--crs', help='output CRS (default: the GCP CRS, else the UTM zone of the first photo)')
+    common_args.add_heights(p)
     p.add_argument('--gcp-sigma', default='0.02,0.02,0.03', help='GCP sigma E,N,U in metres')
     common_args.add_gcp_heights(p, 'a targets file (--targets, or --gcp; a gcp_list.txt says it by its own CRS)',
                                 old_policy=True)
@@ -43,14 +44,8 @@ def add_arguments(p) -> None:
                                                             'or "auto" (default: k1,k2 for a camera from the EXIF, '
                                                             'f too with 3+ GCPs, cx,cy too with RTK/PPK-precise '
                                                             'geotags; nothing for a calibration)')
-    p.add_argument('--exif-altitude', choices=common_args.datum_choices('relative'), action=common_args.Datum,
-                   metavar=common_args.datum_metavar('relative'), default=None,
-                   help='what the photos\' EXIF GPSAltitude is: orthometric (EGM2008; "above mean sea level", the '
-                        'EXIF standard; default), ellipsoidal (WGS84), or relative to the take-off point (many '
-                        'drones; needs --takeoff-altitude-m). Not given: orthometric, and the report says if the '
-                        'adjusted ground makes that look wrong')
-    p.add_argument('--takeoff-altitude-m', type=float, default=None,
-                   help='height of the take-off point (m), for --exif-altitude relative')
+    common_args.add_exif_altitude(p, 'Not given: orthometric, and the report says if the adjusted ground makes that '
+                                     'look wrong')
     p.add_argument('--workers', type=int, default=1,
                    help='photos: features, pair matching and the sub-blocks of a split block on a local Dask cluster '
                         'of this many worker processes (default 1: in this process, no Dask)')
@@ -64,10 +59,6 @@ def add_arguments(p) -> None:
     p.add_argument('--overlap-m', type=float, default=None,
                    help='photos, split-merge: overlap radius between sub-blocks in metres (default: the median '
                         'distance from a photo to its 8th nearest photo)')
-    p.add_argument('--takeoff-heights', choices=common_args.datum_choices(), action=common_args.Datum,
-                   metavar=common_args.datum_metavar(), default='orthometric',
-                   help='vertical datum of --takeoff-altitude-m: orthometric (EGM2008; default) or ellipsoidal '
-                        '(WGS84)')
     p.add_argument('--quiet', action='store_true', help='no progress lines (on stderr; warnings are still said)')
 
 
@@ -117,7 +108,7 @@ def run(a) -> int:
     from photogram_ros.io.out_dir import usable_folder
     usable_folder(a.out)   # a file or an uncreatable path: said now, not after the adjustment
     log = (lambda text: print(text, file=sys.stderr))
-    res = triangulate(a.input, a.out, opt, log=log, progress=not a.quiet, bag=_is_bag(a.input))
+    res = triangulate(a.input, a.out, opt, log=log, progress=not a.quiet, bag=_is_bag(a.input), heights=a.heights)
     rep = res.report
     ck = rep['check']['rmse']
     rms = rep['reprojection_rms_px']

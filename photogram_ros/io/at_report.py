@@ -135,11 +135,20 @@ def verdict_lines(rep: dict) -> list[str]:
     return L + ['']
 
 
+def heights_text(rep: dict) -> str:
+    """What the heights of poses.csv and sparse.ply / sparse.las are (`triangulate --heights`)."""
+    crs = rep.get('crs_with_heights') or rep.get('crs') or 'the output CRS'
+    if rep.get('heights') == 'orthometric':
+        return (f'Heights of poses.csv (z) and sparse.ply / sparse.las: orthometric, above the EGM2008 geoid ({crs}; '
+                'poses.csv\'s lat_deg, lon_deg, h_m are WGS84 with ellipsoidal heights).')
+    return f'Heights of poses.csv and sparse.ply / sparse.las: WGS84 ellipsoidal ({crs}).'
+
+
 def markdown(rep: dict) -> str:
     L = ['# Aerial triangulation report', ''] + verdict_lines(rep) + [
          f"Keyframes {rep['registered']}/{rep['keyframes']} oriented, {rep['points']} tie points, "
          f"{rep['observations']} observations; reprojection RMS {_rms_text(rep)}.",
-         f"Frame: {rep['frame']}. Origin: {rep['origin']}.", '']
+         f"Frame: {rep['frame']}. Origin: {rep['origin']}.", heights_text(rep), '']
     if rep.get('convergence'):
         L += [rep['convergence']['text'] + '.', '']
     if 'gsd_m' in rep:
@@ -278,7 +287,7 @@ def write_report(rep: dict, out_dir) -> tuple[Path, Path]:
         return [figs[k] for k in keys if k in figs]
     summary = [f"Keyframes {rep['registered']}/{rep['keyframes']} oriented, {rep['points']} tie points, "
                f"{rep['observations']} observations; reprojection RMS {_rms_text(rep)}.",
-               f"Frame: {rep['frame']}. Origin: {rep['origin']}."]
+               f"Frame: {rep['frame']}. Origin: {rep['origin']}.", heights_text(rep)]
     if rep.get('convergence'):
         summary.append(rep['convergence']['text'] + '.')
     if 'gsd_m' in rep:

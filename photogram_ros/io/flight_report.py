@@ -14,7 +14,8 @@ a user receives and can be rebuilt after the flight. Figures:
 - at the top, whether the flight mapped at all (`mapping_verdict`: a georeferenced keyframe, half of
   the keyframes oriented, half of the DSM's cells holding a height), how many keyframes the tracker
   took and how many were oriented, why the others were not (`keyframe_accounting`, from the nodes'
-  counters), and every node's worst /diagnostics level with its reasons (`node_health`).
+  counters: reasons that add up to the keyframes not oriented, the adjuster's in-flight reasons apart), and
+  every node's worst /diagnostics level with its reasons (`node_health`).
 """
 
 from __future__ import annotations
@@ -246,19 +247,43 @@ MIN_ORIENTED_SHARE = 0.5     # fewer keyframes oriented than this: the flight di
 MIN_DSM_VALID_SHARE = 0.5    # a DSM with fewer cells holding a height than this is a warning
 FAILED_DSM_VALID_SHARE = 0.1  # ... and with fewer than this, the flight did not map
 NOT_ORIENTED_PREFIX = 'not_oriented_'   # bundle_node counters per reason (not_oriented_<reason>), when it has them
+# The adjuster's count at the end of the flight, per reason, of the keyframes it still holds not oriented
+# (not_oriented_at_end_<reason>), when it has them: each keyframe's final reason, where the counters above are
+# the reasons given in flight (a later step orients some of those keyframes: a segment joined, the final
+# adjustment's second chance).
+AT_END_PREFIX = 'not_oriented_at_end_'
+# The end-of-flight reason of a keyframe oriented once and given up since (not counted not oriented in flight).
+GIVEN_UP_AT_END = 'given_up_after_being_oriented'
+# Per-reason counters that hold at the end by how they are counted (from the map folder, not in flight).
+FINAL_REASONS = ('taken_before_the_restart_without_a_pose',)
+UNPLACED_REASON = 'given up: before an early break (a line too short for its GNSS)'
+ADJUSTER_REASON = 'not oriented by the bundle adjuster'
+
+
+def _number(v) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool)
 
 
 def keyframe_accounting(counts: dict, oriented: int, bundle_status: str | None = None,
                         frames_unusable: int | None = None) -> dict:
     """Keyframes taken (the tracker's count), oriented (`oriented`: those with an adjusted, georeferenced
-    pose in the map, which the products use) and why the others were not, from the nodes' counters
-    (`counts`: role -> Graph.counts()). The reasons are the nodes' in-flight counters: more than the
-    keyframes missing when the final adjustment oriented some the window had given up (said as
-    `keyframes_oriented_after_the_window_gave_up`), 'unaccounted' for what no counter explains.
-    `bundle_status`: the adjuster's last status on /diagnostics, named with its not-oriented count;
-    `frames_unusable`: the tracker's unusable_frames on /diagnostics."""
+    pose in the map, which the products use), not oriented (taken minus oriented) and why, from the nodes'
+    counters (`counts`: role -> Graph.counts()). `keyframes_not_oriented_by_reason` adds up to
+    `keyframes_not_oriented`.
+
+    Reasons: never reached the adjuster, failed there, taken before a restart without a pose (final by how
+    they are counted); then, with the adjuster's end-of-flight counters (AT_END_PREFIX), each keyframe's
+    final reason. Without those, the adjuster's reasons are the ones it gave in flight
+    (`keyframes_not_oriented_in_flight` and `..._in_flight_by_reason`, with the keyframes given up before an
+    early break and those oriented in flight without a georeferenced pose in the map): when they add up to the
+    keyframes still missing they are the reasons; when they count more (a later step oriented some of them),
+    `keyframes_oriented_after_the_window_gave_up` says how many more, and the keyframes still missing are
+    counted under ADJUSTER_REASON. What no counter explains is 'unaccounted'. `bundle_status`: the adjuster's
+    last status on /diagnostics, named when it has no counter per reason; `frames_unusable`: the tracker's
+    unusable_frames on /diagnostics."""
     tr, b = counts.get('tracker', {}), counts.get('bundle', {})
     taken = int(tr.get('keyframes', 0))
+    missing = max(0, taken - int(oriented))
     out = {'keyframes_taken': taken, 'keyframes_oriented': int(oriented),
            'keyframes_oriented_in_flight': int(b.get('keyframes_oriented', 0))}
     if frames_unusable is not None:
@@ -266,34 +291,84 @@ def keyframe_accounting(counts: dict, oriented: int, bundle_status: str | None =
     for key in ('frames_tracked', 'keyframes_without_fix'):
         if key in tr:
             out[key] = int(tr[key])
-    why = {}
-    if 'bundle' in counts:
-        why['never reached the bundle adjuster'] = max(0, taken - int(b.get('keyframes_received', 0)))
-    why['failed in the bundle adjuster (an error, see the problems)'] = int(b.get('keyframes_failed', 0))
+    for key in ('keyframes_joined_from_a_segment', 'keyframes_oriented_at_end'):
+        if _number(b.get(key)):
+            out[key] = int(b[key])
+    at_end = {k[len(AT_END_PREFIX):]: int(v) for k, v in b.items() if k.startswith(AT_END_PREFIX) and _number(v)}
     per_reason = {k[len(NOT_ORIENTED_PREFIX):]: int(v) for k, v in b.items()
-                  if k.startswith(NOT_ORIENTED_PREFIX) and isinstance(v, (int, float))}
-    if per_reason:
-        why.update({f'not oriented: {k.replace("_", " ")}': v for k, v in per_reason.items()})
+                  if k.startswith(NOT_ORIENTED_PREFIX) and not k.startswith(AT_END_PREFIX) and _number(v)}
+    sure = {}
+    if 'bundle' in counts:
+        sure['never reached the bundle adjuster'] = max(0, taken - int(b.get('keyframes_received', 0)))
+    sure['failed in the bundle adjuster (an error, see the problems)'] = int(b.get('keyframes_failed', 0))
+    sure.update({f'not oriented: {k.replace("_", " ")}': per_reason.pop(k) for k in FINAL_REASONS if k in per_reason})
+    why = {k: v for k, v in sure.items() if v}
+    if at_end:
+        why.update({(UNPLACED_REASON if k == GIVEN_UP_AT_END else f'not oriented: {k.replace("_", " ")}'): v
+                    for k, v in at_end.items() if v})
+        # The adjuster holds them oriented, the map has no georeferenced pose for them.
+        why['oriented by the bundle adjuster, no georeferenced pose in the map'] = max(0, missing - sum(why.values()))
+        why = {k: v for k, v in why.items() if v}
     else:
-        status = bundle_status
-        why['not oriented by the bundle adjuster' + (f' (its last status: {status})' if status else '')] = \
-            int(b.get('keyframes_not_oriented', 0))
-    # Keyframes before an early break that their GNSS could not place, given up for the flight after it.
-    why['given up: before an early break, a line too short for its GNSS'] = int(b.get('keyframes_unplaced', 0))
-    why['oriented in flight, no georeferenced pose in the map'] = max(0, out['keyframes_oriented_in_flight']
-                                                                       - int(oriented)
-                                                                       - int(b.get('keyframes_unplaced', 0)))
-    why = {k: v for k, v in why.items() if v}
-    missing = max(0, taken - int(oriented))
+        if per_reason:
+            in_flight = {f'not oriented: {k.replace("_", " ")}': v for k, v in per_reason.items()}
+        else:
+            in_flight = {ADJUSTER_REASON + (f' (its last status: {bundle_status})' if bundle_status else ''):
+                         int(b.get('keyframes_not_oriented', 0))}
+        # Keyframes before an early break that their GNSS could not place, given up for the flight after it.
+        unplaced = int(b.get('keyframes_unplaced', 0))
+        in_flight[UNPLACED_REASON] = unplaced
+        in_flight['oriented in flight, no georeferenced pose in the map'] = max(
+            0, out['keyframes_oriented_in_flight'] - int(oriented) - unplaced)
+        in_flight = {k: v for k, v in in_flight.items() if v}
+        flight_n, rest = sum(in_flight.values()), max(0, missing - sum(why.values()))
+        out['keyframes_not_oriented_in_flight'] = flight_n
+        out['keyframes_not_oriented_in_flight_by_reason'] = in_flight
+        if flight_n <= rest:
+            why.update(in_flight)
+        else:
+            # A later step (a segment joined, the final adjustment's second chance) oriented some of them: which
+            # reason each keyframe still missing had is not counted.
+            out['keyframes_oriented_after_the_window_gave_up'] = flight_n - rest
+            if rest:
+                why[ADJUSTER_REASON] = rest
     counted = sum(why.values())
     if counted < missing:
         why['unaccounted (no node counted why)'] = missing - counted
-    elif counted > missing:
-        # The in-flight counters include keyframes the final adjustment (or a later retry) oriented after all.
-        out['keyframes_oriented_after_the_window_gave_up'] = counted - missing
     out['keyframes_not_oriented'] = missing
     out['keyframes_not_oriented_by_reason'] = why if missing else {}
     return out
+
+
+def not_oriented_text(acc: dict) -> str:
+    """'K not oriented' and its reasons in words, from keyframe_accounting: '4 not oriented: 4 by the bundle
+    adjuster (in flight 13 were not oriented, for: ...; 9 of them oriented later by segment joins and the final
+    adjustment's second chance)'."""
+    k = acc.get('keyframes_not_oriented', 0)
+    if not k:
+        return '0 not oriented'
+    def short(reason):
+        return reason.removeprefix('not oriented: ').removeprefix('not oriented ').replace('given up:', 'given up')
+    parts = []
+    for reason, n in acc['keyframes_not_oriented_by_reason'].items():
+        part = f'{n} {short(reason)}'
+        if reason == ADJUSTER_REASON:
+            flight = acc.get('keyframes_not_oriented_in_flight_by_reason', {})
+            by = [name for key, name in (('keyframes_joined_from_a_segment', 'segment joins'),
+                                         ('keyframes_oriented_at_end', "the final adjustment's second chance"))
+                  if acc.get(key)]
+            part += (f" (in flight {acc.get('keyframes_not_oriented_in_flight', 0)} were not oriented, for: "
+                     + ', '.join(f'{v} {short(r)}' for r, v in flight.items())
+                     + f"; {acc.get('keyframes_oriented_after_the_window_gave_up', 0)} of them oriented later by "
+                     + (' and '.join(by) if by else 'a later step') + ')')
+        parts.append(part)
+    return f'{k} not oriented: ' + '; '.join(parts)
+
+
+def keyframes_line(acc: dict) -> str:
+    """The console's keyframe line: taken, oriented, not oriented with the reasons (not_oriented_text)."""
+    return (f"keyframes: {acc.get('keyframes_taken', 0)} taken, {acc.get('keyframes_oriented', 0)} oriented, "
+            + not_oriented_text(acc))
 
 
 def node_health(diagnostics: dict) -> list[dict]:
@@ -443,8 +518,8 @@ def _health_sections(figures: dict, kfs, files: dict, run: dict, diagnostics: di
     else:
         text = ['MAPPING FAILED: ' + '; '.join(verdict['failures']) + '.']
     if acc['keyframes_not_oriented']:
-        text.append(f"{acc['keyframes_not_oriented']} keyframes not oriented, by reason (the nodes' counters): "
-                    + '; '.join(f'{k}: {v}' for k, v in acc['keyframes_not_oriented_by_reason'].items()) + '.')
+        text.append(f"Keyframes (the nodes' counters): {acc['keyframes_taken']} taken, {acc['keyframes_oriented']} "
+                    f"oriented, {not_oriented_text(acc)}.")
     shed = shed_in_flight(values('stereo_node'), values('map_node'))
     figures['shed_in_flight'] = shed
     if shed:

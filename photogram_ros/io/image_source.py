@@ -49,8 +49,9 @@ XMP_SEARCH_BYTES = 1 << 19          # the XMP packet of a camera JPEG sits in it
 class ExifGps:
     """A photo's EXIF GPS tags as written: not yet a fix (no accuracy, no time, an altitude datum to choose).
 
-    `alt_msl_m` is GPSAltitude signed by GPSAltitudeRef: above mean sea level as EXIF 2.3 says, but
-    many drones write it above the take-off point. `gnss_fix` is the one conversion to a fix.
+    `alt_msl_m` is GPSAltitude signed by GPSAltitudeRef (without it, a DJI XMP's drone-dji:AbsoluteAltitude):
+    above mean sea level as EXIF 2.3 says, but many drones write it above the take-off point. `gnss_fix` is the
+    one conversion to a fix, in camera_node as in triangulate (io/photo_block.exif_position).
     """
 
     lat_deg: float        # WGS84
@@ -123,27 +124,62 @@ def read_exif_gps(path) -> ExifGps | None:
         lon = dms(gps[4]) * (-1 if gps.get(3) == 'W' else 1)
         ref = gps.get(5, 0)
         below = ref in (1, b'\x01')
-        alt = float(gps.get(6, 0.0)) * (-1 if below else 1)
+        alt = float(gps[6]) * (-1 if below else 1) if 6 in gps else None
     except (TypeError, ValueError, IndexError, ZeroDivisionError):
         return None
+    if alt is None:
+        # No GPSAltitude: a DJI photo's XMP drone-dji:AbsoluteAltitude, the same altitude above mean sea level
+        # (DJI writes both alike); else 0 m, as before the EXIF had altitudes (the photo's height then unknown).
+        alt = xmp_float(read_dji_xmp(path), 'AbsoluteAltitude')
+        alt = 0.0 if alt is None else alt
     if not (np.isfinite(lat) and np.isfinite(lon) and np.isfinite(alt)):
         return None
     return ExifGps(lat, lon, alt)
 
 
 EXIF_ALTITUDE_REFERENCES = ('msl', 'ellipsoidal', 'relative')
+# The commands' and the camera node's spelling of the same readings (common_args): 'orthometric' is 'msl' (EGM2008).
+EXIF_ALTITUDE_SPELLINGS = {'orthometric': 'msl'}
+
+
+def exif_altitude_reading(reference: str = 'msl', takeoff_h_m: float | None = None,
+                          takeoff_reference: str = 'msl') -> tuple[str, float | None, str]:
+    """How to read EXIF altitudes, checked, as (reference, takeoff_h_m, takeoff_reference) for
+    exif_altitude_to_ellipsoidal_m and ExifGps.gnss_fix: the one rule of `triangulate --exif-altitude` and
+    camera_node's exif_altitude. 'orthometric' is taken for 'msl'; a take-off height that is None or NaN is none.
+    Raises ConfigError for an unknown reading, 'relative' without a take-off height, or a take-off height
+    without 'relative'."""
+    ref = EXIF_ALTITUDE_SPELLINGS.get(reference, reference)
+    takeoff_ref = EXIF_ALTITUDE_SPELLINGS.get(takeoff_reference, takeoff_reference)
+    if ref not in EXIF_ALTITUDE_REFERENCES:
+        raise ConfigError(f'EXIF altitude reading {reference!r} unknown; choose orthometric (above mean sea level, '
+                          'the EXIF standard), ellipsoidal or relative')
+    if takeoff_ref not in ('msl', 'ellipsoidal'):
+        raise ConfigError(f"take-off height reference {takeoff_reference!r} unknown; choose orthometric or "
+                          "ellipsoidal")
+    takeoff = None if takeoff_h_m is None or not np.isfinite(takeoff_h_m) else float(takeoff_h_m)
+    if ref == 'relative' and takeoff is None:
+        raise ConfigError('EXIF altitudes relative to the take-off point need its height (triangulate '
+                          '--takeoff-altitude-m H, camera_node takeoff_altitude_m; above mean sea level unless '
+                          'the take-off heights are ellipsoidal)')
+    if ref != 'relative' and takeoff is not None:
+        raise ConfigError(f'a take-off height ({takeoff:g} m) is only used with EXIF altitudes relative to the '
+                          'take-off point: say relative, or drop the take-off height')
+    return ref, takeoff, takeoff_ref
 
 
 def exif_altitude_to_ellipsoidal_m(lat_deg, lon_deg, alt_m, reference: str = 'msl',
                                    takeoff_h_m: float | None = None, takeoff_reference: str = 'msl'):
     """EXIF GPSAltitude (m, as written) -> WGS84 ellipsoidal height (m); scalars or arrays.
 
-    `reference` says what the camera meant: 'msl' (EXIF 2.3; through EGM2008 at the photo),
+    `reference` says what the camera meant: 'msl' or 'orthometric' (EXIF 2.3; through EGM2008 at the photo),
     'ellipsoidal' (some PPK/RTK geotaggers write the WGS84 height) or 'relative' (above the take-off
     point, as many drones write it). 'relative' needs `takeoff_h_m`, the take-off point's height,
     above mean sea level or the ellipsoid as `takeoff_reference` ('msl' | 'ellipsoidal') says.
     """
     from photogram_ros.core import geoid
+    reference = EXIF_ALTITUDE_SPELLINGS.get(reference, reference)
+    takeoff_reference = EXIF_ALTITUDE_SPELLINGS.get(takeoff_reference, takeoff_reference)
     if reference not in EXIF_ALTITUDE_REFERENCES:
         raise ConfigError(f'EXIF altitude reference {reference!r} unknown; choose from {EXIF_ALTITUDE_REFERENCES}')
     if takeoff_reference not in ('msl', 'ellipsoidal'):

@@ -2,7 +2,9 @@
 
 Publishes camera/image_raw (bgr8), camera/camera_info (the calibration, every frame) and, for
 geotagged photos, gps/fix from the EXIF GPS stamped at the photo time, so survey photos without a
-flight log still georeference. A photo folder plays the photos of the camera most of it was taken with
+flight log still georeference; its altitude read as `exif_altitude` says (above mean sea level by default, as
+the EXIF standard and `triangulate` read it: one rule, io/image_source.exif_altitude_reading, through the EGM2008
+geoid of core/geoid.py). A photo folder plays the photos of the camera most of it was taken with
 (image size and EXIF make and model: io/image_source.FolderSource); a photo of another size or camera
 (a panorama, a thumbnail) is named on /diagnostics and left out. Without `calibration_file` the camera
 comes from the EXIF of that camera's first photo (core/exif_intrinsics.py: focal length in pixels,
@@ -39,6 +41,9 @@ from photogram_ros.nodes.ros_params import declare
 from photogram_ros.params import param
 
 
+TAKEOFF_NOT_GIVEN = -9999.0   # takeoff_altitude_m's "not given" (a ROS 2 double parameter has no None)
+
+
 @dataclass
 class CameraParams:
     source: str = param('', 'Folder of JPEG/PNG/TIFF photos, a video file, or a camera device '
@@ -48,6 +53,18 @@ class CameraParams:
     calibration_file: str = param('', 'Camera calibration, ROS camera_calibration or OpenCV YAML (make one with '
                                       'photogram-ros calibrate); "" for a photo folder: from the EXIF')
     publish_exif_fix: bool = param(True, 'Publish the EXIF GPS of photos on gps/fix, stamped at the photo time')
+    exif_altitude: str = param('orthometric', 'What the photos\' EXIF GPSAltitude is, read as triangulate '
+                                              '--exif-altitude reads it (io/image_source.exif_altitude_reading): '
+                                              'orthometric, above mean sea level as the EXIF standard says (EGM2008, '
+                                              'core/geoid; a DJI XMP drone-dji:AbsoluteAltitude where the EXIF has '
+                                              'none), ellipsoidal (WGS84: some RTK/PPK geotaggers), or relative to '
+                                              'the take-off point (many drones; needs takeoff_altitude_m)',
+                               choices=('orthometric', 'ellipsoidal', 'relative'))
+    takeoff_altitude_m: float = param(TAKEOFF_NOT_GIVEN, 'Height of the take-off point, m, for exif_altitude '
+                                                         'relative (its datum: takeoff_heights); -9999 = not given',
+                                      min=TAKEOFF_NOT_GIVEN, max=10000.0)
+    takeoff_heights: str = param('orthometric', 'Vertical datum of takeoff_altitude_m: orthometric (EGM2008) or '
+                                                'ellipsoidal (WGS84)', choices=('orthometric', 'ellipsoidal'))
     exif_sigma_m: float = param(5.0, 'Horizontal 1-sigma of EXIF GPS positions and of gnss_log rows without '
                                      'variances, m (vertical taken as twice it)', min=0.001, max=10000.0)
     gnss_log: str = param('', 'CSV of GNSS fixes for a video (t_unix_s, lat_deg, lon_deg, h_m [ellipsoidal], '
@@ -86,7 +103,12 @@ class CameraNode(Node):
         super().__init__('camera_node', **node_kwargs)
         from photogram_ros.io.image_source import open_source
         from photogram_ros.io.image_source import read_fix_log
+        from photogram_ros.io.image_source import exif_altitude_reading
         p = self.params = declare(self, CameraParams, overrides)
+        # The EXIF altitudes' reading, checked before the first photo: the rule triangulate applies.
+        self._exif_reading = exif_altitude_reading(
+            p.exif_altitude, None if p.takeoff_altitude_m == TAKEOFF_NOT_GIVEN else p.takeoff_altitude_m,
+            p.takeoff_heights)
         self._log = read_fix_log(p.gnss_log, p.exif_sigma_m) if p.gnss_log else []
         self._log_next = 0           # the first log fix not yet published
         start_ns = int(p.video_start_unix_s * 1e9) or (self._log[0].stamp_ns if self._log else None)
@@ -96,6 +118,9 @@ class CameraNode(Node):
         self.diag = Diagnostics(self)
         self.diag.set('source', p.source)
         self.diag.set('calibration', camera_note)
+        self.diag.set('exif_altitude', p.exif_altitude + (f' (take-off at {p.takeoff_altitude_m:g} m '
+                                                          f'{p.takeoff_heights})' if p.exif_altitude == 'relative'
+                                                          else ''))
         notes = list(self.source.notes)
         if self._log:
             notes.append(f'{len(self._log)} fixes from {p.gnss_log}'
@@ -284,7 +309,7 @@ class CameraNode(Node):
             # The fix goes first so that a consumer holding the image already has its position.
             self._publish_log_fixes(stamp_ns)
             if (p.publish_exif_fix or resumed) and frame.gps is not None:
-                fix = frame.gps.gnss_fix(stamp_ns, p.exif_sigma_m, 2.0 * p.exif_sigma_m)
+                fix = frame.gps.gnss_fix(stamp_ns, p.exif_sigma_m, 2.0 * p.exif_sigma_m, *self._exif_reading)
                 self.pub_fix.publish(msgs.navsatfix_from_gnss_fix(fix, p.fix_frame_id))
                 self.diag.count('fixes')
             self.pub_info.publish(msgs.camera_info_msg(self.camera, stamp_ns, p.frame_id))
