@@ -1,6 +1,6 @@
 """`triangulate --heights` means what `run`/`replay`/`export --heights` mean (issue 47): one option definition
 (commands/common_args.add_heights) and the heights of what triangulate writes (poses.csv's z, sparse.ply,
-sparse.las and the report) in the datum asked (io/triangulate_action.restate_heights)."""
+sparse.las and the report) written once in the datum asked (TriangulateOptions.heights)."""
 
 from __future__ import annotations
 
