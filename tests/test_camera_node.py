@@ -204,7 +204,7 @@ def test_node_publishes_image_info_and_exif_fix(survey, rclpy_context, tmp_path)
     fix = msgs.fix_from_navsatfix(got['fix'][0])
     assert abs(fix['lat_deg'] - geo[first][0]) < 1e-7 and abs(fix['h_m'] - geo[first][2]) < 0.01
     assert fix['covariance_type'] == NavSatFix.COVARIANCE_TYPE_APPROXIMATED
-    assert np.allclose(np.diag(fix['covariance_enu_m2']), [9.0, 9.0, 36.0])
+    assert np.allclose(np.diag(fix['covariance_enu_m2']), [9.0, 9.0, 4.0])   # vertical: exif_sigma_v_m, 2 m
     c = cam.diag.counts()
     assert c['frames'] == n and c['fixes'] == n and c['skipped_unreadable'] == 1
 

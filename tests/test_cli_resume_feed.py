@@ -44,10 +44,11 @@ def test_stored_keyframes_without_a_pose_are_played_first_with_their_fixes(surve
         shutil.copy(path, src / path.name)
     s = [stamp for _, stamp in entries]
     fix0 = (47.1, 8.2, 500.5, 0.03)     # an RTK keyframe: its sigma kept
-    fix2 = (47.2, 8.3, 501.5, None)     # kept without one: exif_sigma_m
+    fix2 = (47.2, 8.3, 501.5, None)     # kept without one: exif_sigma_m, exif_sigma_v_m
     _stored_map(tmp_path / 'map', entries[:4], posed=[s[1]], fixes={s[0]: fix0, s[2]: fix2, s[1]: fix0})
     cam = CameraNode({'source': str(src), 'calibration_file': str(calib), 'rate': 0.0, 'autostart': False,
-                      'publish_exif_fix': False, 'exif_sigma_m': 3.0, 'resume_keyframes_of': str(tmp_path / 'map')},
+                      'publish_exif_fix': False, 'exif_sigma_m': 3.0, 'exif_sigma_v_m': 6.0,
+                      'resume_keyframes_of': str(tmp_path / 'map')},
                      context=rclpy_context)
     listener, got = _listener(rclpy_context)
     ex = SingleThreadedExecutor(context=rclpy_context)

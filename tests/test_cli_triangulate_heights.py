@@ -1,6 +1,6 @@
 """`triangulate --heights` means what `run`/`replay`/`export --heights` mean (issue 47): one option definition
 (commands/common_args.add_heights) and the heights of what triangulate writes (poses.csv's z, sparse.ply,
-sparse.las and the report) in the datum asked (io/triangulate_action.restate_heights)."""
+sparse.las and the report) written once in the datum asked (TriangulateOptions.heights)."""
 
 from __future__ import annotations
 
@@ -58,3 +58,47 @@ def test_triangulate_writes_orthometric_heights_one_geoid_undulation_below_the_e
     assert (o_rep['heights'], e_rep['heights']) == ('orthometric', 'ellipsoidal')
     assert o_rep['crs_with_heights'] == f'EPSG:{epsg}+3855'
     assert 'orthometric, above the EGM2008 geoid' in o_md and 'WGS84 ellipsoidal' in e_md
+
+
+def test_options_refuse_an_unknown_datum():
+    import pytest
+
+    from photogram_ros.errors import ConfigError
+    from photogram_ros.io.aerial_triangulation import TriangulateOptions
+    assert TriangulateOptions(heights='orthometric').heights == 'orthometric'
+    with pytest.raises(ConfigError, match='--heights'):
+        TriangulateOptions(heights='msl')
+
+
+def test_poses_and_cloud_are_written_once_in_the_datum_asked(tmp_path):
+    """write_poses_and_cloud (what adjust_block and split-merge write through) in each datum: poses.csv's z and
+    the cloud one undulation apart, h_m ellipsoidal in both; an empty cloud is written too."""
+    import laspy
+
+    from photogram_ros.core import geoid
+    from photogram_ros.core.geodesy import LocalFrame
+    from photogram_ros.io.aerial_triangulation import heights_keys, write_poses_and_cloud
+    origin = LocalFrame(47.3977, 8.5456, 450.0)
+    Ts = []
+    for k in range(4):
+        T = np.diag([1.0, -1.0, -1.0, 1.0])
+        T[:3, 3] = (20.0 * k, 5.0 * k, 80.0)
+        Ts.append(T)
+    P = np.array([[5.0, 2.0, 0.5], [30.0, 10.0, -1.0], [50.0, 12.0, 2.0]])
+    for heights in ('ellipsoidal', 'orthometric'):
+        write_poses_and_cloud(tmp_path / heights, [f'IMG_{k}.JPG' for k in range(4)], Ts, P, origin, 'EPSG:32632',
+                              [], heights)
+        write_poses_and_cloud(tmp_path / f'{heights}_empty', ['IMG_0.JPG'], Ts[:1], np.zeros((0, 3)), origin,
+                              'EPSG:32632', [], heights)
+        assert len(laspy.read(str(tmp_path / f'{heights}_empty' / 'sparse.las')).x) == 0
+    e_rows = list(csv.DictReader(open(tmp_path / 'ellipsoidal' / 'poses.csv')))
+    o_rows = list(csv.DictReader(open(tmp_path / 'orthometric' / 'poses.csv')))
+    n_m = geoid.undulation_m([float(r['lat_deg']) for r in o_rows], [float(r['lon_deg']) for r in o_rows])
+    dz = np.array([float(e['z']) - float(o['z']) for e, o in zip(e_rows, o_rows)])
+    assert np.allclose(dz, n_m, atol=2e-4) and 45.0 < float(np.median(n_m)) < 51.0
+    assert all(e['h_m'] == o['h_m'] == e['z'] for e, o in zip(e_rows, o_rows))
+    assert {r['crs'] for r in o_rows} == {'EPSG:32632+3855'} and {r['crs'] for r in e_rows} == {'EPSG:32632'}
+    e_las, o_las = (laspy.read(str(tmp_path / h / 'sparse.las')) for h in ('ellipsoidal', 'orthometric'))
+    assert np.allclose(np.asarray(e_las.z) - np.asarray(o_las.z), np.median(n_m), atol=0.05)
+    assert o_las.header.parse_crs().is_compound and e_las.header.parse_crs().to_epsg() == 32632
+    assert heights_keys('EPSG:32632', 'orthometric') == {'heights': 'orthometric', 'crs_with_heights': 'EPSG:32632+3855'}

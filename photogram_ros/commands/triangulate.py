@@ -103,12 +103,12 @@ def run(a) -> int:
         self_calibrate=refine, matching=matching,
         exif_altitude=_msl(a.exif_altitude), takeoff_h_m=a.takeoff_altitude_m,
         takeoff_heights=_msl(a.takeoff_heights), control_heights=a.gcp_heights,
-        workers=a.workers, scheduler=a.scheduler, split=split,
+        workers=a.workers, scheduler=a.scheduler, split=split, heights=a.heights,
         vetting=ControlVettingOptions(contradicted_heights='horizontal' if a.gcp_height_check == 'checked' else 'use'))
     from photogram_ros.io.out_dir import usable_folder
     usable_folder(a.out)   # a file or an uncreatable path: said now, not after the adjustment
     log = (lambda text: print(text, file=sys.stderr))
-    res = triangulate(a.input, a.out, opt, log=log, progress=not a.quiet, bag=_is_bag(a.input), heights=a.heights)
+    res = triangulate(a.input, a.out, opt, log=log, progress=not a.quiet, bag=_is_bag(a.input))
     rep = res.report
     ck = rep['check']['rmse']
     rms = rep['reprojection_rms_px']

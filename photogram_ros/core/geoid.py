@@ -77,12 +77,15 @@ _cache = _GeoidWindowCache()
 
 
 def undulation_m(lat_deg, lon_deg):
-    """Geoid height N above the WGS84 ellipsoid (m) at the given points (scalars or arrays)."""
+    """Geoid height N above the WGS84 ellipsoid (m) at the given points (scalars or arrays; empty ones give
+    an empty array)."""
     lat = np.atleast_1d(np.asarray(lat_deg, dtype=float))
     lon = np.atleast_1d(np.asarray(lon_deg, dtype=float))
     if not (np.all(np.isfinite(lat)) and np.all(np.isfinite(lon))) or np.any(np.abs(lat) > 90):
         raise GeodesyError('geoid lookup needs finite latitudes within [-90, 90] degrees')
     lat, lon = np.broadcast_arrays(lat, lon)
+    if lat.size == 0:
+        return np.zeros(lat.shape)
     n = _cache.sample(lat.ravel(), lon.ravel()).reshape(lat.shape)
     return float(n[0]) if np.ndim(lat_deg) == 0 and np.ndim(lon_deg) == 0 else n
 

@@ -5,7 +5,9 @@ keyframe with the control (the flight's ArUco targets file for a bag, or an Open
 photos that did not register in sequence a second chance against the whole block, makes a full adjustment
 (self-calibrating the intrinsics asked for), and writes into `out`:
 - poses.csv: each oriented image in the output CRS and WGS84, omega-phi-kappa (io/trajectory.py);
-- sparse.ply and sparse.las: the tie points, ellipsoidal heights;
+- sparse.ply and sparse.las: the tie points;
+all heights in the datum `options.heights` asks (WGS84 ellipsoidal, or orthometric above EGM2008; poses.csv's
+lat_deg/lon_deg/h_m stay WGS84 ellipsoidal), said in the report ('heights', 'crs_with_heights');
 - report.md/.html/.json: the adjustment's figures (core/at_report.py) and every assumption made.
 The output CRS is the one asked for, else the GCP file's, else the UTM zone of the origin.
 
@@ -91,6 +93,8 @@ class TriangulateOptions:
     scheduler: str | None = None              # photos: an existing Dask cluster, tcp://HOST:PORT
     # photos: blocks above split.split_photos adjusted as overlapping sub-blocks and merged; None: never split
     split: SplitMergeOptions | None = field(default_factory=SplitMergeOptions)
+    # the heights of poses.csv's z and the sparse cloud written: 'ellipsoidal' or 'orthometric' (io/crs_tags.HEIGHTS)
+    heights: str = 'ellipsoidal'
     # The incremental adjustment's options (window, lever arm), made and validated here from the fields above.
     adjustment: IncrementalOptions = field(init=False, repr=False)
 
@@ -106,6 +110,9 @@ class TriangulateOptions:
         if self.gcp and not self.targets and is_targets_file(self.gcp):
             # --gcp means "the control file" in every command: a targets file (replay --gcp's format) is one.
             self.targets, self.gcp = self.gcp, None
+        from photogram_ros.io.crs_tags import HEIGHTS as OUTPUT_HEIGHTS
+        if self.heights not in OUTPUT_HEIGHTS:
+            raise ConfigError(f'--heights {self.heights!r}: one of {", ".join(OUTPUT_HEIGHTS)}')
         if self.control_heights not in HEIGHTS:
             raise ConfigError(f'--gcp-heights {self.control_heights!r}: one of {", ".join(HEIGHTS)} (the vertical '
                               'datum of the control file\'s heights)')
@@ -407,7 +414,7 @@ def finish_block(block: KeyframeBlock, out: Path, opt: TriangulateOptions, at: I
                 log(f'warning: {note}')
     steps.start('writing the poses, the sparse cloud and the report')
     P = write_poses_and_cloud(out, at.block.oriented_names(), at.block.oriented_poses(), P, origin, crs,
-                               assumptions)
+                               assumptions, opt.heights)
     rep = build_report(at, assumptions, vetting=vet, gnss_without_gcps=gnss_without_gcps)
     inputs = inputs_from_at(at, len(block.records), adj, block.expect_nadir, block.excluded)
     ck = rep['check']['rmse']
@@ -423,6 +430,7 @@ def finish_block(block: KeyframeBlock, out: Path, opt: TriangulateOptions, at: I
     if noise:
         rep['gnss_noise'] = noise
     rep['crs'] = crs
+    rep.update(heights_keys(crs, opt.heights))
     rep['adjustment_status'] = rep_adj.status
     if conv is not None:
         rep['convergence'] = conv
@@ -457,21 +465,30 @@ def with_findings(verdict, findings) -> object:
     return BlockVerdict(status, findings, dict(verdict.figures))
 
 
+def heights_keys(crs: str, heights: str) -> dict:
+    """The report's statement of the heights write_poses_and_cloud wrote: 'heights' and 'crs_with_heights' (the CRS
+    compound with EGM2008 height for orthometric ones, io/crs_tags.crs_with_heights)."""
+    from photogram_ros.io.crs_tags import crs_with_heights
+    return {'heights': heights, 'crs_with_heights': crs_with_heights(crs, heights) if crs else None}
+
+
 def write_poses_and_cloud(out: Path, names: list, map_T_cams: list, P: np.ndarray, origin: LocalFrame, crs: str,
-                           assumptions: list) -> np.ndarray:
+                          assumptions: list, heights: str = 'ellipsoidal') -> np.ndarray:
     """poses.csv of the oriented photos, and sparse.ply / sparse.las of the tie points P (map ENU, m) near
-    the cameras (the others are said in the assumptions); returns the points written."""
+    the cameras (the others are said in the assumptions), their heights per `heights` ('ellipsoidal' or
+    'orthometric': poses.csv's z and the cloud above EGM2008, the CRS compound with EGM2008 height); returns
+    the points written."""
     out.mkdir(parents=True, exist_ok=True)
     Ts = np.array(map_T_cams).reshape(-1, 4, 4)
-    write_trajectory_csv(out / 'poses.csv', POSES_COLUMNS, list(names), Ts, origin, crs)
+    write_trajectory_csv(out / 'poses.csv', POSES_COLUMNS, list(names), Ts, origin, crs, heights=heights)
     near = near_the_cameras(P, Ts[:, :3, 3])
     if not near.all():
         assumptions.append(f'{int((~near).sum())} of {len(P)} tie points lie more than 10 times the usual camera '
                            'distance from every camera (rays almost parallel): left out of sparse.ply / sparse.las')
         P = P[near]
-    e, n, h = enu_to_crs(origin, P, crs)
+    e, n, h = enu_to_crs(origin, P, crs, heights)
     cloud = GeoCloud(e, n, h, np.full((len(P), 3), 200, np.uint8), np.ones(len(P), np.uint32),
-                     np.ones(len(P), np.float32), crs, 'ellipsoidal')
+                     np.ones(len(P), np.float32), crs, heights)
     write_ply(cloud, out / 'sparse.ply')
     write_las(cloud, out / 'sparse.las')
     return P

@@ -53,6 +53,16 @@ def horizontal_crs(crs: str):
     return CRS.from_epsg(code) if code else h
 
 
+def crs_with_heights(crs: str, heights: str) -> str:
+    """The CRS that states `crs`'s positions with `heights`: `crs` itself for ellipsoidal heights, EPSG:<code>+3855
+    (EGM2008 height) for orthometric ones (`crs` itself when its horizontal part has no EPSG code)."""
+    _check_heights(heights)
+    if heights != 'orthometric':
+        return crs
+    code = horizontal_crs(crs).to_epsg()
+    return f'EPSG:{code}+{EGM2008_HEIGHT_EPSG}' if code else crs
+
+
 def _check_heights(heights: str) -> None:
     if heights not in HEIGHTS:
         raise GeodesyError(f'heights must be one of {HEIGHTS}, not {heights!r}')

@@ -57,15 +57,67 @@ class ExifGps:
     lat_deg: float        # WGS84
     lon_deg: float
     alt_msl_m: float      # as written in the EXIF, m
+    rtk: tuple[int, float, float] | None = None   # a DJI RTK photo's XMP (RtkFlag, sigma_h_m, sigma_v_m): dji_rtk_accuracy
+
+    def sigmas_m(self, sigma_h_m: float, sigma_v_m: float) -> tuple[float, float]:
+        """(per-axis horizontal, vertical) 1-sigma of this position, m: a DJI RTK photo's own (`rtk`), else the
+        EXIF sigmas given."""
+        return (self.rtk[1], self.rtk[2]) if self.rtk is not None else (float(sigma_h_m), float(sigma_v_m))
 
     def gnss_fix(self, stamp_ns: int, sigma_h_m: float, sigma_v_m: float, reference: str = 'msl',
                  takeoff_h_m: float | None = None, takeoff_reference: str = 'msl') -> gf.GnssFix:
-        """This position as a fix at `stamp_ns`, with the given 1-sigma accuracies (m) and the altitude read
-        as `reference` says (see exif_altitude_to_ellipsoidal_m)."""
+        """This position as a fix at `stamp_ns` with the altitude read as `reference` says (see
+        exif_altitude_to_ellipsoidal_m): a DJI RTK photo with its XMP sigmas (covariance known) and the
+        NavSatStatus of its flag (`rtk_navsat_status`), else the given 1-sigma accuracies (m, approximated)."""
         h_m = float(exif_altitude_to_ellipsoidal_m(self.lat_deg, self.lon_deg, self.alt_msl_m, reference, takeoff_h_m,
                                                    takeoff_reference))
-        cov = np.diag([sigma_h_m * sigma_h_m, sigma_h_m * sigma_h_m, sigma_v_m * sigma_v_m])
+        sh, sv = self.sigmas_m(sigma_h_m, sigma_v_m)
+        cov = np.diag([sh * sh, sh * sh, sv * sv])
+        if self.rtk is not None:
+            return gf.GnssFix(self.lat_deg, self.lon_deg, h_m, cov, int(stamp_ns), rtk_navsat_status(self.rtk[0]),
+                              gf.COV_DIAGONAL_KNOWN)
         return gf.GnssFix(self.lat_deg, self.lon_deg, h_m, cov, int(stamp_ns), gf.STATUS_FIX, gf.COV_APPROXIMATED)
+
+
+# Sigmas of a DJI RTK-fixed photo whose XMP states no RtkStd* (per-axis horizontal, vertical).
+RTK_FIXED_DEFAULT_M = (0.02, 0.03)
+
+
+def dji_rtk_accuracy(path, xmp: dict | None = None) -> tuple[int, float, float] | None:
+    """A DJI RTK photo's own solution quality from its XMP (`xmp`: read_dji_xmp of the photo when already read):
+    (RtkFlag, per-axis horizontal and vertical 1-sigma in metres), or None when the XMP has no RtkFlag (not an
+    RTK drone) or flag 0 (no solution). The one reading of `triangulate` (io/photo_block) and camera_node
+    (ExifGps.rtk).
+
+    The sigmas are RtkStdLon, RtkStdLat (horizontal: sqrt((lon^2 + lat^2) / 2)) and RtkStdHgt, each at
+    least the floor of the flag's quality class (io/camera_events.DJI_RTK_FLAG_Q ->
+    core.exposure_positions.Q_FLOOR_M: a float or single solution's formal sigma is optimistic); a flag
+    without sigmas takes its class's floor, and a fixed one without sigmas 2 cm / 3 cm."""
+    from photogram_ros.core.exposure_positions import Q_FLOOR_M
+    from photogram_ros.io.camera_events import DJI_RTK_FLAG_Q
+    xmp = read_dji_xmp(path) if xmp is None else xmp
+    flag = xmp_float(xmp, 'RtkFlag')
+    if flag is None or int(flag) == 0:
+        return None
+    flag = int(flag)
+    floor_h, floor_v = Q_FLOOR_M.get(DJI_RTK_FLAG_Q.get(flag, 5), Q_FLOOR_M[5])
+    lon_m, lat_m, hgt_m = (xmp_float(xmp, k) for k in ('RtkStdLon', 'RtkStdLat', 'RtkStdHgt'))
+    if lon_m is None or lat_m is None or hgt_m is None:
+        return flag, max(floor_h, RTK_FIXED_DEFAULT_M[0]), max(floor_v, RTK_FIXED_DEFAULT_M[1])
+    return flag, max((0.5 * (lon_m ** 2 + lat_m ** 2)) ** 0.5, floor_h, 1e-3), max(hgt_m, floor_v, 1e-3)
+
+
+# The common quality class of a DJI RtkFlag (io/camera_events.DJI_RTK_FLAG_Q: 1 fix, 2 float, 3 SBAS, 4 DGPS,
+# 5 single) -> sensor_msgs/NavSatStatus.status, as core/gnss_fix maps a receiver's fix type: RTK fixed and float
+# are both GBAS (NavSatStatus cannot tell them apart: the covariance does), SBAS and DGPS SBAS, single a plain fix.
+_RTK_Q_STATUS = {1: gf.STATUS_GBAS_FIX, 2: gf.STATUS_GBAS_FIX, 3: gf.STATUS_SBAS_FIX, 4: gf.STATUS_SBAS_FIX,
+                 5: gf.STATUS_FIX}
+
+
+def rtk_navsat_status(flag: int) -> int:
+    """A DJI RtkFlag -> NavSatStatus.status (_RTK_Q_STATUS; an unknown flag is a single solution's STATUS_FIX)."""
+    from photogram_ros.io.camera_events import DJI_RTK_FLAG_Q
+    return _RTK_Q_STATUS.get(DJI_RTK_FLAG_Q.get(int(flag), 5), gf.STATUS_FIX)
 
 
 @dataclass(frozen=True)
@@ -107,7 +159,8 @@ def _exif(path):
 
 
 def read_exif_gps(path) -> ExifGps | None:
-    """EXIF GPS of a photo as written; None when absent or unreadable."""
+    """EXIF GPS of a photo as written, with a DJI RTK photo's XMP flag and sigmas (`ExifGps.rtk`); None when
+    absent or unreadable."""
     try:
         gps = _exif(path).get_ifd(GPS_IFD)
     except (OSError, SyntaxError, ValueError):
@@ -127,14 +180,15 @@ def read_exif_gps(path) -> ExifGps | None:
         alt = float(gps[6]) * (-1 if below else 1) if 6 in gps else None
     except (TypeError, ValueError, IndexError, ZeroDivisionError):
         return None
+    xmp = read_dji_xmp(path)
     if alt is None:
         # No GPSAltitude: a DJI photo's XMP drone-dji:AbsoluteAltitude, the same altitude above mean sea level
         # (DJI writes both alike); else 0 m, as before the EXIF had altitudes (the photo's height then unknown).
-        alt = xmp_float(read_dji_xmp(path), 'AbsoluteAltitude')
+        alt = xmp_float(xmp, 'AbsoluteAltitude')
         alt = 0.0 if alt is None else alt
     if not (np.isfinite(lat) and np.isfinite(lon) and np.isfinite(alt)):
         return None
-    return ExifGps(lat, lon, alt)
+    return ExifGps(lat, lon, alt, dji_rtk_accuracy(path, xmp))
 
 
 EXIF_ALTITUDE_REFERENCES = ('msl', 'ellipsoidal', 'relative')

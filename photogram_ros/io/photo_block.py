@@ -3,8 +3,8 @@
 Positions come from an OpenDroneMap geo.txt beside the photos (io/geo_txt.read_geo_txt; heights ellipsoidal,
 its accuracies as sigmas), else from each photo's EXIF GPS (`exif_position`; what the EXIF altitude
 is relative to as the user says, MSL by default, sigma 5 m horizontal and 2 m vertical, or a DJI RTK
-photo's own sigmas and fix flag from its XMP: `dji_rtk_accuracy`; the report's assumptions and
-`matching.rtk_flags` count the photos per flag).
+photo's own sigmas and fix flag from its XMP: io/image_source.dji_rtk_accuracy, the reading camera_node
+publishes too; the report's assumptions and `matching.rtk_flags` count the photos per flag).
 
 The camera: a calibration YAML (`--camera`), else the photos' EXIF (core/exif_intrinsics.py: DJI XMP
 calibrated focal, FocalLength with the focal plane resolution or a known sensor width, or the 35 mm
@@ -41,17 +41,17 @@ from photogram_ros.core.incremental import KeyframeRecord
 from photogram_ros.errors import CalibrationError, DataError
 from photogram_ros.io.dask_cluster import InProcessRunner
 from photogram_ros.io.geo_txt import EXIF_SIGMA_H_M, EXIF_SIGMA_V_M, read_geo_txt
-from photogram_ros.io.image_source import (IMAGE_SUFFIXES, exif_altitude_to_ellipsoidal_m, exif_intrinsics,
-                                           image_file_problem, read_dji_xmp, read_exif_gps, xmp_float)
+from photogram_ros.io.image_source import (IMAGE_SUFFIXES, dji_rtk_accuracy,
+                                           exif_altitude_to_ellipsoidal_m, exif_intrinsics, image_file_problem,
+                                           read_dji_xmp, read_exif_gps, xmp_float)
 from photogram_ros.io.keyframe_block import KeyframeBlock, camera_from_yaml
-
-# Sigmas of a DJI RTK-fixed photo whose XMP states no RtkStd* (per-axis horizontal, vertical).
-RTK_FIXED_DEFAULT_M = (0.02, 0.03)
 
 
 def exif_position(path: str | Path, altitude: str = 'msl', takeoff_h_m: float | None = None,
                   takeoff_heights: str = 'msl') -> tuple[float, float, float, float, float] | None:
-    """A photo's EXIF GPS -> (lat_deg, lon_deg, h_m ellipsoidal, h_acc_m, v_acc_m), or None without one.
+    """A photo's EXIF GPS -> (lat_deg, lon_deg, h_m ellipsoidal, h_acc_m, v_acc_m), or None without one: a DJI RTK
+    photo's XMP sigmas (image_source.dji_rtk_accuracy), else EXIF_SIGMA_H_M / EXIF_SIGMA_V_M, as camera_node
+    publishes it (ExifGps.gnss_fix).
 
     `altitude`, `takeoff_h_m`, `takeoff_heights`: what the EXIF altitude is relative to
     (`image_source.exif_altitude_to_ellipsoidal_m`).
@@ -61,29 +61,7 @@ def exif_position(path: str | Path, altitude: str = 'msl', takeoff_h_m: float | 
         return None
     h_m = float(exif_altitude_to_ellipsoidal_m(fix.lat_deg, fix.lon_deg, fix.alt_msl_m, altitude, takeoff_h_m,
                                                takeoff_heights))
-    return fix.lat_deg, fix.lon_deg, h_m, EXIF_SIGMA_H_M, EXIF_SIGMA_V_M
-
-
-def dji_rtk_accuracy(path: str | Path) -> tuple[int, float, float] | None:
-    """A DJI RTK photo's own solution quality from its XMP: (RtkFlag, per-axis horizontal and vertical
-    1-sigma in metres), or None when the XMP has no RtkFlag (not an RTK drone) or flag 0 (no solution).
-
-    The sigmas are RtkStdLon, RtkStdLat (horizontal: sqrt((lon^2 + lat^2) / 2)) and RtkStdHgt, each at
-    least the floor of the flag's quality class (io/camera_events.DJI_RTK_FLAG_Q ->
-    core.exposure_positions.Q_FLOOR_M: a float or single solution's formal sigma is optimistic); a flag
-    without sigmas takes its class's floor, and a fixed one without sigmas 2 cm / 3 cm."""
-    from photogram_ros.core.exposure_positions import Q_FLOOR_M
-    from photogram_ros.io.camera_events import DJI_RTK_FLAG_Q
-    xmp = read_dji_xmp(path)
-    flag = xmp_float(xmp, 'RtkFlag')
-    if flag is None or int(flag) == 0:
-        return None
-    flag = int(flag)
-    floor_h, floor_v = Q_FLOOR_M.get(DJI_RTK_FLAG_Q.get(flag, 5), Q_FLOOR_M[5])
-    lon_m, lat_m, hgt_m = (xmp_float(xmp, k) for k in ('RtkStdLon', 'RtkStdLat', 'RtkStdHgt'))
-    if lon_m is None or lat_m is None or hgt_m is None:
-        return flag, max(floor_h, RTK_FIXED_DEFAULT_M[0]), max(floor_v, RTK_FIXED_DEFAULT_M[1])
-    return flag, max((0.5 * (lon_m ** 2 + lat_m ** 2)) ** 0.5, floor_h, 1e-3), max(hgt_m, floor_v, 1e-3)
+    return (fix.lat_deg, fix.lon_deg, h_m, *fix.sigmas_m(EXIF_SIGMA_H_M, EXIF_SIGMA_V_M))
 
 
 def _positions(src: Path, images: list[Path], exif_altitude, takeoff_h_m, takeoff_heights, assumptions):
@@ -100,8 +78,6 @@ def _positions(src: Path, images: list[Path], exif_altitude, takeoff_h_m, takeof
         g = exif_position(p, exif_altitude or 'msl', takeoff_h_m, takeoff_heights)
         if g:
             rtk = dji_rtk_accuracy(p)
-            if rtk is not None:
-                g = (*g[:3], rtk[1], rtk[2])
             key = rtk[0] if rtk is not None else None
             flags[key] = flags.get(key, 0) + 1
             geo[p.name] = g

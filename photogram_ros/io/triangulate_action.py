@@ -5,10 +5,11 @@ A bag's keyframes (io/bag_keyframes.py) with its control file's targets are adju
 io/dask_cluster.py) and adjusted as one block, or above `options.split.split_photos` geotagged photos by
 split-merge (io/split_merge_action.py `split_merge_block`).
 
-The heights of what it writes (`heights`, as `run`/`replay`/`export --heights` mean it): WGS84 ellipsoidal as the
-block is adjusted, or orthometric above the EGM2008 geoid (core/geoid.py): poses.csv's z (the output CRS's
+The heights of what it writes (`options.heights`, as `run`/`replay`/`export --heights` mean it): WGS84 ellipsoidal
+as the block is adjusted, or orthometric above the EGM2008 geoid (core/geoid.py): poses.csv's z (the output CRS's
 column; lat_deg/lon_deg/h_m stay WGS84 with ellipsoidal heights) and sparse.ply / sparse.las (the LAS CRS compound
-with EGM2008 height) are restated once the block is written (`restate_heights`), and the report says which.
+with EGM2008 height) are written in that datum (io/aerial_triangulation.write_poses_and_cloud), and the report says
+which.
 
 Progress (io/progress.py) goes to `progress(text)`: each step as it starts, and the photos of the
 features, the pairs of the matching and the photos added to the incremental adjustment counted with a
@@ -17,13 +18,10 @@ percent and an ETA; split-merge counts the sub-blocks done across the cluster.
 
 from __future__ import annotations
 
-import csv
 import time
 from pathlib import Path
 
-import numpy as np
 
-from photogram_ros.errors import ConfigError
 from photogram_ros.io.aerial_triangulation import TriangulateOptions, TriangulateResult, adjust_block
 from photogram_ros.io.progress import Progress, Steps, sayer
 from photogram_ros.io.split_merge_action import split_merge_block
@@ -68,97 +66,19 @@ class CountedRunner:
 
 
 def triangulate(src: str | Path, out: str | Path, opt: TriangulateOptions, log=None, progress=True,
-                bag: bool | None = None, heights: str = 'ellipsoidal') -> TriangulateResult:
+                bag: bool | None = None) -> TriangulateResult:
     """Aerial triangulation of the bag or photo folder `src` into the folder `out` (see the module
     docstring); log(text): warnings and what was read; progress: True (progress lines to `log`), False
     (none) or a say(text) function for them; bag: whether `src` is a flight bag (None: a folder with a
-    metadata.yaml is one; a bag cut short has none, or is a bare storage file: say so); heights: of the poses
-    and the sparse cloud written, 'ellipsoidal' or 'orthometric' (`restate_heights`)."""
-    from photogram_ros.io.crs_tags import HEIGHTS
-    if heights not in HEIGHTS:
-        raise ConfigError(f'--heights {heights!r}: one of {", ".join(HEIGHTS)}')
+    metadata.yaml is one; a bag cut short has none, or is a bare storage file: say so)."""
     t0 = time.monotonic()
     src = Path(src)
     steps = Steps('triangulate', None, sayer(progress, log))
     if bag or (bag is None and (src / 'metadata.yaml').exists()):
         steps.start('reading the bag\'s keyframes')
         block, control_set = read_bag_block(src, opt, log)
-        res = adjust_block(block, out, opt, control_set, log, t0, steps=steps)
-    else:
-        res = _triangulate_photos(src, out, opt, log, t0, steps)
-    return restate_heights(res, heights)
-
-
-def restate_heights(res: TriangulateResult, heights: str) -> TriangulateResult:
-    """The block `res` as written (ellipsoidal heights) with its products' heights per `heights`: 'ellipsoidal'
-    leaves them; 'orthometric' gives poses.csv's z and sparse.ply / sparse.las heights above the EGM2008 geoid
-    (core/geoid.py, at each row's or point's own latitude and longitude), the LAS CRS compound with EGM2008
-    height (io/crs_tags.py), poses.csv's crs column that compound CRS. The report states them either way
-    ('heights', 'crs_with_heights')."""
-    from photogram_ros.io.at_report import write_report
-    rep, out = res.report, Path(res.out)
-    crs = rep.get('crs')
-    rep['heights'] = heights
-    rep['crs_with_heights'] = compound_crs(crs, heights) if crs else None
-    if heights == 'orthometric' and crs:
-        _poses_orthometric(out / 'poses.csv', rep['crs_with_heights'])
-        _sparse_orthometric(out, crs)
-    write_report(rep, out)
-    return res
-
-
-def compound_crs(crs: str, heights: str) -> str:
-    """The CRS that states `crs`'s positions with `heights`: `crs` itself for ellipsoidal heights, EPSG:<code>+3855
-    (EGM2008 height) for orthometric ones (`crs` itself when its horizontal part has no EPSG code)."""
-    from photogram_ros.io.crs_tags import EGM2008_HEIGHT_EPSG, horizontal_crs
-    if heights != 'orthometric':
-        return crs
-    code = horizontal_crs(crs).to_epsg()
-    return f'EPSG:{code}+{EGM2008_HEIGHT_EPSG}' if code else crs
-
-
-def _poses_orthometric(path: Path, crs_with_heights: str) -> None:
-    """poses.csv's z (ellipsoidal as written) minus the geoid at the row's lat_deg/lon_deg; its crs column the CRS
-    with EGM2008 heights. lat_deg, lon_deg, h_m stay WGS84 with ellipsoidal heights."""
-    from photogram_ros.core import geoid
-    if not path.exists():
-        return
-    with open(path, newline='') as fh:
-        rows = list(csv.reader(fh))
-    if len(rows) < 2:
-        return
-    head = rows[0]
-    z, lat, lon, c = (head.index(k) for k in ('z', 'lat_deg', 'lon_deg', 'crs'))
-    body = rows[1:]
-    n_m = np.atleast_1d(geoid.undulation_m([float(r[lat]) for r in body], [float(r[lon]) for r in body]))
-    for r, n in zip(body, n_m):
-        r[z] = format(float(r[z]) - float(n), '.4f')
-        r[c] = crs_with_heights
-    with open(path, 'w', newline='') as fh:
-        csv.writer(fh, lineterminator='\n').writerows(rows)
-
-
-def _sparse_orthometric(out: Path, crs: str) -> None:
-    """sparse.las and sparse.ply again from sparse.las (ellipsoidal as written) with orthometric heights."""
-    import laspy
-
-    from photogram_ros.core import geoid
-    from photogram_ros.core.geodesy import crs_to_geodetic
-    from photogram_ros.io.export import GeoCloud, write_las, write_ply
-    path = out / 'sparse.las'
-    if not path.exists():
-        return
-    las = laspy.read(str(path))
-    x, y, z = (np.asarray(v, float) for v in (las.x, las.y, las.z))
-    if len(x):
-        lat, lon, _ = crs_to_geodetic(x, y, z, crs)
-        z = geoid.ellipsoid_to_msl_m(lat, lon, z)
-    rgb = np.stack([np.asarray(las.red), np.asarray(las.green), np.asarray(las.blue)], axis=1) // 257
-    cloud = GeoCloud(x, y, np.asarray(z, float), rgb.astype(np.uint8), np.asarray(las.observations, np.uint32),
-                     np.asarray(las.confidence, np.float32), crs, 'orthometric')
-    write_las(cloud, path)
-    if (out / 'sparse.ply').exists():
-        write_ply(cloud, out / 'sparse.ply')
+        return adjust_block(block, out, opt, control_set, log, t0, steps=steps)
+    return _triangulate_photos(src, out, opt, log, t0, steps)
 
 
 def read_bag_block(src: Path, opt: TriangulateOptions, log=None):

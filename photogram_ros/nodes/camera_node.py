@@ -2,7 +2,9 @@
 
 Publishes camera/image_raw (bgr8), camera/camera_info (the calibration, every frame) and, for
 geotagged photos, gps/fix from the EXIF GPS stamped at the photo time, so survey photos without a
-flight log still georeference; its altitude read as `exif_altitude` says (above mean sea level by default, as
+flight log still georeference: weighted as `triangulate` weighs them (a DJI RTK photo by its XMP RtkStd* sigmas,
+its RtkFlag as the NavSatStatus, io/image_source.dji_rtk_accuracy; others by exif_sigma_m / exif_sigma_v_m,
+triangulate's EXIF sigmas); its altitude read as `exif_altitude` says (above mean sea level by default, as
 the EXIF standard and `triangulate` read it: one rule, io/image_source.exif_altitude_reading, through the EGM2008
 geoid of core/geoid.py). A photo folder plays the photos of the camera most of it was taken with
 (image size and EXIF make and model: io/image_source.FolderSource); a photo of another size or camera
@@ -33,6 +35,7 @@ from sensor_msgs.msg import CameraInfo, CompressedImage, Image, NavSatFix
 
 from photogram_ros import msgs
 from photogram_ros.errors import CalibrationError, ConfigError, PhotogramError
+from photogram_ros.io.geo_txt import EXIF_SIGMA_H_M, EXIF_SIGMA_V_M
 from photogram_ros.io.image_source import StoredKeyframes
 from photogram_ros.nodes import qos as qos_profiles
 from photogram_ros.nodes.diagnostics import Diagnostics
@@ -65,8 +68,14 @@ class CameraParams:
                                       min=TAKEOFF_NOT_GIVEN, max=10000.0)
     takeoff_heights: str = param('orthometric', 'Vertical datum of takeoff_altitude_m: orthometric (EGM2008) or '
                                                 'ellipsoidal (WGS84)', choices=('orthometric', 'ellipsoidal'))
-    exif_sigma_m: float = param(5.0, 'Horizontal 1-sigma of EXIF GPS positions and of gnss_log rows without '
-                                     'variances, m (vertical taken as twice it)', min=0.001, max=10000.0)
+    exif_sigma_m: float = param(EXIF_SIGMA_H_M, 'Horizontal 1-sigma of EXIF GPS positions without DJI RTK XMP (as '
+                                                'triangulate weighs them) and of gnss_log rows without variances '
+                                                '(vertical there twice it), m', min=0.001, max=10000.0)
+    exif_sigma_v_m: float = param(EXIF_SIGMA_V_M, 'Vertical 1-sigma of EXIF GPS positions without DJI RTK XMP, m (as '
+                                                  'triangulate weighs them: the heights of one flight agree far better '
+                                                  'than their absolute error). A DJI RTK photo\'s fix takes its XMP '
+                                                  'RtkStd* sigmas and RtkFlag status instead '
+                                                  '(io/image_source.dji_rtk_accuracy)', min=0.001, max=10000.0)
     gnss_log: str = param('', 'CSV of GNSS fixes for a video (t_unix_s, lat_deg, lon_deg, h_m [ellipsoidal], '
                               'optional var_e_m2 var_n_m2 var_u_m2 status: photogram-ros fixes --format csv); '
                               'published on gps/fix in time order with the frames')
@@ -309,7 +318,7 @@ class CameraNode(Node):
             # The fix goes first so that a consumer holding the image already has its position.
             self._publish_log_fixes(stamp_ns)
             if (p.publish_exif_fix or resumed) and frame.gps is not None:
-                fix = frame.gps.gnss_fix(stamp_ns, p.exif_sigma_m, 2.0 * p.exif_sigma_m, *self._exif_reading)
+                fix = frame.gps.gnss_fix(stamp_ns, p.exif_sigma_m, p.exif_sigma_v_m, *self._exif_reading)
                 self.pub_fix.publish(msgs.navsatfix_from_gnss_fix(fix, p.fix_frame_id))
                 self.diag.count('fixes')
             self.pub_info.publish(msgs.camera_info_msg(self.camera, stamp_ns, p.frame_id))
