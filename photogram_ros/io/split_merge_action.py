@@ -21,7 +21,7 @@ from photogram_ros.core.geodesy import utm_epsg
 from photogram_ros.core.incremental import SELF_CALIBRATION_BASE, IncrementalAT
 from photogram_ros.errors import ConfigError
 from photogram_ros.io.aerial_triangulation import (TriangulateOptions, TriangulateResult, adjust_and_write,
-                                                   control_rows, finish_block, manual_tie_obs,
+                                                   control_rows, finish_block, heights_keys, manual_tie_obs,
                                                    with_findings, write_poses_and_cloud)
 from photogram_ros.io.at_report import write_report
 from photogram_ros.io.keyframe_block import KeyframeBlock
@@ -399,7 +399,7 @@ def _write_merged(block: KeyframeBlock, out: Path, opt: TriangulateOptions, crs:
     oriented = [nm for nm in names if nm in m.mr.map_T_cam]
     assumptions = list(block.assumptions)
     P = write_poses_and_cloud(out, oriented, [m.mr.map_T_cam[nm] for nm in oriented], m.mr.points_map_m,
-                              block.origin, crs, assumptions)
+                              block.origin, crs, assumptions, opt.heights)
     assumptions.extend(_merged_assumptions(block, opt, m))
     rep = _merged_report(block, m, per_image, gcp_rows, oriented, assumptions, verdict, crs, adj)
     now = time.monotonic()
@@ -407,6 +407,7 @@ def _write_merged(block: KeyframeBlock, out: Path, opt: TriangulateOptions, crs:
                        **timing, 'total': round(now - t0, 2)}
     if block.stats:
         rep['matching'] = block.stats
+    rep.update(heights_keys(crs, opt.heights))
     write_report(rep, out)
     steps.finish()
     return TriangulateResult(out, rep, len(oriented), block.n_inputs or len(names), len(P), [], rep['verdict'])
