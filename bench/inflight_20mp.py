@@ -540,6 +540,7 @@ def run_period(a, period_s: float, extra: dict, tag: str) -> dict:
            'tracker_diag': {k: tdiag[k] for k in sorted(tdiag) if k in (
                'process_ms', 'frame_from_msg_ms', 'keyframe_ms', 'target_detection_ms', 'keyframe_images_ms',
                'target_detection_ms_total', 'keyframe_image_reduction', 'fps')},
+           'tracker_counts': {k: v for k, v in sorted(tr.items()) if not k.startswith(('keyframes_target', 'target'))},
            'tracker_target_search': {k: v for k, v in tr.items() if k.startswith(('keyframes_target', 'target',
                                                                                  'targets'))},
            'map_counts': {k: v for k, v in counts.get('map', {}).items() if k.startswith(('ortho', 'clouds', 'keyframes'))},
