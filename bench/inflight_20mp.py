@@ -28,7 +28,10 @@ as it does for an EXIF camera; <folder>_camera.yaml beside it holds that scaled 
 The run: photogram_ros.nodes.replay_session.run_replay with the camera node playing the folder at
 its EXIF timing (rate 1) and the replay's waits off (frame_timeout_s 0, max_lag_keyframes 0): photos
 come at the period whatever the graph does, as from a live camera, and the tracker's bounded queue
-drops what it cannot take. Bundle, stereo and map run in a child process (replay's default,
+drops what it cannot take: with --params config/replay.yaml (the default) that queue holds 100 frames (tracker_node
+queue_size), so a tracker slower than the camera falls behind without dropping; `--set tracker.queue_size=8` gives it
+the companion profile's queue (config/companion.yaml), `=2` the node's default, as `photogram-ros run` without a
+params file. Bundle, stereo and map run in a child process (replay's default,
 --processes 2). Timing hooks come from bench/replay_probe.py (no benchmark code in the nodes).
 
 Reported (JSON lines, --out appends them to a file; a markdown table with --table): photos in, keyframes taken, photos skipped
