@@ -556,10 +556,29 @@ def run_period(a, period_s: float, extra: dict, tag: str) -> dict:
            'cores': os.cpu_count(), 'load_avg_before': [round(x, 2) for x in load_before],
            'load_avg_after': [round(x, 2) for x in load_after]}
     row['map_dir'] = str(res['map_dir'])
+    if a.verdict:
+        row['verdict'] = replay_verdict(a, res, out / 'products')
     emit(row)
     per = {k: v for k, v in probe.breakdown(run['wall_s']).items() if v['calls']}
     emit({'bench': 'inflight_20mp_methods', 'config': tag, 'methods': per})
     return row
+
+
+def replay_verdict(a, res: dict, out: Path) -> dict:
+    """What `replay` prints at the end of this run: its products made as replay makes them (export_products: matched
+    again from the final adjustment) and the flight report's verdict (mapped, or MAPPING FAILED, with its warnings)."""
+    from photogram_ros.commands.products import export_products
+    t0 = time.perf_counter()
+    try:
+        prod = export_products(res['map_dir'], out, a.params, run=res['run'], diagnostics=res['diagnostics'])
+    except Exception as exc:   # a failed export is the verdict's finding, not the bench's end
+        return {'mapped': False, 'failures': [f'export failed: {type(exc).__name__}: {exc}'],
+                'export_wall_s': round(time.perf_counter() - t0, 1)}
+    fig = prod['figures']
+    v = fig.get('mapping', {'mapped': False, 'failures': ['no report was made']})
+    return {'mapped': bool(v.get('mapped')), 'failures': v.get('failures', []), 'warnings': v.get('warnings', []),
+            'keyframes_taken': fig.get('keyframes_taken'), 'keyframes_oriented': fig.get('keyframes_oriented'),
+            'export_wall_s': round(time.perf_counter() - t0, 1)}
 
 
 TABLE_ROWS = [
@@ -588,6 +607,8 @@ TABLE_ROWS = [
     ('ortho batches deferred', lambda r: r.get('map_counts', {}).get('ortho_batches_deferred', 0)),
     ('real-time factor (to the last fused cloud)', lambda r: r['real_time_factor']),
     ('peak RSS main / child, MB', lambda r: f"{r['peak_rss_mb']} / {r['child_peak_rss_mb']}"),
+    ('verdict (replay\'s, from the products)', lambda r: ('mapped' if r['verdict']['mapped'] else 'MAPPING FAILED')
+     if 'verdict' in r else '-'),
     ('cores, load avg (1 min) before/after', lambda r: f"{r['cores']}, {r['load_avg_before'][0]}/{r['load_avg_after'][0]}"),
 ]
 
@@ -697,6 +718,9 @@ def main() -> int:
     ap.add_argument('--json', default='', help='write all rows as one JSON file')
     ap.add_argument('--out', default='', help='append every JSON line to this file (e.g. '
                                                'bench/results/inflight_20mp_<commit>.jsonl)')
+    ap.add_argument('--verdict', action='store_true',
+                    help='after each run, make the products as `replay` does and record its verdict (mapped or '
+                         'MAPPING FAILED, with the warnings)')
     ap.add_argument('--build-only', action='store_true')
     ap.add_argument('--summarise-kept', default='', metavar='DIR',
                     help='recompute the pose figures of a run kept with --keep (DIR: its period folder, e.g. KEEP/1s)')
