@@ -1,6 +1,6 @@
 """The in-flight graph on 20 MP photos (5472 x 3648) at a current mapping drone's photo rate.
 
-Two flights (--flight): toledo (below), or `sim`: the simulator's survey (SIM_FLIGHT: 6 lines of 350 m at
+Three flights (--flight): toledo (below), `seneca` (after it), or `sim`: the simulator's survey (SIM_FLIGHT: 6 lines of 350 m at
 80 m above ground, 8 m/s, a photo every second, 317 photos, 9 ArUco targets surveyed in its control file)
 rendered at 1368 x 912 and upscaled x4 to 20 MP (build_sim_flight; cached in
 /tmp/photogram_bench_cache/inflight_20mp_sim_<n>), played at --periods (1 s: its own timing; 0.7 s: 1/0.7 times as
@@ -17,10 +17,21 @@ GNSS noise, and the live graph is known to orient toledo (29-31 keyframes, all o
 the simulator at 20 MP would spend most of the bench's time rendering. The photos are built once into
 /tmp/photogram_bench_cache/inflight_20mp_<period>s (about 3 MB each).
 
+The seneca flight: seneca_part's 41 real near-infrared photos of a fixed-wing survey (../shared/data/photos/
+seneca_part, 1600 x 1200, EXIF GPS, about 7 s apart; the held-out rest of that survey is 3600 x 2700), upscaled
+x3.2275 to 5164 x 3873 (20 MP, 4:3 kept, no crop) and re-timed one photo per `--period` s like toledo's, built once
+into /tmp/photogram_bench_cache/inflight_20mp_seneca_<period>s_<n>. No calibration file, as `replay` of the folder
+runs: the camera node takes the camera from the EXIF (its focal-plane resolution and pixel dimensions rewritten to
+the new size, so the EXIF camera is the 1600 x 1200 one scaled by the same factor) and the replay self-calibrates
+as it does for an EXIF camera; <folder>_camera.yaml beside it holds that scaled camera for reference.
+
 The run: photogram_ros.nodes.replay_session.run_replay with the camera node playing the folder at
 its EXIF timing (rate 1) and the replay's waits off (frame_timeout_s 0, max_lag_keyframes 0): photos
 come at the period whatever the graph does, as from a live camera, and the tracker's bounded queue
-drops what it cannot take. Bundle, stereo and map run in a child process (replay's default,
+drops what it cannot take: with --params config/replay.yaml (the default) that queue holds 100 frames (tracker_node
+queue_size), so a tracker slower than the camera falls behind without dropping; `--set tracker.queue_size=8` gives it
+the companion profile's queue (config/companion.yaml), `=2` the node's default, as `photogram-ros run` without a
+params file. Bundle, stereo and map run in a child process (replay's default,
 --processes 2). Timing hooks come from bench/replay_probe.py (no benchmark code in the nodes).
 
 Reported (JSON lines, --out appends them to a file; a markdown table with --table): photos in, keyframes taken, photos skipped
@@ -97,7 +108,7 @@ def log(s: str) -> None:
 
 
 def _one_photo(args) -> None:
-    src, dst, when = args
+    src, dst, when, crop, size, exif_camera = args
     from PIL import Image
     with Image.open(src) as im:
         exif = im.getexif()
@@ -106,26 +117,47 @@ def _one_photo(args) -> None:
         ex[0x9003] = when.strftime('%Y:%m:%d %H:%M:%S')        # DateTimeOriginal
         ex[0x9291] = f'{when.microsecond // 1000:03d}'          # SubSecTimeOriginal
         ex[0x9011] = '+00:00'                                   # OffsetTimeOriginal
-        ex.pop(0xA405, None)    # FocalLengthIn35mmFilm: the calibration file gives the camera
+        if exif_camera:   # the EXIF gives the camera: its sensor tags rewritten to the new size
+            factor = size[0] / (crop[2] - crop[0])
+            for tag in (0xA20E, 0xA20F):                        # FocalPlaneX/YResolution
+                if tag in ex:
+                    ex[tag] = float(ex[tag]) * factor
+            ex[0xA002], ex[0xA003] = size                       # PixelX/YDimension
+        else:
+            ex.pop(0xA405, None)    # FocalLengthIn35mmFilm: the calibration file gives the camera
         assert gps, f'{src} has no EXIF GPS'
-        big = im.crop(CROP).resize(SIZE, Image.BICUBIC)
+        big = im.crop(crop).resize(size, Image.BICUBIC)
         tmp = dst.with_suffix('.tmp')
         big.save(tmp, 'JPEG', quality=90, exif=exif)
         tmp.rename(dst)
 
 
-def build_flight(period_s: float, n_photos: int = 42, folder: Path | None = None) -> tuple[Path, Path]:
-    """The 20 MP photo folder and its calibration YAML (built once, cached): toledo's first `n_photos`
-    photos cropped to 3:2, upscaled to 5472 x 3648, `period_s` apart."""
+# The seneca flight (--flight seneca): the fixed-wing survey's first 41 photos, 4:3 kept, upscaled to 20 MP.
+SENECA_SRC = ROOT.parent / 'shared' / 'data' / 'photos' / 'seneca_part' / 'images'
+SENECA_SIZE = (5164, 3873)         # 1600 x 1200 x 3.2275 (the held-out 3600 x 2700 at 20 MP)
+SENECA_CROP = (0, 0, 1600, 1200)   # the whole photo
+SENECA_T0 = datetime(2013, 6, 4, 13, 37, 35, tzinfo=timezone.utc)
+
+
+def build_flight(period_s: float, n_photos: int = 42, folder: Path | None = None,
+                 flight: str = 'toledo') -> tuple[Path, Path]:
+    """The 20 MP photo folder and its calibration YAML (built once, cached), `period_s` apart: toledo's first
+    `n_photos` photos cropped to 3:2 and upscaled to 5472 x 3648, or (flight 'seneca') seneca_part's upscaled to
+    5164 x 3873, whose EXIF keeps giving the camera (the YAML is that camera, for reference)."""
     import yaml
 
     from photogram_ros.io.image_source import FolderSource
-    folder = folder or CACHE / f'inflight_20mp_{period_s:g}s_{n_photos}'
+    seneca = flight == 'seneca'
+    src_dir, crop, size, t0_photo = ((SENECA_SRC, SENECA_CROP, SENECA_SIZE, SENECA_T0) if seneca
+                                     else (SRC, CROP, SIZE, T0))
+    folder = folder or CACHE / (f'inflight_20mp_seneca_{period_s:g}s_{n_photos}' if seneca
+                                else f'inflight_20mp_{period_s:g}s_{n_photos}')
     calib = folder.parent / (folder.name + '_camera.yaml')
-    src = FolderSource(SRC)
+    src = FolderSource(src_dir)
     entries = src.entries[:n_photos]
     folder.mkdir(parents=True, exist_ok=True)
-    jobs = [(p, folder / p.name, T0 + timedelta(seconds=i * period_s)) for i, (p, _) in enumerate(entries)]
+    jobs = [(p, folder / p.name, t0_photo + timedelta(seconds=i * period_s), crop, size, seneca)
+            for i, (p, _) in enumerate(entries)]
     jobs = [j for j in jobs if not j[1].exists()]
     if jobs:
         from concurrent.futures import ProcessPoolExecutor
@@ -134,9 +166,9 @@ def build_flight(period_s: float, n_photos: int = 42, folder: Path | None = None
             list(ex.map(_one_photo, jobs))
         log(f'[20mp] built {len(jobs)} photos in {time.perf_counter() - t0:.0f} s into {folder}')
     cam = src.exif_intrinsics().camera
-    factor = SIZE[0] / (CROP[2] - CROP[0])
+    factor = size[0] / (crop[2] - crop[0])
     from dataclasses import replace
-    cam = replace(cam, height=CROP[3] - CROP[1], cy=cam.cy - CROP[1]).scaled(factor)
+    cam = replace(cam, height=crop[3] - crop[1], cy=cam.cy - crop[1]).scaled(factor)
     calib.write_text(yaml.safe_dump(cam.to_ros_yaml_dict()))
     return folder, calib
 
@@ -376,7 +408,9 @@ def run_period(a, period_s: float, extra: dict, tag: str) -> dict:
         rate = 1.0 / period_s   # its photos are 1 s apart: played 1/period_s times as fast
         extra = {**extra, 'bundle': {'control_file': str(control), **extra.get('bundle', {})}}
     else:
-        folder, calib = build_flight(period_s, a.photos)
+        folder, calib = build_flight(period_s, a.photos, flight=a.flight)
+    if a.flight == 'seneca':   # as `replay` of the folder: the camera from the photos' EXIF
+        calib = None
     probe = Probe().install()
     published: dict[int, float] = {}    # photo stamp -> when the camera node published it
     publish_next = CameraNode.publish_next
@@ -405,7 +439,7 @@ def run_period(a, period_s: float, extra: dict, tag: str) -> dict:
     t0 = time.monotonic()
     try:
         res = run_replay(ReplayOptions(bag=str(folder), out=str(out / 'replay'), params_file=a.params, rate=rate,
-                                       progress=False, extra=extra, calibration_file=str(calib),
+                                       progress=False, extra=extra, calibration_file=str(calib) if calib else '',
                                        child_roles=('bundle', 'stereo', 'map'), frame_timeout_s=0.0,
                                        max_lag_keyframes=0))
     finally:
@@ -480,7 +514,7 @@ def run_period(a, period_s: float, extra: dict, tag: str) -> dict:
     shed['gsd_m'] = sdiag.get('values', {}).get('gsd_m')
     tdiag = diag.get(tracker_node, diag.get('/' + tracker_node, {})).get('values', {})
     row = {'bench': 'inflight_20mp', 'flight': a.flight, 'config': tag, 'period_s': period_s,
-           'size': f'{SIZE[0]}x{SIZE[1]}', **CODE,
+           'size': '{}x{}'.format(*(SENECA_SIZE if a.flight == 'seneca' else SIZE)), **CODE,
            'photos_in': n_in, 'photos_tracked': n_tracked, 'keyframes': n_kf,
            'skipped_by_overlap_rule': n_tracked - n_kf - tr.get('unusable', 0),
            'dropped_otherwise': sum(dropped.values()), 'dropped_why': dropped,
@@ -509,6 +543,7 @@ def run_period(a, period_s: float, extra: dict, tag: str) -> dict:
            'tracker_diag': {k: tdiag[k] for k in sorted(tdiag) if k in (
                'process_ms', 'frame_from_msg_ms', 'keyframe_ms', 'target_detection_ms', 'keyframe_images_ms',
                'target_detection_ms_total', 'keyframe_image_reduction', 'fps')},
+           'tracker_counts': {k: v for k, v in sorted(tr.items()) if not k.startswith(('keyframes_target', 'target'))},
            'tracker_target_search': {k: v for k, v in tr.items() if k.startswith(('keyframes_target', 'target',
                                                                                  'targets'))},
            'map_counts': {k: v for k, v in counts.get('map', {}).items() if k.startswith(('ortho', 'clouds', 'keyframes'))},
@@ -521,10 +556,29 @@ def run_period(a, period_s: float, extra: dict, tag: str) -> dict:
            'cores': os.cpu_count(), 'load_avg_before': [round(x, 2) for x in load_before],
            'load_avg_after': [round(x, 2) for x in load_after]}
     row['map_dir'] = str(res['map_dir'])
+    if a.verdict:
+        row['verdict'] = replay_verdict(a, res, out / 'products')
     emit(row)
     per = {k: v for k, v in probe.breakdown(run['wall_s']).items() if v['calls']}
     emit({'bench': 'inflight_20mp_methods', 'config': tag, 'methods': per})
     return row
+
+
+def replay_verdict(a, res: dict, out: Path) -> dict:
+    """What `replay` prints at the end of this run: its products made as replay makes them (export_products: matched
+    again from the final adjustment) and the flight report's verdict (mapped, or MAPPING FAILED, with its warnings)."""
+    from photogram_ros.commands.products import export_products
+    t0 = time.perf_counter()
+    try:
+        prod = export_products(res['map_dir'], out, a.params, run=res['run'], diagnostics=res['diagnostics'])
+    except Exception as exc:   # a failed export is the verdict's finding, not the bench's end
+        return {'mapped': False, 'failures': [f'export failed: {type(exc).__name__}: {exc}'],
+                'export_wall_s': round(time.perf_counter() - t0, 1)}
+    fig = prod['figures']
+    v = fig.get('mapping', {'mapped': False, 'failures': ['no report was made']})
+    return {'mapped': bool(v.get('mapped')), 'failures': v.get('failures', []), 'warnings': v.get('warnings', []),
+            'keyframes_taken': fig.get('keyframes_taken'), 'keyframes_oriented': fig.get('keyframes_oriented'),
+            'export_wall_s': round(time.perf_counter() - t0, 1)}
 
 
 TABLE_ROWS = [
@@ -553,6 +607,8 @@ TABLE_ROWS = [
     ('ortho batches deferred', lambda r: r.get('map_counts', {}).get('ortho_batches_deferred', 0)),
     ('real-time factor (to the last fused cloud)', lambda r: r['real_time_factor']),
     ('peak RSS main / child, MB', lambda r: f"{r['peak_rss_mb']} / {r['child_peak_rss_mb']}"),
+    ('verdict (replay\'s, from the products)', lambda r: ('mapped' if r['verdict']['mapped'] else 'MAPPING FAILED')
+     if 'verdict' in r else '-'),
     ('cores, load avg (1 min) before/after', lambda r: f"{r['cores']}, {r['load_avg_before'][0]}/{r['load_avg_after'][0]}"),
 ]
 
@@ -646,10 +702,12 @@ def parse_sets(items) -> dict:
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument('--periods', default='2,1', help='photo periods to run, s (comma list)')
-    ap.add_argument('--flight', default='toledo', choices=('toledo', 'sim'),
-                    help='toledo\'s 42 real photos upscaled, or the simulated survey (317 photos, a second apart, '
+    ap.add_argument('--flight', default='toledo', choices=('toledo', 'seneca', 'sim'),
+                    help='toledo\'s 42 real photos upscaled, seneca_part\'s 41 real near-infrared fixed-wing photos '
+                         'upscaled, or the simulated survey (317 photos, a second apart, '
                          'with surveyed targets; played 1/period times as fast: at 0.7 s a photo every 0.7 s)')
-    ap.add_argument('--photos', type=int, default=42, help='photos used (toledo: at most 42; sim: at most 317)')
+    ap.add_argument('--photos', type=int, default=42,
+                    help='photos used (toledo: at most 42; seneca: at most 41; sim: at most 317)')
     ap.add_argument('--params', default=str(ROOT / 'config' / 'replay.yaml'))
     ap.add_argument('--set', action='append', default=[], metavar='ROLE.PARAM=VALUE',
                     help='override a node parameter for every run')
@@ -660,6 +718,9 @@ def main() -> int:
     ap.add_argument('--json', default='', help='write all rows as one JSON file')
     ap.add_argument('--out', default='', help='append every JSON line to this file (e.g. '
                                                'bench/results/inflight_20mp_<commit>.jsonl)')
+    ap.add_argument('--verdict', action='store_true',
+                    help='after each run, make the products as `replay` does and record its verdict (mapped or '
+                         'MAPPING FAILED, with the warnings)')
     ap.add_argument('--build-only', action='store_true')
     ap.add_argument('--summarise-kept', default='', metavar='DIR',
                     help='recompute the pose figures of a run kept with --keep (DIR: its period folder, e.g. KEEP/1s)')
@@ -678,7 +739,7 @@ def main() -> int:
         return 0
     if a.build_only:
         for p in periods:
-            built = build_sim_flight(a.photos) if a.flight == 'sim' else build_flight(p, a.photos)
+            built = build_sim_flight(a.photos) if a.flight == 'sim' else build_flight(p, a.photos, flight=a.flight)
             emit({'built': [str(x) for x in built]})
         return 0
     extra = parse_sets(a.set)

@@ -157,3 +157,16 @@ def test_lengths_left_to_the_gsd_are_stated_at_the_first_pair(rclpy_context, thr
     values = node.diag.status().values
     stated = {kv.key: kv.value for kv in values}
     assert 'downscale 0.5' in stated['gsd_settings'] and 'relief_m 25' in stated['gsd_settings']
+
+
+def test_keyframes_without_a_partner_are_counted(rclpy_context, three_keyframes):
+    # An overlap no pair of the tiny world reaches: the second and third keyframes get no partner (counted),
+    # the first has none before it; with the default overlap both pair.
+    cam, frames = three_keyframes
+    params = {'downscale': 0.5, 'fill_holes_m': 0.0}
+    none, _ = _run_three(rclpy_context, frames, cam, {**params, 'min_overlap': 0.999}, 0.05)
+    assert none.get('keyframes_no_partner', 0) == 2 and none.get('keyframes_no_earlier_partner', 0) == 1
+    assert none.get('pairs_done', 0) == 0
+    paired, _ = _run_three(rclpy_context, frames, cam, params, 0.05)
+    assert paired.get('pairs_done', 0) >= 2 and not paired.get('keyframes_no_partner')
+    assert paired.get('keyframes_no_earlier_partner', 0) == 1

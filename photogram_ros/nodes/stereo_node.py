@@ -25,7 +25,9 @@ of that niceness (the callbacks only record and wake it); with `cpu_share` the m
 of a core, and a keyframe that settles while stereo is over it has its pairs shed (`keyframes_shed`, a WARN)
 but stays a partner of later keyframes; a pair whose turn comes more than max_pair_lag_s after its keyframe's
 final pose (stereo starved of CPU, behind) is shed the same way (pairs_shed_late); the matching after landing (io/densify.py) plans and matches every
-pair again from the stored keyframes. The end of flight (`flush`) sheds nothing.
+pair again from the stored keyframes. The end of flight (`flush`) sheds nothing. A keyframe the planner finds no
+partner for makes no cloud of its own: counted in keyframes_no_partner (earlier keyframes, none passing the
+criteria) or keyframes_no_earlier_partner (none of its status paired before it).
 """
 
 from __future__ import annotations
@@ -488,6 +490,10 @@ class StereoNode(Node):
             self.diag.problem(f'keyframe at z={kf.map_T_cam[2, 3]:.1f} m is not above the ground '
                               f'({self.ground_m} m): set ground_height_m')
             return
+        if not plan.pairs:
+            # No cloud of its own: no earlier keyframe to pair with, or none passing the planner's criteria
+            # (baseline ratio, optical-axis angle, overlap: core/pairs.choose_pairs), e.g. a fixed-wing's roll.
+            self.diag.count('keyframes_no_partner' if others else 'keyframes_no_earlier_partner')
         for pair in plan.pairs:
             # The poses of the moment go with the pair: the depth and the cloud's placement use these.
             job = _PairJob(pair, self._kf[pair.other].map_T_cam, kf.map_T_cam, kf.covariance)
