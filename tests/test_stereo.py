@@ -2,6 +2,8 @@
 from __future__ import annotations
 
 import cv2
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -382,3 +384,18 @@ def test_depth_range_from_the_pairs_tie_points():
     assert 33.5 < lo < 34.5 and 45.5 < hi < 46.5
     assert depth_range_from_points(CAM, Ta, Tb, P[:10], margin_m=4.0) is None
     assert depth_range_from_points(CAM, Ta, _pose(200.0, 0.0, 40.0), P, margin_m=4.0) is None
+
+
+def test_a_wide_pair_is_taken_where_no_nearer_keyframe_overlaps():
+    """A fixed-wing survey at 60 % forward overlap leaves some keyframes with only a partner two photos away:
+    B/H 0.9 here (along the image's long side, 27 % shared), taken after the flight (final criteria) rather
+    than leaving the keyframe unpaired; with a nearer partner there, that one is preferred."""
+    Ta = _pose(0.0, 0.0, 40.0)
+    crit = PairCriteria().for_final()
+    wide = choose_pairs(CAM, Ta, {1: _pose(36.0, 0.0, 40.0)}, 40.0, crit)
+    assert [p.other for p in wide] == [1] and wide[0].baseline_ratio == pytest.approx(0.9, abs=0.01)
+    assert not choose_pairs(CAM, Ta, {1: _pose(36.0, 0.0, 40.0)}, 40.0,
+                            dataclasses.replace(crit, max_baseline_ratio=0.8))
+    both = choose_pairs(CAM, Ta, {1: _pose(36.0, 0.0, 40.0), 2: _pose(10.0, 0.0, 40.0)}, 40.0,
+                        dataclasses.replace(crit, max_pairs_across=1))
+    assert [p.other for p in both] == [2]

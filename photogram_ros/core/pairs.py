@@ -46,7 +46,10 @@ class PairLimits:
     """What makes two keyframes a usable stereo pair: checked by the planner and again by stereo_pair."""
     min_overlap: float = param(0.4, 'skip pairs whose images overlap less than this fraction', min=0.0, max=1.0)
     min_baseline_ratio: float = param(0.08, 'skip pairs with a smaller baseline-to-depth ratio', min=0.0, max=5.0)
-    max_baseline_ratio: float = param(0.8, 'skip pairs with a larger baseline-to-depth ratio', min=0.0, max=10.0)
+    max_baseline_ratio: float = param(1.2, 'skip pairs with a larger baseline-to-depth ratio (partners are chosen '
+                                           'nearest target_baseline_ratio: a wider pair only where no nearer one '
+                                           'overlaps, as on a fixed-wing survey at 60 % forward overlap)',
+                                      min=0.0, max=10.0)
 
     def check(self) -> None:
         if self.min_baseline_ratio >= self.max_baseline_ratio:
