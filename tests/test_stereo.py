@@ -1,8 +1,9 @@
 """Stereo depth: Middlebury accuracy vs plain SGBM, rectification geometry, simulator pairs against the true DEM."""
 from __future__ import annotations
 
-import cv2
 import dataclasses
+
+import cv2
 
 import numpy as np
 import pytest
