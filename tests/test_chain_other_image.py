@@ -3,26 +3,16 @@ shifted as a camera translated over flat ground would see them."""
 
 from __future__ import annotations
 
-import cv2
 import numpy as np
 
 from photogram_ros.core.camera import PinholeCamera
 from photogram_ros.core.other_image import OtherImageFallback, first_per_id
 from photogram_ros.core.photo_matching import MatchingOptions
 from photogram_ros.core.tracker import TrackerParams
+from test_photo_matching import _texture
 
 W, H = 640, 480
 CAM = PinholeCamera(W, H, 500.0, 500.0, 319.5, 239.5)
-
-
-def _texture(w, h, seed=0):
-    rng = np.random.default_rng(seed)
-    img = np.zeros((h, w), np.float32)
-    for s in (3, 9, 27):
-        noise = rng.normal(0, 1, (h // s + 2, w // s + 2)).astype(np.float32)
-        img += cv2.resize(noise, (w, h), interpolation=cv2.INTER_CUBIC)
-    img = (img - img.min()) / np.ptp(img) * 255
-    return img.astype(np.uint8)
 
 
 GROUND = _texture(W + 400, H, 1)

@@ -73,7 +73,7 @@ from photogram_ros.core.gnss_fix import GnssFix
 from photogram_ros.core.geodesy import LocalFrame
 from photogram_ros.core.klt import KltStep
 from photogram_ros.core.keyframe_image import EncodedImage, Keyframe
-from photogram_ros.core.other_image import OtherImageFallback
+from photogram_ros.core.other_image import OtherImageFallback, first_per_id
 from photogram_ros.core.keyframes import ChainStore, FixBuffer, OverlapGrid, gps_distance_m, homography_overlap
 from photogram_ros.core.photo_matching import (DescriptorIndex, MatchingOptions, PhotoFeatures, extract,
                                                match_pair)
@@ -147,9 +147,11 @@ class TrackerParams(CrossStripParams):
                              'other image where a break needs it', choices=('raw', 'normalised'))
     features_fallback: bool = param(True, 'Keyframes at or after a break (photo-rate input) also publish SIFT '
                                     'features of the other image (raw <-> normalised; one more extraction per such '
-                                    'keyframe), and a frame at a break that verifies no keyframe with features_on is '
-                                    'matched on its other image against those of the last match_keyframes keyframes '
-                                    '(core/other_image.py)')
+                                    'keyframe), matched first with those of the weak keyframes they overlap by GNSS '
+                                    '(the first, or one only its other image bridged); a frame at a break that '
+                                    'verifies no keyframe with features_on is matched on its other image against the '
+                                    'last match_keyframes keyframes\' (core/other_image.py; brighton_beach every other '
+                                    'photo: DJI_0018 linked, inflight_chain_7898530)')
     chain_klt_keyframes: bool = param(False, 'Also keyframes that KLT carried (video-rate input, no break since the '
                                       'last keyframe) get SIFT features, publish chain_features of them as tracks '
                                       'and are matched with the earlier keyframes they overlap; off: only frames '
@@ -222,11 +224,7 @@ def _descriptor_index(frame: _Frame) -> DescriptorIndex:
 
 def _dedupe_feature_ids(frame: _Frame) -> None:
     """One feature per track id of `frame` (two features matched to one track: keep the first)."""
-    got = frame.feat_ids
-    _, first = np.unique(np.where(got >= 0, got, -1 - np.arange(len(got))), return_index=True)
-    dup = np.ones(len(got), bool)
-    dup[first] = False
-    got[dup] = -1
+    first_per_id(frame.feat_ids)
 
 @dataclass
 class _KfState:
