@@ -7,18 +7,17 @@ photometric normalisation, or as decoded). CLAHE makes KLT precise but can cost 
 alone loses near-infrared keyframes elsewhere (seneca). So the other image is looked at only where a break
 needs it:
 
-- a weak keyframe (the first, or one whose frame verified no keyframe with its usual features at its break)
-  publishes the features of its other image as tracks (`publish`): one within 1 px of a track the keyframe
-  already publishes takes its id, the others new ids; they are held while it stays weak (no later frame verified
-  it with its usual features, fewer than `tries` later keyframes tried it; the newest `hold_weak`) and while it
-  is among the last keyframes (`keep`);
-- a later keyframe made after a break whose footprint overlaps a weak one held (by GNSS) extracts and publishes
-  its other image's features too, matched first with the weak keyframe's: a match takes its track id;
+- a keyframe made at or after a break (photo-rate input) also publishes the features of its other image as
+  tracks (`publish`), matched first with those of the weak keyframes it overlaps by GNSS (the first keyframe, or
+  one whose break only the other image bridged, until a later frame verifies it with its usual features; the
+  newest `hold_weak`): a match takes their track id; then one within 1 px of a track the keyframe already
+  publishes takes its id, the others new ids; they are held for the last `match_keyframes` keyframes and the
+  weak ones (`keep`);
 - a frame at a break that verified no keyframe with its usual features is matched once more on its other
-  image against what the last keyframes published so (`recover`), nearest by GNSS first: a matched feature takes
+  image against what those keyframes published so (`recover`), nearest by GNSS first: a matched feature takes
   the keyframe's track id; the first keyframe that verifies at least `min_inliers` linked features wins.
 
-A keyframe whose break its usual features bridged, and that overlaps no weak keyframe, costs nothing more.
+The cost: one more SIFT extraction per keyframe after a break.
 
 Nothing here reads ROS or files; the caller gives images, positions and the track-id counter.
 """
@@ -31,7 +30,6 @@ import numpy as np
 
 from photogram_ros.core.camera import PinholeCamera
 from photogram_ros.core.photo_matching import MatchingOptions, PhotoFeatures, extract, match_pair
-
 
 def first_per_id(ids: np.ndarray) -> None:
     """One entry per track id in the (K,) int64 ids (-1: none), in place: the first keeps it, the others -1."""
@@ -46,15 +44,14 @@ class OtherImageFallback:
     far enough inside the image to be tracks; `new_ids(n)` hands out fresh track ids (int64); `position(stamp_ns)`
     the (3,) local metres of the GNSS fix at a stamp, or None; `params` the tracker's (its `features_on` and
     `features_fallback`: off, every method does nothing); `hold_weak`: how many weak keyframes' features are
-    held beyond the last ones (the newest); `tries`: how many later keyframes try each."""
+    held beyond the last ones (the newest)."""
 
     def __init__(self, camera: PinholeCamera, options: MatchingOptions, inside: Callable[[np.ndarray], np.ndarray],
                  new_ids: Callable[[int], np.ndarray], position: Callable[[int], np.ndarray | None], params,
-                 hold_weak: int = 8, tries: int = 8):
+                 hold_weak: int = 8):
         self.camera = camera
         self.options = options
         self.hold_weak = hold_weak
-        self.tries = tries
         self._inside = inside
         self._new_ids = new_ids
         self._position = position
@@ -63,10 +60,7 @@ class OtherImageFallback:
         self._features: dict[int, tuple[PhotoFeatures, np.ndarray]] = {}   # frame index -> features, track ids
         self._published: dict[int, tuple[PhotoFeatures, np.ndarray]] = {}  # keyframe index -> the same
         self._weak: list[int] = []           # keyframes no later frame linked by its usual features, oldest first
-        self._tried: dict[int, int] = {}     # weak keyframe -> later keyframes that tried it
-        self._unverified: set[int] = set()   # frames at a break that verified no keyframe with their usual features
-        self._first = True                   # no keyframe published yet
-        self.published = 0   # keyframes that published their other image's features
+        self._bridged_frames: set[int] = set()   # frames whose break only the other image bridged
         self.bridged = 0     # breaks bridged by the other image only
         self.pairs = 0       # keyframes matched on the other image
         self.verified = 0    # ... of them verified
@@ -120,7 +114,6 @@ class OtherImageFallback:
         image = self.image_of(gray, raw)
         if image is None:
             return None
-        self._unverified.add(index)
         f, ids = self.features(index, image)
         if len(f.uv) < opt.min_inliers:
             return None
@@ -131,6 +124,7 @@ class OtherImageFallback:
             ids[:] = -1
             if self._match(k, f, ids, inside) >= opt.min_inliers:
                 self.bridged += 1
+                self._bridged_frames.add(index)
                 take = ids >= 0
                 return f.uv[take].astype(np.float32), ids[take].astype(np.uint32)
         ids[:] = -1
@@ -144,28 +138,22 @@ class OtherImageFallback:
     def publish(self, index: int, key: int, gray: np.ndarray, raw: np.ndarray | None, klt: tuple, extra: tuple,
                 overlapping: list[int]) -> tuple[np.ndarray, np.ndarray]:
         """Frame `index`, made keyframe `key` at or after a break, publishes its other image's features
-        (`image_of(gray, raw)`) when it is weak itself (the first keyframe, or one whose frame verified no keyframe
-        with its usual features) or overlaps a weak keyframe held: among `overlapping` (keyframe indices whose
-        footprints it overlaps by GNSS), one that no later frame verified with its usual features since and fewer
-        than `tries` later keyframes tried; else nothing is extracted. First they are matched with those of the
-        weak keyframes it overlaps: a match takes their track id. Then one within 1 px of a track the keyframe shows
-        (`klt` and `extra`: (pts, ids) each, reduced-image pixels and uint32 ids) takes its id, the others get new
-        ids. Returns `extra` with those whose id the keyframe does not show yet added (float32, uint32); all are
-        held for later frames."""
+        (`image_of(gray, raw)`; none: nothing). First they are matched with those of the weak keyframes held among
+        `overlapping` (keyframe indices whose footprints it overlaps by GNSS; a weak keyframe: the first, or one
+        whose break only the other image bridged, that no later frame verified with its usual features): a match
+        takes their track id. Then one within 1 px of a track the keyframe shows (`klt` and `extra`: (pts, ids)
+        each, reduced-image pixels and uint32 ids) takes its id, the others get new ids. Returns `extra` with those
+        whose id the keyframe does not show yet added (float32, uint32); all are held for later frames."""
         from scipy.spatial import cKDTree
         image = self.image_of(gray, raw)
-        weak = self._first or index in self._unverified
-        partners = [k for k in overlapping if k in self._weak and k in self._published]
-        if image is None or not (weak or partners):
+        if image is None:
             return extra
-        self._first = False
-        self.published += 1
         shown_pts, shown_ids = (np.concatenate([a, b]) for a, b in zip(klt, extra))
         f, ids = self.features(index, image)
         ok = self._inside(f.uv)
-        for k in partners:
-            self._tried[k] = self._tried.get(k, 0) + 1
-            self._match(k, f, ids, ok)
+        for k in overlapping:
+            if k in self._weak and k in self._published:
+                self._match(k, f, ids, ok)
         ids[~ok] = -1
         shown = np.asarray(shown_ids, np.int64)
         lone = np.flatnonzero(ok & (ids < 0))
@@ -177,7 +165,7 @@ class OtherImageFallback:
             lone = np.flatnonzero(ok & (ids < 0))
         ids[lone] = self._new_ids(len(lone))
         self._published[key] = (f, ids)
-        if weak:
+        if not self._published.keys() - {key} or index in self._bridged_frames:
             self._weak = (self._weak + [key])[-self.hold_weak:]
         add = np.flatnonzero(ok & ~np.isin(ids, shown))
         return (np.concatenate([extra[0], f.uv[add].astype(np.float32)]),
@@ -186,11 +174,10 @@ class OtherImageFallback:
     def keep(self, recent) -> None:
         """Hold what the keyframes `recent` (keyframe indices) and the weak ones published; drop the features of
         frames that were not published."""
-        self._weak = [k for k in self._weak if self._tried.get(k, 0) < self.tries]
         keep = set(int(i) for i in recent) | set(self._weak)
         self._published = {i: v for i, v in self._published.items() if i in keep}
         self._features = {}
-        self._unverified = set()
+        self._bridged_frames = set()
 
     def nbytes(self) -> int:
         """Bytes of the features held."""
