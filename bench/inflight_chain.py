@@ -25,8 +25,11 @@ another run's result file (.jsonl): its counts, and the names of the photos it o
 (`triangulate_oriented_names`; or every photo when it oriented every one); else `share` is bounded (`share_bounds`,
 `share` the lower bound, `share_exact` false).
 
+`--fallback-cost`: instead, the tracker alone in-process on the photo sets, features_fallback off and on in the
+same run (CPU per photo and its ratio, breaks bridged, keyframe pairs sharing tracks; `fallback_cost`).
+
     ROS_DOMAIN_ID=100 .venv/bin/python bench/inflight_chain.py [--only seneca,toledo] [--variants all,half]
-        [--out /tmp/inflight_chain] [--results bench/results]
+        [--out /tmp/inflight_chain] [--results bench/results] [--fallback-cost]
 """
 
 from __future__ import annotations
@@ -249,6 +252,39 @@ def run_set(name: str, variant: str, out: Path, timeout_s: float) -> dict:
     return row
 
 
+def fallback_cost(name: str, variant: str) -> dict:
+    """The tracker alone (in-process, frame by frame as tracker_node feeds it: EXIF fixes, the photos' JPEG bytes)
+    on a photo set, features_fallback off then on, each twice (the faster run counts): CPU s in process() per
+    photo and their ratio (on / off, same run), breaks bridged, by the other image, and the keyframe pairs sharing
+    a track."""
+    from photogram_ros.core.tracker import EncodedImage, Tracker, TrackerParams
+    from photogram_ros.io.image_source import FolderSource, read_exif_gps
+    src = FolderSource(SETS[name])
+    cam = src.exif_intrinsics().camera
+    entries = src.entries[::2] if variant == 'half' else src.entries
+    data = [(read_exif_gps(p).gnss_fix(t, 5.0, 10.0), Path(p).read_bytes(), t) for p, t in entries]
+    row = {'bench': 'inflight_chain_fallback_cost', 'set': name, 'variant': variant, 'photos': len(data)}
+    for on in (False, True):
+        best = None
+        for _ in range(2):
+            tr = Tracker(cam, TrackerParams(features_fallback=on))
+            kfs = []
+            for fix, jpeg, t in data:
+                tr.add_fix(fix)
+                kfs += tr.process(EncodedImage(jpeg), t)
+            kfs += tr.flush()
+            best = tr if best is None or tr.stats.process_s < best.stats.process_s else best
+        ids = [set(k.observations['track_id'].tolist()) for k in kfs]
+        linked = sum(1 for i in range(len(ids)) for j in range(i + 1, len(ids)) if ids[i] & ids[j])
+        key = 'on' if on else 'off'
+        row.update({f'process_s_per_photo_{key}': round(best.stats.process_s / len(data), 4),
+                    f'bridged_{key}': best.stats.bridged, f'breaks_{key}': best.stats.breaks,
+                    f'other_bridged_{key}': best.other_image.bridged, f'keyframes_{key}': len(kfs),
+                    f'keyframe_pairs_sharing_tracks_{key}': linked})
+    row['process_ratio_on_off'] = round(row['process_s_per_photo_on'] / row['process_s_per_photo_off'], 3)
+    return row
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split('\n')[0])
     ap.add_argument('--only', default=','.join(SETS), help='sets, comma separated')
@@ -262,6 +298,9 @@ def main(argv=None) -> int:
                          'again (triangulate does not use the tracker)')
     ap.add_argument('--params', default=None, help="replay's ROS 2 parameter file (default: the package's)")
     ap.add_argument('--remeasure', action='store_true', help='measure the outputs already in --out again')
+    ap.add_argument('--fallback-cost', action='store_true',
+                    help="instead: the tracker's CPU per photo with features_fallback on against off, in-process, "
+                         'on the photo sets (`fallback_cost`); results in inflight_chain_fallback_cost_<commit>.jsonl')
     a = ap.parse_args(argv)
     rs.REMEASURE = a.remeasure
     global TRIANGULATE_FROM, REPLAY_PARAMS
@@ -276,9 +315,9 @@ def main(argv=None) -> int:
     out.mkdir(parents=True, exist_ok=True)
     commit = rs.git_commit()
     short = commit.split()[0].replace('+modified', '')
-    results = Path(a.results) / f'inflight_chain_{short}.jsonl'
+    results = Path(a.results) / f"inflight_chain{'_fallback_cost' if a.fallback_cost else ''}_{short}.jsonl"
     results.parent.mkdir(parents=True, exist_ok=True)
-    head = {'bench': 'inflight_chain', 'commit': commit, 'clean_tree': clean_tree(), 'cores': os.cpu_count(),
+    head = {'bench': 'inflight_chain_fallback_cost' if a.fallback_cost else 'inflight_chain', 'commit': commit, 'clean_tree': clean_tree(), 'cores': os.cpu_count(),
             'replay_params': REPLAY_PARAMS, 'triangulate_from': str(TRIANGULATE_FROM) if TRIANGULATE_FROM else None,
             'machine': machine_info(), 'load_avg_before': [round(x, 2) for x in os.getloadavg()],
             'started_utc': time.strftime('%Y-%m-%dT%H:%M:%SZ', time.gmtime())}
@@ -287,8 +326,10 @@ def main(argv=None) -> int:
     for s in sets:
         for v in variants:
             load0 = os.getloadavg()
+            if a.fallback_cost and s == 'phantom3':
+                continue   # video: no breaks, the fallback only at the first keyframe
             try:
-                row = run_set(s, v, out, a.timeout_s)
+                row = fallback_cost(s, v) if a.fallback_cost else run_set(s, v, out, a.timeout_s)
             except subprocess.TimeoutExpired as exc:
                 row = {'set': s, 'variant': v, 'error': f'timeout after {exc.timeout} s'}
             row.update({'commit': commit, 'clean_tree': head['clean_tree'], 'cores': os.cpu_count(),
@@ -296,6 +337,9 @@ def main(argv=None) -> int:
                         'load_avg_after': [round(x, 2) for x in os.getloadavg()]})
             with open(results, 'a') as fh:
                 fh.write(json.dumps(row, default=str) + '\n')
+            if a.fallback_cost:
+                print(f'{s} {v}: {row}', flush=True)
+                continue
             print(f"{s} {v}: triangulate {row.get('triangulate_oriented')}/{row.get('photos')}, replay "
                   f"{row.get('replay_oriented')}/{row.get('replay_keyframes')} keyframes, "
                   f"{row.get('replay_oriented_of_triangulated')}/{row.get('keyframes_triangulated')} of "

@@ -166,6 +166,28 @@ class ChainStore:
                 if got is not None:
                     self.positions[i], self.sigma_h_m[i] = np.asarray(got[0], float), float(got[1])
 
+    def overlapping(self, here, neighbours: int) -> list[int]:
+        """Entries whose footprints a frame at `here` ((3,) m, sigma_h_m: what `locate` takes; or None) overlaps by
+        GNSS, nearest first: photo_matching.earlier_candidates' first `neighbours` candidates (at most twice that)."""
+        from photogram_ros.core.photo_matching import earlier_candidates
+        placed = [i for i in range(len(self.keys)) if self.positions[i] is not None]
+        if here is None or not placed or neighbours == 0:
+            return []
+        sigma = max(here[1], float(np.median([self.sigma_h_m[i] for i in placed])))
+        order, first = earlier_candidates(np.array([self.positions[i] for i in placed]), here[0], neighbours, sigma)
+        return [placed[int(k)] for k in order[:min(first, 2 * neighbours)]]
+
+    def nearest_first(self, entries: list[int], here) -> list[int]:
+        """`entries` by horizontal distance from `here` (as in `overlapping`; None: as they are), those without a
+        position last."""
+        if here is None:
+            return list(entries)
+
+        def dist(i):
+            q = self.positions[i]
+            return float(np.linalg.norm((q - here[0])[:2])) if q is not None else float('inf')
+        return sorted(entries, key=dist)
+
     def descriptors(self, i: int) -> np.ndarray:
         """Entry i's descriptors as float32 RootSIFT (what FLANN matches)."""
         return self.desc[i].astype(np.float32) * np.float32(1.0 / 255.0)

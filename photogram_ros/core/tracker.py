@@ -73,9 +73,10 @@ from photogram_ros.core.gnss_fix import GnssFix
 from photogram_ros.core.geodesy import LocalFrame
 from photogram_ros.core.klt import KltStep
 from photogram_ros.core.keyframe_image import EncodedImage, Keyframe
+from photogram_ros.core.other_image import OtherImageFallback, first_per_id
 from photogram_ros.core.keyframes import ChainStore, FixBuffer, OverlapGrid, gps_distance_m, homography_overlap
-from photogram_ros.core.photo_matching import (DescriptorIndex, MatchingOptions, PhotoFeatures, earlier_candidates,
-                                               extract, match_pair)
+from photogram_ros.core.photo_matching import (DescriptorIndex, MatchingOptions, PhotoFeatures, extract,
+                                               match_pair)
 from photogram_ros.errors import CalibrationError
 from photogram_ros.params import param
 
@@ -141,8 +142,17 @@ class TrackerParams(CrossStripParams):
     features_on: str = param('normalised', 'Image the SIFT features of descriptor matching are detected on: the '
                              'reduced grey after the tracker\'s photometric normalisation (normalised), or as decoded '
                              '(raw): CLAHE makes KLT precise but can cost a weak pair its verified matches (brighton_beach '
-                             'every other photo: DJI_0018-DJI_0020 verify raw, not after CLAHE); raw is not yet measured '
-                             'on every real set', choices=('raw', 'normalised'))
+                             'every other photo: DJI_0018-DJI_0020 verify raw, not after CLAHE); raw alone loses '
+                             'seneca\'s near-infrared keyframes (inflight_chain_69c54e1); features_fallback adds the '
+                             'other image where a break needs it', choices=('raw', 'normalised'))
+    features_fallback: bool = param(True, 'Keyframes at or after a break (photo-rate input) also publish SIFT '
+                                    'features of the other image (raw <-> normalised), matched first with those of '
+                                    'the weak keyframes they overlap by GNSS (the first, or one only its other image '
+                                    'bridged); a frame at a break that verifies no keyframe with features_on is '
+                                    'matched on its other image against the last match_keyframes keyframes\' '
+                                    '(core/other_image.py). One more extraction per such keyframe: 1.5x the tracker\'s '
+                                    'CPU per photo on brighton_beach (inflight_chain_fallback_cost_cbb9276); its every '
+                                    'other photo: DJI_0018 linked (inflight_chain_7898530)')
     chain_klt_keyframes: bool = param(False, 'Also keyframes that KLT carried (video-rate input, no break since the '
                                       'last keyframe) get SIFT features, publish chain_features of them as tracks '
                                       'and are matched with the earlier keyframes they overlap; off: only frames '
@@ -189,7 +199,7 @@ class _Frame:
     stamp_ns: int
     image: np.ndarray          # original image (BGR or grey), or the EncodedImage it came as
     gray: np.ndarray           # normalised grey
-    raw: np.ndarray | None     # the reduced grey before normalisation (None: the same as gray)
+    raw: np.ndarray | None     # the reduced grey before normalisation (None: the same as gray or not needed)
     pyr: list
     pts: np.ndarray            # (N, 2) float32 pixels of the reduced image
     ids: np.ndarray            # (N,) uint32
@@ -215,11 +225,7 @@ def _descriptor_index(frame: _Frame) -> DescriptorIndex:
 
 def _dedupe_feature_ids(frame: _Frame) -> None:
     """One feature per track id of `frame` (two features matched to one track: keep the first)."""
-    got = frame.feat_ids
-    _, first = np.unique(np.where(got >= 0, got, -1 - np.arange(len(got))), return_index=True)
-    dup = np.ones(len(got), bool)
-    dup[first] = False
-    got[dup] = -1
+    first_per_id(frame.feat_ids)
 
 @dataclass
 class _KfState:
@@ -281,6 +287,9 @@ class Tracker:
         self._kf = None
         self._recent = []
         self.chain = ChainStore(self.params.chain_max_keyframes)
+        self.other_image = OtherImageFallback(   # features_fallback (core/other_image.py)
+            self._work_cam, self._match_options(), 
+            lambda uv: self._work_cam.in_image(uv, margin_px=self._win[0] / 2 + 1), self._new_ids, lambda s: (self._position_of(s) or (None,))[0], self.params)
 
     def add_fix(self, fix: GnssFix | dict) -> None:
         """A GNSS fix, or the dict of msgs.fix_from_navsatfix."""
@@ -331,7 +340,7 @@ class Tracker:
             gray = cv2.resize(gray, (self._work_cam.width, self._work_cam.height), interpolation=cv2.INTER_AREA)
         g = self._normalise(gray, mean, std)
         # (Python's calcOpticalFlowPyrLK cannot take prebuilt pyramids; it builds them itself.)
-        raw = gray if g is not gray and self.params.features_on == 'raw' else None
+        raw = gray if g is not gray and (self.params.features_on == 'raw' or self.params.features_fallback) else None
         cur = _Frame(index, stamp_ns, image, g, raw, g, np.empty((0, 2), np.float32), np.empty(0, np.uint32))
         if self._prev is None or self._kf is None:
             cur.pts, cur.ids = self._top_up(cur, cur.pts, cur.ids)
@@ -467,9 +476,8 @@ class Tracker:
     def _features_of(self, frame: _Frame) -> None:
         """SIFT features of a frame (reduced-image pixels), without track ids yet (-1)."""
         if frame.features is None:
-            img = frame.raw if frame.raw is not None else frame.gray
+            img = frame.raw if frame.raw is not None and self.params.features_on == 'raw' else frame.gray
             frame.features = extract(str(frame.index), img, (1.0, 1.0), self._match_options())
-            frame.raw = None   # only the features needed it
             frame.feat_ids = np.full(len(frame.features.uv), -1, np.int64)
 
     def _new_ids(self, n: int) -> np.ndarray:
@@ -507,20 +515,9 @@ class Tracker:
         n = len(ch)
         recent = list(range(n - 1, max(-1, n - 1 - p.match_keyframes), -1))
         here = self._position_of(cur.stamp_ns)
-        placed = [i for i in range(n) if ch.positions[i] is not None]
-        chosen: list[int] = []
-        if here is not None and placed and p.chain_neighbours > 0:
-            sigma = max(here[1], float(np.median([ch.sigma_h_m[i] for i in placed])))
-            order, first = earlier_candidates(np.array([ch.positions[i] for i in placed]), here[0],
-                                              p.chain_neighbours, sigma)
-            chosen = [placed[int(k)] for k in order[:min(first, 2 * p.chain_neighbours)]]
+        chosen = ch.overlapping(here, p.chain_neighbours)
         if at_break or here is None:
-            if here is not None:
-                def dist(i):
-                    q = ch.positions[i]
-                    return float(np.linalg.norm((q - here[0])[:2])) if q is not None else float('inf')
-                recent = sorted(recent, key=dist)
-            chosen = chosen + [i for i in recent if i not in chosen]
+            chosen = chosen + [i for i in ch.nearest_first(recent, here) if i not in chosen]
         have = self._shared_ids(cur)
         out = []
         for i in chosen:
@@ -576,6 +573,7 @@ class Tracker:
             if not m.verified:
                 continue
             self.stats.chain_verified += 1
+            self.other_image.linked(ch.keys[i])
             rows, dst = m.matches[:, 0], m.matches[:, 1]
             verified.append((i, feats.uv[rows], dst))
             keep = ids[rows] >= 0
@@ -617,7 +615,8 @@ class Tracker:
             refined = self._recover_from_klt_keyframes(cur)
         if int((got >= 0).sum()) < opt.min_inliers and not len(refined[1]):
             got[:] = -1
-            return None
+            return None if verified else self.other_image.recover(cur.index, cur.gray, cur.raw, cur.stamp_ns, [
+                (k.keyframe.index, k.keyframe.stamp_ns) for k in self._recent])
         _dedupe_feature_ids(cur)
         inside = self._work_cam.in_image(f.uv, margin_px=self._win[0] / 2 + 1)
         take = (got >= 0) & inside & ~np.isin(got, refined[1].astype(np.int64))   # KLT-refined positions win
@@ -745,6 +744,11 @@ class Tracker:
         frame.extra_pts = np.concatenate([frame.extra_pts, f.uv[add].astype(np.float32)])
         frame.extra_ids = np.concatenate([frame.extra_ids, fid[add].astype(np.uint32)])
         order = order[:self.params.chain_features]
+        if self._break_since_kf or not self._recent:   # core/other_image.py: features of the other image too
+            near = self.chain.overlapping(self._position_of(frame.stamp_ns), self.params.chain_neighbours)
+            frame.extra_pts, frame.extra_ids = self.other_image.publish(
+                frame.index, self.stats.keyframes, frame.gray, frame.raw, (frame.pts, frame.ids),
+                (frame.extra_pts, frame.extra_ids), [self.chain.keys[i] for i in near])
         return f.uv[order], f.desc[order], fid[order]
 
     def _make_keyframe(self, frame: _Frame, overlap: float) -> None:
@@ -789,7 +793,8 @@ class Tracker:
         kept = {id(k) for k in self._recent}
         for k in self._held:
             if id(k) not in kept:
-                k.frame.features = k.frame.feat_ids = None   # the chain keeps what later keyframes match
+                k.frame.features = k.frame.feat_ids = k.frame.raw = None   # the chain keeps what later ones match
+        self.other_image.keep(k.keyframe.index for k in self._recent)
         self._held = list(self._recent)
         self._pending.append((kf, self._clock_ns))
 
