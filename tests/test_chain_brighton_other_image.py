@@ -49,7 +49,7 @@ def _shared(kfs, a: int, b: int) -> int:
 
 
 def test_the_first_photo_of_every_other_brighton_links_through_its_raw_image_and_gets_a_pose():
-    tr, at, kfs, names = _fly(TrackerParams())
+    tr, at, kfs, names = _fly(TrackerParams(features_fallback=True))   # as config/replay.yaml
     assert names[0] == 'DJI_0018.JPG' and names[5] == 'DJI_0028.JPG' and len(kfs) == 9
     assert tr.other_image.bridged >= 1
     # Across the strip: DJI_0028's raw features take the ids of DJI_0018's (a weak keyframe it overlaps).

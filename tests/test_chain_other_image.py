@@ -35,7 +35,7 @@ def _fallback(**params):
         return t
     inside = lambda uv: CAM.in_image(uv, margin_px=8)   # noqa: E731
     opt = MatchingOptions(max_features=2000, features_per_mpx=8000.0, min_inliers=15, ransac_method='usac')
-    return OtherImageFallback(CAM, opt, inside, new_ids, lambda stamp_ns: None, TrackerParams(**params),
+    return OtherImageFallback(CAM, opt, inside, new_ids, lambda stamp_ns: None, TrackerParams(**{'features_fallback': True, **params}),
                               hold_weak=2), counter
 
 

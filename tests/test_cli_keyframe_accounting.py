@@ -1,7 +1,7 @@
-"""The keyframe accounting (io/flight_report.keyframe_accounting) tells the truth: taken, oriented, not oriented,
+"""The keyframe accounting (io/flight_verdict.keyframe_accounting) tells the truth: taken, oriented, not oriented,
 with reasons that add up to the keyframes not oriented, on the console line, in report.json and the report."""
 
-from photogram_ros.io.flight_report import keyframe_accounting, keyframes_line
+from photogram_ros.io.flight_verdict import keyframe_accounting, keyframes_line
 
 # run.json counts of `replay` of seneca_part's every other photo (21 photos), 17 oriented at the end: the
 # adjuster's in-flight reasons count 13 keyframes, 9 of which segment joins and the end's second chance oriented.

@@ -10,13 +10,13 @@ import pytest
 
 
 def _acc():
-    from photogram_ros.io.flight_report import keyframe_accounting
+    from photogram_ros.io.flight_verdict import keyframe_accounting
     return keyframe_accounting({'tracker': {'keyframes': 41}, 'bundle': {
         'keyframes_received': 41, 'keyframes_oriented': 38, 'keyframes_not_oriented': 3}}, 38)
 
 
 def test_one_pair_agreeing_with_the_interpolation_makes_a_thin_dsm_a_warning():
-    from photogram_ros.io.flight_report import mapping_verdict
+    from photogram_ros.io.flight_verdict import mapping_verdict
     # seneca_part's replay map (export of its map_final): 8.2 % confirmed, 48 % more one pair, 0.14 m median.
     one = {'share': 0.48, 'median_abs_dz_m': 0.14, 'p90_abs_dz_m': 0.90, 'tolerance_m': 0.707}
     v = mapping_verdict(_acc(), True, 0.096, True, None, one)
@@ -33,7 +33,7 @@ def test_one_pair_agreeing_with_the_interpolation_makes_a_thin_dsm_a_warning():
 
 
 def test_the_evidence_is_read_from_the_export_json_beside_the_dsm(tmp_path):
-    from photogram_ros.io.flight_report import dsm_one_pair_evidence
+    from photogram_ros.io.flight_verdict import dsm_one_pair_evidence
     dsm = tmp_path / 'dsm.tif'
     assert dsm_one_pair_evidence(dsm) is None          # no export.json
     (tmp_path / 'export.json').write_text(json.dumps({'dsm': {

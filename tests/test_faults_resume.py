@@ -28,7 +28,7 @@ def test_keyframes_taken_before_a_crash_are_counted_as_taken_and_those_without_a
     """30 and 40 have no pose at the restart: the resumed run takes 30 again (fed again) and orients it; 40 it
     does not take: counted as taken, not oriented."""
     from photogram_ros.commands.run import count_keyframes_before, keyframes_before
-    from photogram_ros.io.flight_report import keyframe_accounting
+    from photogram_ros.io.flight_verdict import keyframe_accounting
     root = tmp_path / 'map'
     assert keyframes_before(root) is None   # a new map: nothing to count
     store = _map_with_keyframes(root, posed=[10, 20, 25], unposed=[30, 40])

@@ -54,7 +54,7 @@ def test_white_wall_photos_report_that_nothing_mapped(tmp_path):
 
 
 def test_verdict_names_each_way_a_flight_fails_to_map():
-    from photogram_ros.io.flight_report import keyframe_accounting, mapping_verdict
+    from photogram_ros.io.flight_verdict import keyframe_accounting, mapping_verdict
     counts = {'tracker': {'keyframes': 34, 'frames_tracked': 42},
               'bundle': {'keyframes_received': 33, 'keyframes_oriented': 1, 'keyframes_not_oriented': 32}}
     acc = keyframe_accounting(counts, 1, 'too_few_known_points (0)')

@@ -97,7 +97,7 @@ def run(a) -> int:
     from photogram_ros.nodes.node_main import init_ros
     from photogram_ros.io.control_file import read_control_file
     from photogram_ros.nodes.replay_session import ReplayOptions, run_replay, source_kind
-    from photogram_ros.io.flight_report import keyframes_line
+    from photogram_ros.io.flight_verdict import keyframes_line
     from photogram_ros.commands.run import count_keyframes_before, keyframes_before
     from photogram_ros.errors import ConfigError
     from photogram_ros.sim.truth import GroundTruth

@@ -615,7 +615,7 @@ def _export_at_stop(a, roles, run_info=None, diagnostics=None) -> int:
         return 0
     from photogram_ros.commands.products import export_products
     from photogram_ros.errors import PhotogramError
-    from photogram_ros.io.flight_report import keyframes_line
+    from photogram_ros.io.flight_verdict import keyframes_line
     try:
         res = export_products(map_dir_of(a.params), a.out, a.params, a.crs, a.live_map, a.heights, run=run_info,
                               diagnostics=diagnostics, progress=True)

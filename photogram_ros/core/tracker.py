@@ -145,14 +145,16 @@ class TrackerParams(CrossStripParams):
                              'every other photo: DJI_0018-DJI_0020 verify raw, not after CLAHE); raw alone loses '
                              'seneca\'s near-infrared keyframes (inflight_chain_69c54e1); features_fallback adds the '
                              'other image where a break needs it', choices=('raw', 'normalised'))
-    features_fallback: bool = param(True, 'Keyframes at or after a break (photo-rate input) also publish SIFT '
+    features_fallback: bool = param(False, 'Keyframes at or after a break (photo-rate input) also publish SIFT '
                                     'features of the other image (raw <-> normalised), matched first with those of '
                                     'the weak keyframes they overlap by GNSS (the first, or one only its other image '
                                     'bridged); a frame at a break that verifies no keyframe with features_on is '
                                     'matched on its other image against the last match_keyframes keyframes\' '
                                     '(core/other_image.py). One more extraction per such keyframe: 1.5x the tracker\'s '
-                                    'CPU per photo on brighton_beach (inflight_chain_fallback_cost_cbb9276); its every '
-                                    'other photo: DJI_0018 linked (inflight_chain_7898530)')
+                                    'CPU per photo on brighton_beach (inflight_chain_fallback_cost_cbb9276), which a '
+                                    'live camera\'s pace cannot spare on a 2-core computer (off by default); '
+                                    'config/replay.yaml turns it on: its every other photo: DJI_0018 linked '
+                                    '(inflight_chain_7898530)')
     chain_klt_keyframes: bool = param(False, 'Also keyframes that KLT carried (video-rate input, no break since the '
                                       'last keyframe) get SIFT features, publish chain_features of them as tracks '
                                       'and are matched with the earlier keyframes they overlap; off: only frames '

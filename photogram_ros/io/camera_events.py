@@ -22,20 +22,12 @@ from pathlib import Path
 
 import numpy as np
 
-from photogram_ros.core.exposure_positions import (GPS_EPOCH_UNIX_S, AntennaTrack, CameraEvent, gps_s_to_week_tow,
-                                                   track_from_geodetic, utc_unix_to_gps_s, week_tow_to_gps_s)
+from photogram_ros.core.exposure_positions import (DJI_RTK_FLAG_Q, GPS_EPOCH_UNIX_S, AntennaTrack, CameraEvent,
+                                                   gps_s_to_week_tow, track_from_geodetic, utc_unix_to_gps_s,
+                                                   week_tow_to_gps_s)
 from photogram_ros.errors import DataError
 
-# DJI RTK position flag (the MRK's `flag,Q` and a photo's XMP `drone-dji:RtkFlag`; DJI OSDK
-# Telemetry::RTK posHealthFlag) -> the common quality scale (RTKLIB Q: 1 fix, 2 float, 3 sbas, 4 dgps,
-# 5 single). 48/50 integer (L1, narrow-lane) -> fix; 49 wide-lane integer and 32-34 float -> float;
-# 18 SBAS -> sbas; 17 pseudorange differential, 20 OmniSTAR VBS -> dgps; 16 single point, 19 propagated
-# by a Kalman filter, 8 Doppler, 1-2 fixed by command -> single. 0 (no solution) maps to nothing.
-DJI_RTK_FLAG_Q = {50: 1, 48: 1, 49: 2, 34: 2, 33: 2, 32: 2, 18: 3, 17: 4, 20: 4, 16: 5, 19: 5, 8: 5, 1: 5, 2: 5}
-DJI_RTK_FLAG_NAMES = {50: 'fixed (narrow-lane)', 48: 'fixed (L1)', 49: 'wide-lane integer', 34: 'float', 33: 'float',
-                      32: 'float', 18: 'SBAS', 17: 'differential', 20: 'OmniSTAR', 16: 'single', 19: 'propagated',
-                      8: 'Doppler', 1: 'fixed by command', 2: 'fixed height', 0: 'no solution'}
-MRK_FLAG_Q = DJI_RTK_FLAG_Q
+MRK_FLAG_Q = DJI_RTK_FLAG_Q   # the MRK's `flag,Q` is DJI's RTK position flag (core/exposure_positions)
 _MRK_HEAD = re.compile(r'^\s*(\d+)\s+(\d+(?:\.\d*)?)\s+\[\s*(\d+)\s*\]')
 
 

@@ -90,11 +90,11 @@ def dji_rtk_accuracy(path, xmp: dict | None = None) -> tuple[int, float, float] 
     (ExifGps.rtk).
 
     The sigmas are RtkStdLon, RtkStdLat (horizontal: sqrt((lon^2 + lat^2) / 2)) and RtkStdHgt, each at
-    least the floor of the flag's quality class (io/camera_events.DJI_RTK_FLAG_Q ->
+    least the floor of the flag's quality class (core/exposure_positions.DJI_RTK_FLAG_Q ->
     core.exposure_positions.Q_FLOOR_M: a float or single solution's formal sigma is optimistic); a flag
     without sigmas takes its class's floor, and a fixed one without sigmas 2 cm / 3 cm."""
     from photogram_ros.core.exposure_positions import Q_FLOOR_M
-    from photogram_ros.io.camera_events import DJI_RTK_FLAG_Q
+    from photogram_ros.core.exposure_positions import DJI_RTK_FLAG_Q
     xmp = read_dji_xmp(path) if xmp is None else xmp
     flag = xmp_float(xmp, 'RtkFlag')
     if flag is None or int(flag) == 0:
@@ -107,7 +107,7 @@ def dji_rtk_accuracy(path, xmp: dict | None = None) -> tuple[int, float, float] 
     return flag, max((0.5 * (lon_m ** 2 + lat_m ** 2)) ** 0.5, floor_h, 1e-3), max(hgt_m, floor_v, 1e-3)
 
 
-# The common quality class of a DJI RtkFlag (io/camera_events.DJI_RTK_FLAG_Q: 1 fix, 2 float, 3 SBAS, 4 DGPS,
+# The common quality class of a DJI RtkFlag (core/exposure_positions.DJI_RTK_FLAG_Q: 1 fix, 2 float, 3 SBAS, 4 DGPS,
 # 5 single) -> sensor_msgs/NavSatStatus.status, as core/gnss_fix maps a receiver's fix type: RTK fixed and float
 # are both GBAS (NavSatStatus cannot tell them apart: the covariance does), SBAS and DGPS SBAS, single a plain fix.
 _RTK_Q_STATUS = {1: gf.STATUS_GBAS_FIX, 2: gf.STATUS_GBAS_FIX, 3: gf.STATUS_SBAS_FIX, 4: gf.STATUS_SBAS_FIX,
@@ -116,7 +116,7 @@ _RTK_Q_STATUS = {1: gf.STATUS_GBAS_FIX, 2: gf.STATUS_GBAS_FIX, 3: gf.STATUS_SBAS
 
 def rtk_navsat_status(flag: int) -> int:
     """A DJI RtkFlag -> NavSatStatus.status (_RTK_Q_STATUS; an unknown flag is a single solution's STATUS_FIX)."""
-    from photogram_ros.io.camera_events import DJI_RTK_FLAG_Q
+    from photogram_ros.core.exposure_positions import DJI_RTK_FLAG_Q
     return _RTK_Q_STATUS.get(DJI_RTK_FLAG_Q.get(int(flag), 5), gf.STATUS_FIX)
 
 

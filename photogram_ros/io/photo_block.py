@@ -91,7 +91,7 @@ def _positions(src: Path, images: list[Path], exif_altitude, takeoff_h_m, takeof
         how = 'EXIF altitude taken as MSL (EGM2008) and converted to ellipsoidal'
     rtk_counts = {k: n for k, n in flags.items() if k is not None}
     if rtk_counts:
-        from photogram_ros.io.camera_events import DJI_RTK_FLAG_NAMES
+        from photogram_ros.core.exposure_positions import DJI_RTK_FLAG_NAMES
         said = ', '.join(f'{n} {DJI_RTK_FLAG_NAMES.get(k, "flag")} ({k})' for k, n in
                          sorted(rtk_counts.items(), key=lambda kn: -kn[1]))
         none = flags.get(None, 0)
