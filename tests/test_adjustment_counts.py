@@ -24,3 +24,19 @@ def test_a_waiting_keyframe_oriented_later_is_counted_once():
     assert c['not_oriented_too_few_known_points'] == 1
     counts.oriented_since(block, 2)      # counted out once only
     assert diag.counts()['keyframes_not_oriented'] == 1
+
+
+def test_at_the_end_each_keyframe_still_not_oriented_is_counted_under_its_final_reason():
+    """The flight report's per-keyframe reasons (io/flight_verdict AT_END_PREFIX): the reason a keyframe was
+    counted under in flight, or given up after being oriented when it never was counted not oriented."""
+    diag = DiagnosticsLog()
+    counts = NotOrientedCounts(diag)
+    counts.count('too few known points (3 of 30)', 100)
+    counts.count('waiting for initialisation', 200)
+    kfs = [SimpleNamespace(stamp_ns=100, map_T_cam=None), SimpleNamespace(stamp_ns=200, map_T_cam=object()),
+           SimpleNamespace(stamp_ns=300, map_T_cam=None)]    # 200 oriented later; 300 oriented once, given up
+    counts.at_end(SimpleNamespace(keyframes=lambda: kfs))
+    c = diag.counts()
+    assert c['not_oriented_at_end_too_few_known_points'] == 1
+    assert c['not_oriented_at_end_given_up_after_being_oriented'] == 1
+    assert 'not_oriented_at_end_waiting_for_initialisation' not in c

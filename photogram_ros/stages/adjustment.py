@@ -794,7 +794,9 @@ class AdjustmentStage:
                     self.diag.problem(f'second chance of unoriented keyframes failed: {exc}')
                 self._origin_from_control()
                 self._vet_control(final=True)   # targets seen too seldom to be checked in flight
-            return self.full_adjustment()
+            out = self.full_adjustment()
+            self._not_oriented.at_end(self.at.block)
+            return out
 
     def full_adjustment(self) -> AdjustmentOutcome:
         """Adjust the whole block now and republish; the outcome says whether it was made."""

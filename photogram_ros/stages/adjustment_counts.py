@@ -24,3 +24,11 @@ class NotOrientedCounts:
             if reason is not None:
                 self.diag.count('keyframes_not_oriented', -1)
                 self.diag.count(f'not_oriented_{reason}', -1)
+
+    def at_end(self, block) -> None:
+        """End of flight: each keyframe `block` holds not oriented, counted under its final reason
+        (not_oriented_at_end_<reason>, io/flight_verdict): the reason it was counted under in flight, else
+        given_up_after_being_oriented (oriented once, given up since: before an early break)."""
+        for kf in block.keyframes():
+            if kf.map_T_cam is None:
+                self.diag.count('not_oriented_at_end_' + self._why.get(kf.stamp_ns, 'given_up_after_being_oriented'))
