@@ -39,7 +39,7 @@ from photogram_ros.core import geoid
 from photogram_ros.core.geodesy import LocalFrame
 from photogram_ros.errors import ConfigError, DataError, StorageError
 from photogram_ros.io.export_cloud import (EGM2008_HEIGHT, HEIGHTS, GeoCloud, check_projected, classify_cloud,
-                                           crs_to_enu, enu_to_crs, map_cloud, open_map, product_crs, read_ply,
+                                           crs_to_enu, enu_to_crs, map_cloud, map_clouds, open_map, product_crs, read_ply,
                                            write_las, write_ply)
 from photogram_ros.io.export_files import ExportResult, ProductsIncomplete, part_path, write_whole
 from photogram_ros.io.export_raster import (COG_BLOCK_PX, FILL_MARGIN_AGL, FILLED, DsmParams, StoredKeyframes,
@@ -105,7 +105,7 @@ def export_map(map_dir: str | Path | MapStore, out_dir: str | Path, crs: str, he
     chosen = [p for p in PRODUCTS if p.chosen(job)]
     job.steps = steps = Steps('export', len(plan(chosen)), say)
     steps.start('cloud')
-    job.cloud = map_cloud(fusion, origin, crs, heights, min_pairs)
+    job.cloud, job.fewer = map_clouds(fusion, origin, crs, heights, min_pairs)
     res.points = job.cloud.x.size
     vertical_crs, note = product_crs(crs, heights)
     res.crs_with_heights = vertical_crs.name

@@ -42,6 +42,14 @@ class GeoCloud:
     pairs: np.ndarray | None = None     # stereo pairs that measured each cell
     classes: np.ndarray | None = None   # ASPRS class per point (core.ground); None: not classified (1)
 
+    def subset(self, keep: np.ndarray) -> 'GeoCloud':
+        """The cells where `keep` (a boolean mask over the cells) holds."""
+        def cut(a):
+            return None if a is None else a[keep]
+        return GeoCloud(self.x[keep], self.y[keep], self.z[keep], self.rgb[keep], self.count[keep],
+                        self.confidence[keep], self.crs, self.heights, cut(self.sigma_z), cut(self.pairs),
+                        cut(self.classes))
+
 
 # --- coordinates -----------------------------------------------------------------------------------
 
@@ -103,6 +111,12 @@ def open_map(map_dir: str | Path | MapStore) -> tuple[MapStore, Fusion]:
     return store, Fusion(FusionConfig(store.cell_m, store.tile_cells, max_tiles_in_memory=10**6), store)
 
 
+def _too_few_pairs(min_pairs: int) -> DataError:
+    return DataError('the map holds no fused points yet' if min_pairs <= 1 else
+                     f'no cell of the map was measured by {min_pairs} stereo pairs that agree (too little overlap '
+                     f'for a second pair); `export MAP --min-pairs 1` writes the cells one pair measured, unchecked')
+
+
 def map_cloud(fusion: Fusion, origin: LocalFrame, crs: str, heights: str = 'ellipsoidal',
               min_pairs: int = 1) -> GeoCloud:
     """Fused cells in `crs`; `min_pairs` keeps only cells that that many stereo pairs agreed on."""
@@ -111,10 +125,28 @@ def map_cloud(fusion: Fusion, origin: LocalFrame, crs: str, heights: str = 'elli
         keep = p['n_pairs'] >= min_pairs
         p = {k: v[keep] for k, v in p.items()}
     if p['x'].size == 0:
-        raise DataError('the map holds no fused points yet' if min_pairs <= 1 else
-                        f'no cell of the map was measured by {min_pairs} stereo pairs that agree (too little overlap '
-                        f'for a second pair); `export MAP --min-pairs 1` writes the cells one pair measured, '
-                        f'unchecked')
+        raise _too_few_pairs(min_pairs)
+    return _geo_cloud(p, origin, crs, heights)
+
+
+def map_clouds(fusion: Fusion, origin: LocalFrame, crs: str, heights: str = 'ellipsoidal',
+               min_pairs: int = 1) -> tuple[GeoCloud, GeoCloud | None]:
+    """The cells `min_pairs` stereo pairs agreed on, and the cells fewer pairs measured (None with min_pairs 1),
+    both in `crs`, from one read of the map's tiles (the DSM checks its interpolation with the second)."""
+    p = fusion.points()
+    if p['x'].size == 0:
+        raise _too_few_pairs(1)
+    everything = _geo_cloud(p, origin, crs, heights)
+    del p
+    if min_pairs <= 1:
+        return everything, None
+    keep = everything.pairs >= min_pairs
+    if not keep.any():
+        raise _too_few_pairs(min_pairs)
+    return everything.subset(keep), everything.subset(~keep)
+
+
+def _geo_cloud(p: dict, origin: LocalFrame, crs: str, heights: str) -> GeoCloud:
     e, n, h = enu_to_crs(origin, np.column_stack([p['x'], p['y'], p['z']]), crs, heights)
     rgb = np.column_stack([p['r'], p['g'], p['b']])
     return GeoCloud(e, n, h, np.clip(np.rint(rgb), 0, 255).astype(np.uint8), p['n'].astype(np.uint32),

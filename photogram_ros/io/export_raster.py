@@ -24,7 +24,7 @@ from photogram_ros.core.raster import (NODATA, Keyframe, Raster, cell_max, dsm_f
                                        orthomosaic)
 from photogram_ros.errors import ConfigError, DataError
 from photogram_ros.io.crs_tags import geotiff_georef
-from photogram_ros.io.export_cloud import GeoCloud, crs_to_enu, enu_to_crs, map_cloud
+from photogram_ros.io.export_cloud import GeoCloud, crs_to_enu, enu_to_crs, map_clouds
 from photogram_ros.io.map_store import MapStore
 from photogram_ros.params import param
 
@@ -176,7 +176,8 @@ class Surface:
 
 
 def surface_in_crs(fusion: Fusion, origin: LocalFrame, crs: str, heights: str, res_m: float, rules: DsmParams,
-                   min_pairs: int, camera_centres_map: np.ndarray, cloud: GeoCloud | None = None) -> Surface:
+                   min_pairs: int, camera_centres_map: np.ndarray,
+                   clouds: tuple[GeoCloud, GeoCloud | None] | None = None) -> Surface:
     """The DSM in `crs` from the cells `min_pairs` pairs measured; with rules.fill the cells it leaves
     inside what the photos saw are interpolated from the heights around them (core/raster.fill_surface).
 
@@ -187,10 +188,11 @@ def surface_in_crs(fusion: Fusion, origin: LocalFrame, crs: str, heights: str, r
     brighton no better (0.32 against 0.32 m median against OpenDroneMap). They check the interpolation
     instead (Surface.one_pair, one_pair_check): with min_pairs > 1 the cells fewer pairs measured are
     gridded alike, and where the DSM is interpolated their heights are compared with it; on a survey with
-    one pair per spot (60 % forward overlap) that is most of the DSM's evidence. `cloud`:
-    map_cloud(fusion, origin, crs, heights, min_pairs) if already made.
+    one pair per spot (60 % forward overlap) that is most of the DSM's evidence. `clouds`:
+    map_clouds(fusion, origin, crs, heights, min_pairs) if already made (the cells min_pairs pairs measured,
+    and those fewer did).
     """
-    cloud = cloud or map_cloud(fusion, origin, crs, heights, min_pairs)
+    cloud, fewer = clouds or map_clouds(fusion, origin, crs, heights, min_pairs)
     grid = dsm_in_crs(cloud, res_m, rules)
     measured = grid.valid()
     pairs = np.where(measured, cell_max(cloud.x, cloud.y, cloud.pairs, grid).astype(np.float32), NODATA)
@@ -215,32 +217,26 @@ def surface_in_crs(fusion: Fusion, origin: LocalFrame, crs: str, heights: str, r
         grid = Raster(d, grid.x0_m, grid.y1_m, grid.res_m, NODATA)
     pairs[(grid.data != NODATA) & (pairs == NODATA)] = FILLED
     surface = Surface(grid, pairs, region, cam_hull)
-    if min_pairs > 1:
-        surface.one_pair, surface.one_pair_dz_m = _one_pair_check(fusion, origin, crs, heights, rules, min_pairs,
-                                                                  surface)
+    if fewer is not None:
+        surface.one_pair, surface.one_pair_dz_m = _one_pair_check(fewer, rules, surface)
     return surface
 
 
-def _one_pair_check(fusion: Fusion, origin: LocalFrame, crs: str, heights: str, rules: DsmParams, min_pairs: int,
-                    surface: Surface) -> tuple[np.ndarray, np.ndarray]:
-    """The interpolated cells of `surface` that fewer than `min_pairs` pairs measured, gridded by the DSM's
-    spread rules (one fused cell is enough: a pair's points are sparser than the DSM's cells at a quarter
-    scale; no filling), and there that height minus the interpolated one (NaN elsewhere)."""
+def _one_pair_check(fewer: GeoCloud, rules: DsmParams, surface: Surface) -> tuple[np.ndarray, np.ndarray]:
+    """The interpolated cells of `surface` that the cells of `fewer` (measured by fewer pairs than the DSM
+    asks) fall in, gridded by the DSM's spread rules (one fused cell is enough: a pair's points are sparser
+    than the DSM's cells at a quarter scale; no filling), and there that height minus the interpolated one
+    (NaN elsewhere)."""
     shape = surface.dsm.shape
     where, dz = np.zeros(shape, bool), np.full(shape, np.nan, np.float32)
-    try:
-        everything = map_cloud(fusion, origin, crs, heights, 1)
-    except DataError:
-        return where, dz
-    few = everything.pairs < min_pairs
-    if not few.any():
+    if not fewer.x.size:
         return where, dz
     grid = surface.dsm
     half = 0.25 * grid.res_m      # inside the DSM's own edges: grid_for snaps them back to the same grid
     west, south, east, north = grid.bounds
-    one = dsm_from_points(everything.x[few], everything.y[few], everything.z[few], grid.res_m,
-                          weights=everything.count[few], bounds=(west + half, south + half, east - half, north - half),
-                          max_spread_m=rules.max_spread_m, z_sigma=everything.sigma_z[few],
+    one = dsm_from_points(fewer.x, fewer.y, fewer.z, grid.res_m, weights=fewer.count,
+                          bounds=(west + half, south + half, east - half, north - half),
+                          max_spread_m=rules.max_spread_m, z_sigma=fewer.sigma_z,
                           min_count=1, fill_gaps_m=0.0, canopy=rules.canopy_top)
     if one.shape != shape:
         raise DataError(f'the one-pair grid {one.shape} does not match the DSM\'s {shape}')

@@ -63,11 +63,12 @@ class ExportJob:
     rules: Any                      # io/export_raster.DsmParams, resolved for the map's cell
     contour_interval_m: float
     centres: Any                    # (K, 3) camera centres, map ENU
-    cloud: Any                      # io/export_cloud.GeoCloud
+    cloud: Any                      # io/export_cloud.GeoCloud: the cells min_pairs stereo pairs measured
     res: ExportResult
     steps: Any                      # io/progress.Steps
     writers: Writers
     say: Callable[[str], None] | None = None
+    fewer: Any = None               # GeoCloud of the cells fewer pairs measured (they check the DSM); None: min_pairs 1
     failed: dict = field(default_factory=dict)   # product -> (why it was not written, errno)
     made: dict = field(default_factory=dict)     # intermediate name -> result
 
@@ -100,7 +101,8 @@ class ExportJob:
 
         from photogram_ros.io.export_raster import surface_in_crs
         surf = surface_in_crs(self.fusion, self.origin, self.crs, self.heights, self.dsm_res_m, self.rules,
-                              self.min_pairs, self.centres, self.cloud)
+                              self.min_pairs, self.centres, (self.cloud, self.fewer))
+        self.fewer = None     # read only by the DSM's check
         grid = surf.dsm
         self.res.dsm['valid_share'] = float(np.mean(grid.valid())) if grid.data.size else 0.0
         self.res.dsm['raster'] = surf.shares(np.ones(grid.shape, bool))
