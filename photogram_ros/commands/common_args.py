@@ -1,5 +1,7 @@
 """Command-line options that mean the same in every command that takes them, defined once here.
 
+- ``--gcp FILE``, ``--check NAMES`` in the live graph (`replay`, `run`): the bundle node's control_file and
+  check_names, the file read before any node starts.
 - ``--gcp-heights {auto,ellipsoidal,orthometric}``: the vertical datum of the heights in the control file
   (auto: EGM2008 orthometric only when its CRS is compound with EGM2008 heights, e.g. EPSG:32632+3855; else
   ellipsoidal). Never a policy: whether a contradicted GCP height is used is ``--gcp-height-check``.
@@ -98,6 +100,31 @@ def add_gcp_height_check(p) -> None:
                    help='checked (default): a GCP height the GNSS-only block contradicts far beyond both sigmas '
                         '(placeholders such as 0 or 400 m) is reported and the GCP used horizontally only; use: '
                         'every height as given (the block bends to fit it)')
+
+
+def add_live_control(p) -> None:
+    """--gcp, --check and --gcp-heights of the live graph (replay, run): the bundle node's control_file,
+    check_names and control_heights (read back by live_control_overrides)."""
+    p.add_argument('--gcp', default='', help='control-point file of the flight\'s ArUco targets (first line a CRS, '
+                                         'then "name marker_id x y z [sigma_h_m sigma_v_m]"): GCPs constrain the '
+                                         'adjustment, CHK* names are check points; the simulator writes targets.txt')
+    p.add_argument('--check', default='', help='more check-point names of the --gcp file, comma separated')
+    add_gcp_heights(p, 'the --gcp file')
+
+
+def live_control_overrides(a):
+    """(the control file read now, so a bad one is said before any node starts; the bundle node's parameters
+    for it), or (None, {}) without --gcp (a note when --check is given alone)."""
+    from pathlib import Path
+
+    from photogram_ros.io.control_file import read_control_file
+    if not a.gcp:
+        if a.check:
+            print('note: --check without --gcp has no effect (without a control file every target is a check point)')
+        return None, {}
+    control = read_control_file(a.gcp, a.check.split(','), a.gcp_heights)
+    return control, {'control_file': str(Path(a.gcp).resolve()), 'check_names': a.check,
+                     'control_heights': a.gcp_heights}
 
 
 def add_heights(p, old_flag: str | None = None) -> None:

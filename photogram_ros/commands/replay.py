@@ -36,11 +36,7 @@ def add_arguments(p) -> None:
     common_args.add_exif_altitude(p, 'For a photo folder (camera_node\'s exif_altitude)')
     p.add_argument('--min-pairs', type=int, default=2,
                    help='export only cells confirmed by this many stereo pairs (1 keeps everything)')
-    p.add_argument('--gcp', default='', help='control-point file of the flight\'s ArUco targets (first line a CRS, '
-                                         'then "name marker_id x y z [sigma_h_m sigma_v_m]"): GCPs constrain the '
-                                         'adjustment, CHK* names are check points; the simulator writes targets.txt')
-    p.add_argument('--check', default='', help='more check-point names of the --gcp file, comma separated')
-    common_args.add_gcp_heights(p, 'the --gcp file')
+    common_args.add_live_control(p)
     p.add_argument('--live-map', action='store_true',
                    help='make the products from the in-flight map (pairs matched with the poses they had when '
                         'they left the bundle window) instead of matching the keyframes again with the final '
@@ -95,7 +91,6 @@ def run(a) -> int:
 
     from photogram_ros.commands.products import check_output_crs, export_products
     from photogram_ros.nodes.node_main import init_ros
-    from photogram_ros.io.control_file import read_control_file
     from photogram_ros.nodes.replay_session import ReplayOptions, run_replay, source_kind
     from photogram_ros.io.flight_verdict import keyframes_line
     from photogram_ros.commands.run import count_keyframes_before, keyframes_before
@@ -129,16 +124,13 @@ def run(a) -> int:
         raise ConfigError(f'--truth {a.truth}: no simulator ground truth (ground_truth.json) there')
     domain = shared_domain(parse_domain(a.domain, '--domain')) if a.domain is not None else \
         own_domain(avoid=check_domain_env())
-    control, extra = None, {}
+    extra = {}
     camera = common_args.exif_altitude_overrides(a)   # checked before any process starts
     if camera:
         extra['camera'] = camera
-    if a.gcp:   # read here first: a bad file is reported before the replay starts
-        control = read_control_file(a.gcp, a.check.split(','), a.gcp_heights)
-        extra['bundle'] = {'control_file': str(Path(a.gcp).resolve()), 'check_names': a.check,
-                           'control_heights': a.gcp_heights}
-    elif a.check:
-        print('note: --check without --gcp has no effect (without a control file every target is a check point)')
+    control, bundle = common_args.live_control_overrides(a)   # a bad file is reported before the replay starts
+    if bundle:
+        extra['bundle'] = bundle
     lock = claim_output(out, 'resume' if a.resume else 'overwrite' if a.overwrite else 'new', 'replay')
     if lock.previous:
         print(f'note: --resume: continuing the map in {out}', flush=True)

@@ -43,6 +43,7 @@ def add_arguments(p) -> None:
     common_args.add_heights(p)
     common_args.add_exif_altitude(p, 'For camera_node\'s photo folder (its exif_altitude; not given: the parameter '
                                      'file\'s)')
+    common_args.add_live_control(p)
     p.add_argument('--no-export', action='store_true', help='only flush the map when stopping (export later with '
                                                             'photogram-ros export MAPDIR --densify)')
     p.add_argument('--live-map', action='store_true', help='export the in-flight map instead of matching the '
@@ -81,8 +82,11 @@ def run(a) -> int:
     if a.namespace:
         check_namespace(a.namespace)
     camera = common_args.exif_altitude_overrides(a)
-    spec = GraphSpec(roles=roles, params_file=a.params, namespace=a.namespace,
-                     extra={'camera': camera} if camera and 'camera' in roles else None)
+    _, bundle = common_args.live_control_overrides(a)   # a bad control file is said before any node starts
+    if bundle and 'bundle' not in roles:
+        raise ConfigError(f'--gcp {a.gcp}: the control file goes to the bundle node, which --nodes leaves out')
+    extra = {role: values for role, values in (('camera', camera), ('bundle', bundle)) if values and role in roles}
+    spec = GraphSpec(roles=roles, params_file=a.params, namespace=a.namespace, extra=extra or None)
     check_params(spec)     # every mistake before the first frame, not at the end of the flight
     exporting = not a.no_export and 'map' in roles
     if exporting and a.crs:
@@ -610,6 +614,20 @@ def map_dir_of(params_file: str | None) -> str:
     return from_dict(MapParams, sections.get('map_node', {}), f'{params_file} map_node').map_dir
 
 
+def flight_control(a):
+    """The flight's control file for the report's check points (core/control.ControlSet): --gcp, else the
+    parameter file's bundle_node control_file; None without one."""
+    if a.gcp:
+        return common_args.live_control_overrides(a)[0]
+    from photogram_ros.params import load_params_file
+    bundle = (load_params_file(a.params) if a.params else {}).get('bundle_node', {})
+    if not bundle.get('control_file'):
+        return None
+    from photogram_ros.io.control_file import read_control_file
+    return read_control_file(bundle['control_file'], str(bundle.get('check_names', '')).split(','),
+                             bundle.get('control_heights', 'auto'))
+
+
 def _export_at_stop(a, roles, run_info=None, diagnostics=None) -> int:
     if a.no_export or 'map' not in roles:
         return 0
@@ -618,7 +636,7 @@ def _export_at_stop(a, roles, run_info=None, diagnostics=None) -> int:
     from photogram_ros.io.flight_verdict import keyframes_line
     try:
         res = export_products(map_dir_of(a.params), a.out, a.params, a.crs, a.live_map, a.heights, run=run_info,
-                              diagnostics=diagnostics, progress=True)
+                              diagnostics=diagnostics, progress=True, control=flight_control(a))
     except (PhotogramError, OSError) as exc:   # the map itself is safe on disk: say how to export it later
         print(f'exports failed ({exc}); the map is on disk: photogram-ros export MAPDIR --densify', flush=True)
         return EXIT_EXPORT_FAILED
