@@ -466,11 +466,6 @@ def child_topic(base: str, token: str) -> str:
     return f'{head}/{token}/{tail}' if token else base
 
 
-def _reliable(depth: int = 10):
-    from rclpy.qos import QoSProfile, ReliabilityPolicy
-    return QoSProfile(depth=depth, reliability=ReliabilityPolicy.RELIABLE)
-
-
 # CPU seconds per second of wall time above which the child counts as computing (its idle DDS and
 # status threads take about 0.01).
 CHILD_COMPUTING_CPU_S = 0.05
@@ -520,6 +515,8 @@ class ChildGraph:
 
     def __init__(self, spec: GraphSpec, node_kwargs: dict):
         from rclpy.node import Node
+
+        from photogram_ros.nodes import qos
         from std_msgs.msg import String
         self.spec = spec
         self.node = Node('graph_parent', **node_kwargs)
@@ -528,8 +525,8 @@ class ChildGraph:
         self._cond = threading.Condition()
         self._seq = 0
         token = f'p{os.getpid()}'
-        self._pub = self.node.create_publisher(String, child_topic(TOPIC_CHILD_COMMAND, token), _reliable())
-        self.node.create_subscription(String, child_topic(TOPIC_CHILD_STATUS, token), self._on_status, _reliable())
+        self._pub = self.node.create_publisher(String, child_topic(TOPIC_CHILD_COMMAND, token), qos.reliable())
+        self.node.create_subscription(String, child_topic(TOPIC_CHILD_STATUS, token), self._on_status, qos.reliable())
         ctx = node_kwargs.get('context')
         env = dict(os.environ)
         if ctx is not None and getattr(ctx, 'get_domain_id', None):
@@ -663,6 +660,8 @@ def child_main(argv=None) -> int:
     import rclpy
     from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
     from rclpy.node import Node
+
+    from photogram_ros.nodes import qos
     from std_msgs.msg import String
     args = sys.argv[1:] if argv is None else argv
     spec = GraphSpec(**{**json.loads(args[0]), 'child_roles': ()})
@@ -679,7 +678,7 @@ def child_main(argv=None) -> int:
         ctl = Node('graph_child', **({'namespace': spec.namespace} if spec.namespace else {}))
         state = {'done': 0, 'errors': {}}
         token = os.environ.get(GRAPH_TOKEN_ENV, '')
-        pub = ctl.create_publisher(String, child_topic(TOPIC_CHILD_STATUS, token), _reliable())
+        pub = ctl.create_publisher(String, child_topic(TOPIC_CHILD_STATUS, token), qos.reliable())
         subs = {}
         for n in graph.nodes.values():
             for sub in n.subscriptions:
@@ -703,7 +702,7 @@ def child_main(argv=None) -> int:
             state['done'] = max(state['done'], c['seq'])
             status()
         # Commands in their own group: a flush taking seconds must not stop the status reports.
-        ctl.create_subscription(String, child_topic(TOPIC_CHILD_COMMAND, token), command, _reliable(),
+        ctl.create_subscription(String, child_topic(TOPIC_CHILD_COMMAND, token), command, qos.reliable(),
                                 callback_group=MutuallyExclusiveCallbackGroup())
         ctl.create_timer(0.2, status, callback_group=MutuallyExclusiveCallbackGroup())
         graph.executor.add_node(ctl)

@@ -71,6 +71,16 @@ def latched() -> QoSProfile:
                       durability=DurabilityPolicy.TRANSIENT_LOCAL)
 
 
+def tf() -> QoSProfile:
+    """/tf: reliable, keep last 100 (tf2's TransformBroadcaster default)."""
+    return reliable(100)
+
+
+def tf_static() -> QoSProfile:
+    """/tf_static: latched (tf2's StaticTransformBroadcaster: reliable, transient local, depth 1)."""
+    return latched()
+
+
 def diagnostics() -> QoSProfile:
     """/diagnostics: reliable, keep last 10."""
     return reliable(10)

@@ -7,11 +7,11 @@ a colcon workspace). The PyPI wheels have no tf2_msgs: then nothing is published
 from __future__ import annotations
 
 import numpy as np
-from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 
 from photogram_ros.core.frames import BASE_T_OPTICAL_NADIR, frame_names, map_T_base
 from photogram_ros.core.rotations import quat_from_R
 from photogram_ros.msgs import time_from_ns
+from photogram_ros.nodes import qos
 
 NOT_AVAILABLE = ('not published: tf2_msgs is not importable (the PyPI wheels have none; a ROS 2 install has it); '
                  'a replay writes the tree to trajectory/ (MCAP)')
@@ -50,9 +50,8 @@ class TfPublisher:
             return
         from tf2_msgs.msg import TFMessage
         self._msg = TFMessage
-        self._tf = node.create_publisher(TFMessage, '/tf', QoSProfile(depth=100))
-        self._static = node.create_publisher(TFMessage, '/tf_static', QoSProfile(
-            depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL))
+        self._tf = node.create_publisher(TFMessage, '/tf', qos.tf())
+        self._static = node.create_publisher(TFMessage, '/tf_static', qos.tf_static())
 
     def poses(self, poses) -> None:
         """(map_T_cam, stamp_ns, covariance) of adjusted keyframes -> odom -> base_link at each stamp; the
