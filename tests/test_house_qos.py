@@ -46,3 +46,16 @@ def test_a_mistyped_parameter_is_still_refused_beside_the_overrides(rclpy_contex
                  Parameter('max_fix_age_sec', value=2.0)]
     with pytest.raises(ConfigError, match='max_fix_age_sec'):
         MavlinkNode(context=rclpy_context, parameter_overrides=overrides)
+
+
+def test_no_qos_profile_is_built_outside_the_qos_module():
+    """Every node takes its profiles from nodes/qos.py (one place to read and override them)."""
+    import re
+
+    from conftest import ROOT
+    hand_built = [f'{p.relative_to(ROOT)}:{n}' for p in sorted((ROOT / 'photogram_ros').rglob('*.py'))
+                  if p.name != 'qos.py'
+                  for n, line in enumerate(p.read_text().splitlines(), 1) if re.search(r'\bQoSProfile\(', line)]
+    assert hand_built == []
+    from photogram_ros.nodes import qos
+    assert qos.tf_static() == qos.latched() and qos.tf().depth == 100
