@@ -1,5 +1,7 @@
 """Command-line options that mean the same in every command that takes them, defined once here.
 
+- ``--processes {1,2}``, ``--child-nodes`` in the live graph (`replay`, `run`): bundle, stereo and map in a second
+  process by default (one Python process uses about one core).
 - ``--gcp FILE``, ``--check NAMES`` in the live graph (`replay`, `run`): the bundle node's control_file and
   check_names, the file read before any node starts.
 - ``--gcp-heights {auto,ellipsoidal,orthometric}``: the vertical datum of the heights in the control file
@@ -125,6 +127,29 @@ def live_control_overrides(a):
     control = read_control_file(a.gcp, a.check.split(','), a.gcp_heights)
     return control, {'control_file': str(Path(a.gcp).resolve()), 'check_names': a.check,
                      'control_heights': a.gcp_heights}
+
+
+CHILD_ROLES = ('bundle', 'stereo', 'map')
+
+
+def add_processes(p) -> None:
+    """--processes and --child-nodes of the live graph (replay, run): read back by child_roles."""
+    p.add_argument('--processes', type=int, choices=(1, 2), default=2,
+                   help='2 (default): the --child-nodes run in a second process, on a second core (one Python '
+                        'process uses about one core); 1: every node in one process')
+    p.add_argument('--child-nodes', default=','.join(CHILD_ROLES),
+                   help='nodes of the second process with --processes 2 (among ' + ', '.join(CHILD_ROLES) + ')')
+
+
+def child_roles(a, roles=CHILD_ROLES) -> tuple:
+    """The roles of the second process (those of `roles` that --child-nodes names; none with --processes 1); a
+    ConfigError for a role that cannot go there (the camera, the tracker and the MAVLink decoder take the
+    flight's input and stay in the main process)."""
+    from photogram_ros.errors import ConfigError
+    child = tuple(r.strip() for r in a.child_nodes.split(',') if r.strip()) if a.processes == 2 else ()
+    if set(child) - set(CHILD_ROLES):
+        raise ConfigError(f'--child-nodes {a.child_nodes!r}: choose among {", ".join(CHILD_ROLES)}')
+    return tuple(r for r in child if r in roles)
 
 
 def add_heights(p, old_flag: str | None = None) -> None:

@@ -57,11 +57,7 @@ def add_arguments(p) -> None:
                    help='ROS_DOMAIN_ID to replay on, e.g. your own to watch the replay in RViz or Foxglove '
                         '(default: a free domain of its own in 215-232, so that no other ROS 2 process hears '
                         'the old flight and the replay hears no one else)')
-    p.add_argument('--processes', type=int, choices=(1, 2), default=2,
-                   help='2 (default): the --child-nodes run in a second process, on a second core (one Python '
-                        'process uses about one core); 1: every node in one process')
-    p.add_argument('--child-nodes', default='bundle,stereo,map',
-                   help='nodes of the second process with --processes 2 (among bundle, stereo, map)')
+    common_args.add_processes(p)
 
 
 def resume_extra(extra: dict, kind: str, params_file: str | None, map_dir, before: dict) -> dict:
@@ -114,9 +110,7 @@ def run(a) -> int:
         raise ConfigError(f'--min-pairs {a.min_pairs}: 1 (keep every cell) or more')
     if not -1e12 < a.video_start < 1e12:
         raise ConfigError(f'--video-start {a.video_start:g}: the Unix time of the video\'s first frame, s')
-    child = tuple(r.strip() for r in a.child_nodes.split(',') if r.strip()) if a.processes == 2 else ()
-    if set(child) - {'bundle', 'stereo', 'map'}:
-        raise ConfigError(f'--child-nodes {a.child_nodes!r}: choose among bundle, stereo, map')
+    child = common_args.child_roles(a)
     if a.crs:   # checked now, not after the whole replay
         check_output_crs(a.crs)
     source_kind(a.bag)   # a flight that is not there: said before any folder is made

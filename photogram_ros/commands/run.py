@@ -44,6 +44,7 @@ def add_arguments(p) -> None:
     common_args.add_exif_altitude(p, 'For camera_node\'s photo folder (its exif_altitude; not given: the parameter '
                                      'file\'s)')
     common_args.add_live_control(p)
+    common_args.add_processes(p)
     p.add_argument('--no-export', action='store_true', help='only flush the map when stopping (export later with '
                                                             'photogram-ros export MAPDIR --densify)')
     p.add_argument('--live-map', action='store_true', help='export the in-flight map instead of matching the '
@@ -53,8 +54,8 @@ def add_arguments(p) -> None:
                         'past it the steps left are skipped and the products come from the in-flight map '
                         '(as after a second SIGINT/SIGTERM); default 600')
     p.add_argument('--end-max-rss-mb', type=float, default=0.0,
-                   help='bound on this process\'s memory during the end-of-flight steps, MB: past it they are cut '
-                        'short the same way; 0 = no bound (default)')
+                   help='bound on the mapping processes\' memory (this one and its --processes 2 child) during the '
+                        'end-of-flight steps, MB: past it they are cut short the same way; 0 = no bound (default)')
     reuse = p.add_mutually_exclusive_group()
     reuse.add_argument('--resume', action='store_true',
                        help='the map folder holds a finished flight: continue that map (the products in --out are '
@@ -86,7 +87,8 @@ def run(a) -> int:
     if bundle and 'bundle' not in roles:
         raise ConfigError(f'--gcp {a.gcp}: the control file goes to the bundle node, which --nodes leaves out')
     extra = {role: values for role, values in (('camera', camera), ('bundle', bundle)) if values and role in roles}
-    spec = GraphSpec(roles=roles, params_file=a.params, namespace=a.namespace, extra=extra or None)
+    spec = GraphSpec(roles=roles, params_file=a.params, namespace=a.namespace, extra=extra or None,
+                     child_roles=() if a.separate else common_args.child_roles(a, roles))
     check_params(spec)     # every mistake before the first frame, not at the end of the flight
     exporting = not a.no_export and 'map' in roles
     if exporting and a.crs:
@@ -120,10 +122,12 @@ def run(a) -> int:
         graph.executor.add_node(monitor)
         graph.start()
         t0 = time.monotonic()
-        print(f'photogram_ros running: {", ".join(graph.nodes)} (SIGINT or SIGTERM ends the flight: final '
+        child = (f'; {", ".join(spec.child_roles)} in a second process (pid {graph.child_pid()})'
+                 if spec.child_roles else '')
+        print(f'photogram_ros running: {", ".join(spec.roles)}{child} (SIGINT or SIGTERM ends the flight: final '
               f'adjustment, map flush' + (f', products in {a.out}/)' if exporting else ')'), flush=True)
         pacer = CameraPacer(graph, signals.stop) if paced else None
-        memory = PeakMemory()
+        memory = PeakMemory(graph.child_pid())
         signals.wait(alive=lambda: memory.sample() and not source_ended(graph))
         flight_s = time.monotonic() - t0
         say = (lambda text: print(text, flush=True))
@@ -141,10 +145,10 @@ def run(a) -> int:
         print(f'{signals.signal_name or "end of the camera source"}: ending the flight (final adjustment, stereo, '
               f'map flush; at most {a.end_timeout_s:g} s, a second signal skips to the products of what exists)',
               flush=True)
-        end = finish_within_bounds(graph, signals.skip, a.end_timeout_s, a.end_max_rss_mb, say)
+        end = finish_within_bounds(graph, signals.skip, a.end_timeout_s, a.end_max_rss_mb, say, memory)
         counts = graph.counts()
-        names = {role: getattr(getattr(n, 'diag', None), 'name', f'/{NODES[role][2]}')
-                 for role, n in graph.nodes.items()}
+        names = {role: getattr(getattr(graph.nodes.get(role), 'diag', None), 'name', f'/{NODES[role][2]}')
+                 for role in spec.roles}
     finally:
         if graph is not None:
             graph.shutdown()
@@ -223,31 +227,39 @@ def release_memory() -> float:
 
 
 class PeakMemory:
-    """This process's resident memory over the flight: `sample()` (True, to sit in a wait's alive check)
-    records the current and the peak RSS."""
+    """The mapping processes' resident memory over the flight (this one's and the graph's child's, `child_pid`):
+    `sample()` (True, to sit in a wait's alive check) records their current and peak RSS together, MB (a child
+    that ended counts 0)."""
 
-    def __init__(self):
+    def __init__(self, child_pid: int | None = None):
+        self.child_pid = child_pid
         self.now_mb = self.peak_mb = 0.0
         self.sample()
 
     def sample(self) -> bool:
         from photogram_ros.nodes.graph import rss_mb
-        self.now_mb = rss_mb()
+        self.now_mb = rss_mb() + (rss_mb(self.child_pid) if self.child_pid else 0.0)
         self.peak_mb = max(self.peak_mb, self.now_mb)
         return True
 
 
-def finish_within_bounds(graph, skip, timeout_s: float, max_rss_mb: float, say):
+def finish_within_bounds(graph, skip, timeout_s: float, max_rss_mb: float, say, memory: PeakMemory | None = None):
     """graph.finish_flight in a worker thread, watched from here every 0.5 s (the heap trimmed each time, so
-    RSS is what the steps hold): a line every 10 s; past `timeout_s`, or this process's RSS above
-    `max_rss_mb` (0: no bound), or once `skip` is set (a second signal), the steps left are skipped and
+    RSS is what the steps hold): a line every 10 s; past `timeout_s`, or the mapping processes' RSS (`memory`:
+    this one's and the child's; without it this one's) above `max_rss_mb` (0: no bound), or once `skip` is set
+    (a second signal), the steps left are skipped and
     the step running is waited for at most 10 s more. Returns the FlightEnd (the final adjustment
     'failed' with the reason when it was cut short before it ended)."""
     import threading
 
-    from photogram_ros.nodes.graph import FlightEnd, rss_mb
+    from photogram_ros.nodes.graph import FlightEnd
     from photogram_ros.nodes.process_memory import trim_heap
+    memory = memory or PeakMemory()
     result: dict = {}
+
+    def rss_mb() -> float:
+        memory.sample()
+        return memory.now_mb
 
     def work():
         settle = (lambda: graph.drain(timeout_s=60.0, say=say, work_only=True, abort=skip))

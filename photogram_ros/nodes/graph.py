@@ -238,6 +238,10 @@ class Graph:
                 except Exception:   # the node is being destroyed, or the context is gone
                     return
 
+    def child_pid(self) -> int | None:
+        """The child process's pid (GraphSpec.child_roles), None without one."""
+        return self.child.proc.pid if self.child is not None else None
+
     def counts(self) -> dict:
         """role -> the node's diagnostic counters, for the nodes of this process and of the child."""
         out = {r: n.diag.counts() for r, n in self.nodes.items() if getattr(n, 'diag', None) is not None}
