@@ -110,6 +110,8 @@ def run(a) -> int:
         return _run_separate(a, spec, signals, before)
     paced = pace_camera(spec)
     spec, paced = paced, paced is not spec
+    held = not paced and hold_camera(spec)
+    spec = held or spec
     init_ros()
     graph = monitor = None
     try:
@@ -127,6 +129,8 @@ def run(a) -> int:
         print(f'photogram_ros running: {", ".join(spec.roles)}{child} (SIGINT or SIGTERM ends the flight: final '
               f'adjustment, map flush' + (f', products in {a.out}/)' if exporting else ')'), flush=True)
         pacer = CameraPacer(graph, signals.stop) if paced else None
+        if held:   # the second process listens now: the camera's first frames reach the adjuster
+            graph.nodes['camera'].start()
         memory = PeakMemory(graph.child_pid())
         signals.wait(alive=lambda: memory.sample() and not source_ended(graph))
         flight_s = time.monotonic() - t0
@@ -341,6 +345,18 @@ def pace_camera(spec):
     extra = {r: dict(v) for r, v in (spec.extra or {}).items()}
     extra.setdefault('camera', {})['autostart'] = False
     extra.setdefault('tracker', {}).setdefault('reliable_input', True)
+    return dataclasses.replace(spec, extra=extra)
+
+
+def hold_camera(spec):
+    """A spec whose camera node waits for `start()` (autostart false) when the graph has a second process: a
+    camera on its timer would publish while that process starts (its nodes not yet listening, so the first
+    keyframes never reach the adjuster) and take the CPU the start needs. None when nothing needs holding."""
+    if 'camera' not in spec.roles or not spec.child_roles:
+        return None
+    import dataclasses
+    extra = {r: dict(v) for r, v in (spec.extra or {}).items()}
+    extra.setdefault('camera', {})['autostart'] = False
     return dataclasses.replace(spec, extra=extra)
 
 

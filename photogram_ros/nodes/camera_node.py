@@ -348,6 +348,12 @@ class CameraNode(Node):
             if self._timer is not None:
                 self._timer.cancel()
 
+    def start(self) -> None:
+        """Publish on the timer from now on (a node made with autostart false, held until the graph's second
+        process listens: `run` with --processes 2)."""
+        if self._timer is None and not self.stopped:
+            self._timer = self.create_timer(0.005, self._tick)
+
     def stop_input(self) -> None:
         """The flight is being stopped: publish no more frames (a live camera, or a looping folder, goes on
         producing on the ground; the end of flight works on what was taken)."""
