@@ -131,6 +131,9 @@ BENCHES: tuple[Bench, ...] = (
     Bench('gnss_tilt', ('bench/gnss_tilt.py', '--out', '{out}'), 10,
           'docs/parameters.md: why gnss_tilt defaults to never (6 simulated sample flights with 5 GCPs, one leaning; '
           'not rendered)'),
+    Bench('run_processes', ('bench/run_processes.py', '--out', '{out}'), 6,
+          'inflight-20mp: `run` as a user starts it (run\'s defaults) on seneca_part at 20 MP, one photo a second, '
+          'one process against two (not rendered)', ros=True, needs=('{data}/photos/seneca_part',)),
     Bench('faults_stop', ('bench/faults_stop.py', '--out', '{out}'), 6,
           'docs/faults.md: `run` with a camera that never ends, stopped by SIGTERM (exit time, RSS; not rendered)',
           ros=True, needs=('{data}/photos/toledo',)),
