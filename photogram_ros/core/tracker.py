@@ -14,7 +14,10 @@ descriptors (core/photo_matching.py: SIFT on the reduced frame, ratio test, esse
 the chain: the earlier keyframes whose footprints it overlaps by GNSS (photo_matching.earlier_candidates,
 the way `triangulate` plans its pairs: the `chain_neighbours` nearest and any within that distance plus
 the fixes' uncertainty, across strips and turns), and the last `match_keyframes` keyframes, nearest
-first. A matched feature takes the track id its matches carry (the id published by the most keyframes
+first. A frame stops there once `chain_enough_verified` keyframes verified a match, or
+once `chain_stop_after_failures` in a row failed after one verified (farther ones overlap less). After
+`klt_rest_after_losses` frames in a row on which KLT lost its tracks (photo-rate input), KLT is tried on
+every KLT_RETRY_EVERY-th frame only: the others go straight to descriptors. A matched feature takes the track id its matches carry (the id published by the most keyframes
 where they differ: the likeliest to be a point the adjuster knows), so a keyframe shares tie points with
 every oriented keyframe it overlaps, not only the previous one; the KLT tracks of the nearest matched
 keyframe still held are refined onto the frame through the homography of the matches (sub-pixel, ids
@@ -80,6 +83,7 @@ from photogram_ros.core.photo_matching import (DescriptorIndex, MatchingOptions,
 from photogram_ros.errors import CalibrationError
 from photogram_ros.params import param
 
+KLT_RETRY_EVERY = 4      # while KLT rests (klt_rest_after_losses), it is tried on every this-many-th frame
 SPACING_KEYFRAMES = 10   # keyframes over which keyframe_spacing_m is the median
 FEATURE_DTYPE = np.dtype([('track_id', '<u4'), ('u', '<f8'), ('v', '<f8'), ('xn', '<f8'), ('yn', '<f8')])
 
@@ -165,6 +169,10 @@ class TrackerParams(CrossStripParams):
                                       'last keyframe) get SIFT features, publish chain_features of them as tracks '
                                       'and are matched with the earlier keyframes they overlap; off: only frames '
                                       'at a break and the keyframes after one (photo-rate input)')
+    klt_rest_after_losses: int = param(3, 'After this many frames in a row on which KLT lost the tracks (photo-rate '
+                                       'input: every frame bridged by descriptors), KLT is tried on every '
+                                       'KLT_RETRY_EVERY-th frame only, the others go straight to descriptor matching '
+                                       '(0: KLT tried on every frame)', min=0, max=1000)
     klt_min_share: float = param(0.2, 'Fewer KLT survivors than this share of the previous frame\'s tracks also '
                                  'tries descriptor matching (photo-rate input: motion far beyond KLT)',
                                  min=0.0, max=1.0)
@@ -270,6 +278,7 @@ class Tracker:
         self._next_id = 0
         self._n_frames = 0
         self._velocity = np.zeros(2, np.float32)   # median image motion, px/s
+        self._klt_losses = 0        # frames in a row on which KLT lost the tracks (klt_rest_after_losses)
         self._dt_hist: list[float] = []
         self._lost = False          # a frame was unusable since the last tracked one
         self._break_since_kf = False
@@ -418,11 +427,17 @@ class Tracker:
         if len(i0) > 2 * p.max_features:   # descriptor tracks of a keyframe: KLT follows a spread share
             sel = np.linspace(0, len(i0) - 1, 2 * p.max_features).astype(int)
             p0, i0 = p0[sel], i0[sel]
-        pts, ids, flow = self._klt_step.track(prev.pyr, cur.pyr, p0, i0, self._velocity * dt)
+        resting = (p.klt_rest_after_losses and self._klt_losses >= p.klt_rest_after_losses
+                   and self._klt_losses % KLT_RETRY_EVERY)
+        if resting:   # photo-rate input: KLT has lost every frame lately; descriptors carry the chain
+            pts, ids, flow = p0[:0], i0[:0], None
+        else:
+            pts, ids, flow = self._klt_step.track(prev.pyr, cur.pyr, p0, i0, self._velocity * dt)
+        lost_klt = len(ids) < max(p.recover_min_tracks, p.klt_min_share * len(i0))
+        self._klt_losses = self._klt_losses + 1 if lost_klt else 0
         if len(ids) >= p.recover_min_tracks and flow is not None:
             self._velocity = (flow / dt).astype(np.float32)
-        weak = len(ids) < max(p.recover_min_tracks, p.klt_min_share * len(i0))
-        if weak:
+        if lost_klt:
             # Beyond KLT's reach (photo-rate input, a fast turn, a gap): descriptors against the
             # last keyframes; kept when they link more tracks than KLT carried.
             rec = self._recover(cur)
