@@ -58,6 +58,12 @@ every pair planned and matched again after landing from all its stored keyframes
 reads no in-flight pair, shed or not, only the in-flight map's median height as the centre of the depth search),
 so it is a DSM that shed nothing whatever the first run shed in flight; each dsm row says so (`reference_is`).
 
+With --tracker-cpu N, no graph: the tracker alone (core/tracker.Tracker with run's default parameters and the
+tracker.X of --set; --baseline-set's alternating with it, N passes each) over the built photos, each photo's EXIF fix
+given before it: CPU per frame and its split by step (decode, KLT, corners, SIFT extraction, FLANN build, knn
+matching, essential-matrix verification, the rest), keyframes, breaks bridged, lost, chain pairs matched and verified
+(inflight_20mp_tracker_cpu rows, and a _compare row with the CPU ratio).
+
     .venv/bin/python bench/inflight_20mp.py [--periods 2,1] [--photos 42] [--set tracker.X=V] [--table out.md]
 """
 
@@ -722,6 +728,10 @@ def main() -> int:
                     help='after each run, make the products as `replay` does and record its verdict (mapped or '
                          'MAPPING FAILED, with the warnings)')
     ap.add_argument('--build-only', action='store_true')
+    ap.add_argument('--tracker-cpu', type=int, default=0, metavar='REPEATS',
+                    help='instead of the graph: the tracker alone (core/tracker.Tracker, run\'s defaults with the '
+                         'tracker.X of --set / --baseline-set) over the built photos, REPEATS times alternating with the '
+                         'baseline: CPU per frame and its split by step (tracker_cpu_split)')
     ap.add_argument('--summarise-kept', default='', metavar='DIR',
                     help='recompute the pose figures of a run kept with --keep (DIR: its period folder, e.g. KEEP/1s)')
     ap.add_argument('--export-dsm', action='store_true',
@@ -736,6 +746,12 @@ def main() -> int:
     emit({'machine': machine_info(), 'load_avg_before': [round(x, 2) for x in os.getloadavg()]})
     if a.summarise_kept:
         emit(summarise_kept(Path(a.summarise_kept)))
+        return 0
+    if a.tracker_cpu:
+        for p in periods:
+            folder, calib = build_flight(p, a.photos, flight=a.flight)
+            for row in tracker_cpu_rows(folder, calib, a):
+                emit(row)
         return 0
     if a.build_only:
         for p in periods:
@@ -775,6 +791,81 @@ def main() -> int:
         Path(a.json).write_text(json.dumps({'machine': machine_info(), 'rows': rows}, indent=1))
     print(table(rows))
     return 0
+
+
+# cProfile entries (by function name) of each step of the tracker's CPU split (tracker_cpu_split).
+CPU_STEPS = {'decode': ('imdecode',), 'klt': ('calcOpticalFlowPyrLK', 'warpAffine', 'warpPerspective',
+                                                'estimateAffinePartial2D', 'findHomography'),
+             'corners': ('goodFeaturesToTrack', 'circle'), 'normalise': ("apply' of 'cv2.CLAHE",),
+             'sift_extract': ("detectAndCompute",), 'match_flann_build': ("train' of 'cv2.DescriptorMatcher",),
+             'match_knn': ("knnMatch",), 'match_verify_essential': ('findEssentialMat',)}
+
+
+def tracker_cpu_split(folder: Path, calib: Path, overrides: dict) -> dict:
+    """One pass of the tracker alone over the photos (EncodedImage, each photo's EXIF fix given before it, as the
+    camera node publishes it): CPU s per frame (time.process_time) and the split by step (cProfile's own time of
+    the OpenCV calls of CPU_STEPS; the rest: Python)."""
+    import cProfile
+    import pstats
+
+    import numpy as np
+
+    from photogram_ros.core.camera import load_calibration
+    from photogram_ros.core.tracker import EncodedImage, Tracker, TrackerParams
+    from photogram_ros.io.image_source import FolderSource, read_exif_gps
+    from photogram_ros.params import from_dict
+    cam = load_calibration(str(calib))
+    photos = []
+    for path, stamp in FolderSource(folder).entries:
+        gps = read_exif_gps(path)
+        photos.append((np.fromfile(str(path), np.uint8), stamp, gps.gnss_fix(stamp, 3.0, 5.0) if gps else None))
+    tr = Tracker(cam, from_dict(TrackerParams, overrides))
+    per, kfs = [], []
+    prof = cProfile.Profile(time.process_time)
+    prof.enable()
+    for data, stamp, fix in photos:
+        if fix is not None:
+            tr.add_fix(fix)
+        t0 = time.process_time()
+        kfs += tr.process(EncodedImage(data), stamp)
+        per.append(time.process_time() - t0)
+    kfs += tr.flush()
+    prof.disable()
+    own = {}
+    for (_, _, name), (_, _, tt, _, _) in pstats.Stats(prof).stats.items():
+        step = next((k for k, names in CPU_STEPS.items() if any(n in name for n in names)), 'python_and_rest')
+        own[step] = own.get(step, 0.0) + tt
+    total = float(sum(per))
+    st = tr.stats
+    return {'frames': st.frames, 'keyframes': st.keyframes, 'breaks': st.breaks, 'bridged': st.bridged,
+            'lost': sum(1 for k in kfs if k.break_before and not k.bridged), 'chain_pairs': st.chain_pairs,
+            'chain_verified': st.chain_verified,
+            'cpu_s_per_frame': {'p50': round(float(np.median(per)), 3), 'mean': round(total / len(per), 3),
+                                'max': round(float(max(per)), 3)},
+            'cpu_split_s_per_frame': {k: round(v / len(per), 4) for k, v in sorted(own.items(), key=lambda kv: -kv[1])}}
+
+
+def tracker_cpu_rows(folder: Path, calib: Path, a) -> list[dict]:
+    """--tracker-cpu: the tracker alone, new (--set) and baseline (--baseline-set) alternating, a.tracker_cpu times
+    each; one row per pass and a comparison row (ratio of the mean CPU per frame)."""
+    import numpy as np
+    new = parse_sets(a.set).get('tracker', {})
+    base = {**new, **parse_sets(a.baseline_set).get('tracker', {})}
+    configs = [('baseline', base), ('new', new)] if a.baseline_set else [('new', new)]
+    rows = []
+    for rep in range(a.tracker_cpu):
+        for tag, over in configs:
+            rows.append({'bench': 'inflight_20mp_tracker_cpu', 'flight': a.flight, 'photos': str(folder.name),
+                         'config': tag, 'tracker_set': over, 'repeat': rep, **CODE,
+                         'load_avg': [round(x, 2) for x in os.getloadavg()],
+                         **tracker_cpu_split(folder, calib, over)})
+    if a.baseline_set:
+        mean = {tag: np.mean([r['cpu_s_per_frame']['mean'] for r in rows if r['config'] == tag]) for tag, _ in configs}
+        rows.append({'bench': 'inflight_20mp_tracker_cpu_compare', 'flight': a.flight, **CODE,
+                     'baseline': a.baseline_set, 'set': a.set,
+                     'cpu_per_frame_mean_s': [round(float(mean['baseline']), 3), round(float(mean['new']), 3)],
+                     'cpu_ratio_new_to_baseline': _ratio(float(mean['new']), float(mean['baseline']))})
+    return rows
 
 
 def _ratio(x, y):

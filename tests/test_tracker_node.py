@@ -192,7 +192,41 @@ def test_frames_faster_than_the_tracker_are_dropped_oldest_first(rclpy_context):
                 tracker._on_image(msgs.image_msg(np.zeros((8, 8), np.uint8), (k + 1) * 1_000_000))
             kept = [msgs.ns_from_time(m.header.stamp) for m in tracker._frames]
         assert kept == [9_000_000, 10_000_000] and tracker.diag.counts()['drops'] == 8
-        assert any('frame dropped: frames come faster than the tracker' in m for _, m in tracker.diag._problems)
+        assert any("dropped: frames come faster than the tracker" in m and "without a GNSS position" in m
+                   for _, m in tracker.diag._problems)
+    finally:
+        tracker.destroy_node()
+
+
+def test_photo_rate_frames_the_chain_needs_are_kept_and_redundant_ones_dropped_with_the_reason(rclpy_context):
+    """The queue's drop rule in the node (core/frame_queue.py, tests/test_tracker_frame_queue.py): photos 30 m apart
+    with keyframes 30 m apart are all kept past queue_size 2; a burst of frames 1 m apart is dropped as redundant,
+    said on /diagnostics."""
+    from photogram_ros import msgs
+    from photogram_ros.core.gnss_fix import GnssFix
+    from photogram_ros.nodes.tracker_node import TrackerNode
+
+    tracker = TrackerNode(overrides={'queue_size': 2}, context=rclpy_context)
+    tracker.tracker.keyframe_spacing_m = lambda: 30.0
+    m_per_deg = 6371008.8 * np.pi / 180.0
+    try:
+        with tracker._track_lock:   # a busy tracker: nothing leaves the queue
+            for k in range(6):
+                stamp = (k + 1) * 1_000_000_000
+                tracker._on_fix(msgs.navsatfix_from_gnss_fix(
+                    GnssFix(47.0 + 30.0 * k / m_per_deg, 8.0, 500.0, np.eye(3) * 0.01, stamp)))
+                tracker._on_image(msgs.image_msg(np.zeros((8, 8), np.uint8), stamp))
+            assert len(tracker._frames) == 6 and 'drops' not in tracker.diag.counts()
+            for k in range(1, 5):   # then four frames 1 m apart past the last photo
+                stamp = 6_000_000_000 + k * 100_000_000
+                tracker._on_fix(msgs.navsatfix_from_gnss_fix(
+                    GnssFix(47.0 + (150.0 + k) / m_per_deg, 8.0, 500.0, np.eye(3) * 0.01, stamp)))
+                tracker._on_image(msgs.image_msg(np.zeros((8, 8), np.uint8), stamp))
+            kept = [msgs.ns_from_time(m.header.stamp) for m in tracker._frames]
+        counts = tracker.diag.counts()
+        assert kept[:6] == [(k + 1) * 1_000_000_000 for k in range(6)], kept
+        assert counts['drops'] == counts['drops_redundant'] == 3 and kept[-1] == 6_400_000_000, (kept, counts)
+        assert any('dropped as redundant' in m for _, m in tracker.diag._problems)
     finally:
         tracker.destroy_node()
 

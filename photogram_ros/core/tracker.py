@@ -14,7 +14,10 @@ descriptors (core/photo_matching.py: SIFT on the reduced frame, ratio test, esse
 the chain: the earlier keyframes whose footprints it overlaps by GNSS (photo_matching.earlier_candidates,
 the way `triangulate` plans its pairs: the `chain_neighbours` nearest and any within that distance plus
 the fixes' uncertainty, across strips and turns), and the last `match_keyframes` keyframes, nearest
-first. A matched feature takes the track id its matches carry (the id published by the most keyframes
+first. A frame stops there once `chain_enough_verified` keyframes verified a match, or
+once `chain_stop_after_failures` in a row failed after one verified (farther ones overlap less). After
+`klt_rest_after_losses` frames in a row on which KLT lost its tracks (photo-rate input), KLT is tried on
+every KLT_RETRY_EVERY-th frame only: the others go straight to descriptors. A matched feature takes the track id its matches carry (the id published by the most keyframes
 where they differ: the likeliest to be a point the adjuster knows), so a keyframe shares tie points with
 every oriented keyframe it overlaps, not only the previous one; the KLT tracks of the nearest matched
 keyframe still held are refined onto the frame through the homography of the matches (sub-pixel, ids
@@ -80,6 +83,8 @@ from photogram_ros.core.photo_matching import (DescriptorIndex, MatchingOptions,
 from photogram_ros.errors import CalibrationError
 from photogram_ros.params import param
 
+KLT_RETRY_EVERY = 4      # while KLT rests (klt_rest_after_losses), it is tried on every this-many-th frame
+SPACING_KEYFRAMES = 10   # keyframes over which keyframe_spacing_m is the median
 FEATURE_DTYPE = np.dtype([('track_id', '<u4'), ('u', '<f8'), ('v', '<f8'), ('xn', '<f8'), ('yn', '<f8')])
 
 
@@ -137,6 +142,11 @@ class TrackerParams(CrossStripParams):
                                 'each', min=50, max=50000)
     chain_max_keyframes: int = param(600, 'Keyframes whose features are kept for cross-keyframe matching (the '
                                      'newest; ~226 kB each at 1500 features of 4000 tracks)', min=1, max=100000)
+    chain_enough_verified: int = param(4, 'A frame stops matching chain entries (nearest by GNSS first) once this '
+                                       'many verified a match (0: every candidate is tried)', min=0, max=100)
+    chain_stop_after_failures: int = param(3, 'A frame that verified a match with a chain entry stops after this '
+                                           'many further entries in a row fail (the farther ones overlap less; '
+                                           '0: every candidate is tried)', min=0, max=100)
     chain_linked_ids: int = param(50, 'An earlier keyframe already sharing this many track ids with the new one '
                                   '(KLT, or an earlier match) is not matched again', min=1, max=100000)
     features_on: str = param('normalised', 'Image the SIFT features of descriptor matching are detected on: the '
@@ -159,6 +169,10 @@ class TrackerParams(CrossStripParams):
                                       'last keyframe) get SIFT features, publish chain_features of them as tracks '
                                       'and are matched with the earlier keyframes they overlap; off: only frames '
                                       'at a break and the keyframes after one (photo-rate input)')
+    klt_rest_after_losses: int = param(3, 'After this many frames in a row on which KLT lost the tracks (photo-rate '
+                                       'input: every frame bridged by descriptors), KLT is tried on every '
+                                       'KLT_RETRY_EVERY-th frame only, the others go straight to descriptor matching '
+                                       '(0: KLT tried on every frame)', min=0, max=1000)
     klt_min_share: float = param(0.2, 'Fewer KLT survivors than this share of the previous frame\'s tracks also '
                                  'tries descriptor matching (photo-rate input: motion far beyond KLT)',
                                  min=0.0, max=1.0)
@@ -193,6 +207,7 @@ class TrackerStats:
     chain_verified: int = 0    # ... of them verified
     chain_bytes: int = 0       # what cross-keyframe matching keeps (core.keyframes.ChainStore)
     chain_dropped: int = 0     # keyframes whose features were dropped (beyond chain_max_keyframes)
+    keyframe_spacing_m: float = float('nan')   # median GNSS distance between the last keyframes released with fixes
 
 
 @dataclass
@@ -214,6 +229,8 @@ class _Frame:
     extra_pts: np.ndarray = field(default_factory=lambda: np.empty((0, 2), np.float32))
     extra_ids: np.ndarray = field(default_factory=lambda: np.empty(0, np.uint32))
     chain_tried: set = field(default_factory=set)   # keyframe indices this frame was matched with
+    chain_verified: int = 0       # ... of them verified
+    chain_failed_run: int = 0     # entries failed in a row since the last verified one
     desc_index: DescriptorIndex | None = None   # FLANN trees over `features`, built at its first match
 
 
@@ -256,9 +273,12 @@ class Tracker:
         self._origin: LocalFrame | None = None   # local frame of the chain's positions (the first fix)
         self._clock_ns = 0
         self._fix_seen = (None, None)   # (latest fix stamp, clock when it first advanced to it)
+        self._last_kf_fix: GnssFix | None = None   # of the last keyframe released with one
+        self._kf_spacing_m: list[float] = []       # GNSS distances between the last keyframes released with fixes
         self._next_id = 0
         self._n_frames = 0
         self._velocity = np.zeros(2, np.float32)   # median image motion, px/s
+        self._klt_losses = 0        # frames in a row on which KLT lost the tracks (klt_rest_after_losses)
         self._dt_hist: list[float] = []
         self._lost = False          # a frame was unusable since the last tracked one
         self._break_since_kf = False
@@ -407,11 +427,17 @@ class Tracker:
         if len(i0) > 2 * p.max_features:   # descriptor tracks of a keyframe: KLT follows a spread share
             sel = np.linspace(0, len(i0) - 1, 2 * p.max_features).astype(int)
             p0, i0 = p0[sel], i0[sel]
-        pts, ids, flow = self._klt_step.track(prev.pyr, cur.pyr, p0, i0, self._velocity * dt)
+        resting = (p.klt_rest_after_losses and self._klt_losses >= p.klt_rest_after_losses
+                   and self._klt_losses % KLT_RETRY_EVERY)
+        if resting:   # photo-rate input: KLT has lost every frame lately; descriptors carry the chain
+            pts, ids, flow = p0[:0], i0[:0], None
+        else:
+            pts, ids, flow = self._klt_step.track(prev.pyr, cur.pyr, p0, i0, self._velocity * dt)
+        lost_klt = len(ids) < max(p.recover_min_tracks, p.klt_min_share * len(i0))
+        self._klt_losses = self._klt_losses + 1 if lost_klt else 0
         if len(ids) >= p.recover_min_tracks and flow is not None:
             self._velocity = (flow / dt).astype(np.float32)
-        weak = len(ids) < max(p.recover_min_tracks, p.klt_min_share * len(i0))
-        if weak:
+        if lost_klt:
             # Beyond KLT's reach (photo-rate input, a fast turn, a gap): descriptors against the
             # last keyframes; kept when they link more tracks than KLT carried.
             rec = self._recover(cur)
@@ -568,12 +594,17 @@ class Tracker:
         ch = self.chain
         verified, dsts, tids = [], [], []
         for i in entries:
+            if self._chain_enough(cur):
+                break
             cur.chain_tried.add(ch.keys[i])
             self.stats.chain_pairs += 1
             feats, ids = self._entry_features(i)
             m = match_pair(feats, f, self._work_cam, opt, index_b=_descriptor_index(cur))
             if not m.verified:
+                cur.chain_failed_run += 1
                 continue
+            cur.chain_verified += 1
+            cur.chain_failed_run = 0
             self.stats.chain_verified += 1
             self.other_image.linked(ch.keys[i])
             rows, dst = m.matches[:, 0], m.matches[:, 1]
@@ -590,6 +621,15 @@ class Tracker:
             first = np.concatenate([[True], dst[1:] != dst[:-1]]) if len(dst) else np.zeros(0, bool)
             got[dst[first]] = tid[first]
         return verified
+
+    def _chain_enough(self, cur: _Frame) -> bool:
+        """Whether the frame has matched enough chain entries (chain_enough_verified), or, having verified one, the
+        last chain_stop_after_failures (farther, nearest first) failed: the rest would cost time, not links."""
+        p = self.params
+        if p.chain_enough_verified and cur.chain_verified >= p.chain_enough_verified:
+            return True
+        return bool(p.chain_stop_after_failures and cur.chain_verified
+                    and cur.chain_failed_run >= p.chain_stop_after_failures)
 
     def _recover(self, cur: _Frame):
         """Descriptor matching of the frame at a break against the chain's candidates (`_candidates`: the
@@ -802,7 +842,18 @@ class Tracker:
 
     def _finish(self, kf: Keyframe) -> Keyframe:
         kf.fix = self.fixes.at(kf.stamp_ns)
+        if kf.fix is not None:
+            if self._last_kf_fix is not None:
+                self._kf_spacing_m = (self._kf_spacing_m + [gps_distance_m(self._last_kf_fix, kf.fix)])[-SPACING_KEYFRAMES:]
+                self.stats.keyframe_spacing_m = float(np.median(self._kf_spacing_m))
+            self._last_kf_fix = kf.fix
         return kf
+
+    def keyframe_spacing_m(self) -> float | None:
+        """The median GNSS distance between the last SPACING_KEYFRAMES consecutive keyframes released with fixes, m
+        (None before two): how far apart the keyframe rule takes them (core/frame_queue.py's drop rule)."""
+        v = self.stats.keyframe_spacing_m
+        return None if not np.isfinite(v) else v
 
     def _release(self) -> list[Keyframe]:
         """Keyframes whose GPS fix is known (a fix after the stamp arrived) or waited for long enough.

@@ -12,9 +12,12 @@ float64; see core/tracker.py; with `detect_targets` also the keyframe's ArUco ta
 range msgs.py reserves for them), /keyframes/fix (NavSatFix interpolated to the stamp, when GPS
 has one), optionally /tracker/debug_image, and /diagnostics.
 
-Frames go into a bounded slot and a worker thread tracks them; when frames come faster than the
-worker, the oldest waiting frame is dropped, counted (`drops`) and said on /diagnostics with the
-reason, so the tracker never falls behind. A compressed frame larger than `track_max_px`
+Frames go into a queue and a worker thread tracks them; beyond `queue_size` waiting frames, one is dropped
+only when the chain can spare it (core/frame_queue.py): the waiting frame whose removal leaves the smallest GNSS
+gap between its neighbours, when that gap is within `drop_gap_share` of the tracker's keyframe spacing (redundant
+overlap, as video-rate frames are); a frame the chain needs (photo-rate input: every photo a keyframe) is kept and
+the queue grows, up to `queue_max_mb` of frames. Without GNSS positions the oldest waiting frame is dropped. Each
+drop is counted (`drops`, and `drops_<reason>`) and said on /diagnostics with its reason. A compressed frame larger than `track_max_px`
 (a 20 MP photo) is decoded straight at the tracker's working size (core/tracker.EncodedImage), and at
 full size never: a keyframe's image is decoded again at its reduction (libjpeg's DCT scaling). Its targets
 are searched only where the surveyed targets of `control_file` (the graph passes bundle_node's) can be, from
@@ -42,6 +45,8 @@ from sensor_msgs.msg import CameraInfo, CompressedImage, Image, NavSatFix, Point
 from photogram_ros import msgs
 from photogram_ros.core import gsd
 from photogram_ros.core.camera import load_calibration
+from photogram_ros.core.frame_queue import FrameQueue
+from photogram_ros.core.keyframes import FixBuffer
 from photogram_ros.core.control import (ARUCO_DICTIONARIES, ControlSet, TargetRegionOptions, detect_keyframe_targets,
                                         detect_keyframe_targets_encoded, detect_targets_in_regions, target_regions)
 from photogram_ros.core.gnss_fix import GnssFix
@@ -68,8 +73,15 @@ class TrackerNodeParams(TrackerParams, ThreadCaps, TargetRegionOptions):
     camera_info_topic: str = param('camera/camera_info', 'CameraInfo topic (ignored with calibration_file)')
     fix_topic: str = param('gps/fix', 'NavSatFix topic interpolated to keyframe stamps')
     calibration_file: str = param('', 'Calibration YAML (ROS or OpenCV layout) used instead of camera_info')
-    queue_size: int = param(2, 'Frames waiting for the tracker; beyond this the oldest is dropped', min=1,
-                            max=1000)
+    queue_size: int = param(2, 'Frames waiting for the tracker; beyond this a redundant one is dropped (the waiting '
+                            'frame whose neighbours are nearest by GNSS, within drop_gap_share of the keyframe '
+                            'spacing; without GNSS the oldest): frames the chain needs are kept', min=1, max=1000)
+    drop_gap_share: float = param(0.5, 'A waiting frame is redundant (may be dropped) when the GNSS gap its removal '
+                                  'leaves is within this share of the median distance between the tracker\'s last '
+                                  'keyframes', min=0.0, max=1.0)
+    queue_max_mb: float = param(512.0, 'Frames the chain needs stay queued beyond queue_size up to this many MB of '
+                                'messages; beyond, the most redundant waiting frame is dropped anyway (an ERROR on '
+                                '/diagnostics)', min=1.0, max=100000.0)
     reliable_input: bool = param(False, 'Subscribe images reliably (bag replay) instead of best effort '
                                  '(sensor-data QoS, matches any camera driver)')
     input_depth: int = param(10, 'DDS history depth of the image subscriptions (raise it for fast bag replay)',
@@ -126,8 +138,9 @@ class TrackerNode(Node):
             self.tracker.set_camera(self._camera_from_file)
         self._cond = threading.Condition()
         self._track_lock = threading.Lock()   # the worker and flush() both drive the tracker
-        self._frames: deque = deque()
+        self._frames = FrameQueue(p.queue_size, int(p.queue_max_mb * 1e6))
         self._fixes: deque = deque(maxlen=1000)
+        self._queue_fixes = FixBuffer(p.fix_max_gap_s)   # the drop rule's positions of waiting frames
         self._camera_pending = None
         self._camera_error = 'no camera_info received yet' if self._camera_from_file is None else ''
         self._stop = False
@@ -179,19 +192,22 @@ class TrackerNode(Node):
     # --- callbacks (executor thread): cheap, never raise -----------------------------------------
 
     def _on_image(self, msg) -> None:
-        dropped = False
+        spacing = self.tracker.keyframe_spacing_m()
         with self._cond:
-            if len(self._frames) >= self.params.queue_size:
-                self._frames.popleft()
-                self.diag.count('drops')
-                self.frames_done += 1
-                dropped = True
-            self._frames.append(msg)
+            dropped = self._frames.push(msg, msgs.ns_from_time(msg.header.stamp), len(msg.data),
+                                        lambda t: self._queue_fixes.near(t, self.params.fix_max_gap_s),
+                                        None if spacing is None else self.params.drop_gap_share * spacing)
+            self.frames_done += len(dropped)
+            waiting, over = len(self._frames), self._frames.kept_over_size
             self._cond.notify()
         self.diag.count('frames_received')
-        if dropped:
-            self.diag.problem(f'frame dropped: frames come faster than the tracker takes them ({self.params.queue_size} '
-                              f'waiting; the last took {self._last_frame_ms:.0f} ms to decode and track)')
+        self.diag.set('queue_waiting', waiting)
+        self.diag.set('queue_kept_over_size', over)
+        for d in dropped:
+            self.diag.count('drops')
+            self.diag.count(f'drops_{d.reason}')
+            self.diag.problem(f'{d.message} (the last frame took {self._last_frame_ms:.0f} ms to decode and track)',
+                              ERROR if d.reason == 'over_memory' else WARN)
 
     def _on_camera_info(self, msg: CameraInfo) -> None:
         if self._camera_from_file is not None:
@@ -213,6 +229,7 @@ class TrackerNode(Node):
             return
         with self._cond:
             self._fixes.append(fix)
+            self._queue_fixes.add(fix)
 
     # --- worker ----------------------------------------------------------------------------------
 
