@@ -70,6 +70,7 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
+from photogram_ros.core.chain_links import TrackViews, assign_track_ids, enough_links
 from photogram_ros.core.camera import PinholeCamera
 from photogram_ros.core.cross_strip import CrossStrip, CrossStripParams
 from photogram_ros.core.gnss_fix import GnssFix
@@ -269,7 +270,7 @@ class Tracker:
         self.chain = ChainStore(self.params.chain_max_keyframes)
         self.cross = CrossStrip(self.params)   # which keyframes KLT carried get SIFT features
         self._held: list[_KfState] = []   # the keyframe states whose full features are held (= _recent)
-        self._views = np.zeros(0, np.uint8)   # per track id: keyframes that published it (capped at 255)
+        self._views = TrackViews()   # per track id: keyframes that published it
         self._origin: LocalFrame | None = None   # local frame of the chain's positions (the first fix)
         self._clock_ns = 0
         self._fix_seen = (None, None)   # (latest fix stamp, clock when it first advanced to it)
@@ -557,23 +558,6 @@ class Tracker:
             out.append(i)
         return out
 
-    def _views_of(self, ids: np.ndarray) -> np.ndarray:
-        ids = np.asarray(ids, np.int64)
-        v = np.zeros(len(ids), np.int64)
-        ok = ids < len(self._views)
-        v[ok] = self._views[ids[ok]]
-        return v
-
-    def _count_views(self, ids: np.ndarray) -> None:
-        ids = np.asarray(ids, np.int64)
-        if not len(ids):
-            return
-        top = int(ids.max()) + 1
-        if top > len(self._views):
-            self._views = np.concatenate([self._views, np.zeros(max(top - len(self._views), 4096), np.uint8)])
-        np.add.at(self._views, ids, 1)
-        np.minimum(self._views, 254, out=self._views)
-
     def _entry_features(self, i: int) -> tuple[PhotoFeatures, np.ndarray]:
         """A chain entry's features and track ids (-1: not published): all of a keyframe still among the
         last match_keyframes, else the ones the chain keeps."""
@@ -594,7 +578,7 @@ class Tracker:
         ch = self.chain
         verified, dsts, tids = [], [], []
         for i in entries:
-            if self._chain_enough(cur):
+            if enough_links(cur.chain_verified, cur.chain_failed_run, self.params):
                 break
             cur.chain_tried.add(ch.keys[i])
             self.stats.chain_pairs += 1
@@ -612,24 +596,8 @@ class Tracker:
             keep = ids[rows] >= 0
             dsts.append(dst[keep])
             tids.append(ids[rows][keep].astype(np.int64))
-        if dsts:
-            dst, tid = np.concatenate(dsts), np.concatenate(tids)
-            open_ = got[dst] < 0
-            dst, tid = dst[open_], tid[open_]
-            order = np.lexsort((tid, -self._views_of(tid), dst))
-            dst, tid = dst[order], tid[order]
-            first = np.concatenate([[True], dst[1:] != dst[:-1]]) if len(dst) else np.zeros(0, bool)
-            got[dst[first]] = tid[first]
+        assign_track_ids(got, dsts, tids, self._views)
         return verified
-
-    def _chain_enough(self, cur: _Frame) -> bool:
-        """Whether the frame has matched enough chain entries (chain_enough_verified), or, having verified one, the
-        last chain_stop_after_failures (farther, nearest first) failed: the rest would cost time, not links."""
-        p = self.params
-        if p.chain_enough_verified and cur.chain_verified >= p.chain_enough_verified:
-            return True
-        return bool(p.chain_stop_after_failures and cur.chain_verified
-                    and cur.chain_failed_run >= p.chain_stop_after_failures)
 
     def _recover(self, cur: _Frame):
         """Descriptor matching of the frame at a break against the chain's candidates (`_candidates`: the
@@ -827,7 +795,7 @@ class Tracker:
         self._break_since_kf = self._bridged_since_kf = False
         self._kf = _KfState(frame, kf, {int(i): r for r, i in enumerate(all_ids)}, xn)
         self._recent = (self._recent + [self._kf])[-self.params.match_keyframes:]
-        self._count_views(all_ids)
+        self._views.add(all_ids)
         if chain is not None:
             self.chain.add(kf.index, kf.stamp_ns, *chain, seen=all_ids)
             self.stats.chain_bytes = self.chain.nbytes()
