@@ -100,3 +100,63 @@ def test_the_map_places_a_provisional_cloud_again_by_default_and_keeps_no_record
 def test_without_replace_provisional_the_map_follows_no_pose(tmp_path):
     stage = _stage(tmp_path, replace_provisional=False)
     assert not stage.follows_poses and stage.placements is None
+
+
+def _spin_until(executor, cond, timeout_s):
+    import time
+    end = time.monotonic() + timeout_s
+    while time.monotonic() < end and not cond():
+        executor.spin_once(timeout_sec=0.05)
+    return cond()
+
+
+def test_map_node_by_default_places_a_provisional_cloud_again_and_leaves_a_final_one(rclpy_context, tmp_path):
+    from geometry_msgs.msg import PoseWithCovarianceStamped
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.node import Node
+    from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+    from sensor_msgs.msg import PointCloud2
+
+    from photogram_ros import msgs
+    from photogram_ros.core.pose_status import provisional_covariance
+    from photogram_ros.nodes.map_node import MapNode
+    from photogram_ros.nodes.stereo_node import StereoNodeParams
+
+    assert StereoNodeParams().pair_provisional   # stereo sends clouds on provisional poses by default
+    node = MapNode({'map_dir': str(tmp_path / 'map'), 'cell_m': 0.1, 'use_origin_params': True,
+                    'origin_lat_deg': 47.3977, 'origin_lon_deg': 8.5456, 'origin_h_m': 488.0, 'ortho': False,
+                    'coverage': False, 'save_keyframes': False}, context=rclpy_context)
+    peer = Node('cloud_prov_map_peer', context=rclpy_context)
+    reliable = QoSProfile(history=HistoryPolicy.KEEP_ALL, depth=1, reliability=ReliabilityPolicy.RELIABLE)
+    pub_place = peer.create_publisher(PoseWithCovarianceStamped, '/map/dense_cloud_pose', reliable)
+    pub_cloud = peer.create_publisher(PointCloud2, '/map/dense_cloud', reliable)
+    pub_pose = peer.create_publisher(PoseWithCovarianceStamped, '/map/keyframe_pose', reliable)
+    ex = SingleThreadedExecutor(context=rclpy_context)
+    ex.add_node(node)
+    ex.add_node(peer)
+    try:
+        assert _spin_until(ex, lambda: pub_place.get_subscription_count() and pub_cloud.get_subscription_count()
+                           and pub_pose.get_subscription_count(), 10.0)
+        final_cov = np.diag([0.02 ** 2] * 3 + [1e-6] * 3)
+        prov_cov = provisional_covariance(final_cov, (1.0, 0.0, 0.0))
+        rng = np.random.default_rng(1)
+        # Keyframe 3: fused final at x = 0; keyframe 7: fused provisional at x = 20.
+        pub_place.publish(msgs.pose_with_covariance_from_T(_pose(0.0, 0.0), 3 * 10**9, 'map', final_cov))
+        pub_cloud.publish(msgs.dense_cloud_msg(pair_cloud(rng, _flat, 0.0, 0.0, 5.0, 5.0, 150.0, 0.01),
+                                               3 * 10**9, 'map'))
+        pub_place.publish(msgs.pose_with_covariance_from_T(_pose(20.0, 0.0), 7 * 10**9, 'map', prov_cov))
+        pub_cloud.publish(msgs.dense_cloud_msg(pair_cloud(rng, _flat, 20.0, 0.0, 5.0, 5.0, 150.0, 0.01),
+                                               7 * 10**9, 'map'))
+        assert _spin_until(ex, lambda: node.diag.counts().get('clouds', 0) == 2, 10.0)
+        # Both poses come final and moved 2 m east: only the provisional cloud follows.
+        pub_pose.publish(msgs.pose_with_covariance_from_T(_pose(2.0, 0.0), 3 * 10**9, 'map', final_cov))
+        pub_pose.publish(msgs.pose_with_covariance_from_T(_pose(22.0, 0.0), 7 * 10**9, 'map', final_cov))
+        assert _spin_until(ex, lambda: node.diag.counts().get('clouds_replaced', 0) == 1, 10.0)
+        _spin_until(ex, lambda: False, 1.0)
+        assert node.diag.counts().get('clouds_replaced', 0) == 1
+        x = node.fusion.points()['x']
+        assert abs(float(np.mean(x[x > 10])) - 22.0) < 0.1 and abs(float(np.mean(x[x < 10]))) < 0.1
+    finally:
+        ex.shutdown()
+        peer.destroy_node()
+        node.destroy_node()
