@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 from helpers.clouds import pair_cloud
+from test_cloud2_map_replace import _flat, _pose, _spin_until, map_node_with_peer
 
 from photogram_ros.core.placements import Placements
 from photogram_ros.params import from_dict
@@ -16,16 +17,6 @@ class _Contribution:
     def __init__(self, nbytes):
         self.nbytes = nbytes
         self.median_z_m = 0.0
-
-
-def _pose(x, y, z=40.0):
-    T = np.diag([1.0, -1.0, -1.0, 1.0])   # nadir
-    T[:3, 3] = x, y, z
-    return T
-
-
-def _flat(x, y):
-    return 2.0 + 0.0 * x
 
 
 def _stage(tmp_path, **kw):
@@ -102,41 +93,14 @@ def test_without_replace_provisional_the_map_follows_no_pose(tmp_path):
     assert not stage.follows_poses and stage.placements is None
 
 
-def _spin_until(executor, cond, timeout_s):
-    import time
-    end = time.monotonic() + timeout_s
-    while time.monotonic() < end and not cond():
-        executor.spin_once(timeout_sec=0.05)
-    return cond()
-
-
 def test_map_node_by_default_places_a_provisional_cloud_again_and_leaves_a_final_one(rclpy_context, tmp_path):
-    from geometry_msgs.msg import PoseWithCovarianceStamped
-    from rclpy.executors import SingleThreadedExecutor
-    from rclpy.node import Node
-    from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
-    from sensor_msgs.msg import PointCloud2
-
     from photogram_ros import msgs
     from photogram_ros.core.pose_status import provisional_covariance
-    from photogram_ros.nodes.map_node import MapNode
     from photogram_ros.nodes.stereo_node import StereoNodeParams
 
     assert StereoNodeParams().pair_provisional   # stereo sends clouds on provisional poses by default
-    node = MapNode({'map_dir': str(tmp_path / 'map'), 'cell_m': 0.1, 'use_origin_params': True,
-                    'origin_lat_deg': 47.3977, 'origin_lon_deg': 8.5456, 'origin_h_m': 488.0, 'ortho': False,
-                    'coverage': False, 'save_keyframes': False}, context=rclpy_context)
-    peer = Node('cloud_prov_map_peer', context=rclpy_context)
-    reliable = QoSProfile(history=HistoryPolicy.KEEP_ALL, depth=1, reliability=ReliabilityPolicy.RELIABLE)
-    pub_place = peer.create_publisher(PoseWithCovarianceStamped, '/map/dense_cloud_pose', reliable)
-    pub_cloud = peer.create_publisher(PointCloud2, '/map/dense_cloud', reliable)
-    pub_pose = peer.create_publisher(PoseWithCovarianceStamped, '/map/keyframe_pose', reliable)
-    ex = SingleThreadedExecutor(context=rclpy_context)
-    ex.add_node(node)
-    ex.add_node(peer)
+    node, ex, pub_place, pub_cloud, pub_pose, peer = map_node_with_peer(rclpy_context, tmp_path)
     try:
-        assert _spin_until(ex, lambda: pub_place.get_subscription_count() and pub_cloud.get_subscription_count()
-                           and pub_pose.get_subscription_count(), 10.0)
         final_cov = np.diag([0.02 ** 2] * 3 + [1e-6] * 3)
         prov_cov = provisional_covariance(final_cov, (1.0, 0.0, 0.0))
         rng = np.random.default_rng(1)
