@@ -171,34 +171,41 @@ def test_stereo_pairs_provisional_poses_and_says_the_placement(rclpy_context):
         peer.destroy_node()
 
 
-def test_map_node_places_a_cloud_again_when_its_provisional_pose_turns_final(rclpy_context, tmp_path):
+def map_node_with_peer(rclpy_context, tmp_path, **params):
+    """A map node (cell 0.1 m, no ortho, coverage or keyframes) and a peer publishing to it: (node, executor,
+    publishers of map/dense_cloud_pose, map/dense_cloud, map/keyframe_pose, peer), once they are linked."""
     from geometry_msgs.msg import PoseWithCovarianceStamped
     from rclpy.executors import SingleThreadedExecutor
     from rclpy.node import Node
     from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
     from sensor_msgs.msg import PointCloud2
 
-    from photogram_ros import msgs
-    from photogram_ros.core.pose_status import provisional_covariance
     from photogram_ros.nodes.map_node import MapNode
 
     node = MapNode({'map_dir': str(tmp_path / 'map'), 'cell_m': 0.1, 'use_origin_params': True,
                     'origin_lat_deg': 47.3977, 'origin_lon_deg': 8.5456, 'origin_h_m': 488.0, 'ortho': False,
-                    'coverage': False, 'save_keyframes': False, 'replace_move_m': 0.25}, context=rclpy_context)
+                    'coverage': False, 'save_keyframes': False, **params}, context=rclpy_context)
     peer = Node('cloud2_map_peer', context=rclpy_context)
     reliable = QoSProfile(history=HistoryPolicy.KEEP_ALL, depth=1, reliability=ReliabilityPolicy.RELIABLE)
-    pub_place = peer.create_publisher(PoseWithCovarianceStamped, '/map/dense_cloud_pose', reliable)
-    pub_cloud = peer.create_publisher(PointCloud2, '/map/dense_cloud', reliable)
-    pub_pose = peer.create_publisher(PoseWithCovarianceStamped, '/map/keyframe_pose', reliable)
+    pubs = (peer.create_publisher(PoseWithCovarianceStamped, '/map/dense_cloud_pose', reliable),
+            peer.create_publisher(PointCloud2, '/map/dense_cloud', reliable),
+            peer.create_publisher(PoseWithCovarianceStamped, '/map/keyframe_pose', reliable))
     ex = SingleThreadedExecutor(context=rclpy_context)
     ex.add_node(node)
     ex.add_node(peer)
+    assert _spin_until(ex, lambda: all(p.get_subscription_count() for p in pubs), 10.0)
+    return node, ex, *pubs, peer
+
+
+def test_map_node_places_a_cloud_again_when_its_provisional_pose_turns_final(rclpy_context, tmp_path):
+    from photogram_ros import msgs
+    from photogram_ros.core.pose_status import provisional_covariance
+
+    node, ex, pub_place, pub_cloud, pub_pose, peer = map_node_with_peer(rclpy_context, tmp_path, replace_move_m=0.25)
 
     def spin(cond, timeout_s):
         return _spin_until(ex, cond, timeout_s)
     try:
-        assert spin(lambda: pub_place.get_subscription_count() and pub_cloud.get_subscription_count()
-                    and pub_pose.get_subscription_count(), 10.0)
         final_cov = np.diag([0.02 ** 2] * 3 + [1e-6] * 3)
         prov_cov = provisional_covariance(final_cov, (1.0, 0.0, 0.0))
         stamp = 7 * 10**9

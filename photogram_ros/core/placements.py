@@ -7,6 +7,9 @@ keyframe, each fused cloud's placement and what it merged into the cells (core/f
 map's cell resolution); when the keyframe's latest pose is off a placement by `move_m` or more (centre shift plus
 its height above the cloud times the rotation angle), or the placement was provisional and the pose is now
 final, that cloud is due to be placed again (`due`): taken out of its cells and fused again moved (Fusion.move).
+With `keep_final` false only clouds placed with a provisional pose keep their contribution, until they are placed
+again at the final pose (once, `move_m` 0: a final placement never moves them), then it is dropped: the records
+cover the keyframes before the first turn, not the flight.
 
 Memory is bounded by `budget_bytes`: past it the oldest contributions placed with a final pose are dropped
 first (then the oldest at all); their placement stays known, so a later move of such a keyframe is counted
@@ -49,9 +52,10 @@ class _Entry:
 
 
 class Placements:
-    def __init__(self, move_m: float, budget_bytes: int):
+    def __init__(self, move_m: float, budget_bytes: int, keep_final: bool = True):
         self.move_m = float(move_m)
         self.budget_bytes = int(budget_bytes)
+        self.keep_final = bool(keep_final)
         self._kf: OrderedDict[int, _Entry] = OrderedDict()
         self._check: set[int] = set()      # keyframes whose placements may be off their pose
         self.nbytes = 0
@@ -73,15 +77,37 @@ class Placements:
             e.waiting.append((np.array(map_T_cam, float), bool(provisional)))
         else:
             part.map_T_cam, part.provisional = np.array(map_T_cam, float), bool(provisional)
+            if not self._keeps(part):
+                self._release(part)
             self._check.add(stamp)
+
+    def wants_record(self, stamp: int) -> bool:
+        """Whether the next cloud of `stamp` should be fused with its contribution recorded: always with
+        keep_final, else when its placement is provisional or has not come yet."""
+        if self.keep_final:
+            return True
+        e = self._kf.get(stamp)
+        return not (e is not None and e.waiting and not e.waiting[0][1])
+
+    def _keeps(self, part: Part) -> bool:
+        """Whether `part`'s contribution is kept: with keep_final, or while it is (or may be) provisional."""
+        return self.keep_final or part.map_T_cam is None or part.provisional
+
+    def _release(self, part: Part) -> None:
+        if part.contribution is not None:
+            self.nbytes -= part.contribution.nbytes
+            part.contribution = None
 
     def fused(self, stamp: int, contribution) -> None:
         """A cloud of `stamp` was fused with `contribution` (core/fusion.py; None: not kept)."""
         e = self._entry(stamp)
         T, prov = e.waiting.popleft() if e.waiting else (None, False)
-        e.parts.append(Part(T, prov, contribution))
+        part = Part(T, prov, contribution)
+        e.parts.append(part)
         if contribution is not None:
             self.nbytes += contribution.nbytes
+            if not self._keeps(part):
+                self._release(part)
         self._check.add(stamp)
         self._bound()
 
@@ -97,6 +123,8 @@ class Placements:
         T, prov = pose
         if part.provisional and not prov:
             return True
+        if self.move_m <= 0:
+            return False
         ground = part.contribution.median_z_m if part.contribution is not None else T[2, 3]
         return pose_move_m(part.map_T_cam, T, ground) >= self.move_m
 
@@ -133,6 +161,8 @@ class Placements:
         self.nbytes += (contribution.nbytes if contribution is not None else 0) - (old.nbytes if old is not None else 0)
         part.map_T_cam, part.provisional = e.pose[0].copy(), e.pose[1]
         part.contribution = contribution
+        if not self._keeps(part):
+            self._release(part)
         self._check.discard(stamp)
         self._bound()
 

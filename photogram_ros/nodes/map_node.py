@@ -13,8 +13,8 @@ A map_dir that already holds a map keeps its origin and reloads (restart after a
 
 /map/dense_cloud_pose (PoseWithCovarianceStamped: the pose stereo placed its next pair cloud of that keyframe
 with, provisional or final by its covariance) and every pose on /map/keyframe_pose, provisional ones included:
-a fused cloud whose keyframe's pose moved by replace_move_m, or turned final, is taken out of the map and fused
-again at the new pose (stages/map.py replace_moved, every 0.5 s); /diagnostics says keyframes_fused_provisional
+a fused cloud whose keyframe's pose moved by replace_move_m, or turned final (replace_provisional), is taken out
+of the map and fused again at the new pose (stages/map.py replace_moved, every 0.5 s); /diagnostics says keyframes_fused_provisional
 (keyframes whose clouds are placed with a provisional pose now) and counts clouds_replaced.
 
 Outputs: /map/cloud_downsampled (best effort: block means of the tiles that changed, at most
@@ -120,7 +120,7 @@ class MapNode(Node):
             self.create_subscription(Image, TOPIC_IMAGE, self._on_image, qos.keep_all(), callback_group=group)
             self.create_subscription(CompressedImage, TOPIC_IMAGE_FULL, self._on_image_jpeg, qos.keep_all(),
                                      callback_group=group)
-        if p.save_keyframes or p.coverage or p.replace_move_m > 0:
+        if p.save_keyframes or p.coverage or self.stage.follows_poses:
             self.create_subscription(PoseWithCovarianceStamped, TOPIC_POSE, self._on_pose, qos.keep_all(),
                                      callback_group=group)
             self.create_subscription(CameraInfo, TOPIC_INFO, self._on_info, qos.sensor_data(5),
@@ -139,7 +139,7 @@ class MapNode(Node):
             self.create_subscription(NavSatFix, TOPIC_KEYFRAME_FIX, self._on_keyframe_fix, qos.keep_all(),
                                      callback_group=group)
             steady_timer(self, p.coverage_period_s, self._update_coverage, group)
-        if p.replace_move_m > 0:
+        if self.stage.follows_poses:
             steady_timer(self, 0.5, self._replace_moved, group)
         steady_timer(self, p.flush_interval_s, self.flush, group)
         steady_timer(self, p.stream_period_s, self._stream, group)

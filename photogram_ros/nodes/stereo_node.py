@@ -10,9 +10,10 @@ rgb, confidence) per pair, each preceded by /map/dense_cloud_pose (the newer key
 with, with that pose's covariance: provisional or final as the adjuster labelled it, core/pose_status.py),
 optionally /stereo/disparity, and /diagnostics.
 
-When a keyframe pairs: with its final pose, or with pair_provisional (off by default) its provisional one too
+When a keyframe pairs: with its final pose, or with pair_provisional (on by default) its provisional one too
 (before the first turn the georeference is an assumption, but the pair's relative pose, all its depth depends
-on, is not; the map node then needs replace_move_m > 0 to place the cloud again), and its older partners
+on, is not; the map node places the cloud again when the pose turns final: map replace_provisional), and its
+older partners
 of the same status, once its pose has settled relative to the keyframe before it: its last refinement moved it,
 relative to that keyframe, less than settle_move_m and settle_min_keyframes newer keyframes have poses, or its
 pose stood still for settle_s (the flight's end), or at the latest settle_keyframes newer keyframes have poses.
@@ -113,11 +114,11 @@ class StereoNodeParams(stereo.StereoParams, PairCriteria, ThreadCaps):
                                         'gap there, counted in pairs_shed_late and keyframes_shed, a WARN) and left '
                                         'to the matching after landing; the end of flight sheds nothing; 0: never',
                                   min=0.0, max=3600.0)
-    pair_provisional: bool = param(False, 'pair keyframes with provisional poses (before the first turn; labelled '
-                                          f'in their covariance): the cloud goes out placed with that pose, said '
-                                          f'provisional on {TOPIC_CLOUD_POSE}, and the map places it again once the '
-                                          'pose is final (needs map replace_move_m > 0); false: wait for the final '
-                                          'pose')
+    pair_provisional: bool = param(True, 'pair keyframes with provisional poses (before the first turn; labelled '
+                                         f'in their covariance): the cloud goes out placed with that pose, said '
+                                         f'provisional on {TOPIC_CLOUD_POSE}, and the map places it again once the '
+                                         'pose is final (map replace_provisional or replace_move_m > 0); false: wait '
+                                         'for the final pose (the first line\'s clouds wait for the first turn)')
     worker_nice: int = param(0, 'match pairs in a worker thread of this niceness (yielding to the pose chain in the '
                                 'same process); 0: in the subscription callbacks', min=0, max=19)
 

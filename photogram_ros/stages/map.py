@@ -11,8 +11,9 @@ adjustment's poses were adjusted with: it replaces the input calibration in the 
 (the bundle adjuster's check points and GCPs with their detections, kept in the map folder),
 `set_cloud_placement` (the pose stereo placed a keyframe's next pair cloud with, provisional or final) and
 `set_keyframe_pose` (every pose of a keyframe, provisional ones included): a keyframe whose pose moved by
-replace_move_m from a fused cloud's placement (or turned final) has that cloud placed again (core/placements.py,
-core/fusion.py Fusion.move), by `replace_moved`.
+replace_move_m from a fused cloud's placement, or turned final (replace_provisional), has that cloud placed again
+(core/placements.py, core/fusion.py Fusion.move), by `replace_moved`; `follows_poses` says whether the stage needs
+those two inputs.
 Periodic (the node's timers): `replace_moved`, `flush` (changed cells and poses to disk), `stream` (block means of the
 changed tiles), `stream_ortho` (PNG tiles of the live orthomosaic), `update_coverage`, `update_diag`.
 Out: through `out` (a `MapOutputs`): the stream's points, the ortho tiles, the coverage GeoJSON; through
@@ -85,10 +86,15 @@ class MapParams(FusionConfig, CoverageConfig):
     replace_move_m: float = param(0.0, 'a keyframe whose pose moved this far from the pose one of its fused clouds '
                                       'was placed with (centre shift + height x rotation, m), or whose provisional '
                                       'pose turned final, has that cloud taken out of the map and fused again at '
-                                      'its new pose (0.25: about 2 cells; needed with stereo pair_provisional); 0: '
-                                      'clouds stay where they were fused (the 317-photo 20 MP bench at 0.25 took the '
+                                      'its new pose (0.25: about 2 cells; it keeps a record of every fused cloud); 0: '
+                                      'clouds fused final stay where they were fused (the 317-photo 20 MP bench at 0.25 took the '
                                       'mapping process over the 1.5 GB bound: bench/notes_inflight_20mp.md)',
                                   min=0.0, max=1e3)
+    replace_provisional: bool = param(True, 'a cloud fused with a provisional placement (stereo pair_provisional, '
+                                            'before the first turn) keeps what it merged into the cells until its '
+                                            'keyframe\'s pose turns final, then is taken out and fused again at the '
+                                            'final pose once and its record dropped; with replace_move_m 0 a cloud '
+                                            'fused with a final pose keeps no record')
     replace_memory_mb: float = param(160.0, 'memory for what each fused cloud merged into the cells (kept to place '
                                             'it again), MB; past it the oldest finally placed ones are dropped and a '
                                             'later move of theirs is counted (clouds_moved_not_replaced), a WARN',
@@ -180,7 +186,8 @@ class MapStage:
         self._full_jpeg: set = set()       # stamps whose full-resolution JPEG is saved (add_image_jpeg)
         self._images_saved: set = set()    # stamps with a saved image
         self._fuse_s = 0.0
-        self.placements = Placements(p.replace_move_m, int(p.replace_memory_mb * 1e6)) if p.replace_move_m > 0 else None
+        self.placements = (Placements(p.replace_move_m, int(p.replace_memory_mb * 1e6), keep_final=p.replace_move_m > 0)
+                           if p.replace_move_m > 0 or p.replace_provisional else None)
         self._ortho_share = CpuShare(p.ortho_cpu_share)
         self._replace_share = CpuShare(p.replace_cpu_share)
         self._closed = False
@@ -227,6 +234,12 @@ class MapStage:
         self.diag.set('gsd_m', self.gsd.gsd_m)
 
     @property
+    def follows_poses(self) -> bool:
+        """Whether fused clouds follow their keyframe's pose (replace_move_m or replace_provisional): the node then
+        feeds set_cloud_placement and set_keyframe_pose and calls replace_moved."""
+        return self.placements is not None
+
+    @property
     def cell_m(self) -> float:
         return self.fusion.config.cell_m
 
@@ -265,11 +278,13 @@ class MapStage:
             if self._cell_pending and pts.size:
                 self._derive_cell(np.asarray(pts['z'], float))
             t0 = time.perf_counter()
-            if self.placements is not None:
+            if self.placements is not None and self.placements.wants_record(stamp_ns):
                 n, contribution = self.fusion.add(pts, record=True)
                 self.placements.fused(stamp_ns, contribution)
             else:
                 n = self.fusion.add(pts)
+                if self.placements is not None:
+                    self.placements.fused(stamp_ns, None)
             if n:
                 self._keyframes_unfused = self._clouds_unfused = 0
             else:
