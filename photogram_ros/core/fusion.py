@@ -230,12 +230,14 @@ class Fusion:
         tile.dirty[:] = False
         return idx.size
 
-    def flush(self) -> int:
-        """Hand every changed cell to the store and make it durable; returns cells written."""
+    def flush(self, sync: bool = True) -> int:
+        """Hand every changed cell to the store and (`sync`) make it durable; returns cells written. Without
+        `sync` the caller syncs the store itself (io/map_store.MapStore.sync), e.g. outside its own lock."""
         if self.store is None:
             return 0
         n = sum(self._flush_tile(t) for t in self.tiles.values())
-        self.store.sync()
+        if sync:
+            self.store.sync()
         return n
 
     # --- fusing ----------------------------------------------------------------------------------

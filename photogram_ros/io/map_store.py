@@ -33,6 +33,7 @@ import errno
 import json
 import os
 import struct
+import threading
 import zlib
 from dataclasses import dataclass
 from pathlib import Path
@@ -125,6 +126,9 @@ class MapStore:
         self.tile_cells = int(self.meta['tile_cells'])
         self._good_size: dict[tuple[int, int], int] = {}
         self._unsynced: set[Path] = set()
+        # One sync at a time, and the index written under it: the map stage syncs outside its own lock while
+        # its fusion appends (stages/map.py flush).
+        self._sync_lock = threading.Lock()
         self._index = self._read_index()   # (ti, tj) -> the tile's size at its last sync; None: no index
         self._unreadable: set[tuple[int, int]] = set()   # tiles check_tiles found are not tiles of this map
         self.bytes_written = 0
@@ -340,38 +344,49 @@ class MapStore:
         self._write(path, data)
         self._good_size[key] = len(data)
         self._unsynced.discard(path)
-        if self._index is not None and key in self._index:   # smaller now: the index must not claim more
-            self._index[key] = len(data)
-            self._write_index()
+        with self._sync_lock:
+            if self._index is not None and key in self._index:   # smaller now: the index must not claim more
+                self._index[key] = len(data)
+                self._write_index()
 
     def sync(self) -> None:
-        """fsync every tile file appended since the last sync (and the folder, for new files)."""
-        for path in list(self._unsynced):
-            try:
-                fd = os.open(path, os.O_RDONLY)
-                try:
-                    os.fsync(fd)
-                finally:
-                    os.close(fd)
-            except FileNotFoundError:
-                pass
-        if self._unsynced:
-            fd = os.open(self.tiles_dir, os.O_RDONLY)
-            try:
-                os.fsync(fd)
-            finally:
-                os.close(fd)
-            # The sizes synced: what check_tiles expects at least (a map from before the index gets one now).
-            self._index = dict(self._index or {})
-            for path in self._unsynced:
+        """fsync every tile file appended since the last sync (and the folder, for new files), and record their
+        sizes in the index. Appends may go on in another thread meanwhile: a tile appended after the snapshot
+        below is left to the next sync, and the index never claims more than was synced."""
+        with self._sync_lock:
+            paths = list(self._unsynced)
+            self._unsynced.difference_update(paths)   # appended again from here on: in the next sync
+            sizes = {}
+            for path in paths:
                 try:
                     key = tuple(int(v) for v in path.stem.split('_'))
                 except ValueError:
-                    continue
+                    key = None
                 if key in self._good_size:
-                    self._index[key] = self._good_size[key]
-            self._write_index()
-        self._unsynced.clear()
+                    sizes[key] = self._good_size[key]   # taken before the fsync: at most what it makes durable
+            try:
+                for path in paths:
+                    try:
+                        fd = os.open(path, os.O_RDONLY)
+                        try:
+                            os.fsync(fd)
+                        finally:
+                            os.close(fd)
+                    except FileNotFoundError:
+                        pass
+                if paths:
+                    fd = os.open(self.tiles_dir, os.O_RDONLY)
+                    try:
+                        os.fsync(fd)
+                    finally:
+                        os.close(fd)
+            except OSError:
+                self._unsynced.update(paths)   # not durable: the next sync tries them again
+                raise
+            if paths:
+                # The sizes synced: what check_tiles expects at least (a map from before the index gets one now).
+                self._index = {**(self._index or {}), **sizes}
+                self._write_index()
 
     def disk_bytes(self) -> int:
         return sum(p.stat().st_size for p in self.tiles_dir.glob('*.pgt'))

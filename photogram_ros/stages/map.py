@@ -514,13 +514,19 @@ class MapStage:
 
     # --- outputs ---------------------------------------------------------------------------------
 
-    @_locked
     def flush(self) -> None:
-        self._save_poses()
+        """Changed cells written under the stage's lock, made durable (fsync) outside it: fusing goes on."""
+        with self.lock:
+            self._save_poses()
+            try:
+                n = self.fusion.flush(sync=False)
+                if n:
+                    self.diag.count('cells_flushed', n)
+            except OSError as exc:
+                self._write_failed(f'map flush to {self.params.map_dir} failed', exc)
+                return
         try:
-            n = self.fusion.flush()
-            if n:
-                self.diag.count('cells_flushed', n)
+            self.store.sync()
         except OSError as exc:
             self._write_failed(f'map flush to {self.params.map_dir} failed', exc)
 
