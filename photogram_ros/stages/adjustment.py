@@ -603,6 +603,12 @@ class AdjustmentStage:
         d.set('gnss_residual_rms_m', float(rep.gnss_rms_m))
         d.set('window_size', rep.window_size)
         d.set('points', self.at.block.n_points)
+        # How far the window sat off its GNSS at its last test (in its fixes' sigmas), and the full adjustments
+        # that brought the block back (core/incremental.py off_gnss_sigma).
+        d.set('off_gnss_adjustments', self.at.off_gnss_adjustments)
+        for k in ('newest_sigmas', 'mean_sigmas'):
+            if self.at.off_gnss_last.get(k) is not None:
+                d.set(f'window_off_gnss_{k}', self.at.off_gnss_last[k])
         self._set_georeferenced()
         self._control_diagnostics()
         self._since_quality += 1
