@@ -203,8 +203,10 @@ class IncrementalOptions:
     growth_ratio: float = param(0.0, 'a full adjustment of the whole block (refining pass_self_calibration) each time '
                                      'the oriented keyframes have grown by this factor since the last one; 0: none',
                                 min=0.0, max=100.0)
-    pass_min_keyframes: int = param(50, 'the pass refines its distortion (and adjusts on growth) once this many keyframes '
-                                        'are oriented: a block of a few windows is adjusted whole at the end anyway',
+    pass_min_keyframes: int = param(8, 'the pass refines its distortion (and adjusts on growth) once this many keyframes '
+                                       'are oriented: the in-flight poses of a camera whose distortion nobody measured '
+                                       '(the EXIF\'s) are turned by degrees until it is (seneca_part: k1 moves a '
+                                       'corner 20 px; bench/georef_inflight.py)',
                                     min=2, max=1000000)
     off_gnss_sigma: float = param(2.5, 'in flight, a block georeferenced for good gets a full adjustment (the pass\'s) '
                                        'as soon as its window has left its GNSS: the newest keyframe\'s antenna '
