@@ -215,7 +215,8 @@ class IncrementalOptions:
                                        'window holds the older keyframes, so a block turned or bent by a line\'s '
                                        'first photos stays so until the end of the flight without it); 0: never',
                                   min=0.0, max=1000.0)
-    off_gnss_gap: int = param(2, 'keyframes between two such full adjustments, at least', min=1, max=100000)
+    off_gnss_gap: int = param(2, 'keyframes between two such full adjustments, at least (doubled each time one '
+                                 'leaves the window off its GNSS still)', min=1, max=100000)
     self_calibration_min_gain: float = param(MIN_GAIN_FRACTION, 'stepwise self-calibration: a candidate intrinsic '
                                              'is kept when it lowers the reprojection RMS by at least this fraction '
                                              'of it (and self_calibration_min_gain_px)', min=0.0, max=1.0)
@@ -324,6 +325,7 @@ class IncrementalAT:
         self.off_gnss_last: dict = {}
         # Full adjustments the off-GNSS test asked for in flight.
         self.off_gnss_adjustments = 0
+        self._off_gnss_gap = self.opt.off_gnss_gap   # doubled while the adjustments leave the window off its GNSS
 
     # Read-only views of the parts' state: the flags and the self-calibration for the stages, the containers
     # (kfs, registered, points, ...) for the tests only; the package reads those through the parts' public
@@ -449,6 +451,8 @@ class IncrementalAT:
                     self.off_gnss_adjustments += int(drifted)
                     self._pass_adjustment(gnss_bias=False)
                     rep.block_adjusted = True
+                    if drifted:
+                        self._off_gnss_back_off(kf.kid)
                 if self._control_due():
                     self._control_adjustment()
                     rep.block_adjusted = True
@@ -508,11 +512,18 @@ class IncrementalAT:
         """The block, georeferenced for good, has left its GNSS at its window (`off_gnss_sigma`: the newest keyframe
         `kid`, or the window on average), and off_gnss_gap keyframes came since its last full adjustment."""
         if (self.opt.off_gnss_sigma <= 0.0 or not self.block.georeferenced or self.block.provisional
-                or len(self.block.registered) < self._full_adjusted_n + self.opt.off_gnss_gap):
+                or len(self.block.registered) < self._full_adjusted_n + self._off_gnss_gap):
             return False
         due, self.off_gnss_last = off_gnss(self.datum, self.block.registered[-self.opt.window_size:], kid,
                                            self.opt.off_gnss_sigma)
         return due
+
+    def _off_gnss_back_off(self, kid: int) -> None:
+        """After an off-GNSS full adjustment: a window still off its GNSS (what the whole block cannot mend: a lens
+        model or fixes that do not fit) doubles the gap before the next one, so that a long flight does not adjust
+        whole every few keyframes; a window back on it restores off_gnss_gap."""
+        still, _ = off_gnss(self.datum, self.block.registered[-self.opt.window_size:], kid, self.opt.off_gnss_sigma)
+        self._off_gnss_gap = 2 * self._off_gnss_gap if still else self.opt.off_gnss_gap
 
     def _control_due(self) -> bool:
         """The block, georeferenced for good and of at most control_adjustment_max_keyframes, holds 3 GCPs or
