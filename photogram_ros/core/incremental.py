@@ -322,7 +322,7 @@ class IncrementalAT:
         # The GCPs in the block at the last control adjustment (`control_adjustment`), by name.
         self._control_adjusted_gcps: frozenset = frozenset()
         # The last off-GNSS test of a window (`off_gnss`): its figures, for /diagnostics.
-        self.off_gnss_last: dict = {}
+        self._off_gnss_last: dict = {}
         # Full adjustments the off-GNSS test asked for in flight.
         self.off_gnss_adjustments = 0
         self._off_gnss_gap = self.opt.off_gnss_gap   # doubled while the adjustments leave the window off its GNSS
@@ -514,9 +514,14 @@ class IncrementalAT:
         if (self.opt.off_gnss_sigma <= 0.0 or not self.block.georeferenced or self.block.provisional
                 or len(self.block.registered) < self._full_adjusted_n + self._off_gnss_gap):
             return False
-        due, self.off_gnss_last = off_gnss(self.datum, self.block.registered[-self.opt.window_size:], kid,
+        due, self._off_gnss_last = off_gnss(self.datum, self.block.registered[-self.opt.window_size:], kid,
                                            self.opt.off_gnss_sigma)
         return due
+
+    def off_gnss_figures(self) -> dict:
+        """{'adjustments': the full adjustments the off-GNSS test asked for, 'newest_sigmas', 'mean_sigmas', 'n': how
+        far the window sat off its fixes at its last test (`off_gnss`; absent before the first)}."""
+        return {'adjustments': self.off_gnss_adjustments, **self._off_gnss_last}
 
     def _off_gnss_back_off(self, kid: int) -> None:
         """After an off-GNSS full adjustment: a window still off its GNSS (what the whole block cannot mend: a lens
