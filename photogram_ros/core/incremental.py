@@ -203,9 +203,20 @@ class IncrementalOptions:
     growth_ratio: float = param(0.0, 'a full adjustment of the whole block (refining pass_self_calibration) each time '
                                      'the oriented keyframes have grown by this factor since the last one; 0: none',
                                 min=0.0, max=100.0)
-    pass_min_keyframes: int = param(50, 'the pass refines its distortion (and adjusts on growth) once this many keyframes '
-                                        'are oriented: a block of a few windows is adjusted whole at the end anyway',
+    pass_min_keyframes: int = param(8, 'the pass refines its distortion (and adjusts on growth) once this many keyframes '
+                                       'are oriented: the in-flight poses of a camera whose distortion nobody measured '
+                                       '(the EXIF\'s) are turned by degrees until it is (seneca_part: k1 moves a '
+                                       'corner 20 px; bench/georef_inflight.py)',
                                     min=2, max=1000000)
+    off_gnss_sigma: float = param(2.5, 'in flight, a block georeferenced for good gets a full adjustment (the pass\'s) '
+                                       'as soon as its window has left its GNSS: the newest keyframe\'s antenna '
+                                       'further than this many sigmas of its fix on some axis, or the window\'s '
+                                       'keyframes off their fixes by half of it on average along some axis (the '
+                                       'window holds the older keyframes, so a block turned or bent by a line\'s '
+                                       'first photos stays so until the end of the flight without it); 0: never',
+                                  min=0.0, max=1000.0)
+    off_gnss_gap: int = param(2, 'keyframes between two such full adjustments, at least (doubled each time one '
+                                 'leaves the window off its GNSS still)', min=1, max=100000)
     self_calibration_min_gain: float = param(MIN_GAIN_FRACTION, 'stepwise self-calibration: a candidate intrinsic '
                                              'is kept when it lowers the reprojection RMS by at least this fraction '
                                              'of it (and self_calibration_min_gain_px)', min=0.0, max=1.0)
@@ -310,6 +321,11 @@ class IncrementalAT:
         self._full_adjusted_n = 0
         # The GCPs in the block at the last control adjustment (`control_adjustment`), by name.
         self._control_adjusted_gcps: frozenset = frozenset()
+        # The last off-GNSS test of a window (`off_gnss`): its figures, for /diagnostics.
+        self._off_gnss_last: dict = {}
+        # Full adjustments the off-GNSS test asked for in flight.
+        self.off_gnss_adjustments = 0
+        self._off_gnss_gap = self.opt.off_gnss_gap   # doubled while the adjustments leave the window off its GNSS
 
     # Read-only views of the parts' state: the flags and the self-calibration for the stages, the containers
     # (kfs, registered, points, ...) for the tests only; the package reads those through the parts' public
@@ -430,9 +446,13 @@ class IncrementalAT:
                 waiting = self._orient_waiting(kf, georeferenced_before)
                 rep = self._window_adjust(kf.kid, iterations=window_iterations)
                 rep.joined, rep.waiting_oriented = joined, waiting
-                if self._growth_due():
+                drifted = not self._growth_due() and self._off_gnss_due(kf.kid)
+                if drifted or self._growth_due():
+                    self.off_gnss_adjustments += int(drifted)
                     self._pass_adjustment(gnss_bias=False)
                     rep.block_adjusted = True
+                    if drifted:
+                        self._off_gnss_back_off(kf.kid)
                 if self._control_due():
                     self._control_adjustment()
                     rep.block_adjusted = True
@@ -487,6 +507,28 @@ class IncrementalAT:
                 and n >= self.opt.pass_min_keyframes
                 and (n >= self.opt.growth_ratio * max(self._full_adjusted_n, 1)
                      or self._full_adjusted_n < self.opt.pass_min_keyframes))
+
+    def _off_gnss_due(self, kid: int) -> bool:
+        """The block, georeferenced for good, has left its GNSS at its window (`off_gnss_sigma`: the newest keyframe
+        `kid`, or the window on average), and off_gnss_gap keyframes came since its last full adjustment."""
+        if (self.opt.off_gnss_sigma <= 0.0 or not self.block.georeferenced or self.block.provisional
+                or len(self.block.registered) < self._full_adjusted_n + self._off_gnss_gap):
+            return False
+        due, self._off_gnss_last = off_gnss(self.datum, self.block.registered[-self.opt.window_size:], kid,
+                                           self.opt.off_gnss_sigma)
+        return due
+
+    def off_gnss_figures(self) -> dict:
+        """{'adjustments': the full adjustments the off-GNSS test asked for, 'newest_sigmas', 'mean_sigmas', 'n': how
+        far the window sat off its fixes at its last test (`off_gnss`; absent before the first)}."""
+        return {'adjustments': self.off_gnss_adjustments, **self._off_gnss_last}
+
+    def _off_gnss_back_off(self, kid: int) -> None:
+        """After an off-GNSS full adjustment: a window still off its GNSS (what the whole block cannot mend: a lens
+        model or fixes that do not fit) doubles the gap before the next one, so that a long flight does not adjust
+        whole every few keyframes; a window back on it restores off_gnss_gap."""
+        still, _ = off_gnss(self.datum, self.block.registered[-self.opt.window_size:], kid, self.opt.off_gnss_sigma)
+        self._off_gnss_gap = 2 * self._off_gnss_gap if still else self.opt.off_gnss_gap
 
     def _control_due(self) -> bool:
         """The block, georeferenced for good and of at most control_adjustment_max_keyframes, holds 3 GCPs or
@@ -761,6 +803,22 @@ class IncrementalAT:
 def _names(text: str) -> tuple:
     """A comma-separated list of names as a tuple (blanks dropped)."""
     return tuple(v.strip() for v in text.split(',') if v.strip())
+
+
+def off_gnss(datum, kids, newest: int, sigma: float) -> tuple[bool, dict]:
+    """Has the window `kids` left its GNSS? Each keyframe's antenna residual (m, ENU) over its fix's sigma as used
+    (`GnssDatum.fix_cov_used`), fixes left out of the adjustment not counted: True when keyframe `newest` is off by
+    more than `sigma` on some axis, or the window's mean by more than sigma / 2 (a shift or turn the window shares).
+    Also returns the figures: {'newest_sigmas', 'mean_sigmas', 'n'}."""
+    res = datum.residuals([k for k in kids if k not in datum.rejected])
+    if not res:
+        return False, {'newest_sigmas': None, 'mean_sigmas': None, 'n': 0}
+    z = {k: np.asarray(r, float) / np.sqrt(np.maximum(np.diag(datum.fix_cov_used(datum.block.kfs[k])), 1e-12))
+         for k, r in res.items()}
+    mean = np.mean(list(z.values()), axis=0)
+    last = float(np.max(np.abs(z[newest]))) if newest in z else 0.0
+    m = float(np.max(np.abs(mean))) if len(z) >= 3 else 0.0
+    return last > sigma or m > sigma / 2.0, {'newest_sigmas': round(last, 2), 'mean_sigmas': round(m, 2), 'n': len(z)}
 
 
 def line_heading_sigma_rad(fix_covs, along_spread_m: float) -> float:

@@ -64,6 +64,11 @@ executor thread. When keyframes queue up behind an adjustment, the older ones of
 short window adjustment (`catch_up_iterations`) and only the newest the full one, so the node
 catches up instead of falling further behind; the poses are published once per batch.
 
+Off its GNSS: the window holds the older keyframes, so a block the first photos of a line (or a segment) turned
+would stay turned until landing; once the window sits off its fixes (`off_gnss_sigma`, core/incremental.py) the
+whole block is adjusted at once and every pose published again (/diagnostics: off_gnss_adjustments,
+window_off_gnss_newest_sigmas, window_off_gnss_mean_sigmas).
+
 Lever arm: `lever_arm_cam_m` (antenna in the camera frame) is fixed, for a camera fixed to the body; a gimbal
 gives `lever_arm_body_frd_m` (body frame), turned by `mavlink/attitude` (body FLU in ENU, queued 2 min deep: an
 adjustment may hold the executor for seconds) into each keyframe's antenna offset in `map` (core/attitude.py);

@@ -34,6 +34,10 @@ turn publishes every pose again, final, with the same stamps: they replace the p
 `poses_provisional` drops to 0. A flight that ends on its straight line keeps them provisional (a WARN).
 Whoever fuses poses into a map (stereo) waits for the final ones.
 
+Off its GNSS: a block georeferenced for good whose window sits off its fixes (core/incremental.py off_gnss_sigma)
+is adjusted whole at once and published again; /diagnostics says how often (`off_gnss_adjustments`) and how far
+the window sat off at its last test, in its fixes' sigmas (`window_off_gnss_newest_sigmas`, `_mean_sigmas`).
+
 Orientation prior: each keyframe whose stamp an autopilot attitude (`add_attitude`) covers carries
 `map_R_cam_prior`, the camera's orientation in map from that attitude and the mount (`camera_mount`,
 `mount_rpy_deg`; core/attitude.py camera_prior_map_R_cam): the whole body attitude for a camera fixed to
@@ -603,6 +607,9 @@ class AdjustmentStage:
         d.set('gnss_residual_rms_m', float(rep.gnss_rms_m))
         d.set('window_size', rep.window_size)
         d.set('points', self.at.block.n_points)
+        for k, v in self.at.off_gnss_figures().items():   # the window off its GNSS (core/incremental.py off_gnss)
+            if k != 'n' and v is not None:
+                d.set('off_gnss_adjustments' if k == 'adjustments' else f'window_off_gnss_{k}', v)
         self._set_georeferenced()
         self._control_diagnostics()
         self._since_quality += 1
