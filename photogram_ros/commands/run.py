@@ -108,6 +108,7 @@ def run(a) -> int:
     signals = RunSignals(skippable=not a.separate)
     if a.separate:
         return _run_separate(a, spec, signals, before)
+    spec = exif_lens_setup(spec)
     paced = pace_camera(spec)
     spec, paced = paced, paced is not spec
     held = not paced and hold_camera(spec)
@@ -345,6 +346,32 @@ def pace_camera(spec):
     extra = {r: dict(v) for r, v in (spec.extra or {}).items()}
     extra.setdefault('camera', {})['autostart'] = False
     extra.setdefault('tracker', {}).setdefault('reliable_input', True)
+    return dataclasses.replace(spec, extra=extra)
+
+
+def exif_lens_setup(spec):
+    """A camera node playing a photo folder without a calibration file takes its camera from the EXIF: the bundle
+    node then self-calibrates the lens as replay has it (replay_session.EXIF_LENS_BUNDLE), each key unless the
+    parameter file sets it. Returns the spec (the same one when nothing applies)."""
+    from photogram_ros.errors import PhotogramError
+    from photogram_ros.nodes.graph import role_values
+    from photogram_ros.nodes.replay_session import EXIF_LENS_BUNDLE, source_kind
+    if 'camera' not in spec.roles or 'bundle' not in spec.roles or not camera_plays_a_file(spec):
+        return spec
+    camera = role_values(spec, 'camera')
+    try:
+        photos = source_kind(str(camera.get('source', '')).strip()) == 'photos'
+    except PhotogramError:   # camera_node names a bad source itself, at its start
+        return spec
+    if not photos or str(camera.get('calibration_file', '')).strip():
+        return spec
+    bundle = role_values(spec, 'bundle')
+    add = {k: v for k, v in EXIF_LENS_BUNDLE.items() if k not in bundle}
+    if not add:
+        return spec
+    import dataclasses
+    extra = {r: dict(v) for r, v in (spec.extra or {}).items()}
+    extra.setdefault('bundle', {}).update(add)
     return dataclasses.replace(spec, extra=extra)
 
 

@@ -275,15 +275,18 @@ def _camera_setup(opts: ReplayOptions, extra: dict) -> tuple:
     roles = ('camera', 'tracker', 'bundle', 'stereo', 'map')
     no_body_lever_arm(opts, extra, roles, 'a photo folder or a video has no attitude')
     if source_kind(opts.bag) == 'photos' and not opts.calibration_file:
-        # The EXIF gives the focal length, not the lens's distortion: the final adjustment self-calibrates
-        # k1, k2 stepwise (each kept only when it pays), as `triangulate` does for such a camera, and so does
-        # the pass from pass_min_keyframes on, at each 1.5-fold growth (a long block bends away from its
-        # geotags without).
         bundle = extra.setdefault('bundle', {})
-        bundle.setdefault('final_self_calibration', 'auto')
-        bundle.setdefault('pass_self_calibration', ','.join(AUTO_CANDIDATES))
-        bundle.setdefault('growth_ratio', PASS_GROWTH_RATIO)
+        for k, v in EXIF_LENS_BUNDLE.items():
+            bundle.setdefault(k, v)
     return roles
+
+
+# A photo folder's EXIF camera (no calibration file) gives the focal length, not the lens's distortion: the final
+# adjustment self-calibrates k1, k2 stepwise (each kept only when it pays), as `triangulate` does for such a camera,
+# and so does the pass from pass_min_keyframes on, at each 1.5-fold growth (a block bends away from its geotags
+# without, and the in-flight poses turn with it). For replay and run alike (commands/run.py exif_lens_setup).
+EXIF_LENS_BUNDLE = {'final_self_calibration': 'auto', 'pass_self_calibration': ','.join(AUTO_CANDIDATES),
+                    'growth_ratio': PASS_GROWTH_RATIO}
 
 
 def run_replay(opts: ReplayOptions, context=None) -> dict:
