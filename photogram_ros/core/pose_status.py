@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import numpy as np
 
-PROVISIONAL_ROLL_SIGMA_RAD = 0.05     # about 3 degrees: a near-nadir camera's roll about its line, not measured
+PROVISIONAL_ROLL_SIGMA_RAD = 0.1      # about 6 degrees: a near-nadir camera's roll about its line, not measured (seneca_part's fixed wing: 5.5)
 PROVISIONAL_TRACE_RAD2 = 0.5 * PROVISIONAL_ROLL_SIGMA_RAD ** 2
 
 
