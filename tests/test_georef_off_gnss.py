@@ -78,3 +78,20 @@ def test_a_block_on_its_gnss_asks_for_no_adjustment(flight):
     print(f'a flight left alone: {at.off_gnss_adjustments} off-GNSS adjustments; last window {fig}')
     assert not due and fig['n'] >= 5
     assert at.off_gnss_adjustments <= 1
+
+
+def test_a_due_block_adjustment_waits_while_keyframes_wait(flight):
+    """add_keyframe(block_adjust=False) (the node has keyframes waiting): a full adjustment that is due (here each
+    1.5-fold growth) is left for a later keyframe and counted; the first keyframe allowed to adjust the block does
+    it."""
+    sk = flight
+    opt = dict(lever_arm_cam_m=tuple(sk.lever_arm_cam_m), growth_ratio=1.5, pass_min_keyframes=4)
+    free = IncrementalAT(sk.camera, IncrementalOptions(**opt), origin=sk.origin)
+    held = IncrementalAT(sk.camera, IncrementalOptions(**opt), origin=sk.origin)
+    n = len(sk.records)
+    free_adjusted = [free.add_keyframe(r).block_adjusted for r in sk.records]
+    held_adjusted = [held.add_keyframe(r, block_adjust=k == n - 1).block_adjusted for k, r in enumerate(sk.records)]
+    assert sum(free_adjusted) >= 2                       # growth adjustments were due along the flight
+    assert not any(held_adjusted[:-1]) and held_adjusted[-1]
+    assert held.off_gnss_figures()['deferred'] >= sum(free_adjusted[:-1])
+    assert free.off_gnss_figures()['deferred'] == 0

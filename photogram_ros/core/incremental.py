@@ -325,6 +325,7 @@ class IncrementalAT:
         self._off_gnss_last: dict = {}
         # Full adjustments the off-GNSS test asked for in flight.
         self.off_gnss_adjustments = 0
+        self.block_adjustments_deferred = 0   # due full adjustments left for later: keyframes were waiting
         self._off_gnss_gap = self.opt.off_gnss_gap   # doubled while the adjustments leave the window off its GNSS
 
     # Read-only views of the parts' state: the flags and the self-calibration for the stages, the containers
@@ -398,9 +399,12 @@ class IncrementalAT:
         `Block.seed`, in this adjuster's map frame)."""
         return self.block.seed(self.origin, records, map_T_cam, point_ids, points_map_m, target_uv, gate_px)
 
-    def add_keyframe(self, rec: KeyframeRecord, window_iterations: int | None = None) -> StepReport:
+    def add_keyframe(self, rec: KeyframeRecord, window_iterations: int | None = None,
+                     block_adjust: bool = True) -> StepReport:
         """Register, triangulate and adjust one keyframe. `window_iterations` replaces the option's
-        for this keyframe's window update (a node catching up after a long adjustment)."""
+        for this keyframe's window update (a node catching up after a long adjustment); `block_adjust` false
+        leaves a full adjustment of the block that is due (growth_ratio, off-GNSS) for a later keyframe
+        (counted in block_adjustments_deferred): the node has keyframes waiting, whose poses come first."""
         ids = np.asarray(rec.track_ids, dtype=np.int64).ravel()
         uv = np.asarray(rec.uv, float).reshape(-1, 2)
         if len(ids) != len(uv):
@@ -447,7 +451,9 @@ class IncrementalAT:
                 rep = self._window_adjust(kf.kid, iterations=window_iterations)
                 rep.joined, rep.waiting_oriented = joined, waiting
                 drifted = not self._growth_due() and self._off_gnss_due(kf.kid)
-                if drifted or self._growth_due():
+                if (drifted or self._growth_due()) and not block_adjust:
+                    self.block_adjustments_deferred += 1
+                elif drifted or self._growth_due():
                     self.off_gnss_adjustments += int(drifted)
                     self._pass_adjustment(gnss_bias=False)
                     rep.block_adjusted = True
@@ -519,9 +525,11 @@ class IncrementalAT:
         return due
 
     def off_gnss_figures(self) -> dict:
-        """{'adjustments': the full adjustments the off-GNSS test asked for, 'newest_sigmas', 'mean_sigmas', 'n': how
-        far the window sat off its fixes at its last test (`off_gnss`; absent before the first)}."""
-        return {'adjustments': self.off_gnss_adjustments, **self._off_gnss_last}
+        """{'adjustments': the full adjustments the off-GNSS test asked for, 'deferred': due full adjustments left for
+        later (add_keyframe block_adjust), 'newest_sigmas', 'mean_sigmas', 'n': how far the window sat off its fixes
+        at its last test (`off_gnss`; absent before the first)}."""
+        return {'adjustments': self.off_gnss_adjustments, 'deferred': self.block_adjustments_deferred,
+                **self._off_gnss_last}
 
     def _off_gnss_back_off(self, kid: int) -> None:
         """After an off-GNSS full adjustment: a window still off its GNSS (what the whole block cannot mend: a lens

@@ -98,6 +98,10 @@ class AdjustmentParams(LiveControlOptions, IncrementalOptions):
                                           'adjustment window (what stereo takes its ground and depth range from); '
                                           'off: the whole block, a message that grows with the flight')
     full_adjustment_on_shutdown: bool = param(True, 'adjust the whole block when the node stops')
+    block_adjust_when_behind: bool = param(False, 'in flight, run a due full adjustment of the whole block '
+                                                  '(growth_ratio, off_gnss_sigma) even while keyframes wait for the '
+                                                  'adjuster; false: it waits until the adjuster has caught up (the '
+                                                  'poses first; counted in block_adjustments_deferred)')
     catch_up_iterations: int = param(3, 'iterations of the window adjustment of a keyframe that already has newer '
                                         'ones queued behind it (the newest of a batch gets the full adjustment): '
                                         'lets the node catch up after a long adjustment', min=1, max=100)
@@ -538,7 +542,8 @@ class AdjustmentStage:
         try:
             self._adjusted_whole = False
             rep = self.at.add_keyframe(rec, None if publish else min(self.p.catch_up_iterations,
-                                                                      self.p.window_iterations))
+                                                                      self.p.window_iterations),
+                                       block_adjust=self.p.block_adjust_when_behind or (publish and not self._pending))
         except Exception as exc:
             self.diag.count('keyframes_failed')   # a replay's backpressure counts it as done
             self.diag.problem(f'keyframe {rec.stamp_ns} failed: {exc}')
@@ -609,7 +614,8 @@ class AdjustmentStage:
         d.set('points', self.at.block.n_points)
         for k, v in self.at.off_gnss_figures().items():   # the window off its GNSS (core/incremental.py off_gnss)
             if k != 'n' and v is not None:
-                d.set('off_gnss_adjustments' if k == 'adjustments' else f'window_off_gnss_{k}', v)
+                d.set({'adjustments': 'off_gnss_adjustments', 'deferred': 'block_adjustments_deferred'}.get(
+                    k, f'window_off_gnss_{k}'), v)
         self._set_georeferenced()
         self._control_diagnostics()
         self._since_quality += 1
