@@ -134,6 +134,10 @@ BENCHES: tuple[Bench, ...] = (
     Bench('run_processes', ('bench/run_processes.py', '--out', '{out}'), 6,
           'inflight-20mp: `run` as a user starts it (run\'s defaults) on seneca_part at 20 MP, one photo a second, '
           'one process against two (not rendered)', ros=True, needs=('{data}/photos/seneca_part',)),
+    Bench('georef_inflight', ('bench/georef_inflight.py',), 12,
+          'docs/parameters.md pass_min_keyframes: in-flight poses against the final and triangulate\'s on every real '
+          'photo set, old code (a clean checkout at /tmp/georef_base) against new (writes bench/results itself; not '
+          'rendered)', needs=('{data}/photos/seneca_part', '/tmp/georef_base')),
     Bench('faults_stop', ('bench/faults_stop.py', '--out', '{out}'), 6,
           'docs/faults.md: `run` with a camera that never ends, stopped by SIGTERM (exit time, RSS; not rendered)',
           ros=True, needs=('{data}/photos/toledo',)),
