@@ -94,3 +94,11 @@ def test_bad_calibration_is_a_clear_error(kwargs, words):
 def test_image_size_mismatch_is_reported():
     with pytest.raises(CalibrationError, match='1280x960'):
         CAM.check_image_size(1280, 960)
+
+
+def test_no_points_undistort_to_no_points_with_a_distorted_lens():
+    """A keyframe that saw no point: its empty pixel array goes through a lens with distortion (triangulate of
+    seneca_part crashed on it once the in-flight pass had refined k1)."""
+    from photogram_ros.core.camera import PinholeCamera
+    cam = PinholeCamera(1600, 1200, 1000.0, 1000.0, 800.0, 600.0, dist=(-0.03, 0.02, 0.0, 0.0, 0.0))
+    assert cam.pixel_to_normalized(np.zeros((0, 2))).shape == (0, 2)

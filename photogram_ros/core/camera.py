@@ -98,7 +98,7 @@ class PinholeCamera:
         stops at ~1e-3 px for strong distortion, which is too coarse for rendering truth.
         """
         xy_d = np.asarray(xy_d, dtype=float)
-        if not any(self.dist):
+        if not any(self.dist) or not xy_d.size:   # (no points: a keyframe that saw none)
             return xy_d.copy()
         xy = xy_d.copy()
         for _ in range(iterations):
