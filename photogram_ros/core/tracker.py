@@ -143,9 +143,11 @@ class TrackerParams(CrossStripParams):
                                 'each', min=50, max=50000)
     chain_max_keyframes: int = param(600, 'Keyframes whose features are kept for cross-keyframe matching (the '
                                      'newest; ~226 kB each at 1500 features of 4000 tracks)', min=1, max=100000)
-    chain_enough_verified: int = param(4, 'A frame stops matching chain entries (nearest by GNSS first) once this '
-                                       'many verified a match (0: every candidate is tried)', min=0, max=100)
-    chain_stop_after_failures: int = param(3, 'A frame that verified a match with a chain entry stops after this '
+    chain_enough_verified: int = param(0, 'A frame stops matching chain entries (nearest by GNSS first) once this '
+                                       'many verified a match (0: every candidate is tried; 4 cut the tracker\'s CPU '
+                                       'on 20 MP seneca 0.72x with klt_rest_after_losses 3, and with it folded '
+                                       'seneca_part\'s replay: off)', min=0, max=100)
+    chain_stop_after_failures: int = param(0, 'A frame that verified a match with a chain entry stops after this '
                                            'many further entries in a row fail (the farther ones overlap less; '
                                            '0: every candidate is tried)', min=0, max=100)
     chain_linked_ids: int = param(50, 'An earlier keyframe already sharing this many track ids with the new one '
@@ -170,10 +172,11 @@ class TrackerParams(CrossStripParams):
                                       'last keyframe) get SIFT features, publish chain_features of them as tracks '
                                       'and are matched with the earlier keyframes they overlap; off: only frames '
                                       'at a break and the keyframes after one (photo-rate input)')
-    klt_rest_after_losses: int = param(3, 'After this many frames in a row on which KLT lost the tracks (photo-rate '
+    klt_rest_after_losses: int = param(0, 'After this many frames in a row on which KLT lost the tracks (photo-rate '
                                        'input: every frame bridged by descriptors), KLT is tried on every '
                                        'KLT_RETRY_EVERY-th frame only, the others go straight to descriptor matching '
-                                       '(0: KLT tried on every frame)', min=0, max=1000)
+                                       '(0: KLT tried on every frame; 3 folded seneca_part\'s replay: a strip 50 m '
+                                       'off its geotags)', min=0, max=1000)
     klt_min_share: float = param(0.2, 'Fewer KLT survivors than this share of the previous frame\'s tracks also '
                                  'tries descriptor matching (photo-rate input: motion far beyond KLT)',
                                  min=0.0, max=1.0)
