@@ -71,7 +71,8 @@ def test_a_block_turned_off_its_gnss_is_adjusted_back_in_flight(flight):
 
 def test_a_block_on_its_gnss_asks_for_no_adjustment(flight):
     sk = flight
-    at = IncrementalAT(sk.camera, IncrementalOptions(lever_arm_cam_m=tuple(sk.lever_arm_cam_m)), origin=sk.origin)
+    at = IncrementalAT(sk.camera, IncrementalOptions(lever_arm_cam_m=tuple(sk.lever_arm_cam_m), off_gnss_sigma=2.5),
+                       origin=sk.origin)
     for r in sk.records:
         at.add_keyframe(r)
     due, fig = off_gnss(at.datum, at.registered[-10:], at.registered[-1], 2.5)
@@ -85,7 +86,7 @@ def test_a_due_block_adjustment_waits_while_keyframes_wait(flight):
     1.5-fold growth) is left for a later keyframe and counted; the first keyframe allowed to adjust the block does
     it."""
     sk = flight
-    opt = dict(lever_arm_cam_m=tuple(sk.lever_arm_cam_m), growth_ratio=1.5, pass_min_keyframes=4)
+    opt = dict(lever_arm_cam_m=tuple(sk.lever_arm_cam_m), growth_ratio=1.5, pass_min_keyframes=4, off_gnss_sigma=2.5)
     free = IncrementalAT(sk.camera, IncrementalOptions(**opt), origin=sk.origin)
     held = IncrementalAT(sk.camera, IncrementalOptions(**opt), origin=sk.origin)
     n = len(sk.records)

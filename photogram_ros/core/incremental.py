@@ -208,7 +208,7 @@ class IncrementalOptions:
                                        '(the EXIF\'s) are turned by degrees until it is (seneca_part: k1 moves a '
                                        'corner 20 px; bench/georef_inflight.py)',
                                     min=2, max=1000000)
-    off_gnss_sigma: float = param(2.5, 'in flight, a block georeferenced for good gets a full adjustment (the pass\'s) '
+    off_gnss_sigma: float = param(0.0, 'in flight, a block georeferenced for good gets a full adjustment (the pass\'s) '
                                        'as soon as its window has left its GNSS: the newest keyframe\'s antenna '
                                        'further than this many sigmas of its fix on some axis, or the window\'s '
                                        'keyframes off their fixes by half of it on average along some axis (the '
