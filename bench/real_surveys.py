@@ -487,6 +487,7 @@ def safe_measure(*args) -> dict:
 
 
 REMEASURE = False   # --remeasure: take each command's outcome from its .run.json instead of running it
+REPLAY_PARAMS = ''  # --replay-params: a parameter file every replay runs with (config/replay.yaml when empty)
 
 
 def run_command(args: list[str], log_path: Path, timeout_s: float = 3600) -> dict:
@@ -495,6 +496,8 @@ def run_command(args: list[str], log_path: Path, timeout_s: float = 3600) -> dic
     saved = log_path.with_suffix('.run.json')
     if REMEASURE and saved.exists():
         return json.loads(saved.read_text())
+    if REPLAY_PARAMS and args[0] == 'replay':
+        args = [*args, '--params', REPLAY_PARAMS]
     env = {**os.environ, 'PYTHONPATH': str(ROOT) + os.pathsep + os.environ.get('PYTHONPATH', '')}
     t0 = time.monotonic()
     r = subprocess.run([sys.executable, '-m', 'photogram_ros.cli', *args], cwd=ROOT, env=env, capture_output=True,
@@ -794,6 +797,8 @@ def run_all(surveys, pipelines, variants: bool, out: Path, noisy=()) -> list[dic
 
     def keep(row):
         row['commit'] = commit
+        if REPLAY_PARAMS and 'replay' in row.get('command', ''):
+            row['replay_params'] = Path(REPLAY_PARAMS).read_text()
         rows.append(row)
         writer.write({k: v for k, v in row.items() if not k.startswith('per_camera')})
         (out / 'real_surveys.md').write_text(markdown(rows, commit))
@@ -840,9 +845,12 @@ def main(argv=None) -> int:
     ap.add_argument('--out', default='/tmp/real_surveys', help='output folder')
     ap.add_argument('--remeasure', action='store_true', help='measure the outputs already in --out again (no '
                                                               'command is run; wall times as recorded)')
+    ap.add_argument('--replay-params', default='', help='a parameter file for every replay (a copy of '
+                                                         'config/replay.yaml with a change; kept in each row)')
     a = ap.parse_args(argv)
-    global REMEASURE
+    global REMEASURE, REPLAY_PARAMS
     REMEASURE = a.remeasure
+    REPLAY_PARAMS = str(Path(a.replay_params).resolve()) if a.replay_params else ''
     surveys = [s.strip() for s in a.only.split(',') if s.strip() and s.strip() != 'none']
     pipelines = [p.strip() for p in a.pipelines.split(',') if p.strip()]
     bad = [s for s in surveys if s not in SURVEYS] + [p for p in pipelines if p not in PIPELINES]
