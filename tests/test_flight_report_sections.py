@@ -96,6 +96,32 @@ def test_report_has_the_overview_sections_and_escapes_what_the_flight_said(small
     assert html.count('data:image/png;base64,') >= 4
 
 
+def test_a_block_the_adjuster_failed_at_the_end_did_not_map(small_flight, tmp_path):
+    """A folded block (seneca_part's replay with the tracker's early stops on: a strip tilted 22-35 deg, bundle_node's
+    final block check FAILED) had a DSM and was reported `mapped`: the verdict reads the final check."""
+    from photogram_ros.io.flight_report import build_report
+    _, store, _, files, frames = small_flight
+    counts = {'tracker': {'keyframes': len(frames)}, 'bundle': {'keyframes_oriented': len(frames)}}
+    folded = 'FAILED (decided by strips): a strip is tilted 31 deg from the others'
+
+    def verdict(values):
+        out = tmp_path / str(len(list(tmp_path.iterdir())))
+        fig = build_report(out, store, 'EPSG:32632', files, run={'counts': counts}, diagnostics={
+            '/bundle_node': {'level': 0, 'problems': [], 'values': values, 'problem_levels': {}}})
+        return fig['mapping'], (out / 'report.md').read_text()
+
+    ok, _ = verdict({'final_verdict': 'ok', 'final_verdict_summary': 'OK: fine'})
+    assert ok['mapped'] and not any('final check' in w for w in ok['warnings'])
+    failed, md = verdict({'verdict': 'failed', 'final_verdict': 'failed', 'final_verdict_summary': folded})
+    assert not failed['mapped'] and folded in failed['failures'][0]
+    assert 'MAPPING FAILED' in md and 'a strip is tilted 31 deg' in md
+    warned, _ = verdict({'final_verdict': 'warning', 'final_verdict_summary': 'WARNING (decided by dome): bent'})
+    assert warned['mapped'] and any('bent' in w for w in warned['warnings'])
+    # An in-flight check alone (no final adjustment ran) does not decide the flight's verdict.
+    inflight, _ = verdict({'verdict': 'failed', 'verdict_summary': folded})
+    assert inflight['mapped']
+
+
 def test_a_folder_without_fixes_or_input_calibration_says_so(small_flight, tmp_path):
     import shutil
     from photogram_ros.io.flight_report import build_report

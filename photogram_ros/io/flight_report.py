@@ -287,8 +287,10 @@ def _health_sections(figures: dict, kfs, files: dict, run: dict, diagnostics: di
     acc = keyframe_accounting((run or {}).get('counts', {}), len(kfs) if georeferenced else 0,
                               values('bundle_node').get('status'),
                               unusable if isinstance(unusable, (int, float)) else None)
+    bundle = values('bundle_node')
     verdict = mapping_verdict(acc, georeferenced, dsm_valid_share(files.get('dsm')), bool(files),
-                              (run or {}).get('products_error'), dsm_one_pair_evidence(files.get('dsm')))
+                              (run or {}).get('products_error'), dsm_one_pair_evidence(files.get('dsm')),
+                              {'status': bundle.get('final_verdict'), 'summary': bundle.get('final_verdict_summary')})
     # The flight as a whole is a row of its own: at ERROR when it did not map, whatever the nodes said.
     level = 'ERROR' if not verdict['mapped'] else 'WARN' if verdict['warnings'] else 'OK'
     health = [{'node': 'replay', 'worst_level': level, 'problems': len(verdict['failures'] + verdict['warnings']),

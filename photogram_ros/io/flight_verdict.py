@@ -179,7 +179,8 @@ def dsm_one_pair_evidence(dsm_path) -> dict | None:
 
 
 def mapping_verdict(accounting: dict, georeferenced: bool, dsm_share: float | None, mapped_products: bool,
-                    products_error: str | None = None, dsm_one_pair: dict | None = None) -> dict:
+                    products_error: str | None = None, dsm_one_pair: dict | None = None,
+                    block_check: dict | None = None) -> dict:
     """{'mapped': bool, 'failures': [sentences], 'warnings': [sentences]}: a flight with no georeferenced
     keyframe, fewer than half of its keyframes oriented, products that could not be made (`products_error`:
     why), or a DSM nearly empty (or none while keyframes were oriented) did not map; a DSM measured by stereo
@@ -188,8 +189,16 @@ def mapping_verdict(accounting: dict, georeferenced: bool, dsm_share: float | No
     warning, when one pair measured enough more of it and agrees with its interpolated heights (`dsm_one_pair`:
     export.json's dsm.camera_hull.filled_one_pair as 'share' and dsm.one_pair_check, with 'tolerance_m' the
     DSM's max_spread_m): a survey flown with one pair per spot (60 % forward overlap) has no second pair to
-    check with, and the one pair is the evidence there is."""
+    check with, and the one pair is the evidence there is. `block_check`: the adjuster's check of the block
+    after its final adjustment ({'status': 'ok' | 'warning' | 'failed', 'summary': its line}; bundle_node's
+    final_verdict on /diagnostics): a failed block (folded, far from its GNSS, not converged where it
+    matters) did not map, whatever its DSM looks like; a warning is the flight's warning."""
     failures, warnings = [], []
+    check = block_check or {}
+    if check.get('status') == 'failed':
+        failures.append(f"the adjuster's final check of the block failed: {check.get('summary') or 'no reason given'}")
+    elif check.get('status') == 'warning':
+        warnings.append(f"the adjuster's final check of the block warns: {check.get('summary') or 'no reason given'}")
     taken, oriented = accounting['keyframes_taken'], accounting['keyframes_oriented']
     if taken == 0:
         frames, unusable = accounting.get('frames_tracked'), accounting.get('frames_unusable')

@@ -652,13 +652,17 @@ class AdjustmentStage:
 
     def _block_check(self, adjustment: dict | None = None) -> None:
         """The block's own check (core/block_check.py) on diagnostics: `verdict` and its reasons; a
-        failed block is an ERROR, a warning a WARN."""
+        failed block is an ERROR, a warning a WARN. The check after the final adjustment (`adjustment` given)
+        is also `final_verdict`: the one the flight's verdict reads (io/flight_verdict.mapping_verdict)."""
         # In flight the health check already watches keyframes not oriented: the verdict names them only
         # when they are a tenth of the flight; keyframes spilled to disk stay there (no thaw every 10 keyframes).
         v = check_block(inputs_from_at(self.at, adjustment=adjustment, thaw=False),
                         BlockCheckOptions(min_oriented_warn=0.9))
         self.diag.set('verdict', v.status)
         self.diag.set('verdict_summary', v.summary)
+        if adjustment is not None:   # the end of the flight's check: the one the flight's verdict reads
+            self.diag.set('final_verdict', v.status)
+            self.diag.set('final_verdict_summary', v.summary)
         fit = v.figures.get('gnss_fit', {})
         if 'rms_h_m' in fit:
             self.diag.set('block_gnss_fit_h_m', fit['rms_h_m'])
