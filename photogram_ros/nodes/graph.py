@@ -11,6 +11,10 @@ process (`GraphSpec.child_roles`, the same node code): the child reports its nod
 child ignores SIGINT (a terminal's Ctrl-C reaches the whole process group: the parent decides) and
 stops when its parent is gone, even after a kill -9 of the parent (it watches a pipe from it).
 
+Every node takes its parameters (the file's, then `extra`); the bundle node also takes the flight's control file as
+a command read it (`GraphSpec.control`, `replay`/`run --gcp`: make_node), an object its adjustment stage uses whole;
+a child process gets it as its read values (child_argument). A ROS user names the file in the parameters instead.
+
 A role's `use_sim_time` (in the parameter file or `extra`) is rclpy's own parameter: the node's clock then
 follows /clock. `replay` sets it for every node (one time base: the bag's); `run` leaves the system clock.
 
