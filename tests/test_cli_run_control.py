@@ -1,6 +1,7 @@
 """`run --gcp/--check/--gcp-heights`: the live graph's control file given on the command line, as `replay` takes it
-(commands/common_args.add_live_control: one definition), checked before any node starts, handed to the bundle node,
-and read again for the report's check points (commands/run.flight_control), from --gcp or the parameter file."""
+(commands/common_args.add_live_control: one definition), read once before any node starts (live_control), handed to
+the bundle node's stage and to the report's check points (commands/run.flight_control); without --gcp the parameter
+file's."""
 
 from __future__ import annotations
 
@@ -42,22 +43,22 @@ def test_run_and_replay_take_the_control_file_alike():
     assert _parse(['run']).gcp == ''
 
 
-def test_the_bundle_overrides_and_the_report_control_come_from_one_reading(tmp_path):
-    from photogram_ros.commands.common_args import live_control_overrides
+def test_the_stage_and_the_report_control_come_from_one_reading(tmp_path):
+    from photogram_ros.commands.common_args import live_control
     from photogram_ros.commands.run import flight_control
     f = _targets(tmp_path)
     a = _parse(['run', '--gcp', str(f), '--check', 'P4'])
-    control, bundle = live_control_overrides(a)
-    assert bundle == {'control_file': str(f.resolve()), 'check_names': 'P4', 'control_heights': 'auto'}
-    assert control.gcp_names == ['GCP01'] and control.check_names == ['CHK01', 'P4']
-    assert flight_control(a).check_names == ['CHK01', 'P4']
+    control = live_control(a)
+    assert control.parameters() == {'control_file': str(f.resolve()), 'check_names': 'P4', 'control_heights': 'auto'}
+    assert control.targets.gcp_names == ['GCP01'] and control.targets.check_names == ['CHK01', 'P4']
+    assert flight_control(a, control) is control.targets
     # Without --gcp: the parameter file's bundle_node control file, as the bundle node reads it.
     params = tmp_path / 'p.yaml'
     params.write_text(f'bundle_node:\n  ros__parameters:\n    control_file: {f}\n    check_names: "P4"\n')
     assert flight_control(_parse(['run', '--params', str(params)])).check_names == ['CHK01', 'P4']
     params.write_text('bundle_node:\n  ros__parameters:\n    max_window: 12\n')
     assert flight_control(_parse(['run', '--params', str(params)])) is None
-    assert live_control_overrides(_parse(['run'])) == (None, {})
+    assert live_control(_parse(['run'])) is None
 
 
 @pytest.mark.parametrize('case', ['missing', 'bad_row'])

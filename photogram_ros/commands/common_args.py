@@ -2,8 +2,8 @@
 
 - ``--processes {1,2}``, ``--child-nodes`` in the live graph (`replay`, `run`): bundle, stereo and map in a second
   process by default (one Python process uses about one core).
-- ``--gcp FILE``, ``--check NAMES`` in the live graph (`replay`, `run`): the bundle node's control_file and
-  check_names, the file read before any node starts.
+- ``--gcp FILE``, ``--check NAMES`` in the live graph (`replay`, `run`): the flight's control file, read before
+  any node starts into one object (io/control_file.ControlInput) that the graph hands to the bundle node's stage.
 - ``--gcp-heights {auto,ellipsoidal,orthometric}``: the vertical datum of the heights in the control file
   (auto: EGM2008 orthometric only when its CRS is compound with EGM2008 heights, e.g. EPSG:32632+3855; else
   ellipsoidal). Never a policy: whether a contradicted GCP height is used is ``--gcp-height-check``.
@@ -105,8 +105,8 @@ def add_gcp_height_check(p) -> None:
 
 
 def add_live_control(p) -> None:
-    """--gcp, --check and --gcp-heights of the live graph (replay, run): the bundle node's control_file,
-    check_names and control_heights (read back by live_control_overrides)."""
+    """--gcp, --check and --gcp-heights of the live graph (replay, run): the flight's control file (read by
+    live_control)."""
     p.add_argument('--gcp', default='', help='control-point file of the flight\'s ArUco targets (first line a CRS, '
                                          'then "name marker_id x y z [sigma_h_m sigma_v_m]"): GCPs constrain the '
                                          'adjustment, CHK* names are check points; the simulator writes targets.txt')
@@ -114,19 +114,16 @@ def add_live_control(p) -> None:
     add_gcp_heights(p, 'the --gcp file')
 
 
-def live_control_overrides(a):
-    """(the control file read now, so a bad one is said before any node starts; the bundle node's parameters
-    for it), or (None, {}) without --gcp (a note when --check is given alone)."""
-    from pathlib import Path
-
-    from photogram_ros.io.control_file import read_control_file
+def live_control(a):
+    """The flight's control (io/control_file.ControlInput) read now from --gcp, --check, --gcp-heights, so that a
+    bad file is said before any node starts; the command hands it to the graph (the bundle node's adjustment
+    stage) and to the report. None without --gcp (a note when --check is given alone)."""
+    from photogram_ros.io.control_file import ControlInput
     if not a.gcp:
         if a.check:
             print('note: --check without --gcp has no effect (without a control file every target is a check point)')
-        return None, {}
-    control = read_control_file(a.gcp, a.check.split(','), a.gcp_heights)
-    return control, {'control_file': str(Path(a.gcp).resolve()), 'check_names': a.check,
-                     'control_heights': a.gcp_heights}
+        return None
+    return ControlInput.read(a.gcp, a.check.split(','), a.gcp_heights)
 
 
 CHILD_ROLES = ('bundle', 'stereo', 'map')

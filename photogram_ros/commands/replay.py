@@ -122,9 +122,7 @@ def run(a) -> int:
     camera = common_args.exif_altitude_overrides(a)   # checked before any process starts
     if camera:
         extra['camera'] = camera
-    control, bundle = common_args.live_control_overrides(a)   # a bad file is reported before the replay starts
-    if bundle:
-        extra['bundle'] = bundle
+    control = common_args.live_control(a)   # a bad file is reported before the replay starts
     lock = claim_output(out, 'resume' if a.resume else 'overwrite' if a.overwrite else 'new', 'replay')
     if lock.previous:
         print(f'note: --resume: continuing the map in {out}', flush=True)
@@ -140,14 +138,15 @@ def run(a) -> int:
         res = run_replay(ReplayOptions(bag=a.bag, out=str(out), params_file=params, rate=a.rate,
                                        progress=not a.quiet, child_roles=child, extra=extra,
                                        calibration_file=a.calibration, gnss_log=a.gnss_log,
-                                       video_start_unix_s=a.video_start))
+                                       video_start_unix_s=a.video_start, control=control))
     finally:
         rclpy.try_shutdown()
     if before is not None:   # the keyframes of the map from before this replay are taken too (the report's N of N)
         res['run']['resumed'] = count_keyframes_before(res['run'].setdefault('counts', {}), before, out / 'map')
     truth = GroundTruth.load(a.truth) if a.truth else None
     prod = export_products(res['map_dir'], out, params, a.crs, a.live_map, a.heights, a.min_pairs,
-                           progress=not a.quiet, run=res['run'], truth=truth, control=control,
+                           progress=not a.quiet, run=res['run'], truth=truth,
+                           control=control.targets if control is not None else None,
                            diagnostics=res['diagnostics'])
     files, notes, figures = prod['files'], prod['notes'], prod['figures']
     res['run'] = figures.get('run', res['run'])

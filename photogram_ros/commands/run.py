@@ -71,7 +71,7 @@ def run(a) -> int:
 
     from photogram_ros.commands.products import check_output_crs
     from photogram_ros.errors import ConfigError
-    from photogram_ros.nodes.graph import NODES, Graph, GraphSpec, check_params, roles_for
+    from photogram_ros.nodes.graph import NODES, Graph, GraphSpec, check_params, roles_for, set_by_command
     from photogram_ros.nodes.node_main import init_ros
     roles = tuple(r.strip() for r in a.nodes.split(',') if r.strip()) or roles_for(a.params)
     bad = [r for r in roles if r not in NODES]
@@ -83,12 +83,12 @@ def run(a) -> int:
     if a.namespace:
         check_namespace(a.namespace)
     camera = common_args.exif_altitude_overrides(a)
-    _, bundle = common_args.live_control_overrides(a)   # a bad control file is said before any node starts
-    if bundle and 'bundle' not in roles:
+    control = common_args.live_control(a)   # a bad control file is said before any node starts
+    if control is not None and 'bundle' not in roles:
         raise ConfigError(f'--gcp {a.gcp}: the control file goes to the bundle node, which --nodes leaves out')
-    extra = {role: values for role, values in (('camera', camera), ('bundle', bundle)) if values and role in roles}
-    spec = GraphSpec(roles=roles, params_file=a.params, namespace=a.namespace, extra=extra or None,
-                     child_roles=() if a.separate else common_args.child_roles(a, roles))
+    extra = {'camera': camera} if camera and 'camera' in roles else None
+    spec = GraphSpec(roles=roles, params_file=a.params, namespace=a.namespace, extra=extra,
+                     child_roles=() if a.separate else common_args.child_roles(a, roles), control=control)
     check_params(spec)     # every mistake before the first frame, not at the end of the flight
     exporting = not a.no_export and 'map' in roles
     if exporting and a.crs:
@@ -176,10 +176,10 @@ def run(a) -> int:
                 'real_time_factor': flight_s / max(wall_s, 1e-9), 'counts': counts,
                 'ended_by': signals.signal_name or 'end of the camera source',
                 'final_adjustment': end.final_adjustment, 'end_of_flight_errors': end.errors,
-                'params_file': a.params, 'parameter_overrides': spec.extra or {}}
+                'params_file': a.params, 'parameter_overrides': set_by_command(spec)}
     if before is not None:
         run_info['resumed'] = count_keyframes_before(counts, before, map_dir_of(a.params))
-    return _after_flight(a, roles, end.as_dict(), run_info, diag_log.snapshot())
+    return _after_flight(a, spec, end.as_dict(), run_info, diag_log.snapshot())
 
 
 class RunSignals:
@@ -563,7 +563,7 @@ def _run_separate(a, spec, signals, before: dict | None = None) -> int:
     adjustment (bundle_node's exit), stereo's last pairs and the map's flush follow one another."""
     import signal
 
-    from photogram_ros.nodes.graph import start_separate
+    from photogram_ros.nodes.graph import set_by_command, start_separate
     procs = start_separate(spec)
     monitor = SeparateMonitor(spec)   # the nodes' /diagnostics: the report's accounting
     t0 = time.monotonic()
@@ -590,10 +590,10 @@ def _run_separate(a, spec, signals, before: dict | None = None) -> int:
     run_info = {'source': 'run', 'frames': frames, 'bag_s': flight_s, 'wall_s': wall_s,
                 'real_time_factor': flight_s / max(wall_s, 1e-9), 'counts': counts,
                 'ended_by': signals.signal_name or 'a node process ended', 'final_adjustment': end['final_adjustment'],
-                'end_of_flight_errors': failed, 'params_file': a.params, 'parameter_overrides': spec.extra or {}}
+                'end_of_flight_errors': failed, 'params_file': a.params, 'parameter_overrides': set_by_command(spec)}
     if before is not None:
         run_info['resumed'] = count_keyframes_before(counts, before, map_dir_of(a.params))
-    return _after_flight(a, spec.roles, end, run_info, diagnostics)
+    return _after_flight(a, spec, end, run_info, diagnostics)
 
 
 class SeparateMonitor:
@@ -639,18 +639,19 @@ class SeparateMonitor:
         return counts, snap
 
 
-def _after_flight(a, roles, end: dict, run_info: dict | None = None, diagnostics: dict | None = None) -> int:
-    """Record how the flight ended in the map folder, export, and say what failed. `run_info`: the
+def _after_flight(a, spec, end: dict, run_info: dict | None = None, diagnostics: dict | None = None) -> int:
+    """Record how the flight ended in the map folder, export, and say what failed (`spec`: the flight's
+    GraphSpec: its roles, and the control the report takes its check points from). `run_info`: the
     flight's accounting from the nodes' counters (frames, keyframes, Graph.counts()) for the report;
     `diagnostics`: what the nodes said on /diagnostics."""
     from photogram_ros.errors import PhotogramError
     from photogram_ros.io.map_store import MapStore
-    if 'map' in roles:
+    if 'map' in spec.roles:
         try:
             MapStore(map_dir_of(a.params)).save_flight_end(end)
         except (PhotogramError, OSError) as exc:
             print(f'note: the map folder could not record how the flight ended: {exc}', flush=True)
-    rc = _export_at_stop(a, roles, run_info, diagnostics)
+    rc = _export_at_stop(a, spec.roles, run_info, diagnostics, spec.control)
     if end['final_adjustment'] == 'failed':
         print(f"the final adjustment failed ({end['reason']}): poses and products are the in-flight ones",
               flush=True)
@@ -669,11 +670,12 @@ def map_dir_of(params_file: str | None) -> str:
     return from_dict(MapParams, sections.get('map_node', {}), f'{params_file} map_node').map_dir
 
 
-def flight_control(a):
-    """The flight's control file for the report's check points (core/control.ControlSet): --gcp, else the
-    parameter file's bundle_node control_file; None without one."""
-    if a.gcp:
-        return common_args.live_control_overrides(a)[0]
+def flight_control(a, control=None):
+    """The flight's control file for the report's check points (core/control.ControlSet): `control`'s (the
+    io/control_file.ControlInput the command read from --gcp), else the parameter file's bundle_node control_file;
+    None without one."""
+    if control is not None:
+        return control.targets
     from photogram_ros.params import load_params_file
     bundle = (load_params_file(a.params) if a.params else {}).get('bundle_node', {})
     if not bundle.get('control_file'):
@@ -683,7 +685,9 @@ def flight_control(a):
                              bundle.get('control_heights', 'auto'))
 
 
-def _export_at_stop(a, roles, run_info=None, diagnostics=None) -> int:
+def _export_at_stop(a, roles, run_info=None, diagnostics=None, control=None) -> int:
+    """The products and the report at the stop; `control`: the io/control_file.ControlInput the command read
+    (flight_control)."""
     if a.no_export or 'map' not in roles:
         return 0
     from photogram_ros.commands.products import export_products
@@ -691,7 +695,8 @@ def _export_at_stop(a, roles, run_info=None, diagnostics=None) -> int:
     from photogram_ros.io.flight_verdict import keyframes_line
     try:
         res = export_products(map_dir_of(a.params), a.out, a.params, a.crs, a.live_map, a.heights, run=run_info,
-                              diagnostics=diagnostics, progress=True, control=flight_control(a))
+                              diagnostics=diagnostics, progress=True,
+                              control=flight_control(a, control))
     except (PhotogramError, OSError) as exc:   # the map itself is safe on disk: say how to export it later
         print(f'exports failed ({exc}); the map is on disk: photogram-ros export MAPDIR --densify', flush=True)
         return EXIT_EXPORT_FAILED

@@ -32,12 +32,16 @@ Manual tie points (MTPs): points without coordinates an operator marked in sever
 matching fails. In a gcp_list.txt they are the rows whose name starts with MTP (their x y z are not
 read), or rows without coordinates, ``px py image name``; `read_tie_list` reads a file of such rows
 alone (the CRS line is optional there). They are `GcpList.tie_rows`, never GCPs or check points.
+
+`ControlInput` is the live graph's control file read once (by `replay`/`run` from --gcp, --check, --gcp-heights):
+the path, check names and height datum as given, and the ControlSet read from them, handed whole to the bundle
+node's adjustment stage; `as_dict`/`from_dict` carry it to a second process without reading the file again.
 """
 
 from __future__ import annotations
 
 import re
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -374,3 +378,37 @@ def read_gcp_list(path: str | Path, check_names=()) -> GcpList:
         rows.append(ControlRow(n, ln[5], name, np.array([u, v])))
     roles = {name: 'check' if is_check_name(name, check_names) else 'gcp' for name in points}
     return GcpList(crs, points, roles, image_uv, rows, heights, ties)
+
+
+@dataclass(frozen=True)
+class ControlInput:
+    """A flight's control file as given and as read (`read`, once): the adjustment stage takes `targets`; the
+    tracker's target search and `run --separate` take `parameters()`, the bundle node's parameters naming the same
+    file."""
+    file: str                     # the file, resolved
+    check_names: tuple = ()       # more check points than the CHK* names
+    heights: str = 'auto'         # the vertical datum of the file's heights (read_control_file `heights`)
+    targets: ControlSet | None = field(default=None, compare=False)
+
+    @classmethod
+    def read(cls, path: str | Path, check_names=(), heights: str = 'auto') -> 'ControlInput':
+        """Read and check the file now (a DataError names the line)."""
+        names = tuple(n for n in (s.strip() for s in check_names) if n)
+        file = str(Path(path).resolve())
+        return cls(file, names, heights, read_control_file(file, names, heights))
+
+    def parameters(self) -> dict:
+        """The bundle node's parameters (control_file, check_names, control_heights) naming this file."""
+        return {'control_file': self.file, 'check_names': ','.join(self.check_names), 'control_heights': self.heights}
+
+    def as_dict(self) -> dict:
+        """Plain values (JSON) from which `from_dict` makes the same ControlInput, its targets included."""
+        t = self.targets
+        return {**self.parameters(), 'crs': t.crs, 'source': t.source, 'file_heights': t.file_heights,
+                'targets': [asdict(s) for s in t.targets]}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> 'ControlInput':
+        targets = ControlSet([SurveyedTarget(**s) for s in d['targets']], d['crs'], d['source'], d['file_heights'])
+        names = tuple(n for n in d['check_names'].split(',') if n)
+        return cls(d['control_file'], names, d['control_heights'], targets)

@@ -46,7 +46,8 @@ without an attitude. Fixes without a covariance get one from their GNSS mode (RT
 fix under RTK status with more than max_rtk_sigma_m is not used. `finish()` and `full_adjustment()`
 return an AdjustmentOutcome ('done', 'failed', 'none'); the console script exits 4 when it failed.
 
-Ground control (`control_file`, io/control_file.py): targets named in the file become GCPs (point
+Ground control (`control_file`, io/control_file.py; or the ControlSet a command read, handed by the graph in its
+place): targets named in the file become GCPs (point
 priors) or check points (never used), in the map frame as soon as its origin is known; markers
 the file does not name are counted and ignored. A GCP is held as a check point until the block is
 georeferenced for good and control_min_keyframes keyframes have seen it; then its detections and its
@@ -89,6 +90,7 @@ from sensor_msgs.msg import CameraInfo, Image, Imu, NavSatFix, PointCloud2
 from std_msgs.msg import Empty, String
 
 from photogram_ros import msgs
+from photogram_ros.core.control import ControlSet
 from photogram_ros.core.incremental import KeyframeRecord
 from photogram_ros.errors import PhotogramError
 from photogram_ros.nodes.diagnostics import ERROR, Diagnostics
@@ -157,13 +159,15 @@ class _Publishers(Outputs):
 class BundleNode(Node):
     _covariance = staticmethod(pose_covariance)
 
-    def __init__(self, overrides: dict | None = None, **node_kwargs):
+    def __init__(self, overrides: dict | None = None, control: ControlSet | None = None, **node_kwargs):
+        """`control`: the flight's surveyed targets as a command read them (`replay`/`run --gcp`, through the
+        graph), taken in place of the control_file parameter; None: the stage reads control_file."""
         super().__init__('bundle_node', **node_kwargs)
         self.p = declare(self, BundleNodeParams, overrides)
         self.diag = Diagnostics(self)
         # A bad control file stops the start, naming the line.
         self.outputs = _Publishers(self)
-        self.stage = AdjustmentStage(self.p, StageDiagnostics(self.diag), self.outputs)
+        self.stage = AdjustmentStage(self.p, StageDiagnostics(self.diag), self.outputs, control=control)
         if not self.outputs.tf.available:
             self.diag.set('tf', tf_publisher.NOT_AVAILABLE)
         # Fixes first: the executor serves ready subscriptions in creation order, and a burst of

@@ -11,6 +11,10 @@ process (`GraphSpec.child_roles`, the same node code): the child reports its nod
 child ignores SIGINT (a terminal's Ctrl-C reaches the whole process group: the parent decides) and
 stops when its parent is gone, even after a kill -9 of the parent (it watches a pipe from it).
 
+Every node takes its parameters (the file's, then `extra`); the bundle node also takes the flight's control file as
+a command read it (`GraphSpec.control`, `replay`/`run --gcp`: make_node), an object its adjustment stage uses whole;
+a child process gets it as its read values (child_argument). A ROS user names the file in the parameters instead.
+
 A role's `use_sim_time` (in the parameter file or `extra`) is rclpy's own parameter: the node's clock then
 follows /clock. `replay` sets it for every node (one time base: the bag's); `run` leaves the system clock.
 
@@ -30,12 +34,16 @@ import sys
 import threading
 import time
 from pathlib import Path
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
+from typing import TYPE_CHECKING
 
 from photogram_ros.errors import ConfigError, PhotogramError
 from photogram_ros.params import load_params_file
 from photogram_ros.nodes.node_main import WATCH_PARENT_ENV, init_ros, watch_parent
 from photogram_ros.nodes.process_memory import DEFAULT_ARENAS, limit_malloc_arenas, start_heap_trimmer
+
+if TYPE_CHECKING:
+    from photogram_ros.io.control_file import ControlInput
 
 # role -> (module, class, console script); the order is the data-flow order.
 NODES = {
@@ -76,6 +84,9 @@ class GraphSpec:
     namespace: str = ''
     extra: dict | None = None      # role -> {param: value}, applied over the file
     child_roles: tuple = field(default_factory=tuple)   # roles run in one child process (a second core)
+    # The flight's control file as the command read it (--gcp): the bundle node's stage takes it whole (make_node),
+    # in place of the parameter file's control_file; a child process gets its values (child_argument).
+    control: ControlInput | None = None
 
 
 @dataclass
@@ -131,11 +142,45 @@ def role_values(spec: GraphSpec, role: str, sections: dict | None = None) -> dic
     values.update((spec.extra or {}).get(role, {}))
     if role == 'tracker' and not values.get('control_file'):
         # The tracker searches for the adjuster's surveyed targets only where they can be (target_search).
-        bundle = role_values(spec, 'bundle', sections)
+        bundle = spec.control.parameters() if spec.control is not None else role_values(spec, 'bundle', sections)
         for key in ('control_file', 'control_heights'):
             if bundle.get(key):
                 values[key] = bundle[key]
     return values
+
+
+def make_node(role: str, values: dict, spec: GraphSpec, **kwargs):
+    """The node of `role` with its parameter values; the bundle node also with the flight's control as the command
+    read it (spec.control), which its adjustment stage takes whole."""
+    if role == 'bundle':
+        from photogram_ros.nodes.bundle_node import BundleNode
+        return BundleNode(overrides=values, control=spec.control.targets if spec.control is not None else None,
+                          **kwargs)
+    return node_class(role)(overrides=values, **kwargs)
+
+
+def set_by_command(spec: GraphSpec) -> dict:
+    """role -> {parameter: value} the command set over the parameter file, for the run's record (the report's
+    Parameters): spec.extra, and the control file the command read, as the bundle node's parameters name it."""
+    out = {r: dict(v) for r, v in (spec.extra or {}).items()}
+    if spec.control is not None:
+        out.setdefault('bundle', {}).update(spec.control.parameters())
+    return out
+
+
+def child_argument(spec: GraphSpec) -> str:
+    """`spec` as the JSON a child process rebuilds it from (child_spec): the control as its read values."""
+    doc = asdict(replace(spec, control=None))
+    doc['control'] = spec.control.as_dict() if spec.control is not None else None
+    return json.dumps(doc)
+
+
+def child_spec(argument: str) -> GraphSpec:
+    """The GraphSpec of child_argument, run in this process (no child of its own)."""
+    from photogram_ros.io.control_file import ControlInput
+    doc = json.loads(argument)
+    control = ControlInput.from_dict(doc.pop('control')) if doc.get('control') else None
+    return GraphSpec(**{**doc, 'roles': tuple(doc['roles']), 'child_roles': (), 'control': control})
 
 
 def ros_time_kwargs(values: dict, where: str) -> dict:
@@ -185,8 +230,7 @@ class Graph:
             if role in spec.child_roles:
                 continue
             values = role_values(spec, role, sections)
-            self.nodes[role] = node_class(role)(overrides=values, **kwargs,
-                                                **ros_time_kwargs(values, NODES[role][2]))
+            self.nodes[role] = make_node(role, values, spec, **kwargs, **ros_time_kwargs(values, NODES[role][2]))
         self.executor = MultiThreadedExecutor(num_threads=4, context=context)
         for n in self.nodes.values():
             self.executor.add_node(n)
@@ -194,7 +238,8 @@ class Graph:
         child = tuple(r for r in spec.roles if r in spec.child_roles)
         if child:
             self.child = ChildGraph(GraphSpec(roles=child, params_file=spec.params_file, namespace=spec.namespace,
-                                              extra={r: v for r, v in (spec.extra or {}).items() if r in child}),
+                                              extra={r: v for r, v in (spec.extra or {}).items() if r in child},
+                                              control=spec.control if 'bundle' in child else None),
                                     kwargs)
             self.executor.add_node(self.child.node)
 
@@ -545,7 +590,7 @@ class ChildGraph:
         env[WATCH_PARENT_ENV] = '1'
         env[GRAPH_TOKEN_ENV] = token
         code = 'import sys; from photogram_ros.nodes.graph import child_main; sys.exit(child_main())'
-        self.proc = subprocess.Popen([sys.executable, '-c', code, json.dumps(asdict(spec))], env=env,
+        self.proc = subprocess.Popen([sys.executable, '-c', code, child_argument(spec)], env=env,
                                      stdin=subprocess.PIPE)
 
     def _on_status(self, msg) -> None:
@@ -668,8 +713,7 @@ def child_main(argv=None) -> int:
     from photogram_ros.nodes import qos
     from std_msgs.msg import String
     args = sys.argv[1:] if argv is None else argv
-    spec = GraphSpec(**{**json.loads(args[0]), 'child_roles': ()})
-    spec.roles = tuple(spec.roles)
+    spec = child_spec(args[0])
     limit_malloc_arenas()   # before rclpy.init(): it starts the DDS threads
     init_ros()
     stop = threading.Event()
@@ -736,7 +780,7 @@ def start_separate(spec: GraphSpec) -> list[subprocess.Popen]:
             args += ['--params-file', spec.params_file]
         if spec.namespace:
             args += ['-r', f'__ns:={spec.namespace}']
-        for k, v in (spec.extra or {}).get(role, {}).items():
+        for k, v in set_by_command(spec).get(role, {}).items():
             args += ['-p', f'{k}:={v}']
         procs.append(subprocess.Popen(args, env=env, stdin=subprocess.PIPE, start_new_session=True))
     return procs

@@ -33,10 +33,11 @@ from rclpy.time import Time
 
 from photogram_ros.core.incremental import AUTO_CANDIDATES, PASS_GROWTH_RATIO
 from photogram_ros.io.bag_px4 import SENSOR_GPS, VEHICLE_ATTITUDE
+from photogram_ros.io.control_file import ControlInput
 from photogram_ros.io.progress import Progress, Steps, say_stdout
 from photogram_ros.nodes import qos
 from photogram_ros.nodes.diagnostics import PROBLEM_SEPARATOR
-from photogram_ros.nodes.graph import NODES, Graph, GraphSpec, WorkWatch
+from photogram_ros.nodes.graph import NODES, Graph, GraphSpec, WorkWatch, set_by_command
 from photogram_ros.nodes.player_node import MAVROS_INPUTS, PlayerNode, mavros_remaps
 
 IMAGE_TOPICS = ('/camera/image_raw', '/camera/image_raw/compressed')
@@ -77,6 +78,9 @@ class ReplayOptions:
     calibration_file: str = ''   # needed for a video; a photo folder takes its camera from the EXIF
     gnss_log: str = ''           # a video's fixes (io/image_source.read_fix_log)
     video_start_unix_s: float = 0.0
+    # The flight's control file as the command read it (io/control_file.ControlInput; --gcp): handed to the
+    # bundle node's stage through the graph (GraphSpec.control). None: the parameter file's control_file, if any.
+    control: ControlInput | None = None
 
 
 BAG_SUFFIXES = ('.db3', '.mcap', '.bag')
@@ -312,7 +316,7 @@ def run_replay(opts: ReplayOptions, context=None) -> dict:
         raise ConfigError(f'replay: {bad} cannot run in the child process; choose among {CHILD_ROLES_ALLOWED} '
                           '(the tracker and MAVLink decoder pace the player and stay in the main process)')
     graph = Graph(GraphSpec(roles=roles, params_file=opts.params_file, extra=extra,
-                            child_roles=tuple(opts.child_roles)), context=context)
+                            child_roles=tuple(opts.child_roles), control=opts.control), context=context)
     kwargs = {'context': context} if context is not None else {}
     player = camera = None
     if kind == 'bag':
@@ -476,7 +480,7 @@ def run_replay(opts: ReplayOptions, context=None) -> dict:
            'waited_for_downstream_s': round(lag_wait_s[0], 1),
            'bag_read': {t: [i.count, i.expected] for t, i in topics.items()}, 'bag_warnings': bag_warnings,
            'final_adjustment': end.final_adjustment, 'end_of_flight_errors': end.errors, 'counts': counts,
-           'params_file': str(opts.params_file) if opts.params_file else None, 'parameter_overrides': extra}
+           'params_file': str(opts.params_file) if opts.params_file else None, 'parameter_overrides': set_by_command(graph.spec)}
     if summary.px4_skipped:
         run['px4_records_not_published'] = dict(summary.px4_skipped)
     if drain_left:

@@ -267,8 +267,9 @@ class AdjustmentStage:
 
     def __init__(self, p: AdjustmentParams, diag=None, out: Outputs | None = None,
                  control: ControlSet | None = None):
-        """`control`: the surveyed targets; None reads p.control_file when it names one (a bad file raises,
-        naming the line)."""
+        """`control`: the surveyed targets (in flight: those the command read, handed by the graph and the node);
+        None reads p.control_file when it names one (a ROS user's parameter file; a bad file raises, naming the
+        line)."""
         self.p, self.diag, self.out = p, diag or DiagnosticsLog(), out or Outputs()
         if control is None and p.control_file:
             from photogram_ros.io.control_file import read_control_file
