@@ -131,7 +131,10 @@ def test_station_shows_ortho_coverage_gap_and_accuracy(tmp_path, rclpy_context):
                                                'check_points': [], 'gcps': [], 'gnss_bias_enu_m': None,
                                                'control': {'gcps': 3, 'gcps_full': 2, 'gcps_rejected': 1,
                                                            'faults': ['GCP GCP02 not used: 29.8 m off'],
-                                                           'rows': [{'fate': 'outlier'}]}}))
+                                                           'rows': [{'fate': 'outlier'}]},
+                                               'block': 'adjusted', 'block_check': {
+                                                   'status': 'failed', 'summary': 'FAILED (decided by strips): a '
+                                                                                  'strip is tilted 31 deg'}}))
         ground = -40.0
         tie = np.column_stack([rng.uniform(-30, 70, 500), rng.uniform(-20, 110, 500), np.full(500, ground)])
         for _ in range(10):
@@ -174,6 +177,9 @@ def test_station_shows_ortho_coverage_gap_and_accuracy(tmp_path, rclpy_context):
         assert ctl['gcps_rejected'] == 1 and ctl['faults'] == ['GCP GCP02 not used: 29.8 m off'] and 'rows' not in ctl
         assert d['go_no_go']['verdict'] == 'NO-GO'
         assert any('largest gap' in r for r in d['go_no_go']['reasons'])
+        # The adjuster's check of the block, from its quality document: a folded block after the final adjustment.
+        assert any(r.startswith("the adjuster's check of the block: failed: FAILED (decided by strips)")
+                   for r in d['go_no_go']['reasons']), d['go_no_go']['reasons']
         z = d['ortho']['zoom']
         key = next(iter(station.drones['/drone1'].tiles))
         url = station.web.url

@@ -203,3 +203,24 @@ def test_every_gap_kind_counts():
         'largest gap, any kind (m²): 1219 (<= 25), forward_overlap gap, seen by 4 keyframes of other lines']
     assert go_no_go({**fig, 'gaps': [{'kind': 'not_oriented', 'area_m2': 24.0}]}, lim)['verdict'] == GO
     assert go_no_go({**fig, 'gaps': []}, lim)['checks'][-1]['value'] == 0.0
+
+
+def test_a_block_the_adjuster_calls_failed_is_no_go_after_its_final_adjustment():
+    """Check points GO, coverage full, and a folded block (core/block_check.py FAILED: a strip tilted 31 deg):
+    WAIT while in flight (the final adjustment may mend it), NO-GO once the block is adjusted after its last
+    keyframe; a block check's warning is a warning; an OK check changes nothing."""
+    lim = QualityLimits(max_check_rmse_h_m=0.05, min_coverage=0.98, max_gap_m2=25.0)
+    folded = {'status': 'failed', 'summary': 'FAILED (decided by strips): a strip is tilted 31 deg'}
+
+    def verdict(check, block):
+        return go_no_go({'check_rmse': {'horizontal_m': 0.03, 'vertical_m': 0.02, 'count': 4}, 'coverage_share': 1.0,
+                         'gaps': [], 'georeference': GEOREF_FINAL, 'block': block, 'block_check': check}, lim)
+
+    assert verdict({'status': 'ok', 'summary': 'OK'}, BLOCK_ADJUSTED)['verdict'] == GO
+    in_flight = verdict(folded, BLOCK_IN_FLIGHT)
+    assert in_flight['verdict'] == WAIT and 'tilted 31 deg' in in_flight['reasons'][-1]
+    assert 'before its final adjustment' in in_flight['reasons'][-1]
+    final = verdict(folded, BLOCK_ADJUSTED)
+    assert final['verdict'] == NO_GO and "the adjuster's check of the block: failed: FAILED" in final['reasons'][-1]
+    warned = verdict({'status': 'warning', 'summary': 'WARNING (decided by dome): bent'}, BLOCK_ADJUSTED)
+    assert warned['verdict'] == GO and any('bent' in w for w in warned['warnings'])

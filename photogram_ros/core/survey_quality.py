@@ -7,7 +7,9 @@
 - `go_no_go(figures, limits)`: each check against its limit; the verdict is NO-GO when a measured figure
   fails, WAIT while a figure it needs is provisional (accuracy from a block not georeferenced for good) or
   not measured yet (fewer check points than asked), GO when every figure is measured and passes. The
-  largest gap is over every gap kind the map lists (coverage, not oriented, forward overlap).
+  largest gap is over every gap kind the map lists (coverage, not oriented, forward overlap). The adjuster's
+  check of the block's shape (core/block_check.py) counts too: FAILED after the final adjustment is NO-GO,
+  in flight WAIT (the final adjustment may mend it); its warning is a warning.
 No ROS here; bundle_node computes the figures, the ground station the verdict.
 """
 
@@ -69,6 +71,7 @@ GEOREF_FINAL, GEOREF_PROVISIONAL, GEOREF_NONE, GEOREF_UNKNOWN = 'final', 'provis
 # Which adjustment the accuracy figures come from: the in-flight block (window adjustments since the last full
 # one) or the whole block adjusted after its last keyframe (the final adjustment).
 BLOCK_IN_FLIGHT, BLOCK_ADJUSTED = 'in_flight', 'adjusted'
+BLOCK_CHECK_STATUSES = ('ok', 'warning', 'failed')   # core/block_check.py BlockVerdict.status
 
 
 def _check(name: str, value, limit: float, ok_when: str, status: str = MEASURED, why: str = '') -> dict:
@@ -115,7 +118,10 @@ def go_no_go(figures: dict, limits: QualityLimits) -> dict:
         (coverage, not_oriented, forward_overlap); else 'largest_gap_m2';
       'fix_share' {class: share};
       'low_forward_overlap' [{'overlap', 'area_m2'}]: consecutive keyframes of a line overlapping less than
-        the target (the ground between them seen, else it is a forward_overlap gap): a warning each.
+        the target (the ground between them seen, else it is a forward_overlap gap): a warning each;
+      'block_check' {'status': one of BLOCK_CHECK_STATUSES, 'summary'}: the adjuster's last check of the block
+        (folded, far from its GNSS, not converged): failed is NO-GO from the block adjusted after its last
+        keyframe ('block' BLOCK_ADJUSTED), WAIT from the in-flight block; a warning is a warning.
     -> {'verdict', 'checks': [{'name', 'value', 'limit', 'op', 'status', 'why', 'passes', 'state'}],
         'reasons': [...], 'warnings': [...]}: NO-GO when a measured figure fails its limit; else WAIT while
         a figure is provisional or not measured (the reason says which); else GO. Warnings do not change it.
@@ -160,9 +166,17 @@ def go_no_go(figures: dict, limits: QualityLimits) -> dict:
     if limits.min_rtk_fixed_share > 0:
         share = (figures.get('fix_share') or {}).get('rtk_fixed')
         checks.append(_check('keyframes RTK fixed', share, limits.min_rtk_fixed_share, 'min'))
+    block_check = figures.get('block_check') or {}
+    if block_check.get('status') == 'failed':
+        final = figures.get('block') == BLOCK_ADJUSTED
+        checks.append({'name': "the adjuster's check of the block", 'value': 'failed', 'limit': 'ok', 'op': '==',
+                       'status': MEASURED if final else PROVISIONAL, 'passes': False, 'state': NO_GO if final else WAIT,
+                       'why': block_check.get('summary', '') + ('' if final else ' (the in-flight block, before its '
+                                                                'final adjustment)')})
     states = [c['state'] for c in checks]
     verdict = NO_GO if NO_GO in states else WAIT if WAIT in states else GO
-    warnings = [f"forward overlap {100 * w['overlap']:.0f} % between two keyframes of a line, below the target"
+    warnings = ([f"the adjuster's check of the block: {block_check.get('summary', '')}"]
+                if block_check.get('status') == 'warning' else []) + [f"forward overlap {100 * w['overlap']:.0f} % between two keyframes of a line, below the target"
                 + (f": {w['area_m2']:.0f} m² between them" if w.get('area_m2') is not None else '')
                 for w in figures.get('low_forward_overlap') or []]
     return {'verdict': verdict, 'checks': checks, 'reasons': [reason(c) for c in checks if c['state'] != GO],
@@ -173,6 +187,8 @@ def reason(c: dict) -> str:
     """A check that is not GO, in words: 'check points horizontal RMSE (m): 6.08 (<= 0.05), provisional: ...'."""
     if c['value'] is None:
         return f"{c['name']}: not measured yet" + (f" ({c['why']})" if c['why'] else '')
+    if isinstance(c['value'], str):     # a check's outcome in words (the block check): its reason
+        return f"{c['name']}: {c['value']}" + (f": {c['why']}" if c['why'] else '')
     text = f"{c['name']}: {_fmt(c['value'])} ({c['op']} {_fmt(c['limit'])})"
     if c['status'] == PROVISIONAL:
         return text + f", provisional: {c['why']}"

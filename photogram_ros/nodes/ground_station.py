@@ -43,8 +43,9 @@ from std_msgs.msg import String
 
 from photogram_ros import msgs
 from photogram_ros.core.geodesy import LocalFrame, utm_epsg
-from photogram_ros.core.survey_quality import (BLOCK_ADJUSTED, BLOCK_IN_FLIGHT, GEOREF_FINAL, GEOREF_NONE,
-                                               GEOREF_PROVISIONAL, GEOREF_UNKNOWN, GO, WAIT, QualityLimits, go_no_go)
+from photogram_ros.core.survey_quality import (BLOCK_ADJUSTED, BLOCK_CHECK_STATUSES, BLOCK_IN_FLIGHT, GEOREF_FINAL,
+                                               GEOREF_NONE, GEOREF_PROVISIONAL, GEOREF_UNKNOWN, GO, WAIT, QualityLimits,
+                                               go_no_go)
 from photogram_ros.errors import PhotogramError
 from photogram_ros.nodes import qos
 from photogram_ros.nodes.diagnostics import Diagnostics
@@ -529,6 +530,9 @@ class GroundStationNode(Node):
                            fix_share=q.get('fix_share'))
             if q.get('block') in (BLOCK_IN_FLIGHT, BLOCK_ADJUSTED):
                 figures['block'] = q['block']
+            check = q.get('block_check')
+            if isinstance(check, dict) and check.get('status') in BLOCK_CHECK_STATUSES:
+                figures['block_check'] = {'status': check['status'], 'summary': str(check.get('summary', ''))[:400]}
         figures['georeference'] = geo
         out['go_no_go'] = with_node_errors(go_no_go(figures, self.params), out['health'])
         return out

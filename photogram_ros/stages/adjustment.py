@@ -304,6 +304,7 @@ class AdjustmentStage:
         self._first_keyframe_arrival = None   # monotonic time of the first keyframe
         self._unplaced = 0                     # keyframes before an early break given up, already said
         self._adjusted_whole = False           # a full adjustment ran after the last keyframe
+        self._block_verdict: dict | None = None   # the last block check: {'status', 'summary'} (live quality)
         self._full_requested = False
         self._busy = False
         self.cond = threading.Condition()
@@ -661,6 +662,7 @@ class AdjustmentStage:
                         BlockCheckOptions(min_oriented_warn=0.9))
         self.diag.set('verdict', v.status)
         self.diag.set('verdict_summary', v.summary)
+        self._block_verdict = {'status': v.status, 'summary': v.summary}
         if adjustment is not None:   # the end of the flight's check: the one the flight's verdict reads
             self.diag.set('final_verdict', v.status)
             self.diag.set('final_verdict_summary', v.summary)
@@ -689,7 +691,7 @@ class AdjustmentStage:
     def quality(self) -> dict:
         """The live accuracy figures (map/control_points): stages/live_quality.py `live_quality`."""
         return live_quality(self.at, self.control, self.live, self._fix_classes, self._adjusted_whole,
-                            self.p.max_row_residual_px)
+                            self.p.max_row_residual_px, self._block_verdict)
 
     def publish_quality(self) -> None:
         """The live quality document out, its figures on diagnostics."""

@@ -12,18 +12,20 @@ from photogram_ros.core.evaluation import ce90_le90, intersect_targets
 from photogram_ros.core.survey_quality import BLOCK_ADJUSTED, BLOCK_IN_FLIGHT, rmse
 
 
-def live_quality(at, control, live, fix_classes: dict, adjusted_whole: bool, max_row_residual_px: float) -> dict:
+def live_quality(at, control, live, fix_classes: dict, adjusted_whole: bool, max_row_residual_px: float,
+                 block_check: dict | None = None) -> dict:
     """The live accuracy figures of the adjuster `at` (core/incremental.py IncrementalAT, or None before the
     camera came) with the flight's control (core/control.py ControlSet, or None) as `live` (core/control_live.py
     LiveControl) vets it; fix_classes: keyframes per fix class; adjusted_whole: the block has had its final
-    adjustment."""
+    adjustment; block_check: the adjuster's last check of the block ({'status', 'summary'}, core/block_check.py),
+    None before its first."""
     n = sum(fix_classes.values())
     out = {'keyframes': n, 'fix_share': {c: (v / n if n else None) for c, v in fix_classes.items()},
            'georeference': ('none' if at is None or not at.georeferenced else
                             'provisional' if at.georef_provisional else 'final'),
            'block': BLOCK_ADJUSTED if adjusted_whole else BLOCK_IN_FLIGHT,
            'check_points': [], 'gcps': [], 'check_rmse': None, 'gcp_rmse': None, 'gnss_bias_enu_m': None,
-           'max_row_residual_px': max_row_residual_px}
+           'max_row_residual_px': max_row_residual_px, 'block_check': block_check}
     if control is not None and at is not None and at.origin is not None:
         out['check_points'], out['check_points_weak'] = target_rows(at, control, live, 'check', max_row_residual_px)
         out['gcps'], out['gcps_weak'] = target_rows(at, control, live, 'gcp', max_row_residual_px)
