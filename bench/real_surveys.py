@@ -29,8 +29,9 @@ Per survey and pipeline, from poses.csv / trajectory.csv, report.json, sparse.la
 - the focal length after the adjustment against the EXIF one (triangulate);
 - wall time of the command(s).
 
-Variants (`--variants`, triangulate only): toledo and brighton with every other photo (half the forward
-overlap); toledo with four geotags moved 80 m (a geo.txt beside copies
+Variants (`--variants`): toledo, brighton and seneca with every other photo (half the forward overlap) through
+triangulate and replay (the replay row: how many of the keyframes whose photos triangulate oriented replay
+oriented, `share_of_triangulated`); through triangulate only: toledo with four geotags moved 80 m (a geo.txt beside copies
 of the photos), and toledo + brighton photos in one folder. Their rows name what was broken and what
 the verdict said; the other cameras are measured against the photos' own EXIF GPS.
 
@@ -642,14 +643,40 @@ def run_noisy(out: Path, surveys=('brighton', 'toledo'), sigma_h_m: float = 17.0
     return rows
 
 
+def replay_share_of_triangulated(folder: Path, tri_dir: Path, rep_dir: Path) -> dict:
+    """How many of the keyframes whose photos `triangulate` oriented `replay` oriented (issue #43's share):
+    triangulate's oriented photos (poses.csv), replay's oriented keyframes (trajectory.csv, stamp -> photo) and
+    keyframes taken (report.json). replay names only its oriented keyframes: when it took fewer keyframes than
+    photos the denominator is min(keyframes taken, photos triangulate oriented) and the share a lower bound."""
+    names = photo_stamps(folder)
+    tri = set(read_poses(tri_dir / 'poses.csv')) if (tri_dir / 'poses.csv').exists() else set()
+    traj = rep_dir / 'trajectory.csv'
+    rep = {names.get(p.get('stamp_ns'), n) for n, p in read_poses(traj).items()} if traj.exists() else set()
+    rj = rep_dir / 'report.json'
+    taken = int((json.loads(rj.read_text()) if rj.exists() else {}).get('keyframes_taken') or 0)
+    photos = photo_count(folder)
+    denom = len(tri) if taken == photos else min(taken, len(tri))
+    both = len(rep & tri)
+    return {'triangulate_oriented': len(tri), 'replay_keyframes': taken, 'replay_oriented': len(rep),
+            'replay_oriented_of_triangulated': both, 'keyframes_triangulated': denom,
+            'share_of_triangulated': round(both / denom, 4) if denom else None, 'share_exact': taken == photos}
+
+
 def run_variants(out: Path) -> list[dict]:
+    """The broken blocks (triangulate), and every other photo of each photo set through triangulate and replay:
+    the replay row carries replay_share_of_triangulated."""
     rows = []
-    for survey, src in (('toledo', TOLEDO / 'images'), ('brighton', BRIGHTON / 'images')):
+    for survey, src in (('toledo', TOLEDO / 'images'), ('brighton', BRIGHTON / 'images'),
+                        ('seneca', SENECA / 'images')):
         folder = out / 'blocks' / f'{survey}_half'
         ref = half_overlap_block(src, folder)
+        what = f'every other photo of {survey} ({len(ref)}): half the forward overlap'
         rows.append(run_photos(f'{survey}_half', 'triangulate', folder, out, None, reference=ref,
-                               extra_row={'broken': f'every other photo of {survey} ({len(ref)}): half the '
-                                                    'forward overlap'}))
+                               extra_row={'broken': what}))
+        rep = run_photos(f'{survey}_half', 'replay', folder, out, None, reference=ref, extra_row={'half': what})
+        rep.update(replay_share_of_triangulated(folder, out / f'{survey}_half_triangulate',
+                                                out / f'{survey}_half_replay'))
+        rows.append(rep)
     folder = out / 'blocks' / 'toledo_moved4'
     ref = moved_geotags_block(folder)
     row = run_photos('toledo_moved4', 'triangulate', folder, out, None, reference=ref,

@@ -345,7 +345,10 @@ def survey_cells(x: dict, _lines=None) -> list:
     else:
         p = '—'
     measured = x.get('dsm_measured_hull_share')
-    return [f'{x.get("oriented")}/{x.get("given")}' + (' keyframes' if x.get('pipeline') == 'replay' else ''),
+    of_tri = (f'; {x["replay_oriented_of_triangulated"]}/{x["keyframes_triangulated"]} of the keyframes whose photos '
+              f'triangulate oriented' + ('' if x.get('share_exact') else ' (at least)')
+              if x.get('share_of_triangulated') is not None else '')
+    return [f'{x.get("oriented")}/{x.get("given")}' + (' keyframes' if x.get('pipeline') == 'replay' else '') + of_tri,
             f'{f(x.get("sim_h_m"))} / {f(x.get("sim_v_m"))} m', f'{f(x.get("rigid_h_m"))} / {f(x.get("rigid_v_m"))} m',
             f'{pct(x.get("nadir_share"))} (median {f(x.get("tilt_median_deg"), ".1f")}°)',
             f'{f(x.get("reprojection_px"), ".3f")} px' + (f'; DSM: {pct(measured)} of the camera centres\' hull '
@@ -493,8 +496,11 @@ REAL_ROWS = (
     ('toledo (42 DJI FC350, EXIF only)', 'toledo', 'triangulate'), ('toledo', 'toledo', 'replay'),
     ('seneca_part (41 NIR photos, fixed wing)', 'seneca', 'triangulate'), ('seneca_part', 'seneca', 'replay'),
     ('phantom3_village (100 video frames, `import-frames` then `replay`)', 'phantom3', 'replay'),
-    ('toledo, every other photo', 'toledo_half', 'triangulate'),
+    ('toledo, every other photo', 'toledo_half', 'triangulate'), ('toledo, every other photo', 'toledo_half', 'replay'),
     ('brighton_beach, every other photo', 'brighton_half', 'triangulate'),
+    ('brighton_beach, every other photo', 'brighton_half', 'replay'),
+    ('seneca_part, every other photo', 'seneca_half', 'triangulate'),
+    ('seneca_part, every other photo', 'seneca_half', 'replay'),
     ('toledo, four geotags moved 80 m', 'toledo_moved4', 'triangulate'),
     ('toledo (42) and brighton (18) in one folder', 'two_sites', 'triangulate'),
     ('brighton_beach, geotags scattered 17 m', 'brighton_noisy', 'triangulate'),
