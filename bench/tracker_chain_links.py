@@ -14,9 +14,6 @@ without TrackerParams.check, which refuses KLT's rest with the early stop: this 
 from __future__ import annotations
 
 import argparse
-import json
-import os
-import subprocess
 import sys
 import time
 from pathlib import Path
@@ -24,6 +21,8 @@ from pathlib import Path
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / 'bench'))
+sys.path.insert(0, str(ROOT))
 PHOTOS = ROOT.parent / 'shared' / 'data' / 'photos' / 'seneca_part' / 'images'
 REPLAY_TRACKER = {'keyframe_overlap': 0.8, 'features_fallback': True}   # config/replay.yaml's tracker_node keys
 OFF = {'chain_enough_verified': 0, 'chain_stop_after_failures': 0, 'klt_rest_after_losses': 0}
@@ -32,10 +31,7 @@ SETS = {'off': {}, 'chain_stop': {'chain_enough_verified': 4, 'chain_stop_after_
         'both': {'chain_enough_verified': 4, 'chain_stop_after_failures': 3, 'klt_rest_after_losses': 3}}
 FOLDED_STRIP = (29, 30, 31, 32, 33, 34, 36)   # keyframe indices (= photo indices: every photo is a keyframe)
 LINK_MIN = 15
-
-
-def git(*args) -> str:
-    return subprocess.run(['git', *args], cwd=ROOT, capture_output=True, text=True).stdout.strip()
+MODULES = ['photogram_ros/core', 'photogram_ros/io/image_source.py']
 
 
 def run(over: dict) -> tuple[dict, list[set]]:
@@ -77,26 +73,22 @@ def main() -> int:
     ap.add_argument('--out', default='')
     ap.add_argument('--sets', default=','.join(SETS))
     a = ap.parse_args()
-    code = {'commit': git('rev-parse', '--short', 'HEAD'), 'clean_tree': not git('status', '--porcelain'),
-            'cores': os.cpu_count()}
+    from machine import ResultWriter
+    w = ResultWriter(a.out or '/tmp/tracker_chain_links.jsonl', 'tracker_chain_links', MODULES, fresh=False,
+                     echo=True)
     base = None
-    rows = []
     for name in a.sets.split(','):
         stats, ids = run(SETS[name])
-        row = {'bench': 'tracker_chain_links', 'photos': 'seneca_part', 'set': name, 'tracker_set': SETS[name],
-               **code, 'load_avg': [round(x, 2) for x in os.getloadavg()], **stats, 'folded_strip': strip_ties(ids)}
+        row = {'photos': 'seneca_part', 'set': name, 'tracker_set': SETS[name], **stats,
+               'folded_strip': strip_ties(ids)}
         if base is None:
             base = links(ids)
         else:
             now = links(ids)
-            row['links_changed_vs_off'] = {f'{b}-{a}': [base.get((b, a), 0), now.get((b, a), 0)]
-                                           for (b, a) in sorted(set(base) | set(now))
-                                           if abs(base.get((b, a), 0) - now.get((b, a), 0)) >= 5}
-        rows.append(row)
-        print(json.dumps(row), flush=True)
-        if a.out:
-            with open(a.out, 'a') as f:
-                f.write(json.dumps(row) + '\n')
+            row['links_changed_vs_off'] = {f'{i}-{j}': [base.get((i, j), 0), now.get((i, j), 0)]
+                                           for (i, j) in sorted(set(base) | set(now))
+                                           if abs(base.get((i, j), 0) - now.get((i, j), 0)) >= 5}
+        w.write(row)
     return 0
 
 
