@@ -149,10 +149,14 @@ class TrackerParams(CrossStripParams):
                                 'each', min=50, max=50000)
     chain_max_keyframes: int = param(600, 'Keyframes whose features are kept for cross-keyframe matching (the '
                                      'newest; ~226 kB each at 1500 features of 4000 tracks)', min=1, max=100000)
-    chain_enough_verified: int = param(4, 'A frame stops matching chain entries (nearest by GNSS first) once this '
-                                       'many verified a match (0: every candidate is tried). Not with '
+    chain_enough_verified: int = param(0, 'A frame stops matching chain entries (nearest by GNSS first) once this '
+                                       'many verified a match (0: every candidate is tried). 4 with '
+                                       'chain_stop_after_failures 3: the tracker\'s CPU on 20 MP seneca 0.72x '
+                                       '(inflight_20mp_tracker_cpu_seneca_6a51a7e), every real set as many oriented, '
+                                       'but brighton\'s replay 1.10-1.17x further from GPS vertically (0.26 against '
+                                       '0.22-0.23 m: real_surveys_tracker_chainstop_on/off_6c8d3df): off. Not with '
                                        'klt_rest_after_losses (TrackerParams.check)', min=0, max=100)
-    chain_stop_after_failures: int = param(3, 'A frame that verified a match with a chain entry stops after this '
+    chain_stop_after_failures: int = param(0, 'A frame that verified a match with a chain entry stops after this '
                                            'many further entries in a row fail (the farther ones overlap less; '
                                            '0: every candidate is tried). Not with klt_rest_after_losses', min=0, max=100)
     chain_linked_ids: int = param(50, 'An earlier keyframe already sharing this many track ids with the new one '
