@@ -154,7 +154,8 @@ class TrackerParams(CrossStripParams):
                                        'chain_stop_after_failures 3: the tracker\'s CPU on 20 MP seneca 0.72x '
                                        '(inflight_20mp_tracker_cpu_seneca_6a51a7e), every real set as many oriented, '
                                        'but brighton\'s replay 1.10-1.17x further from GPS vertically (0.26 against '
-                                       '0.22-0.23 m: real_surveys_tracker_chainstop_on/off_6c8d3df): off. Not with '
+                                       '0.22-0.23 m: real_surveys_tracker_chainstop_on/off_6c8d3df, _brighton_again_*_6a51a7e): '
+                                       'off. Not with '
                                        'klt_rest_after_losses (TrackerParams.check)', min=0, max=100)
     chain_stop_after_failures: int = param(0, 'A frame that verified a match with a chain entry stops after this '
                                            'many further entries in a row fail (the farther ones overlap less; '
