@@ -15,9 +15,10 @@ the chain: the earlier keyframes whose footprints it overlaps by GNSS (photo_mat
 the way `triangulate` plans its pairs: the `chain_neighbours` nearest and any within that distance plus
 the fixes' uncertainty, across strips and turns), and the last `match_keyframes` keyframes, nearest
 first. A frame stops there once `chain_enough_verified` keyframes verified a match, or
-once `chain_stop_after_failures` in a row failed after one verified (farther ones overlap less). After
-`klt_rest_after_losses` frames in a row on which KLT lost its tracks (photo-rate input), KLT is tried on
-every KLT_RETRY_EVERY-th frame only: the others go straight to descriptors. A matched feature takes the track id its matches carry (the id published by the most keyframes
+once `chain_stop_after_failures` in a row failed after one verified (farther ones overlap less). With that
+early stop off, after `klt_rest_after_losses` frames in a row on which KLT lost its tracks (photo-rate input),
+KLT is tried on every KLT_RETRY_EVERY-th frame only: the others go straight to descriptors (the two together
+are refused: TrackerParams.check). A matched feature takes the track id its matches carry (the id published by the most keyframes
 where they differ: the likeliest to be a point the adjuster knows), so a keyframe shares tie points with
 every oriented keyframe it overlaps, not only the previous one; the KLT tracks of the nearest matched
 keyframe still held are refined onto the frame through the homography of the matches (sub-pixel, ids
@@ -81,10 +82,15 @@ from photogram_ros.core.other_image import OtherImageFallback, first_per_id
 from photogram_ros.core.keyframes import ChainStore, FixBuffer, OverlapGrid, gps_distance_m, homography_overlap
 from photogram_ros.core.photo_matching import (DescriptorIndex, MatchingOptions, PhotoFeatures, extract,
                                                match_pair)
-from photogram_ros.errors import CalibrationError
+from photogram_ros.errors import CalibrationError, ConfigError
 from photogram_ros.params import param
 
 KLT_RETRY_EVERY = 4      # while KLT rests (klt_rest_after_losses), it is tried on every this-many-th frame
+# Why TrackerParams.check refuses klt_rest_after_losses with the chain's early stop.
+CHAIN_STOP_WITH_KLT_REST = ('together (4, 3 and 3) they folded a strip of seneca_part\'s replay (block check FAILED, '
+                            '23.3/16.7 m from GPS: bench/results/real_surveys_6e10adb.jsonl) where each alone did not: '
+                            'the links of that strip barely change (bench/tracker_chain_links.py), the small changes '
+                            'of the two elsewhere add up to another path of the incremental adjustment')
 SPACING_KEYFRAMES = 10   # keyframes over which keyframe_spacing_m is the median
 FEATURE_DTYPE = np.dtype([('track_id', '<u4'), ('u', '<f8'), ('v', '<f8'), ('xn', '<f8'), ('yn', '<f8')])
 
@@ -144,12 +150,16 @@ class TrackerParams(CrossStripParams):
     chain_max_keyframes: int = param(600, 'Keyframes whose features are kept for cross-keyframe matching (the '
                                      'newest; ~226 kB each at 1500 features of 4000 tracks)', min=1, max=100000)
     chain_enough_verified: int = param(0, 'A frame stops matching chain entries (nearest by GNSS first) once this '
-                                       'many verified a match (0: every candidate is tried; 4 cut the tracker\'s CPU '
-                                       'on 20 MP seneca 0.72x with klt_rest_after_losses 3, and with it folded '
-                                       'seneca_part\'s replay: off)', min=0, max=100)
+                                       'many verified a match (0: every candidate is tried). 4 with '
+                                       'chain_stop_after_failures 3: the tracker\'s CPU on 20 MP seneca 0.72x '
+                                       '(inflight_20mp_tracker_cpu_seneca_6a51a7e), every real set as many oriented, '
+                                       'but brighton\'s replay 1.10-1.17x further from GPS vertically (0.26 against '
+                                       '0.22-0.23 m: real_surveys_tracker_chainstop_on/off_6c8d3df, _brighton_again_*_6a51a7e): '
+                                       'off. Not with '
+                                       'klt_rest_after_losses (TrackerParams.check)', min=0, max=100)
     chain_stop_after_failures: int = param(0, 'A frame that verified a match with a chain entry stops after this '
                                            'many further entries in a row fail (the farther ones overlap less; '
-                                           '0: every candidate is tried)', min=0, max=100)
+                                           '0: every candidate is tried). Not with klt_rest_after_losses', min=0, max=100)
     chain_linked_ids: int = param(50, 'An earlier keyframe already sharing this many track ids with the new one '
                                   '(KLT, or an earlier match) is not matched again', min=1, max=100000)
     features_on: str = param('normalised', 'Image the SIFT features of descriptor matching are detected on: the '
@@ -175,8 +185,9 @@ class TrackerParams(CrossStripParams):
     klt_rest_after_losses: int = param(0, 'After this many frames in a row on which KLT lost the tracks (photo-rate '
                                        'input: every frame bridged by descriptors), KLT is tried on every '
                                        'KLT_RETRY_EVERY-th frame only, the others go straight to descriptor matching '
-                                       '(0: KLT tried on every frame; 3 folded seneca_part\'s replay: a strip 50 m '
-                                       'off its geotags)', min=0, max=1000)
+                                       '(0: KLT tried on every frame). Only with the chain\'s early stop off '
+                                       '(chain_enough_verified and chain_stop_after_failures 0: TrackerParams.check)',
+                                 min=0, max=1000)
     klt_min_share: float = param(0.2, 'Fewer KLT survivors than this share of the previous frame\'s tracks also '
                                  'tries descriptor matching (photo-rate input: motion far beyond KLT)',
                                  min=0.0, max=1.0)
@@ -193,6 +204,16 @@ class TrackerParams(CrossStripParams):
     fix_max_gap_s: float = param(2.5, 'No fix is interpolated across a GPS gap longer than this, s (2.5 GPS '
                                        'periods at 1 Hz: decoded fix stamps jitter)',
                                  min=0.01, max=60.0)
+
+    def check(self) -> None:
+        """ConfigError for KLT's rest together with the chain's early stop: with both, the replay of seneca_part
+        folded a strip (block check FAILED; each alone did not, CHAIN_STOP_WITH_KLT_REST)."""
+        if self.klt_rest_after_losses and (self.chain_enough_verified or self.chain_stop_after_failures):
+            raise ConfigError(
+                f'klt_rest_after_losses {self.klt_rest_after_losses} with the chain\'s early stop '
+                f'(chain_enough_verified {self.chain_enough_verified}, chain_stop_after_failures '
+                f'{self.chain_stop_after_failures}): {CHAIN_STOP_WITH_KLT_REST}; set klt_rest_after_losses 0, '
+                f'or both chain_enough_verified and chain_stop_after_failures 0')
 
 
 @dataclass
