@@ -211,7 +211,9 @@ class IncrementalOptions:
     off_gnss_sigma: float = param(0.0, 'in flight, a block georeferenced for good gets a full adjustment (the pass\'s) '
                                        'as soon as its window has left its GNSS: the newest keyframe\'s antenna '
                                        'further than this many sigmas of its fix on some axis, or the window\'s '
-                                       'keyframes off their fixes by half of it on average along some axis (the '
+                                       'keyframes off their fixes by half of it on average along some axis; a sigma '
+                                       'is the stated one times how poor the fixes were about the block at its last '
+                                       'full adjustment, or as the datum weighs them, whichever is larger (the '
                                        'window holds the older keyframes, so a block turned or bent by a line\'s '
                                        'first photos stays so until the end of the flight without it); 0: never',
                                   min=0.0, max=1000.0)
@@ -539,6 +541,12 @@ class IncrementalAT:
         res = self.datum.residuals([k for k in self.block.registered if k not in self.datum.rejected])
         if len(res) >= self.opt.gnss_noise_min_keyframes:
             self._off_gnss_noise_hv = np.maximum(self.rounds.noise_factors_hv(res), 1.0)
+
+    @property
+    def off_gnss_noise_hv(self) -> np.ndarray:
+        """The off-GNSS test's yardstick (`_measure_gnss_noise`): factors (horizontal, vertical) on the fixes' stated
+        sigmas, a copy."""
+        return self._off_gnss_noise_hv.copy()
 
     def off_gnss_figures(self) -> dict:
         """{'adjustments': the full adjustments the off-GNSS test asked for, 'deferred': due full adjustments left for
