@@ -44,7 +44,7 @@ SETS = ('brighton_beach', 'toledo', 'seneca_part')
 MODULES = ['photogram_ros/core', 'photogram_ros/io/image_source.py']
 
 
-def fly(folder: Path, out: Path) -> None:
+def fly(folder: Path, out: Path, off_gnss_sigma: float | None = None) -> None:
     """The child: the in-flight chain over the photos of `folder` with the code on PYTHONPATH; each keyframe's pose
     history as JSON in `out`."""
     from photogram_ros.core.incremental import AUTO_CANDIDATES, PASS_GROWTH_RATIO, IncrementalAT, IncrementalOptions
@@ -58,7 +58,9 @@ def fly(folder: Path, out: Path) -> None:
     names = {p.stamp_ns: Path(p.path).name for p in photos}
     at = IncrementalAT(camera, IncrementalOptions(window_size=10, final_self_calibration='auto',
                                                   pass_self_calibration=','.join(AUTO_CANDIDATES),
-                                                  growth_ratio=PASS_GROWTH_RATIO))
+                                                  growth_ratio=PASS_GROWTH_RATIO,
+                                                  **({} if off_gnss_sigma is None else
+                                                     {'off_gnss_sigma': off_gnss_sigma})))
     tr = Tracker(camera, TrackerParams(keyframe_overlap=0.8, features_fallback=True))
     hist: dict[int, list] = {}
     step = 0
@@ -165,10 +167,12 @@ def main() -> int:
     ap.add_argument('--base', default='/tmp/georef_base', help='clean checkout of the old code (with a .venv link)')
     ap.add_argument('--cache', default='/tmp/georef_cache', help='triangulate outputs and the flights\' JSON')
     ap.add_argument('--only', default=','.join(SETS), help='comma-separated photo sets')
+    ap.add_argument('--off-gnss-sigma', type=float, default=None,
+                    help='the new code\'s off_gnss_sigma (default: its own default); the old code keeps its own')
     ap.add_argument('--child', nargs=2, metavar=('FOLDER', 'OUT'), help=argparse.SUPPRESS)
     a = ap.parse_args()
     if a.child:
-        fly(Path(a.child[0]), Path(a.child[1]))
+        fly(Path(a.child[0]), Path(a.child[1]), a.off_gnss_sigma)
         return 0
     from machine import ResultWriter, tree_state
 
@@ -183,15 +187,18 @@ def main() -> int:
         folder = DATA / name / 'images'
         tri = triangulate_poses(base, folder, cache, env)
         for code, root in (('old', base), ('new', ROOT)):
-            out = cache / f'fly_{name}_{code}_{commit if code == "new" else base_commit[:7]}.json'
+            sig = a.off_gnss_sigma if code == 'new' else None
+            out = cache / f'fly_{name}_{code}_{commit if code == "new" else base_commit[:7]}_{sig}.json'
             log = out.with_suffix('.log')
             with open(log, 'w') as fh:
-                subprocess.run([sys.executable, str(Path(__file__).resolve()), '--child', str(folder), str(out)],
+                subprocess.run([sys.executable, str(Path(__file__).resolve()), '--child', str(folder), str(out)]
+                               + ([] if sig is None else ['--off-gnss-sigma', str(sig)]),
                                cwd=root, env={**env, 'PYTHONPATH': str(root)}, stdout=fh, stderr=subprocess.STDOUT,
                                check=True, timeout=3600)
             doc = json.loads(out.read_text())
             ref = read_reference(tri, LocalFrame(*doc['origin']))
             row = {'set': name, 'code': code, 'code_commit': base_commit if code == 'old' else commit,
+                   'off_gnss_sigma': sig if sig is not None else 'default',
                    'reference': f'triangulate of {base_commit[:7]} ({tri})',
                    **{k: doc[k] for k in ('keyframes', 'oriented_in_flight', 'oriented_at_end', 'wall_s',
                                           'off_gnss_adjustments', 'camera_dist')},

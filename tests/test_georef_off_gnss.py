@@ -96,3 +96,32 @@ def test_a_due_block_adjustment_waits_while_keyframes_wait(flight):
     assert not any(held_adjusted[:-1]) and held_adjusted[-1]
     assert held.off_gnss_figures()['deferred'] >= sum(free_adjusted[:-1])
     assert free.off_gnss_figures()['deferred'] == 0
+
+
+class _Datum:
+    """What `off_gnss` reads of a datum: residuals, rejected fixes, the sigma factors and the fixes' covariances."""
+
+    def __init__(self, residuals: dict, sigma_hv=(1.0, 2.0), scale_hv=(1.0, 1.0)):
+        self._res = residuals
+        self.rejected: set[int] = set()
+        self.sigma_scale_hv = np.asarray(scale_hv, float)
+        cov = np.diag([sigma_hv[0] ** 2, sigma_hv[0] ** 2, sigma_hv[1] ** 2])
+        self.block = type('B', (), {'kfs': {k: type('K', (), {'fix_cov': cov})() for k in residuals}})()
+
+    def residuals(self, kids):
+        return {k: self._res[k] for k in kids if k in self._res}
+
+
+def test_the_off_gnss_test_measures_against_the_fixes_noise():
+    """A newest keyframe 7 m off its fix in height, stated 2 m: off its GNSS by the stated sigma (3.5 > 2.5); not when
+    the fixes turned out twice as poor as they state, whether the datum weighs them so (`sigma_scale_hv`) or the
+    block's last full adjustment left them so (`noise_hv`, IncrementalAT.off_gnss_noise_hv); the larger counts."""
+    res = {k: np.array([0.2, -0.1, 0.5]) for k in range(9)}
+    res[9] = np.array([0.3, 0.0, 7.0])
+    due, fig = off_gnss(_Datum(res), list(res), 9, 2.5)
+    assert due and fig['newest_sigmas'] == pytest.approx(3.5)
+    assert not off_gnss(_Datum(res), list(res), 9, 2.5, noise_hv=(1.0, 2.0))[0]
+    assert not off_gnss(_Datum(res, scale_hv=(1.0, 2.0)), list(res), 9, 2.5)[0]
+    assert not off_gnss(_Datum(res, scale_hv=(1.0, 2.0)), list(res), 9, 2.5, noise_hv=(1.0, 1.0))[0]
+    # Poorer horizontally says nothing of the heights.
+    assert off_gnss(_Datum(res), list(res), 9, 2.5, noise_hv=(3.0, 1.0))[0]

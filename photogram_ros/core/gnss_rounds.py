@@ -214,6 +214,23 @@ class GnssRounds:
         self.datum.slope = p - g
         return out
 
+    def noise_factors_hv(self, residuals: dict) -> np.ndarray:
+        """How poor the fixes are against what they state: factors (horizontal, vertical) on their stated sigmas,
+        from their `residuals` ({kid: ENU m}, GnssDatum.residuals) about the block as it stands. Each fix's residual
+        over its own stated sigma (fixes of mixed quality, RTK fixed beside float photos, each count by what they
+        state), robust (`clipped_sigma` about the median), corrected for the 7 datum parameters the fixes also
+        carry; the vertical one against the fixes' own heights, their trend across the block included
+        (`raw_height_residuals`). Nothing is changed."""
+        kids = list(residuals)
+        R = np.array([residuals[k] for k in kids]).reshape(-1, 3)
+        s_hv = self.datum.stated_sigmas_hv(kids)
+        n = len(kids)
+        redundancy = np.sqrt(3.0 * n / max(3.0 * n - 7.0, 1.0))
+        h = (R[:, :2] - np.median(R[:, :2], axis=0)) / s_hv[:, :1]
+        dz, _ = self.datum.raw_height_residuals(kids)
+        v = (dz - np.median(dz)) / s_hv[:, 1]
+        return redundancy * np.array([clipped_sigma(h.ravel()), clipped_sigma(v)])
+
     def estimate_noise(self, iterations: int | None = None, refine_intrinsics: tuple = ()) -> dict:
         """The flight's GNSS noise from the residuals of the fixes (a variance-component estimate,
         horizontal and vertical apart, robust: median absolute deviations about the median, corrected
@@ -244,18 +261,10 @@ class GnssRounds:
                                        'rejected': [self.block.kfs[k].name for k in sorted(self.datum.rejected)]}
                 return self.noise
             kids = list(r)
-            R = np.array([r[k] for k in kids])
-            # Each fix's residual over its own stated sigma: fixes of mixed quality (RTK fixed beside float photos)
-            # each count by what they state, and the scale factors are on those sigmas. Reported in metres on the
-            # fixes' RMS stated sigma (`stated`; the estimate is the factor times it).
-            s_hv = self.datum.stated_sigmas_hv(kids)
-            stated = np.sqrt(np.mean(s_hv ** 2, axis=0))
+            # Reported in metres on the fixes' RMS stated sigma (`stated`; the estimate is the factor times it).
+            stated = np.sqrt(np.mean(self.datum.stated_sigmas_hv(kids) ** 2, axis=0))
             n = len(kids)
-            redundancy = np.sqrt(3.0 * n / max(3.0 * n - 7.0, 1.0))
-            h = (R[:, :2] - np.median(R[:, :2], axis=0)) / s_hv[:, :1]
-            dz, _ = self.datum.raw_height_residuals(kids)
-            v = (dz - np.median(dz)) / s_hv[:, 1]
-            factor = redundancy * np.array([clipped_sigma(h.ravel()), clipped_sigma(v)])
+            factor = self.noise_factors_hv(r)
             est = factor * stated
             used = self.datum.sigma_scale_hv
             want = np.where(factor > 1.5, factor, 1.0)

@@ -211,7 +211,9 @@ class IncrementalOptions:
     off_gnss_sigma: float = param(0.0, 'in flight, a block georeferenced for good gets a full adjustment (the pass\'s) '
                                        'as soon as its window has left its GNSS: the newest keyframe\'s antenna '
                                        'further than this many sigmas of its fix on some axis, or the window\'s '
-                                       'keyframes off their fixes by half of it on average along some axis (the '
+                                       'keyframes off their fixes by half of it on average along some axis; a sigma '
+                                       'is the stated one times how poor the fixes were about the block at its last '
+                                       'full adjustment, or as the datum weighs them, whichever is larger (the '
                                        'window holds the older keyframes, so a block turned or bent by a line\'s '
                                        'first photos stays so until the end of the flight without it); 0: never',
                                   min=0.0, max=1000.0)
@@ -327,6 +329,9 @@ class IncrementalAT:
         self.off_gnss_adjustments = 0
         self.block_adjustments_deferred = 0   # due full adjustments left for later: keyframes were waiting
         self._off_gnss_gap = self.opt.off_gnss_gap   # doubled while the adjustments leave the window off its GNSS
+        # How poor the fixes were about the block at its last full adjustment in flight (GnssRounds.noise_factors_hv:
+        # factors, horizontal and vertical, on their stated sigmas; at least 1): the off-GNSS test's yardstick.
+        self._off_gnss_noise_hv = np.ones(2)
 
     # Read-only views of the parts' state: the flags and the self-calibration for the stages, the containers
     # (kfs, registered, points, ...) for the tests only; the package reads those through the parts' public
@@ -521,8 +526,27 @@ class IncrementalAT:
                 or len(self.block.registered) < self._full_adjusted_n + self._off_gnss_gap):
             return False
         due, self._off_gnss_last = off_gnss(self.datum, self.block.registered[-self.opt.window_size:], kid,
-                                           self.opt.off_gnss_sigma)
+                                           self.opt.off_gnss_sigma, self._off_gnss_noise_hv)
         return due
+
+    def _measure_gnss_noise(self) -> None:
+        """After a full adjustment of a block georeferenced for good (the fixes used, at least gnss_noise_min_keyframes
+        of them): how poor its fixes are about it (`GnssRounds.noise_factors_hv`, each at least 1), kept as the
+        off-GNSS test's yardstick. A block adjusted whole sits on its GNSS as well as its photos let it, so what is
+        left is the fixes' own noise, which the in-flight adjustments do not estimate (the datum's `sigma_scale_hv` is
+        the final and control adjustments'). It does not see all of a wander: the block tilts and bends to heights
+        that wander (a consumer geotag's), and a full adjustment the test asks for tilts it further to their trend."""
+        if not self.block.georeferenced or self.block.provisional:
+            return
+        res = self.datum.residuals([k for k in self.block.registered if k not in self.datum.rejected])
+        if len(res) >= self.opt.gnss_noise_min_keyframes:
+            self._off_gnss_noise_hv = np.maximum(self.rounds.noise_factors_hv(res), 1.0)
+
+    @property
+    def off_gnss_noise_hv(self) -> np.ndarray:
+        """The off-GNSS test's yardstick (`_measure_gnss_noise`): factors (horizontal, vertical) on the fixes' stated
+        sigmas, a copy."""
+        return self._off_gnss_noise_hv.copy()
 
     def off_gnss_figures(self) -> dict:
         """{'adjustments': the full adjustments the off-GNSS test asked for, 'deferred': due full adjustments left for
@@ -535,7 +559,8 @@ class IncrementalAT:
         """After an off-GNSS full adjustment: a window still off its GNSS (what the whole block cannot mend: a lens
         model or fixes that do not fit) doubles the gap before the next one, so that a long flight does not adjust
         whole every few keyframes; a window back on it restores off_gnss_gap."""
-        still, _ = off_gnss(self.datum, self.block.registered[-self.opt.window_size:], kid, self.opt.off_gnss_sigma)
+        still, _ = off_gnss(self.datum, self.block.registered[-self.opt.window_size:], kid, self.opt.off_gnss_sigma,
+                            self._off_gnss_noise_hv)
         self._off_gnss_gap = 2 * self._off_gnss_gap if still else self.opt.off_gnss_gap
 
     def _control_due(self) -> bool:
@@ -779,6 +804,7 @@ class IncrementalAT:
         if gnss_noise and self.opt.estimate_gnss_noise and self.block.georeferenced and not self.block.provisional:
             self.rounds.estimate_noise(iterations, refine_intrinsics)
         self._full_adjusted_n = len(self.block.registered)
+        self._measure_gnss_noise()
         if gnss_bias and self.opt.estimate_gnss_bias and self.block.n_gcps() >= 3 and self.opt.bias_iterations:
             self.datum.bias_estimated = True
             mode = self.opt.gnss_tilt if tilt_test or self.opt.gnss_tilt != 'auto' else (
@@ -813,15 +839,19 @@ def _names(text: str) -> tuple:
     return tuple(v.strip() for v in text.split(',') if v.strip())
 
 
-def off_gnss(datum, kids, newest: int, sigma: float) -> tuple[bool, dict]:
-    """Has the window `kids` left its GNSS? Each keyframe's antenna residual (m, ENU) over its fix's sigma as used
-    (`GnssDatum.fix_cov_used`), fixes left out of the adjustment not counted: True when keyframe `newest` is off by
-    more than `sigma` on some axis, or the window's mean by more than sigma / 2 (a shift or turn the window shares).
-    Also returns the figures: {'newest_sigmas', 'mean_sigmas', 'n'}."""
+def off_gnss(datum, kids, newest: int, sigma: float, noise_hv=(1.0, 1.0)) -> tuple[bool, dict]:
+    """Has the window `kids` left its GNSS? Each keyframe's antenna residual (m, ENU) over its fix's sigma: the
+    stated one times the flight's noise factor (horizontal, vertical), the larger of the datum's
+    (`GnssDatum.sigma_scale_hv`, what the fixes are weighted by) and `noise_hv` (how poor the fixes were about the
+    block at its last full adjustment, IncrementalAT `_measure_gnss_noise`); fixes left out of the adjustment not
+    counted. True when keyframe `newest` is off by more than `sigma` on some axis, or the window's mean by more than
+    sigma / 2 (a shift or turn the window shares). Also returns the figures: {'newest_sigmas', 'mean_sigmas', 'n'}."""
     res = datum.residuals([k for k in kids if k not in datum.rejected])
     if not res:
         return False, {'newest_sigmas': None, 'mean_sigmas': None, 'n': 0}
-    z = {k: np.asarray(r, float) / np.sqrt(np.maximum(np.diag(datum.fix_cov_used(datum.block.kfs[k])), 1e-12))
+    scale = np.maximum(datum.sigma_scale_hv, np.asarray(noise_hv, float).reshape(2))[[0, 0, 1]]
+    z = {k: np.asarray(r, float) / (scale * np.sqrt(np.maximum(np.diag(np.asarray(datum.block.kfs[k].fix_cov, float)
+                                                                         .reshape(3, 3)), 1e-12)))
          for k, r in res.items()}
     mean = np.mean(list(z.values()), axis=0)
     last = float(np.max(np.abs(z[newest]))) if newest in z else 0.0
