@@ -66,4 +66,3 @@ def test_the_flush_timer_has_a_callback_group_of_its_own(rclpy_context, tmp_path
         assert len(others) == 1 and others == {cloud[0].callback_group}   # the map's other timers: its one group
     finally:
         node.destroy_node()
-

@@ -151,18 +151,12 @@ class _Keyframe:
 
 
 @dataclass
-class PairJob:
+class _PairJob:
     """A planned pair with the poses it is matched and placed with (those of its planning)."""
     pair: PlannedPair
     a_T: np.ndarray
     b_T: np.ndarray
     b_covariance: np.ndarray | None
-
-
-def batch_order(todo: list, along_first: bool) -> list:
-    """The order the worker matches a batch of (a, b, PairJob) in: as planned (keyframe by keyframe, oldest
-    first), or with `along_first` every along-line pair before the across-line ones, each kind oldest first."""
-    return sorted(todo, key=lambda job: not job[2].pair.along) if along_first else todo
 
 
 class StereoNode(Node):
@@ -221,7 +215,8 @@ class StereoNode(Node):
                     return
                 self._wanted, todo = False, []
                 self._pair_pending(todo)
-                todo = batch_order(todo, self.params.along_pairs_first)
+                if self.params.along_pairs_first:
+                    todo.sort(key=lambda job: not job[2].pair.along)   # stable: oldest first within each kind
                 self._running = bool(todo)
             try:
                 for a, b, pair in todo:
@@ -508,7 +503,7 @@ class StereoNode(Node):
             self.diag.count('keyframes_no_partner' if others else 'keyframes_no_earlier_partner')
         for pair in plan.pairs:
             # The poses of the moment go with the pair: the depth and the cloud's placement use these.
-            job = PairJob(pair, self._kf[pair.other].map_T_cam, kf.map_T_cam, kf.covariance)
+            job = _PairJob(pair, self._kf[pair.other].map_T_cam, kf.map_T_cam, kf.covariance)
             if todo is None:
                 self._run_pair(self._kf[pair.other], kf, job)
             else:
@@ -523,7 +518,7 @@ class StereoNode(Node):
                           'map has gaps there until the matching after landing (export --densify, replay\'s '
                           'map_final)')
 
-    def _run_pair(self, a: _Keyframe, b: _Keyframe, job: PairJob) -> None:
+    def _run_pair(self, a: _Keyframe, b: _Keyframe, job: _PairJob) -> None:
         p = self._matching
         pair = job.pair
         lag_s = time.monotonic() - b.final_at
