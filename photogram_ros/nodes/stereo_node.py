@@ -119,10 +119,6 @@ class StereoNodeParams(stereo.StereoParams, PairCriteria, ThreadCaps):
                                          f'provisional on {TOPIC_CLOUD_POSE}, and the map places it again once the '
                                          'pose is final (map replace_provisional or replace_move_m > 0); false: wait '
                                          'for the final pose (the first line\'s clouds wait for the first turn)')
-    along_pairs_first: bool = param(False, 'with worker_nice, when several keyframes wait (a burst of poses), the '
-                                           'worker matches their along-line pairs first (oldest first), then their '
-                                           'across-line pairs: each keyframe\'s own footprint reaches the map sooner; '
-                                           'false: keyframe by keyframe')
     worker_nice: int = param(0, 'match pairs in a worker thread of this niceness (yielding to the pose chain in the '
                                 'same process); 0: in the subscription callbacks', min=0, max=19)
 
@@ -215,8 +211,6 @@ class StereoNode(Node):
                     return
                 self._wanted, todo = False, []
                 self._pair_pending(todo)
-                if self.params.along_pairs_first:
-                    todo.sort(key=lambda job: not job[2].pair.along)   # stable: oldest first within each kind
                 self._running = bool(todo)
             try:
                 for a, b, pair in todo:
