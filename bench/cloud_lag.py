@@ -8,6 +8,9 @@ cloud was fused by the map, its exposure) and splits each keyframe's lag into
   partner:   that pose -> the pose of the next keyframe in flight order that stereo may pair with (the settle rule
              needs one newer posed keyframe; its along-line partner is its neighbour);
   stereo_map: the later of the two -> the first fused cloud (stereo's queue, the pair, the message, the map's fusion).
+A keyframe counts as fused by the first fused pair it is in, as the newer or the older keyframe (bench/replay_probe.py):
+one whose own pairs were shed (max_pair_lag_s) is fused when a later keyframe's pair with it is, the next strip's
+across-line pair ~100 s later on the sim flight; `tail_rows` lists the tail's keyframes with their flight times.
 and says which one sets the tail (the keyframes at or above the lag's p95). No ROS: it reads the files.
 
     .venv/bin/python bench/cloud_lag.py /tmp/keep/1s_baseline:final /tmp/keep/1s:provisional \
@@ -50,7 +53,8 @@ def decompose(doc: dict, pairs_provisional: bool, last_minute_s: float = 60.0) -
             continue
         nxt = usable[kfs[i + 1]] if i + 1 < len(kfs) else usable[s]
         ready = max(usable[s], nxt)
-        rows.append({'stamp': s, 'lag': fused[s] - exposure[s], 'pose': usable[s] - exposure[s],
+        rows.append({'stamp': s, 'index': i, 't_flight_s': exposure[s] - min(exposure.values()),
+                     'lag': fused[s] - exposure[s], 'pose': usable[s] - exposure[s],
                      'partner': ready - usable[s], 'stereo_map': fused[s] - ready,
                      'last_minute': exposure[s] >= doc['flight_end'] - 1.0 - last_minute_s})
     lag = np.array([r['lag'] for r in rows])
@@ -63,7 +67,12 @@ def decompose(doc: dict, pairs_provisional: bool, last_minute_s: float = 60.0) -
            'parts_s': {k: _stats([r[k] for r in rows]) for k in parts},
            'tail_keyframes': len(tail), 'tail_parts_mean_s': {k: round(float(np.mean([r[k] for r in tail])), 2)
                                                                for k in parts} if tail else {},
-           'tail_first_in_flight_order': sorted(kfs.index(r['stamp']) for r in tail)}
+           'tail_first_in_flight_order': sorted(kfs.index(r['stamp']) for r in tail),
+           # The tail's keyframes (flight order, exposure time in the flight, lag and its parts, s), worst first.
+           'tail_rows': [{k: (round(r[k], 1) if isinstance(r[k], float) else r[k])
+                          for k in ('index', 't_flight_s', 'lag', 'pose', 'partner', 'stereo_map')}
+                         for r in sorted(tail, key=lambda r: -r['lag'])],
+           'keyframes_posed_not_fused': [kfs.index(s) for s in kfs if s not in fused]}
     if tail:
         out['tail_dominated_by'] = max(parts, key=lambda k: out['tail_parts_mean_s'][k])
     return out

@@ -25,7 +25,8 @@ CompressedImage PNG per tile named xyz/Z/X/Y, at most one batch per ortho_period
 coverage_period_s, from the keyframe poses, the camera and the ground height of /map/sparse_cloud,
 core/coverage.py; the survey area is `survey_area_file`, a QGroundControl .plan or GeoJSON, when
 given); and /diagnostics (with the coverage figures; a new gap is a WARN naming its area and place).
-Changed cells are flushed to disk every flush_interval_s, so a kill -9 loses at most that much.
+Changed cells are flushed to disk every flush_interval_s, so a kill -9 loses at most that much; with
+flush_beside_fusion the flush has a callback group of its own, so clouds are fused while it syncs.
 Topic names are relative, so a drone's namespace (several drones, one ground station) prefixes them.
 The node is an adapter: the map is the ROS-free stage (stages/map.py), which it feeds from the topics
 and whose streams it publishes.
@@ -141,7 +142,10 @@ class MapNode(Node):
             steady_timer(self, p.coverage_period_s, self._update_coverage, group)
         if self.stage.follows_poses:
             steady_timer(self, 0.5, self._replace_moved, group)
-        steady_timer(self, p.flush_interval_s, self.flush, group)
+        # The flush holds the stage's lock only while it writes; its fsync runs outside it (stages/map.py flush),
+        # and in a group of its own (flush_beside_fusion) the clouds are fused meanwhile.
+        steady_timer(self, p.flush_interval_s, self.flush,
+                     MutuallyExclusiveCallbackGroup() if p.flush_beside_fusion else group)
         steady_timer(self, p.stream_period_s, self._stream, group)
         steady_timer(self, 1.0, self._update_diag, group)
         self.get_logger().info(f'map in {p.map_dir}: {len(self.store.tile_keys())} tiles on disk, origin '

@@ -56,6 +56,10 @@ class MapParams(FusionConfig, CoverageConfig):
     map_dir: str = param('map', 'Folder of the persistent map (tiles, keyframes, map.json); reloaded if it exists')
     flush_interval_s: float = param(1.0, 'Changed cells are written and fsynced this often, s (the most a '
                                          'crash can lose)', min=0.05, max=600.0)
+    flush_beside_fusion: bool = param(True, 'the flush runs beside the map\'s other work (the map node\'s own callback '
+                                            'group): clouds are fused while the cells written are made durable '
+                                            '(fsync, the slow part); false: in the one callback group of the map, '
+                                            'where a cloud waits for the fsync')
     use_origin_params: bool = param(False, 'Take the map origin from origin_* instead of /map/georeference')
     origin_lat_deg: float = param(0.0, 'Latitude of the map origin, deg (with use_origin_params)',
                                   min=-90.0, max=90.0)
