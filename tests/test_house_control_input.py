@@ -25,6 +25,7 @@ def test_replay_hands_the_control_it_read_to_the_graph_not_as_a_parameter(tmp_pa
     monkeypatch.setattr(replay_session, 'run_replay', fake_run_replay)
     monkeypatch.setattr(node_main, 'init_ros', lambda: None)
     monkeypatch.setattr(ros_domain, 'use_domain', lambda domain: None)
+    monkeypatch.setattr(ros_domain, 'shared_domain', lambda domain: domain)   # no other replay's domain held here
     (tmp_path / 'photos').mkdir()
     f = _targets(tmp_path)
     a = _parse(['replay', str(tmp_path / 'photos'), '--out', str(tmp_path / 'out'), '--gcp', str(f), '--check', 'P4',

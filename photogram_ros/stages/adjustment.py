@@ -55,7 +55,6 @@ import numpy as np
 from photogram_ros.core.at_report import convergence
 from photogram_ros.core.attitude import (AttitudeHistory, antenna_offset_enu, camera_prior_map_R_cam,
                                          flu_R_cam_of_mount)
-from photogram_ros.core.block_check import BlockCheckOptions, check_block, inputs_from_at
 from photogram_ros.core.control import TARGET_DTYPE, ControlSet
 from photogram_ros.core.control_live import LiveControl, LiveControlOptions
 from photogram_ros.core.geodesy import LocalFrame
@@ -66,6 +65,7 @@ from photogram_ros.core.survey_quality import FIX_CLASSES, fix_class
 from photogram_ros.errors import ConfigError, PhotogramError
 from photogram_ros.params import param
 from photogram_ros.stages.adjustment_counts import NotOrientedCounts
+from photogram_ros.stages.block_health import block_check_on_diagnostics
 from photogram_ros.stages.live_quality import live_quality
 from photogram_ros.stages.report import ERROR, OK, WARN, DiagnosticsLog  # noqa: F401  (OK: for callers)
 
@@ -653,26 +653,8 @@ class AdjustmentStage:
                               ERROR if with_fix >= 2 * self.p.georef_warn_keyframes else WARN)
 
     def _block_check(self, adjustment: dict | None = None) -> None:
-        """The block's own check (core/block_check.py) on diagnostics: `verdict` and its reasons; a
-        failed block is an ERROR, a warning a WARN. The check after the final adjustment (`adjustment` given)
-        is also `final_verdict`: the one the flight's verdict reads (io/flight_verdict.mapping_verdict)."""
-        # In flight the health check already watches keyframes not oriented: the verdict names them only
-        # when they are a tenth of the flight; keyframes spilled to disk stay there (no thaw every 10 keyframes).
-        v = check_block(inputs_from_at(self.at, adjustment=adjustment, thaw=False),
-                        BlockCheckOptions(min_oriented_warn=0.9))
-        self.diag.set('verdict', v.status)
-        self.diag.set('verdict_summary', v.summary)
-        self._block_verdict = {'status': v.status, 'summary': v.summary}
-        if adjustment is not None:   # the end of the flight's check: the one the flight's verdict reads
-            self.diag.set('final_verdict', v.status)
-            self.diag.set('final_verdict_summary', v.summary)
-        fit = v.figures.get('gnss_fit', {})
-        if 'rms_h_m' in fit:
-            self.diag.set('block_gnss_fit_h_m', fit['rms_h_m'])
-            self.diag.set('block_gnss_fit_v_m', fit['rms_v_m'])
-        self.diag.set('block_nadir_share', v.figures.get('nadir', {}).get('share_within_deg', float('nan')))
-        if v.status != 'ok':
-            self.diag.problem(f'block check: {v.summary}', ERROR if v.status == 'failed' else WARN)
+        """The block's own check on diagnostics (stages/block_health.py), kept for the live quality."""
+        self._block_verdict = block_check_on_diagnostics(self.diag, self.at, adjustment)
 
     def _control_diagnostics(self) -> None:
         if self.control is None:
