@@ -834,14 +834,16 @@ def run_all(surveys, pipelines, variants: bool, out: Path, noisy=()) -> list[dic
               f"{_f(row.get('rigid_h_m'))} / {_f(row.get('rigid_v_m'))} m rigid, nadir {_f(row.get('nadir_share'), '.0%')}, "
               f"{row['wall_s']:.0f} s", flush=True)
 
+    photo_sets = {'brighton': (BRIGHTON, 'odm'), 'toledo': (TOLEDO, 'pycolmap'), 'seneca': (SENECA, None)}
     for s in surveys:
         for p in pipelines:
-            if s == 'brighton':
-                keep(run_photos(s, p, BRIGHTON / 'images', out, 'odm'))
-            elif s == 'toledo':
-                keep(run_photos(s, p, TOLEDO / 'images', out, 'pycolmap'))
-            elif s == 'seneca':
-                keep(run_photos(s, p, SENECA / 'images', out, None))
+            if s in photo_sets:
+                src, peer = photo_sets[s]
+                row = run_photos(s, p, src / 'images', out, peer)
+                if p == 'replay' and (out / f'{s}_triangulate' / 'poses.csv').exists():
+                    # issue #43's share: of the keyframes whose photos triangulate oriented, how many replay oriented
+                    row.update(replay_share_of_triangulated(src / 'images', out / f'{s}_triangulate', out / f'{s}_replay'))
+                keep(row)
             elif s == 'phantom3' and p == 'replay':
                 keep(run_phantom3(out))
         if s in ('brighton', 'toledo', 'seneca') and set(PIPELINES) <= set(pipelines):

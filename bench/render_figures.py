@@ -571,29 +571,32 @@ def _broken(label, survey):
                   PRODUCT, BLOCK_VERDICTS_CMD)
 
 
-CHAIN = 'inflight_chain*.jsonl'
-CHAIN_CMD = 'ROS_DOMAIN_ID=N .venv/bin/python bench/inflight_chain.py --out F'
+# issue #43's share, from bench/real_surveys.py's replay rows (the full sets and their every-other variants):
+# of the keyframes whose photos `triangulate` oriented, how many `replay` oriented.
 CHAIN_SETS = (('seneca_part (41 NIR photos, fixed wing)', 'seneca'), ('brighton_beach (18 photos)', 'brighton'),
-              ('toledo (42 photos)', 'toledo'), ('phantom3_village (100 video frames)', 'phantom3'))
+              ('toledo (42 photos)', 'toledo'))
 
 
 def _chain_cells(x: dict, _lines) -> list:
-    share = x.get('share')
-    return [f'{x["photos"]}', f'{x["triangulate_oriented"]}',
-            f'{x["replay_oriented"]}/{x["replay_keyframes"]}',
+    share = x.get('share_of_triangulated')
+    if 'replay_oriented' not in x:
+        return ['—'] * 4
+    return [f'{x["photos"]}', f'{x["triangulate_oriented"]}', f'{x["replay_oriented"]}/{x["replay_keyframes"]}',
             '—' if share is None else f'**{x["replay_oriented_of_triangulated"]}/{x["keyframes_triangulated"]} '
             f'({share * 100:.0f} %)**' + ('' if x.get('share_exact', True) else ' (lower bound)')]
 
 
 def _chain(label, survey, variant):
-    return Figure((label, 'every photo' if variant == 'all' else 'every other photo'), CHAIN,
-                  {'set': survey, 'variant': variant}, _chain_cells, PRODUCT, CHAIN_CMD)
+    return Figure((label, 'every photo' if variant == 'all' else 'every other photo'), REAL,
+                  {'survey': survey if variant == 'all' else f'{survey}_half', 'pipeline': 'replay',
+                   'replay_oriented': lambda v: v is not None}, _chain_cells, PRODUCT, REAL_CMD,
+                  ignore=AFTER_ORIENTATION)
 
 
-def _chain_main(label, survey, variant):
-    """The same row measured on the code before the chain (main at 8a9c63c, in the chain's own bench)."""
-    return Figure((label + ', before the chain', 'every photo' if variant == 'all' else 'every other photo'),
-                  'inflight_chain_8a9c63c.jsonl', {'set': survey, 'variant': variant}, _chain_cells, PRODUCT, CHAIN_CMD)
+CHAIN_VIDEO = Figure(('phantom3_village (100 video frames)', 'every frame'), REAL,
+                     {'survey': 'phantom3', 'pipeline': 'replay'},
+                     lambda x, _: [f'{x["photos"]}', '— (a video: `triangulate` is not run)',
+                                   f'{x["oriented"]}/{x["given"]}', '—'], PRODUCT, REAL_CMD, ignore=AFTER_ORIENTATION)
 
 
 BUDGET = 'stage_budget*.jsonl'
@@ -647,32 +650,9 @@ def _budget(label, stage, _per):
     return Figure((label,), BUDGET, {'stage': stage}, _budget_cells, BUDGET_MODULES[stage], BUDGET_CMD)
 
 
-PACE_20MP = 'inflight_20mp_pace_*.jsonl'
-PACE_20MP_CMD = 'ROS_DOMAIN_ID=N .venv/bin/python bench/inflight_20mp.py --periods 1,0.7 (main, then this tree)'
-
-
-def _pace_cells(x: dict, lines: list) -> list:
-    runs = [y for y in lines if y.get('bench') == 'inflight_20mp' and y.get('config') == x['config']]
-    if len(runs) < 2:
-        return ['—']
-    base, new = runs[0], runs[-1]
-
-    def one(r):
-        return (f'{r["oriented"]}/{r["keyframes"]} oriented, {r["dropped_otherwise"]} dropped; pose lag p50/p95 '
-                f'{r["lag_exposure_to_pose_s"]["p50"]:.0f}/{r["lag_exposure_to_pose_s"]["p95"]:.0f} s, fused cloud '
-                f'p95 {r["lag_exposure_to_fused_cloud_s"]["p95"]:.0f} s; peak RSS '
-                f'{r.get("peak_rss_mb", 0):.0f} + {r.get("child_peak_rss_mb", 0):.0f} MB (main + child process)')
-    return [f'{one(new)}; main in the same run: {one(base)}']
-
-
-def _pace(period):
-    return Figure((f'20 MP photos (toledo upscaled), one every {period.rstrip("s")} s, through the graph',), PACE_20MP,
-                  {'bench': 'inflight_20mp', 'config': period}, _pace_cells, PRODUCT, PACE_20MP_CMD)
-
-
 SIM_20MP = 'inflight_20mp_[0-9a-f]*.jsonl'
-SIM_20MP_CMD = ('ROS_DOMAIN_ID=N .venv/bin/python bench/inflight_20mp.py --flight sim --photos 317 --periods 1 '
-                '--set ... (config/companion.yaml pace keys) --out F')
+SIM_20MP_CMD = ('ROS_DOMAIN_ID=N .venv/bin/python bench/inflight_20mp.py --flight sim --photos 317 --periods 1,0.7 '
+                '--export-dsm --set ... (config/companion.yaml pace keys) --out F (bench/run_all.py --only inflight_20mp)')
 
 
 def _sim_cells(x: dict, _lines) -> list:
@@ -687,9 +667,23 @@ def _sim_cells(x: dict, _lines) -> list:
             f'batches; load {x.get("load_avg_before", ["?"])[0]}']
 
 
-def _sim_20mp():
-    return Figure(('the simulated survey: 317 photos at 20 MP, one every 1 s, through the graph',), SIM_20MP,
-                  {'bench': 'inflight_20mp', 'flight': 'sim', 'config': '1s'}, _sim_cells, PRODUCT, SIM_20MP_CMD)
+def _sim_20mp(period='1s'):
+    return Figure((f'the simulated survey: 317 photos at 20 MP, one every {period.rstrip("s")} s, through the graph',),
+                  SIM_20MP, {'bench': 'inflight_20mp', 'flight': 'sim', 'config': period}, _sim_cells, PRODUCT,
+                  SIM_20MP_CMD)
+
+
+def _shed_cells(x: dict, _lines) -> list:
+    said = x.get('shed', {}).get('said_on_diagnostics') or []
+    return [f'`export --densify` of the {x["config"]} flight\'s stored map against the {x["reference"]} flight\'s: DSM '
+            f'median |dz| {x["median_abs_dz_gsd"]:.2f} GSD ({cm(x["median_abs_dz_m"])}; p90 {cm(x["p90_abs_dz_m"])}) '
+            f'over {x["cells_compared"]:,} cells; shed in flight: {x["shed"]["stereo_keyframes_shed"]} keyframes\' '
+            f'pairs, {x["shed"]["ortho_batches_deferred"]} ortho batches, said on /diagnostics: '
+            + ('; '.join(f'"{s}"' for s in said) if said else 'nothing (nothing shed)')]
+
+
+SHED_DSM = Figure(('the same at 0.7 s: what was shed, made up after landing',), SIM_20MP,
+                  {'bench': 'inflight_20mp_dsm', 'config': '0.7s'}, _shed_cells, PRODUCT, SIM_20MP_CMD)
 
 
 # --- figures of the benches converted to the ResultWriter (bench/run_all.py runs each) ----------------------
@@ -967,10 +961,10 @@ TABLES: dict[str, Table] = {
     'inflight-chain': Table(('survey', 'photos used', 'photos', '`triangulate` oriented', '`replay` keyframes oriented',
                              '`replay` oriented among the keyframes whose photo `triangulate` oriented'),
                             tuple(_chain(label, sv, v) for label, sv in CHAIN_SETS for v in ('all', 'half'))
-                            + tuple(_chain_main(label, sv, v) for label, sv in CHAIN_SETS[:2] for v in ('all', 'half'))),
+                            + (CHAIN_VIDEO,)),
     'stage-budget': Table(('stage (20 MP, toledo upscaled)', 'CPU', 'floor (the least the stage can cost)'),
                           tuple(_budget(*r) for r in BUDGET_ROWS)),
-    'inflight-20mp': Table(('what', 'figure'), (_sim_20mp(), _pace('1s'), _pace('0.7s'))),
+    'inflight-20mp': Table(('what', 'figure'), (_sim_20mp(), _sim_20mp('0.7s'), SHED_DSM)),
     'speed': Table(('what', 'figure'), (
         SAMPLE_SPEED, WINDOW, PLAYER, E2E,
         Figure(('20 MP photos in flight',), SIM_20MP, {'bench': 'inflight_20mp', 'flight': 'sim', 'config': '1s'},

@@ -76,11 +76,13 @@ BENCHES: tuple[Bench, ...] = (
           produced='real_surveys.jsonl', ros=True, needs=('{data}/photos/toledo',)),
     Bench('stage_budget', ('bench/stage_budget.py', '--out', '{out}'), 16, 'stage-budget (20 MP, toledo upscaled)',
           needs=('{data}/photos/toledo',)),
-    Bench('inflight_20mp', ('bench/inflight_20mp.py', '--flight', 'sim', '--photos', '317', '--periods', '1',
+    Bench('inflight_20mp', ('bench/inflight_20mp.py', '--flight', 'sim', '--photos', '317', '--periods', '1,0.7',
+                            '--export-dsm',
                             '--set', 'stereo.cpu_share=0.5', '--set', 'stereo.worker_nice=10', '--set',
                             'stereo.cv_threads=1', '--set', 'map.cv_threads=1', '--set', 'map.ortho_cpu_share=0.15',
-                            '--set', 'tracker.cv_threads=2', '--out', '{out}'), 8,
-          'inflight-20mp (the simulated 317-photo survey), speed "20 MP photos in flight" (add ~40 min the first '
+                            '--set', 'tracker.cv_threads=2', '--out', '{out}'), 24,
+          'inflight-20mp (the simulated 317-photo survey at one photo per 1 s and per 0.7 s, each exported with '
+          '--densify: the 0.7 s DSM against the 1 s one), speed "20 MP photos in flight" (add ~40 min the first '
           'time: the rendered flight is cached in /tmp/photogram_bench_cache)', ros=True),
     Bench('sample_flight', ('bench/sample_flight.py', '--work', '{work}', '--out', '{out}'), 6,
           'simulated: the sample flight end to end, its DSM, with its targets file; speed: replay of the sample bag; '
