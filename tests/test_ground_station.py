@@ -223,3 +223,21 @@ def test_a_drone_node_in_error_holds_the_verdict():
     assert g['verdict'] == 'WAIT' and g['reasons'] == ['bundle_node ERROR: no georeference after 47 keyframes']
     assert with_node_errors({**go, 'verdict': 'NO-GO'}, {'/b': [2, 'x']})['verdict'] == 'NO-GO'
     assert with_node_errors(go, {'/tracker_node': [1, 'tracking lost'], '/x': [3, 'stale']}) == go
+
+
+def test_a_failed_block_check_is_said_once():
+    """A failed block check that the go / no-go already reasons on (from the quality document) is not repeated as
+    bundle_node's ERROR (the same check on /diagnostics); another bundle_node error still is."""
+    from photogram_ros.core.survey_quality import QualityLimits, go_no_go
+    from photogram_ros.nodes.ground_station import with_node_errors
+    summary = 'FAILED (decided by strips): the block is folded'
+    g = go_no_go({'gaps': [], 'coverage_share': 1.0, 'georeference': 'final', 'block': 'adjusted',
+                  'block_check': {'status': 'failed', 'summary': summary},
+                  'check_rmse': {'horizontal_m': 0.02, 'vertical_m': 0.02, 'count': 4}}, QualityLimits())
+    out = with_node_errors(g, {'/bundle_node': [2, f'block check: {summary}']})
+    assert out['verdict'] == 'NO-GO' and sum(summary in r for r in out['reasons']) == 1
+    other = with_node_errors(g, {'/bundle_node': [2, 'no georeference after 47 keyframes']})
+    assert other['reasons'][-1] == 'bundle_node ERROR: no georeference after 47 keyframes'
+    # without a failed check in the verdict, the node's block-check error is the only place it is said: kept
+    go = {'verdict': 'GO', 'reasons': [], 'checks': [], 'warnings': []}
+    assert with_node_errors(go, {'/bundle_node': [2, f'block check: {summary}']})['verdict'] == 'WAIT'

@@ -72,6 +72,7 @@ GEOREF_FINAL, GEOREF_PROVISIONAL, GEOREF_NONE, GEOREF_UNKNOWN = 'final', 'provis
 # one) or the whole block adjusted after its last keyframe (the final adjustment).
 BLOCK_IN_FLIGHT, BLOCK_ADJUSTED = 'in_flight', 'adjusted'
 BLOCK_CHECK_STATUSES = ('ok', 'warning', 'failed')   # core/block_check.py BlockVerdict.status
+BLOCK_CHECK_NAME = "the adjuster's check of the block"   # the go / no-go's check of it
 
 
 def _check(name: str, value, limit: float, ok_when: str, status: str = MEASURED, why: str = '') -> dict:
@@ -169,7 +170,7 @@ def go_no_go(figures: dict, limits: QualityLimits) -> dict:
     block_check = figures.get('block_check') or {}
     if block_check.get('status') == 'failed':
         final = figures.get('block') == BLOCK_ADJUSTED
-        checks.append({'name': "the adjuster's check of the block", 'value': 'failed', 'limit': 'ok', 'op': '==',
+        checks.append({'name': BLOCK_CHECK_NAME, 'value': 'failed', 'limit': 'ok', 'op': '==',
                        'status': MEASURED if final else PROVISIONAL, 'passes': False, 'state': NO_GO if final else WAIT,
                        'why': block_check.get('summary', '') + ('' if final else ' (the in-flight block, before its '
                                                                 'final adjustment)')})

@@ -43,7 +43,7 @@ from std_msgs.msg import String
 
 from photogram_ros import msgs
 from photogram_ros.core.geodesy import LocalFrame, utm_epsg
-from photogram_ros.core.survey_quality import (BLOCK_ADJUSTED, BLOCK_CHECK_STATUSES, BLOCK_IN_FLIGHT, GEOREF_FINAL,
+from photogram_ros.core.survey_quality import (BLOCK_ADJUSTED, BLOCK_CHECK_NAME, BLOCK_CHECK_STATUSES, BLOCK_IN_FLIGHT, GEOREF_FINAL,
                                                GEOREF_NONE, GEOREF_PROVISIONAL, GEOREF_UNKNOWN, GO, WAIT, QualityLimits,
                                                go_no_go)
 from photogram_ros.errors import PhotogramError
@@ -651,11 +651,16 @@ def diagnostic_figures(st: dict) -> dict:
             'updated_unix_s': st.get('updated_unix_s')}
 
 
+BLOCK_CHECK_MESSAGE = 'block check: '   # stages/block_health.py: the adjuster's block check on /diagnostics
+
+
 def with_node_errors(g: dict, health: dict) -> dict:
     """A verdict with the drone's nodes that say ERROR on /diagnostics: each is a reason, and the verdict is
-    not GO while one does (a node's error is no figure to judge: WAIT, the reason says which node and why)."""
+    not GO while one does (a node's error is no figure to judge: WAIT, the reason says which node and why).
+    A failed block check the verdict already reasons on (from the quality document) is not said twice."""
+    block_failed = any(c.get('name') == BLOCK_CHECK_NAME and not c.get('passes') for c in g.get('checks', ()))
     errors = [f'{name.lstrip("/")} ERROR: {msg}' for name, (level, msg) in sorted(health.items())
-              if level == 2]
+              if level == 2 and not (block_failed and str(msg).startswith(BLOCK_CHECK_MESSAGE))]
     if not errors:
         return g
     return {**g, 'verdict': WAIT if g['verdict'] == GO else g['verdict'], 'reasons': g['reasons'] + errors}
