@@ -2,7 +2,7 @@
 readers), which every reader of fixes from a file implements.
 
 A source has a `name` (the file it reads) and gives its fixes once, in the file's order (`fixes()`: core/gnss_fix.py
-`Fix`, NaN position where the receiver had none), and afterwards `counts()` (what was read and what was dropped, by
+`GnssFix`, NaN position where the receiver had none), and afterwards `counts()` (what was read and what was dropped, by
 name). Implemented by io/mavlink_ingest.py `TlogFixes` (a MAVLink telemetry log: the fixes the MAVLink node would
 publish on /gps/fix) and io/dataflash.py `DataflashFixes` (an ArduPilot .bin log's GPS/GPA messages);
 `open_gnss_source` picks one by the file's content.
@@ -13,7 +13,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Iterator, Protocol, runtime_checkable
 
-from photogram_ros.core.gnss_fix import Fix
+from photogram_ros.core.gnss_fix import GnssFix
 
 
 @runtime_checkable
@@ -22,7 +22,7 @@ class GnssSource(Protocol):
 
     name: str
 
-    def fixes(self) -> Iterator[Fix]:
+    def fixes(self) -> Iterator[GnssFix]:
         """The source's fixes, in the file's order."""
         ...
 

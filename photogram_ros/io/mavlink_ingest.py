@@ -1,7 +1,7 @@
 """From decoded MAVLink messages to what the node publishes: fixes, attitude, camera triggers.
 
 `Ingest` maps the autopilot's boot clock to UNIX/host time (SYSTEM_TIME, TIMESYNC), turns
-GPS_RAW_INT / GPS2_RAW into `core.gnss_fix.Fix` (one `FixEvent` per fix, routed to /gps/fix and the
+GPS_RAW_INT / GPS2_RAW into `core.gnss_fix.GnssFix` (one `FixEvent` per fix, routed to /gps/fix and the
 per-receiver topics), ATTITUDE(_QUATERNION) into `Attitude` (FLU in ENU) and CAMERA_FEEDBACK /
 CAMERA_TRIGGER into `Trigger`. It has no ROS in it, so `photogram-ros fixes` prints exactly what
 the node publishes.
@@ -46,9 +46,9 @@ class Trigger:
 
 @dataclass
 class FixEvent:
-    """A decoded fix and where it goes: an event about a `gf.Fix` (its routing), not another fix type."""
+    """A decoded fix and where it goes: an event about a `gf.GnssFix` (its routing), not another fix type."""
 
-    fix: gf.Fix
+    fix: gf.GnssFix
     best: bool                    # goes to /gps/fix (the chosen receiver, newer than the last one there)
     per_receiver: bool = True     # goes to /gps/fix_<receiver + 1> (False: it went there already)
 
@@ -88,7 +88,7 @@ class Ingest:
         self.on_problem = on_problem or (lambda what: self.problems.append(what))
         self.problems: list = []
         self.counts = Counter()
-        self.latest: dict = {}               # receiver -> Fix
+        self.latest: dict = {}               # receiver -> GnssFix
         self.best_receiver = None
         self.rtk: dict = {}                  # receiver -> last GPS_RTK fields
         self._pending: deque = deque()       # (msg, arrival_s) waiting for the clock

@@ -253,8 +253,8 @@ class MavlinkNode(Node):
                                                   qos.reliable(OUTPUT_DEPTH))
         return self.pub_rx[receiver]
 
-    def _fix_msg(self, fix: gf.Fix) -> NavSatFix:
-        return msgs.navsatfix_from_gnss_fix(gf.GnssFix.from_fix(fix), self.params.frame_id)
+    def _fix_msg(self, fix: gf.GnssFix) -> NavSatFix:
+        return msgs.navsatfix_from_gnss_fix(fix, self.params.frame_id)
 
     def _publish(self, ev) -> None:
         if isinstance(ev, FixEvent):
