@@ -251,6 +251,20 @@ class GnssFix:
     # The name the camera node calls (frame.gps.gnss_fix(stamp_ns, sigma_h, sigma_v, *exif_reading)).
     gnss_fix = at
 
+    # For io/photo_block.exif_position, which reads a photo's EXIF fix by these two names (its own change:
+    # `fix.at(0, EXIF_SIGMA_H_M, EXIF_SIGMA_V_M, altitude, takeoff_h_m, takeoff_heights)`).
+    @property
+    def alt_msl_m(self) -> float:
+        """An EXIF fix's height as written (h_m, datum 'exif')."""
+        return self.h_m
+
+    def sigmas_m(self, sigma_h_m: float, sigma_v_m: float) -> tuple[float, float]:
+        """(per-axis horizontal, vertical) 1-sigma: the fix's own when its covariance is known, else those given."""
+        if self.cov_type == COV_UNKNOWN:
+            return float(sigma_h_m), float(sigma_v_m)
+        s = self.sigma_enu_m
+        return float(np.sqrt(0.5 * (s[0] ** 2 + s[1] ** 2))), float(s[2])
+
     # --- NavSatFix-shaped dict (msgs.py) ---------------------------------------------------------------
 
     @classmethod
