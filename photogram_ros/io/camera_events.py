@@ -130,9 +130,12 @@ def mrk_track(rows: list[MrkRow], path='') -> AntennaTrack:
                         f'({", ".join(str(k) for k in sorted(MRK_FLAG_Q))}: 50 fixed, 34 float, 16 single ...)')
     cov = np.array([np.diag([r.sd_neu_m[1] ** 2, r.sd_neu_m[0] ** 2, r.sd_neu_m[2] ** 2])
                     if np.all(np.isfinite(r.sd_neu_m)) else np.zeros((3, 3)) for r in ok])
-    return track_from_geodetic([r.event.t_gps_s for r in ok], [r.lat_deg for r in ok], [r.lon_deg for r in ok],
-                               [r.h_m for r in ok], cov, [MRK_FLAG_Q[r.flag] for r in ok],
-                               [r.event.line for r in ok], str(path))
+    t = [r.event.t_gps_s for r in ok]
+    track = track_from_geodetic(t, [r.lat_deg for r in ok], [r.lon_deg for r in ok], [r.h_m for r in ok], cov,
+                                [MRK_FLAG_Q[r.flag] for r in ok], [r.event.line for r in ok], str(path))
+    track.format = 'DJI Timestamp.MRK'
+    track.q_native = np.array([r.flag for r in ok])[np.argsort(np.asarray(t, float), kind='stable')]
+    return track
 
 
 def write_mrk(path: str | Path, t_gps_s, offset_ned_m, lat_deg, lon_deg, h_m, sd_neu_m, flag=50,
