@@ -22,7 +22,8 @@ def test_a_receiver_fix_is_the_consumed_fix_with_its_epoch_quality_and_source():
     assert isinstance(fix, gf.GnssFix) and gf.GnssFix.from_fix(fix) is fix
     assert fix.cov_enu_m2.shape == (3, 3) and fix.var_enu_m2 == pytest.approx((0.014 ** 2, 0.014 ** 2, 0.03 ** 2))
     assert np.count_nonzero(fix.cov_enu_m2 - np.diag(np.diag(fix.cov_enu_m2))) == 0
-    assert abs(fix.stamp_ns - 1_700_000_000_123_456_789) < 1000 and fix.t_s == fix.stamp_ns * 1e-9
+    assert abs(fix.stamp_ns - 1_700_000_000_123_456_789) < 1000 and fix.stamp_ns == gf.stamp_ns_of(fix.t_s)
+    assert fix.t_s == 1_700_000_000.123456789         # the receiver's time, to the bit
     assert fix.status == gf.STATUS_GBAS_FIX and fix.cov_type == gf.COV_DIAGONAL_KNOWN and not fix.interpolated
     assert fix.quality == gf.Q_FIX and fix.fix_type == gf.RTK_FIXED and fix.native_scale == 'GPS_FIX_TYPE'
     assert fix.source == 'GPS_RAW_INT' and fix.height_datum == 'ellipsoid' and fix.height_source == 'msl+EGM2008'

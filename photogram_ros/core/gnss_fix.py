@@ -202,8 +202,9 @@ class GnssFix:
 
     @property
     def t_s(self) -> float:
-        """stamp_ns in seconds."""
-        return self.stamp_ns * 1e-9
+        """stamp_ns in seconds, correctly rounded (an int divided by an int: round(t_s * 1e9) gives stamp_ns back,
+        and a receiver fix's t_s is its time to the bit, stamp_ns_of)."""
+        return self.stamp_ns / 1_000_000_000
 
     @property
     def has_position(self) -> bool:
@@ -336,12 +337,19 @@ def undulation_m(lat_deg: float, lon_deg: float) -> float:
     return _undulation_cached(int(round(lat_deg * 1000)), int(round(lon_deg * 1000)))
 
 
+def stamp_ns_of(t_s: float) -> int:
+    """A time in seconds (a double) -> the nearest ns, exactly: the whole seconds apart from the fraction, so that
+    `t_s` of the fix (stamp_ns / 1e9) is this double again (t_s * 1e9 rounds to 256 ns at UNIX times)."""
+    whole = math.floor(t_s)
+    return int(whole) * 1_000_000_000 + int(round((t_s - whole) * 1e9))
+
+
 def make_fix(raw: RawGnss, t_s: float, model: ErrorModel | None = None) -> FixResult:
     """RawGnss at output time `t_s` (UNIX s) -> GnssFix (position NaN when there is no fix), or a problem."""
     model = model or ErrorModel()
     ft = int(raw.fix_type)
     hdop = raw.eph / 100.0 if raw.eph not in (0, UINT16_UNKNOWN) else math.nan
-    base = dict(stamp_ns=int(round(t_s * 1e9)) if math.isfinite(t_s) else 0, receiver=raw.receiver,
+    base = dict(stamp_ns=stamp_ns_of(t_s) if math.isfinite(t_s) else 0, receiver=raw.receiver,
                 quality_native=ft, native_scale='GPS_FIX_TYPE',
                 source=raw.source or ('GPS_RAW_INT' if raw.receiver == 0 else 'GPS2_RAW'), sats=raw.sats, hdop=hdop,
                 sysid=raw.sysid, compid=raw.compid)
