@@ -154,8 +154,8 @@ def test_a_real_mrk_line_without_padding(tmp_path):
     (row,) = read_mrk(mrk)
     assert np.allclose(row.event.offset_ned_m, [-0.040, 0.0, 0.086])
     assert row.event.t_gps_s == pytest.approx(2264 * 604800 + 400373.488877)
-    assert (row.lat_deg, row.lon_deg, row.h_m, row.flag) == (44.42824637, 1.26196331, 359.494, 16)
-    assert row.sd_neu_m == (0.028, 0.031, 0.055)
+    assert (row.fix.lat_deg, row.fix.lon_deg, row.fix.h_m, row.flag) == (44.42824637, 1.26196331, 359.494, 16)
+    assert row.sd_neu_m == pytest.approx((0.028, 0.031, 0.055), abs=1e-12) and row.fix.quality == 5
 
 
 def test_inertial_explorer_week_column_and_a_bare_unit_in_the_units_line(tmp_path):
