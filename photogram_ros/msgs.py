@@ -149,7 +149,7 @@ def navsatfix_msg(stamp_ns: int, lat_deg: float, lon_deg: float, h_m: float, sta
                   covariance_enu_m2, covariance_type: int, frame_id: str = 'gps',
                   service: int = NavSatStatus.SERVICE_GPS) -> NavSatFix:
     """NavSatFix with the ellipsoidal height (REP-145) and a 3x3 ENU covariance (m^2), or only its
-    diagonal: the three variances (var_E, var_N, var_U) of a gnss_fix.Fix."""
+    diagonal: the three variances (var_E, var_N, var_U) of a gnss_fix.GnssFix."""
     cov = np.asarray(covariance_enu_m2, dtype=float).reshape(-1)
     if cov.size == 3:
         cov = np.diag(cov).ravel()
@@ -159,13 +159,20 @@ def navsatfix_msg(stamp_ns: int, lat_deg: float, lon_deg: float, h_m: float, sta
                      position_covariance=cov.tolist(), position_covariance_type=int(covariance_type))
 
 
+def gnss_fix_from_navsatfix(msg: NavSatFix):
+    """NavSatFix -> core.gnss_fix.GnssFix (its status as the quality, gnss_fix.quality_of_status; its altitude the
+    ellipsoidal height, REP-145; source 'NavSatFix', native scale NavSatStatus)."""
+    from photogram_ros.core.gnss_fix import GnssFix
+    return GnssFix(msg.latitude, msg.longitude, msg.altitude,
+                   np.asarray(msg.position_covariance, dtype=float).reshape(3, 3), ns_from_time(msg.header.stamp),
+                   msg.status.status, msg.position_covariance_type, height_source='NavSatFix altitude',
+                   source='NavSatFix', quality_native=int(msg.status.status), native_scale='NavSatStatus')
+
+
 def fix_from_navsatfix(msg: NavSatFix) -> dict:
     """NavSatFix -> dict (stamp_ns, lat_deg, lon_deg, h_m, status, covariance_enu_m2 3x3, covariance_type,
-    frame_id); core.gnss_fix.GnssFix.from_dict makes the fix of it."""
-    return {'stamp_ns': ns_from_time(msg.header.stamp), 'lat_deg': msg.latitude,
-            'lon_deg': msg.longitude, 'h_m': msg.altitude, 'status': msg.status.status,
-            'covariance_enu_m2': np.asarray(msg.position_covariance, dtype=float).reshape(3, 3),
-            'covariance_type': msg.position_covariance_type, 'frame_id': msg.header.frame_id}
+    frame_id): GnssFix.as_dict of gnss_fix_from_navsatfix with the frame, for the callers that keep a dict."""
+    return {**gnss_fix_from_navsatfix(msg).as_dict(), 'frame_id': msg.header.frame_id}
 
 
 def fix_sigmas_m(msg: NavSatFix) -> tuple[float | None, float | None]:

@@ -154,8 +154,8 @@ def test_a_real_mrk_line_without_padding(tmp_path):
     (row,) = read_mrk(mrk)
     assert np.allclose(row.event.offset_ned_m, [-0.040, 0.0, 0.086])
     assert row.event.t_gps_s == pytest.approx(2264 * 604800 + 400373.488877)
-    assert (row.lat_deg, row.lon_deg, row.h_m, row.flag) == (44.42824637, 1.26196331, 359.494, 16)
-    assert row.sd_neu_m == (0.028, 0.031, 0.055)
+    assert (row.fix.lat_deg, row.fix.lon_deg, row.fix.h_m, row.flag) == (44.42824637, 1.26196331, 359.494, 16)
+    assert row.sd_neu_m == pytest.approx((0.028, 0.031, 0.055), abs=1e-12) and row.fix.quality == 5
 
 
 def test_inertial_explorer_week_column_and_a_bare_unit_in_the_units_line(tmp_path):
@@ -201,3 +201,48 @@ def test_a_cut_off_last_line_of_the_m300_mrk_is_skipped_and_named(tmp_path):
     notes: list = []
     rows = read_mrk(mrk, notes)
     assert len(rows) == 25 and len(notes) == 1 and 'line 26: cut off' in notes[0]
+
+
+def _waypoint_variant(kind: str) -> str:
+    text = (DATA / 'waypoint_m300_5hz.txt').read_text()
+    lines = text.splitlines()
+    hi = next(i for i, ln in enumerate(lines) if 'Latitude' in ln and 'H-Ell' in ln)
+    if kind == 'crlf':
+        return text.replace('\n', '\r\n')
+    if kind == 'bom':
+        return '\ufeff' + text
+    if kind in ('tabs', 'commas'):
+        sep = '\t' if kind == 'tabs' else ','
+        return '\n'.join(lines[:hi] + [sep.join(ln.split()) for ln in lines[hi:]]) + '\n'
+    if kind == 'no header block':
+        return '\n'.join(lines[hi:]) + '\n'
+    if kind == 'footer':
+        return text + '\n\nEnd of export\n'
+    if kind == 'long header':
+        block = [f'   Column/Variable Contents {k}: a processing setting' for k in range(600)]
+        return '\n'.join(lines[:hi] + block + lines[hi:]) + '\n'
+    return text
+
+
+@pytest.mark.parametrize('kind', ['as exported', 'crlf', 'bom', 'tabs', 'commas', 'no header block', 'footer',
+                                  'long header'])
+def test_the_waypoint_layout_is_read_as_grafnav_whatever_its_separators_and_header(kind, tmp_path, capsys):
+    """Issue #45's M300 export as GrafNav 8.x/9.x write it, with the variants a user's copy may have: it is read
+    as a GrafNav export with the same epochs, never sent to the RTKLIB reader ('a solution before the column
+    header'), and the issue's command places every event of the MRK."""
+    from photogram_ros.cli import main
+    from photogram_ros.io.trajectory_formats import read_trajectory, sniff
+    base = read_trajectory(DATA / 'waypoint_m300_5hz.txt')
+    path = tmp_path / 'PPK_5Hz.txt'
+    path.write_bytes(_waypoint_variant(kind).encode())
+    reader, scores = sniff(path)
+    assert reader.name.startswith('NovAtel GrafNav') and [n for n, _ in scores] == [reader.name], scores
+    track = read_trajectory(path)
+    assert len(track) == len(base) and np.max(np.abs(track.ecef_m - base.ecef_m)) < 1e-6
+    assert np.array_equal(track.t_gps_s, base.t_gps_s) and np.array_equal(track.q, base.q)
+    out = tmp_path / 'geo.txt'
+    assert main(['geotag', '--pos', str(path), '--events', str(DATA / 'm300_Timestamp.MRK'), '--out', str(out)]) == 0
+    said = capsys.readouterr()
+    assert 'before the column header' not in said.out + said.err
+    n_events = sum(1 for ln in (DATA / 'm300_Timestamp.MRK').read_text().splitlines() if ln.strip())
+    assert len(out.read_text().splitlines()) == 1 + n_events

@@ -6,7 +6,7 @@ import cv2
 import numpy as np
 
 from photogram_ros.core import gnss_fix as gf
-from photogram_ros.io.image_source import FolderSource, GeoTxtPosition
+from photogram_ros.io.image_source import FolderSource
 
 
 def test_geo_txt_positions_replace_the_exif_gps(tmp_path):
@@ -17,7 +17,8 @@ def test_geo_txt_positions_replace_the_exif_gps(tmp_path):
                                       'IMG_1.jpg 8.5001000 47.3000500 512.40 0 0 0 0.03 0.05\n')
     src = FolderSource(tmp_path)
     frames = list(src)
-    assert [type(f.gps) for f in frames] == [GeoTxtPosition, GeoTxtPosition, type(None)]
+    assert [type(f.gps) for f in frames] == [gf.GnssFix, gf.GnssFix, type(None)]
+    assert [f.gps.source for f in frames[:2]] == ['geo.txt', 'geo.txt']
     assert any('from geo.txt' in n for n in src.notes)
     fix = frames[1].gps.gnss_fix(123, 5.0, 10.0)     # the EXIF sigmas given are not used
     assert (fix.lat_deg, fix.lon_deg, fix.h_m) == (47.30005, 8.5001, 512.40)

@@ -180,7 +180,8 @@ def test_mrk_offsets_at_an_events_solution_within_2_mm(tmp_path):
     write_pos(tmp_path / 'flight_events.pos', [week_tow_to_gps_s(WEEK, round(t, 3)) for t in tows],
               ant[:, 0], ant[:, 1], ant[:, 2], np.ones(15, int), np.tile([0.008, 0.009, 0.02], (15, 1)))
     rows = read_mrk(tmp_path / 'Timestamp.MRK')
-    assert [r.flag for r in rows] == [50] * 15 and rows[0].sd_neu_m == (0.012319, 0.011541, 0.025683)
+    assert [r.flag for r in rows] == [50] * 15 and rows[0].sd_neu_m == pytest.approx((0.012319, 0.011541, 0.025683), abs=1e-12)
+    assert rows[0].fix.quality == 1 and rows[0].fix.native_scale == 'DJI RtkFlag'
     res = place_exposures(read_pos(tmp_path / 'flight_events.pos'), [r.event for r in rows])
     assert res.mode == 'at events' and len(res.placed) == 15
     worst = 0.0

@@ -40,3 +40,33 @@ def test_what_is_not_a_gnss_source():
         def fixes(self):
             return iter(())
     assert not isinstance(NoCounts(), GnssSource)
+
+
+def test_a_trajectory_and_an_mrk_are_gnss_sources_of_their_epochs_as_the_one_fix_type():
+    from pathlib import Path
+
+    import numpy as np
+
+    from photogram_ros.core.exposure_positions import gps_s_to_utc_unix
+    from photogram_ros.core.gnss_fix import GnssFix
+    from photogram_ros.core.geodesy import ecef_to_geodetic
+    from photogram_ros.io.gnss_source import TrackFixes
+    from photogram_ros.io.trajectory_formats import read_trajectory
+    here = Path(__file__).parent / 'data' / 'trajectories'
+    for name in ('waypoint_m300_5hz.txt', 'rtklib_demo5_5hz.pos', 'emlid_studio_5hz.csv', 'tbc_5hz.csv'):
+        src = open_gnss_source(here / name)
+        assert isinstance(src, TrackFixes) and isinstance(src, GnssSource), name
+        got = list(src.fixes())
+        track = read_trajectory(here / name, require_fix=False)
+        assert len(got) == len(track) > 100 and all(isinstance(f, GnssFix) for f in got)
+        k = len(got) // 2
+        lat, lon, h = ecef_to_geodetic(*track.ecef_m[k])
+        assert (got[k].lat_deg, got[k].lon_deg, got[k].h_m) == (float(lat), float(lon), float(h))
+        assert got[k].quality == int(track.q[k]) and got[k].height_datum == 'ellipsoid'
+        assert abs(got[k].stamp_ns * 1e-9 - gps_s_to_utc_unix(track.t_gps_s[k])) < 1e-6
+        assert np.array_equal(got[k].cov_enu_m2, track.cov_enu_m2[k])
+        assert src.counts()['epochs'] == len(got) and src.counts()['format'] == track.format
+    mrk = open_gnss_source(here / 'm300_Timestamp.MRK')
+    fixes = list(mrk.fixes())
+    assert isinstance(mrk, TrackFixes) and len(fixes) >= 20
+    assert fixes[0].native_scale == 'DJI Timestamp.MRK' and fixes[0].quality_native == 50 and fixes[0].quality == 1

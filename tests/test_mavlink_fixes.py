@@ -195,7 +195,7 @@ def test_sample_flight_attitude_and_triggers(sample_dir):  # noqa: F811
     assert len(trig) == len(gt.frames) and all(t.source == 'CAMERA_FEEDBACK' for t in trig)
     for tr, fr in zip(trig, gt.frames):
         assert abs(tr.t_s * 1e9 - fr.stamp_ns) < 2e3
-        assert tr.fix_type == gf.RTK_FIXED
+        assert tr.fix.fix_type == gf.RTK_FIXED and tr.fix.quality == gf.Q_FIX and tr.fix.stamp_ns == round(tr.t_s * 1e9)
     # Euler ATTITUDE only until the first quaternion arrives.
     assert sum(a.source == 'ATTITUDE' for a in att) <= 1 and len(att) > 700
     # Body FLU in ENU: the body's x axis is the flight direction, so it follows the track.
@@ -220,7 +220,7 @@ def test_triggers_from_camera_trigger_only(sample_dir):  # noqa: F811
     assert len(trig) >= len(gt.frames) - 1 and all(t.source == 'CAMERA_TRIGGER' for t in trig)
     for tr in trig:
         fr = min(gt.frames, key=lambda f: abs(f.stamp_ns - tr.t_s * 1e9))
-        enu = np.asarray(gt.origin.geodetic_to_enu(tr.lat_deg, tr.lon_deg, tr.h_m), float).ravel()
+        enu = np.asarray(gt.origin.geodetic_to_enu(tr.fix.lat_deg, tr.fix.lon_deg, tr.fix.h_m), float).ravel()
         assert np.linalg.norm(enu - fr.antenna_enu) < 0.15        # 5 m/s * interpolation + RTK noise
 
 

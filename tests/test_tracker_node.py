@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import threading
 import time
+from collections import deque
 
 import numpy as np
 import pytest
@@ -231,6 +232,22 @@ def test_photo_rate_frames_the_chain_needs_are_kept_and_redundant_ones_dropped_w
         tracker.destroy_node()
 
 
+def test_the_node_keeps_each_fix_once_in_the_trackers_buffer(rclpy_context):
+    """One store of the fixes: a NavSatFix goes into the tracker's buffer, which the drop rule reads too."""
+    from photogram_ros.nodes.tracker_node import TrackerNode
+    tracker = TrackerNode(context=rclpy_context)
+    try:
+        assert tracker.tracker.fixes is tracker._fixes
+        tracker._on_fix(_fix_at(1_000_000_000))
+        tracker._on_fix(_fix_at(2_000_000_000))
+        assert len(tracker.tracker.fixes) == 2 and tracker._fixes.added == 2
+        mid = tracker.tracker.fixes.at(1_500_000_000)
+        assert mid is not None and mid.interpolated and mid.lat_deg == pytest.approx(47.0 + 1.5e-9, abs=1e-12)
+        assert not [k for k, v in vars(tracker).items() if 'fix' in k and isinstance(v, (list, deque))]
+    finally:
+        tracker.destroy_node()
+
+
 def _fix_at(stamp):
     """A NavSatFix at `stamp` (ns) whose latitude carries the stamp."""
     from photogram_ros import msgs
@@ -267,7 +284,8 @@ def _fed_tracker(rclpy_context, tmp_path, sim_s: float, depth: int, **overrides)
 
 def test_flush_takes_the_fixes_that_came_after_the_last_frame(rclpy_context, tmp_path):
     """The last keyframe's fix arrives after its frame was tracked (a 1 Hz receiver): flush() at the end
-    of the flight hands the waiting fixes to the tracker first, so that keyframe gets its fix."""
+    of the flight finds it in the tracker's fix buffer (the node's one store of fixes), so that keyframe gets its
+    fix."""
     from photogram_ros import msgs
     sim, tracker, listener, feeder, pub_img, pub_fix, ex = _fed_tracker(rclpy_context, tmp_path, 2.0,
                                                                         depth=100)
@@ -347,7 +365,7 @@ def test_flush_waits_for_the_queue_while_the_tracker_takes_frames(rclpy_context,
     save_opencv_yaml(SimFrames(2.0).camera, tmp_path / 'cam.yaml')
     tracker = TrackerNode(overrides={'calibration_file': str(tmp_path / 'cam.yaml'), 'queue_size': 100,
                                      'detect_targets': False}, context=rclpy_context)
-    monkeypatch.setattr(tracker, '_handle', lambda msg, cam, fixes: time.sleep(0.1))
+    monkeypatch.setattr(tracker, '_handle', lambda msg, cam: time.sleep(0.1))
     try:
         with tracker._cond:
             tracker._frames.extend(object() for _ in range(30))   # 3 s of tracking, 6x the stall bound

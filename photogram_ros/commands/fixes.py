@@ -60,8 +60,7 @@ def iter_rows(a, state: dict):
             for ev in ing.handle(m, t):
                 if isinstance(ev, ml.FixEvent) and (ev.best or a.all_receivers):
                     if ev.fix.has_position or a.with_no_fix:
-                        src = ('GPS_RAW_INT', 'GPS2_RAW')[ev.fix.receiver] if ev.fix.receiver < 2 else 'GPS'
-                        yield fix_row(ev.fix, src)
+                        yield fix_row(ev.fix)
 
     src = a.source
     if ml.is_live_url(src):
@@ -89,7 +88,7 @@ def iter_rows(a, state: dict):
         fixes, _ = read_dataflash_fixes(src)
         for f in fixes:
             if f.has_position or a.with_no_fix:
-                yield fix_row(f, f'dataflash GPS[{f.receiver}]')
+                yield fix_row(f)
         return
     if kind == 'bag':
         yield from _bag_rows(a, src, key, events, state)

@@ -40,6 +40,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from photogram_ros.core.geodesy import ecef_R_enu, ecef_to_geodetic, geodetic_to_ecef
+from photogram_ros.core.gnss_fix import COV_DIAGONAL_KNOWN, COV_UNKNOWN, Q_NAMES, GnssFix
 from photogram_ros.core.rotations import ned_R_frd_from_euler
 from photogram_ros.errors import DataError
 from photogram_ros.params import param, validate
@@ -49,8 +50,8 @@ SECONDS_PER_WEEK = 604800
 # GPS - UTC (s) from each UNIX time on (the leap seconds since 2006; 18 s since 2017-01-01).
 LEAP_SECONDS = ((1136073600, 14), (1230768000, 15), (1341100800, 16), (1435708800, 17), (1483228800, 18))
 
-# RTKLIB solution quality Q -> name, and the floor of its per-axis (horizontal, vertical) 1-sigma, m.
-Q_NAMES = {1: 'fix', 2: 'float', 3: 'sbas', 4: 'dgps', 5: 'single', 6: 'ppp'}
+# The floor of each quality's per-axis (horizontal, vertical) 1-sigma, m, on the one quality scale
+# (core/gnss_fix.py Q_NAMES: RTKLIB's Q).
 Q_FLOOR_M = {1: (0.0, 0.0), 2: (0.10, 0.20), 3: (0.5, 1.0), 4: (0.5, 1.0), 5: (1.5, 3.0), 6: (0.05, 0.10)}
 
 # DJI RTK position flag (the MRK's `flag,Q` and a photo's XMP `drone-dji:RtkFlag`; DJI OSDK
@@ -96,7 +97,8 @@ def gps_s_to_week_tow(t_gps_s: float) -> tuple[int, float]:
 
 @dataclass
 class AntennaTrack:
-    """Antenna solutions of one post-processing run, in time order."""
+    """Antenna solutions of one post-processing run, in time order: the epochs' fixes in columns (`fix(k)`,
+    `fixes()`: each a core.gnss_fix.GnssFix, the one fix type; the columns are what interpolation works on)."""
 
     t_gps_s: np.ndarray        # (N,) seconds since the GPS epoch, GPS time
     ecef_m: np.ndarray         # (N, 3) antenna position, WGS84 ECEF
@@ -136,6 +138,21 @@ class AntennaTrack:
         out.notes.append(f'{self.source}: times are seconds of week; GPS week {int(t[0] // SECONDS_PER_WEEK)} taken '
                          'from the events')
         return out
+
+    def fix(self, k: int) -> GnssFix:
+        """Epoch k as a GnssFix: stamped on the UNIX clock (UTC, from GPS time), ellipsoidal, its covariance
+        (known where the file gave sigmas), its quality and the file's own beside it, the format as its source."""
+        lat, lon, h = (float(v) for v in ecef_to_geodetic(*self.ecef_m[k]))
+        cov = self.cov_enu_m2[k]
+        native = None if self.q_native is None else self.q_native[k]
+        return GnssFix(lat, lon, h, cov, int(round(gps_s_to_utc_unix(self.t_gps_s[k]) * 1e9)),
+                       cov_type=COV_DIAGONAL_KNOWN if np.any(cov) else COV_UNKNOWN, quality=int(self.q[k]), source=self.format or self.source,
+                       quality_native=int(native) if isinstance(native, (int, np.integer)) else None,
+                       native_scale=self.format)
+
+    def fixes(self):
+        """Every epoch as a GnssFix (`fix`), in time order."""
+        return (self.fix(k) for k in range(len(self)))
 
     def median_interval_s(self) -> float:
         d = np.diff(self.t_gps_s)

@@ -23,8 +23,9 @@ from pathlib import Path
 import numpy as np
 
 from photogram_ros.core.exposure_positions import (DJI_RTK_FLAG_Q, GPS_EPOCH_UNIX_S, AntennaTrack, CameraEvent,
-                                                   gps_s_to_week_tow, track_from_geodetic, utc_unix_to_gps_s,
+                                                   gps_s_to_utc_unix, gps_s_to_week_tow, track_from_geodetic, utc_unix_to_gps_s,
                                                    week_tow_to_gps_s)
+from photogram_ros.core.gnss_fix import COV_DIAGONAL_KNOWN, COV_UNKNOWN, Q_NONE, GnssFix, stamp_ns_of
 from photogram_ros.errors import DataError
 
 MRK_FLAG_Q = DJI_RTK_FLAG_Q   # the MRK's `flag,Q` is DJI's RTK position flag (core/exposure_positions)
@@ -38,12 +39,23 @@ def _mrk_field(line: str, tag: str) -> float | None:
 
 @dataclass
 class MrkRow:
+    """One MRK line: the exposure event and the onboard RTK antenna fix the line carries (NaN position without
+    Lat/Lon/Ellh; covariance unknown without its sigmas; quality from DJI's flag, the flag its native number)."""
+
     event: CameraEvent
-    lat_deg: float
-    lon_deg: float
-    h_m: float
-    sd_neu_m: tuple
-    flag: int
+    fix: GnssFix
+
+    @property
+    def flag(self) -> int:
+        return int(self.fix.quality_native)
+
+    @property
+    def sd_neu_m(self) -> tuple:
+        """1-sigma north, east, up as the line gives them (NaN without)."""
+        if self.fix.cov_type == COV_UNKNOWN:
+            return (math.nan,) * 3
+        e, n, u = (float(v) for v in self.fix.sigma_enu_m)
+        return n, e, u
 
 
 def _cut_last(lines: list[str]) -> int | None:
@@ -105,11 +117,7 @@ def read_mrk(path: str | Path, notes: list | None = None) -> list[MrkRow]:
         sd = re.search(r'(\d+(?:\.\d*)?)\s*,\s*(\d+(?:\.\d*)?)\s*,\s*(\d+(?:\.\d*)?)\s+\d+\s*,\s*Q', line)
         ev = CameraEvent(idx, week_tow_to_gps_s(week, tow), n,
                          np.array([vals['N'], vals['E'], vals['V']]) * 1e-3, None, str(path))
-        rows.append(MrkRow(ev, vals['Lat'] if vals['Lat'] is not None else math.nan,
-                           vals['Lon'] if vals['Lon'] is not None else math.nan,
-                           vals['Ellh'] if vals['Ellh'] is not None else math.nan,
-                           tuple(float(v) for v in sd.groups()) if sd else (math.nan,) * 3,
-                           int(vals['Q']) if vals['Q'] is not None else 0))
+        rows.append(MrkRow(ev, _mrk_fix(ev, vals, [float(v) for v in sd.groups()] if sd else None, str(path))))
     if not rows:
         raise DataError(f'{path} holds no MRK line')
     t = [r.event.t_gps_s for r in rows]
@@ -119,20 +127,35 @@ def read_mrk(path: str | Path, notes: list | None = None) -> list[MrkRow]:
     return rows
 
 
+def _mrk_fix(ev: CameraEvent, vals: dict, sd_nev_m: list | None, where: str) -> GnssFix:
+    """The antenna fix of an MRK line (read_mrk's fields `vals`, its sdN, sdE, sdV or None)."""
+    nan = math.nan
+    flag = int(vals['Q']) if vals['Q'] is not None else 0
+    sd = sd_nev_m if sd_nev_m is not None and all(math.isfinite(v) for v in sd_nev_m) else None
+    cov = np.diag([sd[1] ** 2, sd[0] ** 2, sd[2] ** 2]) if sd is not None else np.zeros((3, 3))
+    return GnssFix(vals['Lat'] if vals['Lat'] is not None else nan, vals['Lon'] if vals['Lon'] is not None else nan,
+                   vals['Ellh'] if vals['Ellh'] is not None else nan, cov,
+                   stamp_ns_of(gps_s_to_utc_unix(ev.t_gps_s)), cov_type=COV_DIAGONAL_KNOWN if sd else COV_UNKNOWN,
+                   quality=MRK_FLAG_Q.get(flag, Q_NONE), source=f'{where} MRK', quality_native=flag,
+                   native_scale='DJI RtkFlag')
+
+
 def mrk_track(rows: list[MrkRow], path='') -> AntennaTrack:
     """The MRK's own onboard RTK antenna positions as a solution at the events (no post-processing)."""
-    ok = [r for r in rows if np.isfinite(r.lat_deg) and np.isfinite(r.h_m)]
+    ok = [r for r in rows if np.isfinite(r.fix.lat_deg) and np.isfinite(r.fix.h_m)]
     if not ok:
         raise DataError(f'{path}: its lines carry no position (Lat/Lon/Ellh): give the PPK track with --pos')
     bad = [r for r in ok if r.flag not in MRK_FLAG_Q]
     if bad:
         raise DataError(f'{path} line {bad[0].event.line}: RTK flag {bad[0].flag} is none of DJI\'s position flags '
                         f'({", ".join(str(k) for k in sorted(MRK_FLAG_Q))}: 50 fixed, 34 float, 16 single ...)')
-    cov = np.array([np.diag([r.sd_neu_m[1] ** 2, r.sd_neu_m[0] ** 2, r.sd_neu_m[2] ** 2])
-                    if np.all(np.isfinite(r.sd_neu_m)) else np.zeros((3, 3)) for r in ok])
-    return track_from_geodetic([r.event.t_gps_s for r in ok], [r.lat_deg for r in ok], [r.lon_deg for r in ok],
-                               [r.h_m for r in ok], cov, [MRK_FLAG_Q[r.flag] for r in ok],
-                               [r.event.line for r in ok], str(path))
+    cov = np.array([r.fix.cov_enu_m2 for r in ok])
+    t = [r.event.t_gps_s for r in ok]
+    track = track_from_geodetic(t, [r.fix.lat_deg for r in ok], [r.fix.lon_deg for r in ok], [r.fix.h_m for r in ok], cov,
+                                [MRK_FLAG_Q[r.flag] for r in ok], [r.event.line for r in ok], str(path))
+    track.format = 'DJI Timestamp.MRK'
+    track.q_native = np.array([r.flag for r in ok])[np.argsort(np.asarray(t, float), kind='stable')]
+    return track
 
 
 def write_mrk(path: str | Path, t_gps_s, offset_ned_m, lat_deg, lon_deg, h_m, sd_neu_m, flag=50,

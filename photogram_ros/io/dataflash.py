@@ -35,11 +35,11 @@ def _raw_from(gps, gpa) -> gf.RawGnss:
                       eph=int(round(gps.HDop * 100)) if gps.HDop > 0 else gf.UINT16_UNKNOWN,
                       epv=int(round(vdop * 100)) if vdop > 0 else gf.UINT16_UNKNOWN,
                       h_acc_mm=int(round(g(gpa, 'HAcc') * 1000)), v_acc_mm=int(round(g(gpa, 'VAcc') * 1000)),
-                      sats=int(gps.NSats))
+                      sats=int(gps.NSats), source=f'dataflash GPS[{int(getattr(gps, "I", 0))}]')
 
 
 def read_dataflash_fixes(path, error_model: gf.ErrorModel | None = None):
-    """Every GPS message of a .bin log as a Fix (NaN position without a fix); returns (fixes, counts)."""
+    """Every GPS message of a .bin log as a core.gnss_fix.GnssFix (NaN position without a fix); returns (fixes, counts)."""
     from pymavlink import DFReader
     try:
         log = DFReader.DFReader_binary(str(path))

@@ -14,31 +14,36 @@ def utc_text(t_s: float) -> str:
     except (ValueError, OverflowError, OSError):   # a time no calendar holds: said, not a traceback
         return ''
 
-def fix_row(fix, source: str) -> dict:
-    """A core.gnss_fix.Fix (as mavlink_node publishes it) as a row of COLUMNS."""
+def fix_row(fix, source: str | None = None) -> dict:
+    """A core.gnss_fix.GnssFix as a row of COLUMNS (with sysid, compid for a receiver's fix), `source` its
+    source column (default: the fix's own). A NavSatFix's fix has no receiver, fix type, satellites or HDOP
+    (''), and its status named as NavSatStatus names it."""
     import math
-    d = fix.as_dict()
-    d['t_unix_s'] = d.pop('t_s')
-    d['utc'] = utc_text(fix.t_s)
-    d['source'] = source
-    for k, v in list(d.items()):
-        if isinstance(v, float) and not math.isfinite(v):
-            d[k] = None
-    return d
+    from photogram_ros.core import gnss_fix as gf
+    t = fix.t_s
+    row = {'t_unix_s': t, 'utc': utc_text(t)}
+    var = fix.var_enu_m2
+    if fix.native_scale == 'GPS_FIX_TYPE':
+        row.update({'receiver': fix.receiver, 'fix_type': fix.fix_type, 'fix_name': gf.fix_name(fix.fix_type)})
+    else:
+        row.update({'receiver': '', 'fix_type': '',
+                    'fix_name': {-1: 'NO_FIX', 0: 'FIX', 1: 'SBAS_FIX', 2: 'GBAS_FIX'}.get(fix.status, str(fix.status))})
+    row.update({'status': fix.status, 'lat_deg': fix.lat_deg, 'lon_deg': fix.lon_deg, 'h_m': fix.h_m,
+                'var_e_m2': var[0], 'var_n_m2': var[1], 'var_u_m2': var[2], 'cov_type': fix.cov_type,
+                'height_source': fix.height_source})
+    if fix.native_scale == 'GPS_FIX_TYPE':
+        row.update({'sats': fix.sats, 'hdop': fix.hdop, 'sysid': fix.sysid, 'compid': fix.compid})
+    else:
+        row.update({'sats': '', 'hdop': ''})
+    row['source'] = fix.source if source is None else source
+    return {k: (None if isinstance(v, float) and not math.isfinite(v) else v) for k, v in row.items()}
+
 
 def navsat_row(msg, topic: str) -> dict:
     """A recorded sensor_msgs/NavSatFix (e.g. mavros's global_position/raw/fix) as a row."""
-    import math
     from photogram_ros import msgs
-    d = msgs.fix_from_navsatfix(msg)
-    t = d['stamp_ns'] * 1e-9
-    var = [float(d['covariance_enu_m2'][i, i]) for i in range(3)]
-    row = {'t_unix_s': t, 'utc': utc_text(t), 'receiver': '', 'fix_type': '', 'status': d['status'],
-           'fix_name': {-1: 'NO_FIX', 0: 'FIX', 1: 'SBAS_FIX', 2: 'GBAS_FIX'}.get(d['status'], str(d['status'])),
-           'lat_deg': d['lat_deg'], 'lon_deg': d['lon_deg'], 'h_m': d['h_m'], 'var_e_m2': var[0],
-           'var_n_m2': var[1], 'var_u_m2': var[2], 'cov_type': d['covariance_type'],
-           'height_source': 'NavSatFix altitude', 'sats': '', 'hdop': '', 'source': topic}
-    return {k: (None if isinstance(v, float) and not math.isfinite(v) else v) for k, v in row.items()}
+    return fix_row(msgs.gnss_fix_from_navsatfix(msg), topic)
+
 
 class RowWriter:
     """Rows to CSV, GeoJSON or JSON lines, flushed row by row (a live link shows them as they come)."""

@@ -1,13 +1,17 @@
 """OpenDroneMap's geo.txt, the positions file beside a folder of photos (a PPK `geotag`'s, or any survey tool's).
 
-`read_geo_txt` is read by io/image_source.py (a folder played as a camera) and io/photo_block.py (`triangulate
-FOLDER`); io/geotag.py writes the file. Nothing of the photos themselves is read here.
+`geo_txt_fixes` reads it into core.gnss_fix.GnssFix per image (io/image_source.py: a folder played as a camera);
+`read_geo_txt` gives the same as tuples (io/photo_block.py, `triangulate FOLDER`); io/geotag.py writes the file.
+Nothing of the photos themselves is read here.
 """
 
 from __future__ import annotations
 
 from pathlib import Path
 
+import numpy as np
+
+from photogram_ros.core import gnss_fix as gf
 from photogram_ros.core.geodesy import crs_to_geodetic
 from photogram_ros.errors import DataError
 
@@ -20,10 +24,12 @@ EXIF_SIGMA_H_M = 5.0
 EXIF_SIGMA_V_M = 2.0
 
 
-def read_geo_txt(path: str | Path) -> dict[str, tuple[float, float, float, float, float]]:
-    """OpenDroneMap geo.txt -> {image name: (lat_deg, lon_deg, h_m ellipsoidal, h_acc_m, v_acc_m)}.
+def geo_txt_fixes(path: str | Path) -> dict[str, gf.GnssFix]:
+    """OpenDroneMap geo.txt -> {image name: GnssFix} (WGS84, ellipsoidal height, no time of its own).
 
-    First line a CRS, then ``image x y z [omega phi kappa] [h_acc v_acc]`` (geographic: x = longitude).
+    First line a CRS, then ``image x y z [omega phi kappa] [h_acc v_acc]`` (geographic: x = longitude); h_acc is
+    the per-axis horizontal 1-sigma, v_acc the vertical one (at least 1 mm; without them EXIF_SIGMA_H_M /
+    EXIF_SIGMA_V_M), the covariance diagonal and known; the quality a single solution's (geo.txt has none).
     """
     path = Path(path)
     lines = [ln.split() for ln in path.read_text().splitlines() if ln.strip() and not ln.startswith('#')]
@@ -39,7 +45,18 @@ def read_geo_txt(path: str | Path) -> dict[str, tuple[float, float, float, float
             lat, lon, h = y, x, z
         else:
             lat, lon, h = (float(v) for v in crs_to_geodetic(x, y, z, crs))
-        h_acc = float(ln[7]) if len(ln) >= 9 else EXIF_SIGMA_H_M
-        v_acc = float(ln[8]) if len(ln) >= 9 else EXIF_SIGMA_V_M
-        out[ln[0]] = (lat, lon, h, max(h_acc, 1e-3), max(v_acc, 1e-3))
+        h_acc = max(float(ln[7]) if len(ln) >= 9 else EXIF_SIGMA_H_M, 1e-3)
+        v_acc = max(float(ln[8]) if len(ln) >= 9 else EXIF_SIGMA_V_M, 1e-3)
+        out[ln[0]] = gf.GnssFix(lat, lon, h, np.diag([h_acc ** 2, h_acc ** 2, v_acc ** 2]),
+                                cov_type=gf.COV_DIAGONAL_KNOWN, quality=gf.Q_SINGLE, source='geo.txt')
+    return out
+
+
+def read_geo_txt(path: str | Path) -> dict[str, tuple[float, float, float, float, float]]:
+    """OpenDroneMap geo.txt -> {image name: (lat_deg, lon_deg, h_m ellipsoidal, h_acc_m, v_acc_m)}: `geo_txt_fixes`
+    as tuples (h_acc the per-axis horizontal 1-sigma, v_acc the vertical one)."""
+    out = {}
+    for name, f in geo_txt_fixes(path).items():
+        _, sn, su = (float(v) for v in f.sigma_enu_m)
+        out[name] = (f.lat_deg, f.lon_deg, f.h_m, sn, su)
     return out

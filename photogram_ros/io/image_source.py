@@ -3,7 +3,7 @@
 A folder is played in shooting order (EXIF DateTimeOriginal + SubSecTimeOriginal, in the zone of
 OffsetTimeOriginal, else an assumed UTC offset) so that a user's existing survey photos can go
 through the mapper like a live camera. EXIF GPS altitude is above mean sea level (EXIF 2.3), so
-`ExifGps.gnss_fix` converts it to the WGS84 ellipsoidal height the rest of the system uses (REP-145). Many drones
+`GnssFix.at` converts it to the WGS84 ellipsoidal height the rest of the system uses (REP-145). Many drones
 write it above the take-off point instead (or a barometric altitude tens of metres off):
 `exif_altitude_to_ellipsoidal_m` converts either reading, `exif_altitudes_look_relative` spots them.
 `read_exif_camera` gathers what the EXIF and a DJI XMP say about the camera (focal length, sensor,
@@ -26,8 +26,10 @@ from typing import Iterator
 import numpy as np
 
 from photogram_ros.core import gnss_fix as gf
+from photogram_ros.core.gnss_fix import (EXIF_ALTITUDE_REFERENCES, EXIF_ALTITUDE_SPELLINGS,  # noqa: F401 (read here)
+                                         exif_altitude_to_ellipsoidal_m)
 from photogram_ros.errors import ConfigError, DataError
-from photogram_ros.io.geo_txt import read_geo_txt
+from photogram_ros.io.geo_txt import geo_txt_fixes
 
 IMAGE_SUFFIXES = ('.jpg', '.jpeg', '.png', '.tif', '.tiff')
 GPS_IFD = 0x8825
@@ -45,40 +47,6 @@ FOCAL_PLANE_UNIT_MM = {1: 25.4, 2: 25.4, 3: 10.0, 4: 1.0, 5: 0.001}
 XMP_SEARCH_BYTES = 1 << 19          # the XMP packet of a camera JPEG sits in its first APP segments
 
 
-@dataclass(frozen=True)
-class ExifGps:
-    """A photo's EXIF GPS tags as written: not yet a fix (no accuracy, no time, an altitude datum to choose).
-
-    `alt_msl_m` is GPSAltitude signed by GPSAltitudeRef (without it, a DJI XMP's drone-dji:AbsoluteAltitude):
-    above mean sea level as EXIF 2.3 says, but many drones write it above the take-off point. `gnss_fix` is the
-    one conversion to a fix, in camera_node as in triangulate (io/photo_block.exif_position).
-    """
-
-    lat_deg: float        # WGS84
-    lon_deg: float
-    alt_msl_m: float      # as written in the EXIF, m
-    rtk: tuple[int, float, float] | None = None   # a DJI RTK photo's XMP (RtkFlag, sigma_h_m, sigma_v_m): dji_rtk_accuracy
-
-    def sigmas_m(self, sigma_h_m: float, sigma_v_m: float) -> tuple[float, float]:
-        """(per-axis horizontal, vertical) 1-sigma of this position, m: a DJI RTK photo's own (`rtk`), else the
-        EXIF sigmas given."""
-        return (self.rtk[1], self.rtk[2]) if self.rtk is not None else (float(sigma_h_m), float(sigma_v_m))
-
-    def gnss_fix(self, stamp_ns: int, sigma_h_m: float, sigma_v_m: float, reference: str = 'msl',
-                 takeoff_h_m: float | None = None, takeoff_reference: str = 'msl') -> gf.GnssFix:
-        """This position as a fix at `stamp_ns` with the altitude read as `reference` says (see
-        exif_altitude_to_ellipsoidal_m): a DJI RTK photo with its XMP sigmas (covariance known) and the
-        NavSatStatus of its flag (`rtk_navsat_status`), else the given 1-sigma accuracies (m, approximated)."""
-        h_m = float(exif_altitude_to_ellipsoidal_m(self.lat_deg, self.lon_deg, self.alt_msl_m, reference, takeoff_h_m,
-                                                   takeoff_reference))
-        sh, sv = self.sigmas_m(sigma_h_m, sigma_v_m)
-        cov = np.diag([sh * sh, sh * sh, sv * sv])
-        if self.rtk is not None:
-            return gf.GnssFix(self.lat_deg, self.lon_deg, h_m, cov, int(stamp_ns), rtk_navsat_status(self.rtk[0]),
-                              gf.COV_DIAGONAL_KNOWN)
-        return gf.GnssFix(self.lat_deg, self.lon_deg, h_m, cov, int(stamp_ns), gf.STATUS_FIX, gf.COV_APPROXIMATED)
-
-
 # Sigmas of a DJI RTK-fixed photo whose XMP states no RtkStd* (per-axis horizontal, vertical).
 RTK_FIXED_DEFAULT_M = (0.02, 0.03)
 
@@ -87,7 +55,7 @@ def dji_rtk_accuracy(path, xmp: dict | None = None) -> tuple[int, float, float] 
     """A DJI RTK photo's own solution quality from its XMP (`xmp`: read_dji_xmp of the photo when already read):
     (RtkFlag, per-axis horizontal and vertical 1-sigma in metres), or None when the XMP has no RtkFlag (not an
     RTK drone) or flag 0 (no solution). The one reading of `triangulate` (io/photo_block) and camera_node
-    (ExifGps.rtk).
+    (read_exif_gps).
 
     The sigmas are RtkStdLon, RtkStdLat (horizontal: sqrt((lon^2 + lat^2) / 2)) and RtkStdHgt, each at
     least the floor of the flag's quality class (core/exposure_positions.DJI_RTK_FLAG_Q ->
@@ -107,43 +75,11 @@ def dji_rtk_accuracy(path, xmp: dict | None = None) -> tuple[int, float, float] 
     return flag, max((0.5 * (lon_m ** 2 + lat_m ** 2)) ** 0.5, floor_h, 1e-3), max(hgt_m, floor_v, 1e-3)
 
 
-# The common quality class of a DJI RtkFlag (core/exposure_positions.DJI_RTK_FLAG_Q: 1 fix, 2 float, 3 SBAS, 4 DGPS,
-# 5 single) -> sensor_msgs/NavSatStatus.status, as core/gnss_fix maps a receiver's fix type: RTK fixed and float
-# are both GBAS (NavSatStatus cannot tell them apart: the covariance does), SBAS and DGPS SBAS, single a plain fix.
-_RTK_Q_STATUS = {1: gf.STATUS_GBAS_FIX, 2: gf.STATUS_GBAS_FIX, 3: gf.STATUS_SBAS_FIX, 4: gf.STATUS_SBAS_FIX,
-                 5: gf.STATUS_FIX}
-
-
-def rtk_navsat_status(flag: int) -> int:
-    """A DJI RtkFlag -> NavSatStatus.status (_RTK_Q_STATUS; an unknown flag is a single solution's STATUS_FIX)."""
-    from photogram_ros.core.exposure_positions import DJI_RTK_FLAG_Q
-    return _RTK_Q_STATUS.get(DJI_RTK_FLAG_Q.get(int(flag), 5), gf.STATUS_FIX)
-
-
-@dataclass(frozen=True)
-class GeoTxtPosition:
-    """A photo's position from an OpenDroneMap geo.txt beside it (a PPK `geotag`, or any survey tool):
-    WGS84 with an ellipsoidal height and its own accuracies, which replace the EXIF GPS and its sigmas."""
-
-    lat_deg: float
-    lon_deg: float
-    h_m: float            # ellipsoidal (WGS84), m
-    h_acc_m: float        # 1-sigma horizontal, m
-    v_acc_m: float        # 1-sigma vertical, m
-
-    def gnss_fix(self, stamp_ns: int, sigma_h_m: float = 0.0, sigma_v_m: float = 0.0, *args, **kwargs) -> gf.GnssFix:
-        """This position as a fix at `stamp_ns` with the geo.txt accuracies (the sigmas given for an EXIF
-        geotag do not apply)."""
-        cov = np.diag([self.h_acc_m ** 2, self.h_acc_m ** 2, self.v_acc_m ** 2])
-        return gf.GnssFix(self.lat_deg, self.lon_deg, self.h_m, cov, int(stamp_ns), gf.STATUS_FIX,
-                          gf.COV_DIAGONAL_KNOWN)
-
-
 @dataclass
 class Frame:
     stamp_ns: int
     image: np.ndarray     # BGR uint8 (H, W, 3)
-    gps: ExifGps | GeoTxtPosition | StoredFix | None   # a photo's geo.txt position, else its EXIF GPS
+    gps: gf.GnssFix | None   # a photo's geo.txt position, else its EXIF GPS, or a map folder's stored fix
     path: str             # file path, or the video source and frame index
 
 
@@ -158,9 +94,15 @@ def _exif(path):
             return im.getexif()
 
 
-def read_exif_gps(path) -> ExifGps | None:
-    """EXIF GPS of a photo as written, with a DJI RTK photo's XMP flag and sigmas (`ExifGps.rtk`); None when
-    absent or unreadable."""
+def read_exif_gps(path) -> gf.GnssFix | None:
+    """EXIF GPS of a photo as a fix (core.gnss_fix.GnssFix); None when absent or unreadable.
+
+    Its height is GPSAltitude signed by GPSAltitudeRef (without it, a DJI XMP's drone-dji:AbsoluteAltitude) as
+    written, datum 'exif': above mean sea level as EXIF 2.3 says, but many drones write it above the take-off
+    point; `GnssFix.at` reads it as the user says (exif_altitude_to_ellipsoidal_m), in camera_node as in
+    triangulate. It has no time of its own (stamp 0). A DJI RTK photo (`dji_rtk_accuracy`) has its XMP sigmas
+    (covariance known) and its RtkFlag on the quality scale (native: the flag); any other its covariance unknown
+    (the EXIF sigmas of the caller apply) and the quality of a single solution."""
     try:
         gps = _exif(path).get_ifd(GPS_IFD)
     except (OSError, SyntaxError, ValueError):
@@ -188,18 +130,23 @@ def read_exif_gps(path) -> ExifGps | None:
         alt = 0.0 if alt is None else alt
     if not (np.isfinite(lat) and np.isfinite(lon) and np.isfinite(alt)):
         return None
-    return ExifGps(lat, lon, alt, dji_rtk_accuracy(path, xmp))
+    rtk = dji_rtk_accuracy(path, xmp)
+    if rtk is None:
+        return gf.GnssFix(lat, lon, alt, np.zeros((3, 3)), cov_type=gf.COV_UNKNOWN, quality=gf.Q_SINGLE,
+                          height_datum='exif', source='EXIF')
+    from photogram_ros.core.exposure_positions import DJI_RTK_FLAG_Q
+    flag, sh, sv = rtk
+    return gf.GnssFix(lat, lon, alt, np.diag([sh * sh, sh * sh, sv * sv]), cov_type=gf.COV_DIAGONAL_KNOWN,
+                      quality=DJI_RTK_FLAG_Q.get(flag, gf.Q_SINGLE), height_datum='exif', source='EXIF + DJI RTK XMP',
+                      quality_native=flag, native_scale='DJI RtkFlag')
 
 
-EXIF_ALTITUDE_REFERENCES = ('msl', 'ellipsoidal', 'relative')
-# The commands' and the camera node's spelling of the same readings (common_args): 'orthometric' is 'msl' (EGM2008).
-EXIF_ALTITUDE_SPELLINGS = {'orthometric': 'msl'}
 
 
 def exif_altitude_reading(reference: str = 'msl', takeoff_h_m: float | None = None,
                           takeoff_reference: str = 'msl') -> tuple[str, float | None, str]:
     """How to read EXIF altitudes, checked, as (reference, takeoff_h_m, takeoff_reference) for
-    exif_altitude_to_ellipsoidal_m and ExifGps.gnss_fix: the one rule of `triangulate --exif-altitude` and
+    exif_altitude_to_ellipsoidal_m and GnssFix.at: the one rule of `triangulate --exif-altitude` and
     camera_node's exif_altitude. 'orthometric' is taken for 'msl'; a take-off height that is None or NaN is none.
     Raises ConfigError for an unknown reading, 'relative' without a take-off height, or a take-off height
     without 'relative'."""
@@ -220,40 +167,6 @@ def exif_altitude_reading(reference: str = 'msl', takeoff_h_m: float | None = No
         raise ConfigError(f'a take-off height ({takeoff:g} m) is only used with EXIF altitudes relative to the '
                           'take-off point: say relative, or drop the take-off height')
     return ref, takeoff, takeoff_ref
-
-
-def exif_altitude_to_ellipsoidal_m(lat_deg, lon_deg, alt_m, reference: str = 'msl',
-                                   takeoff_h_m: float | None = None, takeoff_reference: str = 'msl'):
-    """EXIF GPSAltitude (m, as written) -> WGS84 ellipsoidal height (m); scalars or arrays.
-
-    `reference` says what the camera meant: 'msl' or 'orthometric' (EXIF 2.3; through EGM2008 at the photo),
-    'ellipsoidal' (some PPK/RTK geotaggers write the WGS84 height) or 'relative' (above the take-off
-    point, as many drones write it). 'relative' needs `takeoff_h_m`, the take-off point's height,
-    above mean sea level or the ellipsoid as `takeoff_reference` ('msl' | 'ellipsoidal') says.
-    """
-    from photogram_ros.core import geoid
-    reference = EXIF_ALTITUDE_SPELLINGS.get(reference, reference)
-    takeoff_reference = EXIF_ALTITUDE_SPELLINGS.get(takeoff_reference, takeoff_reference)
-    if reference not in EXIF_ALTITUDE_REFERENCES:
-        raise ConfigError(f'EXIF altitude reference {reference!r} unknown; choose from {EXIF_ALTITUDE_REFERENCES}')
-    if takeoff_reference not in ('msl', 'ellipsoidal'):
-        raise ConfigError(f"take-off height reference {takeoff_reference!r} unknown; choose 'msl' or 'ellipsoidal'")
-    alt = np.asarray(alt_m, dtype=float)
-    if reference == 'ellipsoidal':
-        return alt
-    if reference == 'msl':
-        return geoid.msl_to_ellipsoid_m(lat_deg, lon_deg, alt)
-    if takeoff_h_m is None:
-        raise ConfigError('EXIF altitudes relative to take-off need the take-off point\'s height: give it '
-                          '(triangulate --takeoff-altitude-m H, MSL unless --takeoff-heights ellipsoidal), '
-                          'e.g. from a map, a survey of the launch point or the first photo\'s GNSS fix')
-    if not np.isfinite(takeoff_h_m):
-        raise ConfigError(f'take-off height {takeoff_h_m} m is not a number')
-    if takeoff_reference == 'ellipsoidal':
-        # A height difference is the same above the geoid or the ellipsoid to the geoid's slope
-        # across the flight: millimetres over a few km.
-        return float(takeoff_h_m) + alt
-    return geoid.msl_to_ellipsoid_m(lat_deg, lon_deg, float(takeoff_h_m) + alt)
 
 
 # The rule of `exif_altitudes_look_relative`, in metres.
@@ -584,7 +497,7 @@ class FolderSource:
         # Positions from a geo.txt beside the photos (a PPK geotag) replace their EXIF GPS.
         self.geo: dict = {}
         if (self.folder / 'geo.txt').exists():
-            self.geo = {name: GeoTxtPosition(*g) for name, g in read_geo_txt(self.folder / 'geo.txt').items()}
+            self.geo = geo_txt_fixes(self.folder / 'geo.txt')
             self.notes.append(f'positions of {sum(p.name in self.geo for p, _ in self.entries)} of '
                               f'{len(self.entries)} photos from geo.txt (ellipsoidal heights, its accuracies as '
                               'sigmas), the others from their EXIF GPS')
@@ -751,26 +664,6 @@ class VideoSource:
             self.cap.release()
 
 
-@dataclass(frozen=True)
-class StoredFix:
-    """A keyframe's GNSS fix as the map folder kept it (io/flight_inputs.keyframe_fixes: WGS84, ellipsoidal height,
-    NavSatStatus status; its 1-sigmas when stored, else the ones `gnss_fix` is given)."""
-
-    lat_deg: float
-    lon_deg: float
-    h_m: float            # ellipsoidal (WGS84), m
-    status: int = gf.STATUS_FIX
-    sigma_h_m: float | None = None
-    sigma_v_m: float | None = None
-
-    def gnss_fix(self, stamp_ns: int, sigma_h_m: float, sigma_v_m: float, *args, **kwargs) -> gf.GnssFix:
-        known = self.sigma_h_m is not None and self.sigma_v_m is not None
-        sh, sv = (self.sigma_h_m, self.sigma_v_m) if known else (sigma_h_m, sigma_v_m)
-        cov = np.diag([sh * sh, sh * sh, sv * sv])
-        return gf.GnssFix(self.lat_deg, self.lon_deg, self.h_m, cov, int(stamp_ns), int(self.status),
-                          gf.COV_DIAGONAL_KNOWN if known else gf.COV_APPROXIMATED)
-
-
 class StoredKeyframes:
     """The keyframes a map folder holds without a pose (taken before a crash cut the flight short, never oriented
     by the adjuster), as frames to feed again: each keyframe's saved image (the camera's full resolution) with its
@@ -803,10 +696,19 @@ class StoredKeyframes:
             if image is None:
                 continue
             fix = self.fixes.get(stamp_ns)
-            gps = None if fix is None or fix.get('status', 0) < 0 else StoredFix(
-                fix['lat_deg'], fix['lon_deg'], fix['h_m'], int(fix.get('status', gf.STATUS_FIX)),
-                fix.get('sigma_h_m'), fix.get('sigma_v_m'))
+            gps = None if fix is None or fix.get('status', 0) < 0 else stored_fix(fix)
             yield Frame(stamp_ns, image, gps, str(path))
+
+
+def stored_fix(fix: dict) -> gf.GnssFix:
+    """A keyframe's fix as the map folder kept it (io/flight_inputs.keyframe_fixes: WGS84, ellipsoidal height,
+    NavSatStatus status, its 1-sigmas sigma_h_m / sigma_v_m when stored, else its covariance unknown: `GnssFix.at`
+    gives it the sigmas of the caller)."""
+    sh, sv = fix.get('sigma_h_m'), fix.get('sigma_v_m')
+    known = sh is not None and sv is not None
+    cov = np.diag([sh * sh, sh * sh, sv * sv]) if known else np.zeros((3, 3))
+    return gf.GnssFix(fix['lat_deg'], fix['lon_deg'], fix['h_m'], cov, 0, int(fix.get('status', gf.STATUS_FIX)),
+                      gf.COV_DIAGONAL_KNOWN if known else gf.COV_UNKNOWN, source='map folder')
 
 
 def open_source(source: str, utc_offset_s: float = 0.0, fallback_period_s: float = 1.0,
@@ -869,7 +771,7 @@ def read_fix_log(path, sigma_h_m: float = 5.0) -> list:
         status = num(row, 'status')
         fixes.append(gf.GnssFix(lat, lon, h, np.diag(var), int(round(t * 1e9)),
                                 int(status) if math.isfinite(status) else gf.STATUS_FIX,
-                                gf.COV_DIAGONAL_KNOWN if known else gf.COV_APPROXIMATED))
+                                gf.COV_DIAGONAL_KNOWN if known else gf.COV_APPROXIMATED, source=f'fix log {path.name}'))
     if not fixes:
         raise DataError(f'GNSS log {path}: none of its {len(rows)} rows holds a fix')
     fixes.sort(key=lambda f: f.stamp_ns)

@@ -1,7 +1,7 @@
 """From decoded MAVLink messages to what the node publishes: fixes, attitude, camera triggers.
 
 `Ingest` maps the autopilot's boot clock to UNIX/host time (SYSTEM_TIME, TIMESYNC), turns
-GPS_RAW_INT / GPS2_RAW into `core.gnss_fix.Fix` (one `FixEvent` per fix, routed to /gps/fix and the
+GPS_RAW_INT / GPS2_RAW into `core.gnss_fix.GnssFix` (one `FixEvent` per fix, routed to /gps/fix and the
 per-receiver topics), ATTITUDE(_QUATERNION) into `Attitude` (FLU in ENU) and CAMERA_FEEDBACK /
 CAMERA_TRIGGER into `Trigger`. It has no ROS in it, so `photogram-ros fixes` prints exactly what
 the node publishes.
@@ -31,26 +31,33 @@ class Attitude:
 
 @dataclass
 class Trigger:
-    """One camera exposure with the camera position (WGS84, ellipsoidal height) and the accuracy of its fix."""
+    """One camera exposure and the camera position at it: a GnssFix stamped at the exposure, WGS84 and
+    ellipsoidal, with the quality and accuracy of the receiver fix it came from."""
 
-    t_s: float
+    t_s: float                    # the exposure on the output clock (UNIX / ROS), s
     seq: int
-    lat_deg: float
-    lon_deg: float
-    h_m: float
     source: str                   # 'CAMERA_FEEDBACK' or 'CAMERA_TRIGGER' (position interpolated from fixes)
-    fix_type: int
-    var_enu_m2: tuple             # (var_E, var_N, var_U) of the fix the position came from
-    cov_type: int
+    fix: gf.GnssFix
 
 
 @dataclass
 class FixEvent:
-    """A decoded fix and where it goes: an event about a `gf.Fix` (its routing), not another fix type."""
+    """A decoded fix and where it goes: an event about a `gf.GnssFix` (its routing), not another fix type."""
 
-    fix: gf.Fix
+    fix: gf.GnssFix
     best: bool                    # goes to /gps/fix (the chosen receiver, newer than the last one there)
     per_receiver: bool = True     # goes to /gps/fix_<receiver + 1> (False: it went there already)
+
+
+def _exposure_fix(t_s: float, lat: float, lon: float, h: float, ref: gf.GnssFix | None, source: str) -> gf.GnssFix:
+    """The camera position at an exposure with the quality and covariance of the fix `ref` it came from (none:
+    no fix, covariance unknown)."""
+    if ref is None:
+        return gf.GnssFix(lat, lon, h, np.zeros((3, 3)), int(round(t_s * 1e9)), cov_type=gf.COV_UNKNOWN,
+                          quality=gf.Q_NONE, source=source, quality_native=gf.NO_FIX, native_scale='GPS_FIX_TYPE')
+    return gf.GnssFix(lat, lon, h, np.diag(ref.var_enu_m2), int(round(t_s * 1e9)), cov_type=ref.cov_type,
+                      quality=ref.quality, source=source, quality_native=ref.quality_native,
+                      native_scale=ref.native_scale, receiver=ref.receiver, sats=ref.sats, hdop=ref.hdop)
 
 
 def raw_gnss(m, receiver: int) -> gf.RawGnss:
@@ -88,7 +95,7 @@ class Ingest:
         self.on_problem = on_problem or (lambda what: self.problems.append(what))
         self.problems: list = []
         self.counts = Counter()
-        self.latest: dict = {}               # receiver -> Fix
+        self.latest: dict = {}               # receiver -> GnssFix
         self.best_receiver = None
         self.rtk: dict = {}                  # receiver -> last GPS_RTK fields
         self._pending: deque = deque()       # (msg, arrival_s) waiting for the clock
@@ -330,9 +337,7 @@ class Ingest:
             return []
         h = float(m.alt_msl) + gf.undulation_m(lat, lon)
         ref = self.latest.get(self.best_receiver) if self.best_receiver is not None else None
-        ft, cov, ct = (ref.fix_type, ref.var_enu_m2, ref.cov_type) if ref else (gf.NO_FIX, (0.0, 0.0, 0.0),
-                                                                               gf.COV_UNKNOWN)
-        return [Trigger(t, int(m.img_idx), lat, lon, h, 'CAMERA_FEEDBACK', ft, cov, ct)]
+        return [Trigger(t, int(m.img_idx), 'CAMERA_FEEDBACK', _exposure_fix(t, lat, lon, h, ref, 'CAMERA_FEEDBACK'))]
 
     def _trigger(self, m) -> list:
         if self.trigger_source == 'feedback' or (self.trigger_source == 'auto' and self._feedback_seen):
@@ -359,8 +364,7 @@ class Ingest:
                 if a.t_s <= t <= b.t_s and b.t_s - a.t_s < 2.0:
                     lat, lon, h = gf.interpolate(a, b, t)
                     worse = a if a.sigma_h_m >= b.sigma_h_m else b
-                    out.append(Trigger(t, seq, lat, lon, h, 'CAMERA_TRIGGER', worse.fix_type, worse.var_enu_m2,
-                                       worse.cov_type))
+                    out.append(Trigger(t, seq, 'CAMERA_TRIGGER', _exposure_fix(t, lat, lon, h, worse, 'CAMERA_TRIGGER')))
                     break
             else:
                 self.counts['trigger_without_fix'] += 1

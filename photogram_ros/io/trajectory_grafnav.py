@@ -135,7 +135,7 @@ class GrafNavReader:
     def read(self, path: Path) -> AntennaTrack:
         path = Path(path)
         lines = read_lines(path)
-        h = _header_index(lines[:400])
+        h = _header_index(lines)          # however long the header (a multi-base project's runs to hundreds)
         if h is None:
             raise DataError(f'{path}: no column line naming the time ({", ".join(_TIME)}) and Latitude/Longitude (or '
                             'X-ECEF): export it again with a time and the position in the profile')

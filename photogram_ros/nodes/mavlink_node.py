@@ -253,8 +253,8 @@ class MavlinkNode(Node):
                                                   qos.reliable(OUTPUT_DEPTH))
         return self.pub_rx[receiver]
 
-    def _fix_msg(self, fix: gf.Fix) -> NavSatFix:
-        return msgs.navsatfix_from_gnss_fix(gf.GnssFix.from_fix(fix), self.params.frame_id)
+    def _fix_msg(self, fix: gf.GnssFix) -> NavSatFix:
+        return msgs.navsatfix_from_gnss_fix(fix, self.params.frame_id)
 
     def _publish(self, ev) -> None:
         if isinstance(ev, FixEvent):
@@ -280,9 +280,7 @@ class MavlinkNode(Node):
                                                           self.params.attitude_frame_id))
             self.published['attitude'] += 1
         elif isinstance(ev, Trigger):
-            self.pub_trigger.publish(msgs.navsatfix_msg(int(round(ev.t_s * 1e9)), ev.lat_deg, ev.lon_deg, ev.h_m,
-                                                        gf.navsat_status(ev.fix_type), ev.var_enu_m2, ev.cov_type,
-                                                        frame_id=f'camera_{ev.seq}'))
+            self.pub_trigger.publish(msgs.navsatfix_from_gnss_fix(ev.fix, f'camera_{ev.seq}'))
             self.published['trigger'] += 1
 
     def _update_diagnostics(self) -> None:

@@ -49,7 +49,6 @@ from photogram_ros.core.frame_queue import FrameQueue
 from photogram_ros.core.keyframes import FixBuffer
 from photogram_ros.core.control import (ARUCO_DICTIONARIES, ControlSet, TargetRegionOptions, detect_keyframe_targets,
                                         detect_keyframe_targets_encoded, detect_targets_in_regions, target_regions)
-from photogram_ros.core.gnss_fix import GnssFix
 from photogram_ros.core.pace import ThreadCaps, limit_threads
 from photogram_ros.core.tracker import EncodedImage, Tracker, TrackerParams
 from photogram_ros.errors import CalibrationError, PhotogramError
@@ -119,6 +118,37 @@ class TrackerNodeParams(TrackerParams, ThreadCaps, TargetRegionOptions):
                                         'coming after an unbridged break (ERROR above 0.5)', min=0.0, max=1.0)
 
 
+class SharedFixBuffer(FixBuffer):
+    """The tracker's FixBuffer, read and written from two threads: fixes come in on the executor thread (`add`,
+    the drop rule's `near`), the worker's tracker reads them (`at`, `near`, `latest_ns`). One lock around each."""
+
+    def __init__(self, max_gap_s: float = 1.0, keep: int = 600):
+        super().__init__(max_gap_s, keep)
+        self._lock = threading.RLock()
+        self.added = 0          # fixes given so far (flush: whether the stream still comes)
+
+    def add(self, fix) -> None:
+        with self._lock:
+            super().add(fix)
+            self.added += 1
+
+    def __len__(self) -> int:
+        with self._lock:
+            return super().__len__()
+
+    def latest_ns(self):
+        with self._lock:
+            return super().latest_ns()
+
+    def near(self, stamp_ns: int, max_s: float):
+        with self._lock:
+            return super().near(stamp_ns, max_s)
+
+    def at(self, stamp_ns: int):
+        with self._lock:
+            return super().at(stamp_ns)
+
+
 class TrackerNode(Node):
     def __init__(self, overrides: dict | None = None, **node_kwargs):
         super().__init__('tracker_node', **node_kwargs)
@@ -139,8 +169,10 @@ class TrackerNode(Node):
         self._cond = threading.Condition()
         self._track_lock = threading.Lock()   # the worker and flush() both drive the tracker
         self._frames = FrameQueue(p.queue_size, int(p.queue_max_mb * 1e6))
-        self._fixes: deque = deque(maxlen=1000)
-        self._queue_fixes = FixBuffer(p.fix_max_gap_s)   # the drop rule's positions of waiting frames
+        # The one store of the fixes: the tracker's own buffer, shared (under a lock) with the drop rule's look-ups
+        # of the waiting frames' positions in the executor thread.
+        self._fixes = SharedFixBuffer(p.fix_max_gap_s)
+        self.tracker.fixes = self._fixes
         self._camera_pending = None
         self._camera_error = 'no camera_info received yet' if self._camera_from_file is None else ''
         self._stop = False
@@ -195,7 +227,7 @@ class TrackerNode(Node):
         spacing = self.tracker.keyframe_spacing_m()
         with self._cond:
             dropped = self._frames.push(msg, msgs.ns_from_time(msg.header.stamp), len(msg.data),
-                                        lambda t: self._queue_fixes.near(t, self.params.fix_max_gap_s),
+                                        lambda t: self._fixes.near(t, self.params.fix_max_gap_s),
                                         None if spacing is None else self.params.drop_gap_share * spacing)
             self.frames_done += len(dropped)
             waiting, over = len(self._frames), self._frames.kept_over_size
@@ -223,13 +255,11 @@ class TrackerNode(Node):
 
     def _on_fix(self, msg: NavSatFix) -> None:
         try:
-            fix = GnssFix.from_dict(msgs.fix_from_navsatfix(msg))
+            fix = msgs.gnss_fix_from_navsatfix(msg)
         except Exception as exc:   # a malformed fix must not stop the node
             self.diag.problem(f'bad NavSatFix: {exc}')
             return
-        with self._cond:
-            self._fixes.append(fix)
-            self._queue_fixes.add(fix)
+        self._fixes.add(fix)     # the tracker reads it from there
 
     # --- worker ----------------------------------------------------------------------------------
 
@@ -246,19 +276,15 @@ class TrackerNode(Node):
                     self._cond.wait_for(lambda: self._camera_pending is not None or self._stop, 1.0)
                 msg = self._frames.popleft()
                 cam, self._camera_pending = self._camera_pending, None
-                fixes = list(self._fixes)
-                self._fixes.clear()
             try:
                 with self._track_lock:
-                    self._handle(msg, cam, fixes)
+                    self._handle(msg, cam)
             except Exception as exc:   # the worker must survive anything one frame can do
                 self.diag.problem(f'tracker failed on a frame: {type(exc).__name__}: {exc}', ERROR)
             with self._cond:
                 self.frames_done += 1
 
-    def _handle(self, msg, cam, fixes) -> None:
-        for f in fixes:
-            self.tracker.add_fix(f)
+    def _handle(self, msg, cam) -> None:
         if cam is not None:
             try:
                 self.tracker.set_camera(cam)
@@ -565,16 +591,12 @@ class TrackerNode(Node):
         # Fixes after the last frame: the last keyframes need them. While the fix stream lags behind the
         # newest keyframe still waiting and keeps coming, wait for it (until the deadline or 1 s of silence).
         last_fix = time.monotonic()
+        added = self._fixes.added
         while True:
-            with self._cond:
-                fixes = list(self._fixes)
-                self._fixes.clear()
             with self._track_lock:
-                for f in fixes:
-                    self.tracker.add_fix(f)
                 lagging = self.tracker.fix_lag_s(newest=True) > 0.0
             now = time.monotonic()
-            last_fix = now if fixes else last_fix
+            last_fix, added = (now, self._fixes.added) if self._fixes.added != added else (last_fix, added)
             if not lagging or now - last_fix > 1.0 or now > deadline:
                 break
             time.sleep(0.05)
