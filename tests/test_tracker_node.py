@@ -375,3 +375,50 @@ def test_flush_waits_for_the_queue_while_the_tracker_takes_frames(rclpy_context,
             assert not tracker._frames and tracker.frames_done == 30
     finally:
         tracker.destroy_node()
+
+
+def test_a_frame_waits_for_its_fix_while_the_fix_stream_is_live(rclpy_context):
+    """A frame whose fix has not come yet (the two topics arrive in either order) waits for it, up to
+    frame_fix_wait_s and a quarter of the frame interval; a wait that the stream misses is counted and the
+    stream is not waited for again until its next fix; a frame whose fix is there does not wait."""
+    from types import SimpleNamespace
+
+    from photogram_ros.msgs import time_from_ns
+    from photogram_ros.nodes.tracker_node import TrackerNode
+    tracker = TrackerNode(overrides={'frame_fix_wait_s': 0.5}, context=rclpy_context)
+    s = 1_000_000_000
+
+    def frame(stamp_ns):
+        return SimpleNamespace(header=SimpleNamespace(stamp=time_from_ns(stamp_ns)))
+    try:
+        tracker._on_fix(_fix_at(1 * s))
+        tracker._last_stamp_ns = 1 * s
+
+        def late_fix():
+            time.sleep(0.1)
+            tracker._on_fix(_fix_at(3 * s))
+        threading.Thread(target=late_fix).start()
+        t0 = time.monotonic()
+        with tracker._cond:
+            tracker._wait_for_fix(frame(3 * s))      # frames 2 s apart: waits up to 0.5 s
+        waited = time.monotonic() - t0
+        assert tracker._fixes.latest_ns() == 3 * s and waited < 0.45
+        assert tracker.diag.counts().get('frames_fix_late', 0) == 0
+        tracker._last_stamp_ns = 3 * s
+        t0 = time.monotonic()
+        with tracker._cond:
+            tracker._wait_for_fix(frame(5 * s))      # no fix comes: the whole wait, then counted
+        assert 0.45 < time.monotonic() - t0 < 2.0 and tracker.diag.counts()['frames_fix_late'] == 1
+        tracker._last_stamp_ns = 5 * s
+        t0 = time.monotonic()
+        with tracker._cond:
+            tracker._wait_for_fix(frame(7 * s))      # the stream missed a wait and sent nothing since: no wait
+        assert time.monotonic() - t0 < 0.1
+        tracker._on_fix(_fix_at(8 * s))
+        tracker._last_stamp_ns = 8 * s + 300_000_000
+        t0 = time.monotonic()
+        with tracker._cond:
+            tracker._wait_for_fix(frame(8 * s + 400_000_000))   # video pace (0.1 s): at most 25 ms
+        assert time.monotonic() - t0 < 0.2 and tracker.diag.counts()['frames_fix_late'] == 2
+    finally:
+        tracker.destroy_node()

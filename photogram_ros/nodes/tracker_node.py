@@ -116,6 +116,13 @@ class TrackerNodeParams(TrackerParams, ThreadCaps, TargetRegionOptions):
                               max=100)
     health_max_lost: float = param(0.2, 'health: WARN above this share of the last health_window keyframes '
                                         'coming after an unbridged break (ERROR above 0.5)', min=0.0, max=1.0)
+    frame_fix_wait_s: float = param(0.5, 'Before a frame is tracked, wait up to this long (and at most a quarter '
+                                    'of the interval since the last frame: a video is barely slowed) for a fix at '
+                                    'or after its stamp while the fix stream is live (a frame and its fix arrive '
+                                    'on two topics in either order: the keyframe rule then sees the same GNSS '
+                                    'whatever the order, and a replay gives the same keyframes every time); a '
+                                    'stream that misses the wait is not waited for again until its next fix; 0: '
+                                    'no wait, s', min=0.0, max=5.0)
 
 
 class SharedFixBuffer(FixBuffer):
@@ -173,6 +180,7 @@ class TrackerNode(Node):
         # of the waiting frames' positions in the executor thread.
         self._fixes = SharedFixBuffer(p.fix_max_gap_s)
         self.tracker.fixes = self._fixes
+        self._fix_wait_missed_at = -1   # the fix count at the last missed frame_fix_wait_s (_wait_for_fix)
         self._camera_pending = None
         self._camera_error = 'no camera_info received yet' if self._camera_from_file is None else ''
         self._stop = False
@@ -260,6 +268,8 @@ class TrackerNode(Node):
             self.diag.problem(f'bad NavSatFix: {exc}')
             return
         self._fixes.add(fix)     # the tracker reads it from there
+        with self._cond:
+            self._cond.notify_all()   # a frame may wait for this fix (_wait_for_fix)
 
     # --- worker ----------------------------------------------------------------------------------
 
@@ -276,6 +286,7 @@ class TrackerNode(Node):
                     self._cond.wait_for(lambda: self._camera_pending is not None or self._stop, 1.0)
                 msg = self._frames.popleft()
                 cam, self._camera_pending = self._camera_pending, None
+                self._wait_for_fix(msg)
             try:
                 with self._track_lock:
                     self._handle(msg, cam)
@@ -283,6 +294,25 @@ class TrackerNode(Node):
                 self.diag.problem(f'tracker failed on a frame: {type(exc).__name__}: {exc}', ERROR)
             with self._cond:
                 self.frames_done += 1
+
+    def _wait_for_fix(self, msg) -> None:
+        """Under self._cond: give the frame's fix frame_fix_wait_s (at most a quarter of the frame interval) to
+        arrive when the fix stream is live (a fix came since the last missed wait) and its newest fix is older
+        than the frame. A missed wait is counted
+        (frames_fix_late) and the stream is not waited for again until a new fix arrives."""
+        stamp = getattr(getattr(msg, 'header', None), 'stamp', None)
+        if stamp is None:     # not a frame message: _handle reports it
+            return
+        stamp_ns = msgs.ns_from_time(stamp)
+        wait_s = self.params.frame_fix_wait_s
+        if self._last_stamp_ns is not None:
+            wait_s = min(wait_s, 0.25 * max(stamp_ns - self._last_stamp_ns, 0) * 1e-9)
+        latest = self._fixes.latest_ns()
+        if wait_s <= 0 or latest is None or latest >= stamp_ns or self._fix_wait_missed_at == self._fixes.added:
+            return
+        if not self._cond.wait_for(lambda: self._stop or (self._fixes.latest_ns() or 0) >= stamp_ns, wait_s):
+            self._fix_wait_missed_at = self._fixes.added
+            self.diag.count('frames_fix_late')
 
     def _handle(self, msg, cam) -> None:
         if cam is not None:
