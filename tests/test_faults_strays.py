@@ -49,7 +49,7 @@ def test_a_calibration_file_leaves_out_photos_of_another_size(tmp_path):
     """With --camera, a photo of another size than the calibration's is named and left out; when no photo has its
     size the set is refused with the sizes and the option to use (no API hint)."""
     from photogram_ros.errors import CalibrationError
-    from photogram_ros.io.photo_block import _camera
+    from photogram_ros.io.photo_block import _camera_and_left_out
     photos = _toledo_with_strays(tmp_path, n=3)
     calib = tmp_path / 'camera.yaml'
     calib.write_text('image_width: 2400\nimage_height: 1800\ncamera_name: fc350\ncamera_matrix:\n  rows: 3\n'
@@ -57,7 +57,7 @@ def test_a_calibration_file_leaves_out_photos_of_another_size(tmp_path):
                      'distortion_coefficients:\n  rows: 1\n  cols: 5\n  data: [0, 0, 0, 0, 0]\n')
     images = sorted(photos.iterdir())
     notes = []
-    cam, from_exif, used, why = _camera(photos, images, calib, notes)
+    cam, from_exif, used, why = _camera_and_left_out(photos, images, calib, notes)
     assert not from_exif and cam.width == 2400
     assert sorted(why) == ['DJI_0063_thumb.JPG', 'PANO_0001.JPG'] and len(used) == 4
     assert 'calibration\'s 2400x1800' in why['PANO_0001.JPG']
@@ -65,6 +65,6 @@ def test_a_calibration_file_leaves_out_photos_of_another_size(tmp_path):
     small.write_text(calib.read_text().replace('width: 2400', 'width: 1200').replace('height: 1800', 'height: 900')
                      .replace('1200, 0, 2300, 900', '600, 0, 2300, 450'))
     with pytest.raises(CalibrationError) as exc:
-        _camera(photos, [p for p in images if p.name.startswith('DJI_006') and '_' not in p.stem[4:]], small, [])
+        _camera_and_left_out(photos, [p for p in images if p.name.startswith('DJI_006') and '_' not in p.stem[4:]], small, [])
     assert 'but the calibration' in str(exc.value) and '--camera' in str(exc.value)
     assert 'scaled()' not in str(exc.value)

@@ -159,7 +159,14 @@ def _calibrated_camera(images: list[Path], camera_path, assumptions, log) -> tup
 
 
 def _camera(src: Path, images: list[Path], camera_path, assumptions, log=None
-            ) -> tuple[PinholeCamera, bool, list[Path], dict]:
+            ) -> tuple[PinholeCamera, bool, list[Path]]:
+    """_camera_and_left_out without the photos left out (the camera, whether it came from the EXIF, the photos
+    of that camera)."""
+    return _camera_and_left_out(src, images, camera_path, assumptions, log)[:3]
+
+
+def _camera_and_left_out(src: Path, images: list[Path], camera_path, assumptions, log=None
+                         ) -> tuple[PinholeCamera, bool, list[Path], dict]:
     """--camera, else the EXIF of the photos; whether it came from the EXIF; the photos of that camera; and
     the photos left out, by name with why. From the EXIF, photos of two cameras (another image size, or a
     focal length more than 5 % apart) are split by camera: the largest group is used, the others are named in
@@ -446,7 +453,7 @@ def read_photo_block(src: str | Path, camera_path: str | Path | None = None, nei
         raise DataError(f'no image in {src} has a position (EXIF GPS or geo.txt): georeferencing impossible '
                         '(give the photos\' positions in a geo.txt, or a GCP file with 3 GCPs or more: --gcp)')
     images, excluded = _drop_duplicates(images, assumptions, log)
-    camera, from_exif, images, other_camera = _camera(src, images, camera_path, assumptions, log)
+    camera, from_exif, images, other_camera = _camera_and_left_out(src, images, camera_path, assumptions, log)
     excluded.update(other_camera)
     if len(images) < 3:
         raise DataError(f'{src} holds {len(images)} usable images of one camera: at least 3 overlapping photos are '
