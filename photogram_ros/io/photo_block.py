@@ -26,7 +26,9 @@ feature positions and verified matches; the matches are the same wherever they r
 
 from __future__ import annotations
 
+import hashlib
 import time
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -41,7 +43,7 @@ from photogram_ros.core.incremental import KeyframeRecord
 from photogram_ros.errors import CalibrationError, DataError
 from photogram_ros.io.dask_cluster import InProcessRunner
 from photogram_ros.io.geo_txt import EXIF_SIGMA_H_M, EXIF_SIGMA_V_M, read_geo_txt
-from photogram_ros.io.image_source import (IMAGE_SUFFIXES, dji_rtk_accuracy,
+from photogram_ros.io.image_source import (IMAGE_SUFFIXES, camera_of, dji_rtk_accuracy,
                                            exif_altitude_to_ellipsoidal_m, exif_intrinsics, image_file_problem,
                                            read_dji_xmp, read_exif_gps, xmp_float)
 from photogram_ros.io.keyframe_block import KeyframeBlock, camera_from_yaml
@@ -108,20 +110,77 @@ def _positions(src: Path, images: list[Path], exif_altitude, takeoff_h_m, takeof
     return geo, check, {str(k): n for k, n in rtk_counts.items()}
 
 
+def _pixels(p: Path) -> tuple[int, int]:
+    """A photo's (long, short) side in pixels from its header (a panorama of any size without Pillow's
+    decompression-bomb warning)."""
+    w, h, _ = camera_of(p)
+    return max(w, h), min(w, h)
+
+
+def _say(note: str, assumptions: list, log) -> None:
+    assumptions.append(note)
+    if log is not None:
+        log(f'warning: {note}')
+
+
+def _names(ps: list[Path]) -> str:
+    return f'{", ".join(p.name for p in ps[:10])}{" ..." if len(ps) > 10 else ""}'
+
+
+def _exif_camera(p: Path):
+    """exif_intrinsics of a photo, a panorama of any size read without Pillow's decompression-bomb warning (only
+    its header is read)."""
+    from PIL import Image
+    with warnings.catch_warnings():
+        warnings.simplefilter('ignore', Image.DecompressionBombWarning)
+        return exif_intrinsics(p)
+
+
+def _calibrated_camera(images: list[Path], camera_path, assumptions, log) -> tuple[PinholeCamera, dict]:
+    """The calibration file's camera and the photos of another size than it (either way round), by name with
+    why: a stray panorama or thumbnail is left out, not the set. CalibrationError when no photo has its size."""
+    camera = camera_from_yaml(camera_path)
+    size = (max(camera.width, camera.height), min(camera.width, camera.height))
+    others = [p for p in images if _pixels(p) != size]
+    if len(others) == len(images):
+        w, h, _ = camera_of(images[0])
+        raise CalibrationError(f'the photos are {w}x{h} (e.g. {images[0].name}) but the calibration {camera_path} is '
+                               f'for {camera.width}x{camera.height}: give the calibration of this camera mode '
+                               '(--camera), or leave --camera out to take the camera from the photos\' EXIF')
+    assumptions.append(f'calibration from {camera_path}, held fixed')
+    why = {}
+    for p in others:
+        w, h, _ = camera_of(p)
+        why[p.name] = f'another image size ({w}x{h} against the calibration\'s {camera.width}x{camera.height})'
+    if others:
+        _say(f'{len(others)} photos of another size than the calibration\'s {camera.width}x{camera.height} not used: '
+             f'{_names(others)}; one camera model per block', assumptions, log)
+    return camera, why
+
+
 def _camera(src: Path, images: list[Path], camera_path, assumptions, log=None
             ) -> tuple[PinholeCamera, bool, list[Path]]:
-    """--camera, else the EXIF of the photos; whether it came from the EXIF; and the photos of that
-    camera. From the EXIF, photos of two cameras (another image size, or a focal length more than 5 %
-    apart) are split by camera: the largest group is used, the others are named in the assumptions as
-    not used (one camera model per block)."""
+    """_camera_and_left_out without the photos left out (the camera, whether it came from the EXIF, the photos
+    of that camera)."""
+    return _camera_and_left_out(src, images, camera_path, assumptions, log)[:3]
+
+
+def _camera_and_left_out(src: Path, images: list[Path], camera_path, assumptions, log=None
+                         ) -> tuple[PinholeCamera, bool, list[Path], dict]:
+    """--camera, else the EXIF of the photos; whether it came from the EXIF; the photos of that camera; and
+    the photos left out, by name with why. From the EXIF, photos of two cameras (another image size, or a
+    focal length more than 5 % apart) are split by camera: the largest group is used, the others are named in
+    the assumptions as not used (one camera model per block). A photo without EXIF intrinsics (a stitched
+    panorama, a thumbnail) is taken with the main camera when it has its image size, else named and left
+    out: a stray image never refuses the set."""
     if camera_path:
-        assumptions.append(f'calibration from {camera_path}, held fixed')
-        return camera_from_yaml(camera_path), False, images
+        camera, why = _calibrated_camera(images, camera_path, assumptions, log)
+        return camera, False, [p for p in images if p.name not in why], why
     groups = []          # [(first estimate, [paths])]: one per camera
-    unknown = []         # photos without EXIF intrinsics: taken with the main camera
+    unknown = []         # photos without EXIF intrinsics: taken with the main camera when of its size
     for p in images:
         try:
-            e = exif_intrinsics(p)
+            e = _exif_camera(p)
         except (CalibrationError, DataError):
             unknown.append(p)
             continue
@@ -138,7 +197,22 @@ def _camera(src: Path, images: list[Path], camera_path, assumptions, log=None
         exif_intrinsics(images[0])   # raises the error that says what the EXIF lacks
     groups.sort(key=lambda g: -len(g[1]))
     est, members = groups[0]
-    used = set(members) | set(unknown)
+    main_size = (max(est.camera.width, est.camera.height), min(est.camera.width, est.camera.height))
+    why = {}
+    sized = [p for p in unknown if _pixels(p) == main_size]
+    odd = [p for p in unknown if p not in set(sized)]
+    sizes = {}
+    for p in odd:
+        w, h, _ = camera_of(p)
+        sizes[p.name] = f'{w}x{h}'
+        why[p.name] = (f'another image size without EXIF focal length ({w}x{h}: a panorama, a thumbnail or another '
+                       'camera)')
+    if odd:
+        _say(f'{len(odd)} images of another size and without an EXIF focal length not used (a panorama, a '
+             f'thumbnail or another camera; the block\'s camera is {est.camera.width}x{est.camera.height} px): '
+             f'{"; ".join(f"{p.name} ({sizes[p.name]})" for p in odd[:10])}{" ..." if len(odd) > 10 else ""}',
+             assumptions, log)
+    used = set(members) | set(sized)
     others = {}
     for p in members[1:]:
         c = exif_intrinsics(p).camera
@@ -151,14 +225,44 @@ def _camera(src: Path, images: list[Path], camera_path, assumptions, log=None
                            f'{next(iter(others.values())):.1f} px): a zoom lens; one camera is used')
     for e, ps in groups[1:]:
         c = e.camera
-        note = (f'{len(ps)} photos of another camera not used ({c.width}x{c.height} px, f {c.fx:.0f} px, against '
-                f'{est.camera.width}x{est.camera.height} px, f {est.camera.fx:.0f} px of the {len(members)} used): '
-                f'{", ".join(p.name for p in ps[:10])}{" ..." if len(ps) > 10 else ""}; one camera model per '
-                'block: triangulate them as a folder of their own')
-        assumptions.append(note)
-        if log is not None:
-            log(f'warning: {note}')
-    return est.camera, True, [p for p in images if p in used]
+        for p in ps:
+            why[p.name] = (f'another camera ({c.width}x{c.height} px, f {c.fx:.0f} px; one camera model per '
+                           'block)')
+        _say(f'{len(ps)} photos of another camera not used ({c.width}x{c.height} px, f {c.fx:.0f} px, against '
+             f'{est.camera.width}x{est.camera.height} px, f {est.camera.fx:.0f} px of the {len(members)} used): '
+             f'{_names(ps)}; one camera model per block: triangulate them as a folder of their own', assumptions, log)
+    return est.camera, True, [p for p in images if p in used], why
+
+
+def _file_digest(path: Path) -> bytes:
+    """A hash of the file's bytes (duplicate copies of a photo)."""
+    h = hashlib.blake2b(digest_size=16)
+    with open(path, 'rb') as fh:
+        for chunk in iter(lambda: fh.read(1 << 20), b''):
+            h.update(chunk)
+    return h.digest()
+
+
+def _drop_duplicates(images: list[Path], assumptions: list, log) -> tuple[list[Path], dict]:
+    """`images` without the byte-identical copies of a photo (one file downloaded twice: the same features
+    twice would make a pair of a photo with itself), and the copies by name with why; the shortest name is
+    kept (DJI_0070.JPG before 'DJI_0070 (1).JPG'). Only files of one byte size are compared byte for byte."""
+    by_size: dict = {}
+    for p in sorted(images, key=lambda p: (len(p.name), p.name)):   # 'a.JPG' kept before 'a (1).JPG'
+        by_size.setdefault(p.stat().st_size, []).append(p)
+    why = {}
+    for same in by_size.values():
+        seen: dict = {}
+        for p in same if len(same) > 1 else ():
+            d = _file_digest(p)
+            if d in seen:
+                why[p.name] = f'identical to {seen[d].name} (a duplicate copy)'
+            else:
+                seen[d] = p
+    if why:
+        _say(f'{len(why)} duplicate photos dropped: {"; ".join(f"{n} {w}" for n, w in list(why.items())[:10])}'
+             f'{" ..." if len(why) > 10 else ""}', assumptions, log)
+    return [p for p in images if p.name not in why], why
 
 
 def _usable_images(src: Path, assumptions: list, log) -> tuple[list[Path], int]:
@@ -348,9 +452,12 @@ def read_photo_block(src: str | Path, camera_path: str | Path | None = None, nei
     if not any(p.name in geo for p in images) and origin_without_positions is None:
         raise DataError(f'no image in {src} has a position (EXIF GPS or geo.txt): georeferencing impossible '
                         '(give the photos\' positions in a geo.txt, or a GCP file with 3 GCPs or more: --gcp)')
-    given = images
-    camera, from_exif, images = _camera(src, images, camera_path, assumptions, log)
-    excluded = {p.name: 'another camera (one camera model per block)' for p in given if p not in set(images)}
+    images, excluded = _drop_duplicates(images, assumptions, log)
+    camera, from_exif, images, other_camera = _camera_and_left_out(src, images, camera_path, assumptions, log)
+    excluded.update(other_camera)
+    if len(images) < 3:
+        raise DataError(f'{src} holds {len(images)} usable images of one camera: at least 3 overlapping photos are '
+                        f'needed ({len(excluded)} left out: {", ".join(list(excluded)[:5])})')
     placed = [geo[p.name] for p in images if p.name in geo]
     if not placed and origin_without_positions is None:
         raise DataError(f'no photo of the camera used in {src} has a position (EXIF GPS or geo.txt): '
