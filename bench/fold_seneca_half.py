@@ -56,7 +56,7 @@ class Clock:
         return getattr(time, name)
 
 
-def run(folder: Path, every: int, pace_s: float) -> dict:
+def run(folder: Path, every: int, pace_s: float, fix_late: bool = False) -> dict:
     import photogram_ros.stages.adjustment as stage_module
     clock = Clock()
     stage_module.time = clock
@@ -75,12 +75,16 @@ def run(folder: Path, every: int, pace_s: float) -> dict:
     tr = Tracker(camera, TrackerParams(**tp))
     stage = AdjustmentStage(from_dict(AdjustmentParams, bp))
     stage.set_camera(camera)
-    steps, first_bad, reports = [], None, []
+    steps, first_bad, reports, inputs = [], None, [], []
     add = stage.at.add_keyframe
 
     def add_keyframe(rec, *args, **kw):
         rep = add(rec, *args, **kw)
         reports.append(rep)
+        f = rec.fix
+        inputs.append({'stamp_ns': rec.stamp_ns, 'ids': sorted(int(i) for i in rec.track_ids if i >= 0),
+                       'fix': None if f is None else [f.lat_deg, f.lon_deg, f.h_m, float(f.cov_enu_m2[0, 0]),
+                                                      float(f.cov_enu_m2[2, 2])]})
         return rep
     stage.at.add_keyframe = add_keyframe
     entries = list(src.entries)[::every]
@@ -115,9 +119,12 @@ def run(folder: Path, every: int, pace_s: float) -> dict:
     for path, stamp in entries:
         clock.now += pace_s
         gps = read_exif_gps(path)
-        if gps:
+        if gps and not fix_late:
             tr.add_fix(gps.gnss_fix(stamp, 5.0, 2.0))
-        adjust(tr.process(EncodedImage(np.fromfile(str(path), np.uint8)), stamp))
+        new = tr.process(EncodedImage(np.fromfile(str(path), np.uint8)), stamp)
+        if gps and fix_late:
+            tr.add_fix(gps.gnss_fix(stamp, 5.0, 2.0))
+        adjust(new)
     adjust(tr.flush())
     out = stage.finish()
     at = stage.at
@@ -133,7 +140,7 @@ def run(folder: Path, every: int, pace_s: float) -> dict:
             'oriented_final': sum(s['oriented'] for s in final), 'first_bad': first_bad,
             'final_bad': [s['kid'] for s in final if s.get('from_fix_m', 0) >= FAR_M or s.get('tilt_deg', 0) >= TILT_DEG],
             'final': final, 'not_oriented': {str(s['kid']): None for s in final if not s['oriented']},
-            'outcome': str(out)[:2000], 'steps': steps}
+            'outcome': str(out)[:2000], 'steps': steps, 'inputs': inputs}
 
 
 def main() -> int:
@@ -141,13 +148,14 @@ def main() -> int:
     ap.add_argument('--survey', default='seneca', choices=sorted(SURVEYS))
     ap.add_argument('--all-photos', action='store_true', help='every photo instead of every other one')
     ap.add_argument('--pace-s', type=float, default=1.0, help='simulated wall time a photo, s')
+    ap.add_argument('--fix-late', action='store_true', help="a photo's fix reaches the tracker after the photo")
     ap.add_argument('--out', default='/tmp/fold_seneca_half.jsonl')
     a = ap.parse_args()
     from machine import ResultWriter
     w = ResultWriter(a.out, 'fold_seneca_half', MODULES, fresh=False, echo=False)
-    row = run(SURVEYS[a.survey], 1 if a.all_photos else 2, a.pace_s)
-    w.write({'survey': a.survey, 'every': 1 if a.all_photos else 2, 'pace_s': a.pace_s, **row})
-    print({k: v for k, v in row.items() if k not in ('steps', 'final')})
+    row = run(SURVEYS[a.survey], 1 if a.all_photos else 2, a.pace_s, a.fix_late)
+    w.write({'survey': a.survey, 'every': 1 if a.all_photos else 2, 'pace_s': a.pace_s, 'fix_late': a.fix_late, **row})
+    print({k: v for k, v in row.items() if k not in ('steps', 'final', 'inputs')})
     return 0
 
 
