@@ -1,4 +1,4 @@
-"""`replay` of brighton_beach's every other photo (bench/real_surveys.half_overlap_block: half the forward overlap,
+"""`replay` of brighton_beach's, toledo's or seneca_part's every other photo (bench/real_surveys.half_overlap_block: half the forward overlap,
 the tracker's weakest real block) once per parameter file, measured as bench/real_surveys.py measures a replay
 (oriented, from GPS with and without a similarity, the block check's verdict).
 
@@ -28,12 +28,12 @@ def main() -> int:
     from machine import ResultWriter
     ap = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
     ap.add_argument('--params', required=True, help='NAME=FILE,... replay parameter files, one replay each')
-    ap.add_argument('--survey', default='brighton', choices=('brighton', 'toledo'))
+    ap.add_argument('--survey', default='brighton', choices=('brighton', 'toledo', 'seneca'))
     ap.add_argument('--out', default='/tmp/tracker_half_overlap.jsonl')
     ap.add_argument('--work', default='/tmp/tracker_half')
     a = ap.parse_args()
     work = Path(a.work)
-    src = (rs.BRIGHTON if a.survey == 'brighton' else rs.TOLEDO) / 'images'
+    src = {'brighton': rs.BRIGHTON, 'toledo': rs.TOLEDO, 'seneca': rs.SENECA}[a.survey] / 'images'
     folder = work / 'blocks' / f'{a.survey}_half'
     ref = rs.half_overlap_block(src, folder)
     w = ResultWriter(a.out, 'tracker_half_overlap', MODULES, fresh=False, echo=True)

@@ -126,8 +126,18 @@ def relative_pose(xn1, xn2, threshold_n: float = 1e-3, min_inliers: int = 15, me
         front = (z1 > 0) & (z2 > 0)
     # The RANSAC winner comes from a minimal sample: refine on every inlier.
     sel = np.flatnonzero(inl)[front]
+    R_h, t_h = R, t
     R, t = refine_pose_sampson(R, t, xn1[sel], xn2[sel])
     inliers, pts = _support(R, t, xn1, xn2, inl)
+    if planar is not None:
+        # Over a plane the essential matrix is degenerate: the Sampson error is as low along a family of
+        # poses, and its refinement can slide along it to cameras that see the ground obliquely (a narrow
+        # overlap of a nadir pair: 7 degrees of tilt change from the homography, 45 after the refinement).
+        # The homography's pose is kept when the refined one faces the ground clearly worse.
+        ins_h, pts_h = _support(R_h, t_h, xn1, xn2, inl)
+        if (ins_h.sum() >= min_inliers and pair_facing(R, t, pts[inliers])
+                < pair_facing(R_h, t_h, pts_h[ins_h]) - PLANAR_REFINE_FACING_LOSS):
+            R, t, inliers, pts = R_h, t_h, ins_h, pts_h
     twin = _facing_twin(R, t, xn1, xn2, inl, inliers, pts, threshold_n)
     if twin is not None:
         R, t, inliers, pts = twin
@@ -191,6 +201,13 @@ def _support(R, t, xn1, xn2, inl):
     return inliers, pts
 
 
+def pair_facing(R: np.ndarray, t: np.ndarray, points_cam1: np.ndarray) -> float:
+    """`scene_facing` of the points (N, 3, camera 1) for the camera of the two that sees their plane the more
+    obliquely (camera 2 at x2 = R x1 + t): an aerial pair's two cameras both look at the ground they map."""
+    X = np.asarray(points_cam1, float).reshape(-1, 3)
+    return min(scene_facing(X), scene_facing(X @ np.asarray(R, float).T + np.asarray(t, float).reshape(3)))
+
+
 def scene_facing(points_cam: np.ndarray) -> float:
     """|cos| of the angle between the optical axis and the normal of the plane that best fits the
     points (N, 3) in the camera frame: 1 when the camera looks straight at the scene's plane (a nadir
@@ -207,6 +224,8 @@ def scene_facing(points_cam: np.ndarray) -> float:
 # The planar twin replaces the five-point answer when it keeps this share of its support and faces
 # the scene's plane clearly better (|cos| of the normal to the optical axis larger by this margin).
 TWIN_MIN_SUPPORT = 0.6
+# A planar pair's refined pose replaces the homography's unless it faces the ground worse by this (`pair_facing`).
+PLANAR_REFINE_FACING_LOSS = 0.1
 TWIN_FACING_MARGIN = 0.3
 
 
