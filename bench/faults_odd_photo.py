@@ -93,6 +93,7 @@ def main() -> int:
     from machine import machine_info, tree_state
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument('--survey', choices=sorted(SURVEYS), default='brighton')
+    ap.add_argument('--out', default='', help='the result file (default bench/results/<bench>_<commit>.jsonl)')
     ap.add_argument('--scale', type=float, default=ODD_SCALE, help='the odd photo\'s width as a share of the others\'')
     ap.add_argument('--aspect', type=float, default=1.0,
                     help='its height\'s share against its width\'s (1: the same aspect; 0.9: 4:3 towards 3:2)')
@@ -107,7 +108,7 @@ def main() -> int:
     row = {'bench': 'faults_odd_photo', **state, 'scale': a.scale, 'aspect': a.aspect, **row, 'machine': machine_info(),
            'load_avg_before': [round(x, 2) for x in load_before],
            'load_avg_after': [round(x, 2) for x in os.getloadavg()]}
-    append_result('faults_odd_photo', state['commit'][:7], row)
+    append_result('faults_odd_photo', state['commit'][:7], row, a.out)
     return 0 if row['odd']['exit'] == row['plain']['exit'] else 1
 
 

@@ -55,10 +55,11 @@ def main() -> int:
     return 0 if rc in (0, 4) else 1
 
 
-def append_result(bench: str, commit: str, row: dict) -> None:
-    """Print `row` and append it as a JSON line to bench/results/<bench>_<commit>.jsonl (bench/faults_odd_photo.py)."""
+def append_result(bench: str, commit: str, row: dict, out: str = '') -> None:
+    """Print `row` and append it as a JSON line to `out`, else bench/results/<bench>_<commit>.jsonl
+    (bench/faults_odd_photo.py, bench/faults_strays.py)."""
     print(json.dumps(row), flush=True)
-    dst = ROOT / 'bench' / 'results' / f'{bench}_{commit}.jsonl'
+    dst = Path(out) if out else ROOT / 'bench' / 'results' / f'{bench}_{commit}.jsonl'
     with open(dst, 'a') as f:
         f.write(json.dumps(row) + '\n')
     print(f'-> {dst}', file=sys.stderr)

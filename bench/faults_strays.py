@@ -87,6 +87,7 @@ def main() -> int:
     from machine import machine_info, tree_state
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument('--survey', choices=sorted(SURVEYS), default='toledo')
+    ap.add_argument('--out', default='', help='the result file (default bench/results/<bench>_<commit>.jsonl)')
     a = ap.parse_args()
     state = tree_state()
     load_before = os.getloadavg()
@@ -95,7 +96,7 @@ def main() -> int:
     row = {'bench': 'faults_strays', **state, **row, 'machine': machine_info(),
            'load_avg_before': [round(x, 2) for x in load_before],
            'load_avg_after': [round(x, 2) for x in os.getloadavg()]}
-    append_result('faults_strays', state['commit'][:7], row)
+    append_result('faults_strays', state['commit'][:7], row, a.out)
     ok = (row['with_strays']['exit'] == row['plain']['exit'] and not row['strays_with_a_pose']
           and all(row['strays_named_in_report'].values()))
     return 0 if ok else 1

@@ -143,6 +143,12 @@ BENCHES: tuple[Bench, ...] = (
     Bench('faults_stop', ('bench/faults_stop.py', '--out', '{out}'), 6,
           'docs/faults.md: `run` with a camera that never ends, stopped by SIGTERM (exit time, RSS; not rendered)',
           ros=True, needs=('{data}/photos/toledo',)),
+    Bench('faults_odd_photo', ('bench/faults_odd_photo.py', '--survey', 'seneca', '--scale', '0.9', '--out', '{out}'), 6,
+          'docs/faults.md: replay of a survey whose first photo has another size, against the plain survey '
+          '(not rendered)', ros=True, needs=('{data}/photos/seneca_part',)),
+    Bench('faults_strays', ('bench/faults_strays.py', '--survey', 'toledo', '--out', '{out}'), 6,
+          'docs/faults.md: triangulate with a panorama, a thumbnail and a duplicate among the photos (not rendered)',
+          needs=('{data}/photos/toledo',)),
 )
 BY_NAME = {b.name: b for b in BENCHES}
 
@@ -159,7 +165,7 @@ GROUPS: dict[str, tuple[str, ...]] = {
     'long_short': ('bundle_bal', 'control_adjustment_cost', 'ppk_survey', 'ground_stream', 'ground_flight',
                    'e2e_realtime', 'photo_triangulation', 'photo_triangulation_matching', 'split_merge_paths'),
     'long': ('block_verdicts', 'held_out_proxies', 'inflight_chain', 'photo_triangulation_scale'),
-    'faults': ('faults_stop',),
+    'faults': ('faults_stop', 'faults_odd_photo', 'faults_strays'),
     'adjustment': ('gnss_tilt',),
 }
 

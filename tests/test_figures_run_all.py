@@ -38,6 +38,6 @@ def test_a_group_names_benches_of_run_all_and_selects_them_in_order():
         assert set(names) <= set(run_all.BY_NAME), g
     chosen = [b.name for b in run_all.select('long_short', 'ground_flight')]
     assert chosen == [n for n in run_all.GROUPS['long_short'] if n != 'ground_flight']
-    assert [b.name for b in run_all.select('faults,bundle_bal,faults', '')] == ['faults_stop', 'bundle_bal']
+    assert [b.name for b in run_all.select('faults,bundle_bal,faults', '')] == ['faults_stop', 'faults_odd_photo', 'faults_strays', 'bundle_bal']
     text = run_all.groups_text({'bundle_bal': 7.5})
     assert 'bundle_bal 8,' in text.splitlines()[1] and text.splitlines()[1].startswith('components')

@@ -62,6 +62,7 @@ def test_player_waits_for_a_slow_adjuster(tiny_flight, tmp_path, rclpy_context, 
 @pytest.mark.ros
 @pytest.mark.slow
 def test_without_the_wait_the_tracker_runs_ahead(tiny_flight, tmp_path, rclpy_context, monkeypatch):
-    """The control for the test above: the same replay without the wait lets the backlog grow with
-    the flight (measured: up to 10 keyframes on this 16-keyframe flight, 2 with max_lag_keyframes=2)."""
-    assert _max_lag_with_a_slow_adjuster(tiny_flight, tmp_path, rclpy_context, monkeypatch, 0) > 5
+    """The control for the test above: the same replay without the wait lets the tracker run further ahead
+    than the wait's bound (2 + the one on its way) allows (measured: 4 keyframes on this 16-keyframe flight at
+    6030be7 and after; 10 with the slower tracker of earlier sessions)."""
+    assert _max_lag_with_a_slow_adjuster(tiny_flight, tmp_path, rclpy_context, monkeypatch, 0) > 2 + 1
