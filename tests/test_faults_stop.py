@@ -109,14 +109,10 @@ def test_a_second_signal_skips_to_writing_what_exists(tmp_path):
     assert 'Traceback' not in out
 
 
-def test_the_end_of_flight_is_cut_short_past_its_time_bound():
-    """finish_within_bounds: a step that never ends is cut short past the bound; the steps left are skipped
-    and the FlightEnd says so (not a final adjustment claimed)."""
-    from photogram_ros.commands.run import finish_within_bounds
+def end_of_flight_graph(release: threading.Event | None = None):
+    """A stand-in graph for commands/run.finish_within_bounds: (graph, its nodes); with `release`, the tracker's
+    end-of-flight step hangs until it is set (at most 30 s). Each node counts its calls."""
     from photogram_ros.nodes.graph import Graph
-
-    release = threading.Event()
-    said: list[str] = []
 
     class Node:
         def __init__(self, hang=False):
@@ -129,10 +125,21 @@ def test_the_end_of_flight_is_cut_short_past_its_time_bound():
 
         finish = finish_coverage = flush
 
-    nodes = {'tracker': Node(hang=True), 'bundle': Node(), 'stereo': Node(), 'map': Node()}
+    nodes = {'tracker': Node(hang=release is not None), 'bundle': Node(), 'stereo': Node(), 'map': Node()}
     graph = SimpleNamespace(spec=SimpleNamespace(roles=tuple(nodes)), child=None, nodes=nodes,
                             counts=lambda: {}, problems=lambda role: [], drain=lambda **kw: {})
     graph.finish_flight = lambda **kw: Graph.finish_flight(graph, **kw)
+    return graph, nodes
+
+
+def test_the_end_of_flight_is_cut_short_past_its_time_bound():
+    """finish_within_bounds: a step that never ends is cut short past the bound; the steps left are skipped
+    and the FlightEnd says so (not a final adjustment claimed)."""
+    from photogram_ros.commands.run import finish_within_bounds
+
+    release = threading.Event()
+    said: list[str] = []
+    graph, nodes = end_of_flight_graph(release)
     skip = threading.Event()
     t0 = time.monotonic()
     end = finish_within_bounds(graph, skip, timeout_s=1.0, max_rss_mb=0.0, say=said.append)
