@@ -94,29 +94,42 @@ class Stopped(BaseException):
     BaseException, as KeyboardInterrupt, so that no `except Exception` takes it."""
 
 
-def _stop_on_sigterm() -> None:
+def _stop_on_signals(received: list) -> None:
     """SIGTERM ends the command like Ctrl-C until the command installs its own handling (run, record,
-    ground-station: they finish their work first): said in one line, not a silent exit 143."""
+    ground-station: they finish their work first): said in one line, not a silent exit 143. Each signal
+    is also noted in `received`: an exception raised where Python cannot pass it on (a finaliser, a
+    garbage-collection callback) is lost, the signal is not."""
     import signal
     import threading
 
     def stop(signum, frame):
-        raise Stopped()
+        received.append(signum)
+        raise Stopped() if signum == signal.SIGTERM else KeyboardInterrupt()
     if threading.current_thread() is threading.main_thread():
         signal.signal(signal.SIGTERM, stop)
+        signal.signal(signal.SIGINT, stop)
 
 
 def main(argv=None) -> int:
-    _stop_on_sigterm()
+    import signal
+    received: list[int] = []
+    _stop_on_signals(received)
     command = ['photogram-ros']
     try:
-        return _main(argv, command)
+        status = _main(argv, command)
     except KeyboardInterrupt:
         print(f'{" ".join(command)}: stopped by SIGINT', file=sys.stderr)
         return 130
     except Stopped:
         print(f'{" ".join(command)}: stopped by SIGTERM', file=sys.stderr)
         return 143
+    if received and command[-1] not in ROS_COMMANDS:
+        # A command without a stop of its own that went on after a signal: its exception was lost (the ROS
+        # commands take SIGINT as their stop and return their own status).
+        signum = received[0]
+        print(f'{" ".join(command)}: stopped by {signal.Signals(signum).name}', file=sys.stderr)
+        return 128 + signum
+    return status
 
 
 def _main(argv, command: list) -> int:

@@ -6,6 +6,7 @@ flight has a time bound, and a flight that mapped nothing exits 5 (docs/faults.m
 from __future__ import annotations
 
 import json
+import re
 import shutil
 import signal
 import subprocess
@@ -104,7 +105,9 @@ def test_a_second_signal_skips_to_writing_what_exists(tmp_path):
     photos = write_white_wall(tmp_path / 'wall', n=4)
     rc, out, _, _, products = looping_run(tmp_path, photos, stop_after_s=8.0,
                                               signals=(signal.SIGTERM, signal.SIGINT), gap_s=0.3, bound_s=300.0)
-    assert 'SIGINT again: skipping the end-of-flight steps left' in out, out[-3000:]
+    # Both signals may be pending when Python next runs a handler: it runs them in signal-number order, so
+    # either may be the one said to come again.
+    assert re.search(r'SIG(INT|TERM) again: skipping the end-of-flight steps left', out), out[-3000:]
     assert rc != 0 and (products / 'report.md').exists(), out[-3000:]
     assert 'Traceback' not in out
 
