@@ -298,8 +298,8 @@ class TrackerNode(Node):
     def _wait_for_fix(self, msg) -> None:
         """Under self._cond: give the frame's fix frame_fix_wait_s (at most a quarter of the frame interval) to
         arrive when the fix stream is live (a fix came since the last missed wait) and its newest fix is older
-        than the frame. A missed wait is counted
-        (frames_fix_late) and the stream is not waited for again until a new fix arrives."""
+        than the frame. A missed wait is counted (frames_fix_late) and the stream is not waited for again
+        until a new fix arrives."""
         stamp = getattr(getattr(msg, 'header', None), 'stamp', None)
         if stamp is None:     # not a frame message: _handle reports it
             return
@@ -626,7 +626,8 @@ class TrackerNode(Node):
             with self._track_lock:
                 lagging = self.tracker.fix_lag_s(newest=True) > 0.0
             now = time.monotonic()
-            last_fix, added = (now, self._fixes.added) if self._fixes.added != added else (last_fix, added)
+            if self._fixes.added != added:   # a fix arrived since the last look
+                last_fix, added = now, self._fixes.added
             if not lagging or now - last_fix > 1.0 or now > deadline:
                 break
             time.sleep(0.05)
