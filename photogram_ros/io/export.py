@@ -43,8 +43,8 @@ from photogram_ros.io.export_cloud import (EGM2008_HEIGHT, HEIGHTS, GeoCloud, ch
                                            write_las, write_ply)
 from photogram_ros.io.export_files import ExportResult, ProductsIncomplete, part_path, write_whole
 from photogram_ros.io.export_raster import (COG_BLOCK_PX, FILL_MARGIN_AGL, FILLED, DsmParams, StoredKeyframes,
-                                            Surface, dsm_in_crs, ortho_in_crs, read_crs, surface_in_crs,
-                                            write_geotiff)
+                                            Surface, cameras_in_crs, covering_clouds, dsm_in_crs, ortho_in_crs,
+                                            read_crs, surface_in_crs, write_geotiff)
 from photogram_ros.io.map_store import MapStore, as_map_store
 from photogram_ros.io.products import PRODUCTS, ExportJob, Writers, plan, product_names
 from photogram_ros.io.progress import Steps
@@ -58,8 +58,10 @@ def export_map(map_dir: str | Path | MapStore, out_dir: str | Path, crs: str, he
     """Write the requested products of a map folder (or an open MapStore) into out_dir (created).
 
     `products`: names of the registry's products (io/products: las, laz, ply, dsm, dtm, ortho; None: all).
-    min_pairs=2 exports only cells confirmed by two stereo pairs: a cell one pair saw cannot be
-    checked for gross matching errors (on the sample flight they hold most of the large errors).
+    min_pairs=2 exports the cells confirmed by two stereo pairs, and cells one pair saw only where no confirmed
+    cell is near (io/export_raster.covering_clouds; band 2 of dsm.tif says 1 there): a cell one pair saw cannot
+    be checked for gross matching errors (on the sample flight they hold most of the large errors), but on a
+    survey with one pair per spot it is the only evidence.
     `dsm`: the DSM rules (default DsmParams(): lengths from the map's cell size).
     contour_interval_m > 0 also writes contours.gpkg: the DTM's contour lines at that interval (io/contours.py).
     say(text): progress lines (io/progress.py): each product as it starts, the orthomosaic's keyframes
@@ -105,7 +107,8 @@ def export_map(map_dir: str | Path | MapStore, out_dir: str | Path, crs: str, he
     chosen = [p for p in PRODUCTS if p.chosen(job)]
     job.steps = steps = Steps('export', len(plan(chosen)), say)
     steps.start('cloud')
-    job.cloud, job.fewer = map_clouds(fusion, origin, crs, heights, min_pairs)
+    job.cloud, job.fewer = covering_clouds(*map_clouds(fusion, origin, crs, heights, min_pairs), job.dsm_res_m,
+                                           job.rules, cameras_in_crs(origin, job.centres, crs, heights), min_pairs)
     res.points = job.cloud.x.size
     vertical_crs, note = product_crs(crs, heights)
     res.crs_with_heights = vertical_crs.name
@@ -113,7 +116,8 @@ def export_map(map_dir: str | Path | MapStore, out_dir: str | Path, crs: str, he
         res.notes.append(note)
     rules = job.rules
     res.dsm = {'cell_m': store.cell_m, 'res_m': job.dsm_res_m, 'max_spread_m': rules.max_spread_m,
-               'min_count': rules.min_count, 'fill_gaps_m': rules.fill_gaps_m, 'canopy_top': rules.canopy_top}
+               'min_count': rules.min_count, 'fill_gaps_m': rules.fill_gaps_m, 'canopy_top': rules.canopy_top,
+               'one_pair_beyond_m': rules.one_pair_beyond_m}
     for product in chosen:
         for name in product.needs:
             job.need(name)
