@@ -17,9 +17,10 @@ LAS/LAZ points are classified (core.ground: 2 ground, 6 building, 1 the rest) wi
 Rasters are Cloud-Optimized GeoTIFFs (GDAL's COG driver: tiled, deflate, overviews) whose CRS and
 vertical datum are in the file itself (write_geotiff): a .tif copied alone keeps them.
 
-The DSM holds the cells stereo measured and, inside what the photos saw (the camera centres' hull),
-heights interpolated where stereo measured none (surface_in_crs); its band 2 gives the stereo pairs
-that measured each cell, 0 where interpolated. The DTM (core.dtm) is the ground class of the cloud on
+The DSM holds the cells stereo measured (min_pairs pairs, or one pair where no confirmed cell is near:
+covering_clouds) and, inside what the photos saw (the camera centres' hull, widened), heights interpolated
+where stereo measured none (surface_in_crs); its band 2 gives the stereo pairs that measured each cell (1: one
+pair, unconfirmed), 0 where interpolated; export.json's dsm.footprint gives those shares over the footprint. The DTM (core.dtm) is the ground class of the cloud on
 the DSM's grid, interpolated under buildings and vegetation; contours of it on request (io/contours.py).
 
 Rasters are built in the output CRS's own grid (north-up in that CRS), so GIS tools need no

@@ -2,9 +2,10 @@
 
 Rasters are Cloud-Optimized GeoTIFFs (GDAL's COG driver: tiled, deflate, overviews) whose CRS and
 vertical datum are in the file itself (write_geotiff, io/crs_tags.py): a .tif copied alone keeps them.
-The DSM holds the cells stereo measured and, inside what the photos saw (the camera centres' hull),
-heights interpolated where stereo measured none (surface_in_crs); its band 2 gives the stereo pairs
-that measured each cell, 0 where interpolated. Rasters are built in the output CRS's own grid
+The DSM covers what the photos saw (the cameras' footprint: the camera centres' hull, widened): the cells
+min_pairs stereo pairs confirmed, the cells one pair measured where no confirmed cell is near
+(covering_clouds), and heights interpolated where stereo measured none (surface_in_crs); its band 2 gives the
+stereo pairs that measured each cell (1: one pair, unconfirmed), 0 where interpolated. Rasters are built in the output CRS's own grid
 (north-up in that CRS): the DSM from the fused cells' CRS coordinates, the orthomosaic by mapping each
 of its cells back to map ENU and draping the keyframes (core.raster.orthomosaic).
 """
@@ -94,7 +95,8 @@ class DsmParams:
     the sample flight these took the DSM RMSE against the true DEM from 2.8 to 2.0 GSD. The two
     lengths are the sample's (0.5 m, 3 m with 0.12 m cells) scaled with the map's cell size unless
     set (core/gsd.dsm_lengths_for_cell): with the sample's lengths a 1080p flight at 166 m, whose
-    cells are 0.4 m, kept 2.8 % of its DSM.
+    cells are 0.4 m, kept 2.8 % of its DSM. Cells one stereo pair measured hold the DSM where no confirmed
+    cell lies within `one_pair_beyond_m` (covering_clouds).
     """
     max_spread_m: float = param(AUTO, 'a DSM cell whose fused points span more height is no-data (a wall), m; '
                                       '-1: from the map cell (0.5 m at 0.12 m cells)', min=AUTO, max=1e3)
