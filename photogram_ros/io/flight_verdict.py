@@ -216,16 +216,16 @@ def footprint_warnings(footprint: dict | None) -> list[str]:
     said = (f"stereo measured {measured * 100:.1f} % of the cameras' footprint (the camera centres' hull widened by "
             f"a quarter of the flying height: what the oriented photos saw), {one * 100:.1f} % of it from one stereo "
             f"pair that no second pair confirmed")
-    out = []
+    why_one = ('too little overlap for a second pair: it needs three photos of a spot along a line, over 67 % '
+               'forward overlap, or the band two lines share; a one-pair cell is kept only where it agrees with its '
+               'neighbours, no second look checked it')
+    mostly_one = measured > 0 and one > MAX_ONE_PAIR_SHARE * measured
     if measured + checked < MIN_FOOTPRINT_SHARE:
-        out.append(f"the products cover little of what the photos saw: {said}; the rest is interpolated "
-                   f"({checked * 100:.1f} % of the footprint near confirmed cells, where one pair's heights check "
-                   f"the interpolation; {float(footprint.get('valid', 0.0)) * 100:.1f} % holds a height)")
-    if measured > 0 and one > MAX_ONE_PAIR_SHARE * measured:
-        out.append(f'most of the DSM rests on one stereo pair: {said} (too little overlap for a second pair: it needs '
-                   'three photos of a spot along a line, over 67 % forward overlap, or the band two lines share); '
-                   'a one-pair cell is kept only where it agrees with its neighbours, no second look checked it')
-    return out
+        return [f"the products cover little of what the photos saw: {said}; the rest is interpolated "
+                f"({checked * 100:.1f} % of the footprint near confirmed cells, where one pair's heights check "
+                f"the interpolation; {float(footprint.get('valid', 0.0)) * 100:.1f} % holds a height)"
+                + (f'; most of what stereo measured rests on one pair ({why_one})' if mostly_one else '')]
+    return [f'most of the DSM rests on one stereo pair: {said} ({why_one})'] if mostly_one else []
 
 
 def mapping_verdict(accounting: dict, georeferenced: bool, dsm_share: float | None, mapped_products: bool,
