@@ -206,6 +206,13 @@ def test_a_survey_one_pair_measured_everywhere_is_mapped_over_its_footprint_by_t
     assert res.dsm['footprint']['measured'] > 0.5          # the rest: the margin beyond the pairs' 40 m square
     assert res.points > 0.9 * 40 * 40 / 0.2 ** 2           # the cloud holds the one-pair cells
     assert res.dtm['valid_share'] > 0.5
+    # one_pair_beyond_m at ONE_PAIR_NEVER_M: only confirmed cells, of which there are none.
+    from photogram_ros.errors import DataError
+    from photogram_ros.io.export import DsmParams
+    from photogram_ros.io.export_raster import ONE_PAIR_NEVER_M
+    with pytest.raises(DataError, match='measured by 2 stereo pairs'):
+        export_map(tmp_path / 'map', tmp_path / 'never', 'EPSG:32632', products=('dsm',), min_pairs=2,
+                   dsm=DsmParams(one_pair_beyond_m=ONE_PAIR_NEVER_M))
 
 
 def test_one_pair_cells_that_disagree_with_their_neighbours_or_stand_alone_are_dropped():

@@ -34,6 +34,7 @@ from photogram_ros.params import param
 
 
 COG_BLOCK_PX = 256
+ONE_PAIR_NEVER_M = 1e4    # DsmParams.one_pair_beyond_m at this length: no one-pair cell holds a height
 
 
 def write_geotiff(r: Raster, path: str | Path, crs: str, description: str = '', rgba: bool = False,
@@ -114,8 +115,9 @@ class DsmParams:
     one_pair_beyond_m: float = param(AUTO, 'a DSM cell that fewer stereo pairs than min_pairs measured (one pair, '
                                            'unconfirmed) takes that height when no cell min_pairs pairs measured lies '
                                            'within this distance (nearer, it is interpolated from the confirmed '
-                                           'ones); m; -1: the gap-filling length (fill_gaps_m); 1e4: never',
-                                     min=AUTO, max=1e4)
+                                           'ones); m; -1: the gap-filling length (fill_gaps_m); 1e4: never (only '
+                                           'confirmed cells, as before one-pair cells were used)',
+                                     min=AUTO, max=ONE_PAIR_NEVER_M)
 
     def check(self) -> None:
         for name in ('max_spread_m', 'fill_gaps_m', 'one_pair_beyond_m'):
@@ -298,15 +300,15 @@ def covering_clouds(cloud: GeoCloud, fewer: GeoCloud | None, res_m: float, rules
     """(`cloud` with the cells of `fewer` the products use, the other cells of `fewer`): the products' cloud and
     what checks the DSM's interpolation (Surface.one_pair).
 
-    `cloud`: the cells min_pairs stereo pairs measured; `fewer`: those fewer pairs (one) measured
-    (map_clouds); `cams`: cameras_in_crs. A cell one pair measured is used where no cell min_pairs pairs measured
+    `cloud`: the cells min_pairs stereo pairs measured; `fewer`: those fewer pairs (one, with min_pairs 2)
+    measured (map_clouds); `cams`: cameras_in_crs. A cell one pair measured is used where no cell min_pairs pairs measured
     lies within rules.one_pair_beyond_m (on the DSM's grid of `res_m`, inside the cameras' footprint) and it
     agrees with the one-pair cells around it (agrees_with_neighbours): near confirmed cells interpolation from
     them was better on the simulator (1.1 against 1.5 GSD median) and no worse on brighton; beyond the reach of
     the gap filling (fill_gaps_m, the default) a survey with one pair per spot (60 % forward overlap) has no
     other evidence, and interpolating from a far patch of confirmed cells (or from none) is far worse.
     DataError when neither holds a cell."""
-    if fewer is None or not fewer.x.size or cams is None:
+    if fewer is None or not fewer.x.size or cams is None or rules.one_pair_beyond_m >= ONE_PAIR_NEVER_M:
         if not cloud.x.size:
             raise too_few_pairs(min_pairs)
         return cloud, fewer
@@ -369,7 +371,7 @@ def surface_in_crs(fusion: Fusion, origin: LocalFrame, crs: str, heights: str, r
         one = _one_pair_grid(one_pair, rules, grid)
         put = one.valid() & ~measured & (cell_max(one_pair.x, one_pair.y, np.ones(one_pair.x.size), grid) > 0)
         grid.data[put] = one.data[put]
-        pairs[put] = 1.0
+        pairs[put] = np.maximum(cell_max(one_pair.x, one_pair.y, one_pair.pairs, grid), 1)[put]
     measured = grid.valid()
     cam_hull = region = np.zeros(grid.shape, bool)
     if measured.any():
