@@ -64,6 +64,7 @@ sys.path.insert(0, str(ROOT))
 from photogram_ros.core.geodesy import LocalFrame, geodetic_to_crs  # noqa: E402
 from photogram_ros.core.rotations import map_R_cam_from_opk  # noqa: E402
 from photogram_ros.core.similarity import umeyama  # noqa: E402
+from bench.cover_footprint import dsm_footprint_shares  # noqa: E402
 from bench.machine import ResultWriter  # noqa: E402
 
 DATA = ROOT.parent / 'shared' / 'data'
@@ -444,7 +445,10 @@ def measure(out: str | Path, pipeline: str, reference: dict, by: str = 'image', 
     dsm = out / 'dsm.tif'
     if dsm.exists() and poses:
         row.update(dsm_completeness(dsm, [p['lat_deg'] for p in poses.values()], [p['lon_deg'] for p in poses.values()]))
+        row.update(dsm_footprint_shares(dsm, *zip(*[(p['lat_deg'], p['lon_deg']) for p in poses.values()])))
     exported = json.loads((out / 'export.json').read_text()).get('dsm', {}) if (out / 'export.json').exists() else {}
+    if exported.get('footprint'):   # the export's own: the camera centres' hull widened by a quarter of the height
+        row['export_footprint'] = exported['footprint']
     if exported.get('one_pair_check'):
         # The cells only one stereo pair measured, against the interpolated DSM there (io/export_raster).
         row['dsm_one_pair'] = {'hull_share': (exported.get('camera_hull') or {}).get('filled_one_pair'),
@@ -762,8 +766,7 @@ def verdict_words(row: dict) -> str:
 def markdown(rows: list[dict], commit: str) -> str:
     head = ('| survey | pipeline | oriented | GNSS RMS H / V after robust similarity (m) | rigid H / V (m) | '
             f'within {NADIR_DEG:g}° of nadir (median tilt) | reprojection (px) | DSM completeness in camera hull (measured by '
-            'stereo) | '
-            'peer | verdict (report.json) | last line | wall (s) |')
+            'stereo; unclipped by the raster: measured, by one pair) | peer | verdict (report.json) | last line | wall (s) |')
     lines = [f'Measured with the product code of commit {commit}.', '', head, '|' + '---|' * 12]
     for r in rows:
         out = ''
@@ -776,7 +779,9 @@ def markdown(rows: list[dict], commit: str) -> str:
             f"{_f(r.get('nadir_share'), '.0%')} ({_f(r.get('tilt_median_deg'), '.1f', '°')})",
             _f(r.get('reprojection_px'), '.3f'),
             _f(r.get('dsm_hull_share'), '.1%') + (f" ({_f(r['dsm_measured_hull_share'], '.1%')} measured)"
-                                                  if r.get('dsm_measured_hull_share') is not None else ''),
+                                                  if r.get('dsm_measured_hull_share') is not None else '')
+            + (f"; unclipped {_f(r['dsm_footprint_measured_share'], '.1%')}, "
+               f"{_f(r.get('dsm_footprint_one_pair_share'), '.1%')} by 1 pair" if 'dsm_footprint_measured_share' in r else ''),
             peer_text(r), verdict_text(r),
             r.get('last_line', '').replace('|', '\\|')[:160] or r.get('stderr_last', '')[:160],
             f"{r.get('wall_s', 0):.0f} |"]))

@@ -197,10 +197,14 @@ def test_final_criteria_replace_the_partners_and_overlap():
     assert (c.max_pairs_along, c.max_pairs_across, c.min_overlap) == (3, 2, 0.2)
 
 
-def test_products_that_cannot_be_made_still_write_a_failed_report(map_dir, tmp_path):
-    """No cell seen by min_pairs stereo pairs: no products, but the report is written and its verdict says
-    why (not 'mapped' with no DSM)."""
+def test_products_that_cannot_be_made_still_write_a_failed_report(map_dir, tmp_path, monkeypatch):
+    """No cell seen by min_pairs stereo pairs, and the cells fewer pairs saw not used (one_pair_beyond_m at
+    ONE_PAIR_NEVER_M; by default they would make the products where no confirmed cell is near): no products,
+    but the report is written and its verdict says why (not 'mapped' with no DSM)."""
     from photogram_ros.commands.products import export_products
+    from photogram_ros.io import export
+    from photogram_ros.io.export_raster import ONE_PAIR_NEVER_M, DsmParams
+    monkeypatch.setattr(export, 'DsmParams', lambda: DsmParams(one_pair_beyond_m=ONE_PAIR_NEVER_M))
     res = export_products(map_dir, tmp_path / 'out', None, min_pairs=99, run={'counts': {}})
     assert res['files'] == {} and any('no products' in n and 'measured by 99 stereo pairs' in n for n in res['notes'])
     rep = json.loads((tmp_path / 'out' / 'report.json').read_text())

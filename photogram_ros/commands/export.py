@@ -141,12 +141,18 @@ def run(a) -> int:
     hull = (res.dsm or {}).get('camera_hull')
     if hull:
         print(f"  DSM inside the camera centres' hull: {hull['valid'] * 100:.1f} % of the cells hold a height, "
-              f"{hull['measured'] * 100:.1f} % measured by stereo, {hull['filled'] * 100:.1f} % interpolated "
+              f"{hull['measured'] * 100:.1f} % measured by stereo ({hull.get('measured_one_pair', 0.0) * 100:.1f} % "
+              f"by one pair only, where no confirmed cell is near), {hull['filled'] * 100:.1f} % interpolated "
               '(band 2 of dsm.tif: pairs, 0 interpolated)')
+    foot = (res.dsm or {}).get('footprint')
+    if foot:
+        print(f"  over the cameras' footprint (the hull widened by a quarter of the flying height): "
+              f"{foot['measured'] * 100:.1f} % measured by stereo, {foot.get('measured_one_pair', 0.0) * 100:.1f} % "
+              f"by one pair only, {foot['valid'] * 100:.1f} % hold a height")
     check = (res.dsm or {}).get('one_pair_check')
     if hull and check and check.get('cells'):
         print(f"  of the interpolated cells {hull['filled_one_pair'] * 100:.1f} % of the hull were measured by one "
-              f"stereo pair (fewer than --min-pairs): it differs from the interpolation by "
+              f"stereo pair near confirmed cells: it differs from the interpolation by "
               f"{check['median_abs_dz_m']:.2f} m (median), {check['p90_abs_dz_m']:.2f} m (p90)")
     for k, v in res.files.items():
         print(f'  {k}: {v}')

@@ -8,8 +8,8 @@ poses of the in-flight map folder, the way photogrammetry software densifies aft
 the same pair planner (core/pairs.plan_pairs), stereo and fusion as the nodes, in keyframe order, with
 the planner's final_* criteria (PairCriteria.for_final): one partner along and two across each
 keyframe (the stereo node takes one and one) down to a quarter of the image in common: a cell of the
-products needs two pairs that agree (export's min_pairs 2), and across lines most cells have more
-than two candidates.
+products is confirmed by two pairs that agree (export's min_pairs 2; one pair's cells fill in where no
+confirmed cell is near), and across lines most cells have more than two candidates.
 The map folder holds no tie points (io/map_store.py): each pair searches the ground height +- relief_m,
 unless the caller passes tie points (the flight's, or the in-flight map's surface: surface_points). The in-flight map stays
 what it was (what the ground station saw); the products come from the new folder. Given the map

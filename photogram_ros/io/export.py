@@ -17,9 +17,10 @@ LAS/LAZ points are classified (core.ground: 2 ground, 6 building, 1 the rest) wi
 Rasters are Cloud-Optimized GeoTIFFs (GDAL's COG driver: tiled, deflate, overviews) whose CRS and
 vertical datum are in the file itself (write_geotiff): a .tif copied alone keeps them.
 
-The DSM holds the cells stereo measured and, inside what the photos saw (the camera centres' hull),
-heights interpolated where stereo measured none (surface_in_crs); its band 2 gives the stereo pairs
-that measured each cell, 0 where interpolated. The DTM (core.dtm) is the ground class of the cloud on
+The DSM holds the cells stereo measured (min_pairs pairs, or one pair where no confirmed cell is near:
+covering_clouds) and, inside what the photos saw (the camera centres' hull, widened), heights interpolated
+where stereo measured none (surface_in_crs); its band 2 gives the stereo pairs that measured each cell (1: one
+pair, unconfirmed), 0 where interpolated; export.json's dsm.footprint gives those shares over the footprint. The DTM (core.dtm) is the ground class of the cloud on
 the DSM's grid, interpolated under buildings and vegetation; contours of it on request (io/contours.py).
 
 Rasters are built in the output CRS's own grid (north-up in that CRS), so GIS tools need no
@@ -43,8 +44,8 @@ from photogram_ros.io.export_cloud import (EGM2008_HEIGHT, HEIGHTS, GeoCloud, ch
                                            write_las, write_ply)
 from photogram_ros.io.export_files import ExportResult, ProductsIncomplete, part_path, write_whole
 from photogram_ros.io.export_raster import (COG_BLOCK_PX, FILL_MARGIN_AGL, FILLED, DsmParams, StoredKeyframes,
-                                            Surface, dsm_in_crs, ortho_in_crs, read_crs, surface_in_crs,
-                                            write_geotiff)
+                                            Surface, cameras_in_crs, covering_clouds, dsm_in_crs, ortho_in_crs,
+                                            read_crs, surface_in_crs, write_geotiff)
 from photogram_ros.io.map_store import MapStore, as_map_store
 from photogram_ros.io.products import PRODUCTS, ExportJob, Writers, plan, product_names
 from photogram_ros.io.progress import Steps
@@ -58,8 +59,10 @@ def export_map(map_dir: str | Path | MapStore, out_dir: str | Path, crs: str, he
     """Write the requested products of a map folder (or an open MapStore) into out_dir (created).
 
     `products`: names of the registry's products (io/products: las, laz, ply, dsm, dtm, ortho; None: all).
-    min_pairs=2 exports only cells confirmed by two stereo pairs: a cell one pair saw cannot be
-    checked for gross matching errors (on the sample flight they hold most of the large errors).
+    min_pairs=2 exports the cells confirmed by two stereo pairs, and cells one pair saw only where no confirmed
+    cell is near (io/export_raster.covering_clouds; band 2 of dsm.tif says 1 there): a cell one pair saw cannot
+    be checked for gross matching errors (on the sample flight they hold most of the large errors), but on a
+    survey with one pair per spot it is the only evidence.
     `dsm`: the DSM rules (default DsmParams(): lengths from the map's cell size).
     contour_interval_m > 0 also writes contours.gpkg: the DTM's contour lines at that interval (io/contours.py).
     say(text): progress lines (io/progress.py): each product as it starts, the orthomosaic's keyframes
@@ -105,7 +108,8 @@ def export_map(map_dir: str | Path | MapStore, out_dir: str | Path, crs: str, he
     chosen = [p for p in PRODUCTS if p.chosen(job)]
     job.steps = steps = Steps('export', len(plan(chosen)), say)
     steps.start('cloud')
-    job.cloud, job.fewer = map_clouds(fusion, origin, crs, heights, min_pairs)
+    job.cloud, job.fewer = covering_clouds(*map_clouds(fusion, origin, crs, heights, min_pairs), job.dsm_res_m,
+                                           job.rules, cameras_in_crs(origin, job.centres, crs, heights), min_pairs)
     res.points = job.cloud.x.size
     vertical_crs, note = product_crs(crs, heights)
     res.crs_with_heights = vertical_crs.name
@@ -113,7 +117,8 @@ def export_map(map_dir: str | Path | MapStore, out_dir: str | Path, crs: str, he
         res.notes.append(note)
     rules = job.rules
     res.dsm = {'cell_m': store.cell_m, 'res_m': job.dsm_res_m, 'max_spread_m': rules.max_spread_m,
-               'min_count': rules.min_count, 'fill_gaps_m': rules.fill_gaps_m, 'canopy_top': rules.canopy_top}
+               'min_count': rules.min_count, 'fill_gaps_m': rules.fill_gaps_m, 'canopy_top': rules.canopy_top,
+               'one_pair_beyond_m': rules.one_pair_beyond_m}
     for product in chosen:
         for name in product.needs:
             job.need(name)

@@ -111,10 +111,11 @@ def open_map(map_dir: str | Path | MapStore) -> tuple[MapStore, Fusion]:
     return store, Fusion(FusionConfig(store.cell_m, store.tile_cells, max_tiles_in_memory=10**6), store)
 
 
-def _too_few_pairs(min_pairs: int) -> DataError:
+def too_few_pairs(min_pairs: int) -> DataError:
     return DataError('the map holds no fused points yet' if min_pairs <= 1 else
                      f'no cell of the map was measured by {min_pairs} stereo pairs that agree (too little overlap '
-                     f'for a second pair); `export MAP --min-pairs 1` writes the cells one pair measured, unchecked')
+                     f'for a second pair), nor by one pair inside the cameras\' footprint in agreement with its '
+                     f'neighbours; `export MAP --min-pairs 1` writes every cell one pair measured, unchecked')
 
 
 def map_cloud(fusion: Fusion, origin: LocalFrame, crs: str, heights: str = 'ellipsoidal',
@@ -125,24 +126,23 @@ def map_cloud(fusion: Fusion, origin: LocalFrame, crs: str, heights: str = 'elli
         keep = p['n_pairs'] >= min_pairs
         p = {k: v[keep] for k, v in p.items()}
     if p['x'].size == 0:
-        raise _too_few_pairs(min_pairs)
+        raise too_few_pairs(min_pairs)
     return _geo_cloud(p, origin, crs, heights)
 
 
 def map_clouds(fusion: Fusion, origin: LocalFrame, crs: str, heights: str = 'ellipsoidal',
                min_pairs: int = 1) -> tuple[GeoCloud, GeoCloud | None]:
-    """The cells `min_pairs` stereo pairs agreed on, and the cells fewer pairs measured (None with min_pairs 1),
-    both in `crs`, from one read of the map's tiles (the DSM checks its interpolation with the second)."""
+    """The cells `min_pairs` stereo pairs agreed on (maybe none), and the cells fewer pairs measured (None with
+    min_pairs 1), both in `crs`, from one read of the map's tiles (io/export_raster.covering_clouds takes the
+    products' cells from both). DataError when the map holds no fused cell."""
     p = fusion.points()
     if p['x'].size == 0:
-        raise _too_few_pairs(1)
+        raise too_few_pairs(1)
     everything = _geo_cloud(p, origin, crs, heights)
     del p
     if min_pairs <= 1:
         return everything, None
     keep = everything.pairs >= min_pairs
-    if not keep.any():
-        raise _too_few_pairs(min_pairs)
     return everything.subset(keep), everything.subset(~keep)
 
 

@@ -36,8 +36,8 @@ from photogram_ros.io.at_report import ce90_text
 from photogram_ros.io import flight_inputs
 from photogram_ros.io.flight_overview import (calibration_rows, capture_section, dsm_preview_png, gnss_section,
                                              place_labels, product_heights)
-from photogram_ros.io.flight_verdict import (dsm_one_pair_evidence, dsm_valid_share, keyframe_accounting,
-                                             mapping_verdict, not_oriented_text)
+from photogram_ros.io.flight_verdict import (dsm_footprint_cover, dsm_one_pair_evidence, dsm_valid_share,
+                                             keyframe_accounting, mapping_verdict, not_oriented_text)
 from photogram_ros.io.map_store import CAMERA_FINAL, MapStore
 from photogram_ros.io.tf_bag import write_trajectory_mcap
 from photogram_ros.io.report import Section, histogram_png, trajectory_png, write_report
@@ -290,7 +290,8 @@ def _health_sections(figures: dict, kfs, files: dict, run: dict, diagnostics: di
     bundle = values('bundle_node')
     verdict = mapping_verdict(acc, georeferenced, dsm_valid_share(files.get('dsm')), bool(files),
                               (run or {}).get('products_error'), dsm_one_pair_evidence(files.get('dsm')),
-                              {'status': bundle.get('final_verdict'), 'summary': bundle.get('final_verdict_summary')})
+                              {'status': bundle.get('final_verdict'), 'summary': bundle.get('final_verdict_summary')},
+                              dsm_footprint_cover(files.get('dsm')))
     # The flight as a whole is a row of its own: at ERROR when it did not map, whatever the nodes said.
     level = 'ERROR' if not verdict['mapped'] else 'WARN' if verdict['warnings'] else 'OK'
     health = [{'node': 'replay', 'worst_level': level, 'problems': len(verdict['failures'] + verdict['warnings']),
@@ -355,6 +356,13 @@ def _settings_lines(run: dict) -> list[str]:
                      "the cell, 0 where interpolated)"
                      + (f"; the orthomosaic holds a colour in {ortho['valid'] * 100:.1f} % of its cells there."
                         if ortho else '.'))
+    foot = dsm.get('footprint')
+    if foot:
+        lines.append(f"Over the cameras' footprint (the camera centres' hull widened by a quarter of the flying "
+                     f"height: what the oriented photos saw) {foot['measured'] * 100:.1f} % of the DSM's cells were "
+                     f"measured by stereo, {foot.get('measured_one_pair', 0.0) * 100:.1f} % of it by one pair only "
+                     "(unconfirmed: band 2 = 1, kept where no confirmed cell is near and it agrees with its "
+                     f"neighbours); {foot['valid'] * 100:.1f} % hold a height.")
     dtm = run.get('dtm')
     if dtm:
         lines.append(f"DTM (dtm.tif, bare ground): {dtm['ground_cells_share'] * 100:.1f} % of its cells hold ground "

@@ -13,6 +13,17 @@ import numpy as np
 MIN_ORIENTED_SHARE = 0.5     # fewer keyframes oriented than this: the flight did not map
 MIN_DSM_VALID_SHARE = 0.5    # a DSM with fewer cells holding a height than this is a warning
 FAILED_DSM_VALID_SHARE = 0.1  # ... and with fewer than this, the flight did not map
+# The products against what the oriented photos saw (export.json dsm.footprint: the camera centres' hull widened
+# by a quarter of the flying height, io/export_raster.surface_in_crs). Stereo seeing less than half of it (cells it
+# measured, and interpolated cells one pair's heights check) is a warning: the widening stays inside a nadir photo's footprint at any usual field of view (a 60 degree lens sees
+# 0.58 of the height either side), so a block that mapped measures most of it (the simulator's sample flight, whose
+# lines' ends and margins fill the rest, over 80 %); half is where the products stop being the block's map and
+# become a patch of it (seneca's every other photo before one-pair cells: a 34 x 37 m patch of a 300 x 250 m block).
+MIN_FOOTPRINT_SHARE = 0.5
+# More than this share of the footprint's measured cells from one stereo pair that no second pair confirmed is a
+# warning: a 60 % forward overlap survey's DSM, sound where the one pair is (its cells are kept only where they
+# agree with their neighbours), but no second look checked it for a gross mismatch.
+MAX_ONE_PAIR_SHARE = 0.5
 NOT_ORIENTED_PREFIX = 'not_oriented_'   # bundle_node counters per reason (not_oriented_<reason>), when it has them
 # The adjuster's count at the end of the flight, per reason, of the keyframes it still holds not oriented
 # (not_oriented_at_end_<reason>), when it has them: each keyframe's final reason, where the counters above are
@@ -178,9 +189,48 @@ def dsm_one_pair_evidence(dsm_path) -> dict | None:
             'tolerance_m': float(dsm.get('max_spread_m', 0.0))}
 
 
+def dsm_footprint_cover(dsm_path) -> dict | None:
+    """The DSM over the cameras' footprint, from the export.json beside dsm.tif (io/export: dsm.footprint):
+    {'cells', 'measured' (any pairs), 'measured_one_pair', 'filled_one_pair' (interpolated near confirmed cells,
+    where one pair's heights check the interpolation), 'valid'} as shares of the footprint's cells; None without
+    it (an export before the footprint was measured)."""
+    if not dsm_path:
+        return None
+    try:
+        foot = (json.loads((Path(dsm_path).parent / 'export.json').read_text()).get('dsm') or {}).get('footprint')
+    except (OSError, ValueError):
+        return None
+    if not foot or not foot.get('cells'):
+        return None
+    return {k: foot[k] for k in ('cells', 'measured', 'measured_one_pair', 'filled_one_pair', 'valid') if k in foot}
+
+
+def footprint_warnings(footprint: dict | None) -> list[str]:
+    """The verdict's warnings on the DSM against the cameras' footprint (dsm_footprint_cover): stereo saw under
+    MIN_FOOTPRINT_SHARE of it (the cells it measured, and the interpolated ones one pair's heights check); over
+    MAX_ONE_PAIR_SHARE of what it measured is one unconfirmed pair's."""
+    if not footprint or not footprint.get('cells'):
+        return []
+    measured, one = float(footprint.get('measured', 0.0)), float(footprint.get('measured_one_pair', 0.0))
+    checked = float(footprint.get('filled_one_pair', 0.0))
+    said = (f"stereo measured {measured * 100:.1f} % of the cameras' footprint (the camera centres' hull widened by "
+            f"a quarter of the flying height: what the oriented photos saw), {one * 100:.1f} % of it from one stereo "
+            f"pair that no second pair confirmed")
+    why_one = ('too little overlap for a second pair: it needs three photos of a spot along a line, over 67 % '
+               'forward overlap, or the band two lines share; a one-pair cell is kept only where it agrees with its '
+               'neighbours, no second look checked it')
+    mostly_one = measured > 0 and one > MAX_ONE_PAIR_SHARE * measured
+    if measured + checked < MIN_FOOTPRINT_SHARE:
+        return [f"the products cover little of what the photos saw: {said}; the rest is interpolated "
+                f"({checked * 100:.1f} % of the footprint near confirmed cells, where one pair's heights check "
+                f"the interpolation; {float(footprint.get('valid', 0.0)) * 100:.1f} % holds a height)"
+                + (f'; most of what stereo measured rests on one pair ({why_one})' if mostly_one else '')]
+    return [f'most of the DSM rests on one stereo pair: {said} ({why_one})'] if mostly_one else []
+
+
 def mapping_verdict(accounting: dict, georeferenced: bool, dsm_share: float | None, mapped_products: bool,
                     products_error: str | None = None, dsm_one_pair: dict | None = None,
-                    block_check: dict | None = None) -> dict:
+                    block_check: dict | None = None, footprint: dict | None = None) -> dict:
     """{'mapped': bool, 'failures': [sentences], 'warnings': [sentences]}: a flight with no georeferenced
     keyframe, fewer than half of its keyframes oriented, products that could not be made (`products_error`:
     why), or a DSM nearly empty (or none while keyframes were oriented) did not map; a DSM measured by stereo
@@ -192,7 +242,10 @@ def mapping_verdict(accounting: dict, georeferenced: bool, dsm_share: float | No
     check with, and the one pair is the evidence there is. `block_check`: the adjuster's check of the block
     after its final adjustment ({'status': 'ok' | 'warning' | 'failed', 'summary': its line}; bundle_node's
     final_verdict on /diagnostics): a failed block (folded, far from its GNSS, not converged where it
-    matters) did not map, whatever its DSM looks like; a warning is the flight's warning."""
+    matters) did not map, whatever its DSM looks like; a warning is the flight's warning. `footprint`: the DSM
+    over the cameras' footprint (dsm_footprint_cover): warnings when stereo measured little of it, or when one
+    unconfirmed pair measured most of it (footprint_warnings); the verdict carries it as 'dsm_footprint'.
+    `dsm_share` counts every cell stereo measured (band 2 >= 1: one pair too, where no confirmed cell is near)."""
     failures, warnings = [], []
     check = block_check or {}
     if check.get('status') == 'failed':
@@ -232,4 +285,8 @@ def mapping_verdict(accounting: dict, georeferenced: bool, dsm_share: float | No
         failures.append('no DSM was written')
     if products_error:
         failures.append(f'no products were made: {products_error}')
-    return {'mapped': not failures, 'failures': failures, 'warnings': warnings, 'dsm_valid_share': dsm_share}
+    out = {'mapped': not failures, 'failures': failures, 'warnings': warnings, 'dsm_valid_share': dsm_share}
+    if footprint:
+        warnings += footprint_warnings(footprint)
+        out['dsm_footprint'] = footprint
+    return out

@@ -63,12 +63,13 @@ class ExportJob:
     rules: Any                      # io/export_raster.DsmParams, resolved for the map's cell
     contour_interval_m: float
     centres: Any                    # (K, 3) camera centres, map ENU
-    cloud: Any                      # io/export_cloud.GeoCloud: the cells min_pairs stereo pairs measured
+    cloud: Any                      # io/export_cloud.GeoCloud: the cells min_pairs stereo pairs measured, and
+                                    # those one pair measured where none of those is near (covering_clouds)
     res: ExportResult
     steps: Any                      # io/progress.Steps
     writers: Writers
     say: Callable[[str], None] | None = None
-    fewer: Any = None               # GeoCloud of the cells fewer pairs measured (they check the DSM); None: min_pairs 1
+    fewer: Any = None               # GeoCloud of the other cells fewer pairs measured (they check the DSM); None: min_pairs 1
     failed: dict = field(default_factory=dict)   # product -> (why it was not written, errno)
     made: dict = field(default_factory=dict)     # intermediate name -> result
 
@@ -108,6 +109,8 @@ class ExportJob:
         self.res.dsm['raster'] = surf.shares(np.ones(grid.shape, bool))
         if surf.camera_hull.any():
             self.res.dsm['camera_hull'] = surf.shares(surf.camera_hull)
+        if surf.region.any():     # the cameras' footprint: what the oriented photos saw
+            self.res.dsm['footprint'] = surf.shares(surf.region)
         check = surf.one_pair_check(surf.camera_hull if surf.camera_hull.any() else None)
         if check is not None:
             self.res.dsm['one_pair_check'] = check

@@ -7,7 +7,7 @@ from photogram_ros.io.products.job import ExportJob, ExportProduct
 
 def write(job: ExportJob) -> None:
     from photogram_ros.core.raster import hull_mask
-    from photogram_ros.io.export_cloud import enu_to_crs, map_cloud
+    from photogram_ros.io.export_cloud import enu_to_crs
     from photogram_ros.io.export_raster import StoredKeyframes, ortho_in_crs, surface_in_crs
     from photogram_ros.io.progress import Progress
     kfs = StoredKeyframes(job.store)
@@ -16,8 +16,7 @@ def write(job: ExportJob) -> None:
         job.res.notes.append('no orthomosaic: the map folder holds no keyframes with images, poses and camera')
         return
     dsm_ell = job.surface().dsm if job.heights == 'ellipsoidal' else surface_in_crs(
-        job.fusion, job.origin, job.crs, 'ellipsoidal', job.dsm_res_m, job.rules, job.min_pairs, job.centres,
-        (map_cloud(job.fusion, job.origin, job.crs, 'ellipsoidal', job.min_pairs), None)).dsm
+        job.fusion, job.origin, job.crs, 'ellipsoidal', job.dsm_res_m, job.rules, job.min_pairs, job.centres).dsm
     draped = Progress('export: ortho', len(kfs), 'keyframes', job.say, clock=job.steps.clock)
     ortho = ortho_in_crs(dsm_ell, kfs, job.origin, job.crs, job.ortho_res_m, draped.callback())
     seen = ortho.data[..., 3] > 0
