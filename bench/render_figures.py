@@ -344,7 +344,8 @@ def survey_cells(x: dict, _lines=None) -> list:
              f'{peer["diff_h_m"]:.2f} m H apart')
     else:
         p = '—'
-    measured = x.get('dsm_measured_hull_share')
+    measured = x.get('dsm_footprint_measured_share', x.get('dsm_measured_hull_share'))
+    one_pair = x.get('dsm_footprint_one_pair_share')
     of_tri = (f'; {x["replay_oriented_of_triangulated"]}/{x["keyframes_triangulated"]} of the keyframes whose photos '
               f'triangulate oriented' + ('' if x.get('share_exact') else ' (at least)')
               if x.get('share_of_triangulated') is not None else '')
@@ -352,7 +353,8 @@ def survey_cells(x: dict, _lines=None) -> list:
             f'{f(x.get("sim_h_m"))} / {f(x.get("sim_v_m"))} m', f'{f(x.get("rigid_h_m"))} / {f(x.get("rigid_v_m"))} m',
             f'{pct(x.get("nadir_share"))} (median {f(x.get("tilt_median_deg"), ".1f")}°)',
             f'{f(x.get("reprojection_px"), ".3f")} px' + (f'; DSM: {pct(measured)} of the camera centres\' hull '
-                                                          'measured by stereo' if measured is not None else ''), p]
+                                                          'measured by stereo' if measured is not None else '')
+            + (f' ({pct(one_pair)} by one pair only)' if one_pair is not None else ''), p]
 
 
 def agreement_cells(x: dict, _lines=None) -> list:
@@ -995,7 +997,8 @@ TABLES: dict[str, Table] = {
                 '[real surveys](docs/measurements.md#real-surveys)'),
         _readme('the same photos in flight (`replay`)', BRIGHTON_REP,
                 lambda x, _: f'**{x["oriented"]}/{x["given"]} keyframes oriented**; DSM '
-                f'{pct(x["dsm_measured_hull_share"])} of the camera centres\' hull measured by stereo, '
+                f'{pct(x.get("dsm_footprint_measured_share", x["dsm_measured_hull_share"]))} of the camera centres\' '
+                'hull measured by stereo, '
                 f'**{cm(x["peer_in_hull"]["median_abs_dz_m"])}** median from OpenDroneMap\'s cloud inside that hull',
                 'same'),
         _readme('real DJI survey (toledo, 42 photos, EXIF only)', TOLEDO_TRI,
