@@ -187,3 +187,72 @@ def test_a_looping_real_survey_stopped_after_60_s_ends_within_bounds(tmp_path):
     assert rss['after'] <= rss['before'], rss
     assert rss['products'] <= rss['before'], rss
     assert (products / 'report.md').exists() and (products / 'cloud.las').stat().st_size > 0
+
+
+def test_a_stopped_flight_s_budget_is_handed_to_each_step_in_order():
+    """Graph.finish_flight with budget_s: the tracker gets TRACKER_SHARE of it for its queue (the frames it has
+    not taken then are dropped and said), the adjuster what is left but the stereo and map share, stereo what is
+    left; without a budget no step gets an argument (the flight's own end: every step to its end)."""
+    import collections
+
+    from photogram_ros.nodes.graph import STEREO_AND_MAP_SHARE, TRACKER_SHARE, Graph
+
+    class Node:
+        def __init__(self):
+            self.kwargs = []
+
+        def flush(self, **kw):
+            self.kwargs.append(kw)
+
+        finish = finish_coverage = flush
+
+    def graph_of():
+        nodes = {'tracker': Node(), 'bundle': Node(), 'stereo': Node(), 'map': Node()}
+        nodes['tracker']._frames, nodes['tracker']._cond = collections.deque(range(7)), threading.Lock()
+        return SimpleNamespace(spec=SimpleNamespace(roles=tuple(nodes)), child=None, nodes=nodes,
+                               counts=lambda: {}, problems=lambda role: []), nodes
+
+    graph, nodes = graph_of()
+    said: list[str] = []
+    settles: list[float] = []
+    end = Graph.finish_flight(graph, settle=lambda timeout_s=2.0: settles.append(timeout_s), say=said.append,
+                              budget_s=40.0)
+    assert nodes['tracker'].kwargs[0]['max_wait_s'] == pytest.approx(TRACKER_SHARE * 40.0, abs=0.5)
+    assert nodes['bundle'].kwargs[0]['budget_s'] == pytest.approx((1 - STEREO_AND_MAP_SHARE) * 40.0, abs=0.5)
+    assert 0 < nodes['stereo'].kwargs[0]['budget_s'] <= 40.0 and nodes['map'].kwargs == [{}]
+    assert not nodes['tracker']._frames and any('7 frames the tracker had not taken' in s for s in said), said
+    assert any('7 frames' in s for s in end.skipped) and all(0 < t <= 4.0 for t in settles), (end, settles)
+    graph, nodes = graph_of()
+    end = Graph.finish_flight(graph, settle=lambda timeout_s=2.0: None)
+    assert [n.kwargs for n in nodes.values()] == [[{}]] * 4 and len(nodes['tracker']._frames) == 7
+    assert not end.skipped
+
+
+def test_the_adjuster_leaves_out_what_does_not_fit_in_its_budget(monkeypatch):
+    """AdjustmentStage.finish with a budget shorter than its final adjustment's estimate: the waiting keyframes
+    are counted in keyframes_skipped_at_end and said, the final adjustment still runs; without a budget every
+    waiting keyframe is taken."""
+    import numpy as np
+
+    from photogram_ros.stages.adjustment import AdjustmentOutcome, AdjustmentParams, AdjustmentStage
+
+    def stage_with(n_waiting: int):
+        stage = AdjustmentStage(AdjustmentParams())
+        stage.at = SimpleNamespace(block=SimpleNamespace(n_oriented=100, keyframes=lambda: []),
+                                   retry_unregistered=lambda: 0, origin=None)
+        monkeypatch.setattr(stage, 'full_adjustment', lambda: AdjustmentOutcome('done', 'converged'))
+        for k in range(n_waiting):
+            stage._pending[k * 10**9] = (0.0, np.arange(3), np.zeros((3, 2)), {})
+        return stage
+
+    taken = []
+    stage = stage_with(5)
+    stage._full_s, stage._full_n = 30.0, 100   # the last full adjustment: 30 s for 100 keyframes
+    out = stage.finish(lambda rec, publish=True: taken.append(rec.stamp_ns), budget_s=10.0)
+    assert out.status == 'done' and taken == [], taken
+    assert stage.diag.counts()['keyframes_skipped_at_end'] == 5
+    assert any('5 keyframes waiting for the adjuster were left out' in p for _, p in stage.diag.problems)
+    stage = stage_with(5)
+    stage._full_s, stage._full_n = 30.0, 100
+    assert stage.finish(lambda rec, publish=True: taken.append(rec.stamp_ns)).status == 'done'
+    assert len(taken) == 5 and 'keyframes_skipped_at_end' not in stage.diag.counts()
