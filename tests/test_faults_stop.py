@@ -219,8 +219,11 @@ def test_a_stopped_flight_s_budget_is_handed_to_each_step_in_order():
     graph, nodes = graph_of()
     said: list[str] = []
     settles: list[float] = []
+    nodes['bundle'].end_budget = lambda budget_s: nodes['bundle'].kwargs.append({'end_budget': budget_s})
     end = Graph.finish_flight(graph, settle=lambda timeout_s=2.0: settles.append(timeout_s), say=said.append,
                               budget_s=40.0)
+    # The adjuster's worker keeps to the budget from the stop on (before the tracker's step), then finish.
+    assert nodes['bundle'].kwargs.pop(0)['end_budget'] == pytest.approx((1 - STEREO_AND_MAP_SHARE) * 40.0, abs=0.5)
     assert nodes['tracker'].kwargs[0]['max_wait_s'] == pytest.approx(TRACKER_SHARE * 40.0, abs=0.5)
     assert nodes['bundle'].kwargs[0]['budget_s'] == pytest.approx((1 - STEREO_AND_MAP_SHARE) * 40.0, abs=0.5)
     assert 0 < nodes['stereo'].kwargs[0]['budget_s'] <= 40.0 and nodes['map'].kwargs == [{}]
@@ -260,3 +263,11 @@ def test_the_adjuster_leaves_out_what_does_not_fit_in_its_budget(monkeypatch):
     stage._full_s, stage._full_n = 30.0, 100
     assert stage.finish(lambda rec, publish=True: taken.append(rec.stamp_ns)).status == 'done'
     assert len(taken) == 5 and 'keyframes_skipped_at_end' not in stage.diag.counts()
+
+
+@pytest.mark.parametrize('value', ['-1', '3601', 'nan'])
+def test_a_stop_budget_out_of_its_range_is_refused_before_any_node_starts(value):
+    """--stop-budget-s: 0 (no budget) to 3600 s; anything else is a configuration error (exit 2, one line)."""
+    res = subprocess.run(CLI + ['run', '--nodes', 'tracker', '--stop-budget-s', value], cwd=ROOT,
+                         capture_output=True, text=True, timeout=120)
+    assert res.returncode == 2 and '--stop-budget-s must be 0 (no budget) to 3600 s' in res.stderr, res.stderr[-2000:]
