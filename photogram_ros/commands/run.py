@@ -205,7 +205,8 @@ def run(a) -> int:
     if end.skipped:
         print(f'end of flight within --stop-budget-s {budget_s:g}: left out: ' + '; '.join(end.skipped)
               + f'. The full result: photogram-ros export {map_dir_of(a.params)} --densify --params '
-              f'{a.params or "PARAMS"} --crs {a.crs or "EPSG:..."} --out OUT (or run --stop-budget-s 0)', flush=True)
+              f'{a.params or "PARAMS"} --crs {a.crs or products_crs(map_dir_of(a.params))} --out OUT (or run '
+              '--stop-budget-s 0)', flush=True)
     wall_s = time.monotonic() - t0
     frames = max(counts.get('tracker', {}).get('frames_received', 0), counts.get('camera', {}).get('frames', 0))
     run_info = {'source': 'run', 'frames': frames, 'bag_s': flight_s, 'wall_s': wall_s,
@@ -217,6 +218,17 @@ def run(a) -> int:
     if before is not None:
         run_info['resumed'] = count_keyframes_before(counts, before, map_dir_of(a.params))
     return _after_flight(a, spec, end.as_dict(), run_info, with_end_of_flight(diag_log.snapshot(), end, wall_s))
+
+
+def products_crs(map_dir: str) -> str:
+    """The CRS `run` gives the products without --crs: UTM of the map's origin ("EPSG:..." when it has none)."""
+    from photogram_ros.core.geodesy import utm_epsg
+    from photogram_ros.io.map_store import MapStore
+    try:
+        origin = MapStore(map_dir).origin
+    except Exception:   # only a hint in a message: the export says what is wrong with the map
+        origin = None
+    return f'EPSG:{utm_epsg(origin.lat_deg, origin.lon_deg)}' if origin is not None else 'EPSG:...'
 
 
 def with_end_of_flight(diagnostics: dict, end, t_s: float) -> dict:
