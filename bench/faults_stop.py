@@ -4,7 +4,8 @@ memory after the signal as a ratio to its in-flight peak, measured in the same r
 A copy of the toledo survey (42 photos, 2400x1800) is played by camera_node in a loop (rate 0, as fast as
 the tracker takes them), SIGTERM after `--stop-after-s` of flight; the run's RSS is sampled from /proc
 every 0.2 s: its peak in flight, in the end-of-flight steps (until "end of flight: steps done") and while
-the products are made. Writes one JSON line (bench/machine.py's ResultWriter: the commit, whether the tree was
+the products are made; with the run log's lines that time the end-of-flight steps and the products
+(end_of_flight_lines) and what a stopped flight's budget left out (the report's run). Writes one JSON line (bench/machine.py's ResultWriter: the commit, whether the tree was
 clean, cores, load, the modules the run ran) to --out (default /tmp/faults_stop.jsonl; bench/run_all.py copies it
 to bench/results/faults_stop_<commit7>.jsonl).
 
@@ -16,6 +17,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import re
 import shutil
 import sys
 import tempfile
@@ -47,12 +49,24 @@ def main() -> int:
            'rss_products_peak_mb': round(rss['products']),
            'end_of_flight_over_in_flight': round(rss['after'] / max(rss['before'], 1.0), 3),
            'products_over_in_flight': round(rss['products'] / max(rss['before'], 1.0), 3),
+           'end_of_flight_lines': end_of_flight_lines(out),
+           'stop_budget_s': report.get('run', {}).get('stop_budget_s'),
+           'end_of_flight_skipped': report.get('run', {}).get('end_of_flight_skipped'),
+           'products_from': report.get('run', {}).get('products_from'),
            'frames': report.get('run', {}).get('frames'), 'keyframes_taken': report.get('keyframes_taken'),
            'keyframes_oriented': report.get('keyframes_oriented'), 'machine': machine_info(),
            'load_avg_before': [round(x, 2) for x in load_before],
            'load_avg_after': [round(x, 2) for x in os.getloadavg()]}
     w.write(row)
     return 0 if rc in (0, 4) else 1
+
+
+def end_of_flight_lines(out: str) -> list[str]:
+    """The run's lines that time the end of flight (each step's start, the adjuster's own step times, the steps'
+    end, what the budget left out, the products' steps), without the periodic "still working" ones."""
+    keep = re.compile(r'^(end of flight: \d+ s: (?!waiting)|end of flight: steps done|end of flight within|'
+                      r'export: .*(steps in|in \d)|\[INFO\].*\[bundle_node\]: end of flight|products in )')
+    return [line.strip()[:300] for line in out.splitlines() if keep.search(line.strip())]
 
 
 def append_result(bench: str, commit: str, row: dict, out: str = '') -> None:

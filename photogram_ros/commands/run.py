@@ -8,7 +8,10 @@ pose, stereo pairs what waits, the map flushes, and the products are matched aga
 poses, each step with a progress line. All of it runs while rclpy is still up (see
 nodes/node_main.py). A second signal, or the end of flight passing `--end-timeout-s` (or
 `--end-max-rss-mb`), skips the steps left and writes what exists: the in-flight map's products and the
-report. The exit status is not 0 when the final adjustment or the exports failed, or when the flight
+report. A flight stopped by a signal has `--stop-budget-s` (45 s) for its end: the tracker's queued frames, the
+waiting keyframes, stereo's waiting pairs and the products' dense matching each leave out what does not fit in
+it, said in the log and the report (the final adjustment runs in any case; `export MAPDIR --densify` makes the
+full products later; 0: no budget). The exit status is not 0 when the final adjustment or the exports failed, or when the flight
 mapped nothing (the report's Verdict: a line "MAPPING FAILED: why", exit 5 as in `replay`).
 
 A map folder left by a crash is resumed: the adjuster anchors `map` at its origin, and the keyframes it holds
@@ -29,6 +32,14 @@ HELP = 'start every mapping node (mavlink, tracker, bundle, stereo, map) with on
 EXIT_EXPORT_FAILED = 3
 EXIT_FINISH_FAILED = 4
 EXIT_NOT_MAPPED = 5
+
+# The default --stop-budget-s: bench/results/faults_stop_<commit>.jsonl (toledo looping, SIGTERM after 60 s, 2
+# loaded cores): the end-of-flight steps in about this, the in-flight map's products in about 20 s more.
+STOP_BUDGET_S = 45.0
+# A stopped flight's products are matched again from the final poses when the budget left after the steps holds
+# this many seconds per keyframe oriented (else they come from the in-flight map): toledo's 68 keyframes took 90 s
+# (1.3 s each) on 2 cores at load 5 (bench/faults_stop.py at 987d5df, the run log's "export: dense matching").
+DENSIFY_S_PER_KEYFRAME = 1.5
 
 
 def add_arguments(p) -> None:
@@ -53,6 +64,13 @@ def add_arguments(p) -> None:
                    help='bound on the end-of-flight steps after the stop (final adjustment, stereo, map flush): '
                         'past it the steps left are skipped and the products come from the in-flight map '
                         '(as after a second SIGINT/SIGTERM); default 600')
+    p.add_argument('--stop-budget-s', type=float, default=STOP_BUDGET_S,
+                   help='a flight stopped by SIGINT/SIGTERM: the seconds its end-of-flight steps share (the tracker\'s '
+                        'queued frames, the final adjustment, stereo\'s waiting pairs; each leaves out what does not '
+                        'fit and says so) and the products\' dense matching from the final poses (when it does not fit '
+                        'in what is left, the products come from the in-flight map: photogram-ros export MAPDIR '
+                        f'--densify makes the full ones later); 0 = no budget (every step to its end); 0 to 3600 s, '
+                        f'default {STOP_BUDGET_S:g}')
     p.add_argument('--end-max-rss-mb', type=float, default=0.0,
                    help='bound on the mapping processes\' memory (this one and its --processes 2 child) during the '
                         'end-of-flight steps, MB: past it they are cut short the same way; 0 = no bound (default)')
@@ -80,6 +98,8 @@ def run(a) -> int:
     if not a.end_timeout_s > 0 or not a.end_max_rss_mb >= 0:   # also refuses nan
         raise ConfigError('--end-timeout-s must be above 0 s (e.g. 600) and --end-max-rss-mb 0 (no bound) or more '
                           '(e.g. 3000)')
+    if not 0 <= a.stop_budget_s <= 3600:
+        raise ConfigError(f'--stop-budget-s must be 0 (no budget) to 3600 s, e.g. {STOP_BUDGET_S:g}')
     if a.namespace:
         check_namespace(a.namespace)
     camera = common_args.exif_altitude_overrides(a)
@@ -150,7 +170,12 @@ def run(a) -> int:
         print(f'{signals.signal_name or "end of the camera source"}: ending the flight (final adjustment, stereo, '
               f'map flush; at most {a.end_timeout_s:g} s, a second signal skips to the products of what exists)',
               flush=True)
-        end = finish_within_bounds(graph, signals.skip, a.end_timeout_s, a.end_max_rss_mb, say, memory)
+        budget_s = a.stop_budget_s if signals.signal_name else 0.0
+        if budget_s:
+            say(f'end of flight: a stopped flight: the steps share --stop-budget-s {budget_s:g} s (0: no budget)')
+        t_end = time.monotonic()
+        end = finish_within_bounds(graph, signals.skip, a.end_timeout_s, a.end_max_rss_mb, say, memory, budget_s)
+        budget_left_s = budget_s - (time.monotonic() - t_end)
         counts = graph.counts()
         names = {role: getattr(getattr(graph.nodes.get(role), 'diag', None), 'name', f'/{NODES[role][2]}')
                  for role in spec.roles}
@@ -170,16 +195,52 @@ def run(a) -> int:
     if signals.skip.is_set() and not a.live_map:
         a.live_map = True
         print('end of flight cut short: the products come from the in-flight map', flush=True)
+    elif budget_s and not a.live_map and exporting:
+        n = counts.get('bundle', {}).get('keyframes_oriented', counts.get('tracker', {}).get('keyframes', 0))
+        if n * DENSIFY_S_PER_KEYFRAME > budget_left_s:
+            a.live_map = True
+            end.skipped.append(f'the dense matching of {n} keyframes from the final poses (about '
+                               f'{n * DENSIFY_S_PER_KEYFRAME:.0f} s, {max(budget_left_s, 0):.0f} s of the budget '
+                               'left): the products come from the in-flight map')
+    if end.skipped:
+        print(f'end of flight within --stop-budget-s {budget_s:g}: left out: ' + '; '.join(end.skipped)
+              + f'. The full result: photogram-ros export {map_dir_of(a.params)} --densify --params '
+              f'{a.params or "PARAMS"} --crs {a.crs or products_crs(map_dir_of(a.params))} --out OUT (or run '
+              '--stop-budget-s 0)', flush=True)
     wall_s = time.monotonic() - t0
     frames = max(counts.get('tracker', {}).get('frames_received', 0), counts.get('camera', {}).get('frames', 0))
     run_info = {'source': 'run', 'frames': frames, 'bag_s': flight_s, 'wall_s': wall_s,
                 'real_time_factor': flight_s / max(wall_s, 1e-9), 'counts': counts,
                 'ended_by': signals.signal_name or 'end of the camera source',
                 'final_adjustment': end.final_adjustment, 'end_of_flight_errors': end.errors,
+                'stop_budget_s': budget_s, 'end_of_flight_skipped': end.skipped,
                 'params_file': a.params, 'parameter_overrides': set_by_command(spec)}
     if before is not None:
         run_info['resumed'] = count_keyframes_before(counts, before, map_dir_of(a.params))
-    return _after_flight(a, spec, end.as_dict(), run_info, diag_log.snapshot())
+    return _after_flight(a, spec, end.as_dict(), run_info, with_end_of_flight(diag_log.snapshot(), end, wall_s))
+
+
+def products_crs(map_dir: str) -> str:
+    """The CRS `run` gives the products without --crs: UTM of the map's origin ("EPSG:..." when it has none)."""
+    from photogram_ros.core.geodesy import utm_epsg
+    from photogram_ros.io.map_store import MapStore
+    try:
+        origin = MapStore(map_dir).origin
+    except Exception:   # only a hint in a message: the export says what is wrong with the map
+        origin = None
+    return f'EPSG:{utm_epsg(origin.lat_deg, origin.lon_deg)}' if origin is not None else 'EPSG:...'
+
+
+def with_end_of_flight(diagnostics: dict, end, t_s: float) -> dict:
+    """`diagnostics` (the nodes' /diagnostics snapshot the report lists) with what a stopped flight's budget left
+    out (end.skipped) as the problems (WARN) of an entry 'run (end of flight)': the report says it with the
+    nodes' own."""
+    if not end.skipped:
+        return diagnostics
+    texts = [f'end of flight: left out by --stop-budget-s: {s}' for s in end.skipped]
+    texts.append('the full result: photogram-ros export MAPDIR --densify (matches every pair from the final poses)')
+    return {**diagnostics, 'run (end of flight)': {'values': {}, 'problems': [(round(t_s, 2), t) for t in texts],
+                                                   'level': 1, 'problem_levels': {t: 1 for t in texts}}}
 
 
 class RunSignals:
@@ -248,13 +309,15 @@ class PeakMemory:
         return True
 
 
-def finish_within_bounds(graph, skip, timeout_s: float, max_rss_mb: float, say, memory: PeakMemory | None = None):
+def finish_within_bounds(graph, skip, timeout_s: float, max_rss_mb: float, say, memory: PeakMemory | None = None,
+                         budget_s: float = 0.0):
     """graph.finish_flight in a worker thread, watched from here every 0.5 s (the heap trimmed each time, so
     RSS is what the steps hold): a line every 10 s; past `timeout_s`, or the mapping processes' RSS (`memory`:
     this one's and the child's; without it this one's) above `max_rss_mb` (0: no bound), or once `skip` is set
     (a second signal), the steps left are skipped and
-    the step running is waited for at most 10 s more. Returns the FlightEnd (the final adjustment
-    'failed' with the reason when it was cut short before it ended)."""
+    the step running is waited for at most 10 s more. `budget_s` > 0 (a stopped flight, --stop-budget-s): the
+    steps share it (Graph.finish_flight). Returns the FlightEnd (the final adjustment 'failed' with the reason
+    when it was cut short before it ended)."""
     import threading
 
     from photogram_ros.nodes.graph import FlightEnd
@@ -267,9 +330,10 @@ def finish_within_bounds(graph, skip, timeout_s: float, max_rss_mb: float, say, 
         return memory.now_mb
 
     def work():
-        settle = (lambda: graph.drain(timeout_s=60.0, say=say, work_only=True, abort=skip))
+        settle = (lambda timeout_s=60.0: graph.drain(timeout_s=timeout_s, say=say, work_only=True, abort=skip))
         try:
-            result['end'] = graph.finish_flight(settle=settle, say=say, abort=skip, announce=True)
+            result['end'] = graph.finish_flight(settle=settle, say=say, abort=skip, announce=True,
+                                                **({'budget_s': budget_s} if budget_s else {}))
         except Exception as exc:   # said and recorded; the products of what exists are still written
             result['error'] = f'end of flight failed: {type(exc).__name__}: {exc}'
 

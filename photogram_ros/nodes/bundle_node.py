@@ -80,6 +80,7 @@ from __future__ import annotations
 
 import sys
 import threading
+import time
 from dataclasses import dataclass
 
 import numpy as np
@@ -283,10 +284,20 @@ class BundleNode(Node):
     def publish_quality(self) -> None:
         self.stage.publish_quality()
 
-    def finish(self) -> AdjustmentOutcome:
+    def finish(self, budget_s: float = 0.0) -> AdjustmentOutcome:
         """End of flight (called by the graph): every waiting keyframe now, the second chance of those not
-        oriented, the final adjustment and every pose again (stages/adjustment.py). Its outcome."""
-        return self.stage.finish(self._process)
+        oriented, the final adjustment and every pose again (stages/adjustment.py; `budget_s` > 0: a stopped
+        flight's share, what does not fit left out and said). Its outcome; the step times logged."""
+        out = self.stage.finish(self._process, budget_s)
+        self.get_logger().info(f'end of flight: {getattr(self.stage, "end_of_flight", "")}'
+                               + (f' (budget {budget_s:.0f} s)' if budget_s > 0 else ''))
+        return out
+
+    def end_budget(self, budget_s: float) -> None:
+        """A stopped flight's end begins (Graph.finish_flight): the worker takes no keyframe past `budget_s` from
+        now less the final adjustment's estimate, and publishes none (the final adjustment republishes every pose),
+        so that its batch in progress fits in the budget (stages/adjustment.py run_batch)."""
+        self.stage._cut_at = time.monotonic() + max(budget_s, 0.0)
 
     def full_adjustment(self) -> AdjustmentOutcome:
         """Adjust the whole block now and republish; the outcome says whether it was made."""

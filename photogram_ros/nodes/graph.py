@@ -41,6 +41,7 @@ from photogram_ros.errors import ConfigError, PhotogramError
 from photogram_ros.params import load_params_file
 from photogram_ros.nodes.node_main import WATCH_PARENT_ENV, init_ros, watch_parent
 from photogram_ros.nodes.process_memory import DEFAULT_ARENAS, limit_malloc_arenas, start_heap_trimmer
+from photogram_ros.stages.end_budget import EndBudget
 
 if TYPE_CHECKING:
     from photogram_ros.io.control_file import ControlInput
@@ -96,13 +97,15 @@ class FlightEnd:
     final_adjustment: str = 'none'   # 'done'; 'failed'; 'none': nothing to adjust (no keyframe oriented, no bundle)
     reason: str = ''                 # why it failed, or why there was none
     errors: list = field(default_factory=list)   # '<role>: <method> failed: <why>'
+    skipped: list = field(default_factory=list)  # what a stopped flight's budget left out (Graph.finish_flight)
 
     @property
     def ok(self) -> bool:
         return self.final_adjustment != 'failed' and not self.errors
 
     def as_dict(self) -> dict:
-        return {'final_adjustment': self.final_adjustment, 'reason': self.reason, 'errors': list(self.errors)}
+        return {'final_adjustment': self.final_adjustment, 'reason': self.reason, 'errors': list(self.errors),
+                'skipped': list(self.skipped)}
 
 
 def _final_adjustment_outcome(before: dict, after: dict, problems: list[str], error: str) -> tuple[str, str]:
@@ -394,23 +397,31 @@ class Graph:
         diag = getattr(self.nodes.get(role), 'diag', None)
         return diag.recent_problems() if diag is not None else []
 
-    def finish_flight(self, settle=lambda: time.sleep(2.0), say=None, abort=None, announce: bool = False) -> FlightEnd:
+    def finish_flight(self, settle=lambda timeout_s=2.0: time.sleep(min(timeout_s, 2.0)), say=None, abort=None,
+                      announce: bool = False, budget_s: float = 0.0) -> FlightEnd:
         """End of flight, in data-flow order: the tracker emits the keyframes it still holds, the
         bundle adjuster runs its final adjustment and republishes the poses, stereo pairs the
         keyframes still waiting, the map closes its coverage (every survey cell counts as passed, so
-        the last gaps go out); `settle` lets the downstream nodes consume each step's output; `say`
+        the last gaps go out); `settle(timeout_s=)` lets the downstream nodes consume each step's output; `say`
         gets a line every 10 s while a step in the child process takes long, and with `announce` one at
         each step (with its time and this process's memory). `abort` (an Event): once set, the steps not begun are skipped
-        (a second signal, or the end of flight's time bound), and said in `errors`.
+        (a second signal, or the end of flight's time bound), and said in `errors`. `budget_s` > 0 (a stopped
+        flight, run --stop-budget-s): the steps share it in this order, each handed its part of what is left
+        (STEP_BUDGET): the tracker's queued frames past its part are dropped, the adjuster takes the keyframes
+        waiting while its final adjustment still fits, stereo pairs while time is left; each says what it left out.
         Returns whether the final adjustment was made, and every step that failed."""
         end = FlightEnd(reason='no bundle node' if 'bundle' not in self.spec.roles else '')
         t0 = time.monotonic()
+        budget = EndBudget(budget_s)
+        if budget.bounded:   # the adjuster's worker keeps to the budget from now (its batch in progress)
+            call_if_there(self, 'bundle', 'end_budget', say, budget_s=step_budget('bundle', 'finish', budget)['budget_s'])
         for role, method in FINISH_STEPS:
+            kwargs = step_budget(role, method, budget) if budget.bounded else {}
             if self.child is not None and role in self.child.spec.roles:
-                fn = functools.partial(self.child.call, role, method, say=say)
+                fn = functools.partial(self.child.call, role, method, say=say, kwargs=kwargs)
+            elif callable(getattr(self.nodes.get(role), method, None)):
+                fn = functools.partial(getattr(self.nodes[role], method), **kwargs)
             else:
-                fn = getattr(self.nodes.get(role), method, None)
-            if not callable(fn):
                 continue
             if abort is not None and abort.is_set():
                 end.errors.append(f'{role}: {method} skipped (the end of flight was cut short)')
@@ -419,15 +430,29 @@ class Graph:
                 continue
             if say is not None and announce:
                 say(f'end of flight: {time.monotonic() - t0:.0f} s: {FINISH_STEP_WORDS[role, method]} '
-                    f'(RSS {rss_mb():.0f} MB)')
+                    + (f'(RSS {rss_mb():.0f} MB' + (f', {budget.left_s():.0f} s of the budget left' if budget.bounded
+                                                     else '') + ')'))
             before, error = self.counts().get(role, {}), ''
+            if budget.bounded and role == 'tracker':   # what its part cannot take goes now (and its memory with it)
+                dropped = drop_queued_frames(self.nodes.get(role), frames_in(self.nodes.get(role),
+                                                                             kwargs['max_wait_s']))
             try:
                 fn()
             except Exception as exc:  # one node's failure must not lose the others' data
                 error = f'{role}: {method} failed: {exc}'
                 end.errors.append(error)
                 print(error, file=sys.stderr, flush=True)
-            settle()
+            if budget.bounded and role == 'tracker':
+                dropped += drop_queued_frames(self.nodes.get(role))
+                if dropped:
+                    end.skipped.append(f'{dropped} frames the tracker had not taken yet (the stop budget)')
+                    if say is not None:
+                        say(f'end of flight: {dropped} frames the tracker had not taken yet dropped (its part of '
+                            '--stop-budget-s)')
+            if budget.bounded:
+                settle(timeout_s=min(SETTLE_MAX_S, max(1.0, SETTLE_SHARE * budget.left_s())))
+            else:
+                settle()
             if role == 'bundle':
                 end.final_adjustment, end.reason = _final_adjustment_outcome(
                     before, self.counts().get('bundle', {}), self.problems('bundle'), error)
@@ -455,6 +480,62 @@ FINISH_STEP_WORDS = {('tracker', 'flush'): 'the tracker emits the keyframes it h
                      ('bundle', 'finish'): 'final adjustment',
                      ('stereo', 'flush'): 'stereo pairs the keyframes still waiting',
                      ('map', 'finish_coverage'): 'the map closes its coverage'}
+
+# A stopped flight's end (Graph.finish_flight's budget_s): each step's part of the budget left when it begins.
+# The tracker works through its queued frames for TRACKER_SHARE of it; the adjuster keeps STEREO_AND_MAP_SHARE of
+# the whole budget for the steps after it; a settle waits for the nodes downstream at most SETTLE_SHARE of what is
+# left (and SETTLE_MAX_S, as without a budget).
+TRACKER_SHARE = 0.2
+STEREO_AND_MAP_SHARE = 0.15
+SETTLE_SHARE = 0.1
+SETTLE_MAX_S = 60.0
+
+
+def step_budget(role: str, method: str, budget: EndBudget) -> dict:
+    """The keyword arguments that hand an end-of-flight step its part of `budget` (what is left of it now)."""
+    left = budget.left_s()
+    if (role, method) == ('tracker', 'flush'):
+        return {'max_wait_s': max(1.0, TRACKER_SHARE * left)}
+    if (role, method) == ('bundle', 'finish'):
+        return {'budget_s': max(1.0, left - STEREO_AND_MAP_SHARE * budget.budget_s)}
+    if (role, method) == ('stereo', 'flush'):
+        return {'budget_s': max(1.0, left)}
+    return {}
+
+
+def call_if_there(graph, role: str, method: str, say=None, **kwargs) -> None:
+    """`method` of the `role` node of `graph` (in its process or its child) with `kwargs`, when it has one; a
+    failure is printed, not raised."""
+    try:
+        if graph.child is not None and role in graph.child.spec.roles:
+            graph.child.call(role, method, say=say, kwargs=kwargs, timeout_s=30.0, stall_s=30.0)
+        elif callable(getattr(graph.nodes.get(role), method, None)):
+            getattr(graph.nodes[role], method)(**kwargs)
+    except Exception as exc:   # the end of flight goes on without it
+        print(f'graph: {role}.{method} failed: {exc}', file=sys.stderr, flush=True)
+
+
+def drop_queued_frames(tracker, keep: int = 0) -> int:
+    """Drop the frames queued in `tracker` (a TrackerNode) that it has not taken yet but the `keep` next in line;
+    returns how many. Uses its drop_queued(keep) when it has one, else rebuilds its frame queue under its lock."""
+    if callable(getattr(tracker, 'drop_queued', None)):
+        return tracker.drop_queued(keep)
+    frames, cond = getattr(tracker, '_frames', None), getattr(tracker, '_cond', None)
+    if frames is None or cond is None:
+        return 0
+    with cond:
+        items = [frames.popleft() for _ in range(len(frames))]
+        frames.extend(items[:keep])   # the stop: no frame comes after them (the drop rule's stamps no longer matter)
+    return max(len(items) - keep, 0)
+
+
+def frames_in(tracker, seconds: float) -> int:
+    """How many frames `tracker` takes in `seconds` at its pace of the last 10 s (frames_tracked on /diagnostics);
+    1 when it has none."""
+    diag = getattr(tracker, 'diag', None)
+    rate_hz = diag.rate_hz('frames_tracked', 10.0) if diag is not None and hasattr(diag, 'rate_hz') else 0.0
+    return max(1, int(rate_hz * seconds))
+
 
 # The roles whose nodes bring data into the graph (Graph.stop_sources): each has stop_input().
 SOURCE_ROLES = ('camera', 'mavlink')
@@ -650,13 +731,15 @@ class ChildGraph:
         self._pub.publish(String(data=json.dumps({'seq': seq, **command})))
         return seq
 
-    def call(self, role: str, method: str, timeout_s: float = 600.0, stall_s: float = 90.0, say=None) -> None:
+    def call(self, role: str, method: str, timeout_s: float = 600.0, stall_s: float = 90.0, say=None,
+             kwargs: dict | None = None) -> None:
         """Run `method` of the child's `role` node and wait until it returned. Waits on the child's status:
         while it works (a counter moves, a node is busy) up to `timeout_s`; a child that sends no status,
         or whose counters stand still with no node busy, for `stall_s` is not waited for any longer (a
         RuntimeError saying so; the child computing, more than CHILD_COMPUTING_CPU_S of CPU time a
-        second, counts as work: a final adjustment moves no counter). `say(text)` gets a line every 10 s."""
-        seq = self._send(call=[role, method])
+        second, counts as work: a final adjustment moves no counter). `say(text)` gets a line every 10 s.
+        `kwargs`: the method's keyword arguments (JSON values)."""
+        seq = self._send(call=[role, method], kwargs=kwargs or {})
         t0 = moved = last_said = time.monotonic()
         last, cpu = None, process_cpu_s(self.proc.pid)
         while not self._wait(lambda st: st.get('done', 0) >= seq, 1.0):
@@ -744,7 +827,7 @@ def child_main(argv=None) -> int:
                 return
             role, method = c['call']
             try:
-                getattr(graph.nodes[role], method)()
+                getattr(graph.nodes[role], method)(**c.get('kwargs', {}))
             except Exception as exc:   # reported to the parent, which prints it
                 state['errors'][str(c['seq'])] = f'{type(exc).__name__}: {exc}'
             state['done'] = max(state['done'], c['seq'])

@@ -171,6 +171,7 @@ class StereoNode(Node):
         self.ground_m = None if p.ground_from_sparse_cloud else p.ground_height_m
         self._tie_points = np.zeros((0, 3))   # the newest sparse cloud, map (m)
         self._flushing = False
+        self._flush_deadline = float('inf')   # a stopped flight's end: pairs past it are left out (flush)
         self._posed: list[int] = []   # stamps of keyframes with a pose, sorted
         self._moved_after_pairs_m = 0.0   # the most a pose moved after its pairs were matched
         if p.ground_from_sparse_cloud:
@@ -401,16 +402,24 @@ class StereoNode(Node):
             if any(not kf.paired and kf.complete for kf in self._kf.values()):
                 self._pair_soon(None)
 
-    def flush(self) -> None:
+    def flush(self, budget_s: float = 0.0) -> None:
         """End of flight: pair every keyframe still waiting, with the poses it has now (nothing is shed: the
-        flight no longer needs the CPU)."""
+        flight no longer needs the CPU). `budget_s` > 0 (a stopped flight's part of run --stop-budget-s): the
+        pairs whose turn comes after it are left out, counted in pairs_skipped_end_budget and said (export
+        --densify matches every pair from the final poses)."""
         with self._lock:
             self._flushing = True
+            self._flush_deadline = time.monotonic() + budget_s if budget_s > 0 else float('inf')
             if self.ground_m is None:
                 self.ground_m = self.params.ground_height_m
             while self._running:   # the worker's batch goes out first
                 self._wake.wait(0.5)
             self._pair_pending()
+            skipped = self.diag.counts().get('pairs_skipped_end_budget', 0)
+            if skipped:
+                self.diag.problem(f'end of flight: {skipped} stereo pairs left out (the stopped flight\'s budget, '
+                                  'run --stop-budget-s): the in-flight map has gaps there; photogram-ros export '
+                                  'MAPDIR --densify matches every pair from the final poses')
 
     def _on_sparse(self, msg: PointCloud2) -> None:
         try:
@@ -522,6 +531,9 @@ class StereoNode(Node):
             self.diag.set('shed_pair_lag_s', round(lag_s, 1))
             with self._lock:
                 self._shed(b, f'stereo behind the poses by more than max_pair_lag_s {self.params.max_pair_lag_s:g} s')
+            return
+        if self._flushing and time.monotonic() > self._flush_deadline:
+            self.diag.count('pairs_skipped_end_budget')
             return
         t0 = time.perf_counter()
         if pair.from_tie_points:

@@ -66,6 +66,7 @@ from photogram_ros.errors import ConfigError, PhotogramError
 from photogram_ros.params import param
 from photogram_ros.stages.adjustment_counts import NotOrientedCounts
 from photogram_ros.stages.block_health import block_check_on_diagnostics
+from photogram_ros.stages.end_budget import EndBudget, end_times, final_estimate_s, skip_at_end
 from photogram_ros.stages.live_quality import live_quality
 from photogram_ros.stages.report import ERROR, OK, WARN, DiagnosticsLog  # noqa: F401  (OK: for callers)
 
@@ -307,6 +308,7 @@ class AdjustmentStage:
         self._block_verdict: dict | None = None   # the last block check: {'status', 'summary'} (live quality)
         self._full_requested = False
         self._busy = False
+        self._cut_at, self._full_s, self._full_n = float('inf'), None, 0   # stop budget; last full adjustment s, n
         self.cond = threading.Condition()
         self.work = threading.RLock()
 
@@ -503,7 +505,10 @@ class AdjustmentStage:
             return
         process = process or self.process
         for i, rec in enumerate(batch):
-            process(rec, publish=i == len(batch) - 1)
+            if time.monotonic() > self._cut_at - final_estimate_s(self):   # a stopped flight's budget (finish)
+                skip_at_end(self.diag, len(batch) - i, WARN)
+                break
+            process(rec, publish=i == len(batch) - 1 and self._cut_at == float('inf'))   # the final republishes
         if len(batch) > 1:
             self.diag.count('keyframes_caught_up', len(batch) - 1)
 
@@ -772,32 +777,39 @@ class AdjustmentStage:
 
     # --- end of flight ----------------------------------------------------------------------------
 
-    def finish(self, process=None) -> AdjustmentOutcome:
-        """End of flight: take every waiting keyframe now, with or without its fix, give the keyframes that
-        did not orient in flight a second chance against the whole block, then adjust the whole block and
-        republish every pose. Returns the final adjustment's outcome."""
+    def finish(self, process=None, budget_s: float = 0.0) -> AdjustmentOutcome:
+        """End of flight: every waiting keyframe now, with or without its fix, a second chance against the block for
+        those not oriented, the whole block adjusted, every pose republished. `budget_s` > 0 (a stopped flight's,
+        stages/end_budget.py): the first two (catch-up adjustment) while the final's estimate fits; the rest said."""
         if self.at is None:
             return AdjustmentOutcome('none', 'no calibration: no keyframe was adjusted')
-        process = process or self.process
+        process, budget = process or self.process, EndBudget(budget_s)
+        self._cut_at = budget.deadline   # no keyframe taken past it: a worker's batch in progress too (run_batch)
         with self.work:   # after the batch the worker may be adjusting
+            budget.mark()
             with self.cond:
-                recs = []
-                for stamp in sorted(self._pending):
-                    _, ids, uv, target_uv = self._pending.pop(stamp)
-                    recs.append(self._record(stamp, ids, uv, self._match_fix(stamp), target_uv))
-            for rec in recs:
-                process(rec)
-            if self.at.block.n_oriented:
+                waiting = [(s, self._pending.pop(s)) for s in sorted(self._pending)]   # (arrival, ids, uv, targets)
+                recs = [self._record(s, w[1], w[2], self._match_fix(s), w[3]) for s, w in waiting]
+            for i, rec in enumerate(recs):
+                if not budget.fits(final_estimate_s(self)):
+                    skip_at_end(self.diag, len(recs) - i, WARN)
+                    break
+                process(rec, publish=not budget.bounded)   # a stopped flight's: the final adjustment publishes
+            budget.mark()
+            if self.at.block.n_oriented and budget.fits(final_estimate_s(self)):
                 try:
-                    n = self.at.retry_unregistered()
-                    if n:
+                    if n := self.at.retry_unregistered():
                         self.diag.count('keyframes_oriented_at_end', n)
                 except Exception as exc:   # the full adjustment still runs
                     self.diag.problem(f'second chance of unoriented keyframes failed: {exc}')
+            if self.at.block.n_oriented:
                 self._origin_from_control()
                 self._vet_control(final=True)   # targets seen too seldom to be checked in flight
+            budget.mark()
             out = self.full_adjustment()
             self._not_oriented.at_end(self.at.block)
+            budget.mark()
+            self.end_of_flight = end_times(budget.marks, len(recs), self.diag)
             return out
 
     def full_adjustment(self) -> AdjustmentOutcome:
@@ -816,7 +828,8 @@ class AdjustmentStage:
             rep = self.at.full_adjustment()
             if rep.status == 'failed':
                 raise PhotogramError(f'the solver failed ({self.at.block.n_oriented} keyframes)')
-            self.diag.set('full_adjustment_s', time.perf_counter() - t0)
+            self._full_s, self._full_n = time.perf_counter() - t0, self.at.block.n_oriented
+            self.diag.set('full_adjustment_s', self._full_s)
             self.diag.set('full_adjustment_rms_px', float(rep.reprojection_rms_px))
             self.diag.set('full_adjustment_status', rep.status)
             self._adjusted_whole = True
