@@ -199,6 +199,24 @@ def test_frames_faster_than_the_tracker_are_dropped_oldest_first(rclpy_context):
         tracker.destroy_node()
 
 
+def test_a_stopped_flight_drops_the_queued_frames_but_the_next_in_line(rclpy_context):
+    """drop_queued(keep): the frames a stopped flight's budget cannot take go at once, the next `keep` stay."""
+    from photogram_ros import msgs
+    from photogram_ros.nodes.tracker_node import TrackerNode
+
+    tracker = TrackerNode(overrides={'queue_size': 10}, context=rclpy_context)
+    try:
+        with tracker._track_lock:   # a busy tracker: nothing leaves the queue
+            for k in range(6):
+                tracker._on_image(msgs.image_msg(np.zeros((8, 8), np.uint8), (k + 1) * 1_000_000))
+            assert tracker.drop_queued(keep=2) == 4
+            kept = [msgs.ns_from_time(m.header.stamp) for m in tracker._frames]
+        assert kept == [1_000_000, 2_000_000]
+        assert tracker.drop_queued() == 2 and len(tracker._frames) == 0
+    finally:
+        tracker.destroy_node()
+
+
 def test_photo_rate_frames_the_chain_needs_are_kept_and_redundant_ones_dropped_with_the_reason(rclpy_context):
     """The queue's drop rule in the node (core/frame_queue.py, tests/test_tracker_frame_queue.py): photos 30 m apart
     with keyframes 30 m apart are all kept past queue_size 2; a burst of frames 1 m apart is dropped as redundant,

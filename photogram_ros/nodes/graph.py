@@ -516,17 +516,10 @@ def call_if_there(graph, role: str, method: str, say=None, **kwargs) -> None:
 
 
 def drop_queued_frames(tracker, keep: int = 0) -> int:
-    """Drop the frames queued in `tracker` (a TrackerNode) that it has not taken yet but the `keep` next in line;
-    returns how many. Uses its drop_queued(keep) when it has one, else rebuilds its frame queue under its lock."""
-    if callable(getattr(tracker, 'drop_queued', None)):
-        return tracker.drop_queued(keep)
-    frames, cond = getattr(tracker, '_frames', None), getattr(tracker, '_cond', None)
-    if frames is None or cond is None:
-        return 0
-    with cond:
-        items = [frames.popleft() for _ in range(len(frames))]
-        frames.extend(items[:keep])   # the stop: no frame comes after them (the drop rule's stamps no longer matter)
-    return max(len(items) - keep, 0)
+    """Drop the frames queued in `tracker` (a TrackerNode: its drop_queued) that it has not taken yet but the
+    `keep` next in line; returns how many (0 without a tracker in this process)."""
+    drop = getattr(tracker, 'drop_queued', None)
+    return drop(keep) if callable(drop) else 0
 
 
 def frames_in(tracker, seconds: float) -> int:

@@ -638,6 +638,14 @@ class TrackerNode(Node):
         self.wait_keyframes_out(max(deadline - time.monotonic(), 0.0) + 30.0)
         return len(kfs)
 
+    def drop_queued(self, keep: int = 0) -> int:
+        """Drop the queued frames not taken yet but the `keep` next in line (a stopped flight's budget: no frame
+        comes after them, so the drop rule's stamps no longer matter); returns how many."""
+        with self._cond:
+            items = [self._frames.popleft() for _ in range(len(self._frames))]
+            self._frames.extend(items[:keep])
+        return max(len(items) - keep, 0)
+
     def destroy_node(self) -> None:
         with self._cond:
             self._stop = True
