@@ -2,7 +2,7 @@
 memory after the signal as a ratio to its in-flight peak, measured in the same run.
 
 A copy of the toledo survey (42 photos, 2400x1800) is played by camera_node in a loop (rate 0, as fast as
-the tracker takes them), SIGTERM after `--stop-after-s` of flight; the run's RSS is sampled from /proc
+the tracker takes them), SIGTERM after `--stop-after-s` of flight; the RSS of the run and its child process (bundle, stereo, map) is sampled from /proc
 every 0.2 s: its peak in flight, in the end-of-flight steps (until "end of flight: steps done") and while
 the products are made; with the run log's lines that time the end-of-flight steps and the products
 (end_of_flight_lines) and what a stopped flight's budget left out (the report's run). Writes one JSON line (bench/machine.py's ResultWriter: the commit, whether the tree was

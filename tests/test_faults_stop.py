@@ -24,14 +24,34 @@ from helpers.processes import reaped
 CLI = [sys.executable, '-m', 'photogram_ros.cli']
 
 
+def _tree_pids(pid: int) -> list[int]:
+    """`pid` and its descendants (from /proc: the run's child process holds bundle, stereo and map)."""
+    children: dict[int, list[int]] = {}
+    for stat in Path('/proc').glob('[0-9]*/stat'):
+        try:
+            fields = stat.read_text().rsplit(')', 1)[1].split()
+            children.setdefault(int(fields[1]), []).append(int(stat.parent.name))
+        except (OSError, ValueError, IndexError):
+            pass
+    out, todo = [], [pid]
+    while todo:
+        p = todo.pop()
+        out.append(p)
+        todo.extend(children.get(p, []))
+    return out
+
+
 def _rss_mb(pid: int) -> float:
-    try:
-        for line in Path(f'/proc/{pid}/status').read_text().splitlines():
-            if line.startswith('VmRSS:'):
-                return int(line.split()[1]) / 1024.0
-    except (OSError, ValueError):
-        pass
-    return 0.0
+    """The RSS of `pid` and its descendants, MB."""
+    total = 0.0
+    for p in _tree_pids(pid):
+        try:
+            for line in Path(f'/proc/{p}/status').read_text().splitlines():
+                if line.startswith('VmRSS:'):
+                    total += int(line.split()[1]) / 1024.0
+        except (OSError, ValueError):
+            pass
+    return total
 
 
 def looping_run(tmp_path: Path, photos: Path, stop_after_s: float, signals=(signal.SIGTERM,),
