@@ -113,14 +113,19 @@ def _strips_map(folder, one_pair_offset_m: float):
                 yield pair_cloud(rng, lambda x, y: plane(x, y) + shift, -12.0 + 8 * k, 0.0, 4.0, 20.0, 60.0, 0.01)
 
     store = fused_map(folder, 0.2, clouds(), (LAT, LON, H))
+    _nadir_keyframes(store, [(-16, -20), (16, -20), (16, 20), (-16, 20)])
+    return folder
+
+
+def _nadir_keyframes(store, corners_m) -> None:
+    """Keyframes looking straight down from 40 m at each (east, north) of `corners_m` (black images)."""
     jpg = cv2.imencode('.jpg', np.zeros((8, 8, 3), np.uint8))[1].tobytes()
-    for k, (x, y) in enumerate([(-16, -20), (16, -20), (16, 20), (-16, 20)]):
+    for k, (x, y) in enumerate(corners_m):
         T = np.eye(4)
         T[:3, :3] = np.diag([1.0, -1.0, -1.0])
         T[:3, 3] = (x, y, 40.0)
         store.save_keyframe_image(k, jpg)
         store.save_keyframe_pose(k, T)
-    return folder
 
 
 def _dsm_cells(path):
@@ -181,13 +186,7 @@ def _one_pair_map(folder, blob_m: float = 0.0):
             yield pair_cloud(rng, height, -15.0 + 10 * k, 0.0, 5.0, 20.0, 60.0, 0.01)
 
     store = fused_map(folder, 0.2, clouds(), (LAT, LON, H))
-    jpg = cv2.imencode('.jpg', np.zeros((8, 8, 3), np.uint8))[1].tobytes()
-    for k, (x, y) in enumerate([(-16, -16), (16, -16), (16, 16), (-16, 16)]):
-        T = np.eye(4)
-        T[:3, :3] = np.diag([1.0, -1.0, -1.0])
-        T[:3, 3] = (x, y, 40.0)
-        store.save_keyframe_image(k, jpg)
-        store.save_keyframe_pose(k, T)
+    _nadir_keyframes(store, [(-16, -16), (16, -16), (16, 16), (-16, 16)])
     return folder
 
 
