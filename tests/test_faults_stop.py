@@ -233,7 +233,14 @@ def test_a_stopped_flight_s_budget_is_handed_to_each_step_in_order():
 
     def graph_of():
         nodes = {'tracker': Node(), 'bundle': Node(), 'stereo': Node(), 'map': Node()}
-        nodes['tracker']._frames, nodes['tracker']._cond = collections.deque(range(7)), threading.Lock()
+        queue = nodes['tracker'].queue = collections.deque(range(7))   # 7 frames it has not taken
+
+        def drop_queued(keep=0):
+            n = max(len(queue) - keep, 0)
+            for _ in range(n):
+                queue.pop()
+            return n
+        nodes['tracker'].drop_queued = drop_queued
         return SimpleNamespace(spec=SimpleNamespace(roles=tuple(nodes)), child=None, nodes=nodes,
                                counts=lambda: {}, problems=lambda role: []), nodes
 
@@ -248,11 +255,11 @@ def test_a_stopped_flight_s_budget_is_handed_to_each_step_in_order():
     assert nodes['tracker'].kwargs[0]['max_wait_s'] == pytest.approx(TRACKER_SHARE * 40.0, abs=0.5)
     assert nodes['bundle'].kwargs[0]['budget_s'] == pytest.approx((1 - STEREO_AND_MAP_SHARE) * 40.0, abs=0.5)
     assert 0 < nodes['stereo'].kwargs[0]['budget_s'] <= 40.0 and nodes['map'].kwargs == [{}]
-    assert not nodes['tracker']._frames and any('7 frames the tracker had not taken' in s for s in said), said
+    assert not nodes['tracker'].queue and any('7 frames the tracker had not taken' in s for s in said), said
     assert any('7 frames' in s for s in end.skipped) and all(0 < t <= 4.0 for t in settles), (end, settles)
     graph, nodes = graph_of()
     end = Graph.finish_flight(graph, settle=lambda timeout_s=2.0: None)
-    assert [n.kwargs for n in nodes.values()] == [[{}]] * 4 and len(nodes['tracker']._frames) == 7
+    assert [n.kwargs for n in nodes.values()] == [[{}]] * 4 and len(nodes['tracker'].queue) == 7
     assert not end.skipped
 
 
