@@ -182,16 +182,27 @@ def test_bad_calibration_is_a_diagnostics_error_and_node_survives(rclpy_context)
         listener.node.destroy_node()
 
 
-def test_frames_faster_than_the_tracker_are_dropped_oldest_first(rclpy_context):
+def _queue_frames(tracker, n: int) -> None:
+    """`n` black frames 1 ms apart into `tracker`'s queue (call it holding tracker._track_lock: a busy tracker,
+    nothing leaves the queue)."""
     from photogram_ros import msgs
+    for k in range(n):
+        tracker._on_image(msgs.image_msg(np.zeros((8, 8), np.uint8), (k + 1) * 1_000_000))
+
+
+def queued_stamps(tracker) -> list[int]:
+    from photogram_ros import msgs
+    return [msgs.ns_from_time(m.header.stamp) for m in tracker._frames]
+
+
+def test_frames_faster_than_the_tracker_are_dropped_oldest_first(rclpy_context):
     from photogram_ros.nodes.tracker_node import TrackerNode
 
     tracker = TrackerNode(overrides={'queue_size': 2}, context=rclpy_context)
     try:
         with tracker._track_lock:   # a busy tracker: nothing leaves the queue
-            for k in range(10):
-                tracker._on_image(msgs.image_msg(np.zeros((8, 8), np.uint8), (k + 1) * 1_000_000))
-            kept = [msgs.ns_from_time(m.header.stamp) for m in tracker._frames]
+            _queue_frames(tracker, 10)
+            kept = queued_stamps(tracker)
         assert kept == [9_000_000, 10_000_000] and tracker.diag.counts()['drops'] == 8
         assert any("dropped: frames come faster than the tracker" in m and "without a GNSS position" in m
                    for _, m in tracker.diag._problems)
@@ -201,16 +212,14 @@ def test_frames_faster_than_the_tracker_are_dropped_oldest_first(rclpy_context):
 
 def test_a_stopped_flight_drops_the_queued_frames_but_the_next_in_line(rclpy_context):
     """drop_queued(keep): the frames a stopped flight's budget cannot take go at once, the next `keep` stay."""
-    from photogram_ros import msgs
     from photogram_ros.nodes.tracker_node import TrackerNode
 
     tracker = TrackerNode(overrides={'queue_size': 10}, context=rclpy_context)
     try:
         with tracker._track_lock:   # a busy tracker: nothing leaves the queue
-            for k in range(6):
-                tracker._on_image(msgs.image_msg(np.zeros((8, 8), np.uint8), (k + 1) * 1_000_000))
+            _queue_frames(tracker, 6)
             assert tracker.drop_queued(keep=2) == 4
-            kept = [msgs.ns_from_time(m.header.stamp) for m in tracker._frames]
+            kept = queued_stamps(tracker)
         assert kept == [1_000_000, 2_000_000]
         assert tracker.drop_queued() == 2 and len(tracker._frames) == 0
     finally:
