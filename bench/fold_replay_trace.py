@@ -31,7 +31,7 @@ def main() -> int:
         state = keyframe_state(at)
         trace.write(json.dumps({'t_s': round(time.monotonic() - t0, 2), 'what': what, **kw,
                                 'n_oriented': sum(s['oriented'] for s in state),
-                                'georeferenced': bool(at.georeferenced), 'pending': len(stage._pending),
+                                'georeferenced': bool(at.georeferenced), 'pending': stage.waiting_keyframes(),
                                 'state': [s for s in state if s['oriented']]}) + '\n')
         trace.flush()
 

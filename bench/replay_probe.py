@@ -428,7 +428,7 @@ def memory_holdings(probe: Probe) -> dict:
         out['tracker_frames_queued'] = len(n['tracker']._frames)
     # Work queued between the nodes (a consumer falling behind holds its inputs in memory).
     if 'bundle' in n:
-        out['bundle_keyframes_waiting'] = len(n['bundle']._pending)
+        out['bundle_keyframes_waiting'] = n['bundle'].waiting_keyframes()
     if 'stereo' in n:
         st = n['stereo']
         out['stereo_keyframes_unpaired'] = sum(1 for k in list(st._kf.values()) if not k.paired)

@@ -70,7 +70,7 @@ def build_parser() -> argparse.ArgumentParser:
         module = importlib.import_module(module_name)
         p = sub.add_parser(name, help=module.HELP, description=module.HELP, formatter_class=HelpFormatter)
         module.add_arguments(p)
-        p.set_defaults(_run=module.run)
+        p.set_defaults(run_command=module.run)
     return parser
 
 
@@ -143,7 +143,7 @@ def _main(argv, command: list) -> int:
         if args.command in ROS_COMMANDS:
             from photogram_ros.nodes.ros_domain import check_domain_env
             check_domain_env()
-        return int(args._run(args) or 0)
+        return int(args.run_command(args) or 0)
     except PhotogramError as exc:
         print(f'photogram-ros {args.command}: error: {exc}', file=sys.stderr)
         return 2

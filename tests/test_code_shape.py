@@ -149,3 +149,22 @@ def test_the_public_queries_answer_as_the_containers(containers):
     assert b.tie_point_ids(hot=True).tolist() == [1, 2]     # tracks 1, 2, 3 hot; 3 has no point
     assert b.tie_point_cloud().shape == (2, 3) and b.n_points == 3
     assert b.point_ids() == [1, 2, -1]
+
+
+# Private names of the standard library that its own documentation tells callers to use.
+STDLIB_PRIVATE_OK = {'os._exit', 'argparse._HelpAction', 'argparse._VersionAction'}
+
+
+def test_nothing_reads_another_objects_private_members():
+    """`x._name` only on `self` / `cls`: an object's private members are its own (a public method says what
+    another may read or set)."""
+    found = []
+    for f in _package_files():
+        for node in ast.walk(ast.parse(f.read_text(), str(f))):
+            if not (isinstance(node, ast.Attribute) and node.attr.startswith('_') and not node.attr.startswith('__')):
+                continue
+            if isinstance(node.value, ast.Name) and node.value.id in ('self', 'cls'):
+                continue
+            if ast.unparse(node) not in STDLIB_PRIVATE_OK:
+                found.append(f'{f.relative_to(ROOT)}:{node.lineno}: {ast.unparse(node)}')
+    assert found == []

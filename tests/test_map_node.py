@@ -319,7 +319,7 @@ def test_the_cell_follows_the_gsd_of_the_first_pair_cloud(rclpy_context, tmp_pat
             ex.spin_once(timeout_sec=0.05)
         pp.publish(msgs.pose_with_covariance_from_T(make_T(np.diag([1.0, -1.0, -1.0]),
                                                            np.array([0.0, 0.0, 3.0 + height_m])), 7))
-        assert _spin_until(ex, lambda: node._camera is not None and node._pose_z, 5.0)
+        assert _spin_until(ex, lambda: node._camera is not None and node.posed_keyframes, 5.0)
         pub.publish(msgs.pointcloud2_msg(pair_cloud(np.random.default_rng(3), surface, 0, 0, 20, 20, 20), 9, 'map'))
         assert _spin_until(ex, lambda: node.diag.counts().get('clouds', 0) == 1)
         assert node.cell_m == pytest.approx(want_cell_m)

@@ -374,7 +374,7 @@ def majority_camera(cameras: dict) -> tuple | None:
     return max(counts, key=lambda k: counts[k]) if counts else None
 
 
-def _digest(path: Path) -> bytes:
+def file_digest(path: Path) -> bytes:
     """A hash of the file's bytes (duplicate copies of a photo)."""
     import hashlib
     h = hashlib.blake2b(digest_size=16)
@@ -516,7 +516,7 @@ class FolderSource:
         for same in groups.values():
             seen: dict = {}
             for e in same if len(same) > 1 else ():
-                digest = _digest(e[0])
+                digest = file_digest(e[0])
                 if digest in seen:
                     dropped.add(e[0])
                     self.skipped.append((str(e[0]), f'{e[0].name}: identical to {seen[digest].name} (a duplicate '
@@ -604,7 +604,7 @@ class FolderSource:
             elif t is None:
                 why = f'{p.name} has no EXIF DateTimeOriginal: skipped (its time is unknown)'
             elif (twin := next((q for q, tq in self.entries if tq == t and q.stat().st_size == p.stat().st_size
-                                and _digest(q) == _digest(p)), None)) is not None:
+                                and file_digest(q) == file_digest(p)), None)) is not None:
                 why = f'{p.name}: identical to {twin.name} (a duplicate copy): skipped'
             elif last_ns is not None and t <= last_ns:
                 why = f'{p.name} was taken before the last photo played (time never goes back): skipped'

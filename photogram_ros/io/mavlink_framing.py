@@ -229,7 +229,7 @@ class MavlinkStream:
 
     def _accept(self, m, pkt, flags: int) -> bool:
         stats = self.stats
-        hdr = m._header
+        hdr = m.get_header()
         if self.require_signed and not (flags & 1):
             stats.unsigned_rejected += 1
             return False

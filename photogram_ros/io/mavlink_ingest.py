@@ -67,7 +67,7 @@ def raw_gnss(m, receiver: int) -> gf.RawGnss:
                       lon_e7=int(m.lon), alt_msl_mm=int(m.alt), alt_ellipsoid_mm=int(g(m, 'alt_ellipsoid', 0) or 0),
                       eph=int(m.eph), epv=int(m.epv), h_acc_mm=int(g(m, 'h_acc', 0) or 0),
                       v_acc_mm=int(g(m, 'v_acc', 0) or 0), sats=int(m.satellites_visible),
-                      sysid=m._header.srcSystem, compid=m._header.srcComponent)
+                      sysid=m.get_header().srcSystem, compid=m.get_header().srcComponent)
 
 
 class Ingest:

@@ -26,7 +26,6 @@ feature positions and verified matches; the matches are the same wherever they r
 
 from __future__ import annotations
 
-import hashlib
 import time
 import warnings
 from dataclasses import dataclass, field
@@ -43,7 +42,7 @@ from photogram_ros.core.incremental import KeyframeRecord
 from photogram_ros.errors import CalibrationError, DataError
 from photogram_ros.io.dask_cluster import InProcessRunner
 from photogram_ros.io.geo_txt import EXIF_SIGMA_H_M, EXIF_SIGMA_V_M, read_geo_txt
-from photogram_ros.io.image_source import (IMAGE_SUFFIXES, camera_of, dji_rtk_accuracy,
+from photogram_ros.io.image_source import (IMAGE_SUFFIXES, camera_of, file_digest, dji_rtk_accuracy,
                                            exif_altitude_to_ellipsoidal_m, exif_intrinsics, image_file_problem,
                                            read_dji_xmp, read_exif_gps, xmp_float)
 from photogram_ros.io.keyframe_block import KeyframeBlock, camera_from_yaml
@@ -234,15 +233,6 @@ def _camera_and_left_out(src: Path, images: list[Path], camera_path, assumptions
     return est.camera, True, [p for p in images if p in used], why
 
 
-def _file_digest(path: Path) -> bytes:
-    """A hash of the file's bytes (duplicate copies of a photo)."""
-    h = hashlib.blake2b(digest_size=16)
-    with open(path, 'rb') as fh:
-        for chunk in iter(lambda: fh.read(1 << 20), b''):
-            h.update(chunk)
-    return h.digest()
-
-
 def _drop_duplicates(images: list[Path], assumptions: list, log) -> tuple[list[Path], dict]:
     """`images` without the byte-identical copies of a photo (one file downloaded twice: the same features
     twice would make a pair of a photo with itself), and the copies by name with why; the shortest name is
@@ -254,7 +244,7 @@ def _drop_duplicates(images: list[Path], assumptions: list, log) -> tuple[list[P
     for same in by_size.values():
         seen: dict = {}
         for p in same if len(same) > 1 else ():
-            d = _file_digest(p)
+            d = file_digest(p)
             if d in seen:
                 why[p.name] = f'identical to {seen[d].name} (a duplicate copy)'
             else:

@@ -196,10 +196,9 @@ class BundleNode(Node):
     def control(self):
         return self.stage.control
 
-    @property
-    def _pending(self) -> dict:
+    def waiting_keyframes(self) -> int:
         """Keyframes waiting for their fix (bench/replay_probe.py counts them)."""
-        return self.stage._pending
+        return self.stage.waiting_keyframes()
 
     @property
     def live(self):
@@ -297,7 +296,7 @@ class BundleNode(Node):
         """A stopped flight's end begins (Graph.finish_flight): the worker takes no keyframe past `budget_s` from
         now less the final adjustment's estimate, and publishes none (the final adjustment republishes every pose),
         so that its batch in progress fits in the budget (stages/adjustment.py run_batch)."""
-        self.stage._cut_at = time.monotonic() + max(budget_s, 0.0)
+        self.stage.cut_at(time.monotonic() + max(budget_s, 0.0))
 
     def full_adjustment(self) -> AdjustmentOutcome:
         """Adjust the whole block now and republish; the outcome says whether it was made."""

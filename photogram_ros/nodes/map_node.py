@@ -158,7 +158,7 @@ class MapNode(Node):
     gsd = property(lambda self: self.stage.gsd)
     cell_m = property(lambda self: self.stage.cell_m)
     _camera = property(lambda self: self.stage.camera)
-    _pose_z = property(lambda self: self.stage._pose_z)
+    posed_keyframes = property(lambda self: self.stage.posed_keyframes())
 
     # --- inputs ----------------------------------------------------------------------------------
 

@@ -86,7 +86,7 @@ class LawnmowerFlight:
     def duration_s(self) -> float:
         return float(self._starts[-1])
 
-    def _line_endpoints(self, k: int):
+    def line_endpoints(self, k: int):
         p0 = np.asarray(self.plan.start_enu, float) + self._across * self.plan.line_spacing_m * k
         p1 = p0 + self._along * self.plan.line_length_m
         return (p0, p1) if k % 2 == 0 else (p1, p0)
@@ -96,17 +96,17 @@ class LawnmowerFlight:
         kind, dur, (rep, k) = self.segments[i]
         tau = min(max(t - self._starts[i], 0.0), dur)
         if kind == 'line':
-            a, b = self._line_endpoints(k)
+            a, b = self.line_endpoints(k)
             d = (b - a) / np.linalg.norm(b - a)
             return a + d * self.plan.speed_mps * tau, d * self.plan.speed_mps, True, 0.0
         if kind == 'return':
-            a = self._line_endpoints(k)[1]
-            b = self._line_endpoints(0)[0]
+            a = self.line_endpoints(k)[1]
+            b = self.line_endpoints(0)[0]
             d = (b - a) / np.linalg.norm(b - a)
             return a + d * self.plan.speed_mps * tau, d * self.plan.speed_mps, False, 0.0
         # Semicircle from the end of line k to the start of line k+1.
-        a = self._line_endpoints(k)[1]
-        b = self._line_endpoints(k + 1)[0]
+        a = self.line_endpoints(k)[1]
+        b = self.line_endpoints(k + 1)[0]
         centre = (a + b) / 2
         r = self.plan.line_spacing_m / 2
         u0 = (a - centre) / r

@@ -147,9 +147,9 @@ def build_world(cfg: SimConfig, rng: np.random.Generator):
     y0, y1 = xy[:, 1].min() - foot, xy[:, 1].max() + foot
     # Targets within the area imaged by the survey lines (not the turns).
     half_w = 0.5 * cfg.width_px * cfg.gsd_m
-    lines_x = [flight._line_endpoints(k)[0] for k in range(cfg.n_lines)]
+    lines_x = [flight.line_endpoints(k)[0] for k in range(cfg.n_lines)]
     lx = np.array([p[0] for p in lines_x])
-    ly = np.array([p[1] for p in lines_x] + [flight._line_endpoints(k)[1][1] for k in range(cfg.n_lines)])
+    ly = np.array([p[1] for p in lines_x] + [flight.line_endpoints(k)[1][1] for k in range(cfg.n_lines)])
     area = (lx.min() - 0.6 * half_w, lx.max() + 0.6 * half_w, ly.min(), ly.max())
     layout = layout_targets(rng, area, cfg.n_gcp, cfg.n_check, margin_m=cfg.target_size_m * 2)
     dem, buildings = make_dem(rng, x0, y0, x1 - x0, y1 - y0, cfg.dem_res_m, cfg.relief_m, cfg.n_buildings,

@@ -66,9 +66,10 @@ from photogram_ros.errors import ConfigError, PhotogramError
 from photogram_ros.params import param
 from photogram_ros.stages.adjustment_counts import NotOrientedCounts
 from photogram_ros.stages.block_health import block_check_on_diagnostics
-from photogram_ros.stages.end_budget import EndBudget, end_times, final_estimate_s, skip_at_end
-from photogram_ros.stages.live_quality import live_quality
+from photogram_ros.stages.end_budget import EndBudget, end_times, full_adjustment_estimate_s, skip_at_end
+from photogram_ros.stages.live_quality import control_diagnostics, live_quality, quality_diagnostics
 from photogram_ros.stages.report import ERROR, OK, WARN, DiagnosticsLog  # noqa: F401  (OK: for callers)
+from photogram_ros.stages.segment_text import segment_diagnostics
 
 
 
@@ -505,7 +506,7 @@ class AdjustmentStage:
             return
         process = process or self.process
         for i, rec in enumerate(batch):
-            if time.monotonic() > self._cut_at - final_estimate_s(self):   # a stopped flight's budget (finish)
+            if time.monotonic() > self._cut_at - self.final_adjustment_estimate_s():   # a stopped flight's budget (finish)
                 skip_at_end(self.diag, len(batch) - i, WARN)
                 break
             process(rec, publish=i == len(batch) - 1 and self._cut_at == float('inf'))   # the final republishes
@@ -568,7 +569,7 @@ class AdjustmentStage:
             self.diag.problem(f'every track was lost early: the {n} keyframes before the break span less than '
                               'their GNSS noise and could not be placed (not oriented); the map holds the flight '
                               'after it', WARN)
-        _segment_diagnostics(self.diag, self.at.segments, rep.joined)
+        segment_diagnostics(self.diag, self.at.segments, rep.joined)
         if not rep.registered:
             self._not_oriented.count(rep.status, rec.stamp_ns)
         if rep.registered or rep.waiting_oriented:   # and keyframes that waited, oriented with it (by two views too)
@@ -624,7 +625,7 @@ class AdjustmentStage:
                 d.set({'adjustments': 'off_gnss_adjustments', 'deferred': 'block_adjustments_deferred'}.get(
                     k, f'window_off_gnss_{k}'), v)
         self._set_georeferenced()
-        self._control_diagnostics()
+        control_diagnostics(self.diag, self.at, self.control, self.live)
         self._since_quality += 1
         if self._since_quality >= self.p.quality_every:
             self.publish_quality()
@@ -661,18 +662,6 @@ class AdjustmentStage:
         """The block's own check on diagnostics (stages/block_health.py), kept for the live quality."""
         self._block_verdict = block_check_on_diagnostics(self.diag, self.at, adjustment)
 
-    def _control_diagnostics(self) -> None:
-        if self.control is None:
-            return
-        for k, v in {**self.at.control_summary(), **self.live.summary()}.items():
-            if not (isinstance(v, float) and not np.isfinite(v)):   # no GCP residual yet: not 'nan'
-                self.diag.set(k, v)
-        self.diag.set('checks_seen', sum(self.live.use_of(n) == 'check' for n in self.control.check_names))
-        for use in ('horizontal', 'unused'):
-            names = [t.name for t in self.control.targets if t.role == 'gcp' and self.live.use_of(t.name) == use]
-            self.diag.set(f'gcps_{"horizontal_only" if use == "horizontal" else "rejected"}_names', ','.join(names))
-        self.diag.set('gnss_bias_enu_m', ' '.join(f'{v:.3f}' for v in self.at.datum.bias_enu))
-
     # --- live quality -----------------------------------------------------------------------------
 
     def quality(self) -> dict:
@@ -693,15 +682,7 @@ class AdjustmentStage:
         last = self.at.block.last_oriented()
         stamp = last.stamp_ns if last is not None else 0
         self.out.quality({'stamp_ns': stamp, **q})
-        for c, v in q['fix_share'].items():
-            if v is not None:
-                self.diag.set(f'keyframes_{c}_share', float(v))
-        cr = q['check_rmse']
-        if cr is not None:
-            self.diag.set('checks_measured', cr['count'])
-            if cr['count']:
-                self.diag.set('check_rmse_h_m', float(cr['horizontal_m']))
-                self.diag.set('check_rmse_v_m', float(cr['vertical_m']))
+        quality_diagnostics(self.diag, q)
 
     # --- outputs ----------------------------------------------------------------------------------
 
@@ -791,12 +772,12 @@ class AdjustmentStage:
                 waiting = [(s, self._pending.pop(s)) for s in sorted(self._pending)]   # (arrival, ids, uv, targets)
                 recs = [self._record(s, w[1], w[2], self._match_fix(s), w[3]) for s, w in waiting]
             for i, rec in enumerate(recs):
-                if not budget.fits(final_estimate_s(self)):
+                if not budget.fits(self.final_adjustment_estimate_s()):
                     skip_at_end(self.diag, len(recs) - i, WARN)
                     break
                 process(rec, publish=not budget.bounded)   # a stopped flight's: the final adjustment publishes
             budget.mark()
-            if self.at.block.n_oriented and budget.fits(final_estimate_s(self)):
+            if self.at.block.n_oriented and budget.fits(self.final_adjustment_estimate_s()):
                 try:
                     if n := self.at.retry_unregistered():
                         self.diag.count('keyframes_oriented_at_end', n)
@@ -811,6 +792,20 @@ class AdjustmentStage:
             budget.mark()
             self.end_of_flight = end_times(budget.marks, len(recs), self.diag)
             return out
+
+    def cut_at(self, deadline_s: float) -> None:
+        """A stopped flight's end (bundle_node end_budget): no keyframe is taken past `deadline_s` (time.monotonic)
+        less the final adjustment's estimate, and none published (the final adjustment republishes every pose)."""
+        self._cut_at = deadline_s
+
+    def waiting_keyframes(self) -> int:
+        """Keyframes that wait for their fix or their turn."""
+        with self.cond:
+            return len(self._pending)
+
+    def final_adjustment_estimate_s(self) -> float:
+        """What a full adjustment of the keyframes oriented now takes, scaled from the last one (end_budget)."""
+        return full_adjustment_estimate_s(self._full_s, self._full_n, self.at.block.n_oriented if self.at else 0)
 
     def full_adjustment(self) -> AdjustmentOutcome:
         """Adjust the whole block now and republish; the outcome says whether it was made."""
@@ -848,7 +843,7 @@ class AdjustmentStage:
             if self.at.georeferenced:
                 self._block_check({'status': rep.status, **({'matters': conv['matters'], 'text': conv['text']}
                                                             if conv else {})})
-            self._control_diagnostics()
+            control_diagnostics(self.diag, self.at, self.control, self.live)
             self.publish_quality()
             if self.at.georeferenced:
                 # The camera first: whoever matches the keyframes with these poses needs the intrinsics they
@@ -863,34 +858,3 @@ class AdjustmentStage:
             self.diag.problem(f'full adjustment failed: {exc}', ERROR)
             return AdjustmentOutcome('failed', f'full adjustment failed: {exc}')
 
-
-def _segment_diagnostics(diag, segments, joined: int) -> None:
-    """/diagnostics of the adjuster's segments after a keyframe: why a waiting segment's tie points do not join
-    it yet (`segment_join_ties`), and the join of `joined` keyframes (a WARN when only the GNSS joined them)."""
-    if segments.current is not None:
-        diag.set('segment_join_ties', _fit_text(segments.last_join_try()))
-    if joined:
-        diag.count('keyframes_joined_from_a_segment', joined)
-        text, tied = _join_text(joined, (segments.joins_made() or [{'through': 'gnss'}])[-1])
-        diag.set('last_segment_join', text)
-        if not tied:
-            diag.problem(text, WARN)
-
-
-def _join_text(n: int, join: dict) -> tuple[str, bool]:
-    """What a segment's join says (core/at_segments.Segments.joins_made), and whether tie points tied it."""
-    if join['through'] == 'ties':
-        return f'{n} keyframes after a break in the tracks joined the block through {join["ties"]} tie points', True
-    if join['through'] == 'mtp':
-        return (f'every track was lost: {n} keyframes after the break joined the block through {join["mtps"]} manual '
-                'tie points'), True
-    return (f'every track was lost: {n} keyframes after the break were oriented as a segment of their own and joined '
-            'the block through their GNSS (no tie point links the two: their relative accuracy is the GNSS\'s; '
-            f'{_fit_text(join)})'), False
-
-
-def _fit_text(fit: dict) -> str:
-    """A segment's last try through the tracker's tie points (core/at_segments.Segments.last_join_try), in words."""
-    return (f'tracker ids shared with the block: {fit.get("shared_observed", 0)} seen in both, '
-            f'{fit.get("shared_points", 0)} triangulated in both, {fit.get("inliers", 0)} fitting'
-            + (f': {fit["why"]}' if fit.get('why') else ''))

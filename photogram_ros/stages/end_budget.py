@@ -57,13 +57,6 @@ def full_adjustment_estimate_s(last_full_s: float | None, n_last: int, n_now: in
     return per_keyframe_s * max(n_now, 1)
 
 
-def final_estimate_s(stage) -> float:
-    """full_adjustment_estimate_s of an AdjustmentStage (stages/adjustment.py) now: its last full adjustment
-    (`_full_s` seconds for `_full_n` keyframes) and the keyframes oriented."""
-    n = stage.at.block.n_oriented if stage.at is not None else 0
-    return full_adjustment_estimate_s(stage._full_s, stage._full_n, n)
-
-
 def skip_at_end(diag, n: int, level) -> None:
     """`n` keyframes waiting for the adjuster left out of a stopped flight's end (its budget ran out): counted in
     keyframes_skipped_at_end, said at `level` on `diag` (stages/report.py DiagnosticsLog or a node's)."""

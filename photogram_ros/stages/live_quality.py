@@ -96,3 +96,32 @@ def gcp_rmse(gcps: list[dict]) -> dict:
     out['count_vertical'] = full['count']
     out['vertical_m'] = full['vertical_m'] if full['count'] else None
     return out
+
+
+def control_diagnostics(diag, at, control, live) -> None:
+    """The flight's control on /diagnostics: the adjuster's and the vetting's summaries (no 'nan' before a GCP has
+    a residual), the check points seen, the GCPs used horizontally only or rejected, and the GNSS bias."""
+    if control is None:
+        return
+    for k, v in {**at.control_summary(), **live.summary()}.items():
+        if not (isinstance(v, float) and not np.isfinite(v)):
+            diag.set(k, v)
+    diag.set('checks_seen', sum(live.use_of(n) == 'check' for n in control.check_names))
+    for use in ('horizontal', 'unused'):
+        names = [t.name for t in control.targets if t.role == 'gcp' and live.use_of(t.name) == use]
+        diag.set(f'gcps_{"horizontal_only" if use == "horizontal" else "rejected"}_names', ','.join(names))
+    diag.set('gnss_bias_enu_m', ' '.join(f'{v:.3f}' for v in at.datum.bias_enu))
+
+
+def quality_diagnostics(diag, q: dict) -> None:
+    """The live quality document's figures on /diagnostics: each fix class's share, the check points measured and
+    their RMSE."""
+    for c, v in q['fix_share'].items():
+        if v is not None:
+            diag.set(f'keyframes_{c}_share', float(v))
+    cr = q['check_rmse']
+    if cr is not None:
+        diag.set('checks_measured', cr['count'])
+        if cr['count']:
+            diag.set('check_rmse_h_m', float(cr['horizontal_m']))
+            diag.set('check_rmse_v_m', float(cr['vertical_m']))

@@ -143,6 +143,15 @@ class MapOutputs:
         """The coverage GeoJSON (io/mission.py coverage_geojson)."""
 
 
+def open_store(p: MapParams) -> MapStore:
+    """The map folder: an existing map keeps its cell; a new one with cell_m AUTO starts with the
+    simulator's cell until the first pair cloud tells the flying height (MapStore.set_cell_m)."""
+    if (Path(p.map_dir) / 'map.json').exists():
+        return MapStore(p.map_dir, None if p.cell_m == gsd.AUTO else p.cell_m, p.tile_cells)
+    cell = gsd.REF_LENGTHS_M['cell_m'] if p.cell_m == gsd.AUTO else p.cell_m
+    return MapStore(p.map_dir, cell, p.tile_cells)
+
+
 class MapStage:
     """The map (module docstring). Raises ConfigError when the map folder or the survey area cannot be read."""
 
@@ -153,7 +162,7 @@ class MapStage:
         self._newest_cloud_ns = 0
         self.lock = threading.RLock()
         try:
-            self.store = self._open_store(p)
+            self.store = open_store(p)
         except PhotogramError as exc:
             raise ConfigError(f'map_node: {exc}') from exc
         self.gsd = None                # core.gsd.GsdSettings once derived
@@ -198,14 +207,9 @@ class MapStage:
 
     # --- GSD-bound geometry ----------------------------------------------------------------------
 
-    @staticmethod
-    def _open_store(p: MapParams) -> MapStore:
-        """The map folder: an existing map keeps its cell; a new one with cell_m AUTO starts with the
-        simulator's cell until the first pair cloud tells the flying height (MapStore.set_cell_m)."""
-        if (Path(p.map_dir) / 'map.json').exists():
-            return MapStore(p.map_dir, None if p.cell_m == gsd.AUTO else p.cell_m, p.tile_cells)
-        cell = gsd.REF_LENGTHS_M['cell_m'] if p.cell_m == gsd.AUTO else p.cell_m
-        return MapStore(p.map_dir, cell, p.tile_cells)
+    def posed_keyframes(self) -> int:
+        """Keyframes whose final pose the map has (their heights set the GSD)."""
+        return len(self._pose_z)
 
     def _fusion_config(self, cell_m: float, settings: gsd.GsdSettings | None = None) -> FusionConfig:
         """The fusion's parameters with the cell of the store and the AUTO tolerance scaled with it."""

@@ -114,13 +114,13 @@ class _Guard(asyncio.Protocol):
 
     def connection_made(self, transport):
         srv = self.server
-        if len(srv._conns) >= srv.limits.max_connections:
+        if len(srv.open_conns) >= srv.limits.max_connections:
             self.refused = True
             srv.refused_connections += 1
             transport.abort()
             return
         self.transport = transport
-        srv._conns[transport] = self
+        srv.open_conns[transport] = self
         self.inner.connection_made(transport)
 
     def data_received(self, data):
@@ -133,7 +133,7 @@ class _Guard(asyncio.Protocol):
     def connection_lost(self, exc):
         if self.refused:
             return
-        self.server._conns.pop(self.transport, None)
+        self.server.open_conns.pop(self.transport, None)
         self.inner.connection_lost(exc)
 
     def pause_writing(self):
@@ -163,7 +163,7 @@ class WebServer:
         self.refused_connections = 0
         self.refused_requests = 0
         self.closed_idle = 0
-        self._conns: dict = {}
+        self.open_conns: dict = {}   # transport -> its guard (the connection limit)
         self._clients: set = set()
         self._tile_seq: dict = {}
         self._loop = asyncio.new_event_loop()
@@ -242,7 +242,7 @@ class WebServer:
 
     @property
     def connections(self) -> int:
-        return len(self._conns)
+        return len(self.open_conns)
 
     # --- limits and trust ------------------------------------------------------------------------
 
@@ -252,7 +252,7 @@ class WebServer:
         while True:
             await asyncio.sleep(period)
             now = time.monotonic()
-            for tr, g in list(self._conns.items()):
+            for tr, g in list(self.open_conns.items()):
                 if not g.busy and now - g.last_done > self.limits.idle_timeout_s:
                     self.closed_idle += 1
                     tr.abort()
@@ -275,7 +275,7 @@ class WebServer:
 
     @web.middleware
     async def _guard_mw(self, request: web.Request, handler):
-        g = self._conns.get(request.transport)
+        g = self.open_conns.get(request.transport)
         if g is not None:
             g.busy += 1
         try:

@@ -32,20 +32,6 @@ def _map_T_cams(R, t):
     return T
 
 
-def _rms(solver, R, t, X, intr, b):
-    d = solver.d
-    rms = {}
-    r = solver._reproj(R, t, X, intr, False)[0]
-    rms['reprojection_px'] = float(np.sqrt(np.mean(np.sum(r * r, axis=1)))) if len(r) else float('nan')
-    rms['gnss_m'] = (float(np.sqrt(np.mean(np.sum(solver._gnss_err(R, t, b) ** 2, axis=1))))
-                     if 'gnss_cam' in d else None)
-    rms['gcp_m'] = (float(np.sqrt(np.mean(np.sum((X[d['pp_idx']] - d['pp_pos']) ** 2, axis=1))))
-                    if 'pp_idx' in d else None)
-    rms['attitude_rad'] = (float(np.sqrt(np.mean(np.sum(solver._att_err(R) ** 2, axis=1))))
-                           if 'att_cam' in d else None)
-    return rms
-
-
 def bundle_adjust(problem: BundleProblem, options: BundleOptions | None = None) -> BundleResult:
     """Adjust poses, points and (optionally) intrinsics. Numerical failure comes back as status."""
     options = options or BundleOptions()
@@ -71,7 +57,7 @@ def bundle_adjust(problem: BundleProblem, options: BundleOptions | None = None) 
     return BundleResult(status=out['status'], reason=out['reason'], initial_cost=float(out['init']),
                         final_cost=float(out['cost']), iterations=out['iters'], successful_steps=out['ok'],
                         map_T_cams=_map_T_cams(R, t), points_map=X, camera=camera, intrinsics=intr,
-                        rms=_rms(solver, R, t, X, intr, b), cam_centre_cov=cam_cov, point_cov=pt_cov,
+                        rms=solver.residual_rms(R, t, X, intr, b), cam_centre_cov=cam_cov, point_cov=pt_cov,
                         intrinsics_cov=intr_cov, intrinsics_names=tuple(options.refine_intrinsics),
                         intrinsics_height_corr=corr, gnss_bias_cov=bias_cov,
                         gnss_bias_enu_m=np.asarray(b[:3], float) if solver.st.bias_col >= 0 else None,

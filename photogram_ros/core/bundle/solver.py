@@ -686,3 +686,17 @@ class Solver:
         ix = st.intr_col[:, None] + np.arange(st.kf)
         sd = np.sqrt(np.clip(np.diagonal(Sc)[ix], 1e-300, None))
         return Say[ix] / (sd * np.sqrt(max(var_h, 1e-300)))
+
+    def residual_rms(self, R, t, X, intr, b) -> dict:
+        """The RMS of each residual kind at (R, t, X, intr, b): reprojection px, GNSS m (None without), GCP m, attitude rad."""
+        d = self.d
+        rms = {}
+        r = self._reproj(R, t, X, intr, False)[0]
+        rms['reprojection_px'] = float(np.sqrt(np.mean(np.sum(r * r, axis=1)))) if len(r) else float('nan')
+        rms['gnss_m'] = (float(np.sqrt(np.mean(np.sum(self._gnss_err(R, t, b) ** 2, axis=1))))
+                         if 'gnss_cam' in d else None)
+        rms['gcp_m'] = (float(np.sqrt(np.mean(np.sum((X[d['pp_idx']] - d['pp_pos']) ** 2, axis=1))))
+                        if 'pp_idx' in d else None)
+        rms['attitude_rad'] = (float(np.sqrt(np.mean(np.sum(self._att_err(R) ** 2, axis=1))))
+                               if 'att_cam' in d else None)
+        return rms
