@@ -69,3 +69,12 @@ def test_part_options_are_frozen_and_validated_when_made():
     with pytest.raises(ConfigError, match='loss'):
         IncrementalOptions(loss='l3').part(ProblemOptions)
     assert ProblemOptions(loss_scale_px=2).loss_scale_px == 2.0 and type(ProblemOptions(loss_scale_px=2).loss_scale_px) is float
+
+
+def test_nothing_outside_core_reads_the_adjusters_options():
+    from pathlib import Path
+    root = Path(__file__).resolve().parents[1] / 'photogram_ros'
+    readers = [f'{p.relative_to(root)}:{i}' for p in sorted(root.rglob('*.py')) if p.parts[len(root.parts)] != 'core'
+               for i, line in enumerate(p.read_text().splitlines(), 1)
+               if re.search(r'\b(at|adjuster|self\.at|self\.adjuster)\.(opt|block\.opt|adjustment\.opt)\b', line)]
+    assert readers == []
