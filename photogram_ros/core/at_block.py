@@ -15,12 +15,15 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from photogram_ros.core.at_freeze import Freezer
+from photogram_ros.core.at_freeze import Freezer, FreezeOptions
 from photogram_ros.core.at_geometry import intersect_point, triangulate_rays
+from photogram_ros.core.at_problem import ProblemOptions
 from photogram_ros.core.at_store import Keyframe, PointStore
 from photogram_ros.core.camera import PinholeCamera
 from photogram_ros.core.gnss_fix import GnssFix
+from photogram_ros.core.part_options import check, declared, nested
 from photogram_ros.errors import ConfigError, DataError
+from photogram_ros.params import param
 
 
 @dataclass
@@ -47,11 +50,27 @@ class ControlPoint:
     role: str                       # 'gcp' (used) or 'check' (never used)
 
 
-class Block:
-    """The block's keyframes, points, targets and ties (see the module's doc); `opt` is the adjuster's
-    IncrementalOptions (use_gcps, max_reprojection_px, the freezing)."""
+@dataclass(frozen=True)
+class BlockOptions:
+    """The block's options (`Block`): which targets are GCPs in use, what a new point needs, and its freezing
+    (`freeze`)."""
+    min_triangulation_angle_deg: float = param(1.5, 'a new point needs rays at least this far apart, deg',
+                                               min=0.0, max=90.0)
+    max_reprojection_px: float = declared(ProblemOptions, 'max_reprojection_px')
+    use_gcps: bool = param(True, 'surveyed GCPs enter the adjustment as point priors (off: every target is a '
+                                 'check point)')
+    spill_frozen: bool = param(True, 'long flights: tie points and keyframes that can no longer enter a window '
+                                     'leave memory (compact arrays, keyframe observations on disk); same results')
+    freeze: FreezeOptions = nested(FreezeOptions)
 
-    def __init__(self, camera: PinholeCamera, opt, control: list[ControlPoint] | None = None, ties=()):
+    def __post_init__(self):
+        check(self)
+
+
+class Block:
+    """The block's keyframes, points, targets and ties (see the module's doc); `opt`: its options."""
+
+    def __init__(self, camera: PinholeCamera, opt: BlockOptions, control: list[ControlPoint] | None = None, ties=()):
         self.opt = opt
         self.camera = camera
         # The camera as given: a stepwise self-calibration starts its candidates from these values.
@@ -60,7 +79,7 @@ class Block:
         self.registered: list[int] = []
         self.points = PointStore()                  # dict-like {track id: (3,) map ENU}
         self.track_kfs: dict[int, list[int]] = {}    # hot tracks: registered keyframes with an active observation
-        self.freezer = Freezer(opt)
+        self.freezer = Freezer(opt.freeze)
         self.georeferenced = False
         self.provisional = False
         self.control = {c.name: c for c in (control or [])}
@@ -90,7 +109,7 @@ class Block:
         for k in self.registered:
             self.kfs[k].map_T_cam = None
         self.registered, self.points, self.track_kfs = [], PointStore(), {}
-        self.freezer = Freezer(self.opt)
+        self.freezer = Freezer(self.opt.freeze)
         return n
 
     def add_ties(self, names) -> None:

@@ -14,16 +14,36 @@ keyframes observing each hot track (`track_kfs`) and the points.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
+from photogram_ros.core.at_problem import ProblemOptions
 from photogram_ros.core.at_store import Keyframe, KeyframeSpill, PointStore
+from photogram_ros.core.part_options import check, declared
+from photogram_ros.params import param
+
+
+@dataclass(frozen=True)
+class FreezeOptions:
+    """The options of freezing (`Freezer`): how far behind the window a track freezes, when thawing stops, where
+    frozen keyframes spill."""
+    window_size: int = declared(ProblemOptions, 'window_size')
+    spill_dir: str = param('', 'folder for the frozen keyframes\' observations ("" = a private temporary folder, '
+                               'removed afterwards)')
+    freeze_margin_keyframes: int = param(5, 'a track freezes this many registrations before the window',
+                                         min=0, max=10000)
+    max_thaws: int = param(3, 'keyframes bringing back (or looking up) ended tracks before freezing stops',
+                           min=1, max=10000)
+
+    def __post_init__(self):
+        check(self)
 
 
 class Freezer:
-    """Freeze and thaw passes of one triangulation; `opt` gives window_size, freeze_margin_keyframes,
-    max_thaws and spill_dir (read at every pass)."""
+    """Freeze and thaw passes of one triangulation, for the options `opt`."""
 
-    def __init__(self, opt):
+    def __init__(self, opt: FreezeOptions):
         self.opt = opt
         # Hot tracker tracks (id >= 0) -> newest keyframe observing them; a track whose newest
         # observation is older than the window (and its margin) is frozen.

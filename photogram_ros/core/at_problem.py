@@ -16,8 +16,11 @@ import numpy as np
 from photogram_ros.core.at_geometry import reprojection_errors_px
 from photogram_ros.core.bundle import BundleOptions, BundleProblem, bundle_adjust
 from photogram_ros.core.camera import PinholeCamera
-from photogram_ros.core.self_calibration import Selection, Trial, height_bowl, select_stepwise
+from photogram_ros.core.part_options import check
+from photogram_ros.core.self_calibration import (MIN_GAIN_FRACTION, MIN_GAIN_PX, Selection, Trial, height_bowl,
+                                                 select_stepwise)
 from photogram_ros.core.window import neighbour_keyframes, select_window
+from photogram_ros.params import param
 
 # Intrinsics a stepwise self-calibration refines whenever they are candidates (`select_self_calibration`).
 SELF_CALIBRATION_BASE = ('f', 'cx', 'cy')
@@ -83,10 +86,38 @@ def adjust(prob, loss: str, scale_px: float, iterations: int, refine: tuple = ()
                                              refine_intrinsics=tuple(refine), estimate_gnss_bias=gnss_bias,
                                              estimate_gnss_tilt=gnss_tilt, function_tolerance=function_tolerance))
 
-class BlockAdjustment:
-    """The bundle problems of `block` with its GNSS datum `datum`, for the options `opt` (IncrementalOptions)."""
+@dataclass(frozen=True)
+class ProblemOptions:
+    """The options of the block's bundle problems and their solve (`BlockAdjustment`): the window, the robust
+    losses, the outlier gate, the iterations of a full adjustment, the stepwise self-calibration's gains."""
+    window_size: int = param(10, 'keyframes adjusted per update (newest); older ones sharing points are held fixed',
+                             min=2, max=200)
+    max_fixed_keyframes: int = param(30, 'at most this many fixed keyframes enter a window update', min=0, max=1000)
+    max_reprojection_px: float = param(2.5, 'observations with a larger error after adjustment are dropped, px',
+                                       min=0.3, max=100.0)
+    loss: str = param('huber', 'robust loss on reprojection errors', choices=('huber', 'cauchy', 'linear'))
+    loss_scale_px: float = param(1.0, 'robust loss scale, pixels', min=0.05, max=100.0)
+    mtp_loss_scale_px: float = param(3.0, 'robust loss scale of the manual tie points (marked by hand to about '
+                                          '1 px; kept through outlier removal), pixels', min=0.05, max=1000.0)
+    gcp_loss_scale_px: float = param(3.0, 'robust loss scale of the GCPs\' observations (markers found to a '
+                                          'fraction of a pixel or marked by hand, vetted against the block before '
+                                          'use), pixels: at the tie points\' scale a few pixels of camera-model '
+                                          'error would turn the GCPs\' pull down', min=0.05, max=1000.0)
+    full_iterations: int = param(50, 'solver iterations of a full adjustment (each round)', min=1, max=1000)
+    self_calibration_min_gain: float = param(MIN_GAIN_FRACTION, 'stepwise self-calibration: a candidate intrinsic '
+                                             'is kept when it lowers the reprojection RMS by at least this fraction '
+                                             'of it (and self_calibration_min_gain_px)', min=0.0, max=1.0)
+    self_calibration_min_gain_px: float = param(MIN_GAIN_PX, 'stepwise self-calibration: ... and by at least this, '
+                                                'px', min=0.0, max=100.0)
 
-    def __init__(self, block, datum, opt):
+    def __post_init__(self):
+        check(self)
+
+
+class BlockAdjustment:
+    """The bundle problems of `block` with its GNSS datum `datum`, for the options `opt`."""
+
+    def __init__(self, block, datum, opt: ProblemOptions):
         self.block, self.datum, self.opt = block, datum, opt
         # Every adjustment of the block's keyframes (`solve`): its iterations, status and seconds.
         self.solves: list[dict] = []

@@ -7,20 +7,49 @@ homography's rotation and the fix.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
-from photogram_ros.core.at_problem import StepReport
+from photogram_ros.core.at_problem import ProblemOptions, StepReport
 from photogram_ros.core.at_store import Keyframe
-from photogram_ros.core.at_two_view import two_view_pose
+from photogram_ros.core.at_two_view import TwoViewOptions, two_view_pose
+from photogram_ros.core.part_options import check, declared, nested
 from photogram_ros.core.rotations import invert_T, make_T
 from photogram_ros.core.two_view import relative_pose, scene_facing
+from photogram_ros.params import param
+
+
+@dataclass(frozen=True)
+class RegistrationOptions:
+    """The options of orienting keyframes (`Registration`): the first pair, resection, the relative fallback and
+    its two-view gates (`two_view`)."""
+    window_size: int = declared(ProblemOptions, 'window_size')
+    min_init_inliers: int = param(30, 'tie points (and relative-pose inliers) the first two keyframes need to start',
+                                  min=8, max=100000)
+    min_init_angle_deg: float = param(2.0, 'median ray angle of the first two keyframes, deg (a shorter baseline '
+                                           'waits for a later keyframe)', min=0.0, max=60.0)
+    pnp_threshold_px: float = declared(TwoViewOptions, 'pnp_threshold_px')
+    min_pnp_inliers: int = param(12, 'a new keyframe registers with at least this many resection inliers',
+                                 min=4, max=100000)
+    relative_fallback: bool = param(True, 'a keyframe that resection cannot orient (too few known points: photo-rate '
+                                          'input, a break) is oriented from its relative pose to the registered '
+                                          'keyframe it shares most tracks with, scaled by the known points it sees '
+                                          'or by GNSS', )
+    min_relative_inliers: int = param(25, 'relative-pose inliers that fallback needs', min=8, max=100000)
+    assume_nadir: bool = declared(TwoViewOptions, 'assume_nadir')
+    min_facing: float = declared(TwoViewOptions, 'min_facing')
+    two_view: TwoViewOptions = nested(TwoViewOptions)
+
+    def __post_init__(self):
+        check(self)
 
 
 class Registration:
-    """Orienting keyframes of `block` with its GNSS datum `datum` (the lever arm, the bias), for the options `opt`
-    (IncrementalOptions); what it orients joins the block (`Block.enrol`)."""
+    """Orienting keyframes of `block` with its GNSS datum `datum` (the lever arm, the bias), for the options
+    `opt`; what it orients joins the block (`Block.enrol`)."""
 
-    def __init__(self, block, datum, opt):
+    def __init__(self, block, datum, opt: RegistrationOptions):
         self.block, self.datum, self.opt = block, datum, opt
         self.two_view_oriented: dict[int, str] = {}   # keyframes oriented from two views: {kid: how (`two_view`)}
 
@@ -205,7 +234,7 @@ class Registration:
         tol = self.gnss_tolerance_m(kf)
         if tol is None:
             return StepReport(kf.kid, False, refused)
-        got = two_view_pose(self.block, self.datum, self.opt, kf, partners, tol)
+        got = two_view_pose(self.block, self.datum, self.opt.two_view, kf, partners, tol)
         if isinstance(got, str):
             return StepReport(kf.kid, False, f'{refused}; {got}')
         use = self.block.usable(kf)

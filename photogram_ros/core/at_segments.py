@@ -11,10 +11,14 @@ the block's ids of its keyframes, and the joins made.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 from photogram_ros.core.at_store import Keyframe
+from photogram_ros.core.part_options import check
 from photogram_ros.core.similarity import Similarity, similarity_ransac, spread
+from photogram_ros.params import param
 
 # A shared tie point fits the similarity segment -> block within this fraction of the distance the block's
 # cameras see it from (triangulation noise of short baselines; a wrong track is off by a footprint's share).
@@ -23,11 +27,24 @@ TIE_FIT_DEPTH_FRACTION = 0.02
 TIE_MIN_SPREAD_RATIO = 0.2
 
 
-class Segments:
-    """The segments of `block` (core/at_block.py)."""
+@dataclass(frozen=True)
+class SegmentOptions:
+    """The options of segments after a break (`Segments`)."""
+    segments: bool = param(True, 'keyframes that share no tie point with the block (every track lost: a long gap '
+                                 'in the frames) start a segment of their own, which joins the block through the '
+                                 'tracker\'s tie points both have triangulated as soon as they are '
+                                 '`segment_min_tie_points`, else through its GNSS once that georeferences it (or at '
+                                 'the end of the flight)')
 
-    def __init__(self, block):
-        self.block = block
+    def __post_init__(self):
+        check(self)
+
+
+class Segments:
+    """The segments of `block` (core/at_block.py), for the options `opt`."""
+
+    def __init__(self, block, opt: SegmentOptions):
+        self.block, self.opt = block, opt
         # The segment's adjuster (an IncrementalAT) and the block's ids of its keyframes (in order).
         self.current = None
         self.kids: list[int] = []
@@ -74,7 +91,7 @@ class Segments:
     def wanted(self, kf: Keyframe) -> bool:
         """A keyframe with a fix that shares no track with the block (no point, no observation in an oriented
         keyframe): the tracker lost every track. One that shares tracks waits for them to become points."""
-        if not self.block.opt.segments or not self.block.registered or kf.fix_enu is None:
+        if not self.opt.segments or not self.block.registered or kf.fix_enu is None:
             return False
         if self.current is not None:
             return True

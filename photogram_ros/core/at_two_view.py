@@ -23,8 +23,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from photogram_ros.core.part_options import check
 from photogram_ros.core.rotations import make_T
 from photogram_ros.core.two_view import relative_pose, scene_facing
+from photogram_ros.params import param
 
 
 @dataclass
@@ -51,7 +53,37 @@ def antenna_offset_map(datum, kf, map_R_cam: np.ndarray) -> np.ndarray:
     return kf.antenna_offset if kf.antenna_offset is not None else map_R_cam @ datum.lever
 
 
-def two_view_pose(block, datum, opt, kf, partners, tol_m: float) -> TwoViewPose | str:
+@dataclass(frozen=True)
+class TwoViewOptions:
+    """The gates of a keyframe oriented from two views (`two_view_pose`)."""
+    pnp_threshold_px: float = param(3.0, 'RANSAC threshold of a new keyframe\'s resection (and of the first '
+                                         'relative pose), px', min=0.1, max=100.0)
+    min_relative_inliers_gnss: int = param(12, 'relative-pose inliers that fallback needs, with a georeferenced '
+                                               'block, when the pose it gives puts the keyframe\'s antenna within '
+                                               '3 x the block\'s GNSS residual RMS of its fix (a keyframe that '
+                                               'shares only a few two-view tracks: half the forward overlap; '
+                                               'core/at_two_view.py)',
+                                           min=8, max=100000)
+    two_view_min_angle_deg: float = param(2.0, 'a keyframe oriented from two views (fewer than '
+                                               'min_relative_inliers shared tracks, scaled by GNSS) needs this median '
+                                               'ray angle, deg', min=0.0, max=60.0)
+    two_view_max_direction_deg: float = param(5.0, '... and the baseline direction its images give within this (plus '
+                                                   'atan(GNSS tolerance / baseline)) of the direction between the '
+                                                   'two fixes, deg', min=0.1, max=90.0)
+    assume_nadir: bool = param(True, 'a straight first line georeferences provisionally, the roll about it '
+                                     'from a near-nadir camera (final at the first turn); and a relative pose '
+                                     'must see its tie points\' plane facing the camera (`min_facing`)')
+    min_facing: float = param(0.5, 'with assume_nadir: a relative pose (the first two keyframes, the relative '
+                                   'fallback) whose tie points\' best plane has a normal further than this |cos| '
+                                   'from the optical axis is not used: it sees the ground edge-on, the planar twin '
+                                   'of an aerial pair (0.5: 60 degrees, room for oblique cameras and relief)',
+                              min=0.0, max=1.0)
+
+    def __post_init__(self):
+        check(self)
+
+
+def two_view_pose(block, datum, opt: TwoViewOptions, kf, partners, tol_m: float) -> TwoViewPose | str:
     """kf's pose from its tracks shared with one of `partners` (oriented keyframe ids), scaled by GNSS and gated (see
     the module's doc); `tol_m` the GNSS tolerance of its fix. Returns the pose, or why none passed (the reason of the
     best-supported partner)."""

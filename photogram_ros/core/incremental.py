@@ -35,8 +35,11 @@ final adjustments); the state lives in its parts, each a module of its own:
 Memory on long flights (`spill_frozen`): what can no longer enter a window leaves the Python heap
 (core/at_freeze.py); results are bit-identical to keeping everything.
 
-Parameters: `IncrementalOptions`, declared with descriptions and ranges (params.py); the bundle
-node's parameter set extends it.
+Parameters: `IncrementalOptions`, the user-facing container (params.py; the bundle node's parameter set extends
+it). Each part takes options of its own, made once from it (`IncrementalOptions.part`, core/part_options.py):
+`BlockOptions` (with `FreezeOptions`), `ProblemOptions`, `RegistrationOptions` (with `TwoViewOptions`) and
+`SegmentOptions`, each declaring its parameters' descriptions and ranges next to the code that reads them; the
+datum and the GNSS rounds still take the container.
 """
 
 from __future__ import annotations
@@ -46,18 +49,21 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from photogram_ros.core.at_block import Block, ControlPoint, KeyframeRecord
+from photogram_ros.core.at_block import Block, BlockOptions, ControlPoint, KeyframeRecord
+from photogram_ros.core.at_freeze import FreezeOptions
 from photogram_ros.core.at_geometry import (intersect_point, lever_arm_cam_from_frd, reprojection_residuals_px,
                                             triangulate_rays)
-from photogram_ros.core.at_problem import SELF_CALIBRATION_BASE, BlockAdjustment, StepReport
-from photogram_ros.core.at_register import Registration
-from photogram_ros.core.at_segments import Segments
+from photogram_ros.core.at_problem import SELF_CALIBRATION_BASE, BlockAdjustment, ProblemOptions, StepReport
+from photogram_ros.core.at_register import Registration, RegistrationOptions
+from photogram_ros.core.at_segments import SegmentOptions, Segments
 from photogram_ros.core.at_store import Keyframe
+from photogram_ros.core.at_two_view import TwoViewOptions
 from photogram_ros.core.camera import PinholeCamera
 from photogram_ros.core.geodesy import LocalFrame
 from photogram_ros.core.gnss_datum import GnssDatum
 from photogram_ros.core.gnss_rounds import TILT_TEST_LEVEL, GnssRounds, flight_plane_sigma
-from photogram_ros.core.self_calibration import INTRINSICS, MIN_GAIN_FRACTION, MIN_GAIN_PX
+from photogram_ros.core.part_options import declared, options_for
+from photogram_ros.core.self_calibration import INTRINSICS
 from photogram_ros.core.similarity import similarity_on_line, similarity_ransac, spread
 from photogram_ros.errors import ConfigError, DataError
 from photogram_ros.params import param
@@ -81,56 +87,29 @@ GNSS_TILT_MODES = ('never', 'auto', 'always')
 @dataclass
 class IncrementalOptions:
     """The aerial triangulation's parameters (ROS-free; nodes/bundle_node.py's set extends it)."""
-    window_size: int = param(10, 'keyframes adjusted per update (newest); older ones sharing points are held fixed',
-                             min=2, max=200)
-    max_fixed_keyframes: int = param(30, 'at most this many fixed keyframes enter a window update', min=0, max=1000)
-    min_init_inliers: int = param(30, 'tie points (and relative-pose inliers) the first two keyframes need to start',
-                                  min=8, max=100000)
-    min_init_angle_deg: float = param(2.0, 'median ray angle of the first two keyframes, deg (a shorter baseline '
-                                           'waits for a later keyframe)', min=0.0, max=60.0)
-    min_triangulation_angle_deg: float = param(1.5, 'a new point needs rays at least this far apart, deg',
-                                               min=0.0, max=90.0)
-    max_reprojection_px: float = param(2.5, 'observations with a larger error after adjustment are dropped, px',
-                                       min=0.3, max=100.0)
-    pnp_threshold_px: float = param(3.0, 'RANSAC threshold of a new keyframe\'s resection (and of the first '
-                                         'relative pose), px', min=0.1, max=100.0)
-    min_pnp_inliers: int = param(12, 'a new keyframe registers with at least this many resection inliers',
-                                 min=4, max=100000)
-    relative_fallback: bool = param(True, 'a keyframe that resection cannot orient (too few known points: photo-rate '
-                                          'input, a break) is oriented from its relative pose to the registered '
-                                          'keyframe it shares most tracks with, scaled by the known points it sees '
-                                          'or by GNSS', )
-    min_relative_inliers: int = param(25, 'relative-pose inliers that fallback needs', min=8, max=100000)
-    min_relative_inliers_gnss: int = param(12, 'relative-pose inliers that fallback needs, with a georeferenced '
-                                               'block, when the pose it gives puts the keyframe\'s antenna within '
-                                               '3 x the block\'s GNSS residual RMS of its fix (a keyframe that '
-                                               'shares only a few two-view tracks: half the forward overlap; '
-                                               'core/at_two_view.py)',
-                                           min=8, max=100000)
-    two_view_min_angle_deg: float = param(2.0, 'a keyframe oriented from two views (fewer than '
-                                               'min_relative_inliers shared tracks, scaled by GNSS) needs this median '
-                                               'ray angle, deg', min=0.0, max=60.0)
-    two_view_max_direction_deg: float = param(5.0, '... and the baseline direction its images give within this (plus '
-                                                   'atan(GNSS tolerance / baseline)) of the direction between the '
-                                                   'two fixes, deg', min=0.1, max=90.0)
-    segments: bool = param(True, 'keyframes that share no tie point with the block (every track lost: a long gap '
-                                 'in the frames) start a segment of their own, which joins the block through the '
-                                 'tracker\'s tie points both have triangulated as soon as they are '
-                                 '`segment_min_tie_points`, else through its GNSS once that georeferences it (or at '
-                                 'the end of the flight)')
+    window_size: int = declared(ProblemOptions, 'window_size')
+    max_fixed_keyframes: int = declared(ProblemOptions, 'max_fixed_keyframes')
+    min_init_inliers: int = declared(RegistrationOptions, 'min_init_inliers')
+    min_init_angle_deg: float = declared(RegistrationOptions, 'min_init_angle_deg')
+    min_triangulation_angle_deg: float = declared(BlockOptions, 'min_triangulation_angle_deg')
+    max_reprojection_px: float = declared(ProblemOptions, 'max_reprojection_px')
+    pnp_threshold_px: float = declared(TwoViewOptions, 'pnp_threshold_px')
+    min_pnp_inliers: int = declared(RegistrationOptions, 'min_pnp_inliers')
+    relative_fallback: bool = declared(RegistrationOptions, 'relative_fallback')
+    min_relative_inliers: int = declared(RegistrationOptions, 'min_relative_inliers')
+    min_relative_inliers_gnss: int = declared(TwoViewOptions, 'min_relative_inliers_gnss')
+    two_view_min_angle_deg: float = declared(TwoViewOptions, 'two_view_min_angle_deg')
+    two_view_max_direction_deg: float = declared(TwoViewOptions, 'two_view_max_direction_deg')
+    segments: bool = declared(SegmentOptions, 'segments')
     segment_min_tie_points: int = param(8, 'a segment joins the block through the tracker\'s tie points both have '
                                            'triangulated when a RANSAC similarity fits this many of them (and at '
                                            'least half), spread over an area', min=3, max=100000)
-    loss: str = param('huber', 'robust loss on reprojection errors', choices=('huber', 'cauchy', 'linear'))
-    loss_scale_px: float = param(1.0, 'robust loss scale, pixels', min=0.05, max=100.0)
-    mtp_loss_scale_px: float = param(3.0, 'robust loss scale of the manual tie points (marked by hand to about '
-                                          '1 px; kept through outlier removal), pixels', min=0.05, max=1000.0)
-    gcp_loss_scale_px: float = param(3.0, 'robust loss scale of the GCPs\' observations (markers found to a '
-                                          'fraction of a pixel or marked by hand, vetted against the block before '
-                                          'use), pixels: at the tie points\' scale a few pixels of camera-model '
-                                          'error would turn the GCPs\' pull down', min=0.05, max=1000.0)
+    loss: str = declared(ProblemOptions, 'loss')
+    loss_scale_px: float = declared(ProblemOptions, 'loss_scale_px')
+    mtp_loss_scale_px: float = declared(ProblemOptions, 'mtp_loss_scale_px')
+    gcp_loss_scale_px: float = declared(ProblemOptions, 'gcp_loss_scale_px')
     window_iterations: int = param(15, 'solver iterations of a window update', min=1, max=1000)
-    full_iterations: int = param(50, 'solver iterations of a full adjustment (each round)', min=1, max=1000)
+    full_iterations: int = declared(ProblemOptions, 'full_iterations')
     lever_arm_cam_m: list = param([0.0, 0.0, 0.0], 'GNSS antenna position in the optical camera frame '
                                   '(x right, y down, z forward), m: a camera fixed to the body')
     lever_arm_body_frd_m: list = param([0.0, 0.0, 0.0], 'GNSS antenna position relative to the camera centre in '
@@ -149,16 +128,9 @@ class IncrementalOptions:
     georef_min_spread_ratio: float = param(0.05, 'the fixes must spread across their line by this fraction of '
                                                  'its length before the georeference is final (a turn)',
                                            min=0.0, max=1.0)
-    assume_nadir: bool = param(True, 'a straight first line georeferences provisionally, the roll about it '
-                                     'from a near-nadir camera (final at the first turn); and a relative pose '
-                                     'must see its tie points\' plane facing the camera (`min_facing`)')
-    min_facing: float = param(0.5, 'with assume_nadir: a relative pose (the first two keyframes, the relative '
-                                   'fallback) whose tie points\' best plane has a normal further than this |cos| '
-                                   'from the optical axis is not used: it sees the ground edge-on, the planar twin '
-                                   'of an aerial pair (0.5: 60 degrees, room for oblique cameras and relief)',
-                              min=0.0, max=1.0)
-    use_gcps: bool = param(True, 'surveyed GCPs enter the adjustment as point priors (off: every target is a '
-                                 'check point)')
+    assume_nadir: bool = declared(TwoViewOptions, 'assume_nadir')
+    min_facing: float = declared(TwoViewOptions, 'min_facing')
+    use_gcps: bool = declared(BlockOptions, 'use_gcps')
     estimate_gnss_bias: bool = param(True, 'estimate a constant ENU GNSS offset in the full adjustment when >= 3 '
                                            'GCPs make it observable')
     control_adjustment: bool = param(True, 'in flight, a full adjustment of the whole block (with the GNSS noise '
@@ -219,11 +191,8 @@ class IncrementalOptions:
                                   min=0.0, max=1000.0)
     off_gnss_gap: int = param(2, 'keyframes between two such full adjustments, at least (doubled each time one '
                                  'leaves the window off its GNSS still)', min=1, max=100000)
-    self_calibration_min_gain: float = param(MIN_GAIN_FRACTION, 'stepwise self-calibration: a candidate intrinsic '
-                                             'is kept when it lowers the reprojection RMS by at least this fraction '
-                                             'of it (and self_calibration_min_gain_px)', min=0.0, max=1.0)
-    self_calibration_min_gain_px: float = param(MIN_GAIN_PX, 'stepwise self-calibration: ... and by at least this, '
-                                                'px', min=0.0, max=100.0)
+    self_calibration_min_gain: float = declared(ProblemOptions, 'self_calibration_min_gain')
+    self_calibration_min_gain_px: float = declared(ProblemOptions, 'self_calibration_min_gain_px')
     gnss_tighten: bool = param(False, 'the GNSS noise estimate may also weight the fixes tighter than they state '
                                       '(a consumer geotag states metres): horizontally by their residuals about '
                                       'the block, vertically by their heights\' scatter about the flight\'s plane')
@@ -236,15 +205,11 @@ class IncrementalOptions:
     # Long flights: keyframes and tracks that can no longer enter a window leave the Python heap
     # (points to compact arrays, keyframe observations to disk) so memory stays flat; a track id
     # seen again later brings them back, so results are the same either way (core/at_freeze.py).
-    spill_frozen: bool = param(True, 'long flights: tie points and keyframes that can no longer enter a window '
-                                     'leave memory (compact arrays, keyframe observations on disk); same results')
-    spill_dir: str = param('', 'folder for the frozen keyframes\' observations ("" = a private temporary folder, '
-                               'removed afterwards)')
-    freeze_margin_keyframes: int = param(5, 'a track freezes this many registrations before the window',
-                                         min=0, max=10000)
+    spill_frozen: bool = declared(BlockOptions, 'spill_frozen')
+    spill_dir: str = declared(FreezeOptions, 'spill_dir')
+    freeze_margin_keyframes: int = declared(FreezeOptions, 'freeze_margin_keyframes')
     freeze_every: int = param(5, 'keyframes between freeze passes', min=1, max=10000)
-    max_thaws: int = param(3, 'keyframes bringing back (or looking up) ended tracks before freezing stops',
-                           min=1, max=10000)
+    max_thaws: int = declared(FreezeOptions, 'max_thaws')
 
     def check(self) -> None:
         if len(self.lever_arm_cam_m) != 3:
@@ -289,6 +254,12 @@ class IncrementalOptions:
     def gimbal(self) -> bool:
         return any(self.lever_arm_body_frd_m)
 
+    def part(self, cls):
+        """The options of one part of the adjuster (`BlockOptions`, `ProblemOptions`, `RegistrationOptions`,
+        `SegmentOptions`, ...: core/part_options.py), made from these values."""
+        return options_for(cls, self)
+
+
 def _read(part: str, name: str, doc: str) -> property:
     """A read-only view of `name` of the adjuster's part `part`."""
     return property(lambda self: getattr(getattr(self, part), name), doc=doc)
@@ -311,12 +282,13 @@ class IncrementalAT:
                  origin: LocalFrame | None = None, control: list[ControlPoint] | None = None, ties=()):
         self.opt = options or IncrementalOptions()
         self.origin = origin
-        self.block = Block(camera, self.opt, control, ties)
+        self.block = Block(camera, self.opt.part(BlockOptions), control, ties)
+        # GnssDatum and GnssRounds (core/gnss_datum.py, core/gnss_rounds.py) still take the whole options.
         self.datum = GnssDatum(self.block, self.opt)
-        self.adjustment = BlockAdjustment(self.block, self.datum, self.opt)
+        self.adjustment = BlockAdjustment(self.block, self.datum, self.opt.part(ProblemOptions))
         self.rounds = GnssRounds(self.block, self.datum, self.adjustment, self.opt)
-        self.registration = Registration(self.block, self.datum, self.opt)
-        self.segments = Segments(self.block)
+        self.registration = Registration(self.block, self.datum, self.opt.part(RegistrationOptions))
+        self.segments = Segments(self.block, self.opt.part(SegmentOptions))
         self.history: list[StepReport] = []
         self.rng = np.random.default_rng(0)
         # Oriented keyframes at the last full adjustment (`growth_ratio`).

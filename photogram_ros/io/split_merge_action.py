@@ -170,7 +170,7 @@ def _global_adjustment(block: KeyframeBlock, mr, runs: list, core_of: dict, opt:
     if log is not None:
         log(f'split-merge: global adjustment of {seed["oriented"]} photos, {seed["points"]} tie points '
             f'({seed["observations_left_out"]} of {seed["observations"]} observations beyond '
-            f'{gate_px or 2 * at.opt.max_reprojection_px:.1f} px of the merged block left out), GCPs {len(seed["gcps"])}'
+            f'{gate_px or 2 * opt.adjustment.max_reprojection_px:.1f} px of the merged block left out), GCPs {len(seed["gcps"])}'
             + (f', self-calibrating {", ".join(refine)}' if refine else ''))
     n_solves = len(at.adjustment.solve_log())
     rep_adj = at.full_adjustment(refine_intrinsics=refine, stepwise=stepwise)
