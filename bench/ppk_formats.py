@@ -142,7 +142,10 @@ def delay_run(where: Path, sigma_scale: float, fps: float = 2.5, line_length_m: 
                                'truth_acc_mps2': round(float(acc[w]), 2), 'error_m': round(float(e[w]), 5),
                                'along_track_m': round(float(along[w]), 5),
                                'linear_interpolation_of_epochs_misses_m': round(float(lin_miss[w]), 5)},
-                     'speed_step_photos_at': [round(float(t), 2) for t in t_exp[acc > SPEED_STEP_MPS2]]})
+                     'speed_step_each': [{'photo': names[k], 't_from_takeoff_s': round(float(t_exp[k]), 3),
+                                          'truth_acc_mps2': round(float(acc[k]), 2), 'error_m': round(float(e[k]), 5),
+                                          'linear_interpolation_of_epochs_misses_m': round(float(lin_miss[k]), 5)}
+                                         for k in np.flatnonzero(acc > SPEED_STEP_MPS2)]})
         sys.stderr.write(json.dumps(rows[-1]) + '\n')
     return rows
 
