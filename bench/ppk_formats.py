@@ -1,9 +1,14 @@
 """PPK geotagging figures on simulated flights (issue #45): the shutter's delay, and DJI RTK photos' XMP weights.
 
-1. Event delay: `simulate` a PPK survey flown at 12 m/s whose shutter opens 30 ms after the event marks the
-   MRK writes, the .pos the true antenna track (its error model off) or the RTK-fixed error model; `geotag`
-   with and without `--event-delay-ms 30`: the camera positions' error against the truth (median, 90 %,
-   max; along-track part).
+1. Event delay: `simulate` a PPK survey (the tiny preset's two lines made 120 m long) flown at 12 m/s whose
+   shutter opens 30 ms after the event marks the MRK writes, exposures at 2.5 fps (each halfway between two
+   5 Hz epochs), the .pos the true antenna track (its error model off) or the RTK-fixed error model; `geotag`
+   with and without `--event-delay-ms 30`, linear and cubic: the camera positions' error against the truth
+   (median, 90 %, max; along-track median) over every photo, over the photos where the true track is smooth
+   (acceleration <= SPEED_STEP_MPS2 within SPEED_STEP_WINDOW_S: lines and turns), of those the straight-line
+   ones (<= LINE_MPS2), and over the photos at one of the simulator's instant speed changes (parked to
+   12 m/s at take-off, 12 to 2.5 m/s into and out of a turn, to a stop at the end), with the worst photo
+   and what a linear interpolation of the .pos epochs misses of the true antenna there (the track's limit).
 2. DJI RTK photos: `simulate --rtk-photos` (EXIF GPS = the RTK camera centre, XMP RtkFlag/RtkStd*); `triangulate`
    without GCPs (every target a check point) on (a) the XMP, (b) the same photos with a hand-made geo.txt of the
    same positions and sigmas, (c) a third of the photos FLOAT (flag 34, 0.5 / 0.8 m stated) at their true
@@ -54,24 +59,94 @@ def git(*args) -> str:
     return subprocess.run(['git', *args], cwd=ROOT, capture_output=True, text=True).stdout.strip()
 
 
-def delay_run(where: Path, sigma_scale: float) -> list[dict]:
+# Above this acceleration (m/s^2) within SPEED_STEP_WINDOW_S of an exposure the simulator's flight changes its
+# speed at once (flight.state: parked before take-off then at full speed, full speed into a 2.5 m/s turn and out of
+# it): a velocity step no 5 Hz track carries. A survey multirotor's manoeuvres stay under it (its turns 0.8 m/s^2).
+SPEED_STEP_MPS2 = 3.0
+# At or under this the true track is a straight line at constant speed (the attitude jitter's lever-arm wobble only).
+LINE_MPS2 = 0.3
+# The epochs an exposure's interpolation reads lie within this of it: the two around it (0.1 s away at 5 Hz with
+# the exposure between them) and, for cubic, one more on either side (0.3 s).
+SPEED_STEP_WINDOW_S = 0.3
+
+
+def truth_acceleration_mps2(t_s, t_truth_s, antenna_enu_m, window_s: float = SPEED_STEP_WINDOW_S) -> np.ndarray:
+    """The largest acceleration of the true antenna (samples `antenna_enu_m` at `t_truth_s`) within `window_s`
+    of each time in `t_s` (central differences of the samples, so a step in speed shows on the samples
+    either side of it)."""
+    t_truth_s = np.asarray(t_truth_s, float)
+    v = np.gradient(np.asarray(antenna_enu_m, float), t_truth_s, axis=0)
+    acc = np.linalg.norm(np.gradient(v, t_truth_s, axis=0), axis=1)
+    return np.array([acc[np.abs(t_truth_s - t) <= window_s + 1e-6].max(initial=0.0) for t in np.atleast_1d(t_s)])
+
+
+def _stats(prefix: str, e: np.ndarray) -> dict:
+    if len(e) == 0:
+        return {f'{prefix}photos': 0}
+    return {f'{prefix}photos': len(e), f'{prefix}median_m': round(float(np.median(e)), 5),
+            f'{prefix}p90_m': round(float(np.percentile(e, 90)), 5), f'{prefix}max_m': round(float(e.max()), 5)}
+
+
+def split_by_motion(err_m, acc_mps2, limit_mps2: float = SPEED_STEP_MPS2, line_mps2: float = LINE_MPS2) -> dict:
+    """Error figures over every photo; over the photos whose true track is smooth around them (acceleration
+    <= limit_mps2: lines and turns), and of those the ones on a straight line (<= line_mps2); and over the
+    photos at one of the simulator's speed steps (> limit_mps2)."""
+    err_m, acc_mps2 = np.asarray(err_m, float), np.asarray(acc_mps2, float)
+    smooth = acc_mps2 <= limit_mps2
+    return {**_stats('', err_m), **_stats('smooth_', err_m[smooth]), **_stats('line_', err_m[acc_mps2 <= line_mps2]),
+            **_stats('speed_step_', err_m[~smooth]), 'speed_step_limit_mps2': limit_mps2, 'line_limit_mps2': line_mps2}
+
+
+def delay_run(where: Path, sigma_scale: float, fps: float = 2.5, line_length_m: float = 120.0) -> list[dict]:
+    """The tiny preset's two lines, line_length_m long, flown at 12 m/s with a 30 ms shutter delay; exposures at
+    fps (2.5: every one halfway between two 5 Hz epochs, where interpolation is weakest)."""
+    from photogram_ros.core.exposure_positions import gps_s_to_utc_unix
+    from photogram_ros.core.geodesy import ecef_to_geodetic
+    from photogram_ros.io.trajectory_formats import read_trajectory
+    from photogram_ros.sim.scenario import START_UNIX_S
     root = where / f'delay_{sigma_scale:g}'
-    simulate(preset('tiny', fps=1.0, ppk=True, speed_mps=12.0, ppk_shutter_delay_ms=30.0, ppk_sigma_scale=sigma_scale),
-             root)
+    simulate(preset('tiny', fps=fps, ppk=True, speed_mps=12.0, ppk_shutter_delay_ms=30.0, ppk_sigma_scale=sigma_scale,
+                    line_length_m=line_length_m), root)
     truth = GroundTruth.load(root)
     ppk = root / 'ppk'
     frame = {f'IMG_{f.index:04d}.JPG': f for f in truth.frames}
+    t_truth = np.array([f['t_fix_unix_s'] for f in truth.fixes]) - START_UNIX_S
+    ant_truth = np.array([f['antenna_enu'] for f in truth.fixes])
+    vel_truth = np.gradient(ant_truth, t_truth, axis=0)
+    # the .pos epochs in the map frame, for an independent linear interpolation at the exposures
+    track = read_trajectory(ppk / 'flight.pos', require_fix=False)
+    pos_enu = np.array([truth.origin.geodetic_to_enu(*ecef_to_geodetic(*x)) for x in track.ecef_m])
+    t_pos = np.array([gps_s_to_utc_unix(t) for t in track.t_gps_s]) - START_UNIX_S
     rows = []
     for delay_ms, how in ((0.0, 'linear'), (30.0, 'linear'), (30.0, 'cubic')):
         res = geotag(GeotagInput(str(ppk / 'flight.pos'), str(ppk / 'Timestamp.MRK'), str(ppk), str(root / 'geo.txt'),
                                  options=ExposureOptions(event_delay_s=delay_ms * 1e-3, interpolation=how)))
+        names = [n for n, _ in res.rows]
+        t_exp = np.array([frame[n].stamp_ns * 1e-9 - START_UNIX_S for n in names])
         err = np.array([truth.origin.geodetic_to_enu(pe.lat_deg, pe.lon_deg, pe.h_m) - frame[n].map_T_cam[:3, 3]
                         for n, pe in res.rows])
         e = np.linalg.norm(err, axis=1)
+        v = np.array([[np.interp(t, t_truth, vel_truth[:, k]) for k in range(3)] for t in t_exp])
+        along = np.abs(np.sum(err * v, axis=1)) / np.maximum(np.linalg.norm(v, axis=1), 1e-9)
+        acc = truth_acceleration_mps2(t_exp, t_truth, ant_truth)
+        # what any linear interpolation of the .pos epochs misses at the exposure (the track's own limit)
+        lin = np.array([[np.interp(t, t_pos, pos_enu[:, k]) for k in range(3)] for t in t_exp])
+        lin_miss = np.linalg.norm(lin - np.array([frame[n].antenna_enu for n in names]), axis=1)
+        w = int(np.argmax(e))
         rows.append({'case': 'event_delay', 'interpolation': how, 'speed_mps': 12.0, 'shutter_delay_ms': 30.0,
-                     'event_delay_ms': delay_ms,
-                     'track_error_scale': sigma_scale, 'photos': len(e), 'median_m': round(float(np.median(e)), 5),
-                     'p90_m': round(float(np.percentile(e, 90)), 5), 'max_m': round(float(e.max()), 5)})
+                     'event_delay_ms': delay_ms, 'track_error_scale': sigma_scale, 'fps': fps,
+                     'line_length_m': line_length_m,
+                     **split_by_motion(e, acc),
+                     'along_track_median_m': round(float(np.median(along)), 5),
+                     'worst': {'photo': names[w], 't_from_takeoff_s': round(float(t_exp[w]), 3),
+                               'truth_acc_mps2': round(float(acc[w]), 2), 'error_m': round(float(e[w]), 5),
+                               'along_track_m': round(float(along[w]), 5),
+                               'linear_interpolation_of_epochs_misses_m': round(float(lin_miss[w]), 5)},
+                     'speed_step_each': [{'photo': names[k], 't_from_takeoff_s': round(float(t_exp[k]), 3),
+                                          'truth_acc_mps2': round(float(acc[k]), 2), 'error_m': round(float(e[k]), 5),
+                                          'linear_interpolation_of_epochs_misses_m': round(float(lin_miss[k]), 5)}
+                                         for k in np.flatnonzero(acc > SPEED_STEP_MPS2)]})
+        sys.stderr.write(json.dumps(rows[-1]) + '\n')
     return rows
 
 
