@@ -15,12 +15,16 @@ from photogram_ros.core.at_register import RegistrationOptions
 from photogram_ros.core.at_segments import SegmentOptions
 from photogram_ros.core.at_two_view import TwoViewOptions
 from photogram_ros.core.camera import PinholeCamera
+from photogram_ros.core import gnss_datum, gnss_rounds
+from photogram_ros.core.gnss_datum import DatumOptions
+from photogram_ros.core.gnss_rounds import GnssRoundsOptions
 from photogram_ros.core.incremental import IncrementalAT, IncrementalOptions
 from photogram_ros.errors import ConfigError
 from photogram_ros.params import fields_of
 
 PARTS = {BlockOptions: at_block, FreezeOptions: at_freeze, ProblemOptions: at_problem,
-         RegistrationOptions: at_register, TwoViewOptions: at_two_view, SegmentOptions: at_segments}
+         RegistrationOptions: at_register, TwoViewOptions: at_two_view, SegmentOptions: at_segments,
+         DatumOptions: gnss_datum, GnssRoundsOptions: gnss_rounds}
 
 
 def test_each_part_holds_its_own_options_not_the_container():
@@ -30,7 +34,8 @@ def test_each_part_holds_its_own_options_not_the_container():
             'adjustment': (at.adjustment.opt, ProblemOptions),
             'registration': (at.registration.opt, RegistrationOptions),
             'two view': (at.registration.opt.two_view, TwoViewOptions),
-            'segments': (at.segments.opt, SegmentOptions)}
+            'segments': (at.segments.opt, SegmentOptions),
+            'rounds': (at.rounds.opt, GnssRoundsOptions)}
     for part, (got, want) in held.items():
         assert type(got) is want, f'{part} holds {type(got).__name__}, not {want.__name__}'
         assert not isinstance(got, IncrementalOptions)

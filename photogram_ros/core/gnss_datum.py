@@ -10,20 +10,42 @@ problem (core/at_problem.py) reads them.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 from photogram_ros.core.at_geometry import lever_arm_cam_from_frd
 from photogram_ros.core.at_store import Keyframe
+from photogram_ros.core.part_options import check
+from photogram_ros.params import param
 
 # A fix enters the similarity that georeferences the block when its stated sigma is within this factor of the
 # precise fixes' (the lower quartile of the flight's): RTK fixed (1-3 cm) beside float (decimetres) stays apart.
 PRECISE_FIX_RATIO = 3.0
 
 
-class GnssDatum:
-    """The fixes' datum of a block (core/at_block.py `Block`), for the options `opt` (IncrementalOptions)."""
+@dataclass(frozen=True)
+class DatumOptions:
+    """The options of the fixes' datum (`GnssDatum`): the GNSS lever arm."""
+    lever_arm_cam_m: list = param([0.0, 0.0, 0.0], 'GNSS antenna position in the optical camera frame '
+                                  '(x right, y down, z forward), m: a camera fixed to the body')
+    lever_arm_body_frd_m: list = param([0.0, 0.0, 0.0], 'GNSS antenna position relative to the camera centre in '
+                                       'the body frame (forward, right, down), m: a gimballed camera, whose '
+                                       'keyframes carry their antenna offset from the attitude (bundle_node follows '
+                                       'mavlink/attitude); zeros: lever_arm_cam_m is used')
 
-    def __init__(self, block, opt):
+    @property
+    def gimbal(self) -> bool:
+        return any(self.lever_arm_body_frd_m)
+
+    def __post_init__(self):
+        check(self)
+
+
+class GnssDatum:
+    """The fixes' datum of a block (core/at_block.py `Block`), for the options `opt`."""
+
+    def __init__(self, block, opt: DatumOptions):
         self.block = block
         # A gimbal: the body lever arm as if flying level, image top forward, where a record has no offset.
         self.lever = (lever_arm_cam_from_frd(opt.lever_arm_body_frd_m) if opt.gimbal

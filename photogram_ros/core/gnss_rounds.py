@@ -8,14 +8,19 @@ what its last rounds found: `noise` (the noise estimate), `settle` (how the bias
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 import scipy.linalg
 
 from photogram_ros.core.at_geometry import reprojection_errors_px
-from photogram_ros.core.at_problem import StepReport, adjust
+from photogram_ros.core.at_problem import ProblemOptions, StepReport, adjust
 from photogram_ros.core.at_store import Keyframe
+from photogram_ros.core.at_two_view import TwoViewOptions
 from photogram_ros.core.gnss_datum import PRECISE_FIX_RATIO
+from photogram_ros.core.part_options import check, declared
 from photogram_ros.core.rotations import R_from_rotvec, make_T
+from photogram_ros.params import param
 
 # How far the mean optical axis of a nadir flight may lie from the vertical (1 sigma, degrees): a gimbal
 # held at nadir, or a camera fixed to look down, over a whole flight.
@@ -61,11 +66,52 @@ def flight_plane_sigma(fixes_enu: np.ndarray) -> float:
     r = X[:, 2] - A @ coef
     return float(np.sqrt(len(X) / max(len(X) - 3.0, 1.0)) * clipped_sigma(r - np.median(r)))
 
+@dataclass(frozen=True)
+class GnssRoundsOptions:
+    """The options of the GNSS rounds (`GnssRounds`): the fix gate, the noise estimate, levelling, the bias and
+    tilt rounds."""
+    max_reprojection_px: float = declared(ProblemOptions, 'max_reprojection_px')
+    loss: str = declared(ProblemOptions, 'loss')
+    loss_scale_px: float = declared(ProblemOptions, 'loss_scale_px')
+    window_iterations: int = param(15, 'solver iterations of a window update', min=1, max=1000)
+    full_iterations: int = declared(ProblemOptions, 'full_iterations')
+    assume_nadir: bool = declared(TwoViewOptions, 'assume_nadir')
+    gnss_tilt: str = param('never', 'with the GNSS bias, a tilt of the fixes\' heights across the block (2 more '
+                                    'unknowns), where the GCPs used in height spread over it in both directions '
+                                    '(gnss_tilt_min_spread): fixes that lean by several mm/m (a strip flown on a '
+                                    'float fix, a wandering fix) would otherwise turn the block. "always"; "auto": '
+                                    'the final adjustment keeps it when it lowers the GCPs\' height residuals '
+                                    'significantly (an F-test at 90 %, 4 GCPs or more); "never" (the default: with 5 '
+                                    'GCPs, a lean of 2 mm/m or less is estimated no better than it is left, '
+                                    'bench/gnss_tilt.py)')
+    gnss_tilt_min_spread: float = param(0.3, 'the tilt is estimated when, along every horizontal direction, the GCPs '
+                                             'used in height spread (RMS about their centre) by at least this '
+                                             'fraction of the fixes\' spread: GCPs on one line never', min=0.0,
+                                        max=10.0)
+    bias_iterations: int = param(10, 'full adjustments with the GNSS bias as unknowns, at most (the outliers each '
+                                     'removes can move the bias of the next; settled when it moves under 1 mm)',
+                                 min=0, max=1000)
+    gnss_noise_min_keyframes: int = param(8, 'oriented keyframes with a fix the GNSS noise estimate needs',
+                                          min=4, max=100000)
+    gnss_tighten: bool = param(False, 'the GNSS noise estimate may also weight the fixes tighter than they state '
+                                      '(a consumer geotag states metres): horizontally by their residuals about '
+                                      'the block, vertically by their heights\' scatter about the flight\'s plane')
+    gnss_tighten_floor_m: float = param(0.05, 'a tightened GNSS sigma is at least this, m', min=0.001, max=100.0)
+    gnss_gate_m: float = param(1.0, 'a keyframe oriented from the block\'s tie points whose fix lies further than '
+                                    'this (and 2 x gnss_outlier_sigma of its sigma) from it keeps its fix out, m',
+                               min=0.0, max=1e6)
+    gnss_outlier_sigma: float = param(5.0, 'a fix whose residual exceeds this many estimated sigmas (and 3 stated '
+                                           'sigmas) is not used', min=2.0, max=1000.0)
+
+    def __post_init__(self):
+        check(self)
+
+
 class GnssRounds:
     """The GNSS rounds of `block` (core/at_block.py) on its datum `datum` through its adjustments `adjustment`, for
-    the options `opt` (IncrementalOptions)."""
+    the options `opt`."""
 
-    def __init__(self, block, datum, adjustment, opt):
+    def __init__(self, block, datum, adjustment, opt: GnssRoundsOptions):
         self.block, self.datum, self.adjustment, self.opt = block, datum, adjustment, opt
         # The last noise estimate (`estimate_noise`): stated and estimated sigmas, scale factors, rejected fixes.
         self.noise: dict = {}

@@ -38,8 +38,8 @@ Memory on long flights (`spill_frozen`): what can no longer enter a window leave
 Parameters: `IncrementalOptions`, the user-facing container (params.py; the bundle node's parameter set extends
 it). Each part takes options of its own, made once from it (`IncrementalOptions.part`, core/part_options.py):
 `BlockOptions` (with `FreezeOptions`), `ProblemOptions`, `RegistrationOptions` (with `TwoViewOptions`) and
-`SegmentOptions`, each declaring its parameters' descriptions and ranges next to the code that reads them; the
-datum and the GNSS rounds still take the container.
+`SegmentOptions`, `DatumOptions` and `GnssRoundsOptions`, each declaring its parameters' descriptions and ranges
+next to the code that reads them.
 """
 
 from __future__ import annotations
@@ -60,8 +60,8 @@ from photogram_ros.core.at_store import Keyframe
 from photogram_ros.core.at_two_view import TwoViewOptions
 from photogram_ros.core.camera import PinholeCamera
 from photogram_ros.core.geodesy import LocalFrame
-from photogram_ros.core.gnss_datum import GnssDatum
-from photogram_ros.core.gnss_rounds import TILT_TEST_LEVEL, GnssRounds, flight_plane_sigma
+from photogram_ros.core.gnss_datum import DatumOptions, GnssDatum
+from photogram_ros.core.gnss_rounds import TILT_TEST_LEVEL, GnssRounds, GnssRoundsOptions, flight_plane_sigma
 from photogram_ros.core.part_options import declared, options_for
 from photogram_ros.core.self_calibration import INTRINSICS
 from photogram_ros.core.similarity import similarity_on_line, similarity_ransac, spread
@@ -108,14 +108,10 @@ class IncrementalOptions:
     loss_scale_px: float = declared(ProblemOptions, 'loss_scale_px')
     mtp_loss_scale_px: float = declared(ProblemOptions, 'mtp_loss_scale_px')
     gcp_loss_scale_px: float = declared(ProblemOptions, 'gcp_loss_scale_px')
-    window_iterations: int = param(15, 'solver iterations of a window update', min=1, max=1000)
+    window_iterations: int = declared(GnssRoundsOptions, 'window_iterations')
     full_iterations: int = declared(ProblemOptions, 'full_iterations')
-    lever_arm_cam_m: list = param([0.0, 0.0, 0.0], 'GNSS antenna position in the optical camera frame '
-                                  '(x right, y down, z forward), m: a camera fixed to the body')
-    lever_arm_body_frd_m: list = param([0.0, 0.0, 0.0], 'GNSS antenna position relative to the camera centre in '
-                                       'the body frame (forward, right, down), m: a gimballed camera, whose '
-                                       'keyframes carry their antenna offset from the attitude (bundle_node follows '
-                                       'mavlink/attitude); zeros: lever_arm_cam_m is used')
+    lever_arm_cam_m: list = declared(DatumOptions, 'lever_arm_cam_m')
+    lever_arm_body_frd_m: list = declared(DatumOptions, 'lever_arm_body_frd_m')
     georef_min_keyframes: int = param(4, 'keyframes with a fix before the block is georeferenced', min=3, max=10000)
     georef_line_heading_deg: float = param(5.0, 'a straight first line georeferences provisionally (assume_nadir) '
                                                 'once its fixes give the line\'s heading to this 1-sigma, deg: '
@@ -141,26 +137,13 @@ class IncrementalOptions:
     control_adjustment_max_keyframes: int = param(1000, 'the control adjustment runs on blocks of at most this '
                                                         'many oriented keyframes (its cost grows with the block)',
                                                   min=1, max=10000000)
-    gnss_tilt: str = param('never', 'with the GNSS bias, a tilt of the fixes\' heights across the block (2 more '
-                                    'unknowns), where the GCPs used in height spread over it in both directions '
-                                    '(gnss_tilt_min_spread): fixes that lean by several mm/m (a strip flown on a '
-                                    'float fix, a wandering fix) would otherwise turn the block. "always"; "auto": '
-                                    'the final adjustment keeps it when it lowers the GCPs\' height residuals '
-                                    'significantly (an F-test at 90 %, 4 GCPs or more); "never" (the default: with 5 '
-                                    'GCPs, a lean of 2 mm/m or less is estimated no better than it is left, '
-                                    'bench/gnss_tilt.py)')
-    gnss_tilt_min_spread: float = param(0.3, 'the tilt is estimated when, along every horizontal direction, the GCPs '
-                                             'used in height spread (RMS about their centre) by at least this '
-                                             'fraction of the fixes\' spread: GCPs on one line never', min=0.0,
-                                        max=10.0)
-    bias_iterations: int = param(10, 'full adjustments with the GNSS bias as unknowns, at most (the outliers each '
-                                     'removes can move the bias of the next; settled when it moves under 1 mm)',
-                                 min=0, max=1000)
+    gnss_tilt: str = declared(GnssRoundsOptions, 'gnss_tilt')
+    gnss_tilt_min_spread: float = declared(GnssRoundsOptions, 'gnss_tilt_min_spread')
+    bias_iterations: int = declared(GnssRoundsOptions, 'bias_iterations')
     estimate_gnss_noise: bool = param(True, 'the full adjustment estimates the flight\'s GNSS noise (horizontal and '
                                             'vertical apart) from its residuals and weights the fixes by it when '
                                             'they are poorer than they state; fixes far beyond it are not used')
-    gnss_noise_min_keyframes: int = param(8, 'oriented keyframes with a fix the GNSS noise estimate needs',
-                                          min=4, max=100000)
+    gnss_noise_min_keyframes: int = declared(GnssRoundsOptions, 'gnss_noise_min_keyframes')
     final_self_calibration: str = param('', 'intrinsics the final full adjustment refines, comma separated (from f, '
                                              'cx, cy, k1, k2, p1, p2, k3; empty: none; all of them refined), or '
                                              '"auto": stepwise from k1, k2, each kept only when it pays in '
@@ -193,15 +176,10 @@ class IncrementalOptions:
                                  'leaves the window off its GNSS still)', min=1, max=100000)
     self_calibration_min_gain: float = declared(ProblemOptions, 'self_calibration_min_gain')
     self_calibration_min_gain_px: float = declared(ProblemOptions, 'self_calibration_min_gain_px')
-    gnss_tighten: bool = param(False, 'the GNSS noise estimate may also weight the fixes tighter than they state '
-                                      '(a consumer geotag states metres): horizontally by their residuals about '
-                                      'the block, vertically by their heights\' scatter about the flight\'s plane')
-    gnss_tighten_floor_m: float = param(0.05, 'a tightened GNSS sigma is at least this, m', min=0.001, max=100.0)
-    gnss_gate_m: float = param(1.0, 'a keyframe oriented from the block\'s tie points whose fix lies further than '
-                                    'this (and 2 x gnss_outlier_sigma of its sigma) from it keeps its fix out, m',
-                               min=0.0, max=1e6)
-    gnss_outlier_sigma: float = param(5.0, 'a fix whose residual exceeds this many estimated sigmas (and 3 stated '
-                                           'sigmas) is not used', min=2.0, max=1000.0)
+    gnss_tighten: bool = declared(GnssRoundsOptions, 'gnss_tighten')
+    gnss_tighten_floor_m: float = declared(GnssRoundsOptions, 'gnss_tighten_floor_m')
+    gnss_gate_m: float = declared(GnssRoundsOptions, 'gnss_gate_m')
+    gnss_outlier_sigma: float = declared(GnssRoundsOptions, 'gnss_outlier_sigma')
     # Long flights: keyframes and tracks that can no longer enter a window leave the Python heap
     # (points to compact arrays, keyframe observations to disk) so memory stays flat; a track id
     # seen again later brings them back, so results are the same either way (core/at_freeze.py).
@@ -283,10 +261,9 @@ class IncrementalAT:
         self.opt = options or IncrementalOptions()
         self.origin = origin
         self.block = Block(camera, self.opt.part(BlockOptions), control, ties)
-        # GnssDatum and GnssRounds (core/gnss_datum.py, core/gnss_rounds.py) still take the whole options.
-        self.datum = GnssDatum(self.block, self.opt)
+        self.datum = GnssDatum(self.block, self.opt.part(DatumOptions))
         self.adjustment = BlockAdjustment(self.block, self.datum, self.opt.part(ProblemOptions))
-        self.rounds = GnssRounds(self.block, self.datum, self.adjustment, self.opt)
+        self.rounds = GnssRounds(self.block, self.datum, self.adjustment, self.opt.part(GnssRoundsOptions))
         self.registration = Registration(self.block, self.datum, self.opt.part(RegistrationOptions))
         self.segments = Segments(self.block, self.opt.part(SegmentOptions))
         self.history: list[StepReport] = []
