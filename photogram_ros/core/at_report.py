@@ -305,6 +305,16 @@ def intrinsics_sigma(at, refine: tuple) -> dict:
     return sig
 
 
+def undetermined_focal(at, refine: tuple) -> dict:
+    """focal_determination of the adjusted block `at` when it refined f and does not determine it (else {}): what
+    `--self-calibrate auto` holds f for (io/aerial_triangulation.py adjusts the block again with f at its given
+    value)."""
+    if 'f' not in refine:
+        return {}
+    focal = focal_determination(at, intrinsics_sigma(at, refine))
+    return focal if focal.get('determined') is False else {}
+
+
 NADIR_TILT_DEG = 5.0            # a block whose cameras (95 %) are within this of nadir is near-nadir
 LOOSE_GNSS_SIGMA_V_M = 0.5      # camera heights from a GNSS this loose do not hold the block's depth
 MIN_GCP_HEIGHTS = 3

@@ -23,8 +23,9 @@ from pathlib import Path
 
 import numpy as np
 
-from photogram_ros.core.block_check import check_block, inputs_from_at
+from photogram_ros.core.block_check import Finding, check_block, inputs_from_at
 from photogram_ros.core.at_report import (build_report, convergence, focal_determination, gnss_figures,
+                                          undetermined_focal,
                                         intrinsics_sigma)
 from photogram_ros.core.control import ControlRow, ControlVettingOptions, unchecked_vetting, vet_control
 from photogram_ros.io.at_report import write_report
@@ -371,6 +372,16 @@ def adjust_and_write(block: KeyframeBlock, out: str | Path, opt: TriangulateOpti
     refine = opt.refine(block, n_gcps, assumptions)
     if at is None or target_obs:
         at, rep_adj = _triangulate_records(block, opt, control, target_obs, refine, log, tie_obs=tie_obs, steps=steps)
+    kept = at.self_calibration.kept if at.self_calibration is not None else refine
+    if opt.self_calibrate is None and (focal := undetermined_focal(at, kept)):   # auto: f only where determined
+        note = (f'self-calibration (auto): f held at {block.camera.fx:.1f} px: refined, it went to '
+                f'{at.block.camera.fx:.1f} px, which the block does not determine ({focal["reason"]}: the focal '
+                'trades off with the cameras\' height above the ground), so the block was adjusted again with f fixed')
+        assumptions.append(note)
+        if log is not None:
+            log(f'warning: {note}')
+        refine = tuple(r for r in refine if r != 'f')
+        at, rep_adj = _triangulate_records(block, opt, control, target_obs, refine, log, tie_obs=tie_obs, steps=steps)
     res, inputs = finish_block(block, out, opt, at, rep_adj, refine, control, vet,
                                 gnss_without if vet is not None and target_obs else None, crs, t0, t_at, steps, log)
     return res, at, inputs, {'vetting': vet, 'control': control, 'target_obs': target_obs}
@@ -388,6 +399,10 @@ def finish_block(block: KeyframeBlock, out: Path, opt: TriangulateOptions, at: I
     before = block.camera
     refine = at.self_calibration.kept if at.self_calibration is not None else refine
     self_cal = _self_calibration(at, before, refine, assumptions, log) if refine else None
+    if self_cal is not None and self_cal.get('focal', {}).get('determined') is False:
+        extra_findings = (*extra_findings, Finding('self_calibration', 'warning', 'the focal length was refined and the '
+                          f'block does not determine it ({self_cal["focal"]["reason"]}): its heights are uncertain by '
+                          'as much as the focal moved; keep f fixed, or add GCPs with surveyed heights or oblique photos'))
     conv = convergence(at, rep_adj.status)
     if conv is not None:
         assumptions.append(conv['text'])
