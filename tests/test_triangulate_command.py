@@ -70,7 +70,7 @@ def test_triangulate_simulated_photos(tmp_path):
     assert rc == 0 and rep['reprojection_rms_px'] < 1.5 * MEASURED['auto_rep_px']
     assert ck['n'] == 2 and ck['horizontal_m'] < 1.5 * MEASURED['auto_h_m']
     assert ck['vertical_m'] < max(1.5 * MEASURED['auto_v_m'], 0.01)
-    assert rep['self_calibration']['fx']['after'] == pytest.approx(truth.camera.fx, abs=1e-6)   # held
+    assert rep['self_calibration']['fx']['after'] == rep['self_calibration']['fx']['before']   # held
     assert any(a.startswith('self-calibration (auto): f held at 520.0 px') for a in rep['assumptions'])
     assert _centre_rmse_m(rows, truth) < 1.5 * MEASURED['auto_centres_m']
     rc, rep, rows, ck = figures['k1k2']
