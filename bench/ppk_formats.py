@@ -276,23 +276,48 @@ RTK_CASES = {'rtk_xmp': {}, 'rtk_xmp_third_float_0m': {'rtk_float_every': 3, 'rt
              'rtk_xmp_third_float_1m': {'rtk_float_every': 3, 'rtk_float_offset_m': 1.0}}
 
 
+def geotag_height_lean(folder: Path, rep: dict) -> dict:
+    """How the geotags' height errors (the simulator's `rtk_truth.json`) lean across the block, weighted as
+    their XMP states (1 / RtkStdHgt^2): the slope (dz/dE, dz/dN, mrad) of a plane fitted to them over the adjusted
+    cameras' horizontal positions, and what that lean moves the ground by at the block's depth (the cameras'
+    mean height above the check points, m): without GCPs the block takes its tilt from the fixes' heights, so
+    its check points shift by about this much. Beside it the check points' mean residual (ENU, m). Empty without
+    `rtk_truth.json` or check points."""
+    truth_file = Path(folder) / 'rtk_truth.json'
+    points = rep.get('check', {}).get('points', [])
+    if not truth_file.exists() or not points:
+        return {}
+    truth = json.loads(truth_file.read_text())
+    rows = [(p['position_map_m'], truth[p['image']]) for p in rep.get('per_image', []) if p['image'] in truth]
+    xy_m = np.array([r[0][:2] for r in rows], float)
+    dz_m = np.array([r[1]['error_enu_m'][2] for r in rows], float)
+    w = 1.0 / np.array([r[1]['sd_neu_m'][2] for r in rows], float)
+    A = np.column_stack([np.ones(len(rows)), xy_m - xy_m.mean(axis=0)])
+    slope = np.linalg.lstsq(A * w[:, None], dz_m * w, rcond=None)[0][1:]
+    depth_m = float(np.mean([r[0][2] for r in rows]) - np.mean([p['surveyed_map_m'][2] for p in points]))
+    return {'geotag_height_lean_mrad': [round(float(v) * 1e3, 4) for v in slope], 'block_depth_m': round(depth_m, 2),
+            'lean_ground_shift_m': [round(float(v) * depth_m, 4) for v in slope],
+            'check_mean_enu_m': [round(float(v), 4) for v in np.mean([p['residual_m'] for p in points], axis=0)]}
+
+
 def rtk_runs(where: Path, name: str, cases=tuple(RTK_CASES) + ('rtk_hand_geo_txt',),
-             georeference=('as_is',)) -> list[dict]:
+             georeference=('as_is',), seed: int | None = None) -> list[dict]:
     """`triangulate` on each case of the RTK photo survey (preset `name`), for each georeference mode: 'as_is'
     (the product code) and 'proposed' (`proposed_georeference`; not run again on the clean survey, whose fixes
     all state the same sigmas, when 'as_is' ran it). Each row has its check-point RMSE and its ratio to the clean
-    survey's."""
+    survey's, and how its geotags' heights lean (`geotag_height_lean`). seed: the simulator's (None: the preset's)."""
     from photogram_ros.sim.photos import write_geo_txt_from_exif_and_rtk_xmp
+    seeded = {} if seed is None else {'seed': seed}
     folders = {}
     for case in cases:
         if case == 'rtk_hand_geo_txt':
             continue
-        simulate(preset(name, fps=1.0, rtk_photos=True, **RTK_CASES[case]), where / case)
+        simulate(preset(name, fps=1.0, rtk_photos=True, **seeded, **RTK_CASES[case]), where / case)
         folders[case] = where / case / 'rtk'
     if 'rtk_hand_geo_txt' in cases:
         hand = where / 'rtk_hand' / 'rtk'
         if 'rtk_xmp' not in folders:
-            simulate(preset(name, fps=1.0, rtk_photos=True), where / 'rtk_xmp')
+            simulate(preset(name, fps=1.0, rtk_photos=True, **seeded), where / 'rtk_xmp')
         shutil.copytree(where / 'rtk_xmp' / 'rtk', hand)
         write_geo_txt_from_exif_and_rtk_xmp(hand)
         folders['rtk_hand_geo_txt'] = hand
@@ -308,7 +333,8 @@ def rtk_runs(where: Path, name: str, cases=tuple(RTK_CASES) + ('rtk_hand_geo_txt
             row = {'case': case, 'preset': name, 'georeference': mode, 'photos': len(list(folder.glob('*.JPG'))),
                    'check_n': ck['n'], 'check_h_m': round(ck['horizontal_m'], 4),
                    'check_v_m': round(ck['vertical_m'], 4), 'verdict': rep.get('verdict', {}).get('status'),
-                   'rtk_flags': rep.get('matching', {}).get('rtk_flags'), 'gnss_noise': rep.get('gnss_noise')}
+                   'rtk_flags': rep.get('matching', {}).get('rtk_flags'), 'gnss_noise': rep.get('gnss_noise'),
+                   'seed': preset(name, **seeded).seed, **geotag_height_lean(folder, rep)}
             if case == 'rtk_xmp':
                 clean = row
             elif clean is not None:
@@ -330,6 +356,7 @@ def main() -> int:
     ap.add_argument('--layouts', action='store_true', help='the authors\' way on the M300 layout (section 3)')
     ap.add_argument('--real-waypoint', help='a real Waypoint export to measure section 3 on as well')
     ap.add_argument('--real-source', default='', help='where --real-waypoint comes from (written in its rows)')
+    ap.add_argument('--seed', type=int, help='the simulator\'s seed for the RTK photo survey (default: the preset\'s)')
     ap.add_argument('--georeference', default='as_is',
                     help='as_is, proposed or both (comma-separated): proposed measures the change to '
                          'IncrementalAT._try_georeference this bench emulates (proposed_georeference)')
@@ -346,7 +373,7 @@ def main() -> int:
         if a.layouts:
             rows += layouts_run(Path(tmp), a.real_waypoint, a.real_source)
         if not a.skip_rtk:
-            rows += rtk_runs(Path(tmp), a.preset, tuple(a.cases.split(',')), tuple(a.georeference.split(',')))
+            rows += rtk_runs(Path(tmp), a.preset, tuple(a.cases.split(',')), tuple(a.georeference.split(',')), a.seed)
     head['load_avg_after'] = [round(x, 2) for x in os.getloadavg()]
     with open(out, 'a') as f:
         for r in rows:
