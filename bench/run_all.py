@@ -118,6 +118,8 @@ BENCHES: tuple[Bench, ...] = (
     Bench('control_adjustment_cost', ('bench/control_adjustment_cost.py', '--out', '{out}'), 5,
           'simulated: control adjustment in flight'),
     Bench('ppk_survey', ('bench/ppk_survey.py', '--out', '{out}'), 6, 'simulated: PPK photo survey; README PPK row'),
+    Bench('ppk_formats', ('bench/ppk_formats.py', '--layouts', '--out', '{out}'), 12,
+          'simulated: geotag event delay and DJI RTK XMP photos (docs/commands.md geotag figures)'),
     Bench('photo_triangulation', ('bench/photo_triangulation.py', '--out', '{out}'), 12,
           'real-more: photo-survey speed against a bare OpenCV baseline', needs=('{data}/photos/brighton_beach',)),
     Bench('photo_triangulation_matching', ('bench/photo_triangulation_scale.py', '--photos', '100', '--matching-only',
