@@ -354,7 +354,16 @@ def survey_cells(x: dict, _lines=None) -> list:
             f'{pct(x.get("nadir_share"))} (median {f(x.get("tilt_median_deg"), ".1f")}°)',
             f'{f(x.get("reprojection_px"), ".3f")} px' + (f'; DSM: {pct(measured)} of the camera centres\' hull '
                                                           'measured by stereo' if measured is not None else '')
-            + (f' ({pct(one_pair)} by one pair only)' if one_pair is not None else ''), p]
+            + (f' ({pct(one_pair)} by one pair only)' if one_pair is not None else '') + _mapping_failed(x), p]
+
+
+def _mapping_failed(x: dict) -> str:
+    """A replay that made no map says so in its row, with its first reason (its exit status)."""
+    m = x.get('mapping') or {}
+    if m.get('mapped') is not False:
+        return ''
+    why = (m.get('failures') or ['no reason given'])[0]
+    return f'; **MAPPING FAILED** (exit {x.get("exit")}): {why}'
 
 
 def agreement_cells(x: dict, _lines=None) -> list:
