@@ -594,7 +594,8 @@ def _chain_cells(x: dict, _lines) -> list:
         return ['—'] * 4
     return [f'{x["photos"]}', f'{x["triangulate_oriented"]}', f'{x["replay_oriented"]}/{x["replay_keyframes"]}',
             '—' if share is None else f'**{x["replay_oriented_of_triangulated"]}/{x["keyframes_triangulated"]} '
-            f'({share * 100:.0f} %)**' + ('' if x.get('share_exact', True) else ' (lower bound)')]
+            f'({share * 100:.0f} %)**' + ('' if x.get('share_exact', True) else ' (lower bound)')
+            + _mapping_failed(x)]
 
 
 def _chain(label, survey, variant):
@@ -995,11 +996,12 @@ TABLES: dict[str, Table] = {
         _readme('real fixed-wing survey in flight (seneca_part, 41 near-infrared photos, `replay`)',
                 _chain('seneca_part', 'seneca', 'all'),
                 lambda x, _: f'**{x["replay_oriented_of_triangulated"]}/{x["keyframes_triangulated"]} of the keyframes '
-                f'whose photos `triangulate` orients** ({x["replay_oriented"]}/{x["replay_keyframes"]} keyframes)',
+                f'whose photos `triangulate` orients** ({x["replay_oriented"]}/{x["replay_keyframes"]} keyframes)'
+                + _mapping_failed(x),
                 '[real surveys](docs/measurements.md#real-surveys)'),
         _readme('the same, every other photo (half the forward overlap)', _chain('seneca_part', 'seneca', 'half'),
                 lambda x, _: f'{x["replay_oriented_of_triangulated"]}/{x["keyframes_triangulated"]} of `triangulate`\'s '
-                f'({x["replay_oriented"]}/{x["replay_keyframes"]} keyframes)', 'same'),
+                f'({x["replay_oriented"]}/{x["replay_keyframes"]} keyframes)' + _mapping_failed(x), 'same'),
         _readme('real DJI survey offline (brighton_beach, 18 photos, no calibration, no GCPs)', BRIGHTON_TRI,
                 lambda x, _: f'**{x["oriented"]}/{x["given"]} oriented**, reprojection {x["reprojection_px"]:.2f} px, '
                 f'cameras {x["sim_h_m"]:.2f} m H / {x["sim_v_m"]:.2f} m V from their own GPS after a similarity',
