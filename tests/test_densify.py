@@ -210,3 +210,42 @@ def test_products_that_cannot_be_made_still_write_a_failed_report(map_dir, tmp_p
     rep = json.loads((tmp_path / 'out' / 'report.json').read_text())
     assert rep['mapping']['mapped'] is False
     assert any('no products were made' in f and 'measured by 99 stereo pairs' in f for f in rep['mapping']['failures'])
+
+
+def test_a_map_that_fused_nothing_searches_around_its_tie_points_ground(tmp_path):
+    """A replay whose stereo found no partner in flight (or shed every pair) leaves a map folder without fused
+    cells. The matching after landing then takes the ground from the adjuster's tie points (kept by the map
+    stage: io/flight_inputs.save_tie_point_ground), not a height assumed 40 m under the keyframes: flown at 100 m,
+    the assumed ground's depth search misses it and no pair matches; with the tie points' ground they do."""
+    from photogram_ros.core.geodesy import LocalFrame
+    from photogram_ros.core.rotations import make_T
+    from photogram_ros.io import flight_inputs
+    from photogram_ros.io.densify import GROUND_ASSUMED, GROUND_FROM_TIE_POINTS
+    from photogram_ros.io.map_store import MapStore
+    from photogram_ros.sim.render import Exposure, Renderer
+    from photogram_ros.sim.scenario import build_world, preset
+    cfg = preset('tiny', altitude_m=100.0)
+    rng = np.random.default_rng(cfg.seed)
+    flight, terrain, _ = build_world(cfg, rng)
+    render = Renderer(terrain, cfg.camera())
+    src = tmp_path / 'map'
+    store = MapStore(src, 0.12, 256)
+    store.set_origin(LocalFrame(cfg.origin_lat_deg, cfg.origin_lon_deg, cfg.origin_h_m))
+    store.save_camera(cfg.camera())
+    heights = []
+    for k, t in enumerate((2.0, 3.4, 4.8)):   # 7 m apart at 100 m
+        st = flight.state(t)
+        T = make_T(st.map_R_cam, st.pos_enu)
+        heights.append(T[2, 3] - float(terrain.height_at(np.array([T[0, 3]]), np.array([T[1, 3]]))[0]))
+        img = render.render(T, Exposure(), rng)
+        store.save_keyframe_image(k + 1, cv2.imencode('.jpg', img, [cv2.IMWRITE_JPEG_QUALITY, 95])[1].tobytes())
+        store.save_keyframe_pose(k + 1, T)
+    assert min(heights) > 90.0
+    assumed = _densify(MapStore(src), tmp_path / 'assumed')
+    assert assumed.ground_from == GROUND_ASSUMED and assumed.pairs_done == 0 and assumed.points_fused == 0
+    x, y = np.meshgrid(np.linspace(-25, 25, 30), np.linspace(-10, 50, 30))
+    flight_inputs.save_tie_point_ground(src, float(np.median(terrain.height_at(x.ravel(), y.ravel()))), 900)
+    tied = _densify(MapStore(src), tmp_path / 'tied')
+    assert tied.ground_from == GROUND_FROM_TIE_POINTS and tied.pairs_done >= 1 and tied.points_fused > 10000
+    assert tied.gsd['flying_height_m'] == pytest.approx(np.median(heights), abs=3.0)
+    assert flight_inputs.tie_point_ground(tmp_path / 'tied') == flight_inputs.tie_point_ground(src)

@@ -103,3 +103,30 @@ def test_keyframe_fixes_that_came_before_the_georeference_still_place_the_covera
     stage.update_coverage()
     assert len(stage.coverage) == 6
     assert not stage.coverage.oriented(1000) and stage.coverage.oriented(1005)
+
+
+def test_the_tie_points_ground_is_kept_for_the_matching_after_landing(tmp_path):
+    """Each sparse cloud's median height goes to the map folder (io/flight_inputs.py), the latest one kept;
+    a cloud of fewer than MIN_TIE_POINTS_GROUND points or one that cannot be read leaves it as it was."""
+    from photogram_ros.io import flight_inputs
+    from photogram_ros.stages.map import MIN_TIE_POINTS_GROUND
+    stage = MapStage(from_dict(MapParams, {'map_dir': str(tmp_path / 'map'), 'cell_m': 0.1}), DiagnosticsLog(),
+                     Recorded())
+    root = tmp_path / 'map'
+    assert flight_inputs.tie_point_ground(root) is None
+
+    def ties(n, z):
+        pts = np.zeros(n, dtype=[('x', 'f4'), ('y', 'f4'), ('z', 'f4')])
+        pts['x'] = np.arange(n)
+        pts['z'] = z
+        return pts
+
+    stage.add_sparse(ties(100, -31.5))
+    assert flight_inputs.tie_point_ground(root) == pytest.approx(-31.5)
+    stage.add_sparse(ties(100, -29.0))
+    assert flight_inputs.tie_point_ground(root) == pytest.approx(-29.0)
+    stage.add_sparse(ties(MIN_TIE_POINTS_GROUND - 1, 5.0))
+    stage.add_sparse(np.zeros(50, dtype=[('x', 'f4')]))       # no z: said, nothing kept
+    assert flight_inputs.tie_point_ground(root) == pytest.approx(-29.0)
+    assert any('sparse cloud not used' in text for _, text in stage.diag.problems)
+    stage.close()

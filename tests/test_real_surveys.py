@@ -369,3 +369,32 @@ def test_geotags_scattered_17_m_leave_a_right_block_placed_no_better_than_them(b
     print(row['oriented'], row['given'], row['sim_h_m'], v['status'], v.get('decided_by'), v['summary'][:400])
     assert row['exit'] == 0 and row['oriented'] == row['given'] and row['nadir_share'] >= 0.95
     assert v['status'] != 'failed'
+
+
+@pytest.mark.slow
+def test_a_replay_whose_in_flight_map_fused_nothing_still_maps(bench_out, tmp_path):
+    """seneca, every other photo, replayed with an in-flight map that fused nothing: its stereo finds few partners
+    at half the overlap, and real_surveys_variants_0eecb7b (a loaded machine: the two it found shed, behind the
+    poses) ended MAPPING FAILED, the matching after landing searching a ground assumed 40 m under the keyframes.
+    Here the in-flight stereo refuses every keyframe (max_position_sigma_m 0, fix_sigma_factor 0). The matching
+    after landing takes the ground from the adjuster's tie points, at the flying height triangulate measures
+    (within 10 %), and the flight maps."""
+    import yaml
+
+    from photogram_ros.io.densify import GROUND_FROM_TIE_POINTS
+    folder = bench_out / 'blocks' / 'seneca_half'
+    rs.half_overlap_block(shared_data('photos', 'seneca_part', 'images'), folder)
+    params = yaml.safe_load((rs.ROOT / 'config' / 'replay.yaml').read_text())
+    params['stereo_node']['ros__parameters'].update(max_position_sigma_m=0.0, fix_sigma_factor=0.0)
+    (tmp_path / 'no_stereo_in_flight.yaml').write_text(yaml.safe_dump(params))
+    dst = tmp_path / 'replay'
+    run = rs.run_command(['replay', str(folder), '--out', str(dst), '--quiet', '--params',
+                          str(tmp_path / 'no_stereo_in_flight.yaml')], tmp_path / 'replay.log')
+    assert run['exit'] == 0 and run['last_line'].startswith('mapped'), run
+    done = json.loads((dst / 'run.json').read_text())
+    stereo = done['counts']['stereo']
+    assert stereo.get('pairs_done', 0) == 0 and stereo['pairs_skipped_poor_pose'] >= 10, stereo
+    assert done['densify_ground_from'] == GROUND_FROM_TIE_POINTS and done['densify_pairs'] >= 3, done
+    m = measured('seneca_half')
+    height_m = m['verdict']['figures']['ground_below']['median_height_above_ground_m']
+    assert done['gsd']['flying_height_m'] == pytest.approx(height_m, rel=0.1), (done['gsd'], m['result_file'])

@@ -92,6 +92,7 @@ def export_products(map_dir, out, params_file: str | None, crs: str = '', live_m
 
     from photogram_ros.core.geodesy import utm_epsg
     from photogram_ros.errors import PhotogramError, StorageError
+    from photogram_ros.io.densify import GROUND_ASSUMED
     from photogram_ros.io.export import export_map
     from photogram_ros.io.flight_report import build_report
     from photogram_ros.io.map_store import MapStore
@@ -117,7 +118,12 @@ def export_products(map_dir, out, params_file: str | None, crs: str = '', live_m
             d = densify_with_params(store, out / 'map_final', params_file, progress=sayer(progress))
             products = d.store
             run.update(densify_s=round(d.seconds, 2), densify_pairs=d.pairs_done, densify_stereo_s=round(d.stereo_s, 2),
-                       densify_pairs_skipped=dict(d.pairs_skipped), gsd=d.gsd, gsd_derived=d.derived)
+                       densify_pairs_skipped=dict(d.pairs_skipped), gsd=d.gsd, gsd_derived=d.derived,
+                       densify_ground_m=round(d.ground_m, 3), densify_ground_from=d.ground_from)
+            if d.ground_from == GROUND_ASSUMED:
+                notes.append(f'the dense matching searched around a ground {GROUND_ASSUMED} (the in-flight map fused '
+                             'too little and the map folder kept no tie points\' height): pairs whose ground lies '
+                             'further down found no depth')
             if d.pairs_failed:
                 run['densify_pairs_failed'] = d.pairs_failed
                 notes.append(f'{d.pairs_skipped.get("failed", 0)} pair(s) could not be matched from the final poses '

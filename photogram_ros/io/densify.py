@@ -10,8 +10,8 @@ the planner's final_* criteria (PairCriteria.for_final): one partner along and t
 keyframe (the stereo node takes one and one) down to a quarter of the image in common: a cell of the
 products is confirmed by two pairs that agree (export's min_pairs 2; one pair's cells fill in where no
 confirmed cell is near), and across lines most cells have more than two candidates.
-The map folder holds no tie points (io/map_store.py): each pair searches the ground height +- relief_m,
-unless the caller passes tie points (the flight's, or the in-flight map's surface: surface_points). The in-flight map stays
+The map folder holds no tie points (io/map_store.py), only their median height (io/flight_inputs.py): each pair
+searches the ground height (the in-flight map's, else the tie points') +- relief_m, unless the caller passes tie points (the flight's, or the in-flight map's surface: surface_points). The in-flight map stays
 what it was (what the ground station saw); the products come from the new folder. Given the map
 folder the result is deterministic, unlike the in-flight map, whose pairing depends on timing.
 """
@@ -47,6 +47,7 @@ class DensifyResult:
     pairs_skipped: dict = field(default_factory=dict)
     points_fused: int = 0
     ground_m: float = float('nan')
+    ground_from: str = ''                 # where ground_m came from (_ground_height: GROUND_FROM_MAP, ...)
     seconds: float = 0.0
     pairs_failed: list = field(default_factory=list)   # 'stamp_a/stamp_b: why' of pairs that raised
     gsd: dict | None = None               # core/gsd.GsdSettings of the flight (as_dict)
@@ -57,9 +58,17 @@ class DensifyResult:
 MAX_FAILED_NAMED = 20   # pairs_failed keeps the first ones; pairs_skipped['failed'] counts them all
 
 
-def _ground_height(store: MapStore, kfs: list[dict]) -> float:
-    """Median height of the in-flight map (the ground the depth search centres on), else 40 m below
-    the keyframes (a map without fused cells: nothing better is known)."""
+GROUND_FROM_MAP = 'the in-flight map'
+GROUND_FROM_TIE_POINTS = 'the adjuster\'s tie points'
+GROUND_ASSUMED = 'assumed 40 m below the keyframes'
+ASSUMED_HEIGHT_M = 40.0
+
+
+def _ground_height(store: MapStore, kfs: list[dict]) -> tuple[float, str]:
+    """The ground the depth search centres on (map z, m) and where it came from: the median height of the
+    in-flight map, else of the adjuster's latest tie points (io/flight_inputs.tie_point_ground: a replay whose
+    stereo found no partner or shed its pairs fused nothing), else 40 m below the keyframes (nothing better is
+    known: a pair's depth search then misses a ground much further down)."""
     z = []
     for key in store.tile_keys()[:64]:
         cells = store.load_tile(key)
@@ -67,8 +76,11 @@ def _ground_height(store: MapStore, kfs: list[dict]) -> float:
             z.append(np.asarray(cells['z'][cells['n'] > 0], float)[::7])
     z = np.concatenate(z) if z else np.zeros(0)
     if z.size >= 20:
-        return float(np.median(z))
-    return float(np.median([k['map_T_cam'][2, 3] for k in kfs])) - 40.0
+        return float(np.median(z)), GROUND_FROM_MAP
+    tie_ground_m = flight_inputs.tie_point_ground(store.root)
+    if tie_ground_m is not None:
+        return tie_ground_m, GROUND_FROM_TIE_POINTS
+    return float(np.median([k['map_T_cam'][2, 3] for k in kfs])) - ASSUMED_HEIGHT_M, GROUND_ASSUMED
 
 
 def surface_points(store: MapStore, block_cells: int = 4, max_points: int = 500_000) -> np.ndarray | None:
@@ -166,7 +178,7 @@ def densify_map(map_dir: str | Path | MapStore, out_dir: str | Path, stereo: Ste
     out = Path(out_dir)
     if out.resolve() == src.root.resolve():
         raise DataError('densify writes a new map folder: give another out_dir than the map itself')
-    ground_m = _ground_height(src, kfs)
+    ground_m, ground_from = _ground_height(src, kfs)
     # After the flight the matching has time the stereo node has not: more partners per keyframe.
     criteria = criteria.for_final()
     stereo = dataclasses.replace(stereo, min_overlap=criteria.min_overlap,
@@ -188,7 +200,7 @@ def densify_map(map_dir: str | Path | MapStore, out_dir: str | Path, stereo: Ste
     for k in kfs:
         _link_or_copy(k['image_path'], dst.keyframes_dir / k['image_path'].name)
         dst.save_keyframe_pose(k['stamp_ns'], k['map_T_cam'])
-    res = DensifyResult(out, dst, keyframes=len(kfs), ground_m=ground_m, gsd=settings.as_dict(),
+    res = DensifyResult(out, dst, keyframes=len(kfs), ground_m=ground_m, ground_from=ground_from, gsd=settings.as_dict(),
                         derived=sorted(set(names_s + names_c + names_f)))
     fuser = Fusion(fusion, dst)
     C = np.array([k['map_T_cam'][:3, 3] for k in kfs])

@@ -1,10 +1,14 @@
 """What the flight started from, kept in the map folder for the report: each keyframe's GNSS fix and the
-input camera calibration (before a final adjustment's self-calibration replaces camera.json).
+input camera calibration (before a final adjustment's self-calibration replaces camera.json); and the ground
+the adjuster's tie points found, for the matching after landing.
 
     keyframe_fixes.jsonl   one JSON object a line: stamp_ns, lat_deg, lon_deg, h_m (ellipsoidal), status
                            (NavSatStatus), optional sigma_h_m, sigma_v_m, appended as the keyframes' fixes come (`append_keyframe_fix`)
     camera_input.json      the first calibration the flight was given (`save_input_camera`), in camera.json's
                            layout (the ROS calibration YAML as JSON)
+    tie_point_ground.json  the median height (map z, m) of the adjuster's latest tie points and their count
+                           (`save_tie_point_ground`): the ground io/densify.py searches around when the in-flight
+                           map fused too little to say (a replay whose stereo found no partner or shed its pairs)
 
 The flight report reads them (`keyframe_fixes`, `input_camera`) for the GNSS residuals per photo and the
 calibration before and after; `copy_inputs` carries them into the map folder densify makes. A folder
@@ -17,8 +21,11 @@ import json
 import shutil
 from pathlib import Path
 
+import numpy as np
+
 FIXES_FILE = 'keyframe_fixes.jsonl'
 INPUT_CAMERA_FILE = 'camera_input.json'
+TIE_GROUND_FILE = 'tie_point_ground.json'
 
 
 def append_keyframe_fix(root: str | Path, stamp_ns: int, lat_deg: float, lon_deg: float, h_m: float,
@@ -72,9 +79,28 @@ def input_camera(root: str | Path):
         return None
 
 
+def save_tie_point_ground(root: str | Path, ground_m: float, tie_points: int) -> None:
+    """Keep the median height `ground_m` (map z, m) of the adjuster's latest `tie_points` tie points (each call
+    replaces the last)."""
+    path = Path(root) / TIE_GROUND_FILE
+    tmp = path.with_suffix('.json.tmp')
+    tmp.write_text(json.dumps({'ground_m': float(ground_m), 'tie_points': int(tie_points)}))
+    tmp.replace(path)
+
+
+def tie_point_ground(root: str | Path) -> float | None:
+    """The ground height save_tie_point_ground kept (map z, m), or None (no file, or not a finite number)."""
+    path = Path(root) / TIE_GROUND_FILE
+    try:
+        z = float(json.loads(path.read_text())['ground_m']) if path.exists() else float('nan')
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+    return z if np.isfinite(z) else None
+
+
 def copy_inputs(src_root: str | Path, dst_root: str | Path) -> None:
     """Carry the flight's inputs into another map folder (densify's)."""
-    for name in (FIXES_FILE, INPUT_CAMERA_FILE):
+    for name in (FIXES_FILE, INPUT_CAMERA_FILE, TIE_GROUND_FILE):
         src = Path(src_root) / name
         if src.exists():
             shutil.copyfile(src, Path(dst_root) / name)

@@ -45,6 +45,8 @@ from photogram_ros.io.map_store import CAMERA_FINAL, CAMERA_INPUT, MapStore
 from photogram_ros.params import param
 from photogram_ros.stages.report import ERROR, DiagnosticsLog
 
+MIN_TIE_POINTS_GROUND = 20   # tie points whose median height is kept as the ground (fewer say too little)
+
 STREAM_DTYPE = np.dtype([('x', np.float32), ('y', np.float32), ('z', np.float32), ('rgb', np.uint32),
                          ('count', np.uint32)])
 
@@ -150,6 +152,16 @@ def open_store(p: MapParams) -> MapStore:
         return MapStore(p.map_dir, None if p.cell_m == gsd.AUTO else p.cell_m, p.tile_cells)
     cell = gsd.REF_LENGTHS_M['cell_m'] if p.cell_m == gsd.AUTO else p.cell_m
     return MapStore(p.map_dir, cell, p.tile_cells)
+
+
+def ground_z(tie_points_map: np.ndarray | None, centre: np.ndarray) -> float | None:
+    """Median height of the tie points (N, 3, map) within 30 m of a camera centre (all of them when fewer than 10
+    are that close); None without tie points."""
+    s = tie_points_map
+    if s is None or not len(s):
+        return None
+    near = np.hypot(s[:, 0] - centre[0], s[:, 1] - centre[1]) < 30.0
+    return float(np.median(s[near, 2] if near.sum() >= 10 else s[:, 2]))
 
 
 class MapStage:
@@ -470,13 +482,21 @@ class MapStage:
 
     @_locked
     def add_sparse(self, load) -> None:
-        """Tie points (`load` or `load()`: a table with x, y, z, in `map`): the ground under the keyframes."""
+        """Tie points (`load` or `load()`: a table with x, y, z, in `map`): the ground under the keyframes for the
+        coverage; their median height kept in the map folder for the matching after landing (io/densify.py)."""
         try:
             pts = _value(load)
             xyz = np.column_stack([pts['x'], pts['y'], pts['z']]).astype(np.float64)
             self._sparse_xyz = xyz[np.all(np.isfinite(xyz), axis=1)]
         except (PhotogramError, ValueError) as exc:
             self.diag.problem(f'sparse cloud not used for the coverage: {exc}')
+            return
+        if self.params.save_keyframes and len(self._sparse_xyz) >= MIN_TIE_POINTS_GROUND:
+            try:
+                flight_inputs.save_tie_point_ground(self.store.root, float(np.median(self._sparse_xyz[:, 2])),
+                                                    len(self._sparse_xyz))
+            except OSError as exc:
+                self._write_failed('tie points\' ground height not saved', exc)
 
     @_locked
     def set_control_points(self, load) -> None:
@@ -624,14 +644,6 @@ class MapStage:
                 self.diag.count('ortho_bytes_sent', len(buf))
         self.diag.set('ortho_render_s', time.perf_counter() - t0)
 
-    def _ground_z(self, centre: np.ndarray) -> float | None:
-        """Median height of the tie points within 30 m of a camera (all of them when none is that close)."""
-        s = self._sparse_xyz
-        if s is None or not len(s):
-            return None
-        near = np.hypot(s[:, 0] - centre[0], s[:, 1] - centre[1]) < 30.0
-        return float(np.median(s[near, 2] if near.sum() >= 10 else s[:, 2]))
-
     @_locked
     def update_coverage(self) -> None:
         """The keyframes since the last update into the coverage (stand-ins for those not oriented); when it
@@ -648,7 +660,7 @@ class MapStage:
                 f: getattr(self.params, f) for f in CoverageConfig.__dataclass_fields__}), area)
         for stamp in list(self._cov_poses):
             T = self._cov_poses[stamp]
-            gz = self._ground_z(T[:3, 3])
+            gz = ground_z(self._sparse_xyz, T[:3, 3])
             if gz is None:
                 continue   # waits for the first sparse cloud
             self.coverage.set_keyframe(stamp, T, gz)
@@ -657,7 +669,7 @@ class MapStage:
             self._cov_dirty = True
         for stamp in [s for s in self._cov_fixes if s not in self._oriented and not self.coverage.oriented(s)]:
             T = self._stand_in(stamp)
-            gz = self._ground_z(T[:3, 3]) if T is not None else None
+            gz = ground_z(self._sparse_xyz, T[:3, 3]) if T is not None else None
             if gz is not None:
                 self.coverage.set_keyframe(stamp, T, gz, oriented=False)
                 self._cov_dirty = True
