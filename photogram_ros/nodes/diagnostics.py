@@ -25,11 +25,33 @@ OK, WARN, ERROR = DiagnosticStatus.OK, DiagnosticStatus.WARN, DiagnosticStatus.E
 PROBLEM_SEPARATOR = ' | '
 
 
-def steady_timer(node: Node, period_s: float, callback, callback_group=None):
+TIMER_MAX_SHARE = 0.5   # the share of the time a steady_timer's callback may take (steady_timer)
+
+
+def steady_timer(node: Node, period_s: float, callback, callback_group=None, max_share: float = TIMER_MAX_SHARE):
     """A timer of `node` on the steady clock. A node's own clock is the bag's under use_sim_time, and
     its timers stand still whenever /clock does: fine for work paced by the data, wrong for housekeeping
-    (health, flushing to disk, streaming the map) that must go on while a replay waits or has ended."""
-    return node.create_timer(period_s, callback, callback_group=callback_group,
+    (health, flushing to disk, streaming the map) that must go on while a replay waits or has ended.
+
+    The callback keeps to `max_share` (0-1] of the time: after a run of d seconds the timer's calls do nothing
+    for d x (1 / max_share - 1) s. A callback slower than its period would otherwise keep its timer ready, and
+    rclpy's executor takes ready timers before subscriptions: in a mutually exclusive callback group the node's
+    subscriptions would get no turn at all (a map whose coverage update took 4 s, each second, received no
+    keyframe image or pose for the rest of the flight)."""
+    rest = 1.0 / min(max(max_share, 1e-3), 1.0) - 1.0
+    until = [0.0]
+
+    def kept_to_its_share():
+        start = time.monotonic()
+        if start < until[0]:
+            return None
+        try:
+            return callback()
+        finally:
+            end = time.monotonic()
+            until[0] = end + (end - start) * rest
+
+    return node.create_timer(period_s, kept_to_its_share, callback_group=callback_group,
                              clock=Clock(clock_type=ClockType.STEADY_TIME))
 
 
