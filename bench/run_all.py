@@ -127,6 +127,8 @@ BENCHES: tuple[Bench, ...] = (
           'real-more: Dask matching (2 workers against 1)'),
     Bench('split_merge_paths', ('bench/split_merge_paths.py', '--photos', '100', '--split-photos', '60',
                                 '--out', '{out}'), 12, 'real-more: 104 simulated photos, one block and split-merge'),
+    Bench('split_merge_small', ('bench/split_merge_small.py', '--out', '{out}'), 8,
+          'real-more: the 40-photo survey of the slow split-merge test (its gates, tests/test_triangulate_dask_split.py)'),
     Bench('photo_triangulation_scale', ('bench/photo_triangulation_scale.py', '--photos', '600', '--modes', 'split',
                                         'single', '--counts', '1', '2', '--split-photos', '320', '--single-max', '700',
                                         '--out', '{out}'), 130,
