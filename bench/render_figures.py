@@ -424,13 +424,40 @@ def _readme(label, fig: Figure, cells, more: str) -> Figure:
                   (more,), fig.ignore)
 
 
+def _busy(load, cores) -> bool:
+    """A run that began with the machine's cores already loaded (other work beside it): its wall time is not a
+    speed figure."""
+    return load is not None and cores is not None and load >= cores
+
+
+def _busy_runs(lines: list) -> list:
+    """The runs of a scale bench's file that began on a loaded machine (`_busy`)."""
+    return [y['run'] for y in lines if isinstance(y.get('run'), dict) and y['run'].get('mode') in (None, 'split')
+            and _busy(y['run'].get('load_before'), y.get('cores'))]
+
+
+def _dask_matching_cell(x: dict, lines: list) -> str:
+    busy = _busy_runs(lines)
+    if busy:
+        return (f'2 workers against 1 not compared: the {busy[0]["workers"]}-worker run began at load '
+                f'{busy[0]["load_before"]} ({x["photos"]} simulated photos), same matches: {x.get("same_matches")}')
+    return (f'matching {x["matching_speedup"]:.2f}x faster on 2 workers than on 1 ({x["photos"]} simulated photos, '
+            f'same run), same matches: {x.get("same_matches")}')
+
+
 def _scale_cells(x: dict, lines: list) -> list:
     r = x['run']
+    cores = x.get('cores')
     cmp_ = next((y for y in lines if y.get('compare')), {})
+    busy = _busy_runs(lines)
+    wall = (f'{r["wall_s"]:.0f} s wall on {r["workers"]} worker(s) at load {r["load_before"]}'
+            + (f' on {cores} cores (other work beside it: not a speed figure)' if _busy(r['load_before'], cores) else ''))
+    speed = ''
+    if cmp_.get('speedup') and r['workers'] == 2:
+        speed = (f'; 2 workers against 1 not compared (the {busy[0]["workers"]}-worker run began at load '
+                 f'{busy[0]["load_before"]})' if busy else f'; 2 workers {cmp_["speedup"]:.2f}x faster than 1 in the same run')
     return [f'{r["oriented"]}/635 oriented, check points {cm(r["check_h_m"])} / '
-            f'{cm(r["check_v_m"])} (n={r["check_n"]}), {r["wall_s"]:.0f} s wall on {r["workers"]} worker(s) at load '
-            f'{r["load_before"]}' + (f'; 2 workers {cmp_["speedup"]:.2f}x faster than 1 in the same run'
-                                     if cmp_.get('speedup') and r['workers'] == 2 else '')]
+            f'{cm(r["check_v_m"])} (n={r["check_n"]}), ' + wall + speed]
 
 
 def _split_cells(x: dict, lines: list) -> list:
@@ -825,8 +852,7 @@ PHOTO_TRI_FIG = Figure(('photo-survey speed (`triangulate PHOTOS`) against a bar
                        '.venv/bin/python bench/photo_triangulation.py --out F')
 DASK = Figure(('Dask matching (`--workers 2` against `--workers 1`)',), 'photo_triangulation_*.jsonl',
               {'compare': 'workers 2 / workers 1', 'matching_speedup': lambda v: v is not None},
-              lambda x, _: [f'matching {x["matching_speedup"]:.2f}x faster on 2 workers than on 1 ({x["photos"]} '
-                            f'simulated photos, same run), same matches: {x.get("same_matches")}'],
+              lambda x, lines: [_dask_matching_cell(x, lines)],
               PRODUCT, '.venv/bin/python bench/photo_triangulation_scale.py --photos 100 --matching-only --counts 1 2 '
               '--out F')
 
