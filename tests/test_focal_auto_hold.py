@@ -1,8 +1,9 @@
 """`--self-calibrate auto` refines f only where the block determines it: when the final adjustment's focal length
 trades off with the cameras' height (core/at_report.py undetermined_focal), the block is adjusted again with f held at
 its given value and the report says so; an f the user asked for and the block does not determine is a warning in the
-verdict. The simulator's 104-photo survey as one block is the case that needs it (bench/split_merge_paths.py: fx 520
--> 276 px, check points 1.5 m off); here the decision is forced on the tiny survey to test the path it takes."""
+verdict. A focal that moved little is held by adjusting the block again from where it is; one that ran far (beyond
+FOCAL_READJUST_MAX of the given) by triangulating the block again. The decision is forced on the tiny survey to test
+the paths it takes."""
 
 from __future__ import annotations
 
@@ -36,7 +37,10 @@ def _triangulate(photos, out, *extra) -> tuple[int, dict]:
 
 
 @pytest.mark.slow
-def test_auto_holds_an_undetermined_focal_and_says_so(tiny_photos, tmp_path, monkeypatch):
+@pytest.mark.parametrize('moved_far', [False, True], ids=['adjusted_again', 'triangulated_again'])
+def test_auto_holds_an_undetermined_focal_and_says_so(tiny_photos, tmp_path, monkeypatch, capsys, moved_far):
+    if moved_far:   # every refined focal counts as one that ran far
+        monkeypatch.setattr(aerial_triangulation, 'FOCAL_READJUST_MAX', -1.0)
     calls, refined = [], []
     adjust = aerial_triangulation._triangulate_records
 
@@ -52,7 +56,13 @@ def test_auto_holds_an_undetermined_focal_and_says_so(tiny_photos, tmp_path, mon
     monkeypatch.setattr(aerial_triangulation, '_triangulate_records', spy)
     rc, rep = _triangulate(tiny_photos, tmp_path / 'auto')
     assert len(calls) == 1 and 'f' in calls[0]   # asked once, of the adjustment that refined f
-    assert 'f' in refined[-2] and refined[-1] == tuple(r for r in refined[-2] if r != 'f')   # adjusted again
+    said = capsys.readouterr()
+    if moved_far:   # triangulated again, f held
+        assert 'f' in refined[-2] and refined[-1] == tuple(r for r in refined[-2] if r != 'f')
+        assert 'full adjustment with f held' not in said.out + said.err
+    else:           # the same block adjusted again: no third triangulation
+        assert 'f' in refined[-1] and len(refined) == 2   # GNSS-only (the control's check), then with the GCPs
+        assert 'full adjustment with f held' in said.out + said.err
     held = [a for a in rep['assumptions'] if a.startswith('self-calibration (auto): f held at')]
     assert len(held) == 1 and 'forced by the test' in held[0]
     sc = rep['self_calibration']

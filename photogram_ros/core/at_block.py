@@ -11,7 +11,7 @@ containers.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -86,6 +86,10 @@ class Block:
         # Manual tie points by name: targets without coordinates that build geometry (not check points).
         self.ties: set[str] = set(ties)
         self.target_ids: dict[str, int] = {}
+
+    def hold_given_focal(self) -> None:
+        """The focal length (fx, fy) back at its given value; the caller's adjustments then hold it."""
+        self.camera = replace(self.camera, fx=self.camera_given.fx, fy=self.camera_given.fy)
 
     # --- growing it ---------------------------------------------------------------------------------
 

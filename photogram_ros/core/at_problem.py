@@ -260,11 +260,17 @@ class BlockAdjustment:
                              {k: self.block.kf_tracks(k) for k in self.block.registered[-self.opt.window_size:]},
                              self.block.track_kfs, self.opt.max_fixed_keyframes)
 
-    def select_self_calibration(self, candidates: tuple, iterations: int | None = None) -> tuple:
+    def select_self_calibration(self, candidates: tuple, iterations: int | None = None,
+                                from_block: bool = False) -> tuple:
         """The stepwise self-calibration (core/self_calibration.py `select_stepwise`): which of `candidates`
         the block's final adjustment refines: f, cx and cy among them always (`SELF_CALIBRATION_BASE`), the
         distortion terms when they pay. The candidates start from the camera as given (a self-calibration
-        made before is undone), and each trial adjusts one and the same problem (the block's active observations,
+        made before is undone); `from_block`: from the camera the block holds, and the candidates in which it
+        differs from the given one (the pass's self-calibration) are refined in every trial, not selected: a
+        block adjusted with the pass's lens and trialled with the given one (a strong lens's k1 of -0.12 undone,
+        28 px at the corners) starts far from its minimum, and with f free its trials fall into a block collapsed
+        onto its cameras (f 520 -> 3 px on the simulator's 104-photo survey, tests/test_self_calibration_start.py).
+        Each trial adjusts one and the same problem (the block's active observations,
         the fixes at their current weights) with its intrinsics refined, from the result of the trial of the
         intrinsics kept so far (the first, none refined, from the block as it is). A trial is measured by the RMS
         of its reprojection residuals, each capped at `max_reprojection_px` (an outlier counts no more than that;
@@ -272,10 +278,16 @@ class BlockAdjustment:
         refined values (and how far they moved from the given ones) with their sigmas and correlations with the
         block's height (asked only of a candidate that pays), and the cameras' bowl against their geotags' heights (`height_bowl`, at the block's
         radius). The block is left as it was (only the candidates back at their
-        given values): the caller adjusts it with the kept intrinsics, along the same path as an explicit list
+        given values, or, from_block, as it held them): the caller adjusts it with the kept intrinsics, along the same path as an explicit list
         of them. Returns them (also in `self.self_calibration`)."""
         iters = iterations or self.opt.full_iterations
-        self.block.camera = _with_intrinsics_of(self.block.camera, self.block.camera_given, candidates)
+        given_by_name = _intrinsics_by_name(self.block.camera_given)
+        refined_before = ()
+        if from_block:
+            held = _intrinsics_by_name(self.block.camera)
+            refined_before = tuple(c for c in candidates if held[c] != given_by_name[c])
+        else:
+            self.block.camera = _with_intrinsics_of(self.block.camera, self.block.camera_given, candidates)
         b = self.build(list(self.block.registered), [], list(self.block.points))
         if b.prob is None:
             self.self_calibration = None
@@ -283,7 +295,6 @@ class BlockAdjustment:
         prob = b.prob
 
         results = {}
-        given_by_name = _intrinsics_by_name(self.block.camera_given)
 
         def started(res):
             return replace(prob, camera=res.camera if res.camera is not None else prob.camera,
@@ -324,7 +335,7 @@ class BlockAdjustment:
         # The focal and the principal point, when asked for, are refined in every trial: what they are worth shows
         # against GCP heights or precise geotags, not in the reprojection (the simulator's PPK flight: the principal
         # point buys 0.7 % of the RMS and halves the check points' error). The distortion terms are selected.
-        base = tuple(c for c in candidates if c in SELF_CALIBRATION_BASE)
+        base = tuple(c for c in candidates if c in SELF_CALIBRATION_BASE or c in refined_before)
         sel = select_stepwise(tuple(c for c in candidates if c not in base), evaluate, base=base,
                               min_gain_fraction=self.opt.self_calibration_min_gain,
                               min_gain_px=self.opt.self_calibration_min_gain_px, determine=determine)

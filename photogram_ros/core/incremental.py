@@ -745,7 +745,9 @@ class IncrementalAT:
         if self.block.ties:
             self.block.retriangulate_ties()
         if stepwise and refine_intrinsics:
-            refine_intrinsics = self.adjustment.select_self_calibration(refine_intrinsics, iterations)
+            # The final adjustment (gnss_noise) starts from the pass's lens; a pass selects afresh from the given one.
+            refine_intrinsics = self.adjustment.select_self_calibration(refine_intrinsics, iterations,
+                                                                        from_block=gnss_noise)
         for _ in range(rounds):
             tracks = list(self.block.points)
             rep = self.adjustment.solve(list(self.block.registered), [], tracks, iterations or self.opt.full_iterations,

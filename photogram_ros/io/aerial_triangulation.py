@@ -200,6 +200,10 @@ def _self_calibration(at: IncrementalAT, before, refine: tuple, assumptions: lis
     return self_cal
 
 
+# `--self-calibrate auto` holding an undetermined f: a refined focal within this fraction of the given one is held
+# by adjusting the block again from where it is (the final adjustment, 25 s on the simulator's 104-photo survey);
+# farther, the block is triangulated again with f held (the incremental pass and the final: 2 min there).
+FOCAL_READJUST_MAX = 0.05
 PRECISE_GEOTAG_SIGMA_H_M = 0.1   # geotags stated this good (RTK, PPK) hold the cameras where they were
 
 
@@ -381,7 +385,18 @@ def adjust_and_write(block: KeyframeBlock, out: str | Path, opt: TriangulateOpti
         if log is not None:
             log(f'warning: {note}')
         refine = tuple(r for r in refine if r != 'f')
-        at, rep_adj = _triangulate_records(block, opt, control, target_obs, refine, log, tie_obs=tie_obs, steps=steps)
+        if abs(at.block.camera.fx / block.camera.fx - 1.0) <= FOCAL_READJUST_MAX:
+            # A focal that moved little left the block's shape near the one it has with f given: adjusted again from
+            # it (the final adjustment alone); one that ran far bent it, and the block is triangulated again.
+            steps.start('full adjustment with f held')
+            t_full = time.monotonic()
+            at.block.hold_given_focal()
+            rep_adj = at.full_adjustment(refine_intrinsics=refine, stepwise=True)
+            if log is not None:
+                log(f'full adjustment with f held: {rep_adj.status}, {time.monotonic() - t_full:.1f} s')
+        else:
+            at, rep_adj = _triangulate_records(block, opt, control, target_obs, refine, log, tie_obs=tie_obs,
+                                               steps=steps)
     res, inputs = finish_block(block, out, opt, at, rep_adj, refine, control, vet,
                                 gnss_without if vet is not None and target_obs else None, crs, t0, t_at, steps, log)
     return res, at, inputs, {'vetting': vet, 'control': control, 'target_obs': target_obs}
