@@ -44,4 +44,7 @@ def test_the_final_self_calibration_starts_from_the_pass_lens(tmp_path, monkeypa
     cam = res.report['camera']
     assert abs(cam['dist'][0] - (-0.12)) < 0.01 and abs(cam['fx'] / 520.0 - 1.0) < 0.01
     ck = res.report['check']['rmse']
-    assert ck['n'] >= 2 and ck['horizontal_m'] < 0.05 and ck['vertical_m'] < 0.08
+    print(f'trial f {fs}; kept {sel.kept}; camera fx {cam["fx"]:.2f} k1 {cam["dist"][0]:.4f} k2 {cam["dist"][1]:.4f}; '
+          f'check {ck}')
+    # Measured on this survey (2 check points): 1.01 cm horizontal, 1.09 cm vertical; gated at 1.5x.
+    assert ck['n'] >= 2 and ck['horizontal_m'] < 1.5 * 0.0101 and ck['vertical_m'] < 1.5 * 0.0109
